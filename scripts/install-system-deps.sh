@@ -1,0 +1,21 @@
+#!/usr/bin/env bash
+# Installs the Debian packages softphantom needs; idempotent (installs only what is missing).
+#   gmsh wheel (headless): libglu1-mesa libgl1 libxcursor1 libxft2 libxinerama1 libgomp1
+#   firmware build:        gcc-avr avr-libc binutils-avr
+set -euo pipefail
+PKGS=(libglu1-mesa libgl1 libxcursor1 libxft2 libxinerama1 libgomp1
+      gcc-avr avr-libc binutils-avr)
+missing=()
+for p in "${PKGS[@]}"; do
+  dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")
+done
+if [ ${#missing[@]} -eq 0 ]; then
+  echo "system packages: all present"
+  exit 0
+fi
+echo "system packages: installing ${missing[*]}"
+SUDO=""
+[ "$(id -u)" -ne 0 ] && SUDO="sudo"
+export DEBIAN_FRONTEND=noninteractive
+$SUDO apt-get update -qq
+$SUDO apt-get install -y -qq --no-install-recommends "${missing[@]}"

@@ -1,0 +1,5 @@
+import sys
+
+from softphantom.cli import main
+
+sys.exit(main())
