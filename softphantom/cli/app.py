@@ -14,3 +14,16 @@ app = typer.Typer(
 )
 console = Console()
 console_err = Console(stderr=True)
+
+
+@app.command()
+def version() -> None:
+    """Print the softphantom version."""
+    from softphantom import __version__
+
+    console.print(f"softphantom {__version__}")
+
+
+@app.callback()
+def _root() -> None:
+    """Sensorized soft organ phantoms: design, simulate, sense, estimate, evaluate."""
