@@ -1,0 +1,291 @@
+"""Transducer + ratiometric ADC model, tare, and raw sums → :class:`Measurement`.
+
+The transducers are ratiometric (output ∝ supply VS) and the UNO's ADC is referenced to the same
+VS, so VS cancels: a code depends on the pressure only. Datasheet figures used (NXP):
+
+* MPXV7002 (arms): Vout = VS·(0.2·P[kPa] + 0.5), rated −2 … +2 kPa, error band ±6.25 % of
+  VFSS (= ±0.25 kPa; VFSS = 0.8·VS = 4 V at 5 V), mostly offset, which the tare removes.
+* MPX4250D (urethra): Vout = VS·(0.00369·P[kPa] + 0.04), rated 0 … 250 kPa, error
+  ±(pressure error 3.45 kPa × temperature factor 1 over 0–85 °C), i.e. ±1.5 % VFSS.
+
+An ideal 10-bit ADC returns code = floor(1024·Vin/VS) clipped to 0..1023; the board sums ``osr``
+codes per channel. Derivations: docs/sensing.md.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from softphantom.errors import UserError
+from softphantom.sensing.measurement import (
+    ARM_CAVITY_VOLUMES_M3,
+    CHANNEL_NAMES,
+    P0_STANDARD_PA,
+    Measurement,
+)
+from softphantom.sensing.pneumatics import boyle_dV, tube_volume_m3
+
+ADC_BITS = 10
+
+
+@dataclass(frozen=True)
+class Transducer:
+    """A ratiometric pressure transducer: Vout/VS = k1·P[kPa] + k2 (datasheet transfer function).
+
+    ``p_min_Pa``/``p_max_Pa`` the rated range, ``error_band_Pa`` the datasheet's total error band
+    (± at 0–85 °C), ``source`` where the figures come from.
+    """
+
+    name: str
+    k1_per_kPa: float
+    k2: float
+    p_min_Pa: float
+    p_max_Pa: float
+    error_band_Pa: float
+    source: str
+
+    def ratio(self, p_Pa):
+        """Vout/VS for a gauge pressure (Pa)."""
+        return self.k1_per_kPa * np.asarray(p_Pa, float) / 1000.0 + self.k2
+
+    def pressure(self, ratio):
+        """Gauge pressure (Pa) for Vout/VS."""
+        return (np.asarray(ratio, float) - self.k2) / self.k1_per_kPa * 1000.0
+
+    @property
+    def adc_span_Pa(self) -> float:
+        """Pressure change that sweeps the whole ADC range (Vout from 0 to VS): 1/k1 kPa."""
+        return 1000.0 / self.k1_per_kPa
+
+    @property
+    def rated_span_Pa(self) -> float:
+        return self.p_max_Pa - self.p_min_Pa
+
+
+MPXV7002 = Transducer(
+    "MPXV7002", 0.2, 0.5, -2000.0, 2000.0, 250.0,
+    "NXP MPXV7002 datasheet: Vout = VS*(0.2*P[kPa] + 0.5) +/- 6.25 % VFSS",
+)
+MPX4250D = Transducer(
+    "MPX4250D", 0.00369, 0.04, 0.0, 250_000.0, 3450.0,
+    "NXP MPX4250D datasheet: Vout = VS*(0.00369*P[kPa] + 0.04) +/- (3.45 kPa x temp. factor)",
+)
+
+
+def pa_to_counts(p_Pa, transducer: Transducer = MPXV7002, osr: int = 1, bits: int = ADC_BITS):
+    """Expected oversampled raw sum for a gauge pressure (continuous; inverse of :func:`counts_to_pa`).
+
+    With input noise of a code or more, the mean of floor(1024·r) is 1024·r − ½.
+
+    >>> float(pa_to_counts(0.0, osr=100))        # MPXV7002 at 0 kPa: half scale, 100 readings
+    51150.0
+    """
+    return osr * ((1 << bits) * transducer.ratio(p_Pa) - 0.5)
+
+
+def counts_to_pa(raw, osr, transducer: Transducer = MPXV7002, bits: int = ADC_BITS):
+    """Gauge pressure (Pa, nominal datasheet zero) from an oversampled raw sum.
+
+    >>> round(float(counts_to_pa(51150 + 100 * 204.8, 100)))   # one kPa is 204.8 codes
+    1000
+    """
+    raw = np.asarray(raw, float)
+    return transducer.pressure((raw / np.asarray(osr, float) + 0.5) / (1 << bits))
+
+
+def simulate_raw(p_Pa, osr: int, rng: np.random.Generator,
+                 transducers: tuple[Transducer, ...] | None = None,
+                 noise_codes: float = 0.5, bits: int = ADC_BITS) -> np.ndarray:
+    """Raw sums a board would send for gauge pressures ``p_Pa`` (..., 5) at the transducers.
+
+    Each of the ``osr`` readings per channel is floor(1024·r + noise) clipped to the ADC range,
+    with Gaussian input noise of ``noise_codes`` (σ, in codes); pass a seeded ``rng``.
+
+    >>> r = simulate_raw(np.zeros(5), 100, np.random.default_rng(0))
+    >>> r.dtype.kind, r.shape, abs(int(r[0]) - 51150) < 50
+    ('i', (5,), True)
+    """
+    if not isinstance(osr, (int, np.integer)) or osr < 1:
+        raise UserError(f"osr must be a positive integer, got {osr!r}")
+    tr = transducers or (MPXV7002,) * 4 + (MPX4250D,)
+    p = np.asarray(p_Pa, float)
+    if p.shape[-1] != len(tr):
+        raise UserError(f"p (Pa): last axis must have {len(tr)} channels, got {p.shape}")
+    ratio = np.stack([tr[i].ratio(p[..., i]) for i in range(len(tr))], axis=-1)
+    x = (1 << bits) * ratio[..., None] + noise_codes * rng.standard_normal(p.shape + (osr,))
+    codes = np.clip(np.floor(x), 0, (1 << bits) - 1).astype(np.int64)
+    return codes.sum(axis=-1)
+
+
+def channel_status(raw, osr: int, transducers: tuple[Transducer, ...] | None = None,
+                   bits: int = ADC_BITS, margin: float = 0.1) -> str:
+    """``"ok"`` or the first problem: ``invalid:<ch>`` (sum outside 0..1023·osr), ``rail:<ch>``
+    (mean code within one code of 0 or 1023: channel disconnected, shorted or saturated), or
+    ``range:<ch>`` (beyond the transducer's rated range by more than ``margin`` of its span).
+
+    >>> channel_status([51150, 51150, 51150, 51150, 0], 100)
+    'rail:urethra'
+    """
+    tr = transducers or (MPXV7002,) * 4 + (MPX4250D,)
+    full = (1 << bits) - 1
+    raw = np.asarray(raw)
+    for i, name in enumerate(CHANNEL_NAMES[: len(tr)]):
+        r = int(raw[i])
+        if r < 0 or r > full * osr:
+            return f"invalid:{name}"
+        mean = r / osr
+        if mean <= 1.0 or mean >= full - 1.0:
+            return f"rail:{name}"
+        p = float(counts_to_pa(r, osr, tr[i], bits))
+        slack = margin * tr[i].rated_span_Pa
+        if p < tr[i].p_min_Pa - slack or p > tr[i].p_max_Pa + slack:
+            return f"range:{name}"
+    return "ok"
+
+
+@dataclass(frozen=True, eq=False)
+class SensorChain:
+    """Everything needed to turn raw sums into a :class:`Measurement` (except the tare).
+
+    ``v_total_m3`` (4,) gas volume per arm (cavity + tube + dead volume), ``transducers``
+    (5,) per channel, ``bits`` ADC resolution.
+    """
+
+    v_total_m3: np.ndarray
+    transducers: tuple[Transducer, ...] = (MPXV7002,) * 4 + (MPX4250D,)
+    bits: int = ADC_BITS
+
+    def summary(self) -> dict:
+        return {"v_total_mm3": [round(float(v) * 1e9, 3) for v in self.v_total_m3],
+                "transducers": [t.name for t in self.transducers], "adc_bits": self.bits}
+
+
+def default_chain(cavity_volumes_m3=ARM_CAVITY_VOLUMES_M3, tube_length_m: float = 12.0,
+                  tube_id_m: float = 1.2e-3, v_dead_m3: float = 0.0) -> SensorChain:
+    """The paper's chain: 4 arm cavities (514, 514, 486, 486 mm³) each behind 12 m × 1.2 mm tube.
+
+    >>> [round(v * 1e9) for v in default_chain().v_total_m3]
+    [14086, 14086, 14058, 14058]
+    """
+    vc = np.asarray(cavity_volumes_m3, float)
+    if vc.shape != (4,) or not np.all(np.isfinite(vc)) or np.any(vc <= 0):
+        raise UserError(f"cavity volumes (m³): expected 4 positive values, got {cavity_volumes_m3!r}")
+    return SensorChain(vc + tube_volume_m3(tube_length_m, tube_id_m) + float(v_dead_m3))
+
+
+@dataclass(frozen=True, eq=False)
+class Tare:
+    """Zero of each channel: ``offset_codes`` (5,) mean ADC code per reading at rest, ``p0_Pa``
+    absolute ambient pressure at tare, ``n_samples`` frames used (0 = datasheet nominal),
+    ``t_s`` host time of the window's end, ``noise_Pa`` (5,) std over the window."""
+
+    offset_codes: np.ndarray
+    p0_Pa: float
+    n_samples: int = 0
+    t_s: float = math.nan
+    noise_Pa: np.ndarray = field(default_factory=lambda: np.full(5, math.nan))
+
+    def to_dict(self) -> dict:
+        return {"offset_codes": [float(x) for x in self.offset_codes], "p0_Pa": self.p0_Pa,
+                "n_samples": self.n_samples,
+                "t_s": None if math.isnan(self.t_s) else self.t_s,
+                "noise_Pa": [None if math.isnan(x) else float(x) for x in self.noise_Pa]}
+
+    @staticmethod
+    def from_dict(d: dict) -> "Tare":
+        try:
+            off = np.asarray(d["offset_codes"], float)
+            if off.shape != (5,):
+                raise ValueError("offset_codes needs 5 values")
+            noise = np.asarray([math.nan if x is None else x for x in d.get("noise_Pa", [None] * 5)], float)
+            return Tare(off, float(d["p0_Pa"]), int(d.get("n_samples", 0)),
+                        math.nan if d.get("t_s") is None else float(d["t_s"]), noise)
+        except (KeyError, TypeError, ValueError) as exc:
+            raise UserError(f"tare: malformed ({exc})") from None
+
+
+def nominal_tare(chain: SensorChain, p0_Pa: float = P0_STANDARD_PA) -> Tare:
+    """A tare from the datasheets' zero outputs (untared; offsets up to the error band)."""
+    off = np.array([(1 << chain.bits) * t.k2 - 0.5 for t in chain.transducers])
+    return Tare(off, float(p0_Pa))
+
+
+class NotAtRestError(UserError):
+    """The tare window is not at rest (the message says which channel and why)."""
+
+
+def tare_from_window(raw, osr, t_s, chain: SensorChain, p0_Pa: float = P0_STANDARD_PA,
+                     max_std_Pa=(25.0,) * 4 + (500.0,), max_slope_Pa_per_s=(20.0,) * 4 + (2000.0,),
+                     min_samples: int = 5) -> Tare:
+    """Zero offsets from a window of frames recorded at rest; refuses a window that is not.
+
+    ``raw`` (n, 5) sums, ``osr`` scalar or (n,), ``t_s`` (n,) host times. At rest means: every frame
+    in range, and per channel the pressure's standard deviation ≤ ``max_std_Pa`` and its
+    least-squares slope ≤ ``max_slope_Pa_per_s`` (a push or a leak moves it; ≈ 5.8 Pa/s is
+    1 K/min of temperature drift). Raises :class:`NotAtRestError` naming the channel.
+
+    >>> rng = np.random.default_rng(1)
+    >>> raw = simulate_raw(np.zeros((20, 5)), 100, rng)
+    >>> tare = tare_from_window(raw, 100, np.arange(20) * 0.052, default_chain())
+    >>> tare.n_samples, bool(abs(tare.offset_codes[0] - 511.5) < 0.2)
+    (20, True)
+    """
+    raw = np.asarray(raw)
+    t = np.asarray(t_s, float)
+    n = raw.shape[0] if raw.ndim == 2 else 0
+    if raw.ndim != 2 or raw.shape[1] != 5 or t.shape != (n,):
+        raise UserError(f"tare window: expected raw (n, 5) and t (n,), got {raw.shape} and {t.shape}")
+    if n < min_samples:
+        raise NotAtRestError(f"tare window: {n} frames, need at least {min_samples}")
+    if not np.all(np.isfinite(t)):
+        raise UserError("tare window: t (s) not finite")
+    osr_a = np.broadcast_to(np.asarray(osr, float), (n,))
+    for k in range(n):
+        st = channel_status(raw[k], int(osr_a[k]), chain.transducers, chain.bits)
+        if st != "ok":
+            raise NotAtRestError(f"tare window: frame {k} is {st}")
+    codes = raw / osr_a[:, None]
+    noise = np.empty(5)
+    for i, name in enumerate(CHANNEL_NAMES):
+        p = chain.transducers[i].pressure(codes[:, i] / (1 << chain.bits))
+        noise[i] = float(np.std(p))
+        if noise[i] > max_std_Pa[i]:
+            raise NotAtRestError(
+                f"tare window: {name} not at rest (std {noise[i]:.1f} Pa > {max_std_Pa[i]:g} Pa)")
+        if t[-1] > t[0]:
+            slope = float(np.polyfit(t - t[0], p, 1)[0])
+            if abs(slope) > max_slope_Pa_per_s[i]:
+                raise NotAtRestError(f"tare window: {name} drifting ({slope:+.1f} Pa/s, limit "
+                                     f"{max_slope_Pa_per_s[i]:g} Pa/s): a push, a leak or temperature")
+    return Tare(codes.mean(axis=0), float(p0_Pa), n, float(t[-1]), noise)
+
+
+def to_measurement(t: float, seq: int, t_board: float, raw, osr: int,
+                   chain: SensorChain, tare: Tare) -> Measurement:
+    """Convert one frame's raw sums to a :class:`Measurement` (tared gauge pressures, Boyle ΔV).
+
+    >>> chain = default_chain(); tare = nominal_tare(chain)
+    >>> raw = np.array([51150 + 20480, 51150, 51150, 51150, 100 * 40.46])  # +1 kPa on front_zpos
+    >>> m = to_measurement(0.0, 7, 0.0, raw.astype(int), 100, chain, tare)
+    >>> round(float(m.dp[0])), round(float(m.dV[0] * 1e9), 1), m.status
+    (1000, -137.7, 'ok')
+    """
+    raw = np.asarray(raw, dtype=np.int64)
+    if raw.shape != (5,):
+        raise UserError(f"raw: expected 5 channel sums, got shape {raw.shape}")
+    if int(osr) < 1:
+        raise UserError(f"osr: must be ≥ 1, got {osr}")
+    status = channel_status(raw, int(osr), chain.transducers, chain.bits)
+    codes = raw / float(osr)
+    full = float(1 << chain.bits)
+    p = np.array([(codes[i] - tare.offset_codes[i]) / (full * tr.k1_per_kPa) * 1000.0
+                  for i, tr in enumerate(chain.transducers)])
+    dp = p[:4]
+    if status.startswith("invalid"):
+        dV = np.full(4, math.nan)
+    else:
+        dV = boyle_dV(dp, chain.v_total_m3, tare.p0_Pa)
+    return Measurement(float(t), int(seq), float(t_board), raw, int(osr), dp, dV, float(p[4]), status)
