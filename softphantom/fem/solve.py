@@ -1,0 +1,347 @@
+"""Static equilibrium f_int(x) = f_ext + Σ p_k ∂Φ_k/∂x + f_gravity by Newton with line search and
+load stepping, and a sparse direct solver that keeps its symbolic analysis across factorizations."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from softphantom.errors import SolverError, UserError
+from softphantom.fem.actuators import (
+    cavity_volume,
+    gravity_load,
+    pressure_load,
+    pressure_tangent_blocks,
+)
+from softphantom.fem.corotational import (
+    ElementInversionError,
+    assemble_pattern,
+    element_stiffness,
+    internal_force,
+    strain_energy,
+)
+from softphantom.fem.model import FemModel
+
+SOLVER_METHODS = ("cholmod", "cholespy", "splu")
+
+
+def _have_cholmod() -> bool:
+    try:
+        import sksparse.cholmod  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def available_solvers() -> tuple[str, ...]:
+    """The sparse direct solvers importable here, in order of preference."""
+    out = []
+    if _have_cholmod():
+        out.append("cholmod")
+    try:
+        import cholespy  # noqa: F401
+
+        out.append("cholespy")
+    except ImportError:
+        pass
+    out.append("splu")
+    return tuple(out)
+
+
+class SparseSolver:
+    """Sparse direct solver for symmetric matrices, one factorization, many right-hand sides.
+
+    ``method``: ``"cholmod"`` (scikit-sparse; the symbolic analysis is kept and reused while the
+    sparsity pattern stays the same), ``"cholespy"`` (self-contained wheel; re-analyses each time),
+    ``"splu"`` (scipy SuperLU; also takes indefinite matrices), or ``"auto"`` (the first available
+    of these). Cholesky methods raise :class:`SolverError` on a matrix that is not positive definite.
+
+    >>> import numpy as np, scipy.sparse as sp
+    >>> s = SparseSolver("splu").factorize(sp.csr_matrix(np.diag([2.0, 4.0])))
+    >>> s.solve(np.ones((2, 4)))[:, 0].tolist()
+    [0.5, 0.25]
+    """
+
+    def __init__(self, method: str = "auto") -> None:
+        if method == "auto":
+            method = available_solvers()[0]
+        if method not in SOLVER_METHODS:
+            raise UserError(f"solver must be one of {SOLVER_METHODS + ('auto',)}, got {method!r}")
+        if method == "cholmod" and not _have_cholmod():
+            raise UserError("solver 'cholmod' needs scikit-sparse (and Debian's libsuitesparse-dev)")
+        self.method = method
+        self._pattern: tuple[bytes, bytes] | None = None
+        self._factor = None
+        self.n = 0
+        self.analyses = 0  # how many symbolic analyses were done (for tests and benchmarks)
+
+    def factorize(self, A: sp.spmatrix) -> SparseSolver:
+        """Factorize symmetric ``A``; returns ``self`` for chaining."""
+        A = sp.csc_matrix(A)
+        A.sort_indices()
+        if A.shape[0] != A.shape[1]:
+            raise UserError(f"matrix must be square, got {A.shape}")
+        if not np.all(np.isfinite(A.data)):
+            raise SolverError("matrix has non-finite entries")
+        self.n = A.shape[0]
+        key = (A.indptr.tobytes(), A.indices.tobytes())
+        try:
+            if self.method == "cholmod":
+                from sksparse.cholmod import CholmodNotPositiveDefiniteError, analyze
+
+                try:
+                    if self._factor is None or key != self._pattern:
+                        self._factor = analyze(A, mode="supernodal")
+                        self.analyses += 1
+                    self._factor.cholesky_inplace(A)
+                except CholmodNotPositiveDefiniteError as exc:
+                    self._factor = None
+                    raise SolverError("matrix not positive definite (cholmod)") from exc
+            elif self.method == "cholespy":
+                from cholespy import CholeskySolverD, MatrixType
+
+                try:
+                    self._factor = CholeskySolverD(
+                        self.n, A.indptr.astype(np.int32), A.indices.astype(np.int32),
+                        np.ascontiguousarray(A.data), MatrixType.CSC,
+                    )
+                except ValueError as exc:
+                    self._factor = None
+                    raise SolverError(f"matrix not positive definite (cholespy): {exc}") from exc
+                self.analyses += 1
+            else:
+                try:
+                    self._factor = spla.splu(A)
+                except RuntimeError as exc:
+                    raise SolverError(f"singular matrix (splu): {exc}") from exc
+                self.analyses += 1
+        finally:
+            self._pattern = key if self._factor is not None else None
+        return self
+
+    def solve(self, B: np.ndarray) -> np.ndarray:
+        """Solve A X = B for (n,) or (n,k) ``B``."""
+        if self._factor is None:
+            raise SolverError("solve() before a successful factorize()")
+        B = np.asarray(B, dtype=np.float64)
+        if B.shape[0] != self.n:
+            raise UserError(f"right-hand side has {B.shape[0]} rows, matrix {self.n}")
+        if self.method == "cholmod":
+            X = self._factor(B)
+        elif self.method == "cholespy":
+            Bc = np.ascontiguousarray(B)
+            X = np.zeros_like(Bc)
+            self._factor.solve(Bc, X)
+        else:
+            X = self._factor.solve(B)
+        if not np.all(np.isfinite(X)):
+            raise SolverError("linear solve produced non-finite values")
+        return X
+
+
+@dataclass(frozen=True, eq=False)
+class StaticSolution:
+    """Result of :func:`solve_static`. ``x``, ``u``: (N,3) m. ``residual_norm``: final
+    ‖r_free‖ / max(‖f_applied‖, ‖f_int‖) (relative). ``load_fraction`` < 1 if the load stepping
+    stopped early (then ``converged`` is False and ``x`` is the last equilibrium reached)."""
+
+    x: np.ndarray
+    u: np.ndarray
+    iterations: int
+    residual_norm: float
+    converged: bool
+    status: str
+    load_steps: int = 1
+    load_fraction: float = 1.0
+
+
+def _pressure_list(fem: FemModel, pressures) -> list[tuple[np.ndarray, float]]:
+    if pressures is None:
+        return []
+    if isinstance(pressures, Mapping):
+        out = []
+        for name, p in pressures.items():
+            if name not in fem.cavities:
+                raise UserError(f"unknown cavity {name!r}; have {sorted(fem.cavities)}")
+            out.append((np.asarray(fem.cavities[name]), float(p)))
+        return out
+    return [(np.asarray(t, dtype=np.int64), float(p)) for t, p in pressures]
+
+
+def free_tangent(
+    fem: FemModel,
+    x: np.ndarray,
+    pressures: Mapping[str, float] | Sequence[tuple[np.ndarray, float]] | None = None,
+    consistent: bool = True,
+) -> sp.csr_matrix:
+    """(n_free, n_free) Jacobian of the free-DOF residual f_int − Σ p ∂Φ/∂x at ``x``: the Newton
+    matrix. Pressure terms are scattered into the mesh's own pattern, so the pattern (and a
+    :class:`SparseSolver`'s symbolic analysis) stays the same from call to call."""
+    data = assemble_pattern(fem, element_stiffness(fem, x, consistent))
+    n = fem.n_dof
+    extra = []
+    for tri, p in _pressure_list(fem, pressures):
+        if p == 0.0:
+            continue
+        r, c, v = pressure_tangent_blocks(x, tri)
+        keys = r * n + c
+        pos = np.searchsorted(fem.pattern_keys, keys)
+        pos = np.minimum(pos, fem.pattern_keys.size - 1)
+        if np.all(fem.pattern_keys[pos] == keys):
+            data = data - p * np.bincount(pos, weights=v, minlength=data.size)
+        else:  # triangles that are not faces of the mesh: fall back to a sparse sum
+            extra.append(sp.csr_matrix((-p * v, (r, c)), shape=(n, n)))
+    if extra:
+        K = sp.csr_matrix((data, fem.pattern_indices, fem.pattern_indptr), shape=(n, n))
+        K = K + sum(extra[1:], extra[0])
+        return sp.csr_matrix(K[fem.free_dofs][:, fem.free_dofs])
+    return sp.csr_matrix(
+        (data[fem.free_take], fem.ff_indices, fem.ff_indptr), shape=(fem.n_free, fem.n_free)
+    )
+
+
+def _applied(fem, x, f_fixed, plist, t):
+    f = t * f_fixed
+    for tri, p in plist:
+        f = f + (t * p) * pressure_load(x, tri, fem.n_nodes)
+    return f
+
+
+def _newton(fem, x, f_fixed, plist, t, tol, max_iter, solver, consistent):
+    """Newton at load fraction t from x. Returns (ok, x, iterations, rel_residual, reason)."""
+    free = fem.free_dofs
+    x_rest = fem.x_rest
+
+    def residual(xx):
+        fi = internal_force(fem, xx)
+        fa = _applied(fem, xx, f_fixed, plist, t)
+        ref = max(np.linalg.norm(fa), np.linalg.norm(fi), 1e-300)
+        return (fi - fa)[free], ref
+
+    def potential(xx):
+        # Total potential energy: the forces are conservative (pressure load = p ∂Φ/∂x).
+        pi = strain_energy(fem, xx) - t * np.dot(f_fixed, xx - x_rest)
+        for tri, p in plist:
+            pi -= t * p * cavity_volume(xx, tri)
+        return pi
+
+    r, ref = residual(x)
+    rn = np.linalg.norm(r)
+    pi0 = potential(x)
+    scaled = [(tri, t * p) for tri, p in plist]
+    for it in range(max_iter + 1):
+        if rn <= tol * ref:
+            return True, x, it, rn / ref, "converged"
+        if it == max_iter:
+            break
+        K = free_tangent(fem, x, scaled, consistent)
+        try:
+            d = solver.factorize(K).solve(-r)
+        except SolverError:
+            # Indefinite tangent (strong compression, pressure): LU still gives the Newton step.
+            d = SparseSolver("splu").factorize(K).solve(-r)
+        slope = float(np.dot(r, d))  # dΠ/dα at α = 0
+        alpha, accepted = 1.0, False
+        for _ in range(12):
+            xt = x.copy()
+            xt[free] += alpha * d
+            try:
+                rt, reft = residual(xt)
+                pit = potential(xt)
+            except ElementInversionError:
+                alpha *= 0.5
+                continue
+            rtn = np.linalg.norm(rt)
+            # Armijo on the energy; or a plain decrease of the residual (the energy difference is
+            # lost in round-off near convergence, and d may not descend if K is indefinite).
+            if (slope < 0 and pit <= pi0 + 1e-4 * alpha * slope) or rtn < rn or rtn <= tol * reft:
+                accepted = True
+                break
+            alpha *= 0.5
+        if not accepted:
+            return False, x, it + 1, rn / ref, "line search failed"
+        x, r, rn, ref, pi0 = xt, rt, rtn, reft, pit
+    return False, x, max_iter, rn / ref, f"no convergence in {max_iter} iterations"
+
+
+def solve_static(
+    fem: FemModel,
+    f_ext: np.ndarray | None = None,
+    pressures: Mapping[str, float] | Sequence[tuple[np.ndarray, float]] | None = None,
+    gravity: bool = False,
+    x0: np.ndarray | None = None,
+    tol: float = 1e-8,
+    max_iter: int = 25,
+    solver: str | SparseSolver = "auto",
+    *,
+    consistent: bool = True,
+    min_load_step: float = 1.0 / 1024,
+) -> StaticSolution:
+    """Quasi-static equilibrium of the co-rotational model under nodal forces ``f_ext`` ((3N,) N,
+    e.g. ``force_actuator(fem, p) @ λ``), cavity ``pressures`` (Pa; a dict cavity name → p for a
+    model with cavities, or a sequence of (triangles, p) pairs), and optionally gravity (−z).
+
+    Newton on the free DOFs with backtracking line search on the residual norm; converged when
+    ‖r_free‖ ≤ ``tol`` · max(‖f_applied‖, ‖f_int‖). If a load step fails (no convergence, line
+    search failure, inversion) the load increment is halved (adaptive load stepping). Fixed DOFs
+    stay where ``x0`` puts them (rest by default), which also prescribes displacements.
+
+    >>> import numpy as np
+    >>> from softphantom.fem.model import build_fem
+    >>> from softphantom.fem.material import Material
+    >>> X = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], float)
+    >>> fem = build_fem(X, np.array([[0, 1, 2, 3]]), Material(1e3, 0.3), fixed_nodes=[0, 1, 2])
+    >>> f = np.zeros(12); f[11] = 1.0  # 1 N along z on node 3
+    >>> sol = solve_static(fem, f, solver="splu")
+    >>> sol.converged, sol.u[3, 2] > 0
+    (True, np.True_)
+    """
+    n = fem.n_dof
+    x = fem.x_rest.copy() if x0 is None else np.array(x0, dtype=np.float64).reshape(-1)
+    if x.size != n:
+        raise UserError(f"x0 has {x.size} values, expected {n}")
+    f_fixed = np.zeros(n) if f_ext is None else np.asarray(f_ext, dtype=np.float64).reshape(-1)
+    if f_fixed.size != n:
+        raise UserError(f"f_ext has {f_fixed.size} values, expected {n}")
+    if gravity:
+        f_fixed = f_fixed + gravity_load(fem)
+    if not (np.all(np.isfinite(f_fixed)) and np.all(np.isfinite(x))):
+        raise UserError("non-finite loads or initial positions")
+    plist = _pressure_list(fem, pressures)
+    lin = solver if isinstance(solver, SparseSolver) else SparseSolver(solver)
+    internal_force(fem, x)  # raises ElementInversionError on an inverted start
+
+    t, dt, total_it, steps = 0.0, 1.0, 0, 0
+    rel, status = 0.0, "converged"
+    while t < 1.0:
+        t_try = min(1.0, t + dt)
+        ok, x_new, its, rel_try, reason = _newton(
+            fem, x, f_fixed, plist, t_try, tol, max_iter, lin, consistent
+        )
+        total_it += its
+        if ok:
+            x, t, rel = x_new, t_try, rel_try
+            steps += 1
+            if its <= 4:
+                dt *= 2.0
+        else:
+            dt *= 0.5
+            if dt < min_load_step:
+                status = f"{reason} at load fraction {t_try:.4g} (reached {t:.4g})"
+                rel = rel_try
+                break
+    X = x.reshape(-1, 3)
+    return StaticSolution(
+        x=X,
+        u=X - fem.nodes,
+        iterations=total_it,
+        residual_norm=float(rel),
+        converged=t >= 1.0,
+        status="converged" if t >= 1.0 else status,
+        load_steps=steps,
+        load_fraction=float(t),
+    )
