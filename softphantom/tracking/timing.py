@@ -46,7 +46,8 @@ def estimate_lag(
     finer median sample interval) over their common time span. At every lag the Pearson
     correlation of the overlapping parts is computed (FFT for the products, cumulative sums for
     the means, so neither a pulse nor an offset biases the peak); the channels' curves are
-    averaged with ``weights``; the peak within ``±max_lag_s`` is refined by a parabola through its
+    averaged with ``weights`` times each channel's signal-to-noise ratio ``r²/(1 − r²)`` (r its
+    peak correlation); the peak within ``±max_lag_s`` is refined by a parabola through its
     three grid points.
 
     >>> t = np.arange(0, 10, 0.01); f = lambda t: np.exp(-((t - 5) / 0.5) ** 2)
@@ -88,10 +89,15 @@ def estimate_lag(
         b = np.interp(grid, t_sig, sig[:, k])
         if np.ptp(a) == 0 or np.ptp(b) == 0 or w[k] == 0:
             continue
-        total += w[k] * _pearson_at_lags(a, b, lags)
-        wsum += w[k]
+        r = _pearson_at_lags(a, b, lags)
+        # a channel counts by its signal-to-noise ratio r²/(1 − r²) at its peak: a DoF that
+        # hardly moves (mostly tracker noise) must not pull the common peak
+        rmax = float(np.clip(r.max(), 0.0, 0.9999))
+        wk = w[k] * rmax**2 / (1.0 - rmax**2)
+        total += wk * r
+        wsum += wk
     if wsum == 0:
-        raise ValueError("no channel varies: nothing to correlate")
+        raise ValueError("no channel varies (or correlates): nothing to correlate")
     total /= wsum
     i = int(np.argmax(total))
     at_edge = i == 0 or i == len(total) - 1
