@@ -1,0 +1,186 @@
+/* softphantom sensing board: Arduino UNO (ATmega328P, 16 MHz), plain C with avr-libc.
+ *
+ * Reads ADC0..ADC3 (the four arm transducers, MPXV7002: front_zpos, front_zneg, back_xpos,
+ * back_xneg) and ADC4 (urethra, MPX4250D) against AVcc (= the transducers' supply VS, so the
+ * reading is ratiometric), sums N readings per channel round-robin (N = OSR, default 100,
+ * 1..500), and sends one DATA frame per window (docs/protocol.md) at 115200 baud:
+ *   frame time = 5 * N * 104 us  ->  N = 100: 19.2 Hz, N = 25: 76.9 Hz.
+ * Timestamp: Timer1 at clk/8 (0.5 us ticks) extended by its overflow interrupt, in us (u32,
+ * wraps after 71.6 min); a frame carries the centre of its sampling window.
+ * Commands (host -> board): SET_OSR, GET_INFO; the board answers both with an INFO frame.
+ * TX is interrupt-driven from a ring buffer, so sampling continues while a frame goes out.
+ */
+#include <avr/interrupt.h>
+#include <avr/io.h>
+#include <stdint.h>
+
+#include "frame.h"
+
+#define FW_MAJOR 1
+#define FW_MINOR 0
+#define FW_PATCH 0
+#define BAUD_UBRR 16 /* 16 MHz / (8 * (16 + 1)) = 117647 baud with U2X (+2.1 %), the Arduino setting */
+#define OSR_DEFAULT 100u
+#define OSR_MAX 500u /* 5 * 500 * 104 us = 0.26 s per frame, inside the host's 0.5 s silence limit */
+
+/* ---- time ---- */
+static volatile uint32_t t1_overflows;
+
+ISR(TIMER1_OVF_vect) { ++t1_overflows; }
+
+static uint32_t micros32(void)
+{
+    uint8_t sreg = SREG;
+    cli();
+    uint32_t ovf = t1_overflows;
+    uint16_t tcnt = TCNT1;
+    if ((TIFR1 & _BV(TOV1)) && tcnt < 0x8000u) /* overflow pending but not yet serviced */
+        ++ovf;
+    SREG = sreg;
+    /* one overflow = 65536 ticks of 0.5 us = 32768 us; u32 arithmetic wraps at 2^32 us */
+    return (ovf << 15) + (uint32_t)(tcnt >> 1);
+}
+
+/* ---- UART: TX ring buffer (interrupt-driven), RX ring buffer ---- */
+#define TXBUF 128u /* power of two; holds three DATA frames */
+#define RXBUF 64u
+static volatile uint8_t tx_buf[TXBUF];
+static volatile uint8_t tx_head, tx_tail;
+static volatile uint8_t rx_buf[RXBUF];
+static volatile uint8_t rx_head, rx_tail;
+
+ISR(USART_UDRE_vect)
+{
+    if (tx_head == tx_tail) {
+        UCSR0B &= (uint8_t)~_BV(UDRIE0);
+        return;
+    }
+    UDR0 = tx_buf[tx_tail];
+    tx_tail = (uint8_t)((tx_tail + 1u) & (TXBUF - 1u));
+}
+
+ISR(USART_RX_vect)
+{
+    uint8_t c = UDR0;
+    uint8_t next = (uint8_t)((rx_head + 1u) & (RXBUF - 1u));
+    if (next != rx_tail) { /* drop on overflow; the host's command is then simply lost */
+        rx_buf[rx_head] = c;
+        rx_head = next;
+    }
+}
+
+static void uart_init(void)
+{
+    UBRR0H = 0;
+    UBRR0L = BAUD_UBRR;
+    UCSR0A = _BV(U2X0);
+    UCSR0C = _BV(UCSZ01) | _BV(UCSZ00); /* 8N1 */
+    UCSR0B = _BV(TXEN0) | _BV(RXEN0) | _BV(RXCIE0);
+}
+
+static void uart_write(const uint8_t *b, uint8_t n)
+{
+    for (uint8_t i = 0; i < n; ++i) {
+        uint8_t next = (uint8_t)((tx_head + 1u) & (TXBUF - 1u));
+        while (next == tx_tail) /* full: wait (only when the UART is the bottleneck, N <= 5) */
+            ;
+        tx_buf[tx_head] = b[i];
+        tx_head = next;
+        UCSR0B |= _BV(UDRIE0);
+    }
+}
+
+static int uart_getc(void)
+{
+    if (rx_head == rx_tail)
+        return -1;
+    uint8_t c = rx_buf[rx_tail];
+    rx_tail = (uint8_t)((rx_tail + 1u) & (RXBUF - 1u));
+    return c;
+}
+
+/* ---- ADC ---- */
+static void adc_init(void)
+{
+    ADMUX = _BV(REFS0);                                  /* AVcc reference: ratiometric with VS */
+    ADCSRA = _BV(ADEN) | _BV(ADPS2) | _BV(ADPS1) | _BV(ADPS0); /* prescaler 128: 125 kHz, 104 us */
+    DIDR0 = 0x1F;                                        /* digital input buffers off on ADC0..4 */
+}
+
+static uint16_t adc_read(uint8_t ch)
+{
+    ADMUX = (uint8_t)(_BV(REFS0) | ch); /* the mux switches at the start of the conversion */
+    ADCSRA |= _BV(ADSC);
+    while (ADCSRA & _BV(ADSC))
+        ;
+    return ADC;
+}
+
+/* ---- protocol ---- */
+static uint16_t seq;
+static uint16_t osr = OSR_DEFAULT;
+static const uint8_t fw[3] = {FW_MAJOR, FW_MINOR, FW_PATCH};
+
+static void send_info(void)
+{
+    uint8_t payload[SP_MAX_PAYLOAD], out[SP_MAX_FRAME];
+    size_t n = sp_pack_info(payload, seq++, micros32(), fw, osr);
+    uart_write(out, (uint8_t)sp_frame(payload, n, out));
+}
+
+static uint8_t cmd_body[SP_MAX_FRAME];
+static uint8_t cmd_len;
+static uint8_t cmd_overlong; /* a body longer than any command: drop it at its delimiter */
+
+static void poll_commands(void)
+{
+    int c;
+    while ((c = uart_getc()) >= 0) {
+        if (c != 0) {
+            if (cmd_len < sizeof cmd_body)
+                cmd_body[cmd_len++] = (uint8_t)c;
+            else
+                cmd_overlong = 1;
+            continue;
+        }
+        uint8_t payload[SP_MAX_PAYLOAD];
+        int len = cmd_overlong ? -1 : sp_unframe(cmd_body, cmd_len, payload, sizeof payload);
+        cmd_len = 0;
+        cmd_overlong = 0;
+        if (len < 2 || payload[0] != SP_PROTOCOL_VERSION)
+            continue;
+        if (payload[1] == SP_CMD_SET_OSR && len == 4) {
+            uint16_t n = sp_get_u16(payload + 2);
+            if (n >= 1u && n <= OSR_MAX)
+                osr = n;
+            send_info(); /* the INFO frame tells the host which N is in force */
+        } else if (payload[1] == SP_CMD_GET_INFO && len == 2) {
+            send_info();
+        }
+    }
+}
+
+int main(void)
+{
+    TCCR1A = 0;
+    TCCR1B = _BV(CS11); /* clk/8: 0.5 us per tick */
+    TIMSK1 = _BV(TOIE1);
+    uart_init();
+    adc_init();
+    sei();
+    send_info(); /* seq 0 after a reset: the host counts a restart, not a gap */
+
+    uint8_t payload[SP_MAX_PAYLOAD], out[SP_MAX_FRAME];
+    for (;;) {
+        uint32_t sum[SP_N_CHANNELS] = {0, 0, 0, 0, 0};
+        uint16_t n = osr;
+        uint32_t t0 = micros32();
+        for (uint16_t k = 0; k < n; ++k)
+            for (uint8_t ch = 0; ch < SP_N_CHANNELS; ++ch)
+                sum[ch] += adc_read(ch); /* round-robin: every channel spans the same window */
+        uint32_t t1 = micros32();
+        size_t len = sp_pack_data(payload, seq++, t0 + (t1 - t0) / 2u, n, sum);
+        uart_write(out, (uint8_t)sp_frame(payload, len, out));
+        poll_commands();
+    }
+}

@@ -1,0 +1,90 @@
+"""Firmware: the C frame encoder (firmware/frame.c) against the Python protocol, byte for byte,
+and the AVR build's flash/RAM use on the ATmega328P."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from softphantom.sensing.protocol import (
+    DataFrame,
+    StreamDecoder,
+    crc16,
+    decode_body,
+    encode_data,
+    encode_info,
+    encode_set_osr,
+)
+
+FW = Path(__file__).resolve().parents[1] / "firmware"
+
+
+@pytest.fixture(scope="module")
+def tool(tmp_path_factory):
+    if shutil.which("gcc") is None:
+        pytest.skip("gcc not installed (scripts/install-system-deps.sh)")
+    exe = tmp_path_factory.mktemp("fw") / "frame_tool"
+    subprocess.run(["gcc", "-std=c99", "-O2", "-Wall", "-Wextra", "-Werror", str(FW / "frame.c"),
+                    str(FW / "host" / "frame_tool.c"), "-o", str(exe)], check=True)
+    return lambda *args: subprocess.run([str(exe), *map(str, args)], check=True, capture_output=True,
+                                        text=True).stdout.strip()
+
+
+def _cases():
+    rng = np.random.default_rng(2024)
+    yield 0, 0, 1, [0, 0, 0, 0, 0]                       # many zero bytes: COBS's worst pattern
+    yield 65535, 2**32 - 1, 500, [1023 * 500] * 5          # field maxima
+    yield 1, 1000, 100, [51150, 51150, 51150, 51150, 4046]
+    yield 256, 0x00FF00FF, 255, [0xFF, 0xFF00, 0xFF0000, 0xFF000000, 0x01000100]
+    for _ in range(8):
+        yield (int(rng.integers(0, 65536)), int(rng.integers(0, 2**32)), int(rng.integers(1, 501)),
+               [int(v) for v in rng.integers(0, 2**32, 5)])
+
+
+def test_crc_check_value_both_sides(tool):
+    assert tool("crc", "123456789") == "29b1" == f"{crc16(b'123456789'):04x}"
+
+
+@pytest.mark.parametrize("case", list(_cases()))
+def test_golden_frames_c_to_python_and_back(tool, case):
+    seq, t_us, osr, raw = case
+    c_frame = bytes.fromhex(tool("data", seq, t_us, osr, *raw))
+    assert c_frame == encode_data(seq, t_us, osr, raw)            # C encoder == Python encoder
+    assert 0 not in c_frame[:-1] and c_frame[-1] == 0
+    assert decode_body(c_frame[:-1]) == DataFrame(seq, t_us, osr, tuple(raw))
+    py_body = encode_data(seq, t_us, osr, raw)[:-1].hex()          # Python frame → C decoder
+    assert tool("decode", py_body) == (f"version 1 type 1 len 30 seq {seq} t_us {t_us} osr {osr} raw "
+                                       + " ".join(map(str, raw)))
+
+
+def test_c_decoder_rejects_corruption_and_reads_commands(tool):
+    body = bytearray(encode_data(5, 123, 100, [1, 2, 3, 4, 5])[:-1])
+    body[10] ^= 0x04                                             # one bit flipped in a sum
+    assert tool("decode", body.hex()) == "error crc"
+    assert tool("decode", encode_data(5, 123, 100, [1, 2, 3, 4, 5])[:-3].hex()) in ("error crc", "error cobs")
+    assert tool("decode", encode_set_osr(25)[:-1].hex()) == "version 1 type 16 len 4 osr 25"
+    info = bytes.fromhex(tool("info", 0, 42, 1, 0, 0, 100))
+    assert info == encode_info(0, 42, (1, 0, 0), 5, 100)
+    frames = StreamDecoder().feed(info)
+    assert frames[0].firmware_str == "1.0.0" and frames[0].osr == 100
+
+
+def test_firmware_fits_the_atmega328p(tmp_path, record_property):
+    if shutil.which("avr-gcc") is None or shutil.which("avr-size") is None:
+        pytest.skip("avr-gcc/avr-size not installed: run scripts/install-system-deps.sh (gcc-avr, avr-libc, binutils-avr)")
+    elf = tmp_path / "bip_sensing.elf"
+    subprocess.run(["avr-gcc", "-mmcu=atmega328p", "-DF_CPU=16000000UL", "-Os", "-std=c99", "-Wall",
+                    "-Wextra", "-Werror", "-ffunction-sections", "-fdata-sections", "-Wl,--gc-sections",
+                    str(FW / "main.c"), str(FW / "frame.c"), "-o", str(elf)], check=True)
+    out = subprocess.run(["avr-size", str(elf)], check=True, capture_output=True, text=True).stdout
+    text, data, bss = (int(v) for v in out.splitlines()[1].split()[:3])
+    flash, ram = text + data, data + bss
+    record_property("flash_bytes", flash)
+    record_property("ram_bytes", ram)
+    print(f"\nATmega328P: flash {flash} B of 32768 ({flash / 32768:.1%}), static RAM {ram} B of 2048")
+    assert flash <= 32 * 1024 - 512, f"flash {flash} B exceeds 32 KiB minus the 512 B bootloader"
+    assert ram <= 2048 - 512, f"static RAM {ram} B leaves under 512 B of the 2 KiB for the stack"
