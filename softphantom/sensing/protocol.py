@@ -170,7 +170,7 @@ class DecoderStats:
 
     ``frames_ok`` DATA frames accepted, ``info_frames`` INFO accepted, ``crc_errors`` bodies whose
     CRC failed, ``malformed`` bodies rejected for COBS/length/version/type, ``overflows`` runs of
-    more than 64 bytes without a delimiter (dropped), ``sync_discards`` an invalid partial first
+    more than 64 bytes without a delimiter (dropped up to the next delimiter), ``sync_discards`` an invalid partial first
     body (joining mid-frame; not an error), ``seq_gaps`` jumps in the sequence number,
     ``frames_lost`` sequence numbers missing in them, ``resets`` backward jumps (board restarted),
     ``bytes_in``, ``bytes_discarded``.
@@ -208,6 +208,7 @@ class StreamDecoder:
     def __init__(self) -> None:
         self._buf = bytearray()
         self._synced = False
+        self._skipping = False      # inside an overlong run: drop everything up to the next 0x00
         self._last_seq: int | None = None
         self._c = dict(DecoderStats().__dict__)
 
@@ -228,15 +229,19 @@ class StreamDecoder:
                 break
             body = bytes(buf[start:end])
             start = end + 1
-            if body:
+            if self._skipping:             # the tail of an overlong run: part of that overflow
+                c["bytes_discarded"] += len(body) + 1
+                self._skipping = False
+            elif body:
                 self._body(body, out)
             self._synced = True
         del buf[:start]
         if len(buf) > MAX_ENCODED:         # no delimiter for too long: garbage, drop it
-            c["overflows"] += 1
+            if not self._skipping:
+                c["overflows"] += 1
             c["bytes_discarded"] += len(buf)
             buf.clear()
-            self._synced = True
+            self._skipping = True
         return out
 
     def _body(self, body: bytes, out: list) -> None:
