@@ -1,0 +1,193 @@
+"""Closed-form geometry of the BIP primitives (ellipsoid, capsule, cylinder), in millimetres.
+
+Used to validate a design before meshing (clearances, points on the surface) and to state the
+design volumes the mesh is checked against. Pure numpy, no state.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+FloatArray = np.ndarray
+
+
+def ellipsoid_volume(semi_axes: tuple[float, float, float]) -> float:
+    """Volume of an ellipsoid, 4/3·π·a·b·c.
+
+    >>> round(ellipsoid_volume((1.0, 1.0, 1.0)), 6)
+    4.18879
+    """
+    a, b, c = semi_axes
+    return 4.0 / 3.0 * math.pi * a * b * c
+
+
+def capsule_volume(radius: float, cyl_length: float) -> float:
+    """Volume of a capsule: cylinder of length ``cyl_length`` plus two hemispherical ends.
+
+    >>> round(capsule_volume(1.0, 0.0), 6) == round(4 / 3 * math.pi, 6)
+    True
+    """
+    return math.pi * radius**2 * cyl_length + 4.0 / 3.0 * math.pi * radius**3
+
+
+def capsule_cyl_length(radius: float, volume: float) -> float:
+    """Cylinder length of the capsule of ``radius`` that holds ``volume`` (negative: too small).
+
+    >>> round(capsule_cyl_length(4.5, 2078.0), 3)
+    26.664
+    """
+    return (volume - 4.0 / 3.0 * math.pi * radius**3) / (math.pi * radius**2)
+
+
+def unit(v) -> FloatArray:
+    """``v`` scaled to unit length (ValueError for a zero vector)."""
+    v = np.asarray(v, dtype=float)
+    n = float(np.linalg.norm(v))
+    if not n > 0.0:
+        raise ValueError("zero vector")
+    return v / n
+
+
+def ellipsoid_level(points, semi_axes) -> FloatArray:
+    """Σ (x_i/a_i)²: < 1 inside, 1 on the surface, > 1 outside."""
+    p = np.atleast_2d(np.asarray(points, dtype=float))
+    return np.sum((p / np.asarray(semi_axes, dtype=float)) ** 2, axis=1)
+
+
+def ellipsoid_signed_distance(points, semi_axes) -> FloatArray:
+    """Euclidean signed distance to the ellipsoid surface (negative inside).
+
+    The closest point is x_i = a_i² p_i / (t + a_i²) with t the largest root of
+    Σ (a_i p_i / (t + a_i²))² = 1 (Eberly); found by bisection, vectorised. A coordinate on
+    the smallest axis is nudged off zero so the root always exists (medial-axis points).
+
+    >>> d = ellipsoid_signed_distance([[0, 0, 0], [0, 0, 5.0], [12.0, 0, 0]], (10.0, 8.0, 4.0))
+    >>> [round(float(x), 4) for x in d]
+    [-4.0, 1.0, 2.0]
+    """
+    e = np.asarray(semi_axes, dtype=float)
+    p = np.abs(np.atleast_2d(np.asarray(points, dtype=float)))
+    p = np.where(p < 1e-9, 1e-9, p)
+    e2 = e**2
+    lo = np.full(len(p), -e2.min())
+    hi = np.linalg.norm(e * p, axis=1)  # G(hi) <= 0 there
+    ep2 = (e * p) ** 2
+    for _ in range(90):  # interval ≤ 1e4 mm² → far below double resolution
+        mid = 0.5 * (lo + hi)
+        den = mid[:, None] + e2
+        g = (ep2 / (den * den)).sum(axis=1) - 1.0
+        pos = g > 0.0
+        lo = np.where(pos, mid, lo)
+        hi = np.where(pos, hi, mid)
+    t = 0.5 * (lo + hi)
+    x = e2 * p / (t[:, None] + e2)
+    d = np.linalg.norm(p - x, axis=1)
+    return np.where(ellipsoid_level(p, e) < 1.0, -d, d)
+
+
+def ray_exit(origin, direction, semi_axes) -> float | None:
+    """Largest s with origin + s·direction on the ellipsoid, or None when the line misses it.
+
+    >>> ray_exit((0, 0, 0), (0, -1, 0), (32.0, 25.0, 30.0))
+    25.0
+    """
+    o = np.asarray(origin, dtype=float) / np.asarray(semi_axes, dtype=float)
+    d = np.asarray(direction, dtype=float) / np.asarray(semi_axes, dtype=float)
+    qa, qb, qc = d @ d, 2.0 * o @ d, o @ o - 1.0
+    disc = qb * qb - 4.0 * qa * qc
+    if disc <= 0.0:
+        return None
+    return float((-qb + math.sqrt(disc)) / (2.0 * qa))
+
+
+def project_to_ellipsoid(point, semi_axes) -> FloatArray:
+    """Radial projection (from the centre) of ``point`` onto the ellipsoid surface."""
+    p = np.asarray(point, dtype=float)
+    return p / math.sqrt(float(ellipsoid_level(p, semi_axes)[0]))
+
+
+def orthonormal_frame(axis) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """(u, v, w) right-handed with w = unit(axis); deterministic choice of u."""
+    w = unit(axis)
+    helper = np.array([1.0, 0.0, 0.0]) if abs(w[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    u = unit(np.cross(helper, w))
+    v = np.cross(w, u)
+    return u, v, w
+
+
+def segment_distance(points, a, b) -> FloatArray:
+    """Distance of each point to the segment [a, b]."""
+    p = np.atleast_2d(np.asarray(points, dtype=float))
+    a = np.asarray(a, dtype=float)
+    ab = np.asarray(b, dtype=float) - a
+    L2 = float(ab @ ab)
+    s = np.zeros(len(p)) if L2 == 0.0 else np.clip((p - a) @ ab / L2, 0.0, 1.0)
+    return np.linalg.norm(p - (a + s[:, None] * ab), axis=1)
+
+
+def segment_segment_distance(a0, a1, b0, b1, samples: int = 401) -> float:
+    """Distance between two segments (dense sampling of the first; exact enough for clearances)."""
+    s = np.linspace(0.0, 1.0, samples)[:, None]
+    pts = np.asarray(a0, float) + s * (np.asarray(a1, float) - np.asarray(a0, float))
+    return float(segment_distance(pts, b0, b1).min())
+
+
+def capsule_surface_points(a, b, radius: float, spacing: float = 0.4) -> FloatArray:
+    """Points on the surface of the capsule with axis [a, b] and ``radius`` (about ``spacing`` apart)."""
+    a = np.asarray(a, dtype=float)
+    b = np.asarray(b, dtype=float)
+    u, v, w = orthonormal_frame(b - a if np.linalg.norm(b - a) > 0 else (0, 0, 1))
+    L = float(np.linalg.norm(b - a))
+    n_ang = max(16, int(math.ceil(2 * math.pi * radius / spacing)))
+    ang = np.linspace(0.0, 2 * math.pi, n_ang, endpoint=False)
+    ring = np.cos(ang)[:, None] * u + np.sin(ang)[:, None] * v
+    n_len = max(2, int(math.ceil(L / spacing)) + 1)
+    s = np.linspace(0.0, L, n_len)
+    cyl = (a + s[:, None, None] * w + radius * ring[None, :, :]).reshape(-1, 3)
+    n_pol = max(4, int(math.ceil(0.5 * math.pi * radius / spacing)))
+    pol = np.linspace(0.0, 0.5 * math.pi, n_pol + 1)[1:]
+    caps = []
+    for centre, sign in ((b, 1.0), (a, -1.0)):
+        for th in pol:
+            caps.append(centre + radius * (math.cos(th) * ring + sign * math.sin(th) * w))
+    return np.vstack([cyl, *caps])
+
+
+def disk_rim_points(centre, axis, radius: float, n: int = 64) -> FloatArray:
+    """Points on the rim circle of a disk."""
+    u, v, _ = orthonormal_frame(axis)
+    ang = np.linspace(0.0, 2 * math.pi, n, endpoint=False)
+    return np.asarray(centre, float) + radius * (np.cos(ang)[:, None] * u + np.sin(ang)[:, None] * v)
+
+
+def min_dihedral_angles_deg(nodes, tets) -> FloatArray:
+    """Smallest of the six dihedral angles of each tetrahedron, in degrees."""
+    x = np.asarray(nodes, dtype=float)[np.asarray(tets)]
+    normals = []
+    for i in range(4):
+        j, k, m = (q for q in range(4) if q != i)
+        n = np.cross(x[:, k] - x[:, j], x[:, m] - x[:, j])
+        # outward: away from the opposite vertex i
+        flip = np.einsum("ij,ij->i", n, x[:, i] - x[:, j]) > 0.0
+        n = np.where(flip[:, None], -n, n)
+        normals.append(n / np.linalg.norm(n, axis=1)[:, None])
+    out = np.full(len(x), 180.0)
+    for i in range(4):
+        for j in range(i + 1, 4):
+            c = np.clip(-np.sum(normals[i] * normals[j], axis=1), -1.0, 1.0)
+            out = np.minimum(out, np.degrees(np.arccos(c)))
+    return out
+
+
+def tet_signed_volumes(nodes, tets) -> FloatArray:
+    """Signed volume of each tetrahedron (positive for the positive orientation)."""
+    x = np.asarray(nodes, dtype=float)[np.asarray(tets)]
+    return np.einsum("ij,ij->i", x[:, 1] - x[:, 0], np.cross(x[:, 2] - x[:, 0], x[:, 3] - x[:, 0])) / 6.0
+
+
+def surface_enclosed_volume(nodes, tris) -> float:
+    """Φ = Σ x1·(x2×x3)/6 over the triangles (divergence theorem; > 0 for outward normals)."""
+    x = np.asarray(nodes, dtype=float)[np.asarray(tris)]
+    return float(np.einsum("ij,ij->i", x[:, 0], np.cross(x[:, 1], x[:, 2])).sum() / 6.0)

@@ -1,0 +1,249 @@
+"""Geometry (gmsh, OpenCASCADE kernel) and the conforming linear-tetra mesh of a :class:`BIPDesign`.
+
+Construction: the bulb is a unit sphere dilated to the ellipsoid; each arm is a cylinder from
+``start_mm`` (inside the bulb) to ``end_mm``; each cavity is a capsule (cylinder fused with two
+spheres). One ``fragment`` of the bulb with all arms and cavities makes the pieces share their
+faces (a conforming mesh); the cavity pieces are then removed non-recursively so their faces stay
+as holes in the silicone. The part of an arm inside the bulb belongs to the ``bulb`` region.
+
+Sizing: one background field, the minimum of a threshold on the distance to the cavity surfaces
+(``cavity_size_mm`` on the wall, growing to ``size_mm``), a constant ``arm_size_mm`` inside the arm
+volumes and ``size_mm`` elsewhere. Deterministic: one thread, a fixed random seed, the
+Delaunay 3-D algorithm; headless (``General.Terminal = 0``) and callable off the main thread
+(``interruptible=False``: no signal handler). gmsh is one global library, so calls are
+serialised by a lock; it is finalized after each mesh only when this module initialized it.
+
+All lengths here are mm; :mod:`softphantom.design.model` converts to SI.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from softphantom.design.params import ARM_NAMES, BIPDesign, MeshParams
+from softphantom.errors import MeshError
+
+_GMSH_LOCK = threading.Lock()  # gmsh holds process-global state; one mesh at a time
+
+REGION_IDS: dict[str, int] = {"bulb": 1, **{f"arm_{n}": i + 2 for i, n in enumerate(ARM_NAMES)}}
+CAVITY_GROUP_IDS: dict[str, int] = {n: 11 + i for i, n in enumerate((*ARM_NAMES, "urethra"))}
+FIXED_GROUP_ID = 21
+OUTER_GROUP_ID = 22
+
+
+@dataclass(frozen=True)
+class RawMesh:
+    """gmsh output in mm, before orientation/SI conversion (internal)."""
+
+    nodes_mm: np.ndarray  # (N,3)
+    tets: np.ndarray  # (M,4) 0-based
+    tet_region: np.ndarray  # (M,)
+    cavities: dict[str, np.ndarray]  # name -> (K,3), unoriented
+    fixed_faces: np.ndarray  # (F,3)
+    outer_faces: np.ndarray  # (S,3) free outer surface (without the fixed faces)
+    seconds: float
+
+
+def _capsule(occ, a, b, r) -> int:
+    ax = np.asarray(b) - np.asarray(a)
+    parts = [(3, occ.addSphere(*a, r)), (3, occ.addSphere(*b, r))]
+    if np.linalg.norm(ax) > 1e-9:
+        parts.append((3, occ.addCylinder(*a, *ax, r)))
+    out, _ = occ.fuse(parts[:1], parts[1:])
+    if len(out) != 1:
+        raise MeshError(f"capsule fuse gave {len(out)} volumes, expected 1")
+    return out[0][1]
+
+
+def _elements(dim: int, tag: int, etype: int, nper: int) -> np.ndarray:
+    import gmsh
+
+    types, _, node_tags = gmsh.model.mesh.getElements(dim, tag)
+    for t, nt in zip(types, node_tags):
+        if t == etype:
+            return np.asarray(nt, dtype=np.int64).reshape(-1, nper)
+    return np.zeros((0, nper), dtype=np.int64)
+
+
+def mesh_design(design: BIPDesign, mesh: MeshParams | None = None) -> RawMesh:
+    """Mesh ``design`` (sizes from ``mesh`` or ``design.mesh``); raises MeshError if gmsh fails."""
+    import gmsh
+
+    mp = mesh or design.mesh
+    with _GMSH_LOCK:
+        init_here = not gmsh.isInitialized()
+        if init_here:
+            gmsh.initialize(argv=["softphantom"], readConfigFiles=False, interruptible=False)
+        model_name = f"softphantom_{design.name}"
+        try:
+            gmsh.option.setNumber("General.Terminal", 0)
+            gmsh.option.setNumber("General.Verbosity", 1)
+            gmsh.logger.start()
+            gmsh.model.add(model_name)
+            t0 = time.perf_counter()
+            raw = _build(design, mp)
+            return RawMesh(**raw, seconds=time.perf_counter() - t0)
+        except MeshError:
+            raise
+        except Exception as exc:  # gmsh raises plain Exception with its last error
+            msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+            raise MeshError(f"gmsh failed on design {design.name!r}: {msg}") from None
+        finally:
+            gmsh.logger.stop()
+            try:
+                gmsh.model.setCurrent(model_name)
+                gmsh.model.remove()
+            except Exception:
+                pass
+            if init_here:
+                gmsh.finalize()
+
+
+def _build(design: BIPDesign, mp: MeshParams) -> dict:
+    import gmsh
+
+    for name, value in (
+        ("General.NumThreads", 1),
+        ("Mesh.RandomSeed", 1),
+        ("Mesh.Algorithm", 6),
+        ("Mesh.Algorithm3D", 1),
+        ("Mesh.ElementOrder", 1),
+        ("Mesh.Optimize", 1),
+        ("Mesh.OptimizeNetgen", 0),
+        ("Mesh.MeshSizeExtendFromBoundary", 0),
+        ("Mesh.MeshSizeFromPoints", 0),
+        ("Mesh.MeshSizeFromCurvature", 0),
+        ("Mesh.MeshSizeMin", 0.0),
+        ("Mesh.MeshSizeMax", max(mp.size_mm, mp.surface_size_mm)),
+        ("Geometry.OCCParallel", 0),
+    ):
+        gmsh.option.setNumber(name, value)
+    occ = gmsh.model.occ
+    a, b, c = design.bulb.semi_axes_mm
+    bulb = occ.addSphere(0.0, 0.0, 0.0, 1.0)
+    occ.dilate([(3, bulb)], 0.0, 0.0, 0.0, a, b, c)
+    geoms = design.arm_geometry()
+    arms = [occ.addCylinder(*g.start_mm, *(g.end_mm - g.start_mm), g.radius_mm) for g in geoms]
+    cavities = [_capsule(occ, *g.cavity_segment_mm, g.cavity_radius_mm) for g in geoms]
+    ua, ub = design.urethra.segment_mm
+    cavities.append(_capsule(occ, ua, ub, design.urethra.radius_mm))
+
+    tools = [(3, t) for t in arms + cavities]
+    _, out_map = occ.fragment([(3, bulb)], tools)
+    occ.synchronize()
+    pieces = [set(t for d, t in m if d == 3) for m in out_map]
+    bulb_p, arm_p, cav_p = pieces[0], pieces[1:5], pieces[5:]
+    all_cav = set().union(*cav_p)
+    cav_surfaces: dict[str, list[int]] = {}
+    for name, p in zip((*ARM_NAMES, "urethra"), cav_p):
+        if len(p) != 1:
+            raise MeshError(f"cavity {name}: fragment gave {len(p)} pieces, expected 1")
+        bnd = gmsh.model.getBoundary([(3, t) for t in sorted(p)], combined=True, oriented=False)
+        cav_surfaces[name] = sorted(abs(t) for _, t in bnd)
+    region_vols = {"bulb": sorted(bulb_p - all_cav)}
+    for name, p in zip(ARM_NAMES, arm_p):
+        region_vols[f"arm_{name}"] = sorted(p - all_cav - bulb_p)
+        if not region_vols[f"arm_{name}"]:
+            raise MeshError(f"arm {name}: no volume outside the bulb after the fragment")
+    occ.remove([(3, t) for t in sorted(all_cav)], recursive=False)
+    occ.synchronize()
+
+    # fixed faces: the arm surfaces whose centre of mass is the end-face centre
+    fixed: list[int] = []
+    for g, name in zip(geoms, ARM_NAMES):
+        bnd = gmsh.model.getBoundary([(3, t) for t in region_vols[f"arm_{name}"]], combined=True, oriented=False)
+        hits = [abs(t) for _, t in bnd if np.linalg.norm(np.array(occ.getCenterOfMass(2, abs(t))) - g.end_mm) < 1e-3]
+        if len(hits) != 1:
+            raise MeshError(f"arm {name}: found {len(hits)} end faces, expected 1")
+        fixed.append(hits[0])
+    cav_all = set(t for ts in cav_surfaces.values() for t in ts)
+    outer = []
+    for _, s in gmsh.model.getEntities(2):
+        up, _ = gmsh.model.getAdjacencies(2, s)
+        if len(up) == 1 and s not in cav_all and s not in fixed:
+            outer.append(s)
+
+    for rname, rid in REGION_IDS.items():
+        gmsh.model.addPhysicalGroup(3, region_vols[rname], rid, name=rname)
+    for cname, gid in CAVITY_GROUP_IDS.items():
+        gmsh.model.addPhysicalGroup(2, cav_surfaces[cname], gid, name=f"cavity_{cname}")
+    gmsh.model.addPhysicalGroup(2, fixed, FIXED_GROUP_ID, name="fixed")
+    gmsh.model.addPhysicalGroup(2, sorted(outer), OUTER_GROUP_ID, name="outer")
+
+    fld = gmsh.model.mesh.field
+    fields = []
+    radii = {g.name: g.cavity_radius_mm for g in geoms}
+    radii["urethra"] = design.urethra.radius_mm
+    for cname in (*ARM_NAMES, "urethra"):
+        h = mp.cavity_size_mm(radii[cname])
+        dist = fld.add("Distance")
+        fld.setNumbers(dist, "SurfacesList", cav_surfaces[cname])
+        fld.setNumber(dist, "Sampling", 60)
+        thr = fld.add("Threshold")
+        fld.setNumber(thr, "InField", dist)
+        fld.setNumber(thr, "SizeMin", h)
+        fld.setNumber(thr, "SizeMax", mp.size_mm)
+        fld.setNumber(thr, "DistMin", 0.5 * h)
+        # size grows about 1:1 with the distance from the wall
+        fld.setNumber(thr, "DistMax", 0.5 * h + 1.2 * abs(mp.size_mm - h))
+        fields.append(thr)
+    bulb_surfs = sorted(
+        abs(t) for _, t in gmsh.model.getBoundary([(3, v) for v in region_vols["bulb"]], combined=True, oriented=False)
+        if abs(t) in set(outer)
+    )
+    dist_b = fld.add("Distance")
+    fld.setNumbers(dist_b, "SurfacesList", bulb_surfs)
+    fld.setNumber(dist_b, "Sampling", 60)
+    thr_b = fld.add("Threshold")
+    fld.setNumber(thr_b, "InField", dist_b)
+    fld.setNumber(thr_b, "SizeMin", mp.surface_size_mm)
+    fld.setNumber(thr_b, "SizeMax", mp.size_mm)
+    fld.setNumber(thr_b, "DistMin", 0.5 * mp.surface_size_mm)
+    fld.setNumber(thr_b, "DistMax", 0.5 * mp.surface_size_mm + 1.2 * abs(mp.size_mm - mp.surface_size_mm))
+    arm_f = fld.add("Constant")
+    fld.setNumber(arm_f, "VIn", mp.arm_size_mm)
+    fld.setNumber(arm_f, "VOut", mp.size_mm)
+    fld.setNumbers(arm_f, "VolumesList", [t for n in ARM_NAMES for t in region_vols[f"arm_{n}"]])
+    fld.setNumber(arm_f, "IncludeBoundary", 1)
+    fmin = fld.add("Min")
+    fld.setNumbers(fmin, "FieldsList", [*fields, thr_b, arm_f])
+    fld.setAsBackgroundMesh(fmin)
+
+    gmsh.model.mesh.generate(3)
+
+    node_tags, coords, _ = gmsh.model.mesh.getNodes()
+    coords = np.asarray(coords, dtype=float).reshape(-1, 3)
+    tets, regs = [], []
+    for rname, rid in REGION_IDS.items():
+        for v in region_vols[rname]:
+            t = _elements(3, v, 4, 4)
+            tets.append(t)
+            regs.append(np.full(len(t), rid, dtype=np.int32))
+    tet_tags = np.vstack(tets)
+    used = np.unique(tet_tags)
+    # node tags -> compact 0-based indices, in tag order (deterministic)
+    lookup = np.full(int(max(node_tags.max(), used.max())) + 1, -1, dtype=np.int64)
+    lookup[used] = np.arange(len(used))
+    pos = np.full(len(lookup), -1, dtype=np.int64)
+    pos[np.asarray(node_tags, dtype=np.int64)] = np.arange(len(node_tags))
+    nodes = coords[pos[used]]
+
+    def tris(surfs):
+        t = np.vstack([_elements(2, s, 2, 3) for s in surfs]) if surfs else np.zeros((0, 3), np.int64)
+        out = lookup[t]
+        if (out < 0).any():
+            raise MeshError("a surface triangle has a node outside the tetra mesh")
+        return out
+
+    return dict(
+        nodes_mm=nodes,
+        tets=lookup[tet_tags],
+        tet_region=np.concatenate(regs),
+        cavities={n: tris(s) for n, s in cav_surfaces.items()},
+        fixed_faces=tris(fixed),
+        outer_faces=tris(sorted(outer)),
+    )

@@ -1,0 +1,326 @@
+"""The :class:`PhantomModel` (mesh + named regions, SI) and its files.
+
+``build_model(design)`` meshes a design; ``save_model(model, dir)`` writes ``model.msh`` (gmsh 2.2
+ASCII with physical groups, for gmsh/SOFA users), ``model.vtu`` (ParaView), ``design.toml`` and
+``model.npz`` (the arrays; what ``load_model`` reads back, bit-identical).
+
+Orientation conventions (docs/architecture.md): tets have positive signed volume; cavity
+triangles have ``(x2−x1)×(x3−x1)`` pointing out of the air into the silicone, so
+``Φ = Σ x1·(x2×x3)/6`` is the (positive) cavity volume; ``outer_faces`` (the free outer surface,
+*without* the fixed arm ends) and ``fixed_faces`` point outward; together they close the solid.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from softphantom.design import geometry as geo
+from softphantom.design.mesh import CAVITY_GROUP_IDS, FIXED_GROUP_ID, OUTER_GROUP_ID, REGION_IDS, RawMesh, mesh_design
+from softphantom.design.params import ARM_NAMES, BIPDesign, design_from_dict, design_to_dict, load_design, save_design
+from softphantom.errors import FileFormatError, MeshError
+
+MM = 1e-3
+MODEL_FILES = ("model.msh", "model.vtu", "design.toml", "model.npz")
+NPZ_VERSION = 1
+
+
+def _frozen(a: np.ndarray, dtype) -> np.ndarray:
+    out = np.array(a, dtype=dtype, copy=True)
+    out.setflags(write=False)
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class PhantomModel:
+    """Tetra mesh of a design with its named regions, in SI (see docs/architecture.md).
+
+    Arrays are read-only. ``mesh_seconds`` is the meshing wall time (0 for a loaded model and not
+    compared by ``==``).
+    """
+
+    design: BIPDesign
+    nodes: np.ndarray
+    tets: np.ndarray
+    tet_region: np.ndarray
+    regions: dict[str, int]
+    cavities: dict[str, np.ndarray]
+    fixed_faces: np.ndarray
+    fixed_nodes: np.ndarray
+    outer_faces: np.ndarray
+    markers: dict[str, np.ndarray]
+    targets: dict[str, np.ndarray]
+    p_ext: dict[str, np.ndarray]
+    mesh_seconds: float = field(default=0.0)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "nodes", _frozen(self.nodes, np.float64))
+        object.__setattr__(self, "tets", _frozen(self.tets, np.int64))
+        object.__setattr__(self, "tet_region", _frozen(self.tet_region, np.int32))
+        object.__setattr__(self, "fixed_faces", _frozen(self.fixed_faces, np.int64))
+        object.__setattr__(self, "fixed_nodes", _frozen(self.fixed_nodes, np.int64))
+        object.__setattr__(self, "outer_faces", _frozen(self.outer_faces, np.int64))
+        object.__setattr__(self, "regions", dict(self.regions))
+        for name in ("cavities",):
+            object.__setattr__(self, name, {k: _frozen(v, np.int64) for k, v in getattr(self, name).items()})
+        for name in ("markers", "targets", "p_ext"):
+            object.__setattr__(self, name, {k: _frozen(v, np.float64) for k, v in getattr(self, name).items()})
+        n = len(self.nodes)
+        if self.nodes.ndim != 2 or self.nodes.shape[1] != 3:
+            raise MeshError(f"nodes: expected shape (N, 3), got {self.nodes.shape}")
+        if self.tets.ndim != 2 or self.tets.shape[1] != 4 or len(self.tet_region) != len(self.tets):
+            raise MeshError(f"tets: expected (M, 4) with one region each, got {self.tets.shape}")
+        for name, arr in (("tets", self.tets), ("fixed_faces", self.fixed_faces), ("outer_faces", self.outer_faces),
+                          *((f"cavities.{k}", v) for k, v in self.cavities.items())):
+            if arr.size and (arr.min() < 0 or arr.max() >= n):
+                raise MeshError(f"{name}: node index out of range 0..{n - 1}")
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, PhantomModel):
+            return NotImplemented
+        if self.design != other.design or self.regions != other.regions:
+            return False
+        arrays = ("nodes", "tets", "tet_region", "fixed_faces", "fixed_nodes", "outer_faces")
+        if not all(np.array_equal(getattr(self, k), getattr(other, k)) for k in arrays):
+            return False
+        for k in ("cavities", "markers", "targets", "p_ext"):
+            a, b = getattr(self, k), getattr(other, k)
+            if list(a) != list(b) or not all(np.array_equal(a[n], b[n]) for n in a):
+                return False
+        return True
+
+    __hash__ = None  # type: ignore[assignment]
+
+    # --- derived figures --------------------------------------------------------------------
+    def tet_volumes(self) -> np.ndarray:
+        """Signed volume of each tet, m³ (all > 0)."""
+        return geo.tet_signed_volumes(self.nodes, self.tets)
+
+    def region_volume(self, name: str) -> float:
+        """Meshed volume of a region, m³."""
+        return float(self.tet_volumes()[self.tet_region == self.regions[name]].sum())
+
+    def cavity_volume(self, name: str) -> float:
+        """Φ of a cavity surface at rest, m³ (positive with the model's orientation)."""
+        return geo.surface_enclosed_volume(self.nodes, self.cavities[name])
+
+    def bulb_volume(self) -> float:
+        """Volume enclosed by the bulb's outer surface, m³ (the bulb region plus the urethra cavity).
+
+        The bulb region's tets fill the ellipsoid minus the urethra, so adding the urethra's Φ
+        gives the meshed counterpart of the design's 100.41 mL.
+        """
+        return self.region_volume("bulb") + self.cavity_volume("urethra")
+
+    def min_dihedral_deg(self) -> float:
+        """Smallest dihedral angle over all tets, degrees (a quality figure)."""
+        return float(geo.min_dihedral_angles_deg(self.nodes, self.tets).min())
+
+    def tube_inlets(self) -> dict[str, np.ndarray]:
+        """Where each cavity's tube enters, m: the arm end-face centres and the urethra inlet."""
+        out = {g.name: g.tube_inlet_mm * MM for g in self.design.arm_geometry()}
+        out["urethra"] = np.asarray(self.design.urethra.inlet_mm) * MM
+        return out
+
+
+def _orient(tets: np.ndarray, nodes: np.ndarray, tris: np.ndarray, into_solid: bool) -> np.ndarray:
+    """Orient boundary triangles by their one adjacent tet: normal into the solid or out of it."""
+    if len(tris) == 0:
+        return tris.reshape(0, 3)
+    faces = np.vstack([tets[:, [1, 2, 3]], tets[:, [0, 2, 3]], tets[:, [0, 1, 3]], tets[:, [0, 1, 2]]])
+    opposite = np.concatenate([tets[:, 0], tets[:, 1], tets[:, 2], tets[:, 3]])
+    key_f = np.sort(faces, axis=1)
+    key_t = np.sort(tris, axis=1)
+    n = int(nodes.shape[0])
+    enc_f = (key_f[:, 0] * n + key_f[:, 1]) * n + key_f[:, 2]
+    enc_t = (key_t[:, 0] * n + key_t[:, 1]) * n + key_t[:, 2]
+    order = np.argsort(enc_f, kind="stable")
+    idx = np.searchsorted(enc_f[order], enc_t)
+    idx = np.clip(idx, 0, len(order) - 1)
+    if not np.array_equal(enc_f[order][idx], enc_t):
+        raise MeshError("a boundary triangle is not a face of any tet")
+    opp = opposite[order[idx]]
+    x = nodes[tris]
+    nrm = np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0])
+    towards = np.einsum("ij,ij->i", nrm, nodes[opp] - x[:, 0]) > 0.0
+    flip = towards != into_solid
+    out = tris.copy()
+    out[flip, 1], out[flip, 2] = tris[flip, 2], tris[flip, 1]
+    return out
+
+
+def model_from_raw(design: BIPDesign, raw: RawMesh) -> PhantomModel:
+    """Orient and convert a raw gmsh mesh into a :class:`PhantomModel` (SI)."""
+    nodes = raw.nodes_mm * MM
+    tets = raw.tets.copy()
+    vol = geo.tet_signed_volumes(nodes, tets)
+    neg = vol < 0.0
+    tets[neg, 2], tets[neg, 3] = raw.tets[neg, 3], raw.tets[neg, 2]
+    if (np.abs(vol) <= 1e-6 * np.abs(vol).mean()).any():
+        raise MeshError(f"{int((np.abs(vol) <= 1e-6 * np.abs(vol).mean()).sum())} degenerate tets")
+    # cavity normals point out of the air into the silicone: towards the adjacent tet
+    cavities = {k: _orient(tets, nodes, v, into_solid=True) for k, v in raw.cavities.items()}
+    fixed = _orient(tets, nodes, raw.fixed_faces, into_solid=False)
+    outer = _orient(tets, nodes, raw.outer_faces, into_solid=False)
+    return PhantomModel(
+        design=design,
+        nodes=nodes,
+        tets=tets,
+        tet_region=raw.tet_region,
+        regions=dict(REGION_IDS),
+        cavities={k: cavities[k] for k in (*ARM_NAMES, "urethra")},
+        fixed_faces=fixed,
+        fixed_nodes=np.unique(fixed),
+        outer_faces=outer,
+        markers={k: v * MM for k, v in design.marker_dict.items()},
+        targets={k: v * MM for k, v in design.target_dict.items()},
+        p_ext={k: v * MM for k, v in design.p_ext_mm().items()},
+        mesh_seconds=raw.seconds,
+    )
+
+
+def build_model(design: BIPDesign, mesh_size_mm: float | None = None) -> PhantomModel:
+    """Mesh ``design``; ``mesh_size_mm`` rescales its mesh sizes (bulb size, arms and cavities in
+    proportion) and the returned ``model.design.mesh`` records the sizes used. Takes a second or
+    two at the default size, so no example runs here: ``model = build_model(BIPDesign())``.
+    """
+    if mesh_size_mm is not None:
+        # the model's design records the sizes used, so design.toml alone reproduces the mesh
+        design = dataclasses.replace(design, mesh=design.mesh.scaled_to(mesh_size_mm))
+    return model_from_raw(design, mesh_design(design, design.mesh))
+
+
+# --- files -------------------------------------------------------------------------------------
+
+def _to_meshio(model: PhantomModel):
+    import meshio
+
+    cells, phys, geom = [], [], []
+    for rname, rid in model.regions.items():
+        sel = model.tets[model.tet_region == rid]
+        cells.append(("tetra", sel))
+        phys.append(np.full(len(sel), rid, dtype=np.int64))
+    for cname, gid in CAVITY_GROUP_IDS.items():
+        cells.append(("triangle", model.cavities[cname]))
+        phys.append(np.full(len(model.cavities[cname]), gid, dtype=np.int64))
+    for tris, gid in ((model.fixed_faces, FIXED_GROUP_ID), (model.outer_faces, OUTER_GROUP_ID)):
+        cells.append(("triangle", tris))
+        phys.append(np.full(len(tris), gid, dtype=np.int64))
+    geom = [p.copy() for p in phys]
+    field_data = {name: np.array([rid, 3]) for name, rid in model.regions.items()}
+    field_data.update({f"cavity_{n}": np.array([g, 2]) for n, g in CAVITY_GROUP_IDS.items()})
+    field_data["fixed"] = np.array([FIXED_GROUP_ID, 2])
+    field_data["outer"] = np.array([OUTER_GROUP_ID, 2])
+    return meshio.Mesh(
+        np.asarray(model.nodes),
+        cells,
+        cell_data={"gmsh:physical": phys, "gmsh:geometrical": geom},
+        field_data=field_data,
+    )
+
+
+def save_model(model: PhantomModel, directory: str | Path) -> Path:
+    """Write ``model.msh``, ``model.vtu``, ``design.toml`` and ``model.npz`` into ``directory``."""
+    import meshio
+
+    out = Path(directory)
+    out.mkdir(parents=True, exist_ok=True)
+    m = _to_meshio(model)
+    meshio.write(out / "model.msh", m, file_format="gmsh22", binary=False)
+    vtu = meshio.Mesh(
+        m.points,
+        m.cells,
+        cell_data={"region": [np.asarray(p, dtype=np.int32) for p in m.cell_data["gmsh:physical"]]},
+    )
+    meshio.write(out / "model.vtu", vtu, binary=True, compression=None)
+    save_design(model.design, out / "design.toml")
+    arrays = {
+        "nodes": model.nodes,
+        "tets": model.tets,
+        "tet_region": model.tet_region,
+        "fixed_faces": model.fixed_faces,
+        "fixed_nodes": model.fixed_nodes,
+        "outer_faces": model.outer_faces,
+        **{f"cavity__{k}": v for k, v in model.cavities.items()},
+        **{f"marker__{k}": v for k, v in model.markers.items()},
+        **{f"target__{k}": v for k, v in model.targets.items()},
+        **{f"pext__{k}": v for k, v in model.p_ext.items()},
+    }
+    meta = {
+        "npz_version": NPZ_VERSION,
+        "regions": model.regions,
+        "order": {
+            "cavity": list(model.cavities),
+            "marker": list(model.markers),
+            "target": list(model.targets),
+            "pext": list(model.p_ext),
+        },
+        "design": design_to_dict(model.design),
+    }
+    arrays["meta_json"] = np.frombuffer(json.dumps(meta, sort_keys=True).encode(), dtype=np.uint8)
+    np.savez(out / "model.npz", **arrays)
+    return out
+
+
+def load_model(directory: str | Path) -> PhantomModel:
+    """Read a model written by :func:`save_model` (``model.npz``, with ``design.toml``)."""
+    d = Path(directory)
+    npz = d / "model.npz"
+    if not npz.is_file():
+        raise FileFormatError(f"{npz}: no such file (expected a directory written by `softphantom design`)")
+    try:
+        with np.load(npz, allow_pickle=False) as z:
+            data = {k: z[k] for k in z.files}
+    except Exception as exc:
+        raise FileFormatError(f"{npz}: not a readable npz archive ({exc})") from None
+    try:
+        meta = json.loads(bytes(data.pop("meta_json")).decode())
+    except KeyError:
+        raise FileFormatError(f"{npz}: missing key 'meta_json'") from None
+    if meta.get("npz_version") != NPZ_VERSION:
+        raise FileFormatError(f"{npz}: npz_version {meta.get('npz_version')!r}, this softphantom reads {NPZ_VERSION}")
+    toml = d / "design.toml"
+    design = load_design(toml) if toml.is_file() else design_from_dict(meta["design"])
+    if design_to_dict(design) != meta["design"]:
+        raise FileFormatError(f"{toml}: does not match the design stored in {npz.name}")
+    try:
+        named = {
+            pref: {k: data[f"{pref}__{k}"] for k in meta["order"][pref]}
+            for pref in ("cavity", "marker", "target", "pext")
+        }
+        return PhantomModel(
+            design=design,
+            nodes=data["nodes"],
+            tets=data["tets"],
+            tet_region=data["tet_region"],
+            regions={k: int(v) for k, v in meta["regions"].items()},
+            cavities=named["cavity"],
+            fixed_faces=data["fixed_faces"],
+            fixed_nodes=data["fixed_nodes"],
+            outer_faces=data["outer_faces"],
+            markers=named["marker"],
+            targets=named["target"],
+            p_ext=named["pext"],
+        )
+    except KeyError as exc:
+        raise FileFormatError(f"{npz}: missing array {exc.args[0]!r}") from None
+
+
+def model_summary(model: PhantomModel) -> dict[str, float]:
+    """Design vs meshed volumes (mm³) and counts, for reports and tests."""
+    out: dict[str, float] = {
+        "nodes": len(model.nodes),
+        "tets": len(model.tets),
+        "bulb_design_mm3": model.design.bulb.volume_mm3,
+        "bulb_mesh_mm3": model.bulb_volume() / MM**3,
+        "min_dihedral_deg": model.min_dihedral_deg(),
+    }
+    for name, v in model.design.cavity_volumes_mm3().items():
+        out[f"{name}_design_mm3"] = v
+        out[f"{name}_mesh_mm3"] = model.cavity_volume(name) / MM**3
+    return out
+

@@ -1,0 +1,608 @@
+"""The parametric bio-inspired prostate phantom (BIP): a small validated parameter object.
+
+Everything else (geometry, mesh, named points) is derived from a :class:`BIPDesign`. Lengths in
+the parameters are millimetres and volumes mm³ (the unit is in every field name); the mesh and
+the :class:`~softphantom.design.model.PhantomModel` convert to SI.
+
+Geometry (frame of docs/architecture.md: origin at the bulb centre, y = needle direction, the
+needle coming from −y, z up/anterior):
+
+- **bulb**: an ellipsoid with semi-axes (x, y, z); the default 32.0 × 25.0 × 29.9639 mm has the
+  paper's 100.41 mL exactly (c solved from the volume).
+- **urethra**: a closed capsule (cylinder with hemispherical ends) of ``radius_mm`` whose
+  cylinder length is derived from ``volume_mm3`` (2078 mm³), centred at ``center_mm`` (default
+  4 mm anterior) along ``axis``; ``inlet_mm`` is where its tube leaves the bulb (a point on the
+  surface; the channel itself is not meshed).
+- **arms**: four cylinders ``front_zpos``, ``front_zneg`` (needle side, above/below, cavities of
+  514 mm³) and ``back_xpos``, ``back_xneg`` (+y, left/right, 486 mm³). An arm's axis is the
+  line through ``axis_point_mm`` along ``direction``; its *root* is where that line leaves the
+  bulb. The arm cylinder starts ``embed_mm`` inside the bulb (so that it fuses with it without
+  a gap) and ends ``length_mm`` beyond the root: that end disk is the fixed face clamped to the
+  frame, and its centre is the tube inlet. The air cavity is a capsule of radius
+  ``radius_mm − wall_mm`` whose cylinder length comes from ``cavity_volume_mm3``, centred
+  ``cavity_offset_mm`` from the root along the axis.
+- **interaction** (p_ext): ``on-centre`` is where the −y axis leaves the bulb, (0, −b, 0);
+  ``off-centre`` is the point of the front surface at straight-line distance ``offcentre_mm``
+  (10 mm) from it, in the direction ``offcentre_angle_deg`` measured in the x–z plane from +x
+  towards +z (45°: diagonal, +x and +z).
+- **markers**: tracker points on the bulb surface (≥ 4, non-coplanar, not under an arm);
+  **targets**: named points inside the bulb, outside the urethra (``near_urethra`` is 3 mm
+  from its wall).
+
+A design that cannot be built raises :class:`~softphantom.errors.DesignError` on construction,
+with a one-line message naming the field and the limit.
+
+>>> d = BIPDesign()
+>>> round(d.bulb.volume_mm3, 6)
+100410.0
+>>> [a.name for a in d.arms]
+['front_zpos', 'front_zneg', 'back_xpos', 'back_xneg']
+>>> BIPDesign(bulb=BulbParams(semi_axes_mm=(32.0, -1.0, 30.0)))
+Traceback (most recent call last):
+...
+softphantom.errors.DesignError: bulb.semi_axes_mm[1] = -1 must be > 0 mm
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from softphantom.design import geometry as geo
+from softphantom.errors import DesignError
+
+Vec3 = tuple[float, float, float]
+
+ARM_NAMES: tuple[str, ...] = ("front_zpos", "front_zneg", "back_xpos", "back_xneg")
+CAVITY_NAMES: tuple[str, ...] = ARM_NAMES + ("urethra",)
+MIN_WALL_MM = 1.0
+SURFACE_TOL_MM = 0.1
+MIN_MARKERS = 4
+MIN_MARKER_SPREAD_MM = 1.0
+
+BULB_VOLUME_MM3 = 100_410.0
+URETHRA_VOLUME_MM3 = 2078.0
+CAVITY_VOLUME_VERTICAL_MM3 = 514.0  # front pair (±z)
+CAVITY_VOLUME_HORIZONTAL_MM3 = 486.0  # back pair (±x)
+_A_MM, _B_MM = 32.0, 25.0
+_C_MM = BULB_VOLUME_MM3 / (4.0 / 3.0 * math.pi * _A_MM * _B_MM)  # 29.9639… mm
+
+
+def _fmt(x: float) -> str:
+    return f"{x:.4g}"
+
+
+def _num(path: str, value: Any) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
+        raise DesignError(f"{path}: expected a number, got {value!r}")
+    v = float(value)
+    if not math.isfinite(v):
+        raise DesignError(f"{path} = {value!r} must be finite")
+    return v
+
+
+def _positive(path: str, value: Any) -> float:
+    v = _num(path, value)
+    if not v > 0.0:
+        raise DesignError(f"{path} = {_fmt(v)} must be > 0 mm")
+    return v
+
+
+def _vec3(path: str, value: Any) -> Vec3:
+    if isinstance(value, (str, bytes)) or not hasattr(value, "__len__") or len(value) != 3:
+        raise DesignError(f"{path}: expected 3 numbers [x, y, z], got {value!r}")
+    return tuple(_num(f"{path}[{i}]", v) for i, v in enumerate(value))  # type: ignore[return-value]
+
+
+def _set(obj: Any, name: str, value: Any) -> None:
+    object.__setattr__(obj, name, value)
+
+
+@dataclass(frozen=True)
+class BulbParams:
+    """The gland: an ellipsoid centred at the origin, semi-axes (x, y, z) in mm."""
+
+    semi_axes_mm: Vec3 = (_A_MM, _B_MM, _C_MM)
+
+    def __post_init__(self) -> None:
+        axes = _vec3("bulb.semi_axes_mm", self.semi_axes_mm)
+        for i, v in enumerate(axes):
+            if not v > 0.0:
+                raise DesignError(f"bulb.semi_axes_mm[{i}] = {_fmt(v)} must be > 0 mm")
+        _set(self, "semi_axes_mm", axes)
+
+    @property
+    def volume_mm3(self) -> float:
+        return geo.ellipsoid_volume(self.semi_axes_mm)
+
+
+def _default_inlet() -> Vec3:
+    # where the default urethra axis (x = 0, z = 4 mm, along y) leaves the bulb at +y (the base)
+    return (0.0, _B_MM * math.sqrt(1.0 - (4.0 / _C_MM) ** 2), 4.0)
+
+
+@dataclass(frozen=True)
+class UrethraParams:
+    """The inflatable urethra cavity: a closed capsule along ``axis`` through ``center_mm``."""
+
+    radius_mm: float = 4.5
+    volume_mm3: float = URETHRA_VOLUME_MM3
+    center_mm: Vec3 = (0.0, 0.0, 4.0)
+    axis: Vec3 = (0.0, 1.0, 0.0)
+    inlet_mm: Vec3 = field(default_factory=_default_inlet)
+
+    def __post_init__(self) -> None:
+        _set(self, "radius_mm", _positive("urethra.radius_mm", self.radius_mm))
+        _set(self, "volume_mm3", _positive("urethra.volume_mm3", self.volume_mm3))
+        _set(self, "center_mm", _vec3("urethra.center_mm", self.center_mm))
+        _set(self, "axis", _vec3("urethra.axis", self.axis))
+        _set(self, "inlet_mm", _vec3("urethra.inlet_mm", self.inlet_mm))
+        if not np.linalg.norm(self.axis) > 0.0:
+            raise DesignError("urethra.axis must be a non-zero vector")
+        sphere = 4.0 / 3.0 * math.pi * self.radius_mm**3
+        if self.cyl_length_mm < 0.0:
+            raise DesignError(
+                f"urethra.volume_mm3 = {_fmt(self.volume_mm3)} is below the sphere of "
+                f"radius_mm {_fmt(self.radius_mm)} (min {_fmt(sphere)} mm³)"
+            )
+
+    @property
+    def cyl_length_mm(self) -> float:
+        return geo.capsule_cyl_length(self.radius_mm, self.volume_mm3)
+
+    @property
+    def segment_mm(self) -> tuple[np.ndarray, np.ndarray]:
+        """End points of the capsule's axis segment (centres of the hemispherical ends)."""
+        w = geo.unit(self.axis)
+        c = np.asarray(self.center_mm)
+        h = 0.5 * self.cyl_length_mm
+        return c - h * w, c + h * w
+
+
+@dataclass(frozen=True)
+class ArmParams:
+    """One sensing arm (see the module docstring for how the fields place it)."""
+
+    name: str
+    direction: Vec3
+    cavity_volume_mm3: float
+    length_mm: float = 32.0
+    radius_mm: float = 6.0
+    wall_mm: float = 2.5
+    cavity_offset_mm: float = 17.0
+    embed_mm: float = 8.0
+    axis_point_mm: Vec3 = (0.0, 0.0, 0.0)
+
+    def __post_init__(self) -> None:
+        p = f"arms.{self.name}"
+        _set(self, "direction", _vec3(f"{p}.direction", self.direction))
+        if not np.linalg.norm(self.direction) > 0.0:
+            raise DesignError(f"{p}.direction must be a non-zero vector")
+        _set(self, "axis_point_mm", _vec3(f"{p}.axis_point_mm", self.axis_point_mm))
+        for name in ("cavity_volume_mm3", "length_mm", "radius_mm", "wall_mm", "embed_mm"):
+            _set(self, name, _positive(f"{p}.{name}", getattr(self, name)))
+        _set(self, "cavity_offset_mm", _num(f"{p}.cavity_offset_mm", self.cavity_offset_mm))
+        if self.wall_mm < MIN_WALL_MM:
+            raise DesignError(f"{p}.wall_mm = {_fmt(self.wall_mm)} is below the minimum wall of {MIN_WALL_MM:g} mm")
+        if self.wall_mm >= self.radius_mm:
+            raise DesignError(
+                f"{p}.wall_mm = {_fmt(self.wall_mm)} leaves no cavity (must be < radius_mm {_fmt(self.radius_mm)})"
+            )
+        if self.cavity_cyl_length_mm < 0.0:
+            r = self.cavity_radius_mm
+            raise DesignError(
+                f"{p}.cavity_volume_mm3 = {_fmt(self.cavity_volume_mm3)} is below the sphere of radius "
+                f"{_fmt(r)} mm (radius_mm − wall_mm; min {_fmt(4 / 3 * math.pi * r**3)} mm³)"
+            )
+
+    @property
+    def cavity_radius_mm(self) -> float:
+        return self.radius_mm - self.wall_mm
+
+    @property
+    def cavity_cyl_length_mm(self) -> float:
+        return geo.capsule_cyl_length(self.cavity_radius_mm, self.cavity_volume_mm3)
+
+
+def _default_arms() -> tuple[ArmParams, ...]:
+    v, h = CAVITY_VOLUME_VERTICAL_MM3, CAVITY_VOLUME_HORIZONTAL_MM3
+    return (
+        ArmParams("front_zpos", (0.0, -0.6, 1.0), v),
+        ArmParams("front_zneg", (0.0, -0.6, -1.0), v),
+        ArmParams("back_xpos", (1.0, 0.6, 0.0), h),
+        ArmParams("back_xneg", (-1.0, 0.6, 0.0), h),
+    )
+
+
+@dataclass(frozen=True)
+class ArmGeometry:
+    """Derived placement of one arm, mm (from :meth:`BIPDesign.arm_geometry`)."""
+
+    name: str
+    direction: np.ndarray  # unit, outward
+    root_mm: np.ndarray  # where the axis leaves the bulb
+    start_mm: np.ndarray  # inner end of the arm cylinder, inside the bulb
+    end_mm: np.ndarray  # centre of the fixed end face (= tube inlet)
+    radius_mm: float
+    cavity_radius_mm: float
+    cavity_segment_mm: tuple[np.ndarray, np.ndarray]  # capsule axis end points
+    cavity_volume_mm3: float
+
+    @property
+    def tube_inlet_mm(self) -> np.ndarray:
+        return self.end_mm
+
+
+@dataclass(frozen=True)
+class InteractionParams:
+    """Where p_ext lies: ``off-centre`` is ``offcentre_mm`` from ``on-centre`` (straight line)."""
+
+    offcentre_mm: float = 10.0
+    offcentre_angle_deg: float = 45.0
+
+    def __post_init__(self) -> None:
+        _set(self, "offcentre_mm", _positive("interaction.offcentre_mm", self.offcentre_mm))
+        _set(self, "offcentre_angle_deg", _num("interaction.offcentre_angle_deg", self.offcentre_angle_deg))
+
+
+@dataclass(frozen=True)
+class MeshParams:
+    """Target element sizes: ``size_mm`` inside the bulb, ``surface_size_mm`` on its outer
+    surface, ``arm_size_mm`` in the arms; on each cavity wall ``2π·r / cavity_segments`` (r the
+    cavity radius), so every cavity gets the same relative volume accuracy.
+
+    ``--mesh-size-mm H`` scales all sizes by H / size_mm (and the segments by its inverse).
+
+    >>> MeshParams().scaled_to(12.0).arm_size_mm
+    6.0
+    """
+
+    size_mm: float = 6.0
+    surface_size_mm: float = 4.0
+    arm_size_mm: float = 3.0
+    cavity_segments: float = 22.0
+
+    def __post_init__(self) -> None:
+        for name in ("size_mm", "surface_size_mm", "arm_size_mm"):
+            _set(self, name, _positive(f"mesh.{name}", getattr(self, name)))
+        n = _num("mesh.cavity_segments", self.cavity_segments)
+        if n < 6.0:
+            raise DesignError(f"mesh.cavity_segments = {_fmt(n)} must be >= 6")
+        _set(self, "cavity_segments", n)
+
+    def cavity_size_mm(self, radius_mm: float) -> float:
+        """Element size on the wall of a cavity of ``radius_mm``."""
+        return 2.0 * math.pi * radius_mm / self.cavity_segments
+
+    def scaled_to(self, size_mm: float) -> "MeshParams":
+        """The same grading with a bulb size of ``size_mm``."""
+        s = _positive("mesh.size_mm", size_mm) / self.size_mm
+        return MeshParams(size_mm, self.surface_size_mm * s, self.arm_size_mm * s, max(6.0, self.cavity_segments / s))
+
+
+def _on_surface(direction: Vec3) -> Vec3:
+    p = geo.project_to_ellipsoid(direction, (_A_MM, _B_MM, _C_MM))
+    return tuple(float(x) for x in p)  # type: ignore[return-value]
+
+
+def _default_markers() -> tuple[tuple[str, Vec3], ...]:
+    # five sockets spread over the bulb, away from the arm roots and from p_ext
+    dirs = {
+        "m1": (1.0, -0.3, 0.35),
+        "m2": (-1.0, -0.3, 0.35),
+        "m3": (0.35, 0.2, 1.0),
+        "m4": (-0.5, 0.2, -1.0),
+        "m5": (0.3, 1.0, -0.5),
+    }
+    return tuple((k, _on_surface(v)) for k, v in dirs.items())
+
+
+def _default_targets() -> tuple[tuple[str, Vec3], ...]:
+    return (
+        ("seed_apex", (-8.0, -14.0, -6.0)),
+        ("seed_mid", (10.0, 2.0, -8.0)),
+        ("seed_base", (-6.0, 14.0, 10.0)),
+        # 3 mm lateral of the urethra wall (radius 4.5 mm, axis x = 0, z = 4 mm)
+        ("near_urethra", (7.5, 0.0, 4.0)),
+    )
+
+
+def _named_points(path: str, value: Any) -> tuple[tuple[str, Vec3], ...]:
+    items = value.items() if isinstance(value, dict) else value
+    out = []
+    seen = set()
+    for item in items:
+        if not (isinstance(item, (tuple, list)) and len(item) == 2 and isinstance(item[0], str)):
+            raise DesignError(f"{path}: expected name = [x, y, z] pairs, got {item!r}")
+        name, xyz = item
+        if not name or name in seen:
+            raise DesignError(f"{path}: duplicate or empty name {name!r}")
+        seen.add(name)
+        out.append((name, _vec3(f"{path}.{name}", xyz)))
+    return tuple(out)
+
+
+@dataclass(frozen=True)
+class BIPDesign:
+    """The validated BIP design (defaults reproduce the paper; see the module docstring)."""
+
+    name: str = "bip"
+    bulb: BulbParams = field(default_factory=BulbParams)
+    urethra: UrethraParams = field(default_factory=UrethraParams)
+    arms: tuple[ArmParams, ...] = field(default_factory=_default_arms)
+    interaction: InteractionParams = field(default_factory=InteractionParams)
+    markers: tuple[tuple[str, Vec3], ...] = field(default_factory=_default_markers)
+    targets: tuple[tuple[str, Vec3], ...] = field(default_factory=_default_targets)
+    mesh: MeshParams = field(default_factory=MeshParams)
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.name, str) or not self.name:
+            raise DesignError(f"name: expected a non-empty string, got {self.name!r}")
+        _set(self, "arms", tuple(self.arms))
+        _set(self, "markers", _named_points("markers", self.markers))
+        _set(self, "targets", _named_points("targets", self.targets))
+        for sub, cls in (("bulb", BulbParams), ("urethra", UrethraParams), ("interaction", InteractionParams), ("mesh", MeshParams)):
+            if not isinstance(getattr(self, sub), cls):
+                raise DesignError(f"{sub}: expected {cls.__name__}, got {type(getattr(self, sub)).__name__}")
+        names = tuple(a.name if isinstance(a, ArmParams) else None for a in self.arms)
+        if names != ARM_NAMES:
+            raise DesignError(f"arms: expected exactly {list(ARM_NAMES)} in this order, got {list(names)}")
+        _validate_geometry(self)
+
+    # --- derived geometry (mm) -------------------------------------------------------------
+    def arm_geometry(self) -> tuple[ArmGeometry, ...]:
+        """Placement of the four arms, in the sensor order."""
+        return tuple(_arm_geometry(a, self.bulb.semi_axes_mm) for a in self.arms)
+
+    def p_ext_mm(self) -> dict[str, np.ndarray]:
+        """The interaction points ``on-centre`` and ``off-centre``, mm."""
+        return _p_ext(self.bulb.semi_axes_mm, self.interaction)
+
+    @property
+    def marker_dict(self) -> dict[str, np.ndarray]:
+        return {k: np.asarray(v) for k, v in self.markers}
+
+    @property
+    def target_dict(self) -> dict[str, np.ndarray]:
+        return {k: np.asarray(v) for k, v in self.targets}
+
+    def cavity_volumes_mm3(self) -> dict[str, float]:
+        """Design volume of each cavity (arms in the sensor order, then ``urethra``)."""
+        out = {a.name: a.cavity_volume_mm3 for a in self.arms}
+        out["urethra"] = self.urethra.volume_mm3
+        return out
+
+
+def _arm_geometry(arm: ArmParams, axes: Vec3) -> ArmGeometry:
+    d = geo.unit(arm.direction)
+    o = np.asarray(arm.axis_point_mm)
+    s = geo.ray_exit(o, d, axes)
+    if s is None:
+        raise DesignError(f"arms.{arm.name}: the arm misses the bulb (its axis does not meet the ellipsoid)")
+    root = o + s * d
+    c = root + arm.cavity_offset_mm * d
+    h = 0.5 * arm.cavity_cyl_length_mm
+    return ArmGeometry(
+        name=arm.name,
+        direction=d,
+        root_mm=root,
+        start_mm=root - arm.embed_mm * d,
+        end_mm=root + arm.length_mm * d,
+        radius_mm=arm.radius_mm,
+        cavity_radius_mm=arm.cavity_radius_mm,
+        cavity_segment_mm=(c - h * d, c + h * d),
+        cavity_volume_mm3=arm.cavity_volume_mm3,
+    )
+
+
+def _front_point(axes: Vec3, t: float, angle: float) -> np.ndarray:
+    a, b, c = axes
+    x, z = t * math.cos(angle), t * math.sin(angle)
+    q = max(0.0, 1.0 - (x / a) ** 2 - (z / c) ** 2)
+    return np.array([x, -b * math.sqrt(q), z])
+
+
+def _p_ext(axes: Vec3, inter: InteractionParams) -> dict[str, np.ndarray]:
+    a, b, c = axes
+    on = np.array([0.0, -b, 0.0])
+    ang = math.radians(inter.offcentre_angle_deg)
+    # largest in-plane offset that stays on the front half (q = 0)
+    t_max = 1.0 / math.sqrt((math.cos(ang) / a) ** 2 + (math.sin(ang) / c) ** 2)
+    if np.linalg.norm(_front_point(axes, t_max, ang) - on) < inter.offcentre_mm:
+        raise DesignError(
+            f"interaction.offcentre_mm = {_fmt(inter.offcentre_mm)} is beyond the front half of the bulb "
+            f"(max {_fmt(float(np.linalg.norm(_front_point(axes, t_max, ang) - on)))} mm)"
+        )
+    lo, hi = 0.0, t_max  # chord length grows monotonically with t on the front half
+    for _ in range(100):
+        mid = 0.5 * (lo + hi)
+        if np.linalg.norm(_front_point(axes, mid, ang) - on) < inter.offcentre_mm:
+            lo = mid
+        else:
+            hi = mid
+    return {"on-centre": on, "off-centre": _front_point(axes, 0.5 * (lo + hi), ang)}
+
+
+def _validate_geometry(d: BIPDesign) -> None:
+    axes = d.bulb.semi_axes_mm
+    u = d.urethra
+    ua, ub = u.segment_mm
+
+    # urethra: wholly inside with a wall, inlet on the surface
+    pts = geo.capsule_surface_points(ua, ub, u.radius_mm)
+    wall = -float(geo.ellipsoid_signed_distance(pts, axes).max())
+    if wall < MIN_WALL_MM:
+        raise DesignError(
+            f"urethra: wall to the bulb surface is {_fmt(wall)} mm (min {MIN_WALL_MM:g} mm; "
+            "check radius_mm, volume_mm3, center_mm)"
+        )
+    off = abs(float(geo.ellipsoid_signed_distance([u.inlet_mm], axes)[0]))
+    if off > SURFACE_TOL_MM:
+        raise DesignError(f"urethra.inlet_mm is {_fmt(off)} mm off the bulb surface (tolerance {SURFACE_TOL_MM:g} mm)")
+
+    geoms = d.arm_geometry()
+    for arm, g in zip(d.arms, geoms):
+        p = f"arms.{arm.name}"
+        inner = geo.ellipsoid_signed_distance(geo.disk_rim_points(g.start_mm, g.direction, g.radius_mm), axes)
+        if inner.max() > -0.5:
+            raise DesignError(
+                f"{p}: the arm misses the bulb (its inner end is {_fmt(inner.max() + 0.5)} mm short of 0.5 mm "
+                "inside; aim it at the bulb or raise embed_mm)"
+            )
+        outer = geo.ellipsoid_signed_distance(geo.disk_rim_points(g.end_mm, g.direction, g.radius_mm), axes)
+        if outer.min() < MIN_WALL_MM:
+            raise DesignError(
+                f"{p}.length_mm = {_fmt(arm.length_mm)}: the fixed end face comes {_fmt(outer.min())} mm from "
+                f"the bulb (min {MIN_WALL_MM:g} mm)"
+            )
+        ca, cb = g.cavity_segment_mm
+        cav = geo.capsule_surface_points(ca, cb, g.cavity_radius_mm)
+        to_bulb = float(geo.ellipsoid_signed_distance(cav, axes).min())
+        if to_bulb < MIN_WALL_MM:
+            raise DesignError(
+                f"{p}.cavity_offset_mm = {_fmt(arm.cavity_offset_mm)}: the cavity comes {_fmt(to_bulb)} mm from "
+                f"the bulb (min wall {MIN_WALL_MM:g} mm)"
+            )
+        to_end = arm.length_mm - (arm.cavity_offset_mm + 0.5 * arm.cavity_cyl_length_mm + g.cavity_radius_mm)
+        if to_end < MIN_WALL_MM:
+            raise DesignError(
+                f"{p}.cavity_offset_mm = {_fmt(arm.cavity_offset_mm)}: the cavity is {_fmt(to_end)} mm from "
+                f"the fixed end face (min wall {MIN_WALL_MM:g} mm)"
+            )
+        gap = geo.segment_segment_distance(g.start_mm, g.end_mm, ua, ub) - g.radius_mm - u.radius_mm
+        if gap < MIN_WALL_MM:
+            raise DesignError(
+                f"{p}.embed_mm = {_fmt(arm.embed_mm)}: the arm comes {_fmt(gap)} mm from the urethra cavity "
+                f"(min wall {MIN_WALL_MM:g} mm)"
+            )
+    for i in range(len(geoms)):
+        for j in range(i + 1, len(geoms)):
+            gi, gj = geoms[i], geoms[j]
+            dist = geo.segment_segment_distance(gi.root_mm, gi.end_mm, gj.root_mm, gj.end_mm)
+            need = gi.radius_mm + gj.radius_mm + MIN_WALL_MM
+            if dist < need:
+                raise DesignError(
+                    f"arms.{gi.name} and arms.{gj.name} overlap (axes {_fmt(dist)} mm apart, min {_fmt(need)} mm)"
+                )
+
+    if len(d.markers) < MIN_MARKERS:
+        raise DesignError(f"markers: {len(d.markers)} given (min {MIN_MARKERS}, non-coplanar)")
+    for name, xyz in d.markers:
+        off = abs(float(geo.ellipsoid_signed_distance([xyz], axes)[0]))
+        if off > SURFACE_TOL_MM:
+            raise DesignError(f"markers.{name} is {_fmt(off)} mm off the bulb surface (tolerance {SURFACE_TOL_MM:g} mm)")
+        for g in geoms:
+            if geo.segment_distance([xyz], g.start_mm, g.end_mm)[0] < g.radius_mm + MIN_WALL_MM:
+                raise DesignError(f"markers.{name} lies under arms.{g.name} (min {MIN_WALL_MM:g} mm from its side)")
+    m = np.array([xyz for _, xyz in d.markers])
+    spread = float(np.linalg.svd(m - m.mean(axis=0), compute_uv=False)[-1] / math.sqrt(len(m)))
+    if spread < MIN_MARKER_SPREAD_MM:
+        raise DesignError(
+            f"markers are coplanar (out-of-plane spread {_fmt(spread)} mm, min {MIN_MARKER_SPREAD_MM:g} mm)"
+        )
+    for name, xyz in d.targets:
+        sd = float(geo.ellipsoid_signed_distance([xyz], axes)[0])
+        if sd >= 0.0:
+            raise DesignError(f"targets.{name} is outside the bulb ({_fmt(sd)} mm beyond its surface)")
+        inside = u.radius_mm - float(geo.segment_distance([xyz], ua, ub)[0])
+        if inside >= 0.0:
+            raise DesignError(f"targets.{name} is inside the urethra cavity ({_fmt(inside)} mm from its wall)")
+    _p_ext(axes, d.interaction)
+
+
+# --- files ---------------------------------------------------------------------------------
+
+_SUBS = {"bulb": BulbParams, "urethra": UrethraParams, "interaction": InteractionParams, "mesh": MeshParams}
+_ARM_KEYS = [f.name for f in dataclasses.fields(ArmParams) if f.name != "name"]
+
+
+def design_to_dict(design: BIPDesign) -> dict[str, Any]:
+    """Plain nested dict (TOML/JSON-ready) of a design.
+
+    >>> design_from_dict(design_to_dict(BIPDesign())) == BIPDesign()
+    True
+    """
+    out: dict[str, Any] = {"name": design.name}
+    for sub in _SUBS:
+        out[sub] = {k: (list(v) if isinstance(v, tuple) else v) for k, v in dataclasses.asdict(getattr(design, sub)).items()}
+    out["arms"] = {
+        a.name: {k: (list(getattr(a, k)) if isinstance(getattr(a, k), tuple) else getattr(a, k)) for k in _ARM_KEYS}
+        for a in design.arms
+    }
+    out["markers"] = {k: list(v) for k, v in design.markers}
+    out["targets"] = {k: list(v) for k, v in design.targets}
+    return out
+
+
+def _check_keys(path: str, given: dict, allowed) -> None:
+    if not isinstance(given, dict):
+        raise DesignError(f"{path}: expected a table, got {given!r}")
+    unknown = sorted(set(given) - set(allowed))
+    if unknown:
+        raise DesignError(f"{path}: unknown key {unknown[0]!r} (known: {', '.join(sorted(allowed))})")
+
+
+def design_from_dict(data: dict[str, Any]) -> BIPDesign:
+    """A design from a nested dict; missing keys keep their defaults, ``markers``/``targets`` replace them."""
+    _check_keys("design", data, ["name", "arms", "markers", "targets", *_SUBS])
+    default = BIPDesign()
+    defaults = {f.name: getattr(default, f.name) for f in dataclasses.fields(BIPDesign)}
+    kwargs: dict[str, Any] = dict(defaults)
+    if "name" in data:
+        kwargs["name"] = data["name"]
+    for sub, cls in _SUBS.items():
+        if sub in data:
+            allowed = [f.name for f in dataclasses.fields(cls)]
+            _check_keys(sub, data[sub], allowed)
+            kwargs[sub] = dataclasses.replace(defaults[sub], **data[sub])
+    if "arms" in data:
+        _check_keys("arms", data["arms"], ARM_NAMES)
+        arms = []
+        for a in defaults["arms"]:
+            over = data["arms"].get(a.name, {})
+            _check_keys(f"arms.{a.name}", over, _ARM_KEYS)
+            arms.append(dataclasses.replace(a, **over))
+        kwargs["arms"] = tuple(arms)
+    for key in ("markers", "targets"):
+        if key in data:
+            if not isinstance(data[key], dict):
+                raise DesignError(f"{key}: expected a table of name = [x, y, z]")
+            kwargs[key] = tuple(data[key].items())
+    return BIPDesign(**kwargs)
+
+
+def load_design(path: str | Path) -> BIPDesign:
+    """Read a design from a ``.toml`` or ``.json`` file (partial files override the defaults)."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise DesignError(f"{path}: cannot read ({exc.strerror})") from None
+    try:
+        if path.suffix.lower() == ".json":
+            data = json.loads(text)
+        else:
+            data = tomllib.loads(text)
+    except (json.JSONDecodeError, tomllib.TOMLDecodeError) as exc:
+        raise DesignError(f"{path}: not valid {'JSON' if path.suffix.lower() == '.json' else 'TOML'} ({exc})") from None
+    return design_from_dict(data)
+
+
+def save_design(design: BIPDesign, path: str | Path) -> Path:
+    """Write ``design`` as TOML (or JSON for a ``.json`` suffix); floats round-trip exactly."""
+    import tomli_w
+
+    path = Path(path)
+    data = design_to_dict(design)
+    if path.suffix.lower() == ".json":
+        path.write_text(json.dumps(data, indent=2) + "\n", encoding="utf-8")
+    else:
+        path.write_text(tomli_w.dumps(data), encoding="utf-8")
+    return path

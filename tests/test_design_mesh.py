@@ -1,0 +1,137 @@
+"""The tagged tetra mesh: volumes against the design, validity, closed oriented cavities, files."""
+
+from __future__ import annotations
+
+import threading
+
+import meshio
+import numpy as np
+import pytest
+
+from softphantom.design import ARM_NAMES, BIPDesign, build_model, load_model, save_model
+from softphantom.design import geometry as geo
+from softphantom.design.model import MM
+
+MIN_DIHEDRAL_BOUND_DEG = 5.0  # the default mesh reaches ~10°; gmsh's optimiser keeps slivers out
+
+
+def test_meshed_volumes_match_the_design(default_model):
+    m = default_model
+    d = m.design
+    assert m.bulb_volume() / MM**3 == pytest.approx(d.bulb.volume_mm3, rel=0.01)
+    for name, v in d.cavity_volumes_mm3().items():
+        assert m.cavity_volume(name) / MM**3 == pytest.approx(v, rel=0.03), name
+    # an inscribed polyhedron: the mesh can only lose volume on convex walls
+    assert m.bulb_volume() < d.bulb.volume_mm3 * MM**3
+    assert 3000 < len(m.nodes) < 9000  # "about 5 000 nodes"
+
+
+def test_tets_positive_and_quality(default_model):
+    m = default_model
+    vol = m.tet_volumes()
+    assert vol.min() > 0.0
+    mean_edge = np.cbrt(vol.mean() * 6 * np.sqrt(2))
+    assert vol.min() > 1e-4 * mean_edge**3  # no degenerate tets
+    assert m.min_dihedral_deg() > MIN_DIHEDRAL_BOUND_DEG
+    assert np.unique(m.tets).size == len(m.nodes)  # no orphan nodes
+
+
+def _directed_edges(tris):
+    return np.vstack([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]])
+
+
+def _assert_closed_and_consistent(tris, label):
+    e = _directed_edges(tris)
+    und = np.sort(e, axis=1)
+    _, counts = np.unique(und, axis=0, return_counts=True)
+    assert (counts == 2).all(), f"{label}: an edge not shared by exactly two triangles"
+    _, dcounts = np.unique(e, axis=0, return_counts=True)
+    assert (dcounts == 1).all(), f"{label}: inconsistent orientation"
+
+
+def test_cavity_surfaces_closed_oriented_positive(default_model):
+    m = default_model
+    assert list(m.cavities) == [*ARM_NAMES, "urethra"]
+    for name, tris in m.cavities.items():
+        _assert_closed_and_consistent(tris, name)
+        assert m.cavity_volume(name) > 0.0
+        # normals point out of the air into the silicone: away from the cavity centre
+        x = m.nodes[tris]
+        n = np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0])
+        c = m.nodes[np.unique(tris)].mean(axis=0)
+        assert (np.einsum("ij,ij->i", n, x.mean(axis=1) - c) > 0).mean() > 0.99
+
+
+def test_conforming_boundary_is_exactly_the_tagged_surfaces(default_model):
+    m = default_model
+    t = m.tets
+    faces = np.sort(np.vstack([t[:, [1, 2, 3]], t[:, [0, 2, 3]], t[:, [0, 1, 3]], t[:, [0, 1, 2]]]), axis=1)
+    uniq, counts = np.unique(faces, axis=0, return_counts=True)
+    assert counts.max() == 2  # every interior face shared by two tets: bulb and arms are conforming
+    boundary = {tuple(f) for f in uniq[counts == 1]}
+    tagged = [m.outer_faces, m.fixed_faces, *m.cavities.values()]
+    tagged_set = {tuple(f) for tr in tagged for f in np.sort(tr, axis=1)}
+    assert boundary == tagged_set and sum(len(x) for x in tagged) == len(boundary)
+    # bulb and arms share nodes at their interface
+    bulb_nodes = set(np.unique(t[m.tet_region == m.regions["bulb"]]).tolist())
+    for name in ARM_NAMES:
+        arm_nodes = set(np.unique(t[m.tet_region == m.regions[f"arm_{name}"]]).tolist())
+        assert len(arm_nodes & bulb_nodes) > 20
+
+
+def test_divergence_theorem_on_the_whole_solid(default_model):
+    m = default_model
+    closed = np.vstack([m.outer_faces, m.fixed_faces])
+    _assert_closed_and_consistent(closed, "outer+fixed")
+    enclosed = geo.surface_enclosed_volume(m.nodes, closed)
+    cavities = sum(m.cavity_volume(n) for n in m.cavities)
+    assert enclosed - cavities == pytest.approx(m.tet_volumes().sum(), rel=1e-10)
+
+
+def test_regions_fixed_faces_and_points(default_model):
+    m = default_model
+    d = m.design
+    axes_m = np.asarray(d.bulb.semi_axes_mm) * MM
+    centroids = m.nodes[m.tets].mean(axis=1)
+    level = geo.ellipsoid_level(centroids, axes_m)
+    assert set(np.unique(m.tet_region)) == set(m.regions.values())
+    assert level[m.tet_region == m.regions["bulb"]].max() < 1.0
+    assert level[m.tet_region != m.regions["bulb"]].min() > 1.0
+    for g in d.arm_geometry():
+        # each arm's end face: its nodes on the end plane, inside the arm radius
+        on_plane = np.abs((m.nodes[m.fixed_nodes] - g.end_mm * MM) @ g.direction) < 1e-9
+        sel = m.nodes[m.fixed_nodes[on_plane]]
+        assert len(sel) > 10
+        assert np.linalg.norm(sel - g.end_mm * MM, axis=1).max() <= g.radius_mm * MM * (1 + 1e-9)
+    assert np.array_equal(m.fixed_nodes, np.unique(m.fixed_faces))
+    for name, xyz in d.markers:
+        np.testing.assert_allclose(m.markers[name], np.asarray(xyz) * MM)
+    np.testing.assert_allclose(m.p_ext["on-centre"], [0.0, -0.025, 0.0])
+    assert set(m.targets) == {n for n, _ in d.targets} and "near_urethra" in m.targets
+
+
+def test_round_trip_files(default_model, tmp_path):
+    save_model(default_model, tmp_path)
+    back = load_model(tmp_path)
+    assert back == default_model
+    vtu = meshio.read(tmp_path / "model.vtu")
+    np.testing.assert_array_equal(vtu.points, default_model.nodes)
+    msh = meshio.read(tmp_path / "model.msh")
+    np.testing.assert_allclose(msh.points, default_model.nodes, rtol=1e-15, atol=1e-15)
+    assert sum(len(c.data) for c in msh.cells if c.type == "tetra") == len(default_model.tets)
+    assert set(msh.field_data) >= {"bulb", "cavity_urethra", "cavity_front_zpos", "fixed", "outer"}
+
+
+def test_deterministic_and_off_main_thread(coarse_model, tmp_path):
+    # the model's design records its mesh sizes, so it alone reproduces the mesh
+    assert coarse_model.design.mesh != BIPDesign().mesh
+    box: dict = {}
+    th = threading.Thread(target=lambda: box.setdefault("m", build_model(coarse_model.design)))
+    th.start()
+    th.join()
+    again = box["m"]
+    assert again == coarse_model
+    save_model(coarse_model, tmp_path / "a")
+    save_model(again, tmp_path / "b")
+    for f in ("model.msh", "model.vtu", "design.toml"):
+        assert (tmp_path / "a" / f).read_bytes() == (tmp_path / "b" / f).read_bytes(), f

@@ -1,0 +1,170 @@
+"""The BIP parameter object: paper numbers, derived points, validation, files (no meshing)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from softphantom.design import ARM_NAMES, BIPDesign, MeshParams, UrethraParams, load_design, save_design
+from softphantom.design import geometry as geo
+from softphantom.design.params import design_from_dict, design_to_dict
+from softphantom.errors import DesignError
+
+
+def test_defaults_reproduce_the_paper_volumes():
+    d = BIPDesign()
+    assert d.bulb.volume_mm3 == pytest.approx(100_410.0, rel=1e-12)  # 100.41 mL
+    a, b, c = d.bulb.semi_axes_mm
+    assert (a, b) == (32.0, 25.0) and c == pytest.approx(29.96, abs=0.01)
+    u = d.urethra
+    assert geo.capsule_volume(u.radius_mm, u.cyl_length_mm) == pytest.approx(2078.0, rel=1e-12)
+    vols = d.cavity_volumes_mm3()
+    assert list(vols) == [*ARM_NAMES, "urethra"]
+    assert [vols[n] for n in ARM_NAMES] == [514.0, 514.0, 486.0, 486.0]
+    for arm in d.arms:
+        r = arm.cavity_radius_mm
+        assert r == arm.radius_mm - arm.wall_mm
+        assert geo.capsule_volume(r, arm.cavity_cyl_length_mm) == pytest.approx(arm.cavity_volume_mm3, rel=1e-12)
+
+
+def test_arm_layout_front_pair_at_minus_y_back_pair_at_plus_y():
+    g = {a.name: a for a in BIPDesign().arm_geometry()}
+    assert g["front_zpos"].root_mm[1] < 0 and g["front_zpos"].root_mm[2] > 0
+    assert g["front_zneg"].root_mm[1] < 0 and g["front_zneg"].root_mm[2] < 0
+    assert g["back_xpos"].root_mm[1] > 0 and g["back_xpos"].root_mm[0] > 0
+    assert g["back_xneg"].root_mm[1] > 0 and g["back_xneg"].root_mm[0] < 0
+    axes = BIPDesign().bulb.semi_axes_mm
+    for a in g.values():
+        assert geo.ellipsoid_level(a.root_mm, axes)[0] == pytest.approx(1.0, abs=1e-12)
+        assert np.linalg.norm(a.end_mm - a.root_mm) == pytest.approx(32.0)
+        assert np.allclose(a.tube_inlet_mm, a.end_mm)
+
+
+def test_p_ext_on_and_off_centre():
+    d = BIPDesign()
+    p = d.p_ext_mm()
+    np.testing.assert_allclose(p["on-centre"], [0.0, -25.0, 0.0])
+    off = p["off-centre"]
+    assert np.linalg.norm(off - p["on-centre"]) == pytest.approx(10.0, abs=1e-9)
+    assert abs(geo.ellipsoid_signed_distance([off], d.bulb.semi_axes_mm)[0]) < 1e-9
+    assert off[0] == pytest.approx(off[2]) and off[0] > 6.9  # diagonal, +x and +z
+    assert off[1] < -23.0  # still on the needle side
+
+
+def test_markers_and_targets():
+    d = BIPDesign()
+    m = np.array([v for _, v in d.markers])
+    assert len(m) >= 4
+    assert np.abs(geo.ellipsoid_signed_distance(m, d.bulb.semi_axes_mm)).max() < 1e-9
+    assert np.linalg.svd(m - m.mean(0), compute_uv=False)[-1] > 5.0  # far from coplanar
+    t = d.target_dict
+    assert (geo.ellipsoid_signed_distance(np.array(list(t.values())), d.bulb.semi_axes_mm) < 0).all()
+    ua, ub = d.urethra.segment_mm
+    gap = geo.segment_distance([t["near_urethra"]], ua, ub)[0] - d.urethra.radius_mm
+    assert gap == pytest.approx(3.0)
+    assert abs(geo.ellipsoid_signed_distance([d.urethra.inlet_mm], d.bulb.semi_axes_mm)[0]) < 1e-9
+
+
+def test_signed_distance_matches_a_sphere_and_a_brute_force_ellipsoid():
+    rng = np.random.default_rng(0)
+    p = rng.uniform(-40, 40, size=(200, 3))
+    np.testing.assert_allclose(geo.ellipsoid_signed_distance(p, (20, 20, 20)), np.linalg.norm(p, axis=1) - 20, atol=1e-7)
+    axes = (32.0, 25.0, 30.0)
+    th, ph = np.meshgrid(np.linspace(0, np.pi, 500), np.linspace(0, 2 * np.pi, 1000))
+    surf = np.stack([axes[0] * np.sin(th) * np.cos(ph), axes[1] * np.sin(th) * np.sin(ph), axes[2] * np.cos(th)], -1).reshape(-1, 3)
+    q = rng.uniform(-45, 45, size=(300, 3))
+    brute, _ = cKDTree(surf).query(q)
+    np.testing.assert_allclose(np.abs(geo.ellipsoid_signed_distance(q, axes)), brute, atol=0.05)
+
+
+def _arm(d: BIPDesign, name: str, **kw) -> BIPDesign:
+    arms = tuple(dataclasses.replace(a, **kw) if a.name == name else a for a in d.arms)
+    return dataclasses.replace(d, arms=arms)
+
+
+D = BIPDesign()
+INVALID = {
+    "negative semi-axis": (lambda: design_from_dict({"bulb": {"semi_axes_mm": [32, 0, 30]}}), "bulb.semi_axes_mm[1]"),
+    "negative urethra radius": (lambda: UrethraParams(radius_mm=-1.0), "urethra.radius_mm"),
+    "negative arm length": (lambda: _arm(D, "back_xneg", length_mm=-3.0), "arms.back_xneg.length_mm"),
+    "zero cavity volume": (lambda: _arm(D, "front_zpos", cavity_volume_mm3=0.0), "arms.front_zpos.cavity_volume_mm3"),
+    "thin arm wall": (lambda: _arm(D, "front_zpos", wall_mm=0.6), "minimum wall of 1 mm"),
+    "urethra cuts the surface": (
+        lambda: dataclasses.replace(D, urethra=dataclasses.replace(D.urethra, center_mm=(0.0, 0.0, 24.0))),
+        "urethra: wall to the bulb surface",
+    ),
+    "urethra too long": (
+        lambda: dataclasses.replace(D, urethra=dataclasses.replace(D.urethra, volume_mm3=4000.0)),
+        "urethra: wall to the bulb surface",
+    ),
+    "arm cavity cuts the bulb": (lambda: _arm(D, "back_xpos", cavity_offset_mm=4.0), "the cavity comes"),
+    "arm cavity cuts the end face": (lambda: _arm(D, "back_xpos", cavity_offset_mm=26.0), "from the fixed end face"),
+    "arm misses the bulb": (
+        lambda: _arm(D, "front_zpos", axis_point_mm=(0.0, 0.0, 60.0), direction=(1.0, 0.0, 0.0)),
+        "arms.front_zpos: the arm misses the bulb",
+    ),
+    "arm grazes the bulb": (
+        lambda: _arm(D, "front_zpos", axis_point_mm=(0.0, 0.0, 29.0), direction=(1.0, 0.0, 0.0)),
+        "arms.front_zpos: the arm misses the bulb",
+    ),
+    "arm into the urethra": (lambda: _arm(D, "front_zneg", embed_mm=22.0), "from the urethra cavity"),
+    "arms overlap": (lambda: _arm(D, "front_zneg", direction=(0.0, -0.6, 0.9)), "overlap"),
+    "marker off the surface": (
+        lambda: dataclasses.replace(D, markers=(*D.markers[:-1], ("m5", (0.0, 30.0, 0.0)))),
+        "markers.m5 is 5 mm off the bulb surface (tolerance 0.1 mm)",
+    ),
+    "too few markers": (lambda: dataclasses.replace(D, markers=D.markers[:3]), "markers: 3 given (min 4"),
+    "coplanar markers": (
+        lambda: dataclasses.replace(
+            D, markers=tuple((f"k{i}", (32 * math.cos(t), 25 * math.sin(t), 0.0)) for i, t in enumerate((-0.3, -1.2, -2.0, -2.8)))
+        ),
+        "markers are coplanar",
+    ),
+    "target outside": (lambda: dataclasses.replace(D, targets=(("t", (0.0, 0.0, 31.0)),)), "targets.t is outside the bulb"),
+    "target in the urethra": (lambda: dataclasses.replace(D, targets=(("t", (0.0, 5.0, 4.0)),)), "targets.t is inside the urethra"),
+    "off-centre too far": (lambda: design_from_dict({"interaction": {"offcentre_mm": 80}}), "interaction.offcentre_mm"),
+    "unknown key": (lambda: design_from_dict({"arms": {"front_zpos": {"lenght_mm": 3}}}), "unknown key 'lenght_mm'"),
+    "wrong type": (lambda: design_from_dict({"urethra": {"radius_mm": "big"}}), "urethra.radius_mm: expected a number"),
+    "bad mesh size": (lambda: MeshParams(size_mm=0.0), "mesh.size_mm"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(INVALID))
+def test_invalid_designs_give_one_line_errors(case):
+    make, expected = INVALID[case]
+    with pytest.raises(DesignError) as err:
+        make()
+    msg = str(err.value)
+    assert expected in msg
+    assert "\n" not in msg
+
+
+def test_toml_and_json_round_trip_exactly(tmp_path):
+    d = _arm(BIPDesign(name="variant"), "back_xpos", length_mm=30.5, radius_mm=6.5)
+    for suffix in (".toml", ".json"):
+        path = save_design(d, tmp_path / f"d{suffix}")
+        assert load_design(path) == d
+    assert json.loads((tmp_path / "d.json").read_text())["arms"]["back_xpos"]["radius_mm"] == 6.5
+
+
+def test_partial_toml_overrides_the_defaults(tmp_path):
+    p = tmp_path / "partial.toml"
+    p.write_text('name = "short-arms"\n[arms.front_zpos]\nlength_mm = 28.0\n[mesh]\nsize_mm = 8.0\n')
+    d = load_design(p)
+    assert d.name == "short-arms" and d.arms[0].length_mm == 28.0 and d.mesh.size_mm == 8.0
+    assert d.arms[1] == BIPDesign().arms[1] and d.bulb == BIPDesign().bulb
+    assert design_from_dict(design_to_dict(d)) == d
+
+
+def test_bad_files_are_design_errors(tmp_path):
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[bulb\nsemi_axes_mm = 3")
+    with pytest.raises(DesignError, match="not valid TOML"):
+        load_design(bad)
+    with pytest.raises(DesignError, match="cannot read"):
+        load_design(tmp_path / "missing.toml")
