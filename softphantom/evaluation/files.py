@@ -1,0 +1,240 @@
+"""The estimate and truth files (docs/architecture.md): a ``# `` + JSON metadata line, then CSV with
+unit-named columns. A truth input may also be any tracker file :mod:`softphantom.tracking` reads;
+then it is registered by its rest window (the rest pose is the model's rest pose)."""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from softphantom.errors import FileFormatError
+from softphantom.pose import Pose6
+
+POSE_COLUMNS = Pose6.COLUMNS
+FORCE_COLUMNS = ("force_x_N", "force_y_N", "force_z_N")
+
+
+@dataclass(frozen=True)
+class Table:
+    """A metadata dict and named columns (float arrays; text columns stay str arrays)."""
+
+    meta: dict
+    columns: dict[str, np.ndarray]
+    path: str = ""
+
+
+@dataclass(frozen=True)
+class Series6:
+    """A 6-DoF pose series relative to rest in the model frame, and what else the file knows.
+
+    ``t`` (n,) s; ``pose`` a stack of :class:`Pose6` (m, rad); ``force`` (n, 3) N or None;
+    ``p_urethra`` (n,) Pa or None; ``targets`` name → (n, 3) m displacement; ``meta`` the file's
+    metadata plus how it was read (registration, clock)."""
+
+    t: np.ndarray
+    pose: Pose6
+    force: np.ndarray | None = None
+    p_urethra: np.ndarray | None = None
+    targets: dict[str, np.ndarray] = field(default_factory=dict)
+    meta: dict = field(default_factory=dict)
+    source: str = ""
+
+    def mm_deg(self) -> np.ndarray:
+        """(n, 6): x, y, z mm; yaw, pitch, roll deg."""
+        return self.pose.to_mm_deg()
+
+
+def write_table(path: str | Path, meta: dict, columns: dict[str, np.ndarray]) -> Path:
+    """Write ``# {json}`` then the CSV (header = column names, floats with 9 significant digits).
+
+    >>> import tempfile, os
+    >>> p = os.path.join(tempfile.mkdtemp(), "t.csv")
+    >>> _ = write_table(p, {"softphantom": "0.1.0"}, {"t_s": [0.0, 0.01], "x_mm": [0.0, 1.5]})
+    >>> open(p).read().splitlines()
+    ['# {"softphantom": "0.1.0"}', 't_s,x_mm', '0,0', '0.01,1.5']
+    >>> read_table(p).columns["x_mm"]
+    array([0. , 1.5])
+    """
+    path = Path(path)
+    names = list(columns)
+    cols = [np.asarray(columns[k]) for k in names]
+    n = {len(c) for c in cols}
+    if len(n) > 1:
+        raise ValueError(f"columns differ in length: {dict(zip(names, map(len, cols)))}")
+    buf = io.StringIO()
+    buf.write("# " + json.dumps(meta, default=str) + "\n")
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(names)
+    for row in zip(*cols):
+        w.writerow([f"{v:.9g}" if isinstance(v, (float, np.floating)) else v for v in row])
+    path.write_text(buf.getvalue())
+    return path
+
+
+def read_table(path: str | Path) -> Table:
+    """Read a softphantom CSV (metadata line optional); cells must be numbers except in the
+    text columns (``qp_status`` and any column whose cells are all non-numeric)."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise FileFormatError(f"{path}: cannot read ({exc.strerror})") from None
+    except UnicodeDecodeError as exc:
+        raise FileFormatError(f"{path}: byte {exc.start}: not UTF-8 text") from None
+    lines = text.splitlines()
+    meta: dict = {}
+    first = 0
+    if lines and lines[0].startswith("#"):
+        try:
+            meta = json.loads(lines[0][1:].strip() or "{}")
+        except json.JSONDecodeError as exc:
+            raise FileFormatError(f"{path}: line 1: metadata is not JSON ({exc.msg} at column {exc.colno + 1})") from None
+        if not isinstance(meta, dict):
+            raise FileFormatError(f"{path}: line 1: metadata must be a JSON object")
+        first = 1
+    while first < len(lines) and not lines[first].strip():
+        first += 1
+    if first >= len(lines):
+        raise FileFormatError(f"{path}: no CSV header line (file empty or only metadata)")
+    rows = list(csv.reader(lines[first:]))
+    header = [h.strip() for h in rows[0]]
+    if len(set(header)) != len(header):
+        dup = sorted({h for h in header if header.count(h) > 1})
+        raise FileFormatError(f"{path}: line {first + 1}: duplicate columns {', '.join(dup)}")
+    body = []
+    for k, r in enumerate(rows[1:]):
+        lineno = first + 2 + k
+        if not any(c.strip() for c in r):
+            continue
+        if len(r) != len(header):
+            why = " (truncated file?)" if k == len(rows) - 2 and not text.endswith("\n") else ""
+            raise FileFormatError(f"{path}: line {lineno}: {len(r)} cells, the header has {len(header)}{why}")
+        body.append((lineno, r))
+    if not body:
+        raise FileFormatError(f"{path}: line {first + 1}: header but no data rows")
+    cols: dict[str, np.ndarray] = {}
+    for j, name in enumerate(header):
+        cells = [r[j].strip() for _, r in body]
+        vals = np.empty(len(cells))
+        bad = None
+        for i, c in enumerate(cells):
+            try:
+                vals[i] = float(c) if c else np.nan
+            except ValueError:
+                bad = i
+                break
+        if bad is None:
+            cols[name] = vals
+        elif name in ("qp_status", "status") or not any(_is_number(c) for c in cells):
+            cols[name] = np.array(cells, dtype=str)
+        else:
+            raise FileFormatError(f"{path}: line {body[bad][0]}, column {name!r}: {cells[bad]!r} is not a number")
+    return Table(meta, cols, str(path))
+
+
+def _is_number(s: str) -> bool:
+    try:
+        float(s)
+        return True
+    except ValueError:
+        return False
+
+
+def series_from_table(tab: Table, what: str) -> Series6:
+    """A :class:`Series6` from a softphantom table; ``what`` ("estimate"/"truth") for messages."""
+    c = tab.columns
+    missing = [k for k in ("t_s",) + POSE_COLUMNS if k not in c]
+    if missing:
+        raise FileFormatError(
+            f"{tab.path}: the {what} file lacks column(s) {', '.join(missing)} (has: {', '.join(c) or 'none'})"
+        )
+    t = c["t_s"]
+    v = np.column_stack([c[k] for k in POSE_COLUMNS])
+    ok = np.isfinite(t) & np.all(np.isfinite(v), axis=1)
+    force = None
+    if all(k in c for k in FORCE_COLUMNS):
+        force = np.column_stack([c[k] for k in FORCE_COLUMNS])[ok]
+    p_u = c["p_urethra_kPa"][ok] * 1e3 if "p_urethra_kPa" in c else None
+    targets = {}
+    for k in c:
+        if k.endswith("_dx_mm"):
+            name = k[: -len("_dx_mm")]
+            keys = [f"{name}_d{a}_mm" for a in "xyz"]
+            if all(kk in c for kk in keys):
+                targets[name] = np.column_stack([c[kk] for kk in keys])[ok] * 1e-3
+    order = np.argsort(t[ok], kind="stable")
+    meta = dict(tab.meta)
+    meta.setdefault("clock", "file t_s")
+    return Series6(
+        t[ok][order], Pose6.from_mm_deg(v[ok][order]),
+        None if force is None else force[order], None if p_u is None else p_u[order],
+        {k: x[order] for k, x in targets.items()}, meta, tab.path,
+    )
+
+
+def read_estimate(path: str | Path) -> Series6:
+    """Read an estimate file (``softphantom estimate --out``)."""
+    return series_from_table(read_table(path), "estimate")
+
+
+def _is_softphantom_csv(path: Path) -> bool:
+    try:
+        with path.open("rb") as fh:
+            head = fh.read(4096)
+    except OSError:
+        return False
+    text = head.decode("utf-8", "replace").lstrip("\ufeff")
+    if text.startswith("#"):
+        return True
+    first = text.splitlines()[0] if text else ""
+    return first.replace(" ", "").startswith("t_s,")
+
+
+def read_truth(
+    path: str | Path,
+    *,
+    body: str | None = None,
+    rest_window_s: tuple[float, float] | None = None,
+    clock: str | None = None,
+    tracker_to_model=None,
+) -> Series6:
+    """Read the ground truth: a truth CSV, or a tracker file (Motive CSV, ROS 1/2 bag, mcap)
+    registered into the model frame (by ``tracker_to_model`` if given, else by its rest window:
+    default the first 0.5 s of valid samples)."""
+    path = Path(path)
+    if path.is_file() and _is_softphantom_csv(path):
+        return series_from_table(read_table(path), "truth")
+    from softphantom.tracking import read_track, register_track, track_pose6
+
+    opts = {} if clock is None else {"clock": clock}
+    track = read_track(path, body=body, **opts)
+    reg = register_track(track, tracker_to_model=tracker_to_model, rest_window_s=rest_window_s)
+    v = reg.valid
+    p6 = track_pose6(reg)
+    meta = dict(reg.meta)
+    meta.update(clock=reg.clock, body=reg.name, tracker_rate_hz=track.rate_hz, lost_frames=int((~v).sum()))
+    return Series6(reg.t[v], Pose6(p6.xyz[v], p6.ypr[v]), meta=meta, source=reg.source)
+
+
+def write_truth(path: str | Path, series: Series6, meta: dict | None = None) -> Path:
+    """Write a :class:`Series6` as a truth file (pose, and force/p_urethra/targets where known)."""
+    cols: dict[str, np.ndarray] = {"t_s": series.t}
+    v = series.mm_deg()
+    for k, name in enumerate(POSE_COLUMNS):
+        cols[name] = v[:, k]
+    if series.force is not None:
+        for k, name in enumerate(FORCE_COLUMNS):
+            cols[name] = series.force[:, k]
+    if series.p_urethra is not None:
+        cols["p_urethra_kPa"] = series.p_urethra * 1e-3
+    for name, d in series.targets.items():
+        for k, a in enumerate("xyz"):
+            cols[f"{name}_d{a}_mm"] = d[:, k] * 1e3
+    from softphantom import __version__
+
+    return write_table(path, {"softphantom": __version__, **series.meta, **(meta or {})}, cols)

@@ -1,0 +1,239 @@
+"""report.html and its PNGs: 6-DoF plots like the paper's Figs. 8–10, force, error tables,
+Table I comparison, and a 3-D view of the deformed phantom (from a VTU snapshot)."""
+
+from __future__ import annotations
+
+import html
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from softphantom.evaluation.clinical import ClinicalRow, compare_table_i
+from softphantom.evaluation.files import Series6
+from softphantom.evaluation.metrics import DOF_NAMES, DOF_UNITS, ErrorStats, Evaluation
+
+TRUTH_COLOR = "#1f4e79"
+EST_COLOR = "#c0392b"
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def plot_6dof(truth: Series6, estimate: Series6, ev: Evaluation, path: Path, title: str = "") -> Path:
+    """2×3 panels (x, y, z mm; yaw, pitch, roll deg): truth solid, estimate dashed, the estimate
+    shifted back by the lag (stated in the title)."""
+    plt = _plt()
+    vt, ve = truth.mm_deg(), estimate.mm_deg()
+    t0 = ev.t_truth[0]
+    fig, axes = plt.subplots(2, 3, figsize=(12, 6.2), sharex=True, constrained_layout=True)
+    for k, ax in enumerate(axes.flat):
+        ax.plot(ev.t_truth - t0, vt[:, k], "-", color=TRUTH_COLOR, lw=1.4, label="truth (tracker)")
+        ax.plot(ev.t_est - t0, ve[:, k], "--", color=EST_COLOR, lw=1.4, label="estimate")
+        ax.set_ylabel(f"{DOF_NAMES[k]} ({DOF_UNITS[k]})")
+        ax.grid(True, alpha=0.3)
+        s = ev.dof[k]
+        ax.set_title(f"{DOF_NAMES[k]}: RMSE {s.rmse:.2f} {s.unit}", fontsize=10)
+        if k >= 3:
+            ax.set_xlabel("time (s)")
+    axes[0, 0].legend(loc="best", fontsize=8)
+    fig.suptitle(
+        (title + " — " if title else "")
+        + f"estimate shifted by −{ev.lag_ms:.1f} ms ({'measured' if ev.lag is not None else 'given'} lag)",
+        fontsize=11,
+    )
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def plot_force(truth: Series6, estimate: Series6, ev: Evaluation, path: Path) -> Path:
+    """Force components over time (estimate dashed; the truth solid where known)."""
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(12, 3.4), constrained_layout=True)
+    t0 = ev.t_truth[0]
+    colors = ("#2e86c1", "#28b463", "#8e44ad")
+    for k, a in enumerate("xyz"):
+        if truth.force is not None:
+            ax.plot(ev.t_truth - t0, truth.force[:, k], "-", color=colors[k], lw=1.4, label=f"F{a} truth")
+        ax.plot(ev.t_est - t0, estimate.force[:, k], "--", color=colors[k], lw=1.4, label=f"F{a} estimate")
+    ax.set_xlabel("time (s)")
+    ax.set_ylabel("force (N)")
+    ax.grid(True, alpha=0.3)
+    ax.legend(loc="best", fontsize=8, ncol=2)
+    ax.set_title("Force at p_ext" + ("" if truth.force is not None else " (estimate only: the truth does not know it)"), fontsize=10)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+@dataclass(frozen=True)
+class SnapshotView:
+    """The 3-D view's outcome: ``png`` (None if not drawn) and ``note`` (why, or what it shows)."""
+
+    png: Path | None
+    note: str
+
+
+def _boundary_faces(tets: np.ndarray) -> np.ndarray:
+    faces = np.concatenate([tets[:, [0, 2, 1]], tets[:, [0, 1, 3]], tets[:, [1, 2, 3]], tets[:, [0, 3, 2]]])
+    key = np.sort(faces, axis=1)
+    _, inv, cnt = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    return faces[cnt[inv.ravel()] == 1]
+
+
+def plot_snapshot(vtu: Path, path: Path) -> SnapshotView:
+    """Draw the outer surface of a VTU mesh (deformed node positions, m or as stored), coloured by
+    the magnitude of its ``displacement_mm`` point array if present."""
+    import meshio
+
+    from softphantom.errors import FileFormatError
+
+    try:
+        mesh = meshio.read(vtu)
+    except FileNotFoundError:
+        raise FileFormatError(f"--snapshot {vtu}: no such file") from None
+    except Exception as exc:  # meshio raises many types on a broken file
+        raise FileFormatError(f"{vtu}: not a readable VTU mesh ({type(exc).__name__}: {exc})") from None
+    pts = np.asarray(mesh.points, float)
+    tets = [c.data for c in mesh.cells if c.type == "tetra"]
+    tris = [c.data for c in mesh.cells if c.type == "triangle"]
+    if tets:
+        faces = _boundary_faces(np.concatenate(tets))
+    elif tris:
+        faces = np.concatenate(tris)
+    else:
+        return SnapshotView(None, f"{vtu.name} has neither tetrahedra nor triangles: nothing to draw")
+    scale, unit = (1e3, "mm") if np.ptp(pts, axis=0).max() < 1.0 else (1.0, "file units")
+    P = pts * scale
+    disp = mesh.point_data.get("displacement_mm")
+    plt = _plt()
+    from mpl_toolkits.mplot3d.art3d import Poly3DCollection
+
+    fig = plt.figure(figsize=(7.5, 6.5), constrained_layout=True)
+    ax = fig.add_subplot(projection="3d")
+    poly = Poly3DCollection(P[faces], linewidths=0.15, edgecolors=(0, 0, 0, 0.25))
+    if disp is not None:
+        mag = np.linalg.norm(np.asarray(disp, float).reshape(len(pts), -1), axis=1)
+        face_mag = mag[faces].mean(axis=1)
+        import matplotlib as mpl
+
+        norm = mpl.colors.Normalize(vmin=0.0, vmax=max(float(face_mag.max()), 1e-12))
+        cmap = mpl.colormaps["viridis"]
+        poly.set_facecolor(cmap(norm(face_mag)))
+        sm = mpl.cm.ScalarMappable(norm=norm, cmap=cmap)
+        fig.colorbar(sm, ax=ax, shrink=0.6, label="|displacement| (mm)")
+        note = f"outer surface of {vtu.name}, coloured by |displacement_mm| (max {mag.max():.2f} mm)"
+    else:
+        poly.set_facecolor((0.75, 0.75, 0.8, 1.0))
+        note = f"outer surface of {vtu.name}; it has no 'displacement_mm' point array, so no colouring"
+    ax.add_collection3d(poly)
+    lo, hi = P.min(axis=0), P.max(axis=0)
+    c, r = (lo + hi) / 2, (hi - lo).max() / 2
+    ax.set_xlim(c[0] - r, c[0] + r)
+    ax.set_ylim(c[1] - r, c[1] + r)
+    ax.set_zlim(c[2] - r, c[2] + r)
+    ax.set_box_aspect((1, 1, 1))
+    ax.set_xlabel(f"x ({unit})")
+    ax.set_ylabel(f"y ({unit})")
+    ax.set_zlabel(f"z ({unit})")
+    ax.view_init(elev=20, azim=-60)
+    ax.set_title("Deformed phantom at peak load", fontsize=11)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return SnapshotView(path, note)
+
+
+def _fmt(v: float, d: int = 2) -> str:
+    return "–" if not np.isfinite(v) else f"{v:.{d}f}"
+
+
+def _table(headers: list[str], rows: list[list[str]], cls: str) -> str:
+    h = "".join(f"<th>{html.escape(x)}</th>" for x in headers)
+    body = "".join("<tr>" + "".join(f"<td>{c}</td>" for c in r) + "</tr>" for r in rows)
+    return f'<table class="{cls}"><thead><tr>{h}</tr></thead><tbody>{body}</tbody></table>'
+
+
+def _stats_rows(stats: tuple[ErrorStats, ...]) -> list[list[str]]:
+    return [[html.escape(s.name), s.unit, _fmt(s.rmse), _fmt(s.bias), _fmt(s.max_abs), _fmt(s.corr, 3),
+             _fmt(s.lag_ms, 1), _fmt(s.peak_truth), str(s.n)] for s in stats]
+
+
+_CSS = """body{font-family:system-ui,sans-serif;margin:2em auto;max-width:1200px;color:#222}
+table{border-collapse:collapse;margin:.5em 0 1.5em}th,td{border:1px solid #bbb;padding:3px 8px;text-align:right}
+th{background:#eef}td:first-child{text-align:left}.within{color:#1e7d32}.above,.below{color:#b03a2e}
+img{max-width:100%;border:1px solid #ddd}.note{color:#555;font-style:italic}"""
+
+STAT_HEADERS = ["quantity", "unit", "RMSE", "bias", "max |error|", "Pearson r", "lag (ms)", "max |truth|", "samples"]
+
+
+def write_report(
+    out: Path,
+    truth: Series6,
+    estimate: Series6,
+    ev: Evaluation,
+    snapshot: Path | None = None,
+    title: str = "softphantom evaluation",
+) -> tuple[Path, tuple[ClinicalRow, ...]]:
+    """Write ``out/report.html`` and its PNGs; returns the report's path and the Table I rows."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    plot_6dof(truth, estimate, ev, out / "pose_6dof.png", title)
+    parts = [f"<h1>{html.escape(title)}</h1>"]
+    lag_txt = (f"{ev.lag_ms:.1f} ms, {html.escape(ev.lag_source)}"
+               + (f" (peak correlation {ev.lag.peak_corr:.3f})" if ev.lag is not None else ""))
+    info = [
+        ["estimate", html.escape(estimate.source)],
+        ["truth", html.escape(truth.source)],
+        ["truth registration", html.escape(str(truth.meta.get("registration", "as in the truth file (model frame)")))],
+        ["lag of the estimate behind the truth", lag_txt],
+        ["samples compared", f"{int(ev.mask.sum())} of {len(ev.mask)} estimates"],
+    ]
+    parts.append('<section id="summary"><h2>Summary</h2>' + _table(["", ""], info, "info"))
+    parts += [f'<p class="note">{html.escape(n)}</p>' for n in ev.notes]
+    parts.append("<p>Sign convention: a positive lag means the estimate comes later than the truth; errors are"
+                 " estimate − truth with the estimate compared at t − lag. Pose: the marker rigid body relative"
+                 " to rest in the model frame (translation = displacement of the bulb centre at rest;"
+                 " R = Rz(yaw)·Rx(pitch)·Ry(roll)).</p></section>")
+    parts.append('<section id="pose"><h2>6-DoF motion</h2><p>Truth solid, estimate dashed (as in the paper\'s'
+                 ' Figs. 8–10); the estimate is drawn shifted back by the lag.</p>'
+                 '<img src="pose_6dof.png" alt="6-DoF motion: truth and estimate"></section>')
+    if estimate.force is not None:
+        plot_force(truth, estimate, ev, out / "force.png")
+        parts.append('<section id="force"><h2>Force</h2><img src="force.png" alt="force over time"></section>')
+    parts.append('<section id="errors"><h2>Errors per DoF</h2>' + _table(STAT_HEADERS, _stats_rows(ev.dof), "errors"))
+    if ev.force:
+        parts.append("<h3>Force error</h3>" + _table(STAT_HEADERS, _stats_rows(ev.force), "force-errors"))
+    if ev.targets:
+        hdr = ["target", "unit", "RMS |error|", "mean |error|", "max |error|", "", "", "max |truth shift|", "samples"]
+        parts.append("<h3>Target-shift error (3-D distance)</h3>" + _table(hdr, _stats_rows(ev.targets), "target-errors"))
+    parts.append("</section>")
+    rows = compare_table_i(truth.mm_deg(), estimate.mm_deg())
+    trows = [[r.ref.dof, r.ref.unit, html.escape(r.ref.study), html.escape(r.ref.text), f"{r.ref.lo:g}–{r.ref.hi:g}",
+              _fmt(r.observed), _fmt(r.estimated), f'<span class="{r.flag}">{r.flag}</span>'] for r in rows]
+    parts.append(
+        '<section id="table-i"><h2>Clinical comparison (paper Table I)</h2><p>Statistic: peak excursion from rest,'
+        " max |Δ| over the run, of the truth (observed) and of the estimate; flagged against the range each"
+        " published figure stands for (±a → [0, a]; m (lo–hi) → [lo, hi]; m ± sd → [m − sd, m + sd]).</p>"
+        + _table(["DoF", "unit", "study", "published", "range", "observed max |Δ|", "estimated max |Δ|", "observed is"],
+                 trows, "clinical") + "</section>"
+    )
+    if snapshot is None:
+        snap_html = '<p class="note">No snapshot given (--snapshot FILE.vtu): no 3-D view.</p>'
+    else:
+        view = plot_snapshot(Path(snapshot), out / "snapshot_3d.png")
+        snap_html = f'<p>{html.escape(view.note)}.</p>'
+        if view.png is not None:
+            snap_html += '<img src="snapshot_3d.png" alt="deformed phantom at peak load">'
+    parts.append(f'<section id="snapshot"><h2>Deformed phantom at peak load</h2>{snap_html}</section>')
+    doc = ("<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\"><title>"
+           + html.escape(title) + f"</title><style>{_CSS}</style></head><body>\n" + "\n".join(parts) + "\n</body></html>\n")
+    report = out / "report.html"
+    report.write_text(doc, encoding="utf-8")
+    return report, rows
