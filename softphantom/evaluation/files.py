@@ -50,13 +50,14 @@ class Series6:
 
 
 def write_table(path: str | Path, meta: dict, columns: dict[str, np.ndarray]) -> Path:
-    """Write ``# {json}`` then the CSV (header = column names, floats with 9 significant digits).
+    """Write ``# {json}`` then the CSV (header = column names; floats as their shortest exact repr,
+    so epoch timestamps keep their microseconds).
 
     >>> import tempfile, os
     >>> p = os.path.join(tempfile.mkdtemp(), "t.csv")
     >>> _ = write_table(p, {"softphantom": "0.1.0"}, {"t_s": [0.0, 0.01], "x_mm": [0.0, 1.5]})
     >>> open(p).read().splitlines()
-    ['# {"softphantom": "0.1.0"}', 't_s,x_mm', '0,0', '0.01,1.5']
+    ['# {"softphantom": "0.1.0"}', 't_s,x_mm', '0.0,0.0', '0.01,1.5']
     >>> read_table(p).columns["x_mm"]
     array([0. , 1.5])
     """
@@ -71,7 +72,7 @@ def write_table(path: str | Path, meta: dict, columns: dict[str, np.ndarray]) ->
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(names)
     for row in zip(*cols):
-        w.writerow([f"{v:.9g}" if isinstance(v, (float, np.floating)) else v for v in row])
+        w.writerow([repr(float(v)) if isinstance(v, (float, np.floating)) else v for v in row])
     path.write_text(buf.getvalue())
     return path
 

@@ -69,6 +69,8 @@ def estimate_lag(
     t_ref, ref, t_sig, sig = t_ref[ir], ref[ir], t_sig[is_], sig[is_]
     if dt_s is None:
         dt_s = 0.5 * min(np.median(np.diff(t_ref)), np.median(np.diff(t_sig)))
+    if not (np.isfinite(dt_s) and dt_s > 0):
+        raise ValueError(f"grid step {dt_s} s: the time stamps do not increase")
     lo, hi = max(t_ref[0], t_sig[0]), min(t_ref[-1], t_sig[-1])
     if hi - lo < 2 * max_lag_s:
         raise ValueError(
