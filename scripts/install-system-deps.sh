@@ -2,9 +2,11 @@
 # Installs the Debian packages softphantom needs; idempotent (installs only what is missing).
 #   gmsh wheel (headless): libglu1-mesa libgl1 libxcursor1 libxft2 libxinerama1 libgomp1
 #   firmware build:        gcc-avr avr-libc binutils-avr
+#   live view screenshot test (headless): chromium fonts-dejavu-core
 set -euo pipefail
 PKGS=(libglu1-mesa libgl1 libxcursor1 libxft2 libxinerama1 libgomp1
-      gcc-avr avr-libc binutils-avr)
+      gcc-avr avr-libc binutils-avr
+      chromium fonts-dejavu-core)
 missing=()
 for p in "${PKGS[@]}"; do
   dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")

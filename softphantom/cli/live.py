@@ -1,0 +1,71 @@
+"""``softphantom live`` (live page + network stream + recording) and ``softphantom recording-csv``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from softphantom.cli.app import app, console
+from softphantom.errors import UserError
+
+
+@app.command()
+def live(
+    source: str = typer.Option("synthetic", "--source", help="synthetic | replay:FILE (.mcap or estimate .csv) | "
+                               "virtual:SCENARIO | serial:PORT"),
+    model: Optional[Path] = typer.Option(None, "--model", help="model directory (design output) for the 3-D view"),
+    listen_host: str = typer.Option("127.0.0.1", "--listen-host",
+                                    help="interface for the page and the stream; loopback unless set explicitly"),
+    http_port: int = typer.Option(8765, "--http-port", help="port of the live page (0: any free port)"),
+    stream_port: int = typer.Option(5556, "--stream-port", help="ZeroMQ PUB port of the estimate stream (0: any)"),
+    no_stream: bool = typer.Option(False, "--no-stream", help="do not publish the network stream"),
+    record: Optional[Path] = typer.Option(None, "--record", help="record the session to this .mcap file"),
+    duration_s: Optional[float] = typer.Option(None, "--duration-s", help="stop after this many seconds"),
+    rate_Hz: float = typer.Option(77.0, "--rate-Hz", help="estimate rate of the synthetic source, Hz"),
+    view_rate_Hz: float = typer.Option(30.0, "--view-rate-Hz", help="page update rate, Hz"),
+    speed: float = typer.Option(1.0, "--speed", help="replay speed factor (0: as fast as possible)"),
+) -> None:
+    """Show the estimate live on a local web page, stream every estimate (ZeroMQ, JSON) and record
+    the session (MCAP). Ctrl-C stops."""
+    from softphantom.viz.live import LiveConfig, LiveSession, open_source
+
+    if not (0 < view_rate_Hz <= 120):
+        raise UserError(f"--view-rate-Hz must be in (0, 120], got {view_rate_Hz}")
+    for name, port in (("--http-port", http_port), ("--stream-port", stream_port)):
+        if not (0 <= port <= 65535):
+            raise UserError(f"{name} must be in 0..65535, got {port}")
+    if duration_s is not None and duration_s <= 0:
+        raise UserError(f"--duration-s must be > 0, got {duration_s}")
+    if record is not None and record.suffix.lower() != ".mcap":
+        raise UserError(f"--record must name an .mcap file, got {record}")
+    src = open_source(source, model_dir=model, rate_Hz=rate_Hz, duration_s=None, speed=speed)
+    cfg = LiveConfig(listen_host=listen_host, http_port=http_port, stream_port=None if no_stream else stream_port,
+                     view_rate_Hz=view_rate_Hz, record=record, duration_s=duration_s)
+    with LiveSession(src, cfg) as session:
+        console.print(f"live page: {session.url}", highlight=False)
+        if session.stream_endpoint:
+            console.print(f"estimate stream: {session.stream_endpoint} (ZeroMQ SUB, topic 'estimate', JSON; "
+                          "see docs/stream.md)", highlight=False)
+        if record is not None:
+            console.print(f"recording: {record}", highlight=False)
+        while not session.wait(timeout_s=0.5):
+            pass
+        st = session.state.status()
+    console.print(f"done: {st['estimates']} estimates, {st['skipped_total']} skipped, "
+                  f"stream sent {st['stream'].get('sent', 0)}", highlight=False)
+
+
+@app.command("recording-csv")
+def recording_csv(
+    recording: Path = typer.Argument(..., help="session recording (.mcap)"),
+    out: Path = typer.Option(..., "--out", help="estimate CSV to write (read by softphantom evaluate)"),
+) -> None:
+    """Export the /estimate channel of a session recording to the estimate CSV."""
+    from softphantom.stream import export_estimate_csv, read_recording
+
+    path = export_estimate_csv(recording, out)
+    rec = read_recording(recording)
+    note = "" if rec.complete else " (the recording was not closed cleanly: read up to its last complete chunk)"
+    console.print(f"wrote {path}: {len(rec.estimates)} estimates{note}", highlight=False)

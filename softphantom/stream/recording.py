@@ -1,0 +1,347 @@
+"""Session recording: one MCAP file with JSON channels, opened directly by Foxglove.
+
+Channels (JSON-schema'd, ``json`` message encoding; keys carry their units):
+
+- ``/estimate``: every estimate message (:mod:`softphantom.stream.schema`),
+- ``/sensors``: every sensor sample (``Measurement``: ``t_s, seq, t_board_s, raw_*, osr,
+  dp_<arm>_kPa, dV_<arm>_mm3, p_urethra_kPa, status``),
+- ``/tracker``: tracker poses when a tracker is present (``t_s, x_mm … roll_deg, valid``),
+- ``/live/geometry`` (once) and ``/live/surface`` (at the view rate): the phantom's surface at rest
+  and deformed, so a replay shows the deformation without re-running the estimator.
+
+Crash safety: the writer closes its chunk and flushes it to the operating system every
+``flush_interval_s`` (default 1 s) and at every chunk-size limit. A session killed at any moment
+(``SIGKILL``, a crash) leaves a file whose complete chunks :func:`read_recording` reads: at most the
+last ``flush_interval_s`` of data is lost (``fsync=True`` also survives a power loss, at a cost).
+A cleanly closed file has MCAP's summary and index, so Foxglove seeks in it; a killed one has
+neither and is read sequentially (``mcap recover`` rebuilds the index).
+
+>>> import tempfile, os
+>>> path = os.path.join(tempfile.mkdtemp(), "s.mcap")
+>>> with SessionRecorder(path) as rec:
+...     rec.write_estimate({"seq": 0, "t_s": 0.0, "force_y_N": 1.0})
+>>> r = read_recording(path)
+>>> r.complete, len(r.estimates), r.estimates[0]["force_y_N"]
+(True, 1, 1.0)
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import struct
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterator, Mapping
+
+import numpy as np
+import zstandard
+from mcap.exceptions import McapError
+from mcap.records import Channel, Footer, Message, Metadata
+from mcap.stream_reader import StreamReader
+from mcap.writer import CompressionType, Writer
+
+from softphantom.errors import FileFormatError, UserError
+from softphantom.estimation.types import ARM_NAMES
+from softphantom.stream.schema import ESTIMATE_JSON_SCHEMA, csv_columns, encode, target_names
+
+TOPIC_ESTIMATE = "/estimate"
+TOPIC_SENSORS = "/sensors"
+TOPIC_TRACKER = "/tracker"
+TOPIC_GEOMETRY = "/live/geometry"
+TOPIC_SURFACE = "/live/surface"
+
+
+def _obj_schema(title: str, desc: str, props: dict[str, Any]) -> dict[str, Any]:
+    return {"title": title, "description": desc, "type": "object", "properties": props}
+
+
+_NUM = {"type": ["number", "null"]}
+SENSORS_JSON_SCHEMA = _obj_schema(
+    "softphantom.Measurement", "one sensor sample (sensing stage), gauge pressures tared",
+    {"t_s": _NUM, "seq": {"type": "integer"}, "t_board_s": _NUM, "osr": {"type": "integer"},
+     **{f"raw_{n}": {"type": "integer"} for n in (*ARM_NAMES, "urethra")},
+     **{f"dp_{a}_kPa": _NUM for a in ARM_NAMES}, **{f"dV_{a}_mm3": _NUM for a in ARM_NAMES},
+     "p_urethra_kPa": _NUM, "status": {"type": "string"}})
+TRACKER_JSON_SCHEMA = _obj_schema(
+    "softphantom.TrackerPose", "marker rigid body pose relative to rest, model frame",
+    {"t_s": _NUM, **{c: _NUM for c in ("x_mm", "y_mm", "z_mm", "yaw_deg", "pitch_deg", "roll_deg")},
+     "valid": {"type": "boolean"}, "name": {"type": "string"}})
+GEOMETRY_JSON_SCHEMA = _obj_schema(
+    "softphantom.LiveGeometry", "phantom outer surface at rest (see softphantom.viz.live)",
+    {"nodes_mm": {"type": "array"}, "faces": {"type": "array"}, "targets_mm": {"type": "object"},
+     "p_ext_mm": {"type": "array"}})
+SURFACE_JSON_SCHEMA = _obj_schema(
+    "softphantom.LiveSurface", "deformed surface node positions, float32 little-endian base64, mm",
+    {"t_s": _NUM, "seq": {"type": "integer"}, "positions_mm_f32_b64": {"type": "string"}})
+
+_SCHEMAS = {
+    TOPIC_ESTIMATE: ESTIMATE_JSON_SCHEMA, TOPIC_SENSORS: SENSORS_JSON_SCHEMA,
+    TOPIC_TRACKER: TRACKER_JSON_SCHEMA, TOPIC_GEOMETRY: GEOMETRY_JSON_SCHEMA,
+    TOPIC_SURFACE: SURFACE_JSON_SCHEMA,
+}
+
+
+def measurement_to_message(m: Any) -> dict[str, Any]:
+    """The ``/sensors`` message of a ``softphantom.sensing.Measurement`` (read by attribute)."""
+    msg: dict[str, Any] = {"t_s": float(m.t), "seq": int(m.seq), "t_board_s": float(m.t_board)}
+    raw = np.asarray(m.raw).ravel()
+    for name, v in zip((*ARM_NAMES, "urethra"), raw):
+        msg[f"raw_{name}"] = int(v)
+    msg["osr"] = int(m.osr)
+    for a, v in zip(ARM_NAMES, np.asarray(m.dp, float) * 1e-3):
+        msg[f"dp_{a}_kPa"] = float(v)
+    for a, v in zip(ARM_NAMES, np.asarray(m.dV, float) * 1e9):
+        msg[f"dV_{a}_mm3"] = float(v)
+    msg["p_urethra_kPa"] = float(m.p_urethra) * 1e-3
+    msg["status"] = str(m.status)
+    return msg
+
+
+def tracker_message(t: float, pose: Any, valid: bool = True, name: str = "") -> dict[str, Any]:
+    """The ``/tracker`` message of a ``Pose6`` (``xyz`` m, ``ypr`` rad) at time ``t`` s."""
+    v = np.concatenate([np.asarray(pose.xyz, float) * 1e3, np.degrees(np.asarray(pose.ypr, float))])
+    keys = ("x_mm", "y_mm", "z_mm", "yaw_deg", "pitch_deg", "roll_deg")
+    return {"t_s": float(t), **{k: float(x) for k, x in zip(keys, v)}, "valid": bool(valid), "name": name}
+
+
+class SessionRecorder:
+    """Write a session to an MCAP file (see the module docstring for channels and guarantees).
+
+    Not thread-safe: write from one thread. ``metadata`` (strings) goes in an MCAP metadata record
+    named ``softphantom``.
+    """
+
+    def __init__(self, path: str | os.PathLike, *, flush_interval_s: float = 1.0, fsync: bool = False,
+                 metadata: Mapping[str, str] | None = None, chunk_size_bytes: int = 256 * 1024):
+        from softphantom import __version__
+
+        self.path = Path(path)
+        try:
+            self._fh = open(self.path, "wb")
+        except OSError as exc:
+            raise UserError(f"cannot write the recording {self.path}: {exc.strerror}") from None
+        self._w = Writer(self._fh, chunk_size=chunk_size_bytes, compression=CompressionType.ZSTD)
+        self._w.start(profile="", library=f"softphantom {__version__}")
+        meta = {"softphantom": __version__, "created_unix_s": f"{time.time():.3f}"}
+        meta.update({str(k): str(v) for k, v in (metadata or {}).items()})
+        self._w.add_metadata("softphantom", meta)
+        self._channels: dict[str, int] = {}
+        for topic, schema in _SCHEMAS.items():
+            sid = self._w.register_schema(schema["title"], "jsonschema", json.dumps(schema).encode())
+            self._channels[topic] = self._w.register_channel(topic, "json", sid)
+        self._seq = {t: 0 for t in _SCHEMAS}
+        self._flush_interval = float(flush_interval_s)
+        self._fsync = fsync
+        self._last_flush = time.monotonic()
+        self.messages_written = 0
+        self._closed = False
+        self.flush()  # header, schemas and channels reach the disk first
+
+    def write(self, topic: str, message: Mapping[str, Any] | bytes, log_time_ns: int | None = None) -> None:
+        """Write one JSON message on ``topic`` (one of the channels above)."""
+        if topic not in self._channels:
+            raise UserError(f"unknown recording channel {topic!r}; known: {', '.join(self._channels)}")
+        now = time.time_ns() if log_time_ns is None else int(log_time_ns)
+        data = message if isinstance(message, bytes) else encode(message)
+        self._w.add_message(self._channels[topic], log_time=now, data=data, publish_time=now,
+                            sequence=self._seq[topic] & 0xFFFFFFFF)
+        self._seq[topic] += 1
+        self.messages_written += 1
+        if time.monotonic() - self._last_flush >= self._flush_interval:
+            self.flush()
+
+    def write_estimate(self, message: Mapping[str, Any] | bytes, log_time_ns: int | None = None) -> None:
+        self.write(TOPIC_ESTIMATE, message, log_time_ns)
+
+    def write_sensors(self, message: Mapping[str, Any], log_time_ns: int | None = None) -> None:
+        self.write(TOPIC_SENSORS, message, log_time_ns)
+
+    def write_tracker(self, message: Mapping[str, Any], log_time_ns: int | None = None) -> None:
+        self.write(TOPIC_TRACKER, message, log_time_ns)
+
+    def flush(self) -> None:
+        """Close the chunk in progress and hand everything to the OS (``fsync`` if asked)."""
+        self._w.flush()
+        if self._fsync:
+            os.fsync(self._fh.fileno())
+        self._last_flush = time.monotonic()
+
+    def close(self) -> None:
+        """Finish the file (summary, index, footer). Idempotent."""
+        if self._closed:
+            return
+        self._closed = True
+        self._w.finish()
+        self._fh.close()
+
+    def __enter__(self) -> "SessionRecorder":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+@dataclass(frozen=True)
+class Recording:
+    """What :func:`read_recording` found: messages per channel (decoded JSON dicts, in file order),
+    the ``metadata`` record, ``complete`` (the file was closed cleanly) and ``bytes_read`` (where a
+    truncated file's last complete record ended)."""
+
+    estimates: list[dict[str, Any]]
+    sensors: list[dict[str, Any]]
+    tracker: list[dict[str, Any]]
+    geometry: dict[str, Any] | None
+    surface: list[dict[str, Any]]
+    metadata: dict[str, str]
+    complete: bool
+    bytes_read: int = 0
+    other: dict[str, list[dict[str, Any]]] = field(default_factory=dict)
+
+
+def iter_records(path: str | os.PathLike) -> Iterator[tuple[str, Any]]:
+    """Yield ``(topic, decoded message)`` and ``("#metadata", dict)``; a final ``("#end", info)``
+    says whether the file was complete and how many bytes were read (a truncated file stops at its
+    last complete chunk; that is not an error)."""
+    path = Path(path)
+    try:
+        fh = open(path, "rb")
+    except OSError as exc:
+        raise UserError(f"cannot read the recording {path}: {exc.strerror}") from None
+    with fh:
+        head = fh.read(8)
+        if head[:5] != b"\x89MCAP":
+            raise FileFormatError(f"{path}: not an MCAP file (byte 0: magic {head[:8]!r})")
+        fh.seek(0)
+        reader = StreamReader(fh, record_size_limit=1 << 30)
+        channels: dict[int, str] = {}
+        complete = False
+        good = 8
+        try:
+            for rec in reader.records:
+                if isinstance(rec, Channel):
+                    channels[rec.id] = rec.topic
+                elif isinstance(rec, Message):
+                    topic = channels.get(rec.channel_id)
+                    if topic is None:
+                        raise FileFormatError(f"{path}: message on unknown channel {rec.channel_id} "
+                                              f"near byte {fh.tell()}")
+                    try:
+                        yield topic, json.loads(rec.data)
+                    except ValueError:
+                        raise FileFormatError(f"{path}: message on {topic} near byte {fh.tell()} "
+                                              "is not JSON") from None
+                elif isinstance(rec, Metadata) and rec.name == "softphantom":
+                    yield "#metadata", dict(rec.metadata)
+                elif isinstance(rec, Footer):
+                    complete = True
+                good = fh.tell()
+        except FileFormatError:
+            raise
+        except (McapError, ValueError, EOFError, OSError, struct.error, zstandard.ZstdError):
+            pass  # truncated by a crash: keep every complete record before the cut
+        yield "#end", {"complete": complete, "bytes_read": good if not complete else path.stat().st_size}
+
+
+def read_recording(path: str | os.PathLike) -> Recording:
+    """Read a whole recording (complete, or truncated by a crash: see the module docstring)."""
+    per: dict[str, list[dict[str, Any]]] = {}
+    meta: dict[str, str] = {}
+    end = {"complete": False, "bytes_read": 0}
+    for topic, msg in iter_records(path):
+        if topic == "#metadata":
+            meta = msg
+        elif topic == "#end":
+            end = msg
+        else:
+            per.setdefault(topic, []).append(msg)
+    known = {TOPIC_ESTIMATE, TOPIC_SENSORS, TOPIC_TRACKER, TOPIC_GEOMETRY, TOPIC_SURFACE}
+    geo = per.get(TOPIC_GEOMETRY, [])
+    return Recording(
+        estimates=per.get(TOPIC_ESTIMATE, []), sensors=per.get(TOPIC_SENSORS, []),
+        tracker=per.get(TOPIC_TRACKER, []), geometry=geo[0] if geo else None,
+        surface=per.get(TOPIC_SURFACE, []), metadata=meta, complete=bool(end["complete"]),
+        bytes_read=int(end["bytes_read"]), other={k: v for k, v in per.items() if k not in known},
+    )
+
+
+def _cell(v: Any) -> str:
+    if v is None:
+        return "nan"
+    if isinstance(v, float):
+        return repr(v)
+    return str(v)
+
+
+def write_estimate_csv(messages: list[Mapping[str, Any]], out: str | os.PathLike,
+                       metadata: Mapping[str, Any] | None = None) -> Path:
+    """Write estimate messages as the estimate CSV of docs/architecture.md (``nan`` for missing)."""
+    from softphantom import __version__
+
+    out = Path(out)
+    names = target_names(messages[0]) if messages else []
+    cols = csv_columns(names)
+    meta = {"softphantom": __version__, **(metadata or {})}
+    with open(out, "w", newline="") as fh:
+        fh.write("# " + json.dumps(meta) + "\n")
+        w = csv.writer(fh, lineterminator="\n")
+        w.writerow(cols)
+        for m in messages:
+            w.writerow([_cell(m.get(c)) for c in cols])
+    return out
+
+
+def export_estimate_csv(recording: str | os.PathLike, out: str | os.PathLike) -> Path:
+    """Export the ``/estimate`` channel of a recording to the estimate CSV read by ``evaluate``.
+
+    Raises :class:`~softphantom.errors.FileFormatError` if the recording holds no estimate.
+    """
+    rec = read_recording(recording)
+    if not rec.estimates:
+        raise FileFormatError(f"{recording}: no message on {TOPIC_ESTIMATE}")
+    meta: dict[str, Any] = {"source": f"recording:{Path(recording).name}", "complete": rec.complete}
+    if "model" in rec.metadata:
+        meta["model"] = rec.metadata["model"]
+    return write_estimate_csv(rec.estimates, out, meta)
+
+
+def read_estimate_csv(path: str | os.PathLike) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+    """Read an estimate CSV: its metadata line and one dict per row (numbers as float, except
+    ``qp_status``). Raises :class:`~softphantom.errors.FileFormatError` naming the line."""
+    path = Path(path)
+    try:
+        lines = path.read_text().splitlines()
+    except OSError as exc:
+        raise UserError(f"cannot read {path}: {exc.strerror}") from None
+    meta: dict[str, Any] = {}
+    i = 0
+    if lines and lines[0].startswith("#"):
+        try:
+            meta = json.loads(lines[0][1:])
+        except ValueError:
+            raise FileFormatError(f"{path}:1: metadata line is not JSON") from None
+        i = 1
+    if i >= len(lines):
+        raise FileFormatError(f"{path}: no CSV header")
+    rows = list(csv.reader(lines[i:]))
+    header = rows[0]
+    if "t_s" not in header or "force_y_N" not in header:
+        raise FileFormatError(f"{path}:{i + 1}: not an estimate CSV header (needs t_s, force_*_N)")
+    out = []
+    for k, r in enumerate(rows[1:], start=i + 2):
+        if len(r) != len(header):
+            raise FileFormatError(f"{path}:{k}: {len(r)} cells, header has {len(header)}")
+        d: dict[str, Any] = {}
+        for c, v in zip(header, r):
+            if c in ("qp_status", "status"):
+                d[c] = v
+            else:
+                try:
+                    d[c] = float(v) if v != "" else None
+                except ValueError:
+                    raise FileFormatError(f"{path}:{k}: column {c} is not a number: {v!r}") from None
+        d["seq"] = k - i - 2
+        out.append(d)
+    return meta, out

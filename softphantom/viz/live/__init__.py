@@ -1,0 +1,23 @@
+"""Live view: a local web page (3-D surface, force arrow, targets, scrolling plots, status) fed
+by an estimate source, plus the network stream and the session recording.
+
+Sources implement :class:`~softphantom.viz.live.source.EstimateSource`; the estimator plugs in at
+:func:`~softphantom.viz.live.source.estimator_source`. Run with :class:`LiveSession` or
+``softphantom live``.
+"""
+
+from softphantom.viz.live.server import LiveConfig, LiveSession, LiveState
+from softphantom.viz.live.source import (
+    EstimateSource,
+    LiveGeometry,
+    ReplaySource,
+    SyntheticSource,
+    ellipsoid_geometry,
+    estimator_source,
+    open_source,
+)
+
+__all__ = [
+    "EstimateSource", "LiveConfig", "LiveGeometry", "LiveSession", "LiveState", "ReplaySource",
+    "SyntheticSource", "ellipsoid_geometry", "estimator_source", "open_source",
+]

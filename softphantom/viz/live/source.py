@@ -1,0 +1,347 @@
+"""Estimate sources for the live view: the interface, the surface geometry, and two sources
+(a synthetic push for demos/tests, a replay of a recording or estimate CSV).
+
+The interface (:class:`EstimateSource`) is what the estimator must offer to be shown live:
+
+- ``geometry`` — a :class:`LiveGeometry` (the PhantomModel's outer surface, targets, p_ext);
+- iterating it yields :class:`~softphantom.estimation.Estimate` objects, in time order, as they are
+  computed (a real-time source paces itself; the live view never sleeps between them);
+- ``node_positions()`` — on demand, the deformed positions ``(N, 3)`` m of the model's nodes for the
+  last estimate yielded (``None`` if unknown); the live view calls it at its view rate only;
+- optional: ``last_measurement()`` (the ``Measurement`` behind the last estimate, recorded on
+  ``/sensors``), ``poll_tracker()`` (tracker messages since the last call, recorded on ``/tracker``),
+  ``close()``.
+
+:func:`open_source` turns ``--source`` specs into sources; :func:`estimator_source` is the hook
+where the estimator (issue 6) and the virtual phantom (issue 7) plug in.
+"""
+
+from __future__ import annotations
+
+import base64
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterator, Mapping, Protocol, runtime_checkable
+
+import numpy as np
+
+from softphantom.errors import FileFormatError, UserError
+from softphantom.estimation.types import ARM_NAMES, Estimate
+
+
+@dataclass(frozen=True)
+class LiveGeometry:
+    """The surface the live view draws (SI units).
+
+    ``nodes`` (n, 3) m rest positions of the surface nodes; ``faces`` (S, 3) indices into ``nodes``
+    (outward normals); ``node_index`` (n,) the model node id of each surface node, to pick the
+    surface out of ``node_positions()``; ``targets`` name → (3,) m at rest; ``p_ext`` (3,) m where
+    the force acts.
+
+    >>> g = ellipsoid_geometry(subdivisions=1)
+    >>> g.nodes.shape, g.faces.shape, sorted(g.targets)
+    ((42, 3), (80, 3), ['apex', 'base', 'lesion'])
+    """
+
+    nodes: np.ndarray
+    faces: np.ndarray
+    node_index: np.ndarray
+    targets: dict[str, np.ndarray] = field(default_factory=dict)
+    p_ext: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+    @classmethod
+    def from_model(cls, model: Any, p_ext: str = "on-centre") -> "LiveGeometry":
+        """The outer surface of a ``PhantomModel`` (docs/architecture.md): ``outer_faces`` reindexed
+        to the surface nodes, its ``targets`` and the ``p_ext`` point named ``p_ext``."""
+        faces = np.asarray(model.outer_faces, dtype=np.int64)
+        if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0:
+            raise UserError("the model has no outer surface triangles (outer_faces)")
+        used, inv = np.unique(faces.ravel(), return_inverse=True)
+        points = dict(getattr(model, "p_ext", {}) or {})
+        if p_ext not in points:
+            raise UserError(f"the model has no interaction point {p_ext!r}; it has: {', '.join(points) or 'none'}")
+        return cls(
+            nodes=np.asarray(model.nodes, float)[used],
+            faces=inv.reshape(-1, 3).astype(np.int64),
+            node_index=used.astype(np.int64),
+            targets={k: np.asarray(v, float) for k, v in (getattr(model, "targets", {}) or {}).items()},
+            p_ext=np.asarray(points[p_ext], float),
+        )
+
+    def to_json(self) -> dict[str, Any]:
+        """JSON for the page and the ``/live/geometry`` channel (millimetres)."""
+        pe = int(np.argmin(np.linalg.norm(self.nodes - self.p_ext, axis=1)))
+        return {
+            "nodes_mm": np.round(self.nodes * 1e3, 4).tolist(),
+            "faces": self.faces.tolist(),
+            "targets_mm": {k: np.round(v * 1e3, 4).tolist() for k, v in self.targets.items()},
+            "p_ext_mm": np.round(self.p_ext * 1e3, 4).tolist(),
+            "p_ext_node": pe,
+            "arms": list(ARM_NAMES),
+        }
+
+    @classmethod
+    def from_json(cls, d: Mapping[str, Any]) -> "LiveGeometry":
+        """Inverse of :meth:`to_json` (``node_index`` = 0..n-1)."""
+        try:
+            nodes = np.asarray(d["nodes_mm"], float).reshape(-1, 3) * 1e-3
+            faces = np.asarray(d["faces"], np.int64).reshape(-1, 3)
+            targets = {k: np.asarray(v, float) * 1e-3 for k, v in d.get("targets_mm", {}).items()}
+            p_ext = np.asarray(d.get("p_ext_mm", [0, 0, 0]), float) * 1e-3
+        except (KeyError, ValueError, TypeError) as exc:
+            raise FileFormatError(f"geometry message is malformed: {exc}") from None
+        return cls(nodes, faces, np.arange(len(nodes), dtype=np.int64), targets, p_ext)
+
+
+def encode_positions_mm(positions_m: np.ndarray) -> str:
+    """Surface positions (n, 3) m → base64 of little-endian float32 millimetres (the wire form).
+
+    >>> decode_positions_mm(encode_positions_mm(np.array([[0.001, 0.0, -0.002]])))
+    array([[ 0.001,  0.   , -0.002]])
+    """
+    return base64.b64encode((np.asarray(positions_m) * 1e3).astype("<f4").tobytes()).decode()
+
+
+def decode_positions_mm(b64: str) -> np.ndarray:
+    """Inverse of :func:`encode_positions_mm` (metres, float64, rounded to 0.1 µm)."""
+    return np.round(np.frombuffer(base64.b64decode(b64), "<f4").reshape(-1, 3).astype(float) * 1e-3, 7)
+
+
+@runtime_checkable
+class EstimateSource(Protocol):
+    """What the live view needs from an estimator (see the module docstring)."""
+
+    geometry: LiveGeometry
+
+    def __iter__(self) -> Iterator[Estimate]: ...
+
+    def node_positions(self) -> np.ndarray | None: ...
+
+
+def _icosphere(subdivisions: int) -> tuple[np.ndarray, np.ndarray]:
+    t = (1 + 5 ** 0.5) / 2
+    v = [(-1, t, 0), (1, t, 0), (-1, -t, 0), (1, -t, 0), (0, -1, t), (0, 1, t), (0, -1, -t), (0, 1, -t),
+         (t, 0, -1), (t, 0, 1), (-t, 0, -1), (-t, 0, 1)]
+    f = [(0, 11, 5), (0, 5, 1), (0, 1, 7), (0, 7, 10), (0, 10, 11), (1, 5, 9), (5, 11, 4), (11, 10, 2),
+         (10, 7, 6), (7, 1, 8), (3, 9, 4), (3, 4, 2), (3, 2, 6), (3, 6, 8), (3, 8, 9), (4, 9, 5), (2, 4, 11),
+         (6, 2, 10), (8, 6, 7), (9, 8, 1)]
+    verts = [np.array(p, float) / np.linalg.norm(p) for p in v]
+    faces = f
+    for _ in range(subdivisions):
+        cache: dict[tuple[int, int], int] = {}
+
+        def mid(a: int, b: int) -> int:
+            key = (min(a, b), max(a, b))
+            if key not in cache:
+                m = verts[a] + verts[b]
+                verts.append(m / np.linalg.norm(m))
+                cache[key] = len(verts) - 1
+            return cache[key]
+
+        nf = []
+        for a, b, c in faces:
+            ab, bc, ca = mid(a, b), mid(b, c), mid(c, a)
+            nf += [(a, ab, ca), (b, bc, ab), (c, ca, bc), (ab, bc, ca)]
+        faces = nf
+    return np.array(verts), np.array(faces, dtype=np.int64)
+
+
+def ellipsoid_geometry(semi_axes_m: tuple[float, float, float] = (0.032, 0.025, 0.030),
+                       subdivisions: int = 3) -> LiveGeometry:
+    """A stand-in bulb surface (the paper's ellipsoid, 100 mL) for the synthetic source."""
+    unit, faces = _icosphere(subdivisions)
+    nodes = unit * np.asarray(semi_axes_m)
+    targets = {"apex": np.array([0.0, -0.015, 0.0]), "base": np.array([0.0, 0.015, 0.0]),
+               "lesion": np.array([0.008, 0.0, -0.006])}
+    return LiveGeometry(nodes, faces, np.arange(len(nodes), dtype=np.int64), targets,
+                        np.array([0.0, -semi_axes_m[1], 0.0]))
+
+
+def _rot(ypr: np.ndarray) -> np.ndarray:
+    """R = Rz(yaw)·Rx(pitch)·Ry(roll) (the project's convention)."""
+    (cy, sy), (cp, sp), (cr, sr) = [(math.cos(a), math.sin(a)) for a in ypr]
+    rz = np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]])
+    rx = np.array([[1, 0, 0], [0, cp, -sp], [0, sp, cp]])
+    ry = np.array([[cr, 0, sr], [0, 1, 0], [-sr, 0, cr]])
+    return rz @ rx @ ry
+
+
+class SyntheticSource:
+    """A smooth, repeating push at p_ext on an ellipsoid: a **kinematic stand-in**, not physics.
+
+    Force ``F(t) = peak·½(1−cos 2πt/period)`` mostly along +y (the needle direction) with small x/z
+    parts; the bulb translates by F/k, rotates a few degrees and dents around p_ext; cavity volumes
+    are a fixed linear map of (F, p_urethra) plus noise. Yields ``duration_s·rate_Hz`` estimates
+    (forever if ``duration_s`` is None), paced in real time when ``realtime`` (late ticks are
+    skipped and counted in ``Estimate.skipped``, as the estimator does).
+
+    >>> s = SyntheticSource(rate_Hz=100, duration_s=0.5, realtime=False, subdivisions=1)
+    >>> ests = list(s)
+    >>> len(ests), round(float(max(e.force[1] for e in ests)), 2) > 0
+    (50, True)
+    >>> s.node_positions().shape
+    (42, 3)
+    """
+
+    _W = np.array([[1.8, 0.6, -2.2, 0.9], [1.7, 0.6, 2.4, 0.9], [2.1, -2.0, 0.3, 0.8], [2.0, 2.1, 0.2, 0.8]])
+    """mm³ per N (x, y, z) and per kPa of urethra pressure, one row per arm."""
+
+    def __init__(self, rate_Hz: float = 77.0, duration_s: float | None = None, *, realtime: bool = True,
+                 peak_force_N: float = 3.0, period_s: float = 4.0, subdivisions: int = 3, seed: int = 0):
+        if not (0 < rate_Hz <= 10000):
+            raise UserError(f"--rate-Hz must be in (0, 10000], got {rate_Hz}")
+        self.geometry = ellipsoid_geometry(subdivisions=subdivisions)
+        self.rate_Hz, self.duration_s, self.realtime = float(rate_Hz), duration_s, realtime
+        self.peak_force_N, self.period_s = float(peak_force_N), float(period_s)
+        self._rng = np.random.default_rng(seed)
+        self._last: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # force, xyz, ypr
+        self._W_si = self._W * 1e-9  # m³ per N / per kPa
+
+    def _deform(self, x: np.ndarray, force: np.ndarray, xyz: np.ndarray, ypr: np.ndarray) -> np.ndarray:
+        dent = (force / 600.0) * np.exp(-np.sum((x - self.geometry.p_ext) ** 2, axis=-1) / (2 * 0.009 ** 2))[..., None]
+        return (x + dent) @ _rot(ypr).T + xyz
+
+    def _state(self, t: float) -> tuple[np.ndarray, float, np.ndarray, np.ndarray]:
+        s = 0.5 * (1 - math.cos(2 * math.pi * t / self.period_s))
+        f = self.peak_force_N * s * np.array([0.25 * math.sin(2 * math.pi * t / (2.3 * self.period_s)), 1.0,
+                                              0.15 * math.cos(2 * math.pi * t / (3.1 * self.period_s))])
+        p_ur = 2000.0 * 0.5 * (1 - math.cos(2 * math.pi * t / (5 * self.period_s)))  # Pa
+        xyz = f / np.array([900.0, 450.0, 700.0])
+        ypr = np.radians([-2.5 * f[0], 1.6 * f[2] - 0.8 * f[1], 0.3 * f[0]])
+        return f, p_ur, xyz, ypr
+
+    def __iter__(self) -> Iterator[Estimate]:
+        from softphantom.pose import Pose6
+
+        dt = 1.0 / self.rate_Hz
+        n_max = None if self.duration_s is None else int(round(self.duration_s * self.rate_Hz))
+        t0 = time.perf_counter()
+        k = 0
+        while n_max is None or k < n_max:
+            skipped = 0
+            if self.realtime:
+                now = time.perf_counter() - t0
+                if now < k * dt:
+                    time.sleep(k * dt - now)
+                else:
+                    late = int((now - k * dt) / dt)
+                    if late:
+                        skipped = min(late, (n_max - k - 1) if n_max is not None else late)
+                        k += skipped
+            c0 = time.perf_counter()
+            t = k * dt
+            f, p_ur, xyz, ypr = self._state(t)
+            act = np.array([*f, p_ur * 1e-3])
+            pred = self._W_si @ act
+            meas = pred + self._rng.normal(0.0, 0.03e-9, 4)
+            shifts = {n: self._deform(p, f, xyz, ypr) - p for n, p in self.geometry.targets.items()}
+            self._last = (f, xyz, ypr)
+            est = Estimate(t=t, force=f, p_urethra=p_ur, pose=Pose6(xyz, ypr), target_shift=shifts,
+                           volume_pred=pred, volume_meas=meas, cond_W=float(np.linalg.cond(self._W)),
+                           qp_status="optimal", step_time=time.perf_counter() - c0, skipped=skipped,
+                           status="ok")
+            yield est
+            k += 1
+
+    def node_positions(self) -> np.ndarray | None:
+        """Deformed surface positions (n, 3) m for the last estimate yielded."""
+        if self._last is None:
+            return self.geometry.nodes.copy()
+        return self._deform(self.geometry.nodes, *self._last)
+
+
+class ReplaySource:
+    """Replay estimates from a session recording (``.mcap``) or an estimate CSV.
+
+    Paced by ``t_s`` (times ``speed``; ``speed=0`` as fast as possible). A recording with
+    ``/live/geometry`` and ``/live/surface`` also replays the deformation; otherwise ``geometry``
+    comes from ``geometry`` (e.g. ``LiveGeometry.from_model``) or is None (plots only).
+    """
+
+    def __init__(self, path: str | Path, *, speed: float = 1.0, geometry: LiveGeometry | None = None):
+        from softphantom.stream.recording import read_estimate_csv, read_recording
+
+        path = Path(path)
+        if not path.exists():
+            raise UserError(f"replay file not found: {path}")
+        self._surface: list[tuple[float, str]] = []
+        if path.suffix.lower() == ".mcap":
+            rec = read_recording(path)
+            self.messages = rec.estimates
+            if rec.geometry is not None and geometry is None:
+                geometry = LiveGeometry.from_json(rec.geometry)
+            self._surface = [(float(m.get("t_s") or 0.0), m["positions_mm_f32_b64"]) for m in rec.surface
+                             if "positions_mm_f32_b64" in m]
+        else:
+            _meta, self.messages = read_estimate_csv(path)
+        if not self.messages:
+            raise FileFormatError(f"{path}: no estimates to replay")
+        self.geometry = geometry  # type: ignore[assignment]
+        self.speed = float(speed)
+        self._t = -math.inf
+
+    def __iter__(self) -> Iterator[Estimate]:
+        from softphantom.stream.schema import message_to_estimate
+
+        t_first = float(self.messages[0].get("t_s") or 0.0)
+        w0 = time.perf_counter()
+        for m in self.messages:
+            est = message_to_estimate(m)
+            if self.speed > 0:
+                wait = (est.t - t_first) / self.speed - (time.perf_counter() - w0)
+                if wait > 0:
+                    time.sleep(wait)
+            self._t = est.t
+            yield est
+
+    def node_positions(self) -> np.ndarray | None:
+        """The recorded surface nearest before the last estimate (None without one)."""
+        if not self._surface or self.geometry is None:
+            return None
+        times = [t for t, _ in self._surface]
+        i = int(np.searchsorted(times, self._t, side="right")) - 1
+        return decode_positions_mm(self._surface[max(i, 0)][1])
+
+
+def estimator_source(kind: str, arg: str, model_dir: Path | None, **options: Any) -> EstimateSource:
+    """HOOK — the place the real estimator plugs into ``softphantom live``.
+
+    ``kind`` is ``"virtual"`` (``arg`` = scenario name), ``"serial"`` (``arg`` = port) or
+    ``"sensor-replay"`` (a recording with ``/sensors`` but no estimates). Wire it as: load the
+    model (``softphantom.design.load_model(model_dir)``), build the sensor source (issue 7's virtual
+    phantom, or the serial board of the sensing stage), wrap it in the estimator (issue 6), and return
+    an object with ``geometry = LiveGeometry.from_model(model)``, ``__iter__`` yielding Estimates and
+    ``node_positions()`` returning the estimator's current node positions (N, 3) m.
+    """
+    raise UserError(f"--source {kind}:{arg} needs the estimator and the {kind} sensor source, which "
+                    "are not installed yet; use --source synthetic or --source replay:FILE")
+
+
+def open_source(spec: str, *, model_dir: str | Path | None = None, rate_Hz: float = 77.0,
+                duration_s: float | None = None, speed: float = 1.0) -> EstimateSource:
+    """Parse ``--source``: ``synthetic``, ``replay:FILE`` (.mcap or estimate .csv), ``virtual:SCENARIO``,
+    ``serial:PORT``. Raises :class:`~softphantom.errors.UserError` for an unknown spec.
+
+    >>> open_source("synthetic", duration_s=0.1).rate_Hz
+    77.0
+    >>> open_source("bogus:x")
+    Traceback (most recent call last):
+    ...
+    softphantom.errors.UserError: unknown --source 'bogus:x'; use synthetic, replay:FILE, virtual:SCENARIO or serial:PORT
+    """
+    kind, _, arg = spec.partition(":")
+    model = Path(model_dir) if model_dir else None
+    if kind == "synthetic":
+        return SyntheticSource(rate_Hz=rate_Hz, duration_s=duration_s)
+    if kind == "replay" and arg:
+        geometry = None
+        if model is not None:
+            from softphantom.design import load_model  # lands with issue 1 (design)
+
+            geometry = LiveGeometry.from_model(load_model(model))
+        return ReplaySource(arg, speed=speed, geometry=geometry)
+    if kind in ("virtual", "serial") and arg:
+        return estimator_source(kind, arg, model, rate_Hz=rate_Hz, duration_s=duration_s)
+    raise UserError(f"unknown --source {spec!r}; use synthetic, replay:FILE, virtual:SCENARIO or serial:PORT")
