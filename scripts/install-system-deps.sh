@@ -2,6 +2,7 @@
 # Installs the Debian packages softphantom needs; idempotent (installs only what is missing).
 #   gmsh wheel (headless): libglu1-mesa libgl1 libxcursor1 libxft2 libxinerama1 libgomp1
 #   firmware build:        gcc-avr avr-libc binutils-avr
+#   scikit-sparse (CHOLMOD, FEM solver): libsuitesparse-dev
 #   live view screenshot test (headless): chromium fonts-dejavu-core
 set -euo pipefail
 PKGS=(libglu1-mesa libgl1 libxcursor1 libxft2 libxinerama1 libgomp1

@@ -230,15 +230,15 @@ def _newton(fem, x, f_fixed, plist, t, tol, max_iter, solver, consistent):
         return pi
 
     # Round-off floor of the residual: polar decomposition and stress carry an absolute strain error
-    # ~ machine epsilon, i.e. nodal force errors ~ eps·(2μ+λ)·V·|∇N|. Below ~1e3 times that, a
-    # smaller residual is noise (this matters only for tiny loads, strains < ~1e-6).
+    # ~ machine epsilon, i.e. nodal force errors ~ eps·(2μ+λ)·V·|∇N|. Below 16 times that, a
+    # smaller residual is noise (measured: ~4 eps; this matters only for strains < ~1e-7).
     unit = np.bincount(
         fem.tets.reshape(-1),
         weights=((2 * fem.mu + fem.lam) * fem.volumes)[:, None].repeat(4, 1).reshape(-1)
         * np.linalg.norm(fem.grads, axis=2).reshape(-1),
         minlength=fem.n_nodes,
     )
-    floor = 1e3 * np.finfo(float).eps * np.linalg.norm(np.repeat(unit, 3)[free])
+    floor = 16 * np.finfo(float).eps * np.linalg.norm(np.repeat(unit, 3)[free])
 
     r, ref = residual(x)
     rn = np.linalg.norm(r)
@@ -299,7 +299,8 @@ def solve_static(
     Newton on the free DOFs (consistent tangent) with a backtracking line search (Armijo on the
     total potential energy, or a decrease of the residual norm); converged when
     ‖r_free‖ ≤ ``tol`` · max(‖f_applied‖, ‖f_int‖), or below the round-off floor of the internal
-    force (~1e3·eps·(2μ+λ)·V·|∇N| per node, reached only at strains below ~1e-6). If a load step fails (no convergence, line
+    force (16·eps·(2μ+λ)·V·|∇N| per node, reached only at strains below ~1e-7). If a load step
+    fails (no convergence, line
     search failure, inversion) the load increment is halved (adaptive load stepping). Fixed DOFs
     stay where ``x0`` puts them (rest by default), which also prescribes displacements.
 
