@@ -7,7 +7,8 @@
 set -euo pipefail
 PKGS=(libglu1-mesa libgl1 libxcursor1 libxft2 libxinerama1 libgomp1
       gcc-avr avr-libc binutils-avr
-      chromium fonts-dejavu-core)
+      chromium fonts-dejavu-core
+      libsuitesparse-dev)
 missing=()
 for p in "${PKGS[@]}"; do
   dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")
