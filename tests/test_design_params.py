@@ -102,7 +102,8 @@ INVALID = {
         lambda: dataclasses.replace(D, urethra=dataclasses.replace(D.urethra, volume_mm3=4000.0)),
         "urethra: wall to the bulb surface",
     ),
-    "arm cavity cuts the bulb": (lambda: _arm(D, "back_xpos", cavity_offset_mm=4.0), "the cavity comes"),
+    "arm cavity cuts the bulb": (lambda: _arm(D, "back_xpos", cavity_offset_mm=4.0), "the cavity cuts 3.481 mm into the bulb (min wall 1 mm)"),
+    "arm cavity near the bulb": (lambda: _arm(D, "back_xpos", cavity_offset_mm=8.0), "the cavity comes 0.4226 mm from the bulb"),
     "arm cavity cuts the end face": (lambda: _arm(D, "back_xpos", cavity_offset_mm=26.0), "from the fixed end face"),
     "arm misses the bulb": (
         lambda: _arm(D, "front_zpos", axis_point_mm=(0.0, 0.0, 60.0), direction=(1.0, 0.0, 0.0)),

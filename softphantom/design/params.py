@@ -466,9 +466,10 @@ def _validate_geometry(d: BIPDesign) -> None:
         cav = geo.capsule_surface_points(ca, cb, g.cavity_radius_mm)
         to_bulb = float(geo.ellipsoid_signed_distance(cav, axes).min())
         if to_bulb < MIN_WALL_MM:
+            where = f"comes {_fmt(to_bulb)} mm from" if to_bulb >= 0 else f"cuts {_fmt(-to_bulb)} mm into"
             raise DesignError(
-                f"{p}.cavity_offset_mm = {_fmt(arm.cavity_offset_mm)}: the cavity comes {_fmt(to_bulb)} mm from "
-                f"the bulb (min wall {MIN_WALL_MM:g} mm)"
+                f"{p}.cavity_offset_mm = {_fmt(arm.cavity_offset_mm)}: the cavity {where} the bulb "
+                f"(min wall {MIN_WALL_MM:g} mm)"
             )
         to_end = arm.length_mm - (arm.cavity_offset_mm + 0.5 * arm.cavity_cyl_length_mm + g.cavity_radius_mm)
         if to_end < MIN_WALL_MM:

@@ -1,0 +1,39 @@
+"""`softphantom design`: files, report numbers, one-line errors."""
+
+from __future__ import annotations
+
+import re
+
+import numpy as np
+
+from softphantom.cli import main
+from softphantom.design import load_model
+
+
+def test_design_command_writes_model_report_and_png(tmp_path, capsys):
+    out = tmp_path / "d"
+    assert main(["design", "--out", str(out), "--mesh-size-mm", "12"]) == 0
+    for f in ("model.msh", "model.vtu", "model.npz", "design.toml", "report.md", "mesh.png"):
+        assert (out / f).stat().st_size > 0, f
+    assert (out / "mesh.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    model = load_model(out)
+    report = (out / "report.md").read_text()
+    row = re.search(r"\| urethra \| ([\d.]+) \| ([\d.]+) \|", report)
+    assert float(row.group(1)) == 2078.0
+    assert abs(float(row.group(2)) - model.cavity_volume("urethra") * 1e9) < 0.06
+    assert f"nodes: {len(model.nodes)}" in report
+    assert model.design.mesh.size_mm == 12.0
+    assert np.isclose(model.bulb_volume() * 1e9, float(re.search(r"\| bulb \| [\d.]+ \| ([\d.]+)", report).group(1)), atol=0.06)
+
+
+def test_design_command_invalid_config_is_one_line_exit_2(tmp_path, capsys):
+    cfg = tmp_path / "bad.toml"
+    cfg.write_text("[arms.back_xpos]\nwall_mm = 0.4\n")
+    assert main(["design", "--config", str(cfg), "--out", str(tmp_path / "o"), "--no-png"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "Traceback" not in err
+    assert "arms.back_xpos.wall_mm" in err and "1 mm" in err
+    assert not (tmp_path / "o").exists()
+    assert main(["design", "--out", str(tmp_path / "o"), "--mesh-size-mm", "-3"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "mesh.size_mm" in err and "Traceback" not in err
