@@ -70,3 +70,36 @@ def write_snapshot(path, with_displacement=True):
     point_data = {"displacement_mm": disp * 1e3} if with_displacement else {}
     meshio.write(path, meshio.Mesh(pts + disp, [("tetra", tets)], point_data=point_data))
     return path
+
+
+def write_motive_truth(path, seed=0, noise_mm=0.0):
+    """The synthetic motion as a Motive CSV (millimetres, quaternion) of body 'bip', seen from a
+    tracker frame rotated and offset from the model frame; the body frame = model frame at rest."""
+    from scipy.spatial.transform import Rotation
+
+    from softphantom.pose import RigidTransform
+
+    rng = np.random.default_rng(seed)
+    t = np.arange(0.0, 7.0, 1 / 120)
+    v, _ = motion(t)
+    T_rel = Pose6.from_mm_deg(v).transform()
+    T_WM = RigidTransform(Rotation.from_euler("xyz", [90, 10, -30], degrees=True).as_matrix(), np.array([0.4, 1.2, -0.3]))
+    T_WB = T_WM.compose(T_rel)
+    pos_mm = T_WB.t * 1e3 + rng.normal(scale=noise_mm, size=T_WB.t.shape)
+    q = Rotation.from_matrix(T_WB.R).as_quat()
+    lines = [
+        "Format Version,1.23,Take Name,synthetic,Capture Frame Rate,120.000000,Export Frame Rate,120.000000,"
+        "Rotation Type,Quaternion,Length Units,Millimeters,Coordinate Space,Global",
+        "",
+        ",Type," + ",".join(["Rigid Body"] * 7),
+        ",Name," + ",".join(["bip"] * 7),
+        ",," + ",".join(["Rotation"] * 4 + ["Position"] * 3),
+        "Frame,Time (Seconds),X,Y,Z,W,X,Y,Z",
+    ]
+    for i in range(len(t)):
+        cells = [str(i), f"{t[i]:.6f}"] + [f"{x:.9f}" for x in q[i]] + [f"{x:.6f}" for x in pos_mm[i]]
+        if i == 300:  # a lost frame
+            cells[2:] = [""] * 7
+        lines.append(",".join(cells))
+    path.write_text("\r\n".join(lines) + "\r\n")
+    return path

@@ -95,12 +95,19 @@ def plot_snapshot(vtu: Path, path: Path) -> SnapshotView:
 
     from softphantom.errors import FileFormatError
 
+    import contextlib
+    import io
+
+    if not Path(vtu).is_file():
+        raise FileFormatError(f"--snapshot {vtu}: no such file")
+    said = io.StringIO()
     try:
-        mesh = meshio.read(vtu)
-    except FileNotFoundError:
-        raise FileFormatError(f"--snapshot {vtu}: no such file") from None
-    except Exception as exc:  # meshio raises many types on a broken file
-        raise FileFormatError(f"{vtu}: not a readable VTU mesh ({type(exc).__name__}: {exc})") from None
+        # meshio prints its complaint and calls sys.exit on some broken files: keep both inside
+        with contextlib.redirect_stdout(said), contextlib.redirect_stderr(said):
+            mesh = meshio.read(vtu, file_format="vtu")
+    except (Exception, SystemExit) as exc:
+        why = " ".join(said.getvalue().split()) or f"{type(exc).__name__}: {exc}"
+        raise FileFormatError(f"{vtu}: not a readable VTU mesh ({why})") from None
     pts = np.asarray(mesh.points, float)
     tets = [c.data for c in mesh.cells if c.type == "tetra"]
     tris = [c.data for c in mesh.cells if c.type == "triangle"]

@@ -1,0 +1,171 @@
+"""``softphantom evaluate``: the report renders (HTML well-formed, sections, tables, every image a PNG),
+tracker files as truth, and broken inputs give one line and exit code 2."""
+
+import sys
+from html.parser import HTMLParser
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from softphantom.cli import main
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from evaluation_synth import motion, write_motive_truth, write_run, write_snapshot  # noqa: E402
+
+VOID = {"meta", "img", "br", "hr", "link", "input", "source", "col", "area", "base", "wbr"}
+
+
+class Checker(HTMLParser):
+    """Checks nesting (every non-void element closed in order) and collects ids, tables, images."""
+
+    def __init__(self):
+        super().__init__(convert_charrefs=True)
+        self.stack, self.errors, self.ids, self.tables, self.imgs, self.text = [], [], set(), [], [], []
+
+    def handle_starttag(self, tag, attrs):
+        a = dict(attrs)
+        if "id" in a:
+            self.ids.add(a["id"])
+        if tag == "table":
+            self.tables.append(a.get("class"))
+        if tag == "img":
+            self.imgs.append(a.get("src"))
+        if tag not in VOID:
+            self.stack.append(tag)
+
+    def handle_endtag(self, tag):
+        if tag in VOID:
+            return
+        if not self.stack or self.stack[-1] != tag:
+            self.errors.append(f"</{tag}> closes {self.stack[-1:] or 'nothing'}")
+        else:
+            self.stack.pop()
+
+    def handle_data(self, data):
+        self.text.append(data)
+
+
+def parse(report: Path) -> Checker:
+    c = Checker()
+    c.feed(report.read_text(encoding="utf-8"))
+    c.close()
+    assert not c.errors and not c.stack, (c.errors, c.stack)
+    return c
+
+
+def assert_images(report: Path, c: Checker):
+    assert c.imgs
+    for src in c.imgs:
+        assert "://" not in src and not src.startswith("/")  # relative, next to the report
+        p = report.parent / src
+        data = p.read_bytes()
+        assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 2000, src
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    d = tmp_path_factory.mktemp("run")
+    pe, pt = write_run(d, lag_ms=100.0, seed=5)
+    return d, pe, pt
+
+
+def test_report_renders_with_snapshot(run, capsys):
+    d, pe, pt = run
+    snap = write_snapshot(d / "peak.vtu")
+    out = d / "out"
+    assert main(["evaluate", "--estimate", str(pe), "--truth", str(pt), "--out", str(out), "--snapshot", str(snap)]) == 0
+    printed = capsys.readouterr().out
+    assert "lag" in printed and "report:" in printed and "Table I" in printed
+    report = out / "report.html"
+    c = parse(report)
+    assert {"summary", "pose", "force", "errors", "table-i", "snapshot"} <= c.ids
+    assert c.tables == ["info", "errors", "force-errors", "target-errors", "clinical"]
+    assert set(c.imgs) == {"pose_6dof.png", "force.png", "snapshot_3d.png"}
+    assert_images(report, c)
+    text = " ".join(c.text)
+    assert "coloured by |displacement_mm|" in text
+    for study in ("Lagerburg", "Stone", "Podder"):
+        assert study in text
+    # the measured lag is stated and close to the injected 100 ms + the 250 ms later start
+    import re
+
+    m = re.search(r"([\d.]+) ms, measured", text)
+    assert m and abs(float(m.group(1)) - 100.0) < 5.0
+
+
+def test_report_without_snapshot_and_without_displacement(run):
+    d, pe, pt = run
+    out = d / "out2"
+    assert main(["evaluate", "--estimate", str(pe), "--truth", str(pt), "--out", str(out), "--lag-ms", "100"]) == 0
+    c = parse(out / "report.html")
+    assert "No snapshot given" in " ".join(c.text) and "snapshot_3d.png" not in c.imgs
+    assert "100.0 ms, given" in " ".join(c.text)
+    assert_images(out / "report.html", c)
+    snap = write_snapshot(d / "plain.vtu", with_displacement=False)
+    out3 = d / "out3"
+    assert main(["evaluate", "--estimate", str(pe), "--truth", str(pt), "--out", str(out3), "--snapshot", str(snap)]) == 0
+    c = parse(out3 / "report.html")
+    assert "no 'displacement_mm' point array" in " ".join(c.text)
+    assert_images(out3 / "report.html", c)
+
+
+def test_motive_csv_as_truth_registered_by_rest_window(run, capsys):
+    d, pe, _ = run
+    mot = write_motive_truth(d / "take.csv")
+    out = d / "out_motive"
+    assert main(["evaluate", "--estimate", str(pe), "--truth", str(mot), "--out", str(out)]) == 0
+    capsys.readouterr()
+    c = parse(out / "report.html")
+    text = " ".join(c.text)
+    assert "rest window" in text and "motive-csv" in text
+    # registration by the rest window recovers the motion in the model frame (no tracker noise
+    # here; the file's 6 decimals of mm and 9 of the quaternion are the limit)
+    from softphantom.evaluation import evaluate, read_estimate, read_truth
+
+    tru = read_truth(mot)
+    assert tru.meta["lost_frames"] == 1 and len(tru.t) == 839
+    want, _ = motion(tru.t)
+    err = np.abs(tru.mm_deg() - want)
+    assert err[:, :3].max() < 1e-4 and err[:, 3:].max() < 1e-5
+    ev = evaluate(tru, read_estimate(pe))
+    assert abs(ev.lag_ms - 100.0) < 5.0
+
+
+@pytest.mark.parametrize(
+    "case, expect",
+    [
+        ("missing", "no such file"),
+        ("truncated", "truncated"),
+        ("columns", "lacks column"),
+        ("lag", "--lag-ms must be"),
+        ("tracker", "cannot tell the tracker format"),
+        ("snapshot", "not a readable VTU"),
+    ],
+)
+def test_cli_broken_inputs_one_line_exit_2(run, tmp_path, capsys, case, expect):
+    d, pe, pt = run
+    args = {"--estimate": str(pe), "--truth": str(pt), "--out": str(tmp_path / "o")}
+    if case == "missing":
+        args["--estimate"] = str(tmp_path / "nope.csv")
+    elif case == "truncated":
+        data = pe.read_bytes()
+        (tmp_path / "cut.csv").write_bytes(data[: len(data) // 2])
+        args["--estimate"] = str(tmp_path / "cut.csv")
+    elif case == "columns":
+        (tmp_path / "e.csv").write_text('# {}\nt_s,force_y_N\n0,1\n')
+        args["--estimate"] = str(tmp_path / "e.csv")
+    elif case == "lag":
+        args["--lag-ms"] = "soon"
+    elif case == "tracker":
+        (tmp_path / "t.dat").write_bytes(b"\x00\x01\x02 not a tracker file")
+        args["--truth"] = str(tmp_path / "t.dat")
+    elif case == "snapshot":
+        (tmp_path / "s.vtu").write_text("<VTKFile> broken")
+        args["--snapshot"] = str(tmp_path / "s.vtu")
+    argv = ["evaluate"] + [x for kv in args.items() for x in kv]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    msg = " ".join(err.split())  # one message; rich wraps it at the console width
+    assert msg.startswith("error: ") and expect.lower() in msg.lower(), msg
+    assert "Traceback" not in err and len(msg) < 400
