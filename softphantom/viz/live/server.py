@@ -237,7 +237,6 @@ class LiveSession:
     # -- the pump ---------------------------------------------------------------------------
     def _run_pump(self) -> None:
         from softphantom.stream.recording import TOPIC_SURFACE, measurement_to_message
-        from softphantom.viz.live.source import encode_positions_mm
 
         src, cfg, st = self.source, self.config, self.state
         geo = getattr(src, "geometry", None)
@@ -270,9 +269,7 @@ class LiveSession:
                 if geo is not None and (now - last_view >= view_dt or want_rec):
                     pos = src.node_positions()
                     if pos is not None:
-                        surf = np.asarray(pos)[geo.node_index] if len(pos) != len(geo.nodes) else np.asarray(pos)
-                        b64 = encode_positions_mm(surf)
-                        st.set_surface(b64, float(np.max(np.linalg.norm(surf - geo.nodes, axis=1))) * 1e3)
+                        b64 = _set_surface(st, geo, pos)
                         last_view = now
                         if want_rec:
                             self.recorder.write(TOPIC_SURFACE, {"t_s": msg["t_s"], "seq": seq,
@@ -293,6 +290,8 @@ class LiveSession:
             self.error = exc
             st.finish(f"{type(exc).__name__}: {exc}")
             return
+        if geo is not None and seq >= 0 and (pos := src.node_positions()) is not None:  # show the final state
+            _set_surface(st, geo, pos)
         if self.publisher is not None:
             ps = self.publisher.stats()
             st.stream.update(sent=ps.sent, subscribers=ps.subscribers, max_publish_ms=round(ps.max_publish_ms, 3))
@@ -306,6 +305,17 @@ class LiveSession:
                 "has_geometry": self._geometry_json is not None,
                 "view_rate_Hz": self.config.view_rate_Hz,
                 "surface_mm_f32_b64": self.state.surface_b64}
+
+
+def _set_surface(st: LiveState, geo: Any, pos: np.ndarray) -> str:
+    """Pick the surface out of all model nodes (or take it as is), publish it to the page."""
+    from softphantom.viz.live.source import encode_positions_mm
+
+    pos = np.asarray(pos)
+    surf = pos[geo.node_index] if len(pos) != len(geo.nodes) else pos
+    b64 = encode_positions_mm(surf)
+    st.set_surface(b64, float(np.max(np.linalg.norm(surf - geo.nodes, axis=1))) * 1e3)
+    return b64
 
 
 def _make_server(session: LiveSession, host: str, port: int) -> ThreadingHTTPServer:

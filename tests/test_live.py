@@ -1,0 +1,211 @@
+"""softphantom live: drive the page headless from the synthetic source; check the endpoints, the
+SSE frames, a chromium screenshot (not blank), replay of a recording, the CLI."""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import shutil
+import signal
+import subprocess
+import tempfile
+import time
+import urllib.request
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from softphantom.cli import main
+from softphantom.errors import UserError
+from softphantom.stream import EstimateSubscriber, read_recording
+from softphantom.viz.live import (
+    EstimateSource,
+    LiveConfig,
+    LiveGeometry,
+    LiveSession,
+    ReplaySource,
+    SyntheticSource,
+    ellipsoid_geometry,
+    open_source,
+)
+from softphantom.viz.live.source import decode_positions_mm
+
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+
+
+def _get(url: str, timeout: float = 5.0) -> bytes:
+    with urllib.request.urlopen(url, timeout=timeout) as r:
+        assert r.status == 200
+        return r.read()
+
+
+def _sse_frames(url: str, n: int, timeout: float = 10.0) -> list[dict]:
+    frames = []
+    with urllib.request.urlopen(url + "api/events", timeout=timeout) as r:
+        assert r.headers["Content-Type"] == "text/event-stream"
+        for line in r:
+            if line.startswith(b"data: "):
+                frames.append(json.loads(line[6:]))
+                if len(frames) >= n:
+                    break
+    return frames
+
+
+def _screenshot(url: str, out: Path, timeout_s: float = 60.0) -> None:
+    """Headless chromium screenshot; the process group is killed on timeout (never hangs)."""
+    with tempfile.TemporaryDirectory() as prof:
+        args = [CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+                "--disable-background-networking", "--disable-component-update", "--disable-sync",
+                f"--user-data-dir={prof}", "--window-size=1600,1000", "--hide-scrollbars",
+                "--virtual-time-budget=2000", f"--screenshot={out}", url]
+        p = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)
+        try:
+            _, err = p.communicate(timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            os.killpg(p.pid, signal.SIGKILL)
+            p.communicate()
+            pytest.fail("chromium did not finish its screenshot in time")
+        assert p.returncode == 0, err[-2000:]
+
+
+def test_synthetic_source_is_an_estimate_source_and_geometry_from_a_model():
+    src = SyntheticSource(rate_Hz=100, duration_s=0.3, realtime=False, subdivisions=2)
+    assert isinstance(src, EstimateSource)
+    ests = list(src)
+    assert len(ests) == 30 and all(e.status == "ok" for e in ests)
+    pos = src.node_positions()
+    u = np.linalg.norm(pos - src.geometry.nodes, axis=1)
+    assert u.max() > 1e-4  # it deforms
+    # LiveGeometry.from_model takes the outer surface of a PhantomModel-like object, reindexed
+    g = ellipsoid_geometry(subdivisions=1)
+    extra = np.zeros((5, 3))  # interior nodes that are not on the surface
+    model = SimpleNamespace(nodes=np.vstack([extra, g.nodes]), outer_faces=g.faces + 5,
+                            targets={"apex": np.array([0.0, -0.01, 0.0])},
+                            p_ext={"on-centre": g.p_ext, "off-centre": g.p_ext + 0.005})
+    lg = LiveGeometry.from_model(model)
+    np.testing.assert_array_equal(lg.node_index, np.arange(5, 5 + len(g.nodes)))
+    np.testing.assert_allclose(lg.nodes[lg.faces], g.nodes[g.faces])
+    with pytest.raises(UserError, match="no interaction point 'top'"):
+        LiveGeometry.from_model(model, p_ext="top")
+    j = lg.to_json()
+    assert LiveGeometry.from_json(j).faces.shape == lg.faces.shape
+    assert j["nodes_mm"][j["p_ext_node"]] == pytest.approx((g.p_ext * 1e3).tolist())
+
+
+def test_live_page_endpoints_frames_and_stream(tmp_path):
+    src = SyntheticSource(rate_Hz=200, duration_s=None)
+    rec = tmp_path / "live.mcap"
+    cfg = LiveConfig(http_port=0, stream_port=0, record=rec, view_rate_Hz=30)
+    with LiveSession(src, cfg) as s:
+        assert s.url.startswith("http://127.0.0.1:")
+        assert s.stream_endpoint.startswith("tcp://127.0.0.1:")
+        sub = EstimateSubscriber(s.stream_endpoint)
+        try:
+            html = _get(s.url).decode()
+            for el in ('id="view3d"', 'id="status"', 'id="plot-force"', 'id="plot-position"',
+                       'id="plot-rotation"', 'id="plot-cavities"', 'id="targets"', "/static/live.js"):
+                assert el in html
+            js = _get(s.url + "static/live.js").decode()
+            assert "EventSource" in js and "http" not in js.replace("/api/", "")  # nothing fetched from outside
+            geo = json.loads(_get(s.url + "api/geometry"))
+            assert len(geo["nodes_mm"]) == len(src.geometry.nodes) and set(geo["targets_mm"]) == {"apex", "base", "lesion"}
+            frames = _sse_frames(s.url, 6)
+            assert any(f["samples"] for f in frames) and any("surface_mm_f32_b64" in f for f in frames)
+            seqs = [m["seq"] for f in frames for m in f["samples"]]
+            assert seqs == sorted(seqs) and len(set(seqs)) == len(seqs)
+            surf = decode_positions_mm(next(f["surface_mm_f32_b64"] for f in frames if "surface_mm_f32_b64" in f))
+            assert surf.shape == src.geometry.nodes.shape
+            time.sleep(1.0)
+            state = json.loads(_get(s.url + "api/state"))
+            st = state["status"]
+            assert 150 < st["rate_Hz"] < 230, st
+            assert st["sensor_health"] == "ok" and st["step_ms"] is not None and st["estimates"] > 200
+            assert st["stream"]["enabled"] and st["recording"]["enabled"]
+            for k in ("force_y_N", "y_mm", "pitch_deg", "dVmeas_back_xpos_mm3", "apex_dy_mm", "seq", "t_s"):
+                assert k in state["latest"]
+            assert _get_status(s.url + "nope") == 404
+            m = sub.recv(timeout_s=3.0)
+            assert m is not None and "force_y_N" in m
+        finally:
+            sub.close()
+    r = read_recording(rec)
+    assert r.complete and len(r.estimates) > 200 and r.geometry is not None and len(r.surface) >= 5
+    assert [m["seq"] for m in r.estimates] == list(range(len(r.estimates)))
+
+
+def _get_status(url: str) -> int:
+    try:
+        urllib.request.urlopen(url, timeout=5)
+    except urllib.error.HTTPError as e:
+        return e.code
+    return 200
+
+
+@pytest.mark.skipif(CHROMIUM is None, reason="chromium not installed (scripts/install-system-deps.sh installs it)")
+def test_live_page_renders_in_headless_chromium(tmp_path):
+    from PIL import Image
+
+    src = SyntheticSource(rate_Hz=77, duration_s=None, period_s=10.0)  # the push peaks at t = 5 s
+    with LiveSession(src, LiveConfig(http_port=0, stream_port=0)) as s:
+        time.sleep(2.5)  # the push is well under way: the surface has deformed
+        png = tmp_path / "live.png"
+        _screenshot(s.url + "?frames=30", png)
+        st = s.state.status()
+    assert png.stat().st_size > 20_000
+    img = np.asarray(Image.open(png).convert("RGB"), dtype=float)
+    assert img.shape[:2] == (1000, 1600)
+    assert img.std() > 20.0  # a blank page has std ≈ 0
+    h, w, _ = img.shape
+    view = img[int(0.2 * h):int(0.75 * h), int(0.1 * w):int(0.45 * w)]   # the 3-D surface
+    plot = img[int(0.06 * h):int(0.27 * h), int(0.6 * w):int(0.98 * w)]  # the force plot
+    assert (np.abs(view - 255).sum(axis=2) > 60).mean() > 0.3  # the phantom covers the view's middle
+    colored = (np.ptp(plot, axis=2) > 60).mean()                  # coloured lines in the plot
+    assert colored > 0.003, colored
+    assert st["view_dropped"] == 0 and st["estimates"] > 100
+    shutil.copy(png, Path(tempfile.gettempdir()) / "softphantom-live-test.png")  # for a human look
+
+
+def test_replay_of_a_recording_shows_the_recorded_deformation(tmp_path):
+    rec = tmp_path / "s.mcap"
+    src = SyntheticSource(rate_Hz=200, duration_s=1.0, subdivisions=2)
+    with LiveSession(src, LiveConfig(http_port=0, stream_port=None, record=rec, record_surface_Hz=20)) as s:
+        assert s.wait(timeout_s=10.0)
+    r = read_recording(rec)
+    assert len(r.estimates) == 200 and len(r.surface) >= 10
+    rp = open_source(f"replay:{rec}", speed=0)
+    assert isinstance(rp, ReplaySource) and rp.geometry.nodes.shape == src.geometry.nodes.shape
+    with LiveSession(rp, LiveConfig(http_port=0, stream_port=None)) as s2:
+        assert s2.wait(timeout_s=10.0)
+        st = json.loads(_get(s2.url + "api/state"))
+    assert st["status"]["estimates"] == 200 and st["status"]["finished"]
+    assert st["latest"]["seq"] == 199
+    assert st["latest"]["force_y_N"] == pytest.approx(r.estimates[-1]["force_y_N"])
+    final = decode_positions_mm(st["surface_mm_f32_b64"])
+    np.testing.assert_allclose(final, decode_positions_mm(r.surface[-1]["positions_mm_f32_b64"]), atol=1e-6)
+    # and an estimate CSV replays too (plots only: no geometry in a CSV)
+    assert main(["recording-csv", str(rec), "--out", str(tmp_path / "e.csv")]) == 0
+    rc = open_source(f"replay:{tmp_path / 'e.csv'}", speed=0)
+    assert rc.geometry is None and len(list(rc)) == 200
+
+
+def test_cli_live_runs_records_and_rejects_bad_options(tmp_path, capsys):
+    rec = tmp_path / "cli.mcap"
+    assert main(["live", "--source", "synthetic", "--duration-s", "1.0", "--http-port", "0", "--stream-port", "0",
+                 "--rate-Hz", "100", "--record", str(rec)]) == 0
+    out = capsys.readouterr().out
+    assert "live page: http://127.0.0.1:" in out and "estimate stream: tcp://127.0.0.1:" in out
+    assert 80 <= len(read_recording(rec).estimates) <= 110
+    for argv, msg in [
+        (["live", "--source", "bogus"], "unknown --source"),
+        (["live", "--source", "virtual:needle"], "needs the estimator"),
+        (["live", "--source", "replay:/no/such.mcap"], "replay file not found"),
+        (["live", "--record", str(tmp_path / "x.txt")], "--record must name an .mcap"),
+        (["live", "--view-rate-Hz", "0"], "--view-rate-Hz"),
+        (["live", "--rate-Hz", "-1", "--http-port", "0"], "--rate-Hz"),
+    ]:
+        assert main(argv) == 2, argv
+        err = capsys.readouterr().err
+        assert msg in err and "Traceback" not in err
