@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import re
 
 import numpy as np
 import pytest
@@ -102,8 +103,8 @@ INVALID = {
         lambda: dataclasses.replace(D, urethra=dataclasses.replace(D.urethra, volume_mm3=4000.0)),
         "urethra: wall to the bulb surface",
     ),
-    "arm cavity cuts the bulb": (lambda: _arm(D, "back_xpos", cavity_offset_mm=4.0), "the cavity cuts 3.481 mm into the bulb (min wall 1 mm)"),
-    "arm cavity near the bulb": (lambda: _arm(D, "back_xpos", cavity_offset_mm=8.0), "the cavity comes 0.4226 mm from the bulb"),
+    "arm cavity cuts the bulb": (lambda: _arm(D, "back_xpos", cavity_offset_mm=4.0), r"the cavity cuts 3\.\d+ mm into the bulb \(min wall 1 mm\)"),
+    "arm cavity near the bulb": (lambda: _arm(D, "back_xpos", cavity_offset_mm=8.0), r"the cavity comes 0\.\d+ mm from the bulb \(min wall 1 mm\)"),
     "arm cavity cuts the end face": (lambda: _arm(D, "back_xpos", cavity_offset_mm=26.0), "from the fixed end face"),
     "arm misses the bulb": (
         lambda: _arm(D, "front_zpos", axis_point_mm=(0.0, 0.0, 60.0), direction=(1.0, 0.0, 0.0)),
@@ -141,12 +142,13 @@ def test_invalid_designs_give_one_line_errors(case):
     with pytest.raises(DesignError) as err:
         make()
     msg = str(err.value)
-    assert expected in msg
+    assert expected in msg or re.search(expected, msg), msg
     assert "\n" not in msg
 
 
 def test_toml_and_json_round_trip_exactly(tmp_path):
-    d = _arm(BIPDesign(name="variant"), "back_xpos", length_mm=30.5, radius_mm=6.5)
+    d = _arm(BIPDesign(name="variant \"A\""), "back_xpos", length_mm=30.5, radius_mm=6.5)
+    d = dataclasses.replace(d, markers=(("marker 1", d.markers[0][1]), *d.markers[1:]), targets=(("t.x", (1e-7, 0.1, 2.0)),))
     for suffix in (".toml", ".json"):
         path = save_design(d, tmp_path / f"d{suffix}")
         assert load_design(path) == d
@@ -169,3 +171,10 @@ def test_bad_files_are_design_errors(tmp_path):
         load_design(bad)
     with pytest.raises(DesignError, match="cannot read"):
         load_design(tmp_path / "missing.toml")
+
+
+def test_packaged_default_toml_is_the_default_design():
+    from importlib.resources import files
+
+    path = files("softphantom") / "data" / "bip_default.toml"
+    assert load_design(path) == BIPDesign()

@@ -1,0 +1,116 @@
+"""Design → mesh: wall time, sizes, volume errors and quality for coarse / default / fine meshes.
+
+Run: ``.venv/bin/python benchmarks/bench_design.py [--repeat N] [--compliance]``
+
+``--compliance`` adds a sanity figure for the arm stiffness: a *linear* (small-strain) elastic
+solve of a 5 N push along +y at p_ext on-centre (spread over the surface within 4 mm), Ecoflex
+00-50 E = 140 kPa, ν = 0.45, arm ends clamped; it prints the mean marker displacement. Linear
+elasticity over-predicts this large-deformation load (DESIGN.md §5: ~45 mm linear vs ~20 mm
+neo-Hookean on a similar geometry), so it is a plausibility check, not a result.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import statistics
+import time
+
+import numpy as np
+
+from softphantom.design import BIPDesign, build_model
+from softphantom.design.model import model_summary
+
+CASES = (("coarse", 12.0), ("default", None), ("fine", 4.0))
+
+
+def _linear_push(model, force_N=(0.0, 5.0, 0.0), E=140e3, nu=0.45, patch_m=4e-3):
+    import scipy.sparse as sp
+    import scipy.sparse.linalg as spla
+
+    x, t = model.nodes, model.tets
+    lam, mu = E * nu / ((1 + nu) * (1 - 2 * nu)), E / (2 * (1 + nu))
+    D = np.zeros((6, 6))
+    D[:3, :3] = lam
+    D[np.arange(3), np.arange(3)] += 2 * mu
+    D[np.arange(3, 6), np.arange(3, 6)] = mu
+    X = x[t]  # (M,4,3)
+    A = np.concatenate([np.ones((len(t), 4, 1)), X], axis=2)
+    grads = np.linalg.inv(A)[:, 1:, :]  # (M,3,4): d N_a / d x_i
+    vol = model.tet_volumes()
+    B = np.zeros((len(t), 6, 12))
+    for a in range(4):
+        gx, gy, gz = grads[:, 0, a], grads[:, 1, a], grads[:, 2, a]
+        B[:, 0, 3 * a], B[:, 1, 3 * a + 1], B[:, 2, 3 * a + 2] = gx, gy, gz
+        B[:, 3, 3 * a], B[:, 3, 3 * a + 1] = gy, gx
+        B[:, 4, 3 * a + 1], B[:, 4, 3 * a + 2] = gz, gy
+        B[:, 5, 3 * a], B[:, 5, 3 * a + 2] = gz, gx
+    Ke = np.einsum("mji,jk,mkl,m->mil", B, D, B, vol)
+    dofs = (3 * t[:, :, None] + np.arange(3)).reshape(len(t), 12)
+    rows = np.repeat(dofs, 12, axis=1).ravel()
+    cols = np.tile(dofs, (1, 12)).ravel()
+    n = 3 * len(x)
+    K = sp.csr_matrix((Ke.ravel(), (rows, cols)), shape=(n, n))
+    f = np.zeros(n)
+    tris = model.outer_faces
+    c = x[tris].mean(axis=1)
+    sel = np.linalg.norm(c - model.p_ext["on-centre"], axis=1) < patch_m
+    area = 0.5 * np.linalg.norm(np.cross(x[tris[sel, 1]] - x[tris[sel, 0]], x[tris[sel, 2]] - x[tris[sel, 0]]), axis=1)
+    w = np.zeros(len(x))
+    np.add.at(w, tris[sel].ravel(), np.repeat(area / 3, 3))
+    w /= w.sum()
+    for i in range(3):
+        f[i::3] = w * force_N[i]
+    fixed = np.zeros(n, bool)
+    for i in range(3):
+        fixed[3 * model.fixed_nodes + i] = True
+    free = ~fixed
+    u = np.zeros(n)
+    u[free] = spla.spsolve(K[free][:, free].tocsc(), f[free])
+    u = u.reshape(-1, 3)
+    out = []
+    for p in model.markers.values():
+        k = int(np.argmin(np.linalg.norm(x - p, axis=1)))
+        out.append(u[k])
+    return np.array(out)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--repeat", type=int, default=3, help="timed runs per case (median reported)")
+    ap.add_argument("--compliance", action="store_true", help="also run the linear 5 N push sanity check")
+    args = ap.parse_args()
+    print(f"# bench_design  python {platform.python_version()}  cpus {os.cpu_count()}  {platform.machine()}")
+    print("| mesh | size_mm | nodes | tets | mesh_s (median) | build_s | bulb_err_% | cavity_err_% (worst) | min_dihedral_deg |")
+    print("| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |")
+    d = BIPDesign()
+    models = {}
+    for label, size in CASES:
+        walls, mesh_s = [], []
+        for _ in range(args.repeat):
+            t0 = time.perf_counter()
+            m = build_model(d, size)
+            walls.append(time.perf_counter() - t0)
+            mesh_s.append(m.mesh_seconds)
+        s = model_summary(m)
+        bulb = 100 * (s["bulb_mesh_mm3"] / s["bulb_design_mm3"] - 1)
+        cav = min((100 * (s[f"{n}_mesh_mm3"] / s[f"{n}_design_mm3"] - 1) for n in d.cavity_volumes_mm3()), key=lambda v: -abs(v))
+        print(
+            f"| {label} | {m.design.mesh.size_mm:g} | {len(m.nodes)} | {len(m.tets)} | {statistics.median(mesh_s):.2f} | "
+            f"{statistics.median(walls):.2f} | {bulb:+.2f} | {cav:+.2f} | {s['min_dihedral_deg']:.1f} |"
+        )
+        models[label] = m
+    if args.compliance:
+        print("\n# linear 5 N push along +y at p_ext on-centre (E 140 kPa, nu 0.45): marker displacement")
+        for label, m in models.items():
+            t0 = time.perf_counter()
+            u = _linear_push(m) * 1e3
+            print(
+                f"{label}: mean |u| {np.linalg.norm(u, axis=1).mean():.1f} mm, mean u_y {u[:, 1].mean():.1f} mm "
+                f"(solve {time.perf_counter() - t0:.1f} s)"
+            )
+
+
+if __name__ == "__main__":
+    main()
