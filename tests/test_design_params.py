@@ -148,7 +148,7 @@ def test_invalid_designs_give_one_line_errors(case):
 
 def test_toml_and_json_round_trip_exactly(tmp_path):
     d = _arm(BIPDesign(name="variant \"A\""), "back_xpos", length_mm=30.5, radius_mm=6.5)
-    d = dataclasses.replace(d, markers=(("marker 1", d.markers[0][1]), *d.markers[1:]), targets=(("t.x", (1e-7, 0.1, 2.0)),))
+    d = dataclasses.replace(d, markers=(("marker 1", d.markers[0][1]), *d.markers[1:]), targets=(("t.x", (1e-7, 0.1, -12.0)),))
     for suffix in (".toml", ".json"):
         path = save_design(d, tmp_path / f"d{suffix}")
         assert load_design(path) == d
