@@ -124,7 +124,7 @@ static const uint8_t fw[3] = {FW_MAJOR, FW_MINOR, FW_PATCH};
 static void send_info(void)
 {
     uint8_t payload[SP_MAX_PAYLOAD], out[SP_MAX_FRAME];
-    size_t n = sp_pack_info(payload, seq++, micros32(), fw, osr);
+    size_t n = sp_pack_info(payload, seq, micros32(), fw, osr); /* seq: of the next DATA frame */
     uart_write(out, (uint8_t)sp_frame(payload, n, out));
 }
 
@@ -168,7 +168,7 @@ int main(void)
     uart_init();
     adc_init();
     sei();
-    send_info(); /* seq 0 after a reset: the host counts a restart, not a gap */
+    send_info(); /* after a reset the board clock restarts near 0: the host counts a restart */
 
     uint8_t payload[SP_MAX_PAYLOAD], out[SP_MAX_FRAME];
     for (;;) {

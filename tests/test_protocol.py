@@ -49,10 +49,18 @@ def test_exact_counts_on_a_crafted_stream():
 
 def test_wrap_info_and_reset():
     dec = StreamDecoder()
-    frames = dec.feed(encode_data(65534, 0, 100, [0] * 5) + encode_data(65535, 0, 100, [0] * 5)
-                      + encode_data(0, 0, 100, [0] * 5) + encode_info(0, 0) + encode_data(1, 0, 100, [0] * 5))
+    frames = dec.feed(encode_data(65534, 9_000_000, 100, [0] * 5) + encode_data(65535, 9_052_000, 100, [0] * 5)
+                      + encode_data(0, 9_104_000, 100, [0] * 5) + encode_info(1, 9_110_000)
+                      + encode_data(1, 9_156_000, 100, [0] * 5))
     assert [type(f) for f in frames] == [DataFrame] * 3 + [InfoFrame, DataFrame]
-    assert dec.stats.seq_gaps == 0 and dec.stats.resets == 1
+    assert dec.stats.seq_gaps == 0 and dec.stats.resets == 0         # seq wraps, INFO takes none
+    # the board restarts (its clock runs backwards): a reset, not 30000 lost frames
+    dec.feed(encode_info(0, 1200) + encode_data(0, 50_000, 100, [0] * 5) + encode_data(1, 102_000, 100, [0] * 5))
+    assert dec.stats.resets == 1 and dec.stats.seq_gaps == 0 and dec.stats.frames_ok == 6
+    # the u32 µs wrap of the board clock (every 71.6 min) is not a restart
+    dec2 = StreamDecoder()
+    dec2.feed(encode_data(7, 2**32 - 30_000, 100, [0] * 5) + encode_data(8, 22_000, 100, [0] * 5))
+    assert dec2.stats.resets == 0 and dec2.stats.seq_gaps == 0 and dec2.stats.frames_ok == 2
     # our own command echoed back on a loopback is not a board frame
     dec.feed(encode_set_osr(25))
     assert dec.stats.malformed == 1

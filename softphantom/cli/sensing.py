@@ -70,3 +70,121 @@ def budget_cmd(
                 w.writerow([r.group] + [f"{getattr(r, k):.6g}" for k, _, _ in cols[1:]])
         plot_budget(params, out / "budget.png")
         console.print(f"wrote {out / 'budget.csv'} and {out / 'budget.png'}")
+
+
+def _status_table(stats, elapsed_s: float, rows: int, out: Path):
+    from softphantom.sensing.measurement import ARM_NAMES
+
+    d = stats.decoder
+    t = Table(title=f"acquire → {out}  ({elapsed_s:.1f} s, {rows} rows)", show_header=False)
+    t.add_column("what")
+    t.add_column("value", justify="right")
+    t.add_row("state", stats.state)
+    t.add_row("rate (Hz)", f"{stats.rate_Hz:.1f}")
+    t.add_row("firmware / OSR", f"{stats.firmware or '?'} / {stats.osr or '?'}")
+    t.add_row("CRC errors / malformed", f"{d.crc_errors} / {d.malformed + d.overflows}")
+    t.add_row("seq gaps (frames lost)", f"{d.seq_gaps} ({d.frames_lost})")
+    t.add_row("silent events / reconnects", f"{stats.silent_events} / {stats.reconnects}")
+    m = stats.last
+    if m is not None:
+        for i, a in enumerate(ARM_NAMES):
+            t.add_row(f"dp_{a}_kPa", f"{m.dp[i] / 1e3:+.4f}")
+        t.add_row("p_urethra_kPa", f"{m.p_urethra / 1e3:+.2f}")
+        t.add_row("status", m.status)
+    return t
+
+
+@app.command("acquire")
+def acquire_cmd(
+    port: str = typer.Option(..., "--port", help="Serial port or pyserial URL (/dev/ttyACM0, loop://, socket://)."),
+    out: Path = typer.Option(..., "--out", help="Recording to create (CSV with a JSON metadata line)."),
+    duration_s: float = typer.Option(None, "--duration-s", help="Stop after this many seconds (default: Ctrl-C)."),
+    osr: int = typer.Option(None, "--osr", help="Ask the board to sum N readings per channel (1..500)."),
+    baud: int = typer.Option(115_200, "--baud", help="Serial baud rate."),
+    tare_s: float = typer.Option(1.0, "--tare-s", help="Rest window for the tare at start (s)."),
+    no_tare: bool = typer.Option(False, "--no-tare", help="Skip the tare; use the datasheet zero offsets."),
+    p0_kPa: float = typer.Option(101.325, "--p0-kPa", help="Absolute ambient pressure at tare (kPa)."),
+    tube_length_m: float = typer.Option(12.0, "--tube-length-m", help="Tube length per arm (m)."),
+    tube_id_mm: float = typer.Option(1.2, "--tube-id-mm", help="Tube inner diameter (mm)."),
+    front_cavity_mm3: float = typer.Option(514.0, "--front-cavity-mm3", help="Front arm cavity volume (mm³)."),
+    back_cavity_mm3: float = typer.Option(486.0, "--back-cavity-mm3", help="Back arm cavity volume (mm³)."),
+    connect_timeout_s: float = typer.Option(5.0, "--connect-timeout-s", help="Give up if no frame arrives (s)."),
+) -> None:
+    """Record the sensing board: tare at rest, then append every frame to --out with live status."""
+    import time
+    from datetime import datetime, timezone
+
+    import numpy as np
+    from rich.live import Live
+
+    from softphantom import __version__
+    from softphantom.sensing.chain import default_chain, nominal_tare, tare_from_window, to_measurement
+    from softphantom.sensing.protocol import PROTOCOL_VERSION
+    from softphantom.sensing.recording import Recorder
+    from softphantom.sensing.sources import SerialSource
+
+    if duration_s is not None and not duration_s > 0:
+        raise UserError(f"--duration-s: must be > 0, got {duration_s}")
+    if not p0_kPa > 0:
+        raise UserError(f"--p0-kPa: must be > 0, got {p0_kPa}")
+    if out.exists():
+        raise UserError(f"--out {out}: exists; recordings are never overwritten")
+    v = (front_cavity_mm3 * 1e-9,) * 2 + (back_cavity_mm3 * 1e-9,) * 2
+    chain = default_chain(v, tube_length_m, tube_id_mm * 1e-3)
+    p0 = p0_kPa * 1e3
+    src = SerialSource(port, chain, nominal_tare(chain, p0), baud=baud, osr=osr)
+    rec = None
+    t_start = time.monotonic()
+    try:
+        with Live(console=console, refresh_per_second=4, transient=False) as live:
+            # 1. tare window (or just wait for the first frame)
+            window = []
+            need = 0.0 if no_tare else tare_s
+            while True:
+                batch = src.read(0.05) or []
+                window += batch
+                now = time.monotonic()
+                live.update(_status_table(src.stats(), now - t_start, 0, out))
+                if window and window[-1].t - window[0].t >= need and (no_tare or len(window) >= 5):
+                    break
+                if not window and now - t_start > connect_timeout_s:
+                    raise UserError(f"--port {port}: no valid frame within {connect_timeout_s:g} s "
+                                    f"(state {src.stats().state}; check the cable, --baud, the firmware)")
+                if window and now - t_start > connect_timeout_s + need + 5:
+                    raise UserError(f"--port {port}: too few frames for a {need:g} s tare window")
+            if no_tare:
+                tare = nominal_tare(chain, p0)
+            else:
+                tare = tare_from_window(np.array([m.raw for m in window]), np.array([m.osr for m in window]),
+                                        np.array([m.t for m in window]), chain, p0)
+            src.set_tare(tare)
+            st = src.stats()
+            meta = {"softphantom": __version__, "protocol_version": PROTOCOL_VERSION,
+                    "firmware": st.firmware, "osr": st.osr, "p0_Pa": p0, "port": port, "baud": baud,
+                    "started_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+                    "tare": tare.to_dict(), "chain": chain.summary(),
+                    "design": {"arm_cavity_mm3": [x * 1e9 for x in v], "tube_length_m": tube_length_m,
+                               "tube_id_mm": tube_id_mm}}
+            rec = Recorder(out, meta)
+            for m in window:        # the tare window is part of the recording, re-converted
+                rec.write(to_measurement(m.t, m.seq, m.t_board, m.raw, m.osr, chain, tare))
+            # 2. record
+            last_ui = 0.0
+            while duration_s is None or time.monotonic() - t_start < duration_s + need:
+                for m in src.read(0.05) or []:
+                    rec.write(m)
+                rec.tick()
+                now = time.monotonic()
+                if now - last_ui > 0.25:
+                    live.update(_status_table(src.stats(), now - t_start, rec.rows, out))
+                    last_ui = now
+    except KeyboardInterrupt:
+        console.print("stopped (Ctrl-C)")
+    finally:
+        if rec is not None:
+            rec.close()
+        src.close()
+    d = src.stats().decoder
+    if rec is not None:
+        console.print(f"wrote {rec.rows} rows to {out} (CRC errors {d.crc_errors}, "
+                      f"frames lost {d.frames_lost}, reconnects {src.stats().reconnects})")

@@ -8,7 +8,8 @@ Payloads (little-endian): byte 0 protocol version (1), byte 1 message type.
 type  name          rest of payload
 ====  ============  ===================================================================
 0x01  DATA          seq u16, t_us u32 (board µs, centre of the window), osr u16, 5 × u32 sums
-0x02  INFO          seq u16, t_us u32, fw major u8, minor u8, patch u8, n_channels u8, osr u16
+0x02  INFO          seq u16 (of the next DATA frame), t_us u32, fw major, minor, patch u8,
+                    n_channels u8, osr u16
 0x10  SET_OSR       osr u16 (host → board; the board answers with INFO)
 0x11  GET_INFO      (host → board; the board answers with INFO)
 ====  ============  ===================================================================
@@ -172,7 +173,8 @@ class DecoderStats:
     CRC failed, ``malformed`` bodies rejected for COBS/length/version/type, ``overflows`` runs of
     more than 64 bytes without a delimiter (dropped up to the next delimiter), ``sync_discards`` an invalid partial first
     body (joining mid-frame; not an error), ``seq_gaps`` jumps in the sequence number,
-    ``frames_lost`` sequence numbers missing in them, ``resets`` backward jumps (board restarted),
+    ``frames_lost`` sequence numbers missing in them, ``resets`` times the board clock ran
+    backwards (the board restarted; gaps are not counted across a restart),
     ``bytes_in``, ``bytes_discarded``.
     """
 
@@ -210,6 +212,7 @@ class StreamDecoder:
         self._synced = False
         self._skipping = False      # inside an overlong run: drop everything up to the next 0x00
         self._last_seq: int | None = None
+        self._last_t_us: int | None = None
         self._c = dict(DecoderStats().__dict__)
 
     @property
@@ -260,14 +263,18 @@ class StreamDecoder:
         if isinstance(f, Command):          # our own echo on a loopback: not a board frame
             c["malformed"] += 1
             return
-        if self._last_seq is not None:
-            gap = (f.seq - self._last_seq - 1) & 0xFFFF
-            if gap >= 0x8000 or (isinstance(f, InfoFrame) and f.seq == 0):
-                c["resets"] += 1            # backwards: the board restarted
-            elif gap:
-                c["seq_gaps"] += 1
-                c["frames_lost"] += gap
-        self._last_seq = f.seq
+        # a board clock that runs backwards means the board restarted (u32 µs wraps after 71 min)
+        if self._last_t_us is not None and ((f.t_us - self._last_t_us) & 0xFFFFFFFF) >= 0x80000000:
+            c["resets"] += 1
+            self._last_seq = None
+        self._last_t_us = f.t_us
+        if isinstance(f, DataFrame):        # seq counts DATA frames only (INFO carries the next one)
+            if self._last_seq is not None:
+                gap = (f.seq - self._last_seq - 1) & 0xFFFF
+                if gap:
+                    c["seq_gaps"] += 1
+                    c["frames_lost"] += gap
+            self._last_seq = f.seq
         if isinstance(f, DataFrame):
             c["frames_ok"] += 1
         else:
