@@ -61,9 +61,12 @@ def test_wrap_info_and_reset():
     dec2 = StreamDecoder()
     dec2.feed(encode_data(7, 2**32 - 30_000, 100, [0] * 5) + encode_data(8, 22_000, 100, [0] * 5))
     assert dec2.stats.resets == 0 and dec2.stats.seq_gaps == 0 and dec2.stats.frames_ok == 2
+    # a CRC-valid frame with an impossible field is rejected, not passed on
+    dec.feed(encode_data(2, 9_200_000, 0, [0] * 5))
+    assert dec.stats.malformed == 1 and dec.stats.frames_ok == 6
     # our own command echoed back on a loopback is not a board frame
     dec.feed(encode_set_osr(25))
-    assert dec.stats.malformed == 1
+    assert dec.stats.malformed == 2
 
 
 def _valid(frame):

@@ -157,6 +157,8 @@ def decode_body(body: bytes) -> DataFrame | InfoFrame | Command:
         raise FrameError("length", f"type {kind:#04x}: {len(payload)} bytes, expected {sizes[kind].size}")
     f = sizes[kind].unpack(payload)
     if kind == MSG_DATA:
+        if f[4] == 0:
+            raise FrameError("field", "DATA frame with osr 0 (byte offset 8)")
         return DataFrame(f[2], f[3], f[4], tuple(f[5:10]))
     if kind == MSG_INFO:
         return InfoFrame(f[2], f[3], (f[4], f[5], f[6]), f[7], f[8])

@@ -82,8 +82,8 @@ class FrameSource(SensorSource):
     """Decodes frame bytes from ``chunks`` (any iterable of bytes) into Measurements.
 
     Host time ``t``: the board time mapped by the smallest observed host−board offset (the frame
-    that arrived fastest), allowed to grow by :data:`CLOCK_DRIFT`; with ``clock=None`` (a
-    simulation) ``t`` is the board time itself.
+    that arrived fastest), allowed to grow by :data:`CLOCK_DRIFT`, and never decreasing; with
+    ``clock=None`` (a simulation) ``t`` is the board time itself.
 
     >>> from softphantom.sensing.protocol import encode_data
     >>> from softphantom.sensing.chain import default_chain
@@ -118,8 +118,8 @@ class FrameSource(SensorSource):
         """Use ``tare`` for the measurements from now on."""
         self.tare = tare
 
-    def _board_time(self, t_us: int, restarted: bool) -> float:
-        if self._tb_last_us is None or restarted:
+    def _board_time(self, t_us: int) -> float:
+        if self._tb_last_us is None:
             self._tb_s = t_us * 1e-6
             self._offset = None
         else:
@@ -134,23 +134,24 @@ class FrameSource(SensorSource):
     def _ingest(self, data: bytes, now: float | None) -> list[Measurement]:
         out = []
         for f in self._dec.feed(data):
-            restarted = False                   # _board_time sees a backwards clock itself
             if isinstance(f, InfoFrame):
                 self._firmware, self._osr = f.firmware_str, f.osr
-                self._board_time(f.t_us, restarted)
+                self._board_time(f.t_us)
                 continue
             assert isinstance(f, DataFrame)
-            tb = self._board_time(f.t_us, restarted)
+            tb = self._board_time(f.t_us)
             if now is None:
                 t = tb
             else:
                 obs = now - tb
                 prev = self._tb_prev if self._offset is not None else tb
                 self._offset = obs if self._offset is None else min(obs, self._offset + CLOCK_DRIFT * (tb - prev))
-                t = tb + self._offset
+                # never backwards: an early frame that arrived late is corrected by a later one
+                t = tb + self._offset if self._last is None else max(tb + self._offset, self._last.t)
             self._tb_prev = tb
             m = to_measurement(t, f.seq, tb, f.raw, f.osr, self.chain, self.tare)
             self._osr = f.osr
+            self._last = m
             out.append(m)
         if out:
             stamp = now if now is not None else out[-1].t
