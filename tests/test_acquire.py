@@ -325,3 +325,27 @@ def test_kill_9_of_a_recording_process_reads_back(tmp_path):
     # for the reader's poll on a loaded machine)
     assert rec.seq[-1] >= max(s for s, t in board.sent_at.items() if t < t_kill - 0.15)
     assert sent_before
+
+
+def test_ctrl_c_stops_acquire_cleanly(tmp_path):
+    board = FakeBoard()
+    out = tmp_path / "c.csv"
+    proc = None
+    try:
+        _board_forever(board, 5000)
+        proc = subprocess.Popen([sys.executable, "-m", "softphantom", "acquire", "--port", board.path,
+                                 "--out", str(out), "--tare-s", "0.2"],
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        deadline = time.monotonic() + 20
+        while time.monotonic() < deadline and (not out.exists() or out.read_bytes().count(b"\n") < 20):
+            time.sleep(0.05)
+        proc.send_signal(signal.SIGINT)
+        stdout, stderr = proc.communicate(timeout=10)
+    finally:
+        if proc and proc.poll() is None:
+            proc.kill()
+        board.close()
+    assert proc.returncode == 0, stderr
+    assert "Traceback" not in stderr and "stopped" in stdout
+    rec = read_recording(out)                       # complete: no truncation warning
+    assert not rec.truncated and len(rec) >= 18     # 20 lines = metadata + header + 18 rows
