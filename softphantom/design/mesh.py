@@ -6,9 +6,12 @@ spheres). One ``fragment`` of the bulb with all arms and cavities makes the piec
 faces (a conforming mesh); the cavity pieces are then removed non-recursively so their faces stay
 as holes in the silicone. The part of an arm inside the bulb belongs to the ``bulb`` region.
 
-Sizing: one background field, the minimum of a threshold on the distance to the cavity surfaces
-(``cavity_size_mm`` on the wall, growing to ``size_mm``), a constant ``arm_size_mm`` inside the arm
-volumes and ``size_mm`` elsewhere. Deterministic: one thread, a fixed random seed, the
+Sizing: one background field, the minimum of a threshold per cavity on the distance to its
+surface (``2πr / cavity_segments`` on the wall, growing about 1:1 to ``size_mm``), a threshold on
+the distance to the bulb's outer surface (``surface_size_mm`` there), a constant ``arm_size_mm``
+inside the arm volumes and ``size_mm`` elsewhere. The meshed volume of a convex wall is that of
+an inscribed polyhedron, so it errs low by about (2π/n)²/6 with n segments around: −1.6 % for
+the default 22. Deterministic: one thread, a fixed random seed, the
 Delaunay 3-D algorithm; headless (``General.Terminal = 0``) and callable off the main thread
 (``interruptible=False``: no signal handler). gmsh is one global library, so calls are
 serialised by a lock; it is finalized after each mesh only when this module initialized it.
