@@ -27,6 +27,7 @@ from softphantom.fem.corotational import (
 )
 from softphantom.fem.material import ECOFLEX_00_50, Material
 from softphantom.fem.model import FemModel, build_fem, fem_from_phantom
+from softphantom.fem.probes import probe_matrix, tet_volumes
 from softphantom.fem.solve import (
     SparseSolver,
     StaticSolution,
@@ -55,10 +56,12 @@ __all__ = [
     "internal_force",
     "linear_internal_force",
     "polar_rotation",
+    "probe_matrix",
     "pressure_load",
     "pressure_load_tangent",
     "solve_static",
     "strain_energy",
     "tangent_stiffness",
+    "tet_volumes",
     "von_mises",
 ]

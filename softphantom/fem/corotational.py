@@ -119,39 +119,46 @@ def von_mises(stress: np.ndarray) -> np.ndarray:
 
 
 def _dP_dF(fem: FemModel, R: np.ndarray, S: np.ndarray, consistent: bool) -> np.ndarray:
-    """(M,3,3,3,3) dP_ij/dF_kl of P = R σ(S)."""
+    """(M,9,9) dP/dF of P = R σ(S), rows and columns row-major over (i,j)."""
     m = R.shape[0]
-    basis = np.eye(9).reshape(9, 3, 3)  # dF = E_kl
-    M = np.einsum("mji,kjl->mkil", R, basis)  # Rᵀ dF, (m,9,3,3)
+    # dF = E_kl (unit matrix): M = Rᵀ dF has entries M_ij = R_ki δ_lj, stored [m, kl, i, j]
+    M = np.einsum("mki,lj->mklij", R, _I3).reshape(m, 9, 3, 3)
     if consistent:
         A = M - np.swapaxes(M, 2, 3)
-        a = np.stack([A[..., 2, 1], A[..., 0, 2], A[..., 1, 0]], axis=-1)  # axial vector
+        a = np.stack([A[..., 2, 1], A[..., 0, 2], A[..., 1, 0]], axis=-1)  # axial vector, (m,9,3)
         trS = np.trace(S, axis1=1, axis2=2)
-        G = trS[:, None, None] * _I3 - S  # W S + S W = [G w]x, G positive definite if det F > 0
-        w = np.linalg.solve(G[:, None], a[..., None])[..., 0]
+        # W S + S W = [G w]x with G = tr(S) I − S, positive definite while det F > 0
+        Ginv = np.linalg.inv(trS[:, None, None] * _I3 - S)
+        w = np.einsum("mij,mkj->mki", Ginv, a)
         W = np.zeros((m, 9, 3, 3))
         W[..., 0, 1], W[..., 0, 2], W[..., 1, 2] = -w[..., 2], w[..., 1], -w[..., 0]
         W = W - np.swapaxes(W, 2, 3)
         dS = M - W @ S[:, None]
-        sigma = _stress(fem, S)
-        inner = W @ sigma[:, None]
+        inner = W @ _stress(fem, S)[:, None]
     else:
         dS = 0.5 * (M + np.swapaxes(M, 2, 3))
         inner = 0.0
     trd = np.trace(dS, axis1=2, axis2=3)
     dsig = 2.0 * fem.mu[:, None, None, None] * dS + (fem.lam[:, None] * trd)[..., None, None] * _I3
-    dP = R[:, None] @ (inner + dsig)  # (m,9,3,3): [m, kl, i, j]
-    return np.moveaxis(dP.reshape(m, 3, 3, 3, 3), (1, 2), (3, 4))
+    dP = R[:, None] @ (inner + dsig)  # [m, kl, i, j]
+    return np.swapaxes(dP.reshape(m, 9, 9), 1, 2)
+
+
+def _B(fem: FemModel) -> np.ndarray:
+    """(M,9,12) d vec(F) / d x_e: ∂F_ij/∂x_(a,l) = δ_il ∇N_a,j."""
+    m = fem.tets.shape[0]
+    B = np.zeros((m, 3, 3, 4, 3))
+    for i in range(3):
+        B[:, i, :, :, i] = np.swapaxes(fem.grads, 1, 2)
+    return B.reshape(m, 9, 12)
 
 
 def element_stiffness(fem: FemModel, x: np.ndarray, consistent: bool = True) -> np.ndarray:
-    """(M,12,12) element tangents, node-major local DOFs."""
+    """(M,12,12) element tangents V Bᵀ (dP/dF) B, node-major local DOFs."""
     R, S = polar_rotation(deformation_gradient(fem, x))
     D = _dP_dF(fem, R, S, consistent)
-    G = fem.grads
-    T = np.einsum("mijlq,mbq->mijlb", D, G)
-    Ke = np.einsum("m,maj,mijlb->maibl", fem.volumes, G, T)
-    return Ke.reshape(-1, 12, 12)
+    B = _B(fem)
+    return np.swapaxes(B, 1, 2) @ (D @ B) * fem.volumes[:, None, None]
 
 
 def assemble_pattern(fem: FemModel, Ke: np.ndarray) -> np.ndarray:
