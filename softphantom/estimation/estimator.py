@@ -1,0 +1,362 @@
+"""The real-time inverse estimator (DESIGN.md §6, paper eq. 8–10).
+
+Per sample (the foreground, a fraction of a millisecond): with the latest :class:`Linearization`
+``(x_eq, λ_eq, W, U_sub)``, solve the QP ``min ‖V_eq + W·Δλ − ΔV_meas‖²`` with the force bounds
+and ``Δλ_p`` fixed by the measured urethra pressure; ``λ = λ_eq + Δλ``; the tracked points
+(markers, targets) move to ``x_sub = x_eq,sub + U_sub·Δλ``; the pose is the rigid fit of the
+markers. The equilibrium at the new ``λ`` (converged, warm-started, refactoring only when needed:
+:class:`EquilibriumSolver`) refreshes the linearization — inside :meth:`Estimator.step` in
+``"sync"`` mode (deterministic), on a background thread in ``"async"`` mode (numpy, scipy and
+CHOLMOD release the GIL in their heavy parts). On a steady input the refreshes converge to the
+exact solution: a Gauss–Newton iteration on the volumes with the exact tangent.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from softphantom.errors import SolverError, UserError
+from softphantom.estimation.config import EstimatorConfig
+from softphantom.estimation.linearization import EquilibriumSolver, Linearization
+from softphantom.estimation.qp import solve_volume_qp
+from softphantom.estimation.types import ARM_NAMES, Estimate
+from softphantom.fem import fem_from_phantom, force_actuator, probe_matrix
+from softphantom.pose import Pose6, rigid_fit
+
+
+@dataclass(frozen=True)
+class NoiseBound:
+    """1-σ errors propagated from the sensor noise through W⁺ (unconstrained least squares):
+    ``force_N`` (3,), ``pose`` (6,) in m, m, m, rad, rad, rad (x, y, z, yaw, pitch, roll),
+    ``target_m`` per target (3,). ``cov_force`` (3,3) N²."""
+
+    force_N: np.ndarray
+    pose: np.ndarray
+    target_m: dict[str, np.ndarray]
+    cov_force: np.ndarray
+
+
+def _check(m) -> str:
+    """'' for a usable sample, else the rejection reason."""
+    if getattr(m, "status", "ok") != "ok":
+        return str(m.status)
+    dV = np.asarray(m.dV, dtype=float)
+    if dV.shape != (4,):
+        return f"dV shape {dV.shape}"
+    if not np.all(np.isfinite(dV)):
+        bad = [ARM_NAMES[i] for i in np.flatnonzero(~np.isfinite(dV))]
+        return "nan:" + ",".join(bad)
+    if not np.isfinite(float(m.p_urethra)):
+        return "nan:urethra"
+    if not np.isfinite(float(m.t)):
+        return "nan:t"
+    return ""
+
+
+class _Worker(threading.Thread):
+    """Background equilibrium: solves at the newest requested λ, publishes linearizations."""
+
+    def __init__(self, est: "Estimator") -> None:
+        super().__init__(name="softphantom-equilibrium", daemon=True)
+        self._est = est
+        self._cond = threading.Condition()
+        self._req: np.ndarray | None = None
+        self._stop = False
+        self.busy = False
+        self.error: str | None = None
+
+    def request(self, lam: np.ndarray) -> None:
+        with self._cond:
+            self._req = lam
+            self._cond.notify()
+
+    def stop(self) -> None:
+        with self._cond:
+            self._stop = True
+            self._cond.notify()
+        self.join()
+
+    def run(self) -> None:
+        est = self._est
+        while True:
+            with self._cond:
+                while self._req is None and not self._stop:
+                    self._cond.wait()
+                if self._stop:
+                    return
+                lam, self._req = self._req, None
+                self.busy = True
+            try:
+                lin = est._lin
+                if est._moved(lam, lin):
+                    est._publish(est._eq.solve(lin, lam))
+            except SolverError as exc:
+                self.error = str(exc)
+            finally:
+                with self._cond:
+                    self.busy = self._req is not None
+                    self._cond.notify_all()
+
+    def idle(self, timeout_s: float) -> bool:
+        end = time.monotonic() + timeout_s
+        with self._cond:
+            while self.busy or self._req is not None:
+                left = end - time.monotonic()
+                if left <= 0:
+                    return False
+                self._cond.wait(left)
+        return True
+
+
+class Estimator:
+    """Force, urethra pressure, pose, deformation and target shifts from the 4 arm-cavity volumes.
+
+    ``Estimator(model, config)``: ``model`` a :class:`~softphantom.design.PhantomModel`. Building
+    it factors the tangent once (rest linearization, :attr:`rest`). :meth:`step` turns a
+    :class:`~softphantom.sensing.Measurement` into an :class:`~softphantom.estimation.Estimate`;
+    a bad sample (status not ok, NaN) gives an Estimate with ``status="rejected:<why>"`` that
+    repeats the last state, which stays untouched. :meth:`node_positions` (N,3) m on demand.
+    In async mode call :meth:`close` (or use ``with``) to stop the background thread.
+    """
+
+    def __init__(self, model, config: EstimatorConfig | None = None) -> None:
+        self.config = cfg = config or EstimatorConfig()
+        self.model = model
+        self.fem = fem = fem_from_phantom(model)
+        if isinstance(cfg.contact, str):
+            if cfg.contact not in model.p_ext:
+                raise UserError(f"contact point {cfg.contact!r}: the model has {', '.join(sorted(model.p_ext))}")
+            self.contact_point = np.asarray(model.p_ext[cfg.contact], float)
+        else:
+            self.contact_point = np.asarray(cfg.contact, float)
+        H_f = force_actuator(fem, self.contact_point, cfg.contact_radius_m)
+        self.marker_names = tuple(model.markers)
+        self.target_names = tuple(model.targets)
+        if len(self.marker_names) < 3:
+            raise UserError(f"the model has {len(self.marker_names)} markers; a pose needs at least 3")
+        pts = [model.markers[k] for k in self.marker_names] + [model.targets[k] for k in self.target_names]
+        self._eq = EquilibriumSolver(
+            fem, H_f, probe_matrix(fem, pts), solver=cfg.sparse_solver, tol=cfg.tol,
+            refactor_rate=cfg.refactor_rate, max_iter=cfg.max_iter,
+        )
+        self._nm = len(self.marker_names)
+        self.rest: Linearization = self._eq.rest()
+        self.rest_markers = self.rest.sub_x[: self._nm].copy()
+        self.rest_targets = self.rest.sub_x[self._nm:].copy()
+        self._lo = np.array(cfg.force_min_N)
+        self._hi = np.array(cfg.force_max_N)
+        self._lock = threading.Lock()
+        self._worker: _Worker | None = None
+        self._init_state()
+
+    # -- state ------------------------------------------------------------------------------------
+    def _init_state(self) -> None:
+        self._lin = self.rest
+        self._lam = np.zeros(4)
+        self._since_refresh = 0
+        self.refreshes = 0
+        self.lin_errors: list[np.ndarray] = []
+        z = np.zeros(3)
+        self._last = Estimate(
+            t=0.0, force=z.copy(), p_urethra=0.0, pose=Pose6(z.copy(), z.copy()),
+            target_shift={k: z.copy() for k in self.target_names}, volume_pred=np.zeros(4),
+            volume_meas=np.zeros(4), cond_W=self._cond(self.rest), qp_status="rest", step_time=0.0,
+        )
+        if self.config.mode == "async" and self._worker is None:
+            self._worker = _Worker(self)
+            self._worker.start()
+
+    def reset(self) -> None:
+        """Back to rest (λ = 0, the rest linearization); the background thread is restarted."""
+        self.close()
+        self._init_state()
+
+    def close(self) -> None:
+        """Stop the background thread (async mode); idempotent."""
+        if self._worker is not None:
+            self._worker.stop()
+            self._worker = None
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    @property
+    def linearization(self) -> Linearization:
+        """The linearization the next step will use."""
+        return self._lin
+
+    @property
+    def lam(self) -> np.ndarray:
+        """(4,) the current actuation estimate: force N (3), urethra pressure Pa."""
+        return self._lam.copy()
+
+    @property
+    def last(self) -> Estimate:
+        """The latest estimate (the rest estimate before the first step)."""
+        return self._last
+
+    def _publish(self, lin: Linearization) -> None:
+        with self._lock:
+            self._lin = lin
+            self.refreshes += 1
+            self.lin_errors.append(np.asarray(lin.lin_error))
+
+    def _moved(self, lam: np.ndarray, lin: Linearization) -> bool:
+        c = self.config
+        return bool(np.max(np.abs(lam[:3] - lin.lam[:3])) > c.deadband_N or abs(lam[3] - lin.lam[3]) > c.deadband_Pa)
+
+    def _target(self, lam: np.ndarray, lin: Linearization) -> np.ndarray:
+        """Where the next equilibrium is solved: the estimate, at most ``trust_N`` / ``trust_Pa``
+        away from the linearization point (a trust region: Gauss–Newton on this strongly
+        non-linear map can jump into another basin from a far-off linearization)."""
+        c = self.config
+        d = lam - lin.lam
+        d[:3] = np.clip(d[:3], -c.trust_N, c.trust_N)
+        d[3] = np.clip(d[3], -c.trust_Pa, c.trust_Pa)
+        return lin.lam + d
+
+    @staticmethod
+    def _cond(lin: Linearization) -> float:
+        s = np.linalg.svd(lin.W[:, :3], compute_uv=False)
+        return float(s[0] / s[-1]) if s[-1] > 0 else float("inf")
+
+    def node_positions(self) -> np.ndarray:
+        """(N,3) m node positions of the current estimate (first order about the linearization)."""
+        lin = self._lin
+        return lin.predict_nodes(self._lam)
+
+    # -- the estimate -----------------------------------------------------------------------------
+    def _estimate(self, m, lin: Linearization, skipped: int, t0: float) -> tuple[Estimate, np.ndarray]:
+        dV = np.asarray(m.dV, float)
+        dp = float(m.p_urethra) - lin.lam[3]
+        qp = solve_volume_qp(lin.W, lin.V - dV, dp, self._lo - lin.lam[:3], self._hi - lin.lam[:3],
+                             self.config.qp_solver)
+        if qp.status != "optimal":
+            raise SolverError(f"QP {qp.status}")
+        lam = lin.lam + qp.dlam
+        lam[:3] = np.clip(lam[:3], self._lo, self._hi)  # round-off of the active set
+        lam[3] = float(m.p_urethra)
+        sub = lin.predict_points(lam)
+        pose = Pose6.from_transform(rigid_fit(self.rest_markers, sub[: self._nm]))
+        shifts = {k: sub[self._nm + i] - self.rest_targets[i] for i, k in enumerate(self.target_names)}
+        est = Estimate(
+            t=float(m.t), force=lam[:3].copy(), p_urethra=float(lam[3]), pose=pose, target_shift=shifts,
+            volume_pred=lin.predict_volumes(lam), volume_meas=dV.copy(), cond_W=self._cond(lin),
+            qp_status=qp.status, step_time=time.perf_counter() - t0, skipped=int(skipped),
+            extra={"qp_residual_m3": qp.residual, "active": qp.active, "lin_lam": lin.lam},
+        )
+        return est, lam
+
+    def step(self, m, skipped: int = 0) -> Estimate:
+        """Estimate the state for one measurement (see the class docstring)."""
+        t0 = time.perf_counter()
+        why = _check(m)
+        if why:
+            last = self._last
+            return Estimate(
+                t=float(m.t) if np.isfinite(float(m.t)) else last.t, force=last.force.copy(),
+                p_urethra=last.p_urethra, pose=last.pose, target_shift=dict(last.target_shift),
+                volume_pred=last.volume_pred.copy(),
+                volume_meas=np.asarray(m.dV, float).copy() if np.shape(m.dV) == (4,) else np.full(4, np.nan),
+                cond_W=last.cond_W, qp_status=f"rejected:{why}", step_time=time.perf_counter() - t0,
+                skipped=int(skipped), status=f"rejected:{why}",
+            )
+        lin = self._lin
+        try:
+            est, lam = self._estimate(m, lin, skipped, t0)
+            if self.config.mode == "sync":
+                self._since_refresh += 1
+                moved = lam - lin.lam
+                due = (np.max(np.abs(moved[:3])) > self.config.relinearize_N
+                       or abs(moved[3]) > self.config.relinearize_Pa
+                       or self._since_refresh >= self.config.refresh_every)
+                if due and self._moved(lam, lin):
+                    self._publish(self._eq.solve(lin, self._target(lam, lin)))
+                    self._since_refresh = 0
+                    est, lam = self._estimate(m, self._lin, skipped, t0)
+            elif self._worker is not None:
+                self._worker.request(self._target(lam, lin))
+        except SolverError as exc:
+            last = self._last
+            return Estimate(
+                t=float(m.t), force=last.force.copy(), p_urethra=last.p_urethra, pose=last.pose,
+                target_shift=dict(last.target_shift), volume_pred=last.volume_pred.copy(),
+                volume_meas=np.asarray(m.dV, float).copy(), cond_W=last.cond_W,
+                qp_status=f"failed:{exc}", step_time=time.perf_counter() - t0, skipped=int(skipped),
+                status=f"failed:{exc}",
+            )
+        self._lam = lam
+        self._last = est
+        return est
+
+    def settle(self, m, max_refreshes: int = 30, tol_N: float = 1e-7, tol_Pa: float = 1e-3,
+               timeout_s: float = 120.0) -> Estimate:
+        """Hold the measurement ``m`` until the equilibrium has converged on it (a steady input):
+        step, re-linearize at the estimate, repeat until the estimate is within ``tol_N`` /
+        ``tol_Pa`` of the linearization point (a Gauss–Newton fixed point). Returns the last
+        estimate. In async mode the background thread does the refreshes."""
+        est = self.step(m)
+        for _ in range(max_refreshes):
+            if est.status != "ok":
+                return est
+            lin = self._lin
+            lam = self._lam
+            if np.max(np.abs(lam[:3] - lin.lam[:3])) <= tol_N and abs(lam[3] - lin.lam[3]) <= tol_Pa:
+                return est
+            if self._worker is not None:
+                self._worker.request(self._target(lam, lin))
+                self._worker.idle(timeout_s)
+                if self._lin is lin:
+                    raise SolverError(f"background equilibrium did not refresh: {self._worker.error}")
+            else:
+                self._publish(self._eq.solve(lin, self._target(lam, lin)))
+            est = self.step(m)
+        return est
+
+    # -- noise ------------------------------------------------------------------------------------
+    def noise_bound(self, sigma_dV_m3, sigma_p_Pa: float = 0.0) -> NoiseBound:
+        """1-σ errors from independent volume noise ``sigma_dV_m3`` (scalar or (4,)) and urethra
+        pressure noise, propagated through the least-squares inverse ``W_f⁺`` at the current
+        linearization (bounds inactive), then through ``U_sub`` to the pose and targets."""
+        lin = self._lin
+        Wf, wp = lin.W[:, :3], lin.W[:, 3]
+        Wp = np.linalg.pinv(Wf)  # (3,4)
+        s = np.broadcast_to(np.asarray(sigma_dV_m3, float), (4,))
+        # δf = W_f⁺ (δV − w_p δp)
+        cov = Wp @ np.diag(s**2) @ Wp.T + np.outer(Wp @ wp, Wp @ wp) * sigma_p_Pa**2
+        # pose and targets: linear in δλ = (δf, δp); Jacobian of the pose by central differences
+        cov_l = np.zeros((4, 4))
+        cov_l[:3, :3] = cov
+        cov_l[3, 3] = sigma_p_Pa**2
+        cov_l[:3, 3] = cov_l[3, :3] = -(Wp @ wp) * sigma_p_Pa**2
+        lam0 = self._lam
+        Jp = np.zeros((6, 4))
+        for j in range(4):
+            h = np.zeros(4)
+            h[j] = 1e-3 if j < 3 else 1.0
+            a = Pose6.from_transform(rigid_fit(self.rest_markers, lin.predict_points(lam0 + h)[: self._nm]))
+            b = Pose6.from_transform(rigid_fit(self.rest_markers, lin.predict_points(lam0 - h)[: self._nm]))
+            Jp[:, j] = (np.r_[a.xyz, a.ypr] - np.r_[b.xyz, b.ypr]) / (2 * h[j])
+        pose = np.sqrt(np.diag(Jp @ cov_l @ Jp.T))
+        targets = {}
+        for i, k in enumerate(self.target_names):
+            Ut = lin.sub_U[self._nm + i]  # (3,4)
+            targets[k] = np.sqrt(np.diag(Ut @ cov_l @ Ut.T))
+        return NoiseBound(np.sqrt(np.diag(cov)), pose, targets, cov)
+
+    def stats(self) -> dict:
+        """Counters: refreshes, factorizations, the last linearization's error (m³), worker error."""
+        errs = np.array(self.lin_errors) if self.lin_errors else np.zeros((0, 4))
+        return {
+            "refreshes": self.refreshes,
+            "factorizations": self._eq.factorizations,
+            "max_lin_error_m3": float(np.nanmax(np.abs(errs))) if errs.size else 0.0,
+            "worker_error": None if self._worker is None else self._worker.error,
+        }
