@@ -1,0 +1,151 @@
+"""The virtual sensing board: truth cavity volumes → the whole sensing chain → firmware frames.
+
+Per arm (docs/sensing.md, DESIGN.md §4): the cavity's volume change ΔV compresses the gas of cavity
+and tube, V_T = V_cavity + V_tube, isothermally: ΔP = P0·(V_T/(V_T + ΔV) − 1) (Boyle,
+``boyle_dp``); the transducer at the far end of the 12 m tube sees it through a first-order lag
+(τ from ``tube_time_constant_s``, ≈ 0.1 s; filtered on a 1 kHz grid, exact for a signal held over
+each step); it adds its own zero offset (seeded, uniform within the datasheet's error band:
+±250 Pa for the MPXV7002, ±3.45 kPa for the MPX4250D) and a slow common thermal drift (seeded,
+``drift_K_per_min`` × P0/T per kelvin). The urethra's pump pressure reaches its MPX4250D directly.
+The ADC takes ``osr`` readings per channel per frame, each ``floor(1024·Vout/VS + noise)`` with
+Gaussian input noise (``noise_codes`` σ), and sums them (``simulate_raw``); the frame goes out as
+the firmware sends it (``protocol.encode_data``: COBS + CRC-16), stamped with the board clock at
+the window's centre, at the board's ADC-bound rate (``board.frame_rate_Hz``: 76.9 Hz at
+``osr`` = 25, 19.2 Hz at 100). The board clock is the scenario clock (µs), so estimates land on
+the truth's time axis; the first frame is preceded by an INFO frame.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from softphantom.errors import UserError
+from softphantom.sensing import ARM_NAMES, P0_STANDARD_PA
+from softphantom.sensing.board import frame_rate_Hz
+from softphantom.sensing.chain import MPX4250D, MPXV7002, SensorChain, default_chain, simulate_raw
+from softphantom.sensing.pneumatics import boyle_dp, first_order_lag, thermal_dp_per_K, tube_time_constant_s
+from softphantom.sensing.protocol import encode_data, encode_info
+
+FIRMWARE = (1, 0, 0)
+LAG_GRID_S = 1e-3
+
+
+@dataclass(frozen=True)
+class BoardConfig:
+    """Settings of the virtual board and its pneumatics (SI; seeded). ``offsets_Pa`` / ``drift``
+    None = drawn from ``seed``: offsets uniform within each transducer's datasheet error band
+    scaled by ``offset_band_fraction``, drift uniform in ±``drift_K_per_min``."""
+
+    osr: int = 25
+    seed: int = 0
+    p0_Pa: float = P0_STANDARD_PA
+    tube_length_m: float = 12.0
+    tube_id_m: float = 1.2e-3
+    noise_codes: float = 0.5
+    offset_band_fraction: float = 1.0
+    drift_K_per_min: float = 0.05
+    tube_lag: bool = True
+
+    def __post_init__(self) -> None:
+        if not 1 <= int(self.osr) <= 500:
+            raise UserError(f"osr: must be 1..500 (the firmware's range), got {self.osr}")
+        if not self.noise_codes >= 0:
+            raise UserError(f"noise_codes: must be >= 0, got {self.noise_codes}")
+
+
+@dataclass(frozen=True, eq=False)
+class BoardSignals:
+    """What the transducers see on the 1 kHz grid ``t`` (s): ``p_cavity`` (n, 4) Pa the Boyle
+    pressure at the cavity, ``p_transducer`` (n, 5) Pa gauge at each transducer (lagged, with
+    offset and drift; column 4 the urethra), ``offsets_Pa`` (5,), ``drift_Pa_per_s``,
+    ``tau_s`` (4,) tube time constants, ``chain`` the chain the physics used."""
+
+    t: np.ndarray
+    p_cavity: np.ndarray
+    p_transducer: np.ndarray
+    offsets_Pa: np.ndarray
+    drift_Pa_per_s: float
+    tau_s: np.ndarray
+    chain: SensorChain
+
+
+def board_signals(truth, cavity_volumes_m3, config: BoardConfig = BoardConfig()) -> BoardSignals:
+    """Pressures at the transducers over the scenario on a 1 kHz grid (see the module docstring).
+    ``truth`` is a :class:`~softphantom.virtual.truth.Truth`; ``cavity_volumes_m3`` (4,) the arm
+    cavities the physics uses (the truth mesh's)."""
+    rng = np.random.default_rng([config.seed, 1])
+    chain = default_chain(cavity_volumes_m3, config.tube_length_m, config.tube_id_m)
+    dur = truth.scenario.duration_s
+    t = np.arange(0.0, dur + 0.5 + LAG_GRID_S / 2, LAG_GRID_S)
+    ts = truth.sample(t)
+    p_cav = boyle_dp(ts.dV[:, :4], chain.v_total_m3, config.p0_Pa)
+    tau = np.array([tube_time_constant_s(config.tube_length_m, config.tube_id_m, v, config.p0_Pa)
+                    for v in cavity_volumes_m3])
+    if config.tube_lag:
+        p_arm = np.column_stack([first_order_lag(p_cav[:, i], LAG_GRID_S, tau[i], y0=0.0) for i in range(4)])
+    else:
+        p_arm = p_cav
+    bands = np.array([MPXV7002.error_band_Pa] * 4 + [MPX4250D.error_band_Pa]) * config.offset_band_fraction
+    offsets = rng.uniform(-1.0, 1.0, 5) * bands
+    drift = rng.uniform(-1.0, 1.0) * config.drift_K_per_min / 60.0 * thermal_dp_per_K(config.p0_Pa)
+    p = np.column_stack([p_arm, ts.p_urethra]) + offsets
+    p[:, :4] += drift * t[:, None]
+    return BoardSignals(t, p_cav, p, offsets, float(drift), tau, chain)
+
+
+class VirtualBoard:
+    """Frames of the virtual board, on demand: :meth:`frames` gives the bytes of the DATA frames
+    whose window centre lies in [t_from, t_to) (scenario clock), continuing ``seq`` and the
+    seeded noise. ``osr`` may be changed between calls (as SET_OSR does on the real board)."""
+
+    def __init__(self, signals: BoardSignals, config: BoardConfig = BoardConfig()):
+        self.signals = signals
+        self.config = config
+        self.osr = int(config.osr)
+        self._rng = np.random.default_rng([config.seed, 2])
+        self.seq = 0
+        self._next_t = 0.5 / frame_rate_Hz(self.osr)  # centre of the first window
+        self.duration_s = float(signals.t[-1]) - 0.5
+
+    @property
+    def rate_Hz(self) -> float:
+        return frame_rate_Hz(self.osr)
+
+    def info(self) -> bytes:
+        """An INFO frame (firmware version, 5 channels, current OSR)."""
+        return encode_info(self.seq & 0xFFFF, int(round(self._next_t * 1e6)) & 0xFFFFFFFF, FIRMWARE, 5, self.osr)
+
+    def set_osr(self, osr: int) -> None:
+        if not 1 <= int(osr) <= 500:
+            raise UserError(f"osr: must be 1..500, got {osr}")
+        self.osr = int(osr)
+
+    def raw_at(self, t: np.ndarray) -> np.ndarray:
+        """(n, 5) oversampled sums for window centres ``t`` (advances the noise generator)."""
+        s = self.signals
+        tt = np.clip(t, s.t[0], s.t[-1])
+        p = np.column_stack([np.interp(tt, s.t, s.p_transducer[:, i]) for i in range(5)])
+        return simulate_raw(p, self.osr, self._rng, s.chain.transducers, self.config.noise_codes)
+
+    def frames(self, t_to: float) -> tuple[bytes, np.ndarray]:
+        """Frame bytes for every window centre up to ``t_to`` (s) not sent yet, and their times."""
+        dt = 1.0 / self.rate_Hz
+        n = max(0, int(math.floor((t_to - self._next_t) / dt)) + 1)
+        if n == 0:
+            return b"", np.zeros(0)
+        t = self._next_t + dt * np.arange(n)
+        raw = self.raw_at(t)
+        out = bytearray()
+        for k in range(n):
+            out += encode_data(self.seq & 0xFFFF, int(round(t[k] * 1e6)) & 0xFFFFFFFF, self.osr, raw[k])
+            self.seq += 1
+        self._next_t = float(t[-1] + dt)
+        return bytes(out), t
+
+
+def arm_volumes(model) -> np.ndarray:
+    """(4,) m³, the arm cavity volumes of a PhantomModel in the sensor order."""
+    return np.array([model.cavity_volume(a) for a in ARM_NAMES])

@@ -1,0 +1,205 @@
+"""A virtual-phantom run: truth → sensor frames (a :class:`SensorSource`) + tracker stream + files.
+
+``simulate(scenario, model)`` solves the truth (see :mod:`softphantom.virtual.truth`) and prepares
+the board and the tracker; ``open_source(scenario, model)`` gives the frames through the real
+decoder (:class:`~softphantom.sensing.sources.FrameSource`), tared on the rest window at the start
+exactly as ``softphantom acquire`` does; ``write_run`` writes the files of ``softphantom virtual
+run``.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from softphantom.design import PhantomModel
+from softphantom.errors import UserError
+from softphantom.sensing import ARM_NAMES
+from softphantom.sensing.chain import SensorChain, Tare, default_chain, nominal_tare, tare_from_window
+from softphantom.sensing.sources import FrameSource
+from softphantom.virtual.board import BoardConfig, BoardSignals, VirtualBoard, arm_volumes, board_signals
+from softphantom.virtual.scenario import Scenario, load_scenario
+from softphantom.virtual.tracker import TrackerConfig, TrackerStream, simulate_tracker, write_motive_csv
+from softphantom.virtual.truth import Truth, TruthConfig, solve_truth, write_snapshot
+
+TRUTH_RATE_HZ = 120.0
+CHUNK_S = 0.1
+
+
+@dataclass(frozen=True)
+class VirtualConfig:
+    """Everything a run needs besides the scenario and the model (all seeded by ``seed``
+    unless a part's own seed is set)."""
+
+    truth: TruthConfig = field(default_factory=TruthConfig)
+    board: BoardConfig = field(default_factory=BoardConfig)
+    tracker: TrackerConfig = field(default_factory=TrackerConfig)
+
+    @classmethod
+    def seeded(cls, seed: int = 0, osr: int = 25, **truth_kw) -> "VirtualConfig":
+        return cls(TruthConfig(**truth_kw), BoardConfig(osr=osr, seed=seed), TrackerConfig(seed=seed))
+
+
+@dataclass(frozen=True, eq=False)
+class VirtualRun:
+    """A simulated run: ``truth``, ``signals`` at the transducers, ``tracker`` stream, the host's
+    ``chain`` (the design's nominal cavity volumes + tubes, as ``acquire`` assumes)."""
+
+    scenario: Scenario
+    model: PhantomModel
+    truth: Truth
+    signals: BoardSignals
+    tracker: TrackerStream
+    chain: SensorChain
+    config: VirtualConfig
+
+    def board(self) -> VirtualBoard:
+        """A fresh virtual board (frames from the start, same seed)."""
+        return VirtualBoard(self.signals, self.config.board)
+
+    def frame_bytes(self) -> bytes:
+        """All frames of the scenario as the board sends them: INFO, then DATA frames."""
+        b = self.board()
+        info = b.info()
+        data, _ = b.frames(self.scenario.duration_s)
+        return info + data
+
+    def tare(self) -> Tare:
+        """The tare from the rest window at the start (all frames before ``rest_s`` − 0.1 s)."""
+        from softphantom.sensing.protocol import DataFrame, StreamDecoder
+
+        frames = [f for f in StreamDecoder().feed(self.frame_bytes()) if isinstance(f, DataFrame)]
+        win = [f for f in frames if f.t_us * 1e-6 <= self.scenario.rest_s - 0.1]
+        return tare_from_window(np.array([f.raw for f in win]), np.array([f.osr for f in win]),
+                                np.array([f.t_us * 1e-6 for f in win]), self.chain, self.config.board.p0_Pa)
+
+    def source(self, tare: bool = True) -> FrameSource:
+        """The frames through the decoder as a :class:`FrameSource` (chunks of 0.1 s; host time =
+        board time = scenario time), tared on the rest window (or the datasheet zero)."""
+        data = self.frame_bytes()
+        rate = self.board().rate_Hz
+        from softphantom.sensing.protocol import DATA_FRAME_BYTES
+
+        step = max(1, int(round(CHUNK_S * rate))) * DATA_FRAME_BYTES
+        chunks = [data[i:i + step] for i in range(0, len(data), step)]
+        t = self.tare() if tare else nominal_tare(self.chain, self.config.board.p0_Pa)
+        return FrameSource(chunks, self.chain, t)
+
+    def truth_columns(self, rate_Hz: float = TRUTH_RATE_HZ) -> dict[str, np.ndarray]:
+        """The truth file's columns (docs/architecture.md) on the scenario clock at ``rate_Hz``."""
+        t = np.arange(0.0, self.scenario.duration_s + 1e-9, 1.0 / rate_Hz)
+        s = self.truth.sample(t)
+        cols: dict[str, np.ndarray] = {"t_s": t}
+        v = s.pose.to_mm_deg()
+        for k, name in enumerate(("x_mm", "y_mm", "z_mm", "yaw_deg", "pitch_deg", "roll_deg")):
+            cols[name] = v[:, k]
+        for k, a in enumerate("xyz"):
+            cols[f"force_{a}_N"] = s.force[:, k]
+        cols["p_urethra_kPa"] = s.p_urethra / 1e3
+        for j, name in enumerate(self.truth.target_names):
+            for k, a in enumerate("xyz"):
+                cols[f"{name}_d{a}_mm"] = s.targets[:, j, k] * 1e3
+        for i, c in enumerate(ARM_NAMES):
+            cols[f"dV_{c}_mm3"] = s.dV[:, i] * 1e9
+        cols["dV_urethra_mm3"] = s.dV[:, 4] * 1e9
+        return cols
+
+
+def _nominal_cavities(model: PhantomModel) -> list[float]:
+    by_name = {a.name: a.cavity_volume_mm3 for a in model.design.arms}
+    try:
+        return [by_name[a] * 1e-9 for a in ARM_NAMES]
+    except KeyError as exc:
+        raise UserError(f"design has no arm {exc.args[0]!r} (need {', '.join(ARM_NAMES)})") from None
+
+
+def host_chain(model: PhantomModel, board: BoardConfig = BoardConfig()) -> SensorChain:
+    """The chain the host assumes: the design's nominal arm cavities behind the tubes."""
+    return default_chain(_nominal_cavities(model), board.tube_length_m, board.tube_id_m)
+
+
+def simulate(scenario: Scenario | str | Path, model: PhantomModel, config: VirtualConfig = VirtualConfig(),
+             progress: Callable[[int, int, str], None] | None = None,
+             truth: Truth | None = None, truth_mesh: PhantomModel | None = None) -> VirtualRun:
+    """Solve the truth of ``scenario`` (unless ``truth`` is given) and prepare board and tracker."""
+    sc = scenario if isinstance(scenario, Scenario) else load_scenario(scenario)
+    tr = truth or solve_truth(sc, model, config.truth, progress, truth_mesh=truth_mesh)
+    sig = board_signals(tr, arm_volumes(tr.model), config.board)
+    trk = simulate_tracker(tr, config.tracker)
+    return VirtualRun(sc, model, tr, sig, trk, host_chain(model, config.board), config)
+
+
+def open_source(scenario: Scenario | str | Path, model: PhantomModel, config: VirtualConfig = VirtualConfig(),
+                progress: Callable[[int, int, str], None] | None = None, *, tare: bool = True,
+                run: VirtualRun | None = None) -> FrameSource:
+    """A :class:`~softphantom.sensing.sources.SensorSource` of the virtual phantom running
+    ``scenario`` on ``model``: the firmware's frames through the real decoder, tared on the rest
+    window at the start. Solves the truth first (seconds to minutes, see ``progress``)."""
+    run = run or simulate(scenario, model, config, progress)
+    return run.source(tare=tare)
+
+
+def write_run(run: VirtualRun, out: Path) -> dict[str, Path]:
+    """Write ``frames.bin`` (the bytes the board sends), ``recording.csv`` (what ``acquire``
+    would record), ``tracker_motive.csv`` (Motive export of the marker body), ``truth.csv``
+    (exact, model frame, scenario clock), ``snapshot.vtu`` (truth mesh at peak load) and
+    ``virtual.json`` (settings, seeds, offsets, the truth's peak figures)."""
+    from softphantom import __version__
+    from softphantom.evaluation import write_table
+    from softphantom.sensing.protocol import PROTOCOL_VERSION
+    from softphantom.sensing.recording import Recorder
+
+    out = Path(out)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UserError(f"--out {out}: cannot create ({exc.strerror})") from None
+    paths = {k: out / v for k, v in dict(frames="frames.bin", recording="recording.csv",
+                                         tracker="tracker_motive.csv", truth="truth.csv",
+                                         snapshot="snapshot.vtu", meta="virtual.json").items()}
+    paths["frames"].write_bytes(run.frame_bytes())
+    src = run.source()
+    if paths["recording"].exists():
+        paths["recording"].unlink()
+    b = run.config.board
+    meta = {"softphantom": __version__, "protocol_version": PROTOCOL_VERSION, "firmware": "1.0.0",
+            "osr": b.osr, "p0_Pa": b.p0_Pa, "port": f"virtual:{run.scenario.name}",
+            "tare": src.tare.to_dict(), "chain": run.chain.summary(), "virtual": True,
+            "design": {"arm_cavity_mm3": [float(v) * 1e9 for v in _nominal_cavities(run.model)],
+                       "tube_length_m": b.tube_length_m, "tube_id_mm": b.tube_id_m * 1e3}}
+    with Recorder(paths["recording"], meta) as rec:
+        for m in src:
+            rec.write(m)
+    write_motive_csv(run.tracker, paths["tracker"], run.truth.marker_names, take_name=run.scenario.name)
+    tmeta = {"softphantom": __version__, "kind": "virtual-truth", "scenario": run.scenario.name,
+             "frame": "model (relative to rest)", "clock": "scenario (s)",
+             "truth_mesh_nodes": len(run.truth.model.nodes),
+             "note": "truth solved at load keyframes, interpolated in load level (PCHIP) then mapped to time"}
+    write_table(paths["truth"], tmeta, run.truth_columns())
+    write_snapshot(run.truth, paths["snapshot"])
+    paths["meta"].write_text(json.dumps(run_summary(run), indent=2) + "\n")
+    return paths
+
+
+def run_summary(run: VirtualRun) -> dict:
+    """Settings, seeds, drawn offsets and the truth's peak figures (JSON-able)."""
+    s, trk = run.signals, run.tracker
+    return {
+        "scenario": run.scenario.name, "source": run.scenario.source, "duration_s": run.scenario.duration_s,
+        "truth": run.truth.summary(),
+        "board": {"osr": run.config.board.osr, "rate_Hz": round(run.board().rate_Hz, 3),
+                  "seed": run.config.board.seed,
+                  "offsets_Pa": [round(float(x), 2) for x in s.offsets_Pa],
+                  "drift_Pa_per_s": round(s.drift_Pa_per_s, 4),
+                  "tube_tau_s": [round(float(x), 4) for x in s.tau_s],
+                  "v_total_mm3": [round(float(x) * 1e9, 2) for x in s.chain.v_total_m3]},
+        "tracker": {"rate_Hz": trk.config.rate_Hz, "noise_mm": trk.config.noise_mm,
+                    "take_start_s": round(trk.take_start_s, 6), "latency_s": round(trk.latency_s, 6),
+                    "clock_offset_s": round(trk.clock_offset_s, 6),
+                    "lost_frames": int((~trk.valid).sum()), "frames": int(len(trk.valid)),
+                    "seed": trk.config.seed},
+    }

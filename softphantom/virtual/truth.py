@@ -1,0 +1,304 @@
+"""Ground truth of the virtual phantom, from a model of higher fidelity than the estimator's.
+
+The estimator's model is the design meshed at ``h`` (mm) with co-rotational linear tets and a
+fast per-sample update. The truth is the same design meshed at ``mesh_scale · h`` (finer; 0.75 by
+default, about 2.4× the nodes) and solved to convergence by Newton (relative residual 1e-8) with
+the load on a contact patch (``patch_radius_mm``), so an estimate is never checked against itself.
+
+Quasi-static and elastic, the state depends only on the load, not on its history. Each event of a
+scenario is a one-parameter load path from rest (level s times its peak), so the truth is solved
+at a few *keyframes in load*, s = 1/L … 1 (warm-started continuation: each solve starts from the
+previous level's state), and every output is interpolated in s by a monotone cubic (PCHIP, exact at
+the keyframes), then mapped to time through the event's level s(t). A hold or a release revisits
+states already solved, so they cost nothing. An inflation "until the target moves N mm" marches
+the pressure up in steps of ``max_p/10`` and finds the pressure by a secant step between the last
+two keyframes (one more solve), or stops at ``max_p_urethra_kPa``.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.interpolate import PchipInterpolator
+
+from softphantom.design import PhantomModel, build_model
+from softphantom.errors import SolverError
+from softphantom.fem import (
+    cavity_volume,
+    fem_from_phantom,
+    force_actuator,
+    probe_matrix,
+    solve_static,
+)
+from softphantom.pose import Pose6, pose_of_markers
+from softphantom.sensing import ARM_NAMES
+from softphantom.virtual.scenario import Event, Scenario
+
+CAVITIES = ARM_NAMES + ("urethra",)
+
+
+@dataclass(frozen=True)
+class TruthConfig:
+    """``mesh_scale`` truth mesh size / the model's; ``levels`` keyframes per push ramp;
+    ``tol`` Newton's relative residual; ``inflate_steps`` pressure steps up to the limit."""
+
+    mesh_scale: float = 0.75
+    levels: int = 4
+    tol: float = 1e-8
+    inflate_steps: int = 10
+
+
+@dataclass(frozen=True, eq=False)
+class EventTruth:
+    """Keyframes of one event: ``s`` (K,) levels from 0 to 1; ``dV`` (K, 5) m³ cavity volume
+    changes (4 arms, urethra); ``markers`` (K, k, 3) m positions; ``targets`` (K, t, 3) m
+    displacements; ``bulb_dV`` (K,) m³ change of the volume the outer surface encloses; peak load
+    ``force`` (3,) N and ``p_urethra`` Pa; ``x_peak`` (N, 3) truth-mesh nodes at s = 1;
+    ``iterations`` Newton iterations; ``note`` what happened (e.g. a limit reached)."""
+
+    event: Event
+    s: np.ndarray
+    dV: np.ndarray
+    markers: np.ndarray
+    targets: np.ndarray
+    bulb_dV: np.ndarray
+    force: np.ndarray
+    p_urethra: float
+    x_peak: np.ndarray
+    iterations: int
+    note: str = ""
+
+    def _interp(self, arr: np.ndarray, s: np.ndarray) -> np.ndarray:
+        f = PchipInterpolator(self.s, arr.reshape(len(self.s), -1), axis=0)
+        return f(np.clip(s, 0.0, 1.0)).reshape((len(s),) + arr.shape[1:])
+
+
+@dataclass(frozen=True, eq=False)
+class TruthSamples:
+    """The truth at times ``t`` (n,) s (scenario clock): ``force`` (n, 3) N, ``p_urethra`` (n,)
+    Pa, ``dV`` (n, 5) m³, ``markers`` (n, k, 3) m, ``targets`` (n, t, 3) m displacement,
+    ``pose`` of the marker rigid body relative to rest."""
+
+    t: np.ndarray
+    force: np.ndarray
+    p_urethra: np.ndarray
+    dV: np.ndarray
+    markers: np.ndarray
+    targets: np.ndarray
+    pose: Pose6
+
+
+@dataclass(frozen=True, eq=False)
+class Truth:
+    """The solved truth of a scenario on ``model`` (the truth mesh): ``rest_markers`` (k, 3) m,
+    ``marker_names``, ``target_names``, ``rest_volumes`` (5,) m³, ``events`` keyframes,
+    ``solve_s`` wall time, ``config``."""
+
+    scenario: Scenario
+    model: PhantomModel
+    marker_names: tuple[str, ...]
+    target_names: tuple[str, ...]
+    rest_markers: np.ndarray
+    rest_volumes: np.ndarray
+    events: tuple[EventTruth, ...]
+    solve_s: float
+    config: TruthConfig = field(default_factory=TruthConfig)
+
+    def sample(self, t) -> TruthSamples:
+        """The truth at times ``t`` (s), interpolated in load level (see the module docstring)."""
+        t = np.atleast_1d(np.asarray(t, float))
+        n, k, nt = len(t), len(self.marker_names), len(self.target_names)
+        force = np.zeros((n, 3))
+        p_u = np.zeros(n)
+        dV = np.zeros((n, 5))
+        markers = np.broadcast_to(self.rest_markers, (n, k, 3)).copy()
+        targets = np.zeros((n, nt, 3))
+        for et in self.events:
+            e = et.event
+            sel = (t >= e.start_s) & (t <= e.end_s)
+            if not sel.any():
+                continue
+            s = e.level(t[sel])
+            force[sel] = s[:, None] * et.force
+            p_u[sel] = s * et.p_urethra
+            dV[sel] = et._interp(et.dV, s)
+            markers[sel] = et._interp(et.markers, s)
+            targets[sel] = et._interp(et.targets, s)
+        pose = pose_of_markers(self.rest_markers, markers)
+        return TruthSamples(t, force, p_u, dV, markers, targets, pose)
+
+    def peak_event(self) -> EventTruth:
+        """The event whose peak moves the markers most (for the snapshot at peak load)."""
+        return max(self.events, key=lambda et: float(np.abs(et.markers[-1] - self.rest_markers).max()))
+
+    def summary(self) -> dict:
+        """Peak figures per event (mm, N, kPa, % bulb growth), JSON-able."""
+        out = []
+        for et in self.events:
+            d = dict(kind=et.event.kind, start_s=et.event.start_s,
+                     force_N=[round(float(f), 4) for f in et.force],
+                     p_urethra_kPa=round(et.p_urethra / 1e3, 3),
+                     peak_marker_shift_mm=round(float(np.linalg.norm(et.markers[-1] - self.rest_markers, axis=1).max()) * 1e3, 3),
+                     peak_dV_mm3={c: round(float(v) * 1e9, 3) for c, v in zip(CAVITIES, et.dV[-1])},
+                     bulb_growth_percent=round(float(et.bulb_dV[-1] / self.model.bulb_volume()) * 100, 3),
+                     keyframes=len(et.s) - 1, newton_iterations=et.iterations)
+            for name, dsp in zip(self.target_names, et.targets[-1]):
+                d[f"{name}_shift_mm"] = round(float(np.linalg.norm(dsp)) * 1e3, 3)
+            if et.note:
+                d["note"] = et.note
+            out.append(d)
+        return {"truth_mesh": {"nodes": len(self.model.nodes), "tets": len(self.model.tets),
+                               "mesh_size_mm": self.model.design.mesh.size_mm},
+                "solve_s": round(self.solve_s, 2), "events": out}
+
+
+def truth_model(model: PhantomModel, config: TruthConfig = TruthConfig()) -> PhantomModel:
+    """The design of ``model`` meshed ``config.mesh_scale`` times finer (the truth's mesh)."""
+    return build_model(model.design, model.design.mesh.size_mm * config.mesh_scale)
+
+
+def _patch_radius(fem, point: np.ndarray, radius_m: float) -> float:
+    """``radius_m``, widened until the patch holds at least 3 surface nodes (coarse meshes)."""
+    surf = np.unique(fem.boundary_faces)
+    d = np.sort(np.linalg.norm(fem.nodes[surf] - point, axis=1))
+    return max(radius_m, float(d[2]) * 1.001)
+
+
+def solve_truth(scenario: Scenario, model: PhantomModel, config: TruthConfig = TruthConfig(),
+                progress: Callable[[int, int, str], None] | None = None,
+                truth_mesh: PhantomModel | None = None) -> Truth:
+    """Solve the truth of ``scenario`` (see the module docstring). ``model`` is the estimator's
+    model (its design and mesh size set the truth mesh), or pass ``truth_mesh`` directly.
+    ``progress(done, total, what)`` is called after each keyframe."""
+    t0 = time.perf_counter()
+    tm = truth_mesh if truth_mesh is not None else truth_model(model, config)
+    fem = fem_from_phantom(tm)
+    marker_names = tuple(tm.markers)
+    target_names = tuple(tm.targets)
+    rest_markers = np.array([tm.markers[k] for k in marker_names])
+    rest_targets = np.array([tm.targets[k] for k in target_names])
+    P = probe_matrix(fem, np.vstack([rest_markers, rest_targets]))
+    closed = np.vstack([tm.outer_faces, tm.fixed_faces])
+    x_rest = fem.nodes.copy()
+    V0 = np.array([cavity_volume(x_rest, tm.cavities[c]) for c in CAVITIES])
+    bulb0 = cavity_volume(x_rest, closed)
+    k = len(marker_names)
+    total = sum(config.levels if e.kind == "push" or e.p_urethra_kPa is not None else config.inflate_steps
+                for e in scenario.events)
+    done = 0
+
+    def readout(x):
+        pts = P @ x
+        dv = np.array([cavity_volume(x, tm.cavities[c]) for c in CAVITIES]) - V0
+        return dv, pts[:k], pts[k:] - rest_targets, cavity_volume(x, closed) - bulb0
+
+    def solve(f_ext, p, x0, what):
+        nonlocal done
+        sol = solve_static(fem, f_ext, pressures={"urethra": p} if p else None, x0=x0, tol=config.tol)
+        if not sol.converged:
+            raise SolverError(f"truth of {scenario.name}: {what}: {sol.status}")
+        done += 1
+        if progress:
+            progress(done, total, what)
+        return sol
+
+    events = []
+    for i, e in enumerate(scenario.events):
+        rows = [readout(x_rest)]
+        s_list = [0.0]
+        x = x_rest
+        its = 0
+        note = ""
+        if e.kind == "push":
+            pt = tm.p_ext[e.point]
+            H = force_actuator(fem, pt, radius=_patch_radius(fem, pt, scenario.patch_radius_mm * 1e-3))
+            f = np.asarray(e.force_N, float)
+            for lv in range(1, config.levels + 1):
+                s = lv / config.levels
+                sol = solve(H @ (s * f), 0.0, x, f"event {i + 1} push {s:.2f}·{np.round(f, 2).tolist()} N")
+                x, its = sol.x, its + sol.iterations
+                rows.append(readout(x))
+                s_list.append(s)
+            force, p_peak = f, 0.0
+        elif e.p_urethra_kPa is not None:
+            p_peak = e.p_urethra_kPa * 1e3
+            for lv in range(1, config.levels + 1):
+                s = lv / config.levels
+                sol = solve(None, s * p_peak, x, f"event {i + 1} inflate {s * p_peak / 1e3:.1f} kPa")
+                x, its = sol.x, its + sol.iterations
+                rows.append(readout(x))
+                s_list.append(s)
+            force = np.zeros(3)
+        else:
+            j = target_names.index(e.target) if e.target in target_names else None
+            if j is None:
+                from softphantom.virtual.scenario import ScenarioError
+
+                raise ScenarioError(f"{scenario.source}: inflate.target {e.target!r} is not a target of the "
+                                    f"design ({', '.join(target_names)})")
+            goal = e.target_shift_mm * 1e-3
+            pmax = e.max_p_urethra_kPa * 1e3
+            step = pmax / config.inflate_steps
+            ps, shifts, xs = [0.0], [0.0], [x_rest]
+            p_star = None
+            while ps[-1] < pmax - 1e-9:
+                p = min(pmax, ps[-1] + step)
+                try:
+                    sol = solve(None, p, xs[-1], f"event {i + 1} inflate {p / 1e3:.1f} kPa")
+                except SolverError as exc:
+                    note = f"stopped at {ps[-1] / 1e3:.1f} kPa: the solve at {p / 1e3:.1f} kPa failed ({exc})"
+                    break
+                its += sol.iterations
+                r = readout(sol.x)
+                ps.append(p)
+                shifts.append(float(np.linalg.norm(r[2][j])))
+                xs.append(sol.x)
+                rows.append(r)
+                if shifts[-1] >= goal:
+                    # secant between the last two keyframes, then one solve there
+                    a, b = shifts[-2], shifts[-1]
+                    p_star = ps[-2] + (goal - a) / (b - a) * (ps[-1] - ps[-2])
+                    break
+            if p_star is not None:
+                for lst in (ps, shifts, xs, rows):
+                    lst.pop()
+                sol = solve(None, p_star, xs[-1], f"event {i + 1} inflate {p_star / 1e3:.1f} kPa (target)")
+                its += sol.iterations
+                r = readout(sol.x)
+                ps.append(p_star)
+                xs.append(sol.x)
+                rows.append(r)
+                shift = float(np.linalg.norm(r[2][j])) * 1e3
+                note = note or f"{e.target} moved {shift:.2f} mm at {p_star / 1e3:.1f} kPa"
+            elif not note:
+                note = (f"limit: {e.target} moved only {shifts[-1] * 1e3:.2f} mm at max_p_urethra_kPa "
+                        f"{pmax / 1e3:g}")
+            if len(ps) < 2:
+                raise SolverError(f"truth of {scenario.name}: inflation failed at the first step ({note})")
+            p_peak = ps[-1]
+            s_list = list(np.asarray(ps) / p_peak)
+            x = xs[-1]
+            force = np.zeros(3)
+        dv, mk, tg, bulb = (np.array(v) for v in zip(*rows))
+        events.append(EventTruth(e, np.asarray(s_list), dv, mk, tg, bulb, force, float(p_peak),
+                                 np.asarray(x).reshape(-1, 3).copy(), its, note))
+    return Truth(scenario, tm, marker_names, target_names, rest_markers, V0, tuple(events),
+                 time.perf_counter() - t0, config)
+
+
+def write_snapshot(truth: Truth, path) -> str:
+    """VTU of the truth mesh deformed at the peak of its largest event (point data
+    ``displacement_mm``, cell data ``region``)."""
+    import meshio
+
+    et = truth.peak_event()
+    m = truth.model
+    u = et.x_peak - m.nodes
+    mesh = meshio.Mesh(et.x_peak, [("tetra", np.asarray(m.tets))],
+                       point_data={"displacement_mm": u * 1e3},
+                       cell_data={"region": [np.asarray(m.tet_region, np.int32)]})
+    meshio.write(str(path), mesh)
+    return str(path)
