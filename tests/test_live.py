@@ -174,21 +174,22 @@ def test_replay_of_a_recording_shows_the_recorded_deformation(tmp_path):
     with LiveSession(src, LiveConfig(http_port=0, stream_port=None, record=rec, record_surface_Hz=20)) as s:
         assert s.wait(timeout_s=10.0)
     r = read_recording(rec)
-    assert len(r.estimates) == 200 and len(r.surface) >= 10
+    n = len(r.estimates)  # 200 less what a loaded machine made the real-time source skip
+    assert n + sum(m["skipped"] for m in r.estimates) == 200 and n > 150 and len(r.surface) >= 10
     rp = open_source(f"replay:{rec}", speed=0)
     assert isinstance(rp, ReplaySource) and rp.geometry.nodes.shape == src.geometry.nodes.shape
     with LiveSession(rp, LiveConfig(http_port=0, stream_port=None)) as s2:
         assert s2.wait(timeout_s=10.0)
         st = json.loads(_get(s2.url + "api/state"))
-    assert st["status"]["estimates"] == 200 and st["status"]["finished"]
-    assert st["latest"]["seq"] == 199
+    assert st["status"]["estimates"] == n and st["status"]["finished"]
+    assert st["latest"]["seq"] == n - 1
     assert st["latest"]["force_y_N"] == pytest.approx(r.estimates[-1]["force_y_N"])
     final = decode_positions_mm(st["surface_mm_f32_b64"])
     np.testing.assert_allclose(final, decode_positions_mm(r.surface[-1]["positions_mm_f32_b64"]), atol=1e-6)
     # and an estimate CSV replays too (plots only: no geometry in a CSV)
     assert main(["recording-csv", str(rec), "--out", str(tmp_path / "e.csv")]) == 0
     rc = open_source(f"replay:{tmp_path / 'e.csv'}", speed=0)
-    assert rc.geometry is None and len(list(rc)) == 200
+    assert rc.geometry is None and len(list(rc)) == n
 
 
 def test_cli_live_runs_records_and_rejects_bad_options(tmp_path, capsys):

@@ -100,36 +100,42 @@ def test_subscriber_gets_every_message_in_order_at_500_Hz():
 
 def test_stalled_or_vanished_subscriber_never_blocks_the_publisher():
     payload = {"seq": 0, "pad": "x" * 1000}
+    n = 20000  # 20 MB: far beyond the stalled subscriber's queue and the kernel's socket buffers
     with EstimatePublisher(port=0, hwm_messages=100) as pub:
         stalled = EstimateSubscriber(pub.endpoint, hwm_messages=10)  # never reads
         vanished = EstimateSubscriber(pub.endpoint)
         live = EstimateSubscriber(pub.endpoint)
-        assert pub.wait_for_subscribers(3, timeout_s=5.0)
-        vanished.close()  # goes away without a word
-        times = []
-        n = 20000  # 20 MB: far beyond the stalled subscriber's queue and the kernel's socket buffers
-        received = 0
-        for i in range(n):
-            payload["seq"] = i
-            t = time.perf_counter()
-            assert pub.publish(payload)
-            times.append(time.perf_counter() - t)
-            while live.recv(timeout_s=0) is not None:  # the healthy subscriber keeps up meanwhile
+        try:
+            assert pub.wait_for_subscribers(3, timeout_s=5.0)
+            vanished.close()  # goes away without a word
+            times = np.empty(n)
+            received = 0
+            deadline = time.monotonic() + 60.0
+            for i in range(n):
+                payload["seq"] = i
+                t = time.perf_counter()
+                assert pub.publish(payload)
+                times[i] = time.perf_counter() - t
+                while live.recv(timeout_s=0) is not None:  # the healthy subscriber keeps up meanwhile
+                    received += 1
+                assert time.monotonic() < deadline, f"publishing stalled at message {i}"
+            ms = times * 1e3
+            # bounded, and no slower once the stalled subscriber's queue is full (second half) than
+            # before; the bounds leave room for a loaded CI machine (here: p50 ~0.015 ms, max ~0.3 ms)
+            assert np.percentile(ms, 99) < 5.0, np.percentile(ms, 99)
+            assert np.median(ms[n // 2:]) < 3 * np.median(ms[: n // 10]) + 0.05
+            # the stalled subscriber lost messages (dropped for it only); it held nobody back
+            got = 0
+            while stalled.recv(timeout_s=0.2) is not None:
+                got += 1
+            assert 0 < got < n
+            while live.recv(timeout_s=0.5) is not None:
                 received += 1
-        times_ms = np.array(times) * 1e3
-        # bounded: no call waits for the stalled subscriber (a blocking send would take forever)
-        assert times_ms.max() < 20.0, times_ms.max()
-        assert np.percentile(times_ms, 99) < 1.0, np.percentile(times_ms, 99)
-        # the stalled subscriber lost messages (dropped for it), it did not hold the others back
-        got = 0
-        while stalled.recv(timeout_s=0.2) is not None:
-            got += 1
-        assert 0 < got < n and stalled.lost > 0
-        while live.recv(timeout_s=0.5) is not None:
-            received += 1
-        assert received + live.lost == n and received > n // 2
-        stalled.close()
-        live.close()
+            # an unpaced 20 MB burst: the reading subscriber gets most of it, in order
+            assert received > n // 2 and live.out_of_order == 0 and received + live.lost <= n
+        finally:
+            for s in (stalled, vanished, live):
+                s.close()
 
 
 def test_publisher_refuses_a_busy_port():
@@ -217,3 +223,29 @@ def test_bad_recordings_give_typed_errors(tmp_path, capsys):
     bad.write_text("# {}\nt_s,force_x_N,force_y_N\n0.0,1.0\n")
     with pytest.raises(FileFormatError, match=r"bad.csv:3"):
         read_estimate_csv(bad)
+
+
+def test_example_client_reads_the_stream():
+    from pathlib import Path
+
+    example = Path(__file__).resolve().parents[1] / "examples" / "stream_client.py"
+    msgs = [estimate_to_message(e, i, time.time()) for i, e in enumerate(_estimates(400))]
+    with EstimatePublisher(port=0) as pub:
+        proc = subprocess.Popen([sys.executable, str(example), "--endpoint", pub.endpoint, "--count", "100",
+                                 "--timeout-s", "5"], stdout=subprocess.PIPE, text=True)
+        try:
+            assert pub.wait_for_subscribers(1, timeout_s=10.0)
+            for m in msgs:
+                m["t_pub_unix_s"] = time.time()
+                pub.publish(m)
+                time.sleep(0.002)
+                if proc.poll() is not None:
+                    break
+            out, _ = proc.communicate(timeout=10)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait(5)
+    assert proc.returncode == 0
+    assert out.strip().splitlines()[-1] == "received 100, lost 0"
+    assert "#     0 t=" in out and "F=(" in out and "mm" in out

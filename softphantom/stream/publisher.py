@@ -65,7 +65,7 @@ class EstimatePublisher:
                 self._sock.bind(f"tcp://{host}:{int(port)}")
                 p = int(port)
         except zmq.ZMQError as exc:
-            self.close()
+            self._ctx.destroy(linger=0)
             raise UserError(f"cannot listen for the stream on {host}:{port}: {exc}") from None
         self.host, self.port = host, p
         self._topic = topic.encode()
@@ -128,8 +128,7 @@ class EstimatePublisher:
 
     def close(self) -> None:
         """Close the socket (unsent messages are discarded) and its context."""
-        self._sock.close(linger=0)
-        self._ctx.term()
+        self._ctx.destroy(linger=0)  # closes the socket too; never waits
 
     def __enter__(self) -> "EstimatePublisher":
         return self
@@ -175,8 +174,7 @@ class EstimateSubscriber:
         return msg
 
     def close(self) -> None:
-        self._sock.close(linger=0)
-        self._ctx.term()
+        self._ctx.destroy(linger=0)
 
     def __enter__(self) -> "EstimateSubscriber":
         return self

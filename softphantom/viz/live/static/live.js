@@ -33,6 +33,12 @@ function niceMax(x) {
   const p = Math.pow(10, Math.floor(Math.log10(x))), m = x / p;
   return (m <= 1 ? 1 : m <= 2 ? 2 : m <= 5 ? 5 : 10) * p;
 }
+function niceColorMax(x) {       // finer steps than niceMax so the colour range is well used
+  if (!(x > 0)) return 1;
+  const p = Math.pow(10, Math.floor(Math.log10(x))), m = x / p;
+  for (const s of [1, 1.2, 1.5, 2, 2.5, 3, 4, 5, 6, 8, 10]) if (m <= s) return s * p;
+  return 10 * p;
+}
 function applyFrame(f) {
   if (f.samples && f.samples.length) {
     const lastSeq = S.samples.length ? S.samples[S.samples.length - 1].seq : -1;
@@ -101,8 +107,8 @@ function draw3d() {
     mag[i] = m; if (m > maxMag) maxMag = m;
   }
   // colour range: grows at once, shrinks slowly (no flicker)
-  S.colorMax = Math.max(niceMax(maxMag), 0.5 * S.colorMax, 0.5);
-  if (niceMax(maxMag) < S.colorMax) S.colorMax = Math.max(niceMax(maxMag), S.colorMax * 0.995);
+  const want = Math.max(niceColorMax(maxMag), 0.5);
+  S.colorMax = want >= S.colorMax ? want : Math.max(want, S.colorMax * 0.99);
   const nf = faces.length / 3, order = [], depth = new Float32Array(nf);
   for (let k = 0; k < nf; k++) {
     const a = faces[3 * k], b = faces[3 * k + 1], e = faces[3 * k + 2];
