@@ -210,3 +210,12 @@ def test_cli_live_runs_records_and_rejects_bad_options(tmp_path, capsys):
         assert main(argv) == 2, argv
         err = capsys.readouterr().err
         assert msg in err and "Traceback" not in err
+
+
+def test_geometry_of_the_real_phantom_model(coarse_model):
+    g = LiveGeometry.from_model(coarse_model)
+    assert len(g.faces) == len(coarse_model.outer_faces) and len(g.nodes) < len(coarse_model.nodes)
+    np.testing.assert_allclose(g.nodes[g.faces], np.asarray(coarse_model.nodes)[coarse_model.outer_faces])
+    assert set(g.targets) == set(coarse_model.targets)
+    j = g.to_json()
+    assert np.linalg.norm(np.array(j["nodes_mm"][j["p_ext_node"]]) - g.p_ext * 1e3) < 5.0  # a surface node near p_ext
