@@ -12,7 +12,7 @@ from softphantom.cli.app import app, console_err
 from softphantom.errors import SoftphantomError
 
 # Importing the command modules registers their commands on ``app``.
-_COMMAND_MODULES = ("design", "fem", "sensing", "estimation", "evaluation", "virtual", "live")
+_COMMAND_MODULES = ("design", "fem", "sensing", "estimation", "evaluation", "virtual", "demo", "live")
 
 
 def _register() -> None:

@@ -1,0 +1,130 @@
+"""``softphantom virtual run`` and ``softphantom virtual serve``: the virtual phantom."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from softphantom.cli.app import app, console
+from softphantom.errors import UserError
+
+virtual_app = typer.Typer(help="Virtual phantom: scripted scenarios → sensor frames + tracker stream.",
+                          no_args_is_help=True)
+app.add_typer(virtual_app, name="virtual")
+
+SCENARIO_HELP = "Scenario TOML file, or a bundled one: needle-insertion, push-on-centre, push-off-centre, urethra-inflation."
+
+
+def truth_progress(console_, label: str):
+    """A rich progress bar and the ``progress(done, total, what)`` callback that drives it."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    bar = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                   TextColumn("{task.fields[what]}"), console=console_, transient=False)
+    task = bar.add_task(label, total=None, what="meshing the truth model")
+
+    def cb(done: int, total: int, what: str) -> None:
+        bar.update(task, completed=done, total=max(total, done), what=what)
+
+    return bar, cb
+
+
+def _config(seed: int, osr: int, mesh_scale: float):
+    from softphantom.virtual import VirtualConfig
+
+    if not 0.2 <= mesh_scale <= 1.0:
+        raise UserError(f"--truth-mesh-scale: must be in [0.2, 1] (finer than the model), got {mesh_scale:g}")
+    return VirtualConfig.seeded(seed=seed, osr=osr, mesh_scale=mesh_scale)
+
+
+def _print_summary(summary: dict) -> None:
+    tr = summary["truth"]
+    console.print(f"truth: {tr['truth_mesh']['nodes']} nodes (mesh {tr['truth_mesh']['mesh_size_mm']:.2f} mm), "
+                  f"solved in {tr['solve_s']:.1f} s", highlight=False)
+    for e in tr["events"]:
+        if e["kind"] == "push":
+            what = f"push {e['force_N']} N"
+        else:
+            what = f"urethra {e['p_urethra_kPa']:.1f} kPa, bulb growth {e['bulb_growth_percent']:.2f} %"
+        shifts = ", ".join(f"{k[:-9]} {v:.2f}" for k, v in e.items() if k.endswith("_shift_mm") and k != "peak_marker_shift_mm")
+        console.print(f"  t={e['start_s']:g} s {what}: markers up to {e['peak_marker_shift_mm']:.2f} mm; "
+                      f"targets (mm) {shifts}" + (f"; {e['note']}" if e.get("note") else ""), highlight=False)
+    b, t = summary["board"], summary["tracker"]
+    console.print(f"board: OSR {b['osr']}, {b['rate_Hz']:.1f} Hz, offsets {b['offsets_Pa']} Pa, drift "
+                  f"{b['drift_Pa_per_s']:+.3f} Pa/s; tracker: {t['rate_Hz']:g} Hz, clock offset "
+                  f"{t['clock_offset_s'] * 1e3:.1f} ms, {t['lost_frames']}/{t['frames']} frames lost", highlight=False)
+
+
+@virtual_app.command("run")
+def run_cmd(
+    scenario: str = typer.Option(..., "--scenario", help=SCENARIO_HELP),
+    model_dir: Path = typer.Option(..., "--model", help="Model directory (softphantom design); the truth uses its design, meshed finer."),
+    out: Path = typer.Option(..., "--out", help="Output directory: frames.bin, recording.csv, tracker_motive.csv, truth.csv, snapshot.vtu, virtual.json."),
+    seed: int = typer.Option(0, "--seed", help="Seed of every random source (noise, offsets, drift, lost frames, clocks)."),
+    osr: int = typer.Option(25, "--osr", help="Readings summed per channel per frame (25: 76.9 Hz, 100: 19.2 Hz)."),
+    truth_mesh_scale: float = typer.Option(0.75, "--truth-mesh-scale", help="Truth mesh size relative to the model's (< 1: finer)."),
+) -> None:
+    """Simulate a scenario: write the board's frames, a recording, the tracker's Motive CSV, the truth."""
+    from softphantom.design import load_model
+    from softphantom.virtual import load_scenario, run_summary, simulate, write_run
+
+    sc = load_scenario(scenario)
+    cfg = _config(seed, osr, truth_mesh_scale)
+    model = load_model(model_dir)
+    bar, cb = truth_progress(console, f"truth of {sc.name}")
+    with bar:
+        run = simulate(sc, model, cfg, cb)
+    paths = write_run(run, out)
+    _print_summary(run_summary(run))
+    for k, p in paths.items():
+        console.print(f"{k}: {p}", highlight=False)
+
+
+@virtual_app.command("serve")
+def serve_cmd(
+    scenario: str = typer.Option(..., "--scenario", help=SCENARIO_HELP),
+    model_dir: Path = typer.Option(..., "--model", help="Model directory (softphantom design)."),
+    seed: int = typer.Option(0, "--seed", help="Seed of every random source."),
+    osr: int = typer.Option(25, "--osr", help="Initial OSR (the host may change it with SET_OSR)."),
+    truth_mesh_scale: float = typer.Option(0.75, "--truth-mesh-scale", help="Truth mesh size relative to the model's."),
+    speed: float = typer.Option(1.0, "--speed", help="Playback speed (1 = real time)."),
+    once: bool = typer.Option(False, "--once", help="Stop at the end of the scenario (default: keep streaming the rest state)."),
+) -> None:
+    """Serve the scenario's frames on a pty as the board would: prints the port path to use."""
+    import sys
+
+    from softphantom.design import load_model
+    from softphantom.virtual import load_scenario, simulate
+    from softphantom.virtual.serve import open_pty, serve_board
+
+    if not speed > 0:
+        raise UserError(f"--speed: must be > 0, got {speed:g}")
+    sc = load_scenario(scenario)
+    cfg = _config(seed, osr, truth_mesh_scale)
+    model = load_model(model_dir)
+    bar, cb = truth_progress(console, f"truth of {sc.name}")
+    with bar:
+        run = simulate(sc, model, cfg, cb)
+    master, slave, path = open_pty()
+    console.print(f"virtual board on [bold]{path}[/] ({sc.name}, {run.board().rate_Hz:.1f} Hz); e.g. "
+                  f"softphantom acquire --port {path} --out rec.csv — Ctrl-C to stop", highlight=False)
+    print(path, file=sys.stdout, flush=True)
+    try:
+        stats = serve_board(run.board(), master, speed=speed, once=once)
+        console.print(f"sent {stats['frames']} frames ({stats['bytes_dropped']} bytes dropped, "
+                      f"{stats['commands']} commands)", highlight=False)
+    except KeyboardInterrupt:
+        console.print("stopped (Ctrl-C)")
+    finally:
+        os_close(master, slave)
+
+
+def os_close(*fds: int) -> None:
+    import os
+
+    for fd in fds:
+        try:
+            os.close(fd)
+        except OSError:
+            pass
