@@ -9,17 +9,29 @@ from softphantom.estimation.config import EstimatorConfig
 from softphantom.estimation.estimator import Estimator, NoiseBound
 from softphantom.estimation.linearization import EquilibriumSolver, Linearization
 from softphantom.estimation.qp import QP_SOLVERS, QPResult, solve_volume_qp
+from softphantom.estimation.stream import (
+    EstimateWriter,
+    estimate_columns,
+    estimate_row,
+    estimate_stream,
+    write_estimates,
+)
 from softphantom.estimation.types import ARM_NAMES, Estimate
 
 __all__ = [
     "ARM_NAMES",
     "EquilibriumSolver",
     "Estimate",
+    "EstimateWriter",
     "Estimator",
     "EstimatorConfig",
     "Linearization",
     "NoiseBound",
     "QPResult",
     "QP_SOLVERS",
+    "estimate_columns",
+    "estimate_row",
+    "estimate_stream",
     "solve_volume_qp",
+    "write_estimates",
 ]

@@ -65,7 +65,7 @@ against jumping into another basin of this non-linear map). ``tol``: relative fo
     deadband_N: float = 1e-6
     deadband_Pa: float = 1e-3
     tol: float = 1e-8
-    refactor_rate: float = 0.1
+    refactor_rate: float = 0.3
     max_iter: int = 12
     sparse_solver: str = "auto"
 

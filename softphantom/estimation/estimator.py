@@ -40,6 +40,21 @@ class NoiseBound:
     cov_force: np.ndarray
 
 
+def pose_and_shifts(rest_markers: np.ndarray, rest_targets: np.ndarray, target_names, points: np.ndarray):
+    """(Pose6, {target: shift (3,) m}) from tracked points (markers first, then targets): the
+    pose is the rigid fit of the markers onto their rest positions (exact for a rigid motion).
+
+    >>> rest = np.array([[0.03, 0, 0], [0, 0.025, 0], [0, 0, 0.03], [-0.03, 0, 0.01]])
+    >>> pose, sh = pose_and_shifts(rest, np.zeros((1, 3)), ["c"], np.vstack([rest, [[0, 0, 0]]]) + [0, 0.002, 0])
+    >>> (np.round(pose.to_mm_deg(), 9) + 0.0).tolist(), (np.round(sh["c"], 9) + 0.0).tolist()
+    ([0.0, 2.0, 0.0, 0.0, 0.0, 0.0], [0.0, 0.002, 0.0])
+    """
+    nm = rest_markers.shape[0]
+    pose = Pose6.from_transform(rigid_fit(rest_markers, points[:nm]))
+    shifts = {k: points[nm + i] - rest_targets[i] for i, k in enumerate(target_names)}
+    return pose, shifts
+
+
 def _check(m) -> str:
     """'' for a usable sample, else the rejection reason."""
     if getattr(m, "status", "ok") != "ok":
@@ -65,28 +80,28 @@ class _Worker(threading.Thread):
         self._est = est
         self._cond = threading.Condition()
         self._req: np.ndarray | None = None
-        self._stop = False
+        self._halt = False
         self.busy = False
         self.error: str | None = None
 
     def request(self, lam: np.ndarray) -> None:
         with self._cond:
             self._req = lam
-            self._cond.notify()
+            self._cond.notify_all()  # idle() waits on the same condition
 
     def stop(self) -> None:
         with self._cond:
-            self._stop = True
-            self._cond.notify()
+            self._halt = True
+            self._cond.notify_all()
         self.join()
 
     def run(self) -> None:
         est = self._est
         while True:
             with self._cond:
-                while self._req is None and not self._stop:
+                while self._req is None and not self._halt:
                     self._cond.wait()
-                if self._stop:
+                if self._halt:
                     return
                 lam, self._req = self._req, None
                 self.busy = True
@@ -94,8 +109,8 @@ class _Worker(threading.Thread):
                 lin = est._lin
                 if est._moved(lam, lin):
                     est._publish(est._eq.solve(lin, lam))
-            except SolverError as exc:
-                self.error = str(exc)
+            except Exception as exc:  # kept for the foreground; the thread goes on
+                self.error = f"{type(exc).__name__}: {exc}"
             finally:
                 with self._cond:
                     self.busy = self._req is not None
@@ -243,9 +258,8 @@ class Estimator:
         lam = lin.lam + qp.dlam
         lam[:3] = np.clip(lam[:3], self._lo, self._hi)  # round-off of the active set
         lam[3] = float(m.p_urethra)
-        sub = lin.predict_points(lam)
-        pose = Pose6.from_transform(rigid_fit(self.rest_markers, sub[: self._nm]))
-        shifts = {k: sub[self._nm + i] - self.rest_targets[i] for i, k in enumerate(self.target_names)}
+        pose, shifts = pose_and_shifts(self.rest_markers, self.rest_targets, self.target_names,
+                                       lin.predict_points(lam))
         est = Estimate(
             t=float(m.t), force=lam[:3].copy(), p_urethra=float(lam[3]), pose=pose, target_shift=shifts,
             volume_pred=lin.predict_volumes(lam), volume_meas=dV.copy(), cond_W=self._cond(lin),
@@ -302,22 +316,23 @@ class Estimator:
         step, re-linearize at the estimate, repeat until the estimate is within ``tol_N`` /
         ``tol_Pa`` of the linearization point (a Gauss–Newton fixed point). Returns the last
         estimate. In async mode the background thread does the refreshes."""
-        est = self.step(m)
-        for _ in range(max_refreshes):
+        for _ in range(max_refreshes + 1):
+            if self._worker is not None:
+                self._worker.idle(timeout_s)
+            lin = self._lin
+            est = self.step(m)  # in async mode this also asks the worker for the next refresh
             if est.status != "ok":
                 return est
-            lin = self._lin
             lam = self._lam
-            if np.max(np.abs(lam[:3] - lin.lam[:3])) <= tol_N and abs(lam[3] - lin.lam[3]) <= tol_Pa:
+            if (np.max(np.abs(lam[:3] - lin.lam[:3])) <= max(tol_N, self.config.deadband_N)
+                    and abs(lam[3] - lin.lam[3]) <= max(tol_Pa, self.config.deadband_Pa)):
                 return est
             if self._worker is not None:
-                self._worker.request(self._target(lam, lin))
                 self._worker.idle(timeout_s)
                 if self._lin is lin:
                     raise SolverError(f"background equilibrium did not refresh: {self._worker.error}")
             else:
                 self._publish(self._eq.solve(lin, self._target(lam, lin)))
-            est = self.step(m)
         return est
 
     # -- noise ------------------------------------------------------------------------------------
