@@ -27,6 +27,7 @@ from scipy.interpolate import PchipInterpolator
 from softphantom.design import PhantomModel, build_model
 from softphantom.errors import SolverError
 from softphantom.fem import (
+    ElementInversionError,
     cavity_volume,
     fem_from_phantom,
     force_actuator,
@@ -46,7 +47,7 @@ class TruthConfig:
     ``tol`` Newton's relative residual; ``inflate_steps`` pressure steps up to the limit."""
 
     mesh_scale: float = 0.75
-    levels: int = 4
+    levels: int = 3
     tol: float = 1e-8
     inflate_steps: int = 10
 
@@ -191,13 +192,26 @@ def solve_truth(scenario: Scenario, model: PhantomModel, config: TruthConfig = T
     done = 0
 
     def readout(x):
+        x = np.asarray(x).reshape(-1, 3)
         pts = P @ x
         dv = np.array([cavity_volume(x, tm.cavities[c]) for c in CAVITIES]) - V0
         return dv, pts[:k], pts[k:] - rest_targets, cavity_volume(x, closed) - bulb0
 
-    def solve(f_ext, p, x0, what):
+    def solve(f_ext, p, x0, what, x_prev=None, ratio=1.0):
+        """Converged equilibrium; warm start from ``x0``, or the secant predictor
+        x0 + ratio·(x0 − x_prev) when the previous keyframe is known (falls back to x0)."""
         nonlocal done
-        sol = solve_static(fem, f_ext, pressures={"urethra": p} if p else None, x0=x0, tol=config.tol)
+        sol = None
+        if x_prev is not None:
+            try:
+                sol = solve_static(fem, f_ext, pressures={"urethra": p} if p else None,
+                                   x0=x0 + ratio * (x0 - x_prev), tol=config.tol)
+            except ElementInversionError:
+                sol = None
+            if sol is not None and not sol.converged:
+                sol = None
+        if sol is None:
+            sol = solve_static(fem, f_ext, pressures={"urethra": p} if p else None, x0=x0, tol=config.tol)
         if not sol.converged:
             raise SolverError(f"truth of {scenario.name}: {what}: {sol.status}")
         done += 1
@@ -209,26 +223,28 @@ def solve_truth(scenario: Scenario, model: PhantomModel, config: TruthConfig = T
     for i, e in enumerate(scenario.events):
         rows = [readout(x_rest)]
         s_list = [0.0]
-        x = x_rest
+        x = x_rest.reshape(-1)
         its = 0
         note = ""
         if e.kind == "push":
             pt = tm.p_ext[e.point]
             H = force_actuator(fem, pt, radius=_patch_radius(fem, pt, scenario.patch_radius_mm * 1e-3))
             f = np.asarray(e.force_N, float)
+            x_prev = None
             for lv in range(1, config.levels + 1):
                 s = lv / config.levels
-                sol = solve(H @ (s * f), 0.0, x, f"event {i + 1} push {s:.2f}·{np.round(f, 2).tolist()} N")
-                x, its = sol.x, its + sol.iterations
+                sol = solve(H @ (s * f), 0.0, x, f"event {i + 1} push {s:.2f}·{np.round(f, 2).tolist()} N", x_prev)
+                x_prev, x, its = x, sol.x.reshape(-1), its + sol.iterations
                 rows.append(readout(x))
                 s_list.append(s)
             force, p_peak = f, 0.0
         elif e.p_urethra_kPa is not None:
             p_peak = e.p_urethra_kPa * 1e3
+            x_prev = None
             for lv in range(1, config.levels + 1):
                 s = lv / config.levels
-                sol = solve(None, s * p_peak, x, f"event {i + 1} inflate {s * p_peak / 1e3:.1f} kPa")
-                x, its = sol.x, its + sol.iterations
+                sol = solve(None, s * p_peak, x, f"event {i + 1} inflate {s * p_peak / 1e3:.1f} kPa", x_prev)
+                x_prev, x, its = x, sol.x.reshape(-1), its + sol.iterations
                 rows.append(readout(x))
                 s_list.append(s)
             force = np.zeros(3)
@@ -242,12 +258,14 @@ def solve_truth(scenario: Scenario, model: PhantomModel, config: TruthConfig = T
             goal = e.target_shift_mm * 1e-3
             pmax = e.max_p_urethra_kPa * 1e3
             step = pmax / config.inflate_steps
-            ps, shifts, xs = [0.0], [0.0], [x_rest]
+            ps, shifts, xs = [0.0], [0.0], [x_rest.reshape(-1)]
             p_star = None
             while ps[-1] < pmax - 1e-9:
                 p = min(pmax, ps[-1] + step)
                 try:
-                    sol = solve(None, p, xs[-1], f"event {i + 1} inflate {p / 1e3:.1f} kPa")
+                    prev = xs[-2] if len(xs) > 1 else None
+                    ratio = (p - ps[-1]) / (ps[-1] - ps[-2]) if len(xs) > 1 else 1.0
+                    sol = solve(None, p, xs[-1], f"event {i + 1} inflate {p / 1e3:.1f} kPa", prev, ratio)
                 except SolverError as exc:
                     note = f"stopped at {ps[-1] / 1e3:.1f} kPa: the solve at {p / 1e3:.1f} kPa failed ({exc})"
                     break
@@ -255,7 +273,7 @@ def solve_truth(scenario: Scenario, model: PhantomModel, config: TruthConfig = T
                 r = readout(sol.x)
                 ps.append(p)
                 shifts.append(float(np.linalg.norm(r[2][j])))
-                xs.append(sol.x)
+                xs.append(sol.x.reshape(-1))
                 rows.append(r)
                 if shifts[-1] >= goal:
                     # secant between the last two keyframes, then one solve there
@@ -265,11 +283,13 @@ def solve_truth(scenario: Scenario, model: PhantomModel, config: TruthConfig = T
             if p_star is not None:
                 for lst in (ps, shifts, xs, rows):
                     lst.pop()
-                sol = solve(None, p_star, xs[-1], f"event {i + 1} inflate {p_star / 1e3:.1f} kPa (target)")
+                prev = xs[-2] if len(xs) > 1 else None
+                ratio = (p_star - ps[-1]) / (ps[-1] - ps[-2]) if len(xs) > 1 else 1.0
+                sol = solve(None, p_star, xs[-1], f"event {i + 1} inflate {p_star / 1e3:.1f} kPa (target)", prev, ratio)
                 its += sol.iterations
                 r = readout(sol.x)
                 ps.append(p_star)
-                xs.append(sol.x)
+                xs.append(sol.x.reshape(-1))
                 rows.append(r)
                 shift = float(np.linalg.norm(r[2][j])) * 1e3
                 note = note or f"{e.target} moved {shift:.2f} mm at {p_star / 1e3:.1f} kPa"
