@@ -140,6 +140,9 @@ def test_truth_is_finer_converged_and_exact_at_keyframes(short_run, coarse_model
     print(f"interpolation error {interp_err * 1e3:.4f} mm of {peak * 1e3:.2f} mm")
     assert interp_err < 0.02 * peak, (interp_err, peak)
     assert np.all(s.force[0] == 0) and np.all(s.dV[0] == 0) and np.abs(s.pose.to_mm_deg()[0]).max() < 1e-9
+    # no jump where an event starts or ends (the rest pose is the one the mesh carries)
+    edge = tr.sample([e.start_s - 1e-4, e.start_s + 1e-4, e.end_s - 1e-4, e.end_s + 1e-4]).pose.to_mm_deg()
+    assert np.abs(edge).max() < 1e-6
     assert np.allclose(s.force[2], SHORT["push"][0]["force_N"])
     # a 3 N push mostly along y moves the body mostly along y, by millimetres
     v = s.pose.to_mm_deg()[2]

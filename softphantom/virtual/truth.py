@@ -179,11 +179,13 @@ def solve_truth(scenario: Scenario, model: PhantomModel, config: TruthConfig = T
     fem = fem_from_phantom(tm)
     marker_names = tuple(tm.markers)
     target_names = tuple(tm.targets)
-    rest_markers = np.array([tm.markers[k] for k in marker_names])
-    rest_targets = np.array([tm.targets[k] for k in target_names])
-    P = probe_matrix(fem, np.vstack([rest_markers, rest_targets]))
-    closed = np.vstack([tm.outer_faces, tm.fixed_faces])
+    P = probe_matrix(fem, np.vstack([[tm.markers[k] for k in marker_names], [tm.targets[k] for k in target_names]]))
     x_rest = fem.nodes.copy()
+    # the points as the mesh carries them at rest (a marker on the curved surface sits up to a
+    # fraction of a mm off the faceted mesh surface): motion relative to rest is then exact
+    carried = P @ x_rest
+    rest_markers, rest_targets = carried[: len(marker_names)], carried[len(marker_names):]
+    closed = np.vstack([tm.outer_faces, tm.fixed_faces])
     V0 = np.array([cavity_volume(x_rest, tm.cavities[c]) for c in CAVITIES])
     bulb0 = cavity_volume(x_rest, closed)
     k = len(marker_names)
