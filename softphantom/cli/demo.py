@@ -153,7 +153,7 @@ def demo_cmd(
         model = build_model(BIPDesign(), mesh_size_mm)
         save_model(model, out / "model")
     console.print(f"model: {len(model.nodes)} nodes, {len(model.tets)} tets (mesh {model.design.mesh.size_mm:g} mm) "
-                  f"→ {out / 'model'}", highlight=False)
+                  f"→ {out / 'model'}", highlight=False, soft_wrap=True)
     with Status("mesh (truth model, finer)", console=console):
         tm = truth_model(model, cfg.truth)
     console.print(f"truth model: {len(tm.nodes)} nodes, {len(tm.tets)} tets (mesh {tm.design.mesh.size_mm:g} mm)",
@@ -164,5 +164,5 @@ def demo_cmd(
     index = _index(out, rows, wall)
     print_summary(rows)
     for r in rows:
-        console.print(f"report: {r['report']}", highlight=False)
-    console.print(f"index: {index}  (demo took {wall:.0f} s)", highlight=False)
+        console.print(f"report: {r['report']}", highlight=False, soft_wrap=True)
+    console.print(f"index: {index}  (demo took {wall:.0f} s)", highlight=False, soft_wrap=True)

@@ -78,7 +78,7 @@ def run_cmd(
     paths = write_run(run, out)
     _print_summary(run_summary(run))
     for k, p in paths.items():
-        console.print(f"{k}: {p}", highlight=False)
+        console.print(f"{k}: {p}", highlight=False, soft_wrap=True)
 
 
 @virtual_app.command("serve")
@@ -108,7 +108,7 @@ def serve_cmd(
         run = simulate(sc, model, cfg, cb)
     master, slave, path = open_pty()
     console.print(f"virtual board on [bold]{path}[/] ({sc.name}, {run.board().rate_Hz:.1f} Hz); e.g. "
-                  f"softphantom acquire --port {path} --out rec.csv — Ctrl-C to stop", highlight=False)
+                  f"softphantom acquire --port {path} --out rec.csv — Ctrl-C to stop", highlight=False, soft_wrap=True)
     print(path, file=sys.stdout, flush=True)
     try:
         stats = serve_board(run.board(), master, speed=speed, once=once)

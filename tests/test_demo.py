@@ -1,0 +1,95 @@
+"""`softphantom demo` on the coarse mesh with one short scenario: files, report, summary on screen;
+`softphantom virtual run` writes its files; bad options are one-line errors."""
+
+from __future__ import annotations
+
+import json
+import re
+from html.parser import HTMLParser
+from pathlib import Path
+
+from softphantom.cli import main
+
+SHORT = """name = "demo-short"
+description = "one push, 4 s"
+duration_s = 4.0
+rest_s = 1.0
+[[push]]
+point = "off-centre"
+start_s = 1.2
+rise_s = 1.0
+hold_s = 0.5
+fall_s = 1.0
+force_N = [0.3, 2.5, 0.2]
+"""
+
+
+class _Links(HTMLParser):
+    def __init__(self):
+        super().__init__()
+        self.refs = []
+
+    def handle_starttag(self, tag, attrs):
+        for k, v in attrs:
+            if k in ("href", "src") and v and not v.startswith(("http", "data:", "#")):
+                self.refs.append(v)
+
+
+def test_demo_end_to_end_coarse(tmp_path, capsys):
+    sc = tmp_path / "short.toml"
+    sc.write_text(SHORT)
+    out = tmp_path / "demo"
+    assert main(["demo", "--out", str(out), "--mesh-size-mm", "12", "--scenarios", str(sc), "--seed", "2"]) == 0
+    text = capsys.readouterr().out
+    d = out / "demo-short"
+    for f in ("frames.bin", "recording.csv", "tracker_motive.csv", "truth.csv", "snapshot.vtu", "virtual.json",
+              "estimate.csv", "report/report.html"):
+        assert (d / f).stat().st_size > 0, f
+    # the report and the index reference only files that exist
+    for page in (d / "report" / "report.html", out / "index.html"):
+        p = _Links()
+        p.feed(page.read_text())
+        assert p.refs, page
+        for ref in p.refs:
+            assert (page.parent / ref).is_file(), (page, ref)
+    s = json.loads((out / "summary.json").read_text())
+    row = s["scenarios"][0]
+    assert row["scenario"] == "demo-short" and set(row["rmse"]) == {"x", "y", "z", "yaw", "pitch", "roll"}
+    # the off-centre contact was used and the estimate follows the truth (coarse mesh: loose bounds,
+    # the tight ones are in test_virtual_e2e.py)
+    assert row["peak_truth"]["y"] > 2.0 and row["rmse"]["y"] < 0.2 * row["peak_truth"]["y"]
+    assert row["force_rmse_N"]["|force|"] < 0.5
+    assert 30.0 < row["lag_ms"] < 300.0
+    c = row["tracker_clock_offset_ms"]
+    assert abs(c["recovered"] - c["injected"]) < 5.0
+    assert {r["dof"] for r in row["table_i"]} == {"yaw", "pitch", "x", "y", "z"}
+    # on screen: the summary table, Table I, the report path
+    assert "demo-short" in text and "Table I" in text and "tracker clock offset" in text
+    assert re.search(r"report: .*demo-short/report/report\.html", text)
+    assert "index: " in text
+
+
+def test_demo_and_virtual_bad_options_are_one_line(tmp_path, capsys):
+    assert main(["demo", "--out", str(tmp_path / "o"), "--scenarios", "nope"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "nope" in err and "Traceback" not in err
+    assert main(["demo", "--out", str(tmp_path / "o"), "--truth-mesh-scale", "2"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "--truth-mesh-scale" in err and err.count("\n") == 0
+    assert main(["virtual", "serve", "--scenario", "needle-insertion", "--model", str(tmp_path), "--speed", "0"]) == 2
+    assert "--speed" in capsys.readouterr().err
+
+
+def test_virtual_run_command(tmp_path, capsys, coarse_model):
+    from softphantom.design import save_model
+
+    mdir = save_model(coarse_model, tmp_path / "model")
+    sc = tmp_path / "short.toml"
+    sc.write_text(SHORT)
+    out = tmp_path / "run"
+    assert main(["virtual", "run", "--scenario", str(sc), "--model", str(mdir), "--out", str(out), "--osr", "100"]) == 0
+    text = capsys.readouterr().out
+    assert "truth:" in text and "board: OSR 100, 19.2 Hz" in text and "tracker: 120 Hz" in text
+    meta = json.loads((out / "virtual.json").read_text())
+    assert meta["board"]["osr"] == 100 and meta["truth"]["events"][0]["force_N"] == [0.3, 2.5, 0.2]
+    assert Path(out / "recording.csv").read_text().startswith("# {")
