@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from softphantom.errors import SolverError
+from softphantom.errors import SolverError, UserError
 from softphantom.fem import (
     ElementInversionError,
     SparseSolver,
@@ -93,7 +93,7 @@ class EquilibriumSolver:
     def __init__(self, fem: FemModel, H_f, probe, *, solver: str = "auto", tol: float = 1e-8,
                  refactor_rate: float = 0.3, max_iter: int = 12) -> None:
         if URETHRA not in fem.cavities or any(a not in fem.cavities for a in ARM_NAMES):
-            raise SolverError(f"model lacks cavities {[a for a in (*ARM_NAMES, URETHRA) if a not in fem.cavities]}")
+            raise UserError(f"model lacks cavities {[a for a in (*ARM_NAMES, URETHRA) if a not in fem.cavities]}")
         self.fem = fem
         self.H_f = H_f.tocsr()
         self.probe = probe.tocsr()
