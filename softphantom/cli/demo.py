@@ -19,24 +19,16 @@ def _contact(scenario) -> str:
     return points.pop() if len(points) == 1 else "on-centre"
 
 
-def run_scenario(name, model, out: Path, cfg, truth_mesh, con=console) -> dict:
-    """One scenario end to end; returns its summary row (JSON-able)."""
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-
-    from softphantom.cli.virtual import truth_progress
+def run_scenario(sc, model, out: Path, cfg, truth, bar) -> dict:
+    """One scenario end to end from its solved ``truth``; returns its summary row (JSON-able)."""
     from softphantom.estimation import Estimator, EstimatorConfig
     from softphantom.estimation.stream import estimate_stream
     from softphantom.evaluation import evaluate, read_estimate, read_truth, write_report
     from softphantom.tracking import estimate_lag
-    from softphantom.virtual import load_scenario, run_summary, simulate, write_run
+    from softphantom.virtual import run_summary, simulate, write_run
 
-    sc = load_scenario(name)
     d = out / sc.name
-    t0 = time.perf_counter()
-    bar, cb = truth_progress(con, f"{sc.name}: truth")
-    with bar:
-        run = simulate(sc, model, cfg, cb, truth_mesh=truth_mesh)
-    t_truth = time.perf_counter() - t0
+    run = simulate(sc, model, cfg, truth=truth)
     paths = write_run(run, d)
     est_path = d / "estimate.csv"
     if est_path.exists():
@@ -44,24 +36,25 @@ def run_scenario(name, model, out: Path, cfg, truth_mesh, con=console) -> dict:
     src = run.source()
     n_frames = int(run.board().rate_Hz * sc.duration_s)
     t1 = time.perf_counter()
-    with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                  console=con) as bar:
-        task = bar.add_task(f"{sc.name}: estimate", total=n_frames)
-        with Estimator(model, EstimatorConfig(contact=_contact(sc), mode="sync")) as est:
-            stats = estimate_stream(src, est, est_path, lambda e, n: bar.update(task, completed=n),
-                                    live=False, metadata={"model": str(out / "model"), "scenario": sc.name,
-                                                          "source": f"virtual:{sc.name}"})
+    task = bar.add_task(f"{sc.name}: estimate", total=n_frames, what="")
+    with Estimator(model, EstimatorConfig(contact=_contact(sc), mode="sync")) as est:
+        stats = estimate_stream(src, est, est_path, lambda e, n: bar.update(task, completed=n),
+                                live=False, metadata={"model": str(out / "model"), "scenario": sc.name,
+                                                      "source": f"virtual:{sc.name}"})
+    bar.update(task, completed=n_frames)
     t_est = time.perf_counter() - t1
     t2 = time.perf_counter()
-    truth = read_truth(paths["truth"])
+    task = bar.add_task(f"{sc.name}: evaluate", total=None, what="report")
+    tru = read_truth(paths["truth"])
     estimate = read_estimate(est_path)
-    ev = evaluate(truth, estimate)
-    report, rows = write_report(d / "report", truth, estimate, ev, snapshot=paths["snapshot"],
+    ev = evaluate(tru, estimate)
+    report, rows = write_report(d / "report", tru, estimate, ev, snapshot=paths["snapshot"],
                                 title=f"{sc.name} — {sc.description}")
     # the tracker path: Motive CSV → reader → rest-window registration → lag against the exact truth
     trk = read_truth(paths["tracker"])
-    lag = estimate_lag(truth.t, truth.mm_deg(), trk.t, trk.mm_deg(), max_lag_s=1.0)
+    lag = estimate_lag(tru.t, tru.mm_deg(), trk.t, trk.mm_deg(), max_lag_s=1.0)
     t_eval = time.perf_counter() - t2
+    bar.update(task, total=1, completed=1)
     rs = run_summary(run)
     return {
         "scenario": sc.name, "report": str(report),
@@ -74,8 +67,32 @@ def run_scenario(name, model, out: Path, cfg, truth_mesh, con=console) -> dict:
                      "study": r.ref.study} for r in rows],
         "tracker_clock_offset_ms": {"injected": rs["tracker"]["clock_offset_s"] * 1e3, "recovered": lag.lag_ms},
         "estimate": {k: stats[k] for k in ("estimates", "rejected", "rate_Hz", "step_ms_p50", "step_ms_p99")},
-        "truth": rs["truth"], "seconds": {"truth": t_truth, "estimate": t_est, "evaluate": t_eval},
+        "truth": rs["truth"], "seconds": {"truth_solve": truth.solve_s, "estimate": t_est, "evaluate": t_eval},
     }
+
+
+# --- truth solves in a worker process (overlapping the estimation of the previous scenario) ------
+_QUEUE = None
+
+
+def _init_worker(queue) -> None:
+    global _QUEUE
+    _QUEUE = queue
+
+
+def _solve_in_worker(sc, model, truth_cfg, truth_mesh):
+    from softphantom.virtual import solve_truth
+
+    def cb(done: int, total: int, what: str) -> None:
+        _QUEUE.put((sc.name, done, total, what))
+
+    return solve_truth(sc, model, truth_cfg, cb, truth_mesh=truth_mesh)
+
+
+def _listen(queue, bar, tasks) -> None:
+    while (item := queue.get()) is not None:
+        name, done, total, what = item
+        bar.update(tasks[name], completed=done, total=max(total, done), what=what)
 
 
 def _index(out: Path, rows: list[dict], wall_s: float) -> Path:
@@ -122,6 +139,39 @@ def print_summary(rows: list[dict], con=console) -> None:
                   f"{extra}", highlight=False)
 
 
+def _run_all(scs, model, out: Path, cfg, tm) -> list[dict]:
+    """Truth solves in one worker process, in scenario order; the main process estimates and
+    evaluates each scenario as soon as its truth is ready (2 cores: both stay busy)."""
+    import multiprocessing as mp
+    import threading
+    from concurrent.futures import ProcessPoolExecutor
+
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    ctx = mp.get_context("spawn")
+    queue = ctx.Queue()
+    bar = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                   TextColumn("{task.fields[what]}"), console=console)
+    rows = []
+    with bar, ProcessPoolExecutor(1, mp_context=ctx, initializer=_init_worker, initargs=(queue,)) as pool:
+        tasks = {sc.name: bar.add_task(f"{sc.name}: truth", total=None, what="queued") for sc in scs}
+        listener = threading.Thread(target=_listen, args=(queue, bar, tasks), daemon=True)
+        listener.start()
+        futures = []
+        try:
+            futures = [pool.submit(_solve_in_worker, sc, model, cfg.truth, tm) for sc in scs]
+            for sc, fut in zip(scs, futures):
+                truth = fut.result()
+                bar.update(tasks[sc.name], what=f"solved in {truth.solve_s:.0f} s")
+                rows.append(run_scenario(sc, model, out, cfg, truth, bar))
+        finally:
+            for f in futures:
+                f.cancel()
+            queue.put(None)
+            listener.join(5)
+    return rows
+
+
 @app.command("demo")
 def demo_cmd(
     out: Path = typer.Option(Path("out/demo"), "--out", help="Output directory."),
@@ -158,7 +208,7 @@ def demo_cmd(
         tm = truth_model(model, cfg.truth)
     console.print(f"truth model: {len(tm.nodes)} nodes, {len(tm.tets)} tets (mesh {tm.design.mesh.size_mm:g} mm)",
                   highlight=False)
-    rows = [run_scenario(n, model, out, cfg, tm) for n in names]
+    rows = _run_all([load_scenario(n) for n in names], model, out, cfg, tm)
     wall = time.perf_counter() - t0
     (out / "summary.json").write_text(json.dumps({"wall_s": wall, "scenarios": rows}, indent=2, default=float) + "\n")
     index = _index(out, rows, wall)
