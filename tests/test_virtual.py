@@ -306,3 +306,25 @@ def test_pty_board_is_seen_as_a_board(short_run):
     assert got[-1].osr == 100 and all(m.status == "ok" for m in got)
     dt = np.diff([m.t_board for m in got if m.osr == 100])
     assert np.median(dt) == pytest.approx(1 / 19.23, rel=0.01)
+
+
+def test_inflation_until_target_moves(coarse_model):
+    """Inflate until near_urethra moved 1 mm: the secant keyframe hits it, the growth is reported."""
+    from softphantom.virtual import solve_truth
+
+    sc = scenario_from_dict({"name": "infl", "duration_s": 6.0, "rest_s": 1.0,
+                             "inflate": [{"start_s": 1.5, "rise_s": 2.0, "hold_s": 1.0, "fall_s": 1.0,
+                                          "target": "near_urethra", "target_shift_mm": 1.0,
+                                          "max_p_urethra_kPa": 150.0}]}, "infl")
+    tr = solve_truth(sc, coarse_model)
+    et = tr.events[0]
+    j = tr.target_names.index("near_urethra")
+    assert np.linalg.norm(et.targets[-1, j]) * 1e3 == pytest.approx(1.0, rel=0.01)
+    assert 10e3 < et.p_urethra < 60e3 and np.all(np.diff(et.s) > 0) and et.s[-1] == 1.0
+    summ = tr.summary()["events"][0]
+    assert summ["near_urethra_shift_mm"] == pytest.approx(1.0, rel=0.01) and "moved 1.00 mm" in summ["note"]
+    # the bulb grows by about the urethra's volume change (silicone nearly incompressible)
+    assert 0 < summ["bulb_growth_percent"] < 5 and et.bulb_dV[-1] == pytest.approx(et.dV[-1, 4], rel=0.35)
+    # in time: the pressure follows the ramp, the urethra transducer reads it
+    s = tr.sample([1.0, 1.5 + 2.0 + 0.5])
+    assert s.p_urethra[0] == 0 and s.p_urethra[1] == pytest.approx(et.p_urethra)

@@ -294,18 +294,31 @@ def solve_truth(scenario: Scenario, model: PhantomModel, config: TruthConfig = T
                     p_star = ps[-2] + (goal - a) / (b - a) * (ps[-1] - ps[-2])
                     break
             if p_star is not None:
+                # regula falsi on the bracket (last keyframe below the goal, the one above), at most
+                # 4 solves, until the target's shift is within 0.5 % of the goal
+                lo_p, lo_s = ps[-2], shifts[-2]
+                hi_p, hi_s = ps[-1], shifts[-1]
                 for lst in (ps, shifts, xs, rows):
                     lst.pop()
-                prev = xs[-2] if len(xs) > 1 else None
-                ratio = (p_star - ps[-1]) / (ps[-1] - ps[-2]) if len(xs) > 1 else 1.0
-                sol = solve(None, p_star, xs[-1], f"event {i + 1} inflate {p_star / 1e3:.1f} kPa (target)", prev, ratio)
-                its += sol.iterations
-                r = readout(sol.x)
-                ps.append(p_star)
+                for _ in range(4):
+                    prev = xs[-2] if len(xs) > 1 else None
+                    ratio = (p_star - ps[-1]) / (ps[-1] - ps[-2]) if len(xs) > 1 else 1.0
+                    sol = solve(None, p_star, xs[-1], f"event {i + 1} inflate {p_star / 1e3:.1f} kPa (target)",
+                                prev, ratio)
+                    its += sol.iterations
+                    r = readout(sol.x)
+                    sh, p_solved = float(np.linalg.norm(r[2][j])), p_star
+                    if abs(sh - goal) <= 0.005 * goal:
+                        break
+                    if sh < goal:
+                        lo_p, lo_s = p_star, sh
+                    else:
+                        hi_p, hi_s = p_star, sh
+                    p_star = lo_p + (goal - lo_s) / (hi_s - lo_s) * (hi_p - lo_p)
+                ps.append(float(p_solved))
                 xs.append(sol.x.reshape(-1))
                 rows.append(r)
-                shift = float(np.linalg.norm(r[2][j])) * 1e3
-                note = note or f"{e.target} moved {shift:.2f} mm at {p_star / 1e3:.1f} kPa"
+                note = note or f"{e.target} moved {sh * 1e3:.2f} mm at {ps[-1] / 1e3:.1f} kPa"
             elif not note:
                 note = (f"limit: {e.target} moved only {shifts[-1] * 1e3:.2f} mm at max_p_urethra_kPa "
                         f"{pmax / 1e3:g}")
