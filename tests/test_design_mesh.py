@@ -135,3 +135,22 @@ def test_deterministic_and_off_main_thread(coarse_model, tmp_path):
     save_model(again, tmp_path / "b")
     for f in ("model.msh", "model.vtu", "design.toml"):
         assert (tmp_path / "a" / f).read_bytes() == (tmp_path / "b" / f).read_bytes(), f
+
+
+def test_meshing_keeps_sigpipe_ignored(tmp_path):
+    """gmsh.initialize resets SIGPIPE to 'terminate'; after meshing, a write to a closed pipe must
+    still be an EPIPE error in this process (the live page and the stream rely on it)."""
+    import os
+    import signal
+
+    from softphantom.design import BIPDesign, build_model
+
+    build_model(BIPDesign(), mesh_size_mm=16)
+    assert signal.getsignal(signal.SIGPIPE) == signal.SIG_IGN
+    r, w = os.pipe()
+    os.close(r)
+    try:
+        with pytest.raises(BrokenPipeError):
+            os.write(w, b"x")  # with SIGPIPE at its default the process would die here
+    finally:
+        os.close(w)

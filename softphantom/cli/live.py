@@ -25,7 +25,9 @@ def live(
     duration_s: Optional[float] = typer.Option(None, "--duration-s", help="stop after this many seconds"),
     rate_Hz: float = typer.Option(77.0, "--rate-Hz", help="estimate rate of the synthetic source, Hz"),
     view_rate_Hz: float = typer.Option(30.0, "--view-rate-Hz", help="page update rate, Hz"),
-    speed: float = typer.Option(1.0, "--speed", help="replay speed factor (0: as fast as possible)"),
+    speed: float = typer.Option(1.0, "--speed", help="replay/virtual speed factor (0: as fast as possible)"),
+    at: str = typer.Option("on-centre", "--at", help="virtual/serial: contact point, on-centre | off-centre"),
+    max_force_N: float = typer.Option(10.0, "--max-force-N", help="virtual/serial: bound on each force component (N)"),
 ) -> None:
     """Show the estimate live on a local web page, stream every estimate (ZeroMQ, JSON) and record
     the session (MCAP). Ctrl-C stops."""
@@ -40,7 +42,11 @@ def live(
         raise UserError(f"--duration-s must be > 0, got {duration_s}")
     if record is not None and record.suffix.lower() != ".mcap":
         raise UserError(f"--record must name an .mcap file, got {record}")
-    src = open_source(source, model_dir=model, rate_Hz=rate_Hz, duration_s=None, speed=speed)
+    kind = source.partition(":")[0]
+    if kind in ("virtual", "serial"):
+        src = _estimator_source(source, model, at, max_force_N, speed)
+    else:
+        src = open_source(source, model_dir=model, rate_Hz=rate_Hz, duration_s=None, speed=speed)
     cfg = LiveConfig(listen_host=listen_host, http_port=http_port, stream_port=None if no_stream else stream_port,
                      view_rate_Hz=view_rate_Hz, record=record, duration_s=duration_s)
     with LiveSession(src, cfg) as session:
@@ -55,6 +61,24 @@ def live(
         st = session.state.status()
     console.print(f"done: {st['estimates']} estimates, {st['skipped_total']} skipped, "
                   f"stream sent {st['stream'].get('sent', 0)}", highlight=False)
+
+
+def _estimator_source(spec: str, model_dir: Optional[Path], at: str, max_force_N: float, speed: float):
+    """The estimator over a board or the virtual phantom, opened as ``softphantom estimate`` does."""
+    from softphantom.cli.estimation import open_sensor_source
+    from softphantom.design import load_model
+    from softphantom.estimation import Estimator, EstimatorConfig
+    from softphantom.viz.live import EstimatorSource
+
+    if model_dir is None or not (model_dir / "model.npz").is_file():
+        raise UserError(f"--source {spec} needs --model DIR (a model directory from softphantom design)")
+    if at not in ("on-centre", "off-centre"):
+        raise UserError(f"--at must be on-centre or off-centre, got {at!r}")
+    model = load_model(model_dir)
+    sensor, is_live = open_sensor_source(spec, model)
+    # a paced source is shown in real time: the background equilibrium keeps each step short
+    cfg = EstimatorConfig.box(max_force_N, contact=at, mode="async" if is_live or speed > 0 else "sync")
+    return EstimatorSource(model, sensor, Estimator(model, cfg), live=is_live, speed=speed, p_ext=at)
 
 
 @app.command("recording-csv")

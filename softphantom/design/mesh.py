@@ -72,6 +72,19 @@ def _elements(dim: int, tag: int, etype: int, nper: int) -> np.ndarray:
     return np.zeros((0, nper), dtype=np.int64)
 
 
+def _restore_sigpipe() -> None:
+    """gmsh.initialize resets SIGPIPE to its default (terminate) behind Python's back; Python runs
+    with it ignored so a peer closing a socket or pipe (a live-page client, a stream subscriber)
+    gives an EPIPE error instead of killing the process. Put it back, from any thread (libc)."""
+    import ctypes
+    import signal
+
+    if signal.getsignal(signal.SIGPIPE) == signal.SIG_IGN:
+        libc = ctypes.CDLL(None)
+        libc.signal.restype = ctypes.c_void_p
+        libc.signal(int(signal.SIGPIPE), ctypes.c_void_p(1))  # 1 == SIG_IGN
+
+
 def mesh_design(design: BIPDesign, mesh: MeshParams | None = None) -> RawMesh:
     """Mesh ``design`` (sizes from ``mesh`` or ``design.mesh``); raises MeshError if gmsh fails."""
     import gmsh
@@ -81,6 +94,7 @@ def mesh_design(design: BIPDesign, mesh: MeshParams | None = None) -> RawMesh:
         init_here = not gmsh.isInitialized()
         if init_here:
             gmsh.initialize(argv=["softphantom"], readConfigFiles=False, interruptible=False)
+            _restore_sigpipe()
         model_name = f"softphantom_{design.name}"
         try:
             gmsh.option.setNumber("General.Terminal", 0)

@@ -1,8 +1,8 @@
 """Live view: a local web page (3-D surface, force arrow, targets, scrolling plots, status) fed
 by an estimate source, plus the network stream and the session recording.
 
-Sources implement :class:`~softphantom.viz.live.source.EstimateSource`; the estimator plugs in at
-:func:`~softphantom.viz.live.source.estimator_source`. Run with :class:`LiveSession` or
+Sources implement :class:`~softphantom.viz.live.source.EstimateSource`; the estimator over a sensor source is
+:class:`~softphantom.viz.live.source.EstimatorSource`. Run with :class:`LiveSession` or
 ``softphantom live``.
 """
 
@@ -13,11 +13,11 @@ from softphantom.viz.live.source import (
     ReplaySource,
     SyntheticSource,
     ellipsoid_geometry,
-    estimator_source,
+    EstimatorSource,
     open_source,
 )
 
 __all__ = [
     "EstimateSource", "LiveConfig", "LiveGeometry", "LiveSession", "LiveState", "ReplaySource",
-    "SyntheticSource", "ellipsoid_geometry", "estimator_source", "open_source",
+    "EstimatorSource", "SyntheticSource", "ellipsoid_geometry", "open_source",
 ]

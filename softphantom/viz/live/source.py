@@ -12,8 +12,8 @@ The interface (:class:`EstimateSource`) is what the estimator must offer to be s
   ``/sensors``), ``poll_tracker()`` (tracker messages since the last call, recorded on ``/tracker``),
   ``close()``.
 
-:func:`open_source` turns ``--source`` specs into sources; :func:`estimator_source` is the hook
-where the estimator (issue 6) and the virtual phantom (issue 7) plug in.
+:func:`open_source` turns the ``synthetic`` and ``replay:`` specs into sources;
+:class:`EstimatorSource` wraps a sensor source (board, virtual phantom) and the estimator.
 """
 
 from __future__ import annotations
@@ -305,18 +305,65 @@ class ReplaySource:
         return decode_positions_mm(self._surface[max(i, 0)][1])
 
 
-def estimator_source(kind: str, arg: str, model_dir: Path | None, **options: Any) -> EstimateSource:
-    """HOOK — the place the real estimator plugs into ``softphantom live``.
+class EstimatorSource:
+    """The real estimator as a live source: each sensor sample of ``sensor`` (a
+    :class:`~softphantom.sensing.sources.SensorSource`) through ``estimator``
+    (:class:`~softphantom.estimation.Estimator`) for ``model``.
 
-    ``kind`` is ``"virtual"`` (``arg`` = scenario name), ``"serial"`` (``arg`` = port) or
-    ``"sensor-replay"`` (a recording with ``/sensors`` but no estimates). Wire it as: load the
-    model (``softphantom.design.load_model(model_dir)``), build the sensor source (issue 7's virtual
-    phantom, or the serial board of the sensing stage), wrap it in the estimator (issue 6), and return
-    an object with ``geometry = LiveGeometry.from_model(model)``, ``__iter__`` yielding Estimates and
-    ``node_positions()`` returning the estimator's current node positions (N, 3) m.
+    ``live=True`` (a board): the newest sample is estimated and the ones it overtook are counted as
+    skipped — acquisition never waits for the estimator. ``live=False`` (virtual phantom, replay):
+    every sample is estimated, paced to the samples' clock divided by ``speed`` (0: as fast as
+    possible). Closing it closes the estimator and the sensor source.
     """
-    raise UserError(f"--source {kind}:{arg} needs the estimator and the {kind} sensor source, which "
-                    "are not installed yet; use --source synthetic or --source replay:FILE")
+
+    def __init__(self, model: Any, sensor: Any, estimator: Any, *, live: bool, speed: float = 1.0,
+                 p_ext: str = "on-centre") -> None:
+        self.geometry = LiveGeometry.from_model(model, p_ext)
+        self._sensor, self._est = sensor, estimator
+        self.live, self.speed = bool(live), float(speed)
+        self._last_m = None
+
+    def _samples(self) -> Iterator[tuple[Any, int]]:
+        if self.live:
+            from softphantom.estimation.stream import _LatestSlot
+
+            slot = _LatestSlot(self._sensor)
+            try:
+                while True:
+                    m, skipped = slot.take()
+                    if m is None:
+                        if slot.ended:
+                            break
+                        continue
+                    yield m, skipped
+            finally:
+                slot.stop()
+            if slot.error is not None:
+                raise slot.error
+            return
+        t_first, w0 = None, time.perf_counter()
+        for m in self._sensor:
+            if self.speed > 0:
+                t_first = m.t if t_first is None else t_first
+                wait = (m.t - t_first) / self.speed - (time.perf_counter() - w0)
+                if wait > 0:
+                    time.sleep(wait)
+            yield m, 0
+
+    def __iter__(self) -> Iterator[Estimate]:
+        for m, skipped in self._samples():
+            self._last_m = m
+            yield self._est.step(m, skipped=skipped)
+
+    def node_positions(self) -> np.ndarray | None:
+        return self._est.node_positions()
+
+    def last_measurement(self) -> Any:
+        return self._last_m
+
+    def close(self) -> None:
+        self._est.close()
+        self._sensor.close()
 
 
 def open_source(spec: str, *, model_dir: str | Path | None = None, rate_Hz: float = 77.0,
@@ -343,5 +390,6 @@ def open_source(spec: str, *, model_dir: str | Path | None = None, rate_Hz: floa
             geometry = LiveGeometry.from_model(load_model(model))
         return ReplaySource(arg, speed=speed, geometry=geometry)
     if kind in ("virtual", "serial") and arg:
-        return estimator_source(kind, arg, model, rate_Hz=rate_Hz, duration_s=duration_s)
+        raise UserError(f"--source {spec}: the estimator runs in 'softphantom live' (the CLI opens the "
+                        "sensor source and wraps it in EstimatorSource)")
     raise UserError(f"unknown --source {spec!r}; use synthetic, replay:FILE, virtual:SCENARIO or serial:PORT")
