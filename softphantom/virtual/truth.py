@@ -199,7 +199,7 @@ def solve_truth(scenario: Scenario, model: PhantomModel, config: TruthConfig = T
         dv = np.array([cavity_volume(x, tm.cavities[c]) for c in CAVITIES]) - V0
         return dv, pts[:k], pts[k:] - rest_targets, cavity_volume(x, closed) - bulb0
 
-    def solve(f_ext, p, x0, what, x_prev=None, ratio=1.0, min_step=1.0 / 64, max_iter=25):
+    def solve(f_ext, p, x0, what, x_prev=None, ratio=1.0, min_step=1.0 / 64, max_iter=25, single=False):
         """Converged equilibrium; warm start from ``x0``, or the secant predictor
         x0 + ratio·(x0 − x_prev) when the previous keyframe is known (falls back to x0)."""
         nonlocal done
@@ -207,12 +207,14 @@ def solve_truth(scenario: Scenario, model: PhantomModel, config: TruthConfig = T
         if x_prev is not None:
             try:
                 sol = solve_static(fem, f_ext, pressures={"urethra": p} if p else None,
-                                   x0=x0 + ratio * (x0 - x_prev), tol=config.tol, min_load_step=0.25,
+                                   x0=x0 + ratio * (x0 - x_prev), tol=config.tol, min_load_step=1.0 if single else 0.25,
                                    max_iter=max_iter)
             except ElementInversionError:
                 sol = None
             if sol is not None and not sol.converged:
                 sol = None
+                if single:
+                    raise SolverError(f"truth of {scenario.name}: {what}: no convergence from the predictor")
         if sol is None:
             sol = solve_static(fem, f_ext, pressures={"urethra": p} if p else None, x0=x0, tol=config.tol,
                                min_load_step=min_step, max_iter=max_iter)
@@ -262,19 +264,19 @@ def solve_truth(scenario: Scenario, model: PhantomModel, config: TruthConfig = T
             goal = e.target_shift_mm * 1e-3
             pmax = e.max_p_urethra_kPa * 1e3
             step = pmax / config.inflate_steps
-            min_step = step / 4
+            min_step = step / 2
             ps, shifts, xs = [0.0], [0.0], [x_rest.reshape(-1)]
             p_star = None
             while ps[-1] < pmax - 1e-9:
                 # continuation in pressure: one Newton attempt per increment (secant predictor, then
-                # from the last state), halving the increment on failure; an increment below a
-                # quarter of the step means a limit point of the model (the cavity runs away)
+                # from the last state; 6 iterations), halving the increment once on failure; a second
+                # failure means a limit point of the model (the cavity runs away)
                 p = min(pmax, ps[-1] + step)
                 try:
                     prev = xs[-2] if len(xs) > 1 else None
                     ratio = (p - ps[-1]) / (ps[-1] - ps[-2]) if len(xs) > 1 else 1.0
                     sol = solve(None, p, xs[-1], f"event {i + 1} inflate {p / 1e3:.1f} kPa", prev, ratio,
-                                min_step=1.0, max_iter=8)
+                                min_step=1.0, max_iter=6, single=True)
                 except SolverError as exc:
                     if step / 2 >= min_step - 1e-9:
                         step /= 2
