@@ -53,13 +53,9 @@ def csv_columns(target_names: Iterable[str]) -> list[str]:
     >>> csv_columns([])[-4:]
     ['cond_W', 'qp_status', 'step_ms', 'skipped']
     """
-    cols = ["t_s", *FORCE_COLUMNS, "p_urethra_kPa", *POSE_COLUMNS]
-    for name in target_names:
-        cols += [f"{name}_dx_mm", f"{name}_dy_mm", f"{name}_dz_mm"]
-    cols += [f"dVpred_{a}_mm3" for a in ARM_NAMES]
-    cols += [f"dVmeas_{a}_mm3" for a in ARM_NAMES]
-    cols += ["cond_W", "qp_status", "step_ms", "skipped"]
-    return cols
+    from softphantom.estimation.stream import estimate_columns  # one definition: the CSV's writer
+
+    return estimate_columns(target_names)
 
 
 def _num(x: Any) -> float | None:
