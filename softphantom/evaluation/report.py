@@ -4,6 +4,7 @@ Table I comparison, and a 3-D view of the deformed phantom (from a VTU snapshot)
 from __future__ import annotations
 
 import html
+import textwrap
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -43,11 +44,9 @@ def plot_6dof(truth: Series6, estimate: Series6, ev: Evaluation, path: Path, tit
         if k >= 3:
             ax.set_xlabel("time (s)")
     axes[0, 0].legend(loc="best", fontsize=8)
-    fig.suptitle(
-        (title + " — " if title else "")
-        + f"estimate shifted by −{ev.lag_ms:.1f} ms ({'measured' if ev.lag is not None else 'given'} lag)",
-        fontsize=11,
-    )
+    shift = f"estimate shifted by −{ev.lag_ms:.1f} ms ({'measured' if ev.lag is not None else 'given'} lag)"
+    # a scenario's description can be long: wrap it so the figure never crops it
+    fig.suptitle(textwrap.fill(title, 120) + "\n" + shift if title else shift, fontsize=11)
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
