@@ -37,8 +37,15 @@ class EstimatorConfig:
     refresh happens when the estimate has moved more than ``relinearize_N`` / ``relinearize_Pa``
     from the linearization point, or ``refresh_every`` samples after the last one (if it moved at
     all, beyond ``deadband_N``/``deadband_Pa``). Each refresh solves the equilibrium at the estimate,
-but at most ``trust_N``/``trust_Pa`` from the previous linearization point (a trust region
-against jumping into another basin of this non-linear map). ``tol``: relative force residual of a converged
+but at most ``trust_N``/``trust_Pa`` times a scale from the previous linearization point (a trust
+region against jumping into another basin of this non-linear map; off-centre pushes have a
+spurious least-squares minimum). The scale starts at ``trust_start_scale``, doubles, up to
+``trust_max_scale``, after each refresh whose first-order prediction erred by less than 15 % of
+the volume change it made and that needed no factorization, and halves (not below 1) after one
+that erred by more than 30 % or needed a factorization (a big step costs more than two small ones). ``path_correction``: between refreshes, correct the first-order
+model by the change of W and of the tracked points' sensitivities between the last two
+linearizations (a quadratic along the path; it vanishes at the linearization point, so a
+converged fixed point is unchanged). ``tol``: relative force residual of a converged
     equilibrium; ``refactor_rate``: chord contraction above which the tangent is refactored;
     ``max_iter``: chord iterations before the Newton/load-stepping fallback; ``sparse_solver``: see
     :class:`~softphantom.fem.SparseSolver`.
@@ -62,6 +69,9 @@ against jumping into another basin of this non-linear map). ``tol``: relative fo
     relinearize_Pa: float = 500.0
     trust_N: float = 0.5
     trust_Pa: float = 1000.0
+    trust_max_scale: float = 8.0
+    trust_start_scale: float = 2.0
+    path_correction: bool = True
     deadband_N: float = 1e-6
     deadband_Pa: float = 1e-3
     tol: float = 1e-8
@@ -90,6 +100,8 @@ against jumping into another basin of this non-linear map). ``tol``: relative fo
             raise UserError(f"tol must be in (0, 1e-2), got {self.tol}")
         if not (0 < self.refactor_rate < 1):
             raise UserError(f"refactor_rate must be in (0, 1), got {self.refactor_rate}")
+        if not (math.isfinite(float(self.trust_max_scale)) and self.trust_max_scale >= 1):
+            raise UserError(f"trust_max_scale must be a finite number >= 1, got {self.trust_max_scale}")
         if int(self.refresh_every) < 1 or int(self.max_iter) < 1:
             raise UserError("refresh_every and max_iter must be >= 1")
 

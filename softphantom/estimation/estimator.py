@@ -21,11 +21,15 @@ import numpy as np
 
 from softphantom.errors import SolverError, UserError
 from softphantom.estimation.config import EstimatorConfig
-from softphantom.estimation.linearization import EquilibriumSolver, Linearization
+from softphantom.estimation.linearization import EquilibriumSolver, Linearization, PathCorrection
 from softphantom.estimation.qp import solve_volume_qp
 from softphantom.estimation.types import ARM_NAMES, Estimate
 from softphantom.fem import fem_from_phantom, force_actuator, probe_matrix
 from softphantom.pose import Pose6, rigid_fit
+
+PATH_ITERATIONS = 4  # fixed-point passes of the QP on the path-corrected W (see PathCorrection)
+TRUST_GROW_BELOW = 0.15  # a refresh's linearization error / its volume change: below, the trust region doubles
+TRUST_SHRINK_ABOVE = 0.3  # above, it halves (never below trust_N / trust_Pa)
 
 
 @dataclass(frozen=True)
@@ -106,9 +110,13 @@ class _Worker(threading.Thread):
                 lam, self._req = self._req, None
                 self.busy = True
             try:
-                lin = est._lin
+                with est._lock:
+                    lin, path = est._lin, est._path
                 if est._moved(lam, lin):
-                    est._publish(est._eq.solve(lin, lam))
+                    t0 = time.perf_counter()
+                    new = est._eq.solve(lin, lam, path)
+                    est.refresh_times.append(time.perf_counter() - t0)
+                    est._publish(new)
             except Exception as exc:  # kept for the foreground; the thread goes on
                 self.error = f"{type(exc).__name__}: {exc}"
             finally:
@@ -171,10 +179,13 @@ class Estimator:
     # -- state ------------------------------------------------------------------------------------
     def _init_state(self) -> None:
         self._lin = self.rest
+        self._path = None  # PathCorrection from the previous linearization to the current one
+        self._trust_scale = self.config.trust_start_scale
         self._lam = np.zeros(4)
         self._since_refresh = 0
         self.refreshes = 0
         self.lin_errors: list[np.ndarray] = []
+        self.refresh_times: list[float] = []  # s per equilibrium refresh (both modes)
         z = np.zeros(3)
         self._last = Estimate(
             t=0.0, force=z.copy(), p_urethra=0.0, pose=Pose6(z.copy(), z.copy()),
@@ -218,8 +229,21 @@ class Estimator:
         return self._last
 
     def _publish(self, lin: Linearization) -> None:
+        prev = self._lin
+        path = PathCorrection.between(prev, lin) if self.config.path_correction else None
+        # adaptive trust region: grow it while the refreshes show the first-order map to be good
+        # over the step taken, shrink it (not below the configured radius) where it was not
+        dV = float(np.linalg.norm(lin.V - prev.V))
+        err = float(np.linalg.norm(lin.lin_error))
+        if np.isfinite(err) and dV > 0:
+            ratio = err / dV
+            if ratio < TRUST_GROW_BELOW and not lin.refactored:
+                self._trust_scale = min(self._trust_scale * 2.0, self.config.trust_max_scale)
+            elif ratio > TRUST_SHRINK_ABOVE or lin.refactored:
+                self._trust_scale = max(self._trust_scale * 0.5, 1.0)
         with self._lock:
             self._lin = lin
+            self._path = path
             self.refreshes += 1
             self.lin_errors.append(np.asarray(lin.lin_error))
 
@@ -232,9 +256,10 @@ class Estimator:
         away from the linearization point (a trust region: Gauss–Newton on this strongly
         non-linear map can jump into another basin from a far-off linearization)."""
         c = self.config
+        k = self._trust_scale
         d = lam - lin.lam
-        d[:3] = np.clip(d[:3], -c.trust_N, c.trust_N)
-        d[3] = np.clip(d[3], -c.trust_Pa, c.trust_Pa)
+        d[:3] = np.clip(d[:3], -k * c.trust_N, k * c.trust_N)
+        d[3] = np.clip(d[3], -k * c.trust_Pa, k * c.trust_Pa)
         return lin.lam + d
 
     @staticmethod
@@ -248,21 +273,36 @@ class Estimator:
         return lin.predict_nodes(self._lam)
 
     # -- the estimate -----------------------------------------------------------------------------
-    def _estimate(self, m, lin: Linearization, skipped: int, t0: float) -> tuple[Estimate, np.ndarray]:
+    def _estimate(self, m, lin: Linearization, skipped: int, t0: float,
+                  path: "PathCorrection | None" = None) -> tuple[Estimate, np.ndarray]:
         dV = np.asarray(m.dV, float)
         dp = float(m.p_urethra) - lin.lam[3]
-        qp = solve_volume_qp(lin.W, lin.V - dV, dp, self._lo - lin.lam[:3], self._hi - lin.lam[:3],
-                             self.config.qp_solver)
-        if qp.status != "optimal":
-            raise SolverError(f"QP {qp.status}")
+        if path is not None and path.lin is not lin:
+            path = None
+        W, s = lin.W, 0.0
+        for _ in range(PATH_ITERATIONS if path is not None else 1):
+            qp = solve_volume_qp(W, lin.V - dV, dp, self._lo - lin.lam[:3], self._hi - lin.lam[:3],
+                                 self.config.qp_solver)
+            if qp.status != "optimal":
+                raise SolverError(f"QP {qp.status}")
+            if path is None:
+                break
+            s_new = path.position(qp.dlam)
+            if abs(s_new - s) <= 1e-3:
+                break
+            s = s_new
+            W = path.W(s)
         lam = lin.lam + qp.dlam
         lam[:3] = np.clip(lam[:3], self._lo, self._hi)  # round-off of the active set
         lam[3] = float(m.p_urethra)
-        pose, shifts = pose_and_shifts(self.rest_markers, self.rest_targets, self.target_names,
-                                       lin.predict_points(lam))
+        if path is None:
+            pts, vpred = lin.predict_points(lam), lin.predict_volumes(lam)
+        else:
+            pts, vpred = path.predict_points(lam), path.predict_volumes(lam)
+        pose, shifts = pose_and_shifts(self.rest_markers, self.rest_targets, self.target_names, pts)
         est = Estimate(
             t=float(m.t), force=lam[:3].copy(), p_urethra=float(lam[3]), pose=pose, target_shift=shifts,
-            volume_pred=lin.predict_volumes(lam), volume_meas=dV.copy(), cond_W=self._cond(lin),
+            volume_pred=vpred, volume_meas=dV.copy(), cond_W=self._cond(lin),
             qp_status=qp.status, step_time=time.perf_counter() - t0, skipped=int(skipped),
             extra={"qp_residual_m3": qp.residual, "active": qp.active, "lin_lam": lin.lam},
         )
@@ -282,9 +322,10 @@ class Estimator:
                 cond_W=last.cond_W, qp_status=f"rejected:{why}", step_time=time.perf_counter() - t0,
                 skipped=int(skipped), status=f"rejected:{why}",
             )
-        lin = self._lin
+        with self._lock:
+            lin, path = self._lin, self._path
         try:
-            est, lam = self._estimate(m, lin, skipped, t0)
+            est, lam = self._estimate(m, lin, skipped, t0, path)
             if self.config.mode == "sync":
                 self._since_refresh += 1
                 moved = lam - lin.lam
@@ -292,9 +333,12 @@ class Estimator:
                        or abs(moved[3]) > self.config.relinearize_Pa
                        or self._since_refresh >= self.config.refresh_every)
                 if due and self._moved(lam, lin):
-                    self._publish(self._eq.solve(lin, self._target(lam, lin)))
+                    t1 = time.perf_counter()
+                    new = self._eq.solve(lin, self._target(lam, lin), self._path)
+                    self.refresh_times.append(time.perf_counter() - t1)
+                    self._publish(new)
                     self._since_refresh = 0
-                    est, lam = self._estimate(m, self._lin, skipped, t0)
+                    est, lam = self._estimate(m, self._lin, skipped, t0, self._path)
             elif self._worker is not None:
                 self._worker.request(self._target(lam, lin))
         except SolverError as exc:

@@ -37,6 +37,17 @@ from softphantom.fem.model import FemModel
 from softphantom.estimation.types import ARM_NAMES
 
 URETHRA = "urethra"
+ANDERSON = 5  # depth of the Anderson mixing of the chord iterations
+KRYLOV_RTOL = 1e-7  # GMRES target (preconditioned residual) for K⁻¹B solved with a stale factor
+KRYLOV_ACCEPT = 1e-5  # relative true residual ‖K u − b‖/‖b‖ accepted (else refactor)
+KRYLOV_MAXITER = 40
+# A chord iteration (internal force + two triangular solves) costs ~1/30 of a factorization on the
+# default mesh: up to CHORD_FACTOR × max_iter of them before refactoring, unless the contraction
+# over the last STALL_WINDOW iterations is slower than refactor_rate and would need more than
+# FACTOR_COST_ITERS further iterations to converge.
+CHORD_FACTOR = 2
+STALL_WINDOW = 3
+FACTOR_COST_ITERS = 15
 
 
 @dataclass(frozen=True, eq=False)
@@ -105,6 +116,9 @@ class EquilibriumSolver:
         self.factorizations = 0
         self.lu_factorizations = 0
         self._factored = False
+        self._factor_at: tuple[np.ndarray, float] | None = None  # where the kept factor was made
+        self.last_rate = 0.0  # mean chord contraction of the last solve
+        self.krylov_iterations = 0  # GMRES iterations of the last linearization (0: direct)
         self._arm_tris = [np.asarray(fem.cavities[a]) for a in ARM_NAMES]
         self._ur_tris = np.asarray(fem.cavities[URETHRA])
         self._V0 = np.array([cavity_volume(fem.x_rest, t) for t in self._arm_tris])
@@ -145,6 +159,7 @@ class EquilibriumSolver:
             self.lu_factorizations += 1
         self.factorizations += 1
         self._factored = True
+        self._factor_at = (x.copy(), float(p_u))
 
     def arm_volumes(self, x: np.ndarray) -> np.ndarray:
         """(4,) m³ arm-cavity volume changes from rest at ``x``."""
@@ -163,7 +178,7 @@ class EquilibriumSolver:
         B = np.empty((fem.n_dof, 4))
         B[:, :3] = self.H_f.toarray()
         B[:, 3] = pressure_load(x, self._ur_tris, n)
-        Uf = self.lin.solve(B[free])
+        Uf = self._sensitivities(x, lam[3], B[free])
         U = np.zeros((fem.n_dof, 4))
         U[free] = Uf
         J = np.stack([cavity_volume_gradient(x, t, n) for t in self._arm_tris])
@@ -177,60 +192,141 @@ class EquilibriumSolver:
             lin_error=np.full(4, np.nan) if lin_error is None else lin_error,
         )
 
+    def _factor_current(self, x: np.ndarray, p_u: float) -> bool:
+        at = self._factor_at
+        return at is not None and at[1] == float(p_u) and np.array_equal(at[0], x)
+
+    def _sensitivities(self, x: np.ndarray, p_u: float, Bf: np.ndarray) -> np.ndarray:
+        """K(x)⁻¹ B on the free DOFs: the kept factor when it was made at ``x``, else GMRES on the
+        assembled tangent at ``x`` preconditioned by the kept factor (to ``KRYLOV_RTOL``); a
+        refactorization where GMRES does not get there in ``KRYLOV_MAXITER``."""
+        self.krylov_iterations = 0
+        if self._factor_current(x, p_u):
+            return self.lin.solve(Bf)
+        import scipy.sparse.linalg as spla
+
+        K = free_tangent(self.fem, x, [(self._ur_tris, float(p_u))] if p_u else None)
+        n = K.shape[0]
+        M = spla.LinearOperator((n, n), matvec=lambda v: self.lin.solve(v), dtype=np.float64)
+        X0 = self.lin.solve(Bf)  # the chord's sensitivities: the start
+        out = np.empty_like(Bf)
+        for j in range(Bf.shape[1]):
+            counter = [0]
+
+            def cb(_, c=counter):
+                c[0] += 1
+
+            xj, info = spla.gmres(K, Bf[:, j], x0=X0[:, j], rtol=KRYLOV_RTOL, atol=0.0, restart=KRYLOV_MAXITER,
+                                  maxiter=1, M=M, callback=cb, callback_type="pr_norm")
+            self.krylov_iterations += counter[0]
+            bn = float(np.linalg.norm(Bf[:, j]))
+            if bn > 0 and float(np.linalg.norm(K @ xj - Bf[:, j])) > KRYLOV_ACCEPT * bn:
+                self.factorize(x, p_u)
+                return self.lin.solve(Bf)
+            out[:, j] = xj
+        return out
+
     def rest(self) -> Linearization:
         """The linearization at rest (λ = 0), factoring there."""
         x = self.fem.x_rest.copy()
         self.factorize(x, 0.0)
         return self.linearize(x, np.zeros(4), 0.0, 0, True)
 
-    def solve(self, start: Linearization, lam) -> Linearization:
+    def _chord(self, x: np.ndarray, lam: np.ndarray, r: np.ndarray, rn: float, ref: float,
+               its: int, limit: int):
+        """Chord iterations with the kept factor, Anderson-accelerated (depth ``ANDERSON``): the
+        fixed-point map ``x − K₀⁻¹ r(x)``, mixed over the last steps (a nonlinear GMRES with the
+        kept factor as preconditioner). A mixed step that does not lower ‖r‖ falls back to the
+        plain chord step with backtracking. Returns (x, r, rn, ref, its, rate, ok); ``rate`` is
+        the mean contraction per iteration."""
+        free = self.fem.free_dofs
+        dX: list[np.ndarray] = []
+        dF: list[np.ndarray] = []
+        f_prev = x_prev = None
+        rn0, its0 = rn, its
+        hist = [rn]
+        while its < limit:
+            if self._converged(rn, ref):
+                break
+            f = self.lin.solve(-r)
+            its += 1
+            if f_prev is not None:
+                dX.append(x[free] - x_prev)
+                dF.append(f - f_prev)
+                if len(dX) > ANDERSON:
+                    dX.pop(0)
+                    dF.pop(0)
+            f_prev, x_prev = f, x[free].copy()
+            step = f
+            if dF:
+                Fm = np.stack(dF, axis=1)
+                gamma = np.linalg.lstsq(Fm, f, rcond=1e-10)[0]
+                step = f - (np.stack(dX, axis=1) + Fm) @ gamma
+            accepted = False
+            for trial in (step, f) if dF else (f,):
+                alpha = 1.0
+                for _ in range(8 if trial is f else 1):
+                    xt = x.copy()
+                    xt[free] += alpha * trial
+                    try:
+                        rt, reft = self.residual(xt, lam)
+                    except ElementInversionError:
+                        alpha *= 0.5
+                        continue
+                    rtn = float(np.linalg.norm(rt))
+                    if rtn < rn or self._converged(rtn, reft):
+                        accepted = True
+                        break
+                    alpha *= 0.5
+                if accepted:
+                    break
+                dX.clear()
+                dF.clear()
+                f_prev = x_prev = None
+            if not accepted:
+                return x, r, rn, ref, its, np.inf, False
+            x, r, rn, ref = xt, rt, rtn, reft
+            hist.append(rn)
+            if len(hist) > STALL_WINDOW and not self._converged(rn, ref):
+                rec = (rn / hist[-1 - STALL_WINDOW]) ** (1.0 / STALL_WINDOW)  # recent contraction
+                need = np.log(max(self.tol * ref, self._floor) / rn) / np.log(rec) if rec < 1 else np.inf
+                if rec > self.refactor_rate and need > FACTOR_COST_ITERS:
+                    break  # stalled: a new factor is cheaper than the chord iterations still needed
+        ok = self._converged(rn, ref)
+        n = max(its - its0, 1)
+        rate = (rn / max(rn0, 1e-300)) ** (1.0 / n) if rn0 > 0 else 0.0
+        return x, r, rn, ref, its, rate, ok
+
+    def solve(self, start: Linearization, lam, path: "PathCorrection | None" = None) -> Linearization:
         """Equilibrium at actuations ``lam`` starting from ``start``, and its linearization.
 
-        Raises :class:`SolverError` if even the load-stepping fallback fails.
+        First-order predictor, then Anderson-accelerated chord iterations with the kept factor
+        (no factorization while they converge at a mean rate below ``refactor_rate``); if they
+        do not, refactor at the best state and go on; Newton with load stepping is the last
+        resort. The sensitivities use the exact tangent at the equilibrium: through the kept
+        factor when it is current, else by GMRES on the assembled tangent preconditioned by
+        the kept factor (:meth:`linearize`). Raises :class:`SolverError` if even the
+        load-stepping fallback fails.
         """
         lam = np.array(lam, dtype=np.float64).reshape(4)
-        free = self.fem.free_dofs
         predicted_V = start.predict_volumes(lam)
-        x = start.x + start.U @ (lam - start.lam)
+        if path is not None and path.lin is start:  # second-order predictor along the path
+            x = path.predict_x(lam)
+        else:
+            x = start.x + start.U @ (lam - start.lam)
         refactored = False
-        its = 0
-        ok = False
         try:
             r, ref = self.residual(x, lam)
         except ElementInversionError:
             x = start.x.copy()
             r, ref = self.residual(x, lam)
         rn = float(np.linalg.norm(r))
-        while its < self.max_iter:
-            if self._converged(rn, ref):
-                ok = True
-                break
-            d = self.lin.solve(-r)
-            its += 1
-            alpha, accepted = 1.0, False
-            for _ in range(8):
-                xt = x.copy()
-                xt[free] += alpha * d
-                try:
-                    rt, reft = self.residual(xt, lam)
-                except ElementInversionError:
-                    alpha *= 0.5
-                    continue
-                rtn = float(np.linalg.norm(rt))
-                if rtn < rn or self._converged(rtn, reft):
-                    accepted = True
-                    break
-                alpha *= 0.5
-            if accepted:
-                rate = rtn / rn
-                x, r, rn, ref = xt, rt, rtn, reft
-            else:
-                rate = np.inf
-            if rate > self.refactor_rate and not self._converged(rn, ref):
-                self.factorize(x, lam[3])
-                refactored = True
-        if not ok and self._converged(rn, ref):
-            ok = True
+        x, r, rn, ref, its, rate, ok = self._chord(x, lam, r, rn, ref, 0, CHORD_FACTOR * self.max_iter)
+        if not ok:
+            self.factorize(x, lam[3])
+            refactored = True
+            x, r, rn, ref, its, rate, ok = self._chord(x, lam, r, rn, ref, its, its + self.max_iter)
+        self.last_rate = rate
         if not ok:  # robust fallback: Newton with adaptive load stepping from the start state
             sol = solve_static(
                 self.fem, self.H_f @ lam[:3], [(self._ur_tris, lam[3])], x0=start.x,
@@ -247,3 +343,49 @@ class EquilibriumSolver:
             refactored = True
         return self.linearize(x, lam, rn / max(ref, 1e-300), its, refactored,
                               lin_error=predicted_V - self.arm_volumes(x))
+
+
+_PATH_SCALE = np.array([1.0, 1.0, 1.0, 1e-3])  # N, N, N, kPa: a common metric for λ
+PATH_S_MIN, PATH_S_MAX = -1.0, 2.0  # extrapolation range of the path correction (in units of the last step)
+
+
+@dataclass(frozen=True, eq=False)
+class PathCorrection:
+    """A second-order model about ``lin`` from the previous linearization ``prev``: along the
+    step ``d = lin.lam − prev.lam`` the sensitivities changed by ``ΔW = lin.W − prev.W`` (and
+    ``ΔU_sub``), i.e. ``∂²V/∂λ² · d ≈ ΔW``. With ``s = ⟨d, δ⟩/⟨d, d⟩`` (the position of
+    ``δ = λ − lin.lam`` along the step, clipped to [PATH_S_MIN, PATH_S_MAX]) the model is
+    ``V ≈ V + (W + ½ s ΔW) δ`` — exact for a quadratic map along the path, and equal to the
+    first-order one at ``δ = 0`` (a converged fixed point does not move)."""
+
+    lin: Linearization
+    d: np.ndarray
+    dW: np.ndarray
+    dU: np.ndarray
+    dU_full: np.ndarray
+
+    @classmethod
+    def between(cls, prev: Linearization, lin: Linearization) -> "PathCorrection | None":
+        d = (lin.lam - prev.lam) * _PATH_SCALE
+        if float(d @ d) < 1e-8:  # (1e-4 N)²: no usable step
+            return None
+        return cls(lin, d / float(d @ d), lin.W - prev.W, lin.sub_U - prev.sub_U, lin.U - prev.U)
+
+    def position(self, dlam: np.ndarray) -> float:
+        return float(np.clip(self.d @ (np.asarray(dlam, float) * _PATH_SCALE), PATH_S_MIN, PATH_S_MAX))
+
+    def W(self, s: float) -> np.ndarray:
+        return self.lin.W + 0.5 * s * self.dW
+
+    def predict_volumes(self, lam: np.ndarray) -> np.ndarray:
+        dl = np.asarray(lam, float) - self.lin.lam
+        return self.lin.V + self.W(self.position(dl)) @ dl
+
+    def predict_points(self, lam: np.ndarray) -> np.ndarray:
+        dl = np.asarray(lam, float) - self.lin.lam
+        return self.lin.sub_x + (self.lin.sub_U + 0.5 * self.position(dl) * self.dU) @ dl
+
+    def predict_x(self, lam: np.ndarray) -> np.ndarray:
+        """(3N,) m second-order node positions (the equilibrium solver's predictor)."""
+        dl = np.asarray(lam, float) - self.lin.lam
+        return self.lin.x + (self.lin.U + 0.5 * self.position(dl) * self.dU_full) @ dl
