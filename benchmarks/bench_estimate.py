@@ -7,7 +7,8 @@
    0 … ``--force-N`` along ``--direction`` at the on-centre p_ext (the paper's robot push:
    5 N in ~2 s at 77 Hz); the input cavity volumes between levels are interpolated (cubic).
 2. Ramp at 77 Hz paced in real time, ``async`` mode (background equilibrium thread): force and
-   pose error at the truth levels, then after holding the last level for ``--hold-s``.
+   pose error (max and RMS) at the truth levels, then after holding the last level for
+   ``--hold-s``; refresh count and seconds per refresh (median, max).
 3. The same ramp in ``sync`` mode as fast as possible (deterministic; refreshes in the step).
 4. Sustained rate: ``async`` mode, samples fed back to back (``--samples``), the background
    thread busy refreshing: Hz, p50/p99/max step latency, ratio to the board's 19.2 and 77 Hz.
@@ -82,6 +83,7 @@ def run_ramp(est, levels, rate_Hz, per_level, realtime, hold_s):
     steps, errs = [], []
     t0 = time.perf_counter()
     r0 = est.refreshes
+    t_r0 = len(est.refresh_times)
     k_total = n + int(round(hold_s * rate_Hz))
     for k in range(k_total):
         if realtime:
@@ -98,7 +100,7 @@ def run_ramp(est, levels, rate_Hz, per_level, realtime, hold_s):
         if k < n and k in s_lv:
             errs.append(errors(e, levels[list(s_lv).index(k)]))
     last = errors(e, levels[-1])
-    return np.array(errs), last, np.array(steps), est.refreshes - r0, F
+    return np.array(errs), last, np.array(steps), est.refreshes - r0, np.array(est.refresh_times[t_r0:])
 
 
 def sustained(est, levels, n_samples):
@@ -167,24 +169,31 @@ def main() -> None:
     res: dict = {"nodes": len(model.nodes), "tets": len(model.tets), "cpus": os.cpu_count(),
                  "contact_radius_mm": a.contact_radius_mm, "ramp": f"{a.force_N} N along {d.round(3).tolist()} in {a.ramp_levels * per_level / rate:.2f} s at 77 Hz"}
 
-    def report(name, errs, last, steps, refreshes):
+    def report(name, errs, last, steps, refreshes, rtimes):
         r = {"force_err_N_max": float(errs[:, 0].max()), "pos_err_mm_max": float(errs[:, 1].max()),
              "ang_err_deg_max": float(errs[:, 2].max()),
+             "force_err_N_rms": float(np.sqrt(np.mean(errs[:, 0] ** 2))),
+             "pos_err_mm_rms": float(np.sqrt(np.mean(errs[:, 1] ** 2))),
+             "ang_err_deg_rms": float(np.sqrt(np.mean(errs[:, 2] ** 2))),
+             "refresh_s_median": float(np.median(rtimes)) if len(rtimes) else float("nan"),
+             "refresh_s_max": float(np.max(rtimes)) if len(rtimes) else float("nan"),
              "after_hold": {"force_err_N": last[0], "pos_err_mm": last[1], "ang_err_deg": last[2]},
              "step_ms_p50": float(np.percentile(steps, 50) * 1e3), "step_ms_p99": float(np.percentile(steps, 99) * 1e3),
              "step_ms_max": float(steps.max() * 1e3), "refreshes": int(refreshes)}
         print(f"{name}: during ramp max |ΔF| {r['force_err_N_max']:.3f} N, pos {r['pos_err_mm_max']:.3f} mm, "
-              f"ang {r['ang_err_deg_max']:.3f} deg; after {a.hold_s:g} s hold |ΔF| {last[0]:.2e} N, "
+              f"ang {r['ang_err_deg_max']:.3f} deg (RMS {r['force_err_N_rms']:.3f} N, {r['pos_err_mm_rms']:.3f} mm, "
+              f"{r['ang_err_deg_rms']:.3f} deg); after {a.hold_s:g} s hold |ΔF| {last[0]:.2e} N, "
               f"pos {last[1]:.2e} mm, ang {last[2]:.2e} deg; step p50 {r['step_ms_p50']:.2f} ms, "
-              f"p99 {r['step_ms_p99']:.2f} ms, max {r['step_ms_max']:.1f} ms; {refreshes} refreshes")
+              f"p99 {r['step_ms_p99']:.2f} ms, max {r['step_ms_max']:.1f} ms; {refreshes} refreshes "
+              f"(median {r['refresh_s_median']:.2f} s, max {r['refresh_s_max']:.2f} s)")
         res[name] = r
 
     with Estimator(model, EstimatorConfig(mode="async", **base)) as ea:
         out = run_ramp(ea, levels, rate, per_level, True, a.hold_s)
-        report("async_77Hz_realtime", *out[:4])
+        report("async_77Hz_realtime", *out)
     es = Estimator(model, EstimatorConfig(mode="sync", **base))
     out = run_ramp(es, levels, rate, per_level, False, a.hold_s)
-    report("sync_ramp", *out[:4])
+    report("sync_ramp", *out)
     with Estimator(model, EstimatorConfig(mode="async", **base)) as ea:
         hz, steps = sustained(ea, levels, a.samples)
         r = {"Hz": hz, "step_ms_p50": float(np.percentile(steps, 50) * 1e3),
