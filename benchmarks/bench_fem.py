@@ -2,8 +2,9 @@
 
 Run: ``.venv/bin/python benchmarks/bench_fem.py [--repeat N] [--no-fine] [--no-splu-fine]``
 
-Per mesh: build_fem (pattern + scatter indices), internal force, tangent assembly (K_ff,
-consistent), factorization of K_ff by each available sparse direct solver (first = with symbolic
+Per mesh: build_fem (pattern + scatter indices), internal force and tangent assembly (K_ff,
+consistent) with the numba kernels and with the numpy reference in the same run (and their ratio),
+strain energy, factorization of K_ff by each available sparse direct solver (first = with symbolic
 analysis, re-factorization of the same pattern, solve with 4 right-hand sides), one full Newton
 iteration (tangent + factorization + solve + residual) with the chosen default solver, and the
 full static solve of a 5 N push along +y at p_ext on-centre (5 mm patch). Times are medians of
@@ -32,6 +33,7 @@ def _median(fn, repeat):
 
 def bench(name, size_mm, repeat, solvers):
     from softphantom.design import BIPDesign, build_model
+    from softphantom.fem import corotational as C
     from softphantom.fem import (
         SparseSolver,
         fem_from_phantom,
@@ -39,6 +41,7 @@ def bench(name, size_mm, repeat, solvers):
         free_tangent,
         internal_force,
         solve_static,
+        strain_energy,
     )
 
     t = time.perf_counter()
@@ -48,9 +51,33 @@ def bench(name, size_mm, repeat, solvers):
     x = fem.x_rest
     rows = [("mesh (gmsh, not FEM)", t_mesh)]
     rows.append(("build_fem", t_build))
-    rows.append(("internal force", _median(lambda: internal_force(fem, x), repeat)[0]))
-    t_K, K = _median(lambda: free_tangent(fem, x), repeat)
-    rows.append(("tangent K_ff assembly", t_K))
+    # a deformed, rotated state for the kernels (the rest state would make the polar iteration trivial)
+    c, s_ = np.cos(0.5), np.sin(0.5)
+    Rz = np.array([[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]])
+    noise = 2e-5 * np.random.default_rng(1).standard_normal(fem.nodes.shape)
+    xd = ((fem.nodes + noise) @ Rz.T).reshape(-1)
+    use = C.USE_NUMBA
+    t = time.perf_counter()
+    internal_force(fem, xd), free_tangent(fem, xd), strain_energy(fem, xd)
+    rows.append(("first calls (numba load from cache or compile)", time.perf_counter() - t))
+    for label, fast, ref in [
+        ("internal force", lambda: internal_force(fem, xd), lambda: C.internal_force_numpy(fem, xd)),
+        ("tangent K_ff assembly", lambda: free_tangent(fem, xd), None),
+        ("strain energy", lambda: strain_energy(fem, xd), lambda: C.strain_energy_numpy(fem, xd)),
+    ]:
+        t_fast = _median(fast, repeat)[0]
+        if ref is None:  # free_tangent: flip the switch for the reference
+            C.USE_NUMBA = False
+            try:
+                t_ref = _median(fast, repeat)[0]
+            finally:
+                C.USE_NUMBA = use
+        else:
+            t_ref = _median(ref, repeat)[0]
+        name = "numba" if use else "numpy (numba unavailable)"
+        rows.append((f"{label}: {name}", t_fast))
+        rows.append((f"{label}: numpy reference (x{t_ref / t_fast:.0f})", t_ref))
+    K = free_tangent(fem, x)
     B = np.random.default_rng(0).standard_normal((fem.n_free, 4))
     for method in solvers:
         s = SparseSolver(method)

@@ -6,6 +6,11 @@ Piola–Kirchhoff P = R σ, nodal forces f_a = V P ∇N_a. This equals the class
 and is the gradient of the energy V(μ‖S − I‖² + λ/2 tr²(S − I)) ("corotated linear" elasticity),
 so its consistent tangent is symmetric. :func:`tangent_stiffness` gives that consistent tangent
 (with the rotation-derivative term) by default, or the approximate R K0 Rᵀ with ``consistent=False``.
+
+The hot paths (:func:`internal_force`, :func:`strain_energy`, :func:`tangent_data` behind
+:func:`tangent_stiffness` and ``free_tangent``) run the numba kernels of
+:mod:`softphantom.fem.kernels` when numba is importable (``USE_NUMBA``); the batched numpy code here
+is the reference they are tested against (``*_numpy`` functions) and the fallback without numba.
 """
 
 from __future__ import annotations
@@ -14,9 +19,13 @@ import numpy as np
 import scipy.sparse as sp
 
 from softphantom.errors import SolverError
+from softphantom.fem import kernels
 from softphantom.fem.model import FemModel
 
 _I3 = np.eye(3)
+
+#: Use the numba kernels (True where numba imports). Tests flip it to run the numpy reference.
+USE_NUMBA = kernels.HAVE_NUMBA
 
 
 class ElementInversionError(SolverError):
@@ -77,6 +86,22 @@ def element_forces(fem: FemModel, x: np.ndarray) -> np.ndarray:
     return np.einsum("m,mij,maj->mai", fem.volumes, P, fem.grads)
 
 
+def _flat(x: np.ndarray) -> np.ndarray:
+    """(3N,) C-contiguous float64, read-only view: one array type for the kernels, so numba compiles
+    (or loads from its cache) one specialization, never a second one mid-run for a writable x."""
+    x = np.ascontiguousarray(x, dtype=np.float64).reshape(-1).view()
+    x.flags.writeable = False
+    return x
+
+
+def internal_force_numpy(fem: FemModel, x: np.ndarray) -> np.ndarray:
+    """The numpy reference of :func:`internal_force` (batched SVD, bincount assembly)."""
+    x = np.asarray(x, dtype=np.float64)
+    _check_finite(x)
+    fe = element_forces(fem, x)
+    return np.bincount(fem.elem_dofs.reshape(-1), weights=fe.reshape(-1), minlength=fem.n_dof)
+
+
 def internal_force(fem: FemModel, x: np.ndarray) -> np.ndarray:
     """(3N,) co-rotational internal force at positions ``x`` ((3N,) or (N,3)); zero at rest and
     under any rigid motion.
@@ -91,14 +116,33 @@ def internal_force(fem: FemModel, x: np.ndarray) -> np.ndarray:
     >>> float(np.abs(internal_force(fem, X @ R.T + 5.0)).max()) < 1e-10
     True
     """
-    x = np.asarray(x, dtype=np.float64)
+    if not USE_NUMBA:
+        return internal_force_numpy(fem, x)
+    x = _flat(x)
     _check_finite(x)
-    fe = element_forces(fem, x)
-    return np.bincount(fem.elem_dofs.reshape(-1), weights=fe.reshape(-1), minlength=fem.n_dof)
+    out = np.empty(fem.n_dof)
+    bad = kernels.internal_force_kernel(
+        x, fem.tets, fem.grads, fem.volumes, fem.mu, fem.lam, fem.elem_dofs, out
+    )
+    if bad:
+        raise ElementInversionError(int(bad), fem.tets.shape[0])
+    return out
 
 
 def strain_energy(fem: FemModel, x: np.ndarray) -> float:
     """J, Σ V (μ‖S − I‖² + λ/2 tr²(S − I)): the energy whose gradient is :func:`internal_force`."""
+    if not USE_NUMBA:
+        return strain_energy_numpy(fem, x)
+    x = _flat(x)
+    out = np.zeros(1)
+    bad = kernels.strain_energy_kernel(x, fem.tets, fem.grads, fem.volumes, fem.mu, fem.lam, out)
+    if bad:
+        raise ElementInversionError(int(bad), fem.tets.shape[0])
+    return float(out[0])
+
+
+def strain_energy_numpy(fem: FemModel, x: np.ndarray) -> float:
+    """The numpy reference of :func:`strain_energy`."""
     _, S = polar_rotation(deformation_gradient(fem, x))
     E = S - _I3
     tr = np.trace(E, axis1=1, axis2=2)
@@ -168,6 +212,37 @@ def assemble_pattern(fem: FemModel, Ke: np.ndarray) -> np.ndarray:
     )
 
 
+def tangent_data_numpy(fem: FemModel, x: np.ndarray, consistent: bool = True) -> np.ndarray:
+    """The numpy reference of :func:`tangent_data`: (M,12,12) element blocks, then bincount."""
+    return assemble_pattern(fem, element_stiffness(fem, x, consistent))
+
+
+def tangent_data(fem: FemModel, x: np.ndarray, consistent: bool = True) -> np.ndarray:
+    """Data array of the full tangent in ``fem``'s CSR pattern (``pattern_indptr``/``_indices``).
+
+    Raises :class:`ElementInversionError` if any det F <= 0 (NaN positions included)."""
+    if not USE_NUMBA:
+        return tangent_data_numpy(fem, x, consistent)
+    data = np.empty(fem.pattern_keys.size)
+    bad = kernels.tangent_kernel(
+        _flat(x), fem.tets, fem.grads, fem.volumes, fem.mu, fem.lam, fem.scatter,
+        bool(consistent), data,
+    )
+    if bad:
+        raise ElementInversionError(int(bad), fem.tets.shape[0])
+    return data
+
+
+def tangent_stiffness_numpy(fem: FemModel, x: np.ndarray, consistent: bool = True) -> sp.csr_matrix:
+    """The numpy reference of :func:`tangent_stiffness`."""
+    x = np.asarray(x, dtype=np.float64)
+    _check_finite(x)
+    data = tangent_data_numpy(fem, x, consistent)
+    return sp.csr_matrix(
+        (data, fem.pattern_indices, fem.pattern_indptr), shape=(fem.n_dof, fem.n_dof)
+    )
+
+
 def tangent_stiffness(fem: FemModel, x: np.ndarray, consistent: bool = True) -> sp.csr_matrix:
     """(3N,3N) tangent d f_int / d x at ``x`` as CSR (all DOFs, fixed ones included).
 
@@ -185,7 +260,7 @@ def tangent_stiffness(fem: FemModel, x: np.ndarray, consistent: bool = True) -> 
     """
     x = np.asarray(x, dtype=np.float64)
     _check_finite(x)
-    data = assemble_pattern(fem, element_stiffness(fem, x, consistent))
+    data = tangent_data(fem, x, consistent)
     return sp.csr_matrix(
         (data, fem.pattern_indices, fem.pattern_indptr), shape=(fem.n_dof, fem.n_dof)
     )

@@ -9,6 +9,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from softphantom.errors import MeshError, UserError
+from softphantom.fem import kernels
 from softphantom.fem.material import ECOFLEX_00_50, Material
 
 # Local DOF order of a tet: node-major (node a, component i) -> 3a + i.
@@ -82,8 +83,50 @@ def _boundary_faces(tets: np.ndarray) -> np.ndarray:
         [tets[:, [1, 2, 3]], tets[:, [0, 3, 2]], tets[:, [0, 1, 3]], tets[:, [0, 2, 1]]]
     )
     key = np.sort(faces, axis=1)
-    _, inv, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    n = int(tets.max()) + 1
+    if n < 2**20:  # one int64 per face: a 1-D unique, much faster than np.unique(axis=0)
+        key = (key[:, 0] * n + key[:, 1]) * n + key[:, 2]
+        _, inv, counts = np.unique(key, return_inverse=True, return_counts=True)
+    else:
+        _, inv, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
     return faces[counts[inv.reshape(-1)] == 1]
+
+
+def _pattern(tets: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """CSR pattern of the (3n,3n) stiffness of ``tets`` and the scatter indices (M,144).
+
+    Built from the node adjacency (16 node pairs per tet instead of 144 DOF pairs: the pattern is
+    made of full 3×3 blocks), with the same result as ``np.unique`` of all the DOF keys
+    (row-major, sorted columns). Returns (indptr, row, col, scatter) with row/col per entry."""
+    m = tets.shape[0]
+    pair = (tets[:, :, None] * n + tets[:, None, :]).reshape(-1)
+    upair, pinv = np.unique(pair, return_inverse=True)
+    nrow, ncol = np.divmod(upair, n)
+    nptr = np.zeros(n + 1, dtype=np.int64)
+    np.cumsum(np.bincount(nrow, minlength=n), out=nptr[1:])
+    deg = np.diff(nptr)
+    rank = np.arange(upair.size, dtype=np.int64) - nptr[nrow]
+    # entry (node row i, component p; node column j = rank r in the row, component q) lies at
+    # 9·nptr[i] + 3p·deg[i] + 3r + q
+    base = 9 * nptr[nrow] + 3 * rank  # (P,)
+    p3 = np.arange(3)
+    pos = base[:, None, None] + 3 * p3[None, :, None] * deg[nrow][:, None, None] + p3[None, None, :]
+    nnz = 9 * upair.size
+    prow = np.empty(nnz, dtype=np.int64)
+    pcol = np.empty(nnz, dtype=np.int64)
+    prow[pos] = (3 * nrow[:, None, None] + p3[None, :, None]) + 0 * p3[None, None, :]
+    pcol[pos] = (3 * ncol[:, None, None] + p3[None, None, :]) + 0 * p3[None, :, None]
+    indptr = (9 * nptr[:-1, None] + 3 * p3[None, :] * deg[:, None]).reshape(-1)
+    indptr = np.append(indptr, nnz)
+    # element entry (a,i),(b,j) -> 12·(3a+i) + 3b+j
+    s = pinv.reshape(m, 4, 4)
+    d_row = deg[tets]  # (M,4), degree of the row node a
+    scatter = (
+        base[s][:, :, None, :, None]
+        + 3 * p3[None, None, :, None, None] * d_row[:, :, None, None, None]
+        + p3[None, None, None, None, :]
+    )
+    return indptr, prow, pcol, scatter.reshape(m, 144)
 
 
 def _per_tet_materials(materials, n_tets: int) -> list[Material] | Material:
@@ -157,17 +200,14 @@ def build_fem(
     dof_map[free] = np.arange(free.size)
 
     edofs = (3 * tets[:, :, None] + np.arange(3)).reshape(m, 12)
-    rows = np.repeat(edofs, 12, axis=1)
-    cols = np.tile(edofs, (1, 12))
-    keys = (rows * (3 * n) + cols).reshape(-1)
-    ukeys, inv = np.unique(keys, return_inverse=True)
-    prow, pcol = np.divmod(ukeys, 3 * n)
-    indptr = np.concatenate([[0], np.cumsum(np.bincount(prow, minlength=3 * n))])
+    indptr, prow, pcol, scatter = _pattern(tets, n)
+    ukeys = prow * (3 * n) + pcol
     ff = is_free[prow] & is_free[pcol]
     take = np.flatnonzero(ff)
     frow = dof_map[prow[take]]
     ff_indptr = np.concatenate([[0], np.cumsum(np.bincount(frow, minlength=free.size))])
 
+    kernels.warm_up()  # numba: compile or load the kernels now, once per process
     return FemModel(
         nodes=_ro(nodes),
         tets=_ro(tets),
@@ -183,7 +223,7 @@ def build_fem(
         pattern_indptr=_ro(indptr.astype(np.int64)),
         pattern_indices=_ro(pcol.astype(np.int64)),
         pattern_keys=_ro(ukeys),
-        scatter=_ro(inv.reshape(m, 144).astype(np.int64)),
+        scatter=_ro(scatter),
         free_take=_ro(take),
         ff_indptr=_ro(ff_indptr.astype(np.int64)),
         ff_indices=_ro(dof_map[pcol[take]]),

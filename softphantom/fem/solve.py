@@ -19,10 +19,9 @@ from softphantom.fem.actuators import (
 )
 from softphantom.fem.corotational import (
     ElementInversionError,
-    assemble_pattern,
-    element_stiffness,
     internal_force,
     strain_energy,
+    tangent_data,
 )
 from softphantom.fem.model import FemModel
 
@@ -181,7 +180,7 @@ def free_tangent(
     """(n_free, n_free) Jacobian of the free-DOF residual f_int − Σ p ∂Φ/∂x at ``x``: the Newton
     matrix. Pressure terms are scattered into the mesh's own pattern, so the pattern (and a
     :class:`SparseSolver`'s symbolic analysis) stays the same from call to call."""
-    data = assemble_pattern(fem, element_stiffness(fem, x, consistent))
+    data = tangent_data(fem, x, consistent)
     n = fem.n_dof
     extra = []
     for tri, p in _pressure_list(fem, pressures):
