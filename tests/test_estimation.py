@@ -226,7 +226,7 @@ def _ramp_async(coarse_model, path_correction: bool):
     # one refresh per truth level, without the thread's timing (deterministic under load)
     per = 8
     cfg = EstimatorConfig(mode="sync", contact_radius_m=5e-3, path_correction=path_correction, refresh_every=per,
-                          relinearize_N=1e3, relinearize_Pa=1e9)
+                          relinearize_N=1e3, relinearize_Pa=1e9, trust_start_scale=2.0, trust_max_scale=8.0)
     with Estimator(coarse_model, cfg) as est:
         forces = [np.array([0.0, 5.0 * i / 4, 0.0]) for i in range(5)]
         levels = _ramp_truth(coarse_model, est, forces)
@@ -254,7 +254,8 @@ def test_async_follows_a_ramp(coarse_model):
     """The paper's push, 5 N along +y, in 4 truth levels on the coarse mesh, 8 samples per level
     (volumes interpolated linearly), one refresh per 8 samples (the schedule of a background
     worker refreshing at 1/8 of the sample rate, made deterministic in sync mode with
-    ``refresh_every=8``; the trust region lets each refresh move ≤ 1 N, so the linearization falls
+    ``refresh_every=8``; the adaptive trust region (start 1 N, up to 4 N) lets the first refresh
+    move ≤ 1 N, so the linearization falls
     up to ~2 N behind at the top). Bound at every truth level: 1 N, 2 mm, 5° (measured 0.68 N,
     1.42 mm, 3.5° at 5 N; plain first order 1.34 N, 2.5 mm, 6.7°): the path correction must
     beat plain first order on every level from 1 N up. After holding the last sample:
