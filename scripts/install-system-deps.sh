@@ -2,13 +2,14 @@
 # Installs the Debian packages softphantom needs; idempotent (installs only what is missing).
 #   gmsh wheel (headless): libglu1-mesa libgl1 libxcursor1 libxft2 libxinerama1 libgomp1
 #   firmware build:        gcc-avr avr-libc binutils-avr
-#   scikit-sparse (CHOLMOD, FEM solver): libsuitesparse-dev
+#   scikit-sparse (CHOLMOD, FEM solver): libsuitesparse-dev, and libopenblas0-pthread as the
+#     system BLAS it factorizes with (3-7x faster than the reference BLAS it would otherwise get)
 #   live view screenshot test (headless): chromium fonts-dejavu-core
 set -euo pipefail
 PKGS=(libglu1-mesa libgl1 libxcursor1 libxft2 libxinerama1 libgomp1
       gcc-avr avr-libc binutils-avr
       chromium fonts-dejavu-core
-      libsuitesparse-dev)
+      libsuitesparse-dev libopenblas0-pthread)
 missing=()
 for p in "${PKGS[@]}"; do
   dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")
