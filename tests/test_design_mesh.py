@@ -114,6 +114,9 @@ def test_round_trip_files(default_model, tmp_path):
     save_model(default_model, tmp_path)
     back = load_model(tmp_path)
     assert back == default_model
+    save_model(back, tmp_path / "again")  # written again from what was read: the same bytes
+    for f in ("model.msh", "model.vtu", "model.npz", "design.toml"):
+        assert (tmp_path / "again" / f).read_bytes() == (tmp_path / f).read_bytes(), f
     vtu = meshio.read(tmp_path / "model.vtu")
     np.testing.assert_array_equal(vtu.points, default_model.nodes)
     msh = meshio.read(tmp_path / "model.msh")

@@ -64,7 +64,9 @@ class PhantomModel:
         object.__setattr__(self, "fixed_faces", _frozen(self.fixed_faces, np.int64))
         object.__setattr__(self, "fixed_nodes", _frozen(self.fixed_nodes, np.int64))
         object.__setattr__(self, "outer_faces", _frozen(self.outer_faces, np.int64))
-        object.__setattr__(self, "regions", dict(self.regions))
+        # in id order, whatever order they came in (a JSON round trip sorts them by name): the
+        # files written from a model must not depend on how it was made
+        object.__setattr__(self, "regions", dict(sorted(self.regions.items(), key=lambda kv: kv[1])))
         for name in ("cavities",):
             object.__setattr__(self, name, {k: _frozen(v, np.int64) for k, v in getattr(self, name).items()})
         for name in ("markers", "targets", "p_ext"):
