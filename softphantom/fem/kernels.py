@@ -35,6 +35,16 @@ except ImportError:  # pragma: no cover - exercised only where numba is missing
 
 
 @njit(cache=True, fastmath=False, nogil=True)
+def _count_inverted(x, tets, grads, F):
+    """Elements with det F <= 0 (or NaN); checked before any output is touched."""
+    bad = 0
+    for e in range(tets.shape[0]):
+        if not _defgrad(x, tets, grads, e, F) > 0.0:
+            bad += 1
+    return bad
+
+
+@njit(cache=True, fastmath=False, nogil=True)
 def _defgrad(x, tets, grads, e, F):
     """F = Σ_a x_a ⊗ ∇N_a of element e into F (3,3); returns det F."""
     for i in range(3):
@@ -133,11 +143,7 @@ def internal_force_kernel(x, tets, grads, volumes, mu, lam, edofs, out):
     Y = np.empty((3, 3))
     sig = np.empty((3, 3))
     P = np.empty((3, 3))
-    bad = 0
-    for e in range(m):
-        det = _defgrad(x, tets, grads, e, F)
-        if not det > 0.0:
-            bad += 1
+    bad = _count_inverted(x, tets, grads, F)
     if bad:
         return bad
     for k in range(out.shape[0]):
@@ -167,11 +173,7 @@ def strain_energy_kernel(x, tets, grads, volumes, mu, lam, out):
     S = np.empty((3, 3))
     X = np.empty((3, 3))
     Y = np.empty((3, 3))
-    bad = 0
-    for e in range(m):
-        det = _defgrad(x, tets, grads, e, F)
-        if not det > 0.0:
-            bad += 1
+    bad = _count_inverted(x, tets, grads, F)
     if bad:
         return bad
     total = 0.0
@@ -287,11 +289,7 @@ def tangent_kernel(x, tets, grads, volumes, mu, lam, scatter, consistent, data):
     Ginv = np.empty((3, 3))
     D = np.empty((9, 9))
     T = np.empty((9, 12))
-    bad = 0
-    for e in range(m):
-        det = _defgrad(x, tets, grads, e, F)
-        if not det > 0.0:
-            bad += 1
+    bad = _count_inverted(x, tets, grads, F)
     if bad:
         return bad
     for k in range(data.shape[0]):
