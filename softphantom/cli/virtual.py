@@ -38,6 +38,19 @@ def _config(seed: int, osr: int, mesh_scale: float):
     return VirtualConfig.seeded(seed=seed, osr=osr, mesh_scale=mesh_scale)
 
 
+def _simulate(scenario: str, model_dir: Path, seed: int, osr: int, mesh_scale: float):
+    """Load the scenario and the model, solve the truth with a progress bar: the VirtualRun."""
+    from softphantom.design import load_model
+    from softphantom.virtual import load_scenario, simulate
+
+    sc = load_scenario(scenario)
+    cfg = _config(seed, osr, mesh_scale)
+    model = load_model(model_dir)
+    bar, cb = truth_progress(console, f"truth of {sc.name}")
+    with bar:
+        return simulate(sc, model, cfg, cb)
+
+
 def _print_summary(summary: dict) -> None:
     tr = summary["truth"]
     console.print(f"truth: {tr['truth_mesh']['nodes']} nodes (mesh {tr['truth_mesh']['mesh_size_mm']:.2f} mm), "
@@ -66,15 +79,9 @@ def run_cmd(
     truth_mesh_scale: float = typer.Option(0.75, "--truth-mesh-scale", help="Truth mesh size relative to the model's (< 1: finer)."),
 ) -> None:
     """Simulate a scenario: write the board's frames, a recording, the tracker's Motive CSV, the truth."""
-    from softphantom.design import load_model
-    from softphantom.virtual import load_scenario, run_summary, simulate, write_run
+    from softphantom.virtual import run_summary, write_run
 
-    sc = load_scenario(scenario)
-    cfg = _config(seed, osr, truth_mesh_scale)
-    model = load_model(model_dir)
-    bar, cb = truth_progress(console, f"truth of {sc.name}")
-    with bar:
-        run = simulate(sc, model, cfg, cb)
+    run = _simulate(scenario, model_dir, seed, osr, truth_mesh_scale)
     paths = write_run(run, out)
     _print_summary(run_summary(run))
     for k, p in paths.items():
@@ -94,18 +101,12 @@ def serve_cmd(
     """Serve the scenario's frames on a pty as the board would: prints the port path to use."""
     import sys
 
-    from softphantom.design import load_model
-    from softphantom.virtual import load_scenario, simulate
     from softphantom.virtual.serve import open_pty, serve_board
 
     if not speed > 0:
         raise UserError(f"--speed: must be > 0, got {speed:g}")
-    sc = load_scenario(scenario)
-    cfg = _config(seed, osr, truth_mesh_scale)
-    model = load_model(model_dir)
-    bar, cb = truth_progress(console, f"truth of {sc.name}")
-    with bar:
-        run = simulate(sc, model, cfg, cb)
+    run = _simulate(scenario, model_dir, seed, osr, truth_mesh_scale)
+    sc = run.scenario
     master, slave, path = open_pty()
     console.print(f"virtual board on [bold]{path}[/] ({sc.name}, {run.board().rate_Hz:.1f} Hz); e.g. "
                   f"softphantom acquire --port {path} --out rec.csv — Ctrl-C to stop", highlight=False, soft_wrap=True)
