@@ -113,16 +113,20 @@ def _num(where: str, v, positive: bool = False, nonneg: bool = False) -> float:
     return v
 
 
+def _check_keys(where: str, table: dict, allowed: set, required: tuple[str, ...]) -> None:
+    unknown = sorted(set(table) - allowed)
+    if unknown:
+        raise ScenarioError(f"{where}: unknown key(s) {', '.join(unknown)} (allowed: {', '.join(sorted(allowed))})")
+    for k in required:
+        if k not in table:
+            raise ScenarioError(f"{where}: missing key {k!r}")
+
+
 def scenario_from_dict(d: dict, source: str = "<dict>") -> Scenario:
     """Validate a parsed scenario; raises :class:`ScenarioError` (one line, names file and key)."""
     if not isinstance(d, dict):
         raise ScenarioError(f"{source}: expected a table at the top level")
-    unknown = sorted(set(d) - _TOP)
-    if unknown:
-        raise ScenarioError(f"{source}: unknown key(s) {', '.join(unknown)} (allowed: {', '.join(sorted(_TOP))})")
-    for k in ("name", "duration_s"):
-        if k not in d:
-            raise ScenarioError(f"{source}: missing key {k!r}")
+    _check_keys(source, d, _TOP, ("name", "duration_s"))
     name = d["name"]
     if not isinstance(name, str) or not name:
         raise ScenarioError(f"{source}: name: expected a non-empty string")
@@ -138,12 +142,7 @@ def scenario_from_dict(d: dict, source: str = "<dict>") -> Scenario:
             where = f"{source}: {kind}[{i}]"
             if not isinstance(e, dict):
                 raise ScenarioError(f"{where}: expected a table")
-            bad = sorted(set(e) - allowed)
-            if bad:
-                raise ScenarioError(f"{where}: unknown key(s) {', '.join(bad)} (allowed: {', '.join(sorted(allowed))})")
-            for k in ("start_s", "rise_s"):
-                if k not in e:
-                    raise ScenarioError(f"{where}: missing key {k!r}")
+            _check_keys(where, e, allowed, ("start_s", "rise_s"))
             times = dict(
                 start_s=_num(f"{where}.start_s", e["start_s"], nonneg=True),
                 rise_s=_num(f"{where}.rise_s", e["rise_s"], positive=True),
