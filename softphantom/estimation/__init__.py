@@ -14,6 +14,7 @@ from softphantom.estimation.stream import (
     estimate_columns,
     estimate_row,
     estimate_stream,
+    iter_samples,
     write_estimates,
 )
 from softphantom.estimation.types import ARM_NAMES, Estimate
@@ -32,6 +33,7 @@ __all__ = [
     "estimate_columns",
     "estimate_row",
     "estimate_stream",
+    "iter_samples",
     "solve_volume_qp",
     "write_estimates",
 ]

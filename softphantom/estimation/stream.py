@@ -154,6 +154,32 @@ class _LatestSlot:
         self._thread.join(timeout=2.0)
 
 
+def iter_samples(source, live: bool, stop: threading.Event | None = None):
+    """(measurement, skipped) from a sensor source. ``live``: a reader thread keeps only the newest
+    sample, so acquisition never waits for the consumer, and ``skipped`` counts what it overtook;
+    otherwise every sample, ``skipped`` 0. Ends with the source or when ``stop`` is set; a reader
+    error is re-raised. The caller closes the source."""
+    if not live:
+        for m in source:
+            yield m, 0
+            if stop is not None and stop.is_set():
+                return
+        return
+    slot = _LatestSlot(source)
+    try:
+        while not (stop is not None and stop.is_set()):
+            m, skipped = slot.take()
+            if m is None:
+                if slot.ended:
+                    break
+                continue
+            yield m, skipped
+    finally:
+        slot.stop()
+    if slot.error is not None:
+        raise slot.error
+
+
 def _is_live(source) -> bool:
     from softphantom.sensing.sources import SerialSource
 
@@ -188,31 +214,13 @@ def estimate_stream(source, estimator, out_path, progress: Callable[[Estimate, i
             progress(e, n)
 
     with EstimateWriter(out_path, targets, meta) as writer:
-        if live:
-            slot = _LatestSlot(source)
-            try:
-                while not (stop is not None and stop.is_set()):
-                    m, skipped = slot.take()
-                    if m is None:
-                        if slot.ended:
-                            break
-                        continue
-                    handle(m, skipped)
-                    if max_samples is not None and n >= max_samples:
-                        break
-            finally:
-                slot.stop()
-                source.close()
-            if slot.error is not None:
-                raise slot.error
-        else:
-            try:
-                for m in source:
-                    handle(m, 0)
-                    if (max_samples is not None and n >= max_samples) or (stop is not None and stop.is_set()):
-                        break
-            finally:
-                source.close()
+        try:
+            for m, skipped in iter_samples(source, live, stop):
+                handle(m, skipped)
+                if max_samples is not None and n >= max_samples:
+                    break
+        finally:
+            source.close()
     wall = time.perf_counter() - t0
     st = np.asarray(steps) * 1e3 if steps else np.full(1, np.nan)
     return {

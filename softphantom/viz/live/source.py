@@ -324,25 +324,14 @@ class EstimatorSource:
         self._last_m = None
 
     def _samples(self) -> Iterator[tuple[Any, int]]:
-        if self.live:
-            from softphantom.estimation.stream import _LatestSlot
+        from softphantom.estimation.stream import iter_samples
 
-            slot = _LatestSlot(self._sensor)
-            try:
-                while True:
-                    m, skipped = slot.take()
-                    if m is None:
-                        if slot.ended:
-                            break
-                        continue
-                    yield m, skipped
-            finally:
-                slot.stop()
-            if slot.error is not None:
-                raise slot.error
+        samples = iter_samples(self._sensor, self.live)
+        if self.live:
+            yield from samples
             return
         t_first, w0 = None, time.perf_counter()
-        for m in self._sensor:
+        for m, _ in samples:
             if self.speed > 0:
                 t_first = m.t if t_first is None else t_first
                 wait = (m.t - t_first) / self.speed - (time.perf_counter() - w0)
