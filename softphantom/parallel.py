@@ -1,0 +1,132 @@
+"""One Dask set-up for the work that outgrows one process: offline estimator builds, calibration,
+design sweeps.
+
+A local cluster (processes, one thread each, all cores) by default; an existing scheduler by its
+address (``--scheduler tcp://host:8786``). Tasks are plain functions of picklable arguments; the
+result of each task comes back with its error, so one failed item never stops a batch.
+
+>>> from softphantom.parallel import dask_client, map_tasks
+>>> with dask_client(processes=False, n_workers=1) as client:
+...     out = map_tasks(client, pow, [(2, 3), (3, 2), (0, -1)], label="pow", progress=False)
+>>> [o.value for o in out[:2]], out[2].ok, out[2].error
+([8, 9], False, 'ZeroDivisionError: 0.0 cannot be raised to a negative power')
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass
+from typing import Any
+
+from softphantom.errors import UserError
+
+#: Seconds to wait for an existing scheduler before refusing it.
+CONNECT_TIMEOUT_S = 10.0
+
+
+@dataclass(frozen=True)
+class TaskResult:
+    """One task's outcome: ``value`` when ``ok``, else ``error`` (one line: type and message)."""
+
+    index: int
+    ok: bool
+    value: Any = None
+    error: str = ""
+
+
+@contextmanager
+def dask_client(
+    scheduler: str | None = None,
+    n_workers: int | None = None,
+    processes: bool = True,
+) -> Iterator[Any]:
+    """A ``distributed.Client``: on ``scheduler`` (an address) if given, else on a new local cluster.
+
+    The local cluster has ``n_workers`` (default: the machine's cores) single-threaded worker
+    processes, so numba/BLAS in each worker do not fight for the same cores; it is closed on exit.
+    An unreachable scheduler raises :class:`UserError` naming the address.
+    """
+    try:
+        from distributed import Client, LocalCluster
+    except ImportError as exc:  # pragma: no cover - a core dependency
+        raise UserError("dask[distributed] is not installed: pip install 'dask[distributed]'") from exc
+    if scheduler is not None:
+        if not scheduler.strip():
+            raise UserError("--scheduler: empty address (give tcp://HOST:PORT or leave it out)")
+        try:
+            client = Client(scheduler, timeout=CONNECT_TIMEOUT_S)
+        except (OSError, TimeoutError) as exc:
+            raise UserError(f"--scheduler {scheduler}: unreachable ({type(exc).__name__}: {exc})") from None
+        try:
+            yield client
+        finally:
+            client.close()
+        return
+    n = int(n_workers or os.cpu_count() or 1)
+    if n < 1:
+        raise UserError(f"n_workers must be >= 1, got {n}")
+    cluster = LocalCluster(
+        n_workers=n,
+        threads_per_worker=1,
+        processes=processes,
+        dashboard_address=None,
+        silence_logs=40,  # logging.ERROR: the progress bar is the user's view
+    )
+    client = Client(cluster)
+    try:
+        yield client
+    finally:
+        client.close()
+        cluster.close()
+
+
+def _describe(exc: BaseException) -> str:
+    return f"{type(exc).__name__}: {exc}".splitlines()[0]
+
+
+def map_tasks(
+    client: Any,
+    fn: Callable[..., Any],
+    args: Sequence[tuple],
+    label: str = "tasks",
+    progress: bool = True,
+    on_result: Callable[[TaskResult], None] | None = None,
+) -> list[TaskResult]:
+    """Run ``fn(*a)`` for each ``a`` in ``args`` on ``client``; results in input order.
+
+    Shows a rich progress bar (``label``, done/total, elapsed) unless ``progress`` is False;
+    ``on_result`` sees each result as it arrives (for caching, resuming, logging). A task that
+    raises gives ``TaskResult(ok=False, error=...)``; the others go on.
+    """
+    from distributed import as_completed
+
+    futures = [client.submit(fn, *a, pure=False) for a in args]
+    index = {f.key: i for i, f in enumerate(futures)}
+    out: list[TaskResult | None] = [None] * len(futures)
+
+    bar = None
+    if progress and futures:
+        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
+
+        bar = Progress("[progress.description]{task.description}", BarColumn(), MofNCompleteColumn(),
+                       TimeElapsedColumn(), transient=False)
+        bar.start()
+        task = bar.add_task(label, total=len(futures))
+    try:
+        for fut in as_completed(futures):
+            i = index[fut.key]
+            try:
+                res = TaskResult(i, True, fut.result())
+            except Exception as exc:  # noqa: BLE001 - recorded per task, never fatal to the batch
+                res = TaskResult(i, False, error=_describe(exc))
+            out[i] = res
+            if on_result is not None:
+                on_result(res)
+            if bar is not None:
+                bar.advance(task)
+    finally:
+        if bar is not None:
+            bar.stop()
+    return [r for r in out if r is not None]

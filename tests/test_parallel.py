@@ -1,0 +1,38 @@
+"""The shared Dask set-up: local cluster, per-task errors, refusal of an unreachable scheduler."""
+
+import socket
+
+import pytest
+
+from softphantom.errors import UserError
+from softphantom.parallel import dask_client, map_tasks
+
+
+def _square(x):
+    if x == 3:
+        raise ValueError("three is refused")
+    return x * x
+
+
+def test_local_processes_keep_order_and_record_errors():
+    seen = []
+    with dask_client(n_workers=2) as client:
+        out = map_tasks(client, _square, [(i,) for i in range(6)], progress=False, on_result=seen.append)
+    assert [r.index for r in out] == list(range(6))
+    assert [r.value for r in out if r.ok] == [0, 1, 4, 16, 25]
+    assert out[3].ok is False and out[3].error == "ValueError: three is refused"
+    assert sorted(r.index for r in seen) == list(range(6))
+
+
+def test_unreachable_scheduler_is_one_line_user_error(monkeypatch):
+    import softphantom.parallel as par
+
+    monkeypatch.setattr(par, "CONNECT_TIMEOUT_S", 1.0)
+    with socket.socket() as s:  # a free port nobody listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    with pytest.raises(UserError) as err:
+        with dask_client(f"tcp://127.0.0.1:{port}"):
+            pass
+    msg = str(err.value)
+    assert f"tcp://127.0.0.1:{port}" in msg and "unreachable" in msg and "\n" not in msg
