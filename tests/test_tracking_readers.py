@@ -1,5 +1,6 @@
 """Tracker readers: Motive CSV (own fixtures + real exports from other labs), ROS 1/2 bags, mcap."""
 
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -9,16 +10,13 @@ from scipy.spatial.transform import Rotation
 from softphantom.errors import FileFormatError
 from softphantom.tracking import detect_format, pose_topics, read_track, rigid_bodies
 
-HERE = Path(__file__).resolve().parent
-OWN = HERE / "fixtures" / "tracker"
-SHARED = Path(__file__).resolve().parents[2] / "shared" / "fixtures" / "tracker"
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from tracker_paths import OWN  # noqa: E402
+from tracker_paths import shared as _shared  # noqa: E402
 
 
 def shared(name):
-    p = SHARED / name
-    if not p.exists():
-        pytest.skip(f"real tracker fixture {name} not present (expects ../shared/fixtures/tracker next to the repo)")
-    return p
+    return _shared("tracker", name)
 
 
 # ---------------------------------------------------------------- Motive CSV, own fixtures

@@ -35,7 +35,8 @@ def _parse_window(text: str | None) -> tuple[float, float] | None:
 @app.command("evaluate")
 def evaluate_cmd(
     estimate: Path = typer.Option(..., "--estimate", help="Estimate CSV (softphantom estimate --out)."),
-    truth: Path = typer.Option(..., "--truth", help="Truth CSV, or a tracker file: Motive CSV, ROS 1/2 bag, mcap."),
+    truth: Path = typer.Option(..., "--truth", help="Truth CSV, or a tracker file: Motive CSV, ROS 1/2 bag, mcap, "
+                               "a session recording's /tracker (.mcap)."),
     out: Path = typer.Option(..., "--out", help="Directory for report.html and its PNGs."),
     lag_ms: str = typer.Option("auto", "--lag-ms", help="Lag of the estimate behind the truth (ms), or 'auto' to measure it."),
     snapshot: Path = typer.Option(None, "--snapshot", help="VTU of the deformed phantom at peak load, for the 3-D view."),
@@ -43,13 +44,16 @@ def evaluate_cmd(
     rest_window_s: str = typer.Option(None, "--rest-window-s", help="START,END (s, tracker clock) of the rest pose; default the first 0.5 s."),
     clock: str = typer.Option(None, "--clock", help="Bag clock: header_stamp (default) or receive_time."),
     max_lag_ms: float = typer.Option(1000.0, "--max-lag-ms", help="Largest |lag| searched by 'auto' (ms)."),
+    length_unit: str = typer.Option(None, "--length-unit", help="Motive CSV without 'Length Units': m, cm or mm."),
+    rotation_order: str = typer.Option(None, "--rotation-order", help="Motive CSV Euler angles without 'Rotation Type': e.g. XYZ."),
 ) -> None:
     """Compare an estimate with the ground truth: metrics per DoF, Table I, report.html."""
     from softphantom.evaluation import evaluate, read_estimate, read_truth, write_report
 
     lag = _parse_lag(lag_ms)
     est = read_estimate(estimate)
-    tru = read_truth(truth, body=body, rest_window_s=_parse_window(rest_window_s), clock=clock)
+    tru = read_truth(truth, body=body, rest_window_s=_parse_window(rest_window_s), clock=clock,
+                     length_unit=length_unit, rotation_order=rotation_order)
     ev = evaluate(tru, est, lag_ms=lag, max_lag_s=max_lag_ms * 1e-3)
     try:
         out.mkdir(parents=True, exist_ok=True)

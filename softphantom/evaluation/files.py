@@ -183,17 +183,17 @@ def read_estimate(path: str | Path) -> Series6:
     return series_from_table(read_table(path), "estimate")
 
 
-def _is_softphantom_csv(path: Path) -> bool:
+def _is_softphantom_csv(head: bytes) -> bool:
+    """The project's own CSV: a ``# {json}`` first line, or a header that starts with ``t_s,``
+    (a ``#`` alone is not enough: a ROS 1 bag starts with ``#ROSBAG``)."""
     try:
-        with path.open("rb") as fh:
-            head = fh.read(4096)
-    except OSError:
-        return False
-    text = head.decode("utf-8", "replace").lstrip("\ufeff")
-    if text.startswith("#"):
-        return True
-    first = text.splitlines()[0] if text else ""
-    return first.replace(" ", "").startswith("t_s,")
+        text = head.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        if exc.start < len(head) - 4:
+            return False
+        text = head[: exc.start].decode("utf-8")
+    first = text.lstrip("\ufeff").split("\n", 1)[0].strip()
+    return first[1:].lstrip().startswith("{") if first.startswith("#") else first.replace(" ", "").startswith("t_s,")
 
 
 def read_truth(
@@ -203,18 +203,32 @@ def read_truth(
     rest_window_s: tuple[float, float] | None = None,
     clock: str | None = None,
     tracker_to_model=None,
+    **options,
 ) -> Series6:
-    """Read the ground truth: a truth CSV, or a tracker file (Motive CSV, ROS 1/2 bag, mcap)
+    """Read the ground truth: a truth CSV, or any tracker file :func:`softphantom.tracking.read_track`
+    reads (Motive CSV, ROS 1/2 bag, mcap, NatNet capture, a session recording's ``/tracker``),
     registered into the model frame (by ``tracker_to_model`` if given, else by its rest window:
-    default the first 0.5 s of valid samples)."""
-    path = Path(path)
-    if path.is_file() and _is_softphantom_csv(path):
-        return series_from_table(read_table(path), "truth")
+    default the first 0.5 s of valid samples). ``options`` go to the tracker reader
+    (``length_unit``, ``rotation_order``, ``natnet_version``)."""
     from softphantom.tracking import read_track, register_track, track_pose6
+    from softphantom.tracking.io import sniff_bytes
 
-    opts = {} if clock is None else {"clock": clock}
-    track = read_track(path, body=body, **opts)
-    reg = register_track(track, tracker_to_model=tracker_to_model, rest_window_s=rest_window_s)
+    path = Path(path)
+    if path.is_file():
+        try:
+            with path.open("rb") as fh:
+                head = fh.read(8192)
+        except OSError as exc:
+            raise FileFormatError(f"{path}: cannot read ({exc.strerror})") from None
+        if sniff_bytes(head) is None and _is_softphantom_csv(head):
+            return series_from_table(read_table(path), "truth")
+    track = read_track(path, body=body, clock=clock, **options)
+    if track.meta.get("registered"):  # already relative to rest in the model frame
+        if tracker_to_model is not None:
+            raise FileFormatError(f"{track.source}: the poses are already in the model frame; no transform applies")
+        reg = track
+    else:
+        reg = register_track(track, tracker_to_model=tracker_to_model, rest_window_s=rest_window_s)
     v = reg.valid
     p6 = track_pose6(reg)
     meta = dict(reg.meta)

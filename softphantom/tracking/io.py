@@ -1,25 +1,93 @@
-"""One registry of tracker readers (meshio style): the format comes from the content, then the
-extension, or is named."""
+"""One registry of tracker readers (meshio style): each format is a small reader with a content
+test; the format comes from the content, then the extension, or is named. The CLI and the Python
+API both go through :func:`read_track`."""
 
 from __future__ import annotations
 
+import struct
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 from softphantom.errors import FileFormatError
-from softphantom.tracking.motive import read_motive_csv
-from softphantom.tracking.rosbag import read_rosbag
+from softphantom.tracking import motive
 from softphantom.tracking.track import PoseTrack
 
+
+def _lazy(module: str, name: str) -> Callable[..., PoseTrack]:
+    def reader(path, body=None, **options):
+        import importlib
+
+        return getattr(importlib.import_module(module), name)(path, body=body, **options)
+
+    reader.__name__ = name
+    return reader
+
+
+@dataclass(frozen=True)
+class TrackerFormat:
+    """A registry entry: ``name``; ``reader(path, body=None, **options) -> PoseTrack``; the
+    ``options`` it understands; the file ``extensions`` it claims when the content says nothing."""
+
+    name: str
+    reader: Callable[..., PoseTrack]
+    options: tuple[str, ...] = ()
+    extensions: tuple[str, ...] = ()
+    description: str = ""
+
+
+_FORMATS = (
+    TrackerFormat("motive-csv", motive.read_motive_csv, ("length_unit", "rotation_order"), (),
+                  "OptiTrack Motive CSV export, Format Version 1.1x-1.25"),
+    TrackerFormat("optitrack-legacy-csv", motive.read_optitrack_legacy, (), (),
+                  "pre-1.2 'OptiTrack Export Data' (recognised to be refused)"),
+    TrackerFormat("ros1-bag", _lazy("softphantom.tracking.rosbag", "read_rosbag"), ("clock",), (".bag",),
+                  "ROS 1 bag (PoseStamped / TransformStamped)"),
+    TrackerFormat("ros2-bag", _lazy("softphantom.tracking.rosbag", "read_rosbag"), ("clock",), (".db3",),
+                  "ROS 2 bag directory or its sqlite3 file"),
+    TrackerFormat("mcap", _lazy("softphantom.tracking.rosbag", "read_rosbag"), ("clock",), (".mcap",),
+                  "ROS 2 mcap file"),
+    TrackerFormat("softphantom-mcap", _lazy("softphantom.tracking.recorded", "read_recorded_tracker"), (), (),
+                  "softphantom session recording (/tracker channel)"),
+)
+FORMATS: dict[str, TrackerFormat] = {f.name: f for f in _FORMATS}
+
 #: format name → reader(path, body=None, **options) -> PoseTrack
-READERS: dict[str, Callable[..., PoseTrack]] = {
-    "motive-csv": read_motive_csv,
-    "ros1-bag": read_rosbag,
-    "ros2-bag": read_rosbag,
-    "mcap": read_rosbag,
-}
-_EXTENSIONS = {".csv": "motive-csv", ".bag": "ros1-bag", ".db3": "ros2-bag", ".mcap": "mcap"}
-_MAGIC = ((b"#ROSBAG", "ros1-bag"), (b"\x89MCAP", "mcap"), (b"SQLite format 3\x00", "ros2-bag"))
+READERS: dict[str, Callable[..., PoseTrack]] = {f.name: f.reader for f in _FORMATS}
+
+
+
+def _mcap_library(head: bytes) -> str:
+    """The ``library`` string of an MCAP header record ('' when unreadable)."""
+    try:
+        off = 8 + 1 + 8  # magic, opcode, record length
+        (n,) = struct.unpack_from("<I", head, off)
+        off += 4 + n  # profile
+        (m,) = struct.unpack_from("<I", head, off)
+        return head[off + 4: off + 4 + m].decode("utf-8", "replace")
+    except struct.error:
+        return ""
+
+
+def sniff_bytes(head: bytes) -> str | None:
+    """The format name from the first bytes of a file (None when they say nothing known).
+
+    >>> sniff_bytes(b"#ROSBAG V2.0\\n"), sniff_bytes(b"Format Version,1.25,Take Name,x\\n")
+    ('ros1-bag', 'motive-csv')
+    """
+    if head.startswith(b"#ROSBAG V2.0"):
+        return "ros1-bag"
+    if head.startswith(b"\x89MCAP"):
+        return "softphantom-mcap" if _mcap_library(head).startswith("softphantom") else "mcap"
+    if head.startswith(b"SQLite format 3\x00"):
+        return "ros2-bag"
+    try:
+        text = head.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        if exc.start < len(head) - 4:  # not just a character cut at the end of the block
+            return None
+        text = head[: exc.start].decode("utf-8")
+    return motive.sniff(text)
 
 
 def detect_format(path: str | Path) -> str:
@@ -31,29 +99,35 @@ def detect_format(path: str | Path) -> str:
         raise FileFormatError(f"{path}: a directory without metadata.yaml is not a ROS 2 bag")
     try:
         with path.open("rb") as fh:
-            head = fh.read(4096)
+            head = fh.read(8192)
     except OSError as exc:
         raise FileFormatError(f"{path}: cannot read ({exc.strerror})") from None
-    for magic, name in _MAGIC:
-        if head.startswith(magic):
-            return name
-    text = head.decode("utf-8", "replace").lstrip("\ufeff")
-    if text.startswith("Format Version") or "Rigid Body" in text:
-        return "motive-csv"
-    if path.suffix.lower() in _EXTENSIONS:
-        return _EXTENSIONS[path.suffix.lower()]
+    name = sniff_bytes(head)
+    if name is not None:
+        return name
+    for f in _FORMATS:
+        if path.suffix.lower() in f.extensions and not head.strip() == b"":
+            return f.name
     raise FileFormatError(
-        f"{path}: cannot tell the tracker format (byte 0: {head[:16]!r}); known: {', '.join(READERS)}"
+        f"{path}: cannot tell the tracker format (byte 0: {head[:16]!r}); known: {', '.join(FORMATS)}"
     )
 
 
 def read_track(path: str | Path, body: str | None = None, format: str | None = None, **options) -> PoseTrack:
     """Read a rigid body's track from any supported tracker file.
 
-    ``format`` is one of :data:`READERS` (detected when left out); ``options`` go to the reader
-    (e.g. ``clock="receive_time"`` for bags).
+    ``format`` is one of :data:`FORMATS` (detected when left out); ``options`` go to the reader
+    (``clock=`` for bags, ``length_unit=``/``rotation_order=`` for Motive CSV, ``natnet_version=``
+    for captures); an option the format has no use for is refused, naming the format.
     """
     fmt = format or detect_format(path)
-    if fmt not in READERS:
-        raise FileFormatError(f"unknown tracker format {fmt!r}; known: {', '.join(READERS)}")
-    return READERS[fmt](Path(path), body=body, **options)
+    if fmt not in FORMATS:
+        raise FileFormatError(f"unknown tracker format {fmt!r}; known: {', '.join(FORMATS)}")
+    f = FORMATS[fmt]
+    extra = [k for k, v in options.items() if v is not None and k not in f.options]
+    if extra:
+        raise FileFormatError(
+            f"{path} ({fmt}): option(s) {', '.join(extra)} do not apply to this format"
+            + (f" (it takes: {', '.join(f.options)})" if f.options else "")
+        )
+    return f.reader(Path(path), body=body, **{k: v for k, v in options.items() if v is not None})
