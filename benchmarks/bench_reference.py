@@ -1,0 +1,105 @@
+"""The independent reference of DESIGN.md §5, recomputed: FElupe (quadratic tets, compressible
+neo-Hookean, E = 142 kPa, ν = 0.45) on the default design under the three load cases, beside the
+table DESIGN.md gives (issue 12, item 4).
+
+    .venv/bin/python benchmarks/bench_reference.py [--mesh-size-mm 4.5 3.6] [--json out.json]
+
+Needs the ``test`` extra (felupe). Prints per mesh size: marker-body y / yaw, the four arms' ΔV,
+urethra ΔV and the ``near_urethra`` shift, wall time and Newton iterations.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "reference"))
+
+from felupe_bip import bip_tet10, cavity_volumes, probe, solve_felupe  # noqa: E402
+
+from softphantom.design import BIPDesign  # noqa: E402
+from softphantom.fem import ECOFLEX_00_50  # noqa: E402
+from softphantom.pose import pose_of_markers  # noqa: E402
+
+ARMS = ("front_zpos", "front_zneg", "back_xpos", "back_xneg")
+# DESIGN.md §5, "converged NH P2" column
+DESIGN = {
+    "on-centre": {"y_mm": 5.78, "yaw_deg": 5.57, "dV_mm3": [11.2, 9.1, -12.2, -8.0]},
+    "off-centre": {"y_mm": 7.38, "yaw_deg": 17.8, "dV_mm3": [14.0, 15.6, None, None]},
+    "urethra": {"urethra_dV_mm3": 2079.0, "near_urethra_mm": 1.18},
+}
+CASES = {
+    "on-centre": dict(force=(0.15, 2.5, -0.2), at="on-centre"),
+    "off-centre": dict(force=(0.4, 3.0, 0.3), at="off-centre"),
+    "urethra": dict(pressures={"urethra": 30e3}),
+}
+
+
+def run_case(mesh, name: str, E: float, nu: float, patch_radius_m: float = 4e-3) -> dict:
+    mu, lam = E / (2 * (1 + nu)), E * nu / ((1 + nu) * (1 - 2 * nu))
+    case = dict(CASES[name])
+    if "at" in case:
+        case["at"] = mesh.points[case["at"]]
+    t0 = time.perf_counter()
+    sol = solve_felupe(mesh, mu, lam, patch_radius=patch_radius_m, **case)
+    wall = time.perf_counter() - t0
+    markers = [k for k in mesh.points if k.startswith("m") and k[1:].isdigit()]
+    P = probe(mesh, np.array([mesh.points[k] for k in markers]))
+    pose = pose_of_markers(P @ mesh.nodes, (P @ sol.x)[None]).to_mm_deg()[0]
+    V0, V1 = cavity_volumes(mesh, mesh.nodes), cavity_volumes(mesh, sol.x)
+    Pt = probe(mesh, mesh.points["near_urethra"][None])
+    shift = float(np.linalg.norm(Pt @ (sol.x - mesh.nodes)) * 1e3)
+    return {
+        "case": name,
+        "pose_mm_deg": [round(float(v), 4) for v in pose],
+        "y_mm": round(float(pose[1]), 4),
+        "yaw_deg": round(float(pose[3]), 4),
+        "dV_mm3": {k: round((V1[k] - V0[k]) * 1e9, 3) for k in (*ARMS, "urethra")},
+        "near_urethra_mm": round(shift, 4),
+        "newton_iterations": sol.iterations,
+        "residual": sol.residual,
+        "solve_s": round(wall, 1),
+    }
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--mesh-size-mm", type=float, nargs="+", default=[4.5])
+    ap.add_argument("--nu", type=float, default=ECOFLEX_00_50.nu)
+    ap.add_argument("--E-kPa", type=float, default=ECOFLEX_00_50.E_Pa / 1e3)
+    ap.add_argument("--cases", nargs="+", default=list(CASES), choices=list(CASES))
+    ap.add_argument("--json", type=Path)
+    a = ap.parse_args(argv)
+    out = []
+    for h in a.mesh_size_mm:
+        t0 = time.perf_counter()
+        mesh = bip_tet10(BIPDesign(), h)
+        print(f"mesh {h:g} mm: {len(mesh.nodes)} nodes, {len(mesh.tets)} tet10 ({time.perf_counter() - t0:.1f} s)",
+              flush=True)
+        for name in a.cases:
+            r = run_case(mesh, name, a.E_kPa * 1e3, a.nu)
+            r["mesh_size_mm"] = h
+            r["nodes"] = len(mesh.nodes)
+            out.append(r)
+            d = DESIGN[name]
+            if name == "urethra":
+                print(f"  {name}: urethra dV {r['dV_mm3']['urethra']:.1f} mm³ (DESIGN.md {d['urethra_dV_mm3']}), "
+                      f"near_urethra {r['near_urethra_mm']:.3f} mm (DESIGN.md {d['near_urethra_mm']}); "
+                      f"{r['newton_iterations']} it, {r['solve_s']} s", flush=True)
+            else:
+                dv = ", ".join(f"{r['dV_mm3'][k]:+.2f}" for k in ARMS)
+                print(f"  {name}: y {r['y_mm']:.3f} mm / yaw {r['yaw_deg']:.3f}° (DESIGN.md {d['y_mm']} / "
+                      f"{d['yaw_deg']}), arm dV {dv} mm³ (DESIGN.md {d['dV_mm3']}); pose {r['pose_mm_deg']}; "
+                      f"{r['newton_iterations']} it, {r['solve_s']} s", flush=True)
+    if a.json:
+        a.json.write_text(json.dumps(out, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

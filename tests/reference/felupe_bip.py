@@ -1,0 +1,437 @@
+"""An independent reference for softphantom's FEM: FElupe (quadratic tetrahedra, compressible
+neo-Hookean) with the loads of DESIGN.md §5 written here from scratch (issue 12, item 4).
+
+Nothing of ``softphantom.fem`` is used: the solid (element, quadrature, law, assembly) is FElupe's;
+the follower pressure and the cavity volumes are integrated here on the 6-node boundary
+triangles, the contact patch is a uniform dead traction on the outer surface within a radius, and
+the Newton loop is ~20 lines. Only the geometry comes from ``softphantom.design`` (the same gmsh
+OpenCASCADE construction, meshed here with ``Mesh.ElementOrder`` 2 so the mid-edge nodes sit on
+the curved surfaces).
+
+FElupe's law (its ``NeoHookeCompressible``): ψ = μ/2 (tr C − 3) − μ ln J + λ/2 ln² J.
+
+Used by ``tests/test_fem_reference.py`` (a small case, in CI) and
+``benchmarks/bench_reference.py`` (the full-size default design against DESIGN.md's table).
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+# CHOLMOD's OpenBLAS: one thread (its pool fights numpy's on two cores: 5.8 s instead of 1.3 s a
+# factorization measured here); set before sksparse loads it, a user's own setting wins
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+# gmsh's 10-node tet lists the last two mid-edge nodes as (2,3), (1,3); FElupe/VTK as (1,3), (2,3)
+GMSH_TO_VTK_TET10 = np.array([0, 1, 2, 3, 4, 5, 6, 7, 9, 8])
+
+# Symmetric 7-point rule on the reference triangle, exact to degree 5 (Dunavant / Radon):
+# the volume and pressure integrands on a 6-node triangle are of degree 4.
+_A1, _B1 = 0.059715871789770, 0.470142064105115
+_A2, _B2 = 0.797426985353087, 0.101286507323456
+TRI_POINTS = np.array(
+    [[1 / 3, 1 / 3], [_B1, _B1], [_A1, _B1], [_B1, _A1], [_B2, _B2], [_A2, _B2], [_B2, _A2]]
+)
+TRI_WEIGHTS = 0.5 * np.array(
+    [0.225, *[0.132394152788506] * 3, *[0.125939180544827] * 3]
+)
+
+
+def tri6_shape(xi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Shape functions (Q,6) and their derivatives (Q,6,2) of the 6-node triangle at ``xi`` (Q,2);
+    nodes 0-2 corners, 3 = (0,1), 4 = (1,2), 5 = (2,0) (gmsh and VTK agree here)."""
+    r, s = xi[:, 0], xi[:, 1]
+    t = 1.0 - r - s
+    N = np.stack([t * (2 * t - 1), r * (2 * r - 1), s * (2 * s - 1), 4 * t * r, 4 * r * s, 4 * s * t], 1)
+    dr = np.stack([-(4 * t - 1), 4 * r - 1, 0 * r, 4 * (t - r), 4 * s, -4 * s], 1)
+    ds = np.stack([-(4 * t - 1), 0 * r, 4 * s - 1, -4 * r, 4 * r, 4 * (t - s)], 1)
+    return N, np.stack([dr, ds], 2)
+
+
+def tet10_shape(bary: np.ndarray) -> np.ndarray:
+    """(Q,10) quadratic tet shape functions at barycentric coordinates (Q,4), VTK node order."""
+    t1, t2, t3, t4 = bary.T
+    return np.stack(
+        [t1 * (2 * t1 - 1), t2 * (2 * t2 - 1), t3 * (2 * t3 - 1), t4 * (2 * t4 - 1),
+         4 * t1 * t2, 4 * t2 * t3, 4 * t3 * t1, 4 * t1 * t4, 4 * t2 * t4, 4 * t3 * t4], 1)
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    z = np.zeros(v.shape[:-1])
+    return np.stack([np.stack([z, -v[..., 2], v[..., 1]], -1),
+                     np.stack([v[..., 2], z, -v[..., 0]], -1),
+                     np.stack([-v[..., 1], v[..., 0], z], -1)], -2)
+
+
+_N6, _DN6 = tri6_shape(TRI_POINTS)
+
+
+def surface_terms(x: np.ndarray, tris: np.ndarray, n_nodes: int, tangent: bool = True):
+    """Volume enclosed by the 6-node triangles ``tris`` at positions ``x`` (N,3) (normals out of
+    the air: Φ = ⅓∮ x·n dA > 0), its gradient (= the follower load per unit pressure, ∫ N_a n dA)
+    (3N,), and that gradient's derivative (3N,3N) sparse (the pressure stiffness per unit
+    pressure), all by the degree-5 rule (exact for these degree-4 integrands)."""
+    xe = x[tris]  # (K,6,3)
+    xr = np.einsum("qa,kai->kqi", _DN6[:, :, 0], xe)
+    xs = np.einsum("qa,kai->kqi", _DN6[:, :, 1], xe)
+    xq = np.einsum("qa,kai->kqi", _N6, xe)
+    nA = np.cross(xr, xs)  # (K,Q,3) area-weighted normal per unit reference area
+    vol = float(np.einsum("q,kqi,kqi->", TRI_WEIGHTS, xq, nA) / 3.0)
+    fa = np.einsum("q,qa,kqi->kai", TRI_WEIGHTS, _N6, nA)  # ∫ N_a n dA
+    dofs = (3 * tris[:, :, None] + np.arange(3)).reshape(len(tris), 18)
+    g = np.bincount(dofs.reshape(-1), weights=fa.reshape(-1), minlength=3 * n_nodes)
+    if not tangent:
+        return vol, g, None
+    # d(x_r × x_s) = [x_r]× dx_s − [x_s]× dx_r, dx_r = Σ_b N_b,r dx_b
+    Kq = (np.einsum("qb,kqij->kqbij", _DN6[:, :, 1], _skew(xr))
+          - np.einsum("qb,kqij->kqbij", _DN6[:, :, 0], _skew(xs)))
+    Ke = np.einsum("q,qa,kqbij->kaibj", TRI_WEIGHTS, _N6, Kq).reshape(len(tris), 18, 18)
+    rows = np.repeat(dofs, 18, axis=1).reshape(-1)
+    cols = np.tile(dofs, (1, 18)).reshape(-1)
+    K = sp.csr_matrix((Ke.reshape(-1), (rows, cols)), shape=(3 * n_nodes, 3 * n_nodes))
+    return vol, g, K
+
+
+def patch_load(x: np.ndarray, tris: np.ndarray, n_nodes: int, point, force, radius: float,
+               subdivisions: int = 4) -> np.ndarray:
+    """(3N,) nodal forces of ``force`` (N) spread as a uniform dead traction over the part of the
+    surface ``tris`` (6-node) within ``radius`` (m) of ``point``: ∫ N_a t dA with t = F / A_patch,
+    integrated on ``subdivisions``² sub-triangles per triangle (the patch's rim cuts triangles)."""
+    n = subdivisions
+    sub = []
+    for i in range(n):
+        for j in range(n - i):
+            sub.append([[i, j], [i + 1, j], [i, j + 1]])
+            if i + j < n - 1:
+                sub.append([[i + 1, j], [i + 1, j + 1], [i, j + 1]])
+    sub = np.asarray(sub, float) / n  # (S,3,2) corners in the parent's (r,s)
+    pts = (sub[:, 0, None] + TRI_POINTS[None, :, 0, None] * (sub[:, 1, None] - sub[:, 0, None])
+           + TRI_POINTS[None, :, 1, None] * (sub[:, 2, None] - sub[:, 0, None])).reshape(-1, 2)
+    w = np.tile(TRI_WEIGHTS, len(sub)) / n**2
+    N, dN = tri6_shape(pts)
+    xe = x[tris]
+    xq = np.einsum("qa,kai->kqi", N, xe)
+    dA = np.linalg.norm(np.cross(np.einsum("qa,kai->kqi", dN[:, :, 0], xe),
+                                 np.einsum("qa,kai->kqi", dN[:, :, 1], xe)), axis=2) * w
+    inside = np.linalg.norm(xq - np.asarray(point, float), axis=2) <= radius
+    wa = dA * inside
+    area = wa.sum()
+    if area <= 0:
+        raise ValueError(f"no surface within {radius} m of {point}")
+    share = np.einsum("kq,qa->ka", wa, N) / area  # (K,6), sums to 1
+    out = np.zeros((n_nodes, 3))
+    np.add.at(out, tris.reshape(-1), share.reshape(-1, 1) * np.asarray(force, float))
+    return out.reshape(-1)
+
+
+@dataclass(frozen=True, eq=False)
+class Tet10Mesh:
+    """A quadratic tet mesh (SI): ``nodes`` (N,3), ``tets`` (M,10) VTK order, positive; named
+    closed ``cavities`` of 6-node triangles (normals out of the air), ``outer`` surface triangles,
+    ``fixed_nodes``, named ``points`` (markers, targets, p_ext) at rest."""
+
+    nodes: np.ndarray
+    tets: np.ndarray
+    cavities: dict[str, np.ndarray]
+    outer: np.ndarray
+    fixed_nodes: np.ndarray
+    points: dict[str, np.ndarray] = field(default_factory=dict)
+
+
+def orient_tets(nodes: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    """Swap corners 1, 2 (and their mid-edge nodes) of negatively oriented 10-node tets."""
+    c = nodes[tets[:, :4]]
+    det = np.einsum("ki,ki->k", c[:, 1] - c[:, 0], np.cross(c[:, 2] - c[:, 0], c[:, 3] - c[:, 0]))
+    out = tets.copy()
+    neg = det < 0
+    out[neg] = tets[neg][:, [0, 2, 1, 3, 6, 5, 4, 7, 9, 8]]
+    return out
+
+
+def orient_faces(nodes: np.ndarray, tets: np.ndarray, tris: np.ndarray, into_solid: bool) -> np.ndarray:
+    """Orient 6-node triangles so the corner normal points into the tet that owns them
+    (``into_solid``) or out of it."""
+    opp = {}
+    for t in tets[:, :4]:
+        for k in range(4):
+            f = tuple(sorted(np.delete(t, k)))
+            opp[f] = t[k]
+    o = np.array([opp[tuple(sorted(f))] for f in tris[:, :3]])
+    x = nodes[tris[:, :3]]
+    towards = np.einsum("ki,ki->k", np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0]), nodes[o] - x[:, 0]) > 0
+    flip = towards != into_solid
+    out = tris.copy()
+    out[flip] = tris[flip][:, [0, 2, 1, 5, 4, 3]]
+    return out
+
+
+def locate(mesh: Tet10Mesh, point) -> tuple[int, np.ndarray]:
+    """Element whose straight-sided corner tet contains ``point`` (or is nearest), and the clipped
+    barycentric coordinates there."""
+    p = np.asarray(point, float)
+    c = mesh.nodes[mesh.tets[:, :4]]
+    D = np.swapaxes(c[:, 1:] - c[:, [0]], 1, 2)
+    lam = np.linalg.solve(D, (p - c[:, 0])[..., None])[..., 0]
+    bary = np.concatenate([1 - lam.sum(1, keepdims=True), lam], 1)
+    e = int(np.argmax(bary.min(1)))
+    b = np.clip(bary[e], 0, None)
+    return e, b / b.sum()
+
+
+def probe(mesh: Tet10Mesh, points) -> sp.csr_matrix:
+    """(k,N) interpolation of nodal fields at ``points`` with the quadratic shape functions."""
+    rows, cols, vals = [], [], []
+    for i, p in enumerate(np.atleast_2d(points)):
+        e, b = locate(mesh, p)
+        rows += [i] * 10
+        cols += list(mesh.tets[e])
+        vals += list(tet10_shape(b[None])[0])
+    return sp.csr_matrix((vals, (rows, cols)), shape=(len(np.atleast_2d(points)), len(mesh.nodes)))
+
+
+@dataclass(frozen=True, eq=False)
+class RefSolution:
+    """``x`` (N,3) m, Newton ``iterations`` in all, final relative residual ``residual``."""
+
+    x: np.ndarray
+    iterations: int
+    residual: float
+
+
+class _Cholesky:
+    """Sparse Cholesky of the symmetric part, the symbolic analysis kept across Newton steps
+    (CHOLMOD; SuperLU of the full matrix where it is missing or the matrix is indefinite)."""
+
+    def __init__(self) -> None:
+        self.factor = None
+        self.key = None
+
+    def solve(self, K: sp.spmatrix, r: np.ndarray) -> np.ndarray:
+        A = sp.csc_matrix(0.5 * (K + K.T))
+        A.sort_indices()
+        try:
+            from sksparse.cholmod import CholmodNotPositiveDefiniteError, analyze
+
+            try:
+                key = (A.indptr.tobytes(), A.indices.tobytes())
+                if self.factor is None or key != self.key:
+                    self.factor, self.key = analyze(A, mode="supernodal"), key
+                self.factor.cholesky_inplace(A)
+                return self.factor(r)
+            except CholmodNotPositiveDefiniteError:
+                pass
+        except ImportError:
+            pass
+        return spla.splu(sp.csc_matrix(K)).solve(r)
+
+
+def solve_felupe(mesh: Tet10Mesh, mu: float, lam: float, *, force=None, at=None,
+                 patch_radius: float = 4e-3, load: np.ndarray | None = None,
+                 pressures: dict[str, float] | None = None,
+                 steps: int = 3, tol: float = 1e-10, max_iter: int = 30) -> RefSolution:
+    """Equilibrium of FElupe's compressible neo-Hookean P2 solid under a patch ``force`` (N) at
+    ``at`` (m), nodal dead loads ``load`` ((3N,) N) and follower cavity ``pressures`` (Pa), ``fixed_nodes`` clamped; ``steps`` equal
+    load increments, full Newton to ‖r‖ ≤ ``tol``·‖f_ext‖ each (with backtracking on the residual
+    norm; the quadratic convergence of the exact tangent makes 1e-10 cheap)."""
+    import felupe
+
+    fm = felupe.Mesh(mesh.nodes, mesh.tets, "tetra10")
+    region = felupe.RegionQuadraticTetra(fm)
+    fld = felupe.FieldContainer([felupe.Field(region, dim=3)])
+    solid = felupe.SolidBody(felupe.NeoHookeCompressible(mu=mu, lmbda=lam), fld)
+    n = len(mesh.nodes)
+    fixed = np.zeros(3 * n, bool)
+    fixed[(3 * mesh.fixed_nodes[:, None] + np.arange(3)).reshape(-1)] = True
+    free = ~fixed
+    f_patch = np.zeros(3 * n)
+    if force is not None and np.any(force):
+        f_patch = patch_load(mesh.nodes, mesh.outer, n, at, force, patch_radius)
+    if load is not None:
+        f_patch = f_patch + np.asarray(load, float).reshape(-1)
+    pressures = pressures or {}
+    u = np.zeros(3 * n)
+    its, rel = 0, 0.0
+    chol = _Cholesky()
+
+    def residual(u, t):
+        fld[0].values[:] = u.reshape(-1, 3)
+        r = np.asarray(solid.assemble.vector(fld).todense()).reshape(-1) - t * f_patch
+        x = mesh.nodes + u.reshape(-1, 3)
+        ref = np.linalg.norm(f_patch) * t
+        Kp = []
+        for name, p in pressures.items():
+            _, g, K = surface_terms(x, mesh.cavities[name], n)
+            r -= t * p * g
+            ref = max(ref, np.linalg.norm(t * p * g))
+            Kp.append(t * p * K)
+        return r, max(ref, 1e-300), Kp
+
+    for k in range(1, steps + 1):
+        t = k / steps
+        r, ref, Kp = residual(u, t)
+        for it in range(max_iter + 1):
+            rn = np.linalg.norm(r[free])
+            if rn <= tol * ref:
+                break
+            if it == max_iter:
+                raise RuntimeError(f"reference Newton: no convergence at load {t:.3g} (|r|/ref {rn / ref:.2e})")
+            K = solid.assemble.matrix(fld).tocsr()
+            for Kpi in Kp:
+                K = K - Kpi
+            Kff = K[free][:, free]
+            d = np.zeros(3 * n)
+            d[free] = chol.solve(Kff, -r[free])
+            alpha = 1.0
+            while True:
+                try:
+                    rt, reft, Kpt = residual(u + alpha * d, t)
+                    ok = np.all(np.isfinite(rt)) and np.linalg.norm(rt[free]) < rn
+                except Exception:
+                    ok = False
+                if ok or alpha < 1e-3:
+                    break
+                alpha *= 0.5
+            u = u + alpha * d
+            r, ref, Kp = rt, reft, Kpt
+            its += 1
+        rel = float(np.linalg.norm(r[free]) / ref)
+    return RefSolution(mesh.nodes + u.reshape(-1, 3), its, rel)
+
+
+def cavity_volumes(mesh: Tet10Mesh, x: np.ndarray) -> dict[str, float]:
+    """m³, volume of each cavity at positions ``x`` (N,3)."""
+    return {k: surface_terms(x, t, len(x), tangent=False)[0] for k, t in mesh.cavities.items()}
+
+
+# --- the default BIP design, meshed with quadratic tets ---------------------------------------
+
+def bip_tet10(design, size_mm: float | None = None, optimize: bool = True) -> Tet10Mesh:
+    """The design's geometry meshed by gmsh exactly as ``softphantom.design`` does (same
+    OpenCASCADE construction, sizes and physical groups), then elevated to order 2 on the CAD
+    (curved mid-edge nodes; ``optimize`` untangles any element the curving inverted)."""
+    import dataclasses
+
+    import gmsh
+
+    from softphantom.design import mesh as dmesh
+
+    if size_mm is not None:
+        design = dataclasses.replace(design, mesh=design.mesh.scaled_to(size_mm))
+    with dmesh._GMSH_LOCK:
+        init_here = not gmsh.isInitialized()
+        if init_here:
+            gmsh.initialize(argv=["softphantom-ref"], readConfigFiles=False, interruptible=False)
+        try:
+            gmsh.option.setNumber("General.Terminal", 0)
+            gmsh.model.add("reference")
+            dmesh._build(design, design.mesh)
+            gmsh.model.mesh.setOrder(2)
+            if optimize:
+                gmsh.model.mesh.optimize("HighOrder")
+            tags, coords, _ = gmsh.model.mesh.getNodes()
+            pos = np.full(int(tags.max()) + 1, -1, np.int64)
+            pos[tags.astype(np.int64)] = np.arange(len(tags))
+            X = np.asarray(coords).reshape(-1, 3) * 1e-3
+
+            def group(dim, gid, etype, nper):
+                out = [np.zeros((0, nper), np.int64)]
+                for ent in gmsh.model.getEntitiesForPhysicalGroup(dim, gid):
+                    out.append(dmesh._elements(dim, ent, etype, nper))
+                return pos[np.vstack(out)]
+
+            tets = np.vstack([group(3, rid, 11, 10) for rid in dmesh.REGION_IDS.values()])[:, GMSH_TO_VTK_TET10]
+            cav = {k: group(2, gid, 9, 6) for k, gid in dmesh.CAVITY_GROUP_IDS.items()}
+            fixed = group(2, dmesh.FIXED_GROUP_ID, 9, 6)
+            outer = group(2, dmesh.OUTER_GROUP_ID, 9, 6)
+        finally:
+            try:
+                gmsh.model.remove()
+            except Exception:
+                pass
+            if init_here:
+                gmsh.finalize()
+    used = np.unique(tets)
+    remap = np.full(len(X), -1, np.int64)
+    remap[used] = np.arange(len(used))
+    nodes = X[used]
+    tets = orient_tets(nodes, remap[tets])
+    cav = {k: orient_faces(nodes, tets, remap[v], into_solid=True) for k, v in cav.items()}
+    outer = orient_faces(nodes, tets, remap[outer], into_solid=False)
+    points = {k: np.asarray(v) * 1e-3 for k, v in {**design.marker_dict, **design.target_dict,
+                                                   **design.p_ext_mm()}.items()}
+    return Tet10Mesh(nodes, tets, cav, outer, np.unique(remap[fixed]), points)
+
+
+# --- a small BIP-like case for CI: a block clamped at one end, a cavity, a loaded end face --------
+
+def block_with_cavity(size=(0.04, 0.02, 0.02), cavity_radius=0.005, h=0.005) -> tuple[Tet10Mesh, np.ndarray]:
+    """A box ``size`` (m) with a spherical cavity at its centre, quadratic tets of size ``h``:
+    clamped on x = 0; returns the mesh (cavity ``"cavity"``) and the 6-node triangles of the far
+    face x = size[0] (normals out of the solid), for an end load. gmsh OpenCASCADE, one thread."""
+    import gmsh
+
+    init_here = not gmsh.isInitialized()
+    if init_here:
+        gmsh.initialize(argv=["softphantom-ref"], readConfigFiles=False, interruptible=False)
+    try:
+        gmsh.option.setNumber("General.Terminal", 0)
+        gmsh.option.setNumber("General.NumThreads", 1)
+        gmsh.option.setNumber("Mesh.RandomSeed", 1)
+        gmsh.option.setNumber("Mesh.Algorithm3D", 1)
+        gmsh.model.add("block")
+        L, W, H = (s * 1e3 for s in size)
+        occ = gmsh.model.occ
+        box = occ.addBox(0, 0, 0, L, W, H)
+        ball = occ.addSphere(L / 2, W / 2, H / 2, cavity_radius * 1e3)
+        out, _ = occ.cut([(3, box)], [(3, ball)])
+        occ.synchronize()
+        vol = out[0][1]
+        clamp, end, cav = [], [], []
+        for _, s in gmsh.model.getBoundary([(3, vol)], oriented=False):
+            c = occ.getCenterOfMass(2, abs(s))
+            if abs(c[0]) < 1e-6:
+                clamp.append(abs(s))
+            elif abs(c[0] - L) < 1e-6:
+                end.append(abs(s))
+            elif gmsh.model.getType(2, abs(s)) == "Sphere":
+                cav.append(abs(s))
+        gmsh.option.setNumber("Mesh.MeshSizeMax", h * 1e3)
+        gmsh.option.setNumber("Mesh.MeshSizeMin", 0.5 * h * 1e3)
+        gmsh.model.mesh.generate(3)
+        gmsh.model.mesh.setOrder(2)
+        gmsh.model.mesh.optimize("HighOrder")
+        tags, coords, _ = gmsh.model.mesh.getNodes()
+        pos = np.full(int(tags.max()) + 1, -1, np.int64)
+        pos[tags.astype(np.int64)] = np.arange(len(tags))
+        X = np.asarray(coords).reshape(-1, 3) * 1e-3
+
+        def elems(dim, ents, etype, nper):
+            out = [np.zeros((0, nper), np.int64)]
+            for e in ents:
+                types, _, nt = gmsh.model.mesh.getElements(dim, e)
+                out += [np.asarray(v, np.int64).reshape(-1, nper) for t, v in zip(types, nt) if t == etype]
+            return pos[np.vstack(out)]
+
+        tets = elems(3, [vol], 11, 10)[:, GMSH_TO_VTK_TET10]
+        tri_clamp, tri_end, tri_cav = elems(2, clamp, 9, 6), elems(2, end, 9, 6), elems(2, cav, 9, 6)
+    finally:
+        try:
+            gmsh.model.remove()
+        except Exception:
+            pass
+        if init_here:
+            gmsh.finalize()
+    used = np.unique(tets)
+    remap = np.full(len(X), -1, np.int64)
+    remap[used] = np.arange(len(used))
+    nodes = X[used]
+    tets = orient_tets(nodes, remap[tets])
+    cavity = orient_faces(nodes, tets, remap[tri_cav], into_solid=True)
+    end_faces = orient_faces(nodes, tets, remap[tri_end], into_solid=False)
+    mesh = Tet10Mesh(nodes, tets, {"cavity": cavity}, end_faces, np.unique(remap[tri_clamp]))
+    return mesh, end_faces
