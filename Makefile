@@ -20,7 +20,7 @@ $(STAMP): pyproject.toml scripts/install-system-deps.sh
 	touch $(STAMP)
 
 demo: $(STAMP)
-	$(BIN)/softphantom demo --out $(OUT)/demo
+	$(BIN)/softphantom demo --out $(OUT)/demo --overwrite
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -n 2 --dist loadfile softphantom tests

@@ -1,14 +1,17 @@
 """Command-line interface: ``softphantom <command>``.
 
-Each stage adds its commands in its own module under ``softphantom.cli``; :func:`main` turns
-:class:`~softphantom.errors.SoftphantomError` into a one-line message and an exit code.
+Each stage adds its commands in its own module under ``softphantom.cli``; :func:`main` hardens the
+whole command tree once (:func:`softphantom.cli.options.harden`: finite numbers, Ctrl-C → 130) and
+turns every error into one line on stderr and an exit code: 2 bad input (a
+:class:`~softphantom.errors.UserError` or a usage error), 3 a failed solve, 130 Ctrl-C.
 """
 
 from __future__ import annotations
 
 import sys
 
-from softphantom.cli.app import app, console_err
+from softphantom.cli.app import app, console_err, print_error
+from softphantom.cli.options import EXIT_INTERRUPTED, harden
 from softphantom.errors import SoftphantomError
 
 # Importing the command modules registers their commands on ``app``.
@@ -26,27 +29,43 @@ def _register() -> None:
                 raise
 
 
-def main(argv: list[str] | None = None) -> int:
+def command():
+    """The click command tree of ``app``, hardened (what :func:`main` runs; for tests too)."""
+    import typer.main
+
     _register()
+    return harden(typer.main.get_command(app))
+
+
+def main(argv: list[str] | None = None) -> int:
     try:
-        app(args=argv, standalone_mode=False)
+        rv = command().main(args=argv, prog_name="softphantom", standalone_mode=False)
     except SoftphantomError as exc:
-        console_err.print(f"[bold red]error:[/] {exc}", highlight=False, soft_wrap=True)
+        print_error(str(exc))
         return exc.exit_code
-    except KeyboardInterrupt:
-        console_err.print("interrupted")
-        return 130
-    except SystemExit as exc:  # typer/click exits (e.g. --help)
+    except KeyboardInterrupt:  # outside a command (while importing): nothing written yet
+        print_error("interrupted", prefix="")
+        return EXIT_INTERRUPTED
+    except SystemExit as exc:
         return int(exc.code or 0)
     except Exception as exc:
-        # Usage errors of the CLI framework (typer vendors click): show them, no traceback.
-        if hasattr(exc, "show") and hasattr(exc, "exit_code"):
-            exc.show()
+        # Usage errors of the CLI framework (typer vendors click): one line, no traceback.
+        if hasattr(exc, "format_message") and hasattr(exc, "exit_code"):
+            print_error(_usage_line(exc))
             return int(exc.exit_code)
         if type(exc).__name__ == "Abort":
             return 1
         raise
-    return 0
+    finally:
+        console_err.file.flush()
+    # non-standalone click returns typer.Exit's code (130 after Ctrl-C) or the command's value
+    return rv if isinstance(rv, int) and not isinstance(rv, bool) else 0
+
+
+def _usage_line(exc) -> str:
+    msg = " ".join(str(exc.format_message()).split())
+    cmd = getattr(getattr(exc, "ctx", None), "command_path", None)
+    return f"{cmd}: {msg}" if cmd else msg
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -11,6 +11,7 @@ from pathlib import Path
 import typer
 
 from softphantom.cli.app import app, console
+from softphantom.cli.options import check_output, overwrite_option, staged_output
 from softphantom.errors import UserError
 
 
@@ -39,7 +40,7 @@ def run_scenario(sc, model, out: Path, cfg, truth, bar) -> dict:
     task = bar.add_task(f"{sc.name}: estimate", total=n_frames, what="")
     with Estimator(model, EstimatorConfig(contact=_contact(sc), mode="sync")) as est:
         stats = estimate_stream(src, est, est_path, lambda e, n: bar.update(task, completed=n),
-                                live=False, metadata={"model": str(out / "model"), "scenario": sc.name,
+                                live=False, metadata={"model": "../model", "scenario": sc.name,
                                                       "source": f"virtual:{sc.name}"})
     bar.update(task, completed=n_frames)
     t_est = time.perf_counter() - t1
@@ -95,12 +96,12 @@ def _listen(queue, bar, tasks) -> None:
         bar.update(tasks[name], completed=done, total=max(total, done), what=what)
 
 
-def _index(out: Path, rows: list[dict], wall_s: float) -> Path:
+def _index(out: Path, work: Path, rows: list[dict], wall_s: float) -> Path:
     items = "".join(
         f"<li><a href='{html.escape(str(Path(r['report']).relative_to(out)))}'>{html.escape(r['scenario'])}</a>: "
         f"lag {r['lag_ms']:.0f} ms; RMSE " + ", ".join(f"{k} {v:.2f} {r['units'][k]}" for k, v in r["rmse"].items())
         + "</li>" for r in rows)
-    p = out / "index.html"
+    p = work / "index.html"
     p.write_text("<!doctype html><html><head><meta charset='utf-8'><title>softphantom demo</title></head><body>"
                  f"<h1>softphantom demo</h1><p>virtual phantom, {len(rows)} scenarios, {wall_s:.0f} s</p>"
                  f"<ul>{items}</ul></body></html>\n")
@@ -116,6 +117,7 @@ def _table_i_line(rows: list[dict]) -> str:
 
 def print_summary(rows: list[dict], con=console) -> None:
     from rich.table import Table
+    from rich.text import Text
 
     t = Table(title="demo: estimate vs virtual truth — RMSE (peak |truth|)")
     for h in ("scenario", "x mm", "y mm", "z mm", "yaw °", "pitch °", "roll °", "|F| N", "lag ms"):
@@ -133,7 +135,8 @@ def print_summary(rows: list[dict], con=console) -> None:
             if e["kind"] == "inflate":
                 extra = (f"; urethra {e['p_urethra_kPa']:.1f} kPa: near_urethra moved "
                          f"{e.get('near_urethra_shift_mm', float('nan')):.2f} mm, bulb growth {e['bulb_growth_percent']:.2f} %")
-        con.print(f"[bold]{r['scenario']}[/]: Table I (truth) {_table_i_line(r['table_i'])}", highlight=False)
+        con.print(Text.assemble((r["scenario"], "bold"), f": Table I (truth) {_table_i_line(r['table_i'])}"),
+                  highlight=False)
         con.print(f"  tracker clock offset injected {c['injected']:.1f} ms, recovered {c['recovered']:.1f} ms; "
                   f"estimator {r['estimate']['rate_Hz']:.0f} Hz (step p99 {r['estimate']['step_ms_p99']:.1f} ms)"
                   f"{extra}", highlight=False)
@@ -180,6 +183,7 @@ def demo_cmd(
     seed: int = typer.Option(0, "--seed", help="Seed of every random source."),
     osr: int = typer.Option(100, "--osr", help="Board oversampling (100: 19.2 Hz, the paper's N; 25: 76.9 Hz)."),
     truth_mesh_scale: float = typer.Option(0.75, "--truth-mesh-scale", help="Truth mesh size relative to the estimator's."),
+    overwrite: bool = overwrite_option(),
 ) -> None:
     """The paper's experiments end to end without hardware: reports and a summary."""
     from rich.status import Status
@@ -189,29 +193,31 @@ def demo_cmd(
     from softphantom.virtual import BUNDLED, load_scenario, truth_model
 
     t0 = time.perf_counter()
+    check_output(out, overwrite=overwrite, directory=True)
     names = list(scenarios or BUNDLED)
     for n in names:
         load_scenario(n)  # validate all before the long work
     cfg = _config(seed, osr, truth_mesh_scale)
     if mesh_size_mm is not None and not mesh_size_mm > 0:
         raise UserError(f"--mesh-size-mm: must be > 0, got {mesh_size_mm:g}")
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise UserError(f"--out {out}: cannot create ({exc.strerror})") from None
-    with Status("design → mesh (estimator model)", console=console):
-        model = build_model(BIPDesign(), mesh_size_mm)
-        save_model(model, out / "model")
-    console.print(f"model: {len(model.nodes)} nodes, {len(model.tets)} tets (mesh {model.design.mesh.size_mm:g} mm) "
-                  f"→ {out / 'model'}", highlight=False, soft_wrap=True)
-    with Status("mesh (truth model, finer)", console=console):
-        tm = truth_model(model, cfg.truth)
-    console.print(f"truth model: {len(tm.nodes)} nodes, {len(tm.tets)} tets (mesh {tm.design.mesh.size_mm:g} mm)",
-                  highlight=False)
-    rows = _run_all([load_scenario(n) for n in names], model, out, cfg, tm)
-    wall = time.perf_counter() - t0
-    (out / "summary.json").write_text(json.dumps({"wall_s": wall, "scenarios": rows}, indent=2, default=float) + "\n")
-    index = _index(out, rows, wall)
+    with staged_output(out, overwrite=overwrite, directory=True) as work:
+        with Status("design → mesh (estimator model)", console=console):
+            model = build_model(BIPDesign(), mesh_size_mm)
+            save_model(model, work / "model")
+        console.print(f"model: {len(model.nodes)} nodes, {len(model.tets)} tets (mesh {model.design.mesh.size_mm:g} "
+                      f"mm) → {out / 'model'}", highlight=False, soft_wrap=True)
+        with Status("mesh (truth model, finer)", console=console):
+            tm = truth_model(model, cfg.truth)
+        console.print(f"truth model: {len(tm.nodes)} nodes, {len(tm.tets)} tets (mesh {tm.design.mesh.size_mm:g} mm)",
+                      highlight=False)
+        rows = _run_all([load_scenario(n) for n in names], model, work, cfg, tm)
+        for r in rows:  # the paths the user will see, once the directory is in place
+            r["report"] = str(out / Path(r["report"]).relative_to(work))
+        wall = time.perf_counter() - t0
+        (work / "summary.json").write_text(json.dumps({"wall_s": wall, "scenarios": rows}, indent=2, default=float)
+                                           + "\n")
+        _index(out, work, rows, wall)
+    index = out / "index.html"
     print_summary(rows)
     for r in rows:
         console.print(f"report: {r['report']}", highlight=False, soft_wrap=True)

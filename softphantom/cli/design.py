@@ -9,6 +9,7 @@ from typing import Optional
 import typer
 
 from softphantom.cli.app import app, console
+from softphantom.cli.options import overwrite_option, staged_output
 
 
 @app.command("design")
@@ -19,6 +20,7 @@ def design_command(
         None, "--mesh-size-mm", help="Bulb element size in mm; arm and cavity sizes scale with it."
     ),
     png: bool = typer.Option(True, "--png/--no-png", help="Write mesh.png."),
+    overwrite: bool = overwrite_option(),
 ) -> None:
     """Build the BIP design, mesh it (gmsh) and write model.msh/.vtu/.npz, design.toml, report.md, mesh.png."""
     from softphantom.design import BIPDesign, build_model, load_design, save_model
@@ -26,15 +28,16 @@ def design_command(
 
     design = load_design(config) if config is not None else BIPDesign()
     t0 = time.perf_counter()
-    with console.status(f"meshing design '{design.name}' …"):
-        model = build_model(design, mesh_size_mm)
-    save_model(model, out)
-    report = design_report_md(model)
-    (out / "report.md").write_text(report, encoding="utf-8")
-    if png:
-        from softphantom.viz.mesh_view import render_mesh_png
+    with staged_output(out, overwrite=overwrite, directory=True) as work:
+        with console.status(f"meshing design '{design.name}' …"):
+            model = build_model(design, mesh_size_mm)
+        save_model(model, work)
+        report = design_report_md(model)
+        (work / "report.md").write_text(report, encoding="utf-8")
+        if png:
+            from softphantom.viz.mesh_view import render_mesh_png
 
-        with console.status("drawing mesh.png …"):
-            render_mesh_png(model, out / "mesh.png")
-    console.print(report, markup=False, highlight=False)
+            with console.status("drawing mesh.png …"):
+                render_mesh_png(model, work / "mesh.png")
+    console.print(report, highlight=False)
     console.print(f"wrote {out}/ in {time.perf_counter() - t0:.1f} s", highlight=False)

@@ -8,6 +8,7 @@ from pathlib import Path
 import typer
 
 from softphantom.cli.app import app, console
+from softphantom.cli.options import check_output, overwrite_option, staged_output, stopped
 from softphantom.errors import UserError
 
 _SOURCES = "serial:PORT, replay:FILE or virtual:SCENARIO"
@@ -87,8 +88,10 @@ def estimate_cmd(
     tare_s: float = typer.Option(1.0, "--tare-s", help="Serial: rest window for the tare at start (s)."),
     p0_kPa: float = typer.Option(101.325, "--p0-kPa", help="Serial: absolute ambient pressure at tare (kPa)."),
     duration_s: float = typer.Option(None, "--duration-s", help="Stop after this many seconds (serial)."),
+    overwrite: bool = overwrite_option(),
 ) -> None:
     """Estimate force, urethra pressure, 6-DoF pose and target shifts from the cavity volumes."""
+    import contextlib
     import threading
 
     from softphantom.design import load_model
@@ -102,6 +105,7 @@ def estimate_cmd(
         raise UserError(f"--duration-s must be > 0, got {duration_s}")
     if not p0_kPa > 0:
         raise UserError(f"--p0-kPa must be > 0, got {p0_kPa}")
+    check_output(out, overwrite=overwrite, directory=False)
     if not (model_dir / "model.npz").is_file():
         raise UserError(f"--model {model_dir}: not a model directory (no model.npz; run softphantom design)")
     model = load_model(model_dir)
@@ -126,16 +130,20 @@ def estimate_cmd(
                           f"{e.qp_status}", highlight=False)
 
     t0 = time.monotonic()
-    with Estimator(model, cfg) as est:
+    # a live source's estimates cannot be made again: written in place and kept on Ctrl-C (closed
+    # cleanly); from a file, the CSV appears only when complete
+    target = contextlib.nullcontext(out) if live else staged_output(out, overwrite=overwrite, directory=False)
+    with target as path, Estimator(model, cfg) as est:
         console.print(f"estimator ready in {time.monotonic() - t0:.1f} s ({len(model.nodes)} nodes, "
                       f"mode {cfg.mode}, contact {at}, |F_i| <= {max_force_N:g} N, QP {qp_solver})", highlight=False)
         meta = {"model": str(model_dir), "source": source, "contact": at, "max_force_N": max_force_N,
                 "qp_solver": qp_solver, "mode": cfg.mode, "nodes": int(len(model.nodes))}
         try:
-            s = estimate_stream(src, est, out, progress, live=live, metadata=meta, stop=stop)
+            s = estimate_stream(src, est, path, progress, live=live, metadata=meta, stop=stop)
         except KeyboardInterrupt:
-            console.print("stopped (Ctrl-C)")
-            return
+            if not live:
+                raise
+            stopped(f"stopped (Ctrl-C); the estimates so far are in {out}")
     console.print(f"wrote {s['estimates']} estimates to {out} ({s['rejected']} rejected, {s['skipped']} skipped; "
                   f"{s['rate_Hz']:.0f} Hz, step p50 {s['step_ms_p50']:.2f} ms, p99 {s['step_ms_p99']:.2f} ms)",
                   highlight=False)

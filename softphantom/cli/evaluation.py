@@ -8,6 +8,7 @@ import typer
 from rich.table import Table
 
 from softphantom.cli.app import app, console
+from softphantom.cli.options import check_output, finite_number, overwrite_option, staged_output
 from softphantom.errors import UserError
 
 
@@ -15,17 +16,17 @@ def _parse_lag(text: str) -> float | None:
     if text.strip().lower() == "auto":
         return None
     try:
-        return float(text)
-    except ValueError:
-        raise UserError(f"--lag-ms must be 'auto' or a number of milliseconds, got {text!r}") from None
+        return finite_number(text, "--lag-ms")
+    except UserError:
+        raise UserError(f"--lag-ms must be 'auto' or a finite number of milliseconds, got {text!r}") from None
 
 
 def _parse_window(text: str | None) -> tuple[float, float] | None:
     if text is None:
         return None
     try:
-        a, b = (float(x) for x in text.split(","))
-    except ValueError:
+        a, b = (finite_number(x, "--rest-window-s") for x in text.split(","))
+    except (UserError, ValueError):
         raise UserError(f"--rest-window-s must be 'START,END' in seconds, got {text!r}") from None
     if not b > a:
         raise UserError(f"--rest-window-s: END must be after START, got {text!r}")
@@ -46,20 +47,20 @@ def evaluate_cmd(
     max_lag_ms: float = typer.Option(1000.0, "--max-lag-ms", help="Largest |lag| searched by 'auto' (ms)."),
     length_unit: str = typer.Option(None, "--length-unit", help="Motive CSV without 'Length Units': m, cm or mm."),
     rotation_order: str = typer.Option(None, "--rotation-order", help="Motive CSV Euler angles without 'Rotation Type': e.g. XYZ."),
+    overwrite: bool = overwrite_option(),
 ) -> None:
     """Compare an estimate with the ground truth: metrics per DoF, Table I, report.html."""
     from softphantom.evaluation import evaluate, read_estimate, read_truth, write_report
 
+    check_output(out, overwrite=overwrite, directory=True)
     lag = _parse_lag(lag_ms)
     est = read_estimate(estimate)
     tru = read_truth(truth, body=body, rest_window_s=_parse_window(rest_window_s), clock=clock,
                      length_unit=length_unit, rotation_order=rotation_order)
     ev = evaluate(tru, est, lag_ms=lag, max_lag_s=max_lag_ms * 1e-3)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise UserError(f"--out {out}: cannot create ({exc.strerror})") from None
-    report, rows = write_report(out, tru, est, ev, snapshot=snapshot, title=f"{estimate.name} vs {truth.name}")
+    with staged_output(out, overwrite=overwrite, directory=True) as work:
+        report, rows = write_report(work, tru, est, ev, snapshot=snapshot, title=f"{estimate.name} vs {truth.name}")
+    report = out / report.relative_to(work)
 
     t = Table(title=f"Estimate vs truth — lag {ev.lag_ms:.1f} ms ({ev.lag_source})")
     for h in ("DoF", "RMSE", "bias", "max |err|", "r", "lag ms", "max |truth|"):

@@ -12,6 +12,7 @@ import numpy as np
 import typer
 
 from softphantom.cli.app import app, console
+from softphantom.cli.options import check_output, overwrite_option, staged_output
 from softphantom.errors import SolverError, UserError
 
 ARM_ORDER = ("front_zpos", "front_zneg", "back_xpos", "back_xneg")
@@ -38,6 +39,7 @@ def simulate_command(
     urethra_kPa: float = typer.Option(0.0, "--urethra-kPa", help="Urethra cavity gauge pressure in kPa."),
     gravity: bool = typer.Option(False, "--gravity/--no-gravity", help="Include gravity (−z)."),
     out: Path = typer.Option(..., "--out", help="Output directory (created)."),
+    overwrite: bool = overwrite_option(),
 ) -> None:
     """Solve the co-rotational FEM statically; write deformed.vtu and result.json, print the results."""
     from softphantom.design import load_model
@@ -51,6 +53,7 @@ def simulate_command(
     from softphantom.fem.io import write_deformed_vtu
     from softphantom.pose import pose_of_markers
 
+    check_output(out, overwrite=overwrite, directory=True)
     force = _vec3(force_N, "--force-N")
     model = load_model(model_dir)
     if at in model.p_ext:
@@ -80,8 +83,6 @@ def simulate_command(
     rest_t = np.array([model.targets[k] for k in targets])
     shift_mm = (probe_matrix(fem, rest_t) @ sol.x - rest_t) * 1e3
 
-    out.mkdir(parents=True, exist_ok=True)
-    write_deformed_vtu(out / "deformed.vtu", fem, sol.x, model.tet_region)
     pose_cols = dict(zip(("x_mm", "y_mm", "z_mm", "yaw_deg", "pitch_deg", "roll_deg"), pose.to_mm_deg().tolist()))
     result = {
         "force_N": force.tolist(),
@@ -97,7 +98,9 @@ def simulate_command(
         "target_shift_mm": {k: s.tolist() for k, s in zip(targets, shift_mm)},
         "max_displacement_mm": float(np.linalg.norm(sol.u, axis=1).max() * 1e3),
     }
-    (out / "result.json").write_text(json.dumps(result, indent=2), encoding="utf-8")
+    with staged_output(out, overwrite=overwrite, directory=True) as work:
+        write_deformed_vtu(work / "deformed.vtu", fem, sol.x, model.tet_region)
+        (work / "result.json").write_text(json.dumps(result, indent=2, allow_nan=False), encoding="utf-8")
 
     console.print(
         f"converged: {sol.iterations} Newton iterations, {sol.load_steps} load step(s), "

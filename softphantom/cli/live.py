@@ -8,6 +8,7 @@ from typing import Optional
 import typer
 
 from softphantom.cli.app import app, console
+from softphantom.cli.options import check_output, overwrite_option, staged_output, stopped
 from softphantom.errors import UserError
 
 
@@ -28,6 +29,7 @@ def live(
     speed: float = typer.Option(1.0, "--speed", help="replay/virtual speed factor (0: as fast as possible)"),
     at: str = typer.Option("on-centre", "--at", help="virtual/serial: contact point, on-centre | off-centre"),
     max_force_N: float = typer.Option(10.0, "--max-force-N", help="virtual/serial: bound on each force component (N)"),
+    overwrite: bool = overwrite_option(),
 ) -> None:
     """Show the estimate live on a local web page, stream every estimate (ZeroMQ, JSON) and record
     the session (MCAP). Ctrl-C stops."""
@@ -42,6 +44,8 @@ def live(
         raise UserError(f"--duration-s must be > 0, got {duration_s}")
     if record is not None and record.suffix.lower() != ".mcap":
         raise UserError(f"--record must name an .mcap file, got {record}")
+    if record is not None:
+        check_output(record, overwrite=overwrite, directory=False, option="--record")
     kind = source.partition(":")[0]
     if kind in ("virtual", "serial"):
         src = _estimator_source(source, model, at, max_force_N, speed)
@@ -56,11 +60,18 @@ def live(
                           "see docs/stream.md)", highlight=False)
         if record is not None:
             console.print(f"recording: {record}", highlight=False)
-        while not session.wait(timeout_s=0.5):
-            pass
+        try:
+            while not session.wait(timeout_s=0.5):
+                pass
+        except KeyboardInterrupt:
+            interrupted = True
+        else:
+            interrupted = False
         st = session.state.status()
     console.print(f"done: {st['estimates']} estimates, {st['skipped_total']} skipped, "
                   f"stream sent {st['stream'].get('sent', 0)}", highlight=False)
+    if interrupted:
+        stopped()  # the recording (if any) is closed and complete; exit 130
 
 
 def _estimator_source(spec: str, model_dir: Optional[Path], at: str, max_force_N: float, speed: float):
@@ -85,11 +96,14 @@ def _estimator_source(spec: str, model_dir: Optional[Path], at: str, max_force_N
 def recording_csv(
     recording: Path = typer.Argument(..., help="session recording (.mcap)"),
     out: Path = typer.Option(..., "--out", help="estimate CSV to write (read by softphantom evaluate)"),
+    overwrite: bool = overwrite_option(),
 ) -> None:
     """Export the /estimate channel of a session recording to the estimate CSV."""
     from softphantom.stream import export_estimate_csv, read_recording
 
-    path = export_estimate_csv(recording, out)
+    with staged_output(out, overwrite=overwrite, directory=False) as work:
+        export_estimate_csv(recording, work)
+    path = out
     rec = read_recording(recording)
     note = "" if rec.complete else " (the recording was not closed cleanly: read up to its last complete chunk)"
     console.print(f"wrote {path}: {len(rec.estimates)} estimates{note}", highlight=False)

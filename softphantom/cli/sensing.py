@@ -9,6 +9,7 @@ import typer
 from rich.table import Table
 
 from softphantom.cli.app import app, console
+from softphantom.cli.options import check_output, overwrite_option, staged_output, stopped
 from softphantom.errors import UserError
 
 sensing_app = typer.Typer(help="Sensing chain: resolution budget.", no_args_is_help=True)
@@ -27,10 +28,13 @@ def budget_cmd(
     p0_kPa: float = typer.Option(101.325, "--p0-kPa", help="Absolute ambient pressure (kPa)."),
     paper_rounding: bool = typer.Option(False, "--paper-rounding", help="Round loss factors to 0.1 as the paper does."),
     out: Path = typer.Option(None, "--out", help="Directory for budget.csv and budget.png."),
+    overwrite: bool = overwrite_option(),
 ) -> None:
     """Resolution budget of the arm sensing chain (paper eq. 1–2) and how it moves."""
     from softphantom.sensing.budget import BudgetParams, budget, plot_budget
 
+    if out is not None:
+        check_output(out, overwrite=overwrite, directory=True)
     params = BudgetParams(
         cavity_volumes_m3=(front_cavity_mm3 * 1e-9, back_cavity_mm3 * 1e-9),
         tube_length_m=tube_length_m, tube_id_m=tube_id_mm * 1e-3, osr=osr,
@@ -59,16 +63,13 @@ def budget_cmd(
     console.print(f"worst case: {worst.resolution_Pa_datasheet:.2f} Pa (datasheet), "
                   f"{max(r.resolution_Pa_paper for r in rows):.2f} Pa (paper eq. 2) — {worst.group}")
     if out is not None:
-        try:
-            out.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise UserError(f"--out {out}: cannot create ({exc.strerror})") from None
-        with open(out / "budget.csv", "w", newline="") as fh:
-            w = csv.writer(fh)
-            w.writerow([k for k, _, _ in cols])
-            for r in rows:
-                w.writerow([r.group] + [f"{getattr(r, k):.6g}" for k, _, _ in cols[1:]])
-        plot_budget(params, out / "budget.png")
+        with staged_output(out, overwrite=overwrite, directory=True) as work:
+            with open(work / "budget.csv", "w", newline="") as fh:
+                w = csv.writer(fh)
+                w.writerow([k for k, _, _ in cols])
+                for r in rows:
+                    w.writerow([r.group] + [f"{getattr(r, k):.6g}" for k, _, _ in cols[1:]])
+            plot_budget(params, work / "budget.png")
         console.print(f"wrote {out / 'budget.csv'} and {out / 'budget.png'}")
 
 
@@ -100,7 +101,7 @@ def acquire_cmd(
     out: Path = typer.Option(..., "--out", help="Recording to create (CSV with a JSON metadata line)."),
     duration_s: float = typer.Option(None, "--duration-s", help="Stop after this many seconds (default: Ctrl-C)."),
     osr: int = typer.Option(None, "--osr", help="Ask the board to sum N readings per channel (1..500)."),
-    baud: int = typer.Option(115_200, "--baud", help="Serial baud rate."),
+    baud: int = typer.Option(115_200, "--baud", min=1, help="Serial baud rate."),
     tare_s: float = typer.Option(1.0, "--tare-s", help="Rest window for the tare at start (s)."),
     no_tare: bool = typer.Option(False, "--no-tare", help="Skip the tare; use the datasheet zero offsets."),
     p0_kPa: float = typer.Option(101.325, "--p0-kPa", help="Absolute ambient pressure at tare (kPa)."),
@@ -179,7 +180,9 @@ def acquire_cmd(
                     live.update(_status_table(src.stats(), now - t_start, rec.rows, out))
                     last_ui = now
     except KeyboardInterrupt:
-        console.print("stopped (Ctrl-C)")
+        interrupted = True
+    else:
+        interrupted = False
     finally:
         if rec is not None:
             rec.close()
@@ -188,3 +191,5 @@ def acquire_cmd(
     if rec is not None:
         console.print(f"wrote {rec.rows} rows to {out} (CRC errors {d.crc_errors}, "
                       f"frames lost {d.frames_lost}, reconnects {src.stats().reconnects})")
+    if interrupted:
+        stopped()  # the recording is closed and complete; exit 130

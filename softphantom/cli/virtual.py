@@ -7,6 +7,7 @@ from pathlib import Path
 import typer
 
 from softphantom.cli.app import app, console
+from softphantom.cli.options import check_output, overwrite_option, staged_output, stopped
 from softphantom.errors import UserError
 
 virtual_app = typer.Typer(help="Virtual phantom: scripted scenarios → sensor frames + tracker stream.",
@@ -77,15 +78,18 @@ def run_cmd(
     seed: int = typer.Option(0, "--seed", help="Seed of every random source (noise, offsets, drift, lost frames, clocks)."),
     osr: int = typer.Option(25, "--osr", help="Readings summed per channel per frame (25: 76.9 Hz, 100: 19.2 Hz)."),
     truth_mesh_scale: float = typer.Option(0.75, "--truth-mesh-scale", help="Truth mesh size relative to the model's (< 1: finer)."),
+    overwrite: bool = overwrite_option(),
 ) -> None:
     """Simulate a scenario: write the board's frames, a recording, the tracker's Motive CSV, the truth."""
     from softphantom.virtual import run_summary, write_run
 
+    check_output(out, overwrite=overwrite, directory=True)
     run = _simulate(scenario, model_dir, seed, osr, truth_mesh_scale)
-    paths = write_run(run, out)
+    with staged_output(out, overwrite=overwrite, directory=True) as work:
+        paths = write_run(run, work)
     _print_summary(run_summary(run))
     for k, p in paths.items():
-        console.print(f"{k}: {p}", highlight=False, soft_wrap=True)
+        console.print(f"{k}: {out / p.relative_to(work)}", highlight=False, soft_wrap=True)
 
 
 @virtual_app.command("serve")
@@ -108,7 +112,7 @@ def serve_cmd(
     run = _simulate(scenario, model_dir, seed, osr, truth_mesh_scale)
     sc = run.scenario
     master, slave, path = open_pty()
-    console.print(f"virtual board on [bold]{path}[/] ({sc.name}, {run.board().rate_Hz:.1f} Hz); e.g. "
+    console.print(f"virtual board on {path} ({sc.name}, {run.board().rate_Hz:.1f} Hz); e.g. "
                   f"softphantom acquire --port {path} --out rec.csv — Ctrl-C to stop", highlight=False, soft_wrap=True)
     print(path, file=sys.stdout, flush=True)
     try:
@@ -116,9 +120,13 @@ def serve_cmd(
         console.print(f"sent {stats['frames']} frames ({stats['bytes_dropped']} bytes dropped, "
                       f"{stats['commands']} commands)", highlight=False)
     except KeyboardInterrupt:
-        console.print("stopped (Ctrl-C)")
+        interrupted = True
+    else:
+        interrupted = False
     finally:
         os_close(master, slave)
+    if interrupted:
+        stopped()
 
 
 def os_close(*fds: int) -> None:

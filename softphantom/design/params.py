@@ -590,6 +590,8 @@ def load_design(path: str | Path) -> BIPDesign:
         text = path.read_text(encoding="utf-8")
     except OSError as exc:
         raise DesignError(f"{path}: cannot read ({exc.strerror})") from None
+    except UnicodeDecodeError as exc:
+        raise DesignError(f"{path}: not a text file (byte {exc.start} is not UTF-8)") from None
     try:
         if path.suffix.lower() == ".json":
             data = json.loads(text)
