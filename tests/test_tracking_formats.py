@@ -42,7 +42,8 @@ def cli_evaluate(tmp_path, truth, capsys, **opts):
         write_table(est, {"softphantom": "test"}, cols)
     else:
         write_table(est, {"softphantom": "test"}, {"t_s": [0.0, 1.0], **{c: [0.0, 0.0] for c in Pose6.COLUMNS}})
-    argv = ["evaluate", "--estimate", str(est), "--truth", str(truth), "--out", str(tmp_path / "rep"), "--lag-ms", "0"]
+    argv = ["evaluate", "--estimate", str(est), "--truth", str(truth), "--out", str(tmp_path / "rep"), "--overwrite",
+            "--lag-ms", "0"]
     for k, v in opts.items():
         argv += [_OPT_FLAGS[k], str(v)]
     code = main(argv)
