@@ -68,7 +68,10 @@ size_t sp_frame(const uint8_t *payload, size_t n, uint8_t *out)
     uint16_t crc = sp_crc16(payload, n);
     tmp[n] = (uint8_t)(crc & 0xFF);
     tmp[n + 1] = (uint8_t)(crc >> 8);
-    size_t len = sp_cobs_encode(tmp, n + 2, out);
+    size_t lead = (n > 0 && payload[0] == 1u) ? 0u : 1u; /* version 1 frames have no leading 0x00 */
+    if (lead)
+        out[0] = 0x00;
+    size_t len = lead + sp_cobs_encode(tmp, n + 2, out + lead);
     out[len++] = 0x00;
     return len;
 }

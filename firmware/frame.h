@@ -1,6 +1,8 @@
 /* Frame encoder/decoder of the softphantom sensing protocol (docs/protocol.md).
  *
- * frame = COBS(payload || CRC-16/CCITT-FALSE(payload) little-endian) || 0x00
+ * version 2: frame = 0x00 || COBS(payload || CRC-16/CCITT-FALSE(payload) little-endian) || 0x00
+ * (version 1 had no leading 0x00; the leading delimiter ends any damaged frame before this one,
+ * so the receiver never loses a good frame to a bad one). Byte 0 of the payload is the version.
  * Plain C99, no allocation: compiles for the ATmega328P (avr-gcc) and on the host (gcc), where a
  * test checks it byte for byte against the Python implementation (softphantom.sensing.protocol).
  */
@@ -10,7 +12,8 @@
 #include <stddef.h>
 #include <stdint.h>
 
-#define SP_PROTOCOL_VERSION 1u
+#define SP_PROTOCOL_VERSION 2u
+#define SP_PROTOCOL_VERSION_MIN 1u /* commands of version 1 are still read */
 #define SP_MSG_DATA 0x01u
 #define SP_MSG_INFO 0x02u
 #define SP_CMD_SET_OSR 0x10u
@@ -20,8 +23,8 @@
 #define SP_DATA_PAYLOAD 30u   /* ver, type, seq u16, t_us u32, osr u16, 5 x u32 */
 #define SP_INFO_PAYLOAD 14u   /* ver, type, seq u16, t_us u32, fw x3, n_ch, osr u16 */
 #define SP_MAX_PAYLOAD 32u
-/* COBS adds 1 byte per started 254-byte block; + CRC 2 + delimiter 1 */
-#define SP_MAX_FRAME (SP_MAX_PAYLOAD + 2u + 1u + 1u)
+/* COBS adds 1 byte per started 254-byte block; + CRC 2 + two delimiters */
+#define SP_MAX_FRAME (SP_MAX_PAYLOAD + 2u + 1u + 2u)
 
 /* Errors of sp_unframe (negative return values). */
 #define SP_ERR_COBS (-1)
@@ -33,7 +36,8 @@ size_t sp_cobs_encode(const uint8_t *src, size_t n, uint8_t *dst);
 /* Returns the decoded length, or (size_t)-1 on a malformed input or if it exceeds cap. */
 size_t sp_cobs_decode(const uint8_t *src, size_t n, uint8_t *dst, size_t cap);
 
-/* Frame a payload into out (room for SP_MAX_FRAME bytes); returns the length incl. the 0x00. */
+/* Frame a payload into out (room for SP_MAX_FRAME bytes): 0x00, COBS body, 0x00 (payload[0] == 1:
+ * version 1, no leading 0x00); returns the length incl. the delimiters. */
 size_t sp_frame(const uint8_t *payload, size_t n, uint8_t *out);
 /* Decode a frame body (without its 0x00) into payload; returns the payload length or SP_ERR_*. */
 int sp_unframe(const uint8_t *body, size_t n, uint8_t *payload, size_t cap);

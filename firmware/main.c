@@ -7,7 +7,8 @@
  *   frame time = 5 * N * 104 us  ->  N = 100: 19.2 Hz, N = 25: 76.9 Hz.
  * Timestamp: Timer1 at clk/8 (0.5 us ticks) extended by its overflow interrupt, in us (u32,
  * wraps after 71.6 min); a frame carries the centre of its sampling window.
- * Commands (host -> board): SET_OSR, GET_INFO; the board answers both with an INFO frame.
+ * Commands (host -> board): SET_OSR, GET_INFO, of protocol version 1 or 2; the board answers both
+ * with an INFO frame. Frames go out in version 2: 0x00 || COBS(payload || CRC) || 0x00.
  * TX is interrupt-driven from a ring buffer, so sampling continues while a frame goes out.
  */
 #include <avr/interrupt.h>
@@ -16,7 +17,7 @@
 
 #include "frame.h"
 
-#define FW_MAJOR 1
+#define FW_MAJOR 2 /* 2.x speaks protocol version 2 (a 0x00 before each frame) */
 #define FW_MINOR 0
 #define FW_PATCH 0
 #define BAUD_UBRR 16 /* 16 MHz / (8 * (16 + 1)) = 117647 baud with U2X (+2.1 %), the Arduino setting */
@@ -42,7 +43,7 @@ static uint32_t micros32(void)
 }
 
 /* ---- UART: TX ring buffer (interrupt-driven), RX ring buffer ---- */
-#define TXBUF 128u /* power of two; holds three DATA frames */
+#define TXBUF 128u /* power of two; holds three DATA frames (35 bytes each) */
 #define RXBUF 64u
 static volatile uint8_t tx_buf[TXBUF];
 static volatile uint8_t tx_head, tx_tail;
@@ -147,7 +148,7 @@ static void poll_commands(void)
         int len = cmd_overlong ? -1 : sp_unframe(cmd_body, cmd_len, payload, sizeof payload);
         cmd_len = 0;
         cmd_overlong = 0;
-        if (len < 2 || payload[0] != SP_PROTOCOL_VERSION)
+        if (len < 2 || payload[0] < SP_PROTOCOL_VERSION_MIN || payload[0] > SP_PROTOCOL_VERSION)
             continue;
         if (payload[1] == SP_CMD_SET_OSR && len == 4) {
             uint16_t n = sp_get_u16(payload + 2);

@@ -39,10 +39,11 @@ def _cases():
     yield 0, 0, 1, [0, 0, 0, 0, 0]                       # many zero bytes: COBS's worst pattern
     yield 65535, 2**32 - 1, 500, [1023 * 500] * 5          # field maxima
     yield 1, 1000, 100, [51150, 51150, 51150, 51150, 4046]
-    yield 256, 0x00FF00FF, 255, [0xFF, 0xFF00, 0xFF0000, 0xFF000000, 0x01000100]
-    for _ in range(8):
-        yield (int(rng.integers(0, 65536)), int(rng.integers(0, 2**32)), int(rng.integers(1, 501)),
-               [int(v) for v in rng.integers(0, 2**32, 5)])
+    yield 256, 0x00FF00FF, 500, [0xFF, 0xFF00, 0x07CE00, 0x010001, 0x070100]   # zero bytes in every place
+    for _ in range(8):                     # sums within 0..1023·osr: the decoder's content check
+        osr = int(rng.integers(1, 501))
+        yield (int(rng.integers(0, 65536)), int(rng.integers(0, 2**32)), osr,
+               [int(v) for v in rng.integers(0, 1023 * osr + 1, 5)])
 
 
 def test_crc_check_value_both_sides(tool):
@@ -53,24 +54,40 @@ def test_crc_check_value_both_sides(tool):
 def test_golden_frames_c_to_python_and_back(tool, case):
     seq, t_us, osr, raw = case
     c_frame = bytes.fromhex(tool("data", seq, t_us, osr, *raw))
-    assert c_frame == encode_data(seq, t_us, osr, raw)            # C encoder == Python encoder
-    assert 0 not in c_frame[:-1] and c_frame[-1] == 0
-    assert decode_body(c_frame[:-1]) == DataFrame(seq, t_us, osr, tuple(raw))
-    py_body = encode_data(seq, t_us, osr, raw)[:-1].hex()          # Python frame → C decoder
-    assert tool("decode", py_body) == (f"version 1 type 1 len 30 seq {seq} t_us {t_us} osr {osr} raw "
-                                       + " ".join(map(str, raw)))
+    assert c_frame == encode_data(seq, t_us, osr, raw)            # C encoder == Python encoder (v2)
+    assert c_frame[0] == 0 and 0 not in c_frame[1:-1] and c_frame[-1] == 0
+    assert decode_body(c_frame[1:-1]) == DataFrame(seq, t_us, osr, tuple(raw))
+    for version in (1, 2):                                         # Python frame → C decoder
+        py_body = encode_data(seq, t_us, osr, raw, version=version).strip(b"\x00").hex()
+        assert tool("decode", py_body) == (f"version {version} type 1 len 30 seq {seq} t_us {t_us} osr {osr} raw "
+                                           + " ".join(map(str, raw)))
 
 
 def test_c_decoder_rejects_corruption_and_reads_commands(tool):
-    body = bytearray(encode_data(5, 123, 100, [1, 2, 3, 4, 5])[:-1])
+    body = bytearray(encode_data(5, 123, 100, [1, 2, 3, 4, 5])[1:-1])
     body[10] ^= 0x04                                             # one bit flipped in a sum
     assert tool("decode", body.hex()) == "error crc"
-    assert tool("decode", encode_data(5, 123, 100, [1, 2, 3, 4, 5])[:-3].hex()) in ("error crc", "error cobs")
-    assert tool("decode", encode_set_osr(25)[:-1].hex()) == "version 1 type 16 len 4 osr 25"
-    info = bytes.fromhex(tool("info", 0, 42, 1, 0, 0, 100))
-    assert info == encode_info(0, 42, (1, 0, 0), 5, 100)
+    assert tool("decode", encode_data(5, 123, 100, [1, 2, 3, 4, 5])[1:-3].hex()) in ("error crc", "error cobs")
+    # the firmware reads commands of both versions (main.c accepts payload[0] in 1..2)
+    assert tool("decode", encode_set_osr(25, version=1)[:-1].hex()) == "version 1 type 16 len 4 osr 25"
+    assert tool("decode", encode_set_osr(25)[1:-1].hex()) == "version 2 type 16 len 4 osr 25"
+    info = bytes.fromhex(tool("info", 0, 42, 2, 0, 0, 100))
+    assert info == encode_info(0, 42, (2, 0, 0), 5, 100)
     frames = StreamDecoder().feed(info)
-    assert frames[0].firmware_str == "1.0.0" and frames[0].osr == 100
+    assert frames[0].firmware_str == "2.0.0" and frames[0].osr == 100
+
+
+def test_firmware_version_and_accepted_command_versions_match_the_host():
+    import re
+
+    from softphantom.sensing.protocol import PROTOCOL_VERSION, SUPPORTED_VERSIONS
+    from softphantom.virtual.board import FIRMWARE
+
+    h = (FW / "frame.h").read_text()
+    m = (FW / "main.c").read_text()
+    assert int(re.search(r"SP_PROTOCOL_VERSION (\d+)u", h).group(1)) == PROTOCOL_VERSION
+    assert int(re.search(r"SP_PROTOCOL_VERSION_MIN (\d+)u", h).group(1)) == min(SUPPORTED_VERSIONS)
+    assert int(re.search(r"#define FW_MAJOR (\d+)", m).group(1)) == PROTOCOL_VERSION == FIRMWARE[0]
 
 
 def test_firmware_fits_the_atmega328p(tmp_path, record_property):

@@ -262,7 +262,7 @@ def test_write_run_files(short_run, tmp_path):
 
     paths = write_run(short_run, tmp_path / "run")
     data = paths["frames"].read_bytes()
-    assert data.count(b"\x00") == 1 + len(read_recording(paths["recording"]))
+    assert data.count(b"\x00") == 2 * (1 + len(read_recording(paths["recording"])))   # v2: 0x00 on both sides
     rec = read_recording(paths["recording"])
     assert rec.meta["virtual"] and rec.meta["osr"] == 25 and np.all(np.diff(rec.seq) == 1)
     assert np.nanmax(np.abs(rec.dV)) * 1e9 > 1.0
@@ -301,7 +301,7 @@ def test_pty_board_is_seen_as_a_board(short_run):
         os.close(master)
         os.close(slave)
     st = src.stats()
-    assert st.firmware == "1.0.0" and stats["commands"] >= 2
+    assert st.firmware == "2.0.0" and stats["commands"] >= 2
     assert len(got) >= 20 and st.decoder.crc_errors == 0
     assert got[-1].osr == 100 and all(m.status == "ok" for m in got)
     dt = np.diff([m.t_board for m in got if m.osr == 100])

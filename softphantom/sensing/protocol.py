@@ -1,8 +1,14 @@
 """Binary serial protocol of the sensing board (docs/protocol.md specifies it byte by byte).
 
-frame = COBS(payload ‖ CRC-16/CCITT-FALSE(payload), little-endian) ‖ 0x00
+Version 2 (firmware 2.x): frame = 0x00 ‖ COBS(payload ‖ CRC-16/CCITT-FALSE(payload), LE) ‖ 0x00
+Version 1 (firmware 1.x): frame =        COBS(payload ‖ CRC-16/CCITT-FALSE(payload), LE) ‖ 0x00
 
-Payloads (little-endian): byte 0 protocol version (1), byte 1 message type.
+The leading delimiter of version 2 ends whatever came before a frame (a truncated frame, line
+noise), so a damaged frame never takes the next one with it. The decoder reads both versions;
+for version 1 streams it recovers a whole frame from the head or tail of a damaged body (a DATA
+body is always 33 bytes, an INFO body 17), which gives the same guarantee.
+
+Payloads (little-endian): byte 0 protocol version (1 or 2), byte 1 message type.
 
 ====  ============  ===================================================================
 type  name          rest of payload
@@ -13,6 +19,9 @@ type  name          rest of payload
 0x10  SET_OSR       osr u16 (host → board; the board answers with INFO)
 0x11  GET_INFO      (host → board; the board answers with INFO)
 ====  ============  ===================================================================
+
+After the CRC every field is checked against what the firmware can send (osr 1..500, each sum
+≤ 1023·osr, 5 channels): a CRC-valid frame with impossible content is rejected, not passed on.
 
 COBS from the ``cobs`` package, the CRC from ``crcmod`` (predefined ``crc-ccitt-false``: poly
 0x1021, init 0xFFFF, no reflection, no final xor; check value 0x29B1). The C side
@@ -29,19 +38,29 @@ from cobs import cobs
 
 from softphantom.errors import UserError
 
-PROTOCOL_VERSION = 1
+PROTOCOL_VERSION = 2
+"""The version this host and firmware 2.x send."""
+SUPPORTED_VERSIONS = (1, 2)
+"""Versions the decoder reads."""
 MSG_DATA = 0x01
 MSG_INFO = 0x02
 CMD_SET_OSR = 0x10
 CMD_GET_INFO = 0x11
+OSR_MIN, OSR_MAX = 1, 500
+"""OSR range the firmware accepts (and so the only one a frame may carry)."""
+N_CHANNELS = 5
+ADC_MAX_CODE = 1023
 
 _DATA = struct.Struct("<BBHIH5I")    # 30 bytes
 _INFO = struct.Struct("<BBHIBBBBH")  # 14 bytes
 _SET_OSR = struct.Struct("<BBH")
 _GET_INFO = struct.Struct("<BB")
 _CRC = struct.Struct("<H")
-DATA_FRAME_BYTES = 1 + _DATA.size + _CRC.size + 1   # COBS overhead 1, delimiter 1: 34 bytes
-MAX_ENCODED = 64                                    # longest legal frame body is 33 bytes
+DATA_BODY_BYTES = 1 + _DATA.size + _CRC.size        # COBS overhead 1: 33 bytes between delimiters
+INFO_BODY_BYTES = 1 + _INFO.size + _CRC.size        # 17 bytes
+DATA_FRAME_BYTES = 1 + DATA_BODY_BYTES + 1          # version 2: two delimiters, 35 bytes
+DATA_FRAME_BYTES_V1 = DATA_BODY_BYTES + 1           # version 1: 34 bytes
+MAX_ENCODED = 2 * DATA_BODY_BYTES                   # a run this long without 0x00 is an overflow
 
 crc16 = crcmod.predefined.mkPredefinedCrcFun("crc-ccitt-false")
 """CRC-16/CCITT-FALSE of a bytes object (crcmod's C extension)."""
@@ -80,64 +99,110 @@ class Command:
     osr: int | None = None
 
 
-def frame(payload: bytes) -> bytes:
-    """Wrap a payload: COBS(payload + CRC16 little-endian) + 0x00.
+def _check_version(version: int) -> int:
+    if version not in SUPPORTED_VERSIONS:
+        raise UserError(f"protocol version: expected one of {SUPPORTED_VERSIONS}, got {version}")
+    return version
 
+
+def frame(payload: bytes) -> bytes:
+    """Wrap a payload: COBS(payload + CRC16 little-endian) + 0x00, preceded by 0x00 in version 2
+    (the payload's byte 0).
+
+    >>> frame(bytes([2, 0x11])).hex()
+    '000502117d7900'
     >>> frame(bytes([1, 0x11])).hex()
     '0501112e2c00'
     """
-    return cobs.encode(payload + _CRC.pack(crc16(payload))) + b"\x00"
+    body = cobs.encode(payload + _CRC.pack(crc16(payload))) + b"\x00"
+    return body if payload[:1] == b"\x01" else b"\x00" + body
 
 
-def encode_data(seq: int, t_us: int, osr: int, raw) -> bytes:
-    """A complete DATA frame (34 bytes) for the given fields; values are checked against the field widths.
+def encode_data(seq: int, t_us: int, osr: int, raw, version: int = PROTOCOL_VERSION) -> bytes:
+    """A complete DATA frame (35 bytes; 34 in version 1) for the given fields; values are checked
+    against the field widths (not against the content rules: a test may build an impossible frame).
 
-    >>> len(encode_data(1, 1000, 100, [51150] * 5))
-    34
+    >>> len(encode_data(1, 1000, 100, [51150] * 5)), len(encode_data(1, 1000, 100, [51150] * 5, version=1))
+    (35, 34)
     """
     try:
-        return frame(_DATA.pack(PROTOCOL_VERSION, MSG_DATA, seq, t_us, osr, *[int(r) for r in raw]))
+        return frame(_DATA.pack(_check_version(version), MSG_DATA, seq, t_us, osr, *[int(r) for r in raw]))
     except struct.error as exc:
         raise UserError(f"DATA frame: field out of range ({exc})") from None
 
 
-def encode_info(seq: int, t_us: int, firmware=(1, 0, 0), n_channels: int = 5, osr: int = 100) -> bytes:
+def encode_info(seq: int, t_us: int, firmware=(2, 0, 0), n_channels: int = N_CHANNELS, osr: int = 100,
+                version: int = PROTOCOL_VERSION) -> bytes:
     """A complete INFO frame."""
-    return frame(_INFO.pack(PROTOCOL_VERSION, MSG_INFO, seq, t_us, *firmware, n_channels, osr))
+    return frame(_INFO.pack(_check_version(version), MSG_INFO, seq, t_us, *firmware, n_channels, osr))
 
 
-def encode_set_osr(osr: int) -> bytes:
-    """Host → board: set the oversampling ratio N (the firmware accepts 1..500).
+def encode_set_osr(osr: int, version: int = PROTOCOL_VERSION) -> bytes:
+    """Host → board: set the oversampling ratio N (the firmware accepts 1..500). Firmware 2.x
+    reads commands of both versions, firmware 1.x only version 1.
 
-    >>> encode_set_osr(25).hex()
+    >>> encode_set_osr(25, version=1).hex()
     '0401101903fc0800'
     """
-    if not 1 <= int(osr) <= 500:
-        raise UserError(f"--osr: must be 1..500, got {osr}")
-    return frame(_SET_OSR.pack(PROTOCOL_VERSION, CMD_SET_OSR, int(osr)))
+    if not OSR_MIN <= int(osr) <= OSR_MAX:
+        raise UserError(f"--osr: must be {OSR_MIN}..{OSR_MAX}, got {osr}")
+    return frame(_SET_OSR.pack(_check_version(version), CMD_SET_OSR, int(osr)))
 
 
-def encode_get_info() -> bytes:
+def encode_get_info(version: int = PROTOCOL_VERSION) -> bytes:
     """Host → board: ask for an INFO frame."""
-    return frame(_GET_INFO.pack(PROTOCOL_VERSION, CMD_GET_INFO))
+    return frame(_GET_INFO.pack(_check_version(version), CMD_GET_INFO))
 
 
 class FrameError(Exception):
-    """Why one frame body was rejected (``kind``: cobs, crc, length, version, type)."""
+    """Why one frame body was rejected (``kind``: cobs, crc, length, version, type, field)."""
 
     def __init__(self, kind: str, msg: str):
         super().__init__(msg)
         self.kind = kind
 
 
+def _check_content(kind: int, f: tuple) -> None:
+    """Field checks after the CRC: what the firmware can never send. Byte offsets in the payload."""
+    if kind == MSG_DATA:
+        osr = f[4]
+        if not OSR_MIN <= osr <= OSR_MAX:
+            raise FrameError("field", f"DATA osr {osr} outside {OSR_MIN}..{OSR_MAX} (byte offset 8)")
+        if max(f[5:10]) <= ADC_MAX_CODE * osr:
+            return
+        for i, r in enumerate(f[5:10]):
+            if r > ADC_MAX_CODE * osr:
+                raise FrameError("field", f"DATA sum {r} of channel {i} above {ADC_MAX_CODE}·osr = "
+                                          f"{ADC_MAX_CODE * osr} (byte offset {10 + 4 * i})")
+    elif kind == MSG_INFO:
+        if f[7] != N_CHANNELS:
+            raise FrameError("field", f"INFO n_channels {f[7]}, expected {N_CHANNELS} (byte offset 11)")
+        if not OSR_MIN <= f[8] <= OSR_MAX:
+            raise FrameError("field", f"INFO osr {f[8]} outside {OSR_MIN}..{OSR_MAX} (byte offset 12)")
+    elif kind == CMD_SET_OSR and not OSR_MIN <= f[2] <= OSR_MAX:
+        raise FrameError("field", f"SET_OSR osr {f[2]} outside {OSR_MIN}..{OSR_MAX} (byte offset 2)")
+
+
+_SIZES = {MSG_DATA: _DATA, MSG_INFO: _INFO, CMD_SET_OSR: _SET_OSR, CMD_GET_INFO: _GET_INFO}
+
+
 def decode_body(body: bytes) -> DataFrame | InfoFrame | Command:
-    """Decode one frame body (the bytes between delimiters, without the 0x00).
+    """Decode one frame body (the bytes between delimiters, without the 0x00) of either version.
 
     Raises :class:`FrameError` with the reason; never anything else.
 
-    >>> decode_body(encode_data(7, 5, 100, [1, 2, 3, 4, 5])[:-1])
+    >>> decode_body(encode_data(7, 5, 100, [1, 2, 3, 4, 5])[1:-1])
     DataFrame(seq=7, t_us=5, osr=100, raw=(1, 2, 3, 4, 5))
+    >>> decode_body(encode_data(7, 5, 50, [60000, 0, 0, 0, 0])[1:-1])
+    Traceback (most recent call last):
+    ...
+    softphantom.sensing.protocol.FrameError: DATA sum 60000 of channel 0 above 1023·osr = 51150 (byte offset 10)
     """
+    return _decode(body)[0]
+
+
+def _decode(body: bytes) -> tuple[DataFrame | InfoFrame | Command, int]:
+    """(message, protocol version) of one body; see :func:`decode_body`."""
     try:
         data = cobs.decode(body)
     except cobs.DecodeError as exc:
@@ -147,24 +212,29 @@ def decode_body(body: bytes) -> DataFrame | InfoFrame | Command:
     payload, (crc,) = data[:-2], _CRC.unpack(data[-2:])
     if crc16(payload) != crc:
         raise FrameError("crc", f"CRC mismatch (got {crc:#06x}, computed {crc16(payload):#06x})")
-    if payload[0] != PROTOCOL_VERSION:
-        raise FrameError("version", f"protocol version {payload[0]}, expected {PROTOCOL_VERSION}")
+    version = payload[0]
+    if version not in SUPPORTED_VERSIONS:
+        raise FrameError("version", f"protocol version {version} (byte offset 0), expected one of "
+                                    f"{SUPPORTED_VERSIONS}")
     kind = payload[1]
-    sizes = {MSG_DATA: _DATA, MSG_INFO: _INFO, CMD_SET_OSR: _SET_OSR, CMD_GET_INFO: _GET_INFO}
-    if kind not in sizes:
-        raise FrameError("type", f"unknown message type {kind:#04x}")
-    if len(payload) != sizes[kind].size:
-        raise FrameError("length", f"type {kind:#04x}: {len(payload)} bytes, expected {sizes[kind].size}")
-    f = sizes[kind].unpack(payload)
+    if kind not in _SIZES:
+        raise FrameError("type", f"unknown message type {kind:#04x} (byte offset 1)")
+    if len(payload) != _SIZES[kind].size:
+        raise FrameError("length", f"type {kind:#04x}: {len(payload)} bytes, expected {_SIZES[kind].size}")
+    f = _SIZES[kind].unpack(payload)
+    _check_content(kind, f)
     if kind == MSG_DATA:
-        if f[4] == 0:
-            raise FrameError("field", "DATA frame with osr 0 (byte offset 8)")
-        return DataFrame(f[2], f[3], f[4], tuple(f[5:10]))
+        return DataFrame(f[2], f[3], f[4], tuple(f[5:10])), version
     if kind == MSG_INFO:
-        return InfoFrame(f[2], f[3], (f[4], f[5], f[6]), f[7], f[8])
+        return InfoFrame(f[2], f[3], (f[4], f[5], f[6]), f[7], f[8]), version
     if kind == CMD_SET_OSR:
-        return Command(CMD_SET_OSR, f[2])
-    return Command(CMD_GET_INFO)
+        return Command(CMD_SET_OSR, f[2]), version
+    return Command(CMD_GET_INFO), version
+
+
+def _period_us(osr: int) -> float:
+    """The board's frame period for ``osr`` (5 channels × osr conversions of 104 µs)."""
+    return N_CHANNELS * osr * 104.0
 
 
 @dataclass(frozen=True)
@@ -172,39 +242,57 @@ class DecoderStats:
     """Counters of a :class:`StreamDecoder` (all since it was created).
 
     ``frames_ok`` DATA frames accepted, ``info_frames`` INFO accepted, ``crc_errors`` bodies whose
-    CRC failed, ``malformed`` bodies rejected for COBS/length/version/type, ``overflows`` runs of
-    more than 64 bytes without a delimiter (dropped up to the next delimiter), ``sync_discards`` an invalid partial first
-    body (joining mid-frame; not an error), ``seq_gaps`` jumps in the sequence number,
-    ``frames_lost`` sequence numbers missing in them, ``resets`` times the board clock ran
-    backwards (the board restarted; gaps are not counted across a restart),
-    ``bytes_in``, ``bytes_discarded``.
+    CRC failed, ``malformed`` bodies rejected for COBS/length/version/type, ``content_errors``
+    bodies with a valid CRC but an impossible field (osr, a sum, the channel count),
+    ``overflows`` runs of more than 66 bytes without a delimiter (their last 66 bytes are kept, so
+    a frame at the end of the run survives), ``sync_discards`` an invalid partial first body
+    (joining mid-frame; not an error), ``recovered`` whole frames taken from the head or tail of
+    a damaged body (version 1 streams: a lost delimiter or a truncated frame before them),
+    ``duplicates`` exact repeats of the previous DATA frame (dropped, not counted as lost),
+    ``stale`` DATA frames whose seq lies behind the last one on a forward clock (dropped),
+    ``seq_gaps`` jumps in the sequence number, ``frames_lost`` sequence numbers missing in them
+    (beyond 65 536 the board clock tells how often seq wrapped), ``resets`` times the board clock
+    ran backwards (the board restarted; gaps are not counted across a restart), ``version`` the
+    protocol version of the last accepted frame (None before the first), ``bytes_in``,
+    ``bytes_discarded``.
     """
 
     frames_ok: int = 0
     info_frames: int = 0
     crc_errors: int = 0
     malformed: int = 0
+    content_errors: int = 0
     overflows: int = 0
     sync_discards: int = 0
+    recovered: int = 0
+    duplicates: int = 0
+    stale: int = 0
     seq_gaps: int = 0
     frames_lost: int = 0
     resets: int = 0
+    version: int | None = None
     bytes_in: int = 0
     bytes_discarded: int = 0
 
     @property
     def rejected(self) -> int:
-        return self.crc_errors + self.malformed + self.overflows
+        return self.crc_errors + self.malformed + self.content_errors + self.overflows
+
+
+_ERROR_COUNTER = {"crc": "crc_errors", "field": "content_errors"}
 
 
 class StreamDecoder:
-    """Incremental decoder of the board's byte stream: feed bytes, get frames.
+    """Incremental decoder of the board's byte stream (either protocol version): feed bytes, get
+    frames.
 
-    Splits on 0x00, resynchronises on garbage (a bad body costs only itself), rejects and counts bad
-    CRCs, counts sequence gaps (seq is u16 and wraps). Never raises on any input.
+    Splits on 0x00; a bad body costs only itself: with version 2's leading delimiter nothing else
+    shares it, and in a version 1 stream a whole frame at its head or tail is recovered. Rejects
+    and counts bad CRCs and impossible fields, counts sequence gaps (seq is u16 and wraps),
+    duplicates and board restarts. Never raises on any input.
 
     >>> dec = StreamDecoder()
-    >>> stream = encode_data(1, 0, 100, [0] * 5) + b"\\x13garbage\\x00" + encode_data(3, 0, 100, [0] * 5)
+    >>> stream = encode_data(1, 0, 100, [0] * 5) + b"\\x13garbage" + encode_data(3, 0, 100, [0] * 5)
     >>> [f.seq for f in dec.feed(stream)], dec.stats.frames_ok, dec.stats.malformed, dec.stats.frames_lost
     ([1, 3], 2, 1, 1)
     """
@@ -212,7 +300,7 @@ class StreamDecoder:
     def __init__(self) -> None:
         self._buf = bytearray()
         self._synced = False
-        self._skipping = False      # inside an overlong run: drop everything up to the next 0x00
+        self._after_overflow = False   # the next body is the kept tail of an overlong run
         self._last_seq: int | None = None
         self._last_t_us: int | None = None
         self._c = dict(DecoderStats().__dict__)
@@ -234,51 +322,100 @@ class StreamDecoder:
                 break
             body = bytes(buf[start:end])
             start = end + 1
-            if self._skipping:             # the tail of an overlong run: part of that overflow
-                c["bytes_discarded"] += len(body) + 1
-                self._skipping = False
-            elif body:
+            if body:
+                if len(body) > MAX_ENCODED:      # an overlong run ended here: keep its tail
+                    self._overflow(len(body))
+                    body = body[-MAX_ENCODED:]
                 self._body(body, out)
-            self._synced = True
+                self._synced = True
+            self._after_overflow = False
         del buf[:start]
-        if len(buf) > MAX_ENCODED:         # no delimiter for too long: garbage, drop it
-            if not self._skipping:
-                c["overflows"] += 1
-            c["bytes_discarded"] += len(buf)
-            buf.clear()
-            self._skipping = True
+        if len(buf) > MAX_ENCODED:         # no delimiter for too long: keep only the tail
+            self._overflow(len(buf))
+            del buf[:-MAX_ENCODED]
         return out
+
+    def _overflow(self, n: int) -> None:
+        if not self._after_overflow:
+            self._c["overflows"] += 1
+        self._c["bytes_discarded"] += n - MAX_ENCODED
+        self._after_overflow = True
 
     def _body(self, body: bytes, out: list) -> None:
         c = self._c
         try:
-            f = decode_body(body)
+            f, version = _decode(body)
         except FrameError as exc:
+            if self._recover(body, out):
+                return
             c["bytes_discarded"] += len(body) + 1
+            if self._after_overflow:       # already counted as the overflow
+                return
             if not self._synced:
                 c["sync_discards"] += 1
-            elif exc.kind == "crc":
-                c["crc_errors"] += 1
             else:
-                c["malformed"] += 1
+                c[_ERROR_COUNTER.get(exc.kind, "malformed")] += 1
             return
+        self._accept(f, version, out)
+
+    def _recover(self, body: bytes, out: list) -> bool:
+        """Whole frames at the head and the tail of a damaged body (a version 1 stream merges a
+        truncated frame with the next one, a lost delimiter two frames). True if any was found."""
+        found = []
+        for n in (DATA_BODY_BYTES, INFO_BODY_BYTES):
+            if len(body) > n:
+                for part, at in ((body[:n], 0), (body[-n:], len(body) - n)):
+                    try:
+                        found.append((at, _decode(part)))
+                    except FrameError:
+                        pass
+        if not found:
+            return False
+        found.sort(key=lambda x: x[0])
+        # overlapping finds are kept: each passed its own CRC (a truncated frame whose lost last
+        # byte equals the next frame's first byte is whole again at the head)
+        for at, (f, version) in found:
+            self._c["recovered"] += 1
+            self._accept(f, version, out)
+        self._c["bytes_discarded"] += max(0, len(body) + 1 - sum(
+            DATA_BODY_BYTES if isinstance(f, DataFrame) else INFO_BODY_BYTES for _, (f, _) in found))
+        return True
+
+    def _accept(self, f, version: int, out: list) -> None:
+        c = self._c
         if isinstance(f, Command):          # our own echo on a loopback: not a board frame
             c["malformed"] += 1
             return
+        if isinstance(f, DataFrame) and self._last_seq is not None:
+            if f.seq == self._last_seq and f.t_us == self._last_t_us:
+                c["duplicates"] += 1        # the same frame again: no data, nothing lost
+                return
         # a board clock that runs backwards means the board restarted (u32 µs wraps after 71 min)
-        if self._last_t_us is not None and ((f.t_us - self._last_t_us) & 0xFFFFFFFF) >= 0x80000000:
-            c["resets"] += 1
-            self._last_seq = None
-        self._last_t_us = f.t_us
+        dt_us = None
+        if self._last_t_us is not None:
+            dt_us = (f.t_us - self._last_t_us) & 0xFFFFFFFF
+            if dt_us >= 0x80000000:
+                c["resets"] += 1
+                self._last_seq = None
+                dt_us = None
         if isinstance(f, DataFrame):        # seq counts DATA frames only (INFO carries the next one)
             if self._last_seq is not None:
-                gap = (f.seq - self._last_seq - 1) & 0xFFFF
-                if gap:
+                step = (f.seq - self._last_seq) & 0xFFFF
+                if dt_us is not None and self._last_t_us is not None:
+                    # the board clock says how many frames passed: resolves seq's wrap (and a
+                    # repeated or older seq on a running clock)
+                    expected = dt_us / _period_us(f.osr)
+                    step += 65536 * round((expected - step) / 65536)
+                if step <= 0:
+                    c["duplicates" if step == 0 else "stale"] += 1
+                    return
+                if step > 1:
                     c["seq_gaps"] += 1
-                    c["frames_lost"] += gap
+                    c["frames_lost"] += step - 1
             self._last_seq = f.seq
-        if isinstance(f, DataFrame):
             c["frames_ok"] += 1
         else:
             c["info_frames"] += 1
+        self._last_t_us = f.t_us
+        c["version"] = version
         out.append(f)

@@ -24,12 +24,14 @@ import numpy as np
 
 from softphantom.errors import UserError
 from softphantom.sensing import ARM_NAMES, P0_STANDARD_PA
+from softphantom.sensing.measurement import TUBE_ID_M, TUBE_LENGTH_M
 from softphantom.sensing.board import frame_rate_Hz
 from softphantom.sensing.chain import MPX4250D, MPXV7002, SensorChain, default_chain, simulate_raw
 from softphantom.sensing.pneumatics import boyle_dp, first_order_lag, thermal_dp_per_K, tube_time_constant_s
 from softphantom.sensing.protocol import encode_data, encode_info
 
-FIRMWARE = (1, 0, 0)
+FIRMWARE = (2, 0, 0)
+"""The firmware version the virtual board reports (protocol version 2)."""
 LAG_GRID_S = 1e-3
 
 
@@ -42,8 +44,8 @@ class BoardConfig:
     osr: int = 25
     seed: int = 0
     p0_Pa: float = P0_STANDARD_PA
-    tube_length_m: float = 12.0
-    tube_id_m: float = 1.2e-3
+    tube_length_m: float = TUBE_LENGTH_M
+    tube_id_m: float = TUBE_ID_M
     noise_codes: float = 0.5
     offset_band_fraction: float = 1.0
     drift_K_per_min: float = 0.05

@@ -21,7 +21,7 @@ from softphantom.errors import UserError
 from softphantom.sensing import ARM_NAMES
 from softphantom.sensing.chain import SensorChain, Tare, default_chain, nominal_tare, tare_from_window
 from softphantom.sensing.sources import FrameSource
-from softphantom.virtual.board import BoardConfig, BoardSignals, VirtualBoard, arm_volumes, board_signals
+from softphantom.virtual.board import FIRMWARE, BoardConfig, BoardSignals, VirtualBoard, arm_volumes, board_signals
 from softphantom.virtual.scenario import Scenario, load_scenario
 from softphantom.virtual.tracker import TrackerConfig, TrackerStream, simulate_tracker, write_motive_csv
 from softphantom.virtual.truth import Truth, TruthConfig, solve_truth, write_snapshot
@@ -166,7 +166,8 @@ def write_run(run: VirtualRun, out: Path) -> dict[str, Path]:
     if paths["recording"].exists():
         paths["recording"].unlink()
     b = run.config.board
-    meta = {"softphantom": __version__, "protocol_version": PROTOCOL_VERSION, "firmware": "1.0.0",
+    meta = {"softphantom": __version__, "protocol_version": PROTOCOL_VERSION,
+            "firmware": ".".join(map(str, FIRMWARE)),
             "osr": b.osr, "p0_Pa": b.p0_Pa, "port": f"virtual:{run.scenario.name}",
             "tare": src.tare.to_dict(), "chain": run.chain.summary(), "virtual": True,
             "design": {"arm_cavity_mm3": [float(v) * 1e9 for v in _nominal_cavities(run.model)],
