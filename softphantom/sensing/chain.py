@@ -24,6 +24,8 @@ from softphantom.sensing.measurement import (
     ARM_CAVITY_VOLUMES_M3,
     CHANNEL_NAMES,
     P0_STANDARD_PA,
+    TUBE_ID_M,
+    TUBE_LENGTH_M,
     Measurement,
 )
 from softphantom.sensing.pneumatics import boyle_dV, tube_volume_m3
@@ -163,8 +165,8 @@ class SensorChain:
                 "transducers": [t.name for t in self.transducers], "adc_bits": self.bits}
 
 
-def default_chain(cavity_volumes_m3=ARM_CAVITY_VOLUMES_M3, tube_length_m: float = 12.0,
-                  tube_id_m: float = 1.2e-3, v_dead_m3: float = 0.0) -> SensorChain:
+def default_chain(cavity_volumes_m3=ARM_CAVITY_VOLUMES_M3, tube_length_m: float = TUBE_LENGTH_M,
+                  tube_id_m: float = TUBE_ID_M, v_dead_m3: float = 0.0) -> SensorChain:
     """The paper's chain: 4 arm cavities (514, 514, 486, 486 mm³) each behind 12 m × 1.2 mm tube.
 
     >>> [round(v * 1e9) for v in default_chain().v_total_m3]

@@ -18,6 +18,12 @@ CHANNEL_NAMES: tuple[str, ...] = ARM_NAMES + ("urethra",)
 ARM_CAVITY_VOLUMES_M3: tuple[float, ...] = (514e-9, 514e-9, 486e-9, 486e-9)
 """Paper defaults: front ("vertical") pair 514 mm³, back ("horizontal") pair 486 mm³."""
 
+TUBE_LENGTH_M = 12.0
+"""Paper default tube per arm: 12 m long ..."""
+
+TUBE_ID_M = 1.2e-3
+"""... with a 1.2 mm inner diameter (13 571.7 mm³)."""
+
 URETHRA_CAVITY_VOLUME_M3 = 2078e-9
 """Paper default urethra cavity volume, 2078 mm³."""
 

@@ -3,6 +3,11 @@
 Columns (units in the names): ``t_s, seq, t_board_s, osr, raw_<ch> (5), dp_<arm>_kPa (4),
 dV_<arm>_mm3 (4), p_urethra_kPa, status``. Raw sums are stored so a file can be re-tared.
 
+Outages are part of the data: a link event (:class:`~softphantom.sensing.sources.SourceEvent`:
+silent, disconnected, reconnected, restart, resumed, retared) is a marker row at its host time with
+``seq`` −1, ``osr`` 0, empty numbers and ``status`` = ``event:<kind>: <detail>``. Readers get the
+samples and the events apart (:attr:`Recording.events`).
+
 Append-only: every row goes to the OS as soon as it is written (a killed process loses nothing
 already written) and the file is fsync'ed at least every 100 ms while rows arrive (a power cut
 loses at most the last 100 ms). A truncated file reads back up to its last complete row, with a
@@ -35,6 +40,7 @@ COLUMNS: tuple[str, ...] = (
     + ("p_urethra_kPa", "status")
 )
 FSYNC_EVERY_S = 0.1
+EVENT_PREFIX = "event:"
 
 
 class TruncatedRecordingWarning(UserWarning):
@@ -71,6 +77,7 @@ class Recorder:
         self._every = fsync_every_s
         self._dirty = False
         self.rows = 0
+        self.events = 0
         meta = {"kind": KIND, **metadata}
         self._write("# " + json.dumps(meta, separators=(",", ":"), default=str) + "\n"
                     + ",".join(COLUMNS) + "\n")
@@ -88,6 +95,16 @@ class Recorder:
         self._write(_row(m))
         self.rows += 1
         self.tick()
+
+    def write_event(self, ev) -> None:
+        """A marker row for a :class:`~softphantom.sensing.sources.SourceEvent` (synced at once:
+        an outage is exactly when the process may die)."""
+        status = f"{EVENT_PREFIX}{ev.kind}: {ev.detail}".replace(",", ";").replace("\n", " ")
+        self._write(",".join([f"{ev.t:.6f}", "-1", "nan", "0"] + ["0"] * 5 + ["nan"] * 9 + [status]) + "\n")
+        self.events += 1
+        os.fsync(self._fd)
+        self._dirty = False
+        self._last_sync = self._clock()
 
     def tick(self) -> None:
         """fsync if rows were written and the last fsync is older than ``fsync_every_s``."""
@@ -112,7 +129,8 @@ class Recorder:
 @dataclass(frozen=True, eq=False)
 class Recording:
     """A recording read back (SI units): ``raw`` (n, 5), ``dp`` (n, 4) Pa, ``dV`` (n, 4) m³, ...;
-    ``truncated`` when the last row was incomplete and dropped."""
+    ``truncated`` when the last row was incomplete and dropped, ``events`` the link events
+    (:class:`~softphantom.sensing.sources.SourceEvent`) of the marker rows."""
 
     meta: dict
     t: np.ndarray
@@ -125,6 +143,7 @@ class Recording:
     p_urethra: np.ndarray
     status: tuple[str, ...]
     truncated: bool = False
+    events: tuple = ()
 
     def __len__(self) -> int:
         return len(self.t)
@@ -190,13 +209,27 @@ def read_recording(path) -> Recording:
         raise FileFormatError(f"{path}: line 2: missing columns {', '.join(missing)}")
     idx = [header.index(c) for c in COLUMNS]
     rows = []
+    events = []
+    t_prev = -math.inf
+    from softphantom.sensing.sources import SourceEvent
+
     for ln, line in enumerate(lines[2:], start=3):
         cells = line.split(",")
         try:
             if len(cells) != len(header):
                 raise ValueError(f"{len(cells)} fields, expected {len(header)}")
             c = [cells[i] for i in idx]
-            rows.append((float(c[0]), int(c[1]), float(c[2]), int(c[3]), [int(x) for x in c[4:9]],
+            t = float(c[0])
+            if not math.isfinite(t):
+                raise ValueError(f"t_s is {c[0]}")
+            if t < t_prev:
+                raise ValueError(f"t_s runs backwards ({t:.6f} after {t_prev:.6f})")
+            t_prev = t
+            if c[18].startswith(EVENT_PREFIX):
+                kind, _, detail = c[18][len(EVENT_PREFIX):].partition(": ")
+                events.append(SourceEvent(t, kind, detail))
+                continue
+            rows.append((t, int(c[1]), float(c[2]), int(c[3]), [int(x) for x in c[4:9]],
                          [float(x) for x in c[9:13]], [float(x) for x in c[13:17]], float(c[17]), c[18]))
         except ValueError as exc:
             raise FileFormatError(f"{path}: line {ln}: {exc}") from None
@@ -212,4 +245,5 @@ def read_recording(path) -> Recording:
         raw=np.array([r[4] for r in rows], dtype=np.int64).reshape(n, 5),
         dp=np.array([r[5] for r in rows], float).reshape(n, 4) * 1e3,
         dV=np.array([r[6] for r in rows], float).reshape(n, 4) * 1e-9,
-        p_urethra=col(7) * 1e3, status=tuple(r[8] for r in rows), truncated=truncated)
+        p_urethra=col(7) * 1e3, status=tuple(r[8] for r in rows), truncated=truncated,
+        events=tuple(events))

@@ -2,8 +2,10 @@
 
 Every source is a :class:`SensorSource`: ``read(timeout_s)`` returns the measurements that arrived
 (possibly none) or ``None`` once the source has ended; iterate it for a plain stream of
-:class:`Measurement`; ``stats()`` says how it is going; ``close()`` releases it. No exception from
-the link escapes ``read``: a bad frame is counted, a lost port is reopened.
+:class:`Measurement`; ``stats()`` says how it is going; ``events()`` hands over what happened to
+the link (:class:`SourceEvent`: silent, disconnected, reconnected, restart, resumed, with host
+times), so every consumer can record an outage as part of the data; ``close()`` releases it. No
+exception from the link escapes ``read``: a bad frame is counted, a lost port is reopened.
 
 A simulated phantom plugs in either by producing frame bytes (``protocol.encode_data``) into a
 :class:`FrameSource`, or by subclassing :class:`SensorSource` and returning Measurements.
@@ -35,6 +37,22 @@ CLOCK_DRIFT = 0.005
 """How fast the host↔board clock offset may grow (the UNO's ceramic resonator: ±0.5 %)."""
 
 
+EVENT_KINDS = ("silent", "disconnected", "reconnected", "restart", "resumed", "retared")
+"""``silent`` no valid frame for ``silence_s``; ``disconnected`` the port failed (unplugged);
+``reconnected`` the port opened again; ``restart`` the board clock ran backwards (a reset, a new
+board: the UNO resets whenever its port is opened); ``resumed`` frames flow again after one of
+these (``detail`` says how long the hole was); ``retared`` a new tare is in force."""
+
+
+@dataclass(frozen=True)
+class SourceEvent:
+    """Something that happened to the link at host time ``t`` (s, the measurements' clock)."""
+
+    t: float
+    kind: str
+    detail: str = ""
+
+
 @dataclass(frozen=True)
 class SourceStats:
     """How a source is going: ``state`` is ``connecting``, ``ok``, ``silent``, ``disconnected`` or
@@ -63,6 +81,14 @@ class SensorSource(ABC):
     @abstractmethod
     def stats(self) -> SourceStats:
         """Counters and state."""
+
+    def events(self) -> list[SourceEvent]:
+        """Events since the last call, oldest first (thread-safe: a deque the reader appends to)."""
+        q = getattr(self, "_events", None)
+        out = []
+        while q:
+            out.append(q.popleft())
+        return out
 
     def close(self) -> None:
         """Release the source (idempotent)."""
@@ -113,10 +139,17 @@ class FrameSource(SensorSource):
         self._tb_s = 0.0
         self._offset: float | None = None
         self._tb_prev = 0.0
+        self._events: collections.deque[SourceEvent] = collections.deque(maxlen=10_000)
+        self._hole_since: float | None = None   # start of the outage being reported
 
     def set_tare(self, tare: Tare) -> None:
         """Use ``tare`` for the measurements from now on."""
         self.tare = tare
+
+    def _event(self, t: float, kind: str, detail: str = "") -> None:
+        if kind in ("silent", "disconnected") and self._hole_since is None:
+            self._hole_since = t
+        self._events.append(SourceEvent(float(t), kind, detail))
 
     def _board_time(self, t_us: int) -> float:
         if self._tb_last_us is None:
@@ -133,7 +166,12 @@ class FrameSource(SensorSource):
 
     def _ingest(self, data: bytes, now: float | None) -> list[Measurement]:
         out = []
-        for f in self._dec.feed(data):
+        resets = self._dec._c["resets"]
+        frames = self._dec.feed(data)
+        if self._dec._c["resets"] != resets:
+            self._event(now if now is not None else (self._last.t if self._last else 0.0), "restart",
+                        "the board clock ran backwards: the board was reset or replaced")
+        for f in frames:
             if isinstance(f, InfoFrame):
                 self._firmware, self._osr = f.firmware_str, f.osr
                 self._board_time(f.t_us)
@@ -155,6 +193,9 @@ class FrameSource(SensorSource):
             out.append(m)
         if out:
             stamp = now if now is not None else out[-1].t
+            if self._hole_since is not None:
+                self._event(out[0].t, "resumed", f"after {stamp - self._hole_since:.2f} s without frames")
+                self._hole_since = None
             self._last_rx = stamp
             self._recent.extend([stamp] * len(out))
             self._last = out[-1]
@@ -165,6 +206,7 @@ class FrameSource(SensorSource):
         if self._state == "ok" and self._last_rx is not None and now - self._last_rx > self._silence_s:
             self._state = "silent"
             self._silent_events += 1
+            self._event(now, "silent", f"no valid frame for {now - self._last_rx:.2f} s")
 
     def read(self, timeout_s: float = 0.1) -> list[Measurement] | None:
         if self._chunks is None:
@@ -226,10 +268,16 @@ class SerialSource(FrameSource):
         self._port = port
         if self._ever_open:
             self._reconnects += 1
+            self._event(now, "reconnected", f"port {self.url} open again")
         self._ever_open = True
         self._state = "connecting"
         self._last_rx = now                     # silence is measured from the (re)connection
-        self._send(encode_get_info() + (encode_set_osr(self.osr_request) if self.osr_request else b""))
+        v = self._command_version()
+        self._send(encode_get_info(v) + (encode_set_osr(self.osr_request, v) if self.osr_request else b""))
+
+    def _command_version(self) -> int:
+        # the board's own version once seen; before that 1, which firmware 1.x and 2.x both read
+        return self._dec.stats.version or 1
 
     def _send(self, data: bytes) -> None:
         try:
@@ -237,13 +285,16 @@ class SerialSource(FrameSource):
         except self._serial_exc:
             self._drop()
 
-    def _drop(self) -> None:
+    def _drop(self, reason: str = "") -> None:
         try:
             self._port.close()
         except self._serial_exc:
             pass
         self._port = None
-        self._state = "disconnected"
+        if self._state != "ended":
+            self._state = "disconnected"
+            if not self._closed:
+                self._event(self._clock(), "disconnected", reason or f"port {self.url} failed")
 
     def read(self, timeout_s: float = 0.1) -> list[Measurement] | None:
         if self._closed:
@@ -266,26 +317,36 @@ class SerialSource(FrameSource):
         self._check_silence(now)
         if self._state == "silent" and now - self._last_poke > 1.0:
             self._last_poke = now
-            self._send(encode_get_info())
+            self._send(encode_get_info(self._command_version()))
         return out
 
     def close(self) -> None:
+        self._closed = True
         if self._port is not None:
             self._drop()
-        self._closed = True
         self._state = "ended"
 
 
 class ReplaySource(SensorSource):
     """Replays a recording (:func:`softphantom.sensing.recording.read_recording`) as Measurements,
-    optionally re-tared (``tare``) from the stored raw sums; ``batch`` measurements per read."""
+    optionally re-converted (``tare``, ``chain``) from the stored raw sums; ``batch`` measurements
+    per read. The recording's link events come back from :meth:`events` as the replay passes their
+    times. A recording without a single sample is refused (a one-line error)."""
 
-    def __init__(self, path, tare: Tare | None = None, batch: int = 256):
+    def __init__(self, path, tare: Tare | None = None, batch: int = 256, chain: SensorChain | None = None):
+        from softphantom.errors import FileFormatError
         from softphantom.sensing.recording import read_recording, retare
 
         rec = read_recording(path)
-        self.recording = retare(rec, tare) if tare is not None else rec
+        if len(rec) == 0:
+            raise FileFormatError(f"{path}: no samples to replay (the recording has only its header"
+                                  f"{f' and {len(rec.events)} link events' if rec.events else ''})")
+        if tare is not None or chain is not None:
+            rec = retare(rec, tare if tare is not None else _recorded_tare(rec, path), chain)
+        self.recording = rec
         self._it = self.recording.measurements()
+        self._pending = collections.deque(rec.events)
+        self._events: collections.deque[SourceEvent] = collections.deque()
         self._batch = batch
         self._n = 0
         self._ended = False
@@ -301,7 +362,11 @@ class ReplaySource(SensorSource):
                 break
         if not out:
             self._ended = True
+            self._events.extend(self._pending)
+            self._pending.clear()
             return None
+        while self._pending and self._pending[0].t <= out[-1].t:
+            self._events.append(self._pending.popleft())
         self._n += len(out)
         self._last = out[-1]
         return out
@@ -310,3 +375,11 @@ class ReplaySource(SensorSource):
         meta = self.recording.meta
         return SourceStats("ended" if self._ended else "ok", DecoderStats(frames_ok=self._n),
                            firmware=meta.get("firmware"), osr=meta.get("osr"), last=self._last)
+
+
+def _recorded_tare(rec, path) -> Tare:
+    from softphantom.errors import FileFormatError
+
+    if "tare" not in rec.meta:
+        raise FileFormatError(f"{path}: line 1: no tare in the metadata; cannot re-convert the raw sums")
+    return Tare.from_dict(rec.meta["tare"])
