@@ -37,7 +37,7 @@ def _parse_window(text: str | None) -> tuple[float, float] | None:
 def evaluate_cmd(
     estimate: Path = typer.Option(..., "--estimate", help="Estimate CSV (softphantom estimate --out)."),
     truth: Path = typer.Option(..., "--truth", help="Truth CSV, or a tracker file: Motive CSV, ROS 1/2 bag, mcap, "
-                               "a session recording's /tracker (.mcap)."),
+                               "NatNet capture (.pcap/.pcapng), a session recording's /tracker (.mcap)."),
     out: Path = typer.Option(..., "--out", help="Directory for report.html and its PNGs."),
     lag_ms: str = typer.Option("auto", "--lag-ms", help="Lag of the estimate behind the truth (ms), or 'auto' to measure it."),
     snapshot: Path = typer.Option(None, "--snapshot", help="VTU of the deformed phantom at peak load, for the 3-D view."),
@@ -48,6 +48,7 @@ def evaluate_cmd(
     length_unit: str = typer.Option(None, "--length-unit", help="Motive CSV without 'Length Units': m, cm or mm."),
     rotation_order: str = typer.Option(None, "--rotation-order", help="Motive CSV Euler angles without 'Rotation Type': e.g. XYZ."),
     overwrite: bool = overwrite_option(),
+    natnet_version: str = typer.Option(None, "--natnet-version", help="NatNet capture without the server-info reply: 3.0 or 4.1."),
 ) -> None:
     """Compare an estimate with the ground truth: metrics per DoF, Table I, report.html."""
     from softphantom.evaluation import evaluate, read_estimate, read_truth, write_report
@@ -56,7 +57,7 @@ def evaluate_cmd(
     lag = _parse_lag(lag_ms)
     est = read_estimate(estimate)
     tru = read_truth(truth, body=body, rest_window_s=_parse_window(rest_window_s), clock=clock,
-                     length_unit=length_unit, rotation_order=rotation_order)
+                     length_unit=length_unit, rotation_order=rotation_order, natnet_version=natnet_version)
     ev = evaluate(tru, est, lag_ms=lag, max_lag_s=max_lag_ms * 1e-3)
     with staged_output(out, overwrite=overwrite, directory=True) as work:
         report, rows = write_report(work, tru, est, ev, snapshot=snapshot, title=f"{estimate.name} vs {truth.name}")

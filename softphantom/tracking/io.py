@@ -49,12 +49,17 @@ _FORMATS = (
                   "ROS 2 mcap file"),
     TrackerFormat("softphantom-mcap", _lazy("softphantom.tracking.recorded", "read_recorded_tracker"), (), (),
                   "softphantom session recording (/tracker channel)"),
+    TrackerFormat("natnet-pcap", _lazy("softphantom.tracking.capture", "read_natnet_capture"),
+                  ("natnet_version",), (".pcap", ".pcapng"), "pcap/pcapng capture of a NatNet 3.x/4.x stream"),
 )
 FORMATS: dict[str, TrackerFormat] = {f.name: f for f in _FORMATS}
 
 #: format name → reader(path, body=None, **options) -> PoseTrack
 READERS: dict[str, Callable[..., PoseTrack]] = {f.name: f.reader for f in _FORMATS}
 
+
+
+_PCAP_MAGIC = (b"\xd4\xc3\xb2\xa1", b"\xa1\xb2\xc3\xd4", b"\x4d\x3c\xb2\xa1", b"\xa1\xb2\x3c\x4d", b"\x0a\x0d\x0d\x0a")
 
 
 def _mcap_library(head: bytes) -> str:
@@ -81,6 +86,8 @@ def sniff_bytes(head: bytes) -> str | None:
         return "softphantom-mcap" if _mcap_library(head).startswith("softphantom") else "mcap"
     if head.startswith(b"SQLite format 3\x00"):
         return "ros2-bag"
+    if head[:4] in _PCAP_MAGIC:
+        return "natnet-pcap"
     try:
         text = head.decode("utf-8")
     except UnicodeDecodeError as exc:
