@@ -101,6 +101,10 @@ def serve_cmd(
     truth_mesh_scale: float = typer.Option(0.75, "--truth-mesh-scale", help="Truth mesh size relative to the model's."),
     speed: float = typer.Option(1.0, "--speed", help="Playback speed (1 = real time)."),
     once: bool = typer.Option(False, "--once", help="Stop at the end of the scenario (default: keep streaming the rest state)."),
+    natnet: bool = typer.Option(False, "--natnet", help="Also serve the tracker as a NatNet server (softphantom track --natnet HOST)."),
+    natnet_host: str = typer.Option("127.0.0.1", "--natnet-host", help="Interface of the NatNet server; loopback unless set explicitly."),
+    natnet_port: int = typer.Option(1510, "--natnet-port", help="NatNet command port (data go to each client that connects)."),
+    natnet_version: str = typer.Option("4.1", "--natnet-version", help="NatNet version to speak: 3.0 or 4.1."),
 ) -> None:
     """Serve the scenario's frames on a pty as the board would: prints the port path to use."""
     import sys
@@ -109,7 +113,10 @@ def serve_cmd(
 
     if not speed > 0:
         raise UserError(f"--speed: must be > 0, got {speed:g}")
+    if natnet and not 0 <= natnet_port <= 65535:
+        raise UserError(f"--natnet-port must be in 0..65535, got {natnet_port}")
     run = _simulate(scenario, model_dir, seed, osr, truth_mesh_scale)
+    stop_natnet = _start_natnet(run, natnet_host, natnet_port, natnet_version, speed) if natnet else None
     sc = run.scenario
     master, slave, path = open_pty()
     console.print(f"virtual board on {path} ({sc.name}, {run.board().rate_Hz:.1f} Hz); e.g. "
@@ -125,8 +132,45 @@ def serve_cmd(
         interrupted = False
     finally:
         os_close(master, slave)
+        if stop_natnet is not None:
+            stop_natnet()
     if interrupted:
         stopped()
+
+
+def _start_natnet(run, host: str, port: int, version: str, speed: float):
+    """The run's tracker as a NatNet server in a thread; returns the function that stops it."""
+    import threading
+
+    from softphantom.tracking.capture import parse_version
+    from softphantom.virtual.natnet_server import serve_natnet
+
+    ver = parse_version(version)
+    stop = threading.Event()
+    ready = threading.Event()
+    failed: list[str] = []
+
+    def target() -> None:
+        try:
+            serve_natnet(run.tracker, run.truth.rest_markers, marker_names=run.truth.marker_names, host=host,
+                         command_port=port, version=ver, speed=speed, stop=stop.is_set, on_ready=lambda p: ready.set())
+        except OSError as exc:
+            failed.append(f"--natnet-host {host} --natnet-port {port}: cannot serve ({exc.strerror})")
+            ready.set()
+
+    th = threading.Thread(target=target, name="natnet-server", daemon=True)
+    th.start()
+    ready.wait(5)
+    if failed:
+        raise UserError(failed[0])
+    console.print(f"virtual tracker as NatNet {version} on {host}:{port}; e.g. softphantom track --natnet {host} "
+                  f"--command-port {port} --out truth.csv", highlight=False, soft_wrap=True)
+
+    def stop_it() -> None:
+        stop.set()
+        th.join(2)
+
+    return stop_it
 
 
 def os_close(*fds: int) -> None:

@@ -67,14 +67,17 @@ def register_track(
     track: PoseTrack,
     tracker_to_model: RigidTransform | None = None,
     rest_window_s: tuple[float, float] | None = None,
+    rest: RigidTransform | None = None,
 ) -> PoseTrack:
     """The body's motion relative to rest, in the model frame, as a new :class:`PoseTrack`.
 
     ``position`` is then the translation ``t`` and ``quat_xyzw`` the rotation ``R`` of
     ``x = R·x_rest + t`` (model frame). Without ``tracker_to_model`` the rest pose defines the
-    model frame (way (b) above). Clock and validity are kept.
+    model frame (way (b) above). Clock and validity are kept. ``rest`` gives the rest pose (from an
+    earlier part of the same take, e.g. when a live recording registers as it goes).
     """
-    rest = rest_pose(track, rest_window_s)
+    given_rest = rest is not None
+    rest = rest if given_rest else rest_pose(track, rest_window_s)
     given = tracker_to_model
     if tracker_to_model is None:
         tracker_to_model = rest.inverse()
@@ -92,7 +95,7 @@ def register_track(
         frame="model (relative to rest)",
         registration="rest window" if given is None else "given tracker-to-model transform",
         rest_spread_m=float(rest.rms_residual),
-        rest_samples=int(rest_window(track, rest_window_s).sum()),
+        rest_samples=int(rest_window(track, rest_window_s).sum()) if not given_rest else track.meta.get("rest_samples", 0),
     )
     t_rel = np.where(v[:, None], t_rel, np.nan)
     return PoseTrack(track.t.copy(), t_rel, q, v.copy(), track.clock, track.source, track.name, meta)

@@ -1,0 +1,98 @@
+"""``softphantom track``: record a live NatNet stream (Motive, or ``virtual serve --natnet``)."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from softphantom.cli.app import app, console
+from softphantom.errors import UserError
+
+
+def choose_body(client, body: Optional[str], wait_s: float = 1.0) -> tuple[int, str]:
+    """The rigid body's id and name, from the model definitions (or a numeric ``body``)."""
+    defs = client.wait_for_models(wait_s)
+    bodies = {b.name: b.id for b in defs.rigid_bodies} if defs is not None else {}
+    have = ", ".join(f"{n} (id {i})" for n, i in bodies.items()) or "none defined"
+    if body is None:
+        if len(bodies) == 1:
+            name, = bodies
+            return bodies[name], name
+        raise UserError(f"NatNet server {client.config.server}: {len(bodies)} rigid bodies, choose one with --body: {have}")
+    if body in bodies:
+        return bodies[body], body
+    if body.isdigit():
+        return int(body), body
+    raise UserError(f"NatNet server {client.config.server}: no rigid body {body!r}; it streams: {have}")
+
+
+@app.command("track")
+def track_cmd(
+    natnet: str = typer.Option(..., "--natnet", help="NatNet server address (Motive's PC, or 127.0.0.1 for virtual serve --natnet)."),
+    out: Path = typer.Option(..., "--out", help=".mcap: raw poses on /tracker (a session recording); .csv: the truth CSV, registered by its rest window."),
+    body: Optional[str] = typer.Option(None, "--body", help="Rigid body name (or NatNet id); may be left out when the server streams one."),
+    command_port: int = typer.Option(1510, "--command-port", help="Server's command port."),
+    data_port: int = typer.Option(1511, "--data-port", help="Data port to listen on."),
+    local_ip: str = typer.Option("0.0.0.0", "--local-ip", help="This machine's interface for multicast (and the command socket)."),
+    multicast: Optional[bool] = typer.Option(None, "--multicast/--unicast", help="Data by multicast or unicast (default: as the server says)."),
+    duration_s: Optional[float] = typer.Option(None, "--duration-s", help="Stop after this many seconds (default: Ctrl-C)."),
+    rest_window_s: float = typer.Option(0.5, "--rest-window-s", help="Length of the rest window at the start (s), for the truth CSV."),
+    connect_timeout_s: float = typer.Option(3.0, "--connect-timeout-s", help="Give up when no server answers within this time (s)."),
+) -> None:
+    """Record a rigid body from a NatNet stream: progress, lost frames, reconnects; Ctrl-C stops."""
+    from rich.live import Live
+
+    from softphantom.tracking.client import NatNetClient, NatNetConfig
+    from softphantom.tracking.record import TrackerSink
+
+    for name, port in (("--command-port", command_port), ("--data-port", data_port)):
+        if not 0 <= port <= 65535:
+            raise UserError(f"{name} must be in 0..65535, got {port}")
+    if duration_s is not None and duration_s <= 0:
+        raise UserError(f"--duration-s must be > 0, got {duration_s}")
+    if not rest_window_s > 0:
+        raise UserError(f"--rest-window-s must be > 0, got {rest_window_s}")
+    if out.suffix.lower() not in (".mcap", ".csv"):
+        raise UserError(f"--out must name a .mcap or .csv file, got {out}")
+    cfg = NatNetConfig(server=natnet, local=local_ip, command_port=command_port, data_port=data_port,
+                       multicast=multicast, connect_timeout_s=connect_timeout_s)
+    with NatNetClient(cfg) as client:
+        info = client.connect()
+        body_id, name = choose_body(client, body)
+        ver = ".".join(map(str, info.natnet_version[:2]))
+        console.print(f"connected: {info.app_name} {'.'.join(map(str, info.app_version))} at {natnet}, NatNet {ver}, "
+                      f"{'multicast' if (info.multicast if multicast is None else multicast) else 'unicast'}; "
+                      f"recording {name!r} (id {body_id}) to {out}", highlight=False)
+        meta = {"natnet_server": f"{natnet}:{command_port}", "natnet_version": ver, "natnet_body_id": body_id,
+                "tracker": f"{info.app_name} {'.'.join(map(str, info.app_version))}"}
+        t_end = None if duration_s is None else time.monotonic() + duration_s
+        st = client.stats
+        seen = valid = 0
+        interrupted = False
+        with TrackerSink(out, body=name, meta=meta, rest_window_s=rest_window_s) as sink, \
+                Live(console=console, refresh_per_second=4, transient=True) as live:
+            try:
+                for _, f in client.frames(stop=lambda: t_end is not None and time.monotonic() >= t_end):
+                    rb = f.body(body_id)
+                    ok = rb is not None and rb.tracking_valid
+                    lat = f.system_latency_s(info.clock_hz)
+                    sink.add(f.timestamp_s, rb.position if ok else (float("nan"),) * 3,
+                             rb.quat_xyzw if ok else (float("nan"),) * 4, ok, frame=f.frame_number,
+                             latency_ms=None if lat is None else lat * 1e3)
+                    seen += 1
+                    valid += ok
+                    if seen % 30 == 1:
+                        rate = st.frames / max(time.monotonic() - st.started, 1e-9)
+                        live.update(f"frames {st.frames} ({rate:.0f} Hz), body lost in {seen - valid}, frames lost "
+                                    f"{st.lost}, duplicates {st.duplicates}, reconnects {st.reconnects}"
+                                    + ("" if lat is None else f", latency {lat * 1e3:.1f} ms"))
+            except KeyboardInterrupt:
+                interrupted = True
+    if seen == 0:
+        raise UserError(f"no frame arrived from {natnet} (data port {data_port}); nothing recorded in {out}")
+    console.print(f"{'stopped (Ctrl-C): ' if interrupted else ''}{seen} frames of {name!r} to {out}: body lost in "
+                  f"{seen - valid}, frames lost {st.lost}, duplicates {st.duplicates}, reconnects {st.reconnects}, "
+                  f"undecodable packets {st.bad_packets}", highlight=False)

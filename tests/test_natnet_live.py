@@ -1,0 +1,142 @@
+"""End to end without hardware: the virtual tracker served as NatNet on loopback →
+``softphantom track --natnet 127.0.0.1`` → ``softphantom evaluate``."""
+
+import re
+import sys
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from softphantom.cli import main  # noqa: E402
+from softphantom.evaluation import read_truth, write_table  # noqa: E402
+from softphantom.pose import Pose6, matrix_from_ypr, pose_of_markers  # noqa: E402
+from softphantom.tracking import make_track, pose_columns, read_track, register_track  # noqa: E402
+from softphantom.virtual.natnet_server import serve_natnet  # noqa: E402
+from softphantom.virtual.tracker import TrackerConfig, simulate_tracker  # noqa: E402
+
+REST = np.array([[0.02, 0.0, 0.01], [-0.015, 0.01, 0.015], [0.0, -0.02, 0.012], [0.005, 0.005, 0.025]])
+
+
+def motion(t):
+    """Relative pose of the marker body: a push (y up to 4 mm, yaw up to 3°) from 0.8 s to 1.6 s."""
+    s = np.clip((np.asarray(t) - 0.8) / 0.4, 0, 1) - np.clip((np.asarray(t) - 1.2) / 0.4, 0, 1)
+    s = 0.5 - 0.5 * np.cos(np.pi * s)
+    return s[:, None] * np.array([0.0, 0.004, 0.0]), s[:, None] * np.array([np.radians(3.0), 0.0, 0.0])
+
+
+@dataclass
+class _Scenario:
+    duration_s: float = 2.0
+
+
+@dataclass
+class _Samples:
+    markers: np.ndarray
+
+
+class FakeTruth:
+    """What simulate_tracker needs of a Truth: a rigid motion of four markers, no FEM."""
+
+    scenario = _Scenario()
+    rest_markers = REST
+
+    def sample(self, t):
+        xyz, ypr = motion(t)
+        R = matrix_from_ypr(ypr)
+        return _Samples(np.einsum("nij,kj->nki", R, REST) + xyz[:, None, :])
+
+
+@pytest.fixture(scope="module")
+def stream():
+    return simulate_tracker(FakeTruth(), TrackerConfig(seed=3, lost_fraction=0.02))
+
+
+def _serve(stream, **kw):
+    port = []
+    ready = threading.Event()
+    stop = threading.Event()
+
+    def on_ready(p):
+        port.append(p)
+        ready.set()
+
+    th = threading.Thread(target=serve_natnet, args=(stream, REST), daemon=True,
+                          kwargs=dict(command_port=0, stop=stop.is_set, on_ready=on_ready, **kw))
+    th.start()
+    assert ready.wait(5)
+    return port[0], stop, th
+
+
+@pytest.mark.parametrize("suffix, version", [(".csv", (4, 1)), (".mcap", (3, 0))])
+def test_virtual_serve_track_evaluate(tmp_path, capsys, stream, suffix, version):
+    port, stop, th = _serve(stream, version=version, speed=2.0)
+    out = tmp_path / f"truth{suffix}"
+    try:
+        code = main(["track", "--natnet", "127.0.0.1", "--command-port", str(port), "--data-port", "0",
+                     "--out", str(out), "--duration-s", "1.6"])
+    finally:
+        stop.set()
+        th.join(5)
+    printed = capsys.readouterr()
+    assert code == 0, printed.err
+    text = " ".join(printed.out.split())
+    assert "connected: Motive 3.1.0.0 at 127.0.0.1" in text and "'bip' (id 1)" in text
+    m = re.search(r"(\d+) frames of 'bip'.*body lost in (\d+), frames lost (\d+)", text)
+    n, lost_body, lost_frames = map(int, m.groups())
+    assert n > 150 and lost_frames == 0
+    # every frame of the take arrived in order, with the stream's own lost frames flagged
+    assert lost_body == int((~stream.valid[:n]).sum()) and n > len(stream.t_take)
+    tru = read_truth(out)
+    if suffix == ".mcap":
+        tr = read_track(out)
+        assert tr.meta["format"] == "softphantom-mcap" and tr.meta["frames_missing"] == 0
+        assert tr.meta["latency_ms_median"] == pytest.approx(stream.latency_s * 1e3, abs=1e-3)
+        np.testing.assert_allclose(tr.t[: len(stream.t_take)], stream.t_take, atol=1e-9)
+    # what the server was given is what was recorded (float32 on the wire), registered by the same
+    # rest window as the stream itself would be
+    ref = register_track(make_track(stream.t_take, stream.position, stream.quat_xyzw, clock="take",
+                                    source="stream", name="bip"))
+    cols = pose_columns(ref)
+    k = tru.t <= stream.t_take[-1] + 1e-9  # after the scenario the server repeats the last pose
+    np.testing.assert_allclose(tru.t[k], cols["t_s"], atol=1e-9)
+    want = np.column_stack([cols[c] for c in Pose6.COLUMNS])
+    np.testing.assert_allclose(tru.mm_deg()[k], want, atol=2e-3)
+    # and it is the motion, up to the tracker's noise (0.19 mm per marker, markers ~3 cm apart)
+    xyz, ypr = motion(tru.t - stream.clock_offset_s)
+    rms = np.sqrt(np.mean((tru.mm_deg() - Pose6(xyz, ypr).to_mm_deg()) ** 2, axis=0))
+    assert rms[:3].max() < 0.3 and rms[3:].max() < 0.8, rms
+    # evaluate against an estimate that is the motion on the take's clock: errors are the tracker's
+    t_est = np.arange(0.0, tru.t[-1], 1 / 77)
+    xe, ye = motion(t_est - stream.clock_offset_s)
+    v = Pose6(xe, ye).to_mm_deg()
+    est = tmp_path / "est.csv"
+    write_table(est, {"softphantom": "test"}, {"t_s": t_est, **{c: v[:, k] for k, c in enumerate(Pose6.COLUMNS)}})
+    assert main(["evaluate", "--estimate", str(est), "--truth", str(out), "--out", str(tmp_path / "rep"),
+                 "--lag-ms", "0"]) == 0
+    rep = capsys.readouterr().out
+    rmse = [float(x) for x in re.findall(r"\((?:mm|deg)\)\s+│\s+([-\d.]+)", rep)]
+    assert len(rmse) == 6 and max(rmse[:3]) < 0.3, rep
+
+
+def test_track_refuses_when_no_server(tmp_path, capsys):
+    code = main(["track", "--natnet", "127.0.0.1", "--command-port", "9", "--data-port", "0",
+                 "--out", str(tmp_path / "x.csv"), "--connect-timeout-s", "0.5"])
+    err = " ".join(capsys.readouterr().err.split())
+    assert code == 2 and "no NatNet server answered at 127.0.0.1:9 within 0.5 s" in err
+
+
+def test_track_body_choice(tmp_path, capsys, stream):
+    port, stop, th = _serve(stream)
+    try:
+        code = main(["track", "--natnet", "127.0.0.1", "--command-port", str(port), "--data-port", "0",
+                     "--body", "nobody", "--out", str(tmp_path / "x.mcap"), "--duration-s", "0.3"])
+    finally:
+        stop.set()
+        th.join(5)
+    err = " ".join(capsys.readouterr().err.split())
+    assert code == 2 and "no rigid body 'nobody'; it streams: bip (id 1)" in err
