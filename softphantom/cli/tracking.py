@@ -9,6 +9,7 @@ from typing import Optional
 import typer
 
 from softphantom.cli.app import app, console
+from softphantom.cli.options import check_output, overwrite_option, stopped
 from softphantom.errors import UserError
 
 
@@ -41,6 +42,7 @@ def track_cmd(
     duration_s: Optional[float] = typer.Option(None, "--duration-s", help="Stop after this many seconds (default: Ctrl-C)."),
     rest_window_s: float = typer.Option(0.5, "--rest-window-s", help="Length of the rest window at the start (s), for the truth CSV."),
     connect_timeout_s: float = typer.Option(3.0, "--connect-timeout-s", help="Give up when no server answers within this time (s)."),
+    overwrite: bool = overwrite_option(),
 ) -> None:
     """Record a rigid body from a NatNet stream: progress, lost frames, reconnects; Ctrl-C stops."""
     from rich.live import Live
@@ -57,6 +59,7 @@ def track_cmd(
         raise UserError(f"--rest-window-s must be > 0, got {rest_window_s}")
     if out.suffix.lower() not in (".mcap", ".csv"):
         raise UserError(f"--out must name a .mcap or .csv file, got {out}")
+    check_output(out, overwrite=overwrite, directory=False)
     cfg = NatNetConfig(server=natnet, local=local_ip, command_port=command_port, data_port=data_port,
                        multicast=multicast, connect_timeout_s=connect_timeout_s)
     with NatNetClient(cfg) as client:
@@ -93,6 +96,8 @@ def track_cmd(
                 interrupted = True
     if seen == 0:
         raise UserError(f"no frame arrived from {natnet} (data port {data_port}); nothing recorded in {out}")
-    console.print(f"{'stopped (Ctrl-C): ' if interrupted else ''}{seen} frames of {name!r} to {out}: body lost in "
+    console.print(f"{seen} frames of {name!r} to {out}: body lost in "
                   f"{seen - valid}, frames lost {st.lost}, duplicates {st.duplicates}, reconnects {st.reconnects}, "
                   f"undecodable packets {st.bad_packets}", highlight=False)
+    if interrupted:
+        stopped()  # the recording is closed and complete; exit 130
