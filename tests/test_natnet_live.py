@@ -143,3 +143,35 @@ def test_track_body_choice(tmp_path, capsys, stream):
         th.join(5)
     err = " ".join(capsys.readouterr().err.split())
     assert code == 2 and "no rigid body 'nobody'; it streams: bip (id 1)" in err
+
+
+def test_live_shows_and_records_the_tracker(tmp_path, stream):
+    from softphantom.tracking.client import NatNetConfig
+    from softphantom.viz.live import LiveConfig, LiveSession, open_source
+    from softphantom.viz.live.tracker import NatNetTrackerFeed, TrackedSource
+
+    port, stop, th = _serve(stream, speed=1.0)
+    rec = tmp_path / "session.mcap"
+    try:
+        feed = NatNetTrackerFeed(NatNetConfig(command_port=port, data_port=0)).start()
+        src = TrackedSource(open_source("synthetic", rate_Hz=77.0, duration_s=None, speed=1.0), feed)
+        with LiveSession(src, LiveConfig(http_port=0, stream_port=None, record=rec, duration_s=1.5)) as s:
+            s.wait(timeout_s=20)
+            frame, _, _ = s.state.frame_since(-1, 0)
+    finally:
+        stop.set()
+        th.join(5)
+    shown = [m["tracker"] for m in frame["samples"] if "tracker" in m]
+    assert shown and set(shown[-1]) == set(Pose6.COLUMNS)  # the page gets the tracker beside the estimate
+    tr = read_track(rec)  # and the recording's /tracker is a truth file: the served poses
+    assert tr.name == "bip" and len(tr) > 60 and tr.meta["frames_missing"] == 0
+    m = min(len(tr), len(stream.t_take))
+    np.testing.assert_allclose(tr.t[:m], stream.t_take[:m], atol=1e-9)
+    v = tr.valid[:m]
+    assert np.array_equal(v, stream.valid[:m])
+    np.testing.assert_allclose(tr.position[:m][v], stream.position[:m][v], atol=1e-6)
+
+
+def test_live_tracker_option_checked(capsys):
+    assert main(["live", "--tracker", "vrpn:host", "--no-stream", "--http-port", "0", "--duration-s", "1"]) == 2
+    assert "--tracker must be natnet:HOST or natnet:HOST:PORT, got 'vrpn:host'" in " ".join(capsys.readouterr().err.split())

@@ -30,6 +30,9 @@ def live(
     at: str = typer.Option("on-centre", "--at", help="virtual/serial: contact point, on-centre | off-centre"),
     max_force_N: float = typer.Option(10.0, "--max-force-N", help="virtual/serial: bound on each force component (N)"),
     overwrite: bool = overwrite_option(),
+    tracker: Optional[str] = typer.Option(None, "--tracker", help="natnet:HOST[:PORT]: show the tracker beside the "
+                                          "estimate and record it on /tracker (Motive, or virtual serve --natnet)"),
+    tracker_body: Optional[str] = typer.Option(None, "--tracker-body", help="rigid body of the --tracker stream"),
 ) -> None:
     """Show the estimate live on a local web page, stream every estimate (ZeroMQ, JSON) and record
     the session (MCAP). Ctrl-C stops."""
@@ -51,6 +54,8 @@ def live(
         src = _estimator_source(source, model, at, max_force_N, speed)
     else:
         src = open_source(source, model_dir=model, rate_Hz=rate_Hz, duration_s=None, speed=speed)
+    if tracker is not None:
+        src = _with_tracker(src, tracker, tracker_body)
     cfg = LiveConfig(listen_host=listen_host, http_port=http_port, stream_port=None if no_stream else stream_port,
                      view_rate_Hz=view_rate_Hz, record=record, duration_s=duration_s)
     with LiveSession(src, cfg) as session:
@@ -72,6 +77,28 @@ def live(
                   f"stream sent {st['stream'].get('sent', 0)}", highlight=False)
     if interrupted:
         stopped()  # the recording (if any) is closed and complete; exit 130
+
+
+def _with_tracker(src, spec: str, body: Optional[str]):
+    """The source with a NatNet tracker feed (``natnet:HOST[:PORT]``) attached."""
+    from softphantom.tracking.client import NatNetConfig
+    from softphantom.viz.live.tracker import NatNetTrackerFeed, TrackedSource
+
+    kind, _, where = spec.partition(":")
+    host, _, port = where.partition(":")
+    if kind != "natnet" or not host or (port and not port.isdigit()):
+        raise UserError(f"--tracker must be natnet:HOST or natnet:HOST:PORT, got {spec!r}")
+    feed = NatNetTrackerFeed(NatNetConfig(server=host, command_port=int(port or 1510)), body)
+    try:
+        feed.start()
+    except BaseException:
+        feed.close()
+        close = getattr(src, "close", None)
+        if callable(close):
+            close()
+        raise
+    console.print(f"tracker: {feed.name!r} from NatNet {host}:{port or 1510}", highlight=False)
+    return TrackedSource(src, feed)
 
 
 def _estimator_source(spec: str, model_dir: Optional[Path], at: str, max_force_N: float, speed: float):

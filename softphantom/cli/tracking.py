@@ -13,23 +13,6 @@ from softphantom.cli.options import check_output, overwrite_option, stopped
 from softphantom.errors import UserError
 
 
-def choose_body(client, body: Optional[str], wait_s: float = 1.0) -> tuple[int, str]:
-    """The rigid body's id and name, from the model definitions (or a numeric ``body``)."""
-    defs = client.wait_for_models(wait_s)
-    bodies = {b.name: b.id for b in defs.rigid_bodies} if defs is not None else {}
-    have = ", ".join(f"{n} (id {i})" for n, i in bodies.items()) or "none defined"
-    if body is None:
-        if len(bodies) == 1:
-            name, = bodies
-            return bodies[name], name
-        raise UserError(f"NatNet server {client.config.server}: {len(bodies)} rigid bodies, choose one with --body: {have}")
-    if body in bodies:
-        return bodies[body], body
-    if body.isdigit():
-        return int(body), body
-    raise UserError(f"NatNet server {client.config.server}: no rigid body {body!r}; it streams: {have}")
-
-
 @app.command("track")
 def track_cmd(
     natnet: str = typer.Option(..., "--natnet", help="NatNet server address (Motive's PC, or 127.0.0.1 for virtual serve --natnet)."),
@@ -64,7 +47,7 @@ def track_cmd(
                        multicast=multicast, connect_timeout_s=connect_timeout_s)
     with NatNetClient(cfg) as client:
         info = client.connect()
-        body_id, name = choose_body(client, body)
+        body_id, name = client.choose_body(body)
         ver = ".".join(map(str, info.natnet_version[:2]))
         console.print(f"connected: {info.app_name} {'.'.join(map(str, info.app_version))} at {natnet}, NatNet {ver}, "
                       f"{'multicast' if (info.multicast if multicast is None else multicast) else 'unicast'}; "

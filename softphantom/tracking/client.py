@@ -156,6 +156,23 @@ class NatNetClient:
             self._poll_command(0.1)
         return self.models
 
+    def choose_body(self, body: str | None, wait_s: float = 1.0) -> tuple[int, str]:
+        """The rigid body's id and name, from the model definitions (or a numeric ``body``)."""
+        defs = self.wait_for_models(wait_s)
+        bodies = {b.name: b.id for b in defs.rigid_bodies} if defs is not None else {}
+        have = ", ".join(f"{n} (id {i})" for n, i in bodies.items()) or "none defined"
+        where = f"NatNet server {self.config.server}"
+        if body is None:
+            if len(bodies) == 1:
+                (name,) = bodies
+                return bodies[name], name
+            raise UserError(f"{where}: {len(bodies)} rigid bodies, choose one with --body: {have}")
+        if body in bodies:
+            return bodies[body], body
+        if body.isdigit():
+            return int(body), body
+        raise UserError(f"{where}: no rigid body {body!r}; it streams: {have}")
+
     def _receive(self, timeout_s: float, command_only: bool = False):
         socks = [s for s in (self._cmd, None if command_only else self._data) if s is not None]
         r, _, _ = select.select(socks, [], [], timeout_s)

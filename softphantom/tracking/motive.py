@@ -25,7 +25,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from softphantom.errors import FileFormatError
-from softphantom.tracking.track import PoseTrack, make_track
+from softphantom.tracking.track import PoseTrack, make_track, pick_body
 
 _UNITS = {"meters": 1.0, "metres": 1.0, "m": 1.0, "centimeters": 1e-2, "centimetres": 1e-2, "cm": 1e-2,
           "millimeters": 1e-3, "millimetres": 1e-3, "mm": 1e-3}
@@ -284,12 +284,7 @@ def read_motive_csv(path: str | Path, body: str | None = None, *, length_unit: s
     bodies = h["bodies"]
     if not bodies:
         raise FileFormatError(f"{label}: line {lines[h['type_i'] + 1]}: the rigid body columns have no names")
-    if body is None:
-        if len(bodies) > 1:
-            raise FileFormatError(f"{label}: {len(bodies)} rigid bodies, choose one with body=: {', '.join(bodies)}")
-        body = bodies[0]
-    elif body not in bodies:
-        raise FileFormatError(f"{label}: no rigid body named {body!r}; the file has: {', '.join(bodies)}")
+    body = pick_body(label, bodies, body)
 
     cols: dict[tuple[str, str], int] = {}
     body_id = ""

@@ -30,6 +30,48 @@ from softphantom.tracking.track import PoseTrack, make_track
 FLUSH_S = 1.0
 
 
+class RestRegistrar:
+    """Register samples as they come: the first ``rest_window_s`` of valid samples give the rest
+    pose, then every sample's pose relative to rest in the model frame (as :func:`register_track`).
+    :meth:`add` returns the registered rows that became known (``t_s`` and the 6 DoF in mm, deg;
+    lost samples left out)."""
+
+    def __init__(self, name: str, rest_window_s: float = DEFAULT_REST_WINDOW_S):
+        self.name = name
+        self.rest_window_s = rest_window_s
+        self.rest = None
+        self.t0: float | None = None
+        self._pending: list[tuple] = []
+
+    def add(self, t: float, position, quat_xyzw, valid: bool) -> None:
+        self._pending.append((float(t), tuple(position), tuple(quat_xyzw), bool(valid)))
+        if self.rest is None:
+            valid_t = [p[0] for p in self._pending if p[3]]
+            if not valid_t or t < valid_t[0] + self.rest_window_s:
+                return None
+            self._set_rest(valid_t[0], valid_t[0] + self.rest_window_s)
+
+    def _set_rest(self, t0: float, t1: float) -> None:
+        self.t0 = t0
+        self.rest = rest_pose(self._track(), (t0, t1))
+
+    def _track(self) -> PoseTrack:
+        t, p, q, v = zip(*self._pending)
+        p = np.where(np.asarray(v)[:, None], np.asarray(p, float), np.nan)
+        return make_track(np.asarray(t), p, np.asarray(q, float), clock="tracker", source="live", name=self.name)
+
+    def take(self, finish: bool = False) -> dict[str, np.ndarray] | None:
+        """The registered rows so far (None before the rest pose is known); ``finish``: a session
+        shorter than the rest window takes all of it as rest."""
+        if self.rest is None and finish and any(p[3] for p in self._pending):
+            self._set_rest(min(p[0] for p in self._pending if p[3]), math.inf)
+        if self.rest is None or not self._pending:
+            return None
+        cols = pose_columns(register_track(self._track(), rest=self.rest))
+        self._pending.clear()
+        return cols
+
+
 class TrackerSink:
     """Write tracker samples to ``path`` (``.mcap`` or ``.csv``), see the module docstring."""
 
@@ -44,8 +86,8 @@ class TrackerSink:
         self.samples = 0
         self._rec = None
         self._fh = None
-        self._pending: list[tuple] = []
-        self._rest = None
+        self._reg = RestRegistrar(body, rest_window_s)
+        self._header = False
         self._last_flush = time.monotonic()
         if self.kind == ".mcap":
             from softphantom.stream.recording import SessionRecorder
@@ -70,42 +112,32 @@ class TrackerSink:
                 msg["latency_ms"] = float(latency_ms)
             self._rec.write_tracker(msg)
             return
-        self._pending.append((float(t), tuple(position), tuple(quat_xyzw), bool(valid)))
-        if self._rest is None:
-            valid_t = [p[0] for p in self._pending if p[3]]
-            if not valid_t or t < valid_t[0] + self.rest_window_s:
-                return
-            self._rest = rest_pose(self._track(self._pending), (valid_t[0], valid_t[0] + self.rest_window_s))
-            self._write_header(valid_t[0])
-        if time.monotonic() - self._last_flush >= FLUSH_S:
+        self._reg.add(t, position, quat_xyzw, valid)
+        if self._reg.rest is not None and time.monotonic() - self._last_flush >= FLUSH_S:
             self.flush()
 
-    def _track(self, rows) -> PoseTrack:
-        t, p, q, v = zip(*rows)
-        p = np.where(np.asarray(v)[:, None], np.asarray(p, float), np.nan)
-        return make_track(np.asarray(t), p, np.asarray(q, float), clock="natnet_timestamp", source=str(self.path),
-                          name=self.body)
-
-    def _write_header(self, t0: float) -> None:
+    def _write_header(self) -> None:
         from softphantom import __version__
 
+        r = self._reg
         meta = {"softphantom": __version__, **self.meta, "body": self.body, "registration": "rest window",
-                "rest_window_s": [t0, t0 + self.rest_window_s], "rest_spread_m": float(self._rest.rms_residual)}
+                "rest_window_s": [r.t0, r.t0 + self.rest_window_s], "rest_spread_m": float(r.rest.rms_residual)}
         self._fh.write("# " + json.dumps(meta, default=str) + "\n" + ",".join(("t_s",) + Pose6.COLUMNS) + "\n")
+        self._header = True
 
-    def flush(self) -> None:
+    def flush(self, finish: bool = False) -> None:
         if self._rec is not None:
             self._rec.flush()
             return
-        if self._rest is None or not self._pending:
+        cols = self._reg.take(finish)
+        if cols is None:
             return
-        reg = register_track(self._track(self._pending), rest=self._rest)
-        cols = pose_columns(reg)
+        if not self._header:
+            self._write_header()
         names = ("t_s",) + Pose6.COLUMNS
         for row in zip(*(cols[k] for k in names)):
             self._fh.write(",".join(repr(float(x)) for x in row) + "\n")
         self._fh.flush()
-        self._pending.clear()
         self._last_flush = time.monotonic()
 
     def close(self) -> None:
@@ -113,12 +145,7 @@ class TrackerSink:
             self._rec.close()
             self._rec = None
         if self._fh is not None:
-            if self._rest is None and self._pending:  # shorter than the rest window: all of it is rest
-                valid_t = [p[0] for p in self._pending if p[3]]
-                if valid_t:
-                    self._rest = rest_pose(self._track(self._pending), (valid_t[0], math.inf))
-                    self._write_header(valid_t[0])
-            self.flush()
+            self.flush(finish=True)
             self._fh.close()
             self._fh = None
 

@@ -19,7 +19,7 @@ import numpy as np
 
 from softphantom.errors import FileFormatError
 from softphantom.pose import matrix_from_ypr, quat_from_matrix
-from softphantom.tracking.track import PoseTrack, make_track
+from softphantom.tracking.track import PoseTrack, make_track, pick_body
 
 _REL = ("x_mm", "y_mm", "z_mm", "yaw_deg", "pitch_deg", "roll_deg")
 
@@ -46,12 +46,7 @@ def read_recorded_tracker(path: str | Path, body: str | None = None) -> PoseTrac
             " (softphantom track --out FILE.mcap, or live with a NatNet source)"
         )
     names = sorted({str(m.get("name", "")) for m in msgs})
-    if body is None:
-        if len(names) > 1:
-            raise FileFormatError(f"{label}: {len(names)} bodies on /tracker, choose one: {', '.join(names)}")
-        body = names[0]
-    elif body not in names:
-        raise FileFormatError(f"{label}: no body {body!r} on /tracker; it has: {', '.join(names)}")
+    body = pick_body(label, names, body, "bodies on /tracker", "body on /tracker")
     msgs = [m for m in msgs if str(m.get("name", "")) == body]
     t = np.array([_num(m.get("t_s")) for m in msgs])
     valid = np.array([bool(m.get("valid", True)) for m in msgs])

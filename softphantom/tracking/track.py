@@ -52,6 +52,24 @@ class PoseTrack:
         return float(1.0 / np.median(np.diff(tv))) if len(tv) > 1 else float("nan")
 
 
+def pick_body(label: str, available: list[str], body: str | None, what: str = "rigid bodies",
+              one: str = "rigid body") -> str:
+    """``body``, or the only one ``available``; a FileFormatError listing them otherwise.
+
+    >>> pick_body("take.csv", ["bip"], None)
+    'bip'
+    """
+    from softphantom.errors import FileFormatError
+
+    if body is None:
+        if len(available) != 1:
+            raise FileFormatError(f"{label}: {len(available)} {what}, choose one with body=: {', '.join(available)}")
+        return available[0]
+    if body not in available:
+        raise FileFormatError(f"{label}: no {one} named {body!r}; the file has: {', '.join(available)}")
+    return body
+
+
 def make_track(t, position, quat_xyzw, *, clock: str, source: str, name: str, meta: dict | None = None) -> PoseTrack:
     """Build a :class:`PoseTrack`, marking non-finite or zero-norm samples invalid (set to NaN)."""
     t = np.asarray(t, dtype=float)

@@ -46,6 +46,9 @@ class LiveConfig:
     duration_s: float | None = None
 
 
+_TRACKER_KEYS = ("x_mm", "y_mm", "z_mm", "yaw_deg", "pitch_deg", "roll_deg")
+
+
 class LiveState:
     """Shared, bounded state between the pump and the page (thread-safe)."""
 
@@ -246,6 +249,7 @@ class LiveSession:
         t_end = None if cfg.duration_s is None else time.monotonic() + cfg.duration_s
         last_meas = getattr(src, "last_measurement", None)
         poll_tracker = getattr(src, "poll_tracker", None)
+        tracker = None  # the latest tracker pose relative to rest, drawn beside the estimate
         seq = -1
         try:
             for est in src:
@@ -260,10 +264,12 @@ class LiveSession:
                     self.recorder.write_estimate(data)
                     if callable(last_meas) and (m := last_meas()) is not None:
                         self.recorder.write_sensors(measurement_to_message(m))
-                    if callable(poll_tracker):
-                        for tm in poll_tracker() or ():
-                            self.recorder.write_tracker(tm)
-                st.push(msg)
+                for tm in (poll_tracker() or ()) if callable(poll_tracker) else ():
+                    if self.recorder is not None:
+                        self.recorder.write_tracker(tm)
+                    if "x_mm" in tm:
+                        tracker = {k: tm[k] for k in _TRACKER_KEYS}
+                st.push(msg if tracker is None else {**msg, "tracker": tracker})  # the page only
                 now = time.monotonic()
                 want_rec = self.recorder is not None and rec_dt is not None and now - last_rec >= rec_dt
                 if geo is not None and (now - last_view >= view_dt or want_rec):

@@ -45,6 +45,7 @@ function applyFrame(f) {
     for (const m of f.samples) if (m.seq > lastSeq) S.samples.push(m);
     if (S.samples.length > MAX_SAMPLES) S.samples.splice(0, S.samples.length - MAX_SAMPLES);
     if (S.samples.length) S.latest = S.samples[S.samples.length - 1];
+    if (!S.tracker && f.samples.some((m) => m.tracker)) S.tracker = true;
   }
   if (f.surface_mm_f32_b64 && S.rest) {
     const p = decodePositions(f.surface_mm_f32_b64);
@@ -178,10 +179,14 @@ function draw3d() {
 }
 
 // ---------- plots ----------
+// the tracker (a NatNet source given to `live --tracker`): dashed, in the colour of its estimate DoF
+function trackerSeries(keys) {
+  return keys.map((k, i) => [(m) => (m.tracker ? m.tracker[k] : null), `${k.split("_")[0]} trk`, SERIES_COLORS[i], true, "tracker"]);
+}
 const PLOTS = [
   ["plot-force", [["force_x_N", "Fx"], ["force_y_N", "Fy"], ["force_z_N", "Fz"], [(m) => Math.hypot(m.force_x_N, m.force_y_N, m.force_z_N), "|F|"]]],
-  ["plot-position", [["x_mm", "x"], ["y_mm", "y"], ["z_mm", "z"]]],
-  ["plot-rotation", [["yaw_deg", "yaw"], ["pitch_deg", "pitch"], ["roll_deg", "roll"]]],
+  ["plot-position", [["x_mm", "x"], ["y_mm", "y"], ["z_mm", "z"], ...trackerSeries(["x_mm", "y_mm", "z_mm"])]],
+  ["plot-rotation", [["yaw_deg", "yaw"], ["pitch_deg", "pitch"], ["roll_deg", "roll"], ...trackerSeries(["yaw_deg", "pitch_deg", "roll_deg"])]],
   ["plot-cavities", null],
 ];
 function cavitySeries() {
@@ -232,7 +237,7 @@ function drawPlot(id, series) {
       const x = X(sm[i].t_s), y = Y(v); if (pen) ctx.lineTo(x, y); else { ctx.moveTo(x, y); pen = true; }
     }
     ctx.stroke(); ctx.setLineDash([]);
-    if (s[1]) {  // legend with the latest value
+    if (s[1] && !(s[4] === "tracker" && !S.tracker)) {  // legend with the latest value
       const v = g(last), txt = `${s[1]} ${v == null ? "–" : v.toFixed(2)}`;
       ctx.font = `${12 * d}px "DejaVu Sans Mono", monospace`;
       const w = ctx.measureText(txt).width;
