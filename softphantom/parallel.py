@@ -71,7 +71,7 @@ def dask_client(
         n_workers=n,
         threads_per_worker=1,
         processes=processes,
-        dashboard_address=None,
+        dashboard_address=":0",  # a free port: None still binds the default 8787 and warns when taken
         silence_logs=40,  # logging.ERROR: the progress bar is the user's view
     )
     client = Client(cluster)

@@ -6,7 +6,7 @@ over a sensor source and writes the estimate CSV (:class:`EstimateWriter`).
 """
 
 from softphantom.estimation.config import EstimatorConfig
-from softphantom.estimation.estimator import Estimator, NoiseBound
+from softphantom.estimation.estimator import Estimator, NoiseBound, noise_bound
 from softphantom.estimation.linearization import EquilibriumSolver, Linearization
 from softphantom.estimation.qp import QP_SOLVERS, QPResult, solve_volume_qp
 from softphantom.estimation.stream import (
@@ -34,6 +34,7 @@ __all__ = [
     "estimate_row",
     "estimate_stream",
     "iter_samples",
+    "noise_bound",
     "solve_volume_qp",
     "write_estimates",
 ]

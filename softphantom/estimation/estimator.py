@@ -59,6 +59,40 @@ def pose_and_shifts(rest_markers: np.ndarray, rest_targets: np.ndarray, target_n
     return pose, shifts
 
 
+def noise_bound(lin: Linearization, rest_markers: np.ndarray, target_names, sigma_dV_m3,
+                sigma_p_Pa: float = 0.0, lam=None) -> NoiseBound:
+    """1-σ errors from independent volume noise ``sigma_dV_m3`` (scalar or (4,), m³) and urethra
+    pressure noise, propagated through the least-squares inverse ``W_f⁺`` of ``lin`` (bounds
+    inactive), then through ``U_sub`` to the pose (rigid fit of the first ``len(rest_markers)``
+    tracked points, Jacobian by central differences about ``lam``, default ``lin.lam``) and to the
+    targets (the tracked points after the markers, named ``target_names``)."""
+    nm = len(rest_markers)
+    Wf, wp = lin.W[:, :3], lin.W[:, 3]
+    Wp = np.linalg.pinv(Wf)  # (3,4)
+    s = np.broadcast_to(np.asarray(sigma_dV_m3, float), (4,))
+    # δf = W_f⁺ (δV − w_p δp)
+    cov = Wp @ np.diag(s**2) @ Wp.T + np.outer(Wp @ wp, Wp @ wp) * sigma_p_Pa**2
+    # pose and targets: linear in δλ = (δf, δp); Jacobian of the pose by central differences
+    cov_l = np.zeros((4, 4))
+    cov_l[:3, :3] = cov
+    cov_l[3, 3] = sigma_p_Pa**2
+    cov_l[:3, 3] = cov_l[3, :3] = -(Wp @ wp) * sigma_p_Pa**2
+    lam0 = lin.lam if lam is None else np.asarray(lam, float)
+    Jp = np.zeros((6, 4))
+    for j in range(4):
+        h = np.zeros(4)
+        h[j] = 1e-3 if j < 3 else 1.0
+        a = Pose6.from_transform(rigid_fit(rest_markers, lin.predict_points(lam0 + h)[:nm]))
+        b = Pose6.from_transform(rigid_fit(rest_markers, lin.predict_points(lam0 - h)[:nm]))
+        Jp[:, j] = (np.r_[a.xyz, a.ypr] - np.r_[b.xyz, b.ypr]) / (2 * h[j])
+    pose = np.sqrt(np.diag(Jp @ cov_l @ Jp.T))
+    targets = {}
+    for i, k in enumerate(target_names):
+        Ut = lin.sub_U[nm + i]  # (3,4)
+        targets[k] = np.sqrt(np.diag(Ut @ cov_l @ Ut.T))
+    return NoiseBound(np.sqrt(np.diag(cov)), pose, targets, cov)
+
+
 def _check(m) -> str:
     """'' for a usable sample, else the rejection reason."""
     if getattr(m, "status", "ok") != "ok":
@@ -382,33 +416,8 @@ class Estimator:
     # -- noise ------------------------------------------------------------------------------------
     def noise_bound(self, sigma_dV_m3, sigma_p_Pa: float = 0.0) -> NoiseBound:
         """1-σ errors from independent volume noise ``sigma_dV_m3`` (scalar or (4,)) and urethra
-        pressure noise, propagated through the least-squares inverse ``W_f⁺`` at the current
-        linearization (bounds inactive), then through ``U_sub`` to the pose and targets."""
-        lin = self._lin
-        Wf, wp = lin.W[:, :3], lin.W[:, 3]
-        Wp = np.linalg.pinv(Wf)  # (3,4)
-        s = np.broadcast_to(np.asarray(sigma_dV_m3, float), (4,))
-        # δf = W_f⁺ (δV − w_p δp)
-        cov = Wp @ np.diag(s**2) @ Wp.T + np.outer(Wp @ wp, Wp @ wp) * sigma_p_Pa**2
-        # pose and targets: linear in δλ = (δf, δp); Jacobian of the pose by central differences
-        cov_l = np.zeros((4, 4))
-        cov_l[:3, :3] = cov
-        cov_l[3, 3] = sigma_p_Pa**2
-        cov_l[:3, 3] = cov_l[3, :3] = -(Wp @ wp) * sigma_p_Pa**2
-        lam0 = self._lam
-        Jp = np.zeros((6, 4))
-        for j in range(4):
-            h = np.zeros(4)
-            h[j] = 1e-3 if j < 3 else 1.0
-            a = Pose6.from_transform(rigid_fit(self.rest_markers, lin.predict_points(lam0 + h)[: self._nm]))
-            b = Pose6.from_transform(rigid_fit(self.rest_markers, lin.predict_points(lam0 - h)[: self._nm]))
-            Jp[:, j] = (np.r_[a.xyz, a.ypr] - np.r_[b.xyz, b.ypr]) / (2 * h[j])
-        pose = np.sqrt(np.diag(Jp @ cov_l @ Jp.T))
-        targets = {}
-        for i, k in enumerate(self.target_names):
-            Ut = lin.sub_U[self._nm + i]  # (3,4)
-            targets[k] = np.sqrt(np.diag(Ut @ cov_l @ Ut.T))
-        return NoiseBound(np.sqrt(np.diag(cov)), pose, targets, cov)
+        pressure noise at the current linearization and estimate (:func:`noise_bound`)."""
+        return noise_bound(self._lin, self.rest_markers, self.target_names, sigma_dV_m3, sigma_p_Pa, self._lam)
 
     def stats(self) -> dict:
         """Counters: refreshes, factorizations, the last linearization's error (m³), worker error."""

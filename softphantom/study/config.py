@@ -1,0 +1,345 @@
+"""The sweep file (TOML): which parameters vary, how they are sampled, and how a variant is evaluated.
+
+A parameter is a dotted path:
+
+* into the design file (:func:`~softphantom.design.design_to_dict`): ``bulb.semi_axes_mm[2]``,
+  ``arms.front_zpos.direction[1]``, ``arms.*.radius_mm`` (``*``: all four arms get the value),
+  ``urethra.radius_mm``, ``mesh.size_mm``; ``arms.<arm>.cavity_length_mm`` sets the cavity's
+  cylinder length (its volume follows from the capsule, radius ``radius_mm − wall_mm``);
+* ``mesh_size_mm``: the bulb element size, arm and cavity sizes scaled with it (as ``--mesh-size-mm``);
+* ``sensing.tube_length_m``, ``sensing.tube_id_mm``, ``sensing.osr``: the pneumatic line of every arm;
+* ``material.E_kPa``, ``material.nu``: the silicone (one Hooke material for every region).
+
+Each parameter is a table: ``{min, max}`` (continuous; ``log = true`` samples it log-uniformly,
+``steps = n`` gives n grid points) or ``{values = [...]}`` (a list). Methods: ``grid`` (the
+product of all lists), ``random`` and ``lhs`` (Latin hypercube, :mod:`scipy.stats.qmc`),
+``samples`` variants, seeded.
+
+>>> cfg = sweep_config_from_dict({"sweep": {"method": "grid"},
+...     "parameters": {"arms.*.radius_mm": {"values": [5.5, 6.0]}, "sensing.tube_length_m": {"min": 1, "max": 12, "steps": 2}}})
+>>> [v.params for v in cfg.variants()]
+[{'arms.*.radius_mm': 5.5, 'sensing.tube_length_m': 1.0}, {'arms.*.radius_mm': 5.5, 'sensing.tube_length_m': 12.0}, {'arms.*.radius_mm': 6.0, 'sensing.tube_length_m': 1.0}, {'arms.*.radius_mm': 6.0, 'sensing.tube_length_m': 12.0}]
+>>> sweep_config_from_dict({"parameters": {"arms.front_zpos.colour": {"values": [1]}}})
+Traceback (most recent call last):
+...
+softphantom.errors.UserError: parameters."arms.front_zpos.colour": unknown parameter (arms.front_zpos has axis_point_mm, cavity_length_mm, cavity_offset_mm, cavity_volume_mm3, direction, embed_mm, length_mm, radius_mm, wall_mm)
+"""
+
+from __future__ import annotations
+
+import copy
+import hashlib
+import itertools
+import json
+import math
+import re
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from softphantom.design import ARM_NAMES, BIPDesign, design_to_dict, load_design
+from softphantom.errors import UserError
+
+METHODS = ("grid", "random", "lhs")
+#: Bumped when what a variant computes changes, so cached rows of older code are not reused.
+EVAL_VERSION = 1
+_INDEX = re.compile(r"^(?P<key>[A-Za-z0-9_]+)(\[(?P<i>[0-9]+)\])?$")
+EXTRA_PARAMS = {
+    "mesh_size_mm": 12.0,
+    "sensing.tube_length_m": 12.0,
+    "sensing.tube_id_mm": 1.2,
+    "sensing.osr": 100,
+    "material.E_kPa": None,  # None: Ecoflex 00-50 (fem.ECOFLEX_00_50)
+    "material.nu": None,
+}
+DIRECTIONS = {"xpos": (1, 0, 0), "xneg": (-1, 0, 0), "ypos": (0, 1, 0), "yneg": (0, -1, 0),
+              "zpos": (0, 0, 1), "zneg": (0, 0, -1)}
+
+
+@dataclass(frozen=True)
+class ParamSpec:
+    """One swept parameter: a list of ``values`` or a continuous ``[lo, hi]`` (``log``, ``steps``)."""
+
+    path: str
+    values: tuple | None = None
+    lo: float | None = None
+    hi: float | None = None
+    log: bool = False
+    steps: int = 3
+
+    @property
+    def continuous(self) -> bool:
+        return self.values is None
+
+    def grid(self) -> list:
+        if self.values is not None:
+            return list(self.values)
+        if self.log:
+            return [float(v) for v in np.geomspace(self.lo, self.hi, self.steps)]
+        return [float(v) for v in np.linspace(self.lo, self.hi, self.steps)]
+
+    def from_unit(self, u: float):
+        """The value at ``u`` in [0, 1) (a uniform sample or a Latin-hypercube coordinate)."""
+        if self.values is not None:
+            return self.values[min(int(u * len(self.values)), len(self.values) - 1)]
+        if self.log:
+            return float(math.exp(math.log(self.lo) + u * (math.log(self.hi) - math.log(self.lo))))
+        return float(self.lo + u * (self.hi - self.lo))
+
+
+@dataclass(frozen=True)
+class EvalSettings:
+    """How a variant is evaluated: contact point and patch, the probe load along each of the six
+    axis directions (N), the force cap of the range search, the transducer limit used for
+    saturation (the arm transducer's rated range)."""
+
+    contact: str = "on-centre"
+    contact_radius_mm: float = 0.0
+    probe_force_N: float = 3.0
+    directions: tuple[str, ...] = tuple(DIRECTIONS)
+    max_force_N: float = 50.0
+
+    def as_dict(self) -> dict:
+        return {"contact": self.contact, "contact_radius_mm": self.contact_radius_mm,
+                "probe_force_N": self.probe_force_N, "directions": list(self.directions),
+                "max_force_N": self.max_force_N}
+
+
+@dataclass(frozen=True)
+class Variant:
+    """One point of the study: the swept values (``params``, by path), the full design dict and
+    the extra settings (mesh size, tube, material) it resolves to, and its cache key."""
+
+    index: int
+    params: dict
+    design: dict
+    extra: dict
+    settings: EvalSettings
+
+    @property
+    def key(self) -> str:
+        blob = json.dumps({"v": EVAL_VERSION, "design": self.design, "extra": self.extra,
+                           "eval": self.settings.as_dict()}, sort_keys=True)
+        return hashlib.sha256(blob.encode()).hexdigest()[:20]
+
+
+@dataclass(frozen=True)
+class OptimizeSettings:
+    """``--optimize``: minimize the worst-axis force resolution (N per count) over the continuous
+    parameters, subject to ``min_range_N`` (smallest force, any axis direction, that saturates a
+    transducer) and ``max_silicone_mL`` (meshed silicone volume); differential evolution,
+    ``popsize`` × (number of parameters) candidates a generation evaluated in parallel."""
+
+    maxiter: int = 8
+    popsize: int = 4
+    seed: int = 1
+    min_range_N: float = 0.0
+    max_silicone_mL: float = math.inf
+    objective: str = "res_force_worst_N"
+
+
+@dataclass(frozen=True)
+class SweepConfig:
+    name: str = "sweep"
+    method: str = "lhs"
+    samples: int = 20
+    seed: int = 1
+    base: dict = field(default_factory=lambda: design_to_dict(BIPDesign()))
+    params: tuple[ParamSpec, ...] = ()
+    fixed: dict = field(default_factory=dict)  # extra settings not swept (mesh_size_mm, tube, material)
+    settings: EvalSettings = EvalSettings()
+    optimize: OptimizeSettings = OptimizeSettings()
+
+    def resolve(self, index: int, values: dict) -> Variant:
+        """The variant with ``values`` (path -> value) applied to the base design and settings."""
+        design = copy.deepcopy(self.base)
+        extra = {k: v for k, v in EXTRA_PARAMS.items()}
+        extra.update(self.fixed)
+        for path, v in values.items():
+            v = v.item() if isinstance(v, np.generic) else v
+            if path in EXTRA_PARAMS:
+                extra[path] = v
+            else:
+                apply_path(design, path, v)
+        return Variant(index, {k: (v.item() if isinstance(v, np.generic) else v) for k, v in values.items()},
+                       design, extra, self.settings)
+
+    def variants(self) -> list[Variant]:
+        """All variants of the study, in a deterministic order."""
+        if not self.params:
+            return [self.resolve(0, {})]
+        names = [p.path for p in self.params]
+        if self.method == "grid":
+            combos = list(itertools.product(*(p.grid() for p in self.params)))
+        else:
+            if self.method == "lhs":
+                from scipy.stats import qmc
+
+                u = qmc.LatinHypercube(d=len(self.params), seed=self.seed).random(self.samples)
+            else:
+                u = np.random.default_rng(self.seed).random((self.samples, len(self.params)))
+            combos = [tuple(p.from_unit(float(x)) for p, x in zip(self.params, row)) for row in u]
+        return [self.resolve(i, dict(zip(names, c))) for i, c in enumerate(combos)]
+
+
+def _steps(name: str, key: str):
+    m = _INDEX.match(key)
+    if m is None:
+        raise UserError(f"parameters.{name}: malformed part {key!r} (name or name[index])")
+    return m.group("key"), (int(m.group("i")) if m.group("i") is not None else None)
+
+
+def apply_path(design: dict, path: str, value: Any, _name: str | None = None) -> None:
+    """Set ``path`` (dotted, ``[i]`` indexes a vector, ``arms.*`` every arm) in a design dict."""
+    parts = path.split(".")
+    if parts[0] == "arms" and len(parts) >= 2 and parts[1] == "*":
+        for arm in ARM_NAMES:
+            apply_path(design, ".".join(["arms", arm, *parts[2:]]), value, path)
+        return
+    name = json.dumps(_name or path)
+    if parts[0] == "arms" and len(parts) == 3 and parts[2] == "cavity_length_mm":
+        arm = design.get("arms", {}).get(parts[1])
+        if arm is None:
+            raise UserError(f"parameters.{name}: unknown arm {parts[1]!r} (one of {', '.join(ARM_NAMES)}, *)")
+        r = float(arm["radius_mm"]) - float(arm["wall_mm"])
+        arm["cavity_volume_mm3"] = math.pi * r * r * float(value) + 4.0 / 3.0 * math.pi * r**3
+        return
+    node: Any = design
+    for depth, part in enumerate(parts):
+        key, idx = _steps(name, part)
+        last = depth == len(parts) - 1
+        if not isinstance(node, dict) or key not in node:
+            where = ".".join(parts[:depth]) or "the design"
+            have = sorted(node) if isinstance(node, dict) else []
+            if where.startswith("arms.") and depth == 2:
+                have = sorted([*have, "cavity_length_mm"])
+            raise UserError(f"parameters.{name}: unknown parameter ({where} has {', '.join(map(str, have))})")
+        if idx is not None:
+            vec = node[key]
+            if not isinstance(vec, list) or idx >= len(vec):
+                raise UserError(f"parameters.{name}: {key} has no element [{idx}]")
+            if last:
+                vec[idx] = value
+                return
+            node = vec[idx]
+        elif last:
+            node[key] = list(value) if isinstance(value, (list, tuple)) else value
+            return
+        else:
+            node = node[key]
+
+
+def _num(path: str, key: str, v: Any) -> float:
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+        raise UserError(f"{path}.{key}: expected a finite number, got {v!r}")
+    return float(v)
+
+
+def _param_spec(path: str, spec: Any) -> ParamSpec:
+    where = f"parameters.{json.dumps(path)}"
+    if not isinstance(spec, dict):
+        raise UserError(f"{where}: expected a table {{min, max}} or {{values = [...]}}, got {spec!r}")
+    unknown = sorted(set(spec) - {"min", "max", "values", "log", "steps"})
+    if unknown:
+        raise UserError(f"{where}: unknown key {unknown[0]!r} (min, max, log, steps, values)")
+    if "values" in spec:
+        if set(spec) - {"values"}:
+            raise UserError(f"{where}: give either values or min/max, not both")
+        vals = spec["values"]
+        if not isinstance(vals, list) or not vals:
+            raise UserError(f"{where}.values: expected a non-empty list")
+        return ParamSpec(path, values=tuple(vals))
+    if "min" not in spec or "max" not in spec:
+        raise UserError(f"{where}: needs min and max (or values)")
+    lo, hi = _num(where, "min", spec["min"]), _num(where, "max", spec["max"])
+    if not hi >= lo:
+        raise UserError(f"{where}: max {hi:g} is below min {lo:g}")
+    log = spec.get("log", False)
+    if not isinstance(log, bool):
+        raise UserError(f"{where}.log: expected true or false")
+    if log and lo <= 0:
+        raise UserError(f"{where}: log sampling needs min > 0")
+    steps = spec.get("steps", 3)
+    if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
+        raise UserError(f"{where}.steps: expected an integer >= 1, got {steps!r}")
+    return ParamSpec(path, lo=lo, hi=hi, log=log, steps=steps)
+
+
+def _table(data: dict, name: str, allowed: dict) -> dict:
+    t = data.get(name, {})
+    if not isinstance(t, dict):
+        raise UserError(f"[{name}]: expected a table")
+    unknown = sorted(set(t) - set(allowed))
+    if unknown:
+        raise UserError(f"[{name}]: unknown key {unknown[0]!r} (known: {', '.join(sorted(allowed))})")
+    return t
+
+
+def sweep_config_from_dict(data: dict, base_dir: Path | None = None) -> SweepConfig:
+    """A :class:`SweepConfig` from the parsed sweep file; every bad key raises a one-line UserError."""
+    unknown = sorted(set(data) - {"sweep", "evaluate", "fixed", "parameters", "optimize"})
+    if unknown:
+        raise UserError(f"sweep file: unknown table [{unknown[0]}] (sweep, evaluate, fixed, parameters, optimize)")
+    sw = _table(data, "sweep", {"name": 0, "method": 0, "samples": 0, "seed": 0, "design": 0})
+    method = sw.get("method", "lhs")
+    if method not in METHODS:
+        raise UserError(f"sweep.method: {method!r} is not one of {', '.join(METHODS)}")
+    samples, seed = sw.get("samples", 20), sw.get("seed", 1)
+    for k, v in (("samples", samples), ("seed", seed)):
+        if isinstance(v, bool) or not isinstance(v, int) or v < (1 if k == "samples" else 0):
+            raise UserError(f"sweep.{k}: expected an integer >= {1 if k == 'samples' else 0}, got {v!r}")
+    base = BIPDesign()
+    if "design" in sw:
+        p = Path(sw["design"])
+        base = load_design(p if p.is_absolute() or base_dir is None else base_dir / p)
+    base_dict = design_to_dict(base)
+
+    ev = _table(data, "evaluate", EvalSettings().as_dict())
+    if "directions" in ev:
+        bad = [d for d in ev["directions"] if d not in DIRECTIONS]
+        if bad or not ev["directions"]:
+            raise UserError(f"evaluate.directions: {bad[0] if bad else '[]'!r} (use {', '.join(DIRECTIONS)})")
+        ev["directions"] = tuple(ev["directions"])
+    for k in ("contact_radius_mm", "probe_force_N", "max_force_N"):
+        if k in ev:
+            ev[k] = _num("evaluate", k, ev[k])
+    if ev.get("probe_force_N", 1.0) <= 0 or ev.get("max_force_N", 1.0) <= 0:
+        raise UserError("evaluate: probe_force_N and max_force_N must be > 0")
+    settings = EvalSettings(**ev)
+
+    fixed = _table(data, "fixed", EXTRA_PARAMS)
+    params_t = data.get("parameters", {})
+    if not isinstance(params_t, dict):
+        raise UserError("[parameters]: expected a table of path = {min, max} or {values}")
+    params = tuple(_param_spec(k, v) for k, v in params_t.items())
+    probe = copy.deepcopy(base_dict)
+    for p in params:  # unknown paths fail here, before any work
+        if p.path not in EXTRA_PARAMS:
+            apply_path(probe, p.path, p.values[0] if p.values else p.lo)
+
+    opt = _table(data, "optimize", OptimizeSettings().__dict__)
+    for k in ("maxiter", "popsize", "seed"):
+        if k in opt and (isinstance(opt[k], bool) or not isinstance(opt[k], int) or opt[k] < (0 if k == "seed" else 1)):
+            raise UserError(f"optimize.{k}: expected a positive integer, got {opt[k]!r}")
+    for k in ("min_range_N", "max_silicone_mL"):
+        if k in opt:
+            opt[k] = _num("optimize", k, opt[k])
+    return SweepConfig(
+        name=str(sw.get("name", "sweep")), method=method, samples=samples, seed=seed, base=base_dict,
+        params=params, fixed=fixed, settings=settings, optimize=OptimizeSettings(**opt),
+    )
+
+
+def load_sweep_config(path: str | Path) -> SweepConfig:
+    """Read a sweep file (TOML); a missing or malformed file is a one-line UserError naming it."""
+    path = Path(path)
+    try:
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except OSError as exc:
+        raise UserError(f"{path}: cannot read ({exc.strerror})") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise UserError(f"{path}: not valid TOML ({exc})") from None
+    return sweep_config_from_dict(data, path.parent)

@@ -1,0 +1,224 @@
+"""Evaluate one design variant: mesh, linearize at rest and at a probe load along each axis
+direction, and read off observability (W), resolution, range, mesh quality and cost.
+
+What each figure is (docs/sweep.md has the derivations):
+
+* ``count_<arm>_mm3``: the cavity volume change of one effective ADC count (oversampled level),
+  from the sensing budget with that tube: ``V_T · (ADC span / 2^eff_bits) / P0``.
+* ``W_sv1..3_mm3_per_N``, ``cond_W``: singular values and condition of the force part of W (4 × 3,
+  m³/N) at rest (the estimator's ``cond_W``); ``cond_W_loaded_max`` the largest over the probe loads.
+* ``res_force_<axis>_N``: 1-σ error of the least-squares force when every arm reads with an error
+  of one count (independent): N per count, through ``W_f⁺`` at rest
+  (:func:`~softphantom.estimation.noise_bound`); ``res_force_worst_N`` the largest of the three.
+* ``res_<x|y|z>_mm``, ``res_<yaw|pitch|roll>_deg``, ``res_target_<name>_mm`` (norm of the 3-D
+  error): the same noise carried to the pose and the targets.
+* ``range_<dir>_N``: the force along ``dir`` (on the contact point) at which the first arm's
+  transducer leaves its rated range (Boyle with that tube). Within the probe load it comes from
+  the converged non-linear volumes at rest and at the probe load (linear interpolation); beyond,
+  from the linearization at the probe load (extrapolated, ``range_extrapolated``). Capped at
+  ``max_force_N``. ``range_min_N`` is the smallest over the directions.
+* ``mesh_*``: node and tet counts, smallest dihedral angle, worst cavity volume error (%),
+  ``silicone_mL`` the meshed silicone volume; ``mesh_s``, ``solve_s``, ``total_s`` wall time.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import math
+import os
+import socket
+import time
+from typing import Any
+
+import numpy as np
+
+from softphantom.errors import SoftphantomError
+from softphantom.study.config import DIRECTIONS, Variant
+
+ARMS = ("front_zpos", "front_zneg", "back_xpos", "back_xneg")
+POSE = ("x_mm", "y_mm", "z_mm", "yaw_deg", "pitch_deg", "roll_deg")
+#: Columns that measure cost, not the design: left out when two runs are compared.
+TIMING_COLUMNS = ("mesh_s", "solve_s", "total_s", "host")
+
+
+def _material(extra: dict):
+    from dataclasses import replace
+
+    from softphantom.fem import ECOFLEX_00_50
+
+    m = ECOFLEX_00_50
+    if extra.get("material.E_kPa") is not None:
+        m = replace(m, E_Pa=float(extra["material.E_kPa"]) * 1e3)
+    if extra.get("material.nu") is not None:
+        m = replace(m, nu=float(extra["material.nu"]))
+    return m
+
+
+def count_volumes_m3(cavity_volumes_m3, tube_length_m: float, tube_id_m: float, osr: int) -> np.ndarray:
+    """(n,) m³: the cavity volume change of one effective count for each cavity (sensing budget).
+
+    >>> np.round(count_volumes_m3([486e-9], 12.0, 1.2e-3, 100) * 1e9, 4).tolist()
+    [0.0677]
+    """
+    from softphantom.sensing.budget import BudgetParams, budget
+
+    vols = tuple(float(v) for v in cavity_volumes_m3)
+    rows = budget(BudgetParams(cavity_volumes_m3=vols, group_names=tuple(str(i) for i in range(len(vols))),
+                               tube_length_m=float(tube_length_m), tube_id_m=float(tube_id_m), osr=int(osr)))
+    return np.array([r.resolution_mm3_datasheet * 1e-9 for r in rows])
+
+
+def saturation_volumes_m3(v_total_m3: np.ndarray, p0_Pa: float) -> tuple[np.ndarray, np.ndarray]:
+    """(compression, expansion) cavity volume changes (m³, negative and positive) at which each
+    arm's transducer reaches the end of its rated range (Boyle over cavity + tube)."""
+    from softphantom.sensing.chain import MPXV7002
+    from softphantom.sensing.pneumatics import boyle_dV
+
+    lo = boyle_dV(MPXV7002.p_max_Pa, v_total_m3, p0_Pa)  # compression: positive gauge pressure
+    hi = boyle_dV(MPXV7002.p_min_Pa, v_total_m3, p0_Pa)
+    return np.asarray(lo, float), np.asarray(hi, float)
+
+
+def _first_crossing(V0: np.ndarray, V1: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> float | None:
+    """Smallest t in [0, 1] where V0 + t (V1 − V0) leaves [lo, hi] for any arm (None: never)."""
+    best = None
+    d = V1 - V0
+    for i in range(len(V0)):
+        for lim in (lo[i], hi[i]):
+            if d[i] != 0.0:
+                t = (lim - V0[i]) / d[i]
+                if 0.0 <= t <= 1.0 and (best is None or t < best):
+                    best = t
+    return best
+
+
+def direction_range(F: float, V_probe: np.ndarray, W_dir: np.ndarray, lo: np.ndarray, hi: np.ndarray,
+                    cap: float) -> tuple[float, bool]:
+    """Force (N) along one direction at which an arm leaves [lo, hi]: interpolated on [0, F]
+    between rest (V = 0) and the converged volumes ``V_probe`` at F, else extrapolated from the
+    tangent ``W_dir`` (m³/N) at F. Returns (force, extrapolated), capped at ``cap``.
+
+    >>> direction_range(2.0, np.array([-1.0, 1.0]), np.array([-0.5, 0.5]), np.array([-4.0, -4.0]), np.array([4.0, 4.0]), 50.0)
+    (8.0, True)
+    >>> direction_range(2.0, np.array([-8.0, 1.0]), np.array([-4.0, 0.5]), np.array([-4.0, -4.0]), np.array([4.0, 4.0]), 50.0)
+    (1.0, False)
+    """
+    t = _first_crossing(np.zeros_like(V_probe), V_probe, lo, hi)
+    if t is not None:
+        return min(float(t * F), float(cap)), False
+    beyond = math.inf
+    for i in range(len(V_probe)):
+        if W_dir[i] < 0:
+            beyond = min(beyond, float((lo[i] - V_probe[i]) / W_dir[i]))
+        elif W_dir[i] > 0:
+            beyond = min(beyond, float((hi[i] - V_probe[i]) / W_dir[i]))
+    return min(float(F + beyond), float(cap)), True
+
+
+def evaluate_variant(variant: Variant) -> dict[str, Any]:
+    """The result row of one variant (plain floats/strings; units in the names).
+
+    A design that cannot be built, meshed or solved gives ``status`` ``"invalid"`` or
+    ``"failed"`` with its one-line ``error``; anything else propagates (the caller records it).
+    """
+    t0 = time.perf_counter()
+    row: dict[str, Any] = {"variant": variant.index, "key": variant.key, "status": "ok", "error": "",
+                           "host": f"{socket.gethostname()}:{os.getpid()}"}
+    row.update({f"p.{k}": v for k, v in variant.params.items()})
+    try:
+        row.update(_evaluate(variant))
+    except SoftphantomError as exc:
+        from softphantom.errors import UserError
+
+        row["status"] = "invalid" if isinstance(exc, UserError) else "failed"
+        row["error"] = f"{type(exc).__name__}: {exc}".splitlines()[0]
+    row["total_s"] = time.perf_counter() - t0
+    return row
+
+
+@functools.lru_cache(maxsize=4)
+def _model(design_json: str, mesh_size_mm: float | None):
+    """The mesh of a design, kept per worker process: variants that differ only in tube or
+    material (not in geometry) reuse it."""
+    from softphantom.design import build_model, design_from_dict
+
+    return build_model(design_from_dict(json.loads(design_json)), mesh_size_mm)
+
+
+def _evaluate(variant: Variant) -> dict[str, Any]:
+    from softphantom.design import design_from_dict
+    from softphantom.design.model import MM
+    from softphantom.estimation import EquilibriumSolver, noise_bound
+    from softphantom.fem import fem_from_phantom, force_actuator, probe_matrix
+    from softphantom.sensing.measurement import P0_STANDARD_PA
+    from softphantom.sensing.pneumatics import tube_volume_m3
+
+    s, ex = variant.settings, variant.extra
+    out: dict[str, Any] = {}
+    design = design_from_dict(variant.design)
+    t = time.perf_counter()
+    model = _model(json.dumps(variant.design, sort_keys=True),
+                   float(ex["mesh_size_mm"]) if ex.get("mesh_size_mm") else None)
+    out["mesh_s"] = time.perf_counter() - t  # ~0 where this worker had meshed the same geometry
+    t = time.perf_counter()
+    out["mesh_nodes"] = len(model.nodes)
+    out["mesh_tets"] = len(model.tets)
+    out["mesh_min_dihedral_deg"] = model.min_dihedral_deg()
+    errs = [abs(model.cavity_volume(k) / (v * MM**3) - 1.0) for k, v in design.cavity_volumes_mm3().items()]
+    out["mesh_cavity_error_max_pct"] = 100.0 * max(errs)
+    out["silicone_mL"] = float(model.tet_volumes().sum()) * 1e6
+
+    fem = fem_from_phantom(model, _material(ex))
+    if s.contact not in model.p_ext:
+        from softphantom.errors import UserError
+
+        raise UserError(f"evaluate.contact {s.contact!r}: the model has {', '.join(sorted(model.p_ext))}")
+    H_f = force_actuator(fem, model.p_ext[s.contact], s.contact_radius_mm * MM)
+    pts = [*model.markers.values(), *model.targets.values()]
+    eq = EquilibriumSolver(fem, H_f, probe_matrix(fem, pts))
+    rest = eq.rest()
+
+    # the pneumatics see the cast cavity (design volume), not the mesh's inscribed polyhedron
+    v_cav = np.array([design.cavity_volumes_mm3()[a] for a in ARMS]) * MM**3
+    v_tube = tube_volume_m3(float(ex["sensing.tube_length_m"]), float(ex["sensing.tube_id_mm"]) * MM)
+    q = count_volumes_m3(v_cav, float(ex["sensing.tube_length_m"]), float(ex["sensing.tube_id_mm"]) * MM,
+                         int(ex["sensing.osr"]))
+    for a, qa in zip(ARMS, q):
+        out[f"count_{a}_mm3"] = qa * 1e9
+    sv = np.linalg.svd(rest.W[:, :3], compute_uv=False)
+    for i, v in enumerate(sv):
+        out[f"W_sv{i + 1}_mm3_per_N"] = v * 1e9
+    out["cond_W"] = float(sv[0] / sv[-1]) if sv[-1] > 0 else math.inf
+
+    nb = noise_bound(rest, rest.sub_x[: len(model.markers)], tuple(model.targets), q)  # as the Estimator
+    for ax, v in zip("xyz", nb.force_N):
+        out[f"res_force_{ax}_N"] = float(v)
+    out["res_force_worst_N"] = float(nb.force_N.max())
+    pose = np.r_[nb.pose[:3] * 1e3, np.degrees(nb.pose[3:])]
+    for name, v in zip(POSE, pose):
+        out[f"res_{name}"] = float(v)
+    tnorm = {k: float(np.linalg.norm(v)) * 1e3 for k, v in nb.target_m.items()}
+    for k, v in tnorm.items():
+        out[f"res_target_{k}_mm"] = v
+    out["res_target_worst_mm"] = max(tnorm.values()) if tnorm else math.nan
+
+    lo, hi = saturation_volumes_m3(v_cav + v_tube, P0_STANDARD_PA)
+    conds, ranges, extrap = [], {}, False
+    for d in s.directions:
+        u = np.array(DIRECTIONS[d], float)
+        lam = np.r_[s.probe_force_N * u, 0.0]
+        lin = eq.solve(rest, lam)
+        svl = np.linalg.svd(lin.W[:, :3], compute_uv=False)
+        conds.append(float(svl[0] / svl[-1]) if svl[-1] > 0 else math.inf)
+        r, e = direction_range(s.probe_force_N, lin.V, lin.W[:, :3] @ u, lo, hi, s.max_force_N)
+        ranges[d] = r
+        extrap |= e
+        out[f"range_{d}_N"] = r
+        out[f"cond_W_{d}"] = conds[-1]
+    out["cond_W_loaded_max"] = max(conds) if conds else math.nan
+    out["range_min_N"] = min(ranges.values()) if ranges else math.nan
+    out["range_min_dir"] = min(ranges, key=ranges.get) if ranges else ""
+    out["range_extrapolated"] = bool(extrap)
+    out["solve_s"] = time.perf_counter() - t
+    return out

@@ -1,0 +1,204 @@
+"""Design studies end to end at the coarse mesh: per-variant figures against closed forms and an
+independent solve, the cache and resume, a failed variant, the CLI on a local cluster and on a
+separately started dask scheduler + worker, the optimizer."""
+
+import json
+import math
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from softphantom.cli import main
+from softphantom.parallel import dask_client
+from softphantom.study import TIMING_COLUMNS, evaluate_variants, load_sweep_config, read_parquet
+from softphantom.study.run import rows_equal
+
+COARSE = 12.0
+SWEEP = """
+[sweep]
+name = "t"
+method = "grid"
+[fixed]
+mesh_size_mm = 12.0
+[evaluate]
+directions = ["zneg", "yneg"]
+[parameters]
+"sensing.tube_length_m" = { values = [12.0, 1.0] }
+"arms.*.wall_mm" = { values = [2.5, 7.0] }
+"""
+
+
+@pytest.fixture(scope="module")
+def sweep_file(tmp_path_factory):
+    p = tmp_path_factory.mktemp("sweep") / "sweep.toml"
+    p.write_text(SWEEP)
+    return p
+
+
+@pytest.fixture(scope="module")
+def inproc(sweep_file, tmp_path_factory):
+    """The study evaluated in this process (Dask threads, no cluster)."""
+    cfg = load_sweep_config(sweep_file)
+    out = tmp_path_factory.mktemp("inproc")
+    with dask_client(processes=False, n_workers=1) as client:
+        run = evaluate_variants(client, cfg.variants(), out, progress=False)
+    return cfg, run.rows
+
+
+def test_invalid_variant_recorded_and_others_go_on(inproc):
+    _, rows = inproc
+    assert [r["status"] for r in rows] == ["ok", "invalid", "ok", "invalid"]
+    assert rows[1]["error"].startswith("DesignError: arms.front_zpos.wall_mm = 7 leaves no cavity")
+
+
+def test_count_volume_is_the_budget_closed_form(inproc):
+    _, rows = inproc
+    for r, L in ((rows[0], 12.0), (rows[2], 1.0)):
+        for arm, vc in (("front_zpos", 514.0), ("back_xneg", 486.0)):
+            v_total = vc + math.pi / 4 * 1.2**2 * L * 1e3  # mm³
+            # one effective count: 5 kPa ADC range / (1024·√100) levels, Boyle δV = V_T δp / P0
+            want = v_total * (5000.0 / 10240.0) / 101_325.0
+            assert r[f"count_{arm}_mm3"] == pytest.approx(want, rel=1e-9)
+
+
+def test_force_resolution_scales_with_the_count_and_matches_the_estimator(inproc, coarse_model):
+    from softphantom.estimation import Estimator
+
+    _, rows = inproc
+    a, b = rows[0], rows[2]  # same geometry, 12 m vs 1 m tube: same W, counts differ
+    arms = ("front_zpos", "front_zneg", "back_xpos", "back_xneg")
+    ratios = [a[f"count_{k}_mm3"] / b[f"count_{k}_mm3"] for k in arms]
+    assert 8.0 < min(ratios) < max(ratios) < 9.5
+    for ax in "xyz":  # σ_f = ‖W_f⁺ diag(q)‖ per row: between the smallest and largest count ratio
+        assert min(ratios) <= a[f"res_force_{ax}_N"] / b[f"res_force_{ax}_N"] <= max(ratios)
+    est = Estimator(coarse_model)  # the same default design at the same coarse mesh
+    for r in (a, b):
+        q = np.array([r[f"count_{k}_mm3"] for k in arms]) * 1e-9
+        nb = est.noise_bound(q)
+        assert [r[f"res_force_{ax}_N"] for ax in "xyz"] == pytest.approx(nb.force_N.tolist(), rel=1e-9)
+        assert r["res_yaw_deg"] == pytest.approx(math.degrees(nb.pose[3]), rel=1e-6)
+    assert a["cond_W"] == pytest.approx(est.last.cond_W, rel=1e-9)
+    assert a["W_sv1_mm3_per_N"] >= a["W_sv2_mm3_per_N"] >= a["W_sv3_mm3_per_N"] > 0
+    assert a["res_force_worst_N"] == max(a[f"res_force_{ax}_N"] for ax in "xyz")
+
+
+def test_range_is_where_a_transducer_reaches_its_rated_pressure(inproc, coarse_model):
+    """An independent Newton solve (fem.solve_static) at the reported range, along −z with the
+    1 m tube: the largest transducer pressure (Boyle over cavity + tube) is the rated 2 kPa, to
+    the accuracy of the extrapolation from the 3 N linearization."""
+    from softphantom.fem import fem_from_phantom, force_actuator, solve_static
+    from softphantom.fem.actuators import cavity_volume
+    from softphantom.sensing.pneumatics import boyle_dp
+
+    _, rows = inproc
+    r = rows[2]
+    assert r["range_extrapolated"] and 3.0 < r["range_zneg_N"] < 50.0
+    assert r["range_min_N"] == min(r["range_zneg_N"], r["range_yneg_N"])
+    fem = fem_from_phantom(coarse_model)
+    H = force_actuator(fem, coarse_model.p_ext["on-centre"], 0.0)
+    sol = solve_static(fem, H @ np.array([0.0, 0.0, -r["range_zneg_N"]]))
+    assert sol.converged
+    arms = ("front_zpos", "front_zneg", "back_xpos", "back_xneg")
+    v0 = np.array([coarse_model.cavity_volume(a) for a in arms])
+    dV = np.array([cavity_volume(sol.x.reshape(-1), coarse_model.cavities[a]) for a in arms]) - v0
+    v_total = np.array([514.0, 514.0, 486.0, 486.0]) * 1e-9 + math.pi / 4 * 1.2e-3**2 * 1.0
+    p = boyle_dp(dV, v_total, 101_325.0)
+    assert np.abs(p).max() == pytest.approx(2000.0, rel=0.1)
+    # the 12 m tube needs ~8× the volume change: beyond the cap, or far beyond the 1 m range
+    assert rows[0]["range_min_N"] > 5 * r["range_min_N"]
+
+
+def test_cli_local_cluster_resumes_from_the_cache(sweep_file, inproc, tmp_path, capsys):
+    out = tmp_path / "out"
+    assert main(["sweep", "--config", str(sweep_file), "--out", str(out), "--workers", "1", "--no-progress"]) == 0
+    rows = read_parquet(out / "results.parquet")
+    assert rows_equal(inproc[1], rows, TIMING_COLUMNS, rtol=1e-9) == []  # same results in-process and on a cluster
+    html = (out / "report.html").read_text()
+    assert "Pareto front" in html and "data:image/png;base64" in html and "leaves no cavity" in html
+    meta = json.loads(__import__("pyarrow.parquet").parquet.read_schema(out / "results.parquet").metadata[b"softphantom"])
+    assert meta["parameters"] == ["sensing.tube_length_m", "arms.*.wall_mm"]
+    capsys.readouterr()
+    # an interrupted run: one variant's file is missing, only that one is computed again
+    cache = sorted((out / "variants").glob("*.json"))
+    assert len(cache) == 4
+    (out / "variants" / f"{rows[1]['key']}.json").unlink()
+    assert main(["sweep", "--config", str(sweep_file), "--out", str(out), "--workers", "1", "--no-progress"]) == 0
+    assert "3 from the cache, 1 computed" in capsys.readouterr().out.replace("\n", " ")
+    assert rows_equal(rows, read_parquet(out / "results.parquet"), TIMING_COLUMNS) == []
+
+
+def test_cli_on_a_separately_started_scheduler_and_worker(sweep_file, inproc, tmp_path):
+    dask = Path(sys.executable).with_name("dask")
+    sched_file = tmp_path / "scheduler.json"
+    procs = [subprocess.Popen([str(dask), "scheduler", "--scheduler-file", str(sched_file), "--port", "0",
+                               "--no-dashboard", "--host", "127.0.0.1"],
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
+    try:
+        deadline = time.monotonic() + 60
+        while not sched_file.is_file() and time.monotonic() < deadline:
+            time.sleep(0.2)
+        procs.append(subprocess.Popen([str(dask), "worker", "--scheduler-file", str(sched_file), "--nworkers", "1",
+                                       "--nthreads", "1", "--no-dashboard"],
+                                      stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+        time.sleep(0.5)
+        address = json.loads(sched_file.read_text())["address"]
+        from distributed import Client
+
+        with Client(address, timeout=30) as c:
+            c.wait_for_workers(1, timeout=60)
+        out = tmp_path / "out"
+        assert main(["sweep", "--config", str(sweep_file), "--out", str(out), "--scheduler", address, "--no-progress"]) == 0
+        rows = read_parquet(out / "results.parquet")
+        assert rows_equal(inproc[1], rows, TIMING_COLUMNS, rtol=1e-9) == []
+        assert {r["host"].split(":")[1] for r in rows if r["status"] == "ok"} != {str(__import__("os").getpid())}
+    finally:
+        for p in reversed(procs):
+            p.terminate()
+        for p in procs:
+            p.wait(timeout=30)
+
+
+def test_cli_bad_input_is_one_line_exit_2(tmp_path, capsys, monkeypatch):
+    import socket
+
+    import softphantom.parallel as par
+
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[parameters]\n"arms.*.girth_mm" = { min = 1, max = 2 }\n')
+    assert main(["sweep", "--config", str(bad), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert 'parameters."arms.*.girth_mm": unknown parameter' in err and err.count("\n") == 0
+    monkeypatch.setattr(par, "CONNECT_TIMEOUT_S", 1.0)
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    good = tmp_path / "good.toml"
+    good.write_text("[sweep]\nmethod = 'grid'\n")
+    assert main(["sweep", "--config", str(good), "--out", str(tmp_path / "o"), "--scheduler", f"tcp://127.0.0.1:{port}"]) == 2
+    err = capsys.readouterr().err.strip().replace("\n", " ")
+    assert f"tcp://127.0.0.1:{port}: unreachable" in err
+
+
+def test_optimize_finds_the_shortest_tube_that_keeps_the_range(tmp_path):
+    """Only the tube length varies: resolution improves and range shrinks as it shortens, so the
+    best feasible candidate is the shortest feasible one evaluated."""
+    from softphantom.study import run_optimize, sweep_config_from_dict
+
+    cfg = sweep_config_from_dict({
+        "sweep": {"name": "opt"}, "fixed": {"mesh_size_mm": COARSE}, "evaluate": {"directions": ["zneg"]},
+        "parameters": {"sensing.tube_length_m": {"min": 0.5, "max": 12.0}},
+        "optimize": {"maxiter": 1, "popsize": 5, "seed": 2, "min_range_N": 6.0},
+    })
+    with dask_client(processes=False, n_workers=1) as client:
+        res = run_optimize(cfg, client, tmp_path, progress=False)
+    rows = read_parquet(tmp_path / "optimize.parquet")
+    assert len(rows) == res.evaluations == 10  # 5 initial + 5 in the one generation
+    feasible = [r for r in rows if r["status"] == "ok" and r["range_min_N"] >= 6.0]
+    assert feasible and res.row["range_min_N"] >= 6.0
+    assert res.params["sensing.tube_length_m"] == min(r["p.sensing.tube_length_m"] for r in feasible)
+    assert res.value == min(r["res_force_worst_N"] for r in feasible)
+    assert json.loads((tmp_path / "optimize.json").read_text())["best_params"] == res.params
