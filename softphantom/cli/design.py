@@ -27,6 +27,10 @@ def design_command(
     from softphantom.design.report import design_report_md
 
     design = load_design(config) if config is not None else BIPDesign()
+    from softphantom.design.params import REGION_NAMES
+    from softphantom.fem.model import laws_of_design
+
+    laws_of_design(design, REGION_NAMES)  # an unknown law or a bad parameter fails here (exit 2)
     t0 = time.perf_counter()
     with staged_output(out, overwrite=overwrite, directory=True) as work:
         with console.status(f"meshing design '{design.name}' …"):

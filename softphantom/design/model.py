@@ -287,7 +287,8 @@ def load_model(directory: str | Path) -> PhantomModel:
         raise FileFormatError(f"{npz}: npz_version {meta.get('npz_version')!r}, this softphantom reads {NPZ_VERSION}")
     toml = d / "design.toml"
     design = load_design(toml) if toml.is_file() else design_from_dict(meta["design"])
-    if design_to_dict(design) != meta["design"]:
+    # a model saved before a design field existed stored no value for it: compare with defaults filled
+    if design_to_dict(design) != design_to_dict(design_from_dict(meta["design"])):
         raise FileFormatError(f"{toml}: does not match the design stored in {npz.name}")
     try:
         named = {

@@ -63,6 +63,10 @@ Vec3 = tuple[float, float, float]
 
 ARM_NAMES: tuple[str, ...] = ("front_zpos", "front_zneg", "back_xpos", "back_xneg")
 CAVITY_NAMES: tuple[str, ...] = ARM_NAMES + ("urethra",)
+REGION_NAMES: tuple[str, ...] = ("bulb", *(f"arm_{n}" for n in ARM_NAMES))
+#: region groups usable as keys of ``[region_materials]``
+REGION_GROUPS: dict[str, tuple[str, ...]] = {"arms": tuple(f"arm_{n}" for n in ARM_NAMES)}
+DEFAULT_MATERIAL = "ecoflex_00_50"
 MIN_WALL_MM = 1.0
 SURFACE_TOL_MM = 0.1
 MIN_MARKERS = 4
@@ -74,6 +78,9 @@ CAVITY_VOLUME_VERTICAL_MM3 = 514.0  # front pair (±z)
 CAVITY_VOLUME_HORIZONTAL_MM3 = 486.0  # back pair (±x)
 _A_MM, _B_MM = 32.0, 25.0
 _C_MM = BULB_VOLUME_MM3 / (4.0 / 3.0 * math.pi * _A_MM * _B_MM)  # 29.9639… mm
+
+
+_BARE = re.compile(r"^[A-Za-z0-9_-]+$")
 
 
 def _fmt(x: float) -> str:
@@ -263,6 +270,8 @@ class MeshParams:
     cavity radius), so every cavity gets the same relative volume accuracy.
 
     ``--mesh-size-mm H`` scales all sizes by H / size_mm (and the segments by its inverse).
+    ``element_order``: 1 (4-node tets) or 2 (10-node tets, mid-edge nodes placed on the CAD
+    surfaces by gmsh, so curved walls stay curved).
 
     >>> MeshParams().scaled_to(12.0).arm_size_mm
     6.0
@@ -272,6 +281,7 @@ class MeshParams:
     surface_size_mm: float = 4.0
     arm_size_mm: float = 3.0
     cavity_segments: float = 22.0
+    element_order: int = 1
 
     def __post_init__(self) -> None:
         for name in ("size_mm", "surface_size_mm", "arm_size_mm"):
@@ -280,6 +290,9 @@ class MeshParams:
         if n < 6.0:
             raise DesignError(f"mesh.cavity_segments = {_fmt(n)} must be >= 6")
         _set(self, "cavity_segments", n)
+        if isinstance(self.element_order, bool) or self.element_order not in (1, 2):
+            raise DesignError(f"mesh.element_order = {self.element_order!r} must be 1 or 2")
+        _set(self, "element_order", int(self.element_order))
 
     def cavity_size_mm(self, radius_mm: float) -> float:
         """Element size on the wall of a cavity of ``radius_mm``."""
@@ -288,7 +301,10 @@ class MeshParams:
     def scaled_to(self, size_mm: float) -> "MeshParams":
         """The same grading with a bulb size of ``size_mm``."""
         s = _positive("mesh.size_mm", size_mm) / self.size_mm
-        return MeshParams(size_mm, self.surface_size_mm * s, self.arm_size_mm * s, max(6.0, self.cavity_segments / s))
+        return MeshParams(
+            size_mm, self.surface_size_mm * s, self.arm_size_mm * s, max(6.0, self.cavity_segments / s),
+            self.element_order,
+        )
 
 
 def _on_surface(direction: Vec3) -> Vec3:
@@ -334,6 +350,37 @@ def _named_points(path: str, value: Any) -> tuple[tuple[str, Vec3], ...]:
 
 
 @dataclass(frozen=True)
+class MaterialSpec:
+    """A named material of the design file: ``law`` (``corotational``, ``neo-hookean``, ``yeoh``)
+    and its parameters in the units of their names (``E_kPa``, ``nu``, ``C10_kPa``, …,
+    ``density_kg_m3``). The design checks the form (names, numbers); the FEM stage
+    (:func:`softphantom.fem.material.law_from_spec`) checks the law and its physics, naming the field."""
+
+    name: str
+    law: str
+    values: tuple[tuple[str, float], ...]
+
+    def __post_init__(self) -> None:
+        p = f"materials.{self.name}"
+        if not isinstance(self.name, str) or not _BARE.match(self.name or ""):
+            raise DesignError(f"materials: name {self.name!r} must be letters, digits, _ or -")
+        if not isinstance(self.law, str):
+            raise DesignError(f"{p}.law: expected a string, got {self.law!r}")
+        vals = dict(self.values.items() if isinstance(self.values, dict) else self.values)
+        _set(self, "values", tuple((str(k), _num(f"{p}.{k}", v)) for k, v in vals.items()))
+
+
+def _default_materials() -> tuple[MaterialSpec, ...]:
+    # the model's Ecoflex 00-50 (softphantom.fem.material.ECOFLEX_00_50): E = 3 x 83 kPa / 1.75
+    return (MaterialSpec(DEFAULT_MATERIAL, "corotational",
+                         (("E_kPa", 3 * 83.0 / 1.75), ("nu", 0.45), ("density_kg_m3", 1070.0))),)
+
+
+def _default_region_materials() -> tuple[tuple[str, str], ...]:
+    return (("bulb", DEFAULT_MATERIAL), ("arms", DEFAULT_MATERIAL))
+
+
+@dataclass(frozen=True)
 class BIPDesign:
     """The validated BIP design (defaults reproduce the paper; see the module docstring)."""
 
@@ -345,6 +392,8 @@ class BIPDesign:
     markers: tuple[tuple[str, Vec3], ...] = field(default_factory=_default_markers)
     targets: tuple[tuple[str, Vec3], ...] = field(default_factory=_default_targets)
     mesh: MeshParams = field(default_factory=MeshParams)
+    materials: tuple[MaterialSpec, ...] = field(default_factory=_default_materials)
+    region_materials: tuple[tuple[str, str], ...] = field(default_factory=_default_region_materials)
 
     def __post_init__(self) -> None:
         if not isinstance(self.name, str) or not self.name:
@@ -359,6 +408,24 @@ class BIPDesign:
         if names != ARM_NAMES:
             raise DesignError(f"arms: expected exactly {list(ARM_NAMES)} in this order, got {list(names)}")
         _validate_geometry(self)
+        _validate_materials(self)
+
+    def material_of_regions(self, regions=REGION_NAMES) -> dict[str, str]:
+        """Region name -> material name, from ``region_materials`` (a region's own key wins over its
+        group's, e.g. ``arm_front_zpos`` over ``arms``). Raises DesignError for a region without one.
+
+        >>> BIPDesign().material_of_regions()["arm_back_xneg"]
+        'ecoflex_00_50'
+        """
+        given = dict(self.region_materials)
+        out = {}
+        for r in regions:
+            group = next((g for g, members in REGION_GROUPS.items() if r in members and g in given), None)
+            m = given.get(r, given.get(group) if group else None)
+            if m is None:
+                raise DesignError(f"region_materials.{r}: region {r!r} has no material")
+            out[r] = m
+        return out
 
     # --- derived geometry (mm) -------------------------------------------------------------
     def arm_geometry(self) -> tuple[ArmGeometry, ...]:
@@ -432,6 +499,24 @@ def _p_ext(axes: Vec3, inter: InteractionParams) -> dict[str, np.ndarray]:
         else:
             hi = mid
     return {"on-centre": on, "off-centre": _front_point(axes, 0.5 * (lo + hi), ang)}
+
+
+def _validate_materials(d: BIPDesign) -> None:
+    names = [m.name for m in d.materials]
+    for m in d.materials:
+        if not isinstance(m, MaterialSpec):
+            raise DesignError(f"materials: expected MaterialSpec, got {type(m).__name__}")
+        if names.count(m.name) > 1:
+            raise DesignError(f"materials.{m.name}: defined twice")
+    known = set(REGION_NAMES) | set(REGION_GROUPS)
+    rm = tuple((str(k), v) for k, v in (d.region_materials.items() if isinstance(d.region_materials, dict) else d.region_materials))
+    _set(d, "region_materials", rm)
+    for region, mat in rm:
+        if region not in known:
+            raise DesignError(f"region_materials.{region}: not a region (known: {', '.join(sorted(known))})")
+        if not isinstance(mat, str) or mat not in names:
+            raise DesignError(f"region_materials.{region} = {mat!r}: no such material (defined: {', '.join(names)})")
+    d.material_of_regions()
 
 
 def _validate_geometry(d: BIPDesign) -> None:
@@ -543,6 +628,8 @@ def design_to_dict(design: BIPDesign) -> dict[str, Any]:
     }
     out["markers"] = {k: list(v) for k, v in design.markers}
     out["targets"] = {k: list(v) for k, v in design.targets}
+    out["materials"] = {m.name: {"law": m.law, **dict(m.values)} for m in design.materials}
+    out["region_materials"] = dict(design.region_materials)
     return out
 
 
@@ -556,7 +643,7 @@ def _check_keys(path: str, given: dict, allowed) -> None:
 
 def design_from_dict(data: dict[str, Any]) -> BIPDesign:
     """A design from a nested dict; missing keys keep their defaults, ``markers``/``targets`` replace them."""
-    _check_keys("design", data, ["name", "arms", "markers", "targets", *_SUBS])
+    _check_keys("design", data, ["name", "arms", "markers", "targets", "materials", "region_materials", *_SUBS])
     default = BIPDesign()
     defaults = {f.name: getattr(default, f.name) for f in dataclasses.fields(BIPDesign)}
     kwargs: dict[str, Any] = dict(defaults)
@@ -580,6 +667,22 @@ def design_from_dict(data: dict[str, Any]) -> BIPDesign:
             if not isinstance(data[key], dict):
                 raise DesignError(f"{key}: expected a table of name = [x, y, z]")
             kwargs[key] = tuple(data[key].items())
+    if "materials" in data:
+        mats = data["materials"]
+        if not isinstance(mats, dict):
+            raise DesignError("materials: expected tables [materials.NAME] with law = ... and parameters")
+        specs = []
+        for name, tbl in mats.items():
+            if not isinstance(tbl, dict):
+                raise DesignError(f"materials.{name}: expected a table")
+            if "law" not in tbl:
+                raise DesignError(f"materials.{name}.law: missing (corotational, neo-hookean or yeoh)")
+            specs.append(MaterialSpec(name, tbl["law"], tuple((k, v) for k, v in tbl.items() if k != "law")))
+        kwargs["materials"] = tuple(specs)
+    if "region_materials" in data:
+        if not isinstance(data["region_materials"], dict):
+            raise DesignError("region_materials: expected a table region = material name")
+        kwargs["region_materials"] = tuple(data["region_materials"].items())
     return BIPDesign(**kwargs)
 
 
@@ -641,6 +744,9 @@ def design_to_toml(design: BIPDesign) -> str:
         table(f"arms.{_toml_key(name)}", arm)
     table("markers", data["markers"])
     table("targets", data["targets"])
+    for name, mat in data["materials"].items():
+        table(f"materials.{_toml_key(name)}", mat)
+    table("region_materials", data["region_materials"])
     return "\n".join(lines) + "\n"
 
 

@@ -123,13 +123,7 @@ class EquilibriumSolver:
         self._ur_tris = np.asarray(fem.cavities[URETHRA])
         self._V0 = np.array([cavity_volume(fem.x_rest, t) for t in self._arm_tris])
         # Smallest meaningful force residual: round-off of the internal force (as solve_static).
-        unit = np.bincount(
-            fem.tets.reshape(-1),
-            weights=np.repeat((2 * fem.mu + fem.lam) * fem.volumes, 4)
-            * np.linalg.norm(fem.grads, axis=2).reshape(-1),
-            minlength=fem.n_nodes,
-        )
-        self._floor = 16 * np.finfo(float).eps * float(np.linalg.norm(np.repeat(unit, 3)[fem.free_dofs]))
+        self._floor = fem.residual_floor()
 
     # -- pieces -----------------------------------------------------------------------------------
     def applied(self, x: np.ndarray, lam: np.ndarray) -> np.ndarray:

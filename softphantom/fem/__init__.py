@@ -1,9 +1,19 @@
-"""Co-rotational linear-tetrahedron FEM: free functions over numpy arrays (DESIGN.md §5).
+"""Tetrahedral FEM (linear 4-node or quadratic 10-node) with material laws per element: free
+functions over numpy arrays (DESIGN.md §5, docs/architecture.md "FEM").
 
 Build a :class:`FemModel` once (:func:`build_fem`, :func:`fem_from_phantom`), then evaluate
 :func:`internal_force` / :func:`tangent_stiffness`, actuators (:func:`force_actuator`,
 :func:`pressure_load`), sensors (:func:`cavity_volume`, :func:`cavity_volume_gradient`) and solve
 equilibrium with :func:`solve_static`. SI units: m, N, Pa.
+
+Material laws (:mod:`softphantom.fem.material`) are small frozen objects — :class:`Corotational`
+(alias :class:`Material`, the paper's co-rotational Hooke), :class:`NeoHookean`, :class:`Yeoh` —
+whose one numba point function (W, P, dP/dF at a quadrature point,
+:func:`softphantom.fem.kernels.law_point`) serves the force, tangent and energy paths.
+
+    >>> from softphantom.design import BIPDesign, build_model          # doctest: +SKIP
+    >>> model = build_model(BIPDesign())                               # doctest: +SKIP
+    >>> fem = fem_from_phantom(model, NeoHookean(142.3e3, 0.45, 1070))  # doctest: +SKIP
 """
 
 from softphantom.fem.actuators import (
@@ -25,8 +35,17 @@ from softphantom.fem.corotational import (
     tangent_stiffness,
     von_mises,
 )
-from softphantom.fem.material import ECOFLEX_00_50, Material
-from softphantom.fem.model import FemModel, build_fem, fem_from_phantom
+from softphantom.fem.material import (
+    ECOFLEX_00_50,
+    ECOFLEX_00_50_YEOH,
+    LAWS,
+    Corotational,
+    Material,
+    NeoHookean,
+    Yeoh,
+    law_from_spec,
+)
+from softphantom.fem.model import FemModel, build_fem, fem_from_phantom, laws_of_design
 from softphantom.fem.probes import probe_matrix, tet_volumes
 from softphantom.fem.solve import (
     SparseSolver,
@@ -37,7 +56,14 @@ from softphantom.fem.solve import (
 )
 
 __all__ = [
+    "Corotational",
     "ECOFLEX_00_50",
+    "ECOFLEX_00_50_YEOH",
+    "LAWS",
+    "NeoHookean",
+    "Yeoh",
+    "law_from_spec",
+    "laws_of_design",
     "ElementInversionError",
     "FemModel",
     "Material",

@@ -1,4 +1,10 @@
-"""Co-rotational linear tetrahedra: internal force and tangent stiffness.
+"""Internal force, strain energy and tangent stiffness of any law on linear or quadratic tets.
+
+The public functions (:func:`internal_force`, :func:`strain_energy`, :func:`tangent_stiffness`,
+:func:`tangent_data`) run the numba element kernels of :mod:`softphantom.fem.kernels`, which call
+each element's law point function at each quadrature point. The rest of this module is the batched
+numpy reference of the co-rotational law on linear tets (the paper's model), which the kernels are
+tested against and which serves as the fallback without numba for such models:
 
 Per element, F = Ds·Dm⁻¹ = R·S (polar decomposition, batched SVD with a reflection guard), and the
 stress is Hooke's law on the corotated strain S − I: σ = 2μ(S − I) + λ tr(S − I) I, first
@@ -7,10 +13,8 @@ and is the gradient of the energy V(μ‖S − I‖² + λ/2 tr²(S − I)) ("co
 so its consistent tangent is symmetric. :func:`tangent_stiffness` gives that consistent tangent
 (with the rotation-derivative term) by default, or the approximate R K0 Rᵀ with ``consistent=False``.
 
-The hot paths (:func:`internal_force`, :func:`strain_energy`, :func:`tangent_data` behind
-:func:`tangent_stiffness` and ``free_tangent``) run the numba kernels of
-:mod:`softphantom.fem.kernels` when numba is importable (``USE_NUMBA``); the batched numpy code here
-is the reference they are tested against (``*_numpy`` functions) and the fallback without numba.
+``USE_NUMBA`` False (no numba, or a test) sends co-rotational P1 models to the numpy path; other
+models then run the kernels as plain Python.
 """
 
 from __future__ import annotations
@@ -29,11 +33,22 @@ USE_NUMBA = kernels.HAVE_NUMBA
 
 
 class ElementInversionError(SolverError):
-    """Some elements have det F <= 0 (inverted or degenerate) in the current configuration."""
+    """Some elements have det F <= 0 (inverted or degenerate) in the current configuration
+    (counted over quadrature points for quadratic tets)."""
 
-    def __init__(self, count: int, total: int) -> None:
+    def __init__(self, count: int, total: int, what: str = "elements") -> None:
         self.count = count
-        super().__init__(f"{count} of {total} elements inverted (det F <= 0)")
+        super().__init__(f"{count} of {total} {what} inverted (det F <= 0)")
+
+
+def _raise_inverted(fem: FemModel, bad: int) -> None:
+    if fem.wq.shape[1] == 1:
+        raise ElementInversionError(int(bad), fem.tets.shape[0])
+    raise ElementInversionError(int(bad), fem.wq.size, "quadrature points")
+
+
+def _numpy_path(fem: FemModel) -> bool:
+    return not USE_NUMBA and fem.order == 1 and fem.all_corotational
 
 
 def deformation_gradient(fem: FemModel, x: np.ndarray) -> np.ndarray:
@@ -116,28 +131,29 @@ def internal_force(fem: FemModel, x: np.ndarray) -> np.ndarray:
     >>> float(np.abs(internal_force(fem, X @ R.T + 5.0)).max()) < 1e-10
     True
     """
-    if not USE_NUMBA:
+    if _numpy_path(fem):
         return internal_force_numpy(fem, x)
     x = _flat(x)
     _check_finite(x)
     out = np.empty(fem.n_dof)
     bad = kernels.internal_force_kernel(
-        x, fem.tets, fem.grads, fem.volumes, fem.mu, fem.lam, fem.elem_dofs, out
+        x, fem.tets, fem.dN, fem.wq, fem.law_id, fem.params, fem.elem_dofs, out
     )
     if bad:
-        raise ElementInversionError(int(bad), fem.tets.shape[0])
+        _raise_inverted(fem, bad)
     return out
 
 
 def strain_energy(fem: FemModel, x: np.ndarray) -> float:
-    """J, Σ V (μ‖S − I‖² + λ/2 tr²(S − I)): the energy whose gradient is :func:`internal_force`."""
-    if not USE_NUMBA:
+    """J, Σ_e Σ_q w_q W(F): the energy whose gradient is :func:`internal_force` (co-rotational:
+    W = μ‖S − I‖² + λ/2 tr²(S − I))."""
+    if _numpy_path(fem):
         return strain_energy_numpy(fem, x)
     x = _flat(x)
     out = np.zeros(1)
-    bad = kernels.strain_energy_kernel(x, fem.tets, fem.grads, fem.volumes, fem.mu, fem.lam, out)
+    bad = kernels.strain_energy_kernel(x, fem.tets, fem.dN, fem.wq, fem.law_id, fem.params, out)
     if bad:
-        raise ElementInversionError(int(bad), fem.tets.shape[0])
+        _raise_inverted(fem, bad)
     return float(out[0])
 
 
@@ -221,15 +237,15 @@ def tangent_data(fem: FemModel, x: np.ndarray, consistent: bool = True) -> np.nd
     """Data array of the full tangent in ``fem``'s CSR pattern (``pattern_indptr``/``_indices``).
 
     Raises :class:`ElementInversionError` if any det F <= 0 (NaN positions included)."""
-    if not USE_NUMBA:
+    if _numpy_path(fem):
         return tangent_data_numpy(fem, x, consistent)
     data = np.empty(fem.pattern_keys.size)
     bad = kernels.tangent_kernel(
-        _flat(x), fem.tets, fem.grads, fem.volumes, fem.mu, fem.lam, fem.scatter,
+        _flat(x), fem.tets, fem.dN, fem.wq, fem.law_id, fem.params, fem.scatter,
         bool(consistent), data,
     )
     if bad:
-        raise ElementInversionError(int(bad), fem.tets.shape[0])
+        _raise_inverted(fem, bad)
     return data
 
 

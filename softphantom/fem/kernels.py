@@ -1,15 +1,27 @@
-"""numba kernels of the co-rotational hot paths: internal force, strain energy and the element
-tangents written straight into the CSR data array (one pass, no (M,12,12) temporary).
+"""numba kernels of the FEM hot paths: the material laws' point functions and the element loops
+(internal force, strain energy, tangent written straight into the CSR data array).
 
-They compute exactly what the numpy reference in :mod:`softphantom.fem.corotational` computes
-(same formulas, same order of summation in the assembly), with the polar decomposition done per
-element by Higham's scaled Newton iteration X ← (γX + X⁻ᵀ/γ)/2 instead of a batched SVD: for
-det F > 0 both give the unique proper rotation R = F (FᵀF)^(-1/2) (the reference's reflection guard
-is then a no-op), to round-off. ``S = sym(Rᵀ F)``.
+**One point function per law**, ``law_point(law_id, prm, F, P, D, need, wk) -> W``: at one
+quadrature point, from the deformation gradient F and the law's parameter row ``prm``, the strain
+energy density W (J/m³), the first Piola–Kirchhoff stress P (``need >= 1``) and the tangent
+D = dP/dF (``need >= 2``; rows and columns row-major over (i, j): ``D[3i+j, 3k+l] = ∂P_ij/∂F_kl``).
+The force, energy and tangent kernels all call it, so a law is written once. Laws (ids as in
+:mod:`softphantom.fem.material`):
 
-Every kernel returns the number of elements with det F <= 0 (or NaN); the caller raises
-:class:`~softphantom.fem.corotational.ElementInversionError` with it. If numba is not importable,
-``HAVE_NUMBA`` is False and :mod:`softphantom.fem.corotational` uses its numpy path.
+- 0 ``corotational``: W = μ‖S − I‖² + λ/2 tr²(S − I) with F = R S (polar decomposition by Higham's
+  scaled Newton iteration X ← (γX + X⁻ᵀ/γ)/2), P = R σ(S); ``need == 3`` asks for the classic
+  approximate tangent R K0 Rᵀ instead of the consistent one. prm = (μ, λ).
+- 1 ``neo-hookean``: W = μ/2 (I₁ − 3) − μ ln J + λ/2 (ln J)²; P = μ F + (λ ln J − μ) F⁻ᵀ. prm = (μ, λ).
+- 2 ``yeoh``: W = Σ_{i=1..3} C_i0 (Ī₁ − 3)^i + K/2 (J − 1)², Ī₁ = J^(−2/3) I₁. prm = (C10, C20, C30, K).
+
+Elements: ``conn`` (M, n) node indices (n = 4 linear, 10 quadratic), ``dN`` (M, Q, n, 3) the rest
+gradients ∇_X N_a at Q quadrature points, ``wq`` (M, Q) the quadrature weights times det J (m³).
+F = Σ_a x_a ⊗ ∇N_a at each point.
+
+Every kernel returns the number of quadrature points with det F <= 0 (or NaN), counted before any
+output is touched; the caller raises :class:`~softphantom.fem.corotational.ElementInversionError`.
+If numba is not importable, ``HAVE_NUMBA`` is False and the functions run as plain Python (slow,
+same results); :mod:`softphantom.fem.corotational` then prefers its numpy path where it has one.
 
 Compiled on first use and cached on disk (``cache=True``); serial (``parallel=False``) so results are
 deterministic and bit-identical from run to run; ``nogil=True`` so the estimator's background
@@ -17,6 +29,8 @@ equilibrium thread does not hold up the foreground (numpy/scipy release the GIL 
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 
@@ -34,33 +48,9 @@ except ImportError:  # pragma: no cover - exercised only where numba is missing
         return deco
 
 
-@njit(cache=True, fastmath=False, nogil=True)
-def _count_inverted(x, tets, grads, F):
-    """Elements with det F <= 0 (or NaN); checked before any output is touched."""
-    bad = 0
-    for e in range(tets.shape[0]):
-        if not _defgrad(x, tets, grads, e, F) > 0.0:
-            bad += 1
-    return bad
-
-
-@njit(cache=True, fastmath=False, nogil=True)
-def _defgrad(x, tets, grads, e, F):
-    """F = Σ_a x_a ⊗ ∇N_a of element e into F (3,3); returns det F."""
-    for i in range(3):
-        for j in range(3):
-            F[i, j] = 0.0
-    for a in range(4):
-        n = tets[e, a]
-        for i in range(3):
-            xi = x[3 * n + i]
-            for j in range(3):
-                F[i, j] += xi * grads[e, a, j]
-    return (
-        F[0, 0] * (F[1, 1] * F[2, 2] - F[1, 2] * F[2, 1])
-        - F[0, 1] * (F[1, 0] * F[2, 2] - F[1, 2] * F[2, 0])
-        + F[0, 2] * (F[1, 0] * F[2, 1] - F[1, 1] * F[2, 0])
-    )
+LAW_COROTATIONAL, LAW_NEO_HOOKEAN, LAW_YEOH = 0, 1, 2
+N_PARAMS = 4  # columns of the per-element parameter array
+N_WORK = 10  # (3,3) scratch matrices a law point function may use
 
 
 @njit(cache=True, fastmath=False, nogil=True)
@@ -128,67 +118,6 @@ def _stress(S, mu, lam, sig):
         for j in range(3):
             E = S[i, j] - (1.0 if i == j else 0.0)
             sig[i, j] = 2.0 * mu * E + (lam * tr if i == j else 0.0)
-
-
-@njit(cache=True, fastmath=False, nogil=True)
-def internal_force_kernel(x, tets, grads, volumes, mu, lam, edofs, out):
-    """Accumulate the internal force into ``out`` (3N,) (zeroed here); returns #inverted elements.
-
-    Nothing is written when an element is inverted (the caller raises)."""
-    m = tets.shape[0]
-    F = np.empty((3, 3))
-    R = np.empty((3, 3))
-    S = np.empty((3, 3))
-    X = np.empty((3, 3))
-    Y = np.empty((3, 3))
-    sig = np.empty((3, 3))
-    P = np.empty((3, 3))
-    bad = _count_inverted(x, tets, grads, F)
-    if bad:
-        return bad
-    for k in range(out.shape[0]):
-        out[k] = 0.0
-    for e in range(m):
-        _defgrad(x, tets, grads, e, F)
-        _polar(F, R, S, X, Y)
-        _stress(S, mu[e], lam[e], sig)
-        for i in range(3):
-            for j in range(3):
-                P[i, j] = R[i, 0] * sig[0, j] + R[i, 1] * sig[1, j] + R[i, 2] * sig[2, j]
-        v = volumes[e]
-        for a in range(4):
-            for i in range(3):
-                out[edofs[e, 3 * a + i]] += v * (
-                    P[i, 0] * grads[e, a, 0] + P[i, 1] * grads[e, a, 1] + P[i, 2] * grads[e, a, 2]
-                )
-    return 0
-
-
-@njit(cache=True, fastmath=False, nogil=True)
-def strain_energy_kernel(x, tets, grads, volumes, mu, lam, out):
-    """out[0] = Σ V (μ‖S − I‖² + λ/2 tr²(S − I)); returns #inverted elements."""
-    m = tets.shape[0]
-    F = np.empty((3, 3))
-    R = np.empty((3, 3))
-    S = np.empty((3, 3))
-    X = np.empty((3, 3))
-    Y = np.empty((3, 3))
-    bad = _count_inverted(x, tets, grads, F)
-    if bad:
-        return bad
-    total = 0.0
-    for e in range(m):
-        _defgrad(x, tets, grads, e, F)
-        _polar(F, R, S, X, Y)
-        tr = (S[0, 0] - 1.0) + (S[1, 1] - 1.0) + (S[2, 2] - 1.0)
-        ee = 0.0
-        for i in range(3):
-            for j in range(3):
-                E = S[i, j] - (1.0 if i == j else 0.0)
-                ee += E * E
-        total += volumes[e] * (mu[e] * ee + 0.5 * lam[e] * tr * tr)
-    out[0] = total
-    return 0
 
 
 @njit(cache=True, fastmath=False, nogil=True)
@@ -273,53 +202,275 @@ def _dP_dF(R, S, mu, lam, consistent, D, M, W, dS, sig, Ginv):
 
 
 @njit(cache=True, fastmath=False, nogil=True)
-def tangent_kernel(x, tets, grads, volumes, mu, lam, scatter, consistent, data):
-    """Element tangents V Bᵀ (dP/dF) B summed into the CSR ``data`` (zeroed here) at ``scatter``
-    (M,144); returns #inverted elements (nothing assembled then)."""
-    m = tets.shape[0]
+def _det_inv(F, Finv):
+    """det F, and F⁻¹ into Finv (if det != 0)."""
+    c00 = F[1, 1] * F[2, 2] - F[1, 2] * F[2, 1]
+    c01 = F[1, 2] * F[2, 0] - F[1, 0] * F[2, 2]
+    c02 = F[1, 0] * F[2, 1] - F[1, 1] * F[2, 0]
+    det = F[0, 0] * c00 + F[0, 1] * c01 + F[0, 2] * c02
+    if det == 0.0:
+        return det
+    idet = 1.0 / det
+    Finv[0, 0] = c00 * idet
+    Finv[1, 0] = c01 * idet
+    Finv[2, 0] = c02 * idet
+    Finv[0, 1] = (F[0, 2] * F[2, 1] - F[0, 1] * F[2, 2]) * idet
+    Finv[1, 1] = (F[0, 0] * F[2, 2] - F[0, 2] * F[2, 0]) * idet
+    Finv[2, 1] = (F[0, 1] * F[2, 0] - F[0, 0] * F[2, 1]) * idet
+    Finv[0, 2] = (F[0, 1] * F[1, 2] - F[0, 2] * F[1, 1]) * idet
+    Finv[1, 2] = (F[0, 2] * F[1, 0] - F[0, 0] * F[1, 2]) * idet
+    Finv[2, 2] = (F[0, 0] * F[1, 1] - F[0, 1] * F[1, 0]) * idet
+    return det
+
+
+@njit(cache=True, fastmath=False, nogil=True)
+def _corotational(prm, F, P, D, need, wk):
+    mu, lam = prm[0], prm[1]
+    R, S, X, Y = wk[0], wk[1], wk[2], wk[3]
+    _polar(F, R, S, X, Y)
+    tr = (S[0, 0] - 1.0) + (S[1, 1] - 1.0) + (S[2, 2] - 1.0)
+    ee = 0.0
+    for i in range(3):
+        for j in range(3):
+            E = S[i, j] - (1.0 if i == j else 0.0)
+            ee += E * E
+    if need >= 1:
+        sig = wk[4]
+        _stress(S, mu, lam, sig)
+        for i in range(3):
+            for j in range(3):
+                P[i, j] = R[i, 0] * sig[0, j] + R[i, 1] * sig[1, j] + R[i, 2] * sig[2, j]
+    if need >= 2:
+        _dP_dF(R, S, mu, lam, need == 2, D, wk[5], wk[6], wk[7], wk[8], wk[9])
+    return mu * ee + 0.5 * lam * tr * tr
+
+
+@njit(cache=True, fastmath=False, nogil=True)
+def _neo_hookean(prm, F, P, D, need, wk):
+    mu, lam = prm[0], prm[1]
+    Fi = wk[0]
+    J = _det_inv(F, Fi)
+    lnJ = math.log(J)
+    I1 = 0.0
+    for i in range(3):
+        for j in range(3):
+            I1 += F[i, j] * F[i, j]
+    if need >= 1:
+        c = lam * lnJ - mu
+        for i in range(3):
+            for j in range(3):
+                P[i, j] = mu * F[i, j] + c * Fi[j, i]
+    if need >= 2:
+        a = mu - lam * lnJ
+        for i in range(3):
+            for j in range(3):
+                for k in range(3):
+                    for l in range(3):
+                        d = a * Fi[j, k] * Fi[l, i] + lam * Fi[j, i] * Fi[l, k]
+                        if i == k and j == l:
+                            d += mu
+                        D[3 * i + j, 3 * k + l] = d
+    return 0.5 * mu * (I1 - 3.0) - mu * lnJ + 0.5 * lam * lnJ * lnJ
+
+
+@njit(cache=True, fastmath=False, nogil=True)
+def _yeoh(prm, F, P, D, need, wk):
+    c1, c2, c3, K = prm[0], prm[1], prm[2], prm[3]
+    Fi, G = wk[0], wk[1]
+    J = _det_inv(F, Fi)
+    I1 = 0.0
+    for i in range(3):
+        for j in range(3):
+            I1 += F[i, j] * F[i, j]
+    g = J ** (-2.0 / 3.0)
+    b = g * I1  # Ī₁
+    x = b - 3.0
+    W = c1 * x + c2 * x * x + c3 * x * x * x + 0.5 * K * (J - 1.0) ** 2
+    if need >= 1:
+        w1 = c1 + 2.0 * c2 * x + 3.0 * c3 * x * x  # dW/dĪ₁
+        kv = K * (J - 1.0) * J  # (dU/dJ) J
+        for i in range(3):
+            for j in range(3):
+                G[i, j] = 2.0 * g * F[i, j] - (2.0 / 3.0) * b * Fi[j, i]  # dĪ₁/dF
+                P[i, j] = w1 * G[i, j] + kv * Fi[j, i]
+    if need >= 2:
+        w11 = 2.0 * c2 + 6.0 * c3 * x
+        for i in range(3):
+            for j in range(3):
+                for k in range(3):
+                    for l in range(3):
+                        # d²Ī₁/dF² and d(J F⁻ᵀ)/dF
+                        h = (
+                            -(4.0 / 3.0) * g * F[i, j] * Fi[l, k]
+                            - (2.0 / 3.0) * G[k, l] * Fi[j, i]
+                            + (2.0 / 3.0) * b * Fi[j, k] * Fi[l, i]
+                        )
+                        if i == k and j == l:
+                            h += 2.0 * g
+                        d = w11 * G[i, j] * G[k, l] + w1 * h
+                        d += K * J * J * Fi[j, i] * Fi[l, k]
+                        d += K * (J - 1.0) * J * (Fi[l, k] * Fi[j, i] - Fi[j, k] * Fi[l, i])
+                        D[3 * i + j, 3 * k + l] = d
+    return W
+
+
+@njit(cache=True, fastmath=False, nogil=True)
+def law_point(law, prm, F, P, D, need, wk):
+    """W (J/m³) of law ``law`` at F (det F > 0); P (3,3) if ``need >= 1``; D (9,9) = dP/dF if
+    ``need >= 2`` (``need == 3``: the law's approximate tangent, where it has one). ``wk``:
+    (N_WORK,3,3) scratch. Add a law here and in :mod:`softphantom.fem.material`, nowhere else."""
+    if law == LAW_COROTATIONAL:
+        return _corotational(prm, F, P, D, need, wk)
+    if law == LAW_NEO_HOOKEAN:
+        return _neo_hookean(prm, F, P, D, need, wk)
+    return _yeoh(prm, F, P, D, need, wk)
+
+
+def point(law: int, prm, F, need: int = 2):
+    """(W, P, D) of a law at one F, from Python (tests, closed forms): the same point function the
+    element kernels call.
+
+    >>> import numpy as np
+    >>> W, P, D = point(LAW_NEO_HOOKEAN, np.array([1.0, 2.0, 0, 0]), np.eye(3))
+    >>> W, float(abs(P).max()), D.shape
+    (0.0, 0.0, (9, 9))
+    """
+    P = np.zeros((3, 3))
+    D = np.zeros((9, 9))
+    prm = np.zeros(N_PARAMS) + np.pad(np.asarray(prm, float), (0, N_PARAMS - len(prm)))
+    W = law_point(int(law), prm, np.ascontiguousarray(F, dtype=np.float64), P, D, int(need),
+                  np.empty((N_WORK, 3, 3)))
+    return float(W), P, D
+
+
+@njit(cache=True, fastmath=False, nogil=True)
+def _defgrad(x, conn, dN, e, q, F):
+    """F = Σ_a x_a ⊗ ∇N_a of element e at quadrature point q into F (3,3); returns det F."""
+    for i in range(3):
+        for j in range(3):
+            F[i, j] = 0.0
+    for a in range(conn.shape[1]):
+        n = conn[e, a]
+        g0 = dN[e, q, a, 0]
+        g1 = dN[e, q, a, 1]
+        g2 = dN[e, q, a, 2]
+        for i in range(3):
+            xi = x[3 * n + i]
+            F[i, 0] += xi * g0
+            F[i, 1] += xi * g1
+            F[i, 2] += xi * g2
+    return (
+        F[0, 0] * (F[1, 1] * F[2, 2] - F[1, 2] * F[2, 1])
+        - F[0, 1] * (F[1, 0] * F[2, 2] - F[1, 2] * F[2, 0])
+        + F[0, 2] * (F[1, 0] * F[2, 1] - F[1, 1] * F[2, 0])
+    )
+
+
+@njit(cache=True, fastmath=False, nogil=True)
+def _count_inverted(x, conn, dN, F):
+    """Quadrature points with det F <= 0 (or NaN); checked before any output is touched."""
+    bad = 0
+    for e in range(conn.shape[0]):
+        for q in range(dN.shape[1]):
+            if not _defgrad(x, conn, dN, e, q, F) > 0.0:
+                bad += 1
+    return bad
+
+
+@njit(cache=True, fastmath=False, nogil=True)
+def internal_force_kernel(x, conn, dN, wq, law, prm, edofs, out):
+    """Accumulate the internal force Σ_q w_q P ∇N_a into ``out`` (3N,) (zeroed here); returns the
+    number of inverted points (nothing written then)."""
     F = np.empty((3, 3))
-    R = np.empty((3, 3))
-    S = np.empty((3, 3))
-    X = np.empty((3, 3))
-    Y = np.empty((3, 3))
-    M = np.empty((3, 3))
-    W = np.empty((3, 3))
-    dS = np.empty((3, 3))
-    sig = np.empty((3, 3))
-    Ginv = np.empty((3, 3))
+    P = np.empty((3, 3))
     D = np.empty((9, 9))
-    T = np.empty((9, 12))
-    bad = _count_inverted(x, tets, grads, F)
+    wk = np.empty((N_WORK, 3, 3))
+    bad = _count_inverted(x, conn, dN, F)
+    if bad:
+        return bad
+    for k in range(out.shape[0]):
+        out[k] = 0.0
+    for e in range(conn.shape[0]):
+        for q in range(dN.shape[1]):
+            _defgrad(x, conn, dN, e, q, F)
+            law_point(law[e], prm[e], F, P, D, 1, wk)
+            v = wq[e, q]
+            for a in range(conn.shape[1]):
+                g0 = dN[e, q, a, 0]
+                g1 = dN[e, q, a, 1]
+                g2 = dN[e, q, a, 2]
+                for i in range(3):
+                    out[edofs[e, 3 * a + i]] += v * (P[i, 0] * g0 + P[i, 1] * g1 + P[i, 2] * g2)
+    return 0
+
+
+@njit(cache=True, fastmath=False, nogil=True)
+def strain_energy_kernel(x, conn, dN, wq, law, prm, out):
+    """out[0] = Σ_e Σ_q w_q W(F); returns the number of inverted points."""
+    F = np.empty((3, 3))
+    P = np.empty((3, 3))
+    D = np.empty((9, 9))
+    wk = np.empty((N_WORK, 3, 3))
+    bad = _count_inverted(x, conn, dN, F)
+    if bad:
+        return bad
+    total = 0.0
+    for e in range(conn.shape[0]):
+        for q in range(dN.shape[1]):
+            _defgrad(x, conn, dN, e, q, F)
+            total += wq[e, q] * law_point(law[e], prm[e], F, P, D, 0, wk)
+    out[0] = total
+    return 0
+
+
+@njit(cache=True, fastmath=False, nogil=True)
+def tangent_kernel(x, conn, dN, wq, law, prm, scatter, consistent, data):
+    """Element tangents Σ_q w_q Bᵀ (dP/dF) B summed into the CSR ``data`` (zeroed here) at
+    ``scatter`` (M, (3n)²); returns the number of inverted points (nothing assembled then)."""
+    nen = conn.shape[1]
+    nd = 3 * nen
+    F = np.empty((3, 3))
+    P = np.empty((3, 3))
+    D = np.empty((9, 9))
+    wk = np.empty((N_WORK, 3, 3))
+    T = np.empty((9, nd))
+    Ke = np.empty((nd, nd))
+    need = 2 if consistent else 3
+    bad = _count_inverted(x, conn, dN, F)
     if bad:
         return bad
     for k in range(data.shape[0]):
         data[k] = 0.0
-    for e in range(m):
-        _defgrad(x, tets, grads, e, F)
-        _polar(F, R, S, X, Y)
-        _dP_dF(R, S, mu[e], lam[e], consistent, D, M, W, dS, sig, Ginv)
-        # (D B)[pj, (b,q)] = Σ_l D[pj, 3q + l] ∇N_b,l
-        for r in range(9):
-            for b in range(4):
-                gb0 = grads[e, b, 0]
-                gb1 = grads[e, b, 1]
-                gb2 = grads[e, b, 2]
-                for q in range(3):
-                    T[r, 3 * b + q] = (
-                        D[r, 3 * q] * gb0 + D[r, 3 * q + 1] * gb1 + D[r, 3 * q + 2] * gb2
-                    )
-        # Ke[(a,p), c] = V Σ_j ∇N_a,j (D B)[3p + j, c]
-        v = volumes[e]
-        for a in range(4):
-            ga0 = grads[e, a, 0]
-            ga1 = grads[e, a, 1]
-            ga2 = grads[e, a, 2]
-            for p in range(3):
-                row = 12 * (3 * a + p)
-                for c in range(12):
-                    data[scatter[e, row + c]] += (
-                        ga0 * T[3 * p, c] + ga1 * T[3 * p + 1, c] + ga2 * T[3 * p + 2, c]
-                    ) * v
+    for e in range(conn.shape[0]):
+        for r in range(nd):
+            for c in range(nd):
+                Ke[r, c] = 0.0
+        for q in range(dN.shape[1]):
+            _defgrad(x, conn, dN, e, q, F)
+            law_point(law[e], prm[e], F, P, D, need, wk)
+            # (D B)[pj, (b,q)] = Σ_l D[pj, 3q + l] ∇N_b,l
+            for r in range(9):
+                for b in range(nen):
+                    gb0 = dN[e, q, b, 0]
+                    gb1 = dN[e, q, b, 1]
+                    gb2 = dN[e, q, b, 2]
+                    for s in range(3):
+                        T[r, 3 * b + s] = (
+                            D[r, 3 * s] * gb0 + D[r, 3 * s + 1] * gb1 + D[r, 3 * s + 2] * gb2
+                        )
+            # Ke[(a,p), c] += w Σ_j ∇N_a,j (D B)[3p + j, c]
+            v = wq[e, q]
+            for a in range(nen):
+                ga0 = dN[e, q, a, 0] * v
+                ga1 = dN[e, q, a, 1] * v
+                ga2 = dN[e, q, a, 2] * v
+                for p in range(3):
+                    row = 3 * a + p
+                    for c in range(nd):
+                        Ke[row, c] += ga0 * T[3 * p, c] + ga1 * T[3 * p + 1, c] + ga2 * T[3 * p + 2, c]
+        for r in range(nd):
+            for c in range(nd):
+                data[scatter[e, nd * r + c]] += Ke[r, c]
     return 0
 
 
@@ -333,21 +484,24 @@ def _ro(a: np.ndarray) -> np.ndarray:
 
 
 def warm_up() -> None:
-    """Compile (first time ever, a few seconds) or load from numba's disk cache (~0.1–0.3 s) every
+    """Compile (first time ever, some seconds) or load from numba's disk cache (~0.1–0.3 s) every
     kernel, with the argument types the FEM uses (read-only model arrays and positions), on one
-    tet; once per process. :func:`~softphantom.fem.model.build_fem` calls it, so the cost is paid
-    when a model is built, not in the first Newton step or in a real-time loop."""
+    tet and every law; once per process. :func:`~softphantom.fem.model.build_fem` calls it, so the
+    cost is paid when a model is built, not in the first Newton step or in a real-time loop."""
     global _warm
     if _warm or not HAVE_NUMBA:
         return
-    tets = _ro(np.array([[0, 1, 2, 3]], dtype=np.int64))
-    grads = _ro(np.array([[[-1.0, -1.0, -1.0], [1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0]]]))
-    one = _ro(np.ones(1))
+    conn = _ro(np.array([[0, 1, 2, 3]], dtype=np.int64))
+    dN = _ro(np.array([[[[-1.0, -1.0, -1.0], [1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0]]]]))
+    wq = _ro(np.ones((1, 1)))
     x = _ro(np.array([0, 0, 0, 1.0, 0, 0, 0, 1.0, 0, 0, 0, 1.0]))
     edofs = _ro(np.arange(12, dtype=np.int64)[None])
     scatter = _ro(np.arange(144, dtype=np.int64)[None])
-    internal_force_kernel(x, tets, grads, one, one, one, edofs, np.empty(12))
-    strain_energy_kernel(x, tets, grads, one, one, one, np.empty(1))
-    for consistent in (True, False):
-        tangent_kernel(x, tets, grads, one, one, one, scatter, consistent, np.empty(144))
+    prm = _ro(np.array([[1.0, 1.0, 0.1, 1.0]]))
+    for law_id in (LAW_COROTATIONAL, LAW_NEO_HOOKEAN, LAW_YEOH):
+        law = _ro(np.array([law_id], dtype=np.int64))
+        internal_force_kernel(x, conn, dN, wq, law, prm, edofs, np.empty(12))
+        strain_energy_kernel(x, conn, dN, wq, law, prm, np.empty(1))
+        for consistent in (True, False):
+            tangent_kernel(x, conn, dN, wq, law, prm, scatter, consistent, np.empty(144))
     _warm = True

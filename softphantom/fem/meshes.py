@@ -34,3 +34,26 @@ def box_mesh(size, divisions, origin=(0.0, 0.0, 0.0)) -> tuple[np.ndarray, np.nd
     d = np.linalg.det(np.swapaxes(X[T[:, 1:]] - X[T[:, [0]]], 1, 2))
     T[d < 0] = T[d < 0][:, [0, 2, 1, 3]]
     return X, T.astype(np.int64)
+
+
+def quadratic_mesh(nodes: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Straight-sided 10-node tets from 4-node ones: a node at the midpoint of every edge (shared
+    between neighbours), numbered after the corners; connectivity in
+    :mod:`softphantom.fem.elements` order.
+
+    >>> X, T = box_mesh((1.0, 1.0, 1.0), (1, 1, 1))
+    >>> X2, T2 = quadratic_mesh(X, T)
+    >>> X2.shape, T2.shape  # 8 corners + 19 edges
+    ((27, 3), (6, 10))
+    """
+    from softphantom.fem.elements import TET10_EDGES
+
+    nodes = np.asarray(nodes, dtype=np.float64)
+    tets = np.asarray(tets, dtype=np.int64)
+    pairs = np.sort(tets[:, TET10_EDGES], axis=2).reshape(-1, 2)  # (6M,2)
+    n = len(nodes)
+    uniq, inv = np.unique(pairs[:, 0] * n + pairs[:, 1], return_inverse=True)
+    a, b = np.divmod(uniq, n)
+    mid = 0.5 * (nodes[a] + nodes[b])
+    T10 = np.concatenate([tets, n + inv.reshape(-1, 6)], axis=1)
+    return np.vstack([nodes, mid]), T10

@@ -1,5 +1,6 @@
-"""The precomputed FEM model: rest geometry, shape-function gradients, Lamé constants, DOF indexing
-and the sparsity pattern with scatter indices (so every assembly is one vectorized numpy pass)."""
+"""The precomputed FEM model: rest geometry, shape-function gradients at the quadrature points,
+the material law of each element, DOF indexing and the sparsity pattern with scatter indices (so
+every assembly is one pass of a numba kernel)."""
 
 from __future__ import annotations
 
@@ -9,11 +10,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from softphantom.errors import MeshError, UserError
-from softphantom.fem import kernels
-from softphantom.fem.material import ECOFLEX_00_50, Material
-
-# Local DOF order of a tet: node-major (node a, component i) -> 3a + i.
-_LOCAL = np.arange(12)
+from softphantom.fem import elements, kernels
+from softphantom.fem.material import ECOFLEX_00_50, LAWS, Law
 
 
 def _ro(a: np.ndarray) -> np.ndarray:
@@ -24,35 +22,57 @@ def _ro(a: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True, eq=False)
 class FemModel:
-    """Everything the co-rotational assembly needs, computed once by :func:`build_fem`.
+    """Everything the assembly needs, computed once by :func:`build_fem`.
 
     Arrays are read-only. ``n_dof = 3 * n_nodes``; DOF ``3*i + k`` is component ``k`` of node ``i``.
+    ``tets`` is the element connectivity: (M,4) linear or (M,10) quadratic tets (corners first,
+    then mid-edge nodes in :mod:`softphantom.fem.elements` order); ``order`` is 1 or 2. ``dN``
+    (M,Q,n,3) and ``wq`` (M,Q) are the rest shape-function gradients and weights × det J at the
+    Q quadrature points (1 for P1, 4 for P2). ``grads``/``volumes`` are those of the straight
+    corner tet (point location, scales). ``law_id``/``params`` (M,)/(M,4) select each element's law
+    and its parameter row; ``mu``/``lam`` are its small-strain Lamé constants (Pa).
     ``pattern_indptr``/``pattern_indices`` give the CSR pattern of the full stiffness and
-    ``scatter`` (M, 144) the position in its data array of each entry of each element's 12×12 block
-    (row-major, node-major local DOFs). ``free_take`` picks the free–free part of the data array, in
-    the CSR order of ``ff_indptr``/``ff_indices``.
+    ``scatter`` (M, (3n)²) the position in its data array of each entry of each element block
+    (row-major, node-major local DOFs). ``free_take`` picks the free–free part of the data array,
+    in the CSR order of ``ff_indptr``/``ff_indices``. ``boundary_faces`` (B,3|6) and the
+    ``cavities`` (K,3|6) are triangles of the element's order.
     """
 
     nodes: np.ndarray  # (N,3) m, rest positions
-    tets: np.ndarray  # (M,4) int64, positive orientation
-    grads: np.ndarray  # (M,4,3) 1/m, ∇N_a in the rest configuration
-    volumes: np.ndarray  # (M,) m³
-    mu: np.ndarray  # (M,) Pa
-    lam: np.ndarray  # (M,) Pa
+    tets: np.ndarray  # (M,4|10) int64, positive orientation
+    grads: np.ndarray  # (M,4,3) 1/m, ∇L_a of the straight corner tet
+    volumes: np.ndarray  # (M,) m³ of the straight corner tet
+    mu: np.ndarray  # (M,) Pa, small-strain shear modulus
+    lam: np.ndarray  # (M,) Pa, small-strain first Lamé constant
     density: np.ndarray  # (M,) kg/m³
     fixed_dofs: np.ndarray  # sorted DOF indices held fixed (Dirichlet)
     free_dofs: np.ndarray  # sorted complementary DOF indices
     dof_map: np.ndarray  # (3N,) free index of a DOF, -1 if fixed
-    elem_dofs: np.ndarray  # (M,12) global DOFs of each element
+    elem_dofs: np.ndarray  # (M,3n) global DOFs of each element
     pattern_indptr: np.ndarray
     pattern_indices: np.ndarray
     pattern_keys: np.ndarray  # sorted row*n_dof+col of the pattern entries
-    scatter: np.ndarray  # (M,144) into the pattern data
+    scatter: np.ndarray  # (M,(3n)²) into the pattern data
     free_take: np.ndarray  # pattern positions of the free–free entries
     ff_indptr: np.ndarray
     ff_indices: np.ndarray
-    boundary_faces: np.ndarray  # (B,3) outer + cavity surface triangles, normals out of the solid
-    cavities: Mapping[str, np.ndarray] = field(default_factory=dict)  # name -> (K,3) triangles
+    boundary_faces: np.ndarray  # (B,3|6) outer + cavity surface triangles, normals out of the solid
+    cavities: Mapping[str, np.ndarray] = field(default_factory=dict)  # name -> (K,3|6) triangles
+    dN: np.ndarray = None  # (M,Q,n,3) 1/m
+    wq: np.ndarray = None  # (M,Q) m³
+    law_id: np.ndarray = None  # (M,) int64
+    params: np.ndarray = None  # (M,4)
+    laws: tuple = ()  # the distinct law objects, for the record
+    N_q: np.ndarray = None  # (Q,n) shape functions at the quadrature points
+
+    @property
+    def order(self) -> int:
+        return 1 if self.tets.shape[1] == 4 else 2
+
+    @property
+    def corners(self) -> np.ndarray:
+        """(M,4) corner nodes of each tet."""
+        return self.tets[:, :4]
 
     @property
     def n_nodes(self) -> int:
@@ -71,17 +91,34 @@ class FemModel:
         """Rest positions flattened to (3N,)."""
         return self.nodes.reshape(-1)
 
+    @property
+    def all_corotational(self) -> bool:
+        return bool(np.all(self.law_id == kernels.LAW_COROTATIONAL))
+
     def lumped_mass(self) -> np.ndarray:
-        """(N,) kg: each tet's mass split equally over its 4 nodes."""
-        m = np.repeat(self.density * self.volumes / 4.0, 4)
-        return np.bincount(self.tets.reshape(-1), weights=m, minlength=self.n_nodes)
+        """(N,) kg, the consistent nodal masses ∫ρ N_a dV (row sums of the consistent mass matrix;
+        they give the exact nodal loads of a uniform body force). Linear tets: ρV/4 per node;
+        quadratic ones: −ρV/20 at corners and ρV/5 at mid-edges (straight elements)."""
+        w = (self.density[:, None, None] * self.wq[:, :, None] * self.N_q[None]).sum(axis=1)
+        return np.bincount(self.tets.reshape(-1), weights=w.reshape(-1), minlength=self.n_nodes)
+
+    def residual_floor(self) -> float:
+        """N, the round-off floor of a free-DOF force residual: polar decomposition and stress carry
+        an absolute strain error ~ machine epsilon, i.e. nodal force errors ~ eps·(2μ+λ)·V·|∇N|.
+        Below 16 times that (measured: ~4 eps) a smaller residual is noise."""
+        unit = np.bincount(
+            self.tets.reshape(-1),
+            weights=np.einsum("m,mq,mqa->ma", 2 * self.mu + self.lam, self.wq,
+                              np.linalg.norm(self.dN, axis=3)).reshape(-1),
+            minlength=self.n_nodes,
+        )
+        return float(16 * np.finfo(float).eps * np.linalg.norm(np.repeat(unit, 3)[self.free_dofs]))
 
 
 def _boundary_faces(tets: np.ndarray) -> np.ndarray:
-    # Faces opposite each vertex, ordered so (b-a)x(c-a) points away from the opposite vertex.
-    faces = np.concatenate(
-        [tets[:, [1, 2, 3]], tets[:, [0, 3, 2]], tets[:, [0, 1, 3]], tets[:, [0, 2, 1]]]
-    )
+    """Boundary triangles of a tet mesh, normals out of the solid; (B,6) for 10-node tets."""
+    corner = tets[:, :4]
+    faces = np.concatenate([corner[:, f] for f in elements.TET_FACES])
     key = np.sort(faces, axis=1)
     n = int(tets.max()) + 1
     if n < 2**20:  # one int64 per face: a 1-D unique, much faster than np.unique(axis=0)
@@ -89,13 +126,17 @@ def _boundary_faces(tets: np.ndarray) -> np.ndarray:
         _, inv, counts = np.unique(key, return_inverse=True, return_counts=True)
     else:
         _, inv, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
-    return faces[counts[inv.reshape(-1)] == 1]
+    keep = counts[inv.reshape(-1)] == 1
+    if tets.shape[1] == 10:
+        faces = np.concatenate([tets[:, f] for f in elements.TET10_FACES])
+    return faces[keep]
 
 
 def _pattern(tets: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """CSR pattern of the (3n,3n) stiffness of ``tets`` and the scatter indices (M,144).
+    """CSR pattern of the (3n,3n) stiffness of ``tets`` and the scatter indices (M,(3k)²), k nodes
+    per element.
 
-    Built from the node adjacency (16 node pairs per tet instead of 144 DOF pairs: the pattern is
+    Built from the node adjacency (k² node pairs per element instead of 9k² DOF pairs: the pattern is
     made of full 3×3 blocks), with the same result as ``np.unique`` of all the DOF keys
     (row-major, sorted columns). Returns (indptr, row, col, scatter) with row/col per entry."""
     m = tets.shape[0]
@@ -119,70 +160,101 @@ def _pattern(tets: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarr
     indptr = (9 * nptr[:-1, None] + 3 * p3[None, :] * deg[:, None]).reshape(-1)
     indptr = np.append(indptr, nnz)
     # element entry (a,i),(b,j) -> 12·(3a+i) + 3b+j
-    s = pinv.reshape(m, 4, 4)
+    k = tets.shape[1]
+    s = pinv.reshape(m, k, k)
     d_row = deg[tets]  # (M,4), degree of the row node a
     scatter = (
         base[s][:, :, None, :, None]
         + 3 * p3[None, None, :, None, None] * d_row[:, :, None, None, None]
         + p3[None, None, None, None, :]
     )
-    return indptr, prow, pcol, scatter.reshape(m, 144)
+    return indptr, prow, pcol, scatter.reshape(m, 9 * k * k)
 
 
-def _per_tet_materials(materials, n_tets: int) -> list[Material] | Material:
-    if isinstance(materials, Material):
-        return materials
+def _per_tet_laws(materials, n_tets: int) -> list:
+    if isinstance(materials, tuple(LAWS.values())):
+        return [materials]
     mats = list(materials)
     if len(mats) != n_tets:
-        raise UserError(f"materials: expected one Material or {n_tets} (one per tet), got {len(mats)}")
+        raise UserError(f"materials: expected one law or {n_tets} (one per tet), got {len(mats)}")
+    for m in mats:
+        if not isinstance(m, tuple(LAWS.values())):
+            raise UserError(f"materials: expected law objects ({', '.join(LAWS)}), got {type(m).__name__}")
     return mats
+
+
+def _geometry(nodes: np.ndarray, tets: np.ndarray, quad_degree: int | None):
+    """(dN (M,Q,n,3), wq (M,Q), N_q (Q,n)) of the isoparametric map at the quadrature points."""
+    order = elements.order_of(tets)
+    xi, w = elements.tet_rule(quad_degree or order)
+    N, dNr = elements.tet_shape(order, xi)  # (Q,n), (Q,n,3)
+    Xe = nodes[tets]  # (M,n,3)
+    J = np.einsum("mai,qaj->mqij", Xe, dNr)  # dX/dξ
+    det = np.linalg.det(J)
+    if np.any(~(det > 0)):
+        bad = int(np.sum(np.any(~(det > 0), axis=1)))
+        raise MeshError(f"{bad} tets with non-positive orientation (det J <= 0 at a quadrature point)")
+    Jinv = np.linalg.inv(J)
+    dN = np.einsum("qak,mqkj->mqaj", dNr, Jinv)
+    return dN, det * w[None, :], N
 
 
 def build_fem(
     nodes: np.ndarray,
     tets: np.ndarray,
-    materials: Material | Sequence[Material] = ECOFLEX_00_50,
+    materials=ECOFLEX_00_50,
     fixed_nodes: np.ndarray | Sequence[int] = (),
     *,
     fixed_dofs: np.ndarray | Sequence[int] = (),
     cavities: Mapping[str, np.ndarray] | None = None,
+    quad_degree: int | None = None,
 ) -> FemModel:
-    """Precompute a :class:`FemModel` for linear tetrahedra.
+    """Precompute a :class:`FemModel` for linear (M,4) or quadratic (M,10) tetrahedra.
 
-    ``fixed_nodes`` clamps all three components of those nodes; ``fixed_dofs`` clamps single DOFs
-    (``3*node + component``), e.g. for symmetry planes. Tets must be positively oriented.
+    ``materials``: one law object (:mod:`softphantom.fem.material`: ``Corotational`` a.k.a.
+    ``Material``, ``NeoHookean``, ``Yeoh``) or one per tet. ``fixed_nodes`` clamps all three
+    components of those nodes; ``fixed_dofs`` clamps single DOFs (``3*node + component``), e.g. for
+    symmetry planes. Tets must be positively oriented (det J > 0 at every quadrature point).
+    Quadrature: 1 point for linear tets, 4 points (degree 2) for quadratic ones; ``quad_degree``
+    overrides it (1 or 2).
 
     >>> import numpy as np
     >>> X = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], float)
     >>> fem = build_fem(X, np.array([[0, 1, 2, 3]]), fixed_nodes=[0])
-    >>> fem.n_free, round(float(fem.volumes[0]), 6), fem.boundary_faces.shape
-    (9, 0.166667, (4, 3))
+    >>> fem.n_free, round(float(fem.volumes[0]), 6), fem.boundary_faces.shape, fem.order
+    (9, 0.166667, (4, 3), 1)
     """
     nodes = np.asarray(nodes, dtype=np.float64)
     tets = np.asarray(tets, dtype=np.int64)
-    if nodes.ndim != 2 or nodes.shape[1] != 3 or tets.ndim != 2 or tets.shape[1] != 4:
-        raise MeshError(f"expected nodes (N,3) and tets (M,4), got {nodes.shape} and {tets.shape}")
+    if nodes.ndim != 2 or nodes.shape[1] != 3 or tets.ndim != 2 or tets.shape[1] not in (4, 10):
+        raise MeshError(f"expected nodes (N,3) and tets (M,4) or (M,10), got {nodes.shape} and {tets.shape}")
     n, m = nodes.shape[0], tets.shape[0]
     if m == 0 or tets.min() < 0 or tets.max() >= n:
         raise MeshError("tets must be non-empty and index existing nodes")
+    k = tets.shape[1]
 
-    Dm = np.swapaxes(nodes[tets[:, 1:]] - nodes[tets[:, [0]]], 1, 2)  # columns X_a - X_0
+    corner = tets[:, :4]
+    Dm = np.swapaxes(nodes[corner[:, 1:]] - nodes[corner[:, [0]]], 1, 2)  # columns X_a - X_0
     det = np.linalg.det(Dm)
     if np.any(det <= 0):
         raise MeshError(f"{int(np.sum(det <= 0))} tets with non-positive orientation (det <= 0)")
-    Dm_inv = np.linalg.inv(Dm)
-    g123 = Dm_inv  # row a-1 of Dm^{-1} is ∇N_a
+    g123 = np.linalg.inv(Dm)  # row a-1 of Dm^{-1} is ∇L_a
     grads = np.concatenate([-g123.sum(axis=1, keepdims=True), g123], axis=1)
-
-    mats = _per_tet_materials(materials, m)
-    if isinstance(mats, Material):
-        mu = np.full(m, mats.mu_Pa)
-        lam = np.full(m, mats.lambda_Pa)
-        rho = np.full(m, mats.density_kg_m3)
+    if k == 4 and quad_degree in (None, 1):
+        dN, wq, Nq = grads[:, None], (det / 6.0)[:, None], np.full((1, 4), 0.25)
     else:
-        mu = np.array([mt.mu_Pa for mt in mats])
-        lam = np.array([mt.lambda_Pa for mt in mats])
-        rho = np.array([mt.density_kg_m3 for mt in mats])
+        dN, wq, Nq = _geometry(nodes, tets, quad_degree)
+
+    mats = _per_tet_laws(materials, m)
+    distinct = list(dict.fromkeys(mats))
+    idx = np.zeros(m, dtype=np.int64) if len(mats) == 1 else np.array([distinct.index(x) for x in mats])
+    table = {
+        "law": np.array([x.law_id for x in distinct], dtype=np.int64),
+        "prm": np.array([x.params() for x in distinct]),
+        "mu": np.array([x.mu_Pa for x in distinct]),
+        "lam": np.array([x.lambda_Pa for x in distinct]),
+        "rho": np.array([x.density_kg_m3 for x in distinct]),
+    }
 
     fixed = np.concatenate(
         [
@@ -199,7 +271,7 @@ def build_fem(
     dof_map = np.full(3 * n, -1, dtype=np.int64)
     dof_map[free] = np.arange(free.size)
 
-    edofs = (3 * tets[:, :, None] + np.arange(3)).reshape(m, 12)
+    edofs = (3 * tets[:, :, None] + np.arange(3)).reshape(m, 3 * k)
     indptr, prow, pcol, scatter = _pattern(tets, n)
     ukeys = prow * (3 * n) + pcol
     ff = is_free[prow] & is_free[pcol]
@@ -213,9 +285,9 @@ def build_fem(
         tets=_ro(tets),
         grads=_ro(grads),
         volumes=_ro(det / 6.0),
-        mu=_ro(mu),
-        lam=_ro(lam),
-        density=_ro(rho),
+        mu=_ro(table["mu"][idx]),
+        lam=_ro(table["lam"][idx]),
+        density=_ro(table["rho"][idx]),
         fixed_dofs=_ro(fixed),
         free_dofs=_ro(free),
         dof_map=_ro(dof_map),
@@ -228,25 +300,68 @@ def build_fem(
         ff_indptr=_ro(ff_indptr.astype(np.int64)),
         ff_indices=_ro(dof_map[pcol[take]]),
         boundary_faces=_ro(_boundary_faces(tets)),
-        cavities={k: _ro(np.asarray(v, dtype=np.int64)) for k, v in (cavities or {}).items()},
+        cavities={c: _ro(np.asarray(v, dtype=np.int64)) for c, v in (cavities or {}).items()},
+        dN=_ro(dN),
+        wq=_ro(wq),
+        law_id=_ro(table["law"][idx]),
+        params=_ro(table["prm"][idx]),
+        laws=tuple(distinct),
+        N_q=_ro(Nq),
     )
 
 
-def fem_from_phantom(model, materials: Mapping[str, Material] | Material | None = None) -> FemModel:
+def fem_from_phantom(model, materials=None, *, order: int | None = None) -> FemModel:
     """Build the :class:`FemModel` of a ``PhantomModel`` (softphantom.design).
 
-    ``materials`` is one Material for every region, or a dict region name -> Material; regions
-    not named get :data:`ECOFLEX_00_50`. Arm ends (``model.fixed_nodes``) are clamped; the
-    cavities are carried over so :func:`solve_static` accepts pressures by cavity name.
+    ``materials``: ``None`` (default) takes each region's law from the design file
+    (``[materials]`` / ``[region_materials]``, :func:`laws_of_design`); one law object for every
+    region; or a dict region name -> law (regions not named keep the design's). ``order``: element
+    order, 1 (linear tets) or 2 (10-node, needs a model meshed with ``element_order = 2``); default
+    the model's own. Arm ends (``model.fixed_nodes``) are clamped; the cavities are carried over so
+    :func:`solve_static` accepts pressures by cavity name.
     """
-    if materials is None or isinstance(materials, Material):
-        mats: Material | list[Material] = materials or ECOFLEX_00_50
-    else:
+    by_region = laws_of_design(model.design, model.regions)
+    if materials is not None and isinstance(materials, tuple(LAWS.values())):
+        by_region = {k: materials for k in by_region}
+    elif materials is not None:
         unknown = set(materials) - set(model.regions)
         if unknown:
             raise UserError(f"materials: unknown region(s) {sorted(unknown)}; have {sorted(model.regions)}")
-        by_id = {rid: materials.get(name, ECOFLEX_00_50) for name, rid in model.regions.items()}
-        mats = [by_id[int(r)] for r in np.asarray(model.tet_region)]
-    return build_fem(
-        model.nodes, model.tets, mats, model.fixed_nodes, cavities=dict(model.cavities)
-    )
+        by_region.update(materials)
+    by_id = {rid: by_region[name] for name, rid in model.regions.items()}
+    mats = [by_id[int(r)] for r in np.asarray(model.tet_region)]
+    model_order = int(getattr(model, "element_order", 1))
+    order = model_order if order is None else int(order)
+    if order not in (1, 2):
+        raise UserError(f"order must be 1 or 2, got {order}")
+    if order == 2 and model_order != 2:
+        raise UserError("order 2 needs a model meshed with [mesh] element_order = 2")
+    if order == 2:
+        tets, cav, fixed, nodes = model.tets10, model.cavities6, model.fixed_nodes, model.nodes
+    else:
+        nc = int(getattr(model, "n_corner_nodes", len(model.nodes)))
+        tets, cav, nodes = model.tets, model.cavities, model.nodes[:nc]
+        fixed = model.fixed_nodes[model.fixed_nodes < nc]
+    return build_fem(nodes, tets, mats if len(set(mats)) > 1 else mats[0], fixed, cavities=dict(cav))
+
+
+def laws_of_design(design, regions: Mapping[str, int]) -> dict:
+    """Region name -> law object from a design's ``materials`` and ``region_materials`` (validated
+    here: an unknown law, a missing or non-physical parameter raise a one-line DesignError naming
+    the material, the region and the field)."""
+    from softphantom.fem.material import law_from_spec
+
+    specs = {m.name: m for m in getattr(design, "materials", ())}
+    assign = design.material_of_regions(regions) if hasattr(design, "material_of_regions") else {}
+    out = {}
+    cache: dict[str, object] = {}
+    for region in regions:
+        mname = assign.get(region)
+        if mname is None:
+            out[region] = ECOFLEX_00_50
+            continue
+        if mname not in cache:
+            spec = specs[mname]
+            cache[mname] = law_from_spec(spec.law, dict(spec.values), f"materials.{mname} (region {region})")
+        out[region] = cache[mname]
+    return out

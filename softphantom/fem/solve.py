@@ -236,16 +236,7 @@ def _newton(fem, x, f_fixed, plist, t, tol, max_iter, solver, consistent):
             pi -= t * p * cavity_volume(xx, tri)
         return pi
 
-    # Round-off floor of the residual: polar decomposition and stress carry an absolute strain error
-    # ~ machine epsilon, i.e. nodal force errors ~ eps·(2μ+λ)·V·|∇N|. Below 16 times that, a
-    # smaller residual is noise (measured: ~4 eps; this matters only for strains < ~1e-7).
-    unit = np.bincount(
-        fem.tets.reshape(-1),
-        weights=((2 * fem.mu + fem.lam) * fem.volumes)[:, None].repeat(4, 1).reshape(-1)
-        * np.linalg.norm(fem.grads, axis=2).reshape(-1),
-        minlength=fem.n_nodes,
-    )
-    floor = 16 * np.finfo(float).eps * np.linalg.norm(np.repeat(unit, 3)[free])
+    floor = fem.residual_floor()  # below it a smaller residual is round-off noise
 
     r, ref = residual(x)
     rn = np.linalg.norm(r)
