@@ -1,8 +1,8 @@
 """numba kernels of the FEM hot paths: the material laws' point functions and the element loops
 (internal force, strain energy, tangent written straight into the CSR data array).
 
-**One point function per law**, ``law_point(law_id, prm, F, P, D, need, wk) -> W``: at one
-quadrature point, from the deformation gradient F and the law's parameter row ``prm``, the strain
+**One point function per law**, ``law_point(law_id, prm, e, F, P, D, need, *scratch) -> W``: at one
+quadrature point, from the deformation gradient F and row ``e`` of the parameter array ``prm``, the strain
 energy density W (J/m³), the first Piola–Kirchhoff stress P (``need >= 1``) and the tangent
 D = dP/dF (``need >= 2``; rows and columns row-major over (i, j): ``D[3i+j, 3k+l] = ∂P_ij/∂F_kl``).
 The force, energy and tangent kernels all call it, so a law is written once. Laws (ids as in
@@ -53,7 +53,7 @@ N_PARAMS = 4  # columns of the per-element parameter array
 N_WORK = 10  # (3,3) scratch matrices a law point function may use
 
 
-@njit(cache=True, fastmath=False, nogil=True)
+@njit(cache=True, fastmath=False, nogil=True, inline="always")
 def _polar(F, R, S, X, Y):
     """Proper rotation R and symmetric S of F = R S (det F > 0) by scaled Newton (Higham 1986).
 
@@ -111,7 +111,7 @@ def _polar(F, R, S, X, Y):
             S[i, j] = 0.5 * (Y[i, j] + Y[j, i])
 
 
-@njit(cache=True, fastmath=False, nogil=True)
+@njit(cache=True, fastmath=False, nogil=True, inline="always")
 def _stress(S, mu, lam, sig):
     tr = (S[0, 0] - 1.0) + (S[1, 1] - 1.0) + (S[2, 2] - 1.0)
     for i in range(3):
@@ -201,7 +201,7 @@ def _dP_dF(R, S, mu, lam, consistent, D, M, W, dS, sig, Ginv):
                     D[3 * i + j, kl] = R[i, 0] * M[0, j] + R[i, 1] * M[1, j] + R[i, 2] * M[2, j]
 
 
-@njit(cache=True, fastmath=False, nogil=True)
+@njit(cache=True, fastmath=False, nogil=True, inline="always")
 def _det_inv(F, Finv):
     """det F, and F⁻¹ into Finv (if det != 0)."""
     c00 = F[1, 1] * F[2, 2] - F[1, 2] * F[2, 1]
@@ -223,10 +223,10 @@ def _det_inv(F, Finv):
     return det
 
 
-@njit(cache=True, fastmath=False, nogil=True)
-def _corotational(prm, F, P, D, need, wk):
-    mu, lam = prm[0], prm[1]
-    R, S, X, Y = wk[0], wk[1], wk[2], wk[3]
+@njit(cache=True, fastmath=False, nogil=True, inline="always")
+def _corotational(prm, e, F, P, D, need, s0, s1, s2, s3, s4, s5, s6, s7, s8, s9):
+    mu, lam = prm[e, 0], prm[e, 1]
+    R, S, X, Y = s0, s1, s2, s3
     _polar(F, R, S, X, Y)
     tr = (S[0, 0] - 1.0) + (S[1, 1] - 1.0) + (S[2, 2] - 1.0)
     ee = 0.0
@@ -235,20 +235,20 @@ def _corotational(prm, F, P, D, need, wk):
             E = S[i, j] - (1.0 if i == j else 0.0)
             ee += E * E
     if need >= 1:
-        sig = wk[4]
+        sig = s4
         _stress(S, mu, lam, sig)
         for i in range(3):
             for j in range(3):
                 P[i, j] = R[i, 0] * sig[0, j] + R[i, 1] * sig[1, j] + R[i, 2] * sig[2, j]
     if need >= 2:
-        _dP_dF(R, S, mu, lam, need == 2, D, wk[5], wk[6], wk[7], wk[8], wk[9])
+        _dP_dF(R, S, mu, lam, need == 2, D, s5, s6, s7, s8, s9)
     return mu * ee + 0.5 * lam * tr * tr
 
 
-@njit(cache=True, fastmath=False, nogil=True)
-def _neo_hookean(prm, F, P, D, need, wk):
-    mu, lam = prm[0], prm[1]
-    Fi = wk[0]
+@njit(cache=True, fastmath=False, nogil=True, inline="always")
+def _neo_hookean(prm, e, F, P, D, need, s0, s1, s2, s3, s4, s5, s6, s7, s8, s9):
+    mu, lam = prm[e, 0], prm[e, 1]
+    Fi = s0
     J = _det_inv(F, Fi)
     lnJ = math.log(J)
     I1 = 0.0
@@ -273,10 +273,10 @@ def _neo_hookean(prm, F, P, D, need, wk):
     return 0.5 * mu * (I1 - 3.0) - mu * lnJ + 0.5 * lam * lnJ * lnJ
 
 
-@njit(cache=True, fastmath=False, nogil=True)
-def _yeoh(prm, F, P, D, need, wk):
-    c1, c2, c3, K = prm[0], prm[1], prm[2], prm[3]
-    Fi, G = wk[0], wk[1]
+@njit(cache=True, fastmath=False, nogil=True, inline="always")
+def _yeoh(prm, e, F, P, D, need, s0, s1, s2, s3, s4, s5, s6, s7, s8, s9):
+    c1, c2, c3, K = prm[e, 0], prm[e, 1], prm[e, 2], prm[e, 3]
+    Fi, G = s0, s1
     J = _det_inv(F, Fi)
     I1 = 0.0
     for i in range(3):
@@ -314,16 +314,25 @@ def _yeoh(prm, F, P, D, need, wk):
     return W
 
 
-@njit(cache=True, fastmath=False, nogil=True)
-def law_point(law, prm, F, P, D, need, wk):
-    """W (J/m³) of law ``law`` at F (det F > 0); P (3,3) if ``need >= 1``; D (9,9) = dP/dF if
-    ``need >= 2`` (``need == 3``: the law's approximate tangent, where it has one). ``wk``:
-    (N_WORK,3,3) scratch. Add a law here and in :mod:`softphantom.fem.material`, nowhere else."""
+@njit(cache=True, fastmath=False, nogil=True, inline="always")
+def law_point(law, prm, e, F, P, D, need, s0, s1, s2, s3, s4, s5, s6, s7, s8, s9):
+    """W (J/m³) of law ``law`` with the parameters of row ``e`` of ``prm`` at F (det F > 0);
+    P (3,3) if ``need >= 1``; D (9,9) = dP/dF if ``need >= 2`` (``need == 3``: the law's
+    approximate tangent, where it has one). ``s0``..``s9``: (3,3) scratch arrays
+    (:func:`scratch`; passed one by one, inlined: no per-call tuple or view overhead). Add a law here and in :mod:`softphantom.fem.material`, nowhere else."""
     if law == LAW_COROTATIONAL:
-        return _corotational(prm, F, P, D, need, wk)
+        return _corotational(prm, e, F, P, D, need, s0, s1, s2, s3, s4, s5, s6, s7, s8, s9)
     if law == LAW_NEO_HOOKEAN:
-        return _neo_hookean(prm, F, P, D, need, wk)
-    return _yeoh(prm, F, P, D, need, wk)
+        return _neo_hookean(prm, e, F, P, D, need, s0, s1, s2, s3, s4, s5, s6, s7, s8, s9)
+    return _yeoh(prm, e, F, P, D, need, s0, s1, s2, s3, s4, s5, s6, s7, s8, s9)
+
+
+@njit(cache=True, fastmath=False, nogil=True, inline="always")
+def scratch():
+    """The N_WORK (3,3) scratch arrays of a law point function, as a tuple (static indexing: no
+    array views made per call)."""
+    return (np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)),
+            np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)))
 
 
 def point(law: int, prm, F, need: int = 2):
@@ -337,9 +346,8 @@ def point(law: int, prm, F, need: int = 2):
     """
     P = np.zeros((3, 3))
     D = np.zeros((9, 9))
-    prm = np.zeros(N_PARAMS) + np.pad(np.asarray(prm, float), (0, N_PARAMS - len(prm)))
-    W = law_point(int(law), prm, np.ascontiguousarray(F, dtype=np.float64), P, D, int(need),
-                  np.empty((N_WORK, 3, 3)))
+    prm = np.pad(np.asarray(prm, float), (0, N_PARAMS - len(prm)))[None]
+    W = law_point(int(law), prm, 0, np.ascontiguousarray(F, dtype=np.float64), P, D, int(need), *scratch())
     return float(W), P, D
 
 
@@ -384,7 +392,7 @@ def internal_force_kernel(x, conn, dN, wq, law, prm, edofs, out):
     F = np.empty((3, 3))
     P = np.empty((3, 3))
     D = np.empty((9, 9))
-    wk = np.empty((N_WORK, 3, 3))
+    s0, s1, s2, s3, s4, s5, s6, s7, s8, s9 = scratch()
     bad = _count_inverted(x, conn, dN, F)
     if bad:
         return bad
@@ -393,7 +401,7 @@ def internal_force_kernel(x, conn, dN, wq, law, prm, edofs, out):
     for e in range(conn.shape[0]):
         for q in range(dN.shape[1]):
             _defgrad(x, conn, dN, e, q, F)
-            law_point(law[e], prm[e], F, P, D, 1, wk)
+            law_point(law[e], prm, e, F, P, D, 1, s0, s1, s2, s3, s4, s5, s6, s7, s8, s9)
             v = wq[e, q]
             for a in range(conn.shape[1]):
                 g0 = dN[e, q, a, 0]
@@ -410,7 +418,7 @@ def strain_energy_kernel(x, conn, dN, wq, law, prm, out):
     F = np.empty((3, 3))
     P = np.empty((3, 3))
     D = np.empty((9, 9))
-    wk = np.empty((N_WORK, 3, 3))
+    s0, s1, s2, s3, s4, s5, s6, s7, s8, s9 = scratch()
     bad = _count_inverted(x, conn, dN, F)
     if bad:
         return bad
@@ -418,7 +426,7 @@ def strain_energy_kernel(x, conn, dN, wq, law, prm, out):
     for e in range(conn.shape[0]):
         for q in range(dN.shape[1]):
             _defgrad(x, conn, dN, e, q, F)
-            total += wq[e, q] * law_point(law[e], prm[e], F, P, D, 0, wk)
+            total += wq[e, q] * law_point(law[e], prm, e, F, P, D, 0, s0, s1, s2, s3, s4, s5, s6, s7, s8, s9)
     out[0] = total
     return 0
 
@@ -432,7 +440,7 @@ def tangent_kernel(x, conn, dN, wq, law, prm, scatter, consistent, data):
     F = np.empty((3, 3))
     P = np.empty((3, 3))
     D = np.empty((9, 9))
-    wk = np.empty((N_WORK, 3, 3))
+    s0, s1, s2, s3, s4, s5, s6, s7, s8, s9 = scratch()
     T = np.empty((9, nd))
     Ke = np.empty((nd, nd))
     need = 2 if consistent else 3
@@ -447,7 +455,7 @@ def tangent_kernel(x, conn, dN, wq, law, prm, scatter, consistent, data):
                 Ke[r, c] = 0.0
         for q in range(dN.shape[1]):
             _defgrad(x, conn, dN, e, q, F)
-            law_point(law[e], prm[e], F, P, D, need, wk)
+            law_point(law[e], prm, e, F, P, D, need, s0, s1, s2, s3, s4, s5, s6, s7, s8, s9)
             # (D B)[pj, (b,q)] = Σ_l D[pj, 3q + l] ∇N_b,l
             for r in range(9):
                 for b in range(nen):
