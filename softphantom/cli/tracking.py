@@ -23,6 +23,7 @@ def track_cmd(
     local_ip: str = typer.Option("0.0.0.0", "--local-ip", help="This machine's interface for multicast (and the command socket)."),
     multicast: Optional[bool] = typer.Option(None, "--multicast/--unicast", help="Data by multicast or unicast (default: as the server says)."),
     duration_s: Optional[float] = typer.Option(None, "--duration-s", help="Stop after this many seconds (default: Ctrl-C)."),
+    frames: Optional[int] = typer.Option(None, "--frames", help="Stop after this many frames (default: Ctrl-C)."),
     rest_window_s: float = typer.Option(0.5, "--rest-window-s", help="Length of the rest window at the start (s), for the truth CSV."),
     connect_timeout_s: float = typer.Option(3.0, "--connect-timeout-s", help="Give up when no server answers within this time (s)."),
     overwrite: bool = overwrite_option(),
@@ -38,6 +39,8 @@ def track_cmd(
             raise UserError(f"{name} must be in 0..65535, got {port}")
     if duration_s is not None and duration_s <= 0:
         raise UserError(f"--duration-s must be > 0, got {duration_s}")
+    if frames is not None and frames <= 0:
+        raise UserError(f"--frames must be > 0, got {frames}")
     if not rest_window_s > 0:
         raise UserError(f"--rest-window-s must be > 0, got {rest_window_s}")
     if out.suffix.lower() not in (".mcap", ".csv"):
@@ -61,7 +64,10 @@ def track_cmd(
         with TrackerSink(out, body=name, meta=meta, rest_window_s=rest_window_s) as sink, \
                 Live(console=console, refresh_per_second=4, transient=True) as live:
             try:
-                for _, f in client.frames(stop=lambda: t_end is not None and time.monotonic() >= t_end):
+                done = lambda: (t_end is not None and time.monotonic() >= t_end) or (frames is not None and seen >= frames)  # noqa: E731
+                for _, f in client.frames(stop=done):
+                    if frames is not None and seen >= frames:
+                        break
                     rb = f.body(body_id)
                     ok = rb is not None and rb.tracking_valid
                     lat = f.system_latency_s(info.clock_hz)

@@ -37,6 +37,14 @@ from softphantom.tracking.natnet import (
 )
 
 
+def _big_buffer(s: socket.socket, size: int = 4 << 20) -> None:
+    """A receive buffer for a few seconds of frames, so a busy moment on this machine loses none."""
+    try:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, size)
+    except OSError:
+        pass
+
+
 @dataclass(frozen=True)
 class NatNetConfig:
     """Where the server is and how data come: ``multicast`` None = as the server info says."""
@@ -83,6 +91,7 @@ class NatNetClient:
     def _open_command(self) -> None:
         cfg = self.config
         s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        _big_buffer(s)
         try:
             s.bind((cfg.local if cfg.local != "0.0.0.0" else "", 0))
         except OSError as exc:
@@ -94,6 +103,7 @@ class NatNetClient:
     def _open_data(self, multicast: bool) -> None:
         cfg = self.config
         s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM, socket.IPPROTO_UDP)
+        _big_buffer(s)
         s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         if hasattr(socket, "SO_REUSEPORT"):
             s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEPORT, 1)
@@ -208,6 +218,7 @@ class NatNetClient:
         if self.info is None:
             self.connect()
         last_rx = time.monotonic()
+        resync = False
         while stop is None or not stop():
             now = time.monotonic()
             unicast = not (self.info.multicast if self.config.multicast is None else self.config.multicast)
@@ -218,6 +229,7 @@ class NatNetClient:
                 self.stats.reconnects += 1
                 self._send(NAT_CONNECT)
                 last_rx = now
+                resync = True  # the next frame may come from a restarted server
             got = list(self._early) + [
                 (time.time(), self._handle(data)) for _, data in self._receive(0.1)]
             self._early.clear()
@@ -226,6 +238,9 @@ class NatNetClient:
                     continue
                 last_rx = time.monotonic()
                 last = self.stats.last_frame
+                if resync and last is not None and f.frame_number < last:
+                    last = None  # a restarted server counts from its start again
+                resync = False
                 if last is not None:
                     if f.frame_number == last:  # the same frame twice (multicast and unicast)
                         self.stats.duplicates += 1
