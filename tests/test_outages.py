@@ -135,3 +135,108 @@ def test_replay_refuses_header_only_nan_and_backwards_time(tmp_path, capsys, mod
         err = capsys.readouterr().err
         assert rc == 2 and msg in err and "Traceback" not in err and len(err.strip().splitlines()) == 1, err
         assert not out.exists()
+
+
+class _BurstySource:
+    """A live source handing ``burst`` samples at once (a loaded machine's reader), with link
+    events at given sample indices."""
+
+    live = True
+
+    def __init__(self, n, burst=4, events=()):
+        import collections
+
+        from softphantom.sensing import Measurement
+
+        self._M = Measurement
+        self.n, self.k, self.burst = n, 0, burst
+        self._at = dict(events)
+        self._events = collections.deque()
+        self.closed = False
+
+    def read(self, timeout_s=0.1):
+        import time
+
+        if self.k >= self.n:
+            return None
+        time.sleep(0.002)
+        out = []
+        for _ in range(self.burst):
+            if self.k < self.n:
+                if self.k in self._at:
+                    self._events.append(SourceEvent(self.k / 77.0 - 1e-4, *self._at[self.k]))
+                out.append(self._M(self.k / 77.0, self.k, self.k / 77.0, np.zeros(5, int), 25, np.zeros(4),
+                                   np.zeros(4), 0.0))
+                self.k += 1
+        return out
+
+    def events(self):
+        out = []
+        while self._events:
+            out.append(self._events.popleft())
+        return out
+
+    def stats(self):
+        from softphantom.sensing.protocol import DecoderStats
+        from softphantom.sensing.sources import SourceStats
+
+        return SourceStats("ok", DecoderStats())
+
+    def close(self):
+        self.closed = True
+
+
+class _FastEstimator:
+    target_names = ("apex",)
+
+    def __init__(self):
+        self.seen = []
+
+    def step(self, m, skipped=0):
+        from softphantom.estimation import Estimate
+        from softphantom.pose import Pose6
+
+        self.seen.append(m.seq)
+        z = np.zeros(3)
+        return Estimate(m.t, z, 0.0, Pose6(z, z), {"apex": z}, np.zeros(4), np.zeros(4), 1.0, "optimal", 1e-4,
+                        skipped, m.status)
+
+
+def test_live_bursts_are_all_estimated_and_events_become_marker_rows(tmp_path):
+    from softphantom.estimation import estimate_stream
+    from softphantom.evaluation import read_estimate
+    from softphantom.evaluation.files import read_table
+
+    src = _BurstySource(300, burst=4, events={100: ("disconnected", "port failed"),
+                                             104: ("resumed", "after 8.00 s without frames")})
+    est = _FastEstimator()
+    seen_events = []
+    s = estimate_stream(src, est, tmp_path / "e.csv", on_event=seen_events.append)
+    assert s["skipped"] == 0 and est.seen == list(range(300))      # a burst is not a reason to skip
+    assert s["events"] == {"disconnected": 1, "resumed": 1}
+    assert [e.status for e in seen_events] == ["event:disconnected: port failed",
+                                              "event:resumed: after 8.00 s without frames"]
+    tab = read_table(tmp_path / "e.csv")
+    status = list(tab.columns["status"])
+    i = status.index("event:disconnected: port failed")
+    assert status[i + 1] == "ok" and tab.columns["t_s"][i] < tab.columns["t_s"][i + 1]     # in time order
+    assert np.isnan(tab.columns["force_y_N"][i]) and tab.columns["qp_status"][i] == "none"
+    assert len(status) == 302 and np.all(np.diff(tab.columns["t_s"]) >= 0)
+    assert read_estimate(tmp_path / "e.csv").pose.xyz.shape == (300, 3)   # evaluate skips the markers
+
+
+def test_live_queue_drops_only_what_lags_and_counts_it(tmp_path):
+    import time
+
+    from softphantom.estimation import estimate_stream
+
+    class Slow(_FastEstimator):
+        def step(self, m, skipped=0):
+            time.sleep(0.004)                   # 250 Hz against 77 Hz × bursts at 2 ms: falls behind
+            return super().step(m, skipped)
+
+    src = _BurstySource(2000, burst=4)
+    est = Slow()
+    s = estimate_stream(src, est, tmp_path / "s.csv")
+    assert s["skipped"] > 0 and s["estimates"] + s["skipped"] == 2000   # every sample accounted for
+    assert est.seen == sorted(est.seen) and est.seen[-1] == 1999

@@ -13,66 +13,40 @@ from softphantom.errors import UserError
 
 _SOURCES = "serial:PORT, replay:FILE or virtual:SCENARIO"
 
+TUBE_LENGTH_OPTION = typer.Option(None, "--tube-length-m", help="Tube length per arm (m); default: the "
+                                  "recording's (replay) or 12 m.")
+TUBE_ID_OPTION = typer.Option(None, "--tube-id-mm", help="Tube inner diameter (mm); default: the recording's "
+                              "(replay) or 1.2 mm.")
+P0_OPTION = typer.Option(None, "--p0-kPa", help="Absolute ambient pressure at tare (kPa); default: the "
+                         "recording's (replay) or 101.325.")
+NEW_BOARD_OPTION = typer.Option("stop", "--on-new-board", help="Serial: when the board restarts or is "
+                                "replaced mid-run: stop (one-line error, the run so far is kept) | retare "
+                                "(re-tare on the next --tare-s at rest and go on).")
 
-def _chain_for(model):
-    from softphantom.sensing.chain import default_chain
 
-    by_name = {a.name: a.cavity_volume_mm3 for a in model.design.arms}
-    from softphantom.estimation import ARM_NAMES
-
+def _virtual_opener(arg: str, model, bench):
+    """The virtual phantom as a source kind of :func:`softphantom.sensing.bench.open_source`."""
     try:
-        return default_chain([by_name[a] * 1e-9 for a in ARM_NAMES])
-    except KeyError as exc:
-        raise UserError(f"design has no arm {exc.args[0]!r}") from None
+        from softphantom.virtual import open_source
+    except ImportError:
+        raise UserError("--source virtual:…: the virtual phantom (softphantom.virtual) is not available "
+                        "in this installation") from None
+    console.print(f"virtual phantom: solving scenario {arg!r} (may take a while)…", highlight=False)
+    return open_source(arg, model, bench=bench)
 
 
-def _serial_source(port: str, model, tare_s: float, p0_Pa: float, timeout_s: float = 5.0):
-    """The board on ``port``, tared on its first ``tare_s`` seconds (which are not estimated)."""
-    import numpy as np
+def open_sensor_source(spec: str, model, *, tare_s: float = 1.0, on_new_board: str = "stop", **options):
+    """The opened ``--source`` (:class:`softphantom.sensing.bench.OpenedSource`) for ``estimate``
+    and ``live``; ``options``: ``tube_length_m``, ``tube_id_mm``, ``p0_kPa`` (None = default)."""
+    from softphantom.sensing.bench import open_source
 
-    from softphantom.sensing.chain import nominal_tare, tare_from_window
-    from softphantom.sensing.sources import SerialSource
-
-    chain = _chain_for(model)
-    src = SerialSource(port, chain, nominal_tare(chain, p0_Pa))
-    window: list = []
-    t0 = time.monotonic()
-    while not window or window[-1].t - window[0].t < tare_s or len(window) < 5:
-        window += src.read(0.05) or []
-        if not window and time.monotonic() - t0 > timeout_s:
-            src.close()
-            raise UserError(f"--source serial:{port}: no valid frame within {timeout_s:g} s "
-                            f"(state {src.stats().state})")
-        if time.monotonic() - t0 > timeout_s + tare_s + 5:
-            src.close()
-            raise UserError(f"--source serial:{port}: too few frames for a {tare_s:g} s tare window")
-    src.set_tare(tare_from_window(np.array([m.raw for m in window]), np.array([m.osr for m in window]),
-                                  np.array([m.t for m in window]), chain, p0_Pa))
-    return src
+    return open_source(spec, model, options=options, tare_s=tare_s, on_new_board=on_new_board,
+                       openers={"virtual": _virtual_opener})
 
 
-def open_sensor_source(spec: str, model, *, tare_s: float = 1.0, p0_Pa: float = 101_325.0):
-    """(source, live) for ``--source``: ``serial:PORT``, ``replay:FILE`` or ``virtual:SCENARIO``."""
-    kind, _, arg = spec.partition(":")
-    if not arg:
-        raise UserError(f"--source {spec!r}: use {_SOURCES}")
-    if kind == "replay":
-        from softphantom.sensing.sources import ReplaySource
-
-        if not Path(arg).is_file():
-            raise UserError(f"--source replay:{arg}: no such file")
-        return ReplaySource(arg), False
-    if kind == "serial":
-        return _serial_source(arg, model, tare_s, p0_Pa), True
-    if kind == "virtual":
-        try:
-            from softphantom.virtual import open_source
-        except ImportError:
-            raise UserError("--source virtual:…: the virtual phantom (softphantom.virtual) is not available "
-                            "in this installation") from None
-        console.print(f"virtual phantom: solving scenario {arg!r} (may take a while)…", highlight=False)
-        return open_source(arg, model), False
-    raise UserError(f"--source {spec!r}: unknown kind {kind!r}; use {_SOURCES}")
+def print_event(marker) -> None:
+    """One console line for a link event's marker estimate."""
+    console.print(f"{marker.t:10.2f} s  {marker.status}", highlight=False, markup=False)
 
 
 @app.command("estimate")
@@ -80,13 +54,17 @@ def estimate_cmd(
     model_dir: Path = typer.Option(..., "--model", help="Model directory (softphantom design --out)."),
     source: str = typer.Option(..., "--source", help="serial:PORT | replay:FILE (sensing recording) | virtual:SCENARIO"),
     out: Path = typer.Option(..., "--out", help="Estimate CSV to write (metadata line, then one row per sample)."),
-    at: str = typer.Option("on-centre", "--at", help="Contact point: on-centre | off-centre (the model's p_ext)."),
+    at: str = typer.Option(None, "--at", help="Contact point: on-centre | off-centre (the model's p_ext); "
+                           "default: the recording's (replay) or on-centre."),
     max_force_N: float = typer.Option(10.0, "--max-force-N", help="Bound on each force component (N)."),
     qp_solver: str = typer.Option("daqp", "--qp-solver", help="QP solver: daqp | quadprog."),
     mode: str = typer.Option("auto", "--mode", help="sync (deterministic) | async (background equilibrium) | "
                              "auto (async for serial, sync otherwise)."),
     tare_s: float = typer.Option(1.0, "--tare-s", help="Serial: rest window for the tare at start (s)."),
-    p0_kPa: float = typer.Option(101.325, "--p0-kPa", help="Serial: absolute ambient pressure at tare (kPa)."),
+    p0_kPa: float = P0_OPTION,
+    tube_length_m: float = TUBE_LENGTH_OPTION,
+    tube_id_mm: float = TUBE_ID_OPTION,
+    on_new_board: str = NEW_BOARD_OPTION,
     duration_s: float = typer.Option(None, "--duration-s", help="Stop after this many seconds (serial)."),
     overwrite: bool = overwrite_option(),
 ) -> None:
@@ -99,17 +77,20 @@ def estimate_cmd(
 
     if mode not in ("auto", "sync", "async"):
         raise UserError(f"--mode must be auto, sync or async, got {mode!r}")
-    if at not in ("on-centre", "off-centre"):
+    if at is not None and at not in ("on-centre", "off-centre"):
         raise UserError(f"--at must be on-centre or off-centre, got {at!r}")
     if duration_s is not None and not duration_s > 0:
         raise UserError(f"--duration-s must be > 0, got {duration_s}")
-    if not p0_kPa > 0:
+    if p0_kPa is not None and not p0_kPa > 0:
         raise UserError(f"--p0-kPa must be > 0, got {p0_kPa}")
     check_output(out, overwrite=overwrite, directory=False)
     if not (model_dir / "model.npz").is_file():
         raise UserError(f"--model {model_dir}: not a model directory (no model.npz; run softphantom design)")
     model = load_model(model_dir)
-    src, live = open_sensor_source(source, model, tare_s=tare_s, p0_Pa=p0_kPa * 1e3)
+    opened = open_sensor_source(source, model, tare_s=tare_s, on_new_board=on_new_board,
+                                tube_length_m=tube_length_m, tube_id_mm=tube_id_mm, p0_kPa=p0_kPa)
+    src, live = opened.source, opened.live
+    at = at or opened.meta.get("recording_contact") or "on-centre"
     cfg = EstimatorConfig.box(max_force_N, contact=at, qp_solver=qp_solver,
                               mode=("async" if live else "sync") if mode == "auto" else mode)
     stop = threading.Event()
@@ -137,13 +118,16 @@ def estimate_cmd(
         console.print(f"estimator ready in {time.monotonic() - t0:.1f} s ({len(model.nodes)} nodes, "
                       f"mode {cfg.mode}, contact {at}, |F_i| <= {max_force_N:g} N, QP {qp_solver})", highlight=False)
         meta = {"model": str(model_dir), "source": source, "contact": at, "max_force_N": max_force_N,
-                "qp_solver": qp_solver, "mode": cfg.mode, "nodes": int(len(model.nodes))}
+                "qp_solver": qp_solver, "mode": cfg.mode, "nodes": int(len(model.nodes)), **opened.meta}
         try:
-            s = estimate_stream(src, est, path, progress, live=live, metadata=meta, stop=stop)
+            s = estimate_stream(src, est, path, progress, live=live, metadata=meta, stop=stop,
+                                on_event=print_event)
         except KeyboardInterrupt:
             if not live:
                 raise
             stopped(f"stopped (Ctrl-C); the estimates so far are in {out}")
-    console.print(f"wrote {s['estimates']} estimates to {out} ({s['rejected']} rejected, {s['skipped']} skipped; "
+    ev = ", ".join(f"{k} {v}" for k, v in s["events"].items()) or "none"
+    console.print(f"wrote {s['estimates']} estimates to {out} ({s['rejected']} rejected, {s['skipped']} skipped "
+                  f"(estimator behind); link events: {ev}; "
                   f"{s['rate_Hz']:.0f} Hz, step p50 {s['step_ms_p50']:.2f} ms, p99 {s['step_ms_p99']:.2f} ms)",
                   highlight=False)

@@ -8,6 +8,7 @@ from typing import Optional
 import typer
 
 from softphantom.cli.app import app, console
+from softphantom.cli.estimation import NEW_BOARD_OPTION, TUBE_ID_OPTION, TUBE_LENGTH_OPTION
 from softphantom.cli.options import check_output, overwrite_option, staged_output, stopped
 from softphantom.errors import UserError
 
@@ -29,6 +30,9 @@ def live(
     speed: float = typer.Option(1.0, "--speed", help="replay/virtual speed factor (0: as fast as possible)"),
     at: str = typer.Option("on-centre", "--at", help="virtual/serial: contact point, on-centre | off-centre"),
     max_force_N: float = typer.Option(10.0, "--max-force-N", help="virtual/serial: bound on each force component (N)"),
+    tube_length_m: Optional[float] = TUBE_LENGTH_OPTION,
+    tube_id_mm: Optional[float] = TUBE_ID_OPTION,
+    on_new_board: str = NEW_BOARD_OPTION,
     overwrite: bool = overwrite_option(),
     tracker: Optional[str] = typer.Option(None, "--tracker", help="natnet:HOST[:PORT]: show the tracker beside the "
                                           "estimate and record it on /tracker (Motive, or virtual serve --natnet)"),
@@ -51,7 +55,8 @@ def live(
         check_output(record, overwrite=overwrite, directory=False, option="--record")
     kind = source.partition(":")[0]
     if kind in ("virtual", "serial"):
-        src = _estimator_source(source, model, at, max_force_N, speed)
+        src = _estimator_source(source, model, at, max_force_N, speed,
+                                dict(tube_length_m=tube_length_m, tube_id_mm=tube_id_mm), on_new_board)
     else:
         src = open_source(source, model_dir=model, rate_Hz=rate_Hz, duration_s=None, speed=speed)
     if tracker is not None:
@@ -101,7 +106,8 @@ def _with_tracker(src, spec: str, body: Optional[str]):
     return TrackedSource(src, feed)
 
 
-def _estimator_source(spec: str, model_dir: Optional[Path], at: str, max_force_N: float, speed: float):
+def _estimator_source(spec: str, model_dir: Optional[Path], at: str, max_force_N: float, speed: float,
+                      bench_options: Optional[dict] = None, on_new_board: str = "stop"):
     """The estimator over a board or the virtual phantom, opened as ``softphantom estimate`` does."""
     from softphantom.cli.estimation import open_sensor_source
     from softphantom.design import load_model
@@ -113,7 +119,8 @@ def _estimator_source(spec: str, model_dir: Optional[Path], at: str, max_force_N
     if at not in ("on-centre", "off-centre"):
         raise UserError(f"--at must be on-centre or off-centre, got {at!r}")
     model = load_model(model_dir)
-    sensor, is_live = open_sensor_source(spec, model)
+    opened = open_sensor_source(spec, model, on_new_board=on_new_board, **(bench_options or {}))
+    sensor, is_live = opened.source, opened.live
     # a paced source is shown in real time: the background equilibrium keeps each step short
     cfg = EstimatorConfig.box(max_force_N, contact=at, mode="async" if is_live or speed > 0 else "sync")
     return EstimatorSource(model, sensor, Estimator(model, cfg), live=is_live, speed=speed, p_ext=at)

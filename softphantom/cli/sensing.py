@@ -11,6 +11,7 @@ from rich.table import Table
 from softphantom.cli.app import app, console
 from softphantom.cli.options import check_output, overwrite_option, staged_output, stopped
 from softphantom.errors import UserError
+from softphantom.sensing.measurement import ARM_CAVITY_VOLUMES_M3, TUBE_ID_M, TUBE_LENGTH_M
 
 sensing_app = typer.Typer(help="Sensing chain: resolution budget.", no_args_is_help=True)
 app.add_typer(sensing_app, name="sensing")
@@ -18,11 +19,13 @@ app.add_typer(sensing_app, name="sensing")
 
 @sensing_app.command("budget")
 def budget_cmd(
-    tube_length_m: float = typer.Option(12.0, "--tube-length-m", help="Tube length per arm (m)."),
-    tube_id_mm: float = typer.Option(1.2, "--tube-id-mm", help="Tube inner diameter (mm)."),
+    tube_length_m: float = typer.Option(TUBE_LENGTH_M, "--tube-length-m", help="Tube length per arm (m)."),
+    tube_id_mm: float = typer.Option(TUBE_ID_M * 1e3, "--tube-id-mm", help="Tube inner diameter (mm)."),
     osr: int = typer.Option(100, "--osr", help="Readings summed per channel per frame (N)."),
-    front_cavity_mm3: float = typer.Option(514.0, "--front-cavity-mm3", help="Front (vertical) arm cavity (mm³)."),
-    back_cavity_mm3: float = typer.Option(486.0, "--back-cavity-mm3", help="Back (horizontal) arm cavity (mm³)."),
+    front_cavity_mm3: float = typer.Option(ARM_CAVITY_VOLUMES_M3[0] * 1e9, "--front-cavity-mm3",
+                                           help="Front (vertical) arm cavity (mm³)."),
+    back_cavity_mm3: float = typer.Option(ARM_CAVITY_VOLUMES_M3[2] * 1e9, "--back-cavity-mm3",
+                                          help="Back (horizontal) arm cavity (mm³)."),
     active_min_kPa: float = typer.Option(-7.0, "--active-min-kPa", help="Cavity-equivalent active span, low end (kPa)."),
     active_max_kPa: float = typer.Option(10.0, "--active-max-kPa", help="Cavity-equivalent active span, high end (kPa)."),
     p0_kPa: float = typer.Option(101.325, "--p0-kPa", help="Absolute ambient pressure (kPa)."),
@@ -83,8 +86,8 @@ def _status_table(stats, elapsed_s: float, rows: int, out: Path):
     t.add_row("state", stats.state)
     t.add_row("rate (Hz)", f"{stats.rate_Hz:.1f}")
     t.add_row("firmware / OSR", f"{stats.firmware or '?'} / {stats.osr or '?'}")
-    t.add_row("CRC errors / malformed", f"{d.crc_errors} / {d.malformed + d.overflows}")
-    t.add_row("seq gaps (frames lost)", f"{d.seq_gaps} ({d.frames_lost})")
+    t.add_row("CRC errors / malformed / content", f"{d.crc_errors} / {d.malformed + d.overflows} / {d.content_errors}")
+    t.add_row("seq gaps (frames lost) / duplicates", f"{d.seq_gaps} ({d.frames_lost}) / {d.duplicates}")
     t.add_row("silent events / reconnects", f"{stats.silent_events} / {stats.reconnects}")
     m = stats.last
     if m is not None:
@@ -104,75 +107,77 @@ def acquire_cmd(
     baud: int = typer.Option(115_200, "--baud", min=1, help="Serial baud rate."),
     tare_s: float = typer.Option(1.0, "--tare-s", help="Rest window for the tare at start (s)."),
     no_tare: bool = typer.Option(False, "--no-tare", help="Skip the tare; use the datasheet zero offsets."),
-    p0_kPa: float = typer.Option(101.325, "--p0-kPa", help="Absolute ambient pressure at tare (kPa)."),
-    tube_length_m: float = typer.Option(12.0, "--tube-length-m", help="Tube length per arm (m)."),
-    tube_id_mm: float = typer.Option(1.2, "--tube-id-mm", help="Tube inner diameter (mm)."),
-    front_cavity_mm3: float = typer.Option(514.0, "--front-cavity-mm3", help="Front arm cavity volume (mm³)."),
-    back_cavity_mm3: float = typer.Option(486.0, "--back-cavity-mm3", help="Back arm cavity volume (mm³)."),
+    p0_kPa: float = typer.Option(None, "--p0-kPa", help="Absolute ambient pressure at tare (kPa; default 101.325)."),
+    tube_length_m: float = typer.Option(None, "--tube-length-m", help="Tube length per arm (m; default 12)."),
+    tube_id_mm: float = typer.Option(None, "--tube-id-mm", help="Tube inner diameter (mm; default 1.2)."),
+    model_dir: Path = typer.Option(None, "--model", help="Model directory: arm cavity volumes from its design "
+                                   "(default: the paper's 514/486 mm³)."),
+    at: str = typer.Option("on-centre", "--at", help="Contact point of the trial: on-centre | off-centre "
+                           "(stored, so estimate on the replay needs no option)."),
+    on_new_board: str = typer.Option("stop", "--on-new-board", help="When the board restarts or is replaced: "
+                                     "stop (the file so far is kept) | retare (re-tare at rest and go on)."),
     connect_timeout_s: float = typer.Option(5.0, "--connect-timeout-s", help="Give up if no frame arrives (s)."),
 ) -> None:
-    """Record the sensing board: tare at rest, then append every frame to --out with live status."""
+    """Record the sensing board: tare at rest, then append every frame to --out with live status;
+    link events (silent, unplugged, replugged, a new board) become marker rows."""
     import time
     from datetime import datetime, timezone
 
-    import numpy as np
     from rich.live import Live
 
     from softphantom import __version__
-    from softphantom.sensing.chain import default_chain, nominal_tare, tare_from_window, to_measurement
-    from softphantom.sensing.protocol import PROTOCOL_VERSION
+    from softphantom.sensing.bench import BenchConfig, RetareSource, tare_at_rest
+    from softphantom.sensing.chain import to_measurement
     from softphantom.sensing.recording import Recorder
     from softphantom.sensing.sources import SerialSource
 
     if duration_s is not None and not duration_s > 0:
         raise UserError(f"--duration-s: must be > 0, got {duration_s}")
-    if not p0_kPa > 0:
-        raise UserError(f"--p0-kPa: must be > 0, got {p0_kPa}")
+    if at not in ("on-centre", "off-centre"):
+        raise UserError(f"--at must be on-centre or off-centre, got {at!r}")
     if out.exists():
         raise UserError(f"--out {out}: exists; recordings are never overwritten")
-    v = (front_cavity_mm3 * 1e-9,) * 2 + (back_cavity_mm3 * 1e-9,) * 2
-    chain = default_chain(v, tube_length_m, tube_id_mm * 1e-3)
-    p0 = p0_kPa * 1e3
-    src = SerialSource(port, chain, nominal_tare(chain, p0), baud=baud, osr=osr)
+    model = None
+    if model_dir is not None:
+        from softphantom.design import load_model
+
+        if not (model_dir / "model.npz").is_file():
+            raise UserError(f"--model {model_dir}: not a model directory (no model.npz; run softphantom design)")
+        model = load_model(model_dir)
+    bench = BenchConfig.from_options(tube_length_m, tube_id_mm, p0_kPa, model=model)
+    chain = bench.chain()
+    serial_src = SerialSource(port, chain, baud=baud, osr=osr)
+    src = RetareSource(serial_src, bench, on_new_board, tare_s, f"--port {port}")
     rec = None
     t_start = time.monotonic()
+    need = 0.0 if no_tare else tare_s
     try:
         with Live(console=console, refresh_per_second=4, transient=False) as live:
             # 1. tare window (or just wait for the first frame)
-            window = []
-            need = 0.0 if no_tare else tare_s
-            while True:
-                batch = src.read(0.05) or []
-                window += batch
-                now = time.monotonic()
-                live.update(_status_table(src.stats(), now - t_start, 0, out))
-                if window and window[-1].t - window[0].t >= need and (no_tare or len(window) >= 5):
-                    break
-                if not window and now - t_start > connect_timeout_s:
-                    raise UserError(f"--port {port}: no valid frame within {connect_timeout_s:g} s "
-                                    f"(state {src.stats().state}; check the cable, --baud, the firmware)")
-                if window and now - t_start > connect_timeout_s + need + 5:
-                    raise UserError(f"--port {port}: too few frames for a {need:g} s tare window")
-            if no_tare:
-                tare = nominal_tare(chain, p0)
-            else:
-                tare = tare_from_window(np.array([m.raw for m in window]), np.array([m.osr for m in window]),
-                                        np.array([m.t for m in window]), chain, p0)
-            src.set_tare(tare)
-            st = src.stats()
-            meta = {"softphantom": __version__, "protocol_version": PROTOCOL_VERSION,
-                    "firmware": st.firmware, "osr": st.osr, "p0_Pa": p0, "port": port, "baud": baud,
+            tare, window = tare_at_rest(
+                serial_src, bench, need, label=f"--port {port}", connect_timeout_s=connect_timeout_s,
+                on_read=lambda _: live.update(_status_table(serial_src.stats(), time.monotonic() - t_start, 0, out)))
+            serial_src.set_tare(tare)
+            serial_src.events()             # connecting is not an outage
+            st = serial_src.stats()
+            meta = {"softphantom": __version__, "protocol_version": st.decoder.version,
+                    "firmware": st.firmware, "osr": st.osr, "p0_Pa": bench.p0_Pa, "port": port, "baud": baud,
                     "started_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-                    "tare": tare.to_dict(), "chain": chain.summary(),
-                    "design": {"arm_cavity_mm3": [x * 1e9 for x in v], "tube_length_m": tube_length_m,
-                               "tube_id_mm": tube_id_mm}}
+                    "tare": tare.to_dict(), "chain": chain.summary(), "bench": bench.to_meta(), "contact": at,
+                    "on_new_board": on_new_board, "model": str(model_dir) if model_dir else None}
             rec = Recorder(out, meta)
             for m in window:        # the tare window is part of the recording, re-converted
                 rec.write(to_measurement(m.t, m.seq, m.t_board, m.raw, m.osr, chain, tare))
             # 2. record
             last_ui = 0.0
             while duration_s is None or time.monotonic() - t_start < duration_s + need:
-                for m in src.read(0.05) or []:
+                try:
+                    batch = src.read(0.05) or []
+                finally:
+                    for ev in src.events():
+                        rec.write_event(ev)
+                        console.print(f"{ev.t:10.2f} s  {ev.kind}: {ev.detail}", highlight=False, markup=False)
+                for m in batch:
                     rec.write(m)
                 rec.tick()
                 now = time.monotonic()
@@ -189,7 +194,7 @@ def acquire_cmd(
         src.close()
     d = src.stats().decoder
     if rec is not None:
-        console.print(f"wrote {rec.rows} rows to {out} (CRC errors {d.crc_errors}, "
-                      f"frames lost {d.frames_lost}, reconnects {src.stats().reconnects})")
+        console.print(f"wrote {rec.rows} rows and {rec.events} link events to {out} (CRC errors {d.crc_errors}, "
+                      f"frames lost {d.frames_lost}, duplicates {d.duplicates}, reconnects {src.stats().reconnects})")
     if interrupted:
         stopped()  # the recording is closed and complete; exit 130

@@ -1,13 +1,20 @@
 """Run an estimator over a sensor source and write the estimate CSV (docs/architecture.md).
 
-Live sources (the serial board): a reader thread drains the source into a latest-sample slot, so
-acquisition never waits for the estimator; when estimation falls behind it takes the newest
-sample and counts the ones it skipped (``Estimate.skipped``). Offline sources (a replay, a
-simulation) are estimated sample by sample, nothing skipped.
+Live sources (the serial board): a reader thread drains the source into a bounded queue, so
+acquisition never waits for the estimator. Every sample is estimated, in order, even when the
+reader hands several at once (a loaded machine delivers frames in bursts); only a sample older
+than ``MAX_LAG_S`` behind the newest is dropped, and counted (``Estimate.skipped``: the estimator
+fell behind). Offline sources (a replay, a simulation) are estimated sample by sample.
+
+Outages are part of the data: every link event of the source (silent, disconnected, reconnected,
+restart, resumed, retared: :class:`~softphantom.sensing.sources.SourceEvent`) becomes a marker row
+at its time (numbers empty, ``status`` = ``event:<kind>: <detail>``), in the CSV and in whatever
+else consumes the estimates (:func:`marker_estimate`).
 """
 
 from __future__ import annotations
 
+import collections
 import json
 import math
 import os
@@ -23,19 +30,22 @@ from softphantom.estimation.types import ARM_NAMES, Estimate
 
 POSE_COLUMNS = ("x_mm", "y_mm", "z_mm", "yaw_deg", "pitch_deg", "roll_deg")
 FLUSH_EVERY_S = 0.2
+MAX_LAG_S = 0.25
+"""A live sample this far behind the newest one is dropped (and counted): the estimator is behind."""
+EVENT_PREFIX = "event:"
 
 
 def estimate_columns(target_names: Iterable[str]) -> list[str]:
     """Header of the estimate CSV, in order (docs/architecture.md).
 
-    >>> estimate_columns(["apex"])[:5], estimate_columns([])[-4:]
-    (['t_s', 'force_x_N', 'force_y_N', 'force_z_N', 'p_urethra_kPa'], ['cond_W', 'qp_status', 'step_ms', 'skipped'])
+    >>> estimate_columns(["apex"])[:5], estimate_columns([])[-5:]
+    (['t_s', 'force_x_N', 'force_y_N', 'force_z_N', 'p_urethra_kPa'], ['cond_W', 'qp_status', 'step_ms', 'skipped', 'status'])
     """
     cols = ["t_s", "force_x_N", "force_y_N", "force_z_N", "p_urethra_kPa", *POSE_COLUMNS]
     for n in target_names:
         cols += [f"{n}_dx_mm", f"{n}_dy_mm", f"{n}_dz_mm"]
     cols += [f"dVpred_{a}_mm3" for a in ARM_NAMES] + [f"dVmeas_{a}_mm3" for a in ARM_NAMES]
-    return cols + ["cond_W", "qp_status", "step_ms", "skipped"]
+    return cols + ["cond_W", "qp_status", "step_ms", "skipped", "status"]
 
 
 def _cell(v: float) -> str:
@@ -50,8 +60,67 @@ def estimate_row(e: Estimate, target_names: Iterable[str]) -> list[str]:
     for n in target_names:
         cells += [_cell(v * 1e3) for v in e.target_shift[n]]
     cells += [_cell(v * 1e9) for v in e.volume_pred] + [_cell(v * 1e9) for v in e.volume_meas]
-    cells += [_cell(e.cond_W), str(e.qp_status).replace(",", ";"), _cell(e.step_time * 1e3), str(int(e.skipped))]
+    cells += [_cell(e.cond_W), str(e.qp_status).replace(",", ";"), _cell(e.step_time * 1e3), str(int(e.skipped)),
+              str(e.status).replace(",", ";").replace("\n", " ")]
     return cells
+
+
+def marker_estimate(event, target_names: Iterable[str]) -> Estimate:
+    """The marker of a link event: an Estimate at the event's time with every number NaN and
+    ``status`` ``event:<kind>: <detail>`` (``qp_status`` ``none``, nothing skipped).
+
+    >>> from softphantom.sensing.sources import SourceEvent
+    >>> e = marker_estimate(SourceEvent(12.5, "disconnected", "port failed"), ["apex"])
+    >>> e.t, e.status, bool(np.isnan(e.force).all())
+    (12.5, 'event:disconnected: port failed', True)
+    """
+    from softphantom.pose import Pose6
+
+    nan3 = np.full(3, math.nan)
+    return Estimate(float(event.t), nan3, math.nan, Pose6(nan3, nan3), {n: nan3 for n in target_names},
+                    np.full(4, math.nan), np.full(4, math.nan), math.nan, "none", 0.0, 0,
+                    f"{EVENT_PREFIX}{event.kind}: {event.detail}")
+
+
+def is_marker(e: Estimate) -> bool:
+    return str(e.status).startswith(EVENT_PREFIX)
+
+
+class StepStats:
+    """Step-time percentiles in constant memory: a histogram of 1 % wide bins from 1 µs to 100 s
+    (the per-estimate list it replaces grew by 8 bytes per estimate: 2.2 MB an hour at 77 Hz).
+
+    >>> s = StepStats()
+    >>> for k in range(1, 101):
+    ...     s.add(k * 1e-3)
+    >>> s.n, round(s.percentile(50) * 1e3, 1), round(s.max * 1e3, 1)   # p50 of 1..100 ms: ≤ 1 % high
+    (100, 50.4, 100.0)
+    """
+
+    LO, HI, PER_DECADE = 1e-6, 100.0, 232   # 10^(1/232) ≈ 1.0100: bins 1 % wide
+
+    def __init__(self) -> None:
+        self._n_bins = int(math.log10(self.HI / self.LO) * self.PER_DECADE) + 2
+        self._h = np.zeros(self._n_bins, np.int64)
+        self.n = 0
+        self.max = math.nan
+
+    def _bin(self, x: float) -> int:
+        if not x > self.LO:
+            return 0
+        return min(self._n_bins - 1, 1 + int(math.log10(x / self.LO) * self.PER_DECADE))
+
+    def add(self, x: float) -> None:
+        self._h[self._bin(x)] += 1
+        self.n += 1
+        self.max = x if not self.max >= x else self.max
+
+    def percentile(self, q: float) -> float:
+        """The ``q``-th percentile (upper edge of its bin, so ≤ 1 % high; exact for the max)."""
+        if self.n == 0:
+            return math.nan
+        k = int(np.searchsorted(np.cumsum(self._h), math.ceil(q / 100.0 * self.n)))
+        return min(self.LO * 10 ** (k / self.PER_DECADE), self.max)
 
 
 class EstimateWriter:
@@ -103,15 +172,17 @@ def write_estimates(path, estimates: Iterable[Estimate], target_names: Iterable[
     return w.path
 
 
-class _LatestSlot:
-    """Reader thread: drains a source into a slot holding only the newest sample."""
+class _SampleQueue:
+    """Reader thread: drains a source into a queue; ``take`` gives samples in order. A sample more
+    than ``max_lag_s`` older than the newest is dropped and counted (the consumer is behind)."""
 
-    def __init__(self, source, read_timeout_s: float = 0.05) -> None:
+    def __init__(self, source, read_timeout_s: float = 0.05, max_lag_s: float = MAX_LAG_S) -> None:
         self._src = source
         self._timeout = read_timeout_s
+        self._max_lag = max_lag_s
         self._cond = threading.Condition()
-        self._latest = None
-        self._pending = 0  # samples arrived since the last take
+        self._q: collections.deque = collections.deque()
+        self._dropped = 0  # samples dropped since the last take
         self.received = 0
         self.ended = False
         self.error: BaseException | None = None
@@ -127,9 +198,13 @@ class _LatestSlot:
                     break
                 if batch:
                     with self._cond:
-                        self._latest = batch[-1]
-                        self._pending += len(batch)
+                        q = self._q
+                        q.extend(batch)
                         self.received += len(batch)
+                        newest = batch[-1].t
+                        while len(q) > 1 and q[0].t < newest - self._max_lag:
+                            q.popleft()
+                            self._dropped += 1
                         self._cond.notify()
         except BaseException as exc:  # surfaced to the consumer
             self.error = exc
@@ -139,14 +214,14 @@ class _LatestSlot:
                 self._cond.notify()
 
     def take(self, timeout_s: float = 0.5):
-        """(newest sample, samples skipped) or (None, 0) on timeout / end."""
+        """(oldest queued sample, samples dropped before it) or (None, 0) on timeout / end."""
         with self._cond:
-            if self._pending == 0 and not self.ended:
+            if not self._q and not self.ended:
                 self._cond.wait(timeout_s)
-            if self._pending == 0:
+            if not self._q:
                 return None, 0
-            m, skipped = self._latest, self._pending - 1
-            self._pending = 0
+            m, skipped = self._q.popleft(), self._dropped
+            self._dropped = 0
             return m, skipped
 
     def stop(self) -> None:
@@ -154,30 +229,53 @@ class _LatestSlot:
         self._thread.join(timeout=2.0)
 
 
-def iter_samples(source, live: bool, stop: threading.Event | None = None):
-    """(measurement, skipped) from a sensor source. ``live``: a reader thread keeps only the newest
-    sample, so acquisition never waits for the consumer, and ``skipped`` counts what it overtook;
-    otherwise every sample, ``skipped`` 0. Ends with the source or when ``stop`` is set; a reader
-    error is re-raised. The caller closes the source."""
+def iter_samples(source, live: bool, stop: threading.Event | None = None, idle: bool = False):
+    """(measurement, skipped) from a sensor source. ``live``: a reader thread queues the samples,
+    so acquisition never waits for the consumer; every sample comes out in order and ``skipped``
+    counts those dropped for lagging more than ``MAX_LAG_S`` behind; otherwise every sample,
+    ``skipped`` 0. ``idle``: also yield ``(None, 0)`` when a live source gave nothing for 0.5 s
+    (so the consumer can show an outage while it lasts). Ends with the source or when ``stop``
+    is set; a reader error is re-raised. The caller closes the source."""
     if not live:
         for m in source:
             yield m, 0
             if stop is not None and stop.is_set():
                 return
         return
-    slot = _LatestSlot(source)
+    q = _SampleQueue(source)
     try:
         while not (stop is not None and stop.is_set()):
-            m, skipped = slot.take()
+            m, skipped = q.take()
             if m is None:
-                if slot.ended:
+                if q.ended:
                     break
+                if idle:
+                    yield None, 0
                 continue
             yield m, skipped
     finally:
-        slot.stop()
-    if slot.error is not None:
-        raise slot.error
+        q.stop()
+    if q.error is not None:
+        raise q.error
+
+
+class EventMarkers:
+    """Turns a source's link events into marker estimates in time order: ``due(t)`` gives the
+    markers of the events at or before ``t`` (all of them for ``t`` None)."""
+
+    def __init__(self, source, target_names: Iterable[str]) -> None:
+        self._src = source
+        self._targets = list(target_names)
+        self._pending: list = []
+        self.counts: dict[str, int] = {}
+
+    def due(self, t: float | None = None) -> list[Estimate]:
+        self._pending += self._src.events()
+        now = [e for e in self._pending if t is None or e.t <= t]
+        self._pending = [e for e in self._pending if not (t is None or e.t <= t)]
+        for e in now:
+            self.counts[e.kind] = self.counts.get(e.kind, 0) + 1
+        return [marker_estimate(e, self._targets) for e in now]
 
 
 def _is_live(source) -> bool:
@@ -188,46 +286,57 @@ def _is_live(source) -> bool:
 
 def estimate_stream(source, estimator, out_path, progress: Callable[[Estimate, int], None] | None = None,
                     *, live: bool | None = None, metadata: dict | None = None,
-                    max_samples: int | None = None, stop: threading.Event | None = None) -> dict:
+                    max_samples: int | None = None, stop: threading.Event | None = None,
+                    on_event: Callable[[Estimate], None] | None = None) -> dict:
     """Estimate every sample of ``source`` (a :class:`~softphantom.sensing.sources.SensorSource`)
     with ``estimator`` (``.step(measurement, skipped=)``) and write the estimate CSV to
-    ``out_path``. ``live`` (default: a serial source, or one with ``live = True``) uses the
-    latest-sample slot; ``progress(estimate, n)`` is called after each estimate; ``stop`` ends a
-    live run. Returns a summary dict (counts, rate, step-time percentiles)."""
+    ``out_path``, with a marker row for every link event of the source (``on_event(marker)`` is
+    called for each, as it happens). ``live`` (default: a serial source, or one with
+    ``live = True``) uses the reader thread's queue; ``progress(estimate, n)`` is called after each
+    estimate; ``stop`` ends a live run. Memory stays flat (step times go into a histogram).
+    Returns a summary dict (counts, rate, step-time percentiles, events by kind). An error of the
+    source (e.g. a new board under the ``stop`` policy) is raised after its marker is written."""
     live = _is_live(source) if live is None else live
     targets = list(getattr(estimator, "target_names", ()))
     meta = {"softphantom": _version(), "kind": "softphantom-estimate", "live": live, **(metadata or {})}
-    steps: list[float] = []
+    steps = StepStats()
     n = rejected = skipped_total = 0
+    markers = EventMarkers(source, targets)
     t0 = time.perf_counter()
 
-    def handle(m, skipped: int) -> None:
-        nonlocal n, rejected, skipped_total
-        e = estimator.step(m, skipped=skipped)
-        writer.write(e)
-        n += 1
-        skipped_total += skipped
-        steps.append(e.step_time)
-        if e.status != "ok":
-            rejected += 1
-        if progress is not None:
-            progress(e, n)
+    def mark(t: float | None) -> None:
+        for e in markers.due(t):
+            writer.write(e)
+            if on_event is not None:
+                on_event(e)
 
     with EstimateWriter(out_path, targets, meta) as writer:
         try:
-            for m, skipped in iter_samples(source, live, stop):
-                handle(m, skipped)
+            for m, skipped in iter_samples(source, live, stop, idle=True):
+                if m is None:
+                    mark(None)
+                    continue
+                mark(m.t)
+                e = estimator.step(m, skipped=skipped)
+                writer.write(e)
+                n += 1
+                skipped_total += skipped
+                steps.add(e.step_time)
+                if e.status != "ok":
+                    rejected += 1
+                if progress is not None:
+                    progress(e, n)
                 if max_samples is not None and n >= max_samples:
                     break
         finally:
             source.close()
+            mark(None)
     wall = time.perf_counter() - t0
-    st = np.asarray(steps) * 1e3 if steps else np.full(1, np.nan)
     return {
         "out": str(out_path), "estimates": n, "rejected": rejected, "skipped": skipped_total,
         "wall_s": wall, "rate_Hz": n / wall if wall > 0 else math.nan,
-        "step_ms_p50": float(np.percentile(st, 50)), "step_ms_p99": float(np.percentile(st, 99)),
-        "step_ms_max": float(np.max(st)),
+        "step_ms_p50": steps.percentile(50) * 1e3, "step_ms_p99": steps.percentile(99) * 1e3,
+        "step_ms_max": steps.max * 1e3, "events": dict(markers.counts),
     }
 
 

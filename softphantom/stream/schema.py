@@ -50,8 +50,8 @@ def csv_columns(target_names: Iterable[str]) -> list[str]:
     ['t_s', 'force_x_N', 'force_y_N', 'force_z_N', 'p_urethra_kPa']
     >>> csv_columns(["apex"])[11:14]
     ['apex_dx_mm', 'apex_dy_mm', 'apex_dz_mm']
-    >>> csv_columns([])[-4:]
-    ['cond_W', 'qp_status', 'step_ms', 'skipped']
+    >>> csv_columns([])[-5:]
+    ['cond_W', 'qp_status', 'step_ms', 'skipped', 'status']
     """
     from softphantom.estimation.stream import estimate_columns  # one definition: the CSV's writer
 
@@ -170,7 +170,9 @@ ESTIMATE_JSON_SCHEMA: dict[str, Any] = {
         "qp_status": {"type": "string"},
         "step_ms": _num_schema("time spent on this estimation step, ms"),
         "skipped": {"type": "integer", "description": "sensor samples skipped since the previous estimate"},
-        "status": {"type": "string", "description": "sensor health: 'ok' or a reason"},
+        "status": {"type": "string", "description": "sensor health: 'ok' or a reason; a link event's marker "
+                   "(numbers null) is 'event:<kind>: <detail>' (silent, disconnected, reconnected, restart, "
+                   "resumed, retared)"},
     },
     "patternProperties": {"^.+_d[xyz]_mm$": _num_schema("target shift from rest, mm")},
     "required": ["seq", "t_s", "t_pub_unix_s", *FORCE_COLUMNS, *POSE_COLUMNS],

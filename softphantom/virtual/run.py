@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -19,7 +19,8 @@ import numpy as np
 from softphantom.design import PhantomModel
 from softphantom.errors import UserError
 from softphantom.sensing import ARM_NAMES
-from softphantom.sensing.chain import SensorChain, Tare, default_chain, nominal_tare, tare_from_window
+from softphantom.sensing.bench import BenchConfig, tare_from_measurements
+from softphantom.sensing.chain import SensorChain, Tare, nominal_tare
 from softphantom.sensing.sources import FrameSource
 from softphantom.virtual.board import FIRMWARE, BoardConfig, BoardSignals, VirtualBoard, arm_volumes, board_signals
 from softphantom.virtual.scenario import Scenario, load_scenario
@@ -70,12 +71,9 @@ class VirtualRun:
 
     def tare(self) -> Tare:
         """The tare from the rest window at the start (all frames before ``rest_s`` − 0.1 s)."""
-        from softphantom.sensing.protocol import DataFrame, StreamDecoder
-
-        frames = [f for f in StreamDecoder().feed(self.frame_bytes()) if isinstance(f, DataFrame)]
-        win = [f for f in frames if f.t_us * 1e-6 <= self.scenario.rest_s - 0.1]
-        return tare_from_window(np.array([f.raw for f in win]), np.array([f.osr for f in win]),
-                                np.array([f.t_us * 1e-6 for f in win]), self.chain, self.config.board.p0_Pa)
+        src = FrameSource([self.frame_bytes()], self.chain, nominal_tare(self.chain, self.config.board.p0_Pa))
+        win = [m for m in src if m.t <= self.scenario.rest_s - 0.1]
+        return tare_from_measurements(win, host_bench(self.model, self.config.board), self.chain)
 
     def source(self, tare: bool = True) -> FrameSource:
         """The frames through the decoder as a :class:`FrameSource` (chunks of 0.1 s; host time =
@@ -109,17 +107,15 @@ class VirtualRun:
         return cols
 
 
-def _nominal_cavities(model: PhantomModel) -> list[float]:
-    by_name = {a.name: a.cavity_volume_mm3 for a in model.design.arms}
-    try:
-        return [by_name[a] * 1e-9 for a in ARM_NAMES]
-    except KeyError as exc:
-        raise UserError(f"design has no arm {exc.args[0]!r} (need {', '.join(ARM_NAMES)})") from None
+def host_bench(model: PhantomModel, board: BoardConfig = BoardConfig()) -> BenchConfig:
+    """The bench the host assumes: the design's nominal arm cavities behind the board's tubes."""
+    return BenchConfig.from_model(model, tube_length_m=board.tube_length_m, tube_id_m=board.tube_id_m,
+                                  p0_Pa=board.p0_Pa)
 
 
 def host_chain(model: PhantomModel, board: BoardConfig = BoardConfig()) -> SensorChain:
-    """The chain the host assumes: the design's nominal arm cavities behind the tubes."""
-    return default_chain(_nominal_cavities(model), board.tube_length_m, board.tube_id_m)
+    """The chain the host assumes (:func:`host_bench`)."""
+    return host_bench(model, board).chain()
 
 
 def simulate(scenario: Scenario | str | Path, model: PhantomModel, config: VirtualConfig = VirtualConfig(),
@@ -135,10 +131,14 @@ def simulate(scenario: Scenario | str | Path, model: PhantomModel, config: Virtu
 
 def open_source(scenario: Scenario | str | Path, model: PhantomModel, config: VirtualConfig = VirtualConfig(),
                 progress: Callable[[int, int, str], None] | None = None, *, tare: bool = True,
-                run: VirtualRun | None = None) -> FrameSource:
+                run: VirtualRun | None = None, bench: BenchConfig | None = None) -> FrameSource:
     """A :class:`~softphantom.sensing.sources.SensorSource` of the virtual phantom running
     ``scenario`` on ``model``: the firmware's frames through the real decoder, tared on the rest
-    window at the start. Solves the truth first (seconds to minutes, see ``progress``)."""
+    window at the start. ``bench`` (tubes, ambient) is the bench both the board's physics and the
+    host use. Solves the truth first (seconds to minutes, see ``progress``)."""
+    if bench is not None:
+        config = replace(config, board=replace(config.board, tube_length_m=bench.tube_length_m,
+                                               tube_id_m=bench.tube_id_m, p0_Pa=bench.p0_Pa))
     run = run or simulate(scenario, model, config, progress)
     return run.source(tare=tare)
 
@@ -170,8 +170,7 @@ def write_run(run: VirtualRun, out: Path) -> dict[str, Path]:
             "firmware": ".".join(map(str, FIRMWARE)),
             "osr": b.osr, "p0_Pa": b.p0_Pa, "port": f"virtual:{run.scenario.name}",
             "tare": src.tare.to_dict(), "chain": run.chain.summary(), "virtual": True,
-            "design": {"arm_cavity_mm3": [float(v) * 1e9 for v in _nominal_cavities(run.model)],
-                       "tube_length_m": b.tube_length_m, "tube_id_mm": b.tube_id_m * 1e3}}
+            "bench": host_bench(run.model, b).to_meta()}
     with Recorder(paths["recording"], meta) as rec:
         for m in src:
             rec.write(m)

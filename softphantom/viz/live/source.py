@@ -326,7 +326,7 @@ class EstimatorSource:
     def _samples(self) -> Iterator[tuple[Any, int]]:
         from softphantom.estimation.stream import iter_samples
 
-        samples = iter_samples(self._sensor, self.live)
+        samples = iter_samples(self._sensor, self.live, idle=True)
         if self.live:
             yield from samples
             return
@@ -340,9 +340,19 @@ class EstimatorSource:
             yield m, 0
 
     def __iter__(self) -> Iterator[Estimate]:
+        from softphantom.estimation.stream import EventMarkers
+
+        # link events (unplugged, silent, resumed, ...) reach the page, the stream and the
+        # recording as marker estimates (status "event:<kind>: ...", numbers null)
+        markers = EventMarkers(self._sensor, getattr(self._est, "target_names", ()))
         for m, skipped in self._samples():
+            if m is None:               # a live source gave nothing for a while
+                yield from markers.due(None)
+                continue
+            yield from markers.due(m.t)
             self._last_m = m
             yield self._est.step(m, skipped=skipped)
+        yield from markers.due(None)
 
     def node_positions(self) -> np.ndarray | None:
         return self._est.node_positions()

@@ -1,0 +1,308 @@
+"""The bench in one place: tubing, cavities and ambient (:class:`BenchConfig`) → the sensor chain,
+opening a sensor source (:func:`open_source`) and taring it at rest (:func:`tare_at_rest`), and
+what to do when a new board appears mid-run (:class:`RetareSource`).
+
+``acquire``, ``estimate``, ``live`` and the virtual phantom all take their chain from a
+:class:`BenchConfig`; every recording stores it (``meta["bench"]``), so a replay converts pressure
+to volume the way the trial did without any option.
+
+>>> b = BenchConfig()
+>>> [round(v * 1e9) for v in b.chain().v_total_m3], b.to_meta()["tube_id_mm"]
+([14086, 14086, 14058, 14058], 1.2)
+>>> BenchConfig.from_meta({"bench": b.to_meta()}).same_as(b)
+True
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from softphantom.errors import UserError
+from softphantom.sensing.chain import SensorChain, Tare, default_chain, nominal_tare, tare_from_window
+from softphantom.sensing.measurement import (
+    ARM_CAVITY_VOLUMES_M3,
+    ARM_NAMES,
+    P0_STANDARD_PA,
+    TUBE_ID_M,
+    TUBE_LENGTH_M,
+    Measurement,
+)
+from softphantom.sensing.sources import SensorSource, SourceEvent, SourceStats
+
+NEW_BOARD_POLICIES = ("stop", "retare")
+"""What a run does when the board restarts or is replaced (a ``restart`` event): ``stop`` ends it
+with a one-line error (the default: a new board's zero is unknown), ``retare`` takes a new tare
+from the next ``tare_s`` of frames, which must be at rest."""
+
+
+def _positive(name: str, v: float) -> float:
+    v = float(v)
+    if not math.isfinite(v) or v <= 0:
+        raise UserError(f"{name}: must be a positive number, got {v!r}")
+    return v
+
+
+@dataclass(frozen=True)
+class BenchConfig:
+    """The pneumatic bench (SI): per-arm tube ``tube_length_m`` × ``tube_id_m`` (inner diameter),
+    the arm cavities ``cavity_volumes_m3`` (4, sensor order), the transducers' extra dead volume
+    ``v_dead_m3`` and the absolute ambient pressure ``p0_Pa`` at tare."""
+
+    tube_length_m: float = TUBE_LENGTH_M
+    tube_id_m: float = TUBE_ID_M
+    cavity_volumes_m3: tuple[float, float, float, float] = ARM_CAVITY_VOLUMES_M3
+    p0_Pa: float = P0_STANDARD_PA
+    v_dead_m3: float = 0.0
+
+    def __post_init__(self) -> None:
+        _positive("--tube-length-m", self.tube_length_m)
+        _positive("--tube-id-mm", self.tube_id_m * 1e3)
+        _positive("--p0-kPa", self.p0_Pa / 1e3)
+        vc = tuple(float(v) for v in self.cavity_volumes_m3)
+        if len(vc) != 4 or not all(math.isfinite(v) and v > 0 for v in vc):
+            raise UserError(f"cavity volumes (mm³): expected 4 positive values, got {self.cavity_volumes_m3!r}")
+        if not (math.isfinite(self.v_dead_m3) and self.v_dead_m3 >= 0):
+            raise UserError(f"dead volume (mm³): must be ≥ 0, got {self.v_dead_m3 * 1e9!r}")
+        object.__setattr__(self, "cavity_volumes_m3", vc)
+
+    @classmethod
+    def from_model(cls, model, **kw) -> "BenchConfig":
+        """The bench of a :class:`~softphantom.design.PhantomModel`: its design's nominal arm
+        cavities; ``kw`` (``tube_length_m``, ``tube_id_m``, ``p0_Pa``; None = default) the rest."""
+        by_name = {a.name: a.cavity_volume_mm3 for a in model.design.arms}
+        try:
+            vc = tuple(by_name[a] * 1e-9 for a in ARM_NAMES)
+        except KeyError as exc:
+            raise UserError(f"design has no arm {exc.args[0]!r} (need {', '.join(ARM_NAMES)})") from None
+        return cls(cavity_volumes_m3=vc, **{k: v for k, v in kw.items() if v is not None})
+
+    @classmethod
+    def from_options(cls, tube_length_m: float | None = None, tube_id_mm: float | None = None,
+                     p0_kPa: float | None = None, model=None, base: "BenchConfig | None" = None) -> "BenchConfig":
+        """From the CLI's units (``--tube-length-m``, ``--tube-id-mm``, ``--p0-kPa``; None keeps
+        ``base``'s value, or the model's / the paper's)."""
+        b = base or (cls.from_model(model) if model is not None else cls())
+        kw = {}
+        if tube_length_m is not None:
+            kw["tube_length_m"] = tube_length_m
+        if tube_id_mm is not None:
+            kw["tube_id_m"] = _positive("--tube-id-mm", tube_id_mm) * 1e-3
+        if p0_kPa is not None:
+            kw["p0_Pa"] = _positive("--p0-kPa", p0_kPa) * 1e3
+        return replace(b, **kw)
+
+    def same_as(self, other: "BenchConfig | None", rtol: float = 1e-9) -> bool:
+        """Equal up to rounding (metadata stores user units)."""
+        if other is None:
+            return False
+        a = np.array([self.tube_length_m, self.tube_id_m, *self.cavity_volumes_m3, self.p0_Pa, self.v_dead_m3])
+        b = np.array([other.tube_length_m, other.tube_id_m, *other.cavity_volumes_m3, other.p0_Pa, other.v_dead_m3])
+        return bool(np.allclose(a, b, rtol=rtol, atol=0.0))
+
+    def chain(self) -> SensorChain:
+        """The sensor chain: V_total = cavity + tube + dead volume per arm."""
+        return default_chain(self.cavity_volumes_m3, self.tube_length_m, self.tube_id_m, self.v_dead_m3)
+
+    def to_meta(self) -> dict:
+        """The recording metadata ``bench`` entry (user units)."""
+        return {"tube_length_m": self.tube_length_m, "tube_id_mm": round(self.tube_id_m * 1e3, 9),
+                "arm_cavity_mm3": [round(v * 1e9, 6) for v in self.cavity_volumes_m3],
+                "p0_Pa": self.p0_Pa, "dead_volume_mm3": round(self.v_dead_m3 * 1e9, 6)}
+
+    @classmethod
+    def from_meta(cls, meta: dict) -> "BenchConfig":
+        """The bench of a recording: ``meta["bench"]``, or the older ``design`` + ``p0_Pa`` keys."""
+        from softphantom.errors import FileFormatError
+
+        b = meta.get("bench") or meta.get("design")
+        try:
+            return cls(float(b["tube_length_m"]), float(b["tube_id_mm"]) * 1e-3,
+                       tuple(float(v) * 1e-9 for v in b["arm_cavity_mm3"]),
+                       float(b.get("p0_Pa", meta.get("p0_Pa", P0_STANDARD_PA))),
+                       float(b.get("dead_volume_mm3", 0.0)) * 1e-9)
+        except (KeyError, TypeError, ValueError) as exc:
+            raise FileFormatError(f"metadata: no usable bench (tube, cavities): {exc}") from None
+
+
+def tare_from_measurements(window: list[Measurement], bench: BenchConfig, chain: SensorChain | None = None) -> Tare:
+    """:func:`~softphantom.sensing.chain.tare_from_window` over measurements (their raw sums)."""
+    return tare_from_window(np.array([m.raw for m in window]), np.array([m.osr for m in window]),
+                            np.array([m.t for m in window]), chain or bench.chain(), bench.p0_Pa)
+
+
+def tare_at_rest(source: SensorSource, bench: BenchConfig, tare_s: float, *, label: str,
+                 connect_timeout_s: float = 5.0, on_read: Callable[[list[Measurement]], None] | None = None,
+                 clock: Callable[[], float] = time.monotonic) -> tuple[Tare, list[Measurement]]:
+    """Read ``source`` until ``tare_s`` of frames (≥ 5) arrived and tare on them (refused if not at
+    rest). ``tare_s`` 0: the datasheet zero after the first frame. Returns the tare and the window
+    (its measurements still carry the source's previous tare). ``label`` names the source in the
+    one-line errors."""
+    window: list[Measurement] = []
+    t0 = clock()
+    need = max(0.0, float(tare_s))
+    while True:
+        batch = source.read(0.05) or []
+        window += batch
+        if on_read is not None:
+            on_read(batch)
+        now = clock()
+        if window and window[-1].t - window[0].t >= need and (need == 0 or len(window) >= 5):
+            break
+        if not window and now - t0 > connect_timeout_s:
+            raise UserError(f"{label}: no valid frame within {connect_timeout_s:g} s (state "
+                            f"{source.stats().state}; check the cable, --baud, the firmware)")
+        if now - t0 > connect_timeout_s + need + 5:
+            raise UserError(f"{label}: too few frames for a {need:g} s tare window")
+    chain = getattr(source, "chain", None) or bench.chain()
+    tare = nominal_tare(chain, bench.p0_Pa) if need == 0 else tare_from_measurements(window, bench, chain)
+    return tare, window
+
+
+class NewBoardError(UserError):
+    """A board restarted or was replaced mid-run and the policy is ``stop``."""
+
+
+class RetareSource(SensorSource):
+    """A tared serial source with the new-board policy (:data:`NEW_BOARD_POLICIES`): after a
+    ``restart`` event, ``stop`` raises :class:`NewBoardError` from :meth:`read` (the consumer ends
+    the run cleanly, with the event recorded), ``retare`` holds the next ``tare_s`` of frames back,
+    tares on them, emits a ``retared`` event and hands them on converted with the new tare —
+    nothing is dropped. Everything else passes through."""
+
+    live = True
+
+    def __init__(self, source, bench: BenchConfig, policy: str = "stop", tare_s: float = 1.0, label: str = "board"):
+        if policy not in NEW_BOARD_POLICIES:
+            raise UserError(f"--on-new-board: expected {' or '.join(NEW_BOARD_POLICIES)}, got {policy!r}")
+        self.inner, self.bench, self.policy, self.tare_s, self.label = source, bench, policy, tare_s, label
+        self.chain = source.chain
+        self._held: list[Measurement] | None = None
+        import collections
+
+        self._events: collections.deque[SourceEvent] = collections.deque()
+
+    @property
+    def tare(self) -> Tare:
+        return self.inner.tare
+
+    def read(self, timeout_s: float = 0.1) -> list[Measurement] | None:
+        from softphantom.sensing.chain import to_measurement
+
+        batch = self.inner.read(timeout_s)
+        for ev in self.inner.events():
+            self._events.append(ev)
+            if ev.kind == "restart":
+                if self.policy == "stop":
+                    raise NewBoardError(f"{self.label}: the board restarted or was replaced at t = {ev.t:.3f} s "
+                                        f"(its zero is unknown); stopped — use --on-new-board retare to "
+                                        f"re-tare at rest and go on")
+                self._held = []
+        if batch is None or self._held is None:
+            return batch
+        self._held += batch
+        # the window's length by the board clock: a burst of frames read at once shares one host time
+        if not self._held or self._held[-1].t_board - self._held[0].t_board < self.tare_s or len(self._held) < 5:
+            return []
+        tare = tare_from_measurements(self._held, self.bench, self.chain)
+        self.inner.set_tare(tare)
+        self._events.append(SourceEvent(self._held[0].t, "retared",
+                                        f"{tare.n_samples} frames at rest, {self.tare_s:g} s"))
+        out = [to_measurement(m.t, m.seq, m.t_board, m.raw, m.osr, self.chain, tare) for m in self._held]
+        self._held = None
+        return out
+
+    def stats(self) -> SourceStats:
+        return self.inner.stats()
+
+    def close(self) -> None:
+        self.inner.close()
+
+
+@dataclass(frozen=True)
+class OpenedSource:
+    """What :func:`open_source` gives: the ``source``, ``live`` (a board: estimate the newest
+    samples, never wait for it), the ``bench`` its volumes follow, the ``tare`` in force, the
+    rest ``window`` it was tared on (serial), and ``meta`` to store with any output."""
+
+    source: SensorSource
+    live: bool
+    bench: BenchConfig
+    tare: Tare | None
+    window: tuple[Measurement, ...]
+    meta: dict
+
+
+def open_source(spec: str, model=None, bench: BenchConfig | None = None, *, options: dict | None = None,
+                tare_s: float = 1.0, on_new_board: str = "stop", connect_timeout_s: float = 5.0,
+                baud: int = 115_200, osr: int | None = None, openers: dict[str, Callable] | None = None,
+                serial_opener: Callable | None = None) -> OpenedSource:
+    """Open ``--source``: ``serial:PORT`` (tared on its first ``tare_s`` at rest, then the
+    new-board policy), ``replay:FILE`` (a sensing recording: its own bench and tare; a bench that
+    differs re-converts the raw sums) or another kind from ``openers`` (``kind -> fn(arg, model,
+    bench)``, e.g. the virtual phantom's). The bench: ``bench`` if given, else the recording's /
+    the model's design / the paper's, with the CLI ``options`` (``tube_length_m``, ``tube_id_mm``,
+    ``p0_kPa``; None = keep) applied."""
+    options = options or {}
+    kind, _, arg = spec.partition(":")
+    kinds = ["serial", "replay", *(openers or {})]
+    usage = ", ".join(f"{k}:…" for k in kinds)
+    if not arg:
+        raise UserError(f"--source {spec!r}: use {usage}")
+    if kind == "replay":
+        from softphantom.sensing.recording import read_recording
+        from softphantom.sensing.sources import ReplaySource
+
+        if not Path(arg).is_file():
+            raise UserError(f"--source replay:{arg}: no such file")
+        meta = read_recording(arg).meta
+        recorded = BenchConfig.from_meta(meta) if ("bench" in meta or "design" in meta) else None
+        use = bench or (BenchConfig.from_options(**options, base=recorded) if recorded or any(
+            v is not None for v in options.values()) else None)
+        reconvert = use is not None and not use.same_as(recorded)
+        src = ReplaySource(arg, chain=use.chain() if reconvert else None,
+                           tare=_retared_p0(meta, use) if reconvert else None)
+        return OpenedSource(src, False, use or BenchConfig(), None, (),
+                            {"bench": (use or BenchConfig()).to_meta(), "reconverted": reconvert,
+                             "recording_contact": meta.get("contact")})
+    if kind == "serial":
+        from softphantom.sensing.sources import SerialSource
+
+        b = bench or BenchConfig.from_options(**options, model=model)
+        chain = b.chain()
+        kw = {"opener": serial_opener} if serial_opener is not None else {}
+        src = SerialSource(arg, chain, nominal_tare(chain, b.p0_Pa), baud=baud, osr=osr, **kw)
+        try:
+            tare, window = tare_at_rest(src, b, tare_s, label=f"--source serial:{arg}",
+                                        connect_timeout_s=connect_timeout_s)
+        except BaseException:
+            src.close()
+            raise
+        src.set_tare(tare)
+        src.events()                            # connecting is not an outage
+        st = src.stats()
+        meta = {"bench": b.to_meta(), "tare": tare.to_dict(), "firmware": st.firmware, "osr": st.osr,
+                "protocol_version": st.decoder.version, "on_new_board": on_new_board}
+        return OpenedSource(RetareSource(src, b, on_new_board, tare_s, f"--source serial:{arg}"), True, b,
+                            tare, tuple(window), meta)
+    if openers and kind in openers:
+        b = bench or BenchConfig.from_options(**options, model=model)
+        src = openers[kind](arg, model, b)
+        return OpenedSource(src, bool(getattr(src, "live", False)), b, getattr(src, "tare", None), (),
+                            {"bench": b.to_meta()})
+    raise UserError(f"--source {spec!r}: unknown kind {kind!r}; use {usage}")
+
+
+def _retared_p0(meta: dict, bench: BenchConfig) -> Tare:
+    """The recording's tare with the ambient pressure of ``bench`` (the offsets are the board's)."""
+    from softphantom.errors import FileFormatError
+
+    if "tare" not in meta:
+        raise FileFormatError("recording metadata has no tare: cannot re-convert its raw sums")
+    t = Tare.from_dict(meta["tare"])
+    return Tare(t.offset_codes, bench.p0_Pa, t.n_samples, t.t_s, t.noise_Pa)

@@ -1,0 +1,157 @@
+"""The bench in one place (softphantom.sensing.bench): BenchConfig, open_source, the tare, the
+new-board policy, and the options reaching the commands and the recordings' metadata."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import serial
+
+from softphantom.cli import main
+from softphantom.design import save_model
+from softphantom.errors import UserError
+from softphantom.evaluation.files import read_table
+from softphantom.sensing.bench import BenchConfig, NewBoardError, RetareSource, open_source
+from softphantom.sensing.chain import default_chain, nominal_tare
+from softphantom.sensing.measurement import TUBE_ID_M, TUBE_LENGTH_M
+from softphantom.sensing.pneumatics import tube_volume_m3
+from softphantom.sensing.protocol import encode_data
+from softphantom.sensing.recording import Recorder, read_recording
+from softphantom.sensing.sources import FrameSource, SerialSource
+
+REST25 = [12787, 12787, 12787, 12787, 1011]
+
+
+@pytest.fixture(scope="module")
+def model_dir(coarse_model, tmp_path_factory):
+    d = tmp_path_factory.mktemp("bench_model")
+    save_model(coarse_model, d)
+    return d
+
+
+def test_bench_config_is_the_one_place_for_the_chain(coarse_model):
+    b = BenchConfig()
+    assert (b.tube_length_m, b.tube_id_m) == (TUBE_LENGTH_M, TUBE_ID_M) == (12.0, 1.2e-3)
+    v_tube = tube_volume_m3(12.0, 1.2e-3)
+    assert np.allclose(b.chain().v_total_m3, np.array([514, 514, 486, 486]) * 1e-9 + v_tube)   # DESIGN.md §3
+    m = BenchConfig.from_model(coarse_model, tube_length_m=3.0)
+    arms = {a.name: a.cavity_volume_mm3 for a in coarse_model.design.arms}
+    assert m.cavity_volumes_m3[0] == pytest.approx(arms["front_zpos"] * 1e-9) and m.tube_length_m == 3.0
+    o = BenchConfig.from_options(6.0, 0.8, 95.0, model=coarse_model)
+    assert (o.tube_length_m, o.tube_id_m, o.p0_Pa) == (6.0, pytest.approx(0.8e-3), 95_000.0)
+    assert np.allclose(o.chain().v_total_m3, np.asarray(m.cavity_volumes_m3) + tube_volume_m3(6.0, 0.8e-3))
+    assert BenchConfig.from_meta({"bench": o.to_meta()}).same_as(o)
+    # recordings written before the bench entry: the design keys and p0_Pa
+    legacy = {"design": {"arm_cavity_mm3": [514, 514, 486, 486], "tube_length_m": 12.0, "tube_id_mm": 1.2},
+              "p0_Pa": 99_000.0}
+    assert BenchConfig.from_meta(legacy).same_as(BenchConfig(p0_Pa=99_000.0))
+    for kw, msg in ((dict(tube_length_m=0.0), "--tube-length-m"), (dict(tube_id_m=float("nan")), "--tube-id-mm"),
+                    (dict(p0_Pa=-1.0), "--p0-kPa"), (dict(cavity_volumes_m3=(1e-9,) * 3), "cavity volumes")):
+        with pytest.raises(UserError, match=msg):
+            BenchConfig(**kw)
+
+
+def _record(path, bench, contact="off-centre", n=40, push_codes=0):
+    chain = bench.chain()
+    tare = nominal_tare(chain, bench.p0_Pa)
+    raw = np.array(REST25)
+    frames = []
+    for k in range(n):
+        r = raw.copy()
+        r[2] += int(push_codes * k / n)
+        frames.append(encode_data(k, 13_000 * k, 25, r))
+    ms = list(FrameSource([b"".join(frames)], chain, tare))
+    with Recorder(path, {"bench": bench.to_meta(), "tare": tare.to_dict(), "chain": chain.summary(),
+                         "contact": contact}) as rec:
+        for m in ms:
+            rec.write(m)
+    return ms
+
+
+def test_replay_follows_the_recording_and_reconverts_on_a_different_tube(tmp_path):
+    short = BenchConfig(tube_length_m=3.0)
+    ms = _record(tmp_path / "r.csv", short, push_codes=400)
+    opened = open_source(f"replay:{tmp_path / 'r.csv'}")
+    got = list(opened.source)
+    assert opened.bench.same_as(short) and not opened.meta["reconverted"]
+    assert opened.meta["recording_contact"] == "off-centre"
+    assert np.allclose([m.dV for m in got], [m.dV for m in ms])
+    # the same pressures behind 12 m of tube mean a larger volume change: re-converted from raw
+    long = open_source(f"replay:{tmp_path / 'r.csv'}", options={"tube_length_m": 12.0})
+    got12 = list(long.source)
+    assert long.meta["reconverted"] and long.bench.tube_length_m == 12.0
+    ratio = got12[-1].dV[2] / got[-1].dV[2]
+    assert ratio == pytest.approx(BenchConfig().chain().v_total_m3[2] / short.chain().v_total_m3[2], rel=1e-6)   # the file keeps 1e-6 mm³
+
+
+def test_cli_estimate_takes_bench_and_contact_from_the_recording(tmp_path, model_dir, capsys):
+    _record(tmp_path / "r.csv", BenchConfig(tube_length_m=3.0), contact="off-centre")
+    out = tmp_path / "e.csv"
+    assert main(["estimate", "--model", str(model_dir), "--source", f"replay:{tmp_path / 'r.csv'}",
+                 "--out", str(out)]) == 0, capsys.readouterr().err
+    meta = read_table(out).meta
+    assert meta["contact"] == "off-centre" and meta["bench"]["tube_length_m"] == 3.0
+    out2 = tmp_path / "e2.csv"
+    assert main(["estimate", "--model", str(model_dir), "--source", f"replay:{tmp_path / 'r.csv'}",
+                 "--out", str(out2), "--tube-length-m", "12", "--tube-id-mm", "1.2", "--at", "on-centre"]) == 0
+    meta2 = read_table(out2).meta
+    assert meta2["contact"] == "on-centre" and meta2["bench"]["tube_length_m"] == 12.0 and meta2["reconverted"]
+    assert main(["estimate", "--model", str(model_dir), "--source", f"replay:{tmp_path / 'r.csv'}",
+                 "--out", str(tmp_path / "e3.csv"), "--tube-id-mm", "0"]) == 2
+    assert "--tube-id-mm" in capsys.readouterr().err
+
+
+class _Loop:
+    """A loop:// board whose frames the test writes; ``restart`` = a new board (clock from 0)."""
+
+    def __init__(self):
+        self.ports = []
+
+    def __call__(self, url, **kw):
+        p = serial.serial_for_url("loop://", **kw)
+        self.ports.append(p)
+        return p
+
+    def send(self, seqs, t0_us, push=0):
+        raw = np.array(REST25)
+        raw[0] += push
+        self.ports[-1].write(b"".join(encode_data(k, t0_us + 13_000 * i, 25, raw) for i, k in enumerate(seqs)))
+
+
+def _serial(policy, board):
+    src = SerialSource("fake", default_chain(), opener=board, reconnect_every_s=0.01)
+    src.read(0.001)
+    board.send(range(10), 5_000_000)
+    while len(src.read(0.01)) == 0:
+        pass
+    src.events()
+    return RetareSource(src, BenchConfig(), policy, tare_s=0.05, label="--source serial:fake")
+
+
+def test_new_board_policy_stop_refuses_with_one_line():
+    board = _Loop()
+    src = _serial("stop", board)
+    board.send(range(10, 20), 5_130_000)
+    assert len(src.read(0.01)) > 0
+    board.send(range(0, 10), 1_000)                       # the clock restarted: a new board
+    with pytest.raises(NewBoardError, match="restarted or was replaced.*--on-new-board retare"):
+        for _ in range(5):
+            src.read(0.01)
+    assert [e.kind for e in src.events()] == ["restart"]  # the marker is not lost
+    src.close()
+
+
+def test_new_board_policy_retare_holds_the_window_back_and_drops_nothing():
+    board = _Loop()
+    src = _serial("retare", board)
+    board.send(range(0, 12), 1_000, push=300)            # new board, different zero (+300 codes)
+    got = []
+    for _ in range(20):
+        got += src.read(0.01)
+    kinds = [e.kind for e in src.events()]
+    assert kinds == ["restart", "retared"]
+    assert [m.seq for m in got] == list(range(12))        # the tare window comes out, re-converted
+    assert np.allclose([m.dp[0] for m in got], 0.0, atol=1.0)   # the new zero is removed
+    src.close()
+    with pytest.raises(UserError, match="--on-new-board"):
+        RetareSource(src.inner, BenchConfig(), "ignore")
