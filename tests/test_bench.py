@@ -155,3 +155,14 @@ def test_new_board_policy_retare_holds_the_window_back_and_drops_nothing():
     src.close()
     with pytest.raises(UserError, match="--on-new-board"):
         RetareSource(src.inner, BenchConfig(), "ignore")
+
+
+def test_virtual_phantom_uses_the_same_bench(coarse_model):
+    from softphantom.cli.virtual import _config
+    from softphantom.virtual.run import host_bench, host_chain
+
+    cfg = _config(0, 25, 0.75, {"tube_length_m": 3.0, "tube_id_mm": 1.0})
+    assert (cfg.board.tube_length_m, cfg.board.tube_id_m) == (3.0, pytest.approx(1.0e-3))
+    hb = host_bench(coarse_model, cfg.board)
+    assert hb.same_as(BenchConfig.from_model(coarse_model, tube_length_m=3.0, tube_id_m=1.0e-3))
+    assert np.allclose(host_chain(coarse_model, cfg.board).v_total_m3, hb.chain().v_total_m3)

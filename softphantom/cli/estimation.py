@@ -13,10 +13,10 @@ from softphantom.errors import UserError
 
 _SOURCES = "serial:PORT, replay:FILE or virtual:SCENARIO"
 
-TUBE_LENGTH_OPTION = typer.Option(None, "--tube-length-m", help="Tube length per arm (m); default: the "
-                                  "recording's (replay) or 12 m.")
-TUBE_ID_OPTION = typer.Option(None, "--tube-id-mm", help="Tube inner diameter (mm); default: the recording's "
-                              "(replay) or 1.2 mm.")
+TUBE_LENGTH_OPTION = typer.Option(None, "--tube-length-m", help="Tube length per arm (m); default 12 m "
+                                  "(a replay: the recording's).")
+TUBE_ID_OPTION = typer.Option(None, "--tube-id-mm", help="Tube inner diameter (mm); default 1.2 mm "
+                              "(a replay: the recording's).")
 P0_OPTION = typer.Option(None, "--p0-kPa", help="Absolute ambient pressure at tare (kPa); default: the "
                          "recording's (replay) or 101.325.")
 NEW_BOARD_OPTION = typer.Option("stop", "--on-new-board", help="Serial: when the board restarts or is "

@@ -7,6 +7,7 @@ from pathlib import Path
 import typer
 
 from softphantom.cli.app import app, console
+from softphantom.cli.estimation import TUBE_ID_OPTION, TUBE_LENGTH_OPTION
 from softphantom.cli.options import check_output, overwrite_option, staged_output, stopped
 from softphantom.errors import UserError
 
@@ -31,21 +32,29 @@ def truth_progress(console_, label: str):
     return bar, cb
 
 
-def _config(seed: int, osr: int, mesh_scale: float):
+def _config(seed: int, osr: int, mesh_scale: float, bench_options: dict | None = None):
+    """The run's settings; ``bench_options`` (``tube_length_m``, ``tube_id_mm``; None = the
+    paper's) set the tubes of both the virtual board's physics and the host's chain."""
+    from dataclasses import replace
+
+    from softphantom.sensing.bench import BenchConfig
     from softphantom.virtual import VirtualConfig
 
     if not 0.2 <= mesh_scale <= 1.0:
         raise UserError(f"--truth-mesh-scale: must be in [0.2, 1] (finer than the model), got {mesh_scale:g}")
-    return VirtualConfig.seeded(seed=seed, osr=osr, mesh_scale=mesh_scale)
+    cfg = VirtualConfig.seeded(seed=seed, osr=osr, mesh_scale=mesh_scale)
+    b = BenchConfig.from_options(**(bench_options or {}))
+    return replace(cfg, board=replace(cfg.board, tube_length_m=b.tube_length_m, tube_id_m=b.tube_id_m))
 
 
-def _simulate(scenario: str, model_dir: Path, seed: int, osr: int, mesh_scale: float):
+def _simulate(scenario: str, model_dir: Path, seed: int, osr: int, mesh_scale: float,
+              bench_options: dict | None = None):
     """Load the scenario and the model, solve the truth with a progress bar: the VirtualRun."""
     from softphantom.design import load_model
     from softphantom.virtual import load_scenario, simulate
 
     sc = load_scenario(scenario)
-    cfg = _config(seed, osr, mesh_scale)
+    cfg = _config(seed, osr, mesh_scale, bench_options)
     model = load_model(model_dir)
     bar, cb = truth_progress(console, f"truth of {sc.name}")
     with bar:
@@ -78,13 +87,16 @@ def run_cmd(
     seed: int = typer.Option(0, "--seed", help="Seed of every random source (noise, offsets, drift, lost frames, clocks)."),
     osr: int = typer.Option(25, "--osr", help="Readings summed per channel per frame (25: 76.9 Hz, 100: 19.2 Hz)."),
     truth_mesh_scale: float = typer.Option(0.75, "--truth-mesh-scale", help="Truth mesh size relative to the model's (< 1: finer)."),
+    tube_length_m: float = TUBE_LENGTH_OPTION,
+    tube_id_mm: float = TUBE_ID_OPTION,
     overwrite: bool = overwrite_option(),
 ) -> None:
     """Simulate a scenario: write the board's frames, a recording, the tracker's Motive CSV, the truth."""
     from softphantom.virtual import run_summary, write_run
 
     check_output(out, overwrite=overwrite, directory=True)
-    run = _simulate(scenario, model_dir, seed, osr, truth_mesh_scale)
+    run = _simulate(scenario, model_dir, seed, osr, truth_mesh_scale,
+                    dict(tube_length_m=tube_length_m, tube_id_mm=tube_id_mm))
     with staged_output(out, overwrite=overwrite, directory=True) as work:
         paths = write_run(run, work)
     _print_summary(run_summary(run))
@@ -99,6 +111,8 @@ def serve_cmd(
     seed: int = typer.Option(0, "--seed", help="Seed of every random source."),
     osr: int = typer.Option(25, "--osr", help="Initial OSR (the host may change it with SET_OSR)."),
     truth_mesh_scale: float = typer.Option(0.75, "--truth-mesh-scale", help="Truth mesh size relative to the model's."),
+    tube_length_m: float = TUBE_LENGTH_OPTION,
+    tube_id_mm: float = TUBE_ID_OPTION,
     speed: float = typer.Option(1.0, "--speed", help="Playback speed (1 = real time)."),
     once: bool = typer.Option(False, "--once", help="Stop at the end of the scenario (default: keep streaming the rest state)."),
     natnet: bool = typer.Option(False, "--natnet", help="Also serve the tracker as a NatNet server (softphantom track --natnet HOST)."),
@@ -115,7 +129,8 @@ def serve_cmd(
         raise UserError(f"--speed: must be > 0, got {speed:g}")
     if natnet and not 0 <= natnet_port <= 65535:
         raise UserError(f"--natnet-port must be in 0..65535, got {natnet_port}")
-    run = _simulate(scenario, model_dir, seed, osr, truth_mesh_scale)
+    run = _simulate(scenario, model_dir, seed, osr, truth_mesh_scale,
+                    dict(tube_length_m=tube_length_m, tube_id_mm=tube_id_mm))
     stop_natnet = _start_natnet(run, natnet_host, natnet_port, natnet_version, speed) if natnet else None
     sc = run.scenario
     master, slave, path = open_pty()

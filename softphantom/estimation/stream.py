@@ -176,10 +176,10 @@ class _SampleQueue:
     """Reader thread: drains a source into a queue; ``take`` gives samples in order. A sample more
     than ``max_lag_s`` older than the newest is dropped and counted (the consumer is behind)."""
 
-    def __init__(self, source, read_timeout_s: float = 0.05, max_lag_s: float = MAX_LAG_S) -> None:
+    def __init__(self, source, read_timeout_s: float = 0.05, max_lag_s: float | None = None) -> None:
         self._src = source
         self._timeout = read_timeout_s
-        self._max_lag = max_lag_s
+        self._max_lag = MAX_LAG_S if max_lag_s is None else max_lag_s
         self._cond = threading.Condition()
         self._q: collections.deque = collections.deque()
         self._dropped = 0  # samples dropped since the last take
