@@ -122,9 +122,6 @@ def _serial(policy, board):
     src = SerialSource("fake", default_chain(), opener=board, reconnect_every_s=0.01)
     src.read(0.001)
     board.send(range(10), 5_000_000)
-    while len(src.read(0.01)) == 0:
-        pass
-    src.events()
     return RetareSource(src, BenchConfig(), policy, tare_s=0.05, label="--source serial:fake")
 
 
@@ -132,11 +129,12 @@ def test_new_board_policy_stop_refuses_with_one_line():
     board = _Loop()
     src = _serial("stop", board)
     board.send(range(10, 20), 5_130_000)
-    assert len(src.read(0.01)) > 0
     board.send(range(0, 10), 1_000)                       # the clock restarted: a new board
+    got = []
     with pytest.raises(NewBoardError, match="restarted or was replaced.*--on-new-board retare"):
-        for _ in range(5):
-            src.read(0.01)
+        for _ in range(20):
+            got += src.read(0.01)
+    assert [m.seq for m in got] == list(range(20))        # the old board's frames all came out first
     assert [e.kind for e in src.events()] == ["restart"]  # the marker is not lost
     src.close()
 
@@ -150,8 +148,9 @@ def test_new_board_policy_retare_holds_the_window_back_and_drops_nothing():
         got += src.read(0.01)
     kinds = [e.kind for e in src.events()]
     assert kinds == ["restart", "retared"]
-    assert [m.seq for m in got] == list(range(12))        # the tare window comes out, re-converted
-    assert np.allclose([m.dp[0] for m in got], 0.0, atol=1.0)   # the new zero is removed
+    # the old board's 10 frames, then the new board's, its tare window included, re-converted
+    assert [m.seq for m in got] == list(range(10)) + list(range(12))
+    assert np.allclose([m.dp[0] for m in got[10:]], 0.0, atol=1.0)   # the new zero is removed
     src.close()
     with pytest.raises(UserError, match="--on-new-board"):
         RetareSource(src.inner, BenchConfig(), "ignore")

@@ -202,8 +202,13 @@ class _FastEstimator:
                         skipped, m.status)
 
 
-def test_live_bursts_are_all_estimated_and_events_become_marker_rows(tmp_path):
+def test_live_bursts_are_all_estimated_and_events_become_marker_rows(tmp_path, monkeypatch):
+    import softphantom.estimation.stream as stream_mod
     from softphantom.estimation import estimate_stream
+
+    # no lag limit: a stall of this test's thread on a loaded machine is then no reason to drop;
+    # the old latest-sample slot dropped 3 of every burst of 4 whatever the limit
+    monkeypatch.setattr(stream_mod, "MAX_LAG_S", 1e9)
     from softphantom.evaluation import read_estimate
     from softphantom.evaluation.files import read_table
 

@@ -183,6 +183,7 @@ class RetareSource(SensorSource):
         self.inner, self.bench, self.policy, self.tare_s, self.label = source, bench, policy, tare_s, label
         self.chain = source.chain
         self._held: list[Measurement] | None = None
+        self._error: NewBoardError | None = None
         import collections
 
         self._events: collections.deque[SourceEvent] = collections.deque()
@@ -194,28 +195,39 @@ class RetareSource(SensorSource):
     def read(self, timeout_s: float = 0.1) -> list[Measurement] | None:
         from softphantom.sensing.chain import to_measurement
 
+        if self._error is not None:
+            raise self._error
         batch = self.inner.read(timeout_s)
+        before: list[Measurement] = []
         for ev in self.inner.events():
             self._events.append(ev)
-            if ev.kind == "restart":
-                if self.policy == "stop":
-                    raise NewBoardError(f"{self.label}: the board restarted or was replaced at t = {ev.t:.3f} s "
-                                        f"(its zero is unknown); stopped — use --on-new-board retare to "
-                                        f"re-tare at rest and go on")
-                self._held = []
+            if ev.kind != "restart" or not batch:
+                continue
+            # the frames of the old board in this batch go out as they are: the new board's
+            # start where the board clock runs backwards
+            cut = next((i for i in range(len(batch) - 1, 0, -1) if batch[i].t_board < batch[i - 1].t_board), 0)
+            before, batch = before + batch[:cut], batch[cut:]
+            if self.policy == "stop":
+                self._error = NewBoardError(
+                    f"{self.label}: the board restarted or was replaced at t = {ev.t:.3f} s (its zero is "
+                    f"unknown); stopped — use --on-new-board retare to re-tare at rest and go on")
+                if not before:
+                    raise self._error
+                return before
+            self._held = []
         if batch is None or self._held is None:
-            return batch
+            return batch if not before else before + (batch or [])
         self._held += batch
         # the window's length by the board clock: a burst of frames read at once shares one host time
         if not self._held or self._held[-1].t_board - self._held[0].t_board < self.tare_s or len(self._held) < 5:
-            return []
+            return before
         tare = tare_from_measurements(self._held, self.bench, self.chain)
         self.inner.set_tare(tare)
         self._events.append(SourceEvent(self._held[0].t, "retared",
                                         f"{tare.n_samples} frames at rest, {self.tare_s:g} s"))
         out = [to_measurement(m.t, m.seq, m.t_board, m.raw, m.osr, self.chain, tare) for m in self._held]
         self._held = None
-        return out
+        return before + out
 
     def stats(self) -> SourceStats:
         return self.inner.stats()
