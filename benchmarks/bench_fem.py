@@ -1,6 +1,12 @@
-"""Co-rotational FEM speed on the default BIP mesh and a finer one (element size / 4^(1/3)).
+"""FEM speed on the default BIP mesh and a finer one (element size / 4^(1/3)); P1 and P2 laws.
 
-Run: ``.venv/bin/python benchmarks/bench_fem.py [--repeat N] [--no-fine] [--no-splu-fine]``
+Run: ``.venv/bin/python benchmarks/bench_fem.py [--repeat N] [--no-fine] [--no-splu-fine] [--no-p2]``
+
+Section "P1 vs P2" (same run, default design): neo-Hookean and co-rotational on linear tets and
+neo-Hookean on 10-node tets of the same mesh (``element_order = 2``): internal force and tangent
+(K_ff) assembly with elements/s, the default solver's factorization of K_ff, and a 3 N push solve
+(on-centre, 4 mm contact patch); then force and tangent again with both cores busy (the benchmark
+starts its own busy-loop process).
 
 Per mesh: build_fem (pattern + scatter indices), internal force and tangent assembly (K_ff,
 consistent) with the numba kernels and with the numpy reference in the same run (and their ratio),
@@ -107,11 +113,81 @@ def bench(name, size_mm, repeat, solvers):
     return head, rows, sol
 
 
+def _busy() -> None:  # pragma: no cover - runs in the load process
+    while True:
+        pass
+
+
+def bench_p1_p2(repeat):
+    import dataclasses
+    import multiprocessing as mp
+
+    from softphantom.design import BIPDesign, MeshParams, build_model
+    from softphantom.fem import (
+        ContactPatch,
+        NeoHookean,
+        SparseSolver,
+        fem_from_phantom,
+        free_tangent,
+        internal_force,
+        solve_static,
+    )
+    from softphantom.fem.material import ECOFLEX_00_50
+
+    nh = NeoHookean(ECOFLEX_00_50.E_Pa, ECOFLEX_00_50.nu, ECOFLEX_00_50.density_kg_m3)
+    model = build_model(BIPDesign(mesh=dataclasses.replace(MeshParams(), element_order=2)))
+    cases = [
+        ("P1 co-rotational", fem_from_phantom(model, ECOFLEX_00_50, order=1)),
+        ("P1 neo-Hookean", fem_from_phantom(model, nh, order=1)),
+        ("P2 neo-Hookean", fem_from_phantom(model, nh, order=2)),
+    ]
+    rows = []
+    states = {}
+    for label, fem in cases:
+        c, s_ = np.cos(0.5), np.sin(0.5)
+        Rz = np.array([[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]])
+        noise = 2e-5 * np.random.default_rng(1).standard_normal(fem.nodes.shape)
+        xd = ((fem.nodes + noise) @ Rz.T).reshape(-1)
+        states[label] = (fem, xd)
+        m = len(fem.tets)
+        t_f = _median(lambda: internal_force(fem, xd), repeat)[0]
+        t_k = _median(lambda: free_tangent(fem, xd), repeat)[0]
+        K = free_tangent(fem, fem.x_rest)
+        solver = SparseSolver("auto")
+        solver.factorize(K)
+        t_fac = _median(lambda: solver.factorize(K), repeat)[0]
+        H = ContactPatch(model.p_ext["on-centre"], 4e-3).load_matrix(fem)
+        t_sol, sol = _median(lambda: solve_static(fem, H @ np.array([0.0, 3.0, 0.0]), solver=solver), 1)
+        head = f"{label}: {fem.n_nodes} nodes, {m} tets, {fem.n_free} free DOF, K_ff nnz {K.nnz}"
+        rows.append((head, [
+            ("internal force", t_f, m / t_f),
+            ("tangent K_ff assembly", t_k, m / t_k),
+            (f"re-factorization ({solver.method})", t_fac, None),
+            (f"3 N push solve: {sol.iterations} it., y {sol.u[:, 1].max() * 1e3:.2f} mm", t_sol, None),
+        ]))
+    load = mp.get_context("spawn").Process(target=_busy, daemon=True)
+    load.start()
+    try:
+        busy = []
+        for label, (fem, xd) in states.items():
+            m = len(fem.tets)
+            t_f = _median(lambda: internal_force(fem, xd), repeat)[0]
+            t_k = _median(lambda: free_tangent(fem, xd), repeat)[0]
+            busy.append((f"{label}: internal force (both cores busy)", t_f, m / t_f))
+            busy.append((f"{label}: tangent K_ff (both cores busy)", t_k, m / t_k))
+    finally:
+        load.terminate()
+        load.join()
+    rows.append(("both cores busy (a busy-loop process started by the benchmark)", busy))
+    return rows
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--no-fine", action="store_true", help="only the default mesh")
     ap.add_argument("--no-splu-fine", action="store_true", help="skip scipy splu on the fine mesh (slow)")
+    ap.add_argument("--no-p2", action="store_true", help="skip the P1 vs P2 section")
     args = ap.parse_args()
     from softphantom.design import MeshParams
     from softphantom.fem import available_solvers
@@ -131,6 +207,12 @@ def main() -> None:
             print(f"| {label} | {t * 1e3:.1f} |")
         y = sol.u[:, 1].max() * 1e3
         print(f"(5 N push: max u_y {y:.2f} mm, relative residual {sol.residual_norm:.1e})")
+    if not args.no_p2:
+        print("\n## P1 vs P2 on the default design (one element_order = 2 mesh; P1 = its corner nodes)")
+        for head, rows in bench_p1_p2(args.repeat):
+            print(f"\n### {head}\n| step | time (ms) | elements/s |\n| --- | ---: | ---: |")
+            for label, t, rate in rows:
+                print(f"| {label} | {t * 1e3:.1f} | {'' if rate is None else f'{rate:.3g}'} |")
 
 
 if __name__ == "__main__":

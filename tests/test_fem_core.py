@@ -189,8 +189,9 @@ def test_force_actuator_barycentric_and_patch(cube):
         assert np.isclose(w.sum(), 1) and w.min() >= 0
     with pytest.raises(Exception, match="outside the mesh"):
         force_actuator(fem, [0.01, 0.01, 0.03])
-    # a patch of surface nodes: surface nodes only, same resultant
-    Hp = force_actuator(fem, [0.01, 0.01, 0.02], radius=0.011)
+    # a patch of surface nodes: surface nodes only, same resultant (9 mm: the side faces, 10 mm
+    # away, stay outside the patch, which is the surface within that 3-D distance)
+    Hp = force_actuator(fem, [0.01, 0.01, 0.02], radius=0.009)
     wp = Hp[0::3, 0].toarray().ravel()
     assert np.isclose(wp.sum(), 1) and np.count_nonzero(wp) > 4
     assert np.allclose(X[wp > 0, 2], 0.02)

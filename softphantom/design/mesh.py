@@ -23,12 +23,16 @@ from __future__ import annotations
 
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from softphantom.design.params import ARM_NAMES, BIPDesign, MeshParams
 from softphantom.errors import MeshError
+
+# gmsh's 10-node tet -> VTK/meshio order (its last two edges are (2,3), (1,3); VTK: (1,3), (2,3));
+# the same table as softphantom.fem.elements.GMSH_TET10 (design may not import fem)
+GMSH_TET10 = np.array([0, 1, 2, 3, 4, 5, 6, 7, 9, 8])
 
 _GMSH_LOCK = threading.Lock()  # gmsh holds process-global state; one mesh at a time
 
@@ -49,6 +53,13 @@ class RawMesh:
     fixed_faces: np.ndarray  # (F,3)
     outer_faces: np.ndarray  # (S,3) free outer surface (without the fixed faces)
     seconds: float
+    # element_order 2: 10-node tets / 6-node triangles (our VTK node order), corner nodes numbered
+    # first (indices < n_corner); empty for order 1
+    tets10: np.ndarray = field(default_factory=lambda: np.zeros((0, 10), dtype=np.int64))
+    cavities6: dict = field(default_factory=dict)
+    fixed_faces6: np.ndarray = field(default_factory=lambda: np.zeros((0, 6), dtype=np.int64))
+    outer_faces6: np.ndarray = field(default_factory=lambda: np.zeros((0, 6), dtype=np.int64))
+    n_corner: int = -1
 
 
 def _capsule(occ, a, b, r) -> int:
@@ -231,18 +242,33 @@ def _build(design: BIPDesign, mp: MeshParams) -> dict:
     fld.setAsBackgroundMesh(fmin)
 
     gmsh.model.mesh.generate(3)
+    order = int(mp.element_order)
+    if order == 2:
+        # mid-edge nodes on the CAD surfaces (OCC), so curved walls stay curved
+        gmsh.option.setNumber("Mesh.SecondOrderLinear", 0)
+        # curving the boundary edges can invert a thin element next to a curved wall (det J <= 0
+        # at a quadrature point); gmsh's high-order optimizer untangles them
+        gmsh.model.mesh.setOrder(2)
+        gmsh.model.mesh.optimize("HighOrder")
+    # gmsh element types: 4 = tet4, 11 = tet10; 2 = tri3, 9 = tri6
+    ttype, tn, ftype, fn = (4, 4, 2, 3) if order == 1 else (11, 10, 9, 6)
 
     node_tags, coords, _ = gmsh.model.mesh.getNodes()
     coords = np.asarray(coords, dtype=float).reshape(-1, 3)
     tets, regs = [], []
     for rname, rid in REGION_IDS.items():
         for v in region_vols[rname]:
-            t = _elements(3, v, 4, 4)
+            t = _elements(3, v, ttype, tn)
             tets.append(t)
             regs.append(np.full(len(t), rid, dtype=np.int32))
     tet_tags = np.vstack(tets)
-    used = np.unique(tet_tags)
-    # node tags -> compact 0-based indices, in tag order (deterministic)
+    if order == 2:
+        tet_tags = tet_tags[:, GMSH_TET10]
+    # node tags -> compact 0-based indices: corners first, then mid-edge nodes, each in tag order
+    # (deterministic)
+    corner = np.unique(tet_tags[:, :4])
+    mid = np.setdiff1d(np.unique(tet_tags[:, 4:]), corner) if order == 2 else np.zeros(0, np.int64)
+    used = np.concatenate([corner, mid])
     lookup = np.full(int(max(node_tags.max(), used.max())) + 1, -1, dtype=np.int64)
     lookup[used] = np.arange(len(used))
     pos = np.full(len(lookup), -1, dtype=np.int64)
@@ -250,17 +276,20 @@ def _build(design: BIPDesign, mp: MeshParams) -> dict:
     nodes = coords[pos[used]]
 
     def tris(surfs):
-        t = np.vstack([_elements(2, s, 2, 3) for s in surfs]) if surfs else np.zeros((0, 3), np.int64)
+        t = np.vstack([_elements(2, s, ftype, fn) for s in surfs]) if surfs else np.zeros((0, fn), np.int64)
         out = lookup[t]
         if (out < 0).any():
             raise MeshError("a surface triangle has a node outside the tetra mesh")
         return out
 
+    cav = {n: tris(s) for n, s in cav_surfaces.items()}
+    fix, out = tris(fixed), tris(sorted(outer))
+    tt = lookup[tet_tags]
+    if order == 1:
+        return dict(nodes_mm=nodes, tets=tt, tet_region=np.concatenate(regs), cavities=cav,
+                    fixed_faces=fix, outer_faces=out)
     return dict(
-        nodes_mm=nodes,
-        tets=lookup[tet_tags],
-        tet_region=np.concatenate(regs),
-        cavities={n: tris(s) for n, s in cav_surfaces.items()},
-        fixed_faces=tris(fixed),
-        outer_faces=tris(sorted(outer)),
+        nodes_mm=nodes, tets=tt[:, :4], tet_region=np.concatenate(regs),
+        cavities={k: v[:, :3] for k, v in cav.items()}, fixed_faces=fix[:, :3], outer_faces=out[:, :3],
+        tets10=tt, cavities6=cav, fixed_faces6=fix, outer_faces6=out, n_corner=len(corner),
     )

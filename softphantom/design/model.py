@@ -41,6 +41,14 @@ class PhantomModel:
 
     Arrays are read-only. ``mesh_seconds`` is the meshing wall time (0 for a loaded model and not
     compared by ``==``).
+
+    Quadratic models (``design.mesh.element_order == 2``): ``nodes`` holds the corner nodes first
+    (``n_corner_nodes`` of them) then the mid-edge nodes; ``tets``, ``cavities``, ``fixed_faces``
+    and ``outer_faces`` stay the corner (linear) connectivity every consumer knows, and
+    ``tets10`` (M,10), ``cavities6`` (name -> (K,6)), ``fixed_faces6``, ``outer_faces6`` (·,6)
+    add the mid-edge nodes (VTK order, see softphantom.fem.elements); ``fixed_nodes`` includes the
+    mid-edge nodes of the fixed faces. For linear models those extra fields are empty and
+    ``n_corner_nodes == len(nodes)``.
     """
 
     design: BIPDesign
@@ -56,6 +64,11 @@ class PhantomModel:
     targets: dict[str, np.ndarray]
     p_ext: dict[str, np.ndarray]
     mesh_seconds: float = field(default=0.0)
+    tets10: np.ndarray = field(default_factory=lambda: np.zeros((0, 10), dtype=np.int64))
+    cavities6: dict[str, np.ndarray] = field(default_factory=dict)
+    fixed_faces6: np.ndarray = field(default_factory=lambda: np.zeros((0, 6), dtype=np.int64))
+    outer_faces6: np.ndarray = field(default_factory=lambda: np.zeros((0, 6), dtype=np.int64))
+    n_corner_nodes: int = -1
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "nodes", _frozen(self.nodes, np.float64))
@@ -64,6 +77,12 @@ class PhantomModel:
         object.__setattr__(self, "fixed_faces", _frozen(self.fixed_faces, np.int64))
         object.__setattr__(self, "fixed_nodes", _frozen(self.fixed_nodes, np.int64))
         object.__setattr__(self, "outer_faces", _frozen(self.outer_faces, np.int64))
+        for name, k in (("tets10", 10), ("fixed_faces6", 6), ("outer_faces6", 6)):
+            object.__setattr__(self, name, _frozen(np.asarray(getattr(self, name)).reshape(-1, k), np.int64))
+        object.__setattr__(self, "cavities6", {k: _frozen(v, np.int64) for k, v in self.cavities6.items()})
+        if self.n_corner_nodes < 0:
+            object.__setattr__(self, "n_corner_nodes", len(self.nodes))
+        object.__setattr__(self, "n_corner_nodes", int(self.n_corner_nodes))
         # in id order, whatever order they came in (a JSON round trip sorts them by name): the
         # files written from a model must not depend on how it was made
         object.__setattr__(self, "regions", dict(sorted(self.regions.items(), key=lambda kv: kv[1])))
@@ -77,25 +96,36 @@ class PhantomModel:
         if self.tets.ndim != 2 or self.tets.shape[1] != 4 or len(self.tet_region) != len(self.tets):
             raise MeshError(f"tets: expected (M, 4) with one region each, got {self.tets.shape}")
         for name, arr in (("tets", self.tets), ("fixed_faces", self.fixed_faces), ("outer_faces", self.outer_faces),
-                          *((f"cavities.{k}", v) for k, v in self.cavities.items())):
+                          *((f"cavities.{k}", v) for k, v in self.cavities.items()),
+                          ("tets10", self.tets10), ("fixed_faces6", self.fixed_faces6),
+                          ("outer_faces6", self.outer_faces6),
+                          *((f"cavities6.{k}", v) for k, v in self.cavities6.items())):
             if arr.size and (arr.min() < 0 or arr.max() >= n):
                 raise MeshError(f"{name}: node index out of range 0..{n - 1}")
+        if self.element_order == 2 and (len(self.tets10) != len(self.tets) or set(self.cavities6) != set(self.cavities)):
+            raise MeshError("element_order 2: tets10 and cavities6 must match tets and cavities")
 
     def __eq__(self, other: object) -> bool:
         if not isinstance(other, PhantomModel):
             return NotImplemented
         if self.design != other.design or self.regions != other.regions:
             return False
-        arrays = ("nodes", "tets", "tet_region", "fixed_faces", "fixed_nodes", "outer_faces")
+        arrays = ("nodes", "tets", "tet_region", "fixed_faces", "fixed_nodes", "outer_faces", "tets10",
+                  "fixed_faces6", "outer_faces6")
         if not all(np.array_equal(getattr(self, k), getattr(other, k)) for k in arrays):
             return False
-        for k in ("cavities", "markers", "targets", "p_ext"):
+        for k in ("cavities", "cavities6", "markers", "targets", "p_ext"):
             a, b = getattr(self, k), getattr(other, k)
             if list(a) != list(b) or not all(np.array_equal(a[n], b[n]) for n in a):
                 return False
         return True
 
     __hash__ = None  # type: ignore[assignment]
+
+    @property
+    def element_order(self) -> int:
+        """1 (4-node tets) or 2 (10-node tets; see the class docstring)."""
+        return 2 if len(self.tets10) else 1
 
     # --- derived figures --------------------------------------------------------------------
     def tet_volumes(self) -> np.ndarray:
@@ -129,10 +159,22 @@ class PhantomModel:
         return out
 
 
+# swapping corners 2 and 3 of a 10-node tet (VTK order) moves its mid-edge nodes too
+_TET10_SWAP23 = np.array([0, 1, 3, 2, 4, 8, 7, 6, 5, 9])
+# reversing a 6-node triangle (a, b, c, ab, bc, ca) -> (a, c, b, ca, bc, ab)
+_TRI6_FLIP = np.array([0, 2, 1, 5, 4, 3])
+
+
 def _orient(tets: np.ndarray, nodes: np.ndarray, tris: np.ndarray, into_solid: bool) -> np.ndarray:
-    """Orient boundary triangles by their one adjacent tet: normal into the solid or out of it."""
+    """Orient boundary triangles by their one adjacent tet: normal into the solid or out of it.
+    6-node triangles are oriented by their corners and keep their mid-edge nodes in step."""
     if len(tris) == 0:
-        return tris.reshape(0, 3)
+        return tris.reshape(0, tris.shape[1] if tris.ndim == 2 else 3)
+    if tris.shape[1] == 6:
+        flip = ~np.all(_orient(tets, nodes, tris[:, :3], into_solid) == tris[:, :3], axis=1)
+        out = tris.copy()
+        out[flip] = tris[flip][:, _TRI6_FLIP]
+        return out
     faces = np.vstack([tets[:, [1, 2, 3]], tets[:, [0, 2, 3]], tets[:, [0, 1, 3]], tets[:, [0, 1, 2]]])
     opposite = np.concatenate([tets[:, 0], tets[:, 1], tets[:, 2], tets[:, 3]])
     key_f = np.sort(faces, axis=1)
@@ -162,12 +204,26 @@ def model_from_raw(design: BIPDesign, raw: RawMesh) -> PhantomModel:
     vol = geo.tet_signed_volumes(nodes, tets)
     neg = vol < 0.0
     tets[neg, 2], tets[neg, 3] = raw.tets[neg, 3], raw.tets[neg, 2]
+    tets10 = np.asarray(raw.tets10).copy()
+    if len(tets10):
+        tets10[neg] = tets10[neg][:, _TET10_SWAP23]
     if (np.abs(vol) <= 1e-6 * np.abs(vol).mean()).any():
         raise MeshError(f"{int((np.abs(vol) <= 1e-6 * np.abs(vol).mean()).sum())} degenerate tets")
     # cavity normals point out of the air into the silicone: towards the adjacent tet
     cavities = {k: _orient(tets, nodes, v, into_solid=True) for k, v in raw.cavities.items()}
     fixed = _orient(tets, nodes, raw.fixed_faces, into_solid=False)
     outer = _orient(tets, nodes, raw.outer_faces, into_solid=False)
+    quad = {}
+    if len(tets10):
+        cav6 = {k: _orient(tets, nodes, v, into_solid=True) for k, v in raw.cavities6.items()}
+        fixed6 = _orient(tets, nodes, raw.fixed_faces6, into_solid=False)
+        quad = dict(
+            tets10=tets10, cavities6={k: cav6[k] for k in (*ARM_NAMES, "urethra")}, fixed_faces6=fixed6,
+            outer_faces6=_orient(tets, nodes, raw.outer_faces6, into_solid=False), n_corner_nodes=raw.n_corner,
+        )
+        fixed_nodes = np.unique(fixed6)
+    else:
+        fixed_nodes = np.unique(fixed)
     return PhantomModel(
         design=design,
         nodes=nodes,
@@ -176,12 +232,13 @@ def model_from_raw(design: BIPDesign, raw: RawMesh) -> PhantomModel:
         regions=dict(REGION_IDS),
         cavities={k: cavities[k] for k in (*ARM_NAMES, "urethra")},
         fixed_faces=fixed,
-        fixed_nodes=np.unique(fixed),
+        fixed_nodes=fixed_nodes,
         outer_faces=outer,
         markers={k: v * MM for k, v in design.marker_dict.items()},
         targets={k: v * MM for k, v in design.target_dict.items()},
         p_ext={k: v * MM for k, v in design.p_ext_mm().items()},
         mesh_seconds=raw.seconds,
+        **quad,
     )
 
 
@@ -201,16 +258,24 @@ def build_model(design: BIPDesign, mesh_size_mm: float | None = None) -> Phantom
 def _to_meshio(model: PhantomModel):
     import meshio
 
+    # quadratic models are written with their 10-node / 6-node cells (meshio converts the node order
+    # to gmsh's in .msh; VTK_QUADRATIC_TETRA's order is ours)
+    q = model.element_order == 2
+    tet_t, tri_t = ("tetra10", "triangle6") if q else ("tetra", "triangle")
+    tets = model.tets10 if q else model.tets
+    cavs = model.cavities6 if q else model.cavities
     cells, phys, geom = [], [], []
     for rname, rid in model.regions.items():
-        sel = model.tets[model.tet_region == rid]
-        cells.append(("tetra", sel))
+        sel = tets[model.tet_region == rid]
+        cells.append((tet_t, sel))
         phys.append(np.full(len(sel), rid, dtype=np.int64))
     for cname, gid in CAVITY_GROUP_IDS.items():
-        cells.append(("triangle", model.cavities[cname]))
-        phys.append(np.full(len(model.cavities[cname]), gid, dtype=np.int64))
-    for tris, gid in ((model.fixed_faces, FIXED_GROUP_ID), (model.outer_faces, OUTER_GROUP_ID)):
-        cells.append(("triangle", tris))
+        cells.append((tri_t, cavs[cname]))
+        phys.append(np.full(len(cavs[cname]), gid, dtype=np.int64))
+    faces = ((model.fixed_faces6, FIXED_GROUP_ID), (model.outer_faces6, OUTER_GROUP_ID)) if q else (
+        (model.fixed_faces, FIXED_GROUP_ID), (model.outer_faces, OUTER_GROUP_ID))
+    for tris, gid in faces:
+        cells.append((tri_t, tris))
         phys.append(np.full(len(tris), gid, dtype=np.int64))
     geom = [p.copy() for p in phys]
     field_data = {name: np.array([rid, 3]) for name, rid in model.regions.items()}
@@ -252,9 +317,15 @@ def save_model(model: PhantomModel, directory: str | Path) -> Path:
         **{f"target__{k}": v for k, v in model.targets.items()},
         **{f"pext__{k}": v for k, v in model.p_ext.items()},
     }
+    if model.element_order == 2:
+        arrays.update(
+            tets10=model.tets10, fixed_faces6=model.fixed_faces6, outer_faces6=model.outer_faces6,
+            **{f"cavity6__{k}": v for k, v in model.cavities6.items()},
+        )
     meta = {
         "npz_version": NPZ_VERSION,
         "regions": model.regions,
+        "n_corner_nodes": model.n_corner_nodes,
         "order": {
             "cavity": list(model.cavities),
             "marker": list(model.markers),
@@ -295,6 +366,13 @@ def load_model(directory: str | Path) -> PhantomModel:
             pref: {k: data[f"{pref}__{k}"] for k in meta["order"][pref]}
             for pref in ("cavity", "marker", "target", "pext")
         }
+        quad = {}
+        if "tets10" in data:  # a quadratic model (files without these keys are linear)
+            quad = dict(
+                tets10=data["tets10"], fixed_faces6=data["fixed_faces6"], outer_faces6=data["outer_faces6"],
+                cavities6={k: data[f"cavity6__{k}"] for k in meta["order"]["cavity"]},
+                n_corner_nodes=int(meta["n_corner_nodes"]),
+            )
         return PhantomModel(
             design=design,
             nodes=data["nodes"],
@@ -308,6 +386,7 @@ def load_model(directory: str | Path) -> PhantomModel:
             markers=named["marker"],
             targets=named["target"],
             p_ext=named["pext"],
+            **quad,
         )
     except KeyError as exc:
         raise FileFormatError(f"{npz}: missing array {exc.args[0]!r}") from None

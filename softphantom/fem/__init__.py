@@ -16,7 +16,9 @@ whose one numba point function (W, P, dP/dF at a quadrature point,
     >>> fem = fem_from_phantom(model, NeoHookean(142.3e3, 0.45, 1070))  # doctest: +SKIP
 """
 
+from softphantom.fem.contact import DEFAULT_CONTACT_RADIUS_M, ContactPatch, outer_surface
 from softphantom.fem.actuators import (
+    point_weights,
     cavity_volume,
     cavity_volume_gradient,
     force_actuator,
@@ -26,6 +28,7 @@ from softphantom.fem.actuators import (
 )
 from softphantom.fem.corotational import (
     ElementInversionError,
+    cauchy_stress,
     corotated_stress,
     deformation_gradient,
     internal_force,
@@ -56,6 +59,11 @@ from softphantom.fem.solve import (
 )
 
 __all__ = [
+    "ContactPatch",
+    "DEFAULT_CONTACT_RADIUS_M",
+    "cauchy_stress",
+    "outer_surface",
+    "point_weights",
     "Corotational",
     "ECOFLEX_00_50",
     "ECOFLEX_00_50_YEOH",

@@ -172,6 +172,19 @@ def corotated_stress(fem: FemModel, x: np.ndarray) -> np.ndarray:
     return R @ _stress(fem, S) @ np.swapaxes(R, 1, 2)
 
 
+def cauchy_stress(fem: FemModel, x: np.ndarray) -> np.ndarray:
+    """(M,3,3) Pa, each element's volume-weighted mean Cauchy stress σ = P Fᵀ / J of its law over its
+    quadrature points (any law, any order). For the co-rotational law on linear tets it equals
+    :func:`corotated_stress` up to O(strain²)."""
+    x = _flat(x)
+    _check_finite(x)
+    out = np.empty((fem.tets.shape[0], 3, 3))
+    bad = kernels.cauchy_stress_kernel(x, fem.tets, fem.dN, fem.wq, fem.law_id, fem.params, out)
+    if bad:
+        _raise_inverted(fem, bad)
+    return out
+
+
 def von_mises(stress: np.ndarray) -> np.ndarray:
     """(M,) von Mises equivalent of (M,3,3) stresses, sqrt(3/2 s:s) with s the deviator."""
     dev = stress - np.trace(stress, axis1=1, axis2=2)[:, None, None] * _I3 / 3.0

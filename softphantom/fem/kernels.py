@@ -513,3 +513,33 @@ def warm_up() -> None:
         for consistent in (True, False):
             tangent_kernel(x, conn, dN, wq, law, prm, scatter, consistent, np.empty(144))
     _warm = True
+
+
+@njit(cache=True, fastmath=False, nogil=True)
+def cauchy_stress_kernel(x, conn, dN, wq, law, prm, out):
+    """out (M,3,3): each element's volume-weighted mean Cauchy stress σ = P Fᵀ / J over its
+    quadrature points (Pa); returns the number of inverted points (nothing written then)."""
+    F = np.empty((3, 3))
+    P = np.empty((3, 3))
+    D = np.empty((9, 9))
+    s0, s1, s2, s3, s4, s5, s6, s7, s8, s9 = scratch()
+    bad = _count_inverted(x, conn, dN, F)
+    if bad:
+        return bad
+    for e in range(conn.shape[0]):
+        vol = 0.0
+        for i in range(3):
+            for j in range(3):
+                out[e, i, j] = 0.0
+        for q in range(dN.shape[1]):
+            J = _defgrad(x, conn, dN, e, q, F)
+            law_point(law[e], prm, e, F, P, D, 1, s0, s1, s2, s3, s4, s5, s6, s7, s8, s9)
+            v = wq[e, q]
+            vol += v
+            for i in range(3):
+                for j in range(3):
+                    out[e, i, j] += v * (P[i, 0] * F[j, 0] + P[i, 1] * F[j, 1] + P[i, 2] * F[j, 2]) / J
+        for i in range(3):
+            for j in range(3):
+                out[e, i, j] /= vol
+    return 0

@@ -254,14 +254,15 @@ def _newton(fem, x, f_fixed, plist, t, tol, max_iter, solver, consistent):
             # Indefinite tangent (strong compression, pressure): LU still gives the Newton step.
             d = SparseSolver("splu").factorize(K).solve(-r)
         slope = float(np.dot(r, d))  # dΠ/dα at α = 0
-        alpha, accepted = 1.0, False
+        alpha, accepted, inverted = 1.0, False, 0
         for _ in range(12):
             xt = x.copy()
             xt[free] += alpha * d
             try:
                 rt, reft = residual(xt)
                 pit = potential(xt)
-            except ElementInversionError:
+            except ElementInversionError as exc:
+                inverted = exc.count
                 alpha *= 0.5
                 continue
             rtn = np.linalg.norm(rt)
@@ -272,7 +273,8 @@ def _newton(fem, x, f_fixed, plist, t, tol, max_iter, solver, consistent):
                 break
             alpha *= 0.5
         if not accepted:
-            return False, x, it + 1, rn / ref, "line search failed"
+            why = f"line search failed ({inverted} elements inverted along the step)" if inverted else "line search failed"
+            return False, x, it + 1, rn / ref, why
         x, r, rn, ref, pi0 = xt, rt, rtn, reft, pit
     return False, x, max_iter, rn / ref, f"no convergence in {max_iter} iterations"
 
