@@ -244,3 +244,44 @@ def test_virtual_serve_natnet_helper(stream):
             np.testing.assert_allclose(c.models.rigid_bodies[0].markers, REST, atol=1e-7)
     finally:
         stop()
+
+
+def _free_udp_port():
+    import socket
+
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    s.bind(("127.0.0.1", 0))
+    port = s.getsockname()[1]
+    s.close()
+    return port
+
+
+def test_multicast_on_loopback(stream):
+    """The server multicasts (TTL 0, loopback interface); the client joins the group on 127.0.0.1
+    because the server info says multicast."""
+    import socket
+
+    from softphantom.tracking.client import NatNetClient, NatNetConfig
+
+    data_port = _free_udp_port()
+    probe = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        probe.setsockopt(socket.IPPROTO_IP, socket.IP_ADD_MEMBERSHIP,
+                         socket.inet_aton("239.255.42.99") + socket.inet_aton("127.0.0.1"))
+    except OSError as exc:
+        pytest.skip(f"this machine cannot join a multicast group on loopback ({exc.strerror})")
+    finally:
+        probe.close()
+    port, stop, th = _serve(stream, multicast=True, data_port=data_port)
+    got = []
+    try:
+        with NatNetClient(NatNetConfig(command_port=port, data_port=data_port, local="127.0.0.1")) as c:
+            info = c.connect()
+            assert info.multicast and info.multicast_group == "239.255.42.99" and info.data_port == data_port
+            for _, f in c.frames(stop=lambda: len(got) >= 50):
+                got.append(f.frame_number)
+            stats = c.stats
+    finally:
+        stop.set()
+        th.join(5)
+    assert got[:50] == list(range(got[0], got[0] + 50)) and stats.duplicates == 0 and stats.lost == 0

@@ -4,7 +4,7 @@ NatNet client) sees Motive streaming the phantom's marker body.
 It answers on its command port as Motive does: ``NAT_CONNECT`` → server info (NatNet 3.0 or 4.1,
 a 10 MHz high-resolution clock), ``NAT_REQUEST_MODELDEF`` → the rigid body and its marker set,
 ``NAT_KEEPALIVE`` → keeps the client. Frames go by unicast to every client that connected (to the
-address it connected from) and, if asked, by multicast to the group on the data port. The take's
+address it connected from) or, if asked, by multicast to the group on the data port. The take's
 clock starts when the first client connects (a virtual convenience: the whole scenario is seen);
 frames then follow the tracker stream in real time (times ``speed``); after the scenario the last
 pose keeps streaming (a tracker does not stop) unless ``once``. Lost frames of the stream are sent
@@ -148,7 +148,7 @@ def serve_natnet(stream, marker_offsets, *, marker_names=(), host: str = "127.0.
                               stamp_data_received=f.stamp_data_received + int(extra * CLOCK_HZ),
                               stamp_transmit=f.stamp_transmit + int(extra * CLOCK_HZ))
                 pkt = encode_frame(f, version)
-                for a in list(clients):
+                for a in [] if multicast else list(clients):  # as Motive: one or the other
                     try:
                         cmd.sendto(pkt, a)
                     except OSError:
