@@ -15,6 +15,7 @@ True
 
 from __future__ import annotations
 
+import collections
 import math
 import time
 from collections.abc import Callable
@@ -184,8 +185,6 @@ class RetareSource(SensorSource):
         self.chain = source.chain
         self._held: list[Measurement] | None = None
         self._error: NewBoardError | None = None
-        import collections
-
         self._events: collections.deque[SourceEvent] = collections.deque()
 
     @property
