@@ -57,6 +57,7 @@ from typing import Any
 import numpy as np
 
 from softphantom.design import geometry as geo
+from softphantom.design.fabrication import MoldParams
 from softphantom.errors import DesignError
 
 Vec3 = tuple[float, float, float]
@@ -394,6 +395,7 @@ class BIPDesign:
     mesh: MeshParams = field(default_factory=MeshParams)
     materials: tuple[MaterialSpec, ...] = field(default_factory=_default_materials)
     region_materials: tuple[tuple[str, str], ...] = field(default_factory=_default_region_materials)
+    molds: MoldParams = field(default_factory=MoldParams)  # how it is cast (design/fabrication.py)
 
     def __post_init__(self) -> None:
         if not isinstance(self.name, str) or not self.name:
@@ -401,7 +403,7 @@ class BIPDesign:
         _set(self, "arms", tuple(self.arms))
         _set(self, "markers", _named_points("markers", self.markers))
         _set(self, "targets", _named_points("targets", self.targets))
-        for sub, cls in (("bulb", BulbParams), ("urethra", UrethraParams), ("interaction", InteractionParams), ("mesh", MeshParams)):
+        for sub, cls in (("bulb", BulbParams), ("urethra", UrethraParams), ("interaction", InteractionParams), ("mesh", MeshParams), ("molds", MoldParams)):
             if not isinstance(getattr(self, sub), cls):
                 raise DesignError(f"{sub}: expected {cls.__name__}, got {type(getattr(self, sub)).__name__}")
         names = tuple(a.name if isinstance(a, ArmParams) else None for a in self.arms)
@@ -609,7 +611,8 @@ def _validate_geometry(d: BIPDesign) -> None:
 
 # --- files ---------------------------------------------------------------------------------
 
-_SUBS = {"bulb": BulbParams, "urethra": UrethraParams, "interaction": InteractionParams, "mesh": MeshParams}
+_SUBS = {"bulb": BulbParams, "urethra": UrethraParams, "interaction": InteractionParams, "mesh": MeshParams,
+         "molds": MoldParams}
 _ARM_KEYS = [f.name for f in dataclasses.fields(ArmParams) if f.name != "name"]
 
 

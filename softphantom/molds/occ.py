@@ -1,0 +1,164 @@
+"""One printable solid from gmsh's OpenCASCADE kernel, as a triangle mesh (mm).
+
+:func:`occ_solid` runs a builder ``build(occ) -> volume tag`` in a fresh gmsh model (booleans,
+transforms), tessellates the one resulting volume's boundary with ``segments`` facets per full
+circle of curvature (``Mesh.MeshSizeFromCurvature``) and returns a :class:`trimesh.Trimesh` with
+outward normals. gmsh is one process-global library: the same lock as the design mesher
+serialises it; deterministic with one thread and a fixed seed.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Callable
+
+import numpy as np
+
+from softphantom.design.mesh import _GMSH_LOCK, _restore_sigpipe
+from softphantom.errors import MeshError
+
+MAX_FACET_MM = 4.0  # flat faces need no fine facets; curved ones follow ``segments``
+MIN_FACET_MM = 0.4  # below a printer's resolution: small radii get fewer facets
+
+
+def affine_12(rotation: np.ndarray, translation) -> list[float]:
+    """The 12 first entries (row major) of the 4×4 affine map x ↦ R·x + t, for occ.affineTransform."""
+    m = np.hstack([np.asarray(rotation, float), np.asarray(translation, float).reshape(3, 1)])
+    return [float(v) for v in m.ravel()]
+
+
+def ellipsoid(occ, semi_axes, transform: list[float] | None = None) -> int:
+    """An ellipsoid at the origin (a dilated unit sphere), optionally mapped by an affine transform."""
+    tag = occ.addSphere(0.0, 0.0, 0.0, 1.0)
+    occ.dilate([(3, tag)], 0.0, 0.0, 0.0, *semi_axes)
+    if transform is not None:
+        occ.affineTransform([(3, tag)], transform)
+    return tag
+
+
+def capsule(occ, a, b, r: float) -> int:
+    """A capsule (cylinder with hemispherical ends) with axis [a, b]."""
+    ax = np.asarray(b, float) - np.asarray(a, float)
+    parts = [(3, occ.addSphere(*a, r)), (3, occ.addSphere(*b, r))]
+    if np.linalg.norm(ax) > 1e-9:
+        parts.append((3, occ.addCylinder(*a, *ax, r)))
+    return one_volume(occ.fuse(parts[:1], parts[1:]), "capsule")
+
+
+def cone_along(occ, p0, p1, r0: float, draft_deg: float, grow: bool = True) -> int:
+    """A truncated cone from ``p0`` (radius ``r0``) to ``p1``, radius changing by the draft angle."""
+    p0 = np.asarray(p0, float)
+    ax = np.asarray(p1, float) - p0
+    dr = float(np.linalg.norm(ax)) * math.tan(math.radians(draft_deg))
+    r1 = r0 + dr if grow else r0 - dr
+    if abs(r1 - r0) < 1e-6:
+        return occ.addCylinder(*p0, *ax, r0)
+    return occ.addCone(*p0, *ax, r0, r1)
+
+
+def one_volume(result, what: str) -> int:
+    """The single volume of an occ boolean's result (MeshError if it split or vanished)."""
+    out = [t for d, t in result[0] if d == 3]
+    if len(out) != 1:
+        raise MeshError(f"{what}: the boolean gave {len(out)} volumes, expected 1 (check the [molds] sizes)")
+    return out[0]
+
+
+def occ_solid(name: str, build: Callable, segments: float) -> "trimesh.Trimesh":  # noqa: F821
+    """Run ``build(occ)`` (returns one volume tag) and tessellate that volume's boundary."""
+    import gmsh
+    import trimesh
+
+    with _GMSH_LOCK:
+        init_here = not gmsh.isInitialized()
+        if init_here:
+            gmsh.initialize(argv=["softphantom"], readConfigFiles=False, interruptible=False)
+            _restore_sigpipe()
+        model_name = f"softphantom_part_{name}"
+        try:
+            gmsh.option.setNumber("General.Terminal", 0)
+            gmsh.option.setNumber("General.Verbosity", 1)
+            gmsh.model.add(model_name)
+            for opt, value in (
+                ("General.NumThreads", 1),
+                ("Geometry.OCCParallel", 0),
+                ("Mesh.RandomSeed", 1),
+                ("Mesh.Algorithm", 6),
+                ("Mesh.MeshSizeFromCurvature", float(segments)),
+                ("Mesh.MeshSizeMin", MIN_FACET_MM),
+                ("Mesh.MeshSizeMax", MAX_FACET_MM),
+                ("Mesh.MeshSizeFromPoints", 0),
+            ):
+                gmsh.option.setNumber(opt, value)
+            occ = gmsh.model.occ
+            vol = build(occ)
+            occ.synchronize()
+            vols = [t for _, t in gmsh.model.getEntities(3)]
+            if vols != [vol]:
+                raise MeshError(f"part {name}: {len(vols)} volumes in the model, expected 1")
+            gmsh.model.mesh.generate(2)
+            tags, coords, _ = gmsh.model.mesh.getNodes()
+            pos = np.full(int(np.max(tags)) + 1, -1, dtype=np.int64)
+            pos[np.asarray(tags, dtype=np.int64)] = np.arange(len(tags))
+            xyz = np.asarray(coords, float).reshape(-1, 3)
+            tris = []
+            for dim, s in gmsh.model.getBoundary([(3, vol)], combined=False, oriented=True):
+                types, _, ntags = gmsh.model.mesh.getElements(2, abs(s))
+                for t, nt in zip(types, ntags):
+                    if t != 2:
+                        raise MeshError(f"part {name}: surface {abs(s)} has non-triangle elements")
+                    tri = pos[np.asarray(nt, dtype=np.int64).reshape(-1, 3)]
+                    tris.append(tri)
+        except MeshError:
+            raise
+        except Exception as exc:  # gmsh raises plain Exception with its last error
+            msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+            raise MeshError(f"gmsh failed on part {name!r}: {msg}") from None
+        finally:
+            try:
+                gmsh.model.setCurrent(model_name)
+                gmsh.model.remove()
+            except Exception:
+                pass
+            if init_here:
+                gmsh.finalize()
+    mesh = trimesh.Trimesh(xyz, consistent_surfaces(tris), process=True)
+    mesh.remove_unreferenced_vertices()
+    if mesh.volume < 0.0:
+        mesh.invert()
+    return mesh
+
+
+def consistent_surfaces(tris: list[np.ndarray]) -> np.ndarray:
+    """Flip whole surfaces so that every shared edge runs opposite ways in its two faces.
+
+    gmsh orients each surface's triangles consistently within the surface but not always with
+    the volume; a walk over the surfaces (a few dozen, not the faces) fixes the relative flips,
+    the sign of the volume the global one (done by the caller).
+    """
+    owners: dict[tuple[int, int], set[int]] = {}
+    for s, t in enumerate(tris):
+        for e0, e1 in ((0, 1), (1, 2), (2, 0)):
+            for i, j in zip(t[:, e0].tolist(), t[:, e1].tolist()):
+                owners.setdefault((i, j), set()).add(s)
+    # differ[s][o]: True if s and o must end with opposite flips
+    differ: dict[int, dict[int, bool]] = {s: {} for s in range(len(tris))}
+    for (i, j), ss in owners.items():
+        for s in ss:
+            for o in ss - {s}:  # the same direction in both: one of them must flip
+                differ[s][o] = True
+            for o in owners.get((j, i), set()) - {s}:
+                differ[s].setdefault(o, False)
+    flip: list[bool | None] = [None] * len(tris)
+    for start in range(len(tris)):
+        if flip[start] is not None:
+            continue
+        flip[start] = False
+        queue = [start]
+        while queue:
+            s = queue.pop()
+            for o, opposite in differ[s].items():
+                if flip[o] is None:
+                    flip[o] = (not flip[s]) if opposite else flip[s]
+                    queue.append(o)
+    return np.vstack([t[:, ::-1] if f else t for t, f in zip(tris, flip)])

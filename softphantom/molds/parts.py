@@ -1,0 +1,390 @@
+"""The printable parts of a design (paper Fig. 5), built with gmsh's OpenCASCADE kernel, in mm.
+
+Every part is one closed solid in the model frame (where it sits when assembled), with the
+direction that goes down on the build plate (``down``):
+
+- ``bulb_mold_lower`` / ``bulb_mold_upper``: a block around the bulb split at the plane
+  z = urethra centre (the plane of the urethra core's rod), conical registration pins on the
+  lower half and matching sockets (``clearance_mm`` bigger) in the upper one, a conical pour spout
+  at the bulb's top and two vents, a hole for the core rod and one for each marker socket;
+- ``urethra_core``: the urethra cavity (capsule) and its holder rod, which runs out through the
+  inlet and the mold wall (print it soluble, or cast it in wax: it is dissolved out);
+- ``marker_socket_<m>``: a post cast into the bulb at each marker point along the surface
+  normal, ``depth`` below and ``height`` above the surface, with a blind hole for the marker pin;
+- ``arm_mold_<arm>_a`` / ``_b``: a block around the part of the arm outside the bulb (its floor is
+  the bulb's surface patch, so the arm fits the bulb it is glued to), split along the arm axis,
+  with pins, spout and vent on the fixed end face and a hole for the core's stem;
+- ``arm_core_<arm>`` (cast in silicone, paper §III-C) and its ``core_mold_<arm>_a`` / ``_b``:
+  the cavity capsule and a stem that leaves the tube channel to the fixed end face;
+- ``frame``: the four sockets the arms' fixed ends are glued into, on posts to a base plate.
+
+The cast silicone pieces (``cast_bulb``, ``cast_arm_<arm>``) are built the same way: the bill of
+materials and the assembly drawing use them.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from softphantom.design import geometry as geo
+from softphantom.design.params import BIPDesign
+from softphantom.errors import DesignError
+from softphantom.molds.occ import affine_12, capsule, cone_along, ellipsoid, occ_solid, one_volume
+
+OVERHANG_MM = 8.0  # how far rods and stems stick out of a mold, to hold them
+
+
+@dataclass(frozen=True)
+class Part:
+    """One solid: ``mesh`` (trimesh, mm, model frame), what it is and how it is made."""
+
+    name: str
+    kind: str  # "mold" | "core" | "insert" | "frame" | "cast"
+    group: str  # the assembly it belongs to: "bulb", "arm_<arm>", "core_<arm>", "phantom"
+    material: str
+    mesh: object
+    down: tuple[float, float, float]  # model-frame direction that faces the build plate
+
+    @property
+    def volume_mm3(self) -> float:
+        return float(self.mesh.volume)
+
+    def print_transform(self) -> np.ndarray:
+        """4×4 map from the model frame to the print pose (``down`` → −z, bounding box at 0)."""
+        import trimesh
+
+        rot = trimesh.geometry.align_vectors(np.asarray(self.down, float), [0.0, 0.0, -1.0])
+        pts = trimesh.transform_points(self.mesh.vertices, rot)
+        rot[:3, 3] -= pts.min(axis=0)
+        return rot
+
+    def print_extents_mm(self) -> np.ndarray:
+        import trimesh
+
+        pts = trimesh.transform_points(self.mesh.vertices, self.print_transform())
+        return np.ptp(pts, axis=0)
+
+
+# materials (names used in the bill of materials)
+PRINT_MATERIAL = "PLA or PETG (printed)"
+SOLUBLE_MATERIAL = "PVA or BVOH (printed, water-soluble) or wax"
+BULB_SILICONE = "Ecoflex 00-50"
+ARM_SILICONE = "Ecoflex 00-50"
+CORE_SILICONE = "Dragon Skin 30"
+
+
+def _frame_of(direction) -> np.ndarray:
+    """Columns (u, v, w): w along ``direction``; local coordinates are Rᵀ·(x − origin)."""
+    u, v, w = geo.orthonormal_frame(direction)
+    return np.column_stack([u, v, w])
+
+
+def _ellipsoid_normal(p, axes) -> np.ndarray:
+    return geo.unit(np.asarray(p, float) / np.asarray(axes, float) ** 2)
+
+
+class _Builder:
+    def __init__(self, design: BIPDesign):
+        self.d = design
+        self.m = design.molds
+        self.axes = design.bulb.semi_axes_mm
+        self.seg = self.m.segments
+        self.cl = self.m.clearance_mm
+        self.draft = self.m.draft_deg
+        u = design.urethra
+        self.zp = float(u.center_mm[2])
+        ua, ub = (np.asarray(p, float) for p in u.segment_mm)
+        inlet = np.asarray(u.inlet_mm, float)
+        # the rod starts at the capsule end nearest the inlet and leaves through it
+        self.rod_start = ua if np.linalg.norm(inlet - ua) < np.linalg.norm(inlet - ub) else ub
+        self.rod_dir = geo.unit(inlet - self.rod_start)
+        a, b, c = self.axes
+        w = self.m.wall_mm
+        self.box_lo = np.array([-a - w, -b - w, -c - w])
+        self.box_hi = np.array([a + w, b + w, c + w])
+        self.rod_len = self._exit_length(self.rod_start, self.rod_dir) + OVERHANG_MM
+        self.arms = design.arm_geometry()
+
+    # --- helpers --------------------------------------------------------------------------
+    def _exit_length(self, p, d) -> float:
+        """Distance from ``p`` along unit ``d`` to beyond the bulb mold's block."""
+        t = []
+        for i in range(3):
+            if abs(d[i]) > 1e-12:
+                t.extend([(self.box_lo[i] - p[i]) / d[i], (self.box_hi[i] - p[i]) / d[i]])
+        return max(t) + 1.0
+
+    def _bulb(self, occ) -> int:
+        return ellipsoid(occ, self.axes)
+
+    def _rod(self, occ, extra: float) -> int:
+        return occ.addCylinder(*self.rod_start, *(self.rod_dir * self.rod_len), self.m.core_rod_radius_mm + extra)
+
+    def _marker_normals(self) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        return {k: (np.asarray(p, float), _ellipsoid_normal(p, self.axes)) for k, p in self.d.markers}
+
+    def _socket_hole(self, occ, p, n) -> int:
+        r = self.m.marker_socket_radius_mm + self.cl
+        start = p - 0.5 * n
+        return occ.addCylinder(*start, *(n * self._exit_length(start, n)), r)
+
+    def _keys(self, occ, positions, axis, grow_by: float) -> list[tuple[int, int]]:
+        """Conical pins (grow_by = 0) or their sockets (grow_by = clearance) along ``axis``."""
+        out = []
+        h = self.m.key_height_mm + grow_by
+        for p in positions:
+            p = np.asarray(p, float)
+            out.append((3, cone_along(occ, p, p + h * np.asarray(axis, float), self.m.key_radius_mm + grow_by,
+                                      self.draft, grow=False)))
+        return out
+
+    def _vent_points(self) -> list[np.ndarray]:
+        a, b, c = self.axes
+        out = []
+        for y in (-0.5 * b, 0.5 * b):
+            z = c * math.sqrt(max(0.0, 1.0 - (y / b) ** 2))
+            out.append(np.array([0.0, y, z]))
+        return out
+
+    # --- the bulb mold --------------------------------------------------------------------
+    def _bulb_key_points(self) -> list[np.ndarray]:
+        inset = self.m.key_radius_mm + self.cl + 1.5
+        pts = []
+        for sx in (-1, 1):
+            for sy in (-1, 1):
+                x = self.box_hi[0] - inset if sx > 0 else self.box_lo[0] + inset
+                y = self.box_hi[1] - inset if sy > 0 else self.box_lo[1] + inset
+                pts.append(np.array([x, y, self.zp]))
+        for p in pts:
+            if geo.ellipsoid_signed_distance([p], self.axes)[0] < self.m.key_radius_mm + self.cl + 1.0:
+                raise DesignError(f"molds.wall_mm = {self.m.wall_mm:.4g}: no room for the registration keys "
+                                  "beside the bulb (raise wall_mm)")
+        return pts
+
+    def bulb_half(self, upper: bool):
+        lo, hi, zp = self.box_lo, self.box_hi, self.zp
+        markers = self._marker_normals()
+
+        def build(occ):
+            z0, z1 = (zp, hi[2]) if upper else (lo[2], zp)
+            block = occ.addBox(lo[0], lo[1], z0, hi[0] - lo[0], hi[1] - lo[1], z1 - z0)
+            tools = [(3, self._bulb(occ)), (3, self._rod(occ, self.cl))]
+            tools += [(3, self._socket_hole(occ, p, n)) for p, n in markers.values()]
+            keys = self._bulb_key_points()
+            if upper:
+                top = np.array([0.0, 0.0, self.axes[2]])
+                tools.append((3, cone_along(occ, top - [0, 0, 1.0], [0.0, 0.0, hi[2] + 1.0],
+                                            self.m.spout_radius_mm, self.draft)))
+                for p in self._vent_points():
+                    tools.append((3, cone_along(occ, p - [0, 0, 0.5], [p[0], p[1], hi[2] + 1.0],
+                                                self.m.vent_radius_mm, self.draft)))
+                tools += self._keys(occ, keys, (0, 0, 1), self.cl)
+            vol = one_volume(occ.cut([(3, block)], tools), "bulb mold half")
+            if not upper:
+                vol = one_volume(occ.fuse([(3, vol)], self._keys(occ, keys, (0, 0, 1), 0.0)), "bulb mold pins")
+            return vol
+
+        name = "bulb_mold_upper" if upper else "bulb_mold_lower"
+        return Part(name, "mold", "bulb", PRINT_MATERIAL, occ_solid(name, build, self.seg),
+                    (0.0, 0.0, -1.0))
+
+    def urethra_core(self) -> Part:
+        u = self.d.urethra
+
+        def build(occ):
+            cap = capsule(occ, *u.segment_mm, u.radius_mm)
+            return one_volume(occ.fuse([(3, cap)], [(3, self._rod(occ, 0.0))]), "urethra core")
+
+        return Part("urethra_core", "core", "bulb", SOLUBLE_MATERIAL, occ_solid("urethra_core", build, self.seg),
+                    tuple(-geo.orthonormal_frame(self.rod_dir)[0]))
+
+    def marker_socket(self, name: str) -> Part:
+        p, n = self._marker_normals()[name]
+        ms = self.m
+        r_pin = 0.5 * ms.marker_socket_radius_mm
+
+        def build(occ):
+            post = occ.addCylinder(*(p - ms.marker_socket_depth_mm * n),
+                                   *(n * (ms.marker_socket_depth_mm + ms.marker_socket_height_mm)),
+                                   ms.marker_socket_radius_mm)
+            hole = occ.addCylinder(*(p + 0.5 * n), *(n * (ms.marker_socket_height_mm + 1.0)), r_pin)
+            return one_volume(occ.cut([(3, post)], [(3, hole)]), f"marker socket {name}")
+
+        return Part(f"marker_socket_{name}", "insert", "bulb", PRINT_MATERIAL,
+                    occ_solid(f"marker_socket_{name}", build, self.seg), tuple(-n))
+
+    def cast_bulb(self) -> Part:
+        u = self.d.urethra
+        markers = self._marker_normals()
+        ms = self.m
+
+        def build(occ):
+            tools = [(3, capsule(occ, *u.segment_mm, u.radius_mm)), (3, self._rod(occ, 0.0))]
+            for p, n in markers.values():
+                tools.append((3, occ.addCylinder(*(p - ms.marker_socket_depth_mm * n),
+                                                 *(n * (ms.marker_socket_depth_mm + 1.0)), ms.marker_socket_radius_mm)))
+            return one_volume(occ.cut([(3, self._bulb(occ))], tools), "cast bulb")
+
+        return Part("cast_bulb", "cast", "phantom", BULB_SILICONE, occ_solid("cast_bulb", build, self.seg),
+                    (0.0, 0.0, -1.0))
+
+    # --- arms -----------------------------------------------------------------------------
+    def _arm_local(self, g):
+        """(R, origin, to_local 12-affine, floor z, cavity z range) of one arm in its frame."""
+        R = _frame_of(g.direction)
+        origin = np.asarray(g.root_mm, float)
+        to_local = affine_12(R.T, -R.T @ origin)
+        rim = geo.disk_rim_points(g.start_mm, g.direction, g.radius_mm, n=128)
+        s = [geo.ray_exit(p, g.direction, self.axes) for p in rim]
+        arm = next(a for a in self.d.arms if a.name == g.name)
+        z_floor = min(s) - arm.embed_mm
+        c0, c1 = ((np.asarray(q, float) - origin) @ R[:, 2] for q in g.cavity_segment_mm)
+        return R, origin, to_local, z_floor, (min(c0, c1), max(c0, c1)), arm
+
+    def _to_model(self, mesh, R, origin):
+        T = np.eye(4)
+        T[:3, :3] = R
+        T[:3, 3] = origin
+        return mesh.apply_transform(T)
+
+    def _half_width(self, r: float) -> float:
+        return max(r + self.m.wall_mm, r + 2.0 * (self.m.key_radius_mm + self.cl) + 2.0)
+
+    def _split_keys(self, r: float, z_lo: float, z_hi: float) -> list[np.ndarray]:
+        y = r + 1.0 + self.m.key_radius_mm + self.cl
+        inset = self.m.key_radius_mm + self.cl + 1.5
+        return [np.array([0.0, sy * y, z]) for sy in (-1, 1) for z in (z_lo + inset, z_hi - inset)]
+
+    def _split_halves(self, name, group, hw, z_lo, z_hi, r_key, cut_tools, R, origin) -> list[Part]:
+        """Two halves x < 0 (with pins along +x) and x > 0 (sockets) of a local block."""
+        keys = self._split_keys(r_key, z_lo, z_hi)
+        out = []
+        for side in ("a", "b"):
+            def build(occ, side=side):
+                x0 = -hw if side == "a" else 0.0
+                block = occ.addBox(x0, -hw, z_lo, hw, 2 * hw, z_hi - z_lo)
+                tools = cut_tools(occ)
+                if side == "b":
+                    tools += self._keys(occ, keys, (1, 0, 0), self.cl)
+                vol = one_volume(occ.cut([(3, block)], tools), f"{name} half")
+                if side == "a":
+                    vol = one_volume(occ.fuse([(3, vol)], self._keys(occ, keys, (1, 0, 0), 0.0)), f"{name} pins")
+                return vol
+
+            mesh = self._to_model(occ_solid(f"{name}_{side}", build, self.seg), R, origin)
+            down = R[:, 0] if side == "a" else -R[:, 0]  # the parting face on the plate
+            out.append(Part(f"{name}_{side}", "mold", group, PRINT_MATERIAL, mesh, tuple(down)))
+        return out
+
+    def arm_parts(self, g) -> list[Part]:
+        R, origin, to_local, z_floor, (c0, c1), arm = self._arm_local(g)
+        ms, cl = self.m, self.cl
+        r, rc, L = g.radius_mm, g.cavity_radius_mm, arm.length_mm
+        hw = self._half_width(r)
+        z_lo, z_hi = z_floor - ms.wall_mm, L + ms.wall_mm
+        stem_end = z_hi + OVERHANG_MM
+
+        def arm_out(occ):
+            cyl = occ.addCylinder(0.0, 0.0, -arm.embed_mm, 0.0, 0.0, L + arm.embed_mm, r)
+            return one_volume(occ.cut([(3, cyl)], [(3, ellipsoid(occ, self.axes, to_local))]), f"arm {g.name}")
+
+        def core(occ, grow: float):
+            cap = capsule(occ, (0.0, 0.0, c0), (0.0, 0.0, c1), rc + grow)
+            stem = occ.addCylinder(0.0, 0.0, c1, 0.0, 0.0, stem_end - c1, ms.stem_radius_mm + grow)
+            return one_volume(occ.fuse([(3, cap)], [(3, stem)]), f"core {g.name}")
+
+        def arm_tools(occ):
+            spout_r = min(ms.spout_radius_mm, 0.35 * r)
+            vent_r = min(ms.vent_radius_mm, 0.2 * r)
+            return [
+                (3, arm_out(occ)),
+                (3, occ.addCylinder(0.0, 0.0, c1, 0.0, 0.0, stem_end + 1.0 - c1, ms.stem_radius_mm + cl)),
+                (3, cone_along(occ, (0.0, 0.55 * r, L - 1.0), (0.0, 0.55 * r, z_hi + 1.0), spout_r, self.draft)),
+                (3, cone_along(occ, (0.0, -0.7 * r, L - 1.0), (0.0, -0.7 * r, z_hi + 1.0), vent_r, self.draft)),
+            ]
+
+        parts = self._split_halves(f"arm_mold_{g.name}", f"arm_{g.name}", hw, z_lo, z_hi, r, arm_tools, R, origin)
+        core_mesh = self._to_model(occ_solid(f"arm_core_{g.name}", lambda occ: core(occ, 0.0), self.seg), R, origin)
+        parts.append(Part(f"arm_core_{g.name}", "core", f"arm_{g.name}", CORE_SILICONE, core_mesh, tuple(R[:, 0])))
+
+        # the core's own mold: around capsule and stem, a spout at the capsule's tip
+        hw_c = self._half_width(rc)
+        zc_lo, zc_hi = c0 - rc - ms.wall_mm, stem_end + ms.wall_mm
+
+        def core_tools(occ):
+            tip = c0 - rc
+            return [(3, core(occ, 0.0)),
+                    (3, cone_along(occ, (0.0, 0.0, tip + 1.0), (0.0, 0.0, zc_lo - 1.0),
+                                   min(ms.spout_radius_mm, 0.6 * rc), self.draft))]
+
+        parts += self._split_halves(f"core_mold_{g.name}", f"core_{g.name}", hw_c, zc_lo, zc_hi, rc, core_tools,
+                                    R, origin)
+
+        def cast(occ):
+            return one_volume(occ.cut([(3, arm_out(occ))], [(3, core(occ, 0.0))]), f"cast arm {g.name}")
+
+        cast_mesh = self._to_model(occ_solid(f"cast_arm_{g.name}", cast, self.seg), R, origin)
+        parts.append(Part(f"cast_arm_{g.name}", "cast", "phantom", ARM_SILICONE, cast_mesh, tuple(-R[:, 2])))
+        return parts
+
+    # --- the frame ------------------------------------------------------------------------
+    def frame(self) -> Part:
+        ms, cl = self.m, self.cl
+        fw = ms.frame_wall_mm
+        post_r = fw + 1.0
+        a = self.axes[0]
+        socket_r = max(g.radius_mm for g in self.arms) + cl + fw
+        side_x = a + socket_r + post_r + 6.0
+        lows = []
+        for g in self.arms:
+            rim = geo.disk_rim_points(g.end_mm, g.direction, socket_r, n=64)
+            lows.append(float(rim[:, 2].min()))
+        z_top = min(min(lows), -self.axes[2]) - 4.0
+
+        def build(occ):
+            pieces, bores, feet = [], [], []
+            for g in self.arms:
+                d, end = g.direction, np.asarray(g.end_mm, float)
+                r_out = g.radius_mm + cl + fw
+                base = end - ms.frame_socket_depth_mm * d
+                pieces.append((3, occ.addCylinder(*base, *(d * (ms.frame_socket_depth_mm + fw)), r_out)))
+                bores.append((3, occ.addCylinder(*(base - d), *(d * (ms.frame_socket_depth_mm + 1.0)),
+                                                 g.radius_mm + cl)))
+                bores.append((3, occ.addCylinder(*(end - d), *(d * (fw + 2.0)), ms.stem_radius_mm + cl)))
+                back = end + (fw + post_r) * d
+                pieces.append((3, occ.addCylinder(*(end + 0.5 * fw * d), *(back - end - 0.5 * fw * d), post_r)))
+                if back[2] < 0.0 or abs(back[0]) > a + post_r + 2.0:
+                    foot = back
+                else:  # above the bulb: a beam out to the side first, clear of bulb and needle
+                    foot = np.array([side_x if back[0] >= 0.0 else -side_x, back[1], back[2]])
+                    beam = geo.unit(foot - back)
+                    pieces.append((3, occ.addCylinder(*(back - post_r * beam), *(foot - back + 2 * post_r * beam),
+                                                      0.85 * post_r)))
+                # crossing cylinders of equal radii touch at singular points (a non-manifold
+                # edge in the mesh): the beam is thinner and the column thicker than the post
+                top = foot + np.array([0.0, 0.0, post_r])
+                pieces.append((3, occ.addCylinder(*top, 0.0, 0.0, z_top - 1.0 - top[2], 1.15 * post_r)))
+                feet.append(foot)
+            f = np.array(feet)
+            lo, hi = f.min(axis=0) - post_r - 6.0, f.max(axis=0) + post_r + 6.0
+            pieces.append((3, occ.addBox(lo[0], lo[1], z_top - 2 * fw, hi[0] - lo[0], hi[1] - lo[1], 2 * fw)))
+            body = one_volume(occ.fuse(pieces[:1], pieces[1:]), "frame")
+            return one_volume(occ.cut([(3, body)], bores), "frame sockets")
+
+        return Part("frame", "frame", "phantom", PRINT_MATERIAL, occ_solid("frame", build, self.seg),
+                    (0.0, 0.0, -1.0))
+
+
+def build_parts(design: BIPDesign) -> tuple[Part, ...]:
+    """Every part of ``design`` (molds, cores, inserts, frame, and the cast pieces), in a fixed order."""
+    b = _Builder(design)
+    parts = [b.bulb_half(upper=False), b.bulb_half(upper=True), b.urethra_core()]
+    parts += [b.marker_socket(name) for name, _ in design.markers]
+    parts.append(b.cast_bulb())
+    for g in b.arms:
+        parts += b.arm_parts(g)
+    parts.append(b.frame())
+    return tuple(parts)

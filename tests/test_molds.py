@@ -1,0 +1,187 @@
+"""softphantom molds: printable parts of the default design, checked against independent solids.
+
+The parts come from gmsh's OpenCASCADE kernel; the references here are built independently with
+trimesh primitives and compared by manifold3d booleans (volumes in mm³).
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+trimesh = pytest.importorskip("trimesh")
+m3 = pytest.importorskip("manifold3d")
+
+from softphantom.cli import main  # noqa: E402
+from softphantom.design import BIPDesign, design_from_dict, design_to_dict, save_design  # noqa: E402
+from softphantom.design import geometry as geo  # noqa: E402
+from softphantom.design.fabrication import BUILD_VOLUME_MM, MoldParams  # noqa: E402
+from softphantom.errors import DesignError  # noqa: E402
+from softphantom.molds import build_parts, interference, write_molds  # noqa: E402
+from softphantom.molds.check import report_mesh, to_manifold  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def built(tmp_path_factory):
+    design = BIPDesign()
+    parts = build_parts(design)
+    out = tmp_path_factory.mktemp("molds")
+    result = write_molds(parts, out)
+    from softphantom.viz.molds_view import render_assembly_png
+
+    render_assembly_png(parts, out / "assembly.png")
+    return design, {p.name: p for p in parts}, result, out
+
+
+def _ellipsoid(axes, grow=0.0):
+    e = trimesh.creation.icosphere(subdivisions=6)
+    e.apply_scale(np.asarray(axes) + grow)
+    return e
+
+
+def _capsule_between(a, b, r):
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    cap = trimesh.creation.capsule(height=float(np.linalg.norm(b - a)), radius=r, count=[96, 96])
+    T = trimesh.geometry.align_vectors([0, 0, 1], b - a)
+    T[:3, 3] = 0.5 * (a + b)
+    return cap.apply_transform(T)
+
+
+def _cylinder_between(a, b, r):
+    return trimesh.creation.cylinder(radius=r, segment=[a, b], sections=256)
+
+
+def _vol(solid) -> float:
+    return float(solid.volume())
+
+
+def _mold_cavity(halves, envelope):
+    """The space the closed mold leaves inside its outer hull, clipped to ``envelope``."""
+    hull = to_manifold(trimesh.util.concatenate([h.mesh for h in halves]).convex_hull)
+    cavity = hull
+    for h in halves:
+        cavity = cavity - to_manifold(h.mesh)
+    return cavity ^ to_manifold(envelope)
+
+
+def test_every_part_is_a_closed_manifold_solid_without_self_intersection(built):
+    _, parts, result, _ = built
+    assert len(parts) == 34  # 2 halves, core, 5 sockets, cast bulb, 4 × (2 + core + 2 + cast arm), frame
+    for name, p in parts.items():
+        r = result.reports[name]
+        assert r.watertight and r.winding_consistent and r.manifold, name
+        assert r.self_intersections == 0 and r.components == 1 and r.volume > 0, name
+        assert report_mesh(p.mesh).ok
+
+
+def test_bulb_mold_cavity_equals_the_design_bulb_within_1_percent(built):
+    design, parts, _, _ = built
+    axes = design.bulb.semi_axes_mm
+    halves = [parts["bulb_mold_lower"], parts["bulb_mold_upper"]]
+    # clip 1 mm outside the bulb: spout, vents and holes leave only short stubs
+    cavity = _mold_cavity(halves, _ellipsoid(axes, grow=1.0))
+    v_design = geo.ellipsoid_volume(axes)
+    assert v_design == pytest.approx(100_410.0)
+    assert abs(_vol(cavity) - v_design) / v_design < 0.01
+    # and no mold material inside the bulb
+    intruding = to_manifold(_ellipsoid(axes)) - cavity
+    assert _vol(intruding) / v_design < 0.01
+
+
+@pytest.mark.parametrize("arm", ["front_zpos", "back_xneg"])
+def test_arm_mold_cavity_equals_the_design_arm_within_1_percent(built, arm):
+    design, parts, _, _ = built
+    g = next(x for x in design.arm_geometry() if x.name == arm)
+    solid = to_manifold(_cylinder_between(g.start_mm, g.end_mm, g.radius_mm)) - to_manifold(
+        _ellipsoid(design.bulb.semi_axes_mm))
+    envelope = _cylinder_between(g.start_mm, g.end_mm, g.radius_mm + 0.5)
+    cavity = _mold_cavity([parts[f"arm_mold_{arm}_a"], parts[f"arm_mold_{arm}_b"]], envelope)
+    assert abs(_vol(cavity) - _vol(solid)) / _vol(solid) < 0.01
+    assert _vol(solid - cavity) / _vol(solid) < 0.01
+
+
+def test_each_core_fills_its_design_cavity_within_2_percent(built):
+    design, parts, _, _ = built
+    u = design.urethra
+    cases = [("urethra_core", _capsule_between(*u.segment_mm, u.radius_mm), u.volume_mm3)]
+    for g in design.arm_geometry():
+        cases.append((f"arm_core_{g.name}", _capsule_between(*g.cavity_segment_mm, g.cavity_radius_mm),
+                      g.cavity_volume_mm3))
+    for name, cap, v_design in cases:
+        assert cap.volume == pytest.approx(v_design, rel=2e-3)  # the reference itself
+        core, ref = to_manifold(parts[name].mesh), to_manifold(cap)
+        inside = _vol(core ^ ref)
+        assert abs(inside - v_design) / v_design < 0.02, name
+        assert _vol(ref - core) / v_design < 0.02, name  # the core leaves no part of the cavity unfilled
+
+
+def test_assembled_parts_do_not_interfere(built):
+    _, parts, _, _ = built
+    pairs = interference(list(parts.values()))
+    assert len(pairs) > 40
+    for a, b, v in pairs:
+        pa, pb = parts[a], parts[b]
+        if "cast" in (pa.kind, pb.kind) or {pa.kind, pb.kind} == {"mold", "core"} and pa.group.startswith("core_"):
+            # surfaces in contact by design (a cast piece in its mold, a core in its mold, the
+            # arms on the bulb): only the facets' sagitta overlaps
+            assert v <= 1e-3 * min(pa.volume_mm3, pb.volume_mm3), (a, b, v)
+        else:  # printed parts with a clearance between them
+            assert v < 0.05, (a, b, v)
+
+
+def test_parts_fit_the_build_volume_and_files_read_back(built):
+    _, parts, result, out = built
+    assert result.printed and all(r["fits_build_volume"] for r in result.printed)
+    assert BUILD_VOLUME_MM == (220.0, 220.0, 250.0)
+    for row in result.printed:
+        stl = trimesh.load(out / "parts" / f"{row['part']}.stl")
+        assert stl.is_watertight
+        assert stl.volume == pytest.approx(parts[row["part"]].volume_mm3, rel=1e-4)
+        assert np.all(stl.bounds[0] > -1e-6)  # print pose: on the plate, at the origin
+        assert (out / "parts" / f"{row['part']}.3mf").stat().st_size > 0
+    assert (out / "assembly.png").stat().st_size > 20_000
+    assert len(list((out / "cast").glob("*.stl"))) == 5
+
+
+def test_bom_volumes_and_masses(built):
+    design, parts, result, out = built
+    rows = {r["part"]: r for r in csv.DictReader((out / "bom.csv").open())}
+    assert set(rows) == {"cast_bulb", *(f"cast_arm_{a}" for a in ("front_zpos", "front_zneg", "back_xpos",
+                                                                 "back_xneg")),
+                         *(f"arm_core_{a}" for a in ("front_zpos", "front_zneg", "back_xpos", "back_xneg"))}
+    # the cast bulb: the ellipsoid less the urethra, the rod channel in the bulb and the socket posts
+    u, ms = design.urethra, design.molds
+    rod_in = np.linalg.norm(np.asarray(u.inlet_mm) - u.segment_mm[1]) - math.sqrt(u.radius_mm**2 - ms.core_rod_radius_mm**2)
+    expect = (geo.ellipsoid_volume(design.bulb.semi_axes_mm) - u.volume_mm3 - math.pi * ms.core_rod_radius_mm**2 * rod_in
+              - len(design.markers) * math.pi * ms.marker_socket_radius_mm**2 * ms.marker_socket_depth_mm)
+    assert float(rows["cast_bulb"]["volume_mL"]) * 1000 == pytest.approx(expect, rel=5e-3)
+    assert float(rows["cast_bulb"]["mass_g"]) == pytest.approx(float(rows["cast_bulb"]["volume_mL"]) * 1.07, rel=1e-3)
+    assert rows["arm_core_front_zpos"]["material"] == "Dragon Skin 30"
+    md = (out / "bom.md").read_text()
+    assert "Ecoflex 00-50" in md and "| frame |" in md
+
+
+def test_molds_table_is_validated_and_round_trips():
+    d = dataclasses.replace(BIPDesign(), molds=MoldParams(wall_mm=8.0, clearance_mm=0.2))
+    assert design_from_dict(design_to_dict(d)) == d
+    with pytest.raises(DesignError, match=r"molds.draft_deg = 20 must be in \[0, 10\] deg"):
+        design_from_dict({"molds": {"draft_deg": 20}})
+    with pytest.raises(DesignError, match="molds.wall_mm = 3 is too thin for keys"):
+        design_from_dict({"molds": {"wall_mm": 3.0}})
+    with pytest.raises(DesignError, match="molds: unknown key 'wal_mm'"):
+        design_from_dict({"molds": {"wal_mm": 3.0}})
+
+
+def test_cli_molds_bad_input_is_one_line_exit_2(tmp_path, capsys):
+    assert main(["molds", "--model", str(tmp_path / "none"), "--out", str(tmp_path / "o")]) == 2
+    assert "design.toml: no such file" in capsys.readouterr().err
+    save_design(BIPDesign(), tmp_path / "design.toml")
+    text = (tmp_path / "design.toml").read_text().replace("clearance_mm = 0.3", "clearance_mm = -1.0")
+    (tmp_path / "design.toml").write_text(text)
+    assert main(["molds", "--model", str(tmp_path), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert "molds.clearance_mm = -1 must be in [0, 2] mm" in err and "Traceback" not in err
