@@ -138,10 +138,12 @@ def write_report(rows: Sequence[dict], path: Path, title: str, note: str = "") -
         parts.append("<h2>Invalid or failed variants</h2>")
         parts.append(_table(bad, ["variant", *params, "status", "error"]))
     body = "\n".join(parts)
-    path.write_text(f"<!doctype html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title>"
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(f"<!doctype html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title>"
                     "<style>body{font-family:sans-serif;max-width:1100px;margin:auto}"
                     "table{border-collapse:collapse;font-size:12px}td,th{border:1px solid #ccc;padding:2px 6px}"
                     f"</style></head><body>{body}</body></html>\n", encoding="utf-8")
+    tmp.replace(path)  # a report is whole or absent
     return path
 
 

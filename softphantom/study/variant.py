@@ -18,7 +18,8 @@ What each figure is (docs/sweep.md has the derivations):
   from the linearization at the probe load (extrapolated, ``range_extrapolated``). Capped at
   ``max_force_N``. ``range_min_N`` is the smallest over the directions.
 * ``mesh_*``: node and tet counts, smallest dihedral angle, worst cavity volume error (%),
-  ``silicone_mL`` the meshed silicone volume; ``mesh_s``, ``solve_s``, ``total_s`` wall time.
+  ``silicone_mL`` the meshed silicone volume; ``mesh_s``, ``solve_s``, ``total_s`` wall time,
+  ``cpu_s`` the worker process's CPU time (what it costs on a quiet core).
 """
 
 from __future__ import annotations
@@ -39,14 +40,18 @@ from softphantom.study.config import DIRECTIONS, Variant
 ARMS = ("front_zpos", "front_zneg", "back_xpos", "back_xneg")
 POSE = ("x_mm", "y_mm", "z_mm", "yaw_deg", "pitch_deg", "roll_deg")
 #: Columns that measure cost, not the design: left out when two runs are compared.
-TIMING_COLUMNS = ("mesh_s", "solve_s", "total_s", "host")
+TIMING_COLUMNS = ("mesh_s", "solve_s", "total_s", "cpu_s", "host")
 
 
 def _material(extra: dict):
+    """The silicone from ``material.E_kPa``/``material.nu`` (Ecoflex 00-50 for what is not
+    given); None when neither is swept, so the FEM takes the model's own material."""
     from dataclasses import replace
 
     from softphantom.fem import ECOFLEX_00_50
 
+    if extra.get("material.E_kPa") is None and extra.get("material.nu") is None:
+        return None
     m = ECOFLEX_00_50
     if extra.get("material.E_kPa") is not None:
         m = replace(m, E_Pa=float(extra["material.E_kPa"]) * 1e3)
@@ -122,7 +127,7 @@ def evaluate_variant(variant: Variant) -> dict[str, Any]:
     A design that cannot be built, meshed or solved gives ``status`` ``"invalid"`` or
     ``"failed"`` with its one-line ``error``; anything else propagates (the caller records it).
     """
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     row: dict[str, Any] = {"variant": variant.index, "key": variant.key, "status": "ok", "error": "",
                            "host": f"{socket.gethostname()}:{os.getpid()}"}
     row.update({f"p.{k}": v for k, v in variant.params.items()})
@@ -134,6 +139,7 @@ def evaluate_variant(variant: Variant) -> dict[str, Any]:
         row["status"] = "invalid" if isinstance(exc, UserError) else "failed"
         row["error"] = f"{type(exc).__name__}: {exc}".splitlines()[0]
     row["total_s"] = time.perf_counter() - t0
+    row["cpu_s"] = time.process_time() - c0  # this process's CPU: the cost on a quiet core
     return row
 
 
