@@ -17,12 +17,13 @@ def _cfg(params, **sweep):
 def test_paths_reach_vectors_wildcards_and_extras():
     cfg = _cfg({}, method="grid")
     v = cfg.resolve(0, {"arms.*.radius_mm": 6.5, "arms.back_xneg.direction[1]": 0.4,
-                        "urethra.center_mm[2]": 3.5, "sensing.tube_length_m": 3.0, "material.E_kPa": 120.0})
+                        "urethra.center_mm[2]": 3.5, "sensing.tube_length_m": 3.0, "materials.*.E_kPa": 120.0})
     d = design_from_dict(v.design)
     assert [a.radius_mm for a in d.arms] == [6.5] * 4
     assert d.arms[3].direction == (-1.0, 0.4, 0.0)
     assert d.urethra.center_mm == (0.0, 0.0, 3.5)
-    assert v.extra["sensing.tube_length_m"] == 3.0 and v.extra["material.E_kPa"] == 120.0
+    assert v.extra["sensing.tube_length_m"] == 3.0
+    assert [m.values for m in d.materials] == [(("E_kPa", 120.0), ("nu", 0.45), ("density_kg_m3", 1070.0))]
     assert cfg.base["arms"]["front_zpos"]["radius_mm"] == 6.0  # the base is not modified
 
 

@@ -3,12 +3,12 @@
 A parameter is a dotted path:
 
 * into the design file (:func:`~softphantom.design.design_to_dict`): ``bulb.semi_axes_mm[2]``,
-  ``arms.front_zpos.direction[1]``, ``arms.*.radius_mm`` (``*``: all four arms get the value),
-  ``urethra.radius_mm``, ``mesh.size_mm``; ``arms.<arm>.cavity_length_mm`` sets the cavity's
-  cylinder length (its volume follows from the capsule, radius ``radius_mm − wall_mm``);
+  ``arms.front_zpos.direction[1]``, ``arms.*.radius_mm`` (``*``: every entry of that table gets
+  the value), ``urethra.radius_mm``, ``mesh.size_mm``, the silicone ``materials.*.E_kPa``,
+  ``materials.ecoflex_00_50.law``, ``region_materials.bulb``; ``arms.<arm>.cavity_length_mm`` sets
+  the cavity's cylinder length (its volume follows from the capsule, radius ``radius_mm − wall_mm``);
 * ``mesh_size_mm``: the bulb element size, arm and cavity sizes scaled with it (as ``--mesh-size-mm``);
-* ``sensing.tube_length_m``, ``sensing.tube_id_mm``, ``sensing.osr``: the pneumatic line of every arm;
-* ``material.E_kPa``, ``material.nu``: the silicone (one Hooke material for every region).
+* ``sensing.tube_length_m``, ``sensing.tube_id_mm``, ``sensing.osr``: the pneumatic line of every arm.
 
 Each parameter is a table: ``{min, max}`` (continuous; ``log = true`` samples it log-uniformly,
 ``steps = n`` gives n grid points) or ``{values = [...]}`` (a list). Methods: ``grid`` (the
@@ -45,15 +45,13 @@ from softphantom.errors import UserError
 
 METHODS = ("grid", "random", "lhs")
 #: Bumped when what a variant computes changes, so cached rows of older code are not reused.
-EVAL_VERSION = 1
+EVAL_VERSION = 2
 _INDEX = re.compile(r"^(?P<key>[A-Za-z0-9_]+)(\[(?P<i>[0-9]+)\])?$")
 EXTRA_PARAMS = {
     "mesh_size_mm": 12.0,
     "sensing.tube_length_m": 12.0,
     "sensing.tube_id_mm": 1.2,
     "sensing.osr": 100,
-    "material.E_kPa": None,  # None: Ecoflex 00-50 (fem.ECOFLEX_00_50)
-    "material.nu": None,
 }
 DIRECTIONS = {"xpos": (1, 0, 0), "xneg": (-1, 0, 0), "ypos": (0, 1, 0), "yneg": (0, -1, 0),
               "zpos": (0, 0, 1), "zneg": (0, 0, -1)}
@@ -193,11 +191,19 @@ def _steps(name: str, key: str):
 
 
 def apply_path(design: dict, path: str, value: Any, _name: str | None = None) -> None:
-    """Set ``path`` (dotted, ``[i]`` indexes a vector, ``arms.*`` every arm) in a design dict."""
+    """Set ``path`` (dotted, ``[i]`` indexes a vector, ``*`` every entry of a table: ``arms.*``,
+    ``materials.*``) in a design dict."""
     parts = path.split(".")
-    if parts[0] == "arms" and len(parts) >= 2 and parts[1] == "*":
-        for arm in ARM_NAMES:
-            apply_path(design, ".".join(["arms", arm, *parts[2:]]), value, path)
+    if "*" in parts:
+        i = parts.index("*")
+        node: Any = design
+        for part in parts[:i]:
+            node = node.get(part) if isinstance(node, dict) else None
+        if not isinstance(node, dict) or not node:
+            raise UserError(f"parameters.{json.dumps(_name or path)}: {'.'.join(parts[:i]) or 'the design'} "
+                            "is not a table of entries for '*'")
+        for key in list(node):
+            apply_path(design, ".".join([*parts[:i], key, *parts[i + 1:]]), value, _name or path)
         return
     name = json.dumps(_name or path)
     if parts[0] == "arms" and len(parts) == 3 and parts[2] == "cavity_length_mm":
@@ -207,7 +213,7 @@ def apply_path(design: dict, path: str, value: Any, _name: str | None = None) ->
         r = float(arm["radius_mm"]) - float(arm["wall_mm"])
         arm["cavity_volume_mm3"] = math.pi * r * r * float(value) + 4.0 / 3.0 * math.pi * r**3
         return
-    node: Any = design
+    node = design
     for depth, part in enumerate(parts):
         key, idx = _steps(name, part)
         last = depth == len(parts) - 1

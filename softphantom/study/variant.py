@@ -43,23 +43,6 @@ POSE = ("x_mm", "y_mm", "z_mm", "yaw_deg", "pitch_deg", "roll_deg")
 TIMING_COLUMNS = ("mesh_s", "solve_s", "total_s", "cpu_s", "host")
 
 
-def _material(extra: dict):
-    """The silicone from ``material.E_kPa``/``material.nu`` (Ecoflex 00-50 for what is not
-    given); None when neither is swept, so the FEM takes the model's own material."""
-    from dataclasses import replace
-
-    from softphantom.fem import ECOFLEX_00_50
-
-    if extra.get("material.E_kPa") is None and extra.get("material.nu") is None:
-        return None
-    m = ECOFLEX_00_50
-    if extra.get("material.E_kPa") is not None:
-        m = replace(m, E_Pa=float(extra["material.E_kPa"]) * 1e3)
-    if extra.get("material.nu") is not None:
-        m = replace(m, nu=float(extra["material.nu"]))
-    return m
-
-
 def count_volumes_m3(cavity_volumes_m3, tube_length_m: float, tube_id_m: float, osr: int) -> np.ndarray:
     """(n,) m³: the cavity volume change of one effective count for each cavity (sensing budget).
 
@@ -143,13 +126,29 @@ def evaluate_variant(variant: Variant) -> dict[str, Any]:
     return row
 
 
+#: design keys that do not change the mesh (a variant differing only there reuses it)
+_NOT_GEOMETRY = ("materials", "region_materials")
+
+
 @functools.lru_cache(maxsize=4)
-def _model(design_json: str, mesh_size_mm: float | None):
-    """The mesh of a design, kept per worker process: variants that differ only in tube or
-    material (not in geometry) reuse it."""
+def _mesh(geometry_json: str, mesh_size_mm: float | None):
     from softphantom.design import build_model, design_from_dict
 
-    return build_model(design_from_dict(json.loads(design_json)), mesh_size_mm)
+    return build_model(design_from_dict(json.loads(geometry_json)), mesh_size_mm)
+
+
+def _model(design_dict: dict, mesh_size_mm: float | None):
+    """The mesh of a design, kept per worker process: variants that differ only in tube or
+    material reuse it (the model then carries this variant's materials)."""
+    import dataclasses
+
+    from softphantom.design import design_from_dict
+
+    design = design_from_dict(design_dict)
+    geometry = {k: v for k, v in design_dict.items() if k not in _NOT_GEOMETRY}
+    model = _mesh(json.dumps(geometry, sort_keys=True), mesh_size_mm)
+    mats = {k: getattr(design, k) for k in _NOT_GEOMETRY if hasattr(design, k)}
+    return dataclasses.replace(model, design=dataclasses.replace(model.design, **mats)) if mats else model
 
 
 def _evaluate(variant: Variant) -> dict[str, Any]:
@@ -164,8 +163,7 @@ def _evaluate(variant: Variant) -> dict[str, Any]:
     out: dict[str, Any] = {}
     design = design_from_dict(variant.design)
     t = time.perf_counter()
-    model = _model(json.dumps(variant.design, sort_keys=True),
-                   float(ex["mesh_size_mm"]) if ex.get("mesh_size_mm") else None)
+    model = _model(variant.design, float(ex["mesh_size_mm"]) if ex.get("mesh_size_mm") else None)
     out["mesh_s"] = time.perf_counter() - t  # ~0 where this worker had meshed the same geometry
     t = time.perf_counter()
     out["mesh_nodes"] = len(model.nodes)
@@ -175,7 +173,7 @@ def _evaluate(variant: Variant) -> dict[str, Any]:
     out["mesh_cavity_error_max_pct"] = 100.0 * max(errs)
     out["silicone_mL"] = float(model.tet_volumes().sum()) * 1e6
 
-    fem = fem_from_phantom(model, _material(ex))
+    fem = fem_from_phantom(model)  # each region's law from the design file ([materials])
     if s.contact not in model.p_ext:
         from softphantom.errors import UserError
 
