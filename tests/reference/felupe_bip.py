@@ -53,6 +53,19 @@ def tri6_shape(xi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return N, np.stack([dr, ds], 2)
 
 
+def tri3_shape(xi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Linear triangle: shape functions (Q,3) and derivatives (Q,3,2) at ``xi`` (Q,2)."""
+    r, s = xi[:, 0], xi[:, 1]
+    N = np.stack([1.0 - r - s, r, s], 1)
+    d = np.array([[-1.0, -1.0], [1.0, 0.0], [0.0, 1.0]])
+    return N, np.broadcast_to(d, (len(xi), 3, 2)).copy()
+
+
+def tri_shape(nper: int, xi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Shape functions of the 3- or 6-node triangle."""
+    return tri3_shape(xi) if nper == 3 else tri6_shape(xi)
+
+
 def tet10_shape(bary: np.ndarray) -> np.ndarray:
     """(Q,10) quadratic tet shape functions at barycentric coordinates (Q,4), VTK node order."""
     t1, t2, t3, t4 = bary.T
@@ -68,31 +81,30 @@ def _skew(v: np.ndarray) -> np.ndarray:
                      np.stack([-v[..., 1], v[..., 0], z], -1)], -2)
 
 
-_N6, _DN6 = tri6_shape(TRI_POINTS)
-
-
 def surface_terms(x: np.ndarray, tris: np.ndarray, n_nodes: int, tangent: bool = True):
-    """Volume enclosed by the 6-node triangles ``tris`` at positions ``x`` (N,3) (normals out of
+    """Volume enclosed by the 3- or 6-node triangles ``tris`` at positions ``x`` (N,3) (normals out of
     the air: Φ = ⅓∮ x·n dA > 0), its gradient (= the follower load per unit pressure, ∫ N_a n dA)
     (3N,), and that gradient's derivative (3N,3N) sparse (the pressure stiffness per unit
     pressure), all by the degree-5 rule (exact for these degree-4 integrands)."""
-    xe = x[tris]  # (K,6,3)
-    xr = np.einsum("qa,kai->kqi", _DN6[:, :, 0], xe)
-    xs = np.einsum("qa,kai->kqi", _DN6[:, :, 1], xe)
-    xq = np.einsum("qa,kai->kqi", _N6, xe)
+    k = tris.shape[1]
+    N6, DN6 = tri_shape(k, TRI_POINTS)
+    xe = x[tris]  # (K,k,3)
+    xr = np.einsum("qa,kai->kqi", DN6[:, :, 0], xe)
+    xs = np.einsum("qa,kai->kqi", DN6[:, :, 1], xe)
+    xq = np.einsum("qa,kai->kqi", N6, xe)
     nA = np.cross(xr, xs)  # (K,Q,3) area-weighted normal per unit reference area
     vol = float(np.einsum("q,kqi,kqi->", TRI_WEIGHTS, xq, nA) / 3.0)
-    fa = np.einsum("q,qa,kqi->kai", TRI_WEIGHTS, _N6, nA)  # ∫ N_a n dA
-    dofs = (3 * tris[:, :, None] + np.arange(3)).reshape(len(tris), 18)
+    fa = np.einsum("q,qa,kqi->kai", TRI_WEIGHTS, N6, nA)  # ∫ N_a n dA
+    dofs = (3 * tris[:, :, None] + np.arange(3)).reshape(len(tris), 3 * k)
     g = np.bincount(dofs.reshape(-1), weights=fa.reshape(-1), minlength=3 * n_nodes)
     if not tangent:
         return vol, g, None
     # d(x_r × x_s) = [x_r]× dx_s − [x_s]× dx_r, dx_r = Σ_b N_b,r dx_b
-    Kq = (np.einsum("qb,kqij->kqbij", _DN6[:, :, 1], _skew(xr))
-          - np.einsum("qb,kqij->kqbij", _DN6[:, :, 0], _skew(xs)))
-    Ke = np.einsum("q,qa,kqbij->kaibj", TRI_WEIGHTS, _N6, Kq).reshape(len(tris), 18, 18)
-    rows = np.repeat(dofs, 18, axis=1).reshape(-1)
-    cols = np.tile(dofs, (1, 18)).reshape(-1)
+    Kq = (np.einsum("qb,kqij->kqbij", DN6[:, :, 1], _skew(xr))
+          - np.einsum("qb,kqij->kqbij", DN6[:, :, 0], _skew(xs)))
+    Ke = np.einsum("q,qa,kqbij->kaibj", TRI_WEIGHTS, N6, Kq).reshape(len(tris), 3 * k, 3 * k)
+    rows = np.repeat(dofs, 3 * k, axis=1).reshape(-1)
+    cols = np.tile(dofs, (1, 3 * k)).reshape(-1)
     K = sp.csr_matrix((Ke.reshape(-1), (rows, cols)), shape=(3 * n_nodes, 3 * n_nodes))
     return vol, g, K
 
@@ -113,7 +125,7 @@ def patch_load(x: np.ndarray, tris: np.ndarray, n_nodes: int, point, force, radi
     pts = (sub[:, 0, None] + TRI_POINTS[None, :, 0, None] * (sub[:, 1, None] - sub[:, 0, None])
            + TRI_POINTS[None, :, 1, None] * (sub[:, 2, None] - sub[:, 0, None])).reshape(-1, 2)
     w = np.tile(TRI_WEIGHTS, len(sub)) / n**2
-    N, dN = tri6_shape(pts)
+    N, dN = tri_shape(tris.shape[1], pts)
     xe = x[tris]
     xq = np.einsum("qa,kai->kqi", N, xe)
     dA = np.linalg.norm(np.cross(np.einsum("qa,kai->kqi", dN[:, :, 0], xe),
@@ -144,17 +156,17 @@ class Tet10Mesh:
 
 
 def orient_tets(nodes: np.ndarray, tets: np.ndarray) -> np.ndarray:
-    """Swap corners 1, 2 (and their mid-edge nodes) of negatively oriented 10-node tets."""
+    """Swap corners 1, 2 (and their mid-edge nodes) of negatively oriented 4- or 10-node tets."""
     c = nodes[tets[:, :4]]
     det = np.einsum("ki,ki->k", c[:, 1] - c[:, 0], np.cross(c[:, 2] - c[:, 0], c[:, 3] - c[:, 0]))
     out = tets.copy()
     neg = det < 0
-    out[neg] = tets[neg][:, [0, 2, 1, 3, 6, 5, 4, 7, 9, 8]]
+    out[neg] = tets[neg][:, [0, 2, 1, 3, 6, 5, 4, 7, 9, 8][: tets.shape[1]]]
     return out
 
 
 def orient_faces(nodes: np.ndarray, tets: np.ndarray, tris: np.ndarray, into_solid: bool) -> np.ndarray:
-    """Orient 6-node triangles so the corner normal points into the tet that owns them
+    """Orient 3- or 6-node triangles so the corner normal points into the tet that owns them
     (``into_solid``) or out of it."""
     opp = {}
     for t in tets[:, :4]:
@@ -166,7 +178,7 @@ def orient_faces(nodes: np.ndarray, tets: np.ndarray, tris: np.ndarray, into_sol
     towards = np.einsum("ki,ki->k", np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0]), nodes[o] - x[:, 0]) > 0
     flip = towards != into_solid
     out = tris.copy()
-    out[flip] = tris[flip][:, [0, 2, 1, 5, 4, 3]]
+    out[flip] = tris[flip][:, [0, 2, 1, 5, 4, 3][: tris.shape[1]]]
     return out
 
 
@@ -188,9 +200,10 @@ def probe(mesh: Tet10Mesh, points) -> sp.csr_matrix:
     rows, cols, vals = [], [], []
     for i, p in enumerate(np.atleast_2d(points)):
         e, b = locate(mesh, p)
-        rows += [i] * 10
+        k = mesh.tets.shape[1]
+        rows += [i] * k
         cols += list(mesh.tets[e])
-        vals += list(tet10_shape(b[None])[0])
+        vals += list(tet10_shape(b[None])[0] if k == 10 else b)
     return sp.csr_matrix((vals, (rows, cols)), shape=(len(np.atleast_2d(points)), len(mesh.nodes)))
 
 
@@ -240,8 +253,10 @@ def solve_felupe(mesh: Tet10Mesh, mu: float, lam: float, *, force=None, at=None,
     norm; the quadratic convergence of the exact tangent makes 1e-10 cheap)."""
     import felupe
 
-    fm = felupe.Mesh(mesh.nodes, mesh.tets, "tetra10")
-    region = felupe.RegionQuadraticTetra(fm)
+    if mesh.tets.shape[1] == 10:
+        region = felupe.RegionQuadraticTetra(felupe.Mesh(mesh.nodes, mesh.tets, "tetra10"))
+    else:
+        region = felupe.RegionTetra(felupe.Mesh(mesh.nodes, mesh.tets, "tetra"))
     fld = felupe.FieldContainer([felupe.Field(region, dim=3)])
     solid = felupe.SolidBody(felupe.NeoHookeCompressible(mu=mu, lmbda=lam), fld)
     n = len(mesh.nodes)
@@ -303,6 +318,17 @@ def solve_felupe(mesh: Tet10Mesh, mu: float, lam: float, *, force=None, at=None,
     return RefSolution(mesh.nodes + u.reshape(-1, 3), its, rel)
 
 
+def corner_mesh(mesh: Tet10Mesh) -> Tet10Mesh:
+    """The linear (4-node) mesh of the corners of a quadratic one: same elements, straight."""
+    used = np.unique(mesh.tets[:, :4])
+    remap = np.full(len(mesh.nodes), -1, np.int64)
+    remap[used] = np.arange(len(used))
+    fixed = remap[mesh.fixed_nodes]
+    return Tet10Mesh(mesh.nodes[used], remap[mesh.tets[:, :4]],
+                     {k: remap[v[:, :3]] for k, v in mesh.cavities.items()}, remap[mesh.outer[:, :3]],
+                     fixed[fixed >= 0], dict(mesh.points))
+
+
 def cavity_volumes(mesh: Tet10Mesh, x: np.ndarray) -> dict[str, float]:
     """m³, volume of each cavity at positions ``x`` (N,3)."""
     return {k: surface_terms(x, t, len(x), tangent=False)[0] for k, t in mesh.cavities.items()}
@@ -310,10 +336,11 @@ def cavity_volumes(mesh: Tet10Mesh, x: np.ndarray) -> dict[str, float]:
 
 # --- the default BIP design, meshed with quadratic tets ---------------------------------------
 
-def bip_tet10(design, size_mm: float | None = None, optimize: bool = True) -> Tet10Mesh:
+def bip_tet10(design, size_mm: float | None = None, optimize: bool = True, order: int = 2) -> Tet10Mesh:
     """The design's geometry meshed by gmsh exactly as ``softphantom.design`` does (same
-    OpenCASCADE construction, sizes and physical groups), then elevated to order 2 on the CAD
-    (curved mid-edge nodes; ``optimize`` untangles any element the curving inverted)."""
+    OpenCASCADE construction, sizes and physical groups), then (``order`` 2) elevated to order 2
+    on the CAD (curved mid-edge nodes; ``optimize`` untangles any element the curving inverted).
+    ``order`` 1 gives the linear mesh itself (the corners of the order-2 one)."""
     import dataclasses
 
     import gmsh
@@ -330,9 +357,11 @@ def bip_tet10(design, size_mm: float | None = None, optimize: bool = True) -> Te
             gmsh.option.setNumber("General.Terminal", 0)
             gmsh.model.add("reference")
             dmesh._build(design, design.mesh)
-            gmsh.model.mesh.setOrder(2)
-            if optimize:
-                gmsh.model.mesh.optimize("HighOrder")
+            if order == 2:
+                gmsh.model.mesh.setOrder(2)
+                if optimize:
+                    gmsh.model.mesh.optimize("HighOrder")
+            tt, nt, tri, ntri = (11, 10, 9, 6) if order == 2 else (4, 4, 2, 3)
             tags, coords, _ = gmsh.model.mesh.getNodes()
             pos = np.full(int(tags.max()) + 1, -1, np.int64)
             pos[tags.astype(np.int64)] = np.arange(len(tags))
@@ -344,10 +373,11 @@ def bip_tet10(design, size_mm: float | None = None, optimize: bool = True) -> Te
                     out.append(dmesh._elements(dim, ent, etype, nper))
                 return pos[np.vstack(out)]
 
-            tets = np.vstack([group(3, rid, 11, 10) for rid in dmesh.REGION_IDS.values()])[:, GMSH_TO_VTK_TET10]
-            cav = {k: group(2, gid, 9, 6) for k, gid in dmesh.CAVITY_GROUP_IDS.items()}
-            fixed = group(2, dmesh.FIXED_GROUP_ID, 9, 6)
-            outer = group(2, dmesh.OUTER_GROUP_ID, 9, 6)
+            tets = np.vstack([group(3, rid, tt, nt) for rid in dmesh.REGION_IDS.values()])
+            tets = tets[:, GMSH_TO_VTK_TET10] if order == 2 else tets
+            cav = {k: group(2, gid, tri, ntri) for k, gid in dmesh.CAVITY_GROUP_IDS.items()}
+            fixed = group(2, dmesh.FIXED_GROUP_ID, tri, ntri)
+            outer = group(2, dmesh.OUTER_GROUP_ID, tri, ntri)
         finally:
             try:
                 gmsh.model.remove()

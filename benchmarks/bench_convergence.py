@@ -1,0 +1,111 @@
+"""Mesh convergence of the phantom model: marker-body pose, arm ΔV and urethra ΔV against element
+order (P1 / P2) and mesh size, for ν = 0.45 and 0.49 (issue 12, item 1; docs/model.md).
+
+    .venv/bin/python benchmarks/bench_convergence.py [--p1 6 4.5 3.6] [--p2 12 9 6] [--nu 0.45 0.49]
+        [--cases on-centre urethra] [--workers 2] [--scheduler ADDRESS] [--json out.json]
+
+The solves are compressible neo-Hookean (E = 142 kPa) on the default design under DESIGN.md §5's
+loads (on-centre (0.15, 2.5, −0.2) N on a 4 mm patch; urethra 30 kPa), by the independent
+reference of tests/reference/felupe_bip.py (FElupe), which tests/test_fem_reference.py shows equal
+to softphantom's own neo-Hookean tets on the same mesh. P1 meshes are exactly the design's linear
+meshes (``softphantom design --mesh-size-mm H``); P2 the same construction at order 2 with curved
+mid-edge nodes. One Dask task per (order, size, ν), through softphantom.parallel.
+Prints one row per setting and, per ν and order, the change between the two finest sizes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "reference"))
+
+from bench_reference import ARMS, run_case  # noqa: E402
+
+from softphantom.fem import ECOFLEX_00_50  # noqa: E402
+from softphantom.parallel import dask_client, map_tasks  # noqa: E402
+
+
+def solve_setting(order: int, size_mm: float, nu: float, cases: tuple[str, ...], E: float) -> dict:
+    import sys as _s
+
+    _s.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "reference"))
+    _s.path.insert(0, str(Path(__file__).resolve().parent))
+    from felupe_bip import bip_tet10
+
+    from softphantom.design import BIPDesign
+
+    t0 = time.perf_counter()
+    mesh = bip_tet10(BIPDesign(), size_mm, order=order)
+    out = {"order": order, "mesh_size_mm": size_mm, "nu": nu, "nodes": len(mesh.nodes), "dof": 3 * len(mesh.nodes)}
+    for c in cases:
+        out[c] = run_case(mesh, c, E, nu)
+    out["wall_s"] = round(time.perf_counter() - t0, 1)
+    return out
+
+
+def _row(r: dict) -> str:
+    parts = [f"P{r['order']} {r['mesh_size_mm']:>4g} mm ν {r['nu']:.2f} {r['nodes']:>6d} nodes"]
+    if "on-centre" in r:
+        c = r["on-centre"]
+        parts.append(f"y {c['y_mm']:6.3f} mm yaw {c['yaw_deg']:6.3f}° dV " +
+                     " ".join(f"{c['dV_mm3'][k]:+7.2f}" for k in ARMS))
+    if "urethra" in r:
+        u = r["urethra"]
+        parts.append(f"urethra dV {u['dV_mm3']['urethra']:7.1f} mm³ near_urethra {u['near_urethra_mm']:.3f} mm")
+    parts.append(f"{r['wall_s']} s")
+    return " | ".join(parts)
+
+
+def quantities(r: dict) -> dict[str, float]:
+    q = {}
+    if "on-centre" in r:
+        c = r["on-centre"]
+        q.update({"y_mm": c["y_mm"], "yaw_deg": c["yaw_deg"], **{f"dV_{k}": c["dV_mm3"][k] for k in ARMS}})
+    if "urethra" in r:
+        q.update({"urethra_dV": r["urethra"]["dV_mm3"]["urethra"], "near_urethra_mm": r["urethra"]["near_urethra_mm"]})
+    return q
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--p1", type=float, nargs="*", default=[6.0, 4.5, 3.6])
+    ap.add_argument("--p2", type=float, nargs="*", default=[12.0, 9.0, 6.0])
+    ap.add_argument("--nu", type=float, nargs="+", default=[0.45, 0.49])
+    ap.add_argument("--cases", nargs="+", default=["on-centre", "urethra"], choices=["on-centre", "off-centre", "urethra"])
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--scheduler", default=None)
+    ap.add_argument("--json", type=Path)
+    a = ap.parse_args(argv)
+    E = ECOFLEX_00_50.E_Pa
+    args = [(o, h, nu, tuple(a.cases), E) for nu in a.nu for o, hs in ((1, a.p1), (2, a.p2)) for h in hs]
+    # the biggest first, so the pool stays busy to the end
+    args.sort(key=lambda t: -(t[0] ** 3) / t[1] ** 3)
+    t0 = time.perf_counter()
+    with dask_client(a.scheduler, n_workers=a.workers) as client:
+        res = map_tasks(client, solve_setting, args, label="convergence", progress=False,
+                        on_result=lambda r: print(_row(r.value) if r.ok else f"failed: {r.error}", flush=True))
+    rows = sorted((r.value for r in res if r.ok), key=lambda r: (r["nu"], r["order"], -r["mesh_size_mm"]))
+    print(f"\n{len(rows)} settings in {time.perf_counter() - t0:.0f} s\n")
+    for r in rows:
+        print(_row(r))
+    print("\nchange between the two finest sizes (per ν and order), % of the finer value:")
+    for nu in a.nu:
+        for o in (1, 2):
+            sel = [r for r in rows if r["nu"] == nu and r["order"] == o]
+            if len(sel) < 2:
+                continue
+            q1, q2 = quantities(sel[-2]), quantities(sel[-1])
+            d = {k: round(100 * (q1[k] - q2[k]) / abs(q2[k]), 2) for k in q2 if abs(q2[k]) > 1e-9}
+            print(f"  P{o} ν {nu}: {sel[-2]['mesh_size_mm']:g} → {sel[-1]['mesh_size_mm']:g} mm: {d}")
+    if a.json:
+        a.json.write_text(json.dumps(rows, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
