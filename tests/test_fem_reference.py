@@ -24,9 +24,15 @@ sys.path.insert(0, str(Path(__file__).resolve().parent / "reference"))
 from felupe_bip import (  # noqa: E402
     block_with_cavity,
     cavity_volumes,
+    corner_mesh,
     patch_load,
+    solve_felupe,
     surface_terms,
 )
+
+from softphantom.fem import NeoHookean, build_fem, solve_static  # noqa: E402
+
+LAW = NeoHookean(142.3e3, 0.45)
 
 
 
@@ -67,3 +73,35 @@ def test_reference_patch_load_is_the_whole_force_on_the_patch(block):
     assert np.linalg.norm(mesh.nodes[loaded] - centre, axis=1).max() < 0.004 + 0.005  # within a cell
     with pytest.raises(ValueError):
         patch_load(mesh.nodes, end, n, centre + [0.1, 0, 0], [1.0, 0, 0], 0.004)
+
+
+@pytest.mark.parametrize("order", [2, 1])
+def test_neo_hookean_matches_felupe_under_a_large_end_load(block, order):
+    """Same mesh (10-node, or its 4-node corners), same law, the same nodal load: softphantom's
+    solution equals FElupe's to the solvers' tolerance."""
+    mesh, faces = block
+    if order == 1:
+        mesh, faces = corner_mesh(mesh), _corner_faces(block)
+    n = len(mesh.nodes)
+    # 25 kPa dead traction on the far end face: the free end moves ~7 mm (17 % of the length)
+    f = 25e3 * surface_terms(mesh.nodes, faces, n, tangent=False)[1]
+    ref = solve_felupe(mesh, LAW.mu_Pa, LAW.lambda_Pa, load=f, steps=2)
+    fem = build_fem(mesh.nodes, mesh.tets, LAW, mesh.fixed_nodes)
+    assert fem.order == order
+    sol = solve_static(fem, f)
+    assert sol.converged
+    u_ref = ref.x - mesh.nodes
+    assert np.abs(u_ref).max() > 5e-3  # large deformation, not the linear regime
+    assert np.abs(sol.u - u_ref).max() <= 1e-6 * np.abs(u_ref).max()
+    v0, v_ref = cavity_volumes(mesh, mesh.nodes)["cavity"], cavity_volumes(mesh, ref.x)["cavity"]
+    v_sp = cavity_volumes(mesh, sol.x)["cavity"]
+    assert abs(v_ref - v0) > 0.01 * v0
+    assert abs((v_sp - v0) - (v_ref - v0)) <= 1e-6 * abs(v_ref - v0)
+
+
+def _corner_faces(block):
+    mesh, end = block
+    used = np.unique(mesh.tets[:, :4])
+    remap = np.full(len(mesh.nodes), -1, np.int64)
+    remap[used] = np.arange(len(used))
+    return remap[end[:, :3]]

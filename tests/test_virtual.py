@@ -34,7 +34,7 @@ from softphantom.virtual import (
     write_run,
 )
 from softphantom.virtual.board import arm_volumes
-from softphantom.virtual.truth import _patch_radius
+from softphantom.virtual.truth import _patch_radius, truth_laws
 
 SHORT = {
     "name": "short-push",
@@ -119,8 +119,10 @@ def test_truth_is_finer_converged_and_exact_at_keyframes(short_run, coarse_model
     assert np.allclose(et.s, [0, 1 / 3, 2 / 3, 1.0])
     # independent solves from rest (not warm-started): at a keyframe (s = 2/3) the truth is that
     # solve; between keyframes (s = 1/2) the PCHIP interpolation in load stays within 2 % of the
-    # peak marker motion
-    fem = fem_from_phantom(tr.model)
+    # peak marker motion. The truth's law is the hyperelastic twin of the model's (issue 12)
+    laws = truth_laws(tr.model, tr.config.law)
+    assert {law.name for law in laws.values()} == {"neo-hookean"}
+    fem = fem_from_phantom(tr.model, laws)
     pt = tr.model.p_ext["on-centre"]
     H = force_actuator(fem, pt, radius=_patch_radius(fem, pt, 4e-3))
     P = probe_matrix(fem, np.array(list(tr.model.markers.values())))
@@ -147,6 +149,13 @@ def test_truth_is_finer_converged_and_exact_at_keyframes(short_run, coarse_model
     # a 3 N push mostly along y moves the body mostly along y, by millimetres
     v = s.pose.to_mm_deg()[2]
     assert 1.0 < v[1] < 20.0 and abs(v[1]) > 2 * max(abs(v[0]), abs(v[2]))
+    # different in form from the estimator's law: the co-rotational model on the same mesh under
+    # the same load reads the stretched front arms' cavities quite differently (DESIGN.md §5: ~2x)
+    corot = solve_static(fem_from_phantom(tr.model), H @ (2 / 3 * f))
+    front = tr.model.cavities["front_zpos"]
+    dv_corot = cavity_volume(corot.x, front) - cavity_volume(fem.nodes, front)
+    assert abs(et.dV[2, 0] - dv_corot) > 0.2 * abs(et.dV[2, 0])
+    assert tr.summary()["law"] == "neo-hookean" and tr.summary()["patch_radius_mm"] == 4.0
 
 
 # --- sensor chain ---------------------------------------------------------------------------------
@@ -272,6 +281,10 @@ def test_write_run_files(short_run, tmp_path):
     meta = json.loads(paths["meta"].read_text())
     assert meta["truth"]["events"][0]["force_N"] == [0.3, 3.0, -0.3]
     assert meta["board"]["seed"] == 3 and meta["tracker"]["lost_frames"] >= 0
+    # what the truth depends on is recorded with it: its law and the contact patch's radius
+    tmeta = json.loads(paths["truth"].read_text().splitlines()[0].lstrip("# "))
+    assert tmeta["truth_law"] == "neo-hookean" and tmeta["patch_radius_mm"] == 4.0
+    assert meta["truth"]["law"] == "neo-hookean" and meta["truth"]["patch_radius_mm"] == 4.0
 
 
 # --- pty board ------------------------------------------------------------------------------------

@@ -38,10 +38,12 @@ def run_scenario(sc, model, out: Path, cfg, truth, bar) -> dict:
     n_frames = int(run.board().rate_Hz * sc.duration_s)
     t1 = time.perf_counter()
     task = bar.add_task(f"{sc.name}: estimate", total=n_frames, what="")
-    with Estimator(model, EstimatorConfig(contact=_contact(sc), mode="sync")) as est:
+    ecfg = EstimatorConfig(contact=_contact(sc), mode="sync")
+    with Estimator(model, ecfg) as est:
         stats = estimate_stream(src, est, est_path, lambda e, n: bar.update(task, completed=n),
                                 live=False, metadata={"model": "../model", "scenario": sc.name,
-                                                      "source": f"virtual:{sc.name}"})
+                                                      "source": f"virtual:{sc.name}",
+                                                      "contact_radius_mm": ecfg.contact_radius_m * 1e3})
     bar.update(task, completed=n_frames)
     t_est = time.perf_counter() - t1
     t2 = time.perf_counter()

@@ -117,7 +117,8 @@ def estimate_cmd(
     with target as path, Estimator(model, cfg) as est:
         console.print(f"estimator ready in {time.monotonic() - t0:.1f} s ({len(model.nodes)} nodes, "
                       f"mode {cfg.mode}, contact {at}, |F_i| <= {max_force_N:g} N, QP {qp_solver})", highlight=False)
-        meta = {"model": str(model_dir), "source": source, "contact": at, "max_force_N": max_force_N,
+        meta = {"model": str(model_dir), "source": source, "contact": at,
+                "contact_radius_mm": cfg.contact_radius_m * 1e3, "max_force_N": max_force_N,
                 "qp_solver": qp_solver, "mode": cfg.mode, "nodes": int(len(model.nodes)), **opened.meta}
         try:
             s = estimate_stream(src, est, path, progress, live=live, metadata=meta, stop=stop,

@@ -177,7 +177,8 @@ def write_run(run: VirtualRun, out: Path) -> dict[str, Path]:
     write_motive_csv(run.tracker, paths["tracker"], run.truth.marker_names, take_name=run.scenario.name)
     tmeta = {"softphantom": __version__, "kind": "virtual-truth", "scenario": run.scenario.name,
              "frame": "model (relative to rest)", "clock": "scenario (s)",
-             "truth_mesh_nodes": len(run.truth.model.nodes),
+             "truth_mesh_nodes": len(run.truth.model.nodes), "truth_law": run.truth.summary()["law"],
+             "patch_radius_mm": run.scenario.patch_radius_mm,
              "note": "truth solved at load keyframes, interpolated in load level (PCHIP) then mapped to time"}
     write_table(paths["truth"], tmeta, run.truth_columns())
     write_snapshot(run.truth, paths["snapshot"])

@@ -1,9 +1,12 @@
 """Ground truth of the virtual phantom, from a model of higher fidelity than the estimator's.
 
-The estimator's model is the design meshed at ``h`` (mm) with co-rotational linear tets and a
-fast per-sample update. The truth is the same design meshed at ``mesh_scale · h`` (finer; 0.75 by
-default, about 2.4× the nodes) and solved to convergence by Newton (relative residual 1e-8) with
-the load on a contact patch (``patch_radius_mm``), so an estimate is never checked against itself.
+The estimator's model is the design meshed at ``h`` (mm) with its own laws (co-rotational Hooke by
+default) and a fast per-sample update. The truth differs from it in form, not only in mesh: the
+same design meshed at ``mesh_scale · h`` (finer; 0.75 by default, about 2.4× the nodes), every
+co-rotational region replaced by its hyperelastic twin (compressible neo-Hookean with the same E,
+ν: ``law = "neo-hookean"``, the default; ``"model"`` keeps the design's laws), solved to
+convergence by Newton (relative residual 1e-8) with the load on a contact patch
+(``patch_radius_mm``), so an estimate is never checked against its own model (DESIGN.md §5).
 
 Quasi-static and elastic, the state depends only on the load, not on its history. Each event of a
 scenario is a one-parameter load path from rest (level s times its peak), so the truth is solved
@@ -25,31 +28,52 @@ import numpy as np
 from scipy.interpolate import PchipInterpolator
 
 from softphantom.design import PhantomModel, build_model
-from softphantom.errors import SolverError
+from softphantom.errors import SolverError, UserError
 from softphantom.fem import (
+    Corotational,
     ElementInversionError,
+    NeoHookean,
     cavity_volume,
     fem_from_phantom,
     force_actuator,
     probe_matrix,
     solve_static,
 )
+from softphantom.fem.model import laws_of_design
 from softphantom.pose import Pose6, pose_of_markers
 from softphantom.sensing import ARM_NAMES
 from softphantom.virtual.scenario import Event, Scenario
 
 CAVITIES = ARM_NAMES + ("urethra",)
+TRUTH_LAWS = ("neo-hookean", "model")
+
+
+def truth_laws(model: PhantomModel, law: str) -> dict:
+    """Region name -> the truth's law object: the design's laws, co-rotational ones replaced by
+    their neo-Hookean twin (same E, ν, density) unless ``law == "model"``."""
+    by_region = laws_of_design(model.design, model.regions)
+    if law == "model":
+        return by_region
+    return {k: NeoHookean(v.E_Pa, v.nu, v.density_kg_m3) if isinstance(v, Corotational) else v
+            for k, v in by_region.items()}
 
 
 @dataclass(frozen=True)
 class TruthConfig:
     """``mesh_scale`` truth mesh size / the model's; ``levels`` keyframes per push ramp;
-    ``tol`` Newton's relative residual; ``inflate_steps`` pressure steps up to the limit."""
+    ``tol`` Newton's relative residual; ``inflate_steps`` pressure steps up to the limit;
+    ``law``: ``"neo-hookean"`` (co-rotational regions become compressible neo-Hookean with the
+    same E, ν, density) or ``"model"`` (the design's own laws, as the estimator)."""
 
     mesh_scale: float = 0.75
     levels: int = 3
     tol: float = 1e-8
     inflate_steps: int = 10
+    law: str = "neo-hookean"
+
+    def __post_init__(self) -> None:
+        if self.law not in TRUTH_LAWS:
+            raise UserError(f"truth law must be one of {', '.join(TRUTH_LAWS)}, got {self.law!r}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -151,8 +175,10 @@ class Truth:
             if et.note:
                 d["note"] = et.note
             out.append(d)
+        laws = sorted({law.name for law in truth_laws(self.model, self.config.law).values()})
         return {"truth_mesh": {"nodes": len(self.model.nodes), "tets": len(self.model.tets),
                                "mesh_size_mm": self.model.design.mesh.size_mm},
+                "law": "+".join(laws), "patch_radius_mm": self.scenario.patch_radius_mm,
                 "solve_s": round(self.solve_s, 2), "events": out}
 
 
@@ -176,7 +202,8 @@ def solve_truth(scenario: Scenario, model: PhantomModel, config: TruthConfig = T
     ``progress(done, total, what)`` is called after each keyframe."""
     t0 = time.perf_counter()
     tm = truth_mesh if truth_mesh is not None else truth_model(model, config)
-    fem = fem_from_phantom(tm)
+    laws = truth_laws(tm, config.law)
+    fem = fem_from_phantom(tm, laws)
     marker_names = tuple(tm.markers)
     target_names = tuple(tm.targets)
     P = probe_matrix(fem, np.vstack([[tm.markers[k] for k in marker_names], [tm.targets[k] for k in target_names]]))

@@ -1,0 +1,114 @@
+"""Which law and element should the estimator use? Accuracy against the converged reference vs the
+cost of one equilibrium solve, per law × element order × mesh size (issue 12, item 5;
+docs/model.md).
+
+    .venv/bin/python benchmarks/bench_model_choice.py [--laws corotational neo-hookean]
+        [--p1 9 6 4.5] [--p2 12 9] [--json out.json]
+
+Load: the on-centre push of DESIGN.md §5, (0.15, 2.5, −0.2) N on a 4 mm patch (the reference's
+uniform-traction patch for every model, so only the model differs). Each model is softphantom's
+own (``build_fem`` with the law, ``solve_static`` from rest to 1e-8); the read-outs (marker pose,
+arm ΔV) use the reference helpers of tests/reference/felupe_bip.py for every model alike. The
+converged reference: FElupe neo-Hookean P2 at 4.5 mm (bench_reference.py; 0.6 % in y and 2.8 % in
+yaw from the 6 mm solve, docs/model.md). Cost: the model's build, one tangent
+assembly + Cholesky factorization (what an estimator refresh pays per re-factorization), and
+the full Newton solve from rest, wall seconds; a peer ratio against P1 co-rotational at the
+estimator's 6 mm in the same run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "reference"))
+
+from felupe_bip import bip_tet10, cavity_volumes, corner_mesh, patch_load, probe  # noqa: E402
+
+from softphantom.design import BIPDesign  # noqa: E402
+from softphantom.fem import SparseSolver, build_fem, free_tangent, solve_static  # noqa: E402
+from softphantom.fem import material as M  # noqa: E402
+from softphantom.pose import pose_of_markers  # noqa: E402
+
+ARMS = ("front_zpos", "front_zneg", "back_xpos", "back_xneg")
+# FElupe NH P2 at 4.5 mm (benchmarks/bench_reference.py, docs/model.md)
+REFERENCE = {"y_mm": 5.644, "yaw_deg": 5.207, "dV_mm3": [11.02, 8.95, -11.93, -8.03]}
+FORCE = np.array([0.15, 2.5, -0.2])
+
+
+def make_law(name: str, E: float, nu: float):
+    return {"corotational": M.Corotational, "neo-hookean": M.NeoHookean}[name](E, nu, 1070.0)
+
+
+def run(mesh, law) -> dict:
+    n = len(mesh.nodes)
+    t0 = time.perf_counter()
+    fem = build_fem(mesh.nodes, mesh.tets, law, mesh.fixed_nodes)
+    t_build = time.perf_counter() - t0
+    f = patch_load(mesh.nodes, mesh.outer, n, mesh.points["on-centre"], FORCE, 4e-3)
+    t0 = time.perf_counter()
+    K = free_tangent(fem, fem.x_rest)
+    SparseSolver("auto").factorize(K)
+    t_factor = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    sol = solve_static(fem, f)
+    t_solve = time.perf_counter() - t0
+    markers = [k for k in mesh.points if k.startswith("m") and k[1:].isdigit()]
+    P = probe(mesh, np.array([mesh.points[k] for k in markers]))
+    pose = pose_of_markers(P @ mesh.nodes, (P @ sol.x)[None]).to_mm_deg()[0]
+    V0, V1 = cavity_volumes(mesh, mesh.nodes), cavity_volumes(mesh, sol.x)
+    dv = np.array([(V1[k] - V0[k]) * 1e9 for k in ARMS])
+    ref_dv = np.array(REFERENCE["dV_mm3"])
+    return {
+        "nodes": n, "converged": bool(sol.converged), "newton_iterations": sol.iterations,
+        "y_mm": round(float(pose[1]), 3), "yaw_deg": round(float(pose[3]), 3),
+        "dV_mm3": [round(float(v), 2) for v in dv],
+        "err_y_mm": round(float(pose[1]) - REFERENCE["y_mm"], 3),
+        "err_yaw_deg": round(float(pose[3]) - REFERENCE["yaw_deg"], 3),
+        "err_dV_rms_mm3": round(float(np.sqrt(np.mean((dv - ref_dv) ** 2))), 2),
+        "build_s": round(t_build, 2), "factor_s": round(t_factor, 3), "solve_s": round(t_solve, 2),
+    }
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--laws", nargs="+", default=["corotational", "neo-hookean"])
+    ap.add_argument("--p1", type=float, nargs="*", default=[9.0, 6.0, 4.5])
+    ap.add_argument("--p2", type=float, nargs="*", default=[12.0, 9.0])
+    ap.add_argument("--E-kPa", type=float, default=142.3)
+    ap.add_argument("--nu", type=float, default=0.45)
+    ap.add_argument("--json", type=Path)
+    a = ap.parse_args(argv)
+    rows = []
+    meshes = {}
+    for order, sizes in ((1, a.p1), (2, a.p2)):
+        for h in sizes:
+            if (order, h) not in meshes:
+                m = bip_tet10(BIPDesign(), h, order=order)
+                meshes[(order, h)] = m
+            for lname in a.laws:
+                r = run(meshes[(order, h)], make_law(lname, a.E_kPa * 1e3, a.nu))
+                r.update(law=lname, order=order, mesh_size_mm=h)
+                rows.append(r)
+                print(f"{lname:13s} P{order} {h:4g} mm {r['nodes']:6d} nodes: y {r['y_mm']:.3f} ({r['err_y_mm']:+.3f}) mm, "
+                      f"yaw {r['yaw_deg']:.3f} ({r['err_yaw_deg']:+.3f})°, arm dV {r['dV_mm3']} (RMS err "
+                      f"{r['err_dV_rms_mm3']} mm³); build {r['build_s']} s, factor {r['factor_s']} s, "
+                      f"solve {r['solve_s']} s ({r['newton_iterations']} it)", flush=True)
+    peer = next((r for r in rows if r["law"] == "corotational" and r["order"] == 1 and r["mesh_size_mm"] == 6.0), None)
+    if peer:
+        print("\ncost relative to P1 co-rotational 6 mm (the estimator's model today), same run:")
+        for r in rows:
+            print(f"  {r['law']:13s} P{r['order']} {r['mesh_size_mm']:4g} mm: factor x{r['factor_s'] / peer['factor_s']:.1f}, "
+                  f"solve x{r['solve_s'] / peer['solve_s']:.1f}")
+    if a.json:
+        a.json.write_text(json.dumps(rows, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
