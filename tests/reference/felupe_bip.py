@@ -17,6 +17,7 @@ Used by ``tests/test_fem_reference.py`` (a small case, in CI) and
 from __future__ import annotations
 
 import os
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -334,6 +335,49 @@ def cavity_volumes(mesh: Tet10Mesh, x: np.ndarray) -> dict[str, float]:
     return {k: surface_terms(x, t, len(x), tangent=False)[0] for k, t in mesh.cavities.items()}
 
 
+@contextmanager
+def _gmsh_model(name: str):
+    """A fresh gmsh model (initializing gmsh if needed, quiet); removed (and gmsh finalized if
+    initialized here) on exit."""
+    import gmsh
+
+    init_here = not gmsh.isInitialized()
+    if init_here:
+        gmsh.initialize(argv=["softphantom-ref"], readConfigFiles=False, interruptible=False)
+    try:
+        gmsh.option.setNumber("General.Terminal", 0)
+        gmsh.model.add(name)
+        yield
+    finally:
+        try:
+            gmsh.model.remove()
+        except Exception:
+            pass
+        if init_here:
+            gmsh.finalize()
+
+
+def _gmsh_nodes() -> tuple[np.ndarray, np.ndarray]:
+    """All nodes of the current gmsh model (m, from mm) and the tag -> row lookup."""
+    import gmsh
+
+    tags, coords, _ = gmsh.model.mesh.getNodes()
+    pos = np.full(int(tags.max()) + 1, -1, np.int64)
+    pos[tags.astype(np.int64)] = np.arange(len(tags))
+    return np.asarray(coords).reshape(-1, 3) * 1e-3, pos
+
+
+def _gmsh_elements(pos: np.ndarray, dim: int, entities, etype: int, nper: int) -> np.ndarray:
+    """Elements of gmsh type ``etype`` (``nper`` nodes) on ``entities``, as node rows."""
+    import gmsh
+
+    out = [np.zeros((0, nper), np.int64)]
+    for e in entities:
+        types, _, nt = gmsh.model.mesh.getElements(dim, e)
+        out += [np.asarray(v, np.int64).reshape(-1, nper) for t, v in zip(types, nt) if t == etype]
+    return pos[np.vstack(out)]
+
+
 # --- the default BIP design, meshed with quadratic tets ---------------------------------------
 
 def bip_tet10(design, size_mm: float | None = None, optimize: bool = True, order: int = 2) -> Tet10Mesh:
@@ -349,52 +393,39 @@ def bip_tet10(design, size_mm: float | None = None, optimize: bool = True, order
 
     if size_mm is not None:
         design = dataclasses.replace(design, mesh=design.mesh.scaled_to(size_mm))
-    with dmesh._GMSH_LOCK:
-        init_here = not gmsh.isInitialized()
-        if init_here:
-            gmsh.initialize(argv=["softphantom-ref"], readConfigFiles=False, interruptible=False)
-        try:
-            gmsh.option.setNumber("General.Terminal", 0)
-            gmsh.model.add("reference")
-            dmesh._build(design, design.mesh)
-            if order == 2:
-                gmsh.model.mesh.setOrder(2)
-                if optimize:
-                    gmsh.model.mesh.optimize("HighOrder")
-            tt, nt, tri, ntri = (11, 10, 9, 6) if order == 2 else (4, 4, 2, 3)
-            tags, coords, _ = gmsh.model.mesh.getNodes()
-            pos = np.full(int(tags.max()) + 1, -1, np.int64)
-            pos[tags.astype(np.int64)] = np.arange(len(tags))
-            X = np.asarray(coords).reshape(-1, 3) * 1e-3
+    with dmesh._GMSH_LOCK, _gmsh_model("reference"):
+        dmesh._build(design, design.mesh)
+        if order == 2:
+            gmsh.model.mesh.setOrder(2)
+            if optimize:
+                gmsh.model.mesh.optimize("HighOrder")
+        tt, nt, tri, ntri = (11, 10, 9, 6) if order == 2 else (4, 4, 2, 3)
+        X, pos = _gmsh_nodes()
 
-            def group(dim, gid, etype, nper):
-                out = [np.zeros((0, nper), np.int64)]
-                for ent in gmsh.model.getEntitiesForPhysicalGroup(dim, gid):
-                    out.append(dmesh._elements(dim, ent, etype, nper))
-                return pos[np.vstack(out)]
+        def group(dim, gid, etype, nper):
+            return _gmsh_elements(pos, dim, gmsh.model.getEntitiesForPhysicalGroup(dim, gid), etype, nper)
 
-            tets = np.vstack([group(3, rid, tt, nt) for rid in dmesh.REGION_IDS.values()])
-            tets = tets[:, GMSH_TO_VTK_TET10] if order == 2 else tets
-            cav = {k: group(2, gid, tri, ntri) for k, gid in dmesh.CAVITY_GROUP_IDS.items()}
-            fixed = group(2, dmesh.FIXED_GROUP_ID, tri, ntri)
-            outer = group(2, dmesh.OUTER_GROUP_ID, tri, ntri)
-        finally:
-            try:
-                gmsh.model.remove()
-            except Exception:
-                pass
-            if init_here:
-                gmsh.finalize()
+        tets = np.vstack([group(3, rid, tt, nt) for rid in dmesh.REGION_IDS.values()])
+        tets = tets[:, GMSH_TO_VTK_TET10] if order == 2 else tets
+        cav = {k: group(2, gid, tri, ntri) for k, gid in dmesh.CAVITY_GROUP_IDS.items()}
+        fixed = group(2, dmesh.FIXED_GROUP_ID, tri, ntri)
+        outer = group(2, dmesh.OUTER_GROUP_ID, tri, ntri)
+    points = {k: np.asarray(v) * 1e-3 for k, v in {**design.marker_dict, **design.target_dict,
+                                                   **design.p_ext_mm()}.items()}
+    return _compact(X, tets, cav, outer, fixed, points)
+
+
+def _compact(X, tets, cavities, outer, fixed, points=None) -> Tet10Mesh:
+    """Keep the nodes the tets use, renumbered; orient tets and faces (cavity normals out of the
+    air, outer ones out of the solid)."""
     used = np.unique(tets)
     remap = np.full(len(X), -1, np.int64)
     remap[used] = np.arange(len(used))
     nodes = X[used]
     tets = orient_tets(nodes, remap[tets])
-    cav = {k: orient_faces(nodes, tets, remap[v], into_solid=True) for k, v in cav.items()}
+    cav = {k: orient_faces(nodes, tets, remap[v], into_solid=True) for k, v in cavities.items()}
     outer = orient_faces(nodes, tets, remap[outer], into_solid=False)
-    points = {k: np.asarray(v) * 1e-3 for k, v in {**design.marker_dict, **design.target_dict,
-                                                   **design.p_ext_mm()}.items()}
-    return Tet10Mesh(nodes, tets, cav, outer, np.unique(remap[fixed]), points)
+    return Tet10Mesh(nodes, tets, cav, outer, np.unique(remap[fixed]), points or {})
 
 
 # --- a small BIP-like case for CI: a block clamped at one end, a cavity, a loaded end face --------
@@ -405,15 +436,10 @@ def block_with_cavity(size=(0.04, 0.02, 0.02), cavity_radius=0.005, h=0.005) -> 
     face x = size[0] (normals out of the solid), for an end load. gmsh OpenCASCADE, one thread."""
     import gmsh
 
-    init_here = not gmsh.isInitialized()
-    if init_here:
-        gmsh.initialize(argv=["softphantom-ref"], readConfigFiles=False, interruptible=False)
-    try:
-        gmsh.option.setNumber("General.Terminal", 0)
+    with _gmsh_model("block"):
         gmsh.option.setNumber("General.NumThreads", 1)
         gmsh.option.setNumber("Mesh.RandomSeed", 1)
         gmsh.option.setNumber("Mesh.Algorithm3D", 1)
-        gmsh.model.add("block")
         L, W, H = (s * 1e3 for s in size)
         occ = gmsh.model.occ
         box = occ.addBox(0, 0, 0, L, W, H)
@@ -435,33 +461,12 @@ def block_with_cavity(size=(0.04, 0.02, 0.02), cavity_radius=0.005, h=0.005) -> 
         gmsh.model.mesh.generate(3)
         gmsh.model.mesh.setOrder(2)
         gmsh.model.mesh.optimize("HighOrder")
-        tags, coords, _ = gmsh.model.mesh.getNodes()
-        pos = np.full(int(tags.max()) + 1, -1, np.int64)
-        pos[tags.astype(np.int64)] = np.arange(len(tags))
-        X = np.asarray(coords).reshape(-1, 3) * 1e-3
+        X, pos = _gmsh_nodes()
 
         def elems(dim, ents, etype, nper):
-            out = [np.zeros((0, nper), np.int64)]
-            for e in ents:
-                types, _, nt = gmsh.model.mesh.getElements(dim, e)
-                out += [np.asarray(v, np.int64).reshape(-1, nper) for t, v in zip(types, nt) if t == etype]
-            return pos[np.vstack(out)]
+            return _gmsh_elements(pos, dim, ents, etype, nper)
 
         tets = elems(3, [vol], 11, 10)[:, GMSH_TO_VTK_TET10]
         tri_clamp, tri_end, tri_cav = elems(2, clamp, 9, 6), elems(2, end, 9, 6), elems(2, cav, 9, 6)
-    finally:
-        try:
-            gmsh.model.remove()
-        except Exception:
-            pass
-        if init_here:
-            gmsh.finalize()
-    used = np.unique(tets)
-    remap = np.full(len(X), -1, np.int64)
-    remap[used] = np.arange(len(used))
-    nodes = X[used]
-    tets = orient_tets(nodes, remap[tets])
-    cavity = orient_faces(nodes, tets, remap[tri_cav], into_solid=True)
-    end_faces = orient_faces(nodes, tets, remap[tri_end], into_solid=False)
-    mesh = Tet10Mesh(nodes, tets, {"cavity": cavity}, end_faces, np.unique(remap[tri_clamp]))
-    return mesh, end_faces
+    mesh = _compact(X, tets, {"cavity": tri_cav}, tri_end, tri_clamp)
+    return mesh, mesh.outer
