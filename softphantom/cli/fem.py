@@ -14,6 +14,7 @@ import typer
 from softphantom.cli.app import app, console
 from softphantom.cli.options import check_output, overwrite_option, staged_output
 from softphantom.errors import SolverError, UserError
+from softphantom.fem.contact import DEFAULT_CONTACT_RADIUS_M
 
 ARM_ORDER = ("front_zpos", "front_zneg", "back_xpos", "back_xneg")
 
@@ -34,7 +35,8 @@ def simulate_command(
     force_N: str = typer.Option("0,0,0", "--force-N", help="Force FX,FY,FZ in N (model frame)."),
     at: str = typer.Option("on-centre", "--at", help="Where: on-centre, off-centre, or X,Y,Z in mm."),
     patch_radius_mm: float = typer.Option(
-        5.0, "--patch-radius-mm", help="Spread the force over surface nodes within this radius (0: point force)."
+        DEFAULT_CONTACT_RADIUS_M * 1e3, "--patch-radius-mm",
+        help="Contact patch radius in mm: a uniform traction on the outer surface within it (0: point force)."
     ),
     urethra_kPa: float = typer.Option(0.0, "--urethra-kPa", help="Urethra cavity gauge pressure in kPa."),
     gravity: bool = typer.Option(False, "--gravity/--no-gravity", help="Include gravity (−z)."),

@@ -35,6 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from softphantom.errors import UserError
+from softphantom.fem.contact import DEFAULT_CONTACT_RADIUS_M
 
 POINTS = ("on-centre", "off-centre")
 BUNDLED = ("needle-insertion", "push-on-centre", "push-off-centre", "urethra-inflation")
@@ -85,7 +86,7 @@ class Scenario:
     duration_s: float
     rest_s: float
     events: tuple[Event, ...]
-    patch_radius_mm: float = 4.0
+    patch_radius_mm: float = DEFAULT_CONTACT_RADIUS_M * 1e3
     source: str = ""
 
     def active(self, t: float) -> int | None:
@@ -132,7 +133,7 @@ def scenario_from_dict(d: dict, source: str = "<dict>") -> Scenario:
         raise ScenarioError(f"{source}: name: expected a non-empty string")
     duration = _num(f"{source}: duration_s", d["duration_s"], positive=True)
     rest = _num(f"{source}: rest_s", d.get("rest_s", 1.0), positive=True)
-    patch = _num(f"{source}: patch_radius_mm", d.get("patch_radius_mm", 4.0), positive=True)
+    patch = _num(f"{source}: patch_radius_mm", d.get("patch_radius_mm", DEFAULT_CONTACT_RADIUS_M * 1e3), positive=True)
     events: list[Event] = []
     for kind, allowed in (("push", _PUSH), ("inflate", _INFLATE)):
         items = d.get(kind, [])
