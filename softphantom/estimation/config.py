@@ -8,7 +8,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from softphantom.errors import UserError
-from softphantom.fem.contact import DEFAULT_CONTACT_RADIUS_M
 from softphantom.estimation.qp import QP_SOLVERS
 
 MODES = ("sync", "async")
@@ -29,9 +28,8 @@ class EstimatorConfig:
     """How the estimator runs.
 
     ``contact``: name of a ``PhantomModel.p_ext`` point (``"on-centre"``, ``"off-centre"``) or an
-    (x, y, z) point in m; ``contact_radius_m`` spreads the force as a uniform traction on the outer
-    surface within that radius (``softphantom.fem.ContactPatch``; default its one default, 4 mm;
-    0: the element containing the point, as the paper). ``force_min_N``/``force_max_N``:
+    (x, y, z) point in m; ``contact_radius_m`` spreads the force over the surface nodes within that
+    radius (0: the element containing the point, as the paper). ``force_min_N``/``force_max_N``:
     bounds on each force component (box; sign constraints are a zero bound), default ±10 N.
     ``qp_solver``: ``"daqp"`` or ``"quadprog"``. ``mode``: ``"sync"`` (equilibrium refreshed inside
     :meth:`~softphantom.estimation.Estimator.step`, deterministic) or ``"async"`` (a background
@@ -63,7 +61,7 @@ converged fixed point is unchanged). ``tol``: relative force residual of a conve
     """
 
     contact: str | tuple[float, float, float] = "on-centre"
-    contact_radius_m: float = DEFAULT_CONTACT_RADIUS_M
+    contact_radius_m: float = 0.0
     force_min_N: tuple[float, float, float] = (-10.0, -10.0, -10.0)
     force_max_N: tuple[float, float, float] = (10.0, 10.0, 10.0)
     qp_solver: str = "daqp"
