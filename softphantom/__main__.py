@@ -1,5 +1,8 @@
 import sys
 
-from softphantom.cli import main
+try:
+    from softphantom.cli import exit_with, main
+except KeyboardInterrupt:  # Ctrl-C while starting: nothing done yet
+    sys.exit(130)
 
-sys.exit(main())
+exit_with(main())

@@ -144,3 +144,18 @@ def test_ctrl_c_in_any_command_exits_130(capsys):
     assert capsys.readouterr().err.strip() == "interrupted"
     assert cmd.main(["record"], standalone_mode=False) == EXIT_INTERRUPTED
     assert capsys.readouterr().err.strip() == "stopped (Ctrl-C); recording closed"
+
+
+def test_live_record_refuses_an_existing_file(tmp_path, capsys):
+    rec = tmp_path / "s.mcap"
+    rec.write_bytes(b"earlier session")
+    assert main(["live", "--duration-s", "0.2", "--http-port", "0", "--no-stream", "--record", str(rec)]) == 2
+    err = _one_line_error(capsys)
+    assert "--record" in err and "--overwrite" in err
+    assert rec.read_bytes() == b"earlier session"
+
+
+def test_no_arguments_prints_help_without_an_error_line(capsys):
+    assert main([]) == 2
+    cap = capsys.readouterr()
+    assert "Usage" in cap.out and "error" not in cap.err

@@ -51,7 +51,8 @@ def main(argv: list[str] | None = None) -> int:
     except Exception as exc:
         # Usage errors of the CLI framework (typer vendors click): one line, no traceback.
         if hasattr(exc, "format_message") and hasattr(exc, "exit_code"):
-            print_error(_usage_line(exc))
+            if str(exc.format_message()).strip():  # (no arguments: the help was printed instead)
+                print_error(_usage_line(exc))
             return int(exc.exit_code)
         if type(exc).__name__ == "Abort":
             return 1
@@ -68,10 +69,26 @@ def _usage_line(exc) -> str:
     return f"{cmd}: {msg}" if cmd else msg
 
 
+def exit_with(code: int) -> None:
+    """Leave the process with ``code``. After Ctrl-C the interpreter's teardown is skipped (it took
+    ~1 s with the numeric stack loaded on a busy machine, docs/robustness.md): by then every output
+    was closed or removed by the command's own context managers; the standard streams are flushed."""
+    if code == EXIT_INTERRUPTED:
+        import os
+
+        for stream in (sys.stdout, sys.stderr):
+            try:
+                stream.flush()
+            except (OSError, ValueError):
+                pass
+        os._exit(code)
+    sys.exit(code)
+
+
 if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())
+    exit_with(main())
 
 
 def run() -> None:
     """Console-script entry point."""
-    sys.exit(main())
+    exit_with(main())

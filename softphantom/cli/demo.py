@@ -185,6 +185,7 @@ def demo_cmd(
     seed: int = typer.Option(0, "--seed", help="Seed of every random source."),
     osr: int = typer.Option(100, "--osr", help="Board oversampling (100: 19.2 Hz, the paper's N; 25: 76.9 Hz)."),
     truth_mesh_scale: float = typer.Option(0.75, "--truth-mesh-scale", help="Truth mesh size relative to the estimator's."),
+    force: bool = typer.Option(False, "--force", help="Mesh above the element-count limit (docs/robustness.md)."),
     overwrite: bool = overwrite_option(),
 ) -> None:
     """The paper's experiments end to end without hardware: reports and a summary."""
@@ -204,7 +205,7 @@ def demo_cmd(
         raise UserError(f"--mesh-size-mm: must be > 0, got {mesh_size_mm:g}")
     with staged_output(out, overwrite=overwrite, directory=True) as work:
         with Status("design → mesh (estimator model)", console=console):
-            model = build_model(BIPDesign(), mesh_size_mm)
+            model = build_model(BIPDesign(), mesh_size_mm, force=force)
             save_model(model, work / "model")
         console.print(f"model: {len(model.nodes)} nodes, {len(model.tets)} tets (mesh {model.design.mesh.size_mm:g} "
                       f"mm) → {out / 'model'}", highlight=False, soft_wrap=True)

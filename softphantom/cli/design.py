@@ -20,6 +20,8 @@ def design_command(
         None, "--mesh-size-mm", help="Bulb element size in mm; arm and cavity sizes scale with it."
     ),
     png: bool = typer.Option(True, "--png/--no-png", help="Write mesh.png."),
+    force: bool = typer.Option(False, "--force", help="Mesh above the element-count limit and keep cavity volumes "
+                               "beyond the tolerance (docs/robustness.md)."),
     overwrite: bool = overwrite_option(),
 ) -> None:
     """Build the BIP design, mesh it (gmsh) and write model.msh/.vtu/.npz, design.toml, report.md, mesh.png."""
@@ -34,7 +36,7 @@ def design_command(
     t0 = time.perf_counter()
     with staged_output(out, overwrite=overwrite, directory=True) as work:
         with console.status(f"meshing design '{design.name}' …"):
-            model = build_model(design, mesh_size_mm)
+            model = build_model(design, mesh_size_mm, force=force)
         save_model(model, work)
         report = design_report_md(model)
         (work / "report.md").write_text(report, encoding="utf-8")

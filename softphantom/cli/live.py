@@ -19,7 +19,13 @@ def live(
                                "virtual:SCENARIO | serial:PORT"),
     model: Optional[Path] = typer.Option(None, "--model", help="model directory (design output) for the 3-D view"),
     listen_host: str = typer.Option("127.0.0.1", "--listen-host",
-                                    help="interface for the page and the stream; loopback unless set explicitly"),
+                                    help="interface for the page and the stream; beyond loopback needs --allow-remote"),
+    allow_remote: bool = typer.Option(False, "--allow-remote",
+                                      help="serve beyond loopback: the page then requires a token (printed in its "
+                                      "address); the stream has no authentication"),
+    allowed_host: list[str] = typer.Option([], "--allowed-host",
+                                           help="a name clients use for this machine (Host header; repeat)"),
+    max_clients: int = typer.Option(16, "--max-clients", min=1, help="page connections served at once"),
     http_port: int = typer.Option(8765, "--http-port", help="port of the live page (0: any free port)"),
     stream_port: int = typer.Option(5556, "--stream-port", help="ZeroMQ PUB port of the estimate stream (0: any)"),
     no_stream: bool = typer.Option(False, "--no-stream", help="do not publish the network stream"),
@@ -53,6 +59,7 @@ def live(
         raise UserError(f"--record must name an .mcap file, got {record}")
     if record is not None:
         check_output(record, overwrite=overwrite, directory=False, option="--record")
+    token = _remote_token(listen_host, allow_remote)
     kind = source.partition(":")[0]
     if kind in ("virtual", "serial"):
         src = _estimator_source(source, model, at, max_force_N, speed,
@@ -62,9 +69,17 @@ def live(
     if tracker is not None:
         src = _with_tracker(src, tracker, tracker_body)
     cfg = LiveConfig(listen_host=listen_host, http_port=http_port, stream_port=None if no_stream else stream_port,
-                     view_rate_Hz=view_rate_Hz, record=record, duration_s=duration_s)
+                     view_rate_Hz=view_rate_Hz, record=record, duration_s=duration_s, token=token,
+                     allowed_hosts=tuple(allowed_host), max_clients=max_clients)
     with LiveSession(src, cfg) as session:
-        console.print(f"live page: {session.url}", highlight=False)
+        console.print(f"live page: {session.url}", highlight=False, soft_wrap=True)
+        if token is not None:
+            import socket
+
+            port = session.url.split("://", 1)[1].split("/", 1)[0].rsplit(":", 1)[1]
+            name = next((n for n in (socket.getfqdn(), socket.gethostname()) if n != "localhost"), "THIS-HOST")
+            console.print(f"  from another machine: http://{name}:{port}/?token={token}",
+                          highlight=False, soft_wrap=True)
         if session.stream_endpoint:
             console.print(f"estimate stream: {session.stream_endpoint} (ZeroMQ SUB, topic 'estimate', JSON; "
                           "see docs/stream.md)", highlight=False)
@@ -104,6 +119,24 @@ def _with_tracker(src, spec: str, body: Optional[str]):
         raise
     console.print(f"tracker: {feed.name!r} from NatNet {host}:{port or 1510}", highlight=False)
     return TrackedSource(src, feed)
+
+
+def _remote_token(listen_host: str, allow_remote: bool) -> str | None:
+    """None on loopback; beyond it, refuse without --allow-remote, else warn and make a token."""
+    import secrets
+
+    from softphantom.cli.app import print_error
+    from softphantom.viz.live.server import is_loopback
+
+    if is_loopback(listen_host):
+        return None
+    what = "every interface" if listen_host in ("", "0.0.0.0", "::") else listen_host
+    if not allow_remote:
+        raise UserError(f"--listen-host {listen_host!r} serves {what}, beyond this machine; pass --allow-remote "
+                        "to mean it (the page then requires a token)")
+    print_error(f"serving on {what}: anyone who can reach this machine and has the token in the printed address "
+                "sees the session; the estimate stream has no authentication", prefix="warning: ")
+    return secrets.token_urlsafe(18)
 
 
 def _estimator_source(spec: str, model_dir: Optional[Path], at: str, max_force_N: float, speed: float,

@@ -15,6 +15,10 @@ the default 22. Deterministic: one thread, a fixed random seed, the
 Delaunay 3-D algorithm; headless (``General.Terminal = 0``) and callable off the main thread
 (``interruptible=False``: no signal handler). gmsh is one global library, so calls are
 serialised by a lock; it is finalized after each mesh only when this module initialized it.
+Where a Ctrl-C would reach the caller (a command line's main thread) gmsh runs in a spawned child
+process instead, which the Ctrl-C kills at once (:func:`mesh_design`). Before any of it,
+:func:`check_mesh_budget` refuses sizes below a floor, an estimated element count above
+:data:`MAX_TETS` and cavity walls too coarse for :data:`CAVITY_VOLUME_TOLERANCE`.
 
 All lengths here are mm; :mod:`softphantom.design.model` converts to SI.
 """
@@ -27,8 +31,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from softphantom.design.params import ARM_NAMES, BIPDesign, MeshParams
-from softphantom.errors import MeshError
+from softphantom.design.params import ARM_NAMES, MAX_CAVITY_SEGMENTS, BIPDesign, MeshParams
+from softphantom.errors import DesignError, MeshError
 
 # gmsh's 10-node tet -> VTK/meshio order (its last two edges are (2,3), (1,3); VTK: (1,3), (2,3));
 # the same table as softphantom.fem.elements.GMSH_TET10 (design may not import fem)
@@ -96,11 +100,74 @@ def _restore_sigpipe() -> None:
         libc.signal(int(signal.SIGPIPE), ctypes.c_void_p(1))  # 1 == SIG_IGN
 
 
-def mesh_design(design: BIPDesign, mesh: MeshParams | None = None) -> RawMesh:
-    """Mesh ``design`` (sizes from ``mesh`` or ``design.mesh``); raises MeshError if gmsh fails."""
+def _ctrl_c_reaches_here() -> bool:
+    """True where Ctrl-C arrives as KeyboardInterrupt: the main thread with Python's SIGINT handler
+    (a command line), not a worker thread nor a daemonic worker process (which cannot have children)."""
+    import multiprocessing
+    import signal
+
+    return (threading.current_thread() is threading.main_thread()
+            and signal.getsignal(signal.SIGINT) is signal.default_int_handler
+            and not multiprocessing.current_process().daemon)
+
+
+def mesh_design(design: BIPDesign, mesh: MeshParams | None = None, *, isolate: bool | None = None) -> RawMesh:
+    """Mesh ``design`` (sizes from ``mesh`` or ``design.mesh``); raises MeshError if gmsh fails.
+
+    gmsh's C++ does not return to Python until it is done, so a Ctrl-C waits for the whole mesh
+    (> 30 s on a fine one). With ``isolate`` it runs in a child process (spawned, ~0.5 s) that a
+    Ctrl-C kills at once; by default it is isolated where a Ctrl-C would reach this thread.
+    """
+    mp = mesh or design.mesh
+    if isolate is None:
+        isolate = _ctrl_c_reaches_here()
+    return _mesh_in_child(design, mp) if isolate else _mesh_here(design, mp)
+
+
+def _child(design: BIPDesign, mp: MeshParams, conn) -> None:
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent sees the Ctrl-C and ends this process
+    try:
+        conn.send(("ok", _mesh_here(design, mp)))
+    except MeshError as exc:
+        conn.send(("error", str(exc)))
+    except BaseException as exc:  # noqa: BLE001 — reported to the parent as one line
+        conn.send(("error", f"meshing failed on design {design.name!r}: {type(exc).__name__}: {exc}"))
+    finally:
+        conn.close()
+
+
+def _mesh_in_child(design: BIPDesign, mp: MeshParams) -> RawMesh:
+    import multiprocessing
+
+    ctx = multiprocessing.get_context("spawn")
+    recv, send = ctx.Pipe(duplex=False)
+    proc = ctx.Process(target=_child, args=(design, mp, send), name="softphantom-gmsh", daemon=True)
+    proc.start()
+    send.close()
+    try:
+        while not recv.poll(0.1):  # wakes for Ctrl-C (KeyboardInterrupt lands here)
+            if not proc.is_alive() and not recv.poll(0):
+                raise MeshError(f"meshing process for design {design.name!r} ended without a mesh "
+                                f"(exit code {proc.exitcode}; out of memory?)")
+        kind, value = recv.recv()
+    except EOFError:
+        raise MeshError(f"meshing process for design {design.name!r} ended without a mesh "
+                        f"(exit code {proc.exitcode})") from None
+    finally:
+        if proc.is_alive():
+            proc.kill()  # Ctrl-C or an error here: gmsh stops now, its memory is freed
+        proc.join()
+        recv.close()
+    if kind != "ok":
+        raise MeshError(value)
+    return value
+
+
+def _mesh_here(design: BIPDesign, mp: MeshParams) -> RawMesh:
     import gmsh
 
-    mp = mesh or design.mesh
     with _GMSH_LOCK:
         init_here = not gmsh.isInitialized()
         if init_here:
@@ -293,3 +360,89 @@ def _build(design: BIPDesign, mp: MeshParams) -> dict:
         cavities={k: v[:, :3] for k, v in cav.items()}, fixed_faces=fix[:, :3], outer_faces=out[:, :3],
         tets10=tt, cavities6=cav, fixed_faces6=fix, outer_faces6=out, n_corner=len(corner),
     )
+
+
+# --- guards checked before gmsh runs (milliseconds; docs/robustness.md) ---------------------------
+
+MAX_TETS = 1_000_000
+"""Largest estimated element count meshed without ``force`` (~40× the default mesh: a bulb size of ~1.25 mm)."""
+CAVITY_VOLUME_TOLERANCE = 0.10
+"""Largest relative error of a meshed cavity (or bulb) volume against the design without ``force``."""
+_TETS_PER_UNIT = 6.5  # tets per h³ of volume (fitted to the meshes of docs/robustness.md)
+
+
+def _ellipsoid_area(axes) -> float:
+    a, b, c = axes
+    p = 1.6075  # Knud Thomsen's approximation, within 1.1 %
+    return 4 * np.pi * (((a * b) ** p + (a * c) ** p + (b * c) ** p) / 3) ** (1 / p)
+
+
+def _shell(area: float, h_wall: float, h_far: float) -> float:
+    """∫ dV / h³ over the graded layer of a wall (size h_wall at the wall, growing 1:1.2 to h_far),
+    minus the same layer at h_far (counted in the volume term)."""
+    if h_wall >= h_far:
+        return 0.0
+    depth = 0.5 * h_wall + 1.2 * (h_far - h_wall)
+    inner = 0.5 * h_wall / h_wall**3 + 0.6 * (1 / h_wall**2 - 1 / h_far**2)
+    return area * (inner - depth / h_far**3)
+
+
+def estimate_tets(design: BIPDesign, mesh: MeshParams | None = None) -> int:
+    """Tetra count gmsh will make for ``design`` at ``mesh`` sizes, from the size field alone
+    (``∫ dV / h³`` over the volume and the graded wall layers): 0.84 of the count at 6 mm, 1.12 at
+    2.2 mm, low at coarse sizes where the geometry sets the count (docs/robustness.md).
+
+    >>> from softphantom.design import BIPDesign
+    >>> 15_000 < estimate_tets(BIPDesign()) < 40_000   # 24 123 when meshed
+    True
+    """
+    from softphantom.design.geometry import capsule_volume
+
+    mp = mesh or design.mesh
+    h, hs, ha = mp.size_mm, mp.surface_size_mm, mp.arm_size_mm
+    cav = [(g.cavity_radius_mm, g.cavity_volume_mm3, ha) for g in design.arm_geometry()]
+    cav.append((design.urethra.radius_mm, design.urethra.volume_mm3, h))
+    bulb = design.bulb.volume_mm3 - design.urethra.volume_mm3
+    arms = sum(np.pi * a.radius_mm**2 * a.length_mm - a.cavity_volume_mm3 for a in design.arms)
+    total = bulb / h**3 + arms / ha**3 + _shell(_ellipsoid_area(design.bulb.semi_axes_mm), hs, h)
+    for r, v, far in cav:
+        length = max(0.0, v - capsule_volume(r, 0.0)) / (np.pi * r * r)
+        area = 2 * np.pi * r * length + 4 * np.pi * r * r
+        total += _shell(area, mp.cavity_size_mm(r), far)
+    return int(round(_TETS_PER_UNIT * total))
+
+
+def mesh_size_floor_mm(design: BIPDesign) -> float:
+    """The smallest element size worth asking for: the wall size of the design's smallest cavity
+    at the most segments allowed (:data:`~softphantom.design.params.MAX_CAVITY_SEGMENTS`)."""
+    radii = [a.cavity_radius_mm for a in design.arms] + [design.urethra.radius_mm]
+    return 2 * np.pi * min(radii) / MAX_CAVITY_SEGMENTS
+
+
+def predicted_cavity_error(mesh: MeshParams) -> float:
+    """Relative volume deficit of a cavity wall meshed with ``cavity_segments`` around: an
+    inscribed polygon, (2π/n)²/6 (−1.6 % at 22; measured −1.6 % to −1.4 %)."""
+    return (2 * np.pi / mesh.cavity_segments) ** 2 / 6
+
+
+def check_mesh_budget(design: BIPDesign, mesh: MeshParams | None = None, *, force: bool = False) -> int:
+    """Refuse, before gmsh runs, sizes below :func:`mesh_size_floor_mm` (always), and without
+    ``force`` an estimated element count above :data:`MAX_TETS` or cavity walls too coarse for
+    :data:`CAVITY_VOLUME_TOLERANCE`. Returns the estimate. Raises DesignError naming the field."""
+    mp = mesh or design.mesh
+    n = estimate_tets(design, mp)
+    if n > MAX_TETS and not force:
+        raise DesignError(f"mesh.size_mm = {mp.size_mm:.4g} mm: about {n:,} tets estimated, above the limit of "
+                          f"{MAX_TETS:,} (a coarser --mesh-size-mm, or --force)")
+    floor = mesh_size_floor_mm(design)
+    for name in ("size_mm", "surface_size_mm", "arm_size_mm"):
+        v = getattr(mp, name)
+        if v < floor:
+            raise DesignError(f"mesh.{name} = {v:.4g} mm is below the floor of {floor:.3g} mm (the smallest cavity "
+                              f"wall at {MAX_CAVITY_SEGMENTS:g} segments)")
+    err = predicted_cavity_error(mp)
+    if err > CAVITY_VOLUME_TOLERANCE and not force:
+        raise DesignError(f"mesh.cavity_segments = {mp.cavity_segments:.4g} (mesh.size_mm = {mp.size_mm:.4g} mm): "
+                          f"cavity volumes would be about {100 * err:.0f} % low, beyond the "
+                          f"{100 * CAVITY_VOLUME_TOLERANCE:.0f} % tolerance (a finer --mesh-size-mm, or --force)")
+    return n

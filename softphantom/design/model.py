@@ -20,7 +20,16 @@ from pathlib import Path
 import numpy as np
 
 from softphantom.design import geometry as geo
-from softphantom.design.mesh import CAVITY_GROUP_IDS, FIXED_GROUP_ID, OUTER_GROUP_ID, REGION_IDS, RawMesh, mesh_design
+from softphantom.design.mesh import (
+    CAVITY_GROUP_IDS,
+    CAVITY_VOLUME_TOLERANCE,
+    FIXED_GROUP_ID,
+    OUTER_GROUP_ID,
+    REGION_IDS,
+    RawMesh,
+    check_mesh_budget,
+    mesh_design,
+)
 from softphantom.design.params import ARM_NAMES, BIPDesign, design_from_dict, design_to_dict, load_design, save_design
 from softphantom.errors import FileFormatError, MeshError
 
@@ -242,15 +251,36 @@ def model_from_raw(design: BIPDesign, raw: RawMesh) -> PhantomModel:
     )
 
 
-def build_model(design: BIPDesign, mesh_size_mm: float | None = None) -> PhantomModel:
+def build_model(design: BIPDesign, mesh_size_mm: float | None = None, *, force: bool = False,
+                isolate: bool | None = None) -> PhantomModel:
     """Mesh ``design``; ``mesh_size_mm`` rescales its mesh sizes (bulb size, arms and cavities in
     proportion) and the returned ``model.design.mesh`` records the sizes used. Takes a second or
     two at the default size, so no example runs here: ``model = build_model(BIPDesign())``.
+
+    Guards (docs/robustness.md): before gmsh, :func:`~softphantom.design.mesh.check_mesh_budget`
+    (size floor; without ``force`` the element-count limit and the predicted cavity error); after,
+    without ``force``, every cavity and the bulb within ``CAVITY_VOLUME_TOLERANCE`` of the design
+    (MeshError otherwise). ``isolate``: see :func:`~softphantom.design.mesh.mesh_design`.
     """
     if mesh_size_mm is not None:
         # the model's design records the sizes used, so design.toml alone reproduces the mesh
         design = dataclasses.replace(design, mesh=design.mesh.scaled_to(mesh_size_mm))
-    return model_from_raw(design, mesh_design(design, design.mesh))
+    check_mesh_budget(design, design.mesh, force=force)
+    model = model_from_raw(design, mesh_design(design, design.mesh, isolate=isolate))
+    if not force:
+        check_meshed_volumes(model)
+    return model
+
+
+def check_meshed_volumes(model: PhantomModel, tolerance: float = CAVITY_VOLUME_TOLERANCE) -> None:
+    """MeshError if a cavity or the bulb is meshed more than ``tolerance`` (relative) off its design volume."""
+    s = model_summary(model, quality=False)
+    for name in (*model.design.cavity_volumes_mm3(), "bulb"):
+        want, got = s[f"{name}_design_mm3"], s[f"{name}_mesh_mm3"]
+        if abs(got / want - 1) > tolerance:
+            raise MeshError(f"meshed {name} volume {got:.4g} mm³ is {100 * (got / want - 1):+.1f} % off the design's "
+                            f"{want:.4g} mm³ (tolerance {100 * tolerance:.0f} %; mesh.size_mm = "
+                            f"{model.design.mesh.size_mm:.4g} mm: a finer --mesh-size-mm, or --force)")
 
 
 # --- files -------------------------------------------------------------------------------------
@@ -392,15 +422,16 @@ def load_model(directory: str | Path) -> PhantomModel:
         raise FileFormatError(f"{npz}: missing array {exc.args[0]!r}") from None
 
 
-def model_summary(model: PhantomModel) -> dict[str, float]:
-    """Design vs meshed volumes (mm³) and counts, for reports and tests."""
+def model_summary(model: PhantomModel, quality: bool = True) -> dict[str, float]:
+    """Design vs meshed volumes (mm³) and counts (and the smallest dihedral angle with ``quality``)."""
     out: dict[str, float] = {
         "nodes": len(model.nodes),
         "tets": len(model.tets),
         "bulb_design_mm3": model.design.bulb.volume_mm3,
         "bulb_mesh_mm3": model.bulb_volume() / MM**3,
-        "min_dihedral_deg": model.min_dihedral_deg(),
     }
+    if quality:
+        out["min_dihedral_deg"] = model.min_dihedral_deg()
     for name, v in model.design.cavity_volumes_mm3().items():
         out[f"{name}_design_mm3"] = v
         out[f"{name}_mesh_mm3"] = model.cavity_volume(name) / MM**3

@@ -72,6 +72,7 @@ MIN_WALL_MM = 1.0
 SURFACE_TOL_MM = 0.1
 MIN_MARKERS = 4
 MIN_MARKER_SPREAD_MM = 1.0
+MAX_CAVITY_SEGMENTS = 256.0  # volume error (2π/n)²/6 = 0.01 %: more buys nothing but elements
 
 BULB_VOLUME_MM3 = 100_410.0
 URETHRA_VOLUME_MM3 = 2078.0
@@ -210,6 +211,14 @@ class ArmParams:
                 f"{p}.cavity_volume_mm3 = {_fmt(self.cavity_volume_mm3)} is below the sphere of radius "
                 f"{_fmt(r)} mm (radius_mm − wall_mm; min {_fmt(4 / 3 * math.pi * r**3)} mm³)"
             )
+        room = self.length_mm - 2 * MIN_WALL_MM  # the capsule lies in the arm, a wall from each end
+        if self.cavity_cyl_length_mm + 2 * self.cavity_radius_mm > room:
+            r = self.cavity_radius_mm
+            vmax = geo.capsule_volume(r, max(0.0, room - 2 * r))
+            raise DesignError(
+                f"{p}.cavity_volume_mm3 = {_fmt(self.cavity_volume_mm3)} does not fit in the arm: a capsule of "
+                f"radius {_fmt(r)} mm that long exceeds length_mm − 2 walls = {_fmt(room)} mm (max {_fmt(vmax)} mm³)"
+            )
 
     @property
     def cavity_radius_mm(self) -> float:
@@ -288,8 +297,8 @@ class MeshParams:
         for name in ("size_mm", "surface_size_mm", "arm_size_mm"):
             _set(self, name, _positive(f"mesh.{name}", getattr(self, name)))
         n = _num("mesh.cavity_segments", self.cavity_segments)
-        if n < 6.0:
-            raise DesignError(f"mesh.cavity_segments = {_fmt(n)} must be >= 6")
+        if not 6.0 <= n <= MAX_CAVITY_SEGMENTS:
+            raise DesignError(f"mesh.cavity_segments = {_fmt(n)} must be in [6, {MAX_CAVITY_SEGMENTS:g}]")
         _set(self, "cavity_segments", n)
         if isinstance(self.element_order, bool) or self.element_order not in (1, 2):
             raise DesignError(f"mesh.element_order = {self.element_order!r} must be 1 or 2")
@@ -302,10 +311,8 @@ class MeshParams:
     def scaled_to(self, size_mm: float) -> "MeshParams":
         """The same grading with a bulb size of ``size_mm``."""
         s = _positive("mesh.size_mm", size_mm) / self.size_mm
-        return MeshParams(
-            size_mm, self.surface_size_mm * s, self.arm_size_mm * s, max(6.0, self.cavity_segments / s),
-            self.element_order,
-        )
+        segments = min(MAX_CAVITY_SEGMENTS, max(6.0, self.cavity_segments / s))
+        return MeshParams(size_mm, self.surface_size_mm * s, self.arm_size_mm * s, segments, self.element_order)
 
 
 def _on_surface(direction: Vec3) -> Vec3:
@@ -521,7 +528,27 @@ def _validate_materials(d: BIPDesign) -> None:
     d.material_of_regions()
 
 
+def _check_sizes(d: BIPDesign) -> None:
+    """Closed-form bounds checked before any sampled geometry (whose cost grows with the sizes)."""
+    axes = d.bulb.semi_axes_mm
+    u = d.urethra
+    room = 4 * max(axes)  # twice the bulb's length: far out (the wall check below is the exact one)
+    if u.radius_mm > min(axes) - MIN_WALL_MM:
+        raise DesignError(f"urethra.radius_mm = {_fmt(u.radius_mm)} does not fit in the bulb (max "
+                          f"{_fmt(min(axes) - MIN_WALL_MM)} mm: smallest semi-axis less a wall)")
+    if u.cyl_length_mm + 2 * u.radius_mm > room:
+        vmax = geo.capsule_volume(u.radius_mm, max(0.0, room - 2 * u.radius_mm))
+        raise DesignError(f"urethra.volume_mm3 = {_fmt(u.volume_mm3)} does not fit in the bulb: the capsule would be "
+                          f"{_fmt(u.cyl_length_mm + 2 * u.radius_mm)} mm long, the bulb is {_fmt(2 * max(axes))} mm "
+                          f"(at most {_fmt(vmax)} mm³)")
+    for a in d.arms:
+        if a.radius_mm > max(axes):
+            raise DesignError(f"arms.{a.name}.radius_mm = {_fmt(a.radius_mm)} is wider than the bulb (max "
+                              f"{_fmt(max(axes))} mm, its largest semi-axis)")
+
+
 def _validate_geometry(d: BIPDesign) -> None:
+    _check_sizes(d)
     axes = d.bulb.semi_axes_mm
     u = d.urethra
     ua, ub = u.segment_mm

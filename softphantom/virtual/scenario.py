@@ -38,6 +38,9 @@ from softphantom.errors import UserError
 from softphantom.fem.contact import DEFAULT_CONTACT_RADIUS_M
 
 POINTS = ("on-centre", "off-centre")
+MAX_DURATION_S = 600.0
+"""Longest scenario: the board is modelled on a 1 kHz grid (about 20 float columns, ~0.16 MB per
+second), so 10 min is ~100 MB; 1e9 s asked for terabytes."""
 BUNDLED = ("needle-insertion", "push-on-centre", "push-off-centre", "urethra-inflation")
 """The four scenarios of the paper's Sec. V (Figs. 8–11), in ``scenarios/`` of the repository."""
 
@@ -132,6 +135,8 @@ def scenario_from_dict(d: dict, source: str = "<dict>") -> Scenario:
     if not isinstance(name, str) or not name:
         raise ScenarioError(f"{source}: name: expected a non-empty string")
     duration = _num(f"{source}: duration_s", d["duration_s"], positive=True)
+    if duration > MAX_DURATION_S:
+        raise ScenarioError(f"{source}: duration_s = {duration:g} s is above the limit of {MAX_DURATION_S:g} s")
     rest = _num(f"{source}: rest_s", d.get("rest_s", 1.0), positive=True)
     patch = _num(f"{source}: patch_radius_mm", d.get("patch_radius_mm", DEFAULT_CONTACT_RADIUS_M * 1e3), positive=True)
     events: list[Event] = []

@@ -6,11 +6,20 @@ appends to :class:`LiveState`; the HTTP server serves the page and one SSE strea
 each reading the shared state at the view rate. Nothing a browser or subscriber does can block
 the pump: the state is a bounded ring under a lock held for microseconds, and a browser that
 falls behind by more than the ring skips samples (counted as ``view_dropped``).
+
+Security (docs/stream.md): every request's ``Host`` header must name this server (loopback names,
+IP literals, the machine's own names or ``allowed_hosts``), so a page on another site that rebinds
+its DNS name to 127.0.0.1 is refused; with a ``token`` (required beyond loopback) every request
+must carry it (``?token=`` once, then the cookie the page gets); at most ``max_clients``
+connections are served at once (503 beyond), and a client idle for ``client_timeout_s`` is dropped.
 """
 
 from __future__ import annotations
 
+import hmac
+import ipaddress
 import json
+import socket
 import threading
 import time
 from collections import deque
@@ -34,7 +43,9 @@ _STATIC = {"/": ("index.html", "text/html; charset=utf-8"),
 @dataclass(frozen=True)
 class LiveConfig:
     """Options of a live session. Ports 0 pick a free port; ``stream_port=None`` disables the
-    network stream. ``listen_host`` is loopback unless set explicitly (both page and stream)."""
+    network stream. ``listen_host`` is loopback unless set explicitly (both page and stream);
+    beyond loopback a ``token`` is required (:func:`is_loopback`). ``allowed_hosts``: extra names
+    accepted in the ``Host`` header; ``max_clients``: connections served at once."""
 
     listen_host: str = "127.0.0.1"
     http_port: int = 8765
@@ -44,7 +55,63 @@ class LiveConfig:
     record: Path | None = None
     record_surface_Hz: float = 10.0
     duration_s: float | None = None
+    token: str | None = None
+    allowed_hosts: tuple[str, ...] = ()
+    max_clients: int = 16
+    client_timeout_s: float = 10.0
 
+    def __post_init__(self) -> None:
+        if not is_loopback(self.listen_host) and not self.token:
+            raise UserError(f"listen host {self.listen_host!r} is beyond loopback: a token is required")
+        if self.max_clients < 1:
+            raise UserError(f"max_clients must be >= 1, got {self.max_clients}")
+
+
+def is_loopback(host: str) -> bool:
+    """True for an address or name that only this machine can reach ("" and 0.0.0.0 are every interface).
+
+    >>> [is_loopback(h) for h in ("127.0.0.1", "::1", "localhost", "", "0.0.0.0", "192.168.1.5")]
+    [True, True, True, False, False, False]
+    """
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:
+        return False
+
+
+def _host_names(cfg: LiveConfig) -> set[str]:
+    """Names a client may put in the ``Host`` header (lower case, without the port)."""
+    names = {"localhost", *(h.lower() for h in cfg.allowed_hosts)}
+    if not is_loopback(cfg.listen_host):
+        names |= {socket.gethostname().lower(), socket.getfqdn().lower()}
+        if cfg.listen_host:
+            names.add(cfg.listen_host.lower())
+    return names
+
+
+def host_allowed(header: str | None, names: set[str], loopback_only: bool) -> bool:
+    """Whether a ``Host`` header names this server: a listed name, or an IP literal (loopback
+    only when serving on loopback). DNS rebinding gives the attacker's name: refused.
+
+    >>> host_allowed("127.0.0.1:8765", {"localhost"}, True), host_allowed("evil.example:8765", {"localhost"}, True)
+    (True, False)
+    """
+    if not header:
+        return False
+    host = header.strip().lower()
+    if host.startswith("["):
+        host = host[1:].split("]", 1)[0]
+    elif host.count(":") == 1:
+        host = host.split(":", 1)[0]
+    if host in names:
+        return True
+    try:
+        ip = ipaddress.ip_address(host)
+    except ValueError:
+        return False
+    return ip.is_loopback or not loopback_only
 
 _TRACKER_KEYS = ("x_mm", "y_mm", "z_mm", "yaw_deg", "pitch_deg", "roll_deg")
 
@@ -172,7 +239,7 @@ class LiveSession:
     def start(self) -> "LiveSession":
         cfg = self.config
         try:
-            self._httpd = _make_server(self, cfg.listen_host, cfg.http_port)
+            self._httpd = _make_server(self, cfg)
         except OSError as exc:
             raise UserError(f"cannot serve the live page on {cfg.listen_host}:{cfg.http_port}: {exc.strerror}") from None
         threading.Thread(target=self._httpd.serve_forever, kwargs={"poll_interval": 0.1},
@@ -195,9 +262,12 @@ class LiveSession:
 
     @property
     def url(self) -> str:
+        """The page's address (with ``?token=`` when one is required)."""
         assert self._httpd is not None
         host, port = self._httpd.server_address[:2]
-        return f"http://{host}:{port}/"
+        if ":" in host:
+            host = f"[{host}]"
+        return f"http://{host}:{port}/" + (f"?token={self.config.token}" if self.config.token else "")
 
     @property
     def stream_endpoint(self) -> str | None:
@@ -324,15 +394,41 @@ def _set_surface(st: LiveState, geo: Any, pos: np.ndarray) -> str:
     return b64
 
 
-def _make_server(session: LiveSession, host: str, port: int) -> ThreadingHTTPServer:
+_COOKIE = "softphantom_live_token"
+
+
+def _make_server(session: LiveSession, cfg: LiveConfig) -> ThreadingHTTPServer:
+    from http.cookies import SimpleCookie
+    from urllib.parse import parse_qs
+
+    names = _host_names(cfg)
+    loopback_only = is_loopback(cfg.listen_host)
+
     class Handler(BaseHTTPRequestHandler):
         server_version = "softphantom-live"
+        timeout = cfg.client_timeout_s  # a silent or stalled client is dropped, its slot freed
 
         def log_message(self, *args: Any) -> None:  # quiet
             pass
 
-        def _send(self, body: bytes, ctype: str, code: int = 200) -> None:
+        def _refuse(self, code: int, why: str) -> None:
+            self._send(f"{why}\n".encode(), "text/plain; charset=utf-8", code)
+
+        def _token_ok(self) -> tuple[bool, bool]:
+            """(authorised, came in the query: set the cookie)."""
+            if not cfg.token:
+                return True, False
+            given = parse_qs(self.path.partition("?")[2]).get("token", [""])[0]
+            if given and hmac.compare_digest(given.encode(), cfg.token.encode()):
+                return True, True
+            morsel = SimpleCookie(self.headers.get("Cookie", "")).get(_COOKIE)
+            ok = morsel is not None and hmac.compare_digest(morsel.value.encode(), cfg.token.encode())
+            return ok, False
+
+        def _send(self, body: bytes, ctype: str, code: int = 200, cookie: bool = False) -> None:
             self.send_response(code)
+            if cookie:
+                self.send_header("Set-Cookie", f"{_COOKIE}={cfg.token}; HttpOnly; SameSite=Strict; Path=/")
             self.send_header("Content-Type", ctype)
             self.send_header("Content-Length", str(len(body)))
             self.send_header("Cache-Control", "no-store")
@@ -342,9 +438,16 @@ def _make_server(session: LiveSession, host: str, port: int) -> ThreadingHTTPSer
         def do_GET(self) -> None:  # noqa: N802
             path = self.path.split("?", 1)[0]
             try:
+                if not host_allowed(self.headers.get("Host"), names, loopback_only):
+                    self._refuse(HTTPStatus.FORBIDDEN, "Host not served here (use the printed address)")
+                    return
+                ok, from_query = self._token_ok()
+                if not ok:
+                    self._refuse(HTTPStatus.UNAUTHORIZED, "token required (open the printed address)")
+                    return
                 if path in _STATIC:
                     name, ctype = _STATIC[path]
-                    self._send((STATIC_DIR / name).read_bytes(), ctype)
+                    self._send((STATIC_DIR / name).read_bytes(), ctype, cookie=from_query)
                 elif path == "/api/state":
                     self._send(json.dumps(session.state_json(), allow_nan=False).encode(), "application/json")
                 elif path == "/api/geometry":
@@ -354,7 +457,7 @@ def _make_server(session: LiveSession, host: str, port: int) -> ThreadingHTTPSer
                     self._events()
                 else:
                     self._send(b"not found\n", "text/plain", HTTPStatus.NOT_FOUND)
-            except (BrokenPipeError, ConnectionResetError):
+            except (BrokenPipeError, ConnectionResetError, TimeoutError):
                 pass
 
         def _events(self) -> None:
@@ -380,5 +483,24 @@ def _make_server(session: LiveSession, host: str, port: int) -> ThreadingHTTPSer
     class Server(ThreadingHTTPServer):
         daemon_threads = True
         allow_reuse_address = True
+        address_family = socket.AF_INET6 if ":" in cfg.listen_host else socket.AF_INET
+        slots = threading.BoundedSemaphore(cfg.max_clients)
 
-    return Server((host, port), Handler)
+        def process_request(self, request, client_address) -> None:
+            if not self.slots.acquire(blocking=False):  # full: answer at once, hold no thread
+                try:
+                    request.sendall(b"HTTP/1.1 503 Service Unavailable\r\nContent-Length: 0\r\n"
+                                    b"Retry-After: 5\r\nConnection: close\r\n\r\n")
+                except OSError:
+                    pass
+                self.shutdown_request(request)
+                return
+            super().process_request(request, client_address)
+
+        def process_request_thread(self, request, client_address) -> None:
+            try:
+                super().process_request_thread(request, client_address)
+            finally:
+                self.slots.release()
+
+    return Server((cfg.listen_host, cfg.http_port), Handler)
