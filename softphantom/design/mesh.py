@@ -140,13 +140,26 @@ def _child(design: BIPDesign, mp: MeshParams, conn) -> None:
 
 def _mesh_in_child(design: BIPDesign, mp: MeshParams) -> RawMesh:
     import multiprocessing
+    import signal
 
     ctx = multiprocessing.get_context("spawn")
     recv, send = ctx.Pipe(duplex=False)
     proc = ctx.Process(target=_child, args=(design, mp, send), name="softphantom-gmsh", daemon=True)
-    proc.start()
-    send.close()
     try:
+        # a Ctrl-C during the start would leave a child half-started (it then dies with a traceback):
+        # hold it for the few ms of the start (whichever thread the signal reaches, Python runs its
+        # handler on the main thread); it is raised just after, inside this try
+        main = threading.current_thread() is threading.main_thread()
+        hit: list[int] = []
+        old = signal.signal(signal.SIGINT, lambda *_: hit.append(1)) if main else None
+        try:
+            proc.start()
+        finally:
+            if main:
+                signal.signal(signal.SIGINT, old)
+        if hit:
+            raise KeyboardInterrupt
+        send.close()
         while not recv.poll(0.1):  # wakes for Ctrl-C (KeyboardInterrupt lands here)
             if not proc.is_alive() and not recv.poll(0):
                 raise MeshError(f"meshing process for design {design.name!r} ended without a mesh "
@@ -156,9 +169,11 @@ def _mesh_in_child(design: BIPDesign, mp: MeshParams) -> RawMesh:
         raise MeshError(f"meshing process for design {design.name!r} ended without a mesh "
                         f"(exit code {proc.exitcode})") from None
     finally:
-        if proc.is_alive():
-            proc.kill()  # Ctrl-C or an error here: gmsh stops now, its memory is freed
-        proc.join()
+        if proc.pid is not None:
+            if proc.is_alive():
+                proc.kill()  # Ctrl-C or an error here: gmsh stops now, its memory is freed
+            proc.join()
+        send.close()
         recv.close()
     if kind != "ok":
         raise MeshError(value)
