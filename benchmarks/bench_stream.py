@@ -4,7 +4,9 @@
 1. publish rate: messages/s that ``EstimatePublisher.publish`` sustains (encode + send) for real
    estimate messages, and the publish call's p50/p99/max time;
 2. latency publish → local subscriber at 77 Hz (the board's fastest) and 1 kHz, p50/p99;
-3. page update rate: SSE frames/s a client receives from ``softphantom live`` at 77 Hz estimates.
+3. page update rate: SSE frames/s a client receives from ``softphantom live`` at 77 Hz estimates;
+4. publish call time with a stalled subscriber (never reads, full queue) beside a reading one, and
+   the peer: the same burst with the reading subscriber only (tests/test_stream.py counts, this times).
 
     .venv/bin/python benchmarks/bench_stream.py
 """
@@ -110,8 +112,37 @@ def bench_page(seconds: float = 5.0) -> None:
           f"view dropped {st['view_dropped']}")
 
 
+def bench_stalled(n: int = 20000) -> None:
+    payload = {"seq": 0, "pad": "x" * 1000}
+
+    def burst(stalled: bool) -> np.ndarray:
+        with EstimatePublisher(port=0, hwm_messages=100) as pub, EstimateSubscriber(pub.endpoint) as live:
+            extra = EstimateSubscriber(pub.endpoint, hwm_messages=10) if stalled else None
+            try:
+                pub.wait_for_subscribers(2 if stalled else 1, 5.0)
+                times = np.empty(n)
+                for i in range(n):
+                    payload["seq"] = i
+                    a = time.perf_counter()
+                    pub.publish(payload)
+                    times[i] = time.perf_counter() - a
+                    while live.recv(timeout_s=0) is not None:
+                        pass
+            finally:
+                if extra is not None:
+                    extra.close()
+        return times * 1e3
+
+    peer, st = burst(False), burst(True)
+    print(f"publish with a stalled subscriber ({n} x 1 kB): p50 {np.median(st):.4f} ms, p99 "
+          f"{np.percentile(st, 99):.4f} ms, max {st.max():.2f} ms; second half p50 {np.median(st[n // 2:]):.4f} ms; "
+          f"peer (reading subscriber only) p50 {np.median(peer):.4f} ms, p99 {np.percentile(peer, 99):.4f} ms; "
+          f"ratio p50 {np.median(st) / np.median(peer):.2f}")
+
+
 if __name__ == "__main__":
     bench_publish()
     bench_latency(77.0)
     bench_latency(1000.0)
     bench_page()
+    bench_stalled()

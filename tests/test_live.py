@@ -40,13 +40,28 @@ from softphantom.virtual import VirtualConfig, scenario_from_dict, simulate
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 
 
-def _get(url: str, timeout: float = 5.0) -> bytes:
+def _get(url: str, timeout: float = 30.0) -> bytes:
     with urllib.request.urlopen(url, timeout=timeout) as r:
         assert r.status == 200
         return r.read()
 
 
-def _sse_frames(url: str, n: int, timeout: float = 10.0) -> list[dict]:
+def _wait_state(url: str, ok, timeout_s: float = 60.0) -> dict:
+    """Poll ``api/state`` until ``ok(state)`` or ``timeout_s``; the last state either way."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        state = json.loads(_get(url + "api/state", timeout=30.0))
+        if ok(state) or time.monotonic() > deadline:
+            return state
+        time.sleep(0.1)
+
+
+def _ticks(status: dict, latest: dict, rate_Hz: float) -> tuple[int, int]:
+    """(estimates + skipped, ticks up to the latest t_s): equal when every tick is shown or counted."""
+    return status["estimates"] + status["skipped_total"], round(latest["t_s"] * rate_Hz) + 1
+
+
+def _sse_frames(url: str, n: int, timeout: float = 30.0) -> list[dict]:
     frames = []
     with urllib.request.urlopen(url + "api/events", timeout=timeout) as r:
         assert r.headers["Content-Type"] == "text/event-stream"
@@ -122,26 +137,46 @@ def test_live_page_endpoints_frames_and_stream(tmp_path):
             assert seqs == sorted(seqs) and len(set(seqs)) == len(seqs)
             surf = decode_positions_mm(next(f["surface_mm_f32_b64"] for f in frames if "surface_mm_f32_b64" in f))
             assert surf.shape == src.geometry.nodes.shape
-            deadline = time.monotonic() + 10.0  # > 1 s of estimates, however loaded the machine
-            while True:
-                time.sleep(0.25)
-                state = json.loads(_get(s.url + "api/state"))
-                st = state["status"]
-                if st["estimates"] > 200 or time.monotonic() > deadline:
-                    break
-            assert 150 < st["rate_Hz"] < 230, st
-            assert st["sensor_health"] == "ok" and st["step_ms"] is not None and st["estimates"] > 200
+            # > 200 estimates shown, however loaded the machine (the rate figure: test_status_rate_*)
+            state = _wait_state(s.url, lambda x: x["status"]["estimates"] > 200 and x["status"]["sensor_health"] == "ok")
+            st = state["status"]
+            assert st["sensor_health"] == "ok" and st["step_ms"] is not None and st["estimates"] > 200, st
+            # every 200 Hz tick of the source was shown or counted as skipped
+            assert _ticks(st, state["latest"], 200.0)[0] == _ticks(st, state["latest"], 200.0)[1], st
             assert st["stream"]["enabled"] and st["recording"]["enabled"]
             for k in ("force_y_N", "y_mm", "pitch_deg", "dVmeas_back_xpos_mm3", "apex_dy_mm", "seq", "t_s"):
                 assert k in state["latest"]
             assert _get_status(s.url + "nope") == 404
-            m = sub.recv(timeout_s=3.0)
+            m = sub.recv(timeout_s=30.0)
             assert m is not None and "force_y_N" in m
         finally:
             sub.close()
     r = read_recording(rec)
     assert r.complete and len(r.estimates) > 200 and r.geometry is not None and len(r.surface) >= 5
     assert [m["seq"] for m in r.estimates] == list(range(len(r.estimates)))
+
+
+def test_status_rate_and_health_on_a_controlled_clock(monkeypatch):
+    """The page's rate figure and stall detection, on a fake clock (no wall-clock speed involved)."""
+    import softphantom.viz.live.server as srv
+
+    clock = [1000.0]
+    monkeypatch.setattr(srv, "time", SimpleNamespace(monotonic=lambda: clock[0], time=time.time,
+                                                     perf_counter=time.perf_counter))
+    state = srv.LiveState(history=50)
+    for k in range(201):  # 200 Hz for 1 s
+        state.push({"seq": k, "skipped": 1 if k % 50 == 0 else 0, "step_ms": 0.5, "status": "ok"})
+        clock[0] += 0.005
+    st = state.status()
+    assert st["rate_Hz"] == pytest.approx(200.0) and st["estimates"] == 201 and st["skipped_total"] == 5
+    assert st["sensor_health"] == "ok" and st["step_p99_ms"] == pytest.approx(0.5)
+    clock[0] += 1.5  # no estimate for 1.5 s: stalled, and the 2 s window holds only the last 0.5 s
+    st = state.status()
+    assert st["sensor_health"].startswith("stalled (1.5 s") and st["rate_Hz"] == pytest.approx(200.0)
+    clock[0] += 3.0
+    assert state.status()["rate_Hz"] == 0.0
+    state.finish()
+    assert state.status()["sensor_health"] == "ok"  # a finished source is not stalled
 
 
 def _get_status(url: str) -> int:
@@ -158,10 +193,12 @@ def test_live_page_renders_in_headless_chromium(tmp_path):
 
     src = SyntheticSource(rate_Hz=77, duration_s=None, period_s=10.0)  # the push peaks at t = 5 s
     with LiveSession(src, LiveConfig(http_port=0, stream_port=0)) as s:
-        time.sleep(2.5)  # the push is well under way: the surface has deformed
+        # the push is well under way (source time, however slowly a loaded machine runs it)
+        state = _wait_state(s.url, lambda x: x["latest"] is not None and x["latest"]["t_s"] >= 2.5)
+        assert state["latest"]["t_s"] >= 2.5, state["status"]
         png = tmp_path / "live.png"
         _screenshot(s.url + "?frames=30", png)
-        st = s.state.status()
+        st, latest = s.state.status(), s.state.latest
     assert png.stat().st_size > 20_000
     img = np.asarray(Image.open(png).convert("RGB"), dtype=float)
     assert img.shape[:2] == (1000, 1600)
@@ -172,7 +209,8 @@ def test_live_page_renders_in_headless_chromium(tmp_path):
     assert (np.abs(view - 255).sum(axis=2) > 60).mean() > 0.3  # the phantom covers the view's middle
     colored = (np.ptp(plot, axis=2) > 60).mean()                  # coloured lines in the plot
     assert colored > 0.003, colored
-    assert st["view_dropped"] == 0 and st["estimates"] > 100
+    assert st["view_dropped"] == 0 and st["estimates"] > 0
+    assert _ticks(st, latest, 77.0)[0] == _ticks(st, latest, 77.0)[1] > 2.5 * 77  # shown or counted
     shutil.copy(png, Path(tempfile.gettempdir()) / "softphantom-live-test.png")  # for a human look
 
 
@@ -180,14 +218,17 @@ def test_replay_of_a_recording_shows_the_recorded_deformation(tmp_path):
     rec = tmp_path / "s.mcap"
     src = SyntheticSource(rate_Hz=200, duration_s=1.0, subdivisions=2)
     with LiveSession(src, LiveConfig(http_port=0, stream_port=None, record=rec, record_surface_Hz=20)) as s:
-        assert s.wait(timeout_s=10.0)
+        assert s.wait(timeout_s=120.0)
     r = read_recording(rec)
-    n = len(r.estimates)  # 200 less what a loaded machine made the real-time source skip
-    assert n + sum(m["skipped"] for m in r.estimates) == 200 and n > 150 and len(r.surface) >= 10
+    n = len(r.estimates)  # 200 less what a loaded machine made the real-time source skip (counted)
+    assert n + sum(m["skipped"] for m in r.estimates) == 200 and r.estimates[-1]["seq"] == n - 1
+    # the surface is recorded at ≤ 20 Hz: a few snapshots, each at an estimate, in order
+    surf_seqs = [m["seq"] for m in r.surface]
+    assert 2 <= len(surf_seqs) <= n and surf_seqs == sorted(set(surf_seqs)) and surf_seqs[-1] <= n - 1
     rp = open_source(f"replay:{rec}", speed=0)
     assert isinstance(rp, ReplaySource) and rp.geometry.nodes.shape == src.geometry.nodes.shape
     with LiveSession(rp, LiveConfig(http_port=0, stream_port=None)) as s2:
-        assert s2.wait(timeout_s=10.0)
+        assert s2.wait(timeout_s=120.0)
         st = json.loads(_get(s2.url + "api/state"))
     assert st["status"]["estimates"] == n and st["status"]["finished"]
     assert st["latest"]["seq"] == n - 1
@@ -206,7 +247,9 @@ def test_cli_live_runs_records_and_rejects_bad_options(tmp_path, capsys):
                  "--rate-Hz", "100", "--record", str(rec)]) == 0
     out = capsys.readouterr().out
     assert "live page: http://127.0.0.1:" in out and "estimate stream: tcp://127.0.0.1:" in out
-    assert 80 <= len(read_recording(rec).estimates) <= 110
+    est = read_recording(rec).estimates  # 1 s of a 100 Hz source: each tick recorded or counted as skipped
+    assert est and [m["seq"] for m in est] == list(range(len(est)))
+    assert len(est) + sum(m["skipped"] for m in est) == round(est[-1]["t_s"] * 100) + 1
     for argv, msg in [
         (["live", "--source", "bogus"], "unknown --source"),
         (["live", "--source", "virtual:needle-insertion"], "needs --model"),
@@ -256,25 +299,29 @@ def test_live_from_the_virtual_phantom(coarse_model, virtual_run, tmp_path):
             assert any(f["samples"] for f in frames)
             if CHROMIUM:
                 png = tmp_path / "live_virtual.png"
-                time.sleep(1.5)  # into the push
+                state = _wait_state(s.url, lambda x: x["latest"] is not None and x["latest"]["t_s"] >= 1.5)
+                assert state["latest"]["t_s"] >= 1.5  # into the push
                 _screenshot(s.url + "?frames=20", png)
                 from PIL import Image
 
                 img = np.asarray(Image.open(png).convert("L"), float)
                 assert png.stat().st_size > 20_000 and img.std() > 20
             got = []
-            deadline = time.monotonic() + 30
+            deadline = time.monotonic() + 300  # the whole 3.6 s scenario, however loaded the machine
             while not s.wait(timeout_s=0.05) and time.monotonic() < deadline:
                 while (m := sub.recv(timeout_s=0)) is not None:
                     got.append(m)
-            while (m := sub.recv(timeout_s=0.3)) is not None:
+            assert s.wait(timeout_s=0), "the scenario did not finish in 300 s"
+            while (m := sub.recv(timeout_s=5.0)) is not None:
                 got.append(m)
             st = s.state.status()
         finally:
             sub.close()
     seqs = [m["seq"] for m in got]
     assert seqs == sorted(seqs) and len(set(seqs)) == len(seqs)  # in order, no duplicates
-    assert st["estimates"] >= 0.9 * 3.6 * 76  # the whole scenario at the board's 77 Hz
+    # live=False: every board sample of the 3.6 s scenario is estimated and shown, none skipped
+    n_samples = sum(1 for _ in virtual_run.source(tare=True))
+    assert st["estimates"] == n_samples >= 3.6 * 76 and st["skipped_total"] == 0
     # the estimate saw the push: +y motion of the bulb with a +y force, then back
     fy = np.array([m["force_y_N"] for m in got])
     y = np.array([m["y_mm"] for m in got])

@@ -1,4 +1,4 @@
-"""Network stream (ZeroMQ) and session recording (MCAP): ordering, no loss at rate, a stalled or
+"""Network stream (ZeroMQ) and session recording (MCAP): ordering, no loss, counted drops, a stalled or
 vanished subscriber never slows the publisher, crash-safe recording, export to the estimate CSV."""
 
 from __future__ import annotations
@@ -69,21 +69,25 @@ def test_non_finite_numbers_become_null_and_missing_fields_are_named():
         message_to_estimate(bad)
 
 
-def test_subscriber_gets_every_message_in_order_at_500_Hz():
-    """2 s at 500 Hz (6.5× the board's fastest 77 Hz): nothing lost, nothing reordered."""
+def _drain(sub: EstimateSubscriber, seqs: list[int], until_seq: int, timeout_s: float = 60.0) -> None:
+    """Read into ``seqs`` until ``until_seq`` arrives or nothing has come for ``timeout_s``."""
+    while not seqs or seqs[-1] < until_seq:
+        m = sub.recv(timeout_s=timeout_s)
+        if m is None:
+            return
+        seqs.append(m["seq"])
+
+
+def test_subscriber_gets_every_message_in_order_paced_at_500_Hz():
+    """1000 messages paced at 500 Hz (6.5× the board's fastest 77 Hz), queues sized for the run: nothing
+    lost, nothing reordered however slowly a loaded machine lets the reader run (the latency and the
+    loss at 1 kHz with the default queues are figures in benchmarks/bench_stream.py)."""
     msgs = [estimate_to_message(e, i, 0.0) for i, e in enumerate(_estimates(1000))]
     got: list[int] = []
-    with EstimatePublisher(port=0) as pub, EstimateSubscriber(pub.endpoint) as sub:
-        assert pub.wait_for_subscribers(1, timeout_s=5.0)
-
-        def reader() -> None:
-            while len(got) < len(msgs):
-                m = sub.recv(timeout_s=3.0)
-                if m is None:
-                    return
-                got.append(m["seq"])
-
-        th = threading.Thread(target=reader, daemon=True)
+    with EstimatePublisher(port=0, hwm_messages=2000) as pub, \
+            EstimateSubscriber(pub.endpoint, hwm_messages=2000) as sub:
+        assert pub.wait_for_subscribers(1, timeout_s=60.0)
+        th = threading.Thread(target=_drain, args=(sub, got, len(msgs) - 1), daemon=True)
         th.start()
         t0 = time.perf_counter()
         for i, m in enumerate(msgs):
@@ -92,13 +96,16 @@ def test_subscriber_gets_every_message_in_order_at_500_Hz():
             delay = t0 + (i + 1) / 500.0 - time.perf_counter()
             if delay > 0:
                 time.sleep(delay)
-        th.join(10.0)
+        th.join(120.0)
         assert got == list(range(1000))
-        assert sub.lost == 0 and sub.out_of_order == 0
-        assert pub.stats().sent == 1000
+        assert sub.received == 1000 and sub.lost == 0 and sub.out_of_order == 0
+        assert pub.stats().sent == 1000 and pub.stats().would_block == 0
 
 
 def test_stalled_or_vanished_subscriber_never_blocks_the_publisher():
+    """Counted, not timed: every publish is accepted while one subscriber never reads and one is gone;
+    the stalled one gets a prefix with its drops counted; the reading one is not held back. (The
+    publish call's time with a stalled subscriber is a figure in benchmarks/bench_stream.py.)"""
     payload = {"seq": 0, "pad": "x" * 1000}
     n = 20000  # 20 MB: far beyond the stalled subscriber's queue and the kernel's socket buffers
     with EstimatePublisher(port=0, hwm_messages=100) as pub:
@@ -106,36 +113,33 @@ def test_stalled_or_vanished_subscriber_never_blocks_the_publisher():
         vanished = EstimateSubscriber(pub.endpoint)
         live = EstimateSubscriber(pub.endpoint)
         try:
-            assert pub.wait_for_subscribers(3, timeout_s=5.0)
+            assert pub.wait_for_subscribers(3, timeout_s=60.0)
             vanished.close()  # goes away without a word
-            times = np.empty(n)
-            received, last_seq = 0, -1
-            deadline = time.monotonic() + 60.0
+            seqs: list[int] = []
             for i in range(n):
                 payload["seq"] = i
-                t = time.perf_counter()
-                assert pub.publish(payload)
-                times[i] = time.perf_counter() - t
+                assert pub.publish(payload), f"publish refused message {i}"
                 while (msg := live.recv(timeout_s=0)) is not None:  # the healthy one reads meanwhile
-                    received, last_seq = received + 1, msg["seq"]
-                assert time.monotonic() < deadline, f"publishing stalled at message {i}"
-            ms = times * 1e3
-            # bounded, and no slower once the stalled subscriber's queue is full (second half) than
-            # before; the bounds leave room for a loaded CI machine (here: p50 ~0.015 ms, max ~0.3 ms)
-            assert np.percentile(ms, 99) < 5.0, np.percentile(ms, 99)
-            assert np.median(ms[n // 2:]) < 3 * np.median(ms[: n // 10]) + 0.05
-            # the stalled subscriber lost messages (dropped for it only); it held nobody back
-            got = 0
-            while stalled.recv(timeout_s=0.2) is not None:
-                got += 1
-            assert 0 < got < n
-            while (msg := live.recv(timeout_s=0.5)) is not None:
-                received, last_seq = received + 1, msg["seq"]
-            # an unpaced 20 MB burst: the reading subscriber keeps receiving, in order, to the end
-            # (how much of a burst it gets depends on scheduling; the paced no-loss case is the test
-            # above)
-            assert received > 0 and last_seq >= n - n // 10
-            assert live.out_of_order == 0 and received + live.lost <= n
+                    seqs.append(msg["seq"])
+            st = pub.stats()
+            assert st.sent == n and st.would_block == 0
+            # the stalled subscriber got some messages, in order, and counts exactly what it missed
+            got: list[int] = []
+            _drain(stalled, got, n - 1, timeout_s=2.0)
+            assert 0 < len(got) < n and got == sorted(got) and stalled.out_of_order == 0
+            assert stalled.received + stalled.lost == got[-1] - got[0] + 1
+            # the reading subscriber empties its queue, then gets a message published afterwards:
+            # the full stalled queue never held it back (it waits up to 60 s for it, not a rate)
+            _drain(live, seqs, n - 1, timeout_s=5.0)
+            for j in range(12):  # re-sent if the queue was still full (a starved I/O thread): ≤ 60 s
+                payload["seq"] = n + j
+                assert pub.publish(payload)
+                _drain(live, seqs, n, timeout_s=5.0)
+                if seqs and seqs[-1] >= n:
+                    break
+            assert seqs and seqs[-1] >= n, seqs[-3:]
+            assert seqs == sorted(seqs) and live.out_of_order == 0
+            assert live.received + live.lost == seqs[-1] - seqs[0] + 1
         finally:
             for s in (stalled, vanished, live):
                 s.close()
@@ -193,11 +197,19 @@ while True:
 
 
 def test_killed_session_leaves_a_readable_recording(tmp_path):
+    """What a reader saw in the file before the kill is still there after it (nothing flushed is lost)."""
     path = tmp_path / "killed.mcap"
     proc = subprocess.Popen([sys.executable, "-c", _WRITER, str(path)], stdout=subprocess.PIPE, text=True)
     try:
         assert proc.stdout.readline().strip() == "started"
-        time.sleep(1.5)
+        seen, deadline = 0, time.monotonic() + 60.0
+        while seen < 200 and time.monotonic() < deadline:  # until 200 estimates are flushed
+            time.sleep(0.1)
+            try:
+                seen = len(read_recording(path).estimates)
+            except FileFormatError:  # no chunk flushed yet
+                pass
+        assert seen >= 200, f"only {seen} estimates flushed in 60 s"
     finally:
         proc.send_signal(signal.SIGKILL)
         proc.wait(10)
@@ -205,7 +217,7 @@ def test_killed_session_leaves_a_readable_recording(tmp_path):
     assert not r.complete
     seqs = [m["seq"] for m in r.estimates]
     assert seqs == list(range(len(seqs)))
-    assert len(seqs) >= 200  # ~1.5 s written at up to 500 Hz, at most the last 0.2 s lost
+    assert len(seqs) >= seen
     assert 0 < r.bytes_read <= os.path.getsize(path)
     assert main(["recording-csv", str(path), "--out", str(tmp_path / "k.csv")]) == 0
     assert len((tmp_path / "k.csv").read_text().splitlines()) == len(seqs) + 2
@@ -235,16 +247,16 @@ def test_example_client_reads_the_stream():
     msgs = [estimate_to_message(e, i, time.time()) for i, e in enumerate(_estimates(400))]
     with EstimatePublisher(port=0) as pub:
         proc = subprocess.Popen([sys.executable, str(example), "--endpoint", pub.endpoint, "--count", "100",
-                                 "--timeout-s", "5"], stdout=subprocess.PIPE, text=True)
+                                 "--timeout-s", "60"], stdout=subprocess.PIPE, text=True)
         try:
-            assert pub.wait_for_subscribers(1, timeout_s=10.0)
+            assert pub.wait_for_subscribers(1, timeout_s=60.0)
             for m in msgs:
                 m["t_pub_unix_s"] = time.time()
                 pub.publish(m)
                 time.sleep(0.002)
                 if proc.poll() is not None:
                     break
-            out, _ = proc.communicate(timeout=10)
+            out, _ = proc.communicate(timeout=120)
         finally:
             if proc.poll() is None:
                 proc.kill()

@@ -218,9 +218,10 @@ class LiveSession:
     >>> from softphantom.viz.live.source import SyntheticSource
     >>> src = SyntheticSource(rate_Hz=200, duration_s=0.2, subdivisions=1)
     >>> with LiveSession(src, LiveConfig(http_port=0, stream_port=0)) as s:
-    ...     ended = s.wait(timeout_s=10.0)
-    ...     s.state.status()["estimates"]
-    40
+    ...     ended = s.wait(timeout_s=120.0)
+    ...     st = s.state.status()
+    >>> ended, st["finished"], st["estimates"] + st["skipped_total"]  # each tick shown or counted skipped
+    (True, True, 40)
     """
 
     def __init__(self, source: Any, config: LiveConfig = LiveConfig()):
