@@ -39,7 +39,8 @@ def test_demo_end_to_end_coarse(tmp_path, capsys):
     sc = tmp_path / "short.toml"
     sc.write_text(SHORT)
     out = tmp_path / "demo"
-    assert main(["demo", "--out", str(out), "--mesh-size-mm", "12", "--scenarios", str(sc), "--seed", "2"]) == 0
+    assert main(["demo", "--out", str(out), "--mesh-size-mm", "12", "--scenarios", str(sc), "--seed", "2",
+                 "--atlas-grid", "3,4,3,2"]) == 0
     text = capsys.readouterr().out
     d = out / "demo-short"
     for f in ("frames.bin", "recording.csv", "tracker_motive.csv", "truth.csv", "snapshot.vtu", "virtual.json",

@@ -52,7 +52,7 @@ def test_cli_estimate_replay_writes_the_estimate_csv(model_dir, tmp_path, coarse
     rec = _recording(tmp_path / "rec.csv")
     out = tmp_path / "est.csv"
     rc = main(["estimate", "--model", str(model_dir), "--source", f"replay:{rec}", "--out", str(out),
-               "--max-force-N", "5", "--qp-solver", "quadprog"])
+               "--max-force-N", "5", "--qp-solver", "quadprog", "--estimator", "refresh"])
     assert rc == 0
     tab = read_table(out)
     targets = list(coarse_model.targets)

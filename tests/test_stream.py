@@ -41,7 +41,7 @@ def test_message_has_units_in_every_name_and_round_trips():
     est = _estimates(200)[150]
     m = estimate_to_message(est, seq=3, t_pub_unix_s=123.0)
     unitless = [k for k in m if not k.endswith(("_N", "_kPa", "_mm", "_deg", "_mm3", "_ms", "_s"))]
-    assert sorted(unitless) == ["cond_W", "qp_status", "seq", "skipped", "status"]
+    assert sorted(unitless) == ["cond_W", "in_envelope", "qp_status", "seq", "skipped", "status"]
     # the message is an estimate-CSV row plus seq / t_pub_unix_s (the CSV has status too: link events)
     assert set(csv_columns(est.target_shift)) <= set(m)
     assert set(m) - set(csv_columns(est.target_shift)) == {"seq", "t_pub_unix_s"}

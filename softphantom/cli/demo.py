@@ -20,9 +20,10 @@ def _contact(scenario) -> str:
     return points.pop() if len(points) == 1 else "on-centre"
 
 
-def run_scenario(sc, model, out: Path, cfg, truth, bar) -> dict:
-    """One scenario end to end from its solved ``truth``; returns its summary row (JSON-able)."""
-    from softphantom.estimation import Estimator, EstimatorConfig
+def run_scenario(sc, model, out: Path, cfg, truth, bar, estimator: str = "atlas", atlas=None) -> dict:
+    """One scenario end to end from its solved ``truth``; returns its summary row (JSON-able).
+    ``estimator``: atlas (built once per contact point, cached in out/model/atlas) or refresh (sync)."""
+    from softphantom.estimation import EstimatorConfig, open_estimator
     from softphantom.estimation.stream import estimate_stream
     from softphantom.evaluation import evaluate, read_estimate, read_truth, write_report
     from softphantom.tracking import estimate_lag
@@ -39,7 +40,8 @@ def run_scenario(sc, model, out: Path, cfg, truth, bar) -> dict:
     t1 = time.perf_counter()
     task = bar.add_task(f"{sc.name}: estimate", total=n_frames, what="")
     ecfg = EstimatorConfig(contact=_contact(sc), mode="sync")
-    with Estimator(model, ecfg) as est:
+    with open_estimator(estimator, model, ecfg, cache_dir=out / "model", progress=False, atlas=atlas,
+                        log=lambda s: bar.console.print(s, highlight=False, soft_wrap=True)) as est:
         stats = estimate_stream(src, est, est_path, lambda e, n: bar.update(task, completed=n),
                                 live=False, metadata={"model": "../model", "scenario": sc.name,
                                                       "source": f"virtual:{sc.name}",
@@ -70,6 +72,7 @@ def run_scenario(sc, model, out: Path, cfg, truth, bar) -> dict:
                      "study": r.ref.study} for r in rows],
         "tracker_clock_offset_ms": {"injected": rs["tracker"]["clock_offset_s"] * 1e3, "recovered": lag.lag_ms},
         "estimate": {k: stats[k] for k in ("estimates", "rejected", "rate_Hz", "step_ms_p50", "step_ms_p99")},
+        "estimator": estimator,
         "truth": rs["truth"], "seconds": {"truth_solve": truth.solve_s, "estimate": t_est, "evaluate": t_eval},
     }
 
@@ -144,7 +147,7 @@ def print_summary(rows: list[dict], con=console) -> None:
                   f"{extra}", highlight=False)
 
 
-def _run_all(scs, model, out: Path, cfg, tm) -> list[dict]:
+def _run_all(scs, model, out: Path, cfg, tm, estimator: str = "atlas", atlas=None) -> list[dict]:
     """Truth solves in one worker process, in scenario order; the main process estimates and
     evaluates each scenario as soon as its truth is ready (2 cores: both stay busy)."""
     import multiprocessing as mp
@@ -168,7 +171,7 @@ def _run_all(scs, model, out: Path, cfg, tm) -> list[dict]:
             for sc, fut in zip(scs, futures):
                 truth = fut.result()
                 bar.update(tasks[sc.name], what=f"solved in {truth.solve_s:.0f} s")
-                rows.append(run_scenario(sc, model, out, cfg, truth, bar))
+                rows.append(run_scenario(sc, model, out, cfg, truth, bar, estimator, atlas))
         finally:
             for f in futures:
                 f.cancel()
@@ -187,14 +190,20 @@ def demo_cmd(
     truth_mesh_scale: float = typer.Option(0.75, "--truth-mesh-scale", help="Truth mesh size relative to the estimator's."),
     force: bool = typer.Option(False, "--force", help="Mesh above the element-count limit (docs/robustness.md)."),
     overwrite: bool = overwrite_option(),
+    estimator: str = typer.Option("atlas", "--estimator", help="atlas (precomputed, real time) | refresh (sync: "
+                                  "re-linearized inside each step)."),
+    atlas_grid: str = typer.Option(None, "--atlas-grid", help="Atlas: Chebyshev points per axis NX,NY,NZ,NP."),
 ) -> None:
     """The paper's experiments end to end without hardware: reports and a summary."""
     from rich.status import Status
 
     from softphantom.cli.virtual import _config
     from softphantom.design import BIPDesign, build_model, save_model
+    from softphantom.estimation.select import atlas_config_from_options, check_estimator_kind
     from softphantom.virtual import BUNDLED, load_scenario, truth_model
 
+    check_estimator_kind(estimator)
+    atlas = atlas_config_from_options(atlas_grid)
     t0 = time.perf_counter()
     check_output(out, overwrite=overwrite, directory=True)
     names = list(scenarios or BUNDLED)
@@ -213,7 +222,7 @@ def demo_cmd(
             tm = truth_model(model, cfg.truth)
         console.print(f"truth model: {len(tm.nodes)} nodes, {len(tm.tets)} tets (mesh {tm.design.mesh.size_mm:g} mm)",
                       highlight=False)
-        rows = _run_all([load_scenario(n) for n in names], model, work, cfg, tm)
+        rows = _run_all([load_scenario(n) for n in names], model, work, cfg, tm, estimator, atlas)
         for r in rows:  # the paths the user will see, once the directory is in place
             r["report"] = str(out / Path(r["report"]).relative_to(work))
         wall = time.perf_counter() - t0

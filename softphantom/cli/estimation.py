@@ -58,8 +58,17 @@ def estimate_cmd(
                            "default: the recording's (replay) or on-centre."),
     max_force_N: float = typer.Option(10.0, "--max-force-N", help="Bound on each force component (N)."),
     qp_solver: str = typer.Option("daqp", "--qp-solver", help="QP solver: daqp | quadprog."),
-    mode: str = typer.Option("auto", "--mode", help="sync (deterministic) | async (background equilibrium) | "
-                             "auto (async for serial, sync otherwise)."),
+    estimator: str = typer.Option("atlas", "--estimator", help="atlas (precomputed equilibria, built once per model "
+                                  "and cached in MODEL/atlas/) | refresh (linearization refreshed per sample)."),
+    scheduler: str = typer.Option(None, "--scheduler", help="Atlas build: Dask scheduler address (default: a local "
+                                  "cluster on all cores)."),
+    atlas_grid: str = typer.Option(None, "--atlas-grid", help="Atlas: Chebyshev points per axis NX,NY,NZ,NP "
+                                   "(default 5,7,5,4)."),
+    envelope: str = typer.Option(None, "--envelope", help="Atlas: load envelope FXMIN:FXMAX,FYMIN:FYMAX,FZMIN:FZMAX,"
+                                 "PMIN:PMAX in N and kPa (default -1.5:1.5,-1:5.2,-1.5:1.5,-2:40); outside it the estimate "
+                                 "is clamped and flagged (in_envelope 0)."),
+    mode: str = typer.Option("auto", "--mode", help="refresh estimator: sync (deterministic) | async (background "
+                             "equilibrium) | auto (async for serial, sync otherwise)."),
     tare_s: float = typer.Option(1.0, "--tare-s", help="Serial: rest window for the tare at start (s)."),
     p0_kPa: float = P0_OPTION,
     tube_length_m: float = TUBE_LENGTH_OPTION,
@@ -73,8 +82,11 @@ def estimate_cmd(
     import threading
 
     from softphantom.design import load_model
-    from softphantom.estimation import Estimator, EstimatorConfig, estimate_stream
+    from softphantom.estimation import EstimatorConfig, estimate_stream, open_estimator
+    from softphantom.estimation.select import atlas_config_from_options, check_estimator_kind
 
+    check_estimator_kind(estimator)
+    acfg = atlas_config_from_options(atlas_grid, envelope)
     if mode not in ("auto", "sync", "async"):
         raise UserError(f"--mode must be auto, sync or async, got {mode!r}")
     if at is not None and at not in ("on-centre", "off-centre"):
@@ -93,6 +105,13 @@ def estimate_cmd(
     at = at or opened.meta.get("recording_contact") or "on-centre"
     cfg = EstimatorConfig.box(max_force_N, contact=at, qp_solver=qp_solver,
                               mode=("async" if live else "sync") if mode == "auto" else mode)
+    t0 = time.monotonic()
+    try:  # the contact point may come from the recording: the source is open first
+        est = open_estimator(estimator, model, cfg, cache_dir=model_dir, scheduler=scheduler, atlas=acfg,
+                             log=lambda s: console.print(s, highlight=False, soft_wrap=True))
+    except BaseException:
+        src.close()
+        raise
     stop = threading.Event()
     if duration_s is not None:
         timer = threading.Timer(duration_s, stop.set)
@@ -110,16 +129,16 @@ def estimate_cmd(
                           f"xyz ({p[0]:+.2f}, {p[1]:+.2f}, {p[2]:+.2f}) mm  step {e.step_time * 1e3:.2f} ms  "
                           f"{e.qp_status}", highlight=False)
 
-    t0 = time.monotonic()
     # a live source's estimates cannot be made again: written in place and kept on Ctrl-C (closed
     # cleanly); from a file, the CSV appears only when complete
     target = contextlib.nullcontext(out) if live else staged_output(out, overwrite=overwrite, directory=False)
-    with target as path, Estimator(model, cfg) as est:
-        console.print(f"estimator ready in {time.monotonic() - t0:.1f} s ({len(model.nodes)} nodes, "
-                      f"mode {cfg.mode}, contact {at}, |F_i| <= {max_force_N:g} N, QP {qp_solver})", highlight=False)
-        meta = {"model": str(model_dir), "source": source, "contact": at,
-                "contact_radius_mm": cfg.contact_radius_m * 1e3, "max_force_N": max_force_N,
-                "qp_solver": qp_solver, "mode": cfg.mode, "nodes": int(len(model.nodes)), **opened.meta}
+    with target as path, est:
+        how = f"mode {cfg.mode}" if estimator == "refresh" else "no background work"
+        console.print(f"estimator {estimator} ready in {time.monotonic() - t0:.1f} s ({len(model.nodes)} nodes, "
+                      f"{how}, contact {at}, |F_i| <= {max_force_N:g} N, QP {qp_solver})", highlight=False)
+        meta = {"model": str(model_dir), "source": source, "contact": at, "max_force_N": max_force_N,
+                "qp_solver": qp_solver, "estimator": estimator, "mode": cfg.mode, "nodes": int(len(model.nodes)),
+                "contact_radius_mm": cfg.contact_radius_m * 1e3, **opened.meta}
         try:
             s = estimate_stream(src, est, path, progress, live=live, metadata=meta, stop=stop,
                                 on_event=print_event)

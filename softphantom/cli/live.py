@@ -43,11 +43,15 @@ def live(
     tracker: Optional[str] = typer.Option(None, "--tracker", help="natnet:HOST[:PORT]: show the tracker beside the "
                                           "estimate and record it on /tracker (Motive, or virtual serve --natnet)"),
     tracker_body: Optional[str] = typer.Option(None, "--tracker-body", help="rigid body of the --tracker stream"),
+    estimator: str = typer.Option("atlas", "--estimator", help="virtual/serial: atlas (precomputed, cached in "
+                                  "MODEL/atlas/) | refresh (linearization refreshed in the background)"),
 ) -> None:
     """Show the estimate live on a local web page, stream every estimate (ZeroMQ, JSON) and record
     the session (MCAP). Ctrl-C stops."""
+    from softphantom.estimation.select import check_estimator_kind
     from softphantom.viz.live import LiveConfig, LiveSession, open_source
 
+    check_estimator_kind(estimator)
     if not (0 < view_rate_Hz <= 120):
         raise UserError(f"--view-rate-Hz must be in (0, 120], got {view_rate_Hz}")
     for name, port in (("--http-port", http_port), ("--stream-port", stream_port)):
@@ -63,7 +67,7 @@ def live(
     kind = source.partition(":")[0]
     if kind in ("virtual", "serial"):
         src = _estimator_source(source, model, at, max_force_N, speed,
-                                dict(tube_length_m=tube_length_m, tube_id_mm=tube_id_mm), on_new_board)
+                                dict(tube_length_m=tube_length_m, tube_id_mm=tube_id_mm), on_new_board, estimator)
     else:
         src = open_source(source, model_dir=model, rate_Hz=rate_Hz, duration_s=None, speed=speed)
     if tracker is not None:
@@ -140,11 +144,11 @@ def _remote_token(listen_host: str, allow_remote: bool) -> str | None:
 
 
 def _estimator_source(spec: str, model_dir: Optional[Path], at: str, max_force_N: float, speed: float,
-                      bench_options: Optional[dict] = None, on_new_board: str = "stop"):
+                      bench_options: Optional[dict] = None, on_new_board: str = "stop", estimator: str = "atlas"):
     """The estimator over a board or the virtual phantom, opened as ``softphantom estimate`` does."""
     from softphantom.cli.estimation import open_sensor_source
     from softphantom.design import load_model
-    from softphantom.estimation import Estimator, EstimatorConfig
+    from softphantom.estimation import EstimatorConfig, open_estimator
     from softphantom.viz.live import EstimatorSource
 
     if model_dir is None or not (model_dir / "model.npz").is_file():
@@ -154,9 +158,15 @@ def _estimator_source(spec: str, model_dir: Optional[Path], at: str, max_force_N
     model = load_model(model_dir)
     opened = open_sensor_source(spec, model, on_new_board=on_new_board, **(bench_options or {}))
     sensor, is_live = opened.source, opened.live
-    # a paced source is shown in real time: the background equilibrium keeps each step short
+    # refresh estimator on a paced source: the background equilibrium keeps each step short
     cfg = EstimatorConfig.box(max_force_N, contact=at, mode="async" if is_live or speed > 0 else "sync")
-    return EstimatorSource(model, sensor, Estimator(model, cfg), live=is_live, speed=speed, p_ext=at)
+    try:
+        est = open_estimator(estimator, model, cfg, cache_dir=model_dir,
+                             log=lambda s: console.print(s, highlight=False, soft_wrap=True))
+    except BaseException:
+        sensor.close()
+        raise
+    return EstimatorSource(model, sensor, est, live=is_live, speed=speed, p_ext=at)
 
 
 @app.command("recording-csv")

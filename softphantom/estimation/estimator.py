@@ -19,12 +19,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from softphantom.errors import SolverError, UserError
+from softphantom.errors import SolverError
 from softphantom.estimation.config import EstimatorConfig
-from softphantom.estimation.linearization import EquilibriumSolver, Linearization, PathCorrection
+from softphantom.estimation.forward import ForwardModel
+from softphantom.estimation.linearization import Linearization, PathCorrection
 from softphantom.estimation.qp import solve_volume_qp
 from softphantom.estimation.types import ARM_NAMES, Estimate
-from softphantom.fem import fem_from_phantom, force_actuator, probe_matrix
 from softphantom.pose import Pose6, rigid_fit
 
 PATH_ITERATIONS = 4  # fixed-point passes of the QP on the path-corrected W (see PathCorrection)
@@ -93,7 +93,7 @@ def noise_bound(lin: Linearization, rest_markers: np.ndarray, target_names, sigm
     return NoiseBound(np.sqrt(np.diag(cov)), pose, targets, cov)
 
 
-def _check(m) -> str:
+def check_sample(m) -> str:
     """'' for a usable sample, else the rejection reason."""
     if getattr(m, "status", "ok") != "ok":
         return str(m.status)
@@ -108,6 +108,25 @@ def _check(m) -> str:
     if not np.isfinite(float(m.t)):
         return "nan:t"
     return ""
+
+
+def repeat_last(last: Estimate, m, status: str, t0: float, skipped: int) -> Estimate:
+    """An estimate for a sample that gave none (rejected, solver failure): the last state again,
+    with the sample's time and volumes and ``status``."""
+    t = float(m.t) if np.isfinite(float(m.t)) else last.t
+    dV = np.asarray(m.dV, float).copy() if np.shape(m.dV) == (4,) else np.full(4, np.nan)
+    return Estimate(
+        t=t, force=last.force.copy(), p_urethra=last.p_urethra, pose=last.pose,
+        target_shift=dict(last.target_shift), volume_pred=last.volume_pred.copy(), volume_meas=dV,
+        cond_W=last.cond_W, qp_status=status, step_time=time.perf_counter() - t0, skipped=int(skipped),
+        status=status, in_envelope=last.in_envelope,
+    )
+
+
+def sensitivity_cond(W: np.ndarray) -> float:
+    """Condition number of the force columns of a (4,4) sensitivity (inf if rank-deficient)."""
+    s = np.linalg.svd(np.asarray(W)[:, :3], compute_uv=False)
+    return float(s[0] / s[-1]) if s[-1] > 0 else float("inf")
 
 
 class _Worker(threading.Thread):
@@ -147,10 +166,7 @@ class _Worker(threading.Thread):
                 with est._lock:
                     lin, path = est._lin, est._path
                 if est._moved(lam, lin):
-                    t0 = time.perf_counter()
-                    new = est._eq.solve(lin, lam, path)
-                    est.refresh_times.append(time.perf_counter() - t0)
-                    est._publish(new)
+                    est._refresh(lin, lam, path)
             except Exception as exc:  # kept for the foreground; the thread goes on
                 self.error = f"{type(exc).__name__}: {exc}"
             finally:
@@ -180,28 +196,18 @@ class Estimator:
     In async mode call :meth:`close` (or use ``with``) to stop the background thread.
     """
 
+    kind = "refresh"
+
     def __init__(self, model, config: EstimatorConfig | None = None) -> None:
         self.config = cfg = config or EstimatorConfig()
         self.model = model
-        self.fem = fem = fem_from_phantom(model)
-        if isinstance(cfg.contact, str):
-            if cfg.contact not in model.p_ext:
-                raise UserError(f"contact point {cfg.contact!r}: the model has {', '.join(sorted(model.p_ext))}")
-            self.contact_point = np.asarray(model.p_ext[cfg.contact], float)
-        else:
-            self.contact_point = np.asarray(cfg.contact, float)
-        H_f = force_actuator(fem, self.contact_point, cfg.contact_radius_m)
-        self.marker_names = tuple(model.markers)
-        self.target_names = tuple(model.targets)
-        if len(self.marker_names) < 3:
-            raise UserError(f"the model has {len(self.marker_names)} markers; a pose needs at least 3")
-        pts = [model.markers[k] for k in self.marker_names] + [model.targets[k] for k in self.target_names]
-        self._eq = EquilibriumSolver(
-            fem, H_f, probe_matrix(fem, pts), solver=cfg.sparse_solver, tol=cfg.tol,
-            refactor_rate=cfg.refactor_rate, max_iter=cfg.max_iter,
-        )
-        self._nm = len(self.marker_names)
-        self.rest: Linearization = self._eq.rest()
+        self.forward = fwd = ForwardModel(model, cfg)
+        self.fem = fwd.fem
+        self.contact_point = fwd.contact_point
+        self.marker_names, self.target_names = fwd.marker_names, fwd.target_names
+        self._eq = fwd.eq
+        self._nm = fwd.n_markers
+        self.rest: Linearization = fwd.rest
         self.rest_markers = self.rest.sub_x[: self._nm].copy()
         self.rest_targets = self.rest.sub_x[self._nm:].copy()
         self._lo = np.array(cfg.force_min_N)
@@ -224,7 +230,7 @@ class Estimator:
         self._last = Estimate(
             t=0.0, force=z.copy(), p_urethra=0.0, pose=Pose6(z.copy(), z.copy()),
             target_shift={k: z.copy() for k in self.target_names}, volume_pred=np.zeros(4),
-            volume_meas=np.zeros(4), cond_W=self._cond(self.rest), qp_status="rest", step_time=0.0,
+            volume_meas=np.zeros(4), cond_W=sensitivity_cond(self.rest.W), qp_status="rest", step_time=0.0,
         )
         if self.config.mode == "async" and self._worker is None:
             self._worker = _Worker(self)
@@ -262,6 +268,14 @@ class Estimator:
         """The latest estimate (the rest estimate before the first step)."""
         return self._last
 
+    def _refresh(self, lin: Linearization, lam: np.ndarray, path: "PathCorrection | None") -> None:
+        """The one equilibrium refresh (step in sync mode, the worker, settle): solve at ``lam``
+        from ``lin``, time it, publish the new linearization."""
+        t0 = time.perf_counter()
+        new = self._eq.solve(lin, lam, path)
+        self.refresh_times.append(time.perf_counter() - t0)
+        self._publish(new)
+
     def _publish(self, lin: Linearization) -> None:
         prev = self._lin
         path = PathCorrection.between(prev, lin) if self.config.path_correction else None
@@ -295,11 +309,6 @@ class Estimator:
         d[:3] = np.clip(d[:3], -k * c.trust_N, k * c.trust_N)
         d[3] = np.clip(d[3], -k * c.trust_Pa, k * c.trust_Pa)
         return lin.lam + d
-
-    @staticmethod
-    def _cond(lin: Linearization) -> float:
-        s = np.linalg.svd(lin.W[:, :3], compute_uv=False)
-        return float(s[0] / s[-1]) if s[-1] > 0 else float("inf")
 
     def node_positions(self) -> np.ndarray:
         """(N,3) m node positions of the current estimate (first order about the linearization)."""
@@ -336,7 +345,7 @@ class Estimator:
         pose, shifts = pose_and_shifts(self.rest_markers, self.rest_targets, self.target_names, pts)
         est = Estimate(
             t=float(m.t), force=lam[:3].copy(), p_urethra=float(lam[3]), pose=pose, target_shift=shifts,
-            volume_pred=vpred, volume_meas=dV.copy(), cond_W=self._cond(lin),
+            volume_pred=vpred, volume_meas=dV.copy(), cond_W=sensitivity_cond(lin.W),
             qp_status=qp.status, step_time=time.perf_counter() - t0, skipped=int(skipped),
             extra={"qp_residual_m3": qp.residual, "active": qp.active, "lin_lam": lin.lam},
         )
@@ -345,17 +354,9 @@ class Estimator:
     def step(self, m, skipped: int = 0) -> Estimate:
         """Estimate the state for one measurement (see the class docstring)."""
         t0 = time.perf_counter()
-        why = _check(m)
+        why = check_sample(m)
         if why:
-            last = self._last
-            return Estimate(
-                t=float(m.t) if np.isfinite(float(m.t)) else last.t, force=last.force.copy(),
-                p_urethra=last.p_urethra, pose=last.pose, target_shift=dict(last.target_shift),
-                volume_pred=last.volume_pred.copy(),
-                volume_meas=np.asarray(m.dV, float).copy() if np.shape(m.dV) == (4,) else np.full(4, np.nan),
-                cond_W=last.cond_W, qp_status=f"rejected:{why}", step_time=time.perf_counter() - t0,
-                skipped=int(skipped), status=f"rejected:{why}",
-            )
+            return repeat_last(self._last, m, f"rejected:{why}", t0, skipped)
         with self._lock:
             lin, path = self._lin, self._path
         try:
@@ -367,23 +368,13 @@ class Estimator:
                        or abs(moved[3]) > self.config.relinearize_Pa
                        or self._since_refresh >= self.config.refresh_every)
                 if due and self._moved(lam, lin):
-                    t1 = time.perf_counter()
-                    new = self._eq.solve(lin, self._target(lam, lin), self._path)
-                    self.refresh_times.append(time.perf_counter() - t1)
-                    self._publish(new)
+                    self._refresh(lin, self._target(lam, lin), self._path)
                     self._since_refresh = 0
                     est, lam = self._estimate(m, self._lin, skipped, t0, self._path)
             elif self._worker is not None:
                 self._worker.request(self._target(lam, lin))
         except SolverError as exc:
-            last = self._last
-            return Estimate(
-                t=float(m.t), force=last.force.copy(), p_urethra=last.p_urethra, pose=last.pose,
-                target_shift=dict(last.target_shift), volume_pred=last.volume_pred.copy(),
-                volume_meas=np.asarray(m.dV, float).copy(), cond_W=last.cond_W,
-                qp_status=f"failed:{exc}", step_time=time.perf_counter() - t0, skipped=int(skipped),
-                status=f"failed:{exc}",
-            )
+            return repeat_last(self._last, m, f"failed:{exc}", t0, skipped)
         self._lam = lam
         self._last = est
         return est
@@ -410,7 +401,7 @@ class Estimator:
                 if self._lin is lin:
                     raise SolverError(f"background equilibrium did not refresh: {self._worker.error}")
             else:
-                self._publish(self._eq.solve(lin, self._target(lam, lin)))
+                self._refresh(lin, self._target(lam, lin), None)
         return est
 
     # -- noise ------------------------------------------------------------------------------------

@@ -38,14 +38,14 @@ EVENT_PREFIX = "event:"
 def estimate_columns(target_names: Iterable[str]) -> list[str]:
     """Header of the estimate CSV, in order (docs/architecture.md).
 
-    >>> estimate_columns(["apex"])[:5], estimate_columns([])[-5:]
-    (['t_s', 'force_x_N', 'force_y_N', 'force_z_N', 'p_urethra_kPa'], ['cond_W', 'qp_status', 'step_ms', 'skipped', 'status'])
+    >>> estimate_columns(["apex"])[:5], estimate_columns([])[-6:]
+    (['t_s', 'force_x_N', 'force_y_N', 'force_z_N', 'p_urethra_kPa'], ['cond_W', 'qp_status', 'step_ms', 'skipped', 'status', 'in_envelope'])
     """
     cols = ["t_s", "force_x_N", "force_y_N", "force_z_N", "p_urethra_kPa", *POSE_COLUMNS]
     for n in target_names:
         cols += [f"{n}_dx_mm", f"{n}_dy_mm", f"{n}_dz_mm"]
     cols += [f"dVpred_{a}_mm3" for a in ARM_NAMES] + [f"dVmeas_{a}_mm3" for a in ARM_NAMES]
-    return cols + ["cond_W", "qp_status", "step_ms", "skipped", "status"]
+    return cols + ["cond_W", "qp_status", "step_ms", "skipped", "status", "in_envelope"]
 
 
 def _cell(v: float) -> str:
@@ -61,7 +61,8 @@ def estimate_row(e: Estimate, target_names: Iterable[str]) -> list[str]:
         cells += [_cell(v * 1e3) for v in e.target_shift[n]]
     cells += [_cell(v * 1e9) for v in e.volume_pred] + [_cell(v * 1e9) for v in e.volume_meas]
     cells += [_cell(e.cond_W), str(e.qp_status).replace(",", ";"), _cell(e.step_time * 1e3), str(int(e.skipped)),
-              str(e.status).replace(",", ";").replace("\n", " ")]
+              str(e.status).replace(",", ";").replace("\n", " "),
+              str(int(bool(e.in_envelope)))]
     return cells
 
 

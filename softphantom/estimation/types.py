@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -22,7 +22,9 @@ class Estimate:
     ``target_shift`` m per named target, ``volume_pred``/``volume_meas`` cavity volume changes
     m³ (4,), ``cond_W`` the condition number of the sensitivity matrix, ``qp_status`` the QP
     solver's status, ``step_time`` s spent on this step, ``skipped`` samples dropped since the
-    previous estimate (estimation fell behind and took the newest one).
+    previous estimate (estimation fell behind and took the newest one), ``in_envelope`` False
+    when the loads lie outside the range the estimator's model covers (the atlas's envelope; the
+    estimate is then clamped to it).
     """
 
     t: float
@@ -37,4 +39,28 @@ class Estimate:
     step_time: float
     skipped: int = 0
     status: str = "ok"
+    in_envelope: bool = True
     extra: dict = field(default_factory=dict)
+
+
+@runtime_checkable
+class StateEstimator(Protocol):
+    """The estimator interface: :class:`~softphantom.estimation.Estimator` (refreshed
+    linearization) and :class:`~softphantom.estimation.atlas.AtlasEstimator` (precomputed atlas)
+    implement it; the CLI, the live view and the demo only use this.
+
+    ``step(measurement, skipped=0) → Estimate`` one sample; ``node_positions()`` (N,3) m of the
+    last estimate; ``reset()`` back to rest; ``close()`` stops anything running in the background.
+    """
+
+    kind: str
+    marker_names: tuple[str, ...]
+    target_names: tuple[str, ...]
+
+    def step(self, m, skipped: int = 0) -> Estimate: ...
+
+    def node_positions(self) -> np.ndarray: ...
+
+    def reset(self) -> None: ...
+
+    def close(self) -> None: ...

@@ -50,8 +50,8 @@ def csv_columns(target_names: Iterable[str]) -> list[str]:
     ['t_s', 'force_x_N', 'force_y_N', 'force_z_N', 'p_urethra_kPa']
     >>> csv_columns(["apex"])[11:14]
     ['apex_dx_mm', 'apex_dy_mm', 'apex_dz_mm']
-    >>> csv_columns([])[-5:]
-    ['cond_W', 'qp_status', 'step_ms', 'skipped', 'status']
+    >>> csv_columns([])[-6:]
+    ['cond_W', 'qp_status', 'step_ms', 'skipped', 'status', 'in_envelope']
     """
     from softphantom.estimation.stream import estimate_columns  # one definition: the CSV's writer
 
@@ -92,6 +92,7 @@ def estimate_to_message(est: Estimate, seq: int, t_pub_unix_s: float) -> dict[st
     m["qp_status"] = str(est.qp_status)
     m["step_ms"] = _num(est.step_time * 1e3)
     m["skipped"] = int(est.skipped)
+    m["in_envelope"] = int(bool(est.in_envelope))
     m["status"] = str(est.status)
     return m
 
@@ -139,6 +140,7 @@ def message_to_estimate(m: Mapping[str, Any]) -> Estimate:
         step_time=_f(m, "step_ms") * 1e-3,
         skipped=int(float(m.get("skipped") or 0)),
         status=str(m.get("status", "ok") or "ok"),
+        in_envelope=bool(int(float(m.get("in_envelope", 1) if m.get("in_envelope") not in (None, "") else 1))),
     )
 
 
@@ -173,6 +175,8 @@ ESTIMATE_JSON_SCHEMA: dict[str, Any] = {
         "status": {"type": "string", "description": "sensor health: 'ok' or a reason; a link event's marker "
                    "(numbers null) is 'event:<kind>: <detail>' (silent, disconnected, reconnected, restart, "
                    "resumed, retared)"},
+        "in_envelope": {"type": "integer", "description": "1 inside the load envelope the estimator's model covers, "
+                        "0 outside (the estimate is clamped to it)"},
     },
     "patternProperties": {"^.+_d[xyz]_mm$": _num_schema("target shift from rest, mm")},
     "required": ["seq", "t_s", "t_pub_unix_s", *FORCE_COLUMNS, *POSE_COLUMNS],

@@ -1,0 +1,548 @@
+"""An atlas of converged equilibria over the load envelope, and the estimator that inverts it.
+
+Offline (:func:`build_atlas`, in parallel through :mod:`softphantom.parallel`): converged forward
+solves (:class:`~softphantom.estimation.forward.ForwardModel`) on a tensor grid of Chebyshev–Lobatto
+points over the envelope box ``f_i ∈ [f_min,i, f_max,i]`` (N), ``p_u ∈ [p_min, p_max]`` (Pa). Each output —
+the 4 arm-cavity volume changes, the tracked points (markers, targets) and the coefficients of the
+displacement field in its POD basis — becomes a tensor Chebyshev polynomial in the 4 loads, exact
+at the grid points and spectrally accurate between them for this smooth map.
+
+Online (:class:`AtlasEstimator`): per sample, a Gauss–Newton iteration in the 3 force components
+(the urethra pressure is measured) on the polynomial volumes, each step the bounded QP of
+:func:`~softphantom.estimation.qp.solve_volume_qp` with the polynomial's Jacobian; the points and
+the full field come from the same polynomials at the solution. No refresh and no thread: the cost
+is a few small tensor contractions. Outside the envelope the loads are clamped to it and the
+estimate carries ``in_envelope=False`` (the CSV's ``in_envelope`` column).
+
+Cache: :func:`load_or_build` keeps the atlas next to the model under the SHA-256 of everything it
+depends on (mesh, law and its parameters, element, contact patch, envelope, grid, format version).
+A file whose content hash does not match is corrupt and rebuilt; an explicit file built for
+another model is refused with one line.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import math
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from softphantom.errors import SolverError, UserError
+from softphantom.estimation.config import EstimatorConfig
+from softphantom.estimation.estimator import check_sample, pose_and_shifts, repeat_last, sensitivity_cond
+from softphantom.estimation.forward import ForwardModel
+from softphantom.estimation.qp import solve_volume_qp
+from softphantom.estimation.types import Estimate
+
+FORMAT = 1  # bump when the file layout or the build changes its meaning
+GN_MAX_ITER = 12
+GN_TOL_N = 1e-7
+FIELD_MAX_MODES = 64
+FIELD_RTOL = 1e-5  # POD truncation: dropped displacement energy below this fraction (≈ 3e-3 relative RMS)
+
+
+@dataclass(frozen=True)
+class AtlasConfig:
+    """The envelope and the grid of the atlas.
+
+    ``force_min_N`` / ``force_max_N`` (3,) the envelope box of the force components (the default
+    covers the phantom's use: pushes mostly along +y, the needle axis, up to 5.2 N, ±1.5 N sideways;
+    a 6 N push with 1.4 N sideways does not converge on the default mesh);
+    ``p_min_kPa`` / ``p_max_kPa`` the urethra pressure range; ``n_force`` (3,) / ``n_pressure``
+    Chebyshev–Lobatto points per axis (their product is the number of forward solves).
+
+    >>> AtlasConfig(n_force=(5, 2, 5))
+    Traceback (most recent call last):
+    ...
+    softphantom.errors.UserError: atlas n_force: each must be an integer in 3..15, got (5, 2, 5)
+    """
+
+    force_min_N: tuple[float, float, float] = (-1.5, -1.0, -1.5)
+    force_max_N: tuple[float, float, float] = (1.5, 5.2, 1.5)
+    p_min_kPa: float = -2.0
+    p_max_kPa: float = 40.0
+    n_force: tuple[int, int, int] = (5, 7, 5)
+    n_pressure: int = 4
+
+    def __post_init__(self) -> None:
+        lo = tuple(float(v) for v in self.force_min_N)
+        hi = tuple(float(v) for v in self.force_max_N)
+        if len(lo) != 3 or len(hi) != 3 or not all(math.isfinite(a) and math.isfinite(b) and a < b
+                                                   for a, b in zip(lo, hi)):
+            raise UserError(f"atlas force envelope {lo}..{hi} N: need 3 finite ranges with min < max")
+        object.__setattr__(self, "force_min_N", lo)
+        object.__setattr__(self, "force_max_N", hi)
+        if not (math.isfinite(self.p_min_kPa) and math.isfinite(self.p_max_kPa) and self.p_min_kPa < self.p_max_kPa):
+            raise UserError(f"atlas pressure range [{self.p_min_kPa}, {self.p_max_kPa}] kPa is empty")
+        n = tuple(self.n_force) if np.ndim(self.n_force) else (self.n_force,) * 3
+        if len(n) != 3 or any(int(v) != v or not 3 <= v <= 15 for v in n):
+            raise UserError(f"atlas n_force: each must be an integer in 3..15, got {self.n_force}")
+        object.__setattr__(self, "n_force", tuple(int(v) for v in n))
+        if int(self.n_pressure) != self.n_pressure or not 2 <= self.n_pressure <= 15:
+            raise UserError(f"atlas n_pressure must be an integer in 2..15, got {self.n_pressure}")
+
+    @property
+    def lower(self) -> np.ndarray:
+        return np.array([*self.force_min_N, self.p_min_kPa * 1e3])
+
+    @property
+    def upper(self) -> np.ndarray:
+        return np.array([*self.force_max_N, self.p_max_kPa * 1e3])
+
+    @property
+    def shape(self) -> tuple[int, int, int, int]:
+        return (*self.n_force, int(self.n_pressure))
+
+    def axes(self) -> list[np.ndarray]:
+        """The grid's load values per axis (N, N, N, Pa), from the lower bound up."""
+        return [cheb_points(n, lo, hi) for n, lo, hi in zip(self.shape, self.lower, self.upper)]
+
+
+def cheb_points(n: int, lo: float, hi: float) -> np.ndarray:
+    """``n`` Chebyshev–Lobatto points on [lo, hi], ascending.
+
+    >>> cheb_points(3, -1.0, 1.0).tolist()
+    [-1.0, 0.0, 1.0]
+    """
+    t = -np.cos(np.pi * np.arange(n) / (n - 1))
+    t[np.abs(t) < 1e-15] = 0.0
+    return 0.5 * (lo + hi) + 0.5 * (hi - lo) * t
+
+
+def cheb_basis(t: float, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """(T_k(t), T_k'(t)) for k < n.
+
+    >>> b, d = cheb_basis(0.5, 4)
+    >>> np.round(b, 12).tolist(), np.round(d, 12).tolist()
+    ([1.0, 0.5, -0.5, -1.0], [0.0, 1.0, 2.0, 0.0])
+    """
+    b = np.empty(n)
+    d = np.empty(n)
+    b[0], d[0] = 1.0, 0.0
+    if n > 1:
+        b[1], d[1] = t, 1.0
+    for k in range(2, n):
+        b[k] = 2 * t * b[k - 1] - b[k - 2]
+        d[k] = 2 * b[k - 1] + 2 * t * d[k - 1] - d[k - 2]
+    return b, d
+
+
+def _to_chebyshev(values: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
+    """Tensor Chebyshev coefficients (shape + (m,)) of grid values (shape + (m,)) at
+    Chebyshev–Lobatto points: one small Vandermonde solve per axis."""
+    c = values
+    for ax, n in enumerate(shape):
+        t = -np.cos(np.pi * np.arange(n) / (n - 1))
+        V = np.stack([cheb_basis(x, n)[0] for x in t])  # V[j, k] = T_k(t_j)
+        c = np.moveaxis(np.tensordot(np.linalg.inv(V), c, axes=([1], [ax])), 0, ax)
+    return c
+
+
+# -- the cache key ---------------------------------------------------------------------------------
+def _law_description(fem) -> str:
+    """The law and element of a FemModel as text (generic: whatever the model declares)."""
+    parts = [type(fem).__module__ + "." + type(fem).__name__, f"tets{tuple(np.shape(fem.tets))}"]
+    for name in ("law", "laws", "element", "order", "material", "materials"):
+        v = getattr(fem, name, None)
+        if v is not None and not callable(v):
+            parts.append(f"{name}={v!r}")
+    return ";".join(parts)
+
+
+def atlas_key(fwd: ForwardModel, acfg: AtlasConfig) -> str:
+    """SHA-256 (hex) of everything the atlas depends on: mesh and fixed DOFs, law and parameters,
+    element, cavities, contact patch (its actuator), tracked points (the probe), envelope, grid,
+    solver tolerance, format."""
+    h = hashlib.sha256()
+    fem = fwd.fem
+
+    def add(a) -> None:
+        a = np.ascontiguousarray(a)
+        h.update(str((a.dtype.str, a.shape)).encode())
+        h.update(a.tobytes())
+
+    add(fem.x_rest)
+    add(fem.tets)
+    add(fem.free_dofs)
+    for name in ("mu", "lam"):
+        if hasattr(fem, name):
+            add(np.asarray(getattr(fem, name), float))
+    for name in sorted(fem.cavities):
+        h.update(name.encode())
+        add(np.asarray(fem.cavities[name]))
+    for M in (fwd.H_f.tocsr(), fwd.probe.tocsr()):
+        M.sort_indices()
+        add(M.indptr)
+        add(M.indices)
+        add(M.data)
+    h.update(_law_description(fem).encode())
+    meta = {"format": FORMAT, "atlas": asdict(acfg), "tol": fwd.config.tol,
+            "markers": fwd.marker_names, "targets": fwd.target_names}
+    h.update(json.dumps(meta, sort_keys=True).encode())
+    return h.hexdigest()
+
+
+# -- the build -------------------------------------------------------------------------------------
+def _sweep(model, config: EstimatorConfig, acfg: AtlasConfig, i: int, l: int):
+    """One task: the (f_y, f_z) plane at grid f_x index ``i`` and pressure index ``l``, walked in a
+    serpentine so each solve starts from a converged neighbour. Returns (i, l, V (ny,nz,4),
+    P (ny,nz,k,3), X (ny,nz,3N) displacements, seconds)."""
+    t0 = time.perf_counter()
+    fwd = ForwardModel(model, config)
+    ax = acfg.axes()
+    ny, nz = len(ax[1]), len(ax[2])
+    ndof = fwd.fem.n_dof
+    V = np.empty((ny, nz, 4))
+    P = np.empty((ny, nz, fwd.probe.shape[0], 3))
+    X = np.empty((ny, nz, ndof))
+    lin = None
+    row_start = None
+    for j in range(ny):
+        ks = range(nz) if j % 2 == 0 else range(nz - 1, -1, -1)
+        for k in ks:
+            lam = np.array([ax[0][i], ax[1][j], ax[2][k], ax[3][l]])
+            lin = fwd.solve(lam, lin if lin is not None else row_start)
+            if row_start is None:
+                row_start = lin
+            V[j, k] = lin.V
+            P[j, k] = lin.sub_x
+            X[j, k] = lin.x - fwd.fem.x_rest
+    return i, l, V, P, X, time.perf_counter() - t0
+
+
+@dataclass(frozen=True, eq=False)
+class Atlas:
+    """Tensor Chebyshev polynomials of the forward map over the envelope (see the module docstring).
+
+    ``key`` the cache key; ``config`` the :class:`AtlasConfig`; ``cV`` (n1,n2,n3,n4,4) volume
+    coefficients (m³); ``cP`` (n1,n2,n3,n4,k,3) tracked-point coefficients (m); ``cF``
+    (n1,n2,n3,n4,r) field-mode coefficients; ``modes`` (3N,r) the POD basis (m); ``x_rest`` (3N,);
+    ``build_s`` seconds of the build (wall); ``solves`` forward solves; ``field_rms_m`` the RMS
+    error of the POD truncation over the grid.
+    """
+
+    key: str
+    config: AtlasConfig
+    cV: np.ndarray
+    cP: np.ndarray
+    cF: np.ndarray
+    modes: np.ndarray
+    x_rest: np.ndarray
+    build_s: float
+    solves: int
+    field_rms_m: float
+
+    # -- evaluation -------------------------------------------------------------------------------
+    def _t(self, lam: np.ndarray) -> np.ndarray:
+        lo, hi = self.config.lower, self.config.upper
+        return (2 * np.asarray(lam, float) - (lo + hi)) / (hi - lo)
+
+    def _bases(self, lam):
+        t = self._t(lam)
+        return [cheb_basis(float(ti), n) for ti, n in zip(t, self.config.shape)]
+
+    def volumes(self, lam) -> tuple[np.ndarray, np.ndarray]:
+        """(V (4,) m³, J (4,4) ∂V/∂λ in m³/N, m³/Pa) at ``lam`` inside the envelope."""
+        (b1, d1), (b2, d2), (b3, d3), (b4, d4) = self._bases(lam)
+        c = self.cV
+        # contract the pressure axis first (value only needed there for the force columns)
+        c4 = np.tensordot(c, np.stack([b4, d4]), axes=([3], [1]))  # (n1,n2,n3,4,2)
+        c3 = np.tensordot(c4, np.stack([b3, d3]), axes=([2], [1]))  # (n1,n2,4,2,2)
+        c2 = np.tensordot(c3, np.stack([b2, d2]), axes=([1], [1]))  # (n1,4,2,2,2)
+        r = np.tensordot(np.stack([b1, d1]), c2, axes=([1], [0]))  # (2,4,2,2,2): a, out, d, c, b
+        V = r[0, :, 0, 0, 0]
+        scale = 2.0 / (self.config.upper - self.config.lower)
+        J = np.stack([r[1, :, 0, 0, 0], r[0, :, 0, 0, 1], r[0, :, 0, 1, 0], r[0, :, 1, 0, 0]], axis=1) * scale
+        return V, J
+
+    def _value(self, c: np.ndarray, lam) -> np.ndarray:
+        b = [bd[0] for bd in self._bases(lam)]
+        r = c
+        for v in b:
+            r = np.tensordot(v, r, axes=([0], [0]))
+        return r
+
+    def points(self, lam) -> np.ndarray:
+        """(k,3) m tracked points (markers, then targets) at ``lam``."""
+        return self._value(self.cP, lam)
+
+    def nodes(self, lam) -> np.ndarray:
+        """(N,3) m node positions at ``lam`` (the POD field)."""
+        return (self.x_rest + self.modes @ self._value(self.cF, lam)).reshape(-1, 3)
+
+    @property
+    def nbytes(self) -> int:
+        return int(sum(a.nbytes for a in (self.cV, self.cP, self.cF, self.modes, self.x_rest)))
+
+    # -- files ------------------------------------------------------------------------------------
+    _ARRAYS = ("cV", "cP", "cF", "modes", "x_rest")
+
+    def _digest(self) -> str:
+        h = hashlib.sha256()
+        for k in self._ARRAYS:
+            h.update(np.ascontiguousarray(getattr(self, k)).tobytes())
+        return h.hexdigest()
+
+    def save(self, path) -> Path:
+        """Write the atlas (npz; written to a temporary name, then renamed: never half a file)."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        meta = {"format": FORMAT, "key": self.key, "config": asdict(self.config), "build_s": self.build_s,
+                "solves": self.solves, "field_rms_m": self.field_rms_m, "digest": self._digest()}
+        buf = io.BytesIO()
+        np.savez(buf, meta=np.array(json.dumps(meta)), **{k: getattr(self, k) for k in self._ARRAYS})
+        tmp = path.with_name(path.name + ".tmp")
+        tmp.write_bytes(buf.getvalue())
+        tmp.replace(path)
+        return path
+
+    @classmethod
+    def load(cls, path, key: str | None = None) -> "Atlas":
+        """Read an atlas; :class:`AtlasCorrupt` if the file is unreadable or its content does not
+        match its digest; :class:`~softphantom.errors.UserError` if ``key`` is given and differs."""
+        path = Path(path)
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                meta = json.loads(str(z["meta"]))
+                arrays = {k: z[k] for k in cls._ARRAYS}
+            at = cls(key=meta["key"], config=AtlasConfig(**meta["config"]), build_s=float(meta["build_s"]),
+                     solves=int(meta["solves"]), field_rms_m=float(meta["field_rms_m"]), **arrays)
+            ok = meta.get("format") == FORMAT and at._digest() == meta["digest"]
+        except Exception as exc:  # noqa: BLE001 - any unreadable file is corrupt
+            raise AtlasCorrupt(f"{path}: unreadable atlas ({type(exc).__name__})") from None
+        if not ok:
+            raise AtlasCorrupt(f"{path}: atlas content does not match its digest (corrupt)")
+        if key is not None and at.key != key:
+            raise UserError(f"{path}: atlas built for another model, law, contact or envelope "
+                            f"(key {at.key[:12]}…, expected {key[:12]}…); rebuild it")
+        return at
+
+
+class AtlasCorrupt(UserError):
+    """An atlas file that cannot be used (unreadable, or content not matching its digest)."""
+
+
+def build_atlas(model, config: EstimatorConfig | None = None, atlas: AtlasConfig | None = None, *,
+                scheduler: str | None = None, n_workers: int | None = None, progress: bool = True,
+                fwd: ForwardModel | None = None, processes: bool = True) -> Atlas:
+    """Build the atlas of ``model`` (forward solves in parallel, a Dask local cluster by default or
+    the one at ``scheduler``; ``processes=False``: worker threads, for small models and tests).
+    Raises :class:`~softphantom.errors.SolverError` naming the first grid plane that failed (shrink the envelope: ``AtlasConfig.force_max_N``)."""
+    from softphantom.parallel import dask_client, map_tasks
+
+    cfg = config or EstimatorConfig()
+    acfg = atlas or AtlasConfig()
+    t0 = time.perf_counter()
+    fwd = fwd or ForwardModel(model, cfg)
+    key = atlas_key(fwd, acfg)
+    n1, n2, n3, n4 = acfg.shape
+    ndof = fwd.fem.n_dof
+    k = fwd.probe.shape[0]
+    V = np.empty((n1, n2, n3, n4, 4))
+    P = np.empty((n1, n2, n3, n4, k, 3))
+    X = np.empty((n1, n2, n3, n4, ndof), dtype=np.float64)
+    args = [(model, cfg, acfg, i, l) for l in range(n4) for i in range(n1)]
+    with dask_client(scheduler, n_workers, processes=processes) as client:
+        res = map_tasks(client, _sweep, args, label=f"atlas: {n1 * n2 * n3 * n4} forward solves", progress=progress)
+    bad = [r for r in res if not r.ok]
+    if bad:
+        i, l = args[bad[0].index][3:]
+        ax = acfg.axes()
+        raise SolverError(f"atlas: forward solves failed at f_x {ax[0][i]:+.2f} N, urethra {ax[3][l] * 1e-3:.1f} kPa "
+                          f"({bad[0].error}); {len(bad)} of {len(res)} planes failed: lower the envelope")
+    for r in res:
+        i, l, v, p, x, _ = r.value
+        V[i, :, :, l] = v
+        P[i, :, :, l] = p
+        X[i, :, :, l] = x
+    # POD of the displacement field: the Gram matrix of the snapshots (n_grid²) is small
+    D = X.reshape(-1, ndof)
+    del X
+    G = D @ D.T
+    w, Q = np.linalg.eigh(G)
+    w, Q = w[::-1].clip(min=0.0), Q[:, ::-1]
+    total = float(w.sum())
+    tail = total - np.cumsum(w)
+    r = int(min(FIELD_MAX_MODES, max(1, np.searchsorted(-tail, -FIELD_RTOL * total) + 1)))
+    modes = D.T @ (Q[:, :r] / np.sqrt(np.maximum(w[:r], 1e-300)))  # (3N, r), orthonormal columns
+    coef = D @ modes  # (n_grid, r)
+    field_rms = float(np.sqrt(max(tail[r - 1], 0.0) / D.size))
+    shape = acfg.shape
+    cV = _to_chebyshev(V.reshape(*shape, 4), shape)
+    cP = _to_chebyshev(P.reshape(*shape, k * 3), shape).reshape(*shape, k, 3)
+    cF = _to_chebyshev(coef.reshape(*shape, r), shape)
+    return Atlas(key=key, config=acfg, cV=cV, cP=cP, cF=cF, modes=modes, x_rest=fwd.fem.x_rest.copy(),
+                 build_s=time.perf_counter() - t0, solves=int(np.prod(shape)), field_rms_m=field_rms)
+
+
+def atlas_path(model_dir, key: str) -> Path:
+    """Where the atlas of key ``key`` lives next to a model directory."""
+    return Path(model_dir) / "atlas" / f"{key[:32]}.npz"
+
+
+def load_or_build(model, config: EstimatorConfig | None = None, atlas: AtlasConfig | None = None, *,
+                  cache_dir=None, scheduler: str | None = None, n_workers: int | None = None,
+                  progress: bool = True, log=print, fwd: ForwardModel | None = None) -> Atlas:
+    """The atlas of ``model`` from ``cache_dir`` (a model directory) if present and valid, else built
+    and saved there. A corrupt file is reported in one line and rebuilt."""
+    cfg = config or EstimatorConfig()
+    acfg = atlas or AtlasConfig()
+    fwd = fwd or ForwardModel(model, cfg)
+    key = atlas_key(fwd, acfg)
+    path = atlas_path(cache_dir, key) if cache_dir is not None else None
+    if path is not None and path.is_file():
+        try:
+            at = Atlas.load(path, key)
+            log(f"atlas: {path} ({at.nbytes / 1e6:.1f} MB, {at.solves} solves, built in {at.build_s:.0f} s)")
+            return at
+        except AtlasCorrupt as exc:
+            log(f"{exc}: rebuilding")
+    at = build_atlas(model, cfg, acfg, scheduler=scheduler, n_workers=n_workers, progress=progress, fwd=fwd)
+    msg = f"atlas: {at.solves} forward solves in {at.build_s:.0f} s, {at.nbytes / 1e6:.1f} MB"
+    if path is not None:
+        at.save(path)
+        msg += f" → {path} ({path.stat().st_size / 1e6:.1f} MB on disk)"
+    log(msg)
+    return at
+
+
+class AtlasEstimator:
+    """The real-time estimator on an :class:`Atlas` (see the module docstring): ``step(measurement)
+    → Estimate`` with no background work; ``node_positions()`` the full field of the last estimate.
+
+    ``Estimate.in_envelope`` is False when the measured pressure lies outside the atlas's range or
+    the best fit wants a force beyond an envelope face that is tighter than the configured force
+    bounds; the estimate is then the best one clamped to the envelope.
+    """
+
+    kind = "atlas"
+
+    def __init__(self, model, config: EstimatorConfig | None = None, atlas: Atlas | AtlasConfig | None = None,
+                 *, cache_dir=None, scheduler: str | None = None, n_workers: int | None = None,
+                 progress: bool = True, log=print) -> None:
+        self.config = cfg = config or EstimatorConfig()
+        self.model = model
+        fwd = ForwardModel(model, cfg)
+        self.forward = fwd
+        if not isinstance(atlas, Atlas):
+            atlas = load_or_build(model, cfg, atlas, cache_dir=cache_dir, scheduler=scheduler,
+                                  n_workers=n_workers, progress=progress, log=log, fwd=fwd)
+        elif atlas.key != atlas_key(fwd, atlas.config):
+            raise UserError("atlas built for another model, law, contact or envelope; rebuild it")
+        self.atlas = atlas
+        self.marker_names, self.target_names = fwd.marker_names, fwd.target_names
+        nm = fwd.n_markers
+        self.rest_markers = fwd.rest.sub_x[:nm].copy()
+        self.rest_targets = fwd.rest.sub_x[nm:].copy()
+        elo, ehi = atlas.config.lower, atlas.config.upper
+        ulo, uhi = np.array(cfg.force_min_N), np.array(cfg.force_max_N)
+        self._lo = np.maximum(ulo, elo[:3])
+        self._hi = np.minimum(uhi, ehi[:3])
+        if np.any(self._lo > self._hi):
+            raise UserError(f"force bounds {cfg.force_min_N}..{cfg.force_max_N} N do not meet the atlas "
+                            f"envelope {atlas.config.force_min_N}..{atlas.config.force_max_N} N")
+        self._env_lo = np.where(elo[:3] > ulo, self._lo, -np.inf)  # envelope faces inside the bounds
+        self._env_hi = np.where(ehi[:3] < uhi, self._hi, np.inf)
+        self._p_range = (float(elo[3]), float(ehi[3]))
+        self.reset()
+
+    def reset(self) -> None:
+        """Back to rest."""
+        from softphantom.pose import Pose6
+
+        self._lam = np.zeros(4)
+        z = np.zeros(3)
+        self._last = Estimate(
+            t=0.0, force=z.copy(), p_urethra=0.0, pose=Pose6(z.copy(), z.copy()),
+            target_shift={k: z.copy() for k in self.target_names}, volume_pred=np.zeros(4),
+            volume_meas=np.zeros(4), cond_W=sensitivity_cond(self.atlas.volumes(self._lam)[1]), qp_status="rest", step_time=0.0,
+        )
+
+    def close(self) -> None:
+        """Nothing runs in the background; kept for the estimator interface."""
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    @property
+    def lam(self) -> np.ndarray:
+        return self._lam.copy()
+
+    @property
+    def last(self) -> Estimate:
+        return self._last
+
+    def node_positions(self) -> np.ndarray:
+        """(N,3) m node positions of the last estimate (the atlas's field)."""
+        return self.atlas.nodes(self._lam)
+
+    def invert(self, dV, p_Pa: float, start=None) -> tuple[np.ndarray, str, bool, np.ndarray, np.ndarray, int]:
+        """Loads that best explain the volumes ``dV`` (4,) m³ at urethra pressure ``p_Pa``:
+        (λ (4,), QP status, in_envelope, V (4,), J (4,4), Gauss–Newton iterations)."""
+        p_lo, p_hi = self._p_range
+        p = float(np.clip(p_Pa, p_lo, p_hi))
+        inside = p == float(p_Pa)
+        lam = np.empty(4)
+        lam[:3] = np.clip(self._lam[:3] if start is None else start[:3], self._lo, self._hi)
+        lam[3] = p
+        dV = np.asarray(dV, float)
+        V, J = self.atlas.volumes(lam)
+        cost = float(np.sum((V - dV) ** 2))
+        status = "gn:max_iter"
+        it = 0
+        for it in range(1, GN_MAX_ITER + 1):
+            qp = solve_volume_qp(J, V - dV, 0.0, self._lo - lam[:3], self._hi - lam[:3], self.config.qp_solver)
+            if qp.status != "optimal":
+                raise SolverError(f"QP {qp.status}")
+            step = qp.dlam[:3]
+            # backtracking: Gauss–Newton on a mildly non-linear map; halve a step that raises the misfit
+            for _ in range(6):
+                trial = lam.copy()
+                trial[:3] = np.clip(lam[:3] + step, self._lo, self._hi)
+                Vt, Jt = self.atlas.volumes(trial)
+                ct = float(np.sum((Vt - dV) ** 2))
+                if ct <= cost * (1 + 1e-12):
+                    break
+                step = 0.5 * step
+            else:
+                status = "optimal"  # no descent left: a (bounded) minimum at round-off
+                break
+            lam, V, J, cost = trial, Vt, Jt, ct
+            if np.max(np.abs(step)) <= GN_TOL_N:
+                status = "optimal"
+                break
+        tol = 1e-6
+        if np.any(lam[:3] <= self._env_lo + tol) or np.any(lam[:3] >= self._env_hi - tol):
+            inside = False
+        return lam, status, inside, V, J, it
+
+    def step(self, m, skipped: int = 0) -> Estimate:
+        """Estimate the state for one measurement; a bad sample repeats the last state with
+        ``status="rejected:<why>"`` (as the refresh estimator)."""
+        t0 = time.perf_counter()
+        why = check_sample(m)
+        if why:
+            return repeat_last(self._last, m, f"rejected:{why}", t0, skipped)
+        try:
+            lam, status, inside, V, J, it = self.invert(m.dV, float(m.p_urethra))
+        except SolverError as exc:
+            return repeat_last(self._last, m, f"failed:{exc}", t0, skipped)
+        pose, shifts = pose_and_shifts(self.rest_markers, self.rest_targets, self.target_names, self.atlas.points(lam))
+        est = Estimate(
+            t=float(m.t), force=lam[:3].copy(), p_urethra=float(m.p_urethra), pose=pose, target_shift=shifts,
+            volume_pred=V, volume_meas=np.asarray(m.dV, float).copy(), cond_W=sensitivity_cond(J), qp_status=status,
+            step_time=time.perf_counter() - t0, skipped=int(skipped), in_envelope=inside,
+            extra={"qp_residual_m3": float(np.linalg.norm(V - np.asarray(m.dV, float))), "gn_iterations": it},
+        )
+        self._lam = lam
+        self._last = est
+        return est
+

@@ -1,0 +1,77 @@
+"""One place that picks the estimator (``--estimator atlas|refresh``) for the CLI, live view and demo."""
+
+from __future__ import annotations
+
+from softphantom.errors import UserError
+from softphantom.estimation.config import EstimatorConfig
+from softphantom.estimation.types import StateEstimator
+
+ESTIMATORS = ("atlas", "refresh")
+DEFAULT_ESTIMATOR = "atlas"
+
+
+def check_estimator_kind(kind: str) -> str:
+    """``kind`` if known, else a one-line :class:`UserError`.
+
+    >>> check_estimator_kind("sync")
+    Traceback (most recent call last):
+    ...
+    softphantom.errors.UserError: --estimator must be atlas or refresh, got 'sync'
+    """
+    if kind not in ESTIMATORS:
+        raise UserError(f"--estimator must be {' or '.join(ESTIMATORS)}, got {kind!r}")
+    return kind
+
+
+def open_estimator(kind: str, model, config: EstimatorConfig | None = None, *, cache_dir=None, atlas=None,
+                   scheduler: str | None = None, n_workers: int | None = None, progress: bool = True,
+                   log=print) -> StateEstimator:
+    """The estimator ``kind`` for ``model``: ``"atlas"`` (precomputed, loaded from or built into
+    ``cache_dir``, the model directory; ``atlas`` an :class:`~softphantom.estimation.atlas.AtlasConfig`
+    or a built atlas) or ``"refresh"`` (:class:`~softphantom.estimation.Estimator`, its mode from
+    ``config``)."""
+    check_estimator_kind(kind)
+    if kind == "refresh":
+        from softphantom.estimation.estimator import Estimator
+
+        return Estimator(model, config)
+    from softphantom.estimation.atlas import AtlasEstimator
+
+    return AtlasEstimator(model, config, atlas, cache_dir=cache_dir, scheduler=scheduler, n_workers=n_workers,
+                          progress=progress, log=log)
+
+
+def atlas_config_from_options(grid: str | None = None, envelope: str | None = None):
+    """An :class:`~softphantom.estimation.atlas.AtlasConfig` from ``--atlas-grid NX,NY,NZ,NP``
+    (points per axis) and ``--envelope FXMIN:FXMAX,FYMIN:FYMAX,FZMIN:FZMAX,PMIN:PMAX`` (N, kPa);
+    None for what is not given (the defaults).
+
+    >>> c = atlas_config_from_options("3,4,3,2", "-1:1,-1:2,-1:1,0:10")
+    >>> c.shape, c.force_max_N, c.p_max_kPa
+    ((3, 4, 3, 2), (1.0, 2.0, 1.0), 10.0)
+    >>> atlas_config_from_options("3,4")
+    Traceback (most recent call last):
+    ...
+    softphantom.errors.UserError: --atlas-grid: expected 4 integers NX,NY,NZ,NP, got '3,4'
+    """
+    from softphantom.estimation.atlas import AtlasConfig
+
+    kw: dict = {}
+    if grid is not None:
+        try:
+            n = [int(v) for v in grid.split(",")]
+        except ValueError:
+            n = []
+        if len(n) != 4:
+            raise UserError(f"--atlas-grid: expected 4 integers NX,NY,NZ,NP, got {grid!r}")
+        kw.update(n_force=tuple(n[:3]), n_pressure=n[3])
+    if envelope is not None:
+        try:
+            r = [tuple(float(x) for x in part.split(":")) for part in envelope.split(",")]
+        except ValueError:
+            r = []
+        if len(r) != 4 or any(len(x) != 2 for x in r):
+            raise UserError(f"--envelope: expected FXMIN:FXMAX,FYMIN:FYMAX,FZMIN:FZMAX,PMIN:PMAX (N, kPa), got {envelope!r}")
+        kw.update(force_min_N=tuple(x[0] for x in r[:3]), force_max_N=tuple(x[1] for x in r[:3]),
+                  p_min_kPa=r[3][0], p_max_kPa=r[3][1])
+    return AtlasConfig(**kw)

@@ -1,0 +1,190 @@
+"""The atlas estimator (issue 13) on the coarse mesh with a small envelope and grid: interpolation
+against converged forward solves at held-out loads, exactness at the grid, the cache (hash
+mismatch, corruption), the out-of-envelope flag, the estimator interface and the CLI option."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from softphantom.cli import main
+from softphantom.errors import UserError
+from softphantom.estimation import (
+    AtlasConfig, AtlasEstimator, Estimator, EstimatorConfig, ForwardModel, StateEstimator, build_atlas,
+    load_or_build, open_estimator,
+)
+from softphantom.estimation.atlas import Atlas, AtlasCorrupt, _to_chebyshev, atlas_key, atlas_path, cheb_basis
+from softphantom.pose import Pose6, rigid_fit
+from softphantom.sensing import Measurement
+
+CFG = EstimatorConfig(contact="on-centre")
+ACFG = AtlasConfig(force_min_N=(-0.5, -0.3, -0.5), force_max_N=(0.5, 1.2, 0.5), p_min_kPa=-1.0, p_max_kPa=4.0,
+                   n_force=(3, 4, 3), n_pressure=2)
+
+
+def meas(dV, p=0.0, t=0.0):
+    return Measurement(t, 0, t, np.full(5, 51150), 100, np.zeros(4), np.asarray(dV, float), p)
+
+
+@pytest.fixture(scope="module")
+def fwd(coarse_model):
+    return ForwardModel(coarse_model, CFG)
+
+
+@pytest.fixture(scope="module")
+def atlas(coarse_model, fwd):
+    return build_atlas(coarse_model, CFG, ACFG, n_workers=1, processes=False, progress=False)
+
+
+@pytest.fixture(scope="module")
+def held_out(fwd):
+    """Converged forward solves at seeded random loads strictly inside the envelope."""
+    rng = np.random.default_rng(7)
+    lo, hi = ACFG.lower, ACFG.upper
+    return [fwd.solve(lo + (hi - lo) * rng.uniform(0.1, 0.9, 4)) for _ in range(3)]
+
+
+def test_chebyshev_tensor_interpolation_is_exact_for_polynomials():
+    # a polynomial of degree < n per axis is reproduced exactly between the Lobatto points
+    shape = (3, 4, 3, 2)
+    axes = [-np.cos(np.pi * np.arange(n) / (n - 1)) for n in shape]
+    g = np.meshgrid(*axes, indexing="ij")
+    f = (1 + g[0] - 2 * g[0] ** 2) * (g[1] ** 3 - g[1]) + g[2] * g[3] + 0.5 * g[2] ** 2
+    c = _to_chebyshev(f[..., None], shape)[..., 0]
+    x = (0.3, -0.7, 0.45, -0.2)
+    b = [cheb_basis(t, n)[0] for t, n in zip(x, shape)]
+    val = np.einsum("i,j,k,l,ijkl->", *b, c)
+    exact = (1 + x[0] - 2 * x[0] ** 2) * (x[1] ** 3 - x[1]) + x[2] * x[3] + 0.5 * x[2] ** 2
+    assert val == pytest.approx(exact, abs=1e-13)
+    # derivative of T_k by the recurrence against a central difference
+    _, d = cheb_basis(0.37, 6)
+    h = 1e-6
+    fd = (cheb_basis(0.37 + h, 6)[0] - cheb_basis(0.37 - h, 6)[0]) / (2 * h)
+    assert np.allclose(d, fd, atol=1e-8)
+
+
+def test_atlas_is_exact_at_grid_points(atlas, fwd):
+    ax = ACFG.axes()
+    lam = np.array([ax[0][1], ax[1][3], ax[2][2], ax[3][1]])
+    lin = fwd.solve(lam)
+    V, _ = atlas.volumes(lam)
+    assert np.allclose(V, lin.V, atol=1e-9 * 1e-6, rtol=1e-6)  # 1e-6 mm³ or 1 ppm: solver tolerance
+    assert np.allclose(atlas.points(lam), lin.sub_x, atol=1e-9)
+
+
+def test_atlas_matches_converged_solves_at_held_out_loads(atlas, held_out, fwd):
+    for lin in held_out:
+        V, J = atlas.volumes(lin.lam)
+        span = np.max(np.abs(lin.V))
+        assert np.max(np.abs(V - lin.V)) < 0.01 * span  # 1 % of the volume change
+        assert np.allclose(J, lin.W, rtol=0.05, atol=0.05 * np.abs(lin.W).max())  # the Jacobian too
+        # points and the full field (POD) within 3 % of the largest displacement (measured: 1 %)
+        move = np.max(np.abs(lin.x - fwd.fem.x_rest))
+        assert np.max(np.abs(atlas.points(lin.lam) - lin.sub_x)) < 0.03 * move
+        assert np.max(np.abs(atlas.nodes(lin.lam) - lin.x.reshape(-1, 3))) < 0.03 * move
+
+
+def test_atlas_estimator_inverts_the_converged_volumes(coarse_model, atlas, held_out, fwd):
+    est = AtlasEstimator(coarse_model, CFG, atlas)
+    for lin in held_out:
+        est.reset()
+        e = est.step(meas(lin.V, lin.lam[3]))
+        assert e.status == "ok" and e.in_envelope and e.qp_status == "optimal"
+        assert np.linalg.norm(e.force - lin.lam[:3]) < 0.02  # N
+        truth = Pose6.from_transform(rigid_fit(est.rest_markers, lin.sub_x[: fwd.n_markers])).to_mm_deg()
+        d = e.pose.to_mm_deg() - truth
+        assert np.max(np.abs(d[:3])) < 0.01 and np.max(np.abs(d[3:])) < 0.05  # mm, deg
+        assert np.allclose(est.node_positions(), atlas.nodes(np.r_[e.force, lin.lam[3]]))
+
+
+def test_out_of_envelope_is_flagged_and_clamped(coarse_model, atlas, fwd):
+    est = AtlasEstimator(coarse_model, CFG, atlas)
+    outside = fwd.solve([0.0, 2.0, 0.0, 0.0])  # beyond the envelope's f_y ≤ 1.2 N
+    e = est.step(meas(outside.V))
+    assert not e.in_envelope and e.status == "ok"
+    assert e.force[1] == pytest.approx(1.2)
+    e = est.step(meas(np.zeros(4), p=9e3))  # pressure above the envelope's 4 kPa
+    assert not e.in_envelope and e.p_urethra == 9e3
+    assert est.step(meas(np.zeros(4))).in_envelope
+    bad = est.step(meas([np.nan, 0, 0, 0]))
+    assert bad.status.startswith("rejected:nan")
+
+
+def test_cache_round_trip_mismatch_and_corruption(coarse_model, atlas, fwd, tmp_path, monkeypatch):
+    path = atlas_path(tmp_path, atlas.key)
+    atlas.save(path)
+    back = Atlas.load(path, atlas.key)
+    assert np.array_equal(back.cV, atlas.cV) and back.config == ACFG
+    # another contact patch, law parameter or envelope → another key; the file is refused in one line
+    other = ForwardModel(coarse_model, EstimatorConfig(contact="off-centre"))
+    assert atlas_key(other, ACFG) != atlas.key
+    assert atlas_key(fwd, dataclasses.replace(ACFG, force_max_N=(0.5, 1.3, 0.5))) != atlas.key
+    with pytest.raises(UserError, match="built for another model") as exc:
+        Atlas.load(path, atlas_key(other, ACFG))
+    assert "\n" not in str(exc.value)
+    # the cached file is used as is
+    built = []
+    monkeypatch.setattr("softphantom.estimation.atlas.build_atlas", lambda *a, **k: built.append(1) or atlas)
+    msgs = []
+    assert load_or_build(coarse_model, CFG, ACFG, cache_dir=tmp_path, log=msgs.append, fwd=fwd).key == atlas.key
+    assert not built
+    # one flipped byte in the data → corrupt: reported and rebuilt, never used
+    raw = bytearray(path.read_bytes())
+    raw[len(raw) // 2] ^= 0xFF
+    path.write_bytes(bytes(raw))
+    with pytest.raises(AtlasCorrupt):
+        Atlas.load(path)
+    load_or_build(coarse_model, CFG, ACFG, cache_dir=tmp_path, log=msgs.append, fwd=fwd)
+    assert built == [1] and any("rebuilding" in m for m in msgs)
+    assert np.array_equal(Atlas.load(path, atlas.key).cV, atlas.cV)  # rewritten intact
+    path.write_bytes(b"not an npz")
+    with pytest.raises(AtlasCorrupt, match="unreadable"):
+        Atlas.load(path)
+
+
+def test_both_estimators_implement_the_interface(coarse_model, atlas):
+    a = open_estimator("atlas", coarse_model, CFG, atlas=atlas)
+    r = open_estimator("refresh", coarse_model, CFG)
+    for est in (a, r):
+        assert isinstance(est, StateEstimator)
+        e = est.step(meas(np.zeros(4)))
+        assert e.status == "ok" and np.allclose(e.force, 0, atol=0.01)  # N; the atlas: interpolation error
+        assert est.node_positions().shape == (len(coarse_model.nodes), 3)
+        est.close()
+    assert isinstance(r, Estimator) and a.kind == "atlas" and r.kind == "refresh"
+    with pytest.raises(UserError, match="--estimator must be atlas or refresh"):
+        open_estimator("sync", coarse_model, CFG)
+
+
+def test_cli_estimate_atlas_option(coarse_model, atlas, tmp_path, capsys):
+    from softphantom.design import save_model
+    from softphantom.evaluation.files import read_table
+    from softphantom.sensing.chain import default_chain, nominal_tare, simulate_raw, to_measurement
+    from softphantom.sensing.pneumatics import boyle_dp
+    from softphantom.sensing.recording import Recorder
+
+    d = tmp_path / "model"
+    save_model(coarse_model, d)
+    rec = tmp_path / "rec.csv"
+    chain, rng = default_chain(), np.random.default_rng(1)
+    tare = nominal_tare(chain)
+    with Recorder(rec, {"tare": tare.to_dict(), "chain": chain.summary()}) as r:
+        for k in range(12):  # a small push: ~0.3 N along +y
+            dV = np.array([0.2, 0.15, -0.9, -0.85]) * 1e-9 * k / 11
+            raw = simulate_raw(np.r_[boyle_dp(dV, chain.v_total_m3, tare.p0_Pa), 0.0], 100, rng)
+            r.write(to_measurement(k / 77.0, k, k / 77.0, raw, 100, chain, tare))
+    out = tmp_path / "est.csv"
+    # the options give the fixture's envelope and grid: the CLI finds the atlas saved under its key
+    atlas.save(atlas_path(d, atlas.key))
+    args = ["estimate", "--model", str(d), "--source", f"replay:{rec}", "--out", str(out),
+            "--atlas-grid", "3,4,3,2", "--envelope", "-0.5:0.5,-0.3:1.2,-0.5:0.5,-1:4"]
+    assert main(args) == 0
+    assert "atlas: " + str(atlas_path(d, atlas.key)) in capsys.readouterr().out.replace("\n", "")
+    tab = read_table(out)
+    assert tab.meta["estimator"] == "atlas" and len(tab.columns["t_s"]) == 12
+    assert np.all(tab.columns["in_envelope"] == 1) and tab.columns["force_y_N"][-1] > 0.1
+    assert main(args[:-4] + ["--estimator", "nope"]) == 2
+    assert "--estimator must be atlas or refresh" in capsys.readouterr().err
+    assert main(args[:-2] + ["--envelope", "1:0,0:1,0:1,0:1"]) == 2
