@@ -144,16 +144,6 @@ def _to_chebyshev(values: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
 
 
 # -- the cache key ---------------------------------------------------------------------------------
-def _law_description(fem) -> str:
-    """The law and element of a FemModel as text (generic: whatever the model declares)."""
-    parts = [type(fem).__module__ + "." + type(fem).__name__, f"tets{tuple(np.shape(fem.tets))}"]
-    for name in ("law", "laws", "element", "order", "material", "materials"):
-        v = getattr(fem, name, None)
-        if v is not None and not callable(v):
-            parts.append(f"{name}={v!r}")
-    return ";".join(parts)
-
-
 def atlas_key(fwd: ForwardModel, acfg: AtlasConfig) -> str:
     """SHA-256 (hex) of everything the atlas depends on: mesh and fixed DOFs, law and parameters,
     element, cavities, contact patch (its actuator), tracked points (the probe), envelope, grid,
@@ -169,9 +159,12 @@ def atlas_key(fwd: ForwardModel, acfg: AtlasConfig) -> str:
     add(fem.x_rest)
     add(fem.tets)
     add(fem.free_dofs)
-    for name in ("mu", "lam"):
-        if hasattr(fem, name):
-            add(np.asarray(getattr(fem, name), float))
+    # the law per element (its id and parameters) and the element (the connectivity's width):
+    # whatever the FemModel carries, so a new law or element order changes the key
+    for name in ("mu", "lam", "law_id", "params"):
+        v = getattr(fem, name, None)
+        if v is not None:
+            add(np.asarray(v))
     for name in sorted(fem.cavities):
         h.update(name.encode())
         add(np.asarray(fem.cavities[name]))
@@ -180,7 +173,6 @@ def atlas_key(fwd: ForwardModel, acfg: AtlasConfig) -> str:
         add(M.indptr)
         add(M.indices)
         add(M.data)
-    h.update(_law_description(fem).encode())
     meta = {"format": FORMAT, "atlas": asdict(acfg), "tol": fwd.config.tol,
             "markers": fwd.marker_names, "targets": fwd.target_names}
     h.update(json.dumps(meta, sort_keys=True).encode())
