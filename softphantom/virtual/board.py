@@ -50,12 +50,17 @@ class BoardConfig:
     offset_band_fraction: float = 1.0
     drift_K_per_min: float = 0.05
     tube_lag: bool = True
+    #: per-channel sensitivity of the transducers relative to their datasheet (4 arms, urethra):
+    #: a gain of 1.05 reads 5 % high (for calibration studies)
+    gains: tuple[float, float, float, float, float] = (1.0, 1.0, 1.0, 1.0, 1.0)
 
     def __post_init__(self) -> None:
         if not 1 <= int(self.osr) <= 500:
             raise UserError(f"osr: must be 1..500 (the firmware's range), got {self.osr}")
         if not self.noise_codes >= 0:
             raise UserError(f"noise_codes: must be >= 0, got {self.noise_codes}")
+        if len(self.gains) != 5 or not all(math.isfinite(g) and g > 0 for g in self.gains):
+            raise UserError(f"gains: need 5 positive values (4 arms, urethra), got {self.gains}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -93,7 +98,7 @@ def board_signals(truth, cavity_volumes_m3, config: BoardConfig = BoardConfig())
     bands = np.array([MPXV7002.error_band_Pa] * 4 + [MPX4250D.error_band_Pa]) * config.offset_band_fraction
     offsets = rng.uniform(-1.0, 1.0, 5) * bands
     drift = rng.uniform(-1.0, 1.0) * config.drift_K_per_min / 60.0 * thermal_dp_per_K(config.p0_Pa)
-    p = np.column_stack([p_arm, ts.p_urethra]) + offsets
+    p = np.column_stack([p_arm, ts.p_urethra]) * np.asarray(config.gains, float) + offsets
     p[:, :4] += drift * t[:, None]
     return BoardSignals(t, p_cav, p, offsets, float(drift), tau, chain)
 

@@ -1,0 +1,445 @@
+"""The calibration's least squares: model parameters, sensor parameters, registration and lag,
+jointly with the (unknown or measured) load at every keyframe.
+
+Unknowns ``z``: the global parameters (:data:`PARAMETERS`; stiffness scales as logarithms) and a
+force (3,) N per keyframe. Residuals, each divided by its standard deviation:
+
+* per keyframe, the four arm pressures: ``g_i · boyle_dp(ΔV_i, V_cav,i + τ·V_tube,i) + o_i`` against
+  the recording (tube lag undone), ΔV from the FEM at the keyframe's load;
+* per keyframe, the 6-DoF pose of the tracked body: the FEM's marker motion seen in the body's frame
+  (axes rotated by the registration rotation, origin at the pivot) against the take at ``t + lag``;
+* per keyframe with known loads, the force against the measurement;
+* a weak Gaussian prior on every global parameter (its nominal value and plausible spread), which
+  keeps the problem well posed when the data cannot tell a parameter — and is how such a
+  parameter is recognised: its posterior spread stays close to its prior spread.
+
+Levenberg–Marquardt with the exact Jacobian: the FEM sensitivities come with each keyframe's solve
+(:mod:`softphantom.calibration.forward`), the rest by short finite differences of cheap closed
+forms. Confidence intervals from the Gauss–Newton covariance at the optimum scaled by the residual
+variance; correlations from the same matrix.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from softphantom.calibration.forward import ARM_NAMES, GROUPS, KeyframeSolution, solve_keyframe
+from softphantom.calibration.session import Session
+from softphantom.errors import SolverError, UserError
+from softphantom.pose import rigid_fit, ypr_from_matrix
+from softphantom.sensing.pneumatics import boyle_dp, tube_volume_m3
+
+
+@dataclass(frozen=True)
+class Parameter:
+    """A global parameter: ``name`` (unit in it), display ``unit``, ``nominal`` (internal units),
+    ``prior_sd`` (internal), ``log``: internal value is ln of the displayed factor."""
+
+    name: str
+    nominal: float
+    prior_sd: float
+    log: bool = False
+    scale: float = 1.0  # displayed = internal * scale (or exp(internal) when log)
+
+    def show(self, v: float) -> float:
+        return math.exp(v) if self.log else v * self.scale
+
+
+def parameter_set(groups=GROUPS) -> tuple[Parameter, ...]:
+    """Every global parameter the calibration knows, in order."""
+    ps = [Parameter(f"stiffness_{g}_factor", 0.0, math.log(2.0), log=True) for g in groups]
+    # MPXV7002 full-scale span 3.5–4.5 V around 4.0 V (±12.5 %): taken as ±2σ
+    ps += [Parameter(f"gain_{a}", 1.0, 0.0625) for a in ARM_NAMES]
+    ps += [Parameter(f"offset_{a}_Pa", 0.0, 300.0) for a in ARM_NAMES]
+    ps += [Parameter("tube_volume_factor", 1.0, 0.3)]
+    ps += [Parameter(f"registration_rot_{a}_deg", 0.0, math.radians(5.0), scale=180 / math.pi) for a in "xyz"]
+    ps += [Parameter(f"pivot_{a}_mm", 0.0, 0.02, scale=1e3) for a in "xyz"]
+    return tuple(ps)
+
+
+@dataclass(frozen=True)
+class FitOptions:
+    """``sigma_dp_Pa``, ``sigma_mm``, ``sigma_deg``, ``sigma_force_N``: the residuals' scales
+    (``sigma_dp_Pa`` None: each session's measured rest noise per arm);
+    ``fix``: names of parameters held at their nominal value; ``max_iter``; ``tol`` relative cost
+    change that ends the iterations; ``radius_m`` the contact patch radius."""
+
+    sigma_dp_Pa: float | None = None
+    sigma_mm: float = 0.2
+    sigma_deg: float = 0.2
+    sigma_force_N: float = 0.02
+    fix: tuple[str, ...] = ()
+    max_iter: int = 20
+    tol: float = 1e-5
+    radius_m: float = 4e-3
+    lag_prior_s: float = 1.0
+
+
+@dataclass(frozen=True, eq=False)
+class Keyframes:
+    """All keyframes: ``session`` index, ``t`` s (recording clock), ``dp`` (K, 4) Pa,
+    ``p_urethra`` (K,) Pa, ``contact`` (K, 3) m, ``known`` (K, 3) N (NaN where unknown)."""
+
+    session: np.ndarray
+    t: np.ndarray
+    dp: np.ndarray
+    p_urethra: np.ndarray
+    contact: np.ndarray
+    known: np.ndarray
+
+    @staticmethod
+    def of(sessions: list[Session], times: list[np.ndarray]) -> "Keyframes":
+        s, t, dp, pu, c, kn = [], [], [], [], [], []
+        for i, (se, tt) in enumerate(zip(sessions, times)):
+            tt = np.asarray(tt, float)
+            s.append(np.full(tt.size, i))
+            t.append(tt)
+            dp.append(np.stack([np.interp(tt, se.t, se.dp[:, k]) for k in range(4)], axis=1))
+            pu.append(np.interp(tt, se.t, se.p_urethra))
+            c.append(np.broadcast_to(se.contact, (tt.size, 3)))
+            k = se.known_at(tt)
+            kn.append(np.full((tt.size, 3), np.nan) if k is None else k)
+        return Keyframes(np.concatenate(s), np.concatenate(t), np.concatenate(dp), np.concatenate(pu),
+                         np.concatenate(c), np.concatenate(kn))
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+
+def rotvec_matrix(rho: np.ndarray) -> np.ndarray:
+    return Rotation.from_rotvec(np.asarray(rho, float)).as_matrix()
+
+
+def body_pose(rest_markers: np.ndarray, markers: np.ndarray, rho: np.ndarray, pivot: np.ndarray) -> np.ndarray:
+    """(6,) the marker body's motion relative to rest as the tracker reports it: translation of the
+    pivot and rotation, both in the body's axes (model axes rotated by ``rho``); m and rad."""
+    T = rigid_fit(rest_markers, markers)
+    A = rotvec_matrix(rho)
+    Rb = A.T @ T.R @ A
+    tb = A.T @ (T.R @ pivot + T.t - pivot)
+    return np.concatenate([tb, ypr_from_matrix(Rb)])
+
+
+def _wrap(a: np.ndarray) -> np.ndarray:
+    return (a + np.pi) % (2 * np.pi) - np.pi
+
+
+@dataclass
+class Problem:
+    """The least-squares problem (see the module docstring); ``solve_many`` maps keyframe solve
+    tasks (argument tuples of :func:`solve_keyframe`) to :class:`KeyframeSolution` s."""
+
+    model_dir: str
+    sessions: list[Session]
+    frames: Keyframes
+    rest_markers: np.ndarray
+    solve_many: Callable[[list[tuple]], list[KeyframeSolution]]
+    options: FitOptions = field(default_factory=FitOptions)
+    params: tuple[Parameter, ...] = field(default_factory=parameter_set)
+    lag0_s: np.ndarray | None = None
+    x_warm: list = field(default_factory=list)
+    solves: int = 0
+    pose_rows: np.ndarray | None = None  # keyframes whose take sample exists (fixed at the start)
+    use_pose: bool = True  # False: forces from the pressures alone (held-out prediction)
+    use_known: bool = True
+
+    def __post_init__(self) -> None:
+        names = [p.name for p in self.params]
+        bad = [f for f in self.options.fix if f not in names and not f.startswith("lag")]
+        if bad:
+            raise UserError(f"--fix: unknown parameter(s) {', '.join(bad)}; have {', '.join(names)}")
+        if self.lag0_s is None:
+            self.lag0_s = np.zeros(len(self.sessions))
+        if not self.x_warm:
+            self.x_warm = [None] * len(self.frames)
+        if self.pose_rows is None:
+            fr = self.frames
+            self.pose_rows = np.array([
+                bool(np.all(np.isfinite(self.sessions[int(fr.session[k])].pose_at(fr.t[k] + self.lag0_s[int(fr.session[k])]))))
+                for k in range(len(fr))])
+
+    # --- layout of z ---------------------------------------------------------------------------
+    @property
+    def n_global(self) -> int:
+        return len(self.params) + len(self.sessions)  # + one lag per session
+
+    def names(self) -> list[str]:
+        return [p.name for p in self.params] + [f"lag_{s.name}_ms" for s in self.sessions]
+
+    def nominal(self) -> np.ndarray:
+        z = np.concatenate([[p.nominal for p in self.params], self.lag0_s])
+        return z
+
+    def prior_sd(self) -> np.ndarray:
+        return np.concatenate([[p.prior_sd for p in self.params], np.full(len(self.sessions), self.options.lag_prior_s)])
+
+    def free_mask(self) -> np.ndarray:
+        fix = set(self.options.fix)
+        m = np.array([p.name not in fix for p in self.params] + ["lag" not in fix] * len(self.sessions))
+        return m
+
+    def _idx(self, name: str) -> int:
+        return [p.name for p in self.params].index(name)
+
+    def unpack(self, g: np.ndarray) -> dict:
+        P = {p.name: g[i] for i, p in enumerate(self.params)}
+        return dict(
+            scales={gr: math.exp(P[f"stiffness_{gr}_factor"]) for gr in GROUPS},
+            gain=np.array([P[f"gain_{a}"] for a in ARM_NAMES]),
+            offset=np.array([P[f"offset_{a}_Pa"] for a in ARM_NAMES]),
+            tube=P["tube_volume_factor"],
+            rho=np.array([P[f"registration_rot_{a}_deg"] for a in "xyz"]),
+            pivot=np.array([P[f"pivot_{a}_mm"] for a in "xyz"]),
+            lag=g[len(self.params):],
+        )
+
+    # --- forward ---------------------------------------------------------------------------------
+    def solve(self, g: np.ndarray, forces: np.ndarray) -> list[KeyframeSolution]:
+        u = self.unpack(g)
+        fr = self.frames
+        tasks = [(self.model_dir, tuple(fr.contact[k]), self.options.radius_m, u["scales"], forces[k],
+                  float(fr.p_urethra[k]), self.x_warm[k]) for k in range(len(fr))]
+        sols = self.solve_many(tasks)
+        self.solves += len(tasks)
+        return sols
+
+    def pressures(self, u: dict, dV: np.ndarray, session: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Predicted dp (K, 4) Pa and its derivatives wrt ΔV (K, 4) and the tube factor (K, 4)."""
+        out, d_dV, d_tube = [], [], []
+        for k in range(dV.shape[0]):
+            se = self.sessions[int(session[k])]
+            vt = tube_volume_m3(se.tube_length_m, se.tube_id_m)
+            VT = se.cavity_m3 + u["tube"] * vt
+            p = boyle_dp(dV[k], VT, se.p0_Pa)
+            # dp = P0 (VT/(VT+dV) − 1): ∂/∂dV = −P0 VT/(VT+dV)², ∂/∂VT = P0 dV/(VT+dV)²
+            den = (VT + dV[k]) ** 2
+            out.append(u["gain"] * p + u["offset"])
+            d_dV.append(u["gain"] * (-se.p0_Pa * VT / den))
+            d_tube.append(u["gain"] * (se.p0_Pa * dV[k] / den) * vt)
+        return np.array(out), np.array(d_dV), np.array(d_tube)
+
+    def residuals(self, z: np.ndarray, want_jac: bool = True):
+        """Residual vector, Jacobian (dense) and the solutions, at ``z``."""
+        ng, K = self.n_global, len(self.frames)
+        g, forces = z[:ng], z[ng:].reshape(K, 3)
+        u = self.unpack(g)
+        sols = self.solve(g, forces)
+        o = self.options
+        fr = self.frames
+        dV = np.array([s.dV for s in sols])
+        dp, dp_dV, dp_dtube = self.pressures(u, dV, fr.session)
+        rows_r, rows_J = [], []
+        nz = z.size
+        iG = {name: i for i, name in enumerate(self.names())}
+        scale_cols = [iG[f"stiffness_{gr}_factor"] for gr in GROUPS]
+        # pressures
+        for k in range(K):
+            sdp = self.sessions[int(fr.session[k])].dp_noise_Pa if o.sigma_dp_Pa is None else np.full(4, o.sigma_dp_Pa)
+            r = (dp[k] - fr.dp[k]) / sdp
+            J = np.zeros((4, nz))
+            s = sols[k]
+            J[:, ng + 3 * k: ng + 3 * k + 3] = dp_dV[k][:, None] * s.dV_df / sdp[:, None]
+            for j, gr in enumerate(s.groups):
+                J[:, scale_cols[GROUPS.index(gr)]] = dp_dV[k] * s.dV_dlnc[:, j] / sdp
+            p_lin = (dp[k] - u["offset"]) / u["gain"]
+            for i, a in enumerate(ARM_NAMES):
+                J[i, iG[f"gain_{a}"]] = p_lin[i] / sdp[i]
+                J[i, iG[f"offset_{a}_Pa"]] = 1.0 / sdp[i]
+            J[:, iG["tube_volume_factor"]] = dp_dtube[k] / sdp
+            rows_r.append(r)
+            rows_J.append(J)
+        # poses
+        pose_keys = range(K) if self.use_pose else ()
+        sd6 = np.array([o.sigma_mm * 1e-3] * 3 + [math.radians(o.sigma_deg)] * 3)
+        h_m, h_par = 1e-7, 1e-6
+        for k in pose_keys:
+            se = self.sessions[int(fr.session[k])]
+            lag = u["lag"][int(fr.session[k])]
+            if not self.pose_rows[k]:
+                continue
+            meas = se.pose_at(fr.t[k] + lag)[0]
+            J = np.zeros((6, nz))
+            if not np.all(np.isfinite(meas)):  # the lag moved this keyframe out of the take
+                rows_r.append(np.zeros(6))
+                rows_J.append(J)
+                continue
+            s = sols[k]
+            pred = body_pose(self.rest_markers, s.markers, u["rho"], u["pivot"])
+            r = np.concatenate([pred[:3] - meas[:3], _wrap(pred[3:] - meas[3:])]) / sd6
+            if want_jac:
+                # pose wrt marker positions (central differences of the rigid fit)
+                M = s.markers
+                D = np.zeros((6, M.size))
+                for c in range(M.size):
+                    Mp, Mm = M.copy().reshape(-1), M.copy().reshape(-1)
+                    Mp[c] += h_m
+                    Mm[c] -= h_m
+                    dp_ = body_pose(self.rest_markers, Mp.reshape(M.shape), u["rho"], u["pivot"])
+                    dm_ = body_pose(self.rest_markers, Mm.reshape(M.shape), u["rho"], u["pivot"])
+                    D[:, c] = np.concatenate([dp_[:3] - dm_[:3], _wrap(dp_[3:] - dm_[3:])]) / (2 * h_m)
+                J[:, ng + 3 * k: ng + 3 * k + 3] = D @ s.dM_df.reshape(M.size, 3) / sd6[:, None]
+                for j, gr in enumerate(s.groups):
+                    J[:, scale_cols[GROUPS.index(gr)]] = D @ s.dM_dlnc[:, :, j].reshape(M.size) / sd6
+                for a_i, a in enumerate("xyz"):
+                    for name, vec, h in ((f"registration_rot_{a}_deg", "rho", h_par), (f"pivot_{a}_mm", "pivot", h_par * 1e-2)):
+                        up, um = dict(u), dict(u)
+                        up[vec] = u[vec].copy()
+                        um[vec] = u[vec].copy()
+                        up[vec][a_i] += h
+                        um[vec][a_i] -= h
+                        pp = body_pose(self.rest_markers, M, up["rho"], up["pivot"])
+                        pm = body_pose(self.rest_markers, M, um["rho"], um["pivot"])
+                        J[:, iG[name]] = np.concatenate([pp[:3] - pm[:3], _wrap(pp[3:] - pm[3:])]) / (2 * h) / sd6
+                h_t = 2e-3
+                mp, mm = se.pose_at(fr.t[k] + lag + h_t)[0], se.pose_at(fr.t[k] + lag - h_t)[0]
+                if np.all(np.isfinite(mp)) and np.all(np.isfinite(mm)):
+                    dmeas = np.concatenate([mp[:3] - mm[:3], _wrap(mp[3:] - mm[3:])]) / (2 * h_t)
+                    J[:, len(self.params) + int(fr.session[k])] = -dmeas / sd6
+            rows_r.append(r)
+            rows_J.append(J)
+        # known loads
+        for k in range(K if self.use_known else 0):
+            if np.all(np.isfinite(fr.known[k])):
+                rows_r.append((forces[k] - fr.known[k]) / o.sigma_force_N)
+                J = np.zeros((3, nz))
+                J[:, ng + 3 * k: ng + 3 * k + 3] = np.eye(3) / o.sigma_force_N
+                rows_J.append(J)
+        # priors on the global parameters
+        sd = self.prior_sd()
+        rows_r.append((g - self.nominal()) / sd)
+        Jp = np.zeros((ng, nz))
+        Jp[:, :ng] = np.diag(1.0 / sd)
+        rows_J.append(Jp)
+        r = np.concatenate(rows_r)
+        J = np.vstack(rows_J)
+        return r, J, sols
+
+
+@dataclass(frozen=True, eq=False)
+class FitResult:
+    """``z`` the optimum; ``names``; ``value`` displayed values of the global parameters;
+    ``ci95`` (n, 2) their 95 % intervals (displayed units); ``sd`` internal standard deviations;
+    ``prior_sd``; ``correlation`` (n, n); ``identifiable`` (n,) bool; ``history`` cost per
+    iteration; ``cost0``/``cost`` initial and final ½‖r‖²; ``forces`` (K, 3) N; ``solutions``;
+    ``solves`` forward solves spent; ``seconds``; ``warnings``."""
+
+    z: np.ndarray
+    names: list[str]
+    value: np.ndarray
+    nominal: np.ndarray
+    ci95: np.ndarray
+    sd: np.ndarray
+    prior_sd: np.ndarray
+    correlation: np.ndarray
+    identifiable: np.ndarray
+    history: list[float]
+    forces: np.ndarray
+    solutions: list
+    solves: int
+    seconds: float
+    warnings: tuple[str, ...]
+    free: np.ndarray
+
+
+def _display(problem: Problem, g: np.ndarray) -> np.ndarray:
+    vals = [p.show(v) for p, v in zip(problem.params, g)]
+    return np.array(vals + list(g[len(problem.params):] * 1e3))
+
+
+def fit(problem: Problem, forces0: np.ndarray, progress: Callable[[int, float, float], None] | None = None,
+        identifiable_ratio: float = 0.5) -> FitResult:
+    """Levenberg–Marquardt from the nominal parameters and ``forces0`` (K, 3) N.
+
+    ``progress(iteration, cost, lm_lambda)`` after each accepted or rejected step. A parameter is
+    reported identifiable when the data shrank its spread below ``identifiable_ratio`` of its prior
+    spread and it is free; the warnings name the others and the pairs correlated beyond 0.95."""
+    t0 = time.perf_counter()
+    ng = problem.n_global
+    free_g = problem.free_mask()
+    free = np.concatenate([free_g, np.ones(forces0.size, bool)])
+    z = np.concatenate([problem.nominal(), np.asarray(forces0, float).reshape(-1)])
+    r, J, sols = problem.residuals(z)
+    problem.x_warm = [s.x for s in sols]
+    cost = 0.5 * float(r @ r)
+    history = [cost]
+    lam = 1e-3
+    it = 0
+    while it < problem.options.max_iter:
+        it += 1
+        Jf = J[:, free]
+        A = Jf.T @ Jf
+        b = -Jf.T @ r
+        step_ok, rel = False, 0.0
+        for _ in range(8):
+            try:
+                dz = np.linalg.solve(A + lam * np.diag(np.diag(A) + 1e-12), b)
+            except np.linalg.LinAlgError:
+                lam *= 10
+                continue
+            z_try = z.copy()
+            z_try[free] += dz
+            try:
+                r_try, J_try, sols_try = problem.residuals(z_try)
+            except SolverError:
+                lam *= 10
+                if progress:
+                    progress(it, cost, lam)
+                continue
+            c_try = 0.5 * float(r_try @ r_try)
+            if c_try < cost:
+                rel = (cost - c_try) / max(cost, 1e-300)
+                z, r, J, cost = z_try, r_try, J_try, c_try
+                problem.x_warm = [s.x for s in sols_try]
+                sols = sols_try
+                lam = max(lam / 3, 1e-9)
+                step_ok = True
+                break
+            lam *= 4
+            if progress:
+                progress(it, cost, lam)
+        history.append(cost)
+        if progress:
+            progress(it, cost, lam)
+        if not step_ok or rel < problem.options.tol:
+            break
+    # covariance at the optimum (Gauss–Newton), scaled by the residual variance
+    Jf = J[:, free]
+    m, n = Jf.shape
+    dof = max(m - n, 1)
+    s2 = max(2 * cost / dof, 1.0)
+    cov_f = np.linalg.pinv(Jf.T @ Jf) * s2
+    cov = np.zeros((z.size, z.size))
+    idx = np.flatnonzero(free)
+    cov[np.ix_(idx, idx)] = cov_f
+    cg = cov[:ng, :ng]
+    sd = np.sqrt(np.clip(np.diag(cg), 0, None))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        corr = cg / np.outer(sd, sd)
+    corr[~np.isfinite(corr)] = 0.0
+    prior = problem.prior_sd()
+    ratio = sd / prior
+    ident = free_g & (ratio < identifiable_ratio)
+    names = problem.names()
+    g = z[:ng]
+    lo = g - 1.96 * sd
+    hi = g + 1.96 * sd
+    value = _display(problem, g)
+    ci = np.stack([_display(problem, lo), _display(problem, hi)], axis=1)
+    warns = []
+    for i, nm in enumerate(names):
+        if free_g[i] and not ident[i]:
+            warns.append(f"{nm} is not identifiable from these data (its spread is {ratio[i]:.0%} of the prior's): "
+                         "add known loads or other pushes, or --fix it")
+    for i in range(ng):
+        for j in range(i + 1, ng):
+            if free_g[i] and free_g[j] and abs(corr[i, j]) > 0.95:
+                warns.append(f"{names[i]} and {names[j]} are correlated ({corr[i, j]:+.2f}): the data tell their "
+                             "combination, not each")
+    return FitResult(z, names, value, _display(problem, problem.nominal()), ci, sd, prior, corr, ident, history,
+                     z[ng:].reshape(-1, 3), sols, problem.solves, time.perf_counter() - t0, tuple(warns), free_g)

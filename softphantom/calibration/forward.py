@@ -1,0 +1,171 @@
+"""Forward solves of the calibration: the phantom's equilibrium at one keyframe's loads for given
+material scales, with the exact sensitivities the least squares needs.
+
+At an equilibrium ``r(x; f, c) = f_int(x; c) − H f − p ∂Φ_u/∂x = 0`` the implicit function
+theorem gives, with the tangent ``K = ∂r/∂x`` (one factorization):
+
+* ``∂x/∂f = K⁻¹ H`` (3 columns);
+* ``∂x/∂ln c_r = −K⁻¹ f_int,r(x)`` for the scale ``c_r`` of every modulus of region group ``r``:
+  every law of :mod:`softphantom.fem` has a strain energy linear in its moduli, so the internal
+  force of a group's elements is proportional to its scale.
+
+Readouts: arm-cavity volume changes (4) and marker positions (k, 3). One task is a plain function
+of picklable arguments (:func:`solve_keyframe`), so Dask ships it to any worker; each worker builds
+the model from its directory once (:func:`_base`, a per-process cache keyed by path and contact).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from softphantom.errors import SolverError, UserError
+from softphantom.fem import (
+    SparseSolver,
+    cavity_volume,
+    cavity_volume_gradient,
+    fem_from_phantom,
+    force_actuator,
+    free_tangent,
+    internal_force,
+    probe_matrix,
+    solve_static,
+)
+
+ARM_NAMES = ("front_zpos", "front_zneg", "back_xpos", "back_xneg")
+URETHRA = "urethra"
+#: Region groups whose stiffness the calibration can scale: the bulb, and the four arms together.
+GROUPS = ("bulb", "arms")
+
+
+def region_group(region: str) -> str:
+    """The calibration group of a mesh region (``arm_*`` → ``arms``, other names themselves)."""
+    return "arms" if region.startswith("arm_") else region
+
+
+@dataclass(frozen=True)
+class Base:
+    """What a worker keeps per model: the phantom, the nominal FEM, the contact load matrix ``H``
+    (3N, 3), the marker probe ``P`` (k, N), rest volumes and marker points, the tet masks of the
+    groups."""
+
+    model: object
+    fem: object
+    H: object
+    P: object
+    V0: np.ndarray
+    rest_markers: np.ndarray
+    group_tets: dict
+
+
+@functools.lru_cache(maxsize=4)
+def _base(model_dir: str, contact: tuple[float, float, float], radius_m: float) -> Base:
+    from softphantom.design import load_model
+
+    model = load_model(Path(model_dir))
+    fem = fem_from_phantom(model)
+    pt = np.asarray(contact, float)
+    # on a coarse mesh a small patch may hold no node: widen it to the 3 nearest surface nodes
+    surf = np.unique(fem.boundary_faces)
+    r3 = float(np.sort(np.linalg.norm(fem.nodes[surf] - pt, axis=1))[2]) * 1.001
+    H = force_actuator(fem, pt, radius=max(radius_m, r3))
+    names = list(model.markers)
+    P = probe_matrix(fem, np.array([model.markers[k] for k in names]))
+    x0 = fem.nodes
+    V0 = np.array([cavity_volume(x0, fem.cavities[a]) for a in ARM_NAMES])
+    id_to_group = {rid: region_group(name) for name, rid in model.regions.items()}
+    reg = np.asarray(model.tet_region)
+    groups: dict[str, np.ndarray] = {}
+    for rid, g in id_to_group.items():
+        groups.setdefault(g, np.zeros(reg.size, bool))
+        groups[g] |= reg == rid
+    return Base(model, fem, H, P, V0, np.asarray(P @ x0), groups)
+
+
+def scaled_fem(fem, tet_scale: np.ndarray):
+    """A new FemModel whose element moduli are multiplied by ``tet_scale`` (M,)."""
+    s = np.asarray(tet_scale, float)
+    return dataclasses.replace(fem, mu=fem.mu * s, lam=fem.lam * s)
+
+
+def _tet_scale(base: Base, scales: dict[str, float]) -> np.ndarray:
+    s = np.ones(len(base.fem.tets))
+    for g, c in scales.items():
+        if g not in base.group_tets:
+            raise UserError(f"calibration: no region group {g!r} in the model (have {sorted(base.group_tets)})")
+        if not (np.isfinite(c) and c > 0):
+            raise UserError(f"calibration: stiffness scale of {g} must be > 0, got {c}")
+        s[base.group_tets[g]] = c
+    return s
+
+
+@dataclass(frozen=True, eq=False)
+class KeyframeSolution:
+    """A keyframe's equilibrium: ``x`` (3N,) m, ``dV`` (4,) m³ arm-cavity volume changes,
+    ``markers`` (k, 3) m; sensitivities ``dV_df`` (4, 3) m³/N, ``dV_dlnc`` (4, G) m³,
+    ``dM_df`` (k, 3, 3) m/N, ``dM_dlnc`` (k, 3, G) m (G = ``groups``); ``iterations`` Newton
+    iterations; ``converged``; ``status``."""
+
+    x: np.ndarray
+    dV: np.ndarray
+    markers: np.ndarray
+    dV_df: np.ndarray
+    dV_dlnc: np.ndarray
+    dM_df: np.ndarray
+    dM_dlnc: np.ndarray
+    groups: tuple[str, ...]
+    iterations: int
+    converged: bool
+    status: str
+
+
+def solve_keyframe(model_dir: str, contact: tuple[float, float, float], radius_m: float,
+                   scales: dict[str, float], force_N, p_urethra_Pa: float,
+                   x0: np.ndarray | None = None, tol: float = 1e-9) -> KeyframeSolution:
+    """Equilibrium and sensitivities at force ``force_N`` (3,) on the contact patch and urethra
+    pressure ``p_urethra_Pa``, with the moduli of each group in ``scales`` multiplied by its value
+    (groups not named keep their nominal moduli). ``x0`` warm start (3N,)."""
+    base = _base(str(model_dir), tuple(float(v) for v in contact), float(radius_m))
+    groups = tuple(scales)
+    fem = scaled_fem(base.fem, _tet_scale(base, scales))
+    f = np.asarray(force_N, float)
+    pressures = {URETHRA: float(p_urethra_Pa)} if p_urethra_Pa else None
+    solver = SparseSolver("auto")
+    sol = solve_static(fem, base.H @ f, pressures=pressures, x0=x0, tol=tol, solver=solver)
+    if not sol.converged:
+        raise SolverError(f"keyframe at force {np.round(f, 3).tolist()} N, urethra "
+                          f"{p_urethra_Pa / 1e3:.3g} kPa: {sol.status}")
+    x = sol.x.reshape(-1)
+    n = fem.n_dof
+    free = fem.free_dofs
+    K = free_tangent(fem, x, pressures)
+    solver.factorize(K)
+    B = np.empty((fem.n_free, 3 + len(groups)))
+    B[:, :3] = base.H.toarray()[free] if hasattr(base.H, "toarray") else base.H[free]
+    ts = _tet_scale(base, scales)
+    for j, g in enumerate(groups):
+        only = np.where(base.group_tets[g], ts, 0.0)
+        B[:, 3 + j] = -internal_force(scaled_fem(base.fem, only), x)[free]
+    U = np.zeros((n, B.shape[1]))
+    U[free] = solver.solve(B)
+    dV = np.empty(4)
+    dV_d = np.empty((4, B.shape[1]))
+    for i, a in enumerate(ARM_NAMES):
+        tri = fem.cavities[a]
+        dV[i] = cavity_volume(x, tri) - base.V0[i]
+        dV_d[i] = cavity_volume_gradient(x, tri, fem.n_nodes) @ U
+    X = x.reshape(-1, 3)
+    markers = np.asarray(base.P @ X)
+    Uk = U.reshape(-1, 3, U.shape[1])  # (N, 3, cols)
+    dM = np.einsum("kn,nic->kic", base.P.toarray() if hasattr(base.P, "toarray") else base.P, Uk)
+    return KeyframeSolution(x, dV, markers, dV_d[:, :3], dV_d[:, 3:], dM[:, :, :3], dM[:, :, 3:],
+                            groups, sol.iterations, True, sol.status)
+
+
+def rest_markers(model_dir: str, contact, radius_m: float) -> np.ndarray:
+    """The marker points as the mesh carries them at rest (k, 3) m."""
+    return _base(str(model_dir), tuple(float(v) for v in contact), float(radius_m)).rest_markers

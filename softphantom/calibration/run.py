@@ -1,0 +1,229 @@
+"""``softphantom calibrate`` end to end: sessions → keyframes → initial guess → least squares on
+Dask → held-out check → a calibrated model directory and a report."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable
+from contextlib import nullcontext
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from softphantom.calibration.fit import FitOptions, FitResult, Keyframes, Problem, body_pose, fit, parameter_set
+from softphantom.calibration.forward import ARM_NAMES, GROUPS, rest_markers, solve_keyframe
+from softphantom.calibration.session import CalibrationInputError, Session, load_session, select_keyframes
+from softphantom.errors import SolverError, UserError
+from softphantom.sensing.pneumatics import boyle_dV, tube_volume_m3
+
+POSE_DOF = ("x_mm", "y_mm", "z_mm", "yaw_deg", "pitch_deg", "roll_deg")
+
+
+@dataclass(frozen=True)
+class SessionSpec:
+    """One trial to read: ``recording``, ``truth`` (take), ``contact`` (a ``p_ext`` name of the
+    model or (x, y, z) m), ``known_loads`` (CSV or None)."""
+
+    recording: Path
+    truth: Path
+    contact: str | tuple[float, float, float] = "on-centre"
+    known_loads: Path | None = None
+
+
+@dataclass(frozen=True, eq=False)
+class HeldOut:
+    """Pose errors (K, 6) in mm and degrees at keyframes, forces inferred from the pressures alone,
+    with the nominal and the calibrated parameters; per-DoF RMSE of each."""
+
+    names: tuple[str, ...]
+    t: np.ndarray
+    err_nominal: np.ndarray
+    err_calibrated: np.ndarray
+
+    def rmse(self, which: str) -> np.ndarray:
+        e = self.err_nominal if which == "nominal" else self.err_calibrated
+        return np.sqrt(np.nanmean(e**2, axis=0))
+
+
+@dataclass(frozen=True, eq=False)
+class Calibration:
+    """Everything ``calibrate`` found: the fit, the keyframes, the held-out checks on the fitting
+    data (``fitting``) and on the held-out sessions (``held_out``, None without them)."""
+
+    model_dir: Path
+    fit: FitResult
+    frames: Keyframes
+    sessions: list[Session]
+    fitting: HeldOut
+    held_out: HeldOut | None
+    options: FitOptions
+    meta: dict = field(default_factory=dict)
+
+    def parameters(self) -> dict[str, float]:
+        return {n: float(v) for n, v in zip(self.fit.names, self.fit.value)}
+
+
+def _contact(model, c) -> tuple[float, float, float]:
+    if isinstance(c, str):
+        if c not in model.p_ext:
+            raise UserError(f"--contact {c!r}: not a contact point of the model (have {', '.join(model.p_ext)}, or X,Y,Z_mm)")
+        return tuple(float(v) for v in model.p_ext[c])
+    return tuple(float(v) for v in c)
+
+
+def _solver(client) -> Callable[[list[tuple]], list]:
+    if client is None:
+        return lambda tasks: [solve_keyframe(*t) for t in tasks]
+    from softphantom.parallel import map_tasks
+
+    def run(tasks):
+        out = map_tasks(client, solve_keyframe, tasks, progress=False)
+        bad = [r for r in out if not r.ok]
+        if bad:
+            raise SolverError(f"forward solve of keyframe {bad[0].index}: {bad[0].error}")
+        return [r.value for r in out]
+
+    return run
+
+
+def _initial(problem: Problem, sessions: list[Session]) -> tuple[np.ndarray, np.ndarray]:
+    """First guess of the keyframe forces and of each session's clock lag from the nominal model
+    linearized at rest: force = least squares of the pressures' volumes; lag by cross-correlating
+    the linear model's pose with the take."""
+    from softphantom.tracking.timing import estimate_lag
+
+    fr = problem.frames
+    contacts = sorted({tuple(c) for c in fr.contact})
+    zero = {gr: 1.0 for gr in GROUPS}
+    rest = problem.solve_many([(problem.model_dir, c, problem.options.radius_m, zero, np.zeros(3), 0.0, None)
+                               for c in contacts])
+    lin = dict(zip(contacts, rest))
+    forces = np.zeros((len(fr), 3))
+    lags = np.zeros(len(sessions))
+    rm = problem.rest_markers
+    for i, se in enumerate(sessions):
+        vt = tube_volume_m3(se.tube_length_m, se.tube_id_m)
+        s0 = lin[tuple(se.contact)]
+        pinv = np.linalg.pinv(s0.dV_df)
+
+        def force_of(dp):
+            return (pinv @ boyle_dV(dp.T, (se.cavity_m3 + vt)[:, None], se.p0_Pa)).T
+
+        sel = fr.session == i
+        forces[sel] = force_of(fr.dp[sel])
+        # linear pose prediction on the recording's clock
+        grid = np.arange(se.t[0], se.t[-1], 0.02)
+        dp = np.stack([np.interp(grid, se.t, se.dp[:, k]) for k in range(4)], axis=1)
+        f = force_of(dp)
+        M = rm[None] + np.einsum("kij,nj->nki", s0.dM_df, f)
+        pred = np.array([body_pose(rm, m, np.zeros(3), np.zeros(3)) for m in M])
+        overlap = min(se.truth_t[-1], grid[-1]) - max(se.truth_t[0], grid[0])
+        search = min(2.0, 0.45 * max(overlap, 0.0))
+        if search <= 0.05:
+            raise CalibrationInputError(
+                f"session {se.name}: the take ({se.truth_t[0]:.2f}–{se.truth_t[-1]:.2f} s) does not overlap the "
+                f"recording ({se.t[0]:.2f}–{se.t[-1]:.2f} s) in time")
+        try:
+            res = estimate_lag(se.truth_t, se.truth_pose[:, :3] * 1e3, grid, pred[:, :3] * 1e3, max_lag_s=search)
+        except ValueError as exc:
+            raise CalibrationInputError(f"session {se.name}: cannot align the take with the recording ({exc})") from None
+        lags[i] = -res.lag_s  # take time = recording time + lag
+    known = np.all(np.isfinite(fr.known), axis=1)
+    forces[known] = fr.known[known]
+    return forces, lags
+
+
+def _pose_errors(problem: Problem, g: np.ndarray, forces0: np.ndarray) -> np.ndarray:
+    """(K, 6) mm/deg: pose from forces fitted to the pressures alone (all globals held at ``g``)
+    minus the take."""
+    names = problem.names()
+    p = dataclasses.replace(problem, options=dataclasses.replace(problem.options, fix=tuple(names) + ("lag",),
+                                                                  max_iter=8),
+                            use_pose=False, use_known=False, x_warm=list(problem.x_warm), solves=0,
+                            lag0_s=g[len(problem.params):].copy(),
+                            params=tuple(dataclasses.replace(pp, nominal=float(v))
+                                         for pp, v in zip(problem.params, g)))
+    res = fit(p, forces0)
+    u = p.unpack(res.z[:p.n_global])
+    fr = p.frames
+    err = np.full((len(fr), 6), np.nan)
+    for k, s in enumerate(res.solutions):
+        se = p.sessions[int(fr.session[k])]
+        meas = se.pose_at(fr.t[k] + u["lag"][int(fr.session[k])])[0]
+        pred = body_pose(p.rest_markers, s.markers, u["rho"], u["pivot"])
+        d = pred - meas
+        d[3:] = (d[3:] + np.pi) % (2 * np.pi) - np.pi
+        err[k] = np.concatenate([d[:3] * 1e3, np.degrees(d[3:])])
+    return err
+
+
+def calibrate(model_dir, specs: list[SessionSpec], holdout: list[SessionSpec] = (), *,
+              options: FitOptions = FitOptions(), scheduler: str | None = None, n_workers: int | None = None,
+              in_process: bool = False, max_keyframes: int = 16,
+              progress: Callable[[str], None] | None = None) -> Calibration:
+    """Fit the model in ``model_dir`` to the sessions ``specs``; check on ``holdout`` sessions.
+
+    Forward solves run on Dask (a local cluster unless ``scheduler`` is an address), or in this
+    process with ``in_process``. ``progress(line)`` receives one line per stage and iteration."""
+    from softphantom.design import load_model
+    from softphantom.parallel import dask_client
+
+    say = progress or (lambda s: None)
+    model_dir = Path(model_dir)
+    model = load_model(model_dir)
+    if not specs:
+        raise UserError("calibrate: give at least one --recording/--truth pair")
+
+    def load(specs_, prefix):
+        return [load_session(sp.recording, sp.truth, _contact(model, sp.contact), sp.known_loads, name=f"{prefix}{i + 1}")
+                for i, sp in enumerate(specs_)]
+
+    sessions = load(specs, "s")
+    held = load(holdout, "h")
+    times = [select_keyframes(se, max_keyframes) for se in sessions]
+    frames = Keyframes.of(sessions, times)
+    say(f"{len(sessions)} session(s), {len(frames)} keyframes"
+        + (f", {int(np.all(np.isfinite(frames.known), axis=1).sum())} with known loads" if np.isfinite(frames.known).any() else ""))
+    if not np.isfinite(frames.known).any() and "stiffness_bulb_factor" not in options.fix:
+        say("no known loads: the stiffness and the force scale are confounded; the fit reports it")
+
+    ctx = nullcontext(None) if in_process else dask_client(scheduler, n_workers)
+    with ctx as client:
+        solve_many = _solver(client)
+        rm = rest_markers(str(model_dir), tuple(frames.contact[0]), options.radius_m)
+        problem = Problem(str(model_dir), sessions, frames, rm, solve_many, options, parameter_set())
+        forces0, lags0 = _initial(problem, sessions)
+        problem = dataclasses.replace(problem, lag0_s=lags0, pose_rows=None)
+        say("lag (take − recording): " + ", ".join(f"{se.name} {lg * 1e3:+.1f} ms" for se, lg in zip(sessions, lags0)))
+
+        def tick(it, cost, lam):
+            say(f"iteration {it}: cost {cost:.6g} (λ {lam:.2g}), {problem.solves} forward solves")
+
+        result = fit(problem, forces0, tick)
+        g_cal = result.z[:problem.n_global]
+        g_nom = problem.nominal()
+        fitting = HeldOut(POSE_DOF, frames.t, _pose_errors(problem, g_nom, forces0),
+                          _pose_errors(problem, g_cal, result.forces))
+        held_out = None
+        if held:
+            htimes = [select_keyframes(se, max_keyframes) for se in held]
+            hframes = Keyframes.of(held, htimes)
+            hp = Problem(str(model_dir), held, hframes, rm, solve_many, options, parameter_set())
+            f0, hl = _initial(hp, held)
+            gl = len(hp.params)
+            gn = np.concatenate([g_nom[:gl], hl])
+            gc = np.concatenate([g_cal[:gl], hl])
+            hp = dataclasses.replace(hp, lag0_s=hl, pose_rows=None)
+            held_out = HeldOut(POSE_DOF, hframes.t, _pose_errors(hp, gn, f0), _pose_errors(hp, gc, f0))
+    return Calibration(model_dir, result, frames, sessions, fitting, held_out, options,
+                       meta={"sessions": [f"s{i + 1}: {s.recording}" for i, s in enumerate(specs)],
+                             "held_out": [f"h{i + 1}: {s.recording}" for i, s in enumerate(holdout)]})
+
+
+def rmse_ratio(held: HeldOut) -> float:
+    """Nominal over calibrated pose RMSE (all six DoF, mm and degrees together)."""
+    a = np.sqrt(np.nanmean(held.err_nominal**2))
+    b = np.sqrt(np.nanmean(held.err_calibrated**2))
+    return float(a / b) if b > 0 else math.inf

@@ -1,0 +1,183 @@
+"""A calibration session: one bench recording (four arm pressures + urethra), the tracker's take of
+the same trial, optionally known loads, and the keyframes chosen from them.
+
+Checks (each a one-line :class:`~softphantom.errors.UserError`): a recording with no rest window at
+its start, a take whose valid samples cover less than half of it, a take that does not overlap the
+recording in time, too few distinct loads.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from scipy.signal import savgol_filter
+
+from softphantom.errors import UserError
+from softphantom.sensing.pneumatics import tube_time_constant_s
+
+#: Rest window at the start of a recording: its first REST_S seconds must hold every arm within
+#: REST_MAX_PA of its mean (the tare window of ``acquire``).
+REST_S = 0.5
+REST_MAX_PA = 40.0
+#: Keyframe candidates every CANDIDATE_DT_S; a pressure "moves" above MOVING_PA.
+CANDIDATE_DT_S = 0.1
+MOVING_PA = 15.0
+#: Smallest pressure noise assumed (Pa): the model is never better than this.
+NOISE_FLOOR_PA = 1.0
+
+
+class CalibrationInputError(UserError):
+    """A session that cannot calibrate what was asked (names the file and the problem)."""
+
+
+@dataclass(frozen=True, eq=False)
+class Session:
+    """One trial: ``t`` (n,) s host clock, ``dp`` (n, 4) Pa tared arm pressures with the tube lag
+    undone, ``p_urethra`` (n,) Pa, ``truth_t`` (m,) s tracker clock, ``truth_pose`` (m, 6) m and rad
+    (x, y, z, yaw, pitch, roll relative to rest, rest-window registration), ``contact`` (3,) m the
+    contact point, ``known_t``/``known_force`` (k,), (k, 3) N or None, ``name``, ``chain_meta``
+    the recording's sensor metadata (tube, cavities, P0)."""
+
+    name: str
+    t: np.ndarray
+    dp: np.ndarray
+    p_urethra: np.ndarray
+    truth_t: np.ndarray
+    truth_pose: np.ndarray
+    contact: np.ndarray
+    p0_Pa: float
+    tube_length_m: float
+    tube_id_m: float
+    cavity_m3: np.ndarray
+    dp_noise_Pa: np.ndarray = None  # (4,) std of the de-lagged pressures in the rest window
+    known_t: np.ndarray | None = None
+    known_force: np.ndarray | None = None
+
+    def pose_at(self, t: np.ndarray) -> np.ndarray:
+        """The tracker pose (6,) per time, linear interpolation; NaN outside the take."""
+        t = np.atleast_1d(np.asarray(t, float))
+        out = np.full((t.size, 6), np.nan)
+        inside = (t >= self.truth_t[0]) & (t <= self.truth_t[-1])
+        for k in range(6):
+            out[inside, k] = np.interp(t[inside], self.truth_t, self.truth_pose[:, k])
+        return out
+
+    def known_at(self, t: np.ndarray) -> np.ndarray | None:
+        if self.known_t is None:
+            return None
+        t = np.atleast_1d(np.asarray(t, float))
+        return np.stack([np.interp(t, self.known_t, self.known_force[:, k]) for k in range(3)], axis=1)
+
+
+def undo_tube_lag(t: np.ndarray, dp: np.ndarray, tau_s: np.ndarray, window_s: float = 0.15) -> np.ndarray:
+    """The cavity pressure from the transducer's lagged reading: ``p + τ·dp/dt`` (the inverse of the
+    first-order tube lag), the derivative from a Savitzky–Golay fit over ``window_s``."""
+    dt = float(np.median(np.diff(t)))
+    n = max(5, int(round(window_s / dt)) | 1)
+    if len(t) <= n:
+        return dp.copy()
+    smooth = savgol_filter(dp, n, 2, axis=0)
+    deriv = savgol_filter(dp, n, 2, deriv=1, delta=dt, axis=0)
+    return smooth + deriv * np.asarray(tau_s)[None, :]
+
+
+def _meta_design(meta: dict, path: Path) -> tuple[float, float, np.ndarray, float]:
+    d = meta.get("design") or {}
+    try:
+        length = float(d.get("tube_length_m", 12.0))
+        bore = float(d.get("tube_id_mm", 1.2)) * 1e-3
+        cav = np.asarray(d.get("arm_cavity_mm3", [514.0, 514.0, 486.0, 486.0]), float) * 1e-9
+        p0 = float((meta.get("tare") or {}).get("p0_Pa", 101_325.0))
+    except (TypeError, ValueError) as exc:
+        raise CalibrationInputError(f"{path}: metadata 'design' unreadable ({exc})") from None
+    if cav.shape != (4,):
+        raise CalibrationInputError(f"{path}: metadata design.arm_cavity_mm3 needs 4 values")
+    return length, bore, cav, p0
+
+
+def load_session(recording, truth, contact_m, known_loads=None, name: str | None = None,
+                 tube_length_m: float | None = None, tube_id_mm: float | None = None,
+                 body: str | None = None) -> Session:
+    """Read a recording (``softphantom acquire`` / ``virtual run``), a take (any truth
+    ``evaluate`` reads: truth CSV, Motive CSV, ROS bag, mcap), optional known loads (a CSV with
+    ``t_s, force_x_N, force_y_N, force_z_N`` on the recording's clock) and check them."""
+    from softphantom.evaluation import read_truth
+    from softphantom.evaluation.files import read_table
+    from softphantom.sensing.recording import read_recording
+
+    rec_path = Path(recording)
+    rec = read_recording(rec_path)
+    if len(rec) < 20:
+        raise CalibrationInputError(f"{rec_path}: {len(rec)} samples, too short to calibrate")
+    ok = np.array([s == "ok" for s in rec.status]) & np.all(np.isfinite(rec.dp), axis=1)
+    t, dp, pu = rec.t[ok], rec.dp[ok], rec.p_urethra[ok]
+    rest = t <= t[0] + REST_S
+    if rest.sum() < 5 or np.any(np.ptp(dp[rest], axis=0) > 2 * REST_MAX_PA):
+        spread = np.ptp(dp[rest], axis=0).max() if rest.any() else math.nan
+        raise CalibrationInputError(
+            f"{rec_path}: no rest window at the start (arm pressures vary by {spread:.0f} Pa in the first "
+            f"{REST_S} s; limit {2 * REST_MAX_PA:.0f} Pa): record the phantom untouched first")
+    length, bore, cav, p0 = _meta_design(rec.meta, rec_path)
+    length = tube_length_m if tube_length_m is not None else length
+    bore = tube_id_mm * 1e-3 if tube_id_mm is not None else bore
+    tau = np.array([tube_time_constant_s(length, bore, v, p0) for v in cav])
+    dp = undo_tube_lag(t, dp, tau)
+    noise = np.maximum(np.std(dp[rest], axis=0), NOISE_FLOOR_PA)
+
+    tr_path = Path(truth)
+    series = read_truth(tr_path, body=body)
+    n_all = series.meta.get("lost_frames", 0) + len(series.t)
+    if n_all and len(series.t) < 0.5 * n_all:
+        raise CalibrationInputError(f"{tr_path}: the body is lost in {series.meta.get('lost_frames')} of "
+                                    f"{n_all} frames (more than half): fix the tracking before calibrating")
+    if len(series.t) < 10:
+        raise CalibrationInputError(f"{tr_path}: {len(series.t)} valid tracker samples, too few")
+    pose = np.concatenate([series.pose.xyz, series.pose.ypr], axis=1)
+    kt = kf = None
+    if known_loads is not None:
+        kp = Path(known_loads)
+        tab = read_table(kp)
+        cols = ("t_s", "force_x_N", "force_y_N", "force_z_N")
+        missing = [c for c in cols if c not in tab.columns]
+        if missing:
+            raise CalibrationInputError(f"{kp}: known loads need columns {', '.join(cols)}; missing {', '.join(missing)}")
+        kt = np.asarray(tab.columns["t_s"], float)
+        kf = np.stack([np.asarray(tab.columns[c], float) for c in cols[1:]], axis=1)
+        good = np.isfinite(kt) & np.all(np.isfinite(kf), axis=1)
+        kt, kf = kt[good], kf[good]
+        if len(kt) < 2 or kt[-1] < t[0] or kt[0] > t[-1]:
+            raise CalibrationInputError(f"{kp}: known loads do not overlap the recording "
+                                        f"({t[0]:.2f}–{t[-1]:.2f} s)")
+    return Session(name or rec_path.stem, t, dp, pu, series.t.copy(), pose, np.asarray(contact_m, float),
+                   p0, length, bore, cav, noise, kt, kf)
+
+
+def select_keyframes(session: Session, max_keyframes: int = 16, rest_keyframes: int = 1) -> np.ndarray:
+    """Times (s) of distinct loads: candidates every ``CANDIDATE_DT_S`` where the pressures move,
+    chosen by farthest-point sampling in the space of the four arm pressures (so a hold is not
+    counted twice), plus ``rest_keyframes`` at rest. Raises when fewer than 3 distinct loads."""
+    t, dp = session.t, session.dp
+    grid = np.arange(t[0] + REST_S, t[-1], CANDIDATE_DT_S)
+    P = np.stack([np.interp(grid, t, dp[:, k]) for k in range(4)], axis=1)
+    moving = np.linalg.norm(P, axis=1) > MOVING_PA
+    cand, Pc = grid[moving], P[moving]
+    if len(cand) < 3:
+        raise CalibrationInputError(
+            f"session {session.name}: the arm pressures exceed {MOVING_PA:.0f} Pa at {len(cand)} instants: "
+            "too few distinct loads to calibrate (push the phantom in several directions)")
+    chosen = [int(np.argmax(np.linalg.norm(Pc, axis=1)))]
+    d = np.linalg.norm(Pc - Pc[chosen[0]], axis=1)
+    while len(chosen) < min(max_keyframes, len(cand)):
+        j = int(np.argmax(d))
+        if d[j] < MOVING_PA:
+            break
+        chosen.append(j)
+        d = np.minimum(d, np.linalg.norm(Pc - Pc[j], axis=1))
+    if len(chosen) < 3:
+        raise CalibrationInputError(f"session {session.name}: only {len(chosen)} distinct loads "
+                                    f"(pressure patterns closer than {MOVING_PA:.0f} Pa): push in several directions")
+    rest = list(np.linspace(t[0] + 0.1, t[0] + REST_S - 0.05, rest_keyframes)) if rest_keyframes else []
+    return np.sort(np.concatenate([rest, cand[chosen]]))

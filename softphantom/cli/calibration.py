@@ -1,0 +1,89 @@
+"""``softphantom calibrate``: fit the model and the sensors to a bench session → a calibrated model
+directory, ``report.html``, ``parameters.csv``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+from rich.table import Table
+
+from softphantom.cli.app import app, console
+from softphantom.errors import UserError
+
+
+def _contact(text: str):
+    if "," not in text:
+        return text
+    try:
+        v = [float(x) * 1e-3 for x in text.split(",")]
+    except ValueError:
+        raise UserError(f"--contact: expected a contact name or X,Y,Z_mm, got {text!r}") from None
+    if len(v) != 3:
+        raise UserError(f"--contact: expected 3 numbers (mm), got {len(v)}")
+    return tuple(v)
+
+
+def _pairs(recordings: list[Path], truths: list[Path], contacts: list[str], known: list[Path], what: str):
+    from softphantom.calibration import SessionSpec
+
+    if len(recordings) != len(truths):
+        raise UserError(f"{what}: {len(recordings)} recording(s) but {len(truths)} truth take(s); give them in pairs")
+    if contacts and len(contacts) not in (1, len(recordings)):
+        raise UserError(f"{what}: give one --contact for all sessions or one per session, got {len(contacts)}")
+    if known and len(known) != len(recordings):
+        raise UserError(f"--known-loads: one file per --recording (in order), got {len(known)} for {len(recordings)}")
+    cs = [_contact(c) for c in contacts] if contacts else ["on-centre"]
+    cs = cs * len(recordings) if len(cs) == 1 else cs
+    return [SessionSpec(r, t, c, known[i] if known else None) for i, (r, t, c) in enumerate(zip(recordings, truths, cs))]
+
+
+@app.command("calibrate")
+def calibrate_cmd(
+    model: Path = typer.Option(..., "--model", help="Model directory (softphantom design)."),
+    recording: list[Path] = typer.Option(..., "--recording", help="Bench recording (acquire / virtual run); repeat for several sessions."),
+    truth: list[Path] = typer.Option(..., "--truth", help="Tracker take of the same session (Motive CSV, bag, mcap, truth CSV); one per --recording."),
+    out: Path = typer.Option(..., "--out", help="New directory for the calibrated model, report.html and parameters.csv."),
+    contact: list[str] = typer.Option(None, "--contact", help="Contact point per session: on-centre, off-centre or X,Y,Z_mm (default on-centre)."),
+    known_loads: list[Path] = typer.Option(None, "--known-loads", help="CSV t_s, force_x_N, force_y_N, force_z_N per session (a force sensor or hung weights)."),
+    holdout_recording: list[Path] = typer.Option(None, "--holdout-recording", help="Recording kept out of the fit, to check the calibration on."),
+    holdout_truth: list[Path] = typer.Option(None, "--holdout-truth", help="Take of each --holdout-recording."),
+    holdout_contact: list[str] = typer.Option(None, "--holdout-contact", help="Contact point of the held-out sessions."),
+    fix: list[str] = typer.Option(None, "--fix", help="Hold a parameter at its nominal value (repeat), e.g. tube_volume_factor, lag."),
+    max_keyframes: int = typer.Option(16, "--max-keyframes", help="Distinct loads used per session."),
+    contact_radius_mm: float = typer.Option(4.0, "--contact-radius-mm", help="Radius of the contact patch the force is spread on (mm)."),
+    scheduler: str = typer.Option(None, "--scheduler", help="Address of an existing Dask scheduler (default: a local cluster)."),
+    workers: int = typer.Option(None, "--workers", help="Workers of the local cluster (default: all cores)."),
+) -> None:
+    """Fit material stiffness, sensor gains/offsets, tube volume, registration and lag to a bench
+    session by least squares over forward FEM solves; print the parameters with 95 % intervals."""
+    from softphantom.calibration import FitOptions, calibrate, write_calibration
+
+    if not (contact_radius_mm > 0 and contact_radius_mm < 50):
+        raise UserError(f"--contact-radius-mm must be in (0, 50), got {contact_radius_mm}")
+    if not 3 <= max_keyframes <= 200:
+        raise UserError(f"--max-keyframes must be in 3..200, got {max_keyframes}")
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise UserError(f"--out {out}: exists and is not an empty directory (choose a new one)")
+    specs = _pairs(recording, truth, contact or [], known_loads or [], "--recording/--truth")
+    hold = _pairs(holdout_recording or [], holdout_truth or [], holdout_contact or [], [], "--holdout-recording/--holdout-truth")
+    opts = FitOptions(fix=tuple(fix or ()), radius_m=contact_radius_mm * 1e-3)
+    cal = calibrate(model, specs, hold, options=opts, scheduler=scheduler, n_workers=workers,
+                    max_keyframes=max_keyframes, progress=lambda s: console.print(s, markup=False, highlight=False))
+    paths = write_calibration(cal, out)
+    f = cal.fit
+    t = Table(title=f"Calibration: objective {f.history[0]:.4g} → {f.history[-1]:.4g}, {f.solves} forward solves, {f.seconds:.0f} s")
+    for c in ("parameter", "nominal", "calibrated", "95 % interval", "identifiable"):
+        t.add_column(c, justify="right" if c != "parameter" else "left")
+    for i, n in enumerate(f.names):
+        ci = f"[{f.ci95[i, 0]:.4g}, {f.ci95[i, 1]:.4g}]" if f.free[i] else "fixed"
+        t.add_row(n, f"{f.nominal[i]:.4g}", f"{f.value[i]:.4g}", ci,
+                  ("yes" if f.identifiable[i] else "NO") if f.free[i] else "–")
+    console.print(t)
+    for w in f.warnings:
+        console.print(f"warning: {w}", markup=False, highlight=False, style="yellow")
+    if cal.held_out is not None:
+        from softphantom.calibration import rmse_ratio
+
+        console.print(f"held-out pose RMSE, nominal / calibrated: {rmse_ratio(cal.held_out):.2f}", markup=False)
+    console.print(f"wrote {paths['model']} (report: {paths['report']})", markup=False, highlight=False)
