@@ -89,7 +89,10 @@ def _base(model_dir: str, contact: tuple[float, float, float], radius_m: float) 
 def scaled_fem(fem, tet_scale: np.ndarray):
     """A new FemModel whose element moduli are multiplied by ``tet_scale`` (M,)."""
     s = np.asarray(tet_scale, float)
-    return dataclasses.replace(fem, mu=fem.mu * s, lam=fem.lam * s)
+    kw = dict(mu=fem.mu * s, lam=fem.lam * s)
+    if getattr(fem, "params", None) is not None:  # a law's parameter row: all moduli (Pa)
+        kw["params"] = np.asarray(fem.params) * s[:, None]
+    return dataclasses.replace(fem, **kw)
 
 
 def _tet_scale(base: Base, scales: dict[str, float]) -> np.ndarray:

@@ -4,6 +4,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import shutil
@@ -14,11 +15,40 @@ from softphantom.calibration.run import Calibration
 from softphantom.errors import UserError
 
 
+def calibrated_design(design, factors: dict[str, float]):
+    """A new design whose regions in each group of ``factors`` (``bulb``, ``arms``) use a copy of
+    their material with every modulus (fields in kPa) multiplied by the group's factor; ν and the
+    density stay. The copies are named ``<material>_<group>_calibrated``."""
+    from softphantom.calibration.forward import region_group
+    from softphantom.design.params import MaterialSpec
+
+    by_region = design.material_of_regions()
+    specs = {m.name: m for m in design.materials}
+    new_specs = list(design.materials)
+    assign = dict(design.region_materials)
+    for group, c in factors.items():
+        for region, mname in by_region.items():
+            if region_group(region) != group:
+                continue
+            new = f"{mname}_{group}_calibrated"
+            if new not in {m.name for m in new_specs}:
+                vals = tuple((k, v * c if k.endswith("_kPa") else v) for k, v in specs[mname].values)
+                new_specs.append(MaterialSpec(new, specs[mname].law, vals))
+            assign[region] = new
+    used = set(assign.values())
+    return dataclasses.replace(design, materials=tuple(m for m in new_specs if m.name in used),
+                               region_materials=tuple(assign.items()))
+
+
 def calibrated_model(cal: Calibration):
-    """The model of ``cal.model_dir`` with the fitted stiffness applied to its design."""
+    """The model of ``cal.model_dir`` with the fitted stiffness applied to its design (the mesh is
+    the same: only the materials change)."""
     from softphantom.design import load_model
 
-    return load_model(cal.model_dir)
+    model = load_model(cal.model_dir)
+    p = cal.parameters()
+    factors = {g: p[f"stiffness_{g}_factor"] for g in ("bulb", "arms")}
+    return dataclasses.replace(model, design=calibrated_design(model.design, factors))
 
 
 def write_calibration(cal: Calibration, out) -> dict[str, Path]:

@@ -1,0 +1,168 @@
+"""softphantom calibrate: exact sensitivities, recovery on the virtual phantom against a truth
+unlike the nominal model, and one-line refusals of unusable sessions."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from softphantom.calibration import CalibrationInputError, FitOptions, SessionSpec, calibrate, load_session
+from softphantom.calibration.forward import solve_keyframe
+from softphantom.design import BIPDesign, build_model, save_model
+
+COARSE_MM = 12.0
+ARMS_TRUE = 1.25  # the cast arms are 25 % stiffer than the datasheet
+GAIN_TRUE = 1.08  # one transducer reads 8 % high
+
+
+@pytest.fixture(scope="module")
+def coarse(tmp_path_factory) -> Path:
+    d = tmp_path_factory.mktemp("cal") / "model"
+    save_model(build_model(BIPDesign(), COARSE_MM), d)
+    return d
+
+
+def _stiffer_arms(design: BIPDesign, factor: float) -> BIPDesign:
+    from softphantom.design.params import MaterialSpec
+
+    base = {m.name: m for m in design.materials}[dict(design.region_materials)["arms"]]
+    vals = tuple((k, v * factor if k.endswith("_kPa") else v) for k, v in base.values)
+    arms = MaterialSpec("arms_truth", base.law, vals)
+    return dataclasses.replace(design, materials=design.materials + (arms,),
+                               region_materials=tuple((r, m) for r, m in design.region_materials if r != "arms")
+                               + (("arms", "arms_truth"),))
+
+
+@pytest.fixture(scope="module")
+def sessions(coarse, tmp_path_factory) -> dict[str, Path]:
+    """Virtual sessions whose truth has stiffer arms and a high-reading transducer."""
+    from softphantom.design import load_model
+    from softphantom.virtual.board import BoardConfig
+    from softphantom.virtual.run import VirtualConfig, simulate, write_run
+    from softphantom.virtual.tracker import TrackerConfig
+    from softphantom.virtual.truth import TruthConfig
+
+    model = load_model(coarse)
+    truth_mesh = build_model(_stiffer_arms(model.design, ARMS_TRUE), COARSE_MM)
+    root = Path(__file__).resolve().parents[1] / "scenarios"
+    out = {}
+    base = tmp_path_factory.mktemp("sessions")
+    for i, sc in enumerate(("push-on-centre", "push-off-centre", "needle-insertion")):
+        cfg = VirtualConfig(TruthConfig(levels=2), BoardConfig(seed=3 + i, gains=(GAIN_TRUE, 1, 1, 1, 1)),
+                            TrackerConfig(seed=3 + i))
+        run = simulate(root / f"{sc}.toml", model, cfg, truth_mesh=truth_mesh)
+        write_run(run, base / sc)
+        out[sc] = base / sc
+    return out
+
+
+def test_sensitivities_equal_finite_differences(coarse):
+    from softphantom.design import load_model
+
+    c = tuple(load_model(coarse).p_ext["on-centre"])
+    f = np.array([0.3, 2.5, -0.2])
+    scales = {"bulb": 1.0, "arms": 1.0}
+    s = solve_keyframe(str(coarse), c, 4e-3, scales, f, 5e3)
+    h = 1e-4
+    for j in range(3):
+        fp = f.copy()
+        fp[j] += h
+        s2 = solve_keyframe(str(coarse), c, 4e-3, scales, fp, 5e3, x0=s.x)
+        np.testing.assert_allclose((s2.dV - s.dV) / h, s.dV_df[:, j], rtol=2e-3, atol=1e-3 * np.abs(s.dV_df).max())
+        np.testing.assert_allclose((s2.markers - s.markers) / h, s.dM_df[:, :, j], atol=2e-3 * np.abs(s.dM_df).max())
+    for j, g in enumerate(scales):
+        sc = dict(scales, **{g: np.exp(h)})
+        s2 = solve_keyframe(str(coarse), c, 4e-3, sc, f, 5e3, x0=s.x)
+        np.testing.assert_allclose((s2.dV - s.dV) / h, s.dV_dlnc[:, j], atol=2e-3 * np.abs(s.dV_dlnc).max())
+        np.testing.assert_allclose((s2.markers - s.markers) / h, s.dM_dlnc[:, :, j], atol=2e-3 * np.abs(s.dM_dlnc).max())
+    # a stiffer model under the same load moves less: ∂/∂ln c of the pushed arm's volume opposes ∂/∂f·f
+    assert np.sign(s.dV_dlnc[2, 1]) == -np.sign(s.dV_df[2] @ f)
+
+
+def test_recovers_arm_stiffness_and_gain(coarse, sessions):
+    s = sessions
+    specs = [SessionSpec(s[sc] / "recording.csv", s[sc] / "tracker_motive.csv", c, s[sc] / "truth.csv")
+             for sc, c in (("push-on-centre", "on-centre"), ("push-off-centre", "off-centre"))]
+    hold = [SessionSpec(s["needle-insertion"] / "recording.csv", s["needle-insertion"] / "truth.csv", "on-centre")]
+    fix = ("stiffness_bulb_factor", "tube_volume_factor", "gain_front_zneg", "gain_back_xpos", "gain_back_xneg")
+    cal = calibrate(coarse, specs, hold, options=FitOptions(fix=fix), in_process=True, max_keyframes=8)
+    p = cal.parameters()
+    assert p["stiffness_arms_factor"] == pytest.approx(ARMS_TRUE, rel=0.03)
+    assert p["gain_front_zpos"] == pytest.approx(GAIN_TRUE, rel=0.03)
+    i = cal.fit.names.index("stiffness_arms_factor")
+    assert cal.fit.ci95[i, 0] < ARMS_TRUE < cal.fit.ci95[i, 1]
+    assert cal.fit.history[-1] < 0.5 * cal.fit.history[0]
+    # held out: the calibrated model predicts the needle insertion's pose better than the nominal
+    ho = cal.held_out
+    assert np.sqrt(np.nanmean(ho.err_calibrated[:, 1] ** 2)) < 0.5 * np.sqrt(np.nanmean(ho.err_nominal[:, 1] ** 2))
+
+
+def _shift_take(src: Path, dst: Path, dt: float) -> Path:
+    from softphantom.evaluation.files import read_table, write_table
+
+    tab = read_table(src)
+    cols = dict(tab.columns)
+    cols["t_s"] = cols["t_s"] + dt
+    return write_table(dst, tab.meta, cols)
+
+
+def test_refuses_unusable_sessions(coarse, sessions, tmp_path):
+    from softphantom.cli import main
+
+    s = sessions["push-on-centre"]
+    rec, take = s / "recording.csv", s / "truth.csv"
+    # no rest window: drop the first 2.5 s of the recording
+    lines = rec.read_text().splitlines(keepends=True)
+    t = [float(ln.split(",")[0]) for ln in lines[2:]]
+    late = tmp_path / "late.csv"
+    late.write_text("".join(lines[:2] + [ln for ln, ti in zip(lines[2:], t) if ti > 2.5]))
+    with pytest.raises(CalibrationInputError, match="no rest window"):
+        load_session(late, take, (0, 0, 0))
+    # a take from another day: no overlap in time
+    far = _shift_take(take, tmp_path / "far.csv", 1000.0)
+    out = tmp_path / "out"
+    code = main(["calibrate", "--model", str(coarse), "--recording", str(rec), "--truth", str(far), "--out", str(out),
+                 "--workers", "1"])
+    assert code == 2 and not out.exists()
+    # too few distinct loads: the rest window alone
+    rest = tmp_path / "rest.csv"
+    rest.write_text("".join(lines[:2] + [ln for ln, ti in zip(lines[2:], t) if ti < 1.8]))
+    with pytest.raises(CalibrationInputError, match="too few distinct loads"):
+        from softphantom.calibration import select_keyframes
+
+        select_keyframes(load_session(rest, take, (0, 0, 0)))
+    # pairs that do not pair
+    code = main(["calibrate", "--model", str(coarse), "--recording", str(rec), "--recording", str(rec),
+                 "--truth", str(take), "--out", str(out)])
+    assert code == 2 and not out.exists()
+
+
+def test_cli_writes_a_calibrated_model(coarse, sessions, tmp_path, capsys):
+    from softphantom.cli import main
+    from softphantom.design import load_model
+
+    s = sessions["push-on-centre"]
+    out = tmp_path / "calibrated"
+    fix = ["stiffness_bulb_factor", "tube_volume_factor", "lag"] + [f"gain_{a}" for a in
+                                                                      ("front_zpos", "front_zneg", "back_xpos", "back_xneg")]
+    args = ["calibrate", "--model", str(coarse), "--recording", str(s / "recording.csv"), "--truth", str(s / "truth.csv"),
+            "--known-loads", str(s / "truth.csv"), "--out", str(out), "--max-keyframes", "4", "--workers", "1"]
+    for f in fix:
+        args += ["--fix", f]
+    assert main(args) == 0
+    text = capsys.readouterr().out
+    assert "stiffness_arms_factor" in text and "95 % interval" in text
+    cal = json.loads((out / "calibration.json").read_text())
+    assert cal["stiffness_factor"]["arms"] == pytest.approx(ARMS_TRUE, rel=0.05)
+    model = load_model(out)  # a model directory like any other, with the fitted stiffness in its design
+    mats = {m.name: dict(m.values) for m in model.design.materials}
+    arms = dict(model.design.region_materials)["arms"]
+    assert mats[arms]["E_kPa"] == pytest.approx(3 * 83.0 / 1.75 * cal["stiffness_factor"]["arms"], rel=1e-9)
+    assert (out / "report.html").is_file() and re.search(r"held-out|Fitting data", (out / "report.html").read_text())
+    # never over an existing result
+    assert main(args) == 2
