@@ -60,6 +60,7 @@ class Base:
     V0: np.ndarray
     rest_markers: np.ndarray
     group_tets: dict
+    solver: object  # one SparseSolver per worker and model: the symbolic analysis is kept
 
 
 @functools.lru_cache(maxsize=4)
@@ -83,7 +84,7 @@ def _base(model_dir: str, contact: tuple[float, float, float], radius_m: float) 
     for rid, g in id_to_group.items():
         groups.setdefault(g, np.zeros(reg.size, bool))
         groups[g] |= reg == rid
-    return Base(model, fem, H, P, V0, np.asarray(P @ x0), groups)
+    return Base(model, fem, H, P, V0, np.asarray(P @ x0), groups, SparseSolver("auto"))
 
 
 def scaled_fem(fem, tet_scale: np.ndarray):
@@ -137,7 +138,7 @@ def solve_keyframe(model_dir: str, contact: tuple[float, float, float], radius_m
     fem = scaled_fem(base.fem, _tet_scale(base, scales))
     f = np.asarray(force_N, float)
     pressures = {URETHRA: float(p_urethra_Pa)} if p_urethra_Pa else None
-    solver = SparseSolver("auto")
+    solver = base.solver
     sol = solve_static(fem, base.H @ f, pressures=pressures, x0=x0, tol=tol, solver=solver)
     if not sol.converged:
         raise SolverError(f"keyframe at force {np.round(f, 3).tolist()} N, urethra "
