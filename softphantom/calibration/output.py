@@ -1,13 +1,11 @@
 """Writing a calibration: a new model directory (the calibrated model, readable by ``estimate``,
 ``live`` and ``demo`` like any other) with ``calibration.json``, ``parameters.csv`` and
-``report.html``; written into a temporary sibling and renamed, so ``--out`` is never half-written."""
+``report.html``."""
 
 from __future__ import annotations
 
 import dataclasses
 import json
-import os
-import shutil
 from pathlib import Path
 
 from softphantom.calibration.report import calibration_dict, write_parameters_csv, write_report
@@ -52,29 +50,21 @@ def calibrated_model(cal: Calibration):
 
 
 def write_calibration(cal: Calibration, out) -> dict[str, Path]:
-    """Write everything into the new directory ``out`` (refused if it exists and is not empty)."""
+    """Write the calibrated model, ``calibration.json``, ``parameters.csv`` and ``report.html``
+    into the directory ``out`` (created; refused if it holds anything). The CLI writes through a
+    staged sibling (``softphantom.cli.options.staged_output``), so ``--out`` is never half-written."""
     from softphantom.design import save_model
 
     out = Path(out)
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise UserError(f"--out {out}: exists and is not an empty directory")
-    tmp = out.parent / f".{out.name}.partial-{os.getpid()}"
     try:
-        if tmp.exists():
-            shutil.rmtree(tmp)
-        tmp.mkdir(parents=True)
-        save_model(calibrated_model(cal), tmp)
-        (tmp / "calibration.json").write_text(json.dumps(calibration_dict(cal), indent=2) + "\n")
-        write_parameters_csv(cal, tmp / "parameters.csv")
-        write_report(cal, tmp)
-        if out.exists():
-            out.rmdir()
-        tmp.rename(out)
+        out.mkdir(parents=True, exist_ok=True)
+        save_model(calibrated_model(cal), out)
+        (out / "calibration.json").write_text(json.dumps(calibration_dict(cal), indent=2) + "\n")
+        write_parameters_csv(cal, out / "parameters.csv")
+        write_report(cal, out)
     except OSError as exc:
-        shutil.rmtree(tmp, ignore_errors=True)
         raise UserError(f"--out {out}: cannot write ({exc.strerror or exc})") from None
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return {"model": out, "report": out / "report.html", "parameters": out / "parameters.csv",
             "calibration": out / "calibration.json"}

@@ -9,6 +9,7 @@ import typer
 from rich.table import Table
 
 from softphantom.cli.app import app, console
+from softphantom.cli.options import check_output, finite_number, overwrite_option, staged_output
 from softphantom.errors import UserError
 
 
@@ -16,8 +17,8 @@ def _contact(text: str):
     if "," not in text:
         return text
     try:
-        v = [float(x) * 1e-3 for x in text.split(",")]
-    except ValueError:
+        v = [finite_number(x, "--contact") * 1e-3 for x in text.split(",")]
+    except UserError:
         raise UserError(f"--contact: expected a contact name or X,Y,Z_mm, got {text!r}") from None
     if len(v) != 3:
         raise UserError(f"--contact: expected 3 numbers (mm), got {len(v)}")
@@ -53,7 +54,8 @@ def calibrate_cmd(
     max_keyframes: int = typer.Option(16, "--max-keyframes", help="Distinct loads used per session."),
     contact_radius_mm: float = typer.Option(4.0, "--contact-radius-mm", help="Radius of the contact patch the force is spread on (mm)."),
     scheduler: str = typer.Option(None, "--scheduler", help="Address of an existing Dask scheduler (default: a local cluster)."),
-    workers: int = typer.Option(None, "--workers", help="Workers of the local cluster (default: all cores)."),
+    workers: int = typer.Option(None, "--workers", min=1, help="Workers of the local cluster (default: all cores)."),
+    overwrite: bool = overwrite_option(),
 ) -> None:
     """Fit material stiffness, sensor gains/offsets, tube volume, registration and lag to a bench
     session by least squares over forward FEM solves; print the parameters with 95 % intervals."""
@@ -63,14 +65,15 @@ def calibrate_cmd(
         raise UserError(f"--contact-radius-mm must be in (0, 50), got {contact_radius_mm}")
     if not 3 <= max_keyframes <= 200:
         raise UserError(f"--max-keyframes must be in 3..200, got {max_keyframes}")
-    if out.exists() and (not out.is_dir() or any(out.iterdir())):
-        raise UserError(f"--out {out}: exists and is not an empty directory (choose a new one)")
+    check_output(out, overwrite=overwrite, directory=True)
     specs = _pairs(recording, truth, contact or [], known_loads or [], "--recording/--truth")
     hold = _pairs(holdout_recording or [], holdout_truth or [], holdout_contact or [], [], "--holdout-recording/--holdout-truth")
     opts = FitOptions(fix=tuple(fix or ()), radius_m=contact_radius_mm * 1e-3)
     cal = calibrate(model, specs, hold, options=opts, scheduler=scheduler, n_workers=workers,
                     max_keyframes=max_keyframes, progress=lambda s: console.print(s, markup=False, highlight=False))
-    paths = write_calibration(cal, out)
+    with staged_output(out, overwrite=overwrite, directory=True) as work:
+        write_calibration(cal, work)
+    paths = {"model": out, "report": out / "report.html"}
     f = cal.fit
     t = Table(title=f"Calibration: objective {f.history[0]:.4g} → {f.history[-1]:.4g}, {f.solves} forward solves, {f.seconds:.0f} s")
     for c in ("parameter", "nominal", "calibrated", "95 % interval", "identifiable"):
