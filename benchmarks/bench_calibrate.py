@@ -6,7 +6,7 @@
 1. The nominal model: the default design at ``--mesh-size-mm``.
 2. A virtual bench deliberately unlike it: the truth's bulb 1.3× stiffer, its arms under another
    law (``--truth-law``, same small-strain E) on a finer mesh; the tubes 10 % longer in volume than
-   the lab believes (13.2 m for 12 m: the recordings say 12 m); the front_zpos transducer reads
+   the lab believes (13.2 m for 12 m: the recordings say 12 m); the back_xpos transducer reads
    5 % high; the transducers' offsets drawn from their datasheet band and tared away.
 3. Calibrate on push-on-centre and push-off-centre (known loads: the truth's force, as from a
    force sensor), held out: needle-insertion. Printed: each parameter against its truth, the
@@ -70,7 +70,7 @@ def sessions(model_dir: Path, out: Path, law: str, truth_scale: float) -> dict[s
         if not (d / "recording.csv").is_file():
             t = time.perf_counter()
             cfg = VirtualConfig(TruthConfig(), BoardConfig(seed=11 + i, tube_length_m=12.0 * TUBE_TRUE,
-                                                           gains=(GAIN_TRUE, 1, 1, 1, 1)), TrackerConfig(seed=11 + i))
+                                                           gains=(1, 1, GAIN_TRUE, 1, 1)), TrackerConfig(seed=11 + i))
             write_run(simulate(ROOT / "scenarios" / f"{sc}.toml", model, cfg, truth_mesh=tm), d)
             believe_nominal_tube(d / "recording.csv")
             print(f"  virtual session {sc}: {time.perf_counter() - t:.0f} s (truth {len(tm.nodes)} nodes)")
@@ -89,7 +89,7 @@ def run(model_dir, s, workers, fix=()):
 
 
 def report(cal, wall):
-    truth = {"stiffness_bulb_factor": BULB_TRUE, "gain_front_zpos": GAIN_TRUE, "tube_volume_factor": TUBE_TRUE}
+    truth = {"stiffness_bulb_factor": BULB_TRUE, "gain_back_xpos": GAIN_TRUE, "tube_volume_factor": TUBE_TRUE}
     print(f"\n{'parameter':30s} {'truth':>8s} {'fitted':>9s} {'95 % interval':>22s} {'error':>8s}  identifiable")
     for i, n in enumerate(cal.fit.names):
         tv = truth.get(n, 1.0 if n.startswith(("gain", "stiffness")) else None)
