@@ -88,7 +88,8 @@ def test_recovers_arm_stiffness_and_gain(coarse, sessions):
     s = sessions
     specs = [SessionSpec(s[sc] / "recording.csv", s[sc] / "tracker_motive.csv", c, s[sc] / "truth.csv")
              for sc, c in (("push-on-centre", "on-centre"), ("push-off-centre", "off-centre"))]
-    hold = [SessionSpec(s["needle-insertion"] / "recording.csv", s["needle-insertion"] / "truth.csv", "on-centre")]
+    hold = [SessionSpec(s["needle-insertion"] / "recording.csv", s["needle-insertion"] / "truth.csv", "on-centre",
+                        s["needle-insertion"] / "truth.csv")]  # its known loads only score the held-out forces
     fix = ("stiffness_bulb_factor", "tube_volume_factor", "gain_front_zpos", "gain_front_zneg", "gain_back_xneg")
     cal = calibrate(coarse, specs, hold, options=FitOptions(fix=fix), in_process=True, max_keyframes=6)
     p = cal.parameters()
@@ -97,9 +98,11 @@ def test_recovers_arm_stiffness_and_gain(coarse, sessions):
     i = cal.fit.names.index("stiffness_arms_factor")
     assert cal.fit.ci95[i, 0] < ARMS_TRUE < cal.fit.ci95[i, 1]
     assert cal.fit.history[-1] < 0.5 * cal.fit.history[0]
-    # held out: the calibrated model predicts the needle insertion's pose better than the nominal
+    # held out: forces from the pressures alone — the nominal (too soft) model under-reads them by
+    # ≈ 1/1.25; the calibrated one is at least 3× closer
     ho = cal.held_out
-    assert np.sqrt(np.nanmean(ho.err_calibrated[:, 1] ** 2)) < 0.5 * np.sqrt(np.nanmean(ho.err_nominal[:, 1] ** 2))
+    assert ho.force_rmse("calibrated") < ho.force_rmse("nominal") / 3
+    assert np.nanmean(np.abs(ho.err_calibrated[:, :3])) < 0.2  # mm: the pose stays right
 
 
 def _shift_take(src: Path, dst: Path, dt: float) -> Path:

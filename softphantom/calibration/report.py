@@ -102,6 +102,9 @@ def _table(headers, rows) -> str:
 def _rmse_table(held: HeldOut) -> str:
     rn, rc = held.rmse("nominal"), held.rmse("calibrated")
     rows = [[n, f"{a:.3f}", f"{b:.3f}", f"{a / b:.2f}×" if b > 0 else "–"] for n, a, b in zip(held.names, rn, rc)]
+    fn, fc = held.force_rmse("nominal"), held.force_rmse("calibrated")
+    if np.isfinite(fn):
+        rows.append(["force_N (known loads)", f"{fn:.3f}", f"{fc:.3f}", f"{fn / fc:.2f}×" if fc > 0 else "–"])
     return _table(["DoF", "RMSE nominal", "RMSE calibrated", "ratio"], rows)
 
 

@@ -35,16 +35,24 @@ class SessionSpec:
 @dataclass(frozen=True, eq=False)
 class HeldOut:
     """Pose errors (K, 6) in mm and degrees at keyframes, forces inferred from the pressures alone,
-    with the nominal and the calibrated parameters; per-DoF RMSE of each."""
+    with the nominal and the calibrated parameters; force errors (K, 3) N where the session has
+    known loads (NaN elsewhere); per-DoF RMSE of each."""
 
     names: tuple[str, ...]
     t: np.ndarray
     err_nominal: np.ndarray
     err_calibrated: np.ndarray
+    force_err_nominal: np.ndarray
+    force_err_calibrated: np.ndarray
 
     def rmse(self, which: str) -> np.ndarray:
         e = self.err_nominal if which == "nominal" else self.err_calibrated
         return np.sqrt(np.nanmean(e**2, axis=0))
+
+    def force_rmse(self, which: str) -> float:
+        """RMS of the force error (N, all components), NaN without known loads."""
+        e = self.force_err_nominal if which == "nominal" else self.force_err_calibrated
+        return float(np.sqrt(np.nanmean(e**2))) if np.isfinite(e).any() else float("nan")
 
 
 @dataclass(frozen=True, eq=False)
@@ -135,9 +143,9 @@ def _initial(problem: Problem, sessions: list[Session]) -> tuple[np.ndarray, np.
     return forces, lags
 
 
-def _pose_errors(problem: Problem, g: np.ndarray, forces0: np.ndarray) -> np.ndarray:
+def _pose_errors(problem: Problem, g: np.ndarray, forces0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(K, 6) mm/deg: pose from forces fitted to the pressures alone (all globals held at ``g``)
-    minus the take."""
+    minus the take; (K, 3) N those forces minus the known loads (NaN where none)."""
     names = problem.names()
     p = dataclasses.replace(problem, options=dataclasses.replace(problem.options, fix=tuple(names) + ("lag",),
                                                                   max_iter=8),
@@ -156,7 +164,11 @@ def _pose_errors(problem: Problem, g: np.ndarray, forces0: np.ndarray) -> np.nda
         d = pred - meas
         d[3:] = (d[3:] + np.pi) % (2 * np.pi) - np.pi
         err[k] = np.concatenate([d[:3] * 1e3, np.degrees(d[3:])])
-    return err
+    return err, res.forces - fr.known
+
+
+def _pair(nominal, calibrated):
+    return nominal[0], calibrated[0], nominal[1], calibrated[1]
 
 
 def calibrate(model_dir, specs: list[SessionSpec], holdout: list[SessionSpec] = (), *,
@@ -204,8 +216,8 @@ def calibrate(model_dir, specs: list[SessionSpec], holdout: list[SessionSpec] = 
         result = fit(problem, forces0, tick)
         g_cal = result.z[:problem.n_global]
         g_nom = problem.nominal()
-        fitting = HeldOut(POSE_DOF, frames.t, _pose_errors(problem, g_nom, forces0),
-                          _pose_errors(problem, g_cal, result.forces))
+        fitting = HeldOut(POSE_DOF, frames.t, *_pair(_pose_errors(problem, g_nom, forces0),
+                                                       _pose_errors(problem, g_cal, result.forces)))
         held_out = None
         if held:
             htimes = [select_keyframes(se, max_keyframes) for se in held]
@@ -216,7 +228,7 @@ def calibrate(model_dir, specs: list[SessionSpec], holdout: list[SessionSpec] = 
             gn = np.concatenate([g_nom[:gl], hl])
             gc = np.concatenate([g_cal[:gl], hl])
             hp = dataclasses.replace(hp, lag0_s=hl, pose_rows=None)
-            held_out = HeldOut(POSE_DOF, hframes.t, _pose_errors(hp, gn, f0), _pose_errors(hp, gc, f0))
+            held_out = HeldOut(POSE_DOF, hframes.t, *_pair(_pose_errors(hp, gn, f0), _pose_errors(hp, gc, f0)))
     return Calibration(model_dir, result, frames, sessions, fitting, held_out, options,
                        meta={"sessions": [f"s{i + 1}: {s.recording}" for i, s in enumerate(specs)],
                              "held_out": [f"h{i + 1}: {s.recording}" for i, s in enumerate(holdout)]})
