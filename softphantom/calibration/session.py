@@ -16,12 +16,14 @@ import numpy as np
 from scipy.signal import savgol_filter
 
 from softphantom.errors import UserError
+from softphantom.sensing.measurement import ARM_NAMES
 from softphantom.sensing.pneumatics import tube_time_constant_s
 
-#: Rest window at the start of a recording: its first REST_S seconds must hold every arm within
-#: REST_MAX_PA of its mean (the tare window of ``acquire``).
+#: Rest window at the start of a recording: in its first REST_S seconds every arm's pressure has a
+#: standard deviation ≤ REST_MAX_PA and a slope ≤ REST_MAX_SLOPE_PA_S (the tare's limits).
 REST_S = 0.5
-REST_MAX_PA = 40.0
+REST_MAX_PA = 25.0
+REST_MAX_SLOPE_PA_S = 20.0
 #: Keyframe candidates every CANDIDATE_DT_S; a pressure "moves" above MOVING_PA.
 CANDIDATE_DT_S = 0.1
 MOVING_PA = 15.0
@@ -115,11 +117,17 @@ def load_session(recording, truth, contact_m, known_loads=None, name: str | None
     ok = np.array([s == "ok" for s in rec.status]) & np.all(np.isfinite(rec.dp), axis=1)
     t, dp, pu = rec.t[ok], rec.dp[ok], rec.p_urethra[ok]
     rest = t <= t[0] + REST_S
-    if rest.sum() < 5 or np.any(np.ptp(dp[rest], axis=0) > 2 * REST_MAX_PA):
-        spread = np.ptp(dp[rest], axis=0).max() if rest.any() else math.nan
+    if rest.sum() < 5:
+        raise CalibrationInputError(f"{rec_path}: no rest window at the start ({int(rest.sum())} samples in the "
+                                    f"first {REST_S} s): record the phantom untouched first")
+    slope = np.polyfit(t[rest] - t[0], dp[rest], 1)[0]
+    std = np.std(dp[rest], axis=0)
+    if np.any(np.abs(slope) > REST_MAX_SLOPE_PA_S) or np.any(std > REST_MAX_PA):
+        k = int(np.argmax(np.abs(slope) / REST_MAX_SLOPE_PA_S + std / REST_MAX_PA))
         raise CalibrationInputError(
-            f"{rec_path}: no rest window at the start (arm pressures vary by {spread:.0f} Pa in the first "
-            f"{REST_S} s; limit {2 * REST_MAX_PA:.0f} Pa): record the phantom untouched first")
+            f"{rec_path}: no rest window at the start ({ARM_NAMES[k]} moves {slope[k]:+.0f} Pa/s, std {std[k]:.0f} Pa in "
+            f"the first {REST_S} s; limits {REST_MAX_SLOPE_PA_S:.0f} Pa/s, {REST_MAX_PA:.0f} Pa): "
+            "record the phantom untouched first")
     length, bore, cav, p0 = _meta_design(rec.meta, rec_path)
     length = tube_length_m if tube_length_m is not None else length
     bore = tube_id_mm * 1e-3 if tube_id_mm is not None else bore
