@@ -77,7 +77,7 @@ def calibrate_cmd(
     f = cal.fit
     t = Table(title=f"Calibration: objective {f.history[0]:.4g} → {f.history[-1]:.4g}, {f.solves} forward solves, {f.seconds:.0f} s")
     for c in ("parameter", "nominal", "calibrated", "95 % interval", "identifiable"):
-        t.add_column(c, justify="right" if c != "parameter" else "left")
+        t.add_column(c, justify="right" if c != "parameter" else "left", overflow="fold")
     for i, n in enumerate(f.names):
         ci = f"[{f.ci95[i, 0]:.4g}, {f.ci95[i, 1]:.4g}]" if f.free[i] else "fixed"
         t.add_row(n, f"{f.nominal[i]:.4g}", f"{f.value[i]:.4g}", ci,
