@@ -159,7 +159,8 @@ def test_cli_writes_a_calibrated_model(coarse, sessions, tmp_path, capsys):
         args += ["--fix", f]
     assert main(args) == 0
     text = capsys.readouterr().out
-    assert "stiffness_arms_factor" in text and "95 % interval" in text
+    assert "95 % interval" in text and "identifiable" in text
+    assert "stiffness_arms_factor" in (out / "parameters.csv").read_text()
     cal = json.loads((out / "calibration.json").read_text())
     assert cal["stiffness_factor"]["arms"] == pytest.approx(ARMS_TRUE, rel=0.05)
     model = load_model(out)  # a model directory like any other, with the fitted stiffness in its design
