@@ -165,7 +165,7 @@ def test_cli_writes_a_calibrated_model(coarse, sessions, tmp_path, capsys):
     assert cal["stiffness_factor"]["arms"] == pytest.approx(ARMS_TRUE, rel=0.05)
     model = load_model(out)  # a model directory like any other, with the fitted stiffness in its design
     mats = {m.name: dict(m.values) for m in model.design.materials}
-    arms = dict(model.design.region_materials)["arms"]
+    arms = model.design.material_of_regions()["arm_front_zpos"]
     assert mats[arms]["E_kPa"] == pytest.approx(3 * 83.0 / 1.75 * cal["stiffness_factor"]["arms"], rel=1e-9)
     assert (out / "report.html").is_file() and re.search(r"held-out|Fitting data", (out / "report.html").read_text())
     # never over an existing result

@@ -315,6 +315,30 @@ class MeshParams:
         return MeshParams(size_mm, self.surface_size_mm * s, self.arm_size_mm * s, segments, self.element_order)
 
 
+@dataclass(frozen=True)
+class SensorParams:
+    """The bench's sensors as calibrated (``softphantom calibrate``): ``gains`` of the four arm
+    transducers relative to their datasheet sensitivity (sensor order), ``tube_volume_factor`` the
+    real tube volume over the one its length and bore give. Defaults: the datasheet, no correction."""
+
+    gains: tuple[float, float, float, float] = (1.0, 1.0, 1.0, 1.0)
+    tube_volume_factor: float = 1.0
+
+    def __post_init__(self) -> None:
+        g = self.gains
+        if isinstance(g, (str, bytes)) or not hasattr(g, "__len__") or len(g) != 4:
+            raise DesignError(f"sensors.gains: expected 4 numbers (front_zpos, front_zneg, back_xpos, back_xneg), got {g!r}")
+        gains = tuple(_num(f"sensors.gains[{i}]", v) for i, v in enumerate(g))
+        for i, v in enumerate(gains):
+            if not 0.5 <= v <= 2.0:
+                raise DesignError(f"sensors.gains[{i}] = {_fmt(v)} must be in [0.5, 2] (a transducer's sensitivity / datasheet)")
+        _set(self, "gains", gains)
+        f = _num("sensors.tube_volume_factor", self.tube_volume_factor)
+        if not 0.2 <= f <= 5.0:
+            raise DesignError(f"sensors.tube_volume_factor = {_fmt(f)} must be in [0.2, 5]")
+        _set(self, "tube_volume_factor", f)
+
+
 def _on_surface(direction: Vec3) -> Vec3:
     p = geo.project_to_ellipsoid(direction, (_A_MM, _B_MM, _C_MM))
     return tuple(float(x) for x in p)  # type: ignore[return-value]
@@ -403,6 +427,7 @@ class BIPDesign:
     materials: tuple[MaterialSpec, ...] = field(default_factory=_default_materials)
     region_materials: tuple[tuple[str, str], ...] = field(default_factory=_default_region_materials)
     molds: MoldParams = field(default_factory=MoldParams)  # how it is cast (design/fabrication.py)
+    sensors: SensorParams = field(default_factory=SensorParams)  # as calibrated (softphantom calibrate)
 
     def __post_init__(self) -> None:
         if not isinstance(self.name, str) or not self.name:
@@ -410,7 +435,8 @@ class BIPDesign:
         _set(self, "arms", tuple(self.arms))
         _set(self, "markers", _named_points("markers", self.markers))
         _set(self, "targets", _named_points("targets", self.targets))
-        for sub, cls in (("bulb", BulbParams), ("urethra", UrethraParams), ("interaction", InteractionParams), ("mesh", MeshParams), ("molds", MoldParams)):
+        for sub, cls in (("bulb", BulbParams), ("urethra", UrethraParams), ("interaction", InteractionParams), ("mesh", MeshParams),
+                         ("molds", MoldParams), ("sensors", SensorParams)):
             if not isinstance(getattr(self, sub), cls):
                 raise DesignError(f"{sub}: expected {cls.__name__}, got {type(getattr(self, sub)).__name__}")
         names = tuple(a.name if isinstance(a, ArmParams) else None for a in self.arms)
@@ -639,7 +665,7 @@ def _validate_geometry(d: BIPDesign) -> None:
 # --- files ---------------------------------------------------------------------------------
 
 _SUBS = {"bulb": BulbParams, "urethra": UrethraParams, "interaction": InteractionParams, "mesh": MeshParams,
-         "molds": MoldParams}
+         "molds": MoldParams, "sensors": SensorParams}
 _ARM_KEYS = [f.name for f in dataclasses.fields(ArmParams) if f.name != "name"]
 
 
