@@ -51,7 +51,9 @@ def believe_nominal_tube(rec: Path) -> None:
     """Rewrite the recording's metadata as the lab would have it: a 12 m tube."""
     lines = rec.read_text().splitlines(keepends=True)
     meta = json.loads(lines[0][2:])
-    meta["design"]["tube_length_m"] = 12.0
+    for key in ("bench", "design"):
+        if key in meta:
+            meta[key]["tube_length_m"] = 12.0
     lines[0] = "# " + json.dumps(meta) + "\n"
     rec.write_text("".join(lines))
 
@@ -130,7 +132,9 @@ def main() -> None:
         rec = sc / "recording.csv"
         lines = rec.read_text().splitlines(keepends=True)
         meta = json.loads(lines[0][2:])
-        meta["design"]["tube_length_m"] = 12.0 * TUBE_TRUE
+        for key in ("bench", "design"):
+            if key in meta:
+                meta[key]["tube_length_m"] = 12.0 * TUBE_TRUE
         lines[0] = "# " + json.dumps(meta) + "\n"
         rec.write_text("".join(lines))
     cal2, wall2 = run(model_dir, s, a.workers, fix=("tube_volume_factor",))

@@ -33,7 +33,7 @@ from softphantom.calibration.forward import ARM_NAMES, GROUPS, KeyframeSolution,
 from softphantom.calibration.session import Session
 from softphantom.errors import SolverError, UserError
 from softphantom.pose import rigid_fit, ypr_from_matrix
-from softphantom.sensing.pneumatics import boyle_dp, tube_volume_m3
+from softphantom.sensing.pneumatics import boyle_dp
 
 
 @dataclass(frozen=True)
@@ -214,7 +214,7 @@ class Problem:
         out, d_dV, d_tube = [], [], []
         for k in range(dV.shape[0]):
             se = self.sessions[int(session[k])]
-            vt = tube_volume_m3(se.tube_length_m, se.tube_id_m)
+            vt = se.tube_m3
             VT = se.cavity_m3 + u["tube"] * vt
             p = boyle_dp(dV[k], VT, se.p0_Pa)
             # dp = P0 (VT/(VT+dV) − 1): ∂/∂dV = −P0 VT/(VT+dV)², ∂/∂VT = P0 dV/(VT+dV)²

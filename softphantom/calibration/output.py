@@ -43,10 +43,18 @@ def calibrated_model(cal: Calibration):
     the same: only the materials change)."""
     from softphantom.design import load_model
 
+    from softphantom.calibration.forward import ARM_NAMES
+    from softphantom.design import SensorParams
+
     model = load_model(cal.model_dir)
     p = cal.parameters()
     factors = {g: p[f"stiffness_{g}_factor"] for g in ("bulb", "arms")}
-    return dataclasses.replace(model, design=calibrated_design(model.design, factors))
+    design = calibrated_design(model.design, factors)
+    # the fitted gains and tube factor are relative to the chain the (first) recording used
+    s0 = cal.sessions[0]
+    sensors = SensorParams(tuple(float(g0 * p[f"gain_{a}"]) for g0, a in zip(s0.recorded_gains, ARM_NAMES)),
+                           float(s0.recorded_tube_factor * p["tube_volume_factor"]))
+    return dataclasses.replace(model, design=dataclasses.replace(design, sensors=sensors))
 
 
 def write_calibration(cal: Calibration, out) -> dict[str, Path]:

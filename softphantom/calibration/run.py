@@ -16,7 +16,7 @@ from softphantom.calibration.fit import FitOptions, FitResult, Keyframes, Proble
 from softphantom.calibration.forward import ARM_NAMES, GROUPS, rest_markers, solve_keyframe
 from softphantom.calibration.session import CalibrationInputError, Session, load_session, select_keyframes
 from softphantom.errors import SolverError, UserError
-from softphantom.sensing.pneumatics import boyle_dV, tube_volume_m3
+from softphantom.sensing.pneumatics import boyle_dV
 
 POSE_DOF = ("x_mm", "y_mm", "z_mm", "yaw_deg", "pitch_deg", "roll_deg")
 
@@ -112,7 +112,7 @@ def _initial(problem: Problem, sessions: list[Session]) -> tuple[np.ndarray, np.
     lags = np.zeros(len(sessions))
     rm = problem.rest_markers
     for i, se in enumerate(sessions):
-        vt = tube_volume_m3(se.tube_length_m, se.tube_id_m)
+        vt = se.tube_m3
         s0 = lin[tuple(se.contact)]
         pinv = np.linalg.pinv(s0.dV_df)
 

@@ -9,7 +9,7 @@ recording in time, too few distinct loads.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -57,6 +57,15 @@ class Session:
     dp_noise_Pa: np.ndarray = None  # (4,) std of the de-lagged pressures in the rest window
     known_t: np.ndarray | None = None
     known_force: np.ndarray | None = None
+    recorded_gains: np.ndarray = field(default_factory=lambda: np.ones(4))  # the chain the recording used
+    recorded_tube_factor: float = 1.0
+
+    @property
+    def tube_m3(self) -> float:
+        """The tube volume the recording's conversion assumed (length × bore × its factor)."""
+        from softphantom.sensing.pneumatics import tube_volume_m3
+
+        return self.recorded_tube_factor * tube_volume_m3(self.tube_length_m, self.tube_id_m)
 
     def pose_at(self, t: np.ndarray) -> np.ndarray:
         """The tracker pose (6,) per time, linear interpolation; NaN outside the take."""
@@ -86,18 +95,15 @@ def undo_tube_lag(t: np.ndarray, dp: np.ndarray, tau_s: np.ndarray, window_s: fl
     return smooth + deriv * np.asarray(tau_s)[None, :]
 
 
-def _meta_design(meta: dict, path: Path) -> tuple[float, float, np.ndarray, float]:
-    d = meta.get("design") or {}
+def _bench(meta: dict, path: Path):
+    from softphantom.sensing.bench import BenchConfig
+
     try:
-        length = float(d.get("tube_length_m", 12.0))
-        bore = float(d.get("tube_id_mm", 1.2)) * 1e-3
-        cav = np.asarray(d.get("arm_cavity_mm3", [514.0, 514.0, 486.0, 486.0]), float) * 1e-9
-        p0 = float((meta.get("tare") or {}).get("p0_Pa", 101_325.0))
-    except (TypeError, ValueError) as exc:
-        raise CalibrationInputError(f"{path}: metadata 'design' unreadable ({exc})") from None
-    if cav.shape != (4,):
-        raise CalibrationInputError(f"{path}: metadata design.arm_cavity_mm3 needs 4 values")
-    return length, bore, cav, p0
+        b = BenchConfig.from_meta(meta)
+    except UserError as exc:
+        raise CalibrationInputError(f"{path}: {exc}") from None
+    p0 = float((meta.get("tare") or {}).get("p0_Pa", b.p0_Pa))
+    return b, p0
 
 
 def load_session(recording, truth, contact_m, known_loads=None, name: str | None = None,
@@ -128,9 +134,10 @@ def load_session(recording, truth, contact_m, known_loads=None, name: str | None
             f"{rec_path}: no rest window at the start ({ARM_NAMES[k]} moves {slope[k]:+.0f} Pa/s, std {std[k]:.0f} Pa in "
             f"the first {REST_S} s; limits {REST_MAX_SLOPE_PA_S:.0f} Pa/s, {REST_MAX_PA:.0f} Pa): "
             "record the phantom untouched first")
-    length, bore, cav, p0 = _meta_design(rec.meta, rec_path)
-    length = tube_length_m if tube_length_m is not None else length
-    bore = tube_id_mm * 1e-3 if tube_id_mm is not None else bore
+    bench, p0 = _bench(rec.meta, rec_path)
+    length = tube_length_m if tube_length_m is not None else bench.tube_length_m
+    bore = tube_id_mm * 1e-3 if tube_id_mm is not None else bench.tube_id_m
+    cav = np.asarray(bench.cavity_volumes_m3)
     tau = np.array([tube_time_constant_s(length, bore, v, p0) for v in cav])
     dp = undo_tube_lag(t, dp, tau)
     noise = np.maximum(np.std(dp[rest], axis=0), NOISE_FLOOR_PA)
@@ -160,7 +167,7 @@ def load_session(recording, truth, contact_m, known_loads=None, name: str | None
             raise CalibrationInputError(f"{kp}: known loads do not overlap the recording "
                                         f"({t[0]:.2f}–{t[-1]:.2f} s)")
     return Session(name or rec_path.stem, t, dp, pu, series.t.copy(), pose, np.asarray(contact_m, float),
-                   p0, length, bore, cav, noise, kt, kf)
+                   p0, length, bore, cav, noise, kt, kf, np.asarray(bench.gains), bench.tube_volume_factor)
 
 
 def select_keyframes(session: Session, max_keyframes: int = 16, rest_keyframes: int = 1) -> np.ndarray:

@@ -26,6 +26,7 @@ import numpy as np
 
 from softphantom.errors import UserError
 from softphantom.sensing.chain import SensorChain, Tare, default_chain, nominal_tare, tare_from_window
+from softphantom.sensing.pneumatics import tube_volume_m3
 from softphantom.sensing.measurement import (
     ARM_CAVITY_VOLUMES_M3,
     ARM_NAMES,
@@ -53,13 +54,17 @@ def _positive(name: str, v: float) -> float:
 class BenchConfig:
     """The pneumatic bench (SI): per-arm tube ``tube_length_m`` × ``tube_id_m`` (inner diameter),
     the arm cavities ``cavity_volumes_m3`` (4, sensor order), the transducers' extra dead volume
-    ``v_dead_m3`` and the absolute ambient pressure ``p0_Pa`` at tare."""
+    ``v_dead_m3`` and the absolute ambient pressure ``p0_Pa`` at tare; as calibrated
+    (``softphantom calibrate``, the design's ``[sensors]``): the arm transducers' ``gains``
+    (sensitivity / datasheet) and the ``tube_volume_factor`` (real / nominal tube volume)."""
 
     tube_length_m: float = TUBE_LENGTH_M
     tube_id_m: float = TUBE_ID_M
     cavity_volumes_m3: tuple[float, float, float, float] = ARM_CAVITY_VOLUMES_M3
     p0_Pa: float = P0_STANDARD_PA
     v_dead_m3: float = 0.0
+    gains: tuple[float, float, float, float] = (1.0, 1.0, 1.0, 1.0)
+    tube_volume_factor: float = 1.0
 
     def __post_init__(self) -> None:
         _positive("--tube-length-m", self.tube_length_m)
@@ -71,6 +76,11 @@ class BenchConfig:
         if not (math.isfinite(self.v_dead_m3) and self.v_dead_m3 >= 0):
             raise UserError(f"dead volume (mm³): must be ≥ 0, got {self.v_dead_m3 * 1e9!r}")
         object.__setattr__(self, "cavity_volumes_m3", vc)
+        g = tuple(float(v) for v in self.gains)
+        if len(g) != 4 or not all(math.isfinite(v) and v > 0 for v in g):
+            raise UserError(f"transducer gains: expected 4 positive values, got {self.gains!r}")
+        object.__setattr__(self, "gains", g)
+        _positive("tube volume factor", self.tube_volume_factor)
 
     @classmethod
     def from_model(cls, model, **kw) -> "BenchConfig":
@@ -81,7 +91,9 @@ class BenchConfig:
             vc = tuple(by_name[a] * 1e-9 for a in ARM_NAMES)
         except KeyError as exc:
             raise UserError(f"design has no arm {exc.args[0]!r} (need {', '.join(ARM_NAMES)})") from None
-        return cls(cavity_volumes_m3=vc, **{k: v for k, v in kw.items() if v is not None})
+        sensors = getattr(model.design, "sensors", None)
+        cal = {} if sensors is None else {"gains": sensors.gains, "tube_volume_factor": sensors.tube_volume_factor}
+        return cls(cavity_volumes_m3=vc, **cal, **{k: v for k, v in kw.items() if v is not None})
 
     @classmethod
     def from_options(cls, tube_length_m: float | None = None, tube_id_mm: float | None = None,
@@ -102,19 +114,29 @@ class BenchConfig:
         """Equal up to rounding (metadata stores user units)."""
         if other is None:
             return False
-        a = np.array([self.tube_length_m, self.tube_id_m, *self.cavity_volumes_m3, self.p0_Pa, self.v_dead_m3])
-        b = np.array([other.tube_length_m, other.tube_id_m, *other.cavity_volumes_m3, other.p0_Pa, other.v_dead_m3])
+        a = np.array([self.tube_length_m, self.tube_id_m, *self.cavity_volumes_m3, self.p0_Pa, self.v_dead_m3,
+                      *self.gains, self.tube_volume_factor])
+        b = np.array([other.tube_length_m, other.tube_id_m, *other.cavity_volumes_m3, other.p0_Pa, other.v_dead_m3,
+                      *other.gains, other.tube_volume_factor])
         return bool(np.allclose(a, b, rtol=rtol, atol=0.0))
 
     def chain(self) -> SensorChain:
-        """The sensor chain: V_total = cavity + tube + dead volume per arm."""
-        return default_chain(self.cavity_volumes_m3, self.tube_length_m, self.tube_id_m, self.v_dead_m3)
+        """The sensor chain: V_total = cavity + factor × tube + dead volume per arm; each arm
+        transducer's sensitivity × its gain."""
+        base = default_chain(self.cavity_volumes_m3, self.tube_length_m, self.tube_id_m, self.v_dead_m3)
+        if self.gains == (1.0, 1.0, 1.0, 1.0) and self.tube_volume_factor == 1.0:
+            return base
+        tube = tube_volume_m3(self.tube_length_m, self.tube_id_m)
+        v = np.asarray(self.cavity_volumes_m3) + self.tube_volume_factor * tube + self.v_dead_m3
+        tr = tuple(replace(t, k1_per_kPa=t.k1_per_kPa * g) for t, g in zip(base.transducers[:4], self.gains))
+        return SensorChain(v, tr + base.transducers[4:], base.bits)
 
     def to_meta(self) -> dict:
         """The recording metadata ``bench`` entry (user units)."""
         return {"tube_length_m": self.tube_length_m, "tube_id_mm": round(self.tube_id_m * 1e3, 9),
                 "arm_cavity_mm3": [round(v * 1e9, 6) for v in self.cavity_volumes_m3],
-                "p0_Pa": self.p0_Pa, "dead_volume_mm3": round(self.v_dead_m3 * 1e9, 6)}
+                "p0_Pa": self.p0_Pa, "dead_volume_mm3": round(self.v_dead_m3 * 1e9, 6),
+                "transducer_gains": list(self.gains), "tube_volume_factor": self.tube_volume_factor}
 
     @classmethod
     def from_meta(cls, meta: dict) -> "BenchConfig":
@@ -126,7 +148,9 @@ class BenchConfig:
             return cls(float(b["tube_length_m"]), float(b["tube_id_mm"]) * 1e-3,
                        tuple(float(v) * 1e-9 for v in b["arm_cavity_mm3"]),
                        float(b.get("p0_Pa", meta.get("p0_Pa", P0_STANDARD_PA))),
-                       float(b.get("dead_volume_mm3", 0.0)) * 1e-9)
+                       float(b.get("dead_volume_mm3", 0.0)) * 1e-9,
+                       tuple(float(v) for v in b.get("transducer_gains", (1.0,) * 4)),
+                       float(b.get("tube_volume_factor", 1.0)))
         except (KeyError, TypeError, ValueError) as exc:
             raise FileFormatError(f"metadata: no usable bench (tube, cavities): {exc}") from None
 
