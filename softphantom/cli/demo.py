@@ -189,6 +189,7 @@ def demo_cmd(
     osr: int = typer.Option(100, "--osr", help="Board oversampling (100: 19.2 Hz, the paper's N; 25: 76.9 Hz)."),
     truth_mesh_scale: float = typer.Option(0.75, "--truth-mesh-scale", help="Truth mesh size relative to the estimator's."),
     force: bool = typer.Option(False, "--force", help="Mesh above the element-count limit (docs/robustness.md)."),
+    model_dir: Path = typer.Option(None, "--model", help="Estimator model directory (e.g. from softphantom calibrate) instead of the default design; the truth is meshed from its design."),
     overwrite: bool = overwrite_option(),
     estimator: str = typer.Option("atlas", "--estimator", help="atlas (precomputed, real time) | refresh (sync: "
                                   "re-linearized inside each step)."),
@@ -198,7 +199,7 @@ def demo_cmd(
     from rich.status import Status
 
     from softphantom.cli.virtual import _config
-    from softphantom.design import BIPDesign, build_model, save_model
+    from softphantom.design import BIPDesign, build_model, load_model, save_model
     from softphantom.estimation.select import atlas_config_from_options, check_estimator_kind
     from softphantom.virtual import BUNDLED, load_scenario, truth_model
 
@@ -212,9 +213,12 @@ def demo_cmd(
     cfg = _config(seed, osr, truth_mesh_scale)
     if mesh_size_mm is not None and not mesh_size_mm > 0:
         raise UserError(f"--mesh-size-mm: must be > 0, got {mesh_size_mm:g}")
+    if model_dir is not None and mesh_size_mm is not None:
+        raise UserError("--model and --mesh-size-mm: give one (a model directory has its mesh)")
+    given = load_model(model_dir) if model_dir is not None else None
     with staged_output(out, overwrite=overwrite, directory=True) as work:
         with Status("design → mesh (estimator model)", console=console):
-            model = build_model(BIPDesign(), mesh_size_mm, force=force)
+            model = given if given is not None else build_model(BIPDesign(), mesh_size_mm, force=force)
             save_model(model, work / "model")
         console.print(f"model: {len(model.nodes)} nodes, {len(model.tets)} tets (mesh {model.design.mesh.size_mm:g} "
                       f"mm) → {out / 'model'}", highlight=False, soft_wrap=True)
