@@ -168,10 +168,12 @@ def test_ctrl_c_stops_gmsh_exit_130_nothing_written(tmp_path):
                 Path(f"/proc/{p}/stat").read_text().split()[2] != "Z"], "the gmsh child is still running"
 
 
-def test_ctrl_c_stops_a_truth_solve_exit_130_nothing_written(coarse_model, tmp_path):
-    from softphantom.design import save_model
+def test_ctrl_c_stops_a_truth_solve_exit_130_nothing_written(tmp_path):
+    from softphantom.design import BIPDesign, build_model, save_model
 
-    save_model(coarse_model, tmp_path / "model")
+    # the default 6 mm model: its truth (4.5 mm) takes tens of seconds even on an idle machine, so
+    # the interrupt lands mid-solve (on the 12 mm mesh an idle machine finished before 4 s)
+    save_model(build_model(BIPDesign(), 6.0), tmp_path / "model")
     started = time.monotonic()
     r, _ = _interrupt(["virtual", "run", "--scenario", "needle-insertion", "--model", "model", "--out", "run"],
                       tmp_path, lambda proc: time.monotonic() - started > 4.0)
