@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from softphantom.calibration.forward import ARM_NAMES, GROUPS, KeyframeSolution, solve_keyframe
+from softphantom.calibration.forward import ARM_NAMES, GROUPS, KeyframeSolution
 from softphantom.calibration.session import Session
 from softphantom.errors import SolverError, UserError
 from softphantom.pose import rigid_fit, ypr_from_matrix

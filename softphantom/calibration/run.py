@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from softphantom.calibration.fit import FitOptions, FitResult, Keyframes, Problem, body_pose, fit, parameter_set
-from softphantom.calibration.forward import ARM_NAMES, GROUPS, rest_markers, solve_keyframe
+from softphantom.calibration.forward import GROUPS, rest_markers, solve_keyframe
 from softphantom.calibration.session import CalibrationInputError, Session, load_session, select_keyframes
 from softphantom.errors import SolverError, UserError
 from softphantom.sensing.pneumatics import boyle_dV

@@ -8,7 +8,6 @@ recording in time, too few distinct loads.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
