@@ -27,6 +27,8 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -180,7 +182,12 @@ def _mesh_in_child(design: BIPDesign, mp: MeshParams) -> RawMesh:
     return value
 
 
-def _mesh_here(design: BIPDesign, mp: MeshParams) -> RawMesh:
+@contextmanager
+def gmsh_session(model_name: str, what: str) -> Iterator:
+    """One gmsh model in this process, under the module's lock: gmsh initialized if needed (and
+    SIGPIPE restored), quiet, the model added; yields the ``gmsh`` module. Any gmsh error becomes a
+    :class:`MeshError` naming ``what``; the model is removed (and gmsh finalized if started here)
+    whatever happens. Used by the mesher and by the molds' solids."""
     import gmsh
 
     with _GMSH_LOCK:
@@ -188,22 +195,17 @@ def _mesh_here(design: BIPDesign, mp: MeshParams) -> RawMesh:
         if init_here:
             gmsh.initialize(argv=["softphantom"], readConfigFiles=False, interruptible=False)
             _restore_sigpipe()
-        model_name = f"softphantom_{design.name}"
         try:
             gmsh.option.setNumber("General.Terminal", 0)
             gmsh.option.setNumber("General.Verbosity", 1)
-            gmsh.logger.start()
             gmsh.model.add(model_name)
-            t0 = time.perf_counter()
-            raw = _build(design, mp)
-            return RawMesh(**raw, seconds=time.perf_counter() - t0)
+            yield gmsh
         except MeshError:
             raise
         except Exception as exc:  # gmsh raises plain Exception with its last error
             msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-            raise MeshError(f"gmsh failed on design {design.name!r}: {msg}") from None
+            raise MeshError(f"gmsh failed on {what}: {msg}") from None
         finally:
-            gmsh.logger.stop()
             try:
                 gmsh.model.setCurrent(model_name)
                 gmsh.model.remove()
@@ -211,6 +213,17 @@ def _mesh_here(design: BIPDesign, mp: MeshParams) -> RawMesh:
                 pass
             if init_here:
                 gmsh.finalize()
+
+
+def _mesh_here(design: BIPDesign, mp: MeshParams) -> RawMesh:
+    with gmsh_session(f"softphantom_{design.name}", f"design {design.name!r}") as gmsh:
+        gmsh.logger.start()
+        try:
+            t0 = time.perf_counter()
+            raw = _build(design, mp)
+            return RawMesh(**raw, seconds=time.perf_counter() - t0)
+        finally:
+            gmsh.logger.stop()
 
 
 def _build(design: BIPDesign, mp: MeshParams) -> dict:

@@ -14,7 +14,7 @@ from typing import Callable
 
 import numpy as np
 
-from softphantom.design.mesh import _GMSH_LOCK, _restore_sigpipe
+from softphantom.design.mesh import gmsh_session
 from softphantom.errors import MeshError
 
 MAX_FACET_MM = 4.0  # flat faces need no fine facets; curved ones follow ``segments``
@@ -66,62 +66,39 @@ def one_volume(result, what: str) -> int:
 
 def occ_solid(name: str, build: Callable, segments: float) -> "trimesh.Trimesh":  # noqa: F821
     """Run ``build(occ)`` (returns one volume tag) and tessellate that volume's boundary."""
-    import gmsh
     import trimesh
 
-    with _GMSH_LOCK:
-        init_here = not gmsh.isInitialized()
-        if init_here:
-            gmsh.initialize(argv=["softphantom"], readConfigFiles=False, interruptible=False)
-            _restore_sigpipe()
-        model_name = f"softphantom_part_{name}"
-        try:
-            gmsh.option.setNumber("General.Terminal", 0)
-            gmsh.option.setNumber("General.Verbosity", 1)
-            gmsh.model.add(model_name)
-            for opt, value in (
-                ("General.NumThreads", 1),
-                ("Geometry.OCCParallel", 0),
-                ("Mesh.RandomSeed", 1),
-                ("Mesh.Algorithm", 6),
-                ("Mesh.MeshSizeFromCurvature", float(segments)),
-                ("Mesh.MeshSizeMin", MIN_FACET_MM),
-                ("Mesh.MeshSizeMax", MAX_FACET_MM),
-                ("Mesh.MeshSizeFromPoints", 0),
-            ):
-                gmsh.option.setNumber(opt, value)
-            occ = gmsh.model.occ
-            vol = build(occ)
-            occ.synchronize()
-            vols = [t for _, t in gmsh.model.getEntities(3)]
-            if vols != [vol]:
-                raise MeshError(f"part {name}: {len(vols)} volumes in the model, expected 1")
-            gmsh.model.mesh.generate(2)
-            tags, coords, _ = gmsh.model.mesh.getNodes()
-            pos = np.full(int(np.max(tags)) + 1, -1, dtype=np.int64)
-            pos[np.asarray(tags, dtype=np.int64)] = np.arange(len(tags))
-            xyz = np.asarray(coords, float).reshape(-1, 3)
-            tris = []
-            for dim, s in gmsh.model.getBoundary([(3, vol)], combined=False, oriented=True):
-                types, _, ntags = gmsh.model.mesh.getElements(2, abs(s))
-                for t, nt in zip(types, ntags):
-                    if t != 2:
-                        raise MeshError(f"part {name}: surface {abs(s)} has non-triangle elements")
-                    tri = pos[np.asarray(nt, dtype=np.int64).reshape(-1, 3)]
-                    tris.append(tri)
-        except MeshError:
-            raise
-        except Exception as exc:  # gmsh raises plain Exception with its last error
-            msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-            raise MeshError(f"gmsh failed on part {name!r}: {msg}") from None
-        finally:
-            try:
-                gmsh.model.setCurrent(model_name)
-                gmsh.model.remove()
-            except Exception:
-                pass
-            if init_here:
-                gmsh.finalize()
+    with gmsh_session(f"softphantom_part_{name}", f"part {name!r}") as gmsh:
+        for opt, value in (
+            ("General.NumThreads", 1),
+            ("Geometry.OCCParallel", 0),
+            ("Mesh.RandomSeed", 1),
+            ("Mesh.Algorithm", 6),
+            ("Mesh.MeshSizeFromCurvature", float(segments)),
+            ("Mesh.MeshSizeMin", MIN_FACET_MM),
+            ("Mesh.MeshSizeMax", MAX_FACET_MM),
+            ("Mesh.MeshSizeFromPoints", 0),
+        ):
+            gmsh.option.setNumber(opt, value)
+        occ = gmsh.model.occ
+        vol = build(occ)
+        occ.synchronize()
+        vols = [t for _, t in gmsh.model.getEntities(3)]
+        if vols != [vol]:
+            raise MeshError(f"part {name}: {len(vols)} volumes in the model, expected 1")
+        gmsh.model.mesh.generate(2)
+        tags, coords, _ = gmsh.model.mesh.getNodes()
+        pos = np.full(int(np.max(tags)) + 1, -1, dtype=np.int64)
+        pos[np.asarray(tags, dtype=np.int64)] = np.arange(len(tags))
+        xyz = np.asarray(coords, float).reshape(-1, 3)
+        tris = []
+        for dim, s in gmsh.model.getBoundary([(3, vol)], combined=False, oriented=True):
+            types, _, ntags = gmsh.model.mesh.getElements(2, abs(s))
+            for t, nt in zip(types, ntags):
+                if t != 2:
+                    raise MeshError(f"part {name}: surface {abs(s)} has non-triangle elements")
+                tri = pos[np.asarray(nt, dtype=np.int64).reshape(-1, 3)]
+                tris.append(tri)
     mesh = trimesh.Trimesh(xyz, consistent_surfaces(tris), process=True)
     mesh.remove_unreferenced_vertices()
     if mesh.volume < 0.0:
