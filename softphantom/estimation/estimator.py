@@ -30,6 +30,21 @@ from softphantom.pose import Pose6, rigid_fit
 PATH_ITERATIONS = 4  # fixed-point passes of the QP on the path-corrected W (see PathCorrection)
 TRUST_GROW_BELOW = 0.15  # a refresh's linearization error / its volume change: below, the trust region doubles
 TRUST_SHRINK_ABOVE = 0.3  # above, it halves (never below trust_N / trust_Pa)
+HISTORY = 10_000  # refreshes kept in Estimator.refresh_times / lin_errors
+
+
+def _append_bounded(history: list, value) -> None:
+    """Append, dropping the oldest half once the list holds 2·HISTORY entries (amortised O(1)).
+
+    >>> h = []
+    >>> for i in range(2 * HISTORY + 1):
+    ...     _append_bounded(h, i)
+    >>> len(h), h[0], h[-1]
+    (10001, 10000, 20000)
+    """
+    history.append(value)
+    if len(history) > 2 * HISTORY:
+        del history[:HISTORY]
 
 
 @dataclass(frozen=True)
@@ -224,6 +239,7 @@ class Estimator:
         self._lam = np.zeros(4)
         self._since_refresh = 0
         self.refreshes = 0
+        # per-refresh history, the latest HISTORY entries only: a soak must not grow the process
         self.lin_errors: list[np.ndarray] = []
         self.refresh_times: list[float] = []  # s per equilibrium refresh (both modes)
         z = np.zeros(3)
@@ -273,7 +289,7 @@ class Estimator:
         from ``lin``, time it, publish the new linearization."""
         t0 = time.perf_counter()
         new = self._eq.solve(lin, lam, path)
-        self.refresh_times.append(time.perf_counter() - t0)
+        _append_bounded(self.refresh_times, time.perf_counter() - t0)
         self._publish(new)
 
     def _publish(self, lin: Linearization) -> None:
@@ -293,7 +309,7 @@ class Estimator:
             self._lin = lin
             self._path = path
             self.refreshes += 1
-            self.lin_errors.append(np.asarray(lin.lin_error))
+            _append_bounded(self.lin_errors, np.asarray(lin.lin_error))
 
     def _moved(self, lam: np.ndarray, lin: Linearization) -> bool:
         c = self.config
@@ -411,7 +427,8 @@ class Estimator:
         return noise_bound(self._lin, self.rest_markers, self.target_names, sigma_dV_m3, sigma_p_Pa, self._lam)
 
     def stats(self) -> dict:
-        """Counters: refreshes, factorizations, the last linearization's error (m³), worker error."""
+        """Counters: refreshes, factorizations, the largest linearization error (m³) of the latest
+        :data:`HISTORY` refreshes, worker error."""
         errs = np.array(self.lin_errors) if self.lin_errors else np.zeros((0, 4))
         return {
             "refreshes": self.refreshes,
