@@ -5,7 +5,7 @@ explained, memory flat.
 
 A writer thread plays a board at N = 25 (76.9 Hz, protocol v2, real time, the board clock in the
 frames) onto a pty; the host side is the real path: ``sensing.bench.open_source("serial:…")``
-(tare on the first second at rest) → ``estimate_stream`` with the async estimator → the estimate
+(tare on the first second at rest) → ``estimate_stream`` with the estimator (``--estimator``: atlas, the default of ``estimate``, or the async refresh one) → the estimate
 CSV. ``--load`` busy processes run alongside (the machine's two cores busy, as in the issue's
 soak). Reported: frames sent / received / estimated / skipped (with the reason: lagging more
 than ``MAX_LAG_S``), decoder losses, link events, resident memory (VmRSS) sampled every 5 s:
@@ -21,6 +21,7 @@ import multiprocessing
 import os
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 import tty
@@ -31,7 +32,7 @@ sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 
 import softphantom.estimation.stream as stream_mod  # noqa: E402
 from softphantom.design import BIPDesign, build_model, load_model  # noqa: E402
-from softphantom.estimation import Estimator, EstimatorConfig, estimate_stream  # noqa: E402
+from softphantom.estimation import EstimatorConfig, estimate_stream, open_estimator  # noqa: E402
 from softphantom.sensing.bench import open_source  # noqa: E402
 from softphantom.sensing.board import frame_rate_Hz  # noqa: E402
 from softphantom.sensing.chain import MPXV7002, pa_to_counts  # noqa: E402
@@ -74,7 +75,7 @@ def board_process(master: int, stop, sent) -> None:
         sent.value = k
 
 
-def soak(model, duration_s: float, label: str) -> dict:
+def soak(model, duration_s: float, label: str, kind: str = "atlas", cache_dir=None) -> dict:
     master, slave = os.openpty()
     tty.setraw(slave)
     ctx = multiprocessing.get_context("fork")
@@ -91,7 +92,8 @@ def soak(model, duration_s: float, label: str) -> dict:
 
     try:
         opened = open_source(f"serial:{os.ttyname(slave)}", model, tare_s=1.0)
-        est = Estimator(model, EstimatorConfig.box(10.0, mode="async"))
+        est = open_estimator(kind, model, EstimatorConfig.box(10.0, mode="async"), cache_dir=cache_dir,
+                             log=lambda s: print(s, flush=True))
         out = f"/tmp/bench_soak_{label}_{os.getpid()}.csv"
         threading.Timer(duration_s, stop.set).start()
         threading.Thread(target=sample_mem, daemon=True).start()
@@ -116,22 +118,26 @@ def main() -> None:
     ap.add_argument("--model", default=None, help="model directory (default: the design at --mesh-size-mm)")
     ap.add_argument("--mesh-size-mm", type=float, default=12.0)
     ap.add_argument("--load", type=int, default=2, help="busy processes alongside (0: none)")
+    ap.add_argument("--estimator", choices=("atlas", "refresh"), default="atlas",
+                    help="atlas (the default of `softphantom estimate`) or refresh (async)")
+    ap.add_argument("--cache-dir", default=None, help="where the atlas is cached (default: a temporary directory)")
     a = ap.parse_args()
     model = load_model(a.model) if a.model else build_model(BIPDesign(), a.mesh_size_mm)
     loads = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(a.load)]
     try:
-        r = soak(model, a.duration_s, "queue")
+        cache = a.cache_dir or tempfile.mkdtemp(prefix="bench_soak_")
+        r = soak(model, a.duration_s, "queue", a.estimator, cache)
         lag = stream_mod.MAX_LAG_S
         stream_mod.MAX_LAG_S = 0.0
         try:
-            peer = soak(model, a.peer_s, "latest") if a.peer_s > 0 else None
+            peer = soak(model, a.peer_s, "latest", a.estimator, cache) if a.peer_s > 0 else None
         finally:
             stream_mod.MAX_LAG_S = lag
     finally:
         for p in loads:
             p.kill()
             p.wait()
-    print(f"model: {len(model.nodes)} nodes; board N = {OSR} ({frame_rate_Hz(OSR):.1f} Hz); "
+    print(f"estimator: {a.estimator}; model: {len(model.nodes)} nodes; board N = {OSR} ({frame_rate_Hz(OSR):.1f} Hz); "
           f"{a.load} busy processes alongside; load average now {os.getloadavg()[0]:.1f}")
     for name, res, dur in (("queue (now)", r, a.duration_s), ("latest-slot (before)", peer, a.peer_s)):
         if res is None:
