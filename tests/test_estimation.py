@@ -14,7 +14,7 @@ import pytest
 
 from softphantom.estimation import Estimator, EstimatorConfig, solve_volume_qp
 from softphantom.estimation.estimator import pose_and_shifts, sensitivity_cond
-from softphantom.fem import SparseSolver, cavity_volume, force_actuator, probe_matrix, solve_static
+from softphantom.fem import DEFAULT_CONTACT_RADIUS_M, SparseSolver, cavity_volume, force_actuator, probe_matrix, solve_static
 from softphantom.pose import matrix_from_ypr, pose_of_markers
 from softphantom.sensing import ARM_NAMES, P0_STANDARD_PA, Measurement
 from softphantom.sensing.chain import default_chain, nominal_tare, simulate_raw, to_measurement
@@ -44,12 +44,14 @@ def estimators(coarse_model):
 
 @pytest.fixture(scope="module")
 def truths(coarse_model, estimators):
-    """Forward solutions per case: dV (4,), the tracked points' truth, pose."""
+    """Forward solutions per case: dV (4,), the tracked points' truth, pose. The load is the
+    estimator's own contact model (its configured patch): a closed loop on the same model."""
     out = {}
     for name, (contact, f, p) in CASES.items():
         est = estimators[contact]
         fem = est.fem
-        H = force_actuator(fem, est.contact_point)
+        H = force_actuator(fem, est.contact_point, est.config.contact_radius_m)
+        assert est.config.contact_radius_m == DEFAULT_CONTACT_RADIUS_M
         sol = solve_static(fem, H @ np.array(f), {"urethra": p}, solver=SparseSolver("auto"))
         assert sol.converged, sol.status
         X = fem.nodes

@@ -21,7 +21,8 @@ import pytest
 
 from softphantom.cli import main
 from softphantom.errors import UserError
-from softphantom.stream import EstimateSubscriber, read_recording
+from softphantom.fem import DEFAULT_CONTACT_RADIUS_M
+from softphantom.stream import EstimateSubscriber, read_estimate_csv, read_recording
 from softphantom.viz.live import (
     EstimateSource,
     LiveConfig,
@@ -295,6 +296,7 @@ def test_live_from_the_virtual_phantom(coarse_model, virtual_run, tmp_path):
         try:
             geo = json.loads(_get(s.url + "api/geometry"))
             assert len(geo["nodes_mm"]) == len(src.geometry.nodes) and set(geo["targets_mm"]) == set(coarse_model.targets)
+            assert geo["contact_radius_mm"] == pytest.approx(DEFAULT_CONTACT_RADIUS_M * 1e3)  # the estimator's patch
             frames = _sse_frames(s.url, 4, timeout=20.0)
             assert any(f["samples"] for f in frames)
             if CHROMIUM:
@@ -333,4 +335,8 @@ def test_live_from_the_virtual_phantom(coarse_model, virtual_run, tmp_path):
     r = read_recording(rec)
     assert r.complete and len(r.estimates) == st["estimates"] and len(r.sensors) == len(r.estimates)
     assert r.geometry is not None and len(r.surface) >= 3
+    # the contact model is recorded: in the geometry and in the CSV exported from the recording
+    assert r.geometry["contact_radius_mm"] == pytest.approx(DEFAULT_CONTACT_RADIUS_M * 1e3)
+    assert main(["recording-csv", str(rec), "--out", str(tmp_path / "e.csv")]) == 0
+    assert read_estimate_csv(tmp_path / "e.csv")[0]["contact_radius_mm"] == pytest.approx(4.0)
     assert est.node_positions().shape == (n_nodes, 3)

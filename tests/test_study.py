@@ -15,6 +15,7 @@ import pytest
 from softphantom.cli import main
 from softphantom.parallel import dask_client
 from softphantom.study import TIMING_COLUMNS, evaluate_variants, load_sweep_config, read_parquet
+from softphantom.study.config import EvalSettings
 from softphantom.study.run import rows_equal
 
 COARSE = 12.0
@@ -99,7 +100,7 @@ def test_range_is_where_a_transducer_reaches_its_rated_pressure(inproc, coarse_m
     assert r["range_extrapolated"] and 3.0 < r["range_zneg_N"] < 50.0
     assert r["range_min_N"] == min(r["range_zneg_N"], r["range_yneg_N"])
     fem = fem_from_phantom(coarse_model)
-    H = force_actuator(fem, coarse_model.p_ext["on-centre"], 0.0)
+    H = force_actuator(fem, coarse_model.p_ext["on-centre"], EvalSettings().contact_radius_mm * 1e-3)  # the study's patch
     sol = solve_static(fem, H @ np.array([0.0, 0.0, -r["range_zneg_N"]]))
     assert sol.converged
     arms = ("front_zpos", "front_zneg", "back_xpos", "back_xneg")

@@ -9,6 +9,7 @@ import numpy as np
 
 from softphantom.errors import UserError
 from softphantom.estimation.qp import QP_SOLVERS
+from softphantom.fem.contact import DEFAULT_CONTACT_RADIUS_M
 
 MODES = ("sync", "async")
 
@@ -28,8 +29,10 @@ class EstimatorConfig:
     """How the estimator runs.
 
     ``contact``: name of a ``PhantomModel.p_ext`` point (``"on-centre"``, ``"off-centre"``) or an
-    (x, y, z) point in m; ``contact_radius_m`` spreads the force over the surface nodes within that
-    radius (0: the element containing the point, as the paper). ``force_min_N``/``force_max_N``:
+    (x, y, z) point in m; ``contact_radius_m`` spreads the force as a uniform traction over the outer
+    surface within that radius (:class:`~softphantom.fem.ContactPatch`, default
+    :data:`~softphantom.fem.DEFAULT_CONTACT_RADIUS_M` = 4 mm, the same patch as ``simulate`` and the
+    virtual truth; 0: a point load on the element containing the point, as the paper). ``force_min_N``/``force_max_N``:
     bounds on each force component (box; sign constraints are a zero bound), default ±10 N.
     ``qp_solver``: ``"daqp"`` or ``"quadprog"``. ``mode``: ``"sync"`` (equilibrium refreshed inside
     :meth:`~softphantom.estimation.Estimator.step`, deterministic) or ``"async"`` (a background
@@ -61,7 +64,7 @@ converged fixed point is unchanged). ``tol``: relative force residual of a conve
     """
 
     contact: str | tuple[float, float, float] = "on-centre"
-    contact_radius_m: float = 0.0
+    contact_radius_m: float = DEFAULT_CONTACT_RADIUS_M
     force_min_N: tuple[float, float, float] = (-10.0, -10.0, -10.0)
     force_max_N: tuple[float, float, float] = (10.0, 10.0, 10.0)
     qp_solver: str = "daqp"

@@ -72,7 +72,7 @@ TRACKER_JSON_SCHEMA = _obj_schema(
 GEOMETRY_JSON_SCHEMA = _obj_schema(
     "softphantom.LiveGeometry", "phantom outer surface at rest (see softphantom.viz.live)",
     {"nodes_mm": {"type": "array"}, "faces": {"type": "array"}, "targets_mm": {"type": "object"},
-     "p_ext_mm": {"type": "array"}})
+     "p_ext_mm": {"type": "array"}, "contact_radius_mm": {"type": "number"}})
 SURFACE_JSON_SCHEMA = _obj_schema(
     "softphantom.LiveSurface", "deformed surface node positions, float32 little-endian base64, mm",
     {"t_s": _NUM, "seq": {"type": "integer"}, "positions_mm_f32_b64": {"type": "string"}})
@@ -304,6 +304,8 @@ def export_estimate_csv(recording: str | os.PathLike, out: str | os.PathLike) ->
     meta: dict[str, Any] = {"source": f"recording:{Path(recording).name}", "complete": rec.complete}
     if "model" in rec.metadata:
         meta["model"] = rec.metadata["model"]
+    if rec.geometry and "contact_radius_mm" in rec.geometry:  # the estimator's contact patch
+        meta["contact_radius_mm"] = rec.geometry["contact_radius_mm"]
     return write_estimate_csv(rec.estimates, out, meta)
 
 

@@ -42,6 +42,7 @@ import numpy as np
 
 from softphantom.design import ARM_NAMES, BIPDesign, design_to_dict, load_design
 from softphantom.errors import UserError
+from softphantom.fem.contact import DEFAULT_CONTACT_RADIUS_M
 
 METHODS = ("grid", "random", "lhs")
 #: Bumped when what a variant computes changes, so cached rows of older code are not reused.
@@ -95,7 +96,7 @@ class EvalSettings:
     saturation (the arm transducer's rated range)."""
 
     contact: str = "on-centre"
-    contact_radius_mm: float = 0.0
+    contact_radius_mm: float = DEFAULT_CONTACT_RADIUS_M * 1e3  # the one contact model's default patch
     probe_force_N: float = 3.0
     directions: tuple[str, ...] = tuple(DIRECTIONS)
     max_force_N: float = 50.0

@@ -38,7 +38,8 @@ class LiveGeometry:
     ``nodes`` (n, 3) m rest positions of the surface nodes; ``faces`` (S, 3) indices into ``nodes``
     (outward normals); ``node_index`` (n,) the model node id of each surface node, to pick the
     surface out of ``node_positions()``; ``targets`` name → (3,) m at rest; ``p_ext`` (3,) m where
-    the force acts.
+    the force acts; ``contact_radius_m`` the estimator's contact patch radius (None: not an
+    estimator's view), recorded with the geometry so a recording says which contact model it used.
 
     >>> g = ellipsoid_geometry(subdivisions=1)
     >>> g.nodes.shape, g.faces.shape, sorted(g.targets)
@@ -50,9 +51,10 @@ class LiveGeometry:
     node_index: np.ndarray
     targets: dict[str, np.ndarray] = field(default_factory=dict)
     p_ext: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    contact_radius_m: float | None = None
 
     @classmethod
-    def from_model(cls, model: Any, p_ext: str = "on-centre") -> "LiveGeometry":
+    def from_model(cls, model: Any, p_ext: str = "on-centre", contact_radius_m: float | None = None) -> "LiveGeometry":
         """The outer surface of a ``PhantomModel`` (docs/architecture.md): ``outer_faces`` reindexed
         to the surface nodes, its ``targets`` and the ``p_ext`` point named ``p_ext``."""
         faces = np.asarray(model.outer_faces, dtype=np.int64)
@@ -68,12 +70,13 @@ class LiveGeometry:
             node_index=used.astype(np.int64),
             targets={k: np.asarray(v, float) for k, v in (getattr(model, "targets", {}) or {}).items()},
             p_ext=np.asarray(points[p_ext], float),
+            contact_radius_m=None if contact_radius_m is None else float(contact_radius_m),
         )
 
     def to_json(self) -> dict[str, Any]:
         """JSON for the page and the ``/live/geometry`` channel (millimetres)."""
         pe = int(np.argmin(np.linalg.norm(self.nodes - self.p_ext, axis=1)))
-        return {
+        out = {
             "nodes_mm": np.round(self.nodes * 1e3, 4).tolist(),
             "faces": self.faces.tolist(),
             "targets_mm": {k: np.round(v * 1e3, 4).tolist() for k, v in self.targets.items()},
@@ -81,6 +84,9 @@ class LiveGeometry:
             "p_ext_node": pe,
             "arms": list(ARM_NAMES),
         }
+        if self.contact_radius_m is not None:
+            out["contact_radius_mm"] = round(self.contact_radius_m * 1e3, 6)
+        return out
 
     @classmethod
     def from_json(cls, d: Mapping[str, Any]) -> "LiveGeometry":
@@ -90,9 +96,11 @@ class LiveGeometry:
             faces = np.asarray(d["faces"], np.int64).reshape(-1, 3)
             targets = {k: np.asarray(v, float) * 1e-3 for k, v in d.get("targets_mm", {}).items()}
             p_ext = np.asarray(d.get("p_ext_mm", [0, 0, 0]), float) * 1e-3
+            radius = d.get("contact_radius_mm")
+            radius = None if radius is None else float(radius) * 1e-3
         except (KeyError, ValueError, TypeError) as exc:
             raise FileFormatError(f"geometry message is malformed: {exc}") from None
-        return cls(nodes, faces, np.arange(len(nodes), dtype=np.int64), targets, p_ext)
+        return cls(nodes, faces, np.arange(len(nodes), dtype=np.int64), targets, p_ext, radius)
 
 
 def encode_positions_mm(positions_m: np.ndarray) -> str:
@@ -318,7 +326,8 @@ class EstimatorSource:
 
     def __init__(self, model: Any, sensor: Any, estimator: Any, *, live: bool, speed: float = 1.0,
                  p_ext: str = "on-centre") -> None:
-        self.geometry = LiveGeometry.from_model(model, p_ext)
+        radius = getattr(getattr(estimator, "config", None), "contact_radius_m", None)
+        self.geometry = LiveGeometry.from_model(model, p_ext, radius)
         self._sensor, self._est = sensor, estimator
         self.live, self.speed = bool(live), float(speed)
         self._last_m = None
