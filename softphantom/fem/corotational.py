@@ -133,15 +133,32 @@ def internal_force(fem: FemModel, x: np.ndarray) -> np.ndarray:
     """
     if _numpy_path(fem):
         return internal_force_numpy(fem, x)
-    x = _flat(x)
-    _check_finite(x)
-    out = np.empty(fem.n_dof)
-    bad = kernels.internal_force_kernel(
-        x, fem.tets, fem.dN, fem.wq, fem.law_id, fem.params, fem.elem_dofs, out
+    return force_and_energy(fem, x)[0]
+
+
+_NO_FORCE, _NO_STRESS = np.empty(0), np.empty((0, 3, 3))
+
+
+def _point_loop(fem: FemModel, x: np.ndarray, mode: int, force=_NO_FORCE, stress=_NO_STRESS) -> float:
+    """Run :func:`kernels.point_loop_kernel` (energy; and force or stress by ``mode``) at ``x``;
+    returns the energy, raises :class:`ElementInversionError`."""
+    bad, energy = kernels.point_loop_kernel(
+        x, fem.tets, fem.dN, fem.wq, fem.law_id, fem.params, fem.elem_dofs, mode, force, stress
     )
     if bad:
         _raise_inverted(fem, bad)
-    return out
+    return float(energy)
+
+
+def force_and_energy(fem: FemModel, x: np.ndarray) -> tuple[np.ndarray, float]:
+    """(:func:`internal_force`, :func:`strain_energy`) at ``x`` in one pass over the quadrature
+    points (a Newton line search needs both at each trial)."""
+    if _numpy_path(fem):
+        return internal_force_numpy(fem, x), strain_energy_numpy(fem, x)
+    x = _flat(x)
+    _check_finite(x)
+    out = np.empty(fem.n_dof)
+    return out, _point_loop(fem, x, kernels.MODE_FORCE, force=out)
 
 
 def strain_energy(fem: FemModel, x: np.ndarray) -> float:
@@ -149,12 +166,7 @@ def strain_energy(fem: FemModel, x: np.ndarray) -> float:
     W = μ‖S − I‖² + λ/2 tr²(S − I))."""
     if _numpy_path(fem):
         return strain_energy_numpy(fem, x)
-    x = _flat(x)
-    out = np.zeros(1)
-    bad = kernels.strain_energy_kernel(x, fem.tets, fem.dN, fem.wq, fem.law_id, fem.params, out)
-    if bad:
-        _raise_inverted(fem, bad)
-    return float(out[0])
+    return _point_loop(fem, _flat(x), kernels.MODE_ENERGY)
 
 
 def strain_energy_numpy(fem: FemModel, x: np.ndarray) -> float:
@@ -179,9 +191,7 @@ def cauchy_stress(fem: FemModel, x: np.ndarray) -> np.ndarray:
     x = _flat(x)
     _check_finite(x)
     out = np.empty((fem.tets.shape[0], 3, 3))
-    bad = kernels.cauchy_stress_kernel(x, fem.tets, fem.dN, fem.wq, fem.law_id, fem.params, out)
-    if bad:
-        _raise_inverted(fem, bad)
+    _point_loop(fem, x, kernels.MODE_STRESS, stress=out)
     return out
 
 
@@ -246,16 +256,19 @@ def tangent_data_numpy(fem: FemModel, x: np.ndarray, consistent: bool = True) ->
     return assemble_pattern(fem, element_stiffness(fem, x, consistent))
 
 
-def tangent_data(fem: FemModel, x: np.ndarray, consistent: bool = True) -> np.ndarray:
-    """Data array of the full tangent in ``fem``'s CSR pattern (``pattern_indptr``/``_indices``).
+def tangent_data(fem: FemModel, x: np.ndarray, consistent: bool = True, free: bool = False) -> np.ndarray:
+    """Data array of the full tangent in ``fem``'s CSR pattern (``pattern_indptr``/``_indices``),
+    or (``free``) of its free–free part in the pattern ``ff_indptr``/``ff_indices`` (assembled
+    there directly).
 
     Raises :class:`ElementInversionError` if any det F <= 0 (NaN positions included)."""
     if _numpy_path(fem):
-        return tangent_data_numpy(fem, x, consistent)
-    data = np.empty(fem.pattern_keys.size)
+        data = tangent_data_numpy(fem, x, consistent)
+        return data[fem.ff_pos >= 0] if free else data
+    data = np.empty(fem.ff_indices.size if free else fem.pattern_keys.size)
     bad = kernels.tangent_kernel(
-        _flat(x), fem.tets, fem.dN, fem.wq, fem.law_id, fem.params, fem.scatter,
-        bool(consistent), data,
+        _flat(x), fem.tets, fem.dN, fem.wq, fem.law_id, fem.params,
+        fem.scatter_ff if free else fem.scatter, bool(consistent), data,
     )
     if bad:
         _raise_inverted(fem, bad)

@@ -385,56 +385,66 @@ def _count_inverted(x, conn, dN, F):
     return bad
 
 
+MODE_ENERGY, MODE_FORCE, MODE_STRESS = 0, 1, 2
+
+
 @njit(cache=True, fastmath=False, nogil=True)
-def internal_force_kernel(x, conn, dN, wq, law, prm, edofs, out):
-    """Accumulate the internal force Σ_q w_q P ∇N_a into ``out`` (3N,) (zeroed here); returns the
-    number of inverted points (nothing written then)."""
+def point_loop_kernel(x, conn, dN, wq, law, prm, edofs, mode, force, stress):
+    """One pass over every quadrature point: the strain energy Σ_e Σ_q w_q W(F) always, and
+    (``mode`` MODE_FORCE) the internal force Σ_q w_q P ∇N_a into ``force`` (3N,) (zeroed here), or
+    (MODE_STRESS) each element's volume-weighted mean Cauchy stress σ = P Fᵀ / J into ``stress``
+    (M,3,3) (Pa). Returns (number of inverted points, energy); nothing is written if any point is
+    inverted. Energy and force in one pass: a Newton line search needs both at each trial."""
     F = np.empty((3, 3))
     P = np.empty((3, 3))
     D = np.empty((9, 9))
     s0, s1, s2, s3, s4, s5, s6, s7, s8, s9 = scratch()
     bad = _count_inverted(x, conn, dN, F)
     if bad:
-        return bad
-    for k in range(out.shape[0]):
-        out[k] = 0.0
-    for e in range(conn.shape[0]):
-        for q in range(dN.shape[1]):
-            _defgrad(x, conn, dN, e, q, F)
-            law_point(law[e], prm, e, F, P, D, 1, s0, s1, s2, s3, s4, s5, s6, s7, s8, s9)
-            v = wq[e, q]
-            for a in range(conn.shape[1]):
-                g0 = dN[e, q, a, 0]
-                g1 = dN[e, q, a, 1]
-                g2 = dN[e, q, a, 2]
-                for i in range(3):
-                    out[edofs[e, 3 * a + i]] += v * (P[i, 0] * g0 + P[i, 1] * g1 + P[i, 2] * g2)
-    return 0
-
-
-@njit(cache=True, fastmath=False, nogil=True)
-def strain_energy_kernel(x, conn, dN, wq, law, prm, out):
-    """out[0] = Σ_e Σ_q w_q W(F); returns the number of inverted points."""
-    F = np.empty((3, 3))
-    P = np.empty((3, 3))
-    D = np.empty((9, 9))
-    s0, s1, s2, s3, s4, s5, s6, s7, s8, s9 = scratch()
-    bad = _count_inverted(x, conn, dN, F)
-    if bad:
-        return bad
+        return bad, 0.0
+    need = 0 if mode == MODE_ENERGY else 1
+    if mode == MODE_FORCE:
+        for k in range(force.shape[0]):
+            force[k] = 0.0
     total = 0.0
     for e in range(conn.shape[0]):
+        vol = 0.0
+        if mode == MODE_STRESS:
+            for i in range(3):
+                for j in range(3):
+                    stress[e, i, j] = 0.0
         for q in range(dN.shape[1]):
-            _defgrad(x, conn, dN, e, q, F)
-            total += wq[e, q] * law_point(law[e], prm, e, F, P, D, 0, s0, s1, s2, s3, s4, s5, s6, s7, s8, s9)
-    out[0] = total
-    return 0
+            J = _defgrad(x, conn, dN, e, q, F)
+            v = wq[e, q]
+            total += v * law_point(law[e], prm, e, F, P, D, need, s0, s1, s2, s3, s4, s5, s6, s7, s8, s9)
+            if mode == MODE_FORCE:
+                for a in range(conn.shape[1]):
+                    g0 = dN[e, q, a, 0]
+                    g1 = dN[e, q, a, 1]
+                    g2 = dN[e, q, a, 2]
+                    for i in range(3):
+                        force[edofs[e, 3 * a + i]] += v * (P[i, 0] * g0 + P[i, 1] * g1 + P[i, 2] * g2)
+            elif mode == MODE_STRESS:
+                vol += v
+                for i in range(3):
+                    for j in range(3):
+                        stress[e, i, j] += v * (P[i, 0] * F[j, 0] + P[i, 1] * F[j, 1] + P[i, 2] * F[j, 2]) / J
+        if mode == MODE_STRESS:
+            for i in range(3):
+                for j in range(3):
+                    stress[e, i, j] /= vol
+    return 0, total
 
 
 @njit(cache=True, fastmath=False, nogil=True)
 def tangent_kernel(x, conn, dN, wq, law, prm, scatter, consistent, data):
     """Element tangents Σ_q w_q Bᵀ (dP/dF) B summed into the CSR ``data`` (zeroed here) at
-    ``scatter`` (M, (3n)²); returns the number of inverted points (nothing assembled then)."""
+    ``scatter`` (M, (3n)²) (a negative position skips the entry: the fixed DOFs of a free–free
+    scatter); returns the number of inverted points (nothing assembled then).
+
+    Every law is hyperelastic, so dP/dF has major symmetry and the element block is symmetric: only
+    its node blocks (a, b ≥ a) are computed, the others mirrored (half the work of the 30×30 P2
+    block)."""
     nen = conn.shape[1]
     nd = 3 * nen
     F = np.empty((3, 3))
@@ -456,7 +466,7 @@ def tangent_kernel(x, conn, dN, wq, law, prm, scatter, consistent, data):
         for q in range(dN.shape[1]):
             _defgrad(x, conn, dN, e, q, F)
             law_point(law[e], prm, e, F, P, D, need, s0, s1, s2, s3, s4, s5, s6, s7, s8, s9)
-            # (D B)[pj, (b,q)] = Σ_l D[pj, 3q + l] ∇N_b,l
+            # (D B)[pj, (b,s)] = Σ_l D[pj, 3s + l] ∇N_b,l
             for r in range(9):
                 for b in range(nen):
                     gb0 = dN[e, q, b, 0]
@@ -466,7 +476,7 @@ def tangent_kernel(x, conn, dN, wq, law, prm, scatter, consistent, data):
                         T[r, 3 * b + s] = (
                             D[r, 3 * s] * gb0 + D[r, 3 * s + 1] * gb1 + D[r, 3 * s + 2] * gb2
                         )
-            # Ke[(a,p), c] += w Σ_j ∇N_a,j (D B)[3p + j, c]
+            # Ke[(a,p), (b,s)] += w Σ_j ∇N_a,j (D B)[3p + j, (b,s)], node blocks b >= a
             v = wq[e, q]
             for a in range(nen):
                 ga0 = dN[e, q, a, 0] * v
@@ -474,11 +484,17 @@ def tangent_kernel(x, conn, dN, wq, law, prm, scatter, consistent, data):
                 ga2 = dN[e, q, a, 2] * v
                 for p in range(3):
                     row = 3 * a + p
-                    for c in range(nd):
+                    for c in range(3 * a, nd):
                         Ke[row, c] += ga0 * T[3 * p, c] + ga1 * T[3 * p + 1, c] + ga2 * T[3 * p + 2, c]
+        for a in range(1, nen):  # lower node blocks = transposes of the upper ones
+            for p in range(3):
+                for c in range(3 * a):
+                    Ke[3 * a + p, c] = Ke[c, 3 * a + p]
         for r in range(nd):
             for c in range(nd):
-                data[scatter[e, nd * r + c]] += Ke[r, c]
+                k = scatter[e, nd * r + c]
+                if k >= 0:
+                    data[k] += Ke[r, c]
     return 0
 
 
@@ -504,42 +520,12 @@ def warm_up() -> None:
     wq = _ro(np.ones((1, 1)))
     x = _ro(np.array([0, 0, 0, 1.0, 0, 0, 0, 1.0, 0, 0, 0, 1.0]))
     edofs = _ro(np.arange(12, dtype=np.int64)[None])
-    scatter = _ro(np.arange(144, dtype=np.int64)[None])
+    scatter = _ro(np.arange(144, dtype=np.int32)[None])
     prm = _ro(np.array([[1.0, 1.0, 0.1, 1.0]]))
     for law_id in (LAW_COROTATIONAL, LAW_NEO_HOOKEAN, LAW_YEOH):
         law = _ro(np.array([law_id], dtype=np.int64))
-        internal_force_kernel(x, conn, dN, wq, law, prm, edofs, np.empty(12))
-        strain_energy_kernel(x, conn, dN, wq, law, prm, np.empty(1))
+        for mode in (MODE_ENERGY, MODE_FORCE, MODE_STRESS):
+            point_loop_kernel(x, conn, dN, wq, law, prm, edofs, mode, np.empty(12), np.empty((1, 3, 3)))
         for consistent in (True, False):
             tangent_kernel(x, conn, dN, wq, law, prm, scatter, consistent, np.empty(144))
     _warm = True
-
-
-@njit(cache=True, fastmath=False, nogil=True)
-def cauchy_stress_kernel(x, conn, dN, wq, law, prm, out):
-    """out (M,3,3): each element's volume-weighted mean Cauchy stress σ = P Fᵀ / J over its
-    quadrature points (Pa); returns the number of inverted points (nothing written then)."""
-    F = np.empty((3, 3))
-    P = np.empty((3, 3))
-    D = np.empty((9, 9))
-    s0, s1, s2, s3, s4, s5, s6, s7, s8, s9 = scratch()
-    bad = _count_inverted(x, conn, dN, F)
-    if bad:
-        return bad
-    for e in range(conn.shape[0]):
-        vol = 0.0
-        for i in range(3):
-            for j in range(3):
-                out[e, i, j] = 0.0
-        for q in range(dN.shape[1]):
-            J = _defgrad(x, conn, dN, e, q, F)
-            law_point(law[e], prm, e, F, P, D, 1, s0, s1, s2, s3, s4, s5, s6, s7, s8, s9)
-            v = wq[e, q]
-            vol += v
-            for i in range(3):
-                for j in range(3):
-                    out[e, i, j] += v * (P[i, 0] * F[j, 0] + P[i, 1] * F[j, 1] + P[i, 2] * F[j, 2]) / J
-        for i in range(3):
-            for j in range(3):
-                out[e, i, j] /= vol
-    return 0

@@ -33,8 +33,11 @@ class FemModel:
     and its parameter row; ``mu``/``lam`` are its small-strain Lamé constants (Pa).
     ``pattern_indptr``/``pattern_indices`` give the CSR pattern of the full stiffness and
     ``scatter`` (M, (3n)²) the position in its data array of each entry of each element block
-    (row-major, node-major local DOFs). ``free_take`` picks the free–free part of the data array,
-    in the CSR order of ``ff_indptr``/``ff_indices``. ``boundary_faces`` (B,3|6) and the
+    (row-major, node-major local DOFs); ``scatter_ff`` the same into the data array of the
+    free–free part (CSR ``ff_indptr``/``ff_indices``), −1 where a row or column is fixed, so the
+    Newton matrix is assembled in place; ``ff_pos`` maps a position of the full pattern to the
+    free–free one (−1: fixed). Index arrays are int32 where they fit (scipy and CHOLMOD take them
+    without a copy). ``boundary_faces`` (B,3|6) and the
     ``cavities`` (K,3|6) are triangles of the element's order.
     """
 
@@ -53,7 +56,8 @@ class FemModel:
     pattern_indices: np.ndarray
     pattern_keys: np.ndarray  # sorted row*n_dof+col of the pattern entries
     scatter: np.ndarray  # (M,(3n)²) into the pattern data
-    free_take: np.ndarray  # pattern positions of the free–free entries
+    scatter_ff: np.ndarray  # (M,(3n)²) into the free–free data, -1 if fixed
+    ff_pos: np.ndarray  # (nnz,) full pattern position -> free–free position, -1 if fixed
     ff_indptr: np.ndarray
     ff_indices: np.ndarray
     boundary_faces: np.ndarray  # (B,3|6) outer + cavity surface triangles, normals out of the solid
@@ -278,6 +282,11 @@ def build_fem(
     take = np.flatnonzero(ff)
     frow = dof_map[prow[take]]
     ff_indptr = np.concatenate([[0], np.cumsum(np.bincount(frow, minlength=free.size))])
+    # int32 indices where they fit: half the memory traffic of the scatter, and scipy keeps them
+    # as they are (an int64 CSR index it would scan and copy down at every assembly)
+    itype = np.int32 if max(ukeys.size, 3 * n) < 2**31 - 1 else np.int64
+    ff_pos = np.full(ukeys.size, -1, dtype=itype)
+    ff_pos[take] = np.arange(take.size)
 
     kernels.warm_up()  # numba: compile or load the kernels now, once per process
     return FemModel(
@@ -292,13 +301,14 @@ def build_fem(
         free_dofs=_ro(free),
         dof_map=_ro(dof_map),
         elem_dofs=_ro(edofs),
-        pattern_indptr=_ro(indptr.astype(np.int64)),
-        pattern_indices=_ro(pcol.astype(np.int64)),
+        pattern_indptr=_ro(indptr.astype(itype)),
+        pattern_indices=_ro(pcol.astype(itype)),
         pattern_keys=_ro(ukeys),
-        scatter=_ro(scatter),
-        free_take=_ro(take),
-        ff_indptr=_ro(ff_indptr.astype(np.int64)),
-        ff_indices=_ro(dof_map[pcol[take]]),
+        scatter=_ro(scatter.astype(itype)),
+        scatter_ff=_ro(ff_pos[scatter]),
+        ff_pos=_ro(ff_pos),
+        ff_indptr=_ro(ff_indptr.astype(itype)),
+        ff_indices=_ro(dof_map[pcol[take]].astype(itype)),
         boundary_faces=_ro(_boundary_faces(tets)),
         cavities={c: _ro(np.asarray(v, dtype=np.int64)) for c, v in (cavities or {}).items()},
         dN=_ro(dN),

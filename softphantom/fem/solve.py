@@ -20,8 +20,8 @@ from softphantom.fem.actuators import (
 )
 from softphantom.fem.corotational import (
     ElementInversionError,
+    force_and_energy,
     internal_force,
-    strain_energy,
     tangent_data,
 )
 from softphantom.fem.model import FemModel
@@ -81,27 +81,32 @@ class SparseSolver:
         if method == "cholmod" and not _have_cholmod():
             raise UserError("solver 'cholmod' needs scikit-sparse (and Debian's libsuitesparse-dev)")
         self.method = method
-        self._pattern: tuple[bytes, bytes] | None = None
+        self._pattern: tuple[np.ndarray, np.ndarray] | None = None
         self._factor = None
         self.n = 0
         self.analyses = 0  # how many symbolic analyses were done (for tests and benchmarks)
 
     def factorize(self, A: sp.spmatrix) -> SparseSolver:
         """Factorize symmetric ``A``; returns ``self`` for chaining."""
-        A = sp.csc_matrix(A)
-        A.sort_indices()
         if A.shape[0] != A.shape[1]:
             raise UserError(f"matrix must be square, got {A.shape}")
+        if self.method != "splu" and sp.isspmatrix_csr(A):
+            # symmetric: the CSR arrays are those of the CSC of Aᵀ = A (no conversion, no copy;
+            # the Cholesky methods read one triangle)
+            A = sp.csc_matrix((A.data, A.indices, A.indptr), shape=A.shape)
+        else:
+            A = sp.csc_matrix(A)
+        A.sort_indices()
         if not np.all(np.isfinite(A.data)):
             raise SolverError("matrix has non-finite entries")
         self.n = A.shape[0]
-        key = (A.indptr.tobytes(), A.indices.tobytes())
+        key = self._same_pattern(A)
         try:
             if self.method == "cholmod":
                 from sksparse.cholmod import CholmodNotPositiveDefiniteError, analyze
 
                 try:
-                    if self._factor is None or key != self._pattern:
+                    if self._factor is None or key is not self._pattern:
                         self._factor = analyze(A, mode="supernodal")
                         self.analyses += 1
                     self._factor.cholesky_inplace(A)
@@ -129,6 +134,15 @@ class SparseSolver:
         finally:
             self._pattern = key if self._factor is not None else None
         return self
+
+    def _same_pattern(self, A: sp.csc_matrix) -> tuple[np.ndarray, np.ndarray]:
+        """The kept pattern if ``A`` has it (compared in place, no byte copies), else a copy of
+        A's (indptr, indices)."""
+        if self._pattern is not None:
+            p, i = self._pattern
+            if np.array_equal(A.indptr, p) and np.array_equal(A.indices, i):
+                return self._pattern
+        return (A.indptr.copy(), A.indices.copy())
 
     def solve(self, B: np.ndarray) -> np.ndarray:
         """Solve A X = B for (n,) or (n,k) ``B``."""
@@ -188,27 +202,25 @@ def free_tangent(
     """(n_free, n_free) Jacobian of the free-DOF residual f_int − Σ p ∂Φ/∂x at ``x``: the Newton
     matrix. Pressure terms are scattered into the mesh's own pattern, so the pattern (and a
     :class:`SparseSolver`'s symbolic analysis) stays the same from call to call."""
-    data = tangent_data(fem, x, consistent)
     n = fem.n_dof
-    extra = []
-    for tri, p in _pressure_list(fem, pressures):
-        if p == 0.0:
-            continue
-        r, c, v = pressure_tangent_blocks(x, tri)
-        keys = r * n + c
-        pos = np.searchsorted(fem.pattern_keys, keys)
-        pos = np.minimum(pos, fem.pattern_keys.size - 1)
-        if np.all(fem.pattern_keys[pos] == keys):
-            data = data - p * np.bincount(pos, weights=v, minlength=data.size)
-        else:  # triangles that are not faces of the mesh: fall back to a sparse sum
-            extra.append(sp.csr_matrix((-p * v, (r, c)), shape=(n, n)))
-    if extra:
-        K = sp.csr_matrix((data, fem.pattern_indices, fem.pattern_indptr), shape=(n, n))
-        K = K + sum(extra[1:], extra[0])
-        return sp.csr_matrix(K[fem.free_dofs][:, fem.free_dofs])
-    return sp.csr_matrix(
-        (data[fem.free_take], fem.ff_indices, fem.ff_indptr), shape=(fem.n_free, fem.n_free)
+    plist = [(tri, p) for tri, p in _pressure_list(fem, pressures) if p != 0.0]
+    # faces of the mesh go into its own pattern; other triangles need the full matrix
+    blocks = [(p, *pressure_tangent_blocks(x, tri)) for tri, p in plist]
+    keyed = [(p, r, c, v, np.searchsorted(fem.pattern_keys, r * n + c)) for p, r, c, v in blocks]
+    in_pattern = all(
+        np.all(fem.pattern_keys[np.minimum(pos, fem.pattern_keys.size - 1)] == r * n + c)
+        for _, r, c, _, pos in keyed
     )
+    if not in_pattern:
+        K = sp.csr_matrix((tangent_data(fem, x, consistent), fem.pattern_indices, fem.pattern_indptr), shape=(n, n))
+        K = K - sum((sp.csr_matrix((p * v, (r, c)), shape=(n, n)) for p, r, c, v in blocks), sp.csr_matrix((n, n)))
+        return sp.csr_matrix(K[fem.free_dofs][:, fem.free_dofs])
+    data = tangent_data(fem, x, consistent, free=True)  # assembled straight into K_ff
+    for p, _, _, v, pos in keyed:
+        ff = fem.ff_pos[pos]
+        keep = ff >= 0
+        data -= p * np.bincount(ff[keep], weights=v[keep], minlength=data.size)
+    return sp.csr_matrix((data, fem.ff_indices, fem.ff_indptr), shape=(fem.n_free, fem.n_free))
 
 
 def _applied(fem, x, f_fixed, plist, t):
@@ -223,24 +235,20 @@ def _newton(fem, x, f_fixed, plist, t, tol, max_iter, solver, consistent):
     free = fem.free_dofs
     x_rest = fem.x_rest
 
-    def residual(xx):
-        fi = internal_force(fem, xx)
+    def residual_and_potential(xx):
+        fi, energy = force_and_energy(fem, xx)
         fa = _applied(fem, xx, f_fixed, plist, t)
         ref = max(np.linalg.norm(fa), np.linalg.norm(fi), 1e-300)
-        return (fi - fa)[free], ref
-
-    def potential(xx):
-        # Total potential energy: the forces are conservative (pressure load = p ∂Φ/∂x).
-        pi = strain_energy(fem, xx) - t * np.dot(f_fixed, xx - x_rest)
+        # total potential energy: the forces are conservative (pressure load = p ∂Φ/∂x)
+        pi = energy - t * np.dot(f_fixed, xx - x_rest)
         for tri, p in plist:
             pi -= t * p * cavity_volume(xx, tri)
-        return pi
+        return (fi - fa)[free], ref, pi
 
     floor = fem.residual_floor()  # below it a smaller residual is round-off noise
 
-    r, ref = residual(x)
+    r, ref, pi0 = residual_and_potential(x)
     rn = np.linalg.norm(r)
-    pi0 = potential(x)
     scaled = [(tri, t * p) for tri, p in plist]
     for it in range(max_iter + 1):
         if rn <= max(tol * ref, floor):
@@ -259,8 +267,7 @@ def _newton(fem, x, f_fixed, plist, t, tol, max_iter, solver, consistent):
             xt = x.copy()
             xt[free] += alpha * d
             try:
-                rt, reft = residual(xt)
-                pit = potential(xt)
+                rt, reft, pit = residual_and_potential(xt)
             except ElementInversionError as exc:
                 inverted = exc.count
                 alpha *= 0.5
