@@ -256,6 +256,47 @@ def test_p2_phantom_round_trip_solve_and_vtu(p2_model, tmp_path):
     assert out.cells[0].type == "tetra10" and np.isfinite(out.cell_data["von_mises_kPa"][0]).all()
 
 
+def test_simulate_cavity_dv_of_a_p2_model_is_the_curved_volume(p2_model, tmp_path, capsys):
+    """`softphantom simulate` on a P2 model: ΔV of every cavity is that of the 6-node (curved)
+    triangles on the deformed 10-node mesh, recomputed here with the independent degree-5 rule of
+    tests/reference/felupe_bip.py from deformed.vtu (it once used the straight 3-node triangles)."""
+    import json
+    import sys
+    from pathlib import Path
+
+    import meshio
+
+    from softphantom.cli import main
+    from softphantom.design import save_model
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent / "reference"))
+    from felupe_bip import cavity_volumes
+
+    m = p2_model
+    save_model(m, tmp_path / "m")
+    rc = main(["simulate", "--model", str(tmp_path / "m"), "--force-N", "0,1,0", "--urethra-kPa", "10",
+               "--out", str(tmp_path / "sim")])
+    assert rc == 0, capsys.readouterr().out
+    dV = json.loads((tmp_path / "sim" / "result.json").read_text())["dV_mm3"]
+    vtu = meshio.read(tmp_path / "sim" / "deformed.vtu")
+    assert len(vtu.points) == len(m.nodes)
+    x = m.nodes + vtu.point_data["displacement_mm"] * 1e-3
+
+    class Mesh:  # what cavity_volumes reads
+        cavities = m.cavities6
+
+    v1, v0 = cavity_volumes(Mesh, x), cavity_volumes(Mesh, m.nodes)
+    assert set(dV) == set(m.cavities6)
+    assert dV["urethra"] > 100.0  # inflated: ~10 % of its volume
+    for k in dV:
+        ref = (v1[k] - v0[k]) * 1e9
+        # vtu displacements are float64 mm; the two rules are exact for these integrands
+        assert abs(dV[k] - ref) <= 1e-6 * max(abs(ref), 1.0), (k, dV[k], ref)
+    # and that differs from the straight-triangle ΔV the command printed before
+    flat = (cavity_volume(x, m.cavities["urethra"]) - cavity_volume(m.nodes, m.cavities["urethra"])) * 1e9
+    assert abs(flat - dV["urethra"]) > 0.01 * dV["urethra"]
+
+
 # --- thick-walled sphere inflation: P2 FE against a hyperelastic shooting reference -------------------
 
 def sphere_shooting_reference(A, B, mu, lam, p):

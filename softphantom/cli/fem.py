@@ -76,8 +76,9 @@ def simulate_command(
     if not sol.converged:
         raise SolverError(f"static solve did not converge: {sol.status}")
 
-    names = list(model.cavities)
-    dV_mm3 = {k: (cavity_volume(sol.x, model.cavities[k]) - cavity_volume(model.nodes, model.cavities[k])) * 1e9
+    # the FEM's own cavities: 6-node (curved) triangles on a P2 model, not the model's 3-node ones
+    names = list(fem.cavities)
+    dV_mm3 = {k: (cavity_volume(sol.x, fem.cavities[k]) - cavity_volume(fem.nodes, fem.cavities[k])) * 1e9
               for k in names}
     rest_markers = np.array(list(model.markers.values()))
     pose = pose_of_markers(rest_markers, probe_matrix(fem, rest_markers) @ sol.x)
