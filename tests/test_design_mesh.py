@@ -157,3 +157,52 @@ def test_meshing_keeps_sigpipe_ignored(tmp_path):
             os.write(w, b"x")  # with SIGPIPE at its default the process would die here
     finally:
         os.close(w)
+
+
+def _outer_edge_mm(m, near, radius_mm):
+    """Mean edge length (mm) of the outer triangles with a corner within ``radius_mm`` of ``near``."""
+    t = m.outer_faces
+    x = m.nodes[t] / MM
+    sel = np.linalg.norm(x - near, axis=2).min(axis=1) < radius_mm
+    e = np.linalg.norm(x - np.roll(x, 1, axis=1), axis=2)
+    return float(e[sel].mean()), int(sel.sum())
+
+
+def _junction_nodes(m):
+    """Outer nodes on the bulb's ellipsoid and on an arm's cylinder: the arm–bulb edges."""
+    d = m.design
+    x = m.nodes[np.unique(m.outer_faces)] / MM
+    on_bulb = np.abs(((x / np.asarray(d.bulb.semi_axes_mm)) ** 2).sum(1) - 1) < 1e-6
+    on_arm = np.zeros(len(x), bool)
+    for g in d.arm_geometry():
+        a = (g.end_mm - g.start_mm) / np.linalg.norm(g.end_mm - g.start_mm)
+        r = x - g.start_mm
+        on_arm |= np.abs(np.linalg.norm(r - np.outer(r @ a, a), axis=1) - g.radius_mm) < 1e-6
+    return int((on_bulb & on_arm).sum())
+
+
+def test_local_refinements_shrink_elements_only_where_asked(coarse_model):
+    import dataclasses
+
+    from softphantom.design import MeshParams
+    from softphantom.errors import DesignError
+
+    base = MeshParams().scaled_to(12.0)  # the coarse model's sizes: surface 8 mm, arms 6 mm
+    d = dataclasses.replace(BIPDesign(), mesh=dataclasses.replace(base, contact_size_mm=2.0, junction_size_mm=1.5))
+    fine = build_model(d)
+    p = BIPDesign().p_ext_mm()
+    for name in ("on-centre", "off-centre"):
+        h0, n0 = _outer_edge_mm(coarse_model, p[name], 8.0)
+        h1, n1 = _outer_edge_mm(fine, p[name], 8.0)
+        assert h0 > 4.0 and h1 < 3.0 and n1 > 4 * n0, (name, h0, h1)
+    # far from both points and from the arms (the back pole) the surface keeps its size
+    far = np.array([0.0, BIPDesign().bulb.semi_axes_mm[1], 0.0])
+    assert min(np.linalg.norm(far - q) for q in p.values()) > 20
+    h0, _ = _outer_edge_mm(coarse_model, far, 10.0)
+    h1, _ = _outer_edge_mm(fine, far, 10.0)
+    assert abs(h1 / h0 - 1) < 0.25, (h0, h1)
+    # the arm–bulb edges: about 2π r / 1.5 mm nodes each instead of 2π r / 6 mm
+    j0, j1 = _junction_nodes(coarse_model), _junction_nodes(fine)
+    assert j0 >= 4 * 3 and j1 > 3 * j0, (j0, j1)
+    with pytest.raises(DesignError, match=r"mesh.contact_size_mm = -1 must be >= 0"):
+        MeshParams(contact_size_mm=-1.0)

@@ -306,14 +306,7 @@ def _build(design: BIPDesign, mp: MeshParams) -> dict:
         dist = fld.add("Distance")
         fld.setNumbers(dist, "SurfacesList", cav_surfaces[cname])
         fld.setNumber(dist, "Sampling", 40)
-        thr = fld.add("Threshold")
-        fld.setNumber(thr, "InField", dist)
-        fld.setNumber(thr, "SizeMin", h)
-        fld.setNumber(thr, "SizeMax", mp.size_mm)
-        fld.setNumber(thr, "DistMin", 0.5 * h)
-        # size grows about 1:1 with the distance from the wall
-        fld.setNumber(thr, "DistMax", 0.5 * h + 1.2 * abs(mp.size_mm - h))
-        fields.append(thr)
+        fields.append(_graded(fld, dist, h, mp.size_mm))
     bulb_surfs = sorted(
         abs(t) for _, t in gmsh.model.getBoundary([(3, v) for v in region_vols["bulb"]], combined=True, oriented=False)
         if abs(t) in set(outer)
@@ -321,17 +314,13 @@ def _build(design: BIPDesign, mp: MeshParams) -> dict:
     dist_b = fld.add("Distance")
     fld.setNumbers(dist_b, "SurfacesList", bulb_surfs)
     fld.setNumber(dist_b, "Sampling", 40)
-    thr_b = fld.add("Threshold")
-    fld.setNumber(thr_b, "InField", dist_b)
-    fld.setNumber(thr_b, "SizeMin", mp.surface_size_mm)
-    fld.setNumber(thr_b, "SizeMax", mp.size_mm)
-    fld.setNumber(thr_b, "DistMin", 0.5 * mp.surface_size_mm)
-    fld.setNumber(thr_b, "DistMax", 0.5 * mp.surface_size_mm + 1.2 * abs(mp.size_mm - mp.surface_size_mm))
+    thr_b = _graded(fld, dist_b, mp.surface_size_mm, mp.size_mm)
     arm_f = fld.add("Constant")
     fld.setNumber(arm_f, "VIn", mp.arm_size_mm)
     fld.setNumber(arm_f, "VOut", mp.size_mm)
     fld.setNumbers(arm_f, "VolumesList", [t for n in ARM_NAMES for t in region_vols[f"arm_{n}"]])
     fld.setNumber(arm_f, "IncludeBoundary", 1)
+    fields += _local_refinements(design, mp, bulb_surfs, [t for n in ARM_NAMES for t in region_vols[f"arm_{n}"]])
     fmin = fld.add("Min")
     fld.setNumbers(fmin, "FieldsList", [*fields, thr_b, arm_f])
     fld.setAsBackgroundMesh(fmin)
@@ -415,6 +404,46 @@ def _shell(area: float, h_wall: float, h_far: float) -> float:
     return area * (inner - depth / h_far**3)
 
 
+def _graded(fld, dist: int, h: float, far: float) -> int:
+    """A Threshold field on the distance field ``dist``: ``h`` at it, growing about 1:1 to ``far``."""
+    thr = fld.add("Threshold")
+    fld.setNumber(thr, "InField", dist)
+    fld.setNumber(thr, "SizeMin", h)
+    fld.setNumber(thr, "SizeMax", far)
+    fld.setNumber(thr, "DistMin", 0.5 * h)
+    fld.setNumber(thr, "DistMax", 0.5 * h + 1.2 * abs(far - h))
+    return thr
+
+
+def _local_refinements(design: BIPDesign, mp: MeshParams, bulb_surfs: list[int], arm_vols: list[int]) -> list[int]:
+    """Size fields of the optional local refinements (MeshParams ``contact_size_mm`` near the
+    interaction points, ``junction_size_mm`` along the arm–bulb edges); [] when both are off."""
+    import gmsh
+
+    fld = gmsh.model.mesh.field
+    out = []
+    if mp.contact_size_mm > 0:
+        h, r = mp.contact_size_mm, mp.contact_zone_mm
+        for p in design.p_ext_mm().values():
+            # h within r of the point, then growing 1:1 (MathEval: no geometry to add)
+            d = f"sqrt((x-({p[0]:.9g}))^2+(y-({p[1]:.9g}))^2+(z-({p[2]:.9g}))^2)"
+            f = fld.add("MathEval")
+            fld.setString(f, "F", f"{h:.9g}+max(0,{d}-{r:.9g})")
+            out.append(f)
+    if mp.junction_size_mm > 0:
+        bulb_curves = {abs(c) for _, c in gmsh.model.getBoundary([(2, t) for t in bulb_surfs], combined=False, oriented=False)}
+        arm_surfs = gmsh.model.getBoundary([(3, v) for v in arm_vols], combined=False, oriented=False)
+        arm_curves = {abs(c) for _, c in gmsh.model.getBoundary(arm_surfs, combined=False, oriented=False)}
+        junction = sorted(bulb_curves & arm_curves)
+        if not junction:
+            raise MeshError("mesh.junction_size_mm: found no edge where the arms meet the bulb")
+        dist = fld.add("Distance")
+        fld.setNumbers(dist, "CurvesList", junction)
+        fld.setNumber(dist, "Sampling", 200)
+        out.append(_graded(fld, dist, mp.junction_size_mm, mp.size_mm))
+    return out
+
+
 def estimate_tets(design: BIPDesign, mesh: MeshParams | None = None) -> int:
     """Tetra count gmsh will make for ``design`` at ``mesh`` sizes, from the size field alone
     (``∫ dV / h³`` over the volume and the graded wall layers): 0.84 of the count at 6 mm, 1.12 at
@@ -463,9 +492,9 @@ def check_mesh_budget(design: BIPDesign, mesh: MeshParams | None = None, *, forc
         raise DesignError(f"mesh.size_mm = {mp.size_mm:.4g} mm: about {n:,} tets estimated, above the limit of "
                           f"{MAX_TETS:,} (a coarser --mesh-size-mm, or --force)")
     floor = mesh_size_floor_mm(design)
-    for name in ("size_mm", "surface_size_mm", "arm_size_mm"):
+    for name in ("size_mm", "surface_size_mm", "arm_size_mm", "contact_size_mm", "junction_size_mm"):
         v = getattr(mp, name)
-        if v < floor:
+        if v < floor and not (v == 0 and name in ("contact_size_mm", "junction_size_mm")):  # 0: off
             raise DesignError(f"mesh.{name} = {v:.4g} mm is below the floor of {floor:.3g} mm (the smallest cavity "
                               f"wall at {MAX_CAVITY_SEGMENTS:g} segments)")
     err = predicted_cavity_error(mp)

@@ -283,6 +283,12 @@ class MeshParams:
     ``element_order``: 1 (4-node tets) or 2 (10-node tets, mid-edge nodes placed on the CAD
     surfaces by gmsh, so curved walls stay curved).
 
+    Local refinements (0 = off, the default): ``contact_size_mm`` within ``contact_zone_mm`` of
+    the interaction points (``p_ext``: a contact patch's rim then falls on small elements), and
+    ``junction_size_mm`` along the edges where the arms meet the bulb (re-entrant edges, where the
+    stress is singular); both grow about 1:1 with the distance to the background sizes
+    (docs/model.md, "Convergence").
+
     >>> MeshParams().scaled_to(12.0).arm_size_mm
     6.0
     """
@@ -292,10 +298,18 @@ class MeshParams:
     arm_size_mm: float = 3.0
     cavity_segments: float = 22.0
     element_order: int = 1
+    contact_size_mm: float = 0.0
+    contact_zone_mm: float = 8.0
+    junction_size_mm: float = 0.0
 
     def __post_init__(self) -> None:
-        for name in ("size_mm", "surface_size_mm", "arm_size_mm"):
+        for name in ("size_mm", "surface_size_mm", "arm_size_mm", "contact_zone_mm"):
             _set(self, name, _positive(f"mesh.{name}", getattr(self, name)))
+        for name in ("contact_size_mm", "junction_size_mm"):
+            v = _num(f"mesh.{name}", getattr(self, name))
+            if v < 0:
+                raise DesignError(f"mesh.{name} = {_fmt(v)} must be >= 0 (0: no local refinement)")
+            _set(self, name, v)
         n = _num("mesh.cavity_segments", self.cavity_segments)
         if not 6.0 <= n <= MAX_CAVITY_SEGMENTS:
             raise DesignError(f"mesh.cavity_segments = {_fmt(n)} must be in [6, {MAX_CAVITY_SEGMENTS:g}]")
@@ -312,7 +326,8 @@ class MeshParams:
         """The same grading with a bulb size of ``size_mm``."""
         s = _positive("mesh.size_mm", size_mm) / self.size_mm
         segments = min(MAX_CAVITY_SEGMENTS, max(6.0, self.cavity_segments / s))
-        return MeshParams(size_mm, self.surface_size_mm * s, self.arm_size_mm * s, segments, self.element_order)
+        return MeshParams(size_mm, self.surface_size_mm * s, self.arm_size_mm * s, segments, self.element_order,
+                          self.contact_size_mm * s, self.contact_zone_mm, self.junction_size_mm * s)
 
 
 @dataclass(frozen=True)
