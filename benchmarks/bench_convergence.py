@@ -2,7 +2,8 @@
 order (P1 / P2) and mesh size, for ν = 0.45 and 0.49 (issue 12, item 1; docs/model.md).
 
     .venv/bin/python benchmarks/bench_convergence.py [--p1 6 4.5] [--p2 12 9] [--nu 0.45]
-        [--cases on-centre urethra] [--workers 2] [--scheduler ADDRESS] [--json out.json]
+        [--cases on-centre urethra] [--solver felupe|softphantom] [--contact-size-mm H]
+        [--junction-size-mm H] [--arm-size-mm H] [--workers 2] [--scheduler ADDRESS] [--json out.json]
 
 The solves are compressible neo-Hookean (E = 142 kPa) on the default design under DESIGN.md §5's
 loads (on-centre (0.15, 2.5, −0.2) N on a 4 mm patch; urethra 30 kPa), by the independent
@@ -24,13 +25,16 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "reference"))
 
-from bench_reference import ARMS, run_case  # noqa: E402
+from bench_reference import ARMS, SOLVERS, run_case  # noqa: E402
 
 from softphantom.fem import ECOFLEX_00_50  # noqa: E402
 from softphantom.parallel import dask_client, map_tasks  # noqa: E402
 
 
-def solve_setting(order: int, size_mm: float, nu: float, cases: tuple[str, ...], E: float) -> dict:
+def solve_setting(order: int, size_mm: float, nu: float, cases: tuple[str, ...], E: float,
+                  solver: str = "felupe", local: tuple = ()) -> dict:
+    """One row: the design meshed at ``size_mm`` (all sizes scaled), then the ``local`` MeshParams
+    overrides ((name, mm) pairs: contact_size_mm, junction_size_mm, arm_size_mm) as given."""
     import sys as _s
 
     _s.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "reference"))
@@ -39,17 +43,23 @@ def solve_setting(order: int, size_mm: float, nu: float, cases: tuple[str, ...],
 
     from softphantom.design import BIPDesign
 
+    import dataclasses
+
     t0 = time.perf_counter()
-    mesh = bip_tet10(BIPDesign(), size_mm, order=order)
-    out = {"order": order, "mesh_size_mm": size_mm, "nu": nu, "nodes": len(mesh.nodes), "dof": 3 * len(mesh.nodes)}
+    d = BIPDesign()
+    d = dataclasses.replace(d, mesh=dataclasses.replace(d.mesh.scaled_to(size_mm), **dict(local)))
+    mesh = bip_tet10(d, None, order=order)
+    out = {"order": order, "mesh_size_mm": size_mm, "nu": nu, "nodes": len(mesh.nodes), "dof": 3 * len(mesh.nodes),
+           "solver": solver, "local": dict(local)}
     for c in cases:
-        out[c] = run_case(mesh, c, E, nu)
+        out[c] = run_case(mesh, c, E, nu, solver=solver)
     out["wall_s"] = round(time.perf_counter() - t0, 1)
     return out
 
 
 def _row(r: dict) -> str:
-    parts = [f"P{r['order']} {r['mesh_size_mm']:>4g} mm ν {r['nu']:.2f} {r['nodes']:>6d} nodes"]
+    loc = "".join(f" {k.replace('_size_mm', '')} {v:g}" for k, v in r.get("local", {}).items())
+    parts = [f"P{r['order']} {r['mesh_size_mm']:>4g} mm{loc} ν {r['nu']:.2f} {r['nodes']:>6d} nodes"]
     if "on-centre" in r:
         c = r["on-centre"]
         parts.append(f"y {c['y_mm']:6.3f} mm yaw {c['yaw_deg']:6.3f}° dV " +
@@ -78,12 +88,22 @@ def main(argv=None) -> int:
     ap.add_argument("--p2", type=float, nargs="*", default=[12.0, 9.0])
     ap.add_argument("--nu", type=float, nargs="+", default=[0.45])
     ap.add_argument("--cases", nargs="+", default=["on-centre", "urethra"], choices=["on-centre", "off-centre", "urethra"])
+    ap.add_argument("--solver", default="felupe", choices=SOLVERS,
+                    help="felupe: the independent reference; softphantom: its own neo-Hookean FEM on the same "
+                         "mesh and loads (equal to 1e-9, several times faster)")
+    ap.add_argument("--contact-size-mm", type=float, default=0.0,
+                    help="local size near the interaction points (MeshParams.contact_size_mm; 0 off)")
+    ap.add_argument("--junction-size-mm", type=float, default=0.0,
+                    help="local size along the arm-bulb edges (MeshParams.junction_size_mm; 0 off)")
+    ap.add_argument("--arm-size-mm", type=float, default=None, help="arm element size instead of the scaled one")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--scheduler", default=None)
     ap.add_argument("--json", type=Path)
     a = ap.parse_args(argv)
     E = ECOFLEX_00_50.E_Pa
-    args = [(o, h, nu, tuple(a.cases), E) for nu in a.nu for o, hs in ((1, a.p1), (2, a.p2)) for h in hs]
+    local = tuple((k, v) for k, v in (("contact_size_mm", a.contact_size_mm), ("junction_size_mm", a.junction_size_mm),
+                                      ("arm_size_mm", a.arm_size_mm)) if v)
+    args = [(o, h, nu, tuple(a.cases), E, a.solver, local) for nu in a.nu for o, hs in ((1, a.p1), (2, a.p2)) for h in hs]
     # the biggest first, so the pool stays busy to the end
     args.sort(key=lambda t: -(t[0] ** 3) / t[1] ** 3)
     t0 = time.perf_counter()

@@ -22,7 +22,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "reference"))
 
-from felupe_bip import bip_tet10, cavity_volumes, probe, solve_felupe  # noqa: E402
+from felupe_bip import RefSolution, bip_tet10, cavity_volumes, patch_load, probe, solve_felupe  # noqa: E402
 
 from softphantom.design import BIPDesign  # noqa: E402
 from softphantom.fem import ECOFLEX_00_50  # noqa: E402
@@ -42,13 +42,36 @@ CASES = {
 }
 
 
-def run_case(mesh, name: str, E: float, nu: float, patch_radius_m: float = 4e-3) -> dict:
+SOLVERS = ("felupe", "softphantom")
+
+
+def solve_softphantom(mesh, E: float, nu: float, *, force=None, at=None, patch_radius: float = 4e-3,
+                      pressures=None) -> RefSolution:
+    """The same problem as :func:`felupe_bip.solve_felupe` (same mesh, law, the reference's own patch
+    load and cavities) solved by softphantom's neo-Hookean P1/P2 FEM (tests/test_fem_reference.py:
+    equal to FElupe's to 1e-9), Newton to ‖r‖ ≤ 1e-10 of the load."""
+    from softphantom.fem import NeoHookean, build_fem, solve_static
+
+    fem = build_fem(mesh.nodes, mesh.tets, NeoHookean(E, nu), mesh.fixed_nodes, cavities=mesh.cavities)
+    f = None
+    if force is not None and np.any(force):
+        f = patch_load(mesh.nodes, mesh.outer, len(mesh.nodes), at, force, patch_radius)
+    sol = solve_static(fem, f, pressures=pressures, tol=1e-10, max_iter=40)
+    if not sol.converged:
+        raise RuntimeError(f"softphantom solve: {sol.status}")
+    return RefSolution(sol.x, sol.iterations, sol.residual_norm)
+
+
+def run_case(mesh, name: str, E: float, nu: float, patch_radius_m: float = 4e-3, solver: str = "felupe") -> dict:
     mu, lam = E / (2 * (1 + nu)), E * nu / ((1 + nu) * (1 - 2 * nu))
     case = dict(CASES[name])
     if "at" in case:
         case["at"] = mesh.points[case["at"]]
     t0 = time.perf_counter()
-    sol = solve_felupe(mesh, mu, lam, patch_radius=patch_radius_m, **case)
+    if solver == "softphantom":
+        sol = solve_softphantom(mesh, E, nu, patch_radius=patch_radius_m, **case)
+    else:
+        sol = solve_felupe(mesh, mu, lam, patch_radius=patch_radius_m, **case)
     wall = time.perf_counter() - t0
     markers = [k for k in mesh.points if k.startswith("m") and k[1:].isdigit()]
     P = probe(mesh, np.array([mesh.points[k] for k in markers]))
@@ -66,6 +89,7 @@ def run_case(mesh, name: str, E: float, nu: float, patch_radius_m: float = 4e-3)
         "newton_iterations": sol.iterations,
         "residual": sol.residual,
         "solve_s": round(wall, 1),
+        "solver": solver,
     }
 
 
