@@ -1,6 +1,6 @@
 """FEM speed on the default BIP mesh and a finer one (element size / 4^(1/3)); P1 and P2 laws.
 
-Run: ``.venv/bin/python benchmarks/bench_fem.py [--repeat N] [--no-fine] [--no-splu-fine] [--no-p2]``
+Run: ``.venv/bin/python benchmarks/bench_fem.py [--repeat N] [--no-fine] [--no-splu-fine] [--no-p2] [--only-p2]``
 
 Section "P1 vs P2" (same run, default design): neo-Hookean and co-rotational on linear tets and
 neo-Hookean on 10-node tets of the same mesh (``element_order = 2``): internal force and tangent
@@ -196,6 +196,7 @@ def main() -> None:
     ap.add_argument("--no-fine", action="store_true", help="only the default mesh")
     ap.add_argument("--no-splu-fine", action="store_true", help="skip scipy splu on the fine mesh (slow)")
     ap.add_argument("--no-p2", action="store_true", help="skip the P1 vs P2 section")
+    ap.add_argument("--only-p2", action="store_true", help="only the P1 vs P2 section")
     args = ap.parse_args()
     from softphantom.design import MeshParams
     from softphantom.fem import available_solvers
@@ -204,6 +205,7 @@ def main() -> None:
     h0 = MeshParams().size_mm
     # element size / 4^(1/3) aims at 4x the tets; the design's fixed cavity/arm sizing gives ~2.7x
     cases = [("default", None)] + ([] if args.no_fine else [("fine (size / 4^(1/3))", h0 / 4 ** (1 / 3))])
+    cases = [] if args.only_p2 else cases
     for name, size in cases:
         solvers = list(available_solvers())
         if size is not None and args.no_splu_fine:
