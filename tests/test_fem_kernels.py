@@ -141,3 +141,10 @@ def test_pattern_and_scatter_equal_the_unique_of_all_dof_pairs():
     assert np.array_equal(fem.pattern_indptr, np.concatenate([[0], np.cumsum(np.bincount(prow, minlength=n))]))
     K = tangent_stiffness(fem, Xp)
     assert np.abs(K - K.T).max() < 1e-9 * np.abs(K).max()
+
+
+def test_force_and_energy_in_one_pass_equal_the_separate_calls(deformed):
+    fem, x = deformed
+    f, e = C.force_and_energy(fem, x)
+    assert np.array_equal(f, internal_force(fem, x)) and e == strain_energy(fem, x)
+    assert e > 0 and np.abs(f).max() > 1.0
