@@ -188,3 +188,56 @@ def test_cli_estimate_atlas_option(coarse_model, atlas, tmp_path, capsys):
     assert main(args[:-4] + ["--estimator", "nope"]) == 2
     assert "--estimator must be atlas or refresh" in capsys.readouterr().err
     assert main(args[:-2] + ["--envelope", "1:0,0:1,0:1,0:1"]) == 2
+
+
+def test_unreachable_grid_points_are_filled_and_flagged(coarse_model, fwd, monkeypatch):
+    """A corner of the envelope that does not converge: the build goes on, does not try the points
+    beyond the failure, fills them (exactly, for a map linear in the loads) and flags estimates
+    there as outside the envelope; one log line per plane with failures."""
+    from types import SimpleNamespace
+
+    from softphantom.errors import SolverError
+
+    rng = np.random.default_rng(5)
+    A = rng.normal(size=(4, 4)) * np.array([1e-9, 1e-9, 1e-9, 1e-12])  # m³ per N, m³ per Pa
+    B = rng.normal(size=(fwd.fem.n_dof, 4)) * np.array([1e-4, 1e-4, 1e-4, 1e-7])
+    tried = []
+
+    def bad(lam):
+        return lam[0] > 0.1 and lam[1] > 0.5
+
+    class Linear:  # stands in for the FEM: a map linear in the loads, failing in one corner
+        def __init__(self, model, config):
+            self.probe, self.fem = fwd.probe, fwd.fem
+
+        def solve(self, lam, start=None):
+            lam = np.asarray(lam, float)
+            tried.append(lam)
+            if bad(lam):
+                raise SolverError("line search failed at load fraction 0.8\n(detail on a second line)")
+            x = fwd.fem.x_rest + B @ lam
+            return SimpleNamespace(V=A @ lam, x=x, sub_x=(fwd.probe @ x.reshape(-1, 3)))
+
+    monkeypatch.setattr("softphantom.estimation.atlas.ForwardModel", Linear)
+    lines = []
+    at = build_atlas(coarse_model, CFG, ACFG, n_workers=1, processes=False, progress=False, fwd=fwd,
+                     log=lines.append)
+    g = np.stack(np.meshgrid(*ACFG.axes(), indexing="ij"), axis=-1)
+    fails = (g[..., 0] > 0.1) & (g[..., 1] > 0.5)
+    assert np.array_equal(~at.solved, fails) and at.unsolved == fails.sum() > 0
+    assert at.solves == at.solved.size - at.unsolved
+    # only the first failing point of each line outwards was tried (f_y rows at f_x = 0.5 N)
+    n_tried_bad = sum(bad(lam) for lam in tried)
+    assert 0 < n_tried_bad < fails.sum()
+    assert len(lines) == len({(i, l) for i, _, _, l in np.argwhere(fails)})
+    assert all("\n" not in s and "unreachable" in s for s in lines)
+    # the fill is exact for a linear map: the polynomial reproduces it everywhere
+    lam = np.array([0.4, 1.0, 0.2, 2e3])
+    assert np.allclose(at.volumes(lam)[0], A @ lam, rtol=1e-9, atol=1e-18)
+    assert at.solved_at(lam) is False and at.solved_at([-0.3, 0.2, 0.0, 0.0]) is True
+    monkeypatch.undo()
+    est = AtlasEstimator(coarse_model, CFG, at)
+    assert not est.step(meas(A @ lam, lam[3])).in_envelope
+    inside = np.array([-0.3, 0.2, 0.1, 1e3])
+    e = est.step(meas(A @ inside, inside[3]))
+    assert e.in_envelope and np.allclose(e.force, inside[:3], atol=1e-6)

@@ -5,14 +5,18 @@ solves (:class:`~softphantom.estimation.forward.ForwardModel`) on a tensor grid 
 points over the envelope box ``f_i ∈ [f_min,i, f_max,i]`` (N), ``p_u ∈ [p_min, p_max]`` (Pa). Each output —
 the 4 arm-cavity volume changes, the tracked points (markers, targets) and the coefficients of the
 displacement field in its POD basis — becomes a tensor Chebyshev polynomial in the 4 loads, exact
-at the grid points and spectrally accurate between them for this smooth map.
+at the grid points and spectrally accurate between them for this smooth map. Where a corner of the
+box is unreachable for the model (a solve that does not converge), the build records it, does not
+try the points beyond it, fills them by extrapolation from converged neighbours and marks the
+cells around them as outside the envelope (:func:`build_atlas`).
 
 Online (:class:`AtlasEstimator`): per sample, a Gauss–Newton iteration in the 3 force components
 (the urethra pressure is measured) on the polynomial volumes, each step the bounded QP of
 :func:`~softphantom.estimation.qp.solve_volume_qp` with the polynomial's Jacobian; the points and
 the full field come from the same polynomials at the solution. No refresh and no thread: the cost
 is a few small tensor contractions. Outside the envelope the loads are clamped to it and the
-estimate carries ``in_envelope=False`` (the CSV's ``in_envelope`` column).
+estimate carries ``in_envelope=False`` (the CSV's ``in_envelope`` column); so does an estimate in a
+cell the build could not solve.
 
 Cache: :func:`load_or_build` keeps the atlas next to the model under the SHA-256 of everything it
 depends on (mesh, law and its parameters, element, contact patch, envelope, grid, format version).
@@ -34,12 +38,14 @@ import numpy as np
 
 from softphantom.errors import SolverError, UserError
 from softphantom.estimation.config import EstimatorConfig
-from softphantom.estimation.estimator import check_sample, pose_and_shifts, repeat_last, sensitivity_cond
+from softphantom.estimation.estimator import (
+    EstimatorState, check_sample, pose_and_shifts, repeat_last, rest_estimate, sensitivity_cond,
+)
 from softphantom.estimation.forward import ForwardModel
 from softphantom.estimation.qp import solve_volume_qp
 from softphantom.estimation.types import Estimate
 
-FORMAT = 1  # bump when the file layout or the build changes its meaning
+FORMAT = 2  # bump when the file layout or the build changes its meaning
 GN_MAX_ITER = 12
 GN_TOL_N = 1e-7
 FIELD_MAX_MODES = 64
@@ -180,31 +186,120 @@ def atlas_key(fwd: ForwardModel, acfg: AtlasConfig) -> str:
 
 
 # -- the build -------------------------------------------------------------------------------------
+def _plane_order(ny: int, nz: int, j0: int, k0: int) -> list[tuple[int, int]]:
+    """The (f_y, f_z) grid points of a plane from the one nearest zero load outwards (by grid
+    distance), so each point's inner neighbours (one step towards it along each axis) come first."""
+    return sorted(((j, k) for j in range(ny) for k in range(nz)),
+                  key=lambda p: (abs(p[0] - j0) + abs(p[1] - k0), abs(p[0] - j0), p))
+
+
+def _inner(p: tuple[int, int], centre: tuple[int, int]) -> list[tuple[int, int]]:
+    j, k = p
+    j0, k0 = centre
+    out = []
+    if j != j0:
+        out.append((j - (1 if j > j0 else -1), k))
+    if k != k0:
+        out.append((j, k - (1 if k > k0 else -1)))
+    return out
+
+
 def _sweep(model, config: EstimatorConfig, acfg: AtlasConfig, i: int, l: int):
-    """One task: the (f_y, f_z) plane at grid f_x index ``i`` and pressure index ``l``, walked in a
-    serpentine so each solve starts from a converged neighbour. Returns (i, l, V (ny,nz,4),
-    P (ny,nz,k,3), X (ny,nz,3N) displacements, seconds)."""
+    """One task: the (f_y, f_z) plane at grid f_x index ``i`` and pressure index ``l``. The point
+    nearest zero load is reached from rest by continuation, every other one from a converged inner
+    neighbour (one grid step nearer zero load). A point whose inner neighbour did not converge is
+    not tried: reachability is taken to be monotone in the load, so a failure does not cost the
+    (slow) failing solves of everything beyond it. Expected solver failures are recorded, not
+    raised. Returns (i, l, V (ny,nz,4), P (ny,nz,k,3), X (ny,nz,3N) displacements, solved (ny,nz),
+    first failure message or '', seconds); unsolved entries are NaN."""
     t0 = time.perf_counter()
     fwd = ForwardModel(model, config)
     ax = acfg.axes()
     ny, nz = len(ax[1]), len(ax[2])
-    ndof = fwd.fem.n_dof
-    V = np.empty((ny, nz, 4))
-    P = np.empty((ny, nz, fwd.probe.shape[0], 3))
-    X = np.empty((ny, nz, ndof))
-    lin = None
-    row_start = None
-    for j in range(ny):
-        ks = range(nz) if j % 2 == 0 else range(nz - 1, -1, -1)
-        for k in ks:
-            lam = np.array([ax[0][i], ax[1][j], ax[2][k], ax[3][l]])
-            lin = fwd.solve(lam, lin if lin is not None else row_start)
-            if row_start is None:
-                row_start = lin
-            V[j, k] = lin.V
-            P[j, k] = lin.sub_x
-            X[j, k] = lin.x - fwd.fem.x_rest
-    return i, l, V, P, X, time.perf_counter() - t0
+    V = np.full((ny, nz, 4), np.nan)
+    P = np.full((ny, nz, fwd.probe.shape[0], 3), np.nan)
+    X = np.full((ny, nz, fwd.fem.n_dof), np.nan)
+    solved = np.zeros((ny, nz), bool)
+    centre = (int(np.argmin(np.abs(ax[1]))), int(np.argmin(np.abs(ax[2]))))
+    lins: dict[tuple[int, int], object] = {}
+    first_error = ""
+    for p in _plane_order(ny, nz, *centre):
+        inner = _inner(p, centre)
+        if any(q not in lins for q in inner):
+            continue  # beyond a failure: unreachable (see the docstring)
+        j, k = p
+        lam = np.array([ax[0][i], ax[1][j], ax[2][k], ax[3][l]])
+        try:
+            lin = fwd.solve(lam, lins[inner[0]] if inner else None)
+        except SolverError as exc:
+            first_error = first_error or str(exc).splitlines()[0]
+            continue
+        lins[p] = lin
+        solved[j, k] = True
+        V[j, k] = lin.V
+        P[j, k] = lin.sub_x
+        X[j, k] = lin.x - fwd.fem.x_rest
+    return i, l, V, P, X, solved, first_error, time.perf_counter() - t0
+
+
+def fill_weights(solved: np.ndarray, axes: list[np.ndarray]) -> list[tuple[int, np.ndarray, np.ndarray]]:
+    """How to fill the grid points that did not converge, so the tensor fit is defined: a list of
+    (flat index, source flat indices, weights), to apply in order. Each unsolved point takes, along
+    every axis where its line has known points, the linear interpolation between the nearest known
+    points on either side, or else the linear extrapolation from the two nearest on one side (one:
+    its value), averaged over those axes; points with no known point on any line wait for a
+    later pass, which also uses the points filled before it.
+
+    >>> s = np.array([True, True, True, False, False])
+    >>> [(t, src.tolist(), w.round(3).tolist()) for t, src, w in fill_weights(s, [np.arange(5.0)])]
+    [(3, [2, 1], [2.0, -1.0]), (4, [2, 1], [3.0, -2.0])]
+    """
+    shape = solved.shape
+    known = solved.copy()
+    if not known.any():
+        raise SolverError("atlas: no grid point converged")
+    out = []
+    while not known.all():
+        batch = []
+        for idx in map(tuple, np.argwhere(~known)):
+            terms: list[tuple[list[int], list[float]]] = []
+            for a, xs in enumerate(axes):
+                line = list(idx)
+                have = [m for m in range(shape[a]) if known[tuple(line[:a] + [m] + line[a + 1:])]]
+                if not have:
+                    continue
+                x = xs[idx[a]]
+                below = [m for m in have if m < idx[a]]
+                above = [m for m in have if m > idx[a]]
+                if below and above:
+                    m1, m2 = below[-1], above[0]
+                    w2 = (x - xs[m1]) / (xs[m2] - xs[m1])
+                    src, w = [m1, m2], [1 - w2, w2]
+                else:
+                    side = below[::-1] if below else above  # nearest first
+                    if len(side) == 1:
+                        src, w = side[:1], [1.0]
+                    else:
+                        m1, m2 = side[:2]
+                        w2 = (x - xs[m1]) / (xs[m2] - xs[m1])
+                        src, w = [m1, m2], [1 - w2, w2]
+                flat = [int(np.ravel_multi_index(tuple(line[:a] + [m] + line[a + 1:]), shape)) for m in src]
+                terms.append((flat, w))
+            if terms:
+                src = np.concatenate([np.array(f) for f, _ in terms])
+                w = np.concatenate([np.array(w) for _, w in terms]) / len(terms)
+                batch.append((int(np.ravel_multi_index(idx, shape)), src, w))
+        for t, _, _ in batch:
+            known.flat[t] = True
+        out.extend(batch)
+    return out
+
+
+def _fill(values: np.ndarray, weights) -> np.ndarray:
+    """``values`` (n_grid, m) with the unsolved rows filled in place by :func:`fill_weights`."""
+    for t, src, w in weights:
+        values[t] = w @ values[src]
+    return values
 
 
 @dataclass(frozen=True, eq=False)
@@ -214,8 +309,9 @@ class Atlas:
     ``key`` the cache key; ``config`` the :class:`AtlasConfig`; ``cV`` (n1,n2,n3,n4,4) volume
     coefficients (m³); ``cP`` (n1,n2,n3,n4,k,3) tracked-point coefficients (m); ``cF``
     (n1,n2,n3,n4,r) field-mode coefficients; ``modes`` (3N,r) the POD basis (m); ``x_rest`` (3N,);
-    ``build_s`` seconds of the build (wall); ``solves`` forward solves; ``field_rms_m`` the RMS
-    error of the POD truncation over the grid.
+    ``build_s`` seconds of the build (wall); ``solves`` converged forward solves; ``field_rms_m``
+    the RMS error of the POD truncation over the grid; ``solved`` (n1,n2,n3,n4) bool, the grid
+    points whose solve converged (the others were filled, see :func:`build_atlas`).
     """
 
     key: str
@@ -228,6 +324,31 @@ class Atlas:
     build_s: float
     solves: int
     field_rms_m: float
+    solved: np.ndarray
+
+    def __post_init__(self) -> None:
+        ok = np.asarray(self.solved, bool)
+        # a grid cell is inside the solved region when all its 16 corners converged
+        cells = np.ones(tuple(n - 1 for n in ok.shape), bool)
+        for corner in np.ndindex(*(2,) * ok.ndim):
+            cells &= ok[tuple(slice(c, c + n - 1) for c, n in zip(corner, ok.shape))]
+        object.__setattr__(self, "solved", ok)
+        object.__setattr__(self, "_cells", cells)
+        object.__setattr__(self, "_axes", self.config.axes())
+
+    @property
+    def unsolved(self) -> int:
+        """Grid points whose forward solve did not converge (filled by extrapolation)."""
+        return int(self.solved.size - np.count_nonzero(self.solved))
+
+    def solved_at(self, lam) -> bool:
+        """Whether ``lam`` lies in a grid cell whose corners all converged (False outside the box)."""
+        idx = []
+        for v, xs in zip(np.asarray(lam, float), self._axes):
+            if not xs[0] - 1e-9 * (1 + abs(xs[0])) <= v <= xs[-1] + 1e-9 * (1 + abs(xs[-1])):
+                return False
+            idx.append(min(max(int(np.searchsorted(xs, v)) - 1, 0), len(xs) - 2))
+        return bool(self._cells[tuple(idx)])
 
     # -- evaluation -------------------------------------------------------------------------------
     def _t(self, lam: np.ndarray) -> np.ndarray:
@@ -272,7 +393,7 @@ class Atlas:
         return int(sum(a.nbytes for a in (self.cV, self.cP, self.cF, self.modes, self.x_rest)))
 
     # -- files ------------------------------------------------------------------------------------
-    _ARRAYS = ("cV", "cP", "cF", "modes", "x_rest")
+    _ARRAYS = ("cV", "cP", "cF", "modes", "x_rest", "solved")
 
     def _digest(self) -> str:
         h = hashlib.sha256()
@@ -321,10 +442,18 @@ class AtlasCorrupt(UserError):
 
 def build_atlas(model, config: EstimatorConfig | None = None, atlas: AtlasConfig | None = None, *,
                 scheduler: str | None = None, n_workers: int | None = None, progress: bool = True,
-                fwd: ForwardModel | None = None, processes: bool = True) -> Atlas:
+                fwd: ForwardModel | None = None, processes: bool = True, log=print) -> Atlas:
     """Build the atlas of ``model`` (forward solves in parallel, a Dask local cluster by default or
     the one at ``scheduler``; ``processes=False``: worker threads, for small models and tests).
-    Raises :class:`~softphantom.errors.SolverError` naming the first grid plane that failed (shrink the envelope: ``AtlasConfig.force_max_N``)."""
+
+    A corner of the envelope box may be physically unreachable for the model (e.g. a large push
+    with sideways force inverts an element under a point contact). Such grid points are recorded,
+    not fatal: each plane walks outwards from zero load and does not try points beyond one that
+    failed (:func:`_sweep`); the unsolved points are filled by linear extrapolation from their
+    converged neighbours along the grid lines (:func:`fill_weights`) so the tensor fit is defined,
+    and every grid cell with an unsolved corner is outside the envelope (``Atlas.solved_at``; the
+    estimator's ``in_envelope`` is False there). ``log`` gets one line per plane with failures and
+    a summary. Raises :class:`~softphantom.errors.SolverError` only if no point converged."""
     from softphantom.parallel import dask_client, map_tasks
 
     cfg = config or EstimatorConfig()
@@ -338,20 +467,27 @@ def build_atlas(model, config: EstimatorConfig | None = None, atlas: AtlasConfig
     V = np.empty((n1, n2, n3, n4, 4))
     P = np.empty((n1, n2, n3, n4, k, 3))
     X = np.empty((n1, n2, n3, n4, ndof), dtype=np.float64)
+    solved = np.zeros((n1, n2, n3, n4), bool)
     args = [(model, cfg, acfg, i, l) for l in range(n4) for i in range(n1)]
     with dask_client(scheduler, n_workers, processes=processes) as client:
         res = map_tasks(client, _sweep, args, label=f"atlas: {n1 * n2 * n3 * n4} forward solves", progress=progress)
     bad = [r for r in res if not r.ok]
-    if bad:
+    if bad:  # not a solver failure (those are recorded): a bug or a lost worker
         i, l = args[bad[0].index][3:]
-        ax = acfg.axes()
-        raise SolverError(f"atlas: forward solves failed at f_x {ax[0][i]:+.2f} N, urethra {ax[3][l] * 1e-3:.1f} kPa "
-                          f"({bad[0].error}); {len(bad)} of {len(res)} planes failed: lower the envelope")
+        raise SolverError(f"atlas: plane f_x index {i}, pressure index {l} failed: {bad[0].error}")
+    ax = acfg.axes()
     for r in res:
-        i, l, v, p, x, _ = r.value
+        i, l, v, p, x, ok, err, _ = r.value
         V[i, :, :, l] = v
         P[i, :, :, l] = p
         X[i, :, :, l] = x
+        solved[i, :, :, l] = ok
+        if not ok.all():
+            log(f"atlas: plane f_x {ax[0][i]:+.2f} N, urethra {ax[3][l] * 1e-3:.1f} kPa: {ok.size - ok.sum()} of "
+                f"{ok.size} points unreachable ({err or 'beyond a failed point'})")
+    weights = fill_weights(solved, ax)
+    for a in (V.reshape(solved.size, -1), P.reshape(solved.size, -1), X.reshape(solved.size, -1)):
+        _fill(a, weights)
     # POD of the displacement field: the Gram matrix of the snapshots (n_grid²) is small
     D = X.reshape(-1, ndof)
     del X
@@ -369,12 +505,19 @@ def build_atlas(model, config: EstimatorConfig | None = None, atlas: AtlasConfig
     cP = _to_chebyshev(P.reshape(*shape, k * 3), shape).reshape(*shape, k, 3)
     cF = _to_chebyshev(coef.reshape(*shape, r), shape)
     return Atlas(key=key, config=acfg, cV=cV, cP=cP, cF=cF, modes=modes, x_rest=fwd.fem.x_rest.copy(),
-                 build_s=time.perf_counter() - t0, solves=int(np.prod(shape)), field_rms_m=field_rms)
+                 build_s=time.perf_counter() - t0, solves=int(solved.sum()), field_rms_m=field_rms, solved=solved)
 
 
 def atlas_path(model_dir, key: str) -> Path:
     """Where the atlas of key ``key`` lives next to a model directory."""
     return Path(model_dir) / "atlas" / f"{key[:32]}.npz"
+
+
+def _solves(at: Atlas) -> str:
+    if not at.unsolved:
+        return f"{at.solves} forward solves"
+    return (f"{at.solves} of {at.solved.size} forward solves converged ({at.unsolved} unreachable: "
+            f"filled, outside the envelope)")
 
 
 def load_or_build(model, config: EstimatorConfig | None = None, atlas: AtlasConfig | None = None, *,
@@ -390,12 +533,13 @@ def load_or_build(model, config: EstimatorConfig | None = None, atlas: AtlasConf
     if path is not None and path.is_file():
         try:
             at = Atlas.load(path, key)
-            log(f"atlas: {path} ({at.nbytes / 1e6:.1f} MB, {at.solves} solves, built in {at.build_s:.0f} s)")
+            log(f"atlas: {path} ({at.nbytes / 1e6:.1f} MB, {_solves(at)}, built in {at.build_s:.0f} s)")
             return at
         except AtlasCorrupt as exc:
             log(f"{exc}: rebuilding")
-    at = build_atlas(model, cfg, acfg, scheduler=scheduler, n_workers=n_workers, progress=progress, fwd=fwd)
-    msg = f"atlas: {at.solves} forward solves in {at.build_s:.0f} s, {at.nbytes / 1e6:.1f} MB"
+    at = build_atlas(model, cfg, acfg, scheduler=scheduler, n_workers=n_workers, progress=progress, fwd=fwd,
+                     log=log)
+    msg = f"atlas: {_solves(at)} in {at.build_s:.0f} s, {at.nbytes / 1e6:.1f} MB"
     if path is not None:
         at.save(path)
         msg += f" → {path} ({path.stat().st_size / 1e6:.1f} MB on disk)"
@@ -403,13 +547,14 @@ def load_or_build(model, config: EstimatorConfig | None = None, atlas: AtlasConf
     return at
 
 
-class AtlasEstimator:
+class AtlasEstimator(EstimatorState):
     """The real-time estimator on an :class:`Atlas` (see the module docstring): ``step(measurement)
     → Estimate`` with no background work; ``node_positions()`` the full field of the last estimate.
 
-    ``Estimate.in_envelope`` is False when the measured pressure lies outside the atlas's range or
-    the best fit wants a force beyond an envelope face that is tighter than the configured force
-    bounds; the estimate is then the best one clamped to the envelope.
+    ``Estimate.in_envelope`` is False when the measured pressure lies outside the atlas's range,
+    when the best fit wants a force beyond an envelope face that is tighter than the configured
+    force bounds (the estimate is then the best one clamped to the envelope), or when it lies in a
+    grid cell the build could not solve (the estimate then comes from the extrapolated fill).
     """
 
     kind = "atlas"
@@ -445,32 +590,8 @@ class AtlasEstimator:
 
     def reset(self) -> None:
         """Back to rest."""
-        from softphantom.pose import Pose6
-
         self._lam = np.zeros(4)
-        z = np.zeros(3)
-        self._last = Estimate(
-            t=0.0, force=z.copy(), p_urethra=0.0, pose=Pose6(z.copy(), z.copy()),
-            target_shift={k: z.copy() for k in self.target_names}, volume_pred=np.zeros(4),
-            volume_meas=np.zeros(4), cond_W=sensitivity_cond(self.atlas.volumes(self._lam)[1]), qp_status="rest", step_time=0.0,
-        )
-
-    def close(self) -> None:
-        """Nothing runs in the background; kept for the estimator interface."""
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
-    @property
-    def lam(self) -> np.ndarray:
-        return self._lam.copy()
-
-    @property
-    def last(self) -> Estimate:
-        return self._last
+        self._last = rest_estimate(self.target_names, self.atlas.volumes(self._lam)[1])
 
     def node_positions(self) -> np.ndarray:
         """(N,3) m node positions of the last estimate (the atlas's field)."""
@@ -514,6 +635,8 @@ class AtlasEstimator:
         tol = 1e-6
         if np.any(lam[:3] <= self._env_lo + tol) or np.any(lam[:3] >= self._env_hi - tol):
             inside = False
+        if inside and self.atlas.unsolved:
+            inside = self.atlas.solved_at(lam)  # where the atlas was filled, not solved
         return lam, status, inside, V, J, it
 
     def step(self, m, skipped: int = 0) -> Estimate:

@@ -144,6 +144,43 @@ def sensitivity_cond(W: np.ndarray) -> float:
     return float(s[0] / s[-1]) if s[-1] > 0 else float("inf")
 
 
+def rest_estimate(target_names, W: np.ndarray) -> Estimate:
+    """The estimate before the first sample: no load, no motion, ``cond_W`` of the sensitivity ``W``."""
+    z = np.zeros(3)
+    return Estimate(
+        t=0.0, force=z.copy(), p_urethra=0.0, pose=Pose6(z.copy(), z.copy()),
+        target_shift={k: z.copy() for k in target_names}, volume_pred=np.zeros(4),
+        volume_meas=np.zeros(4), cond_W=sensitivity_cond(W), qp_status="rest", step_time=0.0,
+    )
+
+
+class EstimatorState:
+    """What every estimator shares around its state ``_lam`` / ``_last``: the ``with`` protocol
+    (calls ``close``) and the read-only accessors."""
+
+    _lam: np.ndarray
+    _last: Estimate
+
+    def close(self) -> None:  # overridden where something runs in the background
+        """Stop anything running in the background (nothing here)."""
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    @property
+    def lam(self) -> np.ndarray:
+        """(4,) the current actuation estimate: force N (3), urethra pressure Pa."""
+        return self._lam.copy()
+
+    @property
+    def last(self) -> Estimate:
+        """The latest estimate (the rest estimate before the first step)."""
+        return self._last
+
+
 class _Worker(threading.Thread):
     """Background equilibrium: solves at the newest requested λ, publishes linearizations."""
 
@@ -200,7 +237,7 @@ class _Worker(threading.Thread):
         return True
 
 
-class Estimator:
+class Estimator(EstimatorState):
     """Force, urethra pressure, pose, deformation and target shifts from the 4 arm-cavity volumes.
 
     ``Estimator(model, config)``: ``model`` a :class:`~softphantom.design.PhantomModel`. Building
@@ -242,12 +279,7 @@ class Estimator:
         # per-refresh history, the latest HISTORY entries only: a soak must not grow the process
         self.lin_errors: list[np.ndarray] = []
         self.refresh_times: list[float] = []  # s per equilibrium refresh (both modes)
-        z = np.zeros(3)
-        self._last = Estimate(
-            t=0.0, force=z.copy(), p_urethra=0.0, pose=Pose6(z.copy(), z.copy()),
-            target_shift={k: z.copy() for k in self.target_names}, volume_pred=np.zeros(4),
-            volume_meas=np.zeros(4), cond_W=sensitivity_cond(self.rest.W), qp_status="rest", step_time=0.0,
-        )
+        self._last = rest_estimate(self.target_names, self.rest.W)
         if self.config.mode == "async" and self._worker is None:
             self._worker = _Worker(self)
             self._worker.start()
@@ -263,26 +295,10 @@ class Estimator:
             self._worker.stop()
             self._worker = None
 
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
     @property
     def linearization(self) -> Linearization:
         """The linearization the next step will use."""
         return self._lin
-
-    @property
-    def lam(self) -> np.ndarray:
-        """(4,) the current actuation estimate: force N (3), urethra pressure Pa."""
-        return self._lam.copy()
-
-    @property
-    def last(self) -> Estimate:
-        """The latest estimate (the rest estimate before the first step)."""
-        return self._last
 
     def _refresh(self, lin: Linearization, lam: np.ndarray, path: "PathCorrection | None") -> None:
         """The one equilibrium refresh (step in sync mode, the worker, settle): solve at ``lam``
