@@ -34,8 +34,9 @@ import numpy as np
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 
 from softphantom.design import BIPDesign, build_model, load_model  # noqa: E402
-from softphantom.estimation import AtlasConfig, AtlasEstimator, Estimator, EstimatorConfig  # noqa: E402
+from softphantom.estimation import AtlasEstimator, Estimator, EstimatorConfig  # noqa: E402
 from softphantom.estimation.atlas import build_atlas, load_or_build  # noqa: E402
+from softphantom.estimation.select import atlas_config_from_options  # noqa: E402
 from softphantom.fem import (  # noqa: E402
     SparseSolver, cavity_volume, free_tangent, probe_matrix, solve_static,
 )
@@ -158,14 +159,16 @@ def stop_load(procs) -> None:
 
 def held_out(est: AtlasEstimator, n: int, seed: int = 3):
     """Max errors of the atlas against converged forward solves at ``n`` seeded random loads inside
-    the envelope: volumes (mm³), points (mm), field (mm), and the inverse (N, mm, deg) started
+    the envelope's solved cells: volumes (mm³), points (mm), field (mm), and the inverse (N, mm, deg) started
     0.3 N away (a stream's previous estimate is much closer; 77 Hz at 5 N/2 s: 0.03 N)."""
     rng = np.random.default_rng(seed)
     at, fwd = est.atlas, est.forward
     lo, hi = at.config.lower, at.config.upper
     rows = []
-    for _ in range(n):
+    while len(rows) < n:
         lam = lo + (hi - lo) * rng.uniform(0.02, 0.98, 4)
+        if not at.solved_at(lam):
+            continue  # where the build could not solve: outside the envelope
         lin = fwd.solve(lam)
         V, _ = at.volumes(lam)
         start = lam + np.r_[rng.normal(0, 0.3 / np.sqrt(3), 3), 0.0]
@@ -201,6 +204,9 @@ def main() -> None:
     ap.add_argument("--atlas-cache", help="model directory to keep the atlas in (default: build it in this run)")
     ap.add_argument("--held-out", type=int, default=10, help="random loads for the atlas accuracy check")
     ap.add_argument("--skip-refresh", action="store_true", help="only the atlas rows (and the naive ratio)")
+    ap.add_argument("--atlas-grid", help="atlas points per axis NX,NY,NZ,NP (default: AtlasConfig's)")
+    ap.add_argument("--envelope", help="atlas envelope FXMIN:FXMAX,FYMIN:FYMAX,FZMIN:FZMAX,PMIN:PMAX (N, kPa; "
+                    "default: AtlasConfig's)")
     a = ap.parse_args()
 
     t = time.perf_counter()
@@ -239,20 +245,29 @@ def main() -> None:
               f"pos {last[1]:.2e} mm, ang {last[2]:.2e} deg; step p50 {r['step_ms_p50']:.2f} ms, "
               f"p99 {r['step_ms_p99']:.2f} ms, max {r['step_ms_max']:.1f} ms; {refreshes} refreshes "
               f"(median {r['refresh_s_median']:.2f} s, max {r['refresh_s_max']:.2f} s)")
+        r["load_avg"] = os.getloadavg()[0]
+        print(f"  (load average {r['load_avg']:.1f})")
         res[name] = r
 
     # -- atlas: offline build, then the same ramps (quiet and loaded), sustained rate, held-out loads
     cfg = EstimatorConfig(**base)
+    acfg = atlas_config_from_options(a.atlas_grid, a.envelope)
     t = time.perf_counter()
+    print(f"load average before the atlas build: {os.getloadavg()[0]:.1f}")
     if a.atlas_cache:
-        atlas = load_or_build(model, cfg, AtlasConfig(), cache_dir=a.atlas_cache, n_workers=a.workers)
+        atlas = load_or_build(model, cfg, acfg, cache_dir=a.atlas_cache, n_workers=a.workers)
     else:
-        atlas = build_atlas(model, cfg, AtlasConfig(), n_workers=a.workers)
-    res["atlas_build"] = {"s": atlas.build_s, "solves": atlas.solves, "MB": atlas.nbytes / 1e6,
+        atlas = build_atlas(model, cfg, acfg, n_workers=a.workers)
+    res["atlas_build"] = {"s": atlas.build_s, "cpu_s": atlas.build_cpu_s, "solves": atlas.solves, "unsolved": atlas.unsolved,
+                          "grid": list(acfg.shape), "envelope": [list(acfg.lower), list(acfg.upper)],
+                          "load_avg_after": os.getloadavg()[0], "MB": atlas.nbytes / 1e6,
                           "field_modes": int(atlas.modes.shape[1]), "field_pod_rms_um": atlas.field_rms_m * 1e6,
                           "workers": a.workers, "wall_s_incl_load": time.perf_counter() - t}
-    print(f"atlas build: {atlas.solves} forward solves in {atlas.build_s:.0f} s on {a.workers} workers, "
-          f"{atlas.nbytes / 1e6:.1f} MB ({atlas.modes.shape[1]} field modes)")
+    print(f"atlas build: {atlas.solves} forward solves ({atlas.unsolved} unreachable) in {atlas.build_s:.0f} s "
+          f"({atlas.build_cpu_s:.0f} CPU-s in the solves: {atlas.build_cpu_s / 2:.0f} s on 2 idle cores) on "
+          f"{a.workers} workers, {atlas.nbytes / 1e6:.1f} MB ({atlas.modes.shape[1]} field modes); grid "
+          f"{acfg.shape}, envelope {acfg.lower.round(2).tolist()}..{acfg.upper.round(2).tolist()}; load average "
+          f"{os.getloadavg()[0]:.1f}")
     at = AtlasEstimator(model, cfg, atlas)
     for name, loaded in (("atlas_77Hz_realtime", False), ("atlas_77Hz_realtime_loaded", True)):
         procs = start_load() if loaded else []

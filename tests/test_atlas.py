@@ -207,7 +207,7 @@ def test_unreachable_grid_points_are_filled_and_flagged(coarse_model, fwd, monke
         return lam[0] > 0.1 and lam[1] > 0.5
 
     class Linear:  # stands in for the FEM: a map linear in the loads, failing in one corner
-        def __init__(self, model, config):
+        def __init__(self, model, config, **kw):
             self.probe, self.fem = fwd.probe, fwd.fem
 
         def solve(self, lam, start=None):

@@ -20,9 +20,54 @@ def _contact(scenario) -> str:
     return points.pop() if len(points) == 1 else "on-centre"
 
 
-def run_scenario(sc, model, out: Path, cfg, truth, bar, estimator: str = "atlas", atlas=None) -> dict:
+# The demo's atlas per scenario: the box of the scenario's peak loads (its pushes; the pressure its
+# inflation reached) and zero, widened by MARGIN_N + MARGIN_REL × the largest force (the estimator's
+# model differs from the truth's, so its forces do too), the pressure by MARGIN_KPA and 20 %.
+# Grids: pushes vary the force (the pressure stays near 0: 2 points), an inflation the pressure.
+MARGIN_N = 0.5
+MARGIN_REL = 0.2
+MARGIN_KPA = 2.0
+PUSH_GRID = (4, 5, 4, 2)
+INFLATE_GRID = (3, 3, 3, 5)
+
+
+def scenario_atlas(truth, grid: tuple[int, int, int, int] | None = None):
+    """The :class:`~softphantom.estimation.atlas.AtlasConfig` the demo builds for one scenario from
+    its solved ``truth`` (see ``MARGIN_N`` above); ``grid`` overrides the points per axis.
+
+    >>> from types import SimpleNamespace as E
+    >>> push = E(events=[E(force=(0.4, 3.0, 0.3), p_urethra=0.0), E(force=(-0.5, 2.8, -0.4), p_urethra=0.0)])
+    >>> a = scenario_atlas(push)
+    >>> [round(v, 2) for v in a.force_min_N], [round(v, 2) for v in a.force_max_N], a.shape
+    ([-1.61, -1.11, -1.51], [1.51, 4.11, 1.41], (4, 5, 4, 2))
+    >>> a = scenario_atlas(E(events=[E(force=(0.0, 0.0, 0.0), p_urethra=30e3)]))
+    >>> a.force_max_N, a.p_min_kPa, a.p_max_kPa, a.shape
+    ((0.5, 0.5, 0.5), -2.0, 38.0, (3, 3, 3, 5))
+    """
+    import numpy as np
+
+    from softphantom.estimation import AtlasConfig
+
+    F = np.array([np.zeros(3)] + [e.force for e in truth.events])
+    p_kPa = max([0.0] + [e.p_urethra * 1e-3 for e in truth.events])
+    m = MARGIN_N + MARGIN_REL * float(np.linalg.norm(F, axis=1).max())
+    n = grid or (PUSH_GRID if p_kPa == 0.0 else INFLATE_GRID)
+    return AtlasConfig(force_min_N=tuple(F.min(0) - m), force_max_N=tuple(F.max(0) + m), p_min_kPa=-MARGIN_KPA,
+                       p_max_kPa=1.2 * p_kPa + MARGIN_KPA, n_force=n[:3], n_pressure=n[3])
+
+
+def _in_envelope(path: Path) -> float:
+    """Fraction of the estimates inside the atlas's envelope (the CSV's in_envelope column)."""
+    from softphantom.evaluation.files import read_table
+
+    col = read_table(path).columns["in_envelope"]
+    return float(col.mean()) if len(col) else float("nan")
+
+
+def run_scenario(sc, model, out: Path, cfg, truth, bar, estimator: str = "atlas", grid=None) -> dict:
     """One scenario end to end from its solved ``truth``; returns its summary row (JSON-able).
-    ``estimator``: atlas (built once per contact point, cached in out/model/atlas) or refresh (sync)."""
+    ``estimator``: atlas (built for the scenario's envelope, :func:`scenario_atlas`, cached in
+    out/model/atlas) or refresh (sync); ``grid`` the atlas's points per axis (default: by kind)."""
     from softphantom.estimation import EstimatorConfig, open_estimator
     from softphantom.estimation.stream import estimate_stream
     from softphantom.evaluation import evaluate, read_estimate, read_truth, write_report
@@ -40,6 +85,7 @@ def run_scenario(sc, model, out: Path, cfg, truth, bar, estimator: str = "atlas"
     t1 = time.perf_counter()
     task = bar.add_task(f"{sc.name}: estimate", total=n_frames, what="")
     ecfg = EstimatorConfig(contact=_contact(sc), mode="sync")
+    atlas = scenario_atlas(truth, grid) if estimator == "atlas" else None
     with open_estimator(estimator, model, ecfg, cache_dir=out / "model", progress=False, atlas=atlas,
                         log=lambda s: bar.console.print(s, highlight=False, soft_wrap=True)) as est:
         stats = estimate_stream(src, est, est_path, lambda e, n: bar.update(task, completed=n),
@@ -73,6 +119,10 @@ def run_scenario(sc, model, out: Path, cfg, truth, bar, estimator: str = "atlas"
         "tracker_clock_offset_ms": {"injected": rs["tracker"]["clock_offset_s"] * 1e3, "recovered": lag.lag_ms},
         "estimate": {k: stats[k] for k in ("estimates", "rejected", "rate_Hz", "step_ms_p50", "step_ms_p99")},
         "estimator": estimator,
+        "atlas": None if atlas is None else {"force_min_N": atlas.force_min_N, "force_max_N": atlas.force_max_N,
+                                             "p_min_kPa": atlas.p_min_kPa, "p_max_kPa": atlas.p_max_kPa,
+                                             "grid": atlas.shape,
+                                             "in_envelope_fraction": _in_envelope(est_path)},
         "truth": rs["truth"], "seconds": {"truth_solve": truth.solve_s, "estimate": t_est, "evaluate": t_eval},
     }
 
@@ -143,11 +193,18 @@ def print_summary(rows: list[dict], con=console) -> None:
         con.print(Text.assemble((r["scenario"], "bold"), f": Table I (truth) {_table_i_line(r['table_i'])}"),
                   highlight=False)
         con.print(f"  tracker clock offset injected {c['injected']:.1f} ms, recovered {c['recovered']:.1f} ms; "
-                  f"estimator {r['estimate']['rate_Hz']:.0f} Hz (step p99 {r['estimate']['step_ms_p99']:.1f} ms)"
-                  f"{extra}", highlight=False)
+                  f"{r['estimator']} estimator {r['estimate']['rate_Hz']:.0f} Hz (step p99 "
+                  f"{r['estimate']['step_ms_p99']:.1f} ms){_atlas_note(r)}{extra}", highlight=False)
 
 
-def _run_all(scs, model, out: Path, cfg, tm, estimator: str = "atlas", atlas=None) -> list[dict]:
+def _atlas_note(r: dict) -> str:
+    a = r.get("atlas")
+    if not a:
+        return ""
+    return f", {a['in_envelope_fraction'] * 100:.0f} % of estimates inside its atlas ({'×'.join(map(str, a['grid']))})"
+
+
+def _run_all(scs, model, out: Path, cfg, tm, estimator: str = "atlas", grid=None) -> list[dict]:
     """Truth solves in one worker process, in scenario order; the main process estimates and
     evaluates each scenario as soon as its truth is ready (2 cores: both stay busy)."""
     import multiprocessing as mp
@@ -171,7 +228,7 @@ def _run_all(scs, model, out: Path, cfg, tm, estimator: str = "atlas", atlas=Non
             for sc, fut in zip(scs, futures):
                 truth = fut.result()
                 bar.update(tasks[sc.name], what=f"solved in {truth.solve_s:.0f} s")
-                rows.append(run_scenario(sc, model, out, cfg, truth, bar, estimator, atlas))
+                rows.append(run_scenario(sc, model, out, cfg, truth, bar, estimator, grid))
         finally:
             for f in futures:
                 f.cancel()
@@ -193,7 +250,8 @@ def demo_cmd(
     overwrite: bool = overwrite_option(),
     estimator: str = typer.Option("atlas", "--estimator", help="atlas (precomputed, real time) | refresh (sync: "
                                   "re-linearized inside each step)."),
-    atlas_grid: str = typer.Option(None, "--atlas-grid", help="Atlas: Chebyshev points per axis NX,NY,NZ,NP."),
+    atlas_grid: str = typer.Option(None, "--atlas-grid", help="Atlas: Chebyshev points per axis NX,NY,NZ,NP (default: "
+                                   "4,5,4,2 for pushes, 3,3,3,5 for an inflation; the envelope is the scenario's loads)."),
 ) -> None:
     """The paper's experiments end to end without hardware: reports and a summary."""
     from rich.status import Status
@@ -204,7 +262,7 @@ def demo_cmd(
     from softphantom.virtual import BUNDLED, load_scenario, truth_model
 
     check_estimator_kind(estimator)
-    atlas = atlas_config_from_options(atlas_grid)
+    grid = atlas_config_from_options(atlas_grid).shape if atlas_grid is not None else None
     t0 = time.perf_counter()
     check_output(out, overwrite=overwrite, directory=True)
     names = list(scenarios or BUNDLED)
@@ -226,7 +284,7 @@ def demo_cmd(
             tm = truth_model(model, cfg.truth)
         console.print(f"truth model: {len(tm.nodes)} nodes, {len(tm.tets)} tets (mesh {tm.design.mesh.size_mm:g} mm)",
                       highlight=False)
-        rows = _run_all([load_scenario(n) for n in names], model, work, cfg, tm, estimator, atlas)
+        rows = _run_all([load_scenario(n) for n in names], model, work, cfg, tm, estimator, grid)
         for r in rows:  # the paths the user will see, once the directory is in place
             r["report"] = str(out / Path(r["report"]).relative_to(work))
         wall = time.perf_counter() - t0

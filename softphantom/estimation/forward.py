@@ -36,11 +36,14 @@ def contact_point(model, contact) -> np.ndarray:
 class ForwardModel:
     """Equilibria of ``model`` under the configured contact (see the module docstring).
 
-    Attributes: ``fem``, ``contact_point`` (3,) m, ``marker_names``, ``target_names``, ``eq`` (the
+    ``exact_sensitivities=False``: the solutions' sensitivities only approximate (see
+    :class:`~softphantom.estimation.linearization.EquilibriumSolver`), for callers that keep only
+    the equilibria; ``fallback_min_load_step`` for callers that expect failures. Attributes: ``fem``, ``contact_point`` (3,) m, ``marker_names``, ``target_names``, ``eq`` (the
     equilibrium solver, not thread-safe), ``rest`` (the rest :class:`Linearization`), ``n_markers``.
     """
 
-    def __init__(self, model, config: EstimatorConfig | None = None, fem=None) -> None:
+    def __init__(self, model, config: EstimatorConfig | None = None, fem=None, *,
+                 exact_sensitivities: bool = True, fallback_min_load_step: float = 1.0 / 1024) -> None:
         cfg = config or EstimatorConfig()
         self.config = cfg
         self.fem = fem if fem is not None else fem_from_phantom(model)
@@ -54,7 +57,8 @@ class ForwardModel:
         self.probe = probe_matrix(self.fem, pts)
         self.eq = EquilibriumSolver(
             self.fem, self.H_f, self.probe, solver=cfg.sparse_solver, tol=cfg.tol,
-            refactor_rate=cfg.refactor_rate, max_iter=cfg.max_iter,
+            refactor_rate=cfg.refactor_rate, max_iter=cfg.max_iter, exact_sensitivities=exact_sensitivities,
+            fallback_min_load_step=fallback_min_load_step,
         )
         self.n_markers = len(self.marker_names)
         self.rest: Linearization = self.eq.rest()

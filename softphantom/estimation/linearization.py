@@ -98,11 +98,17 @@ class EquilibriumSolver:
     ``H_f`` (3N,3) sparse force actuator, ``probe`` (k,N) sparse interpolation of the tracked
     points, ``tol`` relative force residual, ``refactor_rate`` the chord contraction above which
     the tangent is refactored, ``max_iter`` chord/Newton iterations before the load-stepping
-    fallback. Not thread-safe: one solver per thread.
+    fallback. ``exact_sensitivities=False``: ``U`` (so ``W``) through the kept factor even when it
+    was made at another state (no GMRES): the equilibria are as exact, the sensitivities only good
+    enough for the next solve's predictor (the atlas build, which keeps only the equilibria).
+    ``fallback_min_load_step``: the smallest load step of the Newton fallback before it gives up
+    (a caller that expects failures, the atlas build, gives up sooner). Not thread-safe: one
+    solver per thread.
     """
 
     def __init__(self, fem: FemModel, H_f, probe, *, solver: str = "auto", tol: float = 1e-8,
-                 refactor_rate: float = 0.3, max_iter: int = 12) -> None:
+                 refactor_rate: float = 0.3, max_iter: int = 12, exact_sensitivities: bool = True,
+                 fallback_min_load_step: float = 1.0 / 1024) -> None:
         if URETHRA not in fem.cavities or any(a not in fem.cavities for a in ARM_NAMES):
             raise UserError(f"model lacks cavities {[a for a in (*ARM_NAMES, URETHRA) if a not in fem.cavities]}")
         self.fem = fem
@@ -111,6 +117,8 @@ class EquilibriumSolver:
         self.tol = float(tol)
         self.refactor_rate = float(refactor_rate)
         self.max_iter = int(max_iter)
+        self.exact_sensitivities = bool(exact_sensitivities)
+        self.fallback_min_load_step = float(fallback_min_load_step)
         self._chol = SparseSolver(solver)
         self.lin = self._chol  # the kept factor (Cholesky, or LU where the tangent is indefinite)
         self.factorizations = 0
@@ -195,7 +203,7 @@ class EquilibriumSolver:
         assembled tangent at ``x`` preconditioned by the kept factor (to ``KRYLOV_RTOL``); a
         refactorization where GMRES does not get there in ``KRYLOV_MAXITER``."""
         self.krylov_iterations = 0
-        if self._factor_current(x, p_u):
+        if not self.exact_sensitivities or self._factor_current(x, p_u):
             return self.lin.solve(Bf)
         import scipy.sparse.linalg as spla
 
@@ -324,7 +332,7 @@ class EquilibriumSolver:
         if not ok:  # robust fallback: Newton with adaptive load stepping from the start state
             sol = solve_static(
                 self.fem, self.H_f @ lam[:3], [(self._ur_tris, lam[3])], x0=start.x,
-                tol=self.tol, solver=self._chol,
+                tol=self.tol, solver=self._chol, min_load_step=self.fallback_min_load_step,
             )
             if not sol.converged:
                 raise SolverError(f"equilibrium at force {lam[:3].round(3).tolist()} N, urethra "
