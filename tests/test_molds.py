@@ -22,7 +22,7 @@ from softphantom.design import geometry as geo  # noqa: E402
 from softphantom.design.fabrication import BUILD_VOLUME_MM, MoldParams  # noqa: E402
 from softphantom.errors import DesignError  # noqa: E402
 from softphantom.molds import build_parts, interference, write_molds  # noqa: E402
-from softphantom.molds.check import report_mesh, to_manifold  # noqa: E402
+from softphantom.design.solid_check import report_mesh, to_manifold  # noqa: E402
 
 
 @pytest.fixture(scope="module")

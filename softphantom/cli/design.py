@@ -22,6 +22,11 @@ def design_command(
     png: bool = typer.Option(True, "--png/--no-png", help="Write mesh.png."),
     force: bool = typer.Option(False, "--force", help="Mesh above the element-count limit and keep cavity volumes "
                                "beyond the tolerance (docs/robustness.md)."),
+    anatomy: Optional[Path] = typer.Option(
+        None, "--anatomy", help="Prostate label map (.nii/.nii.gz) or closed surface (.stl/.obj): the bulb's shape."
+    ),
+    urethra_label: int = typer.Option(2, "--urethra-label", help="Label of the urethra in a label map (0: none)."),
+    surface_size_mm: float = typer.Option(3.0, "--surface-size-mm", help="Triangle size of the imported surface, mm."),
     overwrite: bool = overwrite_option(),
 ) -> None:
     """Build the BIP design, mesh it (gmsh) and write model.msh/.vtu/.npz, design.toml, report.md, mesh.png."""
@@ -29,6 +34,19 @@ def design_command(
     from softphantom.design.report import design_report_md
 
     design = load_design(config) if config is not None else BIPDesign()
+    if anatomy is not None:
+        from softphantom.design.anatomy import AnatomyOptions, design_from_anatomy, load_anatomy
+        from softphantom.errors import UserError
+
+        if not surface_size_mm > 0.0:
+            raise UserError(f"--surface-size-mm must be > 0, got {surface_size_mm:g}")
+        with console.status(f"importing the anatomy {anatomy} …"):
+            gland = load_anatomy(anatomy, AnatomyOptions(urethra_label=urethra_label, surface_size_mm=surface_size_mm))
+            design = design_from_anatomy(gland, design, name=f"{design.name}_anatomy")
+        vox = "" if gland.voxel_volume_mm3 is None else (
+            f" (label voxel count {gland.voxel_volume_mm3:.0f} mm³, {100 * (gland.volume_mm3 / gland.voxel_volume_mm3 - 1):+.2f} %)")
+        console.print(f"anatomy: bulb surface {len(gland.faces)} triangles, {gland.volume_mm3:.0f} mm³{vox}",
+                      highlight=False)
     from softphantom.design.params import REGION_NAMES
     from softphantom.fem.model import laws_of_design
 

@@ -8,6 +8,7 @@ from pathlib import Path
 import typer
 
 from softphantom.cli.app import app, console
+from softphantom.cli.options import overwrite_option, staged_output
 
 
 @app.command("molds")
@@ -15,6 +16,7 @@ def molds_command(
     model: Path = typer.Option(..., "--model", help="Model directory written by `softphantom design` (its design.toml)."),
     out: Path = typer.Option(..., "--out", help="Output directory (created)."),
     png: bool = typer.Option(True, "--png/--no-png", help="Write assembly.png."),
+    overwrite: bool = overwrite_option(),
 ) -> None:
     """Build the molds ([molds] table of the design), check each part and write STL/3MF, bom.csv/.md, parts.csv."""
     from softphantom.design.params import load_design
@@ -27,14 +29,15 @@ def molds_command(
         raise FileFormatError(f"{toml}: no such file (expected a directory written by `softphantom design`)")
     design = load_design(toml)
     t0 = time.perf_counter()
-    with console.status(f"building the parts of design '{design.name}' …"):
-        parts = build_parts(design)
-    with console.status("checking and writing the parts …"):
-        result = write_molds(parts, out)
-    if png:
-        from softphantom.viz.molds_view import render_assembly_png
+    with staged_output(out, overwrite=overwrite, directory=True) as work:
+        with console.status(f"building the parts of design '{design.name}' …"):
+            parts = build_parts(design)
+        with console.status("checking and writing the parts …"):
+            result = write_molds(parts, work)
+        if png:
+            from softphantom.viz.molds_view import render_assembly_png
 
-        render_assembly_png(parts, out / "assembly.png")
+            render_assembly_png(parts, work / "assembly.png")
     console.print(to_markdown(material_totals(result.silicone)), markup=False, highlight=False)
     n = len(result.printed)
     console.print(f"{n} printed parts, all closed and manifold; wrote {out}/ in {time.perf_counter() - t0:.1f} s",

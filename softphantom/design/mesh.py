@@ -33,6 +33,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from softphantom.design.occ_shapes import bulb_solid, capsule
 from softphantom.design.params import ARM_NAMES, MAX_CAVITY_SEGMENTS, BIPDesign, MeshParams
 from softphantom.errors import DesignError, MeshError
 
@@ -66,17 +67,6 @@ class RawMesh:
     fixed_faces6: np.ndarray = field(default_factory=lambda: np.zeros((0, 6), dtype=np.int64))
     outer_faces6: np.ndarray = field(default_factory=lambda: np.zeros((0, 6), dtype=np.int64))
     n_corner: int = -1
-
-
-def _capsule(occ, a, b, r) -> int:
-    ax = np.asarray(b) - np.asarray(a)
-    parts = [(3, occ.addSphere(*a, r)), (3, occ.addSphere(*b, r))]
-    if np.linalg.norm(ax) > 1e-9:
-        parts.append((3, occ.addCylinder(*a, *ax, r)))
-    out, _ = occ.fuse(parts[:1], parts[1:])
-    if len(out) != 1:
-        raise MeshError(f"capsule fuse gave {len(out)} volumes, expected 1")
-    return out[0][1]
 
 
 def _elements(dim: int, tag: int, etype: int, nper: int) -> np.ndarray:
@@ -246,14 +236,12 @@ def _build(design: BIPDesign, mp: MeshParams) -> dict:
     ):
         gmsh.option.setNumber(name, value)
     occ = gmsh.model.occ
-    a, b, c = design.bulb.semi_axes_mm
-    bulb = occ.addSphere(0.0, 0.0, 0.0, 1.0)
-    occ.dilate([(3, bulb)], 0.0, 0.0, 0.0, a, b, c)
+    bulb = bulb_solid(occ, design.bulb)  # an ellipsoid, or an anatomy surface (design/occ_shapes.py)
     geoms = design.arm_geometry()
     arms = [occ.addCylinder(*g.start_mm, *(g.end_mm - g.start_mm), g.radius_mm) for g in geoms]
-    cavities = [_capsule(occ, *g.cavity_segment_mm, g.cavity_radius_mm) for g in geoms]
+    cavities = [capsule(occ, *g.cavity_segment_mm, g.cavity_radius_mm) for g in geoms]
     ua, ub = design.urethra.segment_mm
-    cavities.append(_capsule(occ, ua, ub, design.urethra.radius_mm))
+    cavities.append(capsule(occ, ua, ub, design.urethra.radius_mm))
 
     tools = [(3, t) for t in arms + cavities]
     _, out_map = occ.fragment([(3, bulb)], tools)
@@ -388,12 +376,6 @@ CAVITY_VOLUME_TOLERANCE = 0.10
 _TETS_PER_UNIT = 6.5  # tets per h³ of volume (fitted to the meshes of docs/robustness.md)
 
 
-def _ellipsoid_area(axes) -> float:
-    a, b, c = axes
-    p = 1.6075  # Knud Thomsen's approximation, within 1.1 %
-    return 4 * np.pi * (((a * b) ** p + (a * c) ** p + (b * c) ** p) / 3) ** (1 / p)
-
-
 def _shell(area: float, h_wall: float, h_far: float) -> float:
     """∫ dV / h³ over the graded layer of a wall (size h_wall at the wall, growing 1:1.2 to h_far),
     minus the same layer at h_far (counted in the volume term)."""
@@ -461,7 +443,7 @@ def estimate_tets(design: BIPDesign, mesh: MeshParams | None = None) -> int:
     cav.append((design.urethra.radius_mm, design.urethra.volume_mm3, h))
     bulb = design.bulb.volume_mm3 - design.urethra.volume_mm3
     arms = sum(np.pi * a.radius_mm**2 * a.length_mm - a.cavity_volume_mm3 for a in design.arms)
-    total = bulb / h**3 + arms / ha**3 + _shell(_ellipsoid_area(design.bulb.semi_axes_mm), hs, h)
+    total = bulb / h**3 + arms / ha**3 + _shell(design.bulb.area_mm2, hs, h)
     for r, v, far in cav:
         length = max(0.0, v - capsule_volume(r, 0.0)) / (np.pi * r * r)
         area = 2 * np.pi * r * length + 4 * np.pi * r * r

@@ -117,9 +117,16 @@ def _set(obj: Any, name: str, value: Any) -> None:
 
 @dataclass(frozen=True)
 class BulbParams:
-    """The gland: an ellipsoid centred at the origin, semi-axes (x, y, z) in mm."""
+    """The gland: an ellipsoid centred at the origin, semi-axes (x, y, z) in mm — or, from an
+    anatomy import (design/anatomy.py), a closed triangle surface ``surface_vertices_mm`` /
+    ``surface_faces`` in the model frame (then ``semi_axes_mm`` are its half extents, for
+    information). Geometry queries go through :meth:`signed_distance`, :meth:`ray_exit`,
+    :meth:`normal`, which are closed forms for the ellipsoid.
+    """
 
     semi_axes_mm: Vec3 = (_A_MM, _B_MM, _C_MM)
+    surface_vertices_mm: tuple = ()
+    surface_faces: tuple = ()
 
     def __post_init__(self) -> None:
         axes = _vec3("bulb.semi_axes_mm", self.semi_axes_mm)
@@ -127,10 +134,76 @@ class BulbParams:
             if not v > 0.0:
                 raise DesignError(f"bulb.semi_axes_mm[{i}] = {_fmt(v)} must be > 0 mm")
         _set(self, "semi_axes_mm", axes)
+        verts = tuple(_vec3(f"bulb.surface_vertices_mm[{i}]", v) for i, v in enumerate(self.surface_vertices_mm))
+        faces = []
+        for i, f in enumerate(self.surface_faces):
+            if (isinstance(f, (str, bytes)) or not hasattr(f, "__len__") or len(f) != 3
+                    or not all(isinstance(k, int) and not isinstance(k, bool) and 0 <= k < len(verts) for k in f)):
+                raise DesignError(f"bulb.surface_faces[{i}]: expected 3 vertex indices in 0..{len(verts) - 1}, got {f!r}")
+            faces.append(tuple(int(k) for k in f))
+        if bool(verts) != bool(faces) or (faces and len(faces) < 4):
+            raise DesignError("bulb: surface_vertices_mm and surface_faces come together (a closed surface, >= 4 faces)")
+        _set(self, "surface_vertices_mm", verts)
+        _set(self, "surface_faces", tuple(faces))
+        if faces and not self.volume_mm3 > 0.0:
+            raise DesignError(f"bulb.surface_faces: the surface encloses {_fmt(self.volume_mm3)} mm³ (inside out or open)")
+
+    @property
+    def is_surface(self) -> bool:
+        return bool(self.surface_faces)
+
+    def _mesh(self):
+        from softphantom.design.surface import surface_mesh
+
+        return surface_mesh(self.surface_vertices_mm, self.surface_faces)
 
     @property
     def volume_mm3(self) -> float:
+        if self.is_surface:
+            return geo.surface_enclosed_volume(np.asarray(self.surface_vertices_mm), np.asarray(self.surface_faces))
         return geo.ellipsoid_volume(self.semi_axes_mm)
+
+    @property
+    def area_mm2(self) -> float:
+        """Surface area: the triangles' sum, or Knud Thomsen's ellipsoid approximation (within 1.1 %)."""
+        if self.is_surface:
+            v = np.asarray(self.surface_vertices_mm)[np.asarray(self.surface_faces)]
+            return float(0.5 * np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1).sum())
+        a, b, c = self.semi_axes_mm
+        p = 1.6075
+        return 4 * math.pi * (((a * b) ** p + (a * c) ** p + (b * c) ** p) / 3) ** (1 / p)
+
+    def signed_distance(self, points) -> np.ndarray:
+        """Signed distance of ``points`` (mm) to the bulb surface, negative inside."""
+        if self.is_surface:
+            from softphantom.design.surface import signed_distance
+
+            return signed_distance(self._mesh(), points)
+        return geo.ellipsoid_signed_distance(points, self.semi_axes_mm)
+
+    def ray_exit(self, origin, direction) -> float | None:
+        """Largest s with origin + s·direction on the surface (None: the line misses the bulb)."""
+        if self.is_surface:
+            from softphantom.design.surface import ray_exit
+
+            return ray_exit(self._mesh(), origin, direction)
+        return geo.ray_exit(origin, direction, self.semi_axes_mm)
+
+    def normal(self, point) -> np.ndarray:
+        """Outward unit normal at a surface point."""
+        if self.is_surface:
+            from softphantom.design.surface import normal_at
+
+            return normal_at(self._mesh(), point)
+        return geo.unit(np.asarray(point, float) / np.asarray(self.semi_axes_mm, float) ** 2)
+
+    def bounds_mm(self) -> tuple[np.ndarray, np.ndarray]:
+        """Axis-aligned bounding box (lo, hi)."""
+        if self.is_surface:
+            v = np.asarray(self.surface_vertices_mm)
+            return v.min(axis=0), v.max(axis=0)
+        a = np.asarray(self.semi_axes_mm)
+        return -a, a
 
 
 def _default_inlet() -> Vec3:
@@ -480,11 +553,11 @@ class BIPDesign:
     # --- derived geometry (mm) -------------------------------------------------------------
     def arm_geometry(self) -> tuple[ArmGeometry, ...]:
         """Placement of the four arms, in the sensor order."""
-        return tuple(_arm_geometry(a, self.bulb.semi_axes_mm) for a in self.arms)
+        return tuple(_arm_geometry(a, self.bulb) for a in self.arms)
 
     def p_ext_mm(self) -> dict[str, np.ndarray]:
         """The interaction points ``on-centre`` and ``off-centre``, mm."""
-        return _p_ext(self.bulb.semi_axes_mm, self.interaction)
+        return _p_ext(self.bulb, self.interaction)
 
     @property
     def marker_dict(self) -> dict[str, np.ndarray]:
@@ -501,10 +574,10 @@ class BIPDesign:
         return out
 
 
-def _arm_geometry(arm: ArmParams, axes: Vec3) -> ArmGeometry:
+def _arm_geometry(arm: ArmParams, bulb: BulbParams) -> ArmGeometry:
     d = geo.unit(arm.direction)
     o = np.asarray(arm.axis_point_mm)
-    s = geo.ray_exit(o, d, axes)
+    s = bulb.ray_exit(o, d)
     if s is None:
         raise DesignError(f"arms.{arm.name}: the arm misses the bulb (its axis does not meet the ellipsoid)")
     root = o + s * d
@@ -530,7 +603,37 @@ def _front_point(axes: Vec3, t: float, angle: float) -> np.ndarray:
     return np.array([x, -b * math.sqrt(q), z])
 
 
-def _p_ext(axes: Vec3, inter: InteractionParams) -> dict[str, np.ndarray]:
+def _p_ext_surface(bulb: BulbParams, inter: InteractionParams) -> dict[str, np.ndarray]:
+    """p_ext on a surface bulb: where lines along −y through (x, 0, z) leave its front."""
+    ang = math.radians(inter.offcentre_angle_deg)
+    y = np.array([0.0, -1.0, 0.0])
+
+    def front(t: float) -> np.ndarray | None:
+        o = np.array([t * math.cos(ang), 0.0, t * math.sin(ang)])
+        s = bulb.ray_exit(o, y)
+        return None if s is None else o + s * y
+
+    on = front(0.0)
+    if on is None:
+        raise DesignError("interaction: the −y axis misses the bulb (no on-centre point)")
+    lo, hi = 0.0, float(np.ptp(np.asarray(bulb.surface_vertices_mm), axis=0).max())
+    for _ in range(60):  # the chord grows with t while the line still meets the front
+        mid = 0.5 * (lo + hi)
+        p = front(mid)
+        if p is not None and np.linalg.norm(p - on) < inter.offcentre_mm:
+            lo = mid
+        else:
+            hi = mid
+    off = front(lo)
+    if off is None or abs(np.linalg.norm(off - on) - inter.offcentre_mm) > 0.05:
+        raise DesignError(f"interaction.offcentre_mm = {_fmt(inter.offcentre_mm)} is beyond the front of the bulb")
+    return {"on-centre": on, "off-centre": off}
+
+
+def _p_ext(bulb: BulbParams, inter: InteractionParams) -> dict[str, np.ndarray]:
+    if bulb.is_surface:
+        return _p_ext_surface(bulb, inter)
+    axes = bulb.semi_axes_mm
     a, b, c = axes
     on = np.array([0.0, -b, 0.0])
     ang = math.radians(inter.offcentre_angle_deg)
@@ -590,32 +693,32 @@ def _check_sizes(d: BIPDesign) -> None:
 
 def _validate_geometry(d: BIPDesign) -> None:
     _check_sizes(d)
-    axes = d.bulb.semi_axes_mm
+    sdist = d.bulb.signed_distance
     u = d.urethra
     ua, ub = u.segment_mm
 
     # urethra: wholly inside with a wall, inlet on the surface
     pts = geo.capsule_surface_points(ua, ub, u.radius_mm)
-    wall = -float(geo.ellipsoid_signed_distance(pts, axes).max())
+    wall = -float(sdist(pts).max())
     if wall < MIN_WALL_MM:
         raise DesignError(
             f"urethra: wall to the bulb surface is {_fmt(wall)} mm (min {MIN_WALL_MM:g} mm; "
             "check radius_mm, volume_mm3, center_mm)"
         )
-    off = abs(float(geo.ellipsoid_signed_distance([u.inlet_mm], axes)[0]))
+    off = abs(float(sdist([u.inlet_mm])[0]))
     if off > SURFACE_TOL_MM:
         raise DesignError(f"urethra.inlet_mm is {_fmt(off)} mm off the bulb surface (tolerance {SURFACE_TOL_MM:g} mm)")
 
     geoms = d.arm_geometry()
     for arm, g in zip(d.arms, geoms):
         p = f"arms.{arm.name}"
-        inner = geo.ellipsoid_signed_distance(geo.disk_rim_points(g.start_mm, g.direction, g.radius_mm), axes)
+        inner = sdist(geo.disk_rim_points(g.start_mm, g.direction, g.radius_mm))
         if inner.max() > -0.5:
             raise DesignError(
                 f"{p}: the arm misses the bulb (its inner end is {_fmt(inner.max() + 0.5)} mm short of 0.5 mm "
                 "inside; aim it at the bulb or raise embed_mm)"
             )
-        outer = geo.ellipsoid_signed_distance(geo.disk_rim_points(g.end_mm, g.direction, g.radius_mm), axes)
+        outer = sdist(geo.disk_rim_points(g.end_mm, g.direction, g.radius_mm))
         if outer.min() < MIN_WALL_MM:
             raise DesignError(
                 f"{p}.length_mm = {_fmt(arm.length_mm)}: the fixed end face comes {_fmt(outer.min())} mm from "
@@ -623,7 +726,7 @@ def _validate_geometry(d: BIPDesign) -> None:
             )
         ca, cb = g.cavity_segment_mm
         cav = geo.capsule_surface_points(ca, cb, g.cavity_radius_mm)
-        to_bulb = float(geo.ellipsoid_signed_distance(cav, axes).min())
+        to_bulb = float(sdist(cav).min())
         if to_bulb < MIN_WALL_MM:
             where = f"comes {_fmt(to_bulb)} mm from" if to_bulb >= 0 else f"cuts {_fmt(-to_bulb)} mm into"
             raise DesignError(
@@ -655,7 +758,7 @@ def _validate_geometry(d: BIPDesign) -> None:
     if len(d.markers) < MIN_MARKERS:
         raise DesignError(f"markers: {len(d.markers)} given (min {MIN_MARKERS}, non-coplanar)")
     for name, xyz in d.markers:
-        off = abs(float(geo.ellipsoid_signed_distance([xyz], axes)[0]))
+        off = abs(float(sdist([xyz])[0]))
         if off > SURFACE_TOL_MM:
             raise DesignError(f"markers.{name} is {_fmt(off)} mm off the bulb surface (tolerance {SURFACE_TOL_MM:g} mm)")
         for g in geoms:
@@ -668,13 +771,13 @@ def _validate_geometry(d: BIPDesign) -> None:
             f"markers are coplanar (out-of-plane spread {_fmt(spread)} mm, min {MIN_MARKER_SPREAD_MM:g} mm)"
         )
     for name, xyz in d.targets:
-        sd = float(geo.ellipsoid_signed_distance([xyz], axes)[0])
+        sd = float(sdist([xyz])[0])
         if sd >= 0.0:
             raise DesignError(f"targets.{name} is outside the bulb ({_fmt(sd)} mm beyond its surface)")
         inside = u.radius_mm - float(geo.segment_distance([xyz], ua, ub)[0])
         if inside >= 0.0:
             raise DesignError(f"targets.{name} is inside the urethra cavity ({_fmt(inside)} mm from its wall)")
-    _p_ext(axes, d.interaction)
+    _p_ext(d.bulb, d.interaction)
 
 
 # --- files ---------------------------------------------------------------------------------
@@ -682,6 +785,10 @@ def _validate_geometry(d: BIPDesign) -> None:
 _SUBS = {"bulb": BulbParams, "urethra": UrethraParams, "interaction": InteractionParams, "mesh": MeshParams,
          "molds": MoldParams, "sensors": SensorParams}
 _ARM_KEYS = [f.name for f in dataclasses.fields(ArmParams) if f.name != "name"]
+
+
+def _plain(v: Any) -> Any:
+    return [_plain(x) for x in v] if isinstance(v, (tuple, list)) else v
 
 
 def design_to_dict(design: BIPDesign) -> dict[str, Any]:
@@ -692,7 +799,10 @@ def design_to_dict(design: BIPDesign) -> dict[str, Any]:
     """
     out: dict[str, Any] = {"name": design.name}
     for sub in _SUBS:
-        out[sub] = {k: (list(v) if isinstance(v, tuple) else v) for k, v in dataclasses.asdict(getattr(design, sub)).items()}
+        out[sub] = {k: _plain(v) for k, v in dataclasses.asdict(getattr(design, sub)).items()}
+    if not design.bulb.is_surface:  # an ellipsoid's file stays as it was
+        for k in ("surface_vertices_mm", "surface_faces"):
+            del out["bulb"][k]
     out["arms"] = {
         a.name: {k: (list(getattr(a, k)) if isinstance(getattr(a, k), tuple) else getattr(a, k)) for k in _ARM_KEYS}
         for a in design.arms

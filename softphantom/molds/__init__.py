@@ -2,7 +2,7 @@
 
 ``build_parts(design)`` builds every solid with gmsh's OpenCASCADE kernel (molds/parts.py);
 ``write_molds(parts, out)`` checks each one (closed, manifold, not self-intersecting, fits the
-build volume; molds/check.py) and writes STL and 3MF files in the print pose, the bill of
+build volume; design/solid_check.py) and writes STL and 3MF files in the print pose, the bill of
 materials (CSV and markdown) and a parts list. See docs/fabrication.md.
 """
 
@@ -17,7 +17,7 @@ import numpy as np
 from softphantom.design.fabrication import BUILD_VOLUME_MM
 from softphantom.errors import MeshError
 from softphantom.molds.bom import material_totals, part_rows, silicone_rows, to_csv, to_markdown
-from softphantom.molds.check import MeshReport, intersection_volume, report_mesh
+from softphantom.design.solid_check import MeshReport, intersection_volume, report_mesh
 from softphantom.molds.parts import Part, build_parts
 
 __all__ = ["Part", "MoldSet", "build_parts", "check_parts", "write_molds", "assembly_groups", "interference"]

@@ -36,15 +36,6 @@ def ellipsoid(occ, semi_axes, transform: list[float] | None = None) -> int:
     return tag
 
 
-def capsule(occ, a, b, r: float) -> int:
-    """A capsule (cylinder with hemispherical ends) with axis [a, b]."""
-    ax = np.asarray(b, float) - np.asarray(a, float)
-    parts = [(3, occ.addSphere(*a, r)), (3, occ.addSphere(*b, r))]
-    if np.linalg.norm(ax) > 1e-9:
-        parts.append((3, occ.addCylinder(*a, *ax, r)))
-    return one_volume(occ.fuse(parts[:1], parts[1:]), "capsule")
-
-
 def cone_along(occ, p0, p1, r0: float, draft_deg: float, grow: bool = True) -> int:
     """A truncated cone from ``p0`` (radius ``r0``) to ``p1``, radius changing by the draft angle."""
     p0 = np.asarray(p0, float)

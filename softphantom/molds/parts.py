@@ -20,11 +20,14 @@ direction that goes down on the build plate (``down``):
 
 The cast silicone pieces (``cast_bulb``, ``cast_arm_<arm>``) are built the same way: the bill of
 materials and the assembly drawing use them.
+
+An imported bulb (a triangle surface, design/anatomy.py) is a polyhedral solid of thousands of
+faces, on which each OCC boolean takes tens of seconds: there OCC builds every part without the
+bulb and manifold3d (exact mesh booleans) cuts or keeps the bulb's own triangles afterwards.
 """
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -32,7 +35,8 @@ import numpy as np
 from softphantom.design import geometry as geo
 from softphantom.design.params import BIPDesign
 from softphantom.errors import DesignError
-from softphantom.molds.occ import affine_12, capsule, cone_along, ellipsoid, occ_solid, one_volume
+from softphantom.design.occ_shapes import bulb_solid, capsule
+from softphantom.molds.occ import affine_12, cone_along, occ_solid, one_volume
 
 OVERHANG_MM = 8.0  # how far rods and stems stick out of a mold, to hold them
 
@@ -82,15 +86,10 @@ def _frame_of(direction) -> np.ndarray:
     return np.column_stack([u, v, w])
 
 
-def _ellipsoid_normal(p, axes) -> np.ndarray:
-    return geo.unit(np.asarray(p, float) / np.asarray(axes, float) ** 2)
-
-
 class _Builder:
     def __init__(self, design: BIPDesign):
         self.d = design
         self.m = design.molds
-        self.axes = design.bulb.semi_axes_mm
         self.seg = self.m.segments
         self.cl = self.m.clearance_mm
         self.draft = self.m.draft_deg
@@ -101,30 +100,43 @@ class _Builder:
         # the rod starts at the capsule end nearest the inlet and leaves through it
         self.rod_start = ua if np.linalg.norm(inlet - ua) < np.linalg.norm(inlet - ub) else ub
         self.rod_dir = geo.unit(inlet - self.rod_start)
-        a, b, c = self.axes
-        w = self.m.wall_mm
-        self.box_lo = np.array([-a - w, -b - w, -c - w])
-        self.box_hi = np.array([a + w, b + w, c + w])
+        lo, hi = design.bulb.bounds_mm()
+        self.box_lo, self.box_hi = lo - self.m.wall_mm, hi + self.m.wall_mm
         self.rod_len = self._exit_length(self.rod_start, self.rod_dir) + OVERHANG_MM
         self.arms = design.arm_geometry()
 
     # --- helpers --------------------------------------------------------------------------
     def _exit_length(self, p, d) -> float:
         """Distance from ``p`` along unit ``d`` to beyond the bulb mold's block."""
-        t = []
-        for i in range(3):
-            if abs(d[i]) > 1e-12:
-                t.extend([(self.box_lo[i] - p[i]) / d[i], (self.box_hi[i] - p[i]) / d[i]])
-        return max(t) + 1.0
+        # leaves the box through the first slab it leaves: the smallest exit over the axes
+        t = [max((self.box_lo[i] - p[i]) / d[i], (self.box_hi[i] - p[i]) / d[i]) for i in range(3) if abs(d[i]) > 1e-12]
+        return min(t) + 1.0
 
-    def _bulb(self, occ) -> int:
-        return ellipsoid(occ, self.axes)
+    def _bulb(self, occ, transform=None) -> list[tuple[int, int]]:
+        """The bulb as an OCC tool, or nothing for a surface bulb (see :meth:`_less_bulb`)."""
+        return [] if self.d.bulb.is_surface else [(3, bulb_solid(occ, self.d.bulb, transform))]
+
+    def _bulb_mesh(self, to_local: np.ndarray | None = None):
+        """The surface bulb's own triangles (trimesh), optionally in an arm's frame (4×4)."""
+        import trimesh
+
+        bulb = trimesh.Trimesh(np.asarray(self.d.bulb.surface_vertices_mm), np.asarray(self.d.bulb.surface_faces),
+                               process=False)
+        return bulb.apply_transform(to_local) if to_local is not None else bulb
+
+    def _less_bulb(self, mesh, to_local: np.ndarray | None = None):
+        """``mesh`` less a surface bulb (manifold3d); ``mesh`` itself for an ellipsoid (cut by OCC)."""
+        if not self.d.bulb.is_surface:
+            return mesh
+        from softphantom.design.solid_check import from_manifold, to_manifold
+
+        return from_manifold(to_manifold(mesh) - to_manifold(self._bulb_mesh(to_local)))
 
     def _rod(self, occ, extra: float) -> int:
         return occ.addCylinder(*self.rod_start, *(self.rod_dir * self.rod_len), self.m.core_rod_radius_mm + extra)
 
     def _marker_normals(self) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-        return {k: (np.asarray(p, float), _ellipsoid_normal(p, self.axes)) for k, p in self.d.markers}
+        return {k: (np.asarray(p, float), self.d.bulb.normal(p)) for k, p in self.d.markers}
 
     def _socket_hole(self, occ, p, n) -> int:
         r = self.m.marker_socket_radius_mm + self.cl
@@ -142,11 +154,11 @@ class _Builder:
         return out
 
     def _vent_points(self) -> list[np.ndarray]:
-        a, b, c = self.axes
+        lo, hi = self.d.bulb.bounds_mm()
         out = []
-        for y in (-0.5 * b, 0.5 * b):
-            z = c * math.sqrt(max(0.0, 1.0 - (y / b) ** 2))
-            out.append(np.array([0.0, y, z]))
+        for y in (0.5 * lo[1], 0.5 * hi[1]):  # halfway to the front and to the back, at the top
+            o = np.array([0.0, y, 0.0])
+            out.append(o + self.d.bulb.ray_exit(o, (0.0, 0.0, 1.0)) * np.array([0.0, 0.0, 1.0]))
         return out
 
     # --- the bulb mold --------------------------------------------------------------------
@@ -159,7 +171,7 @@ class _Builder:
                 y = self.box_hi[1] - inset if sy > 0 else self.box_lo[1] + inset
                 pts.append(np.array([x, y, self.zp]))
         for p in pts:
-            if geo.ellipsoid_signed_distance([p], self.axes)[0] < self.m.key_radius_mm + self.cl + 1.0:
+            if self.d.bulb.signed_distance([p])[0] < self.m.key_radius_mm + self.cl + 1.0:
                 raise DesignError(f"molds.wall_mm = {self.m.wall_mm:.4g}: no room for the registration keys "
                                   "beside the bulb (raise wall_mm)")
         return pts
@@ -171,11 +183,11 @@ class _Builder:
         def build(occ):
             z0, z1 = (zp, hi[2]) if upper else (lo[2], zp)
             block = occ.addBox(lo[0], lo[1], z0, hi[0] - lo[0], hi[1] - lo[1], z1 - z0)
-            tools = [(3, self._bulb(occ)), (3, self._rod(occ, self.cl))]
+            tools = [*self._bulb(occ), (3, self._rod(occ, self.cl))]
             tools += [(3, self._socket_hole(occ, p, n)) for p, n in markers.values()]
             keys = self._bulb_key_points()
             if upper:
-                top = np.array([0.0, 0.0, self.axes[2]])
+                top = np.array([0.0, 0.0, self.d.bulb.ray_exit((0.0, 0.0, 0.0), (0.0, 0.0, 1.0))])
                 tools.append((3, cone_along(occ, top - [0, 0, 1.0], [0.0, 0.0, hi[2] + 1.0],
                                             self.m.spout_radius_mm, self.draft)))
                 for p in self._vent_points():
@@ -188,7 +200,7 @@ class _Builder:
             return vol
 
         name = "bulb_mold_upper" if upper else "bulb_mold_lower"
-        return Part(name, "mold", "bulb", PRINT_MATERIAL, occ_solid(name, build, self.seg),
+        return Part(name, "mold", "bulb", PRINT_MATERIAL, self._less_bulb(occ_solid(name, build, self.seg)),
                     (0.0, 0.0, -1.0))
 
     def urethra_core(self) -> Part:
@@ -221,15 +233,29 @@ class _Builder:
         markers = self._marker_normals()
         ms = self.m
 
-        def build(occ):
-            tools = [(3, capsule(occ, *u.segment_mm, u.radius_mm)), (3, self._rod(occ, 0.0))]
-            for p, n in markers.values():
-                tools.append((3, occ.addCylinder(*(p - ms.marker_socket_depth_mm * n),
-                                                 *(n * (ms.marker_socket_depth_mm + 1.0)), ms.marker_socket_radius_mm)))
-            return one_volume(occ.cut([(3, self._bulb(occ))], tools), "cast bulb")
+        def socket(occ, p, n) -> int:
+            return occ.addCylinder(*(p - ms.marker_socket_depth_mm * n), *(n * (ms.marker_socket_depth_mm + 1.0)),
+                                   ms.marker_socket_radius_mm)
 
-        return Part("cast_bulb", "cast", "phantom", BULB_SILICONE, occ_solid("cast_bulb", build, self.seg),
-                    (0.0, 0.0, -1.0))
+        def core(occ) -> list[tuple[int, int]]:
+            return [(3, capsule(occ, *u.segment_mm, u.radius_mm)), (3, self._rod(occ, 0.0))]
+
+        if self.d.bulb.is_surface:  # the bulb's triangles less each tool (disjoint solids) by manifold3d
+            from softphantom.design.solid_check import from_manifold, to_manifold
+
+            tools = [lambda occ: one_volume(occ.fuse(*(lambda c: (c[:1], c[1:]))(core(occ))), "urethra core")]
+            tools += [lambda occ, p=p, n=n: socket(occ, p, n) for p, n in markers.values()]
+            solid = to_manifold(self._bulb_mesh())
+            for k, build in enumerate(tools):
+                solid = solid - to_manifold(occ_solid(f"cast_bulb_tool_{k}", build, self.seg))
+            mesh = from_manifold(solid)
+        else:
+            def build(occ):
+                tools = core(occ) + [(3, socket(occ, p, n)) for p, n in markers.values()]
+                return one_volume(occ.cut(self._bulb(occ), tools), "cast bulb")
+
+            mesh = occ_solid("cast_bulb", build, self.seg)
+        return Part("cast_bulb", "cast", "phantom", BULB_SILICONE, mesh, (0.0, 0.0, -1.0))
 
     # --- arms -----------------------------------------------------------------------------
     def _arm_local(self, g):
@@ -238,7 +264,7 @@ class _Builder:
         origin = np.asarray(g.root_mm, float)
         to_local = affine_12(R.T, -R.T @ origin)
         rim = geo.disk_rim_points(g.start_mm, g.direction, g.radius_mm, n=128)
-        s = [geo.ray_exit(p, g.direction, self.axes) for p in rim]
+        s = [self.d.bulb.ray_exit(p, g.direction) for p in rim]
         arm = next(a for a in self.d.arms if a.name == g.name)
         z_floor = min(s) - arm.embed_mm
         c0, c1 = ((np.asarray(q, float) - origin) @ R[:, 2] for q in g.cavity_segment_mm)
@@ -258,8 +284,9 @@ class _Builder:
         inset = self.m.key_radius_mm + self.cl + 1.5
         return [np.array([0.0, sy * y, z]) for sy in (-1, 1) for z in (z_lo + inset, z_hi - inset)]
 
-    def _split_halves(self, name, group, hw, z_lo, z_hi, r_key, cut_tools, R, origin) -> list[Part]:
-        """Two halves x < 0 (with pins along +x) and x > 0 (sockets) of a local block."""
+    def _split_halves(self, name, group, hw, z_lo, z_hi, r_key, cut_tools, R, origin, minus=None) -> list[Part]:
+        """Two halves x < 0 (with pins along +x) and x > 0 (sockets) of a local block, less the
+        mesh ``minus`` (local frame, manifold3d) if given."""
         keys = self._split_keys(r_key, z_lo, z_hi)
         out = []
         for side in ("a", "b"):
@@ -274,7 +301,12 @@ class _Builder:
                     vol = one_volume(occ.fuse([(3, vol)], self._keys(occ, keys, (1, 0, 0), 0.0)), f"{name} pins")
                 return vol
 
-            mesh = self._to_model(occ_solid(f"{name}_{side}", build, self.seg), R, origin)
+            mesh = occ_solid(f"{name}_{side}", build, self.seg)
+            if minus is not None:
+                from softphantom.design.solid_check import from_manifold, to_manifold
+
+                mesh = from_manifold(to_manifold(mesh) - to_manifold(minus))
+            mesh = self._to_model(mesh, R, origin)
             down = R[:, 0] if side == "a" else -R[:, 0]  # the parting face on the plate
             out.append(Part(f"{name}_{side}", "mold", group, PRINT_MATERIAL, mesh, tuple(down)))
         return out
@@ -289,7 +321,13 @@ class _Builder:
 
         def arm_out(occ):
             cyl = occ.addCylinder(0.0, 0.0, -arm.embed_mm, 0.0, 0.0, L + arm.embed_mm, r)
-            return one_volume(occ.cut([(3, cyl)], [(3, ellipsoid(occ, self.axes, to_local))]), f"arm {g.name}")
+            bulb = self._bulb(occ, to_local)
+            return one_volume(occ.cut([(3, cyl)], bulb), f"arm {g.name}") if bulb else cyl
+
+        # a surface bulb: the arm outside it by manifold3d, cut from the mold halves afterwards
+        local = np.vstack([np.reshape(to_local, (3, 4)), [0.0, 0.0, 0.0, 1.0]])
+        surface = self.d.bulb.is_surface
+        arm_mesh = self._less_bulb(occ_solid(f"arm_{g.name}", arm_out, self.seg), local) if surface else None
 
         def core(occ, grow: float):
             cap = capsule(occ, (0.0, 0.0, c0), (0.0, 0.0, c1), rc + grow)
@@ -300,13 +338,14 @@ class _Builder:
             spout_r = min(ms.spout_radius_mm, 0.35 * r)
             vent_r = min(ms.vent_radius_mm, 0.2 * r)
             return [
-                (3, arm_out(occ)),
+                *([] if surface else [(3, arm_out(occ))]),
                 (3, occ.addCylinder(0.0, 0.0, c1, 0.0, 0.0, stem_end + 1.0 - c1, ms.stem_radius_mm + cl)),
                 (3, cone_along(occ, (0.0, 0.55 * r, L - 1.0), (0.0, 0.55 * r, z_hi + 1.0), spout_r, self.draft)),
                 (3, cone_along(occ, (0.0, -0.7 * r, L - 1.0), (0.0, -0.7 * r, z_hi + 1.0), vent_r, self.draft)),
             ]
 
-        parts = self._split_halves(f"arm_mold_{g.name}", f"arm_{g.name}", hw, z_lo, z_hi, r, arm_tools, R, origin)
+        parts = self._split_halves(f"arm_mold_{g.name}", f"arm_{g.name}", hw, z_lo, z_hi, r, arm_tools, R, origin,
+                                   minus=arm_mesh)
         core_mesh = self._to_model(occ_solid(f"arm_core_{g.name}", lambda occ: core(occ, 0.0), self.seg), R, origin)
         parts.append(Part(f"arm_core_{g.name}", "core", f"arm_{g.name}", CORE_SILICONE, core_mesh, tuple(R[:, 0])))
 
@@ -326,7 +365,8 @@ class _Builder:
         def cast(occ):
             return one_volume(occ.cut([(3, arm_out(occ))], [(3, core(occ, 0.0))]), f"cast arm {g.name}")
 
-        cast_mesh = self._to_model(occ_solid(f"cast_arm_{g.name}", cast, self.seg), R, origin)
+        cast_mesh = self._to_model(self._less_bulb(occ_solid(f"cast_arm_{g.name}", cast, self.seg), local),
+                                   R, origin)
         parts.append(Part(f"cast_arm_{g.name}", "cast", "phantom", ARM_SILICONE, cast_mesh, tuple(-R[:, 2])))
         return parts
 
@@ -335,14 +375,15 @@ class _Builder:
         ms, cl = self.m, self.cl
         fw = ms.frame_wall_mm
         post_r = fw + 1.0
-        a = self.axes[0]
+        lo_b, hi_b = self.d.bulb.bounds_mm()
+        a = float(max(-lo_b[0], hi_b[0]))
         socket_r = max(g.radius_mm for g in self.arms) + cl + fw
         side_x = a + socket_r + post_r + 6.0
         lows = []
         for g in self.arms:
             rim = geo.disk_rim_points(g.end_mm, g.direction, socket_r, n=64)
             lows.append(float(rim[:, 2].min()))
-        z_top = min(min(lows), -self.axes[2]) - 4.0
+        z_top = min(min(lows), float(lo_b[2])) - 4.0
 
         def build(occ):
             pieces, bores, feet = [], [], []
@@ -378,11 +419,14 @@ class _Builder:
                     (0.0, 0.0, -1.0))
 
 
-def build_parts(design: BIPDesign) -> tuple[Part, ...]:
-    """Every part of ``design`` (molds, cores, inserts, frame, and the cast pieces), in a fixed order."""
+def build_parts(design: BIPDesign, bulb_only: bool = False) -> tuple[Part, ...]:
+    """Every part of ``design`` (molds, cores, inserts, frame, and the cast pieces), in a fixed
+    order; ``bulb_only``: the bulb mold's group alone (halves, urethra core, marker sockets)."""
     b = _Builder(design)
     parts = [b.bulb_half(upper=False), b.bulb_half(upper=True), b.urethra_core()]
     parts += [b.marker_socket(name) for name, _ in design.markers]
+    if bulb_only:
+        return tuple(parts)
     parts.append(b.cast_bulb())
     for g in b.arms:
         parts += b.arm_parts(g)

@@ -11,6 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
+from softphantom.viz.mesh_view import _square
+
 _COLOURS = {"mold": "#9ecae1", "core": "#7b3fa0", "insert": "#222222", "frame": "#bdbdbd", "cast": "#f2b8a2"}
 _MAX_FACES = 4000
 
@@ -25,11 +27,7 @@ def _draw(ax, mesh, colour: str, offset=(0.0, 0.0, 0.0), alpha: float = 0.5) -> 
 
 
 def _limits(ax, pts: np.ndarray) -> None:
-    lo, hi = pts.min(axis=0), pts.max(axis=0)
-    c, r = 0.5 * (lo + hi), 0.5 * float((hi - lo).max())
-    ax.set_xlim(c[0] - r, c[0] + r)
-    ax.set_ylim(c[1] - r, c[1] + r)
-    ax.set_zlim(c[2] - r, c[2] + r)
+    _square(ax, pts)
     ax.set_xlabel("x mm")
     ax.set_ylabel("y mm")
     ax.set_zlabel("z mm")

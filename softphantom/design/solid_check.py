@@ -1,4 +1,4 @@
-"""Is a part printable? Closed, manifold, not self-intersecting; do assembled parts interfere?
+"""Is a triangle mesh a clean solid? Closed, manifold, not self-intersecting; do two solids interfere?
 
 - closed and oriented: trimesh (every edge shared by exactly two faces, winding consistent,
   positive volume);
@@ -7,7 +7,7 @@
   with it (candidate pairs from trimesh's R-tree of face boxes, exact orientation tests in numpy);
 - interference: the volume of the manifold3d intersection of two parts.
 
-The same checks reject a bad anatomy surface (design/anatomy.py).
+Used on every printed part (softphantom.molds) and on an anatomy surface (design/anatomy.py).
 
 >>> import trimesh
 >>> report_mesh(trimesh.creation.box((10, 10, 10))).ok
@@ -64,10 +64,20 @@ def to_manifold(mesh):
 
     ctor = getattr(m3, "Mesh64", None)
     if ctor is not None:
-        mm = ctor(vert_properties=np.asarray(mesh.vertices, np.float64), tri_verts=np.asarray(mesh.faces, np.uint64))
+        mm = ctor(vert_properties=np.array(mesh.vertices, np.float64, order="C"),  # writable copies
+                  tri_verts=np.array(mesh.faces, np.uint64, order="C"))
     else:  # pragma: no cover - older manifold3d
         mm = m3.Mesh(vert_properties=np.asarray(mesh.vertices, np.float32), tri_verts=np.asarray(mesh.faces, np.uint32))
     return m3.Manifold(mm)
+
+
+def from_manifold(solid):
+    """The trimesh of a manifold3d solid (float64 where available)."""
+    import trimesh
+
+    mm = solid.to_mesh64() if hasattr(solid, "to_mesh64") else solid.to_mesh()
+    return trimesh.Trimesh(np.ascontiguousarray(mm.vert_properties[:, :3], float), np.asarray(mm.tri_verts, np.int64),
+                           process=False)
 
 
 def manifold_volume(solid) -> float:

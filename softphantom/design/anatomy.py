@@ -1,0 +1,352 @@
+"""A patient's prostate as the bulb of a design: a label map (NIfTI) or a closed surface (STL/OBJ).
+
+Label map (read by nibabel; world coordinates from its affine, RAS+ mm as NIfTI defines them):
+every non-zero voxel is gland (``bulb``); label ``urethra_label`` (default 2) is the urethra, the
+labels in ``lesion_labels`` are lesions (reported, they need the multi-material design to be
+modelled). The gland must be one connected component (26-connectivity). Its surface: the mask
+resampled to ``resample_mm`` (linear), smoothed by a Gaussian of ``smooth_mm``, marching cubes at
+the 0.5 level (scikit-image), then an even remesh at ``surface_size_mm`` by gmsh (its surface
+classification and reparametrization). On MRI-like spacing (0.5 × 0.5 × 3 mm) the enclosed
+volume stays within 2 % of the voxel count (tests/test_anatomy.py).
+
+Surface file (trimesh): must be closed, consistently oriented and not self-intersecting
+(design/solid_check.py); it is remeshed the same way.
+
+Placement in the model frame (docs/architecture.md): the input's RAS axes are first turned to the
+model's (x = left, y = superior = perineum → base, z = anterior); the gland's centroid goes to the
+origin and its principal axes (of the enclosed volume's inertia) to the model axes they are
+closest to. The urethra (label) becomes the design's capsule: centroid, principal axis, length
+along it, volume from the voxel count, radius from length and volume; its inlet is where its axis
+leaves the bulb towards the base. Arms keep the design's directions and attach where those leave
+the new surface; markers are re-projected along their directions; targets are scaled with the
+gland's extent. Bad input is one line naming the problem and the value.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from softphantom.design.params import BIPDesign, BulbParams, UrethraParams
+from softphantom.errors import DesignError, FileFormatError
+
+# RAS+ (NIfTI world) → model frame: x = left (−R), y = superior, z = anterior (a proper rotation)
+RAS_TO_MODEL = np.array([[-1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, 1.0, 0.0]])
+
+
+@dataclass(frozen=True)
+class AnatomyOptions:
+    """How a label map or surface becomes a bulb (lengths in mm)."""
+
+    urethra_label: int = 2
+    lesion_labels: tuple[int, ...] = ()
+    resample_mm: float = 1.0
+    smooth_mm: float = 1.0
+    surface_size_mm: float = 3.0
+
+
+@dataclass(frozen=True)
+class Anatomy:
+    """A gland in the model frame, mm: its surface, the urethra fit and what the import measured."""
+
+    vertices_mm: np.ndarray
+    faces: np.ndarray
+    urethra: dict | None  # center_mm, axis, radius_mm, volume_mm3, length_mm
+    lesions: dict[int, dict]  # label → center_mm, volume_mm3
+    voxel_volume_mm3: float | None  # gland volume from the voxel count (label maps only)
+    rotation: np.ndarray  # input frame → model frame
+    translation: np.ndarray
+
+    @property
+    def volume_mm3(self) -> float:
+        from softphantom.design.geometry import surface_enclosed_volume
+
+        return surface_enclosed_volume(self.vertices_mm, self.faces)
+
+
+def _components(mask: np.ndarray) -> tuple[int, list[int]]:
+    from scipy import ndimage
+
+    lab, n = ndimage.label(mask, structure=np.ones((3, 3, 3), bool))
+    sizes = sorted(np.bincount(lab.ravel())[1:].tolist(), reverse=True)
+    return n, sizes
+
+
+def _marching_cubes(mask: np.ndarray, affine: np.ndarray, opt: AnatomyOptions):
+    """Smoothed iso-surface of a binary mask, vertices in world mm (the affine applied)."""
+    from scipy import ndimage
+    from skimage import measure
+
+    spacing = np.linalg.norm(affine[:3, :3], axis=0)
+    zoom = np.maximum(spacing / opt.resample_mm, 1.0)
+    pad = int(math.ceil(3.0 * opt.smooth_mm / opt.resample_mm)) + 2
+    f = ndimage.zoom(mask.astype(np.float32), zoom, order=1, mode="grid-constant", grid_mode=True)
+    eff = np.asarray(f.shape) / np.asarray(mask.shape)  # actual zoom per axis
+    f = np.pad(f, pad)
+    f = ndimage.gaussian_filter(f, opt.smooth_mm / (spacing / eff))
+    verts, faces, _, _ = measure.marching_cubes(f, 0.5)
+    ijk = (verts - pad + 0.5) / eff - 0.5  # voxel-centre index coordinates of the original grid
+    world = ijk @ affine[:3, :3].T + affine[:3, 3]
+    if np.linalg.det(affine[:3, :3]) < 0.0:
+        faces = faces[:, ::-1]
+    return world, faces
+
+
+def _coarsen(mesh, faces: int = 6000):
+    """Quadric decimation (fast-simplification through trimesh) before the remesh: it keeps the
+    shape and volume, and the remesh then runs on a few thousand triangles instead of 10⁵."""
+    if len(mesh.faces) > faces:
+        mesh = mesh.simplify_quadric_decimation(face_count=faces)
+        mesh.remove_unreferenced_vertices()
+    return mesh
+
+
+def _remesh(mesh, size_mm: float, what: str):
+    """An even triangulation of a closed surface at about ``size_mm`` (gmsh: the surface is
+    classified into patches, reparametrized and meshed again). Quadric decimation alone keeps the
+    volume but leaves needle triangles (0.1° angles) that become degenerate tetrahedra."""
+    import trimesh
+
+    from softphantom.design.mesh import gmsh_session
+
+    with gmsh_session("softphantom_anatomy_remesh", f"the surface of {what}") as gmsh:
+        for opt, value in (("General.NumThreads", 1), ("Mesh.RandomSeed", 1), ("Mesh.Algorithm", 6),
+                           ("Mesh.MeshSizeMax", size_mm), ("Mesh.MeshSizeMin", size_mm),
+                           ("Mesh.MeshSizeFromPoints", 0), ("Mesh.MeshSizeFromCurvature", 0)):
+            gmsh.option.setNumber(opt, value)
+        tag = gmsh.model.addDiscreteEntity(2)
+        v = np.asarray(mesh.vertices, float)
+        gmsh.model.mesh.addNodes(2, tag, list(range(1, len(v) + 1)), v.ravel().tolist())
+        gmsh.model.mesh.addElementsByType(tag, 2, [], (np.asarray(mesh.faces) + 1).ravel().tolist())
+        gmsh.model.mesh.classifySurfaces(math.radians(40.0), True, True, math.pi)
+        gmsh.model.mesh.createGeometry()
+        size = gmsh.model.mesh.field.add("MathEval")  # a constant size everywhere (gmsh t13)
+        gmsh.model.mesh.field.setString(size, "F", f"{size_mm:.6g}")
+        gmsh.model.mesh.field.setAsBackgroundMesh(size)
+        gmsh.option.setNumber("Mesh.MeshSizeExtendFromBoundary", 0)
+        gmsh.model.mesh.generate(2)
+        tags, coords, _ = gmsh.model.mesh.getNodes()
+        pos = np.full(int(np.max(tags)) + 1, -1, dtype=np.int64)
+        pos[np.asarray(tags, dtype=np.int64)] = np.arange(len(tags))
+        tris = []
+        for _, s in gmsh.model.getEntities(2):
+            types, _, ntags = gmsh.model.mesh.getElements(2, s)
+            for t, nt in zip(types, ntags):
+                if t == 2:
+                    tris.append(pos[np.asarray(nt, dtype=np.int64).reshape(-1, 3)])
+        xyz = np.asarray(coords, float).reshape(-1, 3)
+    out = trimesh.Trimesh(xyz, np.vstack(tris), process=True)
+    out.remove_unreferenced_vertices()
+    trimesh.repair.fix_normals(out)
+    return out
+
+
+def _check_surface(mesh, what: str) -> None:
+    from softphantom.design.solid_check import report_mesh
+
+    r = report_mesh(mesh)
+    if r.problem() is not None:
+        raise DesignError(f"{what}: the surface is {r.problem()}")
+
+
+def _placement(mesh) -> tuple[np.ndarray, np.ndarray]:
+    """(R, t): model = R·input + t, from the RAS turn, the centroid and the principal axes."""
+    c = np.asarray(mesh.center_mass, float)
+    inertia = RAS_TO_MODEL @ np.asarray(mesh.moment_inertia, float) @ RAS_TO_MODEL.T
+    _, vecs = np.linalg.eigh(inertia)
+    # match each principal axis to the model axis it is closest to, signs towards that axis
+    best, best_score = None, -1.0
+    for perm in ((0, 1, 2), (0, 2, 1), (1, 0, 2), (1, 2, 0), (2, 0, 1), (2, 1, 0)):
+        score = sum(abs(vecs[k, perm[k]]) for k in range(3))
+        if score > best_score:
+            best, best_score = perm, score
+    rows = np.array([vecs[:, best[k]] * np.sign(vecs[k, best[k]] or 1.0) for k in range(3)])
+    if np.linalg.det(rows) < 0.0:  # keep it a rotation: flip the least aligned axis
+        k = int(np.argmin([abs(rows[i, i]) for i in range(3)]))
+        rows[k] = -rows[k]
+    R = rows @ RAS_TO_MODEL
+    return R, -R @ c
+
+
+def _capsule_fit(points_mm: np.ndarray, volume_mm3: float, extra_mm: float = 0.0) -> dict:
+    """Centre, axis (towards +y), length and radius of the capsule holding ``volume_mm3``."""
+    c = points_mm.mean(axis=0)
+    _, _, vt = np.linalg.svd(points_mm - c, full_matrices=False)
+    axis = vt[0] * (1.0 if vt[0][1] >= 0.0 else -1.0)
+    proj = (points_mm - c) @ axis
+    length = float(proj.max() - proj.min()) + extra_mm
+    # V = π r² L − (2/3) π r³ for a capsule of total length L (monotone in r on [0, L/2])
+    lo, hi = 0.0, 0.5 * length
+    for _ in range(80):
+        r = 0.5 * (lo + hi)
+        if math.pi * r * r * length - 2.0 / 3.0 * math.pi * r**3 < volume_mm3:
+            lo = r
+        else:
+            hi = r
+    return {"center_mm": c, "axis": axis, "length_mm": length, "radius_mm": 0.5 * (lo + hi), "volume_mm3": volume_mm3}
+
+
+def anatomy_from_labels(data: np.ndarray, affine: np.ndarray, opt: AnatomyOptions = AnatomyOptions(),
+                        source: str = "label map") -> Anatomy:
+    """A gland from an integer label map and its voxel → world (mm) affine."""
+    import trimesh
+
+    data = np.asarray(data)
+    if data.ndim != 3:
+        raise FileFormatError(f"{source}: expected a 3-D label map, got {data.ndim} dimensions")
+    if not np.issubdtype(data.dtype, np.integer):
+        if not np.all(np.isfinite(data)) or np.any(data != np.round(data)):
+            raise FileFormatError(f"{source}: labels must be integers")
+        data = data.astype(np.int64)
+    mask = data > 0
+    n, sizes = _components(mask)
+    if n == 0:
+        raise DesignError(f"{source}: no labelled voxels (the gland has 0 components)")
+    if n > 1:
+        raise DesignError(f"{source}: the gland has {n} disconnected components (voxel counts {sizes[:5]}); "
+                          "expected one")
+    voxel = float(abs(np.linalg.det(affine[:3, :3])))
+    world, faces = _marching_cubes(mask, affine, opt)
+    mc = trimesh.Trimesh(world, faces, process=True)
+    if mc.volume < 0.0:
+        mc.invert()
+    mesh = _remesh(_coarsen(mc), opt.surface_size_mm, source)
+    _check_surface(mesh, source)
+    R, t = _placement(mesh)
+
+    def to_model(ijk):
+        return (np.asarray(ijk, float) @ affine[:3, :3].T + affine[:3, 3]) @ R.T + t
+
+    urethra = None
+    if opt.urethra_label and np.any(data == opt.urethra_label):
+        idx = np.argwhere(data == opt.urethra_label)
+        urethra = _capsule_fit(to_model(idx), len(idx) * voxel)
+        # voxel centres span the length less one voxel along the axis
+        axis_ijk = np.linalg.solve(affine[:3, :3], R.T @ urethra["axis"])
+        urethra = _capsule_fit(to_model(idx), len(idx) * voxel,
+                               extra_mm=float(np.linalg.norm(affine[:3, :3] @ (axis_ijk / np.abs(axis_ijk).max()))))
+    lesions = {}
+    for lab in opt.lesion_labels:
+        idx = np.argwhere(data == lab)
+        if len(idx) == 0:
+            raise DesignError(f"{source}: lesion label {lab} has no voxels")
+        lesions[int(lab)] = {"center_mm": to_model(idx).mean(axis=0), "volume_mm3": len(idx) * voxel}
+    v = np.asarray(mesh.vertices) @ R.T + t
+    return Anatomy(v, np.asarray(mesh.faces), urethra, lesions, float(mask.sum()) * voxel, R, t)
+
+
+def anatomy_from_surface(mesh, opt: AnatomyOptions = AnatomyOptions(), source: str = "surface") -> Anatomy:
+    """A gland from a closed triangle surface (mm, RAS-oriented like a label map's world)."""
+    _check_surface(mesh, source)
+    mesh = _remesh(_coarsen(mesh), opt.surface_size_mm, source)
+    _check_surface(mesh, f"{source} (remeshed)")
+    R, t = _placement(mesh)
+    v = np.asarray(mesh.vertices) @ R.T + t
+    return Anatomy(v, np.asarray(mesh.faces), None, {}, None, R, t)
+
+
+def load_anatomy(path: str | Path, opt: AnatomyOptions = AnatomyOptions()) -> Anatomy:
+    """Read a NIfTI label map (.nii, .nii.gz) or a surface (.stl, .obj, .ply)."""
+    path = Path(path)
+    name = path.name.lower()
+    if not path.is_file():
+        raise FileFormatError(f"{path}: no such file")
+    if name.endswith((".nii", ".nii.gz")):
+        import nibabel as nib
+
+        try:
+            img = nib.load(str(path))
+            data = np.asanyarray(img.dataobj)
+        except Exception as exc:
+            raise FileFormatError(f"{path}: not a readable NIfTI file ({exc})") from None
+        return anatomy_from_labels(data, np.asarray(img.affine, float), opt, source=str(path))
+    if name.endswith((".stl", ".obj", ".ply")):
+        import trimesh
+
+        try:
+            mesh = trimesh.load(str(path), force="mesh")
+        except Exception as exc:
+            raise FileFormatError(f"{path}: not a readable surface ({exc})") from None
+        if not len(getattr(mesh, "faces", ())):
+            raise FileFormatError(f"{path}: no triangles")
+        return anatomy_from_surface(mesh, opt, source=str(path))
+    raise FileFormatError(f"{path}: unknown anatomy format (expected .nii, .nii.gz, .stl, .obj or .ply)")
+
+
+def _project(bulb: BulbParams, direction) -> tuple[float, float, float]:
+    s = bulb.ray_exit((0.0, 0.0, 0.0), direction)
+    if s is None:
+        raise DesignError(f"anatomy: the direction {tuple(direction)} misses the gland")
+    p = s * np.asarray(direction, float) / np.linalg.norm(direction)
+    return tuple(float(x) for x in p)  # type: ignore[return-value]
+
+
+def design_from_anatomy(anatomy: Anatomy, base: BIPDesign | None = None, name: str = "anatomy") -> BIPDesign:
+    """``base`` (default: the paper's BIP) with the gland's surface, urethra, markers and targets."""
+    base = base or BIPDesign()
+    v = anatomy.vertices_mm
+    half = 0.5 * (v.max(axis=0) - v.min(axis=0))
+    bulb = BulbParams(semi_axes_mm=tuple(float(x) for x in half),
+                      surface_vertices_mm=tuple(tuple(float(x) for x in p) for p in v),
+                      surface_faces=tuple(tuple(int(k) for k in f) for f in anatomy.faces))
+    urethra = base.urethra
+    if anatomy.urethra is not None:
+        u = anatomy.urethra
+        c, axis = np.asarray(u["center_mm"]), np.asarray(u["axis"])
+        s = bulb.ray_exit(c, axis)
+        if s is None:
+            raise DesignError("anatomy: the urethra's axis does not leave the gland")
+        urethra = UrethraParams(radius_mm=float(u["radius_mm"]), volume_mm3=float(u["volume_mm3"]),
+                                center_mm=tuple(float(x) for x in c), axis=tuple(float(x) for x in axis),
+                                inlet_mm=tuple(float(x) for x in c + s * axis))
+    else:
+        c, axis = np.asarray(urethra.center_mm), np.asarray(urethra.axis, float)
+        urethra = dataclasses.replace(urethra, inlet_mm=tuple(float(x) for x in c + bulb.ray_exit(c, axis) * axis
+                                                              / np.linalg.norm(axis)))
+    markers = tuple((k, _project(bulb, p)) for k, p in base.markers)
+    scale = half / np.asarray(base.bulb.semi_axes_mm)
+    ua, ub = urethra.segment_mm
+    targets = []
+    for k, p in base.targets:
+        q = np.asarray(p) * scale
+        # a target that the new urethra swallowed moves out radially to 3 mm from its wall
+        s = np.clip((q - ua) @ (ub - ua) / max(float((ub - ua) @ (ub - ua)), 1e-12), 0.0, 1.0)
+        foot = ua + s * (ub - ua)
+        if np.linalg.norm(q - foot) < urethra.radius_mm + 3.0:
+            radial = q - foot
+            if np.linalg.norm(radial) < 1e-9:
+                radial = np.cross(ub - ua, (0.0, 0.0, 1.0)) if abs((ub - ua)[2]) < 0.9 * np.linalg.norm(ub - ua) else \
+                    np.array([1.0, 0.0, 0.0])
+            q = foot + (urethra.radius_mm + 3.0) * radial / np.linalg.norm(radial)
+        targets.append((k, tuple(float(x) for x in q)))
+    arms = tuple(_arm_clear_of_urethra(a, bulb, urethra) for a in base.arms)
+    return dataclasses.replace(base, name=name, bulb=bulb, urethra=urethra, arms=arms, markers=markers,
+                               targets=tuple(targets))
+
+
+def _arm_clear_of_urethra(arm, bulb: BulbParams, urethra: UrethraParams, margin_mm: float = 0.5):
+    """``arm`` with its embedding shortened, if needed, so that it keeps the design's minimum wall
+    (plus ``margin_mm``) to a fitted urethra, which may lie closer to the surface than the default."""
+    from softphantom.design import geometry as geo
+    from softphantom.design.params import MIN_WALL_MM, _arm_geometry
+
+    ua, ub = urethra.segment_mm
+
+    def gap(embed: float) -> float:
+        g = _arm_geometry(dataclasses.replace(arm, embed_mm=embed), bulb)
+        return geo.segment_segment_distance(g.start_mm, g.end_mm, ua, ub) - g.radius_mm - urethra.radius_mm
+
+    need = MIN_WALL_MM + margin_mm
+    if gap(arm.embed_mm) >= need:
+        return arm
+    lo, hi = 3.0, arm.embed_mm  # the arm still reaches 3 mm into the gland
+    if gap(lo) < need:
+        return arm  # validation names the problem
+    for _ in range(30):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if gap(mid) >= need else (lo, mid)
+    return dataclasses.replace(arm, embed_mm=round(lo, 3))

@@ -1,0 +1,160 @@
+"""softphantom design --anatomy: a synthetic, lobed prostate label map at MRI-like spacing
+(0.5 × 0.5 × 3 mm, seeded boundary noise, a urethra label) and a closed STL become a design's bulb;
+mesh, FEM solve and molds run on the result; bad input is one line and exit 2.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+trimesh = pytest.importorskip("trimesh")
+nib = pytest.importorskip("nibabel")
+pytest.importorskip("skimage")
+
+from softphantom.cli import main  # noqa: E402
+from softphantom.design import build_model  # noqa: E402
+from softphantom.design.anatomy import (  # noqa: E402
+    AnatomyOptions,
+    anatomy_from_labels,
+    anatomy_from_surface,
+    design_from_anatomy,
+    load_anatomy,
+)
+from softphantom.errors import DesignError  # noqa: E402
+
+SPACING = (0.5, 0.5, 3.0)
+SEMI_RAS = np.array([32.0, 30.0, 24.0])  # R-L, A-P, S-I half extents before the lobes
+
+
+def synthetic_labels(seed: int = 0, spacing=SPACING, urethra_r: float = 3.5):
+    """A bilobed gland (label 1) with a urethra (label 2) along S-I, in RAS voxels; (data, affine)."""
+    sp = np.asarray(spacing)
+    shape = tuple(int(n) for n in np.ceil(np.array([92.0, 84.0, 72.0]) / sp))
+    p = np.indices(shape).transpose(1, 2, 3, 0) * sp - np.array(shape) * sp / 2
+    theta = np.arctan2(p[..., 1], p[..., 0])
+    level = np.linalg.norm(p / SEMI_RAS, axis=-1) / (1.0 + 0.1 * np.cos(2.0 * theta))  # two lateral lobes
+    level += np.random.default_rng(seed).normal(0.0, 0.01, level.shape)  # rough boundary, seeded
+    inside = level < 1.0
+    lab, _ = ndimage.label(inside, structure=np.ones((3, 3, 3), bool))
+    data = (lab == np.argmax(np.bincount(lab.ravel())[1:]) + 1).astype(np.int16)  # noise leaves strays: keep the gland
+    urethra = (np.hypot(p[..., 0], p[..., 1] - 4.0) < urethra_r) & (np.abs(p[..., 2]) < 14.0)
+    data[urethra & (data > 0)] = 2
+    affine = np.diag([*sp, 1.0])
+    affine[:3, 3] = -np.array(shape) * sp / 2
+    return data, affine
+
+
+@pytest.fixture(scope="module")
+def gland():
+    data, affine = synthetic_labels()
+    return data, affine, anatomy_from_labels(data, affine)
+
+
+def test_label_map_surface_holds_the_voxel_volume_within_2_percent(gland):
+    data, affine, a = gland
+    voxels = float((data > 0).sum()) * abs(np.linalg.det(affine[:3, :3]))
+    assert a.voxel_volume_mm3 == pytest.approx(voxels)
+    assert abs(a.volume_mm3 / voxels - 1.0) < 0.02
+    m = trimesh.Trimesh(a.vertices_mm, a.faces)
+    assert m.is_watertight and m.is_winding_consistent and m.volume > 0
+
+
+def test_placement_by_principal_axes_in_the_model_frame(gland):
+    _, _, a = gland
+    m = trimesh.Trimesh(a.vertices_mm, a.faces)
+    assert np.linalg.norm(m.center_mass) < 0.05  # centroid at the origin
+    inertia = m.moment_inertia
+    off = np.abs(inertia - np.diag(np.diag(inertia))).max()
+    assert off < 1e-3 * np.abs(np.diag(inertia)).max()  # principal axes along x, y, z
+    half = 0.5 * np.ptp(a.vertices_mm, axis=0)
+    # RAS R-L → x (widest, with the lobes), S-I → y, A-P → z
+    assert half[0] > half[2] > half[1]
+    assert np.linalg.det(a.rotation) == pytest.approx(1.0)
+    u = a.urethra
+    assert abs(u["axis"][1]) > 0.99  # the urethra runs along y (S-I)
+    assert u["center_mm"][2] == pytest.approx(4.0, abs=0.3)  # 4 mm anterior of the centre
+
+
+def test_rotated_label_map_lands_in_the_same_frame():
+    """The same gland scanned tilted by 20° about R-L: the principal axes bring it back."""
+    data, affine = synthetic_labels(seed=1, spacing=(1.0, 1.0, 1.0))
+    a0 = anatomy_from_labels(data, affine)
+    c, s = np.cos(np.radians(20.0)), np.sin(np.radians(20.0))
+    rot = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, c, -s, 0.0], [0.0, s, c, 0.0], [0.0, 0.0, 0.0, 1.0]])
+    a1 = anatomy_from_labels(data, rot @ affine)
+    np.testing.assert_allclose(np.ptp(a1.vertices_mm, axis=0), np.ptp(a0.vertices_mm, axis=0), atol=0.3)
+    assert a1.volume_mm3 == pytest.approx(a0.volume_mm3, rel=1e-3)
+
+
+def test_stl_surface_import(tmp_path):
+    ell = trimesh.creation.icosphere(subdivisions=5)
+    ell.apply_scale([30.0, 26.0, 24.0])
+    path = tmp_path / "gland.stl"
+    ell.export(path)
+    a = load_anatomy(path)
+    assert abs(a.volume_mm3 / ell.volume - 1.0) < 0.02
+    half = 0.5 * np.ptp(a.vertices_mm, axis=0)
+    np.testing.assert_allclose(half, [30.0, 24.0, 26.0], atol=0.3)  # RAS (x, y, z) → model (x, z, y)
+
+
+def test_anatomy_design_meshes_solves_and_gets_molds(gland, tmp_path):
+    """The one end-to-end run, kept coarse (a 6 mm surface, a 12 mm mesh): every OCC boolean on
+    the polyhedral bulb costs in proportion to its triangles."""
+    from softphantom.fem import fem_from_phantom, force_actuator, solve_static
+    from softphantom.molds import build_parts
+
+    data, affine, _ = gland
+    a = anatomy_from_labels(data, affine, AnatomyOptions(surface_size_mm=6.0))
+    design = design_from_anatomy(a)
+    assert design.bulb.is_surface and design.bulb.volume_mm3 == pytest.approx(a.volume_mm3)
+    model = build_model(design, 12.0)
+    assert model.bulb_volume() * 1e9 == pytest.approx(a.volume_mm3, rel=0.02)
+    # a coarse mesh inscribes the cavity: low by about (2π/n)²/6 with n segments around (mesh.py)
+    n = model.design.mesh.cavity_segments
+    expect = design.urethra.volume_mm3 * (1.0 - (2.0 * np.pi / n) ** 2 / 6.0)
+    assert model.cavity_volume("urethra") * 1e9 == pytest.approx(expect, rel=0.02)
+    fem = fem_from_phantom(model)
+    sol = solve_static(fem, force_actuator(fem, model.p_ext["on-centre"], radius=5e-3) @ np.array([0.0, 1.0, 0.0]))
+    assert sol.converged
+    dy = (sol.x - model.nodes)[:, 1]
+    assert dy.max() > 1e-4  # a 1 N push along +y moves the gland along +y
+    parts = {p.name: p for p in build_parts(design, bulb_only=True)}
+    from softphantom.design.solid_check import report_mesh, to_manifold
+
+    halves = [parts["bulb_mold_lower"], parts["bulb_mold_upper"]]
+    for h in halves:
+        assert report_mesh(h.mesh).ok
+    hull = to_manifold(trimesh.util.concatenate([h.mesh for h in halves]).convex_hull)
+    cavity = hull - to_manifold(halves[0].mesh) - to_manifold(halves[1].mesh)
+    bulb = to_manifold(trimesh.Trimesh(np.asarray(design.bulb.surface_vertices_mm), np.asarray(design.bulb.surface_faces)))
+    assert (bulb - cavity).volume() / bulb.volume() < 0.01  # the mold leaves the whole gland free
+    assert (cavity ^ bulb).volume() == pytest.approx(bulb.volume(), rel=0.01)
+
+
+def test_bad_anatomy_is_one_line_exit_2(tmp_path, capsys):
+    data, affine = synthetic_labels()
+    empty = np.zeros((20, 20, 8), np.int16)
+    two = np.zeros((40, 20, 8), np.int16)
+    two[2:10, 5:15, 2:6] = 1
+    two[25:35, 5:15, 2:6] = 1
+    for name, arr, msg in (("empty", empty, "no labelled voxels"), ("two", two, "2 disconnected components")):
+        path = tmp_path / f"{name}.nii.gz"
+        nib.save(nib.Nifti1Image(arr, np.diag([0.5, 0.5, 3.0, 1.0])), str(path))
+        assert main(["design", "--anatomy", str(path), "--out", str(tmp_path / f"o_{name}")]) == 2
+        err = capsys.readouterr().err
+        assert msg in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+    box = trimesh.creation.box((40.0, 30.0, 30.0))
+    open_box = trimesh.Trimesh(box.vertices, box.faces[:-1], process=False)
+    crossing = trimesh.util.concatenate([box, trimesh.creation.box((40.0, 30.0, 30.0)).apply_translation((10.0, 7.3, 5.1))])
+    for name, mesh, msg in (("open", open_box, "not closed"), ("crossing", crossing, "self-intersecting")):
+        path = tmp_path / f"{name}.stl"
+        mesh.export(path)
+        assert main(["design", "--anatomy", str(path), "--out", str(tmp_path / f"o_{name}")]) == 2
+        err = capsys.readouterr().err
+        assert msg in err and "Traceback" not in err
+    with pytest.raises(DesignError, match="no labelled voxels"):
+        anatomy_from_labels(empty, np.eye(4))
+    with pytest.raises(DesignError, match="not closed"):
+        anatomy_from_surface(open_box, AnatomyOptions())
