@@ -185,3 +185,30 @@ def test_cli_molds_bad_input_is_one_line_exit_2(tmp_path, capsys):
     assert main(["molds", "--model", str(tmp_path), "--out", str(tmp_path / "o")]) == 2
     err = capsys.readouterr().err
     assert "molds.clearance_mm = -1 must be in [0, 2] mm" in err and "Traceback" not in err
+
+
+def test_cli_molds_out_follows_the_staged_output_policy(tmp_path, capsys, monkeypatch):
+    """An existing, non-empty --out is refused before any part is built (exit 2, its contents
+    kept); an error while building leaves no output and no staging directory behind."""
+    import softphantom.molds
+
+    model = tmp_path / "model"
+    model.mkdir()
+    save_design(BIPDesign(), model / "design.toml")
+    out = tmp_path / "o"
+    out.mkdir()
+    (out / "keep.txt").write_text("mine")
+    assert main(["molds", "--model", str(model), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "exists and is not empty" in err and "--overwrite" in err and len(err.strip().splitlines()) == 1
+    assert (out / "keep.txt").read_text() == "mine"
+
+    def fails(design, bulb_only=False):
+        raise DesignError("molds.wall_mm = 6: no room for the registration keys beside the bulb (raise wall_mm)")
+
+    monkeypatch.setattr(softphantom.molds, "build_parts", fails)
+    for target, flags in ((tmp_path / "fresh", []), (out, ["--overwrite"])):
+        assert main(["molds", "--model", str(model), "--out", str(target), "--no-png", *flags]) == 2
+        assert "no room for the registration keys" in capsys.readouterr().err
+    assert not (tmp_path / "fresh").exists() and (out / "keep.txt").read_text() == "mine"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["model", "o"]  # no staging directory left
