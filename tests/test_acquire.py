@@ -275,7 +275,9 @@ def test_cli_acquire_records_with_tare_and_metadata(tmp_path, capsys):
     out = tmp_path / "a.csv"
     try:
         _board_forever(board, 200)
-        rc = main(["acquire", "--port", board.path, "--out", str(out), "--duration-s", "0.8",
+        # 2 s at the board's 50 Hz: ~100 frames on an idle host, ≥ 30 even when the fake board's
+        # thread gets a fraction of a core (0.8 s gave 25 at load average 30)
+        rc = main(["acquire", "--port", board.path, "--out", str(out), "--duration-s", "2.0",
                    "--tare-s", "0.3", "--p0-kPa", "95"])
     finally:
         board.close()
