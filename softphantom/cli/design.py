@@ -47,10 +47,9 @@ def design_command(
             f" (label voxel count {gland.voxel_volume_mm3:.0f} mm³, {100 * (gland.volume_mm3 / gland.voxel_volume_mm3 - 1):+.2f} %)")
         console.print(f"anatomy: bulb surface {len(gland.faces)} triangles, {gland.volume_mm3:.0f} mm³{vox}",
                       highlight=False)
-    from softphantom.design.params import REGION_NAMES
     from softphantom.fem.model import laws_of_design
 
-    laws_of_design(design, REGION_NAMES)  # an unknown law or a bad parameter fails here (exit 2)
+    laws_of_design(design, design.region_names)  # an unknown law or a bad parameter fails here (exit 2)
     t0 = time.perf_counter()
     with staged_output(out, overwrite=overwrite, directory=True) as work:
         with console.status(f"meshing design '{design.name}' …"):

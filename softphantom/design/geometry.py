@@ -155,6 +155,16 @@ def capsule_surface_points(a, b, radius: float, spacing: float = 0.4) -> FloatAr
     return np.vstack([cyl, *caps])
 
 
+def ellipsoid_surface_points(centre, semi_axes, n: int = 1200) -> FloatArray:
+    """``n`` points on an axis-aligned ellipsoid's surface (a Fibonacci sphere, scaled)."""
+    k = np.arange(n) + 0.5
+    z = 1.0 - 2.0 * k / n
+    r = np.sqrt(1.0 - z * z)
+    phi = math.pi * (3.0 - math.sqrt(5.0)) * k
+    unit_pts = np.column_stack([r * np.cos(phi), r * np.sin(phi), z])
+    return np.asarray(centre, float) + unit_pts * np.asarray(semi_axes, float)
+
+
 def disk_rim_points(centre, axis, radius: float, n: int = 64) -> FloatArray:
     """Points on the rim circle of a disk."""
     u, v, _ = orthonormal_frame(axis)

@@ -25,6 +25,7 @@ All lengths here are mm; :mod:`softphantom.design.model` converts to SI.
 
 from __future__ import annotations
 
+import dataclasses
 import threading
 import time
 from collections.abc import Iterator
@@ -45,6 +46,8 @@ _GMSH_LOCK = threading.Lock()  # gmsh holds process-global state; one mesh at a 
 
 REGION_IDS: dict[str, int] = {"bulb": 1, **{f"arm_{n}": i + 2 for i, n in enumerate(ARM_NAMES)}}
 CAVITY_GROUP_IDS: dict[str, int] = {n: 11 + i for i, n in enumerate((*ARM_NAMES, "urethra"))}
+SHELL_REGION_ID = 6
+LESION_REGION_ID0 = 31  # lesion k (in the design's order) is 31 + k
 FIXED_GROUP_ID = 21
 OUTER_GROUP_ID = 22
 
@@ -67,6 +70,7 @@ class RawMesh:
     fixed_faces6: np.ndarray = field(default_factory=lambda: np.zeros((0, 6), dtype=np.int64))
     outer_faces6: np.ndarray = field(default_factory=lambda: np.zeros((0, 6), dtype=np.int64))
     n_corner: int = -1
+    regions: dict = field(default_factory=lambda: dict(REGION_IDS))  # name -> id (shell, lesions beyond the base)
 
 
 def _elements(dim: int, tag: int, etype: int, nper: int) -> np.ndarray:
@@ -243,11 +247,24 @@ def _build(design: BIPDesign, mp: MeshParams) -> dict:
     ua, ub = design.urethra.segment_mm
     cavities.append(capsule(occ, ua, ub, design.urethra.radius_mm))
 
-    tools = [(3, t) for t in arms + cavities]
+    # multi-material: the infill (ellipsoid less the shell) and the lesions join the fragment, so
+    # every region shares its faces with its neighbours (one conforming mesh)
+    lay = design.layers
+    layer_tools = []
+    if lay.shell_mm > 0.0:
+        layer_tools.append(("infill", bulb_solid(occ, dataclasses.replace(
+            design.bulb, semi_axes_mm=lay.infill_semi_axes_mm(design.bulb.semi_axes_mm)))))
+    for les in lay.lesions:
+        tag = occ.addSphere(0.0, 0.0, 0.0, 1.0)
+        occ.dilate([(3, tag)], 0.0, 0.0, 0.0, *les.semi_axes_mm)
+        occ.translate([(3, tag)], *les.center_mm)
+        layer_tools.append((les.region, tag))
+    tools = [(3, t) for t in arms + cavities] + [(3, t) for _, t in layer_tools]
     _, out_map = occ.fragment([(3, bulb)], tools)
     occ.synchronize()
     pieces = [set(t for d, t in m if d == 3) for m in out_map]
-    bulb_p, arm_p, cav_p = pieces[0], pieces[1:5], pieces[5:]
+    bulb_p, arm_p, cav_p = pieces[0], pieces[1:5], pieces[5:10]
+    layer_p = {k: p for (k, _), p in zip(layer_tools, pieces[10:])}
     all_cav = set().union(*cav_p)
     cav_surfaces: dict[str, list[int]] = {}
     for name, p in zip((*ARM_NAMES, "urethra"), cav_p):
@@ -255,7 +272,19 @@ def _build(design: BIPDesign, mp: MeshParams) -> dict:
             raise MeshError(f"cavity {name}: fragment gave {len(p)} pieces, expected 1")
         bnd = gmsh.model.getBoundary([(3, t) for t in sorted(p)], combined=True, oriented=False)
         cav_surfaces[name] = sorted(abs(t) for _, t in bnd)
-    region_vols = {"bulb": sorted(bulb_p - all_cav)}
+    lesion_p = set().union(*(layer_p[x.region] for x in lay.lesions)) if lay.lesions else set()
+    infill_p = layer_p.get("infill", bulb_p)
+    region_vols = {"bulb": sorted((bulb_p & infill_p) - all_cav - lesion_p)}
+    region_ids = dict(REGION_IDS)
+    if lay.shell_mm > 0.0:
+        region_vols["shell"] = sorted(bulb_p - infill_p - all_cav)
+        region_ids["shell"] = SHELL_REGION_ID
+    for k, les in enumerate(lay.lesions):
+        region_vols[les.region] = sorted(layer_p[les.region] - all_cav)
+        region_ids[les.region] = LESION_REGION_ID0 + k
+    for rname in region_ids:
+        if rname in region_vols and not region_vols[rname]:
+            raise MeshError(f"region {rname}: no volume left after the fragment")
     for name, p in zip(ARM_NAMES, arm_p):
         region_vols[f"arm_{name}"] = sorted(p - all_cav - bulb_p)
         if not region_vols[f"arm_{name}"]:
@@ -278,7 +307,7 @@ def _build(design: BIPDesign, mp: MeshParams) -> dict:
         if len(up) == 1 and s not in cav_all and s not in fixed:
             outer.append(s)
 
-    for rname, rid in REGION_IDS.items():
+    for rname, rid in region_ids.items():
         gmsh.model.addPhysicalGroup(3, region_vols[rname], rid, name=rname)
     for cname, gid in CAVITY_GROUP_IDS.items():
         gmsh.model.addPhysicalGroup(2, cav_surfaces[cname], gid, name=f"cavity_{cname}")
@@ -295,10 +324,30 @@ def _build(design: BIPDesign, mp: MeshParams) -> dict:
         fld.setNumbers(dist, "SurfacesList", cav_surfaces[cname])
         fld.setNumber(dist, "Sampling", 40)
         fields.append(_graded(fld, dist, h, mp.size_mm))
+    body = [v for r in ("bulb", "shell") for v in region_vols.get(r, [])]
     bulb_surfs = sorted(
-        abs(t) for _, t in gmsh.model.getBoundary([(3, v) for v in region_vols["bulb"]], combined=True, oriented=False)
+        abs(t) for _, t in gmsh.model.getBoundary([(3, v) for v in body], combined=True, oriented=False)
         if abs(t) in set(outer)
     )
+    if "shell" in region_vols:  # the shell-infill interface as finely as the outer surface
+        sh = {abs(t) for _, t in gmsh.model.getBoundary([(3, v) for v in region_vols["shell"]], combined=False,
+                                                         oriented=False)}
+        inf = {abs(t) for _, t in gmsh.model.getBoundary([(3, v) for v in region_vols["bulb"]], combined=False,
+                                                          oriented=False)}
+        bulb_surfs = sorted(set(bulb_surfs) | (sh & inf))
+    for les in lay.lesions:  # a lesion's surface as fine as a cavity wall of its smallest semi-axis
+        h_l = min(mp.surface_size_mm, mp.cavity_size_mm(min(les.semi_axes_mm)))
+        d_l = fld.add("Distance")
+        fld.setNumbers(d_l, "SurfacesList", sorted({abs(t) for _, t in gmsh.model.getBoundary(
+            [(3, v) for v in region_vols[les.region]], combined=True, oriented=False)}))
+        fld.setNumber(d_l, "Sampling", 40)
+        t_l = fld.add("Threshold")
+        fld.setNumber(t_l, "InField", d_l)
+        fld.setNumber(t_l, "SizeMin", h_l)
+        fld.setNumber(t_l, "SizeMax", mp.size_mm)
+        fld.setNumber(t_l, "DistMin", 0.5 * h_l)
+        fld.setNumber(t_l, "DistMax", 0.5 * h_l + 1.2 * abs(mp.size_mm - h_l))
+        fields.append(t_l)
     dist_b = fld.add("Distance")
     fld.setNumbers(dist_b, "SurfacesList", bulb_surfs)
     fld.setNumber(dist_b, "Sampling", 40)
@@ -328,7 +377,7 @@ def _build(design: BIPDesign, mp: MeshParams) -> dict:
     node_tags, coords, _ = gmsh.model.mesh.getNodes()
     coords = np.asarray(coords, dtype=float).reshape(-1, 3)
     tets, regs = [], []
-    for rname, rid in REGION_IDS.items():
+    for rname, rid in region_ids.items():
         for v in region_vols[rname]:
             t = _elements(3, v, ttype, tn)
             tets.append(t)
@@ -359,11 +408,11 @@ def _build(design: BIPDesign, mp: MeshParams) -> dict:
     tt = lookup[tet_tags]
     if order == 1:
         return dict(nodes_mm=nodes, tets=tt, tet_region=np.concatenate(regs), cavities=cav,
-                    fixed_faces=fix, outer_faces=out)
+                    fixed_faces=fix, outer_faces=out, regions=region_ids)
     return dict(
         nodes_mm=nodes, tets=tt[:, :4], tet_region=np.concatenate(regs),
         cavities={k: v[:, :3] for k, v in cav.items()}, fixed_faces=fix[:, :3], outer_faces=out[:, :3],
-        tets10=tt, cavities6=cav, fixed_faces6=fix, outer_faces6=out, n_corner=len(corner),
+        tets10=tt, cavities6=cav, fixed_faces6=fix, outer_faces6=out, n_corner=len(corner), regions=region_ids,
     )
 
 
@@ -473,6 +522,10 @@ def check_mesh_budget(design: BIPDesign, mesh: MeshParams | None = None, *, forc
     if n > MAX_TETS and not force:
         raise DesignError(f"mesh.size_mm = {mp.size_mm:.4g} mm: about {n:,} tets estimated, above the limit of "
                           f"{MAX_TETS:,} (a coarser --mesh-size-mm, or --force)")
+    t = design.layers.shell_mm
+    if 0.0 < t < 0.5 * mp.surface_size_mm:
+        raise DesignError(f"layers.shell_mm = {t:.4g} mm is thinner than the mesh resolves (at least half of "
+                          f"mesh.surface_size_mm = {mp.surface_size_mm:.4g} mm: a finer --mesh-size-mm or a thicker shell)")
     floor = mesh_size_floor_mm(design)
     for name in ("size_mm", "surface_size_mm", "arm_size_mm", "contact_size_mm", "junction_size_mm"):
         v = getattr(mp, name)

@@ -25,7 +25,6 @@ from softphantom.design.mesh import (
     CAVITY_VOLUME_TOLERANCE,
     FIXED_GROUP_ID,
     OUTER_GROUP_ID,
-    REGION_IDS,
     RawMesh,
     check_mesh_budget,
     mesh_design,
@@ -152,10 +151,12 @@ class PhantomModel:
     def bulb_volume(self) -> float:
         """Volume enclosed by the bulb's outer surface, m³ (the bulb region plus the urethra cavity).
 
-        The bulb region's tets fill the ellipsoid minus the urethra, so adding the urethra's Φ
-        gives the meshed counterpart of the design's 100.41 mL.
+        The bulb region's tets (with the shell and lesion regions of a multi-material design) fill
+        the ellipsoid minus the urethra, so adding the urethra's Φ gives the meshed counterpart of
+        the design's 100.41 mL.
         """
-        return self.region_volume("bulb") + self.cavity_volume("urethra")
+        body = [r for r in self.regions if r in ("bulb", "shell") or r.startswith("lesion_")]
+        return sum(self.region_volume(r) for r in body) + self.cavity_volume("urethra")
 
     def min_dihedral_deg(self) -> float:
         """Smallest dihedral angle over all tets, degrees (a quality figure)."""
@@ -238,7 +239,7 @@ def model_from_raw(design: BIPDesign, raw: RawMesh) -> PhantomModel:
         nodes=nodes,
         tets=tets,
         tet_region=raw.tet_region,
-        regions=dict(REGION_IDS),
+        regions=dict(raw.regions),
         cavities={k: cavities[k] for k in (*ARM_NAMES, "urethra")},
         fixed_faces=fixed,
         fixed_nodes=fixed_nodes,

@@ -206,6 +206,65 @@ class BulbParams:
         return -a, a
 
 
+@dataclass(frozen=True)
+class LesionParams:
+    """A lesion inclusion: an axis-aligned ellipsoid in the bulb's infill, its own mesh region
+    ``lesion_<name>`` (and material, through ``[region_materials]``)."""
+
+    name: str
+    center_mm: Vec3
+    semi_axes_mm: Vec3
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.name, str) or not _BARE.match(self.name or ""):
+            raise DesignError(f"layers.lesions: name {self.name!r} must be letters, digits, _ or -")
+        p = f"layers.lesions.{self.name}"
+        _set(self, "center_mm", _vec3(f"{p}.center_mm", self.center_mm))
+        axes = _vec3(f"{p}.semi_axes_mm", self.semi_axes_mm)
+        _set(self, "semi_axes_mm", tuple(_positive(f"{p}.semi_axes_mm[{i}]", v) for i, v in enumerate(axes)))
+
+    @property
+    def region(self) -> str:
+        return f"lesion_{self.name}"
+
+    @property
+    def volume_mm3(self) -> float:
+        return geo.ellipsoid_volume(self.semi_axes_mm)
+
+
+@dataclass(frozen=True)
+class LayersParams:
+    """The bulb in more than one material: an outer shell ``shell_mm`` thick (region ``shell``;
+    0: none) over the infill (region ``bulb``), the infill being the ellipsoid with every semi-axis
+    less ``shell_mm`` (so the shell is exactly ``shell_mm`` thick at the six poles and a little
+    less, by (a−c)·t/a at most, in between), and lesion inclusions (regions ``lesion_<name>``)."""
+
+    shell_mm: float = 0.0
+    lesions: tuple[LesionParams, ...] = ()
+
+    def __post_init__(self) -> None:
+        t = _num("layers.shell_mm", self.shell_mm)
+        if t < 0.0:
+            raise DesignError(f"layers.shell_mm = {_fmt(t)} must be >= 0 mm (0: no shell)")
+        _set(self, "shell_mm", t)
+        les = tuple(self.lesions)
+        for x in les:
+            if not isinstance(x, LesionParams):
+                raise DesignError(f"layers.lesions: expected LesionParams, got {type(x).__name__}")
+        names = [x.name for x in les]
+        for n in names:
+            if names.count(n) > 1:
+                raise DesignError(f"layers.lesions.{n}: defined twice")
+        _set(self, "lesions", les)
+
+    @property
+    def is_default(self) -> bool:
+        return self.shell_mm == 0.0 and not self.lesions
+
+    def infill_semi_axes_mm(self, bulb_axes: Vec3) -> Vec3:
+        return tuple(a - self.shell_mm for a in bulb_axes)  # type: ignore[return-value]
+
+
 def _default_inlet() -> Vec3:
     # where the default urethra axis (x = 0, z = 4 mm, along y) leaves the bulb at +y (the base)
     return (0.0, _B_MM * math.sqrt(1.0 - (4.0 / _C_MM) ** 2), 4.0)
@@ -496,6 +555,28 @@ def _default_materials() -> tuple[MaterialSpec, ...]:
                          (("E_kPa", 3 * 83.0 / 1.75), ("nu", 0.45), ("density_kg_m3", 1070.0))),)
 
 
+def _from_100_percent_modulus(name: str, sigma100_kPa: float, density_kg_m3: float) -> MaterialSpec:
+    # incompressible neo-Hookean in uniaxial tension: nominal stress μ(λ − λ⁻²), so the 100 %
+    # modulus (λ = 2) is 1.75 μ and the small-strain E = 3μ (fem/material.py, ECOFLEX_00_50)
+    return MaterialSpec(name, "corotational", (("E_kPa", 3.0 * sigma100_kPa / 1.75), ("nu", 0.45),
+                                               ("density_kg_m3", density_kg_m3)))
+
+
+#: Materials a design may name in ``[region_materials]`` without a ``[materials.NAME]`` table (the
+#: preset is then written into the design's ``[materials]``). Sources in docs/fabrication.md:
+#: Smooth-On technical bulletins — Ecoflex 00-50 (100 % modulus 12 psi = 83 kPa, specific gravity
+#: 1.07, the paper's figure), Sorta-Clear 12 (100 % modulus 28 psi = 193 kPa, s.g. 1.04) and
+#: Ecoflex GEL (Shore 000-35, s.g. 0.98; no 100 % modulus: E = 10 kPa is an order-of-magnitude
+#: placeholder). The Sorta-Clear 12 and GEL figures were NOT checked against the bulletins here.
+MATERIAL_PRESETS: dict[str, MaterialSpec] = {
+    m.name: m for m in (
+        _default_materials()[0],
+        _from_100_percent_modulus("sorta_clear_12", 193.0, 1040.0),
+        MaterialSpec("ecoflex_gel", "corotational", (("E_kPa", 10.0), ("nu", 0.45), ("density_kg_m3", 980.0))),
+    )
+}
+
+
 def _default_region_materials() -> tuple[tuple[str, str], ...]:
     return (("bulb", DEFAULT_MATERIAL), ("arms", DEFAULT_MATERIAL))
 
@@ -516,6 +597,7 @@ class BIPDesign:
     region_materials: tuple[tuple[str, str], ...] = field(default_factory=_default_region_materials)
     molds: MoldParams = field(default_factory=MoldParams)  # how it is cast (design/fabrication.py)
     sensors: SensorParams = field(default_factory=SensorParams)  # as calibrated (softphantom calibrate)
+    layers: LayersParams = field(default_factory=LayersParams)  # shell, infill and lesions (multi-material)
 
     def __post_init__(self) -> None:
         if not isinstance(self.name, str) or not self.name:
@@ -524,16 +606,28 @@ class BIPDesign:
         _set(self, "markers", _named_points("markers", self.markers))
         _set(self, "targets", _named_points("targets", self.targets))
         for sub, cls in (("bulb", BulbParams), ("urethra", UrethraParams), ("interaction", InteractionParams), ("mesh", MeshParams),
-                         ("molds", MoldParams), ("sensors", SensorParams)):
+                         ("molds", MoldParams), ("sensors", SensorParams), ("layers", LayersParams)):
             if not isinstance(getattr(self, sub), cls):
                 raise DesignError(f"{sub}: expected {cls.__name__}, got {type(getattr(self, sub)).__name__}")
         names = tuple(a.name if isinstance(a, ArmParams) else None for a in self.arms)
         if names != ARM_NAMES:
             raise DesignError(f"arms: expected exactly {list(ARM_NAMES)} in this order, got {list(names)}")
         _validate_geometry(self)
+        _validate_layers(self)
         _validate_materials(self)
 
-    def material_of_regions(self, regions=REGION_NAMES) -> dict[str, str]:
+    @property
+    def region_names(self) -> tuple[str, ...]:
+        """The mesh's volume regions: ``bulb`` (the infill when there is a shell), the arms, then
+        ``shell`` and ``lesion_<name>`` when ``[layers]`` declares them."""
+        extra = (("shell",) if self.layers.shell_mm > 0.0 else ()) + tuple(x.region for x in self.layers.lesions)
+        return (*REGION_NAMES, *extra)
+
+    def region_groups(self) -> dict[str, tuple[str, ...]]:
+        """Groups usable in ``[region_materials]``: ``arms``, and ``lesions`` (every lesion)."""
+        return {**REGION_GROUPS, "lesions": tuple(x.region for x in self.layers.lesions)}
+
+    def material_of_regions(self, regions=None) -> dict[str, str]:
         """Region name -> material name, from ``region_materials`` (a region's own key wins over its
         group's, e.g. ``arm_front_zpos`` over ``arms``). Raises DesignError for a region without one.
 
@@ -541,9 +635,10 @@ class BIPDesign:
         'ecoflex_00_50'
         """
         given = dict(self.region_materials)
+        groups = self.region_groups()
         out = {}
-        for r in regions:
-            group = next((g for g, members in REGION_GROUPS.items() if r in members and g in given), None)
+        for r in (self.region_names if regions is None else regions):
+            group = next((g for g, members in groups.items() if r in members and g in given), None)
             m = given.get(r, given.get(group) if group else None)
             if m is None:
                 raise DesignError(f"region_materials.{r}: region {r!r} has no material")
@@ -661,15 +756,86 @@ def _validate_materials(d: BIPDesign) -> None:
             raise DesignError(f"materials: expected MaterialSpec, got {type(m).__name__}")
         if names.count(m.name) > 1:
             raise DesignError(f"materials.{m.name}: defined twice")
-    known = set(REGION_NAMES) | set(REGION_GROUPS)
+    known = set(d.region_names) | set(d.region_groups())
     rm = tuple((str(k), v) for k, v in (d.region_materials.items() if isinstance(d.region_materials, dict) else d.region_materials))
     _set(d, "region_materials", rm)
+    presets = [MATERIAL_PRESETS[m] for _, m in rm if isinstance(m, str) and m not in names and m in MATERIAL_PRESETS]
+    if presets:  # a preset named but not defined: written into the design, so its file is complete
+        _set(d, "materials", tuple(d.materials) + tuple(dict.fromkeys(presets)))
+        names = [m.name for m in d.materials]
     for region, mat in rm:
         if region not in known:
             raise DesignError(f"region_materials.{region}: not a region (known: {', '.join(sorted(known))})")
         if not isinstance(mat, str) or mat not in names:
             raise DesignError(f"region_materials.{region} = {mat!r}: no such material (defined: {', '.join(names)})")
     d.material_of_regions()
+
+
+def _validate_layers(d: BIPDesign) -> None:
+    """Shell and lesions: each lesion inside the infill and clear of the urethra, the arms and the
+    other lesions by the minimum wall; the urethra inside the infill."""
+    lay = d.layers
+    if lay.is_default:
+        return
+    t = lay.shell_mm
+    axes = d.bulb.semi_axes_mm
+    u = d.urethra
+    ua, ub = u.segment_mm
+    if t > 0.0:
+        if d.bulb.is_surface:
+            raise DesignError(f"layers.shell_mm = {_fmt(t)}: a shell needs an ellipsoid bulb (an imported surface "
+                              "has no inner offset yet; use 0)")
+        if t > 0.5 * min(axes):
+            raise DesignError(f"layers.shell_mm = {_fmt(t)} is more than half the bulb's smallest semi-axis "
+                              f"({_fmt(min(axes))} mm)")
+        inner = lay.infill_semi_axes_mm(axes)
+        wall = -float(geo.ellipsoid_signed_distance(geo.capsule_surface_points(ua, ub, u.radius_mm), inner).max())
+        if wall < 0.0:
+            raise DesignError(f"layers.shell_mm = {_fmt(t)}: the urethra cavity cuts {_fmt(-wall)} mm into the shell "
+                              "(the infill must hold it; a thinner shell or a smaller urethra)")
+
+        def host(pts):
+            return geo.ellipsoid_signed_distance(pts, inner)
+        where = "infill"
+    else:
+        host = d.bulb.signed_distance
+        where = "bulb"
+    urethra_pts = geo.capsule_surface_points(ua, ub, u.radius_mm, spacing=0.8)
+    arm_pts = {g.name: (geo.capsule_surface_points(g.start_mm, g.root_mm, g.radius_mm, spacing=0.8), g)
+               for g in d.arm_geometry()}
+    for k, les in enumerate(lay.lesions):
+        p = f"layers.lesions.{les.name}"
+        c, s = np.asarray(les.center_mm), les.semi_axes_mm
+        pts = geo.ellipsoid_surface_points(c, s)
+        inside = -float(host(pts).max())
+        if inside < MIN_WALL_MM:
+            how = (f"reaches {_fmt(-inside)} mm beyond the {where}'s surface" if inside < 0.0 else
+                   f"comes {_fmt(inside)} mm from the {where}'s surface")
+            raise DesignError(f"{p}.center_mm = {list(les.center_mm)}: the lesion {how} (min wall {MIN_WALL_MM:g} mm)")
+
+        def gap(q, a, b, r):
+            """Wall between the lesion and a capsule [a, b] of radius r (sampled both ways: one
+            solid inside the other shows in either)."""
+            return min(float(geo.ellipsoid_signed_distance(q - c, s).min()),
+                       float((geo.segment_distance(pts, a, b) - r).min()))
+
+        g_u = gap(urethra_pts, ua, ub, u.radius_mm)
+        if g_u < MIN_WALL_MM:
+            raise DesignError(f"{p}.center_mm = {list(les.center_mm)}: the lesion "
+                              f"{'cuts the urethra cavity' if g_u < 0 else f'comes {_fmt(g_u)} mm from the urethra cavity'}"
+                              f" (min wall {MIN_WALL_MM:g} mm)")
+        for name, (q, g) in arm_pts.items():
+            g_a = gap(q, g.start_mm, g.root_mm, g.radius_mm)
+            if g_a < MIN_WALL_MM:
+                raise DesignError(f"{p}.center_mm = {list(les.center_mm)}: the lesion "
+                                  f"{'cuts' if g_a < 0 else f'comes {_fmt(g_a)} mm from'} arms.{name}'s end in the bulb"
+                                  f" (min wall {MIN_WALL_MM:g} mm)")
+        for other in lay.lesions[k + 1:]:
+            g_o = float(geo.ellipsoid_signed_distance(geo.ellipsoid_surface_points(other.center_mm, other.semi_axes_mm)
+                                                      - c, s).min())
+            if g_o < MIN_WALL_MM:
+                raise DesignError(f"{p} and layers.lesions.{other.name}: "
+                                  f"{'they overlap' if g_o < 0 else f'{_fmt(g_o)} mm apart'} (min wall {MIN_WALL_MM:g} mm)")
 
 
 def _check_sizes(d: BIPDesign) -> None:
@@ -811,6 +977,10 @@ def design_to_dict(design: BIPDesign) -> dict[str, Any]:
     out["targets"] = {k: list(v) for k, v in design.targets}
     out["materials"] = {m.name: {"law": m.law, **dict(m.values)} for m in design.materials}
     out["region_materials"] = dict(design.region_materials)
+    if not design.layers.is_default:  # a one-material design's file stays as it was
+        out["layers"] = {"shell_mm": design.layers.shell_mm,
+                         "lesions": {x.name: {"center_mm": list(x.center_mm), "semi_axes_mm": list(x.semi_axes_mm)}
+                                     for x in design.layers.lesions}}
     return out
 
 
@@ -824,7 +994,8 @@ def _check_keys(path: str, given: dict, allowed) -> None:
 
 def design_from_dict(data: dict[str, Any]) -> BIPDesign:
     """A design from a nested dict; missing keys keep their defaults, ``markers``/``targets`` replace them."""
-    _check_keys("design", data, ["name", "arms", "markers", "targets", "materials", "region_materials", *_SUBS])
+    _check_keys("design", data, ["name", "arms", "markers", "targets", "materials", "region_materials", "layers",
+                                 *_SUBS])
     default = BIPDesign()
     defaults = {f.name: getattr(default, f.name) for f in dataclasses.fields(BIPDesign)}
     kwargs: dict[str, Any] = dict(defaults)
@@ -835,6 +1006,20 @@ def design_from_dict(data: dict[str, Any]) -> BIPDesign:
             allowed = [f.name for f in dataclasses.fields(cls)]
             _check_keys(sub, data[sub], allowed)
             kwargs[sub] = dataclasses.replace(defaults[sub], **data[sub])
+    if "layers" in data:
+        lay = data["layers"]
+        _check_keys("layers", lay, ["shell_mm", "lesions"])
+        lesions = lay.get("lesions", {})
+        if not isinstance(lesions, dict):
+            raise DesignError(f"layers.lesions: expected a table of named lesions, got {lesions!r}")
+        les = []
+        for name, spec in lesions.items():
+            _check_keys(f"layers.lesions.{name}", spec, ["center_mm", "semi_axes_mm"])
+            for key in ("center_mm", "semi_axes_mm"):
+                if key not in spec:
+                    raise DesignError(f"layers.lesions.{name}.{key}: missing")
+            les.append(LesionParams(name=str(name), **spec))
+        kwargs["layers"] = LayersParams(shell_mm=lay.get("shell_mm", 0.0), lesions=tuple(les))
     if "arms" in data:
         _check_keys("arms", data["arms"], ARM_NAMES)
         arms = []
@@ -928,6 +1113,10 @@ def design_to_toml(design: BIPDesign) -> str:
     for name, mat in data["materials"].items():
         table(f"materials.{_toml_key(name)}", mat)
     table("region_materials", data["region_materials"])
+    if "layers" in data:
+        table("layers", {"shell_mm": data["layers"]["shell_mm"]})
+        for name, spec in data["layers"]["lesions"].items():
+            table(f"layers.lesions.{_toml_key(name)}", spec)
     return "\n".join(lines) + "\n"
 
 

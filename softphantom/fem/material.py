@@ -189,6 +189,20 @@ because the issue asks for three terms. Not our measurement: its small-strain E 
 ν = 0.45) are below the datasheet's 83 kPa 100 % modulus that :data:`ECOFLEX_00_50` matches.
 ν = 0.45 (bulk modulus) as for the other laws."""
 
+def _preset(name: str) -> Corotational:
+    from softphantom.design.params import MATERIAL_PRESETS
+
+    v = dict(MATERIAL_PRESETS[name].values)
+    return Corotational(E_Pa=v["E_kPa"] * 1e3, nu=v["nu"], density_kg_m3=v["density_kg_m3"])
+
+
+SORTA_CLEAR_12 = _preset("sorta_clear_12")
+"""Sorta-Clear 12 (a shell), co-rotational: E = 3 × 193 kPa / 1.75 = 331 kPa from the 100 % modulus
+of Smooth-On's bulletin, ν = 0.45, 1040 kg/m³ (design.params.MATERIAL_PRESETS)."""
+
+ECOFLEX_GEL = _preset("ecoflex_gel")
+"""Ecoflex GEL (an infill): E = 10 kPa, an order-of-magnitude placeholder (design.params.MATERIAL_PRESETS)."""
+
 _LAW_KEYS = {
     "corotational": ("E_kPa", "nu", "density_kg_m3"),
     "neo-hookean": ("E_kPa", "nu", "density_kg_m3"),

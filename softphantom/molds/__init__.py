@@ -33,12 +33,21 @@ class MoldSet:
     printed: list[dict]
 
 
+def _one_solid_with_voids(mesh, r: MeshReport) -> bool:
+    """A cast piece poured around inclusions (the infill around its lesions): one outer shell and
+    inner shells of negative volume, otherwise clean."""
+    if not (r.watertight and r.winding_consistent and r.manifold and r.self_intersections == 0 and r.volume > 0):
+        return False
+    vols = sorted((s.volume for s in mesh.split(only_watertight=False)), reverse=True)
+    return vols[0] > 0.0 and all(v < 0.0 for v in vols[1:])
+
+
 def check_parts(parts) -> dict[str, MeshReport]:
     """Check every part; MeshError naming the first part that is not a clean closed solid."""
     reports = {}
     for p in parts:
         r = report_mesh(p.mesh)
-        if r.problem() is not None:
+        if r.problem() is not None and not (p.kind == "cast" and _one_solid_with_voids(p.mesh, r)):
             raise MeshError(f"part {p.name}: {r.problem()}")
         reports[p.name] = r
     return reports

@@ -13,7 +13,9 @@ from __future__ import annotations
 import csv
 import io
 
-CASTING_DENSITY_KG_M3: dict[str, float] = {"Ecoflex 00-50": 1070.0, "Dragon Skin 30": 1080.0}
+CASTING_DENSITY_KG_M3: dict[str, float] = {"Ecoflex 00-50": 1070.0, "Dragon Skin 30": 1080.0,
+                                           # as design.params.MATERIAL_PRESETS (not checked here)
+                                           "Sorta-Clear 12": 1040.0, "Ecoflex GEL": 980.0}
 
 
 def mass_g(material: str, volume_mm3: float) -> float:

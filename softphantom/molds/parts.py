@@ -28,6 +28,7 @@ bulb and manifold3d (exact mesh booleans) cuts or keeps the bulb's own triangles
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -78,6 +79,8 @@ SOLUBLE_MATERIAL = "PVA or BVOH (printed, water-soluble) or wax"
 BULB_SILICONE = "Ecoflex 00-50"
 ARM_SILICONE = "Ecoflex 00-50"
 CORE_SILICONE = "Dragon Skin 30"
+#: the bill of materials' names of the design's material presets (design.params.MATERIAL_PRESETS)
+SILICONE_NAMES = {"ecoflex_00_50": "Ecoflex 00-50", "sorta_clear_12": "Sorta-Clear 12", "ecoflex_gel": "Ecoflex GEL"}
 
 
 def _frame_of(direction) -> np.ndarray:
@@ -257,6 +260,91 @@ class _Builder:
             mesh = occ_solid("cast_bulb", build, self.seg)
         return Part("cast_bulb", "cast", "phantom", BULB_SILICONE, mesh, (0.0, 0.0, -1.0))
 
+    # --- the two-step cast of a shelled design (shell first, then the infill) ----------------
+    def _material(self, region: str) -> str:
+        m = self.d.material_of_regions([region])[region]
+        return SILICONE_NAMES.get(m, m)
+
+    def _infill(self, occ) -> int:
+        inner = self.d.layers.infill_semi_axes_mm(self.d.bulb.semi_axes_mm)
+        return bulb_solid(occ, dataclasses.replace(self.d.bulb, semi_axes_mm=inner))
+
+    def _lesion(self, occ, les) -> int:
+        tag = bulb_solid(occ, dataclasses.replace(self.d.bulb, semi_axes_mm=les.semi_axes_mm))
+        occ.translate([(3, tag)], *les.center_mm)
+        return tag
+
+    def infill_core(self) -> Part:
+        """The infill's shape on the urethra core's rod: in the bulb mold for the shell pour, then
+        dissolved or melted out (print it soluble, or cast it in wax) before the infill is poured."""
+        def build(occ):
+            return one_volume(occ.fuse([(3, self._infill(occ))], [(3, self._rod(occ, 0.0))]), "infill core")
+
+        return Part("infill_core", "core", "shell_pour", SOLUBLE_MATERIAL, occ_solid("infill_core", build, self.seg),
+                    tuple(-geo.orthonormal_frame(self.rod_dir)[0]))
+
+    def cast_layers(self) -> list[Part]:
+        """The silicone pieces of a multi-material bulb: shell (less the infill, its core's rod
+        channel and the marker sockets), infill (less urethra and lesions), each lesion."""
+        u, ms, lay = self.d.urethra, self.m, self.d.layers
+        markers = self._marker_normals()
+        out = []
+        if lay.shell_mm > 0.0:
+            def shell(occ):
+                tools = [(3, self._infill(occ)), (3, self._rod(occ, 0.0))]
+                tools += [(3, occ.addCylinder(*(p - ms.marker_socket_depth_mm * n),
+                                              *(n * (ms.marker_socket_depth_mm + 1.0)), ms.marker_socket_radius_mm))
+                          for p, n in markers.values()]
+                return one_volume(occ.cut(self._bulb(occ), tools), "cast shell")
+
+            out.append(Part("cast_shell", "cast", "phantom", self._material("shell"),
+                            occ_solid("cast_shell", shell, self.seg), (0.0, 0.0, -1.0)))
+
+        def infill(occ):
+            body = [(3, self._infill(occ))] if lay.shell_mm > 0.0 else self._bulb(occ)
+            tools = [(3, capsule(occ, *u.segment_mm, u.radius_mm)), (3, self._rod(occ, 0.0))]
+            return one_volume(occ.cut(body, tools), "cast infill")
+
+        lesions = [Part(f"cast_{les.region}", "cast", "phantom", self._material(les.region),
+                        occ_solid(f"cast_{les.region}", lambda occ, les=les: self._lesion(occ, les), self.seg),
+                        (0.0, 0.0, -1.0)) for les in lay.lesions]
+        mesh = occ_solid("cast_infill", infill, self.seg)
+        if lesions:  # their voids by manifold3d: it orients inner shells inward (the tessellation does not)
+            from softphantom.design.solid_check import from_manifold, to_manifold
+
+            solid = to_manifold(mesh)
+            for p in lesions:
+                solid = solid - to_manifold(p.mesh)
+            mesh = from_manifold(solid)
+        return [*out, Part("cast_infill", "cast", "phantom", self._material("bulb"), mesh, (0.0, 0.0, -1.0)), *lesions]
+
+    def lesion_half(self, les, upper: bool) -> Part:
+        """A two-part mold of a lesion: a block split at its centre plane, pins on the lower half,
+        the spout on the upper one."""
+        c, s = np.asarray(les.center_mm, float), np.asarray(les.semi_axes_mm, float)
+        room = 2.0 * (self.m.key_radius_mm + self.cl) + 3.0
+        lo, hi = c - s - self.m.wall_mm - np.array([room, room, 0.0]), c + s + self.m.wall_mm + np.array([room, room, 0.0])
+        inset = self.m.key_radius_mm + self.cl + 1.5
+        keys = [np.array([x, y, c[2]]) for x in (lo[0] + inset, hi[0] - inset) for y in (lo[1] + inset, hi[1] - inset)]
+
+        def build(occ):
+            z0, z1 = (c[2], hi[2]) if upper else (lo[2], c[2])
+            block = occ.addBox(lo[0], lo[1], z0, hi[0] - lo[0], hi[1] - lo[1], z1 - z0)
+            tools = [(3, self._lesion(occ, les))]
+            if upper:
+                top = c + np.array([0.0, 0.0, s[2]])
+                tools.append((3, cone_along(occ, top - [0, 0, 1.0], [top[0], top[1], hi[2] + 1.0],
+                                            min(self.m.spout_radius_mm, 0.5 * min(s[:2])), self.draft)))
+                tools += self._keys(occ, keys, (0, 0, 1), self.cl)
+            vol = one_volume(occ.cut([(3, block)], tools), "lesion mold half")
+            if not upper:
+                vol = one_volume(occ.fuse([(3, vol)], self._keys(occ, keys, (0, 0, 1), 0.0)), "lesion mold pins")
+            return vol
+
+        name = f"lesion_mold_{les.name}_{'upper' if upper else 'lower'}"
+        return Part(name, "mold", f"lesion_{les.name}", PRINT_MATERIAL, occ_solid(name, build, self.seg),
+                    (0.0, 0.0, -1.0))
+
     # --- arms -----------------------------------------------------------------------------
     def _arm_local(self, g):
         """(R, origin, to_local 12-affine, floor z, cavity z range) of one arm in its frame."""
@@ -427,7 +515,12 @@ def build_parts(design: BIPDesign, bulb_only: bool = False) -> tuple[Part, ...]:
     parts += [b.marker_socket(name) for name, _ in design.markers]
     if bulb_only:
         return tuple(parts)
-    parts.append(b.cast_bulb())
+    lay = design.layers
+    if lay.shell_mm > 0.0:
+        parts.append(b.infill_core())
+    for les in lay.lesions:
+        parts += [b.lesion_half(les, upper=False), b.lesion_half(les, upper=True)]
+    parts += b.cast_layers() if not lay.is_default else [b.cast_bulb()]
     for g in b.arms:
         parts += b.arm_parts(g)
     parts.append(b.frame())
