@@ -3,7 +3,7 @@ cost of one equilibrium solve, per law × element order × mesh size (issue 12, 
 docs/model.md).
 
     .venv/bin/python benchmarks/bench_model_choice.py [--laws corotational neo-hookean]
-        [--p1 9 6 4.5] [--p2 12 9] [--json out.json]
+        [--p1 9 6 4.5] [--p2 12 9] [--json out.json] [--estimator-cost]
 
 Load: the on-centre push of DESIGN.md §5, (0.15, 2.5, −0.2) N on a 4 mm patch (the reference's
 uniform-traction patch for every model, so only the model differs). Each model is softphantom's
@@ -14,6 +14,14 @@ yaw from the 6 mm solve, docs/model.md). Cost: the model's build, one tangent
 assembly + Cholesky factorization (what an estimator refresh pays per re-factorization), and
 the full Newton solve from rest, wall seconds; a peer ratio against P1 co-rotational at the
 estimator's 6 mm in the same run.
+
+``--estimator-cost`` measures instead what the estimator pays on each model, through its own
+:class:`~softphantom.estimation.forward.ForwardModel` on the design meshed at that size and order
+(4 mm patch, on-centre): the rest linearization (assembly, factorization, sensitivities; what
+building an estimator costs), a converged solve from rest at the push, a refresh 0.25 N further
+along y (``relinearize_N``: a refresh of the sync estimator) and a 1 N neighbour step (what each of
+the atlas's grid solves costs: they start from a converged neighbour about 1 N away), and the atlas
+build time this implies for the default grid (5·7·5·4 = 700 solves) on 1 and 2 workers.
 """
 
 from __future__ import annotations
@@ -75,6 +83,51 @@ def run(mesh, law) -> dict:
     }
 
 
+def estimator_cost(a) -> int:
+    import dataclasses
+    import os
+
+    from softphantom.design import build_model
+    from softphantom.estimation import EstimatorConfig
+    from softphantom.estimation.forward import ForwardModel
+    from softphantom.fem import fem_from_phantom
+
+    print(f"load average {os.getloadavg()[0]:.1f}", flush=True)
+    rows = []
+    lam = np.r_[FORCE, 0.0]
+    for order, sizes in ((1, a.p1), (2, a.p2)):
+        base = BIPDesign()
+        design = dataclasses.replace(base, mesh=dataclasses.replace(base.mesh, element_order=order))
+        for h in sizes:
+            model = build_model(design, h)
+            for lname in a.laws:
+                fem = fem_from_phantom(model, make_law(lname, a.E_kPa * 1e3, a.nu), order=order)
+                t0 = time.perf_counter()
+                fwd = ForwardModel(model, EstimatorConfig(), fem=fem)
+                t_rest = time.perf_counter() - t0
+                t0 = time.perf_counter()
+                lin = fwd.solve(lam)
+                t_push = time.perf_counter() - t0
+                t0 = time.perf_counter()
+                fwd.eq.solve(lin, lam + [0.0, 0.25, 0.0, 0.0])
+                t_refresh = time.perf_counter() - t0
+                t0 = time.perf_counter()
+                fwd.solve(lam + [0.0, 1.0, 0.0, 0.0], lin)
+                t_step = time.perf_counter() - t0
+                r = {"law": lname, "order": order, "mesh_size_mm": h, "nodes": fem.n_nodes,
+                     "rest_s": round(t_rest, 2), "push_s": round(t_push, 2), "refresh_s": round(t_refresh, 2),
+                     "step_1N_s": round(t_step, 2), "atlas_700_1w_min": round(700 * t_step / 60, 1),
+                     "atlas_700_2w_min": round(700 * t_step / 120, 1), "load": round(os.getloadavg()[0], 1)}
+                rows.append(r)
+                print(f"{lname:13s} P{order} {h:4g} mm {r['nodes']:6d} nodes: rest linearization {r['rest_s']} s, "
+                      f"push from rest {r['push_s']} s, refresh +0.25 N {r['refresh_s']} s, 1 N step {r['step_1N_s']} s "
+                      f"-> atlas 700 solves ≈ {r['atlas_700_1w_min']} min (1 worker), {r['atlas_700_2w_min']} min (2); "
+                      f"load {r['load']}", flush=True)
+    if a.json:
+        a.json.write_text(json.dumps(rows, indent=1))
+    return 0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--laws", nargs="+", default=["corotational", "neo-hookean"])
@@ -83,7 +136,10 @@ def main(argv=None) -> int:
     ap.add_argument("--E-kPa", type=float, default=142.3)
     ap.add_argument("--nu", type=float, default=0.45)
     ap.add_argument("--json", type=Path)
+    ap.add_argument("--estimator-cost", action="store_true", help="the estimator's costs per model (see above)")
     a = ap.parse_args(argv)
+    if a.estimator_cost:
+        return estimator_cost(a)
     rows = []
     meshes = {}
     for order, sizes in ((1, a.p1), (2, a.p2)):

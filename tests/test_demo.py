@@ -40,7 +40,7 @@ def test_demo_end_to_end_coarse(tmp_path, capsys):
     sc.write_text(SHORT)
     out = tmp_path / "demo"
     assert main(["demo", "--out", str(out), "--mesh-size-mm", "12", "--scenarios", str(sc), "--seed", "2",
-                 "--atlas-grid", "3,4,3,2"]) == 0
+                 "--atlas-grid", "3,4,3,2", "--truth-order", "1"]) == 0  # P1 truth: fast (P2: test_virtual)
     text = capsys.readouterr().out
     d = out / "demo-short"
     for f in ("frames.bin", "recording.csv", "tracker_motive.csv", "truth.csv", "snapshot.vtu", "virtual.json",
@@ -77,6 +77,9 @@ def test_demo_and_virtual_bad_options_are_one_line(tmp_path, capsys):
     assert main(["demo", "--out", str(tmp_path / "o"), "--truth-mesh-scale", "2"]) == 2
     err = capsys.readouterr().err.strip()
     assert "--truth-mesh-scale" in err and err.count("\n") == 0
+    assert main(["demo", "--out", str(tmp_path / "o"), "--truth-order", "3"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "--truth-order" in err and err.count("\n") == 0
     assert main(["virtual", "serve", "--scenario", "needle-insertion", "--model", str(tmp_path), "--speed", "0"]) == 2
     assert "--speed" in capsys.readouterr().err
 
@@ -88,9 +91,11 @@ def test_virtual_run_command(tmp_path, capsys, coarse_model):
     sc = tmp_path / "short.toml"
     sc.write_text(SHORT)
     out = tmp_path / "run"
-    assert main(["virtual", "run", "--scenario", str(sc), "--model", str(mdir), "--out", str(out), "--osr", "100"]) == 0
+    assert main(["virtual", "run", "--scenario", str(sc), "--model", str(mdir), "--out", str(out), "--osr", "100",
+                 "--truth-order", "1"]) == 0
     text = capsys.readouterr().out
     assert "truth:" in text and "board: OSR 100, 19.2 Hz" in text and "tracker: 120 Hz" in text
     meta = json.loads((out / "virtual.json").read_text())
     assert meta["board"]["osr"] == 100 and meta["truth"]["events"][0]["force_N"] == [0.3, 2.5, 0.2]
+    assert meta["truth"]["truth_mesh"]["element_order"] == 1 and "P1" in text
     assert Path(out / "recording.csv").read_text().startswith("# {")

@@ -282,7 +282,7 @@ PUSH = {"name": "live-push", "duration_s": 3.6, "rest_s": 0.8,
 
 @pytest.fixture(scope="module")
 def virtual_run(coarse_model):
-    return simulate(scenario_from_dict(PUSH, "live"), coarse_model, VirtualConfig.seeded(seed=5, osr=25))
+    return simulate(scenario_from_dict(PUSH, "live"), coarse_model, VirtualConfig.seeded(seed=5, osr=25, order=1))
 
 
 def test_live_from_the_virtual_phantom(coarse_model, virtual_run, tmp_path):

@@ -48,7 +48,7 @@ SHORT = {
 @pytest.fixture(scope="module")
 def short_run(coarse_model):
     sc = scenario_from_dict(SHORT, "short")
-    return simulate(sc, coarse_model, VirtualConfig.seeded(seed=3, osr=25))
+    return simulate(sc, coarse_model, VirtualConfig.seeded(seed=3, osr=25, order=1))  # P1 truth: fast; P2 below
 
 
 # --- scenarios ------------------------------------------------------------------------------------
@@ -156,6 +156,53 @@ def test_truth_is_finer_converged_and_exact_at_keyframes(short_run, coarse_model
     dv_corot = cavity_volume(corot.x, front) - cavity_volume(fem.nodes, front)
     assert abs(et.dV[2, 0] - dv_corot) > 0.2 * abs(et.dV[2, 0])
     assert tr.summary()["law"] == "neo-hookean" and tr.summary()["patch_radius_mm"] == 4.0
+    assert tr.summary()["truth_mesh"]["element_order"] == 1  # this fixture asked for linear tets
+
+
+def test_default_truth_is_quadratic_softer_than_linear_and_recorded(coarse_model, tmp_path, monkeypatch):
+    """The default truth uses 10-node tets (TruthConfig.order = 2): a model meshed at order 2,
+    cavities read on their curved 6-node walls, recorded as P2. On the same tets the
+    quadratic truth is softer than the linear one (linear tets lock at ν = 0.45, docs/model.md:
+    −49 % yaw, −23 % urethra ΔV) and its curved walls hold the design's cavity volume closer. Kept
+    fast: one keyframe on the coarsest mesh the guards accept at order 2 (16 mm)."""
+    import dataclasses
+
+    import meshio
+
+    from softphantom.design import build_model
+    from softphantom.virtual import solve_truth, truth_model
+    from softphantom.virtual import truth as truth_module
+    from softphantom.virtual.truth import write_snapshot
+
+    assert TruthConfig().order == 2
+    sc = scenario_from_dict(SHORT, "short")
+    d1 = coarse_model.design
+    d2 = dataclasses.replace(d1, mesh=dataclasses.replace(d1.mesh, element_order=2))
+    m1, m2 = build_model(d1, 16.0), build_model(d2, 16.0)
+    # the same corner mesh (gmsh's high-order optimizer may nudge a few corner nodes)
+    assert m2.n_corner_nodes == len(m1.nodes) and np.array_equal(m2.tets, m1.tets)
+    cfg = TruthConfig(levels=1)
+    tr2 = solve_truth(sc, coarse_model, cfg, truth_mesh=m2)
+    tr1 = solve_truth(sc, coarse_model, dataclasses.replace(cfg, order=1), truth_mesh=m1)
+    assert tr2.model.element_order == 2 and tr2.summary()["truth_mesh"]["element_order"] == 2
+    y2, y1 = (tr.sample([SHORT["push"][0]["start_s"] + 1.5]).pose.to_mm_deg()[0, 1] for tr in (tr2, tr1))
+    print(f"16 mm mesh, 3 N push: y P2 {y2:.3f} mm, P1 {y1:.3f} mm")
+    assert y2 > 1.05 * y1 > 1.0
+    want = d1.cavity_volumes_mm3()["urethra"] * 1e-9
+    assert abs(tr2.rest_volumes[4] - want) < abs(tr1.rest_volumes[4] - want)
+    vtu = write_snapshot(tr2, tmp_path / "p2.vtu")
+    mesh = meshio.read(vtu)
+    assert mesh.cells[0].type == "tetra10" and mesh.point_data["displacement_mm"].shape == (len(m2.nodes), 3)
+    # the default config's truth mesh: order 2, node spacing 0.75x the model's size, i.e. elements
+    # 1.5x (not meshed here); linear: elements 0.75x
+    # on the 12 mm model that is 18 mm P2, beyond the design's mesh guards: one line saying what to change
+    with pytest.raises(UserError, match=r"truth mesh \(P2, 18 mm elements .*--truth-mesh-scale or --truth-order 1"):
+        truth_model(coarse_model)
+    monkeypatch.setattr(truth_module, "build_model", lambda design, size_mm: (design, size_mm))
+    design, size_mm = truth_model(coarse_model)
+    assert design.mesh.element_order == 2 and size_mm == pytest.approx(1.5 * d1.mesh.size_mm)
+    design, size_mm = truth_model(coarse_model, TruthConfig(order=1))
+    assert design.mesh.element_order == 1 and size_mm == pytest.approx(0.75 * d1.mesh.size_mm)
 
 
 # --- sensor chain ---------------------------------------------------------------------------------
@@ -284,6 +331,7 @@ def test_write_run_files(short_run, tmp_path):
     # what the truth depends on is recorded with it: its law and the contact patch's radius
     tmeta = json.loads(paths["truth"].read_text().splitlines()[0].lstrip("# "))
     assert tmeta["truth_law"] == "neo-hookean" and tmeta["patch_radius_mm"] == 4.0
+    assert tmeta["truth_element_order"] == 1 and meta["truth"]["truth_mesh"]["element_order"] == 1
     assert meta["truth"]["law"] == "neo-hookean" and meta["truth"]["patch_radius_mm"] == 4.0
 
 
@@ -329,7 +377,7 @@ def test_inflation_until_target_moves(coarse_model):
                              "inflate": [{"start_s": 1.5, "rise_s": 2.0, "hold_s": 1.0, "fall_s": 1.0,
                                           "target": "near_urethra", "target_shift_mm": 1.0,
                                           "max_p_urethra_kPa": 150.0}]}, "infl")
-    tr = solve_truth(sc, coarse_model)
+    tr = solve_truth(sc, coarse_model, TruthConfig(order=1))
     et = tr.events[0]
     j = tr.target_names.index("near_urethra")
     assert np.linalg.norm(et.targets[-1, j]) * 1e3 == pytest.approx(1.0, rel=0.01)

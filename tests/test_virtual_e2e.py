@@ -1,10 +1,11 @@
 """End to end on the coarse mesh: the estimator, fed by the virtual phantom's frames (through the
 firmware protocol, the decoder, the tare, Boyle), tracks the virtual truth.
 
-This checks the chain, so its truth keeps the estimator's own law (``law="model"``: the same design
-meshed 0.75× finer, 9 mm vs 12 mm, solved to convergence with the push spread on a 4 mm patch);
-the virtual phantom's default neo-Hookean truth measures the model's form error instead (the demo,
-docs/model.md, docs/virtual.md). The estimator uses the 12 mm mesh and a point contact. Its error
+This checks the chain, so its truth keeps the estimator's own law and element (``law="model"``,
+``order=1``: the same design meshed 0.75× finer, 9 mm vs 12 mm, solved to convergence with the push
+spread on a 4 mm patch); the virtual phantom's default truth (neo-Hookean, quadratic tets) measures
+the model's form error instead (the demo, docs/model.md, docs/virtual.md). The estimator uses the
+12 mm mesh and the same 4 mm contact patch. Its error
 is then model error (mesh: the arm cavities' ΔV is the most mesh-sensitive output, DESIGN.md §5),
 sensing error (quantization, noise, drift ≈ 0.1 Pa/s, tube lag ≈ 0.1 s, taken out by the lag
 estimate) and the estimator's own approximations. Bounds (3 N push, ~5 mm peak along y): pose
@@ -35,7 +36,7 @@ def test_estimate_tracks_virtual_truth(coarse_model):
     from softphantom.pose import Pose6
 
     sc = scenario_from_dict(SCENARIO, "e2e")
-    run = simulate(sc, coarse_model, VirtualConfig.seeded(seed=3, osr=100, law="model"))
+    run = simulate(sc, coarse_model, VirtualConfig.seeded(seed=3, osr=100, law="model", order=1))
     ests = []
     with Estimator(coarse_model, EstimatorConfig(contact="on-centre", mode="sync")) as est:
         for m in run.source():

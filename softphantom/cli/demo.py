@@ -244,7 +244,8 @@ def demo_cmd(
     scenarios: list[str] = typer.Option(None, "--scenarios", help="Scenario names or TOML files (repeat; default: the four bundled)."),
     seed: int = typer.Option(0, "--seed", help="Seed of every random source."),
     osr: int = typer.Option(100, "--osr", help="Board oversampling (100: 19.2 Hz, the paper's N; 25: 76.9 Hz)."),
-    truth_mesh_scale: float = typer.Option(0.75, "--truth-mesh-scale", help="Truth mesh size relative to the estimator's."),
+    truth_mesh_scale: float = typer.Option(0.75, "--truth-mesh-scale", help="Truth node spacing relative to the estimator's mesh size (P2 elements are twice that)."),
+    truth_order: int = typer.Option(2, "--truth-order", help="Truth element order: 2 (10-node tets, the default) or 1."),
     force: bool = typer.Option(False, "--force", help="Mesh above the element-count limit (docs/robustness.md)."),
     model_dir: Path = typer.Option(None, "--model", help="Estimator model directory (e.g. from softphantom calibrate) instead of the default design; the truth is meshed from its design."),
     overwrite: bool = overwrite_option(),
@@ -268,7 +269,7 @@ def demo_cmd(
     names = list(scenarios or BUNDLED)
     for n in names:
         load_scenario(n)  # validate all before the long work
-    cfg = _config(seed, osr, truth_mesh_scale)
+    cfg = _config(seed, osr, truth_mesh_scale, order=truth_order)
     if mesh_size_mm is not None and not mesh_size_mm > 0:
         raise UserError(f"--mesh-size-mm: must be > 0, got {mesh_size_mm:g}")
     if model_dir is not None and mesh_size_mm is not None:
@@ -282,8 +283,8 @@ def demo_cmd(
                       f"mm) → {out / 'model'}", highlight=False, soft_wrap=True)
         with Status("mesh (truth model, finer)", console=console):
             tm = truth_model(model, cfg.truth)
-        console.print(f"truth model: {len(tm.nodes)} nodes, {len(tm.tets)} tets (mesh {tm.design.mesh.size_mm:g} mm)",
-                      highlight=False)
+        console.print(f"truth model: {len(tm.nodes)} nodes, {len(tm.tets)} tets, P{tm.element_order} (mesh "
+                      f"{tm.design.mesh.size_mm:g} mm)", highlight=False)
         rows = _run_all([load_scenario(n) for n in names], model, work, cfg, tm, estimator, grid)
         for r in rows:  # the paths the user will see, once the directory is in place
             r["report"] = str(out / Path(r["report"]).relative_to(work))

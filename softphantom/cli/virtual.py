@@ -32,9 +32,10 @@ def truth_progress(console_, label: str):
     return bar, cb
 
 
-def _config(seed: int, osr: int, mesh_scale: float, bench_options: dict | None = None):
+def _config(seed: int, osr: int, mesh_scale: float, bench_options: dict | None = None, order: int | None = None):
     """The run's settings; ``bench_options`` (``tube_length_m``, ``tube_id_mm``; None = the
-    paper's) set the tubes of both the virtual board's physics and the host's chain."""
+    paper's) set the tubes of both the virtual board's physics and the host's chain; ``order`` the
+    truth's element order (None: TruthConfig's, 2)."""
     from dataclasses import replace
 
     from softphantom.sensing.bench import BenchConfig
@@ -42,19 +43,22 @@ def _config(seed: int, osr: int, mesh_scale: float, bench_options: dict | None =
 
     if not 0.2 <= mesh_scale <= 1.0:
         raise UserError(f"--truth-mesh-scale: must be in [0.2, 1] (finer than the model), got {mesh_scale:g}")
-    cfg = VirtualConfig.seeded(seed=seed, osr=osr, mesh_scale=mesh_scale)
+    if order is not None and order not in (1, 2):
+        raise UserError(f"--truth-order: must be 1 or 2, got {order}")
+    cfg = VirtualConfig.seeded(seed=seed, osr=osr, mesh_scale=mesh_scale,
+                               **({} if order is None else {"order": order}))
     b = BenchConfig.from_options(**(bench_options or {}))
     return replace(cfg, board=replace(cfg.board, tube_length_m=b.tube_length_m, tube_id_m=b.tube_id_m))
 
 
 def _simulate(scenario: str, model_dir: Path, seed: int, osr: int, mesh_scale: float,
-              bench_options: dict | None = None):
+              bench_options: dict | None = None, order: int | None = None):
     """Load the scenario and the model, solve the truth with a progress bar: the VirtualRun."""
     from softphantom.design import load_model
     from softphantom.virtual import load_scenario, simulate
 
     sc = load_scenario(scenario)
-    cfg = _config(seed, osr, mesh_scale, bench_options)
+    cfg = _config(seed, osr, mesh_scale, bench_options, order)
     model = load_model(model_dir)
     bar, cb = truth_progress(console, f"truth of {sc.name}")
     with bar:
@@ -63,7 +67,8 @@ def _simulate(scenario: str, model_dir: Path, seed: int, osr: int, mesh_scale: f
 
 def _print_summary(summary: dict) -> None:
     tr = summary["truth"]
-    console.print(f"truth: {tr['truth_mesh']['nodes']} nodes (mesh {tr['truth_mesh']['mesh_size_mm']:.2f} mm), "
+    console.print(f"truth: {tr['law']}, P{tr['truth_mesh']['element_order']}, {tr['truth_mesh']['nodes']} nodes "
+                  f"(mesh {tr['truth_mesh']['mesh_size_mm']:.2f} mm), "
                   f"solved in {tr['solve_s']:.1f} s", highlight=False)
     for e in tr["events"]:
         if e["kind"] == "push":
@@ -86,7 +91,8 @@ def run_cmd(
     out: Path = typer.Option(..., "--out", help="Output directory: frames.bin, recording.csv, tracker_motive.csv, truth.csv, snapshot.vtu, virtual.json."),
     seed: int = typer.Option(0, "--seed", help="Seed of every random source (noise, offsets, drift, lost frames, clocks)."),
     osr: int = typer.Option(25, "--osr", help="Readings summed per channel per frame (25: 76.9 Hz, 100: 19.2 Hz)."),
-    truth_mesh_scale: float = typer.Option(0.75, "--truth-mesh-scale", help="Truth mesh size relative to the model's (< 1: finer)."),
+    truth_mesh_scale: float = typer.Option(0.75, "--truth-mesh-scale", help="Truth node spacing relative to the model's mesh size (< 1: finer; P2 elements are twice that)."),
+    truth_order: int = typer.Option(2, "--truth-order", help="Truth element order: 2 (10-node tets, the default) or 1."),
     tube_length_m: float = TUBE_LENGTH_OPTION,
     tube_id_mm: float = TUBE_ID_OPTION,
     overwrite: bool = overwrite_option(),
@@ -96,7 +102,7 @@ def run_cmd(
 
     check_output(out, overwrite=overwrite, directory=True)
     run = _simulate(scenario, model_dir, seed, osr, truth_mesh_scale,
-                    dict(tube_length_m=tube_length_m, tube_id_mm=tube_id_mm))
+                    dict(tube_length_m=tube_length_m, tube_id_mm=tube_id_mm), truth_order)
     with staged_output(out, overwrite=overwrite, directory=True) as work:
         paths = write_run(run, work)
     _print_summary(run_summary(run))
@@ -110,7 +116,8 @@ def serve_cmd(
     model_dir: Path = typer.Option(..., "--model", help="Model directory (softphantom design)."),
     seed: int = typer.Option(0, "--seed", help="Seed of every random source."),
     osr: int = typer.Option(25, "--osr", help="Initial OSR (the host may change it with SET_OSR)."),
-    truth_mesh_scale: float = typer.Option(0.75, "--truth-mesh-scale", help="Truth mesh size relative to the model's."),
+    truth_mesh_scale: float = typer.Option(0.75, "--truth-mesh-scale", help="Truth node spacing relative to the model's mesh size (P2 elements are twice that)."),
+    truth_order: int = typer.Option(2, "--truth-order", help="Truth element order: 2 (10-node tets, the default) or 1."),
     tube_length_m: float = TUBE_LENGTH_OPTION,
     tube_id_mm: float = TUBE_ID_OPTION,
     speed: float = typer.Option(1.0, "--speed", help="Playback speed (1 = real time)."),
@@ -130,7 +137,7 @@ def serve_cmd(
     if natnet and not 0 <= natnet_port <= 65535:
         raise UserError(f"--natnet-port must be in 0..65535, got {natnet_port}")
     run = _simulate(scenario, model_dir, seed, osr, truth_mesh_scale,
-                    dict(tube_length_m=tube_length_m, tube_id_mm=tube_id_mm))
+                    dict(tube_length_m=tube_length_m, tube_id_mm=tube_id_mm), truth_order)
     stop_natnet = _start_natnet(run, natnet_host, natnet_port, natnet_version, speed) if natnet else None
     sc = run.scenario
     master, slave, path = open_pty()

@@ -178,6 +178,8 @@ def write_run(run: VirtualRun, out: Path) -> dict[str, Path]:
     tmeta = {"softphantom": __version__, "kind": "virtual-truth", "scenario": run.scenario.name,
              "frame": "model (relative to rest)", "clock": "scenario (s)",
              "truth_mesh_nodes": len(run.truth.model.nodes), "truth_law": run.truth.summary()["law"],
+             "truth_element_order": run.truth.model.element_order,
+             "truth_mesh_size_mm": run.truth.model.design.mesh.size_mm,
              "patch_radius_mm": run.scenario.patch_radius_mm,
              "note": "truth solved at load keyframes, interpolated in load level (PCHIP) then mapped to time"}
     write_table(paths["truth"], tmeta, run.truth_columns())

@@ -1,10 +1,13 @@
 """Ground truth of the virtual phantom, from a model of higher fidelity than the estimator's.
 
-The estimator's model is the design meshed at ``h`` (mm) with its own laws (co-rotational Hooke by
-default) and a fast per-sample update. The truth differs from it in form, not only in mesh: the
-same design meshed at ``mesh_scale · h`` (finer; 0.75 by default, about 2.4× the nodes), every
-co-rotational region replaced by its hyperelastic twin (compressible neo-Hookean with the same E,
-ν: ``law = "neo-hookean"``, the default; ``"model"`` keeps the design's laws), solved to
+The estimator's model is the design meshed at ``h`` (mm) with its own laws and element order and
+a fast per-sample update. The truth differs from it in form, not only in mesh: the same design
+with quadratic 10-node tetrahedra (``order = 2``, the default: curved walls, no volumetric locking
+at ν = 0.45; docs/model.md) whose node spacing is ``mesh_scale · h`` (finer; 0.75 by default), i.e.
+elements of ``order · mesh_scale · h`` (9 mm for the default 6 mm model: a 10-node tet has a node
+at each edge's middle, so it has the node spacing of a linear tet half its size),
+every co-rotational region replaced by its hyperelastic twin (compressible neo-Hookean with the
+same E, ν: ``law = "neo-hookean"``, the default; ``"model"`` keeps the design's laws), solved to
 convergence by Newton (relative residual 1e-8) with the load on a contact patch
 (``patch_radius_mm``), so an estimate is never checked against its own model (DESIGN.md §5).
 
@@ -27,8 +30,10 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.interpolate import PchipInterpolator
 
+import dataclasses
+
 from softphantom.design import PhantomModel, build_model
-from softphantom.errors import SolverError, UserError
+from softphantom.errors import DesignError, MeshError, SolverError, UserError
 from softphantom.fem import (
     Corotational,
     ElementInversionError,
@@ -60,20 +65,31 @@ def truth_laws(model: PhantomModel, law: str) -> dict:
 
 @dataclass(frozen=True)
 class TruthConfig:
-    """``mesh_scale`` truth mesh size / the model's; ``levels`` keyframes per push ramp;
+    """``mesh_scale`` truth node spacing / the model's mesh size (the truth's elements are
+    ``order · mesh_scale`` times the model's); ``levels`` keyframes per push ramp;
     ``tol`` Newton's relative residual; ``inflate_steps`` pressure steps up to the limit;
     ``law``: ``"neo-hookean"`` (co-rotational regions become compressible neo-Hookean with the
-    same E, ν, density) or ``"model"`` (the design's own laws, as the estimator)."""
+    same E, ν, density) or ``"model"`` (the design's own laws, as the estimator); ``order``: the
+    truth's element order, 2 (10-node tets, the default) or 1 (4-node, e.g. for fast tests).
+
+    >>> TruthConfig(order=3)
+    Traceback (most recent call last):
+    ...
+    softphantom.errors.UserError: truth order must be 1 or 2, got 3
+    """
 
     mesh_scale: float = 0.75
     levels: int = 3
     tol: float = 1e-8
     inflate_steps: int = 10
     law: str = "neo-hookean"
+    order: int = 2
 
     def __post_init__(self) -> None:
         if self.law not in TRUTH_LAWS:
             raise UserError(f"truth law must be one of {', '.join(TRUTH_LAWS)}, got {self.law!r}")
+        if isinstance(self.order, bool) or self.order not in (1, 2):
+            raise UserError(f"truth order must be 1 or 2, got {self.order!r}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -177,14 +193,25 @@ class Truth:
             out.append(d)
         laws = sorted({law.name for law in truth_laws(self.model, self.config.law).values()})
         return {"truth_mesh": {"nodes": len(self.model.nodes), "tets": len(self.model.tets),
-                               "mesh_size_mm": self.model.design.mesh.size_mm},
+                               "mesh_size_mm": self.model.design.mesh.size_mm,
+                               "element_order": self.model.element_order},
                 "law": "+".join(laws), "patch_radius_mm": self.scenario.patch_radius_mm,
                 "solve_s": round(self.solve_s, 2), "events": out}
 
 
 def truth_model(model: PhantomModel, config: TruthConfig = TruthConfig()) -> PhantomModel:
-    """The design of ``model`` meshed ``config.mesh_scale`` times finer (the truth's mesh)."""
-    return build_model(model.design, model.design.mesh.size_mm * config.mesh_scale)
+    """The design of ``model`` meshed with elements of ``config.order`` and a node spacing
+    ``config.mesh_scale`` times the model's mesh size (element size ``order · mesh_scale · h``)."""
+    design = model.design
+    if design.mesh.element_order != config.order:
+        design = dataclasses.replace(design, mesh=dataclasses.replace(design.mesh, element_order=config.order))
+    size_mm = design.mesh.size_mm * config.mesh_scale * config.order
+    try:
+        return build_model(design, size_mm)
+    except (DesignError, MeshError) as exc:
+        raise type(exc)(f"truth mesh (P{config.order}, {size_mm:.3g} mm elements for node spacing "
+                        f"{config.mesh_scale:g} x the model's {design.mesh.size_mm:g} mm): {exc} — a smaller "
+                        f"--truth-mesh-scale or --truth-order 1") from None
 
 
 def _patch_radius(fem, point: np.ndarray, radius_m: float) -> float:
@@ -199,11 +226,12 @@ def solve_truth(scenario: Scenario, model: PhantomModel, config: TruthConfig = T
                 truth_mesh: PhantomModel | None = None) -> Truth:
     """Solve the truth of ``scenario`` (see the module docstring). ``model`` is the estimator's
     model (its design and mesh size set the truth mesh), or pass ``truth_mesh`` directly.
-    ``progress(done, total, what)`` is called after each keyframe."""
+    ``progress(done, total, what)`` is called after each keyframe; a given ``truth_mesh`` sets the
+    element order (its own)."""
     t0 = time.perf_counter()
     tm = truth_mesh if truth_mesh is not None else truth_model(model, config)
     laws = truth_laws(tm, config.law)
-    fem = fem_from_phantom(tm, laws)
+    fem = fem_from_phantom(tm, laws)  # the truth mesh's element order
     marker_names = tuple(tm.markers)
     target_names = tuple(tm.targets)
     P = probe_matrix(fem, np.vstack([[tm.markers[k] for k in marker_names], [tm.targets[k] for k in target_names]]))
@@ -212,8 +240,9 @@ def solve_truth(scenario: Scenario, model: PhantomModel, config: TruthConfig = T
     # fraction of a mm off the faceted mesh surface): motion relative to rest is then exact
     carried = P @ x_rest
     rest_markers, rest_targets = carried[: len(marker_names)], carried[len(marker_names):]
-    closed = np.vstack([tm.outer_faces, tm.fixed_faces])
-    V0 = np.array([cavity_volume(x_rest, tm.cavities[c]) for c in CAVITIES])
+    # the surfaces of the element order (6-node triangles on a quadratic mesh: curved walls)
+    closed = np.vstack([tm.outer_faces6, tm.fixed_faces6] if tm.element_order == 2 else [tm.outer_faces, tm.fixed_faces])
+    V0 = np.array([cavity_volume(x_rest, fem.cavities[c]) for c in CAVITIES])
     bulb0 = cavity_volume(x_rest, closed)
     k = len(marker_names)
     total = sum(config.levels if e.kind == "push" or e.p_urethra_kPa is not None else config.inflate_steps
@@ -223,7 +252,7 @@ def solve_truth(scenario: Scenario, model: PhantomModel, config: TruthConfig = T
     def readout(x):
         x = np.asarray(x).reshape(-1, 3)
         pts = P @ x
-        dv = np.array([cavity_volume(x, tm.cavities[c]) for c in CAVITIES]) - V0
+        dv = np.array([cavity_volume(x, fem.cavities[c]) for c in CAVITIES]) - V0
         return dv, pts[:k], pts[k:] - rest_targets, cavity_volume(x, closed) - bulb0
 
     def solve(f_ext, p, x0, what, x_prev=None, ratio=1.0, min_step=1.0 / 64, max_iter=25, single=False):
@@ -372,7 +401,8 @@ def write_snapshot(truth: Truth, path) -> str:
     et = truth.peak_event()
     m = truth.model
     u = et.x_peak - m.nodes
-    mesh = meshio.Mesh(et.x_peak, [("tetra", np.asarray(m.tets))],
+    cells = ("tetra10", np.asarray(m.tets10)) if m.element_order == 2 else ("tetra", np.asarray(m.tets))
+    mesh = meshio.Mesh(et.x_peak, [cells],
                        point_data={"displacement_mm": u * 1e3},
                        cell_data={"region": [np.asarray(m.tet_region, np.int32)]})
     meshio.write(str(path), mesh)
