@@ -5,4 +5,13 @@ design -> fem -> sensing -> estimation -> pose -> tracking -> evaluation; plus v
 SI units inside (m, N, Pa, s); user-facing names carry their unit (``y_mm``, ``p_kPa``).
 """
 
+import os as _os
+
+# Before numpy loads its OpenBLAS (and scikit-sparse the system's, for CHOLMOD): one BLAS thread per
+# process. Both pools spin between calls; on two shared cores their threads steal the CPU the solver
+# needs (an atlas plane of 20 solves: 40 CPU-s with numpy's default pool, 18 with one thread;
+# docs/performance.md). Parallel work goes through Dask processes instead. A user's setting wins.
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    _os.environ.setdefault(_var, "1")
+
 __version__ = "0.1.0"

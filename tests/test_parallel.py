@@ -1,6 +1,10 @@
 """The shared Dask set-up: local cluster, per-task errors, refusal of an unreachable scheduler."""
 
+import json
+import os
 import socket
+import subprocess
+import sys
 
 import pytest
 
@@ -36,3 +40,19 @@ def test_unreachable_scheduler_is_one_line_user_error(monkeypatch):
             pass
     msg = str(err.value)
     assert f"tcp://127.0.0.1:{port}" in msg and "unreachable" in msg and "\n" not in msg
+
+
+
+def test_one_blas_thread_per_process_unless_the_user_says_otherwise():
+    # numpy's OpenBLAS sizes its pool when it loads, CHOLMOD's (the system's) too: softphantom must set
+    # the default before either; counted by threadpoolctl (an independent reader of the pools)
+    code = ("import json, softphantom, numpy, sksparse.cholmod; from threadpoolctl import threadpool_info; "
+            "print(json.dumps([(i['internal_api'], i['num_threads']) for i in threadpool_info()]))")
+    env = {k: v for k, v in os.environ.items() if not k.endswith("_NUM_THREADS")}
+    pools = json.loads(subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                                      check=True).stdout)
+    assert [n for api, n in pools if api == "openblas"] == [1, 1]  # numpy's and the system's (CHOLMOD)
+    env["OPENBLAS_NUM_THREADS"] = "2"  # the user's setting wins
+    pools = json.loads(subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                                      check=True).stdout)
+    assert [n for api, n in pools if api == "openblas"] == [2, 2]

@@ -4,6 +4,7 @@ phantom → estimate → evaluate → one report per scenario, an index page and
 from __future__ import annotations
 
 import html
+import math
 import json
 import time
 from pathlib import Path
@@ -31,6 +32,18 @@ PUSH_GRID = (4, 5, 4, 2)
 INFLATE_GRID = (3, 3, 3, 5)
 
 
+def _box(forces, p_kPa: float, grid):
+    import numpy as np
+
+    from softphantom.estimation import AtlasConfig
+
+    F = np.array([np.zeros(3)] + [np.asarray(f, float) for f in forces])
+    m = MARGIN_N + MARGIN_REL * float(np.linalg.norm(F, axis=1).max())
+    n = grid or (PUSH_GRID if p_kPa == 0.0 else INFLATE_GRID)
+    return AtlasConfig(force_min_N=tuple(F.min(0) - m), force_max_N=tuple(F.max(0) + m), p_min_kPa=-MARGIN_KPA,
+                       p_max_kPa=1.2 * p_kPa + MARGIN_KPA, n_force=n[:3], n_pressure=n[3])
+
+
 def scenario_atlas(truth, grid: tuple[int, int, int, int] | None = None):
     """The :class:`~softphantom.estimation.atlas.AtlasConfig` the demo builds for one scenario from
     its solved ``truth`` (see ``MARGIN_N`` above); ``grid`` overrides the points per axis.
@@ -44,16 +57,34 @@ def scenario_atlas(truth, grid: tuple[int, int, int, int] | None = None):
     >>> a.force_max_N, a.p_min_kPa, a.p_max_kPa, a.shape
     ((0.5, 0.5, 0.5), -2.0, 38.0, (3, 3, 3, 5))
     """
-    import numpy as np
+    return _box([e.force for e in truth.events], max([0.0] + [e.p_urethra * 1e-3 for e in truth.events]), grid)
 
-    from softphantom.estimation import AtlasConfig
 
-    F = np.array([np.zeros(3)] + [e.force for e in truth.events])
-    p_kPa = max([0.0] + [e.p_urethra * 1e-3 for e in truth.events])
-    m = MARGIN_N + MARGIN_REL * float(np.linalg.norm(F, axis=1).max())
-    n = grid or (PUSH_GRID if p_kPa == 0.0 else INFLATE_GRID)
-    return AtlasConfig(force_min_N=tuple(F.min(0) - m), force_max_N=tuple(F.max(0) + m), p_min_kPa=-MARGIN_KPA,
-                       p_max_kPa=1.2 * p_kPa + MARGIN_KPA, n_force=n[:3], n_pressure=n[3])
+def _push_only(sc) -> str | None:
+    """The contact point of a scenario that only pushes, at one point; else None."""
+    points = {e.point for e in sc.events if e.kind == "push"}
+    return points.pop() if len(points) == 1 and all(e.kind == "push" for e in sc.events) else None
+
+
+def shared_atlases(scs, grid: tuple[int, int, int, int] | None = None) -> dict:
+    """One atlas per contact point for the scenarios that only push there (their peak forces are
+    the scenario's own, known before any solve): the box of all of them, so the needle insertion
+    and the on-centre pushes share one build. {contact: AtlasConfig}.
+
+    >>> from types import SimpleNamespace as E
+    >>> needle = E(events=[E(kind="push", point="on-centre", force_N=(0.15, 2.5, -0.2))])
+    >>> pushes = E(events=[E(kind="push", point="on-centre", force_N=(-0.6, 2.6, -0.5))])
+    >>> inflate = E(events=[E(kind="inflate", point="on-centre", force_N=(0.0, 0.0, 0.0))])
+    >>> a = shared_atlases([needle, pushes, inflate])
+    >>> c = a["on-centre"]  # margin 0.5 N + 0.2 × |(-0.6, 2.6, -0.5)| = 1.04 N around both and zero
+    >>> list(a), [round(v, 2) for v in c.force_min_N], [round(v, 2) for v in c.force_max_N], c.shape
+    (['on-centre'], [-1.64, -1.04, -1.54], [1.19, 3.64, 1.04], (4, 5, 4, 2))
+    """
+    by: dict[str, list] = {}
+    for sc in scs:
+        if (c := _push_only(sc)) is not None:
+            by.setdefault(c, []).extend(e.force_N for e in sc.events)
+    return {c: _box(f, 0.0, grid) for c, f in by.items()}
 
 
 def _in_envelope(path: Path) -> float:
@@ -64,10 +95,11 @@ def _in_envelope(path: Path) -> float:
     return float(col.mean()) if len(col) else float("nan")
 
 
-def run_scenario(sc, model, out: Path, cfg, truth, bar, estimator: str = "atlas", grid=None) -> dict:
+def run_scenario(sc, model, out: Path, cfg, truth, bar, estimator: str = "atlas", grid=None, atlas=None) -> dict:
     """One scenario end to end from its solved ``truth``; returns its summary row (JSON-able).
-    ``estimator``: atlas (built for the scenario's envelope, :func:`scenario_atlas`, cached in
-    out/model/atlas) or refresh (sync); ``grid`` the atlas's points per axis (default: by kind)."""
+    ``estimator``: atlas (``atlas``, an AtlasConfig, default the scenario's envelope
+    (:func:`scenario_atlas`); loaded from or built into out/model/atlas) or refresh (sync);
+    ``grid`` the atlas's points per axis (default: by kind)."""
     from softphantom.estimation import EstimatorConfig, open_estimator
     from softphantom.estimation.stream import estimate_stream
     from softphantom.evaluation import evaluate, read_estimate, read_truth, write_report
@@ -85,7 +117,10 @@ def run_scenario(sc, model, out: Path, cfg, truth, bar, estimator: str = "atlas"
     t1 = time.perf_counter()
     task = bar.add_task(f"{sc.name}: estimate", total=n_frames, what="")
     ecfg = EstimatorConfig(contact=_contact(sc), mode="sync")
-    atlas = scenario_atlas(truth, grid) if estimator == "atlas" else None
+    if estimator != "atlas":
+        atlas = None
+    elif atlas is None:
+        atlas = scenario_atlas(truth, grid)
     with open_estimator(estimator, model, ecfg, cache_dir=out / "model", progress=False, atlas=atlas,
                         log=lambda s: bar.console.print(s, highlight=False, soft_wrap=True)) as est:
         stats = estimate_stream(src, est, est_path, lambda e, n: bar.update(task, completed=n),
@@ -204,37 +239,55 @@ def _atlas_note(r: dict) -> str:
     return f", {a['in_envelope_fraction'] * 100:.0f} % of estimates inside its atlas ({'×'.join(map(str, a['grid']))})"
 
 
+def _prebuild(model, out: Path, shared: dict, bar) -> None:
+    """Build (or find) the shared atlases in out/model while the worker solves the truths."""
+    from softphantom.estimation import EstimatorConfig
+    from softphantom.estimation.atlas import load_or_build
+
+    for contact, acfg in shared.items():
+        task = bar.add_task(f"atlas at {contact}", total=None, what=f"{math.prod(acfg.shape)} forward solves")
+        load_or_build(model, EstimatorConfig(contact=contact, mode="sync"), acfg, cache_dir=out / "model",
+                      progress=False, log=lambda s: bar.console.print(s, highlight=False, soft_wrap=True))
+        bar.update(task, total=1, completed=1, what="built")
+
+
 def _run_all(scs, model, out: Path, cfg, tm, estimator: str = "atlas", grid=None) -> list[dict]:
-    """Truth solves in one worker process, in scenario order; the main process estimates and
-    evaluates each scenario as soon as its truth is ready (2 cores: both stay busy)."""
+    """Truth solves in one worker process; the main process meanwhile builds the atlases shared by
+    the push scenarios (:func:`shared_atlases`), then estimates and evaluates each scenario as
+    soon as its truth is ready (2 cores: both stay busy). The scenarios whose atlas needs their
+    truth (an inflation: its pressure) are solved first. Rows in the order of ``scs``."""
     import multiprocessing as mp
     import threading
     from concurrent.futures import ProcessPoolExecutor
 
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
+    shared = shared_atlases(scs, grid) if estimator == "atlas" else {}
+    order = sorted(scs, key=lambda sc: _push_only(sc) in shared)  # stable: the others first
     ctx = mp.get_context("spawn")
     queue = ctx.Queue()
     bar = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
                    TextColumn("{task.fields[what]}"), console=console)
-    rows = []
+    rows: dict[str, dict] = {}
     with bar, ProcessPoolExecutor(1, mp_context=ctx, initializer=_init_worker, initargs=(queue,)) as pool:
-        tasks = {sc.name: bar.add_task(f"{sc.name}: truth", total=None, what="queued") for sc in scs}
+        tasks = {sc.name: bar.add_task(f"{sc.name}: truth", total=None, what="queued") for sc in order}
         listener = threading.Thread(target=_listen, args=(queue, bar, tasks), daemon=True)
         listener.start()
         futures = []
         try:
-            futures = [pool.submit(_solve_in_worker, sc, model, cfg.truth, tm) for sc in scs]
-            for sc, fut in zip(scs, futures):
+            futures = [pool.submit(_solve_in_worker, sc, model, cfg.truth, tm) for sc in order]
+            _prebuild(model, out, shared, bar)
+            for sc, fut in zip(order, futures):
                 truth = fut.result()
                 bar.update(tasks[sc.name], what=f"solved in {truth.solve_s:.0f} s")
-                rows.append(run_scenario(sc, model, out, cfg, truth, bar, estimator, grid))
+                rows[sc.name] = run_scenario(sc, model, out, cfg, truth, bar, estimator, grid,
+                                             atlas=shared.get(_push_only(sc)))
         finally:
             for f in futures:
                 f.cancel()
             queue.put(None)
             listener.join(5)
-    return rows
+    return [rows[sc.name] for sc in scs]
 
 
 @app.command("demo")

@@ -3,7 +3,6 @@ load stepping, and a sparse direct solver that keeps its symbolic analysis acros
 
 from __future__ import annotations
 
-import os
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
@@ -28,12 +27,7 @@ from softphantom.fem.model import FemModel
 
 SOLVER_METHODS = ("cholmod", "cholespy", "splu")
 
-# CHOLMOD factorizes with the system BLAS (OpenBLAS, scripts/install-system-deps.sh), loaded with
-# scikit-sparse after this module. Its thread pool fights numpy's own OpenBLAS and the estimator's
-# background thread on two cores: single-threaded, the many small solves of an equilibrium refresh
-# run ~5x faster (refresh 0.3 s instead of 1.5 s on the default mesh; docs/performance.md).
-# A user's own setting wins.
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+# CHOLMOD factorizes with the system BLAS, single-threaded: softphantom/__init__.py sets the pools.
 
 
 def _have_cholmod() -> bool:
