@@ -99,3 +99,28 @@ def test_virtual_run_command(tmp_path, capsys, coarse_model):
     assert meta["board"]["osr"] == 100 and meta["truth"]["events"][0]["force_N"] == [0.3, 2.5, 0.2]
     assert meta["truth"]["truth_mesh"]["element_order"] == 1 and "P1" in text
     assert Path(out / "recording.csv").read_text().startswith("# {")
+
+
+def test_a_killed_demo_leaves_no_worker(tmp_path):
+    # the truth worker's watchdog (softphantom.cli.demo.exit_with_parent) in a grandchild of this
+    # test: its parent is SIGKILLed (no clean-up runs) and it must exit by itself
+    import subprocess
+    import sys
+    import time
+
+    code = ("import os, subprocess, sys; "
+            "c = subprocess.Popen([sys.executable, '-c', 'import os; from softphantom.cli.demo import exit_with_parent; "
+            "exit_with_parent(%d, 0.05)' % os.getpid()]); print(c.pid, flush=True); c.wait()")
+    parent = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    child = int(parent.stdout.readline())
+    time.sleep(0.5)
+    assert Path(f"/proc/{child}").exists()  # alive while its parent is
+    parent.kill()
+    parent.wait()
+    deadline = time.monotonic() + 20
+    while time.monotonic() < deadline:
+        if not Path(f"/proc/{child}").exists() or Path(f"/proc/{child}/stat").read_text().split()[2] == "Z":
+            break
+        time.sleep(0.05)
+    else:
+        raise AssertionError("the worker outlived its killed parent")

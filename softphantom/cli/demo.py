@@ -4,8 +4,9 @@ phantom → estimate → evaluate → one report per scenario, an index page and
 from __future__ import annotations
 
 import html
-import math
 import json
+import math
+import os
 import time
 from pathlib import Path
 
@@ -166,9 +167,20 @@ def run_scenario(sc, model, out: Path, cfg, truth, bar, estimator: str = "atlas"
 _QUEUE = None
 
 
-def _init_worker(queue) -> None:
+def _init_worker(queue, parent: int) -> None:
+    import threading
+
     global _QUEUE
     _QUEUE = queue
+    threading.Thread(target=exit_with_parent, args=(parent,), daemon=True).start()
+
+
+def exit_with_parent(parent: int, poll_s: float = 0.5) -> None:
+    """Exit this process once ``parent`` is gone: a demo killed (SIGTERM/SIGKILL: no clean-up runs)
+    must not leave its truth worker solving for minutes on a 2-core machine."""
+    while os.getppid() == parent:
+        time.sleep(poll_s)
+    os._exit(1)
 
 
 def _solve_in_worker(sc, model, truth_cfg, truth_mesh):
@@ -269,7 +281,7 @@ def _run_all(scs, model, out: Path, cfg, tm, estimator: str = "atlas", grid=None
     bar = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
                    TextColumn("{task.fields[what]}"), console=console)
     rows: dict[str, dict] = {}
-    with bar, ProcessPoolExecutor(1, mp_context=ctx, initializer=_init_worker, initargs=(queue,)) as pool:
+    with bar, ProcessPoolExecutor(1, mp_context=ctx, initializer=_init_worker, initargs=(queue, os.getpid())) as pool:
         tasks = {sc.name: bar.add_task(f"{sc.name}: truth", total=None, what="queued") for sc in order}
         listener = threading.Thread(target=_listen, args=(queue, bar, tasks), daemon=True)
         listener.start()
