@@ -3,7 +3,7 @@ order (P1 / P2) and mesh size, for ν = 0.45 and 0.49 (issue 12, item 1; docs/mo
 
     .venv/bin/python benchmarks/bench_convergence.py [--p1 6 4.5] [--p2 12 9] [--nu 0.45]
         [--cases on-centre urethra] [--solver felupe|softphantom] [--contact-size-mm H]
-        [--junction-size-mm H] [--arm-size-mm H] [--workers 2] [--scheduler ADDRESS] [--json out.json]
+        [--junction-size-mm H] [--arm-size-mm H] [--fillet-mm R] [--workers 2] [--scheduler ADDRESS] [--json out.json]
 
 The solves are compressible neo-Hookean (E = 142 kPa) on the default design under DESIGN.md §5's
 loads (on-centre (0.15, 2.5, −0.2) N on a 4 mm patch; urethra 30 kPa), by the independent
@@ -32,9 +32,10 @@ from softphantom.parallel import dask_client, map_tasks  # noqa: E402
 
 
 def solve_setting(order: int, size_mm: float, nu: float, cases: tuple[str, ...], E: float,
-                  solver: str = "felupe", local: tuple = ()) -> dict:
+                  solver: str = "felupe", local: tuple = (), fillet_mm: float | None = None) -> dict:
     """One row: the design meshed at ``size_mm`` (all sizes scaled), then the ``local`` MeshParams
-    overrides ((name, mm) pairs: contact_size_mm, junction_size_mm, arm_size_mm) as given."""
+    overrides ((name, mm) pairs: contact_size_mm, junction_size_mm, arm_size_mm) as given, and
+    every arm's ``junction_fillet_mm`` set to ``fillet_mm`` (None: the design's)."""
     import sys as _s
 
     _s.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "reference"))
@@ -45,20 +46,27 @@ def solve_setting(order: int, size_mm: float, nu: float, cases: tuple[str, ...],
 
     import dataclasses
 
-    t0 = time.perf_counter()
+    import resource
+
+    t0, c0 = time.perf_counter(), time.process_time()
     d = BIPDesign()
     d = dataclasses.replace(d, mesh=dataclasses.replace(d.mesh.scaled_to(size_mm), **dict(local)))
+    if fillet_mm is not None:
+        d = dataclasses.replace(d, arms=tuple(dataclasses.replace(a, junction_fillet_mm=fillet_mm) for a in d.arms))
     mesh = bip_tet10(d, None, order=order)
     out = {"order": order, "mesh_size_mm": size_mm, "nu": nu, "nodes": len(mesh.nodes), "dof": 3 * len(mesh.nodes),
-           "solver": solver, "local": dict(local)}
+           "solver": solver, "local": dict(local), "fillet_mm": d.arms[0].junction_fillet_mm}
     for c in cases:
         out[c] = run_case(mesh, c, E, nu, solver=solver)
     out["wall_s"] = round(time.perf_counter() - t0, 1)
+    out["cpu_s"] = round(time.process_time() - c0, 1)
+    out["max_rss_GB"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20, 2)  # the worker's peak
     return out
 
 
 def _row(r: dict) -> str:
     loc = "".join(f" {k.replace('_size_mm', '')} {v:g}" for k, v in r.get("local", {}).items())
+    loc += f" fillet {r['fillet_mm']:g}" if r.get("fillet_mm") else ""
     parts = [f"P{r['order']} {r['mesh_size_mm']:>4g} mm{loc} ν {r['nu']:.2f} {r['nodes']:>6d} nodes"]
     if "on-centre" in r:
         c = r["on-centre"]
@@ -67,7 +75,7 @@ def _row(r: dict) -> str:
     if "urethra" in r:
         u = r["urethra"]
         parts.append(f"urethra dV {u['dV_mm3']['urethra']:7.1f} mm³ near_urethra {u['near_urethra_mm']:.3f} mm")
-    parts.append(f"{r['wall_s']} s")
+    parts.append(f"{r['wall_s']} s wall, {r.get('cpu_s', '?')} CPU-s, max RSS {r.get('max_rss_GB', '?')} GB")
     return " | ".join(parts)
 
 
@@ -96,6 +104,8 @@ def main(argv=None) -> int:
     ap.add_argument("--junction-size-mm", type=float, default=0.0,
                     help="local size along the arm-bulb edges (MeshParams.junction_size_mm; 0 off)")
     ap.add_argument("--arm-size-mm", type=float, default=None, help="arm element size instead of the scaled one")
+    ap.add_argument("--fillet-mm", type=float, default=None,
+                    help="every arm's junction_fillet_mm (ArmParams; default: the design's)")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--scheduler", default=None)
     ap.add_argument("--json", type=Path)
@@ -103,7 +113,7 @@ def main(argv=None) -> int:
     E = ECOFLEX_00_50.E_Pa
     local = tuple((k, v) for k, v in (("contact_size_mm", a.contact_size_mm), ("junction_size_mm", a.junction_size_mm),
                                       ("arm_size_mm", a.arm_size_mm)) if v)
-    args = [(o, h, nu, tuple(a.cases), E, a.solver, local) for nu in a.nu for o, hs in ((1, a.p1), (2, a.p2)) for h in hs]
+    args = [(o, h, nu, tuple(a.cases), E, a.solver, local, a.fillet_mm) for nu in a.nu for o, hs in ((1, a.p1), (2, a.p2)) for h in hs]
     # the biggest first, so the pool stays busy to the end
     args.sort(key=lambda t: -(t[0] ** 3) / t[1] ** 3)
     t0 = time.perf_counter()

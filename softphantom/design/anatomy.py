@@ -323,7 +323,8 @@ def design_from_anatomy(anatomy: Anatomy, base: BIPDesign | None = None, name: s
                     np.array([1.0, 0.0, 0.0])
             q = foot + (urethra.radius_mm + 3.0) * radial / np.linalg.norm(radial)
         targets.append((k, tuple(float(x) for x in q)))
-    arms = tuple(_arm_clear_of_urethra(a, bulb, urethra) for a in base.arms)
+    # OCC rounds smooth surfaces only: an imported (triangulated) gland keeps sharp arm junctions
+    arms = tuple(dataclasses.replace(_arm_clear_of_urethra(a, bulb, urethra), junction_fillet_mm=0.0) for a in base.arms)
     return dataclasses.replace(base, name=name, bulb=bulb, urethra=urethra, arms=arms, markers=markers,
                                targets=tuple(targets))
 

@@ -34,7 +34,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from softphantom.design.occ_shapes import bulb_solid, capsule
+from softphantom.design.occ_shapes import bulb_solid, capsule, filleted_body
 from softphantom.design.params import ARM_NAMES, MAX_CAVITY_SEGMENTS, BIPDesign, MeshParams
 from softphantom.errors import DesignError, MeshError
 
@@ -42,6 +42,7 @@ from softphantom.errors import DesignError, MeshError
 # the same table as softphantom.fem.elements.GMSH_TET10 (design may not import fem)
 GMSH_TET10 = np.array([0, 1, 2, 3, 4, 5, 6, 7, 9, 8])
 
+ARM_SPLIT_MARGIN_MM = 1.0  # a rounded arm's region starts this far above its fillet (and below its cavity)
 _GMSH_LOCK = threading.Lock()  # gmsh holds process-global state; one mesh at a time
 
 REGION_IDS: dict[str, int] = {"bulb": 1, **{f"arm_{n}": i + 2 for i, n in enumerate(ARM_NAMES)}}
@@ -192,6 +193,7 @@ def gmsh_session(model_name: str, what: str) -> Iterator:
         try:
             gmsh.option.setNumber("General.Terminal", 0)
             gmsh.option.setNumber("General.Verbosity", 1)
+            gmsh.option.setNumber("Geometry.ToleranceBoolean", 0.0)  # occ_shapes.junction_fillets raises it
             gmsh.model.add(model_name)
             yield gmsh
         except MeshError:
@@ -237,6 +239,7 @@ def _build(design: BIPDesign, mp: MeshParams) -> dict:
         ("Mesh.MeshSizeMin", 0.0),
         ("Mesh.MeshSizeMax", max(mp.size_mm, mp.surface_size_mm)),
         ("Geometry.OCCParallel", 0),
+        ("Geometry.ToleranceBoolean", 0.0),  # exact booleans (junction_fillets, for the molds, raises it)
     ):
         gmsh.option.setNumber(name, value)
     occ = gmsh.model.occ
@@ -259,12 +262,35 @@ def _build(design: BIPDesign, mp: MeshParams) -> dict:
         occ.dilate([(3, tag)], 0.0, 0.0, 0.0, *les.semi_axes_mm)
         occ.translate([(3, tag)], *les.center_mm)
         layer_tools.append((les.region, tag))
+    drop: set[int] = set()
+    rounded = any(g.fillet_mm > 0.0 for g in geoms)
+    if rounded:
+        # rounded junctions (ArmParams.junction_fillet_mm): the silicone is one solid (bulb, arms and
+        # fillets fused and rounded), and each arm region is the part of it inside a tube around the
+        # arm beyond a plane across the arm above its fillet (a region boundary along the fillet's
+        # tangent line would be a knife edge that no tetrahedron fills: "overlapping facets")
+        body, heights = filleted_body(occ, bulb, [(t, g.root_mm, g.end_mm, g.radius_mm) for t, g in zip(arms, geoms)],
+                                      [g.fillet_mm for g in geoms], what="arms: junction_fillet_mm")
+        occ.remove([(3, t) for t in [bulb, *arms]], recursive=True)
+        bulb, arms = body, []
+        for g, h in zip(geoms, heights):
+            ca, cb = g.cavity_segment_mm
+            z_cav = min((ca - g.root_mm) @ g.direction, (cb - g.root_mm) @ g.direction) - g.cavity_radius_mm
+            z = min(h + ARM_SPLIT_MARGIN_MM, z_cav - ARM_SPLIT_MARGIN_MM)
+            length = float((g.end_mm - g.root_mm) @ g.direction) + 1.0 - z
+            arms.append(occ.addCylinder(*(g.root_mm + z * g.direction), *(length * g.direction),
+                                        g.radius_mm + ARM_SPLIT_MARGIN_MM))
     tools = [(3, t) for t in arms + cavities] + [(3, t) for _, t in layer_tools]
     _, out_map = occ.fragment([(3, bulb)], tools)
     occ.synchronize()
     pieces = [set(t for d, t in m if d == 3) for m in out_map]
     bulb_p, arm_p, cav_p = pieces[0], pieces[1:5], pieces[5:10]
     layer_p = {k: p for (k, _), p in zip(layer_tools, pieces[10:])}
+    if rounded:
+        # the arm tubes' pieces outside the solid go; inside it they are the arms (not the bulb)
+        drop = set().union(*arm_p) - bulb_p
+        arm_p = [p & bulb_p for p in arm_p]
+        bulb_p = bulb_p - set().union(*arm_p)
     all_cav = set().union(*cav_p)
     cav_surfaces: dict[str, list[int]] = {}
     for name, p in zip((*ARM_NAMES, "urethra"), cav_p):
@@ -289,7 +315,7 @@ def _build(design: BIPDesign, mp: MeshParams) -> dict:
         region_vols[f"arm_{name}"] = sorted(p - all_cav - bulb_p)
         if not region_vols[f"arm_{name}"]:
             raise MeshError(f"arm {name}: no volume outside the bulb after the fragment")
-    occ.remove([(3, t) for t in sorted(all_cav)], recursive=False)
+    occ.remove([(3, t) for t in sorted(all_cav | drop)], recursive=False)
     occ.synchronize()
 
     # fixed faces: the arm surfaces whose centre of mass is the end-face centre
@@ -357,11 +383,16 @@ def _build(design: BIPDesign, mp: MeshParams) -> dict:
     fld.setNumber(arm_f, "VOut", mp.size_mm)
     fld.setNumbers(arm_f, "VolumesList", [t for n in ARM_NAMES for t in region_vols[f"arm_{n}"]])
     fld.setNumber(arm_f, "IncludeBoundary", 1)
-    fields += _local_refinements(design, mp, bulb_surfs, [t for n in ARM_NAMES for t in region_vols[f"arm_{n}"]])
+    fillet_faces = _fillet_faces(design, bulb_surfs) if rounded else []
+    fields += _local_refinements(design, mp, bulb_surfs, [t for n in ARM_NAMES for t in region_vols[f"arm_{n}"]],
+                                 fillet_faces)
     fmin = fld.add("Min")
     fld.setNumbers(fmin, "FieldsList", [*fields, thr_b, arm_f])
     fld.setAsBackgroundMesh(fmin)
 
+    for t in fillet_faces:
+        # MeshAdapt on the fillet faces: Frontal-Delaunay left slivers there (min dihedral 5.8° vs 7.3° at 6 mm)
+        gmsh.model.mesh.setAlgorithm(2, t, 1)
     gmsh.model.mesh.generate(3)
     order = int(mp.element_order)
     if order == 2:
@@ -446,9 +477,28 @@ def _graded(fld, dist: int, h: float, far: float) -> int:
     return thr
 
 
-def _local_refinements(design: BIPDesign, mp: MeshParams, bulb_surfs: list[int], arm_vols: list[int]) -> list[int]:
-    """Size fields of the optional local refinements (MeshParams ``contact_size_mm`` near the
-    interaction points, ``junction_size_mm`` along the arm–bulb edges); [] when both are off."""
+def _fillet_faces(design: BIPDesign, outer_surfs: list[int]) -> list[int]:
+    """The fillet faces among the bulb region's outer faces: on neither the bulb's surface nor an
+    arm's side (tested at each face's parametric mid-point)."""
+    import gmsh
+
+    out = []
+    for s in outer_surfs:
+        lo, hi = gmsh.model.getParametrizationBounds(2, s)
+        p = np.array(gmsh.model.getValue(2, s, [0.5 * (lo[0] + hi[0]), 0.5 * (lo[1] + hi[1])]))
+        on_arm = any(abs(np.linalg.norm(np.cross(p - g.root_mm, g.direction)) - g.radius_mm) < 1e-6
+                     for g in design.arm_geometry())
+        if not on_arm and abs(float(design.bulb.signed_distance([p])[0])) > 1e-4:
+            out.append(s)
+    return out
+
+
+def _local_refinements(design: BIPDesign, mp: MeshParams, bulb_surfs: list[int], arm_vols: list[int],
+                       fillet_faces: list[int] = ()) -> list[int]:
+    """Size fields of the local refinements: MeshParams ``contact_size_mm`` near the interaction
+    points, ``junction_size_mm`` along the arm–bulb edges (along the edges of the ``fillet_faces``
+    when the junctions are rounded, then at most the smallest fillet radius, even with
+    ``junction_size_mm`` 0); [] when none applies."""
     import gmsh
 
     fld = gmsh.model.mesh.field
@@ -461,17 +511,26 @@ def _local_refinements(design: BIPDesign, mp: MeshParams, bulb_surfs: list[int],
             f = fld.add("MathEval")
             fld.setString(f, "F", f"{h:.9g}+max(0,{d}-{r:.9g})")
             out.append(f)
-    if mp.junction_size_mm > 0:
-        bulb_curves = {abs(c) for _, c in gmsh.model.getBoundary([(2, t) for t in bulb_surfs], combined=False, oriented=False)}
-        arm_surfs = gmsh.model.getBoundary([(3, v) for v in arm_vols], combined=False, oriented=False)
-        arm_curves = {abs(c) for _, c in gmsh.model.getBoundary(arm_surfs, combined=False, oriented=False)}
-        junction = sorted(bulb_curves & arm_curves)
+    # a fillet face meets the bulb's surface tangentially: facets much coarser than its radius cross
+    # there ("overlapping facets" at 9 mm with a 2 mm fillet), so its edges get at most that size
+    fillets = [g.fillet_mm for g in design.arm_geometry() if g.fillet_mm > 0]
+    h_junction = min([mp.junction_size_mm] * (mp.junction_size_mm > 0) + fillets, default=0.0)
+    if h_junction > 0:
+        if fillet_faces:
+            junction = sorted({abs(c) for _, c in gmsh.model.getBoundary([(2, t) for t in fillet_faces], combined=False,
+                                                                         oriented=False)})
+        else:
+            bulb_curves = {abs(c) for _, c in gmsh.model.getBoundary([(2, t) for t in bulb_surfs], combined=False,
+                                                                     oriented=False)}
+            arm_surfs = gmsh.model.getBoundary([(3, v) for v in arm_vols], combined=False, oriented=False)
+            arm_curves = {abs(c) for _, c in gmsh.model.getBoundary(arm_surfs, combined=False, oriented=False)}
+            junction = sorted(bulb_curves & arm_curves)
         if not junction:
             raise MeshError("mesh.junction_size_mm: found no edge where the arms meet the bulb")
         dist = fld.add("Distance")
         fld.setNumbers(dist, "CurvesList", junction)
         fld.setNumber(dist, "Sampling", 200)
-        out.append(_graded(fld, dist, mp.junction_size_mm, mp.size_mm))
+        out.append(_graded(fld, dist, h_junction, mp.size_mm))
     return out
 
 

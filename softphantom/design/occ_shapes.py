@@ -21,6 +21,10 @@ import numpy as np
 
 from softphantom.errors import MeshError
 
+FILLET_BOOLEAN_TOLERANCE_MM = 1e-3
+"""Fuzzy tolerance of the booleans after :func:`junction_fillets`: a ring shares faces with the
+bulb and its arm (coincident surfaces, not crossing ones), which OCC glues only with a fuzzy
+value (on the default design 0 and 1e-4 mm left duplicate faces and zero-volume slivers)."""
 SNAP_DEG = 10.0  # a capsule axis this close to a coordinate axis (but not on it) is built on it, then turned
 
 
@@ -80,3 +84,103 @@ def capsule(occ, a, b, r: float) -> int:
         t = a - turn @ a  # turn about the end a
         occ.affineTransform([(3, out[0])], [float(x) for x in np.hstack([turn, t[:, None]]).ravel()])
     return out[0]
+
+
+
+def _on_side(surface: int, root: np.ndarray, axis: np.ndarray, radius: float) -> bool:
+    """Whether the face's parametric mid-point lies on the side of the cylinder (root, axis, radius)."""
+    import gmsh
+
+    lo, hi = gmsh.model.getParametrizationBounds(2, surface)
+    p = np.array(gmsh.model.getValue(2, surface, [0.5 * (lo[0] + hi[0]), 0.5 * (lo[1] + hi[1])]))
+    return abs(np.linalg.norm(np.cross(p - root, axis)) - radius) < 1e-6 * radius + 1e-9
+
+
+def _arm_faces(faces: list[int], root, end, radius: float) -> tuple[set[int], set[int]]:
+    """(side curves, end-cap curves) of one arm among a solid's ``faces``."""
+    import gmsh
+
+    axis = (end - root) / np.linalg.norm(end - root)
+    side, cap = set(), set()
+    for s in faces:
+        curves = {abs(c) for _, c in gmsh.model.getBoundary([(2, s)], oriented=False)}
+        if np.linalg.norm(np.array(gmsh.model.occ.getCenterOfMass(2, s)) - end) < 1e-3:
+            cap |= curves  # the end disk
+        elif gmsh.model.getType(2, s) == "Cylinder" and _on_side(s, root, axis, radius):
+            side |= curves
+    return side, cap
+
+
+def filleted_body(occ, bulb: int, arms: list[tuple], radii: list[float], what: str = "arms") -> tuple[int, list[float]]:
+    """The bulb fused with the arms (copies; the inputs stay), each arm ``(cylinder tag, root, end
+    centre, radius_mm)`` rounded into the bulb by its fillet radius (0: a sharp edge) with OCC's
+    rolling-ball fillet. Returns the one volume's tag and, per arm, how far along its axis from
+    the root its side starts (the fillet's upper tangent line, or the sharp junction; its highest
+    point). Raises :class:`MeshError` starting with ``what`` when OCC cannot round the edges (a
+    radius too big for the surface around them)."""
+    import gmsh
+
+    body, _ = occ.fuse(occ.copy([(3, bulb)]), [dt for a in arms for dt in occ.copy([(3, a[0])])])
+    if len(body) != 1:
+        raise MeshError(f"{what}: the bulb fused with the arms gave {len(body)} volumes, expected 1")
+    spec = [(np.asarray(root, float), np.asarray(end, float), float(rad)) for _, root, end, rad in arms]
+
+    def junctions(vol: int) -> list[list[int]]:
+        occ.synchronize()
+        faces = [abs(t) for _, t in gmsh.model.getBoundary([(3, vol)], oriented=False)]
+        out = []
+        for root, end, rad in spec:
+            side, cap = _arm_faces(faces, root, end, rad)
+            if not side - cap:
+                raise MeshError(f"{what}: found no edge where an arm meets the bulb")
+            out.append(sorted(side - cap))  # the side's other boundary: where it meets the bulb
+        return out
+
+    tag = body[0][1]
+    edges = [(c, float(r)) for cs, r in zip(junctions(tag), radii) if r > 0.0 for c in cs]
+    if edges:
+        try:
+            rounded = occ.fillet([tag], [c for c, _ in edges], [r for _, r in edges], removeVolume=True)
+        except Exception as exc:  # OCC's failures arrive as a plain Exception
+            raise MeshError(f"{what}: OCC cannot round the arm-bulb edges "
+                            f"({(str(exc).splitlines() or ['?'])[0]}): a smaller radius") from None
+        if len(rounded) != 1:
+            raise MeshError(f"{what}: the fillet gave {len(rounded)} volumes, expected 1")
+        tag = rounded[0][1]
+    heights = []
+    for cs, (root, end, _) in zip(junctions(tag), spec):
+        axis = (end - root) / np.linalg.norm(end - root)
+        top = -np.inf
+        for c in cs:
+            lo, hi = gmsh.model.getParametrizationBounds(1, c)
+            pts = np.reshape(gmsh.model.getValue(1, c, list(np.linspace(lo[0], hi[0], 65))), (-1, 3))
+            top = max(top, float(((pts - root) @ axis).max()))
+        heights.append(top)
+    return tag, heights
+
+
+def junction_fillets(occ, bulb: int, arms: list[tuple], radii: list[float], what: str = "arms") -> list[list[int]]:
+    """The fillet rings alone: :func:`filleted_body` less fresh copies of the bulb and the arms, per
+    arm its ring's volume tags ([] for radius 0); the inputs stay. A ring shares faces with its
+    arm and the bulb and ends in knife edges along its tangent lines (a casting's flared foot,
+    not a mesh region). Leaves gmsh's boolean tolerance at :data:`FILLET_BOOLEAN_TOLERANCE_MM`
+    for the caller's booleans with the rings (fusing a ring back onto its arm)."""
+    import gmsh
+
+    out: list[list[int]] = [[] for _ in arms]
+    if not any(r > 0.0 for r in radii):
+        return out
+    rounded, _ = filleted_body(occ, bulb, arms, radii, what)
+    tools = occ.copy([(3, bulb)]) + [dt for a in arms for dt in occ.copy([(3, a[0])])]
+    gmsh.option.setNumber("Geometry.ToleranceBoolean", FILLET_BOOLEAN_TOLERANCE_MM)
+    rings, _ = occ.cut([(3, rounded)], tools)
+    roots = [np.asarray(a[1], float) for a in arms]
+    for _, t in rings:
+        c = np.array(occ.getCenterOfMass(3, t))
+        k = int(np.argmin([np.linalg.norm(c - q) if r > 0 else np.inf for q, r in zip(roots, radii)]))
+        out[k].append(t)
+    for a, r, got in zip(arms, radii, out):
+        # a ring lies within the square r × r revolved around the arm at r from its side
+        if r > 0.0 and not 0.0 < sum(occ.getMass(3, t) for t in got) < 2 * np.pi * (a[3] + r) * r * r:
+            raise MeshError(f"{what}: the fillet's boolean did not leave one ring at an arm")
+    return out

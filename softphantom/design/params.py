@@ -310,7 +310,12 @@ class UrethraParams:
 
 @dataclass(frozen=True)
 class ArmParams:
-    """One sensing arm (see the module docstring for how the fields place it)."""
+    """One sensing arm (see the module docstring for how the fields place it).
+
+    ``junction_fillet_mm``: radius of the concave fillet that rounds the edge where the arm's side
+    meets the bulb (cast with the arm: its mold's floor is rounded; 0 = a sharp edge). The edge
+    is re-entrant, so without it the stress there is singular and the model's rotation does not
+    converge with the mesh (docs/model.md, "Convergence")."""
 
     name: str
     direction: Vec3
@@ -321,6 +326,7 @@ class ArmParams:
     cavity_offset_mm: float = 17.0
     embed_mm: float = 8.0
     axis_point_mm: Vec3 = (0.0, 0.0, 0.0)
+    junction_fillet_mm: float = 0.0
 
     def __post_init__(self) -> None:
         p = f"arms.{self.name}"
@@ -331,6 +337,11 @@ class ArmParams:
         for name in ("cavity_volume_mm3", "length_mm", "radius_mm", "wall_mm", "embed_mm"):
             _set(self, name, _positive(f"{p}.{name}", getattr(self, name)))
         _set(self, "cavity_offset_mm", _num(f"{p}.cavity_offset_mm", self.cavity_offset_mm))
+        r = _num(f"{p}.junction_fillet_mm", self.junction_fillet_mm)
+        if not 0.0 <= r <= self.radius_mm:
+            raise DesignError(f"{p}.junction_fillet_mm = {_fmt(r)} must be in [0, radius_mm = {_fmt(self.radius_mm)}] mm "
+                              "(0: a sharp edge)")
+        _set(self, "junction_fillet_mm", r)
         if self.wall_mm < MIN_WALL_MM:
             raise DesignError(f"{p}.wall_mm = {_fmt(self.wall_mm)} is below the minimum wall of {MIN_WALL_MM:g} mm")
         if self.wall_mm >= self.radius_mm:
@@ -387,6 +398,7 @@ class ArmGeometry:
     cavity_radius_mm: float
     cavity_segment_mm: tuple[np.ndarray, np.ndarray]  # capsule axis end points
     cavity_volume_mm3: float
+    fillet_mm: float = 0.0  # ArmParams.junction_fillet_mm
 
     @property
     def tube_inlet_mm(self) -> np.ndarray:
@@ -688,6 +700,7 @@ def _arm_geometry(arm: ArmParams, bulb: BulbParams) -> ArmGeometry:
         cavity_radius_mm=arm.cavity_radius_mm,
         cavity_segment_mm=(c - h * d, c + h * d),
         cavity_volume_mm3=arm.cavity_volume_mm3,
+        fillet_mm=arm.junction_fillet_mm,
     )
 
 
@@ -858,6 +871,10 @@ def _check_sizes(d: BIPDesign) -> None:
 
 
 def _validate_geometry(d: BIPDesign) -> None:
+    for arm in d.arms:
+        if arm.junction_fillet_mm > 0.0 and d.bulb.is_surface:
+            raise DesignError(f"arms.{arm.name}.junction_fillet_mm = {_fmt(arm.junction_fillet_mm)}: an imported "
+                              "(triangulated) bulb cannot be filleted (OCC rounds smooth surfaces only); 0 there")
     _check_sizes(d)
     sdist = d.bulb.signed_distance
     u = d.urethra
@@ -915,7 +932,7 @@ def _validate_geometry(d: BIPDesign) -> None:
         for j in range(i + 1, len(geoms)):
             gi, gj = geoms[i], geoms[j]
             dist = geo.segment_segment_distance(gi.root_mm, gi.end_mm, gj.root_mm, gj.end_mm)
-            need = gi.radius_mm + gj.radius_mm + MIN_WALL_MM
+            need = gi.radius_mm + gj.radius_mm + gi.fillet_mm + gj.fillet_mm + MIN_WALL_MM
             if dist < need:
                 raise DesignError(
                     f"arms.{gi.name} and arms.{gj.name} overlap (axes {_fmt(dist)} mm apart, min {_fmt(need)} mm)"
@@ -928,7 +945,7 @@ def _validate_geometry(d: BIPDesign) -> None:
         if off > SURFACE_TOL_MM:
             raise DesignError(f"markers.{name} is {_fmt(off)} mm off the bulb surface (tolerance {SURFACE_TOL_MM:g} mm)")
         for g in geoms:
-            if geo.segment_distance([xyz], g.start_mm, g.end_mm)[0] < g.radius_mm + MIN_WALL_MM:
+            if geo.segment_distance([xyz], g.start_mm, g.end_mm)[0] < g.radius_mm + g.fillet_mm + MIN_WALL_MM:
                 raise DesignError(f"markers.{name} lies under arms.{g.name} (min {MIN_WALL_MM:g} mm from its side)")
     m = np.array([xyz for _, xyz in d.markers])
     spread = float(np.linalg.svd(m - m.mean(axis=0), compute_uv=False)[-1] / math.sqrt(len(m)))

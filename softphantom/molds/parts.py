@@ -36,7 +36,7 @@ import numpy as np
 from softphantom.design import geometry as geo
 from softphantom.design.params import BIPDesign
 from softphantom.errors import DesignError
-from softphantom.design.occ_shapes import bulb_solid, capsule
+from softphantom.design.occ_shapes import bulb_solid, capsule, junction_fillets
 from softphantom.molds.occ import affine_12, cone_along, occ_solid, one_volume
 
 OVERHANG_MM = 8.0  # how far rods and stems stick out of a mold, to hold them
@@ -410,7 +410,13 @@ class _Builder:
         def arm_out(occ):
             cyl = occ.addCylinder(0.0, 0.0, -arm.embed_mm, 0.0, 0.0, L + arm.embed_mm, r)
             bulb = self._bulb(occ, to_local)
-            return one_volume(occ.cut([(3, cyl)], bulb), f"arm {g.name}") if bulb else cyl
+            if not bulb:
+                return cyl
+            # the arm is cast with its junction fillet: the mold's floor rounds into the bulb's surface
+            rings = junction_fillets(occ, bulb[0][1], [(cyl, (0.0, 0.0, 0.0), (0.0, 0.0, L), r)], [g.fillet_mm],
+                                     what=f"arms.{g.name}.junction_fillet_mm")[0]
+            out = one_volume(occ.cut([(3, cyl)], bulb), f"arm {g.name}")
+            return one_volume(occ.fuse([(3, out)], [(3, t) for t in rings]), f"arm {g.name}") if rings else out
 
         # a surface bulb: the arm outside it by manifold3d, cut from the mold halves afterwards
         local = np.vstack([np.reshape(to_local, (3, 4)), [0.0, 0.0, 0.0, 1.0]])
