@@ -22,7 +22,7 @@ product of all lists), ``random`` and ``lhs`` (Latin hypercube, :mod:`scipy.stat
 >>> sweep_config_from_dict({"parameters": {"arms.front_zpos.colour": {"values": [1]}}})
 Traceback (most recent call last):
 ...
-softphantom.errors.UserError: parameters."arms.front_zpos.colour": unknown parameter (arms.front_zpos has axis_point_mm, cavity_length_mm, cavity_offset_mm, cavity_volume_mm3, direction, embed_mm, length_mm, radius_mm, wall_mm)
+softphantom.errors.UserError: parameters."arms.front_zpos.colour": unknown parameter (arms.front_zpos has axis_point_mm, cavity_length_mm, cavity_offset_mm, cavity_volume_mm3, direction, embed_mm, junction_fillet_mm, length_mm, radius_mm, wall_mm)
 """
 
 from __future__ import annotations
