@@ -118,7 +118,21 @@ def mesh_design(design: BIPDesign, mesh: MeshParams | None = None, *, isolate: b
     mp = mesh or design.mesh
     if isolate is None:
         isolate = _ctrl_c_reaches_here()
-    return _mesh_in_child(design, mp) if isolate else _mesh_here(design, mp)
+    try:
+        return _mesh_in_child(design, mp) if isolate else _mesh_here(design, mp)
+    except MeshError as exc:
+        raise _name_the_shell(design, mp, exc) from None
+
+
+def _name_the_shell(design: BIPDesign, mp: MeshParams, exc: MeshError) -> MeshError:
+    """A gmsh failure on a shelled design, reworded to name the shell and the mesh size: the thin
+    layer is the likeliest cause when the parameter checks passed (docs/fabrication.md)."""
+    t = design.layers.shell_mm
+    if t <= 0.0 or not str(exc).startswith("gmsh failed"):
+        return exc
+    return MeshError(f"layers.shell_mm = {t:.4g} mm at mesh.size_mm = {mp.size_mm:.4g} mm (surface "
+                     f"{mp.surface_size_mm:.3g} mm): gmsh could not mesh the shell ({str(exc).splitlines()[0]}); "
+                     "try another --mesh-size-mm or shell thickness")
 
 
 def _child(design: BIPDesign, mp: MeshParams, conn) -> None:
