@@ -28,8 +28,12 @@ SPACING = (0.5, 0.5, 3.0)
 SEMI_RAS = np.array([32.0, 30.0, 24.0])  # R-L, A-P, S-I half extents before the lobes
 
 
-def synthetic_labels(seed: int = 0, spacing=SPACING, urethra_r: float = 3.5):
-    """A bilobed gland (label 1) with a urethra (label 2) along S-I, in RAS voxels; (data, affine)."""
+LESION_RAS = (np.array([-14.0, -8.0, -6.0]), np.array([5.0, 4.0, 7.5]))  # centre, semi-axes (R-L, A-P, S-I) mm
+
+
+def synthetic_labels(seed: int = 0, spacing=SPACING, urethra_r: float = 3.5, lesion: bool = False):
+    """A bilobed gland (label 1) with a urethra (label 2) along S-I, in RAS voxels, and with
+    ``lesion`` an axis-aligned ellipsoidal lesion (label 3, :data:`LESION_RAS`); (data, affine)."""
     sp = np.asarray(spacing)
     shape = tuple(int(n) for n in np.ceil(np.array([92.0, 84.0, 72.0]) / sp))
     p = np.indices(shape).transpose(1, 2, 3, 0) * sp - np.array(shape) * sp / 2
@@ -41,6 +45,9 @@ def synthetic_labels(seed: int = 0, spacing=SPACING, urethra_r: float = 3.5):
     data = (lab == np.argmax(np.bincount(lab.ravel())[1:]) + 1).astype(np.int16)  # noise leaves strays: keep the gland
     urethra = (np.hypot(p[..., 0], p[..., 1] - 4.0) < urethra_r) & (np.abs(p[..., 2]) < 14.0)
     data[urethra & (data > 0)] = 2
+    if lesion:
+        c, semi = LESION_RAS
+        data[(np.sum(((p - c) / semi) ** 2, axis=-1) <= 1.0) & (data > 0)] = 3
     affine = np.diag([*sp, 1.0])
     affine[:3, 3] = -np.array(shape) * sp / 2
     return data, affine
@@ -133,12 +140,48 @@ def _meshes_solves_and_gets_molds(design, volume_mm3):
     return model
 
 
-def test_anatomy_design_meshes_solves_and_gets_molds(gland):
+def test_lesion_label_becomes_a_design_lesion_by_moments():
+    """Label 3, an ellipsoid of semi-axes (5, 4, 7.5) mm (R-L, A-P, S-I) sampled at 0.5 × 0.5 × 3 mm:
+    its moments give back the centre (< 0.3 mm) and the semi-axes (within half a voxel) in the model frame, and
+    the design gets it as ``[layers.lesions.label3]`` in the bulb's material."""
+    from softphantom.design.anatomy import lesion_report
+
+    data, affine = synthetic_labels(lesion=True)
+    a = anatomy_from_labels(data, affine, AnatomyOptions(lesion_labels=(3,)))
+    les = a.lesions[3]
+    c, semi = LESION_RAS
+    np.testing.assert_allclose(les["center_mm"], a.rotation @ c + a.translation, atol=0.3)
+    # within half a voxel along each axis: 0.25 mm in-plane, 1.5 mm across the 3 mm slices (the
+    # stair-stepped ends of 5 slices weigh more in the second moment than the ellipsoid's caps)
+    np.testing.assert_array_less(np.abs(les["semi_axes_mm"] - np.abs(a.rotation) @ semi),
+                                 np.abs(a.rotation) @ (0.5 * np.asarray(SPACING)))
+    assert les["tilt_deg"] < 3.0
+    voxels = float((data == 3).sum()) * abs(np.linalg.det(affine[:3, :3]))
+    assert les["volume_mm3"] == pytest.approx(voxels)
+    assert les["ellipsoid_mm3"] == pytest.approx(voxels, rel=0.05)  # the fit's volume against the voxel count
+    (line,) = lesion_report(a)
+    assert line.startswith("lesion label 3 -> layers.lesions.label3: centre (") and "mm³ of voxels (" in line
+    d = design_from_anatomy(a)
+    (x,) = d.layers.lesions
+    assert x.region == "lesion_label3" and d.layers.shell_mm == 0.0
+    np.testing.assert_allclose(x.semi_axes_mm, les["semi_axes_mm"])
+    assert d.material_of_regions()["lesion_label3"] == d.material_of_regions()["bulb"]
+    with pytest.raises(DesignError, match="lesion label 4 has no voxels"):
+        anatomy_from_labels(data, affine, AnatomyOptions(lesion_labels=(4,)))
+    with pytest.raises(DesignError, match="lesion label 2 must be > 0 and not the urethra's"):
+        anatomy_from_labels(data, affine, AnatomyOptions(lesion_labels=(2,)))
+
+
+def test_anatomy_design_meshes_solves_and_gets_molds():
     """The label map end to end, kept coarse (a 6 mm surface, a 12 mm mesh): every OCC boolean on
-    the polyhedral bulb costs in proportion to its triangles."""
-    data, affine, _ = gland
-    a = anatomy_from_labels(data, affine, AnatomyOptions(surface_size_mm=6.0))
-    _meshes_solves_and_gets_molds(design_from_anatomy(a), a.volume_mm3)
+    the polyhedral bulb costs in proportion to its triangles. With its lesion label: the lesion's
+    mesh region holds the fitted ellipsoid's volume less the facet deficit, within 2 %."""
+    data, affine = synthetic_labels(lesion=True)
+    a = anatomy_from_labels(data, affine, AnatomyOptions(surface_size_mm=6.0, lesion_labels=(3,)))
+    model = _meshes_solves_and_gets_molds(design_from_anatomy(a), a.volume_mm3)
+    n = model.design.mesh.cavity_segments  # a lesion's wall is meshed like a cavity's: low by (2π/n)²/6
+    expect = a.lesions[3]["ellipsoid_mm3"] * (1.0 - (2.0 * np.pi / n) ** 2 / 6.0)
+    assert model.region_volume("lesion_label3") * 1e9 == pytest.approx(expect, rel=0.02)
 
 
 def test_stl_anatomy_end_to_end_through_the_cli(tmp_path, capsys):

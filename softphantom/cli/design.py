@@ -27,6 +27,8 @@ def design_command(
     ),
     urethra_label: int = typer.Option(2, "--urethra-label", help="Label of the urethra in a label map (0: none)."),
     surface_size_mm: float = typer.Option(3.0, "--surface-size-mm", help="Triangle size of the imported surface, mm."),
+    lesion_labels: str = typer.Option("", "--lesion-labels", help="Labels of lesions in a label map, comma-separated "
+                                      "(e.g. 3,4): each becomes [layers.lesions.labelN], the ellipsoid of its voxels."),
     overwrite: bool = overwrite_option(),
 ) -> None:
     """Build the BIP design, mesh it (gmsh) and write model.msh/.vtu/.npz, design.toml, report.md, mesh.png."""
@@ -40,13 +42,22 @@ def design_command(
 
         if not surface_size_mm > 0.0:
             raise UserError(f"--surface-size-mm must be > 0, got {surface_size_mm:g}")
+        try:
+            lesions = tuple(int(x) for x in lesion_labels.split(",") if x.strip())
+        except ValueError:
+            raise UserError(f"--lesion-labels: expected integers separated by commas, got {lesion_labels!r}") from None
         with console.status(f"importing the anatomy {anatomy} …"):
-            gland = load_anatomy(anatomy, AnatomyOptions(urethra_label=urethra_label, surface_size_mm=surface_size_mm))
+            gland = load_anatomy(anatomy, AnatomyOptions(urethra_label=urethra_label, surface_size_mm=surface_size_mm,
+                                                         lesion_labels=lesions))
             design = design_from_anatomy(gland, design, name=f"{design.name}_anatomy")
         vox = "" if gland.voxel_volume_mm3 is None else (
             f" (label voxel count {gland.voxel_volume_mm3:.0f} mm³, {100 * (gland.volume_mm3 / gland.voxel_volume_mm3 - 1):+.2f} %)")
         console.print(f"anatomy: bulb surface {len(gland.faces)} triangles, {gland.volume_mm3:.0f} mm³{vox}",
                       highlight=False)
+        from softphantom.design.anatomy import lesion_report
+
+        for line in lesion_report(gland):
+            console.print(line, highlight=False, markup=False)
     from softphantom.fem.model import laws_of_design
 
     laws_of_design(design, design.region_names)  # an unknown law or a bad parameter fails here (exit 2)

@@ -2,8 +2,9 @@
 
 Label map (read by nibabel; world coordinates from its affine, RAS+ mm as NIfTI defines them):
 every non-zero voxel is gland (``bulb``); label ``urethra_label`` (default 2) is the urethra, the
-labels in ``lesion_labels`` are lesions (reported, they need the multi-material design to be
-modelled). The gland must be one connected component (26-connectivity). Its surface: the mask
+labels in ``lesion_labels`` are lesions: each becomes a design lesion ``[layers.lesions.labelN]``,
+the axis-aligned ellipsoid of its voxels' centroid and second moments (:func:`lesion_report` gives
+its volume against the voxel count). The gland must be one connected component (26-connectivity). Its surface: the mask
 resampled to ``resample_mm`` (linear), smoothed by a Gaussian of ``smooth_mm``, marching cubes at
 the 0.5 level (scikit-image), then an even remesh at ``surface_size_mm`` by gmsh (its surface
 classification and reparametrization). On MRI-like spacing (0.5 × 0.5 × 3 mm) the enclosed
@@ -56,7 +57,7 @@ class Anatomy:
     vertices_mm: np.ndarray
     faces: np.ndarray
     urethra: dict | None  # center_mm, axis, radius_mm, volume_mm3, length_mm
-    lesions: dict[int, dict]  # label → center_mm, volume_mm3
+    lesions: dict[int, dict]  # label → center_mm, volume_mm3 (voxels), semi_axes_mm, ... (_ellipsoid_fit)
     voxel_volume_mm3: float | None  # gland volume from the voxel count (label maps only)
     rotation: np.ndarray  # input frame → model frame
     translation: np.ndarray
@@ -190,6 +191,41 @@ def _capsule_fit(points_mm: np.ndarray, volume_mm3: float, extra_mm: float = 0.0
     return {"center_mm": c, "axis": axis, "length_mm": length, "radius_mm": 0.5 * (lo + hi), "volume_mm3": volume_mm3}
 
 
+def _ellipsoid_fit(points_mm: np.ndarray, voxel_axes_mm: np.ndarray, volume_mm3: float) -> dict:
+    """The ellipsoid with the voxels' centroid and second moments (a solid ellipsoid's covariance
+    has eigenvalues a²/5), each voxel counted as a uniform box (adds A·A^T/12, A its edge vectors
+    in the model frame). The design's lesions are axis-aligned: ``semi_axes_mm`` come from the
+    covariance's diagonal, ``principal_semi_axes_mm`` and ``tilt_deg`` (the largest angle between
+    a principal axis and the model axis nearest it) say what that leaves out."""
+    c = points_mm.mean(axis=0)
+    d = points_mm - c
+    cov = d.T @ d / len(points_mm) + voxel_axes_mm @ voxel_axes_mm.T / 12.0
+    lam, vec = np.linalg.eigh(cov)
+    tilt = float(np.degrees(np.arccos(np.clip(np.abs(vec).max(axis=0), -1.0, 1.0))).max())
+    semi = np.sqrt(5.0 * np.diag(cov))
+    return {"center_mm": c, "volume_mm3": float(volume_mm3), "semi_axes_mm": semi,
+            "principal_semi_axes_mm": np.sqrt(5.0 * np.maximum(lam, 0.0)), "tilt_deg": tilt,
+            "ellipsoid_mm3": float(4.0 / 3.0 * math.pi * np.prod(semi))}
+
+
+def lesion_report(anatomy: "Anatomy") -> list[str]:
+    """One line per lesion label: where it went in the design and how its ellipsoid compares with
+    the voxel count."""
+    out = []
+    for lab, les in sorted(anatomy.lesions.items()):
+        d = 100.0 * (les["ellipsoid_mm3"] / les["volume_mm3"] - 1.0)
+        out.append(f"lesion label {lab} -> layers.lesions.{lesion_name(lab)}: centre "
+                   f"({', '.join(f'{x:.1f}' for x in les['center_mm'])}) mm, semi-axes "
+                   f"({', '.join(f'{x:.1f}' for x in les['semi_axes_mm'])}) mm; ellipsoid {les['ellipsoid_mm3']:.0f} mm³ "
+                   f"vs {les['volume_mm3']:.0f} mm³ of voxels ({d:+.1f} %); principal axes {les['tilt_deg']:.0f}° "
+                   "off the model's")
+    return out
+
+
+def lesion_name(label: int) -> str:
+    return f"label{int(label)}"
+
+
 def anatomy_from_labels(data: np.ndarray, affine: np.ndarray, opt: AnatomyOptions = AnatomyOptions(),
                         source: str = "label map") -> Anatomy:
     """A gland from an integer label map and its voxel → world (mm) affine."""
@@ -231,16 +267,20 @@ def anatomy_from_labels(data: np.ndarray, affine: np.ndarray, opt: AnatomyOption
                                extra_mm=float(np.linalg.norm(affine[:3, :3] @ (axis_ijk / np.abs(axis_ijk).max()))))
     lesions = {}
     for lab in opt.lesion_labels:
+        if lab == opt.urethra_label or lab <= 0:
+            raise DesignError(f"{source}: lesion label {lab} must be > 0 and not the urethra's ({opt.urethra_label})")
         idx = np.argwhere(data == lab)
         if len(idx) == 0:
             raise DesignError(f"{source}: lesion label {lab} has no voxels")
-        lesions[int(lab)] = {"center_mm": to_model(idx).mean(axis=0), "volume_mm3": len(idx) * voxel}
+        lesions[int(lab)] = _ellipsoid_fit(to_model(idx), R @ affine[:3, :3], len(idx) * voxel)
     v = np.asarray(mesh.vertices) @ R.T + t
     return Anatomy(v, np.asarray(mesh.faces), urethra, lesions, float(mask.sum()) * voxel, R, t)
 
 
 def anatomy_from_surface(mesh, opt: AnatomyOptions = AnatomyOptions(), source: str = "surface") -> Anatomy:
     """A gland from a closed triangle surface (mm, RAS-oriented like a label map's world)."""
+    if opt.lesion_labels:
+        raise DesignError(f"{source}: lesion labels {list(opt.lesion_labels)} need a label map (a surface has none)")
     _check_surface(mesh, source)
     mesh = _remesh(_coarsen(mesh), opt.surface_size_mm, source)
     _check_surface(mesh, f"{source} (remeshed)")
@@ -327,6 +367,17 @@ def design_from_anatomy(anatomy: Anatomy, base: BIPDesign | None = None, name: s
     arms = tuple(dataclasses.replace(_arm_clear_of_urethra(a, bulb, urethra), junction_fillet_mm=0.0) for a in base.arms)
     out = dataclasses.replace(base, name=name, bulb=bulb, urethra=urethra, arms=arms, markers=markers,
                               targets=tuple(targets))
+    if anatomy.lesions:  # each lesion label becomes a lesion region, in the bulb's material unless set
+        from softphantom.design.params import LayersParams, LesionParams
+
+        new = tuple(LesionParams(lesion_name(lab), tuple(float(x) for x in les["center_mm"]),
+                                 tuple(float(x) for x in les["semi_axes_mm"]))
+                    for lab, les in sorted(anatomy.lesions.items()))
+        rm = dict(base.region_materials)
+        rm.setdefault("lesions", rm.get("bulb", base.material_of_regions(["bulb"])["bulb"]))
+        out = dataclasses.replace(out, layers=LayersParams(shell_mm=base.layers.shell_mm,
+                                                           lesions=(*base.layers.lesions, *new)),
+                                  region_materials=tuple(rm.items()))
     return dataclasses.replace(out, bulb=_clear_of_arm_cuts(out))
 
 
