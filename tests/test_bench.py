@@ -86,18 +86,20 @@ def test_replay_follows_the_recording_and_reconverts_on_a_different_tube(tmp_pat
 
 def test_cli_estimate_takes_bench_and_contact_from_the_recording(tmp_path, model_dir, capsys):
     _record(tmp_path / "r.csv", BenchConfig(tube_length_m=3.0), contact="off-centre")
+    # the refresh estimator: what is tested is the recording's metadata reaching the estimate; the
+    # default atlas would build 700 solves per contact point first (717-772 s of this test at load 11-16)
     out = tmp_path / "e.csv"
     assert main(["estimate", "--model", str(model_dir), "--source", f"replay:{tmp_path / 'r.csv'}",
-                 "--out", str(out)]) == 0, capsys.readouterr().err
+                 "--out", str(out), "--estimator", "refresh"]) == 0, capsys.readouterr().err
     meta = read_table(out).meta
     assert meta["contact"] == "off-centre" and meta["bench"]["tube_length_m"] == 3.0
     out2 = tmp_path / "e2.csv"
     assert main(["estimate", "--model", str(model_dir), "--source", f"replay:{tmp_path / 'r.csv'}",
-                 "--out", str(out2), "--tube-length-m", "12", "--tube-id-mm", "1.2", "--at", "on-centre"]) == 0
+                 "--out", str(out2), "--tube-length-m", "12", "--tube-id-mm", "1.2", "--at", "on-centre", "--estimator", "refresh"]) == 0
     meta2 = read_table(out2).meta
     assert meta2["contact"] == "on-centre" and meta2["bench"]["tube_length_m"] == 12.0 and meta2["reconverted"]
     assert main(["estimate", "--model", str(model_dir), "--source", f"replay:{tmp_path / 'r.csv'}",
-                 "--out", str(tmp_path / "e3.csv"), "--tube-id-mm", "0"]) == 2
+                 "--out", str(tmp_path / "e3.csv"), "--tube-id-mm", "0", "--estimator", "refresh"]) == 2
     assert "--tube-id-mm" in capsys.readouterr().err
 
 
