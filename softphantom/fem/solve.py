@@ -79,6 +79,7 @@ class SparseSolver:
         self._factor = None
         self.n = 0
         self.analyses = 0  # how many symbolic analyses were done (for tests and benchmarks)
+        self._numeric = False  # a usable numeric factor is there
 
     def factorize(self, A: sp.spmatrix) -> SparseSolver:
         """Factorize symmetric ``A``; returns ``self`` for chaining."""
@@ -99,13 +100,15 @@ class SparseSolver:
             if self.method == "cholmod":
                 from sksparse.cholmod import CholmodNotPositiveDefiniteError, analyze
 
+                if self._factor is None or key is not self._pattern:
+                    self._factor = analyze(A, mode="supernodal")
+                    self.analyses += 1
                 try:
-                    if self._factor is None or key is not self._pattern:
-                        self._factor = analyze(A, mode="supernodal")
-                        self.analyses += 1
                     self._factor.cholesky_inplace(A)
                 except CholmodNotPositiveDefiniteError as exc:
-                    self._factor = None
+                    # the symbolic analysis stays valid for the next matrix of this pattern
+                    # (a shifted retry, the next Newton step): only the numeric factor is lost
+                    self._numeric = False
                     raise SolverError("matrix not positive definite (cholmod)") from exc
             elif self.method == "cholespy":
                 from cholespy import CholeskySolverD, MatrixType
@@ -117,6 +120,7 @@ class SparseSolver:
                     )
                 except ValueError as exc:
                     self._factor = None
+                    self._numeric = False
                     raise SolverError(f"matrix not positive definite (cholespy): {exc}") from exc
                 self.analyses += 1
             else:
@@ -126,10 +130,12 @@ class SparseSolver:
                     # 1.8x the factor on the 9 mm P2 tangent (68 M vs 38 M entries, 49 k DOF)
                     self._factor = spla.splu(A, permc_spec="MMD_AT_PLUS_A", options={"SymmetricMode": True})
                 except RuntimeError as exc:
+                    self._numeric = False
                     raise SolverError(f"singular matrix (splu): {exc}") from exc
                 self.analyses += 1
         finally:
             self._pattern = key if self._factor is not None else None
+        self._numeric = True
         return self
 
     def _same_pattern(self, A: sp.csc_matrix) -> tuple[np.ndarray, np.ndarray]:
@@ -143,7 +149,7 @@ class SparseSolver:
 
     def solve(self, B: np.ndarray) -> np.ndarray:
         """Solve A X = B for (n,) or (n,k) ``B``."""
-        if self._factor is None:
+        if self._factor is None or not self._numeric:
             raise SolverError("solve() before a successful factorize()")
         B = np.asarray(B, dtype=np.float64)
         if B.shape[0] != self.n:
@@ -218,6 +224,44 @@ def indefinite_solve(K: sp.spmatrix, b: np.ndarray) -> np.ndarray:
     return SparseSolver("splu").factorize(K).solve(b)
 
 
+DESCENT_SHIFTS = (1e-4, 1e-3, 1e-2, 1e-1, 1.0, 10.0)
+"""Relative diagonal shifts τ tried, in order, when a Newton tangent is not positive definite."""
+
+
+def descent_step(solver: SparseSolver, K: sp.csr_matrix, b: np.ndarray) -> tuple[np.ndarray, float]:
+    """Newton step K⁻¹``b`` and the shift used (0), or, where the symmetric tangent ``K`` is not
+    positive definite — a large load step on a nearly incompressible law, strong compression, an
+    inflated cavity — the step of K + τ·max(|diag K|, mean |diag K|) for the first τ of :data:`DESCENT_SHIFTS` whose
+    Cholesky holds: a descent direction of the total energy (what the line search needs), on the
+    same pattern, symbolic analysis and supernodal fill. The equilibria sought are minima, so the
+    tangent is positive definite again near them and plain Newton (quadratic) resumes. Only if every
+    shift fails, or for a solver that factors indefinite matrices itself, the unshifted step:
+    ``splu``, or :func:`indefinite_solve` (the exact LDLᵀ step, simplicial: on the 9 mm P2 tangent
+    with 1.5 mm arms at ν = 0.49, 33 CPU-s against 3.7 s for the supernodal Cholesky).
+
+    >>> import numpy as np, scipy.sparse as sp
+    >>> K = sp.csr_matrix(np.array([[2.0, 0.0], [0.0, -1.0]]))  # a saddle
+    >>> d, tau = descent_step(SparseSolver("auto"), K, np.array([-1.0, -1.0]))
+    >>> tau > 0 or SparseSolver("auto").method == "splu", bool(np.dot(d, [1.0, 1.0]) < 0)
+    (True, True)
+    """
+    try:
+        return solver.factorize(K).solve(b), 0.0
+    except SolverError:
+        if solver.method == "splu":
+            raise
+    diag = K.diagonal()
+    scale = np.maximum(np.abs(diag), max(float(np.mean(np.abs(diag))), 1e-300))  # small pivots get the mean
+    for tau in DESCENT_SHIFTS:
+        Ks = K.copy()
+        Ks.setdiag(diag + tau * scale)
+        try:
+            return solver.factorize(Ks).solve(b), tau
+        except SolverError:
+            continue
+    return indefinite_solve(K, b), 0.0
+
+
 def free_tangent(
     fem: FemModel,
     x: np.ndarray,
@@ -281,11 +325,7 @@ def _newton(fem, x, f_fixed, plist, t, tol, max_iter, solver, consistent):
         if it == max_iter:
             break
         K = free_tangent(fem, x, scaled, consistent)
-        try:
-            d = solver.factorize(K).solve(-r)
-        except SolverError:
-            # Indefinite tangent (strong compression, pressure): LDLᵀ or LU still gives the Newton step.
-            d = indefinite_solve(K, -r)
+        d, _ = descent_step(solver, K, -r)
         slope = float(np.dot(r, d))  # dΠ/dα at α = 0
         alpha, accepted, inverted = 1.0, False, 0
         for _ in range(12):
