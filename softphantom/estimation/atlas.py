@@ -37,6 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from softphantom.errors import SolverError, UserError
+from softphantom.estimation import atlas_kernels as ak
 from softphantom.estimation.config import EstimatorConfig
 from softphantom.estimation.estimator import (
     EstimatorState, check_sample, pose_and_shifts, repeat_last, rest_estimate, sensitivity_cond,
@@ -44,6 +45,7 @@ from softphantom.estimation.estimator import (
 from softphantom.estimation.forward import ForwardModel
 from softphantom.estimation.qp import solve_volume_qp
 from softphantom.estimation.types import Estimate
+from softphantom.pose import DegenerateMarkersError, Pose6, rigid_fit, ypr_from_matrix
 
 FORMAT = 2  # bump when the file layout or the build changes its meaning
 GN_MAX_ITER = 12
@@ -342,6 +344,14 @@ class Atlas:
         object.__setattr__(self, "solved", ok)
         object.__setattr__(self, "_cells", cells)
         object.__setattr__(self, "_axes", self.config.axes())
+        # the kernels' view (atlas_kernels): coefficients as (grid points, outputs), C order
+        n = int(np.prod(self.config.shape))
+        object.__setattr__(self, "_shape", np.array(self.config.shape, dtype=np.int64))
+        object.__setattr__(self, "_lo", np.ascontiguousarray(self.config.lower))
+        object.__setattr__(self, "_hi", np.ascontiguousarray(self.config.upper))
+        for name in ("cV", "cP", "cF"):
+            c = getattr(self, name)
+            object.__setattr__(self, "_k" + name, np.ascontiguousarray(c, dtype=float).reshape(n, -1))
 
     @property
     def unsolved(self) -> int:
@@ -358,6 +368,26 @@ class Atlas:
         return bool(self._cells[tuple(idx)])
 
     # -- evaluation -------------------------------------------------------------------------------
+    def volumes(self, lam) -> tuple[np.ndarray, np.ndarray]:
+        """(V (4,) m³, J (4,4) ∂V/∂λ in m³/N, m³/Pa) at ``lam`` inside the envelope (one compiled
+        pass over the coefficients; :meth:`volumes_reference` is the tensordot it is tested against)."""
+        V, J = np.empty(4), np.empty((4, 4))
+        ak.eval_vj(self._kcV, self._shape, self._lo, self._hi, np.asarray(lam, float), V, J)
+        return V, J
+
+    def points(self, lam) -> np.ndarray:
+        """(k,3) m tracked points (markers, then targets) at ``lam``."""
+        out = np.empty(self._kcP.shape[1])
+        ak.eval_value(self._kcP, self._shape, self._lo, self._hi, np.asarray(lam, float), out)
+        return out.reshape(-1, 3)
+
+    def nodes(self, lam) -> np.ndarray:
+        """(N,3) m node positions at ``lam`` (the POD field)."""
+        coef = np.empty(self._kcF.shape[1])
+        ak.eval_value(self._kcF, self._shape, self._lo, self._hi, np.asarray(lam, float), coef)
+        return (self.x_rest + self.modes @ coef).reshape(-1, 3)
+
+    # the references: tensor contractions in numpy (the evaluation before the kernels)
     def _t(self, lam: np.ndarray) -> np.ndarray:
         lo, hi = self.config.lower, self.config.upper
         return (2 * np.asarray(lam, float) - (lo + hi)) / (hi - lo)
@@ -366,8 +396,8 @@ class Atlas:
         t = self._t(lam)
         return [cheb_basis(float(ti), n) for ti, n in zip(t, self.config.shape)]
 
-    def volumes(self, lam) -> tuple[np.ndarray, np.ndarray]:
-        """(V (4,) m³, J (4,4) ∂V/∂λ in m³/N, m³/Pa) at ``lam`` inside the envelope."""
+    def volumes_reference(self, lam) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`volumes` by numpy tensor contractions (the reference of the kernel)."""
         (b1, d1), (b2, d2), (b3, d3), (b4, d4) = self._bases(lam)
         c = self.cV
         # contract the pressure axis first (value only needed there for the force columns)
@@ -381,19 +411,13 @@ class Atlas:
         return V, J
 
     def _value(self, c: np.ndarray, lam) -> np.ndarray:
+        """The polynomial with coefficients ``c`` at ``lam`` by numpy contractions (the reference
+        of :meth:`points` and :meth:`nodes`)."""
         b = [bd[0] for bd in self._bases(lam)]
         r = c
         for v in b:
             r = np.tensordot(v, r, axes=([0], [0]))
         return r
-
-    def points(self, lam) -> np.ndarray:
-        """(k,3) m tracked points (markers, then targets) at ``lam``."""
-        return self._value(self.cP, lam)
-
-    def nodes(self, lam) -> np.ndarray:
-        """(N,3) m node positions at ``lam`` (the POD field)."""
-        return (self.x_rest + self.modes @ self._value(self.cF, lam)).reshape(-1, 3)
 
     @property
     def nbytes(self) -> int:
@@ -598,6 +622,13 @@ class AtlasEstimator(EstimatorState):
         self._env_lo = np.where(elo[:3] > ulo, self._lo, -np.inf)  # envelope faces inside the bounds
         self._env_hi = np.where(ehi[:3] < uhi, self._hi, np.inf)
         self._p_range = (float(elo[3]), float(ehi[3]))
+        try:  # the rest markers centred once for the per-sample fit (rigid_fit checks they span a plane)
+            rigid_fit(self.rest_markers, self.rest_markers)
+            self._cp = self.rest_markers.mean(axis=0)
+            self._P0 = np.ascontiguousarray(self.rest_markers - self._cp)
+        except DegenerateMarkersError:
+            self._cp = self._P0 = None
+        ak.warm_up()
         self.reset()
 
     def reset(self) -> None:
@@ -606,20 +637,65 @@ class AtlasEstimator(EstimatorState):
         self._last = rest_estimate(self.target_names, self.atlas.volumes(self._lam)[1])
 
     def node_positions(self) -> np.ndarray:
-        """(N,3) m node positions of the last estimate (the atlas's field)."""
+        """(N,3) m node positions of the last estimate (the atlas's field; evaluated when asked,
+        not per sample)."""
         return self.atlas.nodes(self._lam)
 
-    def invert(self, dV, p_Pa: float, start=None) -> tuple[np.ndarray, str, bool, np.ndarray, np.ndarray, int]:
-        """Loads that best explain the volumes ``dV`` (4,) m³ at urethra pressure ``p_Pa``:
-        (λ (4,), QP status, in_envelope, V (4,), J (4,4), Gauss–Newton iterations)."""
+    def _start(self, p_Pa: float, start) -> tuple[np.ndarray, bool]:
+        """The first iterate: the start's forces (default: the last estimate's) clipped to the
+        bounds, the measured pressure clipped to the envelope; and whether the pressure was inside."""
         p_lo, p_hi = self._p_range
-        p = float(np.clip(p_Pa, p_lo, p_hi))
-        inside = p == float(p_Pa)
+        p = min(max(float(p_Pa), p_lo), p_hi)
         lam = np.empty(4)
         lam[:3] = np.clip(self._lam[:3] if start is None else start[:3], self._lo, self._hi)
         lam[3] = p
+        return lam, p == float(p_Pa)
+
+    def _inside(self, lam: np.ndarray, inside: bool) -> bool:
+        tol = 1e-6
+        if np.any(lam[:3] <= self._env_lo + tol) or np.any(lam[:3] >= self._env_hi - tol):
+            return False
+        if inside and self.atlas.unsolved:
+            return self.atlas.solved_at(lam)  # where the atlas was filled, not solved
+        return inside
+
+    def invert(self, dV, p_Pa: float, start=None) -> tuple[np.ndarray, str, bool, np.ndarray, np.ndarray, int]:
+        """Loads that best explain the volumes ``dV`` (4,) m³ at urethra pressure ``p_Pa``:
+        (λ (4,), QP status, in_envelope, V (4,), J (4,4), Gauss–Newton iterations).
+
+        Gauss–Newton from ``start`` (default: the last estimate) on the polynomial volumes, each
+        step the volume QP with its exact Jacobian, a step that raises the misfit halved
+        (:func:`~softphantom.estimation.atlas_kernels.gn_run`). With no force bound in the way the
+        QP's minimizer is a 3 × 3 solve inside the kernel; an iteration whose step meets a bound is
+        solved by the configured QP solver (``EstimatorConfig.qp_solver``).
+        :meth:`invert_reference` is the same iteration in numpy, every step by the QP solver."""
+        at = self.atlas
+        lam, inside = self._start(p_Pa, start)
         dV = np.asarray(dV, float)
-        V, J = self.atlas.volumes(lam)
+        V, J = at.volumes(lam)
+        cost = float(np.sum((V - dV) ** 2))
+        args = (at._kcV, at._shape, at._lo, at._hi, lam, V, J)
+        it = 0
+        while True:
+            code, it, cost = ak.gn_run(*args, cost, dV, self._lo, self._hi, GN_TOL_N, it, GN_MAX_ITER)
+            if code != ak.NEED_QP:
+                break
+            qp = solve_volume_qp(J, V - dV, 0.0, self._lo - lam[:3], self._hi - lam[:3], self.config.qp_solver)
+            if qp.status != "optimal":
+                raise SolverError(f"QP {qp.status}")
+            code, cost = ak.gn_update(*args, cost, dV, qp.dlam[:3].copy(), self._lo, self._hi, GN_TOL_N)
+            if code != ak.CONTINUE:
+                break
+        status = "gn:max_iter" if code == ak.MAX_ITER else "optimal"
+        return lam, status, self._inside(lam, inside), V, J, it
+
+    def invert_reference(self, dV, p_Pa: float, start=None):
+        """:meth:`invert` as it was before the kernels (numpy evaluation, every Gauss–Newton step
+        by the QP solver): the reference for the tests and ``bench_estimate.py``'s ratio."""
+        at = self.atlas
+        lam, inside = self._start(p_Pa, start)
+        dV = np.asarray(dV, float)
+        V, J = at.volumes_reference(lam)
         cost = float(np.sum((V - dV) ** 2))
         status = "gn:max_iter"
         it = 0
@@ -629,10 +705,10 @@ class AtlasEstimator(EstimatorState):
                 raise SolverError(f"QP {qp.status}")
             step = qp.dlam[:3]
             # backtracking: Gauss–Newton on a mildly non-linear map; halve a step that raises the misfit
-            for _ in range(6):
+            for _ in range(ak.BACKTRACK_HALVINGS):
                 trial = lam.copy()
                 trial[:3] = np.clip(lam[:3] + step, self._lo, self._hi)
-                Vt, Jt = self.atlas.volumes(trial)
+                Vt, Jt = at.volumes_reference(trial)
                 ct = float(np.sum((Vt - dV) ** 2))
                 if ct <= cost * (1 + 1e-12):
                     break
@@ -644,32 +720,56 @@ class AtlasEstimator(EstimatorState):
             if np.max(np.abs(step)) <= GN_TOL_N:
                 status = "optimal"
                 break
-        tol = 1e-6
-        if np.any(lam[:3] <= self._env_lo + tol) or np.any(lam[:3] >= self._env_hi - tol):
-            inside = False
-        if inside and self.atlas.unsolved:
-            inside = self.atlas.solved_at(lam)  # where the atlas was filled, not solved
-        return lam, status, inside, V, J, it
+        return lam, status, self._inside(lam, inside), V, J, it
+
+    def _pose(self, lam: np.ndarray):
+        """(Pose6, target shifts) at ``lam``: the tracked points by the kernel, the markers' rigid
+        fit by :func:`~softphantom.estimation.atlas_kernels.rigid_fit_pose`."""
+        pts = self.atlas.points(lam)
+        if self._P0 is None:  # rest markers that rigid_fit refuses: let it say so, as before
+            return pose_and_shifts(self.rest_markers, self.rest_targets, self.target_names, pts)
+        R, t = np.empty((3, 3)), np.empty(3)
+        nm = len(self.rest_markers)
+        ak.rigid_fit_pose(self._P0, self._cp, pts[:nm], R, t)
+        if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
+            return pose_and_shifts(self.rest_markers, self.rest_targets, self.target_names, pts)
+        shifts = pts[nm:] - self.rest_targets
+        return Pose6(t, ypr_from_matrix(R)), dict(zip(self.target_names, shifts))
 
     def step(self, m, skipped: int = 0) -> Estimate:
         """Estimate the state for one measurement; a bad sample repeats the last state with
         ``status="rejected:<why>"`` (as the refresh estimator)."""
+        return self._step(m, skipped, reference=False)
+
+    def step_reference(self, m, skipped: int = 0) -> Estimate:
+        """:meth:`step` as it was before the kernels (the same estimate to round-off; for
+        ``bench_estimate.py``'s old/new ratio and the tests)."""
+        return self._step(m, skipped, reference=True)
+
+    def _step(self, m, skipped: int, reference: bool) -> Estimate:
         t0 = time.perf_counter()
         why = check_sample(m)
         if why:
             return repeat_last(self._last, m, f"rejected:{why}", t0, skipped)
         try:
-            lam, status, inside, V, J, it = self.invert(m.dV, float(m.p_urethra))
+            inv = self.invert_reference if reference else self.invert
+            lam, status, inside, V, J, it = inv(m.dV, float(m.p_urethra))
         except SolverError as exc:
             return repeat_last(self._last, m, f"failed:{exc}", t0, skipped)
-        pose, shifts = pose_and_shifts(self.rest_markers, self.rest_targets, self.target_names, self.atlas.points(lam))
+        if reference:
+            pose, shifts = pose_and_shifts(self.rest_markers, self.rest_targets, self.target_names,
+                                           self.atlas._value(self.atlas.cP, lam))
+            cond = sensitivity_cond(J)
+        else:
+            pose, shifts = self._pose(lam)
+            cond = float(ak.cond_force(J))
+        dV = np.array(m.dV, float)
         est = Estimate(
             t=float(m.t), force=lam[:3].copy(), p_urethra=float(m.p_urethra), pose=pose, target_shift=shifts,
-            volume_pred=V, volume_meas=np.asarray(m.dV, float).copy(), cond_W=sensitivity_cond(J), qp_status=status,
+            volume_pred=V, volume_meas=dV, cond_W=cond, qp_status=status,
             step_time=time.perf_counter() - t0, skipped=int(skipped), in_envelope=inside,
-            extra={"qp_residual_m3": float(np.linalg.norm(V - np.asarray(m.dV, float))), "gn_iterations": it},
+            extra={"qp_residual_m3": float(np.linalg.norm(V - dV)), "gn_iterations": it},
         )
         self._lam = lam
         self._last = est
         return est
-

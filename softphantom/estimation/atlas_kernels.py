@@ -1,0 +1,306 @@
+"""numba kernels of the atlas estimator's per-sample step (issue 13, item 5: ≥ 5 kHz, p99 ≤ 1 ms).
+
+The step's arithmetic is small — a tensor Chebyshev polynomial of a few hundred coefficients per
+output, a 3-variable least squares, a 3 × 3 rigid fit — so its cost was Python and numpy call
+overhead (some 60 small numpy calls per Gauss–Newton iteration). These kernels do the same
+arithmetic in one compiled call each:
+
+- :func:`eval_vj` / :func:`eval_value`: the polynomial and its gradient at λ, one pass over the
+  coefficients (:meth:`~softphantom.estimation.atlas.Atlas.volumes_reference` and
+  :meth:`~softphantom.estimation.atlas.Atlas._value` are the tensordot references they are tested
+  against);
+- :func:`gn_run`: the Gauss–Newton iterations of
+  :meth:`~softphantom.estimation.atlas.AtlasEstimator.invert`, each step the minimizer of the
+  volume QP of :func:`~softphantom.estimation.qp.solve_volume_qp` (same scaling and Tikhonov term)
+  by a 3 × 3 Cholesky solve. That is the QP's solution when no force bound is in the way; when one
+  is (or the solve breaks down) the kernel stops and returns ``NEED_QP``, and the caller takes that
+  iteration with the configured QP solver (:func:`gn_update` accepts its step);
+- :func:`rigid_fit_pose`: Kabsch's fit (SVD of the 3 × 3 correlation, reflection guard) of the
+  markers onto rest positions centred once, as :func:`~softphantom.pose.rigid_fit`.
+
+Compiled on first use and cached on disk (``cache=True``); :func:`warm_up` compiles or loads them
+all, so the first real-time sample does not pay it.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from softphantom.estimation.qp import _SCALE_LAM, _SCALE_V
+from softphantom.fem.kernels import HAVE_NUMBA, njit
+
+# codes of gn_run / gn_update
+CONTINUE, CONVERGED, NO_DESCENT, MAX_ITER, NEED_QP = 0, 1, 2, 3, 4
+BACKTRACK_HALVINGS = 6  # a step that raises the misfit is halved up to this many times
+_SF = float(_SCALE_LAM[0] / _SCALE_V)  # force columns of W: m³/N → mm³/N (the QP's scaling)
+_SP = float(_SCALE_LAM[3] / _SCALE_V)  # pressure column: m³/Pa → mm³/kPa
+_SV = float(_SCALE_V)
+
+
+@njit(cache=True, nogil=True)
+def _basis(t, n, b, d):
+    """T_k(t) and T_k'(t) for k < n into b[:n], d[:n] (the recurrence of ``cheb_basis``)."""
+    b[0] = 1.0
+    d[0] = 0.0
+    if n > 1:
+        b[1] = t
+        d[1] = 1.0
+    for k in range(2, n):
+        b[k] = 2 * t * b[k - 1] - b[k - 2]
+        d[k] = 2 * b[k - 1] + 2 * t * d[k - 1] - d[k - 2]
+
+
+@njit(cache=True, nogil=True)
+def _bases(lam, lo, hi, shape, B, D):
+    for a in range(4):
+        t = (2 * lam[a] - (lo[a] + hi[a])) / (hi[a] - lo[a])
+        _basis(t, shape[a], B[a], D[a])
+
+
+@njit(cache=True, nogil=True)
+def eval_vj(C, shape, lo, hi, lam, V, J):
+    """Value V (m,) and Jacobian J (m, 4) per unit λ of the tensor Chebyshev polynomial with
+    coefficients ``C`` (n1·n2·n3·n4, m) over the box [lo, hi] at ``lam`` (4,)."""
+    n1, n2, n3, n4 = shape[0], shape[1], shape[2], shape[3]
+    nmax = max(max(n1, n2), max(n3, n4))
+    B = np.empty((4, nmax))
+    D = np.empty((4, nmax))
+    _bases(lam, lo, hi, shape, B, D)
+    m = C.shape[1]
+    V[:] = 0.0
+    J[:] = 0.0
+    g = 0
+    for i in range(n1):
+        bi, di = B[0, i], D[0, i]
+        for j in range(n2):
+            bij, dij, bdj = bi * B[1, j], di * B[1, j], bi * D[1, j]
+            for k in range(n3):
+                b3, d3 = B[2, k], D[2, k]
+                w0, w1, w2, w3 = bij * b3, dij * b3, bdj * b3, bij * d3
+                for l in range(n4):
+                    b4 = B[3, l]
+                    a0, a1, a2, a3, a4 = w0 * b4, w1 * b4, w2 * b4, w3 * b4, w0 * D[3, l]
+                    for o in range(m):
+                        c = C[g, o]
+                        V[o] += a0 * c
+                        J[o, 0] += a1 * c
+                        J[o, 1] += a2 * c
+                        J[o, 2] += a3 * c
+                        J[o, 3] += a4 * c
+                    g += 1
+    for a in range(4):
+        s = 2.0 / (hi[a] - lo[a])
+        for o in range(m):
+            J[o, a] *= s
+
+
+@njit(cache=True, nogil=True)
+def eval_value(C, shape, lo, hi, lam, out):
+    """The value (m,) of the polynomial with coefficients ``C`` (n1·n2·n3·n4, m) at ``lam``."""
+    n1, n2, n3, n4 = shape[0], shape[1], shape[2], shape[3]
+    nmax = max(max(n1, n2), max(n3, n4))
+    B = np.empty((4, nmax))
+    D = np.empty((4, nmax))
+    _bases(lam, lo, hi, shape, B, D)
+    m = C.shape[1]
+    out[:] = 0.0
+    g = 0
+    for i in range(n1):
+        for j in range(n2):
+            bij = B[0, i] * B[1, j]
+            for k in range(n3):
+                w = bij * B[2, k]
+                for l in range(n4):
+                    a = w * B[3, l]
+                    for o in range(m):
+                        out[o] += a * C[g, o]
+                    g += 1
+
+
+@njit(cache=True, nogil=True)
+def _ls_step(J, r0, x):
+    """The minimizer x (3,) N of the volume QP (``solve_volume_qp``: W = J, r0 = V − V_meas, no
+    pressure change) without bounds: its scaled, Tikhonov-regularised normal equations by a
+    Cholesky solve. False if they are not positive definite (the QP solver then decides)."""
+    Ws = np.empty((4, 4))
+    for i in range(4):
+        for a in range(3):
+            Ws[i, a] = J[i, a] * _SF
+        Ws[i, 3] = J[i, 3] * _SP
+    H = np.zeros((3, 3))
+    f = np.zeros(3)
+    dmax = 0.0
+    for a in range(4):
+        s = 0.0
+        for i in range(4):
+            s += Ws[i, a] * Ws[i, a]
+        dmax = max(dmax, s)
+    dmax = max(dmax, 1e-300)
+    for a in range(3):
+        for b in range(3):
+            s = 0.0
+            for i in range(4):
+                s += Ws[i, a] * Ws[i, b]
+            H[a, b] = s
+        s = 0.0
+        for i in range(4):
+            s += Ws[i, a] * (r0[i] / _SV)
+        f[a] = s
+    for a in range(3):
+        H[a, a] += 1e-10 * H[a, a] + 1e-14 * dmax
+    # Cholesky H = L Lᵀ, then L Lᵀ x = −f
+    if not H[0, 0] > 0:
+        return False
+    l00 = math.sqrt(H[0, 0])
+    l10 = H[1, 0] / l00
+    l20 = H[2, 0] / l00
+    s11 = H[1, 1] - l10 * l10
+    if not s11 > 0:
+        return False
+    l11 = math.sqrt(s11)
+    l21 = (H[2, 1] - l20 * l10) / l11
+    s22 = H[2, 2] - l20 * l20 - l21 * l21
+    if not s22 > 0:
+        return False
+    l22 = math.sqrt(s22)
+    y0 = -f[0] / l00
+    y1 = (-f[1] - l10 * y0) / l11
+    y2 = (-f[2] - l20 * y0 - l21 * y1) / l22
+    x[2] = y2 / l22
+    x[1] = (y1 - l21 * x[2]) / l11
+    x[0] = (y0 - l10 * x[1] - l20 * x[2]) / l00
+    return math.isfinite(x[0]) and math.isfinite(x[1]) and math.isfinite(x[2])
+
+
+@njit(cache=True, nogil=True)
+def _misfit(V, dV):
+    s = 0.0
+    for i in range(4):
+        s += (V[i] - dV[i]) ** 2
+    return s
+
+
+@njit(cache=True, nogil=True)
+def gn_update(C, shape, lo, hi, lam, V, J, cost, dV, step, blo, bhi, tol):
+    """One Gauss–Newton update along ``step`` (3,) N from ``lam``: the step clipped to the force
+    bounds [blo, bhi], halved while it raises the misfit (up to ``BACKTRACK_HALVINGS`` times);
+    ``lam``, ``V``, ``J``, ``step`` updated in place. Returns (code, cost): ``NO_DESCENT`` (no
+    halving lowered the misfit: λ unchanged, a bounded minimum at round-off), ``CONVERGED`` (the
+    accepted step is ≤ ``tol`` N in every component) or ``CONTINUE``."""
+    trial = np.empty(4)
+    Vt = np.empty(4)
+    Jt = np.empty((4, 4))
+    trial[3] = lam[3]
+    for _ in range(BACKTRACK_HALVINGS):
+        for a in range(3):
+            trial[a] = min(max(lam[a] + step[a], blo[a]), bhi[a])
+        eval_vj(C, shape, lo, hi, trial, Vt, Jt)
+        ct = _misfit(Vt, dV)
+        if ct <= cost * (1 + 1e-12):
+            lam[:] = trial
+            V[:] = Vt
+            J[:, :] = Jt
+            big = 0.0
+            for a in range(3):
+                big = max(big, abs(step[a]))
+            return (CONVERGED if big <= tol else CONTINUE), ct
+        for a in range(3):
+            step[a] *= 0.5
+    return NO_DESCENT, cost
+
+
+@njit(cache=True, nogil=True)
+def gn_run(C, shape, lo, hi, lam, V, J, cost, dV, blo, bhi, tol, it0, max_iter):
+    """Gauss–Newton iterations ``it0 + 1 … max_iter`` from ``lam`` (with its ``V``, ``J``,
+    ``cost``), each step the unbounded minimizer of the volume QP, updated in place. Returns
+    (code, iterations, cost): ``CONVERGED`` / ``NO_DESCENT`` / ``MAX_ITER``, or ``NEED_QP`` with
+    the state at the start of iteration ``iterations`` when its step leaves the force bounds or the
+    solve breaks down — that iteration is the QP solver's."""
+    x = np.empty(3)
+    r0 = np.empty(4)
+    for it in range(it0 + 1, max_iter + 1):
+        for i in range(4):
+            r0[i] = V[i] - dV[i]
+        ok = _ls_step(J, r0, x)
+        if ok:
+            for a in range(3):
+                if not (blo[a] - lam[a] <= x[a] <= bhi[a] - lam[a]):
+                    ok = False
+        if not ok:
+            return NEED_QP, it, cost
+        code, cost = gn_update(C, shape, lo, hi, lam, V, J, cost, dV, x, blo, bhi, tol)
+        if code != CONTINUE:
+            return code, it, cost
+    return MAX_ITER, max(max_iter, it0), cost
+
+
+@njit(cache=True, nogil=True)
+def rigid_fit_pose(P0, cp, Q, R, t):
+    """Least-squares rigid transform ``Q ≈ R·P + t`` of the markers ``Q`` (k, 3), with the rest
+    markers given centred (``P0`` = P − ``cp``): Kabsch by the SVD of Σ p₀ q₀ᵀ with the reflection
+    guard, the arithmetic of :func:`~softphantom.pose.rigid_fit` (unit weights); R (3,3), t (3,)
+    written in place."""
+    k = Q.shape[0]
+    cq = np.zeros(3)
+    for i in range(k):
+        for a in range(3):
+            cq[a] += Q[i, a]
+    for a in range(3):
+        cq[a] /= k
+    H = np.zeros((3, 3))
+    for i in range(k):
+        for a in range(3):
+            for b in range(3):
+                H[a, b] += P0[i, a] * (Q[i, b] - cq[b])
+    for a in range(3):
+        for b in range(3):
+            H[a, b] /= k
+    U, _, Vt = np.linalg.svd(H)
+    # R = V · diag(1, 1, d) · Uᵀ, d = sign det(V Uᵀ) (0 → 1)
+    M = Vt.T @ U.T
+    det = (M[0, 0] * (M[1, 1] * M[2, 2] - M[1, 2] * M[2, 1]) - M[0, 1] * (M[1, 0] * M[2, 2] - M[1, 2] * M[2, 0])
+           + M[0, 2] * (M[1, 0] * M[2, 1] - M[1, 1] * M[2, 0]))
+    d = -1.0 if det < 0 else 1.0
+    for a in range(3):
+        for b in range(3):
+            R[a, b] = Vt[0, a] * U[b, 0] + Vt[1, a] * U[b, 1] + d * Vt[2, a] * U[b, 2]
+    for a in range(3):
+        t[a] = cq[a] - (R[a, 0] * cp[0] + R[a, 1] * cp[1] + R[a, 2] * cp[2])
+
+
+@njit(cache=True, nogil=True)
+def cond_force(J):
+    """Condition number of the force columns of a (4, 4) sensitivity (inf if rank-deficient), as
+    ``sensitivity_cond``."""
+    s = np.linalg.svd(np.ascontiguousarray(J[:, :3]))[1]
+    return s[0] / s[2] if s[2] > 0 else np.inf
+
+
+_warm = False
+
+
+def warm_up() -> None:
+    """Compile (first time on a machine, some seconds) or load from numba's disk cache every kernel
+    with the argument types the estimator passes; once per process."""
+    global _warm
+    if _warm or not HAVE_NUMBA:
+        return
+    shape = np.array([3, 3, 3, 2], dtype=np.int64)
+    C = np.zeros((54, 4))
+    C[0] = 1e-9
+    C[1] = [1e-9, 2e-9, 0, 0]
+    C[6] = [0, 1e-9, 1e-9, 0]
+    C[18] = [0, 0, 1e-9, 1e-9]
+    lo, hi = np.array([-1.0, -1, -1, -1e3]), np.array([1.0, 1, 1, 1e3])
+    lam, V, J = np.zeros(4), np.empty(4), np.empty((4, 4))
+    eval_vj(C, shape, lo, hi, lam, V, J)
+    eval_value(C, shape, lo, hi, lam, np.empty(4))
+    dV = np.full(4, 1e-10)
+    gn_run(C, shape, lo, hi, lam, V, J, _misfit(V, dV), dV, lo[:3].copy(), hi[:3].copy(), 1e-7, 0, 3)
+    gn_update(C, shape, lo, hi, lam, V, J, _misfit(V, dV), dV, np.zeros(3), lo[:3].copy(), hi[:3].copy(), 1e-7)
+    P0 = np.eye(3) - 1 / 3
+    rigid_fit_pose(P0, np.zeros(3), np.eye(3), np.empty((3, 3)), np.empty(3))
+    cond_force(np.eye(4))
+    _warm = True

@@ -1,0 +1,158 @@
+"""The atlas estimator's compiled per-sample step (issue 13, item 5) against its references: the
+kernel evaluation against numpy tensor contractions and finite differences, the kernel rigid fit
+against ``pose.rigid_fit``, and the step against the pre-kernel step (every Gauss–Newton step by
+the QP solver) on an atlas of a known non-linear map — no forward solves, so it runs in seconds."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from softphantom.estimation import AtlasConfig, AtlasEstimator, EstimatorConfig, ForwardModel
+from softphantom.estimation import atlas_kernels as ak
+from softphantom.estimation.atlas import Atlas, _to_chebyshev, atlas_key
+from softphantom.pose import rigid_fit
+from softphantom.sensing import Measurement
+
+CFG = EstimatorConfig(contact="on-centre")
+ACFG = AtlasConfig(force_min_N=(-1.0, -0.5, -1.0), force_max_N=(1.0, 5.0, 1.0), p_min_kPa=-2.0, p_max_kPa=4.0,
+                   n_force=(5, 7, 4), n_pressure=3)
+RNG = np.random.default_rng(11)
+A = np.array([[1.0, 0.3, -0.2], [0.2, 1.3, 0.1], [-0.4, 0.1, 0.9], [0.3, -0.9, 0.4]]) * 1e-9  # m³/N
+A_P = np.array([2.0, 1.5, 1.0, 2.5]) * 1e-12  # m³/Pa
+
+
+def meas(dV, p=0.0, t=0.0):
+    return Measurement(t, 0, t, np.full(5, 51150), 100, np.zeros(4), np.asarray(dV, float), p)
+
+
+def volumes_map(lam):
+    """A smooth non-linear map (N, Pa → m³): linear part A, a stiffening and a cross term."""
+    f, p = lam[..., :3], lam[..., 3:]
+    lin = f @ A.T + p * A_P
+    quad = 0.04e-9 * np.stack([f[..., 1] ** 2, f[..., 0] * f[..., 1], np.sin(f[..., 2]), f[..., 1] * f[..., 2]], -1)
+    return lin - quad
+
+
+@pytest.fixture(scope="module")
+def fwd(coarse_model):
+    return ForwardModel(coarse_model, CFG)
+
+
+@pytest.fixture(scope="module")
+def atlas(fwd):
+    """The atlas of ``volumes_map`` (points: the rest tracked points moved linearly plus a twist)."""
+    shape = ACFG.shape
+    g = np.stack(np.meshgrid(*ACFG.axes(), indexing="ij"), axis=-1)  # (n1..n4, 4)
+    rest = fwd.rest.sub_x
+    Bp = RNG.normal(size=(rest.shape[0], 3, 4)) * np.array([1e-4, 1e-4, 1e-4, 1e-8])
+    P = rest + np.einsum("kaj,...j->...ka", Bp, g) + 1e-5 * np.sin(g[..., 1])[..., None, None] * rest[:, ::-1]
+    r = 3
+    modes = np.linalg.qr(RNG.normal(size=(fwd.fem.n_dof, r)))[0] * 1e-3
+    coef = np.stack([g[..., 0] * g[..., 1], g[..., 2], np.cos(g[..., 1])], -1)
+    return Atlas(key=atlas_key(fwd, ACFG), config=ACFG, cV=_to_chebyshev(volumes_map(g), shape),
+                 cP=_to_chebyshev(P.reshape(*shape, -1), shape).reshape(*shape, -1, 3),
+                 cF=_to_chebyshev(coef, shape), modes=modes, x_rest=fwd.fem.x_rest.copy(), build_s=0.0,
+                 solves=int(np.prod(shape)), field_rms_m=0.0, solved=np.ones(shape, bool))
+
+
+def test_kernel_evaluation_equals_the_tensor_contraction_and_its_derivative(atlas):
+    lo, hi = ACFG.lower, ACFG.upper
+    for lam in lo + (hi - lo) * RNG.uniform(-0.05, 1.05, (20, 4)):  # a little outside the box too
+        V, J = atlas.volumes(lam)
+        Vr, Jr = atlas.volumes_reference(lam)
+        assert np.allclose(V, Vr, rtol=0, atol=1e-12 * np.abs(Vr).max())
+        assert np.allclose(J, Jr, rtol=0, atol=1e-12 * np.abs(Jr).max())
+        # the Jacobian is the derivative of the kernel's own value (central differences)
+        for j, h in enumerate((1e-5, 1e-5, 1e-5, 1e-2)):
+            e = np.eye(4)[j] * h
+            fd = (atlas.volumes(lam + e)[0] - atlas.volumes(lam - e)[0]) / (2 * h)
+            assert np.allclose(J[:, j], fd, rtol=1e-6, atol=1e-7 * np.abs(J[:, j]).max())
+        assert np.allclose(atlas.points(lam), atlas._value(atlas.cP, lam), rtol=0, atol=1e-15)
+        field = atlas.x_rest + atlas.modes @ atlas._value(atlas.cF, lam)
+        assert np.allclose(atlas.nodes(lam), field.reshape(-1, 3), rtol=0, atol=1e-15)
+    # and the polynomial is the map it was fitted to, at the grid points
+    g = np.array([a[1] for a in ACFG.axes()])
+    assert np.allclose(atlas.volumes(g)[0], volumes_map(g), rtol=1e-12, atol=0)
+
+
+def test_kernel_rigid_fit_equals_pose_rigid_fit():
+    P = RNG.normal(size=(5, 3)) * 0.03
+    cp = P.mean(axis=0)
+    for k in range(10):
+        ang = RNG.normal(size=3) * (0.3 if k else 3.0)  # one large rotation
+        K = np.array([[0, -ang[2], ang[1]], [ang[2], 0, -ang[0]], [-ang[1], ang[0], 0]])
+        Rt = np.linalg.matrix_power(np.eye(3) + K / 64, 64)  # ≈ expm(K), orthonormalised below
+        u, _, vt = np.linalg.svd(Rt)
+        Q = P @ (u @ vt).T + RNG.normal(size=3) * 0.01 + RNG.normal(size=P.shape) * 1e-4  # noisy markers
+        if k == 1:
+            Q = P * [1, 1, -1]  # a mirror image: the reflection guard must keep det R = +1
+        R, t = np.empty((3, 3)), np.empty(3)
+        ak.rigid_fit_pose(P - cp, cp, Q, R, t)
+        ref = rigid_fit(P, Q)
+        assert np.allclose(R, ref.R, atol=1e-12) and np.allclose(t, ref.t, atol=1e-14)
+        assert np.linalg.det(R) == pytest.approx(1.0)
+
+
+def ramp():
+    """Samples of a 4.5 N push along +y with sideways wobble and pressure, one beyond the f_x face
+    (a bound in the way), one with the pressure above the envelope."""
+    out = []
+    for k, fy in enumerate(np.r_[np.linspace(0, 4.5, 60), np.linspace(4.5, 0.2, 20)]):
+        lam = np.array([0.2 * np.sin(k / 9), fy, -0.1 * np.cos(k / 13), 1e3 * np.sin(k / 7)])
+        if k == 30:
+            lam[0] = 1.6  # beyond f_x ≤ 1 N
+        if k == 50:
+            lam[3] = 6e3  # above 4 kPa
+        out.append(meas(volumes_map(lam), lam[3], k / 77.0))
+    return out
+
+
+def test_step_equals_the_reference_step(coarse_model, atlas):
+    fast, ref = AtlasEstimator(coarse_model, CFG, atlas), AtlasEstimator(coarse_model, CFG, atlas)
+    flags = []
+    for m in ramp():
+        a, b = fast.step(m), ref.step_reference(m)
+        assert a.status == b.status == "ok"
+        assert (a.qp_status, a.in_envelope, a.extra["gn_iterations"]) == (b.qp_status, b.in_envelope,
+                                                                          b.extra["gn_iterations"])
+        assert np.allclose(a.force, b.force, rtol=0, atol=1e-9)  # N
+        assert np.allclose(a.pose.to_mm_deg(), b.pose.to_mm_deg(), rtol=0, atol=1e-9)  # mm, deg
+        for name in fast.target_names:
+            assert np.allclose(a.target_shift[name], b.target_shift[name], rtol=0, atol=1e-12)
+        assert np.allclose(a.volume_pred, b.volume_pred, rtol=0, atol=1e-18)  # 1e-9 mm³
+        assert a.cond_W == pytest.approx(b.cond_W, rel=1e-9)
+        assert a.extra["qp_residual_m3"] == pytest.approx(b.extra["qp_residual_m3"], rel=1e-6, abs=1e-21)
+        flags.append(a.in_envelope)
+    assert flags.count(False) == 2  # the two samples outside the envelope, and only those
+    assert np.allclose(fast.node_positions(), ref.node_positions(), rtol=0, atol=1e-15)
+
+
+def test_warm_start_gives_the_cold_start_answer(coarse_model, atlas):
+    est = AtlasEstimator(coarse_model, CFG, atlas)
+    lam = np.array([0.3, 2.5, -0.4, 1.5e3])
+    warm = est.invert(volumes_map(lam), lam[3], start=lam + [0.02, -0.03, 0.01, 0])
+    cold = est.invert(volumes_map(lam), lam[3], start=np.zeros(4))
+    assert warm[1] == cold[1] == "optimal" and warm[2] and cold[2]
+    assert np.allclose(warm[0], cold[0], rtol=0, atol=1e-8)  # N: the same minimum
+    assert np.allclose(warm[0], lam, rtol=0, atol=1e-4)  # the map, to the polynomial's interpolation error
+    assert warm[5] < cold[5]  # fewer Gauss–Newton iterations from nearby
+
+
+def test_qp_solver_only_where_a_bound_is_active(coarse_model, atlas, monkeypatch):
+    import softphantom.estimation.atlas as atlas_mod
+
+    calls = []
+    real = atlas_mod.solve_volume_qp
+    monkeypatch.setattr(atlas_mod, "solve_volume_qp", lambda *a: calls.append(a[-1]) or real(*a))
+    lam = np.array([0.3, 2.5, -0.4, 1.5e3])
+    for solver in ("daqp", "quadprog"):
+        est = AtlasEstimator(coarse_model, EstimatorConfig(contact="on-centre", qp_solver=solver), atlas)
+        assert est.invert(volumes_map(lam), lam[3])[1] == "optimal" and not calls  # inside: no QP
+        out = np.array([0.3, 5.8, -0.4, 1.5e3])  # beyond f_y ≤ 5 N: the bound holds f_y
+        got = est.invert(volumes_map(out), out[3])
+        ref = est.invert_reference(volumes_map(out), out[3])
+        assert calls and set(calls) == {solver}  # the configured solver took the bounded steps
+        assert got[0][1] == pytest.approx(5.0) and not got[2]  # clamped, flagged
+        assert np.allclose(got[0], ref[0], rtol=0, atol=1e-9) and got[1] == ref[1] and got[5] == ref[5]
+        calls.clear()
