@@ -62,7 +62,15 @@ def _bases(lam, lo, hi, shape, B, D):
 @njit(cache=True, nogil=True)
 def eval_vj(C, shape, lo, hi, lam, V, J):
     """Value V (m,) and Jacobian J (m, 4) per unit λ of the tensor Chebyshev polynomial with
-    coefficients ``C`` (n1·n2·n3·n4, m) over the box [lo, hi] at ``lam`` (4,)."""
+    coefficients ``C`` (n1·n2·n3·n4, m) over the box [lo, hi] at ``lam`` (4,).
+
+    >>> shape = np.array([2, 3, 2, 2])
+    >>> C = np.zeros((24, 1)); C[4 * 2 + 0, 0] = 1.0  # T_0 · T_2(t_2) · T_0 · T_0: 2 t_2² − 1
+    >>> V, J = np.empty(1), np.empty((1, 4))
+    >>> eval_vj(C, shape, np.full(4, -1.0), np.full(4, 3.0), np.array([0.0, 2.0, 0.0, 0.0]), V, J)
+    >>> V.tolist(), J.tolist()  # t_2 = 0.5 at λ_2 = 2 on [-1, 3]: 2·0.25 − 1; d/dλ_2 = 4 t_2 · 2/4
+    ([-0.5], [[0.0, 1.0, 0.0, 0.0]])
+    """
     n1, n2, n3, n4 = shape[0], shape[1], shape[2], shape[3]
     nmax = max(max(n1, n2), max(n3, n4))
     B = np.empty((4, nmax))
