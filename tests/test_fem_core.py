@@ -281,6 +281,38 @@ def test_newton_step_on_an_indefinite_tangent_is_a_shifted_cholesky(monkeypatch)
     assert solver.analyses == 1
 
 
+def test_a_tangent_that_loses_definiteness_in_a_large_load_step_cuts_the_step(monkeypatch):
+    """Newton does not step through an indefinite tangent within a large load increment (at
+    ν = 0.49 a full-load step did so onto another, spurious equilibrium; docs/model.md): the
+    increment is halved, and the continued solve reaches the same equilibrium as an undisturbed one."""
+    pytest.importorskip("sksparse.cholmod")
+    import softphantom.fem.solve as fs
+
+    X, T = box_mesh((0.06, 0.01, 0.01), (12, 2, 2))
+    fem = build_fem(X, T, MAT, fixed_nodes=np.flatnonzero(X[:, 0] < 1e-9))
+    tip = np.flatnonzero(X[:, 0] > 0.06 - 1e-9)
+    f = np.zeros(fem.n_dof)
+    f[3 * tip + 2] = -0.1 / tip.size
+    ref = solve_static(fem, f, tol=1e-10, solver="cholmod")
+    real = fs.SparseSolver.factorize
+    calls = {"n": 0}
+
+    def first_not_pd(self, A):  # the first step's second tangent "is not positive definite"
+        calls["n"] += 1
+        if calls["n"] == 2:
+            raise fs.SolverError("matrix not positive definite (cholmod)")
+        return real(self, A)
+
+    seen = []
+    newton = fs._newton
+    monkeypatch.setattr(fs.SparseSolver, "factorize", first_not_pd)
+    monkeypatch.setattr(fs, "_newton", lambda *a, **k: seen.append((a[4], k["shift_indefinite"])) or newton(*a, **k))
+    sol = solve_static(fem, f, tol=1e-10, solver="cholmod")
+    assert sol.converged and sol.load_steps >= 2
+    assert seen[0] == (1.0, False) and seen[1][0] == 0.5  # the full step gave up, half the load next
+    assert np.allclose(sol.x, ref.x, atol=1e-9)
+
+
 def test_splu_orders_symmetric_matrices_symmetrically():
     """SuperLU (the fallback) on a 3-D stiffness-like matrix: minimum degree on A + Aᵀ fills less
     than scipy's default COLAMD (on the 9 mm P2 design tangent 38 M vs 68 M entries)."""
