@@ -37,13 +37,34 @@ ROOT = Path(__file__).resolve().parents[1]
 BULB_TRUE, GAIN_TRUE, TUBE_TRUE = 1.3, 1.05, 1.10
 
 
-def truth_design(design: BIPDesign, law: str) -> BIPDesign:
-    base = {m.name: m for m in design.materials}[dict(design.region_materials)["bulb"]]
-    v = dict(base.values)
-    bulb = MaterialSpec("bulb_truth", law, tuple((k, x * BULB_TRUE if k.endswith("_kPa") else x) for k, x in v.items()))
-    arms = MaterialSpec("arms_truth", law, base.values)
+# the Yeoh truth's shape (C20/C10, C30/C10) is the preset's (softphantom.fem.material.ECOFLEX_00_50_YEOH)
+YEOH_C20_C10, YEOH_C30_C10 = -0.2 / 17.0, 0.023 / 17.0
+
+
+def law_values(law: str, E_kPa: float, nu: float, density: float) -> tuple[tuple[str, float], ...]:
+    """Parameters of ``law`` with the small-strain shear modulus of (E, ν): for Yeoh μ = 2 C10,
+    with the preset's C20/C10 and C30/C10 (a stiffening law unlike neo-Hookean at large strain)."""
+    if law == "yeoh":
+        c10 = E_kPa / (4.0 * (1.0 + nu))
+        return (("C10_kPa", c10), ("C20_kPa", c10 * YEOH_C20_C10), ("C30_kPa", c10 * YEOH_C30_C10),
+                ("nu", nu), ("density_kg_m3", density))
+    return (("E_kPa", E_kPa), ("nu", nu), ("density_kg_m3", density))
+
+
+def with_law(design: BIPDesign, law: str, order: int, bulb_factor: float = 1.0, suffix: str = "") -> BIPDesign:
+    """``design`` with every region under ``law`` (the default material's small-strain E, ν), the
+    bulb's moduli × ``bulb_factor``, meshed with elements of ``order``."""
+    base = dict({m.name: m for m in design.materials}[dict(design.region_materials)["bulb"]].values)
+    E, nu, rho = base["E_kPa"], base["nu"], base.get("density_kg_m3", 1070.0)
+    bulb = MaterialSpec(f"bulb{suffix}", law, law_values(law, E * bulb_factor, nu, rho))
+    arms = MaterialSpec(f"arms{suffix}", law, law_values(law, E, nu, rho))
     return dataclasses.replace(design, materials=(bulb, arms),
-                               region_materials=(("bulb", "bulb_truth"), ("arms", "arms_truth")))
+                               region_materials=(("bulb", f"bulb{suffix}"), ("arms", f"arms{suffix}")),
+                               mesh=dataclasses.replace(design.mesh, element_order=order))
+
+
+def truth_design(design: BIPDesign, law: str, order: int = 1) -> BIPDesign:
+    return with_law(design, law, order, BULB_TRUE, "_truth")
 
 
 def believe_nominal_tube(rec: Path) -> None:
@@ -57,14 +78,15 @@ def believe_nominal_tube(rec: Path) -> None:
     rec.write_text("".join(lines))
 
 
-def sessions(model_dir: Path, out: Path, law: str, truth_scale: float) -> dict[str, Path]:
+def sessions(model_dir: Path, out: Path, law: str, truth_scale: float, truth_order: int = 1) -> dict[str, Path]:
     from softphantom.virtual.board import BoardConfig
     from softphantom.virtual.run import VirtualConfig, simulate, write_run
     from softphantom.virtual.tracker import TrackerConfig
     from softphantom.virtual.truth import TruthConfig
 
     model = load_model(model_dir)
-    tm = build_model(truth_design(model.design, law), model.design.mesh.size_mm * truth_scale)
+    # node spacing truth_scale x the model's (P2 elements twice the spacing, as virtual.truth_model)
+    tm = build_model(truth_design(model.design, law, truth_order), model.design.mesh.size_mm * truth_scale * truth_order)
     res = {}
     for i, sc in enumerate(("push-on-centre", "push-off-centre", "needle-insertion")):
         d = out / sc
@@ -112,17 +134,27 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--mesh-size-mm", type=float, default=6.0)
     ap.add_argument("--truth-law", default="neo-hookean")
-    ap.add_argument("--truth-scale", type=float, default=0.75, help="truth mesh size / model mesh size")
+    ap.add_argument("--truth-scale", type=float, default=0.75, help="truth node spacing / model mesh size")
+    ap.add_argument("--truth-order", type=int, default=1, choices=(1, 2), help="truth element order")
+    ap.add_argument("--nominal-law", default=None, choices=("corotational", "neo-hookean", "yeoh"),
+                    help="the nominal model's law (default: the design's, co-rotational)")
+    ap.add_argument("--nominal-order", type=int, default=1, choices=(1, 2), help="the nominal model's element order")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--cache", type=Path, default=ROOT / "out" / "bench" / "calibrate")
     ap.add_argument("--no-loaded", action="store_true", help="skip the run with both cores busy")
     a = ap.parse_args()
-    out = a.cache / f"h{a.mesh_size_mm:g}_{a.truth_law}"
+    nominal = BIPDesign() if a.nominal_law is None and a.nominal_order == 1 else \
+        with_law(BIPDesign(), a.nominal_law or "corotational", a.nominal_order)
+    out = a.cache / (f"h{a.mesh_size_mm:g}_{a.truth_law}" + (f"_P{a.truth_order}" if a.truth_order != 1 else "")
+                     + (f"_nom-{a.nominal_law or 'corotational'}-P{a.nominal_order}" if nominal != BIPDesign() else ""))
     model_dir = out / "model"
     if not (model_dir / "model.npz").is_file():
-        save_model(build_model(BIPDesign(), a.mesh_size_mm), model_dir)
-    print(f"nominal model {a.mesh_size_mm:g} mm: {len(load_model(model_dir).nodes)} nodes")
-    s = sessions(model_dir, out, a.truth_law, a.truth_scale)
+        save_model(build_model(nominal, a.mesh_size_mm), model_dir)
+    m = load_model(model_dir)
+    print(f"nominal model {a.mesh_size_mm:g} mm: {len(m.nodes)} nodes, P{m.element_order}, "
+          f"laws {sorted({x.law for x in m.design.materials})}; truth {a.truth_law} P{a.truth_order}, "
+          f"node spacing {a.truth_scale:g} x")
+    s = sessions(model_dir, out, a.truth_law, a.truth_scale, a.truth_order)
     print("\n== calibrate, quiet machine (all parameters free)")
     cal, wall = run(model_dir, s, a.workers)
     report(cal, wall)
