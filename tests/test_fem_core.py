@@ -282,9 +282,9 @@ def test_newton_step_on_an_indefinite_tangent_is_a_shifted_cholesky(monkeypatch)
 
 
 def test_a_tangent_that_loses_definiteness_in_a_large_load_step_cuts_the_step(monkeypatch):
-    """Newton does not step through an indefinite tangent within a large load increment (at
-    ν = 0.49 a full-load step did so onto another, spurious equilibrium; docs/model.md): the
-    increment is halved, and the continued solve reaches the same equilibrium as an undisturbed one."""
+    """Newton does not step through an indefinite tangent within a large load increment (the
+    step is too large; continuation instead): the increment is halved, and the continued solve
+    reaches the same equilibrium as an undisturbed one."""
     pytest.importorskip("sksparse.cholmod")
     import softphantom.fem.solve as fs
 

@@ -420,10 +420,10 @@ def solve_static(
     rel, status = 0.0, "converged"
     while t < 1.0:
         t_try = min(1.0, t + dt)
-        # a tangent that loses definiteness within a large load step means the step is too large:
-        # at nu = 0.49 a full-load Newton stepped through it (shifted) onto another, spurious
-        # equilibrium (9 mm P2: y 0.2 %, arm dV 0.3 % off the continued one); only small steps may
-        # step on (a genuinely indefinite path, e.g. an inflating cavity)
+        # a tangent that loses definiteness within a large load step means the step is too large
+        # (the conventional remedy: continuation); only small steps may step on, shifted (a
+        # genuinely indefinite path, e.g. an inflating cavity). Where paths can part: at nu = 0.49
+        # the 9 mm P2 mesh has two converged states 0.2 % apart (docs/model.md)
         ok, x_new, its, rel_try, reason = _newton(
             fem, x, f_fixed, plist, t_try, tol, max_iter, lin, consistent, shift_indefinite=dt <= SHIFT_MAX_LOAD_STEP
         )
