@@ -209,8 +209,9 @@ def test_unreachable_grid_points_are_filled_and_flagged(coarse_model, fwd, monke
     class Linear:  # stands in for the FEM: a map linear in the loads, failing in one corner
         def __init__(self, model, config, **kw):
             self.probe, self.fem = fwd.probe, fwd.fem
+            self.eq = SimpleNamespace(keep=lambda: None, restore=lambda kept: None)  # no factor to keep
 
-        def solve(self, lam, start=None):
+        def solve(self, lam, start=None, factor_at_solution=False):
             lam = np.asarray(lam, float)
             tried.append(lam)
             if bad(lam):

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import html
 import json
-import math
 import os
 import time
 from pathlib import Path
@@ -41,8 +40,11 @@ def _box(forces, p_kPa: float, grid):
     F = np.array([np.zeros(3)] + [np.asarray(f, float) for f in forces])
     m = MARGIN_N + MARGIN_REL * float(np.linalg.norm(F, axis=1).max())
     n = grid or (PUSH_GRID if p_kPa == 0.0 else INFLATE_GRID)
+    # a push's pressure stays near 0 (the middle of its range): the pressure axis is the tangent
+    # line there, one plane of solves instead of two (AtlasConfig.linear_pressure)
     return AtlasConfig(force_min_N=tuple(F.min(0) - m), force_max_N=tuple(F.max(0) + m), p_min_kPa=-MARGIN_KPA,
-                       p_max_kPa=1.2 * p_kPa + MARGIN_KPA, n_force=n[:3], n_pressure=n[3])
+                       p_max_kPa=1.2 * p_kPa + MARGIN_KPA, n_force=n[:3], n_pressure=n[3],
+                       linear_pressure=p_kPa == 0.0 and n[3] == 2)
 
 
 def scenario_atlas(truth, grid: tuple[int, int, int, int] | None = None):
@@ -80,6 +82,8 @@ def shared_atlases(scs, grid: tuple[int, int, int, int] | None = None) -> dict:
     >>> c = a["on-centre"]  # margin 0.5 N + 0.2 × |(-0.6, 2.6, -0.5)| = 1.04 N around both and zero
     >>> list(a), [round(v, 2) for v in c.force_min_N], [round(v, 2) for v in c.force_max_N], c.shape
     (['on-centre'], [-1.64, -1.04, -1.54], [1.19, 3.64, 1.04], (4, 5, 4, 2))
+    >>> c.linear_pressure  # one plane of solves at 0 kPa and its pressure derivative
+    True
     """
     by: dict[str, list] = {}
     for sc in scs:
@@ -257,7 +261,7 @@ def _prebuild(model, out: Path, shared: dict, bar) -> None:
     from softphantom.estimation.atlas import load_or_build
 
     for contact, acfg in shared.items():
-        task = bar.add_task(f"atlas at {contact}", total=None, what=f"{math.prod(acfg.shape)} forward solves")
+        task = bar.add_task(f"atlas at {contact}", total=None, what=f"{acfg.n_solves} forward solves")
         load_or_build(model, EstimatorConfig(contact=contact, mode="sync"), acfg, cache_dir=out / "model",
                       progress=False, log=lambda s: bar.console.print(s, highlight=False, soft_wrap=True))
         bar.update(task, total=1, completed=1, what="built")

@@ -63,7 +63,11 @@ class AtlasConfig:
     covers the phantom's use: pushes mostly along +y, the needle axis, up to 5.2 N, ±1.5 N sideways;
     a 6 N push with 1.4 N sideways does not converge on the default mesh);
     ``p_min_kPa`` / ``p_max_kPa`` the urethra pressure range; ``n_force`` (3,) / ``n_pressure``
-    Chebyshev–Lobatto points per axis (their product is the number of forward solves).
+    Chebyshev–Lobatto points per axis (their product is the number of forward solves);
+    ``linear_pressure`` (only with ``n_pressure=2``): the two pressure planes from one plane of
+    solves at the range's middle and the exact pressure derivative there (the tangent line: half the
+    solves, and exact at the middle, where a push scenario's pressure stays; its error at the
+    range's ends, the curvature term, is as large as the two-plane secant's at the middle).
 
     >>> AtlasConfig(n_force=(5, 2, 5))
     Traceback (most recent call last):
@@ -77,6 +81,7 @@ class AtlasConfig:
     p_max_kPa: float = 40.0
     n_force: tuple[int, int, int] = (5, 7, 5)
     n_pressure: int = 4
+    linear_pressure: bool = False
 
     def __post_init__(self) -> None:
         lo = tuple(float(v) for v in self.force_min_N)
@@ -94,6 +99,8 @@ class AtlasConfig:
         object.__setattr__(self, "n_force", tuple(int(v) for v in n))
         if int(self.n_pressure) != self.n_pressure or not 2 <= self.n_pressure <= 15:
             raise UserError(f"atlas n_pressure must be an integer in 2..15, got {self.n_pressure}")
+        if self.linear_pressure and self.n_pressure != 2:
+            raise UserError(f"atlas linear_pressure needs n_pressure 2, got {self.n_pressure}")
 
     @property
     def lower(self) -> np.ndarray:
@@ -106,6 +113,11 @@ class AtlasConfig:
     @property
     def shape(self) -> tuple[int, int, int, int]:
         return (*self.n_force, int(self.n_pressure))
+
+    @property
+    def n_solves(self) -> int:
+        """Forward solves of the build (one pressure plane with ``linear_pressure``)."""
+        return math.prod(self.n_force) * (1 if self.linear_pressure else int(self.n_pressure))
 
     def axes(self) -> list[np.ndarray]:
         """The grid's load values per axis (N, N, N, Pa), from the lower bound up."""
@@ -182,21 +194,18 @@ def atlas_key(fwd: ForwardModel, acfg: AtlasConfig) -> str:
         add(M.indptr)
         add(M.indices)
         add(M.data)
-    meta = {"format": FORMAT, "atlas": asdict(acfg), "tol": fwd.config.tol,
+    atlas = asdict(acfg)
+    if not acfg.linear_pressure:  # the keys of atlases built before the option stay valid
+        del atlas["linear_pressure"]
+    meta = {"format": FORMAT, "atlas": atlas, "tol": fwd.config.tol,
             "markers": fwd.marker_names, "targets": fwd.target_names}
     h.update(json.dumps(meta, sort_keys=True).encode())
     return h.hexdigest()
 
 
 # -- the build -------------------------------------------------------------------------------------
-def _plane_order(ny: int, nz: int, j0: int, k0: int) -> list[tuple[int, int]]:
-    """The (f_y, f_z) grid points of a plane from the one nearest zero load outwards (by grid
-    distance), so each point's inner neighbours (one step towards it along each axis) come first."""
-    return sorted(((j, k) for j in range(ny) for k in range(nz)),
-                  key=lambda p: (abs(p[0] - j0) + abs(p[1] - k0), abs(p[0] - j0), p))
-
-
 def _inner(p: tuple[int, int], centre: tuple[int, int]) -> list[tuple[int, int]]:
+    """The neighbours of grid point ``p`` one step nearer ``centre`` along each axis."""
     j, k = p
     j0, k0 = centre
     out = []
@@ -207,46 +216,109 @@ def _inner(p: tuple[int, int], centre: tuple[int, int]) -> list[tuple[int, int]]
     return out
 
 
+def _children(p: tuple[int, int], centre: tuple[int, int], ny: int, nz: int) -> list[tuple[int, int]]:
+    """The points solved from ``p`` in a plane's walk: a spine along f_z through the centre, a
+    branch along f_y from each spine point (a sideways step is the hard one for the solver: the
+    fewest of them). A spine point's branches come before the next spine point, so every point's
+    inner neighbours (:func:`_inner`) are solved before it."""
+    j, k = p
+    j0, k0 = centre
+    if j != j0:
+        out = [(j + (1 if j > j0 else -1), k)]
+    else:
+        out = [(j0 + 1, k), (j0 - 1, k)]
+        out += [(j0, k0 + 1), (j0, k0 - 1)] if k == k0 else [(j0, k + (1 if k > k0 else -1))]
+    return [(a, b) for a, b in out if 0 <= a < ny and 0 <= b < nz]
+
+
+def _plane_walk(ny: int, nz: int, j0: int, k0: int) -> list[tuple[tuple[int, int], tuple[int, int] | None, int]]:
+    """The (f_y, f_z) grid points of a plane from the one nearest zero load outwards, depth first
+    along :func:`_children`: (point, the point it is solved from (None: from rest), number of points
+    solved from it). Depth first, a point's start is the point solved just before it except after a
+    branch's end, so the walk keeps the factors of only a few points (:func:`_sweep`).
+
+    >>> [p for p, _, _ in _plane_walk(3, 3, 1, 1)]
+    [(1, 1), (2, 1), (0, 1), (1, 2), (2, 2), (0, 2), (1, 0), (2, 0), (0, 0)]
+    """
+    centre = (j0, k0)
+    out = []
+    stack: list[tuple[tuple[int, int], tuple[int, int] | None]] = [(centre, None)]
+    while stack:
+        p, parent = stack.pop()
+        kids = _children(p, centre, ny, nz)
+        out.append((p, parent, len(kids)))
+        stack.extend((c, p) for c in reversed(kids))
+    return out
+
+
 def _sweep(model, config: EstimatorConfig, acfg: AtlasConfig, i: int, l: int):
-    """One task: the (f_y, f_z) plane at grid f_x index ``i`` and pressure index ``l``. The point
+    """One task: the (f_y, f_z) plane at grid f_x index ``i`` and pressure index ``l`` (with
+    ``acfg.linear_pressure``: at the pressure range's middle, ``l`` ignored). The point
     nearest zero load is reached from rest by continuation, every other one from a converged inner
-    neighbour (one grid step nearer zero load). A point whose inner neighbour did not converge is
+    neighbour (one grid step nearer zero load): a predictor on the neighbour's sensitivities,
+    chord iterations with the neighbour's last factor (kept until the points solved from it are
+    done, :func:`_plane_walk`), a refactorization where they stall, Newton where they fail
+    (:meth:`~softphantom.estimation.linearization.EquilibriumSolver.solve`). A point whose
+    inner neighbour did not converge is
     not tried: reachability is taken to be monotone in the load, so a failure does not cost the
     (slow) failing solves of everything beyond it. Expected solver failures are recorded, not
     raised. Returns (i, l, V (ny,nz,4), P (ny,nz,k,3), X (ny,nz,3N) displacements, solved (ny,nz),
-    first failure message or '', CPU seconds of this process); unsolved entries are NaN."""
+    first failure message or '', CPU seconds of this process, pressure derivatives (dV, dP, dX) of
+    the same shapes per Pa or None); unsolved entries are NaN."""
     t0 = time.process_time()
-    # only the equilibria are kept: sensitivities through the kept factor are good enough for the
-    # next point's predictor (no GMRES; the same equilibria to 1e-7 of the volumes, 1.3x faster);
-    # failures are expected at the envelope's corners: the Newton fallback gives up at 1/32 of the
-    # load (not 1/1024: a failing solve cost ~10 converging ones)
+    # only the equilibria are kept: the sensitivities come from the kept factor (no GMRES), which
+    # is the tangent at the start point's equilibrium; failures are expected at the envelope's
+    # corners: the Newton fallback gives up at 1/32 of the load (not 1/1024: a failing solve cost
+    # ~10 converging ones)
     fwd = ForwardModel(model, config, exact_sensitivities=False, fallback_min_load_step=FALLBACK_MIN_LOAD_STEP)
     ax = acfg.axes()
     ny, nz = len(ax[1]), len(ax[2])
+    linear = acfg.linear_pressure
+    p_u = 0.5 * (ax[3][0] + ax[3][-1]) if linear else ax[3][l]
     V = np.full((ny, nz, 4), np.nan)
     P = np.full((ny, nz, fwd.probe.shape[0], 3), np.nan)
     X = np.full((ny, nz, fwd.fem.n_dof), np.nan)
+    dV, dP, dX = (np.full_like(a, np.nan) for a in (V, P, X)) if linear else (None, None, None)
     solved = np.zeros((ny, nz), bool)
     centre = (int(np.argmin(np.abs(ax[1]))), int(np.argmin(np.abs(ax[2]))))
     lins: dict[tuple[int, int], object] = {}
+    kept: dict[tuple[int, int], object] = {}  # factors of solved points with points still to solve from them
+    left: dict[tuple[int, int], int] = {}
+    last = None  # the point whose factor the solver holds
     first_error = ""
-    for p in _plane_order(ny, nz, *centre):
-        inner = _inner(p, centre)
-        if any(q not in lins for q in inner):
+    for p, parent, n_kids in _plane_walk(ny, nz, *centre):
+        if any(q not in lins for q in _inner(p, centre)):
             continue  # beyond a failure: unreachable (see the docstring)
+        if parent is not None:
+            left[parent] -= 1
+        if parent is not None and last != parent:
+            fwd.eq.restore(kept[parent])
+        if parent is not None and left[parent] == 0:
+            kept.pop(parent, None)
         j, k = p
-        lam = np.array([ax[0][i], ax[1][j], ax[2][k], ax[3][l]])
+        lam = np.array([ax[0][i], ax[1][j], ax[2][k], p_u])
+        last = None
         try:
-            lin = fwd.solve(lam, lins[inner[0]] if inner else None)
+            # a linear pressure axis needs the exact pressure derivative: the tangent at the solution
+            # (elsewhere a new factor there costs more than the chord iterations it saves)
+            lin = fwd.solve(lam, lins.get(parent), factor_at_solution=linear)
         except SolverError as exc:
             first_error = first_error or str(exc).splitlines()[0]
             continue
+        last = p
+        if n_kids > 1:
+            kept[p] = fwd.eq.keep()
+        left[p] = n_kids
         lins[p] = lin
         solved[j, k] = True
         V[j, k] = lin.V
         P[j, k] = lin.sub_x
         X[j, k] = lin.x - fwd.fem.x_rest
-    return i, l, V, P, X, solved, first_error, time.process_time() - t0
+        if linear:
+            dV[j, k] = lin.W[:, 3]
+            dP[j, k] = lin.sub_U[:, :, 3]
+            dX[j, k] = lin.U[:, 3]
+    return i, l, V, P, X, solved, first_error, time.process_time() - t0, (dV, dP, dX) if linear else None
 
 
 def fill_weights(solved: np.ndarray, axes: list[np.ndarray]) -> list[tuple[int, np.ndarray, np.ndarray]]:
@@ -501,9 +573,9 @@ def build_atlas(model, config: EstimatorConfig | None = None, atlas: AtlasConfig
     P = np.empty((n1, n2, n3, n4, k, 3))
     X = np.empty((n1, n2, n3, n4, ndof), dtype=np.float64)
     solved = np.zeros((n1, n2, n3, n4), bool)
-    args = [(model, cfg, acfg, i, l) for l in range(n4) for i in range(n1)]
+    args = [(model, cfg, acfg, i, l) for l in range(1 if acfg.linear_pressure else n4) for i in range(n1)]
     with dask_client(scheduler, n_workers, processes=processes) as client:
-        res = map_tasks(client, _sweep, args, label=f"atlas: {n1 * n2 * n3 * n4} forward solves", progress=progress)
+        res = map_tasks(client, _sweep, args, label=f"atlas: {acfg.n_solves} forward solves", progress=progress)
     bad = [r for r in res if not r.ok]
     if bad:  # not a solver failure (those are recorded): a bug or a lost worker
         i, l = args[bad[0].index][3:]
@@ -511,14 +583,19 @@ def build_atlas(model, config: EstimatorConfig | None = None, atlas: AtlasConfig
     ax = acfg.axes()
     cpu_s = 0.0
     for r in res:
-        i, l, v, p, x, ok, err, cpu = r.value
+        i, l, v, p, x, ok, err, cpu, deriv = r.value
         cpu_s += cpu
-        V[i, :, :, l] = v
-        P[i, :, :, l] = p
-        X[i, :, :, l] = x
-        solved[i, :, :, l] = ok
+        if deriv is None:
+            V[i, :, :, l], P[i, :, :, l], X[i, :, :, l] = v, p, x
+            solved[i, :, :, l] = ok
+        else:  # the tangent line in the pressure through the middle plane
+            half = 0.5 * (ax[3][-1] - ax[3][0])
+            for l, sgn in ((0, -half), (n4 - 1, half)):
+                V[i, :, :, l], P[i, :, :, l], X[i, :, :, l] = (a + sgn * d for a, d in zip((v, p, x), deriv))
+                solved[i, :, :, l] = ok
         if not ok.all():
-            log(f"atlas: plane f_x {ax[0][i]:+.2f} N, urethra {ax[3][l] * 1e-3:.1f} kPa: {ok.size - ok.sum()} of "
+            p_u = 0.5 * (ax[3][0] + ax[3][-1]) if deriv is not None else ax[3][l]
+            log(f"atlas: plane f_x {ax[0][i]:+.2f} N, urethra {p_u * 1e-3:.1f} kPa: {ok.size - ok.sum()} of "
                 f"{ok.size} points unreachable ({err or 'beyond a failed point'})")
     weights = fill_weights(solved, ax)
     for a in (V.reshape(solved.size, -1), P.reshape(solved.size, -1), X.reshape(solved.size, -1)):
@@ -540,7 +617,7 @@ def build_atlas(model, config: EstimatorConfig | None = None, atlas: AtlasConfig
     cP = _to_chebyshev(P.reshape(*shape, k * 3), shape).reshape(*shape, k, 3)
     cF = _to_chebyshev(coef.reshape(*shape, r), shape)
     return Atlas(key=key, config=acfg, cV=cV, cP=cP, cF=cF, modes=modes, x_rest=fwd.fem.x_rest.copy(),
-                 build_s=time.perf_counter() - t0, solves=int(solved.sum()), field_rms_m=field_rms, solved=solved, build_cpu_s=cpu_s)
+                 build_s=time.perf_counter() - t0, solves=int(solved.sum()) * acfg.n_solves // solved.size, field_rms_m=field_rms, solved=solved, build_cpu_s=cpu_s)
 
 
 def atlas_path(model_dir, key: str) -> Path:
@@ -551,7 +628,7 @@ def atlas_path(model_dir, key: str) -> Path:
 def _solves(at: Atlas) -> str:
     if not at.unsolved:
         return f"{at.solves} forward solves"
-    return (f"{at.solves} of {at.solved.size} forward solves converged ({at.unsolved} unreachable: "
+    return (f"{at.solves} of {at.config.n_solves} forward solves converged ({at.unsolved} grid points unreachable: "
             f"filled, outside the envelope)")
 
 
@@ -574,7 +651,7 @@ def load_or_build(model, config: EstimatorConfig | None = None, atlas: AtlasConf
             log(f"{exc}: rebuilding")
     at = build_atlas(model, cfg, acfg, scheduler=scheduler, n_workers=n_workers, progress=progress, fwd=fwd,
                      log=log)
-    msg = (f"atlas: {_solves(at)} in {at.build_s:.0f} s ({at.build_cpu_s / max(at.solved.size, 1):.2f} CPU-s a point), "
+    msg = (f"atlas: {_solves(at)} in {at.build_s:.0f} s ({at.build_cpu_s / at.config.n_solves:.2f} CPU-s a solve), "
            f"{at.nbytes / 1e6:.1f} MB")
     if path is not None:
         at.save(path)

@@ -48,6 +48,7 @@ KRYLOV_MAXITER = 40
 CHORD_FACTOR = 2
 STALL_WINDOW = 3
 FACTOR_COST_ITERS = 15
+NEWTON_FIRST_ITERS = 8  # Newton iterations of the fallback's first attempt, from the chord's last state
 
 
 @dataclass(frozen=True, eq=False)
@@ -162,6 +163,22 @@ class EquilibriumSolver:
         self.factorizations += 1
         self._factored = True
         self._factor_at = (x.copy(), float(p_u))
+
+    def keep(self) -> "KeptFactor":
+        """A copy of the kept factor and where it was made, for :meth:`restore` (a walk over a grid
+        that comes back to a point: its factor instead of a new factorization)."""
+        if self._factor_at is None:
+            raise SolverError("keep() before a factorization")
+        return KeptFactor(self.lin.copy(), self._factor_at)
+
+    def restore(self, kept: "KeptFactor") -> None:
+        """Make ``kept`` (from :meth:`keep`) the kept factor again (copied: ``kept`` stays usable)."""
+        lin = kept.lin.copy()
+        if lin.method == self._chol.method:
+            self._chol = lin  # refactored in place from here on, not ``kept``
+        self.lin = lin
+        self._factored = True
+        self._factor_at = kept.at
 
     def arm_volumes(self, x: np.ndarray) -> np.ndarray:
         """(4,) m³ arm-cavity volume changes from rest at ``x``."""
@@ -299,7 +316,36 @@ class EquilibriumSolver:
         rate = (rn / max(rn0, 1e-300)) ** (1.0 / n) if rn0 > 0 else 0.0
         return x, r, rn, ref, its, rate, ok
 
-    def solve(self, start: Linearization, lam, path: "PathCorrection | None" = None) -> Linearization:
+    def _newton_fallback(self, start: Linearization, x: np.ndarray, lam: np.ndarray, its: int):
+        """Newton with an energy line search where the chord iterations did not converge: one
+        full-load attempt from the chord's last state (usually a few iterations from there), then
+        adaptive load stepping from the start state. Returns (x, its, ‖r‖, ref, refactored)."""
+        sol = None
+        for x0, min_step in ((x, 1.0), (start.x, self.fallback_min_load_step)):
+            try:
+                sol = solve_static(self.fem, self.H_f @ lam[:3], [(self._ur_tris, lam[3])], x0=x0, tol=self.tol,
+                                   solver=self._chol, min_load_step=min_step, max_iter=NEWTON_FIRST_ITERS if
+                                   min_step == 1.0 else 25)
+            except ElementInversionError:
+                continue
+            its += sol.iterations
+            if sol.converged:
+                break
+        if sol is None or not sol.converged:
+            raise SolverError(f"equilibrium at force {lam[:3].round(3).tolist()} N, urethra "
+                              f"{lam[3]:.0f} Pa: {sol.status if sol is not None else 'elements inverted'}")
+        x = sol.x.reshape(-1)
+        r, ref = self.residual(x, lam)
+        if self.exact_sensitivities or self._chol._factor is None:
+            self.factorize(x, lam[3])
+        else:  # Newton's last tangent, one step before x: the sensitivities need not be exact
+            self.lin = self._chol
+            self._factored = True
+            self._factor_at = (np.empty(0), float("nan"))  # made at no state we keep
+        return x, its, float(np.linalg.norm(r)), ref, True
+
+    def solve(self, start: Linearization, lam, path: "PathCorrection | None" = None, *,
+              factor_at_solution: bool = False) -> Linearization:
         """Equilibrium at actuations ``lam`` starting from ``start``, and its linearization.
 
         First-order predictor, then Anderson-accelerated chord iterations with the kept factor
@@ -307,7 +353,10 @@ class EquilibriumSolver:
         do not, refactor at the best state and go on; Newton with load stepping is the last
         resort. The sensitivities use the exact tangent at the equilibrium: through the kept
         factor when it is current, else by GMRES on the assembled tangent preconditioned by
-        the kept factor (:meth:`linearize`). Raises :class:`SolverError` if even the
+        the kept factor (:meth:`linearize`). ``factor_at_solution``: refactor at the equilibrium
+        (unless the kept factor was made there), so its linearization is exact and the kept factor
+        is the tangent there: the next solve from it starts with an Euler predictor and chord
+        iterations on the tangent of its start (the atlas build). Raises :class:`SolverError` if even the
         load-stepping fallback fails.
         """
         lam = np.array(lam, dtype=np.float64).reshape(4)
@@ -329,22 +378,22 @@ class EquilibriumSolver:
             refactored = True
             x, r, rn, ref, its, rate, ok = self._chord(x, lam, r, rn, ref, its, its + self.max_iter)
         self.last_rate = rate
-        if not ok:  # robust fallback: Newton with adaptive load stepping from the start state
-            sol = solve_static(
-                self.fem, self.H_f @ lam[:3], [(self._ur_tris, lam[3])], x0=start.x,
-                tol=self.tol, solver=self._chol, min_load_step=self.fallback_min_load_step,
-            )
-            if not sol.converged:
-                raise SolverError(f"equilibrium at force {lam[:3].round(3).tolist()} N, urethra "
-                                  f"{lam[3]:.0f} Pa: {sol.status}")
-            x = sol.x.reshape(-1)
-            its += sol.iterations
-            r, ref = self.residual(x, lam)
-            rn = float(np.linalg.norm(r))
+        if not ok:
+            x, its, rn, ref, refactored = self._newton_fallback(start, x, lam, its)
+        if factor_at_solution and not self._factor_current(x, lam[3]):
             self.factorize(x, lam[3])
             refactored = True
         return self.linearize(x, lam, rn / max(ref, 1e-300), its, refactored,
                               lin_error=predicted_V - self.arm_volumes(x))
+
+
+@dataclass(frozen=True, eq=False)
+class KeptFactor:
+    """A copy of an :class:`EquilibriumSolver`'s factor (``lin``) and the state it was made at
+    (``at``: positions (3N,) m, urethra pressure Pa)."""
+
+    lin: SparseSolver
+    at: tuple[np.ndarray, float]
 
 
 _PATH_SCALE = np.array([1.0, 1.0, 1.0, 1e-3])  # N, N, N, kPa: a common metric for λ

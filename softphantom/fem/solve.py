@@ -138,6 +138,23 @@ class SparseSolver:
         self._numeric = True
         return self
 
+    def copy(self) -> SparseSolver:
+        """An independent solver holding the same factorization (and symbolic analysis): a later
+        :meth:`factorize` of either leaves the other's factor as it was. CHOLMOD refactors in
+        place, so its factor is copied; the other methods make a new factor object each time.
+
+        >>> import numpy as np, scipy.sparse as sp
+        >>> a = SparseSolver("splu").factorize(sp.csr_matrix(np.diag([2.0, 4.0])))
+        >>> b = a.copy()
+        >>> _ = a.factorize(sp.csr_matrix(np.diag([1.0, 1.0])))
+        >>> b.solve(np.ones(2)).tolist(), a.solve(np.ones(2)).tolist()
+        ([0.5, 0.25], [1.0, 1.0])
+        """
+        out = SparseSolver(self.method)
+        out._pattern, out.n, out.analyses = self._pattern, self.n, self.analyses
+        out._factor = self._factor.copy() if self.method == "cholmod" and self._factor is not None else self._factor
+        return out
+
     def _same_pattern(self, A: sp.csc_matrix) -> tuple[np.ndarray, np.ndarray]:
         """The kept pattern if ``A`` has it (compared in place, no byte copies), else a copy of
         A's (indptr, indices)."""

@@ -1,0 +1,86 @@
+"""Offline atlas build of the default model (issue 13, item 5): wall, CPU seconds a point, size.
+
+Builds ``AtlasConfig()`` (5 × 7 × 5 × 4 = 700 forward solves) of the default design at
+``--mesh-size-mm`` (6: the default estimator model) with the default :class:`EstimatorConfig`, on a
+local Dask cluster of ``--workers`` processes, and prints wall seconds, CPU seconds of the solves
+(summed over the workers) per grid point, the atlas size and the peak RSS of this process.
+``--save FILE`` keeps the grid values (volumes, tracked points, field) to compare two builds with
+``--compare FILE`` (max deviation relative to each output's span over the grid: the check that a
+faster build reaches the same converged equilibria).
+
+    nice -n 10 .venv/bin/python benchmarks/bench_atlas_build.py --workers 2 [--save grid.npz]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import resource
+import sys
+import time
+
+sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
+
+import softphantom  # noqa: E402,F401 - one BLAS thread before numpy loads
+import numpy as np  # noqa: E402
+
+from softphantom.design import BIPDesign, build_model, load_model  # noqa: E402
+from softphantom.estimation import AtlasConfig, EstimatorConfig  # noqa: E402
+from softphantom.estimation.atlas import build_atlas  # noqa: E402
+
+
+def grid_values(at) -> dict[str, np.ndarray]:
+    """The atlas's polynomials at its own grid points (exact there): volumes, points, field."""
+    axes = at.config.axes()
+    lams = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 4)
+    V = np.array([at.volumes(lam)[0] for lam in lams])
+    P = np.array([at.points(lam) for lam in lams])
+    F = np.array([at.nodes(lam) for lam in lams])
+    return {"V": V, "P": P, "F": F, "solved": at.solved.reshape(-1)}
+
+
+def compare(a: dict, b: dict) -> dict[str, float]:
+    """Max |a − b| over the solved grid points, relative to the span of ``a`` over the grid."""
+    ok = a["solved"] & b["solved"]
+    out = {"solved_a": int(a["solved"].sum()), "solved_b": int(b["solved"].sum())}
+    for k in ("V", "P", "F"):
+        x, y = a[k][ok].reshape(ok.sum(), -1), b[k][ok].reshape(ok.sum(), -1)
+        span = float(np.max(np.ptp(x, axis=0)))
+        out[k] = float(np.max(np.abs(x - y))) / span
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--mesh-size-mm", type=float, default=6.0)
+    ap.add_argument("--model", help="a saved model directory instead of meshing the default design")
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--save", help="write the grid values here (npz)")
+    ap.add_argument("--compare", help="compare the grid values with this file (npz from --save)")
+    a = ap.parse_args()
+    model = load_model(a.model) if a.model else build_model(BIPDesign(), a.mesh_size_mm)
+    acfg = AtlasConfig()
+    load0 = os.getloadavg()
+    t = time.perf_counter()
+    at = build_atlas(model, EstimatorConfig(), acfg, n_workers=a.workers, progress=False)
+    wall = time.perf_counter() - t
+    load1 = os.getloadavg()
+    n = at.solved.size
+    print(f"atlas {'x'.join(map(str, acfg.shape))} = {n} points, {a.workers} workers: {wall:.1f} s wall, "
+          f"{at.build_cpu_s:.0f} CPU-s in the solves ({at.build_cpu_s / n:.3f} CPU-s a point), "
+          f"{at.solves} converged, {at.nbytes / 1e6:.1f} MB ({at.modes.shape[1]} field modes); "
+          f"peak RSS of this process {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e3:.0f} MB; "
+          f"load average {load0[0]:.1f} at start, {load1[0]:.1f} at end")
+    g = grid_values(at)
+    if a.save:
+        np.savez(a.save, **g)
+    if a.compare:
+        with np.load(a.compare) as z:
+            ref = {k: z[k] for k in z.files}
+        c = compare(ref, g)
+        print(f"vs {a.compare}: solved {c['solved_a']} / {c['solved_b']}; max deviation / span: volumes "
+              f"{c['V']:.2e}, points {c['P']:.2e}, field {c['F']:.2e}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,130 @@
+"""The atlas build's solver path (issue 13, item 5) on the coarse mesh: the walk over a plane, the
+Euler predictor and chord iterations from a kept factor, the factor kept and restored, a stalled
+chord refactoring — each reaching the equilibrium a full Newton solve (``solve_static``) reaches."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from softphantom.estimation import AtlasConfig, EstimatorConfig, ForwardModel
+from softphantom.estimation.atlas import _inner, _plane_walk, _sweep
+from softphantom.fem import SparseSolver, free_tangent, solve_static
+
+CFG = EstimatorConfig(contact="on-centre")
+
+
+@pytest.fixture(scope="module")
+def fwd(coarse_model):
+    return ForwardModel(coarse_model, CFG, exact_sensitivities=False)
+
+
+def newton(fwd, lam):
+    """The reference equilibrium: Newton with load stepping from rest."""
+    sol = solve_static(fwd.fem, fwd.H_f @ lam[:3], [(fwd.eq._ur_tris, lam[3])], tol=1e-10)
+    assert sol.converged
+    return sol.x.reshape(-1)
+
+
+def rel(x, ref, fwd):
+    return float(np.abs(x - ref).max() / np.abs(ref - fwd.fem.x_rest).max())
+
+
+@pytest.mark.parametrize("shape", [(7, 5, 2, 2), (5, 7, 1, 3), (4, 3, 0, 0), (3, 3, 2, 2)])
+def test_plane_walk_visits_every_point_after_its_inner_neighbours(shape):
+    ny, nz, j0, k0 = shape
+    walk = _plane_walk(ny, nz, j0, k0)
+    order = [p for p, _, _ in walk]
+    assert sorted(order) == [(j, k) for j in range(ny) for k in range(nz)]
+    seen = set()
+    for p, parent, kids in walk:
+        inner = _inner(p, (j0, k0))
+        assert all(q in seen for q in inner)  # the skip rule can be decided
+        assert (parent is None) == (p == (j0, k0)) and (parent is None or parent in inner)
+        assert kids == sum(1 for _, q, _ in walk if q == p)
+        seen.add(p)
+
+
+def test_factor_at_solution_gives_the_newton_equilibrium_and_its_exact_tangent(fwd):
+    lam = np.array([0.3, 1.2, -0.2, 2e3])
+    lin = fwd.solve(lam, factor_at_solution=True)
+    assert rel(lin.x, newton(fwd, lam), fwd) < 1e-6
+    # the kept factor is the tangent at the equilibrium: the sensitivities are exact
+    K = free_tangent(fwd.fem, lin.x, [(fwd.eq._ur_tris, lam[3])])
+    U = lin.U[fwd.fem.free_dofs]
+    B = K @ U
+    exact = SparseSolver("splu").factorize(K).solve(B)
+    assert np.abs(U - exact).max() <= 1e-8 * np.abs(exact).max()
+
+
+def test_euler_predictor_and_chord_from_a_kept_factor_reach_the_newton_equilibrium(fwd):
+    a = fwd.solve(np.array([0.0, 0.4, 0.0, 0.0]), factor_at_solution=True)
+    kept = fwd.eq.keep()
+    lam_b = np.array([0.05, 0.6, 0.1, 0.0])
+    n0 = fwd.eq.factorizations
+    b = fwd.eq.solve(a, lam_b)  # a one-step neighbour: no new factor needed
+    assert fwd.eq.factorizations == n0 and not b.refactored
+    assert rel(b.x, newton(fwd, lam_b), fwd) < 1e-6
+    # elsewhere, then back: the restored factor is a's, untouched by the factorizations in between
+    fwd.solve(np.array([0.5, -0.5, 0.5, 3e3]), factor_at_solution=True)
+    fwd.eq.restore(kept)
+    n0 = fwd.eq.factorizations
+    b2 = fwd.eq.solve(a, lam_b)
+    assert fwd.eq.factorizations == n0
+    assert np.abs(b2.x - b.x).max() <= 1e-12 + 1e-9 * np.abs(b.x - fwd.fem.x_rest).max()
+
+
+def test_a_stalled_chord_refactors_and_still_converges(fwd):
+    # the factor at rest for a far load: the chord contracts too slowly, so the solver refactors
+    fwd.eq.factorize(fwd.fem.x_rest.copy(), 0.0)
+    lam = np.array([0.8, 2.5, -0.6, 0.0])
+    lin = fwd.eq.solve(fwd.rest, lam)
+    assert lin.refactored
+    assert rel(lin.x, newton(fwd, lam), fwd) < 1e-6
+
+
+def test_sweep_matches_independent_solves(coarse_model, fwd):
+    acfg = AtlasConfig(force_min_N=(-0.5, -0.3, -0.5), force_max_N=(0.5, 1.6, 0.5), p_min_kPa=-1.0, p_max_kPa=4.0,
+                       n_force=(3, 4, 3), n_pressure=2)
+    i, l, V, P, X, solved, err, cpu, deriv = _sweep(coarse_model, CFG, acfg, 2, 1)
+    assert solved.all() and err == "" and cpu > 0 and deriv is None
+    ax = acfg.axes()
+    for j, k in [(0, 0), (3, 2), (2, 1)]:
+        lam = np.array([ax[0][2], ax[1][j], ax[2][k], ax[3][1]])
+        x = newton(fwd, lam)
+        assert rel(X[j, k] + fwd.fem.x_rest, x, fwd) < 1e-6
+        assert np.allclose(V[j, k], fwd.eq.arm_volumes(x), rtol=1e-6, atol=1e-6 * np.abs(V).max())
+
+
+def test_a_failing_chord_falls_back_to_newton_and_reaches_the_equilibrium(fwd, monkeypatch):
+    import softphantom.estimation.linearization as L
+
+    def fail(self, x, lam, r, rn, ref, its, limit):  # as if the chord iterations got nowhere
+        return x, r, rn, ref, its + 1, np.inf, False
+
+    monkeypatch.setattr(L.EquilibriumSolver, "_chord", fail)
+    lam = np.array([0.2, 0.9, 0.1, 1e3])
+    lin = fwd.solve(lam)
+    assert lin.refactored and lin.residual <= CFG.tol
+    assert rel(lin.x, newton(fwd, lam), fwd) < 1e-6
+
+
+def test_linear_pressure_axis_is_the_tangent_line_through_converged_middle_solves(coarse_model, fwd):
+    from softphantom.estimation import build_atlas
+
+    lin = AtlasConfig(force_min_N=(-0.3, -0.3, -0.3), force_max_N=(0.3, 0.9, 0.3), p_min_kPa=-1.0, p_max_kPa=1.0,
+                      n_force=(3, 3, 3), n_pressure=2, linear_pressure=True)
+    at = build_atlas(coarse_model, CFG, lin, n_workers=1, processes=False, progress=False, log=lambda s: None)
+    assert at.solves == 27 and lin.n_solves == 27 and at.solved.all()
+    ax = lin.axes()
+    for f in [(ax[0][0], ax[1][1], ax[2][2]), (ax[0][2], ax[1][2], ax[2][0])]:
+        mid = fwd.solve(np.array([*f, 0.0]))
+        # exact at the middle (a converged solve)...
+        assert np.allclose(at.volumes(np.array([*f, 0.0]))[0], mid.V, rtol=0, atol=1e-6 * np.abs(mid.V).max())
+        # ...with the pressure slope of converged solves (central difference: O(δ²) off)
+        d = 100.0
+        hi, lo = fwd.solve(np.array([*f, d]), mid).V, fwd.solve(np.array([*f, -d]), mid).V
+        slope = (at.volumes(np.array([*f, 1e3]))[0] - at.volumes(np.array([*f, -1e3]))[0]) / 2e3
+        assert np.allclose(slope, (hi - lo) / (2 * d), rtol=1e-3, atol=1e-4 * np.abs(slope).max())
+    with pytest.raises(Exception, match="linear_pressure needs n_pressure 2"):
+        AtlasConfig(n_pressure=3, linear_pressure=True)
