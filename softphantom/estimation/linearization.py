@@ -336,9 +336,9 @@ class EquilibriumSolver:
                               f"{lam[3]:.0f} Pa: {sol.status if sol is not None else 'elements inverted'}")
         x = sol.x.reshape(-1)
         r, ref = self.residual(x, lam)
-        if self.exact_sensitivities or self._chol._factor is None:
+        if self.exact_sensitivities or not self._chol._numeric:
             self.factorize(x, lam[3])
-        else:  # Newton's last tangent, one step before x: the sensitivities need not be exact
+        else:  # Newton's last (maybe shifted) tangent, one step before x: the sensitivities need not be exact
             self.lin = self._chol
             self._factored = True
             self._factor_at = (np.empty(0), float("nan"))  # made at no state we keep

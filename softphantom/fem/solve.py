@@ -151,7 +151,7 @@ class SparseSolver:
         ([0.5, 0.25], [1.0, 1.0])
         """
         out = SparseSolver(self.method)
-        out._pattern, out.n, out.analyses = self._pattern, self.n, self.analyses
+        out._pattern, out.n, out.analyses, out._numeric = self._pattern, self.n, self.analyses, self._numeric
         out._factor = self._factor.copy() if self.method == "cholmod" and self._factor is not None else self._factor
         return out
 
