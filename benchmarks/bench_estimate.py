@@ -16,8 +16,10 @@
    per-sample linearization), median of 3.
 6. Atlas estimator (issue 13): offline build on ``--workers`` Dask processes (time, size), then
    the same real-time ramp, the same ramp while a load process keeps both cores busy (also the
-   async refresh estimator under that load, for comparison), the sustained rate, and its error
-   against converged forward solves at ``--held-out`` seeded random loads inside the envelope.
+   async refresh estimator under that load, for comparison), the sustained rate (quiet and with
+   2 busy processes), the same ramp and rate of the step as it was before its compiled kernels
+   (``AtlasEstimator.step_reference``, the ratio printed), and its error against converged forward
+   solves at ``--held-out`` seeded random loads inside the envelope.
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ import os
 import statistics
 import sys
 import time
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -172,18 +175,20 @@ def held_out(est: AtlasEstimator, n: int, seed: int = 3):
         lin = fwd.solve(lam)
         V, _ = at.volumes(lam)
         start = lam + np.r_[rng.normal(0, 0.3 / np.sqrt(3), 3), 0.0]
-        lam_e, status, inside, *_ = est.invert(lin.V, lam[3], start=start)
         nm = fwd.n_markers
         from softphantom.pose import Pose6, rigid_fit
 
         tp = Pose6.from_transform(rigid_fit(est.rest_markers, lin.sub_x[:nm])).to_mm_deg()
-        pe = Pose6.from_transform(rigid_fit(est.rest_markers, at.points(lam_e)[:nm])).to_mm_deg()
-        d = pe - tp
-        rows.append([np.abs(V - lin.V).max() * 1e9, np.abs(at.points(lam) - lin.sub_x).max() * 1e3,
-                     np.abs(at.nodes(lam) - lin.x.reshape(-1, 3)).max() * 1e3,
-                     np.linalg.norm(lam_e[:3] - lam[:3]), np.abs(d[:3]).max(), np.abs(d[3:]).max()])
+        row = [np.abs(V - lin.V).max() * 1e9, np.abs(at.points(lam) - lin.sub_x).max() * 1e3,
+               np.abs(at.nodes(lam) - lin.x.reshape(-1, 3)).max() * 1e3]
+        for invert in (est.invert, est.invert_reference):  # the kernel step and the pre-kernel one
+            lam_e = invert(lin.V, lam[3], start=start)[0]
+            d = Pose6.from_transform(rigid_fit(est.rest_markers, at.points(lam_e)[:nm])).to_mm_deg() - tp
+            row += [np.linalg.norm(lam_e[:3] - lam[:3]), np.abs(d[:3]).max(), np.abs(d[3:]).max()]
+        rows.append(row)
     r = np.max(rows, axis=0)
-    return dict(zip(["dV_mm3", "points_mm", "field_mm", "force_N", "pos_mm", "ang_deg"], map(float, r)))
+    return dict(zip(["dV_mm3", "points_mm", "field_mm", "force_N", "pos_mm", "ang_deg", "reference_force_N",
+                     "reference_pos_mm", "reference_ang_deg"], map(float, r)))
 
 
 def main() -> None:
@@ -269,25 +274,44 @@ def main() -> None:
           f"{acfg.shape}, envelope {acfg.lower.round(2).tolist()}..{acfg.upper.round(2).tolist()}; load average "
           f"{os.getloadavg()[0]:.1f}")
     at = AtlasEstimator(model, cfg, atlas)
-    for name, loaded in (("atlas_77Hz_realtime", False), ("atlas_77Hz_realtime_loaded", True)):
+    # the step as it was before the compiled kernels (issue 13, item 5), on the same atlas: the ratio
+    ref = SimpleNamespace(step=at.step_reference)
+    for name, est_, loaded in (("atlas_77Hz_realtime", at, False), ("atlas_77Hz_realtime_loaded", at, True),
+                               ("atlas_reference_77Hz_realtime", ref, False)):
         procs = start_load() if loaded else []
         try:
             at.reset()
-            out = run_ramp(at, levels, rate, per_level, True, a.hold_s)
+            out = run_ramp(est_, levels, rate, per_level, True, a.hold_s)
         finally:
             stop_load(procs)
         report(name, *out)
-    at.reset()
-    hz, steps = sustained(at, levels, max(a.samples, 20000))
-    res["sustained_atlas"] = {"Hz": hz, "step_ms_p50": float(np.percentile(steps, 50) * 1e3),
-                              "step_ms_p99": float(np.percentile(steps, 99) * 1e3), "step_ms_max": float(steps.max() * 1e3)}
+    for name, est_, n, loaded in (("sustained_atlas", at, max(a.samples, 20000), False),
+                                  ("sustained_atlas_loaded", at, max(a.samples, 20000), True),
+                                  ("sustained_atlas_reference", ref, a.samples, False)):
+        procs = start_load() if loaded else []
+        try:
+            at.reset()
+            hz, steps = sustained(est_, levels, n)
+        finally:
+            stop_load(procs)
+        res[name] = r = {"Hz": hz, "step_ms_p50": float(np.percentile(steps, 50) * 1e3),
+                         "step_ms_p99": float(np.percentile(steps, 99) * 1e3), "step_ms_max": float(steps.max() * 1e3),
+                         "load_avg": os.getloadavg()[0]}
+        print(f"{name} (back to back, {len(steps)} samples{', 2 busy processes' if loaded else ''}): {hz:.0f} Hz, "
+              f"step p50 {r['step_ms_p50']:.3f} ms, p99 {r['step_ms_p99']:.3f} ms, max {r['step_ms_max']:.2f} ms "
+              f"(load average {r['load_avg']:.1f})")
+    new, old = res["sustained_atlas"], res["sustained_atlas_reference"]
+    res["atlas_step_vs_reference"] = ratio = {
+        "Hz": new["Hz"] / old["Hz"], "p50": old["step_ms_p50"] / new["step_ms_p50"],
+        "realtime_p50": res["atlas_reference_77Hz_realtime"]["step_ms_p50"] / res["atlas_77Hz_realtime"]["step_ms_p50"]}
+    print(f"atlas step vs the reference (pre-kernel) step, same run: {ratio['Hz']:.1f}x the sustained rate, "
+          f"p50 {ratio['p50']:.1f}x shorter back to back, {ratio['realtime_p50']:.1f}x in real time")
     r = res["sustained_atlas"]
-    print(f"sustained (atlas, back to back, {len(steps)} samples): {hz:.0f} Hz, step p50 {r['step_ms_p50']:.3f} ms, "
-          f"p99 {r['step_ms_p99']:.3f} ms, max {r['step_ms_max']:.2f} ms")
     res["atlas_held_out_max"] = ho = held_out(at, a.held_out)
     print(f"atlas vs converged solves at {a.held_out} held-out loads (max): dV {ho['dV_mm3']:.4f} mm3, points "
           f"{ho['points_mm']:.4f} mm, field {ho['field_mm']:.4f} mm; inverse {ho['force_N']:.4f} N, "
-          f"{ho['pos_mm']:.4f} mm, {ho['ang_deg']:.4f} deg")
+          f"{ho['pos_mm']:.4f} mm, {ho['ang_deg']:.4f} deg (the reference step's inverse {ho['reference_force_N']:.4f} N, "
+          f"{ho['reference_pos_mm']:.4f} mm, {ho['reference_ang_deg']:.4f} deg)")
     if a.skip_refresh:
         naive = naive_cost(est, est._eq.solve(est.rest, np.r_[forces[len(forces) // 2], 0.0]).x)
         print(f"naive per sample {naive:.3f} s; atlas p50 is {naive / (r['step_ms_p50'] * 1e-3):.0f}x faster")

@@ -13,8 +13,8 @@ cells around them as outside the envelope (:func:`build_atlas`).
 Online (:class:`AtlasEstimator`): per sample, a Gauss–Newton iteration in the 3 force components
 (the urethra pressure is measured) on the polynomial volumes, each step the bounded QP of
 :func:`~softphantom.estimation.qp.solve_volume_qp` with the polynomial's Jacobian; the points and
-the full field come from the same polynomials at the solution. No refresh and no thread: the cost
-is a few small tensor contractions. Outside the envelope the loads are clamped to it and the
+the full field come from the same polynomials at the solution. No refresh and no thread: the step
+is compiled (:mod:`~softphantom.estimation.atlas_kernels`), tens of microseconds a sample. Outside the envelope the loads are clamped to it and the
 estimate carries ``in_envelope=False`` (the CSV's ``in_envelope`` column); so does an estimate in a
 cell the build could not solve.
 
@@ -730,8 +730,9 @@ class AtlasEstimator(EstimatorState):
 
     def _inside(self, lam: np.ndarray, inside: bool) -> bool:
         tol = 1e-6
-        if np.any(lam[:3] <= self._env_lo + tol) or np.any(lam[:3] >= self._env_hi - tol):
-            return False
+        for f, lo, hi in zip(lam[:3].tolist(), self._env_lo.tolist(), self._env_hi.tolist()):
+            if f <= lo + tol or f >= hi - tol:  # at an envelope face inside the bounds: clamped
+                return False
         if inside and self.atlas.unsolved:
             return self.atlas.solved_at(lam)  # where the atlas was filled, not solved
         return inside
@@ -803,13 +804,12 @@ class AtlasEstimator(EstimatorState):
         """(Pose6, target shifts) at ``lam``: the tracked points by the kernel, the markers' rigid
         fit by :func:`~softphantom.estimation.atlas_kernels.rigid_fit_pose`."""
         pts = self.atlas.points(lam)
-        if self._P0 is None:  # rest markers that rigid_fit refuses: let it say so, as before
+        if self._P0 is None or not math.isfinite(pts.sum()):
+            # rest markers or points that rigid_fit refuses: let it raise its error, as before
             return pose_and_shifts(self.rest_markers, self.rest_targets, self.target_names, pts)
         R, t = np.empty((3, 3)), np.empty(3)
         nm = len(self.rest_markers)
         ak.rigid_fit_pose(self._P0, self._cp, pts[:nm], R, t)
-        if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
-            return pose_and_shifts(self.rest_markers, self.rest_targets, self.target_names, pts)
         shifts = pts[nm:] - self.rest_targets
         return Pose6(t, ypr_from_matrix(R)), dict(zip(self.target_names, shifts))
 

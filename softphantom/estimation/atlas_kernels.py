@@ -77,8 +77,10 @@ def eval_vj(C, shape, lo, hi, lam, V, J):
     D = np.empty((4, nmax))
     _bases(lam, lo, hi, shape, B, D)
     m = C.shape[1]
-    V[:] = 0.0
-    J[:] = 0.0
+    for o in range(m):
+        V[o] = 0.0
+        for a in range(4):
+            J[o, a] = 0.0
     g = 0
     for i in range(n1):
         bi, di = B[0, i], D[0, i]
@@ -113,7 +115,8 @@ def eval_value(C, shape, lo, hi, lam, out):
     D = np.empty((4, nmax))
     _bases(lam, lo, hi, shape, B, D)
     m = C.shape[1]
-    out[:] = 0.0
+    for o in range(m):
+        out[o] = 0.0
     g = 0
     for i in range(n1):
         for j in range(n2):
@@ -207,9 +210,11 @@ def gn_update(C, shape, lo, hi, lam, V, J, cost, dV, step, blo, bhi, tol):
         eval_vj(C, shape, lo, hi, trial, Vt, Jt)
         ct = _misfit(Vt, dV)
         if ct <= cost * (1 + 1e-12):
-            lam[:] = trial
-            V[:] = Vt
-            J[:, :] = Jt
+            for i in range(4):  # loops, not slice assignments: those cost seconds of compilation
+                lam[i] = trial[i]
+                V[i] = Vt[i]
+                for a in range(4):
+                    J[i, a] = Jt[i, a]
             big = 0.0
             for a in range(3):
                 big = max(big, abs(step[a]))
