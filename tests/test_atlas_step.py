@@ -11,7 +11,7 @@ import pytest
 from softphantom.estimation import AtlasConfig, AtlasEstimator, EstimatorConfig, ForwardModel
 from softphantom.estimation import atlas_kernels as ak
 from softphantom.estimation.atlas import Atlas, _to_chebyshev, atlas_key
-from softphantom.pose import rigid_fit
+from softphantom.pose import matrix_from_ypr, rigid_fit, ypr_from_matrix
 from softphantom.sensing import Measurement
 
 CFG = EstimatorConfig(contact="on-centre")
@@ -76,22 +76,30 @@ def test_kernel_evaluation_equals_the_tensor_contraction_and_its_derivative(atla
     assert np.allclose(atlas.volumes(g)[0], volumes_map(g), rtol=1e-12, atol=0)
 
 
-def test_kernel_rigid_fit_equals_pose_rigid_fit():
+def test_kernel_pose_equals_pose_rigid_fit():
+    """``points_pose`` on constant points (only the T_0 coefficient): the rigid fit and its Euler
+    angles as ``pose.rigid_fit`` and ``ypr_from_matrix``, also for a mirror image and at gimbal lock."""
     P = RNG.normal(size=(5, 3)) * 0.03
     cp = P.mean(axis=0)
+    shape = np.array([2, 3, 2, 2])
+    box = (np.full(4, -1.0), np.full(4, 1.0), RNG.uniform(-1, 1, 4))
     for k in range(10):
         ang = RNG.normal(size=3) * (0.3 if k else 3.0)  # one large rotation
-        K = np.array([[0, -ang[2], ang[1]], [ang[2], 0, -ang[0]], [-ang[1], ang[0], 0]])
-        Rt = np.linalg.matrix_power(np.eye(3) + K / 64, 64)  # ≈ expm(K), orthonormalised below
-        u, _, vt = np.linalg.svd(Rt)
-        Q = P @ (u @ vt).T + RNG.normal(size=3) * 0.01 + RNG.normal(size=P.shape) * 1e-4  # noisy markers
+        R0 = matrix_from_ypr(ang)
+        if k == 2:
+            R0 = matrix_from_ypr([0.4, np.pi / 2, 0.3])  # gimbal lock: pitch 90°
+        Q = P @ R0.T + RNG.normal(size=3) * 0.01 + RNG.normal(size=P.shape) * (1e-4 if k != 2 else 0.0)
         if k == 1:
             Q = P * [1, 1, -1]  # a mirror image: the reflection guard must keep det R = +1
-        R, t = np.empty((3, 3)), np.empty(3)
-        ak.rigid_fit_pose(P - cp, cp, Q, R, t)
+        CP = np.zeros((24, 15))
+        CP[0] = Q.ravel()
+        pts, t, ypr = np.empty(15), np.empty(3), np.empty(3)
+        ak.points_pose(CP, shape, *box, P - cp, cp, pts, t, ypr)
         ref = rigid_fit(P, Q)
-        assert np.allclose(R, ref.R, atol=1e-12) and np.allclose(t, ref.t, atol=1e-14)
-        assert np.linalg.det(R) == pytest.approx(1.0)
+        assert np.allclose(pts, Q.ravel(), rtol=0, atol=1e-15)
+        assert np.allclose(t, ref.t, atol=1e-14)
+        assert np.allclose(matrix_from_ypr(ypr), ref.R, atol=1e-12)
+        assert np.allclose(ypr, ypr_from_matrix(ref.R), atol=1e-12)  # rad
 
 
 def ramp():

@@ -45,7 +45,7 @@ from softphantom.estimation.estimator import (
 from softphantom.estimation.forward import ForwardModel
 from softphantom.estimation.qp import solve_volume_qp
 from softphantom.estimation.types import Estimate
-from softphantom.pose import DegenerateMarkersError, Pose6, rigid_fit, ypr_from_matrix
+from softphantom.pose import DegenerateMarkersError, Pose6, rigid_fit
 
 FORMAT = 2  # bump when the file layout or the build changes its meaning
 GN_MAX_ITER = 12
@@ -696,8 +696,10 @@ class AtlasEstimator(EstimatorState):
         if np.any(self._lo > self._hi):
             raise UserError(f"force bounds {cfg.force_min_N}..{cfg.force_max_N} N do not meet the atlas "
                             f"envelope {atlas.config.force_min_N}..{atlas.config.force_max_N} N")
+        self._bounds = (self._lo.tolist(), self._hi.tolist())
         self._env_lo = np.where(elo[:3] > ulo, self._lo, -np.inf)  # envelope faces inside the bounds
         self._env_hi = np.where(ehi[:3] < uhi, self._hi, np.inf)
+        self._faces = list(zip(self._env_lo.tolist(), self._env_hi.tolist()))
         self._p_range = (float(elo[3]), float(ehi[3]))
         try:  # the rest markers centred once for the per-sample fit (rigid_fit checks they span a plane)
             rigid_fit(self.rest_markers, self.rest_markers)
@@ -723,14 +725,13 @@ class AtlasEstimator(EstimatorState):
         bounds, the measured pressure clipped to the envelope; and whether the pressure was inside."""
         p_lo, p_hi = self._p_range
         p = min(max(float(p_Pa), p_lo), p_hi)
-        lam = np.empty(4)
-        lam[:3] = np.clip(self._lam[:3] if start is None else start[:3], self._lo, self._hi)
-        lam[3] = p
+        f = (self._lam if start is None else np.asarray(start, float))[:3].tolist()
+        lam = np.array([min(max(v, lo), hi) for v, lo, hi in zip(f, self._bounds[0], self._bounds[1])] + [p])
         return lam, p == float(p_Pa)
 
     def _inside(self, lam: np.ndarray, inside: bool) -> bool:
         tol = 1e-6
-        for f, lo, hi in zip(lam[:3].tolist(), self._env_lo.tolist(), self._env_hi.tolist()):
+        for f, (lo, hi) in zip(lam[:3].tolist(), self._faces):
             if f <= lo + tol or f >= hi - tol:  # at an envelope face inside the bounds: clamped
                 return False
         if inside and self.atlas.unsolved:
@@ -750,20 +751,17 @@ class AtlasEstimator(EstimatorState):
         at = self.atlas
         lam, inside = self._start(p_Pa, start)
         dV = np.asarray(dV, float)
-        V, J = at.volumes(lam)
-        cost = float(np.sum((V - dV) ** 2))
-        args = (at._kcV, at._shape, at._lo, at._hi, lam, V, J)
-        it = 0
-        while True:
-            code, it, cost = ak.gn_run(*args, cost, dV, self._lo, self._hi, GN_TOL_N, it, GN_MAX_ITER)
-            if code != ak.NEED_QP:
-                break
+        V, J = np.empty(4), np.empty((4, 4))
+        n3 = at._kcV.shape[0] // at.config.shape[3]
+        poly = (np.empty((n3, 4)), np.empty((n3, 4)), at._shape, at._lo, at._hi, lam, V, J)
+        code, it, cost = ak.gn_run(at._kcV, *poly, 0.0, dV, self._lo, self._hi, GN_TOL_N, 0, GN_MAX_ITER)
+        while code == ak.NEED_QP:  # a force bound is in the way of this iteration's step: the QP's
             qp = solve_volume_qp(J, V - dV, 0.0, self._lo - lam[:3], self._hi - lam[:3], self.config.qp_solver)
             if qp.status != "optimal":
                 raise SolverError(f"QP {qp.status}")
-            code, cost = ak.gn_update(*args, cost, dV, qp.dlam[:3].copy(), self._lo, self._hi, GN_TOL_N)
-            if code != ak.CONTINUE:
-                break
+            code, cost = ak.gn_update(*poly, cost, dV, qp.dlam[:3].copy(), self._lo, self._hi, GN_TOL_N)
+            if code == ak.CONTINUE:
+                code, it, cost = ak.gn_run(at._kcV, *poly, cost, dV, self._lo, self._hi, GN_TOL_N, it, GN_MAX_ITER)
         status = "gn:max_iter" if code == ak.MAX_ITER else "optimal"
         return lam, status, self._inside(lam, inside), V, J, it
 
@@ -803,15 +801,13 @@ class AtlasEstimator(EstimatorState):
     def _pose(self, lam: np.ndarray):
         """(Pose6, target shifts) at ``lam``: the tracked points by the kernel, the markers' rigid
         fit by :func:`~softphantom.estimation.atlas_kernels.rigid_fit_pose`."""
-        pts = self.atlas.points(lam)
-        if self._P0 is None or not math.isfinite(pts.sum()):
-            # rest markers or points that rigid_fit refuses: let it raise its error, as before
-            return pose_and_shifts(self.rest_markers, self.rest_targets, self.target_names, pts)
-        R, t = np.empty((3, 3)), np.empty(3)
-        nm = len(self.rest_markers)
-        ak.rigid_fit_pose(self._P0, self._cp, pts[:nm], R, t)
-        shifts = pts[nm:] - self.rest_targets
-        return Pose6(t, ypr_from_matrix(R)), dict(zip(self.target_names, shifts))
+        at = self.atlas
+        if self._P0 is None:  # rest markers that rigid_fit refuses: let it raise its error, as before
+            return pose_and_shifts(self.rest_markers, self.rest_targets, self.target_names, at.points(lam))
+        pts, t, ypr = np.empty(at._kcP.shape[1]), np.empty(3), np.empty(3)
+        ak.points_pose(at._kcP, at._shape, at._lo, at._hi, lam, self._P0, self._cp, pts, t, ypr)
+        shifts = pts.reshape(-1, 3)[len(self._P0):] - self.rest_targets
+        return Pose6(t, ypr), dict(zip(self.target_names, shifts))
 
     def step(self, m, skipped: int = 0) -> Estimate:
         """Estimate the state for one measurement; a bad sample repeats the last state with
@@ -845,7 +841,7 @@ class AtlasEstimator(EstimatorState):
             t=float(m.t), force=lam[:3].copy(), p_urethra=float(m.p_urethra), pose=pose, target_shift=shifts,
             volume_pred=V, volume_meas=dV, cond_W=cond, qp_status=status,
             step_time=time.perf_counter() - t0, skipped=int(skipped), in_envelope=inside,
-            extra={"qp_residual_m3": float(np.linalg.norm(V - dV)), "gn_iterations": it},
+            extra={"qp_residual_m3": math.dist(V, dV), "gn_iterations": it},
         )
         self._lam = lam
         self._last = est

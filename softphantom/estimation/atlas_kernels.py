@@ -15,8 +15,9 @@ arithmetic in one compiled call each:
   by a 3 × 3 Cholesky solve. That is the QP's solution when no force bound is in the way; when one
   is (or the solve breaks down) the kernel stops and returns ``NEED_QP``, and the caller takes that
   iteration with the configured QP solver (:func:`gn_update` accepts its step);
-- :func:`rigid_fit_pose`: Kabsch's fit (SVD of the 3 × 3 correlation, reflection guard) of the
-  markers onto rest positions centred once, as :func:`~softphantom.pose.rigid_fit`.
+- :func:`points_pose`: the tracked points and the markers' pose — Kabsch's fit
+  (:func:`rigid_fit_pose`: SVD of the 3 × 3 correlation, reflection guard) onto rest positions
+  centred once, as :func:`~softphantom.pose.rigid_fit`, and its Euler angles.
 
 Compiled on first use and cached on disk (``cache=True``); :func:`warm_up` compiles or loads them
 all, so the first real-time sample does not pay it.
@@ -30,6 +31,7 @@ import numpy as np
 
 from softphantom.estimation.qp import _SCALE_LAM, _SCALE_V
 from softphantom.fem.kernels import HAVE_NUMBA, njit
+from softphantom.pose.rotations import GIMBAL_EPS
 
 # codes of gn_run / gn_update
 CONTINUE, CONVERGED, NO_DESCENT, MAX_ITER, NEED_QP = 0, 1, 2, 3, 4
@@ -53,8 +55,9 @@ def _basis(t, n, b, d):
 
 
 @njit(cache=True, nogil=True)
-def _bases(lam, lo, hi, shape, B, D):
-    for a in range(4):
+def _bases(lam, lo, hi, shape, B, D, na):
+    """The bases of the first ``na`` axes at ``lam`` (rows of B, D)."""
+    for a in range(na):
         t = (2 * lam[a] - (lo[a] + hi[a])) / (hi[a] - lo[a])
         _basis(t, shape[a], B[a], D[a])
 
@@ -75,7 +78,7 @@ def eval_vj(C, shape, lo, hi, lam, V, J):
     nmax = max(max(n1, n2), max(n3, n4))
     B = np.empty((4, nmax))
     D = np.empty((4, nmax))
-    _bases(lam, lo, hi, shape, B, D)
+    _bases(lam, lo, hi, shape, B, D, 4)
     m = C.shape[1]
     for o in range(m):
         V[o] = 0.0
@@ -113,7 +116,7 @@ def eval_value(C, shape, lo, hi, lam, out):
     nmax = max(max(n1, n2), max(n3, n4))
     B = np.empty((4, nmax))
     D = np.empty((4, nmax))
-    _bases(lam, lo, hi, shape, B, D)
+    _bases(lam, lo, hi, shape, B, D, 4)
     m = C.shape[1]
     for o in range(m):
         out[o] = 0.0
@@ -128,6 +131,64 @@ def eval_value(C, shape, lo, hi, lam, out):
                     for o in range(m):
                         out[o] += a * C[g, o]
                     g += 1
+
+
+@njit(cache=True, nogil=True)
+def contract_pressure(C, shape, lo, hi, p, Cv, Cd):
+    """The polynomial at the pressure ``p`` (Pa), fixed during a sample's Gauss–Newton: ``Cv``
+    (n1·n2·n3, m) its coefficients in the force axes, ``Cd`` those of its derivative per Pa. The
+    iterations then evaluate a 3-D tensor (n4 times fewer terms)."""
+    n4 = shape[3]
+    b = np.empty(n4)
+    d = np.empty(n4)
+    _basis((2 * p - (lo[3] + hi[3])) / (hi[3] - lo[3]), n4, b, d)
+    s = 2.0 / (hi[3] - lo[3])
+    m = C.shape[1]
+    for g in range(Cv.shape[0]):
+        for o in range(m):
+            av = 0.0
+            ad = 0.0
+            for l in range(n4):
+                c = C[g * n4 + l, o]
+                av += b[l] * c
+                ad += d[l] * c
+            Cv[g, o] = av
+            Cd[g, o] = ad * s
+
+
+@njit(cache=True, nogil=True)
+def eval_vj3(Cv, Cd, shape, lo, hi, lam, V, J):
+    """:func:`eval_vj` on the polynomial contracted at ``lam[3]`` by :func:`contract_pressure`."""
+    n1, n2, n3 = shape[0], shape[1], shape[2]
+    nmax = max(max(n1, n2), n3)
+    B = np.empty((3, nmax))
+    D = np.empty((3, nmax))
+    _bases(lam, lo, hi, shape, B, D, 3)
+    m = Cv.shape[1]
+    for o in range(m):
+        V[o] = 0.0
+        for a in range(4):
+            J[o, a] = 0.0
+    g = 0
+    for i in range(n1):
+        bi, di = B[0, i], D[0, i]
+        for j in range(n2):
+            bij, dij, bdj = bi * B[1, j], di * B[1, j], bi * D[1, j]
+            for k in range(n3):
+                b3 = B[2, k]
+                w0, w1, w2, w3 = bij * b3, dij * b3, bdj * b3, bij * D[2, k]
+                for o in range(m):
+                    c = Cv[g, o]
+                    V[o] += w0 * c
+                    J[o, 0] += w1 * c
+                    J[o, 1] += w2 * c
+                    J[o, 2] += w3 * c
+                    J[o, 3] += w0 * Cd[g, o]
+                g += 1
+    for a in range(3):
+        s = 2.0 / (hi[a] - lo[a])
+        for o in range(m):
+            J[o, a] *= s
 
 
 @njit(cache=True, nogil=True)
@@ -194,10 +255,11 @@ def _misfit(V, dV):
 
 
 @njit(cache=True, nogil=True)
-def gn_update(C, shape, lo, hi, lam, V, J, cost, dV, step, blo, bhi, tol):
+def gn_update(Cv, Cd, shape, lo, hi, lam, V, J, cost, dV, step, blo, bhi, tol):
     """One Gauss–Newton update along ``step`` (3,) N from ``lam``: the step clipped to the force
     bounds [blo, bhi], halved while it raises the misfit (up to ``BACKTRACK_HALVINGS`` times);
-    ``lam``, ``V``, ``J``, ``step`` updated in place. Returns (code, cost): ``NO_DESCENT`` (no
+    ``lam``, ``V``, ``J``, ``step`` updated in place (the polynomial as contracted by
+    :func:`gn_run`). Returns (code, cost): ``NO_DESCENT`` (no
     halving lowered the misfit: λ unchanged, a bounded minimum at round-off), ``CONVERGED`` (the
     accepted step is ≤ ``tol`` N in every component) or ``CONTINUE``."""
     trial = np.empty(4)
@@ -207,7 +269,7 @@ def gn_update(C, shape, lo, hi, lam, V, J, cost, dV, step, blo, bhi, tol):
     for _ in range(BACKTRACK_HALVINGS):
         for a in range(3):
             trial[a] = min(max(lam[a] + step[a], blo[a]), bhi[a])
-        eval_vj(C, shape, lo, hi, trial, Vt, Jt)
+        eval_vj3(Cv, Cd, shape, lo, hi, trial, Vt, Jt)
         ct = _misfit(Vt, dV)
         if ct <= cost * (1 + 1e-12):
             for i in range(4):  # loops, not slice assignments: those cost seconds of compilation
@@ -225,12 +287,19 @@ def gn_update(C, shape, lo, hi, lam, V, J, cost, dV, step, blo, bhi, tol):
 
 
 @njit(cache=True, nogil=True)
-def gn_run(C, shape, lo, hi, lam, V, J, cost, dV, blo, bhi, tol, it0, max_iter):
-    """Gauss–Newton iterations ``it0 + 1 … max_iter`` from ``lam`` (with its ``V``, ``J``,
-    ``cost``), each step the unbounded minimizer of the volume QP, updated in place. Returns
-    (code, iterations, cost): ``CONVERGED`` / ``NO_DESCENT`` / ``MAX_ITER``, or ``NEED_QP`` with
-    the state at the start of iteration ``iterations`` when its step leaves the force bounds or the
-    solve breaks down — that iteration is the QP solver's."""
+def gn_run(C, Cv, Cd, shape, lo, hi, lam, V, J, cost, dV, blo, bhi, tol, it0, max_iter):
+    """Gauss–Newton iterations ``it0 + 1 … max_iter`` from ``lam`` on the polynomial with
+    coefficients ``C``, each step the unbounded minimizer of the volume QP; ``lam``, ``V``, ``J``
+    updated in place. ``it0 = 0`` starts a sample: the polynomial is contracted at the pressure
+    ``lam[3]`` into ``Cv``, ``Cd`` ((n1·n2·n3, 4) scratch) and evaluated at ``lam`` (``cost`` is
+    then ignored); later calls continue from the state they are given. Returns (code, iterations,
+    cost): ``CONVERGED`` / ``NO_DESCENT`` / ``MAX_ITER``, or ``NEED_QP`` with the state at the start
+    of iteration ``iterations`` when its step leaves the force bounds or the solve breaks down —
+    that iteration is the QP solver's (then :func:`gn_update`)."""
+    if it0 == 0:
+        contract_pressure(C, shape, lo, hi, lam[3], Cv, Cd)
+        eval_vj3(Cv, Cd, shape, lo, hi, lam, V, J)
+        cost = _misfit(V, dV)
     x = np.empty(3)
     r0 = np.empty(4)
     for it in range(it0 + 1, max_iter + 1):
@@ -243,10 +312,30 @@ def gn_run(C, shape, lo, hi, lam, V, J, cost, dV, blo, bhi, tol, it0, max_iter):
                     ok = False
         if not ok:
             return NEED_QP, it, cost
-        code, cost = gn_update(C, shape, lo, hi, lam, V, J, cost, dV, x, blo, bhi, tol)
+        code, cost = gn_update(Cv, Cd, shape, lo, hi, lam, V, J, cost, dV, x, blo, bhi, tol)
         if code != CONTINUE:
             return code, it, cost
     return MAX_ITER, max(max_iter, it0), cost
+
+
+@njit(cache=True, nogil=True)
+def points_pose(CP, shape, lo, hi, lam, P0, cp, pts, t, ypr):
+    """The tracked points ``pts`` (k·3,) at ``lam`` (:func:`eval_value`) and the pose of the first
+    ``len(P0)`` (the markers) in one call: the rigid fit (:func:`rigid_fit_pose`), its translation
+    ``t`` (3,) m and its rotation's (yaw, pitch, roll) ``ypr`` (3,) rad, as
+    :func:`~softphantom.pose.ypr_from_matrix` (R = Rz(yaw)·Rx(pitch)·Ry(roll); at gimbal lock roll
+    is 0 and yaw carries the rotation about z)."""
+    eval_value(CP, shape, lo, hi, lam, pts)
+    R = np.empty((3, 3))
+    rigid_fit_pose(P0, cp, pts[:3 * P0.shape[0]].reshape((P0.shape[0], 3)), R, t)
+    c = math.hypot(R[2, 0], R[2, 2])
+    ypr[1] = math.atan2(R[2, 1], c)
+    if c < GIMBAL_EPS:
+        ypr[0] = math.atan2(R[1, 0], R[0, 0])
+        ypr[2] = 0.0
+    else:
+        ypr[0] = math.atan2(-R[0, 1], R[1, 1])
+        ypr[2] = math.atan2(-R[2, 0], R[2, 2])
 
 
 @njit(cache=True, nogil=True)
@@ -311,9 +400,10 @@ def warm_up() -> None:
     eval_vj(C, shape, lo, hi, lam, V, J)
     eval_value(C, shape, lo, hi, lam, np.empty(4))
     dV = np.full(4, 1e-10)
-    gn_run(C, shape, lo, hi, lam, V, J, _misfit(V, dV), dV, lo[:3].copy(), hi[:3].copy(), 1e-7, 0, 3)
-    gn_update(C, shape, lo, hi, lam, V, J, _misfit(V, dV), dV, np.zeros(3), lo[:3].copy(), hi[:3].copy(), 1e-7)
+    Cv, Cd = np.empty((27, 4)), np.empty((27, 4))
+    code, it, cost = gn_run(C, Cv, Cd, shape, lo, hi, lam, V, J, 0.0, dV, lo[:3].copy(), hi[:3].copy(), 1e-7, 0, 3)
+    gn_update(Cv, Cd, shape, lo, hi, lam, V, J, cost, dV, np.zeros(3), lo[:3].copy(), hi[:3].copy(), 1e-7)
     P0 = np.eye(3) - 1 / 3
-    rigid_fit_pose(P0, np.zeros(3), np.eye(3), np.empty((3, 3)), np.empty(3))
+    points_pose(np.zeros((54, 9)), shape, lo, hi, lam, P0, np.zeros(3), np.empty(9), np.empty(3), np.empty(3))
     cond_force(np.eye(4))
     _warm = True
