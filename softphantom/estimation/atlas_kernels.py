@@ -5,10 +5,11 @@ output, a 3-variable least squares, a 3 × 3 rigid fit — so its cost was Pytho
 overhead (some 60 small numpy calls per Gauss–Newton iteration). These kernels do the same
 arithmetic in one compiled call each:
 
-- :func:`eval_vj` / :func:`eval_value`: the polynomial and its gradient at λ, one pass over the
+- :func:`eval_vj` / :func:`eval_value`: the polynomial and its gradient at λ in loops over the
   coefficients (:meth:`~softphantom.estimation.atlas.Atlas.volumes_reference` and
   :meth:`~softphantom.estimation.atlas.Atlas._value` are the tensordot references they are tested
-  against);
+  against); the gradient after :func:`contract_pressure`, which a sample does once: its pressure is
+  measured, fixed during the iterations, which then sum n1·n2·n3 terms (:func:`eval_vj3`);
 - :func:`gn_run`: the Gauss–Newton iterations of
   :meth:`~softphantom.estimation.atlas.AtlasEstimator.invert`, each step the minimizer of the
   volume QP of :func:`~softphantom.estimation.qp.solve_volume_qp` (same scaling and Tikhonov term)
@@ -19,8 +20,9 @@ arithmetic in one compiled call each:
   (:func:`rigid_fit_pose`: SVD of the 3 × 3 correlation, reflection guard) onto rest positions
   centred once, as :func:`~softphantom.pose.rigid_fit`, and its Euler angles.
 
-Compiled on first use and cached on disk (``cache=True``); :func:`warm_up` compiles or loads them
-all, so the first real-time sample does not pay it.
+Compiled on first use and cached on disk (``cache=True``: 8.9 CPU-s once per machine, then 0.25 s
+to load); :func:`warm_up` compiles or loads them all when an estimator is made, so the first
+real-time sample does not pay it. Serial and ``nogil``, as the FEM kernels.
 """
 
 from __future__ import annotations
@@ -74,39 +76,11 @@ def eval_vj(C, shape, lo, hi, lam, V, J):
     >>> V.tolist(), J.tolist()  # t_2 = 0.5 at λ_2 = 2 on [-1, 3]: 2·0.25 − 1; d/dλ_2 = 4 t_2 · 2/4
     ([-0.5], [[0.0, 1.0, 0.0, 0.0]])
     """
-    n1, n2, n3, n4 = shape[0], shape[1], shape[2], shape[3]
-    nmax = max(max(n1, n2), max(n3, n4))
-    B = np.empty((4, nmax))
-    D = np.empty((4, nmax))
-    _bases(lam, lo, hi, shape, B, D, 4)
-    m = C.shape[1]
-    for o in range(m):
-        V[o] = 0.0
-        for a in range(4):
-            J[o, a] = 0.0
-    g = 0
-    for i in range(n1):
-        bi, di = B[0, i], D[0, i]
-        for j in range(n2):
-            bij, dij, bdj = bi * B[1, j], di * B[1, j], bi * D[1, j]
-            for k in range(n3):
-                b3, d3 = B[2, k], D[2, k]
-                w0, w1, w2, w3 = bij * b3, dij * b3, bdj * b3, bij * d3
-                for l in range(n4):
-                    b4 = B[3, l]
-                    a0, a1, a2, a3, a4 = w0 * b4, w1 * b4, w2 * b4, w3 * b4, w0 * D[3, l]
-                    for o in range(m):
-                        c = C[g, o]
-                        V[o] += a0 * c
-                        J[o, 0] += a1 * c
-                        J[o, 1] += a2 * c
-                        J[o, 2] += a3 * c
-                        J[o, 3] += a4 * c
-                    g += 1
-    for a in range(4):
-        s = 2.0 / (hi[a] - lo[a])
-        for o in range(m):
-            J[o, a] *= s
+    n3 = C.shape[0] // shape[3]
+    Cv = np.empty((n3, C.shape[1]))
+    Cd = np.empty((n3, C.shape[1]))
+    contract_pressure(C, shape, lo, hi, lam[3], Cv, Cd)
+    eval_vj3(Cv, Cd, shape, lo, hi, lam, V, J)
 
 
 @njit(cache=True, nogil=True)
