@@ -306,10 +306,10 @@ def test_a_tangent_that_loses_definiteness_in_a_large_load_step_cuts_the_step(mo
     seen = []
     newton = fs._newton
     monkeypatch.setattr(fs.SparseSolver, "factorize", first_not_pd)
-    monkeypatch.setattr(fs, "_newton", lambda *a, **k: seen.append((a[4], k["shift_indefinite"])) or newton(*a, **k))
+    monkeypatch.setattr(fs, "_newton", lambda *a, **k: seen.append((a[4], k["on_indefinite"])) or newton(*a, **k))
     sol = fs.solve_static(fem, f, tol=1e-10, solver="cholmod")
     assert sol.converged and sol.load_steps >= 2
-    assert seen[0] == (1.0, False) and seen[1][0] == 0.5  # the full step gave up, half the load next
+    assert seen[0] == (1.0, "cut") and seen[1][0] == 0.5  # the full step gave up, half the load next
     assert np.allclose(sol.x, ref.x, atol=1e-9)
 
 

@@ -336,7 +336,7 @@ class EquilibriumSolver:
                               f"{lam[3]:.0f} Pa: {sol.status if sol is not None else 'elements inverted'}")
         x = sol.x.reshape(-1)
         r, ref = self.residual(x, lam)
-        if self.exact_sensitivities or not self._chol._numeric:
+        if self.exact_sensitivities or not self._chol.factored:
             self.factorize(x, lam[3])
         else:  # Newton's last (maybe shifted) tangent, one step before x: the sensitivities need not be exact
             self.lin = self._chol

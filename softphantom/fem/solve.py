@@ -155,6 +155,11 @@ class SparseSolver:
         out._factor = self._factor.copy() if self.method == "cholmod" and self._factor is not None else self._factor
         return out
 
+    @property
+    def factored(self) -> bool:
+        """A usable numeric factor is there (the last :meth:`factorize` succeeded)."""
+        return self._factor is not None and self._numeric
+
     def _same_pattern(self, A: sp.csc_matrix) -> tuple[np.ndarray, np.ndarray]:
         """The kept pattern if ``A`` has it (compared in place, no byte copies), else a copy of
         A's (indptr, indices)."""
@@ -166,7 +171,7 @@ class SparseSolver:
 
     def solve(self, B: np.ndarray) -> np.ndarray:
         """Solve A X = B for (n,) or (n,k) ``B``."""
-        if self._factor is None or not self._numeric:
+        if not self.factored:
             raise SolverError("solve() before a successful factorize()")
         B = np.asarray(B, dtype=np.float64)
         if B.shape[0] != self.n:
@@ -273,8 +278,8 @@ def descent_step(solver: SparseSolver, K: sp.csr_matrix, b: np.ndarray) -> tuple
             raise
     diag = K.diagonal()
     scale = np.maximum(np.abs(diag), max(float(np.mean(np.abs(diag))), 1e-300))  # small pivots get the mean
+    Ks = K.copy()  # one copy: each shift overwrites its diagonal
     for tau in DESCENT_SHIFTS:
-        Ks = K.copy()
         Ks.setdiag(diag + tau * scale)
         try:
             return solver.factorize(Ks).solve(b), tau
@@ -320,12 +325,12 @@ def _applied(fem, x, f_fixed, plist, t):
     return f
 
 
-def _newton(fem, x, f_fixed, plist, t, tol, max_iter, solver, consistent, shift_indefinite=True):
+def _newton(fem, x, f_fixed, plist, t, tol, max_iter, solver, consistent, on_indefinite="shift"):
     """Newton at load fraction t from x. Returns (ok, x, iterations, rel_residual, reason). On a
-    tangent that is not positive definite: ``shift_indefinite`` True steps on with
+    tangent that is not positive definite, ``on_indefinite``: ``"shift"`` steps on with
     :func:`descent_step`; ``"exact"`` takes the exact step (:func:`indefinite_solve`: it can reach an
     equilibrium whose tangent is indefinite, e.g. an inflated cavity past its pressure maximum);
-    False ends the attempt (so the caller cuts the load step)."""
+    ``"cut"`` ends the attempt (so the caller cuts the load step)."""
     free = fem.free_dofs
     x_rest = fem.x_rest
 
@@ -350,17 +355,17 @@ def _newton(fem, x, f_fixed, plist, t, tol, max_iter, solver, consistent, shift_
         if it == max_iter:
             break
         K = free_tangent(fem, x, scaled, consistent)
-        if shift_indefinite is not True:
+        if on_indefinite == "shift":
+            d, _ = descent_step(solver, K, -r)
+        else:
             try:
                 d = solver.factorize(K).solve(-r)
             except SolverError:
                 if solver.method == "splu":
                     raise
-                if shift_indefinite != "exact":
+                if on_indefinite == "cut":
                     return False, x, it + 1, rn / ref, "tangent not positive definite"
                 d = indefinite_solve(K, -r)
-        else:
-            d, _ = descent_step(solver, K, -r)
         slope = float(np.dot(r, d))  # dΠ/dα at α = 0
         alpha, accepted, inverted = 1.0, False, 0
         for _ in range(12):
@@ -447,9 +452,9 @@ def solve_static(
         # the 9 mm P2 mesh has two converged states 0.2 % apart (docs/model.md). An increment that
         # cannot be cut (a caller's own continuation: min_load_step 1) takes the exact step, as
         # before: the virtual urethra truth reaches its 2 mm past the cavity's pressure maximum
-        policy = "exact" if dt * 0.5 < min_load_step else dt <= SHIFT_MAX_LOAD_STEP
+        policy = "exact" if dt * 0.5 < min_load_step else "shift" if dt <= SHIFT_MAX_LOAD_STEP else "cut"
         ok, x_new, its, rel_try, reason = _newton(
-            fem, x, f_fixed, plist, t_try, tol, max_iter, lin, consistent, shift_indefinite=policy
+            fem, x, f_fixed, plist, t_try, tol, max_iter, lin, consistent, on_indefinite=policy
         )
         total_it += its
         if ok:
