@@ -57,11 +57,18 @@ def _basis(t, n, b, d):
 
 
 @njit(cache=True, nogil=True)
-def _bases(lam, lo, hi, shape, B, D, na):
-    """The bases of the first ``na`` axes at ``lam`` (rows of B, D)."""
+def _bases(lam, lo, hi, shape, na):
+    """The bases (B, D) of the first ``na`` axes at ``lam``: row a the values and derivatives of
+    axis a's Chebyshev polynomials (padded to the longest axis)."""
+    nmax = 0
+    for a in range(na):
+        nmax = max(nmax, shape[a])
+    B = np.empty((na, nmax))
+    D = np.empty((na, nmax))
     for a in range(na):
         t = (2 * lam[a] - (lo[a] + hi[a])) / (hi[a] - lo[a])
         _basis(t, shape[a], B[a], D[a])
+    return B, D
 
 
 @njit(cache=True, nogil=True)
@@ -87,10 +94,7 @@ def eval_vj(C, shape, lo, hi, lam, V, J):
 def eval_value(C, shape, lo, hi, lam, out):
     """The value (m,) of the polynomial with coefficients ``C`` (n1·n2·n3·n4, m) at ``lam``."""
     n1, n2, n3, n4 = shape[0], shape[1], shape[2], shape[3]
-    nmax = max(max(n1, n2), max(n3, n4))
-    B = np.empty((4, nmax))
-    D = np.empty((4, nmax))
-    _bases(lam, lo, hi, shape, B, D, 4)
+    B, D = _bases(lam, lo, hi, shape, 4)
     m = C.shape[1]
     for o in range(m):
         out[o] = 0.0
@@ -134,10 +138,7 @@ def contract_pressure(C, shape, lo, hi, p, Cv, Cd):
 def eval_vj3(Cv, Cd, shape, lo, hi, lam, V, J):
     """:func:`eval_vj` on the polynomial contracted at ``lam[3]`` by :func:`contract_pressure`."""
     n1, n2, n3 = shape[0], shape[1], shape[2]
-    nmax = max(max(n1, n2), n3)
-    B = np.empty((3, nmax))
-    D = np.empty((3, nmax))
-    _bases(lam, lo, hi, shape, B, D, 3)
+    B, D = _bases(lam, lo, hi, shape, 3)
     m = Cv.shape[1]
     for o in range(m):
         V[o] = 0.0
