@@ -9,8 +9,8 @@ Load: the on-centre push of DESIGN.md §5, (0.15, 2.5, −0.2) N on a 4 mm patch
 uniform-traction patch for every model, so only the model differs). Each model is softphantom's
 own (``build_fem`` with the law, ``solve_static`` from rest to 1e-8); the read-outs (marker pose,
 arm ΔV) use the reference helpers of tests/reference/felupe_bip.py for every model alike. The
-converged reference: FElupe neo-Hookean P2 at 4.5 mm (bench_reference.py; 0.6 % in y and 2.8 % in
-yaw from the 6 mm solve, docs/model.md). Cost: the model's build, one tangent
+converged reference: neo-Hookean P2 on the default (filleted) design, 9 mm bulk, 1.0 mm arms
+(docs/model.md: within 0.2 % of the next finer settings). Cost: the model's build, one tangent
 assembly + Cholesky factorization (what an estimator refresh pays per re-factorization), and
 the full Newton solve from rest, wall seconds; a peer ratio against P1 co-rotational at the
 estimator's 6 mm in the same run.
@@ -44,8 +44,11 @@ from softphantom.fem import material as M  # noqa: E402
 from softphantom.pose import pose_of_markers  # noqa: E402
 
 ARMS = ("front_zpos", "front_zneg", "back_xpos", "back_xneg")
-# FElupe NH P2 at 4.5 mm (benchmarks/bench_reference.py, docs/model.md)
-REFERENCE = {"y_mm": 5.644, "yaw_deg": 5.207, "dV_mm3": [11.02, 8.95, -11.93, -8.03]}
+# The default design (2 mm junction fillets), NH P2, 9 mm with the arms at 1.0 mm: converged within
+# 0.2 % in y and yaw along both the bulk and the arm size (docs/model.md, "With a junction fillet";
+# softphantom's NH on the reference mesh, equal to FElupe's to 1e-9). The sharp design's reference
+# (FElupe NH P2 4.5 mm: y 5.644 mm, yaw 5.207°) was not converged in yaw (a singular edge).
+REFERENCE = {"y_mm": 5.529, "yaw_deg": 4.669, "dV_mm3": [10.91, 8.80, -12.02, -8.06]}
 FORCE = np.array([0.15, 2.5, -0.2])
 
 

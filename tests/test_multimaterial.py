@@ -4,6 +4,8 @@ shell against a one-material run, and bad input (one line, exit 2)."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import math
 
 import numpy as np
@@ -19,7 +21,10 @@ LESIONS = (LesionParams("L1", (14.0, 0.0, -10.0), (6.0, 6.0, 6.0)), LesionParams
 
 
 def _design(shell=SHELL_MM, lesions=LESIONS, shell_mat="ecoflex_00_50"):
+    # sharp arm junctions: the closed forms below are the ellipsoid's (with the default fillets
+    # the fillet rings and arm stubs belong to the outermost region, the shell here)
     base = BIPDesign()
+    base = dataclasses.replace(base, arms=tuple(dataclasses.replace(a, junction_fillet_mm=0.0) for a in base.arms))
     rm = {"bulb": "ecoflex_00_50", "arms": "ecoflex_00_50", "lesions": "ecoflex_00_50"}
     if shell:
         rm["shell"] = shell_mat

@@ -12,6 +12,12 @@ estimate) and the estimator's own approximations. Bounds (3 N push, ~5 mm peak a
 RMSE ≤ 10 % of the peak excursion + 0.15 mm (tracker-grade floor), angles ≤ 10 % of peak + 0.15°,
 |force| RMSE ≤ 0.15·|F_peak| = 0.45 N, lag 40–250 ms (the tube's ≈ 100 ms plus a frame). Measured
 (seed 3): listed in the report of the session that wrote this test.
+
+The design is the default one with sharp arm junctions (``junction_fillet_mm = 0``): with the
+default 2 mm fillets the 12 mm P1 mesh's front-arm volumes differ from the 9 mm one's by what a
+0.65 N error in F_z explains (0.15 N with sharp junctions: the fillet is meshed at 2 mm, the rest
+of the arms at 6 mm, one element across their 2.5 mm wall), beyond the bounds below, which were
+set for the chain's errors, not for that mesh's (docs/model.md, "Default radius").
 """
 
 from __future__ import annotations
@@ -30,11 +36,17 @@ SCENARIO = {
 }
 
 
-def test_estimate_tracks_virtual_truth(coarse_model):
+def test_estimate_tracks_virtual_truth():
+    import dataclasses
+
+    from softphantom.design import BIPDesign, build_model
     from softphantom.estimation import Estimator, EstimatorConfig
     from softphantom.evaluation import Series6, evaluate
     from softphantom.pose import Pose6
 
+    d = BIPDesign()
+    coarse_model = build_model(dataclasses.replace(
+        d, arms=tuple(dataclasses.replace(a, junction_fillet_mm=0.0) for a in d.arms)), 12.0)  # conftest's coarse size
     sc = scenario_from_dict(SCENARIO, "e2e")
     run = simulate(sc, coarse_model, VirtualConfig.seeded(seed=3, osr=100, law="model", order=1))
     ests = []

@@ -480,6 +480,15 @@ def _shell(area: float, h_wall: float, h_far: float) -> float:
     return area * (inner - depth / h_far**3)
 
 
+def _tube(length: float, h_edge: float, h_far: float) -> float:
+    """∫ dV / h³ around an edge of ``length`` meshed at ``h_edge``, the size growing 1:1 with the
+    distance to ``h_far``, minus the same tube at h_far."""
+    if h_edge >= h_far:
+        return 0.0
+    a, d = h_edge, h_far - h_edge
+    return length * (2 * np.pi * (0.5 / a - 1 / h_far + 0.5 * a / h_far**2) - np.pi * d * d / h_far**3)
+
+
 def _graded(fld, dist: int, h: float, far: float) -> int:
     """A Threshold field on the distance field ``dist``: ``h`` at it, growing about 1:1 to ``far``."""
     thr = fld.add("Threshold")
@@ -554,7 +563,7 @@ def estimate_tets(design: BIPDesign, mesh: MeshParams | None = None) -> int:
     2.2 mm, low at coarse sizes where the geometry sets the count (docs/robustness.md).
 
     >>> from softphantom.design import BIPDesign
-    >>> 15_000 < estimate_tets(BIPDesign()) < 40_000   # 24 123 when meshed
+    >>> 15_000 < estimate_tets(BIPDesign()) < 40_000   # 24 986 when meshed
     True
     """
     from softphantom.design.geometry import capsule_volume
@@ -570,6 +579,11 @@ def estimate_tets(design: BIPDesign, mesh: MeshParams | None = None) -> int:
         length = max(0.0, v - capsule_volume(r, 0.0)) / (np.pi * r * r)
         area = 2 * np.pi * r * length + 4 * np.pi * r * r
         total += _shell(area, mp.cavity_size_mm(r), far)
+    for g in design.arm_geometry():  # a fillet's two edges are meshed at most its radius (_size_fields)
+        h_j = min([mp.junction_size_mm] * (mp.junction_size_mm > 0) + [g.fillet_mm] * (g.fillet_mm > 0), default=0.0)
+        if h_j > 0:
+            edges = 2 * np.pi * (2 * g.radius_mm + g.fillet_mm) if g.fillet_mm > 0 else 2 * np.pi * g.radius_mm
+            total += _tube(edges, h_j, min(hs, ha))
     return int(round(_TETS_PER_UNIT * total))
 
 

@@ -78,6 +78,7 @@ BULB_VOLUME_MM3 = 100_410.0
 URETHRA_VOLUME_MM3 = 2078.0
 CAVITY_VOLUME_VERTICAL_MM3 = 514.0  # front pair (±z)
 CAVITY_VOLUME_HORIZONTAL_MM3 = 486.0  # back pair (±x)
+DEFAULT_JUNCTION_FILLET_MM = 2.0  # arm-bulb edge: sharp (0) is singular, the yaw never converges (docs/model.md)
 _A_MM, _B_MM = 32.0, 25.0
 _C_MM = BULB_VOLUME_MM3 / (4.0 / 3.0 * math.pi * _A_MM * _B_MM)  # 29.9639… mm
 
@@ -315,7 +316,8 @@ class ArmParams:
     ``junction_fillet_mm``: radius of the concave fillet that rounds the edge where the arm's side
     meets the bulb (cast with the arm: its mold's floor is rounded; 0 = a sharp edge). The edge
     is re-entrant, so without it the stress there is singular and the model's rotation does not
-    converge with the mesh (docs/model.md, "Convergence")."""
+    converge with the mesh (docs/model.md, "Convergence"); the default, 2 mm, is the smallest
+    radius a cast part or glue bead at this joint realistically has."""
 
     name: str
     direction: Vec3
@@ -326,7 +328,7 @@ class ArmParams:
     cavity_offset_mm: float = 17.0
     embed_mm: float = 8.0
     axis_point_mm: Vec3 = (0.0, 0.0, 0.0)
-    junction_fillet_mm: float = 0.0
+    junction_fillet_mm: float = DEFAULT_JUNCTION_FILLET_MM
 
     def __post_init__(self) -> None:
         p = f"arms.{self.name}"
@@ -1058,14 +1060,16 @@ def design_from_dict(data: dict[str, Any]) -> BIPDesign:
                     raise DesignError(f"layers.lesions.{name}.{key}: missing")
             les.append(LesionParams(name=str(name), **spec))
         kwargs["layers"] = LayersParams(shell_mm=lay.get("shell_mm", 0.0), lesions=tuple(les))
-    if "arms" in data:
-        _check_keys("arms", data["arms"], ARM_NAMES)
-        arms = []
-        for a in defaults["arms"]:
-            over = data["arms"].get(a.name, {})
-            _check_keys(f"arms.{a.name}", over, _ARM_KEYS)
-            arms.append(dataclasses.replace(a, **over))
-        kwargs["arms"] = tuple(arms)
+    given_arms = data.get("arms", {})
+    _check_keys("arms", given_arms, ARM_NAMES)
+    arms = []
+    for a in defaults["arms"]:
+        over = given_arms.get(a.name, {})
+        _check_keys(f"arms.{a.name}", over, _ARM_KEYS)
+        if kwargs["bulb"].is_surface and "junction_fillet_mm" not in over:
+            a = dataclasses.replace(a, junction_fillet_mm=0.0)  # OCC fillets smooth surfaces only
+        arms.append(dataclasses.replace(a, **over))
+    kwargs["arms"] = tuple(arms)
     for key in ("markers", "targets"):
         if key in data:
             if not isinstance(data[key], dict):
