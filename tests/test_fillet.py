@@ -189,3 +189,17 @@ def test_an_imported_bulb_refuses_a_fillet():
     with pytest.raises(DesignError, match=r"^arms\.front_zpos\.junction_fillet_mm = 2: an imported"):
         # the fillet is checked before the geometry this crude surface would fail
         BIPDesign(bulb=tetra, arms=_filleted(BIPDesign(), 2.0).arms)
+
+
+def test_a_design_file_with_an_imported_bulb_keeps_sharp_junctions_unless_it_sets_one():
+    from softphantom.design import design_from_dict
+
+    assert BIPDesign().arms[0].junction_fillet_mm == 2.0  # the default: rounded
+    v = [(-30.0, -25.0, -28.0), (30.0, -25.0, -28.0), (0.0, 30.0, -28.0), (0.0, 0.0, 35.0)]
+    bulb = {"surface_vertices_mm": v, "surface_faces": [(0, 2, 1), (0, 1, 3), (1, 2, 3), (0, 3, 2)]}
+    # the crude surface fails a later geometry check; what matters is which check stops it
+    with pytest.raises(DesignError) as exc:
+        design_from_dict({"bulb": bulb})
+    assert "junction_fillet_mm" not in str(exc.value)
+    with pytest.raises(DesignError, match=r"^arms\.back_xpos\.junction_fillet_mm = 1\.5: an imported"):
+        design_from_dict({"bulb": bulb, "arms": {"back_xpos": {"junction_fillet_mm": 1.5}}})
