@@ -96,6 +96,24 @@ def test_sweep_matches_independent_solves(coarse_model, fwd):
         assert np.allclose(V[j, k], fwd.eq.arm_volumes(x), rtol=1e-6, atol=1e-6 * np.abs(V).max())
 
 
+def test_continuation_steps_between_grid_points_stop_early_and_the_last_converges(fwd, monkeypatch):
+    # a 2.4 N step is taken in 3 steps: the first two only start the next (the atlas's VIA_TOL),
+    # the last converges to the configured tol and is the Newton equilibrium
+    import softphantom.estimation.linearization as L
+
+    seen = []
+    solve = L.EquilibriumSolver.solve
+    monkeypatch.setattr(L.EquilibriumSolver, "solve",
+                        lambda self, start, lam, *a, **k: seen.append(k.get("tol")) or solve(self, start, lam, *a, **k))
+    lam = np.array([0.1, 2.4, -0.1, 0.0])
+    out = []
+    monkeypatch.setattr(fwd.eq, "linearize", lambda *a, _l=fwd.eq.linearize, **k: out.append(_l(*a, **k)) or out[-1])
+    lin = fwd.solve(lam, via_tol=1e-3)
+    assert seen == [1e-3, 1e-3, None]
+    assert all(CFG.tol < o.residual <= 1e-3 for o in out[:2])  # stopped early (the chord's rate is > 1e-5)
+    assert lin.residual <= CFG.tol and rel(lin.x, newton(fwd, lam), fwd) < 1e-6
+
+
 def test_a_failing_chord_falls_back_to_newton_and_reaches_the_equilibrium(fwd, monkeypatch):
     import softphantom.estimation.linearization as L
 

@@ -22,6 +22,7 @@ from softphantom.fem import (
     solve_static,
     tangent_stiffness,
 )
+from softphantom.errors import UserError
 from softphantom.fem.meshes import box_mesh
 
 MAT = Material(E_Pa=1.0e5, nu=0.45, density_kg_m3=1000.0)
@@ -311,6 +312,44 @@ def test_a_tangent_that_loses_definiteness_in_a_large_load_step_cuts_the_step(mo
     assert sol.converged and sol.load_steps >= 2
     assert seen[0] == (1.0, "cut") and seen[1][0] == 0.5  # the full step gave up, half the load next
     assert np.allclose(sol.x, ref.x, atol=1e-9)
+
+
+def test_an_increment_that_may_not_be_cut_steps_on_shifted_when_asked(monkeypatch):
+    """solve_static's own choice for an increment it may not cut (min_load_step 1) is the exact
+    LDLᵀ step; ``on_indefinite="shift"`` (the atlas fallback's first attempt) takes the shifted
+    Cholesky instead and reaches the same equilibrium; an unknown policy is a one-line error."""
+    pytest.importorskip("sksparse.cholmod")
+    import softphantom.fem.solve as fs
+
+    X, T = box_mesh((0.06, 0.01, 0.01), (12, 2, 2))
+    fem = build_fem(X, T, MAT, fixed_nodes=np.flatnonzero(X[:, 0] < 1e-9))
+    tip = np.flatnonzero(X[:, 0] > 0.06 - 1e-9)
+    f = np.zeros(fem.n_dof)
+    f[3 * tip + 2] = -0.1 / tip.size
+    ref = fs.solve_static(fem, f, tol=1e-10, solver="cholmod")
+    real, real_ldlt = fs.SparseSolver.factorize, fs.indefinite_solve
+
+    def run(policy):
+        calls, ldlt = {"n": 0}, []
+
+        def second_not_pd(self, A):
+            calls["n"] += 1
+            if calls["n"] == 2:
+                raise fs.SolverError("matrix not positive definite (cholmod)")
+            return real(self, A)
+
+        monkeypatch.setattr(fs.SparseSolver, "factorize", second_not_pd)
+        monkeypatch.setattr(fs, "indefinite_solve", lambda K, b: ldlt.append(1) or real_ldlt(K, b))
+        sol = fs.solve_static(fem, f, tol=1e-10, solver="cholmod", min_load_step=1.0, on_indefinite=policy)
+        return sol, len(ldlt)
+
+    sol, ldlt = run(None)
+    assert sol.converged and ldlt == 1  # the exact step
+    sol, ldlt = run("shift")
+    assert sol.converged and ldlt == 0 and sol.load_steps == 1
+    assert np.allclose(sol.x, ref.x, atol=1e-9)
+    with pytest.raises(UserError, match="on_indefinite must be shift, cut or exact"):
+        fs.solve_static(fem, f, on_indefinite="ldlt")
 
 
 def test_splu_orders_symmetric_matrices_symmetrically():

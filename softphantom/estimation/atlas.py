@@ -51,6 +51,7 @@ FORMAT = 2  # bump when the file layout or the build changes its meaning
 GN_MAX_ITER = 12
 GN_TOL_N = 1e-7
 FALLBACK_MIN_LOAD_STEP = 1.0 / 32
+VIA_TOL = 1e-3  # relative residual of the continuation steps between grid points (they only start the next)
 FIELD_MAX_MODES = 64
 FIELD_RTOL = 1e-5  # POD truncation: dropped displacement energy below this fraction (≈ 3e-3 relative RMS)
 
@@ -301,7 +302,7 @@ def _sweep(model, config: EstimatorConfig, acfg: AtlasConfig, i: int, l: int):
         try:
             # a linear pressure axis needs the exact pressure derivative: the tangent at the solution
             # (elsewhere a new factor there costs more than the chord iterations it saves)
-            lin = fwd.solve(lam, lins.get(parent), factor_at_solution=linear)
+            lin = fwd.solve(lam, lins.get(parent), factor_at_solution=linear, via_tol=VIA_TOL)
         except SolverError as exc:
             first_error = first_error or str(exc).splitlines()[0]
             continue

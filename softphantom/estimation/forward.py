@@ -63,17 +63,21 @@ class ForwardModel:
         self.n_markers = len(self.marker_names)
         self.rest: Linearization = self.eq.rest()
 
-    def solve(self, lam, start: Linearization | None = None, *, factor_at_solution: bool = False) -> Linearization:
+    def solve(self, lam, start: Linearization | None = None, *, factor_at_solution: bool = False,
+              via_tol: float | None = None) -> Linearization:
         """Converged equilibrium (and its linearization) at ``lam`` (4,) N, N, N, Pa, reached from
         ``start`` (default: rest) in steps of at most :data:`STEP_N` / :data:`STEP_PA`.
         ``factor_at_solution``: each step ends with the tangent at its equilibrium factored (see
-        :meth:`~softphantom.estimation.linearization.EquilibriumSolver.solve`). Raises
-        :class:`~softphantom.errors.SolverError` naming the load where it fails."""
+        :meth:`~softphantom.estimation.linearization.EquilibriumSolver.solve`). ``via_tol``: the
+        relative residual of the intermediate steps (default: the configured ``tol``); the last
+        step always converges to ``tol``. Raises :class:`~softphantom.errors.SolverError` naming
+        the load where it fails."""
         lam = np.asarray(lam, float).reshape(4)
         lin = self.rest if start is None else start
         d = lam - lin.lam
         n = int(max(1, np.ceil(max(np.max(np.abs(d[:3])) / STEP_N, abs(d[3]) / STEP_PA) - 1e-9)))
         for k in range(1, n + 1):
-            lin = self.eq.solve(lin, lin.lam + d / (n - k + 1), factor_at_solution=factor_at_solution)
+            lin = self.eq.solve(lin, lin.lam + d / (n - k + 1), factor_at_solution=factor_at_solution,
+                                tol=via_tol if k < n else None)
             d = lam - lin.lam
         return lin

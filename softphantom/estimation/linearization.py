@@ -116,6 +116,7 @@ class EquilibriumSolver:
         self.H_f = H_f.tocsr()
         self.probe = probe.tocsr()
         self.tol = float(tol)
+        self._tol = self.tol  # of the solve in progress (a continuation's intermediate steps: looser)
         self.refactor_rate = float(refactor_rate)
         self.max_iter = int(max_iter)
         self.exact_sensitivities = bool(exact_sensitivities)
@@ -150,7 +151,7 @@ class EquilibriumSolver:
         return (fi - fa)[self.fem.free_dofs], ref
 
     def _converged(self, rn: float, ref: float) -> bool:
-        return rn <= max(self.tol * ref, self._floor)
+        return rn <= max(self._tol * ref, self._floor)
 
     def factorize(self, x: np.ndarray, p_u: float) -> None:
         """Factor the free tangent (with the urethra pressure's follower term) at ``x``."""
@@ -308,7 +309,7 @@ class EquilibriumSolver:
             hist.append(rn)
             if len(hist) > STALL_WINDOW and not self._converged(rn, ref):
                 rec = (rn / hist[-1 - STALL_WINDOW]) ** (1.0 / STALL_WINDOW)  # recent contraction
-                need = np.log(max(self.tol * ref, self._floor) / rn) / np.log(rec) if rec < 1 else np.inf
+                need = np.log(max(self._tol * ref, self._floor) / rn) / np.log(rec) if rec < 1 else np.inf
                 if rec > self.refactor_rate and need > FACTOR_COST_ITERS:
                     break  # stalled: a new factor is cheaper than the chord iterations still needed
         ok = self._converged(rn, ref)
@@ -321,11 +322,14 @@ class EquilibriumSolver:
         full-load attempt from the chord's last state (usually a few iterations from there), then
         adaptive load stepping from the start state. Returns (x, its, ‖r‖, ref, refactored)."""
         sol = None
-        for x0, min_step in ((x, 1.0), (start.x, self.fallback_min_load_step)):
+        # the first attempt steps on through an indefinite tangent with a shifted Cholesky (the
+        # exact LDLᵀ step, solve_static's choice for an increment it may not cut, cost 0.6-0.8 CPU-s
+        # a call on the 6 mm model and rarely converged there: the load stepping then did)
+        for x0, min_step, policy in ((x, 1.0, "shift"), (start.x, self.fallback_min_load_step, None)):
             try:
-                sol = solve_static(self.fem, self.H_f @ lam[:3], [(self._ur_tris, lam[3])], x0=x0, tol=self.tol,
+                sol = solve_static(self.fem, self.H_f @ lam[:3], [(self._ur_tris, lam[3])], x0=x0, tol=self._tol,
                                    solver=self._chol, min_load_step=min_step, max_iter=NEWTON_FIRST_ITERS if
-                                   min_step == 1.0 else 25)
+                                   min_step == 1.0 else 25, on_indefinite=policy)
             except ElementInversionError:
                 continue
             its += sol.iterations
@@ -345,7 +349,7 @@ class EquilibriumSolver:
         return x, its, float(np.linalg.norm(r)), ref, True
 
     def solve(self, start: Linearization, lam, path: "PathCorrection | None" = None, *,
-              factor_at_solution: bool = False) -> Linearization:
+              factor_at_solution: bool = False, tol: float | None = None) -> Linearization:
         """Equilibrium at actuations ``lam`` starting from ``start``, and its linearization.
 
         First-order predictor, then Anderson-accelerated chord iterations with the kept factor
@@ -356,9 +360,12 @@ class EquilibriumSolver:
         the kept factor (:meth:`linearize`). ``factor_at_solution``: refactor at the equilibrium
         (unless the kept factor was made there), so its linearization is exact and the kept factor
         is the tangent there: the next solve from it starts with an Euler predictor and chord
-        iterations on the tangent of its start (the atlas build). Raises :class:`SolverError` if even the
-        load-stepping fallback fails.
+        iterations on the tangent of its start (the atlas build). ``tol``: this solve's relative
+        residual (default: the solver's ``tol``; a continuation's intermediate steps, which only
+        start the next one, need less). Raises :class:`SolverError` if even the load-stepping
+        fallback fails.
         """
+        self._tol = self.tol if tol is None else float(tol)
         lam = np.array(lam, dtype=np.float64).reshape(4)
         predicted_V = start.predict_volumes(lam)
         if path is not None and path.lin is start:  # second-order predictor along the path

@@ -403,6 +403,7 @@ def solve_static(
     *,
     consistent: bool = True,
     min_load_step: float = 1.0 / 1024,
+    on_indefinite: str | None = None,
 ) -> StaticSolution:
     """Quasi-static equilibrium of the co-rotational model under nodal forces ``f_ext`` ((3N,) N,
     e.g. ``force_actuator(fem, p) @ λ``), cavity ``pressures`` (Pa; a dict cavity name → p for a
@@ -416,6 +417,8 @@ def solve_static(
     while the increment is above :data:`SHIFT_MAX_LOAD_STEP`) the load increment is halved
     (adaptive load stepping); small increments step on with a shifted tangent. Fixed DOFs
     stay where ``x0`` puts them (rest by default), which also prescribes displacements.
+    ``on_indefinite`` ("shift", "cut", "exact") overrides that choice for every increment (a caller
+    that tries one full-load increment and has its own fallback: "shift", not the slow exact step).
 
     >>> import numpy as np
     >>> from softphantom.fem.model import build_fem
@@ -438,6 +441,8 @@ def solve_static(
         f_fixed = f_fixed + gravity_load(fem)
     if not (np.all(np.isfinite(f_fixed)) and np.all(np.isfinite(x))):
         raise UserError("non-finite loads or initial positions")
+    if on_indefinite not in (None, "shift", "cut", "exact"):
+        raise UserError(f"on_indefinite must be shift, cut or exact, got {on_indefinite!r}")
     plist = _pressure_list(fem, pressures)
     lin = solver if isinstance(solver, SparseSolver) else SparseSolver(solver)
     internal_force(fem, x)  # raises ElementInversionError on an inverted start
@@ -452,7 +457,8 @@ def solve_static(
         # the 9 mm P2 mesh has two converged states 0.2 % apart (docs/model.md). An increment that
         # cannot be cut (a caller's own continuation: min_load_step 1) takes the exact step, as
         # before: the virtual urethra truth reaches its 2 mm past the cavity's pressure maximum
-        policy = "exact" if dt * 0.5 < min_load_step else "shift" if dt <= SHIFT_MAX_LOAD_STEP else "cut"
+        policy = on_indefinite or (
+            "exact" if dt * 0.5 < min_load_step else "shift" if dt <= SHIFT_MAX_LOAD_STEP else "cut")
         ok, x_new, its, rel_try, reason = _newton(
             fem, x, f_fixed, plist, t_try, tol, max_iter, lin, consistent, on_indefinite=policy
         )
