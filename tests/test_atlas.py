@@ -121,6 +121,7 @@ def test_cache_round_trip_mismatch_and_corruption(coarse_model, atlas, fwd, tmp_
     other = ForwardModel(coarse_model, EstimatorConfig(contact="off-centre"))
     assert atlas_key(other, ACFG) != atlas.key
     assert atlas_key(fwd, dataclasses.replace(ACFG, force_max_N=(0.5, 1.3, 0.5))) != atlas.key
+    assert atlas_key(fwd, dataclasses.replace(ACFG, p_min_kPa=-1, p_max_kPa=4)) == atlas.key  # ints: one key
     with pytest.raises(UserError, match="built for another model") as exc:
         Atlas.load(path, atlas_key(other, ACFG))
     assert "\n" not in str(exc.value)
@@ -211,7 +212,7 @@ def test_unreachable_grid_points_are_filled_and_flagged(coarse_model, fwd, monke
             self.probe, self.fem = fwd.probe, fwd.fem
             self.eq = SimpleNamespace(keep=lambda: None, restore=lambda kept: None)  # no factor to keep
 
-        def solve(self, lam, start=None, factor_at_solution=False):
+        def solve(self, lam, start=None, factor_at_solution=False, via_tol=None):
             lam = np.asarray(lam, float)
             tried.append(lam)
             if bad(lam):

@@ -92,6 +92,9 @@ class AtlasConfig:
             raise UserError(f"atlas force envelope {lo}..{hi} N: need 3 finite ranges with min < max")
         object.__setattr__(self, "force_min_N", lo)
         object.__setattr__(self, "force_max_N", hi)
+        # floats, so -2 and -2.0 give one cache key (atlas_key hashes the fields' JSON)
+        object.__setattr__(self, "p_min_kPa", float(self.p_min_kPa))
+        object.__setattr__(self, "p_max_kPa", float(self.p_max_kPa))
         if not (math.isfinite(self.p_min_kPa) and math.isfinite(self.p_max_kPa) and self.p_min_kPa < self.p_max_kPa):
             raise UserError(f"atlas pressure range [{self.p_min_kPa}, {self.p_max_kPa}] kPa is empty")
         n = tuple(self.n_force) if np.ndim(self.n_force) else (self.n_force,) * 3
@@ -288,14 +291,15 @@ def _sweep(model, config: EstimatorConfig, acfg: AtlasConfig, i: int, l: int):
     last = None  # the point whose factor the solver holds
     first_error = ""
     for p, parent, n_kids in _plane_walk(ny, nz, *centre):
-        if any(q not in lins for q in _inner(p, centre)):
-            continue  # beyond a failure: unreachable (see the docstring)
-        if parent is not None:
+        if parent in left:
             left[parent] -= 1
-        if parent is not None and last != parent:
+        reachable = all(q in lins for q in _inner(p, centre))
+        if reachable and parent is not None and last != parent:
             fwd.eq.restore(kept[parent])
-        if parent is not None and left[parent] == 0:
-            kept.pop(parent, None)
+        if parent in left and left[parent] == 0:
+            kept.pop(parent, None)  # its last child: the copy (28 MB at 6 mm) is not needed any more
+        if not reachable:
+            continue  # beyond a failure: unreachable (see the docstring)
         j, k = p
         lam = np.array([ax[0][i], ax[1][j], ax[2][k], p_u])
         last = None
