@@ -152,11 +152,25 @@ class PhantomModel:
         """Volume enclosed by the bulb's outer surface, m³ (the bulb region plus the urethra cavity).
 
         The bulb region's tets (with the shell and lesion regions of a multi-material design) fill
-        the ellipsoid minus the urethra, so adding the urethra's Φ gives the meshed counterpart of
-        the design's 100.41 mL.
+        the ellipsoid minus the urethra (less :meth:`junction_volume`, the rounded junctions
+        outside it), so adding the urethra's Φ gives the meshed counterpart of the design's
+        100.41 mL.
         """
         body = [r for r in self.regions if r in ("bulb", "shell") or r.startswith("lesion_")]
-        return sum(self.region_volume(r) for r in body) + self.cavity_volume("urethra")
+        return sum(self.region_volume(r) for r in body) + self.cavity_volume("urethra") - self.junction_volume()
+
+    def junction_volume(self) -> float:
+        """Volume of the body regions outside the bulb's surface, m³: with rounded arm junctions
+        (``junction_fillet_mm`` > 0) the fillet rings and each arm's first millimetres, which
+        belong to the bulb (or shell) region; 0 with sharp junctions. Tets are counted by their
+        centroid, so a tet across the surface counts wholly on one side."""
+        if not any(a.junction_fillet_mm > 0.0 for a in self.design.arms) or self.design.bulb.is_surface:
+            return 0.0
+        ids = [i for r, i in self.regions.items() if r in ("bulb", "shell") or r.startswith("lesion_")]
+        sel = np.isin(self.tet_region, ids)
+        c = self.nodes[self.tets[sel]].mean(axis=1)
+        out = geo.ellipsoid_level(c, np.asarray(self.design.bulb.semi_axes_mm) * MM) >= 1.0
+        return float(self.tet_volumes()[sel][out].sum())
 
     def min_dihedral_deg(self) -> float:
         """Smallest dihedral angle over all tets, degrees (a quality figure)."""
@@ -430,6 +444,7 @@ def model_summary(model: PhantomModel, quality: bool = True) -> dict[str, float]
         "tets": len(model.tets),
         "bulb_design_mm3": model.design.bulb.volume_mm3,
         "bulb_mesh_mm3": model.bulb_volume() / MM**3,
+        "junction_mesh_mm3": model.junction_volume() / MM**3,
     }
     if quality:
         out["min_dihedral_deg"] = model.min_dihedral_deg()

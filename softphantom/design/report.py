@@ -25,6 +25,8 @@ def design_report_md(model: PhantomModel) -> str:
     lines += [
         "",
         f"- nodes: {int(s['nodes'])}, tets: {int(s['tets'])} (linear), fixed nodes: {len(model.fixed_nodes)}",
+        *([f"- rounded arm junctions: {s['junction_mesh_mm3']:.1f} mm³ of silicone outside the bulb's surface "
+           "(the fillets and the arms' first millimetres, meshed with the bulb)"] if s["junction_mesh_mm3"] else []),
         f"- min dihedral angle: {s['min_dihedral_deg']:.1f} deg",
         f"- mesh sizes: bulb {mp.size_mm:.3g} mm, bulb surface {mp.surface_size_mm:.3g} mm, "
         f"arms {mp.arm_size_mm:.3g} mm, cavity walls {mp.cavity_segments:.3g} segments around",
