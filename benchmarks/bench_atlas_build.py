@@ -6,9 +6,17 @@ local Dask cluster of ``--workers`` processes, and prints wall seconds, CPU seco
 (summed over the workers) per grid point, the atlas size and the peak RSS of this process.
 ``--save FILE`` keeps the grid values (volumes, tracked points, field) to compare two builds with
 ``--compare FILE`` (max deviation relative to each output's span over the grid: the check that a
-faster build reaches the same converged equilibria).
+faster build reaches the same converged equilibria). ``--cache DIR`` writes the atlas where
+``load_or_build`` (and ``bench_estimate.py --atlas-cache DIR --contact-radius-mm 4``) finds it.
 
-    nice -n 10 .venv/bin/python benchmarks/bench_atlas_build.py --workers 2 [--save grid.npz]
+Same run, after the build: the **peer** — ``--peer-points`` grid points (seeded) each solved on its
+own from rest (``ForwardModel.solve``: continuation in ≤ 1 N steps, a new factor where the chord
+stalls; what every grid point would cost without the build's walk), CPU seconds a point and their
+ratio to the build's; and **one plane** of the build (``_sweep``, f_x index 2, lowest pressure:
+35 points) in this process, alone and then with 2 busy processes started by the benchmark (both
+cores busy): wall and CPU seconds.
+
+    nice -n 10 .venv/bin/python benchmarks/bench_atlas_build.py --workers 2 [--save grid.npz] [--cache DIR]
 """
 
 from __future__ import annotations
@@ -26,7 +34,35 @@ import numpy as np  # noqa: E402
 
 from softphantom.design import BIPDesign, build_model, load_model  # noqa: E402
 from softphantom.estimation import AtlasConfig, EstimatorConfig  # noqa: E402
-from softphantom.estimation.atlas import build_atlas  # noqa: E402
+from softphantom.estimation.atlas import _sweep, atlas_key, atlas_path, build_atlas  # noqa: E402
+from softphantom.estimation.forward import ForwardModel  # noqa: E402
+from bench_estimate import start_load, stop_load  # noqa: E402 - the benchmarks' busy processes
+
+
+def peer_cpu_per_point(model, cfg, acfg, n: int, seed: int = 0) -> float:
+    """CPU seconds a grid point solved on its own from rest (a fresh ForwardModel each: the
+    naive build), over ``n`` seeded grid points."""
+    rng = np.random.default_rng(seed)
+    axes = acfg.axes()
+    cpu = []
+    for _ in range(n):
+        lam = np.array([ax[rng.integers(len(ax))] for ax in axes])
+        t = time.process_time()
+        ForwardModel(model, cfg).solve(lam)
+        cpu.append(time.process_time() - t)
+        print(f"  peer: {np.round(lam[:3], 2).tolist()} N, {lam[3] * 1e-3:.1f} kPa from rest: {cpu[-1]:.2f} CPU-s")
+    return float(np.mean(cpu))
+
+
+def plane(model, cfg, acfg, busy: bool) -> tuple[float, float]:
+    """(wall s, CPU s) of one plane of the build in this process (``busy``: 2 busy processes beside)."""
+    procs = start_load(2) if busy else []
+    try:
+        t, c = time.perf_counter(), time.process_time()
+        _sweep(model, cfg, acfg, 2, 0)
+        return time.perf_counter() - t, time.process_time() - c
+    finally:
+        stop_load(procs)
 
 
 def grid_values(at) -> dict[str, np.ndarray]:
@@ -57,12 +93,16 @@ def main() -> None:
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--save", help="write the grid values here (npz)")
     ap.add_argument("--compare", help="compare the grid values with this file (npz from --save)")
+    ap.add_argument("--cache", help="model directory to write the atlas into (MODEL/atlas/<key>.npz)")
+    ap.add_argument("--peer-points", type=int, default=3, help="grid points solved on their own from rest (0: none)")
+    ap.add_argument("--no-busy", action="store_true", help="skip the one-plane quiet/busy figure")
     a = ap.parse_args()
     model = load_model(a.model) if a.model else build_model(BIPDesign(), a.mesh_size_mm)
     acfg = AtlasConfig()
+    cfg = EstimatorConfig()
     load0 = os.getloadavg()
     t = time.perf_counter()
-    at = build_atlas(model, EstimatorConfig(), acfg, n_workers=a.workers, progress=False)
+    at = build_atlas(model, cfg, acfg, n_workers=a.workers, progress=False)
     wall = time.perf_counter() - t
     load1 = os.getloadavg()
     n = at.solved.size
@@ -71,6 +111,19 @@ def main() -> None:
           f"{at.solves} converged, {at.nbytes / 1e6:.1f} MB ({at.modes.shape[1]} field modes); "
           f"peak RSS of this process {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e3:.0f} MB; "
           f"load average {load0[0]:.1f} at start, {load1[0]:.1f} at end")
+    if a.cache:
+        path = at.save(atlas_path(a.cache, atlas_key(ForwardModel(model, cfg), acfg)))
+        print(f"atlas written to {path}")
+    n_pts = at.build_cpu_s / n
+    if a.peer_points:
+        peer = peer_cpu_per_point(model, cfg, acfg, a.peer_points)
+        print(f"peer (each point from rest, same run, load average {os.getloadavg()[0]:.1f}): {peer:.2f} CPU-s a "
+              f"point; the build's walk {peer / n_pts:.1f}x cheaper a point")
+    if not a.no_busy:
+        for busy in (False, True):
+            wall, cpu = plane(model, cfg, acfg, busy)
+            print(f"one plane (35 points) in this process{', 2 busy processes beside' if busy else ', alone'}: "
+                  f"{wall:.1f} s wall, {cpu:.1f} CPU-s (load average {os.getloadavg()[0]:.1f})")
     g = grid_values(at)
     if a.save:
         np.savez(a.save, **g)

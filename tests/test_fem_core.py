@@ -282,6 +282,16 @@ def test_newton_step_on_an_indefinite_tangent_is_a_shifted_cholesky(monkeypatch)
     assert solver.analyses == 1
 
 
+def _cantilever():
+    """A clamped 60 mm beam with 0.1 N down at its tip: (fem, f_ext, its Newton solution)."""
+    X, T = box_mesh((0.06, 0.01, 0.01), (12, 2, 2))
+    fem = build_fem(X, T, MAT, fixed_nodes=np.flatnonzero(X[:, 0] < 1e-9))
+    tip = np.flatnonzero(X[:, 0] > 0.06 - 1e-9)
+    f = np.zeros(fem.n_dof)
+    f[3 * tip + 2] = -0.1 / tip.size
+    return fem, f, solve_static(fem, f, tol=1e-10, solver="cholmod")
+
+
 def test_a_tangent_that_loses_definiteness_in_a_large_load_step_cuts_the_step(monkeypatch):
     """Newton does not step through an indefinite tangent within a large load increment (the
     step is too large; continuation instead): the increment is halved, and the continued solve
@@ -289,12 +299,7 @@ def test_a_tangent_that_loses_definiteness_in_a_large_load_step_cuts_the_step(mo
     pytest.importorskip("sksparse.cholmod")
     import softphantom.fem.solve as fs
 
-    X, T = box_mesh((0.06, 0.01, 0.01), (12, 2, 2))
-    fem = build_fem(X, T, MAT, fixed_nodes=np.flatnonzero(X[:, 0] < 1e-9))
-    tip = np.flatnonzero(X[:, 0] > 0.06 - 1e-9)
-    f = np.zeros(fem.n_dof)
-    f[3 * tip + 2] = -0.1 / tip.size
-    ref = fs.solve_static(fem, f, tol=1e-10, solver="cholmod")
+    fem, f, ref = _cantilever()
     real = fs.SparseSolver.factorize
     calls = {"n": 0}
 
@@ -321,12 +326,7 @@ def test_an_increment_that_may_not_be_cut_steps_on_shifted_when_asked(monkeypatc
     pytest.importorskip("sksparse.cholmod")
     import softphantom.fem.solve as fs
 
-    X, T = box_mesh((0.06, 0.01, 0.01), (12, 2, 2))
-    fem = build_fem(X, T, MAT, fixed_nodes=np.flatnonzero(X[:, 0] < 1e-9))
-    tip = np.flatnonzero(X[:, 0] > 0.06 - 1e-9)
-    f = np.zeros(fem.n_dof)
-    f[3 * tip + 2] = -0.1 / tip.size
-    ref = fs.solve_static(fem, f, tol=1e-10, solver="cholmod")
+    fem, f, ref = _cantilever()
     real, real_ldlt = fs.SparseSolver.factorize, fs.indefinite_solve
 
     def run(policy):
