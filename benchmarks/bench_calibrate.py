@@ -21,6 +21,7 @@ import argparse
 import dataclasses
 import json
 import os
+import resource
 import subprocess
 import sys
 import time
@@ -29,6 +30,7 @@ from pathlib import Path
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 
+from softphantom.calibration.forward import ARM_NAMES  # noqa: E402
 from softphantom.calibration import FitOptions, SessionSpec, calibrate, rmse_ratio  # noqa: E402
 from softphantom.design import BIPDesign, build_model, load_model, save_model  # noqa: E402
 from softphantom.design.params import MaterialSpec  # noqa: E402
@@ -67,18 +69,46 @@ def truth_design(design: BIPDesign, law: str, order: int = 1) -> BIPDesign:
     return with_law(design, law, order, BULB_TRUE, "_truth")
 
 
-def believe_nominal_tube(rec: Path) -> None:
-    """Rewrite the recording's metadata as the lab would have it: a 12 m tube."""
+def believe_tube(rec: Path, length_m: float = 12.0) -> None:
+    """Rewrite the recording's metadata as the lab would have it: a ``length_m`` tube (the
+    nominal 12 m unless the lab measured it)."""
     lines = rec.read_text().splitlines(keepends=True)
     meta = json.loads(lines[0][2:])
     for key in ("bench", "design"):
         if key in meta:
-            meta[key]["tube_length_m"] = 12.0
+            meta[key]["tube_length_m"] = length_m
     lines[0] = "# " + json.dumps(meta) + "\n"
     rec.write_text("".join(lines))
 
 
-def sessions(model_dir: Path, out: Path, law: str, truth_scale: float, truth_order: int = 1) -> dict[str, Path]:
+def set_tube(s: dict[str, Path], length_m: float) -> None:
+    for d in s.values():
+        believe_tube(d / "recording.csv", length_m)
+
+
+def long_scenario(out: Path, point: str, duration_s: float, seed: int) -> Path:
+    """A bench recording of ``duration_s`` at ``point`` as docs/calibration.md asks for: rest
+    1.5 s, then pushes every 3.5 s (1 s rise, 1 s hold, 1 s release) of 2–3.5 N along +y with
+    ±0.8 N sideways, directions drawn with ``seed``. Written as a scenario TOML under ``out``."""
+    import numpy as np
+
+    rng = np.random.default_rng(seed)
+    lines = [f'name = "bench-{point}-{duration_s:g}s"', 'description = "calibration pushes (bench_calibrate)"',
+             f"duration_s = {duration_s}", "rest_s = 1.5", "patch_radius_mm = 4.0"]
+    t = 2.0
+    while t + 3.0 <= duration_s - 0.5:
+        f = [rng.uniform(-0.8, 0.8), rng.uniform(2.0, 3.5), rng.uniform(-0.8, 0.8)]
+        lines += ["", "[[push]]", f'point = "{point}"', f"start_s = {t:.2f}", "rise_s = 1.0", "hold_s = 1.0",
+                  "fall_s = 1.0", "force_N = [" + ", ".join(f"{v:.3f}" for v in f) + "]"]
+        t += 3.5
+    path = out / f"bench-{point}-{duration_s:g}s.toml"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def sessions(model_dir: Path, out: Path, law: str, truth_scale: float, truth_order: int = 1,
+             recording_s: float = 0.0) -> dict[str, Path]:
     from softphantom.virtual.board import BoardConfig
     from softphantom.virtual.run import VirtualConfig, simulate, write_run
     from softphantom.virtual.tracker import TrackerConfig
@@ -88,31 +118,46 @@ def sessions(model_dir: Path, out: Path, law: str, truth_scale: float, truth_ord
     # node spacing truth_scale x the model's (P2 elements twice the spacing, as virtual.truth_model)
     tm = build_model(truth_design(model.design, law, truth_order), model.design.mesh.size_mm * truth_scale * truth_order)
     res = {}
-    for i, sc in enumerate(("push-on-centre", "push-off-centre", "needle-insertion")):
-        d = out / sc
+    files = {sc: ROOT / "scenarios" / f"{sc}.toml" for sc in ("push-on-centre", "push-off-centre", "needle-insertion")}
+    if recording_s:  # the fitting sessions: two recordings of recording_s / 2 each
+        files["push-on-centre"] = long_scenario(out / "scenarios", "on-centre", recording_s / 2, 21)
+        files["push-off-centre"] = long_scenario(out / "scenarios", "off-centre", recording_s / 2, 22)
+    for i, (sc, path) in enumerate(files.items()):
+        d = out / (sc if not recording_s or sc == "needle-insertion" else path.stem)
         if not (d / "recording.csv").is_file():
             t = time.perf_counter()
             cfg = VirtualConfig(TruthConfig(), BoardConfig(seed=11 + i, tube_length_m=12.0 * TUBE_TRUE,
                                                            gains=(1, 1, GAIN_TRUE, 1, 1)), TrackerConfig(seed=11 + i))
-            write_run(simulate(ROOT / "scenarios" / f"{sc}.toml", model, cfg, truth_mesh=tm), d)
-            believe_nominal_tube(d / "recording.csv")
-            print(f"  virtual session {sc}: {time.perf_counter() - t:.0f} s (truth {len(tm.nodes)} nodes)")
+            write_run(simulate(path, model, cfg, truth_mesh=tm), d)
+            believe_tube(d / "recording.csv")
+            print(f"  virtual session {d.name}: {time.perf_counter() - t:.0f} s (truth {len(tm.nodes)} nodes)", flush=True)
         res[sc] = d
     return res
 
 
-def run(model_dir, s, workers, fix=()):
+def cpu_s() -> float:
+    """CPU seconds (user + system) of this process and of its finished children (the Dask workers
+    of a local cluster, once it is closed)."""
+    return sum(getattr(resource.getrusage(w), f) for w in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN)
+               for f in ("ru_utime", "ru_stime"))
+
+
+def run(model_dir, s, workers, fix=(), measured=()):
     specs = [SessionSpec(s[sc] / "recording.csv", s[sc] / "tracker_motive.csv", c, s[sc] / "truth.csv")
              for sc, c in (("push-on-centre", "on-centre"), ("push-off-centre", "off-centre"))]
     hold = [SessionSpec(s["needle-insertion"] / "recording.csv", s["needle-insertion"] / "truth.csv", "on-centre")]
-    t = time.perf_counter()
-    cal = calibrate(model_dir, specs, hold, options=FitOptions(fix=tuple(fix)), n_workers=workers,
-                    progress=lambda line: print("   ", line))
-    return cal, time.perf_counter() - t
+    t, c = time.perf_counter(), cpu_s()
+    cal = calibrate(model_dir, specs, hold, options=FitOptions(fix=tuple(fix), measured=tuple(measured)), n_workers=workers,
+                    progress=lambda line: print("   ", line, flush=True))
+    wall = time.perf_counter() - t
+    print(f"  wall {wall:.0f} s (fit {cal.fit.seconds:.0f} s, pose checks and set-up {wall - cal.fit.seconds:.0f} s), "
+          f"CPU {cpu_s() - c:.0f} s with the workers, load average {' '.join(f'{x:.1f}' for x in os.getloadavg())}")
+    return cal, wall
 
 
-def report(cal, wall):
-    truth = {"stiffness_bulb_factor": BULB_TRUE, "gain_back_xpos": GAIN_TRUE, "tube_volume_factor": TUBE_TRUE}
+def report(cal, wall, tube_in_recording: bool = False):
+    truth = {"stiffness_bulb_factor": BULB_TRUE, "gain_back_xpos": GAIN_TRUE,
+             "tube_volume_factor": 1.0 if tube_in_recording else TUBE_TRUE}
     print(f"\n{'parameter':30s} {'truth':>8s} {'fitted':>9s} {'95 % interval':>22s} {'error':>8s}  identifiable")
     for i, n in enumerate(cal.fit.names):
         tv = truth.get(n, 1.0 if n.startswith(("gain", "stiffness")) else None)
@@ -142,6 +187,13 @@ def main() -> None:
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--cache", type=Path, default=ROOT / "out" / "bench" / "calibrate")
     ap.add_argument("--no-loaded", action="store_true", help="skip the run with both cores busy")
+    ap.add_argument("--runs", default="free,tube-measured",
+                    help="comma-separated: free (all parameters free), tube-measured (tube_volume_factor fixed, "
+                         "the recordings carry the true tube), gains-measured (as tube-measured, and each "
+                         "transducer's gain measured against a reference gauge to 1 %%)")
+    ap.add_argument("--recording-s", type=float, default=0.0,
+                    help="fit on two generated push recordings (on- and off-centre) of this total length (s) "
+                         "instead of the repository's push scenarios (issue 14 item 3: 60)")
     a = ap.parse_args()
     nominal = BIPDesign() if a.nominal_law is None and a.nominal_order == 1 else \
         with_law(BIPDesign(), a.nominal_law or "corotational", a.nominal_order)
@@ -154,25 +206,38 @@ def main() -> None:
     print(f"nominal model {a.mesh_size_mm:g} mm: {len(m.nodes)} nodes, P{m.element_order}, "
           f"laws {sorted({x.law for x in m.design.materials})}; truth {a.truth_law} P{a.truth_order}, "
           f"node spacing {a.truth_scale:g} x")
-    s = sessions(model_dir, out, a.truth_law, a.truth_scale, a.truth_order)
-    print("\n== calibrate, quiet machine (all parameters free)")
-    cal, wall = run(model_dir, s, a.workers)
-    report(cal, wall)
-    print("\n== calibrate with the tube measured (tube_volume_factor fixed at the truth)")
-    for sc in s.values():  # the lab measured the tube: 13.2 m in the metadata
-        rec = sc / "recording.csv"
-        lines = rec.read_text().splitlines(keepends=True)
-        meta = json.loads(lines[0][2:])
-        for key in ("bench", "design"):
-            if key in meta:
-                meta[key]["tube_length_m"] = 12.0 * TUBE_TRUE
-        lines[0] = "# " + json.dumps(meta) + "\n"
-        rec.write_text("".join(lines))
-    cal2, wall2 = run(model_dir, s, a.workers, fix=("tube_volume_factor",))
-    report(cal2, wall2)
-    for sc in s.values():
-        believe_nominal_tube(sc / "recording.csv")
-    if not a.no_loaded:
+    s = sessions(model_dir, out, a.truth_law, a.truth_scale, a.truth_order, a.recording_s)
+    runs = a.runs.split(",")
+    cal = wall = None
+    if "free" in runs:
+        print("\n== calibrate, quiet machine (all parameters free)")
+        cal, wall = run(model_dir, s, a.workers)
+        report(cal, wall)
+    if "tube-measured" in runs:
+        print("\n== calibrate with the tube measured (tube_volume_factor fixed at the truth)")
+        set_tube(s, 12.0 * TUBE_TRUE)  # the lab measured the tube: 13.2 m in the metadata
+        try:
+            cal2, wall2 = run(model_dir, s, a.workers, fix=("tube_volume_factor",))
+        finally:
+            set_tube(s, 12.0)
+        report(cal2, wall2, tube_in_recording=True)
+    if "gains-measured" in runs:
+        # each transducer checked against a reference gauge to 1 % (the check's own error drawn
+        # with a seed): the gains are the lab's measurement ± 1 %, not the fit's free knobs
+        import numpy as np
+
+        err = np.random.default_rng(5).normal(0.0, 0.01, 4)
+        gains = [g * (1 + e) for g, e in zip((1.0, 1.0, GAIN_TRUE, 1.0), err)]
+        meas = tuple((f"gain_{a}", round(g, 4), 0.01) for a, g in zip(ARM_NAMES, gains))
+        print("\n== calibrate with the tube measured and the gains measured ± 1 %: "
+              + ", ".join(f"{n} {v}" for n, v, _ in meas))
+        set_tube(s, 12.0 * TUBE_TRUE)
+        try:
+            cal4, wall4 = run(model_dir, s, a.workers, fix=("tube_volume_factor",), measured=meas)
+        finally:
+            set_tube(s, 12.0)
+        report(cal4, wall4, tube_in_recording=True)
+    if not a.no_loaded and wall is not None:
         print("\n== calibrate while a second process keeps both cores busy")
         load = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(2)]
         try:

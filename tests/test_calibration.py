@@ -153,10 +153,10 @@ def test_cli_writes_a_calibrated_model(coarse, sessions, tmp_path, capsys):
 
     s = sessions["push-on-centre"]
     out = tmp_path / "calibrated"
-    fix = ["stiffness_bulb_factor", "tube_volume_factor", "lag"] + [f"gain_{a}" for a in
-                                                                      ("front_zpos", "front_zneg", "back_xpos", "back_xneg")]
+    fix = ["stiffness_bulb_factor", "tube_volume_factor", "lag"] + [f"gain_{a}" for a in ("front_zpos", "front_zneg", "back_xneg")]
     args = ["calibrate", "--model", str(coarse), "--recording", str(s / "recording.csv"), "--truth", str(s / "truth.csv"),
-            "--known-loads", str(s / "truth.csv"), "--out", str(out), "--max-keyframes", "4", "--workers", "1"]
+            "--known-loads", str(s / "truth.csv"), "--out", str(out), "--max-keyframes", "4", "--workers", "1",
+            "--measured", f"gain_back_xpos={GAIN_TRUE}"]  # checked against a reference gauge: held there
     for f in fix:
         args += ["--fix", f]
     assert main(args) == 0
@@ -165,6 +165,7 @@ def test_cli_writes_a_calibrated_model(coarse, sessions, tmp_path, capsys):
     assert "stiffness_arms_factor" in (out / "parameters.csv").read_text()
     cal = json.loads((out / "calibration.json").read_text())
     assert cal["stiffness_factor"]["arms"] == pytest.approx(ARMS_TRUE, rel=0.05)
+    assert "gain_back_xpos,1.08," in (out / "parameters.csv").read_text().replace(" ", "")
     model = load_model(out)  # a model directory like any other, with the fitted stiffness in its design
     mats = {m.name: dict(m.values) for m in model.design.materials}
     arms = model.design.material_of_regions()["arm_front_zpos"]
@@ -172,3 +173,38 @@ def test_cli_writes_a_calibrated_model(coarse, sessions, tmp_path, capsys):
     assert (out / "report.html").is_file() and re.search(r"held-out|Fitting data", (out / "report.html").read_text())
     # never over an existing result
     assert main(args) == 2
+
+
+def test_measured_parameters_centre_the_prior_or_hold_the_value(tmp_path):
+    from softphantom.calibration import parameter_set
+    from softphantom.calibration.fit import Keyframes, Problem
+    from softphantom.cli import main
+    from softphantom.errors import UserError
+
+    p = {q.name: q for q in parameter_set(measured=(("tube_volume_factor", 1.1, 0.02), ("pivot_x_mm", 3.0, None),
+                                                    ("stiffness_arms_factor", 2.0, 0.1)))}
+    assert (p["tube_volume_factor"].nominal, p["tube_volume_factor"].prior_sd) == (1.1, 0.02)
+    assert p["pivot_x_mm"].nominal == pytest.approx(3e-3) and p["pivot_x_mm"].prior_sd == 0.02  # prior kept: held
+    assert p["stiffness_arms_factor"].nominal == pytest.approx(np.log(2.0))
+    assert p["stiffness_arms_factor"].prior_sd == pytest.approx(0.05)  # 0.1 of 2.0: relative on the log scale
+    assert p["gain_front_zpos"] == parameter_set()[[q.name for q in parameter_set()].index("gain_front_zpos")]
+    # a value held without SD is not free; one with SD is
+    opts = FitOptions(measured=(("pivot_x_mm", 3.0, None), ("tube_volume_factor", 1.1, 0.02)))
+    fr = Keyframes(*(np.zeros(n) for n in (1, 1)), np.zeros((1, 4)), np.zeros(1), np.zeros((1, 3)), np.zeros((1, 3)))
+    prob = Problem("m", [], fr, np.zeros((3, 3)), lambda t: [], opts, parameter_set(measured=opts.measured),
+                   pose_rows=np.zeros(1, bool))
+    free = dict(zip(prob.names(), prob.free_mask()))
+    assert not free["pivot_x_mm"] and free["tube_volume_factor"] and free["gain_back_xpos"]
+    for bad, match in ((("nope", 1.0, None), "unknown parameter 'nope'"),
+                       (("stiffness_bulb_factor", 0.0, None), "must be > 0"),
+                       (("gain_back_xpos", 1.0, -0.1), "standard deviation must be > 0")):
+        with pytest.raises(UserError, match=match):
+            parameter_set(measured=(bad,))
+    with pytest.raises(UserError, match="given twice"):
+        parameter_set(measured=(("gain_back_xpos", 1.0, None), ("gain_back_xpos", 1.1, None)))
+    # the CLI refuses a malformed or unknown measurement before any work, nothing written
+    for text in ("gain_back_xpos", "gain_back_xpos=x", "bogus=1", "gain_back_xpos=1:0"):
+        out = tmp_path / "out"
+        code = main(["calibrate", "--model", str(tmp_path / "no-model"), "--recording", "r.csv", "--truth", "t.csv",
+                     "--out", str(out), "--measured", text])
+        assert code == 2 and not out.exists()

@@ -50,9 +50,50 @@ class Parameter:
     def show(self, v: float) -> float:
         return math.exp(v) if self.log else v * self.scale
 
+    def internal(self, shown: float) -> float:
+        """The internal value of a displayed one (inverse of :meth:`show`)."""
+        return math.log(shown) if self.log else shown / self.scale
 
-def parameter_set(groups=GROUPS) -> tuple[Parameter, ...]:
-    """Every global parameter the calibration knows, in order."""
+    def measured(self, value: float, sd: float | None) -> "Parameter":
+        """This parameter with a bench measurement ``value`` ± ``sd`` (displayed units) as its
+        nominal value and prior (``sd`` None: the prior is kept; the caller holds it fixed)."""
+        if not math.isfinite(value) or (self.log and value <= 0):
+            raise UserError(f"--measured {self.name}: value must be {'> 0' if self.log else 'finite'}, got {value}")
+        if sd is not None and not (math.isfinite(sd) and sd > 0):
+            raise UserError(f"--measured {self.name}: standard deviation must be > 0, got {sd}")
+        if sd is None:
+            prior = self.prior_sd
+        else:  # a log parameter's sd is relative: d ln v = dv / v
+            prior = sd / value if self.log else sd / self.scale
+        return Parameter(self.name, self.internal(value), prior, self.log, self.scale)
+
+
+def parameter_set(groups=GROUPS, measured: tuple[tuple[str, float, float | None], ...] = ()) -> tuple[Parameter, ...]:
+    """Every global parameter the calibration knows, in order; those named in ``measured``
+    ((name, value, sd) in displayed units, see :class:`FitOptions`) centred on their measurement.
+
+    >>> p = {q.name: q for q in parameter_set(measured=(("gain_back_xpos", 1.05, 0.01),
+    ...                                                  ("stiffness_bulb_factor", 1.3, 0.13)))}
+    >>> p["gain_back_xpos"].nominal, p["gain_back_xpos"].prior_sd
+    (1.05, 0.01)
+    >>> round(p["stiffness_bulb_factor"].show(p["stiffness_bulb_factor"].nominal), 12), p["stiffness_bulb_factor"].prior_sd
+    (1.3, 0.1)
+    """
+    ps = _parameters(groups)
+    names = [p.name for p in ps]
+    seen = set()
+    for name, value, sd in measured:
+        if name not in names:
+            raise UserError(f"--measured: unknown parameter {name!r}; have {', '.join(names)}")
+        if name in seen:
+            raise UserError(f"--measured: {name} given twice")
+        seen.add(name)
+        i = names.index(name)
+        ps[i] = ps[i].measured(float(value), None if sd is None else float(sd))
+    return tuple(ps)
+
+
+def _parameters(groups) -> list[Parameter]:
     ps = [Parameter(f"stiffness_{g}_factor", 0.0, math.log(2.0), log=True) for g in groups]
     # MPXV7002 full-scale span 3.5–4.5 V around 4.0 V (±12.5 %): taken as ±2σ
     ps += [Parameter(f"gain_{a}", 1.0, 0.0625) for a in ARM_NAMES]
@@ -60,21 +101,25 @@ def parameter_set(groups=GROUPS) -> tuple[Parameter, ...]:
     ps += [Parameter("tube_volume_factor", 1.0, 0.3)]
     ps += [Parameter(f"registration_rot_{a}_deg", 0.0, math.radians(5.0), scale=180 / math.pi) for a in "xyz"]
     ps += [Parameter(f"pivot_{a}_mm", 0.0, 0.02, scale=1e3) for a in "xyz"]
-    return tuple(ps)
+    return ps
 
 
 @dataclass(frozen=True)
 class FitOptions:
     """``sigma_dp_Pa``, ``sigma_mm``, ``sigma_deg``, ``sigma_force_N``: the residuals' scales
     (``sigma_dp_Pa`` None: each session's measured rest noise per arm);
-    ``fix``: names of parameters held at their nominal value; ``max_iter``; ``tol`` relative cost
-    change that ends the iterations; ``radius_m`` the contact patch radius."""
+    ``fix``: names of parameters held at their nominal value; ``measured``: parameters measured on
+    the bench apart from the session — a transducer's gain against a reference gauge, the tube's
+    volume — as (name, value, sd) in displayed units: the measurement becomes the parameter's
+    nominal value and prior (sd None: held at the value); ``max_iter``; ``tol`` relative cost change
+    that ends the iterations; ``radius_m`` the contact patch radius."""
 
     sigma_dp_Pa: float | None = None
     sigma_mm: float = 0.2
     sigma_deg: float = 0.2
     sigma_force_N: float = 0.02
     fix: tuple[str, ...] = ()
+    measured: tuple[tuple[str, float, float | None], ...] = ()
     max_iter: int = 20
     tol: float = 1e-5
     radius_m: float = 4e-3
@@ -180,7 +225,7 @@ class Problem:
         return np.concatenate([[p.prior_sd for p in self.params], np.full(len(self.sessions), self.options.lag_prior_s)])
 
     def free_mask(self) -> np.ndarray:
-        fix = set(self.options.fix)
+        fix = set(self.options.fix) | {n for n, _, sd in self.options.measured if sd is None}
         m = np.array([p.name not in fix for p in self.params] + ["lag" not in fix] * len(self.sessions))
         return m
 
@@ -424,8 +469,10 @@ def fit(problem: Problem, forces0: np.ndarray, progress: Callable[[int, float, f
     corr[~np.isfinite(corr)] = 0.0
     prior = problem.prior_sd()
     ratio = sd / prior
-    ident = free_g & (ratio < identifiable_ratio)
     names = problem.names()
+    # a measured parameter's prior is the measurement: it is known whatever the session adds
+    by_measure = np.isin(names, [n for n, _, sd in problem.options.measured if sd is not None])
+    ident = free_g & ((ratio < identifiable_ratio) | by_measure)
     g = z[:ng]
     lo = g - 1.96 * sd
     hi = g + 1.96 * sd

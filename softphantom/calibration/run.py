@@ -143,9 +143,11 @@ def _initial(problem: Problem, sessions: list[Session]) -> tuple[np.ndarray, np.
     return forces, lags
 
 
-def _pose_errors(problem: Problem, g: np.ndarray, forces0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _pose_errors(problem: Problem, g: np.ndarray, forces0: np.ndarray,
+                 say: Callable[[str], None] | None = None, what: str = "") -> tuple[np.ndarray, np.ndarray]:
     """(K, 6) mm/deg: pose from forces fitted to the pressures alone (all globals held at ``g``)
-    minus the take; (K, 3) N those forces minus the known loads (NaN where none)."""
+    minus the take; (K, 3) N those forces minus the known loads (NaN where none). ``say`` gets
+    one line with the solves and seconds it took, naming it ``what``."""
     names = problem.names()
     p = dataclasses.replace(problem, options=dataclasses.replace(problem.options, fix=tuple(names) + ("lag",),
                                                                   max_iter=8),
@@ -154,6 +156,8 @@ def _pose_errors(problem: Problem, g: np.ndarray, forces0: np.ndarray) -> tuple[
                             params=tuple(dataclasses.replace(pp, nominal=float(v))
                                          for pp, v in zip(problem.params, g)))
     res = fit(p, forces0)
+    if say:
+        say(f"pose check, {what}: {res.solves} forward solves, {len(res.history) - 1} iterations, {res.seconds:.0f} s")
     u = p.unpack(res.z[:p.n_global])
     fr = p.frames
     err = np.full((len(fr), 6), np.nan)
@@ -205,7 +209,7 @@ def calibrate(model_dir, specs: list[SessionSpec], holdout: list[SessionSpec] = 
     with ctx as client:
         solve_many = _solver(client)
         rm = rest_markers(str(model_dir), tuple(frames.contact[0]), options.radius_m)
-        problem = Problem(str(model_dir), sessions, frames, rm, solve_many, options, parameter_set())
+        problem = Problem(str(model_dir), sessions, frames, rm, solve_many, options, parameter_set(measured=options.measured))
         forces0, lags0 = _initial(problem, sessions)
         problem = dataclasses.replace(problem, lag0_s=lags0, pose_rows=None)
         say("lag (take − recording): " + ", ".join(f"{se.name} {lg * 1e3:+.1f} ms" for se, lg in zip(sessions, lags0)))
@@ -214,21 +218,24 @@ def calibrate(model_dir, specs: list[SessionSpec], holdout: list[SessionSpec] = 
             say(f"iteration {it}: cost {cost:.6g} (λ {lam:.2g}), {problem.solves} forward solves")
 
         result = fit(problem, forces0, tick)
+        say(f"fit: {result.solves} forward solves, {result.seconds:.0f} s")
         g_cal = result.z[:problem.n_global]
         g_nom = problem.nominal()
-        fitting = HeldOut(POSE_DOF, frames.t, *_pair(_pose_errors(problem, g_nom, forces0),
-                                                       _pose_errors(problem, g_cal, result.forces)))
+        fitting = HeldOut(POSE_DOF, frames.t, *_pair(_pose_errors(problem, g_nom, forces0, say, "fitting data, nominal"),
+                                                       _pose_errors(problem, g_cal, result.forces, say,
+                                                                    "fitting data, calibrated")))
         held_out = None
         if held:
             htimes = [select_keyframes(se, max_keyframes) for se in held]
             hframes = Keyframes.of(held, htimes)
-            hp = Problem(str(model_dir), held, hframes, rm, solve_many, options, parameter_set())
+            hp = Problem(str(model_dir), held, hframes, rm, solve_many, options, parameter_set(measured=options.measured))
             f0, hl = _initial(hp, held)
             gl = len(hp.params)
             gn = np.concatenate([g_nom[:gl], hl])
             gc = np.concatenate([g_cal[:gl], hl])
             hp = dataclasses.replace(hp, lag0_s=hl, pose_rows=None)
-            held_out = HeldOut(POSE_DOF, hframes.t, *_pair(_pose_errors(hp, gn, f0), _pose_errors(hp, gc, f0)))
+            held_out = HeldOut(POSE_DOF, hframes.t, *_pair(_pose_errors(hp, gn, f0, say, "held-out, nominal"),
+                                                           _pose_errors(hp, gc, f0, say, "held-out, calibrated")))
     return Calibration(model_dir, result, frames, sessions, fitting, held_out, options,
                        meta={"sessions": [f"s{i + 1}: {s.recording}" for i, s in enumerate(specs)],
                              "held_out": [f"h{i + 1}: {s.recording}" for i, s in enumerate(holdout)]})

@@ -25,6 +25,19 @@ def _contact(text: str):
     return tuple(v)
 
 
+def _measured(texts: list[str]) -> tuple[tuple[str, float, float | None], ...]:
+    """``NAME=VALUE`` (held at VALUE) or ``NAME=VALUE:SD`` (VALUE ± SD as its prior), displayed units."""
+    out = []
+    for text in texts:
+        name, eq, rest = text.partition("=")
+        if not eq or not name.strip():
+            raise UserError(f"--measured: expected NAME=VALUE or NAME=VALUE:SD, got {text!r}")
+        value, colon, sd = rest.partition(":")
+        out.append((name.strip(), finite_number(value, f"--measured {name.strip()}"),
+                    finite_number(sd, f"--measured {name.strip()} (SD)") if colon else None))
+    return tuple(out)
+
+
 def _pairs(recordings: list[Path], truths: list[Path], contacts: list[str], known: list[Path], what: str):
     from softphantom.calibration import SessionSpec
 
@@ -51,6 +64,7 @@ def calibrate_cmd(
     holdout_truth: list[Path] = typer.Option(None, "--holdout-truth", help="Take of each --holdout-recording."),
     holdout_contact: list[str] = typer.Option(None, "--holdout-contact", help="Contact point of the held-out sessions."),
     fix: list[str] = typer.Option(None, "--fix", help="Hold a parameter at its nominal value (repeat), e.g. tube_volume_factor, lag."),
+    measured: list[str] = typer.Option(None, "--measured", help="A parameter measured on the bench apart from the session, NAME=VALUE (held there) or NAME=VALUE:SD (its prior), displayed units; repeat. E.g. gain_back_xpos=1.04:0.01 from a reference gauge."),
     max_keyframes: int = typer.Option(16, "--max-keyframes", help="Distinct loads used per session."),
     contact_radius_mm: float = typer.Option(4.0, "--contact-radius-mm", help="Radius of the contact patch the force is spread on (mm)."),
     scheduler: str = typer.Option(None, "--scheduler", help="Address of an existing Dask scheduler (default: a local cluster)."),
@@ -59,7 +73,7 @@ def calibrate_cmd(
 ) -> None:
     """Fit material stiffness, sensor gains/offsets, tube volume, registration and lag to a bench
     session by least squares over forward FEM solves; print the parameters with 95 % intervals."""
-    from softphantom.calibration import FitOptions, calibrate, write_calibration
+    from softphantom.calibration import FitOptions, calibrate, parameter_set, write_calibration
 
     if not (contact_radius_mm > 0 and contact_radius_mm < 50):
         raise UserError(f"--contact-radius-mm must be in (0, 50), got {contact_radius_mm}")
@@ -68,7 +82,8 @@ def calibrate_cmd(
     check_output(out, overwrite=overwrite, directory=True)
     specs = _pairs(recording, truth, contact or [], known_loads or [], "--recording/--truth")
     hold = _pairs(holdout_recording or [], holdout_truth or [], holdout_contact or [], [], "--holdout-recording/--holdout-truth")
-    opts = FitOptions(fix=tuple(fix or ()), radius_m=contact_radius_mm * 1e-3)
+    opts = FitOptions(fix=tuple(fix or ()), measured=_measured(measured or []), radius_m=contact_radius_mm * 1e-3)
+    parameter_set(measured=opts.measured)  # refuse a bad name or value before any work
     cal = calibrate(model, specs, hold, options=opts, scheduler=scheduler, n_workers=workers,
                     max_keyframes=max_keyframes, progress=lambda s: console.print(s, markup=False, highlight=False))
     with staged_output(out, overwrite=overwrite, directory=True) as work:
