@@ -112,7 +112,8 @@ class FitOptions:
     the bench apart from the session — a transducer's gain against a reference gauge, the tube's
     volume — as (name, value, sd) in displayed units: the measurement becomes the parameter's
     nominal value and prior (sd None: held at the value); ``max_iter``; ``tol`` relative cost change
-    that ends the iterations; ``radius_m`` the contact patch radius."""
+    that ends the iterations (the last step's, or the Gauss–Newton model's prediction for the next
+    one); ``radius_m`` the contact patch radius."""
 
     sigma_dp_Pa: float | None = None
     sigma_mm: float = 0.2
@@ -420,6 +421,11 @@ def fit(problem: Problem, forces0: np.ndarray, progress: Callable[[int, float, f
         Jf = J[:, free]
         A = Jf.T @ Jf
         b = -Jf.T @ r
+        # the Gauss–Newton model's own promise, ½ bᵀA⁺b (its undamped step's predicted reduction):
+        # if even it is below tol, a round of forward solves would only confirm convergence
+        # (MINPACK's ftol test on the predicted reduction)
+        if 0.5 * float(b @ np.linalg.lstsq(A, b, rcond=None)[0]) < problem.options.tol * cost:
+            break
         step_ok, rel = False, 0.0
         for _ in range(8):
             try:
