@@ -212,13 +212,15 @@ def test_measured_parameters_centre_the_prior_or_hold_the_value(tmp_path):
 
 def test_fit_stops_when_the_model_promises_no_gain():
     """Forces from pressures alone through a linear FEM stand-in (Boyle's law keeps it mildly
-    nonlinear): the optimum equals scipy's, and no round of forward solves is spent only to
-    confirm it (the Gauss–Newton prediction says done first)."""
+    nonlinear): the optimum equals scipy's, no round of forward solves is spent only to confirm
+    it (the Gauss–Newton prediction says done first), and a trial step whose solves give up is
+    rejected, not fatal."""
     from scipy.optimize import least_squares
 
-    from softphantom.calibration.fit import Keyframes, Problem, fit, parameter_set
+    from softphantom.calibration.fit import TRIAL_MIN_LOAD_STEP, Keyframes, Problem, fit, parameter_set
     from softphantom.calibration.forward import KeyframeSolution
     from softphantom.calibration.session import Session
+    from softphantom.errors import SolverError
     from softphantom.sensing.pneumatics import boyle_dp
 
     rng = np.random.default_rng(0)
@@ -232,10 +234,15 @@ def test_fit_stops_when_the_model_promises_no_gain():
     dp = np.array([boyle_dp(D @ f, VT, se.p0_Pa) for f in f_true]) + rng.normal(0.0, 2.0, (K, 4))
     fr = dataclasses.replace(fr, dp=dp)
 
+    calls = []
+
     def solve_many(tasks):
-        return [KeyframeSolution(np.zeros(3), D @ np.asarray(f), np.zeros((3, 3)), D, np.zeros((4, 2)),
+        calls.append({t[7] for t in tasks})
+        if len(calls) == 2:  # the first trial step is "too far": its solves give up
+            raise SolverError("keyframe: load increment below the trial's limit")
+        return [KeyframeSolution(np.zeros(3), D @ np.asarray(t[4]), np.zeros((3, 3)), D, np.zeros((4, 2)),
                                  np.zeros((3, 3, 3)), np.zeros((3, 3, 2)), ("bulb", "arms"), 1, True, "ok")
-                for (_, _, _, _, f, _, _) in tasks]
+                for t in tasks]
 
     params = parameter_set()
     opts = FitOptions(fix=tuple(p.name for p in params) + ("lag",))
@@ -251,6 +258,9 @@ def test_fit_stops_when_the_model_promises_no_gain():
     c_fit, c_ref = 0.5 * np.sum(r(res.forces) ** 2), 0.5 * np.sum(r(ref) ** 2)
     assert 0.0 <= c_fit - c_ref < 2 * opts.tol * c_ref
     np.testing.assert_allclose(res.forces, ref, atol=1e-3)
+    # the start solves without a limit; trial steps give up early, and a step that gave up was
+    # rejected (the next, shorter one accepted) rather than ending the fit
+    assert calls[0] == {1.0 / 1024} and all(c == {TRIAL_MIN_LOAD_STEP} for c in calls[1:]) and len(calls) >= 3
     h = np.array(res.history)
     # every round of K solves was a step that gained more than tol: none spent only to confirm
     assert res.solves == K * h.size and np.all(-np.diff(h) > opts.tol * h[:-1])

@@ -104,6 +104,14 @@ def _parameters(groups) -> list[Parameter]:
     return ps
 
 
+#: The smallest load increment a trial step's forward solve may cut to (three halvings) before the
+#: step is rejected like one that raises the cost: an equilibrium that needs deeper continuation from
+#: the last accepted one lies outside the region where the linearisation holds (the default
+#: co-rotational model's first step against a neo-Hookean truth: solves at 1/64 increments with
+#: inverting elements, 20 min without finishing the step). The first evaluation is not limited.
+TRIAL_MIN_LOAD_STEP = 1.0 / 8
+
+
 @dataclass(frozen=True)
 class FitOptions:
     """``sigma_dp_Pa``, ``sigma_mm``, ``sigma_deg``, ``sigma_force_N``: the residuals' scales
@@ -246,11 +254,14 @@ class Problem:
         )
 
     # --- forward ---------------------------------------------------------------------------------
-    def solve(self, g: np.ndarray, forces: np.ndarray) -> list[KeyframeSolution]:
+    def solve(self, g: np.ndarray, forces: np.ndarray, trial: bool = False) -> list[KeyframeSolution]:
+        """Every keyframe's solve; a ``trial`` (a step not yet accepted) gives up early
+        (:data:`TRIAL_MIN_LOAD_STEP`)."""
         u = self.unpack(g)
         fr = self.frames
+        mls = TRIAL_MIN_LOAD_STEP if trial else 1.0 / 1024
         tasks = [(self.model_dir, tuple(fr.contact[k]), self.options.radius_m, u["scales"], forces[k],
-                  float(fr.p_urethra[k]), self.x_warm[k]) for k in range(len(fr))]
+                  float(fr.p_urethra[k]), self.x_warm[k], mls) for k in range(len(fr))]
         sols = self.solve_many(tasks)
         self.solves += len(tasks)
         return sols
@@ -270,12 +281,12 @@ class Problem:
             d_tube.append(u["gain"] * (se.p0_Pa * dV[k] / den) * vt)
         return np.array(out), np.array(d_dV), np.array(d_tube)
 
-    def residuals(self, z: np.ndarray, want_jac: bool = True):
-        """Residual vector, Jacobian (dense) and the solutions, at ``z``."""
+    def residuals(self, z: np.ndarray, want_jac: bool = True, trial: bool = False):
+        """Residual vector, Jacobian (dense) and the solutions, at ``z`` (``trial``: see :meth:`solve`)."""
         ng, K = self.n_global, len(self.frames)
         g, forces = z[:ng], z[ng:].reshape(K, 3)
         u = self.unpack(g)
-        sols = self.solve(g, forces)
+        sols = self.solve(g, forces, trial)
         o = self.options
         fr = self.frames
         dV = np.array([s.dV for s in sols])
@@ -436,7 +447,7 @@ def fit(problem: Problem, forces0: np.ndarray, progress: Callable[[int, float, f
             z_try = z.copy()
             z_try[free] += dz
             try:
-                r_try, J_try, sols_try = problem.residuals(z_try)
+                r_try, J_try, sols_try = problem.residuals(z_try, trial=True)
             except SolverError:
                 lam *= 10
                 if progress:

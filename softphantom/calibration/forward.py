@@ -129,17 +129,21 @@ class KeyframeSolution:
 
 def solve_keyframe(model_dir: str, contact: tuple[float, float, float], radius_m: float,
                    scales: dict[str, float], force_N, p_urethra_Pa: float,
-                   x0: np.ndarray | None = None, tol: float = 1e-9) -> KeyframeSolution:
+                   x0: np.ndarray | None = None, min_load_step: float = 1.0 / 1024,
+                   tol: float = 1e-9) -> KeyframeSolution:
     """Equilibrium and sensitivities at force ``force_N`` (3,) on the contact patch and urethra
     pressure ``p_urethra_Pa``, with the moduli of each group in ``scales`` multiplied by its value
-    (groups not named keep their nominal moduli). ``x0`` warm start (3N,)."""
+    (groups not named keep their nominal moduli). ``x0`` warm start (3N,); ``min_load_step`` the
+    smallest load increment the solve may cut to (:func:`~softphantom.fem.solve_static`) before it
+    gives up with :class:`SolverError`."""
     base = _base(str(model_dir), tuple(float(v) for v in contact), float(radius_m))
     groups = tuple(scales)
     fem = scaled_fem(base.fem, _tet_scale(base, scales))
     f = np.asarray(force_N, float)
     pressures = {URETHRA: float(p_urethra_Pa)} if p_urethra_Pa else None
     solver = base.solver
-    sol = solve_static(fem, base.H @ f, pressures=pressures, x0=x0, tol=tol, solver=solver)
+    sol = solve_static(fem, base.H @ f, pressures=pressures, x0=x0, tol=tol, solver=solver,
+                       min_load_step=min_load_step)
     if not sol.converged:
         raise SolverError(f"keyframe at force {np.round(f, 3).tolist()} N, urethra "
                           f"{p_urethra_Pa / 1e3:.3g} kPa: {sol.status}")
