@@ -82,7 +82,10 @@ def test_closed_loop_recovers_force_pose_targets(case, estimators, truths):
         assert np.max(np.abs(e.target_shift[k] - s)) <= 0.05e-3, k
     # the load is not small: markers moved by millimetres, the linear map alone is far off
     assert np.linalg.norm(tr["pose"].xyz) > 2e-3
-    assert np.max(np.abs(est.rest.predict_volumes(np.r_[tr["f"], tr["p"]]) - tr["dV"])) > 0.3e-9
+    # (the rest linearization alone would miss the 2 % force bound above)
+    W = est.rest.W
+    f_lin = np.linalg.lstsq(W[:, :3], tr["dV"] - W[:, 3] * tr["p"], rcond=None)[0]
+    assert np.linalg.norm(f_lin - tr["f"]) > 0.02 * np.linalg.norm(tr["f"]), (f_lin, tr["f"])
     # predicted volumes match the measured ones at the converged state
     assert np.max(np.abs(e.volume_pred - tr["dV"])) < 1e-3 * np.max(np.abs(tr["dV"]))
     assert np.isfinite(e.cond_W) and e.cond_W < 100

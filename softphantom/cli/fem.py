@@ -43,7 +43,7 @@ def simulate_command(
     out: Path = typer.Option(..., "--out", help="Output directory (created)."),
     overwrite: bool = overwrite_option(),
 ) -> None:
-    """Solve the co-rotational FEM statically; write deformed.vtu and result.json, print the results."""
+    """Solve the FEM statically (the design's laws and element order); write deformed.vtu and result.json, print the results."""
     from softphantom.design import load_model
     from softphantom.fem import (
         cavity_volume,

@@ -565,14 +565,16 @@ class MaterialSpec:
 
 def _default_materials() -> tuple[MaterialSpec, ...]:
     # the model's Ecoflex 00-50 (softphantom.fem.material.ECOFLEX_00_50): E = 3 x 83 kPa / 1.75
-    return (MaterialSpec(DEFAULT_MATERIAL, "corotational",
+    # compressible neo-Hookean: as cheap as the co-rotational law on P1 and right in the arms' ΔV
+    # at large pushes, where co-rotational gets even their sign wrong (docs/model.md)
+    return (MaterialSpec(DEFAULT_MATERIAL, "neo-hookean",
                          (("E_kPa", 3 * 83.0 / 1.75), ("nu", 0.45), ("density_kg_m3", 1070.0))),)
 
 
 def _from_100_percent_modulus(name: str, sigma100_kPa: float, density_kg_m3: float) -> MaterialSpec:
     # incompressible neo-Hookean in uniaxial tension: nominal stress μ(λ − λ⁻²), so the 100 %
     # modulus (λ = 2) is 1.75 μ and the small-strain E = 3μ (fem/material.py, ECOFLEX_00_50)
-    return MaterialSpec(name, "corotational", (("E_kPa", 3.0 * sigma100_kPa / 1.75), ("nu", 0.45),
+    return MaterialSpec(name, "neo-hookean", (("E_kPa", 3.0 * sigma100_kPa / 1.75), ("nu", 0.45),
                                                ("density_kg_m3", density_kg_m3)))
 
 
@@ -586,7 +588,7 @@ MATERIAL_PRESETS: dict[str, MaterialSpec] = {
     m.name: m for m in (
         _default_materials()[0],
         _from_100_percent_modulus("sorta_clear_12", 193.0, 1040.0),
-        MaterialSpec("ecoflex_gel", "corotational", (("E_kPa", 10.0), ("nu", 0.45), ("density_kg_m3", 980.0))),
+        MaterialSpec("ecoflex_gel", "neo-hookean", (("E_kPa", 10.0), ("nu", 0.45), ("density_kg_m3", 980.0))),
     )
 }
 
