@@ -516,6 +516,14 @@ def _fillet_faces(design: BIPDesign, outer_surfs: list[int]) -> list[int]:
     return out
 
 
+def _junction_size_mm(design: BIPDesign, mp: MeshParams) -> float:
+    """Element size along the arm–bulb edges (0: not refined): ``junction_size_mm``, and at most the
+    smallest fillet radius. A fillet face meets the bulb's surface tangentially: facets much coarser
+    than its radius cross there ("overlapping facets" at 9 mm with a 2 mm fillet)."""
+    fillets = [g.fillet_mm for g in design.arm_geometry() if g.fillet_mm > 0]
+    return min([mp.junction_size_mm] * (mp.junction_size_mm > 0) + fillets, default=0.0)
+
+
 def _local_refinements(design: BIPDesign, mp: MeshParams, bulb_surfs: list[int], arm_vols: list[int],
                        fillet_faces: list[int] = ()) -> list[int]:
     """Size fields of the local refinements: MeshParams ``contact_size_mm`` near the interaction
@@ -534,10 +542,7 @@ def _local_refinements(design: BIPDesign, mp: MeshParams, bulb_surfs: list[int],
             f = fld.add("MathEval")
             fld.setString(f, "F", f"{h:.9g}+max(0,{d}-{r:.9g})")
             out.append(f)
-    # a fillet face meets the bulb's surface tangentially: facets much coarser than its radius cross
-    # there ("overlapping facets" at 9 mm with a 2 mm fillet), so its edges get at most that size
-    fillets = [g.fillet_mm for g in design.arm_geometry() if g.fillet_mm > 0]
-    h_junction = min([mp.junction_size_mm] * (mp.junction_size_mm > 0) + fillets, default=0.0)
+    h_junction = _junction_size_mm(design, mp)
     if h_junction > 0:
         if fillet_faces:
             junction = sorted({abs(c) for _, c in gmsh.model.getBoundary([(2, t) for t in fillet_faces], combined=False,
@@ -579,11 +584,10 @@ def estimate_tets(design: BIPDesign, mesh: MeshParams | None = None) -> int:
         length = max(0.0, v - capsule_volume(r, 0.0)) / (np.pi * r * r)
         area = 2 * np.pi * r * length + 4 * np.pi * r * r
         total += _shell(area, mp.cavity_size_mm(r), far)
-    for g in design.arm_geometry():  # a fillet's two edges are meshed at most its radius (_size_fields)
-        h_j = min([mp.junction_size_mm] * (mp.junction_size_mm > 0) + [g.fillet_mm] * (g.fillet_mm > 0), default=0.0)
-        if h_j > 0:
-            edges = 2 * np.pi * (2 * g.radius_mm + g.fillet_mm) if g.fillet_mm > 0 else 2 * np.pi * g.radius_mm
-            total += _tube(edges, h_j, min(hs, ha))
+    h_j = _junction_size_mm(design, mp)
+    for g in design.arm_geometry() if h_j > 0 else ():  # a fillet's two edges, or the sharp edge
+        edges = 2 * np.pi * (2 * g.radius_mm + g.fillet_mm) if g.fillet_mm > 0 else 2 * np.pi * g.radius_mm
+        total += _tube(edges, h_j, min(hs, ha))
     return int(round(_TETS_PER_UNIT * total))
 
 

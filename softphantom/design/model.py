@@ -156,8 +156,12 @@ class PhantomModel:
         outside it), so adding the urethra's Φ gives the meshed counterpart of the design's
         100.41 mL.
         """
-        body = [r for r in self.regions if r in ("bulb", "shell") or r.startswith("lesion_")]
-        return sum(self.region_volume(r) for r in body) + self.cavity_volume("urethra") - self.junction_volume()
+        return sum(self.region_volume(r) for r in self._body_regions()) + self.cavity_volume("urethra") \
+            - self.junction_volume()
+
+    def _body_regions(self) -> list[str]:
+        """The regions that make up the bulb's body: bulb (or infill), shell, lesions."""
+        return [r for r in self.regions if r in ("bulb", "shell") or r.startswith("lesion_")]
 
     def junction_volume(self) -> float:
         """Volume of the body regions outside the bulb's surface, m³: with rounded arm junctions
@@ -166,8 +170,7 @@ class PhantomModel:
         centroid, so a tet across the surface counts wholly on one side."""
         if not any(a.junction_fillet_mm > 0.0 for a in self.design.arms) or self.design.bulb.is_surface:
             return 0.0
-        ids = [i for r, i in self.regions.items() if r in ("bulb", "shell") or r.startswith("lesion_")]
-        sel = np.isin(self.tet_region, ids)
+        sel = np.isin(self.tet_region, [self.regions[r] for r in self._body_regions()])
         c = self.nodes[self.tets[sel]].mean(axis=1)
         out = geo.ellipsoid_level(c, np.asarray(self.design.bulb.semi_axes_mm) * MM) >= 1.0
         return float(self.tet_volumes()[sel][out].sum())
