@@ -325,11 +325,12 @@ class EquilibriumSolver:
         # the first attempt steps on through an indefinite tangent with a shifted Cholesky (the
         # exact LDLᵀ step, solve_static's choice for an increment it may not cut, cost 0.6-0.8 CPU-s
         # a call on the 6 mm model and rarely converged there: the load stepping then did)
-        for x0, min_step, policy in ((x, 1.0, "shift"), (start.x, self.fallback_min_load_step, None)):
+        attempts = ((x, {"min_load_step": 1.0, "max_iter": NEWTON_FIRST_ITERS, "on_indefinite": "shift"}),
+                    (start.x, {"min_load_step": self.fallback_min_load_step}))
+        for x0, opts in attempts:
             try:
                 sol = solve_static(self.fem, self.H_f @ lam[:3], [(self._ur_tris, lam[3])], x0=x0, tol=self._tol,
-                                   solver=self._chol, min_load_step=min_step, max_iter=NEWTON_FIRST_ITERS if
-                                   min_step == 1.0 else 25, on_indefinite=policy)
+                                   solver=self._chol, **opts)
             except ElementInversionError:
                 continue
             its += sol.iterations
