@@ -455,8 +455,8 @@ def solve_static(
         # (the conventional remedy: continuation); only small steps may step on, shifted (a
         # genuinely indefinite path, e.g. an inflating cavity). Where paths can part: at nu = 0.49
         # the 9 mm P2 mesh has two converged states 0.2 % apart (docs/model.md). An increment that
-        # cannot be cut (a caller's own continuation: min_load_step 1) takes the exact step, as
-        # before: the virtual urethra truth reaches its 2 mm past the cavity's pressure maximum
+        # cannot be cut (a caller's own continuation: min_load_step 1) takes the exact step (it
+        # can reach an equilibrium past a cavity's pressure maximum) unless the caller says "shift"
         policy = on_indefinite or (
             "exact" if dt * 0.5 < min_load_step else "shift" if dt <= SHIFT_MAX_LOAD_STEP else "cut")
         ok, x_new, its, rel_try, reason = _newton(
