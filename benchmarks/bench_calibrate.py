@@ -160,14 +160,20 @@ def run(model_dir, s, workers, fix=(), measured=()):
     return cal, wall
 
 
-def report(cal, wall, tube_in_recording: bool = False):
+def drift_truth(s: dict[str, Path]) -> dict[str, float]:
+    """Each fitting session's pressure drift as the virtual board drew it (Pa/s), by parameter name."""
+    return {f"drift_s{i + 1}_Pa_per_s": json.loads((s[sc] / "virtual.json").read_text())["board"]["drift_Pa_per_s"]
+            for i, sc in enumerate(("push-on-centre", "push-off-centre"))}
+
+
+def report(cal, wall, tube_in_recording: bool = False, drifts: dict[str, float] | None = None):
     truth = {"stiffness_bulb_factor": BULB_TRUE, "gain_back_xpos": GAIN_TRUE,
-             "tube_volume_factor": 1.0 if tube_in_recording else TUBE_TRUE}
+             "tube_volume_factor": 1.0 if tube_in_recording else TUBE_TRUE, **(drifts or {})}
     print(f"\n{'parameter':30s} {'truth':>8s} {'fitted':>9s} {'95 % interval':>22s} {'error':>8s}  identifiable")
     for i, n in enumerate(cal.fit.names):
         tv = truth.get(n, 1.0 if n.startswith(("gain", "stiffness")) else None)
         v = cal.fit.value[i]
-        err = f"{(v / tv - 1) * 100:+.1f} %" if tv else ""
+        err = (f"{v - tv:+.3g}" if n.startswith("drift") else f"{(v / tv - 1) * 100:+.1f} %") if tv else ""
         ci = f"[{cal.fit.ci95[i, 0]:.4g}, {cal.fit.ci95[i, 1]:.4g}]" if cal.fit.free[i] else "fixed"
         print(f"{n:30s} {'' if tv is None else f'{tv:.3g}':>8s} {v:9.4g} {ci:>22s} {err:>8s}  "
               f"{'yes' if cal.fit.identifiable[i] else ('NO' if cal.fit.free[i] else '-')}")
@@ -203,6 +209,7 @@ def main() -> None:
     nominal = BIPDesign() if a.nominal_law is None and a.nominal_order == 1 else \
         with_law(BIPDesign(), a.nominal_law or "corotational", a.nominal_order)
     out = a.cache / (f"h{a.mesh_size_mm:g}_{a.truth_law}" + (f"_P{a.truth_order}" if a.truth_order != 1 else "")
+                     + (f"_ts{a.truth_scale:g}" if a.truth_scale != 0.75 else "")  # the sessions depend on it
                      + (f"_nom-{a.nominal_law or 'corotational'}-P{a.nominal_order}" if nominal != BIPDesign() else ""))
     model_dir = out / "model"
     if not (model_dir / "model.npz").is_file():
@@ -217,7 +224,7 @@ def main() -> None:
     if "free" in runs:
         print("\n== calibrate, quiet machine (all parameters free)")
         cal, wall = run(model_dir, s, a.workers)
-        report(cal, wall)
+        report(cal, wall, drifts=drift_truth(s))
     if "tube-measured" in runs:
         print("\n== calibrate with the tube measured (tube_volume_factor fixed at the truth)")
         set_tube(s, 12.0 * TUBE_TRUE)  # the lab measured the tube: 13.2 m in the metadata
@@ -225,7 +232,7 @@ def main() -> None:
             cal2, wall2 = run(model_dir, s, a.workers, fix=("tube_volume_factor",))
         finally:
             set_tube(s, 12.0)
-        report(cal2, wall2, tube_in_recording=True)
+        report(cal2, wall2, tube_in_recording=True, drifts=drift_truth(s))
     if "gains-measured" in runs:
         # each transducer checked against a reference gauge to 1 % (the check's own error drawn
         # with a seed): the gains are the lab's measurement ± 1 %, not the fit's free knobs
@@ -241,7 +248,7 @@ def main() -> None:
             cal4, wall4 = run(model_dir, s, a.workers, fix=("tube_volume_factor",), measured=meas)
         finally:
             set_tube(s, 12.0)
-        report(cal4, wall4, tube_in_recording=True)
+        report(cal4, wall4, tube_in_recording=True, drifts=drift_truth(s))
     if not a.no_loaded and wall is not None:
         print("\n== calibrate while a second process keeps both cores busy")
         load = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(2)]

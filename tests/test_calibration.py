@@ -245,7 +245,7 @@ def test_fit_stops_when_the_model_promises_no_gain():
                 for t in tasks]
 
     params = parameter_set()
-    opts = FitOptions(fix=tuple(p.name for p in params) + ("lag",))
+    opts = FitOptions(fix=tuple(p.name for p in params) + ("lag", "drift"))
     prob = Problem("m", [se], fr, np.zeros((3, 3)), solve_many, opts, params, use_pose=False, use_known=False)
     res = fit(prob, np.zeros((K, 3)))
 
@@ -264,3 +264,81 @@ def test_fit_stops_when_the_model_promises_no_gain():
     h = np.array(res.history)
     # every round of K solves was a step that gained more than tol: none spent only to confirm
     assert res.solves == K * h.size and np.all(-np.diff(h) > opts.tol * h[:-1])
+
+
+def _stand_in_session(drift_Pa_per_s: float, scales_true: dict, seed: int = 1):
+    """A session through a linear FEM stand-in, ΔV = (D_arms / c_arms + D_bulb / c_bulb) f with
+    the bulb's part a tenth of the arms' (as on the default model: ∂ΔV/∂ln c_bulb ≈ 1/10–1/20 of
+    the arms'): the bench procedure's known loads (1, 2, 3 N in turn along y, x, z: the load
+    grows with time), a common pressure drift ``drift_Pa_per_s`` (the trapped air warming), rest
+    noise 0.5 Pa. Returns the session, the keyframes and a ``solve_many`` for :class:`Problem`."""
+    from softphantom.calibration.fit import Keyframes
+    from softphantom.calibration.forward import KeyframeSolution
+    from softphantom.calibration.session import Session
+    from softphantom.sensing.pneumatics import boyle_dp
+
+    rng = np.random.default_rng(seed)
+    D = {"arms": rng.normal(0.0, 4e-9, (4, 3)), "bulb": rng.normal(0.0, 4e-10, (4, 3))}  # m³/N: ≈ 30 Pa/N
+    t = np.linspace(0.0, 30.0, 301)
+    tk = np.arange(2.0, 29.0, 1.0)  # 27 keyframes, three per load
+    f = np.array([m * np.eye(3)[[1, 0, 2][i % 3]] for i, m in enumerate(np.repeat([1.0, 2.0, 3.0], 3))])
+    f = np.repeat(f, 3, axis=0)
+    se = Session("s1", t, np.zeros((t.size, 4)), np.zeros(t.size), t, np.zeros((t.size, 6)), np.zeros(3),
+                 101325.0, 12.0, 1.5e-3, np.full(4, 2e-6), dp_noise_Pa=np.full(4, 0.5))
+    fr = Keyframes.of([se], [tk])
+    VT = se.cavity_m3 + se.tube_m3
+
+    def dV_parts(scales, fk):
+        return {g: D[g] @ fk / scales[g] for g in ("bulb", "arms")}
+
+    dp = np.array([boyle_dp(sum(dV_parts(scales_true, fk).values()), VT, se.p0_Pa) for fk in f])
+    dp += drift_Pa_per_s * tk[:, None] + rng.normal(0.0, 0.5, dp.shape)
+    fr = dataclasses.replace(fr, dp=dp, known=f)
+
+    def solve_many(tasks):
+        out = []
+        for task in tasks:
+            parts = dV_parts(task[3], np.asarray(task[4]))
+            dV = parts["bulb"] + parts["arms"]
+            dV_df = D["bulb"] / task[3]["bulb"] + D["arms"] / task[3]["arms"]
+            out.append(KeyframeSolution(np.zeros(3), dV, np.zeros((3, 3)), dV_df,
+                                        np.stack([-parts["bulb"], -parts["arms"]], axis=1),
+                                        np.zeros((3, 3, 3)), np.zeros((3, 3, 2)), ("bulb", "arms"), 1, True, "ok"))
+        return out
+
+    return se, fr, solve_many
+
+
+def test_pressure_drift_is_fitted_not_taken_for_stiffness():
+    """The trapped air's temperature drifts during a session (0.3 Pa/s: 0.05 K/min × P0/T) while the
+    bench procedure's known loads grow (1, 2, 3 N): a constant offset cannot follow it, and the
+    parameter the data tell least — the bulb's stiffness — took it up (issue 14, session 7: on the
+    neo-Hookean default the bulb stayed at 1.00 against a truth of 1.3, the pressure residuals
+    ramping to 7 σ over 30 s). With a drift per session both stiffnesses and the drift are
+    recovered; with it held at 0 (the fit before), the bulb is not."""
+    from softphantom.calibration.fit import Problem, fit, parameter_set
+
+    truth, drift = {"bulb": 1.3, "arms": 1.0}, 0.3
+    se, fr, solve_many = _stand_in_session(drift, truth, seed=2)
+    params = parameter_set()
+    free = {"stiffness_bulb_factor", "stiffness_arms_factor"} | {
+        f"offset_{a}_Pa" for a in ("front_zpos", "front_zneg", "back_xpos", "back_xneg")}
+    fix = tuple(p.name for p in params if p.name not in free) + ("lag",)
+
+    def run(extra_fix=()):
+        prob = Problem("m", [se], fr, np.zeros((3, 3)), solve_many, FitOptions(fix=fix + extra_fix), params,
+                       use_pose=False)
+        res = fit(prob, fr.known)
+        return dict(zip(res.names, res.value)), res
+
+    p, res = run()
+    assert p["stiffness_bulb_factor"] == pytest.approx(truth["bulb"], rel=0.03)
+    assert p["stiffness_arms_factor"] == pytest.approx(truth["arms"], rel=0.01)
+    assert p["drift_s1_Pa_per_s"] == pytest.approx(drift, abs=0.05)
+    i = res.names.index("drift_s1_Pa_per_s")
+    assert res.identifiable[i] and res.ci95[i, 0] < drift < res.ci95[i, 1]
+    # held at 0 (the fit before the drift term): the ramp is read as the bulb's stiffness (+38 % with
+    # this seed's sensitivity pattern; how far and which way depends on how the bulb's pattern
+    # projects on a common ramp: seeds 1–6 give +38 … −32 %, one of them −1 %)
+    p0, _ = run(("drift",))
+    assert abs(p0["stiffness_bulb_factor"] / truth["bulb"] - 1) > 0.2

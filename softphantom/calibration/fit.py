@@ -4,8 +4,11 @@ jointly with the (unknown or measured) load at every keyframe.
 Unknowns ``z``: the global parameters (:data:`PARAMETERS`; stiffness scales as logarithms) and a
 force (3,) N per keyframe. Residuals, each divided by its standard deviation:
 
-* per keyframe, the four arm pressures: ``g_i · boyle_dp(ΔV_i, V_cav,i + τ·V_tube,i) + o_i`` against
-  the recording (tube lag undone), ΔV from the FEM at the keyframe's load;
+* per keyframe, the four arm pressures: ``g_i · boyle_dp(ΔV_i, V_cav,i + τ·V_tube,i) + o_i + d_s·t``
+  against the recording (tube lag undone), ΔV from the FEM at the keyframe's load, ``d_s`` the
+  session's common pressure drift (the trapped air's temperature: P0/T ≈ 350 Pa per kelvin, so
+  0.05 K/min is 0.3 Pa/s, 9 Pa over 30 s — several times the rest noise), ``t`` from the
+  recording's start;
 * per keyframe, the 6-DoF pose of the tracked body: the FEM's marker motion seen in the body's frame
   (axes rotated by the registration rotation, origin at the pivot) against the take at ``t + lag``;
 * per keyframe with known loads, the force against the measurement;
@@ -121,7 +124,9 @@ class FitOptions:
     volume — as (name, value, sd) in displayed units: the measurement becomes the parameter's
     nominal value and prior (sd None: held at the value); ``max_iter``; ``tol`` relative cost change
     that ends the iterations (the last step's, or the Gauss–Newton model's prediction for the next
-    one); ``radius_m`` the contact patch radius."""
+    one); ``radius_m`` the contact patch radius; ``lag_prior_s``, ``drift_prior_Pa_per_s`` the
+    priors' spreads of each session's clock lag and pressure drift (``fix`` names ``lag`` and
+    ``drift`` hold every session's at its first guess, resp. 0)."""
 
     sigma_dp_Pa: float | None = None
     sigma_mm: float = 0.2
@@ -133,6 +138,7 @@ class FitOptions:
     tol: float = 1e-5
     radius_m: float = 4e-3
     lag_prior_s: float = 1.0
+    drift_prior_Pa_per_s: float = 1.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -197,6 +203,7 @@ class Problem:
     options: FitOptions = field(default_factory=FitOptions)
     params: tuple[Parameter, ...] = field(default_factory=parameter_set)
     lag0_s: np.ndarray | None = None
+    drift0: np.ndarray | None = None  # Pa/s per session (nominal 0)
     x_warm: list = field(default_factory=list)
     solves: int = 0
     pose_rows: np.ndarray | None = None  # keyframes whose take sample exists (fixed at the start)
@@ -205,11 +212,13 @@ class Problem:
 
     def __post_init__(self) -> None:
         names = [p.name for p in self.params]
-        bad = [f for f in self.options.fix if f not in names and not f.startswith("lag")]
+        bad = [f for f in self.options.fix if f not in names and not f.startswith(("lag", "drift"))]
         if bad:
             raise UserError(f"--fix: unknown parameter(s) {', '.join(bad)}; have {', '.join(names)}")
         if self.lag0_s is None:
             self.lag0_s = np.zeros(len(self.sessions))
+        if self.drift0 is None:
+            self.drift0 = np.zeros(len(self.sessions))
         if not self.x_warm:
             self.x_warm = [None] * len(self.frames)
         if self.pose_rows is None:
@@ -221,21 +230,25 @@ class Problem:
     # --- layout of z ---------------------------------------------------------------------------
     @property
     def n_global(self) -> int:
-        return len(self.params) + len(self.sessions)  # + one lag per session
+        return len(self.params) + 2 * len(self.sessions)  # + one lag and one drift per session
 
     def names(self) -> list[str]:
-        return [p.name for p in self.params] + [f"lag_{s.name}_ms" for s in self.sessions]
+        return ([p.name for p in self.params] + [f"lag_{s.name}_ms" for s in self.sessions]
+                + [f"drift_{s.name}_Pa_per_s" for s in self.sessions])
 
     def nominal(self) -> np.ndarray:
-        z = np.concatenate([[p.nominal for p in self.params], self.lag0_s])
+        z = np.concatenate([[p.nominal for p in self.params], self.lag0_s, self.drift0])
         return z
 
     def prior_sd(self) -> np.ndarray:
-        return np.concatenate([[p.prior_sd for p in self.params], np.full(len(self.sessions), self.options.lag_prior_s)])
+        n = len(self.sessions)
+        return np.concatenate([[p.prior_sd for p in self.params], np.full(n, self.options.lag_prior_s),
+                               np.full(n, self.options.drift_prior_Pa_per_s)])
 
     def free_mask(self) -> np.ndarray:
         fix = set(self.options.fix) | {n for n, _, sd in self.options.measured if sd is None}
-        m = np.array([p.name not in fix for p in self.params] + ["lag" not in fix] * len(self.sessions))
+        n = len(self.sessions)
+        m = np.array([p.name not in fix for p in self.params] + ["lag" not in fix] * n + ["drift" not in fix] * n)
         return m
 
     def _idx(self, name: str) -> int:
@@ -250,7 +263,8 @@ class Problem:
             tube=P["tube_volume_factor"],
             rho=np.array([P[f"registration_rot_{a}_deg"] for a in "xyz"]),
             pivot=np.array([P[f"pivot_{a}_mm"] for a in "xyz"]),
-            lag=g[len(self.params):],
+            lag=g[len(self.params):len(self.params) + len(self.sessions)],
+            drift=g[len(self.params) + len(self.sessions):],
         )
 
     # --- forward ---------------------------------------------------------------------------------
@@ -266,6 +280,10 @@ class Problem:
         self.solves += len(tasks)
         return sols
 
+    def since_start(self, k: int) -> float:
+        """Keyframe ``k``'s time from its recording's start (s): what the drift multiplies."""
+        return float(self.frames.t[k] - self.sessions[int(self.frames.session[k])].t[0])
+
     def pressures(self, u: dict, dV: np.ndarray, session: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Predicted dp (K, 4) Pa and its derivatives wrt ΔV (K, 4) and the tube factor (K, 4)."""
         out, d_dV, d_tube = [], [], []
@@ -276,7 +294,7 @@ class Problem:
             p = boyle_dp(dV[k], VT, se.p0_Pa)
             # dp = P0 (VT/(VT+dV) − 1): ∂/∂dV = −P0 VT/(VT+dV)², ∂/∂VT = P0 dV/(VT+dV)²
             den = (VT + dV[k]) ** 2
-            out.append(u["gain"] * p + u["offset"])
+            out.append(u["gain"] * p + u["offset"] + u["drift"][int(session[k])] * self.since_start(k))
             d_dV.append(u["gain"] * (-se.p0_Pa * VT / den))
             d_tube.append(u["gain"] * (se.p0_Pa * dV[k] / den) * vt)
         return np.array(out), np.array(d_dV), np.array(d_tube)
@@ -304,11 +322,12 @@ class Problem:
             J[:, ng + 3 * k: ng + 3 * k + 3] = dp_dV[k][:, None] * s.dV_df / sdp[:, None]
             for j, gr in enumerate(s.groups):
                 J[:, scale_cols[GROUPS.index(gr)]] = dp_dV[k] * s.dV_dlnc[:, j] / sdp
-            p_lin = (dp[k] - u["offset"]) / u["gain"]
+            p_lin = (dp[k] - u["offset"] - u["drift"][int(fr.session[k])] * self.since_start(k)) / u["gain"]
             for i, a in enumerate(ARM_NAMES):
                 J[i, iG[f"gain_{a}"]] = p_lin[i] / sdp[i]
                 J[i, iG[f"offset_{a}_Pa"]] = 1.0 / sdp[i]
             J[:, iG["tube_volume_factor"]] = dp_dtube[k] / sdp
+            J[:, ng - len(self.sessions) + int(fr.session[k])] = self.since_start(k) / sdp
             rows_r.append(r)
             rows_J.append(J)
         # poses
@@ -406,7 +425,8 @@ class FitResult:
 
 def _display(problem: Problem, g: np.ndarray) -> np.ndarray:
     vals = [p.show(v) for p, v in zip(problem.params, g)]
-    return np.array(vals + list(g[len(problem.params):] * 1e3))
+    u = problem.unpack(g)
+    return np.array(vals + list(u["lag"] * 1e3) + list(u["drift"]))
 
 
 def fit(problem: Problem, forces0: np.ndarray, progress: Callable[[int, float, float], None] | None = None,

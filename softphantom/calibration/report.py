@@ -161,6 +161,7 @@ def calibration_dict(cal: Calibration) -> dict:
         "registration": {"rotation_deg": [p[f"registration_rot_{a}_deg"] for a in "xyz"],
                          "pivot_mm": [p[f"pivot_{a}_mm"] for a in "xyz"]},
         "lag_ms": {n[4:-3]: v for n, v in p.items() if n.startswith("lag_")},
+        "drift_Pa_per_s": {n[6:-9]: v for n, v in p.items() if n.startswith("drift_")},
         "contact_radius_mm": cal.options.radius_m * 1e3,
         "sessions": cal.meta.get("sessions", []),
         "held_out": cal.meta.get("held_out", []),

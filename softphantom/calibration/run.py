@@ -149,10 +149,11 @@ def _pose_errors(problem: Problem, g: np.ndarray, forces0: np.ndarray,
     minus the take; (K, 3) N those forces minus the known loads (NaN where none). ``say`` gets
     one line with the solves and seconds it took, naming it ``what``."""
     names = problem.names()
-    p = dataclasses.replace(problem, options=dataclasses.replace(problem.options, fix=tuple(names) + ("lag",),
+    u = problem.unpack(g)
+    p = dataclasses.replace(problem, options=dataclasses.replace(problem.options, fix=tuple(names) + ("lag", "drift"),
                                                                   max_iter=8),
                             use_pose=False, use_known=False, x_warm=list(problem.x_warm), solves=0,
-                            lag0_s=g[len(problem.params):].copy(),
+                            lag0_s=u["lag"].copy(), drift0=u["drift"].copy(),
                             params=tuple(dataclasses.replace(pp, nominal=float(v))
                                          for pp, v in zip(problem.params, g)))
     res = fit(p, forces0)
@@ -231,8 +232,9 @@ def calibrate(model_dir, specs: list[SessionSpec], holdout: list[SessionSpec] = 
             hp = Problem(str(model_dir), held, hframes, rm, solve_many, options, parameter_set(measured=options.measured))
             f0, hl = _initial(hp, held)
             gl = len(hp.params)
-            gn = np.concatenate([g_nom[:gl], hl])
-            gc = np.concatenate([g_cal[:gl], hl])
+            # a held-out session's drift is its own, unknown to the calibration (as to the estimator): 0
+            gn = np.concatenate([g_nom[:gl], hl, np.zeros(len(held))])
+            gc = np.concatenate([g_cal[:gl], hl, np.zeros(len(held))])
             hp = dataclasses.replace(hp, lag0_s=hl, pose_rows=None)
             held_out = HeldOut(POSE_DOF, hframes.t, *_pair(_pose_errors(hp, gn, f0, say, "held-out, nominal"),
                                                            _pose_errors(hp, gc, f0, say, "held-out, calibrated")))

@@ -63,7 +63,7 @@ def calibrate_cmd(
     holdout_recording: list[Path] = typer.Option(None, "--holdout-recording", help="Recording kept out of the fit, to check the calibration on."),
     holdout_truth: list[Path] = typer.Option(None, "--holdout-truth", help="Take of each --holdout-recording."),
     holdout_contact: list[str] = typer.Option(None, "--holdout-contact", help="Contact point of the held-out sessions."),
-    fix: list[str] = typer.Option(None, "--fix", help="Hold a parameter at its nominal value (repeat), e.g. tube_volume_factor, lag."),
+    fix: list[str] = typer.Option(None, "--fix", help="Hold a parameter at its nominal value (repeat), e.g. tube_volume_factor, lag (every session's), drift (every session's pressure drift at 0)."),
     measured: list[str] = typer.Option(None, "--measured", help="A parameter measured on the bench apart from the session, NAME=VALUE (held there) or NAME=VALUE:SD (its prior), displayed units; repeat. E.g. gain_back_xpos=1.04:0.01 from a reference gauge."),
     max_keyframes: int = typer.Option(16, "--max-keyframes", help="Distinct loads used per session."),
     contact_radius_mm: float = typer.Option(4.0, "--contact-radius-mm", help="Radius of the contact patch the force is spread on (mm)."),
@@ -71,7 +71,7 @@ def calibrate_cmd(
     workers: int = typer.Option(None, "--workers", min=1, help="Workers of the local cluster (default: all cores)."),
     overwrite: bool = overwrite_option(),
 ) -> None:
-    """Fit material stiffness, sensor gains/offsets, tube volume, registration and lag to a bench
+    """Fit material stiffness, sensor gains/offsets/drift, tube volume, registration and lag to a bench
     session by least squares over forward FEM solves; print the parameters with 95 % intervals."""
     from softphantom.calibration import FitOptions, calibrate, parameter_set, write_calibration
 
