@@ -1,6 +1,6 @@
 """Offline atlas build of the default model (issue 13, item 5): wall, CPU seconds a point, size.
 
-Builds ``AtlasConfig()`` (5 × 7 × 5 × 4 = 700 forward solves) of the default design at
+Builds ``AtlasConfig()`` (9 × 7 × 4 × 3 = 756 forward solves; 5 × 7 × 5 × 4 = 700 before session 7) of the default design at
 ``--mesh-size-mm`` (6: the default estimator model) with the default :class:`EstimatorConfig`, on a
 local Dask cluster of ``--workers`` processes, and prints wall seconds, CPU seconds of the solves
 (summed over the workers) per grid point, the atlas size and the peak RSS of this process.
@@ -13,7 +13,7 @@ Same run, after the build: the **peer** — ``--peer-points`` grid points (seede
 own from rest (``ForwardModel.solve``: continuation in ≤ 1 N steps, a new factor where the chord
 stalls; what every grid point would cost without the build's walk), CPU seconds a point and their
 ratio to the build's; and **one plane** of the build (``_sweep``, f_x index 2, lowest pressure:
-35 points) in this process, alone and then with 2 busy processes started by the benchmark (both
+f_y × f_z points) in this process, alone and then with 2 busy processes started by the benchmark (both
 cores busy): wall and CPU seconds.
 
     nice -n 10 .venv/bin/python benchmarks/bench_atlas_build.py --workers 2 [--save grid.npz] [--cache DIR]
@@ -122,7 +122,7 @@ def main() -> None:
     if not a.no_busy:
         for busy in (False, True):
             wall, cpu = plane(model, cfg, acfg, busy)
-            print(f"one plane (35 points) in this process{', 2 busy processes beside' if busy else ', alone'}: "
+            print(f"one plane ({acfg.n_force[1] * acfg.n_force[2]} points) in this process{', 2 busy processes beside' if busy else ', alone'}: "
                   f"{wall:.1f} s wall, {cpu:.1f} CPU-s (load average {os.getloadavg()[0]:.1f})")
     g = grid_values(at)
     if a.save:

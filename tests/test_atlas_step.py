@@ -5,6 +5,8 @@ the QP solver) on an atlas of a known non-linear map — no forward solves, so i
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -16,7 +18,9 @@ from softphantom.sensing import Measurement
 
 CFG = EstimatorConfig(contact="on-centre")
 ACFG = AtlasConfig(force_min_N=(-1.0, -0.5, -1.0), force_max_N=(1.0, 5.0, 1.0), p_min_kPa=-2.0, p_max_kPa=4.0,
-                   n_force=(5, 7, 4), n_pressure=3)
+                   n_force=(5, 7, 4), n_pressure=3, force_cluster_N=(0.0, 0.0, 0.0))
+# the same with f_x stretched (points clustered about 0, the default's layout): every test runs on both
+ACFG_STRETCHED = dataclasses.replace(ACFG, force_cluster_N=(0.3, 0.0, 0.0))
 RNG = np.random.default_rng(11)
 A = np.array([[1.0, 0.3, -0.2], [0.2, 1.3, 0.1], [-0.4, 0.1, 0.9], [0.3, -0.9, 0.4]]) * 1e-9  # m³/N
 A_P = np.array([2.0, 1.5, 1.0, 2.5]) * 1e-12  # m³/Pa
@@ -41,22 +45,32 @@ def fwd(coarse_model):
 
 @pytest.fixture(scope="module")
 def atlas(fwd):
+    return make_atlas(fwd, ACFG)
+
+
+@pytest.fixture(scope="module", params=[ACFG, ACFG_STRETCHED], ids=["affine", "stretched"])
+def atlas_any(fwd, request):
+    return make_atlas(fwd, request.param)
+
+
+def make_atlas(fwd, acfg):
     """The atlas of ``volumes_map`` (points: the rest tracked points moved linearly plus a twist)."""
-    shape = ACFG.shape
-    g = np.stack(np.meshgrid(*ACFG.axes(), indexing="ij"), axis=-1)  # (n1..n4, 4)
+    shape = acfg.shape
+    g = np.stack(np.meshgrid(*acfg.axes(), indexing="ij"), axis=-1)  # (n1..n4, 4)
     rest = fwd.rest.sub_x
     Bp = RNG.normal(size=(rest.shape[0], 3, 4)) * np.array([1e-4, 1e-4, 1e-4, 1e-8])
     P = rest + np.einsum("kaj,...j->...ka", Bp, g) + 1e-5 * np.sin(g[..., 1])[..., None, None] * rest[:, ::-1]
     r = 3
     modes = np.linalg.qr(RNG.normal(size=(fwd.fem.n_dof, r)))[0] * 1e-3
     coef = np.stack([g[..., 0] * g[..., 1], g[..., 2], np.cos(g[..., 1])], -1)
-    return Atlas(key=atlas_key(fwd, ACFG), config=ACFG, cV=_to_chebyshev(volumes_map(g), shape),
+    return Atlas(key=atlas_key(fwd, acfg), config=acfg, cV=_to_chebyshev(volumes_map(g), shape),
                  cP=_to_chebyshev(P.reshape(*shape, -1), shape).reshape(*shape, -1, 3),
                  cF=_to_chebyshev(coef, shape), modes=modes, x_rest=fwd.fem.x_rest.copy(), build_s=0.0,
                  solves=int(np.prod(shape)), field_rms_m=0.0, solved=np.ones(shape, bool))
 
 
-def test_kernel_evaluation_equals_the_tensor_contraction_and_its_derivative(atlas):
+def test_kernel_evaluation_equals_the_tensor_contraction_and_its_derivative(atlas_any):
+    atlas = atlas_any
     lo, hi = ACFG.lower, ACFG.upper
     for lam in lo + (hi - lo) * RNG.uniform(-0.05, 1.05, (20, 4)):  # a little outside the box too
         V, J = atlas.volumes(lam)
@@ -72,7 +86,7 @@ def test_kernel_evaluation_equals_the_tensor_contraction_and_its_derivative(atla
         field = atlas.x_rest + atlas.modes @ atlas._value(atlas.cF, lam)
         assert np.allclose(atlas.nodes(lam), field.reshape(-1, 3), rtol=0, atol=1e-15)
     # and the polynomial is the map it was fitted to, at the grid points
-    g = np.array([a[1] for a in ACFG.axes()])
+    g = np.array([a[1] for a in atlas.config.axes()])
     assert np.allclose(atlas.volumes(g)[0], volumes_map(g), rtol=1e-12, atol=0)
 
 
@@ -82,7 +96,7 @@ def test_kernel_pose_equals_pose_rigid_fit():
     P = RNG.normal(size=(5, 3)) * 0.03
     cp = P.mean(axis=0)
     shape = np.array([2, 3, 2, 2])
-    box = (np.full(4, -1.0), np.full(4, 1.0), RNG.uniform(-1, 1, 4))
+    box = (np.full(4, -1.0), np.full(4, 1.0), np.array([0.3, 0.0, 0.0, 0.0]), RNG.uniform(-1, 1, 4))
     for k in range(10):
         ang = RNG.normal(size=3) * (0.3 if k else 3.0)  # one large rotation
         R0 = matrix_from_ypr(ang)
@@ -116,7 +130,8 @@ def ramp():
     return out
 
 
-def test_step_equals_the_reference_step(coarse_model, atlas):
+def test_step_equals_the_reference_step(coarse_model, atlas_any):
+    atlas = atlas_any
     fast, ref = AtlasEstimator(coarse_model, CFG, atlas), AtlasEstimator(coarse_model, CFG, atlas)
     flags = []
     for m in ramp():
@@ -164,3 +179,60 @@ def test_qp_solver_only_where_a_bound_is_active(coarse_model, atlas, monkeypatch
         assert got[0][1] == pytest.approx(5.0) and not got[2]  # clamped, flagged
         assert np.allclose(got[0], ref[0], rtol=0, atol=1e-9) and got[1] == ref[1] and got[5] == ref[5]
         calls.clear()
+
+
+def _fit_and_eval(values, acfg, lams):
+    """The atlas polynomial of grid ``values`` (shape + ()) at ``lams`` (k, 4) by the kernel."""
+    shape = np.array(acfg.shape, dtype=np.int64)
+    C = np.ascontiguousarray(_to_chebyshev(values[..., None], acfg.shape).reshape(-1, 1))
+    out = np.empty(1)
+    res = []
+    for lam in lams:
+        ak.eval_value(C, shape, acfg.lower, acfg.upper, acfg.stretch, np.asarray(lam, float), out)
+        res.append(out[0])
+    return np.array(res)
+
+
+def test_interpolant_reproduces_polynomials_of_its_degree_in_each_axis_variable():
+    """Exact for a tensor polynomial of degree n_a − 1 in each axis's variable: the load itself on
+    an affine axis, asinh(f / w) on a stretched one (the analytic check of ``axis_t`` and
+    ``cheb_points``: the grid is Chebyshev–Lobatto in that variable)."""
+    acfg = dataclasses.replace(ACFG, force_cluster_N=(0.2, 0.0, 0.5))
+    rng = np.random.default_rng(5)
+    coef = rng.normal(size=acfg.shape)  # monomial coefficients in the axis variables u_a
+
+    def u(lam):  # the variables in which the map is a polynomial: asinh(f/w) where stretched
+        w = acfg.stretch
+        return np.where(w > 0, np.arcsinh(lam / np.where(w > 0, w, 1.0)), lam * np.array([1, 1, 1, 1e-3]))
+
+    def poly(lam):
+        x = u(lam)
+        out = coef
+        for a in range(4):
+            out = np.tensordot(x[a] ** np.arange(acfg.shape[a]), out, axes=([0], [0]))
+        return float(out)
+
+    grid = np.stack(np.meshgrid(*acfg.axes(), indexing="ij"), axis=-1)
+    values = np.vectorize(lambda *l: poly(np.array(l)))(*np.moveaxis(grid, -1, 0))
+    lams = acfg.lower + (acfg.upper - acfg.lower) * rng.uniform(0, 1, (30, 4))
+    want = np.array([poly(lam) for lam in lams])
+    assert np.allclose(_fit_and_eval(values, acfg, lams), want, rtol=0, atol=1e-9 * np.abs(values).max())
+    # a polynomial in the load itself of the same degree is not reproduced on the stretched axis
+    lin = np.vectorize(lambda *l: l[0] ** 3)(*np.moveaxis(grid, -1, 0))
+    assert np.abs(_fit_and_eval(lin, acfg, lams) - lams[:, 0] ** 3).max() > 1e-4
+
+
+def test_stretched_axis_follows_a_sharp_step_about_zero_force():
+    """Why f_x is stretched by default: a tanh step 0.05 N wide near f_x = 0 (the default design's
+    arms 2 and 3 at pushes above ≈ 3.5 N) with 9 points on ±1.5 N — the affine Chebyshev grid misses
+    it by 90 % of the half-jump, the grid stretched with w = 0.05 N by ≈ 10 %."""
+    lams = np.zeros((601, 4))
+    lams[:, 0] = np.linspace(-1.5, 1.5, 601)
+    err = {}
+    for w in (0.0, 0.05):
+        acfg = dataclasses.replace(ACFG, force_min_N=(-1.5, -0.5, -1.0), force_max_N=(1.5, 5.0, 1.0),
+                                   n_force=(9, 3, 3), n_pressure=2, force_cluster_N=(w, 0.0, 0.0))
+        fx = acfg.axes()[0]
+        values = np.broadcast_to(np.tanh((fx - 0.01) / 0.05)[:, None, None, None], acfg.shape).copy()
+        err[w] = np.abs(_fit_and_eval(values, acfg, lams) - np.tanh((lams[:, 0] - 0.01) / 0.05)).max()
+    assert err[0.0] > 0.8 and err[0.05] < 0.12

@@ -38,6 +38,7 @@ import numpy as np
 
 from softphantom.errors import SolverError, UserError
 from softphantom.estimation import atlas_kernels as ak
+from softphantom.estimation.atlas_kernels import axis_t
 from softphantom.estimation.config import EstimatorConfig
 from softphantom.estimation.estimator import (
     EstimatorState, check_sample, pose_and_shifts, repeat_last, rest_estimate, sensitivity_cond,
@@ -47,12 +48,14 @@ from softphantom.estimation.qp import solve_volume_qp
 from softphantom.estimation.types import Estimate
 from softphantom.pose import DegenerateMarkersError, Pose6, rigid_fit
 
-FORMAT = 2  # bump when the file layout or the build changes its meaning
+FORMAT = 3  # bump when the file layout or the build changes its meaning (3: stretched axes, force_cluster_N)
 GN_MAX_ITER = 12
 GN_TOL_N = 1e-7
 FALLBACK_MIN_LOAD_STEP = 1.0 / 32
 VIA_TOL = 1e-3  # relative residual of the continuation steps between grid points (they only start the next)
 FIELD_MAX_MODES = 64
+STRETCH_FX_N = 0.05  # the default f_x stretch width: about the arm pair's step width at 5 N (docs/estimation.md)
+STRETCH_MIN_POINTS = 9  # f_x points from which the default stretches f_x
 FIELD_RTOL = 1e-5  # POD truncation: dropped displacement energy below this fraction (≈ 3e-3 relative RMS)
 
 
@@ -68,8 +71,19 @@ class AtlasConfig:
     ``linear_pressure`` (only with ``n_pressure=2``): the two pressure planes from one plane of
     solves at the range's middle and the exact pressure derivative there (the tangent line: half the
     solves, and exact at the middle, where a push scenario's pressure stays; its error at the
-    range's ends, the curvature term, is as large as the two-plane secant's at the middle).
+    range's ends, the curvature term, is as large as the two-plane secant's at the middle);
+    ``force_cluster_N`` (3,) per force axis the width (N) of a stretch that clusters the points
+    about zero force (Chebyshev–Lobatto in asinh(f / w), :func:`cheb_points`; 0: none). The default
+    (None) stretches f_x by :data:`STRETCH_FX_N` when it has at least :data:`STRETCH_MIN_POINTS`
+    points and the envelope spans 0: above ≈ 3.5 N along f_y the default design's arms 2 and 3
+    trade ≈ 20 mm³ of volume within ±0.1 N of f_x = 0 (one of the pair buckles, the sign of f_x
+    picks which), a step no polynomial in f_x itself follows with a few points
+    (docs/estimation.md). With fewer points the stretch costs more than it gains: the smooth part
+    of the map is then a steep function of the stretched variable (3 points over ±1.5 N: a linear
+    map is missed by 0.55 N at f_x = 0.18 N), so such grids stay affine.
 
+    >>> AtlasConfig().force_cluster_N, AtlasConfig(n_force=(4, 5, 4)).force_cluster_N
+    ((0.05, 0.0, 0.0), (0.0, 0.0, 0.0))
     >>> AtlasConfig(n_force=(5, 2, 5))
     Traceback (most recent call last):
     ...
@@ -80,9 +94,10 @@ class AtlasConfig:
     force_max_N: tuple[float, float, float] = (1.5, 5.2, 1.5)
     p_min_kPa: float = -2.0
     p_max_kPa: float = 40.0
-    n_force: tuple[int, int, int] = (5, 7, 5)
-    n_pressure: int = 4
+    n_force: tuple[int, int, int] = (9, 7, 4)
+    n_pressure: int = 3
     linear_pressure: bool = False
+    force_cluster_N: tuple[float, float, float] | None = None
 
     def __post_init__(self) -> None:
         lo = tuple(float(v) for v in self.force_min_N)
@@ -105,6 +120,13 @@ class AtlasConfig:
             raise UserError(f"atlas n_pressure must be an integer in 2..15, got {self.n_pressure}")
         if self.linear_pressure and self.n_pressure != 2:
             raise UserError(f"atlas linear_pressure needs n_pressure 2, got {self.n_pressure}")
+        w = self.force_cluster_N
+        if w is None:  # the default: f_x stretched where there are enough points for it (see above)
+            w = (STRETCH_FX_N if self.n_force[0] >= STRETCH_MIN_POINTS and lo[0] < 0 < hi[0] else 0.0, 0.0, 0.0)
+        w = tuple(float(v) for v in (w if np.ndim(w) else (w,) * 3))
+        if len(w) != 3 or not all(math.isfinite(v) and v >= 0 for v in w):
+            raise UserError(f"atlas force_cluster_N: 3 widths ≥ 0 N (0: no stretch), got {self.force_cluster_N}")
+        object.__setattr__(self, "force_cluster_N", w)
 
     @property
     def lower(self) -> np.ndarray:
@@ -113,6 +135,11 @@ class AtlasConfig:
     @property
     def upper(self) -> np.ndarray:
         return np.array([*self.force_max_N, self.p_max_kPa * 1e3])
+
+    @property
+    def stretch(self) -> np.ndarray:
+        """(4,) the axes' stretch widths (N, N, N; the pressure axis 0: affine), :func:`axis_t`."""
+        return np.array([*self.force_cluster_N, 0.0])
 
     @property
     def shape(self) -> tuple[int, int, int, int]:
@@ -125,17 +152,26 @@ class AtlasConfig:
 
     def axes(self) -> list[np.ndarray]:
         """The grid's load values per axis (N, N, N, Pa), from the lower bound up."""
-        return [cheb_points(n, lo, hi) for n, lo, hi in zip(self.shape, self.lower, self.upper)]
+        return [cheb_points(n, lo, hi, w) for n, lo, hi, w in zip(self.shape, self.lower, self.upper, self.stretch)]
 
 
-def cheb_points(n: int, lo: float, hi: float) -> np.ndarray:
-    """``n`` Chebyshev–Lobatto points on [lo, hi], ascending.
+def cheb_points(n: int, lo: float, hi: float, w: float = 0.0) -> np.ndarray:
+    """``n`` Chebyshev–Lobatto points on [lo, hi], ascending; with a stretch width ``w`` > 0 the
+    points are Chebyshev–Lobatto in asinh(x / w), so they cluster about x = 0 (:func:`axis_t`).
 
     >>> cheb_points(3, -1.0, 1.0).tolist()
     [-1.0, 0.0, 1.0]
+    >>> cheb_points(9, -1.5, 1.5, 0.05).round(3).tolist()  # the default f_x axis (affine: ±0.574 … ±1.386)
+    [-1.5, -1.098, -0.451, -0.115, 0.0, 0.115, 0.451, 1.098, 1.5]
     """
     t = -np.cos(np.pi * np.arange(n) / (n - 1))
     t[np.abs(t) < 1e-15] = 0.0
+    if w > 0:
+        a0, a1 = math.asinh(lo / w), math.asinh(hi / w)
+        x = w * np.sinh(0.5 * (a0 + a1) + 0.5 * (a1 - a0) * t)
+        x[0], x[-1] = lo, hi
+        x[np.abs(x) < 1e-12 * (hi - lo)] = 0.0
+        return x
     return 0.5 * (lo + hi) + 0.5 * (hi - lo) * t
 
 
@@ -426,6 +462,7 @@ class Atlas:
         object.__setattr__(self, "_shape", np.array(self.config.shape, dtype=np.int64))
         object.__setattr__(self, "_lo", np.ascontiguousarray(self.config.lower))
         object.__setattr__(self, "_hi", np.ascontiguousarray(self.config.upper))
+        object.__setattr__(self, "_wd", np.ascontiguousarray(self.config.stretch))
         for name in ("cV", "cP", "cF"):
             c = getattr(self, name)
             object.__setattr__(self, "_k" + name, np.ascontiguousarray(c, dtype=float).reshape(n, -1))
@@ -449,28 +486,29 @@ class Atlas:
         """(V (4,) m³, J (4,4) ∂V/∂λ in m³/N, m³/Pa) at ``lam`` inside the envelope (one compiled
         pass over the coefficients; :meth:`volumes_reference` is the tensordot it is tested against)."""
         V, J = np.empty(4), np.empty((4, 4))
-        ak.eval_vj(self._kcV, self._shape, self._lo, self._hi, np.asarray(lam, float), V, J)
+        ak.eval_vj(self._kcV, self._shape, self._lo, self._hi, self._wd, np.asarray(lam, float), V, J)
         return V, J
 
     def points(self, lam) -> np.ndarray:
         """(k,3) m tracked points (markers, then targets) at ``lam``."""
         out = np.empty(self._kcP.shape[1])
-        ak.eval_value(self._kcP, self._shape, self._lo, self._hi, np.asarray(lam, float), out)
+        ak.eval_value(self._kcP, self._shape, self._lo, self._hi, self._wd, np.asarray(lam, float), out)
         return out.reshape(-1, 3)
 
     def nodes(self, lam) -> np.ndarray:
         """(N,3) m node positions at ``lam`` (the POD field)."""
         coef = np.empty(self._kcF.shape[1])
-        ak.eval_value(self._kcF, self._shape, self._lo, self._hi, np.asarray(lam, float), coef)
+        ak.eval_value(self._kcF, self._shape, self._lo, self._hi, self._wd, np.asarray(lam, float), coef)
         return (self.x_rest + self.modes @ coef).reshape(-1, 3)
 
     # the references: tensor contractions in numpy (the evaluation before the kernels)
-    def _t(self, lam: np.ndarray) -> np.ndarray:
-        lo, hi = self.config.lower, self.config.upper
-        return (2 * np.asarray(lam, float) - (lo + hi)) / (hi - lo)
+    def _t(self, lam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(t, dt/dλ) per axis: the Chebyshev variable of each load (:func:`axis_t`)."""
+        lo, hi, w = self.config.lower, self.config.upper, self.config.stretch
+        return np.array([axis_t(float(x), a, b, c) for x, a, b, c in zip(np.asarray(lam, float), lo, hi, w)]).T
 
     def _bases(self, lam):
-        t = self._t(lam)
+        t = self._t(lam)[0]
         return [cheb_basis(float(ti), n) for ti, n in zip(t, self.config.shape)]
 
     def volumes_reference(self, lam) -> tuple[np.ndarray, np.ndarray]:
@@ -483,7 +521,7 @@ class Atlas:
         c2 = np.tensordot(c3, np.stack([b2, d2]), axes=([1], [1]))  # (n1,4,2,2,2)
         r = np.tensordot(np.stack([b1, d1]), c2, axes=([1], [0]))  # (2,4,2,2,2): a, out, d, c, b
         V = r[0, :, 0, 0, 0]
-        scale = 2.0 / (self.config.upper - self.config.lower)
+        scale = self._t(lam)[1]
         J = np.stack([r[1, :, 0, 0, 0], r[0, :, 0, 0, 1], r[0, :, 0, 1, 0], r[0, :, 1, 0, 0]], axis=1) * scale
         return V, J
 
@@ -758,7 +796,7 @@ class AtlasEstimator(EstimatorState):
         dV = np.asarray(dV, float)
         V, J = np.empty(4), np.empty((4, 4))
         n3 = at._kcV.shape[0] // at.config.shape[3]
-        poly = (np.empty((n3, 4)), np.empty((n3, 4)), at._shape, at._lo, at._hi, lam, V, J)
+        poly = (np.empty((n3, 4)), np.empty((n3, 4)), at._shape, at._lo, at._hi, at._wd, lam, V, J)
         code, it, cost = ak.gn_run(at._kcV, *poly, 0.0, dV, self._lo, self._hi, GN_TOL_N, 0, GN_MAX_ITER)
         while code == ak.NEED_QP:  # a force bound is in the way of this iteration's step: the QP's
             qp = solve_volume_qp(J, V - dV, 0.0, self._lo - lam[:3], self._hi - lam[:3], self.config.qp_solver)
@@ -810,7 +848,7 @@ class AtlasEstimator(EstimatorState):
         if self._P0 is None:  # rest markers that rigid_fit refuses: let it raise its error, as before
             return pose_and_shifts(self.rest_markers, self.rest_targets, self.target_names, at.points(lam))
         pts, t, ypr = np.empty(at._kcP.shape[1]), np.empty(3), np.empty(3)
-        ak.points_pose(at._kcP, at._shape, at._lo, at._hi, lam, self._P0, self._cp, pts, t, ypr)
+        ak.points_pose(at._kcP, at._shape, at._lo, at._hi, at._wd, lam, self._P0, self._cp, pts, t, ypr)
         shifts = pts.reshape(-1, 3)[len(self._P0):] - self.rest_targets
         return Pose6(t, ypr), dict(zip(self.target_names, shifts))
 

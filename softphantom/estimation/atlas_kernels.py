@@ -6,7 +6,8 @@ overhead (some 60 small numpy calls per Gauss–Newton iteration). These kernels
 arithmetic in one compiled call each:
 
 - :func:`eval_vj` / :func:`eval_value`: the polynomial and its gradient at λ in loops over the
-  coefficients (:meth:`~softphantom.estimation.atlas.Atlas.volumes_reference` and
+  coefficients, each load first mapped to its axis's Chebyshev variable (:func:`axis_t`: affine,
+  or affine in asinh(f / w) on a stretched axis) (:meth:`~softphantom.estimation.atlas.Atlas.volumes_reference` and
   :meth:`~softphantom.estimation.atlas.Atlas._value` are the tensordot references they are tested
   against); the gradient after :func:`contract_pressure`, which a sample does once: its pressure is
   measured, fixed during the iterations, which then sum n1·n2·n3 terms (:func:`eval_vj3`);
@@ -57,29 +58,44 @@ def _basis(t, n, b, d):
 
 
 @njit(cache=True, nogil=True)
-def _bases(lam, lo, hi, shape, na):
-    """The bases (B, D) of the first ``na`` axes at ``lam``: row a the values and derivatives of
-    axis a's Chebyshev polynomials (padded to the longest axis)."""
+def axis_t(x, lo, hi, w):
+    """(t, dt/dx): the load ``x`` on [lo, hi] as the Chebyshev variable t ∈ [−1, 1] — affine, or
+    with ``w`` > 0 affine in asinh(x / w) (a stretched axis: Chebyshev points clustered about zero
+    load, for a map that bends sharply there; ``cheb_points`` is its inverse)."""
+    if w > 0:
+        a0 = math.asinh(lo / w)
+        a1 = math.asinh(hi / w)
+        return (2 * math.asinh(x / w) - (a0 + a1)) / (a1 - a0), 2.0 / ((a1 - a0) * math.sqrt(w * w + x * x))
+    return (2 * x - (lo + hi)) / (hi - lo), 2.0 / (hi - lo)
+
+
+@njit(cache=True, nogil=True)
+def _bases(lam, lo, hi, wd, shape, na):
+    """The bases (B, D, g) of the first ``na`` axes at ``lam``: row a the values and t-derivatives of
+    axis a's Chebyshev polynomials (padded to the longest axis), g[a] = dt/dλ_a (:func:`axis_t`)."""
     nmax = 0
     for a in range(na):
         nmax = max(nmax, shape[a])
     B = np.empty((na, nmax))
     D = np.empty((na, nmax))
+    g = np.empty(na)
     for a in range(na):
-        t = (2 * lam[a] - (lo[a] + hi[a])) / (hi[a] - lo[a])
+        t, ga = axis_t(lam[a], lo[a], hi[a], wd[a])
+        g[a] = ga
         _basis(t, shape[a], B[a], D[a])
-    return B, D
+    return B, D, g
 
 
 @njit(cache=True, nogil=True)
-def eval_vj(C, shape, lo, hi, lam, V, J):
+def eval_vj(C, shape, lo, hi, wd, lam, V, J):
     """Value V (m,) and Jacobian J (m, 4) per unit λ of the tensor Chebyshev polynomial with
-    coefficients ``C`` (n1·n2·n3·n4, m) over the box [lo, hi] at ``lam`` (4,).
+    coefficients ``C`` (n1·n2·n3·n4, m) over the box [lo, hi] at ``lam`` (4,); ``wd`` (4,) the
+    axes' stretch widths (0: affine; the pressure axis is affine, see :func:`axis_t`).
 
     >>> shape = np.array([2, 3, 2, 2])
     >>> C = np.zeros((24, 1)); C[4 * 2 + 0, 0] = 1.0  # T_0 · T_2(t_2) · T_0 · T_0: 2 t_2² − 1
     >>> V, J = np.empty(1), np.empty((1, 4))
-    >>> eval_vj(C, shape, np.full(4, -1.0), np.full(4, 3.0), np.array([0.0, 2.0, 0.0, 0.0]), V, J)
+    >>> eval_vj(C, shape, np.full(4, -1.0), np.full(4, 3.0), np.zeros(4), np.array([0.0, 2.0, 0.0, 0.0]), V, J)
     >>> V.tolist(), J.tolist()  # t_2 = 0.5 at λ_2 = 2 on [-1, 3]: 2·0.25 − 1; d/dλ_2 = 4 t_2 · 2/4
     ([-0.5], [[0.0, 1.0, 0.0, 0.0]])
     """
@@ -87,14 +103,14 @@ def eval_vj(C, shape, lo, hi, lam, V, J):
     Cv = np.empty((n3, C.shape[1]))
     Cd = np.empty((n3, C.shape[1]))
     contract_pressure(C, shape, lo, hi, lam[3], Cv, Cd)
-    eval_vj3(Cv, Cd, shape, lo, hi, lam, V, J)
+    eval_vj3(Cv, Cd, shape, lo, hi, wd, lam, V, J)
 
 
 @njit(cache=True, nogil=True)
-def eval_value(C, shape, lo, hi, lam, out):
+def eval_value(C, shape, lo, hi, wd, lam, out):
     """The value (m,) of the polynomial with coefficients ``C`` (n1·n2·n3·n4, m) at ``lam``."""
     n1, n2, n3, n4 = shape[0], shape[1], shape[2], shape[3]
-    B, D = _bases(lam, lo, hi, shape, 4)
+    B, D, _ = _bases(lam, lo, hi, wd, shape, 4)
     m = C.shape[1]
     for o in range(m):
         out[o] = 0.0
@@ -135,10 +151,10 @@ def contract_pressure(C, shape, lo, hi, p, Cv, Cd):
 
 
 @njit(cache=True, nogil=True)
-def eval_vj3(Cv, Cd, shape, lo, hi, lam, V, J):
+def eval_vj3(Cv, Cd, shape, lo, hi, wd, lam, V, J):
     """:func:`eval_vj` on the polynomial contracted at ``lam[3]`` by :func:`contract_pressure`."""
     n1, n2, n3 = shape[0], shape[1], shape[2]
-    B, D = _bases(lam, lo, hi, shape, 3)
+    B, D, gs = _bases(lam, lo, hi, wd, shape, 3)
     m = Cv.shape[1]
     for o in range(m):
         V[o] = 0.0
@@ -161,9 +177,8 @@ def eval_vj3(Cv, Cd, shape, lo, hi, lam, V, J):
                     J[o, 3] += w0 * Cd[g, o]
                 g += 1
     for a in range(3):
-        s = 2.0 / (hi[a] - lo[a])
         for o in range(m):
-            J[o, a] *= s
+            J[o, a] *= gs[a]
 
 
 @njit(cache=True, nogil=True)
@@ -230,7 +245,7 @@ def _misfit(V, dV):
 
 
 @njit(cache=True, nogil=True)
-def gn_update(Cv, Cd, shape, lo, hi, lam, V, J, cost, dV, step, blo, bhi, tol):
+def gn_update(Cv, Cd, shape, lo, hi, wd, lam, V, J, cost, dV, step, blo, bhi, tol):
     """One Gauss–Newton update along ``step`` (3,) N from ``lam``: the step clipped to the force
     bounds [blo, bhi], halved while it raises the misfit (up to ``BACKTRACK_HALVINGS`` times);
     ``lam``, ``V``, ``J``, ``step`` updated in place (the polynomial as contracted by
@@ -244,7 +259,7 @@ def gn_update(Cv, Cd, shape, lo, hi, lam, V, J, cost, dV, step, blo, bhi, tol):
     for _ in range(BACKTRACK_HALVINGS):
         for a in range(3):
             trial[a] = min(max(lam[a] + step[a], blo[a]), bhi[a])
-        eval_vj3(Cv, Cd, shape, lo, hi, trial, Vt, Jt)
+        eval_vj3(Cv, Cd, shape, lo, hi, wd, trial, Vt, Jt)
         ct = _misfit(Vt, dV)
         if ct <= cost * (1 + 1e-12):
             for i in range(4):  # loops, not slice assignments: those cost seconds of compilation
@@ -262,7 +277,7 @@ def gn_update(Cv, Cd, shape, lo, hi, lam, V, J, cost, dV, step, blo, bhi, tol):
 
 
 @njit(cache=True, nogil=True)
-def gn_run(C, Cv, Cd, shape, lo, hi, lam, V, J, cost, dV, blo, bhi, tol, it0, max_iter):
+def gn_run(C, Cv, Cd, shape, lo, hi, wd, lam, V, J, cost, dV, blo, bhi, tol, it0, max_iter):
     """Gauss–Newton iterations ``it0 + 1 … max_iter`` from ``lam`` on the polynomial with
     coefficients ``C``, each step the unbounded minimizer of the volume QP; ``lam``, ``V``, ``J``
     updated in place. ``it0 = 0`` starts a sample: the polynomial is contracted at the pressure
@@ -273,7 +288,7 @@ def gn_run(C, Cv, Cd, shape, lo, hi, lam, V, J, cost, dV, blo, bhi, tol, it0, ma
     that iteration is the QP solver's (then :func:`gn_update`)."""
     if it0 == 0:
         contract_pressure(C, shape, lo, hi, lam[3], Cv, Cd)
-        eval_vj3(Cv, Cd, shape, lo, hi, lam, V, J)
+        eval_vj3(Cv, Cd, shape, lo, hi, wd, lam, V, J)
         cost = _misfit(V, dV)
     x = np.empty(3)
     r0 = np.empty(4)
@@ -287,20 +302,20 @@ def gn_run(C, Cv, Cd, shape, lo, hi, lam, V, J, cost, dV, blo, bhi, tol, it0, ma
                     ok = False
         if not ok:
             return NEED_QP, it, cost
-        code, cost = gn_update(Cv, Cd, shape, lo, hi, lam, V, J, cost, dV, x, blo, bhi, tol)
+        code, cost = gn_update(Cv, Cd, shape, lo, hi, wd, lam, V, J, cost, dV, x, blo, bhi, tol)
         if code != CONTINUE:
             return code, it, cost
     return MAX_ITER, max(max_iter, it0), cost
 
 
 @njit(cache=True, nogil=True)
-def points_pose(CP, shape, lo, hi, lam, P0, cp, pts, t, ypr):
+def points_pose(CP, shape, lo, hi, wd, lam, P0, cp, pts, t, ypr):
     """The tracked points ``pts`` (k·3,) at ``lam`` (:func:`eval_value`) and the pose of the first
     ``len(P0)`` (the markers) in one call: the rigid fit (:func:`rigid_fit_pose`), its translation
     ``t`` (3,) m and its rotation's (yaw, pitch, roll) ``ypr`` (3,) rad, as
     :func:`~softphantom.pose.ypr_from_matrix` (R = Rz(yaw)·Rx(pitch)·Ry(roll); at gimbal lock roll
     is 0 and yaw carries the rotation about z)."""
-    eval_value(CP, shape, lo, hi, lam, pts)
+    eval_value(CP, shape, lo, hi, wd, lam, pts)
     R = np.empty((3, 3))
     rigid_fit_pose(P0, cp, pts[:3 * P0.shape[0]].reshape((P0.shape[0], 3)), R, t)
     c = math.hypot(R[2, 0], R[2, 2])
@@ -371,14 +386,15 @@ def warm_up() -> None:
     C[6] = [0, 1e-9, 1e-9, 0]
     C[18] = [0, 0, 1e-9, 1e-9]
     lo, hi = np.array([-1.0, -1, -1, -1e3]), np.array([1.0, 1, 1, 1e3])
+    wd = np.array([0.1, 0.0, 0.0, 0.0])
     lam, V, J = np.zeros(4), np.empty(4), np.empty((4, 4))
-    eval_vj(C, shape, lo, hi, lam, V, J)
-    eval_value(C, shape, lo, hi, lam, np.empty(4))
+    eval_vj(C, shape, lo, hi, wd, lam, V, J)
+    eval_value(C, shape, lo, hi, wd, lam, np.empty(4))
     dV = np.full(4, 1e-10)
     Cv, Cd = np.empty((27, 4)), np.empty((27, 4))
-    code, it, cost = gn_run(C, Cv, Cd, shape, lo, hi, lam, V, J, 0.0, dV, lo[:3].copy(), hi[:3].copy(), 1e-7, 0, 3)
-    gn_update(Cv, Cd, shape, lo, hi, lam, V, J, cost, dV, np.zeros(3), lo[:3].copy(), hi[:3].copy(), 1e-7)
+    code, it, cost = gn_run(C, Cv, Cd, shape, lo, hi, wd, lam, V, J, 0.0, dV, lo[:3].copy(), hi[:3].copy(), 1e-7, 0, 3)
+    gn_update(Cv, Cd, shape, lo, hi, wd, lam, V, J, cost, dV, np.zeros(3), lo[:3].copy(), hi[:3].copy(), 1e-7)
     P0 = np.eye(3) - 1 / 3
-    points_pose(np.zeros((54, 9)), shape, lo, hi, lam, P0, np.zeros(3), np.empty(9), np.empty(3), np.empty(3))
+    points_pose(np.zeros((54, 9)), shape, lo, hi, wd, lam, P0, np.zeros(3), np.empty(9), np.empty(3), np.empty(3))
     cond_force(np.eye(4))
     _warm = True
