@@ -61,8 +61,11 @@ def law_values(law: str, E_kPa: float, nu: float, density: float) -> tuple[tuple
 def with_law(design: BIPDesign, law: str, order: int, bulb_factor: float = 1.0, suffix: str = "") -> BIPDesign:
     """``design`` with every region under ``law`` (the default material's small-strain E, ν), the
     bulb's moduli × ``bulb_factor``, meshed with elements of ``order``."""
-    base = dict({m.name: m for m in design.materials}[dict(design.region_materials)["bulb"]].values)
-    E, nu, rho = base["E_kPa"], base["nu"], base.get("density_kg_m3", 1070.0)
+    from softphantom.fem.material import law_from_spec
+
+    spec = {m.name: m for m in design.materials}[dict(design.region_materials)["bulb"]]
+    now = law_from_spec(spec.law, dict(spec.values), f"materials.{spec.name}")  # any law: its small-strain E
+    E, nu, rho = now.E_Pa / 1e3, now.nu, now.density_kg_m3
     bulb = MaterialSpec(f"bulb{suffix}", law, law_values(law, E * bulb_factor, nu, rho))
     arms = MaterialSpec(f"arms{suffix}", law, law_values(law, E, nu, rho))
     return dataclasses.replace(design, materials=(bulb, arms),

@@ -342,3 +342,115 @@ def test_pressure_drift_is_fitted_not_taken_for_stiffness():
     # projects on a common ramp: seeds 1–6 give +38 … −32 %, one of them −1 %)
     p0, _ = run(("drift",))
     assert abs(p0["stiffness_bulb_factor"] / truth["bulb"] - 1) > 0.2
+
+
+def _yeoh_model(coarse: Path, out: Path) -> Path:
+    """The coarse model's mesh with bulb and arms under the Ecoflex 00-50 three-term Yeoh preset."""
+    from softphantom.design import load_model
+    from softphantom.design.params import MaterialSpec
+
+    m = load_model(coarse)
+    eco = MaterialSpec("ecoflex_yeoh", "yeoh", (("C10_kPa", 17.0), ("C20_kPa", -0.2), ("C30_kPa", 0.023),
+                                                ("nu", 0.45), ("density_kg_m3", 1070.0)))
+    design = dataclasses.replace(m.design, materials=(eco,), region_materials=(("bulb", "ecoflex_yeoh"),
+                                                                              ("arms", "ecoflex_yeoh")))
+    save_model(dataclasses.replace(m, design=design), out)
+    return out
+
+
+def test_yeoh_shape_sensitivities_equal_finite_differences(coarse, tmp_path):
+    """A Yeoh region's shape θ2 = C20/C10, θ3 = C30/C10 (issue 14: "Yeoh terms"): the exact
+    ∂x/∂θ = −K⁻¹ ∂f_int/∂θ against central differences of the forward solve; the parameter set
+    offers them only for a Yeoh group; an unstable shape is a failed (rejected) trial, not a crash."""
+    from softphantom.calibration.fit import parameter_set
+    from softphantom.calibration.forward import yeoh_shapes
+    from softphantom.design import load_model
+    from softphantom.errors import SolverError
+
+    d = _yeoh_model(coarse, tmp_path / "yeoh")
+    model = load_model(d)
+    shapes = yeoh_shapes(model)
+    assert shapes == {g: pytest.approx((-0.2 / 17.0, 0.023 / 17.0)) for g in ("bulb", "arms")}
+    assert yeoh_shapes(load_model(coarse)) == {}  # neo-Hookean default: no shape to fit
+    names = [p.name for p in parameter_set(yeoh=shapes)]
+    assert "yeoh_C20_C10_arms" in names and "yeoh_C30_C10_bulb" in names
+    assert not any(n.startswith("yeoh") for n in (p.name for p in parameter_set()))
+
+    c = tuple(model.p_ext["off-centre"])
+    f = np.array([0.5, 4.0, -0.3])  # a large push: the shape acts through (Ī₁ − 3)², (Ī₁ − 3)³
+    scales = {"bulb": 1.2, "arms": 0.9}
+    shapes = {"bulb": (-0.01, 0.01), "arms": (0.02, 0.01)}  # stable at ± the steps below
+    s = solve_keyframe(str(d), c, 4e-3, scales, f, 0.0, shape=shapes)
+    assert s.shape_cols == (("bulb", 2), ("bulb", 3), ("arms", 2), ("arms", 3))
+    steps = {2: 0.02, 3: 0.005}
+    for j, (g, i) in enumerate(s.shape_cols):
+        fd = []
+        for sign in (1, -1):
+            sh = {k: tuple(v) for k, v in shapes.items()}
+            t = list(sh[g])
+            t[i - 2] += sign * steps[i]
+            sh[g] = tuple(t)
+            fd.append(solve_keyframe(str(d), c, 4e-3, scales, f, 0.0, x0=s.x, shape=sh, tol=1e-12))
+        dV = (fd[0].dV - fd[1].dV) / (2 * steps[i])
+        dM = (fd[0].markers - fd[1].markers) / (2 * steps[i])
+        np.testing.assert_allclose(dV, s.dV_dshape[:, j], rtol=0.02, atol=0.02 * np.abs(s.dV_dshape[:, j]).max())
+        np.testing.assert_allclose(dM, s.dM_dshape[:, :, j], atol=0.02 * np.abs(s.dM_dshape[:, :, j]).max())
+        assert np.abs(s.dV_dshape[:, j]).max() > 0
+    # C30 < 0: dW/dĪ₁ turns negative at large strain — not a law to solve with
+    with pytest.raises(SolverError, match="unstable"):
+        solve_keyframe(str(d), c, 4e-3, scales, f, 0.0, shape={"arms": (0.0, -0.01)})
+
+
+def test_yeoh_shape_columns_of_the_jacobian_and_the_written_design(coarse, tmp_path):
+    """The fit's Jacobian columns for a Yeoh shape equal finite differences of its residuals (a
+    stand-in solve whose volumes depend on θ2 of the arms), and the calibrated design carries the
+    fitted C20 = θ2·C10, C30 = θ3·C10 on top of the group's stiffness factor."""
+    from softphantom.calibration.fit import Keyframes, Problem, parameter_set
+    from softphantom.calibration.forward import KeyframeSolution
+    from softphantom.calibration.output import calibrated_design
+    from softphantom.calibration.session import Session
+    from softphantom.design import load_model
+
+    rng = np.random.default_rng(4)
+    D, E = rng.normal(0.0, 4e-9, (4, 3)), rng.normal(0.0, 4e-8, (4, 3))  # m³/N; m³/N per unit θ2
+    t = np.linspace(0.0, 10.0, 101)
+    se = Session("s1", t, np.zeros((t.size, 4)), np.zeros(t.size), t, np.zeros((t.size, 6)), np.zeros(3),
+                 101325.0, 12.0, 1.5e-3, np.full(4, 2e-6), dp_noise_Pa=np.full(4, 0.5))
+    fr = Keyframes.of([se], [np.array([2.0, 4.0, 6.0])])
+    fr = dataclasses.replace(fr, dp=rng.normal(0.0, 30.0, (3, 4)))
+
+    def solve_many(tasks):
+        out = []
+        for task in tasks:
+            th2 = task[8]["arms"][0]
+            ff = np.asarray(task[4])
+            dV = D @ ff / task[3]["arms"] + th2 * E @ ff
+            out.append(KeyframeSolution(np.zeros(3), dV, np.zeros((3, 3)), D / task[3]["arms"] + th2 * E,
+                                        np.stack([0 * dV, -D @ ff / task[3]["arms"]], axis=1),
+                                        np.zeros((3, 3, 3)), np.zeros((3, 3, 2)), ("bulb", "arms"), 1, True, "ok",
+                                        (("arms", 2), ("arms", 3)), np.stack([E @ ff, 0 * dV], axis=1),
+                                        np.zeros((3, 3, 2))))
+        return out
+
+    params = parameter_set(yeoh={"arms": (-0.012, 0.0014)})
+    prob = Problem("m", [se], fr, np.zeros((3, 3)), solve_many, FitOptions(), params, use_pose=False)
+    z = np.concatenate([prob.nominal(), rng.normal(0.0, 2.0, 9)])
+    r, J, _ = prob.residuals(z)
+    for name in ("yeoh_C20_C10_arms", "stiffness_arms_factor"):
+        i = prob.names().index(name)
+        h = 1e-4
+        zp, zm = z.copy(), z.copy()
+        zp[i] += h
+        zm[i] -= h
+        fd = (prob.residuals(zp)[0] - prob.residuals(zm)[0]) / (2 * h)
+        np.testing.assert_allclose(J[:, i], fd, rtol=1e-5, atol=1e-6 * np.abs(fd).max())
+        assert np.abs(J[:12, i]).max() > 0
+
+    design = load_model(_yeoh_model(coarse, tmp_path / "yeoh")).design
+    new = calibrated_design(design, {"bulb": 1.0, "arms": 1.5}, {"arms": (-0.02, 0.004)})
+    mats = {m.name: dict(m.values) for m in new.materials}
+    arms = mats[new.material_of_regions()["arm_front_zpos"]]
+    assert arms["C10_kPa"] == pytest.approx(25.5) and arms["nu"] == 0.45
+    assert (arms["C20_kPa"], arms["C30_kPa"]) == (pytest.approx(-0.02 * 25.5), pytest.approx(0.004 * 25.5))
+    bulb = mats[new.material_of_regions()["bulb"]]
+    assert (bulb["C10_kPa"], bulb["C20_kPa"]) == (pytest.approx(17.0), pytest.approx(-0.2))

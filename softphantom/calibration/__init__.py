@@ -1,7 +1,8 @@
 """Calibration of the model and the sensors to a cast phantom on the bench (``softphantom
 calibrate``): least squares over forward FEM solves (on Dask) of the material stiffness per region
-group, the transducers' gains and offsets, the tube volume, the tracker registration and lag, with
-confidence intervals, correlations and an identifiability check. See docs/calibration.md.
+group (and a Yeoh group's shape), the transducers' gains, offsets and each session's drift, the
+tube volume, the tracker registration and lag, with confidence intervals, correlations and an
+identifiability check. See docs/calibration.md.
 
 Data flow: after evaluation (it reads recordings, takes and the model; it writes a model directory
 that every earlier stage reads as any other).

@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from softphantom.calibration.forward import ARM_NAMES, GROUPS, KeyframeSolution
+from softphantom.calibration.forward import ARM_NAMES, GROUPS, YEOH_TERMS, KeyframeSolution
 from softphantom.calibration.session import Session
 from softphantom.errors import SolverError, UserError
 from softphantom.pose import rigid_fit, ypr_from_matrix
@@ -71,9 +71,23 @@ class Parameter:
         return Parameter(self.name, self.internal(value), prior, self.log, self.scale)
 
 
-def parameter_set(groups=GROUPS, measured: tuple[tuple[str, float, float | None], ...] = ()) -> tuple[Parameter, ...]:
+#: Prior spreads of a Yeoh group's shape θ2 = C20/C10, θ3 = C30/C10 around the design's values:
+#: silicone fits span |C20/C10| up to a few hundredths and C30/C10 up to ~0.01 (the Ecoflex 00-50
+#: preset: −0.012, 0.0014); wide enough that the data, where they can, decide.
+YEOH_PRIOR_SD = {2: 0.05, 3: 0.01}
+
+
+def yeoh_name(group: str, i: int) -> str:
+    """The parameter name of a Yeoh group's ratio C_i0/C10."""
+    return f"yeoh_C{i}0_C10_{group}"
+
+
+def parameter_set(groups=GROUPS, measured: tuple[tuple[str, float, float | None], ...] = (),
+                  yeoh: dict[str, tuple[float, float]] | None = None) -> tuple[Parameter, ...]:
     """Every global parameter the calibration knows, in order; those named in ``measured``
-    ((name, value, sd) in displayed units, see :class:`FitOptions`) centred on their measurement.
+    ((name, value, sd) in displayed units, see :class:`FitOptions`) centred on their measurement;
+    ``yeoh`` (group -> the design's (C20/C10, C30/C10), :func:`~softphantom.calibration.forward.yeoh_shapes`)
+    adds those groups' Yeoh shape (:func:`yeoh_name`).
 
     >>> p = {q.name: q for q in parameter_set(measured=(("gain_back_xpos", 1.05, 0.01),
     ...                                                  ("stiffness_bulb_factor", 1.3, 0.13)))}
@@ -83,6 +97,8 @@ def parameter_set(groups=GROUPS, measured: tuple[tuple[str, float, float | None]
     (1.3, 0.1)
     """
     ps = _parameters(groups)
+    ps[len(groups):len(groups)] = [Parameter(yeoh_name(g, i), float(r[i - 2]), YEOH_PRIOR_SD[i])
+                                   for g, r in (yeoh or {}).items() for i in YEOH_TERMS]
     names = [p.name for p in ps]
     seen = set()
     for name, value, sd in measured:
@@ -258,6 +274,7 @@ class Problem:
         P = {p.name: g[i] for i, p in enumerate(self.params)}
         return dict(
             scales={gr: math.exp(P[f"stiffness_{gr}_factor"]) for gr in GROUPS},
+            shape={gr: tuple(P[yeoh_name(gr, i)] for i in YEOH_TERMS) for gr in GROUPS if yeoh_name(gr, 2) in P},
             gain=np.array([P[f"gain_{a}"] for a in ARM_NAMES]),
             offset=np.array([P[f"offset_{a}_Pa"] for a in ARM_NAMES]),
             tube=P["tube_volume_factor"],
@@ -275,7 +292,7 @@ class Problem:
         fr = self.frames
         mls = TRIAL_MIN_LOAD_STEP if trial else 1.0 / 1024
         tasks = [(self.model_dir, tuple(fr.contact[k]), self.options.radius_m, u["scales"], forces[k],
-                  float(fr.p_urethra[k]), self.x_warm[k], mls) for k in range(len(fr))]
+                  float(fr.p_urethra[k]), self.x_warm[k], mls, u["shape"]) for k in range(len(fr))]
         sols = self.solve_many(tasks)
         self.solves += len(tasks)
         return sols
@@ -322,6 +339,8 @@ class Problem:
             J[:, ng + 3 * k: ng + 3 * k + 3] = dp_dV[k][:, None] * s.dV_df / sdp[:, None]
             for j, gr in enumerate(s.groups):
                 J[:, scale_cols[GROUPS.index(gr)]] = dp_dV[k] * s.dV_dlnc[:, j] / sdp
+            for j, (gr, i) in enumerate(s.shape_cols):
+                J[:, iG[yeoh_name(gr, i)]] = dp_dV[k] * s.dV_dshape[:, j] / sdp
             p_lin = (dp[k] - u["offset"] - u["drift"][int(fr.session[k])] * self.since_start(k)) / u["gain"]
             for i, a in enumerate(ARM_NAMES):
                 J[i, iG[f"gain_{a}"]] = p_lin[i] / sdp[i]
@@ -362,6 +381,8 @@ class Problem:
                 J[:, ng + 3 * k: ng + 3 * k + 3] = D @ s.dM_df.reshape(M.size, 3) / sd6[:, None]
                 for j, gr in enumerate(s.groups):
                     J[:, scale_cols[GROUPS.index(gr)]] = D @ s.dM_dlnc[:, :, j].reshape(M.size) / sd6
+                for j, (gr, i) in enumerate(s.shape_cols):
+                    J[:, iG[yeoh_name(gr, i)]] = D @ s.dM_dshape[:, :, j].reshape(M.size) / sd6
                 for a_i, a in enumerate("xyz"):
                     for name, vec, h in ((f"registration_rot_{a}_deg", "rho", h_par), (f"pivot_{a}_mm", "pivot", h_par * 1e-2)):
                         up, um = dict(u), dict(u)

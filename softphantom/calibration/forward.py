@@ -7,7 +7,10 @@ theorem gives, with the tangent ``K = ∂r/∂x`` (one factorization):
 * ``∂x/∂f = K⁻¹ H`` (3 columns);
 * ``∂x/∂ln c_r = −K⁻¹ f_int,r(x)`` for the scale ``c_r`` of every modulus of region group ``r``:
   every law of :mod:`softphantom.fem` has a strain energy linear in its moduli, so the internal
-  force of a group's elements is proportional to its scale.
+  force of a group's elements is proportional to its scale;
+* for a group under the Yeoh law, its shape ``θ_i = C_i0 / C10`` (i = 2, 3; ``C_i0 = c θ_i C10``):
+  ``∂x/∂θ_i = −K⁻¹ ∂f_int/∂θ_i``, the internal force of the group's elements with every parameter
+  zero but ``C_i0 = c C10`` (the energy is linear in each ``C_i0``).
 
 Readouts: arm-cavity volume changes (4) and marker positions (k, 3). One task is a plain function
 of picklable arguments (:func:`solve_keyframe`), so Dask ships it to any worker; each worker builds
@@ -25,6 +28,7 @@ import numpy as np
 
 from softphantom.errors import SolverError, UserError
 from softphantom.fem import (
+    Yeoh,
     SparseSolver,
     cavity_volume,
     cavity_volume_gradient,
@@ -40,6 +44,8 @@ ARM_NAMES = ("front_zpos", "front_zneg", "back_xpos", "back_xneg")
 URETHRA = "urethra"
 #: Region groups whose stiffness the calibration can scale: the bulb, and the four arms together.
 GROUPS = ("bulb", "arms")
+#: The Yeoh terms whose ratio to C10 the calibration can fit, as parameter-row columns (C20, C30).
+YEOH_TERMS = (2, 3)
 
 
 def region_group(region: str) -> str:
@@ -87,6 +93,38 @@ def _base(model_dir: str, contact: tuple[float, float, float], radius_m: float) 
     return Base(model, fem, H, P, V0, np.asarray(P @ x0), groups, SparseSolver("auto"))
 
 
+def yeoh_shapes(model) -> dict[str, tuple[float, float]]:
+    """Group -> (C20/C10, C30/C10) of each group of :data:`GROUPS` whose regions all use one Yeoh
+    law (their shape is what the calibration may fit; other laws have none)."""
+    from softphantom.fem.model import laws_of_design
+
+    laws = laws_of_design(model.design, model.regions)
+    out = {}
+    for g in GROUPS:
+        mine = {laws[r] for r in model.regions if region_group(r) == g}
+        if len(mine) == 1 and isinstance(law := next(iter(mine)), Yeoh):
+            out[g] = (law.C20_Pa / law.C10_Pa, law.C30_Pa / law.C10_Pa)
+    return out
+
+
+def shaped_fem(fem, group_tets: dict[str, np.ndarray], shape: dict[str, tuple[float, float]]):
+    """A new FemModel whose Yeoh elements in each group of ``shape`` have C20 = θ2 C10 and
+    C30 = θ3 C10 (``shape[group] = (θ2, θ3)``). An unstable law (:class:`~softphantom.fem.Yeoh`'s
+    check) raises :class:`SolverError`: a trial step there is rejected like one whose solve fails."""
+    if not shape:
+        return fem
+    prm = np.array(fem.params, dtype=float)
+    for g, (t2, t3) in shape.items():
+        try:
+            Yeoh(1.0, float(t2), float(t3))
+        except UserError as exc:
+            raise SolverError(f"Yeoh shape of {g}: C20/C10 = {t2:.4g}, C30/C10 = {t3:.4g} gives an unstable law ({exc})") from None
+        sel = group_tets[g] & (np.asarray(fem.law_id) == Yeoh.law_id)
+        prm[sel, 1] = t2 * prm[sel, 0]
+        prm[sel, 2] = t3 * prm[sel, 0]
+    return dataclasses.replace(fem, params=prm)
+
+
 def scaled_fem(fem, tet_scale: np.ndarray):
     """A new FemModel whose element moduli are multiplied by ``tet_scale`` (M,)."""
     s = np.asarray(tet_scale, float)
@@ -112,7 +150,8 @@ class KeyframeSolution:
     """A keyframe's equilibrium: ``x`` (3N,) m, ``dV`` (4,) m³ arm-cavity volume changes,
     ``markers`` (k, 3) m; sensitivities ``dV_df`` (4, 3) m³/N, ``dV_dlnc`` (4, G) m³,
     ``dM_df`` (k, 3, 3) m/N, ``dM_dlnc`` (k, 3, G) m (G = ``groups``); ``iterations`` Newton
-    iterations; ``converged``; ``status``."""
+    iterations; ``converged``; ``status``; ``shape_cols`` ((group, i), …) the Yeoh ratios
+    θ_i = C_i0/C10 solved for, ``dV_dshape`` (4, S) m³ and ``dM_dshape`` (k, 3, S) m per unit θ."""
 
     x: np.ndarray
     dV: np.ndarray
@@ -125,20 +164,27 @@ class KeyframeSolution:
     iterations: int
     converged: bool
     status: str
+    shape_cols: tuple[tuple[str, int], ...] = ()
+    dV_dshape: np.ndarray | None = None
+    dM_dshape: np.ndarray | None = None
 
 
 def solve_keyframe(model_dir: str, contact: tuple[float, float, float], radius_m: float,
                    scales: dict[str, float], force_N, p_urethra_Pa: float,
                    x0: np.ndarray | None = None, min_load_step: float = 1.0 / 1024,
-                   tol: float = 1e-9) -> KeyframeSolution:
+                   shape: dict[str, tuple[float, float]] | None = None, tol: float = 1e-9) -> KeyframeSolution:
     """Equilibrium and sensitivities at force ``force_N`` (3,) on the contact patch and urethra
     pressure ``p_urethra_Pa``, with the moduli of each group in ``scales`` multiplied by its value
-    (groups not named keep their nominal moduli). ``x0`` warm start (3N,); ``min_load_step`` the
+    (groups not named keep their nominal moduli), and the Yeoh groups in ``shape`` given
+    (C20/C10, C30/C10) (:func:`shaped_fem`). ``x0`` warm start (3N,); ``min_load_step`` the
     smallest load increment the solve may cut to (:func:`~softphantom.fem.solve_static`) before it
     gives up with :class:`SolverError`."""
     base = _base(str(model_dir), tuple(float(v) for v in contact), float(radius_m))
     groups = tuple(scales)
-    fem = scaled_fem(base.fem, _tet_scale(base, scales))
+    shape = dict(shape or {})
+    shape_cols = tuple((g, i) for g in shape for i in YEOH_TERMS)
+    fem0 = shaped_fem(base.fem, base.group_tets, shape)
+    fem = scaled_fem(fem0, _tet_scale(base, scales))
     f = np.asarray(force_N, float)
     pressures = {URETHRA: float(p_urethra_Pa)} if p_urethra_Pa else None
     solver = base.solver
@@ -152,12 +198,19 @@ def solve_keyframe(model_dir: str, contact: tuple[float, float, float], radius_m
     free = fem.free_dofs
     K = free_tangent(fem, x, pressures)
     solver.factorize(K)
-    B = np.empty((fem.n_free, 3 + len(groups)))
+    G = len(groups)
+    B = np.empty((fem.n_free, 3 + G + len(shape_cols)))
     B[:, :3] = base.H.toarray()[free] if hasattr(base.H, "toarray") else base.H[free]
     ts = _tet_scale(base, scales)
     for j, g in enumerate(groups):
         only = np.where(base.group_tets[g], ts, 0.0)
-        B[:, 3 + j] = -internal_force(scaled_fem(base.fem, only), x)[free]
+        B[:, 3 + j] = -internal_force(scaled_fem(fem0, only), x)[free]
+    yeoh = np.asarray(fem0.law_id) == Yeoh.law_id
+    for j, (g, i) in enumerate(shape_cols):  # ∂f_int/∂θ_i: only C_i0 = c C10 on the group's Yeoh elements
+        prm = np.zeros_like(np.asarray(fem0.params, dtype=float))
+        sel = base.group_tets[g] & yeoh
+        prm[sel, i - 1] = ts[sel] * np.asarray(fem0.params)[sel, 0]
+        B[:, 3 + G + j] = -internal_force(dataclasses.replace(fem0, params=prm), x)[free]
     U = np.zeros((n, B.shape[1]))
     U[free] = solver.solve(B)
     dV = np.empty(4)
@@ -170,8 +223,8 @@ def solve_keyframe(model_dir: str, contact: tuple[float, float, float], radius_m
     markers = np.asarray(base.P @ X)
     Uk = U.reshape(-1, 3, U.shape[1])  # (N, 3, cols)
     dM = np.einsum("kn,nic->kic", base.P.toarray() if hasattr(base.P, "toarray") else base.P, Uk)
-    return KeyframeSolution(x, dV, markers, dV_d[:, :3], dV_d[:, 3:], dM[:, :, :3], dM[:, :, 3:],
-                            groups, sol.iterations, True, sol.status)
+    return KeyframeSolution(x, dV, markers, dV_d[:, :3], dV_d[:, 3:3 + G], dM[:, :, :3], dM[:, :, 3:3 + G],
+                            groups, sol.iterations, True, sol.status, shape_cols, dV_d[:, 3 + G:], dM[:, :, 3 + G:])
 
 
 def rest_markers(model_dir: str, contact, radius_m: float) -> np.ndarray:

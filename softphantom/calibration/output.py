@@ -13,9 +13,10 @@ from softphantom.calibration.run import Calibration
 from softphantom.errors import UserError
 
 
-def calibrated_design(design, factors: dict[str, float]):
+def calibrated_design(design, factors: dict[str, float], shapes: dict[str, tuple[float, float]] | None = None):
     """A new design whose regions in each group of ``factors`` (``bulb``, ``arms``) use a copy of
-    their material with every modulus (fields in kPa) multiplied by the group's factor; ν and the
+    their material with every modulus (fields in kPa) multiplied by the group's factor, and for a
+    Yeoh group in ``shapes`` C20 = θ2·C10, C30 = θ3·C10 (``shapes[group] = (θ2, θ3)``); ν and the
     density stay. The copies are named ``<material>_<group>_calibrated``."""
     from softphantom.calibration.forward import region_group
     from softphantom.design.params import MaterialSpec
@@ -30,7 +31,10 @@ def calibrated_design(design, factors: dict[str, float]):
                 continue
             new = f"{mname}_{group}_calibrated"
             if new not in {m.name for m in new_specs}:
-                vals = tuple((k, v * c if k.endswith("_kPa") else v) for k, v in specs[mname].values)
+                vals = dict((k, v * c if k.endswith("_kPa") else v) for k, v in specs[mname].values)
+                if specs[mname].law == "yeoh" and group in (shapes or {}):
+                    vals["C20_kPa"], vals["C30_kPa"] = (r * vals["C10_kPa"] for r in shapes[group])
+                vals = tuple(vals.items())
                 new_specs.append(MaterialSpec(new, specs[mname].law, vals))
             assign[region] = new
     used = set(assign.values())
@@ -43,13 +47,15 @@ def calibrated_model(cal: Calibration):
     the same: only the materials change)."""
     from softphantom.design import load_model
 
+    from softphantom.calibration.fit import yeoh_name
     from softphantom.calibration.forward import ARM_NAMES
     from softphantom.design import SensorParams
 
     model = load_model(cal.model_dir)
     p = cal.parameters()
     factors = {g: p[f"stiffness_{g}_factor"] for g in ("bulb", "arms")}
-    design = calibrated_design(model.design, factors)
+    shapes = {g: (p[yeoh_name(g, 2)], p[yeoh_name(g, 3)]) for g in ("bulb", "arms") if yeoh_name(g, 2) in p}
+    design = calibrated_design(model.design, factors, shapes)
     # the fitted gains and tube factor are relative to the chain the (first) recording used
     s0 = cal.sessions[0]
     sensors = SensorParams(tuple(float(g0 * p[f"gain_{a}"]) for g0, a in zip(s0.recorded_gains, ARM_NAMES)),

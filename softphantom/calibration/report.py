@@ -155,6 +155,8 @@ def calibration_dict(cal: Calibration) -> dict:
         "softphantom": __version__,
         "kind": "softphantom-calibration",
         "stiffness_factor": {g: p[f"stiffness_{g}_factor"] for g in ("bulb", "arms")},
+        "yeoh_shape": {g: {f"C{i}0_C10": p[n] for i in (2, 3) if (n := f"yeoh_C{i}0_C10_{g}") in p}
+                       for g in ("bulb", "arms") if f"yeoh_C20_C10_{g}" in p},
         "sensor": {"gain": [p[f"gain_{a}"] for a in ARM_NAMES],
                    "offset_Pa": [p[f"offset_{a}_Pa"] for a in ARM_NAMES],
                    "tube_volume_factor": p["tube_volume_factor"]},

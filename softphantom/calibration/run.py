@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from softphantom.calibration.fit import FitOptions, FitResult, Keyframes, Problem, body_pose, fit, parameter_set
-from softphantom.calibration.forward import GROUPS, rest_markers, solve_keyframe
+from softphantom.calibration.forward import GROUPS, rest_markers, solve_keyframe, yeoh_shapes
 from softphantom.calibration.session import CalibrationInputError, Session, load_session, select_keyframes
 from softphantom.errors import SolverError, UserError
 from softphantom.sensing.pneumatics import boyle_dV
@@ -210,7 +210,8 @@ def calibrate(model_dir, specs: list[SessionSpec], holdout: list[SessionSpec] = 
     with ctx as client:
         solve_many = _solver(client)
         rm = rest_markers(str(model_dir), tuple(frames.contact[0]), options.radius_m)
-        problem = Problem(str(model_dir), sessions, frames, rm, solve_many, options, parameter_set(measured=options.measured))
+        params = parameter_set(measured=options.measured, yeoh=yeoh_shapes(model))
+        problem = Problem(str(model_dir), sessions, frames, rm, solve_many, options, params)
         forces0, lags0 = _initial(problem, sessions)
         problem = dataclasses.replace(problem, lag0_s=lags0, pose_rows=None)
         say("lag (take − recording): " + ", ".join(f"{se.name} {lg * 1e3:+.1f} ms" for se, lg in zip(sessions, lags0)))
@@ -229,7 +230,7 @@ def calibrate(model_dir, specs: list[SessionSpec], holdout: list[SessionSpec] = 
         if held:
             htimes = [select_keyframes(se, max_keyframes) for se in held]
             hframes = Keyframes.of(held, htimes)
-            hp = Problem(str(model_dir), held, hframes, rm, solve_many, options, parameter_set(measured=options.measured))
+            hp = Problem(str(model_dir), held, hframes, rm, solve_many, options, params)
             f0, hl = _initial(hp, held)
             gl = len(hp.params)
             # a held-out session's drift is its own, unknown to the calibration (as to the estimator): 0
