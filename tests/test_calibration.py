@@ -365,7 +365,7 @@ def test_yeoh_shape_sensitivities_equal_finite_differences(coarse, tmp_path):
     from softphantom.calibration.fit import parameter_set
     from softphantom.calibration.forward import yeoh_shapes
     from softphantom.design import load_model
-    from softphantom.errors import SolverError
+    from softphantom.errors import SolverError, UserError
 
     d = _yeoh_model(coarse, tmp_path / "yeoh")
     model = load_model(d)
@@ -375,6 +375,12 @@ def test_yeoh_shape_sensitivities_equal_finite_differences(coarse, tmp_path):
     names = [p.name for p in parameter_set(yeoh=shapes)]
     assert "yeoh_C20_C10_arms" in names and "yeoh_C30_C10_bulb" in names
     assert not any(n.startswith("yeoh") for n in (p.name for p in parameter_set()))
+    # a shape measured on a coupon: its prior; named for a model without a Yeoh group: refused
+    meas = (("yeoh_C20_C10_arms", 0.05, 0.01),)
+    q = {p.name: p for p in parameter_set(measured=meas, yeoh=shapes)}["yeoh_C20_C10_arms"]
+    assert (q.nominal, q.prior_sd) == (0.05, 0.01)
+    with pytest.raises(UserError, match="unknown parameter 'yeoh_C20_C10_arms'"):
+        parameter_set(measured=meas)
 
     c = tuple(model.p_ext["off-centre"])
     f = np.array([0.5, 4.0, -0.3])  # a large push: the shape acts through (Ī₁ − 3)², (Ī₁ − 3)³

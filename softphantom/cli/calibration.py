@@ -74,6 +74,7 @@ def calibrate_cmd(
     """Fit material stiffness, sensor gains/offsets/drift, tube volume, registration and lag to a bench
     session by least squares over forward FEM solves; print the parameters with 95 % intervals."""
     from softphantom.calibration import FitOptions, calibrate, parameter_set, write_calibration
+    from softphantom.calibration.forward import GROUPS
 
     if not (contact_radius_mm > 0 and contact_radius_mm < 50):
         raise UserError(f"--contact-radius-mm must be in (0, 50), got {contact_radius_mm}")
@@ -83,7 +84,9 @@ def calibrate_cmd(
     specs = _pairs(recording, truth, contact or [], known_loads or [], "--recording/--truth")
     hold = _pairs(holdout_recording or [], holdout_truth or [], holdout_contact or [], [], "--holdout-recording/--holdout-truth")
     opts = FitOptions(fix=tuple(fix or ()), measured=_measured(measured or []), radius_m=contact_radius_mm * 1e-3)
-    parameter_set(measured=opts.measured)  # refuse a bad name or value before any work
+    # refuse a bad name or value before any work (a Yeoh shape's name is checked against the
+    # model's laws once the model is read)
+    parameter_set(measured=opts.measured, yeoh={g: (0.0, 0.0) for g in GROUPS})
     cal = calibrate(model, specs, hold, options=opts, scheduler=scheduler, n_workers=workers,
                     max_keyframes=max_keyframes, progress=lambda s: console.print(s, markup=False, highlight=False))
     with staged_output(out, overwrite=overwrite, directory=True) as work:
