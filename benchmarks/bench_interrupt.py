@@ -47,7 +47,9 @@ def _children(pid: int) -> list[int]:
 
 
 def _interrupt(cmd, cwd, ready, settle_s) -> tuple[float, int]:
-    proc = subprocess.Popen(cmd, cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    # SIGINT back to its default in the child: a backgrounded job ignores it, and so would Python
+    proc = subprocess.Popen(cmd, cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         while not ready(proc) and proc.poll() is None:
             time.sleep(0.02)

@@ -11,6 +11,7 @@ import threading
 import time
 import tty
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -35,6 +36,8 @@ from softphantom.sensing.recording import (
     retare,
 )
 from softphantom.sensing.sources import FrameSource, ReplaySource, SerialSource
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from subproc import sigint_default  # noqa: E402
 
 REST = [51150, 51150, 51150, 51150, 4046]
 
@@ -342,7 +345,7 @@ def test_ctrl_c_stops_acquire_cleanly(tmp_path):
         _board_forever(board, 5000)
         proc = subprocess.Popen([sys.executable, "-m", "softphantom", "acquire", "--port", board.path,
                                  "--out", str(out), "--tare-s", "0.2"],
-                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=sigint_default)
         deadline = time.monotonic() + 60
         while time.monotonic() < deadline and (not out.exists() or out.read_bytes().count(b"\n") < 20):
             time.sleep(0.05)

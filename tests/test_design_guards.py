@@ -27,6 +27,8 @@ from softphantom.design.mesh import (
 from softphantom.design.model import check_meshed_volumes, model_summary
 from softphantom.errors import DesignError, MeshError
 from softphantom.virtual.scenario import MAX_DURATION_S, ScenarioError, scenario_from_dict
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from subproc import sigint_default  # noqa: E402
 
 
 def _design_refused(tmp_path, capsys, args, config: str | None = None) -> str:
@@ -134,7 +136,7 @@ def _children(pid: int) -> list[int]:
 def _interrupt(argv, tmp_path, ready) -> tuple[subprocess.CompletedProcess, float]:
     """Start ``softphantom argv``, wait until ``ready(proc)``, send SIGINT; (result, seconds to exit)."""
     proc = subprocess.Popen([sys.executable, "-m", "softphantom", *argv], cwd=tmp_path,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=sigint_default)
     try:
         deadline = time.monotonic() + 120
         while not ready(proc) and time.monotonic() < deadline and proc.poll() is None:
