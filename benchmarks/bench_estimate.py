@@ -37,6 +37,7 @@ import numpy as np
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 
 from softphantom.design import BIPDesign, build_model, load_model  # noqa: E402
+from softphantom.estimation.config import DEFAULT_CONTACT_RADIUS_M  # noqa: E402
 from softphantom.estimation import AtlasEstimator, Estimator, EstimatorConfig  # noqa: E402
 from softphantom.estimation.atlas import build_atlas, load_or_build  # noqa: E402
 from softphantom.estimation.select import atlas_config_from_options  # noqa: E402
@@ -205,8 +206,9 @@ def main() -> None:
     ap.add_argument("--model", help="model directory (default: build the default design)")
     ap.add_argument("--mesh-size-mm", type=float, default=None)
     ap.add_argument("--force-N", type=float, default=5.0)
-    ap.add_argument("--contact-radius-mm", type=float, default=5.0,
-                    help="force spread over the surface nodes within this radius of p_ext (0: one element; "
+    ap.add_argument("--contact-radius-mm", type=float, default=DEFAULT_CONTACT_RADIUS_M * 1e3,
+                    help="force spread over the surface nodes within this radius of p_ext (default: the "
+                         "estimator's, so the default atlas in a model's cache is reused; 0: one element, "
                          "a 5 N point load on one element does not converge on the default mesh)")
     ap.add_argument("--direction", default="0,1,0", help="force direction x,y,z")
     ap.add_argument("--ramp-s", type=float, default=2.0)
