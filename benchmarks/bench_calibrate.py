@@ -37,7 +37,8 @@ from pathlib import Path
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 
-from softphantom.calibration.forward import ARM_NAMES  # noqa: E402
+from softphantom.calibration.fit import yeoh_name  # noqa: E402
+from softphantom.calibration.forward import ARM_NAMES, GROUPS, YEOH_TERMS  # noqa: E402
 from softphantom.calibration import FitOptions, SessionSpec, calibrate, rmse_ratio  # noqa: E402
 from softphantom.design import BIPDesign, build_model, load_model, save_model  # noqa: E402
 from softphantom.design.params import MaterialSpec  # noqa: E402
@@ -220,8 +221,7 @@ def main() -> None:
                          "instead of the repository's push scenarios (issue 14 item 3: 60)")
     a = ap.parse_args()
     shape = None if a.truth_yeoh_shape is None else tuple(float(v) for v in a.truth_yeoh_shape.split(","))
-    shape_truth = {} if shape is None else {f"yeoh_C{i}0_C10_{g}": v for g in ("bulb", "arms")
-                                            for i, v in zip((2, 3), shape)}
+    shape_truth = {} if shape is None else {yeoh_name(g, i): v for g in GROUPS for i, v in zip(YEOH_TERMS, shape)}
     nominal = BIPDesign() if a.nominal_law is None and a.nominal_order == 1 else \
         with_law(BIPDesign(), a.nominal_law or "corotational", a.nominal_order)
     out = a.cache / (f"h{a.mesh_size_mm:g}_{a.truth_law}" + (f"_P{a.truth_order}" if a.truth_order != 1 else "")

@@ -16,6 +16,7 @@ Figures (session 7) are in docs/performance.md ("push atlases checked against ex
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import time
 from pathlib import Path
@@ -47,7 +48,7 @@ def main(argv=None) -> int:
         print(f"skipped: no demo output in {a.demo} (run make demo, or give --demo DIR)")
         return 0
 
-    from softphantom.cli.demo import PUSH_GRID, PUSH_GRIDS, _box, _push_only
+    from softphantom.cli.demo import _push_only, shared_atlases
     from softphantom.cli.estimation import open_sensor_source
     from softphantom.design import load_model
     from softphantom.estimation import EstimatorConfig, open_estimator
@@ -60,13 +61,11 @@ def main(argv=None) -> int:
     contact = _push_only(sc)
     if contact is None:
         sys.exit(f"--scenario {a.scenario}: not a push at one contact point")
-    forces = [e.force_N for n in BUNDLED for e in load_scenario(n).events if _push_only(load_scenario(n)) == contact]
-    grid, cluster = PUSH_GRIDS.get(contact, (PUSH_GRID, None))
-    if a.grid:
-        grid, cluster = tuple(int(v) for v in a.grid.split(",")), None
+    grid = tuple(int(v) for v in a.grid.split(",")) if a.grid else None
+    # the demo's atlas for this contact (its box over the bundled scenarios pushing there)
+    acfg = shared_atlases([load_scenario(n) for n in BUNDLED], grid)[contact]
     if a.cluster_N:
-        cluster = tuple(float(v) for v in a.cluster_N.split(","))
-    acfg = _box(forces, 0.0, grid, cluster)
+        acfg = dataclasses.replace(acfg, force_cluster_N=tuple(float(v) for v in a.cluster_N.split(",")))
     cfg = EstimatorConfig(contact=contact, mode="sync")
     rec = a.demo / a.scenario / "recording.csv"
     c0 = time.process_time()

@@ -184,7 +184,8 @@ def solve_keyframe(model_dir: str, contact: tuple[float, float, float], radius_m
     shape = dict(shape or {})
     shape_cols = tuple((g, i) for g in shape for i in YEOH_TERMS)
     fem0 = shaped_fem(base.fem, base.group_tets, shape)
-    fem = scaled_fem(fem0, _tet_scale(base, scales))
+    ts = _tet_scale(base, scales)
+    fem = scaled_fem(fem0, ts)
     f = np.asarray(force_N, float)
     pressures = {URETHRA: float(p_urethra_Pa)} if p_urethra_Pa else None
     solver = base.solver
@@ -201,7 +202,6 @@ def solve_keyframe(model_dir: str, contact: tuple[float, float, float], radius_m
     G = len(groups)
     B = np.empty((fem.n_free, 3 + G + len(shape_cols)))
     B[:, :3] = base.H.toarray()[free] if hasattr(base.H, "toarray") else base.H[free]
-    ts = _tet_scale(base, scales)
     for j, g in enumerate(groups):
         only = np.where(base.group_tets[g], ts, 0.0)
         B[:, 3 + j] = -internal_force(scaled_fem(fem0, only), x)[free]

@@ -148,15 +148,16 @@ td,th{{border:1px solid #bbb;padding:3px 8px;text-align:right}}th{{background:#e
 def calibration_dict(cal: Calibration) -> dict:
     """The calibrated sensor and registration parameters (``calibration.json``)."""
     from softphantom import __version__
-    from softphantom.calibration.forward import ARM_NAMES
+    from softphantom.calibration.fit import yeoh_name
+    from softphantom.calibration.forward import ARM_NAMES, GROUPS, YEOH_TERMS
 
     p = cal.parameters()
     out = {
         "softphantom": __version__,
         "kind": "softphantom-calibration",
         "stiffness_factor": {g: p[f"stiffness_{g}_factor"] for g in ("bulb", "arms")},
-        "yeoh_shape": {g: {f"C{i}0_C10": p[n] for i in (2, 3) if (n := f"yeoh_C{i}0_C10_{g}") in p}
-                       for g in ("bulb", "arms") if f"yeoh_C20_C10_{g}" in p},
+        "yeoh_shape": {g: {f"C{i}0_C10": p[yeoh_name(g, i)] for i in YEOH_TERMS}
+                       for g in GROUPS if yeoh_name(g, 2) in p},
         "sensor": {"gain": [p[f"gain_{a}"] for a in ARM_NAMES],
                    "offset_Pa": [p[f"offset_{a}_Pa"] for a in ARM_NAMES],
                    "tube_volume_factor": p["tube_volume_factor"]},
