@@ -54,7 +54,7 @@ GN_TOL_N = 1e-7
 FALLBACK_MIN_LOAD_STEP = 1.0 / 32
 VIA_TOL = 1e-3  # relative residual of the continuation steps between grid points (they only start the next)
 FIELD_MAX_MODES = 64
-STRETCH_FX_N = 0.05  # the default f_x stretch width: about the arm pair's step width at 5 N (docs/estimation.md)
+STRETCH_FX_N = 0.02  # the default f_x stretch width: the arm pair's step core at 3.5–5 N (docs/estimation.md)
 STRETCH_MIN_POINTS = 9  # f_x points from which the default stretches f_x
 FIELD_RTOL = 1e-5  # POD truncation: dropped displacement energy below this fraction (≈ 3e-3 relative RMS)
 
@@ -83,7 +83,7 @@ class AtlasConfig:
     map is missed by 0.55 N at f_x = 0.18 N), so such grids stay affine.
 
     >>> AtlasConfig().force_cluster_N, AtlasConfig(n_force=(4, 5, 4)).force_cluster_N
-    ((0.05, 0.0, 0.0), (0.0, 0.0, 0.0))
+    ((0.02, 0.0, 0.0), (0.0, 0.0, 0.0))
     >>> AtlasConfig(n_force=(5, 2, 5))
     Traceback (most recent call last):
     ...
@@ -94,7 +94,7 @@ class AtlasConfig:
     force_max_N: tuple[float, float, float] = (1.5, 5.2, 1.5)
     p_min_kPa: float = -2.0
     p_max_kPa: float = 40.0
-    n_force: tuple[int, int, int] = (9, 7, 4)
+    n_force: tuple[int, int, int] = (11, 7, 4)
     n_pressure: int = 3
     linear_pressure: bool = False
     force_cluster_N: tuple[float, float, float] | None = None
