@@ -3,9 +3,12 @@
     .venv/bin/python benchmarks/bench_calibrate.py                     # default mesh (6 mm)
     .venv/bin/python benchmarks/bench_calibrate.py --mesh-size-mm 12   # quick
 
-1. The nominal model: the default design at ``--mesh-size-mm``.
-2. A virtual bench deliberately unlike it: the truth's bulb 1.3× stiffer, its arms under another
-   law (``--truth-law``, same small-strain E) on a finer mesh; the tubes 10 % longer in volume than
+1. The nominal model: the default design at ``--mesh-size-mm`` (its law, neo-Hookean, unless
+   ``--nominal-law``; P1 unless ``--nominal-order 2``).
+2. A virtual bench deliberately unlike it (issue 14 item 4): every region of the truth under another
+   law than the nominal's (``--truth-law``; by default Yeoh with the Ecoflex 00-50 preset's shape
+   against a neo-Hookean or co-rotational nominal, neo-Hookean against a Yeoh one; same
+   small-strain E), its bulb 1.3× stiffer, on a finer mesh (``--truth-scale``, ``--truth-order``); the tubes 10 % longer in volume than
    the lab believes (13.2 m for 12 m: the recordings say 12 m); the back_xpos transducer reads
    5 % high; the transducers' offsets drawn from their datasheet band and tared away.
 3. Calibrate on push-on-centre and push-off-centre (known loads: the truth's force, as from a
@@ -79,6 +82,18 @@ def with_law(design: BIPDesign, law: str, order: int, bulb_factor: float = 1.0, 
     return dataclasses.replace(design, materials=(bulb, arms),
                                region_materials=(("bulb", f"bulb{suffix}"), ("arms", f"arms{suffix}")),
                                mesh=dataclasses.replace(design.mesh, element_order=order))
+
+
+def design_law(design: BIPDesign) -> str:
+    """The law of ``design``'s bulb material (the default design's: neo-Hookean)."""
+    return {m.name: m for m in design.materials}[dict(design.region_materials)["bulb"]].law
+
+
+def default_truth_law(nominal_law: str) -> str:
+    """Issue 14 item 4's truth is under *another law* than the nominal model's: Yeoh (the Ecoflex
+    00-50 preset's shape, a silicone that stiffens) against a neo-Hookean or co-rotational
+    nominal; neo-Hookean against a Yeoh one."""
+    return "neo-hookean" if nominal_law == "yeoh" else "yeoh"
 
 
 def truth_design(design: BIPDesign, law: str, order: int = 1, shape: tuple[float, float] | None = None) -> BIPDesign:
@@ -201,11 +216,13 @@ def report(cal, wall, tube_in_recording: bool = False, extra_truth: dict[str, fl
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--mesh-size-mm", type=float, default=6.0)
-    ap.add_argument("--truth-law", default="neo-hookean")
+    ap.add_argument("--truth-law", default=None, choices=("corotational", "neo-hookean", "yeoh"),
+                    help="the truth's law (default: another law than the nominal's, as issue 14 item 4 asks: "
+                         "yeoh against a neo-Hookean or co-rotational nominal, neo-hookean against a Yeoh one)")
     ap.add_argument("--truth-scale", type=float, default=0.75, help="truth node spacing / model mesh size")
     ap.add_argument("--truth-order", type=int, default=1, choices=(1, 2), help="truth element order")
     ap.add_argument("--nominal-law", default=None, choices=("corotational", "neo-hookean", "yeoh"),
-                    help="the nominal model's law (default: the design's, co-rotational)")
+                    help="the nominal model's law (default: the design's, neo-Hookean)")
     ap.add_argument("--nominal-order", type=int, default=1, choices=(1, 2), help="the nominal model's element order")
     ap.add_argument("--truth-yeoh-shape", default=None,
                     help="C20/C10,C30/C10 of a Yeoh truth (default: the Ecoflex 00-50 preset's)")
@@ -222,12 +239,14 @@ def main() -> None:
     a = ap.parse_args()
     shape = None if a.truth_yeoh_shape is None else tuple(float(v) for v in a.truth_yeoh_shape.split(","))
     shape_truth = {} if shape is None else {yeoh_name(g, i): v for g in GROUPS for i, v in zip(YEOH_TERMS, shape)}
+    nominal_law = a.nominal_law or design_law(BIPDesign())
+    a.truth_law = a.truth_law or default_truth_law(nominal_law)
     nominal = BIPDesign() if a.nominal_law is None and a.nominal_order == 1 else \
-        with_law(BIPDesign(), a.nominal_law or "corotational", a.nominal_order)
+        with_law(BIPDesign(), nominal_law, a.nominal_order)
     out = a.cache / (f"h{a.mesh_size_mm:g}_{a.truth_law}" + (f"_P{a.truth_order}" if a.truth_order != 1 else "")
                      + (f"_ts{a.truth_scale:g}" if a.truth_scale != 0.75 else "")  # the sessions depend on it
                      + ("" if shape is None else "_shape" + "_".join(f"{v:g}" for v in shape))
-                     + (f"_nom-{a.nominal_law or 'corotational'}-P{a.nominal_order}" if nominal != BIPDesign() else ""))
+                     + (f"_nom-{nominal_law}-P{a.nominal_order}" if nominal != BIPDesign() else ""))
     model_dir = out / "model"
     if not (model_dir / "model.npz").is_file():
         save_model(build_model(nominal, a.mesh_size_mm), model_dir)

@@ -460,3 +460,32 @@ def test_yeoh_shape_columns_of_the_jacobian_and_the_written_design(coarse, tmp_p
     assert (arms["C20_kPa"], arms["C30_kPa"]) == (pytest.approx(-0.02 * 25.5), pytest.approx(0.004 * 25.5))
     bulb = mats[new.material_of_regions()["bulb"]]
     assert (bulb["C10_kPa"], bulb["C20_kPa"]) == (pytest.approx(17.0), pytest.approx(-0.2))
+
+
+def test_a_misfit_widens_what_the_data_say_not_the_priors():
+    """The covariance's residual-variance scaling applies to the data, not to the priors: with a
+    misfit the data cannot absorb (the session's drift held at 0 while the air drifts 0.3 Pa/s),
+    a parameter no residual sees (the registration, with no pose rows) keeps its prior spread
+    exactly — scaling the whole matrix gave it √s2 × its prior's (the 114–146 % of session 7) —
+    and a parameter the data do see is still widened by the misfit."""
+    from softphantom.calibration.fit import Problem, fit, parameter_set, posterior_covariance
+
+    truth = {"bulb": 1.3, "arms": 1.0}
+    se, fr, solve_many = _stand_in_session(0.3, truth, seed=2)
+    params = parameter_set()
+    free = {"stiffness_bulb_factor", "stiffness_arms_factor", "registration_rot_x_deg"}
+    fix = tuple(p.name for p in params if p.name not in free) + ("lag", "drift")
+    prob = Problem("m", [se], fr, np.zeros((3, 3)), solve_many, FitOptions(fix=fix), params, use_pose=False)
+    res = fit(prob, fr.known)
+    i = res.names.index("registration_rot_x_deg")
+    assert res.sd[i] == pytest.approx(res.prior_sd[i], rel=1e-9) and not res.identifiable[i]
+    assert np.all(res.sd[res.free] <= res.prior_sd[res.free] * (1 + 1e-9))
+    # the misfit is real (s2 ≫ 1) and widens the arms' interval against the same fit without the scaling
+    r, J, _ = prob.residuals(res.z)
+    m = np.concatenate([res.free, np.ones(res.forces.size, bool)])
+    cov, s2 = posterior_covariance(J[:, m], r, prob.n_global)
+    assert s2 > 4.0
+    ng_free = np.flatnonzero(res.free)
+    j = list(ng_free).index(res.names.index("stiffness_arms_factor"))
+    unscaled = np.linalg.pinv(J[:, m].T @ J[:, m])
+    assert cov[j, j] > 2.0 * unscaled[j, j]
