@@ -174,6 +174,40 @@ def cpu_s() -> float:
                for f in ("ru_utime", "ru_stime"))
 
 
+def dump(cal, path: Path) -> None:
+    """Write what a calibration left for a diagnosis to ``path`` (npz): the residuals (each over
+    its σ) and the Jacobian at the optimum — rebuilt from the fit's own solutions, no new solve —
+    the keyframes, the parameters with their spreads, the pose errors; print the cost by block
+    (pressures per arm, poses, known loads, priors)."""
+    import numpy as np
+
+    from softphantom.calibration.fit import Problem, parameter_set
+    from softphantom.calibration.forward import rest_markers, yeoh_shapes
+
+    fr, o = cal.frames, cal.options
+    params = parameter_set(measured=o.measured, yeoh=yeoh_shapes(load_model(cal.model_dir)))
+    prob = Problem(str(cal.model_dir), cal.sessions, fr, rest_markers(str(cal.model_dir), tuple(fr.contact[0]), o.radius_m),
+                   lambda tasks: list(cal.fit.solutions), o, params, pose_rows=None)
+    ng = prob.n_global
+    r, J, _ = prob.residuals(cal.fit.z)
+    K = len(fr)
+    npose = 6 * int(np.sum(prob.pose_rows))
+    rp, rpose, rknown, rprior = r[:4 * K].reshape(K, 4), r[4 * K:4 * K + npose], r[4 * K + npose:r.size - ng], r[r.size - ng:]
+    print("  cost by block (½ Σ r², r in σ): pressures " + ", ".join(f"{a} {0.5 * np.sum(rp[:, i] ** 2):.1f}"
+                                                                    for i, a in enumerate(ARM_NAMES))
+          + f"; poses {0.5 * np.sum(rpose ** 2):.1f}; known loads {0.5 * np.sum(rknown ** 2):.1f}; "
+          f"priors {0.5 * np.sum(rprior ** 2):.1f}; pressure residual RMS per arm (σ) "
+          + " ".join(f"{v:.2f}" for v in np.sqrt(np.mean(rp ** 2, axis=0))))
+    h, f = cal.held_out, cal.fitting
+    np.savez(path, r=r, J=J, names=np.array(cal.fit.names), n_global=ng, n_pressure_rows=4 * K, n_pose_rows=npose,
+             value=cal.fit.value, ci95=cal.fit.ci95, sd=cal.fit.sd, prior_sd=cal.fit.prior_sd, free=cal.fit.free,
+             correlation=cal.fit.correlation, z=cal.fit.z, history=np.array(cal.fit.history),
+             t=fr.t, session=fr.session, dp=fr.dp, known=fr.known, dV=np.array([s.dV for s in cal.fit.solutions]),
+             fit_err_nominal=f.err_nominal, fit_err_calibrated=f.err_calibrated, held_t=h.t,
+             held_err_nominal=h.err_nominal, held_err_calibrated=h.err_calibrated)
+    print(f"  residuals and Jacobian at the optimum: {path}")
+
+
 def run(model_dir, s, workers, fix=(), measured=()):
     specs = [SessionSpec(s[sc] / "recording.csv", s[sc] / "tracker_motive.csv", c, s[sc] / "truth.csv")
              for sc, c in (("push-on-centre", "on-centre"), ("push-off-centre", "off-centre"))]
@@ -261,6 +295,7 @@ def main() -> None:
         print("\n== calibrate, quiet machine (all parameters free)")
         cal, wall = run(model_dir, s, a.workers)
         report(cal, wall, extra_truth={**drift_truth(s), **shape_truth})
+        dump(cal, out / "fit_free.npz")
     if "tube-measured" in runs:
         print("\n== calibrate with the tube measured (tube_volume_factor fixed at the truth)")
         set_tube(s, 12.0 * TUBE_TRUE)  # the lab measured the tube: 13.2 m in the metadata
@@ -269,6 +304,7 @@ def main() -> None:
         finally:
             set_tube(s, 12.0)
         report(cal2, wall2, tube_in_recording=True, extra_truth={**drift_truth(s), **shape_truth})
+        dump(cal2, out / "fit_tube-measured.npz")
     if "gains-measured" in runs:
         # each transducer checked against a reference gauge to 1 % (the check's own error drawn
         # with a seed): the gains are the lab's measurement ± 1 %, not the fit's free knobs
@@ -285,6 +321,7 @@ def main() -> None:
         finally:
             set_tube(s, 12.0)
         report(cal4, wall4, tube_in_recording=True, extra_truth={**drift_truth(s), **shape_truth})
+        dump(cal4, out / "fit_gains-measured.npz")
     if not a.no_loaded and wall is not None:
         print("\n== calibrate while a second process keeps both cores busy")
         load = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(2)]
