@@ -15,7 +15,9 @@
    force sensor), held out: needle-insertion. Printed: each parameter against its truth, the
    95 % interval, identifiability; pose RMSE on the held-out session against the exact truth,
    nominal and calibrated, and their ratio; wall time, CPU seconds with the workers, load
-   average and forward solves; then the same run while a second process keeps both cores busy.
+   average and forward solves; the cost by block, and ``fit_<run>.npz`` in the cache directory
+   (residuals and Jacobian at the optimum, keyframes, pose errors: ``benchmarks/diag_calibrate``
+   reads them); then the same run while a second process keeps both cores busy.
 
 ``--runs`` picks the calibrations: ``free`` (all parameters), ``tube-measured`` (the recordings
 carry the true tube, its factor fixed), ``gains-measured`` (also each transducer's gain measured
