@@ -3,16 +3,21 @@
     .venv/bin/python benchmarks/bench_calibrate.py                     # default mesh (6 mm)
     .venv/bin/python benchmarks/bench_calibrate.py --mesh-size-mm 12   # quick
 
-1. The nominal model: the default design at ``--mesh-size-mm``.
-2. A virtual bench deliberately unlike it: the truth's bulb 1.3× stiffer, its arms under another
-   law (``--truth-law``, same small-strain E) on a finer mesh; the tubes 10 % longer in volume than
+1. The nominal model: the default design at ``--mesh-size-mm`` (its law, neo-Hookean, unless
+   ``--nominal-law``; P1 unless ``--nominal-order 2``).
+2. A virtual bench deliberately unlike it (issue 14 item 4): every region of the truth under another
+   law than the nominal's (``--truth-law``; by default Yeoh with the Ecoflex 00-50 preset's shape
+   against a neo-Hookean or co-rotational nominal, neo-Hookean against a Yeoh one; same
+   small-strain E), its bulb 1.3× stiffer, on a finer mesh (``--truth-scale``, ``--truth-order``); the tubes 10 % longer in volume than
    the lab believes (13.2 m for 12 m: the recordings say 12 m); the back_xpos transducer reads
    5 % high; the transducers' offsets drawn from their datasheet band and tared away.
 3. Calibrate on push-on-centre and push-off-centre (known loads: the truth's force, as from a
    force sensor), held out: needle-insertion. Printed: each parameter against its truth, the
    95 % interval, identifiability; pose RMSE on the held-out session against the exact truth,
    nominal and calibrated, and their ratio; wall time, CPU seconds with the workers, load
-   average and forward solves; then the same run while a second process keeps both cores busy.
+   average and forward solves; the cost by block, and ``fit_<run>.npz`` in the cache directory
+   (residuals and Jacobian at the optimum, keyframes, pose errors: ``benchmarks/diag_calibrate``
+   reads them); then the same run while a second process keeps both cores busy.
 
 ``--runs`` picks the calibrations: ``free`` (all parameters), ``tube-measured`` (the recordings
 carry the true tube, its factor fixed), ``gains-measured`` (also each transducer's gain measured
@@ -79,6 +84,18 @@ def with_law(design: BIPDesign, law: str, order: int, bulb_factor: float = 1.0, 
     return dataclasses.replace(design, materials=(bulb, arms),
                                region_materials=(("bulb", f"bulb{suffix}"), ("arms", f"arms{suffix}")),
                                mesh=dataclasses.replace(design.mesh, element_order=order))
+
+
+def design_law(design: BIPDesign) -> str:
+    """The law of ``design``'s bulb material (the default design's: neo-Hookean)."""
+    return {m.name: m for m in design.materials}[dict(design.region_materials)["bulb"]].law
+
+
+def default_truth_law(nominal_law: str) -> str:
+    """Issue 14 item 4's truth is under *another law* than the nominal model's: Yeoh (the Ecoflex
+    00-50 preset's shape, a silicone that stiffens) against a neo-Hookean or co-rotational
+    nominal; neo-Hookean against a Yeoh one."""
+    return "neo-hookean" if nominal_law == "yeoh" else "yeoh"
 
 
 def truth_design(design: BIPDesign, law: str, order: int = 1, shape: tuple[float, float] | None = None) -> BIPDesign:
@@ -159,6 +176,40 @@ def cpu_s() -> float:
                for f in ("ru_utime", "ru_stime"))
 
 
+def dump(cal, path: Path) -> None:
+    """Write what a calibration left for a diagnosis to ``path`` (npz): the residuals (each over
+    its σ) and the Jacobian at the optimum — rebuilt from the fit's own solutions, no new solve —
+    the keyframes, the parameters with their spreads, the pose errors; print the cost by block
+    (pressures per arm, poses, known loads, priors)."""
+    import numpy as np
+
+    from softphantom.calibration.fit import Problem, parameter_set
+    from softphantom.calibration.forward import rest_markers, yeoh_shapes
+
+    fr, o = cal.frames, cal.options
+    params = parameter_set(measured=o.measured, yeoh=yeoh_shapes(load_model(cal.model_dir)))
+    prob = Problem(str(cal.model_dir), cal.sessions, fr, rest_markers(str(cal.model_dir), tuple(fr.contact[0]), o.radius_m),
+                   lambda tasks: list(cal.fit.solutions), o, params, pose_rows=None)
+    ng = prob.n_global
+    r, J, _ = prob.residuals(cal.fit.z)
+    K = len(fr)
+    npose = 6 * int(np.sum(prob.pose_rows))
+    rp, rpose, rknown, rprior = r[:4 * K].reshape(K, 4), r[4 * K:4 * K + npose], r[4 * K + npose:r.size - ng], r[r.size - ng:]
+    print("  cost by block (½ Σ r², r in σ): pressures " + ", ".join(f"{a} {0.5 * np.sum(rp[:, i] ** 2):.1f}"
+                                                                    for i, a in enumerate(ARM_NAMES))
+          + f"; poses {0.5 * np.sum(rpose ** 2):.1f}; known loads {0.5 * np.sum(rknown ** 2):.1f}; "
+          f"priors {0.5 * np.sum(rprior ** 2):.1f}; pressure residual RMS per arm (σ) "
+          + " ".join(f"{v:.2f}" for v in np.sqrt(np.mean(rp ** 2, axis=0))))
+    h, f = cal.held_out, cal.fitting
+    np.savez(path, r=r, J=J, names=np.array(cal.fit.names), n_global=ng, n_pressure_rows=4 * K, n_pose_rows=npose,
+             value=cal.fit.value, ci95=cal.fit.ci95, sd=cal.fit.sd, prior_sd=cal.fit.prior_sd, free=cal.fit.free,
+             correlation=cal.fit.correlation, z=cal.fit.z, history=np.array(cal.fit.history),
+             t=fr.t, session=fr.session, dp=fr.dp, known=fr.known, dV=np.array([s.dV for s in cal.fit.solutions]),
+             fit_err_nominal=f.err_nominal, fit_err_calibrated=f.err_calibrated, held_t=h.t,
+             held_err_nominal=h.err_nominal, held_err_calibrated=h.err_calibrated)
+    print(f"  residuals and Jacobian at the optimum: {path}")
+
+
 def run(model_dir, s, workers, fix=(), measured=()):
     specs = [SessionSpec(s[sc] / "recording.csv", s[sc] / "tracker_motive.csv", c, s[sc] / "truth.csv")
              for sc, c in (("push-on-centre", "on-centre"), ("push-off-centre", "off-centre"))]
@@ -201,11 +252,13 @@ def report(cal, wall, tube_in_recording: bool = False, extra_truth: dict[str, fl
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--mesh-size-mm", type=float, default=6.0)
-    ap.add_argument("--truth-law", default="neo-hookean")
+    ap.add_argument("--truth-law", default=None, choices=("corotational", "neo-hookean", "yeoh"),
+                    help="the truth's law (default: another law than the nominal's, as issue 14 item 4 asks: "
+                         "yeoh against a neo-Hookean or co-rotational nominal, neo-hookean against a Yeoh one)")
     ap.add_argument("--truth-scale", type=float, default=0.75, help="truth node spacing / model mesh size")
     ap.add_argument("--truth-order", type=int, default=1, choices=(1, 2), help="truth element order")
     ap.add_argument("--nominal-law", default=None, choices=("corotational", "neo-hookean", "yeoh"),
-                    help="the nominal model's law (default: the design's, co-rotational)")
+                    help="the nominal model's law (default: the design's, neo-Hookean)")
     ap.add_argument("--nominal-order", type=int, default=1, choices=(1, 2), help="the nominal model's element order")
     ap.add_argument("--truth-yeoh-shape", default=None,
                     help="C20/C10,C30/C10 of a Yeoh truth (default: the Ecoflex 00-50 preset's)")
@@ -222,12 +275,14 @@ def main() -> None:
     a = ap.parse_args()
     shape = None if a.truth_yeoh_shape is None else tuple(float(v) for v in a.truth_yeoh_shape.split(","))
     shape_truth = {} if shape is None else {yeoh_name(g, i): v for g in GROUPS for i, v in zip(YEOH_TERMS, shape)}
+    nominal_law = a.nominal_law or design_law(BIPDesign())
+    a.truth_law = a.truth_law or default_truth_law(nominal_law)
     nominal = BIPDesign() if a.nominal_law is None and a.nominal_order == 1 else \
-        with_law(BIPDesign(), a.nominal_law or "corotational", a.nominal_order)
+        with_law(BIPDesign(), nominal_law, a.nominal_order)
     out = a.cache / (f"h{a.mesh_size_mm:g}_{a.truth_law}" + (f"_P{a.truth_order}" if a.truth_order != 1 else "")
                      + (f"_ts{a.truth_scale:g}" if a.truth_scale != 0.75 else "")  # the sessions depend on it
                      + ("" if shape is None else "_shape" + "_".join(f"{v:g}" for v in shape))
-                     + (f"_nom-{a.nominal_law or 'corotational'}-P{a.nominal_order}" if nominal != BIPDesign() else ""))
+                     + (f"_nom-{nominal_law}-P{a.nominal_order}" if nominal != BIPDesign() else ""))
     model_dir = out / "model"
     if not (model_dir / "model.npz").is_file():
         save_model(build_model(nominal, a.mesh_size_mm), model_dir)
@@ -242,6 +297,7 @@ def main() -> None:
         print("\n== calibrate, quiet machine (all parameters free)")
         cal, wall = run(model_dir, s, a.workers)
         report(cal, wall, extra_truth={**drift_truth(s), **shape_truth})
+        dump(cal, out / "fit_free.npz")
     if "tube-measured" in runs:
         print("\n== calibrate with the tube measured (tube_volume_factor fixed at the truth)")
         set_tube(s, 12.0 * TUBE_TRUE)  # the lab measured the tube: 13.2 m in the metadata
@@ -250,6 +306,7 @@ def main() -> None:
         finally:
             set_tube(s, 12.0)
         report(cal2, wall2, tube_in_recording=True, extra_truth={**drift_truth(s), **shape_truth})
+        dump(cal2, out / "fit_tube-measured.npz")
     if "gains-measured" in runs:
         # each transducer checked against a reference gauge to 1 % (the check's own error drawn
         # with a seed): the gains are the lab's measurement ± 1 %, not the fit's free knobs
@@ -266,6 +323,7 @@ def main() -> None:
         finally:
             set_tube(s, 12.0)
         report(cal4, wall4, tube_in_recording=True, extra_truth={**drift_truth(s), **shape_truth})
+        dump(cal4, out / "fit_gains-measured.npz")
     if not a.no_loaded and wall is not None:
         print("\n== calibrate while a second process keeps both cores busy")
         load = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(2)]

@@ -18,8 +18,8 @@ force (3,) N per keyframe. Residuals, each divided by its standard deviation:
 
 Levenberg–Marquardt with the exact Jacobian: the FEM sensitivities come with each keyframe's solve
 (:mod:`softphantom.calibration.forward`), the rest by short finite differences of cheap closed
-forms. Confidence intervals from the Gauss–Newton covariance at the optimum scaled by the residual
-variance; correlations from the same matrix.
+forms. Confidence intervals from the Gauss–Newton covariance at the optimum, the data's part
+scaled by their residual variance (:func:`posterior_covariance`); correlations from the same matrix.
 """
 
 from __future__ import annotations
@@ -160,7 +160,9 @@ class FitOptions:
 @dataclass(frozen=True, eq=False)
 class Keyframes:
     """All keyframes: ``session`` index, ``t`` s (recording clock), ``dp`` (K, 4) Pa,
-    ``p_urethra`` (K,) Pa, ``contact`` (K, 3) m, ``known`` (K, 3) N (NaN where unknown)."""
+    ``p_urethra`` (K,) Pa, ``contact`` (K, 3) m, ``known`` (K, 3) N (NaN where unknown),
+    ``dp_rate`` (K, 4) Pa/s the readings' rate (None: 0), what a tube time constant other than the
+    recording's changes ``dp`` by (:meth:`Problem.measured_dp`)."""
 
     session: np.ndarray
     t: np.ndarray
@@ -168,21 +170,24 @@ class Keyframes:
     p_urethra: np.ndarray
     contact: np.ndarray
     known: np.ndarray
+    dp_rate: np.ndarray | None = None
 
     @staticmethod
     def of(sessions: list[Session], times: list[np.ndarray]) -> "Keyframes":
-        s, t, dp, pu, c, kn = [], [], [], [], [], []
+        s, t, dp, pu, c, kn, rate = [], [], [], [], [], [], []
         for i, (se, tt) in enumerate(zip(sessions, times)):
             tt = np.asarray(tt, float)
             s.append(np.full(tt.size, i))
             t.append(tt)
             dp.append(np.stack([np.interp(tt, se.t, se.dp[:, k]) for k in range(4)], axis=1))
+            rate.append(np.zeros((tt.size, 4)) if se.dp_rate is None else
+                        np.stack([np.interp(tt, se.t, se.dp_rate[:, k]) for k in range(4)], axis=1))
             pu.append(np.interp(tt, se.t, se.p_urethra))
             c.append(np.broadcast_to(se.contact, (tt.size, 3)))
             k = se.known_at(tt)
             kn.append(np.full((tt.size, 3), np.nan) if k is None else k)
         return Keyframes(np.concatenate(s), np.concatenate(t), np.concatenate(dp), np.concatenate(pu),
-                         np.concatenate(c), np.concatenate(kn))
+                         np.concatenate(c), np.concatenate(kn), np.concatenate(rate))
 
     def __len__(self) -> int:
         return len(self.t)
@@ -301,6 +306,26 @@ class Problem:
         """Keyframe ``k``'s time from its recording's start (s): what the drift multiplies."""
         return float(self.frames.t[k] - self.sessions[int(self.frames.session[k])].t[0])
 
+    def measured_dp(self, tube: float) -> tuple[np.ndarray, np.ndarray]:
+        """The keyframes' cavity pressures (K, 4) Pa as the recordings give them once the tube lag
+        is undone with the time constant of a tube whose volume is ``tube`` × the recording's
+        (:meth:`Session.tau_s`: the factor taken as the length), and their derivative wrt ``tube``.
+        The sessions were de-lagged with the recording's tube: ``dp + (τ(tube) − τ(1))·rate``.
+        Without it a tube 10 % longer than recorded left the pressures ≈ 20 ms late against the
+        known loads (session 8: a quarter of the cost, at the ramps' keyframes)."""
+        fr = self.frames
+        if fr.dp_rate is None:
+            return fr.dp, np.zeros_like(fr.dp)
+        h = 1e-4
+        tau = {}
+        for i, se in enumerate(self.sessions):
+            t0, tp, tm = se.tau_s(1.0), se.tau_s(tube + h), se.tau_s(tube - h)
+            tau[i] = (se.tau_s(tube) - t0, (tp - tm) / (2 * h))
+        s = fr.session.astype(int)
+        d_tau = np.array([tau[i][0] for i in s])
+        dd_tau = np.array([tau[i][1] for i in s])
+        return fr.dp + d_tau * fr.dp_rate, dd_tau * fr.dp_rate
+
     def pressures(self, u: dict, dV: np.ndarray, session: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Predicted dp (K, 4) Pa and its derivatives wrt ΔV (K, 4) and the tube factor (K, 4)."""
         out, d_dV, d_tube = [], [], []
@@ -326,6 +351,7 @@ class Problem:
         fr = self.frames
         dV = np.array([s.dV for s in sols])
         dp, dp_dV, dp_dtube = self.pressures(u, dV, fr.session)
+        meas_dp, dmeas_dtube = self.measured_dp(u["tube"])
         rows_r, rows_J = [], []
         nz = z.size
         iG = {name: i for i, name in enumerate(self.names())}
@@ -333,7 +359,7 @@ class Problem:
         # pressures
         for k in range(K):
             sdp = self.sessions[int(fr.session[k])].dp_noise_Pa if o.sigma_dp_Pa is None else np.full(4, o.sigma_dp_Pa)
-            r = (dp[k] - fr.dp[k]) / sdp
+            r = (dp[k] - meas_dp[k]) / sdp
             J = np.zeros((4, nz))
             s = sols[k]
             J[:, ng + 3 * k: ng + 3 * k + 3] = dp_dV[k][:, None] * s.dV_df / sdp[:, None]
@@ -345,7 +371,7 @@ class Problem:
             for i, a in enumerate(ARM_NAMES):
                 J[i, iG[f"gain_{a}"]] = p_lin[i] / sdp[i]
                 J[i, iG[f"offset_{a}_Pa"]] = 1.0 / sdp[i]
-            J[:, iG["tube_volume_factor"]] = dp_dtube[k] / sdp
+            J[:, iG["tube_volume_factor"]] = (dp_dtube[k] - dmeas_dtube[k]) / sdp
             J[:, ng - len(self.sessions) + int(fr.session[k])] = self.since_start(k) / sdp
             rows_r.append(r)
             rows_J.append(J)
@@ -450,6 +476,25 @@ def _display(problem: Problem, g: np.ndarray) -> np.ndarray:
     return np.array(vals + list(u["lag"] * 1e3) + list(u["drift"]))
 
 
+def posterior_covariance(J: np.ndarray, r: np.ndarray, n_prior: int) -> tuple[np.ndarray, float]:
+    """Gauss–Newton covariance of the unknowns at the optimum, and the data's residual variance
+    ``s2``; ``J`` (m, n), ``r`` (m,) with the priors' ``n_prior`` rows last (as
+    :meth:`Problem.residuals` builds them).
+
+    The data's information is scaled by 1/s2 (their residual variance over the effective degrees
+    of freedom, ≥ 1: a misfit larger than the noise widens what the data say); the priors' is not —
+    they are not observations whose misfit the data measure. So a parameter the data do not see
+    keeps its prior spread exactly, and no posterior spread exceeds its prior's (scaling the whole
+    matrix did: spreads of 114–146 % of the prior's, session 7).
+    """
+    Jd, Jp, rd = J[: J.shape[0] - n_prior], J[J.shape[0] - n_prior:], r[: r.size - n_prior]
+    Ad, Ap = Jd.T @ Jd, Jp.T @ Jp
+    A_pinv = np.linalg.pinv(Ad + Ap)
+    n_eff = float(np.trace(A_pinv @ Ad))  # the unknowns the data determine (hat matrix's trace)
+    s2 = max(float(rd @ rd) / max(rd.size - n_eff, 1.0), 1.0)
+    return (A_pinv if s2 == 1.0 else np.linalg.pinv(Ad / s2 + Ap)), s2
+
+
 def fit(problem: Problem, forces0: np.ndarray, progress: Callable[[int, float, float], None] | None = None,
         identifiable_ratio: float = 0.5) -> FitResult:
     """Levenberg–Marquardt from the nominal parameters and ``forces0`` (K, 3) N.
@@ -511,12 +556,7 @@ def fit(problem: Problem, forces0: np.ndarray, progress: Callable[[int, float, f
             progress(it, cost, lam)
         if not step_ok or rel < problem.options.tol:
             break
-    # covariance at the optimum (Gauss–Newton), scaled by the residual variance
-    Jf = J[:, free]
-    m, n = Jf.shape
-    dof = max(m - n, 1)
-    s2 = max(2 * cost / dof, 1.0)
-    cov_f = np.linalg.pinv(Jf.T @ Jf) * s2
+    cov_f, _ = posterior_covariance(J[:, free], r, ng)
     cov = np.zeros((z.size, z.size))
     idx = np.flatnonzero(free)
     cov[np.ix_(idx, idx)] = cov_f

@@ -58,6 +58,14 @@ class Session:
     known_force: np.ndarray | None = None
     recorded_gains: np.ndarray = field(default_factory=lambda: np.ones(4))  # the chain the recording used
     recorded_tube_factor: float = 1.0
+    dp_rate: np.ndarray | None = None  # (n, 4) Pa/s the readings' rate, what the de-lag multiplied by τ
+
+    def tau_s(self, tube_factor: float = 1.0) -> np.ndarray:
+        """(4,) each arm's tube time constant (s) with the tube's volume × ``tube_factor`` taken as
+        its length (the bore is the supplier's; a tube of unknown length is the usual error):
+        τ ∝ length², so a tube 10 % longer lags 21 % more. ``dp`` was de-lagged with ``tau_s(1)``."""
+        return np.array([tube_time_constant_s(self.tube_length_m * tube_factor, self.tube_id_m, v, self.p0_Pa)
+                         for v in self.cavity_m3])
 
     @property
     def tube_m3(self) -> float:
@@ -82,16 +90,19 @@ class Session:
         return np.stack([np.interp(t, self.known_t, self.known_force[:, k]) for k in range(3)], axis=1)
 
 
-def undo_tube_lag(t: np.ndarray, dp: np.ndarray, tau_s: np.ndarray, window_s: float = 0.15) -> np.ndarray:
+def undo_tube_lag(t: np.ndarray, dp: np.ndarray, tau_s: np.ndarray, window_s: float = 0.15,
+                  with_rate: bool = False):
     """The cavity pressure from the transducer's lagged reading: ``p + τ·dp/dt`` (the inverse of the
-    first-order tube lag), the derivative from a Savitzky–Golay fit over ``window_s``."""
+    first-order tube lag), the derivative from a Savitzky–Golay fit over ``window_s``; with
+    ``with_rate`` also that derivative (n, 4) Pa/s."""
     dt = float(np.median(np.diff(t)))
     n = max(5, int(round(window_s / dt)) | 1)
     if len(t) <= n:
-        return dp.copy()
+        return (dp.copy(), np.zeros_like(dp)) if with_rate else dp.copy()
     smooth = savgol_filter(dp, n, 2, axis=0)
     deriv = savgol_filter(dp, n, 2, deriv=1, delta=dt, axis=0)
-    return smooth + deriv * np.asarray(tau_s)[None, :]
+    out = smooth + deriv * np.asarray(tau_s)[None, :]
+    return (out, deriv) if with_rate else out
 
 
 def _bench(meta: dict, path: Path):
@@ -138,7 +149,7 @@ def load_session(recording, truth, contact_m, known_loads=None, name: str | None
     bore = tube_id_mm * 1e-3 if tube_id_mm is not None else bench.tube_id_m
     cav = np.asarray(bench.cavity_volumes_m3)
     tau = np.array([tube_time_constant_s(length, bore, v, p0) for v in cav])
-    dp = undo_tube_lag(t, dp, tau)
+    dp, rate = undo_tube_lag(t, dp, tau, with_rate=True)
     noise = np.maximum(np.std(dp[rest], axis=0), NOISE_FLOOR_PA)
 
     tr_path = Path(truth)
@@ -166,7 +177,7 @@ def load_session(recording, truth, contact_m, known_loads=None, name: str | None
             raise CalibrationInputError(f"{kp}: known loads do not overlap the recording "
                                         f"({t[0]:.2f}–{t[-1]:.2f} s)")
     return Session(name or rec_path.stem, t, dp, pu, series.t.copy(), pose, np.asarray(contact_m, float),
-                   p0, length, bore, cav, noise, kt, kf, np.asarray(bench.gains), bench.tube_volume_factor)
+                   p0, length, bore, cav, noise, kt, kf, np.asarray(bench.gains), bench.tube_volume_factor, rate)
 
 
 def select_keyframes(session: Session, max_keyframes: int = 16, rest_keyframes: int = 1) -> np.ndarray:
