@@ -94,7 +94,7 @@ class AtlasConfig:
     force_max_N: tuple[float, float, float] = (1.5, 5.2, 1.5)
     p_min_kPa: float = -2.0
     p_max_kPa: float = 40.0
-    n_force: tuple[int, int, int] = (11, 7, 4)
+    n_force: tuple[int, int, int] = (11, 9, 4)
     n_pressure: int = 3
     linear_pressure: bool = False
     force_cluster_N: tuple[float, float, float] | None = None
