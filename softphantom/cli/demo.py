@@ -34,12 +34,15 @@ def _contact(scenario) -> str:
 # pushes' worst samples (session 7, docs/performance.md): on-centre, the arm pair's step at
 # f_x = 0 (docs/estimation.md) wants the f_x points clustered about 0 (7, asinh width 0.1 N:
 # 0.006 N / 0.008 mm / 0.04°; 5 affine: 0.03 N / 0.04 mm / 0.30°); off-centre has no such step
-# there (the same clustering: 0.31°; 5 affine points: 0.02 N / 0.025 mm / 0.19°, 7: 0.20°).
+# there (the same clustering: 0.31°; 5 affine points: 0.02 N / 0.025 mm / 0.19°, 7: 0.20°) but a
+# yaw that is steep along a line moving with f_y, which more f_y points follow (session 8:
+# 5 × 9 × 4: 0.023 N / 0.013 mm / 0.080°, 180 solves; 5 × 7 × 5: 0.098°; 5 × 5 × 5: 0.19°).
 MARGIN_N = 0.5
 MARGIN_REL = 0.2
 MARGIN_KPA = 2.0
 PUSH_GRID = (5, 5, 5, 2)
-PUSH_GRIDS = {"on-centre": ((7, 5, 5, 2), (0.1, 0.0, 0.0))}  # contact: (grid, force_cluster_N)
+PUSH_GRIDS = {"on-centre": ((7, 5, 5, 2), (0.1, 0.0, 0.0)),  # contact: (grid, force_cluster_N)
+              "off-centre": ((5, 9, 4, 2), None)}
 INFLATE_GRID = (3, 3, 3, 5)
 
 
