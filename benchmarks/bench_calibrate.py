@@ -75,7 +75,7 @@ def with_law(design: BIPDesign, law: str, order: int, bulb_factor: float = 1.0, 
     (C20/C10, C30/C10; None: the preset's)."""
     from softphantom.fem.material import law_from_spec
 
-    spec = {m.name: m for m in design.materials}[dict(design.region_materials)["bulb"]]
+    spec = bulb_spec(design)
     now = law_from_spec(spec.law, dict(spec.values), f"materials.{spec.name}")  # any law: its small-strain E
     E, nu, rho = now.E_Pa / 1e3, now.nu, now.density_kg_m3
     kw = {} if shape is None else {"shape": shape}
@@ -86,9 +86,14 @@ def with_law(design: BIPDesign, law: str, order: int, bulb_factor: float = 1.0, 
                                mesh=dataclasses.replace(design.mesh, element_order=order))
 
 
+def bulb_spec(design: BIPDesign) -> MaterialSpec:
+    """``design``'s bulb material (``BIPDesign.material_of_regions``)."""
+    return {m.name: m for m in design.materials}[design.material_of_regions(["bulb"])["bulb"]]
+
+
 def design_law(design: BIPDesign) -> str:
     """The law of ``design``'s bulb material (the default design's: neo-Hookean)."""
-    return {m.name: m for m in design.materials}[dict(design.region_materials)["bulb"]].law
+    return bulb_spec(design).law
 
 
 def default_truth_law(nominal_law: str) -> str:

@@ -165,16 +165,15 @@ def stop_load(procs) -> None:
         p.wait()
 
 
-def held_out(est: AtlasEstimator, n: int, seed: int = 3, core_N: float = 0.0):
+def held_out(est: AtlasEstimator, fwd: ForwardModel, n: int, seed: int = 3, core_N: float = 0.0):
     """Max (and 90th-percentile) errors of the atlas against converged forward solves at ``n`` seeded
     random loads inside the envelope's solved cells: volumes (mm³), points (mm), field (mm), and the
     inverse (N, mm, deg) started 0.3 N away (a stream's previous estimate is much closer; 77 Hz at
     5 N/2 s: 0.03 N); and the load of the largest force error. ``core_N`` > 0: f_x drawn within
-    ±core_N instead (the arm pair's step about f_x = 0, where the map is steepest)."""
+    ±core_N instead (the arm pair's step about f_x = 0, where the map is steepest). ``fwd`` solves
+    the truths (the estimator's model and contact; the equilibria only are used)."""
     rng = np.random.default_rng(seed)
     at = est.atlas
-    # the truth needs only the equilibria: skip the exact sensitivities (≈ 7 s a solve on the default)
-    fwd = ForwardModel(est.model, est.config, exact_sensitivities=False)
     lo, hi = at.config.lower, at.config.upper
     rows, loads = [], []
     while len(rows) < n:
@@ -335,12 +334,14 @@ def main() -> None:
           f"({ratio['Hz_per_cpu_s']:.1f}x per CPU-s), "
           f"p50 {ratio['p50']:.1f}x shorter back to back, {ratio['realtime_p50']:.1f}x in real time")
     r = res["sustained_atlas"]
+    # the truths need only the equilibria: no exact sensitivities (≈ 7 s a solve on the default)
+    truth_fwd = ForwardModel(model, cfg, exact_sensitivities=False)
     for key, n, core, what in (("atlas_held_out_max", a.held_out, 0.0, "held-out loads"),
                                ("atlas_held_out_core_max", a.held_out_core, CORE_N,
                                 f"held-out loads with |f_x| < {CORE_N} N (the arm pair's step)")):
         if n <= 0:
             continue
-        res[key] = ho = held_out(at, n, core_N=core)
+        res[key] = ho = held_out(at, truth_fwd, n, core_N=core)
         print(f"atlas vs converged solves at {n} {what} (max): dV {ho['dV_mm3']:.4f} mm3, points "
               f"{ho['points_mm']:.4f} mm, field {ho['field_mm']:.4f} mm; inverse {ho['force_N']:.4f} N, "
               f"{ho['pos_mm']:.4f} mm, {ho['ang_deg']:.4f} deg (the reference step's inverse {ho['reference_force_N']:.4f} N, "
