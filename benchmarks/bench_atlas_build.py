@@ -22,6 +22,7 @@ cores busy): wall and CPU seconds.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import resource
 import sys
@@ -34,7 +35,8 @@ import numpy as np  # noqa: E402
 
 from softphantom.design import BIPDesign, build_model, load_model  # noqa: E402
 from softphantom.estimation import AtlasConfig, EstimatorConfig  # noqa: E402
-from softphantom.estimation.atlas import _sweep, atlas_key, atlas_path, build_atlas  # noqa: E402
+from softphantom.estimation.atlas import X_CONTROLS, _sweep, atlas_key, atlas_path, build_atlas  # noqa: E402
+from softphantom.estimation.select import atlas_config_from_options  # noqa: E402
 from softphantom.estimation.forward import ForwardModel  # noqa: E402
 from bench_estimate import start_load, stop_load  # noqa: E402 - the benchmarks' busy processes
 
@@ -96,9 +98,12 @@ def main() -> None:
     ap.add_argument("--cache", help="model directory to write the atlas into (MODEL/atlas/<key>.npz)")
     ap.add_argument("--peer-points", type=int, default=3, help="grid points solved on their own from rest (0: none)")
     ap.add_argument("--no-busy", action="store_true", help="skip the one-plane quiet/busy figure")
+    ap.add_argument("--atlas-grid", help="points per axis NX,NY,NZ,NP (default: AtlasConfig's)")
+    ap.add_argument("--x-control", choices=X_CONTROLS, default=AtlasConfig.x_control,
+                    help="the first axis: the patch displacement (default) or f_x (AtlasConfig.x_control)")
     a = ap.parse_args()
     model = load_model(a.model) if a.model else build_model(BIPDesign(), a.mesh_size_mm)
-    acfg = AtlasConfig()
+    acfg = dataclasses.replace(atlas_config_from_options(a.atlas_grid), x_control=a.x_control)
     cfg = EstimatorConfig()
     load0 = os.getloadavg()
     t = time.perf_counter()

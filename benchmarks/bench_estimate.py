@@ -25,6 +25,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import statistics
@@ -38,8 +39,8 @@ sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 
 from softphantom.design import BIPDesign, build_model, load_model  # noqa: E402
 from softphantom.estimation.config import DEFAULT_CONTACT_RADIUS_M  # noqa: E402
-from softphantom.estimation import AtlasEstimator, Estimator, EstimatorConfig  # noqa: E402
-from softphantom.estimation.atlas import build_atlas, load_or_build  # noqa: E402
+from softphantom.estimation import AtlasConfig, AtlasEstimator, Estimator, EstimatorConfig  # noqa: E402
+from softphantom.estimation.atlas import X_CONTROLS, build_atlas, load_or_build  # noqa: E402
 from softphantom.estimation.forward import ForwardModel  # noqa: E402
 from softphantom.estimation.select import atlas_config_from_options  # noqa: E402
 from softphantom.fem import (  # noqa: E402
@@ -180,21 +181,22 @@ def held_out(est: AtlasEstimator, fwd: ForwardModel, n: int, seed: int = 3, core
         lam = lo + (hi - lo) * rng.uniform(0.02, 0.98, 4)
         if core_N > 0:
             lam[0] = rng.uniform(max(lo[0], -core_N), min(hi[0], core_N))
-        if not at.solved_at(lam):
+        c = at.coords(lam[:3], lam[3])  # the atlas's coordinates of the load (its first axis may be ū_x)
+        if not at.solved_at(c):
             continue  # where the build could not solve: outside the envelope
         lin = fwd.solve(lam)
-        V, _ = at.volumes(lam)
-        start = lam + np.r_[rng.normal(0, 0.3 / np.sqrt(3), 3), 0.0]
+        V, _ = at.volumes(c)
+        start = at.coords(lam[:3] + rng.normal(0, 0.3 / np.sqrt(3), 3), lam[3])
         nm = fwd.n_markers
         from softphantom.pose import Pose6, rigid_fit
 
         tp = Pose6.from_transform(rigid_fit(est.rest_markers, lin.sub_x[:nm])).to_mm_deg()
-        row = [np.abs(V - lin.V).max() * 1e9, np.abs(at.points(lam) - lin.sub_x).max() * 1e3,
-               np.abs(at.nodes(lam) - lin.x.reshape(-1, 3)).max() * 1e3]
+        row = [np.abs(V - lin.V).max() * 1e9, np.abs(at.points(c) - lin.sub_x).max() * 1e3,
+               np.abs(at.nodes(c) - lin.x.reshape(-1, 3)).max() * 1e3]
         for invert in (est.invert, est.invert_reference):  # the kernel step and the pre-kernel one
             lam_e = invert(lin.V, lam[3], start=start)[0]
             d = Pose6.from_transform(rigid_fit(est.rest_markers, at.points(lam_e)[:nm])).to_mm_deg() - tp
-            row += [np.linalg.norm(lam_e[:3] - lam[:3]), np.abs(d[:3]).max(), np.abs(d[3:]).max()]
+            row += [np.linalg.norm(at.forces(lam_e) - lam[:3]), np.abs(d[:3]).max(), np.abs(d[3:]).max()]
         rows.append(row)
         loads.append(lam)
     rows = np.array(rows)
@@ -231,6 +233,8 @@ def main() -> None:
     ap.add_argument("--rt-repeats", type=int, default=1,
                     help="real-time ramps (and holds) per atlas row, for the step latency's p99")
     ap.add_argument("--atlas-grid", help="atlas points per axis NX,NY,NZ,NP (default: AtlasConfig's)")
+    ap.add_argument("--x-control", choices=X_CONTROLS, default=AtlasConfig.x_control,
+                    help="the atlas's first axis: the patch displacement (default) or f_x (AtlasConfig.x_control)")
     ap.add_argument("--envelope", help="atlas envelope FXMIN:FXMAX,FYMIN:FYMAX,FZMIN:FZMAX,PMIN:PMAX (N, kPa; "
                     "default: AtlasConfig's)")
     a = ap.parse_args()
@@ -277,7 +281,7 @@ def main() -> None:
 
     # -- atlas: offline build, then the same ramps (quiet and loaded), sustained rate, held-out loads
     cfg = EstimatorConfig(**base)
-    acfg = atlas_config_from_options(a.atlas_grid, a.envelope)
+    acfg = dataclasses.replace(atlas_config_from_options(a.atlas_grid, a.envelope), x_control=a.x_control)
     t = time.perf_counter()
     print(f"load average before the atlas build: {os.getloadavg()[0]:.1f}")
     if a.atlas_cache:

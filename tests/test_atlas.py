@@ -22,6 +22,7 @@ from softphantom.sensing import Measurement
 CFG = EstimatorConfig(contact="on-centre")
 ACFG = AtlasConfig(force_min_N=(-0.5, -0.3, -0.5), force_max_N=(0.5, 1.2, 0.5), p_min_kPa=-1.0, p_max_kPa=4.0,
                    n_force=(3, 4, 3), n_pressure=2)
+ACFG_FORCE = dataclasses.replace(ACFG, x_control="force")
 
 
 def meas(dV, p=0.0, t=0.0):
@@ -36,6 +37,17 @@ def fwd(coarse_model):
 @pytest.fixture(scope="module")
 def atlas(coarse_model, fwd):
     return build_atlas(coarse_model, CFG, ACFG, n_workers=1, processes=False, progress=False)
+
+
+@pytest.fixture(scope="module")
+def atlas_force(coarse_model, fwd):
+    return build_atlas(coarse_model, CFG, ACFG_FORCE, n_workers=1, processes=False, progress=False)
+
+
+@pytest.fixture(params=["displacement", "force"])
+def any_atlas(request):
+    """Each x axis: the patch displacement (the default) and f_x itself."""
+    return request.getfixturevalue("atlas" if request.param == "displacement" else "atlas_force")
 
 
 @pytest.fixture(scope="module")
@@ -65,38 +77,72 @@ def test_chebyshev_tensor_interpolation_is_exact_for_polynomials():
     assert np.allclose(d, fd, atol=1e-8)
 
 
-def test_atlas_is_exact_at_grid_points(atlas, fwd):
+def test_atlas_is_exact_at_grid_points(any_atlas, fwd):
+    atlas = any_atlas
     ax = ACFG.axes()
-    lam = np.array([ax[0][1], ax[1][3], ax[2][2], ax[3][1]])
-    lin = fwd.solve(lam)
-    V, _ = atlas.volumes(lam)
-    assert np.allclose(V, lin.V, atol=1e-9 * 1e-6, rtol=1e-6)  # 1e-6 mm³ or 1 ppm: solver tolerance
-    assert np.allclose(atlas.points(lam), lin.sub_x, atol=1e-9)
+    for i in range(3):
+        lam = np.array([atlas.q_nodes[i, 3, 2, 1], ax[1][3], ax[2][2], ax[3][1]])
+        f = atlas.forces(lam)  # on a displacement axis the f_x the build found for this point
+        lin = fwd.solve(np.r_[f, lam[3]])
+        V, _ = atlas.volumes(lam)
+        assert np.allclose(V, lin.V, atol=1e-9 * 1e-6, rtol=1e-6)  # 1e-6 mm³ or 1 ppm: solver tolerance
+        assert np.allclose(atlas.points(lam), lin.sub_x, atol=1e-9)
+        if i in (0, 2):  # the faces are the envelope's f_x faces on either axis
+            assert lam[0] == ax[0][i] and f[0] == pytest.approx(ax[0][i], abs=1e-12)
 
 
-def test_atlas_matches_converged_solves_at_held_out_loads(atlas, held_out, fwd):
+def test_displacement_axis_points_sit_at_their_patch_displacement(atlas, fwd):
+    """On a displacement axis the middle point of a line is solved near where the patch's
+    x-displacement (work-conjugate to f_x) is halfway between the faces', and its coordinate q is
+    where it is — a property of the equilibria, checked on independent solves at the faces and at
+    the f_x the build found."""
+    from softphantom.estimation.atlas import NODE_TOL, x_patch
+
+    h = x_patch(fwd)
+    ax = ACFG.axes()
+    lo, hi = ax[0][0], ax[0][-1]
+    for j, k in [(0, 0), (3, 1), (2, 2)]:
+        u = []
+        for i in range(3):
+            lam = np.array([atlas.q_nodes[i, j, k, 0], ax[1][j], ax[2][k], ax[3][0]])
+            lin = fwd.solve(np.r_[atlas.forces(lam), lam[3]])
+            u.append(h @ (lin.x - fwd.fem.x_rest))
+        assert u[0] < u[1] < u[2]  # ū_x increases with f_x (a stable path)
+        q = lo + (hi - lo) * (u[1] - u[0]) / (u[2] - u[0])
+        assert q == pytest.approx(atlas.q_nodes[1, j, k, 0], abs=1e-6)
+        assert abs(q - ax[0][1]) <= NODE_TOL * (ax[0][1] - lo) + 1e-9
+
+
+def test_atlas_matches_converged_solves_at_held_out_loads(any_atlas, held_out, fwd):
+    atlas = any_atlas
     for lin in held_out:
-        V, J = atlas.volumes(lin.lam)
+        lam = atlas.coords(lin.lam[:3], lin.lam[3])
+        assert np.allclose(atlas.forces(lam), lin.lam[:3], atol=1e-9)  # coords inverts forces
+        V, J = atlas.volumes(lam)
         span = np.max(np.abs(lin.V))
         assert np.max(np.abs(V - lin.V)) < 0.01 * span  # 1 % of the volume change
-        assert np.allclose(J, lin.W, rtol=0.05, atol=0.05 * np.abs(lin.W).max())  # the Jacobian too
+        J = atlas.by_force(lam, J)  # the Jacobian too (per N and Pa)
+        assert np.allclose(J, lin.W, rtol=0.05, atol=0.05 * np.abs(lin.W).max())
         # points and the full field (POD) within 3 % of the largest displacement (measured: 1 %)
         move = np.max(np.abs(lin.x - fwd.fem.x_rest))
-        assert np.max(np.abs(atlas.points(lin.lam) - lin.sub_x)) < 0.03 * move
-        assert np.max(np.abs(atlas.nodes(lin.lam) - lin.x.reshape(-1, 3))) < 0.03 * move
+        assert np.max(np.abs(atlas.points(lam) - lin.sub_x)) < 0.03 * move
+        assert np.max(np.abs(atlas.nodes(lam) - lin.x.reshape(-1, 3))) < 0.03 * move
 
 
-def test_atlas_estimator_inverts_the_converged_volumes(coarse_model, atlas, held_out, fwd):
+def test_atlas_estimator_inverts_the_converged_volumes(coarse_model, any_atlas, held_out, fwd):
+    atlas = any_atlas
     est = AtlasEstimator(coarse_model, CFG, atlas)
     for lin in held_out:
         est.reset()
         e = est.step(meas(lin.V, lin.lam[3]))
         assert e.status == "ok" and e.in_envelope and e.qp_status == "optimal"
         assert np.linalg.norm(e.force - lin.lam[:3]) < 0.02  # N
+        assert np.allclose(est.lam, np.r_[e.force, lin.lam[3]])
         truth = Pose6.from_transform(rigid_fit(est.rest_markers, lin.sub_x[: fwd.n_markers])).to_mm_deg()
         d = e.pose.to_mm_deg() - truth
         assert np.max(np.abs(d[:3])) < 0.01 and np.max(np.abs(d[3:])) < 0.05  # mm, deg
-        assert np.allclose(est.node_positions(), atlas.nodes(np.r_[e.force, lin.lam[3]]))
+        assert np.allclose(est.node_positions(), atlas.nodes(est.coords))
+        assert np.allclose(atlas.forces(est.coords), e.force)
 
 
 def test_out_of_envelope_is_flagged_and_clamped(coarse_model, atlas, fwd):
@@ -218,11 +264,11 @@ def test_unreachable_grid_points_are_filled_and_flagged(coarse_model, fwd, monke
             if bad(lam):
                 raise SolverError("line search failed at load fraction 0.8\n(detail on a second line)")
             x = fwd.fem.x_rest + B @ lam
-            return SimpleNamespace(V=A @ lam, x=x, sub_x=(fwd.probe @ x.reshape(-1, 3)))
+            return SimpleNamespace(V=A @ lam, x=x, sub_x=(fwd.probe @ x.reshape(-1, 3)), lam=lam)
 
     monkeypatch.setattr("softphantom.estimation.atlas.ForwardModel", Linear)
     lines = []
-    at = build_atlas(coarse_model, CFG, ACFG, n_workers=1, processes=False, progress=False, fwd=fwd,
+    at = build_atlas(coarse_model, CFG, ACFG_FORCE, n_workers=1, processes=False, progress=False, fwd=fwd,
                      log=lines.append)
     g = np.stack(np.meshgrid(*ACFG.axes(), indexing="ij"), axis=-1)
     fails = (g[..., 0] > 0.1) & (g[..., 1] > 0.5)

@@ -86,8 +86,8 @@ def test_a_stalled_chord_refactors_and_still_converges(fwd):
 def test_sweep_matches_independent_solves(coarse_model, fwd):
     acfg = AtlasConfig(force_min_N=(-0.5, -0.3, -0.5), force_max_N=(0.5, 1.6, 0.5), p_min_kPa=-1.0, p_max_kPa=4.0,
                        n_force=(3, 4, 3), n_pressure=2)
-    i, l, V, P, X, solved, err, cpu, deriv = _sweep(coarse_model, CFG, acfg, 2, 1)
-    assert solved.all() and err == "" and cpu > 0 and deriv is None
+    i, l, V, P, X, solved, err, cpu, deriv, FX, Q = _sweep(coarse_model, CFG, acfg, 2, 1)
+    assert solved.all() and err == "" and cpu > 0 and deriv is None and np.all(FX == acfg.axes()[0][2]) and np.all(Q == FX)
     ax = acfg.axes()
     for j, k in [(0, 0), (3, 2), (2, 1)]:
         lam = np.array([ax[0][2], ax[1][j], ax[2][k], ax[3][1]])
@@ -131,7 +131,7 @@ def test_linear_pressure_axis_is_the_tangent_line_through_converged_middle_solve
     from softphantom.estimation import build_atlas
 
     lin = AtlasConfig(force_min_N=(-0.3, -0.3, -0.3), force_max_N=(0.3, 0.9, 0.3), p_min_kPa=-1.0, p_max_kPa=1.0,
-                      n_force=(3, 3, 3), n_pressure=2, linear_pressure=True)
+                      n_force=(3, 3, 3), n_pressure=2, linear_pressure=True, x_control="force")
     at = build_atlas(coarse_model, CFG, lin, n_workers=1, processes=False, progress=False, log=lambda s: None)
     assert at.solves == 27 and lin.n_solves == 27 and at.solved.all()
     ax = lin.axes()
@@ -145,4 +145,6 @@ def test_linear_pressure_axis_is_the_tangent_line_through_converged_middle_solve
         slope = (at.volumes(np.array([*f, 1e3]))[0] - at.volumes(np.array([*f, -1e3]))[0]) / 2e3
         assert np.allclose(slope, (hi - lo) / (2 * d), rtol=1e-3, atol=1e-4 * np.abs(slope).max())
     with pytest.raises(Exception, match="linear_pressure needs n_pressure 2"):
-        AtlasConfig(n_pressure=3, linear_pressure=True)
+        AtlasConfig(n_pressure=3, linear_pressure=True, x_control="force")
+    with pytest.raises(Exception, match="linear_pressure needs x_control 'force'"):
+        AtlasConfig(n_pressure=2, linear_pressure=True)

@@ -18,7 +18,7 @@ from softphantom.sensing import Measurement
 
 CFG = EstimatorConfig(contact="on-centre")
 ACFG = AtlasConfig(force_min_N=(-1.0, -0.5, -1.0), force_max_N=(1.0, 5.0, 1.0), p_min_kPa=-2.0, p_max_kPa=4.0,
-                   n_force=(5, 7, 4), n_pressure=3, force_cluster_N=(0.0, 0.0, 0.0))
+                   n_force=(5, 7, 4), n_pressure=3, force_cluster_N=(0.0, 0.0, 0.0), x_control="force")
 # the same with f_x stretched (points clustered about 0, the default's layout): every test runs on both
 ACFG_STRETCHED = dataclasses.replace(ACFG, force_cluster_N=(0.3, 0.0, 0.0))
 RNG = np.random.default_rng(11)

@@ -59,7 +59,8 @@ def _box(forces, p_kPa: float, grid, cluster_N=None):
     return AtlasConfig(force_min_N=tuple(lo - MARGIN_N + MARGIN_REL * lo),
                        force_max_N=tuple(hi + MARGIN_N + MARGIN_REL * hi), p_min_kPa=-MARGIN_KPA,
                        p_max_kPa=p_kPa + MARGIN_KPA, n_force=n[:3], n_pressure=n[3],
-                       linear_pressure=p_kPa == 0.0 and n[3] == 2, force_cluster_N=cluster_N)
+                       linear_pressure=p_kPa == 0.0 and n[3] == 2, force_cluster_N=cluster_N,
+                       x_control="force")  # the grids above were chosen (and measured) on a force axis
 
 
 def scenario_atlas(truth, grid: tuple[int, int, int, int] | None = None):

@@ -48,7 +48,7 @@ from softphantom.estimation.qp import solve_volume_qp
 from softphantom.estimation.types import Estimate
 from softphantom.pose import DegenerateMarkersError, Pose6, rigid_fit
 
-FORMAT = 3  # bump when the file layout or the build changes its meaning (3: stretched axes, force_cluster_N)
+FORMAT = 4  # bump when the file layout or the build changes its meaning (3: stretched axes; 4: x_control, cFx)
 GN_MAX_ITER = 12
 GN_TOL_N = 1e-7
 FALLBACK_MIN_LOAD_STEP = 1.0 / 32
@@ -56,6 +56,12 @@ VIA_TOL = 1e-3  # relative residual of the continuation steps between grid point
 FIELD_MAX_MODES = 64
 STRETCH_FX_N = 0.02  # the default f_x stretch width: the arm pair's step core at 3.5–5 N (docs/estimation.md)
 STRETCH_MIN_POINTS = 9  # f_x points from which the default stretches f_x
+X_CONTROLS = ("displacement", "force")
+# a displacement-controlled point is kept where it lands within this fraction of the distance to the
+# next node along q (the fit takes each line's own nodes, _to_chebyshev): a new solve costs more
+# than the slightly moved node
+NODE_TOL = 0.1
+UX_MAX_ITER = 30
 FIELD_RTOL = 1e-5  # POD truncation: dropped displacement energy below this fraction (≈ 3e-3 relative RMS)
 
 
@@ -82,8 +88,26 @@ class AtlasConfig:
     of the map is then a steep function of the stretched variable (3 points over ±1.5 N: a linear
     map is missed by 0.55 N at f_x = 0.18 N), so such grids stay affine.
 
-    >>> AtlasConfig().force_cluster_N, AtlasConfig(n_force=(4, 5, 4)).force_cluster_N
-    ((0.02, 0.0, 0.0), (0.0, 0.0, 0.0))
+    ``x_control``: what the first axis holds. ``"force"``: f_x itself. ``"displacement"`` (the
+    default): the work-conjugate x-displacement of the contact patch, ū_x = H_xᵀu, mapped per
+    (f_y, f_z, p_u) point affinely onto [f_x,min, f_x,max] so that its ends are the envelope's f_x
+    faces; the axis variable ``q`` (N-equivalent) is f_x at the faces and f_x itself becomes an
+    output (:meth:`Atlas.forces`). A stable equilibrium has ∂ū_x/∂f_x = H_xᵀK⁻¹H_x > 0, so ū_x is
+    monotone in f_x, and where the arm pair steps (f_x moves a few hundredths of a newton while the
+    state moves across) the displacement moves with the state: the outputs are smooth in q where
+    they are steep in f_x (docs/estimation.md). The build solves the two faces first, then every
+    other point with f_x found so that ū_x is at its node (:func:`_solve_ux`). No stretch is needed
+    on such an axis (the default stretch is only for ``"force"``); ``linear_pressure`` needs
+    ``"force"`` (its tangent line is at fixed f_x).
+
+    >>> AtlasConfig().force_cluster_N, AtlasConfig(x_control="force").force_cluster_N
+    ((0.0, 0.0, 0.0), (0.02, 0.0, 0.0))
+    >>> AtlasConfig(x_control="force", n_force=(4, 5, 4)).force_cluster_N
+    (0.0, 0.0, 0.0)
+    >>> AtlasConfig(n_pressure=2, linear_pressure=True)
+    Traceback (most recent call last):
+    ...
+    softphantom.errors.UserError: atlas linear_pressure needs x_control 'force' (the tangent line is at fixed f_x), got 'displacement'
     >>> AtlasConfig(n_force=(5, 2, 5))
     Traceback (most recent call last):
     ...
@@ -98,6 +122,7 @@ class AtlasConfig:
     n_pressure: int = 3
     linear_pressure: bool = False
     force_cluster_N: tuple[float, float, float] | None = None
+    x_control: str = "displacement"
 
     def __post_init__(self) -> None:
         lo = tuple(float(v) for v in self.force_min_N)
@@ -120,9 +145,15 @@ class AtlasConfig:
             raise UserError(f"atlas n_pressure must be an integer in 2..15, got {self.n_pressure}")
         if self.linear_pressure and self.n_pressure != 2:
             raise UserError(f"atlas linear_pressure needs n_pressure 2, got {self.n_pressure}")
+        if self.x_control not in X_CONTROLS:
+            raise UserError(f"atlas x_control: one of {', '.join(X_CONTROLS)}, got {self.x_control!r}")
+        if self.linear_pressure and self.x_control != "force":
+            raise UserError("atlas linear_pressure needs x_control 'force' (the tangent line is at fixed f_x), "
+                            f"got {self.x_control!r}")
         w = self.force_cluster_N
         if w is None:  # the default: f_x stretched where there are enough points for it (see above)
-            w = (STRETCH_FX_N if self.n_force[0] >= STRETCH_MIN_POINTS and lo[0] < 0 < hi[0] else 0.0, 0.0, 0.0)
+            stretch = self.x_control == "force" and self.n_force[0] >= STRETCH_MIN_POINTS and lo[0] < 0 < hi[0]
+            w = (STRETCH_FX_N if stretch else 0.0, 0.0, 0.0)
         w = tuple(float(v) for v in (w if np.ndim(w) else (w,) * 3))
         if len(w) != 3 or not all(math.isfinite(v) and v >= 0 for v in w):
             raise UserError(f"atlas force_cluster_N: 3 widths ≥ 0 N (0: no stretch), got {self.force_cluster_N}")
@@ -193,11 +224,23 @@ def cheb_basis(t: float, n: int) -> tuple[np.ndarray, np.ndarray]:
     return b, d
 
 
-def _to_chebyshev(values: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
+def _to_chebyshev(values: np.ndarray, shape: tuple[int, ...], t0: np.ndarray | None = None) -> np.ndarray:
     """Tensor Chebyshev coefficients (shape + (m,)) of grid values (shape + (m,)) at
-    Chebyshev–Lobatto points: one small Vandermonde solve per axis."""
+    Chebyshev–Lobatto points: one small Vandermonde solve per axis. ``t0`` (shape): the first
+    axis's Chebyshev variable at each point, where the points of a line along it are not the
+    Lobatto points (a displacement axis, :data:`NODE_TOL`): each such line is interpolated through
+    its own points first, then the other axes as usual — the polynomial is still exact at every
+    point."""
     c = values
-    for ax, n in enumerate(shape):
+    n = shape[0]
+    if t0 is None:
+        t0 = np.broadcast_to(-np.cos(np.pi * np.arange(n) / (n - 1)).reshape((n,) + (1,) * (len(shape) - 1)), shape)
+    T = np.moveaxis(np.asarray(t0, float), 0, -1).reshape(-1, n)  # (lines, n)
+    Vs = np.stack([np.stack([cheb_basis(float(x), n)[0] for x in line]) for line in T])  # (lines, n, n)
+    rhs = np.moveaxis(c, 0, len(shape) - 1).reshape(len(T), n, -1)  # (lines, n, m)
+    c = np.moveaxis(np.linalg.solve(Vs, rhs).reshape(*shape[1:], n, -1), len(shape) - 1, 0)
+    c = c.reshape(values.shape)
+    for ax, n in enumerate(shape[1:], start=1):
         t = -np.cos(np.pi * np.arange(n) / (n - 1))
         V = np.stack([cheb_basis(x, n)[0] for x in t])  # V[j, k] = T_k(t_j)
         c = np.moveaxis(np.tensordot(np.linalg.inv(V), c, axes=([1], [ax])), 0, ax)
@@ -291,7 +334,43 @@ def _plane_walk(ny: int, nz: int, j0: int, k0: int) -> list[tuple[tuple[int, int
     return out
 
 
-def _sweep(model, config: EstimatorConfig, acfg: AtlasConfig, i: int, l: int):
+def x_patch(fwd: ForwardModel) -> np.ndarray:
+    """(3N,) the contact patch's x load vector H_x (per N of f_x): ū_x = H_xᵀ(x − x_rest) is the
+    displacement work-conjugate to f_x, the first axis of a displacement-controlled atlas."""
+    return np.asarray(fwd.H_f[:, 0].todense()).ravel()
+
+
+def _solve_ux(fwd: ForwardModel, h: np.ndarray, lam: np.ndarray, target: float, start, bracket, tol_m: float):
+    """The equilibrium at (f_y, f_z, p_u) = ``lam[1:]`` whose patch displacement ū_x = hᵀ(x − x_rest)
+    is ``target`` (m) within ``tol_m``: f_x by Newton on ū_x(f_x) with the solves' ∂ū_x/∂f_x,
+    kept inside ``bracket`` (f_x, N, at whose ends ū_x lies below and above the target: a stable
+    path's ū_x increases with f_x) and bisecting it where Newton leaves it; ``lam[0]`` the first
+    guess. Each trial is a converged force-controlled solve (:meth:`ForwardModel.solve`) from the
+    previous one."""
+    lo, hi = (float(b) for b in bracket)
+    x_rest = fwd.fem.x_rest
+    f = float(lam[0])
+    lin = start
+    trial = np.array(lam, float)
+    for _ in range(UX_MAX_ITER):
+        if not lo < f < hi:
+            f = 0.5 * (lo + hi)
+        trial[0] = f
+        lin = fwd.solve(trial, lin, via_tol=VIA_TOL)
+        g = float(h @ (lin.x - x_rest)) - target
+        if abs(g) <= tol_m:
+            return lin
+        if g < 0:
+            lo = f
+        else:
+            hi = f
+        d = float(h @ lin.U[:, 0])
+        f = f - g / d if d > 0 else math.nan
+    raise SolverError(f"atlas: no f_x in [{lo:+.4f}, {hi:+.4f}] N gives the patch displacement "
+                      f"{target * 1e3:+.4f} mm at f_y {lam[1]:+.2f} N, f_z {lam[2]:+.2f} N")
+
+
+def _sweep(model, config: EstimatorConfig, acfg: AtlasConfig, i: int, l: int, ends=None):
     """One task: the (f_y, f_z) plane at grid f_x index ``i`` and pressure index ``l`` (with
     ``acfg.linear_pressure``: at the pressure range's middle, ``l`` ignored). The point
     nearest zero load is reached from rest by continuation, every other one from a converged inner
@@ -302,9 +381,14 @@ def _sweep(model, config: EstimatorConfig, acfg: AtlasConfig, i: int, l: int):
     inner neighbour did not converge is
     not tried: reachability is taken to be monotone in the load, so a failure does not cost the
     (slow) failing solves of everything beyond it. Expected solver failures are recorded, not
-    raised. Returns (i, l, V (ny,nz,4), P (ny,nz,k,3), X (ny,nz,3N) displacements, solved (ny,nz),
-    first failure message or '', CPU seconds of this process, pressure derivatives (dV, dP, dX) of
-    the same shapes per Pa or None); unsolved entries are NaN."""
+    raised. ``ends`` (a displacement-controlled x axis, an inner plane): the patch displacements
+    (ny, nz) m of the f_x faces' planes at this pressure (NaN: unsolved); each point is then solved
+    near the displacement of its q (:func:`_solve_ux`, f_x bracketed by the faces). Returns (i, l,
+    V (ny,nz,4), P (ny,nz,k,3), X (ny,nz,3N) displacements, solved (ny,nz), first failure message
+    or '', CPU seconds of this process, pressure derivatives (dV, dP, dX) of the same shapes per Pa
+    or None, FX (ny,nz) the points' f_x N, Q (ny,nz) their first coordinate: the node, or on a
+    displacement axis where the point landed, within :data:`NODE_TOL` of it); unsolved entries are
+    NaN (Q: the node)."""
     t0 = time.process_time()
     # only the equilibria are kept: the sensitivities come from the kept factor (no GMRES), which
     # is the tangent at the start point's equilibrium; failures are expected at the envelope's
@@ -320,6 +404,14 @@ def _sweep(model, config: EstimatorConfig, acfg: AtlasConfig, i: int, l: int):
     X = np.full((ny, nz, fwd.fem.n_dof), np.nan)
     dV, dP, dX = (np.full_like(a, np.nan) for a in (V, P, X)) if linear else (None, None, None)
     solved = np.zeros((ny, nz), bool)
+    FX = np.full((ny, nz), np.nan)
+    Q = np.full((ny, nz), ax[0][i])  # the points' first coordinate: the node, or where a point landed
+    if ends is not None:
+        h = x_patch(fwd)
+        span = ax[0][-1] - ax[0][0]
+        targets = ends[0] + (ax[0][i] - ax[0][0]) / span * (ends[1] - ends[0])
+        gap = min(ax[0][i] - ax[0][i - 1], ax[0][i + 1] - ax[0][i])  # N-equivalent, to the nearer node
+        tols = NODE_TOL * gap / span * np.abs(ends[1] - ends[0])
     centre = (int(np.argmin(np.abs(ax[1]))), int(np.argmin(np.abs(ax[2]))))
     lins: dict[tuple[int, int], object] = {}
     kept: dict[tuple[int, int], object] = {}  # factors of solved points with points still to solve from them
@@ -330,6 +422,8 @@ def _sweep(model, config: EstimatorConfig, acfg: AtlasConfig, i: int, l: int):
         if parent in left:
             left[parent] -= 1
         reachable = all(q in lins for q in _inner(p, centre))
+        if ends is not None and not np.isfinite(targets[p]):
+            reachable = False  # a face's point unsolved: no target (and the inner point likely unreachable)
         if reachable and parent is not None and last != parent:
             fwd.eq.restore(kept[parent])
         if parent in left and left[parent] == 0:
@@ -342,7 +436,15 @@ def _sweep(model, config: EstimatorConfig, acfg: AtlasConfig, i: int, l: int):
         try:
             # a linear pressure axis needs the exact pressure derivative: the tangent at the solution
             # (elsewhere a new factor there costs more than the chord iterations it saves)
-            lin = fwd.solve(lam, lins.get(parent), factor_at_solution=linear, via_tol=VIA_TOL)
+            if ends is None:
+                lin = fwd.solve(lam, lins.get(parent), factor_at_solution=linear, via_tol=VIA_TOL)
+            else:
+                start = lins.get(parent)
+                if start is not None:  # the parent's f_x moved by its ∂f_x/∂ū_x (the bracket guards it)
+                    d = float(h @ start.U[:, 0])
+                    g = float(h @ (start.x - fwd.fem.x_rest)) - targets[p]
+                    lam[0] = start.lam[0] - g / d if d > 0 else start.lam[0]
+                lin = _solve_ux(fwd, h, lam, float(targets[p]), start, (ax[0][0], ax[0][-1]), float(tols[p]))
         except SolverError as exc:
             first_error = first_error or str(exc).splitlines()[0]
             continue
@@ -352,6 +454,9 @@ def _sweep(model, config: EstimatorConfig, acfg: AtlasConfig, i: int, l: int):
         left[p] = n_kids
         lins[p] = lin
         solved[j, k] = True
+        FX[j, k] = lin.lam[0]
+        if ends is not None:  # where it landed (within NODE_TOL of its node)
+            Q[j, k] = ax[0][0] + span * float(h @ (lin.x - fwd.fem.x_rest) - ends[0][p]) / (ends[1][p] - ends[0][p])
         V[j, k] = lin.V
         P[j, k] = lin.sub_x
         X[j, k] = lin.x - fwd.fem.x_rest
@@ -359,7 +464,7 @@ def _sweep(model, config: EstimatorConfig, acfg: AtlasConfig, i: int, l: int):
             dV[j, k] = lin.W[:, 3]
             dP[j, k] = lin.sub_U[:, :, 3]
             dX[j, k] = lin.U[:, 3]
-    return i, l, V, P, X, solved, first_error, time.process_time() - t0, (dV, dP, dX) if linear else None
+    return i, l, V, P, X, solved, first_error, time.process_time() - t0, (dV, dP, dX) if linear else None, FX, Q
 
 
 def fill_weights(solved: np.ndarray, axes: list[np.ndarray]) -> list[tuple[int, np.ndarray, np.ndarray]]:
@@ -432,7 +537,14 @@ class Atlas:
     ``build_s`` seconds of the build (wall); ``solves`` converged forward solves; ``field_rms_m``
     the RMS error of the POD truncation over the grid; ``build_cpu_s`` the CPU seconds of the
     forward solves (summed over the workers: independent of the machine's load); ``solved`` (n1,n2,n3,n4) bool, the grid
-    points whose solve converged (the others were filled, see :func:`build_atlas`).
+    points whose solve converged (the others were filled, see :func:`build_atlas`); ``cFx``
+    (n1,n2,n3,n4,1) the coefficients of f_x (N) on a displacement-controlled x axis (empty on a
+    force axis); ``q_nodes`` (n1,n2,n3,n4) the first coordinate of each grid point (the Lobatto
+    node, or on a displacement axis where the point landed, :data:`NODE_TOL`).
+
+    The polynomials take the atlas's coordinates λ = (q, f_y, f_z, p_u): ``q`` is f_x on a force
+    axis and the patch displacement's N-equivalent on a displacement axis (``AtlasConfig.x_control``);
+    :meth:`forces` gives the force at λ, :meth:`coords` the λ of a force.
     """
 
     key: str
@@ -447,8 +559,18 @@ class Atlas:
     field_rms_m: float
     solved: np.ndarray
     build_cpu_s: float = float("nan")
+    cFx: np.ndarray | None = None
+    q_nodes: np.ndarray | None = None
 
     def __post_init__(self) -> None:
+        if self.cFx is None:
+            if self.config.x_control != "force":
+                raise ValueError("a displacement-controlled atlas needs its f_x coefficients cFx")
+            object.__setattr__(self, "cFx", np.zeros((*self.config.shape, 0)))
+        if self.q_nodes is None:  # the Lobatto nodes
+            n = self.config.shape[0]
+            q = self.config.axes()[0].reshape((n,) + (1,) * 3)
+            object.__setattr__(self, "q_nodes", np.broadcast_to(q, self.config.shape).copy())
         ok = np.asarray(self.solved, bool)
         # a grid cell is inside the solved region when all its 16 corners converged
         cells = np.ones(tuple(n - 1 for n in ok.shape), bool)
@@ -463,7 +585,7 @@ class Atlas:
         object.__setattr__(self, "_lo", np.ascontiguousarray(self.config.lower))
         object.__setattr__(self, "_hi", np.ascontiguousarray(self.config.upper))
         object.__setattr__(self, "_wd", np.ascontiguousarray(self.config.stretch))
-        for name in ("cV", "cP", "cF"):
+        for name in ("cV", "cP", "cF", "cFx"):
             c = getattr(self, name)
             object.__setattr__(self, "_k" + name, np.ascontiguousarray(c, dtype=float).reshape(n, -1))
 
@@ -501,6 +623,70 @@ class Atlas:
         ak.eval_value(self._kcF, self._shape, self._lo, self._hi, self._wd, np.asarray(lam, float), coef)
         return (self.x_rest + self.modes @ coef).reshape(-1, 3)
 
+    @property
+    def displacement_x(self) -> bool:
+        """Whether the first axis is the patch displacement (f_x an output), ``AtlasConfig.x_control``."""
+        return self.config.x_control == "displacement"
+
+    def forces(self, lam) -> np.ndarray:
+        """(3,) N the force at the atlas coordinates ``lam`` (on a force axis: ``lam[:3]``)."""
+        f = np.array(lam[:3], float)
+        if self.displacement_x:
+            out = np.empty(1)
+            ak.eval_value(self._kcFx, self._shape, self._lo, self._hi, self._wd, np.asarray(lam, float), out)
+            f[0] = out[0]
+        return f
+
+    def force_jacobian(self, lam) -> np.ndarray:
+        """(3, 4) ∂f/∂λ at the atlas coordinates ``lam``: the identity's rows on a force axis; on a
+        displacement axis row 0 is f_x's gradient (∂f_x/∂q > 0 where the map is stable)."""
+        Jf = np.eye(3, 4)
+        if self.displacement_x:
+            V, J = np.empty(1), np.empty((1, 4))
+            ak.eval_vj(self._kcFx, self._shape, self._lo, self._hi, self._wd, np.asarray(lam, float), V, J)
+            Jf[0] = J[0]
+        return Jf
+
+    def by_force(self, lam, J: np.ndarray) -> np.ndarray:
+        """A Jacobian ``J`` (m, 4) per unit of the atlas coordinates at ``lam`` as per unit of the
+        loads (f, p_u) (N, Pa): on a displacement axis by the chain rule through q(f, p_u),
+        ∂/∂f_x = ∂/∂q / (∂f_x/∂q) and ∂/∂λ_a −= ∂/∂f_x · ∂f_x/∂λ_a for the other loads."""
+        if not self.displacement_x:
+            return J
+        a = self.force_jacobian(lam)[0]
+        J = np.array(J, float)
+        J[:, 0] /= a[0]
+        J[:, 1:] -= np.outer(J[:, 0], a[1:])
+        return J
+
+    def coords(self, force, p_Pa: float, tol_N: float = 1e-10) -> np.ndarray:
+        """(4,) the atlas coordinates of the force ``force`` (3,) N at urethra pressure ``p_Pa``: on a
+        displacement axis the q whose f_x is ``force[0]`` (Newton, bracketed by the axis; a force
+        beyond the envelope's f_x faces gives the face)."""
+        lam = np.array([*np.asarray(force, float)[:3], float(p_Pa)])
+        if not self.displacement_x:
+            return lam
+        target = lam[0]
+        lo, hi = float(self.config.lower[0]), float(self.config.upper[0])
+        q = min(max(target, lo), hi)
+        for _ in range(60):
+            lam[0] = q
+            g = self.forces(lam)[0] - target
+            if abs(g) <= tol_N:
+                break
+            if g < 0:
+                lo = q
+            else:
+                hi = q
+            d = self.force_jacobian(lam)[0, 0]
+            q = q - g / d if d > 0 else math.nan
+            if not lo <= q <= hi:
+                q = 0.5 * (lo + hi)
+            if hi - lo <= tol_N * 1e-3:
+                break
+        lam[0] = q
+        return lam
+
     # the references: tensor contractions in numpy (the evaluation before the kernels)
     def _t(self, lam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(t, dt/dλ) per axis: the Chebyshev variable of each load (:func:`axis_t`)."""
@@ -536,10 +722,10 @@ class Atlas:
 
     @property
     def nbytes(self) -> int:
-        return int(sum(a.nbytes for a in (self.cV, self.cP, self.cF, self.modes, self.x_rest)))
+        return int(sum(a.nbytes for a in (self.cV, self.cP, self.cF, self.cFx, self.modes, self.x_rest)))
 
     # -- files ------------------------------------------------------------------------------------
-    _ARRAYS = ("cV", "cP", "cF", "modes", "x_rest", "solved")
+    _ARRAYS = ("cV", "cP", "cF", "cFx", "q_nodes", "modes", "x_rest", "solved")
 
     def _digest(self) -> str:
         h = hashlib.sha256()
@@ -616,32 +802,50 @@ def build_atlas(model, config: EstimatorConfig | None = None, atlas: AtlasConfig
     P = np.empty((n1, n2, n3, n4, k, 3))
     X = np.empty((n1, n2, n3, n4, ndof), dtype=np.float64)
     solved = np.zeros((n1, n2, n3, n4), bool)
-    args = [(model, cfg, acfg, i, l) for l in range(1 if acfg.linear_pressure else n4) for i in range(n1)]
-    with dask_client(scheduler, n_workers, processes=processes) as client:
-        res = map_tasks(client, _sweep, args, label=f"atlas: {acfg.n_solves} forward solves", progress=progress)
-    bad = [r for r in res if not r.ok]
-    if bad:  # not a solver failure (those are recorded): a bug or a lost worker
-        i, l = args[bad[0].index][3:]
-        raise SolverError(f"atlas: plane f_x index {i}, pressure index {l} failed: {bad[0].error}")
+    FX = np.empty((n1, n2, n3, n4))
+    QN = np.empty((n1, n2, n3, n4))  # the first coordinate of each point
+    planes = [(i, l) for l in range(1 if acfg.linear_pressure else n4) for i in range(n1)]
     ax = acfg.axes()
     cpu_s = 0.0
-    for r in res:
-        i, l, v, p, x, ok, err, cpu, deriv = r.value
-        cpu_s += cpu
-        if deriv is None:
-            V[i, :, :, l], P[i, :, :, l], X[i, :, :, l] = v, p, x
-            solved[i, :, :, l] = ok
-        else:  # the tangent line in the pressure through the middle plane
-            half = 0.5 * (ax[3][-1] - ax[3][0])
-            for l, sgn in ((0, -half), (n4 - 1, half)):
-                V[i, :, :, l], P[i, :, :, l], X[i, :, :, l] = (a + sgn * d for a, d in zip((v, p, x), deriv))
-                solved[i, :, :, l] = ok
-        if not ok.all():
-            p_u = 0.5 * (ax[3][0] + ax[3][-1]) if deriv is not None else ax[3][l]
-            log(f"atlas: plane f_x {ax[0][i]:+.2f} N, urethra {p_u * 1e-3:.1f} kPa: {ok.size - ok.sum()} of "
-                f"{ok.size} points unreachable ({err or 'beyond a failed point'})")
+    label = f"atlas: {acfg.n_solves} forward solves"
+    with dask_client(scheduler, n_workers, processes=processes) as client:
+        if acfg.x_control == "force":
+            stages = [(planes, label, False)]
+        else:  # the f_x faces first: their patch displacements are the inner planes' ends
+            faces = [(i, l) for i, l in planes if i in (0, n1 - 1)]
+            stages = [(faces, f"{label}: the f_x faces", False),
+                      ([q for q in planes if q not in faces], f"{label}: between the faces", True)]
+        for stage, what, between in stages:
+            args = [(model, cfg, acfg, i, l) for i, l in stage]
+            if between:
+                h = x_patch(fwd)
+                ux = {i: np.where(solved[i], X[i] @ h, np.nan) for i in (0, n1 - 1)}  # (n2, n3, n4) m
+                args = [a + ((ux[0][..., a[4]], ux[n1 - 1][..., a[4]]),) for a in args]
+            res = map_tasks(client, _sweep, args, label=what, progress=progress)
+            bad = [r for r in res if not r.ok]
+            if bad:  # not a solver failure (those are recorded): a bug or a lost worker
+                i, l = args[bad[0].index][3:5]
+                raise SolverError(f"atlas: plane f_x index {i}, pressure index {l} failed: {bad[0].error}")
+            for r in res:
+                i, l, v, p, x, ok, err, cpu, deriv, fx, q = r.value
+                cpu_s += cpu
+                QN[i, :, :, l] = q
+                if deriv is None:
+                    V[i, :, :, l], P[i, :, :, l], X[i, :, :, l], FX[i, :, :, l] = v, p, x, fx
+                    solved[i, :, :, l] = ok
+                else:  # the tangent line in the pressure through the middle plane
+                    half = 0.5 * (ax[3][-1] - ax[3][0])
+                    for l, sgn in ((0, -half), (n4 - 1, half)):
+                        V[i, :, :, l], P[i, :, :, l], X[i, :, :, l] = (a + sgn * d for a, d in zip((v, p, x), deriv))
+                        FX[i, :, :, l], QN[i, :, :, l] = fx, q
+                        solved[i, :, :, l] = ok
+                if not ok.all():
+                    p_u = 0.5 * (ax[3][0] + ax[3][-1]) if deriv is not None else ax[3][l]
+                    log(f"atlas: plane {'f_x' if acfg.x_control == 'force' else 'q'} {ax[0][i]:+.2f} N, urethra "
+                        f"{p_u * 1e-3:.1f} kPa: {ok.size - ok.sum()} of {ok.size} points unreachable "
+                        f"({err or 'beyond a failed point'})")
     weights = fill_weights(solved, ax)
-    for a in (V.reshape(solved.size, -1), P.reshape(solved.size, -1), X.reshape(solved.size, -1)):
+    for a in (V.reshape(solved.size, -1), P.reshape(solved.size, -1), X.reshape(solved.size, -1), FX.reshape(-1, 1)):
         _fill(a, weights)
     # POD of the displacement field: the Gram matrix of the snapshots (n_grid²) is small
     D = X.reshape(-1, ndof)
@@ -656,10 +860,16 @@ def build_atlas(model, config: EstimatorConfig | None = None, atlas: AtlasConfig
     coef = D @ modes  # (n_grid, r)
     field_rms = float(np.sqrt(max(tail[r - 1], 0.0) / D.size))
     shape = acfg.shape
-    cV = _to_chebyshev(V.reshape(*shape, 4), shape)
-    cP = _to_chebyshev(P.reshape(*shape, k * 3), shape).reshape(*shape, k, 3)
-    cF = _to_chebyshev(coef.reshape(*shape, r), shape)
-    return Atlas(key=key, config=acfg, cV=cV, cP=cP, cF=cF, modes=modes, x_rest=fwd.fem.x_rest.copy(),
+    # the first axis's Chebyshev variable at each point (a displacement axis's points are where
+    # they landed: each line is fitted through its own, _to_chebyshev)
+    tq = np.vectorize(axis_t)(QN, ax[0][0], ax[0][-1], acfg.stretch[0])[0]
+    cV = _to_chebyshev(V.reshape(*shape, 4), shape, tq)
+    cP = _to_chebyshev(P.reshape(*shape, k * 3), shape, tq).reshape(*shape, k, 3)
+    cF = _to_chebyshev(coef.reshape(*shape, r), shape, tq)
+    # f_x as an output: on a displacement axis the polynomial of the solved f_x; on a force axis
+    # f_x is the axis variable itself (its polynomial is not needed, and not exact on a stretch)
+    cFx = _to_chebyshev(FX[..., None], shape, tq) if acfg.x_control == "displacement" else np.zeros((*shape, 0))
+    return Atlas(key=key, config=acfg, cV=cV, cP=cP, cF=cF, cFx=cFx, q_nodes=QN, modes=modes, x_rest=fwd.fem.x_rest.copy(),
                  build_s=time.perf_counter() - t0, solves=int(solved.sum()) * acfg.n_solves // solved.size, field_rms_m=field_rms, solved=solved, build_cpu_s=cpu_s)
 
 
@@ -753,6 +963,17 @@ class AtlasEstimator(EstimatorState):
         ak.warm_up()
         self.reset()
 
+    @property
+    def lam(self) -> np.ndarray:
+        """(4,) the current actuation estimate: force N (3), urethra pressure Pa (the atlas's
+        coordinates of it are ``coords``)."""
+        return np.r_[self.atlas.forces(self._lam), self._lam[3]]
+
+    @property
+    def coords(self) -> np.ndarray:
+        """(4,) the last estimate in the atlas's coordinates (``Atlas.coords``)."""
+        return self._lam.copy()
+
     def reset(self) -> None:
         """Back to rest."""
         self._lam = np.zeros(4)
@@ -783,7 +1004,9 @@ class AtlasEstimator(EstimatorState):
 
     def invert(self, dV, p_Pa: float, start=None) -> tuple[np.ndarray, str, bool, np.ndarray, np.ndarray, int]:
         """Loads that best explain the volumes ``dV`` (4,) m³ at urethra pressure ``p_Pa``:
-        (λ (4,), QP status, in_envelope, V (4,), J (4,4), Gauss–Newton iterations).
+        (λ (4,), QP status, in_envelope, V (4,), J (4,4) ∂V/∂λ, Gauss–Newton iterations), λ and
+        ``start`` in the atlas's coordinates (:meth:`Atlas.coords`; the force is
+        :meth:`Atlas.forces` of λ).
 
         Gauss–Newton from ``start`` (default: the last estimate) on the polynomial volumes, each
         step the volume QP with its exact Jacobian, a step that raises the misfit halved
@@ -872,16 +1095,18 @@ class AtlasEstimator(EstimatorState):
             lam, status, inside, V, J, it = inv(m.dV, float(m.p_urethra))
         except SolverError as exc:
             return repeat_last(self._last, m, f"failed:{exc}", t0, skipped)
+        at = self.atlas
+        J = at.by_force(lam, J)  # the sensitivity to the loads, whatever the atlas's first axis
         if reference:
             pose, shifts = pose_and_shifts(self.rest_markers, self.rest_targets, self.target_names,
-                                           self.atlas._value(self.atlas.cP, lam))
+                                           at._value(at.cP, lam))
             cond = sensitivity_cond(J)
         else:
             pose, shifts = self._pose(lam)
             cond = float(ak.cond_force(J))
         dV = np.array(m.dV, float)
         est = Estimate(
-            t=float(m.t), force=lam[:3].copy(), p_urethra=float(m.p_urethra), pose=pose, target_shift=shifts,
+            t=float(m.t), force=at.forces(lam), p_urethra=float(m.p_urethra), pose=pose, target_shift=shifts,
             volume_pred=V, volume_meas=dV, cond_W=cond, qp_status=status,
             step_time=time.perf_counter() - t0, skipped=int(skipped), in_envelope=inside,
             extra={"qp_residual_m3": math.dist(V, dV), "gn_iterations": it},
