@@ -1,4 +1,4 @@
-"""The atlas's f_x axis through the arm pair's step: 1-D interpolation error of volumes and yaw.
+"""The atlas's first axis through the arm pair's step: 1-D interpolation error of volumes and yaw.
 
     .venv/bin/python benchmarks/bench_atlas_axis.py --model DIR --rows 4.73,-1.1,36.9 5.1,0,0 3.5,0,0
 
@@ -9,6 +9,12 @@ the Chebyshev interpolant through the atlas's points on that axis (``cheb_points
 the same polynomial as the atlas's) and its largest error against the scan: volumes (mm³) and yaw
 (deg), and where the yaw error is largest. Only the f_x axis: the tensor atlas adds the other axes'
 error (``bench_estimate.py --held-out-core``). Figures: docs/estimation.md (session 8).
+
+``--x-control displacement`` (session 9): the same for a displacement-controlled axis
+(``AtlasConfig.x_control``): the scan is uniform in the patch's x-displacement ū_x between the
+faces' (``--scan-points``, each point solved at its ū_x by ``_solve_ux`` from the last), the nodes
+are Chebyshev–Lobatto in q (ū_x mapped onto [−1.5, 1.5] N), and f_x joins the outputs (its error
+in N: the force the atlas reports).
 """
 
 from __future__ import annotations
@@ -25,7 +31,7 @@ sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 
 from softphantom.design import BIPDesign, build_model, load_model  # noqa: E402
 from softphantom.estimation import EstimatorConfig  # noqa: E402
-from softphantom.estimation.atlas import _to_chebyshev, cheb_points  # noqa: E402
+from softphantom.estimation.atlas import _solve_ux, _to_chebyshev, cheb_points, x_patch  # noqa: E402
 from softphantom.estimation.atlas_kernels import axis_t  # noqa: E402
 from softphantom.estimation.forward import ForwardModel  # noqa: E402
 from softphantom.pose import Pose6, rigid_fit  # noqa: E402
@@ -45,6 +51,60 @@ def scan(fwd: ForwardModel, fy: float, fz: float, p_Pa: float, xs: np.ndarray) -
     return out
 
 
+def scan_u(fwd: ForwardModel, fy: float, fz: float, p_Pa: float, qs: np.ndarray) -> dict:
+    """{q: (V1..V4 mm³, yaw, pitch, roll deg, f_x N)} at the q values ``qs`` (N-equivalent: the
+    patch displacement ū_x mapped from the faces' onto [FX_LO_N, FX_HI_N]), walked in ascending
+    order, each solved to 1e-7 of the faces' ū_x range."""
+    nm = fwd.n_markers
+    rest = fwd.rest.sub_x[:nm]
+    h = x_patch(fwd)
+
+    def row(lin):
+        ypr = Pose6.from_transform(rigid_fit(rest, lin.sub_x[:nm])).to_mm_deg()[3:]
+        return np.r_[lin.V * 1e9, ypr, lin.lam[0]]
+
+    lo = fwd.solve([FX_LO_N, fy, fz, p_Pa])
+    hi = fwd.solve([FX_HI_N, fy, fz, p_Pa])
+    u0, u1 = (float(h @ (lin.x - fwd.fem.x_rest)) for lin in (lo, hi))
+    out, lin = {}, lo
+    for q in np.sort(qs):
+        if q <= FX_LO_N or q >= FX_HI_N:
+            out[round(float(q), 9)] = row(lo if q <= FX_LO_N else hi)
+            continue
+        target = u0 + (q - FX_LO_N) / (FX_HI_N - FX_LO_N) * (u1 - u0)
+        guess = np.array([lin.lam[0], fy, fz, p_Pa])
+        lin = _solve_ux(fwd, h, guess, target, lin, (FX_LO_N, FX_HI_N), 1e-7 * abs(u1 - u0))
+        out[round(float(q), 9)] = row(lin)
+    return out
+
+
+def main_displacement(a, fwd) -> int:
+    ns = [int(v) for v in a.points.split(",")]
+    ws = [float(v) for v in a.widths.split(",")]
+    fine = np.linspace(FX_LO_N, FX_HI_N, a.scan_points)
+    for r in a.rows:
+        fy, fz, p_kPa = (float(v) for v in r.split(","))
+        nodes = {round(float(x), 9) for n in ns for w in ws for x in cheb_points(n, FX_LO_N, FX_HI_N, w)}
+        t0 = time.perf_counter()
+        vals = scan_u(fwd, fy, fz, p_kPa * 1e3, np.array(sorted(nodes | {round(float(x), 9) for x in fine})))
+        ref = np.array([vals[round(float(x), 9)] for x in fine])
+        print(f"row f_y {fy} N, f_z {fz} N, p {p_kPa} kPa: {len(vals)} displacement-controlled solves in "
+              f"{time.perf_counter() - t0:.0f} s; yaw {ref[:, 4].min():.2f}..{ref[:, 4].max():.2f} deg; f_x at q = 0: "
+              f"{vals[0.0][7] if 0.0 in vals else float('nan'):+.4f} N", flush=True)
+        for n in ns:
+            for w in ws:
+                xs = cheb_points(n, FX_LO_N, FX_HI_N, w)
+                coef = _to_chebyshev(np.array([vals[round(float(x), 9)] for x in xs]), (n,))
+                t = np.array([axis_t(x, FX_LO_N, FX_HI_N, w)[0] for x in fine])
+                est = np.stack([chebyshev.chebval(t, coef[:, j]) for j in range(ref.shape[1])], 1)
+                err = np.abs(est - ref)
+                k = int(np.argmax(err[:, 4]))
+                print(f"  {n:2d} points in q, w {w:.3f}: volumes {err[:, :4].max():.3f} mm3, yaw {err[:, 4].max():.3f} deg "
+                      f"(at q {fine[k]:+.3f}, f_x {ref[k, 7]:+.4f} N), pitch/roll {err[:, 5:7].max():.3f} deg, "
+                      f"f_x {err[:, 7].max():.4f} N", flush=True)
+    return 0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--model", help="model directory (default: the default design at --mesh-size-mm)")
@@ -53,9 +113,14 @@ def main(argv=None) -> int:
                     help="f_y N, f_z N, p_u kPa per row")
     ap.add_argument("--points", default="9,11,13", help="f_x points per axis to compare")
     ap.add_argument("--widths", default="0,0.02,0.03,0.05", help="stretch widths w (N; 0: affine)")
+    ap.add_argument("--x-control", choices=("force", "displacement"), default="force",
+                    help="the axis: f_x (the session-8 scan) or the patch displacement (AtlasConfig.x_control)")
+    ap.add_argument("--scan-points", type=int, default=121, help="displacement scan: points uniform in q")
     a = ap.parse_args(argv)
     model = load_model(a.model) if a.model else build_model(BIPDesign(), a.mesh_size_mm)
     fwd = ForwardModel(model, EstimatorConfig(), exact_sensitivities=False)
+    if a.x_control == "displacement":
+        return main_displacement(a, fwd)
     ns = [int(v) for v in a.points.split(",")]
     ws = [float(v) for v in a.widths.split(",")]
     fine = np.unique(np.r_[np.linspace(FX_LO_N, FX_HI_N, 61), np.linspace(-0.1, 0.1, 41)])

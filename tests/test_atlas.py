@@ -77,6 +77,30 @@ def test_chebyshev_tensor_interpolation_is_exact_for_polynomials():
     assert np.allclose(d, fd, atol=1e-8)
 
 
+def test_lines_through_their_own_first_axis_points_are_interpolated_exactly():
+    # a displacement axis's points land near, not at, the Lobatto nodes, each line its own: the fit
+    # through each line's points (t0) still reproduces a polynomial of degree < n per axis, and
+    # the Lobatto nodes given as t0 are the plain fit
+    rng = np.random.default_rng(3)
+    shape = (5, 3, 2, 2)
+    lob = [-np.cos(np.pi * np.arange(n) / (n - 1)) for n in shape]
+    t0 = np.broadcast_to(lob[0].reshape(-1, 1, 1, 1), shape).copy()
+    t0[1:-1] += rng.uniform(-0.05, 0.05, (3, *shape[1:]))  # the inner points moved, the faces kept
+
+    def f(a, b, c, d):
+        return (a ** 4 - 0.5 * a ** 3 + a) * (1 + b - b * b) + c * d * a ** 2 + 0.3 * d
+
+    g = np.meshgrid(*lob, indexing="ij")
+    values = f(t0, g[1], g[2], g[3])[..., None]
+    coef = _to_chebyshev(values, shape, t0)[..., 0]
+    x = (0.21, -0.4, 0.77, -0.3)
+    b = [cheb_basis(t, n)[0] for t, n in zip(x, shape)]
+    assert np.einsum("i,j,k,l,ijkl->", *b, coef) == pytest.approx(f(*x), abs=1e-12)
+    plain = f(np.broadcast_to(lob[0].reshape(-1, 1, 1, 1), shape), g[1], g[2], g[3])[..., None]
+    assert np.allclose(_to_chebyshev(plain, shape), _to_chebyshev(plain, shape, np.broadcast_to(
+        lob[0].reshape(-1, 1, 1, 1), shape)), atol=1e-13)
+
+
 def test_atlas_is_exact_at_grid_points(any_atlas, fwd):
     atlas = any_atlas
     ax = ACFG.axes()

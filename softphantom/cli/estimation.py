@@ -63,7 +63,8 @@ def estimate_cmd(
     scheduler: str = typer.Option(None, "--scheduler", help="Atlas build: Dask scheduler address (default: a local "
                                   "cluster on all cores)."),
     atlas_grid: str = typer.Option(None, "--atlas-grid", help="Atlas: Chebyshev points per axis NX,NY,NZ,NP "
-                                   "(default 11,9,4,3; f_x stretched about 0 N, AtlasConfig.force_cluster_N)."),
+                                   "(default 11,9,4,3; the first axis is the contact patch's x-displacement, clustered "
+                                   "about its middle: AtlasConfig.x_control)."),
     envelope: str = typer.Option(None, "--envelope", help="Atlas: load envelope FXMIN:FXMAX,FYMIN:FYMAX,FZMIN:FZMAX,"
                                  "PMIN:PMAX in N and kPa (default -1.5:1.5,-1:5.2,-1.5:1.5,-2:40); outside it the estimate "
                                  "is clamped and flagged (in_envelope 0)."),

@@ -8,7 +8,11 @@ displacement field in its POD basis — becomes a tensor Chebyshev polynomial in
 at the grid points and spectrally accurate between them for this smooth map. Where a corner of the
 box is unreachable for the model (a solve that does not converge), the build records it, does not
 try the points beyond it, fills them by extrapolation from converged neighbours and marks the
-cells around them as outside the envelope (:func:`build_atlas`).
+cells around them as outside the envelope (:func:`build_atlas`). The first axis is by default not
+f_x but the contact patch's work-conjugate x-displacement, mapped onto the f_x range
+(``AtlasConfig.x_control``): where the arm pair steps, f_x barely moves while the state moves
+across, and the map is smooth in the displacement where it is nearly a jump in f_x; f_x is then
+one more output (:meth:`Atlas.forces`).
 
 Online (:class:`AtlasEstimator`): per sample, a Gauss–Newton iteration in the 3 force components
 (the urethra pressure is measured) on the polynomial volumes, each step the bounded QP of
@@ -56,6 +60,7 @@ VIA_TOL = 1e-3  # relative residual of the continuation steps between grid point
 FIELD_MAX_MODES = 64
 STRETCH_FX_N = 0.02  # the default f_x stretch width: the arm pair's step core at 3.5–5 N (docs/estimation.md)
 STRETCH_MIN_POINTS = 9  # f_x points from which the default stretches f_x
+STRETCH_Q = 0.3  # the default stretch of a displacement axis (N-equivalent; docs/estimation.md, session 9)
 X_CONTROLS = ("displacement", "force")
 # a displacement-controlled point is kept where it lands within this fraction of the distance to the
 # next node along q (the fit takes each line's own nodes, _to_chebyshev): a new solve costs more
@@ -96,12 +101,13 @@ class AtlasConfig:
     monotone in f_x, and where the arm pair steps (f_x moves a few hundredths of a newton while the
     state moves across) the displacement moves with the state: the outputs are smooth in q where
     they are steep in f_x (docs/estimation.md). The build solves the two faces first, then every
-    other point with f_x found so that ū_x is at its node (:func:`_solve_ux`). No stretch is needed
-    on such an axis (the default stretch is only for ``"force"``); ``linear_pressure`` needs
+    other point with f_x found so that ū_x is near its node (:func:`_solve_ux`, :data:`NODE_TOL`).
+    The step is still the steepest part of the map in q, but far wider than in f_x: the default
+    stretch of such an axis is :data:`STRETCH_Q` (N-equivalent); ``linear_pressure`` needs
     ``"force"`` (its tangent line is at fixed f_x).
 
     >>> AtlasConfig().force_cluster_N, AtlasConfig(x_control="force").force_cluster_N
-    ((0.0, 0.0, 0.0), (0.02, 0.0, 0.0))
+    ((0.3, 0.0, 0.0), (0.02, 0.0, 0.0))
     >>> AtlasConfig(x_control="force", n_force=(4, 5, 4)).force_cluster_N
     (0.0, 0.0, 0.0)
     >>> AtlasConfig(n_pressure=2, linear_pressure=True)
@@ -151,9 +157,9 @@ class AtlasConfig:
             raise UserError("atlas linear_pressure needs x_control 'force' (the tangent line is at fixed f_x), "
                             f"got {self.x_control!r}")
         w = self.force_cluster_N
-        if w is None:  # the default: f_x stretched where there are enough points for it (see above)
-            stretch = self.x_control == "force" and self.n_force[0] >= STRETCH_MIN_POINTS and lo[0] < 0 < hi[0]
-            w = (STRETCH_FX_N if stretch else 0.0, 0.0, 0.0)
+        if w is None:  # the default: the first axis stretched where there are enough points for it (see above)
+            stretch = self.n_force[0] >= STRETCH_MIN_POINTS and lo[0] < 0 < hi[0]
+            w = ((STRETCH_FX_N if self.x_control == "force" else STRETCH_Q) if stretch else 0.0, 0.0, 0.0)
         w = tuple(float(v) for v in (w if np.ndim(w) else (w,) * 3))
         if len(w) != 3 or not all(math.isfinite(v) and v >= 0 for v in w):
             raise UserError(f"atlas force_cluster_N: 3 widths ≥ 0 N (0: no stretch), got {self.force_cluster_N}")
@@ -1096,17 +1102,21 @@ class AtlasEstimator(EstimatorState):
         except SolverError as exc:
             return repeat_last(self._last, m, f"failed:{exc}", t0, skipped)
         at = self.atlas
-        J = at.by_force(lam, J)  # the sensitivity to the loads, whatever the atlas's first axis
+        # the force and the sensitivity to the loads, whatever the atlas's first axis
         if reference:
+            force, J = at.forces(lam), at.by_force(lam, J)
             pose, shifts = pose_and_shifts(self.rest_markers, self.rest_targets, self.target_names,
                                            at._value(at.cP, lam))
             cond = sensitivity_cond(J)
         else:
+            force = lam[:3].copy()
+            if at.displacement_x:
+                ak.force_chain(at._kcFx, at._shape, at._lo, at._hi, at._wd, lam, J, force)
             pose, shifts = self._pose(lam)
             cond = float(ak.cond_force(J))
         dV = np.array(m.dV, float)
         est = Estimate(
-            t=float(m.t), force=at.forces(lam), p_urethra=float(m.p_urethra), pose=pose, target_shift=shifts,
+            t=float(m.t), force=force, p_urethra=float(m.p_urethra), pose=pose, target_shift=shifts,
             volume_pred=V, volume_meas=dV, cond_W=cond, qp_status=status,
             step_time=time.perf_counter() - t0, skipped=int(skipped), in_envelope=inside,
             extra={"qp_residual_m3": math.dist(V, dV), "gn_iterations": it},

@@ -363,6 +363,24 @@ def rigid_fit_pose(P0, cp, Q, R, t):
 
 
 @njit(cache=True, nogil=True)
+def force_chain(CFx, shape, lo, hi, wd, lam, J, f):
+    """On a displacement-controlled first axis (``AtlasConfig.x_control``): the force ``f`` (3,) N
+    at the atlas coordinates ``lam`` — f_x from its polynomial ``CFx`` (n1·n2·n3·n4, 1), f_y, f_z
+    the coordinates — and ``J`` (m, 4) per unit of the coordinates turned in place into per unit
+    of the loads (f, p_u) by the chain rule through q(f, p_u) (``Atlas.by_force``)."""
+    v = np.empty(1)
+    g = np.empty((1, 4))
+    eval_vj(CFx, shape, lo, hi, wd, lam, v, g)
+    f[0] = v[0]
+    f[1] = lam[1]
+    f[2] = lam[2]
+    for i in range(J.shape[0]):
+        J[i, 0] /= g[0, 0]
+        for b in range(1, 4):
+            J[i, b] -= J[i, 0] * g[0, b]
+
+
+@njit(cache=True, nogil=True)
 def cond_force(J):
     """Condition number of the force columns of a (4, 4) sensitivity (inf if rank-deficient), as
     ``sensitivity_cond``."""
@@ -397,4 +415,7 @@ def warm_up() -> None:
     P0 = np.eye(3) - 1 / 3
     points_pose(np.zeros((54, 9)), shape, lo, hi, wd, lam, P0, np.zeros(3), np.empty(9), np.empty(3), np.empty(3))
     cond_force(np.eye(4))
+    Cx = np.zeros((54, 1))
+    Cx[18] = 1.0  # f_x = T_1 of the first axis
+    force_chain(Cx, shape, lo, hi, wd, lam, np.eye(4), np.empty(3))
     _warm = True
