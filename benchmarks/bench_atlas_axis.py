@@ -73,7 +73,7 @@ def scan_u(fwd: ForwardModel, fy: float, fz: float, p_Pa: float, qs: np.ndarray)
             continue
         target = u0 + (q - FX_LO_N) / (FX_HI_N - FX_LO_N) * (u1 - u0)
         guess = np.array([lin.lam[0], fy, fz, p_Pa])
-        lin = _solve_ux(fwd, h, guess, target, lin, (FX_LO_N, FX_HI_N), 1e-7 * abs(u1 - u0))
+        lin = _solve_ux(fwd, h, guess, target, lin, (FX_LO_N, FX_HI_N), 1e-7 * abs(u1 - u0))[0]
         out[round(float(q), 9)] = row(lin)
     return out
 

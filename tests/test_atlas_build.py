@@ -86,8 +86,9 @@ def test_a_stalled_chord_refactors_and_still_converges(fwd):
 def test_sweep_matches_independent_solves(coarse_model, fwd):
     acfg = AtlasConfig(force_min_N=(-0.5, -0.3, -0.5), force_max_N=(0.5, 1.6, 0.5), p_min_kPa=-1.0, p_max_kPa=4.0,
                        n_force=(3, 4, 3), n_pressure=2)
-    i, l, V, P, X, solved, err, cpu, deriv, FX, Q = _sweep(coarse_model, CFG, acfg, 2, 1)
+    i, l, V, P, X, solved, err, cpu, deriv, FX, Q, n = _sweep(coarse_model, CFG, acfg, 2, 1)
     assert solved.all() and err == "" and cpu > 0 and deriv is None and np.all(FX == acfg.axes()[0][2]) and np.all(Q == FX)
+    assert n == solved.size  # one solve a point on a force axis
     ax = acfg.axes()
     for j, k in [(0, 0), (3, 2), (2, 1)]:
         lam = np.array([ax[0][2], ax[1][j], ax[2][k], ax[3][1]])

@@ -346,31 +346,35 @@ def x_patch(fwd: ForwardModel) -> np.ndarray:
     return np.asarray(fwd.H_f[:, 0].todense()).ravel()
 
 
-def _solve_ux(fwd: ForwardModel, h: np.ndarray, lam: np.ndarray, target: float, start, bracket, tol_m: float):
+def _solve_ux(fwd: ForwardModel, h: np.ndarray, lam: np.ndarray, target: float, start, bracket,
+              tol_m: float) -> tuple:
     """The equilibrium at (f_y, f_z, p_u) = ``lam[1:]`` whose patch displacement ū_x = hᵀ(x − x_rest)
-    is ``target`` (m) within ``tol_m``: f_x by Newton on ū_x(f_x) with the solves' ∂ū_x/∂f_x,
-    kept inside ``bracket`` (f_x, N, at whose ends ū_x lies below and above the target: a stable
-    path's ū_x increases with f_x) and bisecting it where Newton leaves it; ``lam[0]`` the first
-    guess. Each trial is a converged force-controlled solve (:meth:`ForwardModel.solve`) from the
-    previous one."""
+    is ``target`` (m) within ``tol_m``, and the number of solves it took: f_x by Newton on
+    ū_x(f_x), the slope the secant of the last two trials (the first: the solve's own ∂ū_x/∂f_x,
+    from a factor that may be stale where the state steps), kept inside ``bracket`` (f_x, N, at
+    whose ends ū_x lies below and above the target: a stable path's ū_x increases with f_x) and
+    bisecting it where Newton leaves it; ``lam[0]`` the first guess. Each trial is a converged
+    force-controlled solve (:meth:`ForwardModel.solve`) from the previous one."""
     lo, hi = (float(b) for b in bracket)
     x_rest = fwd.fem.x_rest
     f = float(lam[0])
     lin = start
     trial = np.array(lam, float)
-    for _ in range(UX_MAX_ITER):
+    prev = None
+    for n in range(1, UX_MAX_ITER + 1):
         if not lo < f < hi:
             f = 0.5 * (lo + hi)
         trial[0] = f
         lin = fwd.solve(trial, lin, via_tol=VIA_TOL)
         g = float(h @ (lin.x - x_rest)) - target
         if abs(g) <= tol_m:
-            return lin
+            return lin, n
         if g < 0:
             lo = f
         else:
             hi = f
-        d = float(h @ lin.U[:, 0])
+        d = (g - prev[1]) / (f - prev[0]) if prev is not None and f != prev[0] else float(h @ lin.U[:, 0])
+        prev = (f, g)
         f = f - g / d if d > 0 else math.nan
     raise SolverError(f"atlas: no f_x in [{lo:+.4f}, {hi:+.4f}] N gives the patch displacement "
                       f"{target * 1e3:+.4f} mm at f_y {lam[1]:+.2f} N, f_z {lam[2]:+.2f} N")
@@ -394,7 +398,7 @@ def _sweep(model, config: EstimatorConfig, acfg: AtlasConfig, i: int, l: int, en
     or '', CPU seconds of this process, pressure derivatives (dV, dP, dX) of the same shapes per Pa
     or None, FX (ny,nz) the points' f_x N, Q (ny,nz) their first coordinate: the node, or on a
     displacement axis where the point landed, within :data:`NODE_TOL` of it); unsolved entries are
-    NaN (Q: the node)."""
+    NaN (Q: the node), the number of converged forward solves)."""
     t0 = time.process_time()
     # only the equilibria are kept: the sensitivities come from the kept factor (no GMRES), which
     # is the tangent at the start point's equilibrium; failures are expected at the envelope's
@@ -411,6 +415,7 @@ def _sweep(model, config: EstimatorConfig, acfg: AtlasConfig, i: int, l: int, en
     dV, dP, dX = (np.full_like(a, np.nan) for a in (V, P, X)) if linear else (None, None, None)
     solved = np.zeros((ny, nz), bool)
     FX = np.full((ny, nz), np.nan)
+    n_solves = 0  # forward solves, the displacement axis's extra trials included
     Q = np.full((ny, nz), ax[0][i])  # the points' first coordinate: the node, or where a point landed
     if ends is not None:
         h = x_patch(fwd)
@@ -450,11 +455,13 @@ def _sweep(model, config: EstimatorConfig, acfg: AtlasConfig, i: int, l: int, en
                     d = float(h @ start.U[:, 0])
                     g = float(h @ (start.x - fwd.fem.x_rest)) - targets[p]
                     lam[0] = start.lam[0] - g / d if d > 0 else start.lam[0]
-                lin = _solve_ux(fwd, h, lam, float(targets[p]), start, (ax[0][0], ax[0][-1]), float(tols[p]))
+                lin, n = _solve_ux(fwd, h, lam, float(targets[p]), start, (ax[0][0], ax[0][-1]), float(tols[p]))
+                n_solves += n - 1
         except SolverError as exc:
             first_error = first_error or str(exc).splitlines()[0]
             continue
         last = p
+        n_solves += 1
         if n_kids > 1:
             kept[p] = fwd.eq.keep()
         left[p] = n_kids
@@ -470,7 +477,8 @@ def _sweep(model, config: EstimatorConfig, acfg: AtlasConfig, i: int, l: int, en
             dV[j, k] = lin.W[:, 3]
             dP[j, k] = lin.sub_U[:, :, 3]
             dX[j, k] = lin.U[:, 3]
-    return i, l, V, P, X, solved, first_error, time.process_time() - t0, (dV, dP, dX) if linear else None, FX, Q
+    return (i, l, V, P, X, solved, first_error, time.process_time() - t0, (dV, dP, dX) if linear else None, FX, Q,
+            n_solves)
 
 
 def fill_weights(solved: np.ndarray, axes: list[np.ndarray]) -> list[tuple[int, np.ndarray, np.ndarray]]:
@@ -813,6 +821,7 @@ def build_atlas(model, config: EstimatorConfig | None = None, atlas: AtlasConfig
     planes = [(i, l) for l in range(1 if acfg.linear_pressure else n4) for i in range(n1)]
     ax = acfg.axes()
     cpu_s = 0.0
+    n_fwd = 0
     label = f"atlas: {acfg.n_solves} forward solves"
     with dask_client(scheduler, n_workers, processes=processes) as client:
         if acfg.x_control == "force":
@@ -833,8 +842,9 @@ def build_atlas(model, config: EstimatorConfig | None = None, atlas: AtlasConfig
                 i, l = args[bad[0].index][3:5]
                 raise SolverError(f"atlas: plane f_x index {i}, pressure index {l} failed: {bad[0].error}")
             for r in res:
-                i, l, v, p, x, ok, err, cpu, deriv, fx, q = r.value
+                i, l, v, p, x, ok, err, cpu, deriv, fx, q, n_tried = r.value
                 cpu_s += cpu
+                n_fwd += n_tried
                 QN[i, :, :, l] = q
                 if deriv is None:
                     V[i, :, :, l], P[i, :, :, l], X[i, :, :, l], FX[i, :, :, l] = v, p, x, fx
@@ -850,6 +860,9 @@ def build_atlas(model, config: EstimatorConfig | None = None, atlas: AtlasConfig
                     log(f"atlas: plane {'f_x' if acfg.x_control == 'force' else 'q'} {ax[0][i]:+.2f} N, urethra "
                         f"{p_u * 1e-3:.1f} kPa: {ok.size - ok.sum()} of {ok.size} points unreachable "
                         f"({err or 'beyond a failed point'})")
+    if acfg.x_control == "displacement":
+        log(f"atlas: {n_fwd} converged forward solves for {int(solved.sum())} points (displacement axis: "
+            f"{n_fwd - int(solved.sum())} extra trials)")
     weights = fill_weights(solved, ax)
     for a in (V.reshape(solved.size, -1), P.reshape(solved.size, -1), X.reshape(solved.size, -1), FX.reshape(-1, 1)):
         _fill(a, weights)
