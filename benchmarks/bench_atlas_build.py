@@ -22,7 +22,6 @@ cores busy): wall and CPU seconds.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import os
 import resource
 import sys
@@ -100,10 +99,10 @@ def main() -> None:
     ap.add_argument("--no-busy", action="store_true", help="skip the one-plane quiet/busy figure")
     ap.add_argument("--atlas-grid", help="points per axis NX,NY,NZ,NP (default: AtlasConfig's)")
     ap.add_argument("--x-control", choices=X_CONTROLS, default=AtlasConfig.x_control,
-                    help="the first axis: the patch displacement (default) or f_x (AtlasConfig.x_control)")
+                    help="the first axis: f_x (default) or the patch displacement (AtlasConfig.x_control)")
     a = ap.parse_args()
     model = load_model(a.model) if a.model else build_model(BIPDesign(), a.mesh_size_mm)
-    acfg = dataclasses.replace(atlas_config_from_options(a.atlas_grid), x_control=a.x_control)
+    acfg = atlas_config_from_options(a.atlas_grid, x_axis=a.x_control)
     cfg = EstimatorConfig()
     load0 = os.getloadavg()
     t = time.perf_counter()

@@ -25,7 +25,6 @@
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import os
 import statistics
@@ -234,7 +233,7 @@ def main() -> None:
                     help="real-time ramps (and holds) per atlas row, for the step latency's p99")
     ap.add_argument("--atlas-grid", help="atlas points per axis NX,NY,NZ,NP (default: AtlasConfig's)")
     ap.add_argument("--x-control", choices=X_CONTROLS, default=AtlasConfig.x_control,
-                    help="the atlas's first axis: the patch displacement (default) or f_x (AtlasConfig.x_control)")
+                    help="the atlas's first axis: f_x (default) or the patch displacement (AtlasConfig.x_control)")
     ap.add_argument("--envelope", help="atlas envelope FXMIN:FXMAX,FYMIN:FYMAX,FZMIN:FZMAX,PMIN:PMAX (N, kPa; "
                     "default: AtlasConfig's)")
     a = ap.parse_args()
@@ -281,7 +280,7 @@ def main() -> None:
 
     # -- atlas: offline build, then the same ramps (quiet and loaded), sustained rate, held-out loads
     cfg = EstimatorConfig(**base)
-    acfg = dataclasses.replace(atlas_config_from_options(a.atlas_grid, a.envelope), x_control=a.x_control)
+    acfg = atlas_config_from_options(a.atlas_grid, a.envelope, a.x_control)
     t = time.perf_counter()
     print(f"load average before the atlas build: {os.getloadavg()[0]:.1f}")
     if a.atlas_cache:

@@ -22,7 +22,7 @@ from softphantom.sensing import Measurement
 CFG = EstimatorConfig(contact="on-centre")
 ACFG = AtlasConfig(force_min_N=(-0.5, -0.3, -0.5), force_max_N=(0.5, 1.2, 0.5), p_min_kPa=-1.0, p_max_kPa=4.0,
                    n_force=(3, 4, 3), n_pressure=2)
-ACFG_FORCE = dataclasses.replace(ACFG, x_control="force")
+ACFG_DISP = dataclasses.replace(ACFG, x_control="displacement")
 
 
 def meas(dV, p=0.0, t=0.0):
@@ -40,14 +40,14 @@ def atlas(coarse_model, fwd):
 
 
 @pytest.fixture(scope="module")
-def atlas_force(coarse_model, fwd):
-    return build_atlas(coarse_model, CFG, ACFG_FORCE, n_workers=1, processes=False, progress=False)
+def atlas_disp(coarse_model, fwd):
+    return build_atlas(coarse_model, CFG, ACFG_DISP, n_workers=1, processes=False, progress=False)
 
 
-@pytest.fixture(params=["displacement", "force"])
+@pytest.fixture(params=["force", "displacement"])
 def any_atlas(request):
-    """Each x axis: the patch displacement (the default) and f_x itself."""
-    return request.getfixturevalue("atlas" if request.param == "displacement" else "atlas_force")
+    """Each x axis: f_x itself (the default) and the patch displacement."""
+    return request.getfixturevalue("atlas" if request.param == "force" else "atlas_disp")
 
 
 @pytest.fixture(scope="module")
@@ -115,7 +115,7 @@ def test_atlas_is_exact_at_grid_points(any_atlas, fwd):
             assert lam[0] == ax[0][i] and f[0] == pytest.approx(ax[0][i], abs=1e-12)
 
 
-def test_displacement_axis_points_sit_at_their_patch_displacement(atlas, fwd):
+def test_displacement_axis_points_sit_at_their_patch_displacement(atlas_disp, fwd):
     """On a displacement axis the middle point of a line is solved near where the patch's
     x-displacement (work-conjugate to f_x) is halfway between the faces', and its coordinate q is
     where it is — a property of the equilibria, checked on independent solves at the faces and at
@@ -128,12 +128,12 @@ def test_displacement_axis_points_sit_at_their_patch_displacement(atlas, fwd):
     for j, k in [(0, 0), (3, 1), (2, 2)]:
         u = []
         for i in range(3):
-            lam = np.array([atlas.q_nodes[i, j, k, 0], ax[1][j], ax[2][k], ax[3][0]])
-            lin = fwd.solve(np.r_[atlas.forces(lam), lam[3]])
+            lam = np.array([atlas_disp.q_nodes[i, j, k, 0], ax[1][j], ax[2][k], ax[3][0]])
+            lin = fwd.solve(np.r_[atlas_disp.forces(lam), lam[3]])
             u.append(h @ (lin.x - fwd.fem.x_rest))
         assert u[0] < u[1] < u[2]  # ū_x increases with f_x (a stable path)
         q = lo + (hi - lo) * (u[1] - u[0]) / (u[2] - u[0])
-        assert q == pytest.approx(atlas.q_nodes[1, j, k, 0], abs=1e-6)
+        assert q == pytest.approx(atlas_disp.q_nodes[1, j, k, 0], abs=1e-6)
         assert abs(q - ax[0][1]) <= NODE_TOL * (ax[0][1] - lo) + 1e-9
 
 
@@ -292,7 +292,7 @@ def test_unreachable_grid_points_are_filled_and_flagged(coarse_model, fwd, monke
 
     monkeypatch.setattr("softphantom.estimation.atlas.ForwardModel", Linear)
     lines = []
-    at = build_atlas(coarse_model, CFG, ACFG_FORCE, n_workers=1, processes=False, progress=False, fwd=fwd,
+    at = build_atlas(coarse_model, CFG, ACFG, n_workers=1, processes=False, progress=False, fwd=fwd,
                      log=lines.append)
     g = np.stack(np.meshgrid(*ACFG.axes(), indexing="ij"), axis=-1)
     fails = (g[..., 0] > 0.1) & (g[..., 1] > 0.5)

@@ -148,4 +148,4 @@ def test_linear_pressure_axis_is_the_tangent_line_through_converged_middle_solve
     with pytest.raises(Exception, match="linear_pressure needs n_pressure 2"):
         AtlasConfig(n_pressure=3, linear_pressure=True, x_control="force")
     with pytest.raises(Exception, match="linear_pressure needs x_control 'force'"):
-        AtlasConfig(n_pressure=2, linear_pressure=True)
+        AtlasConfig(n_pressure=2, linear_pressure=True, x_control="displacement")

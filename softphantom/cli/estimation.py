@@ -63,8 +63,10 @@ def estimate_cmd(
     scheduler: str = typer.Option(None, "--scheduler", help="Atlas build: Dask scheduler address (default: a local "
                                   "cluster on all cores)."),
     atlas_grid: str = typer.Option(None, "--atlas-grid", help="Atlas: Chebyshev points per axis NX,NY,NZ,NP "
-                                   "(default 11,9,4,3; the first axis is the contact patch's x-displacement, clustered "
-                                   "about its middle: AtlasConfig.x_control)."),
+                                   "(default 11,9,4,3; f_x stretched about 0 N, AtlasConfig.force_cluster_N)."),
+    atlas_x_axis: str = typer.Option(None, "--atlas-x-axis", help="Atlas: the first axis, force (f_x, the default) "
+                                     "| displacement (the contact patch's x-displacement mapped onto the f_x range, "
+                                     "f_x an output: for a model whose state nearly jumps in f_x, docs/estimation.md)."),
     envelope: str = typer.Option(None, "--envelope", help="Atlas: load envelope FXMIN:FXMAX,FYMIN:FYMAX,FZMIN:FZMAX,"
                                  "PMIN:PMAX in N and kPa (default -1.5:1.5,-1:5.2,-1.5:1.5,-2:40); outside it the estimate "
                                  "is clamped and flagged (in_envelope 0)."),
@@ -87,7 +89,7 @@ def estimate_cmd(
     from softphantom.estimation.select import atlas_config_from_options, check_estimator_kind
 
     check_estimator_kind(estimator)
-    acfg = atlas_config_from_options(atlas_grid, envelope)
+    acfg = atlas_config_from_options(atlas_grid, envelope, atlas_x_axis)
     if mode not in ("auto", "sync", "async"):
         raise UserError(f"--mode must be auto, sync or async, got {mode!r}")
     if at is not None and at not in ("on-centre", "off-centre"):

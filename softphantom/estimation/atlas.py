@@ -8,11 +8,11 @@ displacement field in its POD basis — becomes a tensor Chebyshev polynomial in
 at the grid points and spectrally accurate between them for this smooth map. Where a corner of the
 box is unreachable for the model (a solve that does not converge), the build records it, does not
 try the points beyond it, fills them by extrapolation from converged neighbours and marks the
-cells around them as outside the envelope (:func:`build_atlas`). The first axis is by default not
-f_x but the contact patch's work-conjugate x-displacement, mapped onto the f_x range
-(``AtlasConfig.x_control``): where the arm pair steps, f_x barely moves while the state moves
-across, and the map is smooth in the displacement where it is nearly a jump in f_x; f_x is then
-one more output (:meth:`Atlas.forces`).
+cells around them as outside the envelope (:func:`build_atlas`). The first axis may instead be the
+contact patch's work-conjugate x-displacement, mapped onto the f_x range (``AtlasConfig.x_control
+= "displacement"``): where the arm pair steps, f_x barely moves while the state moves across, and
+the map is smooth in the displacement where it is nearly a jump in f_x; f_x is then one more
+output (:meth:`Atlas.forces`).
 
 Online (:class:`AtlasEstimator`): per sample, a Gauss–Newton iteration in the 3 force components
 (the urethra pressure is measured) on the polynomial volumes, each step the bounded QP of
@@ -93,8 +93,8 @@ class AtlasConfig:
     of the map is then a steep function of the stretched variable (3 points over ±1.5 N: a linear
     map is missed by 0.55 N at f_x = 0.18 N), so such grids stay affine.
 
-    ``x_control``: what the first axis holds. ``"force"``: f_x itself. ``"displacement"`` (the
-    default): the work-conjugate x-displacement of the contact patch, ū_x = H_xᵀu, mapped per
+    ``x_control``: what the first axis holds. ``"force"`` (the default): f_x itself.
+    ``"displacement"``: the work-conjugate x-displacement of the contact patch, ū_x = H_xᵀu, mapped per
     (f_y, f_z, p_u) point affinely onto [f_x,min, f_x,max] so that its ends are the envelope's f_x
     faces; the axis variable ``q`` (N-equivalent) is f_x at the faces and f_x itself becomes an
     output (:meth:`Atlas.forces`). A stable equilibrium has ∂ū_x/∂f_x = H_xᵀK⁻¹H_x > 0, so ū_x is
@@ -106,11 +106,11 @@ class AtlasConfig:
     stretch of such an axis is :data:`STRETCH_Q` (N-equivalent); ``linear_pressure`` needs
     ``"force"`` (its tangent line is at fixed f_x).
 
-    >>> AtlasConfig().force_cluster_N, AtlasConfig(x_control="force").force_cluster_N
-    ((0.3, 0.0, 0.0), (0.02, 0.0, 0.0))
-    >>> AtlasConfig(x_control="force", n_force=(4, 5, 4)).force_cluster_N
+    >>> AtlasConfig().force_cluster_N, AtlasConfig(x_control="displacement").force_cluster_N
+    ((0.02, 0.0, 0.0), (0.3, 0.0, 0.0))
+    >>> AtlasConfig(n_force=(4, 5, 4)).force_cluster_N
     (0.0, 0.0, 0.0)
-    >>> AtlasConfig(n_pressure=2, linear_pressure=True)
+    >>> AtlasConfig(n_pressure=2, linear_pressure=True, x_control="displacement")
     Traceback (most recent call last):
     ...
     softphantom.errors.UserError: atlas linear_pressure needs x_control 'force' (the tangent line is at fixed f_x), got 'displacement'
@@ -128,7 +128,7 @@ class AtlasConfig:
     n_pressure: int = 3
     linear_pressure: bool = False
     force_cluster_N: tuple[float, float, float] | None = None
-    x_control: str = "displacement"
+    x_control: str = "force"
 
     def __post_init__(self) -> None:
         lo = tuple(float(v) for v in self.force_min_N)

@@ -41,14 +41,21 @@ def open_estimator(kind: str, model, config: EstimatorConfig | None = None, *, c
                           progress=progress, log=log)
 
 
-def atlas_config_from_options(grid: str | None = None, envelope: str | None = None):
+def atlas_config_from_options(grid: str | None = None, envelope: str | None = None, x_axis: str | None = None):
     """An :class:`~softphantom.estimation.atlas.AtlasConfig` from ``--atlas-grid NX,NY,NZ,NP``
-    (points per axis) and ``--envelope FXMIN:FXMAX,FYMIN:FYMAX,FZMIN:FZMAX,PMIN:PMAX`` (N, kPa);
-    None for what is not given (the defaults).
+    (points per axis), ``--envelope FXMIN:FXMAX,FYMIN:FYMAX,FZMIN:FZMAX,PMIN:PMAX`` (N, kPa) and
+    ``--atlas-x-axis force|displacement`` (``AtlasConfig.x_control``); None for what is not given
+    (the defaults).
 
     >>> c = atlas_config_from_options("3,4,3,2", "-1:1,-1:2,-1:1,0:10")
     >>> c.shape, c.force_max_N, c.p_max_kPa
     ((3, 4, 3, 2), (1.0, 2.0, 1.0), 10.0)
+    >>> atlas_config_from_options(x_axis="displacement").x_control
+    'displacement'
+    >>> atlas_config_from_options(x_axis="ux")
+    Traceback (most recent call last):
+    ...
+    softphantom.errors.UserError: --atlas-x-axis: force or displacement, got 'ux'
     >>> atlas_config_from_options("3,4")
     Traceback (most recent call last):
     ...
@@ -74,4 +81,8 @@ def atlas_config_from_options(grid: str | None = None, envelope: str | None = No
             raise UserError(f"--envelope: expected FXMIN:FXMAX,FYMIN:FYMAX,FZMIN:FZMAX,PMIN:PMAX (N, kPa), got {envelope!r}")
         kw.update(force_min_N=tuple(x[0] for x in r[:3]), force_max_N=tuple(x[1] for x in r[:3]),
                   p_min_kPa=r[3][0], p_max_kPa=r[3][1])
+    if x_axis is not None:
+        if x_axis not in ("force", "displacement"):
+            raise UserError(f"--atlas-x-axis: force or displacement, got {x_axis!r}")
+        kw["x_control"] = x_axis
     return AtlasConfig(**kw)
