@@ -100,8 +100,9 @@ class AtlasConfig:
     output (:meth:`Atlas.forces`). A stable equilibrium has ∂ū_x/∂f_x = H_xᵀK⁻¹H_x > 0, so ū_x is
     monotone in f_x, and where the arm pair steps (f_x moves a few hundredths of a newton while the
     state moves across) the displacement moves with the state: the outputs are smooth in q where
-    they are steep in f_x (docs/estimation.md). The build solves the two faces first, then every
-    other point with f_x found so that ū_x is near its node (:func:`_solve_ux`, :data:`NODE_TOL`).
+    they are steep in f_x (docs/estimation.md). The build solves the two faces first, then walks
+    each line along q from face to face, f_x found so that ū_x is near each node (:func:`_lines`,
+    :func:`_solve_ux`, :data:`NODE_TOL`).
     The step is still the steepest part of the map in q, but far wider than in f_x: the default
     stretch of such an axis is :data:`STRETCH_Q` (N-equivalent); ``linear_pressure`` needs
     ``"force"`` (its tangent line is at fixed f_x).
@@ -380,7 +381,7 @@ def _solve_ux(fwd: ForwardModel, h: np.ndarray, lam: np.ndarray, target: float, 
                       f"{target * 1e3:+.4f} mm at f_y {lam[1]:+.2f} N, f_z {lam[2]:+.2f} N")
 
 
-def _sweep(model, config: EstimatorConfig, acfg: AtlasConfig, i: int, l: int, ends=None):
+def _sweep(model, config: EstimatorConfig, acfg: AtlasConfig, i: int, l: int):
     """One task: the (f_y, f_z) plane at grid f_x index ``i`` and pressure index ``l`` (with
     ``acfg.linear_pressure``: at the pressure range's middle, ``l`` ignored). The point
     nearest zero load is reached from rest by continuation, every other one from a converged inner
@@ -391,14 +392,12 @@ def _sweep(model, config: EstimatorConfig, acfg: AtlasConfig, i: int, l: int, en
     inner neighbour did not converge is
     not tried: reachability is taken to be monotone in the load, so a failure does not cost the
     (slow) failing solves of everything beyond it. Expected solver failures are recorded, not
-    raised. ``ends`` (a displacement-controlled x axis, an inner plane): the patch displacements
-    (ny, nz) m of the f_x faces' planes at this pressure (NaN: unsolved); each point is then solved
-    near the displacement of its q (:func:`_solve_ux`, f_x bracketed by the faces). Returns (i, l,
+    raised (a displacement axis's planes at its f_x faces are solved here; the points between by
+    :func:`_lines`). Returns (i, l,
     V (ny,nz,4), P (ny,nz,k,3), X (ny,nz,3N) displacements, solved (ny,nz), first failure message
     or '', CPU seconds of this process, pressure derivatives (dV, dP, dX) of the same shapes per Pa
-    or None, FX (ny,nz) the points' f_x N, Q (ny,nz) their first coordinate: the node, or on a
-    displacement axis where the point landed, within :data:`NODE_TOL` of it); unsolved entries are
-    NaN (Q: the node), the number of converged forward solves)."""
+    or None, FX (ny,nz) the points' f_x N, Q (ny,nz) their first coordinate (the node), the number
+    of converged forward solves); unsolved entries are NaN."""
     t0 = time.process_time()
     # only the equilibria are kept: the sensitivities come from the kept factor (no GMRES), which
     # is the tangent at the start point's equilibrium; failures are expected at the envelope's
@@ -415,14 +414,8 @@ def _sweep(model, config: EstimatorConfig, acfg: AtlasConfig, i: int, l: int, en
     dV, dP, dX = (np.full_like(a, np.nan) for a in (V, P, X)) if linear else (None, None, None)
     solved = np.zeros((ny, nz), bool)
     FX = np.full((ny, nz), np.nan)
-    n_solves = 0  # forward solves, the displacement axis's extra trials included
-    Q = np.full((ny, nz), ax[0][i])  # the points' first coordinate: the node, or where a point landed
-    if ends is not None:
-        h = x_patch(fwd)
-        span = ax[0][-1] - ax[0][0]
-        targets = ends[0] + (ax[0][i] - ax[0][0]) / span * (ends[1] - ends[0])
-        gap = min(ax[0][i] - ax[0][i - 1], ax[0][i + 1] - ax[0][i])  # N-equivalent, to the nearer node
-        tols = NODE_TOL * gap / span * np.abs(ends[1] - ends[0])
+    n_solves = 0
+    Q = np.full((ny, nz), ax[0][i])
     centre = (int(np.argmin(np.abs(ax[1]))), int(np.argmin(np.abs(ax[2]))))
     lins: dict[tuple[int, int], object] = {}
     kept: dict[tuple[int, int], object] = {}  # factors of solved points with points still to solve from them
@@ -433,8 +426,6 @@ def _sweep(model, config: EstimatorConfig, acfg: AtlasConfig, i: int, l: int, en
         if parent in left:
             left[parent] -= 1
         reachable = all(q in lins for q in _inner(p, centre))
-        if ends is not None and not np.isfinite(targets[p]):
-            reachable = False  # a face's point unsolved: no target (and the inner point likely unreachable)
         if reachable and parent is not None and last != parent:
             fwd.eq.restore(kept[parent])
         if parent in left and left[parent] == 0:
@@ -447,16 +438,7 @@ def _sweep(model, config: EstimatorConfig, acfg: AtlasConfig, i: int, l: int, en
         try:
             # a linear pressure axis needs the exact pressure derivative: the tangent at the solution
             # (elsewhere a new factor there costs more than the chord iterations it saves)
-            if ends is None:
-                lin = fwd.solve(lam, lins.get(parent), factor_at_solution=linear, via_tol=VIA_TOL)
-            else:
-                start = lins.get(parent)
-                if start is not None:  # the parent's f_x moved by its ∂f_x/∂ū_x (the bracket guards it)
-                    d = float(h @ start.U[:, 0])
-                    g = float(h @ (start.x - fwd.fem.x_rest)) - targets[p]
-                    lam[0] = start.lam[0] - g / d if d > 0 else start.lam[0]
-                lin, n = _solve_ux(fwd, h, lam, float(targets[p]), start, (ax[0][0], ax[0][-1]), float(tols[p]))
-                n_solves += n - 1
+            lin = fwd.solve(lam, lins.get(parent), factor_at_solution=linear, via_tol=VIA_TOL)
         except SolverError as exc:
             first_error = first_error or str(exc).splitlines()[0]
             continue
@@ -468,8 +450,6 @@ def _sweep(model, config: EstimatorConfig, acfg: AtlasConfig, i: int, l: int, en
         lins[p] = lin
         solved[j, k] = True
         FX[j, k] = lin.lam[0]
-        if ends is not None:  # where it landed (within NODE_TOL of its node)
-            Q[j, k] = ax[0][0] + span * float(h @ (lin.x - fwd.fem.x_rest) - ends[0][p]) / (ends[1][p] - ends[0][p])
         V[j, k] = lin.V
         P[j, k] = lin.sub_x
         X[j, k] = lin.x - fwd.fem.x_rest
@@ -479,6 +459,71 @@ def _sweep(model, config: EstimatorConfig, acfg: AtlasConfig, i: int, l: int, en
             dX[j, k] = lin.U[:, 3]
     return (i, l, V, P, X, solved, first_error, time.process_time() - t0, (dV, dP, dX) if linear else None, FX, Q,
             n_solves)
+
+
+def _lines(model, config: EstimatorConfig, acfg: AtlasConfig, k: int, l: int, ends):
+    """One task of a displacement axis's inner points: the lines along q at f_z index ``k`` and
+    pressure index ``l``, each walked from its lower f_x face to the upper one. ``ends`` (ny,) × 2:
+    the faces' patch displacements (m; NaN: unsolved) at (·, k, l). A line starts at its lower face
+    point (solved again here, force-controlled, from the previous line's: the f_y rows walked from
+    the one nearest zero outwards); each next point is solved near the displacement of its q from
+    the point before it, f_x predicted by the secant of the last two along the line — one small
+    step of the state each, where a plane at fixed q (:func:`_sweep`) crosses the arm pair's step
+    in f_x from a neighbour in f_y. Returns (k, l, V (n1−2, ny, 4), P (n1−2, ny, k, 3), X
+    (n1−2, ny, 3N), solved (n1−2, ny), first failure or '', CPU seconds, FX (n1−2, ny), Q (n1−2, ny),
+    converged forward solves)."""
+    t0 = time.process_time()
+    fwd = ForwardModel(model, config, exact_sensitivities=False, fallback_min_load_step=FALLBACK_MIN_LOAD_STEP)
+    ax = acfg.axes()
+    n1, ny = len(ax[0]), len(ax[1])
+    h = x_patch(fwd)
+    lo, hi = ax[0][0], ax[0][-1]
+    span = hi - lo
+    fz, p_u = ax[2][k], ax[3][l]
+    m = n1 - 2
+    V = np.full((m, ny, 4), np.nan)
+    P = np.full((m, ny, fwd.probe.shape[0], 3), np.nan)
+    X = np.full((m, ny, fwd.fem.n_dof), np.nan)
+    FX = np.full((m, ny), np.nan)
+    Q = np.broadcast_to(ax[0][1:-1, None], (m, ny)).copy()
+    solved = np.zeros((m, ny), bool)
+    first_error, n_solves = "", 0
+    j0 = int(np.argmin(np.abs(ax[1])))
+    faces: dict[int, tuple] = {}  # j → (the lower face's Linearization, its kept factor)
+    for j in [*range(j0, ny), *range(j0 - 1, -1, -1)]:
+        parent = j - 1 if j > j0 else (j + 1 if j < j0 else None)
+        u0, u1 = float(ends[0][j]), float(ends[1][j])
+        if not (np.isfinite(u0) and np.isfinite(u1)) or (parent is not None and parent not in faces):
+            continue  # a face unsolved, or the row before it: beyond the reachable region
+        try:
+            if parent is not None:
+                fwd.eq.restore(faces[parent][1])
+            lin = fwd.solve(np.array([lo, ax[1][j], fz, p_u]), faces[parent][0] if parent is not None else None,
+                            via_tol=VIA_TOL)
+            n_solves += 1
+            faces[j] = (lin, fwd.eq.keep())
+            prev = None  # (f_x, ū) of the point before the last
+            for i in range(1, n1 - 1):
+                target = u0 + (ax[0][i] - lo) / span * (u1 - u0)
+                gap = min(ax[0][i] - ax[0][i - 1], ax[0][i + 1] - ax[0][i])
+                u = float(h @ (lin.x - fwd.fem.x_rest))
+                if prev is not None and u != prev[1]:  # the secant along the line
+                    d = (u - prev[1]) / (lin.lam[0] - prev[0])
+                else:
+                    d = float(h @ lin.U[:, 0])
+                guess = lin.lam[0] + (target - u) / d if d > 0 else lin.lam[0]
+                prev = (lin.lam[0], u)
+                lam = np.array([guess, ax[1][j], fz, p_u])
+                lin, n = _solve_ux(fwd, h, lam, target, lin, (lin.lam[0], hi), NODE_TOL * gap / span * abs(u1 - u0))
+                n_solves += n
+                a = i - 1
+                solved[a, j] = True
+                V[a, j], P[a, j], X[a, j] = lin.V, lin.sub_x, lin.x - fwd.fem.x_rest
+                FX[a, j] = lin.lam[0]
+                Q[a, j] = lo + span * (float(h @ (lin.x - fwd.fem.x_rest)) - u0) / (u1 - u0)
+        except SolverError as exc:
+            first_error = first_error or str(exc).splitlines()[0]
+    return k, l, V, P, X, solved, first_error, time.process_time() - t0, FX, Q, n_solves
 
 
 def fill_weights(solved: np.ndarray, axes: list[np.ndarray]) -> list[tuple[int, np.ndarray, np.ndarray]]:
@@ -826,16 +871,31 @@ def build_atlas(model, config: EstimatorConfig | None = None, atlas: AtlasConfig
     with dask_client(scheduler, n_workers, processes=processes) as client:
         if acfg.x_control == "force":
             stages = [(planes, label, False)]
-        else:  # the f_x faces first: their patch displacements are the inner planes' ends
+        else:  # the f_x faces first: their patch displacements are the inner lines' ends
             faces = [(i, l) for i, l in planes if i in (0, n1 - 1)]
             stages = [(faces, f"{label}: the f_x faces", False),
-                      ([q for q in planes if q not in faces], f"{label}: between the faces", True)]
+                      ([(k, l) for l in range(n4) for k in range(n3)], f"{label}: lines between the faces", True)]
         for stage, what, between in stages:
-            args = [(model, cfg, acfg, i, l) for i, l in stage]
             if between:
                 h = x_patch(fwd)
                 ux = {i: np.where(solved[i], X[i] @ h, np.nan) for i in (0, n1 - 1)}  # (n2, n3, n4) m
-                args = [a + ((ux[0][..., a[4]], ux[n1 - 1][..., a[4]]),) for a in args]
+                args = [(model, cfg, acfg, kz, lp, (ux[0][:, kz, lp], ux[n1 - 1][:, kz, lp])) for kz, lp in stage]
+                res = map_tasks(client, _lines, args, label=what, progress=progress)
+                bad = [r for r in res if not r.ok]
+                if bad:
+                    kz, lp = args[bad[0].index][3:5]
+                    raise SolverError(f"atlas: lines at f_z index {kz}, pressure index {lp} failed: {bad[0].error}")
+                for r in res:
+                    kz, lp, v, p, x, ok, err, cpu, fx, q, n_tried = r.value
+                    cpu_s += cpu
+                    n_fwd += n_tried
+                    V[1:-1, :, kz, lp], P[1:-1, :, kz, lp], X[1:-1, :, kz, lp] = v, p, x
+                    FX[1:-1, :, kz, lp], QN[1:-1, :, kz, lp], solved[1:-1, :, kz, lp] = fx, q, ok
+                    if not ok.all():
+                        log(f"atlas: lines at f_z {ax[2][kz]:+.2f} N, urethra {ax[3][lp] * 1e-3:.1f} kPa: "
+                            f"{ok.size - ok.sum()} of {ok.size} points unreachable ({err or 'beyond a failed point'})")
+                continue
+            args = [(model, cfg, acfg, i, l) for i, l in stage]
             res = map_tasks(client, _sweep, args, label=what, progress=progress)
             bad = [r for r in res if not r.ok]
             if bad:  # not a solver failure (those are recorded): a bug or a lost worker
@@ -862,7 +922,7 @@ def build_atlas(model, config: EstimatorConfig | None = None, atlas: AtlasConfig
                         f"({err or 'beyond a failed point'})")
     if acfg.x_control == "displacement":
         log(f"atlas: {n_fwd} converged forward solves for {int(solved.sum())} points (displacement axis: "
-            f"{n_fwd - int(solved.sum())} extra trials)")
+            f"{n_fwd - int(solved.sum())} more, the lines' faces solved again and the trials)")
     weights = fill_weights(solved, ax)
     for a in (V.reshape(solved.size, -1), P.reshape(solved.size, -1), X.reshape(solved.size, -1), FX.reshape(-1, 1)):
         _fill(a, weights)
