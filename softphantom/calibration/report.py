@@ -108,6 +108,14 @@ def _rmse_table(held: HeldOut) -> str:
     return _table(["DoF", "RMSE nominal", "RMSE calibrated", "ratio"], rows)
 
 
+def _law_line(cal: Calibration) -> str:
+    law = cal.meta.get("law") or {}
+    if not law or law.get("design") == law.get("fitted"):
+        return ""
+    return html.escape(f"Fitted under the {', '.join(law['fitted'])} law; the design's (the nominal model's) is "
+                       f"{', '.join(law['design'])}. ")
+
+
 def write_report(cal: Calibration, out: Path) -> Path:
     """``report.html`` and its figures in ``out``."""
     fig = out / "figures"
@@ -131,7 +139,7 @@ def write_report(cal: Calibration, out: Path) -> Path:
 <style>body{{font-family:sans-serif;max-width:1100px;margin:2em auto}}table{{border-collapse:collapse}}
 td,th{{border:1px solid #bbb;padding:3px 8px;text-align:right}}th{{background:#eee}}</style></head><body>
 <h1>Calibration of {html.escape(str(cal.model_dir))}</h1>
-<p>{len(cal.sessions)} session(s), {len(cal.frames)} keyframes; {cal.fit.solves} forward solves in
+<p>{_law_line(cal)}{len(cal.sessions)} session(s), {len(cal.frames)} keyframes; {cal.fit.solves} forward solves in
 {cal.fit.seconds:.0f} s; objective {cal.fit.history[0]:.4g} → {cal.fit.history[-1]:.4g}.</p>
 <h2>Parameters</h2>{_table(["parameter", "nominal", "calibrated", "95 % interval", "identifiable", "spread / prior"], prow)}
 <h2>Warnings</h2><ul>{warn}</ul>
@@ -155,6 +163,7 @@ def calibration_dict(cal: Calibration) -> dict:
     out = {
         "softphantom": __version__,
         "kind": "softphantom-calibration",
+        "law": cal.meta.get("law", {}),
         "stiffness_factor": {g: p[f"stiffness_{g}_factor"] for g in ("bulb", "arms")},
         "yeoh_shape": {g: {f"C{i}0_C10": p[yeoh_name(g, i)] for i in YEOH_TERMS}
                        for g in GROUPS if yeoh_name(g, 2) in p},
