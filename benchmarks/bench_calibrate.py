@@ -46,7 +46,7 @@ sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 
 from softphantom.calibration.fit import yeoh_name  # noqa: E402
 from softphantom.calibration.forward import ARM_NAMES, GROUPS, YEOH_TERMS  # noqa: E402
-from softphantom.calibration import FitOptions, SessionSpec, calibrate, rmse_ratio  # noqa: E402
+from softphantom.calibration import FitOptions, SessionSpec, calibrate, rmse_ratio, rmse_ratio_interval  # noqa: E402
 from softphantom.design import BIPDesign, build_model, load_model, save_model  # noqa: E402
 from softphantom.design.params import MaterialSpec  # noqa: E402
 
@@ -253,7 +253,8 @@ def report(cal, wall, tube_in_recording: bool = False, extra_truth: dict[str, fl
     for name, h in (("fitting", cal.fitting), ("held-out needle-insertion (vs exact truth)", cal.held_out)):
         rn, rc = h.rmse("nominal"), h.rmse("calibrated")
         print(f"pose RMSE {name}: " + ", ".join(f"{d} {a:.3f}→{b:.3f}" for d, a, b in zip(h.names, rn, rc))
-              + f"; ratio {rmse_ratio(h):.2f}")
+              + f"; ratio {rmse_ratio(h):.2f} (90 % over the {len(h.t)} keyframes resampled: "
+              + "{:.2f}–{:.2f})".format(*rmse_ratio_interval(h)))
     print(f"wall {wall:.0f} s, {cal.fit.solves} forward solves in the fit, {len(cal.fit.history) - 1} iterations")
 
 

@@ -709,3 +709,26 @@ def test_nominal_checks_keep_the_design_law_and_the_written_model_the_fitted_one
     code = main(["calibrate", "--model", str(tmp_path / "no-model"), "--recording", "r.csv", "--truth", "t.csv",
                  "--out", str(out), "--law", "mooney-rivlin"])
     assert code == 2 and not out.exists()
+
+
+def test_held_out_ratio_interval_says_how_much_it_hangs_on_few_keyframes():
+    """``rmse_ratio_interval``: bootstrap over the held-out keyframes. Calibrated errors a third
+    of the nominal ones at every keyframe: the interval is the point 3; one keyframe carrying
+    most of the nominal error (7 keyframes, as the needle insertion gives): the ratio's
+    interval spans far below and above it."""
+    from softphantom.calibration import HeldOut, rmse_ratio, rmse_ratio_interval
+
+    rng = np.random.default_rng(1)
+    e = rng.normal(0.0, 0.1, (7, 6))
+    even = HeldOut(tuple("abcdef"), np.arange(7.0), 3 * e, e, np.full((7, 3), np.nan), np.full((7, 3), np.nan))
+    assert rmse_ratio(even) == pytest.approx(3.0)
+    assert rmse_ratio_interval(even) == (pytest.approx(3.0), pytest.approx(3.0))
+    nominal = e.copy()
+    nominal[2] *= 10  # one keyframe the nominal model gets badly wrong
+    one = HeldOut(tuple("abcdef"), np.arange(7.0), nominal, e, np.full((7, 3), np.nan), np.full((7, 3), np.nan))
+    lo, hi = rmse_ratio_interval(one)
+    assert lo < 1.5 < rmse_ratio(one) < hi
+    assert rmse_ratio_interval(one) == (lo, hi)  # seeded: the report does not change run to run
+    from softphantom.calibration.report import _ratio_spread
+
+    assert _ratio_spread(one) == f"{lo:.2f}–{hi:.2f} over the 7 keyframes resampled, 90 %"

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from softphantom.calibration.run import Calibration, HeldOut, rmse_ratio
+from softphantom.calibration.run import Calibration, HeldOut, rmse_ratio, rmse_ratio_interval
 
 
 def _plt():
@@ -108,6 +108,12 @@ def _rmse_table(held: HeldOut) -> str:
     return _table(["DoF", "RMSE nominal", "RMSE calibrated", "ratio"], rows)
 
 
+def _ratio_spread(held: HeldOut) -> str:
+    lo, hi = rmse_ratio_interval(held)
+    k = int(np.sum(np.isfinite(held.err_calibrated).any(axis=1)))
+    return f"{lo:.2f}–{hi:.2f} over the {k} keyframes resampled, 90 %"
+
+
 def _law_line(cal: Calibration) -> str:
     law = cal.meta.get("law") or {}
     if not law or law.get("design") == law.get("fitted"):
@@ -133,7 +139,8 @@ def write_report(cal: Calibration, out: Path) -> Path:
     held = ""
     if cal.held_out is not None:
         held = (f"<h2>Held-out data ({html.escape(', '.join(cal.meta.get('held_out', [])))})</h2>"
-                f"<p>Pose RMSE ratio nominal/calibrated: <b>{rmse_ratio(cal.held_out):.2f}</b></p>"
+                f"<p>Pose RMSE ratio nominal/calibrated: <b>{rmse_ratio(cal.held_out):.2f}</b> "
+                f"({_ratio_spread(cal.held_out)})</p>"
                 + _rmse_table(cal.held_out) + '<img src="figures/errors_held_out.png" width="100%">')
     body = f"""<!doctype html><html><head><meta charset="utf-8"><title>softphantom calibration</title>
 <style>body{{font-family:sans-serif;max-width:1100px;margin:2em auto}}table{{border-collapse:collapse}}
@@ -182,4 +189,5 @@ def calibration_dict(cal: Calibration) -> dict:
     }
     if cal.held_out is not None:
         out["held_out_rmse_ratio"] = rmse_ratio(cal.held_out)
+        out["held_out_rmse_ratio_90"] = list(rmse_ratio_interval(cal.held_out))
     return json.loads(json.dumps(out))

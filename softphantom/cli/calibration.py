@@ -107,7 +107,9 @@ def calibrate_cmd(
     for w in f.warnings:
         console.print(f"warning: {w}", markup=False, highlight=False, style="yellow")
     if cal.held_out is not None:
-        from softphantom.calibration import rmse_ratio
+        from softphantom.calibration import rmse_ratio, rmse_ratio_interval
 
-        console.print(f"held-out pose RMSE, nominal / calibrated: {rmse_ratio(cal.held_out):.2f}", markup=False)
+        lo, hi = rmse_ratio_interval(cal.held_out)
+        console.print(f"held-out pose RMSE, nominal / calibrated: {rmse_ratio(cal.held_out):.2f} "
+                      f"({lo:.2f}–{hi:.2f} over its keyframes resampled, 90 %)", markup=False)
     console.print(f"wrote {paths['model']} (report: {paths['report']})", markup=False, highlight=False)
