@@ -142,7 +142,9 @@ class FitOptions:
     that ends the iterations (the last step's, or the Gauss–Newton model's prediction for the next
     one); ``radius_m`` the contact patch radius; ``lag_prior_s``, ``drift_prior_Pa_per_s`` the
     priors' spreads of each session's clock lag and pressure drift (``fix`` names ``lag`` and
-    ``drift`` hold every session's at its first guess, resp. 0)."""
+    ``drift`` hold every session's at its first guess, resp. 0); ``law`` the law the model is
+    fitted under (None: the design's; else every material converted at its small-strain E, ν,
+    :func:`~softphantom.calibration.forward.design_with_law`)."""
 
     sigma_dp_Pa: float | None = None
     sigma_mm: float = 0.2
@@ -155,6 +157,7 @@ class FitOptions:
     radius_m: float = 4e-3
     lag_prior_s: float = 1.0
     drift_prior_Pa_per_s: float = 1.0
+    law: str | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -289,6 +292,26 @@ class Problem:
             drift=g[len(self.params) + len(self.sessions):],
         )
 
+    def feasible(self, z: np.ndarray) -> np.ndarray:
+        """``z`` with each free Yeoh shape moved into the stable set (dW/dĪ₁ > 0 for every Ī₁ ≥ 3):
+        C30/C10 ≥ 0, and above (C20/C10)²/3 where C20 < 0. A step from the boundary — the small-strain
+        equivalent of a neo-Hookean design has C20 = C30 = 0 (``--law yeoh``), where any step with
+        C20 < 0 and C30 ≤ 0 is unstable — is projected back rather than rejected: rejecting it left
+        the whole fit at its start whenever the data did not ask for C30 > 0."""
+        z = z.copy()
+        free = self.free_mask()
+        iG = {name: i for i, name in enumerate(self.names())}
+        for g in GROUPS:
+            i2, i3 = iG.get(yeoh_name(g, 2)), iG.get(yeoh_name(g, 3))
+            if i2 is None or not (free[i2] or free[i3]):
+                continue
+            t2, t3 = z[i2], z[i3]
+            if free[i3]:  # lift C30 (C20 as the step left it)
+                z[i3] = max(t3, (t2 * t2 / 3.0) * (1.0 + 1e-3) + 1e-12 if t2 < 0 else 0.0)
+            else:  # C30 held: bound C20 from below instead
+                z[i2] = max(t2, -math.sqrt(3.0 * t3 / (1.0 + 1e-3)) if t3 > 0 else 0.0)
+        return z
+
     # --- forward ---------------------------------------------------------------------------------
     def solve(self, g: np.ndarray, forces: np.ndarray, trial: bool = False) -> list[KeyframeSolution]:
         """Every keyframe's solve; a ``trial`` (a step not yet accepted) gives up early
@@ -297,7 +320,8 @@ class Problem:
         fr = self.frames
         mls = TRIAL_MIN_LOAD_STEP if trial else 1.0 / 1024
         tasks = [(self.model_dir, tuple(fr.contact[k]), self.options.radius_m, u["scales"], forces[k],
-                  float(fr.p_urethra[k]), self.x_warm[k], mls, u["shape"]) for k in range(len(fr))]
+                  float(fr.p_urethra[k]), self.x_warm[k], mls, u["shape"], 1e-9, self.options.law)
+                 for k in range(len(fr))]
         sols = self.solve_many(tasks)
         self.solves += len(tasks)
         return sols
@@ -532,6 +556,7 @@ def fit(problem: Problem, forces0: np.ndarray, progress: Callable[[int, float, f
                 continue
             z_try = z.copy()
             z_try[free] += dz
+            z_try = problem.feasible(z_try)
             try:
                 r_try, J_try, sols_try = problem.residuals(z_try, trial=True)
             except SolverError:

@@ -69,11 +69,55 @@ class Base:
     solver: object  # one SparseSolver per worker and model: the symbolic analysis is kept
 
 
+#: The laws ``calibrate --law`` can fit a model under (:func:`design_with_law`).
+FIT_LAWS = ("neo-hookean", "yeoh", "corotational")
+
+
+def design_with_law(design, law: str | None):
+    """``design`` with every material under ``law`` at its small-strain equivalent: the same E, ν
+    and density (Yeoh: C10 = μ/2, C20 = C30 = 0 — the decoupled neo-Hookean form, whose shape the
+    calibration then fits; co-rotational and neo-Hookean: E, ν). A material already under ``law``
+    is kept as it is (a Yeoh material keeps its shape); a converted one is renamed
+    ``<material>_<law>``. ``law`` None: ``design`` itself.
+
+    Why: the compressible forms differ at finite strain with the same small-strain moduli — on the
+    P2 12 mm nominal at 3 N a Yeoh phantom's expanding front arms change volume 6–10 % more than a
+    neo-Hookean model's, a pattern only the per-arm gains could take (docs/calibration.md)."""
+    from softphantom.design.params import MATERIAL_PRESETS, MaterialSpec
+    from softphantom.fem.material import law_from_spec
+
+    if law is None:
+        return design
+    if law not in FIT_LAWS:
+        raise UserError(f"--law {law!r}: not a law the calibration can fit (have {', '.join(FIT_LAWS)})")
+    specs = {m.name: m for m in design.materials}
+    used = [MATERIAL_PRESETS[n] for n in dict.fromkeys(n for _, n in design.region_materials)
+            if n not in specs and n in MATERIAL_PRESETS]  # a preset named without a [materials] table
+    renamed, mats = {}, []
+    for m in (*design.materials, *used):
+        if m.law == law:
+            mats.append(m)
+            continue
+        now = law_from_spec(m.law, dict(m.values), f"materials.{m.name}")
+        E_kPa, nu, rho = now.E_Pa / 1e3, now.nu, now.density_kg_m3
+        if law == "yeoh":
+            vals = (("C10_kPa", E_kPa / (4.0 * (1.0 + nu))), ("C20_kPa", 0.0), ("C30_kPa", 0.0),
+                    ("nu", nu), ("density_kg_m3", rho))
+        else:
+            vals = (("E_kPa", E_kPa), ("nu", nu), ("density_kg_m3", rho))
+        renamed[m.name] = f"{m.name}_{law.replace('-', '_')}"
+        mats.append(MaterialSpec(renamed[m.name], law, vals))
+    return dataclasses.replace(design, materials=tuple(mats),
+                               region_materials=tuple((r, renamed.get(n, n)) for r, n in design.region_materials))
+
+
 @functools.lru_cache(maxsize=4)
-def _base(model_dir: str, contact: tuple[float, float, float], radius_m: float) -> Base:
+def _base(model_dir: str, contact: tuple[float, float, float], radius_m: float, law: str | None = None) -> Base:
     from softphantom.design import load_model
 
     model = load_model(Path(model_dir))
+    if law is not None:
+        model = dataclasses.replace(model, design=design_with_law(model.design, law))
     fem = fem_from_phantom(model)
     pt = np.asarray(contact, float)
     # on a coarse mesh a small patch may hold no node: widen it to the 3 nearest surface nodes
@@ -172,14 +216,16 @@ class KeyframeSolution:
 def solve_keyframe(model_dir: str, contact: tuple[float, float, float], radius_m: float,
                    scales: dict[str, float], force_N, p_urethra_Pa: float,
                    x0: np.ndarray | None = None, min_load_step: float = 1.0 / 1024,
-                   shape: dict[str, tuple[float, float]] | None = None, tol: float = 1e-9) -> KeyframeSolution:
+                   shape: dict[str, tuple[float, float]] | None = None, tol: float = 1e-9,
+                   law: str | None = None) -> KeyframeSolution:
     """Equilibrium and sensitivities at force ``force_N`` (3,) on the contact patch and urethra
     pressure ``p_urethra_Pa``, with the moduli of each group in ``scales`` multiplied by its value
     (groups not named keep their nominal moduli), and the Yeoh groups in ``shape`` given
     (C20/C10, C30/C10) (:func:`shaped_fem`). ``x0`` warm start (3N,); ``min_load_step`` the
     smallest load increment the solve may cut to (:func:`~softphantom.fem.solve_static`) before it
-    gives up with :class:`SolverError`."""
-    base = _base(str(model_dir), tuple(float(v) for v in contact), float(radius_m))
+    gives up with :class:`SolverError`. ``law``: every material under that law instead of the
+    design's (:func:`design_with_law`)."""
+    base = _base(str(model_dir), tuple(float(v) for v in contact), float(radius_m), law)
     groups = tuple(scales)
     shape = dict(shape or {})
     shape_cols = tuple((g, i) for g in shape for i in YEOH_TERMS)

@@ -44,18 +44,18 @@ def calibrated_design(design, factors: dict[str, float], shapes: dict[str, tuple
 
 def calibrated_model(cal: Calibration):
     """The model of ``cal.model_dir`` with the fitted stiffness applied to its design (the mesh is
-    the same: only the materials change)."""
+    the same: only the materials change), under the law it was fitted with (``--law``)."""
     from softphantom.design import load_model
 
     from softphantom.calibration.fit import yeoh_name
-    from softphantom.calibration.forward import ARM_NAMES
+    from softphantom.calibration.forward import ARM_NAMES, design_with_law
     from softphantom.design import SensorParams
 
     model = load_model(cal.model_dir)
     p = cal.parameters()
     factors = {g: p[f"stiffness_{g}_factor"] for g in ("bulb", "arms")}
     shapes = {g: (p[yeoh_name(g, 2)], p[yeoh_name(g, 3)]) for g in ("bulb", "arms") if yeoh_name(g, 2) in p}
-    design = calibrated_design(model.design, factors, shapes)
+    design = calibrated_design(design_with_law(model.design, cal.options.law), factors, shapes)
     # the fitted gains and tube factor are relative to the chain the (first) recording used
     s0 = cal.sessions[0]
     sensors = SensorParams(tuple(float(g0 * p[f"gain_{a}"]) for g0, a in zip(s0.recorded_gains, ARM_NAMES)),

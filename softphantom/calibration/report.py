@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from softphantom.calibration.run import Calibration, HeldOut, rmse_ratio
+from softphantom.calibration.run import Calibration, HeldOut, rmse_ratio, rmse_ratio_interval
 
 
 def _plt():
@@ -108,6 +108,20 @@ def _rmse_table(held: HeldOut) -> str:
     return _table(["DoF", "RMSE nominal", "RMSE calibrated", "ratio"], rows)
 
 
+def _ratio_spread(held: HeldOut) -> str:
+    lo, hi = rmse_ratio_interval(held)
+    k = int(np.sum(np.isfinite(held.err_calibrated).any(axis=1)))
+    return f"{lo:.2f}–{hi:.2f} over the {k} keyframes resampled, 90 %"
+
+
+def _law_line(cal: Calibration) -> str:
+    law = cal.meta.get("law") or {}
+    if not law or law.get("design") == law.get("fitted"):
+        return ""
+    return html.escape(f"Fitted under the {', '.join(law['fitted'])} law; the design's (the nominal model's) is "
+                       f"{', '.join(law['design'])}. ")
+
+
 def write_report(cal: Calibration, out: Path) -> Path:
     """``report.html`` and its figures in ``out``."""
     fig = out / "figures"
@@ -125,13 +139,14 @@ def write_report(cal: Calibration, out: Path) -> Path:
     held = ""
     if cal.held_out is not None:
         held = (f"<h2>Held-out data ({html.escape(', '.join(cal.meta.get('held_out', [])))})</h2>"
-                f"<p>Pose RMSE ratio nominal/calibrated: <b>{rmse_ratio(cal.held_out):.2f}</b></p>"
+                f"<p>Pose RMSE ratio nominal/calibrated: <b>{rmse_ratio(cal.held_out):.2f}</b> "
+                f"({_ratio_spread(cal.held_out)})</p>"
                 + _rmse_table(cal.held_out) + '<img src="figures/errors_held_out.png" width="100%">')
     body = f"""<!doctype html><html><head><meta charset="utf-8"><title>softphantom calibration</title>
 <style>body{{font-family:sans-serif;max-width:1100px;margin:2em auto}}table{{border-collapse:collapse}}
 td,th{{border:1px solid #bbb;padding:3px 8px;text-align:right}}th{{background:#eee}}</style></head><body>
 <h1>Calibration of {html.escape(str(cal.model_dir))}</h1>
-<p>{len(cal.sessions)} session(s), {len(cal.frames)} keyframes; {cal.fit.solves} forward solves in
+<p>{_law_line(cal)}{len(cal.sessions)} session(s), {len(cal.frames)} keyframes; {cal.fit.solves} forward solves in
 {cal.fit.seconds:.0f} s; objective {cal.fit.history[0]:.4g} → {cal.fit.history[-1]:.4g}.</p>
 <h2>Parameters</h2>{_table(["parameter", "nominal", "calibrated", "95 % interval", "identifiable", "spread / prior"], prow)}
 <h2>Warnings</h2><ul>{warn}</ul>
@@ -155,6 +170,7 @@ def calibration_dict(cal: Calibration) -> dict:
     out = {
         "softphantom": __version__,
         "kind": "softphantom-calibration",
+        "law": cal.meta.get("law", {}),
         "stiffness_factor": {g: p[f"stiffness_{g}_factor"] for g in ("bulb", "arms")},
         "yeoh_shape": {g: {f"C{i}0_C10": p[yeoh_name(g, i)] for i in YEOH_TERMS}
                        for g in GROUPS if yeoh_name(g, 2) in p},
@@ -173,4 +189,5 @@ def calibration_dict(cal: Calibration) -> dict:
     }
     if cal.held_out is not None:
         out["held_out_rmse_ratio"] = rmse_ratio(cal.held_out)
+        out["held_out_rmse_ratio_90"] = list(rmse_ratio_interval(cal.held_out))
     return json.loads(json.dumps(out))

@@ -65,6 +65,7 @@ def calibrate_cmd(
     holdout_contact: list[str] = typer.Option(None, "--holdout-contact", help="Contact point of the held-out sessions."),
     fix: list[str] = typer.Option(None, "--fix", help="Hold a parameter at its nominal value (repeat), e.g. tube_volume_factor, lag (every session's), drift (every session's pressure drift at 0)."),
     measured: list[str] = typer.Option(None, "--measured", help="A parameter measured on the bench apart from the session, NAME=VALUE (held there) or NAME=VALUE:SD (its prior), displayed units; repeat. E.g. gain_back_xpos=1.04:0.01 from a reference gauge."),
+    law: str = typer.Option(None, "--law", help="Fit under this law instead of the design's (neo-hookean, yeoh, corotational): every material at its small-strain E and ν (Yeoh: C10 = μ/2, C20 = C30 = 0, its shape then fitted); the calibrated model is written under it, the nominal checks keep the design's."),
     max_keyframes: int = typer.Option(16, "--max-keyframes", help="Distinct loads used per session."),
     contact_radius_mm: float = typer.Option(4.0, "--contact-radius-mm", help="Radius of the contact patch the force is spread on (mm)."),
     scheduler: str = typer.Option(None, "--scheduler", help="Address of an existing Dask scheduler (default: a local cluster)."),
@@ -74,16 +75,18 @@ def calibrate_cmd(
     """Fit material stiffness, sensor gains/offsets/drift, tube volume, registration and lag to a bench
     session by least squares over forward FEM solves; print the parameters with 95 % intervals."""
     from softphantom.calibration import FitOptions, calibrate, parameter_set, write_calibration
-    from softphantom.calibration.forward import GROUPS
+    from softphantom.calibration.forward import FIT_LAWS, GROUPS
 
     if not (contact_radius_mm > 0 and contact_radius_mm < 50):
         raise UserError(f"--contact-radius-mm must be in (0, 50), got {contact_radius_mm}")
+    if law is not None and law not in FIT_LAWS:
+        raise UserError(f"--law {law!r}: not a law the calibration can fit (have {', '.join(FIT_LAWS)})")
     if not 3 <= max_keyframes <= 200:
         raise UserError(f"--max-keyframes must be in 3..200, got {max_keyframes}")
     check_output(out, overwrite=overwrite, directory=True)
     specs = _pairs(recording, truth, contact or [], known_loads or [], "--recording/--truth")
     hold = _pairs(holdout_recording or [], holdout_truth or [], holdout_contact or [], [], "--holdout-recording/--holdout-truth")
-    opts = FitOptions(fix=tuple(fix or ()), measured=_measured(measured or []), radius_m=contact_radius_mm * 1e-3)
+    opts = FitOptions(fix=tuple(fix or ()), measured=_measured(measured or []), radius_m=contact_radius_mm * 1e-3, law=law)
     # refuse a bad name or value before any work (a Yeoh shape's name is checked against the
     # model's laws once the model is read)
     parameter_set(measured=opts.measured, yeoh={g: (0.0, 0.0) for g in GROUPS})
@@ -104,7 +107,9 @@ def calibrate_cmd(
     for w in f.warnings:
         console.print(f"warning: {w}", markup=False, highlight=False, style="yellow")
     if cal.held_out is not None:
-        from softphantom.calibration import rmse_ratio
+        from softphantom.calibration import rmse_ratio, rmse_ratio_interval
 
-        console.print(f"held-out pose RMSE, nominal / calibrated: {rmse_ratio(cal.held_out):.2f}", markup=False)
+        lo, hi = rmse_ratio_interval(cal.held_out)
+        console.print(f"held-out pose RMSE, nominal / calibrated: {rmse_ratio(cal.held_out):.2f} "
+                      f"({lo:.2f}–{hi:.2f} over its keyframes resampled, 90 %)", markup=False)
     console.print(f"wrote {paths['model']} (report: {paths['report']})", markup=False, highlight=False)
