@@ -78,30 +78,42 @@ def scan_u(fwd: ForwardModel, fy: float, fz: float, p_Pa: float, qs: np.ndarray)
     return out
 
 
+def scan_row(scan_fn, fwd, row: str, ns, ws, fine):
+    """One row "f_y,f_z,p_kPa" scanned by ``scan_fn`` at every axis point of ``ns`` × ``ws`` and at
+    ``fine``: (f_y, f_z, p_kPa, {axis value: outputs}, outputs at ``fine``, seconds)."""
+    fy, fz, p_kPa = (float(v) for v in row.split(","))
+    nodes = {round(float(x), 9) for n in ns for w in ws for x in cheb_points(n, FX_LO_N, FX_HI_N, w)}
+    t0 = time.perf_counter()
+    vals = scan_fn(fwd, fy, fz, p_kPa * 1e3, np.array(sorted(nodes | {round(float(x), 9) for x in fine})))
+    return fy, fz, p_kPa, vals, np.array([vals[round(float(x), 9)] for x in fine]), time.perf_counter() - t0
+
+
+def interpolation_errors(vals: dict, fine: np.ndarray, ref: np.ndarray, ns, ws):
+    """Per number of points ``n`` and stretch ``w``: (n, w, |interpolant − scan| (len(fine), m), the
+    index of the largest yaw error) — the Chebyshev interpolant through the axis's points
+    (``cheb_points``, ``axis_t``: the atlas's polynomial) of the scanned values ``vals``."""
+    for n in ns:
+        for w in ws:
+            xs = cheb_points(n, FX_LO_N, FX_HI_N, w)
+            coef = _to_chebyshev(np.array([vals[round(float(x), 9)] for x in xs]), (n,))
+            t = np.array([axis_t(x, FX_LO_N, FX_HI_N, w)[0] for x in fine])
+            err = np.abs(np.stack([chebyshev.chebval(t, coef[:, j]) for j in range(ref.shape[1])], 1) - ref)
+            yield n, w, err, int(np.argmax(err[:, 4]))
+
+
 def main_displacement(a, fwd) -> int:
     ns = [int(v) for v in a.points.split(",")]
     ws = [float(v) for v in a.widths.split(",")]
     fine = np.linspace(FX_LO_N, FX_HI_N, a.scan_points)
     for r in a.rows:
-        fy, fz, p_kPa = (float(v) for v in r.split(","))
-        nodes = {round(float(x), 9) for n in ns for w in ws for x in cheb_points(n, FX_LO_N, FX_HI_N, w)}
-        t0 = time.perf_counter()
-        vals = scan_u(fwd, fy, fz, p_kPa * 1e3, np.array(sorted(nodes | {round(float(x), 9) for x in fine})))
-        ref = np.array([vals[round(float(x), 9)] for x in fine])
+        fy, fz, p_kPa, vals, ref, secs = scan_row(scan_u, fwd, r, ns, ws, fine)
         print(f"row f_y {fy} N, f_z {fz} N, p {p_kPa} kPa: {len(vals)} displacement-controlled solves in "
-              f"{time.perf_counter() - t0:.0f} s; yaw {ref[:, 4].min():.2f}..{ref[:, 4].max():.2f} deg; f_x at q = 0: "
+              f"{secs:.0f} s; yaw {ref[:, 4].min():.2f}..{ref[:, 4].max():.2f} deg; f_x at q = 0: "
               f"{vals[0.0][7] if 0.0 in vals else float('nan'):+.4f} N", flush=True)
-        for n in ns:
-            for w in ws:
-                xs = cheb_points(n, FX_LO_N, FX_HI_N, w)
-                coef = _to_chebyshev(np.array([vals[round(float(x), 9)] for x in xs]), (n,))
-                t = np.array([axis_t(x, FX_LO_N, FX_HI_N, w)[0] for x in fine])
-                est = np.stack([chebyshev.chebval(t, coef[:, j]) for j in range(ref.shape[1])], 1)
-                err = np.abs(est - ref)
-                k = int(np.argmax(err[:, 4]))
-                print(f"  {n:2d} points in q, w {w:.3f}: volumes {err[:, :4].max():.3f} mm3, yaw {err[:, 4].max():.3f} deg "
-                      f"(at q {fine[k]:+.3f}, f_x {ref[k, 7]:+.4f} N), pitch/roll {err[:, 5:7].max():.3f} deg, "
-                      f"f_x {err[:, 7].max():.4f} N", flush=True)
+        for n, w, err, k in interpolation_errors(vals, fine, ref, ns, ws):
+            print(f"  {n:2d} points in q, w {w:.3f}: volumes {err[:, :4].max():.3f} mm3, yaw {err[:, 4].max():.3f} deg "
+                  f"(at q {fine[k]:+.3f}, f_x {ref[k, 7]:+.4f} N), pitch/roll {err[:, 5:7].max():.3f} deg, "
+                  f"f_x {err[:, 7].max():.4f} N", flush=True)
     return 0
 
 
@@ -125,23 +137,12 @@ def main(argv=None) -> int:
     ws = [float(v) for v in a.widths.split(",")]
     fine = np.unique(np.r_[np.linspace(FX_LO_N, FX_HI_N, 61), np.linspace(-0.1, 0.1, 41)])
     for row in a.rows:
-        fy, fz, p_kPa = (float(v) for v in row.split(","))
-        nodes = {round(float(x), 9) for n in ns for w in ws for x in cheb_points(n, FX_LO_N, FX_HI_N, w)}
-        t0 = time.perf_counter()
-        vals = scan(fwd, fy, fz, p_kPa * 1e3, np.array(sorted(nodes | {round(float(x), 9) for x in fine})))
-        ref = np.array([vals[round(float(x), 9)] for x in fine])
-        print(f"row f_y {fy} N, f_z {fz} N, p {p_kPa} kPa: {len(vals)} solves in {time.perf_counter() - t0:.0f} s; "
+        fy, fz, p_kPa, vals, ref, secs = scan_row(scan, fwd, row, ns, ws, fine)
+        print(f"row f_y {fy} N, f_z {fz} N, p {p_kPa} kPa: {len(vals)} solves in {secs:.0f} s; "
               f"yaw {ref[:, 4].min():.2f}..{ref[:, 4].max():.2f} deg", flush=True)
-        for n in ns:
-            for w in ws:
-                xs = cheb_points(n, FX_LO_N, FX_HI_N, w)
-                coef = _to_chebyshev(np.array([vals[round(float(x), 9)] for x in xs]), (n,))
-                t = np.array([axis_t(x, FX_LO_N, FX_HI_N, w)[0] for x in fine])
-                est = np.stack([chebyshev.chebval(t, coef[:, j]) for j in range(ref.shape[1])], 1)
-                err = np.abs(est - ref)
-                k = int(np.argmax(err[:, 4]))
-                print(f"  {n:2d} points, w {w:.3f} N: volumes {err[:, :4].max():.3f} mm3, yaw {err[:, 4].max():.3f} deg "
-                      f"(at f_x {fine[k]:+.3f} N), pitch/roll {err[:, 5:].max():.3f} deg", flush=True)
+        for n, w, err, k in interpolation_errors(vals, fine, ref, ns, ws):
+            print(f"  {n:2d} points, w {w:.3f} N: volumes {err[:, :4].max():.3f} mm3, yaw {err[:, 4].max():.3f} deg "
+                  f"(at f_x {fine[k]:+.3f} N), pitch/roll {err[:, 5:].max():.3f} deg", flush=True)
     return 0
 
 
