@@ -507,7 +507,7 @@ def _lines(model, config: EstimatorConfig, acfg: AtlasConfig, k: int, l: int, en
                 target = u0 + (ax[0][i] - lo) / span * (u1 - u0)
                 gap = min(ax[0][i] - ax[0][i - 1], ax[0][i + 1] - ax[0][i])
                 u = float(h @ (lin.x - fwd.fem.x_rest))
-                if prev is not None and u != prev[1]:  # the secant along the line
+                if prev is not None and u != prev[1] and lin.lam[0] != prev[0]:  # the secant along the line
                     d = (u - prev[1]) / (lin.lam[0] - prev[0])
                 else:
                     d = float(h @ lin.U[:, 0])
