@@ -12,7 +12,9 @@ error (``bench_estimate.py --held-out-core``). Figures: docs/estimation.md (sess
 
 ``--x-control displacement`` (session 9): the same for a displacement-controlled axis
 (``AtlasConfig.x_control``): the scan is uniform in the patch's x-displacement ū_x between the
-faces' (``--scan-points``, each point solved at its ū_x by ``_solve_ux`` from the last), the nodes
+faces' (``--scan-points``, each point solved at its ū_x by ``_solve_ux`` from the last: since session
+10 one mixed-control solve, ``--compare-trials`` times session 9's force-controlled trials in the same
+run), the nodes
 are Chebyshev–Lobatto in q (ū_x mapped onto [−1.5, 1.5] N), and f_x joins the outputs (its error
 in N: the force the atlas reports).
 """
@@ -23,6 +25,7 @@ import argparse
 import os
 import sys
 import time
+from functools import partial
 
 import numpy as np
 from numpy.polynomial import chebyshev
@@ -51,10 +54,12 @@ def scan(fwd: ForwardModel, fy: float, fz: float, p_Pa: float, xs: np.ndarray) -
     return out
 
 
-def scan_u(fwd: ForwardModel, fy: float, fz: float, p_Pa: float, qs: np.ndarray) -> dict:
+def scan_u(fwd: ForwardModel, fy: float, fz: float, p_Pa: float, qs: np.ndarray, bordered: bool = True,
+           counter: list | None = None) -> dict:
     """{q: (V1..V4 mm³, yaw, pitch, roll deg, f_x N)} at the q values ``qs`` (N-equivalent: the
     patch displacement ū_x mapped from the faces' onto [FX_LO_N, FX_HI_N]), walked in ascending
-    order, each solved to 1e-7 of the faces' ū_x range."""
+    order, each solved to 1e-7 of the faces' ū_x range (``bordered``: by the mixed-control solve,
+    else by force-controlled trials only; ``counter`` [0] gets the converged solves added)."""
     nm = fwd.n_markers
     rest = fwd.rest.sub_x[:nm]
     h = x_patch(fwd)
@@ -73,7 +78,9 @@ def scan_u(fwd: ForwardModel, fy: float, fz: float, p_Pa: float, qs: np.ndarray)
             continue
         target = u0 + (q - FX_LO_N) / (FX_HI_N - FX_LO_N) * (u1 - u0)
         guess = np.array([lin.lam[0], fy, fz, p_Pa])
-        lin = _solve_ux(fwd, h, guess, target, lin, (FX_LO_N, FX_HI_N), 1e-7 * abs(u1 - u0))[0]
+        lin, n = _solve_ux(fwd, h, guess, target, lin, (FX_LO_N, FX_HI_N), 1e-7 * abs(u1 - u0), bordered)
+        if counter is not None:
+            counter[0] += n
         out[round(float(q), 9)] = row(lin)
     return out
 
@@ -106,10 +113,24 @@ def main_displacement(a, fwd) -> int:
     ws = [float(v) for v in a.widths.split(",")]
     fine = np.linspace(FX_LO_N, FX_HI_N, a.scan_points)
     for r in a.rows:
-        fy, fz, p_kPa, vals, ref, secs = scan_row(scan_u, fwd, r, ns, ws, fine)
-        print(f"row f_y {fy} N, f_z {fz} N, p {p_kPa} kPa: {len(vals)} displacement-controlled solves in "
-              f"{secs:.0f} s; yaw {ref[:, 4].min():.2f}..{ref[:, 4].max():.2f} deg; f_x at q = 0: "
+        n_b = [0]
+        c0 = time.process_time()
+        fy, fz, p_kPa, vals, ref, secs = scan_row(partial(scan_u, counter=n_b), fwd, r, ns, ws, fine)
+        cpu = time.process_time() - c0
+        print(f"row f_y {fy} N, f_z {fz} N, p {p_kPa} kPa: {len(vals)} points at their ū_x in {secs:.0f} s "
+              f"({cpu:.0f} CPU-s of this process, {n_b[0]} converged solves, mixed control); yaw "
+              f"{ref[:, 4].min():.2f}..{ref[:, 4].max():.2f} deg; f_x at q = 0: "
               f"{vals[0.0][7] if 0.0 in vals else float('nan'):+.4f} N", flush=True)
+        if a.compare_trials:  # the peer: session 9's force-controlled trials, same points, same run
+            n_t = [0]
+            c0 = time.process_time()
+            *_, ref_t, secs_t = scan_row(partial(scan_u, bordered=False, counter=n_t), fwd, r, ns, ws, fine)
+            cpu_t = time.process_time() - c0
+            print(f"  peer, force-controlled trials: {secs_t:.0f} s ({cpu_t:.0f} CPU-s, {n_t[0]} converged "
+                  f"solves): {secs_t / secs:.2f}x the wall time, {cpu_t / cpu:.2f}x the CPU; the two scans "
+                  f"differ by at most volumes {np.abs(ref_t[:, :4] - ref[:, :4]).max():.2e} mm3, yaw "
+                  f"{np.abs(ref_t[:, 4] - ref[:, 4]).max():.2e} deg, f_x {np.abs(ref_t[:, 7] - ref[:, 7]).max():.2e} N",
+                  flush=True)
         for n, w, err, k in interpolation_errors(vals, fine, ref, ns, ws):
             print(f"  {n:2d} points in q, w {w:.3f}: volumes {err[:, :4].max():.3f} mm3, yaw {err[:, 4].max():.3f} deg "
                   f"(at q {fine[k]:+.3f}, f_x {ref[k, 7]:+.4f} N), pitch/roll {err[:, 5:7].max():.3f} deg, "
@@ -128,6 +149,8 @@ def main(argv=None) -> int:
     ap.add_argument("--x-control", choices=("force", "displacement"), default="force",
                     help="the axis: f_x (the session-8 scan) or the patch displacement (AtlasConfig.x_control)")
     ap.add_argument("--scan-points", type=int, default=121, help="displacement scan: points uniform in q")
+    ap.add_argument("--compare-trials", action="store_true",
+                    help="displacement scan: the same points again by force-controlled trials only (the peer)")
     a = ap.parse_args(argv)
     model = load_model(a.model) if a.model else build_model(BIPDesign(), a.mesh_size_mm)
     fwd = ForwardModel(model, EstimatorConfig(), exact_sensitivities=False)

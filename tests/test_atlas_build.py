@@ -83,6 +83,52 @@ def test_a_stalled_chord_refactors_and_still_converges(fwd):
     assert rel(lin.x, newton(fwd, lam), fwd) < 1e-6
 
 
+def test_mixed_control_lands_on_the_patch_displacement_at_the_newton_equilibrium_of_its_force(fwd):
+    """Bordered chord iterations (f_x an unknown fixed by the patch's x-displacement): the state
+    they reach is the force-controlled Newton equilibrium at the f_x they report, and its patch
+    displacement is the target; a target beyond the start's in ū needs a larger f_x."""
+    from softphantom.estimation.atlas import x_patch
+    from softphantom.estimation.linearization import PatchControl
+
+    h = x_patch(fwd)
+    a = fwd.solve(np.array([0.0, 0.8, -0.2, 1e3]))
+    u_a = float(h @ (a.x - fwd.fem.x_rest))
+    du = float(h @ a.U[:, 0]) * 0.3  # ū of about 0.3 N more f_x (a grid step)
+    for target in (u_a + du, u_a - du):
+        ctl = PatchControl(h, fwd.fem.x_rest, target, 1e-9 * abs(du))
+        lin = fwd.eq.solve(a, np.array([0.0, 0.9, -0.1, 1e3]), control=ctl)
+        assert abs(ctl.gap(lin.x)) <= 1e-9 * abs(du)
+        assert (lin.lam[0] > 0) == (target > u_a)
+        assert np.allclose(lin.lam[1:], [0.9, -0.1, 1e3])
+        x = newton(fwd, lin.lam)
+        assert rel(lin.x, x, fwd) < 1e-6
+        assert abs(float(h @ (x - fwd.fem.x_rest)) - target) <= 1e-6 * abs(du)
+
+
+def test_a_failing_mixed_control_solve_falls_back_to_force_controlled_trials(fwd, monkeypatch):
+    """Where the bordered chord iterations get nowhere (and so do their halved steps), the point
+    is still solved at its patch displacement, by force-controlled trials (session 9's path)."""
+    import softphantom.estimation.linearization as L
+    from softphantom.estimation.atlas import _solve_ux, x_patch
+
+    chord = L.EquilibriumSolver._chord
+
+    def fail_mixed(self, x, lam, r, rn, ref, its, limit, control=None):
+        if control is not None:
+            return x, lam, r, rn, ref, its + 1, np.inf, False
+        return chord(self, x, lam, r, rn, ref, its, limit, control)
+
+    monkeypatch.setattr(L.EquilibriumSolver, "_chord", fail_mixed)
+    h = x_patch(fwd)
+    a = fwd.solve(np.array([0.0, 0.8, -0.2, 1e3]))
+    du = float(h @ a.U[:, 0]) * 0.3
+    target = float(h @ (a.x - fwd.fem.x_rest)) + du
+    lin, n = _solve_ux(fwd, h, a.lam.copy(), target, a, (0.0, 1.0), 1e-6 * du)
+    assert n >= 2  # trials, not one mixed-control solve
+    assert abs(float(h @ (lin.x - fwd.fem.x_rest)) - target) <= 1e-6 * du
+    assert rel(lin.x, newton(fwd, lin.lam), fwd) < 1e-6
+
+
 def test_sweep_matches_independent_solves(coarse_model, fwd):
     acfg = AtlasConfig(force_min_N=(-0.5, -0.3, -0.5), force_max_N=(0.5, 1.6, 0.5), p_min_kPa=-1.0, p_max_kPa=4.0,
                        n_force=(3, 4, 3), n_pressure=2)
@@ -118,8 +164,8 @@ def test_continuation_steps_between_grid_points_stop_early_and_the_last_converge
 def test_a_failing_chord_falls_back_to_newton_and_reaches_the_equilibrium(fwd, monkeypatch):
     import softphantom.estimation.linearization as L
 
-    def fail(self, x, lam, r, rn, ref, its, limit):  # as if the chord iterations got nowhere
-        return x, r, rn, ref, its + 1, np.inf, False
+    def fail(self, x, lam, r, rn, ref, its, limit, control=None):  # as if the chord iterations got nowhere
+        return x, lam, r, rn, ref, its + 1, np.inf, False
 
     monkeypatch.setattr(L.EquilibriumSolver, "_chord", fail)
     lam = np.array([0.2, 0.9, 0.1, 1e3])

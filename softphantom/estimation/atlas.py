@@ -48,6 +48,7 @@ from softphantom.estimation.estimator import (
     EstimatorState, check_sample, pose_and_shifts, repeat_last, rest_estimate, sensitivity_cond,
 )
 from softphantom.estimation.forward import ForwardModel
+from softphantom.estimation.linearization import PatchControl
 from softphantom.estimation.qp import solve_volume_qp
 from softphantom.estimation.types import Estimate
 from softphantom.pose import DegenerateMarkersError, Pose6, rigid_fit
@@ -67,6 +68,8 @@ X_CONTROLS = ("displacement", "force")
 # than the slightly moved node
 NODE_TOL = 0.1
 UX_MAX_ITER = 30
+BORDERED_HALVINGS = 2  # a mixed-control step that fails is split in two, and each half again
+BORDERED_TOL = 1e-3  # a mixed-control solve hits the patch displacement this close (of NODE_TOL's): on the node
 FIELD_RTOL = 1e-5  # POD truncation: dropped displacement energy below this fraction (≈ 3e-3 relative RMS)
 
 
@@ -348,16 +351,26 @@ def x_patch(fwd: ForwardModel) -> np.ndarray:
 
 
 def _solve_ux(fwd: ForwardModel, h: np.ndarray, lam: np.ndarray, target: float, start, bracket,
-              tol_m: float) -> tuple:
+              tol_m: float, bordered: bool = True, prev=None) -> tuple:
     """The equilibrium at (f_y, f_z, p_u) = ``lam[1:]`` whose patch displacement ū_x = hᵀ(x − x_rest)
     is ``target`` (m) within ``tol_m``, and the number of solves it took: f_x by Newton on
     ū_x(f_x), the slope the secant of the last two trials (the first: the solve's own ∂ū_x/∂f_x,
     from a factor that may be stale where the state steps), kept inside ``bracket`` (f_x, N, at
     whose ends ū_x lies below and above the target: a stable path's ū_x increases with f_x) and
     bisecting it where Newton leaves it; ``lam[0]`` the first guess. Each trial is a converged
-    force-controlled solve (:meth:`ForwardModel.solve`) from the previous one."""
+    force-controlled solve (:meth:`ForwardModel.solve`) from the previous one.
+
+    First, though, one mixed-control solve (:class:`PatchControl`: f_x an unknown of bordered chord
+    iterations, to ``BORDERED_TOL`` of ``tol_m``) from ``start`` (with ``prev``, the point before it
+    on the line: a secant predictor); the trials above only where it
+    fails or lands outside ``bracket`` (another branch), or without ``bordered`` (session 9's
+    build, the benchmarks' peer)."""
     lo, hi = (float(b) for b in bracket)
     x_rest = fwd.fem.x_rest
+    if bordered:
+        lin = _bordered(fwd, h, lam, float(target), start, prev, (lo, hi), BORDERED_TOL * tol_m, BORDERED_HALVINGS)
+        if lin is not None:
+            return lin, 1
     f = float(lam[0])
     lin = start
     trial = np.array(lam, float)
@@ -379,6 +392,25 @@ def _solve_ux(fwd: ForwardModel, h: np.ndarray, lam: np.ndarray, target: float, 
         f = f - g / d if d > 0 else math.nan
     raise SolverError(f"atlas: no f_x in [{lo:+.4f}, {hi:+.4f}] N gives the patch displacement "
                       f"{target * 1e3:+.4f} mm at f_y {lam[1]:+.2f} N, f_z {lam[2]:+.2f} N")
+
+
+def _bordered(fwd: ForwardModel, h: np.ndarray, lam: np.ndarray, target: float, start, prev, bracket, tol_m: float,
+              halvings: int):
+    """The mixed-control equilibrium at patch displacement ``target`` (m) from ``start`` (``prev``
+    the point before it on the line, or None), f_x kept inside ``bracket``; where it does not
+    converge, the step in displacement is halved (up to ``halvings`` times, each half from the
+    last converged state). None where that fails too."""
+    ctl = PatchControl(h, fwd.fem.x_rest, target, tol_m, prev, tuple(bracket))
+    try:
+        return fwd.eq.solve(start, lam, control=ctl)
+    except SolverError:
+        if halvings <= 0:
+            return None
+    mid = 0.5 * (target + float(h @ (start.x - fwd.fem.x_rest)))
+    half = _bordered(fwd, h, lam, mid, start, prev, bracket, tol_m, halvings - 1)
+    if half is None:
+        return None
+    return _bordered(fwd, h, lam, target, half, start, (half.lam[0], bracket[1]), tol_m, halvings - 1)
 
 
 def _sweep(model, config: EstimatorConfig, acfg: AtlasConfig, i: int, l: int):
@@ -502,19 +534,22 @@ def _lines(model, config: EstimatorConfig, acfg: AtlasConfig, k: int, l: int, en
                             via_tol=VIA_TOL)
             n_solves += 1
             faces[j] = (lin, fwd.eq.keep())
-            prev = None  # (f_x, ū) of the point before the last
+            before = None  # the point before the last on the line
             for i in range(1, n1 - 1):
                 target = u0 + (ax[0][i] - lo) / span * (u1 - u0)
                 gap = min(ax[0][i] - ax[0][i - 1], ax[0][i + 1] - ax[0][i])
                 u = float(h @ (lin.x - fwd.fem.x_rest))
-                if prev is not None and u != prev[1] and lin.lam[0] != prev[0]:  # the secant along the line
-                    d = (u - prev[1]) / (lin.lam[0] - prev[0])
+                u_b = float(h @ (before.x - fwd.fem.x_rest)) if before is not None else u
+                if u != u_b and lin.lam[0] != before.lam[0]:  # the secant along the line
+                    d = (u - u_b) / (lin.lam[0] - before.lam[0])
                 else:
                     d = float(h @ lin.U[:, 0])
                 guess = lin.lam[0] + (target - u) / d if d > 0 else lin.lam[0]
-                prev = (lin.lam[0], u)
                 lam = np.array([guess, ax[1][j], fz, p_u])
-                lin, n = _solve_ux(fwd, h, lam, target, lin, (lin.lam[0], hi), NODE_TOL * gap / span * abs(u1 - u0))
+                start = lin
+                lin, n = _solve_ux(fwd, h, lam, target, start, (start.lam[0], hi), NODE_TOL * gap / span * abs(u1 - u0),
+                                   prev=before)
+                before = start
                 n_solves += n
                 a = i - 1
                 solved[a, j] = True

@@ -48,6 +48,7 @@ KRYLOV_MAXITER = 40
 CHORD_FACTOR = 2
 STALL_WINDOW = 3
 FACTOR_COST_ITERS = 15
+BORDERED_FACTORS = 6  # factorizations a mixed-control solve may make before it gives up
 NEWTON_FIRST_ITERS = 8  # Newton iterations of the fallback's first attempt, from the chord's last state
 
 
@@ -253,30 +254,52 @@ class EquilibriumSolver:
         return self.linearize(x, np.zeros(4), 0.0, 0, True)
 
     def _chord(self, x: np.ndarray, lam: np.ndarray, r: np.ndarray, rn: float, ref: float,
-               its: int, limit: int):
+               its: int, limit: int, control: "PatchControl | None" = None):
         """Chord iterations with the kept factor, Anderson-accelerated (depth ``ANDERSON``): the
         fixed-point map ``x − K₀⁻¹ r(x)``, mixed over the last steps (a nonlinear GMRES with the
         kept factor as preconditioner). A mixed step that does not lower ‖r‖ falls back to the
-        plain chord step with backtracking. Returns (x, r, rn, ref, its, rate, ok); ``rate`` is
-        the mean contraction per iteration."""
+        plain chord step with backtracking. With a ``control`` the unknowns are (x, f_x) and each
+        step solves the bordered system [K₀ −h; hᵀ 0] by block elimination (``b = K₀⁻¹h`` once
+        per call, then one back-substitution a step as before): a full step lands on the patch
+        displacement exactly (the constraint is linear), and so does any affine Anderson mix of
+        such steps. Returns (x, lam, r, rn, ref, its, rate, ok); ``rate`` is the mean contraction
+        per iteration."""
         free = self.fem.free_dofs
+        lam = lam.copy()
+        if control is not None:
+            h = control.h[free]
+            b = self.lin.solve(h)
+            hb = float(h @ b)
+            if hb == 0.0 or not np.isfinite(hb):  # the bordered system singular (hb < 0: an unstable
+                return x, lam, r, rn, ref, its, np.inf, False  # state on the way, its step still Newton's)
+            s = float(np.linalg.norm(b))  # m per N: f_x scaled like the positions it moves
+
+        def unknowns(x, lam):
+            return x[free] if control is None else np.append(x[free], lam[0] * s)
+
         dX: list[np.ndarray] = []
         dF: list[np.ndarray] = []
         f_prev = x_prev = None
         rn0, its0 = rn, its
         hist = [rn]
         while its < limit:
-            if self._converged(rn, ref):
+            if self._converged(rn, ref) and (control is None or control.met(x)):
                 break
+            # off the constraint (a predictor cut short by inverted elements): the first step
+            # brings it there whatever it does to ‖r‖
+            onto = control is not None and not control.met(x)
             f = self.lin.solve(-r)
             its += 1
+            if control is not None:
+                df = -(control.gap(x) + float(h @ f)) / hb
+                f = np.append(f + df * b, df * s)
             if f_prev is not None:
-                dX.append(x[free] - x_prev)
+                dX.append(unknowns(x, lam) - x_prev)
                 dF.append(f - f_prev)
                 if len(dX) > ANDERSON:
                     dX.pop(0)
                     dF.pop(0)
-            f_prev, x_prev = f, x[free].copy()
+            f_prev, x_prev = f, unknowns(x, lam)
             step = f
             if dF:
                 Fm = np.stack(dF, axis=1)
@@ -287,14 +310,22 @@ class EquilibriumSolver:
                 alpha = 1.0
                 for _ in range(8 if trial is f else 1):
                     xt = x.copy()
-                    xt[free] += alpha * trial
+                    lamt = lam.copy()
+                    if control is None:
+                        xt[free] += alpha * trial
+                    else:
+                        xt[free] += alpha * trial[:-1]
+                        lamt[0] += alpha * trial[-1] / s
+                        if not control.fx_bounds_N[0] <= lamt[0] <= control.fx_bounds_N[1]:
+                            alpha *= 0.5  # beyond where the path's f_x can be: shorter, as for inverted elements
+                            continue
                     try:
-                        rt, reft = self.residual(xt, lam)
+                        rt, reft = self.residual(xt, lamt)
                     except ElementInversionError:
                         alpha *= 0.5
                         continue
                     rtn = float(np.linalg.norm(rt))
-                    if rtn < rn or self._converged(rtn, reft):
+                    if rtn < rn or self._converged(rtn, reft) or onto:
                         accepted = True
                         break
                     alpha *= 0.5
@@ -304,18 +335,18 @@ class EquilibriumSolver:
                 dF.clear()
                 f_prev = x_prev = None
             if not accepted:
-                return x, r, rn, ref, its, np.inf, False
-            x, r, rn, ref = xt, rt, rtn, reft
+                return x, lam, r, rn, ref, its, np.inf, False
+            x, lam, r, rn, ref = xt, lamt, rt, rtn, reft
             hist.append(rn)
             if len(hist) > STALL_WINDOW and not self._converged(rn, ref):
                 rec = (rn / hist[-1 - STALL_WINDOW]) ** (1.0 / STALL_WINDOW)  # recent contraction
                 need = np.log(max(self._tol * ref, self._floor) / rn) / np.log(rec) if rec < 1 else np.inf
                 if rec > self.refactor_rate and need > FACTOR_COST_ITERS:
                     break  # stalled: a new factor is cheaper than the chord iterations still needed
-        ok = self._converged(rn, ref)
+        ok = self._converged(rn, ref) and (control is None or control.met(x))
         n = max(its - its0, 1)
         rate = (rn / max(rn0, 1e-300)) ** (1.0 / n) if rn0 > 0 else 0.0
-        return x, r, rn, ref, its, rate, ok
+        return x, lam, r, rn, ref, its, rate, ok
 
     def _newton_fallback(self, start: Linearization, x: np.ndarray, lam: np.ndarray, its: int):
         """Newton with an energy line search where the chord iterations did not converge: one
@@ -350,7 +381,8 @@ class EquilibriumSolver:
         return x, its, float(np.linalg.norm(r)), ref, True
 
     def solve(self, start: Linearization, lam, path: "PathCorrection | None" = None, *,
-              factor_at_solution: bool = False, tol: float | None = None) -> Linearization:
+              factor_at_solution: bool = False, tol: float | None = None,
+              control: "PatchControl | None" = None) -> Linearization:
         """Equilibrium at actuations ``lam`` starting from ``start``, and its linearization.
 
         First-order predictor, then Anderson-accelerated chord iterations with the kept factor
@@ -363,13 +395,21 @@ class EquilibriumSolver:
         is the tangent there: the next solve from it starts with an Euler predictor and chord
         iterations on the tangent of its start (the atlas build). ``tol``: this solve's relative
         residual (default: the solver's ``tol``; a continuation's intermediate steps, which only
-        start the next one, need less). Raises :class:`SolverError` if even the load-stepping
-        fallback fails.
+        start the next one, need less). ``control``: mixed control — f_x is an unknown (``lam[0]``
+        only its first guess, replaced by the predictor's) fixed by the patch displacement
+        (:class:`PatchControl`), solved by bordered chord iterations; it has no Newton fallback
+        (a force-controlled one would not hold the displacement). Raises :class:`SolverError` if
+        even the load-stepping fallback fails (with a ``control``: if the chord iterations do).
         """
         self._tol = self.tol if tol is None else float(tol)
         lam = np.array(lam, dtype=np.float64).reshape(4)
+        secant = control.secant(start, lam) if control is not None else None
+        if control is not None:
+            lam[0] = control.predict_fx(start, lam) if secant is None else secant[0]
         predicted_V = start.predict_volumes(lam)
-        if path is not None and path.lin is start:  # second-order predictor along the path
+        if secant is not None:
+            x = secant[1]
+        elif path is not None and path.lin is start:  # second-order predictor along the path
             x = path.predict_x(lam)
         else:
             x = start.x + start.U @ (lam - start.lam)
@@ -380,12 +420,25 @@ class EquilibriumSolver:
             x = start.x.copy()
             r, ref = self.residual(x, lam)
         rn = float(np.linalg.norm(r))
-        x, r, rn, ref, its, rate, ok = self._chord(x, lam, r, rn, ref, 0, CHORD_FACTOR * self.max_iter)
-        if not ok:
+        x, lam, r, rn, ref, its, rate, ok = self._chord(x, lam, r, rn, ref, 0, CHORD_FACTOR * self.max_iter, control)
+        # force control: one refactorization, then Newton with load stepping; mixed control (no such
+        # fallback): a new factor where the chord stops, up to BORDERED_FACTORS times — near the
+        # arm pair's step the soft mode turns within a few iterations, and a factor from two steps
+        # back no longer gives a descent direction (a modified Newton on the bordered system)
+        for _ in range(1 if control is None else BORDERED_FACTORS):
+            if ok:
+                break
+            x_was = x
             self.factorize(x, lam[3])
             refactored = True
-            x, r, rn, ref, its, rate, ok = self._chord(x, lam, r, rn, ref, its, its + self.max_iter)
+            x, lam, r, rn, ref, its, rate, ok = self._chord(x, lam, r, rn, ref, its, its + self.max_iter, control)
+            if x is x_was:  # not one step accepted with the tangent at x: no use refactoring there again
+                break
         self.last_rate = rate
+        if not ok and control is not None:
+            raise SolverError(f"equilibrium at patch displacement {control.target_m * 1e3:+.4f} mm, force "
+                              f"{lam[1:3].round(3).tolist()} N (y, z), urethra {lam[3]:.0f} Pa: the bordered "
+                              f"chord iterations did not converge")
         if not ok:
             x, its, rn, ref, refactored = self._newton_fallback(start, x, lam, its)
         if factor_at_solution and not self._factor_current(x, lam[3]):
@@ -393,6 +446,52 @@ class EquilibriumSolver:
             refactored = True
         return self.linearize(x, lam, rn / max(ref, 1e-300), its, refactored,
                               lin_error=predicted_V - self.arm_volumes(x))
+
+
+@dataclass(frozen=True, eq=False)
+class PatchControl:
+    """Mixed control of :meth:`EquilibriumSolver.solve`: f_x is the unknown that puts the patch
+    displacement ``hᵀ(x − x_ref)`` at ``target_m`` (within ``tol_m``); ``h`` (3N,) is the contact
+    patch's x load vector (per N of f_x), so the displacement is work-conjugate to f_x and
+    ``∂ū/∂f_x = hᵀK⁻¹h > 0`` on a stable equilibrium: the path stays continuous where f_x barely
+    moves and the state does."""
+
+    h: np.ndarray
+    x_ref: np.ndarray
+    target_m: float
+    tol_m: float
+    prev: "Linearization | None" = None  # the point before the start on the same path (a secant predictor)
+    fx_bounds_N: tuple[float, float] = (-np.inf, np.inf)  # an iterate's f_x outside them is a step too far
+
+    def gap(self, x: np.ndarray) -> float:
+        """m: the patch displacement at ``x`` minus the target."""
+        return float(self.h @ (x - self.x_ref)) - self.target_m
+
+    def met(self, x: np.ndarray) -> bool:
+        return abs(self.gap(x)) <= self.tol_m
+
+    def secant(self, start: Linearization, lam: np.ndarray) -> tuple[float, np.ndarray] | None:
+        """(f_x N, x (3N,) m) on the secant through ``prev`` and ``start`` at the target — the path
+        parametrized by the patch displacement, so second-order where the state turns fast for
+        little f_x (what the tangent's predictor is not); None without a ``prev`` on the same line
+        (other loads equal) or where the two are at one displacement."""
+        p = self.prev
+        if p is None or not (np.array_equal(p.lam[1:], start.lam[1:]) and np.array_equal(start.lam[1:], lam[1:])):
+            return None
+        du = self.gap(start.x) - self.gap(p.x)
+        if du == 0.0:
+            return None
+        s = -self.gap(start.x) / du
+        return float(start.lam[0] + s * (start.lam[0] - p.lam[0])), start.x + s * (start.x - p.x)
+
+    def predict_fx(self, start: Linearization, lam: np.ndarray) -> float:
+        """N: the f_x whose first-order state from ``start`` (the other actuations at ``lam``)
+        is at the target; ``lam[0]`` where ``start``'s sensitivity is not positive."""
+        dl = np.asarray(lam, float) - start.lam
+        hu = self.h @ start.U
+        if not hu[0] > 0:
+            return float(lam[0])
+        return float(start.lam[0] + (-self.gap(start.x) - hu[1:] @ dl[1:]) / hu[0])
 
 
 @dataclass(frozen=True, eq=False)
