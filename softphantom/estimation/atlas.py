@@ -104,8 +104,9 @@ class AtlasConfig:
     monotone in f_x, and where the arm pair steps (f_x moves a few hundredths of a newton while the
     state moves across) the displacement moves with the state: the outputs are smooth in q where
     they are steep in f_x (docs/estimation.md). The build solves the two faces first, then walks
-    each line along q from face to face, f_x found so that ū_x is near each node (:func:`_lines`,
-    :func:`_solve_ux`, :data:`NODE_TOL`).
+    each line along q from face to face, each node's point one mixed-control solve (f_x an unknown
+    fixed by ū_x: :class:`~softphantom.estimation.linearization.PatchControl`), force-controlled
+    trials where that fails (:func:`_lines`, :func:`_solve_ux`, :data:`NODE_TOL`).
     The step is still the steepest part of the map in q, but far wider than in f_x: the default
     stretch of such an axis is :data:`STRETCH_Q` (N-equivalent); ``linear_pressure`` needs
     ``"force"`` (its tangent line is at fixed f_x).
@@ -498,10 +499,10 @@ def _lines(model, config: EstimatorConfig, acfg: AtlasConfig, k: int, l: int, en
     pressure index ``l``, each walked from its lower f_x face to the upper one. ``ends`` (ny,) × 2:
     the faces' patch displacements (m; NaN: unsolved) at (·, k, l). A line starts at its lower face
     point (solved again here, force-controlled, from the previous line's: the f_y rows walked from
-    the one nearest zero outwards); each next point is solved near the displacement of its q from
-    the point before it, f_x predicted by the secant of the last two along the line — one small
-    step of the state each, where a plane at fixed q (:func:`_sweep`) crosses the arm pair's step
-    in f_x from a neighbour in f_y. Returns (k, l, V (n1−2, ny, 4), P (n1−2, ny, k, 3), X
+    the one nearest zero outwards); each next point is solved at the displacement of its q from
+    the point before it (:func:`_solve_ux`: one mixed-control solve, its predictor the secant of
+    the last two along the line) — one small step of the state each, where a plane at fixed q
+    (:func:`_sweep`) crosses the arm pair's step in f_x from a neighbour in f_y. Returns (k, l, V (n1−2, ny, 4), P (n1−2, ny, k, 3), X
     (n1−2, ny, 3N), solved (n1−2, ny), first failure or '', CPU seconds, FX (n1−2, ny), Q (n1−2, ny),
     converged forward solves)."""
     t0 = time.process_time()
