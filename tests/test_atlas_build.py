@@ -129,6 +129,20 @@ def test_a_failing_mixed_control_solve_falls_back_to_force_controlled_trials(fwd
     assert rel(lin.x, newton(fwd, lin.lam), fwd) < 1e-6
 
 
+def test_mixed_control_may_lower_f_x_within_its_range_where_the_trials_may_not(fwd):
+    """A fold (f_x falling along the line, the quadratic model's snap-through) is for the mixed-control
+    solve alone: its f_x may lie anywhere in ``fx_range``, below the trials' bracket."""
+    from softphantom.estimation.atlas import _solve_ux, x_patch
+
+    h = x_patch(fwd)
+    a = fwd.solve(np.array([0.0, 0.8, -0.2, 1e3]))
+    du = float(h @ a.U[:, 0]) * 0.2
+    target = float(h @ (a.x - fwd.fem.x_rest)) - du  # behind the start: f_x below a's
+    lin, n = _solve_ux(fwd, h, a.lam.copy(), target, a, (0.0, 1.0), 1e-6 * du, fx_range=(-1.0, 1.0))
+    assert n == 1 and -1.0 < lin.lam[0] < 0.0
+    assert abs(float(h @ (lin.x - fwd.fem.x_rest)) - target) <= 1e-6 * du
+
+
 def test_sweep_matches_independent_solves(coarse_model, fwd):
     acfg = AtlasConfig(force_min_N=(-0.5, -0.3, -0.5), force_max_N=(0.5, 1.6, 0.5), p_min_kPa=-1.0, p_max_kPa=4.0,
                        n_force=(3, 4, 3), n_pressure=2)

@@ -352,7 +352,7 @@ def x_patch(fwd: ForwardModel) -> np.ndarray:
 
 
 def _solve_ux(fwd: ForwardModel, h: np.ndarray, lam: np.ndarray, target: float, start, bracket,
-              tol_m: float, bordered: bool = True, prev=None) -> tuple:
+              tol_m: float, bordered: bool = True, prev=None, fx_range=None) -> tuple:
     """The equilibrium at (f_y, f_z, p_u) = ``lam[1:]`` whose patch displacement ū_x = hᵀ(x − x_rest)
     is ``target`` (m) within ``tol_m``, and the number of solves it took: f_x by Newton on
     ū_x(f_x), the slope the secant of the last two trials (the first: the solve's own ∂ū_x/∂f_x,
@@ -363,13 +363,16 @@ def _solve_ux(fwd: ForwardModel, h: np.ndarray, lam: np.ndarray, target: float, 
 
     First, though, one mixed-control solve (:class:`PatchControl`: f_x an unknown of bordered chord
     iterations, to ``BORDERED_TOL`` of ``tol_m``) from ``start`` (with ``prev``, the point before it
-    on the line: a secant predictor); the trials above only where it
-    fails or lands outside ``bracket`` (another branch), or without ``bordered`` (session 9's
+    on the line: a secant predictor), its f_x anywhere in ``fx_range`` (default ``bracket``): where
+    the state snaps through in f_x (the quadratic model's arm pair above ≈ 4.3 N of f_y) the path at
+    fixed ū_x goes through a fold, f_x falling on its unstable branch, which no force-controlled
+    solve reaches. The trials above only where it fails, or without ``bordered`` (session 9's
     build, the benchmarks' peer)."""
     lo, hi = (float(b) for b in bracket)
     x_rest = fwd.fem.x_rest
     if bordered:
-        lin = _bordered(fwd, h, lam, float(target), start, prev, (lo, hi), BORDERED_TOL * tol_m, BORDERED_HALVINGS)
+        rng = tuple(float(b) for b in (bracket if fx_range is None else fx_range))
+        lin = _bordered(fwd, h, lam, float(target), start, prev, rng, BORDERED_TOL * tol_m, BORDERED_HALVINGS)
         if lin is not None:
             return lin, 1
     f = float(lam[0])
@@ -411,7 +414,7 @@ def _bordered(fwd: ForwardModel, h: np.ndarray, lam: np.ndarray, target: float, 
     half = _bordered(fwd, h, lam, mid, start, prev, bracket, tol_m, halvings - 1)
     if half is None:
         return None
-    return _bordered(fwd, h, lam, target, half, start, (half.lam[0], bracket[1]), tol_m, halvings - 1)
+    return _bordered(fwd, h, lam, target, half, start, bracket, tol_m, halvings - 1)
 
 
 def _sweep(model, config: EstimatorConfig, acfg: AtlasConfig, i: int, l: int):
@@ -549,7 +552,7 @@ def _lines(model, config: EstimatorConfig, acfg: AtlasConfig, k: int, l: int, en
                 lam = np.array([guess, ax[1][j], fz, p_u])
                 start = lin
                 lin, n = _solve_ux(fwd, h, lam, target, start, (start.lam[0], hi), NODE_TOL * gap / span * abs(u1 - u0),
-                                   prev=before)
+                                   prev=before, fx_range=(lo, hi))
                 before = start
                 n_solves += n
                 a = i - 1
