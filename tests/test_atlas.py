@@ -101,6 +101,15 @@ def test_lines_through_their_own_first_axis_points_are_interpolated_exactly():
         lob[0].reshape(-1, 1, 1, 1), shape)), atol=1e-13)
 
 
+def test_replacing_the_grid_or_first_axis_takes_its_default_stretch():
+    big = AtlasConfig()
+    assert big.cluster_N[0] > 0 and big.force_cluster_N is None
+    assert dataclasses.replace(big, x_control="displacement").cluster_N == AtlasConfig(x_control="displacement").cluster_N
+    assert dataclasses.replace(big, n_force=(5, 9, 4)).cluster_N == (0.0, 0.0, 0.0)
+    assert dataclasses.replace(big, force_cluster_N=0.05).cluster_N == (0.05, 0.05, 0.05)  # given: kept
+    assert AtlasConfig().as_dict() == AtlasConfig(force_cluster_N=AtlasConfig().cluster_N).as_dict()
+
+
 def test_atlas_is_exact_at_grid_points(any_atlas, fwd):
     atlas = any_atlas
     ax = ACFG.axes()
@@ -188,12 +197,15 @@ def test_cache_round_trip_mismatch_and_corruption(coarse_model, atlas, fwd, tmp_
     path = atlas_path(tmp_path, atlas.key)
     atlas.save(path)
     back = Atlas.load(path, atlas.key)
-    assert np.array_equal(back.cV, atlas.cV) and back.config == ACFG
+    assert np.array_equal(back.cV, atlas.cV) and back.config.as_dict() == ACFG.as_dict()
+    assert back.config.force_cluster_N == ACFG.cluster_N  # the file keeps the stretch it was built with
     # another contact patch, law parameter or envelope → another key; the file is refused in one line
     other = ForwardModel(coarse_model, EstimatorConfig(contact="off-centre"))
     assert atlas_key(other, ACFG) != atlas.key
     assert atlas_key(fwd, dataclasses.replace(ACFG, force_max_N=(0.5, 1.3, 0.5))) != atlas.key
     assert atlas_key(fwd, dataclasses.replace(ACFG, p_min_kPa=-1, p_max_kPa=4)) == atlas.key  # ints: one key
+    assert atlas_key(fwd, dataclasses.replace(ACFG, force_cluster_N=ACFG.cluster_N)) == atlas.key  # the default, given
+    assert atlas_key(fwd, dataclasses.replace(ACFG, force_cluster_N=(0.1, 0.0, 0.0))) != atlas.key
     with pytest.raises(UserError, match="built for another model") as exc:
         Atlas.load(path, atlas_key(other, ACFG))
     assert "\n" not in str(exc.value)

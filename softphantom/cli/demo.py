@@ -99,9 +99,9 @@ def shared_atlases(scs, grid: tuple[int, int, int, int] | None = None) -> dict:
     >>> c = a["on-centre"]  # each face: 0.5 N + 0.2 × the peak on that side (f_y: 2.6 + 0.5 + 0.52)
     >>> list(a), [round(v, 2) for v in c.force_min_N], [round(v, 2) for v in c.force_max_N], c.shape
     (['on-centre'], [-1.22, -0.5, -1.1], [0.68, 3.62, 0.5], (7, 5, 5, 2))
-    >>> c.linear_pressure, c.force_cluster_N  # one plane of solves at 0 kPa; f_x points clustered
+    >>> c.linear_pressure, c.cluster_N  # one plane of solves at 0 kPa; f_x points clustered
     (True, (0.1, 0.0, 0.0))
-    >>> shared_atlases([needle], grid=(4, 5, 4, 2))["on-centre"].force_cluster_N  # a given grid: affine
+    >>> shared_atlases([needle], grid=(4, 5, 4, 2))["on-centre"].cluster_N  # a given grid: affine
     (0.0, 0.0, 0.0)
     """
     by: dict[str, list] = {}

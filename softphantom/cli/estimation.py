@@ -63,7 +63,7 @@ def estimate_cmd(
     scheduler: str = typer.Option(None, "--scheduler", help="Atlas build: Dask scheduler address (default: a local "
                                   "cluster on all cores)."),
     atlas_grid: str = typer.Option(None, "--atlas-grid", help="Atlas: Chebyshev points per axis NX,NY,NZ,NP "
-                                   "(default 11,9,4,3; f_x stretched about 0 N, AtlasConfig.force_cluster_N)."),
+                                   "(default 11,9,4,3; f_x stretched about 0 N, AtlasConfig.cluster_N)."),
     atlas_x_axis: str = typer.Option(None, "--atlas-x-axis", help="Atlas: the first axis, force (f_x, the default) "
                                      "| displacement (the contact patch's x-displacement mapped onto the f_x range, "
                                      "f_x an output: for a model whose state nearly jumps in f_x, docs/estimation.md)."),

@@ -111,9 +111,13 @@ class AtlasConfig:
     stretch of such an axis is :data:`STRETCH_Q` (N-equivalent); ``linear_pressure`` needs
     ``"force"`` (its tangent line is at fixed f_x).
 
-    >>> AtlasConfig().force_cluster_N, AtlasConfig(x_control="displacement").force_cluster_N
+    The default is resolved in :attr:`cluster_N`, not stored, so ``dataclasses.replace`` with
+    another first axis or grid takes that one's default:
+
+    >>> AtlasConfig().cluster_N, AtlasConfig(x_control="displacement").cluster_N
     ((0.02, 0.0, 0.0), (0.3, 0.0, 0.0))
-    >>> AtlasConfig(n_force=(4, 5, 4)).force_cluster_N
+    >>> from dataclasses import replace
+    >>> replace(AtlasConfig(), n_force=(4, 5, 4)).cluster_N
     (0.0, 0.0, 0.0)
     >>> AtlasConfig(n_pressure=2, linear_pressure=True, x_control="displacement")
     Traceback (most recent call last):
@@ -162,13 +166,27 @@ class AtlasConfig:
             raise UserError("atlas linear_pressure needs x_control 'force' (the tangent line is at fixed f_x), "
                             f"got {self.x_control!r}")
         w = self.force_cluster_N
-        if w is None:  # the default: the first axis stretched where there are enough points for it (see above)
-            stretch = self.n_force[0] >= STRETCH_MIN_POINTS and lo[0] < 0 < hi[0]
-            w = ((STRETCH_FX_N if self.x_control == "force" else STRETCH_Q) if stretch else 0.0, 0.0, 0.0)
-        w = tuple(float(v) for v in (w if np.ndim(w) else (w,) * 3))
-        if len(w) != 3 or not all(math.isfinite(v) and v >= 0 for v in w):
-            raise UserError(f"atlas force_cluster_N: 3 widths ≥ 0 N (0: no stretch), got {self.force_cluster_N}")
-        object.__setattr__(self, "force_cluster_N", w)
+        if w is not None:
+            w = tuple(float(v) for v in (w if np.ndim(w) else (w,) * 3))
+            if len(w) != 3 or not all(math.isfinite(v) and v >= 0 for v in w):
+                raise UserError(f"atlas force_cluster_N: 3 widths ≥ 0 N (0: no stretch), got {self.force_cluster_N}")
+            object.__setattr__(self, "force_cluster_N", w)
+
+    @property
+    def cluster_N(self) -> tuple[float, float, float]:
+        """The stretch widths per force axis: ``force_cluster_N``, or the default for this grid and
+        first axis where it is None (the first axis stretched where there are enough points, above)."""
+        if self.force_cluster_N is not None:
+            return self.force_cluster_N
+        stretch = self.n_force[0] >= STRETCH_MIN_POINTS and self.force_min_N[0] < 0 < self.force_max_N[0]
+        return ((STRETCH_FX_N if self.x_control == "force" else STRETCH_Q) if stretch else 0.0, 0.0, 0.0)
+
+    def as_dict(self) -> dict:
+        """The fields with the stretch resolved: what the cache key hashes and an atlas file keeps,
+        so a file's polynomial never meets another default's stretch."""
+        d = asdict(self)
+        d["force_cluster_N"] = self.cluster_N
+        return d
 
     @property
     def lower(self) -> np.ndarray:
@@ -181,7 +199,7 @@ class AtlasConfig:
     @property
     def stretch(self) -> np.ndarray:
         """(4,) the axes' stretch widths (N, N, N; the pressure axis 0: affine), :func:`axis_t`."""
-        return np.array([*self.force_cluster_N, 0.0])
+        return np.array([*self.cluster_N, 0.0])
 
     @property
     def shape(self) -> tuple[int, int, int, int]:
@@ -288,7 +306,7 @@ def atlas_key(fwd: ForwardModel, acfg: AtlasConfig) -> str:
         add(M.indptr)
         add(M.indices)
         add(M.data)
-    atlas = asdict(acfg)
+    atlas = acfg.as_dict()
     if not acfg.linear_pressure:  # the keys of atlases built before the option stay valid
         del atlas["linear_pressure"]
     meta = {"format": FORMAT, "atlas": atlas, "tol": fwd.config.tol,
@@ -835,7 +853,7 @@ class Atlas:
         """Write the atlas (npz; written to a temporary name, then renamed: never half a file)."""
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
-        meta = {"format": FORMAT, "key": self.key, "config": asdict(self.config), "build_s": self.build_s,
+        meta = {"format": FORMAT, "key": self.key, "config": self.config.as_dict(), "build_s": self.build_s,
                 "solves": self.solves, "field_rms_m": self.field_rms_m, "build_cpu_s": self.build_cpu_s,
                 "digest": self._digest()}
         buf = io.BytesIO()
