@@ -321,6 +321,20 @@ def test_unreachable_grid_points_are_filled_and_flagged(coarse_model, fwd, monke
     lam = np.array([0.4, 1.0, 0.2, 2e3])
     assert np.allclose(at.volumes(lam)[0], A @ lam, rtol=1e-9, atol=1e-18)
     assert at.solved_at(lam) is False and at.solved_at([-0.3, 0.2, 0.0, 0.0]) is True
+    # solved_at against the cell rule written out: all 16 corners of the cell holding lam solved
+    rng = np.random.default_rng(5)
+    axes = ACFG.axes()
+    lo, hi = ACFG.lower, ACFG.upper
+    draws = list(lo + (hi - lo) * rng.uniform(-0.05, 1.05, (300, 4))) + list(g.reshape(-1, 4)[::7])
+    ends = np.array([[a[0], a[-1]] for a in axes])
+    slack = 1e-9 * (1 + np.abs(ends))  # the grid's ends are the box's to round-off
+    for x in draws:
+        if np.any(x < ends[:, 0] - slack[:, 0]) or np.any(x > ends[:, 1] + slack[:, 1]):
+            want = False
+        else:
+            i = [min(max(int(np.searchsorted(a, v)) - 1, 0), len(a) - 2) for v, a in zip(x, axes)]
+            want = bool(at.solved[i[0]:i[0] + 2, i[1]:i[1] + 2, i[2]:i[2] + 2, i[3]:i[3] + 2].all())
+        assert at.solved_at(x) is want, x
     monkeypatch.undo()
     est = AtlasEstimator(coarse_model, CFG, at)
     assert not est.step(meas(A @ lam, lam[3])).in_envelope
