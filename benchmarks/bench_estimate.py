@@ -236,6 +236,8 @@ def main() -> None:
     ap.add_argument("--atlas-grid", help="atlas points per axis NX,NY,NZ,NP (default: AtlasConfig's)")
     ap.add_argument("--x-control", choices=X_CONTROLS, default=AtlasConfig.x_control,
                     help="the atlas's first axis: f_x (default) or the patch displacement (AtlasConfig.x_control)")
+    ap.add_argument("--atlas-f-y-split-N", help="the atlas in pieces along f_y, split at these forces (N, "
+                    "comma-separated; AtlasConfig.f_y_splits_N)")
     ap.add_argument("--envelope", help="atlas envelope FXMIN:FXMAX,FYMIN:FYMAX,FZMIN:FZMAX,PMIN:PMAX (N, kPa; "
                     "default: AtlasConfig's)")
     a = ap.parse_args()
@@ -282,7 +284,7 @@ def main() -> None:
 
     # -- atlas: offline build, then the same ramps (quiet and loaded), sustained rate, held-out loads
     cfg = EstimatorConfig(**base)
-    acfg = atlas_config_from_options(a.atlas_grid, a.envelope, a.x_control)
+    acfg = atlas_config_from_options(a.atlas_grid, a.envelope, a.x_control, a.atlas_f_y_split_N)
     t = time.perf_counter()
     print(f"load average before the atlas build: {os.getloadavg()[0]:.1f}")
     if a.atlas_cache:
@@ -290,14 +292,14 @@ def main() -> None:
     else:
         atlas = build_atlas(model, cfg, acfg, n_workers=a.workers)
     res["atlas_build"] = {"s": atlas.build_s, "cpu_s": atlas.build_cpu_s, "solves": atlas.solves, "unsolved": atlas.unsolved,
-                          "grid": list(acfg.shape), "envelope": [list(acfg.lower), list(acfg.upper)],
+                          "grid": list(acfg.shape), "f_y_splits_N": list(acfg.f_y_splits_N), "envelope": [list(acfg.lower), list(acfg.upper)],
                           "load_avg_after": os.getloadavg()[0], "MB": atlas.nbytes / 1e6,
-                          "field_modes": int(atlas.modes.shape[1]), "field_pod_rms_um": atlas.field_rms_m * 1e6,
+                          "field_modes": atlas.field_modes, "field_pod_rms_um": atlas.field_rms_m * 1e6,
                           "workers": a.workers, "wall_s_incl_load": time.perf_counter() - t}
     print(f"atlas build: {atlas.solves} forward solves ({atlas.unsolved} unreachable) in {atlas.build_s:.0f} s "
           f"({atlas.build_cpu_s:.0f} CPU-s in the solves: {atlas.build_cpu_s / 2:.0f} s on 2 idle cores) on "
-          f"{a.workers} workers, {atlas.nbytes / 1e6:.1f} MB ({atlas.modes.shape[1]} field modes); grid "
-          f"{acfg.shape}, envelope {acfg.lower.round(2).tolist()}..{acfg.upper.round(2).tolist()}; load average "
+          f"{a.workers} workers, {atlas.nbytes / 1e6:.1f} MB ({atlas.field_modes} field modes); grid "
+          f"{acfg.shape}{f' in pieces split at f_y {list(acfg.f_y_splits_N)} N' if acfg.f_y_splits_N else ''}, envelope {acfg.lower.round(2).tolist()}..{acfg.upper.round(2).tolist()}; load average "
           f"{os.getloadavg()[0]:.1f}")
     at = AtlasEstimator(model, cfg, atlas)
     # the step as it was before the compiled kernels (issue 13, item 5), on the same atlas: the ratio

@@ -341,3 +341,65 @@ def test_unreachable_grid_points_are_filled_and_flagged(coarse_model, fwd, monke
     inside = np.array([-0.3, 0.2, 0.1, 1e3])
     e = est.step(meas(A @ inside, inside[3]))
     assert e.in_envelope and np.allclose(e.force, inside[:3], atol=1e-6)
+
+
+def test_an_atlas_in_pieces_along_f_y_follows_a_kink_one_polynomial_cannot(coarse_model, fwd, monkeypatch, tmp_path):
+    """``AtlasConfig.f_y_splits_N``: a map with a kink in f_y (a stand-in for the quadratic model's
+    fold) is reproduced exactly by pieces split at the kink, each a cubic in f_y, and not by one
+    polynomial over the range; the estimator inverts loads on either side and across the shared face;
+    each piece is cached as the plain atlas of its range."""
+    from types import SimpleNamespace
+
+    from softphantom.estimation.atlas import AtlasPatches
+
+    rng = np.random.default_rng(11)
+    A = rng.normal(size=(4, 4)) * np.array([1e-9, 1e-9, 1e-9, 1e-12])  # m³ per N, m³ per Pa
+    B = rng.normal(size=(fwd.fem.n_dof, 4)) * np.array([1e-4, 1e-4, 1e-4, 1e-7])
+    split = 0.5
+    kink = np.array([0.2, -0.1, 3.0, -2.0]) * 1e-9  # m³/N²: the back pair parts above the split
+
+    def volumes(lam):
+        return A @ lam + kink * max(lam[1] - split, 0.0) ** 2
+
+    class Kinked:  # stands in for the FEM: linear in the loads but for a kink at f_y = split
+        def __init__(self, model, config, **kw):
+            self.probe, self.fem = fwd.probe, fwd.fem
+            self.eq = SimpleNamespace(keep=lambda: None, restore=lambda kept: None)
+
+        def solve(self, lam, start=None, factor_at_solution=False, via_tol=None):
+            lam = np.asarray(lam, float)
+            x = fwd.fem.x_rest + B @ lam
+            return SimpleNamespace(V=volumes(lam), x=x, sub_x=(fwd.probe @ x.reshape(-1, 3)), lam=lam)
+
+    cfg4 = dataclasses.replace(ACFG, n_force=(3, 4, 3))
+    pieces = dataclasses.replace(cfg4, f_y_splits_N=(split,))
+    assert [c.force_max_N[1] for c in pieces.patches()] == [split, ACFG.force_max_N[1]]
+    assert pieces.n_solves == 2 * cfg4.n_solves and "f_y_splits_N" not in cfg4.as_dict()  # old keys kept
+    monkeypatch.setattr("softphantom.estimation.atlas.ForwardModel", Kinked)
+    kw = dict(n_workers=1, processes=False, progress=False, fwd=fwd, log=lambda s: None)
+    one = build_atlas(coarse_model, CFG, cfg4, **kw)
+    at = build_atlas(coarse_model, CFG, pieces, **kw)
+    monkeypatch.undo()
+    assert isinstance(at, AtlasPatches) and len(at.patches) == 2 and at.solves == pieces.n_solves
+    # each piece is the plain atlas of its range: the cache finds it under that atlas's key
+    for piece in at.patches:
+        piece.save(atlas_path(tmp_path, atlas_key(fwd, piece.config)))
+    cached = load_or_build(coarse_model, CFG, pieces, cache_dir=tmp_path, fwd=fwd, log=lambda s: None)
+    assert isinstance(cached, AtlasPatches) and cached.key == at.key
+    lo, hi = ACFG.lower, ACFG.upper
+    loads = lo + (hi - lo) * rng.uniform(0.02, 0.98, (40, 4))
+    err_pieces = max(np.abs(at.volumes(x)[0] - volumes(x)).max() for x in loads)
+    err_one = max(np.abs(one.volumes(x)[0] - volumes(x)).max() for x in loads)
+    scale = np.abs(kink).max() * (hi[1] - split) ** 2
+    assert err_pieces < 1e-9 * scale and err_one > 1e-3 * scale, (err_pieces, err_one, scale)
+    # the face belongs to the piece below; both pieces agree there
+    face = np.array([0.1, split, -0.2, 1e3])
+    assert at.index(split) == 0 and np.allclose(at.patches[1].volumes(face)[0], at.volumes(face)[0], rtol=1e-9)
+    # the estimator: from rest (below), across the face and back
+    est = AtlasEstimator(coarse_model, CFG, at)
+    for lam in ([0.2, 0.1, 0.1, 0.0], [0.2, 1.0, -0.3, 2e3], [-0.3, 0.9, 0.2, 1e3], [0.1, -0.2, 0.0, 0.0]):
+        lam = np.array(lam)
+        e = est.step(meas(volumes(lam), lam[3]))
+        assert e.in_envelope and np.allclose(e.force, lam[:3], atol=1e-6), (lam, e.force)
+    with pytest.raises(UserError, match="f_y_splits_N"):
+        dataclasses.replace(ACFG, f_y_splits_N=(1.2,))

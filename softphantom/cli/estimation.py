@@ -67,6 +67,10 @@ def estimate_cmd(
     atlas_x_axis: str = typer.Option(None, "--atlas-x-axis", help="Atlas: the first axis, force (f_x, the default) "
                                      "| displacement (the contact patch's x-displacement mapped onto the f_x range, "
                                      "f_x an output: for a model whose state nearly jumps in f_x, docs/estimation.md)."),
+    atlas_f_y_split: str = typer.Option(None, "--atlas-f-y-split-N", help="Atlas: build it in pieces along f_y, "
+                                        "split at these forces (N, comma-separated), each piece with the grid of "
+                                        "--atlas-grid: for a model whose map bends sharply at one f_y (the quadratic "
+                                        "model's fold above ≈ 3.5 N, docs/estimation.md)."),
     envelope: str = typer.Option(None, "--envelope", help="Atlas: load envelope FXMIN:FXMAX,FYMIN:FYMAX,FZMIN:FZMAX,"
                                  "PMIN:PMAX in N and kPa (default -1.5:1.5,-1:5.2,-1.5:1.5,-2:40); outside it the estimate "
                                  "is clamped and flagged (in_envelope 0)."),
@@ -89,7 +93,7 @@ def estimate_cmd(
     from softphantom.estimation.select import atlas_config_from_options, check_estimator_kind
 
     check_estimator_kind(estimator)
-    acfg = atlas_config_from_options(atlas_grid, envelope, atlas_x_axis)
+    acfg = atlas_config_from_options(atlas_grid, envelope, atlas_x_axis, atlas_f_y_split)
     if mode not in ("auto", "sync", "async"):
         raise UserError(f"--mode must be auto, sync or async, got {mode!r}")
     if at is not None and at not in ("on-centre", "off-centre"):

@@ -36,7 +36,7 @@ import io
 import json
 import math
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -57,6 +57,7 @@ from softphantom.pose import DegenerateMarkersError, Pose6, rigid_fit
 FORMAT = 4  # bump when the file layout or the build changes its meaning (3: stretched axes; 4: x_control, cFx)
 GN_MAX_ITER = 12
 GN_TOL_N = 1e-7
+FACE_TOL_N = 1e-9  # a Gauss–Newton that ends this close to a piece's shared f_y face goes on in the neighbour
 FALLBACK_MIN_LOAD_STEP = 1.0 / 32
 VIA_TOL = 1e-3  # relative residual of the continuation steps between grid points (they only start the next)
 FIELD_MAX_MODES = 64
@@ -139,6 +140,7 @@ class AtlasConfig:
     linear_pressure: bool = False
     force_cluster_N: tuple[float, float, float] | None = None
     x_control: str = "force"
+    f_y_splits_N: tuple[float, ...] = ()
 
     def __post_init__(self) -> None:
         lo = tuple(float(v) for v in self.force_min_N)
@@ -172,6 +174,12 @@ class AtlasConfig:
             if len(w) != 3 or not all(math.isfinite(v) and v >= 0 for v in w):
                 raise UserError(f"atlas force_cluster_N: 3 widths ≥ 0 N (0: no stretch), got {self.force_cluster_N}")
             object.__setattr__(self, "force_cluster_N", w)
+        splits = tuple(float(v) for v in (self.f_y_splits_N if np.ndim(self.f_y_splits_N) else (self.f_y_splits_N,)))
+        edges = (lo[1], *splits, hi[1])
+        if not all(math.isfinite(v) for v in splits) or any(b <= a for a, b in zip(edges, edges[1:])):
+            raise UserError(f"atlas f_y_splits_N: increasing values strictly inside the f_y range {lo[1]}..{hi[1]} N, "
+                            f"got {self.f_y_splits_N}")
+        object.__setattr__(self, "f_y_splits_N", splits)
 
     @property
     def cluster_N(self) -> tuple[float, float, float]:
@@ -187,7 +195,27 @@ class AtlasConfig:
         so a file's polynomial never meets another default's stretch."""
         d = asdict(self)
         d["force_cluster_N"] = self.cluster_N
+        if not self.f_y_splits_N:
+            del d["f_y_splits_N"]  # an atlas of one piece keeps the key it had before the field
         return d
+
+    def patches(self) -> tuple["AtlasConfig", ...]:
+        """The configurations of the pieces along f_y (``f_y_splits_N``): each an ordinary atlas
+        over its f_y range with this grid; ``(self,)`` without splits.
+
+        >>> [c.force_max_N[1] for c in AtlasConfig(f_y_splits_N=(3.3,)).patches()]
+        [3.3, 5.2]
+        >>> AtlasConfig(f_y_splits_N=(6.0,))
+        Traceback (most recent call last):
+        ...
+        softphantom.errors.UserError: atlas f_y_splits_N: increasing values strictly inside the f_y range -1.0..5.2 N, got (6.0,)
+        """
+        if not self.f_y_splits_N:
+            return (self,)
+        edges = (self.force_min_N[1], *self.f_y_splits_N, self.force_max_N[1])
+        lo, hi = self.force_min_N, self.force_max_N
+        return tuple(replace(self, force_min_N=(lo[0], a, lo[2]), force_max_N=(hi[0], b, hi[2]), f_y_splits_N=())
+                     for a, b in zip(edges, edges[1:]))
 
     @property
     def lower(self) -> np.ndarray:
@@ -209,7 +237,7 @@ class AtlasConfig:
     @property
     def n_solves(self) -> int:
         """Forward solves of the build (one pressure plane with ``linear_pressure``)."""
-        return math.prod(self.n_force) * (1 if self.linear_pressure else int(self.n_pressure))
+        return math.prod(self.n_force) * (1 if self.linear_pressure else int(self.n_pressure)) * (len(self.f_y_splits_N) + 1)
 
     def axes(self) -> list[np.ndarray]:
         """The grid's load values per axis (N, N, N, Pa), from the lower bound up."""
@@ -680,6 +708,8 @@ class Atlas:
     q_nodes: np.ndarray | None = None
 
     def __post_init__(self) -> None:
+        if self.config.f_y_splits_N:
+            raise ValueError("an Atlas is one piece; a config with f_y_splits_N makes AtlasPatches")
         if self.cFx is None:
             if self.config.x_control != "force":
                 raise ValueError("a displacement-controlled atlas needs its f_x coefficients cFx")
@@ -846,6 +876,11 @@ class Atlas:
     def nbytes(self) -> int:
         return int(sum(a.nbytes for a in (self.cV, self.cP, self.cF, self.cFx, self.modes, self.x_rest)))
 
+    @property
+    def field_modes(self) -> int:
+        """Modes of the POD field basis."""
+        return int(self.modes.shape[1])
+
     # -- files ------------------------------------------------------------------------------------
     _ARRAYS = ("cV", "cP", "cF", "cFx", "q_nodes", "modes", "x_rest", "solved")
 
@@ -892,13 +927,105 @@ class Atlas:
         return at
 
 
+@dataclass(frozen=True)
+class AtlasPatches:
+    """An atlas piecewise along f_y (``AtlasConfig.f_y_splits_N``): ordinary :class:`Atlas` pieces
+    over adjacent f_y ranges, each its own tensor polynomial, cached and built as any atlas.
+
+    Why: one polynomial in f_y carries a sharp feature at one end of the range (the quadratic
+    model's fold above ≈ 3.5 N, where the arm pair buckles) down to loads where the map is smooth
+    and nearly symmetric, and there the yaw reads the back pair's volume difference at ≈ 1° per mm³
+    (docs/estimation.md, Known limits). Neighbouring pieces share their f_y face, each solved by
+    its own build, so the map is continuous there to the builds' tolerance. Evaluation picks the
+    piece by f_y (a face belongs to the piece below it); :class:`AtlasEstimator` runs its
+    Gauss–Newton in one piece and moves to the neighbour when it stops on the shared face.
+    """
+
+    config: AtlasConfig
+    patches: tuple[Atlas, ...]
+
+    def __post_init__(self) -> None:
+        want = self.config.patches()
+        if len(want) < 2 or len(self.patches) != len(want) or any(
+                a.config.as_dict() != c.as_dict() for a, c in zip(self.patches, want)):
+            raise ValueError("AtlasPatches: one piece per f_y range of the config, in order")
+        object.__setattr__(self, "_splits", list(self.config.f_y_splits_N))
+
+    def index(self, f_y: float) -> int:
+        """The piece holding ``f_y`` (N); beyond the ends, the end piece."""
+        return bisect.bisect_left(self._splits, float(f_y))
+
+    def piece(self, lam) -> Atlas:
+        return self.patches[self.index(lam[1])]
+
+    @property
+    def key(self) -> tuple[str, ...]:
+        return tuple(a.key for a in self.patches)
+
+    @property
+    def displacement_x(self) -> bool:
+        return self.config.x_control == "displacement"
+
+    @property
+    def unsolved(self) -> int:
+        return sum(a.unsolved for a in self.patches)
+
+    @property
+    def solves(self) -> int:
+        return sum(a.solves for a in self.patches)
+
+    @property
+    def build_s(self) -> float:
+        return sum(a.build_s for a in self.patches)
+
+    @property
+    def build_cpu_s(self) -> float:
+        return sum(a.build_cpu_s for a in self.patches)
+
+    @property
+    def nbytes(self) -> int:
+        return sum(a.nbytes for a in self.patches)
+
+    @property
+    def field_rms_m(self) -> float:
+        return max(a.field_rms_m for a in self.patches)
+
+    @property
+    def field_modes(self) -> int:
+        return max(a.modes.shape[1] for a in self.patches)
+
+    def solved_at(self, lam) -> bool:
+        return self.piece(lam).solved_at(lam)
+
+    def volumes(self, lam):
+        return self.piece(lam).volumes(lam)
+
+    def volumes_reference(self, lam):
+        return self.piece(lam).volumes_reference(lam)
+
+    def points(self, lam) -> np.ndarray:
+        return self.piece(lam).points(lam)
+
+    def nodes(self, lam) -> np.ndarray:
+        return self.piece(lam).nodes(lam)
+
+    def forces(self, lam) -> np.ndarray:
+        return self.piece(lam).forces(lam)
+
+    def by_force(self, lam, J: np.ndarray) -> np.ndarray:
+        return self.piece(lam).by_force(lam, J)
+
+    def coords(self, force, p_Pa: float, tol_N: float = 1e-10) -> np.ndarray:
+        return self.patches[self.index(np.asarray(force, float)[1])].coords(force, p_Pa, tol_N)
+
+
 class AtlasCorrupt(UserError):
     """An atlas file that cannot be used (unreadable, or content not matching its digest)."""
 
 
 def build_atlas(model, config: EstimatorConfig | None = None, atlas: AtlasConfig | None = None, *,
                 scheduler: str | None = None, n_workers: int | None = None, progress: bool = True,
-                fwd: ForwardModel | None = None, processes: bool = True, log=print) -> Atlas:
+                fwd: ForwardModel | None = None, processes: bool = True, log=print) -> Atlas | AtlasPatches:
     """Build the atlas of ``model`` (forward solves in parallel, a Dask local cluster by default or
     the one at ``scheduler``; ``processes=False``: worker threads, for small models and tests).
 
@@ -914,8 +1041,12 @@ def build_atlas(model, config: EstimatorConfig | None = None, atlas: AtlasConfig
 
     cfg = config or EstimatorConfig()
     acfg = atlas or AtlasConfig()
-    t0 = time.perf_counter()
     fwd = fwd or ForwardModel(model, cfg)
+    if acfg.f_y_splits_N:  # one build per piece along f_y
+        return AtlasPatches(acfg, tuple(
+            build_atlas(model, cfg, sub, scheduler=scheduler, n_workers=n_workers, progress=progress, fwd=fwd,
+                        processes=processes, log=log) for sub in acfg.patches()))
+    t0 = time.perf_counter()
     key = atlas_key(fwd, acfg)
     n1, n2, n3, n4 = acfg.shape
     ndof = fwd.fem.n_dof
@@ -1029,12 +1160,17 @@ def _solves(at: Atlas) -> str:
 
 def load_or_build(model, config: EstimatorConfig | None = None, atlas: AtlasConfig | None = None, *,
                   cache_dir=None, scheduler: str | None = None, n_workers: int | None = None,
-                  progress: bool = True, log=print, fwd: ForwardModel | None = None) -> Atlas:
+                  progress: bool = True, log=print, fwd: ForwardModel | None = None) -> Atlas | AtlasPatches:
     """The atlas of ``model`` from ``cache_dir`` (a model directory) if present and valid, else built
-    and saved there. A corrupt file is reported in one line and rebuilt."""
+    and saved there. A corrupt file is reported in one line and rebuilt. With
+    ``AtlasConfig.f_y_splits_N`` each piece is loaded or built (and cached) on its own."""
     cfg = config or EstimatorConfig()
     acfg = atlas or AtlasConfig()
     fwd = fwd or ForwardModel(model, cfg)
+    if acfg.f_y_splits_N:
+        return AtlasPatches(acfg, tuple(
+            load_or_build(model, cfg, sub, cache_dir=cache_dir, scheduler=scheduler, n_workers=n_workers,
+                          progress=progress, log=log, fwd=fwd) for sub in acfg.patches()))
     key = atlas_key(fwd, acfg)
     path = atlas_path(cache_dir, key) if cache_dir is not None else None
     if path is not None and path.is_file():
@@ -1067,19 +1203,22 @@ class AtlasEstimator(EstimatorState):
 
     kind = "atlas"
 
-    def __init__(self, model, config: EstimatorConfig | None = None, atlas: Atlas | AtlasConfig | None = None,
+    def __init__(self, model, config: EstimatorConfig | None = None,
+                 atlas: Atlas | AtlasPatches | AtlasConfig | None = None,
                  *, cache_dir=None, scheduler: str | None = None, n_workers: int | None = None,
                  progress: bool = True, log=print) -> None:
         self.config = cfg = config or EstimatorConfig()
         self.model = model
         fwd = ForwardModel(model, cfg)
         self.forward = fwd
-        if not isinstance(atlas, Atlas):
+        if not isinstance(atlas, (Atlas, AtlasPatches)):
             atlas = load_or_build(model, cfg, atlas, cache_dir=cache_dir, scheduler=scheduler,
                                   n_workers=n_workers, progress=progress, log=log, fwd=fwd)
-        elif atlas.key != atlas_key(fwd, atlas.config):
+        pieces = atlas.patches if isinstance(atlas, AtlasPatches) else (atlas,)
+        if any(a.key != atlas_key(fwd, a.config) for a in pieces):
             raise UserError("atlas built for another model, law, contact or envelope; rebuild it")
         self.atlas = atlas
+        self._pieces = pieces
         self.marker_names, self.target_names = fwd.marker_names, fwd.target_names
         nm = fwd.n_markers
         self.rest_markers = fwd.rest.sub_x[:nm].copy()
@@ -1096,6 +1235,12 @@ class AtlasEstimator(EstimatorState):
         self._env_hi = np.where(ehi[:3] < uhi, self._hi, np.inf)
         self._faces = list(zip(self._env_lo.tolist(), self._env_hi.tolist()))
         self._p_range = (float(elo[3]), float(ehi[3]))
+        # each piece's force bounds: the estimator's, f_y cut to the piece's range
+        self._piece_bounds = []
+        for a in pieces:
+            lo, hi = self._lo.copy(), self._hi.copy()
+            lo[1], hi[1] = max(lo[1], a.config.force_min_N[1]), min(hi[1], a.config.force_max_N[1])
+            self._piece_bounds.append((lo, hi))
         try:  # the rest markers centred once for the per-sample fit (rigid_fit checks they span a plane)
             rigid_fit(self.rest_markers, self.rest_markers)
             self._cp = self.rest_markers.mean(axis=0)
@@ -1156,22 +1301,46 @@ class AtlasEstimator(EstimatorState):
         QP's minimizer is a 3 × 3 solve inside the kernel; an iteration whose step meets a bound is
         solved by the configured QP solver (``EstimatorConfig.qp_solver``).
         :meth:`invert_reference` is the same iteration in numpy, every step by the QP solver."""
-        at = self.atlas
         lam, inside = self._start(p_Pa, start)
         dV = np.asarray(dV, float)
+        k = self._piece_index(lam[1])
+        best, seen = None, set()
+        while k not in seen:  # one piece, then its neighbour while the fit stops on their shared face
+            seen.add(k)
+            res = self._invert_piece(k, lam.copy(), dV)
+            if best is not None and res[2] >= best[2]:
+                break
+            best = res
+            lam = res[0]
+            lo, hi = self._piece_bounds[k]
+            if k > 0 and lam[1] <= lo[1] + FACE_TOL_N:
+                k -= 1
+            elif k < len(self._pieces) - 1 and lam[1] >= hi[1] - FACE_TOL_N:
+                k += 1
+        lam, code, _, V, J, it = best
+        status = "gn:max_iter" if code == ak.MAX_ITER else "optimal"
+        return lam, status, self._inside(lam, inside), V, J, it
+
+    def _piece_index(self, f_y: float) -> int:
+        return self.atlas.index(f_y) if len(self._pieces) > 1 else 0
+
+    def _invert_piece(self, k: int, lam: np.ndarray, dV: np.ndarray):
+        """Gauss–Newton on piece ``k`` from ``lam`` (f_y clamped into it): (λ, code, misfit m⁶, V, J, iterations)."""
+        at = self._pieces[k]
+        lo, hi = self._piece_bounds[k]
+        lam[1] = min(max(lam[1], lo[1]), hi[1])
         V, J = np.empty(4), np.empty((4, 4))
         n3 = at._kcV.shape[0] // at.config.shape[3]
         poly = (np.empty((n3, 4)), np.empty((n3, 4)), at._shape, at._lo, at._hi, at._wd, lam, V, J)
-        code, it, cost = ak.gn_run(at._kcV, *poly, 0.0, dV, self._lo, self._hi, GN_TOL_N, 0, GN_MAX_ITER)
+        code, it, cost = ak.gn_run(at._kcV, *poly, 0.0, dV, lo, hi, GN_TOL_N, 0, GN_MAX_ITER)
         while code == ak.NEED_QP:  # a force bound is in the way of this iteration's step: the QP's
-            qp = solve_volume_qp(J, V - dV, 0.0, self._lo - lam[:3], self._hi - lam[:3], self.config.qp_solver)
+            qp = solve_volume_qp(J, V - dV, 0.0, lo - lam[:3], hi - lam[:3], self.config.qp_solver)
             if qp.status != "optimal":
                 raise SolverError(f"QP {qp.status}")
-            code, cost = ak.gn_update(*poly, cost, dV, qp.dlam[:3].copy(), self._lo, self._hi, GN_TOL_N)
+            code, cost = ak.gn_update(*poly, cost, dV, qp.dlam[:3].copy(), lo, hi, GN_TOL_N)
             if code == ak.CONTINUE:
-                code, it, cost = ak.gn_run(at._kcV, *poly, cost, dV, self._lo, self._hi, GN_TOL_N, it, GN_MAX_ITER)
-        status = "gn:max_iter" if code == ak.MAX_ITER else "optimal"
-        return lam, status, self._inside(lam, inside), V, J, it
+                code, it, cost = ak.gn_run(at._kcV, *poly, cost, dV, lo, hi, GN_TOL_N, it, GN_MAX_ITER)
+        return lam, code, cost, V, J, it
 
     def invert_reference(self, dV, p_Pa: float, start=None):
         """:meth:`invert` as it was before the kernels (numpy evaluation, every Gauss–Newton step
@@ -1209,7 +1378,7 @@ class AtlasEstimator(EstimatorState):
     def _pose(self, lam: np.ndarray):
         """(Pose6, target shifts) at ``lam``: the tracked points by the kernel, the markers' rigid
         fit by :func:`~softphantom.estimation.atlas_kernels.rigid_fit_pose`."""
-        at = self.atlas
+        at = self._pieces[self._piece_index(lam[1])]
         if self._P0 is None:  # rest markers that rigid_fit refuses: let it raise its error, as before
             return pose_and_shifts(self.rest_markers, self.rest_targets, self.target_names, at.points(lam))
         pts, t, ypr = np.empty(at._kcP.shape[1]), np.empty(3), np.empty(3)
@@ -1237,7 +1406,7 @@ class AtlasEstimator(EstimatorState):
             lam, status, inside, V, J, it = inv(m.dV, float(m.p_urethra))
         except SolverError as exc:
             return repeat_last(self._last, m, f"failed:{exc}", t0, skipped)
-        at = self.atlas
+        at = self._pieces[self._piece_index(lam[1])]
         # the force and the sensitivity to the loads, whatever the atlas's first axis
         if reference:
             force, J = at.forces(lam), at.by_force(lam, J)

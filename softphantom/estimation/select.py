@@ -41,11 +41,13 @@ def open_estimator(kind: str, model, config: EstimatorConfig | None = None, *, c
                           progress=progress, log=log)
 
 
-def atlas_config_from_options(grid: str | None = None, envelope: str | None = None, x_axis: str | None = None):
+def atlas_config_from_options(grid: str | None = None, envelope: str | None = None, x_axis: str | None = None,
+                              f_y_splits: str | None = None):
     """An :class:`~softphantom.estimation.atlas.AtlasConfig` from ``--atlas-grid NX,NY,NZ,NP``
-    (points per axis), ``--envelope FXMIN:FXMAX,FYMIN:FYMAX,FZMIN:FZMAX,PMIN:PMAX`` (N, kPa) and
-    ``--atlas-x-axis force|displacement`` (``AtlasConfig.x_control``); None for what is not given
-    (the defaults).
+    (points per axis), ``--envelope FXMIN:FXMAX,FYMIN:FYMAX,FZMIN:FZMAX,PMIN:PMAX`` (N, kPa),
+    ``--atlas-x-axis force|displacement`` (``AtlasConfig.x_control``) and ``--atlas-f-y-split-N
+    F[,F...]`` (``AtlasConfig.f_y_splits_N``: the atlas in pieces along f_y, each with this grid);
+    None for what is not given (the defaults).
 
     >>> c = atlas_config_from_options("3,4,3,2", "-1:1,-1:2,-1:1,0:10")
     >>> c.shape, c.force_max_N, c.p_max_kPa
@@ -56,6 +58,12 @@ def atlas_config_from_options(grid: str | None = None, envelope: str | None = No
     Traceback (most recent call last):
     ...
     softphantom.errors.UserError: --atlas-x-axis: force or displacement, got 'ux'
+    >>> atlas_config_from_options(f_y_splits="3.3").f_y_splits_N
+    (3.3,)
+    >>> atlas_config_from_options(f_y_splits="3.3 N")
+    Traceback (most recent call last):
+    ...
+    softphantom.errors.UserError: --atlas-f-y-split-N: comma-separated forces in N, got '3.3 N'
     >>> atlas_config_from_options("3,4")
     Traceback (most recent call last):
     ...
@@ -85,4 +93,9 @@ def atlas_config_from_options(grid: str | None = None, envelope: str | None = No
         if x_axis not in ("force", "displacement"):
             raise UserError(f"--atlas-x-axis: force or displacement, got {x_axis!r}")
         kw["x_control"] = x_axis
+    if f_y_splits is not None:
+        try:
+            kw["f_y_splits_N"] = tuple(float(v) for v in f_y_splits.split(",") if v.strip())
+        except ValueError:
+            raise UserError(f"--atlas-f-y-split-N: comma-separated forces in N, got {f_y_splits!r}") from None
     return AtlasConfig(**kw)
