@@ -13,18 +13,13 @@ from __future__ import annotations
 import argparse
 
 import numpy as np
+from scipy.interpolate import BarycentricInterpolator
 
 from softphantom.design import load_model
 from softphantom.estimation import EstimatorConfig
 from softphantom.estimation.atlas import X_CONTROLS, load_or_build
 from softphantom.estimation.forward import ForwardModel
 from softphantom.estimation.select import atlas_config_from_options
-
-
-def lagrange(x: float, nodes: np.ndarray, values: np.ndarray) -> np.ndarray:
-    """The polynomial through (nodes, values) at x (values (n, k))."""
-    w = [np.prod([(x - xj) / (xi - xj) for xj in nodes if xj != xi]) for xi in nodes]
-    return np.tensordot(np.array(w), values, axes=1)
 
 
 def main() -> None:
@@ -49,7 +44,8 @@ def main() -> None:
     for fy in (float(v) for v in a.f_y_N.split(",")):
         c = atlas.coords(np.array([0.0, fy, 0.0]), 0.0)
         glob = atlas.volumes(c)[0]
-        loc = lagrange(fy, below, np.array([atlas.volumes(np.array([c[0], y, c[2], c[3]]))[0] for y in below]))
+        vals = np.array([atlas.volumes(np.array([c[0], y, c[2], c[3]]))[0] for y in below])
+        loc = BarycentricInterpolator(below, vals)(fy)  # the polynomial through the nodes below the split
         truth = fwd.solve([0.0, fy, 0.0, 0.0]).V
         back = lambda v: (v[2] - v[3]) * 1e9  # noqa: E731  back_xpos − back_xneg, mm³
         print(f"f_y {fy:g} N: volumes max error global {np.abs(glob - truth).max() * 1e9:.3f} mm³, "

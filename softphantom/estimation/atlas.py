@@ -964,7 +964,7 @@ class AtlasPatches:
 
     @property
     def displacement_x(self) -> bool:
-        return self.config.x_control == "displacement"
+        return self.patches[0].displacement_x
 
     @property
     def unsolved(self) -> int:
@@ -992,7 +992,7 @@ class AtlasPatches:
 
     @property
     def field_modes(self) -> int:
-        return max(a.modes.shape[1] for a in self.patches)
+        return max(a.field_modes for a in self.patches)
 
     def solved_at(self, lam) -> bool:
         return self.piece(lam).solved_at(lam)
