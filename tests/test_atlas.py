@@ -403,3 +403,31 @@ def test_an_atlas_in_pieces_along_f_y_follows_a_kink_one_polynomial_cannot(coars
         assert e.in_envelope and np.allclose(e.force, lam[:3], atol=1e-6), (lam, e.force)
     with pytest.raises(UserError, match="f_y_splits_N"):
         dataclasses.replace(ACFG, f_y_splits_N=(1.2,))
+
+
+@pytest.mark.parametrize("order", [1, 2])
+def test_the_default_atlas_follows_the_elements_order(order, monkeypatch):
+    """With no atlas asked for, ``load_or_build`` builds :func:`default_atlas_config` of the forward
+    model's element order: on the quadratic model the displacement axis in pieces along f_y, the
+    first piece built first (below the lowest split)."""
+    from types import SimpleNamespace
+
+    from softphantom.estimation import atlas as atlas_mod
+
+    class Built(Exception):
+        pass
+
+    def build(model, cfg, acfg, **kw):
+        raise Built(acfg)
+
+    monkeypatch.setattr(atlas_mod, "atlas_key", lambda fwd, acfg: "key")
+    monkeypatch.setattr(atlas_mod, "build_atlas", build)
+    fwd = SimpleNamespace(fem=SimpleNamespace(order=order))
+    with pytest.raises(Built) as got:
+        load_or_build(None, CFG, None, fwd=fwd, log=lambda s: None)
+    acfg = got.value.args[0]
+    if order == 1:
+        assert acfg == atlas_mod.AtlasConfig()
+    else:
+        assert (acfg.x_control, acfg.shape, acfg.f_y_splits_N) == ("displacement", (11, 6, 4, 3), ())
+        assert (acfg.force_min_N[1], acfg.force_max_N[1]) == (-1.0, atlas_mod.P2_F_Y_SPLITS_N[0])

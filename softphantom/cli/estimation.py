@@ -63,14 +63,17 @@ def estimate_cmd(
     scheduler: str = typer.Option(None, "--scheduler", help="Atlas build: Dask scheduler address (default: a local "
                                   "cluster on all cores)."),
     atlas_grid: str = typer.Option(None, "--atlas-grid", help="Atlas: Chebyshev points per axis NX,NY,NZ,NP "
-                                   "(default 11,9,4,3; f_x stretched about 0 N, AtlasConfig.cluster_N)."),
-    atlas_x_axis: str = typer.Option(None, "--atlas-x-axis", help="Atlas: the first axis, force (f_x, the default) "
-                                     "| displacement (the contact patch's x-displacement mapped onto the f_x range, "
-                                     "f_x an output: for a model whose state nearly jumps in f_x, docs/estimation.md)."),
+                                   "(default 11,9,4,3, f_x stretched about 0 N, AtlasConfig.cluster_N; on a "
+                                   "quadratic model 11,6,4,3 per piece, default_atlas_config)."),
+    atlas_x_axis: str = typer.Option(None, "--atlas-x-axis", help="Atlas: the first axis, force (f_x; the default "
+                                     "on a linear model) | displacement (the contact patch's x-displacement mapped onto "
+                                     "the f_x range, f_x an output: for a model whose state nearly jumps in f_x, "
+                                     "docs/estimation.md; the default on a quadratic model)."),
     atlas_f_y_split: str = typer.Option(None, "--atlas-f-y-split-N", help="Atlas: build it in pieces along f_y, "
                                         "split at these forces (N, comma-separated), each piece with the grid of "
                                         "--atlas-grid: for a model whose map bends sharply at one f_y (the quadratic "
-                                        "model's fold above ≈ 3.5 N, docs/estimation.md)."),
+                                        "model's fold above ≈ 4.3 N, docs/estimation.md; its default 3.3,4.3; "
+                                        "'' for one piece)."),
     envelope: str = typer.Option(None, "--envelope", help="Atlas: load envelope FXMIN:FXMAX,FYMIN:FYMAX,FZMIN:FZMAX,"
                                  "PMIN:PMAX in N and kPa (default -1.5:1.5,-1:5.2,-1.5:1.5,-2:40); outside it the estimate "
                                  "is clamped and flagged (in_envelope 0)."),
@@ -90,10 +93,11 @@ def estimate_cmd(
 
     from softphantom.design import load_model
     from softphantom.estimation import EstimatorConfig, estimate_stream, open_estimator
+    from softphantom.estimation.atlas import default_atlas_config
     from softphantom.estimation.select import atlas_config_from_options, check_estimator_kind
 
     check_estimator_kind(estimator)
-    acfg = atlas_config_from_options(atlas_grid, envelope, atlas_x_axis, atlas_f_y_split)
+    atlas_config_from_options(atlas_grid, envelope, atlas_x_axis, atlas_f_y_split)  # bad options fail first
     if mode not in ("auto", "sync", "async"):
         raise UserError(f"--mode must be auto, sync or async, got {mode!r}")
     if at is not None and at not in ("on-centre", "off-centre"):
@@ -106,6 +110,8 @@ def estimate_cmd(
     if not (model_dir / "model.npz").is_file():
         raise UserError(f"--model {model_dir}: not a model directory (no model.npz; run softphantom design)")
     model = load_model(model_dir)
+    acfg = atlas_config_from_options(atlas_grid, envelope, atlas_x_axis, atlas_f_y_split,
+                                     base=default_atlas_config(model.element_order))
     opened = open_sensor_source(source, model, tare_s=tare_s, on_new_board=on_new_board,
                                 tube_length_m=tube_length_m, tube_id_mm=tube_id_mm, p0_kPa=p0_kPa)
     src, live = opened.source, opened.live

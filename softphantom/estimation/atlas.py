@@ -244,6 +244,29 @@ class AtlasConfig:
         return [cheb_points(n, lo, hi, w) for n, lo, hi, w in zip(self.shape, self.lower, self.upper, self.stretch)]
 
 
+# The quadratic (10-node) BIP model's atlas: its back arm pair snaps through above f_y ≈ 4.3 N (a fold
+# in f_x, followed by the displacement axis) and one f_y polynomial over -1..5.2 N rings below it;
+# pieces split at these forces keep each f_y polynomial smooth (measured: docs/estimation.md, session 13).
+P2_F_Y_SPLITS_N = (3.3, 4.3)
+P2_N_FORCE = (11, 6, 4)
+
+
+def default_atlas_config(order: int = 1) -> AtlasConfig:
+    """The atlas a model of element ``order`` gets when none is asked for: the linear model's
+    :class:`AtlasConfig` defaults; for the quadratic model the displacement axis, in pieces along
+    f_y (:data:`P2_F_Y_SPLITS_N`), each :data:`P2_N_FORCE` × 3 points.
+
+    >>> default_atlas_config(1) == AtlasConfig()
+    True
+    >>> c = default_atlas_config(2)
+    >>> c.x_control, c.f_y_splits_N, c.shape
+    ('displacement', (3.3, 4.3), (11, 6, 4, 3))
+    """
+    if int(order) == 2:
+        return AtlasConfig(n_force=P2_N_FORCE, x_control="displacement", f_y_splits_N=P2_F_Y_SPLITS_N)
+    return AtlasConfig()
+
+
 def cheb_points(n: int, lo: float, hi: float, w: float = 0.0) -> np.ndarray:
     """``n`` Chebyshev–Lobatto points on [lo, hi], ascending; with a stretch width ``w`` > 0 the
     points are Chebyshev–Lobatto in asinh(x / w), so they cluster about x = 0 (:func:`axis_t`).
@@ -1028,6 +1051,7 @@ def build_atlas(model, config: EstimatorConfig | None = None, atlas: AtlasConfig
                 fwd: ForwardModel | None = None, processes: bool = True, log=print) -> Atlas | AtlasPatches:
     """Build the atlas of ``model`` (forward solves in parallel, a Dask local cluster by default or
     the one at ``scheduler``; ``processes=False``: worker threads, for small models and tests).
+    ``atlas`` None: :func:`default_atlas_config` of the model's element order.
 
     A corner of the envelope box may be physically unreachable for the model (e.g. a large push
     with sideways force inverts an element under a point contact). Such grid points are recorded,
@@ -1040,8 +1064,8 @@ def build_atlas(model, config: EstimatorConfig | None = None, atlas: AtlasConfig
     from softphantom.parallel import dask_client, map_tasks
 
     cfg = config or EstimatorConfig()
-    acfg = atlas or AtlasConfig()
     fwd = fwd or ForwardModel(model, cfg)
+    acfg = atlas or default_atlas_config(fwd.fem.order)
     if acfg.f_y_splits_N:  # one build per piece along f_y
         return AtlasPatches(acfg, tuple(
             build_atlas(model, cfg, sub, scheduler=scheduler, n_workers=n_workers, progress=progress, fwd=fwd,
@@ -1163,10 +1187,11 @@ def load_or_build(model, config: EstimatorConfig | None = None, atlas: AtlasConf
                   progress: bool = True, log=print, fwd: ForwardModel | None = None) -> Atlas | AtlasPatches:
     """The atlas of ``model`` from ``cache_dir`` (a model directory) if present and valid, else built
     and saved there. A corrupt file is reported in one line and rebuilt. With
-    ``AtlasConfig.f_y_splits_N`` each piece is loaded or built (and cached) on its own."""
+    ``AtlasConfig.f_y_splits_N`` each piece is loaded or built (and cached) on its own. ``atlas``
+    None: :func:`default_atlas_config` of the model's element order."""
     cfg = config or EstimatorConfig()
-    acfg = atlas or AtlasConfig()
     fwd = fwd or ForwardModel(model, cfg)
+    acfg = atlas or default_atlas_config(fwd.fem.order)
     if acfg.f_y_splits_N:
         return AtlasPatches(acfg, tuple(
             load_or_build(model, cfg, sub, cache_dir=cache_dir, scheduler=scheduler, n_workers=n_workers,

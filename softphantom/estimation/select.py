@@ -42,12 +42,13 @@ def open_estimator(kind: str, model, config: EstimatorConfig | None = None, *, c
 
 
 def atlas_config_from_options(grid: str | None = None, envelope: str | None = None, x_axis: str | None = None,
-                              f_y_splits: str | None = None):
+                              f_y_splits: str | None = None, base=None):
     """An :class:`~softphantom.estimation.atlas.AtlasConfig` from ``--atlas-grid NX,NY,NZ,NP``
     (points per axis), ``--envelope FXMIN:FXMAX,FYMIN:FYMAX,FZMIN:FZMAX,PMIN:PMAX`` (N, kPa),
     ``--atlas-x-axis force|displacement`` (``AtlasConfig.x_control``) and ``--atlas-f-y-split-N
-    F[,F...]`` (``AtlasConfig.f_y_splits_N``: the atlas in pieces along f_y, each with this grid);
-    None for what is not given (the defaults).
+    F[,F...]`` (``AtlasConfig.f_y_splits_N``: the atlas in pieces along f_y, each with this grid;
+    an empty string: one piece). What is not given comes from ``base`` (default: ``AtlasConfig()``;
+    for a model, :func:`~softphantom.estimation.atlas.default_atlas_config` of its element order).
 
     >>> c = atlas_config_from_options("3,4,3,2", "-1:1,-1:2,-1:1,0:10")
     >>> c.shape, c.force_max_N, c.p_max_kPa
@@ -64,11 +65,21 @@ def atlas_config_from_options(grid: str | None = None, envelope: str | None = No
     Traceback (most recent call last):
     ...
     softphantom.errors.UserError: --atlas-f-y-split-N: comma-separated forces in N, got '3.3 N'
+    >>> from softphantom.estimation.atlas import default_atlas_config
+    >>> c = atlas_config_from_options("11,9,4,3", base=default_atlas_config(2))
+    >>> c.shape, c.x_control, c.f_y_splits_N
+    ((11, 9, 4, 3), 'displacement', (3.3, 4.3))
+    >>> atlas_config_from_options(f_y_splits="", base=default_atlas_config(2)).f_y_splits_N
+    ()
+    >>> atlas_config_from_options(envelope="-1:1,-1:4,-1:1,0:10", base=default_atlas_config(2)).f_y_splits_N
+    (3.3,)
     >>> atlas_config_from_options("3,4")
     Traceback (most recent call last):
     ...
     softphantom.errors.UserError: --atlas-grid: expected 4 integers NX,NY,NZ,NP, got '3,4'
     """
+    from dataclasses import replace
+
     from softphantom.estimation.atlas import AtlasConfig
 
     kw: dict = {}
@@ -98,4 +109,8 @@ def atlas_config_from_options(grid: str | None = None, envelope: str | None = No
             kw["f_y_splits_N"] = tuple(float(v) for v in f_y_splits.split(",") if v.strip())
         except ValueError:
             raise UserError(f"--atlas-f-y-split-N: comma-separated forces in N, got {f_y_splits!r}") from None
-    return AtlasConfig(**kw)
+    if base is None:
+        return AtlasConfig(**kw)
+    if "force_min_N" in kw and "f_y_splits_N" not in kw:  # the base's splits that fall in the new f_y range
+        kw["f_y_splits_N"] = tuple(v for v in base.f_y_splits_N if kw["force_min_N"][1] < v < kw["force_max_N"][1])
+    return replace(base, **kw)
