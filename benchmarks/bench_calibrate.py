@@ -27,6 +27,9 @@ carry the true tube, its factor fixed), ``gains-measured`` (also each transducer
 ``--nominal-law yeoh`` the calibration fits each group's shape too (the truth's in the table).
 ``--fit-law yeoh`` calibrates the nominal under the Yeoh law (``calibrate --law``: the design's
 small-strain E, ν, C20 = C30 = 0, the shape fitted) while the nominal checks keep the design's.
+``--held-out-s 60`` holds out a generated session of repeated needle insertions instead of the
+12 s one; with ``--held-out-from fit_<run>.npz`` only the held-out check runs, with that earlier
+fit's parameters (``softphantom.calibration.check_held_out``).
 """
 
 from __future__ import annotations
@@ -147,8 +150,31 @@ def long_scenario(out: Path, point: str, duration_s: float, seed: int) -> Path:
     return path
 
 
+def long_needle_scenario(out: Path, duration_s: float, seed: int) -> Path:
+    """A held-out session of ``duration_s`` like the repository's needle insertion, repeated:
+    rest 1.5 s, then an insertion every 7 s on-centre (3 s rise, 1.5 s hold, 2 s retraction) to a
+    force drawn with ``seed`` about the needle's (0.15, 2.5, −0.2) N: f_x −0.35…0.65, f_y 1.5…3,
+    f_z −0.55…0.15 N. More keyframes than the 12 s scenario's 7, for a narrower held-out interval."""
+    import numpy as np
+
+    rng = np.random.default_rng(seed)
+    lines = [f'name = "needle-{duration_s:g}s"', 'description = "repeated needle insertions (bench_calibrate, held out)"',
+             f"duration_s = {duration_s}", "rest_s = 1.5", "patch_radius_mm = 4.0"]
+    t = 2.0
+    while t + 6.5 <= duration_s - 0.5:
+        f = [0.15 + rng.uniform(-0.5, 0.5), rng.uniform(1.5, 3.0), -0.2 + rng.uniform(-0.35, 0.35)]
+        lines += ["", "[[push]]", 'point = "on-centre"', f"start_s = {t:.2f}", "rise_s = 3.0", "hold_s = 1.5",
+                  "fall_s = 2.0", "force_N = [" + ", ".join(f"{v:.3f}" for v in f) + "]"]
+        t += 7.0
+    path = out / f"needle-{duration_s:g}s.toml"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
 def sessions(model_dir: Path, out: Path, law: str, truth_scale: float, truth_order: int = 1,
-             recording_s: float = 0.0, truth_shape: tuple[float, float] | None = None) -> dict[str, Path]:
+             recording_s: float = 0.0, truth_shape: tuple[float, float] | None = None,
+             held_out_s: float = 0.0) -> dict[str, Path]:
     from softphantom.virtual.board import BoardConfig
     from softphantom.virtual.run import VirtualConfig, simulate, write_run
     from softphantom.virtual.tracker import TrackerConfig
@@ -163,8 +189,11 @@ def sessions(model_dir: Path, out: Path, law: str, truth_scale: float, truth_ord
     if recording_s:  # the fitting sessions: two recordings of recording_s / 2 each
         files["push-on-centre"] = long_scenario(out / "scenarios", "on-centre", recording_s / 2, 21)
         files["push-off-centre"] = long_scenario(out / "scenarios", "off-centre", recording_s / 2, 22)
+    if held_out_s:
+        files["needle-insertion"] = long_needle_scenario(out / "scenarios", held_out_s, 23)
     for i, (sc, path) in enumerate(files.items()):
-        d = out / (sc if not recording_s or sc == "needle-insertion" else path.stem)
+        d = out / (path.stem if (recording_s and sc != "needle-insertion") or (held_out_s and sc == "needle-insertion")
+                   else sc)
         if not (d / "recording.csv").is_file():
             t = time.perf_counter()
             cfg = VirtualConfig(TruthConfig(), BoardConfig(seed=11 + i, tube_length_m=12.0 * TUBE_TRUE,
@@ -231,6 +260,27 @@ def run(model_dir, s, workers, fix=(), measured=(), law=None):
     return cal, wall
 
 
+def held_out_only(model_dir: Path, s: dict[str, Path], dump_path: Path, law: str | None, workers: int) -> None:
+    """The held-out check of an earlier fit (its ``dump``) on the session ``s["needle-insertion"]``."""
+    import numpy as np
+
+    from softphantom.calibration import check_held_out
+
+    d = np.load(dump_path)
+    values = {str(n): float(v) for n, v in zip(d["names"], d["value"])}
+    hold = [SessionSpec(s["needle-insertion"] / "recording.csv", s["needle-insertion"] / "truth.csv", "on-centre")]
+    print(f"\n== held-out check of {dump_path.name} on {s['needle-insertion'].name}")
+    t, c = time.perf_counter(), cpu_s()
+    h = check_held_out(model_dir, hold, values, options=FitOptions(law=law), n_workers=workers,
+                       progress=lambda line: print("   ", line, flush=True))
+    rn, rc = h.rmse("nominal"), h.rmse("calibrated")
+    print(f"pose RMSE held-out ({len(h.t)} keyframes): " + ", ".join(f"{n} {a:.3f}→{b:.3f}" for n, a, b in zip(h.names, rn, rc))
+          + f"; all six {np.sqrt(np.nanmean(h.err_nominal ** 2)):.3f}→{np.sqrt(np.nanmean(h.err_calibrated ** 2)):.3f}"
+          + f"; ratio {rmse_ratio(h):.2f} (90 % over the keyframes resampled: "
+          + "{:.2f}–{:.2f})".format(*rmse_ratio_interval(h)))
+    print(f"  wall {time.perf_counter() - t:.0f} s, CPU {cpu_s() - c:.0f} s with the workers")
+
+
 def drift_truth(s: dict[str, Path]) -> dict[str, float]:
     """Each fitting session's pressure drift as the virtual board drew it (Pa/s), by parameter name."""
     return {f"drift_s{i + 1}_Pa_per_s": json.loads((s[sc] / "virtual.json").read_text())["board"]["drift_Pa_per_s"]
@@ -284,6 +334,12 @@ def main() -> None:
     ap.add_argument("--recording-s", type=float, default=0.0,
                     help="fit on two generated push recordings (on- and off-centre) of this total length (s) "
                          "instead of the repository's push scenarios (issue 14 item 3: 60)")
+    ap.add_argument("--held-out-s", type=float, default=0.0,
+                    help="hold out a generated session of repeated needle insertions of this length (s) instead of "
+                         "the repository's 12 s needle-insertion (up to 16 keyframes instead of 7)")
+    ap.add_argument("--held-out-from", type=Path, default=None,
+                    help="no fit: the held-out check alone, with the parameters of an earlier run's dump "
+                         "(fit_<run>.npz in the cache directory; with the same --fit-law)")
     a = ap.parse_args()
     shape = None if a.truth_yeoh_shape is None else tuple(float(v) for v in a.truth_yeoh_shape.split(","))
     nominal_law = a.nominal_law or design_law(BIPDesign())
@@ -304,7 +360,10 @@ def main() -> None:
     print(f"nominal model {a.mesh_size_mm:g} mm: {len(m.nodes)} nodes, P{m.element_order}, "
           f"laws {sorted({x.law for x in m.design.materials})}; truth {a.truth_law} P{a.truth_order}, "
           f"node spacing {a.truth_scale:g} x")
-    s = sessions(model_dir, out, a.truth_law, a.truth_scale, a.truth_order, a.recording_s, shape)
+    s = sessions(model_dir, out, a.truth_law, a.truth_scale, a.truth_order, a.recording_s, shape, a.held_out_s)
+    if a.held_out_from is not None:
+        held_out_only(model_dir, s, a.held_out_from, a.fit_law, a.workers)
+        return
     runs = a.runs.split(",")
     cal = wall = None
     if "free" in runs:

@@ -11,9 +11,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from softphantom.calibration import CalibrationInputError, FitOptions, SessionSpec, calibrate, load_session
+from softphantom.calibration import CalibrationInputError, FitOptions, SessionSpec, calibrate, check_held_out, load_session
 from softphantom.calibration.forward import solve_keyframe
 from softphantom.design import BIPDesign, build_model, save_model
+from softphantom.errors import UserError
 
 COARSE_MM = 12.0
 ARMS_TRUE = 1.25  # the cast arms are 25 % stiffer than the datasheet
@@ -105,6 +106,12 @@ def test_recovers_arm_stiffness_and_gain(coarse, sessions):
     ho = cal.held_out
     assert ho.force_rmse("calibrated") < ho.force_rmse("nominal") / 3
     assert np.nanmean(np.abs(ho.err_calibrated[:, :3])) < 0.2  # mm: the pose stays right
+    # the held-out check alone, from the fitted values by name (as a later, longer held-out session uses it)
+    again = check_held_out(coarse, hold, p, options=FitOptions(fix=fix), in_process=True, max_keyframes=6)
+    np.testing.assert_allclose(again.err_calibrated, ho.err_calibrated, atol=1e-4)
+    np.testing.assert_allclose(again.err_nominal, ho.err_nominal, atol=1e-4)
+    with pytest.raises(UserError, match="stiffness_liver_factor"):
+        check_held_out(coarse, hold, {"stiffness_liver_factor": 1.0}, in_process=True)
 
 
 def _shift_take(src: Path, dst: Path, dt: float) -> Path:
@@ -179,7 +186,6 @@ def test_measured_parameters_centre_the_prior_or_hold_the_value(tmp_path):
     from softphantom.calibration import parameter_set
     from softphantom.calibration.fit import Keyframes, Problem
     from softphantom.cli import main
-    from softphantom.errors import UserError
 
     p = {q.name: q for q in parameter_set(measured=(("tube_volume_factor", 1.1, 0.02), ("pivot_x_mm", 3.0, None),
                                                     ("stiffness_arms_factor", 2.0, 0.1)))}
@@ -560,7 +566,6 @@ def test_fit_law_converts_each_material_at_its_small_strain_moduli():
     bulk modulus (Yeoh: C10 = μ/2, C20 = C30 = 0), density kept; a material already under that
     law kept as it is; an unknown law refused in one line."""
     from softphantom.calibration.forward import design_with_law, yeoh_shapes
-    from softphantom.errors import UserError
     from softphantom.fem.model import laws_of_design
 
     d = BIPDesign()

@@ -10,7 +10,9 @@ that every earlier stage reads as any other).
 
 from softphantom.calibration.fit import FitOptions, FitResult, Parameter, parameter_set
 from softphantom.calibration.output import write_calibration
-from softphantom.calibration.run import Calibration, HeldOut, SessionSpec, calibrate, rmse_ratio, rmse_ratio_interval
+from softphantom.calibration.run import (
+    Calibration, HeldOut, SessionSpec, calibrate, check_held_out, rmse_ratio, rmse_ratio_interval,
+)
 from softphantom.calibration.session import CalibrationInputError, Session, load_session, select_keyframes
 
 __all__ = [
@@ -23,6 +25,7 @@ __all__ = [
     "Session",
     "SessionSpec",
     "calibrate",
+    "check_held_out",
     "load_session",
     "parameter_set",
     "rmse_ratio",

@@ -234,23 +234,56 @@ def calibrate(model_dir, specs: list[SessionSpec], holdout: list[SessionSpec] = 
         fitting = HeldOut(POSE_DOF, frames.t, *_pair(_pose_errors(problem, g_nom, forces0, say, "fitting data, nominal", True),
                                                        _pose_errors(problem, g_cal, result.forces, say,
                                                                     "fitting data, calibrated")))
-        held_out = None
-        if held:
-            htimes = [select_keyframes(se, max_keyframes) for se in held]
-            hframes = Keyframes.of(held, htimes)
-            hp = Problem(str(model_dir), held, hframes, rm, solve_many, options, params)
-            f0, hl = _initial(hp, held)
-            gl = len(hp.params)
-            # a held-out session's drift is its own, unknown to the calibration (as to the estimator): 0
-            gn = np.concatenate([g_nom[:gl], hl, np.zeros(len(held))])
-            gc = np.concatenate([g_cal[:gl], hl, np.zeros(len(held))])
-            hp = dataclasses.replace(hp, lag0_s=hl, pose_rows=None)
-            held_out = HeldOut(POSE_DOF, hframes.t, *_pair(_pose_errors(hp, gn, f0, say, "held-out, nominal", True),
-                                                           _pose_errors(hp, gc, f0, say, "held-out, calibrated")))
+        held_out = _held_out(str(model_dir), held, rm, solve_many, options, params, g_cal[:len(params)], say,
+                             max_keyframes) if held else None
     return Calibration(model_dir, result, frames, sessions, fitting, held_out, options,
                        meta={"law": {"design": design_laws, "fitted": sorted({m.law for m in fitted.design.materials})},
                              "sessions": [f"s{i + 1}: {s.recording}" for i, s in enumerate(specs)],
                              "held_out": [f"h{i + 1}: {s.recording}" for i, s in enumerate(holdout)]})
+
+
+def _held_out(model_dir: str, held: list[Session], rm, solve_many, options: FitOptions, params, g_params: np.ndarray,
+              say: Callable[[str], None], max_keyframes: int) -> HeldOut:
+    """Pose errors on held-out sessions with the nominal and with the parameters ``g_params``."""
+    htimes = [select_keyframes(se, max_keyframes) for se in held]
+    hframes = Keyframes.of(held, htimes)
+    hp = Problem(model_dir, held, hframes, rm, solve_many, options, params)
+    f0, hl = _initial(hp, held)
+    gl = len(hp.params)
+    # a held-out session's drift is its own, unknown to the calibration (as to the estimator): 0
+    rest = np.concatenate([hl, np.zeros(len(held))])
+    gn = np.concatenate([hp.nominal()[:gl], rest])
+    gc = np.concatenate([np.asarray(g_params, float), rest])
+    hp = dataclasses.replace(hp, lag0_s=hl, pose_rows=None)
+    return HeldOut(POSE_DOF, hframes.t, *_pair(_pose_errors(hp, gn, f0, say, "held-out, nominal", True),
+                                               _pose_errors(hp, gc, f0, say, "held-out, calibrated")))
+
+
+def check_held_out(model_dir, holdout: list[SessionSpec], values: dict[str, float], *,
+                   options: FitOptions = FitOptions(), scheduler: str | None = None, n_workers: int | None = None,
+                   in_process: bool = False, max_keyframes: int = 16,
+                   progress: Callable[[str], None] | None = None) -> HeldOut:
+    """The held-out check of :func:`calibrate` alone, for parameters fitted before (``values``: by
+    name in displayed units, as ``Calibration.parameters()``; names missing keep their nominal; lags
+    and drifts are ignored, each held-out session gets its own): on new held-out sessions, without
+    fitting again."""
+    from softphantom.design import load_model
+    from softphantom.parallel import dask_client
+
+    say = progress or (lambda s: None)
+    model = load_model(Path(model_dir))
+    fitted = dataclasses.replace(model, design=design_with_law(model.design, options.law))
+    held = [load_session(sp.recording, sp.truth, _contact(model, sp.contact), sp.known_loads, name=f"h{i + 1}")
+            for i, sp in enumerate(holdout)]
+    params = parameter_set(measured=options.measured, yeoh=yeoh_shapes(fitted))
+    values = {n: v for n, v in values.items() if not n.startswith(("lag_", "drift_"))}
+    unknown = sorted(set(values) - {p.name for p in params})
+    if unknown:
+        raise UserError(f"check_held_out: parameters not in this model's set: {', '.join(unknown)}")
+    g = np.array([p.internal(values[p.name]) if p.name in values else p.nominal for p in params])
+    with nullcontext(None) if in_process else dask_client(scheduler, n_workers) as client:
+        rm = rest_markers(str(model_dir), _contact(model, holdout[0].contact), options.radius_m)
+        return _held_out(str(model_dir), held, rm, _solver(client), options, params, g, say, max_keyframes)
 
 
 def rmse_ratio(held: HeldOut) -> float:
