@@ -38,8 +38,8 @@ sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 
 from softphantom.design import BIPDesign, build_model, load_model  # noqa: E402
 from softphantom.estimation.config import DEFAULT_CONTACT_RADIUS_M  # noqa: E402
-from softphantom.estimation import AtlasConfig, AtlasEstimator, Estimator, EstimatorConfig  # noqa: E402
-from softphantom.estimation.atlas import X_CONTROLS, build_atlas, load_or_build  # noqa: E402
+from softphantom.estimation import AtlasEstimator, Estimator, EstimatorConfig  # noqa: E402
+from softphantom.estimation.atlas import X_CONTROLS, build_atlas, default_atlas_config, load_or_build  # noqa: E402
 from softphantom.estimation.forward import ForwardModel  # noqa: E402
 from softphantom.estimation.select import atlas_config_from_options  # noqa: E402
 from softphantom.fem import (  # noqa: E402
@@ -233,9 +233,11 @@ def main() -> None:
     ap.add_argument("--skip-refresh", action="store_true", help="only the atlas rows (and the naive ratio)")
     ap.add_argument("--rt-repeats", type=int, default=1,
                     help="real-time ramps (and holds) per atlas row, for the step latency's p99")
-    ap.add_argument("--atlas-grid", help="atlas points per axis NX,NY,NZ,NP (default: AtlasConfig's)")
-    ap.add_argument("--x-control", choices=X_CONTROLS, default=AtlasConfig.x_control,
-                    help="the atlas's first axis: f_x (default) or the patch displacement (AtlasConfig.x_control)")
+    ap.add_argument("--atlas-grid", help="atlas points per axis NX,NY,NZ,NP (default: the model's, "
+                    "default_atlas_config of its element order)")
+    ap.add_argument("--x-control", choices=X_CONTROLS, default=None,
+                    help="the atlas's first axis: f_x or the patch displacement (AtlasConfig.x_control; default: "
+                    "the model's, force on a linear model, displacement on a quadratic one)")
     ap.add_argument("--atlas-f-y-split-N", help="the atlas in pieces along f_y, split at these forces (N, "
                     "comma-separated; AtlasConfig.f_y_splits_N)")
     ap.add_argument("--envelope", help="atlas envelope FXMIN:FXMAX,FYMIN:FYMAX,FZMIN:FZMAX,PMIN:PMAX (N, kPa; "
@@ -284,7 +286,8 @@ def main() -> None:
 
     # -- atlas: offline build, then the same ramps (quiet and loaded), sustained rate, held-out loads
     cfg = EstimatorConfig(**base)
-    acfg = atlas_config_from_options(a.atlas_grid, a.envelope, a.x_control, a.atlas_f_y_split_N)
+    acfg = atlas_config_from_options(a.atlas_grid, a.envelope, a.x_control, a.atlas_f_y_split_N,
+                                     base=default_atlas_config(model.element_order))
     t = time.perf_counter()
     print(f"load average before the atlas build: {os.getloadavg()[0]:.1f}")
     if a.atlas_cache:
