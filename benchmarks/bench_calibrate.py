@@ -129,6 +129,24 @@ def set_tube(s: dict[str, Path], length_m: float) -> None:
         believe_tube(d / "recording.csv", length_m)
 
 
+def push_scenario(path: Path, description: str, duration_s: float, point: str, rise_hold_fall_s: tuple,
+                  period_s: float, draw) -> Path:
+    """A scenario TOML at ``path``: rest 1.5 s, then from 2 s a push at ``point`` every ``period_s``
+    (``rise_hold_fall_s``) to the force ``draw()`` (N), as long as it ends 0.5 s before the end."""
+    rise, hold, fall = rise_hold_fall_s
+    lines = [f'name = "{path.stem}"', f'description = "{description}"', f"duration_s = {duration_s}", "rest_s = 1.5",
+             "patch_radius_mm = 4.0"]
+    t = 2.0
+    while t + rise + hold + fall <= duration_s - 0.5:
+        f = draw()
+        lines += ["", "[[push]]", f'point = "{point}"', f"start_s = {t:.2f}", f"rise_s = {rise}", f"hold_s = {hold}",
+                  f"fall_s = {fall}", "force_N = [" + ", ".join(f"{v:.3f}" for v in f) + "]"]
+        t += period_s
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
 def long_scenario(out: Path, point: str, duration_s: float, seed: int) -> Path:
     """A bench recording of ``duration_s`` at ``point`` as docs/calibration.md asks for: rest
     1.5 s, then pushes every 3.5 s (1 s rise, 1 s hold, 1 s release) of 2–3.5 N along +y with
@@ -136,18 +154,9 @@ def long_scenario(out: Path, point: str, duration_s: float, seed: int) -> Path:
     import numpy as np
 
     rng = np.random.default_rng(seed)
-    lines = [f'name = "bench-{point}-{duration_s:g}s"', 'description = "calibration pushes (bench_calibrate)"',
-             f"duration_s = {duration_s}", "rest_s = 1.5", "patch_radius_mm = 4.0"]
-    t = 2.0
-    while t + 3.0 <= duration_s - 0.5:
-        f = [rng.uniform(-0.8, 0.8), rng.uniform(2.0, 3.5), rng.uniform(-0.8, 0.8)]
-        lines += ["", "[[push]]", f'point = "{point}"', f"start_s = {t:.2f}", "rise_s = 1.0", "hold_s = 1.0",
-                  "fall_s = 1.0", "force_N = [" + ", ".join(f"{v:.3f}" for v in f) + "]"]
-        t += 3.5
-    path = out / f"bench-{point}-{duration_s:g}s.toml"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text("\n".join(lines) + "\n")
-    return path
+    return push_scenario(out / f"bench-{point}-{duration_s:g}s.toml", "calibration pushes (bench_calibrate)",
+                         duration_s, point, (1.0, 1.0, 1.0), 3.5,
+                         lambda: [rng.uniform(-0.8, 0.8), rng.uniform(2.0, 3.5), rng.uniform(-0.8, 0.8)])
 
 
 def long_needle_scenario(out: Path, duration_s: float, seed: int) -> Path:
@@ -158,18 +167,9 @@ def long_needle_scenario(out: Path, duration_s: float, seed: int) -> Path:
     import numpy as np
 
     rng = np.random.default_rng(seed)
-    lines = [f'name = "needle-{duration_s:g}s"', 'description = "repeated needle insertions (bench_calibrate, held out)"',
-             f"duration_s = {duration_s}", "rest_s = 1.5", "patch_radius_mm = 4.0"]
-    t = 2.0
-    while t + 6.5 <= duration_s - 0.5:
-        f = [0.15 + rng.uniform(-0.5, 0.5), rng.uniform(1.5, 3.0), -0.2 + rng.uniform(-0.35, 0.35)]
-        lines += ["", "[[push]]", 'point = "on-centre"', f"start_s = {t:.2f}", "rise_s = 3.0", "hold_s = 1.5",
-                  "fall_s = 2.0", "force_N = [" + ", ".join(f"{v:.3f}" for v in f) + "]"]
-        t += 7.0
-    path = out / f"needle-{duration_s:g}s.toml"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text("\n".join(lines) + "\n")
-    return path
+    return push_scenario(out / f"needle-{duration_s:g}s.toml", "repeated needle insertions (bench_calibrate, held out)",
+                         duration_s, "on-centre", (3.0, 1.5, 2.0), 7.0,
+                         lambda: [0.15 + rng.uniform(-0.5, 0.5), rng.uniform(1.5, 3.0), -0.2 + rng.uniform(-0.35, 0.35)])
 
 
 def sessions(model_dir: Path, out: Path, law: str, truth_scale: float, truth_order: int = 1,
