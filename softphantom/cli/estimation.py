@@ -72,7 +72,7 @@ def estimate_cmd(
     atlas_f_y_split: str = typer.Option(None, "--atlas-f-y-split-N", help="Atlas: build it in pieces along f_y, "
                                         "split at these forces (N, comma-separated), each piece with the grid of "
                                         "--atlas-grid: for a model whose map bends sharply at one f_y (the quadratic "
-                                        "model's fold above ≈ 4.3 N, docs/estimation.md; its default 3.3,4.3; "
+                                        "model's fold above ≈ 4.3 N, docs/estimation.md; its default 3.3; "
                                         "'' for one piece)."),
     envelope: str = typer.Option(None, "--envelope", help="Atlas: load envelope FXMIN:FXMAX,FYMIN:FYMAX,FZMIN:FZMAX,"
                                  "PMIN:PMAX in N and kPa (default -1.5:1.5,-1:5.2,-1.5:1.5,-2:40); outside it the estimate "

@@ -245,9 +245,9 @@ class AtlasConfig:
 
 
 # The quadratic (10-node) BIP model's atlas: its back arm pair snaps through above f_y ≈ 4.3 N (a fold
-# in f_x, followed by the displacement axis) and one f_y polynomial over -1..5.2 N rings below it;
+# pieces split at these forces keep each f_y polynomial smooth (measured: docs/estimation.md, session 12).
 # pieces split at these forces keep each f_y polynomial smooth (measured: docs/estimation.md, session 13).
-P2_F_Y_SPLITS_N = (3.3, 4.3)
+P2_F_Y_SPLITS_N = (3.3,)
 P2_N_FORCE = (11, 6, 4)
 
 
@@ -260,7 +260,7 @@ def default_atlas_config(order: int = 1) -> AtlasConfig:
     True
     >>> c = default_atlas_config(2)
     >>> c.x_control, c.f_y_splits_N, c.shape
-    ('displacement', (3.3, 4.3), (11, 6, 4, 3))
+    ('displacement', (3.3,), (11, 6, 4, 3))
     """
     if int(order) == 2:
         return AtlasConfig(n_force=P2_N_FORCE, x_control="displacement", f_y_splits_N=P2_F_Y_SPLITS_N)

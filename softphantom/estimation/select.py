@@ -68,7 +68,7 @@ def atlas_config_from_options(grid: str | None = None, envelope: str | None = No
     >>> from softphantom.estimation.atlas import default_atlas_config
     >>> c = atlas_config_from_options("11,9,4,3", base=default_atlas_config(2))
     >>> c.shape, c.x_control, c.f_y_splits_N
-    ((11, 9, 4, 3), 'displacement', (3.3, 4.3))
+    ((11, 9, 4, 3), 'displacement', (3.3,))
     >>> atlas_config_from_options(f_y_splits="", base=default_atlas_config(2)).f_y_splits_N
     ()
     >>> atlas_config_from_options(envelope="-1:1,-1:4,-1:1,0:10", base=default_atlas_config(2)).f_y_splits_N
