@@ -245,8 +245,8 @@ class AtlasConfig:
 
 
 # The quadratic (10-node) BIP model's atlas: its back arm pair snaps through above f_y ≈ 4.3 N (a fold
+# in f_x, followed by the displacement axis) and one f_y polynomial over -1..5.2 N rings below it;
 # pieces split at these forces keep each f_y polynomial smooth (measured: docs/estimation.md, session 12).
-# pieces split at these forces keep each f_y polynomial smooth (measured: docs/estimation.md, session 13).
 P2_F_Y_SPLITS_N = (3.3,)
 P2_N_FORCE = (11, 6, 4)
 
