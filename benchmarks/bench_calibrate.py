@@ -192,8 +192,7 @@ def sessions(model_dir: Path, out: Path, law: str, truth_scale: float, truth_ord
     if held_out_s:
         files["needle-insertion"] = long_needle_scenario(out / "scenarios", held_out_s, 23)
     for i, (sc, path) in enumerate(files.items()):
-        d = out / (path.stem if (recording_s and sc != "needle-insertion") or (held_out_s and sc == "needle-insertion")
-                   else sc)
+        d = out / (sc if path.parent == ROOT / "scenarios" else path.stem)  # a generated scenario: its own name
         if not (d / "recording.csv").is_file():
             t = time.perf_counter()
             cfg = VirtualConfig(TruthConfig(), BoardConfig(seed=11 + i, tube_length_m=12.0 * TUBE_TRUE,
@@ -260,6 +259,17 @@ def run(model_dir, s, workers, fix=(), measured=(), law=None):
     return cal, wall
 
 
+def print_pose_rmse(name: str, h) -> None:
+    """One line: each DoF's pose RMSE nominal → calibrated, all six together, and their ratio."""
+    import numpy as np
+
+    rn, rc = h.rmse("nominal"), h.rmse("calibrated")
+    print(f"pose RMSE {name}: " + ", ".join(f"{d} {a:.3f}→{b:.3f}" for d, a, b in zip(h.names, rn, rc))
+          + f"; all six {np.sqrt(np.nanmean(h.err_nominal ** 2)):.3f}→{np.sqrt(np.nanmean(h.err_calibrated ** 2)):.3f}"
+          + f"; ratio {rmse_ratio(h):.2f} (90 % over the {len(h.t)} keyframes resampled: "
+          + "{:.2f}–{:.2f})".format(*rmse_ratio_interval(h)))
+
+
 def held_out_only(model_dir: Path, s: dict[str, Path], dump_path: Path, law: str | None, workers: int) -> None:
     """The held-out check of an earlier fit (its ``dump``) on the session ``s["needle-insertion"]``."""
     import numpy as np
@@ -273,11 +283,7 @@ def held_out_only(model_dir: Path, s: dict[str, Path], dump_path: Path, law: str
     t, c = time.perf_counter(), cpu_s()
     h = check_held_out(model_dir, hold, values, options=FitOptions(law=law), n_workers=workers,
                        progress=lambda line: print("   ", line, flush=True))
-    rn, rc = h.rmse("nominal"), h.rmse("calibrated")
-    print(f"pose RMSE held-out ({len(h.t)} keyframes): " + ", ".join(f"{n} {a:.3f}→{b:.3f}" for n, a, b in zip(h.names, rn, rc))
-          + f"; all six {np.sqrt(np.nanmean(h.err_nominal ** 2)):.3f}→{np.sqrt(np.nanmean(h.err_calibrated ** 2)):.3f}"
-          + f"; ratio {rmse_ratio(h):.2f} (90 % over the keyframes resampled: "
-          + "{:.2f}–{:.2f})".format(*rmse_ratio_interval(h)))
+    print_pose_rmse("held-out", h)
     print(f"  wall {time.perf_counter() - t:.0f} s, CPU {cpu_s() - c:.0f} s with the workers")
 
 
@@ -301,10 +307,7 @@ def report(cal, wall, tube_in_recording: bool = False, extra_truth: dict[str, fl
     for w in cal.fit.warnings:
         print("  warning:", w)
     for name, h in (("fitting", cal.fitting), ("held-out needle-insertion (vs exact truth)", cal.held_out)):
-        rn, rc = h.rmse("nominal"), h.rmse("calibrated")
-        print(f"pose RMSE {name}: " + ", ".join(f"{d} {a:.3f}→{b:.3f}" for d, a, b in zip(h.names, rn, rc))
-              + f"; ratio {rmse_ratio(h):.2f} (90 % over the {len(h.t)} keyframes resampled: "
-              + "{:.2f}–{:.2f})".format(*rmse_ratio_interval(h)))
+        print_pose_rmse(name, h)
     print(f"wall {wall:.0f} s, {cal.fit.solves} forward solves in the fit, {len(cal.fit.history) - 1} iterations")
 
 

@@ -81,6 +81,11 @@ def _contact(model, c) -> tuple[float, float, float]:
     return tuple(float(v) for v in c)
 
 
+def _load_sessions(model, specs: list[SessionSpec], prefix: str) -> list[Session]:
+    return [load_session(sp.recording, sp.truth, _contact(model, sp.contact), sp.known_loads, name=f"{prefix}{i + 1}")
+            for i, sp in enumerate(specs)]
+
+
 def _solver(client) -> Callable[[list[tuple]], list]:
     if client is None:
         return lambda tasks: [solve_keyframe(*t) for t in tasks]
@@ -201,12 +206,8 @@ def calibrate(model_dir, specs: list[SessionSpec], holdout: list[SessionSpec] = 
         say(f"fitting under the {options.law} law (the design's: {', '.join(design_laws)}), every material at its "
             "small-strain E and ν; the nominal checks use the design's law")
 
-    def load(specs_, prefix):
-        return [load_session(sp.recording, sp.truth, _contact(model, sp.contact), sp.known_loads, name=f"{prefix}{i + 1}")
-                for i, sp in enumerate(specs_)]
-
-    sessions = load(specs, "s")
-    held = load(holdout, "h")
+    sessions = _load_sessions(model, specs, "s")
+    held = _load_sessions(model, holdout, "h")
     times = [select_keyframes(se, max_keyframes) for se in sessions]
     frames = Keyframes.of(sessions, times)
     say(f"{len(sessions)} session(s), {len(frames)} keyframes"
@@ -273,8 +274,7 @@ def check_held_out(model_dir, holdout: list[SessionSpec], values: dict[str, floa
     say = progress or (lambda s: None)
     model = load_model(Path(model_dir))
     fitted = dataclasses.replace(model, design=design_with_law(model.design, options.law))
-    held = [load_session(sp.recording, sp.truth, _contact(model, sp.contact), sp.known_loads, name=f"h{i + 1}")
-            for i, sp in enumerate(holdout)]
+    held = _load_sessions(model, holdout, "h")
     params = parameter_set(measured=options.measured, yeoh=yeoh_shapes(fitted))
     values = {n: v for n, v in values.items() if not n.startswith(("lag_", "drift_"))}
     unknown = sorted(set(values) - {p.name for p in params})

@@ -109,8 +109,7 @@ def atlas_config_from_options(grid: str | None = None, envelope: str | None = No
             kw["f_y_splits_N"] = tuple(float(v) for v in f_y_splits.split(",") if v.strip())
         except ValueError:
             raise UserError(f"--atlas-f-y-split-N: comma-separated forces in N, got {f_y_splits!r}") from None
-    if base is None:
-        return AtlasConfig(**kw)
+    base = AtlasConfig() if base is None else base
     if "force_min_N" in kw and "f_y_splits_N" not in kw:  # the base's splits that fall in the new f_y range
         kw["f_y_splits_N"] = tuple(v for v in base.f_y_splits_N if kw["force_min_N"][1] < v < kw["force_max_N"][1])
     return replace(base, **kw)
