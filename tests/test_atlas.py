@@ -227,6 +227,10 @@ def test_cache_round_trip_mismatch_and_corruption(coarse_model, atlas, fwd, tmp_
     path.write_bytes(b"not an npz")
     with pytest.raises(AtlasCorrupt, match="unreadable"):
         Atlas.load(path)
+    # the atlas/ directory given instead of the model's: one line says so before the build
+    msgs.clear()
+    load_or_build(coarse_model, CFG, ACFG, cache_dir=path.parent, log=msgs.append, fwd=fwd)
+    assert built == [1, 1] and sum("warning" in m and "model directory" in m for m in msgs) == 1
 
 
 def test_both_estimators_implement_the_interface(coarse_model, atlas):

@@ -1205,6 +1205,10 @@ def load_or_build(model, config: EstimatorConfig | None = None, atlas: AtlasConf
             return at
         except AtlasCorrupt as exc:
             log(f"{exc}: rebuilding")
+    elif path is not None and any(Path(cache_dir).glob("*.npz")):
+        # the atlas directory given for the model's: its atlases are never found, every run builds
+        log(f"atlas: warning: {cache_dir} holds *.npz files itself, but the cache is a model directory "
+            f"(atlases in its atlas/ subdirectory): building into {path.parent}")
     at = build_atlas(model, cfg, acfg, scheduler=scheduler, n_workers=n_workers, progress=progress, fwd=fwd,
                      log=log)
     msg = (f"atlas: {_solves(at)} in {at.build_s:.0f} s ({at.build_cpu_s / at.config.n_solves:.2f} CPU-s a solve), "
