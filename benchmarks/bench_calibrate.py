@@ -270,16 +270,14 @@ def print_pose_rmse(name: str, h) -> None:
           + "{:.2f}–{:.2f})".format(*rmse_ratio_interval(h)))
 
 
-def held_out_only(model_dir: Path, s: dict[str, Path], dump_path: Path, law: str | None, workers: int) -> None:
-    """The held-out check of an earlier fit (its ``dump``) on the session ``s["needle-insertion"]``."""
-    import numpy as np
-
+def held_out_only(model_dir: Path, s: dict[str, Path], values: dict[str, float], what: str, law: str | None,
+                  workers: int) -> None:
+    """The held-out check with the parameters ``values`` (by name, displayed units; ``what`` says
+    whence) on the session ``s["needle-insertion"]``."""
     from softphantom.calibration import check_held_out
 
-    d = np.load(dump_path)
-    values = {str(n): float(v) for n, v in zip(d["names"], d["value"])}
     hold = [SessionSpec(s["needle-insertion"] / "recording.csv", s["needle-insertion"] / "truth.csv", "on-centre")]
-    print(f"\n== held-out check of {dump_path.name} on {s['needle-insertion'].name}")
+    print(f"\n== held-out check of {what} on {s['needle-insertion'].name}")
     t, c = time.perf_counter(), cpu_s()
     h = check_held_out(model_dir, hold, values, options=FitOptions(law=law), n_workers=workers,
                        progress=lambda line: print("   ", line, flush=True))
@@ -343,6 +341,10 @@ def main() -> None:
     ap.add_argument("--held-out-from", type=Path, default=None,
                     help="no fit: the held-out check alone, with the parameters of an earlier run's dump "
                          "(fit_<run>.npz in the cache directory; with the same --fit-law)")
+    ap.add_argument("--held-out-oracle", action="store_true",
+                    help="no fit: the held-out check alone, with the truth's own parameters (bulb, gain, tube and, "
+                         "under --fit-law yeoh against a Yeoh truth, its shape; the rest nominal): the floor that "
+                         "noise, the held-out session's drift and the mesh leave to any calibration")
     a = ap.parse_args()
     shape = None if a.truth_yeoh_shape is None else tuple(float(v) for v in a.truth_yeoh_shape.split(","))
     nominal_law = a.nominal_law or design_law(BIPDesign())
@@ -365,7 +367,17 @@ def main() -> None:
           f"node spacing {a.truth_scale:g} x")
     s = sessions(model_dir, out, a.truth_law, a.truth_scale, a.truth_order, a.recording_s, shape, a.held_out_s)
     if a.held_out_from is not None:
-        held_out_only(model_dir, s, a.held_out_from, a.fit_law, a.workers)
+        import numpy as np
+
+        d = np.load(a.held_out_from)
+        values = {str(n): float(v) for n, v in zip(d["names"], d["value"])}
+        held_out_only(model_dir, s, values, a.held_out_from.name, a.fit_law, a.workers)
+        return
+    if a.held_out_oracle:
+        shape_fit = shape_truth if (a.fit_law or nominal_law) == "yeoh" else {}
+        held_out_only(model_dir, s, {"stiffness_bulb_factor": BULB_TRUE, "gain_back_xpos": GAIN_TRUE,
+                                     "tube_volume_factor": TUBE_TRUE, **shape_fit}, "the truth's parameters",
+                      a.fit_law, a.workers)
         return
     runs = a.runs.split(",")
     cal = wall = None
