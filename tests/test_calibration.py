@@ -561,6 +561,40 @@ def test_tube_time_constant_follows_the_fitted_tube():
     assert abs(p0["tube_volume_factor"] / tube_true - 1) > 0.03 and known_rms0 > 2.0 * known_rms
 
 
+def test_held_out_lag_follows_the_tube_the_pressures_are_de_lagged_with():
+    """A held-out session's lag is found by cross-correlation on pressures de-lagged with the
+    recording's tube; when the tube is 10 % longer they are ≈ 21 ms late and the lag takes it.
+    The calibrated check de-lags with the fitted tube, so its lag must move by τ(tube) − τ(1)
+    (``held_out_lag``): kept as it was, the calibrated model's ramps were 21 ms off (session 14)."""
+    from softphantom.calibration.run import held_out_lag
+    from softphantom.calibration.session import Session, undo_tube_lag
+    from softphantom.tracking.timing import estimate_lag
+
+    se = Session("h1", np.zeros(2), np.zeros((2, 4)), np.zeros(2), np.zeros(2), np.zeros((2, 6)), np.zeros(3),
+                 101325.0, 12.0, 1.2e-3, np.full(4, 4.9e-7))
+    rng = np.random.default_rng(7)
+    fine = np.arange(0.0, 20.0, 1e-3)
+    p = np.zeros((fine.size, 4))
+    for t0 in np.arange(1.0, 18.0, 3.5):  # 1 s rise, 1 s hold, 1 s fall, each with its own pattern
+        p += np.clip(np.minimum(fine - t0, t0 + 3.0 - fine), 0.0, 1.0)[:, None] * rng.uniform(-60.0, 60.0, 4)
+    tube_true = 1.1
+    a = np.exp(-1e-3 / se.tau_s(tube_true))
+    reading = np.zeros_like(p)
+    for n in range(1, fine.size):
+        reading[n] = a * reading[n - 1] + (1 - a) * p[n]
+    t = fine[::13]  # the board's 77 Hz
+    noisy = reading[::13] + rng.normal(0.0, 0.5, (t.size, 4))
+
+    def lag(tube):  # take time − recording time, the take being the cavity pressure itself
+        return -estimate_lag(fine, p, t, undo_tube_lag(t, noisy, se.tau_s(tube)), max_lag_s=0.3).lag_s
+
+    recorded, fitted = lag(1.0), lag(tube_true)
+    assert recorded == pytest.approx(-0.0207, abs=0.003)  # the recording's τ leaves the pressures late
+    assert fitted == pytest.approx(0.0, abs=0.003)
+    assert held_out_lag(se, recorded, tube_true) == pytest.approx(fitted, abs=0.003)
+    assert held_out_lag(se, recorded, 1.0) == recorded
+
+
 def test_fit_law_converts_each_material_at_its_small_strain_moduli():
     """``calibrate --law``: every material under the chosen law with the same small-strain μ and
     bulk modulus (Yeoh: C10 = μ/2, C20 = C30 = 0), density kept; a material already under that
