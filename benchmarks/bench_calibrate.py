@@ -270,6 +270,26 @@ def print_pose_rmse(name: str, h) -> None:
           + "{:.2f}–{:.2f})".format(*rmse_ratio_interval(h)))
 
 
+def shape_values(shape: tuple[float, float] | None) -> dict[str, float]:
+    """A Yeoh ``shape`` (C20/C10, C30/C10) as the fit's parameters of every group, by name; {} for None."""
+    return {} if shape is None else {yeoh_name(g, i): v for g in GROUPS for i, v in zip(YEOH_TERMS, shape)}
+
+
+def oracle_values(shape: tuple[float, float] | None = None) -> dict[str, float]:
+    """The truth's own parameters, by name in displayed units (the rest nominal): the bulb, the
+    high transducer, the long tube and, where the fit has one, the truth's Yeoh ``shape``."""
+    return {"stiffness_bulb_factor": BULB_TRUE, "gain_back_xpos": GAIN_TRUE, "tube_volume_factor": TUBE_TRUE,
+            **shape_values(shape)}
+
+
+def dump_values(path: Path) -> dict[str, float]:
+    """The fitted parameters of a :func:`dump` (``fit_<run>.npz``), by name in displayed units."""
+    import numpy as np
+
+    d = np.load(path)
+    return {str(n): float(v) for n, v in zip(d["names"], d["value"])}
+
+
 def held_out_only(model_dir: Path, s: dict[str, Path], values: dict[str, float], what: str, law: str | None,
                   workers: int) -> None:
     """The held-out check with the parameters ``values`` (by name, displayed units; ``what`` says
@@ -351,7 +371,7 @@ def main() -> None:
     a.truth_law = a.truth_law or default_truth_law(nominal_law)
     # the truth's Yeoh shape, where a fit has one to compare with (a Yeoh nominal, or --fit-law yeoh)
     tshape = shape if shape is not None else ((YEOH_C20_C10, YEOH_C30_C10) if a.truth_law == "yeoh" else None)
-    shape_truth = {} if tshape is None else {yeoh_name(g, i): v for g in GROUPS for i, v in zip(YEOH_TERMS, tshape)}
+    shape_truth = shape_values(tshape)
     nominal = BIPDesign() if a.nominal_law is None and a.nominal_order == 1 else \
         with_law(BIPDesign(), nominal_law, a.nominal_order)
     out = a.cache / (f"h{a.mesh_size_mm:g}_{a.truth_law}" + (f"_P{a.truth_order}" if a.truth_order != 1 else "")
@@ -367,17 +387,11 @@ def main() -> None:
           f"node spacing {a.truth_scale:g} x")
     s = sessions(model_dir, out, a.truth_law, a.truth_scale, a.truth_order, a.recording_s, shape, a.held_out_s)
     if a.held_out_from is not None:
-        import numpy as np
-
-        d = np.load(a.held_out_from)
-        values = {str(n): float(v) for n, v in zip(d["names"], d["value"])}
-        held_out_only(model_dir, s, values, a.held_out_from.name, a.fit_law, a.workers)
+        held_out_only(model_dir, s, dump_values(a.held_out_from), a.held_out_from.name, a.fit_law, a.workers)
         return
     if a.held_out_oracle:
-        shape_fit = shape_truth if (a.fit_law or nominal_law) == "yeoh" else {}
-        held_out_only(model_dir, s, {"stiffness_bulb_factor": BULB_TRUE, "gain_back_xpos": GAIN_TRUE,
-                                     "tube_volume_factor": TUBE_TRUE, **shape_fit}, "the truth's parameters",
-                      a.fit_law, a.workers)
+        held_out_only(model_dir, s, oracle_values(tshape if (a.fit_law or nominal_law) == "yeoh" else None),
+                      "the truth's parameters", a.fit_law, a.workers)
         return
     runs = a.runs.split(",")
     cal = wall = None

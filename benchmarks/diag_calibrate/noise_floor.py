@@ -48,10 +48,11 @@ def write_exact(run, rec: Path) -> None:
     lines = rec.read_text().splitlines(keepends=True)
     head = lines[1].rstrip("\n").split(",")
     cols = [head.index(f"dp_{a}_kPa") for a in bc.ARM_NAMES]
+    it = head.index("t_s")
     out = lines[:2]
     for ln in lines[2:]:
         f = ln.rstrip("\n").split(",")
-        t = float(f[head.index("t_s")])
+        t = float(f[it])
         for k, c in enumerate(cols):
             f[c] = f"{np.interp(t, sig.t, sig.p_transducer[:, k] - sig.offsets_Pa[k]) / 1e3:.9f}"
         out.append(",".join(f) + "\n")
@@ -82,9 +83,10 @@ def main() -> None:
     truth = solve_truth(load_scenario(scen), model, TruthConfig(levels=a.levels), truth_mesh=tm)
     print(f"truth of {a.session}: {len(tm.nodes)} nodes, {a.levels} levels a ramp, {time.perf_counter() - t:.0f} s",
           flush=True)
-    shape = {bc.yeoh_name(g, i): v for g in bc.GROUPS for i, v in zip(bc.YEOH_TERMS, (bc.YEOH_C20_C10, bc.YEOH_C30_C10))}
-    oracle = {"stiffness_bulb_factor": bc.BULB_TRUE, "gain_back_xpos": bc.GAIN_TRUE, "tube_volume_factor": bc.TUBE_TRUE,
-              **(shape if a.fit_law == "yeoh" and a.truth_law == "yeoh" else {})}
+    yeoh = a.fit_law == "yeoh" and a.truth_law == "yeoh"
+    checks = [("truth's parameters", bc.oracle_values((bc.YEOH_C20_C10, bc.YEOH_C30_C10) if yeoh else None))]
+    if a.fit_from is not None:
+        checks.append((a.fit_from.name, bc.dump_values(a.fit_from)))
     for name, noise, drift in VARIANTS:
         if name not in a.variants.split(","):
             continue
@@ -104,10 +106,6 @@ def main() -> None:
         drew = json.loads((d / "virtual.json").read_text())["board"]
         print(f"\n== {name}: noise {bcfg.noise_codes} codes, drift {drew['drift_Pa_per_s']} Pa/s "
               f"(the session's: {board['drift_Pa_per_s']} Pa/s)", flush=True)
-        checks = [("truth's parameters", oracle)]
-        if a.fit_from is not None:
-            z = np.load(a.fit_from)
-            checks.append((a.fit_from.name, {str(n): float(v) for n, v in zip(z["names"], z["value"])}))
         for what, values in checks:
             h = check_held_out(a.cache / "model", [SessionSpec(d / "recording.csv", d / "truth.csv", "on-centre")],
                                values, options=FitOptions(law=a.fit_law), n_workers=a.workers,
