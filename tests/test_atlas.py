@@ -15,7 +15,7 @@ from softphantom.estimation import (
     AtlasConfig, AtlasEstimator, Estimator, EstimatorConfig, ForwardModel, StateEstimator, build_atlas,
     load_or_build, open_estimator,
 )
-from softphantom.estimation.atlas import Atlas, AtlasCorrupt, _to_chebyshev, atlas_key, atlas_path, cheb_basis
+from softphantom.estimation.atlas import FORMAT, Atlas, AtlasCorrupt, _to_chebyshev, atlas_key, atlas_path, cheb_basis
 from softphantom.pose import Pose6, rigid_fit
 from softphantom.sensing import Measurement
 
@@ -215,22 +215,91 @@ def test_cache_round_trip_mismatch_and_corruption(coarse_model, atlas, fwd, tmp_
     msgs = []
     assert load_or_build(coarse_model, CFG, ACFG, cache_dir=tmp_path, log=msgs.append, fwd=fwd).key == atlas.key
     assert not built
-    # one flipped byte in the data → corrupt: reported and rebuilt, never used
+    # one flipped byte in the data → corrupt: one line naming the file, never used, nothing overwritten
     raw = bytearray(path.read_bytes())
     raw[len(raw) // 2] ^= 0xFF
     path.write_bytes(bytes(raw))
     with pytest.raises(AtlasCorrupt):
         Atlas.load(path)
-    load_or_build(coarse_model, CFG, ACFG, cache_dir=tmp_path, log=msgs.append, fwd=fwd)
+    with pytest.raises(AtlasCorrupt, match="atlas build --model .* --rebuild") as exc:
+        load_or_build(coarse_model, CFG, ACFG, cache_dir=tmp_path, log=msgs.append, fwd=fwd)
+    assert str(path) in str(exc.value) and "\n" not in str(exc.value)
+    assert not built and path.read_bytes() == bytes(raw)
+    # asked to rebuild: built and rewritten intact
+    load_or_build(coarse_model, CFG, ACFG, cache_dir=tmp_path, log=msgs.append, fwd=fwd, rebuild=True)
     assert built == [1] and any("rebuilding" in m for m in msgs)
     assert np.array_equal(Atlas.load(path, atlas.key).cV, atlas.cV)  # rewritten intact
     path.write_bytes(b"not an npz")
-    with pytest.raises(AtlasCorrupt, match="unreadable"):
+    with pytest.raises(AtlasCorrupt, match="not a readable atlas file"):
         Atlas.load(path)
     # the atlas/ directory given instead of the model's: one line says so before the build
     msgs.clear()
     load_or_build(coarse_model, CFG, ACFG, cache_dir=path.parent, log=msgs.append, fwd=fwd)
     assert built == [1, 1] and sum("warning" in m and "model directory" in m for m in msgs) == 1
+
+
+def _rewrite_meta(path, **changes) -> None:
+    """Rewrite an atlas file's metadata (its arrays, and so their digest, unchanged)."""
+    import io
+    import json
+
+    with np.load(path) as z:
+        arrays = {k: z[k] for k in z.files}
+    meta = json.loads(str(arrays.pop("meta")))
+    for k, v in changes.items():
+        if isinstance(v, dict):
+            meta[k].update(v)
+        else:
+            meta[k] = v
+    buf = io.BytesIO()
+    np.savez(buf, meta=np.array(json.dumps(meta)), **arrays)
+    path.write_bytes(buf.getvalue())
+
+
+def test_atlas_files_are_verified_described_and_installed(coarse_model, atlas, tmp_path, capsys):
+    from softphantom.design import save_model
+
+    model_dir = save_model(coarse_model, tmp_path / "model")
+    path = atlas.save(atlas_path(model_dir, atlas.key))
+    assert main(["atlas", "verify", "--model", str(model_dir)]) == 0
+    assert "ok" in capsys.readouterr().out
+    assert main(["atlas", "info", "--model", str(model_dir)]) == 0
+    out = capsys.readouterr().out
+    assert "3 × 4 × 3 × 2 points" in out and "on-centre" in out and atlas.key in out
+    # `atlas build` finds it (no solve: the cached file is loaded and named)
+    assert main(["atlas", "build", "--model", str(model_dir), "--atlas-grid", "3,4,3,2", "--atlas-x-axis", "force",
+                 "--envelope", "-0.5:0.5,-0.3:1.2,-0.5:0.5,-1:4", "--atlas-f-y-split-N", ""]) == 0
+    assert str(path) in capsys.readouterr().out
+    # installed into another copy of the same model: found under its key; again: already there
+    twin = save_model(coarse_model, tmp_path / "twin")
+    assert main(["atlas", "add", str(path), "--model", str(twin)]) == 0
+    assert atlas_path(twin, atlas.key).read_bytes() == path.read_bytes()
+    assert main(["atlas", "add", str(path), "--model", str(twin)]) == 0
+    assert "already present" in capsys.readouterr().out
+    # another mesh (every node moved 10 µm): refused in one line, nothing written
+    other = save_model(dataclasses.replace(coarse_model, nodes=coarse_model.nodes + 1e-5), tmp_path / "other")
+    assert main(["atlas", "add", str(path), "--model", str(other)]) == 2
+    err = capsys.readouterr().err
+    assert "built for another model" in err and str(path) in err and len(err.strip().splitlines()) == 1
+    assert not (other / "atlas").exists()
+    # another version's file format, a tampered file and a truncated one: exit 2, the file named
+    bad = {}
+    for name, spoil in (("format", lambda p: _rewrite_meta(p, format=3)),
+                        ("tampered", lambda p: _rewrite_meta(p, provenance={"tol": 1e-6})),
+                        ("flipped", lambda p: p.write_bytes(p.read_bytes()[:-2000] + bytes(
+                            b ^ 0xFF for b in p.read_bytes()[-2000:-1000]) + p.read_bytes()[-1000:])),
+                        ("truncated", lambda p: p.write_bytes(p.read_bytes()[: len(p.read_bytes()) // 2]))):
+        p = tmp_path / f"{name}.npz"
+        p.write_bytes(path.read_bytes())
+        spoil(p)
+        before = p.read_bytes()
+        assert main(["atlas", "verify", str(p), "--model", str(model_dir)]) == 2
+        bad[name] = capsys.readouterr().err.strip()
+        assert str(p) in bad[name] and len(bad[name].splitlines()) == 1 and p.read_bytes() == before
+    assert "format 3" in bad["format"] and f"reads format {FORMAT}" in bad["format"]
+    assert "another model" in bad["tampered"]
+    assert "digest" in bad["flipped"] or "not a readable" in bad["flipped"]
+    assert "truncated" in bad["truncated"]
 
 
 def test_both_estimators_implement_the_interface(coarse_model, atlas):
@@ -259,11 +328,14 @@ def test_cli_estimate_atlas_option(coarse_model, atlas, tmp_path, capsys):
     rec = tmp_path / "rec.csv"
     chain, rng = default_chain(), np.random.default_rng(1)
     tare = nominal_tare(chain)
-    with Recorder(rec, {"tare": tare.to_dict(), "chain": chain.summary()}) as r:
-        for k in range(12):  # a small push: ~0.3 N along +y
-            dV = np.array([0.2, 0.15, -0.9, -0.85]) * 1e-9 * k / 11
-            raw = simulate_raw(np.r_[boyle_dp(dV, chain.v_total_m3, tare.p0_Pa), 0.0], 100, rng)
-            r.write(to_measurement(k / 77.0, k, k / 77.0, raw, 100, chain, tare))
+    def record(path, scale):
+        with Recorder(path, {"tare": tare.to_dict(), "chain": chain.summary()}) as r:
+            for k in range(12):  # a push along +y: ~0.3 N at scale 1
+                dV = np.array([0.2, 0.15, -0.9, -0.85]) * 1e-9 * scale * k / 11
+                raw = simulate_raw(np.r_[boyle_dp(dV, chain.v_total_m3, tare.p0_Pa), 0.0], 100, rng)
+                r.write(to_measurement(k / 77.0, k, k / 77.0, raw, 100, chain, tare))
+
+    record(rec, 1.0)
     out = tmp_path / "est.csv"
     # the options give the fixture's envelope and grid: the CLI finds the atlas saved under its key
     atlas.save(atlas_path(d, atlas.key))
@@ -274,6 +346,17 @@ def test_cli_estimate_atlas_option(coarse_model, atlas, tmp_path, capsys):
     tab = read_table(out)
     assert tab.meta["estimator"] == "atlas" and len(tab.columns["t_s"]) == 12
     assert np.all(tab.columns["in_envelope"] == 1) and tab.columns["force_y_N"][-1] > 0.1
+    assert "warning" not in capsys.readouterr().out
+    # a push beyond the envelope's f_y face (1.2 N): clamped, flagged per row, and one warning line
+    # with the fraction of clamped estimates
+    record(big := tmp_path / "big.csv", 8.0)
+    assert main(["estimate", "--model", str(d), "--source", f"replay:{big}", "--out", str(tmp_path / "big_est.csv"),
+                 *args[7:]]) == 0
+    flags = read_table(tmp_path / "big_est.csv").columns["in_envelope"]
+    out_lines = [ln for ln in capsys.readouterr().out.splitlines() if "warning" in ln]
+    k = int(np.sum(flags == 0))
+    assert 0 < k < 12 and len(out_lines) == 1
+    assert f"{k} of 12 estimates ({k / 12:.0%})" in out_lines[0] and "--envelope" in out_lines[0]
     assert main(args[:-4] + ["--estimator", "nope"]) == 2
     assert "--estimator must be atlas or refresh" in capsys.readouterr().err
     assert main(args[:-2] + ["--envelope", "1:0,0:1,0:1,0:1"]) == 2

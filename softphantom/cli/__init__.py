@@ -15,7 +15,7 @@ from softphantom.cli.options import EXIT_INTERRUPTED, harden
 from softphantom.errors import SoftphantomError
 
 # Importing the command modules registers their commands on ``app``.
-_COMMAND_MODULES = ("design", "molds", "fem", "sensing", "estimation", "evaluation", "tracking", "virtual", "demo", "live",
+_COMMAND_MODULES = ("design", "molds", "fem", "sensing", "estimation", "atlas", "evaluation", "tracking", "virtual", "demo", "live",
                     "sweep", "calibration")
 
 

@@ -44,6 +44,14 @@ def open_sensor_source(spec: str, model, *, tare_s: float = 1.0, on_new_board: s
                        openers={"virtual": _virtual_opener})
 
 
+def warn_outside(summary: dict, envelope: str | None) -> None:
+    """One warning line when estimates were clamped at the atlas envelope's faces (in_envelope 0)."""
+    n, k = summary["estimates"], summary["outside"]
+    console.print(f"warning: {k} of {n} estimates ({k / max(n, 1):.0%}) at or beyond the atlas envelope's faces, "
+                  f"clamped (in_envelope 0): widen --envelope (now {envelope or 'the default'})",
+                  style="yellow", highlight=False, soft_wrap=True)
+
+
 def print_event(marker) -> None:
     """One console line for a link event's marker estimate."""
     console.print(f"{marker.t:10.2f} s  {marker.status}", highlight=False, markup=False)
@@ -75,7 +83,7 @@ def estimate_cmd(
                                         "model's fold above ≈ 4.3 N, docs/estimation.md; its default 3.3; "
                                         "'' for one piece)."),
     envelope: str = typer.Option(None, "--envelope", help="Atlas: load envelope FXMIN:FXMAX,FYMIN:FYMAX,FZMIN:FZMAX,"
-                                 "PMIN:PMAX in N and kPa (default -1.5:1.5,-1:5.2,-1.5:1.5,-2:40); outside it the estimate "
+                                 "PMIN:PMAX in N and kPa (default -2:2,-1:5.2,-2:2,-2:40); outside it the estimate "
                                  "is clamped and flagged (in_envelope 0)."),
     mode: str = typer.Option("auto", "--mode", help="refresh estimator: sync (deterministic) | async (background "
                              "equilibrium) | auto (async for serial, sync otherwise)."),
@@ -160,6 +168,8 @@ def estimate_cmd(
                 raise
             stopped(f"stopped (Ctrl-C); the estimates so far are in {out}")
     ev = ", ".join(f"{k} {v}" for k, v in s["events"].items()) or "none"
+    if s["outside"]:
+        warn_outside(s, envelope)
     console.print(f"wrote {s['estimates']} estimates to {out} ({s['rejected']} rejected, {s['skipped']} skipped "
                   f"(estimator behind); link events: {ev}; "
                   f"{s['rate_Hz']:.0f} Hz, step p50 {s['step_ms_p50']:.2f} ms, p99 {s['step_ms_p99']:.2f} ms)",

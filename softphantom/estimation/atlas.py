@@ -24,8 +24,9 @@ cell the build could not solve.
 
 Cache: :func:`load_or_build` keeps the atlas next to the model under the SHA-256 of everything it
 depends on (mesh, law and its parameters, element, contact patch, envelope, grid, format version).
-A file whose content hash does not match is corrupt and rebuilt; an explicit file built for
-another model is refused with one line.
+A file whose content hash does not match, of another format or built for another model is refused
+with one line and never overwritten unless asked (``softphantom atlas build --rebuild``);
+:mod:`~softphantom.estimation.atlas_store` verifies, describes and installs atlas files.
 """
 
 from __future__ import annotations
@@ -80,8 +81,10 @@ class AtlasConfig:
     """The envelope and the grid of the atlas.
 
     ``force_min_N`` / ``force_max_N`` (3,) the envelope box of the force components (the default
-    covers the phantom's use: pushes mostly along +y, the needle axis, up to 5.2 N, ±1.5 N sideways;
-    a 6 N push with 1.4 N sideways does not converge on the default mesh);
+    covers the phantom's use with a margin: pushes mostly along +y, the needle axis, up to 5.2 N,
+    ±2 N sideways — the paper's pushes and a lateral (1.5, 0.5, −1.0) N push, whose estimate runs
+    ≈ 20 % above it on a stiffer model; a 6 N push with 1.4 N sideways does not converge on the
+    default mesh, and corners the model cannot reach are flagged, :func:`build_atlas`);
     ``p_min_kPa`` / ``p_max_kPa`` the urethra pressure range; ``n_force`` (3,) / ``n_pressure``
     Chebyshev–Lobatto points per axis (their product is the number of forward solves);
     ``linear_pressure`` (only with ``n_pressure=2``): the two pressure planes from one plane of
@@ -131,8 +134,8 @@ class AtlasConfig:
     softphantom.errors.UserError: atlas n_force: each must be an integer in 3..15, got (5, 2, 5)
     """
 
-    force_min_N: tuple[float, float, float] = (-1.5, -1.0, -1.5)
-    force_max_N: tuple[float, float, float] = (1.5, 5.2, 1.5)
+    force_min_N: tuple[float, float, float] = (-2.0, -1.0, -2.0)
+    force_max_N: tuple[float, float, float] = (2.0, 5.2, 2.0)
     p_min_kPa: float = -2.0
     p_max_kPa: float = 40.0
     n_force: tuple[int, int, int] = (11, 9, 4)
@@ -708,7 +711,9 @@ class Atlas:
     points whose solve converged (the others were filled, see :func:`build_atlas`); ``cFx``
     (n1,n2,n3,n4,1) the coefficients of f_x (N) on a displacement-controlled x axis (empty on a
     force axis); ``q_nodes`` (n1,n2,n3,n4) the first coordinate of each grid point (the Lobatto
-    node, or on a displacement axis where the point landed, :data:`NODE_TOL`).
+    node, or on a displacement axis where the point landed, :data:`NODE_TOL`); ``provenance`` what
+    the atlas was built for and by (model, contact, tolerance, softphantom version, date: what
+    ``softphantom atlas info`` shows and ``atlas verify`` recomputes the key from, :func:`provenance`).
 
     The polynomials take the atlas's coordinates λ = (q, f_y, f_z, p_u): ``q`` is f_x on a force
     axis and the patch displacement's N-equivalent on a displacement axis (``AtlasConfig.x_control``);
@@ -729,6 +734,7 @@ class Atlas:
     build_cpu_s: float = float("nan")
     cFx: np.ndarray | None = None
     q_nodes: np.ndarray | None = None
+    provenance: dict | None = None
 
     def __post_init__(self) -> None:
         if self.config.f_y_splits_N:
@@ -919,7 +925,7 @@ class Atlas:
         path.parent.mkdir(parents=True, exist_ok=True)
         meta = {"format": FORMAT, "key": self.key, "config": self.config.as_dict(), "build_s": self.build_s,
                 "solves": self.solves, "field_rms_m": self.field_rms_m, "build_cpu_s": self.build_cpu_s,
-                "digest": self._digest()}
+                "digest": self._digest(), "provenance": self.provenance or {}}
         buf = io.BytesIO()
         np.savez(buf, meta=np.array(json.dumps(meta)), **{k: getattr(self, k) for k in self._ARRAYS})
         tmp = path.with_name(path.name + ".tmp")
@@ -929,24 +935,36 @@ class Atlas:
 
     @classmethod
     def load(cls, path, key: str | None = None) -> "Atlas":
-        """Read an atlas; :class:`AtlasCorrupt` if the file is unreadable or its content does not
-        match its digest; :class:`~softphantom.errors.UserError` if ``key`` is given and differs."""
+        """Read an atlas. One-line errors naming the file and what is wrong with it:
+        :class:`AtlasCorrupt` if it is unreadable (truncated, not an atlas) or its arrays do not
+        match the digest it was written with (modified or damaged); :class:`AtlasMismatch` if it
+        was written by a softphantom of another file format, or ``key`` is given and differs
+        (another model, law, contact, envelope or grid)."""
         path = Path(path)
         try:
             with np.load(path, allow_pickle=False) as z:
                 meta = json.loads(str(z["meta"]))
+                fmt = meta.get("format")
+                if fmt != FORMAT:
+                    raise AtlasMismatch(f"{path}: atlas file format {fmt}, this softphantom reads format {FORMAT} "
+                                        f"(written by another version): rebuild it (softphantom atlas build)")
                 arrays = {k: z[k] for k in cls._ARRAYS}
             at = cls(key=meta["key"], config=AtlasConfig(**meta["config"]), build_s=float(meta["build_s"]),
                      solves=int(meta["solves"]), field_rms_m=float(meta["field_rms_m"]),
-                     build_cpu_s=float(meta.get("build_cpu_s", "nan")), **arrays)
-            ok = meta.get("format") == FORMAT and at._digest() == meta["digest"]
+                     build_cpu_s=float(meta.get("build_cpu_s", "nan")), provenance=meta.get("provenance") or None,
+                     **arrays)
+            ok = at._digest() == meta["digest"]
+        except AtlasMismatch:
+            raise
         except Exception as exc:  # noqa: BLE001 - any unreadable file is corrupt
-            raise AtlasCorrupt(f"{path}: unreadable atlas ({type(exc).__name__})") from None
+            raise AtlasCorrupt(f"{path}: not a readable atlas file, truncated or not an atlas "
+                               f"({type(exc).__name__})") from None
         if not ok:
-            raise AtlasCorrupt(f"{path}: atlas content does not match its digest (corrupt)")
+            raise AtlasCorrupt(f"{path}: atlas arrays do not match the digest they were written with "
+                               f"(modified or damaged)")
         if key is not None and at.key != key:
-            raise UserError(f"{path}: atlas built for another model, law, contact or envelope "
-                            f"(key {at.key[:12]}…, expected {key[:12]}…); rebuild it")
+            raise AtlasMismatch(f"{path}: atlas built for another model, law, contact or envelope "
+                                f"(key {at.key[:12]}…, expected {key[:12]}…); rebuild it")
         return at
 
 
@@ -1044,6 +1062,26 @@ class AtlasPatches:
 
 class AtlasCorrupt(UserError):
     """An atlas file that cannot be used (unreadable, or content not matching its digest)."""
+
+
+class AtlasMismatch(UserError):
+    """A readable atlas file that is not for this use (another file format, model or settings)."""
+
+
+def provenance(model, fwd: ForwardModel) -> dict:
+    """What an atlas records about its origin: enough to recompute its key from the model alone
+    (the contact point and patch radius, the solver tolerance: :func:`softphantom.estimation.atlas_store.verify_atlas`)
+    and to tell a user what it is (model name, nodes, element order, version, date)."""
+    import datetime
+
+    from softphantom import __version__
+
+    c = fwd.config.contact
+    return {"softphantom": __version__, "model": getattr(getattr(model, "design", None), "name", ""),
+            "nodes": int(len(fwd.fem.x_rest) // 3), "element_order": int(fwd.fem.order),
+            "contact": c if isinstance(c, str) else [float(v) for v in c],
+            "contact_radius_m": float(fwd.config.contact_radius_m), "tol": float(fwd.config.tol),
+            "built_utc": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")}
 
 
 def build_atlas(model, config: EstimatorConfig | None = None, atlas: AtlasConfig | None = None, *,
@@ -1167,7 +1205,8 @@ def build_atlas(model, config: EstimatorConfig | None = None, atlas: AtlasConfig
     # f_x is the axis variable itself (its polynomial is not needed, and not exact on a stretch)
     cFx = _to_chebyshev(FX[..., None], shape, tq) if acfg.x_control == "displacement" else np.zeros((*shape, 0))
     return Atlas(key=key, config=acfg, cV=cV, cP=cP, cF=cF, cFx=cFx, q_nodes=QN, modes=modes, x_rest=fwd.fem.x_rest.copy(),
-                 build_s=time.perf_counter() - t0, solves=int(solved.sum()) * acfg.n_solves // solved.size, field_rms_m=field_rms, solved=solved, build_cpu_s=cpu_s)
+                 build_s=time.perf_counter() - t0, solves=int(solved.sum()) * acfg.n_solves // solved.size,
+                 field_rms_m=field_rms, solved=solved, build_cpu_s=cpu_s, provenance=provenance(model, fwd))
 
 
 def atlas_path(model_dir, key: str) -> Path:
@@ -1184,9 +1223,12 @@ def _solves(at: Atlas) -> str:
 
 def load_or_build(model, config: EstimatorConfig | None = None, atlas: AtlasConfig | None = None, *,
                   cache_dir=None, scheduler: str | None = None, n_workers: int | None = None,
-                  progress: bool = True, log=print, fwd: ForwardModel | None = None) -> Atlas | AtlasPatches:
+                  progress: bool = True, log=print, fwd: ForwardModel | None = None,
+                  rebuild: bool = False) -> Atlas | AtlasPatches:
     """The atlas of ``model`` from ``cache_dir`` (a model directory) if present and valid, else built
-    and saved there. A corrupt file is reported in one line and rebuilt. With
+    and saved there. A cached file that is damaged, tampered with or of another format is an error
+    (:class:`AtlasCorrupt` / :class:`AtlasMismatch`, one line naming the file, nothing overwritten)
+    unless ``rebuild``, which builds and replaces it (``softphantom atlas build --rebuild``). With
     ``AtlasConfig.f_y_splits_N`` each piece is loaded or built (and cached) on its own. ``atlas``
     None: :func:`default_atlas_config` of the model's element order."""
     cfg = config or EstimatorConfig()
@@ -1195,7 +1237,7 @@ def load_or_build(model, config: EstimatorConfig | None = None, atlas: AtlasConf
     if acfg.f_y_splits_N:
         return AtlasPatches(acfg, tuple(
             load_or_build(model, cfg, sub, cache_dir=cache_dir, scheduler=scheduler, n_workers=n_workers,
-                          progress=progress, log=log, fwd=fwd) for sub in acfg.patches()))
+                          progress=progress, log=log, fwd=fwd, rebuild=rebuild) for sub in acfg.patches()))
     key = atlas_key(fwd, acfg)
     path = atlas_path(cache_dir, key) if cache_dir is not None else None
     if path is not None and path.is_file():
@@ -1203,7 +1245,9 @@ def load_or_build(model, config: EstimatorConfig | None = None, atlas: AtlasConf
             at = Atlas.load(path, key)
             log(f"atlas: {path} ({at.nbytes / 1e6:.1f} MB, {_solves(at)}, built in {at.build_s:.0f} s)")
             return at
-        except AtlasCorrupt as exc:
+        except (AtlasCorrupt, AtlasMismatch) as exc:
+            if not rebuild:
+                raise type(exc)(f"{exc}; to build it again: softphantom atlas build --model {cache_dir} --rebuild") from None
             log(f"{exc}: rebuilding")
     elif path is not None and any(Path(cache_dir).glob("*.npz")):
         # the atlas directory given for the model's: its atlases are never found, every run builds

@@ -295,13 +295,14 @@ def estimate_stream(source, estimator, out_path, progress: Callable[[Estimate, i
     called for each, as it happens). ``live`` (default: a serial source, or one with
     ``live = True``) uses the reader thread's queue; ``progress(estimate, n)`` is called after each
     estimate; ``stop`` ends a live run. Memory stays flat (step times go into a histogram).
-    Returns a summary dict (counts, rate, step-time percentiles, events by kind). An error of the
+    Returns a summary dict (counts, rate, step-time percentiles, events by kind; ``outside`` the
+    estimates clamped at the estimator's envelope, ``in_envelope`` False). An error of the
     source (e.g. a new board under the ``stop`` policy) is raised after its marker is written."""
     live = _is_live(source) if live is None else live
     targets = list(getattr(estimator, "target_names", ()))
     meta = {"softphantom": _version(), "kind": "softphantom-estimate", "live": live, **(metadata or {})}
     steps = StepStats()
-    n = rejected = skipped_total = 0
+    n = rejected = skipped_total = outside = 0
     markers = EventMarkers(source, targets)
     t0 = time.perf_counter()
 
@@ -325,6 +326,8 @@ def estimate_stream(source, estimator, out_path, progress: Callable[[Estimate, i
                 steps.add(e.step_time)
                 if e.status != "ok":
                     rejected += 1
+                elif not e.in_envelope:
+                    outside += 1
                 if progress is not None:
                     progress(e, n)
                 if max_samples is not None and n >= max_samples:
@@ -334,7 +337,7 @@ def estimate_stream(source, estimator, out_path, progress: Callable[[Estimate, i
             mark(None)
     wall = time.perf_counter() - t0
     return {
-        "out": str(out_path), "estimates": n, "rejected": rejected, "skipped": skipped_total,
+        "out": str(out_path), "estimates": n, "rejected": rejected, "skipped": skipped_total, "outside": outside,
         "wall_s": wall, "rate_Hz": n / wall if wall > 0 else math.nan,
         "step_ms_p50": steps.percentile(50) * 1e3, "step_ms_p99": steps.percentile(99) * 1e3,
         "step_ms_max": steps.max * 1e3, "events": dict(markers.counts),

@@ -1,0 +1,142 @@
+"""``softphantom atlas build|info|verify|add``: the estimator's offline atlas as an artefact."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from softphantom.cli.app import app, console, print_error
+from softphantom.errors import UserError
+
+atlas_app = typer.Typer(help="The atlas estimator's offline stage: build, describe, verify and install atlas "
+                        "files (MODEL/atlas/<key>.npz, content-addressed: copy them between machines).",
+                        no_args_is_help=True)
+app.add_typer(atlas_app, name="atlas")
+
+MODEL_OPTION = typer.Option(..., "--model", help="Model directory (softphantom design --out).")
+AT_OPTION = typer.Option("on-centre", "--at", help="Contact point: on-centre | off-centre (the model's p_ext).")
+
+
+def _model(model_dir: Path):
+    from softphantom.design import load_model
+
+    if not (model_dir / "model.npz").is_file():
+        raise UserError(f"--model {model_dir}: not a model directory (no model.npz; run softphantom design)")
+    return load_model(model_dir)
+
+
+def _contact(at: str) -> str:
+    if at not in ("on-centre", "off-centre"):
+        raise UserError(f"--at must be on-centre or off-centre, got {at!r}")
+    return at
+
+
+def _pieces(at) -> tuple:
+    return getattr(at, "patches", (at,))
+
+
+def _print_rows(rows) -> None:
+    for label, value in rows:
+        console.print(f"  {label:9s} {value}", highlight=False, soft_wrap=True)
+
+
+@atlas_app.command("build")
+def build_cmd(
+    model_dir: Path = MODEL_OPTION,
+    at: str = AT_OPTION,
+    atlas_grid: str = typer.Option(None, "--atlas-grid", help="Chebyshev points per axis NX,NY,NZ,NP (default: "
+                                   "the model's, default_atlas_config)."),
+    atlas_x_axis: str = typer.Option(None, "--atlas-x-axis", help="First axis: force | displacement."),
+    atlas_f_y_split: str = typer.Option(None, "--atlas-f-y-split-N", help="Pieces along f_y split at these "
+                                        "forces (N, comma-separated; '' for one piece)."),
+    envelope: str = typer.Option(None, "--envelope", help="Load envelope FXMIN:FXMAX,FYMIN:FYMAX,FZMIN:FZMAX,"
+                                 "PMIN:PMAX in N and kPa."),
+    scheduler: str = typer.Option(None, "--scheduler", help="Dask scheduler address (default: a local cluster)."),
+    workers: int = typer.Option(None, "--workers", help="Local cluster: worker processes (default: all cores)."),
+    rebuild: bool = typer.Option(False, "--rebuild", help="Build again even where an atlas file is cached, "
+                                 "replacing a damaged or stale one."),
+) -> None:
+    """Build the atlas of a model (or find it built) in MODEL/atlas/, on Dask."""
+    from softphantom.estimation import EstimatorConfig
+    from softphantom.estimation.atlas import default_atlas_config, load_or_build
+    from softphantom.estimation.select import atlas_config_from_options
+
+    atlas_config_from_options(atlas_grid, envelope, atlas_x_axis, atlas_f_y_split)  # bad options fail first
+    if workers is not None and workers < 1:
+        raise UserError(f"--workers must be >= 1, got {workers}")
+    model = _model(model_dir)
+    acfg = atlas_config_from_options(atlas_grid, envelope, atlas_x_axis, atlas_f_y_split,
+                                     base=default_atlas_config(model.element_order))
+    built = load_or_build(model, EstimatorConfig(contact=_contact(at)), acfg, cache_dir=model_dir,
+                          scheduler=scheduler, n_workers=workers, rebuild=rebuild,
+                          log=lambda s: console.print(s, highlight=False, soft_wrap=True))
+    from softphantom.estimation.atlas import atlas_path
+
+    for piece in _pieces(built):
+        console.print(f"{atlas_path(model_dir, piece.key)}", highlight=False, soft_wrap=True)
+
+
+@atlas_app.command("info")
+def info_cmd(
+    files: list[Path] = typer.Argument(None, help="Atlas files (default: those of --model)."),
+    model_dir: Path = typer.Option(None, "--model", help="Model directory whose MODEL/atlas/ files to list."),
+) -> None:
+    """Describe atlas files: model, contact, envelope, grid, build cost, provenance."""
+    from softphantom.estimation.atlas import Atlas
+    from softphantom.estimation.atlas_store import describe, model_atlases
+
+    if not files:
+        if model_dir is None:
+            raise UserError("atlas info: give atlas files or --model DIR")
+        files = model_atlases(model_dir)
+        if not files:
+            console.print(f"{model_dir}: no atlas built yet (softphantom atlas build --model {model_dir})",
+                          highlight=False)
+            return
+    for f in files:
+        at = Atlas.load(f)
+        console.print(f"{f}", highlight=False, soft_wrap=True)
+        _print_rows(describe(at))
+
+
+@atlas_app.command("verify")
+def verify_cmd(
+    files: list[Path] = typer.Argument(None, help="Atlas files (default: every file in MODEL/atlas/)."),
+    model_dir: Path = MODEL_OPTION,
+) -> None:
+    """Check atlas files against a model: intact (digest), this softphantom's format, and built for
+    this model (the key recomputed from the model). Exit 2 naming each file that fails."""
+    from softphantom.estimation.atlas_store import model_atlases, verify_atlas
+
+    model = _model(model_dir)
+    files = files or model_atlases(model_dir)
+    if not files:
+        raise UserError(f"{model_dir}: no atlas files to verify (softphantom atlas build --model {model_dir})")
+    failed = 0
+    for f in files:
+        try:
+            at = verify_atlas(f, model)
+        except UserError as exc:
+            failed += 1
+            print_error(str(exc))
+            continue
+        console.print(f"ok  {f}  (key {at.key[:12]}…, {' × '.join(map(str, at.config.shape))} points)",
+                      highlight=False, soft_wrap=True)
+    if failed:
+        raise typer.Exit(2)
+
+
+@atlas_app.command("add")
+def add_cmd(
+    file: Path = typer.Argument(..., help="An atlas file built elsewhere (e.g. on a lab's cluster)."),
+    model_dir: Path = MODEL_OPTION,
+) -> None:
+    """Verify an atlas file against a model and install it in MODEL/atlas/ under its key."""
+    from softphantom.estimation.atlas_store import install_atlas
+
+    if not file.is_file():
+        raise UserError(f"{file}: no such atlas file")
+    dest, what = install_atlas(file, _model(model_dir), model_dir)
+    console.print(f"{what}: {dest}" if what != "present" else f"already present (intact): {dest}",
+                  highlight=False, soft_wrap=True)
