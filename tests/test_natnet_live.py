@@ -285,3 +285,114 @@ def test_multicast_on_loopback(stream):
         stop.set()
         th.join(5)
     assert got[:50] == list(range(got[0], got[0] + 50)) and stats.duplicates == 0 and stats.lost == 0
+
+
+def _estimate_file(tmp_path, t_end, clock_offset_s):
+    """An estimate that is the motion on the take's clock."""
+    t_est = np.arange(0.0, t_end, 1 / 77)
+    xe, ye = motion(t_est - clock_offset_s)
+    v = Pose6(xe, ye).to_mm_deg()
+    est = tmp_path / "est.csv"
+    write_table(est, {"softphantom": "test"}, {"t_s": t_est, **{c: v[:, k] for k, c in enumerate(Pose6.COLUMNS)}})
+    return est
+
+
+@pytest.mark.parametrize("suffix", [".mcap", ".csv"])
+def test_track_with_the_body_lost(tmp_path, capsys, suffix):
+    """Frames with the body lost (Motive clears tracking-valid) are recorded as gaps, counted in the
+    file and in the summary; the file is complete; a cut copy of it is reported by evaluate."""
+    lossy = simulate_tracker(FakeTruth(), TrackerConfig(seed=5, lost_fraction=0.05))
+    n = 200
+    lost = int((~lossy.valid[:n]).sum())
+    assert lost >= 3
+    port, stop, th = _serve(lossy, speed=4.0)
+    out = tmp_path / f"take{suffix}"
+    try:
+        code = main(["track", "--natnet", "127.0.0.1", "--command-port", str(port), "--data-port", "0",
+                     "--out", str(out), "--frames", str(n)])
+    finally:
+        stop.set()
+        th.join(5)
+    printed = capsys.readouterr()
+    assert code == 0, printed.err
+    assert f"{n} frames of 'bip' to {out} (complete): body lost in {lost}," in " ".join(printed.out.split())
+    assert b"NaN" not in out.read_bytes() and b"nan" not in out.read_bytes()
+    tru = read_truth(out)
+    assert len(tru.t) == n - lost and tru.meta["lost_frames"] == lost and tru.meta["warnings"] == []
+    assert tru.meta["frames"] == n and tru.meta["frames_body_lost"] == lost
+    # a copy cut short: evaluate says so, with the counts
+    data = out.read_bytes()
+    cut = tmp_path / f"cut{suffix}"
+    cut.write_bytes(data[: len(data) * 3 // 4])
+    est = _estimate_file(tmp_path, tru.t[-1], lossy.clock_offset_s)
+    code = main(["evaluate", "--estimate", str(est), "--truth", str(cut), "--out", str(tmp_path / "rep"), "--lag-ms", "0"])
+    printed = capsys.readouterr()
+    assert code == 0, printed.err
+    text = " ".join(printed.out.split())
+    want = "incomplete recording" if suffix == ".mcap" else "a row cut short (truncated file), dropped"
+    assert f"note: {cut}" in text and want in text, text
+    assert want in (tmp_path / "rep" / "report.html").read_text()
+
+
+def _connect_raw(port):
+    """A bare NatNet client: NAT_CONNECT from a UDP socket (the server then streams to it)."""
+    import socket
+
+    from softphantom.tracking.natnet import NAT_CONNECT, encode_request
+
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    s.bind(("127.0.0.1", 0))
+    s.sendto(encode_request(NAT_CONNECT, "Ping"), ("127.0.0.1", port))
+    return s
+
+
+def test_each_run_after_the_last_client_left_sees_the_whole_take(tmp_path, capsys, stream):
+    """A first attempt that failed (a wrong --body) has started the take; the next run sees it from
+    frame 1, since the first client said NAT_DISCONNECT when it closed."""
+    events = []
+    port, stop, th = _serve(stream, speed=2.0, on_event=events.append)
+    try:
+        base = ["track", "--natnet", "127.0.0.1", "--command-port", str(port), "--data-port", "0"]
+        assert main(base + ["--body", "nobody", "--out", str(tmp_path / "x.csv"), "--frames", "5"]) == 2
+        import time
+
+        time.sleep(0.5)  # the take would be 60 frames on by now
+        out = tmp_path / "take.mcap"
+        assert main(base + ["--out", str(out), "--frames", "30"]) == 0
+    finally:
+        stop.set()
+        th.join(5)
+    printed = " ".join(capsys.readouterr().out.split())
+    assert "joined a take" not in printed
+    tr = read_track(out)
+    np.testing.assert_allclose(tr.t[:30], stream.t_take[:30], atol=1e-9)
+    assert sum("the take starts" in e for e in events) == 2 and any("disconnected" in e for e in events), events
+
+
+def test_a_client_joining_a_running_take_is_warned(tmp_path, capsys, stream):
+    """Another client keeps the take running: a late ``track`` says it joined mid-take (on the
+    console, in the file, and evaluate says it again)."""
+    import time
+
+    events = []
+    port, stop, th = _serve(stream, speed=2.0, on_event=events.append)
+    other = _connect_raw(port)
+    try:
+        time.sleep(0.6)
+        out = tmp_path / "late.csv"
+        code = main(["track", "--natnet", "127.0.0.1", "--command-port", str(port), "--data-port", "0",
+                     "--out", str(out), "--frames", "100"])
+    finally:
+        other.close()
+        stop.set()
+        th.join(5)
+    printed = " ".join(capsys.readouterr().out.split())
+    assert code == 0
+    m = re.search(r"warning: joined a take already being recorded \(first frame (\d+), t = ([\d.]+) s\)", printed)
+    assert m and int(m.group(1)) > 100, printed  # 0.6 s at 2x speed, 120 Hz: about frame 144
+    k = int(m.group(1)) - 1
+    assert float(m.group(2)) == pytest.approx(stream.t_take[k], abs=1e-3)
+    assert any("joined the running take" in e for e in events), events
+    tru = read_truth(out)
+    assert tru.meta["joined_mid_take"] is True and tru.meta["first_frame"] == k + 1
+    assert any("joined a take already under way" in w for w in tru.meta["warnings"])

@@ -76,6 +76,8 @@ def track_cmd(
                              latency_ms=None if lat is None else lat * 1e3)
                     seen += 1
                     valid += ok
+                    if seen == 1 and st.joined_mid_take:
+                        console.print(f"warning: {_mid_take(st)}", style="yellow", highlight=False, markup=False)
                     if seen % 30 == 1:
                         rate = st.frames / max(time.monotonic() - st.started, 1e-9)
                         live.update(f"frames {st.frames} ({rate:.0f} Hz), body lost in {seen - valid}, frames lost "
@@ -83,10 +85,24 @@ def track_cmd(
                                     + ("" if lat is None else f", latency {lat * 1e3:.1f} ms"))
             except KeyboardInterrupt:
                 interrupted = True
+            sink.end_meta.update(
+                frames_missing=st.lost, duplicates=st.duplicates, reconnects=st.reconnects,
+                undecodable_packets=st.bad_packets, joined_mid_take=st.joined_mid_take,
+                first_frame=st.first_frame, first_t_s=st.first_timestamp_s,
+                stopped_by="Ctrl-C" if interrupted else ("--frames" if frames is not None and seen >= frames else
+                                                         "--duration-s"))
     if seen == 0:
+        out.unlink(missing_ok=True)  # it holds nothing
         raise UserError(f"no frame arrived from {natnet} (data port {data_port}); nothing recorded in {out}")
-    console.print(f"{seen} frames of {name!r} to {out}: body lost in "
-                  f"{seen - valid}, frames lost {st.lost}, duplicates {st.duplicates}, reconnects {st.reconnects}, "
+    console.print(f"{seen} frames of {name!r} to {out} (complete): body lost in {seen - valid}, "
+                  f"frames lost {st.lost}, duplicates {st.duplicates}, reconnects {st.reconnects}, "
                   f"undecodable packets {st.bad_packets}", highlight=False)
+    if st.joined_mid_take:
+        console.print(f"warning: {_mid_take(st)}", style="yellow", highlight=False, markup=False)
     if interrupted:
         stopped()  # the recording is closed and complete; exit 130
+
+
+def _mid_take(st) -> str:
+    return (f"joined a take already being recorded (first frame {st.first_frame}, t = {st.first_timestamp_s:.3f} s):"
+            " the start of the take is not in this recording")

@@ -4,9 +4,11 @@ then it is registered by its rest window (the rest pose is the model's rest pose
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import io
 import json
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -79,12 +81,17 @@ def write_table(path: str | Path, meta: dict, columns: dict[str, np.ndarray]) ->
 
 def read_table(path: str | Path) -> Table:
     """Read a softphantom CSV (metadata line optional); cells must be numbers except in the
-    text columns (``qp_status`` and any column whose cells are all non-numeric)."""
+    text columns (``qp_status`` and any column whose cells are all non-numeric). A last line
+    without its newline is a row cut short (a truncated file): it is dropped with a
+    :class:`~softphantom.sensing.recording.TruncatedRecordingWarning` naming its byte offset."""
     path = Path(path)
     try:
-        text = path.read_text(encoding="utf-8")
+        data = path.read_bytes()
     except OSError as exc:
         raise FileFormatError(f"{path}: cannot read ({exc.strerror})") from None
+    data, cut = drop_unterminated_line(data)
+    try:
+        text = data.decode("utf-8")
     except UnicodeDecodeError as exc:
         raise FileFormatError(f"{path}: byte {exc.start}: not UTF-8 text") from None
     lines = text.splitlines()
@@ -113,8 +120,7 @@ def read_table(path: str | Path) -> Table:
         if not any(c.strip() for c in r):
             continue
         if len(r) != len(header):
-            why = " (truncated file?)" if k == len(rows) - 2 and not text.endswith("\n") else ""
-            raise FileFormatError(f"{path}: line {lineno}: {len(r)} cells, the header has {len(header)}{why}")
+            raise FileFormatError(f"{path}: line {lineno}: {len(r)} cells, the header has {len(header)}")
         body.append((lineno, r))
     if not body:
         raise FileFormatError(f"{path}: line {first + 1}: header but no data rows")
@@ -135,7 +141,46 @@ def read_table(path: str | Path) -> Table:
             cols[name] = np.array(cells, dtype=str)
         else:
             raise FileFormatError(f"{path}: line {body[bad][0]}, column {name!r}: {cells[bad]!r} is not a number")
+    if cut:
+        warn_truncated(path, len(lines) + 1, *cut)
     return Table(meta, cols, str(path))
+
+
+def drop_unterminated_line(data: bytes) -> tuple[bytes, tuple[int, int] | None]:
+    """``data`` without a last line that lacks its newline (a row cut short), and ``(byte offset,
+    length)`` of what was dropped (None when the data end with a newline or are empty).
+
+    >>> drop_unterminated_line(b"t_s,x_mm\\n0.0,1.5\\n0.01,-2.2")
+    (b't_s,x_mm\\n0.0,1.5\\n', (17, 9))
+    """
+    if not data or data.endswith((b"\n", b"\r")):
+        return data, None
+    end = max(data.rfind(b"\n"), data.rfind(b"\r")) + 1
+    return data[:end], (end, len(data) - end)
+
+
+def warn_truncated(path, line: int, byte: int, nbytes: int) -> None:
+    """The one-line warning for a dropped last row (:func:`drop_unterminated_line`)."""
+    from softphantom.sensing.recording import TruncatedRecordingWarning
+
+    warnings.warn(f"{path}: line {line} (byte {byte}, {nbytes} bytes) ends without a newline: a row cut short"
+                  " (truncated file), dropped", TruncatedRecordingWarning, stacklevel=3)
+
+
+@contextlib.contextmanager
+def collect_truncation_warnings(into: list[str]):
+    """Move the truncation warnings raised inside into ``into`` (the file's ``meta["warnings"]``,
+    which ``evaluate`` reports); other warnings pass on."""
+    from softphantom.sensing.recording import TruncatedRecordingWarning
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        yield into
+    for w in caught:
+        if issubclass(w.category, TruncatedRecordingWarning):
+            into.append(str(w.message))
+        else:
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
 
 
 def _is_number(s: str) -> bool:
@@ -179,8 +224,12 @@ def series_from_table(tab: Table, what: str) -> Series6:
 
 
 def read_estimate(path: str | Path) -> Series6:
-    """Read an estimate file (``softphantom estimate --out``)."""
-    return series_from_table(read_table(path), "estimate")
+    """Read an estimate file (``softphantom estimate --out``); ``meta["warnings"]``: a dropped
+    truncated last row."""
+    with collect_truncation_warnings([]) as warned:
+        est = series_from_table(read_table(path), "estimate")
+    est.meta["warnings"] = warned
+    return est
 
 
 def _is_softphantom_csv(head: bytes) -> bool:
@@ -214,15 +263,15 @@ def read_truth(
     from softphantom.tracking.io import sniff_bytes
 
     path = Path(path)
-    if path.is_file():
-        try:
-            with path.open("rb") as fh:
-                head = fh.read(8192)
-        except OSError as exc:
-            raise FileFormatError(f"{path}: cannot read ({exc.strerror})") from None
-        if sniff_bytes(head) is None and _is_softphantom_csv(head):
-            return series_from_table(read_table(path), "truth")
-    track = read_track(path, body=body, clock=clock, **options)
+    warned: list[str] = []
+    with collect_truncation_warnings(warned):
+        own_csv = path.is_file() and sniff_bytes(head := _head(path)) is None and _is_softphantom_csv(head)
+        if own_csv:
+            tab = read_table(path)
+        else:
+            track = read_track(path, body=body, clock=clock, **options)
+    if own_csv:
+        return _truth_csv(path, tab, warned)
     if track.meta.get("registered"):  # already relative to rest in the model frame
         if tracker_to_model is not None:
             raise FileFormatError(f"{track.source}: the poses are already in the model frame; no transform applies")
@@ -233,7 +282,52 @@ def read_truth(
     p6 = track_pose6(reg)
     meta = dict(reg.meta)
     meta.update(clock=reg.clock, body=reg.name, tracker_rate_hz=track.rate_hz, lost_frames=int((~v).sum()))
+    meta["warnings"] = warned + _recording_warnings(path, meta, len(track))
     return Series6(reg.t[v], Pose6(p6.xyz[v], p6.ypr[v]), meta=meta, source=reg.source)
+
+
+def _head(path: Path) -> bytes:
+    try:
+        with path.open("rb") as fh:
+            return fh.read(8192)
+    except OSError as exc:
+        raise FileFormatError(f"{path}: cannot read ({exc.strerror})") from None
+
+
+def _truth_csv(path: Path, tab: Table, warned: list[str]) -> Series6:
+    """A truth CSV; the counts of one that ``softphantom track`` wrote (gap rows, ``complete``,
+    ``frames``) checked."""
+    if "t_s" in tab.columns and all(k in tab.columns for k in POSE_COLUMNS):
+        pose = np.column_stack([tab.columns[k] for k in POSE_COLUMNS])
+        n = len(pose)
+        lost = int(np.sum(np.isfinite(tab.columns["t_s"]) & ~np.all(np.isfinite(pose), axis=1)))
+        if lost == n:
+            raise FileFormatError(f"{path}: no pose: the body lost in all {n} frames")
+        tab.meta.setdefault("lost_frames", lost)
+    series = series_from_table(tab, "truth")
+    series.meta["warnings"] = warned + _recording_warnings(path, series.meta, len(tab.columns.get("t_s", ())))
+    return series
+
+
+def _recording_warnings(path, meta: dict, frames: int) -> list[str]:
+    """What ``evaluate`` should say about how the truth was recorded: not closed after its last
+    frame (``meta["complete"]`` False), fewer frames than its metadata counts, or joined a take
+    already under way."""
+    out = []
+    lost = meta.get("lost_frames", 0)
+    missing = meta.get("frames_missing", 0)
+    counts = f"{frames} frames, body lost in {lost}" + (f", {missing} missing from the frame numbering" if missing else "")
+    expected = meta.get("frames")
+    if meta.get("complete") is False:
+        out.append(f"{path}: incomplete recording: the session that wrote it did not close it (it failed or was"
+                   f" killed; up to its last second may be missing): {counts}")
+    elif isinstance(expected, int) and frames < expected:
+        out.append(f"{path}: {frames} of the {expected} frames its metadata counts: the file was cut short"
+                   f" (truncated copy?); body lost in {lost}")
+    if meta.get("joined_mid_take") is True:
+        out.append(f"{path}: the recording joined a take already under way (first frame {meta.get('first_frame')}):"
+                   " the start of the take is missing, and the rest window is taken from where it joined")
+    return out
 
 
 def write_truth(path: str | Path, series: Series6, meta: dict | None = None) -> Path:

@@ -92,7 +92,7 @@ class Evaluation:
 def evaluate(truth: Series6, estimate: Series6, lag_ms: float | None = None, max_lag_s: float = 1.0) -> Evaluation:
     """Compare an estimate with the truth. ``lag_ms`` None: measure it by cross-correlation of the
     six DoF (sign: positive = the estimate comes later than the truth)."""
-    notes = []
+    notes = [*truth.meta.get("warnings", ()), *estimate.meta.get("warnings", ())]  # e.g. an incomplete file
     t_truth, t_est, rezeroed = shift_to_common_start(truth.t, estimate.t)
     if rezeroed:
         notes.append("the truth and estimate clocks do not overlap: both re-zeroed at their first sample")

@@ -128,6 +128,7 @@ class SessionRecorder:
         meta = {"softphantom": __version__, "created_unix_s": f"{time.time():.3f}"}
         meta.update({str(k): str(v) for k, v in (metadata or {}).items()})
         self._w.add_metadata("softphantom", meta)
+        self._meta = meta
         self._channels: dict[str, int] = {}
         for topic, schema in _SCHEMAS.items():
             sid = self._w.register_schema(schema["title"], "jsonschema", json.dumps(schema).encode())
@@ -169,13 +170,30 @@ class SessionRecorder:
             os.fsync(self._fh.fileno())
         self._last_flush = time.monotonic()
 
-    def close(self) -> None:
-        """Finish the file (summary, index, footer). Idempotent."""
+    def close(self, metadata: Mapping[str, str] | None = None) -> None:
+        """Finish the file (summary, index, footer). Idempotent. ``metadata``: what is known only
+        at the end (counts), added in a last ``softphantom`` metadata record (readers take the last)."""
         if self._closed:
             return
         self._closed = True
+        if metadata:
+            self._w.flush()
+            self._w.add_metadata("softphantom", {**self._meta, **{str(k): str(v) for k, v in metadata.items()}})
         self._w.finish()
         self._fh.close()
+
+    def abort(self) -> None:
+        """Close without the summary and footer, for a session that failed: the file then reads as a
+        killed one's (``complete`` False, every flushed chunk kept)."""
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            self._w.flush()
+        except Exception:  # the writer may be what failed: keep what already reached the file
+            pass
+        finally:
+            self._fh.close()
 
     def __enter__(self) -> "SessionRecorder":
         return self

@@ -146,7 +146,20 @@ def message_to_estimate(m: Mapping[str, Any]) -> Estimate:
 
 def encode(message: Mapping[str, Any]) -> bytes:
     """Compact JSON bytes (UTF-8, no NaN: non-finite numbers are ``null``)."""
-    return json.dumps(message, separators=(",", ":"), allow_nan=False).encode()
+    try:
+        return json.dumps(message, separators=(",", ":"), allow_nan=False).encode()
+    except ValueError:  # a non-finite number somewhere (e.g. a lost tracker frame): rarely, so not checked first
+        return json.dumps(_finite(message), separators=(",", ":"), allow_nan=False).encode()
+
+
+def _finite(v: Any) -> Any:
+    if isinstance(v, float):
+        return v if math.isfinite(v) else None
+    if isinstance(v, Mapping):
+        return {k: _finite(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_finite(x) for x in v]
+    return v
 
 
 def _num_schema(desc: str) -> dict:

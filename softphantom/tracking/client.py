@@ -6,7 +6,12 @@ come by multicast), then asks for the model definitions. Frames arrive on the da
 multicast (group 239.255.42.99 joined on ``local``) or by unicast; a unicast server may also send
 them to the command socket, so both are read. In unicast the client sends a keep-alive every
 second. When no frame arrives for ``reconnect_s`` the client connects again (Motive restarted, a
-cable pulled) and counts it; gaps in the frame numbers are counted as lost frames.
+cable pulled) and counts it; gaps in the frame numbers are counted as lost frames. Closing sends
+``NAT_DISCONNECT``.
+
+The first frame is kept in the stats: when it already carries the recording flag on a frame number
+above 1, the client joined a take under way (Motive recording, or a running take of
+``virtual serve --natnet``): :attr:`ClientStats.joined_mid_take`.
 """
 
 from __future__ import annotations
@@ -23,6 +28,7 @@ from softphantom.tracking.natnet import (
     DATA_PORT,
     MULTICAST_GROUP,
     NAT_CONNECT,
+    NAT_DISCONNECT,
     NAT_FRAMEOFDATA,
     NAT_KEEPALIVE,
     NAT_MODELDEF,
@@ -62,7 +68,7 @@ class NatNetConfig:
 @dataclass
 class ClientStats:
     """Counters of a session: frames received, lost (gaps in the frame numbers), duplicates,
-    undecodable packets, reconnections."""
+    undecodable packets, reconnections; the first frame's number, timestamp and recording flag."""
 
     frames: int = 0
     lost: int = 0
@@ -72,6 +78,14 @@ class ClientStats:
     last_frame: int | None = None
     last_error: str = ""
     started: float = field(default_factory=time.monotonic)
+    first_frame: int | None = None
+    first_timestamp_s: float | None = None
+    first_recording: bool = False
+
+    @property
+    def joined_mid_take(self) -> bool:
+        """The first frame came from a take being recorded, and was not its first."""
+        return self.first_recording and (self.first_frame or 0) > 1
 
 
 class NatNetClient:
@@ -250,10 +264,15 @@ class NatNetClient:
                     if f.frame_number > last + 1:
                         self.stats.lost += f.frame_number - last - 1
                 self.stats.last_frame = f.frame_number
+                if self.stats.frames == 0:
+                    self.stats.first_frame, self.stats.first_timestamp_s = f.frame_number, f.timestamp_s
+                    self.stats.first_recording = f.is_recording
                 self.stats.frames += 1
                 yield t_rx, f
 
     def close(self) -> None:
+        if self._cmd is not None and self.info is not None:
+            self._send(NAT_DISCONNECT)  # the server stops sending to this client at once
         for s in (self._cmd, self._data):
             if s is not None:
                 s.close()

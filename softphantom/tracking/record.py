@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import time
 from pathlib import Path
 
@@ -60,20 +61,33 @@ class RestRegistrar:
         p = np.where(np.asarray(v)[:, None], np.asarray(p, float), np.nan)
         return make_track(np.asarray(t), p, np.asarray(q, float), clock="tracker", source="live", name=self.name)
 
-    def take(self, finish: bool = False) -> dict[str, np.ndarray] | None:
+    def take(self, finish: bool = False, gaps: bool = False) -> dict[str, np.ndarray] | None:
         """The registered rows so far (None before the rest pose is known); ``finish``: a session
-        shorter than the rest window takes all of it as rest."""
+        shorter than the rest window takes all of it as rest; ``gaps``: lost samples kept (NaN),
+        and at ``finish`` a body never seen gives all its samples as gaps."""
         if self.rest is None and finish and any(p[3] for p in self._pending):
             self._set_rest(min(p[0] for p in self._pending if p[3]), math.inf)
-        if self.rest is None or not self._pending:
+        if not self._pending or (self.rest is None and not (finish and gaps)):
             return None
-        cols = pose_columns(register_track(self._track(), rest=self.rest))
+        if self.rest is None:
+            t = np.array([p[0] for p in self._pending])
+            cols = {"t_s": t, **{k: np.full(len(t), np.nan) for k in Pose6.COLUMNS}}
+        else:
+            cols = pose_columns(register_track(self._track(), rest=self.rest), keep_lost=gaps)
         self._pending.clear()
         return cols
 
 
 class TrackerSink:
-    """Write tracker samples to ``path`` (``.mcap`` or ``.csv``), see the module docstring."""
+    """Write tracker samples to ``path`` (``.mcap`` or ``.csv``), see the module docstring.
+
+    A lost frame (``valid`` False) is an explicit gap: ``null`` pose on ``/tracker``, a row with the
+    time and empty pose cells in the CSV; never NaN. The file's metadata says ``complete`` false
+    from the start; closing after the last frame (leaving the ``with`` without an exception, no
+    write cut short) sets it true and adds the counts (``frames``, ``frames_body_lost`` and
+    :attr:`end_meta`, e.g. the client's lost frames). A session that fails stays incomplete (an
+    MCAP without its summary, as a killed one; the CSV's header keeps ``complete`` false).
+    """
 
     def __init__(self, path, *, body: str, meta: dict | None = None, rest_window_s: float = DEFAULT_REST_WINDOW_S):
         self.path = Path(path)
@@ -84,73 +98,126 @@ class TrackerSink:
             raise UserError(f"--out must name a .mcap (session recording) or .csv (truth CSV) file, got {self.path}")
         self.rest_window_s = rest_window_s
         self.samples = 0
+        self.body_lost = 0
+        #: what the caller adds to the file's metadata at a clean close (client counters, how it stopped)
+        self.end_meta: dict = {}
         self._rec = None
         self._fh = None
         self._reg = RestRegistrar(body, rest_window_s)
-        self._header = False
+        self._header: dict | None = None
+        self._writing = False  # True while a write is under way: an exception then cuts it short
         self._last_flush = time.monotonic()
         if self.kind == ".mcap":
             from softphantom.stream.recording import SessionRecorder
 
-            self._rec = SessionRecorder(self.path, metadata={k: str(v) for k, v in self.meta.items()})
+            self._rec = SessionRecorder(self.path, metadata=_strings(self._start_meta()))
         else:
             try:
                 self._fh = open(self.path, "w", newline="")
             except OSError as exc:
                 raise UserError(f"cannot write {self.path}: {exc.strerror}") from None
 
+    def _start_meta(self) -> dict:
+        return {**self.meta, "body": self.body, "complete": False}
+
     def add(self, t: float, position, quat_xyzw, valid: bool, *, frame: int | None = None,
             latency_ms: float | None = None) -> None:
         """One sample: ``t`` s (the tracker's clock), position m and quaternion in the tracker frame."""
+        self._writing = True
         self.samples += 1
+        self.body_lost += not valid
         if self._rec is not None:
-            msg = {"t_s": float(t), "valid": bool(valid), "name": self.body,
-                   "position_m": [float(x) for x in position], "quat_xyzw": [float(x) for x in quat_xyzw]}
-            if frame is not None:
-                msg["frame"] = int(frame)
-            if latency_ms is not None:
-                msg["latency_ms"] = float(latency_ms)
-            self._rec.write_tracker(msg)
-            return
-        self._reg.add(t, position, quat_xyzw, valid)
-        if self._reg.rest is not None and time.monotonic() - self._last_flush >= FLUSH_S:
-            self.flush()
+            self._rec.write_tracker(tracker_raw_message(t, position, quat_xyzw, valid, self.body, frame, latency_ms))
+        else:
+            self._reg.add(t, position, quat_xyzw, valid)
+            if self._reg.rest is not None and time.monotonic() - self._last_flush >= FLUSH_S:
+                self.flush()
+        self._writing = False
 
     def _write_header(self) -> None:
         from softphantom import __version__
 
         r = self._reg
-        meta = {"softphantom": __version__, **self.meta, "body": self.body, "registration": "rest window",
-                "rest_window_s": [r.t0, r.t0 + self.rest_window_s], "rest_spread_m": float(r.rest.rms_residual)}
-        self._fh.write("# " + json.dumps(meta, default=str) + "\n" + ",".join(("t_s",) + Pose6.COLUMNS) + "\n")
-        self._header = True
+        rest = r.rest is not None
+        self._header = {"softphantom": __version__, **self._start_meta(), "registration": "rest window",
+                        "rest_window_s": [r.t0, r.t0 + self.rest_window_s] if rest else None,
+                        "rest_spread_m": float(r.rest.rms_residual) if rest else None}
+        self._fh.write("# " + json.dumps(self._header, default=str) + "\n" + ",".join(("t_s",) + Pose6.COLUMNS) + "\n")
 
     def flush(self, finish: bool = False) -> None:
         if self._rec is not None:
             self._rec.flush()
             return
-        cols = self._reg.take(finish)
+        cols = self._reg.take(finish, gaps=True)
         if cols is None:
             return
-        if not self._header:
+        if self._header is None:
             self._write_header()
         names = ("t_s",) + Pose6.COLUMNS
-        for row in zip(*(cols[k] for k in names)):
-            self._fh.write(",".join(repr(float(x)) for x in row) + "\n")
+        self._fh.write("".join(",".join(_cell(x) for x in row) + "\n" for row in zip(*(cols[k] for k in names))))
         self._fh.flush()
         self._last_flush = time.monotonic()
 
-    def close(self) -> None:
+    def close(self, complete: bool = True) -> None:
+        """Close the file; ``complete`` False (or a write cut short) leaves it marked incomplete."""
+        complete = complete and not self._writing
+        end = {"complete": complete, "frames": self.samples, "frames_body_lost": self.body_lost, **self.end_meta}
         if self._rec is not None:
-            self._rec.close()
-            self._rec = None
+            rec, self._rec = self._rec, None
+            if complete:
+                rec.close(metadata=_strings(end))
+            else:
+                rec.abort()
         if self._fh is not None:
-            self.flush(finish=True)
-            self._fh.close()
-            self._fh = None
+            try:
+                self.flush(finish=True)
+                if self._header is None:  # not one sample
+                    self._write_header()
+            except Exception:
+                if complete:
+                    raise
+                # the session failed already: keep what was written, and its error
+            finally:
+                self._fh.close()
+                self._fh = None
+            if complete:
+                self._rewrite_header({**self._header, **end})
+
+    def _rewrite_header(self, meta: dict) -> None:
+        """The metadata line with the final counts, atomically (a crash here keeps the file as it was)."""
+        text = self.path.read_text()
+        tmp = self.path.with_name(f".{self.path.name}.partial-{os.getpid()}")
+        try:
+            tmp.write_text("# " + json.dumps(meta, default=str) + "\n" + text.partition("\n")[2])
+            os.replace(tmp, self.path)
+        finally:
+            tmp.unlink(missing_ok=True)
 
     def __enter__(self) -> "TrackerSink":
         return self
 
-    def __exit__(self, *exc) -> None:
-        self.close()
+    def __exit__(self, exc_type, *exc) -> None:
+        self.close(complete=exc_type is None)
+
+
+def _strings(meta: dict) -> dict[str, str]:
+    """MCAP metadata values (strings; JSON's spelling of booleans and None)."""
+    return {k: json.dumps(v) if isinstance(v, (bool, type(None))) else str(v) for k, v in meta.items()}
+
+
+def _cell(x: float) -> str:
+    """A CSV cell: the shortest exact repr, empty for a gap."""
+    return repr(float(x)) if math.isfinite(x) else ""
+
+
+def tracker_raw_message(t: float, position, quat_xyzw, valid: bool, name: str, frame: int | None = None,
+                        latency_ms: float | None = None) -> dict:
+    """The ``/tracker`` message of a raw tracker pose (tracker frame, m); a lost body's pose is ``None``."""
+    msg = {"t_s": float(t), "valid": bool(valid), "name": name,
+           "position_m": [float(x) for x in position] if valid else None,
+           "quat_xyzw": [float(x) for x in quat_xyzw] if valid else None}
+    if frame is not None:
+        msg["frame"] = int(frame)
+    if latency_ms is not None:
+        msg["latency_ms"] = float(latency_ms)
+    return msg

@@ -8,11 +8,14 @@ A ``/tracker`` message carries the body's pose in one of two forms (both may be 
 - registered: ``x_mm … roll_deg`` relative to rest in the model frame (the live view's tracker);
   the track is then taken as it is (``meta["registered"]``).
 
-``t_s`` is the clock, ``valid`` marks lost frames, ``name`` the body.
+``t_s`` is the clock, ``valid`` marks lost frames (their pose ``null``), ``name`` the body.
+``meta["complete"]`` is False for a recording that was not closed after its last frame (killed,
+or its session failed); its messages up to the last complete chunk are read.
 """
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -22,6 +25,14 @@ from softphantom.pose import matrix_from_ypr, quat_from_matrix
 from softphantom.tracking.track import PoseTrack, make_track, pick_body
 
 _REL = ("x_mm", "y_mm", "z_mm", "yaw_deg", "pitch_deg", "roll_deg")
+
+
+def _json(text: str):
+    """A metadata value as ``track`` wrote it (JSON numbers, booleans, null); else the text."""
+    try:
+        return json.loads(text)
+    except ValueError:
+        return text
 
 
 def _num(v) -> float:
@@ -52,8 +63,8 @@ def read_recorded_tracker(path: str | Path, body: str | None = None) -> PoseTrac
     valid = np.array([bool(m.get("valid", True)) for m in msgs])
     raw = all("position_m" in m and "quat_xyzw" in m for m in msgs)
     if raw:
-        pos = np.array([[_num(x) for x in m["position_m"]] for m in msgs]).reshape(-1, 3)
-        quat = np.array([[_num(x) for x in m["quat_xyzw"]] for m in msgs]).reshape(-1, 4)
+        pos = np.array([[_num(x) for x in m["position_m"] or (None,) * 3] for m in msgs]).reshape(-1, 3)
+        quat = np.array([[_num(x) for x in m["quat_xyzw"] or (None,) * 4] for m in msgs]).reshape(-1, 4)
     elif all(k in m for m in msgs for k in _REL):
         v = np.array([[_num(m[k]) for k in _REL] for m in msgs])
         pos = v[:, :3] * 1e-3
@@ -66,9 +77,13 @@ def read_recorded_tracker(path: str | Path, body: str | None = None) -> PoseTrac
             f"{label}: /tracker message {msgs[0].get('t_s')!r} has neither position_m/quat_xyzw nor x_mm..roll_deg"
         )
     pos[~valid] = np.nan
-    meta = {"format": "softphantom-mcap", "registered": not raw, "complete": rec.complete,
+    # complete: closed after its last frame (MCAP's footer; ``track`` also says so in its last metadata record)
+    complete = rec.complete and rec.metadata.get("complete", "true") != "false"
+    meta = {"format": "softphantom-mcap", "registered": not raw, "complete": complete,
             "frame": "tracker" if raw else "model (relative to rest)",
-            **{k: rec.metadata[k] for k in ("softphantom", "natnet_server", "natnet_version") if k in rec.metadata}}
+            **{k: rec.metadata[k] for k in ("softphantom", "natnet_server", "natnet_version") if k in rec.metadata},
+            **{k: _json(rec.metadata[k]) for k in ("frames", "frames_body_lost", "joined_mid_take", "first_frame")
+               if k in rec.metadata}}
     frames = [m["frame"] for m in msgs if "frame" in m]
     if frames:
         meta["frames_missing"] = int(frames[-1] - frames[0] + 1 - len(set(frames)))

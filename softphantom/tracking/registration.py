@@ -109,10 +109,10 @@ def track_pose6(track: PoseTrack) -> Pose6:
     return Pose6(track.position.copy(), ypr)
 
 
-def pose_columns(track: PoseTrack) -> dict[str, np.ndarray]:
+def pose_columns(track: PoseTrack, keep_lost: bool = False) -> dict[str, np.ndarray]:
     """The truth file's columns of a registered track: ``t_s`` and the 6 DoF in mm and degrees
-    (lost frames dropped)."""
-    v = track.valid
+    (lost frames dropped, or kept as NaN with ``keep_lost``)."""
+    v = np.ones(len(track), bool) if keep_lost else track.valid
     cols = {"t_s": track.t[v]}
     vals = track_pose6(track).to_mm_deg()[v]
     for k, name in enumerate(Pose6.COLUMNS):
