@@ -13,6 +13,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from tracker_paths import shared  # noqa: E402
 
 from softphantom.errors import FileFormatError  # noqa: E402
+from softphantom.sensing.recording import TruncatedRecordingWarning  # noqa: E402
 from softphantom.tracking import detect_format, read_track  # noqa: E402
 from softphantom.tracking.natnet import (  # noqa: E402
     NAT_FRAMEOFDATA,
@@ -259,9 +260,21 @@ def test_capture_without_server_info(tmp_path):
 def test_capture_broken(tmp_path):
     p = write_capture(tmp_path / "s.pcap", session((3, 0)))
     data = p.read_bytes()
+    full = read_track(p, body="bip")
     cut = tmp_path / "cut.pcap"
-    cut.write_bytes(data[: len(data) - 30])
-    with pytest.raises(FileFormatError, match=r"natnet-pcap\): packet \d+: the record holds only \d+ bytes.*truncated capture"):
+    cut.write_bytes(data[: len(data) - 30])  # the capturing program killed inside the last record
+    last = len(data) - (16 + len(split_packet(encode_frame(synthetic_frame(119), (3, 0)))[1]) + 4 + 42)
+    with pytest.warns(TruncatedRecordingWarning, match=rf"natnet-pcap\): the capture ends inside the record at byte"
+                      rf" {last} \({len(data) - 30 - last} bytes of it\): a packet cut short, dropped"):
+        tr = read_track(cut, body="bip")
+    np.testing.assert_array_equal(tr.position, full.position[:-1])
+    # a record cut by the capture's snap length (not by the end of the file) is refused
+    snap = bytearray(data)
+    first = 24 + 16 + int.from_bytes(data[32:36], "little")  # the 2nd record: model definitions
+    n = int.from_bytes(data[first + 8:first + 12], "little")
+    snap[first + 8:first + 12] = (60).to_bytes(4, "little")
+    cut.write_bytes(bytes(snap[: first + 16 + 60]) + bytes(snap[first + 16 + n:]))
+    with pytest.raises(FileFormatError, match=r"natnet-pcap\): packet 2: the record holds only 60 bytes.*snap length"):
         read_track(cut, body="bip")
     empty = write_capture(tmp_path / "e.pcap", [(1.0, b"\x08\x00\x03\x00hi\x00", True)])
     with pytest.raises(FileFormatError, match=r"no NatNet FrameOfData among its 1 UDP datagrams"):

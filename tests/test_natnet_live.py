@@ -329,7 +329,7 @@ def test_track_with_the_body_lost(tmp_path, capsys, suffix):
     printed = capsys.readouterr()
     assert code == 0, printed.err
     text = " ".join(printed.out.split())
-    want = "incomplete recording" if suffix == ".mcap" else "a row cut short (truncated file), dropped"
+    want = "incomplete recording" if suffix == ".mcap" else "a row cut short, dropped (truncated file)"
     assert f"note: {cut}" in text and want in text, text
     assert want in (tmp_path / "rep" / "report.html").read_text()
 

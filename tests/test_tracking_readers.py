@@ -8,6 +8,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from softphantom.errors import FileFormatError
+from softphantom.sensing.recording import TruncatedRecordingWarning
 from softphantom.tracking import detect_format, pose_topics, read_track, rigid_bodies
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -49,8 +50,33 @@ def test_motive_body_choice_errors_list_bodies():
 
 
 def test_motive_truncated_names_line():
-    with pytest.raises(FileFormatError, match=r"line 16: row has \d+ cells.*truncated"):
-        read_track(OWN / "motive_truncated.csv", body="bip")
+    """Cut inside frame 8, no final newline: the rows before it are read as they are, the cut one is
+    dropped with a warning naming its line and byte (and the frames the header counts)."""
+    with pytest.warns(TruncatedRecordingWarning, match=r"line 16 \(byte 2074, 28 bytes\) ends without a newline: a row"
+                      r" cut short, dropped; 8 of the 12 frames its metadata counts"):
+        tr = read_track(OWN / "motive_truncated.csv", body="bip")
+    full = read_track(OWN / "motive_mm_euler.csv", body="bip")
+    np.testing.assert_array_equal(tr.t, full.t[:8])
+    np.testing.assert_array_equal(tr.position, full.position[:8])
+
+
+def test_real_motive_cut_inside_a_number():
+    """The last row's position z ``-2.209460`` cut to ``-2.2`` (9.5 mm off) is not read as a value."""
+    data = shared("motive_fv1.23_quaternion_m_120Hz_lostframe.csv").read_bytes()
+    last = data.rindex(b"\n498,")
+    cut = data.index(b"-2.209460", last) + len(b"-2.2")
+    full = read_track(shared("motive_fv1.23_quaternion_m_120Hz_lostframe.csv"))
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as d:
+        p = Path(d) / "cut.csv"
+        p.write_bytes(data[:cut])
+        with pytest.warns(TruncatedRecordingWarning, match=rf"line 506 \(byte {last + 1}, {cut - last - 1} bytes\).*"
+                          r"498 of the 499 frames"):
+            tr = read_track(p)
+    assert len(tr) == 498 and len(full) == 499
+    np.testing.assert_array_equal(tr.position, full.position[:498])
+    np.testing.assert_array_equal(tr.quat_xyzw, full.quat_xyzw[:498])
 
 
 def test_motive_malformed_cell_names_line_and_column():

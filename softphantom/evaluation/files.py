@@ -16,6 +16,7 @@ import numpy as np
 
 from softphantom.errors import FileFormatError
 from softphantom.pose import Pose6
+from softphantom.tracking.track import cut_row_note, drop_unterminated_line, warn_truncated
 
 POSE_COLUMNS = Pose6.COLUMNS
 FORCE_COLUMNS = ("force_x_N", "force_y_N", "force_z_N")
@@ -142,29 +143,8 @@ def read_table(path: str | Path) -> Table:
         else:
             raise FileFormatError(f"{path}: line {body[bad][0]}, column {name!r}: {cells[bad]!r} is not a number")
     if cut:
-        warn_truncated(path, len(lines) + 1, *cut)
+        warn_truncated(f"{path}: {cut_row_note(cut)}")
     return Table(meta, cols, str(path))
-
-
-def drop_unterminated_line(data: bytes) -> tuple[bytes, tuple[int, int] | None]:
-    """``data`` without a last line that lacks its newline (a row cut short), and ``(byte offset,
-    length)`` of what was dropped (None when the data end with a newline or are empty).
-
-    >>> drop_unterminated_line(b"t_s,x_mm\\n0.0,1.5\\n0.01,-2.2")
-    (b't_s,x_mm\\n0.0,1.5\\n', (17, 9))
-    """
-    if not data or data.endswith((b"\n", b"\r")):
-        return data, None
-    end = max(data.rfind(b"\n"), data.rfind(b"\r")) + 1
-    return data[:end], (end, len(data) - end)
-
-
-def warn_truncated(path, line: int, byte: int, nbytes: int) -> None:
-    """The one-line warning for a dropped last row (:func:`drop_unterminated_line`)."""
-    from softphantom.sensing.recording import TruncatedRecordingWarning
-
-    warnings.warn(f"{path}: line {line} (byte {byte}, {nbytes} bytes) ends without a newline: a row cut short"
-                  " (truncated file), dropped", TruncatedRecordingWarning, stacklevel=3)
 
 
 @contextlib.contextmanager

@@ -7,7 +7,8 @@ payload's length) is taken, whatever the ports. The NatNet version comes from th
 in the capture, else from ``natnet_version=`` (e.g. ``"4.1"``), else from the frames' layout when
 exactly one version reads them to their end; the rigid body's name from the model definitions, when
 captured (else give its numeric id). A frame seen twice (multicast and unicast both captured) counts
-once; gaps in the frame numbers are counted in ``meta["frames_missing"]``.
+once; gaps in the frame numbers are counted in ``meta["frames_missing"]``. A capture cut inside its
+last record (the capturing program killed) is read up to that record, with a warning naming its byte.
 
 The clock is Motive's frame timestamp (``natnet_timestamp``, s since Motive's clock started);
 ``meta["capture_minus_timestamp_s"]`` is the median offset of the capture's own clock.
@@ -15,6 +16,8 @@ The clock is Motive's frame timestamp (``natnet_timestamp``, s since Motive's cl
 
 from __future__ import annotations
 
+import io
+import struct
 from pathlib import Path
 
 import numpy as np
@@ -31,7 +34,7 @@ from softphantom.tracking.natnet import (
     decode_server_info,
     frame_version_from_size,
 )
-from softphantom.tracking.track import PoseTrack, make_track
+from softphantom.tracking.track import PoseTrack, make_track, warn_truncated
 
 _NATNET_IDS = (NAT_SERVERINFO, NAT_MODELDEF, NAT_FRAMEOFDATA)
 
@@ -52,15 +55,44 @@ def parse_version(text: str) -> tuple[int, int]:
     return v
 
 
-def udp_payloads(path: Path, label: str):
-    """``(capture time s, UDP payload, (src, sport, dst, dport))`` of every UDP/IPv4 datagram."""
+def complete_records_end(data: bytes) -> int:
+    """Where the last whole record of a pcap or pcapng capture ends (``len(data)`` unless the file
+    was cut inside a record; a header too short to tell is left to the reader to refuse).
+
+    >>> hdr = b"\\xd4\\xc3\\xb2\\xa1" + bytes(20); rec = bytes(8) + (4).to_bytes(4, "little") * 2 + b"abcd"
+    >>> complete_records_end(hdr + rec + rec[:10]), len(hdr + rec)
+    (44, 44)
+    """
+    if data[:4] == b"\x0a\x0d\x0d\x0a":  # pcapng: blocks of type, total length (each section says its byte order)
+        off, order = 0, "<"
+        while off + 12 <= len(data):
+            if data[off:off + 4] == b"\x0a\x0d\x0d\x0a":
+                order = "<" if data[off + 8:off + 12] == b"\x4d\x3c\x2b\x1a" else ">"
+            (length,) = struct.unpack_from(order + "I", data, off + 4)
+            if length < 12 or off + length > len(data):
+                break
+            off += length
+        return off if off >= 12 else len(data)
+    if len(data) < 24 or data[:4] not in _PCAP_ORDER:
+        return len(data)
+    order, off = _PCAP_ORDER[data[:4]], 24
+    while off + 16 <= len(data):
+        (caplen,) = struct.unpack_from(order + "I", data, off + 8)
+        if off + 16 + caplen > len(data):
+            break
+        off += 16 + caplen
+    return off
+
+
+_PCAP_ORDER = {b"\xd4\xc3\xb2\xa1": "<", b"\x4d\x3c\xb2\xa1": "<", b"\xa1\xb2\xc3\xd4": ">", b"\xa1\xb2\x3c\x4d": ">"}
+
+
+def udp_payloads(data: bytes, label: str):
+    """``(capture time s, UDP payload, (src, sport, dst, dport))`` of every UDP/IPv4 datagram of
+    the capture ``data``."""
     import dpkt
 
-    try:
-        fh = path.open("rb")
-    except OSError as exc:
-        raise FileFormatError(f"{path}: cannot read ({exc.strerror})") from None
-    with fh:
+    with io.BytesIO(data) as fh:
         try:
             head = fh.read(4)
             fh.seek(0)
@@ -136,10 +168,15 @@ def read_natnet_capture(path: str | Path, body: str | None = None, natnet_versio
     """Read one rigid body from a pcap/pcapng capture of a NatNet stream (see the module docstring)."""
     path = Path(path)
     label = f"{path} (natnet-pcap)"
+    try:
+        capture = path.read_bytes()
+    except OSError as exc:
+        raise FileFormatError(f"{path}: cannot read ({exc.strerror})") from None
+    end = complete_records_end(capture)  # a capture cut inside its last record (tcpdump killed): drop that record
     info = defs = None
     frames_raw: list[tuple[float, bytes]] = []
     udp = 0
-    for ts, data, _addr in udp_payloads(path, label):
+    for ts, data, _addr in udp_payloads(capture[:end], label):
         udp += 1
         if len(data) < 4:
             continue
@@ -211,6 +248,9 @@ def read_natnet_capture(path: str | Path, body: str | None = None, natnet_versio
     }
     p = np.asarray(pos, float)
     p[~np.asarray(valid)] = np.nan
+    if end < len(capture):
+        warn_truncated(f"{label}: the capture ends inside the record at byte {end} ({len(capture) - end} bytes of it):"
+                       " a packet cut short, dropped")
     return make_track(t, p, np.asarray(quat, float), clock="natnet_timestamp", source=f"{path} (natnet-pcap)",
                       name=name, meta=meta)
 

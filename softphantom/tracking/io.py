@@ -109,6 +109,8 @@ def detect_format(path: str | Path) -> str:
             head = fh.read(8192)
     except OSError as exc:
         raise FileFormatError(f"{path}: cannot read ({exc.strerror})") from None
+    if not head:
+        raise FileFormatError(f"{path}: empty file (0 bytes)")
     name = sniff_bytes(head)
     if name is not None:
         return name

@@ -25,7 +25,14 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from softphantom.errors import FileFormatError
-from softphantom.tracking.track import PoseTrack, make_track, pick_body
+from softphantom.tracking.track import (
+    PoseTrack,
+    cut_row_note,
+    drop_unterminated_line,
+    make_track,
+    pick_body,
+    warn_truncated,
+)
 
 _UNITS = {"meters": 1.0, "metres": 1.0, "m": 1.0, "centimeters": 1e-2, "centimetres": 1e-2, "cm": 1e-2,
           "millimeters": 1e-3, "millimetres": 1e-3, "mm": 1e-3}
@@ -86,11 +93,14 @@ def read_optitrack_legacy(path: str | Path, body: str | None = None, **_options)
     )
 
 
-def _read_rows(path: Path) -> tuple[list[list[str]], list[int], bool]:
+def _read_rows(path: Path) -> tuple[list[list[str]], list[int], tuple[int, int, int] | None]:
+    """The rows (cells stripped), their line numbers, and the last line dropped for lack of its
+    newline (:func:`drop_unterminated_line`: a row cut short)."""
     try:
         data = path.read_bytes()
     except OSError as exc:
         raise FileFormatError(f"{path}: cannot read ({exc.strerror})") from None
+    data, cut = drop_unterminated_line(data)
     try:
         text = data.decode("utf-8-sig")
     except UnicodeDecodeError as exc:
@@ -104,7 +114,7 @@ def _read_rows(path: Path) -> tuple[list[list[str]], list[int], bool]:
             lines.append(reader.line_num)
     except csv.Error as exc:
         raise FileFormatError(f"{path}: line {reader.line_num + 1}: {exc}") from None
-    return rows, lines, text.endswith(("\n", "\r"))
+    return rows, lines, cut
 
 
 def _label(path: Path, version: str) -> str:
@@ -130,6 +140,11 @@ def _find_header(path: Path, rows: list[list[str]], lines: list[int]) -> dict:
     axis_i = next((i for i, r in enumerate(head) if len(r) > 1 and r[0].lower() == "frame"
                    and r[1].lower().startswith("time")), None)
     type_i = next((i for i, r in enumerate(head[: axis_i]) if "Rigid Body" in r), None)
+    if type_i is None and axis_i is None and len(rows) < _HEADER_SEARCH_ROWS:
+        raise FileFormatError(
+            f"{label}: the file ends at line {lines[-1]}, inside its header (no 'Rigid Body' type row, no"
+            " 'Frame,Time,...' row yet): truncated file?"
+        )
     if type_i is None:
         kinds = sorted({c for r in head[: axis_i] for c in r[1:] if c in ("Marker", "Bone", "Skeleton", "Rigid Body Marker")})
         has = f" (it has {', '.join(kinds)} columns only)" if kinds else ""
@@ -276,9 +291,10 @@ def read_motive_csv(path: str | Path, body: str | None = None, *, length_unit: s
     must agree.
     """
     path = Path(path)
-    rows, lines, ends_with_newline = _read_rows(path)
+    rows, lines, cut = _read_rows(path)
     if not rows:
-        raise FileFormatError(f"{path} (Motive CSV): empty file")
+        raise FileFormatError(f"{path} (Motive CSV): " + (f"no complete line: the file ends at byte {cut[2]} inside its"
+                                                          " first line (truncated file)" if cut else "empty file"))
     h = _find_header(path, rows, lines)
     meta_row, label = h["meta"], h["label"]
     bodies = h["bodies"]
@@ -326,11 +342,7 @@ def read_motive_csv(path: str | Path, body: str | None = None, *, length_unit: s
         if not any(r):
             continue  # blank line (e.g. at the end)
         if len(r) < width:
-            last = i == len(rows) - 1
-            why = " (truncated file?)" if last and not ends_with_newline else ""
-            raise FileFormatError(
-                f"{label}: line {lines[i]}: row has {len(r)} cells, rigid body {body!r} needs {width}{why}"
-            )
+            raise FileFormatError(f"{label}: line {lines[i]}: row has {len(r)} cells, rigid body {body!r} needs {width}")
         try:
             t[k] = float(r[1])
         except ValueError:
@@ -350,6 +362,9 @@ def read_motive_csv(path: str | Path, body: str | None = None, *, length_unit: s
     if not keep.any():
         raise FileFormatError(f"{label}: line {axis_line}: header found but no data rows follow (truncated file?)")
     t, vals, frame = t[keep], vals[keep], frame[keep]
+    total = _float_or_nan(meta_row.get("Total Exported Frames", ""))
+    short = f"{len(t)} of the {total:.0f} frames its metadata counts (Total Exported Frames) are in the file"
+    truncated = ([cut_row_note(cut)] if cut else []) + ([short] if len(t) < total else [])
     seen = np.all(np.isfinite(vals), axis=1)
     if not seen.any():
         raise FileFormatError(
@@ -386,6 +401,8 @@ def read_motive_csv(path: str | Path, body: str | None = None, *, length_unit: s
         "bodies": bodies,
         "frames_missing": int(fr[-1] - fr[0] + 1 - len(fr)) if len(fr) > 1 else 0,
     }
+    if truncated:
+        warn_truncated(f"{label}: " + "; ".join(truncated))
     return make_track(t, pos, quat, clock="take_time", source=f"{path} (motive-csv)", name=body, meta=meta)
 
 

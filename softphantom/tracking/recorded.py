@@ -50,6 +50,9 @@ def read_recorded_tracker(path: str | Path, body: str | None = None) -> PoseTrac
     except FileFormatError as exc:
         raise FileFormatError(f"{label}: {exc}") from None
     msgs = rec.tracker
+    if not msgs and not rec.complete:
+        raise FileFormatError(f"{label}: incomplete recording (the session was killed, or the file cut short): no"
+                              f" /tracker message before byte {rec.bytes_read}, where its readable part ends")
     if not msgs:
         others = [k for k, v in (("/estimate", rec.estimates), ("/sensors", rec.sensors)) if v]
         raise FileFormatError(

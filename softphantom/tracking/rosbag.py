@@ -60,11 +60,14 @@ def _diagnose(path: Path) -> str:
         if index_pos == 0:
             return " (the bag header has index_pos 0: the recording was not closed; `rosbag reindex` it)"
         if index_pos >= size:
-            return f" (truncated: the bag header puts the index at byte {index_pos}, the file ends at byte {size})"
-        return f" (file is {size} bytes, index at byte {index_pos})"
+            return (f" (truncated: the bag header puts the index at byte {index_pos}, the file ends at byte {size};"
+                    " `rosbag reindex` recovers the messages before the cut)")
+        return (f" (the index, from byte {index_pos} to the end at byte {size}, is damaged or cut short;"
+                " `rosbag reindex` rebuilds it)")
     if head.startswith(b"\x89MCAP"):
         if tail != head[:8]:
-            return f" (truncated: no MCAP end magic at byte {size - 8}; the file ends at byte {size})"
+            return (f" (truncated: no MCAP end magic at byte {size - 8}; the file ends at byte {size};"
+                    " `mcap recover` rebuilds what is before the cut)")
         return ""
     if head.startswith(b"SQLite format 3\x00") and len(head) >= 32:
         page = struct.unpack(">H", head[16:18])[0]

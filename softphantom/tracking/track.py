@@ -1,4 +1,5 @@
-"""The value object every tracker reader returns."""
+"""The value object every tracker reader returns, and what the readers share (the body picker, the
+handling of a file cut short)."""
 
 from __future__ import annotations
 
@@ -83,3 +84,34 @@ def make_track(t, position, quat_xyzw, *, clock: str, source: str, name: str, me
     if np.any(order != np.arange(len(t))):
         t, p, q, valid = t[order], p[order], q[order], valid[order]
     return PoseTrack(t, p, q, valid, clock, source, name, dict(meta or {}))
+
+
+def drop_unterminated_line(data: bytes) -> tuple[bytes, tuple[int, int, int] | None]:
+    """``data`` without a last line that lacks its newline (a row cut short: a truncated text
+    file), and ``(line number, byte offset, length)`` of what was dropped (None when the data end
+    with a newline or are empty).
+
+    >>> drop_unterminated_line(b"t_s,x_mm\\n0.0,1.5\\n0.01,-2.2")
+    (b't_s,x_mm\\n0.0,1.5\\n', (3, 17, 9))
+    """
+    if not data or data.endswith((b"\n", b"\r")):
+        return data, None
+    end = max(data.rfind(b"\n"), data.rfind(b"\r")) + 1
+    return data[:end], (len(data[:end].splitlines()) + 1, end, len(data) - end)
+
+
+def cut_row_note(cut: tuple[int, int, int]) -> str:
+    """What :func:`drop_unterminated_line` dropped, in words."""
+    line, byte, n = cut
+    return f"line {line} (byte {byte}, {n} bytes) ends without a newline: a row cut short, dropped"
+
+
+def warn_truncated(message: str) -> None:
+    """A file cut short that was read up to its last complete record (the message says what was
+    dropped): a :class:`~softphantom.sensing.recording.TruncatedRecordingWarning`, which
+    ``read_truth`` keeps in ``meta["warnings"]`` for ``evaluate``."""
+    import warnings
+
+    from softphantom.sensing.recording import TruncatedRecordingWarning
+
+    warnings.warn(f"{message} (truncated file)", TruncatedRecordingWarning, stacklevel=3)
