@@ -220,8 +220,9 @@ def test_client_reconnects_when_the_server_restarts(stream):
     assert stats.lost == 0
 
 
-def test_virtual_serve_natnet_helper(stream):
-    """``virtual serve --natnet``'s server thread, on a run-like object (no FEM)."""
+def test_virtual_serve_natnet_helper(stream, capsys):
+    """``virtual serve --natnet``'s server thread, on a run-like object (no FEM); its console says
+    when a take starts."""
     from types import SimpleNamespace
 
     from softphantom.cli.virtual import _start_natnet
@@ -244,6 +245,8 @@ def test_virtual_serve_natnet_helper(stream):
             np.testing.assert_allclose(c.models.rigid_bodies[0].markers, REST, atol=1e-7)
     finally:
         stop()
+    out = " ".join(capsys.readouterr().out.split())
+    assert re.search(r"NatNet client 127\.0\.0\.1:\d+ connected: the take starts", out), out
 
 
 def _free_udp_port():

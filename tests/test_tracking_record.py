@@ -86,6 +86,7 @@ def test_an_interrupted_write_leaves_an_incomplete_file(tmp_path, suffix, monkey
             sink.add(0.8, (0.1, 0, 0), (0, 0, 0, 1), True)
         except KeyboardInterrupt:
             pass
+    assert sink.complete is False
     tru = read_truth(p)  # the frames before the interrupted one are kept
     assert len(tru.t) == 80 - len(LOST) and tru.meta["complete"] is False and "incomplete" in tru.meta["warnings"][0]
 
@@ -100,7 +101,7 @@ def test_ctrl_c_between_frames_is_a_clean_stop(tmp_path):
         except KeyboardInterrupt:
             sink.end_meta["stopped_by"] = "Ctrl-C"
     rec = read_recording(p)
-    assert rec.complete and rec.metadata["stopped_by"] == "Ctrl-C"
+    assert sink.complete and rec.complete and rec.metadata["stopped_by"] == "Ctrl-C"
     assert read_truth(p).meta["warnings"] == []
 
 

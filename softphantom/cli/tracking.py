@@ -94,13 +94,14 @@ def track_cmd(
     if seen == 0:
         out.unlink(missing_ok=True)  # it holds nothing
         raise UserError(f"no frame arrived from {natnet} (data port {data_port}); nothing recorded in {out}")
-    console.print(f"{seen} frames of {name!r} to {out} (complete): body lost in {seen - valid}, "
+    state = "complete" if sink.complete else "INCOMPLETE: Ctrl-C cut a write short"
+    console.print(f"{seen} frames of {name!r} to {out} ({state}): body lost in {seen - valid}, "
                   f"frames lost {st.lost}, duplicates {st.duplicates}, reconnects {st.reconnects}, "
                   f"undecodable packets {st.bad_packets}", highlight=False)
     if st.joined_mid_take:
         console.print(f"warning: {_mid_take(st)}", style="yellow", highlight=False, markup=False)
     if interrupted:
-        stopped()  # the recording is closed and complete; exit 130
+        stopped()  # the recording is closed; exit 130
 
 
 def _mid_take(st) -> str:

@@ -175,7 +175,8 @@ def _start_natnet(run, host: str, port: int, version: str, speed: float):
     def target() -> None:
         try:
             serve_natnet(run.tracker, run.truth.rest_markers, marker_names=run.truth.marker_names, host=host,
-                         command_port=port, version=ver, speed=speed, stop=stop.is_set, on_ready=lambda p: ready.set())
+                         command_port=port, version=ver, speed=speed, stop=stop.is_set, on_ready=lambda p: ready.set(),
+                         on_event=lambda text: console.print(text, highlight=False, markup=False))
         except OSError as exc:
             failed.append(f"--natnet-host {host} --natnet-port {port}: cannot serve ({exc.strerror})")
             ready.set()

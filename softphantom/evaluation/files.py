@@ -301,7 +301,7 @@ def _recording_warnings(path, meta: dict, frames: int) -> list[str]:
     if meta.get("complete") is False:
         out.append(f"{path}: incomplete recording: the session that wrote it did not close it (it failed or was"
                    f" killed; up to its last second may be missing): {counts}")
-    elif isinstance(expected, int) and frames < expected:
+    elif isinstance(expected, int) and "frames_body_lost" in meta and frames < expected:  # written by track
         out.append(f"{path}: {frames} of the {expected} frames its metadata counts: the file was cut short"
                    f" (truncated copy?); body lost in {lost}")
     if meta.get("joined_mid_take") is True:
@@ -326,4 +326,5 @@ def write_truth(path: str | Path, series: Series6, meta: dict | None = None) -> 
             cols[f"{name}_d{a}_mm"] = d[:, k] * 1e3
     from softphantom import __version__
 
-    return write_table(path, {"softphantom": __version__, **series.meta, **(meta or {})}, cols)
+    keep = {k: v for k, v in series.meta.items() if k != "warnings"}  # (what reading it found, not the data)
+    return write_table(path, {"softphantom": __version__, **keep, **(meta or {})}, cols)

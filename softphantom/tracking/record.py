@@ -1,6 +1,7 @@
 """Where a live tracker session goes: a session recording (MCAP, raw poses on ``/tracker``) or the
 truth CSV (registered by its rest window as it is written). Both are written as the frames arrive
-and flushed every second, so a session that is killed keeps all but its last second.
+and flushed every second, so a session that is killed keeps all but its last second. A frame with
+the body lost is an explicit gap, never NaN; the file says whether it is complete (:class:`TrackerSink`).
 
 >>> import tempfile, os
 >>> p = os.path.join(tempfile.mkdtemp(), "t.csv")
@@ -106,6 +107,8 @@ class TrackerSink:
         self._reg = RestRegistrar(body, rest_window_s)
         self._header: dict | None = None
         self._writing = False  # True while a write is under way: an exception then cuts it short
+        #: after :meth:`close`: whether the file was marked complete
+        self.complete: bool | None = None
         self._last_flush = time.monotonic()
         if self.kind == ".mcap":
             from softphantom.stream.recording import SessionRecorder
@@ -160,7 +163,7 @@ class TrackerSink:
 
     def close(self, complete: bool = True) -> None:
         """Close the file; ``complete`` False (or a write cut short) leaves it marked incomplete."""
-        complete = complete and not self._writing
+        self.complete = complete = complete and not self._writing
         end = {"complete": complete, "frames": self.samples, "frames_body_lost": self.body_lost, **self.end_meta}
         if self._rec is not None:
             rec, self._rec = self._rec, None
