@@ -302,6 +302,23 @@ def test_atlas_files_are_verified_described_and_installed(coarse_model, atlas, t
     assert "truncated" in bad["truncated"]
 
 
+def test_a_model_directory_is_no_misplaced_atlas_cache(coarse_model, atlas, fwd, tmp_path, monkeypatch):
+    """A directory just made by ``design`` holds model.npz (the model's own file): building its first
+    atlas says nothing about "atlas files"; a directory holding an atlas file (named by its key) does."""
+    from softphantom.design import save_model
+
+    monkeypatch.setattr("softphantom.estimation.atlas.build_atlas", lambda *a, **k: atlas)
+    save_model(coarse_model, tmp_path / "model")
+    assert (tmp_path / "model" / "model.npz").is_file()
+    msgs = []
+    load_or_build(coarse_model, CFG, ACFG, cache_dir=tmp_path / "model", log=msgs.append, fwd=fwd)
+    assert not any("warning" in m for m in msgs), msgs
+    assert atlas_path(tmp_path / "model", atlas.key).is_file()
+    msgs.clear()  # the atlas/ directory itself given as the cache: warned once
+    load_or_build(coarse_model, CFG, ACFG, cache_dir=tmp_path / "model" / "atlas", log=msgs.append, fwd=fwd)
+    assert sum("warning" in m and "holds atlas files" in m for m in msgs) == 1
+
+
 def test_both_estimators_implement_the_interface(coarse_model, atlas):
     a = open_estimator("atlas", coarse_model, CFG, atlas=atlas)
     r = open_estimator("refresh", coarse_model, CFG)

@@ -1249,9 +1249,11 @@ def load_or_build(model, config: EstimatorConfig | None = None, atlas: AtlasConf
             if not rebuild:
                 raise type(exc)(f"{exc}; to build it again: softphantom atlas build --model {cache_dir} --rebuild") from None
             log(f"{exc}: rebuilding")
-    elif path is not None and any(Path(cache_dir).glob("*.npz")):
-        # the atlas directory given for the model's: its atlases are never found, every run builds
-        log(f"atlas: warning: {cache_dir} holds *.npz files itself, but the cache is a model directory "
+    elif path is not None and any(len(p.stem) == 32 and set(p.stem) <= set("0123456789abcdef")
+                                  for p in Path(cache_dir).glob("*.npz")):
+        # the atlas directory given for the model's (it holds atlas files, named by their key;
+        # model.npz is the model's own): its atlases are never found, every run builds
+        log(f"atlas: warning: {cache_dir} holds atlas files itself, but the cache is a model directory "
             f"(atlases in its atlas/ subdirectory): building into {path.parent}")
     at = build_atlas(model, cfg, acfg, scheduler=scheduler, n_workers=n_workers, progress=progress, fwd=fwd,
                      log=log)
