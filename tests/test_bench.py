@@ -103,6 +103,34 @@ def test_cli_estimate_takes_bench_and_contact_from_the_recording(tmp_path, model
     assert "--tube-id-mm" in capsys.readouterr().err
 
 
+def test_replay_of_a_bench_entry_of_another_shape_falls_back_to_the_design(tmp_path, coarse_model, model_dir,
+                                                                            capsys):
+    """A recording whose ``bench`` metadata has another shape (another program, an older version)
+    is replayed with the design's bench, its raw sums re-converted, and one note says what was
+    unusable; the same raw sums recorded with the design's bench give the same volumes."""
+    import json
+
+    design = BenchConfig.from_model(coarse_model)
+    want = _record(tmp_path / "design.csv", design, push_codes=400)
+    _record(tmp_path / "r.csv", BenchConfig(tube_length_m=3.0), push_codes=400)
+    lines = (tmp_path / "r.csv").read_text().splitlines(keepends=True)
+    meta = json.loads(lines[0][2:])
+    meta["bench"] = {"tube_m": 3.0, "tube_diameter_mm": 1.2, "cavities_mm3": [514, 514, 486, 486]}
+    (tmp_path / "r.csv").write_text("# " + json.dumps(meta) + "\n" + "".join(lines[1:]))
+    opened = open_source(f"replay:{tmp_path / 'r.csv'}", coarse_model)
+    assert opened.bench.same_as(design) and opened.meta["reconverted"]
+    assert len(opened.notes) == 1 and "\n" not in opened.notes[0]
+    assert "no 'tube_length_m'" in opened.notes[0] and "tube_m" in opened.notes[0] and "design's bench" in opened.notes[0]
+    assert np.allclose([m.dV for m in opened.source], [m.dV for m in want], rtol=1e-6, atol=1e-15)
+    # the command says it in one line and goes on
+    out = tmp_path / "e.csv"
+    assert main(["estimate", "--model", str(model_dir), "--source", f"replay:{tmp_path / 'r.csv'}",
+                 "--out", str(out), "--estimator", "refresh"]) == 0, capsys.readouterr().err
+    printed = capsys.readouterr().out
+    assert sum("note:" in ln and "no 'tube_length_m'" in ln for ln in printed.splitlines()) == 1
+    assert read_table(out).meta["bench"] == design.to_meta()
+
+
 class _Loop:
     """A loop:// board whose frames the test writes; ``restart`` = a new board (clock from 0)."""
 

@@ -37,11 +37,14 @@ def _virtual_opener(arg: str, model, bench):
 
 def open_sensor_source(spec: str, model, *, tare_s: float = 1.0, on_new_board: str = "stop", **options):
     """The opened ``--source`` (:class:`softphantom.sensing.bench.OpenedSource`) for ``estimate``
-    and ``live``; ``options``: ``tube_length_m``, ``tube_id_mm``, ``p0_kPa`` (None = default)."""
+    and ``live`` (its notes printed); ``options``: ``tube_length_m``, ``tube_id_mm``, ``p0_kPa`` (None = default)."""
     from softphantom.sensing.bench import open_source
 
-    return open_source(spec, model, options=options, tare_s=tare_s, on_new_board=on_new_board,
-                       openers={"virtual": _virtual_opener})
+    opened = open_source(spec, model, options=options, tare_s=tare_s, on_new_board=on_new_board,
+                         openers={"virtual": _virtual_opener})
+    for note in opened.notes:
+        console.print(f"note: {note}", highlight=False, soft_wrap=True)
+    return opened
 
 
 def warn_outside(summary: dict, envelope: str | None) -> None:

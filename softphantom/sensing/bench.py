@@ -131,6 +131,15 @@ class BenchConfig:
         tr = tuple(replace(t, k1_per_kPa=t.k1_per_kPa * g) for t, g in zip(base.transducers[:4], self.gains))
         return SensorChain(v, tr + base.transducers[4:], base.bits)
 
+    def describe(self) -> str:
+        """One line for messages.
+
+        >>> BenchConfig().describe()
+        'tube 12 m × 1.2 mm, arm cavities 514/514/486/486 mm³'
+        """
+        cav = "/".join(f"{v * 1e9:.4g}" for v in self.cavity_volumes_m3)
+        return f"tube {self.tube_length_m:g} m × {self.tube_id_m * 1e3:g} mm, arm cavities {cav} mm³"
+
     def to_meta(self) -> dict:
         """The recording metadata ``bench`` entry (user units)."""
         return {"tube_length_m": self.tube_length_m, "tube_id_mm": round(self.tube_id_m * 1e3, 9),
@@ -151,7 +160,10 @@ class BenchConfig:
                        float(b.get("dead_volume_mm3", 0.0)) * 1e-9,
                        tuple(float(v) for v in b.get("transducer_gains", (1.0,) * 4)),
                        float(b.get("tube_volume_factor", 1.0)))
-        except (KeyError, TypeError, ValueError) as exc:
+        except KeyError as exc:
+            has = ", ".join(map(str, b)) or "nothing"
+            raise FileFormatError(f"metadata: no usable bench: no {exc} (it has {has})") from None
+        except (TypeError, ValueError) as exc:
             raise FileFormatError(f"metadata: no usable bench (tube, cavities): {exc}") from None
 
 
@@ -263,7 +275,8 @@ class RetareSource(SensorSource):
 class OpenedSource:
     """What :func:`open_source` gives: the ``source``, ``live`` (a board: estimate the newest
     samples, never wait for it), the ``bench`` its volumes follow, the ``tare`` in force, the
-    rest ``window`` it was tared on (serial), and ``meta`` to store with any output."""
+    rest ``window`` it was tared on (serial), ``meta`` to store with any output, and ``notes`` (one
+    line each) the user should read, e.g. a recording's bench that could not be used."""
 
     source: SensorSource
     live: bool
@@ -271,6 +284,7 @@ class OpenedSource:
     tare: Tare | None
     window: tuple[Measurement, ...]
     meta: dict
+    notes: tuple[str, ...] = ()
 
 
 def open_source(spec: str, model=None, bench: BenchConfig | None = None, *, options: dict | None = None,
@@ -296,15 +310,27 @@ def open_source(spec: str, model=None, bench: BenchConfig | None = None, *, opti
         if not Path(arg).is_file():
             raise UserError(f"--source replay:{arg}: no such file")
         meta = read_recording(arg).meta
-        recorded = BenchConfig.from_meta(meta) if ("bench" in meta or "design" in meta) else None
-        use = bench or (BenchConfig.from_options(**options, base=recorded) if recorded or any(
+        recorded = base = None
+        notes: tuple[str, ...] = ()
+        if "bench" in meta or "design" in meta:
+            try:
+                recorded = base = BenchConfig.from_meta(meta)
+            except UserError as exc:  # another program's or version's shape: the raw sums still hold
+                base = BenchConfig.from_model(model) if model is not None else BenchConfig()
+                why = str(exc).removeprefix("metadata: ")
+        use = bench or (BenchConfig.from_options(**options, base=base) if base or any(
             v is not None for v in options.values()) else None)
+        if base is not None and recorded is None:
+            whose = "given" if bench is not None else "design's" if model is not None else "paper's"
+            notes = (f"replay:{arg}: {why}; using the {whose} bench ({use.describe()}), the volumes re-converted "
+                     "from the raw sums",)
         reconvert = use is not None and not use.same_as(recorded)
         src = ReplaySource(arg, chain=use.chain() if reconvert else None,
                            tare=_retared_p0(meta, use) if reconvert else None)
         return OpenedSource(src, False, use or BenchConfig(), None, (),
                             {"bench": (use or BenchConfig()).to_meta(), "reconverted": reconvert,
-                             "recording_contact": meta.get("contact")})
+                             "recording_contact": meta.get("contact"), **({"bench_note": notes[0]} if notes else {})},
+                            notes)
     if kind == "serial":
         from softphantom.sensing.sources import SerialSource
 
