@@ -25,9 +25,11 @@ def motion(t):
     return v, force
 
 
-def write_run(tmpdir, lag_ms=100.0, seed=0, gain=1.05, noise_mm=0.19, est_noise=0.05, est_start_s=0.25):
+def write_run(tmpdir, lag_ms=100.0, seed=0, gain=1.05, noise_mm=0.19, est_noise=0.05, est_start_s=0.25,
+              truth_meta=None, estimate_meta=None):
     """Truth at 120 Hz with tracker noise (and 0.05° on the angles); estimate at ~77 Hz with jitter,
-    later by ``lag_ms``, scaled by ``gain``, starting ``est_start_s`` after the truth (same clock)."""
+    later by ``lag_ms``, scaled by ``gain``, starting ``est_start_s`` after the truth (same clock;
+    the files' metadata say so only if ``truth_meta``/``estimate_meta`` add a ``clock``)."""
     rng = np.random.default_rng(seed)
     t_truth = np.arange(0.0, 7.0, 1 / 120)
     v, f = motion(t_truth)
@@ -50,8 +52,10 @@ def write_run(tmpdir, lag_ms=100.0, seed=0, gain=1.05, noise_mm=0.19, est_noise=
         est[name] = ve[:, k]
     est["seed_1_dx_mm"], est["seed_1_dy_mm"], est["seed_1_dz_mm"] = ve[:, 0] * 0.8, ve[:, 1] * 0.9, ve[:, 2]
     est["qp_status"] = np.array(["solved"] * len(t_est))
-    pt = write_table(tmpdir / "truth.csv", {"softphantom": "0.1.0", "scenario": "synthetic push"}, truth)
-    pe = write_table(tmpdir / "estimate.csv", {"softphantom": "0.1.0", "model": "synthetic"}, est)
+    pt = write_table(tmpdir / "truth.csv", {"softphantom": "0.1.0", "scenario": "synthetic push", **(truth_meta or {})},
+                     truth)
+    pe = write_table(tmpdir / "estimate.csv", {"softphantom": "0.1.0", "model": "synthetic", **(estimate_meta or {})},
+                     est)
     return pe, pt
 
 
@@ -72,9 +76,10 @@ def write_snapshot(path, with_displacement=True):
     return path
 
 
-def write_motive_truth(path, seed=0, noise_mm=0.0):
+def write_motive_truth(path, seed=0, noise_mm=0.0, clock_offset_s=0.0):
     """The synthetic motion as a Motive CSV (millimetres, quaternion) of body 'bip', seen from a
-    tracker frame rotated and offset from the model frame; the body frame = model frame at rest."""
+    tracker frame rotated and offset from the model frame; the body frame = model frame at rest.
+    The take's clock runs ``clock_offset_s`` ahead of the run's (take time = run time + offset)."""
     from scipy.spatial.transform import Rotation
 
     from softphantom.pose import RigidTransform
@@ -97,7 +102,7 @@ def write_motive_truth(path, seed=0, noise_mm=0.0):
         "Frame,Time (Seconds),X,Y,Z,W,X,Y,Z",
     ]
     for i in range(len(t)):
-        cells = [str(i), f"{t[i]:.6f}"] + [f"{x:.9f}" for x in q[i]] + [f"{x:.6f}" for x in pos_mm[i]]
+        cells = [str(i), f"{t[i] + clock_offset_s:.6f}"] + [f"{x:.9f}" for x in q[i]] + [f"{x:.6f}" for x in pos_mm[i]]
         if i == 300:  # a lost frame
             cells[2:] = [""] * 7
         lines.append(",".join(cells))

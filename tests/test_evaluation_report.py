@@ -4,6 +4,7 @@ tracker files as truth, and broken inputs give one line and exit code 2."""
 import sys
 from html.parser import HTMLParser
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -130,6 +131,49 @@ def test_motive_csv_as_truth_registered_by_rest_window(run, capsys):
     assert err[:, :3].max() < 1e-4 and err[:, 3:].max() < 1e-5
     ev = evaluate(tru, read_estimate(pe))
     assert abs(ev.lag_ms - 100.0) < 5.0
+
+
+def test_lag_says_what_it_consists_of(run, tmp_path, capsys):
+    """A tracker on its own clock (the take 253 ms ahead of the run's clock, the estimate 100 ms
+    late): the measured lag is 100 − 253 ms; the output and the report say that it includes the
+    clock offset, which is not known; given the offset they split it into the estimator's latency;
+    files on one named clock need nothing given. Signs are written once ("−148.2", never "−-")."""
+    import re
+
+    d, pe, pt = run
+    mot = write_motive_truth(tmp_path / "take.csv", clock_offset_s=0.253)
+
+    out = tmp_path / "unknown"
+    assert main(["evaluate", "--estimate", str(pe), "--truth", str(mot), "--out", str(out)]) == 0
+    printed = " ".join(capsys.readouterr().out.split())
+    lag = float(re.search(r"lag ([−+][\d.]+) ms =", printed).group(1).replace("−", "-"))
+    assert abs(lag - (100.0 - 253.0)) < 5.0
+    assert "not known here" in printed and "the figure includes that offset" in printed
+    assert "--clock-offset-ms" in printed and "truth clock: take_time" in printed
+    text = " ".join(" ".join(parse(out / "report.html").text).split())
+    assert "what the lag consists of" in text and "the figure includes that offset" in text
+    for blob in (printed, text, (out / "report.html").read_text(encoding="utf-8")):
+        assert "−-" not in blob and "--1" not in blob and "-−" not in blob
+    from softphantom.evaluation.report import lag_caption  # the 6-DoF figure's title line
+
+    assert "−-" not in lag_caption(SimpleNamespace(lag_ms=lag, lag=object())) and "−1" in lag_caption(
+        SimpleNamespace(lag_ms=lag, lag=object()))
+    # the offset given: the estimator's own latency comes out (the injected 100 ms)
+    out = tmp_path / "given"
+    assert main(["evaluate", "--estimate", str(pe), "--truth", str(mot), "--out", str(out),
+                 "--clock-offset-ms", "253"]) == 0
+    printed = " ".join(capsys.readouterr().out.split())
+    m = re.search(r"the estimator's latency ([−+][\d.]+) ms − the clock offset \+253\.0 ms", printed)
+    assert m and abs(float(m.group(1).replace("−", "-")) - 100.0) < 5.0, printed
+    assert "latency" in " ".join(parse(out / "report.html").text)
+    # both files on the scenario clock (a virtual run's truth.csv and an estimate of it): no offset
+    same = tmp_path / "same"
+    same.mkdir()
+    pe2, pt2 = write_run(same, lag_ms=100.0, seed=5, truth_meta={"clock": "scenario (s)"},
+                         estimate_meta={"source": "virtual:synthetic"})
+    assert main(["evaluate", "--estimate", str(pe2), "--truth", str(pt2), "--out", str(same / "out")]) == 0
+    printed = " ".join(capsys.readouterr().out.split())
+    assert "= the estimator's latency (both files on the same clock: scenario (s))" in printed
 
 
 @pytest.mark.parametrize(

@@ -49,21 +49,25 @@ def evaluate_cmd(
     rotation_order: str = typer.Option(None, "--rotation-order", help="Motive CSV Euler angles without 'Rotation Type': e.g. XYZ."),
     overwrite: bool = overwrite_option(),
     natnet_version: str = typer.Option(None, "--natnet-version", help="NatNet capture without the server-info reply: 3.0 or 4.1."),
+    clock_offset_ms: float = typer.Option(None, "--clock-offset-ms", help="The truth's clock minus the estimate's at "
+                                          "the same instant (ms), if known (a virtual run: 1000 × tracker.clock_offset_s "
+                                          "of virtual.json): splits the lag into that offset and the estimator's latency."),
 ) -> None:
     """Compare an estimate with the ground truth: metrics per DoF, Table I, report.html."""
     from softphantom.evaluation import evaluate, read_estimate, read_truth, write_report
+    from softphantom.evaluation.metrics import signed
 
     check_output(out, overwrite=overwrite, directory=True)
     lag = _parse_lag(lag_ms)
     est = read_estimate(estimate)
     tru = read_truth(truth, body=body, rest_window_s=_parse_window(rest_window_s), clock=clock,
                      length_unit=length_unit, rotation_order=rotation_order, natnet_version=natnet_version)
-    ev = evaluate(tru, est, lag_ms=lag, max_lag_s=max_lag_ms * 1e-3)
+    ev = evaluate(tru, est, lag_ms=lag, max_lag_s=max_lag_ms * 1e-3, clock_offset_ms=clock_offset_ms)
     with staged_output(out, overwrite=overwrite, directory=True) as work:
         report, rows = write_report(work, tru, est, ev, snapshot=snapshot, title=f"{estimate.name} vs {truth.name}")
     report = out / report.relative_to(work)
 
-    t = Table(title=f"Estimate vs truth — lag {ev.lag_ms:.1f} ms ({ev.lag_source})")
+    t = Table(title=f"Estimate vs truth — lag {signed(ev.lag_ms)} ms ({ev.lag_source})")
     for h in ("DoF", "RMSE", "bias", "max |err|", "r", "lag ms", "max |truth|"):
         t.add_column(h, justify="right")
     f = lambda v, d=2: "–" if v != v else f"{v:.{d}f}"  # noqa: E731  (NaN → dash)
@@ -74,6 +78,7 @@ def evaluate_cmd(
         console.print(f"target {s.name}: RMS 3-D error {s.rmse:.2f} mm, max {s.max_abs:.2f} mm")
     flags = ", ".join(f"{r.ref.dof} {r.observed:.1f} {r.ref.unit} {r.flag} {r.ref.study}" for r in rows)
     console.print(f"Table I (max |Δ| of the truth): {flags}", highlight=False)
+    console.print(ev.lag_parts.explain(), highlight=False, soft_wrap=True)
     for n in ev.notes:
         console.print(f"note: {n}", highlight=False)
     console.print(f"report: {report}", highlight=False)

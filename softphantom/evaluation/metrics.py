@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from softphantom.evaluation.files import Series6
+from softphantom.sensing.bench import SCENARIO_CLOCK
 from softphantom.tracking.timing import LagResult, estimate_lag, shift_to_common_start
 
 DOF_NAMES = ("x", "y", "z", "yaw", "pitch", "roll")
@@ -67,6 +68,64 @@ def resample_truth(t_truth: np.ndarray, values: np.ndarray, t: np.ndarray, max_g
     return out, inside & ~gap
 
 
+def signed(v: float, digits: int = 1) -> str:
+    """``v`` with its sign, a true minus for negatives (for text a person reads).
+
+    >>> signed(-148.23), signed(104.8), signed(0.0)
+    ('−148.2', '+104.8', '+0.0')
+    """
+    return f"{v:+.{digits}f}".replace("-", "−")
+
+
+def clock_name(meta: dict) -> str | None:
+    """The clock a file's ``t_s`` runs on, where it names one (``meta["clock"]``) or its source
+    implies one (``source = virtual:…``: the scenario clock); None when it does not say."""
+    c = meta.get("clock")
+    if c and c != "file t_s":  # "file t_s": what a CSV reader assumes for a file that says nothing
+        return str(c)
+    return SCENARIO_CLOCK if str(meta.get("source", "")).startswith("virtual:") else None
+
+
+@dataclass(frozen=True)
+class LagParts:
+    """What the lag consists of: ``lag_ms`` = the estimator's own ``latency_ms`` − ``clock_offset_ms``
+    (the truth's clock minus the estimate's at the same instant). ``clock_offset_ms`` None: not
+    known (the files run on different or unnamed clocks and no offset was given); ``offset_source``
+    how it is known; ``truth_clock``/``estimate_clock`` the clocks' names (None: not named);
+    ``start_shift_ms`` what re-zeroing both files at their first sample added to the lag (0 when
+    they were not re-zeroed)."""
+
+    lag_ms: float
+    clock_offset_ms: float | None
+    offset_source: str
+    truth_clock: str | None
+    estimate_clock: str | None
+    start_shift_ms: float = 0.0
+
+    @property
+    def latency_ms(self) -> float | None:
+        if self.clock_offset_ms is None:
+            return None
+        return self.lag_ms + self.clock_offset_ms - self.start_shift_ms
+
+    def explain(self) -> str:
+        """One sentence: the lag and what it is made of."""
+        clocks = (f"truth clock: {self.truth_clock or 'not named'}; estimate clock: "
+                  f"{self.estimate_clock or 'not named'}")
+        rezero = (f"; both files re-zeroed at their first sample, which adds {signed(self.start_shift_ms)} ms"
+                  if self.start_shift_ms else "")
+        if self.clock_offset_ms is None:
+            return (f"lag {signed(self.lag_ms)} ms = the estimator's latency minus the offset between the two "
+                    f"files' clocks, which is not known here ({clocks}{rezero}): the figure includes that offset. "
+                    "Give --clock-offset-ms (truth clock − estimate clock) to separate them")
+        if self.offset_source == "same clock":
+            return (f"lag {signed(self.lag_ms)} ms = the estimator's latency (both files on the same clock: "
+                    f"{self.truth_clock}{rezero})")
+        return (f"lag {signed(self.lag_ms)} ms = the estimator's latency {signed(self.latency_ms)} ms − the clock "
+                f"offset {signed(self.clock_offset_ms)} ms (truth clock − estimate clock, {self.offset_source}; "
+                f"{clocks}{rezero})")
+
+
 @dataclass(frozen=True)
 class Evaluation:
     """Everything the report shows. ``lag`` the measured (or given) lag of the estimate behind the
@@ -74,7 +133,8 @@ class Evaluation:
     re-zeroed at their first sample; ``dof`` six :class:`ErrorStats` (mm, deg); ``force`` per
     component and magnitude (N) where the truth knows the force; ``targets`` the 3-D shift error
     of each target (mm); ``t_est`` the estimate times on the truth's clock, compensated
-    (``t − lag``); ``mask`` the estimate samples compared."""
+    (``t − lag``); ``mask`` the estimate samples compared; ``lag_parts`` what the lag consists of
+    (the estimator's latency and the clock offset, :class:`LagParts`)."""
 
     lag: LagResult | None
     lag_ms: float
@@ -87,13 +147,27 @@ class Evaluation:
     t_est: np.ndarray
     mask: np.ndarray
     notes: tuple[str, ...] = field(default_factory=tuple)
+    lag_parts: LagParts | None = None
 
 
-def evaluate(truth: Series6, estimate: Series6, lag_ms: float | None = None, max_lag_s: float = 1.0) -> Evaluation:
+def evaluate(truth: Series6, estimate: Series6, lag_ms: float | None = None, max_lag_s: float = 1.0,
+             clock_offset_ms: float | None = None) -> Evaluation:
     """Compare an estimate with the truth. ``lag_ms`` None: measure it by cross-correlation of the
-    six DoF (sign: positive = the estimate comes later than the truth)."""
+    six DoF (sign: positive = the estimate comes later than the truth). ``clock_offset_ms``: the
+    truth's clock minus the estimate's at the same instant, if known (e.g. ``clock_offset_s`` of a
+    virtual run's tracker); it splits the lag into that offset and the estimator's latency. When
+    both files name the same clock the offset is 0."""
     notes = [*truth.meta.get("warnings", ()), *estimate.meta.get("warnings", ())]  # e.g. an incomplete file
     t_truth, t_est, rezeroed = shift_to_common_start(truth.t, estimate.t)
+    tc, ec = clock_name(truth.meta), clock_name(estimate.meta)
+    if clock_offset_ms is not None:
+        offset, how = float(clock_offset_ms), "given"
+    elif tc is not None and tc == ec:
+        offset, how = 0.0, "same clock"
+    else:
+        offset, how = None, ""
+    # re-zeroing moved the truth back by its first time and the estimate by its own
+    shift_ms = ((truth.t[0] - t_truth[0]) - (estimate.t[0] - t_est[0])) * 1e3 if rezeroed else 0.0
     if rezeroed:
         notes.append("the truth and estimate clocks do not overlap: both re-zeroed at their first sample")
     vt, ve = truth.mm_deg(), estimate.mm_deg()
@@ -145,5 +219,6 @@ def evaluate(truth: Series6, estimate: Series6, lag_ms: float | None = None, max
         err = np.linalg.norm(estimate.targets[name][m] - tt[m], axis=1) * 1e3
         targets.append(ErrorStats(name, "mm", float(np.sqrt(np.mean(err**2))), float(np.mean(err)), float(np.max(err)),
                                   float("nan"), float("nan"), float(np.max(np.linalg.norm(tt[m], axis=1)) * 1e3), int(m.sum())))
+    parts = LagParts(lag_s * 1e3, offset, how, tc, ec, float(shift_ms))
     return Evaluation(lag, lag_s * 1e3, source, rezeroed, tuple(dof), tuple(force), tuple(targets),
-                      t_truth, t_cmp, ok, tuple(notes))
+                      t_truth, t_cmp, ok, tuple(notes), parts)

@@ -12,7 +12,7 @@ import numpy as np
 
 from softphantom.evaluation.clinical import ClinicalRow, compare_table_i
 from softphantom.evaluation.files import Series6
-from softphantom.evaluation.metrics import DOF_NAMES, DOF_UNITS, ErrorStats, Evaluation
+from softphantom.evaluation.metrics import DOF_NAMES, DOF_UNITS, ErrorStats, Evaluation, signed
 
 TRUTH_COLOR = "#1f4e79"
 EST_COLOR = "#c0392b"
@@ -44,12 +44,22 @@ def plot_6dof(truth: Series6, estimate: Series6, ev: Evaluation, path: Path, tit
         if k >= 3:
             ax.set_xlabel("time (s)")
     axes[0, 0].legend(loc="best", fontsize=8)
-    shift = f"estimate shifted by −{ev.lag_ms:.1f} ms ({'measured' if ev.lag is not None else 'given'} lag)"
+    shift = lag_caption(ev)
     # a scenario's description can be long: wrap it so the figure never crops it
     fig.suptitle(textwrap.fill(title, 120) + "\n" + shift if title else shift, fontsize=11)
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+def lag_caption(ev: Evaluation) -> str:
+    """The 6-DoF figure's line about the lag (signed once, with a true minus).
+
+    >>> from types import SimpleNamespace as E
+    >>> lag_caption(E(lag_ms=-148.23, lag=object()))
+    'estimate drawn at t − lag, lag −148.2 ms (measured)'
+    """
+    return f"estimate drawn at t − lag, lag {signed(ev.lag_ms)} ms ({'measured' if ev.lag is not None else 'given'})"
 
 
 def plot_force(truth: Series6, estimate: Series6, ev: Evaluation, path: Path) -> Path:
@@ -192,13 +202,14 @@ def write_report(
     out.mkdir(parents=True, exist_ok=True)
     plot_6dof(truth, estimate, ev, out / "pose_6dof.png", title)
     parts = [f"<h1>{html.escape(title)}</h1>"]
-    lag_txt = (f"{ev.lag_ms:.1f} ms, {html.escape(ev.lag_source)}"
+    lag_txt = (f"{signed(ev.lag_ms)} ms, {html.escape(ev.lag_source)}"
                + (f" (peak correlation {ev.lag.peak_corr:.3f})" if ev.lag is not None else ""))
     info = [
         ["estimate", html.escape(estimate.source)],
         ["truth", html.escape(truth.source)],
         ["truth registration", html.escape(str(truth.meta.get("registration", "as in the truth file (model frame)")))],
         ["lag of the estimate behind the truth", lag_txt],
+        *([["what the lag consists of", html.escape(ev.lag_parts.explain())]] if ev.lag_parts is not None else []),
         ["samples compared", f"{int(ev.mask.sum())} of {len(ev.mask)} estimates"],
     ]
     parts.append('<section id="summary"><h2>Summary</h2>' + _table(["", ""], info, "info"))

@@ -37,6 +37,11 @@ from softphantom.sensing.measurement import (
 )
 from softphantom.sensing.sources import SensorSource, SourceEvent, SourceStats
 
+SCENARIO_CLOCK = "scenario (s)"
+"""The clock of the virtual phantom: its board, its recordings, its truth.csv and the estimates
+made from them all run on it (the ``clock`` of their metadata), so their lag is the estimator's
+latency alone."""
+
 NEW_BOARD_POLICIES = ("stop", "retare")
 """What a run does when the board restarts or is replaced (a ``restart`` event): ``stop`` ends it
 with a one-line error (the default: a new board's zero is unknown), ``retare`` takes a new tare
@@ -329,7 +334,8 @@ def open_source(spec: str, model=None, bench: BenchConfig | None = None, *, opti
                            tare=_retared_p0(meta, use) if reconvert else None)
         return OpenedSource(src, False, use or BenchConfig(), None, (),
                             {"bench": (use or BenchConfig()).to_meta(), "reconverted": reconvert,
-                             "recording_contact": meta.get("contact"), **({"bench_note": notes[0]} if notes else {})},
+                             "recording_contact": meta.get("contact"), **({"bench_note": notes[0]} if notes else {}),
+                             **({"clock": SCENARIO_CLOCK} if meta.get("virtual") else {})},
                             notes)
     if kind == "serial":
         from softphantom.sensing.sources import SerialSource
