@@ -54,6 +54,11 @@ def test_invalid_variant_recorded_and_others_go_on(inproc):
     _, rows = inproc
     assert [r["status"] for r in rows] == ["ok", "invalid", "ok", "invalid"]
     assert rows[1]["error"].startswith("DesignError: arms.front_zpos.wall_mm = 7 leaves no cavity")
+    # the same reason without meshing anything: the design's own check
+    from softphantom.study import design_problem
+
+    cfg, _ = inproc
+    assert [design_problem(v) for v in cfg.variants()] == ["", rows[1]["error"], "", rows[3]["error"]]
 
 
 def test_count_volume_is_the_budget_closed_form(inproc):
@@ -119,7 +124,13 @@ def test_cli_local_cluster_resumes_from_the_cache(sweep_file, inproc, tmp_path, 
     rows = read_parquet(out / "results.parquet")
     assert rows_equal(inproc[1], rows, TIMING_COLUMNS, rtol=1e-9) == []  # same results in-process and on a cluster
     html = (out / "report.html").read_text()
-    assert "Pareto front" in html and "data:image/png;base64" in html and "leaves no cavity" in html
+    assert "Pareto front" in html and "data:image/png;base64" in html
+    # each invalid variant's reason: in the results, the report and the command's own output
+    printed = capsys.readouterr().out.splitlines()
+    for r in rows:
+        if r["status"] != "ok":
+            assert "leaves no cavity" in r["error"] and __import__("html").escape(r["error"]) in html
+            assert f"  variant {r['variant']} invalid: {r['error']}" in printed
     meta = json.loads(__import__("pyarrow.parquet").parquet.read_schema(out / "results.parquet").metadata[b"softphantom"])
     assert meta["parameters"] == ["sensing.tube_length_m", "arms.*.wall_mm"]
     capsys.readouterr()

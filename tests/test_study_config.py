@@ -103,3 +103,21 @@ def test_example_file_loads():
 
     cfg = load_sweep_config(Path(__file__).parents[1] / "examples" / "sweep_arms.toml")
     assert cfg.method == "lhs" and len(cfg.variants()) == cfg.samples
+
+
+def test_example_variants_are_valid_designs():
+    """Every variant of examples/sweep_arms.toml, and every corner of its parameter box (so another
+    seed's or size's sample is valid too), passes the design's checks: the example sweeps designs,
+    not refusals. Validation only (no mesh)."""
+    from pathlib import Path
+
+    from softphantom.study import design_problem
+
+    cfg = load_sweep_config(Path(__file__).parents[1] / "examples" / "sweep_arms.toml")
+    geometric = [p for p in cfg.params if p.continuous and not p.path.startswith("sensing.")]
+    assert len(geometric) == 4
+    corners = sweep_config_from_dict({"sweep": {"method": "grid"},
+                                      "parameters": {p.path: {"values": [p.lo, p.hi]} for p in geometric}})
+    problems = {f"{v.index} {v.params}": design_problem(v) for v in (*cfg.variants(), *corners.variants())}
+    assert len(problems) == cfg.samples + 16
+    assert {k: w for k, w in problems.items() if w} == {}

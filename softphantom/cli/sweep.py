@@ -41,3 +41,18 @@ def sweep_command(
     ok = sum(r.get("status") == "ok" for r in run.rows)
     console.print(f"{ok} ok, {len(run.rows) - ok} invalid or failed ({run.cached} from the cache, "
                   f"{run.computed} computed); wrote {out}/results.parquet and report.html", highlight=False)
+    for line in why_not_ok(run.rows):
+        console.print(line, highlight=False, soft_wrap=True)
+
+
+def why_not_ok(rows: list[dict], most: int = 10) -> list[str]:
+    """One line per variant that is not ok (its status and reason), at most ``most`` of them.
+
+    >>> why_not_ok([{"variant": 0, "status": "ok"}, {"variant": 1, "status": "invalid", "error": "DesignError: x"}])
+    ['  variant 1 invalid: DesignError: x']
+    """
+    bad = [r for r in rows if r.get("status") != "ok"]
+    lines = [f"  variant {r.get('variant')} {r.get('status')}: {r.get('error') or 'no reason recorded'}" for r in bad[:most]]
+    if len(bad) > most:
+        lines.append(f"  … and {len(bad) - most} more (report.html lists every one)")
+    return lines

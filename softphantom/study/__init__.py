@@ -13,7 +13,7 @@ from typing import Any
 
 from softphantom.study.config import SweepConfig, Variant, load_sweep_config, sweep_config_from_dict
 from softphantom.study.run import RESULTS, SweepRun, evaluate_variants, read_parquet, require_pyarrow, write_parquet
-from softphantom.study.variant import TIMING_COLUMNS, evaluate_variant
+from softphantom.study.variant import TIMING_COLUMNS, design_problem, evaluate_variant
 
 
 def _meta(cfg: SweepConfig, kind: str) -> dict:
@@ -62,6 +62,7 @@ __all__ = [
     "SweepConfig",
     "SweepRun",
     "TIMING_COLUMNS",
+    "design_problem",
     "Variant",
     "evaluate_variant",
     "evaluate_variants",

@@ -117,13 +117,32 @@ def evaluate_variant(variant: Variant) -> dict[str, Any]:
     try:
         row.update(_evaluate(variant))
     except SoftphantomError as exc:
-        from softphantom.errors import UserError
-
-        row["status"] = "invalid" if isinstance(exc, UserError) else "failed"
-        row["error"] = f"{type(exc).__name__}: {exc}".splitlines()[0]
+        row["status"], row["error"] = _why(exc)
     row["total_s"] = time.perf_counter() - t0
     row["cpu_s"] = time.process_time() - c0  # this process's CPU: the cost on a quiet core
     return row
+
+
+def _why(exc: SoftphantomError) -> tuple[str, str]:
+    """(status, one-line reason) of a variant that raised ``exc``: ``invalid`` for bad input (the
+    design or its mesh refused), ``failed`` for a solver."""
+    from softphantom.errors import UserError
+
+    return "invalid" if isinstance(exc, UserError) else "failed", f"{type(exc).__name__}: {exc}".splitlines()[0]
+
+
+def design_problem(variant: Variant) -> str:
+    """Why the design of ``variant`` is invalid, as its row's ``error`` would say ('' if it
+    validates). Checks the design only (no mesh: a mesh that misses a cavity volume is found
+    when the variant is evaluated)."""
+    from softphantom.design import design_from_dict
+    from softphantom.errors import UserError
+
+    try:
+        design_from_dict(variant.design)
+    except UserError as exc:
+        return _why(exc)[1]
+    return ""
 
 
 #: design keys that do not change the mesh (a variant differing only there reuses it)
