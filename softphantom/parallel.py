@@ -105,7 +105,8 @@ def map_tasks(
 ) -> list[TaskResult]:
     """Run ``fn(*a)`` for each ``a`` in ``args`` on ``client``; results in input order.
 
-    Shows a rich progress bar (``label``, done/total, elapsed) unless ``progress`` is False;
+    Shows a rich progress bar (``label``, done/total, elapsed; plain lines when the output is not a
+    terminal, :func:`softphantom.progress.progress_bar`) unless ``progress`` is False;
     ``on_result`` sees each result as it arrives (for caching, resuming, logging). A task that
     raises gives ``TaskResult(ok=False, error=...)``; the others go on.
     """
@@ -117,10 +118,12 @@ def map_tasks(
 
     bar = None
     if progress and futures:
-        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
+        from rich.progress import BarColumn, MofNCompleteColumn, TimeElapsedColumn
 
-        bar = Progress("[progress.description]{task.description}", BarColumn(), MofNCompleteColumn(),
-                       TimeElapsedColumn(), transient=False)
+        from softphantom.progress import progress_bar
+
+        bar = progress_bar("[progress.description]{task.description}", BarColumn(), MofNCompleteColumn(),
+                           TimeElapsedColumn())
         bar.start()
         task = bar.add_task(label, total=len(futures))
     try:

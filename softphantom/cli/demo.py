@@ -14,6 +14,7 @@ import typer
 from softphantom.cli.app import app, console
 from softphantom.cli.options import check_output, overwrite_option, staged_output
 from softphantom.errors import UserError
+from softphantom.progress import status
 
 
 def _contact(scenario) -> str:
@@ -296,14 +297,16 @@ def _run_all(scs, model, out: Path, cfg, tm, estimator: str = "atlas", grid=None
     import threading
     from concurrent.futures import ProcessPoolExecutor
 
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+    from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeElapsedColumn
+
+    from softphantom.progress import progress_bar
 
     shared = shared_atlases(scs, grid) if estimator == "atlas" else {}
     order = sorted(scs, key=lambda sc: _push_only(sc) in shared)  # stable: the others first
     ctx = mp.get_context("spawn")
     queue = ctx.Queue()
-    bar = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                   TextColumn("{task.fields[what]}"), console=console)
+    bar = progress_bar(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                       TextColumn("{task.fields[what]}"), console=console)
     rows: dict[str, dict] = {}
     with bar, ProcessPoolExecutor(1, mp_context=ctx, initializer=_init_worker, initargs=(queue, os.getpid())) as pool:
         tasks = {sc.name: bar.add_task(f"{sc.name}: truth", total=None, what="queued") for sc in order}
@@ -344,8 +347,6 @@ def demo_cmd(
                                    "7,5,5,2 on-centre (f_x clustered) and 5,5,5,2 off-centre for pushes, 3,3,3,5 for an inflation; the envelope is the scenario's loads)."),
 ) -> None:
     """The paper's experiments end to end without hardware: reports and a summary."""
-    from rich.status import Status
-
     from softphantom.cli.virtual import _config
     from softphantom.design import BIPDesign, build_model, load_model, save_model
     from softphantom.estimation.select import atlas_config_from_options, check_estimator_kind
@@ -365,12 +366,12 @@ def demo_cmd(
         raise UserError("--model and --mesh-size-mm: give one (a model directory has its mesh)")
     given = load_model(model_dir) if model_dir is not None else None
     with staged_output(out, overwrite=overwrite, directory=True) as work:
-        with Status("design → mesh (estimator model)", console=console):
+        with status("design → mesh (estimator model)", console):
             model = given if given is not None else build_model(BIPDesign(), mesh_size_mm, force=force)
             save_model(model, work / "model")
         console.print(f"model: {len(model.nodes)} nodes, {len(model.tets)} tets (mesh {model.design.mesh.size_mm:g} "
                       f"mm) → {out / 'model'}", highlight=False, soft_wrap=True)
-        with Status("mesh (truth model, finer)", console=console):
+        with status("mesh (truth model, finer)", console):
             tm = truth_model(model, cfg.truth)
         console.print(f"truth model: {len(tm.nodes)} nodes, {len(tm.tets)} tets, P{tm.element_order} (mesh "
                       f"{tm.design.mesh.size_mm:g} mm)", highlight=False)

@@ -10,6 +10,7 @@ import typer
 
 from softphantom.cli.app import app, console
 from softphantom.cli.options import overwrite_option, staged_output
+from softphantom.progress import status
 
 
 @app.command("design")
@@ -46,7 +47,7 @@ def design_command(
             lesions = tuple(int(x) for x in lesion_labels.split(",") if x.strip())
         except ValueError:
             raise UserError(f"--lesion-labels: expected integers separated by commas, got {lesion_labels!r}") from None
-        with console.status(f"importing the anatomy {anatomy} …"):
+        with status(f"importing the anatomy {anatomy}", console):
             gland = load_anatomy(anatomy, AnatomyOptions(urethra_label=urethra_label, surface_size_mm=surface_size_mm,
                                                          lesion_labels=lesions))
             design = design_from_anatomy(gland, design, name=f"{design.name}_anatomy")
@@ -63,7 +64,7 @@ def design_command(
     laws_of_design(design, design.region_names)  # an unknown law or a bad parameter fails here (exit 2)
     t0 = time.perf_counter()
     with staged_output(out, overwrite=overwrite, directory=True) as work:
-        with console.status(f"meshing design '{design.name}' …"):
+        with status(f"meshing design '{design.name}'", console):
             model = build_model(design, mesh_size_mm, force=force)
         save_model(model, work)
         report = design_report_md(model)
@@ -71,7 +72,7 @@ def design_command(
         if png:
             from softphantom.viz.mesh_view import render_mesh_png
 
-            with console.status("drawing mesh.png …"):
+            with status("drawing mesh.png", console):
                 render_mesh_png(model, work / "mesh.png")
     console.print(report, highlight=False)
     console.print(f"wrote {out}/ in {time.perf_counter() - t0:.1f} s", highlight=False)

@@ -31,8 +31,10 @@ def _virtual_opener(arg: str, model, bench):
     except ImportError:
         raise UserError("--source virtual:…: the virtual phantom (softphantom.virtual) is not available "
                         "in this installation") from None
-    console.print(f"virtual phantom: solving scenario {arg!r} (may take a while)…", highlight=False)
-    return open_source(arg, model, bench=bench)
+    from softphantom.progress import status
+
+    with status(f"virtual phantom: solving scenario {arg!r}", console):
+        return open_source(arg, model, bench=bench)
 
 
 def open_sensor_source(spec: str, model, *, tare_s: float = 1.0, on_new_board: str = "stop", **options):

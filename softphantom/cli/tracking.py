@@ -29,8 +29,7 @@ def track_cmd(
     overwrite: bool = overwrite_option(),
 ) -> None:
     """Record a rigid body from a NatNet stream: progress, lost frames, reconnects; Ctrl-C stops."""
-    from rich.live import Live
-
+    from softphantom.progress import live_line
     from softphantom.tracking.client import NatNetClient, NatNetConfig
     from softphantom.tracking.record import TrackerSink
 
@@ -62,7 +61,7 @@ def track_cmd(
         seen = valid = 0
         interrupted = False
         with TrackerSink(out, body=name, meta=meta, rest_window_s=rest_window_s) as sink, \
-                Live(console=console, refresh_per_second=4, transient=True) as live:
+                live_line(console, refresh_per_second=4, transient=True) as live:
             try:
                 done = lambda: (t_end is not None and time.monotonic() >= t_end) or (frames is not None and seen >= frames)  # noqa: E731
                 for _, f in client.frames(stop=done):

@@ -20,10 +20,12 @@ SCENARIO_HELP = "Scenario TOML file, or a bundled one: needle-insertion, push-on
 
 def truth_progress(console_, label: str):
     """A rich progress bar and the ``progress(done, total, what)`` callback that drives it."""
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+    from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeElapsedColumn
 
-    bar = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                   TextColumn("{task.fields[what]}"), console=console_, transient=False)
+    from softphantom.progress import progress_bar
+
+    bar = progress_bar(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                       TextColumn("{task.fields[what]}"), console=console_)
     task = bar.add_task(label, total=None, what="meshing the truth model")
 
     def cb(done: int, total: int, what: str) -> None:

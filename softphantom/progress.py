@@ -1,0 +1,218 @@
+"""Progress that shows wherever the output goes.
+
+rich draws its progress bars, spinners and live lines only on a terminal: with stdout piped to a
+file (a CI log, ``make demo > log``) a long step printed nothing until it ended. The helpers here
+give rich's display on a terminal and plain lines elsewhere:
+
+- :func:`progress_bar`: a ``rich.progress.Progress`` on a terminal, else a :class:`LineProgress`
+  (same ``add_task`` / ``update`` / ``advance`` calls) that prints one line per task each time it
+  passes another ``step_pct`` (10 %) or, while it moves, every ``every_s`` (10 s), and when it ends;
+- :func:`status`: ``console.status`` (a spinner) on a terminal, else a line when the step starts,
+  one every ``every_s`` while it runs, and one when it ends, with its time;
+- :func:`live_line`: ``rich.live.Live`` for a one-line live display, else the line printed at
+  most every ``every_s``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import threading
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from typing import Any
+
+EVERY_S = 10.0
+STEP_PCT = 10.0
+
+
+def _console(console):
+    if console is not None:
+        return console
+    from rich import get_console
+
+    return get_console()
+
+
+def _clock_text(seconds: float) -> str:
+    s = int(seconds)
+    return f"{s // 3600}:{s // 60 % 60:02d}:{s % 60:02d}"
+
+
+@dataclass
+class _Task:
+    description: str
+    total: float | None
+    completed: float
+    fields: dict
+    started: float
+    last_line: float = -1.0
+    last_step: int = -1
+    last_text: str = ""
+    done: bool = False
+
+
+class LineProgress:
+    """The calls of ``rich.progress.Progress`` that this project makes, printed as plain lines (one
+    per task per ``step_pct`` of its total, at most one per ``every_s`` in between, and one at its
+    end); for output that is not a terminal. ``clock`` for tests."""
+
+    def __init__(self, console=None, *, every_s: float = EVERY_S, step_pct: float = STEP_PCT,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self.console = _console(console)
+        self.every_s, self.step_pct, self.clock = every_s, step_pct, clock
+        self._tasks: dict[int, _Task] = {}
+        self._lock = threading.Lock()
+
+    def __enter__(self) -> LineProgress:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    def start(self) -> None:
+        pass
+
+    def stop(self) -> None:
+        """Say where every unfinished task stopped (unless that is what its last line said)."""
+        for tid in list(self._tasks):
+            self._emit(tid, final=True)
+
+    def add_task(self, description: str, total: float | None = None, completed: float = 0, **fields: Any) -> int:
+        fields.pop("start", None)
+        fields.pop("visible", None)
+        with self._lock:
+            tid = len(self._tasks)
+            self._tasks[tid] = _Task(description, total, completed, fields, self.clock())
+        self._emit(tid)
+        return tid
+
+    def advance(self, task_id: int, advance: float = 1) -> None:
+        self.update(task_id, advance=advance)
+
+    def update(self, task_id: int, *, total: float | None = None, completed: float | None = None,
+               advance: float | None = None, description: str | None = None, **fields: Any) -> None:
+        fields.pop("refresh", None)
+        fields.pop("visible", None)
+        t = self._tasks[task_id]
+        with self._lock:
+            if total is not None:
+                t.total = total
+            if completed is not None:
+                t.completed = completed
+            if advance is not None:
+                t.completed += advance
+            if description is not None:
+                t.description = description
+            t.fields.update(fields)
+        self._emit(task_id)
+
+    @staticmethod
+    def _state(t: _Task) -> str:
+        what = " ".join(str(v) for v in t.fields.values() if v not in (None, ""))
+        head = (f"{t.description}: {t.completed:g}/{t.total:g} ({100.0 * t.completed / t.total:.0f} %)"
+                if t.total else f"{t.description}:")
+        return f"{head} {what}" if what else head
+
+    def _emit(self, task_id: int, final: bool = False) -> None:
+        t = self._tasks[task_id]
+        now = self.clock()
+        with self._lock:
+            if t.done:
+                return
+            finished = bool(t.total) and t.completed >= t.total
+            step = int(100.0 * t.completed / t.total // self.step_pct) if t.total else -1
+            state = self._state(t)
+            if final:
+                due = state != t.last_text
+            else:
+                due = (t.last_line < 0 or finished or step > t.last_step
+                       or (state != t.last_text and now - t.last_line >= self.every_s))
+            if not due:
+                return
+            t.last_line, t.last_step, t.last_text, t.done = now, step, state, finished or final
+        self.console.print(f"{state} {_clock_text(now - t.started)}", highlight=False, markup=False, soft_wrap=True)
+
+
+def progress_bar(*columns: Any, console=None, transient: bool = False, every_s: float = EVERY_S,
+                 **kwargs: Any):
+    """A ``rich.progress.Progress(*columns, console=…, transient=…, **kwargs)`` on a terminal; a
+    :class:`LineProgress` otherwise."""
+    console = _console(console)
+    if console.is_terminal:
+        from rich.progress import Progress
+
+        return Progress(*columns, console=console, transient=transient, **kwargs)
+    return LineProgress(console, every_s=every_s)
+
+
+@contextlib.contextmanager
+def status(text: str, console=None, every_s: float = EVERY_S) -> Iterator[None]:
+    """A spinner with ``text`` on a terminal; otherwise ``text …`` when the step starts, ``text …
+    0:00:10`` every ``every_s`` while it runs and ``text: done in 12.3 s`` (or ``stopped after``)
+    when it ends."""
+    console = _console(console)
+    if console.is_terminal:
+        with console.status(f"{text} …"):
+            yield
+        return
+    t0 = time.monotonic()
+    console.print(f"{text} …", highlight=False, markup=False, soft_wrap=True)
+    stop = threading.Event()
+
+    def tick() -> None:
+        while not stop.wait(every_s):
+            console.print(f"{text} … {_clock_text(time.monotonic() - t0)}", highlight=False, markup=False,
+                          soft_wrap=True)
+
+    ticker = threading.Thread(target=tick, name="status-ticker", daemon=True)
+    ticker.start()
+    ok = False
+    try:
+        yield
+        ok = True
+    finally:
+        stop.set()
+        ticker.join()
+        how = "done in" if ok else "stopped after"
+        console.print(f"{text}: {how} {time.monotonic() - t0:.1f} s", highlight=False, markup=False, soft_wrap=True)
+
+
+class _LineLive:
+    """``rich.live.Live``'s ``update(text)`` as a line printed at most every ``every_s`` (the last
+    one again when it closes, if it was not printed)."""
+
+    def __init__(self, console, every_s: float, clock: Callable[[], float] = time.monotonic) -> None:
+        self.console, self.every_s, self.clock = console, every_s, clock
+        self._last = -float("inf")
+        self._pending: str | None = None
+
+    def __enter__(self) -> _LineLive:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self._pending is not None:
+            self._print(self._pending)
+
+    def _print(self, text: str) -> None:
+        self.console.print(text, highlight=False, markup=False, soft_wrap=True)
+        self._pending = None
+
+    def update(self, renderable: Any, **_: Any) -> None:
+        now = self.clock()
+        if now - self._last >= self.every_s:
+            self._last = now
+            self._print(str(renderable))
+        else:
+            self._pending = str(renderable)
+
+
+def live_line(console=None, every_s: float = EVERY_S, **kwargs: Any):
+    """``rich.live.Live(console=…, **kwargs)`` on a terminal; elsewhere an object whose
+    ``update(text)`` prints the text at most every ``every_s``."""
+    console = _console(console)
+    if console.is_terminal:
+        from rich.live import Live
+
+        return Live(console=console, **kwargs)
+    return _LineLive(console, every_s)

@@ -1,0 +1,122 @@
+"""Progress on output that is not a terminal (a CI log, a pipe): long steps print plain lines
+(softphantom.progress), where rich's bars, spinners and live lines print nothing."""
+
+from __future__ import annotations
+
+import io
+import re
+import threading
+
+import pytest
+from rich.console import Console
+
+from softphantom.progress import LineProgress, _LineLive, live_line, progress_bar, status
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.t = 0.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def plain() -> tuple[Console, io.StringIO]:
+    buf = io.StringIO()
+    return Console(file=buf, width=200), buf
+
+
+def test_a_pipe_gets_lines_and_a_terminal_gets_rich():
+    from rich.live import Live
+    from rich.progress import Progress
+
+    con, _ = plain()
+    assert not con.is_terminal
+    assert isinstance(progress_bar(console=con), LineProgress) and isinstance(live_line(con), _LineLive)
+    tty = Console(file=io.StringIO(), force_terminal=True)
+    assert isinstance(progress_bar(console=tty), Progress) and isinstance(live_line(tty), Live)
+
+
+def test_line_progress_one_line_per_ten_percent_and_at_most_one_per_interval_between():
+    con, buf = plain()
+    clock = Clock()
+    bar = LineProgress(con, every_s=10.0, clock=clock)
+    with bar:
+        fast = bar.add_task("estimate", total=200, what="")
+        for _ in range(200):  # 200 samples in 2 s: one line at the start, then one per 10 %
+            clock.t += 0.01
+            bar.advance(fast)
+        bar.advance(fast)  # past the end: nothing more
+    lines = buf.getvalue().splitlines()
+    assert [re.search(r"\((\d+) %\)", ln).group(1) for ln in lines] == [str(p) for p in range(0, 101, 10)]
+    assert lines[-1] == "estimate: 200/200 (100 %) 0:00:02"
+
+    con, buf = plain()
+    clock = Clock()
+    bar = LineProgress(con, every_s=10.0, clock=clock)
+    slow = bar.add_task("atlas", total=1000)
+    for _ in range(60):  # 60 s for 6 %: no step crossed, a line per 10 s while it moves
+        clock.t += 1.0
+        bar.advance(slow)
+    quiet = bar.add_task("truth", total=None, what="queued")
+    clock.t += 60.0
+    bar.update(quiet, what="queued")  # nothing changed: no line however long it waits
+    bar.update(quiet, what="solving")
+    bar.stop()  # the unfinished tasks' last state, unless already printed
+    lines = buf.getvalue().splitlines()
+    h_m_s = [ln.rsplit(" ", 1)[1].split(":") for ln in lines if ln.startswith("atlas")]
+    assert [int(h) * 3600 + int(m) * 60 + int(s) for h, m, s in h_m_s] == [0, 10, 20, 30, 40, 50, 60]
+    assert [ln for ln in lines if ln.startswith("truth")] == ["truth: queued 0:00:00", "truth: solving 0:01:00"]
+
+
+def test_live_line_prints_at_most_every_interval_and_the_last_state():
+    con, buf = plain()
+    clock = Clock()
+    with _LineLive(con, 10.0, clock) as live:
+        for k in range(200):  # 25 s of updates at 8 Hz
+            live.update(f"frames {k}")
+            clock.t += 0.125
+    assert buf.getvalue().splitlines() == ["frames 0", "frames 80", "frames 160", "frames 199"]
+
+
+def test_status_lines_start_while_running_and_end():
+    buf = io.StringIO()
+    ticked = threading.Event()
+
+    class Watch(io.StringIO):
+        def write(self, s):
+            buf.write(s)
+            if "… 0:" in s:
+                ticked.set()
+            return len(s)
+
+    con = Console(file=Watch(), width=200)
+    with status("meshing design 'x'", con, every_s=0.01):
+        assert ticked.wait(30.0)  # a line while it runs, not only at its ends
+    with pytest.raises(KeyError), status("drawing", con, every_s=60.0):
+        raise KeyError("x")
+    lines = buf.getvalue().splitlines()
+    assert lines[0] == "meshing design 'x' …" and re.fullmatch(r"meshing design 'x' … 0:00:\d\d", lines[1])
+    assert re.fullmatch(r"meshing design 'x': done in [\d.]+ s", [ln for ln in lines if "meshing" in ln][-1])
+    assert lines[-2:] == ["drawing …", lines[-1]] and re.fullmatch(r"drawing: stopped after [\d.]+ s", lines[-1])
+
+
+def test_map_tasks_on_a_pipe_prints_its_progress(capsys):
+    from softphantom.parallel import dask_client, map_tasks
+
+    with dask_client(processes=False, n_workers=1) as client:
+        out = map_tasks(client, pow, [(2, k) for k in range(5)], label="powers", progress=True)
+    assert [r.value for r in out] == [1, 2, 4, 8, 16]
+    lines = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("powers")]
+    assert lines[0].startswith("powers: 0/5 (0 %)") and lines[-1].startswith("powers: 5/5 (100 %)")
+    assert len(lines) == 6
+
+
+def test_design_on_a_pipe_says_what_it_is_doing(tmp_path, capsys):
+    from softphantom.cli import main
+
+    assert main(["design", "--out", str(tmp_path / "m"), "--mesh-size-mm", "12", "--no-png"]) == 0
+    printed = capsys.readouterr().out.splitlines()
+    start = next(i for i, ln in enumerate(printed) if re.fullmatch(r"meshing design '\w+' …", ln))
+    assert re.fullmatch(r"meshing design '\w+': done in [\d.]+ s", printed[start + 1 + sum(
+        "… 0:" in ln for ln in printed[start + 1:])]), printed[:5]
