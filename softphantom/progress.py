@@ -34,6 +34,11 @@ def _console(console):
     return get_console()
 
 
+def _draws(console) -> bool:
+    """Does rich draw live displays on ``console`` (a terminal, not TERM=dumb)?"""
+    return console.is_terminal and not console.is_dumb_terminal
+
+
 def _clock_text(seconds: float) -> str:
     s = int(seconds)
     return f"{s // 3600}:{s // 60 % 60:02d}:{s % 60:02d}"
@@ -139,7 +144,7 @@ def progress_bar(*columns: Any, console=None, transient: bool = False, every_s: 
     """A ``rich.progress.Progress(*columns, console=…, transient=…, **kwargs)`` on a terminal; a
     :class:`LineProgress` otherwise."""
     console = _console(console)
-    if console.is_terminal:
+    if _draws(console):
         from rich.progress import Progress
 
         return Progress(*columns, console=console, transient=transient, **kwargs)
@@ -152,7 +157,7 @@ def status(text: str, console=None, every_s: float = EVERY_S) -> Iterator[None]:
     0:00:10`` every ``every_s`` while it runs and ``text: done in 12.3 s`` (or ``stopped after``)
     when it ends."""
     console = _console(console)
-    if console.is_terminal:
+    if _draws(console):
         with console.status(f"{text} …"):
             yield
         return
@@ -211,7 +216,7 @@ def live_line(console=None, every_s: float = EVERY_S, **kwargs: Any):
     """``rich.live.Live(console=…, **kwargs)`` on a terminal; elsewhere an object whose
     ``update(text)`` prints the text at most every ``every_s``."""
     console = _console(console)
-    if console.is_terminal:
+    if _draws(console):
         from rich.live import Live
 
         return Live(console=console, **kwargs)
