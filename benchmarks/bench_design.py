@@ -1,6 +1,15 @@
 """Design → mesh: wall time, sizes, volume errors and quality for coarse / default / fine meshes.
 
-Run: ``.venv/bin/python benchmarks/bench_design.py [--repeat N] [--compliance]``
+Run: ``.venv/bin/python benchmarks/bench_design.py [--repeat N] [--compliance] [--stages] [--only default]``
+
+``cpu_s`` is the CPU time of a build, this process and its gmsh child together (what it costs on a
+quiet core, whatever else the machine runs); ``sha`` a hash of the mesh (nodes, tets, regions,
+faces): a change meant to speed meshing up must leave it as it is.
+
+``--stages`` meshes the default in this process and splits gmsh's work by its own log: the CAD
+(solids, fillets, booleans: everything before ``generate``), the size fields' set-up (their
+distance fields sample the surfaces before the 1-D pass), the 1-D, 2-D and 3-D passes and the
+optimization, in CPU seconds.
 
 ``--compliance`` adds a sanity figure for the arm stiffness: a *linear* (small-strain) elastic
 solve of a 5 N push along +y at p_ext on-centre (spread over the surface within 4 mm), Ecoflex
@@ -12,8 +21,11 @@ neo-Hookean on a similar geometry), so it is a plausibility check, not a result.
 from __future__ import annotations
 
 import argparse
+import hashlib
 import os
 import platform
+import re
+import resource
 import statistics
 import time
 
@@ -76,31 +88,88 @@ def _linear_push(model, force_N=(0.0, 5.0, 0.0), E=140e3, nu=0.45, patch_m=4e-3)
     return np.array(out)
 
 
+def _cpu() -> float:
+    """CPU seconds of this process and its finished children (the gmsh child)."""
+    a, b = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return a.ru_utime + a.ru_stime + b.ru_utime + b.ru_stime
+
+
+def mesh_sha(m) -> str:
+    """A hash of the mesh: node coordinates, connectivity, regions and the boundary faces."""
+    h = hashlib.sha256()
+    for a in (m.nodes, m.tets, m.tet_region, m.outer_faces, m.fixed_faces, *[m.cavities[k] for k in sorted(m.cavities)]):
+        h.update(np.ascontiguousarray(a).tobytes())
+    return h.hexdigest()[:12]
+
+
+def stages(design) -> dict:
+    """CPU seconds of each part of one mesh of ``design`` in this process (see the module doc)."""
+    import gmsh
+
+    from softphantom.design import mesh as M
+
+    got: dict = {}
+    generate = gmsh.model.mesh.generate
+
+    def timed_generate(dim: int = 3) -> None:
+        gmsh.option.setNumber("General.Verbosity", 5)  # gmsh's own "Done meshing nD (…, CPU x s)"
+        got["cad"] = time.process_time() - got["t0"]
+        t = time.process_time()
+        generate(dim)
+        got["generate"] = time.process_time() - t
+        for line in gmsh.logger.get():
+            if (hit := re.search(r"Done (meshing \dD|optimizing mesh) \(Wall [\d.e-]+s, CPU ([\d.e-]+)s\)", line)):
+                got[hit.group(1)] = got.get(hit.group(1), 0.0) + float(hit.group(2))
+
+    gmsh.model.mesh.generate = timed_generate
+    try:
+        got["t0"] = time.process_time()
+        M.mesh_design(design, isolate=False)
+        got["total"] = time.process_time() - got.pop("t0")
+    finally:
+        gmsh.model.mesh.generate = generate
+    passes = sum(got.get(k, 0.0) for k in ("meshing 1D", "meshing 2D", "meshing 3D", "optimizing mesh"))
+    got["fields set-up (+ the rest of generate)"] = got["generate"] - passes
+    return got
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeat", type=int, default=3, help="timed runs per case (median reported)")
     ap.add_argument("--compliance", action="store_true", help="also run the linear 5 N push sanity check")
+    ap.add_argument("--stages", action="store_true", help="also split the default mesh's CPU time by gmsh's passes")
+    ap.add_argument("--only", choices=[c for c, _ in CASES], action="append", help="only these cases (repeat)")
     args = ap.parse_args()
-    print(f"# bench_design  python {platform.python_version()}  cpus {os.cpu_count()}  {platform.machine()}")
-    print("| mesh | size_mm | nodes | tets | mesh_s (median) | build_s | bulb_err_% | cavity_err_% (worst) | min_dihedral_deg |")
-    print("| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |")
+    print(f"# bench_design  python {platform.python_version()}  cpus {os.cpu_count()}  {platform.machine()}  "
+          f"load {os.getloadavg()[0]:.1f}")
+    print("| mesh | size_mm | nodes | tets | mesh_s (median) | build_s | cpu_s | bulb_err_% | cavity_err_% (worst) "
+          "| min_dihedral_deg | sha |")
+    print("| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | --- |")
     d = BIPDesign()
     models = {}
     for label, size in CASES:
-        walls, mesh_s = [], []
+        if args.only and label not in args.only:
+            continue
+        walls, mesh_s, cpus = [], [], []
         for _ in range(args.repeat):
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), _cpu()
             m = build_model(d, size)
             walls.append(time.perf_counter() - t0)
+            cpus.append(_cpu() - c0)
             mesh_s.append(m.mesh_seconds)
         s = model_summary(m)
         bulb = 100 * (s["bulb_mesh_mm3"] / s["bulb_design_mm3"] - 1)
         cav = min((100 * (s[f"{n}_mesh_mm3"] / s[f"{n}_design_mm3"] - 1) for n in d.cavity_volumes_mm3()), key=lambda v: -abs(v))
         print(
             f"| {label} | {m.design.mesh.size_mm:g} | {len(m.nodes)} | {len(m.tets)} | {statistics.median(mesh_s):.2f} | "
-            f"{statistics.median(walls):.2f} | {bulb:+.2f} | {cav:+.2f} | {s['min_dihedral_deg']:.1f} |"
+            f"{statistics.median(walls):.2f} | {statistics.median(cpus):.2f} | {bulb:+.2f} | {cav:+.2f} | "
+            f"{s['min_dihedral_deg']:.1f} | {mesh_sha(m)} |"
         )
         models[label] = m
+    if args.stages:
+        print("\n# default design, one mesh in this process: CPU s by part")
+        for k, v in stages(d).items():
+            print(f"{k}: {v:.2f}")
     if args.compliance:
         print("\n# linear 5 N push along +y at p_ext on-centre (E 140 kPa, nu 0.45): marker displacement")
         for label, m in models.items():

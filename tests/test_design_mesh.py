@@ -163,6 +163,21 @@ def test_deterministic_and_off_main_thread(coarse_model, tmp_path):
         assert (tmp_path / "a" / f).read_bytes() == (tmp_path / "b" / f).read_bytes(), f
 
 
+def test_one_distance_field_per_wall_size_gives_the_same_mesh(coarse_model, monkeypatch):
+    """The cavities of one wall size share one distance field (a third of the size-field work of
+    the default design, whose four arm cavities share a size): the mesh is the one that a field per
+    cavity gives, node for node (docs/performance.md)."""
+    from softphantom.design import mesh as mesh_mod
+
+    d = coarse_model.design
+    sizes = {n: d.mesh.cavity_size_mm(r) for n, r in
+             [*((g.name, g.cavity_radius_mm) for g in d.arm_geometry()), ("urethra", d.urethra.radius_mm)]}
+    assert [names for _, names in mesh_mod._walls_by_size(sizes)] == [list(ARM_NAMES), ["urethra"]]
+    monkeypatch.setattr(mesh_mod, "_walls_by_size", lambda s: [(h, [n]) for n, h in s.items()])
+    apart = build_model(d, isolate=False)
+    assert apart == coarse_model
+
+
 def test_meshing_keeps_sigpipe_ignored(tmp_path):
     """gmsh.initialize resets SIGPIPE to 'terminate'; after meshing, a write to a closed pipe must
     still be an EPIPE error in this process (the live page and the stream rely on it)."""

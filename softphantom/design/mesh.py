@@ -336,7 +336,8 @@ def _build(design: BIPDesign, mp: MeshParams) -> dict:
     fixed: list[int] = []
     for g, name in zip(geoms, ARM_NAMES):
         bnd = gmsh.model.getBoundary([(3, t) for t in region_vols[f"arm_{name}"]], combined=True, oriented=False)
-        hits = [abs(t) for _, t in bnd if np.linalg.norm(np.array(occ.getCenterOfMass(2, abs(t))) - g.end_mm) < 1e-3]
+        hits = [abs(t) for _, t in bnd if gmsh.model.getType(2, abs(t)) == "Plane"
+                and np.linalg.norm(np.array(occ.getCenterOfMass(2, abs(t))) - g.end_mm) < 1e-3]
         if len(hits) != 1:
             raise MeshError(f"arm {name}: found {len(hits)} end faces, expected 1")
         fixed.append(hits[0])
@@ -358,10 +359,9 @@ def _build(design: BIPDesign, mp: MeshParams) -> dict:
     fields = []
     radii = {g.name: g.cavity_radius_mm for g in geoms}
     radii["urethra"] = design.urethra.radius_mm
-    for cname in (*ARM_NAMES, "urethra"):
-        h = mp.cavity_size_mm(radii[cname])
+    for h, names in _walls_by_size({c: mp.cavity_size_mm(radii[c]) for c in (*ARM_NAMES, "urethra")}):
         dist = fld.add("Distance")
-        fld.setNumbers(dist, "SurfacesList", cav_surfaces[cname])
+        fld.setNumbers(dist, "SurfacesList", [t for n in names for t in cav_surfaces[n]])
         fld.setNumber(dist, "Sampling", 40)
         fields.append(_graded(fld, dist, h, mp.size_mm))
     body = [v for r in ("bulb", "shell") for v in region_vols.get(r, [])]
@@ -487,6 +487,22 @@ def _tube(length: float, h_edge: float, h_far: float) -> float:
         return 0.0
     a, d = h_edge, h_far - h_edge
     return length * (2 * np.pi * (0.5 / a - 1 / h_far + 0.5 * a / h_far**2) - np.pi * d * d / h_far**3)
+
+
+def _walls_by_size(sizes: dict[str, float]) -> list[tuple[float, list[str]]]:
+    """The cavities grouped by the element size on their walls, each group meshed with one distance
+    field over all its walls: the graded size (:func:`_graded`) grows with the distance, so the
+    smallest over the group's cavities is the size at its nearest wall, the same value (the same
+    mesh) for fewer field evaluations. gmsh evaluates the size field ~2e5 times meshing the curves
+    of the default design, whose four arm cavities share one size (docs/performance.md).
+
+    >>> _walls_by_size({"a": 1.0, "b": 0.5, "c": 1.0})
+    [(1.0, ['a', 'c']), (0.5, ['b'])]
+    """
+    groups: dict[float, list[str]] = {}
+    for name, h in sizes.items():
+        groups.setdefault(h, []).append(name)
+    return list(groups.items())
 
 
 def _graded(fld, dist: int, h: float, far: float) -> int:

@@ -103,11 +103,11 @@ def _arm_faces(faces: list[int], root, end, radius: float) -> tuple[set[int], se
     axis = (end - root) / np.linalg.norm(end - root)
     side, cap = set(), set()
     for s in faces:
-        curves = {abs(c) for _, c in gmsh.model.getBoundary([(2, s)], oriented=False)}
-        if np.linalg.norm(np.array(gmsh.model.occ.getCenterOfMass(2, s)) - end) < 1e-3:
-            cap |= curves  # the end disk
-        elif gmsh.model.getType(2, s) == "Cylinder" and _on_side(s, root, axis, radius):
-            side |= curves
+        kind = gmsh.model.getType(2, s)  # first: a centre of mass integrates over the face (slow on a fillet)
+        if kind == "Plane" and np.linalg.norm(np.array(gmsh.model.occ.getCenterOfMass(2, s)) - end) < 1e-3:
+            cap |= {abs(c) for _, c in gmsh.model.getBoundary([(2, s)], oriented=False)}  # the end disk
+        elif kind == "Cylinder" and _on_side(s, root, axis, radius):
+            side |= {abs(c) for _, c in gmsh.model.getBoundary([(2, s)], oriented=False)}
     return side, cap
 
 
