@@ -68,6 +68,12 @@ def test_demo_end_to_end_coarse(tmp_path, capsys):
     assert "demo-short" in text and "Table I" in text and "tracker clock offset" in text
     assert re.search(r"report: .*demo-short/report/report\.html", text)
     assert "index: " in text
+    # output that is not a terminal (this capture, a CI log) still shows the long steps' progress
+    assert "design → mesh (estimator model) …" in text and "design → mesh (estimator model): done in" in text
+    assert re.search(r"demo-short: estimate: \d+/\d+ \(50 %\)", text) and "demo-short: truth:" in text
+    # truth.csv and the estimate of the virtual board share the scenario clock: the lag is the latency
+    report = (d / "report" / "report.html").read_text()
+    assert "the estimator&#x27;s latency (both files on the same clock: scenario (s))" in report
 
 
 def test_demo_and_virtual_bad_options_are_one_line(tmp_path, capsys):
