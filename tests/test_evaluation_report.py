@@ -166,6 +166,17 @@ def test_lag_says_what_it_consists_of(run, tmp_path, capsys):
     m = re.search(r"the estimator's latency ([−+][\d.]+) ms − the clock offset \+253\.0 ms", printed)
     assert m and abs(float(m.group(1).replace("−", "-")) - 100.0) < 5.0, printed
     assert "latency" in " ".join(parse(out / "report.html").text)
+    # a virtual run's tracker file: its virtual.json records the offset, which is then used
+    run_dir = tmp_path / "virtual_run"
+    run_dir.mkdir()
+    (run_dir / "tracker_motive.csv").write_bytes(mot.read_bytes())
+    (run_dir / "virtual.json").write_text('{"tracker": {"clock_offset_s": 0.253}}')
+    assert main(["evaluate", "--estimate", str(pe), "--truth", str(run_dir / "tracker_motive.csv"),
+                 "--out", str(tmp_path / "virtual_out")]) == 0
+    printed = " ".join(capsys.readouterr().out.split())
+    m = re.search(r"the estimator's latency ([−+][\d.]+) ms − the clock offset \+253\.0 ms \(truth clock − "
+                  r"estimate clock, from virtual\.json beside the tracker file", printed)
+    assert m and abs(float(m.group(1).replace("−", "-")) - 100.0) < 5.0, printed
     # both files on the scenario clock (a virtual run's truth.csv and an estimate of it): no offset
     same = tmp_path / "same"
     same.mkdir()

@@ -33,6 +33,20 @@ def _parse_window(text: str | None) -> tuple[float, float] | None:
     return a, b
 
 
+def _virtual_tracker_offset_ms(truth: Path) -> float | None:
+    """The clock offset of a virtual run's tracker file (``tracker_motive.csv`` beside the run's
+    ``virtual.json``, which records it), else None."""
+    import json
+
+    meta = truth.with_name("virtual.json")
+    if truth.name != "tracker_motive.csv" or not meta.is_file():
+        return None
+    try:
+        return float(json.loads(meta.read_text(encoding="utf-8"))["tracker"]["clock_offset_s"]) * 1e3
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
 @app.command("evaluate")
 def evaluate_cmd(
     estimate: Path = typer.Option(..., "--estimate", help="Estimate CSV (softphantom estimate --out)."),
@@ -62,7 +76,11 @@ def evaluate_cmd(
     est = read_estimate(estimate)
     tru = read_truth(truth, body=body, rest_window_s=_parse_window(rest_window_s), clock=clock,
                      length_unit=length_unit, rotation_order=rotation_order, natnet_version=natnet_version)
-    ev = evaluate(tru, est, lag_ms=lag, max_lag_s=max_lag_ms * 1e-3, clock_offset_ms=clock_offset_ms)
+    offset_from = "given"
+    if clock_offset_ms is None and (known := _virtual_tracker_offset_ms(truth)) is not None:
+        clock_offset_ms, offset_from = known, "from virtual.json beside the tracker file"
+    ev = evaluate(tru, est, lag_ms=lag, max_lag_s=max_lag_ms * 1e-3, clock_offset_ms=clock_offset_ms,
+                  offset_source=offset_from)
     with staged_output(out, overwrite=overwrite, directory=True) as work:
         report, rows = write_report(work, tru, est, ev, snapshot=snapshot, title=f"{estimate.name} vs {truth.name}")
     report = out / report.relative_to(work)

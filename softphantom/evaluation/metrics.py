@@ -151,17 +151,18 @@ class Evaluation:
 
 
 def evaluate(truth: Series6, estimate: Series6, lag_ms: float | None = None, max_lag_s: float = 1.0,
-             clock_offset_ms: float | None = None) -> Evaluation:
+             clock_offset_ms: float | None = None, offset_source: str = "given") -> Evaluation:
     """Compare an estimate with the truth. ``lag_ms`` None: measure it by cross-correlation of the
     six DoF (sign: positive = the estimate comes later than the truth). ``clock_offset_ms``: the
     truth's clock minus the estimate's at the same instant, if known (e.g. ``clock_offset_s`` of a
     virtual run's tracker); it splits the lag into that offset and the estimator's latency. When
-    both files name the same clock the offset is 0."""
+    both files name the same clock the offset is 0. ``offset_source`` says where a given offset
+    comes from (for the report)."""
     notes = [*truth.meta.get("warnings", ()), *estimate.meta.get("warnings", ())]  # e.g. an incomplete file
     t_truth, t_est, rezeroed = shift_to_common_start(truth.t, estimate.t)
     tc, ec = clock_name(truth.meta), clock_name(estimate.meta)
     if clock_offset_ms is not None:
-        offset, how = float(clock_offset_ms), "given"
+        offset, how = float(clock_offset_ms), offset_source
     elif tc is not None and tc == ec:
         offset, how = 0.0, "same clock"
     else:
