@@ -70,7 +70,7 @@ class LiveState:
 
     def __init__(self, history: int = 20000):
         self._lock = threading.Condition()
-        self._hist: deque[dict[str, Any]] = deque(maxlen=history)
+        self._hist: deque[tuple[dict[str, Any], bytes]] = deque(maxlen=history)  # (message, its JSON)
         self.latest: dict[str, Any] | None = None
         self.seq = -1
         self.surface_b64: str | None = None
@@ -89,10 +89,12 @@ class LiveState:
         self._steps: deque[float] = deque(maxlen=1000)
         self.frames_served = 0
 
-    def push(self, msg: dict[str, Any]) -> None:
+    def push(self, msg: dict[str, Any], data: bytes | None = None) -> None:
+        """Append an estimate message (``data``: its JSON, if already encoded)."""
         status = str(msg.get("status") or "ok")
+        data = encode(msg) if data is None else data
         with self._lock:
-            self._hist.append(msg)
+            self._hist.append((msg, data))
             self.latest = msg
             self.seq = msg["seq"]
             self.skipped_total += int(msg.get("skipped") or 0)
@@ -172,22 +174,37 @@ class LiveState:
                 "finished": self.finished,
             }
 
+    def _since(self, seq: int, surface_version: int, max_samples: int) -> tuple[list, str | None, int, int]:
+        """(the (message, JSON) pairs after ``seq``, the surface if newer than ``surface_version``,
+        the seq and surface version to pass next time)."""
+        with self._lock:
+            new = list(takewhile(lambda m: m[0]["seq"] > seq, reversed(self._hist)))[:max_samples]
+            new.reverse()
+            if new and seq >= 0 and new[0][0]["seq"] > seq + 1:
+                self.view_dropped += new[0][0]["seq"] - seq - 1
+            changed = self.surface_version != surface_version
+            self.frames_served += 1
+            return new, self.surface_b64 if changed else None, self.seq, self.surface_version
+
     def frame_since(self, seq: int, surface_version: int, max_samples: int = 2000) -> tuple[dict[str, Any], int, int]:
         """The next frame for a client that has seen up to ``seq`` and ``surface_version``:
         ``(frame, seq, surface_version)`` to pass next time."""
-        with self._lock:
-            new = list(takewhile(lambda m: m["seq"] > seq, reversed(self._hist)))[:max_samples]
-            new.reverse()
-            if new and seq >= 0 and new[0]["seq"] > seq + 1:
-                self.view_dropped += new[0]["seq"] - seq - 1
-            frame: dict[str, Any] = {"samples": new}
-            if self.surface_version != surface_version and self.surface_b64 is not None:
-                frame["surface_mm_f32_b64"] = self.surface_b64
-            sv = self.surface_version
-            last = self.seq
-            self.frames_served += 1
+        new, surface, last, sv = self._since(seq, surface_version, max_samples)
+        frame: dict[str, Any] = {"samples": [m for m, _ in new]}
+        if surface is not None:
+            frame["surface_mm_f32_b64"] = surface
         frame["status"] = self.status()
         return frame, last, sv
+
+    def frame_json_since(self, seq: int, surface_version: int, max_samples: int = 2000) -> tuple[bytes, int, int, int]:
+        """:meth:`frame_since` as JSON bytes, joined from the messages' JSON (each estimate is
+        encoded once, by the pump): ``(json, number of samples, seq, surface_version)``."""
+        new, surface, last, sv = self._since(seq, surface_version, max_samples)
+        parts = [b'{"samples":[', b",".join(d for _, d in new), b"]"]
+        if surface is not None:
+            parts += [b',"surface_mm_f32_b64":"', surface.encode(), b'"']
+        parts += [b',"status":', encode(self.status()), b"}"]
+        return b"".join(parts), len(new), last, sv
 
 
 class LiveSession:
@@ -314,7 +331,10 @@ class LiveSession:
                         self.recorder.write_tracker(tm)
                     if "x_mm" in tm:
                         tracker = {k: tm[k] for k in _TRACKER_KEYS}
-                st.push(msg if tracker is None else {**msg, "tracker": tracker})  # the page only
+                if tracker is None:
+                    st.push(msg, data)
+                else:
+                    st.push({**msg, "tracker": tracker})  # the page only
                 now = time.monotonic()
                 want_rec = self.recorder is not None and rec_dt is not None and now - last_rec >= rec_dt
                 if geo is not None and (now - last_view >= view_dt or want_rec):

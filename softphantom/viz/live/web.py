@@ -19,7 +19,7 @@ import json
 import logging
 import socket
 import threading
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import h11
 from starlette.applications import Starlette
@@ -44,8 +44,8 @@ STATUS_PERIOD_S = 1.0
 """A frame at least this often, new estimates or not: the page's status (stalled, ended) stays fresh."""
 
 
-def _sse(frame: dict[str, Any]) -> bytes:
-    return b"event: frame\ndata: " + json.dumps(frame, allow_nan=False, separators=(",", ":")).encode() + b"\n\n"
+def _sse(frame_json: bytes) -> bytes:
+    return b"event: frame\ndata: " + frame_json + b"\n\n"
 
 
 class FrameHub:
@@ -59,7 +59,7 @@ class FrameHub:
 
     def subscribe(self) -> asyncio.Queue:
         """A queue for a new browser, holding its first frame: the history and the surface."""
-        frame, seq, sv = self.state.frame_since(-1, 0)
+        frame, _, seq, sv = self.state.frame_json_since(-1, 0)
         if not self.clients:  # the broadcast resumes where this client's history ends
             self.seq, self.sv = seq, sv
         q: asyncio.Queue = asyncio.Queue(CLIENT_QUEUE)
@@ -81,8 +81,8 @@ class FrameHub:
     def tick(self) -> None:
         """Build this tick's frame once and queue it to every client (if anything is new)."""
         st = self.state
-        frame, self.seq, self.sv = st.frame_since(self.seq, self.sv)
-        data, n = _sse(frame), len(frame["samples"])
+        frame, n, self.seq, self.sv = st.frame_json_since(self.seq, self.sv)
+        data = _sse(frame)
         for q in self.clients:
             if q.full():  # this browser is behind: it loses its oldest frame
                 _, lost = q.get_nowait()
