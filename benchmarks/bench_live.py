@@ -113,6 +113,21 @@ def model_and_estimator(a):
     return model, est
 
 
+def chromium_cpu_s() -> float:
+    """CPU seconds used so far by every chromium process on the machine (user + system)."""
+    total = 0.0
+    for pid in os.listdir("/proc"):
+        try:
+            with open(f"/proc/{pid}/stat") as fh:
+                stat = fh.read()
+        except OSError:
+            continue
+        if pid.isdigit() and "chrom" in stat[stat.find("(") + 1:stat.rfind(")")]:
+            fields = stat[stat.rfind(")") + 2:].split()
+            total += (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    return total
+
+
 def page_counters(page) -> tuple[int, int, float, float]:
     return tuple(page.evaluate("() => { const S = window.__softphantomLive; "
                                "return [S.renders, S.frames, performance.now(), S.scale]; }"))
@@ -120,11 +135,11 @@ def page_counters(page) -> tuple[int, int, float, float]:
 
 def run_phase(name, seconds, src, pages=(), settle_s=3.0):
     time.sleep(settle_s)
-    t0 = time.monotonic()
+    t0, cpu0 = time.monotonic(), chromium_cpu_s()
     before = [page_counters(p) for p in pages]
     time.sleep(seconds)
     after = [page_counters(p) for p in pages]
-    t1 = time.monotonic()
+    t1, cpu1 = time.monotonic(), chromium_cpu_s()
     steps = np.array([ms for t, ms in src.steps if t0 <= t <= t1])
     row = {"phase": name, "n": len(steps), "p50": np.percentile(steps, 50), "p99": np.percentile(steps, 99),
            "max": steps.max(), "rate": len(steps) / (t1 - t0)}
@@ -133,12 +148,13 @@ def run_phase(name, seconds, src, pages=(), settle_s=3.0):
         fps = [(b[0] - a[0]) / d for a, b, d in zip(before, after, dt)]
         upd = [(b[1] - a[1]) / d for a, b, d in zip(before, after, dt)]
         row.update(fps_min=min(fps), fps_mean=float(np.mean(fps)), upd_min=min(upd), upd_mean=float(np.mean(upd)),
-                   scale=float(np.mean([b[3] for b in after])))
+                   scale=float(np.mean([b[3] for b in after])), cores=(cpu1 - cpu0) / (t1 - t0))
     line = (f"{name:<44} estimates {row['rate']:5.1f}/s  step p50 {row['p50']:.3f} ms  p99 {row['p99']:.3f} ms  "
             f"max {row['max']:.2f} ms")
     if pages:
         line += (f"  | drawn fps min {row['fps_min']:.1f} mean {row['fps_mean']:.1f}; server frames/s min "
-                 f"{row['upd_min']:.1f} mean {row['upd_mean']:.1f}; 3-D scale {row['scale']:.2f}")
+                 f"{row['upd_min']:.1f} mean {row['upd_mean']:.1f}; 3-D scale {row['scale']:.2f}; "
+                 f"browsers' CPU {row['cores']:.2f} cores")
     print(line, flush=True)
     return row
 
@@ -214,13 +230,14 @@ def main() -> None:
         st = s.state.status()
     print(f"session: {st['estimates']} estimates, {st['skipped_total']} skipped, view dropped {st['view_dropped']}; "
           f"load average {os.getloadavg()[0]:.1f} at the end")
-    print("\n| phase | step p50 / p99 / max ms | drawn frames/s (min / mean over browsers) | server frames/s | 3-D scale |")
-    print("| --- | --- | --- | --- | --- |")
+    print("\n| phase | step p50 / p99 / max ms | drawn frames/s (min / mean over browsers) | server frames/s | "
+          "3-D scale | browsers' CPU (cores) |")
+    print("| --- | --- | --- | --- | --- | --- |")
     for r in rows:
         drawn = f"{r['fps_min']:.1f} / {r['fps_mean']:.1f}" if "fps_min" in r else "—"
         upd = f"{r['upd_min']:.1f} / {r['upd_mean']:.1f}" if "upd_min" in r else "—"
         print(f"| {r['phase']} | {r['p50']:.3f} / {r['p99']:.3f} / {r['max']:.2f} | {drawn} | {upd} | "
-              f"{r.get('scale', float('nan')):.2f} |".replace("nan", "—"))
+              f"{r.get('scale', float('nan')):.2f} | {r.get('cores', float('nan')):.2f} |".replace("nan", "—"))
 
 
 if __name__ == "__main__":

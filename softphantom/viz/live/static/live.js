@@ -5,7 +5,7 @@
 import { THREE, OrbitControls, CSS2DRenderer, CSS2DObject, ViewHelper, Lut, uPlot } from "./vendor/live-libs.min.js";
 
 const WINDOW_S = 10;            // plot time window
-const PLOT_PERIOD_MS = 50;      // the plots redraw at most this often (20/s), the status text 4/s
+const PLOT_PERIOD_MS = 80;      // the plots redraw at most this often (12.5/s), the status text 4/s
 const TEXT_PERIOD_MS = 250;
 const KEEP_S = 12;              // samples kept for the plots
 const ARROW_MM_PER_N = 10;      // force arrow scale
@@ -82,6 +82,7 @@ const timer = new THREE.Timer();
 
 const view = {};  // the scene's objects once the geometry is known
 function decodePositions(b64) {
+  if (Uint8Array.fromBase64) return new Float32Array(Uint8Array.fromBase64(b64).buffer);
   const bin = atob(b64), u8 = new Uint8Array(bin.length);
   for (let i = 0; i < bin.length; i++) u8[i] = bin.charCodeAt(i);
   return new Float32Array(u8.buffer);
@@ -93,6 +94,9 @@ function poseMatrix(p) {        // R = Rz(yaw)·Rx(pitch)·Ry(roll) (three's int
 }
 S.poseMatrix = (p) => poseMatrix(p).elements;  // for the test of the convention
 
+function setText(el, text) {     // a DOM write only when the text changes (each costs a layout)
+  if (el.textContent !== text) el.textContent = text;
+}
 function label(text, cls) {
   const div = document.createElement("div");
   div.className = `label3d ${cls}`;
@@ -153,6 +157,7 @@ function buildScene(geo) {
     const dot = new THREE.Mesh(new THREE.SphereGeometry(1.4, 16, 12), new THREE.MeshLambertMaterial({ color: 0xff2d95 }));
     const line = new THREE.Line(new THREE.BufferGeometry().setFromPoints([ring.position.clone(), ring.position.clone()]),
       new THREE.LineBasicMaterial({ color: 0xff2d95 }));
+    line.frustumCulled = false;  // its end moves
     const text = label(name, "target");
     dot.add(text);
     text.position.set(2.5, 0, 2.5);
@@ -206,7 +211,7 @@ function updateSurface(pos) {
     c[3 * i] = col.r; c[3 * i + 1] = col.g; c[3 * i + 2] = col.b;
   }
   S.surfaceMax = maxMag;
-  document.getElementById("surface-max").textContent = `max |u| ${maxMag.toFixed(2)} mm`;
+  setText(document.getElementById("surface-max"), `max |u| ${maxMag.toFixed(2)} mm`);
   v.position.needsUpdate = true;
   v.color.needsUpdate = true;
   v.surface.computeVertexNormals();
@@ -225,7 +230,7 @@ function placeContact() {
     v.arrow.position.copy(tip).addScaledVector(dir, -L);
     v.arrow.setDirection(dir);
     v.arrow.setLength(L, Math.min(8, 0.35 * L), 4);
-    v.forceText.element.textContent = `F ${Fn.toFixed(2)} N`;
+    setText(v.forceText.element, `F ${Fn.toFixed(2)} N`);
   }
 }
 
@@ -235,8 +240,9 @@ function updateOverlay() {     // targets, pose, tracker, force: from the latest
   for (const [name, t] of Object.entries(v.targets)) {
     const d = [m[`${name}_dx_mm`] || 0, m[`${name}_dy_mm`] || 0, m[`${name}_dz_mm`] || 0];
     t.dot.position.set(t.rest.x + d[0], t.rest.y + d[1], t.rest.z + d[2]);
-    t.line.geometry.setFromPoints([t.rest, t.dot.position]);
-    t.text.element.textContent = `${name} ${Math.hypot(...d).toFixed(2)} mm`;
+    t.line.geometry.attributes.position.setXYZ(1, t.dot.position.x, t.dot.position.y, t.dot.position.z);
+    t.line.geometry.attributes.position.needsUpdate = true;
+    setText(t.text.element, `${name} ${Math.hypot(...d).toFixed(2)} mm`);
   }
   v.poseAxes.matrix.copy(poseMatrix(m));
   const tr = S.tracker;
@@ -356,7 +362,7 @@ function fmt(v, n, unit = "") { return v == null ? "–" : `${Number(v).toFixed(
 function badge(id, level, text) {
   const el = document.getElementById(id);
   el.dataset.level = level;
-  el.textContent = text;
+  setText(el, text);
   el.title = text;
 }
 function drawStatus() {
@@ -374,9 +380,9 @@ function drawStatus() {
   const bad = linkLevel === "bad", warn = env === false;
   banner.hidden = !(bad || warn);
   banner.dataset.level = bad ? "bad" : warn ? "warn" : "none";
-  banner.textContent = link === "outage" ? `LINK OUTAGE — ${detail} — showing the last estimate`
+  setText(banner, link === "outage" ? `LINK OUTAGE — ${detail} — showing the last estimate`
     : link === "stalled" ? `NO ESTIMATE — ${detail}` : link === "error" ? `ERROR — ${detail}`
-    : warn ? "OUT OF ENVELOPE — the estimate is clamped to the loads the model covers" : "";
+    : warn ? "OUT OF ENVELOPE — the estimate is clamped to the loads the model covers" : "");
   const s = st.stream || {}, m = S.latest;
   const parts = [
     `rate ${fmt(st.rate_Hz, 1, " Hz")}`, `step ${fmt(st.step_ms, 2, " ms")} (p99 ${fmt(st.step_p99_ms, 2, " ms")})`,
@@ -386,7 +392,7 @@ function drawStatus() {
   ];
   if (st.last_event) parts.push(`last event ${st.last_event}`);
   if (st.recording && st.recording.enabled) parts.push(`rec ${st.recording.messages} msg`);
-  document.getElementById("status").textContent = parts.join(" │ ");
+  setText(document.getElementById("status"), parts.join(" │ "));
 }
 function drawTargets() {
   const tb = document.querySelector("#targets tbody"), m = S.latest;
