@@ -13,8 +13,8 @@ built once into ``--atlas-cache`` (grid ``--atlas-grid``, default 3,5,3,2 = 90 s
 costs what a larger grid's does within tens of microseconds: docs/performance.md).
 
 Phases of ``--seconds`` each, the estimator's step time (``Estimate.step_time``) collected
-throughout: no browser; ``--browsers`` plain SSE readers in another process (the server's own
-cost); the same number of Chromium browsers (separate processes, 1280×800, the page as a user
+throughout: no browser; ``--browsers`` clients that only read the event stream (curl: the
+server's own cost); one Chromium browser; ``--browsers`` of them (separate processes, 1280×800, the page as a user
 opens it: it draws every frame the server sends, at the 30 Hz view rate); the same browsers
 orbiting continuously (``?spin=1``: every animation frame is drawn, the page's frame rate); the
 last at full resolution (``?scale=1``: no resolution adaptation); the browsers again at
@@ -28,6 +28,7 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -51,9 +52,16 @@ CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-
 SSE_READER = """
 import sys, urllib.request
 with urllib.request.urlopen(sys.argv[1] + "api/events") as r:
-    for line in r:
+    while r.read(1 << 16):
         pass
 """
+
+
+def sse_reader(url: str) -> subprocess.Popen:
+    """A client of the event stream that only reads (curl if there is one: little CPU of its own)."""
+    curl = shutil.which("curl")
+    cmd = [curl, "-sN", url + "api/events", "-o", os.devnull] if curl else [sys.executable, "-c", SSE_READER, url]
+    return subprocess.Popen(cmd)
 
 
 class PushBoard(SensorSource):
@@ -184,12 +192,12 @@ def main() -> None:
             fh.write('#!/bin/sh\nexec nice -n 10 /usr/bin/chromium "$@"\n')
         os.chmod(niced, 0o755)
 
-        def open_pages(query: str, exe: str = "/usr/bin/chromium"):
+        def open_pages(query: str, exe: str = "/usr/bin/chromium", n: int = a.browsers):
             for b in browsers:
                 b.close()
             browsers.clear()
             pages = []
-            for _ in range(a.browsers):
+            for _ in range(n):
                 b = pw.chromium.launch(executable_path=exe, headless=True, args=CHROMIUM_ARGS)
                 browsers.append(b)
                 p = b.new_page(viewport={"width": 1280, "height": 800})
@@ -201,13 +209,14 @@ def main() -> None:
 
         def phases(tag: str, spin: bool):
             rows.append(run_phase(f"no browser{tag}", a.seconds, src))
-            readers = [subprocess.Popen([sys.executable, "-c", SSE_READER, s.url]) for _ in range(a.browsers)]
+            readers = [sse_reader(s.url) for _ in range(a.browsers)]
             try:
-                rows.append(run_phase(f"{a.browsers} SSE readers (no drawing){tag}", a.seconds, src))
+                rows.append(run_phase(f"{a.browsers} event-stream readers (no drawing){tag}", a.seconds, src))
             finally:
                 for r in readers:
                     r.kill()
                     r.wait()
+            rows.append(run_phase(f"1 browser{tag}", a.seconds, src, open_pages("", n=1)))
             rows.append(run_phase(f"{a.browsers} browsers{tag}", a.seconds, src, open_pages("")))
             if spin:
                 rows.append(run_phase(f"{a.browsers} browsers orbiting{tag}", a.seconds, src, open_pages("?spin=1")))

@@ -79,7 +79,7 @@ class FrameHub:
             q.put_nowait(None)
 
     def tick(self) -> None:
-        """Build this tick's frame once and queue it to every client (if anything is new)."""
+        """Build this tick's frame once and queue it to every client."""
         st = self.state
         frame, n, self.seq, self.sv = st.frame_json_since(self.seq, self.sv)
         data = _sse(frame)
