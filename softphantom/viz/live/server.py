@@ -14,6 +14,7 @@ at most ``max_clients`` requests at once (503 beyond), a silent or stalled clien
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 from collections import deque
@@ -329,8 +330,8 @@ class LiveSession:
                 for tm in (poll_tracker() or ()) if callable(poll_tracker) else ():
                     if self.recorder is not None:
                         self.recorder.write_tracker(tm)
-                    if "x_mm" in tm:
-                        tracker = {k: tm[k] for k in _TRACKER_KEYS}
+                    if all(isinstance(tm.get(k), (int, float)) and math.isfinite(tm[k]) for k in _TRACKER_KEYS):
+                        tracker = {k: tm[k] for k in _TRACKER_KEYS}  # a lost frame keeps the last pose
                 if tracker is None:
                     st.push(msg, data)
                 else:
