@@ -5,7 +5,7 @@ BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 OUT    ?= out
 
-.PHONY: demo test setup system bench clean
+.PHONY: demo test setup system bench clean vendor-live
 
 setup: $(STAMP)
 
@@ -27,6 +27,10 @@ test: $(STAMP)
 
 bench: $(STAMP)
 	for b in benchmarks/bench_*.py; do echo "== $$b"; $(BIN)/python $$b || exit 1; done
+
+# the live page's three.js and uPlot (committed; this refreshes them from the npm registry)
+vendor-live:
+	bash scripts/vendor-live.sh
 
 clean:
 	rm -rf $(VENV) $(OUT) build *.egg-info

@@ -4,7 +4,7 @@
 #   firmware build:        gcc-avr avr-libc binutils-avr
 #   scikit-sparse (CHOLMOD, FEM solver): libsuitesparse-dev, and libopenblas0-pthread as the
 #     system BLAS it factorizes with (3-7x faster than the reference BLAS it would otherwise get)
-#   live view screenshot test (headless): chromium fonts-dejavu-core
+#   live page tests and benchmark (headless, driven by Playwright): chromium fonts-dejavu-core
 set -euo pipefail
 PKGS=(libglu1-mesa libgl1 libxcursor1 libxft2 libxinerama1 libgomp1
       gcc-avr avr-libc binutils-avr

@@ -12,7 +12,7 @@ import pytest
 from softphantom.cli import main
 from softphantom.errors import UserError
 from softphantom.viz.live import LiveConfig, LiveSession
-from softphantom.viz.live.server import host_allowed, is_loopback
+from softphantom.viz.live.security import host_allowed, is_loopback
 from softphantom.viz.live.source import SyntheticSource
 
 
@@ -32,7 +32,13 @@ def _get(port: int, path: str, host: str | None = None, cookie: str | None = Non
     r = c.getresponse()
     body = r.read()
     c.close()
-    return r.status, dict(r.getheaders()), body
+    return r.status, r.headers, body  # case-insensitive names
+
+
+def _raw(port: int, request: bytes) -> bytes:
+    with socket.create_connection(("127.0.0.1", port), timeout=10) as c:
+        c.sendall(request)
+        return c.recv(4096)
 
 
 def _port(s: LiveSession) -> int:
@@ -44,10 +50,14 @@ def test_loopback_names_and_ips_only_in_the_host_header():
         p = _port(s)
         for host in (f"127.0.0.1:{p}", f"localhost:{p}", "localhost", f"[::1]:{p}"):
             assert _get(p, "/api/state", host)[0] == 200, host
-        # a rebound DNS name, a LAN address, no Host at all: refused
-        for host in (f"evil.example:{p}", f"192.168.1.20:{p}", None):
+        # a rebound DNS name, a LAN address: refused
+        for host in (f"evil.example:{p}", f"192.168.1.20:{p}"):
             status, _, body = _get(p, "/api/state", host)
             assert status == 403 and b"Host" in body, host
+        # no Host at all: an HTTP/1.0 request reaches the check (403); HTTP/1.1 requires the header,
+        # so the HTTP layer answers 400 before (RFC 9112 3.2)
+        assert _raw(p, b"GET /api/state HTTP/1.0\r\n\r\n").startswith(b"HTTP/1.1 403")
+        assert _get(p, "/api/state", None)[0] == 400
 
 
 def test_token_required_when_configured_then_cookie():
@@ -86,7 +96,7 @@ def test_connections_are_bounded():
         for _ in range(2):  # two browsers on the event stream hold their connections
             c = socket.create_connection(("127.0.0.1", p), timeout=5)
             c.sendall(f"GET /api/events HTTP/1.1\r\nHost: 127.0.0.1:{p}\r\n\r\n".encode())
-            assert c.recv(64).startswith(b"HTTP/1.0 200")
+            assert c.recv(64).startswith(b"HTTP/1.1 200")
             held.append(c)
         status, headers, _ = _get(p, "/api/state", f"127.0.0.1:{p}")
         assert status == 503 and headers.get("Retry-After") == "5"
@@ -108,6 +118,34 @@ def test_idle_connection_is_dropped():
         assert status == 200
         assert idle.recv(16) == b""  # closed by the server
         idle.close()
+
+
+def test_loopback_only_refuses_a_peer_from_elsewhere():
+    import asyncio
+
+    from softphantom.viz.live.security import LoopbackOnly
+
+    async def app(scope, receive, send):
+        await send({"type": "http.response.start", "status": 200, "headers": []})
+        await send({"type": "http.response.body", "body": b"ok"})
+
+    def call(client) -> tuple[int, bytes]:
+        sent = []
+
+        async def send(m):
+            sent.append(m)
+
+        asyncio.run(LoopbackOnly(app)({"type": "http", "client": client, "headers": []}, None, send))
+        return sent[0]["status"], sent[-1]["body"]
+
+    assert call(("127.0.0.1", 50000)) == (200, b"ok") and call(("::1", 50000)) == (200, b"ok")
+    status, body = call(("192.168.1.7", 50000))  # e.g. a port some other program forwards
+    assert status == 403 and b"--allow-remote" in body
+    # a session on loopback has the policy; one beyond loopback (token) has not
+    with _session() as s:
+        assert LoopbackOnly in [m.cls for m in s._web.app.user_middleware]
+    with _session(listen_host="0.0.0.0", token="t") as s:
+        assert LoopbackOnly not in [m.cls for m in s._web.app.user_middleware]
 
 
 @pytest.mark.parametrize("host", ["", "0.0.0.0"])

@@ -130,7 +130,7 @@ def _remote_token(listen_host: str, allow_remote: bool) -> str | None:
     import secrets
 
     from softphantom.cli.app import print_error
-    from softphantom.viz.live.server import is_loopback
+    from softphantom.viz.live.security import is_loopback
 
     if is_loopback(listen_host):
         return None

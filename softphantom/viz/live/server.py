@@ -1,31 +1,25 @@
-"""The live session: pump estimates from a source to the network stream, the recording and a
-local web page (stdlib HTTP server, Server-Sent Events).
+"""The live session: pump estimates from a source to the network stream, the recording and the
+local web page (:mod:`softphantom.viz.live.web`: Starlette on uvicorn, Server-Sent Events).
 
 Threads: one *pump* runs the source and, per estimate, publishes (non-blocking), records and
-appends to :class:`LiveState`; the HTTP server serves the page and one SSE stream per browser,
-each reading the shared state at the view rate. Nothing a browser or subscriber does can block
-the pump: the state is a bounded ring under a lock held for microseconds, and a browser that
-falls behind by more than the ring skips samples (counted as ``view_dropped``).
+appends to :class:`LiveState`; the web server's thread builds one frame per view tick from the
+shared state for every browser. Nothing a browser or subscriber does can block the pump: the state
+is a bounded ring under a lock held for microseconds.
 
-Security (docs/stream.md): every request's ``Host`` header must name this server (loopback names,
-IP literals, the machine's own names or ``allowed_hosts``), so a page on another site that rebinds
-its DNS name to 127.0.0.1 is refused; with a ``token`` (required beyond loopback) every request
-must carry it (``?token=`` once, then the cookie the page gets); at most ``max_clients``
-connections are served at once (503 beyond), and a client idle for ``client_timeout_s`` is dropped.
+Security (docs/stream.md; :mod:`softphantom.viz.live.security`): loopback unless a token is given,
+the ``Host`` header checked (DNS rebinding), the token (query once, then a cookie) beyond loopback,
+at most ``max_clients`` requests at once (503 beyond), a silent or stalled client dropped after
+``client_timeout_s``.
 """
 
 from __future__ import annotations
 
-import hmac
-import ipaddress
-import json
-import socket
+import math
 import threading
 import time
 from collections import deque
 from dataclasses import dataclass
-from http import HTTPStatus
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from itertools import takewhile
 from pathlib import Path
 from typing import Any
 
@@ -33,19 +27,21 @@ import numpy as np
 
 from softphantom.errors import SoftphantomError, UserError
 from softphantom.stream.schema import encode, estimate_to_message
+from softphantom.viz.live.security import is_loopback
 
 STATIC_DIR = Path(__file__).with_name("static")
-_STATIC = {"/": ("index.html", "text/html; charset=utf-8"),
-           "/static/live.js": ("live.js", "text/javascript; charset=utf-8"),
-           "/static/live.css": ("live.css", "text/css; charset=utf-8")}
+EVENT_PREFIX = "event:"
+OUTAGE_EVENTS = ("silent", "disconnected", "reconnected")
+"""Link events after which no sample arrives until ``resumed`` (docs/sensing.md §9)."""
 
 
 @dataclass(frozen=True)
 class LiveConfig:
     """Options of a live session. Ports 0 pick a free port; ``stream_port=None`` disables the
     network stream. ``listen_host`` is loopback unless set explicitly (both page and stream);
-    beyond loopback a ``token`` is required (:func:`is_loopback`). ``allowed_hosts``: extra names
-    accepted in the ``Host`` header; ``max_clients``: connections served at once."""
+    beyond loopback a ``token`` is required (:func:`~softphantom.viz.live.security.is_loopback`).
+    ``allowed_hosts``: extra names accepted in the ``Host`` header; ``max_clients``: requests served
+    at once (an open page holds one)."""
 
     listen_host: str = "127.0.0.1"
     http_port: int = 8765
@@ -67,52 +63,6 @@ class LiveConfig:
             raise UserError(f"max_clients must be >= 1, got {self.max_clients}")
 
 
-def is_loopback(host: str) -> bool:
-    """True for an address or name that only this machine can reach ("" and 0.0.0.0 are every interface).
-
-    >>> [is_loopback(h) for h in ("127.0.0.1", "::1", "localhost", "", "0.0.0.0", "192.168.1.5")]
-    [True, True, True, False, False, False]
-    """
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host.strip("[]")).is_loopback
-    except ValueError:
-        return False
-
-
-def _host_names(cfg: LiveConfig) -> set[str]:
-    """Names a client may put in the ``Host`` header (lower case, without the port)."""
-    names = {"localhost", *(h.lower() for h in cfg.allowed_hosts)}
-    if not is_loopback(cfg.listen_host):
-        names |= {socket.gethostname().lower(), socket.getfqdn().lower()}
-        if cfg.listen_host:
-            names.add(cfg.listen_host.lower())
-    return names
-
-
-def host_allowed(header: str | None, names: set[str], loopback_only: bool) -> bool:
-    """Whether a ``Host`` header names this server: a listed name, or an IP literal (loopback
-    only when serving on loopback). DNS rebinding gives the attacker's name: refused.
-
-    >>> host_allowed("127.0.0.1:8765", {"localhost"}, True), host_allowed("evil.example:8765", {"localhost"}, True)
-    (True, False)
-    """
-    if not header:
-        return False
-    host = header.strip().lower()
-    if host.startswith("["):
-        host = host[1:].split("]", 1)[0]
-    elif host.count(":") == 1:
-        host = host.split(":", 1)[0]
-    if host in names:
-        return True
-    try:
-        ip = ipaddress.ip_address(host)
-    except ValueError:
-        return False
-    return ip.is_loopback or not loopback_only
-
 _TRACKER_KEYS = ("x_mm", "y_mm", "z_mm", "yaw_deg", "pitch_deg", "roll_deg")
 
 
@@ -121,7 +71,7 @@ class LiveState:
 
     def __init__(self, history: int = 20000):
         self._lock = threading.Condition()
-        self._hist: deque[dict[str, Any]] = deque(maxlen=history)
+        self._hist: deque[tuple[dict[str, Any], bytes]] = deque(maxlen=history)  # (message, its JSON)
         self.latest: dict[str, Any] | None = None
         self.seq = -1
         self.surface_b64: str | None = None
@@ -133,19 +83,35 @@ class LiveState:
         self.recording: dict[str, Any] = {"enabled": False}
         self.finished = False
         self.error: str | None = None
+        self.outage: str | None = None  # the link event the link is down since, if it is
+        self.last_event: str | None = None
+        self.in_envelope: bool | None = None
         self._arrivals: deque[float] = deque(maxlen=4096)
         self._steps: deque[float] = deque(maxlen=1000)
         self.frames_served = 0
 
-    def push(self, msg: dict[str, Any]) -> None:
+    def push(self, msg: dict[str, Any], data: bytes | None = None) -> None:
+        """Append an estimate message (``data``: its JSON, if already encoded)."""
+        status = str(msg.get("status") or "ok")
+        data = encode(msg) if data is None else data
         with self._lock:
-            self._hist.append(msg)
+            self._hist.append((msg, data))
             self.latest = msg
             self.seq = msg["seq"]
             self.skipped_total += int(msg.get("skipped") or 0)
             self._arrivals.append(time.monotonic())
-            if msg.get("step_ms") is not None:
-                self._steps.append(msg["step_ms"])
+            if status.startswith(EVENT_PREFIX):  # a link event's marker: no numbers, no step
+                self.last_event = status[len(EVENT_PREFIX):]
+                kind = self.last_event.split(":", 1)[0]
+                if kind in OUTAGE_EVENTS:
+                    self.outage = self.last_event
+                elif kind == "resumed":
+                    self.outage = None
+            else:
+                self.outage = None
+                self.in_envelope = bool(msg.get("in_envelope", 1))
+                if msg.get("step_ms") is not None:
+                    self._steps.append(msg["step_ms"])
             self._lock.notify_all()
 
     def set_surface(self, b64: str, max_mm: float) -> None:
@@ -158,12 +124,15 @@ class LiveState:
             self.finished, self.error = True, error
             self._lock.notify_all()
 
-    def wait_newer(self, seq: int, timeout_s: float) -> None:
+    def add_view_dropped(self, n: int) -> None:
         with self._lock:
-            self._lock.wait_for(lambda: self.seq > seq or self.finished, timeout=timeout_s)
+            self.view_dropped += n
+
+    def changed_since(self, seq: int, surface_version: int) -> bool:
+        return self.seq != seq or self.surface_version != surface_version
 
     def status(self) -> dict[str, Any]:
-        """Rate (Hz, over the last 2 s), step latency (ms, last and p99), counters, health."""
+        """Rate (Hz, over the last 2 s), step latency (ms, last and p99), counters, health, link."""
         with self._lock:
             now = time.monotonic()
             recent = [a for a in self._arrivals if now - a <= 2.0]
@@ -171,13 +140,20 @@ class LiveState:
             steps = list(self._steps)
             latest = self.latest
             age = now - self._arrivals[-1] if self._arrivals else None
-            health = "waiting"
+            health, link, detail = "waiting", "waiting", ""
             if latest is not None:
                 health = str(latest.get("status", "ok"))
-                if not self.finished and age is not None and age > 1.0:
+                link = "ok"
+                if self.outage is not None:
+                    link, detail = "outage", self.outage
+                elif not self.finished and age is not None and age > 1.0:
                     health = f"stalled ({age:.1f} s without estimate)"
+                    link, detail = "stalled", f"{age:.1f} s without estimate"
+            if self.finished:
+                link = "ended"
             if self.error:
                 health = f"error: {self.error}"
+                link, detail = "error", self.error
             return {
                 "rate_Hz": round(rate, 2),
                 "step_ms": latest.get("step_ms") if latest else None,
@@ -187,6 +163,10 @@ class LiveState:
                 "view_dropped": self.view_dropped,
                 "last_estimate_age_s": None if age is None else round(age, 3),
                 "sensor_health": health,
+                "link": link,
+                "link_detail": detail,
+                "last_event": self.last_event,
+                "in_envelope": self.in_envelope,
                 "qp_status": latest.get("qp_status") if latest else None,
                 "cond_W": latest.get("cond_W") if latest else None,
                 "surface_max_mm": round(self.surface_max_mm, 3),
@@ -195,21 +175,37 @@ class LiveState:
                 "finished": self.finished,
             }
 
-    def frame_since(self, seq: int, surface_version: int, max_samples: int = 2000) -> tuple[dict[str, Any], int, int]:
-        """The next SSE frame for a client that has seen up to ``seq`` and ``surface_version``."""
+    def _since(self, seq: int, surface_version: int, max_samples: int) -> tuple[list, str | None, int, int]:
+        """(the (message, JSON) pairs after ``seq``, the surface if newer than ``surface_version``,
+        the seq and surface version to pass next time)."""
         with self._lock:
-            new = [m for m in reversed(self._hist) if m["seq"] > seq][:max_samples] if self.seq > seq else []
+            new = list(takewhile(lambda m: m[0]["seq"] > seq, reversed(self._hist)))[:max_samples]
             new.reverse()
-            if new and seq >= 0 and new[0]["seq"] > seq + 1:
-                self.view_dropped += new[0]["seq"] - seq - 1
-            frame: dict[str, Any] = {"samples": new}
-            if self.surface_version != surface_version and self.surface_b64 is not None:
-                frame["surface_mm_f32_b64"] = self.surface_b64
-            sv = self.surface_version
-            last = self.seq
+            if new and seq >= 0 and new[0][0]["seq"] > seq + 1:
+                self.view_dropped += new[0][0]["seq"] - seq - 1
+            changed = self.surface_version != surface_version
             self.frames_served += 1
+            return new, self.surface_b64 if changed else None, self.seq, self.surface_version
+
+    def frame_since(self, seq: int, surface_version: int, max_samples: int = 2000) -> tuple[dict[str, Any], int, int]:
+        """The next frame for a client that has seen up to ``seq`` and ``surface_version``:
+        ``(frame, seq, surface_version)`` to pass next time."""
+        new, surface, last, sv = self._since(seq, surface_version, max_samples)
+        frame: dict[str, Any] = {"samples": [m for m, _ in new]}
+        if surface is not None:
+            frame["surface_mm_f32_b64"] = surface
         frame["status"] = self.status()
         return frame, last, sv
+
+    def frame_json_since(self, seq: int, surface_version: int, max_samples: int = 2000) -> tuple[bytes, int, int, int]:
+        """:meth:`frame_since` as JSON bytes, joined from the messages' JSON (each estimate is
+        encoded once, by the pump): ``(json, number of samples, seq, surface_version)``."""
+        new, surface, last, sv = self._since(seq, surface_version, max_samples)
+        parts = [b'{"samples":[', b",".join(d for _, d in new), b"]"]
+        if surface is not None:
+            parts += [b',"surface_mm_f32_b64":"', surface.encode(), b'"']
+        parts += [b',"status":', encode(self.status()), b"}"]
+        return b"".join(parts), len(new), last, sv
 
 
 class LiveSession:
@@ -229,22 +225,19 @@ class LiveSession:
         self.state = LiveState(config.history)
         self._stop = threading.Event()
         self._pump: threading.Thread | None = None
-        self._httpd: ThreadingHTTPServer | None = None
+        self._web = None
         self.publisher = None
         self.recorder = None
         self.error: BaseException | None = None
         geo = getattr(source, "geometry", None)
-        self._geometry_json = None if geo is None else geo.to_json()
+        self.geometry_json = None if geo is None else geo.to_json()
 
     # -- lifecycle -------------------------------------------------------------------------
     def start(self) -> "LiveSession":
+        from softphantom.viz.live.web import WebServer
+
         cfg = self.config
-        try:
-            self._httpd = _make_server(self, cfg)
-        except OSError as exc:
-            raise UserError(f"cannot serve the live page on {cfg.listen_host}:{cfg.http_port}: {exc.strerror}") from None
-        threading.Thread(target=self._httpd.serve_forever, kwargs={"poll_interval": 0.1},
-                         name="live-http", daemon=True).start()
+        self._web = WebServer(self)
         if cfg.stream_port is not None:
             from softphantom.stream.publisher import EstimatePublisher
 
@@ -254,8 +247,8 @@ class LiveSession:
             from softphantom.stream.recording import TOPIC_GEOMETRY, SessionRecorder
 
             self.recorder = SessionRecorder(cfg.record, metadata={"source": type(self.source).__name__})
-            if self._geometry_json is not None:
-                self.recorder.write(TOPIC_GEOMETRY, self._geometry_json)
+            if self.geometry_json is not None:
+                self.recorder.write(TOPIC_GEOMETRY, self.geometry_json)
             self.state.recording = {"enabled": True, "path": str(cfg.record), "messages": 0}
         self._pump = threading.Thread(target=self._run_pump, name="live-pump", daemon=True)
         self._pump.start()
@@ -264,8 +257,8 @@ class LiveSession:
     @property
     def url(self) -> str:
         """The page's address (with ``?token=`` when one is required)."""
-        assert self._httpd is not None
-        host, port = self._httpd.server_address[:2]
+        assert self._web is not None
+        host, port = self._web.address
         if ":" in host:
             host = f"[{host}]"
         return f"http://{host}:{port}/" + (f"?token={self.config.token}" if self.config.token else "")
@@ -288,10 +281,9 @@ class LiveSession:
         if self._pump is not None:
             self._pump.join(5.0)
         self.state.finish(self.state.error)
-        if self._httpd is not None:
-            self._httpd.shutdown()
-            self._httpd.server_close()
-            self._httpd = None
+        if self._web is not None:
+            self._web.stop()
+            self._web = None
         if self.publisher is not None:
             self.publisher.close()
             self.publisher = None
@@ -338,9 +330,12 @@ class LiveSession:
                 for tm in (poll_tracker() or ()) if callable(poll_tracker) else ():
                     if self.recorder is not None:
                         self.recorder.write_tracker(tm)
-                    if "x_mm" in tm:
-                        tracker = {k: tm[k] for k in _TRACKER_KEYS}
-                st.push(msg if tracker is None else {**msg, "tracker": tracker})  # the page only
+                    if all(isinstance(tm.get(k), (int, float)) and math.isfinite(tm[k]) for k in _TRACKER_KEYS):
+                        tracker = {k: tm[k] for k in _TRACKER_KEYS}  # a lost frame keeps the last pose
+                if tracker is None:
+                    st.push(msg, data)
+                else:
+                    st.push({**msg, "tracker": tracker})  # the page only
                 now = time.monotonic()
                 want_rec = self.recorder is not None and rec_dt is not None and now - last_rec >= rec_dt
                 if geo is not None and (now - last_view >= view_dt or want_rec):
@@ -376,10 +371,10 @@ class LiveSession:
             st.recording["messages"] = self.recorder.messages_written
         st.finish()
 
-    # -- for the HTTP handler ----------------------------------------------------------------
+    # -- for the web server ----------------------------------------------------------------
     def state_json(self) -> dict[str, Any]:
         return {"status": self.state.status(), "latest": self.state.latest,
-                "has_geometry": self._geometry_json is not None,
+                "has_geometry": self.geometry_json is not None,
                 "view_rate_Hz": self.config.view_rate_Hz,
                 "surface_mm_f32_b64": self.state.surface_b64}
 
@@ -393,115 +388,3 @@ def _set_surface(st: LiveState, geo: Any, pos: np.ndarray) -> str:
     b64 = encode_positions_mm(surf)
     st.set_surface(b64, float(np.max(np.linalg.norm(surf - geo.nodes, axis=1))) * 1e3)
     return b64
-
-
-_COOKIE = "softphantom_live_token"
-
-
-def _make_server(session: LiveSession, cfg: LiveConfig) -> ThreadingHTTPServer:
-    from http.cookies import SimpleCookie
-    from urllib.parse import parse_qs
-
-    names = _host_names(cfg)
-    loopback_only = is_loopback(cfg.listen_host)
-
-    class Handler(BaseHTTPRequestHandler):
-        server_version = "softphantom-live"
-        timeout = cfg.client_timeout_s  # a silent or stalled client is dropped, its slot freed
-
-        def log_message(self, *args: Any) -> None:  # quiet
-            pass
-
-        def _refuse(self, code: int, why: str) -> None:
-            self._send(f"{why}\n".encode(), "text/plain; charset=utf-8", code)
-
-        def _token_ok(self) -> tuple[bool, bool]:
-            """(authorised, came in the query: set the cookie)."""
-            if not cfg.token:
-                return True, False
-            given = parse_qs(self.path.partition("?")[2]).get("token", [""])[0]
-            if given and hmac.compare_digest(given.encode(), cfg.token.encode()):
-                return True, True
-            morsel = SimpleCookie(self.headers.get("Cookie", "")).get(_COOKIE)
-            ok = morsel is not None and hmac.compare_digest(morsel.value.encode(), cfg.token.encode())
-            return ok, False
-
-        def _send(self, body: bytes, ctype: str, code: int = 200, cookie: bool = False) -> None:
-            self.send_response(code)
-            if cookie:
-                self.send_header("Set-Cookie", f"{_COOKIE}={cfg.token}; HttpOnly; SameSite=Strict; Path=/")
-            self.send_header("Content-Type", ctype)
-            self.send_header("Content-Length", str(len(body)))
-            self.send_header("Cache-Control", "no-store")
-            self.end_headers()
-            self.wfile.write(body)
-
-        def do_GET(self) -> None:  # noqa: N802
-            path = self.path.split("?", 1)[0]
-            try:
-                if not host_allowed(self.headers.get("Host"), names, loopback_only):
-                    self._refuse(HTTPStatus.FORBIDDEN, "Host not served here (use the printed address)")
-                    return
-                ok, from_query = self._token_ok()
-                if not ok:
-                    self._refuse(HTTPStatus.UNAUTHORIZED, "token required (open the printed address)")
-                    return
-                if path in _STATIC:
-                    name, ctype = _STATIC[path]
-                    self._send((STATIC_DIR / name).read_bytes(), ctype, cookie=from_query)
-                elif path == "/api/state":
-                    self._send(json.dumps(session.state_json(), allow_nan=False).encode(), "application/json")
-                elif path == "/api/geometry":
-                    geo = session._geometry_json
-                    self._send(json.dumps(geo).encode(), "application/json", 200 if geo else 404)
-                elif path == "/api/events":
-                    self._events()
-                else:
-                    self._send(b"not found\n", "text/plain", HTTPStatus.NOT_FOUND)
-            except (BrokenPipeError, ConnectionResetError, TimeoutError):
-                pass
-
-        def _events(self) -> None:
-            self.send_response(200)
-            self.send_header("Content-Type", "text/event-stream")
-            self.send_header("Cache-Control", "no-store")
-            self.send_header("Connection", "close")
-            self.end_headers()
-            st, period = session.state, 1.0 / session.config.view_rate_Hz
-            seq, sv = -1, 0
-            while not session._stop.is_set():
-                t0 = time.monotonic()
-                st.wait_newer(seq, timeout_s=1.0)
-                frame, seq, sv = st.frame_since(seq, sv)
-                self.wfile.write(b"event: frame\ndata: " + json.dumps(frame, allow_nan=False).encode() + b"\n\n")
-                self.wfile.flush()
-                if st.finished and not frame["samples"]:
-                    time.sleep(1.0)  # keep the page's status fresh after the end, cheaply
-                left = period - (time.monotonic() - t0)
-                if left > 0:
-                    time.sleep(left)
-
-    class Server(ThreadingHTTPServer):
-        daemon_threads = True
-        allow_reuse_address = True
-        address_family = socket.AF_INET6 if ":" in cfg.listen_host else socket.AF_INET
-        slots = threading.BoundedSemaphore(cfg.max_clients)
-
-        def process_request(self, request, client_address) -> None:
-            if not self.slots.acquire(blocking=False):  # full: answer at once, hold no thread
-                try:
-                    request.sendall(b"HTTP/1.1 503 Service Unavailable\r\nContent-Length: 0\r\n"
-                                    b"Retry-After: 5\r\nConnection: close\r\n\r\n")
-                except OSError:
-                    pass
-                self.shutdown_request(request)
-                return
-            super().process_request(request, client_address)
-
-        def process_request_thread(self, request, client_address) -> None:
-            try:
-                super().process_request_thread(request, client_address)
-            finally:
-                self.slots.release()
-
-    return Server((cfg.listen_host, cfg.http_port), Handler)

@@ -31,19 +31,34 @@ from softphantom.errors import FileFormatError, UserError
 from softphantom.estimation.types import ARM_NAMES, Estimate
 
 
+TRI6_SPLIT = np.array([[0, 3, 5], [3, 1, 4], [5, 4, 2], [3, 4, 5]])
+"""A 6-node triangle (corners, then the mid-edge nodes of (0,1), (1,2), (2,0)) as 4 flat ones of
+the same orientation, so the drawn surface bends through the mid-edge nodes."""
+
+
+def split_tri6(faces6: np.ndarray) -> np.ndarray:
+    """(S, 6) quadratic triangles → (4S, 3) flat ones through all six nodes.
+
+    >>> split_tri6(np.array([[0, 1, 2, 3, 4, 5]])).tolist()
+    [[0, 3, 5], [3, 1, 4], [5, 4, 2], [3, 4, 5]]
+    """
+    return np.asarray(faces6, np.int64)[:, TRI6_SPLIT].reshape(-1, 3)
+
+
 @dataclass(frozen=True)
 class LiveGeometry:
-    """The surface the live view draws (SI units).
+    """The surfaces the live view draws (SI units).
 
-    ``nodes`` (n, 3) m rest positions of the surface nodes; ``faces`` (S, 3) indices into ``nodes``
-    (outward normals); ``node_index`` (n,) the model node id of each surface node, to pick the
-    surface out of ``node_positions()``; ``targets`` name → (3,) m at rest; ``p_ext`` (3,) m where
-    the force acts; ``contact_radius_m`` the estimator's contact patch radius (None: not an
-    estimator's view), recorded with the geometry so a recording says which contact model it used.
+    ``nodes`` (n, 3) m rest positions of the drawn nodes; ``faces`` (S, 3) indices into ``nodes``,
+    the outer surface (outward normals); ``cavities`` name → (K, 3) indices into ``nodes``, each
+    cavity's wall; ``node_index`` (n,) the model node id of each drawn node, to pick them out of
+    ``node_positions()``; ``targets`` name → (3,) m at rest; ``p_ext`` (3,) m where the force
+    acts; ``contact_radius_m`` the estimator's contact patch radius (None: not an estimator's
+    view), recorded with the geometry so a recording says which contact model it used.
 
     >>> g = ellipsoid_geometry(subdivisions=1)
-    >>> g.nodes.shape, g.faces.shape, sorted(g.targets)
-    ((42, 3), (80, 3), ['apex', 'base', 'lesion'])
+    >>> g.nodes.shape, g.faces.shape, sorted(g.targets), sorted(g.cavities)
+    ((252, 3), (80, 3), ['apex', 'base', 'lesion'], ['back_xneg', 'back_xpos', 'front_zneg', 'front_zpos', 'urethra'])
     """
 
     nodes: np.ndarray
@@ -52,33 +67,47 @@ class LiveGeometry:
     targets: dict[str, np.ndarray] = field(default_factory=dict)
     p_ext: np.ndarray = field(default_factory=lambda: np.zeros(3))
     contact_radius_m: float | None = None
+    cavities: dict[str, np.ndarray] = field(default_factory=dict)
 
     @classmethod
     def from_model(cls, model: Any, p_ext: str = "on-centre", contact_radius_m: float | None = None) -> "LiveGeometry":
-        """The outer surface of a ``PhantomModel`` (docs/architecture.md): ``outer_faces`` reindexed
-        to the surface nodes, its ``targets`` and the ``p_ext`` point named ``p_ext``."""
-        faces = np.asarray(model.outer_faces, dtype=np.int64)
+        """The outer surface and the cavities of a ``PhantomModel`` (docs/architecture.md), reindexed
+        to the nodes they use, its ``targets`` and the ``p_ext`` point named ``p_ext``. A quadratic
+        model's 6-node triangles (``outer_faces6``, ``cavities6``) are drawn as 4 flat ones each
+        (:func:`split_tri6`), through their mid-edge nodes."""
+        faces6 = np.asarray(getattr(model, "outer_faces6", np.zeros((0, 6))), dtype=np.int64).reshape(-1, 6)
+        quadratic = len(faces6) > 0
+        faces = split_tri6(faces6) if quadratic else np.asarray(model.outer_faces, dtype=np.int64)
         if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0:
             raise UserError("the model has no outer surface triangles (outer_faces)")
-        used, inv = np.unique(faces.ravel(), return_inverse=True)
+        walls = getattr(model, "cavities6", {}) if quadratic else getattr(model, "cavities", {})
+        cavities = {k: split_tri6(v) if quadratic else np.asarray(v, np.int64).reshape(-1, 3)
+                    for k, v in (walls or {}).items()}
+        sizes = np.cumsum([len(faces), *(len(v) for v in cavities.values())])[:-1]
+        used, inv = np.unique(np.concatenate([faces.ravel(), *(v.ravel() for v in cavities.values())]),
+                              return_inverse=True)
+        parts = np.split(inv.reshape(-1, 3).astype(np.int64), sizes)
         points = dict(getattr(model, "p_ext", {}) or {})
         if p_ext not in points:
             raise UserError(f"the model has no interaction point {p_ext!r}; it has: {', '.join(points) or 'none'}")
         return cls(
             nodes=np.asarray(model.nodes, float)[used],
-            faces=inv.reshape(-1, 3).astype(np.int64),
+            faces=parts[0],
             node_index=used.astype(np.int64),
             targets={k: np.asarray(v, float) for k, v in (getattr(model, "targets", {}) or {}).items()},
             p_ext=np.asarray(points[p_ext], float),
             contact_radius_m=None if contact_radius_m is None else float(contact_radius_m),
+            cavities=dict(zip(cavities, parts[1:])),
         )
 
     def to_json(self) -> dict[str, Any]:
         """JSON for the page and the ``/live/geometry`` channel (millimetres)."""
-        pe = int(np.argmin(np.linalg.norm(self.nodes - self.p_ext, axis=1)))
+        outer = np.unique(self.faces)  # the force acts on the outer surface, not on a cavity wall
+        pe = int(outer[np.argmin(np.linalg.norm(self.nodes[outer] - self.p_ext, axis=1))])
         out = {
             "nodes_mm": np.round(self.nodes * 1e3, 4).tolist(),
             "faces": self.faces.tolist(),
+            "cavities": {k: v.tolist() for k, v in self.cavities.items()},
             "targets_mm": {k: np.round(v * 1e3, 4).tolist() for k, v in self.targets.items()},
             "p_ext_mm": np.round(self.p_ext * 1e3, 4).tolist(),
             "p_ext_node": pe,
@@ -98,9 +127,10 @@ class LiveGeometry:
             p_ext = np.asarray(d.get("p_ext_mm", [0, 0, 0]), float) * 1e-3
             radius = d.get("contact_radius_mm")
             radius = None if radius is None else float(radius) * 1e-3
+            cavities = {k: np.asarray(v, np.int64).reshape(-1, 3) for k, v in d.get("cavities", {}).items()}
         except (KeyError, ValueError, TypeError) as exc:
             raise FileFormatError(f"geometry message is malformed: {exc}") from None
-        return cls(nodes, faces, np.arange(len(nodes), dtype=np.int64), targets, p_ext, radius)
+        return cls(nodes, faces, np.arange(len(nodes), dtype=np.int64), targets, p_ext, radius, cavities)
 
 
 def encode_positions_mm(positions_m: np.ndarray) -> str:
@@ -156,15 +186,30 @@ def _icosphere(subdivisions: int) -> tuple[np.ndarray, np.ndarray]:
     return np.array(verts), np.array(faces, dtype=np.int64)
 
 
+_STAND_IN_CAVITIES = {  # centre (m), semi-axes (m): where the design's arms and urethra run, roughly
+    "front_zpos": ((0.0, -0.010, 0.013), (0.005, 0.007, 0.004)),
+    "front_zneg": ((0.0, -0.010, -0.013), (0.005, 0.007, 0.004)),
+    "back_xpos": ((0.015, 0.010, 0.0), (0.004, 0.007, 0.005)),
+    "back_xneg": ((-0.015, 0.010, 0.0), (0.004, 0.007, 0.005)),
+    "urethra": ((0.0, 0.0, 0.004), (0.0025, 0.020, 0.0025)),
+}
+
+
 def ellipsoid_geometry(semi_axes_m: tuple[float, float, float] = (0.032, 0.025, 0.030),
                        subdivisions: int = 3) -> LiveGeometry:
-    """A stand-in bulb surface (the paper's ellipsoid, 100 mL) for the synthetic source."""
+    """A stand-in bulb surface (the paper's ellipsoid, 100 mL) with small ellipsoidal stand-in
+    cavities for the synthetic source."""
     unit, faces = _icosphere(subdivisions)
-    nodes = unit * np.asarray(semi_axes_m)
+    small, small_faces = _icosphere(1)
+    nodes, cavities = [unit * np.asarray(semi_axes_m)], {}
+    for name, (centre, axes) in _STAND_IN_CAVITIES.items():
+        cavities[name] = small_faces + sum(len(n) for n in nodes)
+        nodes.append(small * np.asarray(axes) + np.asarray(centre))
+    nodes = np.vstack(nodes)
     targets = {"apex": np.array([0.0, -0.015, 0.0]), "base": np.array([0.0, 0.015, 0.0]),
                "lesion": np.array([0.008, 0.0, -0.006])}
     return LiveGeometry(nodes, faces, np.arange(len(nodes), dtype=np.int64), targets,
-                        np.array([0.0, -semi_axes_m[1], 0.0]))
+                        np.array([0.0, -semi_axes_m[1], 0.0]), cavities=cavities)
 
 
 def _rot(ypr: np.ndarray) -> np.ndarray:
@@ -190,7 +235,7 @@ class SyntheticSource:
     >>> len(ests), round(float(max(e.force[1] for e in ests)), 2) > 0
     (50, True)
     >>> s.node_positions().shape
-    (42, 3)
+    (252, 3)
     """
 
     _W = np.array([[1.8, 0.6, -2.2, 0.9], [1.7, 0.6, 2.4, 0.9], [2.1, -2.0, 0.3, 0.8], [2.0, 2.1, 0.2, 0.8]])

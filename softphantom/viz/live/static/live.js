@@ -1,328 +1,490 @@
-// softphantom live view: a hand-written canvas renderer (no library, nothing fetched from outside).
-// Data: GET /api/geometry (rest surface, mm), GET /api/state, then Server-Sent Events /api/events.
-"use strict";
+// softphantom live view: three.js draws the phantom, uPlot the plots; both are served from this
+// package (static/vendor/, built from the npm registry by scripts/vendor-live.sh): nothing is
+// fetched from elsewhere. Data: GET /api/geometry (surfaces at rest, mm), GET /api/state, then
+// Server-Sent Events /api/events (docs/stream.md). Model frame: y = needle, z = up, mm.
+import { THREE, OrbitControls, CSS2DRenderer, CSS2DObject, ViewHelper, Lut, uPlot } from "./vendor/live-libs.min.js";
 
 const WINDOW_S = 10;            // plot time window
-const MAX_SAMPLES = 6000;       // kept for the plots
+const PLOT_PERIOD_MS = 80;      // the plots redraw at most this often (12.5/s), the status text 4/s
+const TEXT_PERIOD_MS = 250;
+const KEEP_S = 12;              // samples kept for the plots
 const ARROW_MM_PER_N = 10;      // force arrow scale
-const S = {
-  geo: null, rest: null, pos: null, faces: null, samples: [], latest: null, status: null,
-  view: { az: -2.2, el: 0.42, zoom: 1.0 }, colorMax: 1.0, frames: 0, connected: false,
+const MIN_COLOR_MAX_MM = 0.4;   // the colour scale never spans less
+const VIRIDIS = ["#440154", "#482878", "#3e4989", "#31688e", "#26828e", "#1f9e89", "#35b779", "#6ece58", "#b5de2b", "#fde725"];
+const ARM_COLORS = { front_zpos: "#1f77b4", front_zneg: "#ff7f0e", back_xpos: "#2ca02c", back_xneg: "#9467bd" };
+const OTHER_CAVITY = "#8c8c8c";
+const TRACKER_COLOR = "#ff6a00";
+const XYZ_COLORS = ["#d62728", "#2ca02c", "#1f77b4", "#111111"];
+const params = new URLSearchParams(location.search);
+
+const S = {  // the page's state; window.__softphantomLive for tests and the curious
+  geo: null, latest: null, status: null, connected: false, tracker: null, hasTracker: false,
+  frames: 0, renders: 0, fps: 0, colorMax: MIN_COLOR_MAX_MM, surfaceMax: 0, lastSeq: -1,
+  dirty: true, plotsDirty: false,
 };
-window.__softphantomLive = S;   // for tests and the curious
+window.__softphantomLive = S;
 
-// ---------- colours ----------
-const VIRIDIS = [[68, 1, 84], [72, 40, 120], [62, 74, 137], [49, 104, 142], [38, 130, 142],
-  [31, 158, 137], [53, 183, 121], [109, 205, 89], [180, 222, 44], [253, 231, 37]];
-function cmap(v) {               // v in [0, 1]
-  v = Math.min(1, Math.max(0, v)) * (VIRIDIS.length - 1);
-  const i = Math.min(VIRIDIS.length - 2, Math.floor(v)), f = v - i, a = VIRIDIS[i], b = VIRIDIS[i + 1];
-  return [a[0] + f * (b[0] - a[0]), a[1] + f * (b[1] - a[1]), a[2] + f * (b[2] - a[2])];
-}
-const SERIES_COLORS = ["#d62728", "#2ca02c", "#1f77b4", "#111111"];
-const ARM_COLORS = ["#1f77b4", "#ff7f0e", "#2ca02c", "#9467bd"];
+// ---------- colour map (viridis) ----------
+const lut = new Lut();
+lut.addColorMap("viridis", VIRIDIS.map((c, i) => [i / (VIRIDIS.length - 1), parseInt(c.slice(1), 16)]));
+lut.setColorMap("viridis", 256);
+for (const c of lut.lut) c.convertSRGBToLinear();  // Lut keeps the hex values as linear: make them the sRGB colours shown
+document.getElementById("colorbar-ramp").style.background = `linear-gradient(to top, ${VIRIDIS.join(", ")})`;
 
-// ---------- data ----------
-function decodePositions(b64) {
-  const bin = atob(b64), buf = new ArrayBuffer(bin.length), u8 = new Uint8Array(buf);
-  for (let i = 0; i < bin.length; i++) u8[i] = bin.charCodeAt(i);
-  return new Float32Array(buf);
-}
-function niceMax(x) {
-  if (!(x > 0)) return 1;
+function niceColorMax(x) {      // the colour range's top: steps fine enough that the range is well used
+  if (!(x > 0)) return MIN_COLOR_MAX_MM;
   const p = Math.pow(10, Math.floor(Math.log10(x))), m = x / p;
-  return (m <= 1 ? 1 : m <= 2 ? 2 : m <= 5 ? 5 : 10) * p;
-}
-function niceColorMax(x) {       // finer steps than niceMax so the colour range is well used
-  if (!(x > 0)) return 1;
-  const p = Math.pow(10, Math.floor(Math.log10(x))), m = x / p;
-  for (const s of [1, 1.2, 1.5, 2, 2.5, 3, 4, 5, 6, 8, 10]) if (m <= s) return s * p;
+  for (const s of [1, 1.2, 1.6, 2, 2.4, 3.2, 4, 6, 8, 10]) if (m <= s) return Math.max(s * p, MIN_COLOR_MAX_MM);  // quarters are round
   return 10 * p;
 }
-function applyFrame(f) {
-  if (f.samples && f.samples.length) {
-    const lastSeq = S.samples.length ? S.samples[S.samples.length - 1].seq : -1;
-    for (const m of f.samples) if (m.seq > lastSeq) S.samples.push(m);
-    if (S.samples.length > MAX_SAMPLES) S.samples.splice(0, S.samples.length - MAX_SAMPLES);
-    if (S.samples.length) S.latest = S.samples[S.samples.length - 1];
-    if (!S.tracker && f.samples.some((m) => m.tracker)) S.tracker = true;
+function drawColorbarTicks() {
+  const el = document.getElementById("colorbar-ticks");
+  el.textContent = "";
+  for (let i = 0; i <= 4; i++) {
+    const span = document.createElement("span");
+    span.style.top = `${100 * i / 4}%`;
+    span.textContent = (S.colorMax * (1 - i / 4)).toFixed(S.colorMax < 10 ? 2 : 1);
+    el.appendChild(span);
   }
-  if (f.surface_mm_f32_b64 && S.rest) {
-    const p = decodePositions(f.surface_mm_f32_b64);
-    if (p.length === S.rest.length) S.pos = p;
-  }
-  if (f.status) S.status = f.status;
-  S.frames++;
-  drawAll();
 }
 
-// ---------- 3-D view ----------
-function project(view, w, h, scale) {
-  const ca = Math.cos(view.az), sa = Math.sin(view.az), ce = Math.cos(view.el), se = Math.sin(view.el);
-  const f = 400;  // mm, perspective distance
-  return (x, y, z) => {
-    const x1 = ca * x - sa * y, y1 = sa * x + ca * y;
-    const depth = ce * y1 - se * z, sy = ce * z + se * y1;
-    const k = scale * view.zoom * f / (f + depth);
-    return [w / 2 + k * x1, h / 2 - k * sy, depth];
-  };
+// ---------- the 3-D scene ----------
+const host = document.getElementById("view3d");
+const software = (() => {       // software GL (a headless browser, no GPU): no multisampling, it costs too much
+  const gl = document.createElement("canvas").getContext("webgl2");
+  const info = gl && gl.getExtension("WEBGL_debug_renderer_info");
+  return !!info && /swiftshader|llvmpipe|software/i.test(gl.getParameter(info.UNMASKED_RENDERER_WEBGL));
+})();
+const renderer = new THREE.WebGLRenderer({ antialias: !software });
+// resolution of the 3-D view: lowered while the browser cannot keep up (software GL), ?scale=X fixes it
+const DPR = window.devicePixelRatio || 1;
+S.scale = params.has("scale") ? Number(params.get("scale")) : 1;
+renderer.setPixelRatio(DPR * S.scale);
+renderer.setClearColor(0xffffff, 1);
+renderer.autoClear = false;
+host.appendChild(renderer.domElement);
+const labels = new CSS2DRenderer();
+Object.assign(labels.domElement.style, { position: "absolute", left: "0", top: "0", pointerEvents: "none" });
+host.appendChild(labels.domElement);
+const scene = new THREE.Scene();
+const camera = new THREE.PerspectiveCamera(35, 1, 1, 5000);
+camera.up.set(0, 0, 1);
+scene.add(camera, new THREE.HemisphereLight(0xffffff, 0x8890a0, 1.6));
+const headlight = new THREE.DirectionalLight(0xffffff, 1.6);
+headlight.position.set(0.3, 0.4, 1);
+camera.add(headlight);
+const controls = new OrbitControls(camera, renderer.domElement);
+controls.enableDamping = true;
+controls.autoRotate = params.get("spin") === "1";  // continuous rendering: the benchmark's frames per second
+controls.autoRotateSpeed = 4;
+const gizmo = new ViewHelper(camera, renderer.domElement);
+const timer = new THREE.Timer();
+
+const view = {};  // the scene's objects once the geometry is known
+function decodePositions(b64) {
+  if (Uint8Array.fromBase64) return new Float32Array(Uint8Array.fromBase64(b64).buffer);
+  const bin = atob(b64), u8 = new Uint8Array(bin.length);
+  for (let i = 0; i < bin.length; i++) u8[i] = bin.charCodeAt(i);
+  return new Float32Array(u8.buffer);
 }
-function fitCanvas(c) {
-  const r = c.getBoundingClientRect(), d = window.devicePixelRatio || 1;
-  const W = Math.max(50, Math.round(r.width * d)), H = Math.max(50, Math.round(r.height * d));
-  if (c.width !== W || c.height !== H) { c.width = W; c.height = H; }
-  return d;
+function poseMatrix(p) {        // R = Rz(yaw)·Rx(pitch)·Ry(roll) (three's intrinsic "ZXY"), then translate
+  const r = Math.PI / 180;
+  const e = new THREE.Euler(p.pitch_deg * r, p.roll_deg * r, p.yaw_deg * r, "ZXY");
+  return new THREE.Matrix4().makeRotationFromEuler(e).setPosition(p.x_mm, p.y_mm, p.z_mm);
 }
-function drawArrow(ctx, a, b, color, width, head) {
-  const dx = b[0] - a[0], dy = b[1] - a[1], L = Math.hypot(dx, dy) || 1, ux = dx / L, uy = dy / L;
-  ctx.strokeStyle = color; ctx.fillStyle = color; ctx.lineWidth = width;
-  ctx.beginPath(); ctx.moveTo(a[0], a[1]); ctx.lineTo(b[0] - ux * head * 0.8, b[1] - uy * head * 0.8); ctx.stroke();
-  ctx.beginPath(); ctx.moveTo(b[0], b[1]);
-  ctx.lineTo(b[0] - ux * head - uy * head * 0.45, b[1] - uy * head + ux * head * 0.45);
-  ctx.lineTo(b[0] - ux * head + uy * head * 0.45, b[1] - uy * head - ux * head * 0.45);
-  ctx.closePath(); ctx.fill();
+S.poseMatrix = (p) => poseMatrix(p).elements;  // for the test of the convention
+
+function setText(el, text) {     // a DOM write only when the text changes (each costs a layout)
+  if (el.textContent !== text) el.textContent = text;
 }
-function label(ctx, text, x, y, color, bg) {
-  ctx.font = `${13 * S.dpr}px "DejaVu Sans", sans-serif`;
-  const w = ctx.measureText(text).width, p = 3 * S.dpr, h = 16 * S.dpr;
-  ctx.fillStyle = bg || "rgba(255,255,255,0.85)"; ctx.fillRect(x - p, y - h + p, w + 2 * p, h + p);
-  ctx.fillStyle = color; ctx.fillText(text, x, y);
+function label(text, cls) {
+  const div = document.createElement("div");
+  div.className = `label3d ${cls}`;
+  div.textContent = text;
+  return new CSS2DObject(div);
 }
-function draw3d() {
-  const c = document.getElementById("view3d"), ctx = c.getContext("2d");
-  S.dpr = fitCanvas(c);
-  const W = c.width, H = c.height, d = S.dpr;
-  ctx.clearRect(0, 0, W, H);
-  if (!S.geo) {
-    label(ctx, "no geometry from this source: plots only", 20 * d, 40 * d, "#444");
-    return;
+
+function buildScene(geo) {
+  const rest = new Float32Array(geo.nodes_mm.flat());
+  const position = new THREE.BufferAttribute(rest.slice(), 3);
+  position.setUsage(THREE.DynamicDrawUsage);
+  const color = new THREE.BufferAttribute(new Float32Array(rest.length), 3);
+  color.setUsage(THREE.DynamicDrawUsage);
+  const surface = new THREE.BufferGeometry();
+  surface.setAttribute("position", position);
+  surface.setAttribute("color", color);
+  surface.setIndex(geo.faces.flat());
+  surface.computeVertexNormals();
+  // see-through (the cavities and targets inside show): the front faces only, blended
+  const front = new THREE.Mesh(surface, new THREE.MeshLambertMaterial({ vertexColors: true, transparent: true, opacity: 0.55, depthWrite: false }));
+  front.renderOrder = 1;
+  front.frustumCulled = false;  // the nodes move: no stale bounding sphere
+  scene.add(front);
+  const outerNodes = new Uint32Array([...new Set(geo.faces.flat())]);
+  // cavities: the same moving nodes, their own triangles, solid, in their arm's plot colour
+  const legend = document.getElementById("legend");
+  const cavities = [];
+  for (const [name, faces] of Object.entries(geo.cavities || {})) {
+    const g = new THREE.BufferGeometry();
+    g.setAttribute("position", position);
+    g.setIndex(faces.flat());
+    const col = ARM_COLORS[name] || OTHER_CAVITY;
+    const m = new THREE.Mesh(g, new THREE.MeshLambertMaterial({ color: col, side: THREE.DoubleSide, flatShading: true }));
+    m.frustumCulled = false;
+    scene.add(m);
+    cavities.push(m);
+    const row = document.createElement("div"), sw = document.createElement("i");
+    sw.style.background = col;
+    row.append(sw, name);
+    legend.appendChild(row);
   }
-  const rest = S.rest, pos = S.pos || rest, faces = S.faces, n = rest.length / 3;
-  const P = project(S.view, W, H, 0.36 * Math.min(W, H) / S.extent);
-  const sx = new Float32Array(n), sy = new Float32Array(n), sz = new Float32Array(n), mag = new Float32Array(n);
+  // the tracker's pose: the rest surface moved rigidly by it, drawn as an orange wire cage
+  const ghost = new THREE.Mesh(new THREE.BufferGeometry().setAttribute("position", new THREE.BufferAttribute(rest, 3)).setIndex(geo.faces.flat()),
+    new THREE.MeshBasicMaterial({ color: TRACKER_COLOR, wireframe: true, transparent: true, opacity: 0.45 }));
+  ghost.matrixAutoUpdate = false;
+  ghost.visible = false;
+  const trackerAxes = new THREE.AxesHelper(14);
+  trackerAxes.matrixAutoUpdate = false;
+  trackerAxes.visible = false;
+  const poseAxes = new THREE.AxesHelper(14);  // the estimated pose of the marker body
+  poseAxes.matrixAutoUpdate = false;
+  scene.add(ghost, trackerAxes, poseAxes);
+  // targets: rest (white ring) → now (magenta), with the shift's length
+  const targets = {};
+  for (const [name, r] of Object.entries(geo.targets_mm || {})) {
+    const ring = new THREE.Mesh(new THREE.SphereGeometry(1.3, 12, 8), new THREE.MeshBasicMaterial({ color: 0x222222, wireframe: true }));
+    ring.position.set(r[0], r[1], r[2]);
+    const dot = new THREE.Mesh(new THREE.SphereGeometry(1.4, 16, 12), new THREE.MeshLambertMaterial({ color: 0xff2d95 }));
+    const line = new THREE.Line(new THREE.BufferGeometry().setFromPoints([ring.position.clone(), ring.position.clone()]),
+      new THREE.LineBasicMaterial({ color: 0xff2d95 }));
+    line.frustumCulled = false;  // its end moves
+    const text = label(name, "target");
+    dot.add(text);
+    text.position.set(2.5, 0, 2.5);
+    dot.position.copy(ring.position);
+    scene.add(ring, dot, line);
+    targets[name] = { rest: ring.position.clone(), dot, line, text };
+  }
+  // the contact point (deformed p_ext) and the force arrow ending on it
+  const contact = new THREE.Mesh(new THREE.SphereGeometry(1.8, 16, 12), new THREE.MeshLambertMaterial({ color: 0xe0201b }));
+  const arrow = new THREE.ArrowHelper(new THREE.Vector3(0, 1, 0), new THREE.Vector3(), 20, 0xe0201b, 6, 3.5);
+  const forceText = label("", "force");
+  arrow.add(forceText);
+  arrow.visible = false;
+  scene.add(contact, arrow);
+  S.surfaceTriangles = geo.faces.length;
+  S.cavityTriangles = Object.values(geo.cavities || {}).reduce((n, f) => n + f.length, 0);
+  Object.assign(view, { rest, position, color, surface, front, outerNodes, cavities, ghost, trackerAxes, poseAxes,
+    targets, contact, arrow, forceText, pext: geo.p_ext_node });
+  // camera: the whole bulb, from the front-left and above
+  surface.computeBoundingSphere();
+  const { center, radius } = surface.boundingSphere;  // at rest
+  controls.target.copy(center);
+  camera.position.copy(center).add(new THREE.Vector3(-1.1, -1.6, 0.9).normalize().multiplyScalar(radius * 4.2));
+  camera.near = radius * 0.05; camera.far = radius * 50;
+  camera.updateProjectionMatrix();
+  controls.saveState();
+  gizmo.center = controls.target;
+  updateSurface(null);
+}
+
+function updateSurface(pos) {
+  const v = view, n = v.rest.length / 3, p = v.position.array, c = v.color.array;
+  if (pos) p.set(pos);
   let maxMag = 0;
-  for (let i = 0; i < n; i++) {
-    const q = P(pos[3 * i], pos[3 * i + 1], pos[3 * i + 2]);
-    sx[i] = q[0]; sy[i] = q[1]; sz[i] = q[2];
-    const m = Math.hypot(pos[3 * i] - rest[3 * i], pos[3 * i + 1] - rest[3 * i + 1], pos[3 * i + 2] - rest[3 * i + 2]);
-    mag[i] = m; if (m > maxMag) maxMag = m;
+  const mag = new Float32Array(n);
+  for (const i of v.outerNodes) {
+    const m = Math.hypot(p[3 * i] - v.rest[3 * i], p[3 * i + 1] - v.rest[3 * i + 1], p[3 * i + 2] - v.rest[3 * i + 2]);
+    mag[i] = m;
+    if (m > maxMag) maxMag = m;
   }
-  // colour range: grows at once, shrinks slowly (no flicker)
-  const want = Math.max(niceColorMax(maxMag), 0.5);
-  S.colorMax = want >= S.colorMax ? want : Math.max(want, S.colorMax * 0.99);
-  const nf = faces.length / 3, order = [], depth = new Float32Array(nf);
-  for (let k = 0; k < nf; k++) {
-    const a = faces[3 * k], b = faces[3 * k + 1], e = faces[3 * k + 2];
-    const cross = (sx[b] - sx[a]) * (sy[e] - sy[a]) - (sy[b] - sy[a]) * (sx[e] - sx[a]);
-    if (cross > 0) continue;  // back face (outward normals, y down on screen)
-    depth[k] = sz[a] + sz[b] + sz[e]; order.push(k);
+  // colour range, a round number: grows at once, shrinks once it has been too wide for 2 s (no flicker)
+  const want = niceColorMax(maxMag), now = performance.now(), before = S.colorMax;
+  if (want >= S.colorMax) { S.colorMax = want; S.shrink = null; }
+  else if (!S.shrink) S.shrink = { since: now, to: want };
+  else if (now - S.shrink.since > 2000) { S.colorMax = Math.max(S.shrink.to, want); S.shrink = null; }
+  else S.shrink.to = Math.max(S.shrink.to, want);
+  if (S.colorMax !== before || !S.ticksDrawn) { drawColorbarTicks(); S.ticksDrawn = true; }
+  lut.setMax(S.colorMax);
+  for (const i of v.outerNodes) {
+    const col = lut.getColor(mag[i]);
+    c[3 * i] = col.r; c[3 * i + 1] = col.g; c[3 * i + 2] = col.b;
   }
-  order.sort((p, q) => depth[q] - depth[p]);
-  // ground shadow of the rest outline for reference: draw the rest silhouette faintly
-  for (const k of order) {
-    const a = faces[3 * k], b = faces[3 * k + 1], e = faces[3 * k + 2];
-    // lambert shading from the 3-D normal
-    const ax = pos[3 * a], ay = pos[3 * a + 1], az = pos[3 * a + 2];
-    const ux = pos[3 * b] - ax, uy = pos[3 * b + 1] - ay, uz = pos[3 * b + 2] - az;
-    const vx = pos[3 * e] - ax, vy = pos[3 * e + 1] - ay, vz = pos[3 * e + 2] - az;
-    let nx = uy * vz - uz * vy, ny = uz * vx - ux * vz, nz = ux * vy - uy * vx;
-    const nl = Math.hypot(nx, ny, nz) || 1; nx /= nl; ny /= nl; nz /= nl;
-    const lit = 0.55 + 0.45 * Math.abs(0.3 * nx - 0.5 * ny + 0.8 * nz);
-    const col = cmap((mag[a] + mag[b] + mag[e]) / (3 * S.colorMax));
-    ctx.fillStyle = `rgba(${col[0] * lit | 0},${col[1] * lit | 0},${col[2] * lit | 0},0.80)`;
-    ctx.strokeStyle = ctx.fillStyle;
-    ctx.lineWidth = 0.6;
-    ctx.beginPath(); ctx.moveTo(sx[a], sy[a]); ctx.lineTo(sx[b], sy[b]); ctx.lineTo(sx[e], sy[e]); ctx.closePath();
-    ctx.fill(); ctx.stroke();
+  S.surfaceMax = maxMag;
+  setText(document.getElementById("surface-max"), `max |u| ${maxMag.toFixed(2)} mm`);
+  v.position.needsUpdate = true;
+  v.color.needsUpdate = true;
+  v.surface.computeVertexNormals();
+  placeContact();
+}
+
+function placeContact() {
+  const v = view, p = v.position.array, i = v.pext, m = S.latest;
+  const tip = new THREE.Vector3(p[3 * i], p[3 * i + 1], p[3 * i + 2]);
+  v.contact.position.copy(tip);
+  const F = m ? new THREE.Vector3(m.force_x_N, m.force_y_N, m.force_z_N) : null;
+  const Fn = F ? F.length() : 0;
+  v.arrow.visible = Fn > 1e-3;
+  if (v.arrow.visible) {
+    const L = Math.min(60, Math.max(12, ARROW_MM_PER_N * Fn)), dir = F.clone().divideScalar(Fn);
+    v.arrow.position.copy(tip).addScaledVector(dir, -L);
+    v.arrow.setDirection(dir);
+    v.arrow.setLength(L, Math.min(8, 0.35 * L), 4);
+    setText(v.forceText.element, `F ${Fn.toFixed(2)} N`);
   }
-  // targets: rest (ring) → now (dot)
-  const m = S.latest;
-  for (const [name, r] of Object.entries(S.geo.targets_mm || {})) {
-    const dx = m ? (m[name + "_dx_mm"] || 0) : 0, dy = m ? (m[name + "_dy_mm"] || 0) : 0, dz = m ? (m[name + "_dz_mm"] || 0) : 0;
-    const a = P(r[0], r[1], r[2]), b = P(r[0] + dx, r[1] + dy, r[2] + dz);
-    ctx.strokeStyle = "#fff"; ctx.lineWidth = 2 * d;
-    ctx.beginPath(); ctx.arc(a[0], a[1], 5 * d, 0, 2 * Math.PI); ctx.stroke();
-    ctx.strokeStyle = "#222"; ctx.lineWidth = 1 * d; ctx.stroke();
-    ctx.beginPath(); ctx.moveTo(a[0], a[1]); ctx.lineTo(b[0], b[1]); ctx.strokeStyle = "#ff2d95"; ctx.lineWidth = 2 * d; ctx.stroke();
-    ctx.beginPath(); ctx.arc(b[0], b[1], 4.5 * d, 0, 2 * Math.PI); ctx.fillStyle = "#ff2d95"; ctx.fill();
-    label(ctx, `${name} ${Math.hypot(dx, dy, dz).toFixed(2)} mm`, b[0] + 8 * d, b[1] - 6 * d, "#b0006a");
+}
+
+function updateOverlay() {     // targets, pose, tracker, force: from the latest estimate
+  const v = view, m = S.latest;
+  if (!v.surface || !m) return;
+  for (const [name, t] of Object.entries(v.targets)) {
+    const d = [m[`${name}_dx_mm`] || 0, m[`${name}_dy_mm`] || 0, m[`${name}_dz_mm`] || 0];
+    t.dot.position.set(t.rest.x + d[0], t.rest.y + d[1], t.rest.z + d[2]);
+    t.line.geometry.attributes.position.setXYZ(1, t.dot.position.x, t.dot.position.y, t.dot.position.z);
+    t.line.geometry.attributes.position.needsUpdate = true;
+    setText(t.text.element, `${name} ${Math.hypot(...d).toFixed(2)} mm`);
   }
-  // force arrow ending at p_ext (deformed)
-  if (m && m.force_x_N != null) {
-    const F = [m.force_x_N, m.force_y_N, m.force_z_N], Fn = Math.hypot(F[0], F[1], F[2]);
-    const pe = S.geo.p_ext_node, tip = [pos[3 * pe], pos[3 * pe + 1], pos[3 * pe + 2]];
-    if (Fn > 1e-3) {
-      const L = Math.min(60, Math.max(12, ARROW_MM_PER_N * Fn));
-      const tail = [tip[0] - L * F[0] / Fn, tip[1] - L * F[1] / Fn, tip[2] - L * F[2] / Fn];
-      const a = P(tail[0], tail[1], tail[2]), b = P(tip[0], tip[1], tip[2]);
-      drawArrow(ctx, a, b, "#e0201b", 4 * d, 14 * d);
-      label(ctx, `F ${Fn.toFixed(2)} N`, a[0] - 30 * d, a[1] - 10 * d, "#c0100b");
-    } else {
-      const b = P(tip[0], tip[1], tip[2]);
-      ctx.fillStyle = "#e0201b"; ctx.beginPath(); ctx.arc(b[0], b[1], 4 * d, 0, 2 * Math.PI); ctx.fill();
-    }
+  v.poseAxes.matrix.copy(poseMatrix(m));
+  const tr = S.tracker;
+  v.ghost.visible = v.trackerAxes.visible = !!tr;
+  if (tr) { v.ghost.matrix.copy(poseMatrix(tr)); v.trackerAxes.matrix.copy(v.ghost.matrix); }
+  placeContact();
+}
+
+function resize() {
+  const w = host.clientWidth, h = host.clientHeight;
+  renderer.setSize(w, h);
+  labels.setSize(w, h);
+  camera.aspect = w / Math.max(h, 1);
+  camera.updateProjectionMatrix();
+  for (const p of plots) p.u.setSize(plotSize(p.el));
+  S.dirty = true;
+}
+
+const renderTimes = [], ticks = [];
+function adaptScale(now) {      // once a second: fewer pixels while frames queue up, more when they flow
+  if (params.has("scale") || now - (S.scaledAt || 0) < 1000) return;
+  S.scaledAt = now;
+  // frames come slower than the display's 60/s and most of them render: the 3-D view is the bottleneck
+  const rate = ticks.length, busy = rate < 45 && renderTimes.length > 0.6 * rate;
+  const next = busy ? Math.max(0.4, S.scale * 0.8) : rate >= 57 ? Math.min(1, S.scale * 1.1) : S.scale;
+  if (next !== S.scale) {
+    S.scale = next;
+    renderer.setPixelRatio(DPR * S.scale);
+    renderer.setSize(host.clientWidth, host.clientHeight);
   }
-  // axes triad (bottom left) and colour bar (right)
-  const o = [48 * d, H - 48 * d], Q = project(S.view, 0, 0, 1);
-  [["x", [1, 0, 0], "#d62728"], ["y (needle)", [0, 1, 0], "#2ca02c"], ["z", [0, 0, 1], "#1f77b4"]].forEach(([t, v, col]) => {
-    const q = Q(28 * v[0], 28 * v[1], 28 * v[2]), z = Q(0, 0, 0);
-    const e = [o[0] + (q[0] - z[0]) * d, o[1] + (q[1] - z[1]) * d];
-    drawArrow(ctx, o, e, col, 2 * d, 7 * d); label(ctx, t, e[0] + 3 * d, e[1] - 3 * d, col, "rgba(255,255,255,0)");
-  });
-  const bx = W - 34 * d, by = 40 * d, bh = Math.min(220 * d, H - 110 * d), bw = 14 * d;
-  for (let i = 0; i < bh; i++) { const col = cmap(1 - i / bh); ctx.fillStyle = `rgb(${col[0] | 0},${col[1] | 0},${col[2] | 0})`; ctx.fillRect(bx, by + i, bw, 1.5); }
-  ctx.strokeStyle = "#444"; ctx.lineWidth = 1; ctx.strokeRect(bx, by, bw, bh);
-  ctx.font = `${12 * d}px "DejaVu Sans", sans-serif`; ctx.fillStyle = "#222"; ctx.textAlign = "right";
-  for (let i = 0; i <= 4; i++) ctx.fillText((S.colorMax * (1 - i / 4)).toFixed(S.colorMax < 10 ? 2 : 1), bx - 4 * d, by + bh * i / 4 + 4 * d);
-  ctx.fillText("|u| mm", bx + bw, by - 10 * d); ctx.textAlign = "left";
-  label(ctx, `surface max |u| ${maxMag.toFixed(2)} mm`, 14 * d, 22 * d, "#222");
+}
+function loop(now) {
+  requestAnimationFrame(loop);
+  timer.update(now);
+  const dt = timer.getDelta();
+  ticks.push(now);
+  while (ticks[0] < now - 1000) ticks.shift();
+  adaptScale(now);
+  if (S.plotsDirty && now - (S.plottedAt || 0) >= PLOT_PERIOD_MS) { updatePlots(); S.plotsDirty = false; S.plottedAt = now; }
+  const moved = controls.update(dt);
+  if (gizmo.animating) { gizmo.update(dt); S.dirty = true; }
+  if (!(S.dirty || moved)) return;
+  renderer.clear();
+  renderer.render(scene, camera);
+  S.triangles = renderer.info.render.triangles;
+  gizmo.render(renderer);
+  labels.render(scene, camera);
+  S.dirty = false;
+  S.renders++;
+  renderTimes.push(now);
+  while (renderTimes[0] < now - 1000) renderTimes.shift();
+  S.fps = renderTimes.length;
 }
 
 // ---------- plots ----------
-// the tracker (a NatNet source given to `live --tracker`): dashed, in the colour of its estimate DoF
-function trackerSeries(keys) {
-  return keys.map((k, i) => [(m) => (m.tracker ? m.tracker[k] : null), `${k.split("_")[0]} trk`, SERIES_COLORS[i], true, "tracker"]);
-}
+function trackerOf(k) { return (m) => (m.tracker ? m.tracker[k] : null); }
 const PLOTS = [
-  ["plot-force", [["force_x_N", "Fx"], ["force_y_N", "Fy"], ["force_z_N", "Fz"], [(m) => Math.hypot(m.force_x_N, m.force_y_N, m.force_z_N), "|F|"]]],
-  ["plot-position", [["x_mm", "x"], ["y_mm", "y"], ["z_mm", "z"], ...trackerSeries(["x_mm", "y_mm", "z_mm"])]],
-  ["plot-rotation", [["yaw_deg", "yaw"], ["pitch_deg", "pitch"], ["roll_deg", "roll"], ...trackerSeries(["yaw_deg", "pitch_deg", "roll_deg"])]],
-  ["plot-cavities", null],
+  ["plot-force", [["Fx", "force_x_N"], ["Fy", "force_y_N"], ["Fz", "force_z_N"],
+    ["|F|", (m) => (m.force_x_N == null ? null : Math.hypot(m.force_x_N, m.force_y_N, m.force_z_N))]]],
+  ["plot-position", [["x", "x_mm"], ["y", "y_mm"], ["z", "z_mm"],
+    ...["x_mm", "y_mm", "z_mm"].map((k, i) => [`${k[0]} trk`, trackerOf(k), XYZ_COLORS[i], true])]],
+  ["plot-rotation", [["yaw", "yaw_deg"], ["pitch", "pitch_deg"], ["roll", "roll_deg"],
+    ...["yaw_deg", "pitch_deg", "roll_deg"].map((k, i) => [`${k.split("_")[0]} trk`, trackerOf(k), XYZ_COLORS[i], true])]],
+  ["plot-cavities", Object.keys(ARM_COLORS).flatMap((a) => [[a, `dVmeas_${a}_mm3`, ARM_COLORS[a]],
+    [`${a} pred`, `dVpred_${a}_mm3`, ARM_COLORS[a], true]])],
 ];
-function cavitySeries() {
-  const arms = (S.geo && S.geo.arms) || ["front_zpos", "front_zneg", "back_xpos", "back_xneg"], out = [];
-  arms.forEach((a, i) => {
-    out.push([`dVmeas_${a}_mm3`, a, ARM_COLORS[i], false]);
-    out.push([`dVpred_${a}_mm3`, null, ARM_COLORS[i], true]);
-  });
-  return out;
-}
-function drawPlot(id, series) {
-  const c = document.getElementById(id), ctx = c.getContext("2d"), d = fitCanvas(c), W = c.width, H = c.height;
-  ctx.clearRect(0, 0, W, H);
-  const L = 52 * d, R = 10 * d, T = 24 * d, B = 22 * d, pw = W - L - R, ph = H - T - B;
-  ctx.font = `600 ${13 * d}px "DejaVu Sans", sans-serif`; ctx.fillStyle = "#1d2330";
-  ctx.fillText(c.dataset.title, L, 16 * d);
-  const sm = S.samples; if (!sm.length) return;
-  const t1 = sm[sm.length - 1].t_s, t0 = t1 - WINDOW_S;
-  let i0 = sm.length - 1; while (i0 > 0 && sm[i0 - 1].t_s >= t0) i0--;
-  const get = series.map((s) => typeof s[0] === "function" ? s[0] : (m) => m[s[0]]);
-  let lo = Infinity, hi = -Infinity;
-  for (let i = i0; i < sm.length; i++) for (const g of get) { const v = g(sm[i]); if (v != null && isFinite(v)) { if (v < lo) lo = v; if (v > hi) hi = v; } }
-  if (!isFinite(lo)) { lo = -1; hi = 1; }
-  const span = Math.max(hi - lo, 1e-3), pad = 0.08 * span; lo -= pad; hi += pad;
-  const X = (t) => L + pw * (t - t0) / WINDOW_S, Y = (v) => T + ph * (1 - (v - lo) / (hi - lo));
-  // grid + ticks
-  ctx.font = `${11 * d}px "DejaVu Sans", sans-serif`; ctx.strokeStyle = "#e6e9ee"; ctx.fillStyle = "#555"; ctx.lineWidth = 1;
-  const step = niceMax((hi - lo) / 5) / (niceMax((hi - lo) / 5) / ((hi - lo) / 5) > 1.8 ? 2 : 1);
-  ctx.textAlign = "right";
-  for (let v = Math.ceil(lo / step) * step; v <= hi; v += step) {
-    ctx.beginPath(); ctx.moveTo(L, Y(v)); ctx.lineTo(L + pw, Y(v)); ctx.stroke();
-    ctx.fillText(Math.abs(v) < 1e-9 ? "0" : +v.toPrecision(3) + "", L - 5 * d, Y(v) + 4 * d);
+const T = [];                   // sample times, s
+const plots = [];
+function plotSize(el) { return { width: el.clientWidth, height: Math.max(el.clientHeight - 44, 60) }; }
+function buildPlots() {
+  for (const [id, series] of PLOTS) {
+    const el = document.getElementById(id);
+    const get = series.map(([, k]) => (typeof k === "function" ? k : (m) => m[k]));
+    const cols = series.map(() => []);
+    const opts = {
+      title: el.dataset.title, ...plotSize(el),
+      scales: { x: { time: false, range: () => (T.length ? [T[T.length - 1] - WINDOW_S, T[T.length - 1]] : [0, WINDOW_S]) } },
+      axes: [{ label: "t s", size: 36 }, { size: 48 }],
+      cursor: { drag: { x: false, y: false } },
+      series: [{ label: "t s", value: (u, v) => (v == null ? "–" : v.toFixed(2)) },
+        ...series.map(([name, , col, dashed], i) => ({
+          label: name, stroke: col || XYZ_COLORS[i % XYZ_COLORS.length], width: 1.6, dash: dashed ? [6, 4] : undefined,
+          show: !name.endsWith(" trk"), value: (u, v) => (v == null ? "–" : v.toFixed(2)),
+        }))],
+    };
+    const u = new uPlot(opts, [T, ...cols], el);
+    plots.push({ el, u, get, cols, series });
   }
-  ctx.textAlign = "center";
-  for (let t = Math.ceil(t0); t <= t1; t += 2) { ctx.beginPath(); ctx.moveTo(X(t), T); ctx.lineTo(X(t), T + ph); ctx.stroke(); ctx.fillText(t.toFixed(0), X(t), H - 6 * d); }
-  ctx.textAlign = "left"; ctx.fillText("t s", L + pw - 24 * d, H - 6 * d);
-  ctx.strokeStyle = "#9aa3b0"; ctx.strokeRect(L, T, pw, ph);
-  if (lo < 0 && hi > 0) { ctx.strokeStyle = "#b9c0ca"; ctx.beginPath(); ctx.moveTo(L, Y(0)); ctx.lineTo(L + pw, Y(0)); ctx.stroke(); }
-  // lines
-  const last = sm[sm.length - 1];
-  let lx = L + 8 * d;
-  series.forEach((s, k) => {
-    const col = s[2] || SERIES_COLORS[k % SERIES_COLORS.length], g = get[k];
-    ctx.strokeStyle = col; ctx.lineWidth = 1.6 * d; ctx.setLineDash(s[3] ? [5 * d, 4 * d] : []);
-    ctx.beginPath(); let pen = false;
-    for (let i = i0; i < sm.length; i++) {
-      const v = g(sm[i]); if (v == null || !isFinite(v)) { pen = false; continue; }
-      const x = X(sm[i].t_s), y = Y(v); if (pen) ctx.lineTo(x, y); else { ctx.moveTo(x, y); pen = true; }
-    }
-    ctx.stroke(); ctx.setLineDash([]);
-    if (s[1] && !(s[4] === "tracker" && !S.tracker)) {  // legend with the latest value
-      const v = g(last), txt = `${s[1]} ${v == null ? "–" : v.toFixed(2)}`;
-      ctx.font = `${12 * d}px "DejaVu Sans Mono", monospace`;
-      const w = ctx.measureText(txt).width;
-      ctx.fillStyle = "rgba(255,255,255,0.85)"; ctx.fillRect(lx - 2 * d, T + 3 * d, w + 22 * d, 16 * d);
-      ctx.fillStyle = col; ctx.fillRect(lx, T + 10 * d, 12 * d, 3 * d);
-      ctx.fillStyle = "#1d2330"; ctx.fillText(txt, lx + 16 * d, T + 15 * d); lx += w + 30 * d;
-    }
-  });
+}
+function addSamples(samples) {
+  for (const m of samples) {
+    if (m.seq <= S.lastSeq) continue;
+    S.lastSeq = m.seq;
+    T.push(m.t_s);
+    for (const p of plots) p.get.forEach((g, i) => { const v = g(m); p.cols[i].push(v == null || !isFinite(v) ? null : v); });
+    if (m.tracker) S.tracker = m.tracker;
+    if (m.force_x_N != null) S.latest = m;  // a link event's marker has no numbers: keep the last estimate
+  }
+  const t0 = T.length ? T[T.length - 1] - KEEP_S : 0;
+  let k = 0;
+  while (k < T.length && T[k] < t0) k++;
+  if (k > 0) { T.splice(0, k); for (const p of plots) for (const c of p.cols) c.splice(0, k); }
+  if (S.tracker && !S.hasTracker) {  // show the tracker's series once it is there
+    S.hasTracker = true;
+    for (const p of plots) p.series.forEach(([name], i) => { if (name.endsWith(" trk")) p.u.setSeries(i + 1, { show: true }); });
+  }
+}
+function updatePlots() {
+  for (const p of plots) {
+    p.u.setData([T, ...p.cols]);
+    if (T.length && p.u.cursor.left < 0) p.u.setLegend({ idx: T.length - 1 });  // the latest values
+  }
 }
 
-// ---------- status + table ----------
-function fmt(v, n, unit) { return v == null ? "–" : `${Number(v).toFixed(n)}${unit || ""}`; }
+// ---------- status ----------
+function fmt(v, n, unit = "") { return v == null ? "–" : `${Number(v).toFixed(n)}${unit}`; }
+function badge(id, level, text) {
+  const el = document.getElementById(id);
+  el.dataset.level = level;
+  setText(el, text);
+  el.title = text;
+}
 function drawStatus() {
-  const el = document.getElementById("status"), st = S.status, m = S.latest;
+  const st = S.status;
+  badge("badge-server", S.connected ? "ok" : st && st.finished ? "wait" : "bad",
+    S.connected ? "server: live" : st && st.finished ? "server: ended" : "server: reconnecting");
   if (!st) return;
-  const h = String(st.sensor_health || "waiting");
-  const sensorsOk = h === "ok", qpOk = !st.qp_status || /optimal|solved|ok/i.test(st.qp_status);
-  el.dataset.health = st.estimates <= 0 ? "waiting" : h.startsWith("error") || h.startsWith("stalled") ? "bad" : sensorsOk && qpOk && st.skipped_total === 0 ? "ok" : "warn";
-  const s = st.stream || {}, parts = [
-    st.finished ? "■ ended" : S.connected ? "● live" : "○ offline",
-    `rate ${fmt(st.rate_Hz, 1, " Hz")}`,
-    `step ${fmt(st.step_ms, 2, " ms")} (p99 ${fmt(st.step_p99_ms, 2, " ms")})`,
+  const link = st.link, detail = st.link_detail || "";
+  const linkLevel = { ok: "ok", outage: "bad", stalled: "bad", error: "bad", waiting: "wait", ended: "wait" }[link] || "warn";
+  badge("badge-link", linkLevel, link === "outage" ? `LINK OUTAGE: ${detail}` : link === "stalled" ? `link stalled: ${detail}`
+    : link === "error" ? `error: ${detail}` : `link: ${link}`);
+  const env = st.in_envelope;
+  badge("badge-envelope", env == null ? "wait" : env ? "ok" : "warn", env == null ? "envelope: –" : env ? "in envelope" : "OUT OF ENVELOPE");
+  const banner = document.getElementById("banner");
+  const bad = linkLevel === "bad", warn = env === false;
+  banner.hidden = !(bad || warn);
+  banner.dataset.level = bad ? "bad" : warn ? "warn" : "none";
+  setText(banner, link === "outage" ? `LINK OUTAGE — ${detail} — showing the last estimate`
+    : link === "stalled" ? `NO ESTIMATE — ${detail}` : link === "error" ? `ERROR — ${detail}`
+    : warn ? "OUT OF ENVELOPE — the estimate is clamped to the loads the model covers" : "");
+  const s = st.stream || {}, m = S.latest;
+  const parts = [
+    `rate ${fmt(st.rate_Hz, 1, " Hz")}`, `step ${fmt(st.step_ms, 2, " ms")} (p99 ${fmt(st.step_p99_ms, 2, " ms")})`,
     `skipped ${st.skipped_total} · view drop ${st.view_dropped}`,
     s.enabled ? `stream ${s.endpoint.replace("tcp://", "")} ${s.subscribers} sub` : "stream off",
-    `sensors ${h}`, `QP ${st.qp_status || "–"}`, `cond(W) ${fmt(st.cond_W, 1)}`,
-    `t ${m ? fmt(m.t_s, 2, " s") : "–"}`, `#${st.estimates}`,
+    `QP ${st.qp_status || "–"}`, `cond(W) ${fmt(st.cond_W, 1)}`, `t ${m ? fmt(m.t_s, 2, " s") : "–"}`, `#${st.estimates}`,
   ];
+  if (st.last_event) parts.push(`last event ${st.last_event}`);
   if (st.recording && st.recording.enabled) parts.push(`rec ${st.recording.messages} msg`);
-  el.textContent = parts.join(" │ ");
+  setText(document.getElementById("status"), parts.join(" │ "));
 }
 function drawTargets() {
   const tb = document.querySelector("#targets tbody"), m = S.latest;
   if (!S.geo || !m) return;
-  tb.innerHTML = "";
+  tb.textContent = "";
   for (const name of Object.keys(S.geo.targets_mm || {})) {
-    const v = ["dx", "dy", "dz"].map((k) => m[`${name}_${k}_mm`] || 0);
+    const d = ["dx", "dy", "dz"].map((k) => m[`${name}_${k}_mm`] || 0);
     const tr = document.createElement("tr");
-    for (const x of [name, ...v.map((x) => x.toFixed(2)), Math.hypot(...v).toFixed(2)]) { const td = document.createElement("td"); td.textContent = x; tr.appendChild(td); }
+    for (const x of [name, ...d.map((x) => x.toFixed(2)), Math.hypot(...d).toFixed(2)]) {
+      const td = document.createElement("td");
+      td.textContent = x;
+      tr.appendChild(td);
+    }
     tb.appendChild(tr);
   }
 }
-let pending = false;
-function drawAll() {
-  if (pending) return; pending = true;
-  const run = () => { pending = false; draw3d(); PLOTS.forEach(([id, s]) => drawPlot(id, s || cavitySeries())); drawStatus(); drawTargets(); };
-  if (document.visibilityState === "visible" && window.requestAnimationFrame) requestAnimationFrame(run); else setTimeout(run, 0);
+
+function applyFrame(f) {
+  if (f.samples && f.samples.length) {
+    if (S.resync && f.samples[f.samples.length - 1].seq < S.lastSeq) {  // a new session behind the same address
+      S.lastSeq = -1; T.length = 0;
+      for (const p of plots) for (const c of p.cols) c.length = 0;
+    }
+    addSamples(f.samples);
+    S.plotsDirty = true;
+  }
+  S.resync = false;
+  if (f.surface_mm_f32_b64 && view.surface) {
+    const p = decodePositions(f.surface_mm_f32_b64);
+    if (p.length === view.rest.length) updateSurface(p);
+  }
+  if (f.status) S.status = f.status;
+  updateOverlay();
+  const now = performance.now();
+  if (now - (S.textAt || 0) >= TEXT_PERIOD_MS || (f.status && f.status.link !== S.shownLink)) {
+    drawStatus();
+    drawTargets();
+    S.textAt = now;
+    S.shownLink = f.status && f.status.link;
+  }
+  S.frames++;
+  S.dirty = true;
 }
 
-// ---------- interaction ----------
-function setupMouse() {
-  const c = document.getElementById("view3d"); let drag = null;
-  c.addEventListener("mousedown", (e) => { drag = [e.clientX, e.clientY, S.view.az, S.view.el]; c.style.cursor = "grabbing"; });
-  window.addEventListener("mouseup", () => { drag = null; c.style.cursor = "grab"; });
-  window.addEventListener("mousemove", (e) => {
-    if (!drag) return;
-    S.view.az = drag[2] - (e.clientX - drag[0]) * 0.01;
-    S.view.el = Math.max(-1.5, Math.min(1.5, drag[3] + (e.clientY - drag[1]) * 0.01)); drawAll();
-  });
-  c.addEventListener("wheel", (e) => { e.preventDefault(); S.view.zoom *= Math.exp(-e.deltaY * 0.001); drawAll(); }, { passive: false });
-  c.addEventListener("dblclick", () => { S.view = { az: -2.2, el: 0.42, zoom: 1.0 }; drawAll(); });
-  window.addEventListener("resize", drawAll);
-}
-
+// ---------- start ----------
 async function init() {
-  setupMouse();
+  if (params.has("token")) {  // the cookie carries it from now on: keep it out of the address bar
+    params.delete("token");
+    history.replaceState(null, "", location.pathname + (params.toString() ? `?${params}` : ""));
+  }
+  buildPlots();
+  const sizes = new ResizeObserver(resize);
+  for (const el of [host, ...document.querySelectorAll(".plot")]) sizes.observe(el);
+  document.getElementById("xray").addEventListener("change", (e) => {
+    if (!view.front) return;
+    const m = view.front.material;
+    m.opacity = e.target.checked ? 0.55 : 1;
+    m.transparent = e.target.checked;
+    m.depthWrite = !e.target.checked;
+    m.needsUpdate = true;
+    S.dirty = true;
+  });
+  renderer.domElement.addEventListener("dblclick", () => { controls.reset(); S.dirty = true; });
+  renderer.domElement.addEventListener("pointerup", (e) => { if (gizmo.handleClick(e)) S.dirty = true; });
   try {
     const g = await fetch("/api/geometry");
     if (g.ok) {
       S.geo = await g.json();
-      S.rest = new Float32Array(S.geo.nodes_mm.flat());
-      S.faces = new Int32Array(S.geo.faces.flat());
-      let e = 1; for (const v of S.rest) e = Math.max(e, Math.abs(v)); S.extent = e;
+      buildScene(S.geo);
+      if (params.get("xray") === "0") {
+        const box = document.getElementById("xray");
+        box.checked = false;
+        box.dispatchEvent(new Event("change"));
+      }
+    } else {
+      document.getElementById("surface-max").textContent = "no geometry from this source: plots only";
     }
-    const st = await (await fetch("/api/state")).json();
-    if (st.latest) S.latest = st.latest;  // the history comes with the first SSE frame
+    const st = await (await fetch("/api/state")).json();  // the history comes with the first event
     applyFrame({ status: st.status, surface_mm_f32_b64: st.surface_mm_f32_b64 });
-  } catch (err) { document.getElementById("status").textContent = "cannot reach the live server: " + err; }
+  } catch (err) {
+    document.getElementById("status").textContent = `cannot reach the live server: ${err}`;
+  }
+  resize();
+  requestAnimationFrame(loop);
   const es = new EventSource("/api/events");
-  es.addEventListener("open", () => { S.connected = true; });
+  es.addEventListener("open", () => { S.connected = true; S.resync = true; drawStatus(); });
   es.addEventListener("error", () => { S.connected = false; drawStatus(); });
-  // ?frames=N: snapshot mode, stop listening after N frames (headless screenshots, static reports)
-  const stopAfter = Number(new URLSearchParams(location.search).get("frames") || 0);
+  // ?frames=N: stop listening after N frames (a fixed snapshot)
+  const stopAfter = Number(params.get("frames") || 0);
   es.addEventListener("frame", (ev) => {
     applyFrame(JSON.parse(ev.data));
-    if (stopAfter && S.frames >= stopAfter) { es.close(); S.connected = false; drawAll(); }
+    if (stopAfter && S.frames >= stopAfter) { es.close(); S.connected = false; drawStatus(); }
   });
 }
 init();
