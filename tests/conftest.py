@@ -1,48 +1,89 @@
-"""Shared session fixtures.
+"""Shared session fixtures: meshed models (read-only :class:`~softphantom.design.model.PhantomModel`
+values, SI units), each meshed once per test run by the first worker to need it (shared_models.py).
 
-``default_model`` (the default BIP at its default mesh size, ~6 000 nodes) and ``coarse_model``
-(the same design at ``COARSE_MESH_SIZE_MM``, ~1 600 nodes, for fast FEM tests). Each is meshed
-once per test run: the first worker to need it builds and saves it under the run's shared temp
-directory (a file lock serialises pytest-xdist workers); the others load it. Both are read-only
-:class:`~softphantom.design.model.PhantomModel` values.
+- ``default_model``: the default BIP at its default mesh size (6 mm, ~6 000 nodes);
+- ``coarse_model``: the same design at ``COARSE_MESH_SIZE_MM`` (12 mm, ~2 200 nodes), for fast FEM
+  tests, and ``coarse_model_dir``, the directory it is saved in (shared: never write into it);
+- ``coarse_p2_model``: ``coarse_model``'s mesh with 10-node tets (the same corner nodes and tets);
+- ``sharp_coarse_model``: the default design without the junction fillets, at 12 mm;
+- ``coarse_truth_p1``: the virtual phantom's truth mesh for ``coarse_model`` with linear tets
+  (``truth_model(coarse_model, TruthConfig(order=1))``, 9 mm).
+
+Under pytest-xdist (``make test``) the controller first compiles the numba kernels and meshes the
+two models most tests use, in parallel processes, before the workers start: a fresh clone has no
+numba cache, and each worker, and each process a test starts, would otherwise compile the same
+kernels (~25 CPU-s) at their first use.
 """
 
 from __future__ import annotations
 
-import fcntl
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
 
-COARSE_MESH_SIZE_MM = 12.0
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from shared_models import COARSE_MESH_SIZE_MM, cached_model, model_dir  # noqa: E402, F401
+
+# jobs of the preparation processes (shared_models.main), about equal on a fresh clone
+_PREPARE = (["fem"], ["atlas", "default"], ["coarse"])
 
 
-def _cached_model(tmp_path_factory, key: str, mesh_size_mm: float | None):
-    from softphantom.design import BIPDesign, build_model, load_model, save_model
-
+def _shared_dir(tmp_path_factory) -> Path:
     root = Path(tmp_path_factory.getbasetemp())
-    # under xdist every worker has its own basetemp below one shared parent
-    shared = root.parent if root.name.startswith("popen-gw") else root
-    target = shared / f"softphantom_model_{key}"
-    with open(shared / f"softphantom_model_{key}.lock", "w") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)
-        try:
-            if (target / "model.npz").is_file():
-                return load_model(target)
-            model = build_model(BIPDesign(), mesh_size_mm)
-            save_model(model, target)
-            return model
-        finally:
-            fcntl.flock(lock, fcntl.LOCK_UN)
+    # under xdist every worker has its own basetemp below one shared parent (the controller's)
+    return root.parent if root.name.startswith("popen-gw") else root
+
+
+def pytest_sessionstart(session):
+    """Under xdist, in the controller, before its workers start: the preparation processes."""
+    config = session.config
+    if hasattr(config, "workerinput") or config.pluginmanager.getplugin("dsession") is None:
+        return
+    shared = _shared_dir(config._tmp_path_factory)
+    script = Path(__file__).resolve().parent / "shared_models.py"
+    procs = [subprocess.Popen([sys.executable, str(script), str(shared), *jobs]) for jobs in _PREPARE]
+    for p in procs:
+        p.wait()  # a failure shows again, as a test error, where a test needs what failed
 
 
 @pytest.fixture(scope="session")
-def default_model(tmp_path_factory):
-    """The default BIP design meshed at its default size (a PhantomModel, SI units)."""
-    return _cached_model(tmp_path_factory, "default", None)
+def shared_dir(tmp_path_factory) -> Path:
+    return _shared_dir(tmp_path_factory)
 
 
 @pytest.fixture(scope="session")
-def coarse_model(tmp_path_factory):
+def default_model(shared_dir):
+    """The default BIP design meshed at its default size."""
+    return cached_model(shared_dir, "default")
+
+
+@pytest.fixture(scope="session")
+def coarse_model(shared_dir):
     """The default BIP design meshed coarsely (``COARSE_MESH_SIZE_MM``) for fast tests."""
-    return _cached_model(tmp_path_factory, "coarse", COARSE_MESH_SIZE_MM)
+    return cached_model(shared_dir, "coarse")
+
+
+@pytest.fixture(scope="session")
+def coarse_model_dir(shared_dir) -> Path:
+    """The model directory of ``coarse_model`` (read only: other tests read it too)."""
+    return model_dir(shared_dir, "coarse")
+
+
+@pytest.fixture(scope="session")
+def coarse_p2_model(shared_dir):
+    """``coarse_model``'s design and mesh sizes with 10-node tets."""
+    return cached_model(shared_dir, "coarse_p2")
+
+
+@pytest.fixture(scope="session")
+def sharp_coarse_model(shared_dir):
+    """The default design with sharp arm junctions (no fillet), at ``COARSE_MESH_SIZE_MM``."""
+    return cached_model(shared_dir, "sharp_coarse")
+
+
+@pytest.fixture(scope="session")
+def coarse_truth_p1(shared_dir):
+    """The virtual phantom's linear truth mesh for ``coarse_model`` (its node spacing 0.75×)."""
+    return cached_model(shared_dir, "coarse_truth_p1")

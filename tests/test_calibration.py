@@ -13,19 +13,17 @@ import pytest
 
 from softphantom.calibration import CalibrationInputError, FitOptions, SessionSpec, calibrate, check_held_out, load_session
 from softphantom.calibration.forward import solve_keyframe
-from softphantom.design import BIPDesign, build_model, save_model
+from softphantom.design import BIPDesign, save_model
 from softphantom.errors import UserError
 
-COARSE_MM = 12.0
 ARMS_TRUE = 1.25  # the cast arms are 25 % stiffer than the datasheet
 GAIN_TRUE = 1.08  # one transducer (back_xpos: the arm these pushes load most) reads 8 % high
 
 
 @pytest.fixture(scope="module")
-def coarse(tmp_path_factory) -> Path:
-    d = tmp_path_factory.mktemp("cal") / "model"
-    save_model(build_model(BIPDesign(), COARSE_MM), d)
-    return d
+def coarse(coarse_model_dir) -> Path:
+    """The default design at 12 mm (conftest's ``coarse_model``), saved: read only."""
+    return coarse_model_dir
 
 
 def _stiffer_arms(design: BIPDesign, factor: float) -> BIPDesign:
@@ -49,7 +47,8 @@ def sessions(coarse, tmp_path_factory) -> dict[str, Path]:
     from softphantom.virtual.truth import TruthConfig
 
     model = load_model(coarse)
-    truth_mesh = build_model(_stiffer_arms(model.design, ARMS_TRUE), COARSE_MM)
+    # the same mesh (the materials do not change it), the truth's materials
+    truth_mesh = dataclasses.replace(model, design=_stiffer_arms(model.design, ARMS_TRUE))
     root = Path(__file__).resolve().parents[1] / "scenarios"
     out = {}
     base = tmp_path_factory.mktemp("sessions")

@@ -182,14 +182,9 @@ def test_quadratic_newton_convergence_large_strain_p2():
 # --- the phantom with 10-node tets ------------------------------------------------------------------
 
 @pytest.fixture(scope="module")
-def p2_model():
-    import dataclasses
-
-    from softphantom.design import BIPDesign, build_model
-    from softphantom.design.params import MeshParams
-
-    d = BIPDesign(mesh=dataclasses.replace(MeshParams(), element_order=2))
-    return build_model(d, 12.0)
+def p2_model(coarse_p2_model):
+    """The default design at 12 mm with 10-node tets (shared, conftest)."""
+    return coarse_p2_model
 
 
 def _capsule_distance(p, a, b):

@@ -68,9 +68,11 @@ def _filleted(design: BIPDesign, r: float) -> BIPDesign:
 
 @pytest.fixture(scope="module")
 def coarse_pair():
+    """(sharp, rounded): the design without and with 2 mm fillets (the default), at 9 mm."""
     d = BIPDesign()
     d = dataclasses.replace(d, mesh=d.mesh.scaled_to(9.0))
-    return build_model(d, isolate=False), build_model(_filleted(d, 2.0), isolate=False)
+    assert {a.junction_fillet_mm for a in d.arms} == {2.0}
+    return build_model(_filleted(d, 0.0), isolate=False), build_model(d, isolate=False)
 
 
 def test_filleted_design_meshes_conforming_with_the_cavities_unchanged(coarse_pair):
