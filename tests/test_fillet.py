@@ -67,12 +67,13 @@ def _filleted(design: BIPDesign, r: float) -> BIPDesign:
 
 
 @pytest.fixture(scope="module")
-def coarse_pair():
-    """(sharp, rounded): the design without and with 2 mm fillets (the default), at 9 mm."""
+def coarse_pair(coarse_truth_p1):
+    """(sharp, rounded): the design without and with 2 mm fillets (the default), at 9 mm. The
+    rounded one is the virtual truth's P1 mesh of the coarse model (shared, conftest)."""
     d = BIPDesign()
     d = dataclasses.replace(d, mesh=d.mesh.scaled_to(9.0))
-    assert {a.junction_fillet_mm for a in d.arms} == {2.0}
-    return build_model(_filleted(d, 0.0), isolate=False), build_model(d, isolate=False)
+    assert {a.junction_fillet_mm for a in d.arms} == {2.0} and coarse_truth_p1.design == d
+    return build_model(_filleted(d, 0.0), isolate=False), coarse_truth_p1
 
 
 def test_filleted_design_meshes_conforming_with_the_cavities_unchanged(coarse_pair):
