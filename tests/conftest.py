@@ -13,6 +13,12 @@ Under pytest-xdist (``make test``) the controller first compiles the numba kerne
 two models most tests use, in parallel processes, before the workers start: a fresh clone has no
 numba cache, and each worker, and each process a test starts, would otherwise compile the same
 kernels (~25 CPU-s) at their first use.
+
+Order: ``--dist loadfile`` hands out whole files in collection order (xdist's own reordering, by
+number of tests, is turned off here): files holding a test marked ``slow`` first, then the others
+by number of tests, so the long files start early and short ones fill in at the end on both
+workers. Mark a test ``slow`` when it, with the module fixtures it is first to need, takes more
+than ~5 CPU-s (``pytest -m "not slow"`` leaves them out).
 """
 
 from __future__ import annotations
@@ -34,6 +40,23 @@ def _shared_dir(tmp_path_factory) -> Path:
     root = Path(tmp_path_factory.getbasetemp())
     # under xdist every worker has its own basetemp below one shared parent (the controller's)
     return root.parent if root.name.startswith("popen-gw") else root
+
+
+def pytest_configure(config):
+    if hasattr(config.option, "loadscopereorder"):
+        config.option.loadscopereorder = False  # the order below (pytest_collection_modifyitems)
+
+
+def pytest_collection_modifyitems(config, items):
+    """Files with a ``slow`` test first, then by number of tests (more first); stable otherwise."""
+    def file_of(item):
+        return item.nodeid.split("::")[0]
+
+    slow = {file_of(it) for it in items if it.get_closest_marker("slow")}
+    count: dict[str, int] = {}
+    for it in items:
+        count[file_of(it)] = count.get(file_of(it), 0) + 1
+    items.sort(key=lambda it: (file_of(it) not in slow, -count[file_of(it)]))
 
 
 def pytest_sessionstart(session):

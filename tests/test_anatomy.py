@@ -177,6 +177,7 @@ def test_lesion_label_becomes_a_design_lesion_by_moments():
         anatomy_from_labels(data, affine, AnatomyOptions(lesion_labels=(2,)))
 
 
+@pytest.mark.slow
 def test_anatomy_design_meshes_solves_and_gets_molds():
     """The label map end to end, kept coarse (a 6 mm surface, a 12 mm mesh): every OCC boolean on
     the polyhedral bulb costs in proportion to its triangles. With its lesion label: the lesion's
@@ -192,6 +193,7 @@ def test_anatomy_design_meshes_solves_and_gets_molds():
     assert model.region_volume("lesion_label3") * 1e9 == pytest.approx(expect, rel=0.02)
 
 
+@pytest.mark.slow
 def test_stl_anatomy_end_to_end_through_the_cli(tmp_path, capsys):
     """A closed, lobed STL through ``softphantom design --anatomy`` (6 mm surface, 12 mm mesh): the
     written design keeps the STL's volume and the written model passes the mesh checks and

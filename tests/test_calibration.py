@@ -86,6 +86,7 @@ def test_sensitivities_equal_finite_differences(coarse):
     assert np.sign(s.dV_dlnc[2, 1]) == -np.sign(s.dV_df[2] @ f)
 
 
+@pytest.mark.slow
 def test_recovers_arm_stiffness_and_gain(coarse, sessions):
     s = sessions
     specs = [SessionSpec(s[sc] / "recording.csv", s[sc] / "tracker_motive.csv", c, s[sc] / "truth.csv")
@@ -122,6 +123,7 @@ def _shift_take(src: Path, dst: Path, dt: float) -> Path:
     return write_table(dst, tab.meta, cols)
 
 
+@pytest.mark.slow
 def test_refuses_unusable_sessions(coarse, sessions, tmp_path):
     from softphantom.cli import main
 
@@ -153,6 +155,7 @@ def test_refuses_unusable_sessions(coarse, sessions, tmp_path):
     assert code == 2 and not out.exists()
 
 
+@pytest.mark.slow
 def test_cli_writes_a_calibrated_model(coarse, sessions, tmp_path, capsys):
     from softphantom.cli import main
     from softphantom.design import load_model

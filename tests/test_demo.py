@@ -8,6 +8,8 @@ import re
 from html.parser import HTMLParser
 from pathlib import Path
 
+import pytest
+
 from softphantom.cli import main
 
 SHORT = """name = "demo-short"
@@ -35,6 +37,7 @@ class _Links(HTMLParser):
                 self.refs.append(v)
 
 
+@pytest.mark.slow
 def test_demo_end_to_end_coarse(tmp_path, capsys, coarse_model_dir):
     sc = tmp_path / "short.toml"
     sc.write_text(SHORT)
@@ -92,6 +95,7 @@ def test_demo_and_virtual_bad_options_are_one_line(tmp_path, capsys):
     assert "--speed" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_virtual_run_command(tmp_path, capsys, coarse_model_dir):
     mdir = coarse_model_dir
     sc = tmp_path / "short.toml"

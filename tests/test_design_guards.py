@@ -170,6 +170,7 @@ def test_ctrl_c_stops_gmsh_exit_130_nothing_written(tmp_path):
                 Path(f"/proc/{p}/stat").read_text().split()[2] != "Z"], "the gmsh child is still running"
 
 
+@pytest.mark.slow
 def test_ctrl_c_stops_a_truth_solve_exit_130_nothing_written(tmp_path, default_model):
     from softphantom.design import save_model
 

@@ -148,6 +148,7 @@ def test_round_trip_files(default_model, tmp_path):
     assert set(msh.field_data) >= {"bulb", "cavity_urethra", "cavity_front_zpos", "fixed", "outer"}
 
 
+@pytest.mark.slow
 def test_deterministic_and_off_main_thread(coarse_model, tmp_path):
     # the model's design records its mesh sizes, so it alone reproduces the mesh
     assert coarse_model.design.mesh != BIPDesign().mesh
@@ -213,6 +214,7 @@ def _junction_nodes(m):
     return int((on_bulb & on_arm).sum())
 
 
+@pytest.mark.slow
 def test_local_refinements_shrink_elements_only_where_asked(sharp_coarse_model):
     import dataclasses
 

@@ -76,6 +76,7 @@ def coarse_pair(coarse_truth_p1):
     return build_model(_filleted(d, 0.0), isolate=False), coarse_truth_p1
 
 
+@pytest.mark.slow
 def test_filleted_design_meshes_conforming_with_the_cavities_unchanged(coarse_pair):
     sharp, m = coarse_pair
     t = m.tets
@@ -123,6 +124,7 @@ def test_filleted_design_meshes_conforming_with_the_cavities_unchanged(coarse_pa
     assert ((rho > g.radius_mm + 0.2) & (rho < g.radius_mm + 1.8) & (d.bulb.signed_distance(x) > 0.2)).sum() >= 3
 
 
+@pytest.mark.slow
 def test_junction_refinement_follows_the_fillet():
     d = BIPDesign()
     d = _filleted(dataclasses.replace(d, mesh=dataclasses.replace(d.mesh.scaled_to(12.0), junction_size_mm=2.0)), 2.0)
@@ -154,6 +156,7 @@ def test_fillet_round_trips_through_the_design_file(tmp_path):
     assert d.arm_geometry()[1].fillet_mm == 1.5
 
 
+@pytest.mark.slow
 def test_arm_is_cast_with_its_fillet():
     """The arm's mold rounds into the bulb: the cast arm gains its ring, the mold halves lose it
     (within their tessellation: ≈ 10 mm³ of a 3 100 mm³ arm at 24 facets a circle, so a 4 mm fillet of

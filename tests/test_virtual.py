@@ -113,6 +113,7 @@ def test_unknown_scenario_name_lists_the_bundled_ones():
 
 # --- truth ----------------------------------------------------------------------------------------
 
+@pytest.mark.slow
 def test_truth_is_finer_converged_and_exact_at_keyframes(short_run, coarse_model):
     tr = short_run.truth
     assert len(tr.model.nodes) > 1.3 * len(coarse_model.nodes)  # a finer mesh than the estimator's
@@ -166,6 +167,7 @@ def test_truth_is_finer_converged_and_exact_at_keyframes(short_run, coarse_model
     assert tr.summary()["truth_mesh"]["element_order"] == 1  # this fixture asked for linear tets
 
 
+@pytest.mark.slow
 def test_default_truth_is_quadratic_softer_than_linear_and_recorded(coarse_model, coarse_p2_model, tmp_path,
                                                                      monkeypatch):
     """The default truth uses 10-node tets (TruthConfig.order = 2): a model meshed at order 2,

@@ -38,6 +38,7 @@ SCENARIO = {
 }
 
 
+@pytest.mark.slow
 def test_estimate_tracks_virtual_truth(sharp_coarse_model):
     import dataclasses
 
