@@ -10,7 +10,7 @@ values, SI units), each meshed once per test run by the first worker to need it 
   (``truth_model(coarse_model, TruthConfig(order=1))``, 9 mm).
 
 Under pytest-xdist (``make test``) the controller first compiles the numba kernels and meshes the
-two models most tests use, in parallel processes, before the workers start: a fresh clone has no
+models most tests use, in parallel processes, before the workers start: a fresh clone has no
 numba cache, and each worker, and each process a test starts, would otherwise compile the same
 kernels (~25 CPU-s) at their first use.
 
@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -33,7 +34,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from shared_models import COARSE_MESH_SIZE_MM, cached_model, model_dir  # noqa: E402, F401
 
 # jobs of the preparation processes (shared_models.main), about equal on a fresh clone
-_PREPARE = (["fem"], ["atlas", "default"], ["coarse"])
+_PREPARE = (["fem"], ["atlas", "default"], ["coarse", "coarse_truth_p1"])
+_prepared_s = pytest.StashKey[float]()
 
 
 def _shared_dir(tmp_path_factory) -> Path:
@@ -64,11 +66,19 @@ def pytest_sessionstart(session):
     config = session.config
     if hasattr(config, "workerinput") or config.pluginmanager.getplugin("dsession") is None:
         return
+    t0 = time.perf_counter()
     shared = _shared_dir(config._tmp_path_factory)
     script = Path(__file__).resolve().parent / "shared_models.py"
     procs = [subprocess.Popen([sys.executable, str(script), str(shared), *jobs]) for jobs in _PREPARE]
     for p in procs:
         p.wait()  # a failure shows again, as a test error, where a test needs what failed
+    config.stash[_prepared_s] = time.perf_counter() - t0
+
+
+def pytest_terminal_summary(terminalreporter, config):
+    if _prepared_s in config.stash:  # before the session's clock started: not in its time
+        terminalreporter.write_line(f"numba kernels and shared models prepared in {config.stash[_prepared_s]:.0f} s "
+                                    "before the workers started")
 
 
 @pytest.fixture(scope="session")

@@ -94,7 +94,8 @@ def test_recovers_arm_stiffness_and_gain(coarse, sessions):
     hold = [SessionSpec(s["needle-insertion"] / "recording.csv", s["needle-insertion"] / "truth.csv", "on-centre",
                         s["needle-insertion"] / "truth.csv")]  # its known loads only score the held-out forces
     fix = ("stiffness_bulb_factor", "tube_volume_factor", "gain_front_zpos", "gain_front_zneg", "gain_back_xneg")
-    cal = calibrate(coarse, specs, hold, options=FitOptions(fix=fix), in_process=True, max_keyframes=6)
+    # 4 keyframes a session: arms 1.242, gain 1.066 (6: 1.245, 1.072), the held-out forces 10x closer
+    cal = calibrate(coarse, specs, hold, options=FitOptions(fix=fix), in_process=True, max_keyframes=4)
     p = cal.parameters()
     assert p["stiffness_arms_factor"] == pytest.approx(ARMS_TRUE, rel=0.03)
     assert p["gain_back_xpos"] == pytest.approx(GAIN_TRUE, rel=0.03)
@@ -107,7 +108,7 @@ def test_recovers_arm_stiffness_and_gain(coarse, sessions):
     assert ho.force_rmse("calibrated") < ho.force_rmse("nominal") / 3
     assert np.nanmean(np.abs(ho.err_calibrated[:, :3])) < 0.2  # mm: the pose stays right
     # the held-out check alone, from the fitted values by name (as a later, longer held-out session uses it)
-    again = check_held_out(coarse, hold, p, options=FitOptions(fix=fix), in_process=True, max_keyframes=6)
+    again = check_held_out(coarse, hold, p, options=FitOptions(fix=fix), in_process=True, max_keyframes=4)
     np.testing.assert_allclose(again.err_calibrated, ho.err_calibrated, atol=1e-4)
     np.testing.assert_allclose(again.err_nominal, ho.err_nominal, atol=1e-4)
     with pytest.raises(UserError, match="stiffness_liver_factor"):
