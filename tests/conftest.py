@@ -86,37 +86,20 @@ def shared_dir(tmp_path_factory) -> Path:
     return _shared_dir(tmp_path_factory)
 
 
-@pytest.fixture(scope="session")
-def default_model(shared_dir):
-    """The default BIP design meshed at its default size."""
-    return cached_model(shared_dir, "default")
+def _model_fixture(key: str):
+    def model(shared_dir):
+        return cached_model(shared_dir, key)
+
+    return model
 
 
-@pytest.fixture(scope="session")
-def coarse_model(shared_dir):
-    """The default BIP design meshed coarsely (``COARSE_MESH_SIZE_MM``) for fast tests."""
-    return cached_model(shared_dir, "coarse")
+# fixture name -> shared_models.MODELS key (the list in the docstring above)
+for _name, _key in {"default_model": "default", "coarse_model": "coarse", "coarse_p2_model": "coarse_p2",
+                    "sharp_coarse_model": "sharp_coarse", "coarse_truth_p1": "coarse_truth_p1"}.items():
+    globals()[_name] = pytest.fixture(scope="session", name=_name)(_model_fixture(_key))
 
 
 @pytest.fixture(scope="session")
 def coarse_model_dir(shared_dir) -> Path:
     """The model directory of ``coarse_model`` (read only: other tests read it too)."""
     return model_dir(shared_dir, "coarse")
-
-
-@pytest.fixture(scope="session")
-def coarse_p2_model(shared_dir):
-    """``coarse_model``'s design and mesh sizes with 10-node tets."""
-    return cached_model(shared_dir, "coarse_p2")
-
-
-@pytest.fixture(scope="session")
-def sharp_coarse_model(shared_dir):
-    """The default design with sharp arm junctions (no fillet), at ``COARSE_MESH_SIZE_MM``."""
-    return cached_model(shared_dir, "sharp_coarse")
-
-
-@pytest.fixture(scope="session")
-def coarse_truth_p1(shared_dir):
-    """The virtual phantom's linear truth mesh for ``coarse_model`` (its node spacing 0.75×)."""
-    return cached_model(shared_dir, "coarse_truth_p1")
