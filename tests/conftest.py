@@ -2,7 +2,7 @@
 values, SI units), each meshed once per test run by the first worker to need it (shared_models.py).
 
 - ``default_model``: the default BIP at its default mesh size (6 mm, ~6 000 nodes);
-- ``coarse_model``: the same design at ``COARSE_MESH_SIZE_MM`` (12 mm, ~2 200 nodes), for fast FEM
+- ``coarse_model``: the same design at 12 mm (``shared_models.COARSE_MESH_SIZE_MM``, 2 170 nodes), for fast FEM
   tests, and ``coarse_model_dir``, the directory it is saved in (shared: never write into it);
 - ``coarse_p2_model``: ``coarse_model``'s mesh with 10-node tets (the same corner nodes and tets);
 - ``sharp_coarse_model``: the default design without the junction fillets, at 12 mm;
@@ -31,7 +31,7 @@ from pathlib import Path
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from shared_models import COARSE_MESH_SIZE_MM, cached_model, model_dir  # noqa: E402, F401
+from shared_models import cached_model, model_dir  # noqa: E402
 
 # jobs of the preparation processes (shared_models.main), about equal on a fresh clone
 _PREPARE = (["fem"], ["atlas", "default"], ["coarse", "coarse_truth_p1"])
