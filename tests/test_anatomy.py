@@ -106,17 +106,16 @@ def test_stl_surface_import(tmp_path):
     np.testing.assert_allclose(half, [30.0, 24.0, 26.0], atol=0.3)  # RAS (x, y, z) → model (x, z, y)
 
 
-def _meshes_solves_and_gets_molds(design, volume_mm3):
-    """Mesh (12 mm), one FEM solve, the bulb mold: the checks every imported gland must pass; the
-    mesh has no slivers where the arms cut the surface (min dihedral > 1°; 0.04–0.2° before
+def _meshes_and_solves(model, volume_mm3):
+    """The checks every imported gland's model must pass (12 mm mesh, one FEM solve): the mesh has
+    no slivers where the arms cut the surface (min dihedral > 1°; 0.04–0.2° before
     anatomy._clear_of_arm_cuts, or no mesh at all)."""
-    from softphantom.design.solid_check import report_mesh, to_manifold
     from softphantom.fem import fem_from_phantom, force_actuator, solve_static
-    from softphantom.molds import build_parts
 
+    design = model.design
     # the vertices moved off the arms' cylinders (anatomy._clear_of_arm_cuts) change the volume by < 0.1 %
     assert design.bulb.is_surface and design.bulb.volume_mm3 == pytest.approx(volume_mm3, rel=1e-3)
-    model = build_model(design, 12.0)
+    assert design.mesh.size_mm == 12.0
     assert model.bulb_volume() * 1e9 == pytest.approx(volume_mm3, rel=0.02)
     assert model.min_dihedral_deg() > 1.0
     # a coarse mesh inscribes the cavity: low by about (2π/n)²/6 with n segments around (mesh.py)
@@ -128,6 +127,13 @@ def _meshes_solves_and_gets_molds(design, volume_mm3):
     assert sol.converged
     dy = (sol.x - model.nodes)[:, 1]
     assert dy.max() > 1e-4  # a 1 N push along +y moves the gland along +y
+
+
+def _gets_its_bulb_mold(design):
+    """The bulb mold of an imported gland: closed solids that leave the whole gland free."""
+    from softphantom.design.solid_check import report_mesh, to_manifold
+    from softphantom.molds import build_parts
+
     parts = {p.name: p for p in build_parts(design, bulb_only=True)}
     halves = [parts["bulb_mold_lower"], parts["bulb_mold_upper"]]
     for h in halves:
@@ -137,7 +143,6 @@ def _meshes_solves_and_gets_molds(design, volume_mm3):
     bulb = to_manifold(trimesh.Trimesh(np.asarray(design.bulb.surface_vertices_mm), np.asarray(design.bulb.surface_faces)))
     assert (bulb - cavity).volume() / bulb.volume() < 0.01  # the mold leaves the whole gland free
     assert (cavity ^ bulb).volume() == pytest.approx(bulb.volume(), rel=0.01)
-    return model
 
 
 def test_lesion_label_becomes_a_design_lesion_by_moments():
@@ -172,22 +177,28 @@ def test_lesion_label_becomes_a_design_lesion_by_moments():
         anatomy_from_labels(data, affine, AnatomyOptions(lesion_labels=(2,)))
 
 
+@pytest.mark.slow
 def test_anatomy_design_meshes_solves_and_gets_molds():
     """The label map end to end, kept coarse (a 6 mm surface, a 12 mm mesh): every OCC boolean on
     the polyhedral bulb costs in proportion to its triangles. With its lesion label: the lesion's
     mesh region holds the fitted ellipsoid's volume less the facet deficit, within 2 %."""
     data, affine = synthetic_labels(lesion=True)
     a = anatomy_from_labels(data, affine, AnatomyOptions(surface_size_mm=6.0, lesion_labels=(3,)))
-    model = _meshes_solves_and_gets_molds(design_from_anatomy(a), a.volume_mm3)
+    design = design_from_anatomy(a)
+    model = build_model(design, 12.0)
+    _meshes_and_solves(model, a.volume_mm3)
+    _gets_its_bulb_mold(design)
     n = model.design.mesh.cavity_segments  # a lesion's wall is meshed like a cavity's: low by (2π/n)²/6
     expect = a.lesions[3]["ellipsoid_mm3"] * (1.0 - (2.0 * np.pi / n) ** 2 / 6.0)
     assert model.region_volume("lesion_label3") * 1e9 == pytest.approx(expect, rel=0.02)
 
 
+@pytest.mark.slow
 def test_stl_anatomy_end_to_end_through_the_cli(tmp_path, capsys):
-    """A closed, lobed STL through ``softphantom design --anatomy`` (6 mm surface, 12 mm mesh), then
-    the written design meshes, solves and gets its bulb mold; the gland keeps the STL's volume."""
-    from softphantom.design import load_design
+    """A closed, lobed STL through ``softphantom design --anatomy`` (6 mm surface, 12 mm mesh): the
+    written design keeps the STL's volume and the written model passes the mesh checks and
+    solves. (The bulb mold of an imported gland: test_anatomy_design_meshes_solves_and_gets_molds.)"""
+    from softphantom.design import load_design, load_model
 
     sphere = trimesh.creation.icosphere(subdivisions=4)
     v = sphere.vertices
@@ -202,7 +213,9 @@ def test_stl_anatomy_end_to_end_through_the_cli(tmp_path, capsys):
     design = load_design(out / "design.toml")
     vol = float(trimesh.Trimesh(np.asarray(design.bulb.surface_vertices_mm), np.asarray(design.bulb.surface_faces)).volume)
     assert vol == pytest.approx(surf.volume, rel=0.02)
-    _meshes_solves_and_gets_molds(design, vol)
+    model = load_model(out)  # the model the command meshed and wrote
+    assert model.design == design
+    _meshes_and_solves(model, vol)
 
 
 def test_bad_anatomy_is_one_line_exit_2(tmp_path, capsys):

@@ -110,6 +110,7 @@ def test_replacing_the_grid_or_first_axis_takes_its_default_stretch():
     assert AtlasConfig().as_dict() == AtlasConfig(force_cluster_N=AtlasConfig().cluster_N).as_dict()
 
 
+@pytest.mark.slow
 def test_atlas_is_exact_at_grid_points(any_atlas, fwd):
     atlas = any_atlas
     ax = ACFG.axes()
@@ -124,6 +125,7 @@ def test_atlas_is_exact_at_grid_points(any_atlas, fwd):
             assert lam[0] == ax[0][i] and f[0] == pytest.approx(ax[0][i], abs=1e-12)
 
 
+@pytest.mark.slow
 def test_displacement_axis_points_sit_at_their_patch_displacement(atlas_disp, fwd):
     """On a displacement axis the middle point of a line is solved where the patch's
     x-displacement (work-conjugate to f_x) is halfway between the faces', and its coordinate q is
@@ -148,6 +150,7 @@ def test_displacement_axis_points_sit_at_their_patch_displacement(atlas_disp, fw
         assert abs(q - ax[0][1]) <= 1e-4 * (ax[0][1] - lo)
 
 
+@pytest.mark.slow
 def test_atlas_matches_converged_solves_at_held_out_loads(any_atlas, held_out, fwd):
     atlas = any_atlas
     for lin in held_out:
@@ -164,6 +167,7 @@ def test_atlas_matches_converged_solves_at_held_out_loads(any_atlas, held_out, f
         assert np.max(np.abs(atlas.nodes(lam) - lin.x.reshape(-1, 3))) < 0.03 * move
 
 
+@pytest.mark.slow
 def test_atlas_estimator_inverts_the_converged_volumes(coarse_model, any_atlas, held_out, fwd):
     atlas = any_atlas
     est = AtlasEstimator(coarse_model, CFG, atlas)
@@ -180,6 +184,7 @@ def test_atlas_estimator_inverts_the_converged_volumes(coarse_model, any_atlas, 
         assert np.allclose(atlas.forces(est.coords), e.force)
 
 
+@pytest.mark.slow
 def test_out_of_envelope_is_flagged_and_clamped(coarse_model, atlas, fwd):
     est = AtlasEstimator(coarse_model, CFG, atlas)
     outside = fwd.solve([0.0, 2.0, 0.0, 0.0])  # beyond the envelope's f_y ≤ 1.2 N
@@ -193,6 +198,7 @@ def test_out_of_envelope_is_flagged_and_clamped(coarse_model, atlas, fwd):
     assert bad.status.startswith("rejected:nan")
 
 
+@pytest.mark.slow
 def test_cache_round_trip_mismatch_and_corruption(coarse_model, atlas, fwd, tmp_path, monkeypatch):
     path = atlas_path(tmp_path, atlas.key)
     atlas.save(path)
@@ -256,6 +262,7 @@ def _rewrite_meta(path, **changes) -> None:
     path.write_bytes(buf.getvalue())
 
 
+@pytest.mark.slow
 def test_atlas_files_are_verified_described_and_installed(coarse_model, atlas, tmp_path, capsys):
     from softphantom.design import save_model
 
@@ -319,6 +326,7 @@ def test_a_model_directory_is_no_misplaced_atlas_cache(coarse_model, atlas, fwd,
     assert sum("warning" in m and "holds atlas files" in m for m in msgs) == 1
 
 
+@pytest.mark.slow
 def test_both_estimators_implement_the_interface(coarse_model, atlas):
     a = open_estimator("atlas", coarse_model, CFG, atlas=atlas)
     r = open_estimator("refresh", coarse_model, CFG)
@@ -333,6 +341,7 @@ def test_both_estimators_implement_the_interface(coarse_model, atlas):
         open_estimator("sync", coarse_model, CFG)
 
 
+@pytest.mark.slow
 def test_cli_estimate_atlas_option(coarse_model, atlas, tmp_path, capsys):
     from softphantom.design import save_model
     from softphantom.evaluation.files import read_table

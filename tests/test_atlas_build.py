@@ -143,6 +143,7 @@ def test_mixed_control_may_lower_f_x_within_its_range_where_the_trials_may_not(f
     assert abs(float(h @ (lin.x - fwd.fem.x_rest)) - target) <= 1e-6 * du
 
 
+@pytest.mark.slow
 def test_sweep_matches_independent_solves(coarse_model, fwd):
     acfg = AtlasConfig(force_min_N=(-0.5, -0.3, -0.5), force_max_N=(0.5, 1.6, 0.5), p_min_kPa=-1.0, p_max_kPa=4.0,
                        n_force=(3, 4, 3), n_pressure=2)
@@ -188,6 +189,7 @@ def test_a_failing_chord_falls_back_to_newton_and_reaches_the_equilibrium(fwd, m
     assert rel(lin.x, newton(fwd, lam), fwd) < 1e-6
 
 
+@pytest.mark.slow
 def test_linear_pressure_axis_is_the_tangent_line_through_converged_middle_solves(coarse_model, fwd):
     from softphantom.estimation import build_atlas
 

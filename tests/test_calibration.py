@@ -13,19 +13,17 @@ import pytest
 
 from softphantom.calibration import CalibrationInputError, FitOptions, SessionSpec, calibrate, check_held_out, load_session
 from softphantom.calibration.forward import solve_keyframe
-from softphantom.design import BIPDesign, build_model, save_model
+from softphantom.design import BIPDesign, save_model
 from softphantom.errors import UserError
 
-COARSE_MM = 12.0
 ARMS_TRUE = 1.25  # the cast arms are 25 % stiffer than the datasheet
 GAIN_TRUE = 1.08  # one transducer (back_xpos: the arm these pushes load most) reads 8 % high
 
 
 @pytest.fixture(scope="module")
-def coarse(tmp_path_factory) -> Path:
-    d = tmp_path_factory.mktemp("cal") / "model"
-    save_model(build_model(BIPDesign(), COARSE_MM), d)
-    return d
+def coarse(coarse_model_dir) -> Path:
+    """The default design at 12 mm (conftest's ``coarse_model``), saved: read only."""
+    return coarse_model_dir
 
 
 def _stiffer_arms(design: BIPDesign, factor: float) -> BIPDesign:
@@ -49,7 +47,8 @@ def sessions(coarse, tmp_path_factory) -> dict[str, Path]:
     from softphantom.virtual.truth import TruthConfig
 
     model = load_model(coarse)
-    truth_mesh = build_model(_stiffer_arms(model.design, ARMS_TRUE), COARSE_MM)
+    # the same mesh (the materials do not change it), the truth's materials
+    truth_mesh = dataclasses.replace(model, design=_stiffer_arms(model.design, ARMS_TRUE))
     root = Path(__file__).resolve().parents[1] / "scenarios"
     out = {}
     base = tmp_path_factory.mktemp("sessions")
@@ -87,6 +86,7 @@ def test_sensitivities_equal_finite_differences(coarse):
     assert np.sign(s.dV_dlnc[2, 1]) == -np.sign(s.dV_df[2] @ f)
 
 
+@pytest.mark.slow
 def test_recovers_arm_stiffness_and_gain(coarse, sessions):
     s = sessions
     specs = [SessionSpec(s[sc] / "recording.csv", s[sc] / "tracker_motive.csv", c, s[sc] / "truth.csv")
@@ -94,7 +94,8 @@ def test_recovers_arm_stiffness_and_gain(coarse, sessions):
     hold = [SessionSpec(s["needle-insertion"] / "recording.csv", s["needle-insertion"] / "truth.csv", "on-centre",
                         s["needle-insertion"] / "truth.csv")]  # its known loads only score the held-out forces
     fix = ("stiffness_bulb_factor", "tube_volume_factor", "gain_front_zpos", "gain_front_zneg", "gain_back_xneg")
-    cal = calibrate(coarse, specs, hold, options=FitOptions(fix=fix), in_process=True, max_keyframes=6)
+    # 4 keyframes a session: arms 1.242, gain 1.066 (6: 1.245, 1.072), the held-out forces 10x closer
+    cal = calibrate(coarse, specs, hold, options=FitOptions(fix=fix), in_process=True, max_keyframes=4)
     p = cal.parameters()
     assert p["stiffness_arms_factor"] == pytest.approx(ARMS_TRUE, rel=0.03)
     assert p["gain_back_xpos"] == pytest.approx(GAIN_TRUE, rel=0.03)
@@ -107,7 +108,7 @@ def test_recovers_arm_stiffness_and_gain(coarse, sessions):
     assert ho.force_rmse("calibrated") < ho.force_rmse("nominal") / 3
     assert np.nanmean(np.abs(ho.err_calibrated[:, :3])) < 0.2  # mm: the pose stays right
     # the held-out check alone, from the fitted values by name (as a later, longer held-out session uses it)
-    again = check_held_out(coarse, hold, p, options=FitOptions(fix=fix), in_process=True, max_keyframes=6)
+    again = check_held_out(coarse, hold, p, options=FitOptions(fix=fix), in_process=True, max_keyframes=4)
     np.testing.assert_allclose(again.err_calibrated, ho.err_calibrated, atol=1e-4)
     np.testing.assert_allclose(again.err_nominal, ho.err_nominal, atol=1e-4)
     with pytest.raises(UserError, match="stiffness_liver_factor"):
@@ -123,6 +124,7 @@ def _shift_take(src: Path, dst: Path, dt: float) -> Path:
     return write_table(dst, tab.meta, cols)
 
 
+@pytest.mark.slow
 def test_refuses_unusable_sessions(coarse, sessions, tmp_path):
     from softphantom.cli import main
 
@@ -154,6 +156,7 @@ def test_refuses_unusable_sessions(coarse, sessions, tmp_path):
     assert code == 2 and not out.exists()
 
 
+@pytest.mark.slow
 def test_cli_writes_a_calibrated_model(coarse, sessions, tmp_path, capsys):
     from softphantom.cli import main
     from softphantom.design import load_model

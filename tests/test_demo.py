@@ -8,6 +8,8 @@ import re
 from html.parser import HTMLParser
 from pathlib import Path
 
+import pytest
+
 from softphantom.cli import main
 
 SHORT = """name = "demo-short"
@@ -35,13 +37,17 @@ class _Links(HTMLParser):
                 self.refs.append(v)
 
 
-def test_demo_end_to_end_coarse(tmp_path, capsys):
+@pytest.mark.slow
+def test_demo_end_to_end_coarse(tmp_path, capsys, coarse_model_dir):
     sc = tmp_path / "short.toml"
     sc.write_text(SHORT)
     out = tmp_path / "demo"
-    assert main(["demo", "--out", str(out), "--mesh-size-mm", "12", "--scenarios", str(sc), "--seed", "2",
+    # the coarse (12 mm) model given with --model, as a calibrated one would be: not meshed again
+    assert main(["demo", "--out", str(out), "--model", str(coarse_model_dir), "--scenarios", str(sc), "--seed", "2",
                  "--atlas-grid", "3,4,3,2", "--truth-order", "1"]) == 0  # P1 truth: fast (P2: test_virtual)
     text = capsys.readouterr().out
+    assert "model: 2170 nodes" in text and "(mesh 12 mm)" in text and "truth model: " in text
+    assert sorted(p.name for p in coarse_model_dir.iterdir()) == ["design.toml", "model.msh", "model.npz", "model.vtu"]
     d = out / "demo-short"
     for f in ("frames.bin", "recording.csv", "tracker_motive.csv", "truth.csv", "snapshot.vtu", "virtual.json",
               "estimate.csv", "report/report.html"):
@@ -86,14 +92,18 @@ def test_demo_and_virtual_bad_options_are_one_line(tmp_path, capsys):
     assert main(["demo", "--out", str(tmp_path / "o"), "--truth-order", "3"]) == 2
     err = capsys.readouterr().err.strip()
     assert "--truth-order" in err and err.count("\n") == 0
+    for args in (["--mesh-size-mm", "0"], ["--mesh-size-mm", "12", "--model", str(tmp_path)]):
+        assert main(["demo", "--out", str(tmp_path / "o"), *args]) == 2
+        err = capsys.readouterr().err.strip()
+        assert "--mesh-size-mm" in err and err.count("\n") == 0
+    assert not (tmp_path / "o").exists()
     assert main(["virtual", "serve", "--scenario", "needle-insertion", "--model", str(tmp_path), "--speed", "0"]) == 2
     assert "--speed" in capsys.readouterr().err
 
 
-def test_virtual_run_command(tmp_path, capsys, coarse_model):
-    from softphantom.design import save_model
-
-    mdir = save_model(coarse_model, tmp_path / "model")
+@pytest.mark.slow
+def test_virtual_run_command(tmp_path, capsys, coarse_model_dir):
+    mdir = coarse_model_dir
     sc = tmp_path / "short.toml"
     sc.write_text(SHORT)
     out = tmp_path / "run"

@@ -170,12 +170,14 @@ def test_ctrl_c_stops_gmsh_exit_130_nothing_written(tmp_path):
                 Path(f"/proc/{p}/stat").read_text().split()[2] != "Z"], "the gmsh child is still running"
 
 
-def test_ctrl_c_stops_a_truth_solve_exit_130_nothing_written(tmp_path):
-    from softphantom.design import BIPDesign, build_model, save_model
+@pytest.mark.slow
+def test_ctrl_c_stops_a_truth_solve_exit_130_nothing_written(tmp_path, default_model):
+    from softphantom.design import save_model
 
     # the default 6 mm model: its truth (P2 at 9 mm) takes tens of seconds even on an idle machine, so
     # the interrupt lands mid-solve (on the 12 mm mesh an idle machine finished before 4 s)
-    save_model(build_model(BIPDesign(), 6.0), tmp_path / "model")
+    assert default_model.design.mesh.size_mm == 6.0
+    save_model(default_model, tmp_path / "model")
     tick = os.sysconf("SC_CLK_TCK")
 
     def solving(proc):

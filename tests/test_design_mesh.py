@@ -148,6 +148,7 @@ def test_round_trip_files(default_model, tmp_path):
     assert set(msh.field_data) >= {"bulb", "cavity_urethra", "cavity_front_zpos", "fixed", "outer"}
 
 
+@pytest.mark.slow
 def test_deterministic_and_off_main_thread(coarse_model, tmp_path):
     # the model's design records its mesh sizes, so it alone reproduces the mesh
     assert coarse_model.design.mesh != BIPDesign().mesh
@@ -180,13 +181,22 @@ def test_one_distance_field_per_wall_size_gives_the_same_mesh(coarse_model, monk
 
 def test_meshing_keeps_sigpipe_ignored(tmp_path):
     """gmsh.initialize resets SIGPIPE to 'terminate'; after meshing, a write to a closed pipe must
-    still be an EPIPE error in this process (the live page and the stream rely on it)."""
+    still be an EPIPE error in this process (the live page and the stream rely on it). Meshed in
+    this process (build_model meshes in a child process on a main thread): gmsh_session, the one
+    entry to gmsh of the mesher and the molds, on a box."""
     import os
     import signal
 
-    from softphantom.design import BIPDesign, build_model
+    import gmsh
 
-    build_model(BIPDesign(), mesh_size_mm=16)
+    from softphantom.design.mesh import gmsh_session
+
+    assert not gmsh.isInitialized()  # gmsh_session initializes it here (and finalizes it after)
+    with gmsh_session("sigpipe_box", "the SIGPIPE test") as g:
+        g.model.occ.addBox(0.0, 0.0, 0.0, 1.0, 1.0, 1.0)
+        g.model.occ.synchronize()
+        g.model.mesh.generate(3)
+        assert len(g.model.mesh.getNodes()[0]) > 8
     assert signal.getsignal(signal.SIGPIPE) == signal.SIG_IGN
     r, w = os.pipe()
     os.close(r)
@@ -219,7 +229,8 @@ def _junction_nodes(m):
     return int((on_bulb & on_arm).sum())
 
 
-def test_local_refinements_shrink_elements_only_where_asked():
+@pytest.mark.slow
+def test_local_refinements_shrink_elements_only_where_asked(sharp_coarse_model):
     import dataclasses
 
     from softphantom.design import MeshParams
@@ -227,9 +238,9 @@ def test_local_refinements_shrink_elements_only_where_asked():
 
     base = MeshParams().scaled_to(12.0)  # the coarse model's sizes: surface 8 mm, arms 6 mm
     # sharp junctions: a fillet's edges are meshed at its radius (2 mm) anyway
-    sharp = dataclasses.replace(BIPDesign(), arms=tuple(dataclasses.replace(a, junction_fillet_mm=0.0)
-                                                        for a in BIPDesign().arms))
-    coarse_model = build_model(dataclasses.replace(sharp, mesh=base))
+    coarse_model = sharp_coarse_model
+    sharp = coarse_model.design
+    assert sharp.mesh == base and {a.junction_fillet_mm for a in sharp.arms} == {0.0}
     fine = build_model(dataclasses.replace(sharp, mesh=dataclasses.replace(base, contact_size_mm=2.0,
                                                                           junction_size_mm=1.5)))
     p = BIPDesign().p_ext_mm()

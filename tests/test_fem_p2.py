@@ -182,14 +182,9 @@ def test_quadratic_newton_convergence_large_strain_p2():
 # --- the phantom with 10-node tets ------------------------------------------------------------------
 
 @pytest.fixture(scope="module")
-def p2_model():
-    import dataclasses
-
-    from softphantom.design import BIPDesign, build_model
-    from softphantom.design.params import MeshParams
-
-    d = BIPDesign(mesh=dataclasses.replace(MeshParams(), element_order=2))
-    return build_model(d, 12.0)
+def p2_model(coarse_p2_model):
+    """The default design at 12 mm with 10-node tets (shared, conftest)."""
+    return coarse_p2_model
 
 
 def _capsule_distance(p, a, b):
@@ -198,6 +193,7 @@ def _capsule_distance(p, a, b):
     return np.linalg.norm(p - (a + t[:, None] * ab), axis=1)
 
 
+@pytest.mark.slow
 def test_p2_phantom_mid_nodes_on_the_cad_and_volumes(p2_model):
     m = p2_model
     d = m.design
@@ -229,6 +225,7 @@ def test_p2_phantom_mid_nodes_on_the_cad_and_volumes(p2_model):
     assert set(np.unique(m.fixed_faces6).tolist()) == set(m.fixed_nodes.tolist())
 
 
+@pytest.mark.slow
 def test_p2_phantom_round_trip_solve_and_vtu(p2_model, tmp_path):
     import meshio
 
@@ -263,6 +260,7 @@ def test_p2_phantom_round_trip_solve_and_vtu(p2_model, tmp_path):
     assert out.cells[0].type == "tetra10" and np.isfinite(out.cell_data["von_mises_kPa"][0]).all()
 
 
+@pytest.mark.slow
 def test_simulate_cavity_dv_of_a_p2_model_is_the_curved_volume(p2_model, tmp_path, capsys):
     """`softphantom simulate` on a P2 model: ΔV of every cavity is that of the 6-node (curved)
     triangles on the deformed 10-node mesh, recomputed here with the independent degree-5 rule of

@@ -67,12 +67,16 @@ def _filleted(design: BIPDesign, r: float) -> BIPDesign:
 
 
 @pytest.fixture(scope="module")
-def coarse_pair():
+def coarse_pair(coarse_truth_p1):
+    """(sharp, rounded): the design without and with 2 mm fillets (the default), at 9 mm. The
+    rounded one is the virtual truth's P1 mesh of the coarse model (shared, conftest)."""
     d = BIPDesign()
     d = dataclasses.replace(d, mesh=d.mesh.scaled_to(9.0))
-    return build_model(d, isolate=False), build_model(_filleted(d, 2.0), isolate=False)
+    assert {a.junction_fillet_mm for a in d.arms} == {2.0} and coarse_truth_p1.design == d
+    return build_model(_filleted(d, 0.0), isolate=False), coarse_truth_p1
 
 
+@pytest.mark.slow
 def test_filleted_design_meshes_conforming_with_the_cavities_unchanged(coarse_pair):
     sharp, m = coarse_pair
     t = m.tets
@@ -120,6 +124,7 @@ def test_filleted_design_meshes_conforming_with_the_cavities_unchanged(coarse_pa
     assert ((rho > g.radius_mm + 0.2) & (rho < g.radius_mm + 1.8) & (d.bulb.signed_distance(x) > 0.2)).sum() >= 3
 
 
+@pytest.mark.slow
 def test_junction_refinement_follows_the_fillet():
     d = BIPDesign()
     d = _filleted(dataclasses.replace(d, mesh=dataclasses.replace(d.mesh.scaled_to(12.0), junction_size_mm=2.0)), 2.0)
@@ -151,6 +156,7 @@ def test_fillet_round_trips_through_the_design_file(tmp_path):
     assert d.arm_geometry()[1].fillet_mm == 1.5
 
 
+@pytest.mark.slow
 def test_arm_is_cast_with_its_fillet():
     """The arm's mold rounds into the bulb: the cast arm gains its ring, the mold halves lose it
     (within their tessellation: ≈ 10 mm³ of a 3 100 mm³ arm at 24 facets a circle, so a 4 mm fillet of

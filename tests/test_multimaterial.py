@@ -48,6 +48,7 @@ def test_layers_round_trip_through_the_design_file(tmp_path):
     assert "layers" not in design_to_dict(BIPDesign())  # a one-material file stays as it was
 
 
+@pytest.mark.slow
 def test_region_volumes_match_the_closed_forms(model):
     a, b, c = model.design.bulb.semi_axes_mm
     shell = 4.0 / 3.0 * math.pi * (a * b * c - (a - SHELL_MM) * (b - SHELL_MM) * (c - SHELL_MM))
@@ -67,6 +68,7 @@ def test_region_volumes_match_the_closed_forms(model):
         assert (level[model.tet_region == model.regions["bulb"]] > 0.95).all()
 
 
+@pytest.mark.slow
 def test_a_stiffer_shell_makes_a_stiffer_phantom(model):
     """Same mesh, same push: a Sorta-Clear 12 shell (E ≈ 2.3× Ecoflex 00-50's) over the infill
     moves the push point less than the one-material phantom does."""
@@ -155,6 +157,7 @@ def test_a_gmsh_failure_on_a_shell_names_the_shell_and_the_mesh_size(monkeypatch
         mesh_mod.mesh_design(one, one.mesh, isolate=False)
 
 
+@pytest.mark.slow
 def test_two_step_cast_molds():
     """Shell first: the bulb mold closed on the infill core leaves the shell's volume free (within
     2 %); the halves, the core and the lesion molds are closed manifold solids, and each lesion

@@ -47,9 +47,10 @@ SHORT = {
 
 
 @pytest.fixture(scope="module")
-def short_run(coarse_model):
+def short_run(coarse_model, coarse_truth_p1):
     sc = scenario_from_dict(SHORT, "short")
-    return simulate(sc, coarse_model, VirtualConfig.seeded(seed=3, osr=25, order=1))  # P1 truth: fast; P2 below
+    # P1 truth: fast; P2 below. Its mesh is truth_model(coarse_model, order 1), shared (conftest)
+    return simulate(sc, coarse_model, VirtualConfig.seeded(seed=3, osr=25, order=1), truth_mesh=coarse_truth_p1)
 
 
 # --- scenarios ------------------------------------------------------------------------------------
@@ -112,6 +113,7 @@ def test_unknown_scenario_name_lists_the_bundled_ones():
 
 # --- truth ----------------------------------------------------------------------------------------
 
+@pytest.mark.slow
 def test_truth_is_finer_converged_and_exact_at_keyframes(short_run, coarse_model):
     tr = short_run.truth
     assert len(tr.model.nodes) > 1.3 * len(coarse_model.nodes)  # a finer mesh than the estimator's
@@ -165,17 +167,18 @@ def test_truth_is_finer_converged_and_exact_at_keyframes(short_run, coarse_model
     assert tr.summary()["truth_mesh"]["element_order"] == 1  # this fixture asked for linear tets
 
 
-def test_default_truth_is_quadratic_softer_than_linear_and_recorded(coarse_model, tmp_path, monkeypatch):
+@pytest.mark.slow
+def test_default_truth_is_quadratic_softer_than_linear_and_recorded(coarse_model, coarse_p2_model, tmp_path,
+                                                                     monkeypatch):
     """The default truth uses 10-node tets (TruthConfig.order = 2): a model meshed at order 2,
     cavities read on their curved 6-node walls, recorded as P2. On the same tets the
     quadratic truth is softer than the linear one (linear tets lock at ν = 0.45, docs/model.md:
     −49 % yaw, −23 % urethra ΔV) and its curved walls hold the design's cavity volume closer. Kept
-    fast: one keyframe on the coarsest mesh the guards accept at order 2 (16 mm)."""
+    fast: one keyframe on the coarse model's 12 mm mesh and its P2 twin (both shared, conftest)."""
     import dataclasses
 
     import meshio
 
-    from softphantom.design import build_model
     from softphantom.virtual import solve_truth, truth_model
     from softphantom.virtual import truth as truth_module
     from softphantom.virtual.truth import write_snapshot
@@ -183,8 +186,8 @@ def test_default_truth_is_quadratic_softer_than_linear_and_recorded(coarse_model
     assert TruthConfig().order == 2
     sc = scenario_from_dict(SHORT, "short")
     d1 = coarse_model.design
-    d2 = dataclasses.replace(d1, mesh=dataclasses.replace(d1.mesh, element_order=2))
-    m1, m2 = build_model(d1, 16.0), build_model(d2, 16.0)
+    m1, m2 = coarse_model, coarse_p2_model
+    assert m2.design == dataclasses.replace(d1, mesh=dataclasses.replace(d1.mesh, element_order=2))
     # the same corner mesh (gmsh's high-order optimizer may nudge a few corner nodes)
     assert m2.n_corner_nodes == len(m1.nodes) and np.array_equal(m2.tets, m1.tets)
     cfg = TruthConfig(levels=1)
@@ -192,7 +195,7 @@ def test_default_truth_is_quadratic_softer_than_linear_and_recorded(coarse_model
     tr1 = solve_truth(sc, coarse_model, dataclasses.replace(cfg, order=1), truth_mesh=m1)
     assert tr2.model.element_order == 2 and tr2.summary()["truth_mesh"]["element_order"] == 2
     y2, y1 = (tr.sample([SHORT["push"][0]["start_s"] + 1.5]).pose.to_mm_deg()[0, 1] for tr in (tr2, tr1))
-    print(f"16 mm mesh, 3 N push: y P2 {y2:.3f} mm, P1 {y1:.3f} mm")
+    print(f"12 mm mesh, 3 N push: y P2 {y2:.3f} mm, P1 {y1:.3f} mm")  # 6.78, 5.84
     assert y2 > 1.05 * y1 > 1.0
     want = d1.cavity_volumes_mm3()["urethra"] * 1e-9
     assert abs(tr2.rest_volumes[4] - want) < abs(tr1.rest_volumes[4] - want)
@@ -375,7 +378,7 @@ def test_pty_board_is_seen_as_a_board(short_run):
     assert np.median(dt) == pytest.approx(1 / 19.23, rel=0.01)
 
 
-def test_inflation_until_target_moves(coarse_model, monkeypatch):
+def test_inflation_until_target_moves(coarse_model, coarse_truth_p1, monkeypatch):
     """Inflate until near_urethra moved 2 mm (the bundled scenario's goal): the secant keyframe hits
     it, the growth is reported. The target solves start from the secant predictor at the full load
     and step on with the shifted Cholesky: no exact LDLᵀ step (16 s a factorization on the demo's
@@ -392,7 +395,7 @@ def test_inflation_until_target_moves(coarse_model, monkeypatch):
                              "inflate": [{"start_s": 1.5, "rise_s": 2.0, "hold_s": 1.0, "fall_s": 1.0,
                                           "target": "near_urethra", "target_shift_mm": 2.0,
                                           "max_p_urethra_kPa": 150.0}]}, "infl")
-    tr = solve_truth(sc, coarse_model, TruthConfig(order=1))
+    tr = solve_truth(sc, coarse_model, TruthConfig(order=1), truth_mesh=coarse_truth_p1)
     et = tr.events[0]
     j = tr.target_names.index("near_urethra")
     assert np.linalg.norm(et.targets[-1, j]) * 1e3 == pytest.approx(2.0, rel=0.01)

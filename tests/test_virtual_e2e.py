@@ -38,21 +38,20 @@ SCENARIO = {
 }
 
 
-def test_estimate_tracks_virtual_truth():
+@pytest.mark.slow
+def test_estimate_tracks_virtual_truth(sharp_coarse_model):
     import dataclasses
 
-    from softphantom.design import BIPDesign, build_model
     from softphantom.estimation import Estimator, EstimatorConfig
     from softphantom.evaluation import Series6, evaluate
     from softphantom.pose import Pose6
 
     from softphantom.design.params import MaterialSpec
 
-    d = BIPDesign()
-    coarse_model = build_model(dataclasses.replace(
-        d, arms=tuple(dataclasses.replace(a, junction_fillet_mm=0.0) for a in d.arms),
-        materials=tuple(MaterialSpec(m.name, "corotational", m.values) for m in d.materials)),
-        12.0)  # conftest's coarse size
+    d = sharp_coarse_model.design  # conftest: sharp junctions, 12 mm
+    # the materials do not change the mesh: the shared one with the co-rotational law
+    coarse_model = dataclasses.replace(sharp_coarse_model, design=dataclasses.replace(
+        d, materials=tuple(MaterialSpec(m.name, "corotational", m.values) for m in d.materials)))
     sc = scenario_from_dict(SCENARIO, "e2e")
     run = simulate(sc, coarse_model, VirtualConfig.seeded(seed=3, osr=100, law="model", order=1))
     ests = []
