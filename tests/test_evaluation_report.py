@@ -224,3 +224,39 @@ def test_cli_broken_inputs_one_line_exit_2(run, tmp_path, capsys, case, expect):
     msg = " ".join(err.split())  # one message; rich wraps it at the console width
     assert msg.startswith("error: ") and expect.lower() in msg.lower(), msg
     assert "Traceback" not in err and len(msg) < 400
+
+
+def test_estimates_clamped_at_the_envelope_are_counted_noted_and_shaded(run, tmp_path, capsys):
+    from softphantom.evaluation.files import read_table, write_table
+    from softphantom.evaluation.report import shade_outside
+
+    d, pe, pt = run
+    tab = read_table(pe)
+    n = len(tab.columns["t_s"])
+    flag = np.ones(n)
+    flag[n // 3: n // 3 + 40] = 0  # one clamped stretch of 40 samples
+    flag[-5:] = 0  # and the last five
+    est = write_table(tmp_path / "clamped.csv", tab.meta, {**tab.columns, "in_envelope": flag})
+    out = tmp_path / "rep"
+    assert main(["evaluate", "--estimate", str(est), "--truth", str(pt), "--out", str(out), "--lag-ms", "100"]) == 0
+    printed = " ".join(capsys.readouterr().out.split())
+    want = f"45 of {n} estimates ({45 / n:.0%}) at or beyond the estimator's load envelope"
+    assert want in printed
+    text = " ".join(parse(out / "report.html").text)
+    assert want in text and f"45 of {n} estimates" in text
+    # the shading: one span per clamped stretch
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots()
+    t = np.arange(n, dtype=float)
+    shade_outside(ax, t, flag > 0.5, label=True)
+    assert len(ax.patches) == 2 and ax.get_legend_handles_labels()[1] == ["clamped at the envelope"]
+    shade_outside(ax, t, np.ones(n, bool))
+    assert len(ax.patches) == 2
+    plt.close(fig)
+    # a file without the column (a truth, an older estimate): nothing said
+    assert main(["evaluate", "--estimate", str(pe), "--truth", str(pt), "--out", str(tmp_path / "rep2"), "--lag-ms", "100"]) == 0
+    assert "load envelope" not in capsys.readouterr().out

@@ -37,7 +37,8 @@ class Series6:
 
     ``t`` (n,) s; ``pose`` a stack of :class:`Pose6` (m, rad); ``force`` (n, 3) N or None;
     ``p_urethra`` (n,) Pa or None; ``targets`` name → (n, 3) m displacement; ``meta`` the file's
-    metadata plus how it was read (registration, clock)."""
+    metadata plus how it was read (registration, clock); ``in_envelope`` (n,) bool, an estimate
+    file's flag (False: clamped at the estimator's load envelope), or None."""
 
     t: np.ndarray
     pose: Pose6
@@ -46,6 +47,7 @@ class Series6:
     targets: dict[str, np.ndarray] = field(default_factory=dict)
     meta: dict = field(default_factory=dict)
     source: str = ""
+    in_envelope: np.ndarray | None = None
 
     def mm_deg(self) -> np.ndarray:
         """(n, 6): x, y, z mm; yaw, pitch, roll deg."""
@@ -200,6 +202,7 @@ def series_from_table(tab: Table, what: str) -> Series6:
         t[ok][order], Pose6.from_mm_deg(v[ok][order]),
         None if force is None else force[order], None if p_u is None else p_u[order],
         {k: x[order] for k, x in targets.items()}, meta, tab.path,
+        c["in_envelope"][ok][order] > 0.5 if "in_envelope" in c else None,
     )
 
 

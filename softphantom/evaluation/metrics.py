@@ -159,6 +159,10 @@ def evaluate(truth: Series6, estimate: Series6, lag_ms: float | None = None, max
     both files name the same clock the offset is 0. ``offset_source`` says where a given offset
     comes from (for the report)."""
     notes = [*truth.meta.get("warnings", ()), *estimate.meta.get("warnings", ())]  # e.g. an incomplete file
+    if estimate.in_envelope is not None and not estimate.in_envelope.all():
+        k, n = int(np.count_nonzero(~estimate.in_envelope)), len(estimate.in_envelope)
+        notes.append(f"{k} of {n} estimates ({k / n:.0%}) at or beyond the estimator's load envelope, clamped "
+                     f"(in_envelope 0; shaded in the plots): their errors include the clamp")
     t_truth, t_est, rezeroed = shift_to_common_start(truth.t, estimate.t)
     tc, ec = clock_name(truth.meta), clock_name(estimate.meta)
     if clock_offset_ms is not None:

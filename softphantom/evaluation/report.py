@@ -16,6 +16,7 @@ from softphantom.evaluation.metrics import DOF_NAMES, DOF_UNITS, ErrorStats, Eva
 
 TRUTH_COLOR = "#1f4e79"
 EST_COLOR = "#c0392b"
+OUTSIDE_COLOR = "#f0b429"  # estimates clamped at the envelope (the live page's amber)
 
 
 def _plt():
@@ -37,6 +38,7 @@ def plot_6dof(truth: Series6, estimate: Series6, ev: Evaluation, path: Path, tit
     for k, ax in enumerate(axes.flat):
         ax.plot(ev.t_truth - t0, vt[:, k], "-", color=TRUTH_COLOR, lw=1.4, label="truth (tracker)")
         ax.plot(ev.t_est - t0, ve[:, k], "--", color=EST_COLOR, lw=1.4, label="estimate")
+        shade_outside(ax, ev.t_est - t0, estimate.in_envelope, label=k == 0)
         ax.set_ylabel(f"{DOF_NAMES[k]} ({DOF_UNITS[k]})")
         ax.grid(True, alpha=0.3)
         s = ev.dof[k]
@@ -50,6 +52,17 @@ def plot_6dof(truth: Series6, estimate: Series6, ev: Evaluation, path: Path, tit
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+def shade_outside(ax, t: np.ndarray, inside: np.ndarray | None, label: bool = False) -> None:
+    """Shade the spans of ``t`` where an estimate was clamped at the envelope (``inside`` False)."""
+    if inside is None or inside.all() or len(t) != len(inside):
+        return
+    out = np.r_[False, ~inside, False].astype(int)
+    starts, ends = np.flatnonzero(np.diff(out) == 1), np.flatnonzero(np.diff(out) == -1) - 1
+    for j, (a, b) in enumerate(zip(starts, ends)):
+        ax.axvspan(t[a], t[b], color=OUTSIDE_COLOR, alpha=0.25, lw=0,
+                   label="clamped at the envelope" if label and j == 0 else None)
 
 
 def lag_caption(ev: Evaluation) -> str:
@@ -184,7 +197,8 @@ def _stats_rows(stats: tuple[ErrorStats, ...]) -> list[list[str]]:
 _CSS = """body{font-family:system-ui,sans-serif;margin:2em auto;max-width:1200px;color:#222}
 table{border-collapse:collapse;margin:.5em 0 1.5em}th,td{border:1px solid #bbb;padding:3px 8px;text-align:right}
 th{background:#eef}td:first-child{text-align:left}.within{color:#1e7d32}.above,.below{color:#b03a2e}
-img{max-width:100%;border:1px solid #ddd}.note{color:#555;font-style:italic}"""
+img{max-width:100%;border:1px solid #ddd}.note{color:#555;font-style:italic}
+.warn{color:#b36b00;font-weight:bold}"""
 
 STAT_HEADERS = ["quantity", "unit", "RMSE", "bias", "max |error|", "Pearson r", "lag (ms)", "max |truth|", "samples"]
 
@@ -212,6 +226,10 @@ def write_report(
         *([["what the lag consists of", html.escape(ev.lag_parts.explain())]] if ev.lag_parts is not None else []),
         ["samples compared", f"{int(ev.mask.sum())} of {len(ev.mask)} estimates"],
     ]
+    if estimate.in_envelope is not None:
+        k = int(np.count_nonzero(~estimate.in_envelope))
+        info.append(["clamped at the estimator's envelope", f"{k} of {len(estimate.in_envelope)} estimates"
+                     + (f' <span class="warn">({k / len(estimate.in_envelope):.0%})</span>' if k else "")])
     parts.append('<section id="summary"><h2>Summary</h2>' + _table(["", ""], info, "info"))
     parts += [f'<p class="note">{html.escape(n)}</p>' for n in ev.notes]
     parts.append("<p>Sign convention: a positive lag means the estimate comes later than the truth; errors are"
