@@ -166,7 +166,7 @@ def shaped_fem(fem, group_tets: dict[str, np.ndarray], shape: dict[str, tuple[fl
         sel = group_tets[g] & (np.asarray(fem.law_id) == Yeoh.law_id)
         prm[sel, 1] = t2 * prm[sel, 0]
         prm[sel, 2] = t3 * prm[sel, 0]
-    return dataclasses.replace(fem, params=prm)
+    return dataclasses.replace(fem, params=_frozen(prm))
 
 
 def scaled_fem(fem, tet_scale: np.ndarray):
@@ -174,8 +174,16 @@ def scaled_fem(fem, tet_scale: np.ndarray):
     s = np.asarray(tet_scale, float)
     kw = dict(mu=fem.mu * s, lam=fem.lam * s)
     if getattr(fem, "params", None) is not None:  # a law's parameter row: all moduli (Pa)
-        kw["params"] = np.asarray(fem.params) * s[:, None]
+        kw["params"] = _frozen(np.asarray(fem.params) * s[:, None])
     return dataclasses.replace(fem, **kw)
+
+
+def _frozen(a: np.ndarray) -> np.ndarray:
+    """Read-only, as every FemModel array: the kernels then keep the one numba specialization they
+    were compiled (or cached) for instead of compiling another mid-run (≈ 14 CPU-s a process)."""
+    a = np.ascontiguousarray(a, dtype=np.float64)
+    a.flags.writeable = False
+    return a
 
 
 def _tet_scale(base: Base, scales: dict[str, float]) -> np.ndarray:
@@ -256,7 +264,7 @@ def solve_keyframe(model_dir: str, contact: tuple[float, float, float], radius_m
         prm = np.zeros_like(np.asarray(fem0.params, dtype=float))
         sel = base.group_tets[g] & yeoh
         prm[sel, i - 1] = ts[sel] * np.asarray(fem0.params)[sel, 0]
-        B[:, 3 + G + j] = -internal_force(dataclasses.replace(fem0, params=prm), x)[free]
+        B[:, 3 + G + j] = -internal_force(dataclasses.replace(fem0, params=_frozen(prm)), x)[free]
     U = np.zeros((n, B.shape[1]))
     U[free] = solver.solve(B)
     dV = np.empty(4)
