@@ -3,7 +3,7 @@ cost of one equilibrium solve, per law × element order × mesh size (issue 12, 
 docs/model.md).
 
     .venv/bin/python benchmarks/bench_model_choice.py [--laws corotational neo-hookean]
-        [--p1 9 6 4.5] [--p2 12 9] [--json out.json] [--estimator-cost]
+        [--p1 9 6 4.5] [--p2 12 9] [--p2-arm-mm 2 1.5] [--json out.json] [--estimator-cost]
 
 Load: the on-centre push of DESIGN.md §5, (0.15, 2.5, −0.2) N on a 4 mm patch (the reference's
 uniform-traction patch for every model, so only the model differs). Each model is softphantom's
@@ -141,6 +141,9 @@ def main(argv=None) -> int:
     ap.add_argument("--laws", nargs="+", default=["corotational", "neo-hookean"])
     ap.add_argument("--p1", type=float, nargs="*", default=[9.0, 6.0, 4.5])
     ap.add_argument("--p2", type=float, nargs="*", default=[12.0, 9.0])
+    ap.add_argument("--p2-arm-mm", type=float, nargs="*", default=[],
+                    help="P2 only: also mesh each --p2 size with the arms at these element sizes (mm; the "
+                         "default grading scales the arms with the bulk: 3 mm at 6 mm)")
     ap.add_argument("--E-kPa", type=float, default=142.3)
     ap.add_argument("--nu", type=float, default=0.45)
     ap.add_argument("--json", type=Path)
@@ -150,19 +153,27 @@ def main(argv=None) -> int:
         return estimator_cost(a)
     rows = []
     meshes = {}
-    for order, sizes in ((1, a.p1), (2, a.p2)):
-        for h in sizes:
-            if (order, h) not in meshes:
-                m = bip_tet10(BIPDesign(), h, order=order)
-                meshes[(order, h)] = m
-            for lname in a.laws:
-                r = run(meshes[(order, h)], make_law(lname, a.E_kPa * 1e3, a.nu))
-                r.update(law=lname, order=order, mesh_size_mm=h)
-                rows.append(r)
-                print(f"{lname:13s} P{order} {h:4g} mm {r['nodes']:6d} nodes: y {r['y_mm']:.3f} ({r['err_y_mm']:+.3f}) mm, "
-                      f"yaw {r['yaw_deg']:.3f} ({r['err_yaw_deg']:+.3f})°, arm dV {r['dV_mm3']} (RMS err "
-                      f"{r['err_dV_rms_mm3']} mm³); build {r['build_s']} s, factor {r['factor_s']} s, "
-                      f"solve {r['solve_s']} s ({r['newton_iterations']} it)", flush=True)
+    import dataclasses
+
+    settings = [(1, h, None) for h in a.p1] + [(2, h, None) for h in a.p2]
+    settings += [(2, h, arm) for h in a.p2 for arm in a.p2_arm_mm]
+    for order, h, arm in settings:
+        if (order, h, arm) not in meshes:
+            design = BIPDesign()
+            design = dataclasses.replace(design, mesh=design.mesh.scaled_to(h))
+            if arm is not None:
+                design = dataclasses.replace(design, mesh=dataclasses.replace(design.mesh, arm_size_mm=arm))
+            meshes[(order, h, arm)] = bip_tet10(design, None, order=order)
+        for lname in a.laws:
+            r = run(meshes[(order, h, arm)], make_law(lname, a.E_kPa * 1e3, a.nu))
+            r.update(law=lname, order=order, mesh_size_mm=h, arm_size_mm=arm)
+            rows.append(r)
+            where = f"{h:4g} mm" + (f", arms {arm:g} mm" if arm is not None else "")
+            print(f"{lname:13s} P{order} {where} {r['nodes']:6d} nodes: y {r['y_mm']:.3f} ({r['err_y_mm']:+.3f} mm, "
+                  f"{r['err_y_mm'] / REFERENCE['y_mm']:+.1%}), yaw {r['yaw_deg']:.3f} ({r['err_yaw_deg']:+.3f}°, "
+                  f"{r['err_yaw_deg'] / REFERENCE['yaw_deg']:+.1%}), arm dV {r['dV_mm3']} (RMS err "
+                  f"{r['err_dV_rms_mm3']} mm³); build {r['build_s']} s, factor {r['factor_s']} s, "
+                  f"solve {r['solve_s']} s ({r['newton_iterations']} it)", flush=True)
     peer = next((r for r in rows if r["law"] == "corotational" and r["order"] == 1 and r["mesh_size_mm"] == 6.0), None)
     if peer:
         print("\ncost relative to P1 co-rotational 6 mm (the estimator's model today), same run:")

@@ -8,7 +8,7 @@ from softphantom.estimation import EstimatorConfig, ForwardModel
 
 model = load_model(sys.argv[1])
 n_train, n_test = int(sys.argv[2]), int(sys.argv[3])
-fwd = ForwardModel(model, EstimatorConfig(contact="on-centre"), exact_sensitivities=False)
+fwd = ForwardModel(model, EstimatorConfig(contact="on-centre"))  # exact sensitivities: U at every solve
 fem = fwd.fem
 print("nodes", fem.n_nodes, "tets", fem.tets.shape, "free", fem.n_free, flush=True)
 lo = np.array([-2.0, -1.0, -2.0, -2e3]); hi = np.array([2.0, 4.0, 2.0, 40e3])
@@ -38,6 +38,6 @@ for name, loads in (("train", train), ("test", test)):
             lin, cpu = solve(lam)
         except Exception as e:
             print(name, i, lam, "FAILED", e, flush=True); continue
-        out[name].append((lam, lin.x.copy(), lin.V.copy(), lin.sub_x.copy(), cpu))
+        out[name].append((lam, lin.x.copy(), lin.V.copy(), lin.sub_x.copy(), cpu, lin.U.copy()))
         print(name, i, np.round(lam, 2), f"{cpu:.1f} CPU-s", flush=True)
 pickle.dump(out, open(sys.argv[4], "wb"))
