@@ -146,7 +146,7 @@ def main(argv=None) -> int:
     ap.add_argument("--points", default="9,11,13", help="f_x points per axis to compare")
     ap.add_argument("--widths", default="0,0.02,0.03,0.05", help="stretch widths w (N; 0: affine)")
     ap.add_argument("--x-control", choices=("force", "displacement"), default="force",
-                    help="the axis: f_x (the session-8 scan) or the patch displacement (AtlasConfig.x_control)")
+                    help="the axis: f_x (force-controlled) or the patch displacement (AtlasConfig.x_control)")
     ap.add_argument("--scan-points", type=int, default=121, help="displacement scan: points uniform in q")
     ap.add_argument("--compare-trials", action="store_true",
                     help="displacement scan: the same points again by force-controlled trials only (the peer)")

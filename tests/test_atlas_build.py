@@ -1,4 +1,4 @@
-"""The atlas build's solver path (issue 13, item 5) on the coarse mesh: the walk over a plane, the
+"""The atlas build's solver path on the coarse mesh: the walk over a plane, the
 Euler predictor and chord iterations from a kept factor, the factor kept and restored, a stalled
 chord refactoring — each reaching the equilibrium a full Newton solve (``solve_static``) reaches."""
 

@@ -368,7 +368,7 @@ def _yeoh_model(coarse: Path, out: Path) -> Path:
 
 
 def test_yeoh_shape_sensitivities_equal_finite_differences(coarse, tmp_path):
-    """A Yeoh region's shape θ2 = C20/C10, θ3 = C30/C10 (issue 14: "Yeoh terms"): the exact
+    """A Yeoh region's shape θ2 = C20/C10, θ3 = C30/C10: the exact
     ∂x/∂θ = −K⁻¹ ∂f_int/∂θ against central differences of the forward solve; the parameter set
     offers them only for a Yeoh group; an unstable shape is a failed (rejected) trial, not a crash."""
     from softphantom.calibration.fit import parameter_set
