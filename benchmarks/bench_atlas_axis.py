@@ -8,14 +8,13 @@ solution), then for each number of points ``--points`` and stretch width ``--wid
 the Chebyshev interpolant through the atlas's points on that axis (``cheb_points``, ``axis_t``:
 the same polynomial as the atlas's) and its largest error against the scan: volumes (mm³) and yaw
 (deg), and where the yaw error is largest. Only the f_x axis: the tensor atlas adds the other axes'
-error (``bench_estimate.py --held-out-core``). Figures: docs/estimation.md (session 8).
+error (``bench_estimate.py --held-out-core``). Figures: docs/estimation.md.
 
-``--x-control displacement`` (session 9): the same for a displacement-controlled axis
+``--x-control displacement``: the same for a displacement-controlled axis
 (``AtlasConfig.x_control``): the scan is uniform in the patch's x-displacement ū_x between the
-faces' (``--scan-points``, each point solved at its ū_x by ``_solve_ux`` from the last: since session
-10 one mixed-control solve, ``--compare-trials`` times session 9's force-controlled trials in the same
-run), the nodes
-are Chebyshev–Lobatto in q (ū_x mapped onto [−1.5, 1.5] N), and f_x joins the outputs (its error
+faces' (``--scan-points``, each point solved at its ū_x by ``_solve_ux`` from the last: one
+mixed-control solve; ``--compare-trials`` also times force-controlled trials only in the same run),
+the nodes are Chebyshev–Lobatto in q (ū_x mapped onto [−1.5, 1.5] N), and f_x joins the outputs (its error
 in N: the force the atlas reports).
 """
 
@@ -121,7 +120,7 @@ def main_displacement(a, fwd) -> int:
               f"({cpu:.0f} CPU-s of this process, {n_b[0]} converged solves, mixed control); yaw "
               f"{ref[:, 4].min():.2f}..{ref[:, 4].max():.2f} deg; f_x at q = 0: "
               f"{vals[0.0][7] if 0.0 in vals else float('nan'):+.4f} N", flush=True)
-        if a.compare_trials:  # the peer: session 9's force-controlled trials, same points, same run
+        if a.compare_trials:  # the peer: force-controlled trials only, same points, same run
             n_t = [0]
             c0 = time.process_time()
             *_, ref_t, secs_t = scan_row(partial(scan_u, bordered=False, counter=n_t), fwd, r, ns, ws, fine)
@@ -147,7 +146,7 @@ def main(argv=None) -> int:
     ap.add_argument("--points", default="9,11,13", help="f_x points per axis to compare")
     ap.add_argument("--widths", default="0,0.02,0.03,0.05", help="stretch widths w (N; 0: affine)")
     ap.add_argument("--x-control", choices=("force", "displacement"), default="force",
-                    help="the axis: f_x (the session-8 scan) or the patch displacement (AtlasConfig.x_control)")
+                    help="the axis: f_x (force-controlled) or the patch displacement (AtlasConfig.x_control)")
     ap.add_argument("--scan-points", type=int, default=121, help="displacement scan: points uniform in q")
     ap.add_argument("--compare-trials", action="store_true",
                     help="displacement scan: the same points again by force-controlled trials only (the peer)")

@@ -1,6 +1,6 @@
-"""Offline atlas build of the default model (issue 13, item 5): wall, CPU seconds a point, size.
+"""Offline atlas build of the default model: wall, CPU seconds a point, size.
 
-Builds ``AtlasConfig()`` (11 × 9 × 4 × 3 = 1 188 forward solves; 9 × 7 × 4 × 3 = 756 in session 7, 5 × 7 × 5 × 4 = 700 before) of the default design at
+Builds ``AtlasConfig()`` (11 × 9 × 4 × 3 = 1 188 forward solves) of the default design at
 ``--mesh-size-mm`` (6: the default estimator model) with the default :class:`EstimatorConfig`, on a
 local Dask cluster of ``--workers`` processes, and prints wall seconds, CPU seconds of the solves
 (summed over the workers) per grid point, the atlas size and the peak RSS of this process.

@@ -1,15 +1,15 @@
 """One line task of a displacement-axis atlas build, by mixed-control solves and by
-force-controlled trials in the same run (session 10's speed-up and its peer).
+force-controlled trials only in the same run (the default and its peer).
 
     .venv/bin/python benchmarks/bench_atlas_lines.py --model DIR [--fz-index 1 --p-index 1]
 
 Solves the two f_x faces at (f_z, p_u) grid indices ``--fz-index``, ``--p-index`` of the default
 displacement atlas (``AtlasConfig(x_control="displacement")``, or ``--atlas-grid``), then the
 task's lines (``_lines``: every f_y row from face to face) twice: with the mixed-control solve
-(``_solve_ux``'s default) and with session 9's force-controlled trials only. Prints, per variant,
+(``_solve_ux``'s default) and with force-controlled trials only. Prints, per variant,
 CPU seconds, equilibrium solves by kind, factorizations, failures of the mixed-control solve, and
 the largest difference of the two variants' f_x at the points both land on. Figures:
-docs/performance.md (session 10).
+docs/performance.md.
 """
 
 from __future__ import annotations

@@ -1,11 +1,11 @@
-"""Benchmark of ``softphantom calibrate`` (issue 14): recovery, held-out accuracy, time on 2 cores.
+"""Benchmark of ``softphantom calibrate``: recovery, held-out accuracy, time on 2 cores.
 
     .venv/bin/python benchmarks/bench_calibrate.py                     # default mesh (6 mm)
     .venv/bin/python benchmarks/bench_calibrate.py --mesh-size-mm 12   # quick
 
 1. The nominal model: the default design at ``--mesh-size-mm`` (its law, neo-Hookean, unless
    ``--nominal-law``; P1 unless ``--nominal-order 2``).
-2. A virtual bench deliberately unlike it (issue 14 item 4): every region of the truth under another
+2. A virtual bench deliberately unlike it: every region of the truth under another
    law than the nominal's (``--truth-law``; by default Yeoh with the Ecoflex 00-50 preset's shape
    against a neo-Hookean or co-rotational nominal, neo-Hookean against a Yeoh one; same
    small-strain E), its bulb 1.3× stiffer, on a finer mesh (``--truth-scale``, ``--truth-order``); the tubes 10 % longer in volume than
@@ -22,7 +22,7 @@
 ``--runs`` picks the calibrations: ``free`` (all parameters), ``tube-measured`` (the recordings
 carry the true tube, its factor fixed), ``gains-measured`` (also each transducer's gain measured
 ± 1 %, ``--measured``). ``--recording-s 60`` fits on two generated push recordings of 30 s each
-(issue 14 item 3: the time for a 60 s recording on the default model). ``--truth-yeoh-shape
+(the time for a 60 s recording on the default model). ``--truth-yeoh-shape
 0.1,0.01`` gives a Yeoh truth that shape (C20/C10, C30/C10) instead of the preset's: with
 ``--nominal-law yeoh`` the calibration fits each group's shape too (the truth's in the table).
 ``--fit-law yeoh`` calibrates the nominal under the Yeoh law (``calibrate --law``: the design's
@@ -333,7 +333,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--mesh-size-mm", type=float, default=6.0)
     ap.add_argument("--truth-law", default=None, choices=("corotational", "neo-hookean", "yeoh"),
-                    help="the truth's law (default: another law than the nominal's, as issue 14 item 4 asks: "
+                    help="the truth's law (default: another law than the nominal's: "
                          "yeoh against a neo-Hookean or co-rotational nominal, neo-hookean against a Yeoh one)")
     ap.add_argument("--truth-scale", type=float, default=0.75, help="truth node spacing / model mesh size")
     ap.add_argument("--truth-order", type=int, default=1, choices=(1, 2), help="truth element order")
@@ -354,7 +354,7 @@ def main() -> None:
                          "transducer's gain measured against a reference gauge to 1 %%)")
     ap.add_argument("--recording-s", type=float, default=0.0,
                     help="fit on two generated push recordings (on- and off-centre) of this total length (s) "
-                         "instead of the repository's push scenarios (issue 14 item 3: 60)")
+                         "instead of the repository's push scenarios (e.g. 60)")
     ap.add_argument("--held-out-s", type=float, default=0.0,
                     help="hold out a generated session of repeated needle insertions of this length (s) instead of "
                          "the repository's 12 s needle-insertion (up to 16 keyframes instead of 7)")

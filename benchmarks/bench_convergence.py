@@ -1,5 +1,5 @@
 """Mesh convergence of the phantom model: marker-body pose, arm ΔV and urethra ΔV against element
-order (P1 / P2) and mesh size, for ν = 0.45 and 0.49 (issue 12, item 1; docs/model.md).
+order (P1 / P2) and mesh size, for ν = 0.45 and 0.49 (docs/model.md).
 
     .venv/bin/python benchmarks/bench_convergence.py [--p1 6 4.5] [--p2 12 9] [--nu 0.45]
         [--cases on-centre urethra] [--solver felupe|softphantom] [--contact-size-mm H]

@@ -1,4 +1,4 @@
-"""The demo's push atlases against the model's exact inverse (issue 13, item 6).
+"""The demo's push atlases against the model's exact inverse.
 
 Replays a demo scenario's recording (``softphantom demo --out DIR``) through the atlas estimator with
 the demo's box for that contact and a given grid, and through the refresh estimator in sync mode;
@@ -10,7 +10,7 @@ cost. The atlas is cached in DIR/model/atlas, so the demo's own grid costs nothi
     python benchmarks/bench_demo_atlas.py --demo out/demo --scenario push-on-centre
     python benchmarks/bench_demo_atlas.py --demo out/demo --scenario push-off-centre --grid 7,5,5,2 --cluster-N 0.1,0,0
 
-Figures (session 7) are in docs/performance.md ("push atlases checked against exact inverses").
+Figures are in docs/performance.md ("push atlases checked against exact inverses").
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Each law over the atlas's envelope (issue 12, item 5; docs/model.md): converged solves from rest
+"""Each law over the atlas's envelope (docs/model.md): converged solves from rest
 at the default atlas envelope's corners, on-centre and off-centre contact, with and without the
 urethra at 40 kPa, on the default design at its mesh (6 mm P1), per law; optionally the
 neo-Hookean P2 12 mm model at a few corners as the reference of another element.

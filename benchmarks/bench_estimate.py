@@ -1,4 +1,4 @@
-"""Benchmark of the real-time estimator (issue 6): rate, step latency, accuracy during a ramp.
+"""Benchmark of the real-time estimator: rate, step latency, accuracy during a ramp.
 
     .venv/bin/python benchmarks/bench_estimate.py                 # default mesh (~6 k nodes)
     .venv/bin/python benchmarks/bench_estimate.py --mesh-size-mm 12 --ramp-levels 4   # quick
@@ -14,7 +14,7 @@
    thread busy refreshing: Hz, p50/p99/max step latency, ratio to the board's 19.2 and 77 Hz.
 5. Naive scheme: one tangent assembly + factorization + 4 solves per sample (the paper's
    per-sample linearization), median of 3.
-6. Atlas estimator (issue 13): offline build on ``--workers`` Dask processes (time, size), then
+6. Atlas estimator: offline build on ``--workers`` Dask processes (time, size), then
    the same real-time ramp, the same ramp while a load process keeps both cores busy (also the
    async refresh estimator under that load, for comparison), the sustained rate (quiet and with
    2 busy processes), the same ramp and rate of the step as it was before its compiled kernels
@@ -62,7 +62,7 @@ def truth_levels(model, est, forces):
     pm = probe_matrix(fem, [model.markers[k] for k in est.marker_names])
     X = fem.nodes
     # the estimators' own arm volumes (the FEM's cavities, 6-node on P2): ``model.cavities`` are the
-    # corner facets, whose volume change on a P2 mesh is ≈ 10 % short (docs/performance.md, session 12)
+    # corner facets, whose volume change on a P2 mesh is ≈ 10 % short (docs/performance.md)
     arm_volumes = est._eq.arm_volumes
     lin = SparseSolver("auto")
     x = None
@@ -305,7 +305,7 @@ def main() -> None:
           f"{acfg.shape}{f' in pieces split at f_y {list(acfg.f_y_splits_N)} N' if acfg.f_y_splits_N else ''}, envelope {acfg.lower.round(2).tolist()}..{acfg.upper.round(2).tolist()}; load average "
           f"{os.getloadavg()[0]:.1f}")
     at = AtlasEstimator(model, cfg, atlas)
-    # the step as it was before the compiled kernels (issue 13, item 5), on the same atlas: the ratio
+    # the step as it was before the compiled kernels, on the same atlas: the ratio
     ref = SimpleNamespace(step=at.step_reference)
     for name, est_, loaded in (("atlas_77Hz_realtime", at, False), ("atlas_77Hz_realtime_loaded", at, True),
                                ("atlas_reference_77Hz_realtime", ref, False)):

@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Live page benchmark (issue 34): frames per second in headless Chromium browsers and the
+"""Live page benchmark: frames per second in headless Chromium browsers and the
 estimator's step p99 with and without them, all in one live session.
 
     .venv/bin/python benchmarks/bench_live.py [--model DIR] [--atlas-cache DIR] [--seconds 20] [--browsers 3]

@@ -1,6 +1,6 @@
 """Which law and element should the estimator use? Accuracy against the converged reference vs the
-cost of one equilibrium solve, per law × element order × mesh size (issue 12, item 5;
-docs/model.md).
+cost of one equilibrium solve, per law × element order × mesh size
+(docs/model.md).
 
     .venv/bin/python benchmarks/bench_model_choice.py [--laws corotational neo-hookean]
         [--p1 9 6 4.5] [--p2 12 9] [--p2-arm-mm 2 1.5] [--json out.json] [--estimator-cost]

@@ -1,6 +1,6 @@
 """The independent reference of DESIGN.md §5, recomputed: FElupe (quadratic tets, compressible
 neo-Hookean, E = 142 kPa, ν = 0.45) on the default design under the three load cases, beside the
-table DESIGN.md gives (issue 12, item 4).
+table DESIGN.md gives.
 
     .venv/bin/python benchmarks/bench_reference.py [--mesh-size-mm 9 4.5] [--json out.json]
 

@@ -1,4 +1,4 @@
-"""Soak of ``estimate`` on a 77 Hz board (issue 18): nothing skipped that is not counted and
+"""Soak of ``estimate`` on a 77 Hz board: nothing skipped that is not counted and
 explained, memory flat.
 
     .venv/bin/python benchmarks/bench_soak.py [--duration-s 300] [--model DIR] [--load 2]

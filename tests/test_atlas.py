@@ -1,4 +1,4 @@
-"""The atlas estimator (issue 13) on the coarse mesh with a small envelope and grid: interpolation
+"""The atlas estimator on the coarse mesh with a small envelope and grid: interpolation
 against converged forward solves at held-out loads, exactness at the grid, the cache (hash
 mismatch, corruption), the out-of-envelope flag, the estimator interface and the CLI option."""
 

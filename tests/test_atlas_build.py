@@ -1,4 +1,4 @@
-"""The atlas build's solver path (issue 13, item 5) on the coarse mesh: the walk over a plane, the
+"""The atlas build's solver path on the coarse mesh: the walk over a plane, the
 Euler predictor and chord iterations from a kept factor, the factor kept and restored, a stalled
 chord refactoring — each reaching the equilibrium a full Newton solve (``solve_static``) reaches."""
 
@@ -107,7 +107,7 @@ def test_mixed_control_lands_on_the_patch_displacement_at_the_newton_equilibrium
 
 def test_a_failing_mixed_control_solve_falls_back_to_force_controlled_trials(fwd, monkeypatch):
     """Where the bordered chord iterations get nowhere (and so do their halved steps), the point
-    is still solved at its patch displacement, by force-controlled trials (session 9's path)."""
+    is still solved at its patch displacement, by force-controlled trials."""
     import softphantom.estimation.linearization as L
     from softphantom.estimation.atlas import _solve_ux, x_patch
 

@@ -1,4 +1,4 @@
-"""The atlas estimator's compiled per-sample step (issue 13, item 5) against its references: the
+"""The atlas estimator's compiled per-sample step against its references: the
 kernel evaluation against numpy tensor contractions and finite differences, the kernel rigid fit
 against ``pose.rigid_fit``, and the step against the pre-kernel step (every Gauss–Newton step by
 the QP solver) on an atlas of a known non-linear map — no forward solves, so it runs in seconds."""

@@ -321,10 +321,10 @@ def _stand_in_session(drift_Pa_per_s: float, scales_true: dict, seed: int = 1):
 def test_pressure_drift_is_fitted_not_taken_for_stiffness():
     """The trapped air's temperature drifts during a session (0.3 Pa/s: 0.05 K/min × P0/T) while the
     bench procedure's known loads grow (1, 2, 3 N): a constant offset cannot follow it, and the
-    parameter the data tell least — the bulb's stiffness — took it up (issue 14, session 7: on the
-    neo-Hookean default the bulb stayed at 1.00 against a truth of 1.3, the pressure residuals
-    ramping to 7 σ over 30 s). With a drift per session both stiffnesses and the drift are
-    recovered; with it held at 0 (the fit before), the bulb is not."""
+    parameter the data tell least — the bulb's stiffness — takes it up (on the neo-Hookean
+    default the bulb stays at 1.00 against a truth of 1.3, the pressure residuals ramping to 7 σ
+    over 30 s). With a drift per session both stiffnesses and the drift are recovered; with it
+    held at 0, the bulb is not."""
     from softphantom.calibration.fit import Problem, fit, parameter_set
 
     truth, drift = {"bulb": 1.3, "arms": 1.0}, 0.3
@@ -368,7 +368,7 @@ def _yeoh_model(coarse: Path, out: Path) -> Path:
 
 
 def test_yeoh_shape_sensitivities_equal_finite_differences(coarse, tmp_path):
-    """A Yeoh region's shape θ2 = C20/C10, θ3 = C30/C10 (issue 14: "Yeoh terms"): the exact
+    """A Yeoh region's shape θ2 = C20/C10, θ3 = C30/C10: the exact
     ∂x/∂θ = −K⁻¹ ∂f_int/∂θ against central differences of the forward solve; the parameter set
     offers them only for a Yeoh group; an unstable shape is a failed (rejected) trial, not a crash."""
     from softphantom.calibration.fit import parameter_set
@@ -475,7 +475,7 @@ def test_a_misfit_widens_what_the_data_say_not_the_priors():
     """The covariance's residual-variance scaling applies to the data, not to the priors: with a
     misfit the data cannot absorb (the session's drift held at 0 while the air drifts 0.3 Pa/s),
     a parameter no residual sees (the registration, with no pose rows) keeps its prior spread
-    exactly — scaling the whole matrix gave it √s2 × its prior's (the 114–146 % of session 7) —
+    exactly — scaling the whole matrix would give it √s2 × its prior's (114–146 %) —
     and a parameter the data do see is still widened by the misfit."""
     from softphantom.calibration.fit import Problem, fit, parameter_set, posterior_covariance
 
@@ -504,10 +504,9 @@ def test_tube_time_constant_follows_the_fitted_tube():
     """The readings lag the cavity through the tube (τ ∝ length²); ``load_session`` undoes the lag
     with the recording's tube. When the tube is 10 % longer than recorded (the benchmark's truth)
     the de-lagged pressures are ≈ 20 ms late, and against known loads on the pushes' ramps that is
-    a misfit no static parameter explains (session 8: a quarter of the benchmark's cost). The fit
-    undoes the lag with the time constant of the tube it fits: the tube is recovered and the
-    known loads are met to their noise; with the recording's τ kept (``dp_rate`` None: the fit
-    before) the misfit stays."""
+    a misfit no static parameter explains (a quarter of the benchmark's cost). The fit undoes the
+    lag with the time constant of the tube it fits: the tube is recovered and the known loads are
+    met to their noise; with the recording's τ kept (``dp_rate`` None) the misfit stays."""
     from softphantom.calibration.fit import Keyframes, Problem, fit, parameter_set
     from softphantom.calibration.forward import KeyframeSolution
     from softphantom.calibration.session import Session, select_keyframes, undo_tube_lag
@@ -568,7 +567,7 @@ def test_held_out_lag_follows_the_tube_the_pressures_are_de_lagged_with():
     """A held-out session's lag is found by cross-correlation on pressures de-lagged with the
     recording's tube; when the tube is 10 % longer they are ≈ 21 ms late and the lag takes it.
     The calibrated check de-lags with the fitted tube, so its lag must move by τ(tube) − τ(1)
-    (``held_out_lag``): kept as it was, the calibrated model's ramps were 21 ms off (session 14)."""
+    (``held_out_lag``): kept as it was, the calibrated model's ramps would be 21 ms off."""
     from softphantom.calibration.run import held_out_lag
     from softphantom.calibration.session import Session, undo_tube_lag
     from softphantom.tracking.timing import estimate_lag

@@ -238,7 +238,7 @@ def test_design_materials_per_region_and_round_trip(tmp_path):
     assert laws["arm_back_xneg"] is laws["bulb"]  # a region's own key wins over its group
     assert load_design(save_design(d, tmp_path / "d.toml")) == d
     # the default design: every region Ecoflex 00-50 (E, ν, density of the paper's model) under the
-    # compressible neo-Hookean law (co-rotational before session 6, docs/model.md)
+    # compressible neo-Hookean law (docs/model.md)
     laws = laws_of_design(BIPDesign(), {r: i for i, r in enumerate(REGION_NAMES)})
     assert all(isinstance(v, NeoHookean) and v.E_Pa == pytest.approx(ECOFLEX_00_50.E_Pa, rel=1e-12)
                and (v.nu, v.density_kg_m3) == (ECOFLEX_00_50.nu, ECOFLEX_00_50.density_kg_m3) for v in laws.values())

@@ -1,4 +1,4 @@
-"""softphantom's hyperelastic FEM against an independent package, FElupe (issue 12, item 4).
+"""softphantom's hyperelastic FEM against an independent package, FElupe.
 
 A BIP-like case small enough for CI: a silicone block (E = 142 kPa, ν = 0.45) clamped at one end,
 with a spherical cavity, pulled and inflated to large strain. Both codes get the same 10-node mesh

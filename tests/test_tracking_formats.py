@@ -1,6 +1,6 @@
 """Every tracker fixture through both doors, the Python API (``read_track``/``read_truth``) and the
 CLI (``softphantom evaluate``): read correctly, or refused in one line that names the format and
-the actual problem (issue 15)."""
+the actual problem."""
 
 import re
 import sys

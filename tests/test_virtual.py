@@ -122,7 +122,7 @@ def test_truth_is_finer_converged_and_exact_at_keyframes(short_run, coarse_model
     assert np.allclose(et.s, [0, 1 / 3, 2 / 3, 1.0])
     # independent solves from rest (not warm-started): at a keyframe (s = 2/3) the truth is that
     # solve; between keyframes (s = 1/2) the PCHIP interpolation in load stays within 2 % of the
-    # peak marker motion. The truth's law is the hyperelastic twin of the model's (issue 12)
+    # peak marker motion. The truth's law is the hyperelastic twin of the model's
     laws = truth_laws(tr.model, tr.config.law)
     assert {law.name for law in laws.values()} == {"neo-hookean"}
     fem = fem_from_phantom(tr.model, laws)

@@ -5,7 +5,7 @@ sensitivities), under the Yeoh preset and under Yeoh with C20 = C30 = 0 (the dec
 small-strain μ and K), and with λ × 1.2 in the arms and in the bulb (finite differences: ν's
 direction). Then the Yeoh − neo-Hookean difference (ΔV as pressure at 1 Pa, markers at 0.2 mm, the
 forces free at 0.02 N) fitted by linear least squares with the stiffness scales alone, + ln λ per
-group, + per-arm gains: the cost left and the parameters it takes (session 9, docs/calibration.md)."""
+group, + per-arm gains: the cost left and the parameters it takes (docs/calibration.md)."""
 import dataclasses, sys, time
 import numpy as np
 from pathlib import Path

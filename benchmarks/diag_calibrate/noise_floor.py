@@ -7,9 +7,9 @@ better). Usage:
         [--variants exact,noise-only] [--levels 3] [--fit-from CACHE_DIR/fit_free_yeoh.npz]
 
 CACHE_DIR is a bench_calibrate cache (its model/ and the held-out session's scenario and
-virtual.json); the variants are written next to the session (``<session>-<variant>``). Session 14:
-on the 9 mm cache, "exact" left 0.039 mm/deg with the truth's parameters, which was the held-out
-check's lag (``calibration.run.held_out_lag``); after it, 0.028 (docs/calibration.md)."""
+virtual.json); the variants are written next to the session (``<session>-<variant>``). On the
+9 mm cache, "exact" leaves 0.028 mm/deg with the truth's parameters, once the held-out check's lag
+follows the fitted tube (``calibration.run.held_out_lag``; docs/calibration.md)."""
 from __future__ import annotations
 
 import argparse

@@ -336,7 +336,7 @@ class Problem:
         (:meth:`Session.tau_s`: the factor taken as the length), and their derivative wrt ``tube``.
         The sessions were de-lagged with the recording's tube: ``dp + (τ(tube) − τ(1))·rate``.
         Without it a tube 10 % longer than recorded left the pressures ≈ 20 ms late against the
-        known loads (session 8: a quarter of the cost, at the ramps' keyframes)."""
+        known loads (a quarter of the cost, at the ramps' keyframes)."""
         fr = self.frames
         if fr.dp_rate is None:
             return fr.dp, np.zeros_like(fr.dp)
@@ -509,7 +509,7 @@ def posterior_covariance(J: np.ndarray, r: np.ndarray, n_prior: int) -> tuple[np
     of freedom, ≥ 1: a misfit larger than the noise widens what the data say); the priors' is not —
     they are not observations whose misfit the data measure. So a parameter the data do not see
     keeps its prior spread exactly, and no posterior spread exceeds its prior's (scaling the whole
-    matrix did: spreads of 114–146 % of the prior's, session 7).
+    matrix would: spreads of 114–146 % of the prior's).
     """
     Jd, Jp, rd = J[: J.shape[0] - n_prior], J[J.shape[0] - n_prior:], r[: r.size - n_prior]
     Ad, Ap = Jd.T @ Jd, Jp.T @ Jp

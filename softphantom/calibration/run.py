@@ -248,8 +248,8 @@ def held_out_lag(session: Session, lag_s: float, tube: float) -> float:
     constant of a tube ``tube`` × the recording's. ``lag_s`` was found by cross-correlation
     (:func:`_initial`) on the pressures de-lagged with the recording's τ; with ``tube`` > 1 those
     are late by τ(tube) − τ(1) (p + Δτ·ṗ ≈ p(t + Δτ)), and the correlation moved the lag to match.
-    Until session 14 the calibrated check kept ``lag_s`` while its pressures came Δτ earlier (≈ 21
-    ms for a tube 10 % long): a ramp error of its own that the nominal did not have (a floor of
+    Keeping ``lag_s`` while the pressures come Δτ earlier (≈ 21 ms for a tube 10 % long) would give
+    the calibrated check a ramp error of its own that the nominal does not have (a floor of
     0.038 mm/deg RMS on the benchmark's held-out needle with exact pressures and the truth's own
     parameters).
 

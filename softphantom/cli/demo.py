@@ -25,19 +25,19 @@ def _contact(scenario) -> str:
 # The demo's atlas per scenario: the box of the scenario's peak loads (its pushes; the pressure its
 # inflation reached) and zero, each face widened by MARGIN_N + MARGIN_REL × the peak on that side
 # of that axis (the estimator's model differs from the truth's, so its forces do too: in the
-# session-7 demo the estimates passed the truth's peaks by ≤ 0.62 N along the push, ≤ 0.2 N
-# sideways), the pressure by MARGIN_KPA only: it is measured, not estimated (a 20 % margin put the
+# demo the estimates passed the truth's peaks by ≤ 0.62 N along the push, ≤ 0.2 N sideways),
+# the pressure by MARGIN_KPA only: it is measured, not estimated (a 20 % margin put the
 # inflation atlas's top planes at 51 kPa, beyond what the estimator's model reaches: 27 failing
-# solves for points no estimate used). One margin for all axes from the largest force (before
-# session 7) made the sideways range 3.1 N for ±0.6 N of load.
+# solves for points no estimate used). Margins are per axis: one margin for all axes from the
+# largest force would make the sideways range 3.1 N for ±0.6 N of load.
 # Grids: pushes vary the force (the pressure stays near 0: 2 points), an inflation the pressure.
 # Push grids by contact, measured against exact (settled) inverses of the same model at the demo
-# pushes' worst samples (session 7, docs/performance.md): on-centre, the arm pair's step at
+# pushes' worst samples (docs/performance.md): on-centre, the arm pair's step at
 # f_x = 0 (docs/estimation.md) wants the f_x points clustered about 0 (7, asinh width 0.1 N:
 # 0.006 N / 0.008 mm / 0.04°; 5 affine: 0.03 N / 0.04 mm / 0.30°); off-centre has no such step
 # there (the same clustering: 0.31°; 5 affine points: 0.02 N / 0.025 mm / 0.19°, 7: 0.20°) but a
-# yaw that is steep along a line moving with f_y, which more f_y points follow (session 8:
-# 5 × 9 × 4: 0.023 N / 0.013 mm / 0.080°, 180 solves; 5 × 7 × 5: 0.098°; 5 × 5 × 5: 0.19°).
+# yaw that is steep along a line moving with f_y, which more f_y points follow (5 × 9 × 4:
+# 0.023 N / 0.013 mm / 0.080°, 180 solves; 5 × 7 × 5: 0.098°; 5 × 5 × 5: 0.19°).
 MARGIN_N = 0.5
 MARGIN_REL = 0.2
 MARGIN_KPA = 2.0

@@ -64,7 +64,7 @@ VIA_TOL = 1e-3  # relative residual of the continuation steps between grid point
 FIELD_MAX_MODES = 64
 STRETCH_FX_N = 0.02  # the default f_x stretch width: the arm pair's step core at 3.5–5 N (docs/estimation.md)
 STRETCH_MIN_POINTS = 9  # f_x points from which the default stretches f_x
-STRETCH_Q = 0.3  # the default stretch of a displacement axis (N-equivalent; docs/estimation.md, session 9)
+STRETCH_Q = 0.3  # the default stretch of a displacement axis (N-equivalent; docs/estimation.md)
 X_CONTROLS = ("displacement", "force")
 # a displacement-controlled point is kept where it lands within this fraction of the distance to the
 # next node along q (the fit takes each line's own nodes, _to_chebyshev): a new solve costs more
@@ -249,7 +249,7 @@ class AtlasConfig:
 
 # The quadratic (10-node) BIP model's atlas: its back arm pair snaps through above f_y ≈ 4.3 N (a fold
 # in f_x, followed by the displacement axis) and one f_y polynomial over -1..5.2 N rings below it;
-# pieces split at these forces keep each f_y polynomial smooth (measured: docs/estimation.md, session 12).
+# pieces split at these forces keep each f_y polynomial smooth (measured: docs/estimation.md).
 P2_F_Y_SPLITS_N = (3.3,)
 P2_N_FORCE = (11, 6, 4)
 
@@ -439,8 +439,8 @@ def _solve_ux(fwd: ForwardModel, h: np.ndarray, lam: np.ndarray, target: float, 
     on the line: a secant predictor), its f_x anywhere in ``fx_range`` (default ``bracket``): where
     the state snaps through in f_x (the quadratic model's arm pair above ≈ 4.3 N of f_y) the path at
     fixed ū_x goes through a fold, f_x falling on its unstable branch, which no force-controlled
-    solve reaches. The trials above only where it fails, or without ``bordered`` (session 9's
-    build, the benchmarks' peer)."""
+    solve reaches. The trials above only where it fails, or without ``bordered`` (the
+    force-controlled-only build, the benchmarks' peer)."""
     lo, hi = (float(b) for b in bracket)
     x_rest = fwd.fem.x_rest
     if bordered:

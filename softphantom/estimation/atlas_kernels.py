@@ -1,7 +1,7 @@
-"""numba kernels of the atlas estimator's per-sample step (issue 13, item 5: ≥ 5 kHz, p99 ≤ 1 ms).
+"""numba kernels of the atlas estimator's per-sample step (the target: ≥ 5 kHz, p99 ≤ 1 ms).
 
 The step's arithmetic is small — a tensor Chebyshev polynomial of a few hundred coefficients per
-output, a 3-variable least squares, a 3 × 3 rigid fit — so its cost was Python and numpy call
+output, a 3-variable least squares, a 3 × 3 rigid fit — so in Python its cost is numpy call
 overhead (some 60 small numpy calls per Gauss–Newton iteration). These kernels do the same
 arithmetic in one compiled call each:
 

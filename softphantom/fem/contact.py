@@ -15,7 +15,7 @@ from softphantom.fem.elements import tri_rule, tri_shape
 from softphantom.fem.model import FemModel
 
 #: m, the one default patch radius: 4 mm, the patch of the converged reference of DESIGN.md §5
-#: and issue 12 (their figures are for 4 mm patches); it lies between a needle tip (1.3 mm) and a
+#: (its figures are for 4 mm patches); it lies between a needle tip (1.3 mm) and a
 #: finger (8 mm) and spans about two surface elements of the default mesh (4 mm on the bulb), so
 #: the loaded area is resolved on every mesh we use.
 DEFAULT_CONTACT_RADIUS_M = 4.0e-3

@@ -68,7 +68,7 @@ class TruthConfig:
     """``mesh_scale`` truth node spacing / the model's mesh size (the truth's elements are
     ``order · mesh_scale`` times the model's); ``levels`` keyframes per push ramp (interpolated
     between: at 3, the P2 Yeoh calibration truth's yaw is off by up to 0.16° mid-ramp, at 9 by
-    0.01°; docs/calibration.md, session 14);
+    0.01°; docs/calibration.md);
     ``tol`` Newton's relative residual; ``inflate_steps`` pressure steps up to the limit;
     ``law``: ``"neo-hookean"`` (co-rotational regions become compressible neo-Hookean with the
     same E, ν, density) or ``"model"`` (the design's own laws, as the estimator); ``order``: the

@@ -1,5 +1,5 @@
 """An independent reference for softphantom's FEM: FElupe (quadratic tetrahedra, compressible
-neo-Hookean) with the loads of DESIGN.md §5 written here from scratch (issue 12, item 4).
+neo-Hookean) with the loads of DESIGN.md §5 written here from scratch.
 
 Nothing of ``softphantom.fem`` is used: the solid (element, quadrature, law, assembly) is FElupe's;
 the follower pressure and the cavity volumes are integrated here on the 6-node boundary

@@ -438,7 +438,7 @@ def open_source(spec: str, *, model_dir: str | Path | None = None, rate_Hz: floa
     if kind == "replay" and arg:
         geometry = None
         if model is not None:
-            from softphantom.design import load_model  # lands with issue 1 (design)
+            from softphantom.design import load_model  # only a replay with a model needs it
 
             geometry = LiveGeometry.from_model(load_model(model))
         return ReplaySource(arg, speed=speed, geometry=geometry)
