@@ -189,7 +189,7 @@ class ROM:
         raise RuntimeError(f"ROM Newton did not converge at {lam}: |R| {np.linalg.norm(R):.2e} (ref {ref:.2e})")
 
 
-def greedy_nnls(G, b, tol, max_el=None):
+def greedy_nnls(G, b, tol, max_el=None, batch=16):
     """Sparse NNLS (Lawson-Hanson style active set growth with NNLS on the active columns), stopping
     at ‖Gξ − b‖ ≤ tol‖b‖ (the ECSW sparse NNLS)."""
     from scipy.optimize import nnls
@@ -205,11 +205,11 @@ def greedy_nnls(G, b, tol, max_el=None):
     while np.linalg.norm(res) > tol * bn and len(active) < max_el:
         g = Gs.T @ res
         g[active] = -np.inf
-        k = int(np.argmax(g))
-        if g[k] <= 0:
+        best = np.argsort(g)[::-1][:batch]
+        best = [int(k) for k in best if g[k] > 0]
+        if not best:
             break
-        active.append(k)
-        # add several at once when far
+        active.extend(best)  # several columns a pass: the NNLS on the active set is the cost
         sol, _ = nnls(Gs[:, active], b, maxiter=50 * len(active))
         keep = sol > 0
         active = [a for a, kk in zip(active, keep) if kk]

@@ -26,7 +26,7 @@ print(f"POD: r = {rom.r}, sv tail {rom.sv[rom.r - 1] / rom.sv[0]:.1e}, {time.pro
 def evaluate(label):
     errs = []
     t_all = 0.0
-    for lam, x, V, P, _ in test:
+    for lam, x, V, P, *_ in test:
         t = time.process_time()
         try:
             q, xr, its = rom.solve(lam)
