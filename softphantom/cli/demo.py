@@ -344,7 +344,7 @@ def demo_cmd(
     estimator: str = typer.Option("atlas", "--estimator", help="atlas (precomputed, real time) | refresh (sync: "
                                   "re-linearized inside each step)."),
     atlas_grid: str = typer.Option(None, "--atlas-grid", help="Atlas: Chebyshev points per axis NX,NY,NZ,NP (default: "
-                                   "7,5,5,2 on-centre (f_x clustered) and 5,5,5,2 off-centre for pushes, 3,3,3,5 for an inflation; the envelope is the scenario's loads)."),
+                                   "7,5,5,2 on-centre (f_x clustered) and 5,9,4,2 off-centre for pushes, 3,3,3,5 for an inflation; the envelope is the scenario's loads)."),
 ) -> None:
     """The paper's experiments end to end without hardware: reports and a summary."""
     from softphantom.cli.virtual import _config
