@@ -167,25 +167,31 @@ class ROM:
                 Kr -= lam[3] * (self.Vfull.T @ (T @ self.Vfull))
         return R, Kr, x
 
-    def solve(self, lam, q0=None, tol=1e-10, max_iter=30):
+    def solve(self, lam, q0=None, tol=1e-10, max_iter=30, reduced=None, ref=None):
+        """Damped Newton on the reduced residual. ``reduced(q, lam, need_K=True) -> (R, K, x)`` (default: this
+        model's hyper-reduced one; the probe passes the full assembly's); ``ref`` the force scale of
+        the tolerance (default: the applied load's)."""
+        reduced = reduced or self.reduced
         lam = np.asarray(lam, float)
         q = np.zeros(self.r) if q0 is None else q0.copy()
-        R, K, x = self.reduced(q, lam)
-        ref = max(np.linalg.norm(self.VH @ lam[:3]) + abs(lam[3]) * 1e-9, 1e-12)
+        R, K, x = reduced(q, lam)
+        if ref is None:
+            ref = max(np.linalg.norm(self.VH @ lam[:3]) + abs(lam[3]) * 1e-9, 1e-6)
         for it in range(max_iter):
             rn = np.linalg.norm(R)
-            if rn <= tol * max(ref, 1e-6):
+            if rn <= tol * ref:
                 return q, x, it
             dq = np.linalg.solve(K, -R)
             a = 1.0
-            while True:
-                R2, K2, x2 = self.reduced(q + a * dq, lam)
+            while True:  # trials without the tangent: it is assembled once a step is taken
+                R2, _, x2 = reduced(q + a * dq, lam, False)
                 if R2 is not None and np.linalg.norm(R2) < rn * (1 - 1e-4 * a) or a < 1e-3:
                     break
                 a *= 0.5
             if R2 is None:
                 raise RuntimeError("inverted")
-            q, R, K, x = q + a * dq, R2, K2, x2
+            q, R, x = q + a * dq, R2, x2
+            _, K, _ = reduced(q, lam)
         raise RuntimeError(f"ROM Newton did not converge at {lam}: |R| {np.linalg.norm(R):.2e} (ref {ref:.2e})")
 
 

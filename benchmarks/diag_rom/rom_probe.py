@@ -43,39 +43,26 @@ def evaluate(label):
 # the projection error alone (best the basis can do)
 pe = [np.linalg.norm((x - fwd.fem.x_rest)[rom.free] - rom.V @ (rom.V.T @ (x - fwd.fem.x_rest)[rom.free]), np.inf) * 1e3 for _, x, *_ in test]
 print(f"projection error of test states: max {max(pe):.4f} mm")
-def galerkin(lam, tol=1e-10, max_iter=30):
-    """The Galerkin solve on the full assembly (no hyper-reduction): Vᵀ r(x), Vᵀ K(x) V."""
+def full_reduced(q, lam, need_K=True):
+    """Vᵀ r(x) and Vᵀ K(x) V on the full assembly (no hyper-reduction)."""
     from softphantom.fem import free_tangent
     from softphantom.fem.corotational import ElementInversionError
-    lam = np.asarray(lam, float)
-    eq = fwd.eq
+    x = rom.x0 + rom.Vfull @ q
+    try:
+        r, _ = fwd.eq.residual(x, lam)
+    except ElementInversionError:
+        return None, None, x
+    if not need_K:
+        return rom.V.T @ r, None, x
+    K = free_tangent(fwd.fem, x, [(fwd.eq._ur_tris, float(lam[3]))] if lam[3] else None)
+    return rom.V.T @ r, rom.V.T @ (K @ rom.V), x
 
-    def resid(q):
-        x = rom.x0 + rom.Vfull @ q
-        try:
-            r, ref = eq.residual(x, lam)
-        except ElementInversionError:
-            return None, None, x
-        return rom.V.T @ r, ref, x
 
-    q = np.zeros(rom.r)
-    R, ref, x = resid(q)
-    for it in range(max_iter):
-        rn = np.linalg.norm(R)
-        if rn <= tol * ref:
-            return q, x, it
-        K = free_tangent(fwd.fem, x, [(eq._ur_tris, float(lam[3]))] if lam[3] else None)
-        dq = np.linalg.solve(rom.V.T @ (K @ rom.V), -R)
-        a = 1.0
-        while a > 1e-4:  # backtracking on the reduced residual's norm (and on inverted elements)
-            R2, ref2, x2 = resid(q + a * dq)
-            if R2 is not None and np.linalg.norm(R2) < rn:
-                break
-            a *= 0.5
-        if R2 is None:
-            raise RuntimeError("Galerkin Newton: elements inverted")
-        q, R, ref, x = q + a * dq, R2, ref2, x2
-    raise RuntimeError(f"Galerkin Newton did not converge (|R| {np.linalg.norm(R):.2e}, ref {ref:.2e})")
+def galerkin(lam):
+    _, ref = fwd.eq.residual(fwd.fem.x_rest, np.asarray(lam, float))  # the applied load's scale
+    return ROM.solve(rom, lam, reduced=full_reduced, ref=ref)
+
+
 rom.solve = lambda lam, q0=None: galerkin(lam)
 evaluate("Galerkin, full assembly")
 if len(sys.argv) > 4:
