@@ -39,8 +39,8 @@ from softphantom.fem import (
     probe_matrix,
     solve_static,
 )
+from softphantom.records.names import ARM_NAMES
 
-ARM_NAMES = ("front_zpos", "front_zneg", "back_xpos", "back_xneg")
 URETHRA = "urethra"
 #: Region groups whose stiffness the calibration can scale: the bulb, and the four arms together.
 GROUPS = ("bulb", "arms")

@@ -17,8 +17,8 @@ from softphantom.calibration.forward import GROUPS, design_with_law, rest_marker
 from softphantom.calibration.session import CalibrationInputError, Session, load_session, select_keyframes
 from softphantom.errors import SolverError, UserError
 from softphantom.sensing.pneumatics import boyle_dV
+from softphantom.records.names import POSE_COLUMNS as POSE_DOF
 
-POSE_DOF = ("x_mm", "y_mm", "z_mm", "yaw_deg", "pitch_deg", "roll_deg")
 
 
 @dataclass(frozen=True)

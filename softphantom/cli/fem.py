@@ -15,8 +15,8 @@ from softphantom.cli.app import app, console
 from softphantom.cli.options import check_output, overwrite_option, staged_output
 from softphantom.errors import SolverError, UserError
 from softphantom.fem.contact import DEFAULT_CONTACT_RADIUS_M
-
-ARM_ORDER = ("front_zpos", "front_zneg", "back_xpos", "back_xneg")
+from softphantom.records.names import ARM_NAMES as ARM_ORDER
+from softphantom.records.names import POSE_COLUMNS
 
 
 def _vec3(text: str, what: str) -> np.ndarray:
@@ -86,7 +86,7 @@ def simulate_command(
     rest_t = np.array([model.targets[k] for k in targets])
     shift_mm = (probe_matrix(fem, rest_t) @ sol.x - rest_t) * 1e3
 
-    pose_cols = dict(zip(("x_mm", "y_mm", "z_mm", "yaw_deg", "pitch_deg", "roll_deg"), pose.to_mm_deg().tolist()))
+    pose_cols = dict(zip(POSE_COLUMNS, pose.to_mm_deg().tolist()))
     result = {
         "force_N": force.tolist(),
         "at_mm": (point * 1e3).tolist(),

@@ -59,10 +59,10 @@ import numpy as np
 from softphantom.design import geometry as geo
 from softphantom.design.fabrication import MoldParams
 from softphantom.errors import DesignError
+from softphantom.records.names import ARM_NAMES
 
 Vec3 = tuple[float, float, float]
 
-ARM_NAMES: tuple[str, ...] = ("front_zpos", "front_zneg", "back_xpos", "back_xneg")
 CAVITY_NAMES: tuple[str, ...] = ARM_NAMES + ("urethra",)
 REGION_NAMES: tuple[str, ...] = ("bulb", *(f"arm_{n}" for n in ARM_NAMES))
 #: region groups usable as keys of ``[region_materials]``

@@ -15,9 +15,7 @@ else consumes the estimates (:func:`marker_estimate`).
 from __future__ import annotations
 
 import collections
-import json
 import math
-import os
 import threading
 import time
 from collections.abc import Callable, Iterable
@@ -25,66 +23,15 @@ from pathlib import Path
 
 import numpy as np
 
-from softphantom.errors import UserError
-from softphantom.estimation.types import ARM_NAMES, Estimate
+from softphantom.records.estimate import Estimate, estimate_row, is_marker, marker_estimate
+from softphantom.records.names import EVENT_PREFIX, estimate_columns
+from softphantom.records.session import SessionWriter
 
-POSE_COLUMNS = ("x_mm", "y_mm", "z_mm", "yaw_deg", "pitch_deg", "roll_deg")
-FLUSH_EVERY_S = 0.2
+__all__ = ["EVENT_PREFIX", "EstimateWriter", "EventMarkers", "StepStats", "estimate_columns", "estimate_row",
+           "estimate_stream", "is_marker", "iter_samples", "marker_estimate", "write_estimates"]
+
 MAX_LAG_S = 0.25
 """A live sample this far behind the newest one is dropped (and counted): the estimator is behind."""
-EVENT_PREFIX = "event:"
-
-
-def estimate_columns(target_names: Iterable[str]) -> list[str]:
-    """Header of the estimate CSV, in order (docs/architecture.md).
-
-    >>> estimate_columns(["apex"])[:5], estimate_columns([])[-6:]
-    (['t_s', 'force_x_N', 'force_y_N', 'force_z_N', 'p_urethra_kPa'], ['cond_W', 'qp_status', 'step_ms', 'skipped', 'status', 'in_envelope'])
-    """
-    cols = ["t_s", "force_x_N", "force_y_N", "force_z_N", "p_urethra_kPa", *POSE_COLUMNS]
-    for n in target_names:
-        cols += [f"{n}_dx_mm", f"{n}_dy_mm", f"{n}_dz_mm"]
-    cols += [f"dVpred_{a}_mm3" for a in ARM_NAMES] + [f"dVmeas_{a}_mm3" for a in ARM_NAMES]
-    return cols + ["cond_W", "qp_status", "step_ms", "skipped", "status", "in_envelope"]
-
-
-def _cell(v: float) -> str:
-    v = float(v)
-    return repr(v) if math.isfinite(v) else "nan"
-
-
-def estimate_row(e: Estimate, target_names: Iterable[str]) -> list[str]:
-    """One CSV row (units of the header) for an estimate."""
-    cells = [_cell(e.t), *(_cell(f) for f in e.force), _cell(e.p_urethra * 1e-3)]
-    cells += [_cell(v) for v in np.concatenate([np.asarray(e.pose.xyz) * 1e3, np.degrees(e.pose.ypr)])]
-    for n in target_names:
-        cells += [_cell(v * 1e3) for v in e.target_shift[n]]
-    cells += [_cell(v * 1e9) for v in e.volume_pred] + [_cell(v * 1e9) for v in e.volume_meas]
-    cells += [_cell(e.cond_W), str(e.qp_status).replace(",", ";"), _cell(e.step_time * 1e3), str(int(e.skipped)),
-              str(e.status).replace(",", ";").replace("\n", " "),
-              str(int(bool(e.in_envelope)))]
-    return cells
-
-
-def marker_estimate(event, target_names: Iterable[str]) -> Estimate:
-    """The marker of a link event: an Estimate at the event's time with every number NaN and
-    ``status`` ``event:<kind>: <detail>`` (``qp_status`` ``none``, nothing skipped).
-
-    >>> from softphantom.sensing.sources import SourceEvent
-    >>> e = marker_estimate(SourceEvent(12.5, "disconnected", "port failed"), ["apex"])
-    >>> e.t, e.status, bool(np.isnan(e.force).all())
-    (12.5, 'event:disconnected: port failed', True)
-    """
-    from softphantom.pose import Pose6
-
-    nan3 = np.full(3, math.nan)
-    return Estimate(float(event.t), nan3, math.nan, Pose6(nan3, nan3), {n: nan3 for n in target_names},
-                    np.full(4, math.nan), np.full(4, math.nan), math.nan, "none", 0.0, 0,
-                    f"{EVENT_PREFIX}{event.kind}: {event.detail}")
-
-
-def is_marker(e: Estimate) -> bool:
-    return str(e.status).startswith(EVENT_PREFIX)
 
 
 class StepStats:
@@ -125,37 +72,23 @@ class StepStats:
 
 
 class EstimateWriter:
-    """Write estimates to a CSV: a ``# {json}`` metadata line, the header, one row per estimate,
-    flushed to the OS at least every ``flush_every_s`` (and on :meth:`close`)."""
+    """Write estimates to the estimate file (a session file, :mod:`softphantom.records.session`):
+    the metadata line, the header, one row per estimate, each handed to the OS as it is written."""
 
-    def __init__(self, path, target_names: Iterable[str], metadata: dict | None = None,
-                 flush_every_s: float = FLUSH_EVERY_S) -> None:
-        self.path = Path(path)
+    def __init__(self, path, target_names: Iterable[str], metadata: dict | None = None) -> None:
         self.target_names = list(target_names)
-        try:
-            self._f = open(self.path, "w", encoding="utf-8", newline="")
-        except OSError as exc:
-            raise UserError(f"--out {self.path}: cannot create ({exc.strerror})") from None
-        self._every = flush_every_s
-        self._last = time.monotonic()
-        self.rows = 0
-        self._f.write("# " + json.dumps(metadata or {}, separators=(",", ":"), default=str) + "\n")
-        self._f.write(",".join(estimate_columns(self.target_names)) + "\n")
-        self._f.flush()
+        self._w = SessionWriter(path, estimate_columns(self.target_names), metadata or {})
+        self.path = self._w.path
+
+    @property
+    def rows(self) -> int:
+        return self._w.rows
 
     def write(self, e: Estimate) -> None:
-        self._f.write(",".join(estimate_row(e, self.target_names)) + "\n")
-        self.rows += 1
-        now = time.monotonic()
-        if now - self._last >= self._every:
-            self._f.flush()
-            self._last = now
+        self._w.write_row(estimate_row(e, self.target_names))
 
     def close(self) -> None:
-        if not self._f.closed:
-            self._f.flush()
-            os.fsync(self._f.fileno())
-            self._f.close()
+        self._w.close()
 
     def __enter__(self):
         return self

@@ -1,46 +1,15 @@
-"""Value objects of the estimation stage (see docs/architecture.md)."""
+"""The estimator interface; its record, :class:`Estimate`, lives in :mod:`softphantom.records`."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Protocol, runtime_checkable
+from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-if TYPE_CHECKING:  # pose is a leaf library; only the type is needed here
-    from softphantom.pose import Pose6
+from softphantom.records.estimate import Estimate
+from softphantom.records.names import ARM_NAMES
 
-ARM_NAMES: tuple[str, ...] = ("front_zpos", "front_zneg", "back_xpos", "back_xneg")
-"""Arm cavity order used in every length-4 array (docs/architecture.md)."""
-
-
-@dataclass(frozen=True)
-class Estimate:
-    """One estimate of the phantom's state at time ``t`` (SI units).
-
-    ``force`` N (3,), ``p_urethra`` Pa, ``pose`` of the marker rigid body relative to rest,
-    ``target_shift`` m per named target, ``volume_pred``/``volume_meas`` cavity volume changes
-    m³ (4,), ``cond_W`` the condition number of the sensitivity matrix, ``qp_status`` the QP
-    solver's status, ``step_time`` s spent on this step, ``skipped`` samples dropped since the
-    previous estimate (estimation fell behind and took the newest one), ``in_envelope`` False
-    when the loads lie outside the range the estimator's model covers (the atlas's envelope; the
-    estimate is then clamped to it).
-    """
-
-    t: float
-    force: np.ndarray
-    p_urethra: float
-    pose: "Pose6"
-    target_shift: dict[str, np.ndarray]
-    volume_pred: np.ndarray
-    volume_meas: np.ndarray
-    cond_W: float
-    qp_status: str
-    step_time: float
-    skipped: int = 0
-    status: str = "ok"
-    in_envelope: bool = True
-    extra: dict = field(default_factory=dict)
+__all__ = ["ARM_NAMES", "Estimate", "StateEstimator"]
 
 
 @runtime_checkable

@@ -5,9 +5,6 @@ then it is registered by its rest window (the rest pose is the model's rest pose
 from __future__ import annotations
 
 import contextlib
-import csv
-import io
-import json
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -16,10 +13,8 @@ import numpy as np
 
 from softphantom.errors import FileFormatError
 from softphantom.pose import Pose6
-from softphantom.tracking.track import cut_row_note, drop_unterminated_line, warn_truncated
-
-POSE_COLUMNS = Pose6.COLUMNS
-FORCE_COLUMNS = ("force_x_N", "force_y_N", "force_z_N")
+from softphantom.records.names import FORCE_COLUMNS, POSE_COLUMNS, target_columns, target_names
+from softphantom.records.session import TruncatedRecordingWarning, read_session_file, write_session_file
 
 
 @dataclass(frozen=True)
@@ -55,81 +50,32 @@ class Series6:
 
 
 def write_table(path: str | Path, meta: dict, columns: dict[str, np.ndarray]) -> Path:
-    """Write ``# {json}`` then the CSV (header = column names; floats as their shortest exact repr,
-    so epoch timestamps keep their microseconds).
+    """Write a session file (:mod:`softphantom.records.session`) from named columns (floats as
+    their shortest exact repr, so epoch timestamps keep their microseconds).
 
     >>> import tempfile, os
     >>> p = os.path.join(tempfile.mkdtemp(), "t.csv")
     >>> _ = write_table(p, {"softphantom": "0.1.0"}, {"t_s": [0.0, 0.01], "x_mm": [0.0, 1.5]})
     >>> open(p).read().splitlines()
-    ['# {"softphantom": "0.1.0"}', 't_s,x_mm', '0.0,0.0', '0.01,1.5']
+    ['# {"softphantom":"0.1.0","file_version":1}', 't_s,x_mm', '0.0,0.0', '0.01,1.5']
     >>> read_table(p).columns["x_mm"]
     array([0. , 1.5])
     """
-    path = Path(path)
-    names = list(columns)
-    cols = [np.asarray(columns[k]) for k in names]
-    n = {len(c) for c in cols}
-    if len(n) > 1:
-        raise ValueError(f"columns differ in length: {dict(zip(names, map(len, cols)))}")
-    buf = io.StringIO()
-    buf.write("# " + json.dumps(meta, default=str) + "\n")
-    w = csv.writer(buf, lineterminator="\n")
-    w.writerow(names)
-    for row in zip(*cols):
-        w.writerow([repr(float(v)) if isinstance(v, (float, np.floating)) else v for v in row])
-    path.write_text(buf.getvalue())
-    return path
+    return write_session_file(path, meta, {k: np.asarray(v) for k, v in columns.items()})
 
 
 def read_table(path: str | Path) -> Table:
-    """Read a softphantom CSV (metadata line optional); cells must be numbers except in the
-    text columns (``qp_status`` and any column whose cells are all non-numeric). A last line
-    without its newline is a row cut short (a truncated file): it is dropped with a
-    :class:`~softphantom.sensing.recording.TruncatedRecordingWarning` naming its byte offset."""
-    path = Path(path)
-    try:
-        data = path.read_bytes()
-    except OSError as exc:
-        raise FileFormatError(f"{path}: cannot read ({exc.strerror})") from None
-    data, cut = drop_unterminated_line(data)
-    try:
-        text = data.decode("utf-8")
-    except UnicodeDecodeError as exc:
-        raise FileFormatError(f"{path}: byte {exc.start}: not UTF-8 text") from None
-    lines = text.splitlines()
-    meta: dict = {}
-    first = 0
-    if lines and lines[0].startswith("#"):
-        try:
-            meta = json.loads(lines[0][1:].strip() or "{}")
-        except json.JSONDecodeError as exc:
-            raise FileFormatError(f"{path}: line 1: metadata is not JSON ({exc.msg} at column {exc.colno + 1})") from None
-        if not isinstance(meta, dict):
-            raise FileFormatError(f"{path}: line 1: metadata must be a JSON object")
-        first = 1
-    while first < len(lines) and not lines[first].strip():
-        first += 1
-    if first >= len(lines):
-        raise FileFormatError(f"{path}: no CSV header line (file empty or only metadata)")
-    rows = list(csv.reader(lines[first:]))
-    header = [h.strip() for h in rows[0]]
-    if len(set(header)) != len(header):
-        dup = sorted({h for h in header if header.count(h) > 1})
-        raise FileFormatError(f"{path}: line {first + 1}: duplicate columns {', '.join(dup)}")
-    body = []
-    for k, r in enumerate(rows[1:]):
-        lineno = first + 2 + k
-        if not any(c.strip() for c in r):
-            continue
-        if len(r) != len(header):
-            raise FileFormatError(f"{path}: line {lineno}: {len(r)} cells, the header has {len(header)}")
-        body.append((lineno, r))
-    if not body:
-        raise FileFormatError(f"{path}: line {first + 1}: header but no data rows")
+    """Read a session file (metadata line optional) into named columns: cells must be numbers
+    (empty: NaN) except in the text columns (``qp_status``, ``status`` and any column whose cells
+    are all non-numeric). A last line without its newline is a row cut short (a truncated file):
+    it is dropped with a :class:`~softphantom.records.TruncatedRecordingWarning` naming its byte
+    offset."""
+    f = read_session_file(path)
+    if not f.rows:
+        raise FileFormatError(f"{path}: line {f.header_line}: header but no data rows")
     cols: dict[str, np.ndarray] = {}
-    for j, name in enumerate(header):
-        cells = [r[j].strip() for _, r in body]
+    for j, name in enumerate(f.header):
+        cells = [r[j].strip() for _, r in f.rows]
         vals = np.empty(len(cells))
         bad = None
         for i, c in enumerate(cells):
@@ -143,18 +89,14 @@ def read_table(path: str | Path) -> Table:
         elif name in ("qp_status", "status") or not any(_is_number(c) for c in cells):
             cols[name] = np.array(cells, dtype=str)
         else:
-            raise FileFormatError(f"{path}: line {body[bad][0]}, column {name!r}: {cells[bad]!r} is not a number")
-    if cut:
-        warn_truncated(f"{path}: {cut_row_note(cut)}")
-    return Table(meta, cols, str(path))
+            raise FileFormatError(f"{path}: line {f.rows[bad][0]}, column {name!r}: {cells[bad]!r} is not a number")
+    return Table(f.meta, cols, str(path))
 
 
 @contextlib.contextmanager
 def collect_truncation_warnings(into: list[str]):
     """Move the truncation warnings raised inside into ``into`` (the file's ``meta["warnings"]``,
     which ``evaluate`` reports); other warnings pass on."""
-    from softphantom.sensing.recording import TruncatedRecordingWarning
-
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         yield into
@@ -189,12 +131,10 @@ def series_from_table(tab: Table, what: str) -> Series6:
         force = np.column_stack([c[k] for k in FORCE_COLUMNS])[ok]
     p_u = c["p_urethra_kPa"][ok] * 1e3 if "p_urethra_kPa" in c else None
     targets = {}
-    for k in c:
-        if k.endswith("_dx_mm"):
-            name = k[: -len("_dx_mm")]
-            keys = [f"{name}_d{a}_mm" for a in "xyz"]
-            if all(kk in c for kk in keys):
-                targets[name] = np.column_stack([c[kk] for kk in keys])[ok] * 1e-3
+    for name in target_names(c):
+        keys = target_columns(name)
+        if all(kk in c for kk in keys):
+            targets[name] = np.column_stack([c[kk] for kk in keys])[ok] * 1e-3
     order = np.argsort(t[ok], kind="stable")
     meta = dict(tab.meta)
     meta.setdefault("clock", "file t_s")
@@ -325,8 +265,8 @@ def write_truth(path: str | Path, series: Series6, meta: dict | None = None) -> 
     if series.p_urethra is not None:
         cols["p_urethra_kPa"] = series.p_urethra * 1e-3
     for name, d in series.targets.items():
-        for k, a in enumerate("xyz"):
-            cols[f"{name}_d{a}_mm"] = d[:, k] * 1e3
+        for k, col in enumerate(target_columns(name)):
+            cols[col] = d[:, k] * 1e3
     from softphantom import __version__
 
     keep = {k: v for k, v in series.meta.items() if k != "warnings"}  # (what reading it found, not the data)

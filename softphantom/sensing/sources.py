@@ -19,8 +19,8 @@ from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 
+from softphantom.records.measurement import EVENT_KINDS, Measurement, SourceEvent
 from softphantom.sensing.chain import SensorChain, Tare, nominal_tare, to_measurement
-from softphantom.sensing.measurement import Measurement
 from softphantom.sensing.protocol import (
     DataFrame,
     DecoderStats,
@@ -35,22 +35,6 @@ SILENCE_S = 0.5
 
 CLOCK_DRIFT = 0.005
 """How fast the host↔board clock offset may grow (the UNO's ceramic resonator: ±0.5 %)."""
-
-
-EVENT_KINDS = ("silent", "disconnected", "reconnected", "restart", "resumed", "retared")
-"""``silent`` no valid frame for ``silence_s``; ``disconnected`` the port failed (unplugged);
-``reconnected`` the port opened again; ``restart`` the board clock ran backwards (a reset, a new
-board: the UNO resets whenever its port is opened); ``resumed`` frames flow again after one of
-these (``detail`` says how long the hole was); ``retared`` a new tare is in force."""
-
-
-@dataclass(frozen=True)
-class SourceEvent:
-    """Something that happened to the link at host time ``t`` (s, the measurements' clock)."""
-
-    t: float
-    kind: str
-    detail: str = ""
 
 
 @dataclass(frozen=True)

@@ -27,7 +27,6 @@ neither and is read sequentially (``mcap recover`` rebuilds the index).
 
 from __future__ import annotations
 
-import csv
 import json
 import os
 import struct
@@ -44,8 +43,10 @@ from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
 from softphantom.errors import FileFormatError, UserError
-from softphantom.estimation.types import ARM_NAMES
-from softphantom.stream.schema import ESTIMATE_JSON_SCHEMA, csv_columns, encode, target_names
+from softphantom.records.measurement import measurement_to_message
+from softphantom.records.names import ARM_NAMES, CHANNEL_NAMES, POSE_COLUMNS, estimate_columns, target_names
+from softphantom.records.session import SessionWriter, read_session_file
+from softphantom.stream.schema import ESTIMATE_JSON_SCHEMA, encode
 
 TOPIC_ESTIMATE = "/estimate"
 TOPIC_SENSORS = "/sensors"
@@ -62,12 +63,12 @@ _NUM = {"type": ["number", "null"]}
 SENSORS_JSON_SCHEMA = _obj_schema(
     "softphantom.Measurement", "one sensor sample (sensing stage), gauge pressures tared",
     {"t_s": _NUM, "seq": {"type": "integer"}, "t_board_s": _NUM, "osr": {"type": "integer"},
-     **{f"raw_{n}": {"type": "integer"} for n in (*ARM_NAMES, "urethra")},
+     **{f"raw_{n}": {"type": "integer"} for n in CHANNEL_NAMES},
      **{f"dp_{a}_kPa": _NUM for a in ARM_NAMES}, **{f"dV_{a}_mm3": _NUM for a in ARM_NAMES},
      "p_urethra_kPa": _NUM, "status": {"type": "string"}})
 TRACKER_JSON_SCHEMA = _obj_schema(
     "softphantom.TrackerPose", "marker rigid body pose relative to rest, model frame",
-    {"t_s": _NUM, **{c: _NUM for c in ("x_mm", "y_mm", "z_mm", "yaw_deg", "pitch_deg", "roll_deg")},
+    {"t_s": _NUM, **{c: _NUM for c in POSE_COLUMNS},
      "valid": {"type": "boolean"}, "name": {"type": "string"}})
 GEOMETRY_JSON_SCHEMA = _obj_schema(
     "softphantom.LiveGeometry", "phantom outer surface at rest (see softphantom.viz.live)",
@@ -84,27 +85,10 @@ _SCHEMAS = {
 }
 
 
-def measurement_to_message(m: Any) -> dict[str, Any]:
-    """The ``/sensors`` message of a ``softphantom.sensing.Measurement`` (read by attribute)."""
-    msg: dict[str, Any] = {"t_s": float(m.t), "seq": int(m.seq), "t_board_s": float(m.t_board)}
-    raw = np.asarray(m.raw).ravel()
-    for name, v in zip((*ARM_NAMES, "urethra"), raw):
-        msg[f"raw_{name}"] = int(v)
-    msg["osr"] = int(m.osr)
-    for a, v in zip(ARM_NAMES, np.asarray(m.dp, float) * 1e-3):
-        msg[f"dp_{a}_kPa"] = float(v)
-    for a, v in zip(ARM_NAMES, np.asarray(m.dV, float) * 1e9):
-        msg[f"dV_{a}_mm3"] = float(v)
-    msg["p_urethra_kPa"] = float(m.p_urethra) * 1e-3
-    msg["status"] = str(m.status)
-    return msg
-
-
 def tracker_message(t: float, pose: Any, valid: bool = True, name: str = "") -> dict[str, Any]:
     """The ``/tracker`` message of a ``Pose6`` (``xyz`` m, ``ypr`` rad) at time ``t`` s."""
     v = np.concatenate([np.asarray(pose.xyz, float) * 1e3, np.degrees(np.asarray(pose.ypr, float))])
-    keys = ("x_mm", "y_mm", "z_mm", "yaw_deg", "pitch_deg", "roll_deg")
-    return {"t_s": float(t), **{k: float(x) for k, x in zip(keys, v)}, "valid": bool(valid), "name": name}
+    return {"t_s": float(t), **{k: float(x) for k, x in zip(POSE_COLUMNS, v)}, "valid": bool(valid), "name": name}
 
 
 class SessionRecorder:
@@ -285,30 +269,15 @@ def read_recording(path: str | os.PathLike) -> Recording:
     )
 
 
-def _cell(v: Any) -> str:
-    if v is None:
-        return "nan"
-    if isinstance(v, float):
-        return repr(v)
-    return str(v)
-
-
 def write_estimate_csv(messages: list[Mapping[str, Any]], out: str | os.PathLike,
                        metadata: Mapping[str, Any] | None = None) -> Path:
-    """Write estimate messages as the estimate CSV of docs/architecture.md (``nan`` for missing)."""
+    """Write estimate messages as the estimate file of docs/architecture.md (empty for missing)."""
     from softphantom import __version__
 
-    out = Path(out)
-    names = target_names(messages[0]) if messages else []
-    cols = csv_columns(names)
-    meta = {"softphantom": __version__, **(metadata or {})}
-    with open(out, "w", newline="") as fh:
-        fh.write("# " + json.dumps(meta) + "\n")
-        w = csv.writer(fh, lineterminator="\n")
-        w.writerow(cols)
-        for m in messages:
-            w.writerow([_cell(m.get(c)) for c in cols])
-    return out
+    cols = estimate_columns(target_names(messages[0]) if messages else [])
+    with SessionWriter(out, cols, {"softphantom": __version__, **(metadata or {})}, label=str(out)) as w:
+        w.write_rows([m.get(c) for c in cols] for m in messages)
+    return w.path
 
 
 def export_estimate_csv(recording: str | os.PathLike, out: str | os.PathLike) -> Path:
@@ -328,40 +297,23 @@ def export_estimate_csv(recording: str | os.PathLike, out: str | os.PathLike) ->
 
 
 def read_estimate_csv(path: str | os.PathLike) -> tuple[dict[str, Any], list[dict[str, Any]]]:
-    """Read an estimate CSV: its metadata line and one dict per row (numbers as float, except
-    ``qp_status``). Raises :class:`~softphantom.errors.FileFormatError` naming the line."""
-    path = Path(path)
-    try:
-        lines = path.read_text().splitlines()
-    except OSError as exc:
-        raise UserError(f"cannot read {path}: {exc.strerror}") from None
-    meta: dict[str, Any] = {}
-    i = 0
-    if lines and lines[0].startswith("#"):
-        try:
-            meta = json.loads(lines[0][1:])
-        except ValueError:
-            raise FileFormatError(f"{path}:1: metadata line is not JSON") from None
-        i = 1
-    if i >= len(lines):
-        raise FileFormatError(f"{path}: no CSV header")
-    rows = list(csv.reader(lines[i:]))
-    header = rows[0]
-    if "t_s" not in header or "force_y_N" not in header:
-        raise FileFormatError(f"{path}:{i + 1}: not an estimate CSV header (needs t_s, force_*_N)")
+    """Read an estimate file as messages: its metadata and one dict per row (numbers as float,
+    missing ones None; ``qp_status`` and ``status`` text). Raises
+    :class:`~softphantom.errors.FileFormatError` naming the line."""
+    f = read_session_file(path)
+    if "t_s" not in f.header or "force_y_N" not in f.header:
+        raise FileFormatError(f"{path}: line {f.header_line}: not an estimate CSV header (needs t_s, force_*_N)")
     out = []
-    for k, r in enumerate(rows[1:], start=i + 2):
-        if len(r) != len(header):
-            raise FileFormatError(f"{path}:{k}: {len(r)} cells, header has {len(header)}")
+    for k, (line, r) in enumerate(f.rows):
         d: dict[str, Any] = {}
-        for c, v in zip(header, r):
+        for c, v in zip(f.header, r):
             if c in ("qp_status", "status"):
                 d[c] = v
             else:
                 try:
                     d[c] = float(v) if v != "" else None
                 except ValueError:
-                    raise FileFormatError(f"{path}:{k}: column {c} is not a number: {v!r}") from None
-        d["seq"] = k - i - 2
+                    raise FileFormatError(f"{path}:{line}: column {c} is not a number: {v!r}") from None
+        d["seq"] = k
         out.append(d)
-    return meta, out
+    return f.meta, out

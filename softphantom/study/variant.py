@@ -36,9 +36,9 @@ import numpy as np
 
 from softphantom.errors import SoftphantomError
 from softphantom.study.config import DIRECTIONS, Variant
+from softphantom.records.names import ARM_NAMES as ARMS
+from softphantom.records.names import POSE_COLUMNS as POSE
 
-ARMS = ("front_zpos", "front_zneg", "back_xpos", "back_xneg")
-POSE = ("x_mm", "y_mm", "z_mm", "yaw_deg", "pitch_deg", "roll_deg")
 #: Columns that measure cost, not the design: left out when two runs are compared.
 TIMING_COLUMNS = ("mesh_s", "solve_s", "total_s", "cpu_s", "host")
 

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import time
 from pathlib import Path
 
@@ -26,6 +25,8 @@ import numpy as np
 
 from softphantom.errors import UserError
 from softphantom.pose import Pose6
+from softphantom.records.names import POSE_COLUMNS
+from softphantom.records.session import SessionWriter
 from softphantom.tracking.registration import DEFAULT_REST_WINDOW_S, pose_columns, register_track, rest_pose
 from softphantom.tracking.track import PoseTrack, make_track
 
@@ -72,7 +73,7 @@ class RestRegistrar:
             return None
         if self.rest is None:
             t = np.array([p[0] for p in self._pending])
-            cols = {"t_s": t, **{k: np.full(len(t), np.nan) for k in Pose6.COLUMNS}}
+            cols = {"t_s": t, **{k: np.full(len(t), np.nan) for k in POSE_COLUMNS}}
         else:
             cols = pose_columns(register_track(self._track(), rest=self.rest), keep_lost=gaps)
         self._pending.clear()
@@ -103,7 +104,7 @@ class TrackerSink:
         #: what the caller adds to the file's metadata at a clean close (client counters, how it stopped)
         self.end_meta: dict = {}
         self._rec = None
-        self._fh = None
+        self._fh: SessionWriter | None = None
         self._reg = RestRegistrar(body, rest_window_s)
         self._header: dict | None = None
         self._writing = False  # True while a write is under way: an exception then cuts it short
@@ -114,11 +115,8 @@ class TrackerSink:
             from softphantom.stream.recording import SessionRecorder
 
             self._rec = SessionRecorder(self.path, metadata=_strings(self._start_meta()))
-        else:
-            try:
-                self._fh = open(self.path, "w", newline="")
-            except OSError as exc:
-                raise UserError(f"cannot write {self.path}: {exc.strerror}") from None
+        else:  # the metadata line waits for the rest window
+            self._fh = SessionWriter(self.path, ("t_s",) + POSE_COLUMNS)
 
     def _start_meta(self) -> dict:
         return {**self.meta, "body": self.body, "complete": False}
@@ -145,7 +143,7 @@ class TrackerSink:
         self._header = {"softphantom": __version__, **self._start_meta(), "registration": "rest window",
                         "rest_window_s": [r.t0, r.t0 + self.rest_window_s] if rest else None,
                         "rest_spread_m": float(r.rest.rms_residual) if rest else None}
-        self._fh.write("# " + json.dumps(self._header, default=str) + "\n" + ",".join(("t_s",) + Pose6.COLUMNS) + "\n")
+        self._fh.start(self._header)
 
     def flush(self, finish: bool = False) -> None:
         if self._rec is not None:
@@ -156,9 +154,7 @@ class TrackerSink:
             return
         if self._header is None:
             self._write_header()
-        names = ("t_s",) + Pose6.COLUMNS
-        self._fh.write("".join(",".join(_cell(x) for x in row) + "\n" for row in zip(*(cols[k] for k in names))))
-        self._fh.flush()
+        self._fh.write_rows(zip(*(cols[k] for k in self._fh.columns)))
         self._last_flush = time.monotonic()
 
     def close(self, complete: bool = True) -> None:
@@ -172,29 +168,19 @@ class TrackerSink:
             else:
                 rec.abort()
         if self._fh is not None:
+            fh, final = self._fh, None
             try:
                 self.flush(finish=True)
                 if self._header is None:  # not one sample
                     self._write_header()
+                final = {**self._header, **end} if complete else None  # the final counts
             except Exception:
                 if complete:
                     raise
                 # the session failed already: keep what was written, and its error
             finally:
-                self._fh.close()
                 self._fh = None
-            if complete:
-                self._rewrite_header({**self._header, **end})
-
-    def _rewrite_header(self, meta: dict) -> None:
-        """The metadata line with the final counts, atomically (a crash here keeps the file as it was)."""
-        text = self.path.read_text()
-        tmp = self.path.with_name(f".{self.path.name}.partial-{os.getpid()}")
-        try:
-            tmp.write_text("# " + json.dumps(meta, default=str) + "\n" + text.partition("\n")[2])
-            os.replace(tmp, self.path)
-        finally:
-            tmp.unlink(missing_ok=True)
+                fh.close(final)
 
     def __enter__(self) -> "TrackerSink":
         return self
@@ -206,11 +192,6 @@ class TrackerSink:
 def _strings(meta: dict) -> dict[str, str]:
     """MCAP metadata values (strings; JSON's spelling of booleans and None)."""
     return {k: json.dumps(v) if isinstance(v, (bool, type(None))) else str(v) for k, v in meta.items()}
-
-
-def _cell(x: float) -> str:
-    """A CSV cell: the shortest exact repr, empty for a gap."""
-    return repr(float(x)) if math.isfinite(x) else ""
 
 
 def tracker_raw_message(t: float, position, quat_xyzw, valid: bool, name: str, frame: int | None = None,

@@ -23,8 +23,8 @@ import numpy as np
 from softphantom.errors import FileFormatError
 from softphantom.pose import matrix_from_ypr, quat_from_matrix
 from softphantom.tracking.track import PoseTrack, make_track, pick_body
+from softphantom.records.names import POSE_COLUMNS as _REL
 
-_REL = ("x_mm", "y_mm", "z_mm", "yaw_deg", "pitch_deg", "roll_deg")
 
 
 def _json(text: str):

@@ -10,7 +10,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.signal import correlate, correlation_lags
 
 
 @dataclass(frozen=True)
@@ -81,6 +80,8 @@ def estimate_lag(
     n = len(grid)
     d = ref.shape[1]
     w = np.ones(d) if weights is None else np.asarray(weights, float)
+    from scipy.signal import correlation_lags  # 1 s to import: only when aligning
+
     lags = correlation_lags(n, n)
     keep = np.abs(lags) * dt_s <= max_lag_s
     lags = lags[keep]
@@ -117,6 +118,8 @@ def _pearson_at_lags(a: np.ndarray, b: np.ndarray, lags: np.ndarray) -> np.ndarr
     n = len(a)
     a = a - a.mean()  # conditioning only; r is shift-invariant
     b = b - b.mean()
+    from scipy.signal import correlate
+
     full = correlate(b, a, mode="full", method="fft")[lags + n - 1]  # Σ a[i]·b[i+k]
     ca, cb = np.concatenate([[0.0], np.cumsum(a)]), np.concatenate([[0.0], np.cumsum(b)])
     ca2, cb2 = np.concatenate([[0.0], np.cumsum(a * a)]), np.concatenate([[0.0], np.cumsum(b * b)])

@@ -26,6 +26,7 @@ from softphantom.virtual.board import FIRMWARE, BoardConfig, BoardSignals, Virtu
 from softphantom.virtual.scenario import Scenario, load_scenario
 from softphantom.virtual.tracker import TrackerConfig, TrackerStream, simulate_tracker, write_motive_csv
 from softphantom.virtual.truth import Truth, TruthConfig, solve_truth, write_snapshot
+from softphantom.records.names import POSE_COLUMNS
 
 TRUTH_RATE_HZ = 120.0
 CHUNK_S = 0.1
@@ -93,7 +94,7 @@ class VirtualRun:
         s = self.truth.sample(t)
         cols: dict[str, np.ndarray] = {"t_s": t}
         v = s.pose.to_mm_deg()
-        for k, name in enumerate(("x_mm", "y_mm", "z_mm", "yaw_deg", "pitch_deg", "roll_deg")):
+        for k, name in enumerate(POSE_COLUMNS):
             cols[name] = v[:, k]
         for k, a in enumerate("xyz"):
             cols[f"force_{a}_N"] = s.force[:, k]

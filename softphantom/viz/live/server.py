@@ -27,10 +27,10 @@ import numpy as np
 
 from softphantom.errors import SoftphantomError, UserError
 from softphantom.stream.schema import encode, estimate_to_message
+from softphantom.records.names import EVENT_PREFIX
+from softphantom.records.names import POSE_COLUMNS as _TRACKER_KEYS
 from softphantom.viz.live.security import is_loopback
 
-STATIC_DIR = Path(__file__).with_name("static")
-EVENT_PREFIX = "event:"
 OUTAGE_EVENTS = ("silent", "disconnected", "reconnected")
 """Link events after which no sample arrives until ``resumed`` (docs/sensing.md §9)."""
 
@@ -63,7 +63,6 @@ class LiveConfig:
             raise UserError(f"max_clients must be >= 1, got {self.max_clients}")
 
 
-_TRACKER_KEYS = ("x_mm", "y_mm", "z_mm", "yaw_deg", "pitch_deg", "roll_deg")
 
 
 class LiveState:

@@ -19,6 +19,7 @@ import json
 import logging
 import socket
 import threading
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import h11
@@ -37,6 +38,8 @@ from softphantom.viz.live.security import (
 
 if TYPE_CHECKING:
     from softphantom.viz.live.server import LiveSession
+
+STATIC_DIR = Path(__file__).with_name("static")
 
 CLIENT_QUEUE = 64
 """Frames queued per browser (about 2 s at the default view rate)."""
@@ -145,7 +148,6 @@ class EventStream:
 
 def build_app(session: "LiveSession", hub: FrameHub) -> Starlette:
     """The page's ASGI app with the session's access policies."""
-    from softphantom.viz.live.server import STATIC_DIR
 
     cfg = session.config
     geometry = None if session.geometry_json is None else json.dumps(session.geometry_json).encode()

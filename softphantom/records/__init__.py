@@ -1,0 +1,39 @@
+"""Records: the small value objects that cross stages, their flat forms and the session file.
+
+The bottom of the stages (it imports only :mod:`softphantom.pose` and :mod:`softphantom.errors`),
+so reading any file or message needs nothing of the FEM or the estimator:
+
+- :mod:`~softphantom.records.names`: arm and channel names, the pose, force, estimate and
+  measurement column names, each defined once;
+- :mod:`~softphantom.records.estimate`: :class:`Estimate` and its one flat form (message = row);
+- :mod:`~softphantom.records.measurement`: :class:`Measurement`, :class:`SourceEvent`;
+- :mod:`~softphantom.records.track`: :class:`PoseTrack`;
+- :mod:`~softphantom.records.session`: the ``# {json}`` + CSV session file, one writer, one reader.
+"""
+
+from softphantom.records.estimate import Estimate, estimate_row, estimate_to_message, message_to_estimate
+from softphantom.records.measurement import Measurement, SourceEvent, measurement_to_message
+from softphantom.records.names import (
+    ARM_NAMES,
+    CHANNEL_NAMES,
+    FORCE_COLUMNS,
+    MEASUREMENT_COLUMNS,
+    POSE_COLUMNS,
+    estimate_columns,
+)
+from softphantom.records.session import (
+    FILE_VERSION,
+    SessionFile,
+    SessionWriter,
+    TruncatedRecordingWarning,
+    read_session_file,
+    write_session_file,
+)
+from softphantom.records.track import PoseTrack, make_track
+
+__all__ = [
+    "ARM_NAMES", "CHANNEL_NAMES", "FILE_VERSION", "FORCE_COLUMNS", "MEASUREMENT_COLUMNS", "POSE_COLUMNS",
+    "Estimate", "Measurement", "PoseTrack", "SessionFile", "SessionWriter", "SourceEvent",
+    "TruncatedRecordingWarning", "estimate_columns", "estimate_row", "estimate_to_message", "make_track",
+    "measurement_to_message", "message_to_estimate", "read_session_file", "write_session_file",
+]

@@ -1,0 +1,106 @@
+"""The sensing stage's records: :class:`Measurement` (one sensor sample) and :class:`SourceEvent`
+(something that happened to the link), and the one flat form of a measurement."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from softphantom.records.names import ARM_NAMES, CHANNEL_NAMES, EVENT_PREFIX, MEASUREMENT_COLUMNS
+
+
+@dataclass(frozen=True, eq=False)
+class Measurement:
+    """One sample of the sensing chain (SI units).
+
+    ``t`` s host clock, ``seq`` frame sequence number, ``t_board`` s board clock (centre of the
+    sampling window), ``raw`` ``(5,)`` oversampled ADC sums (4 arms then urethra, each in
+    ``0 .. 1023·osr``), ``osr`` readings summed per channel, ``dp`` ``(4,)`` Pa gauge pressure
+    change since tare, ``dV`` ``(4,)`` m³ cavity volume change (Boyle over cavity + tube),
+    ``p_urethra`` Pa gauge, ``status`` ``"ok"`` or a reason (e.g. ``"rail:back_xneg"``).
+
+    >>> m = Measurement(0.0, 1, 0.0, np.array([51200] * 5), 100, np.zeros(4), np.zeros(4), 0.0)
+    >>> m.status, m.raw.shape
+    ('ok', (5,))
+    """
+
+    t: float
+    seq: int
+    t_board: float
+    raw: np.ndarray
+    osr: int
+    dp: np.ndarray
+    dV: np.ndarray
+    p_urethra: float
+    status: str = "ok"
+
+    @property
+    def ok(self) -> bool:
+        """True when ``status == "ok"``."""
+        return self.status == "ok"
+
+
+EVENT_KINDS = ("silent", "disconnected", "reconnected", "restart", "resumed", "retared")
+"""``silent`` no valid frame for ``silence_s``; ``disconnected`` the port failed (unplugged);
+``reconnected`` the port opened again; ``restart`` the board clock ran backwards (a reset, a new
+board: the UNO resets whenever its port is opened); ``resumed`` frames flow again after one of
+these (``detail`` says how long the hole was); ``retared`` a new tare is in force."""
+
+
+@dataclass(frozen=True)
+class SourceEvent:
+    """Something that happened to the link at host time ``t`` (s, the measurements' clock)."""
+
+    t: float
+    kind: str
+    detail: str = ""
+
+    @property
+    def status(self) -> str:
+        """The ``status`` of its marker row: ``event:<kind>: <detail>``."""
+        return f"{EVENT_PREFIX}{self.kind}: {self.detail}"
+
+    @classmethod
+    def from_status(cls, t: float, status: str) -> "SourceEvent | None":
+        """The event of a marker row's ``status`` (None for a sample's)."""
+        if not status.startswith(EVENT_PREFIX):
+            return None
+        kind, _, detail = status[len(EVENT_PREFIX):].partition(": ")
+        return cls(float(t), kind, detail)
+
+
+def measurement_to_message(m: Measurement) -> dict[str, Any]:
+    """The flat, unit-named form of a measurement (keys :data:`MEASUREMENT_COLUMNS`): the
+    ``/sensors`` message of a recording (read by attribute, so any object with those fields).
+
+    >>> msg = measurement_to_message(Measurement(0.5, 3, 0.49, np.arange(5), 100, np.full(4, 1e3),
+    ...                                          np.full(4, 1e-9), 2e3))
+    >>> tuple(msg) == MEASUREMENT_COLUMNS, msg["dp_front_zpos_kPa"], msg["dV_back_xneg_mm3"], msg["raw_urethra"]
+    (True, 1.0, 1.0, 4)
+    """
+    msg: dict[str, Any] = {"t_s": float(m.t), "seq": int(m.seq), "t_board_s": float(m.t_board), "osr": int(m.osr)}
+    for name, v in zip(CHANNEL_NAMES, np.asarray(m.raw).ravel()):
+        msg[f"raw_{name}"] = int(v)
+    for a, v in zip(ARM_NAMES, np.asarray(m.dp, float) * 1e-3):
+        msg[f"dp_{a}_kPa"] = float(v)
+    for a, v in zip(ARM_NAMES, np.asarray(m.dV, float) * 1e9):
+        msg[f"dV_{a}_mm3"] = float(v)
+    msg["p_urethra_kPa"] = float(m.p_urethra) * 1e-3
+    msg["status"] = str(m.status)
+    return msg
+
+
+def measurement_row(m: Measurement) -> list[str]:
+    """The sensing recording's row of a measurement: its message, times and pressures to 1e-6 of
+    their unit (µs, mPa, 1e-6 mm³), raw sums exact."""
+    f = lambda x: "nan" if not math.isfinite(x) else f"{x:.6f}"  # noqa: E731
+    msg = measurement_to_message(m)
+    return [f(v) if isinstance(v, float) else str(v) for v in msg.values()]
+
+
+def event_row(ev: SourceEvent) -> list[str]:
+    """The marker row of a link event: its time, ``seq`` −1, ``osr`` 0, empty numbers, its status."""
+    return [f"{ev.t:.6f}", "-1", "nan", "0"] + ["0"] * len(CHANNEL_NAMES) + ["nan"] * 9 + [ev.status]

@@ -1,0 +1,64 @@
+"""The names every file, message and array order uses, defined once (docs/architecture.md).
+
+>>> estimate_columns(["apex"])[:5], estimate_columns(["apex"])[11:14]
+(['t_s', 'force_x_N', 'force_y_N', 'force_z_N', 'p_urethra_kPa'], ['apex_dx_mm', 'apex_dy_mm', 'apex_dz_mm'])
+>>> estimate_columns([])[-6:]
+['cond_W', 'qp_status', 'step_ms', 'skipped', 'status', 'in_envelope']
+>>> MEASUREMENT_COLUMNS[:5], MEASUREMENT_COLUMNS[-2:]
+(('t_s', 'seq', 't_board_s', 'osr', 'raw_front_zpos'), ('p_urethra_kPa', 'status'))
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+
+from softphantom.pose import Pose6
+
+ARM_NAMES: tuple[str, ...] = ("front_zpos", "front_zneg", "back_xpos", "back_xneg")
+"""Arm cavity order used in every length-4 array."""
+
+CHANNEL_NAMES: tuple[str, ...] = ARM_NAMES + ("urethra",)
+"""ADC channel order on the board (ADC0..ADC4): the four arms, then the urethra."""
+
+POSE_COLUMNS: tuple[str, ...] = Pose6.COLUMNS
+"""The 6-DoF pose relative to rest: ``x_mm, y_mm, z_mm, yaw_deg, pitch_deg, roll_deg``."""
+
+FORCE_COLUMNS: tuple[str, ...] = ("force_x_N", "force_y_N", "force_z_N")
+
+EVENT_PREFIX = "event:"
+"""``status`` of a link event's marker row: ``event:<kind>: <detail>``."""
+
+TARGET_SUFFIXES: tuple[str, ...] = ("_dx_mm", "_dy_mm", "_dz_mm")
+
+
+def target_columns(name: str) -> list[str]:
+    """The three displacement columns of target ``name``."""
+    return [name + s for s in TARGET_SUFFIXES]
+
+
+def target_names(columns: Iterable[str]) -> list[str]:
+    """Names of the targets among column names (or a message's keys), in order.
+
+    >>> target_names({"apex_dx_mm": 0, "apex_dy_mm": 0, "apex_dz_mm": 0, "x_mm": 0})
+    ['apex']
+    """
+    return [k[: -len(TARGET_SUFFIXES[0])] for k in columns if k.endswith(TARGET_SUFFIXES[0])]
+
+
+def estimate_columns(target_names: Iterable[str]) -> list[str]:
+    """The estimate file's header, in order (docs/architecture.md)."""
+    cols = ["t_s", *FORCE_COLUMNS, "p_urethra_kPa", *POSE_COLUMNS]
+    for n in target_names:
+        cols += target_columns(n)
+    cols += [f"dVpred_{a}_mm3" for a in ARM_NAMES] + [f"dVmeas_{a}_mm3" for a in ARM_NAMES]
+    return cols + ["cond_W", "qp_status", "step_ms", "skipped", "status", "in_envelope"]
+
+
+MEASUREMENT_COLUMNS: tuple[str, ...] = (
+    ("t_s", "seq", "t_board_s", "osr")
+    + tuple(f"raw_{c}" for c in CHANNEL_NAMES)
+    + tuple(f"dp_{a}_kPa" for a in ARM_NAMES)
+    + tuple(f"dV_{a}_mm3" for a in ARM_NAMES)
+    + ("p_urethra_kPa", "status")
+)
+"""A sensor sample's columns (sensing recording) and ``/sensors`` message keys."""
