@@ -4,7 +4,7 @@ explained, memory flat.
     .venv/bin/python benchmarks/bench_soak.py [--duration-s 300] [--model DIR] [--load 2]
 
 A writer thread plays a board at N = 25 (76.9 Hz, protocol v2, real time, the board clock in the
-frames) onto a pty; the host side is the real path: ``sensing.bench.open_source("serial:…")``
+frames) onto a pty; the host side is the real path: ``softphantom.sources.open_source("serial:…")``
 (tare on the first second at rest) → ``estimate_stream`` with the estimator (``--estimator``: atlas, the default of ``estimate``, or the async refresh one) → the estimate
 CSV. ``--load`` busy processes run alongside (the machine's two cores busy, as in the issue's
 soak). Reported: frames sent / received / estimated / skipped (with the reason: lagging more
@@ -33,7 +33,7 @@ sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 import softphantom.estimation.stream as stream_mod  # noqa: E402
 from softphantom.design import BIPDesign, build_model, load_model  # noqa: E402
 from softphantom.estimation import EstimatorConfig, estimate_stream, open_estimator  # noqa: E402
-from softphantom.sensing.bench import open_source  # noqa: E402
+from softphantom.sources import open_source  # noqa: E402
 from softphantom.sensing.board import frame_rate_Hz  # noqa: E402
 from softphantom.sensing.chain import MPXV7002, pa_to_counts  # noqa: E402
 from softphantom.sensing.protocol import encode_data, encode_info  # noqa: E402

@@ -1,4 +1,4 @@
-"""The bench in one place (softphantom.sensing.bench): BenchConfig, open_source, the tare, the
+"""The bench in one place (softphantom.sensing.bench): BenchConfig, open_source (softphantom.sources), the tare, the
 new-board policy, and the options reaching the commands and the recordings' metadata."""
 
 from __future__ import annotations
@@ -11,9 +11,10 @@ from softphantom.cli import main
 from softphantom.design import save_model
 from softphantom.errors import UserError
 from softphantom.evaluation.files import read_table
-from softphantom.sensing.bench import BenchConfig, NewBoardError, RetareSource, open_source
+from softphantom.sensing.bench import BenchConfig, NewBoardError, RetareSource
 from softphantom.sensing.chain import default_chain, nominal_tare
 from softphantom.sensing.measurement import TUBE_ID_M, TUBE_LENGTH_M
+from softphantom.sources import open_source
 from softphantom.sensing.pneumatics import tube_volume_m3
 from softphantom.sensing.protocol import encode_data
 from softphantom.sensing.recording import Recorder, read_recording

@@ -23,11 +23,11 @@ from softphantom.viz.live import (
     LiveConfig,
     LiveGeometry,
     LiveSession,
-    ReplaySource,
+    EstimateReplay,
     SyntheticSource,
     ellipsoid_geometry,
-    open_source,
 )
+from softphantom.sources import open_source
 from softphantom.viz.live.source import decode_positions_mm
 from softphantom.estimation import Estimator, EstimatorConfig
 from softphantom.viz.live import EstimatorSource
@@ -293,8 +293,8 @@ def test_replay_of_a_recording_shows_the_recorded_deformation(tmp_path):
     # the surface is recorded at ≤ 20 Hz: a few snapshots, each at an estimate, in order
     surf_seqs = [m["seq"] for m in r.surface]
     assert 2 <= len(surf_seqs) <= n and surf_seqs == sorted(set(surf_seqs)) and surf_seqs[-1] <= n - 1
-    rp = open_source(f"replay:{rec}", speed=0)
-    assert isinstance(rp, ReplaySource) and rp.geometry.nodes.shape == src.geometry.nodes.shape
+    rp = open_source(f"replay:{rec}", speed=0).source
+    assert isinstance(rp, EstimateReplay) and rp.geometry.nodes.shape == src.geometry.nodes.shape
     with LiveSession(rp, LiveConfig(http_port=0, stream_port=None)) as s2:
         assert s2.wait(timeout_s=120.0)
         st = json.loads(_get(s2.url + "api/state"))
@@ -305,7 +305,7 @@ def test_replay_of_a_recording_shows_the_recorded_deformation(tmp_path):
     np.testing.assert_allclose(final, decode_positions_mm(r.surface[-1]["positions_mm_f32_b64"]), atol=1e-6)
     # and an estimate CSV replays too (plots only: no geometry in a CSV)
     assert main(["recording-csv", str(rec), "--out", str(tmp_path / "e.csv")]) == 0
-    rc = open_source(f"replay:{tmp_path / 'e.csv'}", speed=0)
+    rc = open_source(f"replay:{tmp_path / 'e.csv'}", speed=0).source
     assert rc.geometry is None and len(list(rc)) == n
 
 

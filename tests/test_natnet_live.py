@@ -147,14 +147,15 @@ def test_track_body_choice(tmp_path, capsys, stream):
 
 def test_live_shows_and_records_the_tracker(tmp_path, stream):
     from softphantom.tracking.client import NatNetConfig
-    from softphantom.viz.live import LiveConfig, LiveSession, open_source
+    from softphantom.sources import open_source
+    from softphantom.viz.live import LiveConfig, LiveSession
     from softphantom.viz.live.tracker import NatNetTrackerFeed, TrackedSource
 
     port, stop, th = _serve(stream, speed=1.0)
     rec = tmp_path / "session.mcap"
     try:
         feed = NatNetTrackerFeed(NatNetConfig(command_port=port, data_port=0)).start()
-        src = TrackedSource(open_source("synthetic", rate_Hz=77.0, duration_s=None, speed=1.0), feed)
+        src = TrackedSource(open_source("synthetic", rate_Hz=77.0, duration_s=None, speed=1.0).source, feed)
         with LiveSession(src, LiveConfig(http_port=0, stream_port=None, record=rec, duration_s=1.5)) as s:
             s.wait(timeout_s=20)
             frame, _, _ = s.state.frame_since(-1, 0)

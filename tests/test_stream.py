@@ -236,7 +236,7 @@ def test_bad_recordings_give_typed_errors(tmp_path, capsys):
     assert "cannot read the recording" in capsys.readouterr().err
     bad = tmp_path / "bad.csv"
     bad.write_text("# {}\nt_s,force_x_N,force_y_N\n0.0,1.0\n")
-    with pytest.raises(FileFormatError, match=r"bad.csv:3"):
+    with pytest.raises(FileFormatError, match=r"bad.csv: line 3"):
         read_estimate_csv(bad)
 
 

@@ -24,26 +24,20 @@ NEW_BOARD_OPTION = typer.Option("stop", "--on-new-board", help="Serial: when the
                                 "(re-tare on the next --tare-s at rest and go on).")
 
 
-def _virtual_opener(arg: str, model, bench):
-    """The virtual phantom as a source kind of :func:`softphantom.sensing.bench.open_source`."""
-    try:
-        from softphantom.virtual import open_source
-    except ImportError:
-        raise UserError("--source virtual:…: the virtual phantom (softphantom.virtual) is not available "
-                        "in this installation") from None
-    from softphantom.progress import status
-
-    with status(f"virtual phantom: solving scenario {arg!r}", console):
-        return open_source(arg, model, bench=bench)
-
-
 def open_sensor_source(spec: str, model, *, tare_s: float = 1.0, on_new_board: str = "stop", **options):
-    """The opened ``--source`` (:class:`softphantom.sensing.bench.OpenedSource`) for ``estimate``
-    and ``live`` (its notes printed); ``options``: ``tube_length_m``, ``tube_id_mm``, ``p0_kPa`` (None = default)."""
-    from softphantom.sensing.bench import open_source
+    """The opened ``--source`` (:class:`softphantom.sensing.bench.OpenedSource`, sensor samples) for
+    ``estimate`` and ``live`` (its notes printed); ``options``: ``tube_length_m``, ``tube_id_mm``,
+    ``p0_kPa`` (None = default)."""
+    import contextlib
 
-    opened = open_source(spec, model, options=options, tare_s=tare_s, on_new_board=on_new_board,
-                         openers={"virtual": _virtual_opener})
+    from softphantom.progress import status
+    from softphantom.sources import open_source
+
+    virtual = spec.partition(":")[0] == "virtual"
+    with status(f"virtual phantom: solving scenario {spec.partition(':')[2]!r}", console) if virtual \
+            else contextlib.nullcontext():
+        opened = open_source(spec, model, options=options, tare_s=tare_s, on_new_board=on_new_board,
+                             want="measurements")
     for note in opened.notes:
         console.print(f"note: {note}", highlight=False, soft_wrap=True)
     return opened

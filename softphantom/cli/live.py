@@ -15,8 +15,8 @@ from softphantom.errors import UserError
 
 @app.command()
 def live(
-    source: str = typer.Option("synthetic", "--source", help="synthetic | replay:FILE (.mcap or estimate .csv) | "
-                               "virtual:SCENARIO | serial:PORT"),
+    source: str = typer.Option("synthetic", "--source", help="synthetic | replay:FILE (.mcap, estimate .csv, or a "
+                               "sensing recording: estimated) | virtual:SCENARIO | serial:PORT"),
     model: Optional[Path] = typer.Option(None, "--model", help="model directory (design output) for the 3-D view"),
     listen_host: str = typer.Option("127.0.0.1", "--listen-host",
                                     help="interface for the page and the stream; beyond loopback needs --allow-remote"),
@@ -49,7 +49,8 @@ def live(
     """Show the estimate live on a local web page, stream every estimate (ZeroMQ, JSON) and record
     the session (MCAP). Ctrl-C stops."""
     from softphantom.estimation.select import check_estimator_kind
-    from softphantom.viz.live import LiveConfig, LiveSession, open_source
+    from softphantom.sources import open_source, replay_holds
+    from softphantom.viz.live import LiveConfig, LiveSession
 
     check_estimator_kind(estimator)
     if not (0 < view_rate_Hz <= 120):
@@ -64,12 +65,12 @@ def live(
     if record is not None:
         check_output(record, overwrite=overwrite, directory=False, option="--record")
     token = _remote_token(listen_host, allow_remote)
-    kind = source.partition(":")[0]
-    if kind in ("virtual", "serial"):
+    kind, _, arg = source.partition(":")
+    if kind in ("virtual", "serial") or (kind == "replay" and replay_holds(arg) == "measurements"):
         src = _estimator_source(source, model, at, max_force_N, speed,
                                 dict(tube_length_m=tube_length_m, tube_id_mm=tube_id_mm), on_new_board, estimator)
     else:
-        src = open_source(source, model_dir=model, rate_Hz=rate_Hz, duration_s=None, speed=speed)
+        src = open_source(source, model, rate_Hz=rate_Hz, duration_s=None, speed=speed).source
     if tracker is not None:
         src = _with_tracker(src, tracker, tracker_body)
     cfg = LiveConfig(listen_host=listen_host, http_port=http_port, stream_port=None if no_stream else stream_port,

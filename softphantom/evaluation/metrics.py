@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from softphantom.evaluation.files import Series6
-from softphantom.sensing.bench import SCENARIO_CLOCK
+from softphantom.records.names import SCENARIO_CLOCK
 from softphantom.tracking.timing import LagResult, estimate_lag, shift_to_common_start
 
 DOF_NAMES = ("x", "y", "z", "yaw", "pitch", "roll")

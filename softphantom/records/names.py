@@ -28,6 +28,11 @@ FORCE_COLUMNS: tuple[str, ...] = ("force_x_N", "force_y_N", "force_z_N")
 EVENT_PREFIX = "event:"
 """``status`` of a link event's marker row: ``event:<kind>: <detail>``."""
 
+SCENARIO_CLOCK = "scenario (s)"
+"""The clock of the virtual phantom: its board, its recordings, its truth.csv and the estimates
+made from them all run on it (the ``clock`` of their metadata), so their lag is the estimator's
+latency alone."""
+
 TARGET_SUFFIXES: tuple[str, ...] = ("_dx_mm", "_dy_mm", "_dz_mm")
 
 

@@ -1,5 +1,6 @@
 """The bench in one place: tubing, cavities and ambient (:class:`BenchConfig`) → the sensor chain,
-opening a sensor source (:func:`open_source`) and taring it at rest (:func:`tare_at_rest`), and
+opening a board or a recording (:func:`open_serial`, :func:`open_replay`; the ``--source``
+registry is :mod:`softphantom.sources`) and taring it at rest (:func:`tare_at_rest`), and
 what to do when a new board appears mid-run (:class:`RetareSource`).
 
 ``acquire``, ``estimate``, ``live`` and the virtual phantom all take their chain from a
@@ -25,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from softphantom.errors import UserError
+from softphantom.records.names import SCENARIO_CLOCK
 from softphantom.sensing.chain import SensorChain, Tare, default_chain, nominal_tare, tare_from_window
 from softphantom.sensing.pneumatics import tube_volume_m3
 from softphantom.sensing.measurement import (
@@ -37,10 +39,6 @@ from softphantom.sensing.measurement import (
 )
 from softphantom.sensing.sources import SensorSource, SourceEvent, SourceStats
 
-SCENARIO_CLOCK = "scenario (s)"
-"""The clock of the virtual phantom: its board, its recordings, its truth.csv and the estimates
-made from them all run on it (the ``clock`` of their metadata), so their lag is the estimator's
-latency alone."""
 
 NEW_BOARD_POLICIES = ("stop", "retare")
 """What a run does when the board restarts or is replaced (a ``restart`` event): ``stop`` ends it
@@ -278,91 +276,84 @@ class RetareSource(SensorSource):
 
 @dataclass(frozen=True)
 class OpenedSource:
-    """What :func:`open_source` gives: the ``source``, ``live`` (a board: estimate the newest
-    samples, never wait for it), the ``bench`` its volumes follow, the ``tare`` in force, the
-    rest ``window`` it was tared on (serial), ``meta`` to store with any output, and ``notes`` (one
-    line each) the user should read, e.g. a recording's bench that could not be used."""
+    """What :func:`softphantom.sources.open_source` gives: the ``source``, ``live`` (a board:
+    estimate the newest samples, never wait for it), the ``bench`` its volumes follow, the ``tare``
+    in force, the rest ``window`` it was tared on (serial), ``meta`` to store with any output,
+    ``notes`` (one line each) the user should read, e.g. a recording's bench that could not be
+    used, and what it ``gives``: ``measurements`` (a :class:`SensorSource`) or ``estimates`` (an
+    estimate source of the live view)."""
 
     source: SensorSource
     live: bool
-    bench: BenchConfig
+    bench: BenchConfig | None
     tare: Tare | None
     window: tuple[Measurement, ...]
     meta: dict
     notes: tuple[str, ...] = ()
+    gives: str = "measurements"
 
 
-def open_source(spec: str, model=None, bench: BenchConfig | None = None, *, options: dict | None = None,
-                tare_s: float = 1.0, on_new_board: str = "stop", connect_timeout_s: float = 5.0,
-                baud: int = 115_200, osr: int | None = None, openers: dict[str, Callable] | None = None,
-                serial_opener: Callable | None = None) -> OpenedSource:
-    """Open ``--source``: ``serial:PORT`` (tared on its first ``tare_s`` at rest, then the
-    new-board policy), ``replay:FILE`` (a sensing recording: its own bench and tare; a bench that
-    differs re-converts the raw sums) or another kind from ``openers`` (``kind -> fn(arg, model,
-    bench)``, e.g. the virtual phantom's). The bench: ``bench`` if given, else the recording's /
-    the model's design / the paper's, with the CLI ``options`` (``tube_length_m``, ``tube_id_mm``,
-    ``p0_kPa``; None = keep) applied."""
+def open_replay(path: str, model=None, bench: BenchConfig | None = None, *, options: dict | None = None) -> OpenedSource:
+    """A sensing recording replayed: its own bench and tare; a bench that differs (``bench``, or the
+    CLI ``options`` ``tube_length_m``, ``tube_id_mm``, ``p0_kPa``; None = keep) re-converts the raw
+    sums. (``--source replay:FILE`` of a sensing recording: :func:`softphantom.sources.open_source`.)"""
+    from softphantom.sensing.recording import read_recording
+    from softphantom.sensing.sources import ReplaySource
+
     options = options or {}
-    kind, _, arg = spec.partition(":")
-    kinds = ["serial", "replay", *(openers or {})]
-    usage = ", ".join(f"{k}:…" for k in kinds)
-    if not arg:
-        raise UserError(f"--source {spec!r}: use {usage}")
-    if kind == "replay":
-        from softphantom.sensing.recording import read_recording
-        from softphantom.sensing.sources import ReplaySource
-
-        if not Path(arg).is_file():
-            raise UserError(f"--source replay:{arg}: no such file")
-        meta = read_recording(arg).meta
-        recorded = base = None
-        notes: tuple[str, ...] = ()
-        if "bench" in meta or "design" in meta:
-            try:
-                recorded = base = BenchConfig.from_meta(meta)
-            except UserError as exc:  # another program's or version's shape: the raw sums still hold
-                base = BenchConfig.from_model(model) if model is not None else BenchConfig()
-                why = str(exc).removeprefix("metadata: ")
-        use = bench or (BenchConfig.from_options(**options, base=base) if base or any(
-            v is not None for v in options.values()) else None)
-        if base is not None and recorded is None:
-            whose = "given" if bench is not None else "design's" if model is not None else "paper's"
-            notes = (f"replay:{arg}: {why}; using the {whose} bench ({use.describe()}), the volumes re-converted "
-                     "from the raw sums",)
-        reconvert = use is not None and not use.same_as(recorded)
-        src = ReplaySource(arg, chain=use.chain() if reconvert else None,
-                           tare=_retared_p0(meta, use) if reconvert else None)
-        return OpenedSource(src, False, use or BenchConfig(), None, (),
-                            {"bench": (use or BenchConfig()).to_meta(), "reconverted": reconvert,
-                             "recording_contact": meta.get("contact"), **({"bench_note": notes[0]} if notes else {}),
-                             **({"clock": SCENARIO_CLOCK} if meta.get("virtual") else {})},
-                            notes)
-    if kind == "serial":
-        from softphantom.sensing.sources import SerialSource
-
-        b = bench or BenchConfig.from_options(**options, model=model)
-        chain = b.chain()
-        kw = {"opener": serial_opener} if serial_opener is not None else {}
-        src = SerialSource(arg, chain, nominal_tare(chain, b.p0_Pa), baud=baud, osr=osr, **kw)
+    arg = path
+    if not Path(arg).is_file():
+        raise UserError(f"--source replay:{arg}: no such file")
+    meta = read_recording(arg).meta
+    recorded = base = None
+    notes: tuple[str, ...] = ()
+    if "bench" in meta or "design" in meta:
         try:
-            tare, window = tare_at_rest(src, b, tare_s, label=f"--source serial:{arg}",
-                                        connect_timeout_s=connect_timeout_s)
-        except BaseException:
-            src.close()
-            raise
-        src.set_tare(tare)
-        src.events()                            # connecting is not an outage
-        st = src.stats()
-        meta = {"bench": b.to_meta(), "tare": tare.to_dict(), "firmware": st.firmware, "osr": st.osr,
-                "protocol_version": st.decoder.version, "on_new_board": on_new_board}
-        return OpenedSource(RetareSource(src, b, on_new_board, tare_s, f"--source serial:{arg}"), True, b,
-                            tare, tuple(window), meta)
-    if openers and kind in openers:
-        b = bench or BenchConfig.from_options(**options, model=model)
-        src = openers[kind](arg, model, b)
-        return OpenedSource(src, bool(getattr(src, "live", False)), b, getattr(src, "tare", None), (),
-                            {"bench": b.to_meta()})
-    raise UserError(f"--source {spec!r}: unknown kind {kind!r}; use {usage}")
+            recorded = base = BenchConfig.from_meta(meta)
+        except UserError as exc:  # another program's or version's shape: the raw sums still hold
+            base = BenchConfig.from_model(model) if model is not None else BenchConfig()
+            why = str(exc).removeprefix("metadata: ")
+    use = bench or (BenchConfig.from_options(**options, base=base) if base or any(
+        v is not None for v in options.values()) else None)
+    if base is not None and recorded is None:
+        whose = "given" if bench is not None else "design's" if model is not None else "paper's"
+        notes = (f"replay:{arg}: {why}; using the {whose} bench ({use.describe()}), the volumes re-converted "
+                 "from the raw sums",)
+    reconvert = use is not None and not use.same_as(recorded)
+    src = ReplaySource(arg, chain=use.chain() if reconvert else None,
+                       tare=_retared_p0(meta, use) if reconvert else None)
+    return OpenedSource(src, False, use or BenchConfig(), None, (),
+                        {"bench": (use or BenchConfig()).to_meta(), "reconverted": reconvert,
+                         "recording_contact": meta.get("contact"), **({"bench_note": notes[0]} if notes else {}),
+                         **({"clock": SCENARIO_CLOCK} if meta.get("virtual") else {})},
+                        notes)
+
+
+def open_serial(port: str, model=None, bench: BenchConfig | None = None, *, options: dict | None = None,
+                tare_s: float = 1.0, on_new_board: str = "stop", connect_timeout_s: float = 5.0,
+                baud: int = 115_200, osr: int | None = None, serial_opener: Callable | None = None) -> OpenedSource:
+    """The board on ``port``, tared on its first ``tare_s`` at rest, then the new-board policy. The
+    bench: ``bench``, else the model's design / the paper's, with the CLI ``options`` applied.
+    (``--source serial:PORT``: :func:`softphantom.sources.open_source`.)"""
+    from softphantom.sensing.sources import SerialSource
+
+    b = bench or BenchConfig.from_options(**(options or {}), model=model)
+    chain = b.chain()
+    kw = {"opener": serial_opener} if serial_opener is not None else {}
+    src = SerialSource(port, chain, nominal_tare(chain, b.p0_Pa), baud=baud, osr=osr, **kw)
+    try:
+        tare, window = tare_at_rest(src, b, tare_s, label=f"--source serial:{port}",
+                                    connect_timeout_s=connect_timeout_s)
+    except BaseException:
+        src.close()
+        raise
+    src.set_tare(tare)
+    src.events()                            # connecting is not an outage
+    st = src.stats()
+    meta = {"bench": b.to_meta(), "tare": tare.to_dict(), "firmware": st.firmware, "osr": st.osr,
+            "protocol_version": st.decoder.version, "on_new_board": on_new_board}
+    return OpenedSource(RetareSource(src, b, on_new_board, tare_s, f"--source serial:{port}"), True, b,
+                        tare, tuple(window), meta)
 
 
 def _retared_p0(meta: dict, bench: BenchConfig) -> Tare:

@@ -313,7 +313,7 @@ def read_estimate_csv(path: str | os.PathLike) -> tuple[dict[str, Any], list[dic
                 try:
                     d[c] = float(v) if v != "" else None
                 except ValueError:
-                    raise FileFormatError(f"{path}:{line}: column {c} is not a number: {v!r}") from None
+                    raise FileFormatError(f"{path}: line {line}: column {c} is not a number: {v!r}") from None
         d["seq"] = k
         out.append(d)
     return f.meta, out

@@ -2,7 +2,7 @@
 tracker stream the real bench produces (DESIGN.md §1, §7; docs/virtual.md).
 
 ``load_scenario`` (TOML files in ``scenarios/``), ``solve_truth`` (finer mesh, converged Newton,
-keyframes in load), ``simulate`` → :class:`VirtualRun`, ``open_source`` → a
+keyframes in load), ``simulate`` → :class:`VirtualRun`, ``sensor_source`` → a
 :class:`~softphantom.sensing.sources.SensorSource` fed by the firmware's frames, ``write_run``
 (frames, recording, Motive CSV, truth CSV, snapshot VTU), ``serve_pty`` (a board on a pty).
 """
@@ -12,7 +12,7 @@ from softphantom.virtual.run import (
     VirtualConfig,
     VirtualRun,
     host_chain,
-    open_source,
+    sensor_source,
     run_summary,
     simulate,
     write_run,
@@ -39,7 +39,7 @@ __all__ = [
     "board_signals",
     "host_chain",
     "load_scenario",
-    "open_source",
+    "sensor_source",
     "run_summary",
     "scenario_from_dict",
     "simulate",

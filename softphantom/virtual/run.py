@@ -1,7 +1,7 @@
 """A virtual-phantom run: truth → sensor frames (a :class:`SensorSource`) + tracker stream + files.
 
 ``simulate(scenario, model)`` solves the truth (see :mod:`softphantom.virtual.truth`) and prepares
-the board and the tracker; ``open_source(scenario, model)`` gives the frames through the real
+the board and the tracker; ``sensor_source(scenario, model)`` gives the frames through the real
 decoder (:class:`~softphantom.sensing.sources.FrameSource`), tared on the rest window at the start
 exactly as ``softphantom acquire`` does; ``write_run`` writes the files of ``softphantom virtual
 run``.
@@ -130,7 +130,7 @@ def simulate(scenario: Scenario | str | Path, model: PhantomModel, config: Virtu
     return VirtualRun(sc, model, tr, sig, trk, host_chain(model, config.board), config)
 
 
-def open_source(scenario: Scenario | str | Path, model: PhantomModel, config: VirtualConfig = VirtualConfig(),
+def sensor_source(scenario: Scenario | str | Path, model: PhantomModel, config: VirtualConfig = VirtualConfig(),
                 progress: Callable[[int, int, str], None] | None = None, *, tare: bool = True,
                 run: VirtualRun | None = None, bench: BenchConfig | None = None) -> FrameSource:
     """A :class:`~softphantom.sensing.sources.SensorSource` of the virtual phantom running

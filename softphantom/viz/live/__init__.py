@@ -10,14 +10,13 @@ from softphantom.viz.live.server import LiveConfig, LiveSession, LiveState
 from softphantom.viz.live.source import (
     EstimateSource,
     LiveGeometry,
-    ReplaySource,
+    EstimateReplay,
     SyntheticSource,
     ellipsoid_geometry,
     EstimatorSource,
-    open_source,
 )
 
 __all__ = [
-    "EstimateSource", "LiveConfig", "LiveGeometry", "LiveSession", "LiveState", "ReplaySource",
-    "EstimatorSource", "SyntheticSource", "ellipsoid_geometry", "open_source",
+    "EstimateSource", "LiveConfig", "LiveGeometry", "LiveSession", "LiveState", "EstimateReplay",
+    "EstimatorSource", "SyntheticSource", "ellipsoid_geometry",
 ]

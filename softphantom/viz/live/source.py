@@ -12,8 +12,9 @@ The interface (:class:`EstimateSource`) is what the estimator must offer to be s
   ``/sensors``), ``poll_tracker()`` (tracker messages since the last call, recorded on ``/tracker``),
   ``close()``.
 
-:func:`open_source` turns the ``synthetic`` and ``replay:`` specs into sources;
-:class:`EstimatorSource` wraps a sensor source (board, virtual phantom) and the estimator.
+:func:`softphantom.sources.open_source` opens them by ``--source`` (``synthetic``; ``replay:`` of a
+session recording or an estimate file); :class:`EstimatorSource` wraps a sensor source (board,
+virtual phantom, sensing recording) and the estimator.
 """
 
 from __future__ import annotations
@@ -28,7 +29,8 @@ from typing import Any, Iterator, Mapping, Protocol, runtime_checkable
 import numpy as np
 
 from softphantom.errors import FileFormatError, UserError
-from softphantom.estimation.types import ARM_NAMES, Estimate
+from softphantom.records.estimate import Estimate, message_to_estimate
+from softphantom.records.names import ARM_NAMES
 
 
 TRI6_SPLIT = np.array([[0, 3, 5], [3, 1, 4], [5, 4, 2], [3, 4, 5]])
@@ -305,7 +307,7 @@ class SyntheticSource:
         return self._deform(self.geometry.nodes, *self._last)
 
 
-class ReplaySource:
+class EstimateReplay:
     """Replay estimates from a session recording (``.mcap``) or an estimate CSV.
 
     Paced by ``t_s`` (times ``speed``; ``speed=0`` as fast as possible). A recording with
@@ -336,8 +338,6 @@ class ReplaySource:
         self._t = -math.inf
 
     def __iter__(self) -> Iterator[Estimate]:
-        from softphantom.stream.schema import message_to_estimate
-
         t_first = float(self.messages[0].get("t_s") or 0.0)
         w0 = time.perf_counter()
         for m in self.messages:
@@ -417,32 +417,3 @@ class EstimatorSource:
     def close(self) -> None:
         self._est.close()
         self._sensor.close()
-
-
-def open_source(spec: str, *, model_dir: str | Path | None = None, rate_Hz: float = 77.0,
-                duration_s: float | None = None, speed: float = 1.0) -> EstimateSource:
-    """Parse ``--source``: ``synthetic``, ``replay:FILE`` (.mcap or estimate .csv), ``virtual:SCENARIO``,
-    ``serial:PORT``. Raises :class:`~softphantom.errors.UserError` for an unknown spec.
-
-    >>> open_source("synthetic", duration_s=0.1).rate_Hz
-    77.0
-    >>> open_source("bogus:x")
-    Traceback (most recent call last):
-    ...
-    softphantom.errors.UserError: unknown --source 'bogus:x'; use synthetic, replay:FILE, virtual:SCENARIO or serial:PORT
-    """
-    kind, _, arg = spec.partition(":")
-    model = Path(model_dir) if model_dir else None
-    if kind == "synthetic":
-        return SyntheticSource(rate_Hz=rate_Hz, duration_s=duration_s)
-    if kind == "replay" and arg:
-        geometry = None
-        if model is not None:
-            from softphantom.design import load_model  # only a replay with a model needs it
-
-            geometry = LiveGeometry.from_model(load_model(model))
-        return ReplaySource(arg, speed=speed, geometry=geometry)
-    if kind in ("virtual", "serial") and arg:
-        raise UserError(f"--source {spec}: the estimator runs in 'softphantom live' (the CLI opens the "
-                        "sensor source and wraps it in EstimatorSource)")
-    raise UserError(f"unknown --source {spec!r}; use synthetic, replay:FILE, virtual:SCENARIO or serial:PORT")
