@@ -62,6 +62,16 @@ def drop_unterminated_line(data: bytes) -> tuple[bytes, tuple[int, int, int] | N
     return data[:end], (len(data[:end].splitlines()) + 1, end, len(data) - end)
 
 
+def read_complete_lines(path) -> tuple[bytes, tuple[int, int, int] | None]:
+    """A text file's bytes up to its last newline, and what :func:`drop_unterminated_line`
+    dropped; a FileFormatError when it cannot be read."""
+    try:
+        data = Path(path).read_bytes()
+    except OSError as exc:
+        raise FileFormatError(f"{path}: cannot read ({exc.strerror})") from None
+    return drop_unterminated_line(data)
+
+
 def warn_truncated(message: str) -> None:
     """A file cut short that was read up to its last complete record (the message says what was
     dropped): a :class:`TruncatedRecordingWarning`, which ``read_truth`` keeps in
@@ -255,11 +265,7 @@ def read_session_file(path, *, require_meta: bool = False) -> SessionFile:
     naming its byte offset. Errors are :class:`~softphantom.errors.FileFormatError` naming the
     line: not UTF-8, bad metadata, no header, duplicate columns, a row of the wrong length."""
     path = Path(path)
-    try:
-        data = path.read_bytes()
-    except OSError as exc:
-        raise FileFormatError(f"{path}: cannot read ({exc.strerror})") from None
-    data, cut = drop_unterminated_line(data)
+    data, cut = read_complete_lines(path)
     try:
         text = data.decode("utf-8")
     except UnicodeDecodeError as exc:

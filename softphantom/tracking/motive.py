@@ -25,14 +25,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from softphantom.errors import FileFormatError
-from softphantom.tracking.track import (
-    PoseTrack,
-    cut_row_note,
-    drop_unterminated_line,
-    make_track,
-    pick_body,
-    warn_truncated,
-)
+from softphantom.records.session import cut_row_note, read_complete_lines, warn_truncated
+from softphantom.tracking.track import PoseTrack, make_track, pick_body
 
 _UNITS = {"meters": 1.0, "metres": 1.0, "m": 1.0, "centimeters": 1e-2, "centimetres": 1e-2, "cm": 1e-2,
           "millimeters": 1e-3, "millimetres": 1e-3, "mm": 1e-3}
@@ -96,11 +90,7 @@ def read_optitrack_legacy(path: str | Path, body: str | None = None, **_options)
 def _read_rows(path: Path) -> tuple[list[list[str]], list[int], tuple[int, int, int] | None]:
     """The rows (cells stripped), their line numbers, and the last line dropped for lack of its
     newline (:func:`drop_unterminated_line`: a row cut short)."""
-    try:
-        data = path.read_bytes()
-    except OSError as exc:
-        raise FileFormatError(f"{path}: cannot read ({exc.strerror})") from None
-    data, cut = drop_unterminated_line(data)
+    data, cut = read_complete_lines(path)
     try:
         text = data.decode("utf-8-sig")
     except UnicodeDecodeError as exc:
