@@ -78,7 +78,7 @@ def test_the_writer_versions_the_file_and_a_newer_version_is_refused_in_one_line
     f = read_session_file(p)
     assert f.meta["file_version"] == FILE_VERSION == f.version == 1
     newer = tmp_path / "newer.csv"
-    newer.write_text(p.read_text().replace('"file_version":1', '"file_version":2'))
+    newer.write_text(p.read_text().replace('"file_version": 1', '"file_version": 2'))
     with pytest.raises(FileFormatError, match=r"newer.csv: line 1: file_version 2 is newer than this softphantom reads \(1\)"):
         read_estimate(newer)
     assert main(["evaluate", "--estimate", str(newer), "--truth", str(p), "--out", str(tmp_path / "rep")]) == 2
@@ -100,7 +100,7 @@ def test_a_writer_hands_every_row_to_the_os_and_replaces_the_metadata_at_close(t
     assert p.read_text().splitlines()[2:] == ["0.0,1.0", "0.01,"]   # on disk before close
     w.close({"complete": True, "frames": 2})
     lines = p.read_text().splitlines()
-    assert lines[0] == '# {"complete":true,"frames":2,"file_version":1}' and len(lines) == 4
+    assert lines[0] == '# {"complete": true, "frames": 2, "file_version": 1}' and len(lines) == 4
     with pytest.raises(Exception, match="exists; recordings are never overwritten"):
         SessionWriter(p, ["t_s"], {}, exclusive=True)
 

@@ -57,7 +57,7 @@ def write_table(path: str | Path, meta: dict, columns: dict[str, np.ndarray]) ->
     >>> p = os.path.join(tempfile.mkdtemp(), "t.csv")
     >>> _ = write_table(p, {"softphantom": "0.1.0"}, {"t_s": [0.0, 0.01], "x_mm": [0.0, 1.5]})
     >>> open(p).read().splitlines()
-    ['# {"softphantom":"0.1.0","file_version":1}', 't_s,x_mm', '0.0,0.0', '0.01,1.5']
+    ['# {"softphantom": "0.1.0", "file_version": 1}', 't_s,x_mm', '0.0,0.0', '0.01,1.5']
     >>> read_table(p).columns["x_mm"]
     array([0. , 1.5])
     """

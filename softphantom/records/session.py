@@ -11,7 +11,7 @@ existed and reads the same; a newer version is refused in one line.
 >>> with SessionWriter(p, ["t_s", "x_mm", "status"], {"softphantom": "0.1.0"}) as w:
 ...     w.write_row([0.0, 1.5, "ok"]); w.write_row([0.01, float("nan"), "a, b"])
 >>> open(p).read().splitlines()
-['# {"softphantom":"0.1.0","file_version":1}', 't_s,x_mm,status', '0.0,1.5,ok', '0.01,,a; b']
+['# {"softphantom": "0.1.0", "file_version": 1}', 't_s,x_mm,status', '0.0,1.5,ok', '0.01,,a; b']
 >>> f = read_session_file(p)
 >>> f.meta["softphantom"], f.header, [cells for _, cells in f.rows]
 ('0.1.0', ['t_s', 'x_mm', 'status'], [['0.0', '1.5', 'ok'], ['0.01', '', 'a; b']])
@@ -100,7 +100,7 @@ def cell(v: Any) -> str:
 
 def meta_line(meta: dict) -> str:
     """The first line: ``# `` + the metadata as compact JSON, with :data:`VERSION_KEY`."""
-    return "# " + json.dumps({**meta, VERSION_KEY: FILE_VERSION}, separators=(",", ":"), default=str) + "\n"
+    return "# " + json.dumps({**meta, VERSION_KEY: FILE_VERSION}, default=str) + "\n"
 
 
 class SessionWriter:
