@@ -15,7 +15,6 @@ from softphantom.cli.app import app, console
 from softphantom.cli.options import check_output, overwrite_option, staged_output
 from softphantom.errors import SolverError, UserError
 from softphantom.fem.contact import DEFAULT_CONTACT_RADIUS_M
-from softphantom.records.names import ARM_NAMES as ARM_ORDER
 from softphantom.records.names import POSE_COLUMNS
 
 

@@ -19,7 +19,7 @@ from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 
-from softphantom.records.measurement import EVENT_KINDS, Measurement, SourceEvent
+from softphantom.records.measurement import EVENT_KINDS, Measurement, SourceEvent  # noqa: F401  (EVENT_KINDS, SourceEvent: re-exported)
 from softphantom.sensing.chain import SensorChain, Tare, nominal_tare, to_measurement
 from softphantom.sensing.protocol import (
     DataFrame,

@@ -43,7 +43,7 @@ from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
 from softphantom.errors import FileFormatError, UserError
-from softphantom.records.measurement import measurement_to_message
+from softphantom.records.measurement import measurement_to_message  # noqa: F401  (re-exported)
 from softphantom.records.names import ARM_NAMES, CHANNEL_NAMES, POSE_COLUMNS, estimate_columns, target_names
 from softphantom.records.session import SessionWriter, read_session_file
 from softphantom.stream.schema import ESTIMATE_JSON_SCHEMA, encode

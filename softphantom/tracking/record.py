@@ -24,7 +24,6 @@ from pathlib import Path
 import numpy as np
 
 from softphantom.errors import UserError
-from softphantom.pose import Pose6
 from softphantom.records.names import POSE_COLUMNS
 from softphantom.records.session import SessionWriter
 from softphantom.tracking.registration import DEFAULT_REST_WINDOW_S, pose_columns, register_track, rest_pose
