@@ -77,28 +77,26 @@ def _num(x: Any) -> float | None:
     return v if math.isfinite(v) else None
 
 
+def _nums(a: Any, scale: float = 1.0) -> list[float | None]:
+    return [v if math.isfinite(v) else None for v in (np.asarray(a, float).ravel() * scale).tolist()]
+
+
 def estimate_to_message(est: Estimate, seq: int | None = None, t_pub_unix_s: float | None = None) -> dict[str, Any]:
     """The flat, unit-named form of one estimate: the estimate-file columns (non-finite numbers
     ``None``), plus ``seq`` and ``t_pub_unix_s`` when given (the stream's)."""
-    pose = np.concatenate([np.asarray(est.pose.xyz, float) * 1e3, np.degrees(np.asarray(est.pose.ypr, float))])
-    f = np.asarray(est.force, float)
     m: dict[str, Any] = {}
     if seq is not None:
         m["seq"] = int(seq)
     m["t_s"] = _num(est.t)
     if t_pub_unix_s is not None:
         m["t_pub_unix_s"] = float(t_pub_unix_s)
-    for k, v in zip(FORCE_COLUMNS, f):
-        m[k] = _num(v)
+    m.update(zip(FORCE_COLUMNS, _nums(est.force)))
     m["p_urethra_kPa"] = _num(est.p_urethra * 1e-3)
-    for k, v in zip(POSE_COLUMNS, pose):
-        m[k] = _num(v)
+    m.update(zip(POSE_COLUMNS, _nums(est.pose.xyz, 1e3) + _nums(np.degrees(np.asarray(est.pose.ypr, float)))))
     for name, d in est.target_shift.items():
-        for k, v in zip(target_columns(name), np.asarray(d, float) * 1e3):
-            m[k] = _num(v)
-    for prefix, vol in (("dVpred", est.volume_pred), ("dVmeas", est.volume_meas)):
-        for a, v in zip(ARM_NAMES, np.asarray(vol, float) * 1e9):
-            m[f"{prefix}_{a}_mm3"] = _num(v)
+        m.update(zip(target_columns(name), _nums(d, 1e3)))
+    m.update(zip([f"dVpred_{a}_mm3" for a in ARM_NAMES], _nums(est.volume_pred, 1e9)))
+    m.update(zip([f"dVmeas_{a}_mm3" for a in ARM_NAMES], _nums(est.volume_meas, 1e9)))
     m["cond_W"] = _num(est.cond_W)
     m["qp_status"] = str(est.qp_status)
     m["step_ms"] = _num(est.step_time * 1e3)

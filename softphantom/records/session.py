@@ -86,6 +86,8 @@ def cell(v: Any) -> str:
     >>> [cell(x) for x in (0.1, float("inf"), None, True, 3, "a,b\\nc")]
     ['0.1', '', '', '1', '3', 'a;b c']
     """
+    if type(v) is float:                     # the common case first: a row is mostly floats
+        return repr(v) if math.isfinite(v) else ""
     if v is None:
         return ""
     if isinstance(v, str):
