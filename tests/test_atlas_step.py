@@ -238,3 +238,17 @@ def test_stretched_axis_follows_a_sharp_step_about_zero_force():
         values = np.broadcast_to(np.tanh((fx - 0.01) / 0.05)[:, None, None, None], acfg.shape).copy()
         err[w] = np.abs(_fit_and_eval(values, acfg, lams) - np.tanh((lams[:, 0] - 0.01) / 0.05)).max()
     assert err[0.0] > 0.8 and err[0.05] < 0.12
+
+
+def test_the_estimator_reads_only_the_atlas_public_interface():
+    """``AtlasEstimator`` uses the atlas through its public names (``Atlas.kernel``, ``points``, …):
+    no ``obj._name`` on anything but itself."""
+    import ast
+    import inspect
+
+    import softphantom.estimation.atlas_estimator as mod
+
+    private = [f"{ast.unparse(n.value)}.{n.attr}" for n in ast.walk(ast.parse(inspect.getsource(mod)))
+               if isinstance(n, ast.Attribute) and n.attr.startswith("_") and not n.attr.startswith("__")
+               and not (isinstance(n.value, ast.Name) and n.value.id == "self")]
+    assert not private, private
