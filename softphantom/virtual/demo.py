@@ -235,7 +235,7 @@ def run_all(scs, model, out: Path, cfg, truth_mesh, estimator: str = "atlas", gr
     shared = shared_atlases(scs, grid) if estimator == "atlas" else {}
     order = sorted(scs, key=lambda sc: push_only(sc) in shared)  # stable: the others first
     bar = progress_bar(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                       TextColumn("{task.fields[what]}"), **({} if console is None else {"console": console}))
+                       TextColumn("{task.fields[what]}"), console=console)
     rows: dict[str, dict] = {}
     truths: dict[str, object] = {}
     ready: queue.Queue = queue.Queue()
