@@ -33,7 +33,8 @@ sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 
 from softphantom.design import BIPDesign, build_model, load_model  # noqa: E402
 from softphantom.estimation import EstimatorConfig  # noqa: E402
-from softphantom.estimation.atlas import _solve_ux, _to_chebyshev, cheb_points, x_patch  # noqa: E402
+from softphantom.estimation.atlas_basis import cheb_points, to_chebyshev  # noqa: E402
+from softphantom.estimation.atlas_build import _solve_ux, x_patch  # noqa: E402
 from softphantom.estimation.atlas_kernels import axis_t  # noqa: E402
 from softphantom.estimation.forward import ForwardModel  # noqa: E402
 from softphantom.pose import Pose6, rigid_fit  # noqa: E402
@@ -101,7 +102,7 @@ def interpolation_errors(vals: dict, fine: np.ndarray, ref: np.ndarray, ns, ws):
     for n in ns:
         for w in ws:
             xs = cheb_points(n, FX_LO_N, FX_HI_N, w)
-            coef = _to_chebyshev(np.array([vals[round(float(x), 9)] for x in xs]), (n,))
+            coef = to_chebyshev(np.array([vals[round(float(x), 9)] for x in xs]), (n,))
             t = np.array([axis_t(x, FX_LO_N, FX_HI_N, w)[0] for x in fine])
             err = np.abs(np.stack([chebyshev.chebval(t, coef[:, j]) for j in range(ref.shape[1])], 1) - ref)
             yield n, w, err, int(np.argmax(err[:, 4]))

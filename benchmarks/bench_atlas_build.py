@@ -34,7 +34,8 @@ import numpy as np  # noqa: E402
 
 from softphantom.design import BIPDesign, build_model, load_model  # noqa: E402
 from softphantom.estimation import AtlasConfig, EstimatorConfig  # noqa: E402
-from softphantom.estimation.atlas import X_CONTROLS, _sweep, atlas_key, atlas_path, build_atlas  # noqa: E402
+from softphantom.estimation.atlas import X_CONTROLS, atlas_key, atlas_path, build_atlas, save_atlas  # noqa: E402
+from softphantom.estimation.atlas_build import _sweep  # noqa: E402
 from softphantom.estimation.select import atlas_config_from_options  # noqa: E402
 from softphantom.estimation.forward import ForwardModel  # noqa: E402
 from bench_estimate import start_load, stop_load  # noqa: E402 - the benchmarks' busy processes
@@ -116,7 +117,7 @@ def main() -> None:
           f"peak RSS of this process {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e3:.0f} MB; "
           f"load average {load0[0]:.1f} at start, {load1[0]:.1f} at end")
     if a.cache:
-        path = at.save(atlas_path(a.cache, atlas_key(ForwardModel(model, cfg), acfg)))
+        path = save_atlas(at, atlas_path(a.cache, atlas_key(ForwardModel(model, cfg), acfg)))
         print(f"atlas written to {path}")
     n_pts = at.build_cpu_s / n
     if a.peer_points:

@@ -24,7 +24,7 @@ import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 
-import softphantom.estimation.atlas as A  # noqa: E402
+import softphantom.estimation.atlas_build as A  # noqa: E402
 import softphantom.estimation.linearization as L  # noqa: E402
 from softphantom.design import load_model  # noqa: E402
 from softphantom.estimation import AtlasConfig, EstimatorConfig  # noqa: E402

@@ -48,7 +48,7 @@ def main(argv=None) -> int:
         print(f"skipped: no demo output in {a.demo} (run make demo, or give --demo DIR)")
         return 0
 
-    from softphantom.cli.demo import _push_only, shared_atlases
+    from softphantom.virtual.demo import push_only, shared_atlases
     from softphantom.cli.estimation import open_sensor_source
     from softphantom.design import load_model
     from softphantom.estimation import EstimatorConfig, open_estimator
@@ -58,7 +58,7 @@ def main(argv=None) -> int:
 
     model = load_model(a.demo / "model")
     sc = load_scenario(a.scenario)
-    contact = _push_only(sc)
+    contact = push_only(sc)
     if contact is None:
         sys.exit(f"--scenario {a.scenario}: not a push at one contact point")
     grid = tuple(int(v) for v in a.grid.split(",")) if a.grid else None

@@ -15,7 +15,8 @@ from softphantom.estimation import (
     AtlasConfig, AtlasEstimator, Estimator, EstimatorConfig, ForwardModel, StateEstimator, build_atlas,
     load_or_build, open_estimator,
 )
-from softphantom.estimation.atlas import FORMAT, Atlas, AtlasCorrupt, _to_chebyshev, atlas_key, atlas_path, cheb_basis
+from softphantom.estimation.atlas_basis import cheb_basis, to_chebyshev
+from softphantom.estimation.atlas_store import FORMAT, AtlasCorrupt, atlas_key, atlas_path, load_atlas, save_atlas
 from softphantom.pose import Pose6, rigid_fit
 from softphantom.sensing import Measurement
 
@@ -64,7 +65,7 @@ def test_chebyshev_tensor_interpolation_is_exact_for_polynomials():
     axes = [-np.cos(np.pi * np.arange(n) / (n - 1)) for n in shape]
     g = np.meshgrid(*axes, indexing="ij")
     f = (1 + g[0] - 2 * g[0] ** 2) * (g[1] ** 3 - g[1]) + g[2] * g[3] + 0.5 * g[2] ** 2
-    c = _to_chebyshev(f[..., None], shape)[..., 0]
+    c = to_chebyshev(f[..., None], shape)[..., 0]
     x = (0.3, -0.7, 0.45, -0.2)
     b = [cheb_basis(t, n)[0] for t, n in zip(x, shape)]
     val = np.einsum("i,j,k,l,ijkl->", *b, c)
@@ -92,12 +93,12 @@ def test_lines_through_their_own_first_axis_points_are_interpolated_exactly():
 
     g = np.meshgrid(*lob, indexing="ij")
     values = f(t0, g[1], g[2], g[3])[..., None]
-    coef = _to_chebyshev(values, shape, t0)[..., 0]
+    coef = to_chebyshev(values, shape, t0)[..., 0]
     x = (0.21, -0.4, 0.77, -0.3)
     b = [cheb_basis(t, n)[0] for t, n in zip(x, shape)]
     assert np.einsum("i,j,k,l,ijkl->", *b, coef) == pytest.approx(f(*x), abs=1e-12)
     plain = f(np.broadcast_to(lob[0].reshape(-1, 1, 1, 1), shape), g[1], g[2], g[3])[..., None]
-    assert np.allclose(_to_chebyshev(plain, shape), _to_chebyshev(plain, shape, np.broadcast_to(
+    assert np.allclose(to_chebyshev(plain, shape), to_chebyshev(plain, shape, np.broadcast_to(
         lob[0].reshape(-1, 1, 1, 1), shape)), atol=1e-13)
 
 
@@ -131,7 +132,7 @@ def test_displacement_axis_points_sit_at_their_patch_displacement(atlas_disp, fw
     x-displacement (work-conjugate to f_x) is halfway between the faces', and its coordinate q is
     where it is — a property of the equilibria, checked on independent solves at the faces and at
     the f_x the build found."""
-    from softphantom.estimation.atlas import NODE_TOL, x_patch
+    from softphantom.estimation.atlas_build import NODE_TOL, x_patch
 
     h = x_patch(fwd)
     ax = ACFG.axes()
@@ -201,8 +202,8 @@ def test_out_of_envelope_is_flagged_and_clamped(coarse_model, atlas, fwd):
 @pytest.mark.slow
 def test_cache_round_trip_mismatch_and_corruption(coarse_model, atlas, fwd, tmp_path, monkeypatch):
     path = atlas_path(tmp_path, atlas.key)
-    atlas.save(path)
-    back = Atlas.load(path, atlas.key)
+    save_atlas(atlas, path)
+    back = load_atlas(path, atlas.key)
     assert np.array_equal(back.cV, atlas.cV) and back.config.as_dict() == ACFG.as_dict()
     assert back.config.force_cluster_N == ACFG.cluster_N  # the file keeps the stretch it was built with
     # another contact patch, law parameter or envelope → another key; the file is refused in one line
@@ -213,11 +214,11 @@ def test_cache_round_trip_mismatch_and_corruption(coarse_model, atlas, fwd, tmp_
     assert atlas_key(fwd, dataclasses.replace(ACFG, force_cluster_N=ACFG.cluster_N)) == atlas.key  # the default, given
     assert atlas_key(fwd, dataclasses.replace(ACFG, force_cluster_N=(0.1, 0.0, 0.0))) != atlas.key
     with pytest.raises(UserError, match="built for another model") as exc:
-        Atlas.load(path, atlas_key(other, ACFG))
+        load_atlas(path, atlas_key(other, ACFG))
     assert "\n" not in str(exc.value)
     # the cached file is used as is
     built = []
-    monkeypatch.setattr("softphantom.estimation.atlas.build_atlas", lambda *a, **k: built.append(1) or atlas)
+    monkeypatch.setattr("softphantom.estimation.atlas_build.build_atlas", lambda *a, **k: built.append(1) or atlas)
     msgs = []
     assert load_or_build(coarse_model, CFG, ACFG, cache_dir=tmp_path, log=msgs.append, fwd=fwd).key == atlas.key
     assert not built
@@ -226,7 +227,7 @@ def test_cache_round_trip_mismatch_and_corruption(coarse_model, atlas, fwd, tmp_
     raw[len(raw) // 2] ^= 0xFF
     path.write_bytes(bytes(raw))
     with pytest.raises(AtlasCorrupt):
-        Atlas.load(path)
+        load_atlas(path)
     with pytest.raises(AtlasCorrupt, match="atlas build --model .* --rebuild") as exc:
         load_or_build(coarse_model, CFG, ACFG, cache_dir=tmp_path, log=msgs.append, fwd=fwd)
     assert str(path) in str(exc.value) and "\n" not in str(exc.value)
@@ -234,10 +235,10 @@ def test_cache_round_trip_mismatch_and_corruption(coarse_model, atlas, fwd, tmp_
     # asked to rebuild: built and rewritten intact
     load_or_build(coarse_model, CFG, ACFG, cache_dir=tmp_path, log=msgs.append, fwd=fwd, rebuild=True)
     assert built == [1] and any("rebuilding" in m for m in msgs)
-    assert np.array_equal(Atlas.load(path, atlas.key).cV, atlas.cV)  # rewritten intact
+    assert np.array_equal(load_atlas(path, atlas.key).cV, atlas.cV)  # rewritten intact
     path.write_bytes(b"not an npz")
     with pytest.raises(AtlasCorrupt, match="not a readable atlas file"):
-        Atlas.load(path)
+        load_atlas(path)
     # the atlas/ directory given instead of the model's: one line says so before the build
     msgs.clear()
     load_or_build(coarse_model, CFG, ACFG, cache_dir=path.parent, log=msgs.append, fwd=fwd)
@@ -267,7 +268,7 @@ def test_atlas_files_are_verified_described_and_installed(coarse_model, atlas, t
     from softphantom.design import save_model
 
     model_dir = save_model(coarse_model, tmp_path / "model")
-    path = atlas.save(atlas_path(model_dir, atlas.key))
+    path = save_atlas(atlas, atlas_path(model_dir, atlas.key))
     assert main(["atlas", "verify", "--model", str(model_dir)]) == 0
     assert "ok" in capsys.readouterr().out
     assert main(["atlas", "info", "--model", str(model_dir)]) == 0
@@ -314,7 +315,7 @@ def test_a_model_directory_is_no_misplaced_atlas_cache(coarse_model, atlas, fwd,
     atlas says nothing about "atlas files"; a directory holding an atlas file (named by its key) does."""
     from softphantom.design import save_model
 
-    monkeypatch.setattr("softphantom.estimation.atlas.build_atlas", lambda *a, **k: atlas)
+    monkeypatch.setattr("softphantom.estimation.atlas_build.build_atlas", lambda *a, **k: atlas)
     save_model(coarse_model, tmp_path / "model")
     assert (tmp_path / "model" / "model.npz").is_file()
     msgs = []
@@ -364,7 +365,7 @@ def test_cli_estimate_atlas_option(coarse_model, atlas, tmp_path, capsys):
     record(rec, 1.0)
     out = tmp_path / "est.csv"
     # the options give the fixture's envelope and grid: the CLI finds the atlas saved under its key
-    atlas.save(atlas_path(d, atlas.key))
+    save_atlas(atlas, atlas_path(d, atlas.key))
     args = ["estimate", "--model", str(d), "--source", f"replay:{rec}", "--out", str(out),
             "--atlas-grid", "3,4,3,2", "--envelope", "-0.5:0.5,-0.3:1.2,-0.5:0.5,-1:4"]
     assert main(args) == 0
@@ -417,7 +418,7 @@ def test_unreachable_grid_points_are_filled_and_flagged(coarse_model, fwd, monke
             x = fwd.fem.x_rest + B @ lam
             return SimpleNamespace(V=A @ lam, x=x, sub_x=(fwd.probe @ x.reshape(-1, 3)), lam=lam)
 
-    monkeypatch.setattr("softphantom.estimation.atlas.ForwardModel", Linear)
+    monkeypatch.setattr("softphantom.estimation.atlas_build.ForwardModel", Linear)
     lines = []
     at = build_atlas(coarse_model, CFG, ACFG, n_workers=1, processes=False, progress=False, fwd=fwd,
                      log=lines.append)
@@ -463,7 +464,7 @@ def test_an_atlas_in_pieces_along_f_y_follows_a_kink_one_polynomial_cannot(coars
     each piece is cached as the plain atlas of its range."""
     from types import SimpleNamespace
 
-    from softphantom.estimation.atlas import AtlasPatches
+    from softphantom.estimation.atlas_map import AtlasPatches
 
     rng = np.random.default_rng(11)
     A = rng.normal(size=(4, 4)) * np.array([1e-9, 1e-9, 1e-9, 1e-12])  # m³ per N, m³ per Pa
@@ -488,7 +489,7 @@ def test_an_atlas_in_pieces_along_f_y_follows_a_kink_one_polynomial_cannot(coars
     pieces = dataclasses.replace(cfg4, f_y_splits_N=(split,))
     assert [c.force_max_N[1] for c in pieces.patches()] == [split, ACFG.force_max_N[1]]
     assert pieces.n_solves == 2 * cfg4.n_solves and "f_y_splits_N" not in cfg4.as_dict()  # old keys kept
-    monkeypatch.setattr("softphantom.estimation.atlas.ForwardModel", Kinked)
+    monkeypatch.setattr("softphantom.estimation.atlas_build.ForwardModel", Kinked)
     kw = dict(n_workers=1, processes=False, progress=False, fwd=fwd, log=lambda s: None)
     one = build_atlas(coarse_model, CFG, cfg4, **kw)
     at = build_atlas(coarse_model, CFG, pieces, **kw)
@@ -496,7 +497,7 @@ def test_an_atlas_in_pieces_along_f_y_follows_a_kink_one_polynomial_cannot(coars
     assert isinstance(at, AtlasPatches) and len(at.patches) == 2 and at.solves == pieces.n_solves
     # each piece is the plain atlas of its range: the cache finds it under that atlas's key
     for piece in at.patches:
-        piece.save(atlas_path(tmp_path, atlas_key(fwd, piece.config)))
+        save_atlas(piece, atlas_path(tmp_path, atlas_key(fwd, piece.config)))
     cached = load_or_build(coarse_model, CFG, pieces, cache_dir=tmp_path, fwd=fwd, log=lambda s: None)
     assert isinstance(cached, AtlasPatches) and cached.key == at.key
     lo, hi = ACFG.lower, ACFG.upper
@@ -525,7 +526,8 @@ def test_the_default_atlas_follows_the_elements_order(order, monkeypatch):
     first piece built first (below the lowest split)."""
     from types import SimpleNamespace
 
-    from softphantom.estimation import atlas as atlas_mod
+    from softphantom.estimation import atlas_build as atlas_mod
+    from softphantom.estimation import atlas_config
 
     class Built(Exception):
         pass
@@ -540,7 +542,7 @@ def test_the_default_atlas_follows_the_elements_order(order, monkeypatch):
         load_or_build(None, CFG, None, fwd=fwd, log=lambda s: None)
     acfg = got.value.args[0]
     if order == 1:
-        assert acfg == atlas_mod.AtlasConfig()
+        assert acfg == atlas_config.AtlasConfig()
     else:
         assert (acfg.x_control, acfg.shape, acfg.f_y_splits_N) == ("displacement", (11, 6, 4, 3), ())
-        assert (acfg.force_min_N[1], acfg.force_max_N[1]) == (-1.0, atlas_mod.P2_F_Y_SPLITS_N[0])
+        assert (acfg.force_min_N[1], acfg.force_max_N[1]) == (-1.0, atlas_config.P2_F_Y_SPLITS_N[0])

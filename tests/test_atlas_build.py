@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from softphantom.estimation import AtlasConfig, EstimatorConfig, ForwardModel
-from softphantom.estimation.atlas import _inner, _plane_walk, _sweep
+from softphantom.estimation.atlas_build import _inner, _plane_walk, _sweep
 from softphantom.fem import SparseSolver, free_tangent, solve_static
 
 CFG = EstimatorConfig(contact="on-centre")
@@ -87,7 +87,7 @@ def test_mixed_control_lands_on_the_patch_displacement_at_the_newton_equilibrium
     """Bordered chord iterations (f_x an unknown fixed by the patch's x-displacement): the state
     they reach is the force-controlled Newton equilibrium at the f_x they report, and its patch
     displacement is the target; a target beyond the start's in ū needs a larger f_x."""
-    from softphantom.estimation.atlas import x_patch
+    from softphantom.estimation.atlas_build import x_patch
     from softphantom.estimation.linearization import PatchControl
 
     h = x_patch(fwd)
@@ -109,7 +109,7 @@ def test_a_failing_mixed_control_solve_falls_back_to_force_controlled_trials(fwd
     """Where the bordered chord iterations get nowhere (and so do their halved steps), the point
     is still solved at its patch displacement, by force-controlled trials."""
     import softphantom.estimation.linearization as L
-    from softphantom.estimation.atlas import _solve_ux, x_patch
+    from softphantom.estimation.atlas_build import _solve_ux, x_patch
 
     chord = L.EquilibriumSolver._chord
 
@@ -132,7 +132,7 @@ def test_a_failing_mixed_control_solve_falls_back_to_force_controlled_trials(fwd
 def test_mixed_control_may_lower_f_x_within_its_range_where_the_trials_may_not(fwd):
     """A fold (f_x falling along the line, the quadratic model's snap-through) is for the mixed-control
     solve alone: its f_x may lie anywhere in ``fx_range``, below the trials' bracket."""
-    from softphantom.estimation.atlas import _solve_ux, x_patch
+    from softphantom.estimation.atlas_build import _solve_ux, x_patch
 
     h = x_patch(fwd)
     a = fwd.solve(np.array([0.0, 0.8, -0.2, 1e3]))

@@ -12,7 +12,9 @@ import pytest
 
 from softphantom.estimation import AtlasConfig, AtlasEstimator, EstimatorConfig, ForwardModel
 from softphantom.estimation import atlas_kernels as ak
-from softphantom.estimation.atlas import Atlas, _to_chebyshev, atlas_key
+from softphantom.estimation.atlas_basis import to_chebyshev
+from softphantom.estimation.atlas_map import Atlas
+from softphantom.estimation.atlas_store import atlas_key
 from softphantom.pose import matrix_from_ypr, rigid_fit, ypr_from_matrix
 from softphantom.sensing import Measurement
 
@@ -63,9 +65,9 @@ def make_atlas(fwd, acfg):
     r = 3
     modes = np.linalg.qr(RNG.normal(size=(fwd.fem.n_dof, r)))[0] * 1e-3
     coef = np.stack([g[..., 0] * g[..., 1], g[..., 2], np.cos(g[..., 1])], -1)
-    return Atlas(key=atlas_key(fwd, acfg), config=acfg, cV=_to_chebyshev(volumes_map(g), shape),
-                 cP=_to_chebyshev(P.reshape(*shape, -1), shape).reshape(*shape, -1, 3),
-                 cF=_to_chebyshev(coef, shape), modes=modes, x_rest=fwd.fem.x_rest.copy(), build_s=0.0,
+    return Atlas(key=atlas_key(fwd, acfg), config=acfg, cV=to_chebyshev(volumes_map(g), shape),
+                 cP=to_chebyshev(P.reshape(*shape, -1), shape).reshape(*shape, -1, 3),
+                 cF=to_chebyshev(coef, shape), modes=modes, x_rest=fwd.fem.x_rest.copy(), build_s=0.0,
                  solves=int(np.prod(shape)), field_rms_m=0.0, solved=np.ones(shape, bool))
 
 
@@ -82,8 +84,8 @@ def test_kernel_evaluation_equals_the_tensor_contraction_and_its_derivative(atla
             e = np.eye(4)[j] * h
             fd = (atlas.volumes(lam + e)[0] - atlas.volumes(lam - e)[0]) / (2 * h)
             assert np.allclose(J[:, j], fd, rtol=1e-6, atol=1e-7 * np.abs(J[:, j]).max())
-        assert np.allclose(atlas.points(lam), atlas._value(atlas.cP, lam), rtol=0, atol=1e-15)
-        field = atlas.x_rest + atlas.modes @ atlas._value(atlas.cF, lam)
+        assert np.allclose(atlas.points(lam), atlas.value_reference(atlas.cP, lam), rtol=0, atol=1e-15)
+        field = atlas.x_rest + atlas.modes @ atlas.value_reference(atlas.cF, lam)
         assert np.allclose(atlas.nodes(lam), field.reshape(-1, 3), rtol=0, atol=1e-15)
     # and the polynomial is the map it was fitted to, at the grid points
     g = np.array([a[1] for a in atlas.config.axes()])
@@ -163,7 +165,7 @@ def test_warm_start_gives_the_cold_start_answer(coarse_model, atlas):
 
 
 def test_qp_solver_only_where_a_bound_is_active(coarse_model, atlas, monkeypatch):
-    import softphantom.estimation.atlas as atlas_mod
+    import softphantom.estimation.atlas_estimator as atlas_mod
 
     calls = []
     real = atlas_mod.solve_volume_qp
@@ -184,7 +186,7 @@ def test_qp_solver_only_where_a_bound_is_active(coarse_model, atlas, monkeypatch
 def _fit_and_eval(values, acfg, lams):
     """The atlas polynomial of grid ``values`` (shape + ()) at ``lams`` (k, 4) by the kernel."""
     shape = np.array(acfg.shape, dtype=np.int64)
-    C = np.ascontiguousarray(_to_chebyshev(values[..., None], acfg.shape).reshape(-1, 1))
+    C = np.ascontiguousarray(to_chebyshev(values[..., None], acfg.shape).reshape(-1, 1))
     out = np.empty(1)
     res = []
     for lam in lams:
@@ -236,3 +238,17 @@ def test_stretched_axis_follows_a_sharp_step_about_zero_force():
         values = np.broadcast_to(np.tanh((fx - 0.01) / 0.05)[:, None, None, None], acfg.shape).copy()
         err[w] = np.abs(_fit_and_eval(values, acfg, lams) - np.tanh((lams[:, 0] - 0.01) / 0.05)).max()
     assert err[0.0] > 0.8 and err[0.05] < 0.12
+
+
+def test_the_estimator_reads_only_the_atlas_public_interface():
+    """``AtlasEstimator`` uses the atlas through its public names (``Atlas.kernel``, ``points``, …):
+    no ``obj._name`` on anything but itself."""
+    import ast
+    import inspect
+
+    import softphantom.estimation.atlas_estimator as mod
+
+    private = [f"{ast.unparse(n.value)}.{n.attr}" for n in ast.walk(ast.parse(inspect.getsource(mod)))
+               if isinstance(n, ast.Attribute) and n.attr.startswith("_") and not n.attr.startswith("__")
+               and not (isinstance(n.value, ast.Name) and n.value.id == "self")]
+    assert not private, private

@@ -76,7 +76,8 @@ def test_demo_end_to_end_coarse(tmp_path, capsys, coarse_model_dir):
     assert "index: " in text
     # output that is not a terminal (this capture, a CI log) still shows the long steps' progress
     assert "design → mesh (estimator model) …" in text and "design → mesh (estimator model): done in" in text
-    assert re.search(r"demo-short: estimate: \d+/\d+ \(50 %\)", text) and "demo-short: truth:" in text
+    assert re.search(r"demo-short: estimate: \d+/\d+ \(50 %\)", text)
+    assert re.search(r"demo-short: truth: \d+/\d+ \(\d+ %\)", text)  # the Dask worker's progress reaches the bar
     # truth.csv and the estimate of the virtual board share the scenario clock: the lag is the latency
     report = (d / "report" / "report.html").read_text()
     assert "the estimator&#x27;s latency (both files on the same clock: scenario (s))" in report
@@ -118,25 +119,33 @@ def test_virtual_run_command(tmp_path, capsys, coarse_model_dir):
 
 
 def test_a_killed_demo_leaves_no_worker(tmp_path):
-    # the truth worker's watchdog (softphantom.cli.demo.exit_with_parent) in a grandchild of this
-    # test: its parent is SIGKILLed (no clean-up runs) and it must exit by itself
+    # the demo's truth solves and atlas builds run on a Dask local cluster (softphantom.parallel):
+    # its parent SIGKILLed (no clean-up runs), the worker processes must exit by themselves
+    import os
     import subprocess
     import sys
     import time
 
-    code = ("import os, subprocess, sys; "
-            "c = subprocess.Popen([sys.executable, '-c', 'import os; from softphantom.cli.demo import exit_with_parent; "
-            "exit_with_parent(%d, 0.05)' % os.getpid()]); print(c.pid, flush=True); c.wait()")
-    parent = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
-    child = int(parent.stdout.readline())
-    time.sleep(0.5)
-    assert Path(f"/proc/{child}").exists()  # alive while its parent is
+    code = ("import os, time; from softphantom.parallel import dask_client\n"
+            "with dask_client(n_workers=1) as c:\n"
+            "    w = list(c.run(os.getpid).values())[0]\n"
+            "    print(w, open(f'/proc/{w}/stat').read().split()[3], flush=True)\n"
+            "    time.sleep(600)\n")
+    parent = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True,
+                              env={**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)})
+    workers = [int(v) for v in parent.stdout.readline().split()]  # the worker and its nanny
+    assert len(workers) == 2 and all(Path(f"/proc/{p}").exists() for p in workers)  # alive while the parent is
     parent.kill()
     parent.wait()
-    deadline = time.monotonic() + 20
-    while time.monotonic() < deadline:
-        if not Path(f"/proc/{child}").exists() or Path(f"/proc/{child}/stat").read_text().split()[2] == "Z":
-            break
+
+    def gone(pid: int) -> bool:
+        try:
+            return Path(f"/proc/{pid}/stat").read_text().split()[2] == "Z"
+        except OSError:
+            return True
+
+    deadline = time.monotonic() + 30
+    while not all(gone(p) for p in workers):
+        if time.monotonic() > deadline:
+            raise AssertionError("a worker outlived its killed parent")
         time.sleep(0.05)
-    else:
-        raise AssertionError("the worker outlived its killed parent")

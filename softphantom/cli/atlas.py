@@ -59,7 +59,9 @@ def build_cmd(
 ) -> None:
     """Build the atlas of a model (or find it built) in MODEL/atlas/, on Dask."""
     from softphantom.estimation import EstimatorConfig
-    from softphantom.estimation.atlas import default_atlas_config, load_or_build
+    from softphantom.estimation.atlas_build import load_or_build
+    from softphantom.estimation.atlas_config import default_atlas_config
+    from softphantom.estimation.atlas_store import atlas_path
     from softphantom.estimation.select import atlas_config_from_options
 
     atlas_config_from_options(atlas_grid, envelope, atlas_x_axis, atlas_f_y_split)  # bad options fail first
@@ -71,8 +73,6 @@ def build_cmd(
     built = load_or_build(model, EstimatorConfig(contact=_contact(at)), acfg, cache_dir=model_dir,
                           scheduler=scheduler, n_workers=workers, rebuild=rebuild,
                           log=lambda s: console.print(s, highlight=False, soft_wrap=True))
-    from softphantom.estimation.atlas import atlas_path
-
     for piece in _pieces(built):
         console.print(f"{atlas_path(model_dir, piece.key)}", highlight=False, soft_wrap=True)
 
@@ -83,8 +83,7 @@ def info_cmd(
     model_dir: Path = typer.Option(None, "--model", help="Model directory whose MODEL/atlas/ files to list."),
 ) -> None:
     """Describe atlas files: model, contact, envelope, grid, build cost, provenance."""
-    from softphantom.estimation.atlas import Atlas
-    from softphantom.estimation.atlas_store import describe, model_atlases
+    from softphantom.estimation.atlas_store import describe, load_atlas, model_atlases
 
     if not files:
         if model_dir is None:
@@ -95,7 +94,7 @@ def info_cmd(
                           highlight=False)
             return
     for f in files:
-        at = Atlas.load(f)
+        at = load_atlas(f)
         console.print(f"{f}", highlight=False, soft_wrap=True)
         _print_rows(describe(at))
 

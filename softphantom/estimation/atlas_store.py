@@ -1,26 +1,143 @@
-"""Atlas files as artefacts: check one against a model, describe it, install it in a model directory.
+"""Atlas files: the cache key, the file format, reading and writing; checking a file against a
+model, describing it, installing it in a model directory.
 
-An atlas file (``MODEL/atlas/<key>.npz``, :meth:`~softphantom.estimation.atlas.Atlas.save`) is
-content-addressed: its name is the start of the SHA-256 of everything it was built from (mesh,
-law, element, contact patch, tracked points, envelope, grid, solver tolerance, file format,
-:func:`~softphantom.estimation.atlas.atlas_key`), and it carries the digest of its own arrays and
-its provenance (:func:`~softphantom.estimation.atlas.provenance`). So a file built on one machine of
-a lab can be copied to another: :func:`verify_atlas` recomputes its key from the model there,
-:func:`install_atlas` puts it where :func:`~softphantom.estimation.atlas.load_or_build` finds it.
-Every refusal is one line naming the file and what does not match
-(:class:`~softphantom.estimation.atlas.AtlasCorrupt`, :class:`~softphantom.estimation.atlas.AtlasMismatch`).
+An atlas file (``MODEL/atlas/<key>.npz``, :func:`save_atlas`) is content-addressed: its name is
+the start of the SHA-256 of everything it was built from (mesh, law, element, contact patch,
+tracked points, envelope, grid, solver tolerance, file format: :func:`atlas_key`), and it carries
+the digest of its own arrays and its provenance
+(:func:`~softphantom.estimation.atlas_build.provenance`). So a file built on one machine of a lab
+can be copied to another: :func:`verify_atlas` recomputes its key from the model there,
+:func:`install_atlas` puts it where :func:`~softphantom.estimation.atlas_build.load_or_build`
+finds it. Every refusal is one line naming the file and what does not match
+(:class:`AtlasCorrupt`, :class:`AtlasMismatch`).
 """
 
 from __future__ import annotations
 
+import hashlib
+import io
+import json
 import shutil
 from pathlib import Path
 
-from softphantom.estimation.atlas import (
-    Atlas, AtlasCorrupt, AtlasMismatch, atlas_key, atlas_path,
-)
+import numpy as np
+
+from softphantom.errors import UserError
+from softphantom.estimation.atlas_config import AtlasConfig
+from softphantom.estimation.atlas_map import Atlas
 from softphantom.estimation.config import EstimatorConfig
 from softphantom.estimation.forward import ForwardModel
+
+FORMAT = 4  # bump when the file layout or the build changes its meaning (3: stretched axes; 4: x_control, cFx)
+ARRAYS = ("cV", "cP", "cF", "cFx", "q_nodes", "modes", "x_rest", "solved")  # an atlas file's arrays
+
+
+class AtlasCorrupt(UserError):
+    """An atlas file that cannot be used (unreadable, or content not matching its digest)."""
+
+
+class AtlasMismatch(UserError):
+    """A readable atlas file that is not for this use (another file format, model or settings)."""
+
+
+def atlas_key(fwd: ForwardModel, acfg: AtlasConfig) -> str:
+    """SHA-256 (hex) of everything the atlas depends on: mesh and fixed DOFs, law and parameters,
+    element, cavities, contact patch (its actuator), tracked points (the probe), envelope, grid,
+    solver tolerance, format."""
+    h = hashlib.sha256()
+    fem = fwd.fem
+
+    def add(a) -> None:
+        a = np.ascontiguousarray(a)
+        h.update(str((a.dtype.str, a.shape)).encode())
+        h.update(a.tobytes())
+
+    add(fem.x_rest)
+    add(fem.tets)
+    add(fem.free_dofs)
+    # the law per element (its id and parameters) and the element (the connectivity's width):
+    # whatever the FemModel carries, so a new law or element order changes the key
+    for name in ("mu", "lam", "law_id", "params"):
+        v = getattr(fem, name, None)
+        if v is not None:
+            add(np.asarray(v))
+    for name in sorted(fem.cavities):
+        h.update(name.encode())
+        add(np.asarray(fem.cavities[name]))
+    for M in (fwd.H_f.tocsr(), fwd.probe.tocsr()):
+        M.sort_indices()
+        add(M.indptr)
+        add(M.indices)
+        add(M.data)
+    atlas = acfg.as_dict()
+    if not acfg.linear_pressure:  # the keys of atlases built before the option stay valid
+        del atlas["linear_pressure"]
+    meta = {"format": FORMAT, "atlas": atlas, "tol": fwd.config.tol,
+            "markers": fwd.marker_names, "targets": fwd.target_names}
+    h.update(json.dumps(meta, sort_keys=True).encode())
+    return h.hexdigest()
+
+
+def atlas_path(model_dir, key: str) -> Path:
+    """Where the atlas of key ``key`` lives next to a model directory."""
+    return Path(model_dir) / "atlas" / f"{key[:32]}.npz"
+
+
+def _digest(at: Atlas) -> str:
+    h = hashlib.sha256()
+    for k in ARRAYS:
+        h.update(np.ascontiguousarray(getattr(at, k)).tobytes())
+    return h.hexdigest()
+
+
+def save_atlas(at: Atlas, path) -> Path:
+    """Write the atlas ``at`` to ``path`` (npz; written to a temporary name, then renamed: never
+    half a file)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    meta = {"format": FORMAT, "key": at.key, "config": at.config.as_dict(), "build_s": at.build_s,
+            "solves": at.solves, "field_rms_m": at.field_rms_m, "build_cpu_s": at.build_cpu_s,
+            "digest": _digest(at), "provenance": at.provenance or {}}
+    buf = io.BytesIO()
+    np.savez(buf, meta=np.array(json.dumps(meta)), **{k: getattr(at, k) for k in ARRAYS})
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_bytes(buf.getvalue())
+    tmp.replace(path)
+    return path
+
+
+def load_atlas(path, key: str | None = None) -> Atlas:
+    """Read an atlas. One-line errors naming the file and what is wrong with it:
+    :class:`AtlasCorrupt` if it is unreadable (truncated, not an atlas) or its arrays do not
+    match the digest it was written with (modified or damaged); :class:`AtlasMismatch` if it
+    was written by a softphantom of another file format, or ``key`` is given and differs
+    (another model, law, contact, envelope or grid)."""
+    path = Path(path)
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            meta = json.loads(str(z["meta"]))
+            fmt = meta.get("format")
+            if fmt != FORMAT:
+                raise AtlasMismatch(f"{path}: atlas file format {fmt}, this softphantom reads format {FORMAT} "
+                                    f"(written by another version): rebuild it (softphantom atlas build)")
+            arrays = {k: z[k] for k in ARRAYS}
+        at = Atlas(key=meta["key"], config=AtlasConfig(**meta["config"]), build_s=float(meta["build_s"]),
+                   solves=int(meta["solves"]), field_rms_m=float(meta["field_rms_m"]),
+                   build_cpu_s=float(meta.get("build_cpu_s", "nan")), provenance=meta.get("provenance") or None,
+                   **arrays)
+        ok = _digest(at) == meta["digest"]
+    except AtlasMismatch:
+        raise
+    except Exception as exc:  # noqa: BLE001 - any unreadable file is corrupt
+        raise AtlasCorrupt(f"{path}: not a readable atlas file, truncated or not an atlas "
+                           f"({type(exc).__name__})") from None
+    if not ok:
+        raise AtlasCorrupt(f"{path}: atlas arrays do not match the digest they were written with "
+                           f"(modified or damaged)")
+    if key is not None and at.key != key:
+        raise AtlasMismatch(f"{path}: atlas built for another model, law, contact or envelope "
+                            f"(key {at.key[:12]}…, expected {key[:12]}…); rebuild it")
+    return at
 
 
 def estimator_config(at: Atlas, path) -> EstimatorConfig:
@@ -40,7 +157,7 @@ def verify_atlas(path, model, fwd: ForwardModel | None = None) -> Atlas:
     the model and the file's own settings); else a one-line :class:`AtlasCorrupt` or
     :class:`AtlasMismatch`. ``fwd``: a forward model of ``model`` to reuse (its contact must be the
     file's)."""
-    at = Atlas.load(path)
+    at = load_atlas(path)
     cfg = estimator_config(at, path)
     if fwd is None or fwd.config.contact != cfg.contact or fwd.config.contact_radius_m != cfg.contact_radius_m \
             or fwd.config.tol != cfg.tol:
@@ -56,7 +173,6 @@ def describe(at: Atlas) -> list[tuple[str, str]]:
     """Lines (label, value) that tell a user what an atlas is: what ``softphantom atlas info`` prints.
 
     >>> import numpy as np
-    >>> from softphantom.estimation.atlas import AtlasConfig
     >>> c = AtlasConfig(n_force=(3, 3, 3), n_pressure=2)
     >>> z = np.zeros
     >>> at = Atlas(key="ab" * 32, config=c, cV=z((3, 3, 3, 2, 4)), cP=z((3, 3, 3, 2, 1, 3)), cF=z((3, 3, 3, 2, 1)),
@@ -95,7 +211,7 @@ def install_atlas(path, model, model_dir) -> tuple[Path, str]:
     what = "added"
     if dest.is_file():
         try:
-            Atlas.load(dest, at.key)
+            load_atlas(dest, at.key)
             return dest, "present"
         except (AtlasCorrupt, AtlasMismatch):
             what = "replaced"

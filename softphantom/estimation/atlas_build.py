@@ -1,0 +1,560 @@
+"""The atlas build: converged forward solves on the grid of an :class:`AtlasConfig`, in parallel
+through :mod:`softphantom.parallel` (:func:`build_atlas`), fitted to tensor Chebyshev polynomials
+(:class:`~softphantom.estimation.atlas_map.Atlas`); and the cache in a model directory
+(:func:`load_or_build`).
+
+Each task solves one (f_y, f_z) plane of the grid (:func:`_sweep`) walking outwards from zero load,
+each point from a converged neighbour; on a displacement-controlled first axis the planes at the
+f_x faces first, then the lines between them (:func:`_lines`, one mixed-control solve a point,
+:func:`_solve_ux`). Points the model cannot reach are recorded, filled by extrapolation
+(:func:`fill_weights`) and flagged outside the envelope.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+
+from softphantom.errors import SolverError
+from softphantom.estimation.atlas_basis import axis_t, to_chebyshev
+from softphantom.estimation.atlas_config import AtlasConfig, default_atlas_config
+from softphantom.estimation.atlas_map import Atlas, AtlasPatches
+from softphantom.estimation.atlas_store import AtlasCorrupt, AtlasMismatch, atlas_key, atlas_path, load_atlas, save_atlas
+from softphantom.estimation.config import EstimatorConfig
+from softphantom.estimation.forward import ForwardModel
+from softphantom.estimation.linearization import PatchControl
+
+FALLBACK_MIN_LOAD_STEP = 1.0 / 32
+VIA_TOL = 1e-3  # relative residual of the continuation steps between grid points (they only start the next)
+FIELD_MAX_MODES = 64
+# a displacement-controlled point is kept where it lands within this fraction of the distance to the
+# next node along q (the fit takes each line's own nodes, to_chebyshev): a new solve costs more
+# than the slightly moved node
+NODE_TOL = 0.1
+UX_MAX_ITER = 30
+BORDERED_HALVINGS = 2  # a mixed-control step that fails is split in two, and each half again
+BORDERED_TOL = 1e-3  # a mixed-control solve hits the patch displacement this close (of NODE_TOL's): on the node
+FIELD_RTOL = 1e-5  # POD truncation: dropped displacement energy below this fraction (≈ 3e-3 relative RMS)
+
+
+def _inner(p: tuple[int, int], centre: tuple[int, int]) -> list[tuple[int, int]]:
+    """The neighbours of grid point ``p`` one step nearer ``centre`` along each axis."""
+    j, k = p
+    j0, k0 = centre
+    out = []
+    if j != j0:
+        out.append((j - (1 if j > j0 else -1), k))
+    if k != k0:
+        out.append((j, k - (1 if k > k0 else -1)))
+    return out
+
+
+def _children(p: tuple[int, int], centre: tuple[int, int], ny: int, nz: int) -> list[tuple[int, int]]:
+    """The points solved from ``p`` in a plane's walk: a spine along f_z through the centre, a
+    branch along f_y from each spine point (a sideways step is the hard one for the solver: the
+    fewest of them). A spine point's branches come before the next spine point, so every point's
+    inner neighbours (:func:`_inner`) are solved before it."""
+    j, k = p
+    j0, k0 = centre
+    if j != j0:
+        out = [(j + (1 if j > j0 else -1), k)]
+    else:
+        out = [(j0 + 1, k), (j0 - 1, k)]
+        out += [(j0, k0 + 1), (j0, k0 - 1)] if k == k0 else [(j0, k + (1 if k > k0 else -1))]
+    return [(a, b) for a, b in out if 0 <= a < ny and 0 <= b < nz]
+
+
+def _plane_walk(ny: int, nz: int, j0: int, k0: int) -> list[tuple[tuple[int, int], tuple[int, int] | None, int]]:
+    """The (f_y, f_z) grid points of a plane from the one nearest zero load outwards, depth first
+    along :func:`_children`: (point, the point it is solved from (None: from rest), number of points
+    solved from it). Depth first, a point's start is the point solved just before it except after a
+    branch's end, so the walk keeps the factors of only a few points (:func:`_sweep`).
+
+    >>> [p for p, _, _ in _plane_walk(3, 3, 1, 1)]
+    [(1, 1), (2, 1), (0, 1), (1, 2), (2, 2), (0, 2), (1, 0), (2, 0), (0, 0)]
+    """
+    centre = (j0, k0)
+    out = []
+    stack: list[tuple[tuple[int, int], tuple[int, int] | None]] = [(centre, None)]
+    while stack:
+        p, parent = stack.pop()
+        kids = _children(p, centre, ny, nz)
+        out.append((p, parent, len(kids)))
+        stack.extend((c, p) for c in reversed(kids))
+    return out
+
+
+def x_patch(fwd: ForwardModel) -> np.ndarray:
+    """(3N,) the contact patch's x load vector H_x (per N of f_x): ū_x = H_xᵀ(x − x_rest) is the
+    displacement work-conjugate to f_x, the first axis of a displacement-controlled atlas."""
+    return np.asarray(fwd.H_f[:, 0].todense()).ravel()
+
+
+def _solve_ux(fwd: ForwardModel, h: np.ndarray, lam: np.ndarray, target: float, start, bracket,
+              tol_m: float, bordered: bool = True, prev=None, fx_range=None) -> tuple:
+    """The equilibrium at (f_y, f_z, p_u) = ``lam[1:]`` whose patch displacement ū_x = hᵀ(x − x_rest)
+    is ``target`` (m) within ``tol_m``, and the number of solves it took: f_x by Newton on
+    ū_x(f_x), the slope the secant of the last two trials (the first: the solve's own ∂ū_x/∂f_x,
+    from a factor that may be stale where the state steps), kept inside ``bracket`` (f_x, N, at
+    whose ends ū_x lies below and above the target: a stable path's ū_x increases with f_x) and
+    bisecting it where Newton leaves it; ``lam[0]`` the first guess. Each trial is a converged
+    force-controlled solve (:meth:`ForwardModel.solve`) from the previous one.
+
+    First, though, one mixed-control solve (:class:`PatchControl`: f_x an unknown of bordered chord
+    iterations, to ``BORDERED_TOL`` of ``tol_m``) from ``start`` (with ``prev``, the point before it
+    on the line: a secant predictor), its f_x anywhere in ``fx_range`` (default ``bracket``): where
+    the state snaps through in f_x (the quadratic model's arm pair above ≈ 4.3 N of f_y) the path at
+    fixed ū_x goes through a fold, f_x falling on its unstable branch, which no force-controlled
+    solve reaches. The trials above only where it fails, or without ``bordered`` (the
+    force-controlled-only build, the benchmarks' peer)."""
+    lo, hi = (float(b) for b in bracket)
+    x_rest = fwd.fem.x_rest
+    if bordered:
+        rng = tuple(float(b) for b in (bracket if fx_range is None else fx_range))
+        lin = _bordered(fwd, h, lam, float(target), start, prev, rng, BORDERED_TOL * tol_m, BORDERED_HALVINGS)
+        if lin is not None:
+            return lin, 1
+    f = float(lam[0])
+    lin = start
+    trial = np.array(lam, float)
+    prev = None
+    for n in range(1, UX_MAX_ITER + 1):
+        if not lo < f < hi:
+            f = 0.5 * (lo + hi)
+        trial[0] = f
+        lin = fwd.solve(trial, lin, via_tol=VIA_TOL)
+        g = float(h @ (lin.x - x_rest)) - target
+        if abs(g) <= tol_m:
+            return lin, n
+        if g < 0:
+            lo = f
+        else:
+            hi = f
+        d = (g - prev[1]) / (f - prev[0]) if prev is not None and f != prev[0] else float(h @ lin.U[:, 0])
+        prev = (f, g)
+        f = f - g / d if d > 0 else math.nan
+    raise SolverError(f"atlas: no f_x in [{lo:+.4f}, {hi:+.4f}] N gives the patch displacement "
+                      f"{target * 1e3:+.4f} mm at f_y {lam[1]:+.2f} N, f_z {lam[2]:+.2f} N")
+
+
+def _bordered(fwd: ForwardModel, h: np.ndarray, lam: np.ndarray, target: float, start, prev, bracket, tol_m: float,
+              halvings: int):
+    """The mixed-control equilibrium at patch displacement ``target`` (m) from ``start`` (``prev``
+    the point before it on the line, or None), f_x kept inside ``bracket``; where it does not
+    converge, the step in displacement is halved (up to ``halvings`` times, each half from the
+    last converged state). None where that fails too."""
+    ctl = PatchControl(h, fwd.fem.x_rest, target, tol_m, prev, tuple(bracket))
+    try:
+        return fwd.eq.solve(start, lam, control=ctl)
+    except SolverError:
+        if halvings <= 0:
+            return None
+    mid = 0.5 * (target + float(h @ (start.x - fwd.fem.x_rest)))
+    half = _bordered(fwd, h, lam, mid, start, prev, bracket, tol_m, halvings - 1)
+    if half is None:
+        return None
+    return _bordered(fwd, h, lam, target, half, start, bracket, tol_m, halvings - 1)
+
+
+def _sweep(model, config: EstimatorConfig, acfg: AtlasConfig, i: int, l: int):
+    """One task: the (f_y, f_z) plane at grid f_x index ``i`` and pressure index ``l`` (with
+    ``acfg.linear_pressure``: at the pressure range's middle, ``l`` ignored). The point
+    nearest zero load is reached from rest by continuation, every other one from a converged inner
+    neighbour (one grid step nearer zero load): a predictor on the neighbour's sensitivities,
+    chord iterations with the neighbour's last factor (kept until the points solved from it are
+    done, :func:`_plane_walk`), a refactorization where they stall, Newton where they fail
+    (:meth:`~softphantom.estimation.linearization.EquilibriumSolver.solve`). A point whose
+    inner neighbour did not converge is
+    not tried: reachability is taken to be monotone in the load, so a failure does not cost the
+    (slow) failing solves of everything beyond it. Expected solver failures are recorded, not
+    raised (a displacement axis's planes at its f_x faces are solved here; the points between by
+    :func:`_lines`). Returns (i, l,
+    V (ny,nz,4), P (ny,nz,k,3), X (ny,nz,3N) displacements, solved (ny,nz), first failure message
+    or '', CPU seconds of this process, pressure derivatives (dV, dP, dX) of the same shapes per Pa
+    or None, FX (ny,nz) the points' f_x N, Q (ny,nz) their first coordinate (the node), the number
+    of converged forward solves); unsolved entries are NaN."""
+    t0 = time.process_time()
+    # only the equilibria are kept: the sensitivities come from the kept factor (no GMRES), which
+    # is the tangent at the start point's equilibrium; failures are expected at the envelope's
+    # corners: the Newton fallback gives up at 1/32 of the load (not 1/1024: a failing solve cost
+    # ~10 converging ones)
+    fwd = ForwardModel(model, config, exact_sensitivities=False, fallback_min_load_step=FALLBACK_MIN_LOAD_STEP)
+    ax = acfg.axes()
+    ny, nz = len(ax[1]), len(ax[2])
+    linear = acfg.linear_pressure
+    p_u = 0.5 * (ax[3][0] + ax[3][-1]) if linear else ax[3][l]
+    V = np.full((ny, nz, 4), np.nan)
+    P = np.full((ny, nz, fwd.probe.shape[0], 3), np.nan)
+    X = np.full((ny, nz, fwd.fem.n_dof), np.nan)
+    dV, dP, dX = (np.full_like(a, np.nan) for a in (V, P, X)) if linear else (None, None, None)
+    solved = np.zeros((ny, nz), bool)
+    FX = np.full((ny, nz), np.nan)
+    n_solves = 0
+    Q = np.full((ny, nz), ax[0][i])
+    centre = (int(np.argmin(np.abs(ax[1]))), int(np.argmin(np.abs(ax[2]))))
+    lins: dict[tuple[int, int], object] = {}
+    kept: dict[tuple[int, int], object] = {}  # factors of solved points with points still to solve from them
+    left: dict[tuple[int, int], int] = {}
+    last = None  # the point whose factor the solver holds
+    first_error = ""
+    for p, parent, n_kids in _plane_walk(ny, nz, *centre):
+        if parent in left:
+            left[parent] -= 1
+        reachable = all(q in lins for q in _inner(p, centre))
+        if reachable and parent is not None and last != parent:
+            fwd.eq.restore(kept[parent])
+        if parent in left and left[parent] == 0:
+            kept.pop(parent, None)  # its last child: the copy (28 MB at 6 mm) is not needed any more
+        if not reachable:
+            continue  # beyond a failure: unreachable (see the docstring)
+        j, k = p
+        lam = np.array([ax[0][i], ax[1][j], ax[2][k], p_u])
+        last = None
+        try:
+            # a linear pressure axis needs the exact pressure derivative: the tangent at the solution
+            # (elsewhere a new factor there costs more than the chord iterations it saves)
+            lin = fwd.solve(lam, lins.get(parent), factor_at_solution=linear, via_tol=VIA_TOL)
+        except SolverError as exc:
+            first_error = first_error or str(exc).splitlines()[0]
+            continue
+        last = p
+        n_solves += 1
+        if n_kids > 1:
+            kept[p] = fwd.eq.keep()
+        left[p] = n_kids
+        lins[p] = lin
+        solved[j, k] = True
+        FX[j, k] = lin.lam[0]
+        V[j, k] = lin.V
+        P[j, k] = lin.sub_x
+        X[j, k] = lin.x - fwd.fem.x_rest
+        if linear:
+            dV[j, k] = lin.W[:, 3]
+            dP[j, k] = lin.sub_U[:, :, 3]
+            dX[j, k] = lin.U[:, 3]
+    return (i, l, V, P, X, solved, first_error, time.process_time() - t0, (dV, dP, dX) if linear else None, FX, Q,
+            n_solves)
+
+
+def _lines(model, config: EstimatorConfig, acfg: AtlasConfig, k: int, l: int, ends):
+    """One task of a displacement axis's inner points: the lines along q at f_z index ``k`` and
+    pressure index ``l``, each walked from its lower f_x face to the upper one. ``ends`` (ny,) × 2:
+    the faces' patch displacements (m; NaN: unsolved) at (·, k, l). A line starts at its lower face
+    point (solved again here, force-controlled, from the previous line's: the f_y rows walked from
+    the one nearest zero outwards); each next point is solved at the displacement of its q from
+    the point before it (:func:`_solve_ux`: one mixed-control solve, its predictor the secant of
+    the last two along the line) — one small step of the state each, where a plane at fixed q
+    (:func:`_sweep`) crosses the arm pair's step in f_x from a neighbour in f_y. Returns (k, l, V (n1−2, ny, 4), P (n1−2, ny, k, 3), X
+    (n1−2, ny, 3N), solved (n1−2, ny), first failure or '', CPU seconds, FX (n1−2, ny), Q (n1−2, ny),
+    converged forward solves)."""
+    t0 = time.process_time()
+    fwd = ForwardModel(model, config, exact_sensitivities=False, fallback_min_load_step=FALLBACK_MIN_LOAD_STEP)
+    ax = acfg.axes()
+    n1, ny = len(ax[0]), len(ax[1])
+    h = x_patch(fwd)
+    lo, hi = ax[0][0], ax[0][-1]
+    span = hi - lo
+    fz, p_u = ax[2][k], ax[3][l]
+    m = n1 - 2
+    V = np.full((m, ny, 4), np.nan)
+    P = np.full((m, ny, fwd.probe.shape[0], 3), np.nan)
+    X = np.full((m, ny, fwd.fem.n_dof), np.nan)
+    FX = np.full((m, ny), np.nan)
+    Q = np.broadcast_to(ax[0][1:-1, None], (m, ny)).copy()
+    solved = np.zeros((m, ny), bool)
+    first_error, n_solves = "", 0
+    j0 = int(np.argmin(np.abs(ax[1])))
+    faces: dict[int, tuple] = {}  # j → (the lower face's Linearization, its kept factor)
+    for j in [*range(j0, ny), *range(j0 - 1, -1, -1)]:
+        parent = j - 1 if j > j0 else (j + 1 if j < j0 else None)
+        u0, u1 = float(ends[0][j]), float(ends[1][j])
+        if not (np.isfinite(u0) and np.isfinite(u1)) or (parent is not None and parent not in faces):
+            continue  # a face unsolved, or the row before it: beyond the reachable region
+        try:
+            if parent is not None:
+                fwd.eq.restore(faces[parent][1])
+            lin = fwd.solve(np.array([lo, ax[1][j], fz, p_u]), faces[parent][0] if parent is not None else None,
+                            via_tol=VIA_TOL)
+            n_solves += 1
+            faces[j] = (lin, fwd.eq.keep())
+            before = None  # the point before the last on the line
+            for i in range(1, n1 - 1):
+                target = u0 + (ax[0][i] - lo) / span * (u1 - u0)
+                gap = min(ax[0][i] - ax[0][i - 1], ax[0][i + 1] - ax[0][i])
+                u = float(h @ (lin.x - fwd.fem.x_rest))
+                u_b = float(h @ (before.x - fwd.fem.x_rest)) if before is not None else u
+                if u != u_b and lin.lam[0] != before.lam[0]:  # the secant along the line
+                    d = (u - u_b) / (lin.lam[0] - before.lam[0])
+                else:
+                    d = float(h @ lin.U[:, 0])
+                guess = lin.lam[0] + (target - u) / d if d > 0 else lin.lam[0]
+                lam = np.array([guess, ax[1][j], fz, p_u])
+                start = lin
+                lin, n = _solve_ux(fwd, h, lam, target, start, (start.lam[0], hi), NODE_TOL * gap / span * abs(u1 - u0),
+                                   prev=before, fx_range=(lo, hi))
+                before = start
+                n_solves += n
+                a = i - 1
+                solved[a, j] = True
+                V[a, j], P[a, j], X[a, j] = lin.V, lin.sub_x, lin.x - fwd.fem.x_rest
+                FX[a, j] = lin.lam[0]
+                Q[a, j] = lo + span * (float(h @ (lin.x - fwd.fem.x_rest)) - u0) / (u1 - u0)
+        except SolverError as exc:
+            first_error = first_error or str(exc).splitlines()[0]
+    return k, l, V, P, X, solved, first_error, time.process_time() - t0, FX, Q, n_solves
+
+
+def fill_weights(solved: np.ndarray, axes: list[np.ndarray]) -> list[tuple[int, np.ndarray, np.ndarray]]:
+    """How to fill the grid points that did not converge, so the tensor fit is defined: a list of
+    (flat index, source flat indices, weights), to apply in order. Each unsolved point takes, along
+    every axis where its line has known points, the linear interpolation between the nearest known
+    points on either side, or else the linear extrapolation from the two nearest on one side (one:
+    its value), averaged over those axes; points with no known point on any line wait for a
+    later pass, which also uses the points filled before it.
+
+    >>> s = np.array([True, True, True, False, False])
+    >>> [(t, src.tolist(), w.round(3).tolist()) for t, src, w in fill_weights(s, [np.arange(5.0)])]
+    [(3, [2, 1], [2.0, -1.0]), (4, [2, 1], [3.0, -2.0])]
+    """
+    shape = solved.shape
+    known = solved.copy()
+    if not known.any():
+        raise SolverError("atlas: no grid point converged")
+    out = []
+    while not known.all():
+        batch = []
+        for idx in map(tuple, np.argwhere(~known)):
+            terms: list[tuple[list[int], list[float]]] = []
+            for a, xs in enumerate(axes):
+                line = list(idx)
+                have = [m for m in range(shape[a]) if known[tuple(line[:a] + [m] + line[a + 1:])]]
+                if not have:
+                    continue
+                x = xs[idx[a]]
+                below = [m for m in have if m < idx[a]]
+                above = [m for m in have if m > idx[a]]
+                if below and above:
+                    m1, m2 = below[-1], above[0]
+                    w2 = (x - xs[m1]) / (xs[m2] - xs[m1])
+                    src, w = [m1, m2], [1 - w2, w2]
+                else:
+                    side = below[::-1] if below else above  # nearest first
+                    if len(side) == 1:
+                        src, w = side[:1], [1.0]
+                    else:
+                        m1, m2 = side[:2]
+                        w2 = (x - xs[m1]) / (xs[m2] - xs[m1])
+                        src, w = [m1, m2], [1 - w2, w2]
+                flat = [int(np.ravel_multi_index(tuple(line[:a] + [m] + line[a + 1:]), shape)) for m in src]
+                terms.append((flat, w))
+            if terms:
+                src = np.concatenate([np.array(f) for f, _ in terms])
+                w = np.concatenate([np.array(w) for _, w in terms]) / len(terms)
+                batch.append((int(np.ravel_multi_index(idx, shape)), src, w))
+        for t, _, _ in batch:
+            known.flat[t] = True
+        out.extend(batch)
+    return out
+
+
+def _fill(values: np.ndarray, weights) -> np.ndarray:
+    """``values`` (n_grid, m) with the unsolved rows filled in place by :func:`fill_weights`."""
+    for t, src, w in weights:
+        values[t] = w @ values[src]
+    return values
+
+
+def provenance(model, fwd: ForwardModel) -> dict:
+    """What an atlas records about its origin: enough to recompute its key from the model alone
+    (the contact point and patch radius, the solver tolerance: :func:`softphantom.estimation.atlas_store.verify_atlas`)
+    and to tell a user what it is (model name, nodes, element order, version, date)."""
+    import datetime
+
+    from softphantom import __version__
+
+    c = fwd.config.contact
+    return {"softphantom": __version__, "model": getattr(getattr(model, "design", None), "name", ""),
+            "nodes": int(len(fwd.fem.x_rest) // 3), "element_order": int(fwd.fem.order),
+            "contact": c if isinstance(c, str) else [float(v) for v in c],
+            "contact_radius_m": float(fwd.config.contact_radius_m), "tol": float(fwd.config.tol),
+            "built_utc": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")}
+
+
+def build_atlas(model, config: EstimatorConfig | None = None, atlas: AtlasConfig | None = None, *,
+                scheduler: str | None = None, n_workers: int | None = None, progress: bool = True,
+                fwd: ForwardModel | None = None, processes: bool = True, log=print) -> Atlas | AtlasPatches:
+    """Build the atlas of ``model`` (forward solves in parallel, a Dask local cluster by default or
+    the one at ``scheduler``; ``processes=False``: worker threads, for small models and tests).
+    ``atlas`` None: :func:`default_atlas_config` of the model's element order.
+
+    A corner of the envelope box may be physically unreachable for the model (e.g. a large push
+    with sideways force inverts an element under a point contact). Such grid points are recorded,
+    not fatal: each plane walks outwards from zero load and does not try points beyond one that
+    failed (:func:`_sweep`); the unsolved points are filled by linear extrapolation from their
+    converged neighbours along the grid lines (:func:`fill_weights`) so the tensor fit is defined,
+    and every grid cell with an unsolved corner is outside the envelope (``Atlas.solved_at``; the
+    estimator's ``in_envelope`` is False there). ``log`` gets one line per plane with failures and
+    a summary. Raises :class:`~softphantom.errors.SolverError` only if no point converged."""
+    from softphantom.parallel import dask_client, map_tasks
+
+    cfg = config or EstimatorConfig()
+    fwd = fwd or ForwardModel(model, cfg)
+    acfg = atlas or default_atlas_config(fwd.fem.order)
+    if acfg.f_y_splits_N:  # one build per piece along f_y
+        return AtlasPatches(acfg, tuple(
+            build_atlas(model, cfg, sub, scheduler=scheduler, n_workers=n_workers, progress=progress, fwd=fwd,
+                        processes=processes, log=log) for sub in acfg.patches()))
+    t0 = time.perf_counter()
+    key = atlas_key(fwd, acfg)
+    n1, n2, n3, n4 = acfg.shape
+    ndof = fwd.fem.n_dof
+    k = fwd.probe.shape[0]
+    V = np.empty((n1, n2, n3, n4, 4))
+    P = np.empty((n1, n2, n3, n4, k, 3))
+    X = np.empty((n1, n2, n3, n4, ndof), dtype=np.float64)
+    solved = np.zeros((n1, n2, n3, n4), bool)
+    FX = np.empty((n1, n2, n3, n4))
+    QN = np.empty((n1, n2, n3, n4))  # the first coordinate of each point
+    planes = [(i, l) for l in range(1 if acfg.linear_pressure else n4) for i in range(n1)]
+    ax = acfg.axes()
+    cpu_s = 0.0
+    n_fwd = 0
+    label = f"atlas: {acfg.n_solves} forward solves"
+    with dask_client(scheduler, n_workers, processes=processes) as client:
+        if acfg.x_control == "force":
+            stages = [(planes, label, False)]
+        else:  # the f_x faces first: their patch displacements are the inner lines' ends
+            faces = [(i, l) for i, l in planes if i in (0, n1 - 1)]
+            stages = [(faces, f"{label}: the f_x faces", False),
+                      ([(k, l) for l in range(n4) for k in range(n3)], f"{label}: lines between the faces", True)]
+        for stage, what, between in stages:
+            if between:
+                h = x_patch(fwd)
+                ux = {i: np.where(solved[i], X[i] @ h, np.nan) for i in (0, n1 - 1)}  # (n2, n3, n4) m
+                args = [(model, cfg, acfg, kz, lp, (ux[0][:, kz, lp], ux[n1 - 1][:, kz, lp])) for kz, lp in stage]
+                res = map_tasks(client, _lines, args, label=what, progress=progress)
+                bad = [r for r in res if not r.ok]
+                if bad:
+                    kz, lp = args[bad[0].index][3:5]
+                    raise SolverError(f"atlas: lines at f_z index {kz}, pressure index {lp} failed: {bad[0].error}")
+                for r in res:
+                    kz, lp, v, p, x, ok, err, cpu, fx, q, n_tried = r.value
+                    cpu_s += cpu
+                    n_fwd += n_tried
+                    V[1:-1, :, kz, lp], P[1:-1, :, kz, lp], X[1:-1, :, kz, lp] = v, p, x
+                    FX[1:-1, :, kz, lp], QN[1:-1, :, kz, lp], solved[1:-1, :, kz, lp] = fx, q, ok
+                    if not ok.all():
+                        log(f"atlas: lines at f_z {ax[2][kz]:+.2f} N, urethra {ax[3][lp] * 1e-3:.1f} kPa: "
+                            f"{ok.size - ok.sum()} of {ok.size} points unreachable ({err or 'beyond a failed point'})")
+                continue
+            args = [(model, cfg, acfg, i, l) for i, l in stage]
+            res = map_tasks(client, _sweep, args, label=what, progress=progress)
+            bad = [r for r in res if not r.ok]
+            if bad:  # not a solver failure (those are recorded): a bug or a lost worker
+                i, l = args[bad[0].index][3:5]
+                raise SolverError(f"atlas: plane f_x index {i}, pressure index {l} failed: {bad[0].error}")
+            for r in res:
+                i, l, v, p, x, ok, err, cpu, deriv, fx, q, n_tried = r.value
+                cpu_s += cpu
+                n_fwd += n_tried
+                QN[i, :, :, l] = q
+                if deriv is None:
+                    V[i, :, :, l], P[i, :, :, l], X[i, :, :, l], FX[i, :, :, l] = v, p, x, fx
+                    solved[i, :, :, l] = ok
+                else:  # the tangent line in the pressure through the middle plane
+                    half = 0.5 * (ax[3][-1] - ax[3][0])
+                    for l, sgn in ((0, -half), (n4 - 1, half)):
+                        V[i, :, :, l], P[i, :, :, l], X[i, :, :, l] = (a + sgn * d for a, d in zip((v, p, x), deriv))
+                        FX[i, :, :, l], QN[i, :, :, l] = fx, q
+                        solved[i, :, :, l] = ok
+                if not ok.all():
+                    p_u = 0.5 * (ax[3][0] + ax[3][-1]) if deriv is not None else ax[3][l]
+                    log(f"atlas: plane {'f_x' if acfg.x_control == 'force' else 'q'} {ax[0][i]:+.2f} N, urethra "
+                        f"{p_u * 1e-3:.1f} kPa: {ok.size - ok.sum()} of {ok.size} points unreachable "
+                        f"({err or 'beyond a failed point'})")
+    if acfg.x_control == "displacement":
+        log(f"atlas: {n_fwd} converged forward solves for {int(solved.sum())} points (displacement axis: "
+            f"{n_fwd - int(solved.sum())} more, the lines' faces solved again and the trials)")
+    weights = fill_weights(solved, ax)
+    for a in (V.reshape(solved.size, -1), P.reshape(solved.size, -1), X.reshape(solved.size, -1), FX.reshape(-1, 1)):
+        _fill(a, weights)
+    # POD of the displacement field: the Gram matrix of the snapshots (n_grid²) is small
+    D = X.reshape(-1, ndof)
+    del X
+    G = D @ D.T
+    w, Q = np.linalg.eigh(G)
+    w, Q = w[::-1].clip(min=0.0), Q[:, ::-1]
+    total = float(w.sum())
+    tail = total - np.cumsum(w)
+    r = int(min(FIELD_MAX_MODES, max(1, np.searchsorted(-tail, -FIELD_RTOL * total) + 1)))
+    modes = D.T @ (Q[:, :r] / np.sqrt(np.maximum(w[:r], 1e-300)))  # (3N, r), orthonormal columns
+    coef = D @ modes  # (n_grid, r)
+    field_rms = float(np.sqrt(max(tail[r - 1], 0.0) / D.size))
+    shape = acfg.shape
+    # the first axis's Chebyshev variable at each point (a displacement axis's points are where
+    # they landed: each line is fitted through its own, to_chebyshev)
+    tq = np.vectorize(axis_t)(QN, ax[0][0], ax[0][-1], acfg.stretch[0])[0]
+    cV = to_chebyshev(V.reshape(*shape, 4), shape, tq)
+    cP = to_chebyshev(P.reshape(*shape, k * 3), shape, tq).reshape(*shape, k, 3)
+    cF = to_chebyshev(coef.reshape(*shape, r), shape, tq)
+    # f_x as an output: on a displacement axis the polynomial of the solved f_x; on a force axis
+    # f_x is the axis variable itself (its polynomial is not needed, and not exact on a stretch)
+    cFx = to_chebyshev(FX[..., None], shape, tq) if acfg.x_control == "displacement" else np.zeros((*shape, 0))
+    return Atlas(key=key, config=acfg, cV=cV, cP=cP, cF=cF, cFx=cFx, q_nodes=QN, modes=modes, x_rest=fwd.fem.x_rest.copy(),
+                 build_s=time.perf_counter() - t0, solves=int(solved.sum()) * acfg.n_solves // solved.size,
+                 field_rms_m=field_rms, solved=solved, build_cpu_s=cpu_s, provenance=provenance(model, fwd))
+
+
+def _solves(at: Atlas) -> str:
+    if not at.unsolved:
+        return f"{at.solves} forward solves"
+    return (f"{at.solves} of {at.config.n_solves} forward solves converged ({at.unsolved} grid points unreachable: "
+            f"filled, outside the envelope)")
+
+
+def load_or_build(model, config: EstimatorConfig | None = None, atlas: AtlasConfig | None = None, *,
+                  cache_dir=None, scheduler: str | None = None, n_workers: int | None = None,
+                  progress: bool = True, log=print, fwd: ForwardModel | None = None,
+                  rebuild: bool = False) -> Atlas | AtlasPatches:
+    """The atlas of ``model`` from ``cache_dir`` (a model directory) if present and valid, else built
+    and saved there. A cached file that is damaged, tampered with or of another format is an error
+    (:class:`AtlasCorrupt` / :class:`AtlasMismatch`, one line naming the file, nothing overwritten)
+    unless ``rebuild``, which builds and replaces it (``softphantom atlas build --rebuild``). With
+    ``AtlasConfig.f_y_splits_N`` each piece is loaded or built (and cached) on its own. ``atlas``
+    None: :func:`default_atlas_config` of the model's element order."""
+    cfg = config or EstimatorConfig()
+    fwd = fwd or ForwardModel(model, cfg)
+    acfg = atlas or default_atlas_config(fwd.fem.order)
+    if acfg.f_y_splits_N:
+        return AtlasPatches(acfg, tuple(
+            load_or_build(model, cfg, sub, cache_dir=cache_dir, scheduler=scheduler, n_workers=n_workers,
+                          progress=progress, log=log, fwd=fwd, rebuild=rebuild) for sub in acfg.patches()))
+    key = atlas_key(fwd, acfg)
+    path = atlas_path(cache_dir, key) if cache_dir is not None else None
+    if path is not None and path.is_file():
+        try:
+            at = load_atlas(path, key)
+            log(f"atlas: {path} ({at.nbytes / 1e6:.1f} MB, {_solves(at)}, built in {at.build_s:.0f} s)")
+            return at
+        except (AtlasCorrupt, AtlasMismatch) as exc:
+            if not rebuild:
+                raise type(exc)(f"{exc}; to build it again: softphantom atlas build --model {cache_dir} --rebuild") from None
+            log(f"{exc}: rebuilding")
+    elif path is not None and any(len(p.stem) == 32 and set(p.stem) <= set("0123456789abcdef")
+                                  for p in Path(cache_dir).glob("*.npz")):
+        # the atlas directory given for the model's (it holds atlas files, named by their key;
+        # model.npz is the model's own): its atlases are never found, every run builds
+        log(f"atlas: warning: {cache_dir} holds atlas files itself, but the cache is a model directory "
+            f"(atlases in its atlas/ subdirectory): building into {path.parent}")
+    at = build_atlas(model, cfg, acfg, scheduler=scheduler, n_workers=n_workers, progress=progress, fwd=fwd,
+                     log=log)
+    msg = (f"atlas: {_solves(at)} in {at.build_s:.0f} s ({at.build_cpu_s / at.config.n_solves:.2f} CPU-s a solve), "
+           f"{at.nbytes / 1e6:.1f} MB")
+    if path is not None:
+        save_atlas(at, path)
+        msg += f" → {path} ({path.stat().st_size / 1e6:.1f} MB on disk)"
+    log(msg)
+    return at

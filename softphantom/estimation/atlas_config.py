@@ -1,0 +1,212 @@
+"""The atlas's settings: its envelope box, grid and first axis (:class:`AtlasConfig`), and the
+default a model of each element order gets (:func:`default_atlas_config`)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, replace
+
+import numpy as np
+
+from softphantom.errors import UserError
+from softphantom.estimation.atlas_basis import cheb_points
+
+STRETCH_FX_N = 0.02  # the default f_x stretch width: the arm pair's step core at 3.5–5 N (docs/estimation.md)
+STRETCH_MIN_POINTS = 9  # f_x points from which the default stretches f_x
+STRETCH_Q = 0.3  # the default stretch of a displacement axis (N-equivalent; docs/estimation.md)
+X_CONTROLS = ("displacement", "force")
+
+
+@dataclass(frozen=True)
+class AtlasConfig:
+    """The envelope and the grid of the atlas.
+
+    ``force_min_N`` / ``force_max_N`` (3,) the envelope box of the force components (the default
+    covers the phantom's use with a margin: pushes mostly along +y, the needle axis, up to 5.2 N,
+    ±2 N sideways — the paper's pushes and a lateral (1.5, 0.5, −1.0) N push, whose estimate runs
+    ≈ 20 % above it on a stiffer model; a 6 N push with 1.4 N sideways does not converge on the
+    default mesh, and corners the model cannot reach are flagged, :func:`~softphantom.estimation.atlas_build.build_atlas`);
+    ``p_min_kPa`` / ``p_max_kPa`` the urethra pressure range; ``n_force`` (3,) / ``n_pressure``
+    Chebyshev–Lobatto points per axis (their product is the number of forward solves);
+    ``linear_pressure`` (only with ``n_pressure=2``): the two pressure planes from one plane of
+    solves at the range's middle and the exact pressure derivative there (the tangent line: half the
+    solves, and exact at the middle, where a push scenario's pressure stays; its error at the
+    range's ends, the curvature term, is as large as the two-plane secant's at the middle);
+    ``force_cluster_N`` (3,) per force axis the width (N) of a stretch that clusters the points
+    about zero force (Chebyshev–Lobatto in asinh(f / w), :func:`cheb_points`; 0: none). The default
+    (None) stretches f_x by :data:`STRETCH_FX_N` when it has at least :data:`STRETCH_MIN_POINTS`
+    points and the envelope spans 0: above ≈ 3.5 N along f_y the default design's arms 2 and 3
+    trade ≈ 20 mm³ of volume within ±0.1 N of f_x = 0 (one of the pair buckles, the sign of f_x
+    picks which), a step no polynomial in f_x itself follows with a few points
+    (docs/estimation.md). With fewer points the stretch costs more than it gains: the smooth part
+    of the map is then a steep function of the stretched variable (3 points over ±1.5 N: a linear
+    map is missed by 0.55 N at f_x = 0.18 N), so such grids stay affine.
+
+    ``x_control``: what the first axis holds. ``"force"`` (the default): f_x itself.
+    ``"displacement"``: the work-conjugate x-displacement of the contact patch, ū_x = H_xᵀu, mapped per
+    (f_y, f_z, p_u) point affinely onto [f_x,min, f_x,max] so that its ends are the envelope's f_x
+    faces; the axis variable ``q`` (N-equivalent) is f_x at the faces and f_x itself becomes an
+    output (:meth:`~softphantom.estimation.atlas_map.Atlas.forces`). A stable equilibrium has ∂ū_x/∂f_x = H_xᵀK⁻¹H_x > 0, so ū_x is
+    monotone in f_x, and where the arm pair steps (f_x moves a few hundredths of a newton while the
+    state moves across) the displacement moves with the state: the outputs are smooth in q where
+    they are steep in f_x (docs/estimation.md). The build solves the two faces first, then walks
+    each line along q from face to face, each node's point one mixed-control solve (f_x an unknown
+    fixed by ū_x: :class:`~softphantom.estimation.linearization.PatchControl`), force-controlled
+    trials where that fails (:mod:`~softphantom.estimation.atlas_build`).
+    The step is still the steepest part of the map in q, but far wider than in f_x: the default
+    stretch of such an axis is :data:`STRETCH_Q` (N-equivalent); ``linear_pressure`` needs
+    ``"force"`` (its tangent line is at fixed f_x).
+
+    The default is resolved in :attr:`cluster_N`, not stored, so ``dataclasses.replace`` with
+    another first axis or grid takes that one's default:
+
+    >>> AtlasConfig().cluster_N, AtlasConfig(x_control="displacement").cluster_N
+    ((0.02, 0.0, 0.0), (0.3, 0.0, 0.0))
+    >>> from dataclasses import replace
+    >>> replace(AtlasConfig(), n_force=(4, 5, 4)).cluster_N
+    (0.0, 0.0, 0.0)
+    >>> AtlasConfig(n_pressure=2, linear_pressure=True, x_control="displacement")
+    Traceback (most recent call last):
+    ...
+    softphantom.errors.UserError: atlas linear_pressure needs x_control 'force' (the tangent line is at fixed f_x), got 'displacement'
+    >>> AtlasConfig(n_force=(5, 2, 5))
+    Traceback (most recent call last):
+    ...
+    softphantom.errors.UserError: atlas n_force: each must be an integer in 3..15, got (5, 2, 5)
+    """
+
+    force_min_N: tuple[float, float, float] = (-2.0, -1.0, -2.0)
+    force_max_N: tuple[float, float, float] = (2.0, 5.2, 2.0)
+    p_min_kPa: float = -2.0
+    p_max_kPa: float = 40.0
+    n_force: tuple[int, int, int] = (11, 9, 4)
+    n_pressure: int = 3
+    linear_pressure: bool = False
+    force_cluster_N: tuple[float, float, float] | None = None
+    x_control: str = "force"
+    f_y_splits_N: tuple[float, ...] = ()
+
+    def __post_init__(self) -> None:
+        lo = tuple(float(v) for v in self.force_min_N)
+        hi = tuple(float(v) for v in self.force_max_N)
+        if len(lo) != 3 or len(hi) != 3 or not all(math.isfinite(a) and math.isfinite(b) and a < b
+                                                   for a, b in zip(lo, hi)):
+            raise UserError(f"atlas force envelope {lo}..{hi} N: need 3 finite ranges with min < max")
+        object.__setattr__(self, "force_min_N", lo)
+        object.__setattr__(self, "force_max_N", hi)
+        # floats, so -2 and -2.0 give one cache key (atlas_key hashes the fields' JSON)
+        object.__setattr__(self, "p_min_kPa", float(self.p_min_kPa))
+        object.__setattr__(self, "p_max_kPa", float(self.p_max_kPa))
+        if not (math.isfinite(self.p_min_kPa) and math.isfinite(self.p_max_kPa) and self.p_min_kPa < self.p_max_kPa):
+            raise UserError(f"atlas pressure range [{self.p_min_kPa}, {self.p_max_kPa}] kPa is empty")
+        n = tuple(self.n_force) if np.ndim(self.n_force) else (self.n_force,) * 3
+        if len(n) != 3 or any(int(v) != v or not 3 <= v <= 15 for v in n):
+            raise UserError(f"atlas n_force: each must be an integer in 3..15, got {self.n_force}")
+        object.__setattr__(self, "n_force", tuple(int(v) for v in n))
+        if int(self.n_pressure) != self.n_pressure or not 2 <= self.n_pressure <= 15:
+            raise UserError(f"atlas n_pressure must be an integer in 2..15, got {self.n_pressure}")
+        if self.linear_pressure and self.n_pressure != 2:
+            raise UserError(f"atlas linear_pressure needs n_pressure 2, got {self.n_pressure}")
+        if self.x_control not in X_CONTROLS:
+            raise UserError(f"atlas x_control: one of {', '.join(X_CONTROLS)}, got {self.x_control!r}")
+        if self.linear_pressure and self.x_control != "force":
+            raise UserError("atlas linear_pressure needs x_control 'force' (the tangent line is at fixed f_x), "
+                            f"got {self.x_control!r}")
+        w = self.force_cluster_N
+        if w is not None:
+            w = tuple(float(v) for v in (w if np.ndim(w) else (w,) * 3))
+            if len(w) != 3 or not all(math.isfinite(v) and v >= 0 for v in w):
+                raise UserError(f"atlas force_cluster_N: 3 widths ≥ 0 N (0: no stretch), got {self.force_cluster_N}")
+            object.__setattr__(self, "force_cluster_N", w)
+        splits = tuple(float(v) for v in (self.f_y_splits_N if np.ndim(self.f_y_splits_N) else (self.f_y_splits_N,)))
+        edges = (lo[1], *splits, hi[1])
+        if not all(math.isfinite(v) for v in splits) or any(b <= a for a, b in zip(edges, edges[1:])):
+            raise UserError(f"atlas f_y_splits_N: increasing values strictly inside the f_y range {lo[1]}..{hi[1]} N, "
+                            f"got {self.f_y_splits_N}")
+        object.__setattr__(self, "f_y_splits_N", splits)
+
+    @property
+    def cluster_N(self) -> tuple[float, float, float]:
+        """The stretch widths per force axis: ``force_cluster_N``, or the default for this grid and
+        first axis where it is None (the first axis stretched where there are enough points, above)."""
+        if self.force_cluster_N is not None:
+            return self.force_cluster_N
+        stretch = self.n_force[0] >= STRETCH_MIN_POINTS and self.force_min_N[0] < 0 < self.force_max_N[0]
+        return ((STRETCH_FX_N if self.x_control == "force" else STRETCH_Q) if stretch else 0.0, 0.0, 0.0)
+
+    def as_dict(self) -> dict:
+        """The fields with the stretch resolved: what the cache key hashes and an atlas file keeps,
+        so a file's polynomial never meets another default's stretch."""
+        d = asdict(self)
+        d["force_cluster_N"] = self.cluster_N
+        if not self.f_y_splits_N:
+            del d["f_y_splits_N"]  # an atlas of one piece keeps the key it had before the field
+        return d
+
+    def patches(self) -> tuple["AtlasConfig", ...]:
+        """The configurations of the pieces along f_y (``f_y_splits_N``): each an ordinary atlas
+        over its f_y range with this grid; ``(self,)`` without splits.
+
+        >>> [c.force_max_N[1] for c in AtlasConfig(f_y_splits_N=(3.3,)).patches()]
+        [3.3, 5.2]
+        >>> AtlasConfig(f_y_splits_N=(6.0,))
+        Traceback (most recent call last):
+        ...
+        softphantom.errors.UserError: atlas f_y_splits_N: increasing values strictly inside the f_y range -1.0..5.2 N, got (6.0,)
+        """
+        if not self.f_y_splits_N:
+            return (self,)
+        edges = (self.force_min_N[1], *self.f_y_splits_N, self.force_max_N[1])
+        lo, hi = self.force_min_N, self.force_max_N
+        return tuple(replace(self, force_min_N=(lo[0], a, lo[2]), force_max_N=(hi[0], b, hi[2]), f_y_splits_N=())
+                     for a, b in zip(edges, edges[1:]))
+
+    @property
+    def lower(self) -> np.ndarray:
+        return np.array([*self.force_min_N, self.p_min_kPa * 1e3])
+
+    @property
+    def upper(self) -> np.ndarray:
+        return np.array([*self.force_max_N, self.p_max_kPa * 1e3])
+
+    @property
+    def stretch(self) -> np.ndarray:
+        """(4,) the axes' stretch widths (N, N, N; the pressure axis 0: affine), :func:`~softphantom.estimation.atlas_basis.axis_t`."""
+        return np.array([*self.cluster_N, 0.0])
+
+    @property
+    def shape(self) -> tuple[int, int, int, int]:
+        return (*self.n_force, int(self.n_pressure))
+
+    @property
+    def n_solves(self) -> int:
+        """Forward solves of the build (one pressure plane with ``linear_pressure``)."""
+        return math.prod(self.n_force) * (1 if self.linear_pressure else int(self.n_pressure)) * (len(self.f_y_splits_N) + 1)
+
+    def axes(self) -> list[np.ndarray]:
+        """The grid's load values per axis (N, N, N, Pa), from the lower bound up."""
+        return [cheb_points(n, lo, hi, w) for n, lo, hi, w in zip(self.shape, self.lower, self.upper, self.stretch)]
+
+
+# The quadratic (10-node) BIP model's atlas: its back arm pair snaps through above f_y ≈ 4.3 N (a fold
+# in f_x, followed by the displacement axis) and one f_y polynomial over -1..5.2 N rings below it;
+# pieces split at these forces keep each f_y polynomial smooth (measured: docs/estimation.md).
+P2_F_Y_SPLITS_N = (3.3,)
+P2_N_FORCE = (11, 6, 4)
+
+
+def default_atlas_config(order: int = 1) -> AtlasConfig:
+    """The atlas a model of element ``order`` gets when none is asked for: the linear model's
+    :class:`AtlasConfig` defaults; for the quadratic model the displacement axis, in pieces along
+    f_y (:data:`P2_F_Y_SPLITS_N`), each :data:`P2_N_FORCE` × 3 points.
+
+    >>> default_atlas_config(1) == AtlasConfig()
+    True
+    >>> c = default_atlas_config(2)
+    >>> c.x_control, c.f_y_splits_N, c.shape
+    ('displacement', (3.3,), (11, 6, 4, 3))
+    """
+    if int(order) == 2:
+        return AtlasConfig(n_force=P2_N_FORCE, x_control="displacement", f_y_splits_N=P2_F_Y_SPLITS_N)
+    return AtlasConfig()
+

@@ -1,0 +1,277 @@
+"""The real-time estimator on an atlas (:class:`AtlasEstimator`).
+
+Per sample, a Gauss–Newton iteration in the 3 force components (the urethra pressure is measured)
+on the atlas's polynomial volumes, each step the bounded QP of
+:func:`~softphantom.estimation.qp.solve_volume_qp` with the polynomial's Jacobian; the points and
+the full field come from the same polynomials at the solution. No refresh and no thread: the step
+is compiled (:mod:`~softphantom.estimation.atlas_kernels`, on the atlas's public
+:class:`~softphantom.estimation.atlas_map.KernelView`), tens of microseconds a sample.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+
+from softphantom.errors import SolverError, UserError
+from softphantom.estimation import atlas_kernels as ak
+from softphantom.estimation.atlas_build import load_or_build
+from softphantom.estimation.atlas_config import AtlasConfig
+from softphantom.estimation.atlas_map import Atlas, AtlasPatches
+from softphantom.estimation.atlas_store import atlas_key
+from softphantom.estimation.config import EstimatorConfig
+from softphantom.estimation.estimator import (
+    EstimatorState, check_sample, pose_and_shifts, repeat_last, rest_estimate, sensitivity_cond,
+)
+from softphantom.estimation.forward import ForwardModel
+from softphantom.estimation.qp import solve_volume_qp
+from softphantom.estimation.types import Estimate
+from softphantom.pose import DegenerateMarkersError, Pose6, rigid_fit
+
+GN_MAX_ITER = 12
+GN_TOL_N = 1e-7
+FACE_TOL_N = 1e-9  # a Gauss–Newton that ends this close to a piece's shared f_y face goes on in the neighbour
+
+
+class AtlasEstimator(EstimatorState):
+    """The real-time estimator on an :class:`~softphantom.estimation.atlas_map.Atlas` (see the module docstring): ``step(measurement)
+    → Estimate`` with no background work; ``node_positions()`` the full field of the last estimate.
+
+    ``Estimate.in_envelope`` is False when the measured pressure lies outside the atlas's range,
+    when the best fit wants a force beyond an envelope face that is tighter than the configured
+    force bounds (the estimate is then the best one clamped to the envelope), or when it lies in a
+    grid cell the build could not solve (the estimate then comes from the extrapolated fill).
+    """
+
+    kind = "atlas"
+
+    def __init__(self, model, config: EstimatorConfig | None = None,
+                 atlas: Atlas | AtlasPatches | AtlasConfig | None = None,
+                 *, cache_dir=None, scheduler: str | None = None, n_workers: int | None = None,
+                 progress: bool = True, log=print) -> None:
+        self.config = cfg = config or EstimatorConfig()
+        self.model = model
+        fwd = ForwardModel(model, cfg)
+        self.forward = fwd
+        if not isinstance(atlas, (Atlas, AtlasPatches)):
+            atlas = load_or_build(model, cfg, atlas, cache_dir=cache_dir, scheduler=scheduler,
+                                  n_workers=n_workers, progress=progress, log=log, fwd=fwd)
+        pieces = atlas.patches if isinstance(atlas, AtlasPatches) else (atlas,)
+        if any(a.key != atlas_key(fwd, a.config) for a in pieces):
+            raise UserError("atlas built for another model, law, contact or envelope; rebuild it")
+        self.atlas = atlas
+        self._pieces = pieces
+        self.marker_names, self.target_names = fwd.marker_names, fwd.target_names
+        nm = fwd.n_markers
+        self.rest_markers = fwd.rest.sub_x[:nm].copy()
+        self.rest_targets = fwd.rest.sub_x[nm:].copy()
+        elo, ehi = atlas.config.lower, atlas.config.upper
+        ulo, uhi = np.array(cfg.force_min_N), np.array(cfg.force_max_N)
+        self._lo = np.maximum(ulo, elo[:3])
+        self._hi = np.minimum(uhi, ehi[:3])
+        if np.any(self._lo > self._hi):
+            raise UserError(f"force bounds {cfg.force_min_N}..{cfg.force_max_N} N do not meet the atlas "
+                            f"envelope {atlas.config.force_min_N}..{atlas.config.force_max_N} N")
+        self._bounds = (self._lo.tolist(), self._hi.tolist())
+        self._env_lo = np.where(elo[:3] > ulo, self._lo, -np.inf)  # envelope faces inside the bounds
+        self._env_hi = np.where(ehi[:3] < uhi, self._hi, np.inf)
+        self._faces = list(zip(self._env_lo.tolist(), self._env_hi.tolist()))
+        self._p_range = (float(elo[3]), float(ehi[3]))
+        # each piece's force bounds: the estimator's, f_y cut to the piece's range
+        self._piece_bounds = []
+        for a in pieces:
+            lo, hi = self._lo.copy(), self._hi.copy()
+            lo[1], hi[1] = max(lo[1], a.config.force_min_N[1]), min(hi[1], a.config.force_max_N[1])
+            self._piece_bounds.append((lo, hi))
+        try:  # the rest markers centred once for the per-sample fit (rigid_fit checks they span a plane)
+            rigid_fit(self.rest_markers, self.rest_markers)
+            self._cp = self.rest_markers.mean(axis=0)
+            self._P0 = np.ascontiguousarray(self.rest_markers - self._cp)
+        except DegenerateMarkersError:
+            self._cp = self._P0 = None
+        ak.warm_up()
+        self.reset()
+
+    @property
+    def lam(self) -> np.ndarray:
+        """(4,) the current actuation estimate: force N (3), urethra pressure Pa (the atlas's
+        coordinates of it are ``coords``)."""
+        return np.r_[self.atlas.forces(self._lam), self._lam[3]]
+
+    @property
+    def coords(self) -> np.ndarray:
+        """(4,) the last estimate in the atlas's coordinates (``Atlas.coords``)."""
+        return self._lam.copy()
+
+    def reset(self) -> None:
+        """Back to rest."""
+        self._lam = np.zeros(4)
+        self._last = rest_estimate(self.target_names, self.atlas.volumes(self._lam)[1])
+
+    def node_positions(self) -> np.ndarray:
+        """(N,3) m node positions of the last estimate (the atlas's field; evaluated when asked,
+        not per sample)."""
+        return self.atlas.nodes(self._lam)
+
+    def _start(self, p_Pa: float, start) -> tuple[np.ndarray, bool]:
+        """The first iterate: the start's forces (default: the last estimate's) clipped to the
+        bounds, the measured pressure clipped to the envelope; and whether the pressure was inside."""
+        p_lo, p_hi = self._p_range
+        p = min(max(float(p_Pa), p_lo), p_hi)
+        f = (self._lam if start is None else np.asarray(start, float))[:3].tolist()
+        lam = np.array([min(max(v, lo), hi) for v, lo, hi in zip(f, self._bounds[0], self._bounds[1])] + [p])
+        return lam, p == float(p_Pa)
+
+    def _inside(self, lam: np.ndarray, inside: bool) -> bool:
+        tol = 1e-6
+        for f, (lo, hi) in zip(lam[:3].tolist(), self._faces):
+            if f <= lo + tol or f >= hi - tol:  # at an envelope face inside the bounds: clamped
+                return False
+        if inside and self.atlas.unsolved:
+            return self.atlas.solved_at(lam)  # where the atlas was filled, not solved
+        return inside
+
+    def invert(self, dV, p_Pa: float, start=None) -> tuple[np.ndarray, str, bool, np.ndarray, np.ndarray, int]:
+        """Loads that best explain the volumes ``dV`` (4,) m³ at urethra pressure ``p_Pa``:
+        (λ (4,), QP status, in_envelope, V (4,), J (4,4) ∂V/∂λ, Gauss–Newton iterations), λ and
+        ``start`` in the atlas's coordinates (:meth:`Atlas.coords`; the force is
+        :meth:`Atlas.forces` of λ).
+
+        Gauss–Newton from ``start`` (default: the last estimate) on the polynomial volumes, each
+        step the volume QP with its exact Jacobian, a step that raises the misfit halved
+        (:func:`~softphantom.estimation.atlas_kernels.gn_run`). With no force bound in the way the
+        QP's minimizer is a 3 × 3 solve inside the kernel; an iteration whose step meets a bound is
+        solved by the configured QP solver (``EstimatorConfig.qp_solver``).
+        :meth:`invert_reference` is the same iteration in numpy, every step by the QP solver."""
+        lam, inside = self._start(p_Pa, start)
+        dV = np.asarray(dV, float)
+        k = self._piece_index(lam[1])
+        best, seen = None, set()
+        while k not in seen:  # one piece, then its neighbour while the fit stops on their shared face
+            seen.add(k)
+            res = self._invert_piece(k, lam.copy(), dV)
+            if best is not None and res[2] >= best[2]:
+                break
+            best = res
+            lam = res[0]
+            lo, hi = self._piece_bounds[k]
+            if k > 0 and lam[1] <= lo[1] + FACE_TOL_N:
+                k -= 1
+            elif k < len(self._pieces) - 1 and lam[1] >= hi[1] - FACE_TOL_N:
+                k += 1
+        lam, code, _, V, J, it = best
+        status = "gn:max_iter" if code == ak.MAX_ITER else "optimal"
+        return lam, status, self._inside(lam, inside), V, J, it
+
+    def _piece_index(self, f_y: float) -> int:
+        return self.atlas.index(f_y) if len(self._pieces) > 1 else 0
+
+    def _invert_piece(self, k: int, lam: np.ndarray, dV: np.ndarray):
+        """Gauss–Newton on piece ``k`` from ``lam`` (f_y clamped into it): (λ, code, misfit m⁶, V, J, iterations)."""
+        at = self._pieces[k]
+        lo, hi = self._piece_bounds[k]
+        lam[1] = min(max(lam[1], lo[1]), hi[1])
+        V, J = np.empty(4), np.empty((4, 4))
+        kv = at.kernel
+        n3 = kv.n_force_terms
+        poly = (np.empty((n3, 4)), np.empty((n3, 4)), *kv.box, lam, V, J)
+        code, it, cost = ak.gn_run(kv.V, *poly, 0.0, dV, lo, hi, GN_TOL_N, 0, GN_MAX_ITER)
+        while code == ak.NEED_QP:  # a force bound is in the way of this iteration's step: the QP's
+            qp = solve_volume_qp(J, V - dV, 0.0, lo - lam[:3], hi - lam[:3], self.config.qp_solver)
+            if qp.status != "optimal":
+                raise SolverError(f"QP {qp.status}")
+            code, cost = ak.gn_update(*poly, cost, dV, qp.dlam[:3].copy(), lo, hi, GN_TOL_N)
+            if code == ak.CONTINUE:
+                code, it, cost = ak.gn_run(kv.V, *poly, cost, dV, lo, hi, GN_TOL_N, it, GN_MAX_ITER)
+        return lam, code, cost, V, J, it
+
+    def invert_reference(self, dV, p_Pa: float, start=None):
+        """:meth:`invert` as it was before the kernels (numpy evaluation, every Gauss–Newton step
+        by the QP solver): the reference for the tests and ``bench_estimate.py``'s ratio."""
+        at = self.atlas
+        lam, inside = self._start(p_Pa, start)
+        dV = np.asarray(dV, float)
+        V, J = at.volumes_reference(lam)
+        cost = float(np.sum((V - dV) ** 2))
+        status = "gn:max_iter"
+        it = 0
+        for it in range(1, GN_MAX_ITER + 1):
+            qp = solve_volume_qp(J, V - dV, 0.0, self._lo - lam[:3], self._hi - lam[:3], self.config.qp_solver)
+            if qp.status != "optimal":
+                raise SolverError(f"QP {qp.status}")
+            step = qp.dlam[:3]
+            # backtracking: Gauss–Newton on a mildly non-linear map; halve a step that raises the misfit
+            for _ in range(ak.BACKTRACK_HALVINGS):
+                trial = lam.copy()
+                trial[:3] = np.clip(lam[:3] + step, self._lo, self._hi)
+                Vt, Jt = at.volumes_reference(trial)
+                ct = float(np.sum((Vt - dV) ** 2))
+                if ct <= cost * (1 + 1e-12):
+                    break
+                step = 0.5 * step
+            else:
+                status = "optimal"  # no descent left: a (bounded) minimum at round-off
+                break
+            lam, V, J, cost = trial, Vt, Jt, ct
+            if np.max(np.abs(step)) <= GN_TOL_N:
+                status = "optimal"
+                break
+        return lam, status, self._inside(lam, inside), V, J, it
+
+    def _pose(self, lam: np.ndarray):
+        """(Pose6, target shifts) at ``lam``: the tracked points by the kernel, the markers' rigid
+        fit by :func:`~softphantom.estimation.atlas_kernels.rigid_fit_pose`."""
+        at = self._pieces[self._piece_index(lam[1])]
+        if self._P0 is None:  # rest markers that rigid_fit refuses: let it raise its error, as before
+            return pose_and_shifts(self.rest_markers, self.rest_targets, self.target_names, at.points(lam))
+        kv = at.kernel
+        pts, t, ypr = np.empty(kv.P.shape[1]), np.empty(3), np.empty(3)
+        ak.points_pose(kv.P, *kv.box, lam, self._P0, self._cp, pts, t, ypr)
+        shifts = pts.reshape(-1, 3)[len(self._P0):] - self.rest_targets
+        return Pose6(t, ypr), dict(zip(self.target_names, shifts))
+
+    def step(self, m, skipped: int = 0) -> Estimate:
+        """Estimate the state for one measurement; a bad sample repeats the last state with
+        ``status="rejected:<why>"`` (as the refresh estimator)."""
+        return self._step(m, skipped, reference=False)
+
+    def step_reference(self, m, skipped: int = 0) -> Estimate:
+        """:meth:`step` as it was before the kernels (the same estimate to round-off; for
+        ``bench_estimate.py``'s old/new ratio and the tests)."""
+        return self._step(m, skipped, reference=True)
+
+    def _step(self, m, skipped: int, reference: bool) -> Estimate:
+        t0 = time.perf_counter()
+        why = check_sample(m)
+        if why:
+            return repeat_last(self._last, m, f"rejected:{why}", t0, skipped)
+        try:
+            inv = self.invert_reference if reference else self.invert
+            lam, status, inside, V, J, it = inv(m.dV, float(m.p_urethra))
+        except SolverError as exc:
+            return repeat_last(self._last, m, f"failed:{exc}", t0, skipped)
+        at = self._pieces[self._piece_index(lam[1])]
+        # the force and the sensitivity to the loads, whatever the atlas's first axis
+        if reference:
+            force, J = at.forces(lam), at.by_force(lam, J)
+            pose, shifts = pose_and_shifts(self.rest_markers, self.rest_targets, self.target_names,
+                                           at.value_reference(at.cP, lam))
+            cond = sensitivity_cond(J)
+        else:
+            force = lam[:3].copy()
+            if at.displacement_x:
+                ak.force_chain(at.kernel.Fx, *at.kernel.box, lam, J, force)
+            pose, shifts = self._pose(lam)
+            cond = float(ak.cond_force(J))
+        dV = np.array(m.dV, float)
+        est = Estimate(
+            t=float(m.t), force=force, p_urethra=float(m.p_urethra), pose=pose, target_shift=shifts,
+            volume_pred=V, volume_meas=dV, cond_W=cond, qp_status=status,
+            step_time=time.perf_counter() - t0, skipped=int(skipped), in_envelope=inside,
+            extra={"qp_residual_m3": math.dist(V, dV), "gn_iterations": it},
+        )
+        self._lam = lam
+        self._last = est
+        return est

@@ -1,0 +1,333 @@
+"""The atlas: tensor Chebyshev polynomials of the forward map over the load envelope
+(:class:`Atlas`, one piece; :class:`AtlasPatches`, pieces along f_y), evaluated by the compiled
+kernels (:mod:`~softphantom.estimation.atlas_kernels`) through the public :class:`KernelView`.
+
+Built by :func:`~softphantom.estimation.atlas_build.build_atlas`, stored by
+:mod:`~softphantom.estimation.atlas_store`, inverted by
+:class:`~softphantom.estimation.atlas_estimator.AtlasEstimator`.
+"""
+
+from __future__ import annotations
+
+import bisect
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from softphantom.estimation import atlas_kernels as ak
+from softphantom.estimation.atlas_basis import axes_t, tensor_jacobian, tensor_value
+from softphantom.estimation.atlas_config import AtlasConfig
+
+
+@dataclass(frozen=True)
+class KernelView:
+    """An atlas piece as the compiled kernels take it: the box (``shape`` (4,) int64 points per axis,
+    ``lo`` / ``hi`` (4,) the envelope, ``wd`` (4,) the stretch widths, :attr:`box` the four in the
+    kernels' argument order) and the coefficients of each output as (grid points, outputs), C order:
+    ``V`` the volumes, ``P`` the tracked points, ``F`` the field modes, ``Fx`` f_x (no columns on a
+    force axis)."""
+
+    shape: np.ndarray
+    lo: np.ndarray
+    hi: np.ndarray
+    wd: np.ndarray
+    V: np.ndarray
+    P: np.ndarray
+    F: np.ndarray
+    Fx: np.ndarray
+
+    @property
+    def box(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        return self.shape, self.lo, self.hi, self.wd
+
+    @property
+    def n_force_terms(self) -> int:
+        """Coefficients per output once the pressure is contracted (``atlas_kernels.contract_pressure``)."""
+        return self.V.shape[0] // int(self.shape[3])
+
+
+@dataclass(frozen=True, eq=False)
+class Atlas:
+    """Tensor Chebyshev polynomials of the forward map over the envelope (:mod:`softphantom.estimation.atlas`).
+
+    ``key`` the cache key; ``config`` the :class:`AtlasConfig`; ``cV`` (n1,n2,n3,n4,4) volume
+    coefficients (m³); ``cP`` (n1,n2,n3,n4,k,3) tracked-point coefficients (m); ``cF``
+    (n1,n2,n3,n4,r) field-mode coefficients; ``modes`` (3N,r) the POD basis (m); ``x_rest`` (3N,);
+    ``build_s`` seconds of the build (wall); ``solves`` converged forward solves; ``field_rms_m``
+    the RMS error of the POD truncation over the grid; ``build_cpu_s`` the CPU seconds of the
+    forward solves (summed over the workers: independent of the machine's load); ``solved`` (n1,n2,n3,n4) bool, the grid
+    points whose solve converged (the others were filled, see
+    :func:`~softphantom.estimation.atlas_build.build_atlas`); ``cFx``
+    (n1,n2,n3,n4,1) the coefficients of f_x (N) on a displacement-controlled x axis (empty on a
+    force axis); ``q_nodes`` (n1,n2,n3,n4) the first coordinate of each grid point (the Lobatto
+    node, or on a displacement axis where the point landed, ``atlas_build.NODE_TOL``); ``provenance`` what
+    the atlas was built for and by (model, contact, tolerance, softphantom version, date: what
+    ``softphantom atlas info`` shows and ``atlas verify`` recomputes the key from,
+    :func:`~softphantom.estimation.atlas_build.provenance`); ``kernel`` the :class:`KernelView` (derived).
+
+    The polynomials take the atlas's coordinates λ = (q, f_y, f_z, p_u): ``q`` is f_x on a force
+    axis and the patch displacement's N-equivalent on a displacement axis (``AtlasConfig.x_control``);
+    :meth:`forces` gives the force at λ, :meth:`coords` the λ of a force.
+    """
+
+    key: str
+    config: AtlasConfig
+    cV: np.ndarray
+    cP: np.ndarray
+    cF: np.ndarray
+    modes: np.ndarray
+    x_rest: np.ndarray
+    build_s: float
+    solves: int
+    field_rms_m: float
+    solved: np.ndarray
+    build_cpu_s: float = float("nan")
+    cFx: np.ndarray | None = None
+    q_nodes: np.ndarray | None = None
+    provenance: dict | None = None
+    kernel: KernelView = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        if self.config.f_y_splits_N:
+            raise ValueError("an Atlas is one piece; a config with f_y_splits_N makes AtlasPatches")
+        if self.cFx is None:
+            if self.config.x_control != "force":
+                raise ValueError("a displacement-controlled atlas needs its f_x coefficients cFx")
+            object.__setattr__(self, "cFx", np.zeros((*self.config.shape, 0)))
+        if self.q_nodes is None:  # the Lobatto nodes
+            n = self.config.shape[0]
+            q = self.config.axes()[0].reshape((n,) + (1,) * 3)
+            object.__setattr__(self, "q_nodes", np.broadcast_to(q, self.config.shape).copy())
+        ok = np.asarray(self.solved, bool)
+        # a grid cell is inside the solved region when all its 16 corners converged
+        cells = np.ones(tuple(n - 1 for n in ok.shape), bool)
+        for corner in np.ndindex(*(2,) * ok.ndim):
+            cells &= ok[tuple(slice(c, c + n - 1) for c, n in zip(corner, ok.shape))]
+        object.__setattr__(self, "solved", ok)
+        object.__setattr__(self, "_cells", cells)
+        object.__setattr__(self, "_axes", self.config.axes())
+        # solved_at runs per sample where the build left points unsolved: plain lists and bisect
+        # (numpy's per-call overhead on 4 tiny axes was ≈ 15 % of a P2 step)
+        object.__setattr__(self, "_axes_lists", [
+            (xs.tolist(), float(xs[0] - 1e-9 * (1 + abs(xs[0]))), float(xs[-1] + 1e-9 * (1 + abs(xs[-1]))))
+            for xs in self._axes])
+        # the kernels' view (atlas_kernels): coefficients as (grid points, outputs), C order
+        n = int(np.prod(self.config.shape))
+        c = {name: np.ascontiguousarray(getattr(self, name), dtype=float).reshape(n, -1)
+             for name in ("cV", "cP", "cF", "cFx")}
+        object.__setattr__(self, "kernel", KernelView(
+            np.array(self.config.shape, dtype=np.int64), np.ascontiguousarray(self.config.lower),
+            np.ascontiguousarray(self.config.upper), np.ascontiguousarray(self.config.stretch),
+            c["cV"], c["cP"], c["cF"], c["cFx"]))
+
+    @property
+    def unsolved(self) -> int:
+        """Grid points whose forward solve did not converge (filled by extrapolation)."""
+        return int(self.solved.size - np.count_nonzero(self.solved))
+
+    def solved_at(self, lam) -> bool:
+        """Whether ``lam`` lies in a grid cell whose corners all converged (False outside the box)."""
+        idx = []
+        for v, (xs, lo, hi) in zip(np.asarray(lam, float).tolist(), self._axes_lists):
+            if not lo <= v <= hi:
+                return False
+            idx.append(min(max(bisect.bisect_left(xs, v) - 1, 0), len(xs) - 2))
+        return bool(self._cells[tuple(idx)])
+
+    # -- evaluation -------------------------------------------------------------------------------
+    def volumes(self, lam) -> tuple[np.ndarray, np.ndarray]:
+        """(V (4,) m³, J (4,4) ∂V/∂λ in m³/N, m³/Pa) at ``lam`` inside the envelope (one compiled
+        pass over the coefficients; :meth:`volumes_reference` is the reference it is tested against)."""
+        V, J = np.empty(4), np.empty((4, 4))
+        ak.eval_vj(self.kernel.V, *self.kernel.box, np.asarray(lam, float), V, J)
+        return V, J
+
+    def points(self, lam) -> np.ndarray:
+        """(k,3) m tracked points (markers, then targets) at ``lam``."""
+        out = np.empty(self.kernel.P.shape[1])
+        ak.eval_value(self.kernel.P, *self.kernel.box, np.asarray(lam, float), out)
+        return out.reshape(-1, 3)
+
+    def nodes(self, lam) -> np.ndarray:
+        """(N,3) m node positions at ``lam`` (the POD field)."""
+        coef = np.empty(self.kernel.F.shape[1])
+        ak.eval_value(self.kernel.F, *self.kernel.box, np.asarray(lam, float), coef)
+        return (self.x_rest + self.modes @ coef).reshape(-1, 3)
+
+    @property
+    def displacement_x(self) -> bool:
+        """Whether the first axis is the patch displacement (f_x an output), ``AtlasConfig.x_control``."""
+        return self.config.x_control == "displacement"
+
+    def forces(self, lam) -> np.ndarray:
+        """(3,) N the force at the atlas coordinates ``lam`` (on a force axis: ``lam[:3]``)."""
+        f = np.array(lam[:3], float)
+        if self.displacement_x:
+            out = np.empty(1)
+            ak.eval_value(self.kernel.Fx, *self.kernel.box, np.asarray(lam, float), out)
+            f[0] = out[0]
+        return f
+
+    def force_jacobian(self, lam) -> np.ndarray:
+        """(3, 4) ∂f/∂λ at the atlas coordinates ``lam``: the identity's rows on a force axis; on a
+        displacement axis row 0 is f_x's gradient (∂f_x/∂q > 0 where the map is stable)."""
+        Jf = np.eye(3, 4)
+        if self.displacement_x:
+            V, J = np.empty(1), np.empty((1, 4))
+            ak.eval_vj(self.kernel.Fx, *self.kernel.box, np.asarray(lam, float), V, J)
+            Jf[0] = J[0]
+        return Jf
+
+    def by_force(self, lam, J: np.ndarray) -> np.ndarray:
+        """A Jacobian ``J`` (m, 4) per unit of the atlas coordinates at ``lam`` as per unit of the
+        loads (f, p_u) (N, Pa): on a displacement axis by the chain rule through q(f, p_u),
+        ∂/∂f_x = ∂/∂q / (∂f_x/∂q) and ∂/∂λ_a −= ∂/∂f_x · ∂f_x/∂λ_a for the other loads."""
+        if not self.displacement_x:
+            return J
+        a = self.force_jacobian(lam)[0]
+        J = np.array(J, float)
+        J[:, 0] /= a[0]
+        J[:, 1:] -= np.outer(J[:, 0], a[1:])
+        return J
+
+    def coords(self, force, p_Pa: float, tol_N: float = 1e-10) -> np.ndarray:
+        """(4,) the atlas coordinates of the force ``force`` (3,) N at urethra pressure ``p_Pa``: on a
+        displacement axis the q whose f_x is ``force[0]`` (Newton, bracketed by the axis; a force
+        beyond the envelope's f_x faces gives the face)."""
+        lam = np.array([*np.asarray(force, float)[:3], float(p_Pa)])
+        if not self.displacement_x:
+            return lam
+        target = lam[0]
+        lo, hi = float(self.config.lower[0]), float(self.config.upper[0])
+        q = min(max(target, lo), hi)
+        for _ in range(60):
+            lam[0] = q
+            g = self.forces(lam)[0] - target
+            if abs(g) <= tol_N:
+                break
+            if g < 0:
+                lo = q
+            else:
+                hi = q
+            d = self.force_jacobian(lam)[0, 0]
+            q = q - g / d if d > 0 else math.nan
+            if not lo <= q <= hi:
+                q = 0.5 * (lo + hi)
+            if hi - lo <= tol_N * 1e-3:
+                break
+        lam[0] = q
+        return lam
+
+    # the references: numpy.polynomial evaluation (the kernels are tested against these)
+    def volumes_reference(self, lam) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`volumes` by ``numpy.polynomial.chebyshev`` (the reference of the kernel)."""
+        t, dt = axes_t(lam, self.config.lower, self.config.upper, self.config.stretch)
+        return tensor_value(self.cV, t), tensor_jacobian(self.cV, t, dt)
+
+    def value_reference(self, c: np.ndarray, lam) -> np.ndarray:
+        """The polynomial with coefficients ``c`` (the grid's shape + outputs) at ``lam`` by
+        ``numpy.polynomial.chebyshev`` (the reference of :meth:`points` and :meth:`nodes`)."""
+        return tensor_value(c, axes_t(lam, self.config.lower, self.config.upper, self.config.stretch)[0])
+
+    @property
+    def nbytes(self) -> int:
+        return int(sum(a.nbytes for a in (self.cV, self.cP, self.cF, self.cFx, self.modes, self.x_rest)))
+
+    @property
+    def field_modes(self) -> int:
+        """Modes of the POD field basis."""
+        return int(self.modes.shape[1])
+
+
+@dataclass(frozen=True)
+class AtlasPatches:
+    """An atlas piecewise along f_y (``AtlasConfig.f_y_splits_N``): ordinary :class:`Atlas` pieces
+    over adjacent f_y ranges, each its own tensor polynomial, cached and built as any atlas.
+
+    Why: one polynomial in f_y carries a sharp feature at one end of the range (the quadratic
+    model's fold above ≈ 3.5 N, where the arm pair buckles) down to loads where the map is smooth
+    and nearly symmetric, and there the yaw reads the back pair's volume difference at ≈ 1° per mm³
+    (docs/estimation.md, Known limits). Neighbouring pieces share their f_y face, each solved by
+    its own build, so the map is continuous there to the builds' tolerance. Evaluation picks the
+    piece by f_y (a face belongs to the piece below it); :class:`~softphantom.estimation.atlas_estimator.AtlasEstimator` runs its
+    Gauss–Newton in one piece and moves to the neighbour when it stops on the shared face.
+    """
+
+    config: AtlasConfig
+    patches: tuple[Atlas, ...]
+
+    def __post_init__(self) -> None:
+        want = self.config.patches()
+        if len(want) < 2 or len(self.patches) != len(want) or any(
+                a.config.as_dict() != c.as_dict() for a, c in zip(self.patches, want)):
+            raise ValueError("AtlasPatches: one piece per f_y range of the config, in order")
+        object.__setattr__(self, "_splits", list(self.config.f_y_splits_N))
+
+    def index(self, f_y: float) -> int:
+        """The piece holding ``f_y`` (N); beyond the ends, the end piece."""
+        return bisect.bisect_left(self._splits, float(f_y))
+
+    def piece(self, lam) -> Atlas:
+        return self.patches[self.index(lam[1])]
+
+    @property
+    def key(self) -> tuple[str, ...]:
+        return tuple(a.key for a in self.patches)
+
+    @property
+    def displacement_x(self) -> bool:
+        return self.patches[0].displacement_x
+
+    @property
+    def unsolved(self) -> int:
+        return sum(a.unsolved for a in self.patches)
+
+    @property
+    def solves(self) -> int:
+        return sum(a.solves for a in self.patches)
+
+    @property
+    def build_s(self) -> float:
+        return sum(a.build_s for a in self.patches)
+
+    @property
+    def build_cpu_s(self) -> float:
+        return sum(a.build_cpu_s for a in self.patches)
+
+    @property
+    def nbytes(self) -> int:
+        return sum(a.nbytes for a in self.patches)
+
+    @property
+    def field_rms_m(self) -> float:
+        return max(a.field_rms_m for a in self.patches)
+
+    @property
+    def field_modes(self) -> int:
+        return max(a.field_modes for a in self.patches)
+
+    def solved_at(self, lam) -> bool:
+        return self.piece(lam).solved_at(lam)
+
+    def volumes(self, lam):
+        return self.piece(lam).volumes(lam)
+
+    def volumes_reference(self, lam):
+        return self.piece(lam).volumes_reference(lam)
+
+    def points(self, lam) -> np.ndarray:
+        return self.piece(lam).points(lam)
+
+    def nodes(self, lam) -> np.ndarray:
+        return self.piece(lam).nodes(lam)
+
+    def forces(self, lam) -> np.ndarray:
+        return self.piece(lam).forces(lam)
+
+    def by_force(self, lam, J: np.ndarray) -> np.ndarray:
+        return self.piece(lam).by_force(lam, J)
+
+    def coords(self, force, p_Pa: float, tol_N: float = 1e-10) -> np.ndarray:
+        return self.patches[self.index(np.asarray(force, float)[1])].coords(force, p_Pa, tol_N)
+

@@ -1,0 +1,292 @@
+"""The demo pipeline (``softphantom demo``, what ``make demo`` runs): the scenarios on the virtual
+phantom → estimate → evaluate → one report per scenario, an index page and a summary.
+
+The truths are solved on Dask (:mod:`softphantom.parallel`: a local cluster by default, an
+existing scheduler by its address), one at a time in scenario order, while the atlases the push
+scenarios share are built on the same cluster (:func:`shared_atlases`); each scenario is
+estimated and evaluated in this process as soon as its truth is ready. The atlas of each scenario
+is sized by the rules below (:func:`scenario_atlas`).
+"""
+
+from __future__ import annotations
+
+import html
+import json
+import queue
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+from softphantom.estimation import AtlasConfig, EstimatorConfig, estimate_stream, load_or_build, open_estimator
+
+# The demo's atlas per scenario: the box of the scenario's peak loads (its pushes; the pressure its
+# inflation reached) and zero, each face widened by MARGIN_N + MARGIN_REL × the peak on that side
+# of that axis (the estimator's model differs from the truth's, so its forces do too: in the
+# demo the estimates passed the truth's peaks by ≤ 0.62 N along the push, ≤ 0.2 N sideways),
+# the pressure by MARGIN_KPA only: it is measured, not estimated (a 20 % margin put the
+# inflation atlas's top planes at 51 kPa, beyond what the estimator's model reaches: 27 failing
+# solves for points no estimate used). Margins are per axis: one margin for all axes from the
+# largest force would make the sideways range 3.1 N for ±0.6 N of load.
+# Grids: pushes vary the force (the pressure stays near 0: 2 points), an inflation the pressure.
+# Push grids by contact, measured against exact (settled) inverses of the same model at the demo
+# pushes' worst samples (docs/performance.md): on-centre, the arm pair's step at
+# f_x = 0 (docs/estimation.md) wants the f_x points clustered about 0 (7, asinh width 0.1 N:
+# 0.006 N / 0.008 mm / 0.04°; 5 affine: 0.03 N / 0.04 mm / 0.30°); off-centre has no such step
+# there (the same clustering: 0.31°; 5 affine points: 0.02 N / 0.025 mm / 0.19°, 7: 0.20°) but a
+# yaw that is steep along a line moving with f_y, which more f_y points follow (5 × 9 × 4:
+# 0.023 N / 0.013 mm / 0.080°, 180 solves; 5 × 7 × 5: 0.098°; 5 × 5 × 5: 0.19°).
+MARGIN_N = 0.5
+MARGIN_REL = 0.2
+MARGIN_KPA = 2.0
+PUSH_GRID = (5, 5, 5, 2)
+PUSH_GRIDS = {"on-centre": ((7, 5, 5, 2), (0.1, 0.0, 0.0)),  # contact: (grid, force_cluster_N)
+              "off-centre": ((5, 9, 4, 2), None)}
+INFLATE_GRID = (3, 3, 3, 5)
+TRUTH_TOPIC = "softphantom-demo-truth"  # the Dask event topic of the truth solves' progress
+
+
+def contact_of(scenario) -> str:
+    """The contact point the estimator assumes for a scenario: its pushes' one point, else on-centre."""
+    points = {e.point for e in scenario.events if e.kind == "push"}
+    return points.pop() if len(points) == 1 else "on-centre"
+
+
+def push_only(sc) -> str | None:
+    """The contact point of a scenario that only pushes, at one point; else None."""
+    points = {e.point for e in sc.events if e.kind == "push"}
+    return points.pop() if len(points) == 1 and all(e.kind == "push" for e in sc.events) else None
+
+
+def atlas_box(forces, p_kPa: float, grid=None, cluster_N=None) -> AtlasConfig:
+    """The atlas over the box of ``forces`` (N, each (3,)) and zero, widened by the margins above;
+    the pressure from −MARGIN_KPA to ``p_kPa`` + MARGIN_KPA; ``grid`` the points per axis (default:
+    ``PUSH_GRID`` for a push, ``p_kPa`` 0, else ``INFLATE_GRID``)."""
+    F = np.array([np.zeros(3)] + [np.asarray(f, float) for f in forces])
+    lo, hi = F.min(0), F.max(0)
+    n = grid or (PUSH_GRID if p_kPa == 0.0 else INFLATE_GRID)
+    # a push's pressure stays near 0 (the middle of its range): the pressure axis is the tangent
+    # line there, one plane of solves instead of two (AtlasConfig.linear_pressure)
+    return AtlasConfig(force_min_N=tuple(lo - MARGIN_N + MARGIN_REL * lo),
+                       force_max_N=tuple(hi + MARGIN_N + MARGIN_REL * hi), p_min_kPa=-MARGIN_KPA,
+                       p_max_kPa=p_kPa + MARGIN_KPA, n_force=n[:3], n_pressure=n[3],
+                       linear_pressure=p_kPa == 0.0 and n[3] == 2, force_cluster_N=cluster_N,
+                       x_control="force")  # the grids above were chosen (and measured) on a force axis
+
+
+def scenario_atlas(truth, grid: tuple[int, int, int, int] | None = None) -> AtlasConfig:
+    """The :class:`~softphantom.estimation.atlas_config.AtlasConfig` the demo builds for one
+    scenario from its solved ``truth`` (see ``MARGIN_N`` above); ``grid`` overrides the points per axis.
+
+    >>> from types import SimpleNamespace as E
+    >>> push = E(events=[E(force=(0.4, 3.0, 0.3), p_urethra=0.0), E(force=(-0.5, 2.8, -0.4), p_urethra=0.0)])
+    >>> a = scenario_atlas(push)
+    >>> [round(v, 2) for v in a.force_min_N], [round(v, 2) for v in a.force_max_N], a.shape
+    ([-1.1, -0.5, -0.98], [0.98, 4.1, 0.86], (5, 5, 5, 2))
+    >>> a = scenario_atlas(E(events=[E(force=(0.0, 0.0, 0.0), p_urethra=30e3)]))
+    >>> a.force_max_N, a.p_min_kPa, a.p_max_kPa, a.shape
+    ((0.5, 0.5, 0.5), -2.0, 32.0, (3, 3, 3, 5))
+    """
+    return atlas_box([e.force for e in truth.events], max([0.0] + [e.p_urethra * 1e-3 for e in truth.events]), grid)
+
+
+def shared_atlases(scs, grid: tuple[int, int, int, int] | None = None) -> dict[str, AtlasConfig]:
+    """One atlas per contact point for the scenarios that only push there (their peak forces are
+    the scenario's own, known before any solve): the box of all of them, so the needle insertion
+    and the on-centre pushes share one build; the grid by contact (``PUSH_GRIDS``, else
+    ``PUSH_GRID``) unless ``grid`` is given. {contact: AtlasConfig}.
+
+    >>> from types import SimpleNamespace as E
+    >>> needle = E(events=[E(kind="push", point="on-centre", force_N=(0.15, 2.5, -0.2))])
+    >>> pushes = E(events=[E(kind="push", point="on-centre", force_N=(-0.6, 2.6, -0.5))])
+    >>> inflate = E(events=[E(kind="inflate", point="on-centre", force_N=(0.0, 0.0, 0.0))])
+    >>> a = shared_atlases([needle, pushes, inflate])
+    >>> c = a["on-centre"]  # each face: 0.5 N + 0.2 × the peak on that side (f_y: 2.6 + 0.5 + 0.52)
+    >>> list(a), [round(v, 2) for v in c.force_min_N], [round(v, 2) for v in c.force_max_N], c.shape
+    (['on-centre'], [-1.22, -0.5, -1.1], [0.68, 3.62, 0.5], (7, 5, 5, 2))
+    >>> c.linear_pressure, c.cluster_N  # one plane of solves at 0 kPa; f_x points clustered
+    (True, (0.1, 0.0, 0.0))
+    >>> shared_atlases([needle], grid=(4, 5, 4, 2))["on-centre"].cluster_N  # a given grid: affine
+    (0.0, 0.0, 0.0)
+    """
+    by: dict[str, list] = {}
+    for sc in scs:
+        if (c := push_only(sc)) is not None:
+            by.setdefault(c, []).extend(e.force_N for e in sc.events)
+    return {c: atlas_box(f, 0.0, *((grid, None) if grid else PUSH_GRIDS.get(c, (PUSH_GRID, None))))
+            for c, f in by.items()}
+
+
+def in_envelope_fraction(path: Path) -> float:
+    """Fraction of the estimates inside the atlas's envelope (the CSV's in_envelope column)."""
+    from softphantom.evaluation.files import read_table
+
+    col = read_table(path).columns["in_envelope"]
+    return float(col.mean()) if len(col) else float("nan")
+
+
+def run_scenario(sc, model, out: Path, cfg, truth, bar, estimator: str = "atlas", grid=None, atlas=None,
+                 scheduler: str | None = None) -> dict:
+    """One scenario end to end from its solved ``truth``, into ``out``/<name>; returns its summary
+    row (JSON-able). ``estimator``: atlas (``atlas``, an AtlasConfig, default the scenario's envelope
+    (:func:`scenario_atlas`); loaded from or built into out/model/atlas, on ``scheduler`` if
+    given) or refresh (sync); ``grid`` the atlas's points per axis (default: by kind); ``bar`` a
+    rich Progress (:func:`softphantom.progress.progress_bar`) with a ``what`` field."""
+    from softphantom.evaluation import evaluate, read_estimate, read_truth, write_report
+    from softphantom.tracking import estimate_lag
+    from softphantom.virtual import run_summary, simulate, write_run
+
+    d = out / sc.name
+    run = simulate(sc, model, cfg, truth=truth)
+    paths = write_run(run, d)
+    est_path = d / "estimate.csv"
+    if est_path.exists():
+        est_path.unlink()
+    src = run.source()
+    n_frames = int(run.board().rate_Hz * sc.duration_s)
+    t1 = time.perf_counter()
+    task = bar.add_task(f"{sc.name}: estimate", total=n_frames, what="")
+    ecfg = EstimatorConfig(contact=contact_of(sc), mode="sync")
+    if estimator != "atlas":
+        atlas = None
+    elif atlas is None:
+        atlas = scenario_atlas(truth, grid)
+    with open_estimator(estimator, model, ecfg, cache_dir=out / "model", progress=False, atlas=atlas,
+                        scheduler=scheduler, log=lambda s: bar.console.print(s, highlight=False, soft_wrap=True)) as est:
+        stats = estimate_stream(src, est, est_path, lambda e, n: bar.update(task, completed=n),
+                                live=False, metadata={"model": "../model", "scenario": sc.name,
+                                                      "source": f"virtual:{sc.name}",
+                                                      "contact_radius_mm": ecfg.contact_radius_m * 1e3})
+    bar.update(task, completed=n_frames)
+    t_est = time.perf_counter() - t1
+    t2 = time.perf_counter()
+    task = bar.add_task(f"{sc.name}: evaluate", total=None, what="report")
+    tru = read_truth(paths["truth"])
+    estimate = read_estimate(est_path)
+    ev = evaluate(tru, estimate)
+    report, rows = write_report(d / "report", tru, estimate, ev, snapshot=paths["snapshot"],
+                                title=f"{sc.name} — {sc.description}")
+    # the tracker path: Motive CSV → reader → rest-window registration → lag against the exact truth
+    trk = read_truth(paths["tracker"])
+    lag = estimate_lag(tru.t, tru.mm_deg(), trk.t, trk.mm_deg(), max_lag_s=1.0)
+    t_eval = time.perf_counter() - t2
+    bar.update(task, total=1, completed=1)
+    rs = run_summary(run)
+    return {
+        "scenario": sc.name, "report": str(report),
+        "rmse": {s.name: s.rmse for s in ev.dof}, "units": {s.name: s.unit for s in ev.dof},
+        "peak_truth": {s.name: s.peak_truth for s in ev.dof},
+        "force_rmse_N": {s.name: s.rmse for s in ev.force},
+        "target_rmse_mm": {s.name: s.rmse for s in ev.targets},
+        "lag_ms": ev.lag_ms, "lag_source": ev.lag_source,
+        "table_i": [{"dof": r.ref.dof, "observed": r.observed, "unit": r.ref.unit, "flag": r.flag,
+                     "study": r.ref.study} for r in rows],
+        "tracker_clock_offset_ms": {"injected": rs["tracker"]["clock_offset_s"] * 1e3, "recovered": lag.lag_ms},
+        "estimate": {k: stats[k] for k in ("estimates", "rejected", "rate_Hz", "step_ms_p50", "step_ms_p99")},
+        "estimator": estimator,
+        "atlas": None if atlas is None else {"force_min_N": atlas.force_min_N, "force_max_N": atlas.force_max_N,
+                                             "p_min_kPa": atlas.p_min_kPa, "p_max_kPa": atlas.p_max_kPa,
+                                             "grid": atlas.shape,
+                                             "in_envelope_fraction": in_envelope_fraction(est_path)},
+        "truth": rs["truth"], "seconds": {"truth_solve": truth.solve_s, "estimate": t_est, "evaluate": t_eval},
+    }
+
+
+def _solve_truth(sc, model, truth_cfg, truth_mesh):
+    """A Dask task: the truth of ``sc``, its progress as events on :data:`TRUTH_TOPIC`."""
+    from distributed import get_worker
+
+    from softphantom.virtual import solve_truth
+
+    worker = get_worker()
+
+    def cb(done: int, total: int, what: str) -> None:
+        worker.log_event(TRUTH_TOPIC, (sc.name, done, total, what))
+
+    return solve_truth(sc, model, truth_cfg, cb, truth_mesh=truth_mesh)
+
+
+def _truth_lane(client, order, model, truth_cfg, truth_mesh, ready: queue.Queue, stop: threading.Event) -> None:
+    """Solve the truths one at a time in ``order`` (the other workers build the atlases meanwhile),
+    each put on ``ready`` as (name, Truth | the exception) when done."""
+    for sc in order:
+        if stop.is_set():
+            return
+        try:
+            ready.put((sc.name, client.submit(_solve_truth, sc, model, truth_cfg, truth_mesh, pure=False).result()))
+        except Exception as exc:  # noqa: BLE001 - re-raised in the main thread
+            ready.put((sc.name, exc))
+            return
+
+
+def run_all(scs, model, out: Path, cfg, truth_mesh, estimator: str = "atlas", grid=None, *,
+            scheduler: str | None = None, n_workers: int | None = None, console=None) -> list[dict]:
+    """Every scenario of ``scs`` end to end into ``out`` (:func:`run_scenario`), with a progress
+    display on ``console``: truths solved on Dask one at a time, the atlases shared by the push
+    scenarios (:func:`shared_atlases`) built on the same cluster meanwhile, each scenario then
+    estimated and evaluated here as soon as its truth is ready. The scenarios whose atlas needs
+    their truth (an inflation: its pressure) are solved first. Rows in the order of ``scs``."""
+    from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeElapsedColumn
+
+    from softphantom.parallel import dask_client
+    from softphantom.progress import progress_bar
+
+    shared = shared_atlases(scs, grid) if estimator == "atlas" else {}
+    order = sorted(scs, key=lambda sc: push_only(sc) in shared)  # stable: the others first
+    bar = progress_bar(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                       TextColumn("{task.fields[what]}"), console=console)
+    rows: dict[str, dict] = {}
+    truths: dict[str, object] = {}
+    ready: queue.Queue = queue.Queue()
+    stop = threading.Event()
+    with bar, dask_client(scheduler, n_workers) as client:
+        address = client.scheduler.address
+        tasks = {sc.name: bar.add_task(f"{sc.name}: truth", total=None, what="queued") for sc in order}
+
+        def progress(event) -> None:
+            name, done, total, what = event[1]
+            if name in tasks:
+                bar.update(tasks[name], completed=done, total=max(total, done), what=what)
+
+        client.subscribe_topic(TRUTH_TOPIC, progress)
+        lane = threading.Thread(target=_truth_lane, args=(client, order, model, cfg.truth, truth_mesh, ready, stop),
+                                daemon=True)
+        lane.start()
+        try:
+            for contact, acfg in shared.items():
+                task = bar.add_task(f"atlas at {contact}", total=None, what=f"{acfg.n_solves} forward solves")
+                load_or_build(model, EstimatorConfig(contact=contact, mode="sync"), acfg, cache_dir=out / "model",
+                              scheduler=address, progress=False,
+                              log=lambda s: bar.console.print(s, highlight=False, soft_wrap=True))
+                bar.update(task, total=1, completed=1, what="built")
+            for sc in order:
+                while sc.name not in truths:
+                    name, truth = ready.get()
+                    if isinstance(truth, BaseException):
+                        raise truth
+                    truths[name] = truth
+                    bar.update(tasks[name], what=f"solved in {truth.solve_s:.0f} s")
+                rows[sc.name] = run_scenario(sc, model, out, cfg, truths.pop(sc.name), bar, estimator, grid,
+                                             atlas=shared.get(push_only(sc)), scheduler=address)
+        finally:
+            stop.set()
+            client.unsubscribe_topic(TRUTH_TOPIC)
+    lane.join(5)
+    return [rows[sc.name] for sc in scs]
+
+
+def write_summary(out: Path, work: Path, rows: list[dict], wall_s: float) -> Path:
+    """The demo's summary.json and index page into ``work`` (the index's links relative to
+    ``out``, where ``work`` ends up); the index's path."""
+    (work / "summary.json").write_text(json.dumps({"wall_s": wall_s, "scenarios": rows}, indent=2, default=float)
+                                       + "\n")
+    items = "".join(
+        f"<li><a href='{html.escape(str(Path(r['report']).relative_to(out)))}'>{html.escape(r['scenario'])}</a>: "
+        f"lag {r['lag_ms']:.0f} ms; RMSE " + ", ".join(f"{k} {v:.2f} {r['units'][k]}" for k, v in r["rmse"].items())
+        + "</li>" for r in rows)
+    p = work / "index.html"
+    p.write_text("<!doctype html><html><head><meta charset='utf-8'><title>softphantom demo</title></head><body>"
+                 f"<h1>softphantom demo</h1><p>virtual phantom, {len(rows)} scenarios, {wall_s:.0f} s</p>"
+                 f"<ul>{items}</ul></body></html>\n")
+    return p
