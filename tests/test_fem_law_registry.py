@@ -14,6 +14,7 @@ from softphantom.fem import build_fem, internal_force
 from softphantom.fem import _numba, kernels
 from softphantom.fem.laws import BY_NAME, REGISTRY
 from softphantom.fem.meshes import box_mesh
+from test_fem_laws import random_F
 
 
 def example(cls):
@@ -23,15 +24,6 @@ def example(cls):
 
 
 LAWS = {c.name: example(c) for c in REGISTRY}
-
-
-def random_F(rng, n):
-    out = []
-    while len(out) < n:
-        F = np.eye(3) + 0.4 * rng.standard_normal((3, 3))
-        if np.linalg.det(F) > 0.3:
-            out.append(F)
-    return out
 
 
 def test_registry_ids_and_names():
