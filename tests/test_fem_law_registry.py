@@ -135,3 +135,20 @@ def test_element_loop_cache_is_keyed_on_the_law_files(tmp_path, monkeypatch):
     assert locator.get_source_stamp() == stamp
     (copy / "yeoh.py").write_text((copy / "yeoh.py").read_text() + "\n# edited\n")
     assert locator.get_source_stamp() != stamp
+
+
+def test_an_unregistered_law_is_refused_not_run_as_another():
+    # the kernels dispatch on the registry's position: a law outside it would run as the last one
+    from dataclasses import dataclass
+
+    from softphantom.errors import UserError
+    from softphantom.fem.laws import NeoHookean
+
+    @dataclass(frozen=True)
+    class Unregistered(NeoHookean):
+        name = "unregistered"
+        law_id = -1
+
+    X, T = box_mesh((0.01, 0.01, 0.01), (1, 1, 1))
+    with pytest.raises(UserError, match="Unregistered is not in softphantom.fem.laws.REGISTRY"):
+        build_fem(X, T, Unregistered(1e5, 0.4))

@@ -177,13 +177,16 @@ def _pattern(tets: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarr
 
 def _per_tet_laws(materials, n_tets: int) -> list:
     if isinstance(materials, Law):
-        return [materials]
-    mats = list(materials)
-    if len(mats) != n_tets:
-        raise UserError(f"materials: expected one law or {n_tets} (one per tet), got {len(mats)}")
+        mats = [materials]
+    else:
+        mats = list(materials)
+        if len(mats) != n_tets:
+            raise UserError(f"materials: expected one law or {n_tets} (one per tet), got {len(mats)}")
     for m in mats:
         if not isinstance(m, Law):
             raise UserError(f"materials: expected law objects ({', '.join(LAWS)}), got {type(m).__name__}")
+        if type(m).law_id < 0:  # the kernels dispatch on the registry's ids
+            raise UserError(f"materials: law {type(m).__name__} is not in softphantom.fem.laws.REGISTRY")
     return mats
 
 
