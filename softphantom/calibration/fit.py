@@ -605,6 +605,16 @@ def fit(problem: Problem, forces0: np.ndarray, progress: Callable[[int, float, f
             progress(it, cost, lam)
         if not step_ok or rel < problem.options.tol:
             break
+    return fit_result(problem, z, r, J, sols, free, history, t0, identifiable_ratio)
+
+
+def fit_result(problem: Problem, z: np.ndarray, r: np.ndarray, J: np.ndarray, sols: list, free: np.ndarray,
+               history: list[float], t0: float, identifiable_ratio: float = 0.5) -> FitResult:
+    """The :class:`FitResult` at the optimum ``z`` (residuals ``r``, Jacobian ``J``, solutions
+    ``sols``; ``free`` the mask of the unknowns fitted; ``t0`` the start's ``perf_counter``):
+    covariance, intervals, identifiability and the warnings (see :func:`fit`)."""
+    ng = problem.n_global
+    free_g = free[:ng]
     cov_f, _ = posterior_covariance(J[:, free], r, ng)
     cov = np.zeros((z.size, z.size))
     idx = np.flatnonzero(free)
