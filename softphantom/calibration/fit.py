@@ -549,7 +549,14 @@ def fit(problem: Problem, forces0: np.ndarray, progress: Callable[[int, float, f
 
     ``progress(iteration, cost, lm_lambda)`` after each accepted or rejected step. A parameter is
     reported identifiable when the data shrank its spread below ``identifiable_ratio`` of its prior
-    spread and it is free; the warnings name the others and the pairs correlated beyond 0.95."""
+    spread and it is free; the warnings name the others and the pairs correlated beyond 0.95.
+
+    Written here rather than :func:`scipy.optimize.least_squares` because a round of residuals is a
+    forward solve of every keyframe, and least_squares spends more of them for the same optimum
+    (``benchmarks/diag_calibrate/least_squares.py``; docs/calibration.md): its ``ftol`` test needs an
+    evaluated step's actual reduction — one round only to confirm convergence, which the
+    Gauss–Newton model's predicted reduction saves here —, its trust region grows from ``x_scale``
+    by doubling, and a law's valid set (Yeoh's stability) is not a box bound it could keep."""
     t0 = time.perf_counter()
     ng = problem.n_global
     free_g = problem.free_mask()
