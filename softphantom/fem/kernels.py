@@ -37,27 +37,19 @@ __all__ = ["HAVE_NUMBA", "N_PARAMS", "N_WORK", "law_point", "njit", "point", "po
            "scratch", "tangent_kernel", "warm_up"]
 
 
-def _dispatch(points, i=0):
-    """``law_point``: a chain of ``if law == i`` over the registry's point functions, every link
-    inlined into the loop that calls it (the closures' ``i`` and functions are compile-time
-    constants to numba), so a law costs what the hand-written ``if`` chain did."""
-    f = points[i]
-    if i == len(points) - 1:
+_ARGS = "prm, e, F, P, D, need, s0, s1, s2, s3, s4, s5, s6, s7, s8, s9"
 
-        @njit(fastmath=False, nogil=True, inline="always")
-        def last(law, prm, e, F, P, D, need, s0, s1, s2, s3, s4, s5, s6, s7, s8, s9):
-            return f(prm, e, F, P, D, need, s0, s1, s2, s3, s4, s5, s6, s7, s8, s9)
 
-        return last
-    rest = _dispatch(points, i + 1)
-
-    @njit(fastmath=False, nogil=True, inline="always")
-    def branch(law, prm, e, F, P, D, need, s0, s1, s2, s3, s4, s5, s6, s7, s8, s9):
-        if law == i:
-            return f(prm, e, F, P, D, need, s0, s1, s2, s3, s4, s5, s6, s7, s8, s9)
-        return rest(law, prm, e, F, P, D, need, s0, s1, s2, s3, s4, s5, s6, s7, s8, s9)
-
-    return branch
+def _dispatch(points):
+    """``law_point``: one ``if law == i: return point_i(...)`` per registered law, generated from
+    the registry (the same flat chain a hand-written one would be), inlined into its callers."""
+    body = [f"def law_point(law, {_ARGS}):"]
+    for i in range(len(points) - 1):
+        body += [f"    if law == {i}:", f"        return _point{i}({_ARGS})"]
+    body += [f"    return _point{len(points) - 1}({_ARGS})"]
+    scope = {f"_point{i}": p for i, p in enumerate(points)}
+    exec(compile("\n".join(body), f"<law_point of {len(points)} laws>", "exec"), scope)
+    return njit(fastmath=False, nogil=True, inline="always")(scope["law_point"])
 
 
 law_point = _dispatch(tuple(law.point for law in REGISTRY))
