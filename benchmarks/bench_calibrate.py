@@ -47,8 +47,9 @@ from pathlib import Path
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 
-from softphantom.calibration.fit import yeoh_name  # noqa: E402
-from softphantom.calibration.forward import ARM_NAMES, GROUPS, YEOH_TERMS  # noqa: E402
+from softphantom.calibration.fit import ratio_name  # noqa: E402
+from softphantom.calibration.forward import ARM_NAMES, GROUPS  # noqa: E402
+from softphantom.fem import Yeoh  # noqa: E402
 from softphantom.calibration import FitOptions, SessionSpec, calibrate, rmse_ratio, rmse_ratio_interval  # noqa: E402
 from softphantom.design import BIPDesign, build_model, load_model, save_model  # noqa: E402
 from softphantom.design.params import MaterialSpec  # noqa: E402
@@ -219,11 +220,11 @@ def dump(cal, path: Path) -> None:
     import numpy as np
 
     from softphantom.calibration.fit import Problem, parameter_set
-    from softphantom.calibration.forward import design_with_law, rest_markers, yeoh_shapes
+    from softphantom.calibration.forward import design_with_law, group_shapes, rest_markers
 
     fr, o = cal.frames, cal.options
     m = load_model(cal.model_dir)
-    params = parameter_set(measured=o.measured, yeoh=yeoh_shapes(dataclasses.replace(m, design=design_with_law(m.design, o.law))))
+    params = parameter_set(measured=o.measured, shapes=group_shapes(dataclasses.replace(m, design=design_with_law(m.design, o.law))))
     prob = Problem(str(cal.model_dir), cal.sessions, fr, rest_markers(str(cal.model_dir), tuple(fr.contact[0]), o.radius_m),
                    lambda tasks: list(cal.fit.solutions), o, params, pose_rows=None)
     ng = prob.n_global
@@ -272,7 +273,7 @@ def print_pose_rmse(name: str, h) -> None:
 
 def shape_values(shape: tuple[float, float] | None) -> dict[str, float]:
     """A Yeoh ``shape`` (C20/C10, C30/C10) as the fit's parameters of every group, by name; {} for None."""
-    return {} if shape is None else {yeoh_name(g, i): v for g in GROUPS for i, v in zip(YEOH_TERMS, shape)}
+    return {} if shape is None else {ratio_name(Yeoh.name, r.name, g): v for g in GROUPS for r, v in zip(Yeoh.ratios, shape)}
 
 
 def oracle_values(shape: tuple[float, float] | None = None) -> dict[str, float]:

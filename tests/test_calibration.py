@@ -15,6 +15,7 @@ from softphantom.calibration import CalibrationInputError, FitOptions, SessionSp
 from softphantom.calibration.forward import solve_keyframe
 from softphantom.design import BIPDesign, save_model
 from softphantom.errors import UserError
+from softphantom.fem import Yeoh
 
 ARMS_TRUE = 1.25  # the cast arms are 25 % stiffer than the datasheet
 GAIN_TRUE = 1.08  # one transducer (back_xpos: the arm these pushes load most) reads 8 % high
@@ -372,21 +373,21 @@ def test_yeoh_shape_sensitivities_equal_finite_differences(coarse, tmp_path):
     ∂x/∂θ = −K⁻¹ ∂f_int/∂θ against central differences of the forward solve; the parameter set
     offers them only for a Yeoh group; an unstable shape is a failed (rejected) trial, not a crash."""
     from softphantom.calibration.fit import parameter_set
-    from softphantom.calibration.forward import yeoh_shapes
+    from softphantom.calibration.forward import group_shapes
     from softphantom.design import load_model
     from softphantom.errors import SolverError, UserError
 
     d = _yeoh_model(coarse, tmp_path / "yeoh")
     model = load_model(d)
-    shapes = yeoh_shapes(model)
-    assert shapes == {g: pytest.approx((-0.2 / 17.0, 0.023 / 17.0)) for g in ("bulb", "arms")}
-    assert yeoh_shapes(load_model(coarse)) == {}  # neo-Hookean default: no shape to fit
-    names = [p.name for p in parameter_set(yeoh=shapes)]
+    shapes = group_shapes(model)
+    assert {g: law.ratio_values() for g, law in shapes.items()} == {g: pytest.approx((-0.2 / 17.0, 0.023 / 17.0)) for g in ("bulb", "arms")}
+    assert group_shapes(load_model(coarse)) == {}  # neo-Hookean default: no shape to fit
+    names = [p.name for p in parameter_set(shapes=shapes)]
     assert "yeoh_C20_C10_arms" in names and "yeoh_C30_C10_bulb" in names
     assert not any(n.startswith("yeoh") for n in (p.name for p in parameter_set()))
     # a shape measured on a coupon: its prior; named for a model without a Yeoh group: refused
     meas = (("yeoh_C20_C10_arms", 0.05, 0.01),)
-    q = {p.name: p for p in parameter_set(measured=meas, yeoh=shapes)}["yeoh_C20_C10_arms"]
+    q = {p.name: p for p in parameter_set(measured=meas, shapes=shapes)}["yeoh_C20_C10_arms"]
     assert (q.nominal, q.prior_sd) == (0.05, 0.01)
     with pytest.raises(UserError, match="unknown parameter 'yeoh_C20_C10_arms'"):
         parameter_set(measured=meas)
@@ -396,14 +397,14 @@ def test_yeoh_shape_sensitivities_equal_finite_differences(coarse, tmp_path):
     scales = {"bulb": 1.2, "arms": 0.9}
     shapes = {"bulb": (-0.01, 0.01), "arms": (0.02, 0.01)}  # stable at ± the steps below
     s = solve_keyframe(str(d), c, 4e-3, scales, f, 0.0, shape=shapes)
-    assert s.shape_cols == (("bulb", 2), ("bulb", 3), ("arms", 2), ("arms", 3))
-    steps = {2: 0.02, 3: 0.005}
+    assert s.shape_cols == (("bulb", 0), ("bulb", 1), ("arms", 0), ("arms", 1))
+    steps = {0: 0.02, 1: 0.005}
     for j, (g, i) in enumerate(s.shape_cols):
         fd = []
         for sign in (1, -1):
             sh = {k: tuple(v) for k, v in shapes.items()}
             t = list(sh[g])
-            t[i - 2] += sign * steps[i]
+            t[i] += sign * steps[i]
             sh[g] = tuple(t)
             fd.append(solve_keyframe(str(d), c, 4e-3, scales, f, 0.0, x0=s.x, shape=sh, tol=1e-12))
         dV = (fd[0].dV - fd[1].dV) / (2 * steps[i])
@@ -443,11 +444,11 @@ def test_yeoh_shape_columns_of_the_jacobian_and_the_written_design(coarse, tmp_p
             out.append(KeyframeSolution(np.zeros(3), dV, np.zeros((3, 3)), D / task[3]["arms"] + th2 * E,
                                         np.stack([0 * dV, -D @ ff / task[3]["arms"]], axis=1),
                                         np.zeros((3, 3, 3)), np.zeros((3, 3, 2)), ("bulb", "arms"), 1, True, "ok",
-                                        (("arms", 2), ("arms", 3)), np.stack([E @ ff, 0 * dV], axis=1),
+                                        (("arms", 0), ("arms", 1)), np.stack([E @ ff, 0 * dV], axis=1),
                                         np.zeros((3, 3, 2))))
         return out
 
-    params = parameter_set(yeoh={"arms": (-0.012, 0.0014)})
+    params = parameter_set(shapes={"arms": Yeoh(1.0, -0.012, 0.0014)})
     prob = Problem("m", [se], fr, np.zeros((3, 3)), solve_many, FitOptions(), params, use_pose=False)
     z = np.concatenate([prob.nominal(), rng.normal(0.0, 2.0, 9)])
     r, J, _ = prob.residuals(z)
@@ -462,7 +463,7 @@ def test_yeoh_shape_columns_of_the_jacobian_and_the_written_design(coarse, tmp_p
         assert np.abs(J[:12, i]).max() > 0
 
     design = load_model(_yeoh_model(coarse, tmp_path / "yeoh")).design
-    new = calibrated_design(design, {"bulb": 1.0, "arms": 1.5}, {"arms": (-0.02, 0.004)})
+    new = calibrated_design(design, {"bulb": 1.0, "arms": 1.5}, {"arms": (Yeoh, (-0.02, 0.004))})
     mats = {m.name: dict(m.values) for m in new.materials}
     arms = mats[new.material_of_regions()["arm_front_zpos"]]
     assert arms["C10_kPa"] == pytest.approx(25.5) and arms["nu"] == 0.45
@@ -601,7 +602,7 @@ def test_fit_law_converts_each_material_at_its_small_strain_moduli():
     """``calibrate --law``: every material under the chosen law with the same small-strain μ and
     bulk modulus (Yeoh: C10 = μ/2, C20 = C30 = 0), density kept; a material already under that
     law kept as it is; an unknown law refused in one line."""
-    from softphantom.calibration.forward import design_with_law, yeoh_shapes
+    from softphantom.calibration.forward import design_with_law, group_shapes
     from softphantom.fem.model import laws_of_design
 
     d = BIPDesign()
@@ -620,7 +621,7 @@ def test_fit_law_converts_each_material_at_its_small_strain_moduli():
         design_with_law(d, "mooney-rivlin")
     # what the fit then offers: the converted groups' Yeoh shape, starting at 0, 0
     model = type("M", (), {"design": y, "regions": {"bulb": 0, "arm_front_zpos": 1}})()
-    assert yeoh_shapes(model) == {"bulb": (0.0, 0.0), "arms": (0.0, 0.0)}
+    assert {g: law.ratio_values() for g, law in group_shapes(model).items()} == {"bulb": (0.0, 0.0), "arms": (0.0, 0.0)}
 
 
 def test_a_solve_under_another_law_is_the_converted_models(coarse, tmp_path):
@@ -652,10 +653,9 @@ def test_an_unstable_yeoh_step_is_projected_not_rejected():
     rejected like a failed solve, and when the data did not ask for C30 > 0 every retry was
     too: the fit never left its start. The step is now projected into the stable set
     (``Problem.feasible``) and the fit goes to the data's C20 < 0."""
-    from softphantom.calibration.fit import Problem, fit, parameter_set, yeoh_name
+    from softphantom.calibration.fit import Problem, fit, parameter_set
     from softphantom.calibration.forward import KeyframeSolution
     from softphantom.errors import SolverError, UserError
-    from softphantom.fem.material import Yeoh
     from softphantom.sensing.pneumatics import boyle_dp
 
     se, fr, _ = _stand_in_session(0.0, {"bulb": 1.0, "arms": 1.0}, seed=3)
@@ -679,26 +679,26 @@ def test_an_unstable_yeoh_step_is_projected_not_rejected():
             dV = (D + t2 * E) @ ff
             out.append(KeyframeSolution(np.zeros(3), dV, np.zeros((3, 3)), D + t2 * E, np.zeros((4, 2)),
                                         np.zeros((3, 3, 3)), np.zeros((3, 3, 2)), ("bulb", "arms"), 1, True, "ok",
-                                        (("arms", 2), ("arms", 3)), np.stack([E @ ff, 0 * dV], axis=1),
+                                        (("arms", 0), ("arms", 1)), np.stack([E @ ff, 0 * dV], axis=1),
                                         np.zeros((3, 3, 2))))
         return out
 
-    params = parameter_set(yeoh={"arms": (0.0, 0.0)})
-    free = {yeoh_name("arms", 2), yeoh_name("arms", 3)}
+    params = parameter_set(shapes={"arms": Yeoh(1.0)})
+    free = {"yeoh_C20_C10_arms", "yeoh_C30_C10_arms"}
     fix = tuple(p.name for p in params if p.name not in free) + ("lag", "drift")
     prob = Problem("m", [se], fr, np.zeros((3, 3)), solve_many, FitOptions(fix=fix), params, use_pose=False)
     res = fit(prob, fr.known)
     p = dict(zip(res.names, res.value))
-    assert p[yeoh_name("arms", 2)] == pytest.approx(th2_true, abs=0.002)
-    assert p[yeoh_name("arms", 3)] >= p[yeoh_name("arms", 2)] ** 2 / 3
+    assert p["yeoh_C20_C10_arms"] == pytest.approx(th2_true, abs=0.002)
+    assert p["yeoh_C30_C10_arms"] >= p["yeoh_C20_C10_arms"] ** 2 / 3
     assert res.history[-1] < 1e-3 * res.history[0]
     assert all(t3 >= 0 and (t2 >= 0 or t3 > t2 * t2 / 3) for t2, t3 in seen)  # no unstable solve asked for
     # C30 held at 0: C20 is bounded at 0 instead (nothing fixed is moved)
     z = prob.nominal()
-    z[prob.names().index(yeoh_name("arms", 2))] = -0.02
-    held = dataclasses.replace(prob, options=FitOptions(fix=fix + (yeoh_name("arms", 3),)))
+    z[prob.names().index("yeoh_C20_C10_arms")] = -0.02
+    held = dataclasses.replace(prob, options=FitOptions(fix=fix + ("yeoh_C30_C10_arms",)))
     zf = held.feasible(z)
-    assert zf[prob.names().index(yeoh_name("arms", 2))] == 0.0 and zf[prob.names().index(yeoh_name("arms", 3))] == 0.0
+    assert zf[prob.names().index("yeoh_C20_C10_arms")] == 0.0 and zf[prob.names().index("yeoh_C30_C10_arms")] == 0.0
 
 
 def test_nominal_checks_keep_the_design_law_and_the_written_model_the_fitted_one(coarse, tmp_path):
@@ -724,7 +724,7 @@ def test_nominal_checks_keep_the_design_law_and_the_written_model_the_fitted_one
                                  np.zeros((4, 2)), np.zeros((3, 3, 3)), np.zeros((3, 3, 2)), ("bulb", "arms"), 1, True,
                                  "ok") for _ in tasks]
 
-    params = parameter_set(yeoh={"arms": (0.0, 0.0), "bulb": (0.0, 0.0)})
+    params = parameter_set(shapes={"arms": Yeoh(1.0), "bulb": Yeoh(1.0)})
     prob = Problem("m", [se], fr, 0.01 * np.eye(3), solve_many, FitOptions(law="yeoh"), params, use_pose=False)
     g = prob.nominal()
     for nominal, want in ((True, {None}), (False, {"yeoh"})):

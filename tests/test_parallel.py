@@ -58,6 +58,24 @@ def test_one_blas_thread_per_process_unless_the_user_says_otherwise():
     assert [n for api, n in pools if api == "openblas"] == [2, 2]
 
 
+def test_pools_loaded_before_softphantom_are_capped_too():
+    # a script that imports numpy (and CHOLMOD's BLAS) before softphantom: the environment defaults
+    # come too late for those pools; softphantom caps them with threadpoolctl, the user's setting wins
+    if (os.cpu_count() or 1) < 2:
+        pytest.skip("one core: every pool has one thread anyway")
+    code = ("import json, numpy, sksparse.cholmod, softphantom; from threadpoolctl import threadpool_info; "
+            "print(json.dumps([(i['internal_api'], i['num_threads']) for i in threadpool_info()]))")
+    env = {k: v for k, v in os.environ.items() if not k.endswith("_NUM_THREADS") and not k.startswith("OMP_")}
+    pools = json.loads(subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                                      check=True).stdout)
+    assert [n for api, n in pools if api == "openblas"] == [1, 1]
+    assert all(n == 1 for api, n in pools if api == "openmp")
+    env["OPENBLAS_NUM_THREADS"] = "2"
+    pools = json.loads(subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                                      check=True).stdout)
+    assert [n for api, n in pools if api == "openblas"] == [2, 2]
+
+
 def _alloc_faults():
     import resource
 

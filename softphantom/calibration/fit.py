@@ -24,6 +24,7 @@ scaled by their residual variance (:func:`posterior_covariance`); correlations f
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from collections.abc import Callable
@@ -32,9 +33,10 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from softphantom.calibration.forward import ARM_NAMES, GROUPS, YEOH_TERMS, KeyframeSolution
+from softphantom.calibration.forward import ARM_NAMES, GROUPS, KeyframeSolution
 from softphantom.calibration.session import Session
 from softphantom.errors import SolverError, UserError
+from softphantom.fem import LAWS
 from softphantom.pose import rigid_fit, ypr_from_matrix
 from softphantom.sensing.pneumatics import boyle_dp
 
@@ -42,13 +44,15 @@ from softphantom.sensing.pneumatics import boyle_dp
 @dataclass(frozen=True)
 class Parameter:
     """A global parameter: ``name`` (unit in it), display ``unit``, ``nominal`` (internal units),
-    ``prior_sd`` (internal), ``log``: internal value is ln of the displayed factor."""
+    ``prior_sd`` (internal), ``log``: internal value is ln of the displayed factor; ``ratio``
+    (group, law name, k) for the k-th of a group's law's :attr:`~softphantom.fem.Law.ratios`."""
 
     name: str
     nominal: float
     prior_sd: float
     log: bool = False
     scale: float = 1.0  # displayed = internal * scale (or exp(internal) when log)
+    ratio: tuple[str, str, int] | None = None
 
     def show(self, v: float) -> float:
         return math.exp(v) if self.log else v * self.scale
@@ -68,26 +72,40 @@ class Parameter:
             prior = self.prior_sd
         else:  # a log parameter's sd is relative: d ln v = dv / v
             prior = sd / value if self.log else sd / self.scale
-        return Parameter(self.name, self.internal(value), prior, self.log, self.scale)
+        return dataclasses.replace(self, nominal=self.internal(value), prior_sd=prior)
 
 
-#: Prior spreads of a Yeoh group's shape θ2 = C20/C10, θ3 = C30/C10 around the design's values:
-#: silicone fits span |C20/C10| up to a few hundredths and C30/C10 up to ~0.01 (the Ecoflex 00-50
-#: preset: −0.012, 0.0014); wide enough that the data, where they can, decide.
-YEOH_PRIOR_SD = {2: 0.05, 3: 0.01}
+def ratio_name(law: str, ratio: str, group: str) -> str:
+    """The parameter name of a group's law's ratio (``yeoh_C20_C10_bulb``)."""
+    return f"{law.replace('-', '_')}_{ratio}_{group}"
 
 
-def yeoh_name(group: str, i: int) -> str:
-    """The parameter name of a Yeoh group's ratio C_i0/C10."""
-    return f"yeoh_C{i}0_C10_{group}"
+def _ratio_names(groups=GROUPS) -> dict[str, tuple[str, type, int]]:
+    """name -> (group, law class, k) of every registered law's ratios in ``groups``."""
+    return {ratio_name(c.name, r.name, g): (g, c, k) for c in LAWS.values() for k, r in enumerate(c.ratios)
+            for g in groups}
+
+
+def ratio_names(groups=GROUPS) -> set[str]:
+    """The names every registered law's ratios would have in ``groups``."""
+    return set(_ratio_names(groups))
+
+
+def fitted_ratios(values: dict[str, float]) -> dict[str, tuple[type, tuple[float, ...]]]:
+    """group -> (law class, its ratios) from calibrated parameter values by name."""
+    found: dict[str, tuple[type, dict[int, float]]] = {}
+    for name, (g, law, k) in _ratio_names().items():
+        if name in values:
+            found.setdefault(g, (law, {}))[1][k] = float(values[name])
+    return {g: (law, tuple(v[k] for k in sorted(v))) for g, (law, v) in found.items()}
 
 
 def parameter_set(groups=GROUPS, measured: tuple[tuple[str, float, float | None], ...] = (),
-                  yeoh: dict[str, tuple[float, float]] | None = None) -> tuple[Parameter, ...]:
+                  shapes: dict | None = None) -> tuple[Parameter, ...]:
     """Every global parameter the calibration knows, in order; those named in ``measured``
     ((name, value, sd) in displayed units, see :class:`FitOptions`) centred on their measurement;
-    ``yeoh`` (group -> the design's (C20/C10, C30/C10), :func:`~softphantom.calibration.forward.yeoh_shapes`)
-    adds those groups' Yeoh shape (:func:`yeoh_name`).
+    ``shapes`` (group -> its law, :func:`~softphantom.calibration.forward.group_shapes`) adds those
+    groups' ratios (:func:`ratio_name`) at the design's values with the law's prior spreads.
 
     >>> p = {q.name: q for q in parameter_set(measured=(("gain_back_xpos", 1.05, 0.01),
     ...                                                  ("stiffness_bulb_factor", 1.3, 0.13)))}
@@ -97,8 +115,9 @@ def parameter_set(groups=GROUPS, measured: tuple[tuple[str, float, float | None]
     (1.3, 0.1)
     """
     ps = _parameters(groups)
-    ps[len(groups):len(groups)] = [Parameter(yeoh_name(g, i), float(r[i - 2]), YEOH_PRIOR_SD[i])
-                                   for g, r in (yeoh or {}).items() for i in YEOH_TERMS]
+    ps[len(groups):len(groups)] = [
+        Parameter(ratio_name(law.name, r.name, g), float(v), r.prior_sd, ratio=(g, law.name, k))
+        for g, law in (shapes or {}).items() for k, (r, v) in enumerate(zip(law.ratios, law.ratio_values()))]
     names = [p.name for p in ps]
     seen = set()
     for name, value, sd in measured:
@@ -282,7 +301,7 @@ class Problem:
         P = {p.name: g[i] for i, p in enumerate(self.params)}
         return dict(
             scales={gr: math.exp(P[f"stiffness_{gr}_factor"]) for gr in GROUPS},
-            shape={gr: tuple(P[yeoh_name(gr, i)] for i in YEOH_TERMS) for gr in GROUPS if yeoh_name(gr, 2) in P},
+            shape=self.shape(g),
             gain=np.array([P[f"gain_{a}"] for a in ARM_NAMES]),
             offset=np.array([P[f"offset_{a}_Pa"] for a in ARM_NAMES]),
             tube=P["tube_volume_factor"],
@@ -292,24 +311,28 @@ class Problem:
             drift=g[len(self.params) + len(self.sessions):],
         )
 
+    def _ratio_index(self) -> dict[str, tuple[str, list[int]]]:
+        """group -> (law name, positions in ``z`` of its ratios, in the law's order)."""
+        out: dict[str, tuple[str, list[int]]] = {}
+        for i, p in enumerate(self.params):
+            if p.ratio is not None:
+                g, law, k = p.ratio
+                out.setdefault(g, (law, []))[1].append(i)
+        return out
+
+    def shape(self, g: np.ndarray) -> dict[str, tuple[float, ...]]:
+        """group -> its law's ratios in the global parameters ``g``."""
+        return {gr: tuple(float(g[i]) for i in idx) for gr, (_, idx) in self._ratio_index().items()}
+
     def feasible(self, z: np.ndarray) -> np.ndarray:
-        """``z`` with each free Yeoh shape moved into the stable set (dW/dĪ₁ > 0 for every Ī₁ ≥ 3):
-        C30/C10 ≥ 0, and above (C20/C10)²/3 where C20 < 0. A step from the boundary — the small-strain
-        equivalent of a neo-Hookean design has C20 = C30 = 0 (``--law yeoh``), where any step with
-        C20 < 0 and C30 ≤ 0 is unstable — is projected back rather than rejected: rejecting it left
-        the whole fit at its start whenever the data did not ask for C30 > 0."""
+        """``z`` with each group's free ratios moved into the set where its law is valid
+        (:meth:`~softphantom.fem.Law.feasible_ratios`; Yeoh: the stable set, projected back rather
+        than rejected)."""
         z = z.copy()
         free = self.free_mask()
-        iG = {name: i for i, name in enumerate(self.names())}
-        for g in GROUPS:
-            i2, i3 = iG.get(yeoh_name(g, 2)), iG.get(yeoh_name(g, 3))
-            if i2 is None or not (free[i2] or free[i3]):
-                continue
-            t2, t3 = z[i2], z[i3]
-            if free[i3]:  # lift C30 (C20 as the step left it)
-                z[i3] = max(t3, (t2 * t2 / 3.0) * (1.0 + 1e-3) + 1e-12 if t2 < 0 else 0.0)
-            else:  # C30 held: bound C20 from below instead
-                z[i2] = max(t2, -math.sqrt(3.0 * t3 / (1.0 + 1e-3)) if t3 > 0 else 0.0)
+        for law, idx in self._ratio_index().values():
+            if any(free[i] for i in idx):
+                z[idx] = LAWS[law].feasible_ratios(z[idx], [bool(free[i]) for i in idx])
         return z
 
     # --- forward ---------------------------------------------------------------------------------
@@ -380,6 +403,7 @@ class Problem:
         nz = z.size
         iG = {name: i for i, name in enumerate(self.names())}
         scale_cols = [iG[f"stiffness_{gr}_factor"] for gr in GROUPS]
+        ratio_col = {gr: idx for gr, (_, idx) in self._ratio_index().items()}
         # pressures
         for k in range(K):
             sdp = self.sessions[int(fr.session[k])].dp_noise_Pa if o.sigma_dp_Pa is None else np.full(4, o.sigma_dp_Pa)
@@ -390,7 +414,7 @@ class Problem:
             for j, gr in enumerate(s.groups):
                 J[:, scale_cols[GROUPS.index(gr)]] = dp_dV[k] * s.dV_dlnc[:, j] / sdp
             for j, (gr, i) in enumerate(s.shape_cols):
-                J[:, iG[yeoh_name(gr, i)]] = dp_dV[k] * s.dV_dshape[:, j] / sdp
+                J[:, ratio_col[gr][i]] = dp_dV[k] * s.dV_dshape[:, j] / sdp
             p_lin = (dp[k] - u["offset"] - u["drift"][int(fr.session[k])] * self.since_start(k)) / u["gain"]
             for i, a in enumerate(ARM_NAMES):
                 J[i, iG[f"gain_{a}"]] = p_lin[i] / sdp[i]
@@ -432,7 +456,7 @@ class Problem:
                 for j, gr in enumerate(s.groups):
                     J[:, scale_cols[GROUPS.index(gr)]] = D @ s.dM_dlnc[:, :, j].reshape(M.size) / sd6
                 for j, (gr, i) in enumerate(s.shape_cols):
-                    J[:, iG[yeoh_name(gr, i)]] = D @ s.dM_dshape[:, :, j].reshape(M.size) / sd6
+                    J[:, ratio_col[gr][i]] = D @ s.dM_dshape[:, :, j].reshape(M.size) / sd6
                 for a_i, a in enumerate("xyz"):
                     for name, vec, h in ((f"registration_rot_{a}_deg", "rho", h_par), (f"pivot_{a}_mm", "pivot", h_par * 1e-2)):
                         up, um = dict(u), dict(u)
@@ -525,7 +549,14 @@ def fit(problem: Problem, forces0: np.ndarray, progress: Callable[[int, float, f
 
     ``progress(iteration, cost, lm_lambda)`` after each accepted or rejected step. A parameter is
     reported identifiable when the data shrank its spread below ``identifiable_ratio`` of its prior
-    spread and it is free; the warnings name the others and the pairs correlated beyond 0.95."""
+    spread and it is free; the warnings name the others and the pairs correlated beyond 0.95.
+
+    Written here rather than :func:`scipy.optimize.least_squares` because a round of residuals is a
+    forward solve of every keyframe, and least_squares spends more of them for the same optimum
+    (``benchmarks/diag_calibrate/least_squares.py``; docs/calibration.md): its ``ftol`` test needs an
+    evaluated step's actual reduction — one round only to confirm convergence, which the
+    Gauss–Newton model's predicted reduction saves here —, its trust region grows from ``x_scale``
+    by doubling, and a law's valid set (Yeoh's stability) is not a box bound it could keep."""
     t0 = time.perf_counter()
     ng = problem.n_global
     free_g = problem.free_mask()
@@ -581,6 +612,16 @@ def fit(problem: Problem, forces0: np.ndarray, progress: Callable[[int, float, f
             progress(it, cost, lam)
         if not step_ok or rel < problem.options.tol:
             break
+    return fit_result(problem, z, r, J, sols, free, history, t0, identifiable_ratio)
+
+
+def fit_result(problem: Problem, z: np.ndarray, r: np.ndarray, J: np.ndarray, sols: list, free: np.ndarray,
+               history: list[float], t0: float, identifiable_ratio: float = 0.5) -> FitResult:
+    """The :class:`FitResult` at the optimum ``z`` (residuals ``r``, Jacobian ``J``, solutions
+    ``sols``; ``free`` the mask of the unknowns fitted; ``t0`` the start's ``perf_counter``):
+    covariance, intervals, identifiability and the warnings (see :func:`fit`)."""
+    ng = problem.n_global
+    free_g = free[:ng]
     cov_f, _ = posterior_covariance(J[:, free], r, ng)
     cov = np.zeros((z.size, z.size))
     idx = np.flatnonzero(free)

@@ -8,9 +8,10 @@ theorem gives, with the tangent ``K = ∂r/∂x`` (one factorization):
 * ``∂x/∂ln c_r = −K⁻¹ f_int,r(x)`` for the scale ``c_r`` of every modulus of region group ``r``:
   every law of :mod:`softphantom.fem` has a strain energy linear in its moduli, so the internal
   force of a group's elements is proportional to its scale;
-* for a group under the Yeoh law, its shape ``θ_i = C_i0 / C10`` (i = 2, 3; ``C_i0 = c θ_i C10``):
-  ``∂x/∂θ_i = −K⁻¹ ∂f_int/∂θ_i``, the internal force of the group's elements with every parameter
-  zero but ``C_i0 = c C10`` (the energy is linear in each ``C_i0``).
+* for a group whose law has a shape (its :attr:`~softphantom.fem.Law.ratios`, e.g. Yeoh's
+  ``θ_i = C_i0 / C10``, ``C_i0 = c θ_i C10``): ``∂x/∂θ_i = −K⁻¹ ∂f_int/∂θ_i``, the internal force of
+  the group's elements with every parameter zero but the ratio's column, ``c`` times the column it
+  is a ratio of (the energy is linear in each column).
 
 Readouts: arm-cavity volume changes (4) and marker positions (k, 3). One task is a plain function
 of picklable arguments (:func:`solve_keyframe`), so Dask ships it to any worker; each worker builds
@@ -28,7 +29,8 @@ import numpy as np
 
 from softphantom.errors import SolverError, UserError
 from softphantom.fem import (
-    Yeoh,
+    LAWS,
+    Law,
     SparseSolver,
     cavity_volume,
     cavity_volume_gradient,
@@ -44,8 +46,6 @@ from softphantom.records.names import ARM_NAMES
 URETHRA = "urethra"
 #: Region groups whose stiffness the calibration can scale: the bulb, and the four arms together.
 GROUPS = ("bulb", "arms")
-#: The Yeoh terms whose ratio to C10 the calibration can fit, as parameter-row columns (C20, C30).
-YEOH_TERMS = (2, 3)
 
 
 def region_group(region: str) -> str:
@@ -67,16 +67,17 @@ class Base:
     rest_markers: np.ndarray
     group_tets: dict
     solver: object  # one SparseSolver per worker and model: the symbolic analysis is kept
+    group_laws: dict  # group -> its one law with a shape (group_shapes)
 
 
-#: The laws ``calibrate --law`` can fit a model under (:func:`design_with_law`).
-FIT_LAWS = ("neo-hookean", "yeoh", "corotational")
+#: The laws ``calibrate --law`` can fit a model under (:func:`design_with_law`): every registered law.
+FIT_LAWS = tuple(LAWS)
 
 
 def design_with_law(design, law: str | None):
     """``design`` with every material under ``law`` at its small-strain equivalent: the same E, ν
-    and density (Yeoh: C10 = μ/2, C20 = C30 = 0 — the decoupled neo-Hookean form, whose shape the
-    calibration then fits; co-rotational and neo-Hookean: E, ν). A material already under ``law``
+    and density (:meth:`~softphantom.fem.Law.from_small_strain`; Yeoh: C10 = μ/2, C20 = C30 = 0 —
+    the decoupled neo-Hookean form, whose shape the calibration then fits). A material already under ``law``
     is kept as it is (a Yeoh material keeps its shape); a converted one is renamed
     ``<material>_<law>``. ``law`` None: ``design`` itself.
 
@@ -99,12 +100,7 @@ def design_with_law(design, law: str | None):
             mats.append(m)
             continue
         now = law_from_spec(m.law, dict(m.values), f"materials.{m.name}")
-        E_kPa, nu, rho = now.E_Pa / 1e3, now.nu, now.density_kg_m3
-        if law == "yeoh":
-            vals = (("C10_kPa", E_kPa / (4.0 * (1.0 + nu))), ("C20_kPa", 0.0), ("C30_kPa", 0.0),
-                    ("nu", nu), ("density_kg_m3", rho))
-        else:
-            vals = (("E_kPa", E_kPa), ("nu", nu), ("density_kg_m3", rho))
+        vals = LAWS[law].from_small_strain(now.E_Pa, now.nu, now.density_kg_m3).design_values()
         renamed[m.name] = f"{m.name}_{law.replace('-', '_')}"
         mats.append(MaterialSpec(renamed[m.name], law, vals))
     return dataclasses.replace(design, materials=tuple(mats),
@@ -134,38 +130,45 @@ def _base(model_dir: str, contact: tuple[float, float, float], radius_m: float, 
     for rid, g in id_to_group.items():
         groups.setdefault(g, np.zeros(reg.size, bool))
         groups[g] |= reg == rid
-    return Base(model, fem, H, P, V0, np.asarray(P @ x0), groups, SparseSolver("auto"))
+    return Base(model, fem, H, P, V0, np.asarray(P @ x0), groups, SparseSolver("auto"), group_shapes(model))
 
 
-def yeoh_shapes(model) -> dict[str, tuple[float, float]]:
-    """Group -> (C20/C10, C30/C10) of each group of :data:`GROUPS` whose regions all use one Yeoh
-    law (their shape is what the calibration may fit; other laws have none)."""
+def group_shapes(model) -> dict[str, Law]:
+    """Group -> its law, for each group of :data:`GROUPS` whose regions all use one law that has a
+    shape (:attr:`~softphantom.fem.Law.ratios`, e.g. Yeoh's C20/C10, C30/C10): what the calibration
+    may fit besides the stiffness; other laws have none."""
     from softphantom.fem.model import laws_of_design
 
     laws = laws_of_design(model.design, model.regions)
     out = {}
     for g in GROUPS:
         mine = {laws[r] for r in model.regions if region_group(r) == g}
-        if len(mine) == 1 and isinstance(law := next(iter(mine)), Yeoh):
-            out[g] = (law.C20_Pa / law.C10_Pa, law.C30_Pa / law.C10_Pa)
+        if len(mine) == 1 and (law := next(iter(mine))).ratios:
+            out[g] = law
     return out
 
 
-def shaped_fem(fem, group_tets: dict[str, np.ndarray], shape: dict[str, tuple[float, float]]):
-    """A new FemModel whose Yeoh elements in each group of ``shape`` have C20 = θ2 C10 and
-    C30 = θ3 C10 (``shape[group] = (θ2, θ3)``). An unstable law (:class:`~softphantom.fem.Yeoh`'s
-    check) raises :class:`SolverError`: a trial step there is rejected like one whose solve fails."""
+def _group_elements(fem, group_tets, law: Law, g: str) -> np.ndarray:
+    return group_tets[g] & (np.asarray(fem.law_id) == law.law_id)
+
+
+def shaped_fem(fem, group_tets: dict[str, np.ndarray], group_laws: dict[str, Law], shape: dict[str, tuple]):
+    """A new FemModel whose elements of each group of ``shape`` have their law's ratios at
+    ``shape[group]`` (Yeoh: C20 = θ2 C10, C30 = θ3 C10). An invalid law (e.g. a Yeoh set that is not
+    stable) raises :class:`SolverError`: a trial step there is rejected like one whose solve fails."""
     if not shape:
         return fem
     prm = np.array(fem.params, dtype=float)
-    for g, (t2, t3) in shape.items():
+    for g, values in shape.items():
+        law = group_laws[g]
         try:
-            Yeoh(1.0, float(t2), float(t3))
+            law.with_ratios(values)
         except UserError as exc:
-            raise SolverError(f"Yeoh shape of {g}: C20/C10 = {t2:.4g}, C30/C10 = {t3:.4g} gives an unstable law ({exc})") from None
-        sel = group_tets[g] & (np.asarray(fem.law_id) == Yeoh.law_id)
-        prm[sel, 1] = t2 * prm[sel, 0]
-        prm[sel, 2] = t3 * prm[sel, 0]
+            shown = ", ".join(f"{r.name} = {v:.4g}" for r, v in zip(law.ratios, values))
+            raise SolverError(f"{law.name} shape of {g}: {shown} gives an invalid law ({exc})") from None
+        sel = _group_elements(fem, group_tets, law, g)
+        for r, v in zip(law.ratios, values):
+            prm[sel, r.column] = float(v) * prm[sel, r.of_column]
     return dataclasses.replace(fem, params=_frozen(prm))
 
 
@@ -202,8 +205,9 @@ class KeyframeSolution:
     """A keyframe's equilibrium: ``x`` (3N,) m, ``dV`` (4,) m³ arm-cavity volume changes,
     ``markers`` (k, 3) m; sensitivities ``dV_df`` (4, 3) m³/N, ``dV_dlnc`` (4, G) m³,
     ``dM_df`` (k, 3, 3) m/N, ``dM_dlnc`` (k, 3, G) m (G = ``groups``); ``iterations`` Newton
-    iterations; ``converged``; ``status``; ``shape_cols`` ((group, i), …) the Yeoh ratios
-    θ_i = C_i0/C10 solved for, ``dV_dshape`` (4, S) m³ and ``dM_dshape`` (k, 3, S) m per unit θ."""
+    iterations; ``converged``; ``status``; ``shape_cols`` ((group, k), …) the ratios solved for
+    (``k`` indexes the group's law's :attr:`~softphantom.fem.Law.ratios`), ``dV_dshape`` (4, S) m³
+    and ``dM_dshape`` (k, 3, S) m per unit ratio."""
 
     x: np.ndarray
     dV: np.ndarray
@@ -228,16 +232,16 @@ def solve_keyframe(model_dir: str, contact: tuple[float, float, float], radius_m
                    law: str | None = None) -> KeyframeSolution:
     """Equilibrium and sensitivities at force ``force_N`` (3,) on the contact patch and urethra
     pressure ``p_urethra_Pa``, with the moduli of each group in ``scales`` multiplied by its value
-    (groups not named keep their nominal moduli), and the Yeoh groups in ``shape`` given
-    (C20/C10, C30/C10) (:func:`shaped_fem`). ``x0`` warm start (3N,); ``min_load_step`` the
+    (groups not named keep their nominal moduli), and the groups in ``shape`` given their law's
+    ratios (:func:`shaped_fem`). ``x0`` warm start (3N,); ``min_load_step`` the
     smallest load increment the solve may cut to (:func:`~softphantom.fem.solve_static`) before it
     gives up with :class:`SolverError`. ``law``: every material under that law instead of the
     design's (:func:`design_with_law`)."""
     base = _base(str(model_dir), tuple(float(v) for v in contact), float(radius_m), law)
     groups = tuple(scales)
     shape = dict(shape or {})
-    shape_cols = tuple((g, i) for g in shape for i in YEOH_TERMS)
-    fem0 = shaped_fem(base.fem, base.group_tets, shape)
+    shape_cols = tuple((g, k) for g in shape for k in range(len(base.group_laws[g].ratios)))
+    fem0 = shaped_fem(base.fem, base.group_tets, base.group_laws, shape)
     ts = _tet_scale(base, scales)
     fem = scaled_fem(fem0, ts)
     f = np.asarray(force_N, float)
@@ -259,11 +263,11 @@ def solve_keyframe(model_dir: str, contact: tuple[float, float, float], radius_m
     for j, g in enumerate(groups):
         only = np.where(base.group_tets[g], ts, 0.0)
         B[:, 3 + j] = -internal_force(scaled_fem(fem0, only), x)[free]
-    yeoh = np.asarray(fem0.law_id) == Yeoh.law_id
-    for j, (g, i) in enumerate(shape_cols):  # ∂f_int/∂θ_i: only C_i0 = c C10 on the group's Yeoh elements
+    for j, (g, k) in enumerate(shape_cols):  # ∂f_int/∂θ_k: only the ratio's column, c × its base column
+        r = base.group_laws[g].ratios[k]
         prm = np.zeros_like(np.asarray(fem0.params, dtype=float))
-        sel = base.group_tets[g] & yeoh
-        prm[sel, i - 1] = ts[sel] * np.asarray(fem0.params)[sel, 0]
+        sel = _group_elements(fem0, base.group_tets, base.group_laws[g], g)
+        prm[sel, r.column] = ts[sel] * np.asarray(fem0.params)[sel, r.of_column]
         B[:, 3 + G + j] = -internal_force(dataclasses.replace(fem0, params=_frozen(prm)), x)[free]
     U = np.zeros((n, B.shape[1]))
     U[free] = solver.solve(B)

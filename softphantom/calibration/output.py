@@ -13,13 +13,15 @@ from softphantom.calibration.run import Calibration
 from softphantom.errors import UserError
 
 
-def calibrated_design(design, factors: dict[str, float], shapes: dict[str, tuple[float, float]] | None = None):
+def calibrated_design(design, factors: dict[str, float], shapes: dict[str, tuple] | None = None):
     """A new design whose regions in each group of ``factors`` (``bulb``, ``arms``) use a copy of
     their material with every modulus (fields in kPa) multiplied by the group's factor, and for a
-    Yeoh group in ``shapes`` C20 = θ2·C10, C30 = θ3·C10 (``shapes[group] = (θ2, θ3)``); ν and the
+    group in ``shapes`` (group -> (law class, its ratios), :func:`~softphantom.calibration.fit.fitted_ratios`)
+    under that law, the ratios' moduli set (Yeoh: C20 = θ2·C10, C30 = θ3·C10); ν and the
     density stay. The copies are named ``<material>_<group>_calibrated``."""
     from softphantom.calibration.forward import region_group
     from softphantom.design.params import MaterialSpec
+    from softphantom.fem.laws.base import design_key
 
     by_region = design.material_of_regions()
     specs = {m.name: m for m in design.materials}
@@ -31,11 +33,12 @@ def calibrated_design(design, factors: dict[str, float], shapes: dict[str, tuple
                 continue
             new = f"{mname}_{group}_calibrated"
             if new not in {m.name for m in new_specs}:
-                vals = dict((k, v * c if k.endswith("_kPa") else v) for k, v in specs[mname].values)
-                if specs[mname].law == "yeoh" and group in (shapes or {}):
-                    vals["C20_kPa"], vals["C30_kPa"] = (r * vals["C10_kPa"] for r in shapes[group])
-                vals = tuple(vals.items())
-                new_specs.append(MaterialSpec(new, specs[mname].law, vals))
+                spec = specs[mname]
+                vals = dict((k, v * c if k.endswith("_kPa") else v) for k, v in spec.values)
+                if group in (shapes or {}) and shapes[group][0].name == spec.law:
+                    for r, v in zip(shapes[group][0].ratios, shapes[group][1]):
+                        vals[design_key(r.field)] = v * vals[design_key(r.of)]
+                new_specs.append(MaterialSpec(new, spec.law, tuple(vals.items())))
             assign[region] = new
     used = set(assign.values())
     return dataclasses.replace(design, materials=tuple(m for m in new_specs if m.name in used),
@@ -47,14 +50,14 @@ def calibrated_model(cal: Calibration):
     the same: only the materials change), under the law it was fitted with (``--law``)."""
     from softphantom.design import load_model
 
-    from softphantom.calibration.fit import yeoh_name
+    from softphantom.calibration.fit import fitted_ratios
     from softphantom.calibration.forward import ARM_NAMES, design_with_law
     from softphantom.design import SensorParams
 
     model = load_model(cal.model_dir)
     p = cal.parameters()
     factors = {g: p[f"stiffness_{g}_factor"] for g in ("bulb", "arms")}
-    shapes = {g: (p[yeoh_name(g, 2)], p[yeoh_name(g, 3)]) for g in ("bulb", "arms") if yeoh_name(g, 2) in p}
+    shapes = fitted_ratios(p)
     design = calibrated_design(design_with_law(model.design, cal.options.law), factors, shapes)
     # the fitted gains and tube factor are relative to the chain the (first) recording used
     s0 = cal.sessions[0]

@@ -160,11 +160,20 @@ td,th{{border:1px solid #bbb;padding:3px 8px;text-align:right}}th{{background:#e
     return path
 
 
+def shape_dict(cal: Calibration) -> dict:
+    """``{"<law>_shape": {group: {ratio: value}}}`` of the ratios fitted (e.g. ``yeoh_shape``)."""
+    from softphantom.calibration.fit import fitted_ratios
+
+    out: dict = {}
+    for g, (law, values) in fitted_ratios(cal.parameters()).items():
+        out.setdefault(f"{law.name.replace('-', '_')}_shape", {})[g] = {r.name: v for r, v in zip(law.ratios, values)}
+    return out
+
+
 def calibration_dict(cal: Calibration) -> dict:
     """The calibrated sensor and registration parameters (``calibration.json``)."""
     from softphantom import __version__
-    from softphantom.calibration.fit import yeoh_name
-    from softphantom.calibration.forward import ARM_NAMES, GROUPS, YEOH_TERMS
+    from softphantom.calibration.forward import ARM_NAMES
 
     p = cal.parameters()
     out = {
@@ -172,8 +181,7 @@ def calibration_dict(cal: Calibration) -> dict:
         "kind": "softphantom-calibration",
         "law": cal.meta.get("law", {}),
         "stiffness_factor": {g: p[f"stiffness_{g}_factor"] for g in ("bulb", "arms")},
-        "yeoh_shape": {g: {f"C{i}0_C10": p[yeoh_name(g, i)] for i in YEOH_TERMS}
-                       for g in GROUPS if yeoh_name(g, 2) in p},
+        **shape_dict(cal),
         "sensor": {"gain": [p[f"gain_{a}"] for a in ARM_NAMES],
                    "offset_Pa": [p[f"offset_{a}_Pa"] for a in ARM_NAMES],
                    "tube_volume_factor": p["tube_volume_factor"]},

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from softphantom.calibration.fit import FitOptions, FitResult, Keyframes, Problem, body_pose, fit, parameter_set
-from softphantom.calibration.forward import GROUPS, design_with_law, rest_markers, solve_keyframe, yeoh_shapes
+from softphantom.calibration.forward import GROUPS, design_with_law, rest_markers, solve_keyframe, group_shapes
 from softphantom.calibration.session import CalibrationInputError, Session, load_session, select_keyframes
 from softphantom.errors import SolverError, UserError
 from softphantom.sensing.pneumatics import boyle_dV
@@ -219,7 +219,7 @@ def calibrate(model_dir, specs: list[SessionSpec], holdout: list[SessionSpec] = 
     with ctx as client:
         solve_many = _solver(client)
         rm = rest_markers(str(model_dir), tuple(frames.contact[0]), options.radius_m)
-        params = parameter_set(measured=options.measured, yeoh=yeoh_shapes(fitted))
+        params = parameter_set(measured=options.measured, shapes=group_shapes(fitted))
         problem = Problem(str(model_dir), sessions, frames, rm, solve_many, options, params)
         forces0, lags0 = _initial(problem, sessions)
         problem = dataclasses.replace(problem, lag0_s=lags0, pose_rows=None)
@@ -296,7 +296,7 @@ def check_held_out(model_dir, holdout: list[SessionSpec], values: dict[str, floa
     model = load_model(Path(model_dir))
     fitted = dataclasses.replace(model, design=design_with_law(model.design, options.law))
     held = _load_sessions(model, holdout, "h")
-    params = parameter_set(measured=options.measured, yeoh=yeoh_shapes(fitted))
+    params = parameter_set(measured=options.measured, shapes=group_shapes(fitted))
     values = {n: v for n, v in values.items() if not n.startswith(("lag_", "drift_"))}
     unknown = sorted(set(values) - {p.name for p in params})
     if unknown:

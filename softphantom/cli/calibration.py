@@ -75,7 +75,8 @@ def calibrate_cmd(
     """Fit material stiffness, sensor gains/offsets/drift, tube volume, registration and lag to a bench
     session by least squares over forward FEM solves; print the parameters with 95 % intervals."""
     from softphantom.calibration import FitOptions, calibrate, parameter_set, write_calibration
-    from softphantom.calibration.forward import FIT_LAWS, GROUPS
+    from softphantom.calibration.fit import Parameter, ratio_names
+    from softphantom.calibration.forward import FIT_LAWS
 
     if not (contact_radius_mm > 0 and contact_radius_mm < 50):
         raise UserError(f"--contact-radius-mm must be in (0, 50), got {contact_radius_mm}")
@@ -87,9 +88,12 @@ def calibrate_cmd(
     specs = _pairs(recording, truth, contact or [], known_loads or [], "--recording/--truth")
     hold = _pairs(holdout_recording or [], holdout_truth or [], holdout_contact or [], [], "--holdout-recording/--holdout-truth")
     opts = FitOptions(fix=tuple(fix or ()), measured=_measured(measured or []), radius_m=contact_radius_mm * 1e-3, law=law)
-    # refuse a bad name or value before any work (a Yeoh shape's name is checked against the
-    # model's laws once the model is read)
-    parameter_set(measured=opts.measured, yeoh={g: (0.0, 0.0) for g in GROUPS})
+    # refuse a bad name or value before any work (a law's ratio, e.g. yeoh_C20_C10_bulb, is
+    # checked against the model's laws once the model is read)
+    ratios = ratio_names()
+    parameter_set(measured=tuple(m for m in opts.measured if m[0] not in ratios))
+    for name, value, sd in (m for m in opts.measured if m[0] in ratios):
+        Parameter(name, 0.0, 1.0).measured(value, sd)
     cal = calibrate(model, specs, hold, options=opts, scheduler=scheduler, n_workers=workers,
                     max_keyframes=max_keyframes, progress=lambda s: console.print(s, markup=False, highlight=False))
     with staged_output(out, overwrite=overwrite, directory=True) as work:

@@ -6,10 +6,10 @@ Build a :class:`FemModel` once (:func:`build_fem`, :func:`fem_from_phantom`), th
 :func:`pressure_load`), sensors (:func:`cavity_volume`, :func:`cavity_volume_gradient`) and solve
 equilibrium with :func:`solve_static`. SI units: m, N, Pa.
 
-Material laws (:mod:`softphantom.fem.material`) are small frozen objects — :class:`Corotational`
-(alias :class:`Material`, the paper's co-rotational Hooke), :class:`NeoHookean`, :class:`Yeoh` —
-whose one numba point function (W, P, dP/dF at a quadrature point,
-:func:`softphantom.fem.kernels.law_point`) serves the force, tangent and energy paths.
+Material laws (:mod:`softphantom.fem.laws`, one file each) are small frozen objects —
+:class:`Corotational` (alias :class:`Material`, the paper's co-rotational Hooke), :class:`NeoHookean`,
+:class:`Yeoh` — each carrying its one numba point function (W, P, dP/dF at a quadrature point)
+that serves the force, tangent and energy paths; :data:`DEFAULT_LAW` is the default material.
 
     >>> from softphantom.design import BIPDesign, build_model          # doctest: +SKIP
     >>> model = build_model(BIPDesign())                               # doctest: +SKIP
@@ -40,10 +40,12 @@ from softphantom.fem.corotational import (
     von_mises,
 )
 from softphantom.fem.material import (
+    DEFAULT_LAW,
     ECOFLEX_00_50,
     ECOFLEX_00_50_YEOH,
     LAWS,
     Corotational,
+    Law,
     Material,
     NeoHookean,
     Yeoh,
@@ -66,9 +68,11 @@ __all__ = [
     "outer_surface",
     "point_weights",
     "Corotational",
+    "DEFAULT_LAW",
     "ECOFLEX_00_50",
     "ECOFLEX_00_50_YEOH",
     "LAWS",
+    "Law",
     "NeoHookean",
     "Yeoh",
     "law_from_spec",

@@ -1,18 +1,13 @@
-"""numba kernels of the FEM hot paths: the material laws' point functions and the element loops
-(internal force, strain energy, tangent written straight into the CSR data array).
+"""numba kernels of the FEM hot paths: the element loops (internal force, strain energy, tangent
+written straight into the CSR data array) over the material laws' point functions.
 
-**One point function per law**, ``law_point(law_id, prm, e, F, P, D, need, *scratch) -> W``: at one
-quadrature point, from the deformation gradient F and row ``e`` of the parameter array ``prm``, the strain
-energy density W (J/m³), the first Piola–Kirchhoff stress P (``need >= 1``) and the tangent
-D = dP/dF (``need >= 2``; rows and columns row-major over (i, j): ``D[3i+j, 3k+l] = ∂P_ij/∂F_kl``).
-The force, energy and tangent kernels all call it, so a law is written once. Laws (ids as in
-:mod:`softphantom.fem.material`):
-
-- 0 ``corotational``: W = μ‖S − I‖² + λ/2 tr²(S − I) with F = R S (polar decomposition by Higham's
-  scaled Newton iteration X ← (γX + X⁻ᵀ/γ)/2), P = R σ(S); ``need == 3`` asks for the classic
-  approximate tangent R K0 Rᵀ instead of the consistent one. prm = (μ, λ).
-- 1 ``neo-hookean``: W = μ/2 (I₁ − 3) − μ ln J + λ/2 (ln J)²; P = μ F + (λ ln J − μ) F⁻ᵀ. prm = (μ, λ).
-- 2 ``yeoh``: W = Σ_{i=1..3} C_i0 (Ī₁ − 3)^i + K/2 (J − 1)², Ī₁ = J^(−2/3) I₁. prm = (C10, C20, C30, K).
+**One point function per law** (:mod:`softphantom.fem.laws`, one file each), reached through
+``law_point(law_id, prm, e, F, P, D, need, *scratch) -> W``, the dispatch on the registry's ids
+that every loop inlines: at one quadrature point, from the deformation gradient F and row ``e`` of
+the parameter array ``prm``, the strain energy density W (J/m³), the first Piola–Kirchhoff stress
+P (``need >= 1``) and the tangent D = dP/dF (``need >= 2``; rows and columns row-major over
+(i, j): ``D[3i+j, 3k+l] = ∂P_ij/∂F_kl``). The force, energy and tangent kernels all call it, so a
+law is written once.
 
 Elements: ``conn`` (M, n) node indices (n = 4 linear, 10 quadratic), ``dN`` (M, Q, n, 3) the rest
 gradients ∇_X N_a at Q quadrature points, ``wq`` (M, Q) the quadrature weights times det J (m³).
@@ -23,308 +18,43 @@ output is touched; the caller raises :class:`~softphantom.fem.corotational.Eleme
 If numba is not importable, ``HAVE_NUMBA`` is False and the functions run as plain Python (slow,
 same results); :mod:`softphantom.fem.corotational` then prefers its numpy path where it has one.
 
-Compiled on first use and cached on disk (``cache=True``); serial (``parallel=False``) so results are
-deterministic and bit-identical from run to run; ``nogil=True`` so the estimator's background
-equilibrium thread does not hold up the foreground (numpy/scipy release the GIL too).
+Compiled on first use and cached on disk (the loops that inline the laws with
+:func:`~softphantom.fem._numba.law_kernel`: their cache is also keyed on the law files); serial
+(``parallel=False``) so results are deterministic and bit-identical from run to run;
+``nogil=True`` so the estimator's background equilibrium thread does not hold up the foreground
+(numpy/scipy release the GIL too).
 """
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
-try:  # numba is a dependency; stay importable without it (numpy fallback)
-    from numba import njit
+from softphantom.fem._numba import HAVE_NUMBA, law_kernel, njit
+from softphantom.fem.laws import N_PARAMS, N_WORK, REGISTRY
+from softphantom.fem.laws.corotational import polar as _polar  # noqa: F401  (tests call it)
 
-    HAVE_NUMBA = True
-except ImportError:  # pragma: no cover - exercised only where numba is missing
-    HAVE_NUMBA = False
-
-    def njit(*args, **kwargs):  # type: ignore[no-redef]
-        def deco(fn):
-            return fn
-
-        return deco
+__all__ = ["HAVE_NUMBA", "N_PARAMS", "N_WORK", "law_point", "njit", "point", "point_loop_kernel",
+           "scratch", "tangent_kernel", "warm_up"]
 
 
-LAW_COROTATIONAL, LAW_NEO_HOOKEAN, LAW_YEOH = 0, 1, 2
-N_PARAMS = 4  # columns of the per-element parameter array
-N_WORK = 10  # (3,3) scratch matrices a law point function may use
+_ARGS = "prm, e, F, P, D, need, s0, s1, s2, s3, s4, s5, s6, s7, s8, s9"
 
 
-@njit(cache=True, fastmath=False, nogil=True, inline="always")
-def _polar(F, R, S, X, Y):
-    """Proper rotation R and symmetric S of F = R S (det F > 0) by scaled Newton (Higham 1986).
-
-    X, Y: (3,3) scratch."""
-    for i in range(3):
-        for j in range(3):
-            X[i, j] = F[i, j]
-    scaled = True
-    for _ in range(60):
-        # cofactor matrix C: X⁻ᵀ = C / det X
-        c00 = X[1, 1] * X[2, 2] - X[1, 2] * X[2, 1]
-        c01 = X[1, 2] * X[2, 0] - X[1, 0] * X[2, 2]
-        c02 = X[1, 0] * X[2, 1] - X[1, 1] * X[2, 0]
-        c10 = X[0, 2] * X[2, 1] - X[0, 1] * X[2, 2]
-        c11 = X[0, 0] * X[2, 2] - X[0, 2] * X[2, 0]
-        c12 = X[0, 1] * X[2, 0] - X[0, 0] * X[2, 1]
-        c20 = X[0, 1] * X[1, 2] - X[0, 2] * X[1, 1]
-        c21 = X[0, 2] * X[1, 0] - X[0, 0] * X[1, 2]
-        c22 = X[0, 0] * X[1, 1] - X[0, 1] * X[1, 0]
-        det = X[0, 0] * c00 + X[0, 1] * c01 + X[0, 2] * c02
-        g = 1.0
-        if scaled:
-            g = abs(det) ** (-1.0 / 3.0)
-        a = 0.5 * g
-        b = 0.5 / (g * det)
-        Y[0, 0] = a * X[0, 0] + b * c00
-        Y[0, 1] = a * X[0, 1] + b * c01
-        Y[0, 2] = a * X[0, 2] + b * c02
-        Y[1, 0] = a * X[1, 0] + b * c10
-        Y[1, 1] = a * X[1, 1] + b * c11
-        Y[1, 2] = a * X[1, 2] + b * c12
-        Y[2, 0] = a * X[2, 0] + b * c20
-        Y[2, 1] = a * X[2, 1] + b * c21
-        Y[2, 2] = a * X[2, 2] + b * c22
-        d = 0.0
-        for i in range(3):
-            for j in range(3):
-                d = max(d, abs(Y[i, j] - X[i, j]))
-                X[i, j] = Y[i, j]
-        if d < 1e-3:
-            scaled = False  # near convergence: plain Newton (scaling would only add round-off)
-        if d < 1e-11:
-            break  # quadratic convergence: the error is now far below round-off
-    for i in range(3):
-        for j in range(3):
-            R[i, j] = X[i, j]
-    for i in range(3):
-        for j in range(3):
-            s = 0.0
-            for k in range(3):
-                s += R[k, i] * F[k, j]
-            Y[i, j] = s
-    for i in range(3):
-        for j in range(3):
-            S[i, j] = 0.5 * (Y[i, j] + Y[j, i])
+def _dispatch(points):
+    """``law_point``: one ``if law == i: return point_i(...)`` per registered law, generated from
+    the registry (the same flat chain a hand-written one would be), inlined into its callers."""
+    body = [f"def law_point(law, {_ARGS}):"]
+    for i in range(len(points) - 1):
+        body += [f"    if law == {i}:", f"        return _point{i}({_ARGS})"]
+    body += [f"    return _point{len(points) - 1}({_ARGS})"]
+    scope = {f"_point{i}": p for i, p in enumerate(points)}
+    exec(compile("\n".join(body), f"<law_point of {len(points)} laws>", "exec"), scope)
+    return njit(fastmath=False, nogil=True, inline="always")(scope["law_point"])
 
 
-@njit(cache=True, fastmath=False, nogil=True, inline="always")
-def _stress(S, mu, lam, sig):
-    tr = (S[0, 0] - 1.0) + (S[1, 1] - 1.0) + (S[2, 2] - 1.0)
-    for i in range(3):
-        for j in range(3):
-            E = S[i, j] - (1.0 if i == j else 0.0)
-            sig[i, j] = 2.0 * mu * E + (lam * tr if i == j else 0.0)
-
-
-@njit(cache=True, fastmath=False, nogil=True)
-def _dP_dF(R, S, mu, lam, consistent, D, M, W, dS, sig, Ginv):
-    """D (9,9) = dP/dF of P = R σ(S) at F = R S, rows and columns row-major over (i,j); the same
-    formulas as the numpy reference ``corotational._dP_dF``."""
-    if consistent:
-        _stress(S, mu, lam, sig)
-        trS = S[0, 0] + S[1, 1] + S[2, 2]
-        g00 = trS - S[0, 0]
-        g01 = -S[0, 1]
-        g02 = -S[0, 2]
-        g10 = -S[1, 0]
-        g11 = trS - S[1, 1]
-        g12 = -S[1, 2]
-        g20 = -S[2, 0]
-        g21 = -S[2, 1]
-        g22 = trS - S[2, 2]
-        c00 = g11 * g22 - g12 * g21
-        c01 = g12 * g20 - g10 * g22
-        c02 = g10 * g21 - g11 * g20
-        c10 = g02 * g21 - g01 * g22
-        c11 = g00 * g22 - g02 * g20
-        c12 = g01 * g20 - g00 * g21
-        c20 = g01 * g12 - g02 * g11
-        c21 = g02 * g10 - g00 * g12
-        c22 = g00 * g11 - g01 * g10
-        idet = 1.0 / (g00 * c00 + g01 * c01 + g02 * c02)
-        # inverse = adjugate / det = cofactorᵀ / det
-        Ginv[0, 0] = c00 * idet
-        Ginv[0, 1] = c10 * idet
-        Ginv[0, 2] = c20 * idet
-        Ginv[1, 0] = c01 * idet
-        Ginv[1, 1] = c11 * idet
-        Ginv[1, 2] = c21 * idet
-        Ginv[2, 0] = c02 * idet
-        Ginv[2, 1] = c12 * idet
-        Ginv[2, 2] = c22 * idet
-    for k in range(3):
-        for l in range(3):
-            # M = Rᵀ E_kl: M_ij = R_ki δ_lj
-            for i in range(3):
-                for j in range(3):
-                    M[i, j] = R[k, i] if j == l else 0.0
-            if consistent:
-                a0 = M[2, 1] - M[1, 2]
-                a1 = M[0, 2] - M[2, 0]
-                a2 = M[1, 0] - M[0, 1]
-                w0 = Ginv[0, 0] * a0 + Ginv[0, 1] * a1 + Ginv[0, 2] * a2
-                w1 = Ginv[1, 0] * a0 + Ginv[1, 1] * a1 + Ginv[1, 2] * a2
-                w2 = Ginv[2, 0] * a0 + Ginv[2, 1] * a1 + Ginv[2, 2] * a2
-                W[0, 0] = 0.0
-                W[1, 1] = 0.0
-                W[2, 2] = 0.0
-                W[0, 1] = -w2
-                W[0, 2] = w1
-                W[1, 2] = -w0
-                W[1, 0] = w2
-                W[2, 0] = -w1
-                W[2, 1] = w0
-                for i in range(3):
-                    for j in range(3):
-                        dS[i, j] = M[i, j] - (
-                            W[i, 0] * S[0, j] + W[i, 1] * S[1, j] + W[i, 2] * S[2, j]
-                        )
-            else:
-                for i in range(3):
-                    for j in range(3):
-                        dS[i, j] = 0.5 * (M[i, j] + M[j, i])
-            trd = dS[0, 0] + dS[1, 1] + dS[2, 2]
-            # T = inner + dsig, inner = W σ (consistent only); reuse M as T
-            for i in range(3):
-                for j in range(3):
-                    t = 2.0 * mu * dS[i, j] + (lam * trd if i == j else 0.0)
-                    if consistent:
-                        t += W[i, 0] * sig[0, j] + W[i, 1] * sig[1, j] + W[i, 2] * sig[2, j]
-                    M[i, j] = t
-            kl = 3 * k + l
-            for i in range(3):
-                for j in range(3):
-                    D[3 * i + j, kl] = R[i, 0] * M[0, j] + R[i, 1] * M[1, j] + R[i, 2] * M[2, j]
-
-
-@njit(cache=True, fastmath=False, nogil=True, inline="always")
-def _det_inv(F, Finv):
-    """det F, and F⁻¹ into Finv (if det != 0)."""
-    c00 = F[1, 1] * F[2, 2] - F[1, 2] * F[2, 1]
-    c01 = F[1, 2] * F[2, 0] - F[1, 0] * F[2, 2]
-    c02 = F[1, 0] * F[2, 1] - F[1, 1] * F[2, 0]
-    det = F[0, 0] * c00 + F[0, 1] * c01 + F[0, 2] * c02
-    if det == 0.0:
-        return det
-    idet = 1.0 / det
-    Finv[0, 0] = c00 * idet
-    Finv[1, 0] = c01 * idet
-    Finv[2, 0] = c02 * idet
-    Finv[0, 1] = (F[0, 2] * F[2, 1] - F[0, 1] * F[2, 2]) * idet
-    Finv[1, 1] = (F[0, 0] * F[2, 2] - F[0, 2] * F[2, 0]) * idet
-    Finv[2, 1] = (F[0, 1] * F[2, 0] - F[0, 0] * F[2, 1]) * idet
-    Finv[0, 2] = (F[0, 1] * F[1, 2] - F[0, 2] * F[1, 1]) * idet
-    Finv[1, 2] = (F[0, 2] * F[1, 0] - F[0, 0] * F[1, 2]) * idet
-    Finv[2, 2] = (F[0, 0] * F[1, 1] - F[0, 1] * F[1, 0]) * idet
-    return det
-
-
-@njit(cache=True, fastmath=False, nogil=True, inline="always")
-def _corotational(prm, e, F, P, D, need, s0, s1, s2, s3, s4, s5, s6, s7, s8, s9):
-    mu, lam = prm[e, 0], prm[e, 1]
-    R, S, X, Y = s0, s1, s2, s3
-    _polar(F, R, S, X, Y)
-    tr = (S[0, 0] - 1.0) + (S[1, 1] - 1.0) + (S[2, 2] - 1.0)
-    ee = 0.0
-    for i in range(3):
-        for j in range(3):
-            E = S[i, j] - (1.0 if i == j else 0.0)
-            ee += E * E
-    if need >= 1:
-        sig = s4
-        _stress(S, mu, lam, sig)
-        for i in range(3):
-            for j in range(3):
-                P[i, j] = R[i, 0] * sig[0, j] + R[i, 1] * sig[1, j] + R[i, 2] * sig[2, j]
-    if need >= 2:
-        _dP_dF(R, S, mu, lam, need == 2, D, s5, s6, s7, s8, s9)
-    return mu * ee + 0.5 * lam * tr * tr
-
-
-@njit(cache=True, fastmath=False, nogil=True, inline="always")
-def _neo_hookean(prm, e, F, P, D, need, s0, s1, s2, s3, s4, s5, s6, s7, s8, s9):
-    mu, lam = prm[e, 0], prm[e, 1]
-    Fi = s0
-    J = _det_inv(F, Fi)
-    lnJ = math.log(J)
-    I1 = 0.0
-    for i in range(3):
-        for j in range(3):
-            I1 += F[i, j] * F[i, j]
-    if need >= 1:
-        c = lam * lnJ - mu
-        for i in range(3):
-            for j in range(3):
-                P[i, j] = mu * F[i, j] + c * Fi[j, i]
-    if need >= 2:
-        a = mu - lam * lnJ
-        for i in range(3):
-            for j in range(3):
-                for k in range(3):
-                    for l in range(3):
-                        d = a * Fi[j, k] * Fi[l, i] + lam * Fi[j, i] * Fi[l, k]
-                        if i == k and j == l:
-                            d += mu
-                        D[3 * i + j, 3 * k + l] = d
-    return 0.5 * mu * (I1 - 3.0) - mu * lnJ + 0.5 * lam * lnJ * lnJ
-
-
-@njit(cache=True, fastmath=False, nogil=True, inline="always")
-def _yeoh(prm, e, F, P, D, need, s0, s1, s2, s3, s4, s5, s6, s7, s8, s9):
-    c1, c2, c3, K = prm[e, 0], prm[e, 1], prm[e, 2], prm[e, 3]
-    Fi, G = s0, s1
-    J = _det_inv(F, Fi)
-    I1 = 0.0
-    for i in range(3):
-        for j in range(3):
-            I1 += F[i, j] * F[i, j]
-    g = J ** (-2.0 / 3.0)
-    b = g * I1  # Ī₁
-    x = b - 3.0
-    W = c1 * x + c2 * x * x + c3 * x * x * x + 0.5 * K * (J - 1.0) ** 2
-    if need >= 1:
-        w1 = c1 + 2.0 * c2 * x + 3.0 * c3 * x * x  # dW/dĪ₁
-        kv = K * (J - 1.0) * J  # (dU/dJ) J
-        for i in range(3):
-            for j in range(3):
-                G[i, j] = 2.0 * g * F[i, j] - (2.0 / 3.0) * b * Fi[j, i]  # dĪ₁/dF
-                P[i, j] = w1 * G[i, j] + kv * Fi[j, i]
-    if need >= 2:
-        w11 = 2.0 * c2 + 6.0 * c3 * x
-        for i in range(3):
-            for j in range(3):
-                for k in range(3):
-                    for l in range(3):
-                        # d²Ī₁/dF² and d(J F⁻ᵀ)/dF
-                        h = (
-                            -(4.0 / 3.0) * g * F[i, j] * Fi[l, k]
-                            - (2.0 / 3.0) * G[k, l] * Fi[j, i]
-                            + (2.0 / 3.0) * b * Fi[j, k] * Fi[l, i]
-                        )
-                        if i == k and j == l:
-                            h += 2.0 * g
-                        d = w11 * G[i, j] * G[k, l] + w1 * h
-                        d += K * J * J * Fi[j, i] * Fi[l, k]
-                        d += K * (J - 1.0) * J * (Fi[l, k] * Fi[j, i] - Fi[j, k] * Fi[l, i])
-                        D[3 * i + j, 3 * k + l] = d
-    return W
-
-
-@njit(cache=True, fastmath=False, nogil=True, inline="always")
-def law_point(law, prm, e, F, P, D, need, s0, s1, s2, s3, s4, s5, s6, s7, s8, s9):
-    """W (J/m³) of law ``law`` with the parameters of row ``e`` of ``prm`` at F (det F > 0);
-    P (3,3) if ``need >= 1``; D (9,9) = dP/dF if ``need >= 2`` (``need == 3``: the law's
-    approximate tangent, where it has one). ``s0``..``s9``: (3,3) scratch arrays
-    (:func:`scratch`; passed one by one, inlined: no per-call tuple or view overhead). Add a law here and in :mod:`softphantom.fem.material`, nowhere else."""
-    if law == LAW_COROTATIONAL:
-        return _corotational(prm, e, F, P, D, need, s0, s1, s2, s3, s4, s5, s6, s7, s8, s9)
-    if law == LAW_NEO_HOOKEAN:
-        return _neo_hookean(prm, e, F, P, D, need, s0, s1, s2, s3, s4, s5, s6, s7, s8, s9)
-    return _yeoh(prm, e, F, P, D, need, s0, s1, s2, s3, s4, s5, s6, s7, s8, s9)
+law_point = _dispatch(tuple(law.point for law in REGISTRY))
+law_point.__doc__ = """``law_point(law_id, prm, e, F, P, D, need, s0, …, s9) -> W``: the point function of
+registered law ``law_id`` (:mod:`softphantom.fem.laws.base`), inlined into the caller."""
 
 
 @njit(cache=True, fastmath=False, nogil=True, inline="always")
@@ -335,19 +65,27 @@ def scratch():
             np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)))
 
 
+@law_kernel(fastmath=False, nogil=True)
+def _point_kernel(law, prm, F, P, D, need):
+    s0, s1, s2, s3, s4, s5, s6, s7, s8, s9 = scratch()
+    return law_point(law, prm, 0, F, P, D, need, s0, s1, s2, s3, s4, s5, s6, s7, s8, s9)
+
+
 def point(law: int, prm, F, need: int = 2):
-    """(W, P, D) of a law at one F, from Python (tests, closed forms): the same point function the
-    element kernels call.
+    """(W, P, D) of law ``law`` (its id) with the parameter row ``prm`` at one F, from Python
+    (tests, closed forms): the same point function the element kernels call
+    (:meth:`~softphantom.fem.laws.base.Law.evaluate` calls it with a law object's own).
 
     >>> import numpy as np
-    >>> W, P, D = point(LAW_NEO_HOOKEAN, np.array([1.0, 2.0, 0, 0]), np.eye(3))
+    >>> from softphantom.fem.laws import NeoHookean
+    >>> W, P, D = point(NeoHookean.law_id, np.array([1.0, 2.0, 0, 0]), np.eye(3))
     >>> W, float(abs(P).max()), D.shape
     (0.0, 0.0, (9, 9))
     """
     P = np.zeros((3, 3))
     D = np.zeros((9, 9))
     prm = np.pad(np.asarray(prm, float), (0, N_PARAMS - len(prm)))[None]
-    W = law_point(int(law), prm, 0, np.ascontiguousarray(F, dtype=np.float64), P, D, int(need), *scratch())
+    W = _point_kernel(int(law), prm, np.ascontiguousarray(F, dtype=np.float64), P, D, int(need))
     return float(W), P, D
 
 
@@ -388,7 +126,7 @@ def _count_inverted(x, conn, dN, F):
 MODE_ENERGY, MODE_FORCE, MODE_STRESS = 0, 1, 2
 
 
-@njit(cache=True, fastmath=False, nogil=True)
+@law_kernel(fastmath=False, nogil=True)
 def point_loop_kernel(x, conn, dN, wq, law, prm, edofs, mode, force, stress):
     """One pass over every quadrature point: the strain energy Σ_e Σ_q w_q W(F) always, and
     (``mode`` MODE_FORCE) the internal force Σ_q w_q P ∇N_a into ``force`` (3N,) (zeroed here), or
@@ -436,7 +174,7 @@ def point_loop_kernel(x, conn, dN, wq, law, prm, edofs, mode, force, stress):
     return 0, total
 
 
-@njit(cache=True, fastmath=False, nogil=True)
+@law_kernel(fastmath=False, nogil=True)
 def tangent_kernel(x, conn, dN, wq, law, prm, scatter, consistent, data):
     """Element tangents Σ_q w_q Bᵀ (dP/dF) B summed into the CSR ``data`` (zeroed here) at
     ``scatter`` (M, (3n)²) (a negative position skips the entry: the fixed DOFs of a free–free
@@ -522,7 +260,7 @@ def warm_up() -> None:
     edofs = _ro(np.arange(12, dtype=np.int64)[None])
     scatter = _ro(np.arange(144, dtype=np.int32)[None])
     prm = _ro(np.array([[1.0, 1.0, 0.1, 1.0]]))
-    for law_id in (LAW_COROTATIONAL, LAW_NEO_HOOKEAN, LAW_YEOH):
+    for law_id in range(len(REGISTRY)):
         law = _ro(np.array([law_id], dtype=np.int64))
         for mode in (MODE_ENERGY, MODE_FORCE, MODE_STRESS):
             point_loop_kernel(x, conn, dN, wq, law, prm, edofs, mode, np.empty(12), np.empty((1, 3, 3)))

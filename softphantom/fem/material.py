@@ -1,10 +1,11 @@
-"""Material laws: one small frozen object per law (name, parameters with units, validation, the
-law id and parameter row the numba point function :func:`softphantom.fem.kernels.law_point` reads).
+"""Material laws and the named materials: the law classes (one file each in
+:mod:`softphantom.fem.laws`, listed in its ``REGISTRY``), the design file's materials as law objects
+(:func:`law_from_spec`), the default material (:data:`DEFAULT_LAW`) and presets.
 
-Every element, solver and sensor uses a law only through that point function (strain energy W,
-first Piola–Kirchhoff stress P and tangent dP/dF at a quadrature point), so the force, tangent and
-energy paths cannot disagree. Laws and their exact energies (F = R S polar, J = det F,
-I₁ = tr FᵀF, Ī₁ = J^(−2/3) I₁):
+A law is a frozen value object — its parameters with units, validation, small-strain moduli, and
+its one numba point function (strain energy W, first Piola–Kirchhoff stress P and tangent dP/dF at
+a quadrature point) that the force, tangent and energy kernels all inline, so they cannot disagree.
+Laws and their exact energies (F = R S polar, J = det F, I₁ = tr FᵀF, Ī₁ = J^(−2/3) I₁):
 
 =================  ==============================================================  ==========================
 ``corotational``   W = μ‖S − I‖² + λ/2 tr²(S − I)  (co-rotational Hooke, the paper's)  :class:`Corotational`
@@ -13,8 +14,7 @@ I₁ = tr FᵀF, Ī₁ = J^(−2/3) I₁):
 =================  ==============================================================  ==========================
 
 All three reduce to linear elasticity with the same μ, λ at small strain (Yeoh: μ = 2 C10 and
-K = λ + 2μ/3 from ``nu``). Adding a law: one class here (with a new ``law_id``) and its point
-function in :mod:`softphantom.fem.kernels`; nothing else changes.
+K = λ + 2μ/3 from ``nu``). Adding a law: one file in :mod:`softphantom.fem.laws` and its tests.
 
 In a design file (``[materials.NAME]`` tables, see docs/architecture.md) a material is
 ``law = "..."`` plus its fields in the units of their names: ``E_kPa``, ``nu``, ``C10_kPa``,
@@ -23,144 +23,19 @@ In a design file (``[materials.NAME]`` tables, see docs/architecture.md) a mater
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping
-from dataclasses import dataclass
-from typing import ClassVar
 
-import numpy as np
+from softphantom.errors import DesignError
+from softphantom.fem.laws import BY_NAME, REGISTRY, Corotational, Law, NeoHookean, Yeoh
 
-from softphantom.errors import DesignError, UserError
-from softphantom.fem import kernels
-
-
-def _check(cond: bool, field: str, value: float, limit: str) -> None:
-    if not cond:
-        raise UserError(f"{field} = {value:.6g} must be {limit}")
-
-
-@dataclass(frozen=True)
-class _Isotropic:
-    """Shared part of the laws given by Young's modulus (Pa), Poisson ratio and density."""
-
-    E_Pa: float
-    nu: float
-    density_kg_m3: float = 1000.0
-
-    def __post_init__(self) -> None:
-        _check(math.isfinite(self.E_Pa) and self.E_Pa > 0, "E_Pa", self.E_Pa, "> 0")
-        _check(-1.0 < self.nu < 0.5, "nu", self.nu, "in (-1, 0.5) (compressible)")
-        _check(self.density_kg_m3 >= 0, "density_kg_m3", self.density_kg_m3, ">= 0")
-
-    @property
-    def mu_Pa(self) -> float:
-        """Small-strain shear modulus μ = E / (2(1+ν))."""
-        return self.E_Pa / (2.0 * (1.0 + self.nu))
-
-    @property
-    def lambda_Pa(self) -> float:
-        """Small-strain first Lamé constant λ = Eν / ((1+ν)(1−2ν))."""
-        return self.E_Pa * self.nu / ((1.0 + self.nu) * (1.0 - 2.0 * self.nu))
-
-    def params(self) -> np.ndarray:
-        """The parameter row the point function reads: (μ, λ, 0, 0) Pa."""
-        return np.array([self.mu_Pa, self.lambda_Pa, 0.0, 0.0])
-
-
-@dataclass(frozen=True)
-class Corotational(_Isotropic):
-    """Co-rotational Hooke law (the paper's): W = μ‖S − I‖² + λ/2 tr²(S − I), F = R S.
-
-    >>> m = Corotational(E_Pa=3.0e3, nu=0.25, density_kg_m3=1000.0)
-    >>> round(m.mu_Pa, 6), round(m.lambda_Pa, 6), m.name
-    (1200.0, 1200.0, 'corotational')
-    """
-
-    name: ClassVar[str] = "corotational"
-    law_id: ClassVar[int] = kernels.LAW_COROTATIONAL
-
+__all__ = ["DEFAULT_LAW", "ECOFLEX_00_50", "ECOFLEX_00_50_YEOH", "ECOFLEX_GEL", "LAWS", "REGISTRY",
+           "SORTA_CLEAR_12", "Corotational", "Law", "Material", "NeoHookean", "Yeoh", "law_from_spec"]
 
 #: The historical name of the co-rotational Hooke law (``Material(E_Pa, nu, density_kg_m3)``).
 Material = Corotational
 
-
-@dataclass(frozen=True)
-class NeoHookean(_Isotropic):
-    """Compressible neo-Hookean: W = μ/2 (I₁ − 3) − μ ln J + λ/2 (ln J)², with μ, λ the Lamé
-    constants of (E, ν); P = μ F + (λ ln J − μ) F⁻ᵀ.
-
-    >>> NeoHookean(E_Pa=142.3e3, nu=0.5)
-    Traceback (most recent call last):
-    ...
-    softphantom.errors.UserError: nu = 0.5 must be in (-1, 0.5) (compressible)
-    """
-
-    name: ClassVar[str] = "neo-hookean"
-    law_id: ClassVar[int] = kernels.LAW_NEO_HOOKEAN
-
-
-@dataclass(frozen=True)
-class Yeoh:
-    """Three-term Yeoh law, nearly incompressible: W = Σ C_i0 (Ī₁ − 3)^i + K/2 (J − 1)² with the
-    isochoric Ī₁ = J^(−2/3) tr(FᵀF) (the Abaqus/Altair form, D1 = 2/K). Small-strain shear modulus
-    μ = 2 C10; the bulk modulus K = 2μ(1+ν) / (3(1−2ν)) comes from ``nu``.
-
-    Valid parameters: C10 > 0 and dW/dĪ₁ = C10 + 2 C20 x + 3 C30 x² > 0 for every x = Ī₁ − 3 >= 0
-    (a stable law in every deformation), ν in (−1, 0.5).
-
-    >>> y = ECOFLEX_00_50_YEOH
-    >>> round(y.mu_Pa), round(y.E_Pa)
-    (34000, 98600)
-    """
-
-    C10_Pa: float
-    C20_Pa: float = 0.0
-    C30_Pa: float = 0.0
-    nu: float = 0.45
-    density_kg_m3: float = 1000.0
-
-    name: ClassVar[str] = "yeoh"
-    law_id: ClassVar[int] = kernels.LAW_YEOH
-
-    def __post_init__(self) -> None:
-        _check(math.isfinite(self.C10_Pa) and self.C10_Pa > 0, "C10_Pa", self.C10_Pa, "> 0")
-        for f in ("C20_Pa", "C30_Pa"):
-            _check(math.isfinite(getattr(self, f)), f, getattr(self, f), "finite")
-        _check(-1.0 < self.nu < 0.5, "nu", self.nu, "in (-1, 0.5) (compressible)")
-        _check(self.density_kg_m3 >= 0, "density_kg_m3", self.density_kg_m3, ">= 0")
-        c1, c2, c3 = self.C10_Pa, self.C20_Pa, self.C30_Pa
-        # min over x >= 0 of c1 + 2 c2 x + 3 c3 x²: negative somewhere iff c3 < 0, or c2 < 0 with
-        # the vertex value c1 − c2²/(3 c3) <= 0
-        unstable = c3 < 0 or (c3 == 0 and c2 < 0) or (c3 > 0 and c2 < 0 and c1 - c2 * c2 / (3 * c3) <= 0)
-        if unstable:
-            raise UserError(
-                f"C20_Pa = {c2:.6g} must keep dW/dI1 = C10 + 2 C20 x + 3 C30 x² > 0 for all x >= 0 "
-                f"(with C30_Pa = {c3:.6g}; an unstable law otherwise)"
-            )
-
-    @property
-    def mu_Pa(self) -> float:
-        return 2.0 * self.C10_Pa
-
-    @property
-    def bulk_Pa(self) -> float:
-        return 2.0 * self.mu_Pa * (1.0 + self.nu) / (3.0 * (1.0 - 2.0 * self.nu))
-
-    @property
-    def lambda_Pa(self) -> float:
-        return self.bulk_Pa - 2.0 * self.mu_Pa / 3.0
-
-    @property
-    def E_Pa(self) -> float:
-        return 2.0 * self.mu_Pa * (1.0 + self.nu)
-
-    def params(self) -> np.ndarray:
-        """(C10, C20, C30, K) Pa."""
-        return np.array([self.C10_Pa, self.C20_Pa, self.C30_Pa, self.bulk_Pa])
-
-
-Law = Corotational | NeoHookean | Yeoh
-LAWS: dict[str, type] = {c.name: c for c in (Corotational, NeoHookean, Yeoh)}
+#: law name (the design file's ``law = ...``) -> law class
+LAWS: dict[str, type[Law]] = BY_NAME
 
 
 def _ecoflex_00_50() -> Corotational:
@@ -192,8 +67,7 @@ because the issue asks for three terms. Not our measurement: its small-strain E 
 def _preset(name: str) -> Corotational:
     from softphantom.design.params import MATERIAL_PRESETS
 
-    v = dict(MATERIAL_PRESETS[name].values)
-    return Corotational(E_Pa=v["E_kPa"] * 1e3, nu=v["nu"], density_kg_m3=v["density_kg_m3"])
+    return Corotational.from_design(dict(MATERIAL_PRESETS[name].values), f"materials.{name}")
 
 
 SORTA_CLEAR_12 = _preset("sorta_clear_12")
@@ -202,14 +76,6 @@ of Smooth-On's bulletin, ν = 0.45, 1040 kg/m³ (design.params.MATERIAL_PRESETS)
 
 ECOFLEX_GEL = _preset("ecoflex_gel")
 """Ecoflex GEL (an infill): E = 10 kPa, an order-of-magnitude placeholder (design.params.MATERIAL_PRESETS)."""
-
-_LAW_KEYS = {
-    "corotational": ("E_kPa", "nu", "density_kg_m3"),
-    "neo-hookean": ("E_kPa", "nu", "density_kg_m3"),
-    "yeoh": ("C10_kPa", "C20_kPa", "C30_kPa", "nu", "density_kg_m3"),
-}
-_OPTIONAL = {"density_kg_m3", "C20_kPa", "C30_kPa"}
-
 
 def law_from_spec(law: str, values: Mapping[str, float], where: str) -> Law:
     """The law object of a design-file material: ``law`` name and ``values`` in the units of their
@@ -223,28 +89,20 @@ def law_from_spec(law: str, values: Mapping[str, float], where: str) -> Law:
     ...
     softphantom.errors.DesignError: materials.x.E_kPa = -1 must be > 0
     """
-    if law not in _LAW_KEYS:
-        raise DesignError(f"{where}.law = {law!r} is not a known law (known: {', '.join(_LAW_KEYS)})")
-    keys = _LAW_KEYS[law]
-    for k in values:
-        if k not in keys:
-            raise DesignError(f"{where}.{k}: not a parameter of law {law!r} (its fields: {', '.join(keys)})")
-    for k in keys:
-        if k not in values and k not in _OPTIONAL:
-            raise DesignError(f"{where}.{k}: missing (law {law!r} needs {', '.join(k for k in keys if k not in _OPTIONAL)})")
-    si = {}
-    for k, v in values.items():
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-            raise DesignError(f"{where}.{k} = {v!r}: expected a finite number")
-        si[k.replace("_kPa", "_Pa")] = float(v) * (1e3 if k.endswith("_kPa") else 1.0)
-    try:
-        return LAWS[law](**si)
-    except UserError as exc:
-        # name the field in the file's units: "E_Pa = -1000 must be > 0" -> "materials.x.E_kPa = -1 ..."
-        msg = str(exc)
-        field = msg.split(" ", 1)[0]
-        if field.endswith("_Pa") and field in si:
-            kfield = field[:-3] + "_kPa"
-            rest = msg.split(" must ", 1)[1] if " must " in msg else msg
-            raise DesignError(f"{where}.{kfield} = {values[kfield]:.6g} must {rest}") from None
-        raise DesignError(f"{where}.{msg}") from None
+    if law not in BY_NAME:
+        raise DesignError(f"{where}.law = {law!r} is not a known law (known: {', '.join(BY_NAME)})")
+    return BY_NAME[law].from_design(values, where)
+
+
+def _default_law() -> Law:
+    from softphantom.design.params import DEFAULT_MATERIAL, MATERIAL_PRESETS
+
+    spec = MATERIAL_PRESETS[DEFAULT_MATERIAL]
+    return law_from_spec(spec.law, dict(spec.values), f"materials.{spec.name}")
+
+
+DEFAULT_LAW = _default_law()
+"""The default material, wherever none is named (a design without ``[materials]``, a region without
+one, :func:`~softphantom.fem.model.build_fem` without ``materials``): the design's default preset
+(``softphantom.design.params.DEFAULT_MATERIAL``, Ecoflex 00-50 under the compressible neo-Hookean
+law), the one place the default law is named."""

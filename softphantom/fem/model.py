@@ -11,7 +11,7 @@ import numpy as np
 
 from softphantom.errors import MeshError, UserError
 from softphantom.fem import elements, kernels
-from softphantom.fem.material import ECOFLEX_00_50, LAWS, Law
+from softphantom.fem.material import DEFAULT_LAW, LAWS, Corotational, Law
 
 
 def _ro(a: np.ndarray) -> np.ndarray:
@@ -97,7 +97,7 @@ class FemModel:
 
     @property
     def all_corotational(self) -> bool:
-        return bool(np.all(self.law_id == kernels.LAW_COROTATIONAL))
+        return bool(np.all(self.law_id == Corotational.law_id))
 
     def lumped_mass(self) -> np.ndarray:
         """(N,) kg, the consistent nodal masses ∫ρ N_a dV (row sums of the consistent mass matrix;
@@ -176,14 +176,17 @@ def _pattern(tets: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarr
 
 
 def _per_tet_laws(materials, n_tets: int) -> list:
-    if isinstance(materials, tuple(LAWS.values())):
-        return [materials]
-    mats = list(materials)
-    if len(mats) != n_tets:
-        raise UserError(f"materials: expected one law or {n_tets} (one per tet), got {len(mats)}")
+    if isinstance(materials, Law):
+        mats = [materials]
+    else:
+        mats = list(materials)
+        if len(mats) != n_tets:
+            raise UserError(f"materials: expected one law or {n_tets} (one per tet), got {len(mats)}")
     for m in mats:
-        if not isinstance(m, tuple(LAWS.values())):
+        if not isinstance(m, Law):
             raise UserError(f"materials: expected law objects ({', '.join(LAWS)}), got {type(m).__name__}")
+        if type(m).law_id < 0:  # the kernels dispatch on the registry's ids
+            raise UserError(f"materials: law {type(m).__name__} is not in softphantom.fem.laws.REGISTRY")
     return mats
 
 
@@ -206,7 +209,7 @@ def _geometry(nodes: np.ndarray, tets: np.ndarray, quad_degree: int | None):
 def build_fem(
     nodes: np.ndarray,
     tets: np.ndarray,
-    materials=ECOFLEX_00_50,
+    materials=DEFAULT_LAW,
     fixed_nodes: np.ndarray | Sequence[int] = (),
     *,
     fixed_dofs: np.ndarray | Sequence[int] = (),
@@ -215,8 +218,9 @@ def build_fem(
 ) -> FemModel:
     """Precompute a :class:`FemModel` for linear (M,4) or quadratic (M,10) tetrahedra.
 
-    ``materials``: one law object (:mod:`softphantom.fem.material`: ``Corotational`` a.k.a.
-    ``Material``, ``NeoHookean``, ``Yeoh``) or one per tet. ``fixed_nodes`` clamps all three
+    ``materials``: one law object (:mod:`softphantom.fem.laws`: ``Corotational`` a.k.a.
+    ``Material``, ``NeoHookean``, ``Yeoh``) or one per tet; default
+    :data:`~softphantom.fem.material.DEFAULT_LAW`. ``fixed_nodes`` clamps all three
     components of those nodes; ``fixed_dofs`` clamps single DOFs (``3*node + component``), e.g. for
     symmetry planes. Tets must be positively oriented (det J > 0 at every quadrature point).
     Quadrature: 1 point for linear tets, 4 points (degree 2) for quadratic ones; ``quad_degree``
@@ -331,7 +335,7 @@ def fem_from_phantom(model, materials=None, *, order: int | None = None) -> FemM
     :func:`solve_static` accepts pressures by cavity name.
     """
     by_region = laws_of_design(model.design, model.regions)
-    if materials is not None and isinstance(materials, tuple(LAWS.values())):
+    if materials is not None and isinstance(materials, Law):
         by_region = {k: materials for k in by_region}
     elif materials is not None:
         unknown = set(materials) - set(model.regions)
@@ -368,7 +372,7 @@ def laws_of_design(design, regions: Mapping[str, int]) -> dict:
     for region in regions:
         mname = assign.get(region)
         if mname is None:
-            out[region] = ECOFLEX_00_50
+            out[region] = DEFAULT_LAW
             continue
         if mname not in cache:
             spec = specs[mname]
