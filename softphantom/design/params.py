@@ -55,6 +55,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import tomli_w
 
 from softphantom.design import geometry as geo
 from softphantom.design.fabrication import MoldParams
@@ -1115,53 +1116,14 @@ def load_design(path: str | Path) -> BIPDesign:
     return design_from_dict(data)
 
 
-_BARE_KEY = re.compile(r"^[A-Za-z0-9_-]+$")
-
-
-def _toml_key(k: str) -> str:
-    return k if _BARE_KEY.match(k) else json.dumps(k)
-
-
-def _toml_value(v: Any) -> str:
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, (int, float)):
-        return repr(v)  # shortest repr round-trips a float exactly and is valid TOML
-    if isinstance(v, str):
-        return json.dumps(v, ensure_ascii=False)
-    if isinstance(v, (list, tuple)):
-        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
-    raise TypeError(f"no TOML form for {type(v).__name__}")
-
-
 def design_to_toml(design: BIPDesign) -> str:
-    """The design as TOML text, one line per parameter (vectors inline: ``center_mm = [0.0, 0.0, 4.0]``).
+    """The design as TOML text (tomli-w): one table per part, one line per scalar and per vector
+    component, so a changed value is a one-line diff.
 
     >>> print(design_to_toml(BIPDesign()).splitlines()[2])
     [bulb]
     """
-    data = design_to_dict(design)
-    lines: list[str] = []
-
-    def table(header: str, d: dict) -> None:
-        lines.append(f"\n[{header}]")
-        lines.extend(f"{_toml_key(k)} = {_toml_value(v)}" for k, v in d.items())
-
-    lines.append(f"name = {_toml_value(data['name'])}")
-    for sub in _SUBS:
-        table(sub, data[sub])
-    for name, arm in data["arms"].items():
-        table(f"arms.{_toml_key(name)}", arm)
-    table("markers", data["markers"])
-    table("targets", data["targets"])
-    for name, mat in data["materials"].items():
-        table(f"materials.{_toml_key(name)}", mat)
-    table("region_materials", data["region_materials"])
-    if "layers" in data:
-        table("layers", {"shell_mm": data["layers"]["shell_mm"]})
-        for name, spec in data["layers"]["lesions"].items():
-            table(f"layers.lesions.{_toml_key(name)}", spec)
-    return "\n".join(lines) + "\n"
+    return tomli_w.dumps(design_to_dict(design))
 
 
 def save_design(design: BIPDesign, path: str | Path) -> Path:
