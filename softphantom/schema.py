@@ -1,0 +1,137 @@
+"""Input-file schemas (pydantic v2) and their errors as one line naming the key, value and limit.
+
+A file's tables are :class:`FileModel` subclasses: unknown keys are refused, numbers are numbers
+(no ``"5"`` read as 5, no bool, nothing infinite or NaN), and :func:`parse` turns the first error
+into the file's own :class:`~softphantom.errors.UserError` type:
+
+>>> class Push(FileModel):
+...     start_s: float = Field(ge=0)
+...     force_N: Vec3
+>>> parse(Push, {"start_s": -1, "force_N": [0, 1, 0]}, where="push[0]")
+Traceback (most recent call last):
+...
+softphantom.errors.UserError: push[0].start_s = -1 must be >= 0 s
+>>> parse(Push, {"start_s": 1, "force_N": [0, 1]}, where="push[0]")
+Traceback (most recent call last):
+...
+softphantom.errors.UserError: push[0].force_N: expected 3 numbers [x, y, z], got [0, 1]
+>>> parse(Push, {"start_s": 1, "force_N": [0, 1, 0], "speed": 3}, where="push[0]")
+Traceback (most recent call last):
+...
+softphantom.errors.UserError: push[0]: unknown key 'speed' (known: force_N, start_s)
+"""
+
+from __future__ import annotations
+
+import typing
+from typing import Annotated, Any
+
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError
+from pydantic_core import PydanticCustomError
+
+from softphantom.errors import UserError
+
+__all__ = ["Field", "FileModel", "Vec3", "between", "parse", "refuse"]
+
+#: unit suffixes of key names (``radius_mm``, ``force_N``): a limit is printed with its unit
+UNITS = {"mm3": "mm³", "mm": "mm", "kPa": "kPa", "N": "N", "s": "s", "m": "m", "deg": "deg", "mL": "mL"}
+
+
+class FileModel(BaseModel):
+    """A table of an input file: unknown keys refused, numbers strict and finite, frozen."""
+
+    model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False, frozen=True)
+
+
+Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
+
+
+def refuse(message: str, **ctx: Any) -> PydanticCustomError:
+    """An error raised inside a validator; :func:`parse` prints ``message`` after the key."""
+    return PydanticCustomError("softphantom", message, ctx)
+
+
+def between(lo: float, hi: float, unit: str = "", *, above: bool = False) -> AfterValidator:
+    """``Annotated[float, between(6, 256)]``: a closed range (``above``: lo excluded), printed
+    whole when it is left."""
+    def check(v: float) -> float:
+        if not (lo < v if above else lo <= v) or not v <= hi:
+            raise refuse(f"must be in {'(' if above else '['}{lo:g}, {hi:g}]{' ' + unit if unit else ''}")
+        return v
+    return AfterValidator(check)
+
+
+def _fmt(v: Any) -> str:
+    return f"{v:.4g}" if isinstance(v, float) else repr(v)
+
+
+def _path(loc: tuple) -> str:
+    out = ""
+    for part in loc:
+        out += f"[{part}]" if isinstance(part, int) else (f".{part}" if out else str(part))
+    return out
+
+
+def _model_at(model: type[BaseModel], loc: tuple) -> type[BaseModel] | None:
+    """The model whose table sits at ``loc`` (for the list of its known keys)."""
+    tp: Any = model
+    for part in loc:
+        if isinstance(part, str) and isinstance(tp, type) and issubclass(tp, BaseModel):
+            if part not in tp.model_fields:
+                return None
+            tp = tp.model_fields[part].annotation
+        while typing.get_origin(tp) in (list, dict, typing.Union, Annotated) or type(tp).__name__ == "UnionType":
+            args = [a for a in typing.get_args(tp) if a is not type(None)]
+            tp = args[-1] if typing.get_origin(tp) is not Annotated else args[0]
+    return tp if isinstance(tp, type) and issubclass(tp, BaseModel) else None
+
+
+def _unit(loc: tuple) -> str:
+    name = next((p for p in reversed(loc) if isinstance(p, str)), "")
+    return " " + UNITS[name.rsplit("_", 1)[-1]] if "_" in name and name.rsplit("_", 1)[-1] in UNITS else ""
+
+
+_EXPECTED = {"float_type": "a number", "int_type": "an integer", "bool_type": "true or false",
+             "string_type": "a string", "list_type": "a list", "dict_type": "a table", "model_type": "a table"}
+_BOUND = {"greater_than": ">", "greater_than_equal": ">=", "less_than": "<", "less_than_equal": "<="}
+
+
+def message(model: type[BaseModel], err: dict, where: str = "") -> str:
+    """One line for one pydantic error: ``where.key = value must be > 0 mm``."""
+    loc, kind, value = tuple(err["loc"]), err["type"], err.get("input")
+    path = _path(((where,) if where else ()) + loc) or "top level"
+    ctx = err.get("ctx") or {}
+    if kind == "extra_forbidden":
+        known = _model_at(model, loc[:-1])
+        names = f" (known: {', '.join(sorted(known.model_fields))})" if known else ""
+        return f"{_path(((where,) if where else ()) + loc[:-1]) or 'top level'}: unknown key {loc[-1]!r}{names}"
+    if kind == "missing":
+        return f"{path}: missing"
+    if kind in _EXPECTED:
+        return f"{path}: expected {_EXPECTED[kind]}, got {value!r}"
+    if kind in ("too_short", "too_long"):
+        n = ctx.get("min_length") if kind == "too_short" else ctx.get("max_length")
+        return f"{path}: expected {n} numbers [x, y, z], got {value!r}" if n == 3 else \
+            f"{path}: expected {'at least' if kind == 'too_short' else 'at most'} {n} entries, got {value!r}"
+    if kind == "string_too_short":
+        return f"{path}: expected a non-empty string, got {value!r}"
+    if kind == "finite_number":
+        return f"{path} = {value!r} must be finite"
+    if kind == "literal_error":
+        return f"{path}: {value!r} is not one of {ctx['expected'].replace(' or ', ', ')}"
+    if kind in _BOUND:
+        bound = next(iter(ctx.values()))
+        return f"{path} = {_fmt(value)} must be {_BOUND[kind]} {_fmt(bound)}{_unit(loc)}"
+    if kind == "softphantom":
+        return f"{path} = {_fmt(value)} {err['msg']}" if not isinstance(value, dict) else f"{path}: {err['msg']}"
+    return f"{path}: {err['msg']} (got {value!r})"
+
+
+def parse(model: type[BaseModel], data: Any, error: type[UserError] = UserError, where: str = "", source: str = ""):
+    """``data`` validated as ``model``; the first problem raises ``error`` with one line, after
+    ``source: `` (the file) and with ``where`` (the table's own path) before each key."""
+    try:
+        return model.model_validate(data)
+    except ValidationError as exc:
+        text = message(model, exc.errors()[0], where)
+        raise error(f"{source}: {text}" if source else text) from None
