@@ -23,6 +23,7 @@ softphantom.errors.UserError: push[0]: unknown key 'speed' (known: force_N, star
 
 from __future__ import annotations
 
+import types
 import typing
 from typing import Annotated, Any
 
@@ -68,21 +69,34 @@ def _fmt(v: Any) -> str:
 def _path(loc: tuple) -> str:
     out = ""
     for part in loc:
-        out += f"[{part}]" if isinstance(part, int) else (f".{part}" if out else str(part))
+        key = f'"{part}"' if isinstance(part, str) and "." in part else str(part)  # a dotted key, quoted as in TOML
+        out += f"[{part}]" if isinstance(part, int) else (f".{key}" if out else key)
     return out
+
+
+def _strip(tp: Any) -> Any:
+    while True:
+        origin = typing.get_origin(tp)
+        if origin is Annotated:
+            tp = typing.get_args(tp)[0]
+        elif origin in (typing.Union, types.UnionType):
+            tp = next(a for a in typing.get_args(tp) if a is not type(None))
+        else:
+            return tp
 
 
 def _model_at(model: type[BaseModel], loc: tuple) -> type[BaseModel] | None:
     """The model whose table sits at ``loc`` (for the list of its known keys)."""
     tp: Any = model
     for part in loc:
-        if isinstance(part, str) and isinstance(tp, type) and issubclass(tp, BaseModel):
-            if part not in tp.model_fields:
-                return None
-            tp = tp.model_fields[part].annotation
-        while typing.get_origin(tp) in (list, dict, typing.Union, Annotated) or type(tp).__name__ == "UnionType":
-            args = [a for a in typing.get_args(tp) if a is not type(None)]
-            tp = args[-1] if typing.get_origin(tp) is not Annotated else args[0]
+        tp = _strip(tp)
+        if isinstance(tp, type) and issubclass(tp, BaseModel):
+            tp = next((f.annotation for n, f in tp.model_fields.items() if part in (n, f.alias)), None)
+        elif typing.get_origin(tp) in (list, dict):
+            tp = typing.get_args(tp)[-1]
+        else:
+            return None
+    tp = _strip(tp)
     return tp if isinstance(tp, type) and issubclass(tp, BaseModel) else None
 
 
@@ -96,29 +110,32 @@ _EXPECTED = {"float_type": "a number", "int_type": "an integer", "bool_type": "t
 _BOUND = {"greater_than": ">", "greater_than_equal": ">=", "less_than": "<", "less_than_equal": "<="}
 
 
-def message(model: type[BaseModel], err: dict, where: str = "") -> str:
+def message(model: type[BaseModel], err: dict, where: str = "", top: str = "top level") -> str:
     """One line for one pydantic error: ``where.key = value must be > 0 mm``."""
     loc, kind, value = tuple(err["loc"]), err["type"], err.get("input")
-    path = _path(((where,) if where else ()) + loc) or "top level"
+    path = _path(((where,) if where else ()) + loc) or top
     ctx = err.get("ctx") or {}
     if kind == "extra_forbidden":
         known = _model_at(model, loc[:-1])
-        names = f" (known: {', '.join(sorted(known.model_fields))})" if known else ""
-        return f"{_path(((where,) if where else ()) + loc[:-1]) or 'top level'}: unknown key {loc[-1]!r}{names}"
+        names = f" (known: {', '.join(sorted(f.alias or n for n, f in known.model_fields.items()))})" if known else ""
+        return f"{_path(((where,) if where else ()) + loc[:-1]) or top}: unknown key {loc[-1]!r}{names}"
     if kind == "missing":
         return f"{path}: missing"
     if kind in _EXPECTED:
         return f"{path}: expected {_EXPECTED[kind]}, got {value!r}"
     if kind in ("too_short", "too_long"):
         n = ctx.get("min_length") if kind == "too_short" else ctx.get("max_length")
-        return f"{path}: expected {n} numbers [x, y, z], got {value!r}" if n == 3 else \
-            f"{path}: expected {'at least' if kind == 'too_short' else 'at most'} {n} entries, got {value!r}"
+        if n == 3:
+            return f"{path}: expected 3 numbers [x, y, z], got {value!r}"
+        if n == 1 and kind == "too_short":
+            return f"{path}: expected a non-empty list, got {value!r}"
+        return f"{path}: expected {'at least' if kind == 'too_short' else 'at most'} {n} entries, got {value!r}"
     if kind == "string_too_short":
         return f"{path}: expected a non-empty string, got {value!r}"
     if kind == "finite_number":
         return f"{path} = {value!r} must be finite"
     if kind == "literal_error":
-        return f"{path}: {value!r} is not one of {ctx['expected'].replace(' or ', ', ')}"
+        return f"{path}: {value!r} is not one of {ctx['expected'].replace(' or ', ', ').replace(chr(39), '')}"
     if kind in _BOUND:
         bound = next(iter(ctx.values()))
         return f"{path} = {_fmt(value)} must be {_BOUND[kind]} {_fmt(bound)}{_unit(loc)}"
@@ -127,11 +144,13 @@ def message(model: type[BaseModel], err: dict, where: str = "") -> str:
     return f"{path}: {err['msg']} (got {value!r})"
 
 
-def parse(model: type[BaseModel], data: Any, error: type[UserError] = UserError, where: str = "", source: str = ""):
+def parse(model: type[BaseModel], data: Any, error: type[UserError] = UserError, where: str = "", source: str = "",
+          top: str = "top level"):
     """``data`` validated as ``model``; the first problem raises ``error`` with one line, after
-    ``source: `` (the file) and with ``where`` (the table's own path) before each key."""
+    ``source: `` (the file), with ``where`` (the table's own path) before each key and ``top``
+    naming the file's top level."""
     try:
         return model.model_validate(data)
     except ValidationError as exc:
-        text = message(model, exc.errors()[0], where)
+        text = message(model, exc.errors()[0], where, top)
         raise error(f"{source}: {text}" if source else text) from None
