@@ -23,16 +23,19 @@ softphantom.errors.UserError: push[0]: unknown key 'speed' (known: force_N, star
 
 from __future__ import annotations
 
+import dataclasses
+import functools
 import types
 import typing
 from typing import Annotated, Any
 
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, Strict, ValidationError
+from pydantic.dataclasses import dataclass as pydantic_dataclass
 from pydantic_core import PydanticCustomError
 
 from softphantom.errors import UserError
 
-__all__ = ["Field", "FileModel", "Vec3", "between", "parse", "refuse"]
+__all__ = ["Field", "FileModel", "Number", "Vec3", "between", "checked", "parse", "refuse"]
 
 #: unit suffixes of key names (``radius_mm``, ``force_N``): a limit is printed with its unit
 UNITS = {"mm3": "mm³", "mm": "mm", "kPa": "kPa", "N": "N", "s": "s", "m": "m", "deg": "deg", "mL": "mL"}
@@ -45,6 +48,8 @@ class FileModel(BaseModel):
 
 
 Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
+#: a float field of a :func:`checked` dataclass: a number (int or float, not bool or ``"5"``), finite
+Number = Annotated[float, Strict()]
 
 
 def refuse(message: str, **ctx: Any) -> PydanticCustomError:
@@ -66,10 +71,11 @@ def _fmt(v: Any) -> str:
     return f"{v:.4g}" if isinstance(v, float) else repr(v)
 
 
-def _path(loc: tuple) -> str:
-    out = ""
+def _path(where: str, loc: tuple) -> str:
+    """``where`` (a table's path) and the keys of ``loc`` (a dotted key quoted as in TOML, an index in [])."""
+    out = where
     for part in loc:
-        key = f'"{part}"' if isinstance(part, str) and "." in part else str(part)  # a dotted key, quoted as in TOML
+        key = f'"{part}"' if isinstance(part, str) and "." in part else str(part)
         out += f"[{part}]" if isinstance(part, int) else (f".{key}" if out else key)
     return out
 
@@ -85,19 +91,25 @@ def _strip(tp: Any) -> Any:
             return tp
 
 
-def _model_at(model: type[BaseModel], loc: tuple) -> type[BaseModel] | None:
+def _fields(tp: Any) -> dict | None:
+    """The pydantic fields of a model or a pydantic dataclass (None for anything else)."""
+    return getattr(tp, "model_fields", None) if isinstance(tp, type) and issubclass(tp, BaseModel) \
+        else getattr(tp, "__pydantic_fields__", None)
+
+
+def _model_at(model: type, loc: tuple) -> type | None:
     """The model whose table sits at ``loc`` (for the list of its known keys)."""
     tp: Any = model
     for part in loc:
         tp = _strip(tp)
-        if isinstance(tp, type) and issubclass(tp, BaseModel):
-            tp = next((f.annotation for n, f in tp.model_fields.items() if part in (n, f.alias)), None)
-        elif typing.get_origin(tp) in (list, dict):
-            tp = typing.get_args(tp)[-1]
+        if _fields(tp) is not None:
+            tp = next((f.annotation for n, f in _fields(tp).items() if part in (n, f.alias)), None)
+        elif typing.get_origin(tp) in (list, dict, tuple):
+            tp = typing.get_args(tp)[-1 if typing.get_origin(tp) is not tuple else 0]
         else:
             return None
     tp = _strip(tp)
-    return tp if isinstance(tp, type) and issubclass(tp, BaseModel) else None
+    return tp if _fields(tp) is not None else None
 
 
 def _unit(loc: tuple) -> str:
@@ -106,19 +118,20 @@ def _unit(loc: tuple) -> str:
 
 
 _EXPECTED = {"float_type": "a number", "int_type": "an integer", "bool_type": "true or false",
-             "string_type": "a string", "list_type": "a list", "dict_type": "a table", "model_type": "a table"}
+             "string_type": "a string", "list_type": "a list", "tuple_type": "a list", "dict_type": "a table",
+             "model_type": "a table", "dataclass_type": "a table"}
 _BOUND = {"greater_than": ">", "greater_than_equal": ">=", "less_than": "<", "less_than_equal": "<="}
 
 
 def message(model: type[BaseModel], err: dict, where: str = "", top: str = "top level") -> str:
     """One line for one pydantic error: ``where.key = value must be > 0 mm``."""
     loc, kind, value = tuple(err["loc"]), err["type"], err.get("input")
-    path = _path(((where,) if where else ()) + loc) or top
+    path = _path(where, loc) or top
     ctx = err.get("ctx") or {}
-    if kind == "extra_forbidden":
+    if kind in ("extra_forbidden", "unexpected_keyword_argument"):
         known = _model_at(model, loc[:-1])
-        names = f" (known: {', '.join(sorted(f.alias or n for n, f in known.model_fields.items()))})" if known else ""
-        return f"{_path(((where,) if where else ()) + loc[:-1]) or top}: unknown key {loc[-1]!r}{names}"
+        names = f" (known: {', '.join(sorted(f.alias or n for n, f in _fields(known).items()))})" if known else ""
+        return f"{_path(where, loc[:-1]) or top}: unknown key {loc[-1]!r}{names}"
     if kind == "missing":
         return f"{path}: missing"
     if kind in _EXPECTED:
@@ -142,6 +155,31 @@ def message(model: type[BaseModel], err: dict, where: str = "", top: str = "top 
     if kind == "softphantom":
         return f"{path} = {_fmt(value)} {err['msg']}" if not isinstance(value, dict) else f"{path}: {err['msg']}"
     return f"{path}: {err['msg']} (got {value!r})"
+
+
+def checked(where: str = "", error: type[UserError] = UserError):
+    """Class decorator: a frozen pydantic dataclass (unknown keys refused, numbers finite) whose
+    construction, ``dataclasses.replace`` included, raises ``error`` with one line; ``where`` (the
+    table's path) may hold ``{name}``, the instance's ``name``. Cross-field checks stay in
+    ``__post_init__``, which runs after the fields are valid."""
+    def wrap(cls):
+        cls = pydantic_dataclass(frozen=True, config=ConfigDict(extra="forbid", allow_inf_nan=False))(cls)
+        init, names = cls.__init__, [f.name for f in dataclasses.fields(cls)]
+
+        @functools.wraps(init)
+        def __init__(self, *args, **kwargs):
+            try:
+                init(self, *args, **kwargs)
+            except ValidationError as exc:
+                err = exc.errors()[0]
+                if err["loc"] and isinstance(err["loc"][0], int):  # a positional argument: its field's name
+                    err["loc"] = (names[err["loc"][0]], *err["loc"][1:])
+                name = {**dict(zip(names, args)), **kwargs}.get("name")
+                raise error(message(cls, err, where.format(name=name))) from None
+
+        cls.__init__ = __init__
+        return cls
+    return wrap
 
 
 def parse(model: type[BaseModel], data: Any, error: type[UserError] = UserError, where: str = "", source: str = "",
