@@ -152,6 +152,29 @@ def test_invalid_designs_give_one_line_errors(case):
     assert "\n" not in msg
 
 
+def _bounded_fields():
+    """(file path to a table, field) of every scalar field with a range (a bound or softphantom.schema.between)."""
+    from softphantom.design.fabrication import MoldParams
+    from softphantom.design.params import ArmParams, InteractionParams, LayersParams, SensorParams
+
+    tables = {"mesh": MeshParams, "sensors": SensorParams, "molds": MoldParams, "interaction": InteractionParams,
+              "urethra": UrethraParams, "layers": LayersParams, "arms.front_zpos": ArmParams}
+    return [(t, n) for t, cls in tables.items() for n, f in cls.__pydantic_fields__.items()
+            if f.annotation is float and len(f.metadata) > 1]
+
+
+@pytest.mark.parametrize("table, key", _bounded_fields())
+def test_every_bounded_field_names_itself_its_value_and_its_range(table, key):
+    data: dict = {key: -1e6}
+    for part in reversed(table.split(".")):
+        data = {part: data}
+    with pytest.raises(DesignError) as err:
+        design_from_dict(data)
+    unit = {"mm": " mm", "mm3": " mm³", "deg": " deg"}.get(key.rsplit("_", 1)[-1], " facets" if key == "segments" else "")
+    assert re.fullmatch(rf"{re.escape(table)}\.{key} = -1e\+06 must be (> 0|>= 0|in \[[0-9.]+, [0-9.]+\]){unit}",
+                        str(err.value)), str(err.value)
+
+
 def test_toml_and_json_round_trip_exactly(tmp_path):
     d = _arm(BIPDesign(name="variant \"A\""), "back_xpos", length_mm=30.5, radius_mm=6.5)
     d = dataclasses.replace(d, markers=(("marker 1", d.markers[0][1]), *d.markers[1:]), targets=(("t.x", (1e-7, 0.1, -12.0)),))
