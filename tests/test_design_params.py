@@ -137,6 +137,11 @@ INVALID = {
     "target in the urethra": (lambda: dataclasses.replace(D, targets=(("t", (0.0, 5.0, 4.0)),)), "targets.t is inside the urethra"),
     "off-centre too far": (lambda: design_from_dict({"interaction": {"offcentre_mm": 80}}), "interaction.offcentre_mm"),
     "unknown key": (lambda: design_from_dict({"arms": {"front_zpos": {"lenght_mm": 3}}}), "unknown key 'lenght_mm'"),
+    "name inside a named table": (
+        lambda: design_from_dict({"layers": {"lesions": {"L1": {"name": "x", "center_mm": [14, 0, -10], "semi_axes_mm": [6, 6, 6]}}}}),
+        "layers.lesions.L1: unknown key 'name' (known: center_mm, semi_axes_mm)",
+    ),
+    "volume's unit": (lambda: _arm(D, "front_zpos", cavity_volume_mm3=-1.0), "arms.front_zpos.cavity_volume_mm3 = -1 must be > 0 mm³"),
     "wrong type": (lambda: design_from_dict({"urethra": {"radius_mm": "big"}}), "urethra.radius_mm: expected a number"),
     "bad mesh size": (lambda: MeshParams(size_mm=0.0), "mesh.size_mm"),
 }

@@ -980,7 +980,7 @@ def design_from_dict(data: dict[str, Any]) -> BIPDesign:
             raise DesignError(f"layers.lesions: expected a table of named lesions, got {lesions!r}")
         les = []
         for name, spec in lesions.items():
-            _check_keys(f"layers.lesions.{name}", spec, None)
+            _check_keys(f"layers.lesions.{name}", spec, ["center_mm", "semi_axes_mm"])  # the name is the table's
             les.append(LesionParams(name=str(name), **spec))
         kwargs["layers"] = LayersParams(shell_mm=lay.get("shell_mm", 0.0), lesions=tuple(les))
     given_arms = data.get("arms", {})
@@ -988,7 +988,7 @@ def design_from_dict(data: dict[str, Any]) -> BIPDesign:
     arms = []
     for a in defaults["arms"]:
         over = given_arms.get(a.name, {})
-        _check_keys(f"arms.{a.name}", over, None)
+        _check_keys(f"arms.{a.name}", over, _ARM_KEYS)
         if kwargs["bulb"].is_surface and "junction_fillet_mm" not in over:
             a = dataclasses.replace(a, junction_fillet_mm=0.0)  # OCC fillets smooth surfaces only
         arms.append(dataclasses.replace(a, **over))
