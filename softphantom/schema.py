@@ -47,9 +47,10 @@ class FileModel(BaseModel):
     model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False, frozen=True)
 
 
-Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
-#: a float field of a :func:`checked` dataclass: a number (int or float, not bool or ``"5"``), finite
+#: a number (int or float, not bool or ``"5"``; finite by the models' config)
 Number = Annotated[float, Strict()]
+#: three numbers [x, y, z] (a list or a tuple), kept as a tuple
+Vec3 = Annotated[tuple[Number, ...], Field(min_length=3, max_length=3, strict=False)]
 
 
 def refuse(message: str, **ctx: Any) -> PydanticCustomError:

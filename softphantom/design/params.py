@@ -62,10 +62,10 @@ from softphantom.design import geometry as geo
 from softphantom.design.fabrication import MoldParams
 from softphantom.errors import DesignError
 from softphantom.schema import Field, Number, between, checked, refuse
+from softphantom.schema import Vec3 as _Vec3  # params.Vec3 is the plain type of a point
 
 Vec3 = tuple[float, float, float]
 # field types of the parameter tables (softphantom.schema.checked): finite numbers, lengths and volumes > 0
-_Vec3 = Annotated[tuple[Number, ...], Field(min_length=3, max_length=3)]
 _Size = Annotated[Number, Field(gt=0)]
 _Sizes3 = Annotated[tuple[_Size, ...], Field(min_length=3, max_length=3)]
 
