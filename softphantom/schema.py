@@ -124,7 +124,7 @@ _EXPECTED = {"float_type": "a number", "int_type": "an integer", "bool_type": "t
 _BOUND = {"greater_than": ">", "greater_than_equal": ">=", "less_than": "<", "less_than_equal": "<="}
 
 
-def message(model: type[BaseModel], err: dict, where: str = "", top: str = "top level") -> str:
+def message(model: type, err: dict, where: str = "", top: str = "top level") -> str:
     """One line for one pydantic error: ``where.key = value must be > 0 mm``."""
     loc, kind, value = tuple(err["loc"]), err["type"], err.get("input")
     path = _path(where, loc) or top
