@@ -50,12 +50,20 @@ METHODS = ("grid", "random", "lhs")
 #: Bumped when what a variant computes changes, so cached rows of older code are not reused.
 EVAL_VERSION = 2
 _INDEX = re.compile(r"^(?P<key>[A-Za-z0-9_]+)(\[(?P<i>[0-9]+)\])?$")
-EXTRA_PARAMS = {
-    "mesh_size_mm": 12.0,
-    "sensing.tube_length_m": 12.0,
-    "sensing.tube_id_mm": 1.2,
-    "sensing.osr": 100,
-}
+Positive = Annotated[float, Field(gt=0)]
+Count = Annotated[int, Field(ge=1)]
+
+
+class _Fixed(FileModel):
+    """The settings beside the design (``[fixed]``, or swept by these names) and their defaults."""
+
+    mesh_size_mm: Positive = 12.0
+    tube_length_m: Positive = Field(12.0, alias="sensing.tube_length_m")
+    tube_id_mm: Positive = Field(1.2, alias="sensing.tube_id_mm")
+    osr: Count = Field(100, alias="sensing.osr")
+
+
+EXTRA_PARAMS = _Fixed().model_dump(by_alias=True)
 DIRECTIONS = {"xpos": (1, 0, 0), "xneg": (-1, 0, 0), "ypos": (0, 1, 0), "yneg": (0, -1, 0),
               "zpos": (0, 0, 1), "zneg": (0, 0, -1)}
 
@@ -241,10 +249,6 @@ def apply_path(design: dict, path: str, value: Any, _name: str | None = None) ->
             node = node[key]
 
 
-Positive = Annotated[float, Field(gt=0)]
-Count = Annotated[int, Field(ge=1)]
-
-
 class _Sweep(FileModel):
     name: str = "sweep"
     method: Literal[METHODS] = "lhs"
@@ -259,13 +263,6 @@ class _Evaluate(FileModel):
     probe_force_N: Positive = EvalSettings.probe_force_N
     directions: Annotated[list[Literal[tuple(DIRECTIONS)]], Field(min_length=1)] = list(DIRECTIONS)
     max_force_N: Positive = EvalSettings.max_force_N
-
-
-class _Fixed(FileModel):  # the settings of EXTRA_PARAMS that are not swept
-    mesh_size_mm: Positive | None = None
-    tube_length_m: Positive | None = Field(None, alias="sensing.tube_length_m")
-    tube_id_mm: Positive | None = Field(None, alias="sensing.tube_id_mm")
-    osr: Count | None = Field(None, alias="sensing.osr")
 
 
 class _Param(FileModel):
