@@ -2,18 +2,24 @@
 
 from __future__ import annotations
 
+import copy
 import dataclasses
+import difflib
 import json
 import math
 import re
+import tomllib
+from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, assume, given, settings
+from hypothesis import strategies as st
 from scipy.spatial import cKDTree
 
 from softphantom.design import ARM_NAMES, BIPDesign, MeshParams, UrethraParams, load_design, save_design
 from softphantom.design import geometry as geo
-from softphantom.design.params import design_from_dict, design_to_dict
+from softphantom.design.params import design_from_dict, design_to_dict, design_to_toml
 from softphantom.errors import DesignError
 
 
@@ -131,6 +137,11 @@ INVALID = {
     "target in the urethra": (lambda: dataclasses.replace(D, targets=(("t", (0.0, 5.0, 4.0)),)), "targets.t is inside the urethra"),
     "off-centre too far": (lambda: design_from_dict({"interaction": {"offcentre_mm": 80}}), "interaction.offcentre_mm"),
     "unknown key": (lambda: design_from_dict({"arms": {"front_zpos": {"lenght_mm": 3}}}), "unknown key 'lenght_mm'"),
+    "name inside a named table": (
+        lambda: design_from_dict({"layers": {"lesions": {"L1": {"name": "x", "center_mm": [14, 0, -10], "semi_axes_mm": [6, 6, 6]}}}}),
+        "layers.lesions.L1: unknown key 'name' (known: center_mm, semi_axes_mm)",
+    ),
+    "volume's unit": (lambda: _arm(D, "front_zpos", cavity_volume_mm3=-1.0), "arms.front_zpos.cavity_volume_mm3 = -1 must be > 0 mm³"),
     "wrong type": (lambda: design_from_dict({"urethra": {"radius_mm": "big"}}), "urethra.radius_mm: expected a number"),
     "bad mesh size": (lambda: MeshParams(size_mm=0.0), "mesh.size_mm"),
 }
@@ -146,6 +157,29 @@ def test_invalid_designs_give_one_line_errors(case):
     assert "\n" not in msg
 
 
+def _bounded_fields():
+    """(file path to a table, field) of every scalar field with a range (a bound or softphantom.schema.between)."""
+    from softphantom.design.fabrication import MoldParams
+    from softphantom.design.params import ArmParams, InteractionParams, LayersParams, SensorParams
+
+    tables = {"mesh": MeshParams, "sensors": SensorParams, "molds": MoldParams, "interaction": InteractionParams,
+              "urethra": UrethraParams, "layers": LayersParams, "arms.front_zpos": ArmParams}
+    return [(t, n) for t, cls in tables.items() for n, f in cls.__pydantic_fields__.items()
+            if f.annotation is float and len(f.metadata) > 1]
+
+
+@pytest.mark.parametrize("table, key", _bounded_fields())
+def test_every_bounded_field_names_itself_its_value_and_its_range(table, key):
+    data: dict = {key: -1e6}
+    for part in reversed(table.split(".")):
+        data = {part: data}
+    with pytest.raises(DesignError) as err:
+        design_from_dict(data)
+    unit = {"mm": " mm", "mm3": " mm³", "deg": " deg"}.get(key.rsplit("_", 1)[-1], " facets" if key == "segments" else "")
+    assert re.fullmatch(rf"{re.escape(table)}\.{key} = -1e\+06 must be (> 0|>= 0|in \[[0-9.]+, [0-9.]+\]){unit}",
+                        str(err.value)), str(err.value)
+
+
 def test_toml_and_json_round_trip_exactly(tmp_path):
     d = _arm(BIPDesign(name="variant \"A\""), "back_xpos", length_mm=30.5, radius_mm=6.5)
     d = dataclasses.replace(d, markers=(("marker 1", d.markers[0][1]), *d.markers[1:]), targets=(("t.x", (1e-7, 0.1, -12.0)),))
@@ -153,6 +187,74 @@ def test_toml_and_json_round_trip_exactly(tmp_path):
         path = save_design(d, tmp_path / f"d{suffix}")
         assert load_design(path) == d
     assert json.loads((tmp_path / "d.json").read_text())["arms"]["back_xpos"]["radius_mm"] == 6.5
+
+
+BASE = design_to_dict(BIPDesign())
+_names = st.text(min_size=1, max_size=12)  # any Unicode but surrogates: quotes, control characters, DEL
+_bare = st.from_regex(r"[A-Za-z0-9_-]{1,12}", fullmatch=True)
+_finite = st.floats(allow_nan=False, allow_infinity=False)
+
+
+@st.composite
+def valid_designs(draw) -> BIPDesign:
+    """Designs near the default with free names and extreme-but-finite material numbers; drawn
+    values that make an unbuildable design are rejected (a few percent)."""
+    data = copy.deepcopy(BASE)
+    data["name"] = draw(_names)
+    for arm in data["arms"].values():
+        arm["length_mm"] = draw(st.floats(30.0, 36.0))
+        arm["radius_mm"] = draw(st.floats(5.8, 6.2))
+        arm["wall_mm"] = draw(st.floats(2.2, 2.8))
+        arm["junction_fillet_mm"] = draw(st.sampled_from([0.0, 2.0]))
+    data["urethra"]["radius_mm"] = draw(st.floats(4.0, 5.0))
+    data["mesh"].update(size_mm=draw(st.floats(1.0, 20.0)), cavity_segments=draw(st.floats(6.0, 256.0)),
+                        element_order=draw(st.sampled_from([1, 2])))
+    data["sensors"] = {"gains": draw(st.lists(st.floats(0.5, 2.0), min_size=4, max_size=4)),
+                       "tube_volume_factor": draw(st.floats(0.2, 5.0))}
+    names = draw(st.lists(_names, min_size=5, max_size=5, unique=True))
+    data["markers"] = dict(zip(names, data["markers"].values()))
+    tnames = draw(st.lists(_names, min_size=0, max_size=4, unique=True))
+    data["targets"] = dict(zip(tnames, data["targets"].values()))
+    mat = draw(_bare.filter(lambda n: n != "ecoflex_00_50"))
+    data["materials"][mat] = {"law": draw(_names), **draw(st.dictionaries(_names.filter(lambda k: k != "law"), _finite,
+                                                                           max_size=4))}
+    data["region_materials"]["arm_back_xpos"] = mat
+    if draw(st.booleans()):
+        shell = draw(st.sampled_from([0.0, 1.5]))
+        data["layers"] = {"shell_mm": shell,
+                          "lesions": {draw(_bare): {"center_mm": [14.0, 0.0, -10.0], "semi_axes_mm": [6.0, 6.0, 6.0]}}}
+        data["region_materials"].update({"lesions": mat, **({"shell": "ecoflex_00_50"} if shell else {})})
+    try:
+        return design_from_dict(data)
+    except DesignError:
+        assume(False)
+
+
+@pytest.mark.slow
+@settings(max_examples=20, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow])
+@given(valid_designs())
+def test_design_file_round_trips_any_valid_design(d):
+    assert design_from_dict(tomllib.loads(design_to_toml(d))) == d
+
+
+def test_a_changed_value_is_a_one_line_diff():
+    before = design_to_toml(D).splitlines()
+    after = design_to_toml(_arm(D, "back_xpos", direction=(1.0, 0.7, 0.0))).splitlines()
+    changed = [x for x in difflib.unified_diff(before, after, lineterm="", n=0)
+               if x[:1] in "+-" and not x.startswith(("+++", "---"))]
+    assert changed == ["-    0.6,", "+    0.7,"]
+
+
+OLD_FILES = Path(__file__).parent / "fixtures" / "design_files"
+
+
+@pytest.mark.parametrize("name", ["old_default", "old_layers_names", "old_surface"])
+def test_files_of_the_earlier_writer_still_read(name):
+    """Written by the hand-made TOML writer (inline vectors); their JSON twins hold the same design."""
+    toml = OLD_FILES / f"{name}.toml"
+    assert "_mm = [" in toml.read_text() and load_design(toml) == load_design(OLD_FILES / f"{name}.json")
+    if name == "old_default":
+        assert load_design(toml) == BIPDesign()
 
 
 def test_partial_toml_overrides_the_defaults(tmp_path):

@@ -10,6 +10,7 @@ import math
 
 import numpy as np
 import pytest
+import tomli_w
 
 from softphantom.cli import main
 from softphantom.design import BIPDesign, build_model, design_from_dict, design_to_dict, load_design, save_design
@@ -106,12 +107,10 @@ def test_bad_layers_are_one_line_exit_2(tmp_path, capsys):
         (1.5, (LesionParams("out", (30.0, 0.0, 0.0), (5.0, 5.0, 5.0)),), "layers.lesions.out.center_mm"),
     ):
         path = tmp_path / "d.toml"
-        text = save_design(_design(shell=1.5), path).read_text()
-        text = text.replace("shell_mm = 1.5", f"shell_mm = {shell}")
-        if lesions is not LESIONS:
-            text = text.replace("[layers.lesions.L1]", "[layers.lesions.out]").replace("center_mm = [14.0, 0.0, -10.0]",
-                                                                                        "center_mm = [30.0, 0.0, 0.0]")
-        path.write_text(text)
+        data = design_to_dict(_design(shell=1.5))
+        data["layers"] = {"shell_mm": shell, "lesions": {x.name: {"center_mm": list(x.center_mm),
+                                                                  "semi_axes_mm": list(x.semi_axes_mm)} for x in lesions}}
+        path.write_text(tomli_w.dumps(data))
         assert main(["design", "--config", str(path), "--out", str(tmp_path / "o"), "--no-png"]) == 2
         err = capsys.readouterr().err
         assert message in err and "Traceback" not in err and len(err.strip().splitlines()) == 1

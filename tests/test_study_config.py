@@ -72,10 +72,12 @@ def test_key_depends_on_what_is_evaluated_not_on_the_index():
     ({"parameters": {"arms.*.radius_mm": {"min": 5}}}, "needs min and max"),
     ({"parameters": {"arms.*.radius_mm": {"min": 5, "max": 6, "step": 2}}}, "unknown key 'step'"),
     ({"sweep": {"method": "sobol"}}, "sweep.method: 'sobol' is not one of grid, random, lhs"),
-    ({"sweep": {"samples": 0}}, "sweep.samples"),
-    ({"evaluate": {"directions": ["up"]}}, "evaluate.directions: 'up'"),
-    ({"fixed": {"tube_length_m": 3}}, "[fixed]: unknown key 'tube_length_m'"),
-    ({"swep": {}}, "unknown table [swep]"),
+    ({"sweep": {"samples": 0}}, "sweep.samples = 0 must be >= 1"),
+    ({"evaluate": {"directions": ["up"]}}, "evaluate.directions[0]: 'up' is not one of xpos"),
+    ({"evaluate": {"probe_force_N": 0}}, "evaluate.probe_force_N = 0 must be > 0 N"),
+    ({"fixed": {"tube_length_m": 3}}, "fixed: unknown key 'tube_length_m'"),
+    ({"fixed": {"sensing.tube_length_m": -3}}, 'fixed."sensing.tube_length_m" = -3 must be > 0 m'),
+    ({"swep": {}}, "sweep file: unknown key 'swep'"),
 ])
 def test_bad_sweep_files_name_the_field(data, where):
     with pytest.raises(UserError) as err:

@@ -90,6 +90,11 @@ def test_bundled_scenarios_load_and_follow_the_paper():
     ('name = "x"\nduration_s = 3\n[[push]]\nstart_s = 2\nrise_s = 1\nforce_N = [0, 1, 0]\n', ["after duration_s"]),
     ('name = "x"\nduration_s = 9\n[[inflate]]\nstart_s = 2\nrise_s = 1\n', ["p_urethra_kPa or target"]),
     ('name = "x"\nduration_s = [5\n', ["not valid TOML"]),
+    # the value and the allowed range with its unit
+    ('name = "x"\nduration_s = 5\n[[push]]\nstart_s = 2\nrise_s = 0\nforce_N = [0, 1, 0]\n', ["push[0].rise_s = 0 must be > 0 s"]),
+    ('name = "x"\nduration_s = 9\n[[inflate]]\nstart_s = 2\nrise_s = 1\ntarget = "t"\nmax_p_urethra_kPa = 300\n',
+     ["inflate[0].max_p_urethra_kPa = 300 must be in (0, 250] kPa"]),
+    ('name = "x"\nduration_s = 5\n[[push]]\nstart_s = 2\nrise_s = nan\nforce_N = [0, 1, 0]\n', ["push[0].rise_s = nan must be finite"]),
 ])
 def test_bad_scenario_is_one_line_error(tmp_path, capsys, text, words):
     p = tmp_path / "bad.toml"

@@ -16,25 +16,16 @@ softphantom.errors.DesignError: molds.draft_deg = 20 must be in [0, 10] deg
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
-from typing import Any
+from typing import Annotated
 
 from softphantom.errors import DesignError
+from softphantom.schema import Number, between, checked
 
 # the build volume of a common desktop printer (x, y, z), mm
 BUILD_VOLUME_MM = (220.0, 220.0, 250.0)
 
 
-def _number(path: str, value: Any, lo: float, hi: float, unit: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise DesignError(f"{path}: expected a number, got {value!r}")
-    v = float(value)
-    if not (math.isfinite(v) and lo <= v <= hi):
-        raise DesignError(f"{path} = {v:.4g} must be in [{lo:g}, {hi:g}] {unit}")
-    return v
-
-
-@dataclass(frozen=True)
+@checked("molds", DesignError)
 class MoldParams:
     """Printed molds, cores and frame (mm, degrees).
 
@@ -53,42 +44,23 @@ class MoldParams:
     - ``segments``: facets around a full circle in the exported STL (the tessellation tolerance).
     """
 
-    wall_mm: float = 6.0
-    clearance_mm: float = 0.3
-    draft_deg: float = 2.0
-    key_radius_mm: float = 2.5
-    key_height_mm: float = 3.0
-    spout_radius_mm: float = 4.0
-    vent_radius_mm: float = 1.0
-    core_rod_radius_mm: float = 1.5
-    stem_radius_mm: float = 1.0
-    marker_socket_radius_mm: float = 2.5
-    marker_socket_depth_mm: float = 3.0
-    marker_socket_height_mm: float = 5.0
-    frame_wall_mm: float = 3.0
-    frame_socket_depth_mm: float = 8.0
-    segments: float = 48.0
+    wall_mm: Annotated[Number, between(2, 50, "mm")] = 6.0
+    clearance_mm: Annotated[Number, between(0, 2, "mm")] = 0.3
+    draft_deg: Annotated[Number, between(0, 10, "deg")] = 2.0
+    key_radius_mm: Annotated[Number, between(0.5, 20, "mm")] = 2.5
+    key_height_mm: Annotated[Number, between(0.5, 20, "mm")] = 3.0
+    spout_radius_mm: Annotated[Number, between(0.5, 20, "mm")] = 4.0
+    vent_radius_mm: Annotated[Number, between(0.2, 10, "mm")] = 1.0
+    core_rod_radius_mm: Annotated[Number, between(0.5, 10, "mm")] = 1.5
+    stem_radius_mm: Annotated[Number, between(0.3, 10, "mm")] = 1.0
+    marker_socket_radius_mm: Annotated[Number, between(0.5, 10, "mm")] = 2.5
+    marker_socket_depth_mm: Annotated[Number, between(0, 20, "mm")] = 3.0
+    marker_socket_height_mm: Annotated[Number, between(0.5, 30, "mm")] = 5.0
+    frame_wall_mm: Annotated[Number, between(1, 20, "mm")] = 3.0
+    frame_socket_depth_mm: Annotated[Number, between(1, 50, "mm")] = 8.0
+    segments: Annotated[Number, between(16, 512, "facets")] = 48.0
 
     def __post_init__(self) -> None:
-        limits = {
-            "wall_mm": (2.0, 50.0, "mm"),
-            "clearance_mm": (0.0, 2.0, "mm"),
-            "draft_deg": (0.0, 10.0, "deg"),
-            "key_radius_mm": (0.5, 20.0, "mm"),
-            "key_height_mm": (0.5, 20.0, "mm"),
-            "spout_radius_mm": (0.5, 20.0, "mm"),
-            "vent_radius_mm": (0.2, 10.0, "mm"),
-            "core_rod_radius_mm": (0.5, 10.0, "mm"),
-            "stem_radius_mm": (0.3, 10.0, "mm"),
-            "marker_socket_radius_mm": (0.5, 10.0, "mm"),
-            "marker_socket_depth_mm": (0.0, 20.0, "mm"),
-            "marker_socket_height_mm": (0.5, 30.0, "mm"),
-            "frame_wall_mm": (1.0, 20.0, "mm"),
-            "frame_socket_depth_mm": (1.0, 50.0, "mm"),
-            "segments": (16.0, 512.0, "facets"),
-        }
-        for name, (lo, hi, unit) in limits.items():
-            object.__setattr__(self, name, _number(f"molds.{name}", getattr(self, name), lo, hi, unit))
         # the pins sit in the wall at the parting plane, 1 mm of wall at least beside their socket
         need = self.key_radius_mm + self.clearance_mm + 1.0
         if self.wall_mm < need:

@@ -52,16 +52,32 @@ import re
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any, Literal
 
 import numpy as np
+import tomli_w
+from pydantic import AfterValidator, SkipValidation, Strict
 
 from softphantom.design import geometry as geo
 from softphantom.design.fabrication import MoldParams
 from softphantom.errors import DesignError
 from softphantom.records.names import ARM_NAMES
+from softphantom.schema import Field, Number, between, checked, refuse
+from softphantom.schema import Vec3 as _Vec3  # params.Vec3 is the plain type of a point
 
 Vec3 = tuple[float, float, float]
+# field types of the parameter tables (softphantom.schema.checked): finite numbers, lengths and volumes > 0
+_Size = Annotated[Number, Field(gt=0)]
+_Sizes3 = Annotated[tuple[_Size, ...], Field(min_length=3, max_length=3)]
+
+
+def _bare_name(name: str) -> str:
+    if not re.fullmatch(r"[A-Za-z0-9_-]+", name):
+        raise refuse("must be letters, digits, _ or -")
+    return name
+
+
+_Name = Annotated[str, Strict(), AfterValidator(_bare_name)]
 
 CAVITY_NAMES: tuple[str, ...] = ARM_NAMES + ("urethra",)
 REGION_NAMES: tuple[str, ...] = ("bulb", *(f"arm_{n}" for n in ARM_NAMES))
@@ -83,9 +99,6 @@ _A_MM, _B_MM = 32.0, 25.0
 _C_MM = BULB_VOLUME_MM3 / (4.0 / 3.0 * math.pi * _A_MM * _B_MM)  # 29.9639… mm
 
 
-_BARE = re.compile(r"^[A-Za-z0-9_-]+$")
-
-
 def _fmt(x: float) -> str:
     return f"{x:.4g}"
 
@@ -99,13 +112,6 @@ def _num(path: str, value: Any) -> float:
     return v
 
 
-def _positive(path: str, value: Any) -> float:
-    v = _num(path, value)
-    if not v > 0.0:
-        raise DesignError(f"{path} = {_fmt(v)} must be > 0 mm")
-    return v
-
-
 def _vec3(path: str, value: Any) -> Vec3:
     if isinstance(value, (str, bytes)) or not hasattr(value, "__len__") or len(value) != 3:
         raise DesignError(f"{path}: expected 3 numbers [x, y, z], got {value!r}")
@@ -116,7 +122,7 @@ def _set(obj: Any, name: str, value: Any) -> None:
     object.__setattr__(obj, name, value)
 
 
-@dataclass(frozen=True)
+@checked("bulb", DesignError)
 class BulbParams:
     """The gland: an ellipsoid centred at the origin, semi-axes (x, y, z) in mm — or, from an
     anatomy import (design/anatomy.py), a closed triangle surface ``surface_vertices_mm`` /
@@ -125,27 +131,18 @@ class BulbParams:
     :meth:`normal`, which are closed forms for the ellipsoid.
     """
 
-    semi_axes_mm: Vec3 = (_A_MM, _B_MM, _C_MM)
-    surface_vertices_mm: tuple = ()
-    surface_faces: tuple = ()
+    semi_axes_mm: _Sizes3 = (_A_MM, _B_MM, _C_MM)
+    surface_vertices_mm: tuple[_Vec3, ...] = ()
+    surface_faces: tuple[Annotated[tuple[Annotated[int, Strict(), Field(ge=0)], ...],
+                                   Field(min_length=3, max_length=3)], ...] = ()
 
     def __post_init__(self) -> None:
-        axes = _vec3("bulb.semi_axes_mm", self.semi_axes_mm)
-        for i, v in enumerate(axes):
-            if not v > 0.0:
-                raise DesignError(f"bulb.semi_axes_mm[{i}] = {_fmt(v)} must be > 0 mm")
-        _set(self, "semi_axes_mm", axes)
-        verts = tuple(_vec3(f"bulb.surface_vertices_mm[{i}]", v) for i, v in enumerate(self.surface_vertices_mm))
-        faces = []
-        for i, f in enumerate(self.surface_faces):
-            if (isinstance(f, (str, bytes)) or not hasattr(f, "__len__") or len(f) != 3
-                    or not all(isinstance(k, int) and not isinstance(k, bool) and 0 <= k < len(verts) for k in f)):
+        verts, faces = self.surface_vertices_mm, self.surface_faces
+        for i, f in enumerate(faces):
+            if max(f) >= len(verts):
                 raise DesignError(f"bulb.surface_faces[{i}]: expected 3 vertex indices in 0..{len(verts) - 1}, got {f!r}")
-            faces.append(tuple(int(k) for k in f))
         if bool(verts) != bool(faces) or (faces and len(faces) < 4):
             raise DesignError("bulb: surface_vertices_mm and surface_faces come together (a closed surface, >= 4 faces)")
-        _set(self, "surface_vertices_mm", verts)
-        _set(self, "surface_faces", tuple(faces))
         if faces and not self.volume_mm3 > 0.0:
             raise DesignError(f"bulb.surface_faces: the surface encloses {_fmt(self.volume_mm3)} mm³ (inside out or open)")
 
@@ -207,22 +204,14 @@ class BulbParams:
         return -a, a
 
 
-@dataclass(frozen=True)
+@checked("layers.lesions.{name}", DesignError)
 class LesionParams:
     """A lesion inclusion: an axis-aligned ellipsoid in the bulb's infill, its own mesh region
     ``lesion_<name>`` (and material, through ``[region_materials]``)."""
 
-    name: str
-    center_mm: Vec3
-    semi_axes_mm: Vec3
-
-    def __post_init__(self) -> None:
-        if not isinstance(self.name, str) or not _BARE.match(self.name or ""):
-            raise DesignError(f"layers.lesions: name {self.name!r} must be letters, digits, _ or -")
-        p = f"layers.lesions.{self.name}"
-        _set(self, "center_mm", _vec3(f"{p}.center_mm", self.center_mm))
-        axes = _vec3(f"{p}.semi_axes_mm", self.semi_axes_mm)
-        _set(self, "semi_axes_mm", tuple(_positive(f"{p}.semi_axes_mm[{i}]", v) for i, v in enumerate(axes)))
+    name: _Name
+    center_mm: _Vec3
+    semi_axes_mm: _Sizes3
 
     @property
     def region(self) -> str:
@@ -233,30 +222,21 @@ class LesionParams:
         return geo.ellipsoid_volume(self.semi_axes_mm)
 
 
-@dataclass(frozen=True)
+@checked("layers", DesignError)
 class LayersParams:
     """The bulb in more than one material: an outer shell ``shell_mm`` thick (region ``shell``;
     0: none) over the infill (region ``bulb``), the infill being the ellipsoid with every semi-axis
     less ``shell_mm`` (so the shell is exactly ``shell_mm`` thick at the six poles and a little
     less, by (a−c)·t/a at most, in between), and lesion inclusions (regions ``lesion_<name>``)."""
 
-    shell_mm: float = 0.0
+    shell_mm: Annotated[Number, Field(ge=0)] = 0.0  # 0: no shell
     lesions: tuple[LesionParams, ...] = ()
 
     def __post_init__(self) -> None:
-        t = _num("layers.shell_mm", self.shell_mm)
-        if t < 0.0:
-            raise DesignError(f"layers.shell_mm = {_fmt(t)} must be >= 0 mm (0: no shell)")
-        _set(self, "shell_mm", t)
-        les = tuple(self.lesions)
-        for x in les:
-            if not isinstance(x, LesionParams):
-                raise DesignError(f"layers.lesions: expected LesionParams, got {type(x).__name__}")
-        names = [x.name for x in les]
+        names = [x.name for x in self.lesions]
         for n in names:
             if names.count(n) > 1:
                 raise DesignError(f"layers.lesions.{n}: defined twice")
-        _set(self, "lesions", les)
 
     @property
     def is_default(self) -> bool:
@@ -271,22 +251,17 @@ def _default_inlet() -> Vec3:
     return (0.0, _B_MM * math.sqrt(1.0 - (4.0 / _C_MM) ** 2), 4.0)
 
 
-@dataclass(frozen=True)
+@checked("urethra", DesignError)
 class UrethraParams:
     """The inflatable urethra cavity: a closed capsule along ``axis`` through ``center_mm``."""
 
-    radius_mm: float = 4.5
-    volume_mm3: float = URETHRA_VOLUME_MM3
-    center_mm: Vec3 = (0.0, 0.0, 4.0)
-    axis: Vec3 = (0.0, 1.0, 0.0)
-    inlet_mm: Vec3 = field(default_factory=_default_inlet)
+    radius_mm: _Size = 4.5
+    volume_mm3: _Size = URETHRA_VOLUME_MM3
+    center_mm: _Vec3 = (0.0, 0.0, 4.0)
+    axis: _Vec3 = (0.0, 1.0, 0.0)
+    inlet_mm: _Vec3 = field(default_factory=_default_inlet)
 
     def __post_init__(self) -> None:
-        _set(self, "radius_mm", _positive("urethra.radius_mm", self.radius_mm))
-        _set(self, "volume_mm3", _positive("urethra.volume_mm3", self.volume_mm3))
-        _set(self, "center_mm", _vec3("urethra.center_mm", self.center_mm))
-        _set(self, "axis", _vec3("urethra.axis", self.axis))
-        _set(self, "inlet_mm", _vec3("urethra.inlet_mm", self.inlet_mm))
         if not np.linalg.norm(self.axis) > 0.0:
             raise DesignError("urethra.axis must be a non-zero vector")
         sphere = 4.0 / 3.0 * math.pi * self.radius_mm**3
@@ -309,7 +284,7 @@ class UrethraParams:
         return c - h * w, c + h * w
 
 
-@dataclass(frozen=True)
+@checked("arms.{name}", DesignError)
 class ArmParams:
     """One sensing arm (see the module docstring for how the fields place it).
 
@@ -320,30 +295,24 @@ class ArmParams:
     radius a cast part or glue bead at this joint realistically has."""
 
     name: str
-    direction: Vec3
-    cavity_volume_mm3: float
-    length_mm: float = 32.0
-    radius_mm: float = 6.0
-    wall_mm: float = 2.5
-    cavity_offset_mm: float = 17.0
-    embed_mm: float = 8.0
-    axis_point_mm: Vec3 = (0.0, 0.0, 0.0)
-    junction_fillet_mm: float = DEFAULT_JUNCTION_FILLET_MM
+    direction: _Vec3
+    cavity_volume_mm3: _Size
+    length_mm: _Size = 32.0
+    radius_mm: _Size = 6.0
+    wall_mm: _Size = 2.5
+    cavity_offset_mm: Number = 17.0
+    embed_mm: _Size = 8.0
+    axis_point_mm: _Vec3 = (0.0, 0.0, 0.0)
+    junction_fillet_mm: Number = DEFAULT_JUNCTION_FILLET_MM
 
     def __post_init__(self) -> None:
         p = f"arms.{self.name}"
-        _set(self, "direction", _vec3(f"{p}.direction", self.direction))
         if not np.linalg.norm(self.direction) > 0.0:
             raise DesignError(f"{p}.direction must be a non-zero vector")
-        _set(self, "axis_point_mm", _vec3(f"{p}.axis_point_mm", self.axis_point_mm))
-        for name in ("cavity_volume_mm3", "length_mm", "radius_mm", "wall_mm", "embed_mm"):
-            _set(self, name, _positive(f"{p}.{name}", getattr(self, name)))
-        _set(self, "cavity_offset_mm", _num(f"{p}.cavity_offset_mm", self.cavity_offset_mm))
-        r = _num(f"{p}.junction_fillet_mm", self.junction_fillet_mm)
+        r = self.junction_fillet_mm
         if not 0.0 <= r <= self.radius_mm:
             raise DesignError(f"{p}.junction_fillet_mm = {_fmt(r)} must be in [0, radius_mm = {_fmt(self.radius_mm)}] mm "
                               "(0: a sharp edge)")
-        _set(self, "junction_fillet_mm", r)
         if self.wall_mm < MIN_WALL_MM:
             raise DesignError(f"{p}.wall_mm = {_fmt(self.wall_mm)} is below the minimum wall of {MIN_WALL_MM:g} mm")
         if self.wall_mm >= self.radius_mm:
@@ -407,19 +376,15 @@ class ArmGeometry:
         return self.end_mm
 
 
-@dataclass(frozen=True)
+@checked("interaction", DesignError)
 class InteractionParams:
     """Where p_ext lies: ``off-centre`` is ``offcentre_mm`` from ``on-centre`` (straight line)."""
 
-    offcentre_mm: float = 10.0
-    offcentre_angle_deg: float = 45.0
-
-    def __post_init__(self) -> None:
-        _set(self, "offcentre_mm", _positive("interaction.offcentre_mm", self.offcentre_mm))
-        _set(self, "offcentre_angle_deg", _num("interaction.offcentre_angle_deg", self.offcentre_angle_deg))
+    offcentre_mm: _Size = 10.0
+    offcentre_angle_deg: Number = 45.0
 
 
-@dataclass(frozen=True)
+@checked("mesh", DesignError)
 class MeshParams:
     """Target element sizes: ``size_mm`` inside the bulb, ``surface_size_mm`` on its outer
     surface, ``arm_size_mm`` in the arms; on each cavity wall ``2π·r / cavity_segments`` (r the
@@ -439,30 +404,14 @@ class MeshParams:
     6.0
     """
 
-    size_mm: float = 6.0
-    surface_size_mm: float = 4.0
-    arm_size_mm: float = 3.0
-    cavity_segments: float = 22.0
-    element_order: int = 1
-    contact_size_mm: float = 0.0
-    contact_zone_mm: float = 8.0
-    junction_size_mm: float = 0.0
-
-    def __post_init__(self) -> None:
-        for name in ("size_mm", "surface_size_mm", "arm_size_mm", "contact_zone_mm"):
-            _set(self, name, _positive(f"mesh.{name}", getattr(self, name)))
-        for name in ("contact_size_mm", "junction_size_mm"):
-            v = _num(f"mesh.{name}", getattr(self, name))
-            if v < 0:
-                raise DesignError(f"mesh.{name} = {_fmt(v)} must be >= 0 (0: no local refinement)")
-            _set(self, name, v)
-        n = _num("mesh.cavity_segments", self.cavity_segments)
-        if not 6.0 <= n <= MAX_CAVITY_SEGMENTS:
-            raise DesignError(f"mesh.cavity_segments = {_fmt(n)} must be in [6, {MAX_CAVITY_SEGMENTS:g}]")
-        _set(self, "cavity_segments", n)
-        if isinstance(self.element_order, bool) or self.element_order not in (1, 2):
-            raise DesignError(f"mesh.element_order = {self.element_order!r} must be 1 or 2")
-        _set(self, "element_order", int(self.element_order))
+    size_mm: _Size = 6.0
+    surface_size_mm: _Size = 4.0
+    arm_size_mm: _Size = 3.0
+    cavity_segments: Annotated[Number, between(6, MAX_CAVITY_SEGMENTS)] = 22.0
+    element_order: Literal[1, 2] = 1
+    contact_size_mm: Annotated[Number, Field(ge=0)] = 0.0  # 0: no local refinement
+    contact_zone_mm: _Size = 8.0
+    junction_size_mm: Annotated[Number, Field(ge=0)] = 0.0
 
     def cavity_size_mm(self, radius_mm: float) -> float:
         """Element size on the wall of a cavity of ``radius_mm``."""
@@ -470,34 +419,21 @@ class MeshParams:
 
     def scaled_to(self, size_mm: float) -> "MeshParams":
         """The same grading with a bulb size of ``size_mm``."""
-        s = _positive("mesh.size_mm", size_mm) / self.size_mm
+        s = dataclasses.replace(self, size_mm=size_mm).size_mm / self.size_mm  # checks size_mm
         segments = min(MAX_CAVITY_SEGMENTS, max(6.0, self.cavity_segments / s))
         return MeshParams(size_mm, self.surface_size_mm * s, self.arm_size_mm * s, segments, self.element_order,
                           self.contact_size_mm * s, self.contact_zone_mm, self.junction_size_mm * s)
 
 
-@dataclass(frozen=True)
+@checked("sensors", DesignError)
 class SensorParams:
     """The bench's sensors as calibrated (``softphantom calibrate``): ``gains`` of the four arm
     transducers relative to their datasheet sensitivity (sensor order), ``tube_volume_factor`` the
     real tube volume over the one its length and bore give. Defaults: the datasheet, no correction."""
 
-    gains: tuple[float, float, float, float] = (1.0, 1.0, 1.0, 1.0)
-    tube_volume_factor: float = 1.0
-
-    def __post_init__(self) -> None:
-        g = self.gains
-        if isinstance(g, (str, bytes)) or not hasattr(g, "__len__") or len(g) != 4:
-            raise DesignError(f"sensors.gains: expected 4 numbers (front_zpos, front_zneg, back_xpos, back_xneg), got {g!r}")
-        gains = tuple(_num(f"sensors.gains[{i}]", v) for i, v in enumerate(g))
-        for i, v in enumerate(gains):
-            if not 0.5 <= v <= 2.0:
-                raise DesignError(f"sensors.gains[{i}] = {_fmt(v)} must be in [0.5, 2] (a transducer's sensitivity / datasheet)")
-        _set(self, "gains", gains)
-        f = _num("sensors.tube_volume_factor", self.tube_volume_factor)
-        if not 0.2 <= f <= 5.0:
-            raise DesignError(f"sensors.tube_volume_factor = {_fmt(f)} must be in [0.2, 5]")
-        _set(self, "tube_volume_factor", f)
+    gains: Annotated[tuple[Annotated[Number, between(0.5, 2.0, "(a transducer's sensitivity / datasheet)")], ...],
+                     Field(min_length=4, max_length=4)] = (1.0, 1.0, 1.0, 1.0)  # front_zpos, front_zneg, back_xpos, back_xneg
+    tube_volume_factor: Annotated[Number, between(0.2, 5.0)] = 1.0
 
 
 def _on_surface(direction: Vec3) -> Vec3:
@@ -542,23 +478,19 @@ def _named_points(path: str, value: Any) -> tuple[tuple[str, Vec3], ...]:
     return tuple(out)
 
 
-@dataclass(frozen=True)
+@checked("materials.{name}", DesignError)
 class MaterialSpec:
     """A named material of the design file: ``law`` (``corotational``, ``neo-hookean``, ``yeoh``)
     and its parameters in the units of their names (``E_kPa``, ``nu``, ``C10_kPa``, …,
     ``density_kg_m3``). The design checks the form (names, numbers); the FEM stage
     (:func:`softphantom.fem.material.law_from_spec`) checks the law and its physics, naming the field."""
 
-    name: str
-    law: str
-    values: tuple[tuple[str, float], ...]
+    name: _Name
+    law: Annotated[str, Strict()]
+    values: SkipValidation[tuple[tuple[str, float], ...]]  # or a dict; checked below, naming the parameter
 
     def __post_init__(self) -> None:
         p = f"materials.{self.name}"
-        if not isinstance(self.name, str) or not _BARE.match(self.name or ""):
-            raise DesignError(f"materials: name {self.name!r} must be letters, digits, _ or -")
-        if not isinstance(self.law, str):
-            raise DesignError(f"{p}.law: expected a string, got {self.law!r}")
         vals = dict(self.values.items() if isinstance(self.values, dict) else self.values)
         _set(self, "values", tuple((str(k), _num(f"{p}.{k}", v)) for k, v in vals.items()))
 
@@ -597,35 +529,29 @@ def _default_region_materials() -> tuple[tuple[str, str], ...]:
     return (("bulb", DEFAULT_MATERIAL), ("arms", DEFAULT_MATERIAL))
 
 
-@dataclass(frozen=True)
+@checked("", DesignError)
 class BIPDesign:
     """The validated BIP design (defaults reproduce the paper; see the module docstring)."""
 
-    name: str = "bip"
+    name: Annotated[str, Strict(), Field(min_length=1)] = "bip"
     bulb: BulbParams = field(default_factory=BulbParams)
     urethra: UrethraParams = field(default_factory=UrethraParams)
     arms: tuple[ArmParams, ...] = field(default_factory=_default_arms)
     interaction: InteractionParams = field(default_factory=InteractionParams)
-    markers: tuple[tuple[str, Vec3], ...] = field(default_factory=_default_markers)
-    targets: tuple[tuple[str, Vec3], ...] = field(default_factory=_default_targets)
+    # (name, point) pairs or a dict; checked below, naming the point
+    markers: SkipValidation[tuple[tuple[str, Vec3], ...]] = field(default_factory=_default_markers)
+    targets: SkipValidation[tuple[tuple[str, Vec3], ...]] = field(default_factory=_default_targets)
     mesh: MeshParams = field(default_factory=MeshParams)
     materials: tuple[MaterialSpec, ...] = field(default_factory=_default_materials)
-    region_materials: tuple[tuple[str, str], ...] = field(default_factory=_default_region_materials)
+    region_materials: SkipValidation[tuple[tuple[str, str], ...]] = field(default_factory=_default_region_materials)
     molds: MoldParams = field(default_factory=MoldParams)  # how it is cast (design/fabrication.py)
     sensors: SensorParams = field(default_factory=SensorParams)  # as calibrated (softphantom calibrate)
     layers: LayersParams = field(default_factory=LayersParams)  # shell, infill and lesions (multi-material)
 
     def __post_init__(self) -> None:
-        if not isinstance(self.name, str) or not self.name:
-            raise DesignError(f"name: expected a non-empty string, got {self.name!r}")
-        _set(self, "arms", tuple(self.arms))
         _set(self, "markers", _named_points("markers", self.markers))
         _set(self, "targets", _named_points("targets", self.targets))
-        for sub, cls in (("bulb", BulbParams), ("urethra", UrethraParams), ("interaction", InteractionParams), ("mesh", MeshParams),
-                         ("molds", MoldParams), ("sensors", SensorParams), ("layers", LayersParams)):
-            if not isinstance(getattr(self, sub), cls):
-                raise DesignError(f"{sub}: expected {cls.__name__}, got {type(getattr(self, sub)).__name__}")
-        names = tuple(a.name if isinstance(a, ArmParams) else None for a in self.arms)
+        names = tuple(a.name for a in self.arms)
         if names != ARM_NAMES:
             raise DesignError(f"arms: expected exactly {list(ARM_NAMES)} in this order, got {list(names)}")
         _validate_geometry(self)
@@ -769,8 +695,6 @@ def _p_ext(bulb: BulbParams, inter: InteractionParams) -> dict[str, np.ndarray]:
 def _validate_materials(d: BIPDesign) -> None:
     names = [m.name for m in d.materials]
     for m in d.materials:
-        if not isinstance(m, MaterialSpec):
-            raise DesignError(f"materials: expected MaterialSpec, got {type(m).__name__}")
         if names.count(m.name) > 1:
             raise DesignError(f"materials.{m.name}: defined twice")
     known = set(d.region_names) | set(d.region_groups())
@@ -1027,9 +951,10 @@ def design_to_dict(design: BIPDesign) -> dict[str, Any]:
 
 
 def _check_keys(path: str, given: dict, allowed) -> None:
+    """A table (and with ``allowed``, of those keys; the parameter tables check their own)."""
     if not isinstance(given, dict):
         raise DesignError(f"{path}: expected a table, got {given!r}")
-    unknown = sorted(set(given) - set(allowed))
+    unknown = sorted(set(given) - set(allowed if allowed is not None else given))
     if unknown:
         raise DesignError(f"{path}: unknown key {unknown[0]!r} (known: {', '.join(sorted(allowed))})")
 
@@ -1043,10 +968,9 @@ def design_from_dict(data: dict[str, Any]) -> BIPDesign:
     kwargs: dict[str, Any] = dict(defaults)
     if "name" in data:
         kwargs["name"] = data["name"]
-    for sub, cls in _SUBS.items():
+    for sub in _SUBS:
         if sub in data:
-            allowed = [f.name for f in dataclasses.fields(cls)]
-            _check_keys(sub, data[sub], allowed)
+            _check_keys(sub, data[sub], None)
             kwargs[sub] = dataclasses.replace(defaults[sub], **data[sub])
     if "layers" in data:
         lay = data["layers"]
@@ -1056,10 +980,7 @@ def design_from_dict(data: dict[str, Any]) -> BIPDesign:
             raise DesignError(f"layers.lesions: expected a table of named lesions, got {lesions!r}")
         les = []
         for name, spec in lesions.items():
-            _check_keys(f"layers.lesions.{name}", spec, ["center_mm", "semi_axes_mm"])
-            for key in ("center_mm", "semi_axes_mm"):
-                if key not in spec:
-                    raise DesignError(f"layers.lesions.{name}.{key}: missing")
+            _check_keys(f"layers.lesions.{name}", spec, ["center_mm", "semi_axes_mm"])  # the name is the table's
             les.append(LesionParams(name=str(name), **spec))
         kwargs["layers"] = LayersParams(shell_mm=lay.get("shell_mm", 0.0), lesions=tuple(les))
     given_arms = data.get("arms", {})
@@ -1115,53 +1036,14 @@ def load_design(path: str | Path) -> BIPDesign:
     return design_from_dict(data)
 
 
-_BARE_KEY = re.compile(r"^[A-Za-z0-9_-]+$")
-
-
-def _toml_key(k: str) -> str:
-    return k if _BARE_KEY.match(k) else json.dumps(k)
-
-
-def _toml_value(v: Any) -> str:
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, (int, float)):
-        return repr(v)  # shortest repr round-trips a float exactly and is valid TOML
-    if isinstance(v, str):
-        return json.dumps(v, ensure_ascii=False)
-    if isinstance(v, (list, tuple)):
-        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
-    raise TypeError(f"no TOML form for {type(v).__name__}")
-
-
 def design_to_toml(design: BIPDesign) -> str:
-    """The design as TOML text, one line per parameter (vectors inline: ``center_mm = [0.0, 0.0, 4.0]``).
+    """The design as TOML text (tomli-w): one table per part, one line per scalar and per vector
+    component, so a changed value is a one-line diff.
 
     >>> print(design_to_toml(BIPDesign()).splitlines()[2])
     [bulb]
     """
-    data = design_to_dict(design)
-    lines: list[str] = []
-
-    def table(header: str, d: dict) -> None:
-        lines.append(f"\n[{header}]")
-        lines.extend(f"{_toml_key(k)} = {_toml_value(v)}" for k, v in d.items())
-
-    lines.append(f"name = {_toml_value(data['name'])}")
-    for sub in _SUBS:
-        table(sub, data[sub])
-    for name, arm in data["arms"].items():
-        table(f"arms.{_toml_key(name)}", arm)
-    table("markers", data["markers"])
-    table("targets", data["targets"])
-    for name, mat in data["materials"].items():
-        table(f"materials.{_toml_key(name)}", mat)
-    table("region_materials", data["region_materials"])
-    if "layers" in data:
-        table("layers", {"shell_mm": data["layers"]["shell_mm"]})
-        for name, spec in data["layers"]["lesions"].items():
-            table(f"layers.lesions.{_toml_key(name)}", spec)
-    return "\n".join(lines) + "\n"
+    return tomli_w.dumps(design_to_dict(design))
 
 
 def save_design(design: BIPDesign, path: str | Path) -> Path:

@@ -36,24 +36,34 @@ import re
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any, Literal
 
 import numpy as np
+from pydantic import model_validator
 
 from softphantom.design import ARM_NAMES, BIPDesign, design_to_dict, load_design
 from softphantom.errors import UserError
 from softphantom.fem.contact import DEFAULT_CONTACT_RADIUS_M
+from softphantom.schema import Field, FileModel, parse, refuse
 
 METHODS = ("grid", "random", "lhs")
 #: Bumped when what a variant computes changes, so cached rows of older code are not reused.
 EVAL_VERSION = 2
 _INDEX = re.compile(r"^(?P<key>[A-Za-z0-9_]+)(\[(?P<i>[0-9]+)\])?$")
-EXTRA_PARAMS = {
-    "mesh_size_mm": 12.0,
-    "sensing.tube_length_m": 12.0,
-    "sensing.tube_id_mm": 1.2,
-    "sensing.osr": 100,
-}
+Positive = Annotated[float, Field(gt=0)]
+Count = Annotated[int, Field(ge=1)]
+
+
+class _Fixed(FileModel):
+    """The settings beside the design (``[fixed]``, or swept by these names) and their defaults."""
+
+    mesh_size_mm: Positive = 12.0
+    tube_length_m: Positive = Field(12.0, alias="sensing.tube_length_m")
+    tube_id_mm: Positive = Field(1.2, alias="sensing.tube_id_mm")
+    osr: Count = Field(100, alias="sensing.osr")
+
+
+EXTRA_PARAMS = _Fixed().model_dump(by_alias=True)
 DIRECTIONS = {"xpos": (1, 0, 0), "xneg": (-1, 0, 0), "ypos": (0, 1, 0), "yneg": (0, -1, 0),
               "zpos": (0, 0, 1), "zneg": (0, 0, -1)}
 
@@ -239,104 +249,81 @@ def apply_path(design: dict, path: str, value: Any, _name: str | None = None) ->
             node = node[key]
 
 
-def _num(path: str, key: str, v: Any) -> float:
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-        raise UserError(f"{path}.{key}: expected a finite number, got {v!r}")
-    return float(v)
+class _Sweep(FileModel):
+    name: str = "sweep"
+    method: Literal[METHODS] = "lhs"
+    samples: Count = 20
+    seed: Annotated[int, Field(ge=0)] = 1
+    design: str | None = None  # a design file, relative to the sweep file
 
 
-def _param_spec(path: str, spec: Any) -> ParamSpec:
-    where = f"parameters.{json.dumps(path)}"
-    if not isinstance(spec, dict):
-        raise UserError(f"{where}: expected a table {{min, max}} or {{values = [...]}}, got {spec!r}")
-    unknown = sorted(set(spec) - {"min", "max", "values", "log", "steps"})
-    if unknown:
-        raise UserError(f"{where}: unknown key {unknown[0]!r} (min, max, log, steps, values)")
-    if "values" in spec:
-        if set(spec) - {"values"}:
-            raise UserError(f"{where}: give either values or min/max, not both")
-        vals = spec["values"]
-        if not isinstance(vals, list) or not vals:
-            raise UserError(f"{where}.values: expected a non-empty list")
-        return ParamSpec(path, values=tuple(vals))
-    if "min" not in spec or "max" not in spec:
-        raise UserError(f"{where}: needs min and max (or values)")
-    lo, hi = _num(where, "min", spec["min"]), _num(where, "max", spec["max"])
-    if not hi >= lo:
-        raise UserError(f"{where}: max {hi:g} is below min {lo:g}")
-    log = spec.get("log", False)
-    if not isinstance(log, bool):
-        raise UserError(f"{where}.log: expected true or false")
-    if log and lo <= 0:
-        raise UserError(f"{where}: log sampling needs min > 0")
-    steps = spec.get("steps", 3)
-    if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
-        raise UserError(f"{where}.steps: expected an integer >= 1, got {steps!r}")
-    return ParamSpec(path, lo=lo, hi=hi, log=log, steps=steps)
+class _Evaluate(FileModel):
+    contact: str = EvalSettings.contact
+    contact_radius_mm: Positive = EvalSettings.contact_radius_mm
+    probe_force_N: Positive = EvalSettings.probe_force_N
+    directions: Annotated[list[Literal[tuple(DIRECTIONS)]], Field(min_length=1)] = list(DIRECTIONS)
+    max_force_N: Positive = EvalSettings.max_force_N
 
 
-def _table(data: dict, name: str, allowed: dict) -> dict:
-    t = data.get(name, {})
-    if not isinstance(t, dict):
-        raise UserError(f"[{name}]: expected a table")
-    unknown = sorted(set(t) - set(allowed))
-    if unknown:
-        raise UserError(f"[{name}]: unknown key {unknown[0]!r} (known: {', '.join(sorted(allowed))})")
-    return t
+class _Param(FileModel):
+    values: Annotated[list[Any], Field(min_length=1)] | None = None
+    min: float | None = None
+    max: float | None = None
+    log: bool = False
+    steps: Count = 3
+
+    @model_validator(mode="after")
+    def _range(self):
+        given = self.model_fields_set
+        if self.values is not None:
+            if given - {"values"}:
+                raise refuse("give either values or min/max, not both")
+        elif self.min is None or self.max is None:
+            raise refuse("needs min and max (or values)")
+        elif not self.max >= self.min:
+            raise refuse(f"max {self.max:g} is below min {self.min:g}")
+        elif self.log and self.min <= 0:
+            raise refuse("log sampling needs min > 0")
+        return self
+
+
+class _Optimize(FileModel):
+    maxiter: Count = OptimizeSettings.maxiter
+    popsize: Count = OptimizeSettings.popsize
+    seed: Annotated[int, Field(ge=0)] = OptimizeSettings.seed
+    min_range_N: float = OptimizeSettings.min_range_N
+    max_silicone_mL: float = OptimizeSettings.max_silicone_mL
+    objective: str = OptimizeSettings.objective
+
+
+class _SweepFile(FileModel):
+    sweep: _Sweep = _Sweep()
+    evaluate: _Evaluate = _Evaluate()
+    fixed: _Fixed = _Fixed()
+    parameters: dict[str, _Param] = {}
+    optimize: _Optimize = _Optimize()
 
 
 def sweep_config_from_dict(data: dict, base_dir: Path | None = None) -> SweepConfig:
     """A :class:`SweepConfig` from the parsed sweep file; every bad key raises a one-line UserError."""
-    unknown = sorted(set(data) - {"sweep", "evaluate", "fixed", "parameters", "optimize"})
-    if unknown:
-        raise UserError(f"sweep file: unknown table [{unknown[0]}] (sweep, evaluate, fixed, parameters, optimize)")
-    sw = _table(data, "sweep", {"name": 0, "method": 0, "samples": 0, "seed": 0, "design": 0})
-    method = sw.get("method", "lhs")
-    if method not in METHODS:
-        raise UserError(f"sweep.method: {method!r} is not one of {', '.join(METHODS)}")
-    samples, seed = sw.get("samples", 20), sw.get("seed", 1)
-    for k, v in (("samples", samples), ("seed", seed)):
-        if isinstance(v, bool) or not isinstance(v, int) or v < (1 if k == "samples" else 0):
-            raise UserError(f"sweep.{k}: expected an integer >= {1 if k == 'samples' else 0}, got {v!r}")
+    f = parse(_SweepFile, data, top="sweep file")
     base = BIPDesign()
-    if "design" in sw:
-        p = Path(sw["design"])
+    if f.sweep.design is not None:
+        p = Path(f.sweep.design)
         base = load_design(p if p.is_absolute() or base_dir is None else base_dir / p)
     base_dict = design_to_dict(base)
-
-    ev = _table(data, "evaluate", EvalSettings().as_dict())
-    if "directions" in ev:
-        bad = [d for d in ev["directions"] if d not in DIRECTIONS]
-        if bad or not ev["directions"]:
-            raise UserError(f"evaluate.directions: {bad[0] if bad else '[]'!r} (use {', '.join(DIRECTIONS)})")
-        ev["directions"] = tuple(ev["directions"])
-    for k in ("contact_radius_mm", "probe_force_N", "max_force_N"):
-        if k in ev:
-            ev[k] = _num("evaluate", k, ev[k])
-    if ev.get("probe_force_N", 1.0) <= 0 or ev.get("max_force_N", 1.0) <= 0:
-        raise UserError("evaluate: probe_force_N and max_force_N must be > 0")
-    settings = EvalSettings(**ev)
-
-    fixed = _table(data, "fixed", EXTRA_PARAMS)
-    params_t = data.get("parameters", {})
-    if not isinstance(params_t, dict):
-        raise UserError("[parameters]: expected a table of path = {min, max} or {values}")
-    params = tuple(_param_spec(k, v) for k, v in params_t.items())
+    params = tuple(ParamSpec(k, values=tuple(v.values)) if v.values is not None else
+                   ParamSpec(k, lo=v.min, hi=v.max, log=v.log, steps=v.steps) for k, v in f.parameters.items())
     probe = copy.deepcopy(base_dict)
     for p in params:  # unknown paths fail here, before any work
         if p.path not in EXTRA_PARAMS:
             apply_path(probe, p.path, p.values[0] if p.values else p.lo)
-
-    opt = _table(data, "optimize", OptimizeSettings().__dict__)
-    for k in ("maxiter", "popsize", "seed"):
-        if k in opt and (isinstance(opt[k], bool) or not isinstance(opt[k], int) or opt[k] < (0 if k == "seed" else 1)):
-            raise UserError(f"optimize.{k}: expected a positive integer, got {opt[k]!r}")
-    for k in ("min_range_N", "max_silicone_mL"):
-        if k in opt:
-            opt[k] = _num("optimize", k, opt[k])
+    ev = f.evaluate.model_dump()
     return SweepConfig(
-        name=str(sw.get("name", "sweep")), method=method, samples=samples, seed=seed, base=base_dict,
-        params=params, fixed=fixed, settings=settings, optimize=OptimizeSettings(**opt),
+        name=f.sweep.name, method=f.sweep.method, samples=f.sweep.samples, seed=f.sweep.seed, base=base_dict,
+        params=params, fixed=dict(data.get("fixed", {})),  # as written: part of each variant's cache key
+        settings=EvalSettings(**{**ev, "directions": tuple(ev["directions"])}),
+        optimize=OptimizeSettings(**f.optimize.model_dump()),
     )
 
 

@@ -31,11 +31,14 @@ import math
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated, Literal
 
 import numpy as np
+from pydantic import field_validator, model_validator
 
 from softphantom.errors import UserError
 from softphantom.fem.contact import DEFAULT_CONTACT_RADIUS_M
+from softphantom.schema import Field, FileModel, Vec3, between, parse, refuse
 
 POINTS = ("on-centre", "off-centre")
 MAX_DURATION_S = 600.0
@@ -100,107 +103,79 @@ class Scenario:
         return None
 
 
-_TOP = {"name", "description", "duration_s", "rest_s", "patch_radius_mm", "push", "inflate"}
-_TIMES = ("start_s", "rise_s", "hold_s", "fall_s")
-_PUSH = set(_TIMES) | {"point", "force_N"}
-_INFLATE = set(_TIMES) | {"p_urethra_kPa", "target", "target_shift_mm", "max_p_urethra_kPa"}
+_PATCH_MM = DEFAULT_CONTACT_RADIUS_M * 1e3
+Seconds = Annotated[float, Field(ge=0)]
+Positive = Annotated[float, Field(gt=0)]
 
 
-def _num(where: str, v, positive: bool = False, nonneg: bool = False) -> float:
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-        raise ScenarioError(f"{where}: expected a number, got {v!r}")
-    v = float(v)
-    if positive and not v > 0:
-        raise ScenarioError(f"{where}: must be > 0, got {v:g}")
-    if nonneg and v < 0:
-        raise ScenarioError(f"{where}: must be >= 0, got {v:g}")
-    return v
+class _Times(FileModel):
+    start_s: Seconds
+    rise_s: Positive
+    hold_s: Seconds = 0.0
+    fall_s: Positive | None = None  # default: rise_s
+
+    def times(self) -> dict:
+        return dict(start_s=self.start_s, rise_s=self.rise_s, hold_s=self.hold_s, fall_s=self.fall_s or self.rise_s)
 
 
-def _check_keys(where: str, table: dict, allowed: set, required: tuple[str, ...]) -> None:
-    unknown = sorted(set(table) - allowed)
-    if unknown:
-        raise ScenarioError(f"{where}: unknown key(s) {', '.join(unknown)} (allowed: {', '.join(sorted(allowed))})")
-    for k in required:
-        if k not in table:
-            raise ScenarioError(f"{where}: missing key {k!r}")
+class _Push(_Times):
+    point: Literal[POINTS] = "on-centre"
+    force_N: Vec3
+
+    @field_validator("force_N")
+    @classmethod
+    def _magnitude(cls, f: list) -> list:
+        if not 0 < math.hypot(*f) <= 20.0:
+            raise refuse(f"has magnitude {math.hypot(*f):.3g} N, outside (0, 20] N")
+        return f
+
+
+class _Inflate(_Times):
+    p_urethra_kPa: Positive | None = None
+    target: str | None = Field(None, min_length=1)
+    target_shift_mm: Positive = 2.0
+    max_p_urethra_kPa: Annotated[float, between(0, 250, "kPa (the MPX4250D's range)", above=True)] = 150.0
+
+    @model_validator(mode="after")
+    def _one_of(self):
+        if (self.p_urethra_kPa is None) == (self.target is None):
+            raise refuse("give either p_urethra_kPa or target (+ target_shift_mm)")
+        if self.p_urethra_kPa is not None and self.p_urethra_kPa > self.max_p_urethra_kPa:
+            raise refuse(f"p_urethra_kPa = {self.p_urethra_kPa:g} kPa is above max_p_urethra_kPa "
+                         f"{self.max_p_urethra_kPa:g}")
+        return self
+
+
+class _ScenarioFile(FileModel):
+    name: str = Field(min_length=1)
+    description: str = ""
+    duration_s: Annotated[float, between(0, MAX_DURATION_S, "s", above=True)]
+    rest_s: Positive = 1.0
+    patch_radius_mm: Positive = _PATCH_MM
+    push: list[_Push] = []
+    inflate: list[_Inflate] = []
 
 
 def scenario_from_dict(d: dict, source: str = "<dict>") -> Scenario:
     """Validate a parsed scenario; raises :class:`ScenarioError` (one line, names file and key)."""
-    if not isinstance(d, dict):
-        raise ScenarioError(f"{source}: expected a table at the top level")
-    _check_keys(source, d, _TOP, ("name", "duration_s"))
-    name = d["name"]
-    if not isinstance(name, str) or not name:
-        raise ScenarioError(f"{source}: name: expected a non-empty string")
-    duration = _num(f"{source}: duration_s", d["duration_s"], positive=True)
-    if duration > MAX_DURATION_S:
-        raise ScenarioError(f"{source}: duration_s = {duration:g} s is above the limit of {MAX_DURATION_S:g} s")
-    rest = _num(f"{source}: rest_s", d.get("rest_s", 1.0), positive=True)
-    patch = _num(f"{source}: patch_radius_mm", d.get("patch_radius_mm", DEFAULT_CONTACT_RADIUS_M * 1e3), positive=True)
-    events: list[Event] = []
-    for kind, allowed in (("push", _PUSH), ("inflate", _INFLATE)):
-        items = d.get(kind, [])
-        if not isinstance(items, list):
-            raise ScenarioError(f"{source}: {kind}: expected [[{kind}]] tables")
-        for i, e in enumerate(items):
-            where = f"{source}: {kind}[{i}]"
-            if not isinstance(e, dict):
-                raise ScenarioError(f"{where}: expected a table")
-            _check_keys(where, e, allowed, ("start_s", "rise_s"))
-            times = dict(
-                start_s=_num(f"{where}.start_s", e["start_s"], nonneg=True),
-                rise_s=_num(f"{where}.rise_s", e["rise_s"], positive=True),
-                hold_s=_num(f"{where}.hold_s", e.get("hold_s", 0.0), nonneg=True),
-                fall_s=_num(f"{where}.fall_s", e.get("fall_s", e["rise_s"]), positive=True),
-            )
-            if kind == "push":
-                point = e.get("point", "on-centre")
-                if point not in POINTS:
-                    raise ScenarioError(f"{where}.point: {point!r} is not one of {', '.join(POINTS)}")
-                f = e.get("force_N")
-                if not isinstance(f, list) or len(f) != 3:
-                    raise ScenarioError(f"{where}.force_N: expected [fx, fy, fz] in newtons, got {f!r}")
-                fv = tuple(_num(f"{where}.force_N[{k}]", x) for k, x in enumerate(f))
-                if not 0 < math.hypot(*fv) <= 20.0:
-                    raise ScenarioError(f"{where}.force_N: magnitude {math.hypot(*fv):.3g} N outside (0, 20] N")
-                events.append(Event("push", point=point, force_N=fv, **times))
-            else:
-                p = e.get("p_urethra_kPa")
-                target = e.get("target")
-                pmax = _num(f"{where}.max_p_urethra_kPa", e.get("max_p_urethra_kPa", 150.0), positive=True)
-                if pmax > 250.0:
-                    raise ScenarioError(f"{where}.max_p_urethra_kPa: {pmax:g} kPa beyond the MPX4250D's 250 kPa")
-                if (p is None) == (target is None):
-                    raise ScenarioError(f"{where}: give either p_urethra_kPa or target (+ target_shift_mm)")
-                if p is not None:
-                    p = _num(f"{where}.p_urethra_kPa", p, positive=True)
-                    if p > pmax:
-                        raise ScenarioError(f"{where}.p_urethra_kPa: {p:g} kPa above max_p_urethra_kPa {pmax:g}")
-                    events.append(Event("inflate", p_urethra_kPa=p, max_p_urethra_kPa=pmax, **times))
-                else:
-                    if not isinstance(target, str) or not target:
-                        raise ScenarioError(f"{where}.target: expected a target name")
-                    shift = _num(f"{where}.target_shift_mm", e.get("target_shift_mm", 2.0), positive=True)
-                    events.append(Event("inflate", target=target, target_shift_mm=shift,
-                                        max_p_urethra_kPa=pmax, **times))
+    f = parse(_ScenarioFile, d, ScenarioError, source=source)
+    events = [Event("push", point=e.point, force_N=tuple(e.force_N), **e.times()) for e in f.push]
+    events += [Event("inflate", p_urethra_kPa=e.p_urethra_kPa, target=e.target,
+                     target_shift_mm=None if e.target is None else e.target_shift_mm,
+                     max_p_urethra_kPa=e.max_p_urethra_kPa, **e.times()) for e in f.inflate]
     if not events:
         raise ScenarioError(f"{source}: no [[push]] or [[inflate]] event")
     events.sort(key=lambda e: e.start_s)
-    if events[0].start_s < rest:
+    if events[0].start_s < f.rest_s:
         raise ScenarioError(f"{source}: the first event starts at {events[0].start_s:g} s, inside the "
-                            f"rest (tare) window of {rest:g} s")
+                            f"rest (tare) window of {f.rest_s:g} s")
     for a, b in zip(events, events[1:]):
         if b.start_s < a.end_s:
             raise ScenarioError(f"{source}: events overlap ({a.kind} ends at {a.end_s:g} s, the next "
                                 f"{b.kind} starts at {b.start_s:g} s)")
-    if events[-1].end_s > duration:
-        raise ScenarioError(f"{source}: the last event ends at {events[-1].end_s:g} s, after duration_s {duration:g}")
-    desc = d.get("description", "")
-    if not isinstance(desc, str):
-        raise ScenarioError(f"{source}: description: expected a string")
-    return Scenario(name, desc, duration, rest, tuple(events), patch, source)
+    if events[-1].end_s > f.duration_s:
+        raise ScenarioError(f"{source}: the last event ends at {events[-1].end_s:g} s, after duration_s {f.duration_s:g}")
+    return Scenario(f.name, f.description, f.duration_s, f.rest_s, tuple(events), f.patch_radius_mm, source)
 
 
 def scenarios_dir() -> Path:
