@@ -5,7 +5,7 @@ BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 OUT    ?= out
 
-.PHONY: demo test setup system bench clean vendor-live
+.PHONY: demo test docs setup system bench clean vendor-live
 
 setup: $(STAMP)
 
@@ -16,14 +16,18 @@ $(STAMP): pyproject.toml Makefile scripts/install-system-deps.sh
 	bash scripts/install-system-deps.sh
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --disable-pip-version-check --upgrade pip
-	$(BIN)/python -m pip install -q --disable-pip-version-check -e '.[test,fab]'
+	$(BIN)/python -m pip install -q --disable-pip-version-check -e '.[test,fab,docs]'
 	touch $(STAMP)
 
 demo: $(STAMP)
 	$(BIN)/softphantom demo --out $(OUT)/demo --overwrite
 
-test: $(STAMP)
+test: $(STAMP) docs
 	$(BIN)/python -m pytest -n 2 --dist loadfile softphantom tests
+
+# the documentation site (out/site); --strict: a broken link, anchor or API reference fails
+docs: $(STAMP)
+	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict --quiet
 
 bench: $(STAMP)
 	for b in benchmarks/bench_*.py; do echo "== $$b"; $(BIN)/python $$b || exit 1; done
