@@ -67,7 +67,7 @@ class Watched:
     def shot(self, selector: str = "#view3d") -> np.ndarray:
         from PIL import Image
 
-        self.wait("S.renders > 0 && !S.dirty")
+        self.wait("S.renders > 0 && !S.dirty && !S.textDirty")
         png = self.page.locator(selector).screenshot()
         return np.asarray(Image.open(io.BytesIO(png)).convert("RGB"), dtype=float)
 
@@ -147,7 +147,7 @@ def _show(src: ScriptedSource, page: Watched, est: Estimate, **kw) -> None:
     seq = page.state("S.lastSeq")
     time.sleep(0.05)  # the pump sends the surface at the view rate (30 Hz): a new one with this estimate
     src.put(est, **kw)
-    page.wait(f"S.lastSeq > {seq} && !S.dirty")
+    page.wait(f"S.lastSeq > {seq} && !S.dirty && !S.textDirty")
 
 
 def test_page_states_by_pixels(browser, coarse_model, tmp_path):
@@ -201,7 +201,7 @@ def test_page_states_by_pixels(browser, coarse_model, tmp_path):
             assert page.page.locator("#banner").is_hidden()
             # orbit (drag) and zoom (wheel) move the camera
             before = page.shot()
-            box = page.page.locator("#view3d canvas").bounding_box()
+            box = page.page.locator("#view3d canvas:not(.gizmo)").bounding_box()
             cx, cy = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
             page.page.mouse.move(cx, cy)
             page.page.mouse.down()
