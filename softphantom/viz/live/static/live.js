@@ -129,12 +129,16 @@ function buildScene(geo) {
   scene.add(front);
   const outerNodes = new Uint32Array([...new Set(geo.faces.flat())]);
   // cavities: the same moving nodes, their own triangles, solid, each in its arm's plot colour; one
-  // mesh (one draw): their nodes are not on the outer surface, so their colours sit in the same attribute
+  // mesh (one draw): their nodes are not on the outer surface, so their colours sit in the same
+  // attribute. Their front faces only (half the rasterizing), turned to face out of the cavity.
   const legend = document.getElementById("legend");
   const cavIndex = [], cavities = [];
+  const at = (i) => new THREE.Vector3(rest[3 * i], rest[3 * i + 1], rest[3 * i + 2]);
   for (const [name, faces] of Object.entries(geo.cavities || {})) {
     const col = ARM_COLORS[name] || OTHER_CAVITY, lin = new THREE.Color(col);
-    for (const i of faces.flat()) { cavIndex.push(i); color.setXYZ(i, lin.r, lin.g, lin.b); }
+    const volume6 = faces.reduce((s, [a, b, c]) => s + at(a).dot(at(b).cross(at(c))), 0);
+    for (const [a, b, c] of faces) cavIndex.push(...(volume6 >= 0 ? [a, b, c] : [a, c, b]));
+    for (const i of faces.flat()) color.setXYZ(i, lin.r, lin.g, lin.b);
     const row = document.createElement("div"), sw = document.createElement("i");
     sw.style.background = col;
     row.append(sw, name);
@@ -145,7 +149,7 @@ function buildScene(geo) {
     g.setAttribute("position", position);
     g.setAttribute("color", color);
     g.setIndex(cavIndex);
-    const m = new THREE.Mesh(g, new THREE.MeshLambertMaterial({ vertexColors: true, side: THREE.DoubleSide, flatShading: true }));
+    const m = new THREE.Mesh(g, new THREE.MeshLambertMaterial({ vertexColors: true, flatShading: true }));
     m.frustumCulled = false;
     scene.add(m);
     cavities.push(m);
