@@ -165,22 +165,32 @@ function buildScene(geo) {
   const poseAxes = new THREE.AxesHelper(14);  // the estimated pose of the marker body
   poseAxes.matrixAutoUpdate = false;
   scene.add(ghost, trackerAxes, poseAxes);
-  // targets: rest (white ring) → now (magenta), with the shift's length
-  const targets = {};
-  for (const [name, r] of Object.entries(geo.targets_mm || {})) {
-    const ring = new THREE.Mesh(new THREE.SphereGeometry(1.3, 12, 8), new THREE.MeshBasicMaterial({ color: 0x222222, wireframe: true }));
-    ring.position.set(r[0], r[1], r[2]);
-    const dot = new THREE.Mesh(new THREE.SphereGeometry(1.4, 16, 12), new THREE.MeshLambertMaterial({ color: 0xff2d95 }));
-    const line = new THREE.Line(new THREE.BufferGeometry().setFromPoints([ring.position.clone(), ring.position.clone()]),
-      new THREE.LineBasicMaterial({ color: 0xff2d95 }));
-    line.frustumCulled = false;  // its end moves
-    const text = label(name, "target");
-    dot.add(text);
+  // targets: rest (black wire sphere) → now (magenta sphere), a line between, a label with the
+  // shift's length; all the rest spheres one draw, the moved ones one, the lines one
+  const targets = {}, names = Object.keys(geo.targets_mm || {}), nt = names.length;
+  const rings = new THREE.InstancedMesh(new THREE.SphereGeometry(1.3, 12, 8),
+    new THREE.MeshBasicMaterial({ color: 0x222222, wireframe: true }), Math.max(nt, 1));
+  const dots = new THREE.InstancedMesh(new THREE.SphereGeometry(1.4, 16, 12),
+    new THREE.MeshLambertMaterial({ color: 0xff2d95 }), Math.max(nt, 1));
+  const links = new THREE.LineSegments(new THREE.BufferGeometry().setAttribute("position",
+    new THREE.BufferAttribute(new Float32Array(6 * Math.max(nt, 1)), 3)), new THREE.LineBasicMaterial({ color: 0xff2d95 }));
+  rings.count = dots.count = nt;
+  links.geometry.setDrawRange(0, 2 * nt);
+  names.forEach((name, i) => {
+    const r = new THREE.Vector3(...geo.targets_mm[name]), at = new THREE.Matrix4().makeTranslation(r);
+    rings.setMatrixAt(i, at);
+    dots.setMatrixAt(i, at);
+    links.geometry.attributes.position.setXYZ(2 * i, r.x, r.y, r.z);
+    links.geometry.attributes.position.setXYZ(2 * i + 1, r.x, r.y, r.z);
+    const anchor = new THREE.Object3D(), text = label(name, "target");  // the label follows the moved target
+    anchor.position.copy(r);
+    anchor.add(text);
     text.position.set(2.5, 0, 2.5);
-    dot.position.copy(ring.position);
-    scene.add(ring, dot, line);
-    targets[name] = { rest: ring.position.clone(), dot, line, text };
-  }
+    scene.add(anchor);
+    targets[name] = { rest: r, i, anchor, text };
+  });
+  for (const o of [rings, dots, links]) o.frustumCulled = false;  // they move
+  scene.add(rings, dots, links);
   // the contact point (deformed p_ext) and the force arrow ending on it
   const contact = new THREE.Mesh(new THREE.SphereGeometry(1.8, 16, 12), new THREE.MeshLambertMaterial({ color: 0xe0201b }));
   const arrow = new THREE.ArrowHelper(new THREE.Vector3(0, 1, 0), new THREE.Vector3(), 20, 0xe0201b, 6, 3.5);
@@ -191,7 +201,7 @@ function buildScene(geo) {
   S.surfaceTriangles = geo.faces.length;
   S.cavityTriangles = Object.values(geo.cavities || {}).reduce((n, f) => n + f.length, 0);
   Object.assign(view, { rest, position, color, surface, front, outerNodes, cavities, ghost, trackerAxes, poseAxes,
-    targets, contact, arrow, forceText, pext: geo.p_ext_node });
+    targets, dots, links, contact, arrow, forceText, pext: geo.p_ext_node });
   // camera: the whole bulb, from the front-left and above
   surface.computeBoundingSphere();
   const { center, radius } = surface.boundingSphere;  // at rest
@@ -252,13 +262,16 @@ function placeContact() {
 function updateOverlay() {     // targets, pose, tracker, force: from the latest estimate
   const v = view, m = S.latest;
   if (!v.surface || !m) return;
+  const ends = v.links.geometry.attributes.position, at = new THREE.Matrix4();
   for (const [name, t] of Object.entries(v.targets)) {
-    const d = [m[`${name}_dx_mm`] || 0, m[`${name}_dy_mm`] || 0, m[`${name}_dz_mm`] || 0];
-    t.dot.position.set(t.rest.x + d[0], t.rest.y + d[1], t.rest.z + d[2]);
-    t.line.geometry.attributes.position.setXYZ(1, t.dot.position.x, t.dot.position.y, t.dot.position.z);
-    t.line.geometry.attributes.position.needsUpdate = true;
+    const d = [m[`${name}_dx_mm`] || 0, m[`${name}_dy_mm`] || 0, m[`${name}_dz_mm`] || 0], p = t.anchor.position;
+    p.set(t.rest.x + d[0], t.rest.y + d[1], t.rest.z + d[2]);
+    v.dots.setMatrixAt(t.i, at.makeTranslation(p));
+    ends.setXYZ(2 * t.i + 1, p.x, p.y, p.z);
     t.shift = Math.hypot(...d);
   }
+  v.dots.instanceMatrix.needsUpdate = true;
+  ends.needsUpdate = true;
   v.poseAxes.matrix.copy(poseMatrix(m));
   const tr = S.tracker;
   v.ghost.visible = v.trackerAxes.visible = !!tr;
