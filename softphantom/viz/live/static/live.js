@@ -130,15 +130,12 @@ function buildScene(geo) {
   const outerNodes = new Uint32Array([...new Set(geo.faces.flat())]);
   // cavities: the same moving nodes, their own triangles, solid, each in its arm's plot colour; one
   // mesh (one draw): their nodes are not on the outer surface, so their colours sit in the same
-  // attribute. Their front faces only (half the rasterizing), turned to face out of the cavity.
+  // attribute. One side only (half the rasterizing): a closed wall shows the same either way round.
   const legend = document.getElementById("legend");
   const cavIndex = [], cavities = [];
-  const at = (i) => new THREE.Vector3(rest[3 * i], rest[3 * i + 1], rest[3 * i + 2]);
   for (const [name, faces] of Object.entries(geo.cavities || {})) {
     const col = ARM_COLORS[name] || OTHER_CAVITY, lin = new THREE.Color(col);
-    const volume6 = faces.reduce((s, [a, b, c]) => s + at(a).dot(at(b).cross(at(c))), 0);
-    for (const [a, b, c] of faces) cavIndex.push(...(volume6 >= 0 ? [a, b, c] : [a, c, b]));
-    for (const i of faces.flat()) color.setXYZ(i, lin.r, lin.g, lin.b);
+    for (const i of faces.flat()) { cavIndex.push(i); color.setXYZ(i, lin.r, lin.g, lin.b); }
     const row = document.createElement("div"), sw = document.createElement("i");
     sw.style.background = col;
     row.append(sw, name);
