@@ -166,7 +166,8 @@ def page_counters(page) -> tuple[int, int, float, float]:
 
 
 def run_phase(name, seconds, src, pages=(), roots=(), settle_s=3.0):
-    time.sleep(settle_s)
+    # browsers: long enough for a software-rendering page to lower its 3-D scale (x0.8 a second)
+    time.sleep(settle_s + (5.0 if pages else 0.0))
     t0, cpu0 = time.monotonic(), tree_cpu_s(roots)
     before = [page_counters(p) for p in pages]
     time.sleep(seconds)
