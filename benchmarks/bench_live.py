@@ -19,8 +19,11 @@ opens it: it draws every frame the server sends, at the 30 Hz view rate); the sa
 orbiting continuously (``?spin=1``: every animation frame is drawn, the page's frame rate); the
 last at full resolution (``?scale=1``: no resolution adaptation); the browsers again at
 ``nice -n 10`` (how a browser on the estimator's machine can be kept out of its way). Then all
-again with ``--load`` busy processes (both cores busy). Per phase: the step p50/p99/max, and per
-browser the frames drawn per second and the server frames received per second (min / mean).
+again with ``--load`` busy processes (both cores busy); ``--phases`` picks some (``many`` alone:
+the three browsers). Per phase: the step p50/p99/max, per browser the frames drawn per second and
+the server frames received per second (min / mean), and the CPU the browsers used (every process
+of each: renderer, GPU, browser) in cores and per drawn frame — the figure that does not depend on
+what else the machine runs.
 """
 
 from __future__ import annotations
@@ -47,6 +50,7 @@ from softphantom.sensing.protocol import DecoderStats  # noqa: E402
 from softphantom.viz.live import EstimatorSource, LiveConfig, LiveSession  # noqa: E402
 
 RATE_HZ = 77.0
+PHASES = ("none", "readers", "one", "many", "orbit", "orbit-full", "nice")
 CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
                  "--disable-background-networking", "--disable-component-update", "--disable-sync"]
 SSE_READER = """
@@ -121,33 +125,54 @@ def model_and_estimator(a):
     return model, est
 
 
-def chromium_cpu_s() -> float:
-    """CPU seconds used so far by every chromium process on the machine (user + system)."""
-    total = 0.0
-    for pid in os.listdir("/proc"):
+def processes() -> dict[int, tuple[int, str, float]]:
+    """pid -> (parent pid, command line, CPU seconds so far (user + system)) of every process."""
+    out = {}
+    for pid in filter(str.isdigit, os.listdir("/proc")):
         try:
             with open(f"/proc/{pid}/stat") as fh:
                 stat = fh.read()
+            with open(f"/proc/{pid}/cmdline") as fh:
+                cmd = fh.read().replace("\0", " ")
         except OSError:
             continue
-        if pid.isdigit() and "chrom" in stat[stat.find("(") + 1:stat.rfind(")")]:
-            fields = stat[stat.rfind(")") + 2:].split()
-            total += (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-    return total
+        fields = stat[stat.rfind(")") + 2:].split()
+        out[int(pid)] = (int(fields[1]), cmd, (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK"))
+    return out
+
+
+def tree_cpu_s(roots: list[int]) -> list[float]:
+    """CPU seconds used so far by each root process and its descendants (a browser: its renderer,
+    GPU and utility processes)."""
+    ps, kids = processes(), {}
+    for pid, (ppid, _, _) in ps.items():
+        kids.setdefault(ppid, []).append(pid)
+    totals = []
+    for root in roots:
+        total, stack = 0.0, [root]
+        while stack:
+            pid = stack.pop()
+            if pid in ps:
+                total += ps[pid][2]
+                stack += kids.get(pid, [])
+        totals.append(total)
+    return totals
 
 
 def page_counters(page) -> tuple[int, int, float, float]:
+    """(3-D frames drawn, server frames received, the page's clock in ms, its 3-D resolution scale)."""
     return tuple(page.evaluate("() => { const S = window.__softphantomLive; "
                                "return [S.renders, S.frames, performance.now(), S.scale]; }"))
 
 
-def run_phase(name, seconds, src, pages=(), settle_s=3.0):
-    time.sleep(settle_s)
-    t0, cpu0 = time.monotonic(), chromium_cpu_s()
+def run_phase(name, seconds, src, pages=(), roots=(), settle_s=3.0):
+    # browsers: long enough for a software-rendering page to lower its 3-D scale (x0.8 a second)
+    time.sleep(settle_s + (5.0 if pages else 0.0))
+    t0, cpu0 = time.monotonic(), tree_cpu_s(roots)
     before = [page_counters(p) for p in pages]
     time.sleep(seconds)
     after = [page_counters(p) for p in pages]
-    t1, cpu1 = time.monotonic(), chromium_cpu_s()
+    t1, cpu1 = time.monotonic(), tree_cpu_s(roots)
     steps = np.array([ms for t, ms in src.steps if t0 <= t <= t1])
     row = {"phase": name, "n": len(steps), "p50": np.percentile(steps, 50), "p99": np.percentile(steps, 99),
            "max": steps.max(), "rate": len(steps) / (t1 - t0)}
@@ -155,14 +180,16 @@ def run_phase(name, seconds, src, pages=(), settle_s=3.0):
         dt = [(b[2] - a[2]) / 1e3 for a, b in zip(before, after)]
         fps = [(b[0] - a[0]) / d for a, b, d in zip(before, after, dt)]
         upd = [(b[1] - a[1]) / d for a, b, d in zip(before, after, dt)]
+        drawn = sum(b[0] - a[0] for a, b in zip(before, after))
         row.update(fps_min=min(fps), fps_mean=float(np.mean(fps)), upd_min=min(upd), upd_mean=float(np.mean(upd)),
-                   scale=float(np.mean([b[3] for b in after])), cores=(cpu1 - cpu0) / (t1 - t0))
+                   scale=float(np.mean([b[3] for b in after])), cores=(sum(cpu1) - sum(cpu0)) / (t1 - t0),
+                   ms_frame=1e3 * (sum(cpu1) - sum(cpu0)) / max(drawn, 1))
     line = (f"{name:<44} estimates {row['rate']:5.1f}/s  step p50 {row['p50']:.3f} ms  p99 {row['p99']:.3f} ms  "
             f"max {row['max']:.2f} ms")
     if pages:
         line += (f"  | drawn fps min {row['fps_min']:.1f} mean {row['fps_mean']:.1f}; server frames/s min "
                  f"{row['upd_min']:.1f} mean {row['upd_mean']:.1f}; 3-D scale {row['scale']:.2f}; "
-                 f"browsers' CPU {row['cores']:.2f} cores")
+                 f"browsers' CPU {row['cores']:.2f} cores, {row['ms_frame']:.1f} ms per drawn frame")
     print(line, flush=True)
     return row
 
@@ -175,7 +202,12 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=20.0, help="length of each phase")
     ap.add_argument("--browsers", type=int, default=3)
     ap.add_argument("--load", type=int, default=2, help="busy processes in the loaded phases (0: skip them)")
+    ap.add_argument("--phases", default=",".join(PHASES),
+                    help=f"which phases to run, comma-separated (default all: {','.join(PHASES)})")
     a = ap.parse_args()
+    wanted = set(a.phases.split(","))
+    if not wanted <= set(PHASES):
+        ap.error(f"--phases: unknown {', '.join(sorted(wanted - set(PHASES)))}; known: {', '.join(PHASES)}")
     from playwright.sync_api import sync_playwright
 
     model, est = model_and_estimator(a)
@@ -193,45 +225,54 @@ def main() -> None:
         os.chmod(niced, 0o755)
 
         def open_pages(query: str, exe: str = "/usr/bin/chromium", n: int = a.browsers):
+            """n browsers on the page: (pages, the pid of each browser's main process)."""
             for b in browsers:
                 b.close()
             browsers.clear()
-            pages = []
+            pages, roots = [], []
             for _ in range(n):
+                known = set(processes())
                 b = pw.chromium.launch(executable_path=exe, headless=True, args=CHROMIUM_ARGS)
+                new = {pid: v for pid, v in processes().items() if pid not in known
+                       and "--user-data-dir=" in v[1] and "--type=" not in v[1]}
+                roots += [pid for pid, v in new.items() if v[0] not in new]
                 browsers.append(b)
                 p = b.new_page(viewport={"width": 1280, "height": 800})
                 p.goto(s.url + query)
                 p.wait_for_function("() => window.__softphantomLive && window.__softphantomLive.frames > 3",
                                     timeout=60e3)
                 pages.append(p)
-            return pages
+            return pages, roots
 
-        def phases(tag: str, spin: bool):
-            rows.append(run_phase(f"no browser{tag}", a.seconds, src))
-            readers = [sse_reader(s.url) for _ in range(a.browsers)]
-            try:
-                rows.append(run_phase(f"{a.browsers} event-stream readers (no drawing){tag}", a.seconds, src))
-            finally:
-                for r in readers:
-                    r.kill()
-                    r.wait()
-            rows.append(run_phase(f"1 browser{tag}", a.seconds, src, open_pages("", n=1)))
-            rows.append(run_phase(f"{a.browsers} browsers{tag}", a.seconds, src, open_pages("")))
-            if spin:
-                rows.append(run_phase(f"{a.browsers} browsers orbiting{tag}", a.seconds, src, open_pages("?spin=1")))
-                rows.append(run_phase(f"{a.browsers} browsers orbiting, full resolution{tag}", a.seconds, src,
-                                      open_pages("?spin=1&scale=1")))
-            rows.append(run_phase(f"{a.browsers} browsers at nice 10{tag}", a.seconds, src, open_pages("", niced)))
+        def phases(tag: str):
+            if "none" in wanted:
+                rows.append(run_phase(f"no browser{tag}", a.seconds, src))
+            if "readers" in wanted:
+                readers = [sse_reader(s.url) for _ in range(a.browsers)]
+                try:
+                    rows.append(run_phase(f"{a.browsers} event-stream readers (no drawing){tag}", a.seconds, src))
+                finally:
+                    for r in readers:
+                        r.kill()
+                        r.wait()
+            for key, name, query, exe, n in [
+                    ("one", "1 browser", "", "/usr/bin/chromium", 1),
+                    ("many", f"{a.browsers} browsers", "", "/usr/bin/chromium", a.browsers),
+                    ("orbit", f"{a.browsers} browsers orbiting", "?spin=1", "/usr/bin/chromium", a.browsers),
+                    ("orbit-full", f"{a.browsers} browsers orbiting, full resolution", "?spin=1&scale=1",
+                     "/usr/bin/chromium", a.browsers),
+                    ("nice", f"{a.browsers} browsers at nice 10", "", niced, a.browsers)]:
+                if key in wanted:
+                    rows.append(run_phase(name + tag, a.seconds, src, *open_pages(query, exe, n)))
             for b in browsers:
                 b.close()
             browsers.clear()
 
-        phases("", spin=True)
+        phases("")
         if a.load > 0:
             loads = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(a.load)]
             try:
-                phases(f", {a.load} busy processes", spin=True)
+                phases(f", {a.load} busy processes")
             finally:
                 for p in loads:
                     p.kill()
@@ -240,13 +281,14 @@ def main() -> None:
     print(f"session: {st['estimates']} estimates, {st['skipped_total']} skipped, view dropped {st['view_dropped']}; "
           f"load average {os.getloadavg()[0]:.1f} at the end")
     print("\n| phase | step p50 / p99 / max ms | drawn frames/s (min / mean over browsers) | server frames/s | "
-          "3-D scale | browsers' CPU (cores) |")
-    print("| --- | --- | --- | --- | --- | --- |")
+          "3-D scale | browsers' CPU (cores) | CPU ms per drawn frame |")
+    print("| --- | --- | --- | --- | --- | --- | --- |")
     for r in rows:
         drawn = f"{r['fps_min']:.1f} / {r['fps_mean']:.1f}" if "fps_min" in r else "—"
         upd = f"{r['upd_min']:.1f} / {r['upd_mean']:.1f}" if "upd_min" in r else "—"
         print(f"| {r['phase']} | {r['p50']:.3f} / {r['p99']:.3f} / {r['max']:.2f} | {drawn} | {upd} | "
-              f"{r.get('scale', float('nan')):.2f} | {r.get('cores', float('nan')):.2f} |".replace("nan", "—"))
+              f"{r.get('scale', float('nan')):.2f} | {r.get('cores', float('nan')):.2f} | "
+              f"{r.get('ms_frame', float('nan')):.1f} |".replace("nan", "—"))
 
 
 if __name__ == "__main__":

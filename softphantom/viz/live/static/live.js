@@ -5,7 +5,7 @@
 import { THREE, OrbitControls, CSS2DRenderer, CSS2DObject, ViewHelper, Lut, uPlot } from "./vendor/live-libs.min.js";
 
 const WINDOW_S = 10;            // plot time window
-const PLOT_PERIOD_MS = 80;      // the plots redraw at most this often (12.5/s), the status text 4/s
+const PLOT_PERIOD_MS = 200;     // the plots redraw at most this often (5/s: a redraw of the four costs a browser without a GPU ~8 ms), the texts 4/s
 const TEXT_PERIOD_MS = 250;
 const KEEP_S = 12;              // samples kept for the plots
 const ARROW_MM_PER_N = 10;      // force arrow scale
@@ -21,6 +21,7 @@ const S = {  // the page's state; window.__softphantomLive for tests and the cur
   geo: null, latest: null, status: null, connected: false, tracker: null, hasTracker: false,
   frames: 0, renders: 0, fps: 0, colorMax: MIN_COLOR_MAX_MM, surfaceMax: 0, lastSeq: -1,
   dirty: true, plotsDirty: false,
+  cost: { parse: 0, frame: 0, surface: 0, render: 0, labels: 0, plots: 0 },  // ms spent so far, per part
 };
 window.__softphantomLive = S;
 
@@ -55,7 +56,7 @@ const software = (() => {       // software GL (a headless browser, no GPU): no 
   const info = gl && gl.getExtension("WEBGL_debug_renderer_info");
   return !!info && /swiftshader|llvmpipe|software/i.test(gl.getParameter(info.UNMASKED_RENDERER_WEBGL));
 })();
-const renderer = new THREE.WebGLRenderer({ antialias: !software });
+const renderer = new THREE.WebGLRenderer({ antialias: !software, alpha: false });
 // resolution of the 3-D view: lowered while the browser cannot keep up (software GL), ?scale=X fixes it
 const DPR = window.devicePixelRatio || 1;
 S.scale = params.has("scale") ? Number(params.get("scale")) : 1;
@@ -77,7 +78,13 @@ const controls = new OrbitControls(camera, renderer.domElement);
 controls.enableDamping = true;
 controls.autoRotate = params.get("spin") === "1";  // continuous rendering: the benchmark's frames per second
 controls.autoRotateSpeed = 4;
-const gizmo = new ViewHelper(camera, renderer.domElement);
+// the orientation gizmo in a canvas of its own, drawn only when the camera turns (not with every estimate)
+const gizmoRenderer = new THREE.WebGLRenderer({ alpha: true, antialias: !software });
+gizmoRenderer.setPixelRatio(DPR);
+gizmoRenderer.setSize(128, 128);
+gizmoRenderer.domElement.className = "gizmo";
+host.appendChild(gizmoRenderer.domElement);
+const gizmo = new ViewHelper(camera, gizmoRenderer.domElement);
 const timer = new THREE.Timer();
 
 const view = {};  // the scene's objects once the geometry is known
@@ -121,22 +128,28 @@ function buildScene(geo) {
   front.frustumCulled = false;  // the nodes move: no stale bounding sphere
   scene.add(front);
   const outerNodes = new Uint32Array([...new Set(geo.faces.flat())]);
-  // cavities: the same moving nodes, their own triangles, solid, in their arm's plot colour
+  // cavities: the same moving nodes, their own triangles, solid, each in its arm's plot colour; one
+  // mesh (one draw): their nodes are not on the outer surface, so their colours sit in the same
+  // attribute. One side only (half the rasterizing): a closed wall shows the same either way round.
   const legend = document.getElementById("legend");
-  const cavities = [];
+  const cavIndex = [], cavities = [];
   for (const [name, faces] of Object.entries(geo.cavities || {})) {
-    const g = new THREE.BufferGeometry();
-    g.setAttribute("position", position);
-    g.setIndex(faces.flat());
-    const col = ARM_COLORS[name] || OTHER_CAVITY;
-    const m = new THREE.Mesh(g, new THREE.MeshLambertMaterial({ color: col, side: THREE.DoubleSide, flatShading: true }));
-    m.frustumCulled = false;
-    scene.add(m);
-    cavities.push(m);
+    const col = ARM_COLORS[name] || OTHER_CAVITY, lin = new THREE.Color(col);
+    for (const i of faces.flat()) { cavIndex.push(i); color.setXYZ(i, lin.r, lin.g, lin.b); }
     const row = document.createElement("div"), sw = document.createElement("i");
     sw.style.background = col;
     row.append(sw, name);
     legend.appendChild(row);
+  }
+  if (cavIndex.length) {
+    const g = new THREE.BufferGeometry();
+    g.setAttribute("position", position);
+    g.setAttribute("color", color);
+    g.setIndex(cavIndex);
+    const m = new THREE.Mesh(g, new THREE.MeshLambertMaterial({ vertexColors: true, flatShading: true }));
+    m.frustumCulled = false;
+    scene.add(m);
+    cavities.push(m);
   }
   // the tracker's pose: the rest surface moved rigidly by it, drawn as an orange wire cage
   const ghost = new THREE.Mesh(new THREE.BufferGeometry().setAttribute("position", new THREE.BufferAttribute(rest, 3)).setIndex(geo.faces.flat()),
@@ -149,22 +162,32 @@ function buildScene(geo) {
   const poseAxes = new THREE.AxesHelper(14);  // the estimated pose of the marker body
   poseAxes.matrixAutoUpdate = false;
   scene.add(ghost, trackerAxes, poseAxes);
-  // targets: rest (white ring) → now (magenta), with the shift's length
-  const targets = {};
-  for (const [name, r] of Object.entries(geo.targets_mm || {})) {
-    const ring = new THREE.Mesh(new THREE.SphereGeometry(1.3, 12, 8), new THREE.MeshBasicMaterial({ color: 0x222222, wireframe: true }));
-    ring.position.set(r[0], r[1], r[2]);
-    const dot = new THREE.Mesh(new THREE.SphereGeometry(1.4, 16, 12), new THREE.MeshLambertMaterial({ color: 0xff2d95 }));
-    const line = new THREE.Line(new THREE.BufferGeometry().setFromPoints([ring.position.clone(), ring.position.clone()]),
-      new THREE.LineBasicMaterial({ color: 0xff2d95 }));
-    line.frustumCulled = false;  // its end moves
-    const text = label(name, "target");
-    dot.add(text);
+  // targets: rest (black wire sphere) → now (magenta sphere), a line between, a label with the
+  // shift's length; all the rest spheres one draw, the moved ones one, the lines one
+  const targets = {}, names = Object.keys(geo.targets_mm || {}), nt = names.length;
+  const rings = new THREE.InstancedMesh(new THREE.SphereGeometry(1.3, 12, 8),
+    new THREE.MeshBasicMaterial({ color: 0x222222, wireframe: true }), Math.max(nt, 1));
+  const dots = new THREE.InstancedMesh(new THREE.SphereGeometry(1.4, 16, 12),
+    new THREE.MeshLambertMaterial({ color: 0xff2d95 }), Math.max(nt, 1));
+  const links = new THREE.LineSegments(new THREE.BufferGeometry().setAttribute("position",
+    new THREE.BufferAttribute(new Float32Array(6 * Math.max(nt, 1)), 3)), new THREE.LineBasicMaterial({ color: 0xff2d95 }));
+  rings.count = dots.count = nt;
+  links.geometry.setDrawRange(0, 2 * nt);
+  names.forEach((name, i) => {
+    const r = new THREE.Vector3(...geo.targets_mm[name]), at = new THREE.Matrix4().makeTranslation(r);
+    rings.setMatrixAt(i, at);
+    dots.setMatrixAt(i, at);
+    links.geometry.attributes.position.setXYZ(2 * i, r.x, r.y, r.z);
+    links.geometry.attributes.position.setXYZ(2 * i + 1, r.x, r.y, r.z);
+    const anchor = new THREE.Object3D(), text = label(name, "target");  // the label follows the moved target
+    anchor.position.copy(r);
+    anchor.add(text);
     text.position.set(2.5, 0, 2.5);
-    dot.position.copy(ring.position);
-    scene.add(ring, dot, line);
-    targets[name] = { rest: ring.position.clone(), dot, line, text };
-  }
+    scene.add(anchor);
+    targets[name] = { rest: r, i, anchor, text };
+  });
+  for (const o of [rings, dots, links]) o.frustumCulled = false;  // they move
+  scene.add(rings, dots, links);
   // the contact point (deformed p_ext) and the force arrow ending on it
   const contact = new THREE.Mesh(new THREE.SphereGeometry(1.8, 16, 12), new THREE.MeshLambertMaterial({ color: 0xe0201b }));
   const arrow = new THREE.ArrowHelper(new THREE.Vector3(0, 1, 0), new THREE.Vector3(), 20, 0xe0201b, 6, 3.5);
@@ -175,7 +198,7 @@ function buildScene(geo) {
   S.surfaceTriangles = geo.faces.length;
   S.cavityTriangles = Object.values(geo.cavities || {}).reduce((n, f) => n + f.length, 0);
   Object.assign(view, { rest, position, color, surface, front, outerNodes, cavities, ghost, trackerAxes, poseAxes,
-    targets, contact, arrow, forceText, pext: geo.p_ext_node });
+    targets, dots, links, contact, arrow, forceText, pext: geo.p_ext_node });
   // camera: the whole bulb, from the front-left and above
   surface.computeBoundingSphere();
   const { center, radius } = surface.boundingSphere;  // at rest
@@ -192,7 +215,7 @@ function updateSurface(pos) {
   const v = view, n = v.rest.length / 3, p = v.position.array, c = v.color.array;
   if (pos) p.set(pos);
   let maxMag = 0;
-  const mag = new Float32Array(n);
+  const mag = v.mag || (v.mag = new Float32Array(n));
   for (const i of v.outerNodes) {
     const m = Math.hypot(p[3 * i] - v.rest[3 * i], p[3 * i + 1] - v.rest[3 * i + 1], p[3 * i + 2] - v.rest[3 * i + 2]);
     mag[i] = m;
@@ -211,7 +234,6 @@ function updateSurface(pos) {
     c[3 * i] = col.r; c[3 * i + 1] = col.g; c[3 * i + 2] = col.b;
   }
   S.surfaceMax = maxMag;
-  setText(document.getElementById("surface-max"), `max |u| ${maxMag.toFixed(2)} mm`);
   v.position.needsUpdate = true;
   v.color.needsUpdate = true;
   v.surface.computeVertexNormals();
@@ -230,20 +252,23 @@ function placeContact() {
     v.arrow.position.copy(tip).addScaledVector(dir, -L);
     v.arrow.setDirection(dir);
     v.arrow.setLength(L, Math.min(8, 0.35 * L), 4);
-    setText(v.forceText.element, `F ${Fn.toFixed(2)} N`);
   }
+  v.forceN = Fn;
 }
 
 function updateOverlay() {     // targets, pose, tracker, force: from the latest estimate
   const v = view, m = S.latest;
   if (!v.surface || !m) return;
+  const ends = v.links.geometry.attributes.position, at = new THREE.Matrix4();
   for (const [name, t] of Object.entries(v.targets)) {
-    const d = [m[`${name}_dx_mm`] || 0, m[`${name}_dy_mm`] || 0, m[`${name}_dz_mm`] || 0];
-    t.dot.position.set(t.rest.x + d[0], t.rest.y + d[1], t.rest.z + d[2]);
-    t.line.geometry.attributes.position.setXYZ(1, t.dot.position.x, t.dot.position.y, t.dot.position.z);
-    t.line.geometry.attributes.position.needsUpdate = true;
-    setText(t.text.element, `${name} ${Math.hypot(...d).toFixed(2)} mm`);
+    const d = [m[`${name}_dx_mm`] || 0, m[`${name}_dy_mm`] || 0, m[`${name}_dz_mm`] || 0], p = t.anchor.position;
+    p.set(t.rest.x + d[0], t.rest.y + d[1], t.rest.z + d[2]);
+    v.dots.setMatrixAt(t.i, at.makeTranslation(p));
+    ends.setXYZ(2 * t.i + 1, p.x, p.y, p.z);
+    t.shift = Math.hypot(...d);
   }
+  v.dots.instanceMatrix.needsUpdate = true;
+  ends.needsUpdate = true;
   v.poseAxes.matrix.copy(poseMatrix(m));
   const tr = S.tracker;
   v.ghost.visible = v.trackerAxes.visible = !!tr;
@@ -258,7 +283,7 @@ function resize() {
   camera.aspect = w / Math.max(h, 1);
   camera.updateProjectionMatrix();
   for (const p of plots) p.u.setSize(plotSize(p.el));
-  S.dirty = true;
+  S.dirty = S.gizmoDirty = true;
 }
 
 const renderTimes = [], ticks = [];
@@ -281,15 +306,28 @@ function loop(now) {
   ticks.push(now);
   while (ticks[0] < now - 1000) ticks.shift();
   adaptScale(now);
-  if (S.plotsDirty && now - (S.plottedAt || 0) >= PLOT_PERIOD_MS) { updatePlots(); S.plotsDirty = false; S.plottedAt = now; }
   const moved = controls.update(dt);
-  if (gizmo.animating) { gizmo.update(dt); S.dirty = true; }
-  if (!(S.dirty || moved)) return;
+  const turning = gizmo.animating;  // its last step ends the animation: draw that one too
+  if (turning) { gizmo.update(dt); S.dirty = true; }
+  const draw = S.dirty || moved, since = now - (S.plottedAt || 0);
+  // the plots redraw with a 3-D frame (one compositor frame for both), or alone if none comes
+  if (S.plotsDirty && since >= PLOT_PERIOD_MS && (draw || since >= 2 * PLOT_PERIOD_MS)) {
+    updatePlots(); S.plotsDirty = false; S.plottedAt = now;
+    S.cost.plots += performance.now() - now;
+  }
+  if (S.textDirty && (S.textNow || now - (S.textAt || 0) >= TEXT_PERIOD_MS)) {
+    drawTexts(); S.textAt = now; S.textNow = false;
+  }
+  if (!draw) return;
+  const t0 = performance.now();
   renderer.clear();
   renderer.render(scene, camera);
   S.triangles = renderer.info.render.triangles;
-  gizmo.render(renderer);
+  if (moved || turning || S.gizmoDirty !== false) { gizmo.render(gizmoRenderer); S.gizmoDirty = false; }
+  const t1 = performance.now();
   labels.render(scene, camera);
+  S.cost.render += t1 - t0;
+  S.cost.labels += performance.now() - t1;
   S.dirty = false;
   S.renders++;
   renderTimes.push(now);
@@ -394,20 +432,36 @@ function drawStatus() {
   if (st.recording && st.recording.enabled) parts.push(`rec ${st.recording.messages} msg`);
   setText(document.getElementById("status"), parts.join(" │ "));
 }
-function drawTargets() {
+function drawTargets() {       // the table's cells are made once, then only their text changes
   const tb = document.querySelector("#targets tbody"), m = S.latest;
   if (!S.geo || !m) return;
-  tb.textContent = "";
-  for (const name of Object.keys(S.geo.targets_mm || {})) {
-    const d = ["dx", "dy", "dz"].map((k) => m[`${name}_${k}_mm`] || 0);
-    const tr = document.createElement("tr");
-    for (const x of [name, ...d.map((x) => x.toFixed(2)), Math.hypot(...d).toFixed(2)]) {
-      const td = document.createElement("td");
-      td.textContent = x;
-      tr.appendChild(td);
+  const names = Object.keys(S.geo.targets_mm || {});
+  if (tb.rows.length !== names.length) {
+    tb.textContent = "";
+    for (const name of names) {
+      const tr = tb.insertRow();
+      for (let k = 0; k < 5; k++) tr.insertCell();
+      tr.cells[0].textContent = name;
     }
-    tb.appendChild(tr);
   }
+  names.forEach((name, r) => {
+    const d = ["dx", "dy", "dz"].map((k) => m[`${name}_${k}_mm`] || 0), cells = tb.rows[r].cells;
+    [...d, Math.hypot(...d)].forEach((x, k) => setText(cells[k + 1], x.toFixed(2)));
+  });
+}
+// the numbers in the view, the status and the table: at most 4 times a second (a number changing
+// 30 times a second cannot be read, and each change costs a layout and a repaint), at once when the
+// link's state changes
+function drawTexts() {
+  const v = view;
+  if (v.surface) {
+    setText(document.getElementById("surface-max"), `max |u| ${S.surfaceMax.toFixed(2)} mm`);
+    if (v.arrow.visible) setText(v.forceText.element, `F ${v.forceN.toFixed(2)} N`);
+    for (const [name, t] of Object.entries(v.targets)) if (t.shift != null) setText(t.text.element, `${name} ${t.shift.toFixed(2)} mm`);
+  }
+  drawStatus();
+  drawTargets();
+  S.textDirty = false;
 }
 
 function applyFrame(f) {
@@ -421,18 +475,14 @@ function applyFrame(f) {
   }
   S.resync = false;
   if (f.surface_mm_f32_b64 && view.surface) {
-    const p = decodePositions(f.surface_mm_f32_b64);
+    const t0 = performance.now(), p = decodePositions(f.surface_mm_f32_b64);
     if (p.length === view.rest.length) updateSurface(p);
+    S.cost.surface += performance.now() - t0;
   }
   if (f.status) S.status = f.status;
   updateOverlay();
-  const now = performance.now();
-  if (now - (S.textAt || 0) >= TEXT_PERIOD_MS || (f.status && f.status.link !== S.shownLink)) {
-    drawStatus();
-    drawTargets();
-    S.textAt = now;
-    S.shownLink = f.status && f.status.link;
-  }
+  S.textDirty = true;
+  if (f.status && f.status.link !== S.shownLink) { S.textNow = true; S.shownLink = f.status.link; }
   S.frames++;
   S.dirty = true;
 }
@@ -455,8 +505,8 @@ async function init() {
     m.needsUpdate = true;
     S.dirty = true;
   });
-  renderer.domElement.addEventListener("dblclick", () => { controls.reset(); S.dirty = true; });
-  renderer.domElement.addEventListener("pointerup", (e) => { if (gizmo.handleClick(e)) S.dirty = true; });
+  renderer.domElement.addEventListener("dblclick", () => { controls.reset(); S.dirty = S.gizmoDirty = true; });
+  gizmoRenderer.domElement.addEventListener("pointerup", (e) => { if (gizmo.handleClick(e)) S.dirty = true; });
   try {
     const g = await fetch("/api/geometry");
     if (g.ok) {
@@ -483,7 +533,10 @@ async function init() {
   // ?frames=N: stop listening after N frames (a fixed snapshot)
   const stopAfter = Number(params.get("frames") || 0);
   es.addEventListener("frame", (ev) => {
-    applyFrame(JSON.parse(ev.data));
+    const t0 = performance.now(), f = JSON.parse(ev.data), t1 = performance.now();
+    applyFrame(f);
+    S.cost.parse += t1 - t0;
+    S.cost.frame += performance.now() - t1;
     if (stopAfter && S.frames >= stopAfter) { es.close(); S.connected = false; drawStatus(); }
   });
 }
