@@ -66,6 +66,7 @@ STRETCH_FX_N = 0.02  # the default f_x stretch width: the arm pair's step core a
 STRETCH_MIN_POINTS = 9  # f_x points from which the default stretches f_x
 STRETCH_Q = 0.3  # the default stretch of a displacement axis (N-equivalent; docs/estimation.md)
 X_CONTROLS = ("displacement", "force")
+OFFLINE = ("full", "rom")  # how the grid is solved: full solves, or a reduced model checked by full solves
 # a displacement-controlled point is kept where it lands within this fraction of the distance to the
 # next node along q (the fit takes each line's own nodes, _to_chebyshev): a new solve costs more
 # than the slightly moved node
@@ -144,8 +145,11 @@ class AtlasConfig:
     force_cluster_N: tuple[float, float, float] | None = None
     x_control: str = "force"
     f_y_splits_N: tuple[float, ...] = ()
+    offline: str = "full"
 
     def __post_init__(self) -> None:
+        if self.offline not in OFFLINE:
+            raise UserError(f"atlas offline: one of {', '.join(OFFLINE)}, got {self.offline!r}")
         lo = tuple(float(v) for v in self.force_min_N)
         hi = tuple(float(v) for v in self.force_max_N)
         if len(lo) != 3 or len(hi) != 3 or not all(math.isfinite(a) and math.isfinite(b) and a < b
@@ -200,6 +204,8 @@ class AtlasConfig:
         d["force_cluster_N"] = self.cluster_N
         if not self.f_y_splits_N:
             del d["f_y_splits_N"]  # an atlas of one piece keeps the key it had before the field
+        if self.offline == "full":
+            del d["offline"]  # likewise an atlas of full solves
         return d
 
     def patches(self) -> tuple["AtlasConfig", ...]:
@@ -1124,8 +1130,15 @@ def build_atlas(model, config: EstimatorConfig | None = None, atlas: AtlasConfig
     cpu_s = 0.0
     n_fwd = 0
     label = f"atlas: {acfg.n_solves} forward solves"
+    offline = None
     with dask_client(scheduler, n_workers, processes=processes) as client:
-        if acfg.x_control == "force":
+        if acfg.offline == "rom":  # the grid by a reduced model (softphantom.estimation.offline)
+            from softphantom.estimation.offline import rom_grid
+
+            V, P, X, solved, FX, QN, cpu_s, n_fwd, offline = rom_grid(model, cfg, acfg, fwd, client,
+                                                                      progress=progress, log=log)
+            stages = []
+        elif acfg.x_control == "force":
             stages = [(planes, label, False)]
         else:  # the f_x faces first: their patch displacements are the inner lines' ends
             faces = [(i, l) for i, l in planes if i in (0, n1 - 1)]
@@ -1176,7 +1189,7 @@ def build_atlas(model, config: EstimatorConfig | None = None, atlas: AtlasConfig
                     log(f"atlas: plane {'f_x' if acfg.x_control == 'force' else 'q'} {ax[0][i]:+.2f} N, urethra "
                         f"{p_u * 1e-3:.1f} kPa: {ok.size - ok.sum()} of {ok.size} points unreachable "
                         f"({err or 'beyond a failed point'})")
-    if acfg.x_control == "displacement":
+    if acfg.x_control == "displacement" and offline is None:
         log(f"atlas: {n_fwd} converged forward solves for {int(solved.sum())} points (displacement axis: "
             f"{n_fwd - int(solved.sum())} more, the lines' faces solved again and the trials)")
     weights = fill_weights(solved, ax)
@@ -1206,7 +1219,8 @@ def build_atlas(model, config: EstimatorConfig | None = None, atlas: AtlasConfig
     cFx = _to_chebyshev(FX[..., None], shape, tq) if acfg.x_control == "displacement" else np.zeros((*shape, 0))
     return Atlas(key=key, config=acfg, cV=cV, cP=cP, cF=cF, cFx=cFx, q_nodes=QN, modes=modes, x_rest=fwd.fem.x_rest.copy(),
                  build_s=time.perf_counter() - t0, solves=int(solved.sum()) * acfg.n_solves // solved.size,
-                 field_rms_m=field_rms, solved=solved, build_cpu_s=cpu_s, provenance=provenance(model, fwd))
+                 field_rms_m=field_rms, solved=solved, build_cpu_s=cpu_s,
+                 provenance={**provenance(model, fwd), **({"offline": offline} if offline else {})})
 
 
 def atlas_path(model_dir, key: str) -> Path:
