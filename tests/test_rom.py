@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from softphantom.estimation import AtlasConfig, EstimatorConfig, ForwardModel
-from softphantom.fem.rom import ReducedModel, ecsw_weights, element_kernel, pod_basis
+from softphantom.fem.rom import ElementSet, ReducedModel, ecsw_weights, pod_basis
 
 CFG = EstimatorConfig(contact="on-centre")
 
@@ -61,14 +61,17 @@ def test_rigid_motion_gives_zero_element_and_reduced_forces(fwd):
     R = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
     moved = (X @ R.T + [0.002, -0.001, 0.003]).ravel()
     stretched = (X * [1.05, 1.0, 1.0]).ravel()
-    nd = 3 * fem.tets.shape[1]
-    el = np.arange(len(fem.tets))
-    F_rigid, F_strain = np.empty((len(el), nd)), np.empty((len(el), nd))
-    assert element_kernel(moved, fem.tets, fem.dN, fem.wq, fem.law_id, fem.params, el, False, F_rigid,
-                          np.empty((1, 1, 1))) == 0
-    element_kernel(stretched, fem.tets, fem.dN, fem.wq, fem.law_id, fem.params, el, False, F_strain,
-                   np.empty((1, 1, 1)))
-    assert np.abs(F_rigid).max() <= 1e-9 * np.abs(F_strain).max()
+    es = ElementSet(fem, np.arange(len(fem.tets)))
+    assert es.evaluate(moved[es.dofs], True)
+    F_rigid, K_rigid = es.FE.copy(), es.KE.copy()
+    assert es.evaluate(stretched[es.dofs], True)
+    assert np.abs(F_rigid).max() <= 1e-9 * np.abs(es.FE).max()
+    # the tangent of a rotated state is the rest tangent rotated: Kᵉ(Rx) = R Kᵉ(x) Rᵀ blockwise
+    assert es.evaluate(fem.x_rest[es.dofs], True)
+    Rb = np.kron(np.eye(fem.tets.shape[1]), R)
+    assert np.allclose(K_rigid, Rb @ es.KE @ Rb.T, rtol=0, atol=1e-9 * np.abs(es.KE).max())
+    assert es.evaluate(stretched[es.dofs], False)
+    F_strain = es.FE.copy()
     d = moved - fem.x_rest  # the motion as the one basis vector (the fixed DOFs too: no supports here)
     rom = ReducedModel(fem, (d / np.linalg.norm(d))[:, None], fwd.H_f, fwd.eq._ur_tris)
     R_rigid, _, _ = rom.residual(np.array([np.linalg.norm(d)]), np.zeros(4), False)
@@ -97,7 +100,7 @@ def test_ecsw_weights_reproduce_the_training_forces_to_their_tolerance(fwd):
 
 
 @pytest.mark.parametrize("x_control", ["force", "displacement"])
-def test_atlas_built_by_the_reduced_model_agrees_with_the_full_one(coarse_model, x_control, monkeypatch):
+def test_atlas_built_by_the_reduced_model_agrees_with_the_full_one(coarse_model, x_control, monkeypatch, tmp_path):
     """A small atlas, full and reduced: the same key apart from ``offline``, the reduced one's
     provenance carries its checks, and the two polynomials agree at off-grid loads within 2 % of
     the volumes' range (measured: see the assertion's figures in docs/offline.md)."""
@@ -116,6 +119,12 @@ def test_atlas_built_by_the_reduced_model_agrees_with_the_full_one(coarse_model,
     assert red.key != full.key and red.solved.all()
     off = red.provenance["offline"]
     assert off["checks"] >= 4 and off["snapshots"] >= 16 and off["check_max_dV_mm3"] >= 0
+    # the checks' error survives the file and is what `atlas info` says
+    from softphantom.estimation.atlas import Atlas
+    from softphantom.estimation.atlas_store import describe
+
+    back = Atlas.load(red.save(tmp_path / "rom.npz"), red.key)
+    assert f"volumes within {off['check_max_dV_mm3']:.3f} mm³" in dict(describe(back))["offline"]
     rng = np.random.default_rng(5)
     lo, hi = base.lower, base.upper
     worst = 0.0
@@ -125,3 +134,13 @@ def test_atlas_built_by_the_reduced_model_agrees_with_the_full_one(coarse_model,
                                                 - full.volumes(full.coords(lam[:3], lam[3]))[0]))))
     vol_range = float(np.ptp([full.volumes(lo + (hi - lo) * u)[0] for u in rng.uniform(size=(10, 4))]))
     assert worst <= 0.02 * vol_range, (worst, vol_range)
+
+
+def test_atlas_build_refuses_an_unknown_offline_stage_in_one_line(coarse_model_dir, capsys):
+    from softphantom.cli import main
+
+    assert main(["atlas", "build", "--model", str(coarse_model_dir), "--offline", "fast"]) == 2
+    err = capsys.readouterr().err
+    assert "--offline: full or rom, got 'fast'" in err and len(err.strip().splitlines()) == 1
+    with pytest.raises(Exception, match="atlas offline: one of full, rom, got 'fast'"):
+        AtlasConfig(offline="fast")

@@ -172,6 +172,8 @@ class AtlasConfig:
             raise UserError(f"atlas linear_pressure needs n_pressure 2, got {self.n_pressure}")
         if self.x_control not in X_CONTROLS:
             raise UserError(f"atlas x_control: one of {', '.join(X_CONTROLS)}, got {self.x_control!r}")
+        if self.linear_pressure and self.offline != "full":
+            raise UserError("atlas linear_pressure needs offline 'full' (its tangent line comes from the full solves)")
         if self.linear_pressure and self.x_control != "force":
             raise UserError("atlas linear_pressure needs x_control 'force' (the tangent line is at fixed f_x), "
                             f"got {self.x_control!r}")

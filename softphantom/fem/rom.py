@@ -16,72 +16,56 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.sparse as sp
 from scipy.optimize import nnls
 
 from softphantom.errors import SolverError
 from softphantom.fem.actuators import pressure_load, pressure_load_tangent
-from softphantom.fem.kernels import _defgrad, law_point, njit, scratch
+from softphantom.fem import kernels
 
 NEWTON_MAX_ITER = 40
 NEWTON_TOL = 1e-10  # relative reduced residual (of the applied load's and the internal force's reduced norms)
+CHORD_RATE = 0.2  # a chord step contracting ‖R‖ less than this assembles the tangent anew
 
 
-@njit(cache=True, fastmath=False, nogil=True)
-def element_kernel(x, conn, dN, wq, law, prm, elems, need_K, FE, KE):
-    """For each element ``elems[s]``: its internal force FE[s] (3n,) and (``need_K``) consistent
-    tangent KE[s] (3n, 3n) at positions ``x`` (3N,) through ``conn`` (M, n). Returns the number of
-    inverted quadrature points (the arrays are then incomplete)."""
-    nen = conn.shape[1]
-    nd = 3 * nen
-    F = np.empty((3, 3))
-    P = np.empty((3, 3))
-    D = np.empty((9, 9))
-    s0, s1, s2, s3, s4, s5, s6, s7, s8, s9 = scratch()
-    T = np.empty((9, nd))
-    bad = 0
-    for s in range(elems.shape[0]):
-        e = elems[s]
-        for k in range(nd):
-            FE[s, k] = 0.0
+def _ro(a: np.ndarray) -> np.ndarray:
+    a = np.ascontiguousarray(a)
+    a.flags.writeable = False  # the kernels' one specialization (read-only model arrays and positions)
+    return a
+
+
+class ElementSet:
+    """The elements ``elems`` of ``fem`` as a mesh of their own (local node numbering): per-element
+    internal forces and tangents through the FEM's compiled kernels (:mod:`softphantom.fem.kernels`),
+    scattered into dense per-element arrays instead of the global vector and matrix."""
+
+    def __init__(self, fem, elems: np.ndarray) -> None:
+        elems = np.asarray(elems, np.int64)
+        nodes, inv = np.unique(fem.tets[elems], return_inverse=True)
+        self.conn = _ro(inv.reshape(len(elems), -1).astype(np.int64))
+        self.dofs = (3 * nodes[:, None] + np.arange(3)).ravel()  # the set's DOFs, global numbering
+        self.local_dofs = (3 * self.conn[:, :, None] + np.arange(3)).reshape(len(elems), -1)  # (S, 3n)
+        self.dN, self.wq = _ro(fem.dN[elems]), _ro(fem.wq[elems])
+        self.law, self.prm = _ro(fem.law_id[elems]), _ro(fem.params[elems])
+        S, nd = self.local_dofs.shape
+        self._edofs = _ro(np.arange(S * nd, dtype=np.int64).reshape(S, nd))
+        self._scatter = _ro(np.arange(S * nd * nd, dtype=np.int32).reshape(S, nd * nd))
+        self.FE = np.empty((S, nd))
+        self.KE = np.empty((S, nd, nd))
+        self._stress = np.empty((1, 3, 3))
+
+    def evaluate(self, x_local: np.ndarray, need_K: bool) -> bool:
+        """Fill ``FE`` (S, 3n) and (``need_K``) ``KE`` (S, 3n, 3n) at the set's positions ``x_local``
+        (3·nodes,); False (arrays incomplete) where an element is inverted."""
+        x = _ro(x_local)
+        bad, _ = kernels.point_loop_kernel(x, self.conn, self.dN, self.wq, self.law, self.prm, self._edofs,
+                                           kernels.MODE_FORCE, self.FE.reshape(-1), self._stress)
+        if bad:
+            return False
         if need_K:
-            for a in range(nd):
-                for b in range(nd):
-                    KE[s, a, b] = 0.0
-        for qp in range(dN.shape[1]):
-            J = _defgrad(x, conn, dN, e, qp, F)
-            if not J > 0.0:
-                bad += 1
-                continue
-            v = wq[e, qp]
-            law_point(law[e], prm, e, F, P, D, 2 if need_K else 1, s0, s1, s2, s3, s4, s5, s6, s7, s8, s9)
-            for a in range(nen):
-                g0 = dN[e, qp, a, 0]
-                g1 = dN[e, qp, a, 1]
-                g2 = dN[e, qp, a, 2]
-                for i in range(3):
-                    FE[s, 3 * a + i] += v * (P[i, 0] * g0 + P[i, 1] * g1 + P[i, 2] * g2)
-            if need_K:
-                for r in range(9):
-                    for b in range(nen):
-                        gb0 = dN[e, qp, b, 0]
-                        gb1 = dN[e, qp, b, 1]
-                        gb2 = dN[e, qp, b, 2]
-                        for c in range(3):
-                            T[r, 3 * b + c] = D[r, 3 * c] * gb0 + D[r, 3 * c + 1] * gb1 + D[r, 3 * c + 2] * gb2
-                for a in range(nen):
-                    ga0 = dN[e, qp, a, 0] * v
-                    ga1 = dN[e, qp, a, 1] * v
-                    ga2 = dN[e, qp, a, 2] * v
-                    for p in range(3):
-                        row = 3 * a + p
-                        for c in range(3 * a, nd):  # upper node blocks; mirrored below (hyperelastic: symmetric)
-                            KE[s, row, c] += ga0 * T[3 * p, c] + ga1 * T[3 * p + 1, c] + ga2 * T[3 * p + 2, c]
-        if need_K:
-            for a in range(1, nen):
-                for p in range(3):
-                    for c in range(3 * a):
-                        KE[s, 3 * a + p, c] = KE[s, c, 3 * a + p]
-    return bad
+            kernels.tangent_kernel(x, self.conn, self.dN, self.wq, self.law, self.prm, self._scatter, True,
+                                   self.KE.reshape(-1))
+        return True
 
 
 def pod_basis(D: np.ndarray, rtol: float = 1e-12, r_max: int | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -101,60 +85,51 @@ def pod_basis(D: np.ndarray, rtol: float = 1e-12, r_max: int | None = None) -> t
     return np.ascontiguousarray(U[:, :r]), s
 
 
-def _local(fem, elems: np.ndarray):
-    """The nodes of ``elems``, their local connectivity, and the DOFs (3·nodes) in global numbering."""
-    nodes, inv = np.unique(fem.tets[elems], return_inverse=True)
-    conn = inv.reshape(len(elems), -1).astype(np.int64)
-    dofs = (3 * nodes[:, None] + np.arange(3)).ravel()
-    return nodes, conn, dofs
-
-
-def element_projections(fem, V: np.ndarray, x: np.ndarray, chunk: int = 1024):
-    """Yields (elements, G (r, c)): each element's reduced internal force V_eᵀ f_e(x), in chunks."""
-    nd = 3 * fem.tets.shape[1]
-    for a in range(0, len(fem.tets), chunk):
-        el = np.arange(a, min(a + chunk, len(fem.tets)))
-        FE = np.empty((len(el), nd))
-        if element_kernel(x, fem.tets, fem.dN, fem.wq, fem.law_id, fem.params, el, False, FE, np.empty((1, 1, 1))):
+def _reduced_forces(fem, V: np.ndarray, elems: np.ndarray, states) -> tuple[np.ndarray, list[np.ndarray]]:
+    """The elements' reduced internal forces V_eᵀ f_e(x) at each state: (Ve (c, 3n, r), [G (r, c)])."""
+    es = ElementSet(fem, elems)
+    Ve = V[fem.elem_dofs[elems]]  # (c, 3n, r)
+    out = []
+    for x in states:
+        if not es.evaluate(x[es.dofs], False):
             raise SolverError("an ECSW training state has inverted elements")
-        Ve = V[fem.elem_dofs[el]]  # (c, nd, r)
-        yield el, np.einsum("cnr,cn->rc", Ve, FE)
+        out.append(np.einsum("cnr,cn->rc", Ve, es.FE, optimize=True))
+    return Ve, out
 
 
 def ecsw_weights(fem, V: np.ndarray, states, tol: float = 1e-3, sketch: int | None = None,
-                 seed: int = 0) -> tuple[np.ndarray, np.ndarray, float]:
+                 seed: int = 0, chunk: int = 1024) -> tuple[np.ndarray, np.ndarray, float]:
     """ECSW element set and weights: ξ ≥ 0 with ‖Σ_e ξ_e g_e(x_s) − Σ_e g_e(x_s)‖ ≤ tol‖Σ_e g_e(x_s)‖
-    for each training state x_s, g_e = V_eᵀ f_e the element's reduced force (blocks normalised per
-    state). The r·S constraint rows are compressed by a seeded Gaussian sketch of ``sketch`` rows
-    (default 3r), and the NNLS is solved exactly on the sketch (Lawson–Hanson: at most ``sketch``
-    elements); the sketch doubles until every state's own relative error meets ``tol``.
+    for each training state x_s, g_e = V_eᵀ f_e the element's reduced force (rows normalised per
+    state). The r·S constraint rows are compressed by a seeded CountSketch of ``sketch`` rows
+    (default 3r: each row added with a random sign to one sketch row, r·M work), and the NNLS is
+    solved exactly on the sketch (Lawson–Hanson, at most ``sketch`` elements); the sketch doubles
+    until every state's own relative error, on all its rows, meets ``tol``.
     Returns (elements, weights, the worst state's relative error)."""
+    from softphantom.fem.corotational import internal_force
+
+    states = [np.asarray(x, float) for x in states]
     r = V.shape[1]
     M = len(fem.tets)
     rng = np.random.default_rng(seed)
+    b = [V.T @ internal_force(fem, x) for x in states]  # Σ_e g_e(x_s): V is zero on the fixed DOFs
+    scale = [1.0 / max(np.linalg.norm(v), 1e-300) for v in b]
     k = min(sketch or 3 * r, M)
-    states = list(states)
     while True:
+        sk = [sp.csr_matrix((rng.choice([-1.0, 1.0], r) * s, (rng.integers(0, k, r), np.arange(r))), shape=(k, r))
+              for s in scale]
         A = np.zeros((k, M))
-        bs = []
-        for x in states:
-            Om = rng.standard_normal((k, r)) / np.sqrt(k)
-            b = np.zeros(r)
-            blocks = list(element_projections(fem, V, x))
-            for _, G in blocks:
-                b += G.sum(axis=1)
-            s = 1.0 / max(np.linalg.norm(b), 1e-300)
-            for el, G in blocks:
-                A[:, el] += Om @ (G * s)
-            bs.append((blocks, b))
-        rhs = A.sum(axis=1)
-        xi, _ = nnls(A, rhs, maxiter=20 * M)
-        err = 0.0
-        for blocks, b in bs:
-            approx = sum(G @ xi[el] for el, G in blocks)
-            err = max(err, float(np.linalg.norm(approx - b) / max(np.linalg.norm(b), 1e-300)))
+        for a in range(0, M, chunk):
+            el = np.arange(a, min(a + chunk, M))
+            _, G = _reduced_forces(fem, V, el, states)
+            for Om, Gs in zip(sk, G):
+                A[:, el] += Om @ Gs
+        xi, _ = nnls(A, A.sum(axis=1), maxiter=20 * M)
+        del A
+        idx = np.flatnonzero(xi)
+        Ve, G = _reduced_forces(fem, V, idx, states)
+        err = max(float(np.linalg.norm(Gs @ xi[idx] - bs) * s) for Gs, bs, s in zip(G, b, scale))
         if err <= tol or k >= M:
-            idx = np.flatnonzero(xi)
             return idx, xi[idx], err
         k = min(2 * k, M)
 
@@ -162,11 +137,14 @@ def ecsw_weights(fem, V: np.ndarray, states, tol: float = 1e-3, sketch: int | No
 @dataclass
 class ReducedSolution:
     """A converged reduced equilibrium: coordinates ``q`` (r,), loads ``lam`` (4,) N, N, N, Pa (f_x
-    solved for under displacement control), Newton ``iterations``."""
+    solved for under displacement control), ``iterations``, the last reduced tangent ``K`` (r, r)
+    (for a neighbour's solve) and how many ``tangents`` were assembled."""
 
     q: np.ndarray
     lam: np.ndarray
     iterations: int
+    K: np.ndarray
+    tangents: int
 
 
 class ReducedModel:
@@ -184,29 +162,16 @@ class ReducedModel:
         self.Hr = np.asarray(H_f.T @ V).T  # (r, 3): the patch's load per N, reduced
         self.elements = np.arange(len(fem.tets)) if elements is None else np.asarray(elements, np.int64)
         self.weights = np.ones(len(self.elements)) if weights is None else np.asarray(weights, float)
-        nodes, conn, dofs = _local(fem, self.elements)
-        self._conn = conn
-        self._x0 = np.ascontiguousarray(fem.x_rest[dofs])
-        self._Vn = np.ascontiguousarray(V[dofs])
-        loc = np.arange(len(self.elements))
-        ldofs = (3 * conn[:, :, None] + np.arange(3)).reshape(len(loc), -1)
-        self._Ve = np.ascontiguousarray(self._Vn[ldofs])  # (S, nd, r)
-        self._dN = np.ascontiguousarray(fem.dN[self.elements])
-        self._wq = np.ascontiguousarray(fem.wq[self.elements])
-        self._law = np.ascontiguousarray(fem.law_id[self.elements])
-        self._prm = np.ascontiguousarray(fem.params[self.elements])
-        for a in (self._dN, self._wq, self._law, self._prm):
-            a.flags.writeable = False  # one numba specialization (read-only arrays) for every model
+        self._set = es = ElementSet(fem, self.elements)
+        self._x0 = np.ascontiguousarray(fem.x_rest[es.dofs])
+        self._Vn = np.ascontiguousarray(V[es.dofs])
+        self._Ve = np.ascontiguousarray(self._Vn[es.local_dofs])  # (S, nd, r)
         un, uinv = np.unique(np.asarray(ur_tris), return_inverse=True)
         self._ur = uinv.reshape(np.shape(ur_tris)).astype(np.int64)
         udofs = (3 * un[:, None] + np.arange(3)).ravel()
         self._ux0 = fem.x_rest[udofs]
         self._Vu = np.ascontiguousarray(V[udofs])
         self._nu = len(un)
-        nd = self._Ve.shape[1]
-        self._FE = np.empty((len(loc), nd))
-        self._KE = np.empty((len(loc), nd, nd))
-        self._lidx = loc
 
     def x(self, q: np.ndarray) -> np.ndarray:
         """(3N,) positions of the reduced state ``q``."""
@@ -215,16 +180,15 @@ class ReducedModel:
     def residual(self, q: np.ndarray, lam: np.ndarray, need_K: bool = True):
         """(R (r,), K (r, r) or None, reference magnitude) of the reduced equilibrium f_int − f_ext
         at ``q``; (None, None, nan) where an element of the set is inverted."""
-        xl = self._x0 + self._Vn @ q
-        if element_kernel(xl, self._conn, self._dN, self._wq, self._law, self._prm, self._lidx, need_K,
-                          self._FE, self._KE):
+        es = self._set
+        if not es.evaluate(self._x0 + self._Vn @ q, need_K):
             return None, None, float("nan")
         w = self.weights
-        fi = np.einsum("snr,sn->r", self._Ve, self._FE * w[:, None])
+        fi = np.einsum("snr,sn->r", self._Ve, es.FE * w[:, None])
         fa = self.Hr @ lam[:3]
         K = None
         if need_K:
-            KV = np.matmul(self._KE, self._Ve) * w[:, None, None]  # (S, nd, r)
+            KV = np.matmul(es.KE, self._Ve) * w[:, None, None]  # (S, nd, r)
             S, nd, r = self._Ve.shape
             K = self._Ve.reshape(S * nd, r).T @ KV.reshape(S * nd, r)
         if lam[3] != 0.0:
@@ -237,22 +201,27 @@ class ReducedModel:
         return fi - fa, K, ref
 
     def solve(self, lam, q0: np.ndarray | None = None, *, h: np.ndarray | None = None,
-              target: float | None = None, tol: float = NEWTON_TOL) -> ReducedSolution:
-        """The reduced equilibrium at ``lam`` (4,) by damped Newton from ``q0`` (default: rest).
-        Mixed control with ``h`` (r,) and ``target``: f_x (``lam[0]`` its first guess) is the unknown
-        that puts hᵀq at ``target`` (the bordered system [K −h_f; hᵀ 0], h_f = Vᵀ H_x).
-        Raises :class:`SolverError` if it does not converge."""
+              target: float | None = None, tol: float = NEWTON_TOL, K0: np.ndarray | None = None) -> ReducedSolution:
+        """The reduced equilibrium at ``lam`` (4,) from ``q0`` (default: rest): chord iterations with
+        the reduced tangent ``K0`` (a neighbour's; default: the tangent at ``q0``), the tangent
+        assembled anew where they contract slower than :data:`CHORD_RATE` (Newton then), each step
+        backtracked on ‖R‖. Mixed control with ``h`` (r,) and ``target``: f_x (``lam[0]`` its first
+        guess) is the unknown that puts hᵀq at ``target`` (the bordered system [K −h_f; hᵀ 0],
+        h_f = Vᵀ H_x). Raises :class:`SolverError` if it does not converge."""
         lam = np.array(lam, float).reshape(4)
         q = np.zeros(self.r) if q0 is None else np.array(q0, float)
         mixed = h is not None
-        R, K, ref = self.residual(q, lam)
+        R, K, ref = self.residual(q, lam, need_K=K0 is None)
         if R is None:
             raise SolverError(f"reduced model: start state inverted at {lam.round(4).tolist()}")
+        K = K if K0 is None else K0
+        fresh = K0 is None
+        tangents = int(fresh)
         for it in range(NEWTON_MAX_ITER):
             gap = float(h @ q - target) if mixed else 0.0
             rn = float(np.linalg.norm(R))
-            if rn <= tol * max(ref, 1e-300) and abs(gap) <= 1e-12 * (1.0 + abs(target or 0.0)) and it > 0:
-                return ReducedSolution(q, lam, it)
+            if rn <= tol * max(ref, 1e-300) and abs(gap) <= 1e-12 * (1.0 + abs(target or 0.0)):
+                return ReducedSolution(q, lam, it, K, tangents)
             if mixed:
                 A = np.zeros((self.r + 1, self.r + 1))
                 A[:-1, :-1] = K
@@ -270,11 +239,20 @@ class ReducedModel:
                 if R2 is not None and (np.linalg.norm(R2) < max(rn * (1 - 1e-4 * a), tol * ref2) or a < 1e-3):
                     break
                 if a < 1e-3:
-                    raise SolverError(f"reduced model: inverted along the Newton step at {lam.round(4).tolist()}")
+                    break
                 a *= 0.5
-            q, lam = q + a * dq, lam2
-            R, K, ref = self.residual(q, lam)
-            if R is None:
-                raise SolverError(f"reduced model: inverted at {lam.round(4).tolist()}")
+            if R2 is None or (np.linalg.norm(R2) >= rn and not mixed):
+                if fresh:
+                    raise SolverError(f"reduced model: no descent along the Newton step at {lam.round(4).tolist()}")
+                _, K, _ = self.residual(q, lam)  # a stale tangent: Newton's from here
+                fresh, tangents = True, tangents + 1
+                continue
+            rate = float(np.linalg.norm(R2)) / max(rn, 1e-300)
+            q, lam, R, ref = q + a * dq, lam2, R2, ref2
+            if rate > CHORD_RATE:
+                _, K, _ = self.residual(q, lam)
+                fresh, tangents = True, tangents + 1
+            else:
+                fresh = False
         raise SolverError(f"reduced model: Newton did not converge at {lam.round(4).tolist()} "
                           f"(|R| {np.linalg.norm(R):.2e} of {ref:.2e})")
