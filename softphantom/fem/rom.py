@@ -98,14 +98,15 @@ def _reduced_forces(fem, V: np.ndarray, elems: np.ndarray, states) -> tuple[np.n
 
 
 def ecsw_weights(fem, V: np.ndarray, states, tol: float = 1e-3, sketch: int | None = None,
-                 seed: int = 0, chunk: int = 1024) -> tuple[np.ndarray, np.ndarray, float]:
+                 seed: int = 0, chunk: int = 1024, max_sketch: int | None = None) -> tuple[np.ndarray, np.ndarray, float]:
     """ECSW element set and weights: ξ ≥ 0 with ‖Σ_e ξ_e g_e(x_s) − Σ_e g_e(x_s)‖ ≤ tol‖Σ_e g_e(x_s)‖
     for each training state x_s, g_e = V_eᵀ f_e the element's reduced force (rows normalised per
     state). The r·S constraint rows are compressed by a seeded CountSketch of ``sketch`` rows
     (default 3r: each row added with a random sign to one sketch row, r·M work), and the NNLS is
     solved exactly on the sketch (Lawson–Hanson, at most ``sketch`` elements); the sketch doubles
-    until every state's own relative error, on all its rows, meets ``tol``.
-    Returns (elements, weights, the worst state's relative error)."""
+    until every state's own relative error, on all its rows, meets ``tol``, or up to ``max_sketch``
+    rows (default 8r: the NNLS's cost grows with the cube of the rows).
+    Returns (elements, weights, the worst state's relative error: the caller's to judge)."""
     from softphantom.fem.corotational import internal_force
 
     states = [np.asarray(x, float) for x in states]
@@ -129,9 +130,9 @@ def ecsw_weights(fem, V: np.ndarray, states, tol: float = 1e-3, sketch: int | No
         idx = np.flatnonzero(xi)
         Ve, G = _reduced_forces(fem, V, idx, states)
         err = max(float(np.linalg.norm(Gs @ xi[idx] - bs) * s) for Gs, bs, s in zip(G, b, scale))
-        if err <= tol or k >= M:
+        if err <= tol or k >= min(M, max_sketch or 8 * r):
             return idx, xi[idx], err
-        k = min(2 * k, M)
+        k = min(2 * k, M, max_sketch or 8 * r)
 
 
 @dataclass
