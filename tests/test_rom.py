@@ -101,9 +101,10 @@ def test_ecsw_weights_reproduce_the_training_forces_to_their_tolerance(fwd):
 
 @pytest.mark.parametrize("x_control", ["force", "displacement"])
 def test_atlas_built_by_the_reduced_model_agrees_with_the_full_one(coarse_model, x_control, monkeypatch, tmp_path):
-    """A small atlas, full and reduced: the same key apart from ``offline``, the reduced one's
-    provenance carries its checks, and the two polynomials agree at off-grid loads within 2 % of
-    the volumes' range (measured: see the assertion's figures in docs/offline.md)."""
+    """A small atlas, full and reduced: another key, the reduced one's provenance carries its
+    checks, and the two polynomials agree at off-grid loads within twice the error the checks
+    measured (so the recorded figure can be trusted) and within 1 % of the volumes' range
+    (measured on this model, either axis: 0.023 mm³ off-grid, checks 0.025 mm³, range 7.0 mm³)."""
     from softphantom.estimation import build_atlas
     from softphantom.estimation import offline
 
@@ -118,7 +119,8 @@ def test_atlas_built_by_the_reduced_model_agrees_with_the_full_one(coarse_model,
     from dataclasses import replace
 
     red = build_atlas(coarse_model, CFG, replace(base, offline="rom"), **kw)
-    assert red.key != full.key and red.solved.all()
+    assert red.key != full.key
+    assert red.solved.all()
     off = red.provenance["offline"]
     assert off["checks"] == 4 and off["snapshots"] == 20 and off["check_max_dV_mm3"] >= 0
     # the checks' error survives the file and is what `atlas info` says
@@ -132,10 +134,14 @@ def test_atlas_built_by_the_reduced_model_agrees_with_the_full_one(coarse_model,
     worst = 0.0
     for _ in range(20):
         lam = lo + (hi - lo) * rng.uniform(0.05, 0.95, 4)
+        if not red.solved_at(red.coords(lam[:3], lam[3])):
+            continue
         worst = max(worst, float(np.max(np.abs(red.volumes(red.coords(lam[:3], lam[3]))[0]
                                                 - full.volumes(full.coords(lam[:3], lam[3]))[0]))))
     vol_range = float(np.ptp([full.volumes(lo + (hi - lo) * u)[0] for u in rng.uniform(size=(10, 4))]))
-    assert worst <= 0.02 * vol_range, (worst, vol_range)
+    print(f"offline rom, {x_control} axis: checks {off['check_max_dV_mm3']:.4f} mm3, off-grid {worst * 1e9:.4f} mm3 "
+          f"of a {vol_range * 1e9:.2f} mm3 range, {red.solved.mean():.0%} of the grid solved")
+    assert worst <= 2 * off["check_max_dV_mm3"] * 1e-9 and worst <= 0.01 * vol_range, (worst, vol_range)
 
 
 def test_atlas_build_refuses_an_unknown_offline_stage_in_one_line(coarse_model_dir, capsys):

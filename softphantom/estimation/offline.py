@@ -42,7 +42,7 @@ SEED = 7
 SNAPSHOT_CACHE = None  # a path: the snapshot solves kept there and reused (benchmarks re-running one build)
 
 
-def snapshot_loads(lower: np.ndarray, upper: np.ndarray, n_lhs: int = N_LHS, seed: int = SEED) -> np.ndarray:
+def snapshot_loads(lower: np.ndarray, upper: np.ndarray, n_lhs: int | None = None, seed: int = SEED) -> np.ndarray:
     """(n, 4) N, N, N, Pa: the snapshot loads in the box [lower, upper] (see the module docstring).
 
     >>> import numpy as np
@@ -51,6 +51,7 @@ def snapshot_loads(lower: np.ndarray, upper: np.ndarray, n_lhs: int = N_LHS, see
     ((36, 4), True)
     """
     lo, hi = np.asarray(lower, float), np.asarray(upper, float)
+    n_lhs = N_LHS if n_lhs is None else n_lhs
     rng = np.random.default_rng(seed)
     corners = np.array(np.meshgrid(*[[0.0, 1.0]] * 4, indexing="ij")).reshape(4, -1).T
     u = (rng.permuted(np.tile(np.arange(n_lhs), (4, 1)), axis=1).T + rng.uniform(size=(n_lhs, 4))) / max(n_lhs, 1)

@@ -105,7 +105,7 @@ def ecsw_weights(fem, V: np.ndarray, states, tol: float = 1e-3, sketch: int | No
     (default 3r: each row added with a random sign to one sketch row, r·M work), and the NNLS is
     solved exactly on the sketch (Lawson–Hanson, at most ``sketch`` elements); the sketch doubles
     until every state's own relative error, on all its rows, meets ``tol``, or up to ``max_sketch``
-    rows (default 8r: the NNLS's cost grows with the cube of the rows).
+    rows (default the larger of 8r and 1024: the NNLS cost grows with the cube of the rows).
     Returns (elements, weights, the worst state's relative error: the caller's to judge)."""
     from softphantom.fem.corotational import internal_force
 
@@ -130,9 +130,10 @@ def ecsw_weights(fem, V: np.ndarray, states, tol: float = 1e-3, sketch: int | No
         idx = np.flatnonzero(xi)
         Ve, G = _reduced_forces(fem, V, idx, states)
         err = max(float(np.linalg.norm(Gs @ xi[idx] - bs) * s) for Gs, bs, s in zip(G, b, scale))
-        if err <= tol or k >= min(M, max_sketch or 8 * r):
+        cap = max_sketch or max(8 * r, 1024)
+        if err <= tol or k >= min(M, cap):
             return idx, xi[idx], err
-        k = min(2 * k, M, max_sketch or 8 * r)
+        k = min(2 * k, M, cap)
 
 
 @dataclass
@@ -232,12 +233,15 @@ class ReducedModel:
                 dq, dfx = step[:-1], step[-1]
             else:
                 dq, dfx = np.linalg.solve(K, -R), 0.0
+            # off the constraint the full step goes onto it whatever it does to ‖R‖; on it, backtracking
+            # on ‖R‖ (the constraint is linear: every step along it stays on it)
+            onto = mixed and abs(gap) > 1e-12 * (1.0 + abs(target))
             a = 1.0
-            while True:  # backtracking on the residual (the constraint is linear: any step keeps it affine)
+            while True:
                 lam2 = lam.copy()
                 lam2[0] += a * dfx
                 R2, _, ref2 = self.residual(q + a * dq, lam2, need_K=False)
-                if R2 is not None and (np.linalg.norm(R2) < max(rn * (1 - 1e-4 * a), tol * ref2) or a < 1e-3):
+                if R2 is not None and (onto or np.linalg.norm(R2) < max(rn * (1 - 1e-4 * a), tol * ref2) or a < 1e-3):
                     break
                 if a < 1e-3:
                     break
