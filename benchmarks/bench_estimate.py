@@ -167,20 +167,22 @@ def stop_load(procs) -> None:
         p.wait()
 
 
-def held_out(est: AtlasEstimator, fwd: ForwardModel, n: int, seed: int = 3, core_N: float = 0.0):
+def held_out(est: AtlasEstimator, fwd: ForwardModel, n: int, seed: int = 3, core_N: float = 0.0, loads_in=None):
     """Max (and 90th-percentile) errors of the atlas against converged forward solves at ``n`` seeded
     random loads inside the envelope's solved cells: volumes (mm³), points (mm), field (mm), and the
     inverse (N, mm, deg) started 0.3 N away (a stream's previous estimate is much closer; 77 Hz at
     5 N/2 s: 0.03 N); and the load of the largest force error. ``core_N`` > 0: f_x drawn within
     ±core_N instead (the arm pair's step about f_x = 0, where the map is steepest). ``fwd`` solves
-    the truths (the estimator's model and contact; the equilibria only are used)."""
+    the truths (the estimator's model and contact; the equilibria only are used). ``loads_in`` (n, 4):
+    these loads instead of random ones (those outside the solved cells skipped)."""
     rng = np.random.default_rng(seed)
+    given = list(loads_in) if loads_in is not None else None
     at = est.atlas
     lo, hi = at.config.lower, at.config.upper
     rows, loads = [], []
-    while len(rows) < n:
-        lam = lo + (hi - lo) * rng.uniform(0.02, 0.98, 4)
-        if core_N > 0:
+    while (given if given is not None else len(rows) < n):
+        lam = given.pop(0) if given is not None else lo + (hi - lo) * rng.uniform(0.02, 0.98, 4)
+        if core_N > 0 and given is None:
             lam[0] = rng.uniform(max(lo[0], -core_N), min(hi[0], core_N))
         c = at.coords(lam[:3], lam[3])  # the atlas's coordinates of the load (its first axis may be ū_x)
         if not at.solved_at(c):

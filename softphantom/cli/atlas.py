@@ -52,12 +52,17 @@ def build_cmd(
                                         "forces (N, comma-separated; '' for one piece)."),
     envelope: str = typer.Option(None, "--envelope", help="Load envelope FXMIN:FXMAX,FYMIN:FYMAX,FZMIN:FZMAX,"
                                  "PMIN:PMAX in N and kPa."),
+    offline: str = typer.Option("full", "--offline", help="How the grid is solved: full (a converged full solve "
+                                "per point) or rom (a reduced model trained on a few full solves and checked "
+                                "against others; the checks' error is in atlas info). docs/offline.md."),
     scheduler: str = typer.Option(None, "--scheduler", help="Dask scheduler address (default: a local cluster)."),
     workers: int = typer.Option(None, "--workers", help="Local cluster: worker processes (default: all cores)."),
     rebuild: bool = typer.Option(False, "--rebuild", help="Build again even where an atlas file is cached, "
                                  "replacing a damaged or stale one."),
 ) -> None:
     """Build the atlas of a model (or find it built) in MODEL/atlas/, on Dask."""
+    from dataclasses import replace
+
     from softphantom.estimation import EstimatorConfig
     from softphantom.estimation.atlas_build import load_or_build
     from softphantom.estimation.atlas_config import default_atlas_config
@@ -65,11 +70,14 @@ def build_cmd(
     from softphantom.estimation.select import atlas_config_from_options
 
     atlas_config_from_options(atlas_grid, envelope, atlas_x_axis, atlas_f_y_split)  # bad options fail first
+    if offline not in ("full", "rom"):
+        raise UserError(f"--offline: full or rom, got {offline!r}")
     if workers is not None and workers < 1:
         raise UserError(f"--workers must be >= 1, got {workers}")
     model = _model(model_dir)
     acfg = atlas_config_from_options(atlas_grid, envelope, atlas_x_axis, atlas_f_y_split,
                                      base=default_atlas_config(model.element_order))
+    acfg = replace(acfg, offline=offline)
     built = load_or_build(model, EstimatorConfig(contact=_contact(at)), acfg, cache_dir=model_dir,
                           scheduler=scheduler, n_workers=workers, rebuild=rebuild,
                           log=lambda s: console.print(s, highlight=False, soft_wrap=True))

@@ -423,8 +423,15 @@ def build_atlas(model, config: EstimatorConfig | None = None, atlas: AtlasConfig
     cpu_s = 0.0
     n_fwd = 0
     label = f"atlas: {acfg.n_solves} forward solves"
+    offline = None
     with dask_client(scheduler, n_workers, processes=processes) as client:
-        if acfg.x_control == "force":
+        if acfg.offline == "rom":  # the grid by a reduced model (softphantom.estimation.offline)
+            from softphantom.estimation.offline import rom_grid
+
+            V, P, X, solved, FX, QN, cpu_s, n_fwd, offline = rom_grid(model, cfg, acfg, fwd, client,
+                                                                      progress=progress, log=log)
+            stages = []
+        elif acfg.x_control == "force":
             stages = [(planes, label, False)]
         else:  # the f_x faces first: their patch displacements are the inner lines' ends
             faces = [(i, l) for i, l in planes if i in (0, n1 - 1)]
@@ -475,7 +482,7 @@ def build_atlas(model, config: EstimatorConfig | None = None, atlas: AtlasConfig
                     log(f"atlas: plane {'f_x' if acfg.x_control == 'force' else 'q'} {ax[0][i]:+.2f} N, urethra "
                         f"{p_u * 1e-3:.1f} kPa: {ok.size - ok.sum()} of {ok.size} points unreachable "
                         f"({err or 'beyond a failed point'})")
-    if acfg.x_control == "displacement":
+    if acfg.x_control == "displacement" and offline is None:
         log(f"atlas: {n_fwd} converged forward solves for {int(solved.sum())} points (displacement axis: "
             f"{n_fwd - int(solved.sum())} more, the lines' faces solved again and the trials)")
     weights = fill_weights(solved, ax)
@@ -505,7 +512,8 @@ def build_atlas(model, config: EstimatorConfig | None = None, atlas: AtlasConfig
     cFx = to_chebyshev(FX[..., None], shape, tq) if acfg.x_control == "displacement" else np.zeros((*shape, 0))
     return Atlas(key=key, config=acfg, cV=cV, cP=cP, cF=cF, cFx=cFx, q_nodes=QN, modes=modes, x_rest=fwd.fem.x_rest.copy(),
                  build_s=time.perf_counter() - t0, solves=int(solved.sum()) * acfg.n_solves // solved.size,
-                 field_rms_m=field_rms, solved=solved, build_cpu_s=cpu_s, provenance=provenance(model, fwd))
+                 field_rms_m=field_rms, solved=solved, build_cpu_s=cpu_s,
+                 provenance={**provenance(model, fwd), **({"offline": offline} if offline else {})})
 
 
 def _solves(at: Atlas) -> str:

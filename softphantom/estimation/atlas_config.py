@@ -15,6 +15,7 @@ STRETCH_FX_N = 0.02  # the default f_x stretch width: the arm pair's step core a
 STRETCH_MIN_POINTS = 9  # f_x points from which the default stretches f_x
 STRETCH_Q = 0.3  # the default stretch of a displacement axis (N-equivalent; docs/estimation.md)
 X_CONTROLS = ("displacement", "force")
+OFFLINE = ("full", "rom")  # how the grid is solved: full solves, or a reduced model checked by full solves
 
 
 @dataclass(frozen=True)
@@ -85,6 +86,7 @@ class AtlasConfig:
     force_cluster_N: tuple[float, float, float] | None = None
     x_control: str = "force"
     f_y_splits_N: tuple[float, ...] = ()
+    offline: str = "full"
 
     def __post_init__(self) -> None:
         lo = tuple(float(v) for v in self.force_min_N)
@@ -107,8 +109,12 @@ class AtlasConfig:
             raise UserError(f"atlas n_pressure must be an integer in 2..15, got {self.n_pressure}")
         if self.linear_pressure and self.n_pressure != 2:
             raise UserError(f"atlas linear_pressure needs n_pressure 2, got {self.n_pressure}")
+        if self.offline not in OFFLINE:
+            raise UserError(f"atlas offline: one of {', '.join(OFFLINE)}, got {self.offline!r}")
         if self.x_control not in X_CONTROLS:
             raise UserError(f"atlas x_control: one of {', '.join(X_CONTROLS)}, got {self.x_control!r}")
+        if self.linear_pressure and self.offline != "full":
+            raise UserError("atlas linear_pressure needs offline 'full' (its tangent line comes from the full solves)")
         if self.linear_pressure and self.x_control != "force":
             raise UserError("atlas linear_pressure needs x_control 'force' (the tangent line is at fixed f_x), "
                             f"got {self.x_control!r}")
@@ -141,6 +147,8 @@ class AtlasConfig:
         d["force_cluster_N"] = self.cluster_N
         if not self.f_y_splits_N:
             del d["f_y_splits_N"]  # an atlas of one piece keeps the key it had before the field
+        if self.offline == "full":
+            del d["offline"]  # likewise an atlas of full solves
         return d
 
     def patches(self) -> tuple["AtlasConfig", ...]:

@@ -198,6 +198,12 @@ def describe(at: Atlas) -> list[tuple[str, str]]:
         ("size", f"{at.nbytes / 1e6:.1f} MB of coefficients, {at.field_modes} field modes"),
         ("built", f"{prov.get('built_utc', '?')} by softphantom {prov.get('softphantom', '?')}"),
     ]
+    off = prov.get("offline")
+    if off:  # a grid solved by the reduced model: its size and its measured error
+        rows.insert(5, ("offline", f"reduced model ({off['snapshots']} full snapshot solves, basis {off['basis']}, "
+                                   f"{off['elements']} ECSW elements); {off['checks']} full checks: volumes within "
+                                   f"{off['check_max_dV_mm3']:.3f} mm³, points {off['check_max_points_mm']:.4f} mm, "
+                                   f"f_x {off['check_max_fx_N']:.4f} N"))
     return rows
 
 
