@@ -15,7 +15,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1] / "softphantom"
 
 LAYERS = (
-    "(root)", "errors", "progress", "parallel", "pose", "records", "stream", "design", "molds", "fem",
+    "(root)", "errors", "schema", "progress", "parallel", "pose", "records", "stream", "design", "molds", "fem",
     "sensing", "estimation", "tracking", "evaluation", "calibration", "study", "virtual", "viz", "sources",
     "cli", "__main__",
 )

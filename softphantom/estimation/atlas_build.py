@@ -20,15 +20,14 @@ import numpy as np
 
 from softphantom.errors import SolverError
 from softphantom.estimation.atlas_basis import axis_t, to_chebyshev
-from softphantom.estimation.atlas_config import AtlasConfig, default_atlas_config
+from softphantom.estimation.atlas_config import (FALLBACK_MIN_LOAD_STEP, VIA_TOL, AtlasConfig, default_atlas_config,
+                                                x_patch)
 from softphantom.estimation.atlas_map import Atlas, AtlasPatches
 from softphantom.estimation.atlas_store import AtlasCorrupt, AtlasMismatch, atlas_key, atlas_path, load_atlas, save_atlas
 from softphantom.estimation.config import EstimatorConfig
 from softphantom.estimation.forward import ForwardModel
 from softphantom.estimation.linearization import PatchControl
 
-FALLBACK_MIN_LOAD_STEP = 1.0 / 32
-VIA_TOL = 1e-3  # relative residual of the continuation steps between grid points (they only start the next)
 FIELD_MAX_MODES = 64
 # a displacement-controlled point is kept where it lands within this fraction of the distance to the
 # next node along q (the fit takes each line's own nodes, to_chebyshev): a new solve costs more
@@ -85,12 +84,6 @@ def _plane_walk(ny: int, nz: int, j0: int, k0: int) -> list[tuple[tuple[int, int
         out.append((p, parent, len(kids)))
         stack.extend((c, p) for c in reversed(kids))
     return out
-
-
-def x_patch(fwd: ForwardModel) -> np.ndarray:
-    """(3N,) the contact patch's x load vector H_x (per N of f_x): ū_x = H_xᵀ(x − x_rest) is the
-    displacement work-conjugate to f_x, the first axis of a displacement-controlled atlas."""
-    return np.asarray(fwd.H_f[:, 0].todense()).ravel()
 
 
 def _solve_ux(fwd: ForwardModel, h: np.ndarray, lam: np.ndarray, target: float, start, bracket,

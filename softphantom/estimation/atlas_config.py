@@ -5,11 +5,15 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from softphantom.errors import UserError
 from softphantom.estimation.atlas_basis import cheb_points
+
+if TYPE_CHECKING:
+    from softphantom.estimation.forward import ForwardModel
 
 STRETCH_FX_N = 0.02  # the default f_x stretch width: the arm pair's step core at 3.5–5 N (docs/estimation.md)
 STRETCH_MIN_POINTS = 9  # f_x points from which the default stretches f_x
@@ -218,3 +222,13 @@ def default_atlas_config(order: int = 1) -> AtlasConfig:
         return AtlasConfig(n_force=P2_N_FORCE, x_control="displacement", f_y_splits_N=P2_F_Y_SPLITS_N)
     return AtlasConfig()
 
+
+# how the build's solves are driven (the full build and the reduced model's snapshots and checks)
+FALLBACK_MIN_LOAD_STEP = 1.0 / 32
+VIA_TOL = 1e-3  # relative residual of the continuation steps between grid points (they only start the next)
+
+
+def x_patch(fwd: ForwardModel) -> np.ndarray:
+    """(3N,) the contact patch's x load vector H_x (per N of f_x): ū_x = H_xᵀ(x − x_rest) is the
+    displacement work-conjugate to f_x, the first axis of a displacement-controlled atlas."""
+    return np.asarray(fwd.H_f[:, 0].todense()).ravel()

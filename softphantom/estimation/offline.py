@@ -88,7 +88,7 @@ def _snapshots(model, config: EstimatorConfig, loads: np.ndarray, scale: np.ndar
     """One task: full solves at ``loads`` in turn, each from the nearest one solved (from rest first),
     with the tangent factored at each solution (exact K⁻¹B). Returns (solved: list of (lam, x, U),
     first failure or '', CPU seconds, converged solves)."""
-    from softphantom.estimation.atlas_build import FALLBACK_MIN_LOAD_STEP, VIA_TOL
+    from softphantom.estimation.atlas_config import FALLBACK_MIN_LOAD_STEP, VIA_TOL
 
     t0 = time.process_time()
     fwd = ForwardModel(model, config, exact_sensitivities=False, fallback_min_load_step=FALLBACK_MIN_LOAD_STEP)
@@ -110,7 +110,7 @@ def _checks(model, config: EstimatorConfig, items):
     """One task: full solves at grid points started from their reduced states. ``items``: (lam, x,
     target_m or None (force control) , f_x bounds). Returns (list of (lam, x, U) or None per item,
     CPU seconds)."""
-    from softphantom.estimation.atlas_build import FALLBACK_MIN_LOAD_STEP, x_patch
+    from softphantom.estimation.atlas_config import FALLBACK_MIN_LOAD_STEP, x_patch
 
     t0 = time.process_time()
     fwd = ForwardModel(model, config, exact_sensitivities=False, fallback_min_load_step=FALLBACK_MIN_LOAD_STEP)

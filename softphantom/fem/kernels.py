@@ -74,7 +74,7 @@ def _point_kernel(law, prm, F, P, D, need):
 def point(law: int, prm, F, need: int = 2):
     """(W, P, D) of law ``law`` (its id) with the parameter row ``prm`` at one F, from Python
     (tests, closed forms): the same point function the element kernels call
-    (:meth:`~softphantom.fem.laws.base.Law.evaluate` calls it with a law object's own).
+    (:meth:`~softphantom.fem.laws.base.Law.evaluate` is the same for one law object).
 
     >>> import numpy as np
     >>> from softphantom.fem.laws import NeoHookean

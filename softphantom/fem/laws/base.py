@@ -173,10 +173,15 @@ class Law:
         return self.evaluate(F, 2)[2]
 
     def evaluate(self, F, need: int = 2) -> tuple[float, np.ndarray, np.ndarray]:
-        """(W, P, D) at ``F`` (``need`` as the point function's)."""
-        from softphantom.fem.kernels import point
-
-        return point(self.law_id, self.params(), F, need)
+        """(W, P, D) at ``F`` (``need`` as the point function's): the law's own point function,
+        the one the element kernels inline."""
+        P, D = np.zeros((3, 3)), np.zeros((9, 9))
+        prm = np.zeros((1, N_PARAMS))
+        row = np.asarray(self.params(), float)
+        prm[0, :row.size] = row
+        work = [np.empty((3, 3)) for _ in range(N_WORK)]
+        W = type(self).point(prm, 0, np.ascontiguousarray(F, dtype=np.float64), P, D, int(need), *work)
+        return float(W), P, D
 
 
 def design_key(name: str) -> str:
