@@ -124,6 +124,17 @@ _EXPECTED = {"float_type": "a number", "int_type": "an integer", "bool_type": "t
 _BOUND = {"greater_than": ">", "greater_than_equal": ">=", "less_than": "<", "less_than_equal": "<="}
 
 
+def _is_point(model: type, loc: tuple) -> bool:
+    """Whether the field at ``loc`` holds exactly 3 entries (a point or vector: say so when it is
+    not a list at all)."""
+    owner = _model_at(model, loc[:-1])
+    f = next((f for n, f in (_fields(owner) or {}).items() if loc[-1] in (n, f.alias)), None) if owner else None
+    if f is None:
+        return False
+    metas = list(f.metadata) + [m for a in typing.get_args(f.annotation) for m in getattr(a, "metadata", ())]
+    return any(getattr(m, "max_length", None) == 3 for m in metas)
+
+
 def message(model: type, err: dict, where: str = "", top: str = "top level") -> str:
     """One line for one pydantic error: ``where.key = value must be > 0 mm``."""
     loc, kind, value = tuple(err["loc"]), err["type"], err.get("input")
@@ -135,6 +146,8 @@ def message(model: type, err: dict, where: str = "", top: str = "top level") -> 
         return f"{_path(where, loc[:-1]) or top}: unknown key {loc[-1]!r}{names}"
     if kind == "missing":
         return f"{path}: missing"
+    if kind in ("list_type", "tuple_type") and _is_point(model, loc):
+        return f"{path}: expected 3 numbers [x, y, z], got {value!r}"
     if kind in _EXPECTED:
         return f"{path}: expected {_EXPECTED[kind]}, got {value!r}"
     if kind in ("too_short", "too_long"):
