@@ -25,6 +25,7 @@ import time
 import numpy as np
 
 from softphantom.errors import SolverError
+from softphantom.estimation.atlas_config import FALLBACK_MIN_LOAD_STEP, VIA_TOL, x_patch
 from softphantom.estimation.config import EstimatorConfig
 from softphantom.estimation.forward import ForwardModel
 from softphantom.estimation.linearization import Linearization, PatchControl
@@ -88,8 +89,6 @@ def _snapshots(model, config: EstimatorConfig, loads: np.ndarray, scale: np.ndar
     """One task: full solves at ``loads`` in turn, each from the nearest one solved (from rest first),
     with the tangent factored at each solution (exact K⁻¹B). Returns (solved: list of (lam, x, U),
     first failure or '', CPU seconds, converged solves)."""
-    from softphantom.estimation.atlas_config import FALLBACK_MIN_LOAD_STEP, VIA_TOL
-
     t0 = time.process_time()
     fwd = ForwardModel(model, config, exact_sensitivities=False, fallback_min_load_step=FALLBACK_MIN_LOAD_STEP)
     done = [fwd.rest]
@@ -110,8 +109,6 @@ def _checks(model, config: EstimatorConfig, items):
     """One task: full solves at grid points started from their reduced states. ``items``: (lam, x,
     target_m or None (force control) , f_x bounds). Returns (list of (lam, x, U) or None per item,
     CPU seconds)."""
-    from softphantom.estimation.atlas_config import FALLBACK_MIN_LOAD_STEP, x_patch
-
     t0 = time.process_time()
     fwd = ForwardModel(model, config, exact_sensitivities=False, fallback_min_load_step=FALLBACK_MIN_LOAD_STEP)
     h = x_patch(fwd)
@@ -225,6 +222,7 @@ def rom_grid(model, cfg: EstimatorConfig, acfg, fwd: ForwardModel, client, *, pr
     from softphantom.parallel import map_tasks
 
     lo, hi = acfg.lower, acfg.upper
+    ax = acfg.axes()
     scale = hi - lo
     shape = acfg.shape
     loads = snapshot_loads(lo, hi)
@@ -272,7 +270,7 @@ def rom_grid(model, cfg: EstimatorConfig, acfg, fwd: ForwardModel, client, *, pr
         pick = pts[rng.choice(len(pts), size=min(N_CHECK, len(pts)), replace=False)]
         items = []
         for p in map(tuple, pick):
-            lam = np.array([F[p], *[acfg.axes()[a][p[a]] for a in (1, 2, 3)]])
+            lam = np.array([F[p], *[ax[a][p[a]] for a in (1, 2, 3)]])
             target = None if np.isnan(T[p]) else float(T[p])
             items.append((lam, rom.x(Q[p]), target, (lo[0], hi[0])))
         t2 = time.perf_counter()
@@ -318,7 +316,5 @@ def rom_grid(model, cfg: EstimatorConfig, acfg, fwd: ForwardModel, client, *, pr
         V[p] = fwd.eq.arm_volumes(x)
         P[p] = fwd.probe @ x.reshape(-1, 3)
         X[p] = x - fwd.fem.x_rest
-    if acfg.x_control == "displacement":  # the nodes are hit exactly: the first coordinate is the node
-        QN = np.broadcast_to(acfg.axes()[0].reshape(-1, 1, 1, 1), shape).copy()
     return V, P, X, solved, F, QN, cpu_full + sum(r["train_cpu_s"] + r["grid_cpu_s"] for r in info["rounds"]), \
         n_full, info
