@@ -139,7 +139,7 @@ def train(fwd: ForwardModel, snaps, lower: np.ndarray, upper: np.ndarray, *, pod
     Vf, _ = pod_basis(D, pod_rtol)
     V = np.zeros((fem.n_dof, Vf.shape[1]))
     V[fem.free_dofs] = Vf
-    idx, w, err = ecsw_weights(fem, V, [x for _, x, _ in snaps], tol=ecsw_tol, seed=SEED)
+    idx, w, err = ecsw_weights(fem, V, [x for _, x, _ in snaps], tol=ecsw_tol)
     rom = ReducedModel(fem, V, fwd.H_f, fwd.eq._ur_tris, idx, w)
     return rom, {"basis": int(V.shape[1]), "elements": int(len(idx)), "ecsw_error": float(err)}
 

@@ -16,8 +16,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.sparse as sp
-from scipy.optimize import nnls
 
 from softphantom.errors import SolverError
 from softphantom.fem.actuators import pressure_load, pressure_load_tangent
@@ -97,43 +95,110 @@ def _reduced_forces(fem, V: np.ndarray, elems: np.ndarray, states) -> tuple[np.n
     return Ve, out
 
 
-def ecsw_weights(fem, V: np.ndarray, states, tol: float = 1e-3, sketch: int | None = None,
-                 seed: int = 0, chunk: int = 1024, max_sketch: int | None = None) -> tuple[np.ndarray, np.ndarray, float]:
-    """ECSW element set and weights: ξ ≥ 0 with ‖Σ_e ξ_e g_e(x_s) − Σ_e g_e(x_s)‖ ≤ tol‖Σ_e g_e(x_s)‖
-    for each training state x_s, g_e = V_eᵀ f_e the element's reduced force (rows normalised per
-    state). The r·S constraint rows are compressed by a seeded CountSketch of ``sketch`` rows
-    (default 3r: each row added with a random sign to one sketch row, r·M work), and the NNLS is
-    solved exactly on the sketch (Lawson–Hanson, at most ``sketch`` elements); the sketch doubles
-    until every state's own relative error, on all its rows, meets ``tol``, or up to ``max_sketch``
-    rows (default the larger of 8r and 1024: the NNLS cost grows with the cube of the rows).
-    Returns (elements, weights, the worst state's relative error: the caller's to judge)."""
-    from softphantom.fem.corotational import internal_force
+def nnls_to_tolerance(A: np.ndarray, b: np.ndarray, groups: np.ndarray, tol: float, batch: float = 0.05,
+                      max_iter: int | None = None) -> tuple[np.ndarray, float]:
+    """A sparse ξ ≥ 0 with every group's residual ‖(Aξ − b)_g‖ ≤ tol‖b_g‖: Lawson–Hanson's active-set
+    NNLS stopped at that tolerance instead of at the exact optimum. Each outer step adds the
+    columns of largest positive gradient Aᵀ(b − Aξ) (one, or ``batch`` of the active set's size);
+    the least squares on the active set are solved through its Gram matrix, grown a column at a
+    time. ``groups`` (rows,) the group of each row (a training state). Returns (ξ (M,), the worst
+    group's relative residual).
 
+    >>> import numpy as np
+    >>> rng = np.random.default_rng(0)
+    >>> A = rng.uniform(size=(40, 200))
+    >>> xi, err = nnls_to_tolerance(A, A.sum(axis=1), np.zeros(40, int), 1e-6)
+    >>> bool(err <= 1e-6), bool((xi >= 0).all()), int((xi > 0).sum()) <= 40
+    (True, True, True)
+    """
+    import scipy.linalg as sla
+
+    R, M = A.shape
+    ng = int(groups.max()) + 1
+    bnorm = np.sqrt(np.bincount(groups, b * b, ng))
+    c = A.T @ b
+    P: list[int] = []  # the active set, in the Gram matrix's order
+    Gram = np.zeros((0, 0))
+    xi = np.zeros(M)
+    res = b.copy()
+
+    def worst(res):
+        return float(np.max(np.sqrt(np.bincount(groups, res * res, ng)) / np.maximum(bnorm, 1e-300)))
+
+    def drop(keep):
+        nonlocal P, Gram
+        keep = np.asarray(keep)
+        P = [P[i] for i in np.flatnonzero(keep)]
+        Gram = Gram[np.ix_(keep, keep)]
+
+    err = worst(res)
+    for _ in range(max_iter or 4 * M):
+        if err <= tol:
+            break
+        g = A.T @ res
+        g[P] = -np.inf
+        n_add = max(1, int(batch * len(P)))
+        cand = np.argsort(g)[::-1][:n_add]
+        cand = cand[g[cand] > 0]
+        if not len(cand):
+            break  # the exact optimum: tol is out of reach
+        cross = A[:, P].T @ A[:, cand] if P else np.zeros((0, len(cand)))
+        Gram = np.block([[Gram, cross], [cross.T, A[:, cand].T @ A[:, cand]]])
+        P += [int(j) for j in cand]
+        while True:  # Lawson–Hanson's inner loop: least squares on P, back off to stay ξ ≥ 0
+            idx = np.asarray(P)
+            ridge = 1e-13 * np.trace(Gram) / len(P)
+            try:
+                z = sla.cho_solve(sla.cho_factor(Gram + ridge * np.eye(len(P))), c[idx])
+            except np.linalg.LinAlgError:
+                z = np.linalg.lstsq(Gram, c[idx], rcond=None)[0]
+            if (z > 0).all():
+                xi[:] = 0.0
+                xi[idx] = z
+                break
+            w = xi[idx]
+            stuck = (w <= 0) & (z <= 0)  # just added and already negative: out, without a step
+            if stuck.any():
+                drop(~stuck)
+                if not P:
+                    break
+                continue
+            neg = z <= 0
+            alpha = float(np.min(w[neg] / np.maximum(w[neg] - z[neg], 1e-300)))
+            w = w + alpha * (z - w)
+            keep = w > 1e-12 * max(float(w.max()), 1e-300)
+            xi[idx] = np.where(keep, w, 0.0)
+            drop(keep)
+            if not P:
+                break
+        res = b - A[:, P] @ xi[P] if P else b.copy()
+        err = worst(res)
+    return xi, err
+
+
+def ecsw_weights(fem, V: np.ndarray, states, tol: float = 1e-3, chunk: int = 1024,
+                 batch: float = 0.05) -> tuple[np.ndarray, np.ndarray, float]:
+    """ECSW element set and weights: ξ ≥ 0 with ‖Σ_e ξ_e g_e(x_s) − Σ_e g_e(x_s)‖ ≤ tol‖Σ_e g_e(x_s)‖
+    for each training state x_s, g_e = V_eᵀ f_e the element's reduced force, on every one of the
+    r·S constraint rows (no sketch: a fit exact on a sketch of the rows misses the others), by
+    :func:`nnls_to_tolerance`, which stops at that tolerance with the elements it needed. The
+    rows are scaled per state (each state counts alike). Returns (elements, weights, the worst
+    state's relative error: ≤ tol unless the exact NNLS optimum is above it)."""
     states = [np.asarray(x, float) for x in states]
     r = V.shape[1]
     M = len(fem.tets)
-    rng = np.random.default_rng(seed)
-    b = [V.T @ internal_force(fem, x) for x in states]  # Σ_e g_e(x_s): V is zero on the fixed DOFs
-    scale = [1.0 / max(np.linalg.norm(v), 1e-300) for v in b]
-    k = min(sketch or 3 * r, M)
-    while True:
-        sk = [sp.csr_matrix((rng.choice([-1.0, 1.0], r) * s, (rng.integers(0, k, r), np.arange(r))), shape=(k, r))
-              for s in scale]
-        A = np.zeros((k, M))
-        for a in range(0, M, chunk):
-            el = np.arange(a, min(a + chunk, M))
-            _, G = _reduced_forces(fem, V, el, states)
-            for Om, Gs in zip(sk, G):
-                A[:, el] += Om @ Gs
-        xi, _ = nnls(A, A.sum(axis=1), maxiter=20 * M)
-        del A
-        idx = np.flatnonzero(xi)
-        Ve, G = _reduced_forces(fem, V, idx, states)
-        err = max(float(np.linalg.norm(Gs @ xi[idx] - bs) * s) for Gs, bs, s in zip(G, b, scale))
-        cap = max_sketch or max(8 * r, 1024)
-        if err <= tol or k >= min(M, cap):
-            return idx, xi[idx], err
-        k = min(2 * k, M, cap)
+    A = np.zeros((r * len(states), M))
+    for a in range(0, M, chunk):
+        el = np.arange(a, min(a + chunk, M))
+        _, G = _reduced_forces(fem, V, el, states)
+        for s, Gs in enumerate(G):
+            A[s * r:(s + 1) * r, el] = Gs
+    # V is zero on the fixed DOFs, so Σ_e g_e = Vᵀf(x) with every element at weight 1
+    scale = 1.0 / np.maximum(np.linalg.norm(A.sum(axis=1).reshape(len(states), r), axis=1), 1e-300)
+    A *= np.repeat(scale, r)[:, None]
+    xi, err = nnls_to_tolerance(A, A.sum(axis=1), np.repeat(np.arange(len(states)), r), tol, batch=batch)
+    idx = np.flatnonzero(xi)
+    return idx, xi[idx], err
 
 
 @dataclass
