@@ -6,6 +6,7 @@ tests/test_live_page.py."""
 from __future__ import annotations
 
 import json
+import re
 import time
 import urllib.request
 from pathlib import Path
@@ -121,6 +122,12 @@ def test_live_page_endpoints_frames_and_stream(tmp_path):
             frames = _sse_frames(s.url, 6)
             assert any(f["samples"] for f in frames) and any("surface_mm_f32_b64" in f for f in frames)
             seqs = [m["seq"] for f in frames for m in f["samples"]]
+            # the page names its fields in its own code: each unit-named one must be a key the server
+            # sends (an estimate message, the status, the geometry), so a renamed column fails here
+            sent = {k for f in frames for m in f["samples"] for k in m} | set(geo)
+            sent |= {k for f in frames if "status" in f for k in f["status"]}
+            read = set(re.findall(r"\b([a-z][a-z0-9_]*_(?:mm|deg|N|kPa|Hz|ms|s))\b", js))
+            assert read and read <= sent, sorted(read - sent)
             assert seqs == sorted(seqs) and len(set(seqs)) == len(seqs)
             surf = decode_positions_mm(next(f["surface_mm_f32_b64"] for f in frames if "surface_mm_f32_b64" in f))
             assert surf.shape == src.geometry.nodes.shape
