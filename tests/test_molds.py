@@ -220,3 +220,23 @@ def test_cli_molds_out_follows_the_staged_output_policy(tmp_path, capsys, monkey
         assert "no room for the registration keys" in capsys.readouterr().err
     assert not (tmp_path / "fresh").exists() and (out / "keep.txt").read_text() == "mine"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["model", "o"]  # no staging directory left
+
+
+def test_surfaces_flipped_at_random_are_made_consistent():
+    """consistent_surfaces on an icosphere cut into patches, some patches' triangles reversed: the
+    result is winding-consistent (every edge used once each way) with each patch whole."""
+    import trimesh
+
+    from softphantom.molds.occ import consistent_surfaces
+
+    sphere = trimesh.creation.icosphere(subdivisions=3)
+    c = sphere.triangles_center
+    patch = (c[:, 0] > 0).astype(int) * 4 + (c[:, 1] > 0) * 2 + (c[:, 2] > 0)  # 8 octant patches
+    rng = np.random.default_rng(2)
+    tris = [sphere.faces[patch == k][:, ::-1] if rng.uniform() < 0.5 else sphere.faces[patch == k]
+            for k in range(8)]
+    out = consistent_surfaces(tris)
+    assert sorted(map(tuple, np.sort(out, axis=1))) == sorted(map(tuple, np.sort(sphere.faces, axis=1)))
+    mesh = trimesh.Trimesh(sphere.vertices, out, process=False)
+    assert mesh.is_winding_consistent and mesh.is_watertight
+    assert not trimesh.Trimesh(sphere.vertices, np.vstack(tris), process=False).is_winding_consistent

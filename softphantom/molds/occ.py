@@ -104,19 +104,21 @@ def consistent_surfaces(tris: list[np.ndarray]) -> np.ndarray:
     the volume; a walk over the surfaces (a few dozen, not the faces) fixes the relative flips,
     the sign of the volume the global one (done by the caller).
     """
-    owners: dict[tuple[int, int], set[int]] = {}
-    for s, t in enumerate(tris):
-        for e0, e1 in ((0, 1), (1, 2), (2, 0)):
-            for i, j in zip(t[:, e0].tolist(), t[:, e1].tolist()):
-                owners.setdefault((i, j), set()).add(s)
-    # differ[s][o]: True if s and o must end with opposite flips
+    # every directed edge with its surface; a shared edge appears in two surfaces, either the same
+    # way round (one of them must flip) or the opposite way (they must flip alike)
+    surf = np.concatenate([np.full(3 * len(t), s) for s, t in enumerate(tris)])
+    a = np.concatenate([t[:, [0, 1, 2]].T.ravel() for t in tris]).astype(np.int64)
+    b = np.concatenate([t[:, [1, 2, 0]].T.ravel() for t in tris]).astype(np.int64)
+    lo, hi = np.minimum(a, b), np.maximum(a, b)
+    order = np.lexsort((surf, hi, lo))
+    lo, hi, surf, fwd = lo[order], hi[order], surf[order], (a < b)[order]
+    same = (lo[1:] == lo[:-1]) & (hi[1:] == hi[:-1]) & (surf[1:] != surf[:-1])
+    s0, s1 = surf[:-1][same], surf[1:][same]
+    opposite = fwd[:-1][same] == fwd[1:][same]  # the same direction in both: opposite flips
     differ: dict[int, dict[int, bool]] = {s: {} for s in range(len(tris))}
-    for (i, j), ss in owners.items():
-        for s in ss:
-            for o in ss - {s}:  # the same direction in both: one of them must flip
-                differ[s][o] = True
-            for o in owners.get((j, i), set()) - {s}:
-                differ[s].setdefault(o, False)
+    for x, y, o in set(zip(s0.tolist(), s1.tolist(), opposite.tolist())):
+        differ[x][y] = differ[x].get(y, False) or o
+        differ[y][x] = differ[y].get(x, False) or o
     flip: list[bool | None] = [None] * len(tris)
     for start in range(len(tris)):
         if flip[start] is not None:
