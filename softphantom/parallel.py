@@ -7,13 +7,14 @@ result of each task comes back with its error, so one failed item never stops a 
 
 >>> from softphantom.parallel import dask_client, map_tasks
 >>> with dask_client(processes=False, n_workers=1) as client:
-...     out = map_tasks(client, pow, [(2, 3), (3, 2), (0, -1)], label="pow", progress=False)
+...     out = map_tasks(client, pow, [(2, 3), (3, 2), (0, -1)], label="pow")
 >>> [o.value for o in out[:2]], out[2].ok, out[2].error
 ([8, 9], False, 'ZeroDivisionError: 0.0 cannot be raised to a negative power')
 """
 
 from __future__ import annotations
 
+import logging
 import os
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
@@ -21,6 +22,9 @@ from dataclasses import dataclass
 from typing import Any
 
 from softphantom.errors import UserError
+from softphantom.progress import report
+
+log = logging.getLogger(__name__)
 
 #: Seconds to wait for an existing scheduler before refusing it.
 CONNECT_TIMEOUT_S = 10.0
@@ -99,16 +103,15 @@ def map_tasks(
     client: Any,
     fn: Callable[..., Any],
     args: Sequence[tuple],
-    label: str = "tasks",
-    progress: bool = True,
+    label: str | None = "tasks",
     on_result: Callable[[TaskResult], None] | None = None,
 ) -> list[TaskResult]:
     """Run ``fn(*a)`` for each ``a`` in ``args`` on ``client``; results in input order.
 
-    Shows a rich progress bar (``label``, done/total, elapsed; plain lines when the output is not a
-    terminal, :func:`softphantom.progress.progress_bar`) unless ``progress`` is False;
-    ``on_result`` sees each result as it arrives (for caching, resuming, logging). A task that
-    raises gives ``TaskResult(ok=False, error=...)``; the others go on.
+    Reports its progress here, on the client, as each task ends (:func:`softphantom.progress.report`:
+    task ``label``, done/total; the CLI draws a bar) unless ``label`` is None; ``on_result`` sees each
+    result as it arrives (for caching, resuming). A task that raises gives ``TaskResult(ok=False,
+    error=...)``; the others go on.
     """
     from distributed import as_completed
 
@@ -116,29 +119,17 @@ def map_tasks(
     index = {f.key: i for i, f in enumerate(futures)}
     out: list[TaskResult | None] = [None] * len(futures)
 
-    bar = None
-    if progress and futures:
-        from rich.progress import BarColumn, MofNCompleteColumn, TimeElapsedColumn
-
-        from softphantom.progress import progress_bar
-
-        bar = progress_bar("[progress.description]{task.description}", BarColumn(), MofNCompleteColumn(),
-                           TimeElapsedColumn())
-        bar.start()
-        task = bar.add_task(label, total=len(futures))
-    try:
-        for fut in as_completed(futures):
-            i = index[fut.key]
-            try:
-                res = TaskResult(i, True, fut.result())
-            except Exception as exc:  # noqa: BLE001 - recorded per task, never fatal to the batch
-                res = TaskResult(i, False, error=_describe(exc))
-            out[i] = res
-            if on_result is not None:
-                on_result(res)
-            if bar is not None:
-                bar.advance(task)
-    finally:
-        if bar is not None:
-            bar.stop()
+    if label is not None and futures:
+        report(log, label, 0, len(futures))
+    for done, fut in enumerate(as_completed(futures), 1):
+        i = index[fut.key]
+        try:
+            res = TaskResult(i, True, fut.result())
+        except Exception as exc:  # noqa: BLE001 - recorded per task, never fatal to the batch
+            res = TaskResult(i, False, error=_describe(exc))
+        out[i] = res
+        if on_result is not None:
+            on_result(res)
+        if label is not None:
+            report(log, label, done, len(futures))
     return [r for r in out if r is not None]

@@ -11,11 +11,18 @@ give rich's display on a terminal and plain lines elsewhere:
   one every ``every_s`` while it runs, and one when it ends, with its time;
 - :func:`live_line`: ``rich.live.Live`` for a one-line live display, else the line printed at
   most every ``every_s``.
+
+Library code reports the progress of long work through :mod:`logging`: :func:`report` logs a
+record carrying a :class:`Step` (task, done, total, what). It never configures logging; the CLI
+installs :class:`ProgressHandler` (the steps as :func:`progress_bar` tasks) and
+:func:`message_handler` (the other records: rich's ``RichHandler`` on a terminal, plain lines
+elsewhere). :func:`forward_progress` hands a Dask task's steps to the client.
 """
 
 from __future__ import annotations
 
 import contextlib
+import logging
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -221,3 +228,159 @@ def live_line(console=None, every_s: float = EVERY_S, **kwargs: Any):
 
         return Live(console=console, **kwargs)
     return _LineLive(console, every_s)
+
+
+#: The attribute of a progress record that holds its :class:`Step` (``extra={"progress": step}``).
+PROGRESS = "progress"
+
+
+@dataclass(frozen=True)
+class Step:
+    """One report of a long task: ``done`` of ``total`` (None: not known yet) and what it does now.
+
+    >>> str(Step("atlas: 12 forward solves", 3, 12)), str(Step("push: truth", 0, None, "queued"))
+    ('atlas: 12 forward solves: 3/12', 'push: truth: 0 queued')
+    """
+
+    task: str
+    done: float
+    total: float | None = None
+    what: str = ""
+
+    def __str__(self) -> str:
+        head = f"{self.task}: {self.done:g}/{self.total:g}" if self.total else f"{self.task}: {self.done:g}"
+        return f"{head} {self.what}" if self.what else head
+
+
+def report(logger: logging.Logger, task: str, done: float, total: float | None = None, what: str = "",
+           level: int = logging.INFO) -> None:
+    """Log the progress of ``task`` on ``logger``: a record whose message is the :class:`Step` as text
+    and whose ``progress`` attribute is the step (drawn as a bar by :class:`ProgressHandler`). A
+    ``total`` below ``done`` is raised to it."""
+    if logger.isEnabledFor(level):
+        step = Step(task, done, None if total is None else max(total, done), what)
+        logger.log(level, "%s", step, extra={PROGRESS: step})
+
+
+def is_progress(record: logging.LogRecord) -> bool:
+    """Is ``record`` a progress report (:func:`report`)?"""
+    return isinstance(getattr(record, PROGRESS, None), Step)
+
+
+def _not_progress(record: logging.LogRecord) -> bool:
+    return not is_progress(record)
+
+
+class ProgressHandler(logging.Handler):
+    """The progress records (:func:`report`) as tasks of one :func:`progress_bar` on ``console``:
+    rich bars on a terminal, plain lines elsewhere; other records pass it by. A task whose ``done``
+    goes back (run again under the same name) gets a new bar. The display stops when every task it
+    shows has reached its total (the next record starts a new one), or on :meth:`close`."""
+
+    def __init__(self, console=None, level: int = logging.NOTSET, every_s: float = EVERY_S) -> None:
+        super().__init__(level)
+        self.addFilter(is_progress)
+        self.console, self.every_s = console, every_s
+        self._bar: Any = None
+        self._tasks: dict[str, tuple[int, Step]] = {}  # task -> (its bar's id, its last step)
+
+    def emit(self, record: logging.LogRecord) -> None:
+        step: Step = getattr(record, PROGRESS)
+        if self._bar is None:
+            from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeElapsedColumn
+
+            self._bar = progress_bar(TextColumn("{task.description}", markup=False), BarColumn(),
+                                     MofNCompleteColumn(), TimeElapsedColumn(),
+                                     TextColumn("{task.fields[what]}", markup=False),
+                                     console=self.console, every_s=self.every_s)
+            self._bar.start()
+        seen = self._tasks.get(step.task)
+        if seen is None or step.done < seen[1].done:
+            tid = self._bar.add_task(step.task, total=step.total, completed=step.done, what=step.what)
+        else:
+            tid = seen[0]
+            self._bar.update(tid, completed=step.done, total=step.total, what=step.what)
+        self._tasks[step.task] = (tid, step)
+        if all(s.total is not None and s.done >= s.total for _, s in self._tasks.values()):
+            self._stop()
+
+    def _stop(self) -> None:
+        if self._bar is not None:
+            self._bar.stop()
+        self._bar = None
+        self._tasks.clear()
+
+    def close(self) -> None:
+        with self.lock:
+            self._stop()
+        super().close()
+
+
+class _PlainFormatter(logging.Formatter):
+    """The message as it is at INFO; ``warning: …`` (the level's name) at other levels."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        text = super().format(record)
+        return text if record.levelno == logging.INFO else f"{record.levelname.lower()}: {text}"
+
+
+class _ConsoleHandler(logging.Handler):
+    """Each record as one plain line on a rich console (no markup, no highlighting)."""
+
+    def __init__(self, console) -> None:
+        super().__init__()
+        self.console = console
+        self.setFormatter(_PlainFormatter("%(message)s"))
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            self.console.print(self.format(record), highlight=False, markup=False, soft_wrap=True)
+        except Exception:  # noqa: BLE001 - logging's own policy: report, never raise
+            self.handleError(record)
+
+
+def message_handler(console=None) -> logging.Handler:
+    """The handler of the log messages (not the progress records) on ``console``: rich's
+    ``RichHandler`` (level, message; no time or path) on a terminal, else plain lines
+    (:class:`_PlainFormatter`)."""
+    console = _console(console)
+    if _draws(console):
+        from rich.highlighter import NullHighlighter
+        from rich.logging import RichHandler
+
+        handler: logging.Handler = RichHandler(console=console, show_time=False, show_path=False,
+                                               highlighter=NullHighlighter(), keywords=[])
+    else:
+        handler = _ConsoleHandler(console)
+    handler.addFilter(_not_progress)
+    return handler
+
+
+class _SinkHandler(logging.Handler):
+    def __init__(self, sink: Callable[[Step], None], thread: int) -> None:
+        super().__init__()
+        self.sink, self.thread = sink, thread
+        self.addFilter(is_progress)
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if record.thread == self.thread:
+            self.sink(getattr(record, PROGRESS))
+
+
+@contextlib.contextmanager
+def forward_progress(sink: Callable[[Step], None], logger: str = "softphantom") -> Iterator[None]:
+    """Hand the :class:`Step` of every progress record that this thread logs on ``logger`` (and
+    below) to ``sink`` while the block runs: from a Dask task to its client (``sink`` puts the step
+    on a Dask event topic, the client reports it again). A worker process has no logging set up:
+    the logger's level is lowered to INFO meanwhile if it is above."""
+    lg = logging.getLogger(logger)
+    handler = _SinkHandler(sink, threading.get_ident())
+    old = lg.level
+    if not lg.isEnabledFor(logging.INFO):
+        lg.setLevel(logging.INFO)
+    lg.addHandler(handler)
+    try:
+        yield
+    finally:
+        lg.removeHandler(handler)
+        lg.setLevel(old)

@@ -25,6 +25,7 @@ scaled by their residual variance (:func:`posterior_covariance`); correlations f
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 import time
 from collections.abc import Callable
@@ -39,6 +40,8 @@ from softphantom.errors import SolverError, UserError
 from softphantom.fem import LAWS
 from softphantom.pose import rigid_fit, ypr_from_matrix
 from softphantom.sensing.pneumatics import boyle_dp
+
+logger = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -543,11 +546,11 @@ def posterior_covariance(J: np.ndarray, r: np.ndarray, n_prior: int) -> tuple[np
     return (A_pinv if s2 == 1.0 else np.linalg.pinv(Ad / s2 + Ap)), s2
 
 
-def fit(problem: Problem, forces0: np.ndarray, progress: Callable[[int, float, float], None] | None = None,
-        identifiable_ratio: float = 0.5) -> FitResult:
+def fit(problem: Problem, forces0: np.ndarray, identifiable_ratio: float = 0.5,
+        level: int = logging.INFO) -> FitResult:
     """Levenberg–Marquardt from the nominal parameters and ``forces0`` (K, 3) N.
 
-    ``progress(iteration, cost, lm_lambda)`` after each accepted or rejected step. A parameter is
+    Logs ``iteration N: cost …`` at ``level`` after each accepted or rejected step. A parameter is
     reported identifiable when the data shrank its spread below ``identifiable_ratio`` of its prior
     spread and it is free; the warnings name the others and the pairs correlated beyond 0.95.
 
@@ -592,8 +595,7 @@ def fit(problem: Problem, forces0: np.ndarray, progress: Callable[[int, float, f
                 r_try, J_try, sols_try = problem.residuals(z_try, trial=True)
             except SolverError:
                 lam *= 10
-                if progress:
-                    progress(it, cost, lam)
+                _say(level, it, cost, lam, problem.solves)
                 continue
             c_try = 0.5 * float(r_try @ r_try)
             if c_try < cost:
@@ -605,14 +607,16 @@ def fit(problem: Problem, forces0: np.ndarray, progress: Callable[[int, float, f
                 step_ok = True
                 break
             lam *= 4
-            if progress:
-                progress(it, cost, lam)
+            _say(level, it, cost, lam, problem.solves)
         history.append(cost)
-        if progress:
-            progress(it, cost, lam)
+        _say(level, it, cost, lam, problem.solves)
         if not step_ok or rel < problem.options.tol:
             break
     return fit_result(problem, z, r, J, sols, free, history, t0, identifiable_ratio)
+
+
+def _say(level: int, it: int, cost: float, lam: float, solves: int) -> None:
+    logger.log(level, f"iteration {it}: cost {cost:.6g} (λ {lam:.2g}), {solves} forward solves")
 
 
 def fit_result(problem: Problem, z: np.ndarray, r: np.ndarray, J: np.ndarray, sols: list, free: np.ndarray,

@@ -4,6 +4,7 @@ Dask → held-out check → a calibrated model directory and a report."""
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 from collections.abc import Callable
 from contextlib import nullcontext
@@ -19,6 +20,7 @@ from softphantom.errors import SolverError, UserError
 from softphantom.sensing.pneumatics import boyle_dV
 from softphantom.records.names import POSE_COLUMNS as POSE_DOF
 
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -92,7 +94,7 @@ def _solver(client) -> Callable[[list[tuple]], list]:
     from softphantom.parallel import map_tasks
 
     def run(tasks):
-        out = map_tasks(client, solve_keyframe, tasks, progress=False)
+        out = map_tasks(client, solve_keyframe, tasks, label=None)  # a round of the fit: its lines say enough
         bad = [r for r in out if not r.ok]
         if bad:
             raise SolverError(f"forward solve of keyframe {bad[0].index}: {bad[0].error}")
@@ -148,12 +150,11 @@ def _initial(problem: Problem, sessions: list[Session]) -> tuple[np.ndarray, np.
     return forces, lags
 
 
-def _pose_errors(problem: Problem, g: np.ndarray, forces0: np.ndarray,
-                 say: Callable[[str], None] | None = None, what: str = "",
+def _pose_errors(problem: Problem, g: np.ndarray, forces0: np.ndarray, what: str = "",
                  nominal: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """(K, 6) mm/deg: pose from forces fitted to the pressures alone (all globals held at ``g``)
-    minus the take; (K, 3) N those forces minus the known loads (NaN where none). ``say`` gets
-    one line with the solves and seconds it took, naming it ``what``. ``nominal``: the model as
+    minus the take; (K, 3) N those forces minus the known loads (NaN where none). Logs one line
+    with the solves and seconds it took, naming it ``what``. ``nominal``: the model as
     designed, under the design's law whatever law the fit used (``FitOptions.law``)."""
     names = problem.names()
     u = problem.unpack(g)
@@ -164,9 +165,8 @@ def _pose_errors(problem: Problem, g: np.ndarray, forces0: np.ndarray,
                             lag0_s=u["lag"].copy(), drift0=u["drift"].copy(),
                             params=tuple(dataclasses.replace(pp, nominal=float(v))
                                          for pp, v in zip(problem.params, g)))
-    res = fit(p, forces0)
-    if say:
-        say(f"pose check, {what}: {res.solves} forward solves, {len(res.history) - 1} iterations, {res.seconds:.0f} s")
+    res = fit(p, forces0, level=logging.DEBUG)
+    log.info(f"pose check, {what}: {res.solves} forward solves, {len(res.history) - 1} iterations, {res.seconds:.0f} s")
     u = p.unpack(res.z[:p.n_global])
     fr = p.frames
     err = np.full((len(fr), 6), np.nan)
@@ -186,16 +186,14 @@ def _pair(nominal, calibrated):
 
 def calibrate(model_dir, specs: list[SessionSpec], holdout: list[SessionSpec] = (), *,
               options: FitOptions = FitOptions(), scheduler: str | None = None, n_workers: int | None = None,
-              in_process: bool = False, max_keyframes: int = 16,
-              progress: Callable[[str], None] | None = None) -> Calibration:
+              in_process: bool = False, max_keyframes: int = 16) -> Calibration:
     """Fit the model in ``model_dir`` to the sessions ``specs``; check on ``holdout`` sessions.
 
     Forward solves run on Dask (a local cluster unless ``scheduler`` is an address), or in this
-    process with ``in_process``. ``progress(line)`` receives one line per stage and iteration."""
+    process with ``in_process``. Logs one line per stage and iteration."""
     from softphantom.design import load_model
     from softphantom.parallel import dask_client
 
-    say = progress or (lambda s: None)
     model_dir = Path(model_dir)
     model = load_model(model_dir)
     if not specs:
@@ -203,17 +201,17 @@ def calibrate(model_dir, specs: list[SessionSpec], holdout: list[SessionSpec] = 
     design_laws = sorted({m.law for m in model.design.materials})
     fitted = dataclasses.replace(model, design=design_with_law(model.design, options.law))
     if options.law is not None and design_laws != [options.law]:
-        say(f"fitting under the {options.law} law (the design's: {', '.join(design_laws)}), every material at its "
+        log.info(f"fitting under the {options.law} law (the design's: {', '.join(design_laws)}), every material at its "
             "small-strain E and ν; the nominal checks use the design's law")
 
     sessions = _load_sessions(model, specs, "s")
     held = _load_sessions(model, holdout, "h")
     times = [select_keyframes(se, max_keyframes) for se in sessions]
     frames = Keyframes.of(sessions, times)
-    say(f"{len(sessions)} session(s), {len(frames)} keyframes"
+    log.info(f"{len(sessions)} session(s), {len(frames)} keyframes"
         + (f", {int(np.all(np.isfinite(frames.known), axis=1).sum())} with known loads" if np.isfinite(frames.known).any() else ""))
     if not np.isfinite(frames.known).any() and "stiffness_bulb_factor" not in options.fix:
-        say("no known loads: the stiffness and the force scale are confounded; the fit reports it")
+        log.info("no known loads: the stiffness and the force scale are confounded; the fit reports it")
 
     ctx = nullcontext(None) if in_process else dask_client(scheduler, n_workers)
     with ctx as client:
@@ -223,19 +221,15 @@ def calibrate(model_dir, specs: list[SessionSpec], holdout: list[SessionSpec] = 
         problem = Problem(str(model_dir), sessions, frames, rm, solve_many, options, params)
         forces0, lags0 = _initial(problem, sessions)
         problem = dataclasses.replace(problem, lag0_s=lags0, pose_rows=None)
-        say("lag (take − recording): " + ", ".join(f"{se.name} {lg * 1e3:+.1f} ms" for se, lg in zip(sessions, lags0)))
-
-        def tick(it, cost, lam):
-            say(f"iteration {it}: cost {cost:.6g} (λ {lam:.2g}), {problem.solves} forward solves")
-
-        result = fit(problem, forces0, tick)
-        say(f"fit: {result.solves} forward solves, {result.seconds:.0f} s")
+        log.info("lag (take − recording): " + ", ".join(f"{se.name} {lg * 1e3:+.1f} ms" for se, lg in zip(sessions, lags0)))
+        result = fit(problem, forces0)
+        log.info(f"fit: {result.solves} forward solves, {result.seconds:.0f} s")
         g_cal = result.z[:problem.n_global]
         g_nom = problem.nominal()
-        fitting = HeldOut(POSE_DOF, frames.t, *_pair(_pose_errors(problem, g_nom, forces0, say, "fitting data, nominal", True),
-                                                       _pose_errors(problem, g_cal, result.forces, say,
+        fitting = HeldOut(POSE_DOF, frames.t, *_pair(_pose_errors(problem, g_nom, forces0, "fitting data, nominal", True),
+                                                       _pose_errors(problem, g_cal, result.forces,
                                                                     "fitting data, calibrated")))
-        held_out = _held_out(str(model_dir), held, rm, solve_many, options, params, g_cal[:len(params)], say,
+        held_out = _held_out(str(model_dir), held, rm, solve_many, options, params, g_cal[:len(params)],
                              max_keyframes) if held else None
     return Calibration(model_dir, result, frames, sessions, fitting, held_out, options,
                        meta={"law": {"design": design_laws, "fitted": sorted({m.law for m in fitted.design.materials})},
@@ -263,7 +257,7 @@ def held_out_lag(session: Session, lag_s: float, tube: float) -> float:
 
 
 def _held_out(model_dir: str, held: list[Session], rm, solve_many, options: FitOptions, params, g_params: np.ndarray,
-              say: Callable[[str], None], max_keyframes: int) -> HeldOut:
+              max_keyframes: int) -> HeldOut:
     """Pose errors on held-out sessions with the nominal and with the parameters ``g_params``."""
     htimes = [select_keyframes(se, max_keyframes) for se in held]
     hframes = Keyframes.of(held, htimes)
@@ -277,14 +271,13 @@ def _held_out(model_dir: str, held: list[Session], rm, solve_many, options: FitO
     tube = hp.unpack(gc)["tube"]
     gc[gl:gl + len(held)] = [held_out_lag(se, lg, tube) for se, lg in zip(held, hl)]
     hp = dataclasses.replace(hp, lag0_s=hl, pose_rows=None)
-    return HeldOut(POSE_DOF, hframes.t, *_pair(_pose_errors(hp, gn, f0, say, "held-out, nominal", True),
-                                               _pose_errors(hp, gc, f0, say, "held-out, calibrated")))
+    return HeldOut(POSE_DOF, hframes.t, *_pair(_pose_errors(hp, gn, f0, "held-out, nominal", True),
+                                               _pose_errors(hp, gc, f0, "held-out, calibrated")))
 
 
 def check_held_out(model_dir, holdout: list[SessionSpec], values: dict[str, float], *,
                    options: FitOptions = FitOptions(), scheduler: str | None = None, n_workers: int | None = None,
-                   in_process: bool = False, max_keyframes: int = 16,
-                   progress: Callable[[str], None] | None = None) -> HeldOut:
+                   in_process: bool = False, max_keyframes: int = 16) -> HeldOut:
     """The held-out check of :func:`calibrate` alone, for parameters fitted before (``values``: by
     name in displayed units, as ``Calibration.parameters()``; names missing keep their nominal; lags
     and drifts are ignored, each held-out session gets its own): on new held-out sessions, without
@@ -292,7 +285,6 @@ def check_held_out(model_dir, holdout: list[SessionSpec], values: dict[str, floa
     from softphantom.design import load_model
     from softphantom.parallel import dask_client
 
-    say = progress or (lambda s: None)
     model = load_model(Path(model_dir))
     fitted = dataclasses.replace(model, design=design_with_law(model.design, options.law))
     held = _load_sessions(model, holdout, "h")
@@ -304,7 +296,7 @@ def check_held_out(model_dir, holdout: list[SessionSpec], values: dict[str, floa
     g = np.array([p.internal(values[p.name]) if p.name in values else p.nominal for p in params])
     with nullcontext(None) if in_process else dask_client(scheduler, n_workers) as client:
         rm = rest_markers(str(model_dir), _contact(model, holdout[0].contact), options.radius_m)
-        return _held_out(str(model_dir), held, rm, _solver(client), options, params, g, say, max_keyframes)
+        return _held_out(str(model_dir), held, rm, _solver(client), options, params, g, max_keyframes)
 
 
 def rmse_ratio(held: HeldOut) -> float:

@@ -1,4 +1,5 @@
-"""The shared typer application, the consoles and the one way errors are printed (no other state)."""
+"""The shared typer application, the consoles, the one way errors are printed and the root options
+(``-v``/``-q``: :mod:`softphantom.cli.logs`)."""
 
 from __future__ import annotations
 
@@ -32,5 +33,13 @@ def version() -> None:
 
 
 @app.callback()
-def _root() -> None:
+def _root(
+    ctx: typer.Context,
+    verbose: bool = typer.Option(False, "--verbose", "-v", help="Debug messages too."),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help="Warnings and errors only (no progress)."),
+) -> None:
     """Sensorized soft organ phantoms: design, simulate, sense, estimate, evaluate."""
+    from softphantom.cli.logs import close_logging, configure_from_options
+
+    configure_from_options(verbose, quiet, console)
+    ctx.call_on_close(close_logging)

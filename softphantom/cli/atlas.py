@@ -79,8 +79,7 @@ def build_cmd(
                                      base=default_atlas_config(model.element_order))
     acfg = replace(acfg, offline=offline)
     built = load_or_build(model, EstimatorConfig(contact=_contact(at)), acfg, cache_dir=model_dir,
-                          scheduler=scheduler, n_workers=workers, rebuild=rebuild,
-                          log=lambda s: console.print(s, highlight=False, soft_wrap=True))
+                          scheduler=scheduler, n_workers=workers, rebuild=rebuild)
     for piece in _pieces(built):
         console.print(f"{atlas_path(model_dir, piece.key)}", highlight=False, soft_wrap=True)
 

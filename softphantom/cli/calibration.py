@@ -95,7 +95,7 @@ def calibrate_cmd(
     for name, value, sd in (m for m in opts.measured if m[0] in ratios):
         Parameter(name, 0.0, 1.0).measured(value, sd)
     cal = calibrate(model, specs, hold, options=opts, scheduler=scheduler, n_workers=workers,
-                    max_keyframes=max_keyframes, progress=lambda s: console.print(s, markup=False, highlight=False))
+                    max_keyframes=max_keyframes)
     with staged_output(out, overwrite=overwrite, directory=True) as work:
         write_calibration(cal, work)
     paths = {"model": out, "report": out / "report.html"}

@@ -127,8 +127,7 @@ def estimate_cmd(
                               mode=("async" if live else "sync") if mode == "auto" else mode)
     t0 = time.monotonic()
     try:  # the contact point may come from the recording: the source is open first
-        est = open_estimator(estimator, model, cfg, cache_dir=model_dir, scheduler=scheduler, atlas=acfg,
-                             log=lambda s: console.print(s, highlight=False, soft_wrap=True))
+        est = open_estimator(estimator, model, cfg, cache_dir=model_dir, scheduler=scheduler, atlas=acfg)
     except BaseException:
         src.close()
         raise
@@ -139,7 +138,7 @@ def estimate_cmd(
         timer.start()
     last = [0.0]
 
-    def progress(e, n):
+    def show(e, n):
         now = time.monotonic()
         if now - last[0] >= 1.0:
             last[0] = now
@@ -160,7 +159,7 @@ def estimate_cmd(
                 "qp_solver": qp_solver, "estimator": estimator, "mode": cfg.mode, "nodes": int(len(model.nodes)),
                 "contact_radius_mm": cfg.contact_radius_m * 1e3, **opened.meta}
         try:
-            s = estimate_stream(src, est, path, progress, live=live, metadata=meta, stop=stop,
+            s = estimate_stream(src, est, path, show, live=live, metadata=meta, stop=stop,
                                 on_event=print_event)
         except KeyboardInterrupt:
             if not live:

@@ -162,8 +162,7 @@ def _estimator_source(spec: str, model_dir: Optional[Path], at: str, max_force_N
     # refresh estimator on a paced source: the background equilibrium keeps each step short
     cfg = EstimatorConfig.box(max_force_N, contact=at, mode="async" if is_live or speed > 0 else "sync")
     try:
-        est = open_estimator(estimator, model, cfg, cache_dir=model_dir,
-                             log=lambda s: console.print(s, highlight=False, soft_wrap=True))
+        est = open_estimator(estimator, model, cfg, cache_dir=model_dir)
     except BaseException:
         sensor.close()
         raise

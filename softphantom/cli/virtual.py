@@ -18,22 +18,6 @@ app.add_typer(virtual_app, name="virtual")
 SCENARIO_HELP = "Scenario TOML file, or a bundled one: needle-insertion, push-on-centre, push-off-centre, urethra-inflation."
 
 
-def truth_progress(console_, label: str):
-    """A rich progress bar and the ``progress(done, total, what)`` callback that drives it."""
-    from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeElapsedColumn
-
-    from softphantom.progress import progress_bar
-
-    bar = progress_bar(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                       TextColumn("{task.fields[what]}"), console=console_)
-    task = bar.add_task(label, total=None, what="meshing the truth model")
-
-    def cb(done: int, total: int, what: str) -> None:
-        bar.update(task, completed=done, total=max(total, done), what=what)
-
-    return bar, cb
-
-
 def _config(seed: int, osr: int, mesh_scale: float, bench_options: dict | None = None, order: int | None = None):
     """The run's settings; ``bench_options`` (``tube_length_m``, ``tube_id_mm``; None = the
     paper's) set the tubes of both the virtual board's physics and the host's chain; ``order`` the
@@ -55,16 +39,14 @@ def _config(seed: int, osr: int, mesh_scale: float, bench_options: dict | None =
 
 def _simulate(scenario: str, model_dir: Path, seed: int, osr: int, mesh_scale: float,
               bench_options: dict | None = None, order: int | None = None):
-    """Load the scenario and the model, solve the truth with a progress bar: the VirtualRun."""
+    """Load the scenario and the model, solve the truth (its progress logged): the VirtualRun."""
     from softphantom.design import load_model
     from softphantom.virtual import load_scenario, simulate
 
     sc = load_scenario(scenario)
     cfg = _config(seed, osr, mesh_scale, bench_options, order)
     model = load_model(model_dir)
-    bar, cb = truth_progress(console, f"truth of {sc.name}")
-    with bar:
-        return simulate(sc, model, cfg, cb)
+    return simulate(sc, model, cfg)
 
 
 def _print_summary(summary: dict) -> None:

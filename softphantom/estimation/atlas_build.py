@@ -12,6 +12,7 @@ f_x faces first, then the lines between them (:func:`_lines`, one mixed-control 
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from pathlib import Path
@@ -37,6 +38,8 @@ UX_MAX_ITER = 30
 BORDERED_HALVINGS = 2  # a mixed-control step that fails is split in two, and each half again
 BORDERED_TOL = 1e-3  # a mixed-control solve hits the patch displacement this close (of NODE_TOL's): on the node
 FIELD_RTOL = 1e-5  # POD truncation: dropped displacement energy below this fraction (≈ 3e-3 relative RMS)
+
+log = logging.getLogger(__name__)
 
 
 def _inner(p: tuple[int, int], centre: tuple[int, int]) -> list[tuple[int, int]]:
@@ -377,8 +380,8 @@ def provenance(model, fwd: ForwardModel) -> dict:
 
 
 def build_atlas(model, config: EstimatorConfig | None = None, atlas: AtlasConfig | None = None, *,
-                scheduler: str | None = None, n_workers: int | None = None, progress: bool = True,
-                fwd: ForwardModel | None = None, processes: bool = True, log=print) -> Atlas | AtlasPatches:
+                scheduler: str | None = None, n_workers: int | None = None,
+                fwd: ForwardModel | None = None, processes: bool = True) -> Atlas | AtlasPatches:
     """Build the atlas of ``model`` (forward solves in parallel, a Dask local cluster by default or
     the one at ``scheduler``; ``processes=False``: worker threads, for small models and tests).
     ``atlas`` None: :func:`default_atlas_config` of the model's element order.
@@ -389,8 +392,9 @@ def build_atlas(model, config: EstimatorConfig | None = None, atlas: AtlasConfig
     failed (:func:`_sweep`); the unsolved points are filled by linear extrapolation from their
     converged neighbours along the grid lines (:func:`fill_weights`) so the tensor fit is defined,
     and every grid cell with an unsolved corner is outside the envelope (``Atlas.solved_at``; the
-    estimator's ``in_envelope`` is False there). ``log`` gets one line per plane with failures and
-    a summary. Raises :class:`~softphantom.errors.SolverError` only if no point converged."""
+    estimator's ``in_envelope`` is False there). Logs one line per plane with failures and a
+    summary, and the planes' progress as done/total records (:func:`softphantom.progress.report`).
+    Raises :class:`~softphantom.errors.SolverError` only if no point converged."""
     from softphantom.parallel import dask_client, map_tasks
 
     cfg = config or EstimatorConfig()
@@ -398,8 +402,8 @@ def build_atlas(model, config: EstimatorConfig | None = None, atlas: AtlasConfig
     acfg = atlas or default_atlas_config(fwd.fem.order)
     if acfg.f_y_splits_N:  # one build per piece along f_y
         return AtlasPatches(acfg, tuple(
-            build_atlas(model, cfg, sub, scheduler=scheduler, n_workers=n_workers, progress=progress, fwd=fwd,
-                        processes=processes, log=log) for sub in acfg.patches()))
+            build_atlas(model, cfg, sub, scheduler=scheduler, n_workers=n_workers, fwd=fwd,
+                        processes=processes) for sub in acfg.patches()))
     t0 = time.perf_counter()
     key = atlas_key(fwd, acfg)
     n1, n2, n3, n4 = acfg.shape
@@ -421,8 +425,7 @@ def build_atlas(model, config: EstimatorConfig | None = None, atlas: AtlasConfig
         if acfg.offline == "rom":  # the grid by a reduced model (softphantom.estimation.offline)
             from softphantom.estimation.offline import rom_grid
 
-            V, P, X, solved, FX, QN, cpu_s, n_fwd, offline = rom_grid(model, cfg, acfg, fwd, client,
-                                                                      progress=progress, log=log)
+            V, P, X, solved, FX, QN, cpu_s, n_fwd, offline = rom_grid(model, cfg, acfg, fwd, client)
             stages = []
         elif acfg.x_control == "force":
             stages = [(planes, label, False)]
@@ -435,7 +438,7 @@ def build_atlas(model, config: EstimatorConfig | None = None, atlas: AtlasConfig
                 h = x_patch(fwd)
                 ux = {i: np.where(solved[i], X[i] @ h, np.nan) for i in (0, n1 - 1)}  # (n2, n3, n4) m
                 args = [(model, cfg, acfg, kz, lp, (ux[0][:, kz, lp], ux[n1 - 1][:, kz, lp])) for kz, lp in stage]
-                res = map_tasks(client, _lines, args, label=what, progress=progress)
+                res = map_tasks(client, _lines, args, label=what)
                 bad = [r for r in res if not r.ok]
                 if bad:
                     kz, lp = args[bad[0].index][3:5]
@@ -447,11 +450,11 @@ def build_atlas(model, config: EstimatorConfig | None = None, atlas: AtlasConfig
                     V[1:-1, :, kz, lp], P[1:-1, :, kz, lp], X[1:-1, :, kz, lp] = v, p, x
                     FX[1:-1, :, kz, lp], QN[1:-1, :, kz, lp], solved[1:-1, :, kz, lp] = fx, q, ok
                     if not ok.all():
-                        log(f"atlas: lines at f_z {ax[2][kz]:+.2f} N, urethra {ax[3][lp] * 1e-3:.1f} kPa: "
+                        log.info(f"atlas: lines at f_z {ax[2][kz]:+.2f} N, urethra {ax[3][lp] * 1e-3:.1f} kPa: "
                             f"{ok.size - ok.sum()} of {ok.size} points unreachable ({err or 'beyond a failed point'})")
                 continue
             args = [(model, cfg, acfg, i, l) for i, l in stage]
-            res = map_tasks(client, _sweep, args, label=what, progress=progress)
+            res = map_tasks(client, _sweep, args, label=what)
             bad = [r for r in res if not r.ok]
             if bad:  # not a solver failure (those are recorded): a bug or a lost worker
                 i, l = args[bad[0].index][3:5]
@@ -472,11 +475,11 @@ def build_atlas(model, config: EstimatorConfig | None = None, atlas: AtlasConfig
                         solved[i, :, :, l] = ok
                 if not ok.all():
                     p_u = 0.5 * (ax[3][0] + ax[3][-1]) if deriv is not None else ax[3][l]
-                    log(f"atlas: plane {'f_x' if acfg.x_control == 'force' else 'q'} {ax[0][i]:+.2f} N, urethra "
+                    log.info(f"atlas: plane {'f_x' if acfg.x_control == 'force' else 'q'} {ax[0][i]:+.2f} N, urethra "
                         f"{p_u * 1e-3:.1f} kPa: {ok.size - ok.sum()} of {ok.size} points unreachable "
                         f"({err or 'beyond a failed point'})")
     if acfg.x_control == "displacement" and offline is None:
-        log(f"atlas: {n_fwd} converged forward solves for {int(solved.sum())} points (displacement axis: "
+        log.info(f"atlas: {n_fwd} converged forward solves for {int(solved.sum())} points (displacement axis: "
             f"{n_fwd - int(solved.sum())} more, the lines' faces solved again and the trials)")
     weights = fill_weights(solved, ax)
     for a in (V.reshape(solved.size, -1), P.reshape(solved.size, -1), X.reshape(solved.size, -1), FX.reshape(-1, 1)):
@@ -518,7 +521,7 @@ def _solves(at: Atlas) -> str:
 
 def load_or_build(model, config: EstimatorConfig | None = None, atlas: AtlasConfig | None = None, *,
                   cache_dir=None, scheduler: str | None = None, n_workers: int | None = None,
-                  progress: bool = True, log=print, fwd: ForwardModel | None = None,
+                  fwd: ForwardModel | None = None,
                   rebuild: bool = False) -> Atlas | AtlasPatches:
     """The atlas of ``model`` from ``cache_dir`` (a model directory) if present and valid, else built
     and saved there. A cached file that is damaged, tampered with or of another format is an error
@@ -532,30 +535,29 @@ def load_or_build(model, config: EstimatorConfig | None = None, atlas: AtlasConf
     if acfg.f_y_splits_N:
         return AtlasPatches(acfg, tuple(
             load_or_build(model, cfg, sub, cache_dir=cache_dir, scheduler=scheduler, n_workers=n_workers,
-                          progress=progress, log=log, fwd=fwd, rebuild=rebuild) for sub in acfg.patches()))
+                          fwd=fwd, rebuild=rebuild) for sub in acfg.patches()))
     key = atlas_key(fwd, acfg)
     path = atlas_path(cache_dir, key) if cache_dir is not None else None
     if path is not None and path.is_file():
         try:
             at = load_atlas(path, key)
-            log(f"atlas: {path} ({at.nbytes / 1e6:.1f} MB, {_solves(at)}, built in {at.build_s:.0f} s)")
+            log.info(f"atlas: {path} ({at.nbytes / 1e6:.1f} MB, {_solves(at)}, built in {at.build_s:.0f} s)")
             return at
         except (AtlasCorrupt, AtlasMismatch) as exc:
             if not rebuild:
                 raise type(exc)(f"{exc}; to build it again: softphantom atlas build --model {cache_dir} --rebuild") from None
-            log(f"{exc}: rebuilding")
+            log.warning(f"{exc}: rebuilding")
     elif path is not None and any(len(p.stem) == 32 and set(p.stem) <= set("0123456789abcdef")
                                   for p in Path(cache_dir).glob("*.npz")):
         # the atlas directory given for the model's (it holds atlas files, named by their key;
         # model.npz is the model's own): its atlases are never found, every run builds
-        log(f"atlas: warning: {cache_dir} holds atlas files itself, but the cache is a model directory "
+        log.warning(f"atlas: {cache_dir} holds atlas files itself, but the cache is a model directory "
             f"(atlases in its atlas/ subdirectory): building into {path.parent}")
-    at = build_atlas(model, cfg, acfg, scheduler=scheduler, n_workers=n_workers, progress=progress, fwd=fwd,
-                     log=log)
+    at = build_atlas(model, cfg, acfg, scheduler=scheduler, n_workers=n_workers, fwd=fwd)
     msg = (f"atlas: {_solves(at)} in {at.build_s:.0f} s ({at.build_cpu_s / at.config.n_solves:.2f} CPU-s a solve), "
            f"{at.nbytes / 1e6:.1f} MB")
     if path is not None:
         save_atlas(at, path)
         msg += f" → {path} ({path.stat().st_size / 1e6:.1f} MB on disk)"
-    log(msg)
+    log.info(msg)
     return at

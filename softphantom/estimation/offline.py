@@ -20,6 +20,7 @@ Instead of one converged full solve per grid point, the grid is solved by a hype
 
 from __future__ import annotations
 
+import logging
 import time
 
 import numpy as np
@@ -41,6 +42,8 @@ CHECK_DV_MM3 = 0.05  # a round whose checks miss the volumes by more trains agai
 MAX_ROUNDS = 2
 SEED = 7
 SNAPSHOT_CACHE = None  # a path: the snapshot solves kept there and reused (benchmarks re-running one build)
+
+log = logging.getLogger(__name__)
 
 
 def snapshot_loads(lower: np.ndarray, upper: np.ndarray, n_lhs: int | None = None, seed: int = SEED) -> np.ndarray:
@@ -215,7 +218,7 @@ def _try(rom: ReducedModel, lam, q0, K0, **kw):
     return sol
 
 
-def rom_grid(model, cfg: EstimatorConfig, acfg, fwd: ForwardModel, client, *, progress: bool = True, log=print):
+def rom_grid(model, cfg: EstimatorConfig, acfg, fwd: ForwardModel, client):
     """The grid values of an atlas solved by the reduced model (see the module docstring): (V
     (n1..n4,4) m³, P (…,k,3) m, X (…,3N) m, solved, FX N, QN, full-solve CPU seconds, converged full
     solves, info for the provenance)."""
@@ -240,7 +243,7 @@ def rom_grid(model, cfg: EstimatorConfig, acfg, fwd: ForwardModel, client, *, pr
         t -= wall
     else:
         res = map_tasks(client, _snapshots, [(model, cfg, c, scale) for c in _chains(loads, scale, N_CHAINS)],
-                        label=f"atlas (reduced): {len(loads)} snapshot solves", progress=progress)
+                        label=f"atlas (reduced): {len(loads)} snapshot solves")
         snaps, cpu_full, n_full = [], 0.0, 0
         for r in res:
             if not r.ok:
@@ -250,10 +253,10 @@ def rom_grid(model, cfg: EstimatorConfig, acfg, fwd: ForwardModel, client, *, pr
             cpu_full += cpu
             n_full += n
             if err:
-                log(f"atlas: {len(loads)} snapshot loads, a failure: {err}")
+                log.info(f"atlas: {len(loads)} snapshot loads, a failure: {err}")
         if cache is not None:
             cache.write_bytes(pickle.dumps((snaps, cpu_full, n_full, time.perf_counter() - t)))
-    log(f"atlas (reduced): {len(snaps)} snapshots, {cpu_full:.0f} CPU-s")
+    log.info(f"atlas (reduced): {len(snaps)} snapshots, {cpu_full:.0f} CPU-s")
     if len(snaps) < 4:
         raise SolverError(f"atlas: only {len(snaps)} of {len(loads)} snapshot solves converged")
     info = {"offline": "rom", "snapshots": len(snaps), "snapshot_cpu_s": cpu_full,
@@ -276,7 +279,7 @@ def rom_grid(model, cfg: EstimatorConfig, acfg, fwd: ForwardModel, client, *, pr
         t2 = time.perf_counter()
         chunks = [items[i::2] for i in range(2)]
         res = map_tasks(client, _checks, [(model, cfg, c) for c in chunks if c],
-                        label=f"atlas (reduced): {len(items)} check solves", progress=progress)
+                        label=f"atlas (reduced): {len(items)} check solves")
         checked, dV, dP, dF, check_cpu = [], [], [], [], 0.0
         for r, c in zip(res, [c for c in chunks if c]):
             if not r.ok:
@@ -299,7 +302,7 @@ def rom_grid(model, cfg: EstimatorConfig, acfg, fwd: ForwardModel, client, *, pr
                "check_max_points_mm": max(dP, default=np.nan) * 1e3, "check_max_fx_N": max(dF, default=np.nan),
                "unsolved": int(solved.size - solved.sum())}
         info["rounds"].append(rec)
-        log(f"atlas (reduced) round {rnd + 1}: basis {tr['basis']}, {tr['elements']} ECSW elements, grid "
+        log.info(f"atlas (reduced) round {rnd + 1}: basis {tr['basis']}, {tr['elements']} ECSW elements, grid "
             f"{grid_cpu:.0f} CPU-s; {len(checked)} full checks: volumes within {rec['check_max_dV_mm3']:.3f} mm³, "
             f"points {rec['check_max_points_mm']:.4f} mm, f_x {rec['check_max_fx_N']:.4f} N")
         if not rec["check_max_dV_mm3"] > CHECK_DV_MM3 or rnd == MAX_ROUNDS - 1:

@@ -24,8 +24,7 @@ def check_estimator_kind(kind: str) -> str:
 
 
 def open_estimator(kind: str, model, config: EstimatorConfig | None = None, *, cache_dir=None, atlas=None,
-                   scheduler: str | None = None, n_workers: int | None = None, progress: bool = True,
-                   log=print) -> StateEstimator:
+                   scheduler: str | None = None, n_workers: int | None = None) -> StateEstimator:
     """The estimator ``kind`` for ``model``: ``"atlas"`` (precomputed, loaded from or built into
     ``cache_dir``, the model directory; ``atlas`` an :class:`~softphantom.estimation.atlas_config.AtlasConfig`
     or a built atlas) or ``"refresh"`` (:class:`~softphantom.estimation.Estimator`, its mode from
@@ -37,8 +36,7 @@ def open_estimator(kind: str, model, config: EstimatorConfig | None = None, *, c
         return Estimator(model, config)
     from softphantom.estimation.atlas_estimator import AtlasEstimator
 
-    return AtlasEstimator(model, config, atlas, cache_dir=cache_dir, scheduler=scheduler, n_workers=n_workers,
-                          progress=progress, log=log)
+    return AtlasEstimator(model, config, atlas, cache_dir=cache_dir, scheduler=scheduler, n_workers=n_workers)
 
 
 def atlas_config_from_options(grid: str | None = None, envelope: str | None = None, x_axis: str | None = None,

@@ -218,7 +218,7 @@ def _is_live(source) -> bool:
     return isinstance(source, SerialSource) or bool(getattr(source, "live", False))
 
 
-def estimate_stream(source, estimator, out_path, progress: Callable[[Estimate, int], None] | None = None,
+def estimate_stream(source, estimator, out_path, on_estimate: Callable[[Estimate, int], None] | None = None,
                     *, live: bool | None = None, metadata: dict | None = None,
                     max_samples: int | None = None, stop: threading.Event | None = None,
                     on_event: Callable[[Estimate], None] | None = None) -> dict:
@@ -226,8 +226,8 @@ def estimate_stream(source, estimator, out_path, progress: Callable[[Estimate, i
     with ``estimator`` (``.step(measurement, skipped=)``) and write the estimate CSV to
     ``out_path``, with a marker row for every link event of the source (``on_event(marker)`` is
     called for each, as it happens). ``live`` (default: a serial source, or one with
-    ``live = True``) uses the reader thread's queue; ``progress(estimate, n)`` is called after each
-    estimate; ``stop`` ends a live run. Memory stays flat (step times go into a histogram).
+    ``live = True``) uses the reader thread's queue; ``on_estimate(estimate, n)`` is called after
+    each estimate (the n-th); ``stop`` ends a live run. Memory stays flat (step times go into a histogram).
     Returns a summary dict (counts, rate, step-time percentiles, events by kind; ``outside`` the
     estimates clamped at the estimator's envelope, ``in_envelope`` False). An error of the
     source (e.g. a new board under the ``stop`` policy) is raised after its marker is written."""
@@ -261,8 +261,8 @@ def estimate_stream(source, estimator, out_path, progress: Callable[[Estimate, i
                     rejected += 1
                 elif not e.in_envelope:
                     outside += 1
-                if progress is not None:
-                    progress(e, n)
+                if on_estimate is not None:
+                    on_estimate(e, n)
                 if max_samples is not None and n >= max_samples:
                     break
         finally:

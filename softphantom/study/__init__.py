@@ -24,11 +24,11 @@ def _meta(cfg: SweepConfig, kind: str) -> dict:
             "evaluate": cfg.settings.as_dict(), "fixed": cfg.fixed}
 
 
-def run_sweep(cfg: SweepConfig, client: Any, out: Path, progress: bool = True, report: bool = True) -> SweepRun:
+def run_sweep(cfg: SweepConfig, client: Any, out: Path, report: bool = True) -> SweepRun:
     """Evaluate every variant of ``cfg`` on ``client``; write ``out/results.parquet`` (and ``report.html``)."""
     require_pyarrow()
     out = Path(out)
-    run = evaluate_variants(client, cfg.variants(), out, progress=progress)
+    run = evaluate_variants(client, cfg.variants(), out)
     path = write_parquet(run.rows, out / RESULTS, _meta(cfg, "sweep"))
     if report:
         from softphantom.study.report import write_report
@@ -38,7 +38,7 @@ def run_sweep(cfg: SweepConfig, client: Any, out: Path, progress: bool = True, r
     return SweepRun(run.rows, run.cached, run.computed, path)
 
 
-def run_optimize(cfg: SweepConfig, client: Any, out: Path, progress: bool = True):
+def run_optimize(cfg: SweepConfig, client: Any, out: Path):
     """Differential evolution for ``cfg`` (see :mod:`softphantom.study.optimize`); writes
     ``out/optimize.parquet``, ``out/optimize.json`` (the best candidate) and ``out/optimize.html``."""
     from softphantom.study.optimize import optimize
@@ -46,7 +46,7 @@ def run_optimize(cfg: SweepConfig, client: Any, out: Path, progress: bool = True
 
     require_pyarrow()
     out = Path(out)
-    res = optimize(cfg, client, out, progress=progress)
+    res = optimize(cfg, client, out)
     write_parquet(res.rows, out / "optimize.parquet", _meta(cfg, "optimize"))
     (out / "optimize.json").write_text(json.dumps(
         {"best_params": res.params, "value": res.value, "objective": cfg.optimize.objective,

@@ -68,7 +68,7 @@ class OptimizeResult:
     message: str
 
 
-def optimize(cfg: SweepConfig, client: Any, out: Path, progress: bool = True) -> OptimizeResult:
+def optimize(cfg: SweepConfig, client: Any, out: Path) -> OptimizeResult:
     """Run differential evolution for ``cfg`` on ``client``; candidates are cached under ``out``."""
     from scipy.optimize import differential_evolution
 
@@ -90,7 +90,7 @@ def optimize(cfg: SweepConfig, client: Any, out: Path, progress: bool = True) ->
 
     def batch_map(_func, population) -> list[float]:
         variants = [as_variant(x) for x in population]
-        run = evaluate_variants(client, variants, out, progress=progress, label=f"generation {len(seen) // max(len(variants), 1)}")
+        run = evaluate_variants(client, variants, out, label=f"generation {len(seen) // max(len(variants), 1)}")
         seen.extend(run.rows)
         return [score(r, o.objective, o.min_range_N, o.max_silicone_mL) for r in run.rows]
 

@@ -65,9 +65,10 @@ def write_cached(out: Path, row: dict) -> None:
     tmp.replace(_cache_path(out, row["key"]))  # atomic: a killed run leaves no half file
 
 
-def evaluate_variants(client: Any, variants: Sequence[Variant], out: Path, progress: bool = True,
+def evaluate_variants(client: Any, variants: Sequence[Variant], out: Path,
                       label: str = "variants", on_row: Callable[[dict], None] | None = None) -> SweepRun:
-    """Rows for ``variants``: from the cache where present, else computed on ``client``."""
+    """Rows for ``variants``: from the cache where present, else computed on ``client`` (their
+    progress reported as task ``label``, :func:`softphantom.parallel.map_tasks`)."""
     out.mkdir(parents=True, exist_ok=True)
     rows: dict[int, dict] = {}
     todo: list[Variant] = []
@@ -92,7 +93,7 @@ def evaluate_variants(client: Any, variants: Sequence[Variant], out: Path, progr
             on_row(row)
 
     if todo:
-        map_tasks(client, evaluate_variant, [(v,) for v in todo], label=label, progress=progress, on_result=got)
+        map_tasks(client, evaluate_variant, [(v,) for v in todo], label=label, on_result=got)
     ordered = [rows[v.index] for v in variants]
     return SweepRun(ordered, cached, len(todo), None)
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import html
 import json
+import logging
 import queue
 import threading
 import time
@@ -20,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from softphantom.estimation import AtlasConfig, EstimatorConfig, estimate_stream, load_or_build, open_estimator
+from softphantom.progress import Step, forward_progress, report
 
 # The demo's atlas per scenario: the box of the scenario's peak loads (its pushes; the pressure its
 # inflation reached) and zero, each face widened by MARGIN_N + MARGIN_REL × the peak on that side
@@ -45,6 +47,8 @@ PUSH_GRIDS = {"on-centre": ((7, 5, 5, 2), (0.1, 0.0, 0.0)),  # contact: (grid, f
               "off-centre": ((5, 9, 4, 2), None)}
 INFLATE_GRID = (3, 3, 3, 5)
 TRUTH_TOPIC = "softphantom-demo-truth"  # the Dask event topic of the truth solves' progress
+
+log = logging.getLogger(__name__)
 
 
 def contact_of(scenario) -> str:
@@ -126,13 +130,13 @@ def in_envelope_fraction(path: Path) -> float:
     return float(col.mean()) if len(col) else float("nan")
 
 
-def run_scenario(sc, model, out: Path, cfg, truth, bar, estimator: str = "atlas", grid=None, atlas=None,
+def run_scenario(sc, model, out: Path, cfg, truth, estimator: str = "atlas", grid=None, atlas=None,
                  scheduler: str | None = None) -> dict:
     """One scenario end to end from its solved ``truth``, into ``out``/<name>; returns its summary
     row (JSON-able). ``estimator``: atlas (``atlas``, an AtlasConfig, default the scenario's envelope
     (:func:`scenario_atlas`); loaded from or built into out/model/atlas, on ``scheduler`` if
-    given) or refresh (sync); ``grid`` the atlas's points per axis (default: by kind); ``bar`` a
-    rich Progress (:func:`softphantom.progress.progress_bar`) with a ``what`` field."""
+    given) or refresh (sync); ``grid`` the atlas's points per axis (default: by kind). Its progress
+    is reported (tasks ``<scenario>: estimate``, ``<scenario>: evaluate``)."""
     from softphantom.evaluation import evaluate, read_estimate, read_truth, write_report
     from softphantom.tracking import estimate_lag
     from softphantom.virtual import run_summary, simulate, write_run
@@ -146,22 +150,23 @@ def run_scenario(sc, model, out: Path, cfg, truth, bar, estimator: str = "atlas"
     src = run.source()
     n_frames = int(run.board().rate_Hz * sc.duration_s)
     t1 = time.perf_counter()
-    task = bar.add_task(f"{sc.name}: estimate", total=n_frames, what="")
+    task = f"{sc.name}: estimate"
+    report(log, task, 0, n_frames)
     ecfg = EstimatorConfig(contact=contact_of(sc), mode="sync")
     if estimator != "atlas":
         atlas = None
     elif atlas is None:
         atlas = scenario_atlas(truth, grid)
-    with open_estimator(estimator, model, ecfg, cache_dir=out / "model", progress=False, atlas=atlas,
-                        scheduler=scheduler, log=lambda s: bar.console.print(s, highlight=False, soft_wrap=True)) as est:
-        stats = estimate_stream(src, est, est_path, lambda e, n: bar.update(task, completed=n),
+    with open_estimator(estimator, model, ecfg, cache_dir=out / "model", atlas=atlas, scheduler=scheduler) as est:
+        stats = estimate_stream(src, est, est_path, lambda e, n: report(log, task, n, n_frames),
                                 live=False, metadata={"model": "../model", "scenario": sc.name,
                                                       "source": f"virtual:{sc.name}",
                                                       "contact_radius_mm": ecfg.contact_radius_m * 1e3})
-    bar.update(task, completed=n_frames)
+    report(log, task, n_frames, n_frames)
     t_est = time.perf_counter() - t1
     t2 = time.perf_counter()
-    task = bar.add_task(f"{sc.name}: evaluate", total=None, what="report")
+    task = f"{sc.name}: evaluate"
+    report(log, task, 0, None, "report")
     tru = read_truth(paths["truth"])
     estimate = read_estimate(est_path)
     ev = evaluate(tru, estimate)
@@ -171,7 +176,7 @@ def run_scenario(sc, model, out: Path, cfg, truth, bar, estimator: str = "atlas"
     trk = read_truth(paths["tracker"])
     lag = estimate_lag(tru.t, tru.mm_deg(), trk.t, trk.mm_deg(), max_lag_s=1.0)
     t_eval = time.perf_counter() - t2
-    bar.update(task, total=1, completed=1)
+    report(log, task, 1, 1, "report")
     rs = run_summary(run)
     return {
         "scenario": sc.name, "report": str(report),
@@ -194,17 +199,19 @@ def run_scenario(sc, model, out: Path, cfg, truth, bar, estimator: str = "atlas"
 
 
 def _solve_truth(sc, model, truth_cfg, truth_mesh):
-    """A Dask task: the truth of ``sc``, its progress as events on :data:`TRUTH_TOPIC`."""
+    """A Dask task: the truth of ``sc``, its progress as events on :data:`TRUTH_TOPIC` (reported
+    again on the client, :func:`run_all`)."""
     from distributed import get_worker
 
     from softphantom.virtual import solve_truth
 
     worker = get_worker()
 
-    def cb(done: int, total: int, what: str) -> None:
-        worker.log_event(TRUTH_TOPIC, (sc.name, done, total, what))
+    def sink(step: Step) -> None:
+        worker.log_event(TRUTH_TOPIC, (step.task, step.done, step.total, step.what))
 
-    return solve_truth(sc, model, truth_cfg, cb, truth_mesh=truth_mesh)
+    with forward_progress(sink):
+        return solve_truth(sc, model, truth_cfg, truth_mesh=truth_mesh)
 
 
 def _truth_lane(client, order, model, truth_cfg, truth_mesh, ready: queue.Queue, stop: threading.Event) -> None:
@@ -221,53 +228,52 @@ def _truth_lane(client, order, model, truth_cfg, truth_mesh, ready: queue.Queue,
 
 
 def run_all(scs, model, out: Path, cfg, truth_mesh, estimator: str = "atlas", grid=None, *,
-            scheduler: str | None = None, n_workers: int | None = None, console=None) -> list[dict]:
-    """Every scenario of ``scs`` end to end into ``out`` (:func:`run_scenario`), with a progress
-    display on ``console``: truths solved on Dask one at a time, the atlases shared by the push
-    scenarios (:func:`shared_atlases`) built on the same cluster meanwhile, each scenario then
-    estimated and evaluated here as soon as its truth is ready. The scenarios whose atlas needs
+            scheduler: str | None = None, n_workers: int | None = None) -> list[dict]:
+    """Every scenario of ``scs`` end to end into ``out`` (:func:`run_scenario`), its progress
+    reported here (the truths' too, from the workers): truths solved on Dask one at a time, the
+    atlases shared by the push scenarios (:func:`shared_atlases`) built on the same cluster
+    meanwhile, each scenario then estimated and evaluated here as soon as its truth is ready. The scenarios whose atlas needs
     their truth (an inflation: its pressure) are solved first. Rows in the order of ``scs``."""
-    from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeElapsedColumn
-
     from softphantom.parallel import dask_client
-    from softphantom.progress import progress_bar
 
     shared = shared_atlases(scs, grid) if estimator == "atlas" else {}
     order = sorted(scs, key=lambda sc: push_only(sc) in shared)  # stable: the others first
-    bar = progress_bar(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                       TextColumn("{task.fields[what]}"), console=console)
     rows: dict[str, dict] = {}
     truths: dict[str, object] = {}
     ready: queue.Queue = queue.Queue()
     stop = threading.Event()
-    with bar, dask_client(scheduler, n_workers) as client:
+    with dask_client(scheduler, n_workers) as client:
         address = client.scheduler.address
-        tasks = {sc.name: bar.add_task(f"{sc.name}: truth", total=None, what="queued") for sc in order}
+        truth_steps = {f"{sc.name}: truth": Step(f"{sc.name}: truth", 0, None, "queued") for sc in order}
 
         def progress(event) -> None:
-            name, done, total, what = event[1]
-            if name in tasks:
-                bar.update(tasks[name], completed=done, total=max(total, done), what=what)
+            step = Step(*event[1])
+            if step.task in truth_steps:
+                truth_steps[step.task] = step
+                report(log, step.task, step.done, step.total, step.what)
 
+        for step in truth_steps.values():
+            report(log, step.task, step.done, step.total, step.what)
         client.subscribe_topic(TRUTH_TOPIC, progress)
         lane = threading.Thread(target=_truth_lane, args=(client, order, model, cfg.truth, truth_mesh, ready, stop),
                                 daemon=True)
         lane.start()
         try:
             for contact, acfg in shared.items():
-                task = bar.add_task(f"atlas at {contact}", total=None, what=f"{acfg.n_solves} forward solves")
+                task = f"atlas at {contact}"
+                report(log, task, 0, None, f"{acfg.n_solves} forward solves")
                 load_or_build(model, EstimatorConfig(contact=contact, mode="sync"), acfg, cache_dir=out / "model",
-                              scheduler=address, progress=False,
-                              log=lambda s: bar.console.print(s, highlight=False, soft_wrap=True))
-                bar.update(task, total=1, completed=1, what="built")
+                              scheduler=address)
+                report(log, task, 1, 1, "built")
             for sc in order:
                 while sc.name not in truths:
                     name, truth = ready.get()
                     if isinstance(truth, BaseException):
                         raise truth
                     truths[name] = truth
-                    bar.update(tasks[name], what=f"solved in {truth.solve_s:.0f} s")
-                rows[sc.name] = run_scenario(sc, model, out, cfg, truths.pop(sc.name), bar, estimator, grid,
+                    last = truth_steps[f"{name}: truth"]
+                    report(log, last.task, last.done, last.total, f"solved in {truth.solve_s:.0f} s")
+                rows[sc.name] = run_scenario(sc, model, out, cfg, truths.pop(sc.name), estimator, grid,
                                              atlas=shared.get(push_only(sc)), scheduler=address)
         finally:
             stop.set()

@@ -10,7 +10,6 @@ run``.
 from __future__ import annotations
 
 import json
-from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -120,27 +119,26 @@ def host_chain(model: PhantomModel, board: BoardConfig = BoardConfig()) -> Senso
 
 
 def simulate(scenario: Scenario | str | Path, model: PhantomModel, config: VirtualConfig = VirtualConfig(),
-             progress: Callable[[int, int, str], None] | None = None,
              truth: Truth | None = None, truth_mesh: PhantomModel | None = None) -> VirtualRun:
     """Solve the truth of ``scenario`` (unless ``truth`` is given) and prepare board and tracker."""
     sc = scenario if isinstance(scenario, Scenario) else load_scenario(scenario)
-    tr = truth or solve_truth(sc, model, config.truth, progress, truth_mesh=truth_mesh)
+    tr = truth or solve_truth(sc, model, config.truth, truth_mesh=truth_mesh)
     sig = board_signals(tr, arm_volumes(tr.model), config.board)
     trk = simulate_tracker(tr, config.tracker)
     return VirtualRun(sc, model, tr, sig, trk, host_chain(model, config.board), config)
 
 
 def sensor_source(scenario: Scenario | str | Path, model: PhantomModel, config: VirtualConfig = VirtualConfig(),
-                progress: Callable[[int, int, str], None] | None = None, *, tare: bool = True,
+                *, tare: bool = True,
                 run: VirtualRun | None = None, bench: BenchConfig | None = None) -> FrameSource:
     """A :class:`~softphantom.sensing.sources.SensorSource` of the virtual phantom running
     ``scenario`` on ``model``: the firmware's frames through the real decoder, tared on the rest
     window at the start. ``bench`` (tubes, ambient) is the bench both the board's physics and the
-    host use. Solves the truth first (seconds to minutes, see ``progress``)."""
+    host use. Solves the truth first (seconds to minutes, its progress logged: :func:`simulate`)."""
     if bench is not None:
         config = replace(config, board=replace(config.board, tube_length_m=bench.tube_length_m,
                                                tube_id_m=bench.tube_id_m, p0_Pa=bench.p0_Pa))
-    run = run or simulate(scenario, model, config, progress)
+    run = run or simulate(scenario, model, config)
     return run.source(tare=tare)
 
 

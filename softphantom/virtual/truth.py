@@ -23,8 +23,8 @@ two keyframes (one more solve), or stops at ``max_p_urethra_kPa``.
 
 from __future__ import annotations
 
+import logging
 import time
-from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -46,11 +46,14 @@ from softphantom.fem import (
 )
 from softphantom.fem.model import laws_of_design
 from softphantom.pose import Pose6, pose_of_markers
+from softphantom.progress import report
 from softphantom.sensing import ARM_NAMES
 from softphantom.virtual.scenario import Event, Scenario
 
 CAVITIES = ARM_NAMES + ("urethra",)
 TRUTH_LAWS = ("neo-hookean", "model")
+
+log = logging.getLogger(__name__)
 
 
 def truth_laws(model: PhantomModel, law: str) -> dict:
@@ -224,13 +227,15 @@ def _patch_radius(fem, point: np.ndarray, radius_m: float) -> float:
 
 
 def solve_truth(scenario: Scenario, model: PhantomModel, config: TruthConfig = TruthConfig(),
-                progress: Callable[[int, int, str], None] | None = None,
                 truth_mesh: PhantomModel | None = None) -> Truth:
     """Solve the truth of ``scenario`` (see the module docstring). ``model`` is the estimator's
     model (its design and mesh size set the truth mesh), or pass ``truth_mesh`` directly.
-    ``progress(done, total, what)`` is called after each keyframe; a given ``truth_mesh`` sets the
-    element order (its own)."""
+    Its progress is reported after each keyframe (task ``<scenario>: truth``, done/total keyframes,
+    :func:`softphantom.progress.report`); a given ``truth_mesh`` sets the element order (its own)."""
     t0 = time.perf_counter()
+    task = f"{scenario.name}: truth"
+    if truth_mesh is None:
+        report(log, task, 0, None, "meshing the truth model")
     tm = truth_mesh if truth_mesh is not None else truth_model(model, config)
     laws = truth_laws(tm, config.law)
     fem = fem_from_phantom(tm, laws)  # the truth mesh's element order
@@ -285,8 +290,7 @@ def solve_truth(scenario: Scenario, model: PhantomModel, config: TruthConfig = T
         if not sol.converged:
             raise SolverError(f"truth of {scenario.name}: {what}: {sol.status}")
         done += 1
-        if progress:
-            progress(done, total, what)
+        report(log, task, done, total, what)
         return sol
 
     events = []
