@@ -5,6 +5,7 @@ mismatch, corruption), the out-of-envelope flag, the estimator interface and the
 from __future__ import annotations
 
 import dataclasses
+import logging
 
 import numpy as np
 import pytest
@@ -37,12 +38,12 @@ def fwd(coarse_model):
 
 @pytest.fixture(scope="module")
 def atlas(coarse_model, fwd):
-    return build_atlas(coarse_model, CFG, ACFG, n_workers=1, processes=False, progress=False)
+    return build_atlas(coarse_model, CFG, ACFG, n_workers=1, processes=False)
 
 
 @pytest.fixture(scope="module")
 def atlas_disp(coarse_model, fwd):
-    return build_atlas(coarse_model, CFG, ACFG_DISP, n_workers=1, processes=False, progress=False)
+    return build_atlas(coarse_model, CFG, ACFG_DISP, n_workers=1, processes=False)
 
 
 @pytest.fixture(params=["force", "displacement"])
@@ -200,7 +201,15 @@ def test_out_of_envelope_is_flagged_and_clamped(coarse_model, atlas, fwd):
 
 
 @pytest.mark.slow
-def test_cache_round_trip_mismatch_and_corruption(coarse_model, atlas, fwd, tmp_path, monkeypatch):
+def messages(caplog) -> list[str]:
+    """The log messages of the atlas build (not its progress records), at WARNING with the level."""
+    from softphantom.progress import is_progress
+
+    return [(f"warning: {r.getMessage()}" if r.levelno >= logging.WARNING else r.getMessage())
+            for r in caplog.records if r.name.startswith("softphantom.estimation") and not is_progress(r)]
+
+
+def test_cache_round_trip_mismatch_and_corruption(coarse_model, atlas, fwd, tmp_path, monkeypatch, caplog):
     path = atlas_path(tmp_path, atlas.key)
     save_atlas(atlas, path)
     back = load_atlas(path, atlas.key)
@@ -219,9 +228,9 @@ def test_cache_round_trip_mismatch_and_corruption(coarse_model, atlas, fwd, tmp_
     # the cached file is used as is
     built = []
     monkeypatch.setattr("softphantom.estimation.atlas_build.build_atlas", lambda *a, **k: built.append(1) or atlas)
-    msgs = []
-    assert load_or_build(coarse_model, CFG, ACFG, cache_dir=tmp_path, log=msgs.append, fwd=fwd).key == atlas.key
-    assert not built
+    caplog.set_level(logging.INFO, logger="softphantom")
+    assert load_or_build(coarse_model, CFG, ACFG, cache_dir=tmp_path, fwd=fwd).key == atlas.key
+    assert not built and any(str(path) in m for m in messages(caplog))
     # one flipped byte in the data → corrupt: one line naming the file, never used, nothing overwritten
     raw = bytearray(path.read_bytes())
     raw[len(raw) // 2] ^= 0xFF
@@ -229,20 +238,20 @@ def test_cache_round_trip_mismatch_and_corruption(coarse_model, atlas, fwd, tmp_
     with pytest.raises(AtlasCorrupt):
         load_atlas(path)
     with pytest.raises(AtlasCorrupt, match="atlas build --model .* --rebuild") as exc:
-        load_or_build(coarse_model, CFG, ACFG, cache_dir=tmp_path, log=msgs.append, fwd=fwd)
+        load_or_build(coarse_model, CFG, ACFG, cache_dir=tmp_path, fwd=fwd)
     assert str(path) in str(exc.value) and "\n" not in str(exc.value)
     assert not built and path.read_bytes() == bytes(raw)
     # asked to rebuild: built and rewritten intact
-    load_or_build(coarse_model, CFG, ACFG, cache_dir=tmp_path, log=msgs.append, fwd=fwd, rebuild=True)
-    assert built == [1] and any("rebuilding" in m for m in msgs)
+    load_or_build(coarse_model, CFG, ACFG, cache_dir=tmp_path, fwd=fwd, rebuild=True)
+    assert built == [1] and any(m.startswith("warning: ") and "rebuilding" in m for m in messages(caplog))
     assert np.array_equal(load_atlas(path, atlas.key).cV, atlas.cV)  # rewritten intact
     path.write_bytes(b"not an npz")
     with pytest.raises(AtlasCorrupt, match="not a readable atlas file"):
         load_atlas(path)
     # the atlas/ directory given instead of the model's: one line says so before the build
-    msgs.clear()
-    load_or_build(coarse_model, CFG, ACFG, cache_dir=path.parent, log=msgs.append, fwd=fwd)
-    assert built == [1, 1] and sum("warning" in m and "model directory" in m for m in msgs) == 1
+    caplog.clear()
+    load_or_build(coarse_model, CFG, ACFG, cache_dir=path.parent, fwd=fwd)
+    assert built == [1, 1] and sum("warning" in m and "model directory" in m for m in messages(caplog)) == 1
 
 
 def _rewrite_meta(path, **changes) -> None:
@@ -275,9 +284,13 @@ def test_atlas_files_are_verified_described_and_installed(coarse_model, atlas, t
     out = capsys.readouterr().out
     assert "3 × 4 × 3 × 2 points" in out and "on-centre" in out and atlas.key in out
     # `atlas build` finds it (no solve: the cached file is loaded and named)
-    assert main(["atlas", "build", "--model", str(model_dir), "--atlas-grid", "3,4,3,2", "--atlas-x-axis", "force",
-                 "--envelope", "-0.5:0.5,-0.3:1.2,-0.5:0.5,-1:4", "--atlas-f-y-split-N", ""]) == 0
-    assert str(path) in capsys.readouterr().out
+    build = ["atlas", "build", "--model", str(model_dir), "--atlas-grid", "3,4,3,2", "--atlas-x-axis", "force",
+             "--envelope", "-0.5:0.5,-0.3:1.2,-0.5:0.5,-1:4", "--atlas-f-y-split-N", ""]
+    assert main(build) == 0
+    out = capsys.readouterr().out
+    assert f"atlas: {path} (" in out and out.splitlines()[-1] == str(path)  # the build's log line, then the path
+    assert main(["-q", *build]) == 0
+    assert capsys.readouterr().out.splitlines() == [str(path)]  # quiet: no log line
     # installed into another copy of the same model: found under its key; again: already there
     twin = save_model(coarse_model, tmp_path / "twin")
     assert main(["atlas", "add", str(path), "--model", str(twin)]) == 0
@@ -310,7 +323,7 @@ def test_atlas_files_are_verified_described_and_installed(coarse_model, atlas, t
     assert "truncated" in bad["truncated"]
 
 
-def test_a_model_directory_is_no_misplaced_atlas_cache(coarse_model, atlas, fwd, tmp_path, monkeypatch):
+def test_a_model_directory_is_no_misplaced_atlas_cache(coarse_model, atlas, fwd, tmp_path, monkeypatch, caplog):
     """A directory just made by ``design`` holds model.npz (the model's own file): building its first
     atlas says nothing about "atlas files"; a directory holding an atlas file (named by its key) does."""
     from softphantom.design import save_model
@@ -318,13 +331,13 @@ def test_a_model_directory_is_no_misplaced_atlas_cache(coarse_model, atlas, fwd,
     monkeypatch.setattr("softphantom.estimation.atlas_build.build_atlas", lambda *a, **k: atlas)
     save_model(coarse_model, tmp_path / "model")
     assert (tmp_path / "model" / "model.npz").is_file()
-    msgs = []
-    load_or_build(coarse_model, CFG, ACFG, cache_dir=tmp_path / "model", log=msgs.append, fwd=fwd)
-    assert not any("warning" in m for m in msgs), msgs
+    caplog.set_level(logging.INFO, logger="softphantom")
+    load_or_build(coarse_model, CFG, ACFG, cache_dir=tmp_path / "model", fwd=fwd)
+    assert messages(caplog) and not any("warning" in m for m in messages(caplog)), messages(caplog)
     assert atlas_path(tmp_path / "model", atlas.key).is_file()
-    msgs.clear()  # the atlas/ directory itself given as the cache: warned once
-    load_or_build(coarse_model, CFG, ACFG, cache_dir=tmp_path / "model" / "atlas", log=msgs.append, fwd=fwd)
-    assert sum("warning" in m and "holds atlas files" in m for m in msgs) == 1
+    caplog.clear()  # the atlas/ directory itself given as the cache: warned once
+    load_or_build(coarse_model, CFG, ACFG, cache_dir=tmp_path / "model" / "atlas", fwd=fwd)
+    assert sum("warning" in m and "holds atlas files" in m for m in messages(caplog)) == 1
 
 
 @pytest.mark.slow
@@ -389,7 +402,7 @@ def test_cli_estimate_atlas_option(coarse_model, atlas, tmp_path, capsys):
     assert main(args[:-2] + ["--envelope", "1:0,0:1,0:1,0:1"]) == 2
 
 
-def test_unreachable_grid_points_are_filled_and_flagged(coarse_model, fwd, monkeypatch):
+def test_unreachable_grid_points_are_filled_and_flagged(coarse_model, fwd, monkeypatch, caplog):
     """A corner of the envelope that does not converge: the build goes on, does not try the points
     beyond the failure, fills them (exactly, for a map linear in the loads) and flags estimates
     there as outside the envelope; one log line per plane with failures."""
@@ -419,9 +432,9 @@ def test_unreachable_grid_points_are_filled_and_flagged(coarse_model, fwd, monke
             return SimpleNamespace(V=A @ lam, x=x, sub_x=(fwd.probe @ x.reshape(-1, 3)), lam=lam)
 
     monkeypatch.setattr("softphantom.estimation.atlas_build.ForwardModel", Linear)
-    lines = []
-    at = build_atlas(coarse_model, CFG, ACFG, n_workers=1, processes=False, progress=False, fwd=fwd,
-                     log=lines.append)
+    caplog.set_level(logging.INFO, logger="softphantom")
+    at = build_atlas(coarse_model, CFG, ACFG, n_workers=1, processes=False, fwd=fwd)
+    lines = messages(caplog)
     g = np.stack(np.meshgrid(*ACFG.axes(), indexing="ij"), axis=-1)
     fails = (g[..., 0] > 0.1) & (g[..., 1] > 0.5)
     assert np.array_equal(~at.solved, fails) and at.unsolved == fails.sum() > 0
@@ -431,6 +444,11 @@ def test_unreachable_grid_points_are_filled_and_flagged(coarse_model, fwd, monke
     assert 0 < n_tried_bad < fails.sum()
     assert len(lines) == len({(i, l) for i, _, _, l in np.argwhere(fails)})
     assert all("\n" not in s and "unreachable" in s for s in lines)
+    # its planes' progress: one record as each plane task ends, done of total, for the CLI's bar
+    steps = [r.progress for r in caplog.records if hasattr(r, "progress")]
+    n_planes = ACFG.shape[0] * (1 if ACFG.linear_pressure else ACFG.shape[3])
+    assert [(s.task, s.done, s.total) for s in steps] == [(f"atlas: {ACFG.n_solves} forward solves", k, n_planes)
+                                                          for k in range(n_planes + 1)]
     # the fill is exact for a linear map: the polynomial reproduces it everywhere
     lam = np.array([0.4, 1.0, 0.2, 2e3])
     assert np.allclose(at.volumes(lam)[0], A @ lam, rtol=1e-9, atol=1e-18)
@@ -490,7 +508,7 @@ def test_an_atlas_in_pieces_along_f_y_follows_a_kink_one_polynomial_cannot(coars
     assert [c.force_max_N[1] for c in pieces.patches()] == [split, ACFG.force_max_N[1]]
     assert pieces.n_solves == 2 * cfg4.n_solves and "f_y_splits_N" not in cfg4.as_dict()  # old keys kept
     monkeypatch.setattr("softphantom.estimation.atlas_build.ForwardModel", Kinked)
-    kw = dict(n_workers=1, processes=False, progress=False, fwd=fwd, log=lambda s: None)
+    kw = dict(n_workers=1, processes=False, fwd=fwd)
     one = build_atlas(coarse_model, CFG, cfg4, **kw)
     at = build_atlas(coarse_model, CFG, pieces, **kw)
     monkeypatch.undo()
@@ -498,7 +516,7 @@ def test_an_atlas_in_pieces_along_f_y_follows_a_kink_one_polynomial_cannot(coars
     # each piece is the plain atlas of its range: the cache finds it under that atlas's key
     for piece in at.patches:
         save_atlas(piece, atlas_path(tmp_path, atlas_key(fwd, piece.config)))
-    cached = load_or_build(coarse_model, CFG, pieces, cache_dir=tmp_path, fwd=fwd, log=lambda s: None)
+    cached = load_or_build(coarse_model, CFG, pieces, cache_dir=tmp_path, fwd=fwd)
     assert isinstance(cached, AtlasPatches) and cached.key == at.key
     lo, hi = ACFG.lower, ACFG.upper
     loads = lo + (hi - lo) * rng.uniform(0.02, 0.98, (40, 4))
@@ -539,7 +557,7 @@ def test_the_default_atlas_follows_the_elements_order(order, monkeypatch):
     monkeypatch.setattr(atlas_mod, "build_atlas", build)
     fwd = SimpleNamespace(fem=SimpleNamespace(order=order))
     with pytest.raises(Built) as got:
-        load_or_build(None, CFG, None, fwd=fwd, log=lambda s: None)
+        load_or_build(None, CFG, None, fwd=fwd)
     acfg = got.value.args[0]
     if order == 1:
         assert acfg == atlas_config.AtlasConfig()

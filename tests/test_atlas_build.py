@@ -195,7 +195,7 @@ def test_linear_pressure_axis_is_the_tangent_line_through_converged_middle_solve
 
     lin = AtlasConfig(force_min_N=(-0.3, -0.3, -0.3), force_max_N=(0.3, 0.9, 0.3), p_min_kPa=-1.0, p_max_kPa=1.0,
                       n_force=(3, 3, 3), n_pressure=2, linear_pressure=True, x_control="force")
-    at = build_atlas(coarse_model, CFG, lin, n_workers=1, processes=False, progress=False, log=lambda s: None)
+    at = build_atlas(coarse_model, CFG, lin, n_workers=1, processes=False)
     assert at.solves == 27 and lin.n_solves == 27 and at.solved.all()
     ax = lin.axes()
     for f in [(ax[0][0], ax[1][1], ax[2][2]), (ax[0][2], ax[1][2], ax[2][0])]:

@@ -4,13 +4,15 @@
 from __future__ import annotations
 
 import io
+import logging
 import re
 import threading
 
 import pytest
 from rich.console import Console
 
-from softphantom.progress import LineProgress, _LineLive, live_line, progress_bar, status
+from softphantom.cli.logs import close_logging, configure_logging
+from softphantom.progress import LineProgress, _LineLive, is_progress, live_line, progress_bar, report, status
 
 
 class Clock:
@@ -101,15 +103,77 @@ def test_status_lines_start_while_running_and_end():
     assert lines[-2:] == ["drawing …", lines[-1]] and re.fullmatch(r"drawing: stopped after [\d.]+ s", lines[-1])
 
 
-def test_map_tasks_on_a_pipe_prints_its_progress(capsys):
+def test_map_tasks_reports_its_progress_as_records(caplog):
     from softphantom.parallel import dask_client, map_tasks
 
+    caplog.set_level(logging.INFO, logger="softphantom")
     with dask_client(processes=False, n_workers=1) as client:
-        out = map_tasks(client, pow, [(2, k) for k in range(5)], label="powers", progress=True)
-    assert [r.value for r in out] == [1, 2, 4, 8, 16]
-    lines = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("powers")]
-    assert lines[0].startswith("powers: 0/5 (0 %)") and lines[-1].startswith("powers: 5/5 (100 %)")
-    assert len(lines) == 6
+        out = map_tasks(client, pow, [(2, k) for k in range(5)], label="powers")
+        quiet = map_tasks(client, pow, [(3, 1)], label=None)
+    assert [r.value for r in out] == [1, 2, 4, 8, 16] and quiet[0].value == 3
+    recs = [r for r in caplog.records if is_progress(r)]
+    assert [(r.progress.task, r.progress.done, r.progress.total) for r in recs] == [("powers", k, 5) for k in range(6)]
+    assert {r.name for r in recs} == {"softphantom.parallel"} and recs[-1].getMessage() == "powers: 5/5"
+
+
+def test_the_cli_handlers_on_a_pipe_print_progress_lines_and_messages():
+    con, buf = plain()
+    other = logging.getLogger("otherlib")
+    other.setLevel(logging.INFO)  # as Dask sets its own loggers
+    configure_logging(logging.INFO, con)
+    try:
+        lg = logging.getLogger("softphantom.test")
+        for k in range(6):
+            report(lg, "powers", k, 5)
+        lg.info("atlas: built [red]")
+        lg.warning("atlas: a warning")
+        lg.debug("a detail")
+        other.info("State start")
+        other.warning("lost a worker")
+        report(lg, "truth", 0, None, "queued")
+        report(lg, "truth", 3, 2, "keyframe 3")  # a total below done is raised to it
+        report(lg, "powers", 1, 5)  # done went back: run again, a new bar
+    finally:
+        close_logging()
+        other.setLevel(logging.NOTSET)
+    lines = [ln.rsplit(" ", 1)[0] if re.search(r" \d:\d\d:\d\d$", ln) else ln for ln in buf.getvalue().splitlines()]
+    assert lines == [*(f"powers: {k}/5 ({20 * k} %)" for k in range(6)), "atlas: built [red]", "warning: atlas: a warning",
+                     "warning: lost a worker", "truth: queued", "truth: 3/3 (100 %) keyframe 3", "powers: 1/5 (20 %)"]
+    assert not logging.getLogger().handlers or all(not is_progress_handler(h) for h in logging.getLogger().handlers)
+
+
+def is_progress_handler(h) -> bool:
+    from softphantom.progress import ProgressHandler
+
+    return isinstance(h, ProgressHandler)
+
+
+def test_quiet_and_verbose_set_the_level_and_a_bad_level_is_one_line(capsys, monkeypatch):
+    from softphantom.cli import main
+    from softphantom.cli.logs import configure_from_options
+
+    con, buf = plain()
+    for verbose, quiet, env, level in ((False, False, None, logging.INFO), (True, False, "warning", logging.DEBUG),
+                                       (False, True, None, logging.WARNING), (False, False, "error", logging.ERROR)):
+        monkeypatch.delenv("SOFTPHANTOM_LOG", raising=False)
+        if env:
+            monkeypatch.setenv("SOFTPHANTOM_LOG", env)
+        configure_from_options(verbose, quiet, con)
+        try:
+            assert logging.getLogger("softphantom.estimation").getEffectiveLevel() == level
+            assert logging.getLogger("matplotlib.font").getEffectiveLevel() == logging.WARNING
+            report(logging.getLogger("softphantom.t"), "step", 1, 2)
+        finally:
+            close_logging()
+    assert buf.getvalue().count("step: 1/2") == 2  # -q and SOFTPHANTOM_LOG=error: no progress either
+    assert logging.getLogger("softphantom").level == logging.NOTSET  # the command's end undoes it
+    monkeypatch.setenv("SOFTPHANTOM_LOG", "loud")
+    assert main(["version"]) == 2
+    err = capsys.readouterr().err
+    assert err.strip() == "error: SOFTPHANTOM_LOG: expected debug, info, warning or error, got 'loud'"
+    monkeypatch.delenv("SOFTPHANTOM_LOG")
+    assert main(["-v", "-q", "version"]) == 2 and "--verbose and --quiet" in capsys.readouterr().err
+    assert main(["-q", "version"]) == 0 and "softphantom" in capsys.readouterr().out
 
 
 def test_design_on_a_pipe_says_what_it_is_doing(tmp_path, capsys):

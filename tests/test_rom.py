@@ -139,7 +139,7 @@ def test_atlas_built_by_the_reduced_model_agrees_with_the_full_one(coarse_model,
     monkeypatch.setattr(offline, "N_CHECK", 4)
     base = AtlasConfig(force_min_N=(-0.6, -0.3, -0.4), force_max_N=(0.6, 1.5, 0.4), p_min_kPa=-1.0, p_max_kPa=10.0,
                        n_force=(4, 3, 3), n_pressure=2, x_control=x_control)
-    kw = dict(n_workers=1, processes=False, progress=False, log=lambda s: None)
+    kw = dict(n_workers=1, processes=False)
     full = build_atlas(coarse_model, CFG, base, **kw)
     from dataclasses import replace
 

@@ -46,7 +46,7 @@ def inproc(sweep_file, tmp_path_factory):
     cfg = load_sweep_config(sweep_file)
     out = tmp_path_factory.mktemp("inproc")
     with dask_client(processes=False, n_workers=1) as client:
-        run = evaluate_variants(client, cfg.variants(), out, progress=False)
+        run = evaluate_variants(client, cfg.variants(), out)
     return cfg, run.rows
 
 
@@ -127,6 +127,7 @@ def test_cli_local_cluster_resumes_from_the_cache(sweep_file, inproc, tmp_path, 
     assert "Pareto front" in html and "data:image/png;base64" in html
     # each invalid variant's reason: in the results, the report and the command's own output
     printed = capsys.readouterr().out.splitlines()
+    assert not any(ln.startswith("variants:") for ln in printed)  # --no-progress
     for r in rows:
         if r["status"] != "ok":
             assert "leaves no cavity" in r["error"] and __import__("html").escape(r["error"]) in html
@@ -138,8 +139,12 @@ def test_cli_local_cluster_resumes_from_the_cache(sweep_file, inproc, tmp_path, 
     cache = sorted((out / "variants").glob("*.json"))
     assert len(cache) == 4
     (out / "variants" / f"{rows[1]['key']}.json").unlink()
-    assert main(["sweep", "--config", str(sweep_file), "--out", str(out), "--workers", "1", "--no-progress"]) == 0
-    assert "3 from the cache, 1 computed" in capsys.readouterr().out.replace("\n", " ")
+    assert main(["sweep", "--config", str(sweep_file), "--out", str(out), "--workers", "1"]) == 0
+    printed = capsys.readouterr().out
+    assert "3 from the cache, 1 computed" in printed.replace("\n", " ")
+    # output that is not a terminal (this capture) shows the progress as lines, from the Dask client
+    assert [ln.rsplit(" ", 1)[0] for ln in printed.splitlines() if ln.startswith("variants:")] == [
+        "variants: 0/1 (0 %)", "variants: 1/1 (100 %)"]
     assert rows_equal(rows, read_parquet(out / "results.parquet"), TIMING_COLUMNS) == []
 
 
@@ -206,7 +211,7 @@ def test_optimize_finds_the_shortest_tube_that_keeps_the_range(tmp_path):
         "optimize": {"maxiter": 1, "popsize": 5, "seed": 2, "min_range_N": 6.0},
     })
     with dask_client(processes=False, n_workers=1) as client:
-        res = run_optimize(cfg, client, tmp_path, progress=False)
+        res = run_optimize(cfg, client, tmp_path)
     rows = read_parquet(tmp_path / "optimize.parquet")
     assert len(rows) == res.evaluations == 10  # 5 initial + 5 in the one generation
     feasible = [r for r in rows if r["status"] == "ok" and r["range_min_N"] >= 6.0]
