@@ -173,6 +173,9 @@ def test_cli_writes_a_calibrated_model(coarse, sessions, tmp_path, capsys):
     assert main(args) == 0
     text = capsys.readouterr().out
     assert "95 % interval" in text and "identifiable" in text
+    # its log on a pipe: the stages and the fit's iterations (the pose checks' own iterations: -v only)
+    assert re.search(r"^iteration 1: cost [\d.e+-]+ \(λ [\d.e+-]+\), \d+ forward solves$", text, re.M)
+    assert re.search(r"^fit: \d+ forward solves", text, re.M) and "pose check, fitting data, calibrated: " in text
     assert "stiffness_arms_factor" in (out / "parameters.csv").read_text()
     cal = json.loads((out / "calibration.json").read_text())
     assert cal["stiffness_factor"]["arms"] == pytest.approx(ARMS_TRUE, rel=0.05)

@@ -383,7 +383,7 @@ def test_pty_board_is_seen_as_a_board(short_run):
     assert np.median(dt) == pytest.approx(1 / 19.23, rel=0.01)
 
 
-def test_inflation_until_target_moves(coarse_model, coarse_truth_p1, monkeypatch):
+def test_inflation_until_target_moves(coarse_model, coarse_truth_p1, monkeypatch, caplog):
     """Inflate until near_urethra moved 2 mm (the bundled scenario's goal): the secant keyframe hits
     it, the growth is reported. The target solves start from the secant predictor at the full load
     and step on with the shifted Cholesky: no exact LDLᵀ step (16 s a factorization on the demo's
@@ -400,8 +400,15 @@ def test_inflation_until_target_moves(coarse_model, coarse_truth_p1, monkeypatch
                              "inflate": [{"start_s": 1.5, "rise_s": 2.0, "hold_s": 1.0, "fall_s": 1.0,
                                           "target": "near_urethra", "target_shift_mm": 2.0,
                                           "max_p_urethra_kPa": 150.0}]}, "infl")
+    caplog.set_level("INFO", logger="softphantom")
     tr = solve_truth(sc, coarse_model, TruthConfig(order=1), truth_mesh=coarse_truth_p1)
     et = tr.events[0]
+    # its progress: one record a solve (the keyframes kept and the pressure steps past the target),
+    # done counting up of the inflation's steps
+    steps = [r.progress for r in caplog.records if hasattr(r, "progress")]
+    assert {s.task for s in steps} == {"infl: truth"} and [s.done for s in steps] == list(range(1, len(steps) + 1))
+    assert {s.total for s in steps} == {TruthConfig().inflate_steps} and len(steps) >= len(et.s) - 1
+    assert steps[-1].what.endswith("(target)")
     j = tr.target_names.index("near_urethra")
     assert np.linalg.norm(et.targets[-1, j]) * 1e3 == pytest.approx(2.0, rel=0.01)
     assert 10e3 < et.p_urethra < 80e3 and np.all(np.diff(et.s) > 0) and et.s[-1] == 1.0
