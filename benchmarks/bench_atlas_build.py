@@ -107,7 +107,7 @@ def main() -> None:
     cfg = EstimatorConfig()
     load0 = os.getloadavg()
     t = time.perf_counter()
-    at = build_atlas(model, cfg, acfg, n_workers=a.workers, progress=False)
+    at = build_atlas(model, cfg, acfg, n_workers=a.workers)
     wall = time.perf_counter() - t
     load1 = os.getloadavg()
     n = at.solved.size

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import os
 import resource
 import sys
@@ -28,6 +29,7 @@ sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 sys.path.insert(0, os.path.dirname(__file__))
 
 from bench_estimate import held_out  # noqa: E402
+from softphantom.progress import message_handler  # noqa: E402
 from softphantom.design import load_model  # noqa: E402
 from softphantom.estimation import AtlasEstimator, EstimatorConfig  # noqa: E402
 from softphantom.estimation.atlas_build import _sweep, build_atlas  # noqa: E402
@@ -66,6 +68,8 @@ def core_loads(lo, hi, n, seed=11):
 
 
 def main() -> None:
+    logging.getLogger("softphantom").addHandler(message_handler())  # the library's messages, not its progress
+    logging.getLogger("softphantom").setLevel(logging.INFO)
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--model", required=True, help="model directory")
     ap.add_argument("--workers", type=int, default=2)
@@ -93,7 +97,7 @@ def main() -> None:
     out: dict = {"model": a.model, "grid": list(acfg.shape), "pieces": len(acfg.patches()),
                  "points": acfg.n_solves, "x_control": acfg.x_control}
     t0 = time.perf_counter()
-    at = build_atlas(model, cfg, acfg, n_workers=a.workers, progress=False, log=lambda s: print(s, flush=True))
+    at = build_atlas(model, cfg, acfg, n_workers=a.workers)
     out["rom_wall_s"] = time.perf_counter() - t0
     pieces = getattr(at, "patches", (at,))
     offl = [p.provenance["offline"] for p in pieces]
@@ -125,7 +129,7 @@ def main() -> None:
         out["ratio"] = per * acfg.n_solves / out["rom_cpu_s"]
         print(f"full path: {per:.2f} CPU-s a point ({n} points sampled) -> {per * acfg.n_solves:.0f} CPU-s for the grid; "
               f"ratio {out['ratio']:.1f}x")
-    est = AtlasEstimator(model, cfg, at, progress=False, log=lambda s: None)
+    est = AtlasEstimator(model, cfg, at)
     fwd = ForwardModel(model, cfg, exact_sensitivities=False)
     lo, hi = acfg.lower, acfg.upper
     rows = {"held_out": held_out(est, fwd, a.held_out)}

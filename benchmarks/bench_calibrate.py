@@ -37,6 +37,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import logging
 import os
 import resource
 import subprocess
@@ -47,6 +48,7 @@ from pathlib import Path
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 
+from softphantom.progress import message_handler  # noqa: E402
 from softphantom.calibration.fit import ratio_name  # noqa: E402
 from softphantom.calibration.forward import ARM_NAMES, GROUPS  # noqa: E402
 from softphantom.fem import Yeoh  # noqa: E402
@@ -252,8 +254,7 @@ def run(model_dir, s, workers, fix=(), measured=(), law=None):
              for sc, c in (("push-on-centre", "on-centre"), ("push-off-centre", "off-centre"))]
     hold = [SessionSpec(s["needle-insertion"] / "recording.csv", s["needle-insertion"] / "truth.csv", "on-centre")]
     t, c = time.perf_counter(), cpu_s()
-    cal = calibrate(model_dir, specs, hold, options=FitOptions(fix=tuple(fix), measured=tuple(measured), law=law), n_workers=workers,
-                    progress=lambda line: print("   ", line, flush=True))
+    cal = calibrate(model_dir, specs, hold, options=FitOptions(fix=tuple(fix), measured=tuple(measured), law=law), n_workers=workers)
     wall = time.perf_counter() - t
     print(f"  wall {wall:.0f} s (fit {cal.fit.seconds:.0f} s, pose checks and set-up {wall - cal.fit.seconds:.0f} s), "
           f"CPU {cpu_s() - c:.0f} s with the workers, load average {' '.join(f'{x:.1f}' for x in os.getloadavg())}")
@@ -300,8 +301,7 @@ def held_out_only(model_dir: Path, s: dict[str, Path], values: dict[str, float],
     hold = [SessionSpec(s["needle-insertion"] / "recording.csv", s["needle-insertion"] / "truth.csv", "on-centre")]
     print(f"\n== held-out check of {what} on {s['needle-insertion'].name}")
     t, c = time.perf_counter(), cpu_s()
-    h = check_held_out(model_dir, hold, values, options=FitOptions(law=law), n_workers=workers,
-                       progress=lambda line: print("   ", line, flush=True))
+    h = check_held_out(model_dir, hold, values, options=FitOptions(law=law), n_workers=workers)
     print_pose_rmse("held-out", h)
     print(f"  wall {time.perf_counter() - t:.0f} s, CPU {cpu_s() - c:.0f} s with the workers")
 
@@ -331,6 +331,8 @@ def report(cal, wall, tube_in_recording: bool = False, extra_truth: dict[str, fl
 
 
 def main() -> None:
+    logging.getLogger("softphantom").addHandler(message_handler())  # the library's messages, not its progress
+    logging.getLogger("softphantom").setLevel(logging.INFO)
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--mesh-size-mm", type=float, default=6.0)
     ap.add_argument("--truth-law", default=None, choices=("corotational", "neo-hookean", "yeoh"),

@@ -118,7 +118,7 @@ def main(argv=None) -> int:
     args.sort(key=lambda t: -(t[0] ** 3) / t[1] ** 3)
     t0 = time.perf_counter()
     with dask_client(a.scheduler, n_workers=a.workers) as client:
-        res = map_tasks(client, solve_setting, args, label="convergence", progress=False,
+        res = map_tasks(client, solve_setting, args, label=None,
                         on_result=lambda r: print(_row(r.value) if r.ok else f"failed: {r.error}", flush=True))
     rows = sorted((r.value for r in res if r.ok), key=lambda r: (r["nu"], r["order"], -r["mesh_size_mm"]))
     print(f"\n{len(rows)} settings in {time.perf_counter() - t0:.0f} s\n")

@@ -69,12 +69,12 @@ def main(argv=None) -> int:
     cfg = EstimatorConfig(contact=contact, mode="sync")
     rec = a.demo / a.scenario / "recording.csv"
     c0 = time.process_time()
-    at = load_or_build(model, cfg, acfg, cache_dir=a.demo / "model", progress=False)
+    at = load_or_build(model, cfg, acfg, cache_dir=a.demo / "model")
     print(f"atlas {'x'.join(map(str, acfg.shape))}, f_x cluster {acfg.cluster_N[0]:g} N, box "
           f"{np.round(acfg.force_min_N, 2).tolist()}..{np.round(acfg.force_max_N, 2).tolist()} N: "
           f"{acfg.n_solves} solves, built in {at.build_s:.0f} s, {at.build_cpu_s:.0f} CPU-s (this call "
           f"{time.process_time() - c0:.0f} CPU-s)")
-    with open_estimator("atlas", model, cfg, atlas=at, progress=False) as est:
+    with open_estimator("atlas", model, cfg, atlas=at) as est:
         atl = _estimates(est, open_sensor_source(f"replay:{rec}", model).source)
     with Estimator(model, cfg) as est:
         syn = _estimates(est, open_sensor_source(f"replay:{rec}", model).source)

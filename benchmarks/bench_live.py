@@ -29,6 +29,7 @@ what else the machine runs.
 from __future__ import annotations
 
 import argparse
+import logging
 import math
 import os
 import shutil
@@ -41,6 +42,7 @@ import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 
+from softphantom.progress import message_handler  # noqa: E402
 from softphantom.design import BIPDesign, build_model, load_model, save_model  # noqa: E402
 from softphantom.estimation import EstimatorConfig, open_estimator  # noqa: E402
 from softphantom.estimation.select import atlas_config_from_options  # noqa: E402
@@ -118,8 +120,7 @@ def model_and_estimator(a):
     os.makedirs(cache, exist_ok=True)
     t0 = time.monotonic()
     est = open_estimator("atlas", model, EstimatorConfig.box(10.0, contact="on-centre", mode="async"),
-                         atlas=atlas_config_from_options(a.atlas_grid), cache_dir=cache, progress=False,
-                         log=lambda s: print(s, flush=True))
+                         atlas=atlas_config_from_options(a.atlas_grid), cache_dir=cache)
     print(f"model: {len(model.nodes)} nodes, {len(model.outer_faces)} outer triangles; atlas ready in "
           f"{time.monotonic() - t0:.0f} s (cache {cache})", flush=True)
     return model, est
@@ -195,6 +196,8 @@ def run_phase(name, seconds, src, pages=(), roots=(), settle_s=3.0):
 
 
 def main() -> None:
+    logging.getLogger("softphantom").addHandler(message_handler())  # the library's messages, not its progress
+    logging.getLogger("softphantom").setLevel(logging.INFO)
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--model", default=None, help="model directory (default: the default design, meshed once)")
     ap.add_argument("--atlas-cache", default=None, help="where the atlas is built once (default: a temp directory)")

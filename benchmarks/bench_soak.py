@@ -17,6 +17,7 @@ dropped), i.e. the same queue with ``MAX_LAG_S`` = 0, over ``--peer-s``.
 from __future__ import annotations
 
 import argparse
+import logging
 import multiprocessing
 import os
 import subprocess
@@ -31,6 +32,7 @@ import numpy as np
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 
 import softphantom.estimation.stream as stream_mod  # noqa: E402
+from softphantom.progress import message_handler  # noqa: E402
 from softphantom.design import BIPDesign, build_model, load_model  # noqa: E402
 from softphantom.estimation import EstimatorConfig, estimate_stream, open_estimator  # noqa: E402
 from softphantom.sources import open_source  # noqa: E402
@@ -92,8 +94,7 @@ def soak(model, duration_s: float, label: str, kind: str = "atlas", cache_dir=No
 
     try:
         opened = open_source(f"serial:{os.ttyname(slave)}", model, tare_s=1.0)
-        est = open_estimator(kind, model, EstimatorConfig.box(10.0, mode="async"), cache_dir=cache_dir,
-                             log=lambda s: print(s, flush=True))
+        est = open_estimator(kind, model, EstimatorConfig.box(10.0, mode="async"), cache_dir=cache_dir)
         out = f"/tmp/bench_soak_{label}_{os.getpid()}.csv"
         threading.Timer(duration_s, stop.set).start()
         threading.Thread(target=sample_mem, daemon=True).start()
@@ -112,6 +113,8 @@ def soak(model, duration_s: float, label: str, kind: str = "atlas", cache_dir=No
 
 
 def main() -> None:
+    logging.getLogger("softphantom").addHandler(message_handler())  # the library's messages, not its progress
+    logging.getLogger("softphantom").setLevel(logging.INFO)
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--duration-s", type=float, default=300.0)
     ap.add_argument("--peer-s", type=float, default=60.0)

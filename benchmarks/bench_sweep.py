@@ -55,7 +55,7 @@ def _config(n: int, mesh_size_mm: float):
 def _timed(variants, out: Path, **client_kw):
     with dask_client(**client_kw) as client:
         t = time.perf_counter()
-        run = evaluate_variants(client, variants, out, progress=False)
+        run = evaluate_variants(client, variants, out)
         return time.perf_counter() - t, run.rows
 
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import logging
 import sys
 import time
 from pathlib import Path
@@ -26,6 +27,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import bench_calibrate as bc  # noqa: E402
 
+from softphantom.progress import message_handler  # noqa: E402
 from softphantom.calibration import FitOptions, SessionSpec, check_held_out  # noqa: E402
 from softphantom.design import build_model, load_model  # noqa: E402
 from softphantom.virtual.board import BoardConfig  # noqa: E402
@@ -60,6 +62,8 @@ def write_exact(run, rec: Path) -> None:
 
 
 def main() -> None:
+    logging.getLogger("softphantom").addHandler(message_handler())  # the library's messages, not its progress
+    logging.getLogger("softphantom").setLevel(logging.INFO)
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("cache", type=Path)
     ap.add_argument("--session", default="needle-60s")
@@ -108,8 +112,7 @@ def main() -> None:
               f"(the session's: {board['drift_Pa_per_s']} Pa/s)", flush=True)
         for what, values in checks:
             h = check_held_out(a.cache / "model", [SessionSpec(d / "recording.csv", d / "truth.csv", "on-centre")],
-                               values, options=FitOptions(law=a.fit_law), n_workers=a.workers,
-                               progress=lambda line: print("   ", line, flush=True))
+                               values, options=FitOptions(law=a.fit_law), n_workers=a.workers)
             bc.print_pose_rmse(f"held-out {name}, nominal → {what}", h)
 
 

@@ -170,7 +170,7 @@ def run_scenario(sc, model, out: Path, cfg, truth, estimator: str = "atlas", gri
     tru = read_truth(paths["truth"])
     estimate = read_estimate(est_path)
     ev = evaluate(tru, estimate)
-    report, rows = write_report(d / "report", tru, estimate, ev, snapshot=paths["snapshot"],
+    page, rows = write_report(d / "report", tru, estimate, ev, snapshot=paths["snapshot"],
                                 title=f"{sc.name} — {sc.description}")
     # the tracker path: Motive CSV → reader → rest-window registration → lag against the exact truth
     trk = read_truth(paths["tracker"])
@@ -179,7 +179,7 @@ def run_scenario(sc, model, out: Path, cfg, truth, estimator: str = "atlas", gri
     report(log, task, 1, 1, "report")
     rs = run_summary(run)
     return {
-        "scenario": sc.name, "report": str(report),
+        "scenario": sc.name, "report": str(page),
         "rmse": {s.name: s.rmse for s in ev.dof}, "units": {s.name: s.unit for s in ev.dof},
         "peak_truth": {s.name: s.peak_truth for s in ev.dof},
         "force_rmse_N": {s.name: s.rmse for s in ev.force},
