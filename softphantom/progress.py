@@ -255,10 +255,13 @@ class Step:
 def report(logger: logging.Logger, task: str, done: float, total: float | None = None, what: str = "",
            level: int = logging.INFO) -> None:
     """Log the progress of ``task`` on ``logger``: a record whose message is the :class:`Step` as text
-    and whose ``progress`` attribute is the step (drawn as a bar by :class:`ProgressHandler`). A
-    ``total`` below ``done`` is raised to it."""
+    and whose ``progress`` attribute is the step (drawn as a bar by :class:`ProgressHandler`); inside
+    :func:`forward_progress` the step goes to its sink too. A ``total`` below ``done`` is raised to it."""
+    step = Step(task, done, None if total is None else max(total, done), what)
+    sink = getattr(_forward, "sink", None)
+    if sink is not None:
+        sink(step)
     if logger.isEnabledFor(level):
-        step = Step(task, done, None if total is None else max(total, done), what)
         logger.log(level, "%s", step, extra={PROGRESS: step})
 
 
@@ -356,31 +359,17 @@ def message_handler(console=None) -> logging.Handler:
     return handler
 
 
-class _SinkHandler(logging.Handler):
-    def __init__(self, sink: Callable[[Step], None], thread: int) -> None:
-        super().__init__()
-        self.sink, self.thread = sink, thread
-        self.addFilter(is_progress)
-
-    def emit(self, record: logging.LogRecord) -> None:
-        if record.thread == self.thread:
-            self.sink(getattr(record, PROGRESS))
+_forward = threading.local()  # .sink: where forward_progress sends this thread's steps
 
 
 @contextlib.contextmanager
-def forward_progress(sink: Callable[[Step], None], logger: str = "softphantom") -> Iterator[None]:
-    """Hand the :class:`Step` of every progress record that this thread logs on ``logger`` (and
-    below) to ``sink`` while the block runs: from a Dask task to its client (``sink`` puts the step
-    on a Dask event topic, the client reports it again). A worker process has no logging set up:
-    the logger's level is lowered to INFO meanwhile if it is above."""
-    lg = logging.getLogger(logger)
-    handler = _SinkHandler(sink, threading.get_ident())
-    old = lg.level
-    if not lg.isEnabledFor(logging.INFO):
-        lg.setLevel(logging.INFO)
-    lg.addHandler(handler)
+def forward_progress(sink: Callable[[Step], None]) -> Iterator[None]:
+    """Hand every :class:`Step` that this thread reports (:func:`report`) to ``sink`` too while the
+    block runs, whatever the loggers' levels: from a Dask task to its client (``sink`` puts the step
+    on a Dask event topic, the client reports it again; a worker process has no logging set up)."""
+    outer = getattr(_forward, "sink", None)
+    _forward.sink = sink
     try:
         yield
     finally:
-        lg.removeHandler(handler)
-        lg.setLevel(old)
+        _forward.sink = outer
