@@ -68,3 +68,9 @@ def write_table(name: str, header: Sequence[str], rows: Iterable[Sequence[object
                 caption: str = "", argv: Sequence[str] | None = None) -> Path:
     """``write_result`` of ``markdown_table(header, rows, right)``."""
     return write_result(name, markdown_table(header, rows, right), caption=caption, argv=argv)
+
+
+def add_results_option(ap, default: str) -> None:
+    """``--results-name``: the results file a run writes, for a configuration the docs show apart."""
+    ap.add_argument("--results-name", default=default, metavar="NAME",
+                    help=f"write the docs table to benchmarks/results/NAME.md (default {default})")
