@@ -37,7 +37,9 @@ def _commit() -> str:
         return subprocess.run(["git", *a], cwd=ROOT, capture_output=True, text=True, check=False).stdout.strip()
 
     sha = git("rev-parse", "--short", "HEAD") or "unknown"
-    return sha + ("+modified" if git("status", "--porcelain", "--untracked-files=no") else "")
+    # the code measured: the package and the benchmarks, not the results they write
+    code = ("softphantom", "benchmarks", ":(exclude)benchmarks/results")
+    return sha + ("+modified" if git("status", "--porcelain", "--untracked-files=no", "--", *code) else "")
 
 
 def provenance(argv: Sequence[str] | None = None) -> str:
