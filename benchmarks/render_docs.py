@@ -55,6 +55,10 @@ def render(text: str, results: Path, page: str = "<page>") -> str:
     return "\n".join(out)
 
 
+def _short(path: Path) -> str:
+    return str(path.relative_to(ROOT)) if path.is_relative_to(ROOT) else str(path)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--check", action="store_true", help="change nothing; exit 1 if a block differs from its file")
@@ -65,19 +69,19 @@ def main(argv: list[str] | None = None) -> int:
     try:
         for page in sorted(a.docs.rglob("*.md")):
             text = page.read_text(encoding="utf-8")
-            new = render(text, a.results, str(page))
+            new = render(text, a.results, _short(page))
             if new == text:
                 continue
             if a.check:
                 stale.append(page)
             else:
                 page.write_text(new, encoding="utf-8")
-                print(f"rendered {page}")
+                print(f"rendered {_short(page)}")
     except RenderError as e:
         print(f"render_docs: {e}", file=sys.stderr)
         return 2
     for page in stale:
-        print(f"render_docs: {page}: a results block differs from its file in {a.results} "
+        print(f"render_docs: {_short(page)}: a results block differs from its file in {a.results} "
               "(edit the benchmark, not the page; then run benchmarks/render_docs.py)", file=sys.stderr)
     return 1 if stale else 0
 
