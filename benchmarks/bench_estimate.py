@@ -253,6 +253,12 @@ def atlas_rows(res: dict) -> list[tuple[str, str, str]]:
     return rows
 
 
+def write_atlas_table(name: str, res: dict) -> None:
+    write_table(name, ("figure", "compiled step", "numpy step (`step_reference`), same run"), atlas_rows(res),
+                caption=f"{res['ramp']}; {grouped(res['nodes'])}-node model, atlas grid "
+                        f"{' × '.join(map(str, res['atlas_build']['grid']))}:")
+
+
 def refresh_rows(res: dict, naive: float) -> list[tuple[str, ...]]:
     """The refresh estimator's docs table."""
     def hold(r):
@@ -421,9 +427,7 @@ def main() -> None:
         naive = naive_cost(est, est._eq.solve(est.rest, np.r_[forces[len(forces) // 2], 0.0]).x)
         print(f"naive per sample {naive:.3f} s; atlas p50 is {naive / (r['step_ms_p50'] * 1e-3):.0f}x faster")
         res["naive_per_sample_s"] = naive
-        write_table(a.results_name, ("figure", "compiled step", "numpy step (`step_reference`), same run"),
-                    atlas_rows(res), caption=f"{res['ramp']}; {grouped(res['nodes'])}-node model, atlas grid "
-                                             f"{' × '.join(map(str, res['atlas_build']['grid']))}:")
+        write_atlas_table(a.results_name, res)
         if a.json:
             with open(a.json, "w") as f:
                 json.dump(res, f, indent=2)
@@ -454,9 +458,7 @@ def main() -> None:
     res["naive_per_sample_s"] = naive
     res["speedup_vs_naive"] = naive / (res["sustained_async"]["step_ms_p50"] * 1e-3)
     res["atlas_speedup_vs_naive"] = naive / (res["sustained_atlas"]["step_ms_p50"] * 1e-3)
-    write_table(a.results_name, ("figure", "compiled step", "numpy step (`step_reference`), same run"),
-                atlas_rows(res), caption=f"{res['ramp']}; {grouped(res['nodes'])}-node model, atlas grid "
-                                         f"{' × '.join(map(str, res['atlas_build']['grid']))}:")
+    write_atlas_table(a.results_name, res)
     write_table("estimate_refresh", ("scheme", "rate", "step p50 / p99 / max", "ramp max error", "after the hold"),
                 refresh_rows(res, naive), caption=f"{res['ramp']}, then a {a.hold_s:g} s hold; "
                                                   f"{grouped(res['nodes'])}-node model:")

@@ -134,12 +134,6 @@ def estimator_cost(a) -> int:
                       f"load {r['load']}", flush=True)
     if a.json:
         a.json.write_text(json.dumps(rows, indent=1))
-    write_table(a.results_name, ("law", "element", "mesh mm", "nodes", "y error mm", "yaw error °",
-                                 "arm ΔV RMS error mm³", "factorization s", "solve s"), [(
-        r["law"], f"P{r['order']}", f"{r['mesh_size_mm']:g}" + (f", arms {r['arm_size_mm']:g}" if r["arm_size_mm"] else ""),
-        grouped(r["nodes"]), f"{r['err_y_mm']:+.2f}", f"{r['err_yaw_deg']:+.2f}", f"{r['err_dV_rms_mm3']:.2f}",
-        f"{r['factor_s']:.2f}", f"{r['solve_s']:.1f}") for r in rows],
-        caption=f"Errors against the converged reference (y {REFERENCE['y_mm']} mm, yaw {REFERENCE['yaw_deg']}°):")
     return 0
 
 
