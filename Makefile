@@ -31,6 +31,7 @@ docs: $(STAMP)
 
 bench: $(STAMP)
 	for b in benchmarks/bench_*.py; do echo "== $$b"; $(BIN)/python $$b || exit 1; done
+	$(BIN)/python benchmarks/render_docs.py
 
 # the live page's three.js and uPlot (committed; this refreshes them from the npm registry)
 vendor-live:

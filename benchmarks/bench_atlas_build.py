@@ -29,6 +29,8 @@ import time
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 
+from _results import add_results_option, grouped, write_table  # noqa: E402
+
 import softphantom  # noqa: E402,F401 - one BLAS thread before numpy loads
 import numpy as np  # noqa: E402
 
@@ -101,6 +103,7 @@ def main() -> None:
     ap.add_argument("--atlas-grid", help="points per axis NX,NY,NZ,NP (default: AtlasConfig's)")
     ap.add_argument("--x-control", choices=X_CONTROLS, default=AtlasConfig.x_control,
                     help="the first axis: f_x (default) or the patch displacement (AtlasConfig.x_control)")
+    add_results_option(ap, "atlas_build")
     a = ap.parse_args()
     model = load_model(a.model) if a.model else build_model(BIPDesign(), a.mesh_size_mm)
     acfg = atlas_config_from_options(a.atlas_grid, x_axis=a.x_control)
@@ -116,6 +119,11 @@ def main() -> None:
           f"{at.solves} converged, {at.nbytes / 1e6:.1f} MB ({at.modes.shape[1]} field modes); "
           f"peak RSS of this process {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e3:.0f} MB; "
           f"load average {load0[0]:.1f} at start, {load1[0]:.1f} at end")
+    write_table(a.results_name, ("model, atlas", "wall", "CPU-s in the solves (a solve)", "size", "load"), [(
+        f"{grouped(len(model.nodes))} nodes, {' × '.join(map(str, acfg.shape))} = {grouped(n)} points, "
+        f"{a.workers} workers", f"{wall:.0f} s", f"{at.build_cpu_s:.0f} ({at.build_cpu_s / n:.2f}), {at.solves} converged",
+        f"{at.nbytes / 1e6:.1f} MB, {at.modes.shape[1]} field modes; peak RSS "
+        f"{resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e3:.0f} MB", f"{load0[0]:.0f}–{load1[0]:.0f}")])
     if a.cache:
         path = save_atlas(at, atlas_path(a.cache, atlas_key(ForwardModel(model, cfg), acfg)))
         print(f"atlas written to {path}")

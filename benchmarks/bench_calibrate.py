@@ -48,6 +48,7 @@ from pathlib import Path
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 
+from _results import add_results_option, grouped, write_table  # noqa: E402
 from softphantom.progress import message_handler  # noqa: E402
 from softphantom.calibration.fit import ratio_name  # noqa: E402
 from softphantom.calibration.forward import ARM_NAMES, GROUPS  # noqa: E402
@@ -258,6 +259,7 @@ def run(model_dir, s, workers, fix=(), measured=(), law=None):
     wall = time.perf_counter() - t
     print(f"  wall {wall:.0f} s (fit {cal.fit.seconds:.0f} s, pose checks and set-up {wall - cal.fit.seconds:.0f} s), "
           f"CPU {cpu_s() - c:.0f} s with the workers, load average {' '.join(f'{x:.1f}' for x in os.getloadavg())}")
+    run.cpu_s = cpu_s() - c  # the last run's, for the docs table
     return cal, wall
 
 
@@ -368,6 +370,7 @@ def main() -> None:
                     help="no fit: the held-out check alone, with the truth's own parameters (bulb, gain, tube and, "
                          "under --fit-law yeoh against a Yeoh truth, its shape; the rest nominal): the floor that "
                          "noise, the held-out session's drift and the mesh leave to any calibration")
+    add_results_option(ap, "calibrate")
     a = ap.parse_args()
     shape = None if a.truth_yeoh_shape is None else tuple(float(v) for v in a.truth_yeoh_shape.split(","))
     nominal_law = a.nominal_law or design_law(BIPDesign())
@@ -402,6 +405,12 @@ def main() -> None:
         print("\n== calibrate, quiet machine (all parameters free)")
         cal, wall = run(model_dir, s, a.workers, law=a.fit_law)
         report(cal, wall, extra_truth={**drift_truth(s), **shape_truth})
+        write_table(a.results_name, ("nominal model", "data", "calibration wall (fit)", "CPU-s with the workers", "load"), [(
+            f"{m.design.materials[0].law}, P{m.element_order} {a.mesh_size_mm:g} mm, {grouped(len(m.nodes))} nodes"
+            + (f", fitted under `--law {a.fit_law}`" if a.fit_law else ""),
+            f"truth {a.truth_law} P{a.truth_order}" + (f", {a.recording_s:g} s of push recordings" if a.recording_s else ""),
+            f"{wall:.0f} s ({cal.fit.seconds:.0f} s: {len(cal.fit.history) - 1} iterations, {cal.fit.solves} solves)",
+            f"{run.cpu_s:.0f}", f"{os.getloadavg()[0]:.1f}")])
         dump(cal, out / f"fit_free{'' if a.fit_law is None else '_' + a.fit_law}.npz")
     if "tube-measured" in runs:
         print("\n== calibrate with the tube measured (tube_volume_factor fixed at the truth)")

@@ -25,6 +25,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "reference"))
 
+from _results import add_results_option, grouped, write_table  # noqa: E402
 from bench_reference import ARMS, SOLVERS, run_case  # noqa: E402
 
 from softphantom.fem import ECOFLEX_00_50  # noqa: E402
@@ -79,6 +80,16 @@ def _row(r: dict) -> str:
     return " | ".join(parts)
 
 
+def _doc_row(r: dict) -> tuple[str, ...]:
+    loc = "".join(f" + `{k}` {v:g}" for k, v in r.get("local", {}).items())
+    c, u = r.get("on-centre"), r.get("urethra")
+    return (f"{r['nu']:.2f}", f"P{r['order']}", f"{r['mesh_size_mm']:g}{loc}", grouped(r["nodes"]),
+            f"{c['y_mm']:.3f}" if c else "", f"{c['yaw_deg']:.3f}" if c else "",
+            ", ".join(f"{c['dV_mm3'][k]:+.2f}" for k in ARMS).replace("-", "−") if c else "",
+            f"{u['dV_mm3']['urethra']:.1f}" if u else "", f"{u['near_urethra_mm']:.3f}" if u else "",
+            f"{r['cpu_s']:.0f}", f"{r['max_rss_GB']:.1f} GB")
+
+
 def quantities(r: dict) -> dict[str, float]:
     q = {}
     if "on-centre" in r:
@@ -109,6 +120,7 @@ def main(argv=None) -> int:
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--scheduler", default=None)
     ap.add_argument("--json", type=Path)
+    add_results_option(ap, "convergence")
     a = ap.parse_args(argv)
     E = ECOFLEX_00_50.E_Pa
     local = tuple((k, v) for k, v in (("contact_size_mm", a.contact_size_mm), ("junction_size_mm", a.junction_size_mm),
@@ -135,6 +147,10 @@ def main(argv=None) -> int:
             print(f"  P{o} ν {nu}: {sel[-2]['mesh_size_mm']:g} → {sel[-1]['mesh_size_mm']:g} mm: {d}")
     if a.json:
         a.json.write_text(json.dumps(rows, indent=1))
+    fillet = {r["fillet_mm"] for r in rows}
+    write_table(a.results_name, ("ν", "element", "mesh", "nodes", "y mm", "yaw °", "ΔV fz+, fz−, bx+, bx− mm³",
+                                 "urethra ΔV mm³", "`near_urethra` mm", "CPU s", "peak RSS"), [_doc_row(r) for r in rows],
+                caption=f"Solver {a.solver}; junction fillet {', '.join(f'{f:g}' for f in sorted(fillet))} mm:")
     return 0
 
 

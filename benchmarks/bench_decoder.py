@@ -20,6 +20,7 @@ import time
 
 import numpy as np
 
+from _results import grouped, write_table
 from softphantom.sensing.board import frame_rate_Hz, uart_bytes_per_s
 from softphantom.sensing.chain import default_chain
 from softphantom.sensing.faults import DAMAGING, FAULT_KINDS, faulty_stream
@@ -95,8 +96,14 @@ def main(n: int = 50_000, chunk: int = 4096, fuzz_frames: int = 1_000_000, fault
     print(f"decode → Measurement:    {full:>10,.0f} frames/s")
     for name, r in rates.items():
         print(f"  vs {name:<30} {r:>7.1f} Hz: decoder {best / r:>7.0f}×, full path {full / r:>6.0f}×")
+    r77 = rates["77 Hz mode (N = 25)"]
+    write_table("decoder", ("path", "frames/s", "vs the 77 Hz board mode"), [
+        ("COBS + CRC decoder alone", grouped(round(best, -2)), f"{grouped(best / r77)}×"),
+        ("decoder + conversion to `Measurement`", grouped(full), f"{grouped(full / r77)}×")], right=(1, 2),
+        caption=f"{grouped(n)} frames fed in {chunk}-byte chunks, best of 3:")
     if fuzz_frames <= 0:
         return
+    fuzz_rows = []
     print(f"\nfuzz: {fuzz_frames:,} frames per version, fault rate {fault_rate:g} (every kind), random chunks")
     for version in (1, 2):
         r = fuzz(fuzz_frames, fault_rate, version)
@@ -105,9 +112,19 @@ def main(n: int = 50_000, chunk: int = 4096, fuzz_frames: int = 1_000_000, fault
               f"{r['invented']}, lost {r['lost']:,} (decoder's counter {r['counter_lost']:,}); "
               f"lost per damaging fault {r['per_damaging']:.4f}, per harmless fault {r['per_harmless']:.4f}; "
               f"{r['frames'] / r['wall_s']:,.0f} frames/s")
+        fuzz_rows.append((version, grouped(r["frames"]), grouped(r["faults"]), r["crashes"], r["invented"],
+                          f"{r['per_damaging']:.4f}", f"{r['per_harmless']:.4f}",
+                          "yes" if r["counter_lost"] == r["lost"] else f"no ({r['counter_lost']} vs {r['lost']})",
+                          grouped(r["frames"] / r["wall_s"])))
         print("    per kind: " + ", ".join(f"{k} {v:.4f}" for k, v in r["per_kind"].items())
               + f"; crc {s.crc_errors:,}, malformed {s.malformed:,}, content {s.content_errors}, "
               f"overflows {s.overflows}, recovered {s.recovered:,}")
+
+    write_table("decoder_fuzz", ("protocol", "frames", "faults", "crashes", "frames invented", "lost per damaging fault",
+                                 "lost per harmless fault", "decoder's count = truth", "frames/s"), fuzz_rows,
+                right=(1, 2, 3, 4, 5, 6, 8),
+                caption=f"Every fault kind of `softphantom.sensing.faults` at a rate of {fault_rate:g}, "
+                        "random chunks of 1–511 bytes, seeded:")
 
 
 if __name__ == "__main__":

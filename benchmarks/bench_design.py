@@ -31,6 +31,7 @@ import time
 
 import numpy as np
 
+from _results import IMG_DIR, grouped, write_table
 from softphantom.design import BIPDesign, build_model
 from softphantom.design.model import model_summary
 
@@ -146,7 +147,7 @@ def main() -> None:
           "| min_dihedral_deg | sha |")
     print("| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | --- |")
     d = BIPDesign()
-    models = {}
+    models, doc = {}, []
     for label, size in CASES:
         if args.only and label not in args.only:
             continue
@@ -166,10 +167,21 @@ def main() -> None:
             f"{s['min_dihedral_deg']:.1f} | {mesh_sha(m)} |"
         )
         models[label] = m
+        doc.append((label, f"{m.design.mesh.size_mm:g}", grouped(len(m.nodes)), grouped(len(m.tets)),
+                    f"{statistics.median(cpus):.2f}"))
+    if "default" in models:                              # the docs' picture of the default phantom
+        from softphantom.viz.mesh_view import render_mesh_png
+
+        print(f"wrote {render_mesh_png(models['default'], IMG_DIR / 'phantom-mesh.png')}")
+    write_table("design_mesh", ("mesh", "size_mm", "nodes", "tets", "CPU s (build)"), doc, right=(2, 3, 4),
+                caption=f"Median of {args.repeat} builds, this process and its gmsh child:")
     if args.stages:
         print("\n# default design, one mesh in this process: CPU s by part")
-        for k, v in stages(d).items():
+        parts = stages(d)
+        for k, v in parts.items():
             print(f"{k}: {v:.2f}")
+        write_table("design_stages", ("part of the default mesh", "CPU s"), [(k, f"{v:.2f}") for k, v in parts.items()],
+                    right=(1,))
     if args.compliance:
         print("\n# linear 5 N push along +y at p_ext on-centre (E 140 kPa, nu 0.45): marker displacement")
         for label, m in models.items():

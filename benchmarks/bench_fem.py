@@ -14,7 +14,8 @@ consistent) with the numba kernels and with the numpy reference in the same run 
 strain energy, factorization of K_ff by each available sparse direct solver (first = with symbolic
 analysis, re-factorization of the same pattern, solve with 4 right-hand sides), one full Newton
 iteration (tangent + factorization + solve + residual) with the chosen default solver, and the
-full static solve of a 5 N push along +y at p_ext on-centre (5 mm patch). Times are medians of
+full static solve of a 5 N push along +y at p_ext on-centre (5 mm patch), all under the
+co-rotational law (the one with a numpy reference path). Times are medians of
 ``--repeat`` runs in the same process, so the solver columns compare peers on the same matrix.
 """
 
@@ -27,6 +28,11 @@ import statistics
 import time
 
 import numpy as np
+from _results import grouped, markdown_table, write_result, write_table
+
+
+def _ms(t: float) -> str:
+    return f"{t * 1e3:.3g}" if t < 0.1 else grouped(t * 1e3)
 
 
 def _median(fn, repeat):
@@ -65,11 +71,14 @@ def bench(name, size_mm, repeat, solvers):
 
     t = time.perf_counter()
     kernels.warm_up()  # otherwise inside the first build_fem
-    rows_w = ("numba warm-up (load from cache or compile)", time.perf_counter() - t)
-    t_build, fem = _median(lambda: fem_from_phantom(model), 1)
+    rows_w = ("numba warm-up (from the disk cache; a first compile takes seconds)", _ms(time.perf_counter() - t))
+    from softphantom.fem.material import ECOFLEX_00_50
+
+    # the co-rotational law: the one with a numpy reference path (corotational.py) to compare with
+    t_build, fem = _median(lambda: fem_from_phantom(model, ECOFLEX_00_50), 1)
     x = fem.x_rest
-    rows = [("mesh (gmsh, not FEM)", t_mesh), rows_w]
-    rows.append(("build_fem", t_build))
+    rows = [("mesh (gmsh, not FEM)", _ms(t_mesh)), rows_w]
+    rows.append(("build_fem (once per model)", _ms(t_build)))
     # a deformed, rotated state for the kernels (the rest state would make the polar iteration trivial)
     c, s_ = np.cos(0.5), np.sin(0.5)
     Rz = np.array([[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]])
@@ -91,17 +100,18 @@ def bench(name, size_mm, repeat, solvers):
         else:
             t_ref = _median(ref, repeat)[0]
         kind = "numba" if use else "numpy (numba unavailable)"
-        rows.append((f"{label}: {kind}", t_fast))
-        rows.append((f"{label}: numpy reference (x{t_ref / t_fast:.0f})", t_ref))
+        rows.append((f"{label}: {kind} / numpy reference (same run)",
+                     f"{_ms(t_fast)} / {_ms(t_ref)} ({t_ref / t_fast:.0f}×)"))
     K = free_tangent(fem, x)
     B = np.random.default_rng(0).standard_normal((fem.n_free, 4))
     for method in solvers:
         s = SparseSolver(method)
         t = time.perf_counter()
         s.factorize(K)
-        rows.append((f"{method}: first factorization", time.perf_counter() - t))
-        rows.append((f"{method}: re-factorization", _median(lambda: s.factorize(K), repeat)[0]))
-        rows.append((f"{method}: solve 4 RHS", _median(lambda: s.solve(B), repeat)[0]))
+        first = time.perf_counter() - t
+        re_ = _median(lambda: s.factorize(K), repeat)[0]
+        rows.append((f"{method} first factorization / re-factorization / 4-RHS solve",
+                     f"{_ms(first)} / {_ms(re_)} / {_ms(_median(lambda: s.solve(B), repeat)[0])}"))
     default = SparseSolver("auto")
     default.factorize(K)
     H = force_actuator(fem, model.p_ext["on-centre"], radius=5e-3)
@@ -114,10 +124,12 @@ def bench(name, size_mm, repeat, solvers):
         xt[fem.free_dofs] += d
         return internal_force(fem, xt)
 
-    rows.append((f"one Newton iteration ({default.method})", _median(newton_iteration, repeat)[0]))
+    rows.append((f"one Newton iteration ({default.method})", _ms(_median(newton_iteration, repeat)[0])))
     t_sol, sol = _median(lambda: solve_static(fem, f, solver=default), 1)
-    rows.append((f"static 5 N push: {sol.iterations} it., {sol.load_steps} step(s)", t_sol))
-    head = f"{name}: {fem.n_nodes} nodes, {len(fem.tets)} tets, {fem.n_free} free DOF, K_ff nnz {K.nnz}"
+    rows.append((f"5 N push, full static solve ({sol.iterations} iterations; max u_y "
+                 f"{sol.u[:, 1].max() * 1e3:.1f} mm, residual {sol.residual_norm:.1e})", _ms(t_sol)))
+    head = (f"{name}: {grouped(fem.n_nodes)} nodes, {grouped(len(fem.tets))} tets, {grouped(fem.n_free)} free DOF, "
+            f"K_ff nnz {grouped(K.nnz)}")
     return head, rows, sol
 
 
@@ -149,7 +161,7 @@ def bench_p1_p2(repeat):
         ("P1 neo-Hookean", fem_from_phantom(model, nh, order=1)),
         ("P2 neo-Hookean", fem_from_phantom(model, nh, order=2)),
     ]
-    rows = []
+    rows, doc = [], []
     states = {}
     for label, fem in cases:
         c, s_ = np.cos(0.5), np.sin(0.5)
@@ -167,6 +179,8 @@ def bench_p1_p2(repeat):
         H = ContactPatch(model.p_ext["on-centre"], 4e-3).load_matrix(fem)
         *t_sol, sol = _median_cpu(lambda: solve_static(fem, H @ np.array([0.0, 3.0, 0.0]), solver=solver), 1)
         head = f"{label}: {fem.n_nodes} nodes, {m} tets, {fem.n_free} free DOF, K_ff nnz {K.nnz}"
+        doc.append((label, grouped(fem.n_free), _ms(t_f[1]), _ms(t_k[1]), _ms(t_fac[1]),
+                    f"{t_sol[1]:.1f} s, {sol.iterations} it., y {sol.u[:, 1].max() * 1e3:.2f} mm"))
         rows.append((head, [
             ("internal force", *t_f[:2], m / t_f[0]),
             ("tangent K_ff assembly", *t_k[:2], m / t_k[0]),
@@ -187,7 +201,7 @@ def bench_p1_p2(repeat):
         load.terminate()
         load.join()
     rows.append(("both cores busy (a busy-loop process started by the benchmark)", busy))
-    return rows
+    return rows, doc
 
 
 def main() -> None:
@@ -211,18 +225,20 @@ def main() -> None:
         if size is not None and args.no_splu_fine:
             solvers = [s for s in solvers if s != "splu"]
         head, rows, sol = bench(name, size, args.repeat, solvers)
-        print(f"\n## {head}")
-        print(f"| step | time (ms) |\n| --- | ---: |")
-        for label, t in rows:
-            print(f"| {label} | {t * 1e3:.1f} |")
-        y = sol.u[:, 1].max() * 1e3
-        print(f"(5 N push: max u_y {y:.2f} mm, relative residual {sol.residual_norm:.1e})")
+        table = markdown_table(("step", "ms"), rows, right=(1,))
+        print(f"\n## {head}\n{table}")
+        if size is None:                                     # the mesh's time is bench_design's figure
+            write_result("fem_core", markdown_table(("step", "ms"), rows[1:], right=(1,)), caption=f"Co-rotational law on linear tets, default design, "
+                                                    f"{head.split(': ', 1)[1]}; medians of {args.repeat}:")
     if not args.no_p2:
         print("\n## P1 vs P2 on the default design (one element_order = 2 mesh; P1 = its corner nodes)")
-        for head, rows in bench_p1_p2(args.repeat):
+        sections, doc = bench_p1_p2(args.repeat)
+        for head, rows in sections:
             print(f"\n### {head}\n| step | wall ms | CPU ms | elements/s (wall) |\n| --- | ---: | ---: | ---: |")
             for label, t, c, rate in rows:
                 print(f"| {label} | {t * 1e3:.1f} | {c * 1e3:.1f} | {'' if rate is None else f'{rate:.3g}'} |")
+        write_table("fem_p1_p2", ("model", "free DOF", "force", "tangent K_ff", "re-factor", "3 N push solve"),
+                    doc, right=(1, 2, 3, 4), caption="CPU ms of the process (a load inflates it less than wall time):")
 
 
 if __name__ == "__main__":

@@ -24,6 +24,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from _results import write_table
+
 PEER = """
 import sys
 from softphantom.design import BIPDesign
@@ -91,6 +93,7 @@ def main() -> None:
     a = ap.parse_args()
     from softphantom.design import BIPDesign, build_model, save_model
 
+    cells: dict[str, dict[str, str]] = {}
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
         save_model(build_model(BIPDesign(), 12.0), work / "model")
@@ -109,11 +112,16 @@ def main() -> None:
                         assert not left, f"{name}: left {left}"
                         if "peer" not in name:
                             assert code == 130, f"{name}: exit {code}"
-                    print(f"  {name:42s} SIGINT → exit: median {sorted(lat)[len(lat) // 2]:.2f} s, "
-                          f"max {max(lat):.2f} s ({a.repeat} runs)")
+                    med = sorted(lat)[len(lat) // 2]
+                    print(f"  {name:42s} SIGINT → exit: median {med:.2f} s, max {max(lat):.2f} s ({a.repeat} runs)")
+                    cells.setdefault(name, {})[label] = f"{med:.2f} / {max(lat):.2f} s"
             finally:
                 for p in load:
                     p.kill()
+    write_table("interrupt", ("case", "idle: median / max", "both cores busy: median / max"),
+                [(name, c.get("idle", "—"), c.get("both cores busy", "—")) for name, c in cells.items()],
+                caption=f"SIGINT to a real `softphantom` process in the middle of its work; time until it exited "
+                        f"(exit code 130 and nothing left in the output directory, checked every time), {a.repeat} runs:")
 
 
 if __name__ == "__main__":

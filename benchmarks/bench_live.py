@@ -42,6 +42,7 @@ import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 
+from _results import markdown_table, write_table  # noqa: E402
 from softphantom.progress import message_handler  # noqa: E402
 from softphantom.design import BIPDesign, build_model, load_model, save_model  # noqa: E402
 from softphantom.estimation import EstimatorConfig, open_estimator  # noqa: E402
@@ -283,15 +284,18 @@ def main() -> None:
         st = s.state.status()
     print(f"session: {st['estimates']} estimates, {st['skipped_total']} skipped, view dropped {st['view_dropped']}; "
           f"load average {os.getloadavg()[0]:.1f} at the end")
-    print("\n| phase | step p50 / p99 / max ms | drawn frames/s (min / mean over browsers) | server frames/s | "
-          "3-D scale | browsers' CPU (cores) | CPU ms per drawn frame |")
-    print("| --- | --- | --- | --- | --- | --- | --- |")
+    cells = []
     for r in rows:
         drawn = f"{r['fps_min']:.1f} / {r['fps_mean']:.1f}" if "fps_min" in r else "—"
         upd = f"{r['upd_min']:.1f} / {r['upd_mean']:.1f}" if "upd_min" in r else "—"
-        print(f"| {r['phase']} | {r['p50']:.3f} / {r['p99']:.3f} / {r['max']:.2f} | {drawn} | {upd} | "
-              f"{r.get('scale', float('nan')):.2f} | {r.get('cores', float('nan')):.2f} | "
-              f"{r.get('ms_frame', float('nan')):.1f} |".replace("nan", "—"))
+        cells.append([c.replace("nan", "—") for c in (
+            r["phase"], f"{r['p50']:.3f} / {r['p99']:.3f} / {r['max']:.2f}", drawn, upd, f"{r.get('scale', math.nan):.2f}",
+            f"{r.get('cores', math.nan):.2f}", f"{r.get('ms_frame', math.nan):.1f}")])
+    header = ("phase", "step p50 / p99 / max ms", "drawn frames/s (min / mean over browsers)", "server frames/s",
+              "3-D scale", "browsers' CPU (cores)", "CPU ms per drawn frame")
+    print("\n" + markdown_table(header, cells))
+    write_table("live", header, cells, caption=f"{a.browsers} headless Chromium browsers (WebGL in software), "
+                                               f"phases of {a.seconds:g} s, 77 Hz estimates:")
 
 
 if __name__ == "__main__":

@@ -36,6 +36,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "reference"))
 
+from _results import add_results_option, grouped, write_table  # noqa: E402
 from felupe_bip import bip_tet10, cavity_volumes, corner_mesh, patch_load, probe  # noqa: E402
 
 from softphantom.design import BIPDesign  # noqa: E402
@@ -148,6 +149,7 @@ def main(argv=None) -> int:
     ap.add_argument("--nu", type=float, default=0.45)
     ap.add_argument("--json", type=Path)
     ap.add_argument("--estimator-cost", action="store_true", help="the estimator's costs per model (see above)")
+    add_results_option(ap, "model_choice")
     a = ap.parse_args(argv)
     if a.estimator_cost:
         return estimator_cost(a)
@@ -182,6 +184,12 @@ def main(argv=None) -> int:
                   f"solve x{r['solve_s'] / peer['solve_s']:.1f}")
     if a.json:
         a.json.write_text(json.dumps(rows, indent=1))
+    write_table(a.results_name, ("law", "element", "mesh mm", "nodes", "y error mm", "yaw error °",
+                                 "arm ΔV RMS error mm³", "factorization s", "solve s"), [(
+        r["law"], f"P{r['order']}", f"{r['mesh_size_mm']:g}" + (f", arms {r['arm_size_mm']:g}" if r["arm_size_mm"] else ""),
+        grouped(r["nodes"]), f"{r['err_y_mm']:+.2f}", f"{r['err_yaw_deg']:+.2f}", f"{r['err_dV_rms_mm3']:.2f}",
+        f"{r['factor_s']:.2f}", f"{r['solve_s']:.1f}") for r in rows],
+        caption=f"Errors against the converged reference (y {REFERENCE['y_mm']} mm, yaw {REFERENCE['yaw_deg']}°):")
     return 0
 
 

@@ -25,6 +25,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from _results import write_table
+
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 
 from softphantom.design import BIPDesign, design_from_dict, design_to_dict  # noqa: E402
@@ -69,6 +71,9 @@ def main() -> int:
         print(f"one material: {len(one)} parts in {w1:.1f} s wall, {c1:.1f} CPU-s; layered (shell {SHELL_MM:g} mm, "
               f"{len(LESIONS)} lesions): {len(parts)} parts in {w2:.1f} s wall, {c2:.1f} CPU-s; ratio {c2 / c1:.2f}x CPU "
               f"(load average now {os.getloadavg()[0]:.1f})")
+        write_table("multimaterial", ("design", "parts", "CPU-s"),
+                    [("one material (default)", len(one), f"{c1:.1f}"),
+                     (f"shell {SHELL_MM:g} mm + {len(LESIONS)} lesions", len(parts), f"{c2:.1f}")], right=(1, 2))
         casts = {p.name: p for p in parts if p.kind == "cast"}
         a, b, c = layered.bulb.semi_axes_mm
         t = SHELL_MM

@@ -22,6 +22,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "reference"))
 
+from _results import add_results_option, grouped, write_table  # noqa: E402
 from felupe_bip import RefSolution, bip_tet10, cavity_volumes, patch_load, probe, solve_felupe  # noqa: E402
 
 from softphantom.design import BIPDesign  # noqa: E402
@@ -100,6 +101,7 @@ def main(argv=None) -> int:
     ap.add_argument("--E-kPa", type=float, default=ECOFLEX_00_50.E_Pa / 1e3)
     ap.add_argument("--cases", nargs="+", default=list(CASES), choices=list(CASES))
     ap.add_argument("--json", type=Path)
+    add_results_option(ap, "reference")
     a = ap.parse_args(argv)
     out = []
     for h in a.mesh_size_mm:
@@ -124,7 +126,34 @@ def main(argv=None) -> int:
                       f"{r['newton_iterations']} it, {r['solve_s']} s", flush=True)
     if a.json:
         a.json.write_text(json.dumps(out, indent=1))
+    write_table(a.results_name, *reference_table(out))
     return 0
+
+
+def reference_table(out: list[dict]) -> tuple[tuple[str, ...], list[tuple[str, ...]]]:
+    """DESIGN.md's table against this run's solves, one column per mesh size."""
+    sizes = list(dict.fromkeys(r["mesh_size_mm"] for r in out))
+    by = {(r["case"], r["mesh_size_mm"]): r for r in out}
+    nodes = {r["mesh_size_mm"]: r["nodes"] for r in out}
+    header = ("quantity", "DESIGN.md (converged NH P2)",
+              *(f"FElupe NH P2, {h:g} mm ({grouped(nodes[h])} nodes)" for h in sizes))
+
+    def dv(v, arms):
+        return ", ".join(f"{x:+.1f}" for x in v[: len(arms)]).replace("-", "−")
+
+    rows = []
+    for case, arms in (("on-centre", ARMS), ("off-centre", ARMS[:2])):
+        d = DESIGN[case]
+        rows.append((f"{case} y / yaw", f"{d['y_mm']} mm / {d['yaw_deg']}°",
+                     *(f"{by[case, h]['y_mm']:.2f} mm / {by[case, h]['yaw_deg']:.2f}°" if (case, h) in by else ""
+                       for h in sizes)))
+        rows.append((f"{case} arm ΔV ({', '.join(arms)}) mm³", dv(d["dV_mm3"], arms),
+                     *(dv([by[case, h]["dV_mm3"][k] for k in arms], arms) if (case, h) in by else "" for h in sizes)))
+    d = DESIGN["urethra"]
+    rows.append(("urethra 30 kPa: ΔV / `near_urethra`", f"{d['urethra_dV_mm3']:.0f} mm³ / {d['near_urethra_mm']} mm",
+                 *(f"{by['urethra', h]['dV_mm3']['urethra']:.0f} mm³ / {by['urethra', h]['near_urethra_mm']:.2f} mm"
+                   if ("urethra", h) in by else "" for h in sizes)))
+    return header, rows
 
 
 if __name__ == "__main__":

@@ -31,6 +31,8 @@ import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 
+from _results import add_results_option, grouped, write_table  # noqa: E402
+
 import softphantom.estimation.stream as stream_mod  # noqa: E402
 from softphantom.progress import message_handler  # noqa: E402
 from softphantom.design import BIPDesign, build_model, load_model  # noqa: E402
@@ -124,6 +126,7 @@ def main() -> None:
     ap.add_argument("--estimator", choices=("atlas", "refresh"), default="atlas",
                     help="atlas (the default of `softphantom estimate`) or refresh (async)")
     ap.add_argument("--cache-dir", default=None, help="where the atlas is cached (default: a temporary directory)")
+    add_results_option(ap, "soak")
     a = ap.parse_args()
     model = load_model(a.model) if a.model else build_model(BIPDesign(), a.mesh_size_mm)
     loads = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(a.load)]
@@ -142,6 +145,7 @@ def main() -> None:
             p.wait()
     print(f"estimator: {a.estimator}; model: {len(model.nodes)} nodes; board N = {OSR} ({frame_rate_Hz(OSR):.1f} Hz); "
           f"{a.load} busy processes alongside; load average now {os.getloadavg()[0]:.1f}")
+    doc = []
     for name, res, dur in (("queue (now)", r, a.duration_s), ("latest-slot (before)", peer, a.peer_s)):
         if res is None:
             continue
@@ -154,6 +158,14 @@ def main() -> None:
               f"lagging > {stream_mod.MAX_LAG_S if 'now' in name else 0:g} s); decoder lost {d.frames_lost}, "
               f"CRC {d.crc_errors}; events {s['events'] or 'none'}; step p50 {s['step_ms_p50']:.2f} ms, "
               f"p99 {s['step_ms_p99']:.2f} ms, max {s['step_ms_max']:.1f} ms")
+        if res is r:
+            doc.append((f"{grouped(res['sent'])} / {grouped(d.frames_ok)}", grouped(s["estimates"]),
+                        f"{grouped(s['skipped'])} ({s['skipped'] / max(n_in, 1):.1%})", grouped(rest), d.frames_lost,
+                        f"{s['step_ms_p50']:.1f} / {s['step_ms_p99']:.0f} / {grouped(s['step_ms_max'])} ms"))
+    write_table(a.results_name, ("frames sent / received", "estimated", "skipped (counted: lagging)",
+                                 "read after the stop", "decoder lost", "step p50 / p99 / max"), doc,
+                caption=f"{a.duration_s:g} s, {a.estimator} estimator, {grouped(len(model.nodes))}-node model, "
+                        f"a {frame_rate_Hz(OSR):.0f} Hz board (N = {OSR}) on a pty, {a.load} busy processes beside:")
     mem = np.array(r["mem"])
     if len(mem) >= 4:
         warm = mem[mem[:, 0] >= min(60.0, mem[-1, 0] / 3)]

@@ -20,6 +20,7 @@ import urllib.request
 
 import numpy as np
 
+from _results import grouped, write_table
 from softphantom.stream import EstimatePublisher, EstimateSubscriber, estimate_to_message
 from softphantom.stream.schema import encode
 from softphantom.viz.live import LiveConfig, LiveSession, SyntheticSource
@@ -30,7 +31,7 @@ def _messages(n: int) -> list[dict]:
     return [estimate_to_message(e, i, 0.0) for i, e in enumerate(src)]
 
 
-def bench_publish(n: int = 20000) -> None:
+def bench_publish(n: int = 20000) -> tuple[str, str]:
     msgs = _messages(n)
     with EstimatePublisher(port=0) as pub, EstimateSubscriber(pub.endpoint, hwm_messages=100000) as sub:
         pub.wait_for_subscribers(1, 5.0)
@@ -54,9 +55,12 @@ def bench_publish(n: int = 20000) -> None:
     print(f"publish (encode+send, {size} B JSON): {n / dt:,.0f} msg/s; call p50 {np.median(times) * 1e6:.1f} us, "
           f"p99 {np.percentile(times, 99) * 1e6:.1f} us, max {times.max() * 1e3:.2f} ms; "
           f"subscriber got {got[0]}/{n} (unpaced burst)")
+    return (f"publish (encode + send, {size} B JSON)",
+            f"{grouped(round(n / dt, -2))} msg/s; call p50 {np.median(times) * 1e6:.0f} µs, "
+            f"p99 {np.percentile(times, 99) * 1e3:.2f} ms")
 
 
-def bench_latency(rate_Hz: float, seconds: float = 3.0) -> None:
+def bench_latency(rate_Hz: float, seconds: float = 3.0) -> tuple[str, str]:
     n = int(rate_Hz * seconds)
     msgs = _messages(n)
     lat: list[float] = []
@@ -84,9 +88,11 @@ def bench_latency(rate_Hz: float, seconds: float = 3.0) -> None:
     a = np.array(lat) * 1e3
     print(f"latency publish->subscriber at {rate_Hz:g} Hz: p50 {np.median(a):.3f} ms, p99 {np.percentile(a, 99):.3f} ms, "
           f"max {a.max():.3f} ms; received {len(a)}/{n}, lost {lost}")
+    return (f"latency publisher → local subscriber at {rate_Hz:g} Hz",
+            f"p50 {np.median(a):.2f} ms, p99 {np.percentile(a, 99):.2f} ms, {len(a)}/{n} received")
 
 
-def bench_page(seconds: float = 5.0) -> None:
+def bench_page(seconds: float = 5.0) -> tuple[str, str]:
     src = SyntheticSource(rate_Hz=77, duration_s=None)
     with LiveSession(src, LiveConfig(http_port=0, stream_port=0, view_rate_Hz=30)) as s:
         frames = samples = surfaces = 0
@@ -110,9 +116,11 @@ def bench_page(seconds: float = 5.0) -> None:
     print(f"page (SSE, view rate 30 Hz, estimates 77 Hz): {frames / dt:.1f} frames/s, {surfaces / dt:.1f} surface "
           f"updates/s, {samples / dt:.1f} samples/s delivered; estimator rate {st['rate_Hz']} Hz, "
           f"view dropped {st['view_dropped']}")
+    return ("page update (`live`, 77 Hz estimates, 30 Hz view)",
+            f"{frames / dt:.1f} frames/s; {surfaces / dt:.1f} surface updates/s; {samples / dt:.1f} estimates/s delivered")
 
 
-def bench_stalled(n: int = 20000) -> None:
+def bench_stalled(n: int = 20000) -> tuple[str, str]:
     payload = {"seq": 0, "pad": "x" * 1000}
 
     def burst(stalled: bool) -> np.ndarray:
@@ -138,11 +146,11 @@ def bench_stalled(n: int = 20000) -> None:
           f"{np.percentile(st, 99):.4f} ms, max {st.max():.2f} ms; second half p50 {np.median(st[n // 2:]):.4f} ms; "
           f"peer (reading subscriber only) p50 {np.median(peer):.4f} ms, p99 {np.percentile(peer, 99):.4f} ms; "
           f"ratio p50 {np.median(st) / np.median(peer):.2f}")
+    return ("publish with a stalled subscriber (queue full)",
+            f"call p50 {np.median(st) * 1e3:.1f} µs, p99 {np.percentile(st, 99) * 1e3:.0f} µs (a reading subscriber only: "
+            f"{np.median(peer) * 1e3:.1f} / {np.percentile(peer, 99) * 1e3:.0f} µs)")
 
 
 if __name__ == "__main__":
-    bench_publish()
-    bench_latency(77.0)
-    bench_latency(1000.0)
-    bench_page()
-    bench_stalled()
+    rows = [bench_publish(), bench_latency(77.0), bench_latency(1000.0), bench_page(), bench_stalled()]
+    write_table("stream", ("measure", "result"), rows)

@@ -31,6 +31,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from _results import write_table
+
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 
 from softphantom.parallel import dask_client  # noqa: E402
@@ -94,6 +96,8 @@ def main() -> None:
         per = statistics.median(r["total_s"] for r in ok) if ok else float("nan")
         cpu = sum(r.get("cpu_s", 0.0) for r in rows)
         goal = f" ({'meets' if wall <= 600 else 'misses'} the 600 s goal)" if len(variants) == 100 else ""
+        doc = [(f"{len(variants)} variants, 2 workers", f"{wall:.0f} s wall{goal}; {len(ok)} ok, {len(rows) - len(ok)} "
+                f"invalid; median {per:.1f} s a variant; worker CPU {cpu:.0f} s")]
         print(f"{len(variants)} variants, 2 workers: {wall:.1f} s wall{goal}; {len(ok)} ok, {len(rows) - len(ok)} invalid/failed; median {per:.2f} s a variant; "
               f"worker CPU {cpu:.0f} s in all, i.e. {cpu / 2:.0f} s on 2 otherwise idle cores "
               f"(load average now {os.getloadavg()[0]:.1f})")
@@ -106,10 +110,14 @@ def main() -> None:
         t2, rows2 = _timed(sub, tmp / "w2", n_workers=2)
         print(f"{len(sub)} variants: in-process {t_in:.1f} s, 1 worker {t1:.1f} s, 2 workers {t2:.1f} s; "
               f"speed-up 1 -> 2 workers {t1 / t2:.2f}x")
+        doc.append((f"{len(sub)} variants: in-process / 1 worker / 2 workers",
+                    f"{t_in:.1f} / {t1:.1f} / {t2:.1f} s (1 → 2 workers {t1 / t2:.2f}×)"))
         diffs = rows_equal(rows_in, rows[: len(sub)], TIMING_COLUMNS, rtol=1e-9)
         print(f"in-process vs local cluster (2 workers), {len(sub)} variants: "
               f"{'equal' if not diffs else f'{len(diffs)} differences, e.g. {diffs[0]}'} to 1e-9 relative "
               f"(largest relative difference {_max_rel_diff(rows_in, rows[: len(sub)]):.1e})")
+        doc.append(("in-process vs local cluster", f"{'equal' if not diffs else f'{len(diffs)} differences'} to 1e-9 "
+                    f"relative (largest difference {_max_rel_diff(rows_in, rows[: len(sub)]):.1e})"))
         same = rows_equal(rows2, rows[: len(sub)], TIMING_COLUMNS, rtol=1e-9)
         print(f"2-worker subset vs the same variants in the full run: {'equal' if not same else same[0]}")
 
@@ -126,6 +134,9 @@ def main() -> None:
                 b.join()
         print(f"{len(sub)} variants, 2 workers, both cores busy with {len(burners)} load processes: {tb:.1f} s "
               f"({tb / t2:.2f}x the quiet 2-worker time)")
+    doc.append((f"{len(sub)} variants, 2 workers, both cores busy", f"{tb:.1f} s ({tb / t2:.2f}× the quiet time)"))
+    write_table("sweep", ("measure", "result"), doc,
+                caption=f"Coarse {args.mesh_size_mm:g} mm mesh, Latin-hypercube variants of the default design:")
 
 
 if __name__ == "__main__":
