@@ -528,18 +528,32 @@ def _pod(D: np.ndarray, dD: np.ndarray | None = None):
     """POD of the displacement snapshots ``D`` (n_grid, 3N) through their Gram matrix (n_grid² is
     small): (the snapshots' mode coefficients (n_grid, r), the derivatives' (or None), the modes
     (3N, r) with orthonormal columns, the RMS truncation error of ``D``). With derivative snapshots
-    ``dD`` (a Hermite axis, per unit of its t: metres like ``D``) the basis is of both, so that the
-    derivatives the fit interpolates are in it too."""
+    ``dD`` (a Hermite axis, per unit of its t: metres like ``D``) the basis is of both, and keeps
+    modes until each set's dropped energy is below ``FIELD_RTOL`` of its own (the derivatives
+    carry the field between the fewer points: a basis of the values alone misses it there)."""
     S = D if dD is None else np.vstack([D, dD])
     w, Q = np.linalg.eigh(S @ S.T)
     w, Q = w[::-1].clip(min=0.0), Q[:, ::-1]
     total = float(w.sum())
     tail = total - np.cumsum(w)
-    r = int(min(FIELD_MAX_MODES, max(1, np.searchsorted(-tail, -FIELD_RTOL * total) + 1)))
-    modes = S.T @ (Q[:, :r] / np.sqrt(np.maximum(w[:r], 1e-300)))  # (3N, r), orthonormal columns
-    coef = D @ modes  # (n_grid, r)
     if dD is None:
+        r = int(min(FIELD_MAX_MODES, max(1, np.searchsorted(-tail, -FIELD_RTOL * total) + 1)))
+        modes = S.T @ (Q[:, :r] / np.sqrt(np.maximum(w[:r], 1e-300)))  # (3N, r), orthonormal columns
+        coef = D @ modes  # (n_grid, r)
         return coef, None, modes, float(np.sqrt(max(tail[r - 1], 0.0) / D.size))
+    keep = w > 1e-14 * w[0]
+    modes = S.T @ (Q[:, keep] / np.sqrt(w[keep]))
+    # a mode's coefficients over S are Q's column times its singular value: each set's share
+    c2 = (Q[:, keep] ** 2) * w[keep]
+    n = len(D)
+    r = 1
+    for part in (slice(0, n), slice(n, None)):
+        e = c2[part].sum(axis=0)
+        left = float(e.sum()) - np.cumsum(e)
+        r = max(r, int(np.searchsorted(-left, -FIELD_RTOL * float(e.sum())) + 1))
+    r = min(r, FIELD_MAX_MODES, modes.shape[1])
+    modes = modes[:, :r]
+    coef = D @ modes
     rest = float(np.einsum("ij,ij->", D, D)) - float(np.einsum("ij,ij->", coef, coef))
     return coef, dD @ modes, modes, float(np.sqrt(max(rest, 0.0) / D.size))
 
