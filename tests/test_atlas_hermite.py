@@ -42,8 +42,18 @@ def test_hermite_fit_reproduces_a_polynomial_of_degree_2n_minus_1_along_its_axis
     lag = to_chebyshev(_f(*g)[..., None], shape)
     b = [cheb_basis(t, n)[0] for t, n in zip((0.3, -0.7, 0.45, -0.2), shape)]
     assert abs(np.einsum("i,j,k,l,ijkl->", *b, lag[..., 0]) - _f(0.3, -0.7, 0.45, -0.2)) > 1e-2
-    with pytest.raises(ValueError, match="Hermite axis needs the Lobatto points"):
-        to_chebyshev(_f(*g)[..., None], shape, g[0], hermite=(1, _df_db(*g)[..., None]))
+    # a displacement axis: Hermite along the first axis, each line through its own points
+    rng = np.random.default_rng(3)
+    t0 = g[1].copy()
+    t0[1:-1] += rng.uniform(-0.05, 0.05, t0[1:-1].shape)
+    swap = (1, 0, 2, 3)  # the Hermite variable first
+    vals = _f(*[x.transpose(swap) for x in (g[0], t0, g[2], g[3])])[..., None]
+    ders = _df_db(*[x.transpose(swap) for x in (g[0], t0, g[2], g[3])])[..., None]
+    c = to_chebyshev(vals, (4, 3, 3, 2), t0.transpose(swap), hermite=(0, ders))
+    assert c.shape == (8, 3, 3, 2, 1)
+    x = (0.3, -0.7, 0.45, -0.2)
+    b = [cheb_basis(t, n)[0] for t, n in zip((x[1], x[0], x[2], x[3]), c.shape[:4])]
+    assert np.einsum("i,j,k,l,ijkl->", *b, c[..., 0]) == pytest.approx(_f(*x), abs=1e-12)
 
 
 def test_the_kernels_evaluate_the_longer_hermite_axis_from_the_coefficients_shape():
@@ -73,7 +83,7 @@ def test_the_hermite_axis_is_in_the_key_only_when_set_and_needs_a_force_axis():
     assert AtlasConfig(n_force=(5, 9, 4)).cluster_N[0] == 0
     assert AtlasConfig(n_force=(11, 2, 4), hermite_axis=1).shape == (11, 2, 4, 3)
     for kw, msg in [({"hermite_axis": 4}, "hermite_axis: None or an axis index 0..3"),
-                    ({"hermite_axis": 0, "x_control": "displacement"}, "hermite_axis needs x_control 'force'"),
+                    ({"hermite_axis": 1, "x_control": "displacement"}, "hermite_axis needs x_control 'force' or axis 0"),
                     ({"hermite_axis": 0, "offline": "rom"}, "hermite_axis needs offline 'full'"),
                     ({"hermite_axis": 1, "n_force": (2, 9, 4)}, r"n_force: each must be an integer in 3..15 \(2..15 on")]:
         with pytest.raises(UserError, match=msg):

@@ -62,12 +62,13 @@ class AtlasConfig:
     stretch of such an axis is :data:`STRETCH_Q` (N-equivalent); ``linear_pressure`` needs
     ``"force"`` (its tangent line is at fixed f_x).
 
-    ``hermite_axis`` (None: every axis Lagrange): the index of one axis (0 f_x, 1 f_y, 2 f_z, 3 p_u;
-    needs ``x_control`` ``"force"``) interpolated by Hermite: each grid point's solve also gives the
+    ``hermite_axis`` (None: every axis Lagrange): the index of one axis (0 f_x or q, 1 f_y, 2 f_z,
+    3 p_u; on a displacement first axis only 0) interpolated by Hermite: each grid point's solve also gives the
     exact derivative of every output along that axis (the tangent at the solution), so the n points
     of that axis determine a polynomial of degree 2n − 1 there (:func:`~softphantom.estimation.atlas_basis.to_chebyshev`):
     an axis of n Hermite points stands in for one of ≈ 2n Lagrange points at the cost of one
-    sensitivity a point. The coefficient arrays are 2n long along it (:attr:`coef_shape`); the
+    sensitivity a point (on a displacement axis the derivatives along the patch displacement at
+    fixed (f_y, f_z, p_u): the f_x column over ∂ū/∂f_x = H_xᵀK⁻¹H_x). The coefficient arrays are 2n long along it (:attr:`coef_shape`); the
     default stretch counts the polynomial's 2n terms.
 
     The default is resolved in :attr:`cluster_N`, not stored, so ``dataclasses.replace`` with
@@ -119,8 +120,8 @@ class AtlasConfig:
             if isinstance(h, bool) or int(h) != h or not 0 <= h <= 3:
                 raise UserError(f"atlas hermite_axis: None or an axis index 0..3 (f_x, f_y, f_z, p_u), got {h!r}")
             object.__setattr__(self, "hermite_axis", int(h))
-            for what, ok in (("x_control 'force' (a displacement axis's derivatives are at fixed patch "
-                              "displacement)", self.x_control == "force"),
+            for what, ok in (("x_control 'force' or axis 0 (along f_y, f_z, p_u a displacement axis's "
+                              "derivatives are at fixed patch displacement)", self.x_control == "force" or h == 0),
                              ("offline 'full'", self.offline == "full"), ("no linear_pressure", not self.linear_pressure)):
                 if not ok:
                     raise UserError(f"atlas hermite_axis needs {what}")
