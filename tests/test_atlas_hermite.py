@@ -83,9 +83,11 @@ def test_the_hermite_axis_is_in_the_key_only_when_set_and_needs_a_force_axis():
     assert AtlasConfig(n_force=(5, 9, 4)).cluster_N[0] == 0
     assert AtlasConfig(n_force=(11, 2, 4), hermite_axis=1).shape == (11, 2, 4, 3)
     for kw, msg in [({"hermite_axis": 4}, "hermite_axis: None or an axis index 0..3"),
-                    ({"hermite_axis": 1, "x_control": "displacement"}, "hermite_axis needs x_control 'force' or axis 0"),
+                    ({"hermite_axis": 1, "x_control": "displacement"},
+                     "hermite_axis needs x_control 'force' or axis 0"),
                     ({"hermite_axis": 0, "offline": "rom"}, "hermite_axis needs offline 'full'"),
-                    ({"hermite_axis": 1, "n_force": (2, 9, 4)}, r"n_force: each must be an integer in 3..15 \(2..15 on")]:
+                    ({"hermite_axis": 1, "n_force": (2, 9, 4)},
+                     r"n_force: each must be an integer in 3..15 \(2..15 on")]:
         with pytest.raises(UserError, match=msg):
             AtlasConfig(**kw)
 

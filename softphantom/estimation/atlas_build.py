@@ -183,7 +183,9 @@ def _sweep(model, config: EstimatorConfig, acfg: AtlasConfig, i: int, l: int):
     :func:`_lines`). Returns (i, l,
     V (ny,nz,4), P (ny,nz,k,3), X (ny,nz,3N) displacements, solved (ny,nz), first failure message
     or '', CPU seconds of this process, the derivatives (dV, dP, dX) of the same shapes per Pa along
-    the pressure (``linear_pressure``) or per unit load along ``acfg.hermite_axis``, or None, FX (ny,nz) the points' f_x N, Q (ny,nz) their first coordinate (the node), the number
+    the pressure (``linear_pressure``) or per unit load along ``acfg.hermite_axis``
+    (:func:`_axis_derivative`, with dFX (ny,nz)), or None, FX (ny,nz) the points' f_x N, Q (ny,nz)
+    their first coordinate (the node), the number
     of converged forward solves); unsolved entries are NaN."""
     t0 = time.process_time()
     # only the equilibria are kept: the sensitivities come from the kept factor (no GMRES), which
@@ -539,7 +541,8 @@ def build_atlas(model, config: EstimatorConfig | None = None, atlas: AtlasConfig
         return to_chebyshev(values, shape, tq, None if d is None else (hermite, d))
 
     cV = fit(V.reshape(*shape, 4), None if dV is None else dV.reshape(*shape, 4))
-    cP = fit(P.reshape(*shape, k * 3), None if dP is None else dP.reshape(*shape, k * 3)).reshape(*acfg.coef_shape, k, 3)
+    cP = fit(P.reshape(*shape, k * 3), None if dP is None else dP.reshape(*shape, k * 3))
+    cP = cP.reshape(*acfg.coef_shape, k, 3)
     cF = fit(coef.reshape(*shape, r), None if dcoef is None else dcoef.reshape(*shape, r))
     # f_x as an output: on a displacement axis the polynomial of the solved f_x; on a force axis
     # f_x is the axis variable itself (its polynomial is not needed, and not exact on a stretch)

@@ -63,13 +63,14 @@ class AtlasConfig:
     ``"force"`` (its tangent line is at fixed f_x).
 
     ``hermite_axis`` (None: every axis Lagrange): the index of one axis (0 f_x or q, 1 f_y, 2 f_z,
-    3 p_u; on a displacement first axis only 0) interpolated by Hermite: each grid point's solve also gives the
-    exact derivative of every output along that axis (the tangent at the solution), so the n points
-    of that axis determine a polynomial of degree 2n − 1 there (:func:`~softphantom.estimation.atlas_basis.to_chebyshev`):
-    an axis of n Hermite points stands in for one of ≈ 2n Lagrange points at the cost of one
-    sensitivity a point (on a displacement axis the derivatives along the patch displacement at
-    fixed (f_y, f_z, p_u): the f_x column over ∂ū/∂f_x = H_xᵀK⁻¹H_x). The coefficient arrays are 2n long along it (:attr:`coef_shape`); the
-    default stretch counts the polynomial's 2n terms.
+    3 p_u; on a displacement first axis only 0) interpolated by Hermite: each grid point's solve
+    also gives the exact derivative of every output along that axis (GMRES on the tangent at the
+    solution), so the n points of that axis determine a polynomial of degree 2n − 1 there
+    (:func:`~softphantom.estimation.atlas_basis.to_chebyshev`): n Hermite points stand in for
+    ≈ 2n Lagrange points at the cost of one sensitivity a point (on a displacement axis, along the
+    patch displacement at fixed (f_y, f_z, p_u): the f_x column over ∂ū/∂f_x = H_xᵀK⁻¹H_x). The
+    coefficient arrays are 2n long along it (:attr:`coef_shape`); the default stretch counts the
+    polynomial's 2n terms (docs/atlas.md).
 
     The default is resolved in :attr:`cluster_N`, not stored, so ``dataclasses.replace`` with
     another first axis or grid takes that one's default:
@@ -122,13 +123,14 @@ class AtlasConfig:
             object.__setattr__(self, "hermite_axis", int(h))
             for what, ok in (("x_control 'force' or axis 0 (along f_y, f_z, p_u a displacement axis's "
                               "derivatives are at fixed patch displacement)", self.x_control == "force" or h == 0),
-                             ("offline 'full'", self.offline == "full"), ("no linear_pressure", not self.linear_pressure)):
+                             ("offline 'full'", self.offline == "full"),
+                             ("no linear_pressure", not self.linear_pressure)):
                 if not ok:
                     raise UserError(f"atlas hermite_axis needs {what}")
         n = tuple(self.n_force) if np.ndim(self.n_force) else (self.n_force,) * 3
         if len(n) != 3 or any(int(v) != v or not (2 if a == h else 3) <= v <= 15 for a, v in enumerate(n)):
-            raise UserError(f"atlas n_force: each must be an integer in 3..15{'' if h is None else ' (2..15 on the Hermite axis)'}, "
-                            f"got {self.n_force}")
+            on_h = "" if h is None else " (2..15 on the Hermite axis)"
+            raise UserError(f"atlas n_force: each must be an integer in 3..15{on_h}, got {self.n_force}")
         object.__setattr__(self, "n_force", tuple(int(v) for v in n))
         if int(self.n_pressure) != self.n_pressure or not 2 <= self.n_pressure <= 15:
             raise UserError(f"atlas n_pressure must be an integer in 2..15, got {self.n_pressure}")

@@ -52,7 +52,8 @@ class Atlas:
     """Tensor Chebyshev polynomials of the forward map over the envelope (:mod:`softphantom.estimation.atlas`).
 
     ``key`` the cache key; ``config`` the :class:`AtlasConfig`; ``cV`` (n1,n2,n3,n4,4) volume
-    coefficients (m³; the n are ``config.coef_shape``: twice the points on a Hermite axis); ``cP`` (n1,n2,n3,n4,k,3) tracked-point coefficients (m); ``cF``
+    coefficients (m³; the n are ``config.coef_shape``: twice the points on a Hermite axis); ``cP``
+    (n1,n2,n3,n4,k,3) tracked-point coefficients (m); ``cF``
     (n1,n2,n3,n4,r) field-mode coefficients; ``modes`` (3N,r) the POD basis (m); ``x_rest`` (3N,);
     ``build_s`` seconds of the build (wall); ``solves`` converged forward solves; ``field_rms_m``
     the RMS error of the POD truncation over the grid; ``build_cpu_s`` the CPU seconds of the
