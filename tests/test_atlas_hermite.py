@@ -98,7 +98,7 @@ def fwd(coarse_model):
 
 
 def _build(model, cfg):
-    return build_atlas(model, CFG, cfg, n_workers=1, processes=False, progress=False, log=lambda s: None)
+    return build_atlas(model, CFG, cfg, n_workers=1, processes=False)
 
 
 @pytest.mark.slow
