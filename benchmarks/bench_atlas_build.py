@@ -22,6 +22,7 @@ cores busy): wall and CPU seconds.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import resource
 import sys
@@ -38,6 +39,7 @@ from softphantom.design import BIPDesign, build_model, load_model  # noqa: E402
 from softphantom.estimation import AtlasConfig, EstimatorConfig  # noqa: E402
 from softphantom.estimation.atlas import X_CONTROLS, atlas_key, atlas_path, build_atlas, save_atlas  # noqa: E402
 from softphantom.estimation.atlas_build import _sweep  # noqa: E402
+from softphantom.estimation.atlas_store import AXIS_NAMES  # noqa: E402
 from softphantom.estimation.select import atlas_config_from_options  # noqa: E402
 from softphantom.estimation.forward import ForwardModel  # noqa: E402
 from bench_estimate import start_load, stop_load  # noqa: E402 - the benchmarks' busy processes
@@ -104,9 +106,14 @@ def main() -> None:
     ap.add_argument("--x-control", choices=X_CONTROLS, default=AtlasConfig.x_control,
                     help="the first axis: f_x (default) or the patch displacement (AtlasConfig.x_control)")
     add_results_option(ap, "atlas_build")
+    ap.add_argument("--atlas-hermite-axis", choices=AXIS_NAMES, default=None,
+                    help="interpolate this axis by Hermite from the exact derivatives of every grid point "
+                    "(AtlasConfig.hermite_axis; its NX/NY/NZ/NP points then give a polynomial of twice as many terms)")
     a = ap.parse_args()
     model = load_model(a.model) if a.model else build_model(BIPDesign(), a.mesh_size_mm)
     acfg = atlas_config_from_options(a.atlas_grid, x_axis=a.x_control)
+    if a.atlas_hermite_axis is not None:
+        acfg = dataclasses.replace(acfg, hermite_axis=AXIS_NAMES.index(a.atlas_hermite_axis))
     cfg = EstimatorConfig()
     load0 = os.getloadavg()
     t = time.perf_counter()

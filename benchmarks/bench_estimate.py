@@ -25,6 +25,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import statistics
@@ -43,6 +44,7 @@ from softphantom.estimation.config import DEFAULT_CONTACT_RADIUS_M  # noqa: E402
 from softphantom.estimation import AtlasEstimator, Estimator, EstimatorConfig  # noqa: E402
 from softphantom.estimation.atlas import X_CONTROLS, build_atlas, default_atlas_config, load_or_build  # noqa: E402
 from softphantom.estimation.forward import ForwardModel  # noqa: E402
+from softphantom.estimation.atlas_store import AXIS_NAMES  # noqa: E402
 from softphantom.estimation.select import atlas_config_from_options  # noqa: E402
 from softphantom.fem import (  # noqa: E402
     SparseSolver, free_tangent, probe_matrix, solve_static,
@@ -307,6 +309,9 @@ def main() -> None:
                     "comma-separated; AtlasConfig.f_y_splits_N)")
     ap.add_argument("--envelope", help="atlas envelope FXMIN:FXMAX,FYMIN:FYMAX,FZMIN:FZMAX,PMIN:PMAX (N, kPa; "
                     "default: AtlasConfig's)")
+    ap.add_argument("--atlas-hermite-axis", choices=AXIS_NAMES, default=None,
+                    help="interpolate this axis by Hermite from the exact derivatives of every grid point "
+                    "(AtlasConfig.hermite_axis; its NX/NY/NZ/NP points then give a polynomial of twice as many terms)")
     a = ap.parse_args()
 
     t = time.perf_counter()
@@ -353,6 +358,8 @@ def main() -> None:
     cfg = EstimatorConfig(**base)
     acfg = atlas_config_from_options(a.atlas_grid, a.envelope, a.x_control, a.atlas_f_y_split_N,
                                      base=default_atlas_config(model.element_order))
+    if a.atlas_hermite_axis is not None:
+        acfg = dataclasses.replace(acfg, hermite_axis=AXIS_NAMES.index(a.atlas_hermite_axis))
     t = time.perf_counter()
     print(f"load average before the atlas build: {os.getloadavg()[0]:.1f}")
     if a.atlas_cache:

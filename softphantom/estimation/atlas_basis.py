@@ -64,7 +64,8 @@ def cheb_basis(t: float, n: int) -> tuple[np.ndarray, np.ndarray]:
     return b, d
 
 
-def to_chebyshev(values: np.ndarray, shape: tuple[int, ...], t0: np.ndarray | None = None) -> np.ndarray:
+def to_chebyshev(values: np.ndarray, shape: tuple[int, ...], t0: np.ndarray | None = None,
+                 hermite: tuple[int, np.ndarray] | None = None) -> np.ndarray:
     """Tensor Chebyshev coefficients (shape + (m,)) of grid values (shape + (m,)) at
     Chebyshev–Lobatto points: one small Vandermonde solve per axis. ``t0`` (shape): the first
     axis's Chebyshev variable at each point, where the points of a line along it are not the
@@ -72,17 +73,48 @@ def to_chebyshev(values: np.ndarray, shape: tuple[int, ...], t0: np.ndarray | No
     through its own points first, then the other axes as usual — the polynomial is still exact at
     every point.
 
+    ``hermite`` (axis a, derivatives): the values' derivatives with respect to axis a's Chebyshev
+    variable t at the same points (shape + (m,)); along a the n values and n derivatives of a line
+    determine its polynomial of degree 2n − 1 (a confluent Vandermonde solve), so the coefficients
+    are 2n long along a. Only a's derivatives are needed: the fit is Hermite along a times Lagrange
+    along the others, which is exact for any polynomial of degree < 2n in t_a and < n_b in the
+    others. With ``t0``: on the first axis each line through its own points; along another axis
+    (a force first axis) ``t0`` must not vary along a.
+
     >>> to_chebyshev(np.array([[1.0], [0.0], [1.0]]), (3,))[:, 0].round(12).tolist()  # t² = (T_0 + T_2) / 2
     [0.5, 0.0, 0.5]
+    >>> t = lobatto(2)  # t³ from its values and slopes at ±1 alone: (3 T_1 + T_3) / 4
+    >>> (to_chebyshev((t ** 3)[:, None], (2,), hermite=(0, (3 * t ** 2)[:, None]))[:, 0].round(12) + 0.0).tolist()
+    [0.0, 0.75, 0.0, 0.25]
     """
     n = shape[0]
     if t0 is None:
         t0 = np.broadcast_to(lobatto(n).reshape((n,) + (1,) * (len(shape) - 1)), shape)
     T = np.moveaxis(np.asarray(t0, float), 0, -1).reshape(-1, n)  # (lines, n)
-    rhs = np.moveaxis(values, 0, len(shape) - 1).reshape(len(T), n, -1)  # (lines, n, m)
-    c = np.moveaxis(np.linalg.solve(C.chebvander(T, n - 1), rhs).reshape(*shape[1:], n, -1), len(shape) - 1, 0)
-    c = c.reshape(values.shape)
-    for ax, n in enumerate(shape[1:], start=1):
+
+    def lines(v):  # (lines, n, m): each line along the first axis
+        return np.moveaxis(np.asarray(v, float), 0, len(shape) - 1).reshape(len(T), n, -1)
+
+    def back(c, n_terms):
+        return np.moveaxis(c.reshape(*shape[1:], n_terms, -1), len(shape) - 1, 0)
+
+    a, d = hermite if hermite is not None else (None, None)
+    if a == 0:  # each line's values and slopes at its own points: a confluent Vandermonde per line
+        M = np.concatenate([C.chebvander(T, 2 * n - 1), C.chebvander(T, 2 * n - 2) @ C.chebder(np.eye(2 * n))], axis=1)
+        c = back(np.linalg.solve(M, np.concatenate([lines(values), lines(d)], axis=1)), 2 * n)
+        c = c.reshape((2 * n, *np.shape(values)[1:]))
+    else:
+        V0 = C.chebvander(T, n - 1)
+        c = back(np.linalg.solve(V0, lines(values)), n).reshape(np.shape(values))
+        if a is not None:  # the derivatives along another axis, fitted along this one alike
+            d = back(np.linalg.solve(V0, lines(d)), n).reshape(np.shape(values))
+            m = shape[a]
+            M = np.vstack([C.chebvander(lobatto(m), 2 * m - 1),
+                           C.chebvander(lobatto(m), 2 * m - 2) @ C.chebder(np.eye(2 * m))])
+            c = np.moveaxis(np.tensordot(np.linalg.inv(M), np.concatenate([c, d], axis=a), axes=([1], [a])), 0, a)
+    others = [b for b in range(1, len(shape)) if b != a]
+    for ax in others:
+        n = shape[ax]
         V = C.chebvander(lobatto(n), n - 1)  # V[j, k] = T_k(t_j)
         c = np.moveaxis(np.tensordot(np.linalg.inv(V), c, axes=([1], [ax])), 0, ax)
     return c

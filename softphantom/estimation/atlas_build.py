@@ -155,6 +155,19 @@ def _bordered(fwd: ForwardModel, h: np.ndarray, lam: np.ndarray, target: float, 
     return _bordered(fwd, h, lam, target, half, start, bracket, tol_m, halvings - 1)
 
 
+def _axis_derivative(fwd: ForwardModel, lin, a: int, h: np.ndarray | None):
+    """The exact derivatives of a grid point's outputs along the Hermite axis ``a``
+    (:meth:`~softphantom.estimation.linearization.EquilibriumSolver.exact_column`): (dV (4,), dP
+    (k, 3), dX (3N,), df_x) per unit load; on a displacement axis (``h`` the patch's x load vector)
+    per metre of the patch displacement ū = hᵀ(x − x_rest) at fixed (f_y, f_z, p_u): the f_x column
+    over ∂ū/∂f_x = hᵀK⁻¹h, and df_x/dū = 1/(hᵀK⁻¹h)."""
+    dV, dP, dX = fwd.eq.exact_column(lin, a)
+    if h is None:
+        return dV, dP, dX, 0.0
+    s = float(h @ dX)
+    return dV / s, dP / s, dX / s, 1.0 / s
+
+
 def _sweep(model, config: EstimatorConfig, acfg: AtlasConfig, i: int, l: int):
     """One task: the (f_y, f_z) plane at grid f_x index ``i`` and pressure index ``l`` (with
     ``acfg.linear_pressure``: at the pressure range's middle, ``l`` ignored). The point
@@ -169,8 +182,10 @@ def _sweep(model, config: EstimatorConfig, acfg: AtlasConfig, i: int, l: int):
     raised (a displacement axis's planes at its f_x faces are solved here; the points between by
     :func:`_lines`). Returns (i, l,
     V (ny,nz,4), P (ny,nz,k,3), X (ny,nz,3N) displacements, solved (ny,nz), first failure message
-    or '', CPU seconds of this process, pressure derivatives (dV, dP, dX) of the same shapes per Pa
-    or None, FX (ny,nz) the points' f_x N, Q (ny,nz) their first coordinate (the node), the number
+    or '', CPU seconds of this process, the derivatives (dV, dP, dX) of the same shapes per Pa along
+    the pressure (``linear_pressure``) or per unit load along ``acfg.hermite_axis``
+    (:func:`_axis_derivative`, with dFX (ny,nz)), or None, FX (ny,nz) the points' f_x N, Q (ny,nz)
+    their first coordinate (the node), the number
     of converged forward solves); unsolved entries are NaN."""
     t0 = time.process_time()
     # only the equilibria are kept: the sensitivities come from the kept factor (no GMRES), which
@@ -181,11 +196,15 @@ def _sweep(model, config: EstimatorConfig, acfg: AtlasConfig, i: int, l: int):
     ax = acfg.axes()
     ny, nz = len(ax[1]), len(ax[2])
     linear = acfg.linear_pressure
+    hermite = acfg.hermite_axis
     p_u = 0.5 * (ax[3][0] + ax[3][-1]) if linear else ax[3][l]
     V = np.full((ny, nz, 4), np.nan)
     P = np.full((ny, nz, fwd.probe.shape[0], 3), np.nan)
     X = np.full((ny, nz, fwd.fem.n_dof), np.nan)
-    dV, dP, dX = (np.full_like(a, np.nan) for a in (V, P, X)) if linear else (None, None, None)
+    deriv = linear or hermite is not None
+    dV, dP, dX = (np.full_like(a, np.nan) for a in (V, P, X)) if deriv else (None, None, None)
+    dFX = np.full((ny, nz), np.nan)
+    h = x_patch(fwd) if acfg.x_control == "displacement" else None
     solved = np.zeros((ny, nz), bool)
     FX = np.full((ny, nz), np.nan)
     n_solves = 0
@@ -231,8 +250,10 @@ def _sweep(model, config: EstimatorConfig, acfg: AtlasConfig, i: int, l: int):
             dV[j, k] = lin.W[:, 3]
             dP[j, k] = lin.sub_U[:, :, 3]
             dX[j, k] = lin.U[:, 3]
-    return (i, l, V, P, X, solved, first_error, time.process_time() - t0, (dV, dP, dX) if linear else None, FX, Q,
-            n_solves)
+        elif hermite is not None:  # exact at the solution: GMRES on its tangent, the kept factor preconditioning
+            dV[j, k], dP[j, k], dX[j, k], dFX[j, k] = _axis_derivative(fwd, lin, hermite, h)
+    return (i, l, V, P, X, solved, first_error, time.process_time() - t0, (dV, dP, dX, dFX) if deriv else None, FX,
+            Q, n_solves)
 
 
 def _lines(model, config: EstimatorConfig, acfg: AtlasConfig, k: int, l: int, ends):
@@ -245,7 +266,8 @@ def _lines(model, config: EstimatorConfig, acfg: AtlasConfig, k: int, l: int, en
     the last two along the line) — one small step of the state each, where a plane at fixed q
     (:func:`_sweep`) crosses the arm pair's step in f_x from a neighbour in f_y. Returns (k, l, V (n1−2, ny, 4), P (n1−2, ny, k, 3), X
     (n1−2, ny, 3N), solved (n1−2, ny), first failure or '', CPU seconds, FX (n1−2, ny), Q (n1−2, ny),
-    converged forward solves)."""
+    converged forward solves, the derivatives along ū (dV, dP, dX, dFX) of the same shapes or None
+    (``acfg.hermite_axis`` 0, :func:`_axis_derivative`))."""
     t0 = time.process_time()
     fwd = ForwardModel(model, config, exact_sensitivities=False, fallback_min_load_step=FALLBACK_MIN_LOAD_STEP)
     ax = acfg.axes()
@@ -261,6 +283,9 @@ def _lines(model, config: EstimatorConfig, acfg: AtlasConfig, k: int, l: int, en
     FX = np.full((m, ny), np.nan)
     Q = np.broadcast_to(ax[0][1:-1, None], (m, ny)).copy()
     solved = np.zeros((m, ny), bool)
+    hermite = acfg.hermite_axis == 0
+    dV, dP, dX = (np.full_like(a, np.nan) for a in (V, P, X))
+    dFX = np.full((m, ny), np.nan)
     first_error, n_solves = "", 0
     j0 = int(np.argmin(np.abs(ax[1])))
     faces: dict[int, tuple] = {}  # j → (the lower face's Linearization, its kept factor)
@@ -298,9 +323,12 @@ def _lines(model, config: EstimatorConfig, acfg: AtlasConfig, k: int, l: int, en
                 V[a, j], P[a, j], X[a, j] = lin.V, lin.sub_x, lin.x - fwd.fem.x_rest
                 FX[a, j] = lin.lam[0]
                 Q[a, j] = lo + span * (float(h @ (lin.x - fwd.fem.x_rest)) - u0) / (u1 - u0)
+                if hermite:
+                    dV[a, j], dP[a, j], dX[a, j], dFX[a, j] = _axis_derivative(fwd, lin, 0, h)
         except SolverError as exc:
             first_error = first_error or str(exc).splitlines()[0]
-    return k, l, V, P, X, solved, first_error, time.process_time() - t0, FX, Q, n_solves
+    return (k, l, V, P, X, solved, first_error, time.process_time() - t0, FX, Q, n_solves,
+            (dV, dP, dX, dFX) if hermite else None)
 
 
 def fill_weights(solved: np.ndarray, axes: list[np.ndarray]) -> list[tuple[int, np.ndarray, np.ndarray]]:
@@ -415,6 +443,9 @@ def build_atlas(model, config: EstimatorConfig | None = None, atlas: AtlasConfig
     solved = np.zeros((n1, n2, n3, n4), bool)
     FX = np.empty((n1, n2, n3, n4))
     QN = np.empty((n1, n2, n3, n4))  # the first coordinate of each point
+    hermite = acfg.hermite_axis
+    # derivatives along the Hermite axis (per unit load)
+    dV, dP, dX, dFX = (np.empty_like(a) for a in (V, P, X, FX)) if hermite is not None else (None,) * 4
     planes = [(i, l) for l in range(1 if acfg.linear_pressure else n4) for i in range(n1)]
     ax = acfg.axes()
     cpu_s = 0.0
@@ -444,10 +475,12 @@ def build_atlas(model, config: EstimatorConfig | None = None, atlas: AtlasConfig
                     kz, lp = args[bad[0].index][3:5]
                     raise SolverError(f"atlas: lines at f_z index {kz}, pressure index {lp} failed: {bad[0].error}")
                 for r in res:
-                    kz, lp, v, p, x, ok, err, cpu, fx, q, n_tried = r.value
+                    kz, lp, v, p, x, ok, err, cpu, fx, q, n_tried, deriv = r.value
                     cpu_s += cpu
                     n_fwd += n_tried
                     V[1:-1, :, kz, lp], P[1:-1, :, kz, lp], X[1:-1, :, kz, lp] = v, p, x
+                    if deriv is not None:
+                        dV[1:-1, :, kz, lp], dP[1:-1, :, kz, lp], dX[1:-1, :, kz, lp], dFX[1:-1, :, kz, lp] = deriv
                     FX[1:-1, :, kz, lp], QN[1:-1, :, kz, lp], solved[1:-1, :, kz, lp] = fx, q, ok
                     if not ok.all():
                         log.info(f"atlas: lines at f_z {ax[2][kz]:+.2f} N, urethra {ax[3][lp] * 1e-3:.1f} kPa: "
@@ -464,9 +497,11 @@ def build_atlas(model, config: EstimatorConfig | None = None, atlas: AtlasConfig
                 cpu_s += cpu
                 n_fwd += n_tried
                 QN[i, :, :, l] = q
-                if deriv is None:
+                if deriv is None or hermite is not None:
                     V[i, :, :, l], P[i, :, :, l], X[i, :, :, l], FX[i, :, :, l] = v, p, x, fx
                     solved[i, :, :, l] = ok
+                    if hermite is not None:
+                        dV[i, :, :, l], dP[i, :, :, l], dX[i, :, :, l], dFX[i, :, :, l] = deriv
                 else:  # the tangent line in the pressure through the middle plane
                     half = 0.5 * (ax[3][-1] - ax[3][0])
                     for l, sgn in ((0, -half), (n4 - 1, half)):
@@ -474,7 +509,7 @@ def build_atlas(model, config: EstimatorConfig | None = None, atlas: AtlasConfig
                         FX[i, :, :, l], QN[i, :, :, l] = fx, q
                         solved[i, :, :, l] = ok
                 if not ok.all():
-                    p_u = 0.5 * (ax[3][0] + ax[3][-1]) if deriv is not None else ax[3][l]
+                    p_u = 0.5 * (ax[3][0] + ax[3][-1]) if acfg.linear_pressure else ax[3][l]
                     log.info(f"atlas: plane {'f_x' if acfg.x_control == 'force' else 'q'} {ax[0][i]:+.2f} N, urethra "
                         f"{p_u * 1e-3:.1f} kPa: {ok.size - ok.sum()} of {ok.size} points unreachable "
                         f"({err or 'beyond a failed point'})")
@@ -482,34 +517,75 @@ def build_atlas(model, config: EstimatorConfig | None = None, atlas: AtlasConfig
         log.info(f"atlas: {n_fwd} converged forward solves for {int(solved.sum())} points (displacement axis: "
             f"{n_fwd - int(solved.sum())} more, the lines' faces solved again and the trials)")
     weights = fill_weights(solved, ax)
-    for a in (V.reshape(solved.size, -1), P.reshape(solved.size, -1), X.reshape(solved.size, -1), FX.reshape(-1, 1)):
-        _fill(a, weights)
-    # POD of the displacement field: the Gram matrix of the snapshots (n_grid²) is small
+    grids = (V, P, X, FX) if hermite is None else (V, P, X, FX, dV, dP, dX, dFX)
+    for a in grids:
+        _fill(a.reshape(solved.size, -1), weights)
+    shape = acfg.shape
+    if hermite is not None:  # per unit of the axis's Chebyshev variable t: d/dt = d/dλ / (dt/dλ)
+        if acfg.x_control == "displacement":  # per ū → per q: each line's ū spans the axis affinely
+            h = x_patch(fwd)
+            per_t = (X[-1] @ h - X[0] @ h) / (ax[0][-1] - ax[0][0]) / np.vectorize(axis_t)(
+                QN, ax[0][0], ax[0][-1], acfg.stretch[0])[1]
+        else:
+            g = np.vectorize(axis_t)(ax[hermite], ax[hermite][0], ax[hermite][-1], acfg.stretch[hermite])[1]
+            per_t = (1.0 / g).reshape([-1 if a == hermite else 1 for a in range(4)])
+        dV, dP, dX, dFX = (d * per_t.reshape(per_t.shape + (1,) * (d.ndim - 4)) for d in (dV, dP, dX, dFX))
     D = X.reshape(-1, ndof)
     del X
-    G = D @ D.T
-    w, Q = np.linalg.eigh(G)
-    w, Q = w[::-1].clip(min=0.0), Q[:, ::-1]
-    total = float(w.sum())
-    tail = total - np.cumsum(w)
-    r = int(min(FIELD_MAX_MODES, max(1, np.searchsorted(-tail, -FIELD_RTOL * total) + 1)))
-    modes = D.T @ (Q[:, :r] / np.sqrt(np.maximum(w[:r], 1e-300)))  # (3N, r), orthonormal columns
-    coef = D @ modes  # (n_grid, r)
-    field_rms = float(np.sqrt(max(tail[r - 1], 0.0) / D.size))
-    shape = acfg.shape
+    coef, dcoef, modes, field_rms = _pod(D, None if dX is None else dX.reshape(-1, ndof))
+    r = modes.shape[1]
     # the first axis's Chebyshev variable at each point (a displacement axis's points are where
     # they landed: each line is fitted through its own, to_chebyshev)
     tq = np.vectorize(axis_t)(QN, ax[0][0], ax[0][-1], acfg.stretch[0])[0]
-    cV = to_chebyshev(V.reshape(*shape, 4), shape, tq)
-    cP = to_chebyshev(P.reshape(*shape, k * 3), shape, tq).reshape(*shape, k, 3)
-    cF = to_chebyshev(coef.reshape(*shape, r), shape, tq)
+    def fit(values, d):
+        return to_chebyshev(values, shape, tq, None if d is None else (hermite, d))
+
+    cV = fit(V.reshape(*shape, 4), None if dV is None else dV.reshape(*shape, 4))
+    cP = fit(P.reshape(*shape, k * 3), None if dP is None else dP.reshape(*shape, k * 3))
+    cP = cP.reshape(*acfg.coef_shape, k, 3)
+    cF = fit(coef.reshape(*shape, r), None if dcoef is None else dcoef.reshape(*shape, r))
     # f_x as an output: on a displacement axis the polynomial of the solved f_x; on a force axis
     # f_x is the axis variable itself (its polynomial is not needed, and not exact on a stretch)
-    cFx = to_chebyshev(FX[..., None], shape, tq) if acfg.x_control == "displacement" else np.zeros((*shape, 0))
+    cFx = (fit(FX[..., None], None if dFX is None else dFX[..., None]) if acfg.x_control == "displacement"
+           else np.zeros((*acfg.coef_shape, 0)))
     return Atlas(key=key, config=acfg, cV=cV, cP=cP, cF=cF, cFx=cFx, q_nodes=QN, modes=modes, x_rest=fwd.fem.x_rest.copy(),
                  build_s=time.perf_counter() - t0, solves=int(solved.sum()) * acfg.n_solves // solved.size,
                  field_rms_m=field_rms, solved=solved, build_cpu_s=cpu_s,
                  provenance={**provenance(model, fwd), **({"offline": offline} if offline else {})})
+
+
+def _pod(D: np.ndarray, dD: np.ndarray | None = None):
+    """POD of the displacement snapshots ``D`` (n_grid, 3N) through their Gram matrix (n_grid² is
+    small): (the snapshots' mode coefficients (n_grid, r), the derivatives' (or None), the modes
+    (3N, r) with orthonormal columns, the RMS truncation error of ``D``). With derivative snapshots
+    ``dD`` (a Hermite axis, per unit of its t: metres like ``D``) the basis is of both, and keeps
+    modes until each set's dropped energy is below ``FIELD_RTOL`` of its own (the derivatives
+    carry the field between the fewer points: a basis of the values alone misses it there)."""
+    S = D if dD is None else np.vstack([D, dD])
+    w, Q = np.linalg.eigh(S @ S.T)
+    w, Q = w[::-1].clip(min=0.0), Q[:, ::-1]
+    total = float(w.sum())
+    tail = total - np.cumsum(w)
+    if dD is None:
+        r = int(min(FIELD_MAX_MODES, max(1, np.searchsorted(-tail, -FIELD_RTOL * total) + 1)))
+        modes = S.T @ (Q[:, :r] / np.sqrt(np.maximum(w[:r], 1e-300)))  # (3N, r), orthonormal columns
+        coef = D @ modes  # (n_grid, r)
+        return coef, None, modes, float(np.sqrt(max(tail[r - 1], 0.0) / D.size))
+    keep = w > 1e-14 * w[0]
+    modes = S.T @ (Q[:, keep] / np.sqrt(w[keep]))
+    # a mode's coefficients over S are Q's column times its singular value: each set's share
+    c2 = (Q[:, keep] ** 2) * w[keep]
+    n = len(D)
+    r = 1
+    for part in (slice(0, n), slice(n, None)):
+        e = c2[part].sum(axis=0)
+        left = float(e.sum()) - np.cumsum(e)
+        r = max(r, int(np.searchsorted(-left, -FIELD_RTOL * float(e.sum())) + 1))
+    r = min(r, FIELD_MAX_MODES, modes.shape[1])
+    modes = modes[:, :r]
+    coef = D @ modes
+    rest = float(np.einsum("ij,ij->", D, D)) - float(np.einsum("ij,ij->", coef, coef))
+    return coef, dD @ modes, modes, float(np.sqrt(max(rest, 0.0) / D.size))
 
 
 def _solves(at: Atlas) -> str:

@@ -62,6 +62,16 @@ class AtlasConfig:
     stretch of such an axis is :data:`STRETCH_Q` (N-equivalent); ``linear_pressure`` needs
     ``"force"`` (its tangent line is at fixed f_x).
 
+    ``hermite_axis`` (None: every axis Lagrange): the index of one axis (0 f_x or q, 1 f_y, 2 f_z,
+    3 p_u; on a displacement first axis only 0) interpolated by Hermite: each grid point's solve
+    also gives the exact derivative of every output along that axis (GMRES on the tangent at the
+    solution), so the n points of that axis determine a polynomial of degree 2n − 1 there
+    (:func:`~softphantom.estimation.atlas_basis.to_chebyshev`): n Hermite points stand in for
+    ≈ 2n Lagrange points at the cost of one sensitivity a point (on a displacement axis, along the
+    patch displacement at fixed (f_y, f_z, p_u): the f_x column over ∂ū/∂f_x = H_xᵀK⁻¹H_x). The
+    coefficient arrays are 2n long along it (:attr:`coef_shape`); the default stretch counts the
+    polynomial's 2n terms (docs/atlas.md).
+
     The default is resolved in :attr:`cluster_N`, not stored, so ``dataclasses.replace`` with
     another first axis or grid takes that one's default:
 
@@ -91,6 +101,7 @@ class AtlasConfig:
     x_control: str = "force"
     f_y_splits_N: tuple[float, ...] = ()
     offline: str = "full"
+    hermite_axis: int | None = None
 
     def __post_init__(self) -> None:
         lo = tuple(float(v) for v in self.force_min_N)
@@ -105,9 +116,21 @@ class AtlasConfig:
         object.__setattr__(self, "p_max_kPa", float(self.p_max_kPa))
         if not (math.isfinite(self.p_min_kPa) and math.isfinite(self.p_max_kPa) and self.p_min_kPa < self.p_max_kPa):
             raise UserError(f"atlas pressure range [{self.p_min_kPa}, {self.p_max_kPa}] kPa is empty")
+        h = self.hermite_axis
+        if h is not None:
+            if isinstance(h, bool) or int(h) != h or not 0 <= h <= 3:
+                raise UserError(f"atlas hermite_axis: None or an axis index 0..3 (f_x, f_y, f_z, p_u), got {h!r}")
+            object.__setattr__(self, "hermite_axis", int(h))
+            for what, ok in (("x_control 'force' or axis 0 (along f_y, f_z, p_u a displacement axis's "
+                              "derivatives are at fixed patch displacement)", self.x_control == "force" or h == 0),
+                             ("offline 'full'", self.offline == "full"),
+                             ("no linear_pressure", not self.linear_pressure)):
+                if not ok:
+                    raise UserError(f"atlas hermite_axis needs {what}")
         n = tuple(self.n_force) if np.ndim(self.n_force) else (self.n_force,) * 3
-        if len(n) != 3 or any(int(v) != v or not 3 <= v <= 15 for v in n):
-            raise UserError(f"atlas n_force: each must be an integer in 3..15, got {self.n_force}")
+        if len(n) != 3 or any(int(v) != v or not (2 if a == h else 3) <= v <= 15 for a, v in enumerate(n)):
+            on_h = "" if h is None else " (2..15 on the Hermite axis)"
+            raise UserError(f"atlas n_force: each must be an integer in 3..15{on_h}, got {self.n_force}")
         object.__setattr__(self, "n_force", tuple(int(v) for v in n))
         if int(self.n_pressure) != self.n_pressure or not 2 <= self.n_pressure <= 15:
             raise UserError(f"atlas n_pressure must be an integer in 2..15, got {self.n_pressure}")
@@ -141,7 +164,7 @@ class AtlasConfig:
         first axis where it is None (the first axis stretched where there are enough points, above)."""
         if self.force_cluster_N is not None:
             return self.force_cluster_N
-        stretch = self.n_force[0] >= STRETCH_MIN_POINTS and self.force_min_N[0] < 0 < self.force_max_N[0]
+        stretch = self.coef_shape[0] >= STRETCH_MIN_POINTS and self.force_min_N[0] < 0 < self.force_max_N[0]
         return ((STRETCH_FX_N if self.x_control == "force" else STRETCH_Q) if stretch else 0.0, 0.0, 0.0)
 
     def as_dict(self) -> dict:
@@ -153,6 +176,8 @@ class AtlasConfig:
             del d["f_y_splits_N"]  # an atlas of one piece keeps the key it had before the field
         if self.offline == "full":
             del d["offline"]  # likewise an atlas of full solves
+        if self.hermite_axis is None:
+            del d["hermite_axis"]  # and an atlas of Lagrange axes
         return d
 
     def patches(self) -> tuple["AtlasConfig", ...]:
@@ -189,6 +214,11 @@ class AtlasConfig:
     @property
     def shape(self) -> tuple[int, int, int, int]:
         return (*self.n_force, int(self.n_pressure))
+
+    @property
+    def coef_shape(self) -> tuple[int, int, int, int]:
+        """The Chebyshev coefficients per axis: :attr:`shape`, twice the points on the Hermite axis."""
+        return tuple(2 * n if a == self.hermite_axis else n for a, n in enumerate(self.shape))
 
     @property
     def n_solves(self) -> int:

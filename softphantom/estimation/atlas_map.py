@@ -22,7 +22,7 @@ from softphantom.estimation.atlas_config import AtlasConfig
 
 @dataclass(frozen=True)
 class KernelView:
-    """An atlas piece as the compiled kernels take it: the box (``shape`` (4,) int64 points per axis,
+    """An atlas piece as the compiled kernels take it: the box (``shape`` (4,) int64 terms per axis,
     ``lo`` / ``hi`` (4,) the envelope, ``wd`` (4,) the stretch widths, :attr:`box` the four in the
     kernels' argument order) and the coefficients of each output as (grid points, outputs), C order:
     ``V`` the volumes, ``P`` the tracked points, ``F`` the field modes, ``Fx`` f_x (no columns on a
@@ -52,7 +52,8 @@ class Atlas:
     """Tensor Chebyshev polynomials of the forward map over the envelope (:mod:`softphantom.estimation.atlas`).
 
     ``key`` the cache key; ``config`` the :class:`AtlasConfig`; ``cV`` (n1,n2,n3,n4,4) volume
-    coefficients (m³); ``cP`` (n1,n2,n3,n4,k,3) tracked-point coefficients (m); ``cF``
+    coefficients (m³; the n are ``config.coef_shape``: twice the points on a Hermite axis); ``cP``
+    (n1,n2,n3,n4,k,3) tracked-point coefficients (m); ``cF``
     (n1,n2,n3,n4,r) field-mode coefficients; ``modes`` (3N,r) the POD basis (m); ``x_rest`` (3N,);
     ``build_s`` seconds of the build (wall); ``solves`` converged forward solves; ``field_rms_m``
     the RMS error of the POD truncation over the grid; ``build_cpu_s`` the CPU seconds of the
@@ -94,7 +95,7 @@ class Atlas:
         if self.cFx is None:
             if self.config.x_control != "force":
                 raise ValueError("a displacement-controlled atlas needs its f_x coefficients cFx")
-            object.__setattr__(self, "cFx", np.zeros((*self.config.shape, 0)))
+            object.__setattr__(self, "cFx", np.zeros((*self.config.coef_shape, 0)))
         if self.q_nodes is None:  # the Lobatto nodes
             n = self.config.shape[0]
             q = self.config.axes()[0].reshape((n,) + (1,) * 3)
@@ -112,12 +113,13 @@ class Atlas:
         object.__setattr__(self, "_axes_lists", [
             (xs.tolist(), float(xs[0] - 1e-9 * (1 + abs(xs[0]))), float(xs[-1] + 1e-9 * (1 + abs(xs[-1]))))
             for xs in self._axes])
-        # the kernels' view (atlas_kernels): coefficients as (grid points, outputs), C order
-        n = int(np.prod(self.config.shape))
+        # the kernels' view (atlas_kernels): coefficients as (terms, outputs), C order; the terms per
+        # axis are the points', twice those on a Hermite axis (AtlasConfig.coef_shape)
+        n = int(np.prod(self.config.coef_shape))
         c = {name: np.ascontiguousarray(getattr(self, name), dtype=float).reshape(n, -1)
              for name in ("cV", "cP", "cF", "cFx")}
         object.__setattr__(self, "kernel", KernelView(
-            np.array(self.config.shape, dtype=np.int64), np.ascontiguousarray(self.config.lower),
+            np.array(self.config.coef_shape, dtype=np.int64), np.ascontiguousarray(self.config.lower),
             np.ascontiguousarray(self.config.upper), np.ascontiguousarray(self.config.stretch),
             c["cV"], c["cP"], c["cF"], c["cFx"]))
 

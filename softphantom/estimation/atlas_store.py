@@ -29,6 +29,7 @@ from softphantom.estimation.config import EstimatorConfig
 from softphantom.estimation.forward import ForwardModel
 
 FORMAT = 4  # bump when the file layout or the build changes its meaning (3: stretched axes; 4: x_control, cFx)
+AXIS_NAMES = ("f_x", "f_y", "f_z", "p_u")
 ARRAYS = ("cV", "cP", "cF", "cFx", "q_nodes", "modes", "x_rest", "solved")  # an atlas file's arrays
 
 
@@ -193,7 +194,9 @@ def describe(at: Atlas) -> list[tuple[str, str]]:
         ("contact", f"{contact}, patch radius {prov.get('contact_radius_m', float('nan')) * 1e3:.1f} mm"),
         ("envelope", f"f_x {lo[0]:g}…{hi[0]:g} N, f_y {lo[1]:g}…{hi[1]:g} N, f_z {lo[2]:g}…{hi[2]:g} N, "
                      f"p_u {c.p_min_kPa:g}…{c.p_max_kPa:g} kPa"),
-        ("grid", f"{' × '.join(map(str, c.shape))} points ({at.solves} solves{unsolved}), first axis {c.x_control}"),
+        ("grid", f"{' × '.join(map(str, c.shape))} points ({at.solves} solves{unsolved}), first axis {c.x_control}"
+                 + ("" if c.hermite_axis is None else f", Hermite along {AXIS_NAMES[c.hermite_axis]} "
+                    f"({c.coef_shape[c.hermite_axis]} terms)")),
         ("build", f"{at.build_s:.0f} s wall, {at.build_cpu_s:.0f} CPU-s"),
         ("size", f"{at.nbytes / 1e6:.1f} MB of coefficients, {at.field_modes} field modes"),
         ("built", f"{prov.get('built_utc', '?')} by softphantom {prov.get('softphantom', '?')}"),

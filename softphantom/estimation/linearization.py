@@ -217,12 +217,15 @@ class EquilibriumSolver:
         at = self._factor_at
         return at is not None and at[1] == float(p_u) and np.array_equal(at[0], x)
 
-    def _sensitivities(self, x: np.ndarray, p_u: float, Bf: np.ndarray) -> np.ndarray:
+    def _sensitivities(self, x: np.ndarray, p_u: float, Bf: np.ndarray, exact: bool | None = None) -> np.ndarray:
         """K(x)⁻¹ B on the free DOFs: the kept factor when it was made at ``x``, else GMRES on the
         assembled tangent at ``x`` preconditioned by the kept factor (to ``KRYLOV_RTOL``); a
-        refactorization where GMRES does not get there in ``KRYLOV_MAXITER``."""
+        refactorization where GMRES does not get there in ``KRYLOV_MAXITER``. ``exact`` None: the
+        solver's ``exact_sensitivities``."""
         self.krylov_iterations = 0
-        if not self.exact_sensitivities or self._factor_current(x, p_u):
+        if exact is None:
+            exact = self.exact_sensitivities
+        if not exact or self._factor_current(x, p_u):
             return self.lin.solve(Bf)
         import scipy.sparse.linalg as spla
 
@@ -246,6 +249,19 @@ class EquilibriumSolver:
                 return self.lin.solve(Bf)
             out[:, j] = xj
         return out
+
+    def exact_column(self, lin: Linearization, a: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The exact derivatives along load ``a`` at ``lin``'s equilibrium, whatever
+        ``exact_sensitivities`` (the kept factor if made there, else GMRES preconditioned by it,
+        :meth:`_sensitivities`): (∂V/∂λ_a (4,), ∂sub_x/∂λ_a (k, 3), ∂x/∂λ_a (3N,)) — the column ``a``
+        of ``W``, ``sub_U``, ``U``, for one load only (a Hermite atlas axis)."""
+        fem = self.fem
+        x, free = lin.x, fem.free_dofs
+        b = self.H_f[:, a].toarray().ravel() if a < 3 else pressure_load(x, self._ur_tris, fem.n_nodes)
+        u = np.zeros(fem.n_dof)
+        u[free] = self._sensitivities(x, float(lin.lam[3]), b[free][:, None], exact=True)[:, 0]
+        dV = np.array([cavity_volume_gradient(x, t, fem.n_nodes) @ u for t in self._arm_tris])
+        return dV, self.probe @ u.reshape(-1, 3), u
 
     def rest(self) -> Linearization:
         """The linearization at rest (λ = 0), factoring there."""
