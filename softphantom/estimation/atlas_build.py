@@ -284,8 +284,8 @@ def _lines(model, config: EstimatorConfig, acfg: AtlasConfig, k: int, l: int, en
     Q = np.broadcast_to(ax[0][1:-1, None], (m, ny)).copy()
     solved = np.zeros((m, ny), bool)
     hermite = acfg.hermite_axis == 0
-    dV, dP, dX = (np.full_like(a, np.nan) for a in (V, P, X))
-    dFX = np.full((m, ny), np.nan)
+    if hermite:  # the derivatives along ū: arrays as large as the values, only when asked for
+        dV, dP, dX, dFX = (np.full_like(a, np.nan) for a in (V, P, X, FX))
     first_error, n_solves = "", 0
     j0 = int(np.argmin(np.abs(ax[1])))
     faces: dict[int, tuple] = {}  # j → (the lower face's Linearization, its kept factor)
