@@ -9,7 +9,7 @@ task's lines (``_lines``: every f_y row from face to face) twice: with the mixed
 (``_solve_ux``'s default) and with force-controlled trials only. Prints, per variant,
 CPU seconds, equilibrium solves by kind, factorizations, failures of the mixed-control solve, and
 the largest difference of the two variants' f_x at the points both land on. Figures:
-docs/performance.md.
+docs/performance/estimation.md.
 """
 
 from __future__ import annotations

@@ -10,7 +10,7 @@ cost. The atlas is cached in DIR/model/atlas, so the demo's own grid costs nothi
     python benchmarks/bench_demo_atlas.py --demo out/demo --scenario push-on-centre
     python benchmarks/bench_demo_atlas.py --demo out/demo --scenario push-off-centre --grid 7,5,5,2 --cluster-N 0.1,0,0
 
-Figures are in docs/performance.md ("push atlases checked against exact inverses").
+Figures are in docs/performance/tools.md ("push atlases checked against exact inverses").
 """
 
 from __future__ import annotations

@@ -66,7 +66,7 @@ def truth_levels(model, est, forces):
     pm = probe_matrix(fem, [model.markers[k] for k in est.marker_names])
     X = fem.nodes
     # the estimators' own arm volumes (the FEM's cavities, 6-node on P2): ``model.cavities`` are the
-    # corner facets, whose volume change on a P2 mesh is ≈ 10 % short (docs/performance.md)
+    # corner facets, whose volume change on a P2 mesh is ≈ 10 % short (docs/performance/estimation.md)
     arm_volumes = est._eq.arm_volumes
     lin = SparseSolver("auto")
     x = None

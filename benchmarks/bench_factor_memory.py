@@ -1,4 +1,4 @@
-"""Fill of the sparse factorizations of the P2 tangent (docs/performance.md, "Memory of
+"""Fill of the sparse factorizations of the P2 tangent (docs/performance/design-fem.md, "Memory of
 the P2 solves"): CHOLMOD's supernodal LLᵀ (the Newton default), its simplicial LDLᵀ (the fallback for
 an indefinite tangent) and SuperLU with scipy's COLAMD ordering and with softphantom's symmetric one,
 on the default design's neo-Hookean P2 tangent with 30 kPa in the urethra (its pressure stiffness

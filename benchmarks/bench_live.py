@@ -10,7 +10,7 @@ default of ``live``) on the default model (~6 k nodes; built once unless ``--mod
 are a slow push (0 → 3 N along y and back, 4 s period, a little sideways) whose cavity volumes the
 atlas itself predicts, so every estimate is a real inversion inside the envelope. The atlas is
 built once into ``--atlas-cache`` (grid ``--atlas-grid``, default 3,5,3,2 = 90 solves; its step
-costs what a larger grid's does within tens of microseconds: docs/performance.md).
+costs what a larger grid's does within tens of microseconds: docs/performance/estimation.md).
 
 Phases of ``--seconds`` each, the estimator's step time (``Estimate.step_time``) collected
 throughout: no browser; ``--browsers`` clients that only read the event stream (curl: the

@@ -10,7 +10,7 @@ import sys as _sys
 
 # One BLAS thread per process. Both OpenBLAS pools (numpy's; the system's, behind CHOLMOD) spin
 # between calls; on two shared cores their threads steal the CPU the solver needs (an atlas plane of
-# 20 solves: 40 CPU-s with numpy's default pool, 18 with one thread; docs/performance.md). Parallel
+# 20 solves: 40 CPU-s with numpy's default pool, 18 with one thread; docs/performance/design-fem.md). Parallel
 # work goes through Dask processes instead. A user's setting wins.
 # The variables reach the libraries loaded after this (numpy, CHOLMOD's BLAS when scikit-sparse is
 # imported) and the worker processes, which inherit them; threadpoolctl caps the pools that were

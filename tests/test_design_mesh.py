@@ -167,7 +167,7 @@ def test_deterministic_and_off_main_thread(coarse_model, tmp_path):
 def test_one_distance_field_per_wall_size_gives_the_same_mesh(coarse_model, monkeypatch):
     """The cavities of one wall size share one distance field (a third of the size-field work of
     the default design, whose four arm cavities share a size): the mesh is the one that a field per
-    cavity gives, node for node (docs/performance.md)."""
+    cavity gives, node for node (docs/performance/design-fem.md)."""
     from softphantom.design import mesh as mesh_mod
 
     d = coarse_model.design

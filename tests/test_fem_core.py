@@ -231,7 +231,7 @@ def test_sparse_solvers_agree_and_cholmod_reuses_analysis(cube):
 def test_indefinite_tangent_takes_ldlt_not_lu(monkeypatch):
     """A symmetric indefinite matrix (what a pressurized cavity's tangent can become) is solved by
     CHOLMOD's LDLᵀ (a Cholesky's fill) and not by SuperLU, whose fill on a 3-D P2 tangent is
-    several times larger (docs/performance.md: the 4.5 mm urethra solve's memory)."""
+    several times larger (docs/performance/design-fem.md: the 4.5 mm urethra solve's memory)."""
     pytest.importorskip("sksparse.cholmod")
     import scipy.sparse as sp
     import scipy.sparse.linalg as spla

@@ -494,7 +494,7 @@ def _walls_by_size(sizes: dict[str, float]) -> list[tuple[float, list[str]]]:
     field over all its walls: the graded size (:func:`_graded`) grows with the distance, so the
     smallest over the group's cavities is the size at its nearest wall, the same value (the same
     mesh) for fewer field evaluations. gmsh evaluates the size field ~2e5 times meshing the curves
-    of the default design, whose four arm cavities share one size (docs/performance.md).
+    of the default design, whose four arm cavities share one size (docs/performance/design-fem.md).
 
     >>> _walls_by_size({"a": 1.0, "b": 0.5, "c": 1.0})
     [(1.0, ['a', 'c']), (0.5, ['b'])]

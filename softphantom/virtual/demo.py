@@ -33,7 +33,7 @@ from softphantom.progress import Step, forward_progress, report
 # largest force would make the sideways range 3.1 N for ±0.6 N of load.
 # Grids: pushes vary the force (the pressure stays near 0: 2 points), an inflation the pressure.
 # Push grids by contact, measured against exact (settled) inverses of the same model at the demo
-# pushes' worst samples (docs/performance.md): on-centre, the arm pair's step at
+# pushes' worst samples (docs/performance/tools.md): on-centre, the arm pair's step at
 # f_x = 0 (docs/estimation.md) wants the f_x points clustered about 0 (7, asinh width 0.1 N:
 # 0.006 N / 0.008 mm / 0.04°; 5 affine: 0.03 N / 0.04 mm / 0.30°); off-centre has no such step
 # there (the same clustering: 0.31°; 5 affine points: 0.02 N / 0.025 mm / 0.19°, 7: 0.20°) but a
