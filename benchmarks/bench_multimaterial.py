@@ -85,13 +85,17 @@ def main() -> int:
                    inner - u.volume_mm3 - sum(x.volume_mm3 for x in layered.layers.lesions), 0.02)]
         checks += [(f"cast_{x.region}", casts[f"cast_{x.region}"].volume_mm3, x.volume_mm3, 0.01)
                    for x in layered.layers.lesions]
+        rows = []
         for name, got, want, tol in checks:
             err = got / want - 1.0
             ok = abs(err) <= tol
             print(f"{name}: {got:.0f} mm³ vs closed form {want:.0f} mm³ ({100 * err:+.2f} %, tolerance "
                   f"{100 * tol:g} %) {'ok' if ok else 'MISS'}; {casts[name].material}")
+            rows.append((name, casts[name].material, f"{got:.0f}", f"{want:.0f}", f"{100 * err:+.2f}", f"{100 * tol:g}"))
             if not ok:
                 failures.append(name)
+        write_table("multimaterial_volumes", ("cast piece", "material", "volume mm³", "closed form mm³", "error %",
+                                              "tolerance %"), rows, right=(2, 3, 4, 5))
         if not args.no_busy:
             ctx = mp.get_context("spawn")
             burners = [ctx.Process(target=_burn, daemon=True) for _ in range(os.cpu_count() or 1)]

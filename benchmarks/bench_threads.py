@@ -19,6 +19,8 @@ import subprocess
 import sys
 import tempfile
 
+from _results import write_table
+
 WORK = """
 import json, sys, time
 from softphantom.design import BIPDesign, build_model
@@ -53,6 +55,7 @@ def main() -> None:
     cores = os.cpu_count() or 2
     print(f"one atlas plane (20 forward solves), {a.mesh_size_mm:g} mm model, {cores} cores; load "
           f"{os.getloadavg()[0]:.1f} at start")
+    rows = []
     for busy in (False, True):
         load = start_load(cores) if busy else []
         try:
@@ -64,6 +67,12 @@ def main() -> None:
             print(f"  {tag:16s} {name:36s} {r['wall_s']:6.1f} s wall {r['cpu_s']:6.1f} CPU-s ({r['solved']} solved)")
         print(f"  {tag:16s} ratio default/softphantom: wall {peer['wall_s'] / one['wall_s']:.2f}x, "
               f"CPU {peer['cpu_s'] / one['cpu_s']:.2f}x")
+        rows.append((tag, f"{one['wall_s']:.1f} / {one['cpu_s']:.1f}", f"{peer['wall_s']:.1f} / {peer['cpu_s']:.1f}",
+                     f"{peer['wall_s'] / one['wall_s']:.2f}× / {peer['cpu_s'] / one['cpu_s']:.2f}×"))
+    write_table("threads", ("machine", "1 BLAS thread (softphantom): wall s / CPU-s",
+                            f"{cores} BLAS threads (library default): wall s / CPU-s", "ratio wall / CPU"), rows,
+                caption=f"One atlas plane (20 warm-started forward solves) of the {a.mesh_size_mm:g} mm model in a "
+                        "fresh process:")
 
 
 if __name__ == "__main__":
