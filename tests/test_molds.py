@@ -246,3 +246,43 @@ def test_surfaces_flipped_at_random_are_made_consistent():
     mesh = trimesh.Trimesh(sphere.vertices, out, process=False)
     assert mesh.is_winding_consistent and mesh.is_watertight
     assert not trimesh.Trimesh(sphere.vertices, np.vstack(tris), process=False).is_winding_consistent
+
+
+def test_overlapping_boxes_are_every_overlapping_pair_once():
+    """The grid's box pairs against all pairs compared: boxes of mixed sizes, flat ones, points and
+    one box across everything (which coarsens the grid)."""
+    from softphantom.design.solid_check import overlapping_boxes
+
+    rng = np.random.default_rng(3)
+    for trial in range(12):
+        n = int(rng.integers(2, 300))
+        lo = rng.uniform(0.0, 20.0, (n, 3))
+        hi = lo + rng.uniform(0.0, 1.0, (n, 3)) ** 3 * [0.5, 5.0, 20.0][trial % 3]
+        if trial % 4 == 0:
+            hi[:, 2] = lo[:, 2]  # flat, as a facet in a plane z = const
+        if trial % 4 == 1:
+            hi[: n // 3] = lo[: n // 3]  # points
+        if trial % 4 == 2:
+            lo[0], hi[0] = -1.0, 21.0
+        a, b = overlapping_boxes(lo, hi)
+        got = list(zip(a.tolist(), b.tolist()))
+        overlap = np.all(np.maximum(lo[:, None], lo[None]) <= np.minimum(hi[:, None], hi[None]), axis=2)
+        i, j = np.nonzero(np.triu(overlap, 1))
+        assert len(got) == len(set(got)) and set(got) == set(zip(i.tolist(), j.tolist())), trial
+
+
+def test_self_intersections_count_every_crossing_pair():
+    """Two spheres through each other in one mesh: the count is that of all face pairs without a
+    shared vertex tested alike; each sphere alone, and the two apart, have none."""
+    from softphantom.design.solid_check import crossing, self_intersections
+
+    a = trimesh.creation.icosphere(subdivisions=2, radius=10.0)
+    b = trimesh.creation.icosphere(subdivisions=1, radius=7.0).apply_translation((9.0, 2.0, 1.0))
+    both = trimesh.util.concatenate([a, b])
+    i, j = np.triu_indices(len(both.faces), 1)
+    free = ~(both.faces[i][:, :, None] == both.faces[j][:, None, :]).any(axis=(1, 2))
+    expect = int(crossing(both.vertices[both.faces], i[free], j[free]).sum())
+    assert expect > 20 and self_intersections(both) == expect
+    assert self_intersections(a) == self_intersections(b) == 0
+    apart = trimesh.util.concatenate([a, b.copy().apply_translation((30.0, 0.0, 0.0))])
+    assert self_intersections(apart) == 0
