@@ -5,7 +5,8 @@
 - manifold: manifold3d accepts the mesh (``status() == NoError``) and its volume agrees;
 - not self-intersecting: no edge of a triangle crosses another triangle that shares no vertex
   with it (candidate pairs: overlapping face boxes, from a uniform grid; orientation tests in numpy);
-- interference: the volume of the manifold3d intersection of two parts.
+- interference (:func:`softphantom.molds.interference`): the volume of the manifold3d intersection
+  of two parts, from :func:`to_manifold`.
 
 Used on every printed part (softphantom.molds) and on an anatomy surface (design/anatomy.py).
 
@@ -194,8 +195,3 @@ def report_mesh(mesh) -> MeshReport:
         volume=float(mesh.volume) if watertight else float("nan"),
         components=n_comp,
     )
-
-
-def intersection_volume(mesh_a, mesh_b) -> float:
-    """Volume of the boolean intersection of two closed meshes (mm³ for mm meshes)."""
-    return manifold_volume(to_manifold(mesh_a) ^ to_manifold(mesh_b))
