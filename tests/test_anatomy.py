@@ -185,7 +185,7 @@ def test_anatomy_design_meshes_solves_and_gets_molds():
     data, affine = synthetic_labels(lesion=True)
     a = anatomy_from_labels(data, affine, AnatomyOptions(surface_size_mm=6.0, lesion_labels=(3,)))
     design = design_from_anatomy(a)
-    model = build_model(design, 12.0)
+    model = build_model(design, 12.0, isolate=False)  # in-process: the CLI test below meshes in a child
     _meshes_and_solves(model, a.volume_mm3)
     _gets_its_bulb_mold(design)
     n = model.design.mesh.cavity_segments  # a lesion's wall is meshed like a cavity's: low by (2π/n)²/6
