@@ -286,3 +286,24 @@ def test_self_intersections_count_every_crossing_pair():
     assert self_intersections(a) == self_intersections(b) == 0
     apart = trimesh.util.concatenate([a, b.copy().apply_translation((30.0, 0.0, 0.0))])
     assert self_intersections(apart) == 0
+
+
+def test_a_solid_built_once_is_imported_whole_with_its_boolean_tolerance(tmp_path):
+    """built_once: the solid of one gmsh model (a cube less an eighth of a ball at its corner) in
+    another model, exactly (its volume in closed form), and the boolean tolerance its build set."""
+    from softphantom.design.mesh import gmsh_session
+    from softphantom.molds.occ import built_once, one_volume
+
+    def build(occ):
+        import gmsh
+
+        gmsh.option.setNumber("Geometry.ToleranceBoolean", 1e-3)
+        return one_volume(occ.cut([(3, occ.addBox(0, 0, 0, 10, 10, 10))], [(3, occ.addSphere(10, 10, 10, 4))]), "cut")
+
+    imported = built_once("corner", build, tmp_path)
+    with gmsh_session("built_once_test", "the test") as gmsh:
+        assert gmsh.option.getNumber("Geometry.ToleranceBoolean") == 0.0
+        vol = imported(gmsh.model.occ)
+        gmsh.model.occ.synchronize()
+        assert gmsh.model.occ.getMass(3, vol) == pytest.approx(1000.0 - math.pi * 4**3 / 6, rel=1e-9)
+        assert gmsh.option.getNumber("Geometry.ToleranceBoolean") == 1e-3
