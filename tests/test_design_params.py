@@ -247,7 +247,6 @@ def valid_designs(draw) -> BIPDesign:
         assume(False)
 
 
-@pytest.mark.slow
 @settings(max_examples=20, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow])
 @given(valid_designs())
 def test_design_file_round_trips_any_valid_design(d):
