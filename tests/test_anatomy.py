@@ -59,6 +59,15 @@ def gland():
     return data, affine, anatomy_from_labels(data, affine)
 
 
+@pytest.fixture(scope="module")
+def lesion_gland():
+    """The gland with its lesion label, its surface kept coarse (6 mm: every OCC boolean on the
+    polyhedral bulb costs in proportion to its triangles), and its design."""
+    data, affine = synthetic_labels(lesion=True)
+    a = anatomy_from_labels(data, affine, AnatomyOptions(surface_size_mm=6.0, lesion_labels=(3,)))
+    return data, affine, a, design_from_anatomy(a)
+
+
 def test_label_map_surface_holds_the_voxel_volume_within_2_percent(gland):
     data, affine, a = gland
     voxels = float((data > 0).sum()) * abs(np.linalg.det(affine[:3, :3]))
@@ -145,14 +154,14 @@ def _gets_its_bulb_mold(design):
     assert (cavity ^ bulb).volume() == pytest.approx(bulb.volume(), rel=0.01)
 
 
-def test_lesion_label_becomes_a_design_lesion_by_moments():
+def test_lesion_label_becomes_a_design_lesion_by_moments(lesion_gland, monkeypatch):
     """Label 3, an ellipsoid of semi-axes (5, 4, 7.5) mm (R-L, A-P, S-I) sampled at 0.5 × 0.5 × 3 mm:
     its moments give back the centre (< 0.3 mm) and the semi-axes (within half a voxel) in the model frame, and
     the design gets it as ``[layers.lesions.label3]`` in the bulb's material."""
+    from softphantom.design import anatomy
     from softphantom.design.anatomy import lesion_report
 
-    data, affine = synthetic_labels(lesion=True)
-    a = anatomy_from_labels(data, affine, AnatomyOptions(lesion_labels=(3,)))
+    data, affine, a, d = lesion_gland
     les = a.lesions[3]
     c, semi = LESION_RAS
     np.testing.assert_allclose(les["center_mm"], a.rotation @ c + a.translation, atol=0.3)
@@ -166,11 +175,12 @@ def test_lesion_label_becomes_a_design_lesion_by_moments():
     assert les["ellipsoid_mm3"] == pytest.approx(voxels, rel=0.05)  # the fit's volume against the voxel count
     (line,) = lesion_report(a)
     assert line.startswith("lesion label 3 -> layers.lesions.label3: centre (") and "mm³ of voxels (" in line
-    d = design_from_anatomy(a)
     (x,) = d.layers.lesions
     assert x.region == "lesion_label3" and d.layers.shell_mm == 0.0
     np.testing.assert_allclose(x.semi_axes_mm, les["semi_axes_mm"])
     assert d.material_of_regions()["lesion_label3"] == d.material_of_regions()["bulb"]
+    # refused before the gland's surface is built
+    monkeypatch.setattr(anatomy, "_marching_cubes", lambda *args: pytest.fail("the surface was built"))
     with pytest.raises(DesignError, match="lesion label 4 has no voxels"):
         anatomy_from_labels(data, affine, AnatomyOptions(lesion_labels=(4,)))
     with pytest.raises(DesignError, match="lesion label 2 must be > 0 and not the urethra's"):
@@ -178,14 +188,11 @@ def test_lesion_label_becomes_a_design_lesion_by_moments():
 
 
 @pytest.mark.slow
-def test_anatomy_design_meshes_solves_and_gets_molds():
-    """The label map end to end, kept coarse (a 6 mm surface, a 12 mm mesh): every OCC boolean on
-    the polyhedral bulb costs in proportion to its triangles. With its lesion label: the lesion's
-    mesh region holds the fitted ellipsoid's volume less the facet deficit, within 2 %."""
-    data, affine = synthetic_labels(lesion=True)
-    a = anatomy_from_labels(data, affine, AnatomyOptions(surface_size_mm=6.0, lesion_labels=(3,)))
-    design = design_from_anatomy(a)
-    model = build_model(design, 12.0)
+def test_anatomy_design_meshes_solves_and_gets_molds(lesion_gland):
+    """The label map end to end, kept coarse (a 6 mm surface, a 12 mm mesh). With its lesion label:
+    the lesion's mesh region holds the fitted ellipsoid's volume less the facet deficit, within 2 %."""
+    _, _, a, design = lesion_gland
+    model = build_model(design, 12.0, isolate=False)  # in-process: the CLI test below meshes in a child
     _meshes_and_solves(model, a.volume_mm3)
     _gets_its_bulb_mold(design)
     n = model.design.mesh.cavity_segments  # a lesion's wall is meshed like a cavity's: low by (2π/n)²/6

@@ -245,6 +245,11 @@ def anatomy_from_labels(data: np.ndarray, affine: np.ndarray, opt: AnatomyOption
     if n > 1:
         raise DesignError(f"{source}: the gland has {n} disconnected components (voxel counts {sizes[:5]}); "
                           "expected one")
+    for lab in opt.lesion_labels:  # before the surface, the slow part
+        if lab == opt.urethra_label or lab <= 0:
+            raise DesignError(f"{source}: lesion label {lab} must be > 0 and not the urethra's ({opt.urethra_label})")
+        if not np.any(data == lab):
+            raise DesignError(f"{source}: lesion label {lab} has no voxels")
     voxel = float(abs(np.linalg.det(affine[:3, :3])))
     world, faces = _marching_cubes(mask, affine, opt)
     mc = trimesh.Trimesh(world, faces, process=True)
@@ -267,11 +272,7 @@ def anatomy_from_labels(data: np.ndarray, affine: np.ndarray, opt: AnatomyOption
                                extra_mm=float(np.linalg.norm(affine[:3, :3] @ (axis_ijk / np.abs(axis_ijk).max()))))
     lesions = {}
     for lab in opt.lesion_labels:
-        if lab == opt.urethra_label or lab <= 0:
-            raise DesignError(f"{source}: lesion label {lab} must be > 0 and not the urethra's ({opt.urethra_label})")
         idx = np.argwhere(data == lab)
-        if len(idx) == 0:
-            raise DesignError(f"{source}: lesion label {lab} has no voxels")
         lesions[int(lab)] = _ellipsoid_fit(to_model(idx), R @ affine[:3, :3], len(idx) * voxel)
     v = np.asarray(mesh.vertices) @ R.T + t
     return Anatomy(v, np.asarray(mesh.faces), urethra, lesions, float(mask.sum()) * voxel, R, t)

@@ -46,6 +46,7 @@ softphantom.errors.DesignError: bulb.semi_axes_mm[1] = -1 must be > 0 mm
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import math
 import re
@@ -959,11 +960,16 @@ def _check_keys(path: str, given: dict, allowed) -> None:
         raise DesignError(f"{path}: unknown key {unknown[0]!r} (known: {', '.join(sorted(allowed))})")
 
 
+@functools.cache
+def _default_design() -> BIPDesign:
+    return BIPDesign()  # frozen: one validated instance serves every design_from_dict
+
+
 def design_from_dict(data: dict[str, Any]) -> BIPDesign:
     """A design from a nested dict; missing keys keep their defaults, ``markers``/``targets`` replace them."""
     _check_keys("design", data, ["name", "arms", "markers", "targets", "materials", "region_materials", "layers",
                                  *_SUBS])
-    default = BIPDesign()
+    default = _default_design()
     defaults = {f.name: getattr(default, f.name) for f in dataclasses.fields(BIPDesign)}
     kwargs: dict[str, Any] = dict(defaults)
     if "name" in data:

@@ -4,8 +4,9 @@
   positive volume);
 - manifold: manifold3d accepts the mesh (``status() == NoError``) and its volume agrees;
 - not self-intersecting: no edge of a triangle crosses another triangle that shares no vertex
-  with it (candidate pairs from trimesh's R-tree of face boxes, exact orientation tests in numpy);
-- interference: the volume of the manifold3d intersection of two parts.
+  with it (candidate pairs: overlapping face boxes, from a uniform grid; orientation tests in numpy);
+- interference (:func:`softphantom.molds.interference`): the volume of the manifold3d intersection
+  of two parts, from :func:`to_manifold`.
 
 Used on every printed part (softphantom.molds) and on an anatomy surface (design/anatomy.py).
 
@@ -89,25 +90,73 @@ def _orient(a, b, c, d):
     return np.einsum("ij,ij->i", b - a, np.cross(c - a, d - a))
 
 
+def overlapping_boxes(lo, hi):
+    """(a, b), a < b: the pairs of boxes (rows of lo, hi) that overlap or touch.
+
+    A uniform grid of cells about twice the median box size (a few times faster than an R-tree on
+    the tens of thousands of facets of a mold): every box is listed in each cell it touches, and a
+    pair is kept in the one cell that holds the low corner of the two boxes' overlap.
+    """
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    n = len(lo)
+    if n < 2:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    origin = lo.min(axis=0)
+    extent = float((hi.max(axis=0) - origin).max())
+    # at most 1e6 cells a side (the cell key fits int64); coarser while a few large boxes would
+    # fill more than 16 cells per box on average
+    size = max(2.0 * float(np.median(np.max(hi - lo, axis=1))), 1e-6 * extent) or 1.0
+    while True:
+        c0 = np.floor((lo - origin) / size).astype(np.int64)
+        c1 = np.floor((hi - origin) / size).astype(np.int64)
+        span = c1 - c0 + 1
+        if span.prod(axis=1, dtype=float).sum() <= 16 * n:
+            break
+        size *= 2.0
+    count = span.prod(axis=1)
+    box = np.repeat(np.arange(n), count)
+    # the k-th cell of a box: k in mixed radix (span_x, span_y, span_z)
+    k = np.arange(len(box)) - np.repeat(np.cumsum(count) - count, count)
+    sy, sz = span[box, 1], span[box, 2]
+    cell = c0[box] + np.stack([k // (sy * sz), (k // sz) % sy, k % sz], axis=1)
+    dims = c1.max(axis=0) + 1
+    key = (cell[:, 0] * dims[1] + cell[:, 1]) * dims[2] + cell[:, 2]
+    order = np.argsort(key, kind="stable")
+    key, box = key[order], box[order]
+    start = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
+    size_of = np.diff(np.r_[start, len(key)])
+    group_start = np.repeat(start, size_of)
+    rank = np.arange(len(key)) - group_start
+    later = np.repeat(size_of, size_of) - rank - 1  # members after this one in its cell
+    i = np.repeat(np.arange(len(key)), later)
+    j = i + 1 + (np.arange(len(i)) - np.repeat(np.cumsum(later) - later, later))
+    a, b, kc = box[i], box[j], key[i]
+    keep = np.all(np.maximum(lo[a], lo[b]) <= np.minimum(hi[a], hi[b]), axis=1)
+    a, b, kc = a[keep], b[keep], kc[keep]
+    corner = np.floor((np.maximum(lo[a], lo[b]) - origin) / size).astype(np.int64)
+    keep = ((corner[:, 0] * dims[1] + corner[:, 1]) * dims[2] + corner[:, 2]) == kc
+    a, b = a[keep], b[keep]
+    return np.minimum(a, b), np.maximum(a, b)
+
+
 def self_intersections(mesh) -> int:
     """Number of face pairs without a shared vertex whose triangles cross (edge through face)."""
     faces = np.asarray(mesh.faces)
     v = np.asarray(mesh.vertices, float)
     tri = v[faces]
-    lo, hi = tri.min(axis=1), tri.max(axis=1)
     pad = 1e-9 * float(np.ptp(v, axis=0).max() or 1.0)
-    tree = mesh.triangles_tree
-    hits, counts = tree.intersection_v(lo - pad, hi + pad)  # R-tree ids per query, concatenated
-    idx_a = np.repeat(np.arange(len(faces)), np.asarray(counts, np.int64))
-    idx_b = np.asarray(hits, np.int64)
-    sel = idx_a < idx_b
-    fa, fb = idx_a[sel].astype(np.int64), idx_b[sel].astype(np.int64)
+    fa, fb = overlapping_boxes(tri.min(axis=1) - pad, tri.max(axis=1) + pad)
     shared = (faces[fa][:, :, None] == faces[fb][:, None, :]).any(axis=(1, 2))
-    fa, fb = fa[~shared], fb[~shared]
-    if len(fa) == 0:
-        return 0
+    return int(crossing(tri, fa[~shared], fb[~shared]).sum())
+
+
+def crossing(tri, fa, fb):
+    """Whether an edge of triangle ``tri[fa]`` passes through triangle ``tri[fb]`` or the reverse
+    (strictly, up to a tolerance scaled to the extent of ``tri``)."""
     hit = np.zeros(len(fa), bool)
-    scale = float(np.ptp(v, axis=0).max()) ** 3
+    if len(fa) == 0:
+        return hit
+    scale = float(np.ptp(tri.reshape(-1, 3), axis=0).max()) ** 3
     eps = 1e-12 * scale
     for p_idx, q_idx in ((fa, fb), (fb, fa)):
         t = tri[q_idx]
@@ -121,7 +170,7 @@ def self_intersections(mesh) -> int:
             c = _orient(p0, p1, t[:, 2], t[:, 0])
             inside = ((a > eps) & (b > eps) & (c > eps)) | ((a < -eps) & (b < -eps) & (c < -eps))
             hit |= crosses_plane & inside
-    return int(hit.sum())
+    return hit
 
 
 def report_mesh(mesh) -> MeshReport:
@@ -146,8 +195,3 @@ def report_mesh(mesh) -> MeshReport:
         volume=float(mesh.volume) if watertight else float("nan"),
         components=n_comp,
     )
-
-
-def intersection_volume(mesh_a, mesh_b) -> float:
-    """Volume of the boolean intersection of two closed meshes (mm³ for mm meshes)."""
-    return manifold_volume(to_manifold(mesh_a) ^ to_manifold(mesh_b))

@@ -17,7 +17,7 @@ import numpy as np
 from softphantom.design.fabrication import BUILD_VOLUME_MM
 from softphantom.errors import MeshError
 from softphantom.molds.bom import material_totals, part_rows, silicone_rows, to_csv, to_markdown
-from softphantom.design.solid_check import MeshReport, intersection_volume, report_mesh
+from softphantom.design.solid_check import MeshReport, manifold_volume, report_mesh, to_manifold
 from softphantom.molds.parts import Part, build_parts
 
 __all__ = ["Part", "MoldSet", "build_parts", "check_parts", "write_molds", "assembly_groups", "interference"]
@@ -68,11 +68,15 @@ def assembly_groups(parts) -> dict[str, list[Part]]:
 def interference(parts) -> list[tuple[str, str, float]]:
     """(a, b, mm³) for every pair of parts assembled together (should all be ≈ 0)."""
     out = []
+    solids: dict = {}  # each part converted once: it is in several pairs
     for members in assembly_groups(parts).values():
+        for p in members:
+            if p.name not in solids:
+                solids[p.name] = to_manifold(p.mesh)
         for i in range(len(members)):
             for j in range(i + 1, len(members)):
-                a, b = members[i], members[j]
-                out.append((a.name, b.name, intersection_volume(a.mesh, b.mesh)))
+                a, b = members[i].name, members[j].name
+                out.append((a, b, manifold_volume(solids[a] ^ solids[b])))
     return out
 
 

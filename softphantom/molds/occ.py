@@ -10,6 +10,7 @@ serialises it; deterministic with one thread and a fixed seed.
 from __future__ import annotations
 
 import math
+from pathlib import Path
 from typing import Callable
 
 import numpy as np
@@ -53,6 +54,29 @@ def one_volume(result, what: str) -> int:
     if len(out) != 1:
         raise MeshError(f"{what}: the boolean gave {len(out)} volumes, expected 1 (check the [molds] sizes)")
     return out[0]
+
+
+def built_once(name: str, build: Callable, directory: str | Path) -> Callable:
+    """Run ``build(occ)`` (returns one volume tag) once in its own gmsh model and keep the solid as
+    an OCC BREP file in ``directory``; the builder returned imports that very solid into the
+    current model, with the boolean tolerance ``build`` left (occ_shapes.junction_fillets raises it).
+    For a solid that several parts are cut from or cast in (an arm's rounded body)."""
+    path = Path(directory) / f"{name}.brep"
+    with gmsh_session(f"softphantom_shape_{name}", f"shape {name!r}") as gmsh:
+        vol = build(gmsh.model.occ)
+        gmsh.model.occ.synchronize()
+        if [t for _, t in gmsh.model.getEntities(3)] != [vol]:
+            raise MeshError(f"shape {name}: more than the one volume in the model")
+        tolerance = gmsh.option.getNumber("Geometry.ToleranceBoolean")
+        gmsh.write(str(path))
+
+    def imported(occ) -> int:
+        import gmsh
+
+        gmsh.option.setNumber("Geometry.ToleranceBoolean", tolerance)
+        return one_volume((occ.importShapes(str(path)),), name)
+
+    return imported
 
 
 def occ_solid(name: str, build: Callable, segments: float) -> "trimesh.Trimesh":  # noqa: F821

@@ -29,6 +29,7 @@ bulb and manifold3d (exact mesh booleans) cuts or keeps the bulb's own triangles
 from __future__ import annotations
 
 import dataclasses
+import tempfile
 from dataclasses import dataclass
 
 import numpy as np
@@ -37,7 +38,7 @@ from softphantom.design import geometry as geo
 from softphantom.design.params import BIPDesign
 from softphantom.errors import DesignError
 from softphantom.design.occ_shapes import bulb_solid, capsule, junction_fillets
-from softphantom.molds.occ import affine_12, cone_along, occ_solid, one_volume
+from softphantom.molds.occ import affine_12, built_once, cone_along, occ_solid, one_volume
 
 OVERHANG_MM = 8.0  # how far rods and stems stick out of a mold, to hold them
 
@@ -400,6 +401,10 @@ class _Builder:
         return out
 
     def arm_parts(self, g) -> list[Part]:
+        with tempfile.TemporaryDirectory(prefix="softphantom_arm_") as tmp:
+            return self._arm_parts(g, tmp)
+
+    def _arm_parts(self, g, tmp: str) -> list[Part]:
         R, origin, to_local, z_floor, (c0, c1), arm = self._arm_local(g)
         ms, cl = self.m, self.cl
         r, rc, L = g.radius_mm, g.cavity_radius_mm, arm.length_mm
@@ -422,6 +427,8 @@ class _Builder:
         local = np.vstack([np.reshape(to_local, (3, 4)), [0.0, 0.0, 0.0, 1.0]])
         surface = self.d.bulb.is_surface
         arm_mesh = self._less_bulb(occ_solid(f"arm_{g.name}", arm_out, self.seg), local) if surface else None
+        if not surface:  # the rounded body's booleans once, for both mold halves and the cast piece
+            arm_out = built_once(f"arm_{g.name}", arm_out, tmp)
 
         def core(occ, grow: float):
             cap = capsule(occ, (0.0, 0.0, c0), (0.0, 0.0, c1), rc + grow)
