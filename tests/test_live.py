@@ -355,8 +355,10 @@ PUSH = {"name": "live-push", "duration_s": 3.6, "rest_s": 0.8,
 
 
 @pytest.fixture(scope="module")
-def virtual_run(coarse_model):
-    return simulate(scenario_from_dict(PUSH, "live"), coarse_model, VirtualConfig.seeded(seed=5, osr=25, order=1))
+def virtual_run(coarse_model, coarse_truth_p1):
+    # the shared truth mesh is the one simulate would mesh for this config (P1, 0.75 × 12 mm)
+    return simulate(scenario_from_dict(PUSH, "live"), coarse_model, VirtualConfig.seeded(seed=5, osr=25, order=1),
+                    truth_mesh=coarse_truth_p1)
 
 
 def test_live_from_the_virtual_phantom(coarse_model, virtual_run, tmp_path):
