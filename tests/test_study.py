@@ -171,7 +171,8 @@ def test_cli_on_a_separately_started_scheduler_and_worker(sweep_file, inproc, tm
         deadline = time.monotonic() + 60
         while not sched_file.is_file() and time.monotonic() < deadline:
             time.sleep(0.2)
-        procs.append(subprocess.Popen([str(dask), "worker", "--scheduler-file", str(sched_file), "--nworkers", "1",
+        # --no-nanny: the worker process itself, not a nanny starting it (one Python start-up fewer)
+        procs.append(subprocess.Popen([str(dask), "worker", "--scheduler-file", str(sched_file), "--no-nanny",
                                        "--nthreads", "1", "--no-dashboard"],
                                       stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
         time.sleep(0.5)
