@@ -64,6 +64,12 @@ class Watched:
         self.page.wait_for_function(f"() => {{ const S = window.__softphantomLive; return !!S && ({cond}); }}",
                                     timeout=timeout_s * 1e3)
 
+    def settle(self, act) -> None:
+        """Do ``act``, then wait until the page has drawn since and its camera has stopped."""
+        r0 = self.state("S.renders")
+        act()
+        self.wait(f"S.renders > {r0} && !S.moving && !S.dirty")
+
     def shot(self, selector: str = "#view3d") -> np.ndarray:
         from PIL import Image
 
@@ -208,17 +214,18 @@ def test_page_states_by_pixels(browser, coarse_model, tmp_path):
             before = page.shot()
             box = page.page.locator("#view3d canvas:not(.gizmo)").bounding_box()
             cx, cy = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
-            page.page.mouse.move(cx, cy)
-            page.page.mouse.down()
-            page.page.mouse.move(cx + 200, cy + 40, steps=8)
-            page.page.mouse.up()
-            page.wait("S.renders > 0", 5)
-            time.sleep(0.5)  # the orbit's damping settles
+
+            def drag():
+                page.page.mouse.move(cx, cy)
+                page.page.mouse.down()
+                page.page.mouse.move(cx + 200, cy + 40, steps=8)
+                page.page.mouse.up()
+
+            page.settle(drag)  # and the orbit's damping
             orbited = page.shot()
             assert (np.abs(orbited - before).sum(axis=2) > 60).mean() > 0.05
             covered = _surface(orbited).mean()
-            page.page.mouse.wheel(0, -600)
-            time.sleep(0.5)
+            page.settle(lambda: page.page.mouse.wheel(0, -600))
             assert _surface(page.shot()).mean() > covered * 1.3
             # the pose convention: R = Rz(yaw)·Rx(pitch)·Ry(roll), as softphantom.pose has it
             m = page.state("S.poseMatrix({x_mm: 1, y_mm: 2, z_mm: 3, yaw_deg: 30, pitch_deg: -20, roll_deg: 10})")
@@ -319,8 +326,7 @@ def test_gizmo_click_turns_the_view(browser, coarse_model):
             assert blue.sum() > 20, blue.sum()
             ys, xs = np.nonzero(blue)
             box = gizmo.bounding_box()
-            page.page.mouse.click(box["x"] + xs.mean(), box["y"] + ys.mean())
-            time.sleep(1.5)  # the gizmo's turn is animated
+            page.settle(lambda: page.page.mouse.click(box["x"] + xs.mean(), box["y"] + ys.mean()))  # an animated turn
             after, g1 = page.shot(), page.shot("#view3d canvas.gizmo")
             assert (np.abs(after - before).sum(axis=2) > 60).mean() > 0.05
             assert (np.abs(g1 - g0).sum(axis=2) > 60).mean() > 0.05
