@@ -382,7 +382,7 @@ def test_live_from_the_virtual_phantom(coarse_model, virtual_run, tmp_path):
                 while (m := sub.recv(timeout_s=0)) is not None:
                     got.append(m)
             assert s.wait(timeout_s=0), "the scenario did not finish in 300 s"
-            while (m := sub.recv(timeout_s=5.0)) is not None:
+            while (m := sub.recv(timeout_s=1.0)) is not None:  # the last ones, on their way (loopback)
                 got.append(m)
             st = s.state.status()
         finally:
