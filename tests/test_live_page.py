@@ -214,18 +214,17 @@ def test_page_states_by_pixels(browser, coarse_model, tmp_path):
             before = page.shot()
             box = page.page.locator("#view3d canvas:not(.gizmo)").bounding_box()
             cx, cy = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
-
-            def drag():
-                page.page.mouse.move(cx, cy)
-                page.page.mouse.down()
-                page.page.mouse.move(cx + 200, cy + 40, steps=8)
-                page.page.mouse.up()
-
-            page.settle(drag)  # and the orbit's damping
+            page.page.mouse.move(cx, cy)
+            page.page.mouse.down()
+            page.page.mouse.move(cx + 200, cy + 40, steps=8)
+            page.page.mouse.up()
+            page.wait("S.renders > 0", 5)
+            time.sleep(0.5)  # most of the orbit's damping (all of it takes ~4 s: S.moving)
             orbited = page.shot()
             assert (np.abs(orbited - before).sum(axis=2) > 60).mean() > 0.05
             covered = _surface(orbited).mean()
-            page.settle(lambda: page.page.mouse.wheel(0, -600))
+            page.page.mouse.wheel(0, -600)
+            time.sleep(0.5)
             assert _surface(page.shot()).mean() > covered * 1.3
             # the pose convention: R = Rz(yaw)·Rx(pitch)·Ry(roll), as softphantom.pose has it
             m = page.state("S.poseMatrix({x_mm: 1, y_mm: 2, z_mm: 3, yaw_deg: 30, pitch_deg: -20, roll_deg: 10})")
