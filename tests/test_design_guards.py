@@ -184,6 +184,7 @@ TEN_PUSHES = 'name = "ten-pushes"\nduration_s = 22.0\nrest_s = 1.0\n' + "".join(
     for k in range(10))
 
 
+@pytest.mark.slow  # ~5 CPU-s: the process's imports, the truth's meshing, a keyframe
 def test_ctrl_c_stops_a_truth_solve_exit_130_nothing_written(tmp_path, coarse_model_dir):
     (tmp_path / "ten.toml").write_text(TEN_PUSHES)
     solved = re.compile(r"ten-pushes: truth: (\d+)/(\d+)")
