@@ -37,7 +37,7 @@ def test_local_processes_keep_order_and_record_errors(local_cluster):
 def test_unreachable_scheduler_is_one_line_user_error(monkeypatch):
     import softphantom.parallel as par
 
-    monkeypatch.setattr(par, "CONNECT_TIMEOUT_S", 1.0)
+    monkeypatch.setattr(par, "CONNECT_TIMEOUT_S", 0.2)  # nobody listens: refused at once, retried until then
     with socket.socket() as s:  # a free port nobody listens on
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]

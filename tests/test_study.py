@@ -203,7 +203,7 @@ def test_cli_bad_input_is_one_line_exit_2(tmp_path, capsys, monkeypatch):
     assert main(["sweep", "--config", str(bad), "--out", str(tmp_path / "o")]) == 2
     err = capsys.readouterr().err.strip()
     assert 'parameters."arms.*.girth_mm": unknown parameter' in err and err.count("\n") == 0
-    monkeypatch.setattr(par, "CONNECT_TIMEOUT_S", 1.0)
+    monkeypatch.setattr(par, "CONNECT_TIMEOUT_S", 0.2)  # nobody listens: refused at once, retried until then
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
