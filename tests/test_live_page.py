@@ -64,6 +64,12 @@ class Watched:
         self.page.wait_for_function(f"() => {{ const S = window.__softphantomLive; return !!S && ({cond}); }}",
                                     timeout=timeout_s * 1e3)
 
+    def settle(self, act) -> None:
+        """Do ``act``, then wait until the page has drawn since and its camera has stopped."""
+        r0 = self.state("S.renders")
+        act()
+        self.wait(f"S.renders > {r0} && !S.moving && !S.dirty")
+
     def shot(self, selector: str = "#view3d") -> np.ndarray:
         from PIL import Image
 
@@ -213,7 +219,7 @@ def test_page_states_by_pixels(browser, coarse_model, tmp_path):
             page.page.mouse.move(cx + 200, cy + 40, steps=8)
             page.page.mouse.up()
             page.wait("S.renders > 0", 5)
-            time.sleep(0.5)  # the orbit's damping settles
+            time.sleep(0.5)  # most of the orbit's damping (all of it takes ~4 s: S.moving)
             orbited = page.shot()
             assert (np.abs(orbited - before).sum(axis=2) > 60).mean() > 0.05
             covered = _surface(orbited).mean()
@@ -291,10 +297,10 @@ def test_quadratic_model_surface(browser, coarse_model):
 
 
 def test_synthetic_source_page_plots_every_estimate(browser):
-    src = SyntheticSource(rate_Hz=77, duration_s=None, period_s=10.0)  # the push peaks at t = 5 s
+    src = SyntheticSource(rate_Hz=77, duration_s=None, period_s=4.0)  # the push peaks at t = 2 s
     with LiveSession(src, LiveConfig(http_port=0, stream_port=0)) as s:
         page = Watched(browser, s.url + "?scale=1")
-        page.wait("S.latest && S.latest.t_s >= 2.5", 60)
+        page.wait("S.latest && S.latest.t_s >= 1.0", 60)  # half the peak force
         plot = page.shot("#plot-force")
         shown = page.state("[S.lastSeq, S.frames]")
         st = s.state.status()
@@ -319,8 +325,7 @@ def test_gizmo_click_turns_the_view(browser, coarse_model):
             assert blue.sum() > 20, blue.sum()
             ys, xs = np.nonzero(blue)
             box = gizmo.bounding_box()
-            page.page.mouse.click(box["x"] + xs.mean(), box["y"] + ys.mean())
-            time.sleep(1.5)  # the gizmo's turn is animated
+            page.settle(lambda: page.page.mouse.click(box["x"] + xs.mean(), box["y"] + ys.mean()))  # an animated turn
             after, g1 = page.shot(), page.shot("#view3d canvas.gizmo")
             assert (np.abs(after - before).sum(axis=2) > 60).mean() > 0.05
             assert (np.abs(g1 - g0).sum(axis=2) > 60).mean() > 0.05

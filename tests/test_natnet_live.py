@@ -74,7 +74,7 @@ def _serve(stream, **kw):
 
 @pytest.mark.parametrize("suffix, version", [(".csv", (4, 1)), (".mcap", (3, 0))])
 def test_virtual_serve_track_evaluate(tmp_path, capsys, stream, suffix, version):
-    port, stop, th = _serve(stream, version=version, speed=2.0)
+    port, stop, th = _serve(stream, version=version, speed=4.0)
     out = tmp_path / f"truth{suffix}"
     try:
         code = main(["track", "--natnet", "127.0.0.1", "--command-port", str(port), "--data-port", "0",

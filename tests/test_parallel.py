@@ -18,10 +18,16 @@ def _square(x):
     return x * x
 
 
-def test_local_processes_keep_order_and_record_errors():
-    seen = []
+@pytest.fixture(scope="module")
+def local_cluster():
+    """A local cluster of two worker processes (started once: ~3 s each time)."""
     with dask_client(n_workers=2) as client:
-        out = map_tasks(client, _square, [(i,) for i in range(6)], on_result=seen.append)
+        yield client
+
+
+def test_local_processes_keep_order_and_record_errors(local_cluster):
+    seen = []
+    out = map_tasks(local_cluster, _square, [(i,) for i in range(6)], on_result=seen.append)
     assert [r.index for r in out] == list(range(6))
     assert [r.value for r in out if r.ok] == [0, 1, 4, 16, 25]
     assert out[3].ok is False and out[3].error == "ValueError: three is refused"
@@ -31,7 +37,7 @@ def test_local_processes_keep_order_and_record_errors():
 def test_unreachable_scheduler_is_one_line_user_error(monkeypatch):
     import softphantom.parallel as par
 
-    monkeypatch.setattr(par, "CONNECT_TIMEOUT_S", 1.0)
+    monkeypatch.setattr(par, "CONNECT_TIMEOUT_S", 0.2)  # nobody listens: refused at once, retried until then
     with socket.socket() as s:  # a free port nobody listens on
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
@@ -88,11 +94,10 @@ def _alloc_faults():
     return resource.getrusage(resource.RUSAGE_SELF).ru_minflt - r0
 
 
-def test_workers_reuse_freed_memory_without_page_faults():
+def test_workers_reuse_freed_memory_without_page_faults(local_cluster):
     # Dask's default MALLOC_TRIM_THRESHOLD_ makes every freed 1 MB array go back to the OS and the
     # next one fault in its 256 pages again (51 400 faults here); glibc's default reuses it (~500)
-    with dask_client(n_workers=1) as client:
-        faults = map_tasks(client, _alloc_faults, [()], label=None)[0].value
+    faults = map_tasks(local_cluster, _alloc_faults, [()], label=None)[0].value
     assert faults < 200 * 256 // 10
 
 

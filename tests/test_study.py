@@ -1,6 +1,10 @@
 """Design studies end to end at the coarse mesh: per-variant figures against closed forms and an
 independent solve, the cache and resume, a failed variant, the CLI on a local cluster and on a
-separately started dask scheduler + worker, the optimizer."""
+separately started dask scheduler + worker, the optimizer.
+
+The tests that need a cluster but not its processes share one in-process cluster (threads: its
+worker reuses this process's meshes and linearizations); worker processes are started by the
+CLI's ``--workers`` (the resume) and by hand (``dask scheduler`` + ``dask worker``)."""
 
 import json
 import math
@@ -41,12 +45,18 @@ def sweep_file(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def inproc(sweep_file, tmp_path_factory):
-    """The study evaluated in this process (Dask threads, no cluster)."""
+def client():
+    """A Dask cluster in this process (one worker thread)."""
+    with dask_client(processes=False, n_workers=1) as c:
+        yield c
+
+
+@pytest.fixture(scope="module")
+def inproc(sweep_file, client, tmp_path_factory):
+    """The study evaluated in this process."""
     cfg = load_sweep_config(sweep_file)
     out = tmp_path_factory.mktemp("inproc")
-    with dask_client(processes=False, n_workers=1) as client:
-        run = evaluate_variants(client, cfg.variants(), out)
+    run = evaluate_variants(client, cfg.variants(), out)
     return cfg, run.rows
 
 
@@ -118,11 +128,12 @@ def test_range_is_where_a_transducer_reaches_its_rated_pressure(inproc, coarse_m
     assert rows[0]["range_min_N"] > 5 * r["range_min_N"]
 
 
-def test_cli_local_cluster_resumes_from_the_cache(sweep_file, inproc, tmp_path, capsys):
+def test_cli_local_cluster_resumes_from_the_cache(sweep_file, inproc, client, tmp_path, capsys):
     out = tmp_path / "out"
-    assert main(["sweep", "--config", str(sweep_file), "--out", str(out), "--workers", "1", "--no-progress"]) == 0
+    address = client.scheduler.address
+    assert main(["sweep", "--config", str(sweep_file), "--out", str(out), "--scheduler", address, "--no-progress"]) == 0
     rows = read_parquet(out / "results.parquet")
-    assert rows_equal(inproc[1], rows, TIMING_COLUMNS, rtol=1e-9) == []  # same results in-process and on a cluster
+    assert rows_equal(inproc[1], rows, TIMING_COLUMNS, rtol=1e-9) == []
     html = (out / "report.html").read_text()
     assert "Pareto front" in html and "data:image/png;base64" in html
     # each invalid variant's reason: in the results, the report and the command's own output
@@ -135,12 +146,14 @@ def test_cli_local_cluster_resumes_from_the_cache(sweep_file, inproc, tmp_path, 
     meta = json.loads(__import__("pyarrow.parquet").parquet.read_schema(out / "results.parquet").metadata[b"softphantom"])
     assert meta["parameters"] == ["sensing.tube_length_m", "arms.*.wall_mm"]
     capsys.readouterr()
-    # an interrupted run: one variant's file is missing, only that one is computed again
+    # an interrupted run: one variant's file is missing, only that one is computed again (on a local
+    # cluster of worker processes: the invalid variant, refused before any mesh)
     cache = sorted((out / "variants").glob("*.json"))
     assert len(cache) == 4
     (out / "variants" / f"{rows[1]['key']}.json").unlink()
     assert main(["sweep", "--config", str(sweep_file), "--out", str(out), "--workers", "1"]) == 0
     printed = capsys.readouterr().out
+    assert "4 variants on a local cluster of 1 workers" in printed.replace("\n", " ")
     assert "3 from the cache, 1 computed" in printed.replace("\n", " ")
     # output that is not a terminal (this capture) shows the progress as lines, from the Dask client
     assert [ln.rsplit(" ", 1)[0] for ln in printed.splitlines() if ln.startswith("variants:")] == [
@@ -158,7 +171,8 @@ def test_cli_on_a_separately_started_scheduler_and_worker(sweep_file, inproc, tm
         deadline = time.monotonic() + 60
         while not sched_file.is_file() and time.monotonic() < deadline:
             time.sleep(0.2)
-        procs.append(subprocess.Popen([str(dask), "worker", "--scheduler-file", str(sched_file), "--nworkers", "1",
+        # --no-nanny: the worker process itself, not a nanny starting it (one Python start-up fewer)
+        procs.append(subprocess.Popen([str(dask), "worker", "--scheduler-file", str(sched_file), "--no-nanny",
                                        "--nthreads", "1", "--no-dashboard"],
                                       stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
         time.sleep(0.5)
@@ -189,7 +203,7 @@ def test_cli_bad_input_is_one_line_exit_2(tmp_path, capsys, monkeypatch):
     assert main(["sweep", "--config", str(bad), "--out", str(tmp_path / "o")]) == 2
     err = capsys.readouterr().err.strip()
     assert 'parameters."arms.*.girth_mm": unknown parameter' in err and err.count("\n") == 0
-    monkeypatch.setattr(par, "CONNECT_TIMEOUT_S", 1.0)
+    monkeypatch.setattr(par, "CONNECT_TIMEOUT_S", 0.2)  # nobody listens: refused at once, retried until then
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
@@ -200,7 +214,7 @@ def test_cli_bad_input_is_one_line_exit_2(tmp_path, capsys, monkeypatch):
     assert f"tcp://127.0.0.1:{port}: unreachable" in err
 
 
-def test_optimize_finds_the_shortest_tube_that_keeps_the_range(tmp_path):
+def test_optimize_finds_the_shortest_tube_that_keeps_the_range(client, tmp_path):
     """Only the tube length varies: resolution improves and range shrinks as it shortens, so the
     best feasible candidate is the shortest feasible one evaluated."""
     from softphantom.study import run_optimize, sweep_config_from_dict
@@ -210,8 +224,7 @@ def test_optimize_finds_the_shortest_tube_that_keeps_the_range(tmp_path):
         "parameters": {"sensing.tube_length_m": {"min": 0.5, "max": 12.0}},
         "optimize": {"maxiter": 1, "popsize": 5, "seed": 2, "min_range_N": 6.0},
     })
-    with dask_client(processes=False, n_workers=1) as client:
-        res = run_optimize(cfg, client, tmp_path)
+    res = run_optimize(cfg, client, tmp_path)
     rows = read_parquet(tmp_path / "optimize.parquet")
     assert len(rows) == res.evaluations == 10  # 5 initial + 5 in the one generation
     feasible = [r for r in rows if r["status"] == "ok" and r["range_min_N"] >= 6.0]
@@ -221,16 +234,25 @@ def test_optimize_finds_the_shortest_tube_that_keeps_the_range(tmp_path):
     assert json.loads((tmp_path / "optimize.json").read_text())["best_params"] == res.params
 
 
-def test_material_stiffness_scales_w_exactly_at_rest(inproc):
+def test_material_stiffness_scales_w_exactly_at_rest(inproc, monkeypatch):
     """At rest the co-rotational tangent is linear elasticity, K ∝ E at fixed ν: doubling E halves
-    every singular value of W and doubles the force resolution; cond(W) is unchanged."""
+    every singular value of W and doubles the force resolution; cond(W) is unchanged. A variant
+    that differs from it only in the tube reuses its mechanics (no second solve)."""
+    import softphantom.estimation as estimation
     from softphantom.study import evaluate_variant
 
+    solvers = []
+    real = estimation.EquilibriumSolver
+    monkeypatch.setattr(estimation, "EquilibriumSolver", lambda *a, **k: solvers.append(real(*a, **k)) or solvers[-1])
     cfg, rows = inproc
     base = rows[0]
     E = cfg.base["materials"]["ecoflex_00_50"]["E_kPa"]
     stiff = evaluate_variant(cfg.resolve(0, {"materials.*.E_kPa": 2 * E}))
-    assert stiff["status"] == "ok"
+    assert stiff["status"] == "ok" and stiff["solve_s"] > 0
+    short = evaluate_variant(cfg.resolve(1, {"materials.*.E_kPa": 2 * E, "sensing.tube_length_m": 1.0}))
+    assert len(solvers) == 1 and short["solve_s"] == short["mesh_s"] == 0.0
+    for k in ("W_sv1_mm3_per_N", "cond_W", "range_zneg_N", "count_front_zpos_mm3"):
+        assert (short[k] == stiff[k]) == (k in ("W_sv1_mm3_per_N", "cond_W")), k  # the tube changes only the sensing
     for k in ("W_sv1_mm3_per_N", "W_sv2_mm3_per_N", "W_sv3_mm3_per_N"):
         assert stiff[k] == pytest.approx(base[k] / 2, rel=1e-6)
     assert stiff["cond_W"] == pytest.approx(base["cond_W"], rel=1e-6)

@@ -309,6 +309,7 @@ function loop(now) {
   const moved = controls.update(dt);
   const turning = gizmo.animating;  // its last step ends the animation: draw that one too
   if (turning) { gizmo.update(dt); S.dirty = true; }
+  S.moving = moved || turning;  // the camera still moving (orbit damping, the gizmo's turn)
   const draw = S.dirty || moved, since = now - (S.plottedAt || 0);
   // the plots redraw with a 3-D frame (one compositor frame for both), or alone if none comes
   if (S.plotsDirty && since >= PLOT_PERIOD_MS && (draw || since >= 2 * PLOT_PERIOD_MS)) {
