@@ -125,14 +125,20 @@ def test_nnls_stopped_at_its_tolerance_agrees_with_scipy_and_stops_early():
     assert (x > 0).sum() < (nnls(A, b, maxiter=4000)[0] > 0).sum()
 
 
+@pytest.fixture(scope="module")
+def snapshot_cache(tmp_path_factory) -> str:
+    return str(tmp_path_factory.mktemp("rom") / "snapshots")
+
+
 @pytest.mark.parametrize("x_control", ["force", "displacement"])
 def test_atlas_built_by_the_reduced_model_agrees_with_the_full_one(coarse_model, shared_dir, x_control, monkeypatch,
-                                                                   tmp_path):
+                                                                   tmp_path, snapshot_cache):
     """A small atlas, full and reduced: another key, the reduced one's provenance carries its
     checks, and the two polynomials agree at off-grid loads within twice the error the checks
     measured (so the recorded figure can be trusted) and within 1 % of the volumes' range
     (measured on this model, either axis: 0.0099 mm³ off-grid, checks 0.011 mm³, range 5.8 mm³).
-    The full atlas is test_atlas's (shared_models.cached_atlas)."""
+    The full atlas is test_atlas's (shared_models.cached_atlas); the two axes' reduced builds share
+    their snapshot solves (one envelope: ``offline.SNAPSHOT_CACHE``)."""
     from dataclasses import replace
 
     from softphantom.estimation import build_atlas
@@ -142,6 +148,7 @@ def test_atlas_built_by_the_reduced_model_agrees_with_the_full_one(coarse_model,
     monkeypatch.setattr(offline, "STEP_FX_N", ())
     monkeypatch.setattr(offline, "N_CHAINS", 2)
     monkeypatch.setattr(offline, "N_CHECK", 4)
+    monkeypatch.setattr(offline, "SNAPSHOT_CACHE", snapshot_cache)
     base = atlas_config(x_control)
     full = cached_atlas(shared_dir, x_control)
     assert full.config.as_dict() == base.as_dict()
