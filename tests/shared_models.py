@@ -2,7 +2,9 @@
 
 ``cached_model(shared, key)`` returns the model ``key`` of :data:`MODELS`: the first process to
 need it meshes it and saves it under ``shared`` (the run's temp directory, the same for every
-pytest-xdist worker); a file lock makes the others wait and load it. Run as a script
+pytest-xdist worker); a file lock makes the others wait and load it. ``cached_atlas(shared,
+x_control)`` does the same for the small atlas of the coarse model that test_atlas and test_rom
+both use (:func:`atlas_config`). Run as a script
 (``python shared_models.py SHARED JOB...``) it does the jobs in order: ``fem`` and ``atlas``
 compile the numba kernels into numba's on-disk cache (``warm_up``), a model key builds that model.
 """
@@ -83,6 +85,40 @@ def cached_model(shared: Path, key: str):
     if key not in _loaded:
         _loaded[key] = load_model(model_dir(shared, key))
     return _loaded[key]
+
+
+def atlas_config(x_control: str = "force"):
+    """The small atlas envelope and grid of the coarse model's tests (on-centre contact): 3 × 4 × 3 × 2
+    points, f_x (or the patch displacement) spanning ±0.5 N."""
+    from softphantom.estimation import AtlasConfig
+
+    return AtlasConfig(force_min_N=(-0.5, -0.3, -0.5), force_max_N=(0.5, 1.2, 0.5), p_min_kPa=-1.0, p_max_kPa=4.0,
+                       n_force=(3, 4, 3), n_pressure=2, x_control=x_control)
+
+
+_atlases: dict = {}
+
+
+def cached_atlas(shared: Path, x_control: str = "force"):
+    """:func:`atlas_config`'s atlas of the coarse model built by full solves (an
+    :class:`~softphantom.estimation.atlas_map.Atlas`, read only), built once per test run and
+    loaded once per process."""
+    from softphantom.estimation import EstimatorConfig, build_atlas
+    from softphantom.estimation.atlas_store import load_atlas, save_atlas
+
+    if x_control not in _atlases:
+        path = shared / f"softphantom_atlas_{x_control}.npz"
+        with open(shared / f"softphantom_atlas_{x_control}.lock", "w") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)
+            try:
+                if not path.is_file():
+                    at = build_atlas(cached_model(shared, "coarse"), EstimatorConfig(contact="on-centre"),
+                                     atlas_config(x_control), n_workers=1, processes=False)
+                    save_atlas(at, path)
+            finally:
+                fcntl.flock(lock, fcntl.LOCK_UN)
+        _atlases[x_control] = load_atlas(path)
+    return _atlases[x_control]
 
 
 def main(argv: list[str]) -> None:

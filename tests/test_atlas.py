@@ -20,11 +20,11 @@ from softphantom.estimation.atlas_basis import cheb_basis, to_chebyshev
 from softphantom.estimation.atlas_store import FORMAT, AtlasCorrupt, atlas_key, atlas_path, load_atlas, save_atlas
 from softphantom.pose import Pose6, rigid_fit
 from softphantom.sensing import Measurement
+from shared_models import atlas_config, cached_atlas
 
 CFG = EstimatorConfig(contact="on-centre")
-ACFG = AtlasConfig(force_min_N=(-0.5, -0.3, -0.5), force_max_N=(0.5, 1.2, 0.5), p_min_kPa=-1.0, p_max_kPa=4.0,
-                   n_force=(3, 4, 3), n_pressure=2)
-ACFG_DISP = dataclasses.replace(ACFG, x_control="displacement")
+ACFG = atlas_config()  # 3 × 4 × 3 × 2 points, ±0.5 N of f_x: the atlases test_rom compares too (shared)
+ACFG_DISP = atlas_config("displacement")
 
 
 def meas(dV, p=0.0, t=0.0):
@@ -37,13 +37,14 @@ def fwd(coarse_model):
 
 
 @pytest.fixture(scope="module")
-def atlas(coarse_model, fwd):
-    return build_atlas(coarse_model, CFG, ACFG, n_workers=1, processes=False)
+def atlas(shared_dir):
+    """ACFG's atlas, built once per run (shared_models.cached_atlas)."""
+    return cached_atlas(shared_dir)
 
 
 @pytest.fixture(scope="module")
-def atlas_disp(coarse_model, fwd):
-    return build_atlas(coarse_model, CFG, ACFG_DISP, n_workers=1, processes=False)
+def atlas_disp(shared_dir):
+    return cached_atlas(shared_dir, "displacement")
 
 
 @pytest.fixture(params=["force", "displacement"])

@@ -126,8 +126,14 @@ def _shift_take(src: Path, dst: Path, dt: float) -> Path:
 
 
 @pytest.mark.slow
-def test_refuses_unusable_sessions(coarse, sessions, tmp_path):
+def test_refuses_unusable_sessions(coarse, sessions, tmp_path, monkeypatch):
+    import softphantom.parallel
     from softphantom.cli import main
+
+    def no_cluster(*a, **k):
+        raise AssertionError("a cluster started for sessions refused from their files")
+
+    monkeypatch.setattr(softphantom.parallel, "dask_client", no_cluster)
 
     s = sessions["push-on-centre"]
     rec, take = s / "recording.csv", s / "truth.csv"
@@ -138,12 +144,14 @@ def test_refuses_unusable_sessions(coarse, sessions, tmp_path):
     late.write_text("".join(lines[:2] + [ln for ln, ti in zip(lines[2:], t) if ti > 2.5]))
     with pytest.raises(CalibrationInputError, match="no rest window"):
         load_session(late, take, (0, 0, 0))
-    # a take from another day: no overlap in time
+    # a take from another day: no overlap in time (refused before any solve, as a held-out one)
     far = _shift_take(take, tmp_path / "far.csv", 1000.0)
     out = tmp_path / "out"
     code = main(["calibrate", "--model", str(coarse), "--recording", str(rec), "--truth", str(far), "--out", str(out),
                  "--workers", "1"])
     assert code == 2 and not out.exists()
+    with pytest.raises(CalibrationInputError, match="does not overlap"):
+        check_held_out(coarse, [SessionSpec(rec, far, "on-centre")], {})
     # too few distinct loads: the rest window alone
     rest = tmp_path / "rest.csv"
     rest.write_text("".join(lines[:2] + [ln for ln, ti in zip(lines[2:], t) if ti < 1.8]))

@@ -103,6 +103,19 @@ def _solver(client) -> Callable[[list[tuple]], list]:
     return run
 
 
+def _lag_grid(se: Session) -> tuple[np.ndarray, float]:
+    """The recording's clock on which the take is aligned (s, every 20 ms) and the half-width of
+    the lag search (s); refuses a take that does not overlap the recording in time."""
+    grid = np.arange(se.t[0], se.t[-1], 0.02)
+    overlap = min(se.truth_t[-1], grid[-1]) - max(se.truth_t[0], grid[0])
+    search = min(2.0, 0.45 * max(overlap, 0.0))
+    if search <= 0.05:
+        raise CalibrationInputError(
+            f"session {se.name}: the take ({se.truth_t[0]:.2f}–{se.truth_t[-1]:.2f} s) does not overlap the "
+            f"recording ({se.t[0]:.2f}–{se.t[-1]:.2f} s) in time")
+    return grid, search
+
+
 def _initial(problem: Problem, sessions: list[Session]) -> tuple[np.ndarray, np.ndarray]:
     """First guess of the keyframe forces and of each session's clock lag from the nominal model
     linearized at rest: force = least squares of the pressures' volumes; lag by cross-correlating
@@ -129,17 +142,11 @@ def _initial(problem: Problem, sessions: list[Session]) -> tuple[np.ndarray, np.
         sel = fr.session == i
         forces[sel] = force_of(fr.dp[sel])
         # linear pose prediction on the recording's clock
-        grid = np.arange(se.t[0], se.t[-1], 0.02)
+        grid, search = _lag_grid(se)
         dp = np.stack([np.interp(grid, se.t, se.dp[:, k]) for k in range(4)], axis=1)
         f = force_of(dp)
         M = rm[None] + np.einsum("kij,nj->nki", s0.dM_df, f)
         pred = np.array([body_pose(rm, m, np.zeros(3), np.zeros(3)) for m in M])
-        overlap = min(se.truth_t[-1], grid[-1]) - max(se.truth_t[0], grid[0])
-        search = min(2.0, 0.45 * max(overlap, 0.0))
-        if search <= 0.05:
-            raise CalibrationInputError(
-                f"session {se.name}: the take ({se.truth_t[0]:.2f}–{se.truth_t[-1]:.2f} s) does not overlap the "
-                f"recording ({se.t[0]:.2f}–{se.t[-1]:.2f} s) in time")
         try:
             res = estimate_lag(se.truth_t, se.truth_pose[:, :3] * 1e3, grid, pred[:, :3] * 1e3, max_lag_s=search)
         except ValueError as exc:
@@ -206,6 +213,8 @@ def calibrate(model_dir, specs: list[SessionSpec], holdout: list[SessionSpec] = 
 
     sessions = _load_sessions(model, specs, "s")
     held = _load_sessions(model, holdout, "h")
+    for se in sessions + held:  # refused before a cluster starts
+        _lag_grid(se)
     times = [select_keyframes(se, max_keyframes) for se in sessions]
     frames = Keyframes.of(sessions, times)
     log.info(f"{len(sessions)} session(s), {len(frames)} keyframes"
@@ -288,6 +297,8 @@ def check_held_out(model_dir, holdout: list[SessionSpec], values: dict[str, floa
     model = load_model(Path(model_dir))
     fitted = dataclasses.replace(model, design=design_with_law(model.design, options.law))
     held = _load_sessions(model, holdout, "h")
+    for se in held:
+        _lag_grid(se)
     params = parameter_set(measured=options.measured, shapes=group_shapes(fitted))
     values = {n: v for n, v in values.items() if not n.startswith(("lag_", "drift_"))}
     unknown = sorted(set(values) - {p.name for p in params})
