@@ -297,10 +297,10 @@ def test_quadratic_model_surface(browser, coarse_model):
 
 
 def test_synthetic_source_page_plots_every_estimate(browser):
-    src = SyntheticSource(rate_Hz=77, duration_s=None, period_s=4.0)  # the push peaks at t = 2 s
+    src = SyntheticSource(rate_Hz=77, duration_s=None, period_s=10.0)  # the push peaks at t = 5 s
     with LiveSession(src, LiveConfig(http_port=0, stream_port=0)) as s:
         page = Watched(browser, s.url + "?scale=1")
-        page.wait("S.latest && S.latest.t_s >= 1.0", 60)  # half the peak force
+        page.wait("S.latest && S.latest.t_s >= 2.5", 60)
         plot = page.shot("#plot-force")
         shown = page.state("[S.lastSeq, S.frames]")
         st = s.state.status()
