@@ -75,16 +75,15 @@ def test_the_kernels_evaluate_the_longer_hermite_axis_from_the_coefficients_shap
     assert dict(describe(at))["grid"].endswith("first axis force, Hermite along f_y (8 terms)")
 
 
-def test_the_hermite_axis_is_in_the_key_only_when_set_and_needs_a_force_axis():
+def test_the_hermite_axis_is_in_the_key_only_when_set_and_needs_full_solves():
     assert "hermite_axis" not in AtlasConfig().as_dict()  # an atlas without it keeps its key
     assert AtlasConfig(hermite_axis=0).as_dict()["hermite_axis"] == 0
     # the default stretch of f_x counts the polynomial's terms: 5 Hermite points are 10
     assert AtlasConfig(n_force=(5, 9, 4), hermite_axis=0).cluster_N[0] > 0
     assert AtlasConfig(n_force=(5, 9, 4)).cluster_N[0] == 0
     assert AtlasConfig(n_force=(11, 2, 4), hermite_axis=1).shape == (11, 2, 4, 3)
+    assert AtlasConfig(n_pressure=2, hermite_axis=3, x_control="displacement").coef_shape == (11, 9, 4, 4)
     for kw, msg in [({"hermite_axis": 4}, "hermite_axis: None or an axis index 0..3"),
-                    ({"hermite_axis": 1, "x_control": "displacement"},
-                     "hermite_axis needs x_control 'force' or axis 0"),
                     ({"hermite_axis": 0, "offline": "rom"}, "hermite_axis needs offline 'full'"),
                     ({"hermite_axis": 1, "n_force": (2, 9, 4)},
                      r"n_force: each must be an integer in 3..15 \(2..15 on")]:
@@ -200,6 +199,42 @@ def test_the_derivative_along_a_stretched_axis_goes_through_the_stretch(coarse_m
         fd = (at.points(lam + [1e-6, 0, 0, 0]) - at.points(lam - [1e-6, 0, 0, 0])) / 2e-6
         assert np.allclose(fd, dP, rtol=0, atol=1e-5 * np.abs(dP).max())
     assert worst_lag > 0.05, worst_lag
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("axis", [2, 3])
+def test_a_displacement_atlas_derivative_along_another_load_is_at_fixed_q(coarse_model, fwd, axis):
+    # the Hermite data along f_z or p_u of a displacement atlas: at an inner grid point, the atlas's
+    # ∂/∂λ_a at fixed q against central differences of mixed-control solves at λ_a ± ε, each at the
+    # patch displacement its own faces put that q at (q mixes the faces' ū, which move with λ_a)
+    from softphantom.estimation.atlas_build import _solve_ux, x_patch
+
+    cfg = dataclasses.replace(BASE, force_min_N=(-0.6, -0.3, -0.3), force_max_N=(0.6, 1.5, 0.3),
+                              n_force=(3, 3, 2 if axis == 2 else 3), x_control="displacement", hermite_axis=axis)
+    at = _build(coarse_model, cfg)
+    ax, h = cfg.axes(), x_patch(fwd)
+    i, j, k, l = 1, 2, 1, 0
+    lam = np.array([at.q_nodes[i, j, k, l], ax[1][j], ax[2][k], ax[3][l]])
+    t = (lam[0] - ax[0][0]) / (ax[0][-1] - ax[0][0])
+    eps = 1e-3 if axis == 2 else 1.0  # N, Pa
+    V, fx = [], []
+    for sgn in (1, -1):
+        lo, hi = (np.array([f, *lam[1:]]) for f in (ax[0][0], ax[0][-1]))
+        lo[axis] += sgn * eps
+        hi[axis] += sgn * eps
+        u0, u1 = (float(h @ (fwd.solve(q).x - fwd.fem.x_rest)) for q in (lo, hi))
+        start = fwd.solve(np.array([at.forces(lam)[0], *lo[1:]]))
+        lin, _ = _solve_ux(fwd, h, start.lam.copy(), u0 + t * (u1 - u0), start, (ax[0][0], ax[0][-1]),
+                           1e-9 * abs(u1 - u0))
+        V.append(lin.V)
+        fx.append(lin.lam[0])
+    fd = (V[0] - V[1]) / (2 * eps)
+    J = at.volumes(lam)[1][:, axis]
+    assert np.allclose(J, fd, rtol=0, atol=1e-4 * np.abs(fd).max()), (J, fd)
+    dfx = (fx[0] - fx[1]) / (2 * eps)
+    step = np.eye(4)[axis] * eps
+    dfx_atlas = (at.forces(lam + step)[0] - at.forces(lam - step)[0]) / (2 * eps)
+    assert abs(dfx_atlas - dfx) <= 1e-3 * abs(dfx), (dfx_atlas, dfx)
 
 
 @pytest.mark.slow

@@ -155,17 +155,24 @@ def _bordered(fwd: ForwardModel, h: np.ndarray, lam: np.ndarray, target: float, 
     return _bordered(fwd, h, lam, target, half, start, bracket, tol_m, halvings - 1)
 
 
-def _axis_derivative(fwd: ForwardModel, lin, a: int, h: np.ndarray | None):
+def _axis_derivative(fwd: ForwardModel, lin, a: int, h: np.ndarray | None, du_q: float | None = None):
     """The exact derivatives of a grid point's outputs along the Hermite axis ``a``
     (:meth:`~softphantom.estimation.linearization.EquilibriumSolver.exact_column`): (dV (4,), dP
-    (k, 3), dX (3N,), df_x) per unit load; on a displacement axis (``h`` the patch's x load vector)
-    per metre of the patch displacement ū = hᵀ(x − x_rest) at fixed (f_y, f_z, p_u): the f_x column
-    over ∂ū/∂f_x = hᵀK⁻¹h, and df_x/dū = 1/(hᵀK⁻¹h)."""
+    (k, 3), dX (3N,), df_x) per unit load, at fixed f_x (``h`` None: a force axis, or a displacement
+    axis's faces). On a displacement axis (``h`` the patch's x load vector, u_a = K⁻¹b_a):
+    along ū = hᵀ(x − x_rest) itself (``a`` 0) per metre at fixed (f_y, f_z, p_u): u_0 / hᵀu_0 and
+    df_x/dū = 1/hᵀu_0; along another load at fixed q (``du_q`` = dū/dλ_a there, the faces' ū
+    derivatives mixed as q mixes their ū): u_a + c·u_0 with f_x's c = (du_q − hᵀu_a)/hᵀu_0 — the
+    mixed-control derivative at fixed ū plus the move of ū itself."""
     dV, dP, dX = fwd.eq.exact_column(lin, a)
     if h is None:
         return dV, dP, dX, 0.0
-    s = float(h @ dX)
-    return dV / s, dP / s, dX / s, 1.0 / s
+    if a == 0:
+        s = float(h @ dX)
+        return dV / s, dP / s, dX / s, 1.0 / s
+    dV0, dP0, dX0 = fwd.eq.exact_column(lin, 0)
+    c = (du_q - float(h @ dX)) / float(h @ dX0)
+    return dV + c * dV0, dP + c * dP0, dX + c * dX0, c
 
 
 def _sweep(model, config: EstimatorConfig, acfg: AtlasConfig, i: int, l: int):
@@ -251,12 +258,12 @@ def _sweep(model, config: EstimatorConfig, acfg: AtlasConfig, i: int, l: int):
             dP[j, k] = lin.sub_U[:, :, 3]
             dX[j, k] = lin.U[:, 3]
         elif hermite is not None:  # exact at the solution: GMRES on its tangent, the kept factor preconditioning
-            dV[j, k], dP[j, k], dX[j, k], dFX[j, k] = _axis_derivative(fwd, lin, hermite, h)
+            dV[j, k], dP[j, k], dX[j, k], dFX[j, k] = _axis_derivative(fwd, lin, hermite, h if hermite == 0 else None)
     return (i, l, V, P, X, solved, first_error, time.process_time() - t0, (dV, dP, dX, dFX) if deriv else None, FX,
             Q, n_solves)
 
 
-def _lines(model, config: EstimatorConfig, acfg: AtlasConfig, k: int, l: int, ends):
+def _lines(model, config: EstimatorConfig, acfg: AtlasConfig, k: int, l: int, ends, dends=None):
     """One task of a displacement axis's inner points: the lines along q at f_z index ``k`` and
     pressure index ``l``, each walked from its lower f_x face to the upper one. ``ends`` (ny,) × 2:
     the faces' patch displacements (m; NaN: unsolved) at (·, k, l). A line starts at its lower face
@@ -266,8 +273,9 @@ def _lines(model, config: EstimatorConfig, acfg: AtlasConfig, k: int, l: int, en
     the last two along the line) — one small step of the state each, where a plane at fixed q
     (:func:`_sweep`) crosses the arm pair's step in f_x from a neighbour in f_y. Returns (k, l, V (n1−2, ny, 4), P (n1−2, ny, k, 3), X
     (n1−2, ny, 3N), solved (n1−2, ny), first failure or '', CPU seconds, FX (n1−2, ny), Q (n1−2, ny),
-    converged forward solves, the derivatives along ū (dV, dP, dX, dFX) of the same shapes or None
-    (``acfg.hermite_axis`` 0, :func:`_axis_derivative`))."""
+    converged forward solves, the derivatives along the Hermite axis (dV, dP, dX, dFX) of the same
+    shapes or None: along ū (``acfg.hermite_axis`` 0), or along another load at fixed q, for which
+    ``dends`` (ny,) × 2 are the faces' dū/dλ_a (:func:`_axis_derivative`))."""
     t0 = time.process_time()
     fwd = ForwardModel(model, config, exact_sensitivities=False, fallback_min_load_step=FALLBACK_MIN_LOAD_STEP)
     ax = acfg.axes()
@@ -283,8 +291,8 @@ def _lines(model, config: EstimatorConfig, acfg: AtlasConfig, k: int, l: int, en
     FX = np.full((m, ny), np.nan)
     Q = np.broadcast_to(ax[0][1:-1, None], (m, ny)).copy()
     solved = np.zeros((m, ny), bool)
-    hermite = acfg.hermite_axis == 0
-    if hermite:  # the derivatives along ū: arrays as large as the values, only when asked for
+    hermite = acfg.hermite_axis is not None
+    if hermite:  # the derivatives along the axis: arrays as large as the values, only when asked for
         dV, dP, dX, dFX = (np.full_like(a, np.nan) for a in (V, P, X, FX))
     first_error, n_solves = "", 0
     j0 = int(np.argmin(np.abs(ax[1])))
@@ -324,7 +332,9 @@ def _lines(model, config: EstimatorConfig, acfg: AtlasConfig, k: int, l: int, en
                 FX[a, j] = lin.lam[0]
                 Q[a, j] = lo + span * (float(h @ (lin.x - fwd.fem.x_rest)) - u0) / (u1 - u0)
                 if hermite:
-                    dV[a, j], dP[a, j], dX[a, j], dFX[a, j] = _axis_derivative(fwd, lin, 0, h)
+                    t = (float(h @ (lin.x - fwd.fem.x_rest)) - u0) / (u1 - u0)
+                    du_q = None if dends is None else (1 - t) * float(dends[0][j]) + t * float(dends[1][j])
+                    dV[a, j], dP[a, j], dX[a, j], dFX[a, j] = _axis_derivative(fwd, lin, acfg.hermite_axis, h, du_q)
         except SolverError as exc:
             first_error = first_error or str(exc).splitlines()[0]
     return (k, l, V, P, X, solved, first_error, time.process_time() - t0, FX, Q, n_solves,
@@ -468,7 +478,10 @@ def build_atlas(model, config: EstimatorConfig | None = None, atlas: AtlasConfig
             if between:
                 h = x_patch(fwd)
                 ux = {i: np.where(solved[i], X[i] @ h, np.nan) for i in (0, n1 - 1)}  # (n2, n3, n4) m
-                args = [(model, cfg, acfg, kz, lp, (ux[0][:, kz, lp], ux[n1 - 1][:, kz, lp])) for kz, lp in stage]
+                # a Hermite axis other than q: the faces' dū along it (q mixes the faces' ū)
+                dux = {i: dX[i] @ h for i in (0, n1 - 1)} if hermite not in (None, 0) else None
+                args = [(model, cfg, acfg, kz, lp, (ux[0][:, kz, lp], ux[n1 - 1][:, kz, lp]),
+                         None if dux is None else (dux[0][:, kz, lp], dux[n1 - 1][:, kz, lp])) for kz, lp in stage]
                 res = map_tasks(client, _lines, args, label=what)
                 bad = [r for r in res if not r.ok]
                 if bad:
@@ -522,7 +535,7 @@ def build_atlas(model, config: EstimatorConfig | None = None, atlas: AtlasConfig
         _fill(a.reshape(solved.size, -1), weights)
     shape = acfg.shape
     if hermite is not None:  # per unit of the axis's Chebyshev variable t: d/dt = d/dλ / (dt/dλ)
-        if acfg.x_control == "displacement":  # per ū → per q: each line's ū spans the axis affinely
+        if hermite == 0 and acfg.x_control == "displacement":  # per ū → per q: each line's ū spans the axis affinely
             h = x_patch(fwd)
             per_t = (X[-1] @ h - X[0] @ h) / (ax[0][-1] - ax[0][0]) / np.vectorize(axis_t)(
                 QN, ax[0][0], ax[0][-1], acfg.stretch[0])[1]

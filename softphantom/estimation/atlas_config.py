@@ -63,12 +63,13 @@ class AtlasConfig:
     ``"force"`` (its tangent line is at fixed f_x).
 
     ``hermite_axis`` (None: every axis Lagrange): the index of one axis (0 f_x or q, 1 f_y, 2 f_z,
-    3 p_u; on a displacement first axis only 0) interpolated by Hermite: each grid point's solve
-    also gives the exact derivative of every output along that axis (GMRES on the tangent at the
-    solution), so the n points of that axis determine a polynomial of degree 2n − 1 there
+    3 p_u) interpolated by Hermite: each grid point's solve also gives the exact derivative of every
+    output along that axis (GMRES on the tangent at the solution), so the n points of that axis
+    determine a polynomial of degree 2n − 1 there
     (:func:`~softphantom.estimation.atlas_basis.to_chebyshev`): n Hermite points stand in for
-    ≈ 2n Lagrange points at the cost of one sensitivity a point (on a displacement axis, along the
-    patch displacement at fixed (f_y, f_z, p_u): the f_x column over ∂ū/∂f_x = H_xᵀK⁻¹H_x). The
+    ≈ 2n Lagrange points at the cost of one sensitivity a point (on a displacement axis: along q,
+    the patch displacement at fixed (f_y, f_z, p_u), the f_x column over ∂ū/∂f_x = H_xᵀK⁻¹H_x;
+    along another load, at fixed q: two sensitivities, :func:`~softphantom.estimation.atlas_build._axis_derivative`). The
     coefficient arrays are 2n long along it (:attr:`coef_shape`); the default stretch counts the
     polynomial's 2n terms (docs/atlas.md).
 
@@ -121,9 +122,7 @@ class AtlasConfig:
             if isinstance(h, bool) or int(h) != h or not 0 <= h <= 3:
                 raise UserError(f"atlas hermite_axis: None or an axis index 0..3 (f_x, f_y, f_z, p_u), got {h!r}")
             object.__setattr__(self, "hermite_axis", int(h))
-            for what, ok in (("x_control 'force' or axis 0 (along f_y, f_z, p_u a displacement axis's "
-                              "derivatives are at fixed patch displacement)", self.x_control == "force" or h == 0),
-                             ("offline 'full'", self.offline == "full"),
+            for what, ok in (("offline 'full'", self.offline == "full"),
                              ("no linear_pressure", not self.linear_pressure)):
                 if not ok:
                     raise UserError(f"atlas hermite_axis needs {what}")
