@@ -356,10 +356,10 @@ def main() -> None:
 
     # -- atlas: offline build, then the same ramps (quiet and loaded), sustained rate, held-out loads
     cfg = EstimatorConfig(**base)
-    acfg = atlas_config_from_options(a.atlas_grid, a.envelope, a.x_control, a.atlas_f_y_split_N,
-                                     base=default_atlas_config(model.element_order))
-    if a.atlas_hermite_axis is not None:
-        acfg = dataclasses.replace(acfg, hermite_axis=AXIS_NAMES.index(a.atlas_hermite_axis))
+    base_acfg = default_atlas_config(model.element_order)
+    if a.atlas_hermite_axis is not None:  # first: a Hermite axis may have 2 points
+        base_acfg = dataclasses.replace(base_acfg, hermite_axis=AXIS_NAMES.index(a.atlas_hermite_axis))
+    acfg = atlas_config_from_options(a.atlas_grid, a.envelope, a.x_control, a.atlas_f_y_split_N, base=base_acfg)
     t = time.perf_counter()
     print(f"load average before the atlas build: {os.getloadavg()[0]:.1f}")
     if a.atlas_cache:
