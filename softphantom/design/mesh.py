@@ -191,6 +191,11 @@ def _mesh_in_child(design: BIPDesign, mp: MeshParams) -> RawMesh:
     return value
 
 
+def gmsh_error_line(exc: Exception) -> str:
+    """The first line of a gmsh error (gmsh raises plain Exception with its last error)."""
+    return str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+
+
 @contextmanager
 def gmsh_session(model_name: str, what: str) -> Iterator:
     """One gmsh model in this process, under the module's lock: gmsh initialized if needed (and
@@ -213,8 +218,7 @@ def gmsh_session(model_name: str, what: str) -> Iterator:
         except MeshError:
             raise
         except Exception as exc:  # gmsh raises plain Exception with its last error
-            msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-            raise MeshError(f"gmsh failed on {what}: {msg}") from None
+            raise MeshError(f"gmsh failed on {what}: {gmsh_error_line(exc)}") from None
         finally:
             try:
                 gmsh.model.setCurrent(model_name)

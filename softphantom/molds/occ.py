@@ -15,7 +15,7 @@ from typing import Callable
 
 import numpy as np
 
-from softphantom.design.mesh import gmsh_session
+from softphantom.design.mesh import gmsh_error_line, gmsh_session
 from softphantom.errors import MeshError
 
 MAX_FACET_MM = 4.0  # flat faces need no fine facets; curved ones follow ``segments``
@@ -101,7 +101,11 @@ def occ_solid(name: str, build: Callable, segments: float) -> "trimesh.Trimesh":
         vols = [t for _, t in gmsh.model.getEntities(3)]
         if vols != [vol]:
             raise MeshError(f"part {name}: {len(vols)} volumes in the model, expected 1")
-        gmsh.model.mesh.generate(2)
+        try:
+            gmsh.model.mesh.generate(2)
+        except Exception as exc:  # gmsh's 2-D mesher fails on some faces at some facet counts
+            raise MeshError(f"[molds] segments = {float(segments):g}: gmsh could not tessellate part {name!r} "
+                            f"({gmsh_error_line(exc)}); try a nearby value") from None
         tags, coords, _ = gmsh.model.mesh.getNodes()
         pos = np.full(int(np.max(tags)) + 1, -1, dtype=np.int64)
         pos[np.asarray(tags, dtype=np.int64)] = np.arange(len(tags))

@@ -502,9 +502,9 @@ class _Builder:
                     foot = back
                 else:  # above the bulb: a beam out to the side first, clear of bulb and needle
                     foot = np.array([side_x if back[0] >= 0.0 else -side_x, back[1], back[2]])
-                    beam = geo.unit(foot - back)
-                    pieces.append((3, occ.addCylinder(*(back - post_r * beam), *(foot - back + 2 * post_r * beam),
-                                                      0.85 * post_r)))
+                    # axis to axis: an end face on the post's or column's tangent plane touches it
+                    # along a line, a face gmsh then fails to mesh for some segment counts
+                    pieces.append((3, occ.addCylinder(*back, *(foot - back), 0.85 * post_r)))
                 # crossing cylinders of equal radii touch at singular points (a non-manifold
                 # edge in the mesh): the beam is thinner and the column thicker than the post
                 top = foot + np.array([0.0, 0.0, post_r])
