@@ -38,7 +38,7 @@ from softphantom.pose import Pose6, rigid_fit  # noqa: E402
 
 AXES = {"f_z": 2, "p_u": 3}
 UNIT = {2: ("N", 1.0), 3: ("kPa", 1e-3)}  # the axis's display unit and its factor from SI
-SCHEMES = [("Lagrange", n) for n in (2, 3, 4, 5)] + [("Hermite", n) for n in (2, 3)]
+SCHEMES = [("Lagrange", n) for n in (2, 3, 4, 5, 6, 7, 9)] + [("Hermite", n) for n in (2, 3, 4, 5)]  # the default
 
 
 def axis_range(a: int) -> tuple[float, float, float]:
@@ -100,11 +100,11 @@ def errors(pred: np.ndarray, ref: np.ndarray, rest_m: np.ndarray) -> np.ndarray:
     return np.array([dv, dp, da[:, 0].max(), da[:, 1:].max()])
 
 
-def scheme_errors(scan: dict, lo: float, hi: float, w: float, rest_m: np.ndarray):
-    """Per scheme of :data:`SCHEMES`: (name, n, errors over every scanned point)."""
+def scheme_errors(scan: dict, lo: float, hi: float, w: float, rest_m: np.ndarray, schemes=SCHEMES):
+    """Per scheme of ``schemes`` ((name, n) pairs): (name, n, errors over every scanned point)."""
     xs = np.array(sorted(scan))
     ref = np.array([scan[x][0] for x in xs])
-    for name, n in SCHEMES:
+    for name, n in schemes:
         nodes = cheb_points(n, lo, hi, w)
         vals = np.array([scan[key(x)][0] for x in nodes])
         ders = np.array([scan[key(x)][1] for x in nodes])
@@ -118,7 +118,8 @@ def axis_rows(fwd: ForwardModel, axis: str, a) -> list[list[str]]:
     lo, hi, w = axis_range(ax)
     unit, f = UNIT[ax]
     xs = {key(x) for x in np.linspace(lo, hi, a.scan_points)}
-    xs |= {key(x) for _, n in SCHEMES for x in cheb_points(n, lo, hi, w)}
+    schemes = [("Lagrange", n) for n in a.lagrange] + [("Hermite", n) for n in a.hermite]
+    xs |= {key(x) for _, n in schemes for x in cheb_points(n, lo, hi, w)}
     table = []
     for row in a.rows:
         fx, fy = (float(v) for v in row.split(","))
@@ -131,7 +132,7 @@ def axis_rows(fwd: ForwardModel, axis: str, a) -> list[list[str]]:
               f"{unit} in {time.process_time() - c0:.0f} CPU-s; volumes span {np.ptp(v, axis=0).round(2).tolist()} mm3; "
               f"derivatives against the secants: {derivative_check(scan):.1e} of the largest",
               flush=True)
-        for name, n, e in scheme_errors(scan, lo, hi, w, rest_m):
+        for name, n, e in scheme_errors(scan, lo, hi, w, rest_m, schemes):
             print(f"  {name:8s} {n}: volumes {e[0]:.4f} mm3, points {e[1]:.4f} mm, yaw {e[2]:.4f} deg, "
                   f"pitch/roll {e[3]:.4f} deg", flush=True)
             table.append([axis, f"{fx:g}, {fy:g} N; {held}", f"{name} {n}", f"{e[0]:.4f}", f"{e[1]:.4f}",
@@ -148,6 +149,10 @@ def main(argv=None) -> int:
     ap.add_argument("--held-fz-N", type=float, default=0.0, help="f_z on a pressure scan")
     ap.add_argument("--held-p-kPa", type=float, default=19.0, help="p_u on an f_z scan (the range's middle)")
     ap.add_argument("--scan-points", type=int, default=17, help="uniform scan points (plus every scheme's nodes)")
+    ap.add_argument("--lagrange", nargs="+", type=int, default=[n for s, n in SCHEMES if s == "Lagrange"],
+                    help="Lagrange point counts to compare")
+    ap.add_argument("--hermite", nargs="+", type=int, default=[n for s, n in SCHEMES if s == "Hermite"],
+                    help="Hermite point counts to compare")
     add_results_option(ap, "atlas_other_axes")
     a = ap.parse_args(argv)
     model = load_model(a.model) if a.model else build_model(BIPDesign(), a.mesh_size_mm)
