@@ -84,8 +84,13 @@ def _contact(model, c) -> tuple[float, float, float]:
 
 
 def _load_sessions(model, specs: list[SessionSpec], prefix: str) -> list[Session]:
-    return [load_session(sp.recording, sp.truth, _contact(model, sp.contact), sp.known_loads, name=f"{prefix}{i + 1}")
-            for i, sp in enumerate(specs)]
+    """The sessions of ``specs``; a take that does not overlap its recording is refused here,
+    before any cluster starts (:func:`_lag_grid`)."""
+    out = [load_session(sp.recording, sp.truth, _contact(model, sp.contact), sp.known_loads, name=f"{prefix}{i + 1}")
+           for i, sp in enumerate(specs)]
+    for se in out:
+        _lag_grid(se)
+    return out
 
 
 def _solver(client) -> Callable[[list[tuple]], list]:
@@ -213,8 +218,6 @@ def calibrate(model_dir, specs: list[SessionSpec], holdout: list[SessionSpec] = 
 
     sessions = _load_sessions(model, specs, "s")
     held = _load_sessions(model, holdout, "h")
-    for se in sessions + held:  # refused before a cluster starts
-        _lag_grid(se)
     times = [select_keyframes(se, max_keyframes) for se in sessions]
     frames = Keyframes.of(sessions, times)
     log.info(f"{len(sessions)} session(s), {len(frames)} keyframes"
@@ -297,8 +300,6 @@ def check_held_out(model_dir, holdout: list[SessionSpec], values: dict[str, floa
     model = load_model(Path(model_dir))
     fitted = dataclasses.replace(model, design=design_with_law(model.design, options.law))
     held = _load_sessions(model, holdout, "h")
-    for se in held:
-        _lag_grid(se)
     params = parameter_set(measured=options.measured, shapes=group_shapes(fitted))
     values = {n: v for n, v in values.items() if not n.startswith(("lag_", "drift_"))}
     unknown = sorted(set(values) - {p.name for p in params})
