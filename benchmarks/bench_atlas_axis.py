@@ -37,7 +37,7 @@ from softphantom.estimation.atlas_basis import cheb_points, to_chebyshev  # noqa
 from softphantom.estimation.atlas_build import _solve_ux, x_patch  # noqa: E402
 from softphantom.estimation.atlas_kernels import axis_t  # noqa: E402
 from softphantom.estimation.forward import ForwardModel  # noqa: E402
-from softphantom.pose import Pose6, rigid_fit  # noqa: E402
+from softphantom.pose import pose_of_markers  # noqa: E402
 
 FX_LO_N, FX_HI_N = -1.5, 1.5
 
@@ -49,7 +49,7 @@ def scan(fwd: ForwardModel, fy: float, fz: float, p_Pa: float, xs: np.ndarray) -
     out, lin = {}, None
     for fx in np.sort(xs):
         lin = fwd.solve([fx, fy, fz, p_Pa], start=lin)
-        ypr = Pose6.from_transform(rigid_fit(rest, lin.sub_x[:nm])).to_mm_deg()[3:]
+        ypr = pose_of_markers(rest, lin.sub_x[:nm]).to_mm_deg()[3:]
         out[round(float(fx), 9)] = np.r_[lin.V * 1e9, ypr]
     return out
 
@@ -65,7 +65,7 @@ def scan_u(fwd: ForwardModel, fy: float, fz: float, p_Pa: float, qs: np.ndarray,
     h = x_patch(fwd)
 
     def row(lin):
-        ypr = Pose6.from_transform(rigid_fit(rest, lin.sub_x[:nm])).to_mm_deg()[3:]
+        ypr = pose_of_markers(rest, lin.sub_x[:nm]).to_mm_deg()[3:]
         return np.r_[lin.V * 1e9, ypr, lin.lam[0]]
 
     lo = fwd.solve([FX_LO_N, fy, fz, p_Pa])

@@ -12,7 +12,7 @@ Chebyshev–Lobatto points (``cheb_points``, the atlas's polynomial) or Hermite 
 (values and derivatives, ``to_chebyshev(..., hermite=...)``: degree 2n − 1; ``--lagrange``,
 ``--hermite``), its largest error over the scan: arm volumes (mm³), tracked points (markers and
 targets, distance in mm), and the marker pose's yaw and pitch/roll (deg), the pose fitted
-(``rigid_fit``) to the interpolated markers, as the atlas's pose is. Only one axis: the tensor
+(``pose_of_markers``) to the interpolated markers, as the atlas's pose is. Only one axis: the tensor
 atlas adds the other axes' errors. Writes benchmarks/results/atlas_other_axes.md
 (``--results-name``): the largest errors over the rows per axis and scheme, then per row. Each
 scan's exact derivatives are checked against its secants (printed).
@@ -37,7 +37,7 @@ from softphantom.estimation.atlas_basis import cheb_points, to_chebyshev  # noqa
 from softphantom.estimation.atlas_config import default_atlas_config  # noqa: E402
 from softphantom.estimation.atlas_kernels import axis_t  # noqa: E402
 from softphantom.estimation.forward import ForwardModel  # noqa: E402
-from softphantom.pose import Pose6, rigid_fit  # noqa: E402
+from softphantom.pose import pose_of_markers  # noqa: E402
 
 AXES = {"f_z": 2, "p_u": 3}
 UNIT = {2: ("N", 1.0), 3: ("kPa", 1e-3)}  # the axis's display unit and its factor from SI
@@ -89,7 +89,7 @@ def interpolate(nodes, values, derivs, lo: float, hi: float, w: float, xs, hermi
 
 def pose_deg(markers_mm: np.ndarray, rest_m: np.ndarray) -> np.ndarray:
     """(yaw, pitch, roll) deg of the markers' rigid fit from rest."""
-    return Pose6.from_transform(rigid_fit(rest_m, markers_mm * 1e-3)).to_mm_deg()[3:]
+    return pose_of_markers(rest_m, markers_mm * 1e-3).to_mm_deg()[3:]
 
 
 def errors(pred: np.ndarray, ref: np.ndarray, rest_m: np.ndarray) -> np.ndarray:

@@ -195,14 +195,12 @@ def held_out(est: AtlasEstimator, fwd: ForwardModel, n: int, seed: int = 3, core
         V, _ = at.volumes(c)
         start = at.coords(lam[:3] + rng.normal(0, 0.3 / np.sqrt(3), 3), lam[3])
         nm = fwd.n_markers
-        from softphantom.pose import Pose6, rigid_fit
-
-        tp = Pose6.from_transform(rigid_fit(est.rest_markers, lin.sub_x[:nm])).to_mm_deg()
+        tp = pose_of_markers(est.rest_markers, lin.sub_x[:nm]).to_mm_deg()
         row = [np.abs(V - lin.V).max() * 1e9, np.abs(at.points(c) - lin.sub_x).max() * 1e3,
                np.abs(at.nodes(c) - lin.x.reshape(-1, 3)).max() * 1e3]
         for invert in (est.invert, est.invert_reference):  # the kernel step and the pre-kernel one
             lam_e = invert(lin.V, lam[3], start=start)[0]
-            d = Pose6.from_transform(rigid_fit(est.rest_markers, at.points(lam_e)[:nm])).to_mm_deg() - tp
+            d = pose_of_markers(est.rest_markers, at.points(lam_e)[:nm]).to_mm_deg() - tp
             row += [np.linalg.norm(at.forces(lam_e) - lam[:3]), np.abs(d[:3]).max(), np.abs(d[3:]).max()]
         rows.append(row)
         loads.append(lam)
