@@ -211,3 +211,59 @@ def test_linear_pressure_axis_is_the_tangent_line_through_converged_middle_solve
         AtlasConfig(n_pressure=3, linear_pressure=True, x_control="force")
     with pytest.raises(Exception, match="linear_pressure needs x_control 'force'"):
         AtlasConfig(n_pressure=2, linear_pressure=True, x_control="displacement")
+
+
+def test_line_predictor_error_falls_with_the_fourth_power_of_the_step():
+    """The cubic Hermite through two points with their derivatives, evaluated one step beyond:
+    halving the step divides the error by ≈ 16 (the secant's by ≈ 4); with one point it is the
+    tangent line (≈ 4)."""
+    from softphantom.estimation.atlas_build import LinePredictor
+
+    def path(u):  # (f_x, x, df_x/du, dx/du)
+        return np.exp(u), np.array([np.sin(u), np.cos(2 * u)]), np.exp(u), np.array([np.cos(u), -2 * np.sin(2 * u)])
+
+    def errors(H):
+        p, one = LinePredictor(), LinePredictor()
+        for u in (0.3 - H, 0.3):
+            f, x, df, dx = path(u)
+            p.add(u, x, f, dx, df)
+        one.add(0.3, x, f, dx, df)
+        f_c, x_c, _, _ = path(0.3 + H)
+        secant = 2 * path(0.3)[1] - path(0.3 - H)[1]
+        out = []
+        for pred in (p, one):
+            fp, xp = pred(0.3 + H)
+            out.append(max(abs(fp - f_c), np.abs(xp - x_c).max()))
+        return out + [np.abs(secant - x_c).max()]
+
+    coarse, fine = errors(0.2), errors(0.1)
+    hermite, tangent, secant = (c / f for c, f in zip(coarse, fine))
+    assert 12 < hermite < 20 and 3 < tangent < 5 and 3 < secant < 5
+    assert fine[0] < fine[2] / 20  # at a step like a line's, far nearer than the secant
+
+
+def test_the_line_predictor_starts_a_mixed_control_solve_nearer_and_it_lands_on_the_same_equilibrium(fwd):
+    """Along a line at fixed (f_y, f_z, p_u): two solved points with their exact ū-derivatives
+    (:func:`_line_knot`) predict the third's state an order of magnitude nearer than the secant
+    through them, and the mixed-control solve started there reaches the secant-started one's."""
+    from softphantom.estimation.atlas_build import LinePredictor, _line_knot, x_patch
+    from softphantom.estimation.linearization import PatchControl
+
+    h = x_patch(fwd)
+    lam = np.array([-0.5, 0.9, -0.2, 1e3])
+    a = fwd.solve(lam)
+    du = float(h @ a.U[:, 0]) * 0.3  # about 0.3 N of f_x a step
+    u_a = float(h @ (a.x - fwd.fem.x_rest))
+    b = fwd.eq.solve(a, lam, control=PatchControl(h, fwd.fem.x_rest, u_a + du, 1e-10 * du))
+    path = LinePredictor()
+    for p in (a, b):
+        _line_knot(fwd, h, p, path)
+    target = u_a + 2 * du
+    c = fwd.eq.solve(b, lam, control=PatchControl(h, fwd.fem.x_rest, target, 1e-10 * du, prev=a))  # the secant's
+    pred = PatchControl(h, fwd.fem.x_rest, target, 1e-10 * du, predictor=path).predict(b, lam)
+    secant = PatchControl(h, fwd.fem.x_rest, target, 1e-10 * du, prev=a).predict(b, lam)
+    err = [np.abs(x - c.x).max() for x in (pred[1], secant[1])]
+    assert err[0] < err[1] / 10
+    assert abs(pred[0] - c.lam[0]) < abs(secant[0] - c.lam[0]) / 10
+    d = fwd.eq.solve(b, lam, control=PatchControl(h, fwd.fem.x_rest, target, 1e-10 * du, predictor=path))
+    assert rel(d.x, c.x, fwd) < 1e-6 and abs(d.lam[0] - c.lam[0]) < 1e-6

@@ -18,6 +18,7 @@ stepping (:func:`~softphantom.fem.solve_static`) is the fallback.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -419,12 +420,12 @@ class EquilibriumSolver:
         """
         self._tol = self.tol if tol is None else float(tol)
         lam = np.array(lam, dtype=np.float64).reshape(4)
-        secant = control.secant(start, lam) if control is not None else None
+        along = control.predict(start, lam) if control is not None else None  # the line's own predictor
         if control is not None:
-            lam[0] = control.predict_fx(start, lam) if secant is None else secant[0]
+            lam[0] = control.predict_fx(start, lam) if along is None else along[0]
         predicted_V = start.predict_volumes(lam)
-        if secant is not None:
-            x = secant[1]
+        if along is not None:
+            x = along[1]
         elif path is not None and path.lin is start:  # second-order predictor along the path
             x = path.predict_x(lam)
         else:
@@ -478,6 +479,9 @@ class PatchControl:
     tol_m: float
     prev: "Linearization | None" = None  # the point before the start on the same path (a secant predictor)
     fx_bounds_N: tuple[float, float] = (-np.inf, np.inf)  # an iterate's f_x outside them is a step too far
+    # the path's own model: ū (m) → (f_x N, x (3N,) m), e.g. from the exact derivatives of the points
+    # before (the atlas build's lines); used instead of the secant where given
+    predictor: "Callable[[float], tuple[float, np.ndarray]] | None" = None
 
     def gap(self, x: np.ndarray) -> float:
         """m: the patch displacement at ``x`` minus the target."""
@@ -486,11 +490,14 @@ class PatchControl:
     def met(self, x: np.ndarray) -> bool:
         return abs(self.gap(x)) <= self.tol_m
 
-    def secant(self, start: Linearization, lam: np.ndarray) -> tuple[float, np.ndarray] | None:
-        """(f_x N, x (3N,) m) on the secant through ``prev`` and ``start`` at the target — the path
-        parametrized by the patch displacement, so second-order where the state turns fast for
-        little f_x (what the tangent's predictor is not); None without a ``prev`` on the same line
-        (other loads equal) or where the two are at one displacement."""
+    def predict(self, start: Linearization, lam: np.ndarray) -> tuple[float, np.ndarray] | None:
+        """(f_x N, x (3N,) m) at the target: ``predictor``'s where given, else on the secant
+        through ``prev`` and ``start`` — the path parametrized by the patch displacement, so
+        second-order where the state turns fast for little f_x (what the tangent's predictor is
+        not); None without either (or a ``prev`` not on the same line: other loads equal) or where
+        the two are at one displacement."""
+        if self.predictor is not None:
+            return self.predictor(self.target_m)
         p = self.prev
         if p is None or not (np.array_equal(p.lam[1:], start.lam[1:]) and np.array_equal(start.lam[1:], lam[1:])):
             return None
