@@ -100,7 +100,7 @@ def run_task(model, cfg, fwd, acfg, k: int, l: int, variants: list[str]) -> list
             A._line_knot = lambda *args: None  # no derivatives along the line: the secant predictor
         try:
             c0 = time.process_time()
-            out[name] = A._lines(model, cfg, acfg, k, l, ends)
+            out[name] = A._lines(model, cfg, acfg, k, l, ends, faces[0][4][:, k])
             cpu[name] = time.process_time() - c0
         finally:
             L.EquilibriumSolver.solve, L.EquilibriumSolver.exact_column = eq_solve, column

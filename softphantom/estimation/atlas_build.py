@@ -219,6 +219,14 @@ def _axis_derivative(fwd: ForwardModel, lin, a: int, h: np.ndarray | None, du_q:
     return dV + c * dV0, dP + c * dP0, dX + c * dX0, c
 
 
+def _linearized_at(fwd: ForwardModel, x: np.ndarray, lam: np.ndarray):
+    """The :class:`~softphantom.estimation.linearization.Linearization` at a state ``x`` (3N,) m
+    already in equilibrium under ``lam`` (another task solved it), with the tangent there factored."""
+    fwd.eq.factorize(x, float(lam[3]))
+    r, ref = fwd.eq.residual(x, lam)
+    return fwd.eq.linearize(x, lam, float(np.linalg.norm(r)) / max(ref, 1e-300), 0, True)
+
+
 def _line_knot(fwd: ForwardModel, h: np.ndarray, lin, path: LinePredictor):
     """Add ``lin`` (a solved point of a line) to ``path`` with its exact derivatives along ū, and
     return its f_x column (``exact_column(lin, 0)``: dV, dP, dX per N) for a Hermite q axis; where
@@ -324,12 +332,12 @@ def _sweep(model, config: EstimatorConfig, acfg: AtlasConfig, i: int, l: int):
             Q, n_solves)
 
 
-def _lines(model, config: EstimatorConfig, acfg: AtlasConfig, k: int, l: int, ends, dends=None):
+def _lines(model, config: EstimatorConfig, acfg: AtlasConfig, k: int, l: int, ends, starts, dends=None):
     """One task of a displacement axis's inner points: the lines along q at f_z index ``k`` and
     pressure index ``l``, each walked from its lower f_x face to the upper one. ``ends`` (ny,) × 2:
     the faces' patch displacements (m; NaN: unsolved) at (·, k, l). A line starts at its lower face
-    point (solved again here, force-controlled, from the previous line's: the f_y rows walked from
-    the one nearest zero outwards); each next point is solved at the displacement of its q from
+    point, ``starts`` (ny, 3N): the displacements the face plane solved there (:func:`_sweep`),
+    linearized where they are (one factorization, no solve). Each next point is solved at the displacement of its q from
     the point before it (:func:`_solve_ux`: one mixed-control solve, its predictor the cubic
     Hermite through the last two along the line, :class:`LinePredictor`, from their exact
     derivatives along ū) — one small step of the state each, where a plane at fixed q
@@ -357,20 +365,13 @@ def _lines(model, config: EstimatorConfig, acfg: AtlasConfig, k: int, l: int, en
     if hermite:  # the derivatives along the axis: arrays as large as the values, only when asked for
         dV, dP, dX, dFX = (np.full_like(a, np.nan) for a in (V, P, X, FX))
     first_error, n_solves = "", 0
-    j0 = int(np.argmin(np.abs(ax[1])))
-    faces: dict[int, tuple] = {}  # j → (the lower face's Linearization, its kept factor)
-    for j in [*range(j0, ny), *range(j0 - 1, -1, -1)]:
-        parent = j - 1 if j > j0 else (j + 1 if j < j0 else None)
+    for j in range(ny):
         u0, u1 = float(ends[0][j]), float(ends[1][j])
-        if not (np.isfinite(u0) and np.isfinite(u1)) or (parent is not None and parent not in faces):
-            continue  # a face unsolved, or the row before it: beyond the reachable region
+        if not (np.isfinite(u0) and np.isfinite(u1)):
+            continue  # a face unsolved: beyond the reachable region
         try:
-            if parent is not None:
-                fwd.eq.restore(faces[parent][1])
-            lin = fwd.solve(np.array([lo, ax[1][j], fz, p_u]), faces[parent][0] if parent is not None else None,
-                            via_tol=VIA_TOL)
-            n_solves += 1
-            faces[j] = (lin, fwd.eq.keep())
+            # the face plane's equilibrium: its tangent, not a solve again
+            lin = _linearized_at(fwd, fwd.fem.x_rest + starts[j], np.array([lo, ax[1][j], fz, p_u]))
             before = None  # the point before the last on the line
             path = LinePredictor()
             _line_knot(fwd, h, lin, path)
@@ -546,8 +547,10 @@ def build_atlas(model, config: EstimatorConfig | None = None, atlas: AtlasConfig
                 ux = {i: np.where(solved[i], X[i] @ h, np.nan) for i in (0, n1 - 1)}  # (n2, n3, n4) m
                 # a Hermite axis other than q: the faces' dū along it (q mixes the faces' ū)
                 dux = {i: dX[i] @ h for i in (0, n1 - 1)} if hermite not in (None, 0) else None
+                # each line starts at its lower face's equilibrium (NaN where unsolved; ends say so)
                 args = [(model, cfg, acfg, kz, lp, (ux[0][:, kz, lp], ux[n1 - 1][:, kz, lp]),
-                         None if dux is None else (dux[0][:, kz, lp], dux[n1 - 1][:, kz, lp])) for kz, lp in stage]
+                         X[0, :, kz, lp], None if dux is None else (dux[0][:, kz, lp], dux[n1 - 1][:, kz, lp]))
+                        for kz, lp in stage]
                 res = map_tasks(client, _lines, args, label=what)
                 bad = [r for r in res if not r.ok]
                 if bad:
@@ -594,7 +597,7 @@ def build_atlas(model, config: EstimatorConfig | None = None, atlas: AtlasConfig
                         f"({err or 'beyond a failed point'})")
     if acfg.x_control == "displacement" and offline is None:
         log.info(f"atlas: {n_fwd} converged forward solves for {int(solved.sum())} points (displacement axis: "
-            f"{n_fwd - int(solved.sum())} more, the lines' faces solved again and the trials)")
+            f"{n_fwd - int(solved.sum())} more: a line point's force-controlled trials)")
     weights = fill_weights(solved, ax)
     grids = (V, P, X, FX) if hermite is None else (V, P, X, FX, dV, dP, dX, dFX)
     for a in grids:
