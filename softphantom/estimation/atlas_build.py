@@ -91,7 +91,7 @@ def _plane_walk(ny: int, nz: int, j0: int, k0: int) -> list[tuple[tuple[int, int
 
 class LinePredictor:
     """A displacement axis's line ū ↦ (f_x N, x (3N,) m) near its last solved points, from their
-    exact derivatives along ū (:func:`_q_column`): the cubic Hermite through the last two, or the
+    exact derivatives along ū (:func:`_line_knot`): the cubic Hermite through the last two, or the
     tangent line of the only one, evaluated beyond them. Its error falls with the fourth power of
     the step where the secant's falls with the second, so a line's next point (a tenth of the
     axis away) starts its chord iterations a few per cent of the load off instead of at about
@@ -337,11 +337,12 @@ def _lines(model, config: EstimatorConfig, acfg: AtlasConfig, k: int, l: int, en
     pressure index ``l``, each walked from its lower f_x face to the upper one. ``ends`` (ny,) × 2:
     the faces' patch displacements (m; NaN: unsolved) at (·, k, l). A line starts at its lower face
     point, ``starts`` (ny, 3N): the displacements the face plane solved there (:func:`_sweep`),
-    linearized where they are (one factorization, no solve). Each next point is solved at the displacement of its q from
-    the point before it (:func:`_solve_ux`: one mixed-control solve, its predictor the cubic
-    Hermite through the last two along the line, :class:`LinePredictor`, from their exact
-    derivatives along ū) — one small step of the state each, where a plane at fixed q
-    (:func:`_sweep`) crosses the arm pair's step in f_x from a neighbour in f_y. Returns (k, l, V (n1−2, ny, 4), P (n1−2, ny, k, 3), X
+    linearized where they are (one factorization, no solve). Each next point is solved at the
+    displacement of its q from the point before it (:func:`_solve_ux`: one mixed-control solve,
+    its predictor the cubic Hermite through the last two along the line, :class:`LinePredictor`,
+    from their exact derivatives along ū) — one small step of the state each, where a plane at
+    fixed q (:func:`_sweep`) crosses the arm pair's step in f_x from a neighbour in f_y. Returns
+    (k, l, V (n1−2, ny, 4), P (n1−2, ny, k, 3), X
     (n1−2, ny, 3N), solved (n1−2, ny), first failure or '', CPU seconds, FX (n1−2, ny), Q (n1−2, ny),
     converged forward solves, the derivatives along the Hermite axis (dV, dP, dX, dFX) of the same
     shapes or None: along ū (``acfg.hermite_axis`` 0), or along another load at fixed q, for which
@@ -596,8 +597,9 @@ def build_atlas(model, config: EstimatorConfig | None = None, atlas: AtlasConfig
                         f"{p_u * 1e-3:.1f} kPa: {ok.size - ok.sum()} of {ok.size} points unreachable "
                         f"({err or 'beyond a failed point'})")
     if acfg.x_control == "displacement" and offline is None:
-        log.info(f"atlas: {n_fwd} converged forward solves for {int(solved.sum())} points (displacement axis: "
-            f"{n_fwd - int(solved.sum())} more: a line point's force-controlled trials)")
+        extra = n_fwd - int(solved.sum())
+        log.info(f"atlas: {n_fwd} converged forward solves for {int(solved.sum())} points" + (
+            f" ({extra} more: force-controlled trials where a line point's mixed-control solve failed)" if extra else ""))
     weights = fill_weights(solved, ax)
     grids = (V, P, X, FX) if hermite is None else (V, P, X, FX, dV, dP, dX, dFX)
     for a in grids:
