@@ -38,8 +38,8 @@ import numpy as np  # noqa: E402
 from softphantom.design import BIPDesign, build_model, load_model  # noqa: E402
 from softphantom.estimation import AtlasConfig, EstimatorConfig  # noqa: E402
 from softphantom.estimation.atlas import X_CONTROLS, atlas_key, atlas_path, build_atlas, save_atlas  # noqa: E402
-from softphantom.estimation.atlas_build import _sweep  # noqa: E402
-from softphantom.estimation.atlas_store import AXIS_NAMES  # noqa: E402
+from softphantom.estimation.atlas.build import _sweep  # noqa: E402
+from softphantom.estimation.atlas.store import AXIS_NAMES  # noqa: E402
 from softphantom.estimation.select import atlas_config_from_options  # noqa: E402
 from softphantom.estimation.forward import ForwardModel  # noqa: E402
 from bench_estimate import start_load, stop_load  # noqa: E402 - the benchmarks' busy processes

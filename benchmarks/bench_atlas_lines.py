@@ -34,11 +34,11 @@ import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 
-import softphantom.estimation.atlas_build as A  # noqa: E402
+import softphantom.estimation.atlas.build as A  # noqa: E402
 import softphantom.estimation.linearization as L  # noqa: E402
 from softphantom.design import load_model  # noqa: E402
 from softphantom.estimation import AtlasConfig, EstimatorConfig  # noqa: E402
-from softphantom.estimation.atlas_config import default_atlas_config  # noqa: E402
+from softphantom.estimation.atlas.config import default_atlas_config  # noqa: E402
 from softphantom.estimation.forward import ForwardModel  # noqa: E402
 from _results import add_results_option, write_table  # noqa: E402
 

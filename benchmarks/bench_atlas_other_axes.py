@@ -33,9 +33,9 @@ sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 from _results import add_results_option, markdown_table, write_result  # noqa: E402
 from softphantom.design import BIPDesign, build_model, load_model  # noqa: E402
 from softphantom.estimation import EstimatorConfig  # noqa: E402
-from softphantom.estimation.atlas_basis import cheb_points, to_chebyshev  # noqa: E402
-from softphantom.estimation.atlas_config import default_atlas_config  # noqa: E402
-from softphantom.estimation.atlas_kernels import axis_t  # noqa: E402
+from softphantom.estimation.atlas.basis import cheb_points, to_chebyshev  # noqa: E402
+from softphantom.estimation.atlas.config import default_atlas_config  # noqa: E402
+from softphantom.estimation.atlas.kernels import axis_t  # noqa: E402
 from softphantom.estimation.forward import ForwardModel  # noqa: E402
 from softphantom.pose import pose_of_markers  # noqa: E402
 

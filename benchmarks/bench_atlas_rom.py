@@ -32,8 +32,8 @@ from bench_estimate import held_out  # noqa: E402
 from softphantom.progress import message_handler  # noqa: E402
 from softphantom.design import load_model  # noqa: E402
 from softphantom.estimation import AtlasEstimator, EstimatorConfig  # noqa: E402
-from softphantom.estimation.atlas_build import _sweep, build_atlas  # noqa: E402
-from softphantom.estimation.atlas_config import default_atlas_config  # noqa: E402
+from softphantom.estimation.atlas.build import _sweep, build_atlas  # noqa: E402
+from softphantom.estimation.atlas.config import default_atlas_config  # noqa: E402
 from softphantom.estimation.forward import ForwardModel  # noqa: E402
 from softphantom.estimation.select import atlas_config_from_options  # noqa: E402
 

@@ -44,7 +44,7 @@ from softphantom.estimation.config import DEFAULT_CONTACT_RADIUS_M  # noqa: E402
 from softphantom.estimation import AtlasEstimator, Estimator, EstimatorConfig  # noqa: E402
 from softphantom.estimation.atlas import X_CONTROLS, build_atlas, default_atlas_config, load_or_build  # noqa: E402
 from softphantom.estimation.forward import ForwardModel  # noqa: E402
-from softphantom.estimation.atlas_store import AXIS_NAMES  # noqa: E402
+from softphantom.estimation.atlas.store import AXIS_NAMES  # noqa: E402
 from softphantom.estimation.select import atlas_config_from_options  # noqa: E402
 from softphantom.fem import (  # noqa: E402
     SparseSolver, free_tangent, probe_matrix, solve_static,

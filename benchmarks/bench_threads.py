@@ -1,7 +1,7 @@
 """BLAS threads per process: one (softphantom's default, ``softphantom/__init__.py``) against the
 library default of one per core, on the work the demo, the atlas build and the truth do.
 
-Work: one atlas plane (:func:`softphantom.estimation.atlas_build._sweep`: 20 converged forward solves of
+Work: one atlas plane (:func:`softphantom.estimation.atlas.build._sweep`: 20 converged forward solves of
 the default 6 mm model, warm-started from their neighbours, the on-centre contact) in a fresh
 process, once with ``OPENBLAS_NUM_THREADS=1`` and once with it set to the number of cores (the peer:
 what numpy's OpenBLAS does when nothing is set). Wall and CPU seconds of the plane; idle, and again
@@ -25,7 +25,7 @@ WORK = """
 import json, sys, time
 from softphantom.design import BIPDesign, build_model
 from softphantom.estimation import AtlasConfig, EstimatorConfig
-from softphantom.estimation.atlas_build import _sweep
+from softphantom.estimation.atlas.build import _sweep
 model = build_model(BIPDesign(), float(sys.argv[1]))
 acfg = AtlasConfig(force_min_N=(-1.1, -0.8, -1.1), force_max_N=(1.1, 3.8, 1.1), p_min_kPa=-2, p_max_kPa=2,
                    n_force=(4, 5, 4), n_pressure=2)

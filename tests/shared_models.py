@@ -101,10 +101,10 @@ _atlases: dict = {}
 
 def cached_atlas(shared: Path, x_control: str = "force"):
     """:func:`atlas_config`'s atlas of the coarse model built by full solves (an
-    :class:`~softphantom.estimation.atlas_map.Atlas`, read only), built once per test run and
+    :class:`~softphantom.estimation.atlas.map.Atlas`, read only), built once per test run and
     loaded once per process."""
     from softphantom.estimation import EstimatorConfig, build_atlas
-    from softphantom.estimation.atlas_store import load_atlas, save_atlas
+    from softphantom.estimation.atlas.store import load_atlas, save_atlas
 
     if x_control not in _atlases:
         path = shared / f"softphantom_atlas_{x_control}.npz"
@@ -129,7 +129,7 @@ def main(argv: list[str]) -> None:
 
             kernels.warm_up()
         elif job == "atlas":
-            from softphantom.estimation import atlas_kernels
+            from softphantom.estimation.atlas import kernels as atlas_kernels
 
             atlas_kernels.warm_up()
         else:

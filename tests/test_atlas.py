@@ -16,8 +16,8 @@ from softphantom.estimation import (
     AtlasConfig, AtlasEstimator, Estimator, EstimatorConfig, ForwardModel, StateEstimator, build_atlas,
     load_or_build, open_estimator,
 )
-from softphantom.estimation.atlas_basis import cheb_basis, to_chebyshev
-from softphantom.estimation.atlas_store import FORMAT, AtlasCorrupt, atlas_key, atlas_path, load_atlas, save_atlas
+from softphantom.estimation.atlas.basis import cheb_basis, to_chebyshev
+from softphantom.estimation.atlas.store import FORMAT, AtlasCorrupt, atlas_key, atlas_path, load_atlas, save_atlas
 from softphantom.pose import Pose6, rigid_fit
 from softphantom.sensing import Measurement
 from shared_models import atlas_config, cached_atlas
@@ -134,7 +134,7 @@ def test_displacement_axis_points_sit_at_their_patch_displacement(atlas_disp, fw
     x-displacement (work-conjugate to f_x) is halfway between the faces', and its coordinate q is
     where it is — a property of the equilibria, checked on independent solves at the faces and at
     the f_x the build found."""
-    from softphantom.estimation.atlas_build import NODE_TOL, x_patch
+    from softphantom.estimation.atlas.build import NODE_TOL, x_patch
 
     h = x_patch(fwd)
     ax = ACFG.axes()
@@ -228,7 +228,7 @@ def test_cache_round_trip_mismatch_and_corruption(coarse_model, atlas, fwd, tmp_
     assert "\n" not in str(exc.value)
     # the cached file is used as is
     built = []
-    monkeypatch.setattr("softphantom.estimation.atlas_build.build_atlas", lambda *a, **k: built.append(1) or atlas)
+    monkeypatch.setattr("softphantom.estimation.atlas.build.build_atlas", lambda *a, **k: built.append(1) or atlas)
     caplog.set_level(logging.INFO, logger="softphantom")
     assert load_or_build(coarse_model, CFG, ACFG, cache_dir=tmp_path, fwd=fwd).key == atlas.key
     assert not built and any(str(path) in m for m in messages(caplog))
@@ -329,7 +329,7 @@ def test_a_model_directory_is_no_misplaced_atlas_cache(coarse_model, atlas, fwd,
     atlas says nothing about "atlas files"; a directory holding an atlas file (named by its key) does."""
     from softphantom.design import save_model
 
-    monkeypatch.setattr("softphantom.estimation.atlas_build.build_atlas", lambda *a, **k: atlas)
+    monkeypatch.setattr("softphantom.estimation.atlas.build.build_atlas", lambda *a, **k: atlas)
     save_model(coarse_model, tmp_path / "model")
     assert (tmp_path / "model" / "model.npz").is_file()
     caplog.set_level(logging.INFO, logger="softphantom")
@@ -432,7 +432,7 @@ def test_unreachable_grid_points_are_filled_and_flagged(coarse_model, fwd, monke
             x = fwd.fem.x_rest + B @ lam
             return SimpleNamespace(V=A @ lam, x=x, sub_x=(fwd.probe @ x.reshape(-1, 3)), lam=lam)
 
-    monkeypatch.setattr("softphantom.estimation.atlas_build.ForwardModel", Linear)
+    monkeypatch.setattr("softphantom.estimation.atlas.build.ForwardModel", Linear)
     caplog.set_level(logging.INFO, logger="softphantom")
     at = build_atlas(coarse_model, CFG, ACFG, n_workers=1, processes=False, fwd=fwd)
     lines = messages(caplog)
@@ -483,7 +483,7 @@ def test_an_atlas_in_pieces_along_f_y_follows_a_kink_one_polynomial_cannot(coars
     each piece is cached as the plain atlas of its range."""
     from types import SimpleNamespace
 
-    from softphantom.estimation.atlas_map import AtlasPatches
+    from softphantom.estimation.atlas.map import AtlasPatches
 
     rng = np.random.default_rng(11)
     A = rng.normal(size=(4, 4)) * np.array([1e-9, 1e-9, 1e-9, 1e-12])  # m³ per N, m³ per Pa
@@ -508,7 +508,7 @@ def test_an_atlas_in_pieces_along_f_y_follows_a_kink_one_polynomial_cannot(coars
     pieces = dataclasses.replace(cfg4, f_y_splits_N=(split,))
     assert [c.force_max_N[1] for c in pieces.patches()] == [split, ACFG.force_max_N[1]]
     assert pieces.n_solves == 2 * cfg4.n_solves and "f_y_splits_N" not in cfg4.as_dict()  # old keys kept
-    monkeypatch.setattr("softphantom.estimation.atlas_build.ForwardModel", Kinked)
+    monkeypatch.setattr("softphantom.estimation.atlas.build.ForwardModel", Kinked)
     kw = dict(n_workers=1, processes=False, fwd=fwd)
     one = build_atlas(coarse_model, CFG, cfg4, **kw)
     at = build_atlas(coarse_model, CFG, pieces, **kw)
@@ -545,8 +545,8 @@ def test_the_default_atlas_follows_the_elements_order(order, monkeypatch):
     first piece built first (below the lowest split)."""
     from types import SimpleNamespace
 
-    from softphantom.estimation import atlas_build as atlas_mod
-    from softphantom.estimation import atlas_config
+    from softphantom.estimation.atlas import build as atlas_mod
+    from softphantom.estimation.atlas import config as atlas_config
 
     class Built(Exception):
         pass

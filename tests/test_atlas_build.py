@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from softphantom.estimation import AtlasConfig, EstimatorConfig, ForwardModel
-from softphantom.estimation.atlas_build import _inner, _plane_walk, _sweep
+from softphantom.estimation.atlas.build import _inner, _plane_walk, _sweep
 from softphantom.fem import SparseSolver, free_tangent, solve_static
 
 CFG = EstimatorConfig(contact="on-centre")
@@ -87,7 +87,7 @@ def test_mixed_control_lands_on_the_patch_displacement_at_the_newton_equilibrium
     """Bordered chord iterations (f_x an unknown fixed by the patch's x-displacement): the state
     they reach is the force-controlled Newton equilibrium at the f_x they report, and its patch
     displacement is the target; a target beyond the start's in ū needs a larger f_x."""
-    from softphantom.estimation.atlas_build import x_patch
+    from softphantom.estimation.atlas.build import x_patch
     from softphantom.estimation.linearization import PatchControl
 
     h = x_patch(fwd)
@@ -109,7 +109,7 @@ def test_a_failing_mixed_control_solve_falls_back_to_force_controlled_trials(fwd
     """Where the bordered chord iterations get nowhere (and so do their halved steps), the point
     is still solved at its patch displacement, by force-controlled trials."""
     import softphantom.estimation.linearization as L
-    from softphantom.estimation.atlas_build import _solve_ux, x_patch
+    from softphantom.estimation.atlas.build import _solve_ux, x_patch
 
     chord = L.EquilibriumSolver._chord
 
@@ -132,7 +132,7 @@ def test_a_failing_mixed_control_solve_falls_back_to_force_controlled_trials(fwd
 def test_mixed_control_may_lower_f_x_within_its_range_where_the_trials_may_not(fwd):
     """A fold (f_x falling along the line, the quadratic model's snap-through) is for the mixed-control
     solve alone: its f_x may lie anywhere in ``fx_range``, below the trials' bracket."""
-    from softphantom.estimation.atlas_build import _solve_ux, x_patch
+    from softphantom.estimation.atlas.build import _solve_ux, x_patch
 
     h = x_patch(fwd)
     a = fwd.solve(np.array([0.0, 0.8, -0.2, 1e3]))
@@ -217,7 +217,7 @@ def test_line_predictor_error_falls_with_the_fourth_power_of_the_step():
     """The cubic Hermite through two points with their derivatives, evaluated one step beyond:
     halving the step divides the error by ≈ 16 (the secant's by ≈ 4); with one point it is the
     tangent line (≈ 4)."""
-    from softphantom.estimation.atlas_build import LinePredictor
+    from softphantom.estimation.atlas.build import LinePredictor
 
     def path(u):  # (f_x, x, df_x/du, dx/du)
         return np.exp(u), np.array([np.sin(u), np.cos(2 * u)]), np.exp(u), np.array([np.cos(u), -2 * np.sin(2 * u)])
@@ -246,7 +246,7 @@ def test_the_line_predictor_starts_a_mixed_control_solve_nearer_and_it_lands_on_
     """Along a line at fixed (f_y, f_z, p_u): two solved points with their exact ū-derivatives
     (:func:`_line_knot`) predict the third's state an order of magnitude nearer than the secant
     through them, and the mixed-control solve started there reaches the secant-started one's."""
-    from softphantom.estimation.atlas_build import LinePredictor, _line_knot, x_patch
+    from softphantom.estimation.atlas.build import LinePredictor, _line_knot, x_patch
     from softphantom.estimation.linearization import PatchControl
 
     h = x_patch(fwd)

@@ -11,9 +11,9 @@ import pytest
 
 from softphantom.errors import UserError
 from softphantom.estimation import AtlasConfig, EstimatorConfig, ForwardModel, build_atlas
-from softphantom.estimation.atlas_basis import axis_t, cheb_basis, lobatto, to_chebyshev
-from softphantom.estimation.atlas_map import Atlas
-from softphantom.estimation.atlas_store import describe
+from softphantom.estimation.atlas.basis import axis_t, cheb_basis, lobatto, to_chebyshev
+from softphantom.estimation.atlas.map import Atlas
+from softphantom.estimation.atlas.store import describe
 
 CFG = EstimatorConfig(contact="on-centre")
 # f_y over a range where the map bends (three Lagrange points miss it), the other axes short
@@ -186,7 +186,7 @@ def test_the_derivative_along_a_stretched_axis_goes_through_the_stretch(coarse_m
 
     cfg = dataclasses.replace(BASE, force_min_N=(-0.3, -0.3, -0.3), force_max_N=(0.5, 1.0, 0.3),
                               force_cluster_N=(0.1, 0.0, 0.0), hermite_axis=0)
-    monkeypatch.setattr("softphantom.estimation.atlas_build.ForwardModel", Stepped)
+    monkeypatch.setattr("softphantom.estimation.atlas.build.ForwardModel", Stepped)
     at = _build(coarse_model, cfg, fwd=fwd)
     lag = _build(coarse_model, dataclasses.replace(cfg, hermite_axis=None), fwd=fwd)
     worst_lag = 0.0
@@ -207,7 +207,7 @@ def test_a_displacement_atlas_derivative_along_another_load_is_at_fixed_q(coarse
     # check) of a displacement atlas: at an inner grid point, the atlas's
     # ∂/∂λ_a at fixed q against central differences of mixed-control solves at λ_a ± ε, each at the
     # patch displacement its own faces put that q at (q mixes the faces' ū, which move with λ_a)
-    from softphantom.estimation.atlas_build import _solve_ux, x_patch
+    from softphantom.estimation.atlas.build import _solve_ux, x_patch
 
     cfg = dataclasses.replace(BASE, force_min_N=(-0.6, -0.3, -0.3), force_max_N=(0.6, 1.5, 0.3),
                               n_force=(3, 3, 2 if axis == 2 else 3), x_control="displacement", hermite_axis=axis)

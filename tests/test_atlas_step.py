@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 
 from softphantom.estimation import AtlasConfig, AtlasEstimator, EstimatorConfig, ForwardModel
-from softphantom.estimation import atlas_kernels as ak
-from softphantom.estimation.atlas_basis import to_chebyshev
-from softphantom.estimation.atlas_map import Atlas
-from softphantom.estimation.atlas_store import atlas_key
+from softphantom.estimation.atlas import kernels as ak
+from softphantom.estimation.atlas.basis import to_chebyshev
+from softphantom.estimation.atlas.map import Atlas
+from softphantom.estimation.atlas.store import atlas_key
 from softphantom.pose import matrix_from_ypr, rigid_fit, ypr_from_matrix
 from softphantom.sensing import Measurement
 
@@ -165,7 +165,7 @@ def test_warm_start_gives_the_cold_start_answer(coarse_model, atlas):
 
 
 def test_qp_solver_only_where_a_bound_is_active(coarse_model, atlas, monkeypatch):
-    import softphantom.estimation.atlas_estimator as atlas_mod
+    import softphantom.estimation.atlas.estimator as atlas_mod
 
     calls = []
     real = atlas_mod.solve_volume_qp
@@ -246,7 +246,7 @@ def test_the_estimator_reads_only_the_atlas_public_interface():
     import ast
     import inspect
 
-    import softphantom.estimation.atlas_estimator as mod
+    import softphantom.estimation.atlas.estimator as mod
 
     private = [f"{ast.unparse(n.value)}.{n.attr}" for n in ast.walk(ast.parse(inspect.getsource(mod)))
                if isinstance(n, ast.Attribute) and n.attr.startswith("_") and not n.attr.startswith("__")

@@ -159,7 +159,7 @@ def test_atlas_built_by_the_reduced_model_agrees_with_the_full_one(coarse_model,
     off = red.provenance["offline"]
     assert off["checks"] == 4 and off["snapshots"] == 20 and off["check_max_dV_mm3"] >= 0
     # the checks' error survives the file and is what `atlas info` says
-    from softphantom.estimation.atlas_store import describe, load_atlas, save_atlas
+    from softphantom.estimation.atlas.store import describe, load_atlas, save_atlas
 
     back = load_atlas(save_atlas(red, tmp_path / "rom.npz"), red.key)
     assert f"volumes within {off['check_max_dV_mm3']:.3f} mm³" in dict(describe(back))["offline"]

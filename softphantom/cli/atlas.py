@@ -64,9 +64,9 @@ def build_cmd(
     from dataclasses import replace
 
     from softphantom.estimation import EstimatorConfig
-    from softphantom.estimation.atlas_build import load_or_build
-    from softphantom.estimation.atlas_config import default_atlas_config
-    from softphantom.estimation.atlas_store import atlas_path
+    from softphantom.estimation.atlas.build import load_or_build
+    from softphantom.estimation.atlas.config import default_atlas_config
+    from softphantom.estimation.atlas.store import atlas_path
     from softphantom.estimation.select import atlas_config_from_options
 
     atlas_config_from_options(atlas_grid, envelope, atlas_x_axis, atlas_f_y_split)  # bad options fail first
@@ -90,7 +90,7 @@ def info_cmd(
     model_dir: Path = typer.Option(None, "--model", help="Model directory whose MODEL/atlas/ files to list."),
 ) -> None:
     """Describe atlas files: model, contact, envelope, grid, build cost, provenance."""
-    from softphantom.estimation.atlas_store import describe, load_atlas, model_atlases
+    from softphantom.estimation.atlas.store import describe, load_atlas, model_atlases
 
     if not files:
         if model_dir is None:
@@ -113,7 +113,7 @@ def verify_cmd(
 ) -> None:
     """Check atlas files against a model: intact (digest), this softphantom's format, and built for
     this model (the key recomputed from the model). Exit 2 naming each file that fails."""
-    from softphantom.estimation.atlas_store import model_atlases, verify_atlas
+    from softphantom.estimation.atlas.store import model_atlases, verify_atlas
 
     model = _model(model_dir)
     files = files or model_atlases(model_dir)
@@ -139,7 +139,7 @@ def add_cmd(
     model_dir: Path = MODEL_OPTION,
 ) -> None:
     """Verify an atlas file against a model and install it in MODEL/atlas/ under its key."""
-    from softphantom.estimation.atlas_store import install_atlas
+    from softphantom.estimation.atlas.store import install_atlas
 
     if not file.is_file():
         raise UserError(f"{file}: no such atlas file")

@@ -100,7 +100,7 @@ def estimate_cmd(
 
     from softphantom.design import load_model
     from softphantom.estimation import EstimatorConfig, estimate_stream, open_estimator
-    from softphantom.estimation.atlas_config import default_atlas_config
+    from softphantom.estimation.atlas.config import default_atlas_config
     from softphantom.estimation.select import atlas_config_from_options, check_estimator_kind
 
     check_estimator_kind(estimator)

@@ -8,10 +8,10 @@ converged equilibrium at given loads. :func:`estimate_stream` runs one over a se
 writes the estimate CSV (:class:`EstimateWriter`).
 """
 
-from softphantom.estimation.atlas_build import build_atlas, load_or_build
-from softphantom.estimation.atlas_config import AtlasConfig
-from softphantom.estimation.atlas_estimator import AtlasEstimator
-from softphantom.estimation.atlas_map import Atlas
+from softphantom.estimation.atlas.build import build_atlas, load_or_build
+from softphantom.estimation.atlas.config import AtlasConfig
+from softphantom.estimation.atlas.estimator import AtlasEstimator
+from softphantom.estimation.atlas.map import Atlas
 from softphantom.estimation.config import EstimatorConfig
 from softphantom.estimation.estimator import Estimator, NoiseBound, noise_bound
 from softphantom.estimation.forward import ForwardModel

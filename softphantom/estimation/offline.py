@@ -26,7 +26,7 @@ import time
 import numpy as np
 
 from softphantom.errors import SolverError
-from softphantom.estimation.atlas_config import FALLBACK_MIN_LOAD_STEP, VIA_TOL, x_patch
+from softphantom.estimation.atlas.config import FALLBACK_MIN_LOAD_STEP, VIA_TOL, x_patch
 from softphantom.estimation.config import EstimatorConfig
 from softphantom.estimation.forward import ForwardModel
 from softphantom.estimation.linearization import Linearization, PatchControl

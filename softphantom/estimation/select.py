@@ -26,7 +26,7 @@ def check_estimator_kind(kind: str) -> str:
 def open_estimator(kind: str, model, config: EstimatorConfig | None = None, *, cache_dir=None, atlas=None,
                    scheduler: str | None = None, n_workers: int | None = None) -> StateEstimator:
     """The estimator ``kind`` for ``model``: ``"atlas"`` (precomputed, loaded from or built into
-    ``cache_dir``, the model directory; ``atlas`` an :class:`~softphantom.estimation.atlas_config.AtlasConfig`
+    ``cache_dir``, the model directory; ``atlas`` an :class:`~softphantom.estimation.atlas.config.AtlasConfig`
     or a built atlas) or ``"refresh"`` (:class:`~softphantom.estimation.Estimator`, its mode from
     ``config``)."""
     check_estimator_kind(kind)
@@ -34,19 +34,19 @@ def open_estimator(kind: str, model, config: EstimatorConfig | None = None, *, c
         from softphantom.estimation.estimator import Estimator
 
         return Estimator(model, config)
-    from softphantom.estimation.atlas_estimator import AtlasEstimator
+    from softphantom.estimation.atlas.estimator import AtlasEstimator
 
     return AtlasEstimator(model, config, atlas, cache_dir=cache_dir, scheduler=scheduler, n_workers=n_workers)
 
 
 def atlas_config_from_options(grid: str | None = None, envelope: str | None = None, x_axis: str | None = None,
                               f_y_splits: str | None = None, base=None):
-    """An :class:`~softphantom.estimation.atlas_config.AtlasConfig` from ``--atlas-grid NX,NY,NZ,NP``
+    """An :class:`~softphantom.estimation.atlas.config.AtlasConfig` from ``--atlas-grid NX,NY,NZ,NP``
     (points per axis), ``--envelope FXMIN:FXMAX,FYMIN:FYMAX,FZMIN:FZMAX,PMIN:PMAX`` (N, kPa),
     ``--atlas-x-axis force|displacement`` (``AtlasConfig.x_control``) and ``--atlas-f-y-split-N
     F[,F...]`` (``AtlasConfig.f_y_splits_N``: the atlas in pieces along f_y, each with this grid;
     an empty string: one piece). What is not given comes from ``base`` (default: ``AtlasConfig()``;
-    for a model, :func:`~softphantom.estimation.atlas_config.default_atlas_config` of its element order).
+    for a model, :func:`~softphantom.estimation.atlas.config.default_atlas_config` of its element order).
 
     >>> c = atlas_config_from_options("3,4,3,2", "-1:1,-1:2,-1:1,0:10")
     >>> c.shape, c.force_max_N, c.p_max_kPa
@@ -63,7 +63,7 @@ def atlas_config_from_options(grid: str | None = None, envelope: str | None = No
     Traceback (most recent call last):
     ...
     softphantom.errors.UserError: --atlas-f-y-split-N: comma-separated forces in N, got '3.3 N'
-    >>> from softphantom.estimation.atlas_config import default_atlas_config
+    >>> from softphantom.estimation.atlas.config import default_atlas_config
     >>> c = atlas_config_from_options("11,9,4,3", base=default_atlas_config(2))
     >>> c.shape, c.x_control, c.f_y_splits_N
     ((11, 9, 4, 3), 'displacement', (3.3,))
@@ -78,7 +78,7 @@ def atlas_config_from_options(grid: str | None = None, envelope: str | None = No
     """
     from dataclasses import replace
 
-    from softphantom.estimation.atlas_config import AtlasConfig
+    from softphantom.estimation.atlas.config import AtlasConfig
 
     kw: dict = {}
     if grid is not None:

@@ -15,7 +15,7 @@ __all__ = ["ARM_NAMES", "Estimate", "StateEstimator"]
 @runtime_checkable
 class StateEstimator(Protocol):
     """The estimator interface: :class:`~softphantom.estimation.Estimator` (refreshed
-    linearization) and :class:`~softphantom.estimation.atlas_estimator.AtlasEstimator` (precomputed atlas)
+    linearization) and :class:`~softphantom.estimation.atlas.estimator.AtlasEstimator` (precomputed atlas)
     implement it; the CLI, the live view and the demo only use this.
 
     ``step(measurement, skipped=0) → Estimate`` one sample; ``node_positions()`` (N,3) m of the

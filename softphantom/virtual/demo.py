@@ -80,7 +80,7 @@ def atlas_box(forces, p_kPa: float, grid=None, cluster_N=None) -> AtlasConfig:
 
 
 def scenario_atlas(truth, grid: tuple[int, int, int, int] | None = None) -> AtlasConfig:
-    """The :class:`~softphantom.estimation.atlas_config.AtlasConfig` the demo builds for one
+    """The :class:`~softphantom.estimation.atlas.config.AtlasConfig` the demo builds for one
     scenario from its solved ``truth`` (see ``MARGIN_N`` above); ``grid`` overrides the points per axis.
 
     >>> from types import SimpleNamespace as E

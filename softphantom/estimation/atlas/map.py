@@ -1,10 +1,10 @@
 """The atlas: tensor Chebyshev polynomials of the forward map over the load envelope
 (:class:`Atlas`, one piece; :class:`AtlasPatches`, pieces along f_y), evaluated by the compiled
-kernels (:mod:`~softphantom.estimation.atlas_kernels`) through the public :class:`KernelView`.
+kernels (:mod:`~softphantom.estimation.atlas.kernels`) through the public :class:`KernelView`.
 
-Built by :func:`~softphantom.estimation.atlas_build.build_atlas`, stored by
-:mod:`~softphantom.estimation.atlas_store`, inverted by
-:class:`~softphantom.estimation.atlas_estimator.AtlasEstimator`.
+Built by :func:`~softphantom.estimation.atlas.build.build_atlas`, stored by
+:mod:`~softphantom.estimation.atlas.store`, inverted by
+:class:`~softphantom.estimation.atlas.estimator.AtlasEstimator`.
 """
 
 from __future__ import annotations
@@ -15,9 +15,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from softphantom.estimation import atlas_kernels as ak
-from softphantom.estimation.atlas_basis import axes_t, tensor_jacobian, tensor_value
-from softphantom.estimation.atlas_config import AtlasConfig
+from softphantom.estimation.atlas import kernels as ak
+from softphantom.estimation.atlas.basis import axes_t, tensor_jacobian, tensor_value
+from softphantom.estimation.atlas.config import AtlasConfig
 
 
 @dataclass(frozen=True)
@@ -43,7 +43,7 @@ class KernelView:
 
     @property
     def n_force_terms(self) -> int:
-        """Coefficients per output once the pressure is contracted (``atlas_kernels.contract_pressure``)."""
+        """Coefficients per output once the pressure is contracted (``atlas.kernels.contract_pressure``)."""
         return self.V.shape[0] // int(self.shape[3])
 
 
@@ -59,13 +59,13 @@ class Atlas:
     the RMS error of the POD truncation over the grid; ``build_cpu_s`` the CPU seconds of the
     forward solves (summed over the workers: independent of the machine's load); ``solved`` (n1,n2,n3,n4) bool, the grid
     points whose solve converged (the others were filled, see
-    :func:`~softphantom.estimation.atlas_build.build_atlas`); ``cFx``
+    :func:`~softphantom.estimation.atlas.build.build_atlas`); ``cFx``
     (n1,n2,n3,n4,1) the coefficients of f_x (N) on a displacement-controlled x axis (empty on a
     force axis); ``q_nodes`` (n1,n2,n3,n4) the first coordinate of each grid point (the Lobatto
-    node, or on a displacement axis where the point landed, ``atlas_build.NODE_TOL``); ``provenance`` what
+    node, or on a displacement axis where the point landed, ``atlas.build.NODE_TOL``); ``provenance`` what
     the atlas was built for and by (model, contact, tolerance, softphantom version, date: what
     ``softphantom atlas info`` shows and ``atlas verify`` recomputes the key from,
-    :func:`~softphantom.estimation.atlas_build.provenance`); ``kernel`` the :class:`KernelView` (derived).
+    :func:`~softphantom.estimation.atlas.build.provenance`); ``kernel`` the :class:`KernelView` (derived).
 
     The polynomials take the atlas's coordinates λ = (q, f_y, f_z, p_u): ``q`` is f_x on a force
     axis and the patch displacement's N-equivalent on a displacement axis (``AtlasConfig.x_control``);
@@ -113,7 +113,7 @@ class Atlas:
         object.__setattr__(self, "_axes_lists", [
             (xs.tolist(), float(xs[0] - 1e-9 * (1 + abs(xs[0]))), float(xs[-1] + 1e-9 * (1 + abs(xs[-1]))))
             for xs in self._axes])
-        # the kernels' view (atlas_kernels): coefficients as (terms, outputs), C order; the terms per
+        # the kernels' view (atlas.kernels): coefficients as (terms, outputs), C order; the terms per
         # axis are the points', twice those on a Hermite axis (AtlasConfig.coef_shape)
         n = int(np.prod(self.config.coef_shape))
         c = {name: np.ascontiguousarray(getattr(self, name), dtype=float).reshape(n, -1)
@@ -252,7 +252,7 @@ class AtlasPatches:
     and nearly symmetric, and there the yaw reads the back pair's volume difference at ≈ 1° per mm³
     (docs/estimation.md, Known limits). Neighbouring pieces share their f_y face, each solved by
     its own build, so the map is continuous there to the builds' tolerance. Evaluation picks the
-    piece by f_y (a face belongs to the piece below it); :class:`~softphantom.estimation.atlas_estimator.AtlasEstimator` runs its
+    piece by f_y (a face belongs to the piece below it); :class:`~softphantom.estimation.atlas.estimator.AtlasEstimator` runs its
     Gauss–Newton in one piece and moves to the neighbour when it stops on the shared face.
     """
 

@@ -7,12 +7,12 @@ arithmetic in one compiled call each:
 
 - :func:`eval_vj` / :func:`eval_value`: the polynomial and its gradient at λ in loops over the
   coefficients, each load first mapped to its axis's Chebyshev variable (:func:`axis_t`: affine,
-  or affine in asinh(f / w) on a stretched axis) (:meth:`~softphantom.estimation.atlas_map.Atlas.volumes_reference` and
-  :meth:`~softphantom.estimation.atlas_map.Atlas.value_reference` are the ``numpy.polynomial``
+  or affine in asinh(f / w) on a stretched axis) (:meth:`~softphantom.estimation.atlas.map.Atlas.volumes_reference` and
+  :meth:`~softphantom.estimation.atlas.map.Atlas.value_reference` are the ``numpy.polynomial``
   references they are tested against); the gradient after :func:`contract_pressure`, which a sample does once: its pressure is
   measured, fixed during the iterations, which then sum n1·n2·n3 terms (:func:`eval_vj3`);
 - :func:`gn_run`: the Gauss–Newton iterations of
-  :meth:`~softphantom.estimation.atlas_estimator.AtlasEstimator.invert`, each step the minimizer of the
+  :meth:`~softphantom.estimation.atlas.estimator.AtlasEstimator.invert`, each step the minimizer of the
   volume QP of :func:`~softphantom.estimation.qp.solve_volume_qp` (same scaling and Tikhonov term)
   by a 3 × 3 Cholesky solve. That is the QP's solution when no force bound is in the way; when one
   is (or the solve breaks down) the kernel stops and returns ``NEED_QP``, and the caller takes that

@@ -5,9 +5,9 @@ An atlas file (``MODEL/atlas/<key>.npz``, :func:`save_atlas`) is content-address
 the start of the SHA-256 of everything it was built from (mesh, law, element, contact patch,
 tracked points, envelope, grid, solver tolerance, file format: :func:`atlas_key`), and it carries
 the digest of its own arrays and its provenance
-(:func:`~softphantom.estimation.atlas_build.provenance`). So a file built on one machine of a lab
+(:func:`~softphantom.estimation.atlas.build.provenance`). So a file built on one machine of a lab
 can be copied to another: :func:`verify_atlas` recomputes its key from the model there,
-:func:`install_atlas` puts it where :func:`~softphantom.estimation.atlas_build.load_or_build`
+:func:`install_atlas` puts it where :func:`~softphantom.estimation.atlas.build.load_or_build`
 finds it. Every refusal is one line naming the file and what does not match
 (:class:`AtlasCorrupt`, :class:`AtlasMismatch`).
 """
@@ -23,8 +23,8 @@ from pathlib import Path
 import numpy as np
 
 from softphantom.errors import UserError
-from softphantom.estimation.atlas_config import AtlasConfig
-from softphantom.estimation.atlas_map import Atlas
+from softphantom.estimation.atlas.config import AtlasConfig
+from softphantom.estimation.atlas.map import Atlas
 from softphantom.estimation.config import EstimatorConfig
 from softphantom.estimation.forward import ForwardModel
 

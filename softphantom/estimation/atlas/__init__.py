@@ -18,7 +18,7 @@ Online (:class:`AtlasEstimator`): per sample, a Gauss–Newton iteration in the 
 (the urethra pressure is measured) on the polynomial volumes, each step the bounded QP of
 :func:`~softphantom.estimation.qp.solve_volume_qp` with the polynomial's Jacobian; the points and
 the full field come from the same polynomials at the solution. No refresh and no thread: the step
-is compiled (:mod:`~softphantom.estimation.atlas_kernels`), tens of microseconds a sample. Outside the envelope the loads are clamped to it and the
+is compiled (:mod:`~softphantom.estimation.atlas.kernels`), tens of microseconds a sample. Outside the envelope the loads are clamped to it and the
 estimate carries ``in_envelope=False`` (the CSV's ``in_envelope`` column); so does an estimate in a
 cell the build could not solve.
 
@@ -26,25 +26,25 @@ Cache: :func:`load_or_build` keeps the atlas next to the model under the SHA-256
 depends on (mesh, law and its parameters, element, contact patch, envelope, grid, format version).
 A file whose content hash does not match, of another format or built for another model is refused
 with one line and never overwritten unless asked (``softphantom atlas build --rebuild``);
-:mod:`~softphantom.estimation.atlas_store` verifies, describes and installs atlas files.
+:mod:`~softphantom.estimation.atlas.store` verifies, describes and installs atlas files.
 
 Where each job lives (this module re-exports their public names):
 
-- :mod:`~softphantom.estimation.atlas_config`: the settings, :class:`AtlasConfig`, :func:`default_atlas_config`;
-- :mod:`~softphantom.estimation.atlas_basis`: the Chebyshev maths (grids, interpolation, evaluation);
-- :mod:`~softphantom.estimation.atlas_map`: :class:`Atlas`, :class:`AtlasPatches` (the polynomials);
-- :mod:`~softphantom.estimation.atlas_build`: the grid sweeps on Dask, :func:`build_atlas`, :func:`load_or_build`;
-- :mod:`~softphantom.estimation.atlas_store`: the key, the file format, verify / describe / install;
-- :mod:`~softphantom.estimation.atlas_estimator`: :class:`AtlasEstimator`;
-- :mod:`~softphantom.estimation.atlas_kernels`: the compiled per-sample step.
+- :mod:`~softphantom.estimation.atlas.config`: the settings, :class:`AtlasConfig`, :func:`default_atlas_config`;
+- :mod:`~softphantom.estimation.atlas.basis`: the Chebyshev maths (grids, interpolation, evaluation);
+- :mod:`~softphantom.estimation.atlas.map`: :class:`Atlas`, :class:`AtlasPatches` (the polynomials);
+- :mod:`~softphantom.estimation.atlas.build`: the grid sweeps on Dask, :func:`build_atlas`, :func:`load_or_build`;
+- :mod:`~softphantom.estimation.atlas.store`: the key, the file format, verify / describe / install;
+- :mod:`~softphantom.estimation.atlas.estimator`: :class:`AtlasEstimator`;
+- :mod:`~softphantom.estimation.atlas.kernels`: the compiled per-sample step.
 """
 
-from softphantom.estimation.atlas_basis import cheb_basis, cheb_points, to_chebyshev
-from softphantom.estimation.atlas_build import NODE_TOL, build_atlas, fill_weights, load_or_build, provenance, x_patch
-from softphantom.estimation.atlas_config import P2_F_Y_SPLITS_N, X_CONTROLS, AtlasConfig, default_atlas_config
-from softphantom.estimation.atlas_estimator import AtlasEstimator
-from softphantom.estimation.atlas_map import Atlas, AtlasPatches, KernelView
-from softphantom.estimation.atlas_store import (
+from softphantom.estimation.atlas.basis import cheb_basis, cheb_points, to_chebyshev
+from softphantom.estimation.atlas.build import NODE_TOL, build_atlas, fill_weights, load_or_build, provenance, x_patch
+from softphantom.estimation.atlas.config import P2_F_Y_SPLITS_N, X_CONTROLS, AtlasConfig, default_atlas_config
+from softphantom.estimation.atlas.estimator import AtlasEstimator
+from softphantom.estimation.atlas.map import Atlas, AtlasPatches, KernelView
+from softphantom.estimation.atlas.store import (
     FORMAT, AtlasCorrupt, AtlasMismatch, atlas_key, atlas_path, load_atlas, save_atlas,
 )
 

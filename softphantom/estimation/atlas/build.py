@@ -1,6 +1,6 @@
 """The atlas build: converged forward solves on the grid of an :class:`AtlasConfig`, in parallel
 through :mod:`softphantom.parallel` (:func:`build_atlas`), fitted to tensor Chebyshev polynomials
-(:class:`~softphantom.estimation.atlas_map.Atlas`); and the cache in a model directory
+(:class:`~softphantom.estimation.atlas.map.Atlas`); and the cache in a model directory
 (:func:`load_or_build`).
 
 Each task solves one (f_y, f_z) plane of the grid (:func:`_sweep`) walking outwards from zero load,
@@ -20,11 +20,11 @@ from pathlib import Path
 import numpy as np
 
 from softphantom.errors import SolverError
-from softphantom.estimation.atlas_basis import axis_t, to_chebyshev
-from softphantom.estimation.atlas_config import (FALLBACK_MIN_LOAD_STEP, VIA_TOL, AtlasConfig, default_atlas_config,
+from softphantom.estimation.atlas.basis import axis_t, to_chebyshev
+from softphantom.estimation.atlas.config import (FALLBACK_MIN_LOAD_STEP, VIA_TOL, AtlasConfig, default_atlas_config,
                                                 x_patch)
-from softphantom.estimation.atlas_map import Atlas, AtlasPatches
-from softphantom.estimation.atlas_store import AtlasCorrupt, AtlasMismatch, atlas_key, atlas_path, load_atlas, save_atlas
+from softphantom.estimation.atlas.map import Atlas, AtlasPatches
+from softphantom.estimation.atlas.store import AtlasCorrupt, AtlasMismatch, atlas_key, atlas_path, load_atlas, save_atlas
 from softphantom.estimation.config import EstimatorConfig
 from softphantom.estimation.forward import ForwardModel
 from softphantom.estimation.linearization import PatchControl
@@ -471,7 +471,7 @@ def _fill(values: np.ndarray, weights) -> np.ndarray:
 
 def provenance(model, fwd: ForwardModel) -> dict:
     """What an atlas records about its origin: enough to recompute its key from the model alone
-    (the contact point and patch radius, the solver tolerance: :func:`softphantom.estimation.atlas_store.verify_atlas`)
+    (the contact point and patch radius, the solver tolerance: :func:`softphantom.estimation.atlas.store.verify_atlas`)
     and to tell a user what it is (model name, nodes, element order, version, date)."""
     import datetime
 

@@ -4,8 +4,8 @@ Per sample, a Gauss–Newton iteration in the 3 force components (the urethra pr
 on the atlas's polynomial volumes, each step the bounded QP of
 :func:`~softphantom.estimation.qp.solve_volume_qp` with the polynomial's Jacobian; the points and
 the full field come from the same polynomials at the solution. No refresh and no thread: the step
-is compiled (:mod:`~softphantom.estimation.atlas_kernels`, on the atlas's public
-:class:`~softphantom.estimation.atlas_map.KernelView`), tens of microseconds a sample.
+is compiled (:mod:`~softphantom.estimation.atlas.kernels`, on the atlas's public
+:class:`~softphantom.estimation.atlas.map.KernelView`), tens of microseconds a sample.
 """
 
 from __future__ import annotations
@@ -16,11 +16,11 @@ import time
 import numpy as np
 
 from softphantom.errors import SolverError, UserError
-from softphantom.estimation import atlas_kernels as ak
-from softphantom.estimation.atlas_build import load_or_build
-from softphantom.estimation.atlas_config import AtlasConfig
-from softphantom.estimation.atlas_map import Atlas, AtlasPatches
-from softphantom.estimation.atlas_store import atlas_key
+from softphantom.estimation.atlas import kernels as ak
+from softphantom.estimation.atlas.build import load_or_build
+from softphantom.estimation.atlas.config import AtlasConfig
+from softphantom.estimation.atlas.map import Atlas, AtlasPatches
+from softphantom.estimation.atlas.store import atlas_key
 from softphantom.estimation.config import EstimatorConfig
 from softphantom.estimation.estimator import (
     EstimatorState, check_sample, pose_and_shifts, repeat_last, rest_estimate, sensitivity_cond,
@@ -36,7 +36,7 @@ FACE_TOL_N = 1e-9  # a Gauss–Newton that ends this close to a piece's shared f
 
 
 class AtlasEstimator(EstimatorState):
-    """The real-time estimator on an :class:`~softphantom.estimation.atlas_map.Atlas` (see the module docstring): ``step(measurement)
+    """The real-time estimator on an :class:`~softphantom.estimation.atlas.map.Atlas` (see the module docstring): ``step(measurement)
     → Estimate`` with no background work; ``node_positions()`` the full field of the last estimate.
 
     ``Estimate.in_envelope`` is False when the measured pressure lies outside the atlas's range,
@@ -140,7 +140,7 @@ class AtlasEstimator(EstimatorState):
 
         Gauss–Newton from ``start`` (default: the last estimate) on the polynomial volumes, each
         step the volume QP with its exact Jacobian, a step that raises the misfit halved
-        (:func:`~softphantom.estimation.atlas_kernels.gn_run`). With no force bound in the way the
+        (:func:`~softphantom.estimation.atlas.kernels.gn_run`). With no force bound in the way the
         QP's minimizer is a 3 × 3 solve inside the kernel; an iteration whose step meets a bound is
         solved by the configured QP solver (``EstimatorConfig.qp_solver``).
         :meth:`invert_reference` is the same iteration in numpy, every step by the QP solver."""
@@ -221,7 +221,7 @@ class AtlasEstimator(EstimatorState):
 
     def _pose(self, lam: np.ndarray):
         """(Pose6, target shifts) at ``lam``: the tracked points by the kernel, the markers' rigid
-        fit by :func:`~softphantom.estimation.atlas_kernels.rigid_fit_pose`."""
+        fit by :func:`~softphantom.estimation.atlas.kernels.rigid_fit_pose`."""
         at = self._pieces[self._piece_index(lam[1])]
         if self._P0 is None:  # rest markers that rigid_fit refuses: let it raise its error, as before
             return pose_and_shifts(self.rest_markers, self.rest_targets, self.target_names, at.points(lam))

@@ -5,7 +5,7 @@ A load ``x`` on its axis [lo, hi] maps to the Chebyshev variable t ∈ [−1, 1]
 (affine, or affine in asinh(x / w) on a stretched axis); :func:`cheb_points` is its inverse at the
 Chebyshev–Lobatto points. :func:`to_chebyshev` turns grid values into tensor coefficients,
 :func:`tensor_value` / :func:`tensor_jacobian` evaluate them with ``numpy.polynomial.chebyshev``:
-they are the references the compiled kernels (:mod:`~softphantom.estimation.atlas_kernels`, the
+they are the references the compiled kernels (:mod:`~softphantom.estimation.atlas.kernels`, the
 real-time path) are tested against.
 """
 
@@ -16,7 +16,7 @@ import math
 import numpy as np
 from numpy.polynomial import chebyshev as C
 
-from softphantom.estimation.atlas_kernels import axis_t
+from softphantom.estimation.atlas.kernels import axis_t
 
 __all__ = ["axis_t", "axes_t", "cheb_basis", "cheb_points", "lobatto", "tensor_jacobian", "tensor_value",
            "to_chebyshev"]
@@ -69,7 +69,7 @@ def to_chebyshev(values: np.ndarray, shape: tuple[int, ...], t0: np.ndarray | No
     """Tensor Chebyshev coefficients (shape + (m,)) of grid values (shape + (m,)) at
     Chebyshev–Lobatto points: one small Vandermonde solve per axis. ``t0`` (shape): the first
     axis's Chebyshev variable at each point, where the points of a line along it are not the
-    Lobatto points (a displacement axis, ``atlas_build.NODE_TOL``): each such line is interpolated
+    Lobatto points (a displacement axis, ``atlas.build.NODE_TOL``): each such line is interpolated
     through its own points first, then the other axes as usual — the polynomial is still exact at
     every point.
 

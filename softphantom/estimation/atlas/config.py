@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from softphantom.errors import UserError
-from softphantom.estimation.atlas_basis import cheb_points
+from softphantom.estimation.atlas.basis import cheb_points
 
 if TYPE_CHECKING:
     from softphantom.estimation.forward import ForwardModel
@@ -30,7 +30,7 @@ class AtlasConfig:
     covers the phantom's use with a margin: pushes mostly along +y, the needle axis, up to 5.2 N,
     ±2 N sideways — the paper's pushes and a lateral (1.5, 0.5, −1.0) N push, whose estimate runs
     ≈ 20 % above it on a stiffer model; a 6 N push with 1.4 N sideways does not converge on the
-    default mesh, and corners the model cannot reach are flagged, :func:`~softphantom.estimation.atlas_build.build_atlas`);
+    default mesh, and corners the model cannot reach are flagged, :func:`~softphantom.estimation.atlas.build.build_atlas`);
     ``p_min_kPa`` / ``p_max_kPa`` the urethra pressure range; ``n_force`` (3,) / ``n_pressure``
     Chebyshev–Lobatto points per axis (their product is the number of forward solves);
     ``linear_pressure`` (only with ``n_pressure=2``): the two pressure planes from one plane of
@@ -51,13 +51,13 @@ class AtlasConfig:
     ``"displacement"``: the work-conjugate x-displacement of the contact patch, ū_x = H_xᵀu, mapped per
     (f_y, f_z, p_u) point affinely onto [f_x,min, f_x,max] so that its ends are the envelope's f_x
     faces; the axis variable ``q`` (N-equivalent) is f_x at the faces and f_x itself becomes an
-    output (:meth:`~softphantom.estimation.atlas_map.Atlas.forces`). A stable equilibrium has ∂ū_x/∂f_x = H_xᵀK⁻¹H_x > 0, so ū_x is
+    output (:meth:`~softphantom.estimation.atlas.map.Atlas.forces`). A stable equilibrium has ∂ū_x/∂f_x = H_xᵀK⁻¹H_x > 0, so ū_x is
     monotone in f_x, and where the arm pair steps (f_x moves a few hundredths of a newton while the
     state moves across) the displacement moves with the state: the outputs are smooth in q where
     they are steep in f_x (docs/estimation.md). The build solves the two faces first, then walks
     each line along q from face to face, each node's point one mixed-control solve (f_x an unknown
     fixed by ū_x: :class:`~softphantom.estimation.linearization.PatchControl`), force-controlled
-    trials where that fails (:mod:`~softphantom.estimation.atlas_build`).
+    trials where that fails (:mod:`~softphantom.estimation.atlas.build`).
     The step is still the steepest part of the map in q, but far wider than in f_x: the default
     stretch of such an axis is :data:`STRETCH_Q` (N-equivalent); ``linear_pressure`` needs
     ``"force"`` (its tangent line is at fixed f_x).
@@ -66,10 +66,10 @@ class AtlasConfig:
     3 p_u) interpolated by Hermite: each grid point's solve also gives the exact derivative of every
     output along that axis (GMRES on the tangent at the solution), so the n points of that axis
     determine a polynomial of degree 2n − 1 there
-    (:func:`~softphantom.estimation.atlas_basis.to_chebyshev`): n Hermite points stand in for
+    (:func:`~softphantom.estimation.atlas.basis.to_chebyshev`): n Hermite points stand in for
     ≈ 2n Lagrange points at the cost of one sensitivity a point (on a displacement axis: along q,
     the patch displacement at fixed (f_y, f_z, p_u), the f_x column over ∂ū/∂f_x = H_xᵀK⁻¹H_x;
-    along another load, at fixed q: two sensitivities, :func:`~softphantom.estimation.atlas_build._axis_derivative`). The
+    along another load, at fixed q: two sensitivities, :func:`~softphantom.estimation.atlas.build._axis_derivative`). The
     coefficient arrays are 2n long along it (:attr:`coef_shape`); the default stretch counts the
     polynomial's 2n terms (docs/atlas.md).
 
@@ -207,7 +207,7 @@ class AtlasConfig:
 
     @property
     def stretch(self) -> np.ndarray:
-        """(4,) the axes' stretch widths (N, N, N; the pressure axis 0: affine), :func:`~softphantom.estimation.atlas_basis.axis_t`."""
+        """(4,) the axes' stretch widths (N, N, N; the pressure axis 0: affine), :func:`~softphantom.estimation.atlas.basis.axis_t`."""
         return np.array([*self.cluster_N, 0.0])
 
     @property
