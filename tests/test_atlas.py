@@ -435,7 +435,7 @@ def test_unreachable_grid_points_are_filled_and_flagged(coarse_model, fwd, monke
     monkeypatch.setattr("softphantom.estimation.atlas.build.ForwardModel", Linear)
     caplog.set_level(logging.INFO, logger="softphantom")
     at = build_atlas(coarse_model, CFG, ACFG, n_workers=1, processes=False, fwd=fwd)
-    lines = messages(caplog)
+    lines = [s for s in messages(caplog) if "parallel efficiency" not in s]  # the build's summary aside
     g = np.stack(np.meshgrid(*ACFG.axes(), indexing="ij"), axis=-1)
     fails = (g[..., 0] > 0.1) & (g[..., 1] > 0.5)
     assert np.array_equal(~at.solved, fails) and at.unsolved == fails.sum() > 0
@@ -448,8 +448,9 @@ def test_unreachable_grid_points_are_filled_and_flagged(coarse_model, fwd, monke
     # its planes' progress: one record as each plane task ends, done of total, for the CLI's bar
     steps = [r.progress for r in caplog.records if hasattr(r, "progress")]
     n_planes = ACFG.shape[0] * (1 if ACFG.linear_pressure else ACFG.shape[3])
-    assert [(s.task, s.done, s.total) for s in steps] == [(f"atlas: {ACFG.n_solves} forward solves", k, n_planes)
-                                                          for k in range(n_planes + 1)]
+    label = f"atlas: {n_planes} tasks, {ACFG.n_solves} grid points"
+    assert [(s.task, s.done, s.total) for s in steps] == [(label, k, n_planes) for k in range(n_planes + 1)]
+    assert all(s.what.startswith("ETA ") for s in steps[1:-1])  # the time left, once a task has ended
     # the fill is exact for a linear map: the polynomial reproduces it everywhere
     lam = np.array([0.4, 1.0, 0.2, 2e3])
     assert np.allclose(at.volumes(lam)[0], A @ lam, rtol=1e-9, atol=1e-18)
@@ -541,8 +542,8 @@ def test_an_atlas_in_pieces_along_f_y_follows_a_kink_one_polynomial_cannot(coars
 @pytest.mark.parametrize("order", [1, 2])
 def test_the_default_atlas_follows_the_elements_order(order, monkeypatch):
     """With no atlas asked for, ``load_or_build`` builds :func:`default_atlas_config` of the forward
-    model's element order: on the quadratic model the displacement axis in pieces along f_y, the
-    first piece built first (below the lowest split)."""
+    model's element order: on the quadratic model the displacement axis in pieces along f_y, built
+    together (one graph of tasks), in the order of f_y."""
     from types import SimpleNamespace
 
     from softphantom.estimation.atlas import build as atlas_mod
@@ -552,16 +553,18 @@ def test_the_default_atlas_follows_the_elements_order(order, monkeypatch):
         pass
 
     def build(model, cfg, acfg, **kw):
-        raise Built(acfg)
+        raise Built(acfg, kw.get("pieces"))
 
     monkeypatch.setattr(atlas_mod, "atlas_key", lambda fwd, acfg: "key")
     monkeypatch.setattr(atlas_mod, "build_atlas", build)
     fwd = SimpleNamespace(fem=SimpleNamespace(order=order))
     with pytest.raises(Built) as got:
         load_or_build(None, CFG, None, fwd=fwd)
-    acfg = got.value.args[0]
+    acfg, pieces = got.value.args
     if order == 1:
-        assert acfg == atlas_config.AtlasConfig()
+        assert acfg == atlas_config.AtlasConfig() and pieces == (0,)
     else:
-        assert (acfg.x_control, acfg.shape, acfg.f_y_splits_N) == ("displacement", (11, 6, 4, 3), ())
-        assert (acfg.force_min_N[1], acfg.force_max_N[1]) == (-1.0, atlas_config.P2_F_Y_SPLITS_N[0])
+        assert (acfg.x_control, acfg.shape, acfg.f_y_splits_N) == ("displacement", (11, 6, 5, 3), (3.3,))
+        assert pieces == (0, 1)
+        assert [(c.force_min_N[1], c.force_max_N[1]) for c in acfg.patches()] == [
+            (-1.0, atlas_config.P2_F_Y_SPLITS_N[0]), (atlas_config.P2_F_Y_SPLITS_N[0], 5.2)]

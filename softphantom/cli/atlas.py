@@ -59,8 +59,13 @@ def build_cmd(
     workers: int = typer.Option(None, "--workers", help="Local cluster: worker processes (default: all cores)."),
     rebuild: bool = typer.Option(False, "--rebuild", help="Build again even where an atlas file is cached, "
                                  "replacing a damaged or stale one."),
+    discard_partial: bool = typer.Option(False, "--discard-partial", help="Drop the finished tasks of an "
+                                         "interrupted build with other settings (by default such a build is "
+                                         "refused; one with the same settings resumes)."),
 ) -> None:
-    """Build the atlas of a model (or find it built) in MODEL/atlas/, on Dask."""
+    """Build the atlas of a model (or find it built) in MODEL/atlas/, on Dask. Every finished task is
+    kept in MODEL/atlas/partial/: after Ctrl-C, kill or a reboot the same command goes on where it
+    stopped. Progress shows the time left."""
     from dataclasses import replace
 
     from softphantom.estimation import EstimatorConfig
@@ -79,7 +84,8 @@ def build_cmd(
                                      base=default_atlas_config(model.element_order))
     acfg = replace(acfg, offline=offline)
     built = load_or_build(model, EstimatorConfig(contact=_contact(at)), acfg, cache_dir=model_dir,
-                          scheduler=scheduler, n_workers=workers, rebuild=rebuild)
+                          scheduler=scheduler, n_workers=workers, rebuild=rebuild,
+                          discard_partial=discard_partial)
     for piece in _pieces(built):
         console.print(f"{atlas_path(model_dir, piece.key)}", highlight=False, soft_wrap=True)
 

@@ -14,6 +14,10 @@ from __future__ import annotations
 
 import logging
 import math
+import os
+import platform
+import shlex
+import sys
 import time
 from pathlib import Path
 
@@ -25,6 +29,8 @@ from softphantom.estimation.atlas.config import (FALLBACK_MIN_LOAD_STEP, VIA_TOL
                                                 x_patch)
 from softphantom.estimation.atlas.map import Atlas, AtlasPatches
 from softphantom.estimation.atlas.store import AtlasCorrupt, AtlasMismatch, atlas_key, atlas_path, load_atlas, save_atlas
+from softphantom.estimation.atlas.tasks import (GraphRun, Task, TaskStore, check_partials, critical_path_s, discard_tasks,
+                                                partial_dir, run_graph)
 from softphantom.estimation.config import EstimatorConfig
 from softphantom.estimation.forward import ForwardModel
 from softphantom.estimation.linearization import PatchControl
@@ -478,40 +484,53 @@ def provenance(model, fwd: ForwardModel) -> dict:
     from softphantom import __version__
 
     c = fwd.config.contact
+    argv = sys.argv if sys.argv and Path(sys.argv[0]).name in ("softphantom", "__main__.py") else None
     return {"softphantom": __version__, "model": getattr(getattr(model, "design", None), "name", ""),
+            "command": shlex.join(["softphantom", *argv[1:]]) if argv else "",
+            "machine": f"{platform.node()}: {platform.machine()}, {os.cpu_count()} cores, {platform.platform()}",
             "nodes": int(len(fwd.fem.x_rest) // 3), "element_order": int(fwd.fem.order),
             "contact": c if isinstance(c, str) else [float(v) for v in c],
             "contact_radius_m": float(fwd.config.contact_radius_m), "tol": float(fwd.config.tol),
             "built_utc": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")}
 
 
-def build_atlas(model, config: EstimatorConfig | None = None, atlas: AtlasConfig | None = None, *,
-                scheduler: str | None = None, n_workers: int | None = None,
-                fwd: ForwardModel | None = None, processes: bool = True) -> Atlas | AtlasPatches:
-    """Build the atlas of ``model`` (forward solves in parallel, a Dask local cluster by default or
-    the one at ``scheduler``; ``processes=False``: worker threads, for small models and tests).
-    ``atlas`` None: :func:`default_atlas_config` of the model's element order.
+def _piece_tasks(model, cfg: EstimatorConfig, acfg: AtlasConfig, fwd: ForwardModel, tag: str, piece: int) -> list[Task]:
+    """The tasks of one atlas (one piece along f_y), named ``{tag}-plane-i-l`` / ``{tag}-lines-k-l``:
+    the (f_y, f_z) planes of a force axis (:func:`_sweep`); on a displacement axis the planes at the
+    two f_x faces, then the lines between them (:func:`_lines`), each (k, l) depending on the two
+    faces at pressure index l."""
+    n1, n2, n3, n4 = acfg.shape
+    hermite = acfg.hermite_axis
+    kind = f"piece {piece}"
+    planes = [(i, l) for l in range(1 if acfg.linear_pressure else n4) for i in range(n1)]
+    if acfg.x_control == "force":
+        return [Task(f"{tag}-plane-{i}-{l}", _sweep, lambda _r, i=i, l=l: (model, cfg, acfg, i, l),
+                     points=n2 * n3, kind=f"{kind} plane", priority=1) for i, l in planes]
+    faces = [Task(f"{tag}-plane-{i}-{l}", _sweep, lambda _r, i=i, l=l: (model, cfg, acfg, i, l),
+                  points=n2 * n3, kind=f"{kind} plane", priority=2) for i, l in planes if i in (0, n1 - 1)]
+    h = x_patch(fwd)
 
-    A corner of the envelope box may be physically unreachable for the model (e.g. a large push
-    with sideways force inverts an element under a point contact). Such grid points are recorded,
-    not fatal: each plane walks outwards from zero load and does not try points beyond one that
-    failed (:func:`_sweep`); the unsolved points are filled by linear extrapolation from their
-    converged neighbours along the grid lines (:func:`fill_weights`) so the tensor fit is defined,
-    and every grid cell with an unsolved corner is outside the envelope (``Atlas.solved_at``; the
-    estimator's ``in_envelope`` is False there). Logs one line per plane with failures and a
-    summary, and the planes' progress as done/total records (:func:`softphantom.progress.report`).
-    Raises :class:`~softphantom.errors.SolverError` only if no point converged."""
-    from softphantom.parallel import dask_client, map_tasks
+    def line_args(r, k, l):
+        ends, starts, dends = [], None, []
+        for i in (0, n1 - 1):
+            face = r[f"{tag}-plane-{i}-{l}"]
+            ok, X, deriv = face[5], face[4], face[8]
+            ends.append(np.where(ok[:, k], X[:, k] @ h, np.nan))
+            if i == 0:
+                starts = X[:, k]
+            if hermite not in (None, 0):
+                dends.append(deriv[2][:, k] @ h)
+        return model, cfg, acfg, k, l, tuple(ends), starts, tuple(dends) if dends else None
 
-    cfg = config or EstimatorConfig()
-    fwd = fwd or ForwardModel(model, cfg)
-    acfg = atlas or default_atlas_config(fwd.fem.order)
-    if acfg.f_y_splits_N:  # one build per piece along f_y
-        return AtlasPatches(acfg, tuple(
-            build_atlas(model, cfg, sub, scheduler=scheduler, n_workers=n_workers, fwd=fwd,
-                        processes=processes) for sub in acfg.patches()))
-    t0 = time.perf_counter()
-    key = atlas_key(fwd, acfg)
+    lines = [Task(f"{tag}-lines-{k}-{l}", _lines, lambda r, k=k, l=l: line_args(r, k, l),
+                  deps=(f"{tag}-plane-0-{l}", f"{tag}-plane-{n1 - 1}-{l}"), points=(n1 - 2) * n2,
+                  kind=f"{kind} lines", priority=1) for l in range(n4) for k in range(n3)]
+    return faces + lines
+
+
+def _assemble(model, fwd: ForwardModel, acfg: AtlasConfig, key: str, tag: str, run: GraphRun, t0: float) -> Atlas:
+    """The atlas of one piece from its tasks' results (:func:`_piece_tasks`): the grid arrays, the
+    unreachable points filled, the fit."""
     n1, n2, n3, n4 = acfg.shape
     ndof = fwd.fem.n_dof
     k = fwd.probe.shape[0]
@@ -524,82 +543,56 @@ def build_atlas(model, config: EstimatorConfig | None = None, atlas: AtlasConfig
     hermite = acfg.hermite_axis
     # derivatives along the Hermite axis (per unit load)
     dV, dP, dX, dFX = (np.empty_like(a) for a in (V, P, X, FX)) if hermite is not None else (None,) * 4
-    planes = [(i, l) for l in range(1 if acfg.linear_pressure else n4) for i in range(n1)]
     ax = acfg.axes()
-    cpu_s = 0.0
-    n_fwd = 0
-    label = f"atlas: {acfg.n_solves} forward solves"
-    offline = None
-    with dask_client(scheduler, n_workers, processes=processes) as client:
-        if acfg.offline == "rom":  # the grid by a reduced model (softphantom.estimation.offline)
-            from softphantom.estimation.offline import rom_grid
-
-            V, P, X, solved, FX, QN, cpu_s, n_fwd, offline = rom_grid(model, cfg, acfg, fwd, client)
-            stages = []
-        elif acfg.x_control == "force":
-            stages = [(planes, label, False)]
-        else:  # the f_x faces first: their patch displacements are the inner lines' ends
-            faces = [(i, l) for i, l in planes if i in (0, n1 - 1)]
-            stages = [(faces, f"{label}: the f_x faces", False),
-                      ([(k, l) for l in range(n4) for k in range(n3)], f"{label}: lines between the faces", True)]
-        for stage, what, between in stages:
-            if between:
-                h = x_patch(fwd)
-                ux = {i: np.where(solved[i], X[i] @ h, np.nan) for i in (0, n1 - 1)}  # (n2, n3, n4) m
-                # a Hermite axis other than q: the faces' dū along it (q mixes the faces' ū)
-                dux = {i: dX[i] @ h for i in (0, n1 - 1)} if hermite not in (None, 0) else None
-                # each line starts at its lower face's equilibrium (NaN where unsolved; ends say so)
-                args = [(model, cfg, acfg, kz, lp, (ux[0][:, kz, lp], ux[n1 - 1][:, kz, lp]),
-                         X[0, :, kz, lp], None if dux is None else (dux[0][:, kz, lp], dux[n1 - 1][:, kz, lp]))
-                        for kz, lp in stage]
-                res = map_tasks(client, _lines, args, label=what)
-                bad = [r for r in res if not r.ok]
-                if bad:
-                    kz, lp = args[bad[0].index][3:5]
-                    raise SolverError(f"atlas: lines at f_z index {kz}, pressure index {lp} failed: {bad[0].error}")
-                for r in res:
-                    kz, lp, v, p, x, ok, err, cpu, fx, q, n_tried, deriv = r.value
-                    cpu_s += cpu
-                    n_fwd += n_tried
-                    V[1:-1, :, kz, lp], P[1:-1, :, kz, lp], X[1:-1, :, kz, lp] = v, p, x
-                    if deriv is not None:
-                        dV[1:-1, :, kz, lp], dP[1:-1, :, kz, lp], dX[1:-1, :, kz, lp], dFX[1:-1, :, kz, lp] = deriv
-                    FX[1:-1, :, kz, lp], QN[1:-1, :, kz, lp], solved[1:-1, :, kz, lp] = fx, q, ok
-                    if not ok.all():
-                        log.info(f"atlas: lines at f_z {ax[2][kz]:+.2f} N, urethra {ax[3][lp] * 1e-3:.1f} kPa: "
-                            f"{ok.size - ok.sum()} of {ok.size} points unreachable ({err or 'beyond a failed point'})")
-                continue
-            args = [(model, cfg, acfg, i, l) for i, l in stage]
-            res = map_tasks(client, _sweep, args, label=what)
-            bad = [r for r in res if not r.ok]
-            if bad:  # not a solver failure (those are recorded): a bug or a lost worker
-                i, l = args[bad[0].index][3:5]
-                raise SolverError(f"atlas: plane f_x index {i}, pressure index {l} failed: {bad[0].error}")
-            for r in res:
-                i, l, v, p, x, ok, err, cpu, deriv, fx, q, n_tried = r.value
-                cpu_s += cpu
-                n_fwd += n_tried
-                QN[i, :, :, l] = q
-                if deriv is None or hermite is not None:
-                    V[i, :, :, l], P[i, :, :, l], X[i, :, :, l], FX[i, :, :, l] = v, p, x, fx
-                    solved[i, :, :, l] = ok
-                    if hermite is not None:
-                        dV[i, :, :, l], dP[i, :, :, l], dX[i, :, :, l], dFX[i, :, :, l] = deriv
-                else:  # the tangent line in the pressure through the middle plane
-                    half = 0.5 * (ax[3][-1] - ax[3][0])
-                    for l, sgn in ((0, -half), (n4 - 1, half)):
-                        V[i, :, :, l], P[i, :, :, l], X[i, :, :, l] = (a + sgn * d for a, d in zip((v, p, x), deriv))
-                        FX[i, :, :, l], QN[i, :, :, l] = fx, q
-                        solved[i, :, :, l] = ok
-                if not ok.all():
-                    p_u = 0.5 * (ax[3][0] + ax[3][-1]) if acfg.linear_pressure else ax[3][l]
-                    log.info(f"atlas: plane {'f_x' if acfg.x_control == 'force' else 'q'} {ax[0][i]:+.2f} N, urethra "
-                        f"{p_u * 1e-3:.1f} kPa: {ok.size - ok.sum()} of {ok.size} points unreachable "
-                        f"({err or 'beyond a failed point'})")
-    if acfg.x_control == "displacement" and offline is None:
+    cpu_s, n_fwd = 0.0, 0
+    for name, value in run.values.items():
+        if not name.startswith(f"{tag}-"):
+            continue
+        cpu_s += run.cpu_s[name]
+        if "-lines-" in name:
+            kz, lp, v, p, x, ok, err, _cpu, fx, q, n_tried, deriv = value
+            n_fwd += n_tried
+            V[1:-1, :, kz, lp], P[1:-1, :, kz, lp], X[1:-1, :, kz, lp] = v, p, x
+            if deriv is not None:
+                dV[1:-1, :, kz, lp], dP[1:-1, :, kz, lp], dX[1:-1, :, kz, lp], dFX[1:-1, :, kz, lp] = deriv
+            FX[1:-1, :, kz, lp], QN[1:-1, :, kz, lp], solved[1:-1, :, kz, lp] = fx, q, ok
+            if not ok.all():
+                log.info(f"atlas: lines at f_z {ax[2][kz]:+.2f} N, urethra {ax[3][lp] * 1e-3:.1f} kPa: "
+                         f"{ok.size - ok.sum()} of {ok.size} points unreachable ({err or 'beyond a failed point'})")
+            continue
+        i, l, v, p, x, ok, err, _cpu, deriv, fx, q, n_tried = value
+        n_fwd += n_tried
+        QN[i, :, :, l] = q
+        if deriv is None or hermite is not None:
+            V[i, :, :, l], P[i, :, :, l], X[i, :, :, l], FX[i, :, :, l] = v, p, x, fx
+            solved[i, :, :, l] = ok
+            if hermite is not None:
+                dV[i, :, :, l], dP[i, :, :, l], dX[i, :, :, l], dFX[i, :, :, l] = deriv
+        else:  # the tangent line in the pressure through the middle plane
+            half = 0.5 * (ax[3][-1] - ax[3][0])
+            for l, sgn in ((0, -half), (n4 - 1, half)):
+                V[i, :, :, l], P[i, :, :, l], X[i, :, :, l] = (a + sgn * d for a, d in zip((v, p, x), deriv))
+                FX[i, :, :, l], QN[i, :, :, l] = fx, q
+                solved[i, :, :, l] = ok
+        if not ok.all():
+            p_u = 0.5 * (ax[3][0] + ax[3][-1]) if acfg.linear_pressure else ax[3][l]
+            log.info(f"atlas: plane {'f_x' if acfg.x_control == 'force' else 'q'} {ax[0][i]:+.2f} N, urethra "
+                     f"{p_u * 1e-3:.1f} kPa: {ok.size - ok.sum()} of {ok.size} points unreachable "
+                     f"({err or 'beyond a failed point'})")
+    if acfg.x_control == "displacement":
         extra = n_fwd - int(solved.sum())
         log.info(f"atlas: {n_fwd} converged forward solves for {int(solved.sum())} points" + (
             f" ({extra} more: force-controlled trials where a line point's mixed-control solve failed)" if extra else ""))
+    return _fit(model, fwd, acfg, key, V, P, X, solved, FX, QN, (dV, dP, dX, dFX), cpu_s, t0, None)
+
+
+def _fit(model, fwd, acfg, key, V, P, X, solved, FX, QN, derivs, cpu_s, t0, offline) -> Atlas:
+    """The tensor Chebyshev fit of the solved grid (unreachable points filled first)."""
+    ax = acfg.axes()
+    ndof = fwd.fem.n_dof
+    k = fwd.probe.shape[0]
+    hermite = acfg.hermite_axis
+    dV, dP, dX, dFX = derivs
     weights = fill_weights(solved, ax)
     grids = (V, P, X, FX) if hermite is None else (V, P, X, FX, dV, dP, dX, dFX)
     for a in grids:
@@ -621,6 +614,7 @@ def build_atlas(model, config: EstimatorConfig | None = None, atlas: AtlasConfig
     # the first axis's Chebyshev variable at each point (a displacement axis's points are where
     # they landed: each line is fitted through its own, to_chebyshev)
     tq = np.vectorize(axis_t)(QN, ax[0][0], ax[0][-1], acfg.stretch[0])[0]
+
     def fit(values, d):
         return to_chebyshev(values, shape, tq, None if d is None else (hermite, d))
 
@@ -636,6 +630,95 @@ def build_atlas(model, config: EstimatorConfig | None = None, atlas: AtlasConfig
                  build_s=time.perf_counter() - t0, solves=int(solved.sum()) * acfg.n_solves // solved.size,
                  field_rms_m=field_rms, solved=solved, build_cpu_s=cpu_s,
                  provenance={**provenance(model, fwd), **({"offline": offline} if offline else {})})
+
+
+def build_settings(fwd: ForwardModel, acfg: AtlasConfig) -> dict:
+    """What identifies a build command: the atlas settings (all pieces) and the estimator settings
+    its key depends on; an interrupted build resumes only under the same (:func:`check_partials`)."""
+    c = fwd.config.contact
+    return {"atlas": acfg.as_dict(), "contact": c if isinstance(c, str) else [float(v) for v in c],
+            "contact_radius_m": float(fwd.config.contact_radius_m), "tol": float(fwd.config.tol),
+            "nodes": int(fwd.fem.n_dof // 3)}
+
+
+def build_atlas(model, config: EstimatorConfig | None = None, atlas: AtlasConfig | None = None, *,
+                scheduler: str | None = None, n_workers: int | None = None,
+                fwd: ForwardModel | None = None, processes: bool = True, cache_dir=None,
+                pieces: tuple[int, ...] | None = None) -> Atlas | AtlasPatches:
+    """Build the atlas of ``model`` (forward solves in parallel, a Dask local cluster by default or
+    the one at ``scheduler``; ``processes=False``: worker threads, for small models and tests).
+    ``atlas`` None: :func:`default_atlas_config` of the model's element order. With ``f_y_splits_N``
+    the pieces' tasks run as one graph (:mod:`~softphantom.estimation.atlas.tasks`); ``pieces``: the
+    indices of the pieces to build (default all; the result then holds only those, in order).
+
+    With ``cache_dir`` (a model directory) each finished task is kept in
+    ``MODEL/atlas/partial/<key>/``, so an interrupted build started again goes on where it stopped;
+    the kept tasks are deleted once the atlas is built (:func:`load_or_build` saves it).
+
+    A corner of the envelope box may be physically unreachable for the model (e.g. a large push
+    with sideways force inverts an element under a point contact). Such grid points are recorded,
+    not fatal: each plane walks outwards from zero load and does not try points beyond one that
+    failed (:func:`_sweep`); the unsolved points are filled by linear extrapolation from their
+    converged neighbours along the grid lines (:func:`fill_weights`) so the tensor fit is defined,
+    and every grid cell with an unsolved corner is outside the envelope (``Atlas.solved_at``; the
+    estimator's ``in_envelope`` is False there). Logs one line per plane with failures and a
+    summary, and the tasks' progress as done/total records with the time left
+    (:func:`softphantom.progress.report`). Raises :class:`~softphantom.errors.SolverError` only if
+    no point converged."""
+    from softphantom.parallel import dask_client
+
+    cfg = config or EstimatorConfig()
+    fwd = fwd or ForwardModel(model, cfg)
+    acfg = atlas or default_atlas_config(fwd.fem.order)
+    subs = acfg.patches()
+    which = tuple(range(len(subs))) if pieces is None else tuple(pieces)
+    t0 = time.perf_counter()
+    keys = {p: atlas_key(fwd, subs[p]) for p in which}
+    if acfg.offline == "rom":  # the grid by a reduced model (softphantom.estimation.offline), piece by piece
+        from softphantom.estimation.offline import rom_grid
+
+        built = []
+        for p in which:
+            with dask_client(scheduler, n_workers, processes=processes) as client:
+                V, P, X, solved, FX, QN, cpu_s, _n, offline = rom_grid(model, cfg, subs[p], fwd, client)
+            built.append(_fit(model, fwd, subs[p], keys[p], V, P, X, solved, FX, QN, (None,) * 4, cpu_s, t0, offline))
+    else:
+        tasks = [t for p in which for t in _piece_tasks(model, cfg, subs[p], fwd, f"p{p}", p)]
+        settings = build_settings(fwd, acfg)
+        stores = {p: TaskStore(partial_dir(cache_dir, keys[p]), {"build": settings, "key": keys[p]})
+                  for p in which} if cache_dir is not None else {}
+
+        def store_of(name: str):
+            return stores.get(int(name.split("-")[0][1:]))
+
+        def failed(task: Task, msg: str) -> Exception:  # not a solver failure (those are recorded): a bug, a lost worker
+            _, what, a, b = task.name.split("-")
+            where = (f"plane {acfg.x_control == 'force' and 'f_x' or 'q'} index {a}" if what == "plane"
+                     else f"lines at f_z index {a}")
+            return SolverError(f"atlas: {where}, pressure index {b} failed: {msg}")
+
+        n_points = sum(t.points for t in tasks)
+        label = f"atlas: {len(tasks)} tasks, {n_points} grid points"
+        with dask_client(scheduler, n_workers, processes=processes) as client:
+            n_cores = sum(client.nthreads().values())
+            run = run_graph(client, tasks, store_of, label, failed)
+        built = [_assemble(model, fwd, subs[p], keys[p], f"p{p}", run, t0) for p in which]
+        wall = time.perf_counter() - t0
+        crit = critical_path_s(tasks, run.wall_s)
+        cpu = sum(run.cpu_s.values())
+        log.info(f"atlas: {len(tasks)} tasks, {cpu:.0f} CPU-s ({len(run.kept)} kept from an interrupted build), "
+                 f"{wall:.0f} s wall on {n_cores} workers: parallel efficiency "
+                 f"{cpu / max(wall * n_cores, 1e-9):.0%}; critical path {crit:.0f} s (the wall time on a cluster "
+                 f"of {len(tasks)} workers)")
+        for a in built:
+            a.provenance["build"] = {"workers": n_cores, "wall_s": round(wall, 1), "cpu_s": round(cpu, 1),
+                                     "critical_path_s": round(crit, 1), "tasks": len(tasks),
+                                     "kept_tasks": len(run.kept)}
+    if not acfg.f_y_splits_N:
+        return built[0]
+    if pieces is None:
+        return AtlasPatches(acfg, tuple(built))
+    return built  # type: ignore[return-value] - the pieces asked for, for load_or_build
 
 
 def _pod(D: np.ndarray, dD: np.ndarray | None = None):
@@ -681,43 +764,61 @@ def _solves(at: Atlas) -> str:
 
 def load_or_build(model, config: EstimatorConfig | None = None, atlas: AtlasConfig | None = None, *,
                   cache_dir=None, scheduler: str | None = None, n_workers: int | None = None,
-                  fwd: ForwardModel | None = None,
-                  rebuild: bool = False) -> Atlas | AtlasPatches:
+                  fwd: ForwardModel | None = None, rebuild: bool = False,
+                  discard_partial: bool = False) -> Atlas | AtlasPatches:
     """The atlas of ``model`` from ``cache_dir`` (a model directory) if present and valid, else built
     and saved there. A cached file that is damaged, tampered with or of another format is an error
     (:class:`AtlasCorrupt` / :class:`AtlasMismatch`, one line naming the file, nothing overwritten)
     unless ``rebuild``, which builds and replaces it (``softphantom atlas build --rebuild``). With
-    ``AtlasConfig.f_y_splits_N`` each piece is loaded or built (and cached) on its own. ``atlas``
-    None: :func:`default_atlas_config` of the model's element order."""
+    ``AtlasConfig.f_y_splits_N`` each piece is loaded (and cached) on its own, and the missing
+    ones are built together. ``atlas`` None: :func:`default_atlas_config` of the model's element
+    order.
+
+    A build keeps its finished tasks in the model directory and resumes from them when started
+    again with the same settings (:mod:`~softphantom.estimation.atlas.tasks`); next to an
+    interrupted build of other settings it is refused in one line naming the setting, unless
+    ``discard_partial`` (``--discard-partial``) drops the interrupted one."""
     cfg = config or EstimatorConfig()
     fwd = fwd or ForwardModel(model, cfg)
     acfg = atlas or default_atlas_config(fwd.fem.order)
-    if acfg.f_y_splits_N:
-        return AtlasPatches(acfg, tuple(
-            load_or_build(model, cfg, sub, cache_dir=cache_dir, scheduler=scheduler, n_workers=n_workers,
-                          fwd=fwd, rebuild=rebuild) for sub in acfg.patches()))
-    key = atlas_key(fwd, acfg)
-    path = atlas_path(cache_dir, key) if cache_dir is not None else None
-    if path is not None and path.is_file():
-        try:
-            at = load_atlas(path, key)
-            log.info(f"atlas: {path} ({at.nbytes / 1e6:.1f} MB, {_solves(at)}, built in {at.build_s:.0f} s)")
-            return at
-        except (AtlasCorrupt, AtlasMismatch) as exc:
-            if not rebuild:
-                raise type(exc)(f"{exc}; to build it again: softphantom atlas build --model {cache_dir} --rebuild") from None
-            log.warning(f"{exc}: rebuilding")
-    elif path is not None and any(len(p.stem) == 32 and set(p.stem) <= set("0123456789abcdef")
-                                  for p in Path(cache_dir).glob("*.npz")):
-        # the atlas directory given for the model's (it holds atlas files, named by their key;
-        # model.npz is the model's own): its atlases are never found, every run builds
-        log.warning(f"atlas: {cache_dir} holds atlas files itself, but the cache is a model directory "
-            f"(atlases in its atlas/ subdirectory): building into {path.parent}")
-    at = build_atlas(model, cfg, acfg, scheduler=scheduler, n_workers=n_workers, fwd=fwd)
-    msg = (f"atlas: {_solves(at)} in {at.build_s:.0f} s ({at.build_cpu_s / at.config.n_solves:.2f} CPU-s a solve), "
-           f"{at.nbytes / 1e6:.1f} MB")
-    if path is not None:
-        save_atlas(at, path)
-        msg += f" → {path} ({path.stat().st_size / 1e6:.1f} MB on disk)"
-    log.info(msg)
-    return at
+    subs = acfg.patches()
+    found: dict[int, Atlas] = {}
+    paths = {}
+    for p, sub in enumerate(subs):
+        key = atlas_key(fwd, sub)
+        path = paths[p] = atlas_path(cache_dir, key) if cache_dir is not None else None
+        if path is not None and path.is_file():
+            try:
+                at = load_atlas(path, key)
+                log.info(f"atlas: {path} ({at.nbytes / 1e6:.1f} MB, {_solves(at)}, built in {at.build_s:.0f} s)")
+                found[p] = at
+                continue
+            except (AtlasCorrupt, AtlasMismatch) as exc:
+                if not rebuild:
+                    raise type(exc)(f"{exc}; to build it again: softphantom atlas build --model {cache_dir} "
+                                    f"--rebuild") from None
+                log.warning(f"{exc}: rebuilding")
+        elif path is not None and any(len(q.stem) == 32 and set(q.stem) <= set("0123456789abcdef")
+                                      for q in Path(cache_dir).glob("*.npz")):
+            # the atlas directory given for the model's (it holds atlas files, named by their key;
+            # model.npz is the model's own): its atlases are never found, every run builds
+            log.warning(f"atlas: {cache_dir} holds atlas files itself, but the cache is a model directory "
+                f"(atlases in its atlas/ subdirectory): building into {path.parent}")
+    missing = tuple(p for p in range(len(subs)) if p not in found)
+    if missing:
+        if cache_dir is not None:
+            check_partials(cache_dir, build_settings(fwd, acfg), discard=discard_partial)
+        built = build_atlas(model, cfg, acfg, scheduler=scheduler, n_workers=n_workers, fwd=fwd,
+                            cache_dir=cache_dir, pieces=missing)
+        for p, at in zip(missing, built if isinstance(built, list) else [built]):
+            msg = (f"atlas: {_solves(at)} in {at.build_s:.0f} s ({at.build_cpu_s / at.config.n_solves:.2f} CPU-s "
+                   f"a solve), {at.nbytes / 1e6:.1f} MB")
+            if paths[p] is not None:
+                save_atlas(at, paths[p])
+                discard_tasks(cache_dir, at.key)  # built and saved: its kept tasks are not needed any more
+                msg += f" → {paths[p]} ({paths[p].stat().st_size / 1e6:.1f} MB on disk)"
+            log.info(msg)
+            found[p] = at
+    if not acfg.f_y_splits_N:
+        return found[0]
+    return AtlasPatches(acfg, tuple(found[p] for p in range(len(subs))))

@@ -231,24 +231,28 @@ class AtlasConfig:
 
 # The quadratic (10-node) BIP model's atlas: its back arm pair snaps through above f_y ≈ 4.3 N (a fold
 # in f_x, followed by the displacement axis) and one f_y polynomial over -1..5.2 N rings below it;
-# pieces split at these forces keep each f_y polynomial smooth (measured: docs/estimation.md).
+# pieces split at these forces keep each f_y polynomial smooth (measured: docs/estimation.md). f_z is
+# smooth but strongly curved (the pitch turns ≈ 28° over ±2 N): 5 Hermite points along it, where 4
+# Lagrange points missed by 0.19 mm (docs/atlas.md, "A Hermite axis").
 P2_F_Y_SPLITS_N = (3.3,)
-P2_N_FORCE = (11, 6, 4)
+P2_N_FORCE = (11, 6, 5)
+P2_HERMITE_AXIS = 2
 
 
 def default_atlas_config(order: int = 1) -> AtlasConfig:
     """The atlas a model of element ``order`` gets when none is asked for: the linear model's
     :class:`AtlasConfig` defaults; for the quadratic model the displacement axis, in pieces along
-    f_y (:data:`P2_F_Y_SPLITS_N`), each :data:`P2_N_FORCE` × 3 points.
+    f_y (:data:`P2_F_Y_SPLITS_N`), each :data:`P2_N_FORCE` × 3 points, Hermite along f_z.
 
     >>> default_atlas_config(1) == AtlasConfig()
     True
     >>> c = default_atlas_config(2)
-    >>> c.x_control, c.f_y_splits_N, c.shape
-    ('displacement', (3.3,), (11, 6, 4, 3))
+    >>> c.x_control, c.f_y_splits_N, c.shape, c.hermite_axis
+    ('displacement', (3.3,), (11, 6, 5, 3), 2)
     """
     if int(order) == 2:
-        return AtlasConfig(n_force=P2_N_FORCE, x_control="displacement", f_y_splits_N=P2_F_Y_SPLITS_N)
+        return AtlasConfig(n_force=P2_N_FORCE, x_control="displacement", f_y_splits_N=P2_F_Y_SPLITS_N,
+                           hermite_axis=P2_HERMITE_AXIS)
     return AtlasConfig()
 
 
