@@ -84,7 +84,7 @@ def recorded(tmp_path_factory):
 def test_recording_carries_the_scene_as_foxglove_messages(recorded):
     _path, rec, fg = recorded
     geo = rec.geometry
-    assert rec.complete and rec.estimates and rec.surface  # the JSON channels are kept
+    assert rec.complete and rec.estimates and rec.surface and not rec.other  # the JSON channels are kept
     assert set(fg) == {TOPIC_FG_SURFACE, TOPIC_FG_OVERLAY, TOPIC_FG_TF}
     assert len(fg[TOPIC_FG_TF]) == len(fg[TOPIC_FG_OVERLAY]) == len(rec.estimates)  # one of each per estimate
     assert 1 <= len(fg[TOPIC_FG_SURFACE]) <= len(rec.surface) + 1

@@ -375,7 +375,11 @@ class FoxgloveBridge:
 
     def estimate(self, msg: Mapping[str, Any], data: bytes | None = None) -> None:
         """One estimate message (``data``: its JSON, sent on the live ``/estimate`` channel)."""
-        self._emit(self.scene.estimate(msg))
+        if self._wanted(TOPIC_FG_OVERLAY) or self._wanted(TOPIC_FG_TF):
+            self._emit(self.scene.estimate(msg))
+        else:  # nobody watches: only the clock the next surface is stamped with
+            t_pub = msg.get("t_pub_unix_s")
+            self.scene.last_t_ns = int(round(float(t_pub) * 1e9)) if isinstance(t_pub, (int, float)) else time.time_ns()
         if self.server is not None and data is not None:
             self.server.log("/estimate", data, self.scene.last_t_ns)
 
