@@ -29,6 +29,9 @@ def live(
     http_port: int = typer.Option(8765, "--http-port", help="port of the live page (0: any free port)"),
     stream_port: int = typer.Option(5556, "--stream-port", help="ZeroMQ PUB port of the estimate stream (0: any)"),
     no_stream: bool = typer.Option(False, "--no-stream", help="do not publish the network stream"),
+    foxglove: bool = typer.Option(False, "--foxglove", help="also serve the session to Foxglove (WebSocket, "
+                                  "ws://HOST:PORT; its 3D panel draws the phantom; docs/stream.md)"),
+    foxglove_port: int = typer.Option(8766, "--foxglove-port", help="port of the --foxglove server (0: any free port)"),
     record: Optional[Path] = typer.Option(None, "--record", help="record the session to this .mcap file"),
     duration_s: Optional[float] = typer.Option(None, "--duration-s", help="stop after this many seconds"),
     rate_Hz: float = typer.Option(77.0, "--rate-Hz", help="estimate rate of the synthetic source, Hz"),
@@ -55,7 +58,7 @@ def live(
     check_estimator_kind(estimator)
     if not (0 < view_rate_Hz <= 120):
         raise UserError(f"--view-rate-Hz must be in (0, 120], got {view_rate_Hz}")
-    for name, port in (("--http-port", http_port), ("--stream-port", stream_port)):
+    for name, port in (("--http-port", http_port), ("--stream-port", stream_port), ("--foxglove-port", foxglove_port)):
         if not (0 <= port <= 65535):
             raise UserError(f"{name} must be in 0..65535, got {port}")
     if duration_s is not None and duration_s <= 0:
@@ -65,6 +68,11 @@ def live(
     if record is not None:
         check_output(record, overwrite=overwrite, directory=False, option="--record")
     token = _remote_token(listen_host, allow_remote)
+    if token is not None and foxglove:
+        from softphantom.cli.app import print_error
+
+        print_error("the Foxglove server has no authentication either: anyone who can reach its port sees the "
+                    "session", prefix="warning: ")
     kind, _, arg = source.partition(":")
     if kind in ("virtual", "serial") or (kind == "replay" and replay_holds(arg) == "measurements"):
         src = _estimator_source(source, model, at, max_force_N, speed,
@@ -75,7 +83,8 @@ def live(
         src = _with_tracker(src, tracker, tracker_body)
     cfg = LiveConfig(listen_host=listen_host, http_port=http_port, stream_port=None if no_stream else stream_port,
                      view_rate_Hz=view_rate_Hz, record=record, duration_s=duration_s, token=token,
-                     allowed_hosts=tuple(allowed_host), max_clients=max_clients)
+                     allowed_hosts=tuple(allowed_host), max_clients=max_clients,
+                     foxglove_port=foxglove_port if foxglove else None)
     with LiveSession(src, cfg) as session:
         console.print(f"live page: {session.url}", highlight=False, soft_wrap=True)
         if token is not None:
@@ -88,6 +97,9 @@ def live(
         if session.stream_endpoint:
             console.print(f"estimate stream: {session.stream_endpoint} (ZeroMQ SUB, topic 'estimate', JSON; "
                           "see docs/stream.md)", highlight=False)
+        if session.foxglove_url:
+            console.print(f"Foxglove: {session.foxglove_url} (Open connection → Foxglove WebSocket; "
+                          "3D panel, display frame 'phantom'; docs/stream.md)", highlight=False)
         if record is not None:
             console.print(f"recording: {record}", highlight=False)
         try:

@@ -6,8 +6,10 @@ Channels (JSON-schema'd, ``json`` message encoding; keys carry their units):
 - ``/sensors``: every sensor sample (``Measurement``: ``t_s, seq, t_board_s, raw_*, osr,
   dp_<arm>_kPa, dV_<arm>_mm3, p_urethra_kPa, status``),
 - ``/tracker``: tracker poses when a tracker is present (``t_s, x_mm … roll_deg, valid``),
-- ``/live/geometry`` (once) and ``/live/surface`` (at the view rate): the phantom's surface at rest
-  and deformed, so a replay shows the deformation without re-running the estimator.
+- ``/live/geometry`` (once) and ``/live/surface`` (10 Hz): the phantom's surface at rest
+  and deformed, so a replay shows the deformation without re-running the estimator;
+- ``/foxglove/surface``, ``/foxglove/overlay``, ``/foxglove/tf``: the same scene as Foxglove's
+  well-known messages (protobuf), which its 3D panel draws (:mod:`softphantom.stream.foxglove`).
 
 Crash safety: the writer closes its chunk and flushes it to the operating system every
 ``flush_interval_s`` (default 1 s) and at every chunk-size limit. A session killed at any moment
@@ -46,6 +48,7 @@ from softphantom.errors import FileFormatError, UserError
 from softphantom.records.measurement import measurement_to_message  # noqa: F401  (re-exported)
 from softphantom.records.names import ARM_NAMES, CHANNEL_NAMES, POSE_COLUMNS, estimate_columns, target_names
 from softphantom.records.session import SessionWriter, read_session_file
+from softphantom.stream.foxglove import foxglove_schemas
 from softphantom.stream.schema import ESTIMATE_JSON_SCHEMA, encode
 
 TOPIC_ESTIMATE = "/estimate"
@@ -117,7 +120,12 @@ class SessionRecorder:
         for topic, schema in _SCHEMAS.items():
             sid = self._w.register_schema(schema["title"], "jsonschema", json.dumps(schema).encode())
             self._channels[topic] = self._w.register_channel(topic, "json", sid)
-        self._seq = {t: 0 for t in _SCHEMAS}
+        sids: dict[str, int] = {}  # Foxglove's well-known messages (softphantom.stream.foxglove)
+        for topic, fs in foxglove_schemas().items():
+            if fs.name not in sids:
+                sids[fs.name] = self._w.register_schema(fs.name, fs.encoding, bytes(fs.data))
+            self._channels[topic] = self._w.register_channel(topic, fs.encoding, sids[fs.name])
+        self._seq = {t: 0 for t in self._channels}
         self._flush_interval = float(flush_interval_s)
         self._fsync = fsync
         self._last_flush = time.monotonic()
@@ -126,7 +134,8 @@ class SessionRecorder:
         self.flush()  # header, schemas and channels reach the disk first
 
     def write(self, topic: str, message: Mapping[str, Any] | bytes, log_time_ns: int | None = None) -> None:
-        """Write one JSON message on ``topic`` (one of the channels above)."""
+        """Write one message on ``topic`` (one of the channels above): a dict (JSON-encoded here)
+        or its encoded bytes (JSON, or protobuf on the Foxglove channels)."""
         if topic not in self._channels:
             raise UserError(f"unknown recording channel {topic!r}; known: {', '.join(self._channels)}")
         now = time.time_ns() if log_time_ns is None else int(log_time_ns)
@@ -204,7 +213,8 @@ class Recording:
 
 
 def iter_records(path: str | os.PathLike) -> Iterator[tuple[str, Any]]:
-    """Yield ``(topic, decoded message)`` and ``("#metadata", dict)``; a final ``("#end", info)``
+    """Yield ``(topic, decoded message)`` (the bytes on a channel not in JSON) and
+    ``("#metadata", dict)``; a final ``("#end", info)``
     says whether the file was complete and how many bytes were read (a truncated file stops at its
     last complete chunk; that is not an error)."""
     path = Path(path)
@@ -219,17 +229,24 @@ def iter_records(path: str | os.PathLike) -> Iterator[tuple[str, Any]]:
         fh.seek(0)
         reader = StreamReader(fh, record_size_limit=1 << 30)
         channels: dict[int, str] = {}
+        binary: set[int] = set()  # channels not in JSON (Foxglove's protobuf messages): not decoded here
         complete = False
         good = 8
         try:
             for rec in reader.records:
                 if isinstance(rec, Channel):
                     channels[rec.id] = rec.topic
+                    if rec.message_encoding != "json":
+                        binary.add(rec.id)
                 elif isinstance(rec, Message):
                     topic = channels.get(rec.channel_id)
                     if topic is None:
                         raise FileFormatError(f"{path}: message on unknown channel {rec.channel_id} "
                                               f"near byte {fh.tell()}")
+                    if rec.channel_id in binary:
+                        yield topic, rec.data
+                        good = fh.tell()
+                        continue
                     try:
                         yield topic, json.loads(rec.data)
                     except ValueError:
@@ -257,6 +274,8 @@ def read_recording(path: str | os.PathLike) -> Recording:
             meta = msg
         elif topic == "#end":
             end = msg
+        elif isinstance(msg, bytes):
+            continue  # Foxglove's messages: the same scene as the JSON channels (read them with mcap)
         else:
             per.setdefault(topic, []).append(msg)
     known = {TOPIC_ESTIMATE, TOPIC_SENSORS, TOPIC_TRACKER, TOPIC_GEOMETRY, TOPIC_SURFACE}

@@ -41,7 +41,8 @@ class LiveConfig:
     network stream. ``listen_host`` is loopback unless set explicitly (both page and stream);
     beyond loopback a ``token`` is required (:func:`~softphantom.viz.live.security.is_loopback`).
     ``allowed_hosts``: extra names accepted in the ``Host`` header; ``max_clients``: requests served
-    at once (an open page holds one)."""
+    at once (an open page holds one). ``foxglove_port``: serve Foxglove's WebSocket protocol there
+    too, on ``listen_host`` (:mod:`softphantom.stream.foxglove`; None: not)."""
 
     listen_host: str = "127.0.0.1"
     http_port: int = 8765
@@ -55,6 +56,7 @@ class LiveConfig:
     allowed_hosts: tuple[str, ...] = ()
     max_clients: int = 16
     client_timeout_s: float = 10.0
+    foxglove_port: int | None = None
 
     def __post_init__(self) -> None:
         if not is_loopback(self.listen_host) and not self.token:
@@ -227,6 +229,7 @@ class LiveSession:
         self._web = None
         self.publisher = None
         self.recorder = None
+        self.foxglove = None  # Foxglove's messages, to the recording and/or its live server
         self.error: BaseException | None = None
         geo = getattr(source, "geometry", None)
         self.geometry_json = None if geo is None else geo.to_json()
@@ -236,7 +239,17 @@ class LiveSession:
         from softphantom.viz.live.web import WebServer
 
         cfg = self.config
-        self._web = WebServer(self)
+        fox_server = None
+        if cfg.foxglove_port is not None:  # first: a port in use stops the session before anything started
+            from softphantom.stream.foxglove import FoxgloveServer
+
+            fox_server = FoxgloveServer(cfg.listen_host, cfg.foxglove_port)
+        try:
+            self._web = WebServer(self)
+        except BaseException:
+            if fox_server is not None:
+                fox_server.close()
+            raise
         if cfg.stream_port is not None:
             from softphantom.stream.publisher import EstimatePublisher
 
@@ -249,6 +262,12 @@ class LiveSession:
             if self.geometry_json is not None:
                 self.recorder.write(TOPIC_GEOMETRY, self.geometry_json)
             self.state.recording = {"enabled": True, "path": str(cfg.record), "messages": 0}
+        if fox_server is not None or self.recorder is not None:
+            from softphantom.stream.foxglove import FoxgloveBridge, FoxgloveScene
+
+            geo = getattr(self.source, "geometry", None)
+            self.foxglove = FoxgloveBridge(FoxgloveScene(self.geometry_json), self.recorder, fox_server,
+                                           node_index=None if geo is None else geo.node_index)
         self._pump = threading.Thread(target=self._run_pump, name="live-pump", daemon=True)
         self._pump.start()
         return self
@@ -261,6 +280,12 @@ class LiveSession:
         if ":" in host:
             host = f"[{host}]"
         return f"http://{host}:{port}/" + (f"?token={self.config.token}" if self.config.token else "")
+
+    @property
+    def foxglove_url(self) -> str | None:
+        """``ws://host:port`` of the Foxglove server, if one runs."""
+        fg = self.foxglove
+        return None if fg is None or fg.server is None else fg.server.url
 
     @property
     def stream_endpoint(self) -> str | None:
@@ -286,6 +311,9 @@ class LiveSession:
         if self.publisher is not None:
             self.publisher.close()
             self.publisher = None
+        if self.foxglove is not None:
+            self.foxglove.close()
+            self.foxglove = None
         if self.recorder is not None:
             self.recorder.close()
             self.recorder = None
@@ -326,9 +354,13 @@ class LiveSession:
                     self.recorder.write_estimate(data)
                     if callable(last_meas) and (m := last_meas()) is not None:
                         self.recorder.write_sensors(measurement_to_message(m))
+                if self.foxglove is not None:
+                    self.foxglove.estimate(msg, data)
                 for tm in (poll_tracker() or ()) if callable(poll_tracker) else ():
                     if self.recorder is not None:
                         self.recorder.write_tracker(tm)
+                    if self.foxglove is not None:
+                        self.foxglove.tracker(tm)
                     if all(isinstance(tm.get(k), (int, float)) and math.isfinite(tm[k]) for k in _TRACKER_KEYS):
                         tracker = {k: tm[k] for k in _TRACKER_KEYS}  # a lost frame keeps the last pose
                 if tracker is None:
@@ -342,6 +374,8 @@ class LiveSession:
                     if pos is not None:
                         b64 = _set_surface(st, geo, pos)
                         last_view = now
+                        if self.foxglove is not None:
+                            self.foxglove.surface(pos)
                         if want_rec:
                             self.recorder.write(TOPIC_SURFACE, {"t_s": msg["t_s"], "seq": seq,
                                                                 "positions_mm_f32_b64": b64})
