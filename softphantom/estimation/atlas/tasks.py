@@ -144,6 +144,7 @@ def check_partials(cache_dir, build: dict, discard: bool = False) -> None:
     root = Path(cache_dir) / "atlas" / PARTIAL
     if not root.is_dir():
         return
+    build = json.loads(json.dumps(build))  # as settings.json holds it (tuples as lists)
     for d in sorted(p for p in root.iterdir() if p.is_dir()):
         try:
             theirs = json.loads((d / "settings.json").read_text())["build"]
