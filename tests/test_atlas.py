@@ -255,6 +255,46 @@ def test_cache_round_trip_mismatch_and_corruption(coarse_model, atlas, fwd, tmp_
     assert built == [1, 1] and sum("warning" in m and "model directory" in m for m in messages(caplog)) == 1
 
 
+def test_the_file_stores_the_field_compact_and_reads_format_4(atlas, tmp_path):
+    """The field (live view, report) is stored as float16 modes scaled per mode and float32
+    coefficients: within 1e-3 of the largest displacement, the volumes and tracked points exact; a
+    file of the previous layout (float64 arrays, format 4) still reads, digest checked."""
+    import io
+    import json
+
+    from softphantom.estimation.atlas import store
+
+    # the fixture was loaded from a file (its modes quantized already): orthonormal float64 modes
+    modes = np.linalg.qr(np.random.default_rng(0).normal(size=atlas.modes.shape))[0]
+    atlas = dataclasses.replace(atlas, modes=modes)
+    path = save_atlas(atlas, tmp_path / "a.npz")
+    back = load_atlas(path, atlas.key)
+    assert back.modes.dtype == np.float32 and np.array_equal(back.cV, atlas.cV) and np.array_equal(back.cP, atlas.cP)
+    lo, hi = ACFG.lower, ACFG.upper
+    for t in np.random.default_rng(1).uniform(size=(5, 4)):
+        lam = lo + t * (hi - lo)
+        u = atlas.nodes(lam) - atlas.x_rest.reshape(-1, 3)
+        err = np.abs(back.nodes(lam) - atlas.nodes(lam)).max()
+        assert 0 < err <= 1e-3 * np.abs(u).max(), (err, np.abs(u).max())
+        assert np.array_equal(back.volumes(lam)[0], atlas.volumes(lam)[0])
+    raw = sum(getattr(atlas, k).nbytes for k in store.ARRAYS)
+    assert path.stat().st_size < 0.5 * raw
+    # format 4: every array as built, the digest over them in ARRAYS order
+    arrays = {k: getattr(atlas, k) for k in store.ARRAYS}
+    meta = {"format": 4, "key": atlas.key, "config": atlas.config.as_dict(), "build_s": 1.0, "solves": atlas.solves,
+            "field_rms_m": atlas.field_rms_m, "digest": store._digest_v4(arrays), "provenance": {}}
+    buf = io.BytesIO()
+    np.savez(buf, meta=np.array(json.dumps(meta)), **arrays)
+    old = tmp_path / "v4.npz"
+    old.write_bytes(buf.getvalue())
+    assert np.array_equal(load_atlas(old, atlas.key).modes, atlas.modes)
+    arrays["cV"] = arrays["cV"] * 1.001
+    np.savez(buf := io.BytesIO(), meta=np.array(json.dumps(meta)), **arrays)
+    old.write_bytes(buf.getvalue())
+    with pytest.raises(AtlasCorrupt, match="do not match the digest"):
+        load_atlas(old)
+
+
 def _rewrite_meta(path, **changes) -> None:
     """Rewrite an atlas file's metadata (its arrays, and so their digest, unchanged)."""
     import io
@@ -318,7 +358,7 @@ def test_atlas_files_are_verified_described_and_installed(coarse_model, atlas, t
         assert main(["atlas", "verify", str(p), "--model", str(model_dir)]) == 2
         bad[name] = capsys.readouterr().err.strip()
         assert str(p) in bad[name] and len(bad[name].splitlines()) == 1 and p.read_bytes() == before
-    assert "format 3" in bad["format"] and f"reads format {FORMAT}" in bad["format"]
+    assert "format 3" in bad["format"] and f"reads formats 4, {FORMAT}" in bad["format"]
     assert "another model" in bad["tampered"]
     assert "digest" in bad["flipped"] or "not a readable" in bad["flipped"]
     assert "truncated" in bad["truncated"]

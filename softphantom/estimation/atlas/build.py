@@ -815,6 +815,7 @@ def load_or_build(model, config: EstimatorConfig | None = None, atlas: AtlasConf
                    f"a solve), {at.nbytes / 1e6:.1f} MB")
             if paths[p] is not None:
                 save_atlas(at, paths[p])
+                at = load_atlas(paths[p], at.key)  # as stored (the compact field): the same atlas as a later load
                 discard_tasks(cache_dir, at.key)  # built and saved: its kept tasks are not needed any more
                 msg += f" → {paths[p]} ({paths[p].stat().st_size / 1e6:.1f} MB on disk)"
             log.info(msg)

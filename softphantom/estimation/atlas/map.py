@@ -155,7 +155,7 @@ class Atlas:
         """(N,3) m node positions at ``lam`` (the POD field)."""
         coef = np.empty(self.kernel.F.shape[1])
         ak.eval_value(self.kernel.F, *self.kernel.box, np.asarray(lam, float), coef)
-        return (self.x_rest + self.modes @ coef).reshape(-1, 3)
+        return (self.x_rest + self.modes @ np.asarray(coef, dtype=self.modes.dtype)).reshape(-1, 3)
 
     @property
     def displacement_x(self) -> bool:

@@ -28,9 +28,20 @@ from softphantom.estimation.atlas.map import Atlas
 from softphantom.estimation.config import EstimatorConfig
 from softphantom.estimation.forward import ForwardModel
 
-FORMAT = 4  # bump when the file layout or the build changes its meaning (3: stretched axes; 4: x_control, cFx)
+# what the key hashes: bump when the build changes the meaning of the numbers (3: stretched axes;
+# 4: x_control, cFx)
+KEY_FORMAT = 4
+# the file layout, apart from the key: 5 stores the field compact (below); format 4 files still read
+FORMAT = 5
+READS = (4, 5)
 AXIS_NAMES = ("f_x", "f_y", "f_z", "p_u")
 ARRAYS = ("cV", "cP", "cF", "cFx", "q_nodes", "modes", "x_rest", "solved")  # an atlas file's arrays
+# The displacement field serves the live view and the report's deformed phantom (the tracked
+# markers and targets have polynomials of their own, cP, kept in float64 with the volumes and f_x):
+# its POD modes are stored as float16 scaled per mode (≤ 2^-11 of a mode's largest entry:
+# measured ≤ 1e-3 of the largest displacement) and their coefficients as float32, which makes a
+# quadratic model's atlas 4x smaller.
+COMPACT = {"cF": np.float32}
 
 
 class AtlasCorrupt(UserError):
@@ -73,7 +84,7 @@ def atlas_key(fwd: ForwardModel, acfg: AtlasConfig) -> str:
     atlas = acfg.as_dict()
     if not acfg.linear_pressure:  # the keys of atlases built before the option stay valid
         del atlas["linear_pressure"]
-    meta = {"format": FORMAT, "atlas": atlas, "tol": fwd.config.tol,
+    meta = {"format": KEY_FORMAT, "atlas": atlas, "tol": fwd.config.tol,
             "markers": fwd.marker_names, "targets": fwd.target_names}
     h.update(json.dumps(meta, sort_keys=True).encode())
     return h.hexdigest()
@@ -84,23 +95,53 @@ def atlas_path(model_dir, key: str) -> Path:
     return Path(model_dir) / "atlas" / f"{key[:32]}.npz"
 
 
-def _digest(at: Atlas) -> str:
+def _digest(arrays: dict[str, np.ndarray]) -> str:
+    h = hashlib.sha256()
+    for k in sorted(arrays):
+        h.update(np.ascontiguousarray(arrays[k]).tobytes())
+    return h.hexdigest()
+
+
+def stored_arrays(at: Atlas) -> dict[str, np.ndarray]:
+    """The arrays as a file of this :data:`FORMAT` holds them: the field compact (:data:`COMPACT`,
+    the modes as float16 of their largest entry, ``modes_scale``)."""
+    out = {k: np.asarray(getattr(at, k)) for k in ARRAYS}
+    for k, dtype in COMPACT.items():
+        out[k] = out[k].astype(dtype)
+    modes = np.asarray(at.modes, dtype=np.float64)
+    scale = np.abs(modes).max(axis=0)
+    scale[scale == 0] = 1.0
+    out["modes"] = (modes / scale).astype(np.float16)
+    out["modes_scale"] = scale
+    return out
+
+
+def _from_stored(arrays: dict[str, np.ndarray], fmt: int) -> dict[str, np.ndarray]:
+    if fmt < 5:
+        return {k: arrays[k] for k in ARRAYS}
+    out = {k: arrays[k] for k in ARRAYS if k != "modes"}
+    out["modes"] = arrays["modes"].astype(np.float32) * arrays["modes_scale"].astype(np.float32)
+    return out
+
+
+def _digest_v4(arrays: dict[str, np.ndarray]) -> str:
     h = hashlib.sha256()
     for k in ARRAYS:
-        h.update(np.ascontiguousarray(getattr(at, k)).tobytes())
+        h.update(np.ascontiguousarray(arrays[k]).tobytes())
     return h.hexdigest()
 
 
 def save_atlas(at: Atlas, path) -> Path:
-    """Write the atlas ``at`` to ``path`` (npz; written to a temporary name, then renamed: never
-    half a file)."""
+    """Write the atlas ``at`` to ``path`` (compressed npz of :func:`stored_arrays`; written to a
+    temporary name, then renamed: never half a file)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    arrays = stored_arrays(at)
     meta = {"format": FORMAT, "key": at.key, "config": at.config.as_dict(), "build_s": at.build_s,
             "solves": at.solves, "field_rms_m": at.field_rms_m, "build_cpu_s": at.build_cpu_s,
-            "digest": _digest(at), "provenance": at.provenance or {}}
+            "digest": _digest(arrays), "provenance": at.provenance or {}}
     buf = io.BytesIO()
-    np.savez(buf, meta=np.array(json.dumps(meta)), **{k: getattr(at, k) for k in ARRAYS})
+    np.savez_compressed(buf, meta=np.array(json.dumps(meta)), **arrays)
     tmp = path.with_name(path.name + ".tmp")
     tmp.write_bytes(buf.getvalue())
     tmp.replace(path)
@@ -118,15 +159,16 @@ def load_atlas(path, key: str | None = None) -> Atlas:
         with np.load(path, allow_pickle=False) as z:
             meta = json.loads(str(z["meta"]))
             fmt = meta.get("format")
-            if fmt != FORMAT:
-                raise AtlasMismatch(f"{path}: atlas file format {fmt}, this softphantom reads format {FORMAT} "
-                                    f"(written by another version): rebuild it (softphantom atlas build)")
-            arrays = {k: z[k] for k in ARRAYS}
+            if fmt not in READS:
+                raise AtlasMismatch(f"{path}: atlas file format {fmt}, this softphantom reads formats "
+                                    f"{', '.join(map(str, READS))} (written by another version): rebuild it "
+                                    f"(softphantom atlas build)")
+            stored = {k: z[k] for k in z.files if k != "meta"}
+        ok = (_digest(stored) if fmt >= 5 else _digest_v4(stored)) == meta["digest"]
         at = Atlas(key=meta["key"], config=AtlasConfig(**meta["config"]), build_s=float(meta["build_s"]),
                    solves=int(meta["solves"]), field_rms_m=float(meta["field_rms_m"]),
                    build_cpu_s=float(meta.get("build_cpu_s", "nan")), provenance=meta.get("provenance") or None,
-                   **arrays)
-        ok = _digest(at) == meta["digest"]
+                   **_from_stored(stored, fmt))
     except AtlasMismatch:
         raise
     except Exception as exc:  # noqa: BLE001 - any unreadable file is corrupt
