@@ -150,6 +150,60 @@ def test_live_page_endpoints_frames_and_stream(tmp_path):
     assert [m["seq"] for m in r.estimates] == list(range(len(r.estimates)))
 
 
+def test_the_end_of_a_source_reaches_the_page_as_ended():
+    """A replay that runs out and the session stopped at once (what ``softphantom live`` does): each
+    event stream ends with a frame whose status is finished (link ``ended``), then the ``end`` event
+    (the page stops reconnecting, docs/live.md)."""
+    import threading
+
+    src = SyntheticSource(rate_Hz=200, duration_s=1.0, subdivisions=1)
+    events: list[tuple[str, bytes]] = []
+    with LiveSession(src, LiveConfig(http_port=0, stream_port=None, view_rate_Hz=30)) as s:
+        _wait_state(s.url, lambda x: x["status"]["estimates"] > 20)
+
+        def read() -> None:
+            kind = b"message"
+            with urllib.request.urlopen(s.url + "api/events", timeout=30) as r:
+                for line in r:  # until the server ends the response
+                    if line.startswith(b"event: "):
+                        kind = line[7:].strip()
+                    elif line.startswith(b"data: "):
+                        events.append((kind.decode(), line[6:].strip()))
+
+        reader = threading.Thread(target=read, daemon=True)
+        reader.start()
+        deadline = time.monotonic() + 30
+        while not events and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert s.wait(30)  # the source ends ...
+    reader.join(30)  # ... and the session is stopped right after it (the with block)
+    assert not reader.is_alive() and events and events[-1][0] == "end", events[-3:]
+    kind, last = events[-2]
+    assert kind == "frame" and json.loads(last)["status"]["finished"] is True
+    assert json.loads(last)["status"]["link"] == "ended"
+
+
+def test_the_page_server_does_not_import_the_session():
+    """One direction: server (the session) → web (the page's server) → state; web and state never
+    import the session's module (not even for type checking)."""
+    import ast
+
+    live = Path(__file__).parents[1] / "softphantom" / "viz" / "live"
+
+    def imports(name: str) -> set[str]:
+        out = set()
+        for node in ast.walk(ast.parse((live / name).read_text())):
+            if isinstance(node, ast.ImportFrom) and node.module:
+                out.add(node.module)
+            elif isinstance(node, ast.Import):
+                out.update(a.name for a in node.names)
+        return out
+
+    assert "softphantom.viz.live.server" not in imports("web.py")
+    assert not {"softphantom.viz.live.server", "softphantom.viz.live.web"} & imports("state.py")
+    assert "softphantom.viz.live.web" in imports("server.py")
+
+
 def test_every_browser_gets_the_same_frames_from_its_own_start():
     src = SyntheticSource(rate_Hz=200, duration_s=None, subdivisions=1)
     with LiveSession(src, LiveConfig(http_port=0, stream_port=None, view_rate_Hz=30)) as s:
@@ -260,7 +314,7 @@ def test_vendored_libraries_are_the_locked_versions():
 
 def test_status_rate_and_health_on_a_controlled_clock(monkeypatch):
     """The page's rate figure and stall detection, on a fake clock (no wall-clock speed involved)."""
-    import softphantom.viz.live.server as srv
+    import softphantom.viz.live.state as srv
 
     clock = [1000.0]
     monkeypatch.setattr(srv, "time", SimpleNamespace(monotonic=lambda: clock[0], time=time.time,
