@@ -370,6 +370,72 @@ def test_replay_of_a_recording_shows_the_recorded_deformation(tmp_path):
     assert rc.geometry is None and len(list(rc)) == n
 
 
+def _estimate_file(path, targets, peak, xyz_mm, ypr_deg, meta) -> None:
+    """An estimate file: a push rising to ``peak`` N (pose rising to ``xyz_mm``/``ypr_deg``) at 100 Hz
+    for 0.5 s, then a link event's marker (numbers NaN)."""
+    from softphantom.estimation import Estimate
+    from softphantom.estimation.stream import marker_estimate, write_estimates
+    from softphantom.pose import Pose6
+    from softphantom.sensing.sources import SourceEvent
+
+    ests = []
+    for k in range(51):
+        a = k / 50
+        ests.append(Estimate(t=k / 100, force=a * np.asarray(peak, float), p_urethra=500.0 * a,
+                             pose=Pose6(a * np.asarray(xyz_mm) * 1e-3, a * np.radians(ypr_deg)),
+                             target_shift={n: np.zeros(3) for n in targets}, volume_pred=np.zeros(4),
+                             volume_meas=np.zeros(4), cond_W=20.0, qp_status="optimal", step_time=1e-4))
+    ests.append(marker_estimate(SourceEvent(0.51, "silent", "no valid frame for 0.5 s"), targets))
+    write_estimates(path, ests, targets, meta)
+
+
+def test_replay_of_an_estimate_file_moves_the_phantom(coarse_model, coarse_model_dir, shared_dir, tmp_path):
+    """``live --source replay:estimate.csv --model DIR``: the surface is the model's atlas field at
+    each estimate's loads (the atlas cached in DIR/atlas for the file's contact); without an atlas
+    the rest shape moved rigidly by the estimated pose; the page is told which."""
+    import shutil
+
+    from shared_models import cached_atlas
+    from softphantom.estimation.atlas.store import atlas_path, save_atlas
+    from softphantom.pose import matrix_from_ypr
+
+    at = cached_atlas(shared_dir)  # on-centre, f_y up to 1.2 N, p_u up to 4 kPa
+    mdir = tmp_path / "model"
+    shutil.copytree(coarse_model_dir, mdir)
+    save_atlas(at, atlas_path(mdir, at.key))
+    peak, xyz_mm, ypr_deg = (0.2, 1.0, -0.1), (0.3, 2.0, -0.5), (3.0, -2.0, 1.0)
+    meta = {"contact": "on-centre", "contact_radius_mm": at.provenance["contact_radius_m"] * 1e3}
+    csv = tmp_path / "estimate.csv"
+    _estimate_file(csv, list(coarse_model.targets), peak, xyz_mm, ypr_deg, meta)
+
+    rp = open_source(f"replay:{csv}", model=mdir, speed=0).source
+    assert isinstance(rp, EstimateReplay) and rp.atlas is not None and "atlas" in rp.surface_shows
+    with LiveSession(rp, LiveConfig(http_port=0, stream_port=None)) as s:
+        assert s.wait(timeout_s=60.0)
+        st = json.loads(_get(s.url + "api/state"))
+        geo = json.loads(_get(s.url + "api/geometry"))
+    assert "atlas" in geo["surface_shows"]
+    shown = decode_positions_mm(st["surface_mm_f32_b64"])  # the last estimate's (the marker keeps it)
+    want = at.nodes(np.array([*peak, 500.0]))[rp.geometry.node_index]
+    np.testing.assert_allclose(shown, want, atol=2e-7)
+    assert st["status"]["surface_max_mm"] > 0.3, st["status"]["surface_max_mm"]
+
+    # a model without an atlas (or for another contact): rigid motion by the estimated pose
+    for model, m in ((coarse_model, None), (mdir, {**meta, "contact": "off-centre"})):
+        if m is not None:
+            _estimate_file(csv, list(coarse_model.targets), peak, xyz_mm, ypr_deg, m)
+        rp = open_source(f"replay:{csv}", model=model, speed=0).source
+        assert rp.atlas is None and "rigidly" in rp.surface_shows
+        with LiveSession(rp, LiveConfig(http_port=0, stream_port=None)) as s:
+            assert s.wait(timeout_s=60.0)
+            st = json.loads(_get(s.url + "api/state"))
+        R = matrix_from_ypr(np.radians(ypr_deg))
+        want = rp.geometry.nodes @ R.T + np.asarray(xyz_mm) * 1e-3
+        np.testing.assert_allclose(decode_positions_mm(st["surface_mm_f32_b64"]), want, atol=2e-7)
+        assert st["status"]["surface_max_mm"] > 2.0
+    assert np.linalg.norm(rp.geometry.p_ext - coarse_model.p_ext["off-centre"]) < 1e-9  # the file's contact
+
+
 def test_cli_live_runs_records_and_rejects_bad_options(tmp_path, capsys):
     rec = tmp_path / "cli.mcap"
     assert main(["live", "--source", "synthetic", "--duration-s", "1.0", "--http-port", "0", "--stream-port", "0",

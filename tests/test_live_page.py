@@ -336,12 +336,16 @@ def test_gizmo_click_turns_the_view(browser, coarse_model):
 
 def test_the_end_of_a_replay_shows_ended_not_reconnecting(browser):
     """The source runs out and the session stops at once (what ``softphantom live`` does at the end
-    of a replay): the page shows ``server: ended`` and keeps it (it does not try to reconnect)."""
+    of a replay): the page shows ``server: ended`` and keeps it (it does not try to reconnect). A
+    source that says what its surface is (a replay without the estimator's field) has it shown."""
     geo = ellipsoid_geometry(subdivisions=1)
     src = ScriptedSource(geo)
+    src.surface_shows = "rest shape moved rigidly by the estimated pose"  # as a replay without an atlas says
     with LiveSession(src, LiveConfig(http_port=0, stream_port=None)) as s:
         page = Watched(browser, s.url + PAGE)
         _show(src, page, src.estimate(force=(0.0, 1.0, 0.0)))
+        note = page.page.locator("#surface-shows")
+        assert note.is_visible() and note.inner_text() == "surface: rest shape moved rigidly by the estimated pose"
         page.wait("S.connected")
         assert page.page.locator("#badge-server").inner_text() == "server: live"
         src.end()

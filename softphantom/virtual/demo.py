@@ -161,7 +161,7 @@ def run_scenario(sc, model, out: Path, cfg, truth, estimator: str = "atlas", gri
         atlas = scenario_atlas(truth, grid)
     with open_estimator(estimator, model, ecfg, cache_dir=out / "model", atlas=atlas, scheduler=scheduler) as est:
         stats = estimate_stream(src, est, est_path, lambda e, n: report(log, task, n, n_frames),
-                                live=False, metadata={"model": "../model", "scenario": sc.name,
+                                live=False, metadata={"model": "../model", "scenario": sc.name, "contact": ecfg.contact,
                                                       "source": f"virtual:{sc.name}",
                                                       "contact_radius_mm": ecfg.contact_radius_m * 1e3})
     report(log, task, n_frames, n_frames)

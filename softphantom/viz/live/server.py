@@ -52,6 +52,9 @@ class LiveSession:
         self.error: BaseException | None = None
         geo = getattr(source, "geometry", None)
         self.geometry_json = None if geo is None else geo.to_json()
+        shows = getattr(source, "surface_shows", None)  # what the surface is, when not the estimator's field
+        if self.geometry_json is not None and shows:
+            self.geometry_json["surface_shows"] = str(shows)
 
     # -- lifecycle -------------------------------------------------------------------------
     def start(self) -> "LiveSession":

@@ -514,6 +514,11 @@ async function init() {
     if (g.ok) {
       S.geo = await g.json();
       buildScene(S.geo);
+      if (S.geo.surface_shows) {  // a replay without the estimator's field: what the surface is instead
+        const el = document.getElementById("surface-shows");
+        el.textContent = `surface: ${S.geo.surface_shows}`;
+        el.hidden = false;
+      }
       if (params.get("xray") === "0") {
         const box = document.getElementById("xray");
         box.checked = false;
