@@ -389,17 +389,24 @@ def _estimate_file(path, targets, peak, xyz_mm, ypr_deg, meta) -> None:
     write_estimates(path, ests, targets, meta)
 
 
-def test_replay_of_an_estimate_file_moves_the_phantom(coarse_model, coarse_model_dir, shared_dir, tmp_path):
+@pytest.fixture(scope="module")
+def coarse_atlas(shared_dir):
+    """The coarse model's small on-centre atlas (shared_models.cached_atlas: f_y up to 1.2 N, p_u up to 4 kPa)."""
+    from shared_models import cached_atlas
+
+    return cached_atlas(shared_dir)
+
+
+def test_replay_of_an_estimate_file_moves_the_phantom(coarse_model, coarse_model_dir, coarse_atlas, tmp_path):
     """``live --source replay:estimate.csv --model DIR``: the surface is the model's atlas field at
     each estimate's loads (the atlas cached in DIR/atlas for the file's contact); without an atlas
     the rest shape moved rigidly by the estimated pose; the page is told which."""
     import shutil
 
-    from shared_models import cached_atlas
     from softphantom.estimation.atlas.store import atlas_path, save_atlas
     from softphantom.pose import matrix_from_ypr
 
-    at = cached_atlas(shared_dir)  # on-centre, f_y up to 1.2 N, p_u up to 4 kPa
+    at = coarse_atlas
     mdir = tmp_path / "model"
     shutil.copytree(coarse_model_dir, mdir)
     save_atlas(at, atlas_path(mdir, at.key))
