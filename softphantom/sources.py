@@ -117,12 +117,11 @@ def _replay(arg: str, *, model=None, bench=None, options=None, want=None, speed=
     if want == "measurements":
         raise UserError(f"--source replay:{arg}: holds estimates (a session recording or an estimate file), not "
                         "sensor samples; estimate from a sensing recording (softphantom acquire --out)")
-    from softphantom.viz.live.source import EstimateReplay, LiveGeometry
+    from softphantom.viz.live.source import EstimateReplay
 
-    m = _model(model)
-    geometry = LiveGeometry.from_model(m) if m is not None else None
-    return OpenedSource(EstimateReplay(arg, speed=speed, geometry=geometry), False, None, None, (), {},
-                        gives="estimates")
+    model_dir = model if isinstance(model, (str, Path)) else None  # where the model's atlases are
+    return OpenedSource(EstimateReplay(arg, speed=speed, model=_model(model), model_dir=model_dir), False, None,
+                        None, (), {}, gives="estimates")
 
 
 def _model(model):

@@ -84,6 +84,12 @@ def test_demo_end_to_end_coarse(tmp_path, capsys, coarse_model_dir):
     # truth.csv and the estimate of the virtual board share the scenario clock: the lag is the latency
     report = (d / "report" / "report.html").read_text()
     assert "the estimator&#x27;s latency (both files on the same clock: scenario (s))" in report
+    # the deformed phantom is drawn (the truth's snapshot holds 10-node or 4-node tets)
+    assert '<img src="snapshot_3d.png"' in report and "nothing to draw" not in report
+    # the summary names the files where they are, not the demo's staging folder
+    assert ".partial" not in report
+    for f in ("estimate.csv", "truth.csv"):
+        assert f"<td>{d / f}</td>" in report, f
 
 
 def test_demo_and_virtual_bad_options_are_one_line(tmp_path, capsys):

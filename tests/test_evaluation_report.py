@@ -260,3 +260,78 @@ def test_estimates_clamped_at_the_envelope_are_counted_noted_and_shaded(run, tmp
     shade_outside(ax, t, np.ones(n, bool))
     assert len(ax.patches) == 2
     plt.close(fig)
+
+
+def _hollow_tet10(path, quadratic=True):
+    """A hollow ball (outer radius 30 mm, a void of 12 mm inside) of 10-node tets (or 4-node), the
+    mid-edge nodes bulged 0.2 mm outward; a displacement field along +y. (mesh, corner boundary
+    faces of the outer surface, of the void)."""
+    import meshio
+    from scipy.spatial import Delaunay
+
+    rng = np.random.default_rng(3)
+    u = rng.normal(size=(400, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    pts = np.vstack([u[:250] * 0.030, u[250:] * 0.012, u[:150] * 0.021])
+    tets = Delaunay(pts).simplices
+    tets = tets[np.linalg.norm(pts[tets].mean(axis=1), axis=1) > 0.012]  # the void
+    cells, nodes = [("tetra", tets)], pts
+    if quadratic:
+        edges = [(0, 1), (1, 2), (0, 2), (0, 3), (1, 3), (2, 3)]  # VTK's mid-edge order
+        mid, extra, t10 = {}, [], []
+        for t in tets:
+            row = list(t)
+            for a, b in edges:
+                key = (min(t[a], t[b]), max(t[a], t[b]))
+                if key not in mid:
+                    p = (pts[t[a]] + pts[t[b]]) / 2
+                    mid[key] = len(pts) + len(extra)
+                    extra.append(p + 2e-4 * p / np.linalg.norm(p))
+                row.append(mid[key])
+            t10.append(row)
+        nodes = np.vstack([pts, extra])
+        cells = [("tetra10", np.array(t10))]
+    disp = np.zeros_like(nodes)
+    disp[:, 1] = 3.0 * (nodes[:, 1] > 0)
+    meshio.write(path, meshio.Mesh(nodes, cells, point_data={"displacement_mm": disp}))
+    return meshio.read(path), tets, pts
+
+
+def test_snapshot_of_10_node_tets_draws_the_curved_outer_surface(run, tmp_path, capsys):
+    """The truth's snapshot holds 10-node tets: its outer surface is drawn, each 6-node face as 4 flat
+    triangles through its mid-edge nodes; the walls of a void inside are not."""
+    from softphantom.evaluation.report import surface_triangles
+
+    mesh, tets, pts = _hollow_tet10(tmp_path / "p2.vtu")
+    faces = np.sort(np.concatenate([tets[:, [0, 1, 2]], tets[:, [0, 1, 3]], tets[:, [1, 2, 3]], tets[:, [0, 2, 3]]]), 1)
+    key, cnt = np.unique(faces, axis=0, return_counts=True)
+    boundary = key[cnt == 1]
+    outer = boundary[np.linalg.norm(pts[boundary].mean(axis=1), axis=1) > 0.02]
+    assert 0 < len(outer) < len(boundary)  # the void has walls too
+    tris = surface_triangles(mesh)
+    assert tris.shape == (4 * len(outer), 3)
+    n_corner = len(pts)
+    assert (tris >= n_corner).any(axis=1).all()  # every flat triangle passes through a mid-edge node
+    r = np.linalg.norm(np.asarray(mesh.points)[np.unique(tris)], axis=1)
+    assert r.min() > 0.02  # nothing of the void's wall
+    # through the command: the report shows the figure
+    d, pe, pt = run
+    out = tmp_path / "rep"
+    assert main(["evaluate", "--estimate", str(pe), "--truth", str(pt), "--out", str(out),
+                 "--snapshot", str(tmp_path / "p2.vtu")]) == 0
+    capsys.readouterr()
+    c = parse(out / "report.html")
+    assert "snapshot_3d.png" in c.imgs and "nothing to draw" not in " ".join(c.text)
+    assert "coloured by |displacement_mm| (max 3.00 mm)" in " ".join(c.text)
+    assert_images(out / "report.html", c)
+    # 6-node triangles alone (a surface file) are drawn split too; a mesh of neither says which cells it has
+    import meshio
+
+    m = meshio.Mesh(np.asarray(mesh.points), [("triangle6", np.zeros((0, 6), int))])
+    t6 = np.array([[0, 1, 2, n_corner, n_corner + 1, n_corner + 2]])
+    assert surface_triangles(meshio.Mesh(np.asarray(mesh.points), [("triangle6", t6)])).tolist() == \
+        [[0, n_corner, n_corner + 2], [n_corner, 1, n_corner + 1], [n_corner + 2, n_corner + 1, 2],
+         [n_corner, n_corner + 1, n_corner + 2]]
+    assert surface_triangles(m) is None and surface_triangles(meshio.Mesh(np.zeros((2, 3)), [("line", [[0, 1]])])) is None
+    lin, _, _ = _hollow_tet10(tmp_path / "p1.vtu", quadratic=False)
+    assert surface_triangles(lin).shape == (len(outer), 3)

@@ -150,6 +150,60 @@ def test_live_page_endpoints_frames_and_stream(tmp_path):
     assert [m["seq"] for m in r.estimates] == list(range(len(r.estimates)))
 
 
+def test_the_end_of_a_source_reaches_the_page_as_ended():
+    """A replay that runs out and the session stopped at once (what ``softphantom live`` does): each
+    event stream ends with a frame whose status is finished (link ``ended``), then the ``end`` event
+    (the page stops reconnecting, docs/live.md)."""
+    import threading
+
+    src = SyntheticSource(rate_Hz=200, duration_s=1.0, subdivisions=1)
+    events: list[tuple[str, bytes]] = []
+    with LiveSession(src, LiveConfig(http_port=0, stream_port=None, view_rate_Hz=30)) as s:
+        _wait_state(s.url, lambda x: x["status"]["estimates"] > 20)
+
+        def read() -> None:
+            kind = b"message"
+            with urllib.request.urlopen(s.url + "api/events", timeout=30) as r:
+                for line in r:  # until the server ends the response
+                    if line.startswith(b"event: "):
+                        kind = line[7:].strip()
+                    elif line.startswith(b"data: "):
+                        events.append((kind.decode(), line[6:].strip()))
+
+        reader = threading.Thread(target=read, daemon=True)
+        reader.start()
+        deadline = time.monotonic() + 30
+        while not events and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert s.wait(30)  # the source ends ...
+    reader.join(30)  # ... and the session is stopped right after it (the with block)
+    assert not reader.is_alive() and events and events[-1][0] == "end", events[-3:]
+    kind, last = events[-2]
+    assert kind == "frame" and json.loads(last)["status"]["finished"] is True
+    assert json.loads(last)["status"]["link"] == "ended"
+
+
+def test_the_page_server_does_not_import_the_session():
+    """One direction: server (the session) → web (the page's server) → state; web and state never
+    import the session's module (not even for type checking)."""
+    import ast
+
+    live = Path(__file__).parents[1] / "softphantom" / "viz" / "live"
+
+    def imports(name: str) -> set[str]:
+        out = set()
+        for node in ast.walk(ast.parse((live / name).read_text())):
+            if isinstance(node, ast.ImportFrom) and node.module:
+                out.add(node.module)
+            elif isinstance(node, ast.Import):
+                out.update(a.name for a in node.names)
+        return out
+
+    assert "softphantom.viz.live.server" not in imports("web.py")
+    assert not {"softphantom.viz.live.server", "softphantom.viz.live.web"} & imports("state.py")
+    assert "softphantom.viz.live.web" in imports("server.py")
+
+
 def test_every_browser_gets_the_same_frames_from_its_own_start():
     src = SyntheticSource(rate_Hz=200, duration_s=None, subdivisions=1)
     with LiveSession(src, LiveConfig(http_port=0, stream_port=None, view_rate_Hz=30)) as s:
@@ -260,7 +314,7 @@ def test_vendored_libraries_are_the_locked_versions():
 
 def test_status_rate_and_health_on_a_controlled_clock(monkeypatch):
     """The page's rate figure and stall detection, on a fake clock (no wall-clock speed involved)."""
-    import softphantom.viz.live.server as srv
+    import softphantom.viz.live.state as srv
 
     clock = [1000.0]
     monkeypatch.setattr(srv, "time", SimpleNamespace(monotonic=lambda: clock[0], time=time.time,
@@ -314,6 +368,79 @@ def test_replay_of_a_recording_shows_the_recorded_deformation(tmp_path):
     assert main(["recording-csv", str(rec), "--out", str(tmp_path / "e.csv")]) == 0
     rc = open_source(f"replay:{tmp_path / 'e.csv'}", speed=0).source
     assert rc.geometry is None and len(list(rc)) == n
+
+
+def _estimate_file(path, targets, peak, xyz_mm, ypr_deg, meta) -> None:
+    """An estimate file: a push rising to ``peak`` N (pose rising to ``xyz_mm``/``ypr_deg``) at 100 Hz
+    for 0.5 s, then a link event's marker (numbers NaN)."""
+    from softphantom.estimation import Estimate
+    from softphantom.estimation.stream import marker_estimate, write_estimates
+    from softphantom.pose import Pose6
+    from softphantom.sensing.sources import SourceEvent
+
+    ests = []
+    for k in range(51):
+        a = k / 50
+        ests.append(Estimate(t=k / 100, force=a * np.asarray(peak, float), p_urethra=500.0 * a,
+                             pose=Pose6(a * np.asarray(xyz_mm) * 1e-3, a * np.radians(ypr_deg)),
+                             target_shift={n: np.zeros(3) for n in targets}, volume_pred=np.zeros(4),
+                             volume_meas=np.zeros(4), cond_W=20.0, qp_status="optimal", step_time=1e-4))
+    ests.append(marker_estimate(SourceEvent(0.51, "silent", "no valid frame for 0.5 s"), targets))
+    write_estimates(path, ests, targets, meta)
+
+
+@pytest.fixture(scope="module")
+def coarse_atlas(shared_dir):
+    """The coarse model's small on-centre atlas (shared_models.cached_atlas: f_y up to 1.2 N, p_u up to 4 kPa)."""
+    from shared_models import cached_atlas
+
+    return cached_atlas(shared_dir)
+
+
+def test_replay_of_an_estimate_file_moves_the_phantom(coarse_model, coarse_model_dir, coarse_atlas, tmp_path):
+    """``live --source replay:estimate.csv --model DIR``: the surface is the model's atlas field at
+    each estimate's loads (the atlas cached in DIR/atlas for the file's contact); without an atlas
+    the rest shape moved rigidly by the estimated pose; the page is told which."""
+    import shutil
+
+    from softphantom.estimation.atlas.store import atlas_path, save_atlas
+    from softphantom.pose import matrix_from_ypr
+
+    at = coarse_atlas
+    mdir = tmp_path / "model"
+    shutil.copytree(coarse_model_dir, mdir)
+    save_atlas(at, atlas_path(mdir, at.key))
+    peak, xyz_mm, ypr_deg = (0.2, 1.0, -0.1), (0.3, 2.0, -0.5), (3.0, -2.0, 1.0)
+    meta = {"contact": "on-centre", "contact_radius_mm": at.provenance["contact_radius_m"] * 1e3}
+    csv = tmp_path / "estimate.csv"
+    _estimate_file(csv, list(coarse_model.targets), peak, xyz_mm, ypr_deg, meta)
+
+    rp = open_source(f"replay:{csv}", model=mdir, speed=0).source
+    assert isinstance(rp, EstimateReplay) and rp.atlas is not None and "atlas" in rp.surface_shows
+    with LiveSession(rp, LiveConfig(http_port=0, stream_port=None)) as s:
+        assert s.wait(timeout_s=60.0)
+        st = json.loads(_get(s.url + "api/state"))
+        geo = json.loads(_get(s.url + "api/geometry"))
+    assert "atlas" in geo["surface_shows"]
+    shown = decode_positions_mm(st["surface_mm_f32_b64"])  # the last estimate's (the marker keeps it)
+    want = at.nodes(np.array([*peak, 500.0]))[rp.geometry.node_index]
+    np.testing.assert_allclose(shown, want, atol=2e-7)
+    assert st["status"]["surface_max_mm"] > 0.3, st["status"]["surface_max_mm"]
+
+    # a model without an atlas (or for another contact): rigid motion by the estimated pose
+    for model, m in ((coarse_model, None), (mdir, {**meta, "contact": "off-centre"})):
+        if m is not None:
+            _estimate_file(csv, list(coarse_model.targets), peak, xyz_mm, ypr_deg, m)
+        rp = open_source(f"replay:{csv}", model=model, speed=0).source
+        assert rp.atlas is None and "rigidly" in rp.surface_shows
+        with LiveSession(rp, LiveConfig(http_port=0, stream_port=None)) as s:
+            assert s.wait(timeout_s=60.0)
+            st = json.loads(_get(s.url + "api/state"))
+        R = matrix_from_ypr(np.radians(ypr_deg))
+        want = rp.geometry.nodes @ R.T + np.asarray(xyz_mm) * 1e-3
+        np.testing.assert_allclose(decode_positions_mm(st["surface_mm_f32_b64"]), want, atol=2e-7)
+        assert st["status"]["surface_max_mm"] > 2.0
+    assert np.linalg.norm(rp.geometry.p_ext - coarse_model.p_ext["off-centre"]) < 1e-9  # the file's contact
 
 
 def test_cli_live_runs_records_and_rejects_bad_options(tmp_path, capsys):

@@ -21,7 +21,7 @@ from softphantom.estimation import Estimate
 from softphantom.estimation.stream import marker_estimate
 from softphantom.pose import Pose6, matrix_from_ypr
 from softphantom.sensing.sources import SourceEvent
-from softphantom.viz.live import LiveConfig, LiveGeometry, LiveSession, SyntheticSource
+from softphantom.viz.live import LiveConfig, LiveGeometry, LiveSession, SyntheticSource, ellipsoid_geometry
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 pytestmark = pytest.mark.skipif(CHROMIUM is None, reason="chromium not installed "
@@ -332,3 +332,27 @@ def test_gizmo_click_turns_the_view(browser, coarse_model):
             page.close()
         finally:
             src.end()
+
+
+def test_the_end_of_a_replay_shows_ended_not_reconnecting(browser):
+    """The source runs out and the session stops at once (what ``softphantom live`` does at the end
+    of a replay): the page shows ``server: ended`` and keeps it (it does not try to reconnect). A
+    source that says what its surface is (a replay without the estimator's field) has it shown."""
+    geo = ellipsoid_geometry(subdivisions=1)
+    src = ScriptedSource(geo)
+    src.surface_shows = "rest shape moved rigidly by the estimated pose"  # as a replay without an atlas says
+    with LiveSession(src, LiveConfig(http_port=0, stream_port=None)) as s:
+        page = Watched(browser, s.url + PAGE)
+        _show(src, page, src.estimate(force=(0.0, 1.0, 0.0)))
+        note = page.page.locator("#surface-shows")
+        assert note.is_visible() and note.inner_text() == "surface: rest shape moved rigidly by the estimated pose"
+        page.wait("S.connected")
+        assert page.page.locator("#badge-server").inner_text() == "server: live"
+        src.end()
+        assert s.wait(30)
+    page.wait("!S.connected", 10)
+    time.sleep(1.5)  # a reconnection attempt would have failed by now
+    badge = page.page.locator("#badge-server")
+    assert badge.inner_text() == "server: ended" and badge.get_attribute("data-level") == "wait"
+    assert page.page.locator("#badge-link").inner_text() == "link: ended"
+    page.close()  # no console error: nothing tried to reconnect

@@ -108,7 +108,7 @@ def demo_cmd(
         console.print(f"truth model: {len(tm.nodes)} nodes, {len(tm.tets)} tets, P{tm.element_order} (mesh "
                       f"{tm.design.mesh.size_mm:g} mm)", highlight=False)
         rows = run_all([load_scenario(n) for n in names], model, work, cfg, tm, estimator, grid,
-                       scheduler=scheduler, n_workers=workers)
+                       scheduler=scheduler, n_workers=workers, shown=out)
         for r in rows:  # the paths the user will see, once the directory is in place
             r["report"] = str(out / Path(r["report"]).relative_to(work))
         wall = time.perf_counter() - t0

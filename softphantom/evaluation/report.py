@@ -103,16 +103,66 @@ class SnapshotView:
     note: str
 
 
+# a tet's faces, outward for a positively oriented tet, by local corner index; VTK's 10-node tet adds
+# the mid-edge nodes of (0,1), (1,2), (0,2), (0,3), (1,3), (2,3) as nodes 4..9
+_TET_FACES = np.array([[0, 2, 1], [0, 1, 3], [1, 2, 3], [0, 3, 2]])
+_TET10_EDGE = {(0, 1): 4, (1, 2): 5, (0, 2): 6, (0, 3): 7, (1, 3): 8, (2, 3): 9}
+_TET10_FACES = np.array([[a, b, c, _TET10_EDGE[tuple(sorted((a, b)))], _TET10_EDGE[tuple(sorted((b, c)))],
+                          _TET10_EDGE[tuple(sorted((c, a)))]] for a, b, c in _TET_FACES])
+# a 6-node triangle (corners, then the mid-edge nodes of (0,1), (1,2), (2,0)) as 4 flat ones of the
+# same orientation, through all six nodes: the curved face drawn bent
+_TRI6_SPLIT = np.array([[0, 3, 5], [3, 1, 4], [5, 4, 2], [3, 4, 5]])
+
+
 def _boundary_faces(tets: np.ndarray) -> np.ndarray:
-    faces = np.concatenate([tets[:, [0, 2, 1]], tets[:, [0, 1, 3]], tets[:, [1, 2, 3]], tets[:, [0, 3, 2]]])
-    key = np.sort(faces, axis=1)
+    """The faces of ``tets`` (M, 4) or (M, 10) that belong to one tet only: (S, 3) or (S, 6), the
+    6-node ones with their mid-edge nodes."""
+    local = _TET10_FACES if tets.shape[1] == 10 else _TET_FACES
+    faces = tets[:, local].reshape(-1, local.shape[1])
+    key = np.sort(faces[:, :3], axis=1)
     _, inv, cnt = np.unique(key, axis=0, return_inverse=True, return_counts=True)
     return faces[cnt[inv.ravel()] == 1]
 
 
+def _outer(faces: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """The faces of the boundary component that reaches farthest out (the outer surface, without
+    the walls of the cavities inside)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    corners = faces[:, :3]
+    n = len(pts)
+    rows = np.repeat(corners[:, 0], 2)
+    cols = corners[:, 1:].ravel()
+    _, label = connected_components(coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(n, n)), directed=False)
+    used = np.unique(corners)
+    far = used[np.argmax(np.linalg.norm(pts[used] - pts[used].mean(axis=0), axis=1))]
+    return faces[label[corners[:, 0]] == label[far]]
+
+
+def surface_triangles(mesh) -> np.ndarray | None:
+    """The outer surface of a meshio mesh as flat triangles (S, 3): the boundary of its 4- or 10-node
+    tets (else its 3- or 6-node triangles), each 6-node triangle as 4 flat ones through its
+    mid-edge nodes; None if it has neither."""
+    by = {}
+    for c in mesh.cells:
+        by.setdefault(c.type, []).append(np.asarray(c.data, np.int64))
+    pts = np.asarray(mesh.points, float)
+    parts = []
+    if "tetra" in by or "tetra10" in by:
+        for kind in ("tetra", "tetra10"):
+            if kind in by:
+                parts.append(_outer(_boundary_faces(np.concatenate(by[kind])), pts))
+    else:
+        parts = [np.concatenate(by[k]) for k in ("triangle", "triangle6") if k in by]
+    flat = [f if f.shape[1] == 3 else f[:, _TRI6_SPLIT].reshape(-1, 3) for f in parts]
+    return np.concatenate(flat) if flat and sum(map(len, flat)) else None
+
+
 def plot_snapshot(vtu: Path, path: Path) -> SnapshotView:
-    """Draw the outer surface of a VTU mesh (deformed node positions, m or as stored), coloured by
-    the magnitude of its ``displacement_mm`` point array if present."""
+    """Draw the outer surface of a VTU mesh (deformed node positions, m or as stored; 4- or 10-node
+    tets, or 3- or 6-node triangles, :func:`surface_triangles`), coloured by the magnitude of its
+    ``displacement_mm`` point array if present."""
     import meshio
 
     from softphantom.errors import FileFormatError
@@ -131,14 +181,10 @@ def plot_snapshot(vtu: Path, path: Path) -> SnapshotView:
         why = " ".join(said.getvalue().split()) or f"{type(exc).__name__}: {exc}"
         raise FileFormatError(f"{vtu}: not a readable VTU mesh ({why})") from None
     pts = np.asarray(mesh.points, float)
-    tets = [c.data for c in mesh.cells if c.type == "tetra"]
-    tris = [c.data for c in mesh.cells if c.type == "triangle"]
-    if tets:
-        faces = _boundary_faces(np.concatenate(tets))
-    elif tris:
-        faces = np.concatenate(tris)
-    else:
-        return SnapshotView(None, f"{vtu.name} has neither tetrahedra nor triangles: nothing to draw")
+    faces = surface_triangles(mesh)
+    if faces is None:
+        kinds = ", ".join(sorted({c.type for c in mesh.cells})) or "no cells"
+        return SnapshotView(None, f"{vtu.name} has neither tetrahedra nor triangles ({kinds}): nothing to draw")
     scale, unit = (1e3, "mm") if np.ptp(pts, axis=0).max() < 1.0 else (1.0, "file units")
     P = pts * scale
     disp = mesh.point_data.get("displacement_mm")

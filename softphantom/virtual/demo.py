@@ -16,6 +16,7 @@ import logging
 import queue
 import threading
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -131,9 +132,10 @@ def in_envelope_fraction(path: Path) -> float:
 
 
 def run_scenario(sc, model, out: Path, cfg, truth, estimator: str = "atlas", grid=None, atlas=None,
-                 scheduler: str | None = None) -> dict:
+                 scheduler: str | None = None, shown: Path | None = None) -> dict:
     """One scenario end to end from its solved ``truth``, into ``out``/<name>; returns its summary
-    row (JSON-able). ``estimator``: atlas (``atlas``, an AtlasConfig, default the scenario's envelope
+    row (JSON-able). ``shown``: where ``out`` ends up (the demo writes into a staging directory and
+    renames it), for the paths the report names (default ``out``). ``estimator``: atlas (``atlas``, an AtlasConfig, default the scenario's envelope
     (:func:`scenario_atlas`); loaded from or built into out/model/atlas, on ``scheduler`` if
     given) or refresh (sync); ``grid`` the atlas's points per axis (default: by kind). Its progress
     is reported (tasks ``<scenario>: estimate``, ``<scenario>: evaluate``)."""
@@ -159,7 +161,7 @@ def run_scenario(sc, model, out: Path, cfg, truth, estimator: str = "atlas", gri
         atlas = scenario_atlas(truth, grid)
     with open_estimator(estimator, model, ecfg, cache_dir=out / "model", atlas=atlas, scheduler=scheduler) as est:
         stats = estimate_stream(src, est, est_path, lambda e, n: report(log, task, n, n_frames),
-                                live=False, metadata={"model": "../model", "scenario": sc.name,
+                                live=False, metadata={"model": "../model", "scenario": sc.name, "contact": ecfg.contact,
                                                       "source": f"virtual:{sc.name}",
                                                       "contact_radius_mm": ecfg.contact_radius_m * 1e3})
     report(log, task, n_frames, n_frames)
@@ -169,6 +171,8 @@ def run_scenario(sc, model, out: Path, cfg, truth, estimator: str = "atlas", gri
     report(log, task, 0, None, "report")
     tru = read_truth(paths["truth"])
     estimate = read_estimate(est_path)
+    if shown is not None:  # the report names the files where the user will find them
+        tru, estimate = (replace(x, source=str(shown / Path(x.source).relative_to(out))) for x in (tru, estimate))
     ev = evaluate(tru, estimate)
     page, rows = write_report(d / "report", tru, estimate, ev, snapshot=paths["snapshot"],
                                 title=f"{sc.name} — {sc.description}")
@@ -228,12 +232,13 @@ def _truth_lane(client, order, model, truth_cfg, truth_mesh, ready: queue.Queue,
 
 
 def run_all(scs, model, out: Path, cfg, truth_mesh, estimator: str = "atlas", grid=None, *,
-            scheduler: str | None = None, n_workers: int | None = None) -> list[dict]:
+            scheduler: str | None = None, n_workers: int | None = None, shown: Path | None = None) -> list[dict]:
     """Every scenario of ``scs`` end to end into ``out`` (:func:`run_scenario`), its progress
     reported here (the truths' too, from the workers): truths solved on Dask one at a time, the
     atlases shared by the push scenarios (:func:`shared_atlases`) built on the same cluster
     meanwhile, each scenario then estimated and evaluated here as soon as its truth is ready. The scenarios whose atlas needs
-    their truth (an inflation: its pressure) are solved first. Rows in the order of ``scs``."""
+    their truth (an inflation: its pressure) are solved first. Rows in the order of ``scs``. ``shown``:
+    where ``out`` ends up (:func:`run_scenario`)."""
     from softphantom.parallel import dask_client
 
     shared = shared_atlases(scs, grid) if estimator == "atlas" else {}
@@ -274,7 +279,7 @@ def run_all(scs, model, out: Path, cfg, truth_mesh, estimator: str = "atlas", gr
                     last = truth_steps[f"{name}: truth"]
                     report(log, last.task, last.done, last.total, f"solved in {truth.solve_s:.0f} s")
                 rows[sc.name] = run_scenario(sc, model, out, cfg, truths.pop(sc.name), estimator, grid,
-                                             atlas=shared.get(push_only(sc)), scheduler=address)
+                                             atlas=shared.get(push_only(sc)), scheduler=address, shown=shown)
         finally:
             stop.set()
             client.unsubscribe_topic(TRUTH_TOPIC)

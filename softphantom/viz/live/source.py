@@ -307,35 +307,120 @@ class SyntheticSource:
         return self._deform(self.geometry.nodes, *self._last)
 
 
+class AtlasField:
+    """The deformed nodes of a model at given loads, from the atlases cached beside it
+    (``MODEL/atlas/``, :mod:`softphantom.estimation.atlas`): the field an atlas estimator shows,
+    for an estimate file replayed without its surfaces.
+
+    ``pieces``: the atlases (:class:`~softphantom.estimation.atlas.map.Atlas`) built for this model
+    (its node count) and the estimate's contact; a load is evaluated in the piece whose envelope
+    holds it, else in the nearest piece, clamped to its envelope.
+    """
+
+    def __init__(self, pieces):
+        self.pieces = tuple(pieces)
+        boxes = [(np.r_[a.config.force_min_N, a.config.p_min_kPa * 1e3], np.r_[a.config.force_max_N, a.config.p_max_kPa * 1e3])
+                 for a in self.pieces]
+        self._lo, self._hi = np.array([b[0] for b in boxes]), np.array([b[1] for b in boxes])
+
+    @classmethod
+    def from_model_dir(cls, model_dir: str | Path, n_nodes: int, contact: Any = None,
+                       contact_radius_m: float | None = None) -> "AtlasField | None":
+        """The atlases in ``model_dir``/atlas for a model of ``n_nodes`` nodes and (if given) the
+        contact point and patch radius the estimates were made with; None if there is none (or
+        they are for several contact points and ``contact`` does not say which)."""
+        from softphantom.errors import SoftphantomError
+        from softphantom.estimation.atlas.store import load_atlas, model_atlases
+
+        pieces = []
+        for path in model_atlases(model_dir):
+            try:
+                a = load_atlas(path)
+            except SoftphantomError:  # a damaged or foreign file: the other atlases still serve
+                continue
+            prov = a.provenance or {}
+            c = prov.get("contact")
+            if a.x_rest.size != 3 * n_nodes or (contact is not None and c != contact):
+                continue
+            if contact_radius_m is not None and not math.isclose(float(prov.get("contact_radius_m", math.nan)),
+                                                                  contact_radius_m, rel_tol=1e-6):
+                continue
+            pieces.append((str(c), a))
+        if not pieces or len({c for c, _ in pieces}) > 1:
+            return None
+        return cls(a for _, a in pieces)
+
+    def nodes(self, force: np.ndarray, p_Pa: float) -> np.ndarray | None:
+        """(N, 3) m node positions at the load (force N, urethra pressure Pa); None if not finite."""
+        load = np.r_[np.asarray(force, float), float(p_Pa)]
+        if not np.all(np.isfinite(load)):
+            return None
+        clamped = np.clip(load, self._lo, self._hi)
+        k = int(np.argmin(np.linalg.norm((clamped - load) / np.r_[1.0, 1.0, 1.0, 1e3], axis=1)))
+        at = self.pieces[k]
+        c = clamped[k]
+        return at.nodes(at.coords(c[:3], c[3]))
+
+
 class EstimateReplay:
     """Replay estimates from a session recording (``.mcap``) or an estimate CSV.
 
     Paced by ``t_s`` (times ``speed``; ``speed=0`` as fast as possible). A recording with
     ``/live/geometry`` and ``/live/surface`` also replays the deformation; otherwise ``geometry``
-    comes from ``geometry`` (e.g. ``LiveGeometry.from_model``) or is None (plots only).
+    comes from ``geometry`` (e.g. ``LiveGeometry.from_model``) or is None (plots only), and the
+    surface shown is, by what is known: the deformation an ``atlas`` (:class:`AtlasField`) gives at
+    each estimate's loads, else the rest shape moved rigidly by the estimated pose.
+    ``surface_shows`` says which, for the page. ``model`` (a ``PhantomModel``), when ``geometry`` is
+    not given: its surface, with the force at the file's contact point (its metadata's ``contact``),
+    and the atlas from ``model_dir``/atlas for that contact (:meth:`AtlasField.from_model_dir`).
     """
 
-    def __init__(self, path: str | Path, *, speed: float = 1.0, geometry: LiveGeometry | None = None):
+    def __init__(self, path: str | Path, *, speed: float = 1.0, geometry: LiveGeometry | None = None,
+                 atlas: AtlasField | None = None, model: Any = None, model_dir: str | Path | None = None):
         from softphantom.stream.recording import read_estimate_csv, read_recording
 
         path = Path(path)
         if not path.exists():
             raise UserError(f"replay file not found: {path}")
         self._surface: list[tuple[float, str]] = []
+        recorded_note = None
         if path.suffix.lower() == ".mcap":
             rec = read_recording(path)
             self.messages = rec.estimates
+            self.meta: dict[str, Any] = {}
             if rec.geometry is not None and geometry is None:
                 geometry = LiveGeometry.from_json(rec.geometry)
+                recorded_note = rec.geometry.get("surface_shows")
             self._surface = [(float(m.get("t_s") or 0.0), m["positions_mm_f32_b64"]) for m in rec.surface
                              if "positions_mm_f32_b64" in m]
         else:
-            _meta, self.messages = read_estimate_csv(path)
+            self.meta, self.messages = read_estimate_csv(path)
         if not self.messages:
             raise FileFormatError(f"{path}: no estimates to replay")
+        if geometry is None and model is not None:
+            contact = self.meta.get("contact")
+            radius_mm = self.meta.get("contact_radius_mm")
+            radius = float(radius_mm) * 1e-3 if isinstance(radius_mm, (int, float)) else None
+            points = getattr(model, "p_ext", {}) or {}
+            geometry = LiveGeometry.from_model(model, contact if contact in points else "on-centre", radius)
+            recorded_note = None
+            if atlas is None and model_dir is not None and not self._surface:
+                atlas = AtlasField.from_model_dir(model_dir, len(model.nodes), contact, radius)
         self.geometry = geometry  # type: ignore[assignment]
+        self.atlas = atlas if geometry is not None and not self._surface else None
+        if geometry is None:
+            self.surface_shows = None
+        elif self._surface:
+            self.surface_shows = recorded_note
+        elif self.atlas is not None:
+            self.surface_shows = "deformation from the model's atlas at the estimated loads"
+        else:
+            self.surface_shows = ("rest shape moved rigidly by the estimated pose (no atlas for this model and "
+                                  "contact: the local deformation is not shown)")
         self.speed = float(speed)
         self._t = -math.inf
+        self._last: Estimate | None = None
+        self._pos: np.ndarray | None = None
 
     def __iter__(self) -> Iterator[Estimate]:
         t_first = float(self.messages[0].get("t_s") or 0.0)
@@ -347,15 +432,26 @@ class EstimateReplay:
                 if wait > 0:
                     time.sleep(wait)
             self._t = est.t
+            if np.all(np.isfinite(est.force)) and np.all(np.isfinite(est.pose.xyz)):
+                self._last = est  # a link event's marker has no numbers: the surface stays
             yield est
 
     def node_positions(self) -> np.ndarray | None:
-        """The recorded surface nearest before the last estimate (None without one)."""
-        if not self._surface or self.geometry is None:
+        """The surface for the last estimate: the recorded one nearest before it; else from the
+        atlas or the pose (the class docstring); None without geometry."""
+        if self.geometry is None:
             return None
-        times = [t for t, _ in self._surface]
-        i = int(np.searchsorted(times, self._t, side="right")) - 1
-        return decode_positions_mm(self._surface[max(i, 0)][1])
+        if self._surface:
+            times = [t for t, _ in self._surface]
+            i = int(np.searchsorted(times, self._t, side="right")) - 1
+            return decode_positions_mm(self._surface[max(i, 0)][1])
+        est = self._last
+        if est is None:
+            return self.geometry.nodes.copy()
+        if self.atlas is not None and (x := self.atlas.nodes(est.force, est.p_urethra)) is not None:
+            return x[self.geometry.node_index]
+        R = _rot(np.asarray(est.pose.ypr, float))  # the model frame's origin is the bulb centre at rest
+        return self.geometry.nodes @ R.T + np.asarray(est.pose.xyz, float)
 
 
 class EstimatorSource:

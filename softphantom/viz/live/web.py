@@ -9,7 +9,12 @@ estimates since the last tick, the surface when it changed, the status), encodes
 queues it to each open event stream. A browser that falls behind by more than its queue
 (``CLIENT_QUEUE`` frames) loses the oldest (their estimates counted in ``view_dropped``); one that
 accepts nothing for ``client_timeout_s`` is dropped, freeing its slot. Nothing here waits on the
-estimate pump: it reads :class:`~softphantom.viz.live.server.LiveState` under its short lock.
+estimate pump: it reads :class:`~softphantom.viz.live.state.LiveState` under its short lock. When
+the server stops, each stream gets a last frame (the final status) and an ``end`` event, after
+which the page stops reconnecting and shows the session ended.
+
+This module serves any :class:`PageSession` (the live session,
+:class:`~softphantom.viz.live.server.LiveSession`, is one); it does not import the session's module.
 """
 
 from __future__ import annotations
@@ -20,7 +25,7 @@ import logging
 import socket
 import threading
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import Any, Protocol
 
 import h11
 from starlette.applications import Starlette
@@ -35,9 +40,7 @@ from softphantom.errors import UserError
 from softphantom.viz.live.security import (
     HostCheck, LoopbackOnly, MaxClients, PageHeaders, TokenCheck, host_names, is_loopback,
 )
-
-if TYPE_CHECKING:
-    from softphantom.viz.live.server import LiveSession
+from softphantom.viz.live.state import LiveConfig, LiveState
 
 STATIC_DIR = Path(__file__).with_name("static")
 
@@ -47,6 +50,20 @@ STATUS_PERIOD_S = 1.0
 """A frame at least this often, new estimates or not: the page's status (stalled, ended) stays fresh."""
 
 
+END_EVENT = b"event: end\ndata: {}\n\n"
+"""The last event of a stream: the session has ended (the page stops reconnecting)."""
+
+
+class PageSession(Protocol):
+    """What the page's server reads from a session."""
+
+    state: LiveState
+    config: LiveConfig
+    geometry_json: dict[str, Any] | None
+
+    def state_json(self) -> dict[str, Any]: ...
+
+
 def _sse(frame_json: bytes) -> bytes:
     return b"event: frame\ndata: " + frame_json + b"\n\n"
 
@@ -54,7 +71,7 @@ def _sse(frame_json: bytes) -> bytes:
 class FrameHub:
     """One frame per view tick for every open event stream (see the module docstring)."""
 
-    def __init__(self, session: "LiveSession"):
+    def __init__(self, session: PageSession):
         self.state, self.period_s = session.state, 1.0 / session.config.view_rate_Hz
         self.clients: dict[asyncio.Queue, None] = {}
         self.seq, self.sv = -1, 0
@@ -74,11 +91,18 @@ class FrameHub:
         self.clients.pop(q, None)
 
     def close(self) -> None:
-        """End every event stream (the session stops)."""
+        """End every event stream (the session stops): a last frame with the final status (ended),
+        the ``end`` event, then the end of the response."""
         self.closed = True
+        if not self.clients:
+            return
+        frame, n, self.seq, self.sv = self.state.frame_json_since(self.seq, self.sv)
+        last = _sse(frame) + END_EVENT
         for q in self.clients:
-            while q.full():
-                q.get_nowait()
+            while q.qsize() > CLIENT_QUEUE - 2:  # room for the last frame and the end
+                _, lost = q.get_nowait()
+                self.state.add_view_dropped(lost)
+            q.put_nowait((last, n))
             q.put_nowait(None)
 
     def tick(self) -> None:
@@ -146,7 +170,7 @@ class EventStream:
             self.hub.unsubscribe(q)
 
 
-def build_app(session: "LiveSession", hub: FrameHub) -> Starlette:
+def build_app(session: PageSession, hub: FrameHub) -> Starlette:
     """The page's ASGI app with the session's access policies."""
 
     cfg = session.config
@@ -208,7 +232,7 @@ class _Quiet(logging.Filter):
 class WebServer:
     """The app served by uvicorn in a thread; :meth:`stop` ends the event streams and the server."""
 
-    def __init__(self, session: "LiveSession"):
+    def __init__(self, session: PageSession):
         cfg = session.config
         family = socket.AF_INET6 if ":" in cfg.listen_host else socket.AF_INET
         self._sock = socket.socket(family, socket.SOCK_STREAM)

@@ -18,7 +18,7 @@ const XYZ_COLORS = ["#d62728", "#2ca02c", "#1f77b4", "#111111"];
 const params = new URLSearchParams(location.search);
 
 const S = {  // the page's state; window.__softphantomLive for tests and the curious
-  geo: null, latest: null, status: null, connected: false, tracker: null, hasTracker: false,
+  geo: null, latest: null, status: null, connected: false, ended: false, tracker: null, hasTracker: false,
   frames: 0, renders: 0, fps: 0, colorMax: MIN_COLOR_MAX_MM, surfaceMax: 0, lastSeq: -1,
   dirty: true, plotsDirty: false,
   cost: { parse: 0, frame: 0, surface: 0, render: 0, labels: 0, plots: 0 },  // ms spent so far, per part
@@ -406,8 +406,9 @@ function badge(id, level, text) {
 }
 function drawStatus() {
   const st = S.status;
-  badge("badge-server", S.connected ? "ok" : st && st.finished ? "wait" : "bad",
-    S.connected ? "server: live" : st && st.finished ? "server: ended" : "server: reconnecting");
+  const ended = S.ended || (!S.connected && st && st.finished);
+  badge("badge-server", S.connected ? "ok" : ended ? "wait" : "bad",
+    S.connected ? "server: live" : ended ? "server: ended" : "server: reconnecting");
   if (!st) return;
   const link = st.link, detail = st.link_detail || "";
   const linkLevel = { ok: "ok", outage: "bad", stalled: "bad", error: "bad", waiting: "wait", ended: "wait" }[link] || "warn";
@@ -513,6 +514,11 @@ async function init() {
     if (g.ok) {
       S.geo = await g.json();
       buildScene(S.geo);
+      if (S.geo.surface_shows) {  // a replay without the estimator's field: what the surface is instead
+        const el = document.getElementById("surface-shows");
+        el.textContent = `surface: ${S.geo.surface_shows}`;
+        el.hidden = false;
+      }
       if (params.get("xray") === "0") {
         const box = document.getElementById("xray");
         box.checked = false;
@@ -531,6 +537,9 @@ async function init() {
   const es = new EventSource("/api/events");
   es.addEventListener("open", () => { S.connected = true; S.resync = true; drawStatus(); });
   es.addEventListener("error", () => { S.connected = false; drawStatus(); });
+  // the session ended (the source ran out, or the server stops): the last frame came before this;
+  // nothing to reconnect to
+  es.addEventListener("end", () => { es.close(); S.connected = false; S.ended = true; S.textNow = true; drawStatus(); });
   // ?frames=N: stop listening after N frames (a fixed snapshot)
   const stopAfter = Number(params.get("frames") || 0);
   es.addEventListener("frame", (ev) => {
