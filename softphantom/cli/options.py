@@ -4,6 +4,8 @@
 command added by any module gets it:
 
 - every numeric option rejects NaN and ±inf (a usage error, exit 2, naming the option);
+- every help text is shown as written: typer renders it as rich markup, which would take
+  ``[molds]`` for a style tag and drop it, so the text is escaped once here;
 - Ctrl-C inside a command prints ``interrupted`` on stderr and exits 130 (the shell convention,
   so ``make`` stops); commands whose normal stop is Ctrl-C (``acquire``, ``live``, …) close their
   recording first and end with :func:`stopped`, which also exits 130.
@@ -84,12 +86,24 @@ def _interruptible(fn: Any) -> Any:
     return run
 
 
+def _literal(text: str | None) -> str | None:
+    from rich.markup import escape
+
+    return None if text is None else escape(text)
+
+
 def harden(command: Any) -> Any:
     """Give every parameter of ``command`` (a click command or group, recursively) the finite-number
-    check and every command callback the Ctrl-C → 130 handling. Returns ``command``."""
+    check, every command callback the Ctrl-C → 130 handling and every help text its literal
+    rendering (markup escaped). Returns ``command``."""
+    if not getattr(command, "_softphantom_help_literal", False):
+        command.help, command.short_help = _literal(command.help), _literal(command.short_help)
+        command._softphantom_help_literal = True
     for p in getattr(command, "params", ()):
         if not getattr(p, "_softphantom_hardened", False):
             p.callback = _finite_callback(p.callback)
+            if getattr(p, "help", None) is not None:
+                p.help = _literal(p.help)
             p._softphantom_hardened = True
     cb = getattr(command, "callback", None)
     if cb is not None and not getattr(cb, "_softphantom_hardened", False):
