@@ -55,6 +55,33 @@ def finite_number(text: str, option: str) -> float:
     return v
 
 
+def check_choice(value: str, choices: tuple[str, ...] | list[str], option: str) -> str:
+    """``value`` if it is one of ``choices``, else a UserError naming ``option`` and the choices.
+
+    >>> check_choice("furlong", ("m", "cm", "mm"), "--length-unit")
+    Traceback (most recent call last):
+    ...
+    softphantom.errors.UserError: --length-unit: expected m, cm or mm, got 'furlong'
+    """
+    if value not in choices:
+        words = ", ".join(choices[:-1]) + f" or {choices[-1]}" if len(choices) > 1 else choices[0]
+        raise UserError(f"{option}: expected {words}, got {value!r}")
+    return value
+
+
+def check_positive(value: float | None, option: str, unit: str = "", *, zero: bool = False) -> float | None:
+    """``value`` (None passes) if > 0 (``zero``: >= 0), else a UserError naming ``option``.
+
+    >>> check_positive(-1.0, "--connect-timeout-s", "s")
+    Traceback (most recent call last):
+    ...
+    softphantom.errors.UserError: --connect-timeout-s: must be > 0 s, got -1
+    """
+    if value is not None and not (value >= 0 if zero else value > 0):
+        raise UserError(f"{option}: must be {'>=' if zero else '>'} 0{' ' + unit if unit else ''}, got {value:g}")
+    return value
+
+
 # --- applied to the whole command tree ------------------------------------------------------------
 
 def _check_finite(ctx: Any, param: Any, value: Any) -> None:
