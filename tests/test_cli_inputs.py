@@ -53,6 +53,10 @@ BAD_INPUTS = [
     ([*SERVE, "--natnet", "--natnet-version", "9"], "--natnet-version"),
     ([*SERVE, "--natnet", "--natnet-host", "0.0.0.0"], "--allow-remote"),
     ([*SERVE, "--natnet", "--natnet-host", "::1", "--allow-remote"], "--natnet-host"),
+    (["calibrate", "--model", "m", "--recording", "r.csv", "--truth", "t.csv", "--out", "o", "--fix", "colour"],
+     "--fix"),
+    (["calibrate", "--model", "m", "--recording", "r.csv", "--truth", "t.csv", "--out", "o",
+      "--holdout-recording", "h.csv", "--holdout-truth", "ht.csv", "--holdout-contact", "on-top"], "--holdout-contact"),
     (["simulate", "--model", "m", "--out", "o", "--force-N", "1e308,0,0"], "--force-N"),
     (["simulate", "--model", "m", "--out", "o", "--urethra-kPa", "1e9"], "--urethra-kPa"),
 ]
