@@ -16,7 +16,7 @@
    95 % interval, identifiability; pose RMSE on the held-out session against the exact truth,
    nominal and calibrated, and their ratio; wall time, CPU seconds with the workers, load
    average and forward solves; the cost by block, and ``fit_<run>.npz`` in the cache directory
-   (residuals and Jacobian at the optimum, keyframes, pose errors: ``benchmarks/diag_calibrate``
+   (residuals and Jacobian at the optimum, keyframes, pose errors: ``benchmarks/research/diag_calibrate``
    reads them); then the same run while a second process keeps both cores busy.
 
 ``--runs`` picks the calibrations: ``free`` (all parameters), ``tube-measured`` (the recordings

@@ -63,6 +63,8 @@ def dask_client(
             client = Client(scheduler, timeout=CONNECT_TIMEOUT_S)
         except (OSError, TimeoutError) as exc:
             raise UserError(f"--scheduler {scheduler}: unreachable ({type(exc).__name__}: {exc})") from None
+        except ValueError as exc:  # distributed's address parser: no port, unknown scheme
+            raise UserError(f"--scheduler {scheduler!r}: not a scheduler address ({exc}); give tcp://HOST:PORT") from None
         try:
             yield client
         finally:

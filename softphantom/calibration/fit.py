@@ -556,7 +556,7 @@ def fit(problem: Problem, forces0: np.ndarray, identifiable_ratio: float = 0.5,
 
     Written here rather than :func:`scipy.optimize.least_squares` because a round of residuals is a
     forward solve of every keyframe, and least_squares spends more of them for the same optimum
-    (``benchmarks/diag_calibrate/least_squares.py``; docs/calibration.md): its ``ftol`` test needs an
+    (``benchmarks/research/diag_calibrate/least_squares.py``; docs/calibration.md): its ``ftol`` test needs an
     evaluated step's actual reduction — one round only to confirm convergence, which the
     Gauss–Newton model's predicted reduction saves here —, its trust region grows from ``x_scale``
     by doubling, and a law's valid set (Yeoh's stability) is not a box bound it could keep."""

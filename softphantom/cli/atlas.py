@@ -79,6 +79,7 @@ def build_cmd(
         raise UserError(f"--offline: full or rom, got {offline!r}")
     if workers is not None and workers < 1:
         raise UserError(f"--workers must be >= 1, got {workers}")
+    _contact(at)
     model = _model(model_dir)
     acfg = atlas_config_from_options(atlas_grid, envelope, atlas_x_axis, atlas_f_y_split,
                                      base=default_atlas_config(model.element_order))

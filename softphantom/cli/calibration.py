@@ -13,15 +13,20 @@ from softphantom.cli.options import check_output, finite_number, overwrite_optio
 from softphantom.errors import UserError
 
 
-def _contact(text: str):
+CONTACTS = ("on-centre", "off-centre")  # every design's named contact points (its p_ext)
+
+
+def _contact(text: str, option: str = "--contact"):
     if "," not in text:
+        if text not in CONTACTS:
+            raise UserError(f"{option} {text!r}: expected {' or '.join(CONTACTS)}, or X,Y,Z_mm")
         return text
     try:
-        v = [finite_number(x, "--contact") * 1e-3 for x in text.split(",")]
+        v = [finite_number(x, option) * 1e-3 for x in text.split(",")]
     except UserError:
-        raise UserError(f"--contact: expected a contact name or X,Y,Z_mm, got {text!r}") from None
+        raise UserError(f"{option}: expected a contact name or X,Y,Z_mm, got {text!r}") from None
     if len(v) != 3:
-        raise UserError(f"--contact: expected 3 numbers (mm), got {len(v)}")
+        raise UserError(f"{option}: expected 3 numbers (mm), got {len(v)}")
     return tuple(v)
 
 
@@ -38,7 +43,8 @@ def _measured(texts: list[str]) -> tuple[tuple[str, float, float | None], ...]:
     return tuple(out)
 
 
-def _pairs(recordings: list[Path], truths: list[Path], contacts: list[str], known: list[Path], what: str):
+def _pairs(recordings: list[Path], truths: list[Path], contacts: list[str], known: list[Path], what: str,
+           option: str = "--contact"):
     from softphantom.calibration import SessionSpec
 
     if len(recordings) != len(truths):
@@ -47,7 +53,7 @@ def _pairs(recordings: list[Path], truths: list[Path], contacts: list[str], know
         raise UserError(f"{what}: give one --contact for all sessions or one per session, got {len(contacts)}")
     if known and len(known) != len(recordings):
         raise UserError(f"--known-loads: one file per --recording (in order), got {len(known)} for {len(recordings)}")
-    cs = [_contact(c) for c in contacts] if contacts else ["on-centre"]
+    cs = [_contact(c, option) for c in contacts] if contacts else ["on-centre"]
     cs = cs * len(recordings) if len(cs) == 1 else cs
     return [SessionSpec(r, t, c, known[i] if known else None) for i, (r, t, c) in enumerate(zip(recordings, truths, cs))]
 
@@ -86,11 +92,17 @@ def calibrate_cmd(
         raise UserError(f"--max-keyframes must be in 3..200, got {max_keyframes}")
     check_output(out, overwrite=overwrite, directory=True)
     specs = _pairs(recording, truth, contact or [], known_loads or [], "--recording/--truth")
-    hold = _pairs(holdout_recording or [], holdout_truth or [], holdout_contact or [], [], "--holdout-recording/--holdout-truth")
+    hold = _pairs(holdout_recording or [], holdout_truth or [], holdout_contact or [], [],
+                  "--holdout-recording/--holdout-truth", "--holdout-contact")
     opts = FitOptions(fix=tuple(fix or ()), measured=_measured(measured or []), radius_m=contact_radius_mm * 1e-3, law=law)
     # refuse a bad name or value before any work (a law's ratio, e.g. yeoh_C20_C10_bulb, is
     # checked against the model's laws once the model is read)
     ratios = ratio_names()
+    known = [p.name for p in parameter_set()]
+    bad = [f for f in opts.fix if f not in known and f not in ratios and not f.startswith(("lag", "drift"))]
+    if bad:
+        raise UserError(f"--fix: unknown parameter(s) {', '.join(bad)}; have {', '.join(known)}, lag, drift "
+                        "or a law's ratio")
     parameter_set(measured=tuple(m for m in opts.measured if m[0] not in ratios))
     for name, value, sd in (m for m in opts.measured if m[0] in ratios):
         Parameter(name, 0.0, 1.0).measured(value, sd)

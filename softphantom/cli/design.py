@@ -9,8 +9,16 @@ from typing import Optional
 import typer
 
 from softphantom.cli.app import app, console
-from softphantom.cli.options import overwrite_option, staged_output
+from softphantom.cli.options import check_positive, overwrite_option, staged_output
+from softphantom.errors import UserError
 from softphantom.progress import status
+
+
+def _lesion_labels(text: str) -> tuple[int, ...]:
+    try:
+        return tuple(int(x) for x in text.split(",") if x.strip())
+    except ValueError:
+        raise UserError(f"--lesion-labels: expected integers separated by commas, got {text!r}") from None
 
 
 @app.command("design")
@@ -36,17 +44,16 @@ def design_command(
     from softphantom.design import BIPDesign, build_model, load_design, save_model
     from softphantom.design.report import design_report_md
 
+    lesions = _lesion_labels(lesion_labels)
+    check_positive(surface_size_mm, "--surface-size-mm", "mm")
+    if urethra_label < 0:
+        raise UserError(f"--urethra-label: must be >= 0 (0: none), got {urethra_label}")
+    if lesions and anatomy is None:
+        raise UserError("--lesion-labels: only with --anatomy (labels of a label map)")
     design = load_design(config) if config is not None else BIPDesign()
     if anatomy is not None:
         from softphantom.design.anatomy import AnatomyOptions, design_from_anatomy, load_anatomy
-        from softphantom.errors import UserError
 
-        if not surface_size_mm > 0.0:
-            raise UserError(f"--surface-size-mm must be > 0, got {surface_size_mm:g}")
-        try:
-            lesions = tuple(int(x) for x in lesion_labels.split(",") if x.strip())
-        except ValueError:
-            raise UserError(f"--lesion-labels: expected integers separated by commas, got {lesion_labels!r}") from None
         with status(f"importing the anatomy {anatomy}", console):
             gland = load_anatomy(anatomy, AnatomyOptions(urethra_label=urethra_label, surface_size_mm=surface_size_mm,
                                                          lesion_labels=lesions))

@@ -8,7 +8,7 @@ from pathlib import Path
 import typer
 
 from softphantom.cli.app import app, console
-from softphantom.cli.options import check_output, overwrite_option, staged_output, stopped
+from softphantom.cli.options import check_choice, check_output, check_positive, overwrite_option, staged_output, stopped
 from softphantom.errors import UserError
 
 _SOURCES = "serial:PORT, replay:FILE or virtual:SCENARIO"
@@ -22,6 +22,26 @@ P0_OPTION = typer.Option(None, "--p0-kPa", help="Absolute ambient pressure at ta
 NEW_BOARD_OPTION = typer.Option("stop", "--on-new-board", help="Serial: when the board restarts or is "
                                 "replaced mid-run: stop (one-line error, the run so far is kept) | retare "
                                 "(re-tare on the next --tare-s at rest and go on).")
+
+
+def check_source_options(source: str, *, max_force_N: float, on_new_board: str, tube_length_m: float | None,
+                         tube_id_mm: float | None, tare_s: float | None = None, qp_solver: str | None = None) -> None:
+    """Refuse a bad ``--source`` kind or estimator/bench option of ``estimate`` and ``live`` before
+    any model is read (each is otherwise used only by some sources, or late)."""
+    from softphantom.estimation.qp import QP_SOLVERS
+    from softphantom.sensing.bench import NEW_BOARD_POLICIES
+    from softphantom.sources import SOURCES, usage
+
+    scheme = source.partition(":")[0]
+    if scheme not in SOURCES:
+        raise UserError(f"unknown --source {source!r} (unknown kind {scheme!r}); use {usage()}")
+    check_positive(max_force_N, "--max-force-N", "N")
+    check_choice(on_new_board, NEW_BOARD_POLICIES, "--on-new-board")
+    check_positive(tube_length_m, "--tube-length-m", "m")
+    check_positive(tube_id_mm, "--tube-id-mm", "mm")
+    check_positive(tare_s, "--tare-s", "s")
+    if qp_solver is not None:
+        check_choice(qp_solver, QP_SOLVERS, "--qp-solver")
 
 
 def open_sensor_source(spec: str, model, *, tare_s: float = 1.0, on_new_board: str = "stop", **options):
@@ -113,6 +133,8 @@ def estimate_cmd(
         raise UserError(f"--duration-s must be > 0, got {duration_s}")
     if p0_kPa is not None and not p0_kPa > 0:
         raise UserError(f"--p0-kPa must be > 0, got {p0_kPa}")
+    check_source_options(source, max_force_N=max_force_N, qp_solver=qp_solver, tare_s=tare_s,
+                         tube_length_m=tube_length_m, tube_id_mm=tube_id_mm, on_new_board=on_new_board)
     check_output(out, overwrite=overwrite, directory=False)
     if not (model_dir / "model.npz").is_file():
         raise UserError(f"--model {model_dir}: not a model directory (no model.npz; run softphantom design)")

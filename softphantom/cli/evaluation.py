@@ -8,7 +8,7 @@ import typer
 from rich.table import Table
 
 from softphantom.cli.app import app, console
-from softphantom.cli.options import check_output, finite_number, overwrite_option, staged_output
+from softphantom.cli.options import check_choice, check_output, check_positive, finite_number, overwrite_option, staged_output
 from softphantom.errors import UserError
 
 
@@ -31,6 +31,30 @@ def _parse_window(text: str | None) -> tuple[float, float] | None:
     if not b > a:
         raise UserError(f"--rest-window-s: END must be after START, got {text!r}")
     return a, b
+
+
+def _check_reader_options(length_unit: str | None, rotation_order: str | None, clock: str | None,
+                          natnet_version: str | None) -> None:
+    """Refuse a bad tracker-reader option up front, whatever the truth file (a truth CSV uses none)."""
+    from softphantom.errors import FileFormatError
+    from softphantom.tracking.capture import SUPPORTED, parse_version
+    from softphantom.tracking.motive import EULER_ORDERS, unit_scale
+    from softphantom.tracking.rosbag import CLOCKS
+
+    if length_unit is not None:
+        try:
+            unit_scale(length_unit)
+        except FileFormatError:
+            raise UserError(f"--length-unit: expected m, cm or mm, got {length_unit!r}") from None
+    if rotation_order is not None:
+        check_choice(rotation_order.strip().upper(), (*EULER_ORDERS, "QUATERNION"), "--rotation-order")
+    if clock is not None:
+        check_choice(clock, CLOCKS, "--clock")
+    if natnet_version is not None:
+        try:
+            parse_version(natnet_version)
+        except FileFormatError:
+            check_choice(natnet_version, tuple("%d.%d" % v for v in SUPPORTED), "--natnet-version")
 
 
 def _virtual_tracker_offset_ms(truth: Path) -> float | None:
@@ -73,8 +97,11 @@ def evaluate_cmd(
 
     check_output(out, overwrite=overwrite, directory=True)
     lag = _parse_lag(lag_ms)
+    window = _parse_window(rest_window_s)
+    check_positive(max_lag_ms, "--max-lag-ms", "ms")
+    _check_reader_options(length_unit, rotation_order, clock, natnet_version)
     est = read_estimate(estimate)
-    tru = read_truth(truth, body=body, rest_window_s=_parse_window(rest_window_s), clock=clock,
+    tru = read_truth(truth, body=body, rest_window_s=window, clock=clock,
                      length_unit=length_unit, rotation_order=rotation_order, natnet_version=natnet_version)
     offset_from = "given"
     if clock_offset_ms is None and (known := _virtual_tracker_offset_ms(truth)) is not None:

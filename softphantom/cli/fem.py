@@ -18,6 +18,11 @@ from softphantom.fem.contact import DEFAULT_CONTACT_RADIUS_M
 from softphantom.records.names import POSE_COLUMNS
 
 
+#: Loads beyond these are no phantom's (a silicone gland a few cm across): refused before any work.
+MAX_FORCE_N = 1000.0
+MAX_PRESSURE_KPA = 1000.0
+
+
 def _vec3(text: str, what: str) -> np.ndarray:
     try:
         v = np.array([float(t) for t in text.split(",")], dtype=np.float64)
@@ -56,6 +61,12 @@ def simulate_command(
 
     check_output(out, overwrite=overwrite, directory=True)
     force = _vec3(force_N, "--force-N")
+    if np.abs(force).max() > MAX_FORCE_N:
+        raise UserError(f"--force-N: each component must be within ±{MAX_FORCE_N:g} N, got {force_N!r}")
+    if abs(urethra_kPa) > MAX_PRESSURE_KPA:
+        raise UserError(f"--urethra-kPa: must be within ±{MAX_PRESSURE_KPA:g} kPa, got {urethra_kPa:g}")
+    if patch_radius_mm < 0:
+        raise UserError(f"--patch-radius-mm must be >= 0, got {patch_radius_mm}")
     model = load_model(model_dir)
     if at in model.p_ext:
         point = np.asarray(model.p_ext[at])
@@ -64,8 +75,6 @@ def simulate_command(
             point = _vec3(at, "--at") * 1e-3
         except UserError:
             raise UserError(f"--at: expected one of {sorted(model.p_ext)} or X,Y,Z in mm, got {at!r}") from None
-    if patch_radius_mm < 0:
-        raise UserError(f"--patch-radius-mm must be >= 0, got {patch_radius_mm}")
     t0 = time.perf_counter()
     fem = fem_from_phantom(model)
     f_ext = force_actuator(fem, point, radius=patch_radius_mm * 1e-3) @ force
@@ -100,9 +109,13 @@ def simulate_command(
         "target_shift_mm": {k: s.tolist() for k, s in zip(targets, shift_mm)},
         "max_displacement_mm": float(np.linalg.norm(sol.u, axis=1).max() * 1e3),
     }
+    try:
+        text = json.dumps(result, indent=2, allow_nan=False)
+    except ValueError:
+        raise SolverError("the solve returned non-finite values (NaN or inf); nothing written") from None
     with staged_output(out, overwrite=overwrite, directory=True) as work:
         write_deformed_vtu(work / "deformed.vtu", fem, sol.x, model.tet_region)
-        (work / "result.json").write_text(json.dumps(result, indent=2, allow_nan=False), encoding="utf-8")
+        (work / "result.json").write_text(text, encoding="utf-8")
 
     console.print(
         f"converged: {sol.iterations} Newton iterations, {sol.load_steps} load step(s), "

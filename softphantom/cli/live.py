@@ -8,8 +8,8 @@ from typing import Optional
 import typer
 
 from softphantom.cli.app import app, console
-from softphantom.cli.estimation import NEW_BOARD_OPTION, TUBE_ID_OPTION, TUBE_LENGTH_OPTION
-from softphantom.cli.options import check_output, overwrite_option, staged_output, stopped
+from softphantom.cli.estimation import NEW_BOARD_OPTION, TUBE_ID_OPTION, TUBE_LENGTH_OPTION, check_source_options
+from softphantom.cli.options import check_choice, check_output, check_positive, overwrite_option, staged_output, stopped
 from softphantom.errors import UserError
 
 
@@ -56,6 +56,14 @@ def live(
     from softphantom.viz.live import LiveConfig, LiveSession
 
     check_estimator_kind(estimator)
+    check_source_options(source, max_force_N=max_force_N, on_new_board=on_new_board, tube_length_m=tube_length_m,
+                         tube_id_mm=tube_id_mm)
+    check_choice(at, ("on-centre", "off-centre"), "--at")
+    check_positive(speed, "--speed", zero=True)
+    if tracker is not None:
+        _tracker_address(tracker)
+    elif tracker_body is not None:
+        raise UserError("--tracker-body: only with --tracker natnet:HOST[:PORT]")
     if not (0 < view_rate_Hz <= 120):
         raise UserError(f"--view-rate-Hz must be in (0, 120], got {view_rate_Hz}")
     for name, port in (("--http-port", http_port), ("--stream-port", stream_port), ("--foxglove-port", foxglove_port)):
@@ -121,11 +129,8 @@ def _with_tracker(src, spec: str, body: Optional[str]):
     from softphantom.tracking.client import NatNetConfig
     from softphantom.viz.live.tracker import NatNetTrackerFeed, TrackedSource
 
-    kind, _, where = spec.partition(":")
-    host, _, port = where.partition(":")
-    if kind != "natnet" or not host or (port and not port.isdigit()):
-        raise UserError(f"--tracker must be natnet:HOST or natnet:HOST:PORT, got {spec!r}")
-    feed = NatNetTrackerFeed(NatNetConfig(server=host, command_port=int(port or 1510)), body)
+    host, port = _tracker_address(spec)
+    feed = NatNetTrackerFeed(NatNetConfig(server=host, command_port=port), body)
     try:
         feed.start()
     except BaseException:
@@ -134,8 +139,17 @@ def _with_tracker(src, spec: str, body: Optional[str]):
         if callable(close):
             close()
         raise
-    console.print(f"tracker: {feed.name!r} from NatNet {host}:{port or 1510}", highlight=False)
+    console.print(f"tracker: {feed.name!r} from NatNet {host}:{port}", highlight=False)
     return TrackedSource(src, feed)
+
+
+def _tracker_address(spec: str) -> tuple[str, int]:
+    """``natnet:HOST[:PORT]`` → (HOST, PORT, default 1510)."""
+    kind, _, where = spec.partition(":")
+    host, _, port = where.partition(":")
+    if kind != "natnet" or not host or (port and not (port.isdigit() and int(port) <= 65535)):
+        raise UserError(f"--tracker must be natnet:HOST or natnet:HOST:PORT, got {spec!r}")
+    return host, int(port or 1510)
 
 
 def _remote_token(listen_host: str, allow_remote: bool) -> str | None:
@@ -143,14 +157,12 @@ def _remote_token(listen_host: str, allow_remote: bool) -> str | None:
     import secrets
 
     from softphantom.cli.app import print_error
-    from softphantom.viz.live.security import is_loopback
+    from softphantom.viz.live.security import check_listen_host, every_interface
 
-    if is_loopback(listen_host):
+    if not check_listen_host("--listen-host", listen_host, allow_remote,
+                             "the page then requires a token; the estimate stream"):
         return None
-    what = "every interface" if listen_host in ("", "0.0.0.0", "::") else listen_host
-    if not allow_remote:
-        raise UserError(f"--listen-host {listen_host!r} serves {what}, beyond this machine; pass --allow-remote "
-                        "to mean it (the page then requires a token)")
+    what = "every interface" if every_interface(listen_host) else listen_host
     print_error(f"serving on {what}: anyone who can reach this machine and has the token in the printed address "
                 "sees the session; the estimate stream has no authentication", prefix="warning: ")
     return secrets.token_urlsafe(18)

@@ -4,6 +4,8 @@
 command added by any module gets it:
 
 - every numeric option rejects NaN and ±inf (a usage error, exit 2, naming the option);
+- every help text is shown as written: typer renders it as rich markup, which would take
+  ``[molds]`` for a style tag and drop it, so the text is escaped once here;
 - Ctrl-C inside a command prints ``interrupted`` on stderr and exits 130 (the shell convention,
   so ``make`` stops); commands whose normal stop is Ctrl-C (``acquire``, ``live``, …) close their
   recording first and end with :func:`stopped`, which also exits 130.
@@ -53,6 +55,33 @@ def finite_number(text: str, option: str) -> float:
     return v
 
 
+def check_choice(value: str, choices: tuple[str, ...] | list[str], option: str) -> str:
+    """``value`` if it is one of ``choices``, else a UserError naming ``option`` and the choices.
+
+    >>> check_choice("furlong", ("m", "cm", "mm"), "--length-unit")
+    Traceback (most recent call last):
+    ...
+    softphantom.errors.UserError: --length-unit: expected m, cm or mm, got 'furlong'
+    """
+    if value not in choices:
+        words = ", ".join(choices[:-1]) + f" or {choices[-1]}" if len(choices) > 1 else choices[0]
+        raise UserError(f"{option}: expected {words}, got {value!r}")
+    return value
+
+
+def check_positive(value: float | None, option: str, unit: str = "", *, zero: bool = False) -> float | None:
+    """``value`` (None passes) if > 0 (``zero``: >= 0), else a UserError naming ``option``.
+
+    >>> check_positive(-1.0, "--connect-timeout-s", "s")
+    Traceback (most recent call last):
+    ...
+    softphantom.errors.UserError: --connect-timeout-s: must be > 0 s, got -1
+    """
+    if value is not None and not (value >= 0 if zero else value > 0):
+        raise UserError(f"{option}: must be {'>=' if zero else '>'} 0{' ' + unit if unit else ''}, got {value:g}")
+    return value
+
+
 # --- applied to the whole command tree ------------------------------------------------------------
 
 def _check_finite(ctx: Any, param: Any, value: Any) -> None:
@@ -84,12 +113,24 @@ def _interruptible(fn: Any) -> Any:
     return run
 
 
+def _literal(text: str | None) -> str | None:
+    from rich.markup import escape
+
+    return None if text is None else escape(text)
+
+
 def harden(command: Any) -> Any:
     """Give every parameter of ``command`` (a click command or group, recursively) the finite-number
-    check and every command callback the Ctrl-C → 130 handling. Returns ``command``."""
+    check, every command callback the Ctrl-C → 130 handling and every help text its literal
+    rendering (markup escaped). Returns ``command``."""
+    if not getattr(command, "_softphantom_help_literal", False):
+        command.help, command.short_help = _literal(command.help), _literal(command.short_help)
+        command._softphantom_help_literal = True
     for p in getattr(command, "params", ()):
         if not getattr(p, "_softphantom_hardened", False):
             p.callback = _finite_callback(p.callback)
+            if getattr(p, "help", None) is not None:
+                p.help = _literal(p.help)
             p._softphantom_hardened = True
     cb = getattr(command, "callback", None)
     if cb is not None and not getattr(cb, "_softphantom_hardened", False):

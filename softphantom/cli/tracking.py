@@ -42,6 +42,8 @@ def track_cmd(
         raise UserError(f"--frames must be > 0, got {frames}")
     if not rest_window_s > 0:
         raise UserError(f"--rest-window-s must be > 0, got {rest_window_s}")
+    if not connect_timeout_s > 0:
+        raise UserError(f"--connect-timeout-s must be > 0, got {connect_timeout_s:g}")
     if out.suffix.lower() not in (".mcap", ".csv"):
         raise UserError(f"--out must name a .mcap or .csv file, got {out}")
     check_output(out, overwrite=overwrite, directory=False)

@@ -27,6 +27,8 @@ def _config(seed: int, osr: int, mesh_scale: float, bench_options: dict | None =
     from softphantom.sensing.bench import BenchConfig
     from softphantom.virtual import VirtualConfig
 
+    if seed < 0:
+        raise UserError(f"--seed: must be >= 0, got {seed}")
     if not 0.2 <= mesh_scale <= 1.0:
         raise UserError(f"--truth-mesh-scale: must be in [0.2, 1] (finer than the model), got {mesh_scale:g}")
     if order is not None and order not in (1, 2):
@@ -110,6 +112,8 @@ def serve_cmd(
     natnet_host: str = typer.Option("127.0.0.1", "--natnet-host", help="Interface of the NatNet server; loopback unless set explicitly."),
     natnet_port: int = typer.Option(1510, "--natnet-port", help="NatNet command port (data go to each client that connects)."),
     natnet_version: str = typer.Option("4.1", "--natnet-version", help="NatNet version to speak: 3.0 or 4.1."),
+    allow_remote: bool = typer.Option(False, "--allow-remote", help="Let --natnet-host be beyond loopback (every "
+                                      "interface: 0.0.0.0); the NatNet stream has no authentication."),
 ) -> None:
     """Serve the scenario's frames on a pty as the board would: prints the port path to use."""
     import sys
@@ -120,6 +124,8 @@ def serve_cmd(
         raise UserError(f"--speed: must be > 0, got {speed:g}")
     if natnet and not 0 <= natnet_port <= 65535:
         raise UserError(f"--natnet-port must be in 0..65535, got {natnet_port}")
+    if natnet:
+        _check_natnet(natnet_host, natnet_version, allow_remote)
     run = _simulate(scenario, model_dir, seed, osr, truth_mesh_scale,
                     dict(tube_length_m=tube_length_m, tube_id_mm=tube_id_mm), truth_order)
     stop_natnet = _start_natnet(run, natnet_host, natnet_port, natnet_version, speed) if natnet else None
@@ -142,6 +148,26 @@ def serve_cmd(
             stop_natnet()
     if interrupted:
         stopped()
+
+
+def _check_natnet(host: str, version: str, allow_remote: bool) -> None:
+    """Refuse a bad --natnet-version, and --natnet-host beyond loopback without --allow-remote (the
+    live page's rule, docs/stream.md), before the scenario is solved; warn when it is allowed."""
+    from softphantom.cli.app import print_error
+    from softphantom.errors import FileFormatError
+    from softphantom.tracking.capture import SUPPORTED, parse_version
+    from softphantom.viz.live.security import check_listen_host, every_interface
+
+    try:
+        parse_version(version)
+    except FileFormatError:
+        raise UserError(f"--natnet-version: expected one of {', '.join('%d.%d' % v for v in SUPPORTED)}, "
+                        f"got {version!r}") from None
+    if ":" in host.strip("[]"):
+        raise UserError(f"--natnet-host {host!r}: an IPv4 address or name (NatNet is IPv4)")
+    if check_listen_host("--natnet-host", host, allow_remote, "the NatNet stream"):
+        print_error(f"serving NatNet on {'every interface' if every_interface(host) else host}: anyone who can "
+                    "reach this machine receives the tracker stream (no authentication)", prefix="warning: ")
 
 
 def _start_natnet(run, host: str, port: int, version: str, speed: float):

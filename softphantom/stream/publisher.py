@@ -58,16 +58,20 @@ class EstimatePublisher:
         self._sock.setsockopt(zmq.SNDHWM, int(hwm_messages))
         self._sock.setsockopt(zmq.LINGER, 0)
         self._sock.setsockopt(zmq.XPUB_VERBOSER, 1)  # every (un)subscribe, so we can count peers
+        # ZeroMQ's spelling: "*" for every interface ("" to a socket), IPv6 literals in brackets
+        where = "*" if host == "" else f"[{host.strip('[]')}]" if ":" in host else host
+        if ":" in host:
+            self._sock.setsockopt(zmq.IPV6, 1)
         try:
             if port == 0:
-                p = self._sock.bind_to_random_port(f"tcp://{host}")
+                p = self._sock.bind_to_random_port(f"tcp://{where}")
             else:
-                self._sock.bind(f"tcp://{host}:{int(port)}")
+                self._sock.bind(f"tcp://{where}:{int(port)}")
                 p = int(port)
         except zmq.ZMQError as exc:
             self._ctx.destroy(linger=0)
-            raise UserError(f"cannot listen for the stream on {host}:{port}: {exc}") from None
-        self.host, self.port = host, p
+            raise UserError(f"cannot listen for the stream on {where}:{port}: {exc}") from None
+        self.host, self.port = ("0.0.0.0" if host == "" else where), p
         self._topic = topic.encode()
         self._sent = 0
         self._subs = 0

@@ -47,6 +47,10 @@ from softphantom.fem.contact import DEFAULT_CONTACT_RADIUS_M
 from softphantom.schema import Field, FileModel, parse, refuse
 
 METHODS = ("grid", "random", "lhs")
+#: The most variants a study lists: each is meshed and linearized (seconds of CPU), and its record
+#: (the full design dict) takes about VARIANT_BYTES of memory.
+MAX_VARIANTS = 100_000
+VARIANT_BYTES = 20_000
 #: Bumped when what a variant computes changes, so cached rows of older code are not reused.
 EVAL_VERSION = 2
 _INDEX = re.compile(r"^(?P<key>[A-Za-z0-9_]+)(\[(?P<i>[0-9]+)\])?$")
@@ -175,6 +179,14 @@ class SweepConfig:
                 apply_path(design, path, v)
         return Variant(index, {k: (v.item() if isinstance(v, np.generic) else v) for k, v in values.items()},
                        design, extra, self.settings)
+
+    def count(self) -> int:
+        """How many variants :meth:`variants` lists (computed without listing them)."""
+        if not self.params:
+            return 1
+        if self.method == "grid":
+            return math.prod(len(p.values) if p.values is not None else p.steps for p in self.params)
+        return self.samples
 
     def variants(self) -> list[Variant]:
         """All variants of the study, in a deterministic order."""
@@ -319,12 +331,44 @@ def sweep_config_from_dict(data: dict, base_dir: Path | None = None) -> SweepCon
         if p.path not in EXTRA_PARAMS:
             apply_path(probe, p.path, p.values[0] if p.values else p.lo)
     ev = f.evaluate.model_dump()
-    return SweepConfig(
+    cfg = SweepConfig(
         name=f.sweep.name, method=f.sweep.method, samples=f.sweep.samples, seed=f.sweep.seed, base=base_dict,
         params=params, fixed=dict(data.get("fixed", {})),  # as written: part of each variant's cache key
         settings=EvalSettings(**{**ev, "directions": tuple(ev["directions"])}),
         optimize=OptimizeSettings(**f.optimize.model_dump()),
     )
+    check_size(cfg)
+    return cfg
+
+
+def _bytes(n: float) -> str:
+    for unit in ("B", "KiB", "MiB", "GiB", "TiB", "PiB"):
+        if n < 1024 or unit == "PiB":
+            return f"{n:.3g} {unit}"
+        n /= 1024
+    raise AssertionError  # pragma: no cover
+
+
+def check_size(cfg: SweepConfig) -> None:
+    """Refuse a study of more than :data:`MAX_VARIANTS` variants before any of them is listed,
+    naming the field that sets the count and the memory listing them would take.
+
+    >>> check_size(SweepConfig(method="lhs", samples=10**12, params=(ParamSpec("mesh_size_mm", lo=8, hi=12),)))
+    Traceback (most recent call last):
+    ...
+    softphantom.errors.UserError: sweep.samples = 1000000000000: 1e+12 variants would take 17.8 PiB to list; a study has at most 100,000 (lower it)
+    """
+    n = cfg.count()
+    if n <= MAX_VARIANTS:
+        return
+    if cfg.method == "grid":
+        field_ = "parameters (grid " + " × ".join(
+            f"{json.dumps(p.path)} {len(p.values) if p.values is not None else p.steps}" for p in cfg.params) + ")"
+    else:
+        field_ = f"sweep.samples = {cfg.samples}"
+    count = f"{n:,}" if n < 10**9 else f"{n:.3g}"
+    raise UserError(f"{field_}: {count} variants would take {_bytes(n * VARIANT_BYTES)} to list; a study has at "
+                    f"most {MAX_VARIANTS:,} (lower it)")
 
 
 def load_sweep_config(path: str | Path) -> SweepConfig:
@@ -334,6 +378,8 @@ def load_sweep_config(path: str | Path) -> SweepConfig:
         data = tomllib.loads(path.read_text(encoding="utf-8"))
     except OSError as exc:
         raise UserError(f"{path}: cannot read ({exc.strerror})") from None
+    except UnicodeDecodeError as exc:
+        raise UserError(f"{path}: not a text file (byte {exc.start} is not UTF-8)") from None
     except tomllib.TOMLDecodeError as exc:
         raise UserError(f"{path}: not valid TOML ({exc})") from None
     return sweep_config_from_dict(data, path.parent)

@@ -214,9 +214,15 @@ def truth_model(model: PhantomModel, config: TruthConfig = TruthConfig()) -> Pha
     try:
         return build_model(design, size_mm)
     except (DesignError, MeshError) as exc:
+        # the mesher's hint names `design`'s options; say what the virtual commands can change
+        msg, coarser = str(exc), "a coarser --mesh-size-mm" in str(exc)
+        for hint in (" (a coarser --mesh-size-mm, or --force)", " (a finer --mesh-size-mm, or --force)",
+                     ": a finer --mesh-size-mm, or --force"):
+            msg = msg.replace(hint, "")
+        what = ("a larger --truth-mesh-scale (up to 1), or a model designed with a coarser --mesh-size-mm" if coarser
+                else "a smaller --truth-mesh-scale or --truth-order 1 (or a model designed with a finer --mesh-size-mm)")
         raise type(exc)(f"truth mesh (P{config.order}, {size_mm:.3g} mm elements for node spacing "
-                        f"{config.mesh_scale:g} x the model's {design.mesh.size_mm:g} mm): {exc} — a smaller "
-                        f"--truth-mesh-scale or --truth-order 1") from None
+                        f"{config.mesh_scale:g} x the model's {design.mesh.size_mm:g} mm): {msg}; use {what}") from None
 
 
 def _patch_radius(fem, point: np.ndarray, radius_m: float) -> float:

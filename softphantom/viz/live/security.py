@@ -40,6 +40,34 @@ def is_loopback(host: str) -> bool:
         return False
 
 
+def every_interface(host: str) -> bool:
+    """True for the addresses that mean every interface: "", 0.0.0.0, :: (bracketed or not)."""
+    return host.strip("[]") in ("", "0.0.0.0", "::")
+
+
+def check_listen_host(option: str, host: str, allow_remote: bool, unauthenticated: str) -> bool:
+    """The rule of every listening option (``live --listen-host``, ``virtual serve --natnet-host``):
+    loopback needs nothing (False); beyond it, a UserError naming ``option`` unless ``allow_remote``,
+    else True (the caller warns, saying what ``unauthenticated`` exposes).
+
+    >>> check_listen_host("--natnet-host", "127.0.0.1", False, "the tracker stream")
+    False
+    >>> check_listen_host("--natnet-host", "0.0.0.0", False, "the tracker stream")
+    Traceback (most recent call last):
+    ...
+    softphantom.errors.UserError: --natnet-host '0.0.0.0' serves every interface, beyond this machine; pass --allow-remote to mean it (the tracker stream has no authentication)
+    """
+    from softphantom.errors import UserError
+
+    if is_loopback(host):
+        return False
+    if not allow_remote:
+        what = "every interface" if every_interface(host) else host
+        raise UserError(f"{option} {host!r} serves {what}, beyond this machine; pass --allow-remote to mean it "
+                        f"({unauthenticated} has no authentication)")
+    return True
+
+
 def host_names(listen_host: str, allowed_hosts: tuple[str, ...]) -> set[str]:
     """Names a client may put in the ``Host`` header (lower case, without the port)."""
     names = {"localhost", *(h.lower() for h in allowed_hosts)}

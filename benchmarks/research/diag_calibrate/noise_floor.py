@@ -3,7 +3,7 @@ regenerated from one truth solve with the board's noise and drift switched off o
 each variant's held-out check with the truth's own parameters (the oracle: no calibration can do
 better). Usage:
 
-    diag_calibrate/noise_floor.py CACHE_DIR [--session needle-60s] [--fit-law yeoh] [--workers 2]
+    .venv/bin/python benchmarks/research/diag_calibrate/noise_floor.py CACHE_DIR [--session needle-60s] [--fit-law yeoh] [--workers 2]
         [--variants exact,noise-only] [--levels 3] [--fit-from CACHE_DIR/fit_free_yeoh.npz]
 
 CACHE_DIR is a bench_calibrate cache (its model/ and the held-out session's scenario and
@@ -22,8 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[3]))
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import bench_calibrate as bc  # noqa: E402
 

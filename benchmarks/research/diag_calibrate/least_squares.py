@@ -2,8 +2,8 @@
 (:func:`softphantom.calibration.fit.fit`), to measure them side by side: rounds of forward solves,
 cost, recovered parameters.
 
-    .venv/bin/python benchmarks/diag_calibrate/least_squares.py standin
-    .venv/bin/python benchmarks/diag_calibrate/least_squares.py bench [bench_calibrate.py options]
+    .venv/bin/python benchmarks/research/diag_calibrate/least_squares.py standin
+    .venv/bin/python benchmarks/research/diag_calibrate/least_squares.py bench [bench_calibrate.py options]
 
 ``standin``: both on the stand-in problems of tests/test_calibration.py (linear FEM stand-ins, no
 solves). ``bench``: benchmarks/bench_calibrate.py with every fit (calibration and pose checks) done
@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 sys.path.insert(0, str(ROOT))
 
 from softphantom.calibration import fit as F  # noqa: E402

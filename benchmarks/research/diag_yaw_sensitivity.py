@@ -1,7 +1,7 @@
 """How strongly f_x moves the pose and the arm volumes about f_x = 0, by central differences of
 converged solves: the figure that says how well the volumes must be interpolated for an angle goal.
 
-    .venv/bin/python benchmarks/diag_yaw_sensitivity.py MODEL_DIR [--f-y-N 0,1.5,3] [--h-N 0.05]
+    .venv/bin/python benchmarks/research/diag_yaw_sensitivity.py MODEL_DIR [--f-y-N 0,1.5,3] [--h-N 0.05]
 
 Prints, per f_y, d pose/d f_x (mm/N, deg/N), d V/d f_x per arm (mm³/N) and the yaw per mm³ of the
 back pair's volume difference (docs/estimation.md, Known limits).

@@ -2,7 +2,7 @@
 the fitted forces against the known loads. Usage: dv_ratio.py CACHE_DIR [fit_free.npz]"""
 import sys, numpy as np
 from pathlib import Path
-sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[3]))
 from softphantom.evaluation.files import read_table
 D = Path(sys.argv[1]); f = np.load(D / (sys.argv[2] if len(sys.argv) > 2 else "fit_free.npz"))
 arms = ("front_zpos", "front_zneg", "back_xpos", "back_xneg")

@@ -2,7 +2,7 @@
 a pressure clock error dt shows as residual ≈ −dt · df/dt. Prints the regression dt per session."""
 import sys, numpy as np
 from pathlib import Path
-sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[3]))
 from softphantom.evaluation.files import read_table
 D = Path(sys.argv[1]); f = np.load(D / (sys.argv[2] if len(sys.argv) > 2 else "fit_free.npz"))
 ng = int(f["n_global"]); K = len(f["t"]); forces = f["z"][ng:].reshape(K, 3)

@@ -9,7 +9,7 @@ group, + per-arm gains: the cost left and the parameters it takes (docs/calibrat
 import dataclasses, sys, time
 import numpy as np
 from pathlib import Path
-sys.path.insert(0, str(Path(__file__).resolve().parents[2])); sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[3])); sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from bench_calibrate import with_law
 from softphantom.design import load_model, save_model
 from softphantom.calibration import forward as fw

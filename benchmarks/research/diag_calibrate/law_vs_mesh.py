@@ -2,7 +2,7 @@
 Separates the law's share of the front arms' ΔV deficit from the mesh's."""
 import dataclasses, sys, numpy as np
 from pathlib import Path
-sys.path.insert(0, str(Path(__file__).resolve().parents[2])); sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[3])); sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from bench_calibrate import with_law
 from softphantom.design import load_model, save_model
 from softphantom.calibration.forward import solve_keyframe

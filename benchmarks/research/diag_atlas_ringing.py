@@ -4,7 +4,7 @@ through only the atlas's f_y nodes below ``--split-f-y-N`` (the other axes as th
 both against converged solves. If the second is much closer, the fold's shape is carried down by
 the global polynomial and a piecewise f_y axis would remove it (docs/estimation.md, Known limits).
 
-    .venv/bin/python benchmarks/diag_atlas_ringing.py --model DIR --atlas-cache DIR \\
+    .venv/bin/python benchmarks/research/diag_atlas_ringing.py --model DIR --atlas-cache DIR \\
         --atlas-grid 11,9,4,3 --x-control displacement --split-f-y-N 3.4
 """
 
