@@ -199,8 +199,36 @@ static void add_points(uint32_t n)
     n_pts += n;
 }
 
+/* simavr 1.6 times a UART byte when UBRR0L is written (before the firmware sets U2X0, so at half
+ * the speed) and counts a parity bit that 8N1 does not have: set the byte time the chip has,
+ * from the registers as configured (start + 8 data [+ parity] + stop bits, UBRR, U2X). */
+static void uart_fix_timing(void)
+{
+    for (avr_io_t *io = avr->io_port; io; io = io->next) {
+        if (strcmp(io->kind, "uart"))
+            continue;
+        avr_uart_t *u = (avr_uart_t *)io;
+        uint8_t *d = avr->data;
+        uint32_t ubrr = d[0xC4] | ((uint32_t)(d[0xC5] & 0x0F) << 8); /* UBRR0L/H */
+        uint32_t bits = 1u + 8u + ((d[0xC2] & 0x30) ? 1u : 0u) + ((d[0xC2] & 0x08) ? 2u : 1u);
+        uint32_t per_bit = (ubrr + 1u) * ((d[0xC0] & 0x02) ? 8u : 16u); /* UCSR0A U2X0 */
+        u->cycles_per_byte = (avr_cycle_count_t)per_bit * bits;
+    }
+}
+
+static avr_cycle_count_t uart_fix_tick(struct avr_t *a, avr_cycle_count_t when, void *param)
+{
+    (void)a;
+    (void)when;
+    (void)param;
+    uart_fix_timing();
+    return 0;
+}
+
 static void run_until(uint64_t until)
 {
+    if (avr->cycle > 0)
+        uart_fix_timing();
     while (avr->cycle < until) {
         int state = avr_run(avr);
         if (state == cpu_Done || state == cpu_Crashed)
@@ -262,6 +290,8 @@ int main(int argc, char **argv)
     uart_irq = avr_io_getirq(avr, AVR_IOCTL_UART_GETIRQ('0'), 0);
     avr_irq_register_notify(adc_irq + ADC_IRQ_OUT_TRIGGER, on_adc_start, NULL);
     avr_irq_register_notify(uart_irq + UART_IRQ_OUTPUT, on_uart_out, NULL);
+
+    avr_cycle_timer_register(avr, F_CPU / 1000u, uart_fix_tick, NULL); /* once the UART is set up */
 
     for (;;) {
         uint8_t op;

@@ -1,0 +1,272 @@
+"""The board's own firmware (firmware/main.c) run in simavr, read through the host's decoder.
+
+Each check below runs on the real firmware and, in ``test_a_broken_firmware_fails``, on a
+deliberately broken copy of main.c (one line changed): every check must catch its fault.
+Time is the emulator's cycle count (16 MHz); a run of a few emulated seconds takes about a second.
+"""
+
+from __future__ import annotations
+
+import struct
+import subprocess
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from softphantom.sensing.board import frame_rate_Hz
+from softphantom.sensing.protocol import (
+    DataFrame,
+    InfoFrame,
+    StreamDecoder,
+    encode_get_info,
+    encode_set_osr,
+    frame,
+)
+from softphantom.virtual.firmware_sim import FIRMWARE_DIR, VS_V, FirmwareSim, build, simavr_missing
+
+pytestmark = pytest.mark.skipif(simavr_missing() is not None, reason=simavr_missing() or "")
+
+F_CPU = 16e6
+CONV_CYCLES = 13 * 128          # one conversion: 13 ADC clocks at prescaler 128 = 104 µs
+CLOCK_TOLERANCE = 5e-3          # the UNO's ceramic resonator (docs/protocol.md)
+
+
+@dataclass(frozen=True)
+class Tools:
+    harness: Path
+    elf: Path
+
+
+@pytest.fixture(scope="module")
+def tools(tmp_path_factory) -> Tools:
+    h, e = build(tmp_path_factory.mktemp("fwsim"))
+    return Tools(h, e)
+
+
+@dataclass
+class Run:
+    frames: list            # decoded frames in order (INFO and DATA)
+    arrival: list           # emulator cycle of each frame's last byte
+    adc: np.ndarray         # conversions (cycle, ch, code)
+    decoder: StreamDecoder
+
+    @property
+    def data(self) -> list[DataFrame]:
+        return [f for f in self.frames if isinstance(f, DataFrame)]
+
+    @property
+    def infos(self) -> list[InfoFrame]:
+        return [f for f in self.frames if isinstance(f, InfoFrame)]
+
+
+def run_fw(tools: Tools, t_end_s: float, volts=None, commands=(), log_adc=False, step_s=0.01) -> Run:
+    """Run the firmware to ``t_end_s`` with ``volts`` (t grid, (n, 5)) and ``commands`` [(t_s, bytes)]."""
+    dec = StreamDecoder()
+    frames, arrival, adc = [], [], []
+    pending = sorted(commands, key=lambda c: c[0])
+    with FirmwareSim(tools.elf, harness=tools.harness, log_adc=log_adc) as sim:
+        if volts is not None:
+            sim.set_voltages(*volts)
+        t = 0.0
+        while True:
+            while pending and pending[0][0] <= t + 1e-12:
+                sim.send(pending.pop(0)[1])
+            if t >= t_end_s - 1e-12:
+                break
+            t = min(t_end_s, t + step_s, *(c[0] for c in pending))
+            out = sim.run_until(t)
+            for i, b in enumerate(out.data):      # byte by byte: each frame's arrival cycle
+                for f in dec.feed(bytes([b])):
+                    frames.append(f)
+                    arrival.append(int(out.byte_cycles[i]))
+            adc.append(out.adc)
+    return Run(frames, arrival, np.concatenate(adc) if adc else np.zeros(0), dec)
+
+
+def const_volts(codes) -> tuple:
+    """Voltages in the middle of each code's step."""
+    v = (np.asarray(codes, float) + 0.5) * VS_V / 1024
+    return np.array([0.0]), v[None, :]
+
+
+def ramp_volts(t_end_s: float):
+    """Five different slow ramps (one code every few conversions): every reading is different."""
+    t = np.linspace(0.0, t_end_s, 64)
+    base = np.array([0.3, 1.1, 2.0, 2.9, 3.7])
+    slope = np.array([1.0, -0.8, 0.6, -0.4, 0.9])         # V/s
+    return t, base + slope * t[:, None]
+
+
+def expected_code(volts, cycle, ch) -> int:
+    t, v = volts
+    x = np.interp(cycle / F_CPU, t, v[:, ch])
+    return int(min(1023, max(0, np.floor(1024 * x / VS_V))))
+
+
+def windows(run: Run, skip_first_conversion=True):
+    """The conversions of each DATA frame's window: consecutive runs of 5·N after the first."""
+    conv = run.adc[1:] if skip_first_conversion else run.adc
+    out, k = [], 0
+    for f in run.data:
+        n = 5 * f.osr
+        out.append(conv[k:k + n])
+        k += n
+    return out
+
+
+# --- the checks (each also run on a broken firmware) -----------------------------------------------
+
+def check_rate(tools: Tools):
+    """19.2 Hz at N = 100 (the default), 76.9 Hz at 25, on the emulator's clock."""
+    run = run_fw(tools, 1.6, const_volts([100, 200, 300, 400, 500]), commands=[(0.8, encode_set_osr(25))])
+    for osr, n_min in ((100, 10), (25, 30)):
+        cyc = np.array([a for f, a in zip(run.frames, run.arrival) if isinstance(f, DataFrame) and f.osr == osr])
+        assert len(cyc) >= n_min, f"OSR {osr}: {len(cyc)} frames"
+        rate = F_CPU / np.median(np.diff(cyc[1:]))
+        assert abs(rate / frame_rate_Hz(osr) - 1) < CLOCK_TOLERANCE, (osr, rate)
+        t_us = np.array([f.t_us for f in run.data if f.osr == osr], float)
+        board_rate = 1e6 / np.median(np.diff(t_us[1:]))       # and on the board's own clock
+        assert abs(board_rate / frame_rate_Hz(osr) - 1) < CLOCK_TOLERANCE, (osr, board_rate)
+
+
+def check_sums(tools: Tools):
+    """Summed counts bit-exact: N·code for constant inputs (incl. both rails), and for five ramps
+    the sum of floor(1024·V/VS) at each conversion's start."""
+    codes = [0, 1, 511, 1000, 1023]
+    run = run_fw(tools, 0.5, (np.array([0.0]), np.array([[0.0, 1.5 * VS_V / 1024, 511.5 * VS_V / 1024,
+                                                          1000.5 * VS_V / 1024, VS_V]])))
+    assert len(run.data) >= 8
+    for f in run.data:
+        assert f.raw == tuple(f.osr * c for c in codes), f
+    volts = ramp_volts(0.6)
+    run = run_fw(tools, 0.6, volts, commands=[(0.002, encode_set_osr(25))], log_adc=True)
+    assert len(run.data) >= 30
+    for f, w in zip(run.data, windows(run)):
+        assert len(w) == 5 * f.osr
+        assert list(w["ch"]) == [0, 1, 2, 3, 4] * f.osr, f"channel order in frame {f.seq}"
+        exp = [sum(expected_code(volts, int(c), ch) for c in w["cycle"][w["ch"] == ch]) for ch in range(5)]
+        assert list(f.raw) == exp, (f.seq, f.raw, exp)
+
+
+def check_timestamps(tools: Tools):
+    """t_us is the centre of the frame's sampling window (first conversion's start to last one's
+    end), on the emulator's clock within 0.3 ms (simavr's Timer1 reads carry an offset of ~0.1 ms),
+    and exactly by the step across an OSR change: (52.0 + 13.0) / 2 ms from the last N = 100
+    window's centre to the first N = 25 one's."""
+    run = run_fw(tools, 0.5, const_volts([1, 2, 3, 4, 5]), commands=[(0.2, encode_set_osr(25))], log_adc=True)
+    assert len(run.data) >= 10
+    for f, w in zip(run.data, windows(run)):
+        centre_us = (int(w["cycle"][0]) + int(w["cycle"][-1]) + CONV_CYCLES) / 2 / 16
+        assert abs(f.t_us - centre_us) < 300, (f.seq, f.t_us, centre_us)
+    seq = [f.osr for f in run.data]
+    k = seq.index(25)
+    assert seq[k - 1] == 100
+    step_us = run.data[k].t_us - run.data[k - 1].t_us
+    assert abs(step_us - (52_000 + 13_000) / 2) < 0.002 * 32_500, step_us
+
+
+def check_commands(tools: Tools):
+    """SET_OSR and GET_INFO of protocol versions 1 and 2: each answered by an INFO (firmware 2.0.0,
+    5 channels, the N in force, seq of the next DATA frame); an out-of-range SET_OSR changes
+    nothing; DATA frames follow the new N."""
+    bad = frame(struct.pack("<BBH", 2, 0x10, 501))
+    cmds = [(0.06, encode_get_info(version=1)), (0.12, encode_set_osr(25, version=1)),
+            (0.2, encode_get_info(version=2)), (0.26, encode_set_osr(40, version=2)),
+            (0.34, bad), (0.4, encode_set_osr(10, version=1))]
+    run = run_fw(tools, 0.5, const_volts([10, 20, 30, 40, 50]), commands=cmds)
+    infos = run.infos
+    assert [i.osr for i in infos] == [100, 100, 25, 25, 40, 40, 10], infos   # reset INFO + 6 answers
+    assert all(i.firmware == (2, 0, 0) and i.n_channels == 5 for i in infos)
+    for i, f in enumerate(run.frames):
+        if isinstance(f, InfoFrame) and i > 0:
+            nxt = next((g for g in run.frames[i + 1:] if isinstance(g, DataFrame)), None)
+            assert nxt is None or nxt.seq == f.seq, (f, nxt)
+    osrs = [f.osr for f in run.data]
+    assert set(osrs) == {100, 25, 40, 10}
+    assert osrs == sorted(osrs, key=[100, 25, 40, 10].index), osrs       # in the order they were set
+    assert run.decoder.stats.frames_lost == 0 and run.decoder.stats.rejected == 0
+
+
+def check_tx_while_sampling(tools: Tools):
+    """At N = 25 and at N = 6 (the UART 94 % busy) the ADC converts back to back, 104 µs apart,
+    while frames are packed and sent: frames go out during the next window, no conversion is
+    missed or shifted, no frame lost, and every frame's sums are those of its 5·N conversions."""
+    volts = ramp_volts(0.5)
+    run = run_fw(tools, 0.5, volts, commands=[(0.002, encode_set_osr(25)), (0.3, encode_set_osr(6))], log_adc=True)
+    assert run.decoder.stats.frames_lost == 0 and run.decoder.stats.rejected == 0, run.decoder.stats
+    gaps = np.diff(run.adc["cycle"][1:].astype(np.int64))
+    assert gaps.max() <= CONV_CYCLES + 8 and gaps.min() >= CONV_CYCLES - 8, (gaps.min(), gaps.max())
+    n6 = 0
+    for f, w in zip(run.data, windows(run)):
+        exp = [sum(expected_code(volts, int(c), ch) for c in w["cycle"][w["ch"] == ch]) for ch in range(5)]
+        assert list(f.raw) == exp, (f.seq, f.osr)
+        n6 += f.osr == 6
+    assert n6 >= 40
+    inside = [a for f, a in zip(run.frames, run.arrival) if isinstance(f, DataFrame)]
+    conv = run.adc["cycle"]
+    assert all(((conv > a - 2000) & (conv < a + 2000)).sum() >= 2 for a in inside)  # TX amid conversions
+
+
+def check_command_burst(tools: Tools):
+    """Twenty commands back to back (150 bytes, over twice the 64-byte RX ring; their INFO answers
+    keep the UART busy for 32 ms) while streaming at N = 25: every one answered in order, no DATA
+    frame lost, the last N in force."""
+    burst, expect = [], [100, 25]
+    for k in range(20):
+        version = 1 + k % 4 // 2
+        if k % 2:
+            burst.append(encode_set_osr(26 + k, version=version))
+        else:
+            burst.append(encode_get_info(version=version))
+        expect.append(26 + k if k % 2 else expect[-1])
+    blob = b"".join(burst)
+    assert len(blob) == 150
+    run = run_fw(tools, 0.6, const_volts([5, 6, 7, 8, 9]), commands=[(0.002, encode_set_osr(25)), (0.2, blob)])
+    assert [i.osr for i in run.infos] == expect, run.infos
+    st = run.decoder.stats
+    assert st.frames_lost == 0 and st.rejected == 0, st
+    assert run.data[-1].osr == 45 and len(run.data) >= 25
+
+
+CHECKS = {"rate": check_rate, "sums": check_sums, "timestamps": check_timestamps, "commands": check_commands,
+          "tx_while_sampling": check_tx_while_sampling, "command_burst": check_command_burst}
+
+
+@pytest.mark.parametrize("name", list(CHECKS))
+def test_real_firmware(tools, name):
+    CHECKS[name](tools)
+
+
+# (check, the line of main.c, its broken version)
+MUTANTS = {
+    "osr_off_by_one": (["rate", "sums"], "++acc_k < acc_n", "++acc_k <= acc_n"),
+    "timestamp_at_window_start": (["timestamps"], "done_t_us = t_window_start + (t_end - t_window_start) / 2u;",
+                                  "done_t_us = t_window_start;"),
+    "channels_shifted": (["sums"], "    ch_conv = ch_mux;\n", "    ch_conv = ch;\n"),
+    "v1_commands_ignored": (["commands", "command_burst"], "payload[0] < SP_PROTOCOL_VERSION_MIN",
+                            "payload[0] < SP_PROTOCOL_VERSION"),
+    "get_info_ignored": (["commands"], "payload[1] == SP_CMD_GET_INFO && len == 2",
+                         "payload[1] == SP_CMD_GET_INFO && len == 3"),
+    "sampling_paused_while_sending": (["tx_while_sampling"], "            size_t len = sp_pack_data(",
+                                      "            cli();\n            size_t len = sp_pack_data("),
+    "rx_ring_too_small": (["command_burst"], "#define RXBUF 64u", "#define RXBUF 8u"),
+}
+
+
+@pytest.mark.parametrize("mutant", list(MUTANTS))
+def test_a_broken_firmware_fails(tools, tmp_path, mutant):
+    checks, good, bad = MUTANTS[mutant]
+    src = (FIRMWARE_DIR / "main.c").read_text()
+    assert src.count(good) == 1, f"main.c no longer has {good!r}: update the mutant"
+    if mutant == "sampling_paused_while_sending":   # interrupts back on after the frame is queued
+        src = src.replace("            uart_write(out, (uint8_t)sp_frame(payload, len, out));\n",
+                          "            uart_write(out, (uint8_t)sp_frame(payload, len, out));\n            sei();\n")
+    (tmp_path / "main.c").write_text(src.replace(good, bad))
+    elf = tmp_path / "broken.elf"
+    subprocess.run(["avr-gcc", "-mmcu=atmega328p", "-DF_CPU=16000000UL", "-Os", "-std=c99", f"-I{FIRMWARE_DIR}",
+                    str(tmp_path / "main.c"), str(FIRMWARE_DIR / "frame.c"), "-o", str(elf)], check=True)
+    for name in checks:
+        with pytest.raises(AssertionError):
+            CHECKS[name](Tools(tools.harness, elf))
