@@ -170,6 +170,7 @@ class FirmwareBoard:
     Frames come out when the firmware sends them (after their window), stamped by its own clock."""
 
     LEAD_S = 0.2  # voltages are sent this far ahead of the emulator
+    UART_READY_S = 0.001
 
     def __init__(self, signals, config, *, elf: Path | None = None, harness: Path | None = None):
         self.signals = signals
@@ -184,7 +185,9 @@ class FirmwareBoard:
         self._sim = FirmwareSim(elf, harness=harness, noise_codes=config.noise_codes, seed=config.seed)
         self._dec = StreamDecoder()
         self._feed(self.LEAD_S)
-        if self.osr != 100:
+        self._pending = b""
+        if self.osr != 100:  # once its UART is on (it drops what arrives before, as the chip does)
+            self._pending = self._sim.run_until(self.UART_READY_S).data
             self._sim.send(encode_set_osr(self.osr))
 
     @property
@@ -202,12 +205,13 @@ class FirmwareBoard:
         """The bytes the firmware sent up to ``t_to`` (s) and the window centres (s, its clock) of
         the DATA frames among them."""
         self._feed(t_to + self.LEAD_S)
-        out = self._sim.run_until(t_to)
-        fr = [f for f in self._dec.feed(out.data) if isinstance(f, DataFrame)]
+        data = self._pending + self._sim.run_until(t_to).data
+        self._pending = b""
+        fr = [f for f in self._dec.feed(data) if isinstance(f, DataFrame)]
         self.seq += len(fr)
         if fr:
             self.osr = fr[-1].osr
-        return out.data, np.array([f.t_us * 1e-6 for f in fr])
+        return data, np.array([f.t_us * 1e-6 for f in fr])
 
     def info(self) -> bytes:
         """The firmware sends its own INFO frames (after reset, on request): nothing to add here."""
