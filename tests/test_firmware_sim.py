@@ -382,3 +382,58 @@ def test_missing_simavr_is_one_line_naming_the_package(monkeypatch, tmp_path, ca
                  str(tmp_path / "o"), "--board", "firmware"])
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and "libsimavr-dev" in err[0], err
+
+
+def test_virtual_run_with_the_firmware_board(tools, coarse_model, coarse_truth_p1, tmp_path, monkeypatch):
+    """`virtual run --board firmware` (its API): the recording comes from the emulated firmware's
+    frames (its own INFO, SET_OSR to 25 as `acquire` sends it), tared and decoded as a board's,
+    and follows the truth as the Python board's does."""
+    import json
+
+    from softphantom.sensing.recording import read_recording
+    from softphantom.virtual import VirtualConfig, scenario_from_dict, simulate, write_run
+    from softphantom.virtual import firmware_sim
+
+    monkeypatch.setattr(firmware_sim, "build", lambda build_dir=None: (tools.harness, tools.elf))
+    sc = scenario_from_dict({"name": "tiny-push", "duration_s": 2.0, "rest_s": 0.6,
+                             "push": [{"point": "on-centre", "start_s": 0.7, "rise_s": 0.5, "hold_s": 0.2,
+                                       "fall_s": 0.5, "force_N": [0.0, 2.0, 0.0]}]}, "tiny")
+    cfg = VirtualConfig.seeded(seed=3, osr=25, order=1, board_kind="firmware")
+    run = simulate(sc, coarse_model, cfg, truth_mesh=coarse_truth_p1)
+    paths = write_run(run, tmp_path / "run")
+    dec = StreamDecoder()
+    fr = dec.feed(paths["frames"].read_bytes())
+    assert isinstance(fr[0], InfoFrame) and fr[0].osr == 100                  # the reset INFO, N = 100
+    assert isinstance(fr[1], InfoFrame) and fr[1].osr == 25                   # SET_OSR's answer
+    assert [f.osr for f in fr[2:4]] == [100, 25]   # the first window had started at N = 100
+    assert dec.stats.frames_lost == 0 and dec.stats.rejected == 0
+    rec = read_recording(paths["recording"])
+    assert json.loads(paths["meta"].read_text())["board"]["kind"] == "firmware"
+    assert np.all(rec.osr[1:] == 25) and np.all(np.diff(rec.seq) == 1)
+    from dataclasses import replace
+
+    py = simulate(sc, coarse_model, replace(cfg, board_kind="python"), truth=run.truth)
+    ms_fw, ms_py = list(run.source()), list(py.source())
+    t_py = np.array([m.t for m in ms_py])
+    dv_py = np.array([m.dV for m in ms_py])
+    fw = [(m.t, m.dV) for m in ms_fw if m.osr == 25]
+    err = np.array([dv - np.array([np.interp(t, t_py, dv_py[:, i]) for i in range(4)]) for t, dv in fw])
+    # each board draws its own noise (σ 0.5 code a reading: 0.115 code a frame at N = 25, 0.16 for
+    # the difference of two); one code of an arm's transducer is the bound
+    from softphantom.sensing import P0_STANDARD_PA
+    from softphantom.sensing.chain import MPXV7002
+    from softphantom.sensing.pneumatics import boyle_dV
+
+    code_Pa = 1000.0 / (1024 * MPXV7002.k1_per_kPa)
+    bound = -boyle_dV(code_Pa, run.chain.v_total_m3, P0_STANDARD_PA)
+    assert np.abs(dv_py).max() > 5 * bound.max()
+    assert np.all(np.abs(err) < bound), (np.abs(err).max(axis=0) / bound)
+
+
+def test_unknown_board_is_one_line(tmp_path, capsys):
+    from softphantom.cli import main
+
+    code = main(["virtual", "run", "--scenario", "push-on-centre", "--model", str(tmp_path), "--out",
+                 str(tmp_path / "o"), "--board", "arduino"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "--board" in err[0] and "python, firmware" in err[0], err
