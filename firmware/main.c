@@ -3,8 +3,11 @@
  * Reads ADC0..ADC3 (the four arm transducers, MPXV7002: front_zpos, front_zneg, back_xpos,
  * back_xneg) and ADC4 (urethra, MPX4250D) against AVcc (= the transducers' supply VS, so the
  * reading is ratiometric), sums N readings per channel round-robin (N = OSR, default 100,
- * 1..500), and sends one DATA frame per window (docs/protocol.md) at 115200 baud:
- *   frame time = 5 * N * 104 us  ->  N = 100: 19.2 Hz, N = 25: 76.9 Hz.
+ * 1..500), and sends one DATA frame per window (docs/protocol.md) at 115200 baud.
+ * The ADC runs free (auto-trigger): one conversion every 13 ADC clocks = 104 us exactly, back to
+ * back, summed by its interrupt; so the frame time is exactly 5 * N * 104 us (N = 100: 19.2 Hz,
+ * N = 25: 76.9 Hz) and nothing the main loop does (packing, CRC, commands, a full TX buffer)
+ * delays or drops a sample.
  * Timestamp: Timer1 at clk/8 (0.5 us ticks) extended by its overflow interrupt, in us (u32,
  * wraps after 71.6 min); a frame carries the centre of its sampling window.
  * Commands (host -> board): SET_OSR, GET_INFO, of protocol version 1 or 2; the board answers both
@@ -13,6 +16,7 @@
  */
 #include <avr/interrupt.h>
 #include <avr/io.h>
+#include <util/atomic.h>
 #include <stdint.h>
 
 #include "frame.h"
@@ -100,32 +104,79 @@ static int uart_getc(void)
     return c;
 }
 
-/* ---- ADC ---- */
+/* ---- ADC: free-running, summed in its interrupt ---- */
+static volatile uint16_t osr = OSR_DEFAULT; /* N of the next window */
+static volatile uint32_t acc[SP_N_CHANNELS]; /* sums of the window in progress */
+static uint16_t acc_k;                        /* readings per channel taken in it */
+static uint16_t acc_n;                        /* its N */
+static uint8_t ch_conv, ch_mux;               /* channel converting now / latched by the next */
+static uint8_t discard = 1;                   /* the first conversion (25 ADC clocks) is not used */
+static uint32_t t_window_start;
+static volatile uint16_t win_seq;             /* seq of the window in progress */
+
+/* the last completed window, for the main loop; overwritten if it has not taken it yet (only
+ * when the UART cannot carry every frame, N <= 5: the host sees the skipped seq) */
+static volatile uint8_t done_ready;
+static uint32_t done_sum[SP_N_CHANNELS];
+static uint32_t done_t_us;
+static uint16_t done_n, done_seq;
+
 static void adc_init(void)
 {
-    ADMUX = _BV(REFS0);                                  /* AVcc reference: ratiometric with VS */
-    ADCSRA = _BV(ADEN) | _BV(ADPS2) | _BV(ADPS1) | _BV(ADPS0); /* prescaler 128: 125 kHz, 104 us */
-    DIDR0 = 0x1F;                                        /* digital input buffers off on ADC0..4 */
+    ADMUX = _BV(REFS0); /* AVcc reference: ratiometric with VS; channel 0 first */
+    ADCSRB = 0;         /* auto-trigger source: free running */
+    DIDR0 = 0x1F;       /* digital input buffers off on ADC0..4 */
+    /* prescaler 128 (125 kHz), interrupt on, auto-trigger, start */
+    ADCSRA = _BV(ADEN) | _BV(ADSC) | _BV(ADATE) | _BV(ADIE) | _BV(ADPS2) | _BV(ADPS1) | _BV(ADPS0);
 }
 
-static uint16_t adc_read(uint8_t ch)
+ISR(ADC_vect)
 {
-    ADMUX = (uint8_t)(_BV(REFS0) | ch); /* the mux switches at the start of the conversion */
-    ADCSRA |= _BV(ADSC);
-    while (ADCSRA & _BV(ADSC))
-        ;
-    return ADC;
+    uint16_t v = ADC;      /* read before ADMUX changes */
+    uint8_t ch = ch_conv;  /* the channel of this result */
+    /* free running: the next conversion has already started with the channel in ADMUX; the
+     * channel written now is taken by the one after it */
+    ch_conv = ch_mux;
+    ch_mux = (uint8_t)(ch_mux + 1u == SP_N_CHANNELS ? 0u : ch_mux + 1u);
+    ADMUX = (uint8_t)(_BV(REFS0) | ch_mux);
+    if (discard) {
+        discard = 0; /* results follow as 0, 1, 2, 3, 4, 0, ... from here on */
+        t_window_start = micros32();
+        acc_n = osr;
+        return;
+    }
+    acc[ch] += v;
+    if (ch + 1u < SP_N_CHANNELS || ++acc_k < acc_n)
+        return;
+    /* window complete: it ran from the end of the previous one to this interrupt (the same
+     * interrupt latency at both ends, so the centre is unbiased) */
+    uint32_t t_end = micros32();
+    for (uint8_t i = 0; i < SP_N_CHANNELS; ++i) {
+        done_sum[i] = acc[i];
+        acc[i] = 0;
+    }
+    done_t_us = t_window_start + (t_end - t_window_start) / 2u;
+    done_n = acc_n;
+    done_seq = win_seq++;
+    done_ready = 1;
+    t_window_start = t_end;
+    acc_k = 0;
+    acc_n = osr;
 }
 
 /* ---- protocol ---- */
-static uint16_t seq;
-static uint16_t osr = OSR_DEFAULT;
 static const uint8_t fw[3] = {FW_MAJOR, FW_MINOR, FW_PATCH};
 
 static void send_info(void)
 {
     uint8_t payload[SP_MAX_PAYLOAD], out[SP_MAX_FRAME];
-    size_t n = sp_pack_info(payload, seq, micros32(), fw, osr); /* seq: of the next DATA frame */
+    uint16_t next_seq, n_osr;
+    ATOMIC_BLOCK(ATOMIC_RESTORESTATE)
+    {
+        next_seq = done_ready ? done_seq : win_seq; /* seq of the next DATA frame */
+        n_osr = osr;
+    }
+    size_t n = sp_pack_info(payload, next_seq, micros32(), fw, n_osr);
     uart_write(out, (uint8_t)sp_frame(payload, n, out));
 }
 
@@ -153,7 +204,7 @@ static void poll_commands(void)
         if (payload[1] == SP_CMD_SET_OSR && len == 4) {
             uint16_t n = sp_get_u16(payload + 2);
             if (n >= 1u && n <= OSR_MAX)
-                osr = n;
+                ATOMIC_BLOCK(ATOMIC_RESTORESTATE) { osr = n; } /* from the next window on */
             send_info(); /* the INFO frame tells the host which N is in force */
         } else if (payload[1] == SP_CMD_GET_INFO && len == 2) {
             send_info();
@@ -167,21 +218,28 @@ int main(void)
     TCCR1B = _BV(CS11); /* clk/8: 0.5 us per tick */
     TIMSK1 = _BV(TOIE1);
     uart_init();
-    adc_init();
     sei();
     send_info(); /* after a reset the board clock restarts near 0: the host counts a restart */
+    adc_init();
 
     uint8_t payload[SP_MAX_PAYLOAD], out[SP_MAX_FRAME];
+    uint32_t sum[SP_N_CHANNELS];
     for (;;) {
-        uint32_t sum[SP_N_CHANNELS] = {0, 0, 0, 0, 0};
-        uint16_t n = osr;
-        uint32_t t0 = micros32();
-        for (uint16_t k = 0; k < n; ++k)
-            for (uint8_t ch = 0; ch < SP_N_CHANNELS; ++ch)
-                sum[ch] += adc_read(ch); /* round-robin: every channel spans the same window */
-        uint32_t t1 = micros32();
-        size_t len = sp_pack_data(payload, seq++, t0 + (t1 - t0) / 2u, n, sum);
-        uart_write(out, (uint8_t)sp_frame(payload, len, out));
+        if (done_ready) {
+            uint32_t t_us;
+            uint16_t n, s;
+            ATOMIC_BLOCK(ATOMIC_RESTORESTATE)
+            {
+                for (uint8_t i = 0; i < SP_N_CHANNELS; ++i)
+                    sum[i] = done_sum[i];
+                t_us = done_t_us;
+                n = done_n;
+                s = done_seq;
+                done_ready = 0;
+            }
+            size_t len = sp_pack_data(payload, s, t_us, n, sum);
+            uart_write(out, (uint8_t)sp_frame(payload, len, out));
+        }
         poll_commands();
     }
 }

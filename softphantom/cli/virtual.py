@@ -16,9 +16,11 @@ virtual_app = typer.Typer(help="Virtual phantom: scripted scenarios → sensor f
 app.add_typer(virtual_app, name="virtual")
 
 SCENARIO_HELP = "Scenario TOML file, or a bundled one: needle-insertion, push-on-centre, push-off-centre, urethra-inflation."
+BOARD_OPTION = typer.Option("python", "--board", help="The virtual board: python (a model of the firmware) or firmware (firmware/main.c run in simavr; needs the Debian packages simavr, libsimavr-dev).")
 
 
-def _config(seed: int, osr: int, mesh_scale: float, bench_options: dict | None = None, order: int | None = None):
+def _config(seed: int, osr: int, mesh_scale: float, bench_options: dict | None = None, order: int | None = None,
+            board: str = "python"):
     """The run's settings; ``bench_options`` (``tube_length_m``, ``tube_id_mm``; None = the
     paper's) set the tubes of both the virtual board's physics and the host's chain; ``order`` the
     truth's element order (None: TruthConfig's, 2)."""
@@ -33,20 +35,24 @@ def _config(seed: int, osr: int, mesh_scale: float, bench_options: dict | None =
         raise UserError(f"--truth-mesh-scale: must be in [0.2, 1] (finer than the model), got {mesh_scale:g}")
     if order is not None and order not in (1, 2):
         raise UserError(f"--truth-order: must be 1 or 2, got {order}")
-    cfg = VirtualConfig.seeded(seed=seed, osr=osr, mesh_scale=mesh_scale,
+    cfg = VirtualConfig.seeded(seed=seed, osr=osr, mesh_scale=mesh_scale, board_kind=board,
                                **({} if order is None else {"order": order}))
     b = BenchConfig.from_options(**(bench_options or {}))
     return replace(cfg, board=replace(cfg.board, tube_length_m=b.tube_length_m, tube_id_m=b.tube_id_m))
 
 
 def _simulate(scenario: str, model_dir: Path, seed: int, osr: int, mesh_scale: float,
-              bench_options: dict | None = None, order: int | None = None):
+              bench_options: dict | None = None, order: int | None = None, board: str = "python"):
     """Load the scenario and the model, solve the truth (its progress logged): the VirtualRun."""
     from softphantom.design import load_model
     from softphantom.virtual import load_scenario, simulate
 
     sc = load_scenario(scenario)
-    cfg = _config(seed, osr, mesh_scale, bench_options, order)
+    cfg = _config(seed, osr, mesh_scale, bench_options, order, board)
+    if board == "firmware":  # before the truth's solve: the emulator is built here or its absence named
+        from softphantom.virtual.firmware_sim import build
+
+        build()
     model = load_model(model_dir)
     return simulate(sc, model, cfg)
 
@@ -82,13 +88,14 @@ def run_cmd(
     tube_length_m: float = TUBE_LENGTH_OPTION,
     tube_id_mm: float = TUBE_ID_OPTION,
     overwrite: bool = overwrite_option(),
+    board: str = BOARD_OPTION,
 ) -> None:
     """Simulate a scenario: write the board's frames, a recording, the tracker's Motive CSV, the truth."""
     from softphantom.virtual import run_summary, write_run
 
     check_output(out, overwrite=overwrite, directory=True)
     run = _simulate(scenario, model_dir, seed, osr, truth_mesh_scale,
-                    dict(tube_length_m=tube_length_m, tube_id_mm=tube_id_mm), truth_order)
+                    dict(tube_length_m=tube_length_m, tube_id_mm=tube_id_mm), truth_order, board)
     with staged_output(out, overwrite=overwrite, directory=True) as work:
         paths = write_run(run, work)
     _print_summary(run_summary(run))
@@ -114,6 +121,7 @@ def serve_cmd(
     natnet_version: str = typer.Option("4.1", "--natnet-version", help="NatNet version to speak: 3.0 or 4.1."),
     allow_remote: bool = typer.Option(False, "--allow-remote", help="Let --natnet-host be beyond loopback (every "
                                       "interface: 0.0.0.0); the NatNet stream has no authentication."),
+    board: str = BOARD_OPTION,
 ) -> None:
     """Serve the scenario's frames on a pty as the board would: prints the port path to use."""
     import sys
@@ -127,11 +135,11 @@ def serve_cmd(
     if natnet:
         _check_natnet(natnet_host, natnet_version, allow_remote)
     run = _simulate(scenario, model_dir, seed, osr, truth_mesh_scale,
-                    dict(tube_length_m=tube_length_m, tube_id_mm=tube_id_mm), truth_order)
+                    dict(tube_length_m=tube_length_m, tube_id_mm=tube_id_mm), truth_order, board)
     stop_natnet = _start_natnet(run, natnet_host, natnet_port, natnet_version, speed) if natnet else None
     sc = run.scenario
     master, slave, path = open_pty()
-    console.print(f"virtual board on {path} ({sc.name}, {run.board().rate_Hz:.1f} Hz); e.g. "
+    console.print(f"virtual board on {path} ({sc.name}, {run.rate_Hz:.1f} Hz); e.g. "
                   f"softphantom acquire --port {path} --out rec.csv — Ctrl-C to stop", highlight=False, soft_wrap=True)
     print(path, file=sys.stdout, flush=True)
     try:

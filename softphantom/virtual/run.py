@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +20,7 @@ from softphantom.design import PhantomModel
 from softphantom.errors import UserError
 from softphantom.sensing import ARM_NAMES
 from softphantom.sensing.bench import BenchConfig, tare_from_measurements
+from softphantom.sensing.board import frame_rate_Hz
 from softphantom.sensing.chain import SensorChain, Tare, nominal_tare
 from softphantom.sensing.sources import FrameSource
 from softphantom.virtual.board import FIRMWARE, BoardConfig, BoardSignals, VirtualBoard, arm_volumes, board_signals
@@ -29,6 +31,8 @@ from softphantom.records.names import POSE_COLUMNS
 
 TRUTH_RATE_HZ = 120.0
 CHUNK_S = 0.1
+BOARD_KINDS = ("python", "firmware")
+"""The virtual board: the Python model of the firmware, or the firmware itself run in simavr."""
 
 
 @dataclass(frozen=True)
@@ -39,10 +43,16 @@ class VirtualConfig:
     truth: TruthConfig = field(default_factory=TruthConfig)
     board: BoardConfig = field(default_factory=BoardConfig)
     tracker: TrackerConfig = field(default_factory=TrackerConfig)
+    #: "python" (softphantom.virtual.board) or "firmware" (firmware/main.c in simavr)
+    board_kind: str = "python"
+
+    def __post_init__(self) -> None:
+        if self.board_kind not in BOARD_KINDS:
+            raise UserError(f"--board: must be one of {', '.join(BOARD_KINDS)}, got {self.board_kind!r}")
 
     @classmethod
-    def seeded(cls, seed: int = 0, osr: int = 25, **truth_kw) -> "VirtualConfig":
-        return cls(TruthConfig(**truth_kw), BoardConfig(osr=osr, seed=seed), TrackerConfig(seed=seed))
+    def seeded(cls, seed: int = 0, osr: int = 25, board_kind: str = "python", **truth_kw) -> "VirtualConfig":
+        return cls(TruthConfig(**truth_kw), BoardConfig(osr=osr, seed=seed), TrackerConfig(seed=seed), board_kind)
 
 
 @dataclass(frozen=True, eq=False)
@@ -58,16 +68,33 @@ class VirtualRun:
     chain: SensorChain
     config: VirtualConfig
 
-    def board(self) -> VirtualBoard:
-        """A fresh virtual board (frames from the start, same seed)."""
+    def board(self):
+        """A fresh virtual board (frames from the start, same seed): a
+        :class:`~softphantom.virtual.board.VirtualBoard`, or with ``board_kind`` "firmware" a
+        :class:`~softphantom.virtual.firmware_sim.FirmwareBoard` (needs simavr)."""
+        if self.config.board_kind == "firmware":
+            from softphantom.virtual.firmware_sim import FirmwareBoard
+
+            return FirmwareBoard(self.signals, self.config.board)
         return VirtualBoard(self.signals, self.config.board)
 
-    def frame_bytes(self) -> bytes:
-        """All frames of the scenario as the board sends them: INFO, then DATA frames."""
+    @property
+    def rate_Hz(self) -> float:
+        """The board's nominal frame rate at the configured OSR."""
+        return frame_rate_Hz(self.config.board.osr)
+
+    @cached_property
+    def _frame_bytes(self) -> bytes:
         b = self.board()
         info = b.info()
         data, _ = b.frames(self.scenario.duration_s)
+        if hasattr(b, "close"):
+            b.close()
         return info + data
+
+    def frame_bytes(self) -> bytes:
+        """All frames of the scenario as the board sends them: INFO, then DATA frames."""
+        return self._frame_bytes
 
     def tare(self) -> Tare:
         """The tare from the rest window at the start (all frames before ``rest_s`` − 0.1 s)."""
@@ -79,7 +106,7 @@ class VirtualRun:
         """The frames through the decoder as a :class:`FrameSource` (chunks of 0.1 s; host time =
         board time = scenario time), tared on the rest window (or the datasheet zero)."""
         data = self.frame_bytes()
-        rate = self.board().rate_Hz
+        rate = self.rate_Hz
         from softphantom.sensing.protocol import DATA_FRAME_BYTES
 
         step = max(1, int(round(CHUNK_S * rate))) * DATA_FRAME_BYTES
@@ -193,7 +220,7 @@ def run_summary(run: VirtualRun) -> dict:
     return {
         "scenario": run.scenario.name, "source": run.scenario.source, "duration_s": run.scenario.duration_s,
         "truth": run.truth.summary(),
-        "board": {"osr": run.config.board.osr, "rate_Hz": round(run.board().rate_Hz, 3),
+        "board": {"osr": run.config.board.osr, "rate_Hz": round(run.rate_Hz, 3), "kind": run.config.board_kind,
                   "seed": run.config.board.seed,
                   "offsets_Pa": [round(float(x), 2) for x in s.offsets_Pa],
                   "drift_Pa_per_s": round(s.drift_Pa_per_s, 4),

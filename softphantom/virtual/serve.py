@@ -79,11 +79,17 @@ def serve_board(board: VirtualBoard, master: int, *, speed: float = 1.0, once: b
         r, _, _ = select.select([master], [], [], TICK_S)
         if r:
             try:
-                inbox += os.read(master, 4096)
+                got = os.read(master, 4096)
             except (BlockingIOError, OSError):
-                pass
+                got = b""
+            inbox += got
+            receive = getattr(board, "receive", None)  # an emulated firmware reads the bytes itself
+            if receive is not None:
+                receive(got)
             for c in _commands(inbox):
                 commands += 1
+                if receive is not None:
+                    continue
                 if c.kind == CMD_SET_OSR and c.osr:
                     board.set_osr(c.osr)
                 if c.kind in (CMD_SET_OSR, CMD_GET_INFO):

@@ -1,0 +1,239 @@
+"""The board's own firmware in an AVR emulator: ``firmware/build/bip_sensing.elf`` run by simavr.
+
+:class:`FirmwareSim` drives the harness ``firmware/sim/fw_sim.c`` (built on demand by
+``make -C firmware sim``; it needs the Debian packages ``simavr`` and ``libsimavr-dev``): the host
+gives the voltages at the five ADC inputs on a time grid and the bytes it sends, the emulated
+ATmega328P runs until a given time, and the bytes the firmware sent come back with the emulator
+cycle at which each was written. Time is the emulator's cycle count (16 MHz, so the board clock
+``t_us`` is cycles / 16 from reset). Each ADC conversion takes its channel's voltage at its start
+(linear between grid points) and quantizes it as the datasheet does, floor(1024·V/VS + noise).
+
+:class:`FirmwareBoard` has the interface of :class:`~softphantom.virtual.board.VirtualBoard`, so
+``softphantom virtual run|serve --board firmware`` feeds the virtual transducers' voltages to the
+real firmware instead of the Python model of it.
+"""
+
+from __future__ import annotations
+
+import shutil
+import struct
+import subprocess
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from softphantom.errors import UserError
+from softphantom.sensing.board import F_CPU_HZ, frame_rate_Hz
+from softphantom.sensing.protocol import DataFrame, StreamDecoder, encode_get_info, encode_set_osr
+
+FIRMWARE_DIR = Path(__file__).resolve().parents[2] / "firmware"
+SIMAVR_HEADER = Path("/usr/include/simavr/sim_avr.h")
+VS_V = 5.0
+"""The transducers' supply, which is also the ADC's reference (AVcc): readings are ratiometric."""
+
+_TX = np.dtype([("cycle", "<u8"), ("byte", "u1")])
+_ADC = np.dtype([("cycle", "<u8"), ("ch", "u1"), ("code", "<u2")])
+
+
+class SimavrMissing(UserError):
+    """simavr (or the AVR toolchain) is not installed."""
+
+
+def simavr_missing() -> str | None:
+    """The one-line reason the emulated board cannot run here, or None if it can."""
+    if not SIMAVR_HEADER.exists():
+        return "simavr not installed: apt-get install simavr libsimavr-dev (scripts/install-system-deps.sh)"
+    if shutil.which("avr-gcc") is None:
+        return "avr-gcc not installed: apt-get install gcc-avr avr-libc binutils-avr (scripts/install-system-deps.sh)"
+    if shutil.which("make") is None or shutil.which("gcc") is None:
+        return "make/gcc not installed: apt-get install make gcc"
+    return None
+
+
+def build(build_dir: Path | None = None) -> tuple[Path, Path]:
+    """(harness, firmware .elf), built by ``make -C firmware sim`` if out of date."""
+    why = simavr_missing()
+    if why:
+        raise SimavrMissing(why)
+    if not (FIRMWARE_DIR / "Makefile").exists():
+        raise UserError(f"--board firmware: the firmware sources are not at {FIRMWARE_DIR} (a source checkout is needed)")
+    build_dir = Path(build_dir) if build_dir else FIRMWARE_DIR / "build"
+    r = subprocess.run(["make", "-s", "-C", str(FIRMWARE_DIR), f"BUILD={build_dir.resolve()}", "sim"],
+                       capture_output=True, text=True)
+    if r.returncode:
+        last = (r.stderr.strip() or r.stdout.strip()).splitlines()[-1:] or ["?"]
+        raise UserError(f"--board firmware: building the emulator harness failed: {last[0]}")
+    return build_dir / "fw_sim", build_dir / "bip_sensing.elf"
+
+
+@dataclass(frozen=True, eq=False)
+class SimOutput:
+    """What one :meth:`FirmwareSim.run_until` produced: the emulator ``cycle`` at its end, the
+    bytes the firmware sent (``data``) with the cycle of each (``byte_cycles``), and with
+    ``log_adc`` the conversions started (``adc``: fields cycle, ch, code)."""
+
+    cycle: int
+    data: bytes
+    byte_cycles: np.ndarray
+    adc: np.ndarray
+
+
+class FirmwareSim:
+    """A running emulated board (a subprocess; use as a context manager or call :meth:`close`).
+
+    ``elf`` the firmware (default: built from ``firmware/``), ``noise_codes`` Gaussian ADC input
+    noise (σ, codes; seeded by ``seed``), ``log_adc`` return every conversion."""
+
+    def __init__(self, elf: Path | None = None, *, harness: Path | None = None, vs_V: float = VS_V,
+                 noise_codes: float = 0.0, seed: int = 0, log_adc: bool = False):
+        if elf is None or harness is None:
+            h, e = build()
+            harness, elf = harness or h, elf or e
+        args = [str(harness), str(elf), "--vs", repr(float(vs_V)), "--noise", repr(float(noise_codes)),
+                "--seed", str(int(seed))]
+        if log_adc:
+            args.append("--log-adc")
+        self._p = subprocess.Popen(args, stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+        self.cycle = 0
+
+    @staticmethod
+    def cycles(t_s) -> np.ndarray:
+        return np.round(np.asarray(t_s, float) * F_CPU_HZ).astype(np.uint64)
+
+    def set_voltages(self, t_s, volts) -> None:
+        """Voltages (n, 5) V at the ADC inputs from times ``t_s`` (n,) on (increasing, after any
+        earlier point); linear between points, the last one held."""
+        v = np.asarray(volts, float).reshape(-1, 5)
+        rec = np.zeros(len(v), dtype=[("cycle", "<u8"), ("v", "<f8", (5,))])
+        rec["cycle"], rec["v"] = self.cycles(t_s), v
+        self._write(b"V" + struct.pack("<I", len(rec)) + rec.tobytes())
+
+    def send(self, data: bytes) -> None:
+        """Bytes host → board (delivered at the wire's rate from the current emulator time)."""
+        if data:
+            self._write(b"U" + struct.pack("<I", len(data)) + bytes(data))
+
+    def run_until(self, t_s: float) -> SimOutput:
+        """Run the emulated CPU up to time ``t_s`` (s since reset)."""
+        until = max(int(self.cycles(t_s)), self.cycle)
+        self._write(b"R" + struct.pack("<Q", until))
+        cycle, n = struct.unpack("<QI", self._read(12))
+        tx = np.frombuffer(self._read(n * _TX.itemsize), _TX)
+        (m,) = struct.unpack("<I", self._read(4))
+        adc = np.frombuffer(self._read(m * _ADC.itemsize), _ADC)
+        self.cycle = cycle
+        return SimOutput(cycle, tx["byte"].tobytes(), tx["cycle"].copy(), adc.copy())
+
+    def close(self) -> None:
+        if self._p.poll() is None:
+            try:
+                self._p.stdin.write(b"Q")
+                self._p.stdin.close()
+            except OSError:
+                pass
+            try:
+                self._p.wait(timeout=5)
+            except subprocess.TimeoutExpired:
+                self._p.kill()
+                self._p.wait()
+
+    def __enter__(self) -> "FirmwareSim":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def _write(self, b: bytes) -> None:
+        try:
+            self._p.stdin.write(b)
+            self._p.stdin.flush()
+        except BrokenPipeError:
+            raise UserError(f"emulated board: the harness ended (exit {self._p.wait()})") from None
+
+    def _read(self, n: int) -> bytes:
+        out = self._p.stdout.read(n) if n else b""
+        if len(out) != n:
+            raise UserError(f"emulated board: the harness ended (exit {self._p.wait()})")
+        return out
+
+
+class FirmwareBoard:
+    """The emulated firmware as a virtual board: the interface of
+    :class:`~softphantom.virtual.board.VirtualBoard` (``frames``, ``info``, ``set_osr``,
+    ``rate_Hz``, ``seq``, ``duration_s``) plus :meth:`receive` for the host's raw bytes.
+
+    The transducers' output voltages come from ``signals`` (the 1 kHz grid of
+    :func:`~softphantom.virtual.board.board_signals`); noise and seed from ``config``. The firmware
+    starts at its default OSR (100) and announces itself with an INFO frame; a ``config.osr``
+    other than that is set with SET_OSR before the first window, as the host's ``acquire`` does.
+    Frames come out when the firmware sends them (after their window), stamped by its own clock."""
+
+    LEAD_S = 0.2  # voltages are sent this far ahead of the emulator
+    UART_READY_S = 0.001
+
+    def __init__(self, signals, config, *, elf: Path | None = None, harness: Path | None = None):
+        self.signals = signals
+        self.config = config
+        self.osr = int(config.osr)
+        self.seq = 0
+        self.duration_s = float(signals.t[-1]) - 0.5
+        tr = signals.chain.transducers
+        p = signals.p_transducer
+        self._volts = VS_V * np.column_stack([tr[i].ratio(p[:, i]) for i in range(5)])
+        self._sent_to = 0  # grid points already given to the emulator
+        self._sim = FirmwareSim(elf, harness=harness, noise_codes=config.noise_codes, seed=config.seed)
+        self._dec = StreamDecoder()
+        self._feed(self.LEAD_S)
+        self._pending = b""
+        if self.osr != 100:  # once its UART is on (it drops what arrives before, as the chip does)
+            self._pending = self._sim.run_until(self.UART_READY_S).data
+            self._sim.send(encode_set_osr(self.osr))
+
+    @property
+    def rate_Hz(self) -> float:
+        return frame_rate_Hz(self.osr)
+
+    def _feed(self, t_to: float) -> None:
+        t = self.signals.t
+        k = int(np.searchsorted(t, t_to, side="right"))
+        if k > self._sent_to:
+            self._sim.set_voltages(t[self._sent_to:k], self._volts[self._sent_to:k])
+            self._sent_to = k
+
+    def frames(self, t_to: float) -> tuple[bytes, np.ndarray]:
+        """The bytes the firmware sent up to ``t_to`` (s) and the window centres (s, its clock) of
+        the DATA frames among them."""
+        self._feed(t_to + self.LEAD_S)
+        data = self._pending + self._sim.run_until(t_to).data
+        self._pending = b""
+        fr = [f for f in self._dec.feed(data) if isinstance(f, DataFrame)]
+        self.seq += len(fr)
+        if fr:
+            self.osr = fr[-1].osr
+        return data, np.array([f.t_us * 1e-6 for f in fr])
+
+    def info(self) -> bytes:
+        """The firmware sends its own INFO frames (after reset, on request): nothing to add here."""
+        return b""
+
+    def receive(self, data: bytes) -> None:
+        """Bytes from the host (commands) to the firmware's UART."""
+        self._sim.send(data)
+
+    def set_osr(self, osr: int) -> None:
+        if not 1 <= int(osr) <= 500:
+            raise UserError(f"osr: must be 1..500, got {osr}")
+        self._sim.send(encode_set_osr(int(osr)))
+
+    def get_info(self) -> None:
+        self._sim.send(encode_get_info())
+
+    def close(self) -> None:
+        self._sim.close()
+
+    def __del__(self) -> None:
+        try:
+            self._sim.close()
+        except Exception:
+            pass
