@@ -97,3 +97,23 @@ def test_discard_partial_drops_an_interrupted_build_of_other_settings(coarse_mod
     assert store.load("p0-plane-1-0") is None  # damaged: run again
     check_partials(tmp_path, mine, discard=True)
     assert not store.dir.exists()
+
+
+def test_a_model_without_its_atlas_says_how_long_it_takes_and_what_to_do(coarse_p2_model, tmp_path):
+    """estimate and live (max_build_s) do not start a build that takes longer than a command should
+    wait: one line with the estimated time, the command that builds it, and the refresh estimator."""
+    from softphantom.estimation import EstimatorConfig, load_or_build
+    from softphantom.estimation.atlas.build import AtlasMissing, estimated_build
+    from softphantom.estimation.atlas.config import default_atlas_config
+    from softphantom.estimation.forward import ForwardModel
+
+    cfg = EstimatorConfig(contact="off-centre")
+    fwd = ForwardModel(coarse_p2_model, cfg)
+    cpu, wall = estimated_build(fwd, default_atlas_config(2), workers=2)
+    assert wall == cpu / 2 > 600  # the quadratic model's default atlas: longer than a command waits
+    with pytest.raises(AtlasMissing) as exc:
+        load_or_build(coarse_p2_model, cfg, cache_dir=tmp_path, fwd=fwd, n_workers=2, max_build_s=600)
+    msg = str(exc.value)
+    assert "\n" not in msg and f"softphantom atlas build --model {tmp_path} --at off-centre" in msg
+    assert "--estimator refresh" in msg and "on 2 cores" in msg and f"{cpu:.0f} CPU-s" in msg
+    assert not (tmp_path / "atlas").exists()  # nothing started

@@ -120,6 +120,7 @@ def estimate_cmd(
 
     from softphantom.design import load_model
     from softphantom.estimation import EstimatorConfig, estimate_stream, open_estimator
+    from softphantom.estimation.atlas.build import MAX_BUILD_ON_THE_FLY_S
     from softphantom.estimation.atlas.config import default_atlas_config
     from softphantom.estimation.select import atlas_config_from_options, check_estimator_kind
 
@@ -149,7 +150,8 @@ def estimate_cmd(
                               mode=("async" if live else "sync") if mode == "auto" else mode)
     t0 = time.monotonic()
     try:  # the contact point may come from the recording: the source is open first
-        est = open_estimator(estimator, model, cfg, cache_dir=model_dir, scheduler=scheduler, atlas=acfg)
+        est = open_estimator(estimator, model, cfg, cache_dir=model_dir, scheduler=scheduler, atlas=acfg,
+                             max_build_s=MAX_BUILD_ON_THE_FLY_S)
     except BaseException:
         src.close()
         raise

@@ -174,6 +174,7 @@ def _estimator_source(spec: str, model_dir: Optional[Path], at: str, max_force_N
     from softphantom.cli.estimation import open_sensor_source
     from softphantom.design import load_model
     from softphantom.estimation import EstimatorConfig, open_estimator
+    from softphantom.estimation.atlas.build import MAX_BUILD_ON_THE_FLY_S
     from softphantom.viz.live import EstimatorSource
 
     if model_dir is None or not (model_dir / "model.npz").is_file():
@@ -186,7 +187,7 @@ def _estimator_source(spec: str, model_dir: Optional[Path], at: str, max_force_N
     # refresh estimator on a paced source: the background equilibrium keeps each step short
     cfg = EstimatorConfig.box(max_force_N, contact=at, mode="async" if is_live or speed > 0 else "sync")
     try:
-        est = open_estimator(estimator, model, cfg, cache_dir=model_dir)
+        est = open_estimator(estimator, model, cfg, cache_dir=model_dir, max_build_s=MAX_BUILD_ON_THE_FLY_S)
     except BaseException:
         sensor.close()
         raise

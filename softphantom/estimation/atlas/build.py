@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from softphantom.errors import SolverError
+from softphantom.errors import SolverError, UserError
 from softphantom.estimation.atlas.basis import axis_t, to_chebyshev
 from softphantom.estimation.atlas.config import (FALLBACK_MIN_LOAD_STEP, VIA_TOL, AtlasConfig, default_atlas_config,
                                                 x_patch)
@@ -632,6 +632,40 @@ def _fit(model, fwd, acfg, key, V, P, X, solved, FX, QN, derivs, cpu_s, t0, offl
                  provenance={**provenance(model, fwd), **({"offline": offline} if offline else {})})
 
 
+# CPU-s per grid point of a whole build, measured on the BIP (docs/performance/estimation.md) at the
+# model size given, per element order: linear 6 mm (6 352 nodes), quadratic 9 mm with 2 mm arms
+# (28 329 nodes, Hermite f_z, the fold's piece included); another model scales with its nodes
+COST_PER_POINT = {1: (0.45, 6352), 2: (7.0, 28329)}
+# an estimator (estimate, live) builds a missing atlas itself only below this wall time; above it
+# says how to build it (``softphantom atlas build``, resumable) and how to go on meanwhile
+MAX_BUILD_ON_THE_FLY_S = 600.0
+
+
+class AtlasMissing(UserError):
+    """A model without its atlas, whose build takes longer than a command should wait for."""
+
+
+def estimated_build(fwd: ForwardModel, acfg: AtlasConfig, workers: int | None = None) -> tuple[float, float]:
+    """(CPU-s, wall-s on ``workers`` idle cores) of building ``acfg`` for ``fwd``'s model, before any
+    task ran: :data:`COST_PER_POINT` scaled by the model's nodes (the build's own ETA takes over
+    once tasks end, :class:`~softphantom.estimation.atlas.tasks.Eta`).
+
+    >>> from types import SimpleNamespace
+    >>> from softphantom.estimation.atlas.config import default_atlas_config
+    >>> fwd = SimpleNamespace(fem=SimpleNamespace(order=2, n_dof=3 * 28329))
+    >>> cpu, wall = estimated_build(fwd, default_atlas_config(2), workers=2)
+    >>> round(cpu), round(wall / 3600, 1)
+    (13860, 1.9)
+    """
+    per, nodes = COST_PER_POINT[2 if int(fwd.fem.order) == 2 else 1]
+    cpu = acfg.n_solves * per * (fwd.fem.n_dof / 3) / nodes
+    return cpu, cpu / max(1, int(workers or os.cpu_count() or 1))
+
+
+def _clock_words(seconds: float) -> str:
+    return f"{seconds / 3600:.1f} h" if seconds >= 5400 else f"{max(1, round(seconds / 60))} min"
+
+
 def build_settings(fwd: ForwardModel, acfg: AtlasConfig) -> dict:
     """What identifies a build command: the atlas settings (all pieces) and the estimator settings
     its key depends on; an interrupted build resumes only under the same (:func:`check_partials`)."""
@@ -765,7 +799,7 @@ def _solves(at: Atlas) -> str:
 def load_or_build(model, config: EstimatorConfig | None = None, atlas: AtlasConfig | None = None, *,
                   cache_dir=None, scheduler: str | None = None, n_workers: int | None = None,
                   fwd: ForwardModel | None = None, rebuild: bool = False,
-                  discard_partial: bool = False) -> Atlas | AtlasPatches:
+                  discard_partial: bool = False, max_build_s: float | None = None) -> Atlas | AtlasPatches:
     """The atlas of ``model`` from ``cache_dir`` (a model directory) if present and valid, else built
     and saved there. A cached file that is damaged, tampered with or of another format is an error
     (:class:`AtlasCorrupt` / :class:`AtlasMismatch`, one line naming the file, nothing overwritten)
@@ -777,7 +811,9 @@ def load_or_build(model, config: EstimatorConfig | None = None, atlas: AtlasConf
     A build keeps its finished tasks in the model directory and resumes from them when started
     again with the same settings (:mod:`~softphantom.estimation.atlas.tasks`); next to an
     interrupted build of other settings it is refused in one line naming the setting, unless
-    ``discard_partial`` (``--discard-partial``) drops the interrupted one."""
+    ``discard_partial`` (``--discard-partial``) drops the interrupted one. With ``max_build_s``, a
+    build estimated to take longer (:func:`estimated_build`) is not started: :class:`AtlasMissing`
+    says how long it takes, the command that builds it and ``--estimator refresh`` meanwhile."""
     cfg = config or EstimatorConfig()
     fwd = fwd or ForwardModel(model, cfg)
     acfg = atlas or default_atlas_config(fwd.fem.order)
@@ -806,6 +842,19 @@ def load_or_build(model, config: EstimatorConfig | None = None, atlas: AtlasConf
                 f"(atlases in its atlas/ subdirectory): building into {path.parent}")
     missing = tuple(p for p in range(len(subs)) if p not in found)
     if missing:
+        if max_build_s is not None:
+            cpu, wall = estimated_build(fwd, acfg, n_workers)
+            cpu *= len(missing) / len(subs)
+            wall *= len(missing) / len(subs)
+            if wall > max_build_s:
+                c = fwd.config.contact
+                at = "" if c == "on-centre" else f" --at {c}" if isinstance(c, str) else " (its contact point)"
+                n = sum(subs[p].n_solves for p in missing)
+                raise AtlasMissing(
+                    f"{cache_dir or 'the model'}: no atlas yet for this model and contact; building it takes about "
+                    f"{_clock_words(wall)} on {int(n_workers or os.cpu_count() or 1)} cores ({n} grid points, "
+                    f"≈ {cpu:.0f} CPU-s): build it once with `softphantom atlas build --model {cache_dir}{at}` "
+                    f"(resumable; --scheduler ADDR for a Dask cluster), or estimate meanwhile with --estimator refresh")
         if cache_dir is not None:
             check_partials(cache_dir, build_settings(fwd, acfg), discard=discard_partial)
         built = build_atlas(model, cfg, acfg, scheduler=scheduler, n_workers=n_workers, fwd=fwd,

@@ -49,14 +49,15 @@ class AtlasEstimator(EstimatorState):
 
     def __init__(self, model, config: EstimatorConfig | None = None,
                  atlas: Atlas | AtlasPatches | AtlasConfig | None = None,
-                 *, cache_dir=None, scheduler: str | None = None, n_workers: int | None = None) -> None:
+                 *, cache_dir=None, scheduler: str | None = None, n_workers: int | None = None,
+                 max_build_s: float | None = None) -> None:
         self.config = cfg = config or EstimatorConfig()
         self.model = model
         fwd = ForwardModel(model, cfg)
         self.forward = fwd
         if not isinstance(atlas, (Atlas, AtlasPatches)):
             atlas = load_or_build(model, cfg, atlas, cache_dir=cache_dir, scheduler=scheduler,
-                                  n_workers=n_workers, fwd=fwd)
+                                  n_workers=n_workers, fwd=fwd, max_build_s=max_build_s)
         pieces = atlas.patches if isinstance(atlas, AtlasPatches) else (atlas,)
         if any(a.key != atlas_key(fwd, a.config) for a in pieces):
             raise UserError("atlas built for another model, law, contact or envelope; rebuild it")
