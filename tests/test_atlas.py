@@ -608,3 +608,44 @@ def test_the_default_atlas_follows_the_elements_order(order, monkeypatch):
         assert pieces == (0, 1)
         assert [(c.force_min_N[1], c.force_max_N[1]) for c in acfg.patches()] == [
             (-1.0, atlas_config.P2_F_Y_SPLITS_N[0]), (atlas_config.P2_F_Y_SPLITS_N[0], 5.2)]
+
+
+def test_a_uniform_stiffness_scale_is_the_atlas_with_the_loads_scaled(coarse_model, atlas, fwd, tmp_path,
+                                                                      monkeypatch):
+    """Every modulus times s (a calibration's uniform stiffness scale): the model's state under
+    loads λ is the uncalibrated one's under λ/s (checked by two full solves), so the scaled atlas
+    needs no build; the calibration carries it over (verified against the calibrated model, found
+    by the estimators), and says which build an uneven scale needs."""
+    from softphantom.calibration.output import calibrated_design, carry_atlases
+    from softphantom.design import save_model
+    from softphantom.estimation.atlas.config import model_atlas_config
+    from softphantom.estimation.atlas.store import verify_atlas
+
+    s = 1.3
+    model_s = dataclasses.replace(coarse_model, design=calibrated_design(coarse_model.design, {"bulb": s, "arms": s}))
+    fwd_s = ForwardModel(model_s, CFG)
+    lam = s * np.array([0.2, 0.8, -0.3, 2.0e3])
+    a, b = fwd_s.solve(lam), fwd.solve(lam / s)
+    assert np.allclose(a.V, b.V, rtol=1e-6, atol=1e-14) and np.abs(a.x - b.x).max() < 1e-9
+    assert abs(a.V - fwd.solve(lam).V).max() > 0.1 * abs(a.V).max()  # not vacuous: the stiffness matters
+    sc = atlas.scaled(s, atlas_key(fwd_s, ACFG.scaled(s)))
+    assert np.allclose(sc.volumes(lam)[0], atlas.volumes(lam / s)[0], rtol=1e-12, atol=0)
+    assert np.allclose(sc.points(lam), atlas.points(lam / s), rtol=0, atol=1e-15)
+    assert abs(sc.volumes(lam)[0] - a.V).max() <= 1.01 * abs(atlas.volumes(lam / s)[0] - b.V).max() + 1e-16
+
+    base = save_model(coarse_model, tmp_path / "base")
+    save_atlas(atlas, atlas_path(base, atlas.key))
+    out = tmp_path / "calibrated"
+    save_model(model_s, out)
+    note = carry_atlases(base, model_s, out, {"bulb": s, "arms": s}, law_changed=False)
+    assert "carried over with the loads scaled by 1.3" in note
+    (f,) = sorted((out / "atlas").glob("*.npz"))
+    assert verify_atlas(f, model_s).key == sc.key
+    monkeypatch.setattr("softphantom.estimation.atlas.build.build_atlas", lambda *a, **k: pytest.fail("built"))
+    got = load_or_build(model_s, CFG, ACFG.scaled(s), cache_dir=out, fwd=fwd_s)
+    assert got.key == sc.key and model_atlas_config(1, out) == model_atlas_config(1).scaled(s)
+    # bulb and arms scaled differently: nothing carried, the build named
+    out2 = tmp_path / "uneven"
+    save_model(model_s, out2)
+    note = carry_atlases(base, model_s, out2, {"bulb": s, "arms": 1.1}, law_changed=False, shown="cal/")
+    assert "unevenly" in note and "softphantom atlas build --model cal/" in note and not (out2 / "atlas").exists()

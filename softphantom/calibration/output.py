@@ -66,10 +66,11 @@ def calibrated_model(cal: Calibration):
     return dataclasses.replace(model, design=dataclasses.replace(design, sensors=sensors))
 
 
-def write_calibration(cal: Calibration, out) -> dict[str, Path]:
+def write_calibration(cal: Calibration, out, shown=None) -> dict[str, Path]:
     """Write the calibrated model, ``calibration.json``, ``parameters.csv`` and ``report.html``
     into the directory ``out`` (created; refused if it holds anything). The CLI writes through a
-    staged sibling (``softphantom.cli.options.staged_output``), so ``--out`` is never half-written."""
+    staged sibling (``softphantom.cli.options.staged_output``), so ``--out`` is never half-written;
+    ``shown`` is where the directory ends up, for the messages (default ``out``)."""
     from softphantom.design import save_model
 
     out = Path(out)
@@ -77,11 +78,66 @@ def write_calibration(cal: Calibration, out) -> dict[str, Path]:
         raise UserError(f"--out {out}: exists and is not an empty directory")
     try:
         out.mkdir(parents=True, exist_ok=True)
-        save_model(calibrated_model(cal), out)
-        (out / "calibration.json").write_text(json.dumps(calibration_dict(cal), indent=2) + "\n")
+        model = calibrated_model(cal)
+        save_model(model, out)
+        p = cal.parameters()
+        factors = {g: p[f"stiffness_{g}_factor"] for g in ("bulb", "arms")}
+        atlas_note = carry_atlases(cal.model_dir, model, out, factors, cal.options.law is not None, shown=shown)
+        (out / "calibration.json").write_text(json.dumps({**calibration_dict(cal), "atlas": atlas_note},
+                                                         indent=2) + "\n")
         write_parameters_csv(cal, out / "parameters.csv")
         write_report(cal, out)
     except OSError as exc:
         raise UserError(f"--out {out}: cannot write ({exc.strerror or exc})") from None
     return {"model": out, "report": out / "report.html", "parameters": out / "parameters.csv",
-            "calibration": out / "calibration.json"}
+            "calibration": out / "calibration.json", "atlas": atlas_note}
+
+
+def carry_atlases(base_dir, model, out, factors: dict[str, float], law_changed: bool,
+                  rtol: float = 1e-9, shown=None) -> str:
+    """The calibrated model's atlas, where it follows from the uncalibrated one's: with every
+    stiffness scaled by one factor ``s`` under the same law, each atlas of ``base_dir`` (verified
+    against the uncalibrated model) is that model's exactly with the loads scaled by ``s``
+    (:meth:`~softphantom.estimation.atlas.map.Atlas.scaled`): written to ``out/atlas/`` with the
+    factor (``load_scale.json``, so the estimators ask for the scaled envelope). Otherwise nothing
+    is written. Returns one line for the user: what was carried over, or the build the model needs
+    and its estimated time."""
+    import json as _json
+
+    from softphantom.design import load_model
+    from softphantom.estimation.atlas.build import estimated_build
+    from softphantom.estimation.atlas.config import LOAD_SCALE_FILE, model_atlas_config
+    from softphantom.estimation.atlas.store import (atlas_key, atlas_path, estimator_config, model_atlases,
+                                                    save_atlas, verify_atlas)
+    from softphantom.estimation.forward import ForwardModel
+
+    out = Path(out)
+    vals = list(factors.values())
+    s = vals[0]
+    uniform = not law_changed and all(abs(v - s) <= rtol * abs(s) for v in vals)
+    files = model_atlases(base_dir)
+    carried = 0
+    if uniform and files:
+        base = load_model(base_dir)
+        for f in files:
+            try:
+                at = verify_atlas(f, base)
+            except UserError:
+                continue  # a stale or damaged file of the old model: not carried
+            fwd = ForwardModel(model, estimator_config(at, f))
+            scaled = at.scaled(s, atlas_key(fwd, at.config.scaled(s)))
+            save_atlas(scaled, atlas_path(out, scaled.key))
+            carried += 1
+    if carried:
+        (out / "atlas" / LOAD_SCALE_FILE).write_text(_json.dumps({"factor": s, "from_model": str(base_dir)}) + "\n")
+        return (f"{carried} atlas file(s) of {base_dir} carried over with the loads scaled by {s:.4g} (a uniform "
+                f"stiffness scale: exact); nothing to build")
+    why = ("the law changed" if law_changed else
+           "no atlas of the uncalibrated model to scale" if uniform else
+           "the stiffness changed unevenly (" + ", ".join(f"{g} x{v:.4g}" for g, v in factors.items()) + ")")
+    from softphantom.estimation import EstimatorConfig
+
+    _, wall = estimated_build(ForwardModel(model, EstimatorConfig()), model_atlas_config(model.element_order, out))
+    hours = f"{wall / 3600:.1f} h" if wall >= 5400 else f"{max(1, round(wall / 60))} min"
+    return (f"the calibrated model needs its own atlas ({why}): softphantom atlas build --model {shown or out} "
+            f"(about {hours} on this machine's cores; resumable)")

@@ -70,7 +70,7 @@ def build_cmd(
 
     from softphantom.estimation import EstimatorConfig
     from softphantom.estimation.atlas.build import load_or_build
-    from softphantom.estimation.atlas.config import default_atlas_config
+    from softphantom.estimation.atlas.config import model_atlas_config
     from softphantom.estimation.atlas.store import atlas_path
     from softphantom.estimation.select import atlas_config_from_options
 
@@ -82,7 +82,7 @@ def build_cmd(
     _contact(at)
     model = _model(model_dir)
     acfg = atlas_config_from_options(atlas_grid, envelope, atlas_x_axis, atlas_f_y_split,
-                                     base=default_atlas_config(model.element_order))
+                                     base=model_atlas_config(model.element_order, model_dir))
     acfg = replace(acfg, offline=offline)
     built = load_or_build(model, EstimatorConfig(contact=_contact(at)), acfg, cache_dir=model_dir,
                           scheduler=scheduler, n_workers=workers, rebuild=rebuild,

@@ -109,7 +109,7 @@ def calibrate_cmd(
     cal = calibrate(model, specs, hold, options=opts, scheduler=scheduler, n_workers=workers,
                     max_keyframes=max_keyframes)
     with staged_output(out, overwrite=overwrite, directory=True) as work:
-        write_calibration(cal, work)
+        written = write_calibration(cal, work, shown=out)
     paths = {"model": out, "report": out / "report.html"}
     f = cal.fit
     t = Table(title=f"Calibration: objective {f.history[0]:.4g} → {f.history[-1]:.4g}, {f.solves} forward solves, {f.seconds:.0f} s")
@@ -128,4 +128,5 @@ def calibrate_cmd(
         lo, hi = rmse_ratio_interval(cal.held_out)
         console.print(f"held-out pose RMSE, nominal / calibrated: {rmse_ratio(cal.held_out):.2f} "
                       f"({lo:.2f}–{hi:.2f} over its keyframes resampled, 90 %)", markup=False)
+    console.print(f"atlas: {written['atlas']}", markup=False, highlight=False, soft_wrap=True)
     console.print(f"wrote {paths['model']} (report: {paths['report']})", markup=False, highlight=False)

@@ -91,7 +91,7 @@ def estimate_cmd(
                                   "cluster on all cores)."),
     atlas_grid: str = typer.Option(None, "--atlas-grid", help="Atlas: Chebyshev points per axis NX,NY,NZ,NP "
                                    "(default 11,9,4,3, f_x stretched about 0 N, AtlasConfig.cluster_N; on a "
-                                   "quadratic model 11,6,4,3 per piece, default_atlas_config)."),
+                                   "quadratic model 11,6,5,3 per piece, Hermite along f_z; default_atlas_config)."),
     atlas_x_axis: str = typer.Option(None, "--atlas-x-axis", help="Atlas: the first axis, force (f_x; the default "
                                      "on a linear model) | displacement (the contact patch's x-displacement mapped onto "
                                      "the f_x range, f_x an output: for a model whose state nearly jumps in f_x, "
@@ -121,7 +121,7 @@ def estimate_cmd(
     from softphantom.design import load_model
     from softphantom.estimation import EstimatorConfig, estimate_stream, open_estimator
     from softphantom.estimation.atlas.build import MAX_BUILD_ON_THE_FLY_S
-    from softphantom.estimation.atlas.config import default_atlas_config
+    from softphantom.estimation.atlas.config import model_atlas_config
     from softphantom.estimation.select import atlas_config_from_options, check_estimator_kind
 
     check_estimator_kind(estimator)
@@ -141,7 +141,7 @@ def estimate_cmd(
         raise UserError(f"--model {model_dir}: not a model directory (no model.npz; run softphantom design)")
     model = load_model(model_dir)
     acfg = atlas_config_from_options(atlas_grid, envelope, atlas_x_axis, atlas_f_y_split,
-                                     base=default_atlas_config(model.element_order))
+                                     base=model_atlas_config(model.element_order, model_dir))
     opened = open_sensor_source(source, model, tare_s=tare_s, on_new_board=on_new_board,
                                 tube_length_m=tube_length_m, tube_id_mm=tube_id_mm, p0_kPa=p0_kPa)
     src, live = opened.source, opened.live

@@ -26,6 +26,7 @@ import numpy as np
 from softphantom.errors import SolverError, UserError
 from softphantom.estimation.atlas.basis import axis_t, to_chebyshev
 from softphantom.estimation.atlas.config import (FALLBACK_MIN_LOAD_STEP, VIA_TOL, AtlasConfig, default_atlas_config,
+                                                model_atlas_config,
                                                 x_patch)
 from softphantom.estimation.atlas.map import Atlas, AtlasPatches
 from softphantom.estimation.atlas.store import AtlasCorrupt, AtlasMismatch, atlas_key, atlas_path, load_atlas, save_atlas
@@ -816,7 +817,7 @@ def load_or_build(model, config: EstimatorConfig | None = None, atlas: AtlasConf
     says how long it takes, the command that builds it and ``--estimator refresh`` meanwhile."""
     cfg = config or EstimatorConfig()
     fwd = fwd or ForwardModel(model, cfg)
-    acfg = atlas or default_atlas_config(fwd.fem.order)
+    acfg = atlas or model_atlas_config(fwd.fem.order, cache_dir)
     subs = acfg.patches()
     found: dict[int, Atlas] = {}
     paths = {}

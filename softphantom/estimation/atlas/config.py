@@ -197,6 +197,22 @@ class AtlasConfig:
         return tuple(replace(self, force_min_N=(lo[0], a, lo[2]), force_max_N=(hi[0], b, hi[2]), f_y_splits_N=())
                      for a, b in zip(edges, edges[1:]))
 
+    def scaled(self, s: float) -> "AtlasConfig":
+        """The same grid over the loads times ``s`` (forces, pressure, stretch widths, splits): the
+        envelope of :meth:`~softphantom.estimation.atlas.map.Atlas.scaled`.
+
+        >>> c = AtlasConfig(f_y_splits_N=(3.3,)).scaled(1.5)
+        >>> c.force_max_N, c.p_max_kPa, c.cluster_N, c.f_y_splits_N
+        ((3.0, 7.8, 3.0), 60.0, (0.03, 0.0, 0.0), (4.95,))
+        """
+        s = float(s)
+        if not (math.isfinite(s) and s > 0):
+            raise UserError(f"atlas load scale: a finite factor > 0, got {s}")
+        return replace(self, force_min_N=tuple(s * v for v in self.force_min_N),
+                       force_max_N=tuple(s * v for v in self.force_max_N), p_min_kPa=s * self.p_min_kPa,
+                       p_max_kPa=s * self.p_max_kPa, force_cluster_N=tuple(s * w for w in self.cluster_N),
+                       f_y_splits_N=tuple(s * v for v in self.f_y_splits_N))
+
     @property
     def lower(self) -> np.ndarray:
         return np.array([*self.force_min_N, self.p_min_kPa * 1e3])
@@ -254,6 +270,30 @@ def default_atlas_config(order: int = 1) -> AtlasConfig:
         return AtlasConfig(n_force=P2_N_FORCE, x_control="displacement", f_y_splits_N=P2_F_Y_SPLITS_N,
                            hermite_axis=P2_HERMITE_AXIS)
     return AtlasConfig()
+
+
+LOAD_SCALE_FILE = "load_scale.json"  # MODEL/atlas/: this model is another's with every modulus times a factor
+
+
+def model_atlas_config(order: int, model_dir=None) -> AtlasConfig:
+    """The atlas a model gets when none is asked for: :func:`default_atlas_config` of its element
+    order, over loads scaled by the factor its directory records (``MODEL/atlas/load_scale.json``,
+    written by ``softphantom calibrate`` for a uniform stiffness scale, whose atlas is the
+    uncalibrated model's with the loads scaled: :meth:`~softphantom.estimation.atlas.map.Atlas.scaled`)."""
+    import json
+    from pathlib import Path
+
+    acfg = default_atlas_config(order)
+    if model_dir is None:
+        return acfg
+    f = Path(model_dir) / "atlas" / LOAD_SCALE_FILE
+    if not f.is_file():
+        return acfg
+    try:
+        s = float(json.loads(f.read_text())["factor"])
+    except (OSError, ValueError, KeyError, TypeError):
+        raise UserError(f"{f}: not a load-scale file (expected {{\"factor\": number}})") from None
+    return acfg.scaled(s)
 
 
 # how the build's solves are driven (the full build and the reduced model's snapshots and checks)

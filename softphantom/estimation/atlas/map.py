@@ -157,6 +157,20 @@ class Atlas:
         ak.eval_value(self.kernel.F, *self.kernel.box, np.asarray(lam, float), coef)
         return (self.x_rest + self.modes @ np.asarray(coef, dtype=self.modes.dtype)).reshape(-1, 3)
 
+    def scaled(self, s: float, key: str) -> "Atlas":
+        """This atlas for the same model with every modulus multiplied by ``s`` (law, ν, mesh and
+        contact unchanged; ``key`` that model's key, :func:`~softphantom.estimation.atlas.store.atlas_key`
+        with ``config.scaled(s)``). A hyperelastic law's energy is proportional to its moduli at
+        fixed ν, so that model's equilibrium under loads λ is this one's under λ / s, exactly (the
+        estimator's model has no gravity): the volumes, points and field are the same polynomials
+        over the envelope times ``s`` (:meth:`AtlasConfig.scaled`), and f_x on a displacement axis
+        is ``s`` times this one's. A new object; the coefficients are shared, not copied."""
+        return Atlas(key=key, config=self.config.scaled(s), cV=self.cV, cP=self.cP, cF=self.cF, cFx=self.cFx * s,
+                     q_nodes=self.q_nodes * s, modes=self.modes, x_rest=self.x_rest, build_s=self.build_s,
+                     solves=self.solves, field_rms_m=self.field_rms_m, solved=self.solved,
+                     build_cpu_s=self.build_cpu_s,
+                     provenance={**(self.provenance or {}), "load_scale": {"factor": float(s), "from_key": self.key}})
+
     @property
     def displacement_x(self) -> bool:
         """Whether the first axis is the patch displacement (f_x an output), ``AtlasConfig.x_control``."""
