@@ -507,8 +507,11 @@ def _piece_tasks(model, cfg: EstimatorConfig, acfg: AtlasConfig, fwd: ForwardMod
     if acfg.x_control == "force":
         return [Task(f"{tag}-plane-{i}-{l}", _sweep, lambda _r, i=i, l=l: (model, cfg, acfg, i, l),
                      points=n2 * n3, kind=f"{kind} plane", priority=1) for i, l in planes]
+    # the faces at the first pressure first, then each line task as soon as its faces are done: every
+    # kind of task (and piece) has ended early, for the ETA, and the lines do not wait for all faces
     faces = [Task(f"{tag}-plane-{i}-{l}", _sweep, lambda _r, i=i, l=l: (model, cfg, acfg, i, l),
-                  points=n2 * n3, kind=f"{kind} plane", priority=2) for i, l in planes if i in (0, n1 - 1)]
+                  points=n2 * n3, kind=f"{kind} plane", priority=3 if l == 0 else 1)
+             for i, l in planes if i in (0, n1 - 1)]
     h = x_patch(fwd)
 
     def line_args(r, k, l):
@@ -525,7 +528,7 @@ def _piece_tasks(model, cfg: EstimatorConfig, acfg: AtlasConfig, fwd: ForwardMod
 
     lines = [Task(f"{tag}-lines-{k}-{l}", _lines, lambda r, k=k, l=l: line_args(r, k, l),
                   deps=(f"{tag}-plane-0-{l}", f"{tag}-plane-{n1 - 1}-{l}"), points=(n1 - 2) * n2,
-                  kind=f"{kind} lines", priority=1) for l in range(n4) for k in range(n3)]
+                  kind=f"{kind} lines", priority=2) for l in range(n4) for k in range(n3)]
     return faces + lines
 
 
