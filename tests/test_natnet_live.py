@@ -325,7 +325,14 @@ def test_track_with_the_body_lost(tmp_path, capsys, suffix):
     assert code == 0, printed.err
     # rich folds a long path anywhere (a worker's tmp path is over 80 characters): compare without whitespace
     assert squash(f"{n} frames of 'bip' to {out} (complete): body lost in {lost},") in squash(printed.out)
-    assert b"NaN" not in out.read_bytes() and b"nan" not in out.read_bytes()
+    if suffix == ".mcap":  # the messages (the file's schemas, e.g. Foxglove's, may spell "nanos")
+        from mcap.reader import make_reader
+
+        with open(out, "rb") as f:
+            data = [m.data for _, ch, m in make_reader(f).iter_messages() if ch.message_encoding == "json"]
+    else:
+        data = [out.read_bytes()]
+    assert data and not any(b"NaN" in d or b"nan" in d for d in data)
     tru = read_truth(out)
     assert len(tru.t) == n - lost and tru.meta["lost_frames"] == lost and tru.meta["warnings"] == []
     assert tru.meta["frames"] == n and tru.meta["frames_body_lost"] == lost
