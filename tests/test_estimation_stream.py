@@ -136,7 +136,7 @@ def test_stream_stop_event_ends_a_live_run(tmp_path):
 @pytest.mark.parametrize("args, msg", [
     (["--source", "bogus:x"], "unknown kind"),
     (["--source", "replay:/nonexistent.csv"], "no such file"),
-    (["--qp-solver", "osqp"], "qp_solver"),
+    (["--qp-solver", "osqp"], "--qp-solver"),
     (["--max-force-N", "-1"], "--max-force-N"),
     (["--at", "middle"], "--at"),
 ])

@@ -309,7 +309,7 @@ class FoxgloveServer:
     def __init__(self, host: str = "127.0.0.1", port: int = DEFAULT_FOXGLOVE_PORT, backlog: int = 1024):
         import foxglove
 
-        from softphantom.stream.recording import TRACKER_JSON_SCHEMA
+        from softphantom.stream.schema import TRACKER_JSON_SCHEMA
         from softphantom.stream.schema import ESTIMATE_JSON_SCHEMA
 
         self._ctx = foxglove.Context()

@@ -49,7 +49,7 @@ from softphantom.records.measurement import measurement_to_message  # noqa: F401
 from softphantom.records.names import ARM_NAMES, CHANNEL_NAMES, POSE_COLUMNS, estimate_columns, target_names
 from softphantom.records.session import SessionWriter, read_session_file
 from softphantom.stream.foxglove import foxglove_schemas
-from softphantom.stream.schema import ESTIMATE_JSON_SCHEMA, encode
+from softphantom.stream.schema import ESTIMATE_JSON_SCHEMA, TRACKER_JSON_SCHEMA, encode
 
 TOPIC_ESTIMATE = "/estimate"
 TOPIC_SENSORS = "/sensors"
@@ -69,10 +69,6 @@ SENSORS_JSON_SCHEMA = _obj_schema(
      **{f"raw_{n}": {"type": "integer"} for n in CHANNEL_NAMES},
      **{f"dp_{a}_kPa": _NUM for a in ARM_NAMES}, **{f"dV_{a}_mm3": _NUM for a in ARM_NAMES},
      "p_urethra_kPa": _NUM, "status": {"type": "string"}})
-TRACKER_JSON_SCHEMA = _obj_schema(
-    "softphantom.TrackerPose", "marker rigid body pose relative to rest, model frame",
-    {"t_s": _NUM, **{c: _NUM for c in POSE_COLUMNS},
-     "valid": {"type": "boolean"}, "name": {"type": "string"}})
 GEOMETRY_JSON_SCHEMA = _obj_schema(
     "softphantom.LiveGeometry", "phantom outer surface at rest (see softphantom.viz.live)",
     {"nodes_mm": {"type": "array"}, "faces": {"type": "array"}, "targets_mm": {"type": "object"},

@@ -77,3 +77,11 @@ ESTIMATE_JSON_SCHEMA: dict[str, Any] = {
     "patternProperties": {"^.+_d[xyz]_mm$": _num_schema("target shift from rest, mm")},
     "required": ["seq", "t_s", "t_pub_unix_s", *FORCE_COLUMNS, *POSE_COLUMNS],
 }
+
+
+TRACKER_JSON_SCHEMA = {
+    "title": "softphantom.TrackerPose", "description": "marker rigid body pose relative to rest, model frame",
+    "type": "object",
+    "properties": {"t_s": {"type": ["number", "null"]}, **{c: {"type": ["number", "null"]} for c in POSE_COLUMNS},
+                   "valid": {"type": "boolean"}, "name": {"type": "string"}}}
+"""JSON schema of a tracker pose message (the recording's and the Foxglove server's ``/tracker``)."""
