@@ -202,8 +202,8 @@ class AtlasConfig:
         envelope of :meth:`~softphantom.estimation.atlas.map.Atlas.scaled`.
 
         >>> c = AtlasConfig(f_y_splits_N=(3.3,)).scaled(1.5)
-        >>> c.force_max_N, c.p_max_kPa, c.cluster_N, c.f_y_splits_N
-        ((3.0, 7.8, 3.0), 60.0, (0.03, 0.0, 0.0), (4.95,))
+        >>> c.force_max_N, c.p_max_kPa, c.cluster_N, c.f_y_splits_N[0] == 1.5 * 3.3
+        ((3.0, 7.800000000000001, 3.0), 60.0, (0.03, 0.0, 0.0), True)
         """
         s = float(s)
         if not (math.isfinite(s) and s > 0):
