@@ -35,9 +35,11 @@ log = logging.getLogger(__name__)
 
 PARTIAL = "partial"  # MODEL/atlas/partial/<key>/: an unfinished build's kept tasks
 MAGIC = b"softphantom-atlas-task-1\n"
-# CPU per grid point of each kind of task relative to a plane of force-controlled solves, before one
-# of that kind has finished (measured on the quadratic BIP model: lines through the fold cost more)
-PRIOR_COST = {"plane": 1.0, "lines": 1.0}
+# CPU per grid point of each kind of task (its last word) relative to a plane of force-controlled
+# solves, before one of that kind has finished: on the quadratic BIP model (28 329 nodes) a line
+# point (one mixed-control solve from its neighbour on the line) took 3.6 CPU-s where a face plane's
+# point took 7.1-9.4
+PRIOR_COST = {"plane": 1.0, "lines": 0.5}
 
 
 @dataclass(frozen=True)
@@ -172,7 +174,8 @@ def _clock(seconds: float) -> str:
 class Eta:
     """The time left of a build: predicted CPU of the tasks left over this run's CPU per wall second.
 
-    >>> e = Eta({"a": (10, "plane"), "b": (10, "plane"), "c": (20, "lines")}, prior={"plane": 1.0, "lines": 2.0})
+    >>> e = Eta({"a": (10, "piece 0 plane"), "b": (10, "piece 0 plane"), "c": (20, "piece 0 lines")},
+    ...         prior={"plane": 1.0, "lines": 2.0})
     >>> e.start(0.0)
     >>> e.finished("a", cpu_s=100.0, now=50.0)  # 10 points at 10 CPU-s each, 2 CPU-s per wall second
     >>> round(e.seconds_left(50.0))  # b: 100 CPU-s, c: 20 points at twice the rate: 400 CPU-s
@@ -200,10 +203,13 @@ class Eta:
         pts = sum(self.tasks[n][0] for n in self.done if self.tasks[n][1] == kind)
         if pts:
             return sum(c for n, c in self.done.items() if self.tasks[n][1] == kind) / pts
-        weighted = sum(self.tasks[n][0] * self.prior.get(self.tasks[n][1], 1.0) for n in self.done)
+        weighted = sum(self.tasks[n][0] * self._prior(self.tasks[n][1]) for n in self.done)
         if not weighted:
             return None
-        return sum(self.done.values()) / weighted * self.prior.get(kind, 1.0)
+        return sum(self.done.values()) / weighted * self._prior(kind)
+
+    def _prior(self, kind: str) -> float:
+        return self.prior.get(kind, self.prior.get(kind.split()[-1] if kind else kind, 1.0))
 
     def cpu_left(self) -> float | None:
         left = 0.0
