@@ -636,10 +636,11 @@ def _fit(model, fwd, acfg, key, V, P, X, solved, FX, QN, derivs, cpu_s, t0, offl
                  provenance={**provenance(model, fwd), **({"offline": offline} if offline else {})})
 
 
-# CPU-s per grid point of a whole build, measured on the BIP (docs/performance/estimation.md) at the
-# model size given, per element order: linear 6 mm (6 352 nodes), quadratic 9 mm with 2 mm arms
-# (28 329 nodes, Hermite f_z, the fold's piece included); another model scales with its nodes
-COST_PER_POINT = {1: (0.45, 6352), 2: (7.0, 28329)}
+# CPU-s per grid point of a whole build, measured on the BIP at the model size given, per element
+# order: linear 6 mm (6 352 nodes); quadratic 9 mm with 2 mm arms (28 329 nodes, Hermite f_z): face
+# planes 7.1-7.7 (lower piece) and 9.4-18.9 (the fold's), lines 3.6 and 13.9 a point, 9.1 over the
+# default grid; another model scales with its nodes
+COST_PER_POINT = {1: (0.45, 6352), 2: (9.1, 28329)}
 # an estimator (estimate, live) builds a missing atlas itself only below this wall time; above it
 # says how to build it (``softphantom atlas build``, resumable) and how to go on meanwhile
 MAX_BUILD_ON_THE_FLY_S = 600.0
@@ -659,7 +660,7 @@ def estimated_build(fwd: ForwardModel, acfg: AtlasConfig, workers: int | None = 
     >>> fwd = SimpleNamespace(fem=SimpleNamespace(order=2, n_dof=3 * 28329))
     >>> cpu, wall = estimated_build(fwd, default_atlas_config(2), workers=2)
     >>> round(cpu), round(wall / 3600, 1)
-    (13860, 1.9)
+    (18018, 2.5)
     """
     per, nodes = COST_PER_POINT[2 if int(fwd.fem.order) == 2 else 1]
     cpu = acfg.n_solves * per * (fwd.fem.n_dof / 3) / nodes
