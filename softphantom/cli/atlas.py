@@ -70,11 +70,20 @@ def build_cmd(
 
     from softphantom.estimation import EstimatorConfig
     from softphantom.estimation.atlas.build import load_or_build
-    from softphantom.estimation.atlas.config import model_atlas_config
+    from softphantom.estimation.atlas.config import default_atlas_config, model_atlas_config
     from softphantom.estimation.atlas.store import atlas_path
     from softphantom.estimation.select import atlas_config_from_options
 
-    atlas_config_from_options(atlas_grid, envelope, atlas_x_axis, atlas_f_y_split)  # bad options fail first
+    # bad options fail before the model is read: valid for a model of either element order (a grid
+    # of 2 f_z points is one for the quadratic default's Hermite f_z); the model's own check follows
+    for order in (1, 2):
+        try:
+            atlas_config_from_options(atlas_grid, envelope, atlas_x_axis, atlas_f_y_split,
+                                      base=default_atlas_config(order))
+            break
+        except UserError:
+            if order == 2:
+                raise
     if offline not in ("full", "rom"):
         raise UserError(f"--offline: full or rom, got {offline!r}")
     if workers is not None and workers < 1:
