@@ -30,6 +30,7 @@ COBS from the ``cobs`` package, the CRC from ``crcmod`` (predefined ``crc-ccitt-
 
 from __future__ import annotations
 
+import collections
 import struct
 from dataclasses import dataclass
 
@@ -237,6 +238,11 @@ def _period_us(osr: int) -> float:
     return N_CHANNELS * osr * 104.0
 
 
+DUPLICATE_WINDOW = 256
+"""How many recent frames a copy is recognised against (3.3 s at 77 Hz): a copy of an older frame
+whose clock runs backwards reads as a board restart."""
+
+
 @dataclass(frozen=True)
 class DecoderStats:
     """Counters of a :class:`StreamDecoder` (all since it was created).
@@ -248,7 +254,8 @@ class DecoderStats:
     a frame at the end of the run survives), ``sync_discards`` an invalid partial first body
     (joining mid-frame; not an error), ``recovered`` whole frames taken from the head or tail of
     a damaged body (version 1 streams: a lost delimiter or a truncated frame before them),
-    ``duplicates`` exact repeats of the previous DATA frame (dropped, not counted as lost),
+    ``duplicates`` copies of one of the last :data:`DUPLICATE_WINDOW` frames (a retransmit, a
+    doubled USB read: dropped, counted neither as lost nor as a restart),
     ``stale`` DATA frames whose seq lies behind the last one on a forward clock (dropped),
     ``seq_gaps`` jumps in the sequence number, ``frames_lost`` sequence numbers missing in them
     (beyond 65 536 the board clock tells how often seq wrapped), ``resets`` times the board clock
@@ -303,6 +310,9 @@ class StreamDecoder:
         self._after_overflow = False   # the next body is the kept tail of an overlong run
         self._last_seq: int | None = None
         self._last_t_us: int | None = None
+        # the last frames accepted, to recognise a copy (equal in every field) wherever it comes
+        self._recent: collections.deque = collections.deque()
+        self._recent_set: set = set()
         self._c = dict(DecoderStats().__dict__)
 
     @property
@@ -386,10 +396,9 @@ class StreamDecoder:
         if isinstance(f, Command):          # our own echo on a loopback: not a board frame
             c["malformed"] += 1
             return
-        if isinstance(f, DataFrame) and self._last_seq is not None:
-            if f.seq == self._last_seq and f.t_us == self._last_t_us:
-                c["duplicates"] += 1        # the same frame again: no data, nothing lost
-                return
+        if f in self._recent_set:
+            c["duplicates"] += 1            # the same frame again: no data, nothing lost, no restart
+            return
         # a board clock that runs backwards means the board restarted (u32 µs wraps after 71 min)
         dt_us = None
         if self._last_t_us is not None:
@@ -398,6 +407,8 @@ class StreamDecoder:
                 c["resets"] += 1
                 self._last_seq = None
                 dt_us = None
+                self._recent.clear()        # a new board's frames are never copies of the old one's
+                self._recent_set.clear()
         if isinstance(f, DataFrame):        # seq counts DATA frames only (INFO carries the next one)
             if self._last_seq is not None:
                 step = (f.seq - self._last_seq) & 0xFFFF
@@ -418,4 +429,8 @@ class StreamDecoder:
             c["info_frames"] += 1
         self._last_t_us = f.t_us
         c["version"] = version
+        if len(self._recent) >= DUPLICATE_WINDOW:
+            self._recent_set.discard(self._recent.popleft())
+        self._recent.append(f)
+        self._recent_set.add(f)
         out.append(f)
