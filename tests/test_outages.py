@@ -93,6 +93,67 @@ def test_recording_marker_rows_round_trip_and_replay(tmp_path):
     assert ("e", "resumed") in seen and len([s for s in seen if s[0] == "m"]) == 10
 
 
+def test_a_frozen_board_keeps_the_recording_in_time_order(tmp_path):
+    """The board freezes for 1 s, then its frames of that second arrive at once, stamped with the
+    times they were sampled: earlier than the host clock that noticed the silence."""
+    clock = Clock()
+    port = serial.serial_for_url("loop://")
+    src = SerialSource("fake", default_chain(), opener=lambda url, **kw: port, clock=clock)
+    chain = default_chain()
+    path = tmp_path / "frozen.csv"
+    with Recorder(path, {"chain": chain.summary(), "tare": nominal_tare(chain).to_dict()}) as rec:
+        def step(data=b"", dt=0.0):
+            port.write(data)
+            clock.t += dt
+            batch = src.read(0.001)
+            for ev in src.events():
+                rec.write_event(ev, next_t=batch[0].t if batch else None)
+            for m in batch:
+                rec.write(m)
+        step()
+        for k in range(20):                                        # 77 Hz, on time
+            step(_frames([k], k * 13_000), 0.013)
+        for _ in range(10):                                        # frozen: 1 s without a frame
+            step(dt=0.1)
+        step(_frames(range(20, 97), 20 * 13_000), 0.001)          # the frozen second, all at once
+        for k in range(97, 110):
+            step(_frames([k], k * 13_000), 0.013)
+    back = read_recording(path)
+    assert [e.kind for e in back.events] == ["silent", "resumed"]
+    assert np.array_equal(back.seq, np.arange(110))
+    t = np.array([float(line.split(",")[0]) for line in path.read_text().splitlines()[2:]])
+    assert np.all(np.diff(t) >= 0)                                 # marker rows included
+    silent, resumed = back.events
+    assert silent.t == pytest.approx(back.t[19]) and resumed.t == pytest.approx(back.t[20])
+    assert "no valid frame for" in silent.detail and "without frames" in resumed.detail
+    # killed mid-write anywhere in the marker rows and the burst after them: the complete rows read back
+    import warnings
+
+    from softphantom.sensing.recording import TruncatedRecordingWarning
+
+    data = path.read_bytes()
+    start = data.index(b"event:silent") - 60
+    cut = tmp_path / "cut.csv"
+    for end in range(start, start + 400, 7):
+        cut.write_bytes(data[:end])
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", TruncatedRecordingWarning)
+            part = read_recording(cut)
+        assert np.array_equal(part.seq, np.arange(len(part))) and len(part) >= 19
+
+
+def test_reader_reads_a_marker_row_later_than_the_next_sample(tmp_path):
+    """A marker row stamped when the silence was noticed, after which late frames came: only the
+    samples must be in time order."""
+    path = _recording(tmp_path, "late_marker.csv", ["0.0", "0.1", "0.2", "0.3"])
+    lines = path.read_text().splitlines()
+    marker = ["0.900000", "-1", "nan", "0"] + ["0"] * 5 + ["nan"] * 9 + ["event:silent: no valid frame for 0.60 s"]
+    lines.insert(4, ",".join(marker))
+    path.write_text("\n".join(lines) + "\n")
+    back = read_recording(path)
+    assert len(back) == 4 and [e.kind for e in back.events] == ["silent"]
+
+
 def _recording(tmp_path, name, ts):
     chain = default_chain()
     ms = list(FrameSource([_frames(range(len(ts)))], chain, nominal_tare(chain)))

@@ -243,20 +243,23 @@ def test_fuzz_duplicated_frames_are_dropped_and_counted_never_a_restart(version,
     """A retransmitted frame, or a doubled USB read (a run of whole frames read twice), anywhere
     after its original: dropped and counted as a duplicate; never a restart, a loss or a second sample."""
     p = 5 * 25 * 104
-    msgs = []                                        # the board's messages, an INFO now and then
+    msgs, is_data = [], []                           # the board's messages, an INFO now and then
     for k in range(60):
         msgs.append(encode_data(k, 1_000_000 + k * p, 25, [1000 + k] * 5, version=version))
+        is_data.append(True)
         if info_every and k % info_every == 0:
             msgs.append(encode_info(k + 1, 1_000_000 + k * p + 700, osr=25, version=version))
+            is_data.append(False)
     stream = bytearray()
-    n_copies = 0
+    n_copies = n_info_copies = 0
     at = {}                                          # message index -> copies to insert after it
     for i, back, run in copies:
         i = min(i * len(msgs) // 60, len(msgs) - 1)
         first = max(0, i - back)
         last = min(i, first + run - 1)
         at.setdefault(i, []).append((first, last))
-        n_copies += last - first + 1
+        n_copies += sum(is_data[first:last + 1])
+        n_info_copies += last - first + 1 - sum(is_data[first:last + 1])
     for i, m in enumerate(msgs):
         stream += m
         for first, last in at.get(i, []):
@@ -266,4 +269,5 @@ def test_fuzz_duplicated_frames_are_dropped_and_counted_never_a_restart(version,
     s = dec.stats
     assert [f.seq for f in got if isinstance(f, DataFrame)] == list(range(60))
     assert (s.resets, s.frames_lost, s.seq_gaps, s.rejected) == (0, 0, 0, 0)
-    assert s.duplicates == n_copies
+    assert s.duplicates == n_copies and s.info_frames == len(msgs) - 60 + n_info_copies
+    assert sum(isinstance(f, InfoFrame) for f in got) == len(msgs) - 60      # a copy is not handed on

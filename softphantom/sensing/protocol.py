@@ -254,8 +254,9 @@ class DecoderStats:
     a frame at the end of the run survives), ``sync_discards`` an invalid partial first body
     (joining mid-frame; not an error), ``recovered`` whole frames taken from the head or tail of
     a damaged body (version 1 streams: a lost delimiter or a truncated frame before them),
-    ``duplicates`` copies of one of the last :data:`DUPLICATE_WINDOW` frames (a retransmit, a
-    doubled USB read: dropped, counted neither as lost nor as a restart),
+    ``duplicates`` copies of one of the last :data:`DUPLICATE_WINDOW` DATA frames (a retransmit,
+    a doubled USB read: dropped, counted neither as lost nor as a restart; a copy of an INFO frame
+    counts in ``info_frames`` and is not handed on),
     ``stale`` DATA frames whose seq lies behind the last one on a forward clock (dropped),
     ``seq_gaps`` jumps in the sequence number, ``frames_lost`` sequence numbers missing in them
     (beyond 65 536 the board clock tells how often seq wrapped), ``resets`` times the board clock
@@ -396,8 +397,8 @@ class StreamDecoder:
         if isinstance(f, Command):          # our own echo on a loopback: not a board frame
             c["malformed"] += 1
             return
-        if f in self._recent_set:
-            c["duplicates"] += 1            # the same frame again: no data, nothing lost, no restart
+        if f in self._recent_set:           # the same frame again: no data, nothing lost, no restart
+            c["duplicates" if isinstance(f, DataFrame) else "info_frames"] += 1
             return
         # a board clock that runs backwards means the board restarted (u32 µs wraps after 71 min)
         dt_us = None
