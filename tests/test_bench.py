@@ -261,3 +261,15 @@ def test_estimate_output_has_the_retared_marker_after_an_info_frame_alone(tmp_pa
     assert s["events"] == {"restart": 1, "retared": 1}
     status = list(read_table(tmp_path / "e.csv").columns["status"])
     assert status[0].startswith("event:restart") and status[1].startswith("event:retared")
+
+
+def test_cli_says_a_truncated_recording_in_one_line(tmp_path, model_dir, capsys):
+    rec = tmp_path / "r.csv"
+    _record(rec, BenchConfig())
+    data = rec.read_bytes()
+    rec.write_bytes(data[:-20])                                   # killed mid-row
+    assert main(["estimate", "--model", str(model_dir), "--source", f"replay:{rec}", "--out", str(tmp_path / "e.csv"),
+                 "--estimator", "refresh"]) == 0
+    cap = capsys.readouterr()
+    said = [ln for ln in (cap.out + cap.err).splitlines() if "truncated file" in ln or "Warning:" in ln or "warn(" in ln]
+    assert len(said) == 1 and said[0].startswith("warning: ") and "a row cut short, dropped" in said[0], said
