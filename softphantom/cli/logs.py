@@ -4,8 +4,8 @@ softphantom's loggers at INFO by default (``--verbose/-v``: DEBUG, ``--quiet/-q`
 level named in ``SOFTPHANTOM_LOG``), every other library's at WARNING. Progress records
 (:func:`softphantom.progress.report`) become rich progress bars on a terminal and plain lines
 elsewhere (:class:`~softphantom.progress.ProgressHandler`); the other records go to rich's
-``RichHandler`` on a terminal, plain lines elsewhere (:func:`~softphantom.progress.message_handler`). softphantom's own warnings (a file cut short) become
-one such line at WARNING.
+``RichHandler`` on a terminal, plain lines elsewhere (:func:`~softphantom.progress.message_handler`);
+softphantom's own warnings (a file cut short) become one such line at WARNING.
 """
 
 from __future__ import annotations
