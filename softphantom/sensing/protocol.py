@@ -239,8 +239,8 @@ def _period_us(osr: int) -> float:
 
 
 DUPLICATE_WINDOW = 256
-"""How many recent frames a copy is recognised against (3.3 s at 77 Hz): a copy of an older frame
-whose clock runs backwards reads as a board restart."""
+"""How many recent frames a copy (the same bytes) is recognised against (3.3 s at 77 Hz): a copy
+of an older frame whose clock runs backwards reads as a board restart."""
 
 
 @dataclass(frozen=True)
@@ -311,7 +311,7 @@ class StreamDecoder:
         self._after_overflow = False   # the next body is the kept tail of an overlong run
         self._last_seq: int | None = None
         self._last_t_us: int | None = None
-        # the last frames accepted, to recognise a copy (equal in every field) wherever it comes
+        # the bodies of the last frames accepted, to recognise a copy wherever it comes
         self._recent: collections.deque = collections.deque()
         self._recent_set: set = set()
         self._c = dict(DecoderStats().__dict__)
@@ -367,7 +367,7 @@ class StreamDecoder:
             else:
                 c[_ERROR_COUNTER.get(exc.kind, "malformed")] += 1
             return
-        self._accept(f, version, out)
+        self._accept(f, version, out, body)
 
     def _recover(self, body: bytes, out: list) -> bool:
         """Whole frames at the head and the tail of a damaged body (a version 1 stream merges a
@@ -377,7 +377,7 @@ class StreamDecoder:
             if len(body) > n:
                 for part, at in ((body[:n], 0), (body[-n:], len(body) - n)):
                     try:
-                        found.append((at, _decode(part)))
+                        found.append((at, _decode(part), part))
                     except FrameError:
                         pass
         if not found:
@@ -385,19 +385,19 @@ class StreamDecoder:
         found.sort(key=lambda x: x[0])
         # overlapping finds are kept: each passed its own CRC (a truncated frame whose lost last
         # byte equals the next frame's first byte is whole again at the head)
-        for at, (f, version) in found:
+        for at, (f, version), part in found:
             self._c["recovered"] += 1
-            self._accept(f, version, out)
+            self._accept(f, version, out, part)
         self._c["bytes_discarded"] += max(0, len(body) + 1 - sum(
-            DATA_BODY_BYTES if isinstance(f, DataFrame) else INFO_BODY_BYTES for _, (f, _) in found))
+            DATA_BODY_BYTES if isinstance(f, DataFrame) else INFO_BODY_BYTES for _, (f, _), _ in found))
         return True
 
-    def _accept(self, f, version: int, out: list) -> None:
+    def _accept(self, f, version: int, out: list, body: bytes) -> None:
         c = self._c
         if isinstance(f, Command):          # our own echo on a loopback: not a board frame
             c["malformed"] += 1
             return
-        if f in self._recent_set:           # the same frame again: no data, nothing lost, no restart
+        if body in self._recent_set:        # the same frame again: no data, nothing lost, no restart
             c["duplicates" if isinstance(f, DataFrame) else "info_frames"] += 1
             return
         # a board clock that runs backwards means the board restarted (u32 µs wraps after 71 min)
@@ -432,6 +432,6 @@ class StreamDecoder:
         c["version"] = version
         if len(self._recent) >= DUPLICATE_WINDOW:
             self._recent_set.discard(self._recent.popleft())
-        self._recent.append(f)
-        self._recent_set.add(f)
+        self._recent.append(body)
+        self._recent_set.add(body)
         out.append(f)
