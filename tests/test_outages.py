@@ -352,3 +352,28 @@ def test_the_board_to_estimate_path_holds_no_memory_per_sample(tmp_path):
     finally:
         tracemalloc.stop()
     assert est_growth < 5_000 and rec_growth < 5_000, (est_growth, rec_growth)     # 2 bytes a sample
+
+
+def test_the_refresh_estimators_history_holds_constant_memory():
+    """The refresh estimator keeps each refresh's linearization error and time (6 refreshes/s on
+    the coarse model): the memory is allocated once, not per refresh."""
+    import gc
+    import tracemalloc
+
+    from softphantom.estimation.estimator import History
+
+    tracemalloc.start()
+    try:
+        errors, times = History(width=4, size=1000), History(size=1000)
+        gc.collect()
+        before = tracemalloc.get_traced_memory()[0]
+        for k in range(5000):
+            errors.append(np.full(4, k * 1e-12))
+            times.append(k * 1e-3)
+        gc.collect()
+        grew = tracemalloc.get_traced_memory()[0] - before
+    finally:
+        tracemalloc.stop()
+    assert grew < 2_000, grew
+    assert len(errors) == 1000 and errors.values()[-1, 0] == pytest.approx(4999e-12)
+    assert times[:].tolist() == pytest.approx([k * 1e-3 for k in range(4000, 5000)])
