@@ -70,6 +70,11 @@ class FakeBoard:
                 if isinstance(item, float):
                     time.sleep(item)
                     continue
+                if item == "connected":              # wait for the host's first command (it opened the port)
+                    while not self.commands and not self._stop.is_set():
+                        time.sleep(0.01)
+                        self._poll_commands()
+                    continue
                 seq, data = item
                 os.write(self.master, data)
                 try:
@@ -359,3 +364,61 @@ def test_ctrl_c_stops_acquire_cleanly(tmp_path):
     assert "Traceback" not in stderr and "stopped" in stderr and "wrote" in stdout
     rec = read_recording(out)                       # complete: no truncation warning
     assert not rec.truncated and len(rec) >= 18     # 20 lines = metadata + header + 18 rows
+
+
+def test_cli_acquire_after_a_board_freeze_reads_back(tmp_path, capsys):
+    """The board freezes for 1 s (as SIGSTOP of ``virtual serve``), then sends that second's frames
+    at once: the silent marker must not put the file out of time order."""
+    board = FakeBoard()
+    out = tmp_path / "frozen.csv"
+    dt = 0.01
+    script = ["connected", (None, encode_info(0, 0, (1, 0, 0), 5, 100))] + _stream(range(1, 60), dt=dt)
+    script += [1.0] + [(k, encode_data(k, int(round(k * dt * 1e6)), 100, _raw(k))) for k in range(60, 160)]
+    script += _stream(range(160, 400), dt=dt)
+    try:
+        board.run(script)
+        rc = main(["acquire", "--port", board.path, "--out", str(out), "--duration-s", "2.0", "--tare-s", "0.2"])
+    finally:
+        board.close()
+    assert rc == 0, capsys.readouterr()
+    rec = read_recording(out)
+    assert "silent" in [e.kind for e in rec.events]
+    assert len(rec) >= 150 and np.all(np.diff(rec.seq) == 1)
+    t = np.array([float(line.split(",")[0]) for line in out.read_text().splitlines()[2:]])
+    assert np.all(np.diff(t) >= 0)                                 # marker rows included
+
+
+@pytest.mark.parametrize("args, option", [(["--tare-s", "-1"], "--tare-s"), (["--tare-s", "nan"], "--tare-s"),
+                                          (["--connect-timeout-s", "-1"], "--connect-timeout-s"),
+                                          (["--on-new-board", "ignore"], "--on-new-board")])
+def test_cli_acquire_checks_its_options_before_the_port(tmp_path, capsys, args, option):
+    t0 = time.monotonic()
+    rc = main(["acquire", "--port", "/dev/nonexistent", "--out", str(tmp_path / "x.csv"), *args])
+    err = capsys.readouterr().err
+    assert rc == 2 and option in err and "nonexistent" not in err, err
+    assert len(err.strip().splitlines()) == 1 and time.monotonic() - t0 < 3.0      # no wait for the port
+    assert not (tmp_path / "x.csv").exists()
+
+
+def test_acquire_status_row_agrees_with_the_state():
+    import io
+
+    from rich.console import Console
+
+    from softphantom.cli.sensing import _status_table
+    from softphantom.sensing.protocol import DecoderStats
+    from softphantom.sensing.sources import SourceStats
+
+    m = next(iter(FrameSource([encode_data(1, 0, 100, REST)], default_chain())))
+    assert m.status == "ok"
+
+    def rows(state):
+        con = Console(file=io.StringIO(), width=160)
+        con.print(_status_table(SourceStats(state, DecoderStats(), last=m), 3.0, 10, Path("a.csv")))
+        text = con.file.getvalue()
+        return {ln.split()[1]: " ".join(ln.split()[2:]) for ln in text.splitlines() if ln.split()[1:2]}
+
+    assert rows("ok")["status"].strip("│ ") == "ok"
+    for state in ("disconnected", "silent"):
+        got = rows(state)
+        assert state in got["state"] and state in got["status"] and not got["status"].strip("│ ") == "ok", got

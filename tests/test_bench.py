@@ -187,6 +187,44 @@ def test_new_board_policy_retare_holds_the_window_back_and_drops_nothing():
         RetareSource(src.inner, BenchConfig(), "ignore")
 
 
+def _info_alone_then_new_board(policy):
+    """The new board's first message is an INFO frame alone (read on its own), then its frames
+    with another zero (+300 codes)."""
+    from softphantom.sensing.protocol import encode_info
+
+    board = _Loop()
+    src = _serial(policy, board)
+    got = []
+    for _ in range(5):
+        got += src.read(0.01)
+    board.ports[-1].write(encode_info(0, 800, osr=25))
+    return board, src, got
+
+
+def test_new_board_announced_by_an_info_frame_alone_still_stops():
+    board, src, got = _info_alone_then_new_board("stop")
+    with pytest.raises(NewBoardError, match="restarted or was replaced"):
+        got += src.read(0.01)                          # the INFO frame alone: stop at once
+    board.send(range(0, 12), 1_000, push=300)
+    with pytest.raises(NewBoardError):                 # and for good
+        src.read(0.01)
+    assert [m.seq for m in got] == list(range(10))      # none of the new board's frames got through
+    assert [e.kind for e in src.events()] == ["restart"]
+    src.close()
+
+
+def test_new_board_announced_by_an_info_frame_alone_is_retared():
+    board, src, got = _info_alone_then_new_board("retare")
+    got += src.read(0.01)
+    board.send(range(0, 12), 1_000, push=300)
+    for _ in range(20):
+        got += src.read(0.01)
+    assert [e.kind for e in src.events()] == ["restart", "retared"]
+    assert [m.seq for m in got] == list(range(10)) + list(range(12))
+    assert np.allclose([m.dp[0] for m in got[10:]], 0.0, atol=1.0)   # the new board's zero, not the old one's
+    src.close()
+
+
 def test_virtual_phantom_uses_the_same_bench(coarse_model):
     from softphantom.cli.virtual import _config
     from softphantom.virtual.run import host_bench, host_chain
@@ -196,3 +234,42 @@ def test_virtual_phantom_uses_the_same_bench(coarse_model):
     hb = host_bench(coarse_model, cfg.board)
     assert hb.same_as(BenchConfig.from_model(coarse_model, tube_length_m=3.0, tube_id_m=1.0e-3))
     assert np.allclose(host_chain(coarse_model, cfg.board).v_total_m3, hb.chain().v_total_m3)
+
+
+def test_estimate_output_has_the_retared_marker_after_an_info_frame_alone(tmp_path):
+    import threading
+
+    from softphantom.estimation import Estimate, estimate_stream
+    from softphantom.evaluation.files import read_table
+    from softphantom.pose import Pose6
+
+    class Est:
+        target_names = ("apex",)
+
+        def step(self, m, skipped=0):
+            z = np.zeros(3)
+            return Estimate(m.t, z, 0.0, Pose6(z, z), {"apex": z}, m.dp, m.dV, 1.0, "optimal", 1e-4, skipped,
+                            m.status)
+
+    board, src, got = _info_alone_then_new_board("retare")
+    assert src.read(0.01) == []                                    # the INFO frame alone
+    board.send(range(0, 12), 1_000, push=300)
+    stop = threading.Event()
+    threading.Timer(10.0, stop.set).start()                        # a safety net: 12 frames come at once
+    s = estimate_stream(src, Est(), tmp_path / "e.csv", live=True, stop=stop, max_samples=12)
+    stop.set()
+    assert s["events"] == {"restart": 1, "retared": 1}
+    status = list(read_table(tmp_path / "e.csv").columns["status"])
+    assert status[0].startswith("event:restart") and status[1].startswith("event:retared")
+
+
+def test_cli_says_a_truncated_recording_in_one_line(tmp_path, model_dir, capsys):
+    rec = tmp_path / "r.csv"
+    _record(rec, BenchConfig())
+    data = rec.read_bytes()
+    rec.write_bytes(data[:-20])                                   # killed mid-row
+    assert main(["estimate", "--model", str(model_dir), "--source", f"replay:{rec}", "--out", str(tmp_path / "e.csv"),
+                 "--estimator", "refresh"]) == 0
+    cap = capsys.readouterr()
+    said = [ln for ln in (cap.out + cap.err).splitlines() if "truncated file" in ln or "Warning:" in ln or "warn(" in ln]
+    assert len(said) == 1 and said[0].startswith("warning: ") and "a row cut short, dropped" in said[0], said

@@ -93,6 +93,67 @@ def test_recording_marker_rows_round_trip_and_replay(tmp_path):
     assert ("e", "resumed") in seen and len([s for s in seen if s[0] == "m"]) == 10
 
 
+def test_a_frozen_board_keeps_the_recording_in_time_order(tmp_path):
+    """The board freezes for 1 s, then its frames of that second arrive at once, stamped with the
+    times they were sampled: earlier than the host clock that noticed the silence."""
+    clock = Clock()
+    port = serial.serial_for_url("loop://")
+    src = SerialSource("fake", default_chain(), opener=lambda url, **kw: port, clock=clock)
+    chain = default_chain()
+    path = tmp_path / "frozen.csv"
+    with Recorder(path, {"chain": chain.summary(), "tare": nominal_tare(chain).to_dict()}) as rec:
+        def step(data=b"", dt=0.0):
+            port.write(data)
+            clock.t += dt
+            batch = src.read(0.001)
+            for ev in src.events():
+                rec.write_event(ev, next_t=batch[0].t if batch else None)
+            for m in batch:
+                rec.write(m)
+        step()
+        for k in range(20):                                        # 77 Hz, on time
+            step(_frames([k], k * 13_000), 0.013)
+        for _ in range(10):                                        # frozen: 1 s without a frame
+            step(dt=0.1)
+        step(_frames(range(20, 97), 20 * 13_000), 0.001)          # the frozen second, all at once
+        for k in range(97, 110):
+            step(_frames([k], k * 13_000), 0.013)
+    back = read_recording(path)
+    assert [e.kind for e in back.events] == ["silent", "resumed"]
+    assert np.array_equal(back.seq, np.arange(110))
+    t = np.array([float(line.split(",")[0]) for line in path.read_text().splitlines()[2:]])
+    assert np.all(np.diff(t) >= 0)                                 # marker rows included
+    silent, resumed = back.events
+    assert silent.t == pytest.approx(back.t[19]) and resumed.t == pytest.approx(back.t[20])
+    assert "no valid frame for" in silent.detail and "without frames" in resumed.detail
+    # killed mid-write anywhere in the marker rows and the burst after them: the complete rows read back
+    import warnings
+
+    from softphantom.sensing.recording import TruncatedRecordingWarning
+
+    data = path.read_bytes()
+    start = data.index(b"event:silent") - 60
+    cut = tmp_path / "cut.csv"
+    for end in range(start, start + 400, 7):
+        cut.write_bytes(data[:end])
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", TruncatedRecordingWarning)
+            part = read_recording(cut)
+        assert np.array_equal(part.seq, np.arange(len(part))) and len(part) >= 19
+
+
+def test_reader_reads_a_marker_row_later_than_the_next_sample(tmp_path):
+    """A marker row stamped when the silence was noticed, after which late frames came: only the
+    samples must be in time order."""
+    path = _recording(tmp_path, "late_marker.csv", ["0.0", "0.1", "0.2", "0.3"])
+    lines = path.read_text().splitlines()
+    marker = ["0.900000", "-1", "nan", "0"] + ["0"] * 5 + ["nan"] * 9 + ["event:silent: no valid frame for 0.60 s"]
+    lines.insert(4, ",".join(marker))
+    path.write_text("\n".join(lines) + "\n")
+    back = read_recording(path)
+    assert len(back) == 4 and [e.kind for e in back.events] == ["silent"]
+
+
 def _recording(tmp_path, name, ts):
     chain = default_chain()
     ms = list(FrameSource([_frames(range(len(ts)))], chain, nominal_tare(chain)))
@@ -245,3 +306,74 @@ def test_live_queue_drops_only_what_lags_and_counts_it(tmp_path):
     s = estimate_stream(src, est, tmp_path / "s.csv")
     assert s["skipped"] > 0 and s["estimates"] + s["skipped"] == 2000   # every sample accounted for
     assert est.seen == sorted(est.seen) and est.seen[-1] == 1999
+
+
+def test_the_board_to_estimate_path_holds_no_memory_per_sample(tmp_path):
+    """The soak's path (frames → decoder → source → estimate_stream → the estimate CSV, and the
+    recorder) keeps nothing per sample: the Python heap after 3 000 frames is what it was after
+    600 (numpy's arrays are traced too); it grows by ~300 bytes in all."""
+    import gc
+    import tracemalloc
+
+    from softphantom.estimation import Estimate, estimate_stream
+    from softphantom.pose import Pose6
+
+    class Est:
+        target_names = ("apex",)
+
+        def step(self, m, skipped=0):
+            z = np.zeros(3)
+            return Estimate(m.t, z, 0.0, Pose6(z, z), {"apex": z}, m.dp, m.dV, 1.0, "optimal", 1e-4, skipped,
+                            m.status)
+
+    chain = default_chain()
+    heap = {}
+
+    def chunks(n, every=50):
+        clock.t = 100.0
+        for k in range(0, n, every):
+            if k in (600, n - every):
+                gc.collect()
+                heap[k] = tracemalloc.get_traced_memory()[0]
+            clock.t += 0.013 * every
+            yield _frames(range(k, k + every), k * 13_000)
+
+    clock = Clock()
+    tracemalloc.start()
+    try:
+        src = FrameSource(chunks(3_000), chain, nominal_tare(chain), clock=clock)
+        estimate_stream(src, Est(), tmp_path / "e.csv", live=False)
+        est_growth = heap[2_950] - heap[600]
+        heap.clear()
+        with Recorder(tmp_path / "r.csv", {"chain": chain.summary()}) as rec:
+            for m in FrameSource(chunks(3_000), chain, nominal_tare(chain), clock=clock):
+                rec.write(m)
+        rec_growth = heap[2_950] - heap[600]
+    finally:
+        tracemalloc.stop()
+    assert est_growth < 5_000 and rec_growth < 5_000, (est_growth, rec_growth)     # 2 bytes a sample
+
+
+def test_the_refresh_estimators_history_holds_constant_memory():
+    """The refresh estimator keeps each refresh's linearization error and time (6 refreshes/s on
+    the coarse model): the memory is allocated once, not per refresh."""
+    import gc
+    import tracemalloc
+
+    from softphantom.estimation.estimator import History
+
+    tracemalloc.start()
+    try:
+        errors, times = History(width=4, size=1000), History(size=1000)
+        gc.collect()
+        before = tracemalloc.get_traced_memory()[0]
+        for k in range(5000):
+            errors.append(np.full(4, k * 1e-12))
+            times.append(k * 1e-3)
+        gc.collect()
+        grew = tracemalloc.get_traced_memory()[0] - before
+    finally:
+        tracemalloc.stop()
+    assert grew < 2_000, grew
+    assert len(errors) == 1000 and errors.values()[-1, 0] == pytest.approx(4999e-12)
+    assert times[:].tolist() == pytest.approx([k * 1e-3 for k in range(4000, 5000)])

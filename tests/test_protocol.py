@@ -144,7 +144,10 @@ def test_duplicates_and_stale_frames_do_not_count_as_lost():
                     + encode_data(0, 52_000 + 26, 100, [0] * 5) + fr[2])
     assert [f.seq for f in got] == [0, 1, 2]
     assert (dec2.stats.duplicates, dec2.stats.stale, dec2.stats.frames_lost, dec2.stats.frames_ok) == (1, 1, 0, 3)
-    # (a late copy whose clock runs backwards reads as a board restart: the clock is all there is)
+    # a late copy (its clock behind the last frame's) is a duplicate too, not a restart
+    dec3 = StreamDecoder()
+    got = dec3.feed(fr[0] + fr[1] + fr[2] + fr[0] + fr[3])
+    assert [f.seq for f in got] == [0, 1, 2, 3] and (dec3.stats.duplicates, dec3.stats.resets) == (1, 0)
 
 
 def test_wrap_info_reset_and_long_outage():
@@ -231,3 +234,40 @@ def test_fuzz_faulty_streams_lose_only_damaged_frames(seed, version, rate):
 def test_damage_rejects_an_unknown_kind():
     with pytest.raises(Exception, match="fault kind"):
         damage(_frames(1)[0], "teleport", np.random.default_rng(0))
+
+
+@settings(max_examples=80, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow])
+@given(version=st.sampled_from([1, 2]), info_every=st.integers(0, 9), step=st.integers(1, 80),
+       copies=st.lists(st.tuples(st.integers(0, 59), st.integers(0, 20), st.integers(1, 4)), max_size=12))
+def test_fuzz_duplicated_frames_are_dropped_and_counted_never_a_restart(version, info_every, step, copies):
+    """A retransmitted frame, or a doubled USB read (a run of whole frames read twice), anywhere
+    after its original: dropped and counted as a duplicate; never a restart, a loss or a second sample."""
+    p = 5 * 25 * 104
+    msgs, is_data = [], []                           # the board's messages, an INFO now and then
+    for k in range(60):
+        msgs.append(encode_data(k, 1_000_000 + k * p, 25, [1000 + k] * 5, version=version))
+        is_data.append(True)
+        if info_every and k % info_every == 0:
+            msgs.append(encode_info(k + 1, 1_000_000 + k * p + 700, osr=25, version=version))
+            is_data.append(False)
+    stream = bytearray()
+    n_copies = n_info_copies = 0
+    at = {}                                          # message index -> copies to insert after it
+    for i, back, run in copies:
+        i = min(i * len(msgs) // 60, len(msgs) - 1)
+        first = max(0, i - back)
+        last = min(i, first + run - 1)
+        at.setdefault(i, []).append((first, last))
+        n_copies += sum(is_data[first:last + 1])
+        n_info_copies += last - first + 1 - sum(is_data[first:last + 1])
+    for i, m in enumerate(msgs):
+        stream += m
+        for first, last in at.get(i, []):
+            stream += b"".join(msgs[first:last + 1])
+    dec = StreamDecoder()
+    got = _feed_chunked(dec, bytes(stream), step)
+    s = dec.stats
+    assert [f.seq for f in got if isinstance(f, DataFrame)] == list(range(60))
+    assert (s.resets, s.frames_lost, s.seq_gaps, s.rejected) == (0, 0, 0, 0)
+    assert s.duplicates == n_copies and s.info_frames == len(msgs) - 60 + n_info_copies
+    assert sum(isinstance(f, InfoFrame) for f in got) == len(msgs) - 60      # a copy is not handed on

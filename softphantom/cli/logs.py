@@ -4,13 +4,15 @@ softphantom's loggers at INFO by default (``--verbose/-v``: DEBUG, ``--quiet/-q`
 level named in ``SOFTPHANTOM_LOG``), every other library's at WARNING. Progress records
 (:func:`softphantom.progress.report`) become rich progress bars on a terminal and plain lines
 elsewhere (:class:`~softphantom.progress.ProgressHandler`); the other records go to rich's
-``RichHandler`` on a terminal, plain lines elsewhere (:func:`~softphantom.progress.message_handler`).
+``RichHandler`` on a terminal, plain lines elsewhere (:func:`~softphantom.progress.message_handler`);
+softphantom's own warnings (a file cut short) become one such line at WARNING.
 """
 
 from __future__ import annotations
 
 import logging
 import os
+import warnings
 
 from softphantom.errors import UserError
 
@@ -19,6 +21,16 @@ LOG_ENV = "SOFTPHANTOM_LOG"
 LEVELS = {"debug": logging.DEBUG, "info": logging.INFO, "warning": logging.WARNING, "error": logging.ERROR}
 
 _installed: list[logging.Handler] = []
+_python_showwarning: list = []   # warnings.showwarning while the CLI's is installed
+
+
+def _warning_as_log_line(message, category, filename, lineno, file=None, line=None) -> None:
+    """softphantom's own warnings (a file cut short, ...) as one log line; other libraries' as Python
+    shows them."""
+    if category.__module__.partition(".")[0] == "softphantom":
+        logging.getLogger("softphantom").warning("%s", message)
+    else:
+        _python_showwarning[0](message, category, filename, lineno, file, line)
 
 
 def log_level(verbose: bool = False, quiet: bool = False, env: str | None = None) -> int:
@@ -65,6 +77,9 @@ def configure_logging(level: int, console) -> None:
         root.addHandler(h)
     root.setLevel(logging.WARNING)
     logging.getLogger("softphantom").setLevel(level)
+    if not _python_showwarning:
+        _python_showwarning.append(warnings.showwarning)
+        warnings.showwarning = _warning_as_log_line
 
 
 def configure_from_options(verbose: bool, quiet: bool, console) -> None:
@@ -91,3 +106,5 @@ def close_logging() -> None:
     if _installed:
         logging.getLogger("softphantom").setLevel(logging.NOTSET)
     _installed.clear()
+    if _python_showwarning:
+        warnings.showwarning = _python_showwarning.pop()

@@ -94,7 +94,8 @@ def _status_table(stats, elapsed_s: float, rows: int, out: Path):
         for i, a in enumerate(ARM_NAMES):
             t.add_row(f"dp_{a}_kPa", f"{m.dp[i] / 1e3:+.4f}")
         t.add_row("p_urethra_kPa", f"{m.p_urethra / 1e3:+.2f}")
-        t.add_row("status", m.status)
+        # the values above are the last sample's: while no sample comes, say so beside its status
+        t.add_row("status", m.status if stats.state == "ok" else f"{stats.state}: no sample (the last: {m.status})")
     return t
 
 
@@ -126,15 +127,17 @@ def acquire_cmd(
     from rich.live import Live
 
     from softphantom import __version__
-    from softphantom.sensing.bench import BenchConfig, RetareSource, tare_at_rest
+    from softphantom.sensing.bench import BenchConfig, RetareSource, check_link_options, tare_at_rest
     from softphantom.sensing.chain import to_measurement
     from softphantom.sensing.recording import Recorder
     from softphantom.sensing.sources import SerialSource
 
+    # every option's value before the port or the model is opened
     if duration_s is not None and not duration_s > 0:
         raise UserError(f"--duration-s: must be > 0, got {duration_s}")
     if at not in ("on-centre", "off-centre"):
         raise UserError(f"--at must be on-centre or off-centre, got {at!r}")
+    check_link_options(tare_s, connect_timeout_s, on_new_board)
     if out.exists():
         raise UserError(f"--out {out}: exists; recordings are never overwritten")
     model = None
@@ -171,11 +174,12 @@ def acquire_cmd(
             # 2. record
             last_ui = 0.0
             while duration_s is None or time.monotonic() - t_start < duration_s + need:
+                batch = []
                 try:
                     batch = src.read(0.05) or []
                 finally:
-                    for ev in src.events():
-                        rec.write_event(ev)
+                    for ev in src.events():     # a marker never reorders the file: held before the batch
+                        rec.write_event(ev, next_t=batch[0].t if batch else None)
                         console.print(f"{ev.t:10.2f} s  {ev.kind}: {ev.detail}", highlight=False, markup=False)
                 for m in batch:
                     rec.write(m)

@@ -170,6 +170,21 @@ class BenchConfig:
             raise FileFormatError(f"metadata: no usable bench (tube, cavities): {exc}") from None
 
 
+def check_link_options(tare_s: float, connect_timeout_s: float, on_new_board: str) -> None:
+    """The board options' values, checked before anything is opened (one-line errors naming the option).
+
+    >>> check_link_options(-1, 5.0, "stop")
+    Traceback (most recent call last):
+    ...
+    softphantom.errors.UserError: --tare-s: must be ≥ 0 (0: the datasheet zero), got -1.0
+    """
+    if not (math.isfinite(float(tare_s)) and tare_s >= 0):
+        raise UserError(f"--tare-s: must be ≥ 0 (0: the datasheet zero), got {float(tare_s)!r}")
+    _positive("--connect-timeout-s", connect_timeout_s)
+    if on_new_board not in NEW_BOARD_POLICIES:
+        raise UserError(f"--on-new-board: expected {' or '.join(NEW_BOARD_POLICIES)}, got {on_new_board!r}")
+
+
 def tare_from_measurements(window: list[Measurement], bench: BenchConfig, chain: SensorChain | None = None) -> Tare:
     """:func:`~softphantom.sensing.chain.tare_from_window` over measurements (their raw sums)."""
     return tare_from_window(np.array([m.raw for m in window]), np.array([m.osr for m in window]),
@@ -236,23 +251,27 @@ class RetareSource(SensorSource):
         if self._error is not None:
             raise self._error
         batch = self.inner.read(timeout_s)
-        before: list[Measurement] = []
+        restart = None
         for ev in self.inner.events():
             self._events.append(ev)
-            if ev.kind != "restart" or not batch:
-                continue
-            # the frames of the old board in this batch go out as they are: the new board's
-            # start where the board clock runs backwards
-            cut = next((i for i in range(len(batch) - 1, 0, -1) if batch[i].t_board < batch[i - 1].t_board), 0)
-            before, batch = before + batch[:cut], batch[cut:]
+            if ev.kind == "restart":
+                restart = ev
+        before: list[Measurement] = []
+        if restart is not None:
+            # the policy applies whatever came with the event: a new board may announce itself by
+            # an INFO frame alone, and then every frame that follows is its own
+            frames = batch or []
+            cut = self._new_board_at(frames)
+            before, frames = frames[:cut], frames[cut:]
             if self.policy == "stop":
                 self._error = NewBoardError(
-                    f"{self.label}: the board restarted or was replaced at t = {ev.t:.3f} s (its zero is "
+                    f"{self.label}: the board restarted or was replaced at t = {restart.t:.3f} s (its zero is "
                     f"unknown); stopped — use --on-new-board retare to re-tare at rest and go on")
                 if not before:
                     raise self._error
                 return before
             self._held = []
+            batch = frames if batch is not None else None
         if batch is None or self._held is None:
             return batch if not before else before + (batch or [])
         self._held += batch
@@ -266,6 +285,14 @@ class RetareSource(SensorSource):
         out = [to_measurement(m.t, m.seq, m.t_board, m.raw, m.osr, self.chain, tare) for m in self._held]
         self._held = None
         return before + out
+
+    def _new_board_at(self, frames: list[Measurement]) -> int:
+        """Where the new board's frames start in ``frames`` (the read that brought the restart):
+        as the serial source saw it (``new_board_at``), else where the board clock runs backwards."""
+        at = getattr(self.inner, "new_board_at", None)
+        if at is not None:
+            return min(int(at), len(frames))
+        return next((i for i in range(len(frames) - 1, 0, -1) if frames[i].t_board < frames[i - 1].t_board), 0)
 
     def stats(self) -> SourceStats:
         return self.inner.stats()
@@ -337,6 +364,7 @@ def open_serial(port: str, model=None, bench: BenchConfig | None = None, *, opti
     (``--source serial:PORT``: :func:`softphantom.sources.open_source`.)"""
     from softphantom.sensing.sources import SerialSource
 
+    check_link_options(tare_s, connect_timeout_s, on_new_board)
     b = bench or BenchConfig.from_options(**(options or {}), model=model)
     chain = b.chain()
     kw = {"opener": serial_opener} if serial_opener is not None else {}

@@ -30,6 +30,7 @@ COBS from the ``cobs`` package, the CRC from ``crcmod`` (predefined ``crc-ccitt-
 
 from __future__ import annotations
 
+import collections
 import struct
 from dataclasses import dataclass
 
@@ -237,6 +238,11 @@ def _period_us(osr: int) -> float:
     return N_CHANNELS * osr * 104.0
 
 
+DUPLICATE_WINDOW = 256
+"""How many recent frames a copy (the same bytes) is recognised against (3.3 s at 77 Hz): a copy
+of an older frame whose clock runs backwards reads as a board restart."""
+
+
 @dataclass(frozen=True)
 class DecoderStats:
     """Counters of a :class:`StreamDecoder` (all since it was created).
@@ -248,7 +254,9 @@ class DecoderStats:
     a frame at the end of the run survives), ``sync_discards`` an invalid partial first body
     (joining mid-frame; not an error), ``recovered`` whole frames taken from the head or tail of
     a damaged body (version 1 streams: a lost delimiter or a truncated frame before them),
-    ``duplicates`` exact repeats of the previous DATA frame (dropped, not counted as lost),
+    ``duplicates`` copies of one of the last :data:`DUPLICATE_WINDOW` DATA frames (a retransmit,
+    a doubled USB read: dropped, counted neither as lost nor as a restart; a copy of an INFO frame
+    counts in ``info_frames`` and is not handed on),
     ``stale`` DATA frames whose seq lies behind the last one on a forward clock (dropped),
     ``seq_gaps`` jumps in the sequence number, ``frames_lost`` sequence numbers missing in them
     (beyond 65 536 the board clock tells how often seq wrapped), ``resets`` times the board clock
@@ -303,6 +311,9 @@ class StreamDecoder:
         self._after_overflow = False   # the next body is the kept tail of an overlong run
         self._last_seq: int | None = None
         self._last_t_us: int | None = None
+        # the bodies of the last frames accepted, to recognise a copy wherever it comes
+        self._recent: collections.deque = collections.deque()
+        self._recent_set: set = set()
         self._c = dict(DecoderStats().__dict__)
 
     @property
@@ -356,7 +367,7 @@ class StreamDecoder:
             else:
                 c[_ERROR_COUNTER.get(exc.kind, "malformed")] += 1
             return
-        self._accept(f, version, out)
+        self._accept(f, version, out, body)
 
     def _recover(self, body: bytes, out: list) -> bool:
         """Whole frames at the head and the tail of a damaged body (a version 1 stream merges a
@@ -366,7 +377,7 @@ class StreamDecoder:
             if len(body) > n:
                 for part, at in ((body[:n], 0), (body[-n:], len(body) - n)):
                     try:
-                        found.append((at, _decode(part)))
+                        found.append((at, _decode(part), part))
                     except FrameError:
                         pass
         if not found:
@@ -374,22 +385,21 @@ class StreamDecoder:
         found.sort(key=lambda x: x[0])
         # overlapping finds are kept: each passed its own CRC (a truncated frame whose lost last
         # byte equals the next frame's first byte is whole again at the head)
-        for at, (f, version) in found:
+        for at, (f, version), part in found:
             self._c["recovered"] += 1
-            self._accept(f, version, out)
+            self._accept(f, version, out, part)
         self._c["bytes_discarded"] += max(0, len(body) + 1 - sum(
-            DATA_BODY_BYTES if isinstance(f, DataFrame) else INFO_BODY_BYTES for _, (f, _) in found))
+            DATA_BODY_BYTES if isinstance(f, DataFrame) else INFO_BODY_BYTES for _, (f, _), _ in found))
         return True
 
-    def _accept(self, f, version: int, out: list) -> None:
+    def _accept(self, f, version: int, out: list, body: bytes) -> None:
         c = self._c
         if isinstance(f, Command):          # our own echo on a loopback: not a board frame
             c["malformed"] += 1
             return
-        if isinstance(f, DataFrame) and self._last_seq is not None:
-            if f.seq == self._last_seq and f.t_us == self._last_t_us:
-                c["duplicates"] += 1        # the same frame again: no data, nothing lost
-                return
+        if body in self._recent_set:        # the same frame again: no data, nothing lost, no restart
+            c["duplicates" if isinstance(f, DataFrame) else "info_frames"] += 1
+            return
         # a board clock that runs backwards means the board restarted (u32 µs wraps after 71 min)
         dt_us = None
         if self._last_t_us is not None:
@@ -398,6 +408,8 @@ class StreamDecoder:
                 c["resets"] += 1
                 self._last_seq = None
                 dt_us = None
+                self._recent.clear()        # a new board's frames are never copies of the old one's
+                self._recent_set.clear()
         if isinstance(f, DataFrame):        # seq counts DATA frames only (INFO carries the next one)
             if self._last_seq is not None:
                 step = (f.seq - self._last_seq) & 0xFFFF
@@ -418,4 +430,8 @@ class StreamDecoder:
             c["info_frames"] += 1
         self._last_t_us = f.t_us
         c["version"] = version
+        if len(self._recent) >= DUPLICATE_WINDOW:
+            self._recent_set.discard(self._recent.popleft())
+        self._recent.append(body)
+        self._recent_set.add(body)
         out.append(f)

@@ -7,9 +7,17 @@ A session file (:mod:`softphantom.records.session`: its one writer and reader) o
 :class:`~softphantom.records.Measurement` rows (:func:`~softphantom.records.measurement.measurement_row`).
 
 Outages are part of the data: a link event (:class:`~softphantom.records.SourceEvent`:
-silent, disconnected, reconnected, restart, resumed, retared) is a marker row at its host time with
-``seq`` −1, ``osr`` 0, empty numbers and ``status`` = ``event:<kind>: <detail>``. Readers get the
-samples and the events apart (:attr:`Recording.events`).
+silent, disconnected, reconnected, restart, resumed, retared) is a marker row with ``seq`` −1,
+``osr`` 0, empty numbers and ``status`` = ``event:<kind>: <detail>``. Readers get the samples and
+the events apart (:attr:`Recording.events`).
+
+``t_s`` never runs backwards, marker rows included. A marker row's ``t_s`` is its event's time
+held between the samples around it: a silence or an unplug is noticed on the host clock after the
+fact, while frames that arrive late keep the time they were sampled, which may be earlier. So a
+marker takes the time of the sample before it, or of the first sample after it when that one
+is known as it is written (``resumed``: the frame that ended the hole); the ``detail`` says how
+long the outage lasted. The reader also reads a file whose marker row is later than the sample
+after it: only the samples must be in time order.
 
 Append-only: every row goes to the OS as soon as it is written (a killed process loses nothing
 already written) and the file is fsync'ed at least every 100 ms while rows arrive (a power cut
@@ -54,15 +62,25 @@ class Recorder:
         self.path = self._w.path
         self.rows = 0
         self.events = 0
+        self._last_t: float | None = None    # t_s of the last row written
 
     def write(self, m: Measurement) -> None:
         self._w.write_row(measurement_row(m))
         self.rows += 1
+        self._last_t = float(m.t)
 
-    def write_event(self, ev: SourceEvent) -> None:
-        """A marker row for a link event (synced at once: an outage is exactly when the process may die)."""
-        self._w.write_row(event_row(ev), sync=True)
+    def write_event(self, ev: SourceEvent, next_t: float | None = None) -> None:
+        """A marker row for a link event (synced at once: an outage is exactly when the process may
+        die). Its ``t_s`` is ``ev.t`` held between the last row written and ``next_t`` (the sample
+        to be written next, when known; else the last row's time), so the file stays in time order."""
+        t = float(ev.t)
+        if self._last_t is not None:
+            t = max(self._last_t, min(t, self._last_t if next_t is None else float(next_t)))
+        elif next_t is not None:
+            t = min(t, float(next_t))
+        self._w.write_row(event_row(replace(ev, t=t)), sync=True)
         self.events += 1
+        self._last_t = t
 
     def tick(self) -> None:
         """fsync if rows were written and the last fsync is older than ``fsync_every_s``."""
@@ -149,13 +167,13 @@ def read_recording(path) -> Recording:
             t = float(c[0])
             if not math.isfinite(t):
                 raise ValueError(f"t_s is {c[0]}")
+            ev = SourceEvent.from_status(t, c[18])
+            if ev is not None:          # a marker's time says when it was noticed: not checked
+                events.append(ev)
+                continue
             if t < t_prev:
                 raise ValueError(f"t_s runs backwards ({t:.6f} after {t_prev:.6f})")
             t_prev = t
-            ev = SourceEvent.from_status(t, c[18])
-            if ev is not None:
-                events.append(ev)
-                continue
             rows.append((t, int(c[1]), num(c[2]), int(c[3]), [int(x) for x in c[4:9]],
                          [num(x) for x in c[9:13]], [num(x) for x in c[13:17]], num(c[17]), c[18]))
         except ValueError as exc:

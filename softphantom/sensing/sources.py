@@ -125,6 +125,11 @@ class FrameSource(SensorSource):
         self._tb_prev = 0.0
         self._events: collections.deque[SourceEvent] = collections.deque(maxlen=10_000)
         self._hole_since: float | None = None   # start of the outage being reported
+        self._board_starts = 0
+        self.new_board_at: int | None = None
+        """Where the last read's measurements switch to a restarted or new board (its clock began
+        again): an index into them, their length when the new board sent no DATA frame yet (an
+        INFO frame alone); None when the board did not restart."""
 
     def set_tare(self, tare: Tare) -> None:
         """Use ``tare`` for the measurements from now on."""
@@ -143,6 +148,7 @@ class FrameSource(SensorSource):
             d = (t_us - self._tb_last_us) & 0xFFFFFFFF        # u32 µs wraps after 71.6 min
             if d >= 0x80000000:                               # backwards: the board restarted
                 self._tb_s, self._offset = t_us * 1e-6, None
+                self._board_starts += 1
             else:
                 self._tb_s += d * 1e-6
         self._tb_last_us = t_us
@@ -155,13 +161,16 @@ class FrameSource(SensorSource):
         if self._dec._c["resets"] != resets:
             self._event(now if now is not None else (self._last.t if self._last else 0.0), "restart",
                         "the board clock ran backwards: the board was reset or replaced")
+        self.new_board_at = None
         for f in frames:
+            starts = self._board_starts
+            tb = self._board_time(f.t_us)
+            if self._board_starts != starts and self.new_board_at is None:
+                self.new_board_at = len(out)
             if isinstance(f, InfoFrame):
                 self._firmware, self._osr = f.firmware_str, f.osr
-                self._board_time(f.t_us)
                 continue
             assert isinstance(f, DataFrame)
-            tb = self._board_time(f.t_us)
             if now is None:
                 t = tb
             else:
@@ -193,6 +202,7 @@ class FrameSource(SensorSource):
             self._event(now, "silent", f"no valid frame for {now - self._last_rx:.2f} s")
 
     def read(self, timeout_s: float = 0.1) -> list[Measurement] | None:
+        self.new_board_at = None
         if self._chunks is None:
             return None
         try:
@@ -281,6 +291,7 @@ class SerialSource(FrameSource):
                 self._event(self._clock(), "disconnected", reason or f"port {self.url} failed")
 
     def read(self, timeout_s: float = 0.1) -> list[Measurement] | None:
+        self.new_board_at = None
         if self._closed:
             return None
         now = self._clock()
