@@ -1,10 +1,11 @@
 """The atlas build's task graph: parallel efficiency on 1 and 2 workers, critical path, the ETA's
 error, and a build killed at a random point and resumed.
 
-On a quadratic model (default: the default design at ``--mesh-size-mm 18``, 10-node tets) and
-the quadratic default atlas's layout (displacement axis, pieces along f_y, Hermite f_z) on a
-smaller grid (``--atlas-grid``), each run in a fresh model directory through ``atlas build``
-(the CLI, as a user runs it):
+On the default design (``--mesh-size-mm 6``, ``--order 1``: the linear default model, so the runs
+take minutes; ``--order 2`` for the quadratic one, whose default atlas adds Hermite f_z) with the
+quadratic default atlas's graph (displacement axis, two pieces along f_y split at 3.3 N) on the grid
+``--atlas-grid`` per piece, each run in a fresh model directory through ``atlas build`` (the CLI,
+as a user runs it):
 
 - **1 and 2 workers**: wall seconds, CPU seconds of the tasks, parallel efficiency (CPU over wall
   times workers) and the critical path (the longest chain of task wall times: the build's wall
@@ -54,7 +55,7 @@ def run_build(model_dir: Path, grid: str, workers: int, kill_after_s: float | No
     """One ``atlas build`` (2 pieces, displacement axis, Hermite f_z): (wall s, progress lines as
     (t, done, total, eta_s or None), returncode, stdout)."""
     cmd = [sys.executable, "-m", "softphantom", "atlas", "build", "--model", str(model_dir), "--workers",
-           str(workers), "--atlas-grid", grid]
+           str(workers), "--atlas-grid", grid, "--atlas-x-axis", "displacement", "--atlas-f-y-split-N", "3.3"]
     t0 = time.perf_counter()
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                             start_new_session=True, env={**os.environ, "COLUMNS": "200"}, bufsize=1)
@@ -88,9 +89,10 @@ def eta_error(lines, wall: float) -> float:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--mesh-size-mm", type=float, default=18.0)
+    ap.add_argument("--mesh-size-mm", type=float, default=6.0)
+    ap.add_argument("--order", type=int, choices=(1, 2), default=1, help="element order of the meshed model")
     ap.add_argument("--model", help="a saved quadratic model directory instead of meshing the default design")
-    ap.add_argument("--atlas-grid", default="5,3,2,2", help="points per axis NX,NY,NZ,NP (per piece)")
+    ap.add_argument("--atlas-grid", default="7,5,4,3", help="points per axis NX,NY,NZ,NP (per piece)")
     ap.add_argument("--seed", type=int, default=7)
     ap.add_argument("--busy", action="store_true", help="also the 2-worker build with both cores busy")
     add_results_option(ap, "atlas_graph")
@@ -105,7 +107,7 @@ def main() -> None:
     else:
         import dataclasses
 
-        design = BIPDesign(mesh=dataclasses.replace(MeshParams(), element_order=2))
+        design = BIPDesign(mesh=dataclasses.replace(MeshParams(), element_order=a.order))
         model = build_model(design, a.mesh_size_mm, isolate=False)
     nodes = len(model.nodes)
 
@@ -172,8 +174,8 @@ def main() -> None:
                  "identical" if same else "DIFFERENT"])
     write_table(a.results_name, ["run", "load average", "tasks", "CPU-s", "wall s", "parallel efficiency",
                                  "critical path s", "ETA max error after 10 %"], rows, right=(2, 3, 4, 5, 6),
-                caption=f"Quadratic model, {nodes} nodes; grid {a.atlas_grid} per piece, 2 pieces along f_y, "
-                        f"displacement axis, Hermite f_z (`bench_atlas_graph.py`).")
+                caption=f"Default design, element order {model.element_order}, {nodes} nodes; grid {a.atlas_grid} per "
+                        f"piece, 2 pieces along f_y (split at 3.3 N), displacement axis (`bench_atlas_graph.py`).")
     shutil.rmtree(work, ignore_errors=True)
 
 
