@@ -8,11 +8,12 @@ settings loads the kept results and runs only the rest: at most the tasks in fli
 build started with other settings while an interrupted one waits is refused, naming the setting
 (:func:`check_partials`), unless the user discards it.
 
-The estimated time left (:class:`Eta`) is the predicted CPU time of the tasks left over the CPU
-this run gets through per second of wall time: each task's cost is its grid points times the CPU
-per point of its kind (measured on the finished tasks of that kind; before the first of a kind
-finishes, the measured rate scaled by :data:`PRIOR_COST`), so a loaded machine or a larger cluster
-shows in the estimate at once.
+The estimated time left (:class:`Eta`) is the predicted CPU time of the tasks left, less what the
+running ones have done, over the workers' CPU per second of wall time: each task's cost is its
+grid points times the CPU per point of its kind (measured on the finished tasks of that kind;
+before the first of a kind finishes, the measured rate scaled by :data:`PRIOR_COST`), and a
+worker's speed is the finished tasks' CPU over their wall time, so a loaded machine or a larger
+cluster shows in the estimate at once.
 """
 
 from __future__ import annotations
