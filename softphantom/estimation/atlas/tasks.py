@@ -8,12 +8,11 @@ settings loads the kept results and runs only the rest: at most the tasks in fli
 build started with other settings while an interrupted one waits is refused, naming the setting
 (:func:`check_partials`), unless the user discards it.
 
-The estimated time left (:class:`Eta`) is the predicted CPU time of the tasks left, less what the
-running ones have done, over the workers' CPU per second of wall time: each task's cost is its
-grid points times the CPU per point of its kind (measured on the finished tasks of that kind;
-before the first of a kind finishes, the measured rate scaled by :data:`PRIOR_COST`), and a
-worker's speed is the finished tasks' CPU over their wall time, so a loaded machine or a larger
-cluster shows in the estimate at once.
+The estimated time left (:class:`Eta`) is the predicted CPU time of the tasks left over the CPU
+this run gets through per second of wall time: each task's cost is its grid points times the CPU
+per point of its kind (measured on the finished tasks of that kind; before the first of a kind
+finishes, the measured rate scaled by :data:`PRIOR_COST`), so a loaded machine or a larger cluster
+shows in the estimate at once.
 """
 
 from __future__ import annotations
@@ -173,39 +172,32 @@ def _clock(seconds: float) -> str:
 
 @dataclass
 class Eta:
-    """The time left of a build: the CPU of the tasks left, less what the running ones have done,
-    over the CPU per wall second of ``workers`` workers (each task's CPU over its wall time: the share
-    of a core a worker gets, so a loaded machine shows at once).
+    """The time left of a build: predicted CPU of the tasks left over this run's CPU per wall second.
 
     >>> e = Eta({"a": (10, "piece 0 plane"), "b": (10, "piece 0 plane"), "c": (20, "piece 0 lines")},
-    ...         prior={"plane": 1.0, "lines": 2.0}, workers=1)
-    >>> e.started("a", 0.0)
-    >>> e.finished("a", cpu_s=100.0, wall_s=50.0, now=50.0)  # 10 CPU-s a point, 2 CPU-s a wall second
-    >>> e.started("b", 50.0)
-    >>> round(e.seconds_left(60.0))  # b: 100 CPU-s, 20 done; c: 20 points at twice the rate, 400
-    240
+    ...         prior={"plane": 1.0, "lines": 2.0})
+    >>> e.start(0.0)
+    >>> e.finished("a", cpu_s=100.0, now=50.0)  # 10 points at 10 CPU-s each, 2 CPU-s per wall second
+    >>> round(e.seconds_left(50.0))  # b: 100 CPU-s, c: 20 points at twice the rate: 400 CPU-s
+    250
     """
 
     tasks: dict[str, tuple[int, str]]  # name -> (points, kind)
     prior: dict[str, float] = field(default_factory=lambda: dict(PRIOR_COST))
-    workers: int = 1
     done: dict[str, float] = field(default_factory=dict)  # name -> CPU-s
-    running: dict[str, float] = field(default_factory=dict)  # name -> when it started (s)
     run_cpu_s: float = 0.0
-    run_wall_s: float = 0.0
+    t0: float | None = None
+
+    def start(self, now: float) -> None:
+        self.t0 = now
 
     def kept(self, name: str, cpu_s: float) -> None:
         """A task loaded from an interrupted run: its cost counts for the rates, not for this run's speed."""
         self.done[name] = cpu_s
 
-    def started(self, name: str, now: float) -> None:
-        self.running[name] = now
-
-    def finished(self, name: str, cpu_s: float, wall_s: float, now: float) -> None:
-        self.running.pop(name, None)
+    def finished(self, name: str, cpu_s: float, now: float) -> None:
         self.done[name] = cpu_s
         self.run_cpu_s += cpu_s
-        self.run_wall_s += wall_s
 
     def _rate(self, kind: str) -> float | None:
         pts = sum(self.tasks[n][0] for n in self.done if self.tasks[n][1] == kind)
@@ -219,22 +211,21 @@ class Eta:
     def _prior(self, kind: str) -> float:
         return self.prior.get(kind, self.prior.get(kind.split()[-1] if kind else kind, 1.0))
 
-    def seconds_left(self, now: float) -> float | None:
-        if self.run_wall_s <= 0:
-            return None
-        speed = self.run_cpu_s / self.run_wall_s  # CPU-s per wall second of one worker
+    def cpu_left(self) -> float | None:
         left = 0.0
         for n, (pts, kind) in self.tasks.items():
-            if n in self.done:
-                continue
-            r = self._rate(kind)
-            if r is None:
-                return None
-            cost = pts * r
-            if n in self.running:  # what it has done already, at most its cost
-                cost -= min(cost, (now - self.running[n]) * speed)
-            left += cost
-        return left / (speed * max(1, self.workers))
+            if n not in self.done:
+                r = self._rate(kind)
+                if r is None:
+                    return None
+                left += pts * r
+        return left
+
+    def seconds_left(self, now: float) -> float | None:
+        cpu = self.cpu_left()
+        if cpu is None or self.t0 is None or self.run_cpu_s <= 0 or now <= self.t0:
+            return None
+        return cpu / (self.run_cpu_s / (now - self.t0))
 
     def text(self, now: float) -> str:
         s = self.seconds_left(now)
@@ -291,13 +282,7 @@ def run_graph(client, tasks: list[Task], store_of: Callable[[str], TaskStore | N
     cpu: dict[str, float] = {}
     wall: dict[str, float] = {}
     kept = []
-    workers = max(1, sum(client.nthreads().values()))
-    eta = Eta({t.name: (t.points, t.kind) for t in tasks}, workers=workers)
-    queued: list[str] = []  # submitted, not started: by priority, as the scheduler takes them
-
-    def start_queued(now: float) -> None:
-        while queued and len(eta.running) < workers:
-            eta.started(queued.pop(0), now)
+    eta = Eta({t.name: (t.points, t.kind) for t in tasks})
     for t in tasks:
         store = store_of(t.name)
         rec = store.load(t.name) if store is not None else None
@@ -308,6 +293,7 @@ def run_graph(client, tasks: list[Task], store_of: Callable[[str], TaskStore | N
     if kept:
         log.info(f"{label}: resuming, {len(kept)} of {len(tasks)} tasks kept from an interrupted build")
     total = len(tasks)
+    eta.start(time.perf_counter())
     report(log, label, len(values), total)
     pending: dict[Any, str] = {}
     ac = as_completed()
@@ -320,9 +306,6 @@ def run_graph(client, tasks: list[Task], store_of: Callable[[str], TaskStore | N
             fut = client.submit(_timed, t.fn, *t.args(values), pure=False, priority=t.priority)
             pending[fut] = t.name
             ac.add(fut)
-            queued.append(t.name)
-        queued.sort(key=lambda n: -by[n].priority)
-        start_queued(time.perf_counter())
 
     submit_ready()
     for fut in ac:
@@ -338,10 +321,7 @@ def run_graph(client, tasks: list[Task], store_of: Callable[[str], TaskStore | N
             store.save(name, value, c, w)
         values[name], cpu[name], wall[name] = value, c, w
         now = time.perf_counter()
-        if name in queued:  # finished before this model of the scheduler started it
-            queued.remove(name)
-        eta.finished(name, c, w, now)
-        start_queued(now)
-        submit_ready()
+        eta.finished(name, c, now)
         report(log, label, len(values), total, eta.text(now))
+        submit_ready()
     return GraphRun(values, cpu, wall, tuple(kept))
