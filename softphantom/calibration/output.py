@@ -102,10 +102,8 @@ def carry_atlases(base_dir, model, out, factors: dict[str, float], law_changed: 
     factor (``load_scale.json``, so the estimators ask for the scaled envelope). Otherwise nothing
     is written. Returns one line for the user: what was carried over, or the build the model needs
     and its estimated time."""
-    import json as _json
-
     from softphantom.design import load_model
-    from softphantom.estimation.atlas.build import estimated_build
+    from softphantom.estimation.atlas.build import duration_text, estimated_build
     from softphantom.estimation.atlas.config import LOAD_SCALE_FILE, model_atlas_config
     from softphantom.estimation.atlas.store import (atlas_key, atlas_path, estimator_config, model_atlases,
                                                     save_atlas, verify_atlas)
@@ -129,15 +127,12 @@ def carry_atlases(base_dir, model, out, factors: dict[str, float], law_changed: 
             save_atlas(scaled, atlas_path(out, scaled.key))
             carried += 1
     if carried:
-        (out / "atlas" / LOAD_SCALE_FILE).write_text(_json.dumps({"factor": s, "from_model": str(base_dir)}) + "\n")
+        (out / "atlas" / LOAD_SCALE_FILE).write_text(json.dumps({"factor": s, "from_model": str(base_dir)}) + "\n")
         return (f"{carried} atlas file(s) of {base_dir} carried over with the loads scaled by {s:.4g} (a uniform "
                 f"stiffness scale: exact); nothing to build")
     why = ("the law changed" if law_changed else
            "no atlas of the uncalibrated model to scale" if uniform else
            "the stiffness changed unevenly (" + ", ".join(f"{g} x{v:.4g}" for g, v in factors.items()) + ")")
-    from softphantom.estimation import EstimatorConfig
-
-    _, wall = estimated_build(ForwardModel(model, EstimatorConfig()), model_atlas_config(model.element_order, out))
-    hours = f"{wall / 3600:.1f} h" if wall >= 5400 else f"{max(1, round(wall / 60))} min"
+    _, wall = estimated_build(model.element_order, len(model.nodes), model_atlas_config(model.element_order, out))
     return (f"the calibrated model needs its own atlas ({why}): softphantom atlas build --model {shown or out} "
-            f"(about {hours} on this machine's cores; resumable)")
+            f"(about {duration_text(wall)} on this machine's cores; resumable)")

@@ -650,24 +650,27 @@ class AtlasMissing(UserError):
     """A model without its atlas, whose build takes longer than a command should wait for."""
 
 
-def estimated_build(fwd: ForwardModel, acfg: AtlasConfig, workers: int | None = None) -> tuple[float, float]:
-    """(CPU-s, wall-s on ``workers`` idle cores) of building ``acfg`` for ``fwd``'s model, before any
-    task ran: :data:`COST_PER_POINT` scaled by the model's nodes (the build's own ETA takes over
-    once tasks end, :class:`~softphantom.estimation.atlas.tasks.Eta`).
+def estimated_build(order: int, nodes: int, acfg: AtlasConfig, workers: int | None = None) -> tuple[float, float]:
+    """(CPU-s, wall-s on ``workers`` idle cores) of building ``acfg`` for a model of element
+    ``order`` with ``nodes`` nodes, before any task ran: :data:`COST_PER_POINT` scaled by the nodes
+    (the build's own ETA takes over once tasks end, :class:`~softphantom.estimation.atlas.tasks.Eta`).
 
-    >>> from types import SimpleNamespace
     >>> from softphantom.estimation.atlas.config import default_atlas_config
-    >>> fwd = SimpleNamespace(fem=SimpleNamespace(order=2, n_dof=3 * 28329))
-    >>> cpu, wall = estimated_build(fwd, default_atlas_config(2), workers=2)
+    >>> cpu, wall = estimated_build(2, 28329, default_atlas_config(2), workers=2)
     >>> round(cpu), round(wall / 3600, 1)
     (18018, 2.5)
     """
-    per, nodes = COST_PER_POINT[2 if int(fwd.fem.order) == 2 else 1]
-    cpu = acfg.n_solves * per * (fwd.fem.n_dof / 3) / nodes
+    per, ref_nodes = COST_PER_POINT[2 if int(order) == 2 else 1]
+    cpu = acfg.n_solves * per * nodes / ref_nodes
     return cpu, cpu / max(1, int(workers or os.cpu_count() or 1))
 
 
-def _clock_words(seconds: float) -> str:
+def duration_text(seconds: float) -> str:
+    """A build's duration as a user reads it: minutes, or hours from 1.5 h.
+
+    >>> duration_text(290), duration_text(9000)
+    ('5 min', '2.5 h')
+    """
     return f"{seconds / 3600:.1f} h" if seconds >= 5400 else f"{max(1, round(seconds / 60))} min"
 
 
@@ -732,7 +735,7 @@ def build_atlas(model, config: EstimatorConfig | None = None, atlas: AtlasConfig
 
         def failed(task: Task, msg: str) -> Exception:  # not a solver failure (those are recorded): a bug, a lost worker
             _, what, a, b = task.name.split("-")
-            where = (f"plane {acfg.x_control == 'force' and 'f_x' or 'q'} index {a}" if what == "plane"
+            where = (f"plane {'f_x' if acfg.x_control == 'force' else 'q'} index {a}" if what == "plane"
                      else f"lines at f_z index {a}")
             return SolverError(f"atlas: {where}, pressure index {b} failed: {msg}")
 
@@ -848,7 +851,7 @@ def load_or_build(model, config: EstimatorConfig | None = None, atlas: AtlasConf
     missing = tuple(p for p in range(len(subs)) if p not in found)
     if missing:
         if max_build_s is not None:
-            cpu, wall = estimated_build(fwd, acfg, n_workers)
+            cpu, wall = estimated_build(fwd.fem.order, fwd.fem.n_dof // 3, acfg, n_workers)
             cpu *= len(missing) / len(subs)
             wall *= len(missing) / len(subs)
             if wall > max_build_s:
@@ -857,7 +860,7 @@ def load_or_build(model, config: EstimatorConfig | None = None, atlas: AtlasConf
                 n = sum(subs[p].n_solves for p in missing)
                 raise AtlasMissing(
                     f"{cache_dir or 'the model'}: no atlas yet for this model and contact; building it takes about "
-                    f"{_clock_words(wall)} on {int(n_workers or os.cpu_count() or 1)} cores ({n} grid points, "
+                    f"{duration_text(wall)} on {int(n_workers or os.cpu_count() or 1)} cores ({n} grid points, "
                     f"≈ {cpu:.0f} CPU-s): build it once with `softphantom atlas build --model {cache_dir}{at}` "
                     f"(resumable; --scheduler ADDR for a Dask cluster), or estimate meanwhile with --estimator refresh")
         if cache_dir is not None:
