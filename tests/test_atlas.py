@@ -282,7 +282,7 @@ def test_the_file_stores_the_field_compact_and_reads_format_4(atlas, tmp_path):
     # format 4: every array as built, the digest over them in ARRAYS order
     arrays = {k: getattr(atlas, k) for k in store.ARRAYS}
     meta = {"format": 4, "key": atlas.key, "config": atlas.config.as_dict(), "build_s": 1.0, "solves": atlas.solves,
-            "field_rms_m": atlas.field_rms_m, "digest": store._digest_v4(arrays), "provenance": {}}
+            "field_rms_m": atlas.field_rms_m, "digest": store._digest(arrays, store.ARRAYS), "provenance": {}}
     buf = io.BytesIO()
     np.savez(buf, meta=np.array(json.dumps(meta)), **arrays)
     old = tmp_path / "v4.npz"

@@ -95,9 +95,10 @@ def atlas_path(model_dir, key: str) -> Path:
     return Path(model_dir) / "atlas" / f"{key[:32]}.npz"
 
 
-def _digest(arrays: dict[str, np.ndarray]) -> str:
+def _digest(arrays: dict[str, np.ndarray], keys=None) -> str:
+    """SHA-256 of the arrays' bytes, in the order of ``keys`` (default: by name; format 4 files: ``ARRAYS``)."""
     h = hashlib.sha256()
-    for k in sorted(arrays):
+    for k in sorted(arrays) if keys is None else keys:
         h.update(np.ascontiguousarray(arrays[k]).tobytes())
     return h.hexdigest()
 
@@ -122,13 +123,6 @@ def _from_stored(arrays: dict[str, np.ndarray], fmt: int) -> dict[str, np.ndarra
     out = {k: arrays[k] for k in ARRAYS if k != "modes"}
     out["modes"] = arrays["modes"].astype(np.float32) * arrays["modes_scale"].astype(np.float32)
     return out
-
-
-def _digest_v4(arrays: dict[str, np.ndarray]) -> str:
-    h = hashlib.sha256()
-    for k in ARRAYS:
-        h.update(np.ascontiguousarray(arrays[k]).tobytes())
-    return h.hexdigest()
 
 
 def save_atlas(at: Atlas, path) -> Path:
@@ -164,7 +158,7 @@ def load_atlas(path, key: str | None = None) -> Atlas:
                                     f"{', '.join(map(str, READS))} (written by another version): rebuild it "
                                     f"(softphantom atlas build)")
             stored = {k: z[k] for k in z.files if k != "meta"}
-        ok = (_digest(stored) if fmt >= 5 else _digest_v4(stored)) == meta["digest"]
+        ok = _digest(stored, None if fmt >= 5 else ARRAYS) == meta["digest"]
         at = Atlas(key=meta["key"], config=AtlasConfig(**meta["config"]), build_s=float(meta["build_s"]),
                    solves=int(meta["solves"]), field_rms_m=float(meta["field_rms_m"]),
                    build_cpu_s=float(meta.get("build_cpu_s", "nan")), provenance=meta.get("provenance") or None,
