@@ -239,24 +239,17 @@ def test_virtual_phantom_uses_the_same_bench(coarse_model):
 def test_estimate_output_has_the_retared_marker_after_an_info_frame_alone(tmp_path):
     import threading
 
-    from softphantom.estimation import Estimate, estimate_stream
+    from stub_estimators import EchoEstimator
+
+    from softphantom.estimation import estimate_stream
     from softphantom.evaluation.files import read_table
-    from softphantom.pose import Pose6
-
-    class Est:
-        target_names = ("apex",)
-
-        def step(self, m, skipped=0):
-            z = np.zeros(3)
-            return Estimate(m.t, z, 0.0, Pose6(z, z), {"apex": z}, m.dp, m.dV, 1.0, "optimal", 1e-4, skipped,
-                            m.status)
 
     board, src, got = _info_alone_then_new_board("retare")
     assert src.read(0.01) == []                                    # the INFO frame alone
     board.send(range(0, 12), 1_000, push=300)
     stop = threading.Event()
     threading.Timer(10.0, stop.set).start()                        # a safety net: 12 frames come at once
-    s = estimate_stream(src, Est(), tmp_path / "e.csv", live=True, stop=stop, max_samples=12)
+    s = estimate_stream(src, EchoEstimator(), tmp_path / "e.csv", live=True, stop=stop, max_samples=12)
     stop.set()
     assert s["events"] == {"restart": 1, "retared": 1}
     status = list(read_table(tmp_path / "e.csv").columns["status"])

@@ -315,16 +315,9 @@ def test_the_board_to_estimate_path_holds_no_memory_per_sample(tmp_path):
     import gc
     import tracemalloc
 
-    from softphantom.estimation import Estimate, estimate_stream
-    from softphantom.pose import Pose6
+    from stub_estimators import EchoEstimator
 
-    class Est:
-        target_names = ("apex",)
-
-        def step(self, m, skipped=0):
-            z = np.zeros(3)
-            return Estimate(m.t, z, 0.0, Pose6(z, z), {"apex": z}, m.dp, m.dV, 1.0, "optimal", 1e-4, skipped,
-                            m.status)
+    from softphantom.estimation import estimate_stream
 
     chain = default_chain()
     heap = {}
@@ -342,7 +335,7 @@ def test_the_board_to_estimate_path_holds_no_memory_per_sample(tmp_path):
     tracemalloc.start()
     try:
         src = FrameSource(chunks(3_000), chain, nominal_tare(chain), clock=clock)
-        estimate_stream(src, Est(), tmp_path / "e.csv", live=False)
+        estimate_stream(src, EchoEstimator(), tmp_path / "e.csv", live=False)
         est_growth = heap[2_950] - heap[600]
         heap.clear()
         with Recorder(tmp_path / "r.csv", {"chain": chain.summary()}) as rec:

@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 import pytest
+from tracker_paths import written_json
 
 from softphantom.evaluation import read_truth
 from softphantom.stream.recording import read_recording
@@ -30,13 +31,7 @@ def test_lost_frames_are_gaps_counted_in_the_file(tmp_path, suffix):
     p = tmp_path / f"take{suffix}"
     with TrackerSink(p, body="bip", meta={"source": "test"}) as sink:
         feed(sink)
-    if suffix == ".mcap":  # the JSON messages (the file's schemas, e.g. Foxglove's, may spell "nanos")
-        from mcap.reader import make_reader
-
-        with open(p, "rb") as f:
-            data = [m.data for _, ch, m in make_reader(f).iter_messages() if ch.message_encoding == "json"]
-    else:
-        data = [p.read_bytes()]
+    data = written_json(p)
     assert data and not any(b"NaN" in d or b"nan" in d for d in data)
     if suffix == ".mcap":
         rec = read_recording(p)

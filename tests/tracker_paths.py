@@ -21,3 +21,14 @@ def shared(kind: str, name: str) -> Path:
         pytest.skip(f"real fixture {kind}/{name} not present (expects ../shared/fixtures/{kind} next to the repo,"
                     " or SOFTPHANTOM_SHARED)")
     return p
+
+
+def written_json(path: Path) -> list[bytes]:
+    """The JSON a take file holds: each JSON message of an .mcap (its schemas, e.g. Foxglove's
+    protobuf ones that spell "nanos", left out), or a CSV's bytes."""
+    if path.suffix != ".mcap":
+        return [path.read_bytes()]
+    from mcap.reader import make_reader
+
+    with open(path, "rb") as f:
+        return [m.data for _, ch, m in make_reader(f).iter_messages() if ch.message_encoding == "json"]
