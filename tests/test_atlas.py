@@ -649,3 +649,56 @@ def test_a_uniform_stiffness_scale_is_the_atlas_with_the_loads_scaled(coarse_mod
     save_model(model_s, out2)
     note = carry_atlases(base, model_s, out2, {"bulb": s, "arms": 1.1}, law_changed=False, shown="cal/")
     assert "unevenly" in note and "softphantom atlas build --model cal/" in note and not (out2 / "atlas").exists()
+
+
+def test_a_shipped_atlas_is_found_by_its_key_for_any_copy_of_its_model(coarse_model, atlas, fwd, tmp_path,
+                                                                        monkeypatch, capsys):
+    """The package's atlases (``data/models/*/atlas/``) are found by content: a model directory that
+    ``design`` wrote with the same mesh loads the shipped file, builds nothing and writes nothing;
+    ``atlas verify --model`` checks it; a damaged shipped file is refused naming it."""
+    from softphantom.design import save_model
+    from softphantom.estimation.atlas.build import AtlasMissing
+
+    shipped = save_model(coarse_model, tmp_path / "pkg" / "coarse")
+    path = save_atlas(atlas, atlas_path(shipped, atlas.key))
+    monkeypatch.setattr("softphantom.design.model.SHIPPED_MODELS", tmp_path / "pkg")
+    user = save_model(coarse_model, tmp_path / "user")
+    got = load_or_build(coarse_model, CFG, ACFG, cache_dir=user, fwd=fwd, max_build_s=0.0)  # a build: AtlasMissing
+    assert got.key == atlas.key and np.array_equal(got.cV, atlas.cV)
+    assert not (user / "atlas").exists()
+    assert main(["atlas", "verify", "--model", str(user)]) == 0
+    assert f"ok  {path}" in capsys.readouterr().out
+    with pytest.raises(AtlasMissing):  # another mesh: not found
+        other = dataclasses.replace(coarse_model, nodes=coarse_model.nodes + 1e-5)
+        load_or_build(other, CFG, ACFG, cache_dir=save_model(other, tmp_path / "other"), max_build_s=0.0)
+    path.write_bytes(path.read_bytes()[:1000])
+    with pytest.raises(AtlasCorrupt, match=str(path)):
+        load_or_build(coarse_model, CFG, ACFG, cache_dir=user, fwd=fwd, max_build_s=0.0)
+
+
+def test_atlas_check_solves_held_out_loads_and_exits_1_on_a_missed_goal(coarse_model, atlas, tmp_path, monkeypatch,
+                                                                          capsys):
+    """``atlas check``: seeded held-out full solves against the atlas's map and inverse; the map's
+    error at its own grid points is nil (the check compares like with like), a missed goal exits 1
+    naming it, a model without an atlas exits 2 with the build's command."""
+    from softphantom.design import save_model
+    from softphantom.estimation.atlas.check import check_held_out, held_out_loads
+
+    grid = np.array(np.meshgrid(*ACFG.axes(), indexing="ij")).reshape(4, -1).T
+    at_grid = check_held_out(coarse_model, CFG, atlas, grid[[1, 17, 40]])
+    assert at_grid.worst()["dV_mm3"] < 1e-6 and at_grid.worst()["points_mm"] < 1e-6
+    loads = held_out_loads(ACFG.lower, ACFG.upper, 3, seed=4)
+    held = check_held_out(coarse_model, CFG, atlas, loads, seed=4)
+    assert len(held.loads) + held.skipped == 3 and not held.failed and held.worst()["dV_mm3"] > 1e-6
+    model_dir = save_model(coarse_model, tmp_path / "model")
+    assert main(["atlas", "check", "--model", str(model_dir), "--workers", "0"]) == 2  # no atlas yet
+    assert "softphantom atlas build --model" in capsys.readouterr().err
+    save_atlas(atlas, atlas_path(model_dir, atlas.key))
+    monkeypatch.setattr("softphantom.estimation.atlas.build.model_atlas_config", lambda order, d: ACFG)
+    argv = ["atlas", "check", "--model", str(model_dir), "--workers", "0", "--loads", "3", "--seed", "4"]
+    assert main([*argv, "--max-force-N", "10", "--max-pos-mm", "10", "--max-ang-deg", "10",
+                 "--max-near-urethra-mm", "10"]) == 0
+    out = capsys.readouterr().out
+    assert f"{'map: arm volumes':24s} {held.worst()['dV_mm3']:.4f}" in out and "all goals met" in out
+    assert main([*argv, "--max-force-N", "1e-9"]) == 1
+    assert "atlas check: force_N" in capsys.readouterr().err

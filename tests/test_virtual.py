@@ -217,6 +217,11 @@ def test_default_truth_is_quadratic_softer_than_linear_and_recorded(coarse_model
     assert design.mesh.element_order == 2 and size_mm == pytest.approx(1.5 * d1.mesh.size_mm)
     design, size_mm = truth_model(coarse_model, TruthConfig(order=1))
     assert design.mesh.element_order == 1 and size_mm == pytest.approx(0.75 * d1.mesh.size_mm)
+    # a quadratic model (node spacing half its element size): the truth is finer, never coarser
+    quad = dataclasses.replace(coarse_model, design=dataclasses.replace(
+        d1, mesh=dataclasses.replace(d1.mesh, element_order=2)))
+    design, size_mm = truth_model(quad)
+    assert design.mesh.element_order == 2 and size_mm == pytest.approx(0.75 * d1.mesh.size_mm)
 
 
 # --- sensor chain ---------------------------------------------------------------------------------

@@ -71,7 +71,7 @@ def build_cmd(
     from softphantom.estimation import EstimatorConfig
     from softphantom.estimation.atlas.build import load_or_build
     from softphantom.estimation.atlas.config import default_atlas_config, model_atlas_config
-    from softphantom.estimation.atlas.store import atlas_path
+    from softphantom.estimation.atlas.store import atlas_path, shipped_atlas
     from softphantom.estimation.select import atlas_config_from_options
 
     # bad options fail before the model is read: valid for a model of either element order (a grid
@@ -97,13 +97,17 @@ def build_cmd(
                           scheduler=scheduler, n_workers=workers, rebuild=rebuild,
                           discard_partial=discard_partial)
     for piece in _pieces(built):
-        console.print(f"{atlas_path(model_dir, piece.key)}", highlight=False, soft_wrap=True)
+        path = atlas_path(model_dir, piece.key)
+        shipped = None if path.is_file() else shipped_atlas(piece.key)
+        console.print(f"{path}" if shipped is None else f"{shipped} (shipped with softphantom)", highlight=False,
+                      soft_wrap=True)
 
 
 @atlas_app.command("info")
 def info_cmd(
     files: list[Path] = typer.Argument(None, help="Atlas files (default: those of --model)."),
-    model_dir: Path = typer.Option(None, "--model", help="Model directory whose MODEL/atlas/ files to list."),
+    model_dir: Path = typer.Option(None, "--model", help="Model directory whose atlases to list (MODEL/atlas/, "
+                                   "and those shipped with softphantom for its mesh)."),
 ) -> None:
     """Describe atlas files: model, contact, envelope, grid, build cost, provenance."""
     from softphantom.estimation.atlas.store import describe, load_atlas, model_atlases
@@ -111,7 +115,7 @@ def info_cmd(
     if not files:
         if model_dir is None:
             raise UserError("atlas info: give atlas files or --model DIR")
-        files = model_atlases(model_dir)
+        files = model_atlases(model_dir, _model(model_dir))
         if not files:
             console.print(f"{model_dir}: no atlas built yet (softphantom atlas build --model {model_dir})",
                           highlight=False)
@@ -124,7 +128,8 @@ def info_cmd(
 
 @atlas_app.command("verify")
 def verify_cmd(
-    files: list[Path] = typer.Argument(None, help="Atlas files (default: every file in MODEL/atlas/)."),
+    files: list[Path] = typer.Argument(None, help="Atlas files (default: every file in MODEL/atlas/, and those "
+                                       "shipped with softphantom for the model's mesh)."),
     model_dir: Path = MODEL_OPTION,
 ) -> None:
     """Check atlas files against a model: intact (digest), this softphantom's format, and built for
@@ -132,7 +137,7 @@ def verify_cmd(
     from softphantom.estimation.atlas.store import model_atlases, verify_atlas
 
     model = _model(model_dir)
-    files = files or model_atlases(model_dir)
+    files = files or model_atlases(model_dir, model)
     if not files:
         raise UserError(f"{model_dir}: no atlas files to verify (softphantom atlas build --model {model_dir})")
     failed = 0
@@ -162,3 +167,69 @@ def add_cmd(
     dest, what = install_atlas(file, _model(model_dir), model_dir)
     console.print(f"{what}: {dest}" if what != "present" else f"already present (intact): {dest}",
                   highlight=False, soft_wrap=True)
+
+
+@atlas_app.command("check")
+def check_cmd(
+    model_dir: Path = MODEL_OPTION,
+    at: str = AT_OPTION,
+    loads: int = typer.Option(20, "--loads", help="Held-out loads (seeded, over the whole envelope, a quarter "
+                              "near its corners): one converged full solve each."),
+    seed: int = typer.Option(0, "--seed", help="Seed of the loads and of the inverse's starts."),
+    max_force_N: float = typer.Option(0.05, "--max-force-N", help="Goal: largest force error of the inverse (N)."),
+    max_pos_mm: float = typer.Option(0.05, "--max-pos-mm", help="Goal: largest marker-pose position error (mm)."),
+    max_ang_deg: float = typer.Option(0.1, "--max-ang-deg", help="Goal: largest marker-pose angle error (deg)."),
+    max_near_urethra_mm: float = typer.Option(0.02, "--max-near-urethra-mm", help="Goal: largest error of the "
+                                              "near_urethra target (mm)."),
+    scheduler: str = typer.Option(None, "--scheduler", help="Dask scheduler address (default: a local cluster)."),
+    workers: int = typer.Option(None, "--workers", help="Local cluster: worker processes (default: all cores; 0: "
+                                "solve in this process)."),
+) -> None:
+    """Check a model's atlas against converged full solves at seeded held-out loads: the map (volumes,
+    points) and its inverse (force, pose, targets), worst and 90th percentile. Exit 1 when a goal is
+    missed, 2 when the model has no atlas."""
+    from contextlib import nullcontext
+
+    from softphantom.estimation import EstimatorConfig
+    from softphantom.estimation.atlas.build import load_or_build
+    from softphantom.estimation.atlas.check import check_held_out, held_out_loads
+    from softphantom.parallel import dask_client
+    from softphantom.progress import status
+
+    if loads < 1:
+        raise UserError(f"--loads must be >= 1, got {loads}")
+    if workers is not None and workers < 0:
+        raise UserError(f"--workers must be >= 0, got {workers}")
+    for name, v in (("--max-force-N", max_force_N), ("--max-pos-mm", max_pos_mm), ("--max-ang-deg", max_ang_deg),
+                    ("--max-near-urethra-mm", max_near_urethra_mm)):
+        if not v > 0:
+            raise UserError(f"{name} must be > 0, got {v:g}")
+    model = _model(model_dir)
+    cfg = EstimatorConfig(contact=_contact(at))
+    atlas = load_or_build(model, cfg, None, cache_dir=model_dir, max_build_s=0.0)
+    c = atlas.config
+    L = held_out_loads(c.lower, c.upper, loads, seed)
+    local = workers == 0 and scheduler is None
+    with (nullcontext() if local else dask_client(scheduler, workers)) as client:
+        with status(f"{loads} held-out full solves", console) if local else nullcontext():
+            res = check_held_out(model, cfg, atlas, L, seed=seed, client=client)
+    w, p = res.worst(), res.p90()
+    n = len(res.loads)
+    console.print(f"{n} held-out loads ({res.skipped} outside the solved cells, {len(res.failed)} unsolved): "
+                  f"worst (90th percentile)", highlight=False)
+    units = {"dV_mm3": "mm³", "points_mm": "mm", "force_N": "N", "pos_mm": "mm", "ang_deg": "deg"}
+    what = {"dV_mm3": "map: arm volumes", "points_mm": "map: tracked points", "force_N": "inverse: force",
+            "pos_mm": "inverse: pose position", "ang_deg": "inverse: pose angle"}
+    for k, u in units.items():
+        console.print(f"  {what[k]:24s} {w[k]:.4f} ({p[k]:.4f}) {u}", highlight=False)
+    for t in res.target_names:
+        console.print(f"  {'inverse: ' + t:24s} {w[t + '_mm']:.4f} mm", highlight=False)
+    for f in res.failed:
+        print_error(f"unsolved: {f}")
+    missed = res.missed({"force_N": max_force_N, "pos_mm": max_pos_mm, "ang_deg": max_ang_deg,
+                         "near_urethra_mm": max_near_urethra_mm})
+    if missed or res.failed or not n:
+        print_error("atlas check: " + ("; ".join(missed) if missed else "no load checked" if not n else
+                                       f"{len(res.failed)} full solves failed"))
+        raise typer.Exit(1)
+    console.print("all goals met", highlight=False)

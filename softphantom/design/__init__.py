@@ -15,7 +15,7 @@ from softphantom.design.params import (
     load_design,
     save_design,
 )
-from softphantom.design.model import PhantomModel, build_model, load_model, save_model
+from softphantom.design.model import PhantomModel, build_model, default_design, load_model, save_model, shipped_model
 
 
 __all__ = [
@@ -34,6 +34,8 @@ __all__ = [
     "save_design",
     "PhantomModel",
     "build_model",
+    "default_design",
+    "shipped_model",
     "load_model",
     "save_model",
 ]

@@ -35,6 +35,10 @@ from softphantom.errors import FileFormatError, MeshError
 MM = 1e-3
 MODEL_FILES = ("model.msh", "model.vtu", "design.toml", "model.npz")
 NPZ_VERSION = 1
+# Models shipped meshed with the package (one directory each: model.npz, design.toml, atlas/):
+# their mesh, and so their atlases' keys, do not depend on the gmsh version installed.
+SHIPPED_MODELS = Path(__file__).resolve().parent.parent / "data" / "models"
+DEFAULT_MODEL = "bip_p2"  # the default design: quadratic neo-Hookean, the mesh that meets the accuracy goals
 
 
 def _frozen(a: np.ndarray, dtype) -> np.ndarray:
@@ -283,11 +287,43 @@ def build_model(design: BIPDesign, mesh_size_mm: float | None = None, *, force: 
     if mesh_size_mm is not None:
         # the model's design records the sizes used, so design.toml alone reproduces the mesh
         design = dataclasses.replace(design, mesh=design.mesh.scaled_to(mesh_size_mm))
+    shipped = shipped_model(design)
+    if shipped is not None:
+        return shipped
     check_mesh_budget(design, design.mesh, force=force)
     model = model_from_raw(design, mesh_design(design, design.mesh, isolate=isolate))
     if not force:
         check_meshed_volumes(model)
     return model
+
+
+def default_design() -> BIPDesign:
+    """The default design (what ``softphantom design`` makes without ``--config``): the BIP with
+    the quadratic mesh of the shipped model :data:`DEFAULT_MODEL` (docs/accuracy.md), whose atlas
+    ships with the package.
+
+    >>> d = default_design()
+    >>> d.mesh.element_order, d.mesh.size_mm, d.mesh.arm_size_mm
+    (2, 9.0, 2.0)
+    """
+    return load_design(SHIPPED_MODELS / DEFAULT_MODEL / "design.toml")
+
+
+def shipped_model(design: BIPDesign) -> PhantomModel | None:
+    """The model shipped meshed with the package for exactly ``design`` (mesh sizes and element
+    order included), else None: :func:`build_model` returns it instead of meshing, so its mesh is
+    the same whatever gmsh is installed.
+
+    >>> shipped_model(default_design()).element_order
+    2
+    >>> shipped_model(BIPDesign()) is None  # the linear 6 mm design is meshed
+    True
+    """
+    want = design_to_dict(design)
+    for d in sorted(SHIPPED_MODELS.iterdir()) if SHIPPED_MODELS.is_dir() else ():
+        if (d / "design.toml").is_file() and design_to_dict(load_design(d / "design.toml")) == want:
+            return load_model(d)
+    return None
 
 
 def check_meshed_volumes(model: PhantomModel, tolerance: float = CAVITY_VOLUME_TOLERANCE) -> None:

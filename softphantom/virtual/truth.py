@@ -3,9 +3,10 @@
 The estimator's model is the design meshed at ``h`` (mm) with its own laws and element order and
 a fast per-sample update. The truth differs from it in form, not only in mesh: the same design
 with quadratic 10-node tetrahedra (``order = 2``, the default: curved walls, no volumetric locking
-at ν = 0.45; docs/model.md) whose node spacing is ``mesh_scale · h`` (finer; 0.75 by default), i.e.
-elements of ``order · mesh_scale · h`` (9 mm for the default 6 mm model: a 10-node tet has a node
-at each edge's middle, so it has the node spacing of a linear tet half its size),
+at ν = 0.45; docs/model.md) whose node spacing is ``mesh_scale`` (0.75 by default) times the
+model's, i.e. elements of ``order · mesh_scale · h`` for a linear model (9 mm for a 6 mm one: a
+10-node tet has a node at each edge's middle, so it has the node spacing of a linear tet half its
+size) and of ``mesh_scale · h`` for a quadratic one (6.75 mm for the default 9 mm model),
 every co-rotational region replaced by its hyperelastic twin (compressible neo-Hookean with the
 same E, ν: ``law = "neo-hookean"``, the default; ``"model"`` keeps the design's laws), solved to
 convergence by Newton (relative residual 1e-8) with the load on a contact patch
@@ -68,8 +69,7 @@ def truth_laws(model: PhantomModel, law: str) -> dict:
 
 @dataclass(frozen=True)
 class TruthConfig:
-    """``mesh_scale`` truth node spacing / the model's mesh size (the truth's elements are
-    ``order · mesh_scale`` times the model's); ``levels`` keyframes per push ramp (interpolated
+    """``mesh_scale`` truth node spacing / the model's (:func:`truth_model`); ``levels`` keyframes per push ramp (interpolated
     between: at 3, the P2 Yeoh calibration truth's yaw is off by up to 0.16° mid-ramp, at 9 by
     0.01°; docs/calibration.md);
     ``tol`` Newton's relative residual; ``inflate_steps`` pressure steps up to the limit;
@@ -206,11 +206,14 @@ class Truth:
 
 def truth_model(model: PhantomModel, config: TruthConfig = TruthConfig()) -> PhantomModel:
     """The design of ``model`` meshed with elements of ``config.order`` and a node spacing
-    ``config.mesh_scale`` times the model's mesh size (element size ``order · mesh_scale · h``)."""
+    ``config.mesh_scale`` times the model's (its element size over its element order): for a
+    linear model of size h, elements of ``order · mesh_scale · h``; for a quadratic one, of
+    ``order · mesh_scale · h / 2``, so the truth is finer than the model of either order."""
     design = model.design
+    spacing_mm = design.mesh.size_mm / design.mesh.element_order
     if design.mesh.element_order != config.order:
         design = dataclasses.replace(design, mesh=dataclasses.replace(design.mesh, element_order=config.order))
-    size_mm = design.mesh.size_mm * config.mesh_scale * config.order
+    size_mm = spacing_mm * config.mesh_scale * config.order
     try:
         return build_model(design, size_mm)
     except (DesignError, MeshError) as exc:
@@ -222,7 +225,7 @@ def truth_model(model: PhantomModel, config: TruthConfig = TruthConfig()) -> Pha
         what = ("a larger --truth-mesh-scale (up to 1), or a model designed with a coarser --mesh-size-mm" if coarser
                 else "a smaller --truth-mesh-scale or --truth-order 1 (or a model designed with a finer --mesh-size-mm)")
         raise type(exc)(f"truth mesh (P{config.order}, {size_mm:.3g} mm elements for node spacing "
-                        f"{config.mesh_scale:g} x the model's {design.mesh.size_mm:g} mm): {msg}; use {what}") from None
+                        f"{config.mesh_scale:g} x the model's {spacing_mm:g} mm): {msg}; use {what}") from None
 
 
 def _patch_radius(fem, point: np.ndarray, radius_m: float) -> float:

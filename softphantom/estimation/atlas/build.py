@@ -29,7 +29,8 @@ from softphantom.estimation.atlas.config import (FALLBACK_MIN_LOAD_STEP, VIA_TOL
                                                 model_atlas_config,
                                                 x_patch)
 from softphantom.estimation.atlas.map import Atlas, AtlasPatches
-from softphantom.estimation.atlas.store import AtlasCorrupt, AtlasMismatch, atlas_key, atlas_path, load_atlas, save_atlas
+from softphantom.estimation.atlas.store import (AtlasCorrupt, AtlasMismatch, atlas_key, atlas_path, load_atlas, save_atlas,
+                                                shipped_atlas)
 from softphantom.estimation.atlas.tasks import (GraphRun, Task, TaskStore, check_partials, critical_path_s, discard_tasks,
                                                 partial_dir, run_graph)
 from softphantom.estimation.config import EstimatorConfig
@@ -842,7 +843,12 @@ def load_or_build(model, config: EstimatorConfig | None = None, atlas: AtlasConf
                     raise type(exc)(f"{exc}; to build it again: softphantom atlas build --model {cache_dir} "
                                     f"--rebuild") from None
                 log.warning(f"{exc}: rebuilding")
-        elif path is not None and any(len(q.stem) == 32 and set(q.stem) <= set("0123456789abcdef")
+        shipped = shipped_atlas(key)
+        if shipped is not None:  # a damaged shipped file is an error naming it (the package's, not the user's)
+            found[p] = at = load_atlas(shipped, key)
+            log.info(f"atlas: {shipped} (shipped with softphantom, {_solves(at)})")
+            continue
+        if path is not None and any(len(q.stem) == 32 and set(q.stem) <= set("0123456789abcdef")
                                       for q in Path(cache_dir).glob("*.npz")):
             # the atlas directory given for the model's (it holds atlas files, named by their key;
             # model.npz is the model's own): its atlases are never found, every run builds

@@ -95,6 +95,18 @@ def atlas_path(model_dir, key: str) -> Path:
     return Path(model_dir) / "atlas" / f"{key[:32]}.npz"
 
 
+def shipped_atlas(key: str) -> Path | None:
+    """The atlas of key ``key`` if the package ships it (``softphantom/data/models/*/atlas/``), else
+    None. Found by content: any model directory whose mesh, law and settings give this key uses it.
+
+    >>> shipped_atlas("0" * 64) is None
+    True
+    """
+    from softphantom.design.model import SHIPPED_MODELS
+
+    return next(iter(sorted(SHIPPED_MODELS.glob(f"*/atlas/{key[:32]}.npz"))), None)
+
+
 def _digest(arrays: dict[str, np.ndarray], keys=None) -> str:
     """SHA-256 of the arrays' bytes, in the order of ``keys`` (default: by name; format 4 files: ``ARRAYS``)."""
     h = hashlib.sha256()
@@ -267,7 +279,20 @@ def install_atlas(path, model, model_dir) -> tuple[Path, str]:
     return dest, what
 
 
-def model_atlases(model_dir) -> list[Path]:
-    """The atlas files cached in a model directory, by name."""
+def model_atlases(model_dir, model=None) -> list[Path]:
+    """The atlas files cached in a model directory, by name; with ``model``, then those the package
+    ships for a model of the same mesh (:func:`shipped_atlas`)."""
     d = Path(model_dir) / "atlas"
-    return sorted(p for p in d.glob("*.npz") if p.is_file()) if d.is_dir() else []
+    own = sorted(p for p in d.glob("*.npz") if p.is_file()) if d.is_dir() else []
+    return own + ([p for p in _shipped_for(model) if p.name not in {q.name for q in own}] if model is not None else [])
+
+
+def _shipped_for(model) -> list[Path]:
+    from softphantom.design.model import SHIPPED_MODELS, load_model
+
+    for d in sorted(SHIPPED_MODELS.glob("*/atlas")):
+        m = load_model(d.parent)
+        if m.nodes.shape == model.nodes.shape and np.array_equal(m.nodes, model.nodes) \
+                and np.array_equal(m.tets, model.tets):
+            return sorted(d.glob("*.npz"))
+    return []

@@ -1,0 +1,89 @@
+"""The shipped atlas of the default (quadratic) model against converged full solves.
+
+    .venv/bin/python benchmarks/bench_shipped_atlas.py --loads 300        # the goal's count: ~1.5 h on 2 cores
+    .venv/bin/python benchmarks/bench_shipped_atlas.py --loads 20         # a quick look
+
+``--loads`` seeded held-out loads over the atlas's whole envelope, a quarter of them within 5 % of a
+corner on every axis (:func:`softphantom.estimation.atlas.check.held_out_loads`), each one converged
+full solve from rest on Dask (``--workers``, ``--scheduler``), then the atlas's map (volumes,
+tracked points) and its inverse (force, marker pose, each target) against it
+(:func:`~softphantom.estimation.atlas.check.check_held_out`). Also the build's own figures from
+each piece's provenance (CPU-s, wall, machine) and the file sizes. Table: docs/performance/estimation.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+
+import numpy as np
+
+sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
+
+from _results import add_results_option, grouped, write_table  # noqa: E402
+
+from softphantom.design.model import DEFAULT_MODEL, SHIPPED_MODELS, load_model  # noqa: E402
+from softphantom.estimation import EstimatorConfig  # noqa: E402
+from softphantom.estimation.atlas.build import load_or_build  # noqa: E402
+from softphantom.estimation.atlas.check import COLUMNS, GOALS, check_held_out, held_out_loads  # noqa: E402
+from softphantom.estimation.atlas.store import shipped_atlas  # noqa: E402
+from softphantom.parallel import dask_client  # noqa: E402
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--loads", type=int, default=300)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--workers", type=int, default=None)
+    ap.add_argument("--scheduler", default=None)
+    add_results_option(ap, "shipped_atlas")
+    a = ap.parse_args()
+
+    d = SHIPPED_MODELS / DEFAULT_MODEL
+    model = load_model(d)
+    cfg = EstimatorConfig(contact="on-centre")
+    atlas = load_or_build(model, cfg, None, cache_dir=None, max_build_s=0.0)
+    pieces = getattr(atlas, "patches", (atlas,))
+    c = atlas.config
+    loads = held_out_loads(c.lower, c.upper, a.loads, a.seed)
+    t0 = time.perf_counter()
+    with dask_client(a.scheduler, a.workers) as client:
+        res = check_held_out(model, cfg, atlas, loads, seed=a.seed, client=client)
+    wall = time.perf_counter() - t0
+    w, p = res.worst(), res.p90()
+    print(f"{len(res.loads)} loads checked in {wall:.0f} s ({res.skipped} outside the solved cells, "
+          f"{len(res.failed)} unsolved)")
+    for f in res.failed:
+        print("  unsolved:", f)
+    units = {"dV_mm3": "mm³", "points_mm": "mm", "force_N": "N", "pos_mm": "mm", "ang_deg": "°"}
+    rows = [[k, f"{w[k]:.4f} {u}", f"{p[k]:.4f} {u}", f"{GOALS[k]:g} {u}" if k in GOALS else "—",
+             "met" if k not in GOALS or w[k] <= GOALS[k] else "MISSED"] for k, u in units.items()]
+    for t in res.target_names:
+        k = f"{t}_mm"
+        rows.append([f"target {t}", f"{w[k]:.4f} mm", f"{np.percentile(res.targets_mm[:, res.target_names.index(t)], 90):.4f} mm"
+                     if len(res.loads) else "—", f"{GOALS[k]:g} mm" if k in GOALS else "—",
+                     "met" if k not in GOALS or w[k] <= GOALS[k] else "MISSED"])
+    for r in rows:
+        print("  ", " | ".join(r))
+    build = []
+    for piece in pieces:
+        prov = piece.provenance or {}
+        f = shipped_atlas(piece.key)
+        b = prov.get("build", {})
+        build.append(f"f_y {piece.config.force_min_N[1]:g}…{piece.config.force_max_N[1]:g} N: "
+                     f"{grouped(piece.build_cpu_s)} CPU-s, {grouped(piece.build_s)} s wall"
+                     + (f" ({b['workers']} workers)" if "workers" in b else "")
+                     + (f", {f.stat().st_size / 1e6:.1f} MB" if f is not None else ""))
+    print("build:", "; ".join(build))
+    assert set(units) == set(COLUMNS)
+    write_table(a.results_name, ["error", "worst", "90th percentile", "goal", ""], rows, right=(1, 2, 3),
+                caption=f"The shipped atlas of the default model ({len(model.nodes)} nodes, 10-node tets) against "
+                        f"{len(res.loads)} seeded held-out full solves over its whole envelope "
+                        f"({res.skipped} outside the solved cells, {len(res.failed)} unsolved; "
+                        f"{wall:.0f} s). Build: {'; '.join(build)}.")
+
+
+if __name__ == "__main__":
+    main()

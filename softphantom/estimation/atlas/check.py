@@ -1,0 +1,141 @@
+"""An atlas checked against what it was not built from: converged full solves at seeded held-out
+loads over its whole envelope (corners and the fold included), compared with the atlas's map and
+with its inverse, the estimate a user gets (``softphantom atlas check``; the shipped atlas's CI
+check and ``benchmarks/bench_shipped_atlas.py``).
+
+Each load is solved from rest by the forward model's own continuation
+(:meth:`~softphantom.estimation.forward.ForwardModel.solve`: force control, not the build's
+mixed control along the first axis), then:
+
+- the map: the atlas's volumes and tracked points at the load's coordinates against the solve's;
+- the inverse: the estimator given the solved volumes and pressure, started 0.3 N away, against the
+  load (force, N), the pose of the markers (mm, deg) and each target (mm).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from softphantom.estimation.config import EstimatorConfig
+
+#: The held-out goals of the default model's shipped atlas (docs/accuracy.md): force N, position
+#: mm, angle deg, the near-urethra target mm.
+GOALS = {"force_N": 0.05, "pos_mm": 0.05, "ang_deg": 0.1, "near_urethra_mm": 0.02}
+COLUMNS = ("dV_mm3", "points_mm", "force_N", "pos_mm", "ang_deg")
+START_N = 0.3  # the inverse starts this far (N) from the load: a stream's last estimate is much closer
+
+
+@dataclass(frozen=True)
+class HeldOut:
+    """Errors at held-out loads: ``loads`` (n, 4) N, N, N, Pa; ``errors`` (n, len(COLUMNS)) in the
+    units of :data:`COLUMNS`; ``targets_mm`` (n, t) each target's error after the inverse, named
+    ``target_names``; ``skipped`` loads outside the atlas's solved cells; ``failed`` loads whose full
+    solve did not converge (one line each)."""
+
+    loads: np.ndarray
+    errors: np.ndarray
+    targets_mm: np.ndarray
+    target_names: tuple[str, ...]
+    skipped: int = 0
+    failed: tuple[str, ...] = field(default=())
+
+    def worst(self) -> dict[str, float]:
+        """Max error per column and per target (``<target>_mm``)."""
+        out = {c: float(self.errors[:, i].max(initial=0.0)) for i, c in enumerate(COLUMNS)}
+        out.update({f"{t}_mm": float(self.targets_mm[:, j].max(initial=0.0)) for j, t in enumerate(self.target_names)})
+        return out
+
+    def p90(self) -> dict[str, float]:
+        """90th percentile per column (0 with no loads)."""
+        if not len(self.errors):
+            return {c: 0.0 for c in COLUMNS}
+        return {c: float(v) for c, v in zip(COLUMNS, np.percentile(self.errors, 90, axis=0))}
+
+    def missed(self, goals: dict[str, float] = GOALS) -> list[str]:
+        """The goals the worst errors miss, one phrase each (empty: all met)."""
+        w = self.worst()
+        return [f"{k} {w[k]:.4g} > {v:g}" for k, v in goals.items() if k in w and w[k] > v]
+
+
+def held_out_loads(lower, upper, n: int, seed: int = 0, corner_share: float = 0.25) -> np.ndarray:
+    """(n, 4) seeded loads over the box ``lower``…``upper`` (N, N, N, Pa), uniform, except a share
+    ``corner_share`` drawn within 5 % of a random corner on every axis (where a polynomial's error
+    is largest).
+
+    >>> L = held_out_loads([-1, -1, -1, 0], [1, 3, 1, 4e4], 8, seed=1)
+    >>> L.shape, bool(np.all((L >= [-1, -1, -1, 0]) & (L <= [1, 3, 1, 4e4])))
+    ((8, 4), True)
+    >>> np.array_equal(L, held_out_loads([-1, -1, -1, 0], [1, 3, 1, 4e4], 8, seed=1))
+    True
+    """
+    lo, hi = np.asarray(lower, float), np.asarray(upper, float)
+    rng = np.random.default_rng(seed)
+    u = rng.uniform(0.0, 1.0, (n, 4))
+    corner = rng.uniform(size=n) < corner_share
+    ends = rng.integers(0, 2, (n, 4))
+    near = np.where(ends == 1, 1.0 - 0.05 * u, 0.05 * u)
+    u = np.where(corner[:, None], near, u)
+    return lo + (hi - lo) * u
+
+
+def _rows(model, config: EstimatorConfig, atlas, loads: np.ndarray, seed: int):
+    """Errors at ``loads`` (a Dask task: its own forward model and estimator)."""
+    from softphantom.errors import SolverError
+    from softphantom.estimation.atlas.estimator import AtlasEstimator
+    from softphantom.pose import pose_of_markers
+
+    est = AtlasEstimator(model, config, atlas)
+    fwd, at = est.forward, est.atlas
+    nm = fwd.n_markers
+    rng = np.random.default_rng(seed)
+    rows, targets, used, skipped, failed = [], [], [], 0, []
+    for lam in np.asarray(loads, float):
+        c = at.coords(lam[:3], lam[3])
+        if not at.solved_at(c):
+            skipped += 1
+            continue
+        try:
+            lin = fwd.solve(lam)
+        except SolverError as exc:
+            failed.append(f"load {np.round(lam[:3], 3).tolist()} N, {lam[3] * 1e-3:.2f} kPa: {exc}")
+            continue
+        V, _ = at.volumes(c)
+        start = at.coords(lam[:3] + rng.normal(0.0, START_N / np.sqrt(3.0), 3), lam[3])
+        lam_e = est.invert(lin.V, lam[3], start=start)[0]
+        truth = pose_of_markers(est.rest_markers, lin.sub_x[:nm]).to_mm_deg()
+        d = pose_of_markers(est.rest_markers, at.points(lam_e)[:nm]).to_mm_deg() - truth
+        rows.append([np.abs(V - lin.V).max() * 1e9, np.abs(at.points(c) - lin.sub_x).max() * 1e3,
+                     np.linalg.norm(at.forces(lam_e) - lam[:3]), np.abs(d[:3]).max(), np.abs(d[3:]).max()])
+        targets.append(np.linalg.norm(at.points(lam_e)[nm:] - lin.sub_x[nm:], axis=1) * 1e3)
+        used.append(lam)
+    t = len(fwd.target_names)
+    return (np.reshape(used, (-1, 4)), np.reshape(rows, (-1, len(COLUMNS))), np.reshape(targets, (-1, t)),
+            skipped, failed, tuple(fwd.target_names))
+
+
+def check_held_out(model, config: EstimatorConfig, atlas, loads, *, seed: int = 0, client=None,
+                   chunks: int | None = None) -> HeldOut:
+    """:class:`HeldOut` errors of ``atlas`` (an :class:`~softphantom.estimation.atlas.map.Atlas` or
+    its pieces) for ``model`` at ``loads`` (n, 4) N, N, N, Pa. On ``client`` (Dask) the loads are
+    split into ``chunks`` tasks (default: 2 per worker), each building its own estimator; else here."""
+    loads = np.asarray(loads, float).reshape(-1, 4)
+    if client is None:
+        parts = [_rows(model, config, atlas, loads, seed)]
+    else:
+        from softphantom.errors import UserError
+        from softphantom.parallel import map_tasks
+
+        k = chunks or max(1, 2 * len(client.scheduler_info().get("workers", {})))
+        groups = [g for g in np.array_split(loads, min(k, len(loads))) if len(g)]
+        m, a = client.scatter([model, atlas], broadcast=True)
+        res = map_tasks(client, _rows, [(m, config, a, g, seed + i) for i, g in enumerate(groups)],
+                        label="held-out loads")
+        bad = [r.error for r in res if not r.ok]
+        if bad:
+            raise UserError(f"held-out check: {len(bad)} of {len(res)} tasks failed; first: {bad[0]}")
+        parts = [r.value for r in res]
+    return HeldOut(loads=np.vstack([p[0] for p in parts]), errors=np.vstack([p[1] for p in parts]),
+                   targets_mm=np.vstack([p[2] for p in parts]), target_names=parts[0][5],
+                   skipped=sum(p[3] for p in parts), failed=tuple(f for p in parts for f in p[4]))
