@@ -5,6 +5,7 @@ from __future__ import annotations
 import re
 
 import numpy as np
+import pytest
 
 from softphantom.cli import main
 from softphantom.design import load_model
@@ -24,6 +25,15 @@ def test_design_command_writes_model_report_and_png(tmp_path, capsys):
     assert f"nodes: {len(model.nodes)}" in report
     assert model.design.mesh.size_mm == 12.0
     assert np.isclose(model.bulb_volume() * 1e9, float(re.search(r"\| bulb \| [\d.]+ \| ([\d.]+)", report).group(1)), atol=0.06)
+    # the observability table: its rest row is observability() of the written model
+    from softphantom.estimation.observability import observability
+
+    assert "## Observability" in report and "| envelope min |" in report and "| envelope max |" in report
+    rest = re.search(r"^\| rest \|(.*)\|$", report, re.M).group(1).split("|")
+    obs = observability(model, loaded=False)
+    assert [float(v) for v in rest[:4]] == pytest.approx(obs.rest.sv_mm3.tolist(), rel=5e-3)
+    assert [float(v) for v in rest[5:8]] == pytest.approx(obs.rest.sv_force_mm3.tolist(), rel=5e-3)
+    assert "weakest force direction over the envelope" in capsys.readouterr().out
 
 
 def test_design_command_invalid_config_is_one_line_exit_2(tmp_path, capsys):

@@ -100,6 +100,13 @@ def test_force_resolution_scales_with_the_count_and_matches_the_estimator(inproc
     assert a["cond_W"] == pytest.approx(est.last.cond_W, rel=1e-9)
     assert a["W_sv1_mm3_per_N"] >= a["W_sv2_mm3_per_N"] >= a["W_sv3_mm3_per_N"] > 0
     assert a["res_force_worst_N"] == max(a[f"res_force_{ax}_N"] for ax in "xyz")
+    from softphantom.estimation.observability import observability, observed_state
+
+    obs = observability(coarse_model, est.forward, loaded=False)  # the design report's figure
+    assert a["obs_sv_min_mm3"] == b["obs_sv_min_mm3"] == pytest.approx(obs.rest.sv_force_mm3[-1], rel=1e-9)
+    probes = [observed_state(est.forward.solve(lam), obs.ranges).sv_force_mm3[-1]
+              for lam in ([0.0, 0.0, -3.0, 0.0], [0.0, -3.0, 0.0, 0.0])]  # the sweep's zneg, yneg at 3 N
+    assert a["obs_sv_min_loaded_mm3"] == pytest.approx(min(probes), rel=1e-6)
 
 
 def test_range_is_where_a_transducer_reaches_its_rated_pressure(inproc, coarse_model):

@@ -9,7 +9,7 @@ from typing import Optional
 import typer
 
 from softphantom.cli.app import app, console
-from softphantom.cli.options import check_positive, overwrite_option, staged_output
+from softphantom.cli.options import check_choice, check_positive, overwrite_option, staged_output
 from softphantom.errors import UserError
 from softphantom.progress import status
 
@@ -21,6 +21,9 @@ def _lesion_labels(text: str) -> tuple[int, ...]:
         raise UserError(f"--lesion-labels: expected integers separated by commas, got {text!r}") from None
 
 
+OBSERVE = ("envelope", "rest", "off")
+
+
 @app.command("design")
 def design_command(
     out: Path = typer.Option(..., "--out", help="Output directory (created)."),
@@ -29,8 +32,12 @@ def design_command(
         None, "--mesh-size-mm", help="Bulb element size in mm; arm and cavity sizes scale with it."
     ),
     png: bool = typer.Option(True, "--png/--no-png", help="Write mesh.png."),
-    force: bool = typer.Option(False, "--force", help="Mesh above the element-count limit and keep cavity volumes "
-                               "beyond the tolerance (docs/robustness.md)."),
+    force: bool = typer.Option(False, "--force", help="Mesh above the element-count limit, keep cavity volumes "
+                               "beyond the tolerance and an unobservable arm layout (docs/robustness.md)."),
+    observe: str = typer.Option("envelope", "--observability",
+                                help="How well the arm volumes see the loads (docs/estimation.md): 'envelope' solves the model "
+                                "at rest and at 8 loads over the load envelope, 'rest' at rest only (quicker, e.g. for "
+                                "quadratic elements), 'off' not at all. A rank-deficient arm layout is refused."),
     anatomy: Optional[Path] = typer.Option(
         None, "--anatomy", help="Prostate label map (.nii/.nii.gz) or closed surface (.stl/.obj): the bulb's shape."
     ),
@@ -40,11 +47,13 @@ def design_command(
                                       "(e.g. 3,4): each becomes [layers.lesions.labelN], the ellipsoid of its voxels."),
     overwrite: bool = overwrite_option(),
 ) -> None:
-    """Build the BIP design, mesh it (gmsh) and write model.msh/.vtu/.npz, design.toml, report.md, mesh.png."""
+    """Build the BIP design, mesh it (gmsh), check its observability and write model.msh/.vtu/.npz, design.toml,
+    report.md, mesh.png."""
     from softphantom.design import BIPDesign, build_model, load_design, save_model
     from softphantom.design.report import design_report_md
 
     lesions = _lesion_labels(lesion_labels)
+    check_choice(observe, OBSERVE, "--observability")
     check_positive(surface_size_mm, "--surface-size-mm", "mm")
     if urethra_label < 0:
         raise UserError(f"--urethra-label: must be >= 0 (0: none), got {urethra_label}")
@@ -73,13 +82,27 @@ def design_command(
     with staged_output(out, overwrite=overwrite, directory=True) as work:
         with status(f"meshing design '{design.name}'", console):
             model = build_model(design, mesh_size_mm, force=force)
-        save_model(model, work)
         report = design_report_md(model)
+        warnings: list[str] = []
+        if observe != "off":
+            from softphantom.estimation import ForwardModel
+            from softphantom.estimation.observability import check_layout, observability, observability_md
+
+            where = "at rest" + (" and over the load envelope" if observe == "envelope" else "")
+            with status(f"solving the observability {where}", console):
+                fm = ForwardModel(model)
+                check_layout(observability(model, fm, loaded=False), force=force)  # refused: raises, nothing written
+                obs = observability(model, fm, loaded=observe == "envelope")
+            warnings = check_layout(obs, force=True)
+            report += "\n" + observability_md(obs) + "".join(f"- warning: {w}\n" for w in warnings)
+        save_model(model, work)
         (work / "report.md").write_text(report, encoding="utf-8")
         if png:
             from softphantom.viz.mesh_view import render_mesh_png
 
             with status("drawing mesh.png", console):
                 render_mesh_png(model, work / "mesh.png")
-    console.print(report, highlight=False)
+    console.print(report, highlight=False, soft_wrap=True)
+    for line in warnings:
+        console.print(f"warning: {line}", style="yellow", markup=False, highlight=False)
     console.print(f"wrote {out}/ in {time.perf_counter() - t0:.1f} s", highlight=False)

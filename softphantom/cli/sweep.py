@@ -17,6 +17,8 @@ def sweep_command(
     scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Address of a running Dask scheduler (tcp://HOST:PORT); default: a local cluster."),
     workers: Optional[int] = typer.Option(None, "--workers", min=1, help="Local cluster: worker processes (default: all cores)."),
     optimize: bool = typer.Option(False, "--optimize", help="Differential evolution over the continuous parameters instead of the sample."),
+    objective: Optional[str] = typer.Option(None, "--objective", help="With --optimize: the column to optimize, instead of "
+                                            "the file's optimize.objective (e.g. obs_sv_min_mm3, maximized; docs/sweep.md)."),
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Show the variants' progress."),
 ) -> None:
     """Mesh and linearize every variant of a design study; write results.parquet and report.html (resumes from OUT/variants/)."""
@@ -27,6 +29,15 @@ def sweep_command(
     if not progress:
         hide_progress()
     cfg = load_sweep_config(config)
+    if objective is not None:
+        import dataclasses
+
+        from softphantom.errors import UserError
+        from softphantom.study.optimize import check_objective
+
+        if not optimize:
+            raise UserError("--objective: only with --optimize")
+        cfg = dataclasses.replace(cfg, optimize=dataclasses.replace(cfg.optimize, objective=check_objective(objective, "--objective")))
     require_pyarrow()
     n = len(cfg.variants()) if not optimize else None
     with dask_client(scheduler, workers) as client:

@@ -52,7 +52,7 @@ METHODS = ("grid", "random", "lhs")
 MAX_VARIANTS = 100_000
 VARIANT_BYTES = 20_000
 #: Bumped when what a variant computes changes, so cached rows of older code are not reused.
-EVAL_VERSION = 2
+EVAL_VERSION = 3
 _INDEX = re.compile(r"^(?P<key>[A-Za-z0-9_]+)(\[(?P<i>[0-9]+)\])?$")
 Positive = Annotated[float, Field(gt=0)]
 Count = Annotated[int, Field(ge=1)]

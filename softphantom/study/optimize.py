@@ -9,8 +9,9 @@ generation (``popsize × n_params`` candidates) at once, which is what the Dask 
 candidate is an ordinary variant: cached under its key, so a repeated candidate or a resumed run
 costs nothing, and every evaluation is a row of ``optimize.parquet``.
 
-Objective: minimize ``optimize.objective`` (default the worst-axis force resolution, N per count)
-subject to ``range_min_N ≥ min_range_N`` and ``silicone_mL ≤ max_silicone_mL``; an infeasible or
+Objective: minimize ``optimize.objective`` (default the worst-axis force resolution, N per count),
+or maximize it for the ones :data:`OBJECTIVES` marks (``obs_sv_min_mm3``, the smallest scaled
+singular value of W at rest: its negative is minimized), subject to ``range_min_N ≥ min_range_N`` and ``silicone_mL ≤ max_silicone_mL``; an infeasible or
 failed candidate scores ``PENALTY`` plus its relative violation, worse than any feasible one.
 Parameters given as ``values`` lists are held at their first value.
 """
@@ -30,11 +31,27 @@ from softphantom.study.config import SweepConfig, Variant
 from softphantom.study.run import evaluate_variants
 
 PENALTY = 1e3
-OBJECTIVES = ("res_force_worst_N", "res_target_worst_mm", "cond_W", "res_yaw_deg", "res_pitch_deg")
+#: objective column -> +1 (minimized) or -1 (maximized)
+OBJECTIVES = {"res_force_worst_N": 1, "res_target_worst_mm": 1, "cond_W": 1, "res_yaw_deg": 1, "res_pitch_deg": 1,
+              "obs_sv_min_mm3": -1}
+
+
+def check_objective(name: str, option: str = "optimize.objective") -> str:
+    """``name`` if it is one of :data:`OBJECTIVES`, else a one-line :class:`UserError` naming ``option``.
+
+    >>> check_objective("cond", "--objective")
+    Traceback (most recent call last):
+    ...
+    softphantom.errors.UserError: --objective: 'cond' is not one of res_force_worst_N, res_target_worst_mm, cond_W, res_yaw_deg, res_pitch_deg, obs_sv_min_mm3
+    """
+    if name not in OBJECTIVES:
+        raise UserError(f"{option}: {name!r} is not one of {', '.join(OBJECTIVES)}")
+    return name
 
 
 def score(row: dict, objective: str, min_range_N: float, max_silicone_mL: float) -> float:
-    """The value differential evolution minimizes for one result row.
+    """The value differential evolution minimizes for one result row (a maximized objective's
+    negative; feasible values of the objectives are far from ``PENALTY``).
 
     >>> score({"status": "ok", "res_force_worst_N": 0.02, "range_min_N": 8.0, "silicone_mL": 100.0}, "res_force_worst_N", 5.0, 120.0)
     0.02
@@ -42,6 +59,8 @@ def score(row: dict, objective: str, min_range_N: float, max_silicone_mL: float)
     1200.0
     >>> score({"status": "invalid"}, "res_force_worst_N", 5.0, 120.0)
     2000.0
+    >>> score({"status": "ok", "obs_sv_min_mm3": 13.4, "range_min_N": 8.0, "silicone_mL": 100.0}, "obs_sv_min_mm3", 5.0, 120.0)
+    -13.4
     """
     if row.get("status") != "ok":
         return 2 * PENALTY
@@ -53,12 +72,13 @@ def score(row: dict, objective: str, min_range_N: float, max_silicone_mL: float)
         viol += (min_range_N - row["range_min_N"]) / min_range_N
     if math.isfinite(max_silicone_mL) and row["silicone_mL"] > max_silicone_mL:
         viol += (row["silicone_mL"] - max_silicone_mL) / max_silicone_mL
-    return PENALTY * (1.0 + viol) if viol > 0 else float(v)
+    return PENALTY * (1.0 + viol) if viol > 0 else OBJECTIVES[objective] * float(v)
 
 
 @dataclass(frozen=True)
 class OptimizeResult:
-    """The best candidate (``params`` by path, its ``row``), all evaluated rows, and scipy's message."""
+    """The best candidate (``params`` by path, its ``row``, its ``value``: the objective's, or
+    the penalty score where no candidate was feasible), all evaluated rows, and scipy's message."""
 
     params: dict
     row: dict
@@ -73,8 +93,7 @@ def optimize(cfg: SweepConfig, client: Any, out: Path) -> OptimizeResult:
     from scipy.optimize import differential_evolution
 
     o = cfg.optimize
-    if o.objective not in OBJECTIVES:
-        raise UserError(f"optimize.objective: {o.objective!r} is not one of {', '.join(OBJECTIVES)}")
+    check_objective(o.objective)
     cont = [p for p in cfg.params if p.continuous and p.hi > p.lo]
     if not cont:
         raise UserError("--optimize: no continuous parameter (give at least one {min, max} with max > min)")
@@ -102,4 +121,5 @@ def optimize(cfg: SweepConfig, client: Any, out: Path) -> OptimizeResult:
     scores = [score(r, o.objective, o.min_range_N, o.max_silicone_mL) for r in seen]
     best = int(np.argmin(scores))
     best_params = {k[2:]: v for k, v in seen[best].items() if k.startswith("p.")}
-    return OptimizeResult(best_params, seen[best], scores[best], seen, len(seen), str(res.message))
+    value = scores[best] if scores[best] >= PENALTY else OBJECTIVES[o.objective] * scores[best]
+    return OptimizeResult(best_params, seen[best], value, seen, len(seen), str(res.message))

@@ -13,8 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
-#: Outputs shown in the sensitivity map (lower is better except range).
-OUTPUTS = ("res_force_worst_N", "range_min_N", "cond_W", "cond_W_loaded_max", "res_target_worst_mm",
+#: Outputs shown in the sensitivity map (lower is better except range and obs_sv_min_mm3).
+OUTPUTS = ("res_force_worst_N", "range_min_N", "cond_W", "cond_W_loaded_max", "obs_sv_min_mm3", "res_target_worst_mm",
            "res_yaw_deg", "res_pitch_deg", "silicone_mL", "mesh_min_dihedral_deg", "total_s")
 
 
@@ -103,7 +103,7 @@ def write_report(rows: Sequence[dict], path: Path, title: str, note: str = "") -
         parts.append("<h2>Resolution against range</h2>")
         parts.append(f'<img src="data:image/png;base64,{_png(fig)}">')
         parts.append("<p>Lower is finer, right is more range; the red line, the Pareto front, joins the variants no other beats on both (listed below).</p>")
-        cols = ["variant", *params, "res_force_worst_N", "range_min_N", "cond_W", "res_target_worst_mm"]
+        cols = ["variant", *params, "res_force_worst_N", "range_min_N", "cond_W", "obs_sv_min_mm3", "res_target_worst_mm"]
         parts.append(_table([ok[i] for i in front], cols))
 
         if num_params:

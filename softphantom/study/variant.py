@@ -7,6 +7,11 @@ What each figure is (docs/sweep.md has the derivations):
   from the sensing budget with that tube: ``V_T · (ADC span / 2^eff_bits) / P0``.
 * ``W_sv1..3_mm3_per_N``, ``cond_W``: singular values and condition of the force part of W (4 × 3,
   m³/N) at rest (the estimator's ``cond_W``); ``cond_W_loaded_max`` the largest over the probe loads.
+* ``obs_sv_min_mm3``: the smallest singular value of the force part of W at rest with each force
+  column scaled by its range over the atlas's default load envelope: the arm volume change (mm³)
+  of the least-seen force step one envelope long
+  (:mod:`~softphantom.estimation.observability`); ``obs_sv_min_loaded_mm3`` the smallest over
+  the probe loads.
 * ``res_force_<axis>_N``: 1-σ error of the least-squares force when every arm reads with an error
   of one count (independent): N per count, through ``W_f⁺`` at rest
   (:func:`~softphantom.estimation.noise_bound`); ``res_force_worst_N`` the largest of the three.
@@ -219,6 +224,7 @@ def _mechanics(design_json: str, mesh_size_mm: float | None, contact: str, conta
 def _evaluate(variant: Variant) -> dict[str, Any]:
     from softphantom.design.model import MM
     from softphantom.estimation import noise_bound
+    from softphantom.estimation.observability import envelope_ranges, observed_state
     from softphantom.sensing.measurement import P0_STANDARD_PA
     from softphantom.sensing.pneumatics import tube_volume_m3
 
@@ -247,6 +253,8 @@ def _evaluate(variant: Variant) -> dict[str, Any]:
     for i, v in enumerate(sv):
         out[f"W_sv{i + 1}_mm3_per_N"] = v * 1e9
     out["cond_W"] = float(sv[0] / sv[-1]) if sv[-1] > 0 else math.inf
+    env_ranges = envelope_ranges()
+    out["obs_sv_min_mm3"] = float(observed_state(rest, env_ranges).sv_force_mm3[-1])
 
     nb = noise_bound(rest, rest.sub_x[: mech["n_markers"]], mech["targets"], q)  # as the Estimator
     for ax, v in zip("xyz", nb.force_N):
@@ -273,6 +281,8 @@ def _evaluate(variant: Variant) -> dict[str, Any]:
         out[f"range_{d}_N"] = r
         out[f"cond_W_{d}"] = conds[-1]
     out["cond_W_loaded_max"] = max(conds) if conds else math.nan
+    out["obs_sv_min_loaded_mm3"] = min((float(observed_state(mech["lins"][d], env_ranges).sv_force_mm3[-1])
+                                        for d in s.directions), default=math.nan)
     out["range_min_N"] = min(ranges.values()) if ranges else math.nan
     out["range_min_dir"] = min(ranges, key=ranges.get) if ranges else ""
     out["range_extrapolated"] = bool(extrap)

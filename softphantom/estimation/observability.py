@@ -1,0 +1,272 @@
+"""How well the four arm volumes see the loads: singular values of their sensitivity (DESIGN.md §6).
+
+``J = ∂(arm cavity volumes, mm³)/∂(f_x, f_y, f_z in N, p_u in kPa)`` is the estimator's ``W``
+(:class:`~softphantom.estimation.linearization.Linearization`) in those units. Its columns carry
+different units, so each is scaled by the range of its input over the load envelope (the
+atlas's: f_x, f_z ±2 N, f_y −1…5.2 N, p_u −2…40 kPa): a singular value of ``J·diag(range)`` is
+then the volume change (mm³, 2-norm over the four arms) that the load step of one envelope's
+length along its right singular vector makes. The smallest one is how much the sensors see of the
+load direction they see least; that direction, as a load step (N, N, N, kPa), is ``weakest``.
+
+Two blocks: all four inputs (``sv_mm3``), and the force alone (``sv_force_mm3``, the three force
+columns). The urethra pressure is measured by its own transducer (an equality of the estimator's
+QP), so the force block is what decides whether the force can be estimated; on the default design
+the four-input block's weakest direction is the urethra pressure itself (the arms barely feel it).
+
+Verdicts, on the force block (:func:`layout_problem`, :func:`layout_warnings`):
+
+* refused (rank-deficient): at rest, the smallest force singular value is below
+  :data:`REFUSE_RATIO` of the largest. A layout with every arm and the contact point in one mirror
+  plane of the bulb sees the force normal to that plane not at all (each volume is an even
+  function of it); a mesh, never exactly symmetric, leaves 0.011–0.055 of the largest there
+  (measured on 6–12 mm meshes), while tilting one arm pair 10° out of that plane already gives
+  0.30–0.35 and the default design 0.58–0.64. Over the envelope the ratio is not a criterion: on
+  the default design it is 0.03–0.06 at f_y = 5.2 N, where the back arm pair steps and the
+  largest singular value is 10–25 times its value at rest.
+* warned: anywhere (rest or loaded), the smallest force singular value is below
+  :data:`WARN_COUNTS` counts of the pressure sensors: that direction is then resolved to no better
+  than a tenth of the envelope. One count is the cavity volume change of the sensing chain's
+  worst-case resolution, 11.3 Pa cavity-equivalent (DESIGN.md §3, eq. 2 with the default 12 m ×
+  1.2 mm tube and OSR 100): ``δV = V_cavity · δp / P0`` = 486 mm³ · 11.3 Pa / 101 325 Pa =
+  0.054 mm³ (:func:`count_volume_mm3`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from softphantom.errors import DesignError, SolverError
+from softphantom.estimation.types import ARM_NAMES
+
+REFUSE_RATIO = 0.1
+WARN_COUNTS = 10.0
+LOAD_NAMES = ("f_x", "f_y", "f_z", "p_u")
+LOAD_UNITS = ("N", "N", "N", "kPa")
+_PER_REPORTED = np.array([1.0, 1.0, 1.0, 1e3])  # λ's SI units (N, N, N, Pa) per reported unit (N, N, N, kPa)
+
+
+def count_volume_mm3(cavity_volumes_mm3: Sequence[float]) -> float:
+    """mm³: the largest over the arms of the cavity volume change one count of the sensing chain
+    reads (the budget's worst-case resolution, cavity-equivalent, times ``V_cavity / P0``).
+
+    >>> round(count_volume_mm3([514.0, 514.0, 486.0, 486.0]), 4)
+    0.0543
+    """
+    from softphantom.sensing.budget import BudgetParams, budget
+
+    vols = tuple(float(v) * 1e-9 for v in cavity_volumes_mm3)
+    p = BudgetParams(cavity_volumes_m3=vols, group_names=tuple(str(i) for i in range(len(vols))))
+    return max(r.v_cavity_mm3 * r.resolution_Pa_paper / p.p0_Pa for r in budget(p))
+
+
+def load_text(step: np.ndarray) -> str:
+    """A load step (N, N, N, kPa; or the three forces) as text.
+
+    >>> load_text(np.array([0.0, -1.25, 4.0, 0.5]))
+    'f_x +0.00 N, f_y -1.25 N, f_z +4.00 N, p_u +0.50 kPa'
+    """
+    return ", ".join(f"{n} {v:+.2f} {u}" for n, u, v in zip(LOAD_NAMES, LOAD_UNITS, np.asarray(step, float)))
+
+
+def _scaled_svd(J: np.ndarray, ranges: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """Singular values of ``J·diag(ranges)``, the weakest direction as a load step (the right
+    singular vector times the ranges, its largest component positive) and the condition number."""
+    _, s, Vt = np.linalg.svd(J * ranges)
+    v = Vt[-1] * ranges
+    v = v if v[np.argmax(np.abs(v))] >= 0 else -v
+    return s, v, float(s[0] / s[-1]) if s[-1] > 0 else np.inf
+
+
+@dataclass(frozen=True, eq=False)
+class ObservedState:
+    """The sensitivity at one load state.
+
+    ``lam`` (4,) the loads (N, N, N, kPa); ``J`` (4, 4) mm³/N (force columns) and mm³/kPa (urethra
+    pressure), rows in :data:`~softphantom.estimation.types.ARM_NAMES` order; ``sv_mm3`` (4,) the
+    singular values over the envelope (see the module docstring), ``weakest`` (4,) the load step
+    (N, N, N, kPa) of the smallest, ``cond`` their ratio; ``sv_force_mm3`` (3,), ``weakest_force``
+    (3,) N and ``cond_force`` the same for the force columns alone."""
+
+    lam: np.ndarray
+    J: np.ndarray
+    sv_mm3: np.ndarray
+    weakest: np.ndarray
+    cond: float
+    sv_force_mm3: np.ndarray
+    weakest_force: np.ndarray
+    cond_force: float
+
+
+def observed_state(lin, ranges: np.ndarray) -> ObservedState:
+    """The :class:`ObservedState` of a :class:`~softphantom.estimation.linearization.Linearization`
+    (its ``W``, m³/N and m³/Pa) with the inputs' ``ranges`` (4,) N, N, N, kPa."""
+    ranges = np.asarray(ranges, float)
+    J = np.asarray(lin.W, float) * 1e9 * _PER_REPORTED
+    s, v, c = _scaled_svd(J, ranges)
+    sf, vf, cf = _scaled_svd(J[:, :3], ranges[:3])
+    return ObservedState(np.asarray(lin.lam, float) / _PER_REPORTED, J, s, v, c, sf, vf, cf)
+
+
+@dataclass(frozen=True, eq=False)
+class Observability:
+    """The sensitivities at rest and at loaded states over the envelope (:func:`observability`).
+
+    ``ranges`` (4,) N, N, N, kPa: the envelope's ranges that scale the columns; ``rest`` and
+    ``loaded`` :class:`ObservedState`; ``failed``: the loads (N, N, N, kPa) whose equilibrium did
+    not converge, each with the solver's reason; ``count_mm3``: one count of the sensors
+    (:func:`count_volume_mm3`)."""
+
+    ranges: np.ndarray
+    rest: ObservedState
+    loaded: tuple[ObservedState, ...]
+    failed: tuple[tuple[np.ndarray, str], ...]
+    count_mm3: float
+
+    @property
+    def states(self) -> tuple[ObservedState, ...]:
+        return (self.rest, *self.loaded)
+
+    @property
+    def weakest_state(self) -> ObservedState:
+        """The state whose smallest force singular value is the smallest."""
+        return min(self.states, key=lambda s: s.sv_force_mm3[-1])
+
+
+def envelope_ranges(acfg=None) -> np.ndarray:
+    """(4,) N, N, N, kPa: the ranges of the loads over the envelope ``acfg`` (an
+    :class:`~softphantom.estimation.atlas.config.AtlasConfig`, default the default envelope).
+
+    >>> envelope_ranges().round(3).tolist()
+    [4.0, 6.2, 4.0, 42.0]
+    """
+    from softphantom.estimation.atlas.config import AtlasConfig
+
+    acfg = acfg or AtlasConfig()
+    return (acfg.upper - acfg.lower) / _PER_REPORTED
+
+
+def envelope_loads(acfg=None) -> list[np.ndarray]:
+    """The loaded states (N, N, N, Pa): each load at either end of the envelope's range, the
+    others zero (the centres of the envelope's faces seen from rest); ``acfg`` an
+    :class:`~softphantom.estimation.atlas.config.AtlasConfig` (default: the default envelope).
+
+    >>> [lam.tolist() for lam in envelope_loads()][:2]
+    [[-2.0, 0.0, 0.0, 0.0], [2.0, 0.0, 0.0, 0.0]]
+    """
+    from softphantom.estimation.atlas.config import AtlasConfig
+
+    acfg = acfg or AtlasConfig()
+    out = []
+    for i in range(4):
+        for v in (acfg.lower[i], acfg.upper[i]):
+            lam = np.zeros(4)
+            lam[i] = v
+            out.append(lam)
+    return out
+
+
+def observability(model, forward=None, acfg=None, loaded: bool = True) -> Observability:
+    """The :class:`Observability` of ``model`` (a :class:`~softphantom.design.model.PhantomModel`)
+    at rest and, with ``loaded``, at :func:`envelope_loads` (converged equilibria from rest, their
+    exact linearizations); ``forward`` a :class:`~softphantom.estimation.forward.ForwardModel`
+    of it (default: the estimator's, on-centre contact, 4 mm patch); ``acfg`` the envelope
+    (default: the atlas's for the model's element order)."""
+    from softphantom.estimation.atlas.config import default_atlas_config
+    from softphantom.estimation.forward import ForwardModel
+
+    fm = forward if forward is not None else ForwardModel(model)
+    acfg = acfg or default_atlas_config(fm.fem.order)
+    ranges = envelope_ranges(acfg)
+    states, failed = [], []
+    for lam in envelope_loads(acfg) if loaded else ():
+        try:
+            states.append(observed_state(fm.solve(lam), ranges))
+        except SolverError as exc:
+            failed.append((lam / _PER_REPORTED, str(exc).splitlines()[0]))
+    count = count_volume_mm3([model.design.cavity_volumes_mm3()[a] for a in ARM_NAMES])
+    return Observability(ranges, observed_state(fm.rest, ranges), tuple(states), tuple(failed), count)
+
+
+def layout_problem(obs: Observability) -> str:
+    """Why the arm layout is refused ('' if it is not): the force block is rank-deficient at rest
+    (smallest singular value below :data:`REFUSE_RATIO` of the largest). One line naming ``arms``."""
+    r = obs.rest
+    ratio = r.sv_force_mm3[-1] / r.sv_force_mm3[0]
+    if ratio >= REFUSE_RATIO:
+        return ""
+    return (f"arms: the layout cannot see a force step ({load_text(r.weakest_force)}) at rest: it changes the arm "
+            f"volumes by {r.sv_force_mm3[-1]:.3g} mm³, {ratio:.3f} of the best-seen direction (refused below "
+            f"{REFUSE_RATIO:g}); e.g. move an arm out of the plane of the others")
+
+
+def layout_warnings(obs: Observability) -> list[str]:
+    """One line per concern: the weakest force direction below :data:`WARN_COUNTS` counts, loads
+    that did not converge."""
+    lines = []
+    w = obs.weakest_state
+    counts = w.sv_force_mm3[-1] / obs.count_mm3
+    if counts < WARN_COUNTS:
+        at = "at rest" if w is obs.rest else f"at {load_text(w.lam)}"
+        lines.append(f"arms: the force step {load_text(w.weakest_force)} {at} changes the arm volumes by "
+                     f"{w.sv_force_mm3[-1]:.3g} mm³, {counts:.1f} counts of {obs.count_mm3:.3g} mm³ (warned below "
+                     f"{WARN_COUNTS:g}): that direction is poorly observable")
+    for lam, why in obs.failed:
+        lines.append(f"observability: no equilibrium at {load_text(lam)} ({why})")
+    return lines
+
+
+def check_layout(obs: Observability, force: bool = False) -> list[str]:
+    """Raise :class:`~softphantom.errors.DesignError` for a refused layout (unless ``force``: then
+    its reason is the first warning); return the warnings."""
+    problem = layout_problem(obs)
+    if problem and not force:
+        raise DesignError(problem)
+    return ([problem] if problem else []) + layout_warnings(obs)
+
+
+def observability_md(obs: Observability) -> str:
+    """The design report's section: the singular values at rest and over the envelope (min, max
+    per column), the weakest directions, the verdict's figures."""
+    def row(label: str, sv: np.ndarray, svf: np.ndarray, c: float, cf: float) -> str:
+        cells = [f"{v:.3g}" for v in (*sv, c, *svf, cf)]
+        return f"| {label} | " + " | ".join(cells) + " |"
+
+    states = obs.states
+    sv = np.array([s.sv_mm3 for s in states])
+    svf = np.array([s.sv_force_mm3 for s in states])
+    cond = np.array([s.cond for s in states])
+    condf = np.array([s.cond_force for s in states])
+    r = obs.rest
+    w = obs.weakest_state
+    env = ", ".join(f"{n} {x:g} {u}" for n, x, u in zip(LOAD_NAMES, obs.ranges, LOAD_UNITS))
+    lines = [
+        "## Observability",
+        "",
+        "Singular values of the arm volumes' sensitivity to the loads, each input scaled by its range over "
+        f"the load envelope ({env}): the volume change (mm³) of a load step one envelope long. "
+        "`sv1..4`: force and urethra pressure; `force_sv1..3`: the force alone (the urethra pressure is measured).",
+        "",
+        "| state | sv1_mm3 | sv2_mm3 | sv3_mm3 | sv4_mm3 | cond | force_sv1_mm3 | force_sv2_mm3 | force_sv3_mm3 | force_cond |",
+        "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
+        row("rest", r.sv_mm3, r.sv_force_mm3, r.cond, r.cond_force),
+    ]
+    if obs.loaded:
+        lines += [row("envelope min", sv.min(0), svf.min(0), cond.min(), condf.min()),
+                  row("envelope max", sv.max(0), svf.max(0), cond.max(), condf.max())]
+    lines += [
+        "",
+        f"- weakest direction at rest (all inputs): {load_text(r.weakest)}",
+        f"- weakest force direction at rest: {load_text(r.weakest_force)} "
+        f"({r.sv_force_mm3[-1] / r.sv_force_mm3[0]:.3f} of the best-seen; refused below {REFUSE_RATIO:g})",
+        f"- weakest force direction over the envelope: {load_text(w.weakest_force)} at "
+        f"{'rest' if w is r else load_text(w.lam)}: {w.sv_force_mm3[-1]:.3g} mm³ = "
+        f"{w.sv_force_mm3[-1] / obs.count_mm3:.0f} counts of {obs.count_mm3:.3g} mm³ (warned below {WARN_COUNTS:g})",
+    ]
+    if obs.loaded:
+        lines.append(f"- envelope: rest and {len(obs.loaded)} loaded states, each load at either end of its range "
+                     "and the others zero (min and max per column)"
+                     + (f"; {len(obs.failed)} more did not converge" if obs.failed else ""))
+    return "\n".join(lines + [""])
