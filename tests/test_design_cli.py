@@ -36,6 +36,18 @@ def test_design_command_writes_model_report_and_png(tmp_path, capsys):
     assert "weakest force direction over the envelope" in capsys.readouterr().out
 
 
+def test_a_quadratic_design_checks_observability_at_rest_by_default(tmp_path):
+    """``--observability auto``: the loaded states only for linear tets (a loaded solve of the
+    quadratic default costs about 25 CPU-s); ``envelope`` asks for them on any model."""
+    cfg = tmp_path / "p2.toml"
+    cfg.write_text("[mesh]\nelement_order = 2\n")
+    out = tmp_path / "d"
+    assert main(["design", "--config", str(cfg), "--out", str(out), "--mesh-size-mm", "14", "--no-png"]) == 0
+    report = (out / "report.md").read_text()
+    assert load_model(out).element_order == 2
+    assert "| rest |" in report and "| envelope min |" not in report
+
+
 def test_design_command_invalid_config_is_one_line_exit_2(tmp_path, capsys):
     cfg = tmp_path / "bad.toml"
     cfg.write_text("[arms.back_xpos]\nwall_mm = 0.4\n")

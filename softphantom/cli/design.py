@@ -21,7 +21,7 @@ def _lesion_labels(text: str) -> tuple[int, ...]:
         raise UserError(f"--lesion-labels: expected integers separated by commas, got {text!r}") from None
 
 
-OBSERVE = ("envelope", "rest", "off")
+OBSERVE = ("auto", "envelope", "rest", "off")
 
 
 @app.command("design")
@@ -34,10 +34,11 @@ def design_command(
     png: bool = typer.Option(True, "--png/--no-png", help="Write mesh.png."),
     force: bool = typer.Option(False, "--force", help="Mesh above the element-count limit, keep cavity volumes "
                                "beyond the tolerance and an unobservable arm layout (docs/robustness.md)."),
-    observe: str = typer.Option("envelope", "--observability",
+    observe: str = typer.Option("auto", "--observability",
                                 help="How well the arm volumes see the loads (docs/estimation.md): 'envelope' solves the model "
-                                "at rest and at 8 loads over the load envelope, 'rest' at rest only (quicker, e.g. for "
-                                "quadratic elements), 'off' not at all. A rank-deficient arm layout is refused."),
+                                "at rest and at 8 loads over the load envelope, 'rest' at rest only, 'off' not at all; "
+                                "'auto': envelope for 4-node tets, rest for 10-node ones (a loaded solve of the "
+                                "quadratic default costs about 25 CPU-s). A rank-deficient arm layout is refused."),
     anatomy: Optional[Path] = typer.Option(
         None, "--anatomy", help="Prostate label map (.nii/.nii.gz) or closed surface (.stl/.obj): the bulb's shape."
     ),
@@ -84,6 +85,8 @@ def design_command(
             model = build_model(design, mesh_size_mm, force=force)
         report = design_report_md(model)
         warnings: list[str] = []
+        if observe == "auto":
+            observe = "envelope" if model.element_order == 1 else "rest"
         if observe != "off":
             from softphantom.estimation import ForwardModel
             from softphantom.estimation.observability import check_layout, observability, observability_md
