@@ -108,6 +108,8 @@ def test_force_meshes_what_the_tolerance_refuses(tmp_path, capsys):
     assert "tolerance" in capsys.readouterr().err
     assert main(["design", "--out", str(out), "--no-png", "--mesh-size-mm", "30", "--force"]) == 0
     assert (out / "model.npz").is_file()
+    # so coarse that a marker falls off the mesh: the observability is not solvable, said as a warning
+    assert "warning: observability not checked:" in (out / "report.md").read_text()
 
 
 def test_scenario_duration_limit():

@@ -92,12 +92,21 @@ def design_command(
             from softphantom.estimation.observability import check_layout, observability, observability_md
 
             where = "at rest" + (" and over the load envelope" if observe == "envelope" else "")
+            obs = None
             with status(f"solving the observability {where}", console):
-                fm = ForwardModel(model)
-                check_layout(observability(model, fm, loaded=False), force=force)  # refused: raises, nothing written
-                obs = observability(model, fm, loaded=observe == "envelope")
-            warnings = check_layout(obs, force=True)
-            report += "\n" + observability_md(obs) + "".join(f"- warning: {w}\n" for w in warnings)
+                try:
+                    fm = ForwardModel(model)
+                except UserError as exc:  # e.g. a marker off a mesh kept with --force: not solvable
+                    if not force:
+                        raise
+                    warnings = [f"observability not checked: {exc}"]
+                else:
+                    check_layout(observability(model, fm, loaded=False), force=force)  # refused: nothing written
+                    obs = observability(model, fm, loaded=observe == "envelope")
+            if obs is not None:
+                warnings = check_layout(obs, force=True)
+                report += "\n" + observability_md(obs)
+            report += "".join(f"- warning: {w}\n" for w in warnings)
         save_model(model, work)
         (work / "report.md").write_text(report, encoding="utf-8")
         if png:
