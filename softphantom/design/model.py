@@ -298,9 +298,9 @@ def build_model(design: BIPDesign, mesh_size_mm: float | None = None, *, force: 
 
 
 def default_design() -> BIPDesign:
-    """The default design (what ``softphantom design`` makes without ``--config``): the BIP with
-    the quadratic mesh of the shipped model :data:`DEFAULT_MODEL` (docs/accuracy.md), whose atlas
-    ships with the package.
+    """The BIP with the quadratic mesh of the shipped model :data:`DEFAULT_MODEL` (neo-Hookean,
+    10-node tets, 9 mm bulk, 2 mm arms: the mesh that meets the accuracy goals, docs/model.md),
+    which :func:`build_model` returns as shipped.
 
     >>> d = default_design()
     >>> d.mesh.element_order, d.mesh.size_mm, d.mesh.arm_size_mm
