@@ -671,6 +671,12 @@ def test_a_shipped_atlas_is_found_by_its_key_for_any_copy_of_its_model(coarse_mo
     with pytest.raises(AtlasMissing):  # another mesh: not found
         other = dataclasses.replace(coarse_model, nodes=coarse_model.nodes + 1e-5)
         load_or_build(other, CFG, ACFG, cache_dir=save_model(other, tmp_path / "other"), max_build_s=0.0)
+    # a calibration's uniform stiffness scale carries the shipped atlas over, as it does a model's own
+    from softphantom.calibration.output import calibrated_design, carry_atlases
+
+    model_s = dataclasses.replace(coarse_model, design=calibrated_design(coarse_model.design, {"bulb": 1.2, "arms": 1.2}))
+    out = save_model(model_s, tmp_path / "calibrated")
+    assert "1 atlas file(s)" in carry_atlases(user, model_s, out, {"bulb": 1.2, "arms": 1.2}, law_changed=False)
     path.write_bytes(path.read_bytes()[:1000])
     with pytest.raises(AtlasCorrupt, match=str(path)):
         load_or_build(coarse_model, CFG, ACFG, cache_dir=user, fwd=fwd, max_build_s=0.0)
