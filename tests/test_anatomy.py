@@ -14,13 +14,14 @@ nib = pytest.importorskip("nibabel")
 pytest.importorskip("skimage")
 
 from softphantom.cli import main  # noqa: E402
-from softphantom.design import build_model  # noqa: E402
+from softphantom.design import BIPDesign, build_model  # noqa: E402
 from softphantom.design.anatomy import (  # noqa: E402
     AnatomyOptions,
     anatomy_from_labels,
     anatomy_from_surface,
     design_from_anatomy,
     load_anatomy,
+    zonal_label_map,
 )
 from softphantom.errors import DesignError  # noqa: E402
 
@@ -250,3 +251,141 @@ def test_bad_anatomy_is_one_line_exit_2(tmp_path, capsys):
         anatomy_from_labels(empty, np.eye(4))
     with pytest.raises(DesignError, match="not closed"):
         anatomy_from_surface(open_box, AnatomyOptions())
+
+
+# --- label maps as public data sets publish them: zones, no urethra label, thick slices -------
+
+ZONAL_SPACING = (0.6, 0.6, 4.0)
+
+
+def _zonal_anatomy(tmp_path, volume_mL, tilt_deg=0.0, surface_size_mm=6.0):
+    """The zonal map written as NIfTI (as the data sets ship it) and imported with its zones as the gland."""
+    data, affine, semi, axes = zonal_label_map(volume_mL, tilt_deg)
+    path = tmp_path / f"zones_{volume_mL:g}mL.nii.gz"
+    nib.save(nib.Nifti1Image(data, affine), str(path))
+    a = load_anatomy(path, AnatomyOptions(gland_labels=(1, 2), urethra_label=0, surface_size_mm=surface_size_mm))
+    return data, affine, semi, axes, a
+
+
+def test_zonal_gland_is_the_union_of_its_labels(tmp_path):
+    """Labels 1 and 2 together are the gland: the voxel volume is theirs, and a label outside the
+    gland (5, a detached blob) is left out, where without --gland-labels it is a second component."""
+    data, affine, _, _ = zonal_label_map(45.0)
+    data[2:6, 2:6, 0:2] = 5
+    voxel = abs(np.linalg.det(affine[:3, :3]))
+    opt = AnatomyOptions(gland_labels=(1, 2), urethra_label=0)
+    a = anatomy_from_labels(data, affine, opt)
+    assert a.voxel_volume_mm3 == pytest.approx(float(np.isin(data, (1, 2)).sum()) * voxel)
+    assert abs(a.volume_mm3 / a.voxel_volume_mm3 - 1.0) < 0.02  # at the default 3 mm surface
+    assert a.urethra is None
+    with pytest.raises(DesignError, match="2 disconnected components"):
+        anatomy_from_labels(data, affine, AnatomyOptions(urethra_label=0))
+    with pytest.raises(DesignError, match="gland label 7 has no voxels"):
+        anatomy_from_labels(data, affine, AnatomyOptions(gland_labels=(1, 7), urethra_label=0))
+    with pytest.raises(DesignError, match="gland label 2 is also the urethra's"):
+        anatomy_from_labels(data, affine, AnatomyOptions(gland_labels=(1, 2), urethra_label=2))
+
+
+def test_urethra_on_the_principal_axis_of_a_tilted_ellipsoid(tmp_path):
+    """No urethra label: the urethra runs along the gland's S-I axis (tilted 15° towards anterior,
+    the principal axis nearest the template's urethra axis) through its centre, inside it by more
+    than the minimum wall, its inlet on the surface at the superior end; radius 4.5 mm × the cube
+    root of the volume ratio, length the template's fraction (0.72) of the gland's chord on that axis."""
+    from softphantom.design import geometry as geo
+    from softphantom.design.anatomy import part_scale
+    from softphantom.design.params import MIN_WALL_MM
+
+    _, _, semi, axes, a = _zonal_anatomy(tmp_path, 45.0, tilt_deg=15.0)
+    template = BIPDesign()
+    d = design_from_anatomy(a, template)
+    u = d.urethra
+    to_ras = a.rotation.T  # model → input (RAS) frame: p_ras = Rᵀ (p − t)
+    axis_ras = to_ras @ np.asarray(u.axis)
+    assert np.degrees(np.arccos(axis_ras @ axes[:, 2])) < 1.5  # along the tilted S-I axis, towards superior
+    centre = to_ras @ (np.asarray(u.center_mm) - a.translation)
+    assert np.linalg.norm(centre) < 0.5  # through the ellipsoid's centre (the gland's centroid)
+    s = part_scale(a, template)
+    assert s == pytest.approx((a.volume_mm3 / template.bulb.volume_mm3) ** (1 / 3))
+    assert u.radius_mm == pytest.approx(template.urethra.radius_mm * s)
+    ta, tb = template.urethra.segment_mm
+    t_len = np.linalg.norm(tb - ta) + 2 * template.urethra.radius_mm
+    frac = t_len / (2 * 25.0 * np.sqrt(1 - (4.0 / template.bulb.semi_axes_mm[2]) ** 2))  # its chord at z = 4 mm
+    # the voxels' chord is the ellipsoid's within half a 4 mm slice at each end
+    assert u.cyl_length_mm + 2 * u.radius_mm == pytest.approx(frac * 2 * semi[2], abs=frac * ZONAL_SPACING[2])
+    ua, ub = (to_ras @ (p - a.translation) for p in u.segment_mm)
+    wall = -geo.ellipsoid_signed_distance(geo.capsule_surface_points(ua, ub, u.radius_mm) @ axes, semi).max()
+    assert wall > MIN_WALL_MM  # inside the analytic gland
+    inlet = to_ras @ (np.asarray(u.inlet_mm) - a.translation)
+    assert abs(geo.ellipsoid_signed_distance(inlet[None] @ axes, semi)[0]) < 0.5 * ZONAL_SPACING[2]  # on its surface
+    assert inlet @ axes[:, 2] > 0.9 * semi[2]  # at the superior end
+
+
+@pytest.mark.parametrize("volume_mL", [30.0, 47.0, 60.0, 120.0])
+def test_zonal_map_design_validates_meshes_and_solves(tmp_path, volume_mL):
+    """30-120 mL zonal maps at 0.6 × 0.6 × 4 mm, no urethra label: the template's parts scaled by
+    the cube root of the volume ratio make a valid design (47 mL: the issue's gland, refused before
+    with the template's parts), which meshes (12 mm, P1) with every cavity and the bulb within the
+    mesh's tolerance of the design, and a 1 N push along +y solves and moves the gland along +y."""
+    from softphantom.design.anatomy import part_scale
+    from softphantom.fem import fem_from_phantom, force_actuator, solve_static
+
+    *_, a = _zonal_anatomy(tmp_path, volume_mL)
+    template = BIPDesign()
+    d = design_from_anatomy(a, template)
+    s = part_scale(a, template)
+    assert s == pytest.approx((volume_mL / 100.41) ** (1 / 3), rel=0.03)  # the surface holds the volume within 3 %
+    for arm, t in zip(d.arms, template.arms):
+        assert arm.radius_mm == pytest.approx(t.radius_mm * s) and arm.length_mm == pytest.approx(t.length_mm * s)
+        assert arm.cavity_volume_mm3 == pytest.approx(t.cavity_volume_mm3 * s**3)
+        assert arm.wall_mm >= 1.0
+    assert d.urethra.axis == (0.0, 1.0, 0.0) and abs(d.urethra.center_mm[0]) + abs(d.urethra.center_mm[2]) < 1e-9
+    model = build_model(d, 12.0, isolate=False)  # checks every cavity's and the bulb's meshed volume
+    # no slivers where the arms cut the surface: 0.03-0.45° with the arm cylinders' seams where
+    # OCC puts them (in the arms' planes, along the surface's edges; occ_shapes.seam_side)
+    assert model.min_dihedral_deg() > 1.0
+    assert model.design.mesh.element_order == 1 and model.bulb_volume() * 1e9 == pytest.approx(d.bulb.volume_mm3,
+                                                                                                rel=0.02)
+    fem = fem_from_phantom(model)
+    sol = solve_static(fem, force_actuator(fem, model.p_ext["on-centre"], radius=5e-3) @ np.array([0.0, 1.0, 0.0]))
+    assert sol.converged
+    assert (sol.x - model.nodes)[:, 1].max() > 1e-4
+
+
+def test_part_that_cannot_be_made_valid_is_one_line_naming_the_fix(tmp_path):
+    """A template whose off-centre point lies 32 mm from the on-centre one (the paper's bulb has
+    room up to 39.8 mm at 45°, a 30 mL gland 27.6 mm): one line naming the field, the gland, the
+    scale and the option that fixes it."""
+    from softphantom.design.params import InteractionParams
+
+    *_, a = _zonal_anatomy(tmp_path, 30.0)
+    far = BIPDesign(interaction=InteractionParams(offcentre_mm=32.0))
+    with pytest.raises(DesignError) as exc:
+        design_from_anatomy(a, far)
+    msg = str(exc.value)
+    assert msg.startswith("interaction.offcentre_mm = 32 is beyond the front of the bulb"), msg
+    assert "\n" not in msg and f"a {a.volume_mm3 / 1e3:.1f} mL gland" in msg, msg
+    assert msg.endswith("fix: [interaction] offcentre_mm in --config]"), msg
+
+
+def test_zonal_map_through_the_cli(tmp_path, capsys):
+    """``design --anatomy MAP --gland-labels 1,2``: no urethra label to give, the urethra placed on
+    the principal axis (said so), the model written; ``--urethra none`` and a urethra label among
+    the gland's are one line, exit 2."""
+    from softphantom.design import load_design
+
+    data, affine, _, _ = zonal_label_map(40.0)
+    path = tmp_path / "zones.nii.gz"
+    nib.save(nib.Nifti1Image(data, affine), str(path))
+    out = tmp_path / "model"
+    assert main(["design", "--anatomy", str(path), "--gland-labels", "1,2", "--surface-size-mm", "6",
+                 "--mesh-size-mm", "12", "--no-png", "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "urethra: not labelled, placed along the gland's principal axis" in " ".join(text.split())
+    d = load_design(out / "design.toml")
+    assert d.bulb.is_surface and d.urethra.axis == (0.0, 1.0, 0.0)
+    assert d.arms[0].radius_mm < BIPDesign().arms[0].radius_mm  # a 40 mL gland: smaller arms
+    for args, names in ((["--urethra", "none"], "urethra cavity"),
+                        (["--gland-labels", "1,2", "--urethra-label", "2"], "--urethra-label 2 is one of --gland-labels")):
+        assert main(["design", "--anatomy", str(path), *args, "--out", str(tmp_path / "o")]) == 2
+        err = capsys.readouterr().err.strip()
+        assert names in err and "\n" not in err and "Traceback" not in err, err

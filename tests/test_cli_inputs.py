@@ -26,6 +26,12 @@ BAD_INPUTS = [
     (["design", "--out", "o", "--lesion-labels", "a,b"], "--lesion-labels"),
     (["design", "--out", "o", "--lesion-labels", "3"], "--anatomy"),            # used only with an anatomy
     (["design", "--out", "o", "--urethra-label", "-1"], "--urethra-label"),
+    (["design", "--out", "o", "--gland-labels", "1;2"], "--gland-labels"),
+    (["design", "--out", "o", "--gland-labels", "1,2"], "--anatomy"),             # used only with an anatomy
+    (["design", "--out", "o", "--anatomy", "z.nii.gz", "--gland-labels", "1,2", "--urethra-label", "2"],
+     "--urethra-label 2 is one of --gland-labels"),
+    (["design", "--out", "o", "--anatomy", "z.nii.gz", "--urethra", "none"], "--urethra none"),
+    (["design", "--out", "o", "--urethra", "label"], "--urethra"),
     (["design", "--out", "o", "--surface-size-mm", "0"], "--surface-size-mm"),
     (["simulate", "--model", "m", "--out", "o", "--patch-radius-mm", "-1"], "--patch-radius-mm"),
     ([*EST, "--max-force-N", "0"], "--max-force-N"),

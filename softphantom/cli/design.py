@@ -14,11 +14,17 @@ from softphantom.errors import UserError
 from softphantom.progress import status
 
 
-def _lesion_labels(text: str) -> tuple[int, ...]:
+def _labels(text: str, option: str) -> tuple[int, ...]:
     try:
         return tuple(int(x) for x in text.split(",") if x.strip())
     except ValueError:
-        raise UserError(f"--lesion-labels: expected integers separated by commas, got {text!r}") from None
+        raise UserError(f"{option}: expected integers separated by commas, got {text!r}") from None
+
+
+#: why ``--urethra none`` is refused: every stage after the design reads the urethra cavity
+NO_URETHRA = ("--urethra none: not possible yet, the model needs its urethra cavity (the mesh's cavity_urethra, "
+              "the estimator's urethra-pressure load, the board's fifth channel, the molds' urethra core); "
+              "leave --urethra auto to place it on the gland's principal axis")
 
 
 OBSERVE = ("auto", "envelope", "rest", "off")
@@ -42,7 +48,14 @@ def design_command(
     anatomy: Optional[Path] = typer.Option(
         None, "--anatomy", help="Prostate label map (.nii/.nii.gz) or closed surface (.stl/.obj): the bulb's shape."
     ),
-    urethra_label: int = typer.Option(2, "--urethra-label", help="Label of the urethra in a label map (0: none)."),
+    gland_labels: str = typer.Option("", "--gland-labels", help="Labels whose union is the gland, comma-separated "
+                                     "(e.g. 1,2: peripheral and transition zone); default every non-zero label."),
+    urethra_label: Optional[int] = typer.Option(
+        None, "--urethra-label", help="Label of the urethra in a label map (0: none); default 2, or none when "
+        "--gland-labels names 2."),
+    urethra: str = typer.Option("auto", "--urethra", help="auto: the urethra label's voxels, or without any a "
+                                "urethra along the gland's principal axis through its centroid; none: refused (the "
+                                "model needs a urethra cavity)."),
     surface_size_mm: float = typer.Option(3.0, "--surface-size-mm", help="Triangle size of the imported surface, mm."),
     lesion_labels: str = typer.Option("", "--lesion-labels", help="Labels of lesions in a label map, comma-separated "
                                       "(e.g. 3,4): each becomes [layers.lesions.labelN], the ellipsoid of its voxels."),
@@ -53,28 +66,40 @@ def design_command(
     from softphantom.design import BIPDesign, build_model, load_design, save_model
     from softphantom.design.report import design_report_md
 
-    lesions = _lesion_labels(lesion_labels)
+    lesions = _labels(lesion_labels, "--lesion-labels")
+    gland = _labels(gland_labels, "--gland-labels")
     check_choice(observe, OBSERVE, "--observability")
     check_positive(surface_size_mm, "--surface-size-mm", "mm")
-    if urethra_label < 0:
+    if urethra not in ("auto", "none"):
+        raise UserError(f"--urethra: expected auto or none, got {urethra!r}")
+    if urethra == "none":
+        raise UserError(NO_URETHRA)
+    if urethra_label is not None and urethra_label < 0:
         raise UserError(f"--urethra-label: must be >= 0 (0: none), got {urethra_label}")
-    if lesions and anatomy is None:
-        raise UserError("--lesion-labels: only with --anatomy (labels of a label map)")
+    if urethra_label is not None and urethra_label > 0 and urethra_label in gland:
+        raise UserError(f"--urethra-label {urethra_label} is one of --gland-labels {gland_labels} (0: no urethra label)")
+    if urethra_label is None:
+        urethra_label = 0 if 2 in gland else 2
+    for option, given in (("--lesion-labels", lesions), ("--gland-labels", gland)):
+        if given and anatomy is None:
+            raise UserError(f"{option}: only with --anatomy (labels of a label map)")
     design = load_design(config) if config is not None else BIPDesign()
     if anatomy is not None:
         from softphantom.design.anatomy import AnatomyOptions, design_from_anatomy, load_anatomy
 
         with status(f"importing the anatomy {anatomy}", console):
-            gland = load_anatomy(anatomy, AnatomyOptions(urethra_label=urethra_label, surface_size_mm=surface_size_mm,
-                                                         lesion_labels=lesions))
-            design = design_from_anatomy(gland, design, name=f"{design.name}_anatomy")
-        vox = "" if gland.voxel_volume_mm3 is None else (
-            f" (label voxel count {gland.voxel_volume_mm3:.0f} mm³, {100 * (gland.volume_mm3 / gland.voxel_volume_mm3 - 1):+.2f} %)")
-        console.print(f"anatomy: bulb surface {len(gland.faces)} triangles, {gland.volume_mm3:.0f} mm³{vox}",
+            imported = load_anatomy(anatomy, AnatomyOptions(gland_labels=gland, urethra_label=urethra_label,
+                                                            surface_size_mm=surface_size_mm, lesion_labels=lesions))
+            template = design
+            design = design_from_anatomy(imported, template, name=f"{design.name}_anatomy")
+        vox = "" if imported.voxel_volume_mm3 is None else (
+            f" (label voxel count {imported.voxel_volume_mm3:.0f} mm³, "
+            f"{100 * (imported.volume_mm3 / imported.voxel_volume_mm3 - 1):+.2f} %)")
+        console.print(f"anatomy: bulb surface {len(imported.faces)} triangles, {imported.volume_mm3:.0f} mm³{vox}",
                       highlight=False)
-        from softphantom.design.anatomy import lesion_report
+        from softphantom.design.anatomy import import_report
 
-        for line in lesion_report(gland):
+        for line in import_report(imported, template, design):
             console.print(line, highlight=False, markup=False)
     from softphantom.fem.model import laws_of_design
 

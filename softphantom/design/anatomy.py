@@ -1,14 +1,16 @@
 """A patient's prostate as the bulb of a design: a label map (NIfTI) or a closed surface (STL/OBJ).
 
 Label map (read by nibabel; world coordinates from its affine, RAS+ mm as NIfTI defines them):
-every non-zero voxel is gland (``bulb``); label ``urethra_label`` (default 2) is the urethra, the
-labels in ``lesion_labels`` are lesions: each becomes a design lesion ``[layers.lesions.labelN]``,
-the axis-aligned ellipsoid of its voxels' centroid and second moments (:func:`lesion_report` gives
-its volume against the voxel count). The gland must be one connected component (26-connectivity). Its surface: the mask
-resampled to ``resample_mm`` (linear), smoothed by a Gaussian of ``smooth_mm``, marching cubes at
-the 0.5 level (scikit-image), then an even remesh at ``surface_size_mm`` by gmsh (its surface
-classification and reparametrization). On MRI-like spacing (0.5 × 0.5 × 3 mm) the enclosed
-volume stays within 2 % of the voxel count (tests/test_anatomy.py).
+the gland (``bulb``) is the union of ``gland_labels`` (e.g. a data set's peripheral and
+transition zones, 1 and 2) with the urethra's and the lesions' labels, or every non-zero voxel
+without ``gland_labels``; label ``urethra_label`` (default 2) is the urethra, the labels in
+``lesion_labels`` are lesions: each becomes a design lesion ``[layers.lesions.labelN]``, the
+axis-aligned ellipsoid of its voxels' centroid and second moments (:func:`lesion_report` gives its
+volume against the voxel count). The gland must be one connected component (26-connectivity). Its
+surface: the mask resampled to ``resample_mm`` (linear), smoothed by a Gaussian of ``smooth_mm``,
+marching cubes at the 0.5 level (scikit-image), then an even remesh at ``surface_size_mm`` by
+gmsh (its surface classification and reparametrization). On MRI-like spacing (0.5 × 0.5 × 3 mm)
+the enclosed volume stays within 2 % of the voxel count (tests/test_anatomy.py).
 
 Surface file (trimesh): must be closed, consistently oriented and not self-intersecting
 (design/solid_check.py); it is remeshed the same way.
@@ -17,10 +19,16 @@ Placement in the model frame (docs/architecture.md): the input's RAS axes are fi
 model's (x = left, y = superior = perineum → base, z = anterior); the gland's centroid goes to the
 origin and its principal axes (of the enclosed volume's inertia) to the model axes they are
 closest to. The urethra (label) becomes the design's capsule: centroid, principal axis, length
-along it, volume from the voxel count, radius from length and volume; its inlet is where its axis
-leaves the bulb towards the base. Arms keep the design's directions and attach where those leave
-the new surface; markers are re-projected along their directions; targets are scaled with the
-gland's extent. Bad input is one line naming the problem and the value.
+along it, volume from the voxel count, radius from length and volume; without urethra voxels (or
+from a surface) it lies along the principal axis the placement turned to y (the one nearest the
+template's urethra axis) through the centroid (:func:`axis_urethra`). Its inlet is where its axis
+leaves the bulb towards the base. The template's arms (lengths, radius, embedding, cavity offset)
+and urethra radius are scaled by the cube root of the gland's volume over the template's
+(:func:`part_scale`; cavity volumes by its cube; walls kept at the design's minimum or more), the
+arms keep the design's directions and attach where those leave the new surface; markers are
+re-projected along their directions; targets are scaled with the gland's extent. Bad input is one
+line naming the problem and the value; a part that cannot be made valid is one line naming it and
+what fixes it.
 """
 
 from __future__ import annotations
@@ -32,7 +40,8 @@ from pathlib import Path
 
 import numpy as np
 
-from softphantom.design.params import BIPDesign, BulbParams, UrethraParams
+from softphantom.design import geometry as geo
+from softphantom.design.params import MIN_WALL_MM, ArmParams, BIPDesign, BulbParams, UrethraParams
 from softphantom.errors import DesignError, FileFormatError
 
 # RAS+ (NIfTI world) → model frame: x = left (−R), y = superior, z = anterior (a proper rotation)
@@ -41,8 +50,10 @@ RAS_TO_MODEL = np.array([[-1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, 1.0, 0.0]])
 
 @dataclass(frozen=True)
 class AnatomyOptions:
-    """How a label map or surface becomes a bulb (lengths in mm)."""
+    """How a label map or surface becomes a bulb (lengths in mm). ``gland_labels``: the labels
+    whose union is the gland (with the urethra's and the lesions'); empty: every non-zero label."""
 
+    gland_labels: tuple[int, ...] = ()
     urethra_label: int = 2
     lesion_labels: tuple[int, ...] = ()
     resample_mm: float = 1.0
@@ -106,10 +117,81 @@ def _coarsen(mesh, faces: int = 6000):
     return mesh
 
 
+def _geodesic_sphere(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """(vertices, faces) of the unit sphere: each face of an icosahedron split into n² triangles
+    (a class I geodesic polyhedron), outward.
+
+    >>> v, f = _geodesic_sphere(3)
+    >>> len(v), len(f)  # 10 n² + 2 vertices, 20 n² faces
+    (92, 180)
+    """
+    import trimesh
+
+    ico = trimesh.creation.icosahedron()
+    corners = np.asarray(ico.vertices)[np.asarray(ico.faces)]  # (20, 3, 3)
+    ij = [(i, j) for i in range(n + 1) for j in range(n + 1 - i)]
+    at = {k: m for m, k in enumerate(ij)}
+    w = np.array([[1.0 - (i + j) / n, i / n, j / n] for i, j in ij])
+    pts = np.einsum("pk,fkx->fpx", w, corners).reshape(-1, 3)
+    pts /= np.linalg.norm(pts, axis=1, keepdims=True)
+    local = [(at[i, j], at[i + 1, j], at[i, j + 1]) for i in range(n) for j in range(n - i)]
+    local += [(at[i + 1, j], at[i + 1, j + 1], at[i, j + 1]) for i in range(n) for j in range(n - i - 1)]
+    faces = (np.arange(len(corners))[:, None, None] * len(ij) + np.array(local)[None]).reshape(-1, 3)
+    # the points on shared edges come once per face: merge them
+    _, first, inverse = np.unique(np.round(pts, 9), axis=0, return_index=True, return_inverse=True)
+    order = np.argsort(first)
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    faces = rank[inverse.ravel()][faces]
+    verts = pts[first[order]]
+    tri = verts[faces]
+    if np.einsum("ij,ij->", np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), tri[:, 0]) < 0.0:
+        faces = faces[:, ::-1]
+    return verts, faces
+
+
+def _radial_remesh(mesh, size_mm: float, min_angle_deg: float = 20.0):
+    """An even triangulation of ``mesh`` at about ``size_mm``: a geodesic sphere (n from the area)
+    stretched by the surface's extents along its principal axes and cast from its centroid, each
+    vertex where its ray leaves the surface. Each triangle lies in its own cone from the centroid,
+    so the result cannot intersect itself. None where a ray meets the surface other than once (not
+    star-shaped from the centroid) or a triangle's smallest angle is below ``min_angle_deg``."""
+    import trimesh
+
+    c = np.asarray(mesh.center_mass, float)
+    _, axes = np.linalg.eigh(np.asarray(mesh.moment_inertia, float))
+    extent = np.abs((np.asarray(mesh.vertices) - c) @ axes).max(axis=0)
+    n = max(2, int(round(math.sqrt(mesh.area / (20.0 * math.sqrt(3.0) / 4.0 * size_mm**2)))))
+    unit, faces = _geodesic_sphere(n)
+    rays = (unit * extent) @ axes.T
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    hits, ray, _ = mesh.ray.intersects_location(np.repeat(c[None], len(rays), axis=0), rays, multiple_hits=True)
+    dist = np.einsum("ij,ij->i", hits - c, rays[ray])
+    # a ray through an edge or a vertex reports the same point from each face there
+    order = np.lexsort((dist, ray))
+    r, d = ray[order], dist[order]
+    distinct = np.ones(len(r), bool)
+    distinct[1:] = (r[1:] != r[:-1]) | (np.diff(d) > 1e-6 * extent.max())
+    if np.any(np.bincount(r[distinct], minlength=len(rays)) != 1):
+        return None
+    far = np.zeros(len(rays))
+    np.maximum.at(far, ray, dist)
+    out = trimesh.Trimesh(c + far[:, None] * rays, faces, process=False)
+    if np.degrees(out.face_angles.min()) < min_angle_deg:
+        return None
+    return out
+
+
 def _remesh(mesh, size_mm: float, what: str):
-    """An even triangulation of a closed surface at about ``size_mm`` (gmsh: the surface is
-    classified into patches, reparametrized and meshed again). Quadric decimation alone keeps the
-    volume but leaves needle triangles (0.1° angles) that become degenerate tetrahedra."""
+    """An even triangulation of a closed surface at about ``size_mm``: :func:`_radial_remesh`, or
+    for a surface it refuses, gmsh's (the surface classified into patches, reparametrized and
+    meshed again; on some decimated label maps that fails or does not return). Quadric decimation
+    alone keeps the volume but leaves needle triangles (0.1° angles) that become degenerate tetrahedra."""
+    out = _radial_remesh(mesh, size_mm)
+    return out if out is not None else _gmsh_remesh(mesh, size_mm, what)
+
+
+def _gmsh_remesh(mesh, size_mm: float, what: str):
     import trimesh
 
     from softphantom.design.mesh import gmsh_session
@@ -222,8 +304,39 @@ def lesion_report(anatomy: "Anatomy") -> list[str]:
     return out
 
 
+def import_report(anatomy: "Anatomy", template: BIPDesign, design: BIPDesign) -> list[str]:
+    """What the import made of the template: the parts' scale, where the urethra came from, then
+    :func:`lesion_report`'s lines."""
+    u = design.urethra
+    where = ("fitted to its label's voxels" if anatomy.urethra is not None else
+             "not labelled, placed along the gland's principal axis through its centroid")
+    return [f"parts: the template's arms and urethra radius scaled by {part_scale(anatomy, template):.3f} (the cube "
+            f"root of {anatomy.volume_mm3 / 1e3:.1f} mL over the template's {template.bulb.volume_mm3 / 1e3:.1f} mL)",
+            f"urethra: {where}; radius {u.radius_mm:.2f} mm, length {u.cyl_length_mm + 2 * u.radius_mm:.1f} mm, "
+            f"{u.volume_mm3:.0f} mm³, inlet ({', '.join(f'{x:.1f}' for x in u.inlet_mm)}) mm",
+            *lesion_report(anatomy)]
+
+
 def lesion_name(label: int) -> str:
     return f"label{int(label)}"
+
+
+def _gland_mask(data: np.ndarray, opt: AnatomyOptions, source: str) -> np.ndarray:
+    """The gland's voxels: the union of ``gland_labels`` with the urethra's and the lesions' labels
+    (both lie inside the gland), or every non-zero voxel without ``gland_labels``."""
+    if not opt.gland_labels:
+        return data > 0
+    for lab in opt.gland_labels:
+        if lab <= 0:
+            raise DesignError(f"{source}: gland label {lab} must be > 0 (--gland-labels)")
+        if lab == opt.urethra_label or lab in opt.lesion_labels:
+            raise DesignError(f"{source}: gland label {lab} is also the urethra's or a lesion's label "
+                              "(--gland-labels, --urethra-label 0 for none, --lesion-labels)")
+        if not np.any(data == lab):
+            raise DesignError(f"{source}: gland label {lab} has no voxels (--gland-labels; labels present: "
+                              f"{sorted(int(x) for x in np.unique(data) if x > 0)[:10]})")
+    extra = (opt.urethra_label,) if opt.urethra_label > 0 else ()
+    return np.isin(data, (*opt.gland_labels, *extra, *opt.lesion_labels))
 
 
 def anatomy_from_labels(data: np.ndarray, affine: np.ndarray, opt: AnatomyOptions = AnatomyOptions(),
@@ -238,7 +351,7 @@ def anatomy_from_labels(data: np.ndarray, affine: np.ndarray, opt: AnatomyOption
         if not np.all(np.isfinite(data)) or np.any(data != np.round(data)):
             raise FileFormatError(f"{source}: labels must be integers")
         data = data.astype(np.int64)
-    mask = data > 0
+    mask = _gland_mask(data, opt, source)
     n, sizes = _components(mask)
     if n == 0:
         raise DesignError(f"{source}: no labelled voxels (the gland has 0 components)")
@@ -280,8 +393,9 @@ def anatomy_from_labels(data: np.ndarray, affine: np.ndarray, opt: AnatomyOption
 
 def anatomy_from_surface(mesh, opt: AnatomyOptions = AnatomyOptions(), source: str = "surface") -> Anatomy:
     """A gland from a closed triangle surface (mm, RAS-oriented like a label map's world)."""
-    if opt.lesion_labels:
-        raise DesignError(f"{source}: lesion labels {list(opt.lesion_labels)} need a label map (a surface has none)")
+    for what, given in (("lesion", opt.lesion_labels), ("gland", opt.gland_labels)):
+        if given:
+            raise DesignError(f"{source}: {what} labels {list(given)} need a label map (a surface has none)")
     _check_surface(mesh, source)
     mesh = _remesh(_coarsen(mesh), opt.surface_size_mm, source)
     _check_surface(mesh, f"{source} (remeshed)")
@@ -318,45 +432,123 @@ def load_anatomy(path: str | Path, opt: AnatomyOptions = AnatomyOptions()) -> An
     raise FileFormatError(f"{path}: unknown anatomy format (expected .nii, .nii.gz, .stl, .obj or .ply)")
 
 
-def _project(bulb: BulbParams, direction) -> tuple[float, float, float]:
+def _project(bulb: BulbParams, name: str, direction) -> tuple[float, float, float]:
     s = bulb.ray_exit((0.0, 0.0, 0.0), direction)
     if s is None:
-        raise DesignError(f"anatomy: the direction {tuple(direction)} misses the gland")
+        raise DesignError(f"markers.{name}: the direction {tuple(direction)} misses the gland")
     p = s * np.asarray(direction, float) / np.linalg.norm(direction)
     return tuple(float(x) for x in p)  # type: ignore[return-value]
 
 
+def part_scale(anatomy: Anatomy, base: BIPDesign) -> float:
+    """The factor on the template's lengths: the cube root of the gland's volume over the
+    template bulb's (0.776 for a 47 mL gland against the paper's 100.41 mL)."""
+    return float((anatomy.volume_mm3 / base.bulb.volume_mm3) ** (1.0 / 3.0))
+
+
+def _scaled_arm(arm: ArmParams, s: float) -> ArmParams:
+    """``arm`` with its lengths times ``s`` and its cavity volume times s³, its wall kept at the
+    design's minimum or more; sharp junction (OCC rounds smooth surfaces only, not a triangulated
+    gland's)."""
+    return dataclasses.replace(
+        arm, length_mm=arm.length_mm * s, radius_mm=arm.radius_mm * s, wall_mm=max(arm.wall_mm * s, MIN_WALL_MM),
+        cavity_offset_mm=arm.cavity_offset_mm * s, embed_mm=arm.embed_mm * s,
+        axis_point_mm=tuple(float(x) * s for x in arm.axis_point_mm), cavity_volume_mm3=arm.cavity_volume_mm3 * s**3,
+        junction_fillet_mm=0.0)
+
+
+def _chord(bulb: BulbParams, point, axis) -> tuple[float, float]:
+    """(backward, forward) distances from ``point`` to where the line along ``axis`` leaves ``bulb``."""
+    fwd, back = bulb.ray_exit(point, axis), bulb.ray_exit(point, -np.asarray(axis, float))
+    if fwd is None or back is None or fwd <= 0.0 or back <= 0.0:
+        raise DesignError(f"urethra: the line along {tuple(np.round(axis, 3))} through "
+                          f"{tuple(np.round(point, 1))} mm does not cross the gland")
+    return float(back), float(fwd)
+
+
+def axis_urethra(bulb: BulbParams, template: BIPDesign, s: float) -> UrethraParams:
+    """A urethra for a gland without a urethra label: along the model's y (the principal axis
+    the placement turned there, the one nearest the template's +y) through the gland's centroid
+    (the origin), centred on the chord it cuts; radius the template's times ``s``, total length the
+    same fraction of that chord as the template's of its own (0.72 for the paper's BIP); the inlet
+    where the axis leaves the gland at +y.
+
+    >>> u = axis_urethra(BIPDesign().bulb, BIPDesign(), 1.0)  # the template itself: its radius, on y
+    >>> u.radius_mm, u.axis, [round(x, 6) for x in u.center_mm]
+    (4.5, (0.0, 1.0, 0.0), [0.0, 0.0, 0.0])
+    """
+    t = template.urethra
+    ta, tb = t.segment_mm
+    tback, tfwd = _chord(template.bulb, np.asarray(t.center_mm, float), geo.unit(t.axis))
+    frac = (float(np.linalg.norm(tb - ta)) + 2.0 * t.radius_mm) / (tback + tfwd)
+    axis = np.array([0.0, 1.0, 0.0])
+    back, fwd = _chord(bulb, np.zeros(3), axis)
+    r = t.radius_mm * s
+    length = max(frac * (back + fwd), 2.0 * r + 1e-3)  # no shorter than its sphere
+    c = 0.5 * (fwd - back) * axis
+    return UrethraParams(radius_mm=r, volume_mm3=geo.capsule_volume(r, length - 2.0 * r),
+                         center_mm=tuple(float(x) for x in c), axis=tuple(float(x) for x in axis),
+                         inlet_mm=tuple(float(x) for x in c + bulb.ray_exit(c, axis) * axis))
+
+
+def _fitted_urethra(bulb: BulbParams, u: dict) -> UrethraParams:
+    c, axis = np.asarray(u["center_mm"]), np.asarray(u["axis"])
+    s = bulb.ray_exit(c, axis)
+    if s is None:
+        raise DesignError("urethra: the urethra label's axis does not leave the gland")
+    return UrethraParams(radius_mm=float(u["radius_mm"]), volume_mm3=float(u["volume_mm3"]),
+                         center_mm=tuple(float(x) for x in c), axis=tuple(float(x) for x in axis),
+                         inlet_mm=tuple(float(x) for x in c + s * axis))
+
+
+#: what fixes a part the import could not make valid, by the part its message starts with
+_FIXES = {
+    "urethra": "a smaller [urethra] radius_mm in --config (the principal-axis urethra's, before the scaling), "
+               "or a urethra label (--urethra-label)",
+    "arms": "[arms.{name}] radius_mm, embed_mm or direction in --config (before the scaling)",
+    "markers": "[markers] in --config (points whose directions from the centre miss the arms)",
+    "targets": "[targets] in --config",
+    "interaction": "[interaction] offcentre_mm in --config",
+    "layers": "--lesion-labels without that label",
+}
+
+
 def design_from_anatomy(anatomy: Anatomy, base: BIPDesign | None = None, name: str = "anatomy") -> BIPDesign:
-    """``base`` (default: the paper's BIP) with the gland's surface, urethra, markers and targets."""
+    """``base`` (default: the paper's BIP) with the gland's surface and urethra (its label's fit,
+    else :func:`axis_urethra`); the arms and urethra radius scaled by :func:`part_scale`, markers
+    projected along their directions, targets scaled with the gland's extent. A part that still
+    cannot be made valid raises a one-line DesignError naming it and the option that fixes it."""
     base = base or BIPDesign()
+    s = part_scale(anatomy, base)
+    try:
+        return _design_from_anatomy(anatomy, base, name, s)
+    except DesignError as exc:
+        msg = str(exc)
+        path = msg.split(":", 1)[0].split(" ", 1)[0].split(".")
+        fix = _FIXES.get(path[0])
+        if fix is None:
+            raise
+        fix = fix.format(name=path[1] if len(path) > 1 else "NAME")
+        raise DesignError(f"{msg} [a {anatomy.volume_mm3 / 1e3:.1f} mL gland, the template's parts scaled by "
+                          f"{s:.3f}; fix: {fix}]") from None
+
+
+def _design_from_anatomy(anatomy: Anatomy, base: BIPDesign, name: str, s: float) -> BIPDesign:
     v = anatomy.vertices_mm
     half = 0.5 * (v.max(axis=0) - v.min(axis=0))
     bulb = BulbParams(semi_axes_mm=tuple(float(x) for x in half),
                       surface_vertices_mm=tuple(tuple(float(x) for x in p) for p in v),
                       surface_faces=tuple(tuple(int(k) for k in f) for f in anatomy.faces))
-    urethra = base.urethra
-    if anatomy.urethra is not None:
-        u = anatomy.urethra
-        c, axis = np.asarray(u["center_mm"]), np.asarray(u["axis"])
-        s = bulb.ray_exit(c, axis)
-        if s is None:
-            raise DesignError("anatomy: the urethra's axis does not leave the gland")
-        urethra = UrethraParams(radius_mm=float(u["radius_mm"]), volume_mm3=float(u["volume_mm3"]),
-                                center_mm=tuple(float(x) for x in c), axis=tuple(float(x) for x in axis),
-                                inlet_mm=tuple(float(x) for x in c + s * axis))
-    else:
-        c, axis = np.asarray(urethra.center_mm), np.asarray(urethra.axis, float)
-        urethra = dataclasses.replace(urethra, inlet_mm=tuple(float(x) for x in c + bulb.ray_exit(c, axis) * axis
-                                                              / np.linalg.norm(axis)))
-    markers = tuple((k, _project(bulb, p)) for k, p in base.markers)
+    urethra = axis_urethra(bulb, base, s) if anatomy.urethra is None else _fitted_urethra(bulb, anatomy.urethra)
+    markers = tuple((k, _project(bulb, k, p)) for k, p in base.markers)
     scale = half / np.asarray(base.bulb.semi_axes_mm)
     ua, ub = urethra.segment_mm
     targets = []
     for k, p in base.targets:
         q = np.asarray(p) * scale
         # a target that the new urethra swallowed moves out radially to 3 mm from its wall
-        s = np.clip((q - ua) @ (ub - ua) / max(float((ub - ua) @ (ub - ua)), 1e-12), 0.0, 1.0)
-        foot = ua + s * (ub - ua)
+        t = np.clip((q - ua) @ (ub - ua) / max(float((ub - ua) @ (ub - ua)), 1e-12), 0.0, 1.0)
+        foot = ua + t * (ub - ua)
         if np.linalg.norm(q - foot) < urethra.radius_mm + 3.0:
             radial = q - foot
             if np.linalg.norm(radial) < 1e-9:
@@ -364,8 +556,7 @@ def design_from_anatomy(anatomy: Anatomy, base: BIPDesign | None = None, name: s
                     np.array([1.0, 0.0, 0.0])
             q = foot + (urethra.radius_mm + 3.0) * radial / np.linalg.norm(radial)
         targets.append((k, tuple(float(x) for x in q)))
-    # OCC rounds smooth surfaces only: an imported (triangulated) gland keeps sharp arm junctions
-    arms = tuple(dataclasses.replace(_arm_clear_of_urethra(a, bulb, urethra), junction_fillet_mm=0.0) for a in base.arms)
+    arms = tuple(_arm_clear_of_urethra(_scaled_arm(a, s), bulb, urethra) for a in base.arms)
     out = dataclasses.replace(base, name=name, bulb=bulb, urethra=urethra, arms=arms, markers=markers,
                               targets=tuple(targets))
     if anatomy.lesions:  # each lesion label becomes a lesion region, in the bulb's material unless set
@@ -410,8 +601,7 @@ def _clear_of_arm_cuts(design: BIPDesign, frac: float = 0.3):
 def _arm_clear_of_urethra(arm, bulb: BulbParams, urethra: UrethraParams, margin_mm: float = 0.5):
     """``arm`` with its embedding shortened, if needed, so that it keeps the design's minimum wall
     (plus ``margin_mm``) to a fitted urethra, which may lie closer to the surface than the default."""
-    from softphantom.design import geometry as geo
-    from softphantom.design.params import MIN_WALL_MM, _arm_geometry
+    from softphantom.design.params import _arm_geometry
 
     ua, ub = urethra.segment_mm
 
@@ -422,10 +612,44 @@ def _arm_clear_of_urethra(arm, bulb: BulbParams, urethra: UrethraParams, margin_
     need = MIN_WALL_MM + margin_mm
     if gap(arm.embed_mm) >= need:
         return arm
-    lo, hi = 3.0, arm.embed_mm  # the arm still reaches 3 mm into the gland
+    lo, hi = min(3.0, arm.embed_mm), arm.embed_mm  # the arm still reaches 3 mm into the gland
     if gap(lo) < need:
         return arm  # validation names the problem
     for _ in range(30):
         mid = 0.5 * (lo + hi)
         lo, hi = (mid, hi) if gap(mid) >= need else (lo, mid)
     return dataclasses.replace(arm, embed_mm=round(lo, 3))
+
+
+#: half axes (R-L, A-P, S-I, mm) of :func:`zonal_label_map`'s gland before its scaling: 45.2 mL
+ZONAL_SEMI_RAS_MM = (25.0, 18.0, 24.0)
+
+
+def zonal_label_map(volume_mL: float, tilt_deg: float = 0.0, spacing_mm=(0.6, 0.6, 4.0), fov_mm=None):
+    """A synthetic prostate label map as the public zonal data sets publish theirs: an ellipsoidal
+    gland of ``volume_mL`` (:data:`ZONAL_SEMI_RAS_MM` scaled) tilted by ``tilt_deg`` about R-L (its
+    S-I axis towards anterior), a transition zone (label 2, the concentric ellipsoid of 0.65 × the
+    semi-axes) inside a peripheral-zone shell (label 1), no urethra label, thick slices of
+    ``spacing_mm``; the field of view ``fov_mm`` (default: the gland plus 8 mm each side), centred
+    on the gland. Returns (data int16, affine RAS mm, semi-axes mm, the gland's axes as columns in RAS).
+
+    >>> data, affine, semi, axes = zonal_label_map(47.0)
+    >>> sorted(set(data.ravel().tolist())), float(affine[2, 2])
+    ([0, 1, 2], 4.0)
+    >>> round(float((data > 0).sum() * abs(np.linalg.det(affine[:3, :3]))) / 1e3, 0)  # mL, the voxels'
+    47.0
+    """
+    sp = np.asarray(spacing_mm, float)
+    base = np.asarray(ZONAL_SEMI_RAS_MM, float)
+    semi = base * (volume_mL * 1e3 / (4.0 / 3.0 * np.pi * np.prod(base))) ** (1.0 / 3.0)
+    fov = np.full(3, 2.0 * semi.max() + 16.0) if fov_mm is None else np.asarray(fov_mm, float)
+    shape = tuple(int(n) for n in np.ceil(fov / sp))
+    c, s = np.cos(np.radians(tilt_deg)), np.sin(np.radians(tilt_deg))
+    axes = np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])  # the tilt turns S-I (column 2) towards A
+    affine = np.diag([*sp, 1.0])
+    affine[:3, 3] = -0.5 * (np.array(shape) - 1) * sp
+    q = (np.indices(shape).transpose(1, 2, 3, 0) * sp + affine[:3, 3]) @ axes  # along the gland's axes
+    data = np.zeros(shape, np.int16)
+    data[np.linalg.norm(q / semi, axis=-1) < 1.0] = 1
+    data[np.linalg.norm(q / (0.65 * semi), axis=-1) < 1.0] = 2
+    return data, affine, semi, axes

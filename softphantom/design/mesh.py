@@ -34,7 +34,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from softphantom.design.occ_shapes import bulb_solid, capsule, filleted_body
+from softphantom.design.occ_shapes import arm_cylinder, bulb_solid, capsule, filleted_body, seam_side
 from softphantom.design.params import ARM_NAMES, MAX_CAVITY_SEGMENTS, BIPDesign, MeshParams
 from softphantom.errors import DesignError, MeshError
 
@@ -263,7 +263,8 @@ def _build(design: BIPDesign, mp: MeshParams) -> dict:
     occ = gmsh.model.occ
     bulb = bulb_solid(occ, design.bulb)  # an ellipsoid, or an anatomy surface (design/occ_shapes.py)
     geoms = design.arm_geometry()
-    arms = [occ.addCylinder(*g.start_mm, *(g.end_mm - g.start_mm), g.radius_mm) for g in geoms]
+    arms = [arm_cylinder(occ, g.start_mm, g.end_mm, g.radius_mm, seam_side(design.bulb, g.start_mm, g.end_mm, g.radius_mm))
+            for g in geoms]
     cavities = [capsule(occ, *g.cavity_segment_mm, g.cavity_radius_mm) for g in geoms]
     ua, ub = design.urethra.segment_mm
     cavities.append(capsule(occ, ua, ub, design.urethra.radius_mm))

@@ -86,6 +86,58 @@ def capsule(occ, a, b, r: float) -> int:
     return out[0]
 
 
+def seam_side(bulb, start, end, radius: float, n: int = 72) -> np.ndarray | None:
+    """For a surface bulb: the side (a unit vector normal to the arm's axis) on which the seam of
+    the arm's cylinder should run, the one of ``n`` where it crosses the bulb's triangles farthest
+    from their edges; None for an ellipsoid. OCC's cylinder has a seam line (where its angle wraps
+    round); where it crosses the surface on a triangle's edge, the cut makes two vertices µm apart
+    there, and the tets between them slivers (0.01-0.05° on an imported gland whose edges lie in the
+    arms' planes, as the template's arms' seams do)."""
+    if not bulb.is_surface:
+        return None
+    from softphantom.design import geometry as geo
+    from softphantom.design.surface import surface_mesh
+
+    mesh = surface_mesh(bulb.surface_vertices_mm, bulb.surface_faces)
+    start, end = np.asarray(start, float), np.asarray(end, float)
+    u, v, d = geo.orthonormal_frame(end - start)
+    phi = 2.0 * math.pi * np.arange(n) / n
+    sides = np.outer(np.cos(phi), u) + np.outer(np.sin(phi), v)
+    hits, ray, tri = mesh.ray.intersects_location(start + radius * sides, np.repeat(d[None], n, axis=0),
+                                                  multiple_hits=True)
+    corners = np.asarray(mesh.vertices)[np.asarray(mesh.faces)[tri]]  # (hits, 3, 3)
+    gap = np.full(n, np.inf)
+    for i, j in ((0, 1), (1, 2), (2, 0)):
+        a, ab = corners[:, i], corners[:, j] - corners[:, i]
+        t = np.clip(np.einsum("ij,ij->i", hits - a, ab) / np.einsum("ij,ij->i", ab, ab), 0.0, 1.0)
+        np.minimum.at(gap, ray, np.linalg.norm(hits - a - t[:, None] * ab, axis=1))
+    gap[np.bincount(ray, minlength=n) == 0] = -np.inf  # a seam that never meets the surface: not chosen
+    return sides[int(np.argmax(gap))]
+
+
+def arm_cylinder(occ, start, end, radius: float, seam=None) -> int:
+    """The cylinder from ``start`` to ``end``; with ``seam`` (a unit vector normal to its axis, see
+    :func:`seam_side`) built on z and turned so that its seam runs on that side; returns its tag."""
+    start, end = np.asarray(start, float), np.asarray(end, float)
+    if seam is None:
+        return occ.addCylinder(*start, *(end - start), radius)
+    length = float(np.linalg.norm(end - start))
+    d = (end - start) / length
+    tag = occ.addCylinder(0.0, 0.0, 0.0, 0.0, 0.0, length, radius)  # OCC puts its seam on +x
+    z = np.array([0.0, 0.0, 1.0])
+    axis, cos = np.cross(z, d), float(z @ d)
+    if np.linalg.norm(axis) < 1e-12:
+        axis = np.array([1.0, 0.0, 0.0])  # d = ±z: a half turn about x for -z, none for +z
+    angle = math.atan2(float(np.linalg.norm(np.cross(z, d))), cos)
+    k = axis / np.linalg.norm(axis)
+    turn = math.cos(angle) * np.eye(3) + math.sin(angle) * np.array(
+        [[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]]) + (1.0 - math.cos(angle)) * np.outer(k, k)
+    local = turn.T @ np.asarray(seam, float)  # the seam's side before the turn, normal to z
+    occ.rotate([(3, tag)], 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, math.atan2(float(local[1]), float(local[0])))
+    occ.rotate([(3, tag)], 0.0, 0.0, 0.0, *k, angle)
+    occ.translate([(3, tag)], *start)
+    return tag
+
 
 def _on_side(surface: int, root: np.ndarray, axis: np.ndarray, radius: float) -> bool:
     """Whether the face's parametric mid-point lies on the side of the cylinder (root, axis, radius)."""
