@@ -24,6 +24,9 @@ _THREAD_VARS = {"blas": ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"), "openmp": (
 _user_set = {v for v in (*_THREAD_VARS["blas"], *_THREAD_VARS["openmp"]) if v in _os.environ}
 for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "OMP_THREAD_LIMIT"):
     _os.environ.setdefault(_var, "1")
+# MKL's OpenMP runtime (PARDISO, the pardiso extra) warns on stderr when CHOLMOD asks for its team of
+# 4 under that limit: the limit is meant.
+_os.environ.setdefault("KMP_WARNINGS", "0")
 if "numpy" in _sys.modules:  # pools already loaded, sized before the defaults above
     from threadpoolctl import threadpool_limits as _limits
 

@@ -251,6 +251,34 @@ def test_indefinite_tangent_takes_ldlt_not_lu(monkeypatch):
     assert np.allclose(x, np.linalg.solve(K.toarray(), b), rtol=1e-8, atol=1e-10)
 
 
+def test_pardiso_ldlt_solves_an_indefinite_matrix_and_counts_its_negative_eigenvalues(cube):
+    """MKL PARDISO's LDLᵀ (the ``pardiso`` extra) on symmetric matrices with 0, 1 and several
+    negative eigenvalues: the dense solve's answer, and the inertia that numpy's eigenvalues give
+    (Sylvester); a copy's factor outlives a refactorization of the original, as the other methods'."""
+    from softphantom.fem.solve import have_pardiso, indefinite_method
+
+    if not have_pardiso():
+        pytest.skip("the pardiso extra (pypardiso, MKL) is not installed")
+    import scipy.sparse as sp
+
+    assert indefinite_method() == "pardiso"
+    X, T = cube
+    fem = build_fem(X, T, MAT, fixed_nodes=np.flatnonzero(X[:, 2] < 1e-9))
+    K = free_tangent(fem, fem.x_rest).toarray()
+    w, Q = np.linalg.eigh(K)
+    b = np.random.default_rng(5).standard_normal((len(K), 3))
+    for n_neg in (0, 1, 4):
+        shifted = w.copy()
+        shifted[:n_neg] = -w[:n_neg] - 0.5 * w[n_neg]  # the softest modes turned negative
+        A = sp.csr_matrix((Q * shifted) @ Q.T)
+        s = SparseSolver("pardiso").factorize(A)
+        assert s.negative_eigenvalues == n_neg == int((np.linalg.eigvalsh(A.toarray()) < 0).sum())
+        assert np.abs(s.solve(b) - np.linalg.solve(A.toarray(), b)).max() < 1e-8 * np.abs(np.linalg.solve(A.toarray(), b)).max()
+        kept = s.copy()
+        s.factorize(sp.csr_matrix(2.0 * A.toarray()))
+        assert np.allclose(kept.solve(b[:, 0]), 2.0 * s.solve(b[:, 0]), rtol=1e-8, atol=0)
+
+
 def test_newton_step_on_an_indefinite_tangent_is_a_shifted_cholesky(monkeypatch):
     """Where the tangent is not positive definite, the Newton direction comes from a shifted
     Cholesky on the same symbolic analysis (a descent direction of the energy), not from the exact

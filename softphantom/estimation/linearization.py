@@ -30,6 +30,7 @@ from softphantom.fem import (
     cavity_volume,
     cavity_volume_gradient,
     free_tangent,
+    indefinite_method,
     internal_force,
     pressure_load,
     solve_static,
@@ -126,7 +127,8 @@ class EquilibriumSolver:
         self._chol = SparseSolver(solver)
         self.lin = self._chol  # the kept factor (Cholesky, or LU where the tangent is indefinite)
         self.factorizations = 0
-        self.lu_factorizations = 0
+        self.lu_factorizations = 0  # of indefinite tangents (LDLᵀ or LU)
+        self._indefinite_next = False
         self._factored = False
         self._factor_at: tuple[np.ndarray, float] | None = None  # where the kept factor was made
         self.last_rate = 0.0  # mean chord contraction of the last solve
@@ -158,11 +160,19 @@ class EquilibriumSolver:
     def factorize(self, x: np.ndarray, p_u: float) -> None:
         """Factor the free tangent (with the urethra pressure's follower term) at ``x``."""
         K = free_tangent(self.fem, x, [(self._ur_tris, float(p_u))] if p_u else None)
-        try:
-            self.lin = self._chol.factorize(K)
-        except SolverError:  # indefinite consistent tangent (compression, pressure): LU
-            self.lin = SparseSolver("splu").factorize(K)
+        if self._indefinite_next:  # the last tangent was indefinite: its neighbour likely is too
+            self.lin = SparseSolver(indefinite_method()).factorize(K)
             self.lu_factorizations += 1
+            self._indefinite_next = bool(self.lin.negative_eigenvalues)
+        else:
+            try:
+                self.lin = self._chol.factorize(K)
+            except SolverError:  # indefinite consistent tangent (compression, pressure, a fold)
+                self.lin = SparseSolver(indefinite_method()).factorize(K)
+                self.lu_factorizations += 1
+                # with an inertia (PARDISO), the next factorization goes straight to LDLᵀ while
+                # the tangents stay indefinite: a failed Cholesky costs as much as a factorization
+                self._indefinite_next = bool(self.lin.negative_eigenvalues)
         self.factorizations += 1
         self._factored = True
         self._factor_at = (x.copy(), float(p_u))

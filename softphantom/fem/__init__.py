@@ -58,6 +58,8 @@ from softphantom.fem.solve import (
     StaticSolution,
     available_solvers,
     free_tangent,
+    have_pardiso,
+    indefinite_method,
     solve_static,
 )
 
@@ -83,6 +85,8 @@ __all__ = [
     "SparseSolver",
     "StaticSolution",
     "available_solvers",
+    "have_pardiso",
+    "indefinite_method",
     "build_fem",
     "cavity_volume",
     "cavity_volume_gradient",
