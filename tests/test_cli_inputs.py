@@ -33,6 +33,7 @@ BAD_INPUTS = [
     (["design", "--out", "o", "--anatomy", "z.nii.gz", "--urethra", "none"], "--urethra none"),
     (["design", "--out", "o", "--urethra", "label"], "--urethra"),
     (["design", "--out", "o", "--surface-size-mm", "0"], "--surface-size-mm"),
+    (["design", "--out", "o", "--element-order", "3"], "--element-order"),
     (["simulate", "--model", "m", "--out", "o", "--patch-radius-mm", "-1"], "--patch-radius-mm"),
     ([*EST, "--max-force-N", "0"], "--max-force-N"),
     ([*EST, "--qp-solver", "cvxopt"], "--qp-solver"),

@@ -13,7 +13,7 @@ from softphantom.design import load_model
 
 def test_design_command_writes_model_report_and_png(tmp_path, capsys):
     out = tmp_path / "d"
-    assert main(["design", "--out", str(out), "--mesh-size-mm", "12"]) == 0
+    assert main(["design", "--out", str(out), "--mesh-size-mm", "12", "--element-order", "1"]) == 0  # the envelope table
     for f in ("model.msh", "model.vtu", "model.npz", "design.toml", "report.md", "mesh.png"):
         assert (out / f).stat().st_size > 0, f
     assert (out / "mesh.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

@@ -16,6 +16,8 @@ from pathlib import Path
 
 import pytest
 
+import softphantom
+
 from softphantom.cli import main
 from softphantom.design import BIPDesign, design_from_dict
 from softphantom.design.mesh import (
@@ -32,14 +34,16 @@ from softphantom.virtual.scenario import MAX_DURATION_S, ScenarioError, scenario
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from subproc import sigint_default  # noqa: E402
 
+LINEAR = Path(softphantom.__file__).parent / "data" / "bip_default.toml"  # the linear design (6 mm, 4-node tets)
+
 
 def _design_refused(tmp_path, capsys, args, config: str | None = None) -> str:
     out = tmp_path / "o"
-    argv = ["design", "--out", str(out), "--no-png", *args]
+    argv = ["design", "--out", str(out), "--no-png", *args, "--config", str(LINEAR)]  # the sizes below are its
     if config is not None:
         cfg = tmp_path / "d.toml"
         cfg.write_text(config)
-        argv += ["--config", str(cfg)]
+        argv[-1] = str(cfg)
     assert main(argv) == 2
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and err.startswith("error: ") and "Traceback" not in err, err
@@ -104,9 +108,10 @@ def test_meshed_volumes_within_tolerance(coarse_model):
 
 def test_force_meshes_what_the_tolerance_refuses(tmp_path, capsys):
     out = tmp_path / "coarse"
-    assert main(["design", "--out", str(out), "--no-png", "--mesh-size-mm", "30"]) == 2
+    lin = ["--config", str(LINEAR)]  # the linear template's sizes (as the other guards)
+    assert main(["design", "--out", str(out), "--no-png", "--mesh-size-mm", "30", *lin]) == 2
     assert "tolerance" in capsys.readouterr().err
-    assert main(["design", "--out", str(out), "--no-png", "--mesh-size-mm", "30", "--force"]) == 0
+    assert main(["design", "--out", str(out), "--no-png", "--mesh-size-mm", "30", "--force", *lin]) == 0
     assert (out / "model.npz").is_file()
     # so coarse that a marker falls off the mesh: the observability is not solvable, said as a warning
     assert "warning: observability not checked:" in (out / "report.md").read_text()
@@ -171,7 +176,7 @@ def test_ctrl_c_stops_gmsh_exit_130_nothing_written(tmp_path):
         seen.extend(kids)
         return bool(kids)
 
-    r, _ = _interrupt(["design", "--out", "d", "--no-png", "--mesh-size-mm", "2"], tmp_path, meshing)
+    r, _ = _interrupt(["design", "--out", "d", "--no-png", "--mesh-size-mm", "2", "--config", str(LINEAR)], tmp_path, meshing)
     assert r.returncode == 130, r.stderr
     assert r.stderr.strip() == "interrupted"
     assert list(tmp_path.iterdir()) == []                      # no d/, no .d.partial-*

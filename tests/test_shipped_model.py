@@ -30,3 +30,32 @@ def test_the_shipped_models_atlas_keys_are_current():
         key = atlas_key(fwd, c)[:32]
         assert key == p["key"], (f"the shipped atlas piece f_y {p['f_y_N']} N is stale (key {p['key']}, this code "
                                  f"gives {key}): rebuild it with `{manifest['build']}` and update atlas.json")
+
+
+def test_the_shipped_atlas_verifies_and_holds_at_held_out_full_solves(capsys):
+    """The default model's atlas ships in the package (one file per piece, by key): intact, of this
+    model (``atlas verify`` recomputes the keys), found by a model directory that ``design`` writes
+    by default (no build), and within the held-out goals at two seeded full solves (``atlas
+    check``; the 300-load figure is ``benchmarks/bench_shipped_atlas.py``'s)."""
+    from softphantom.cli import main
+    from softphantom.design import default_design, load_model, shipped_model
+    from softphantom.estimation import EstimatorConfig
+    from softphantom.estimation.atlas.build import load_or_build
+    from softphantom.estimation.atlas.store import shipped_atlas
+
+    d = resources.files("softphantom") / "data" / "models" / "bip_p2"
+    manifest = json.loads((d / "atlas.json").read_text())
+    for p in manifest["pieces"]:
+        path = d / "atlas" / f"{p['key']}.npz"
+        assert path.is_file(), f"the shipped atlas piece {path} is missing: build it with `{manifest['build']}`"
+        assert path.stat().st_size <= p["size_MB"] * 1.01e6 and shipped_atlas(p["key"]) == path
+    assert sum(p["size_MB"] for p in manifest["pieces"]) <= 25.0
+    assert main(["atlas", "verify", "--model", str(d)]) == 0
+    out = capsys.readouterr().out
+    assert all(f"ok  {d / 'atlas' / (p['key'] + '.npz')}" in out for p in manifest["pieces"]), out
+    model = shipped_model(default_design())
+    assert model is not None and model.nodes.shape == load_model(d).nodes.shape
+    found = load_or_build(model, EstimatorConfig(contact=manifest["contact"]), None, max_build_s=0.0)
+    assert [a.key[:32] for a in found.patches] == [p["key"] for p in manifest["pieces"]]
+    assert main(["atlas", "check", "--model", str(d), "--workers", "0", "--loads", "2", "--seed", "1"]) == 0, \
+        capsys.readouterr().err

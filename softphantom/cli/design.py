@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from pathlib import Path
 from typing import Optional
@@ -33,10 +34,13 @@ OBSERVE = ("auto", "envelope", "rest", "off")
 @app.command("design")
 def design_command(
     out: Path = typer.Option(..., "--out", help="Output directory (created)."),
-    config: Optional[Path] = typer.Option(None, "--config", help="Design file (.toml or .json); defaults otherwise."),
+    config: Optional[Path] = typer.Option(None, "--config", help="Design file (.toml or .json); default: the "
+                                          "default design, quadratic, shipped meshed (its atlas too)."),
     mesh_size_mm: Optional[float] = typer.Option(
         None, "--mesh-size-mm", help="Bulb element size in mm; arm and cavity sizes scale with it."
     ),
+    element_order: Optional[int] = typer.Option(None, "--element-order", help="1 (4-node tets: fast, about half "
+                                                "the yaw) or 2 (10-node tets); default: the design's."),
     png: bool = typer.Option(True, "--png/--no-png", help="Write mesh.png."),
     force: bool = typer.Option(False, "--force", help="Mesh above the element-count limit, keep cavity volumes "
                                "beyond the tolerance and an unobservable arm layout (docs/robustness.md)."),
@@ -63,7 +67,7 @@ def design_command(
 ) -> None:
     """Build the BIP design, mesh it (gmsh), check its observability and write model.msh/.vtu/.npz, design.toml,
     report.md, mesh.png."""
-    from softphantom.design import BIPDesign, build_model, load_design, save_model
+    from softphantom.design import build_model, default_design, load_design, save_model
     from softphantom.design.report import design_report_md
 
     lesions = _labels(lesion_labels, "--lesion-labels")
@@ -83,7 +87,11 @@ def design_command(
     for option, given in (("--lesion-labels", lesions), ("--gland-labels", gland)):
         if given and anatomy is None:
             raise UserError(f"{option}: only with --anatomy (labels of a label map)")
-    design = load_design(config) if config is not None else BIPDesign()
+    if element_order is not None and element_order not in (1, 2):
+        raise UserError(f"--element-order: 1 or 2, got {element_order}")
+    design = load_design(config) if config is not None else default_design()
+    if element_order is not None and element_order != design.mesh.element_order:
+        design = dataclasses.replace(design, mesh=dataclasses.replace(design.mesh, element_order=element_order))
     if anatomy is not None:
         from softphantom.design.anatomy import AnatomyOptions, design_from_anatomy, load_anatomy
 
