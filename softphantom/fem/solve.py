@@ -101,7 +101,7 @@ class _PardisoFactor:
         s = getattr(self, "_s", None)
         if s is not None:
             try:
-                s.free_memory(everything=False)
+                s.free_memory(everything=True)  # phase -1: this handle is used once, its analysis too
             except Exception:  # noqa: BLE001 - interpreter shutdown: MKL may be gone already
                 pass
 
