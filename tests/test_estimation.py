@@ -273,3 +273,38 @@ def test_async_follows_a_ramp(coarse_model):
     assert np.all(errs[1:] < plain[1:])
     assert hold[0] <= 0.02 * 5.0 and hold[1] <= 0.05 and hold[2] <= 0.05, hold
     assert rest_err > 0.5  # the push is non-linear enough to matter
+
+
+def test_an_indefinite_tangent_sends_the_next_factorization_straight_to_ldlt(coarse_model, monkeypatch):
+    """With PARDISO's inertia (the ``pardiso`` extra), the equilibrium solver stops trying a Cholesky
+    first once a tangent had a negative eigenvalue (a failed Cholesky costs about a factorization,
+    the fold's displacement-controlled lines meet such tangents one after another), and goes back
+    to it after the first definite one (whose LDLᵀ counted no negative eigenvalue); the factor it
+    keeps solves each tangent."""
+    from softphantom.fem.solve import have_pardiso
+
+    if not have_pardiso():
+        pytest.skip("the pardiso extra (pypardiso, MKL) is not installed")
+    import scipy.sparse as sp
+
+    import softphantom.estimation.linearization as lz
+
+    from softphantom.estimation import ForwardModel
+
+    eq = ForwardModel(coarse_model, EstimatorConfig()).eq
+    K = lz.free_tangent(eq.fem, eq.fem.x_rest).tocsr()
+    shift = 1.5 * abs(sp.linalg.eigsh(K, k=1, sigma=0.0, return_eigenvectors=False)[0])
+    minus = sp.csr_matrix(K - shift * sp.identity(K.shape[0]))  # one (or a few) negative eigenvalues
+    queue = [minus, minus, K, K]
+    monkeypatch.setattr(lz, "free_tangent", lambda *a, **k: queue.pop(0))
+    tried = []
+    real = eq._chol.factorize
+    monkeypatch.setattr(eq._chol, "factorize", lambda A: tried.append(1) or real(A))
+    b = np.ones(K.shape[0])
+    for n, A in enumerate(list(queue)):
+        eq.factorize(eq.fem.x_rest, 0.0)
+        assert np.linalg.norm(A @ eq.lin.solve(b) - b) <= 1e-8 * np.linalg.norm(b)
+        # Cholesky tried for the first indefinite one (and failed), not for the second nor the first
+        # definite one (the LDLᵀ says it is definite), then again
+        assert len(tried) == [1, 1, 1, 2][n], (n, tried)
+    assert eq.lu_factorizations == 3

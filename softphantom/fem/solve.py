@@ -58,8 +58,8 @@ def have_pardiso() -> bool:
 def indefinite_method() -> str:
     """The factorization for symmetric matrices that may be indefinite: MKL PARDISO's LDLᵀ where the
     ``pardiso`` extra is installed (supernodal Bunch-Kaufman; on the default quadratic model's
-    indefinite tangent, 83 k DOF, 1.7 CPU-s against SuperLU's 12.7 and CHOLMOD's Cholesky's 1.8 on
-    a definite one), else SuperLU."""
+    tangent with one negative eigenvalue, 83 k DOF, 1.8 CPU-s against SuperLU's 10.7, and 1.3 for
+    CHOLMOD's Cholesky of a definite one: benchmarks/bench_factor_indefinite.py), else SuperLU."""
     return "pardiso" if have_pardiso() else "splu"
 
 
@@ -101,7 +101,7 @@ class _PardisoFactor:
         s = getattr(self, "_s", None)
         if s is not None:
             try:
-                s.free_memory(everything=False)
+                s.free_memory(everything=True)  # phase -1: this handle is used once, its analysis too
             except Exception:  # noqa: BLE001 - interpreter shutdown: MKL may be gone already
                 pass
 
