@@ -638,10 +638,12 @@ def _fit(model, fwd, acfg, key, V, P, X, solved, FX, QN, derivs, cpu_s, t0, offl
 
 
 # CPU-s per grid point of a whole build, measured on the BIP at the model size given, per element
-# order: linear 6 mm (6 352 nodes); quadratic 9 mm with 2 mm arms (28 329 nodes, Hermite f_z): face
-# planes 7.1-7.7 (lower piece) and 9.4-18.9 (the fold's), lines 3.6 and 13.9 a point, 9.1 over the
-# default grid; another model scales with its nodes
-COST_PER_POINT = {1: (0.45, 6352), 2: (9.1, 28329)}
+# order: linear 6 mm (6 352 nodes); quadratic 9 mm with 2 mm arms (28 329 nodes, Hermite f_z), with
+# the pardiso extra: face planes 7.2 (lower piece) and 9.9 (the fold's), lines 3.65 and 18 a
+# point, 10.0 over the default grid; the fold's lines cost 1.5x that with SuperLU for their
+# indefinite tangents (NO_PARDISO_FACTOR). Another model scales with its nodes.
+COST_PER_POINT = {1: (0.45, 6352), 2: (10.0, 28329)}
+NO_PARDISO_FACTOR = {1: 1.0, 2: 1.5}
 # an estimator (estimate, live) builds a missing atlas itself only below this wall time; above it
 # says how to build it (``softphantom atlas build``, resumable) and how to go on meanwhile
 MAX_BUILD_ON_THE_FLY_S = 600.0
@@ -651,17 +653,24 @@ class AtlasMissing(UserError):
     """A model without its atlas, whose build takes longer than a command should wait for."""
 
 
-def estimated_build(order: int, nodes: int, acfg: AtlasConfig, workers: int | None = None) -> tuple[float, float]:
+def estimated_build(order: int, nodes: int, acfg: AtlasConfig, workers: int | None = None,
+                    pardiso: bool | None = None) -> tuple[float, float]:
     """(CPU-s, wall-s on ``workers`` idle cores) of building ``acfg`` for a model of element
-    ``order`` with ``nodes`` nodes, before any task ran: :data:`COST_PER_POINT` scaled by the nodes
-    (the build's own ETA takes over once tasks end, :class:`~softphantom.estimation.atlas.tasks.Eta`).
+    ``order`` with ``nodes`` nodes, before any task ran: :data:`COST_PER_POINT` scaled by the nodes,
+    and by :data:`NO_PARDISO_FACTOR` without the ``pardiso`` extra (``pardiso`` None: whether it is
+    installed); the build's own ETA takes over once tasks end (:class:`~softphantom.estimation.atlas.tasks.Eta`).
 
     >>> from softphantom.estimation.atlas.config import default_atlas_config
-    >>> cpu, wall = estimated_build(2, 28329, default_atlas_config(2), workers=2)
+    >>> cpu, wall = estimated_build(2, 28329, default_atlas_config(2), workers=2, pardiso=True)
     >>> round(cpu), round(wall / 3600, 1)
-    (18018, 2.5)
+    (19800, 2.8)
     """
-    per, ref_nodes = COST_PER_POINT[2 if int(order) == 2 else 1]
+    from softphantom.fem import have_pardiso
+
+    o = 2 if int(order) == 2 else 1
+    per, ref_nodes = COST_PER_POINT[o]
+    if not (have_pardiso() if pardiso is None else pardiso):
+        per *= NO_PARDISO_FACTOR[o]
     cpu = acfg.n_solves * per * nodes / ref_nodes
     return cpu, cpu / max(1, int(workers or os.cpu_count() or 1))
 
