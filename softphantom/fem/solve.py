@@ -86,14 +86,15 @@ class _PardisoFactor:
         try:
             s.factorize(self.U)
         except PyPardisoError as exc:
+            s.free_memory(everything=True)
             raise SolverError(f"PARDISO factorization failed: {exc}") from exc
         self._s = s
         self.negative = int(s.get_iparm(23))
         self.perturbed = int(s.get_iparm(14))
 
     def solve(self, B: np.ndarray) -> np.ndarray:
-        # phase 33 (solve, iterative refinement) on the kept factor; pypardiso's own solve() hashes
-        # the matrix each call to recognize it, +40 % on a chord iteration's back-substitution
+        # phase 33 (solve, iterative refinement) on the kept factor; pypardiso's own solve() would
+        # hash the whole matrix at each call to recognize it (SHA-1 of ~3 M entries a back-substitution)
         self._s.set_phase(33)
         return self._s._call_pardiso(self.U, np.asfortranarray(B, dtype=np.float64))
 
