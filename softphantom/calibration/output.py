@@ -100,8 +100,9 @@ def carry_atlases(base_dir, model, out, factors: dict[str, float], law_changed: 
     against the uncalibrated model) is that model's exactly with the loads scaled by ``s``
     (:meth:`~softphantom.estimation.atlas.map.Atlas.scaled`): written to ``out/atlas/`` with the
     factor (``load_scale.json``, so the estimators ask for the scaled envelope). The atlases the
-    package ships for the uncalibrated mesh count as its own. Otherwise nothing is written. Returns one line for the user: what was carried over, or the build the model needs
-    and its estimated time."""
+    package ships for the uncalibrated mesh count as its own. Otherwise nothing is written.
+    Returns one line for the user: what was carried over, or the build the model needs and its
+    estimated time."""
     from softphantom.design import load_model
     from softphantom.estimation.atlas.build import duration_text, estimated_build
     from softphantom.estimation.atlas.config import LOAD_SCALE_FILE, model_atlas_config
@@ -113,10 +114,10 @@ def carry_atlases(base_dir, model, out, factors: dict[str, float], law_changed: 
     vals = list(factors.values())
     s = vals[0]
     uniform = not law_changed and all(abs(v - s) <= rtol * abs(s) for v in vals)
-    base = load_model(base_dir)
-    files = model_atlases(base_dir, base)
+    base = load_model(base_dir) if uniform else None  # only a uniform scale carries atlases over
+    files = model_atlases(base_dir, base) if uniform else []
     carried = 0
-    if uniform and files:
+    if files:
         for f in files:
             try:
                 at = verify_atlas(f, base)

@@ -74,9 +74,7 @@ def design_command(
     gland = _labels(gland_labels, "--gland-labels")
     check_choice(observe, OBSERVE, "--observability")
     check_positive(surface_size_mm, "--surface-size-mm", "mm")
-    if urethra not in ("auto", "none"):
-        raise UserError(f"--urethra: expected auto or none, got {urethra!r}")
-    if urethra == "none":
+    if check_choice(urethra, ("auto", "none"), "--urethra") == "none":
         raise UserError(NO_URETHRA)
     if urethra_label is not None and urethra_label < 0:
         raise UserError(f"--urethra-label: must be >= 0 (0: none), got {urethra_label}")

@@ -124,15 +124,16 @@ def arm_cylinder(occ, start, end, radius: float, seam=None) -> int:
     length = float(np.linalg.norm(end - start))
     d = (end - start) / length
     tag = occ.addCylinder(0.0, 0.0, 0.0, 0.0, 0.0, length, radius)  # OCC puts its seam on +x
+    from scipy.spatial.transform import Rotation
+
     z = np.array([0.0, 0.0, 1.0])
-    axis, cos = np.cross(z, d), float(z @ d)
-    if np.linalg.norm(axis) < 1e-12:
-        axis = np.array([1.0, 0.0, 0.0])  # d = ±z: a half turn about x for -z, none for +z
-    angle = math.atan2(float(np.linalg.norm(np.cross(z, d))), cos)
+    axis = np.cross(z, d)
+    sin = float(np.linalg.norm(axis))
+    if sin < 1e-12:
+        axis, sin = np.array([1.0, 0.0, 0.0]), 0.0  # d = ±z: a half turn about x for -z, none for +z
+    angle = math.atan2(sin, float(z @ d))
     k = axis / np.linalg.norm(axis)
-    turn = math.cos(angle) * np.eye(3) + math.sin(angle) * np.array(
-        [[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]]) + (1.0 - math.cos(angle)) * np.outer(k, k)
-    local = turn.T @ np.asarray(seam, float)  # the seam's side before the turn, normal to z
+    local = Rotation.from_rotvec(angle * k).inv().apply(np.asarray(seam, float))  # the seam's side before the turn
     occ.rotate([(3, tag)], 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, math.atan2(float(local[1]), float(local[0])))
     occ.rotate([(3, tag)], 0.0, 0.0, 0.0, *k, angle)
     occ.translate([(3, tag)], *start)

@@ -160,19 +160,19 @@ class EquilibriumSolver:
     def factorize(self, x: np.ndarray, p_u: float) -> None:
         """Factor the free tangent (with the urethra pressure's follower term) at ``x``."""
         K = free_tangent(self.fem, x, [(self._ur_tris, float(p_u))] if p_u else None)
-        if self._indefinite_next:  # the last tangent was indefinite: its neighbour likely is too
-            self.lin = SparseSolver(indefinite_method()).factorize(K)
-            self.lu_factorizations += 1
-            self._indefinite_next = bool(self.lin.negative_eigenvalues)
-        else:
+        lin = None
+        if not self._indefinite_next:
             try:
-                self.lin = self._chol.factorize(K)
+                lin = self._chol.factorize(K)
             except SolverError:  # indefinite consistent tangent (compression, pressure, a fold)
-                self.lin = SparseSolver(indefinite_method()).factorize(K)
-                self.lu_factorizations += 1
-                # with an inertia (PARDISO), the next factorization goes straight to LDLᵀ while
-                # the tangents stay indefinite: a failed Cholesky costs as much as a factorization
-                self._indefinite_next = bool(self.lin.negative_eigenvalues)
+                pass
+        if lin is None:
+            lin = SparseSolver(indefinite_method()).factorize(K)
+            self.lu_factorizations += 1
+        # with an inertia (PARDISO), the next factorization goes straight to LDLᵀ while the tangents
+        # stay indefinite: a failed Cholesky costs as much as a factorization
+        self._indefinite_next = bool(lin.negative_eigenvalues)
+        self.lin = lin
         self.factorizations += 1
         self._factored = True
         self._factor_at = (x.copy(), float(p_u))

@@ -3,6 +3,7 @@ load stepping, and a sparse direct solver that keeps its symbolic analysis acros
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
@@ -39,20 +40,16 @@ def _have_cholmod() -> bool:
     return True
 
 
-_PARDISO: list[bool] = []  # whether MKL PARDISO loads, checked once
-
-
+@functools.cache
 def have_pardiso() -> bool:
     """Whether MKL PARDISO (pypardiso, the ``pardiso`` extra) is importable and finds MKL."""
-    if not _PARDISO:
-        try:
-            from pypardiso import PyPardisoSolver
+    try:
+        from pypardiso import PyPardisoSolver
 
-            PyPardisoSolver(mtype=-2)  # loads mkl_rt; ImportError where it is missing
-            _PARDISO.append(True)
-        except (ImportError, OSError):
-            _PARDISO.append(False)
-    return _PARDISO[0]
+        PyPardisoSolver(mtype=-2)  # loads mkl_rt; ImportError where it is missing
+    except (ImportError, OSError):
+        return False
+    return True
 
 
 def indefinite_method() -> str:
@@ -198,7 +195,7 @@ class SparseSolver:
                     raise SolverError(f"matrix not positive definite (cholespy): {exc}") from exc
                 self.analyses += 1
             elif self.method == "pardiso":
-                self._factor = None
+                self._factor = None  # the old factor's MKL memory goes first; a failure leaves none
                 self._factor = _PardisoFactor(A)
                 self.analyses += 1
             else:
@@ -308,9 +305,8 @@ def _pressure_list(fem: FemModel, pressures) -> list[tuple[np.ndarray, float]]:
 
 def indefinite_solve(K: sp.spmatrix, b: np.ndarray) -> np.ndarray:
     """Solve symmetric, possibly indefinite ``K`` x = ``b``: MKL PARDISO's LDLᵀ where installed, else
-    CHOLMOD's simplicial LDLᵀ (no pivoting,
-    the fill of a Cholesky factor) when scikit-sparse is there and its residual is ≤ 1e-8 of ‖b‖,
-    else SuperLU. LU on a 3-D P2 tangent holds several times the Cholesky factor (9 mm design, 49 k
+    CHOLMOD's simplicial LDLᵀ (no pivoting, the fill of a Cholesky factor) when scikit-sparse is
+    there and its residual is ≤ 1e-8 of ‖b‖, else SuperLU. LU on a 3-D P2 tangent holds several times the Cholesky factor (9 mm design, 49 k
     DOF: 38-68 M entries against 16 M), which a 4.5 mm urethra solve (219 k DOF) cannot afford.
 
     >>> import numpy as np, scipy.sparse as sp
