@@ -35,16 +35,22 @@ def test_the_shipped_models_atlas_keys_are_current():
 def test_the_shipped_atlas_verifies_and_holds_at_held_out_full_solves(capsys):
     """The default model's atlas ships in the package (one file per piece, by key): intact, of this
     model (``atlas verify`` recomputes the keys), found by a model directory that ``design`` writes
-    by default (no build), and at two seeded held-out full solves (``atlas check``) within the worst
+    by default (no build), and at one seeded held-out full solve in each piece within the worst
     errors measured over 9 held-out loads at its release (0.073 N, 0.16 mm, 0.33°, near_urethra
     0.18 mm), rounded up: what an atlas of another model or a damaged one would exceed many times.
-    These are not the accuracy goals (0.05 N, 0.05 mm, 0.1°, 0.02 mm): this atlas's 90th
-    percentiles over those loads were 0.019 N, 0.041 mm, 0.11°, and its worst loads miss them
-    (``benchmarks/bench_shipped_atlas.py`` measures it; docs/estimation.md says so)."""
+    The loads are drawn from everyday use (|f_x|, |f_z| ≤ 1 N, the urethra at ≤ 10 kPa; the upper
+    piece below the fold, f_y ≤ 4 N): a full solve there costs 7–25 s, one at the fold or at 40 kPa
+    up to 100 s. The whole envelope, fold and corners included, is
+    ``benchmarks/bench_shipped_atlas.py``'s. These bounds are not the accuracy goals (0.05 N,
+    0.05 mm, 0.1°, 0.02 mm): over the release's loads the 90th percentiles were 0.019 N, 0.041 mm,
+    0.11°, and the worst loads, in the fold's cells, miss them (docs/estimation.md says so)."""
+    import numpy as np
+
     from softphantom.cli import main
     from softphantom.design import default_design, load_model, shipped_model
     from softphantom.estimation import EstimatorConfig
     from softphantom.estimation.atlas.build import load_or_build
+    from softphantom.estimation.atlas.check import check_held_out, held_out_loads
     from softphantom.estimation.atlas.store import shipped_atlas
 
     d = resources.files("softphantom") / "data" / "models" / "bip_p2"
@@ -59,8 +65,13 @@ def test_the_shipped_atlas_verifies_and_holds_at_held_out_full_solves(capsys):
     assert all(f"ok  {d / 'atlas' / (p['key'] + '.npz')}" in out for p in manifest["pieces"]), out
     model = shipped_model(default_design())
     assert model is not None and model.nodes.shape == load_model(d).nodes.shape
-    found = load_or_build(model, EstimatorConfig(contact=manifest["contact"]), None, max_build_s=0.0)
+    cfg = EstimatorConfig(contact=manifest["contact"])
+    found = load_or_build(model, cfg, None, max_build_s=0.0)
     assert [a.key[:32] for a in found.patches] == [p["key"] for p in manifest["pieces"]]
-    assert main(["atlas", "check", "--model", str(d), "--workers", "0", "--loads", "2", "--seed", "1",
-                 "--max-force-N", "0.1", "--max-pos-mm", "0.2", "--max-ang-deg", "0.4",
-                 "--max-near-urethra-mm", "0.2"]) == 0, capsys.readouterr().err
+    (lo_y, split), (_, hi_y) = (p["f_y_N"] for p in manifest["pieces"])
+    loads = np.vstack([held_out_loads([-1, max(lo_y, 0.0), -1, 0], [1, split, 1, 10e3], 1, seed=3),
+                       held_out_loads([-1, split, -1, 0], [1, min(hi_y, 4.0), 1, 10e3], 1, seed=3)])
+    res = check_held_out(model, cfg, found, loads, seed=1)
+    assert len(res.loads) == 2 and not res.failed and not res.skipped, res
+    w = res.worst()
+    assert w["force_N"] < 0.1 and w["pos_mm"] < 0.2 and w["ang_deg"] < 0.4 and w["near_urethra_mm"] < 0.2, w
