@@ -92,6 +92,38 @@ def test_demo_end_to_end_coarse(tmp_path, capsys, coarse_model_dir):
         assert f"<td>{d / f}</td>" in report, f
 
 
+def test_the_demo_estimates_with_the_models_own_atlas_the_shipped_one_by_default(tmp_path):
+    # the default design's quadratic model: its atlas ships (both pieces, found by key, nothing built)
+    from softphantom.design import default_design, shipped_model
+    from softphantom.virtual import load_scenario
+    from softphantom.virtual.demo import DEMO_SCENARIOS, model_atlases
+
+    scs = [load_scenario(n) for n in DEMO_SCENARIOS]
+    found = model_atlases(scs, shipped_model(default_design()), tmp_path / "model")
+    assert list(found) == ["on-centre"] and len(found["on-centre"].patches) == 2
+    assert not (tmp_path / "model").exists()  # loaded from the package, nothing written
+
+
+def test_a_demo_on_a_model_without_its_atlas_is_refused_before_any_solve(tmp_path, capsys, coarse_model_dir,
+                                                                         monkeypatch):
+    # no atlas in the model directory and (here) none that builds within the on-the-fly limit: one
+    # line naming the build command and the way on (--atlas-grid is the demo's own; --estimator refresh)
+    import softphantom.estimation.atlas.build as build
+
+    monkeypatch.setattr(build, "MAX_BUILD_ON_THE_FLY_S", 0.0)
+    sc = tmp_path / "short.toml"
+    sc.write_text(SHORT)
+    out = tmp_path / "demo"
+    assert main(["demo", "--out", str(out), "--model", str(coarse_model_dir), "--scenarios", str(sc),
+                 "--truth-order", "1", "--workers", "1"]) == 2
+    cap = capsys.readouterr()
+    err = cap.err.strip()
+    assert err.count("\n") == 0 and "softphantom atlas build --model" in err and "--at off-centre" in err, err
+    assert "--estimator refresh" in err and "truth:" not in cap.out
+    assert not out.exists() and not list(tmp_path.glob("demo*.partial*"))
+    assert sorted(p.name for p in coarse_model_dir.iterdir()) == ["design.toml", "model.msh", "model.npz", "model.vtu"]
+
+
 def test_demo_and_virtual_bad_options_are_one_line(tmp_path, capsys):
     assert main(["demo", "--out", str(tmp_path / "o"), "--scenarios", "nope"]) == 2
     err = capsys.readouterr().err.strip()

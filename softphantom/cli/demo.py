@@ -52,14 +52,20 @@ def _atlas_note(r: dict) -> str:
     a = r.get("atlas")
     if not a:
         return ""
-    return f", {a['in_envelope_fraction'] * 100:.0f} % of estimates inside its atlas ({'×'.join(map(str, a['grid']))})"
+    pieces = f", {a['pieces']} pieces" if a.get("pieces", 1) > 1 else ""
+    return (f", {a['in_envelope_fraction'] * 100:.0f} % of estimates inside its atlas "
+            f"({'×'.join(map(str, a['grid']))}{pieces})")
 
 
 @app.command("demo")
 def demo_cmd(
     out: Path = typer.Option(Path("out/demo"), "--out", help="Output directory."),
-    mesh_size_mm: float = typer.Option(None, "--mesh-size-mm", help="Estimator mesh size (mm; default: the design's, 6 mm)."),
-    scenarios: list[str] = typer.Option(None, "--scenarios", help="Scenario names or TOML files (repeat; default: the four bundled)."),
+    mesh_size_mm: float = typer.Option(None, "--mesh-size-mm", help="Mesh the default design at this bulk size (mm) "
+                                       "instead of using its shipped quadratic model (9 mm; that mesh has no atlas yet: "
+                                       "give --atlas-grid or --estimator refresh)."),
+    scenarios: list[str] = typer.Option(None, "--scenarios", help="Scenario names or TOML files (repeat; default: the "
+                                        "three bundled on-centre ones, whose atlas ships; push-off-centre needs the "
+                                        "off-centre atlas: `softphantom atlas build --at off-centre`, or --atlas-grid)."),
     seed: int = typer.Option(0, "--seed", help="Seed of every random source."),
     osr: int = typer.Option(100, "--osr", help="Board oversampling (100: 19.2 Hz, the paper's N; 25: 76.9 Hz)."),
     truth_mesh_scale: float = typer.Option(0.75, "--truth-mesh-scale", help="Truth node spacing relative to the estimator's mesh size (P2 elements are twice that)."),
@@ -69,18 +75,20 @@ def demo_cmd(
     overwrite: bool = overwrite_option(),
     estimator: str = typer.Option("atlas", "--estimator", help="atlas (precomputed, real time) | refresh (sync: "
                                   "re-linearized inside each step)."),
-    atlas_grid: str = typer.Option(None, "--atlas-grid", help="Atlas: Chebyshev points per axis NX,NY,NZ,NP (default: "
-                                   "7,5,5,2 on-centre (f_x clustered) and 5,9,4,2 off-centre for pushes, 3,3,3,5 for an inflation; the envelope is the scenario's loads)."),
+    atlas_grid: str = typer.Option(None, "--atlas-grid", help="Build a small atlas for the demo instead of using the "
+                                   "model's: Chebyshev points per axis NX,NY,NZ,NP over the scenarios' own loads "
+                                   "(e.g. 5,5,5,2; for a model without its atlas). Default: the model's atlas (the "
+                                   "default design's ships with softphantom)."),
     scheduler: str = typer.Option(None, "--scheduler", help="Dask scheduler address for the truth solves and atlas "
                                   "builds (default: a local cluster)."),
     workers: int = typer.Option(None, "--workers", help="Local cluster: worker processes (default: all cores)."),
 ) -> None:
     """The paper's experiments end to end without hardware: reports and a summary."""
     from softphantom.cli.virtual import _config
-    from softphantom.design import BIPDesign, build_model, load_model, save_model
+    from softphantom.design import build_model, default_design, load_model, save_model
     from softphantom.estimation.select import atlas_config_from_options, check_estimator_kind
-    from softphantom.virtual import BUNDLED, load_scenario, truth_model
-    from softphantom.virtual.demo import run_all, write_summary
+    from softphantom.virtual import load_scenario, truth_model
+    from softphantom.virtual.demo import DEMO_SCENARIOS, run_all, write_summary
 
     check_estimator_kind(estimator)
     if workers is not None and workers < 1:
@@ -88,7 +96,7 @@ def demo_cmd(
     grid = atlas_config_from_options(atlas_grid).shape if atlas_grid is not None else None
     t0 = time.perf_counter()
     check_output(out, overwrite=overwrite, directory=True)
-    names = list(scenarios or BUNDLED)
+    names = list(scenarios or DEMO_SCENARIOS)
     for n in names:
         load_scenario(n)  # validate all before the long work
     cfg = _config(seed, osr, truth_mesh_scale, order=truth_order)
@@ -99,16 +107,16 @@ def demo_cmd(
     given = load_model(model_dir) if model_dir is not None else None
     with staged_output(out, overwrite=overwrite, directory=True) as work:
         with status("design → mesh (estimator model)", console):
-            model = given if given is not None else build_model(BIPDesign(), mesh_size_mm, force=force)
+            model = given if given is not None else build_model(default_design(), mesh_size_mm, force=force)
             save_model(model, work / "model")
-        console.print(f"model: {len(model.nodes)} nodes, {len(model.tets)} tets (mesh {model.design.mesh.size_mm:g} "
-                      f"mm) → {out / 'model'}", highlight=False, soft_wrap=True)
+        console.print(f"model: {len(model.nodes)} nodes, {len(model.tets)} tets, P{model.element_order} (mesh "
+                      f"{model.design.mesh.size_mm:g} mm) → {out / 'model'}", highlight=False, soft_wrap=True)
         with status("mesh (truth model, finer)", console):
             tm = truth_model(model, cfg.truth)
         console.print(f"truth model: {len(tm.nodes)} nodes, {len(tm.tets)} tets, P{tm.element_order} (mesh "
                       f"{tm.design.mesh.size_mm:g} mm)", highlight=False)
         rows = run_all([load_scenario(n) for n in names], model, work, cfg, tm, estimator, grid,
-                       scheduler=scheduler, n_workers=workers, shown=out)
+                       scheduler=scheduler, n_workers=workers, shown=out, atlas_dir=model_dir)
         for r in rows:  # the paths the user will see, once the directory is in place
             r["report"] = str(out / Path(r["report"]).relative_to(work))
         wall = time.perf_counter() - t0

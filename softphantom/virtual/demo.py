@@ -1,11 +1,18 @@
 """The demo pipeline (``softphantom demo``, what ``make demo`` runs): the scenarios on the virtual
 phantom → estimate → evaluate → one report per scenario, an index page and a summary.
 
+The estimator is the model's own atlas, per contact point the scenarios use: for the default
+design the one shipped with the package (loaded in seconds), for another model the one built into
+its directory (``softphantom atlas build``); a missing one that would take longer than
+:data:`~softphantom.estimation.atlas.build.MAX_BUILD_ON_THE_FLY_S` to build is refused before any
+solve, in one line naming the command. With ``grid`` (``--atlas-grid``), a small atlas over the
+scenarios' own loads is built for the demo instead (:func:`scenario_atlas`, :func:`shared_atlases`:
+for a model without its atlas, e.g. a coarse test model).
+
 The truths are solved on Dask (:mod:`softphantom.parallel`: a local cluster by default, an
-existing scheduler by its address), one at a time in scenario order, while the atlases the push
-scenarios share are built on the same cluster (:func:`shared_atlases`); each scenario is
-estimated and evaluated in this process as soon as its truth is ready. The atlas of each scenario
-is sized by the rules below (:func:`scenario_atlas`).
+existing scheduler by its address), one at a time in scenario order, while the demo's own atlases,
+if any, are built on the same cluster; each scenario is estimated and evaluated in this process as
+soon as its truth is ready.
 """
 
 from __future__ import annotations
@@ -24,29 +31,22 @@ import numpy as np
 from softphantom.estimation import AtlasConfig, EstimatorConfig, estimate_stream, load_or_build, open_estimator
 from softphantom.progress import Step, forward_progress, report
 
-# The demo's atlas per scenario: the box of the scenario's peak loads (its pushes; the pressure its
-# inflation reached) and zero, each face widened by MARGIN_N + MARGIN_REL × the peak on that side
-# of that axis (the estimator's model differs from the truth's, so its forces do too: in the
-# demo the estimates passed the truth's peaks by ≤ 0.62 N along the push, ≤ 0.2 N sideways),
-# the pressure by MARGIN_KPA only: it is measured, not estimated (a 20 % margin put the
-# inflation atlas's top planes at 51 kPa, beyond what the estimator's model reaches: 27 failing
-# solves for points no estimate used). Margins are per axis: one margin for all axes from the
-# largest force would make the sideways range 3.1 N for ±0.6 N of load.
-# Grids: pushes vary the force (the pressure stays near 0: 2 points), an inflation the pressure.
-# Push grids by contact, measured against exact (settled) inverses of the same model at the demo
-# pushes' worst samples (docs/performance/tools.md): on-centre, the arm pair's step at
-# f_x = 0 (docs/estimation.md) wants the f_x points clustered about 0 (7, asinh width 0.1 N:
-# 0.006 N / 0.008 mm / 0.04°; 5 affine: 0.03 N / 0.04 mm / 0.30°); off-centre has no such step
-# there (the same clustering: 0.31°; 5 affine points: 0.02 N / 0.025 mm / 0.19°, 7: 0.20°) but a
-# yaw that is steep along a line moving with f_y, which more f_y points follow (5 × 9 × 4:
-# 0.023 N / 0.013 mm / 0.080°, 180 solves; 5 × 7 × 5: 0.098°; 5 × 5 × 5: 0.19°).
+# The demo's own atlas per scenario (with --atlas-grid): the box of the scenario's peak loads (its
+# pushes; the pressure its inflation reached) and zero, each face widened by MARGIN_N + MARGIN_REL ×
+# the peak on that side of that axis (the estimator's model differs from the truth's, so its
+# forces do too: in the demo the estimates passed the truth's peaks by ≤ 0.62 N along the push,
+# ≤ 0.2 N sideways), the pressure by MARGIN_KPA only: it is measured, not estimated (a 20 % margin
+# put the inflation atlas's top planes at 51 kPa, beyond what the estimator's model reaches).
+# Margins are per axis: one margin for all axes from the largest force would make the sideways
+# range 3.1 N for ±0.6 N of load. Pushes vary the force (the pressure stays near 0: 2 points), an
+# inflation the pressure.
 MARGIN_N = 0.5
 MARGIN_REL = 0.2
 MARGIN_KPA = 2.0
 PUSH_GRID = (5, 5, 5, 2)
-PUSH_GRIDS = {"on-centre": ((7, 5, 5, 2), (0.1, 0.0, 0.0)),  # contact: (grid, force_cluster_N)
-              "off-centre": ((5, 9, 4, 2), None)}
 INFLATE_GRID = (3, 3, 3, 5)
+# the demo's default scenarios: the bundled ones at the contact whose atlas ships (on-centre)
+DEMO_SCENARIOS = ("needle-insertion", "push-on-centre", "urethra-inflation")
 TRUTH_TOPIC = "softphantom-demo-truth"  # the Dask event topic of the truth solves' progress
 
 log = logging.getLogger(__name__)
@@ -64,7 +64,7 @@ def push_only(sc) -> str | None:
     return points.pop() if len(points) == 1 and all(e.kind == "push" for e in sc.events) else None
 
 
-def atlas_box(forces, p_kPa: float, grid=None, cluster_N=None) -> AtlasConfig:
+def atlas_box(forces, p_kPa: float, grid=None) -> AtlasConfig:
     """The atlas over the box of ``forces`` (N, each (3,)) and zero, widened by the margins above;
     the pressure from −MARGIN_KPA to ``p_kPa`` + MARGIN_KPA; ``grid`` the points per axis (default:
     ``PUSH_GRID`` for a push, ``p_kPa`` 0, else ``INFLATE_GRID``)."""
@@ -76,8 +76,8 @@ def atlas_box(forces, p_kPa: float, grid=None, cluster_N=None) -> AtlasConfig:
     return AtlasConfig(force_min_N=tuple(lo - MARGIN_N + MARGIN_REL * lo),
                        force_max_N=tuple(hi + MARGIN_N + MARGIN_REL * hi), p_min_kPa=-MARGIN_KPA,
                        p_max_kPa=p_kPa + MARGIN_KPA, n_force=n[:3], n_pressure=n[3],
-                       linear_pressure=p_kPa == 0.0 and n[3] == 2, force_cluster_N=cluster_N,
-                       x_control="force")  # the grids above were chosen (and measured) on a force axis
+                       linear_pressure=p_kPa == 0.0 and n[3] == 2,
+                       x_control="force")
 
 
 def scenario_atlas(truth, grid: tuple[int, int, int, int] | None = None) -> AtlasConfig:
@@ -99,8 +99,8 @@ def scenario_atlas(truth, grid: tuple[int, int, int, int] | None = None) -> Atla
 def shared_atlases(scs, grid: tuple[int, int, int, int] | None = None) -> dict[str, AtlasConfig]:
     """One atlas per contact point for the scenarios that only push there (their peak forces are
     the scenario's own, known before any solve): the box of all of them, so the needle insertion
-    and the on-centre pushes share one build; the grid by contact (``PUSH_GRIDS``, else
-    ``PUSH_GRID``) unless ``grid`` is given. {contact: AtlasConfig}.
+    and the on-centre pushes share one build; ``grid`` the points per axis (default ``PUSH_GRID``).
+    {contact: AtlasConfig}.
 
     >>> from types import SimpleNamespace as E
     >>> needle = E(events=[E(kind="push", point="on-centre", force_N=(0.15, 2.5, -0.2))])
@@ -109,18 +109,15 @@ def shared_atlases(scs, grid: tuple[int, int, int, int] | None = None) -> dict[s
     >>> a = shared_atlases([needle, pushes, inflate])
     >>> c = a["on-centre"]  # each face: 0.5 N + 0.2 × the peak on that side (f_y: 2.6 + 0.5 + 0.52)
     >>> list(a), [round(v, 2) for v in c.force_min_N], [round(v, 2) for v in c.force_max_N], c.shape
-    (['on-centre'], [-1.22, -0.5, -1.1], [0.68, 3.62, 0.5], (7, 5, 5, 2))
-    >>> c.linear_pressure, c.cluster_N  # one plane of solves at 0 kPa; f_x points clustered
-    (True, (0.1, 0.0, 0.0))
-    >>> shared_atlases([needle], grid=(4, 5, 4, 2))["on-centre"].cluster_N  # a given grid: affine
-    (0.0, 0.0, 0.0)
+    (['on-centre'], [-1.22, -0.5, -1.1], [0.68, 3.62, 0.5], (5, 5, 5, 2))
+    >>> c.linear_pressure, c.cluster_N  # one plane of solves at 0 kPa; affine points
+    (True, (0.0, 0.0, 0.0))
     """
     by: dict[str, list] = {}
     for sc in scs:
         if (c := push_only(sc)) is not None:
             by.setdefault(c, []).extend(e.force_N for e in sc.events)
-    return {c: atlas_box(f, 0.0, *((grid, None) if grid else PUSH_GRIDS.get(c, (PUSH_GRID, None))))
-            for c, f in by.items()}
+    return {c: atlas_box(f, 0.0, grid) for c, f in by.items()}
 
 
 def in_envelope_fraction(path: Path) -> float:
@@ -194,12 +191,17 @@ def run_scenario(sc, model, out: Path, cfg, truth, estimator: str = "atlas", gri
         "tracker_clock_offset_ms": {"injected": rs["tracker"]["clock_offset_s"] * 1e3, "recovered": lag.lag_ms},
         "estimate": {k: stats[k] for k in ("estimates", "rejected", "rate_Hz", "step_ms_p50", "step_ms_p99")},
         "estimator": estimator,
-        "atlas": None if atlas is None else {"force_min_N": atlas.force_min_N, "force_max_N": atlas.force_max_N,
-                                             "p_min_kPa": atlas.p_min_kPa, "p_max_kPa": atlas.p_max_kPa,
-                                             "grid": atlas.shape,
-                                             "in_envelope_fraction": in_envelope_fraction(est_path)},
+        "atlas": None if atlas is None else _atlas_row(atlas, est_path),
         "truth": rs["truth"], "seconds": {"truth_solve": truth.solve_s, "estimate": t_est, "evaluate": t_eval},
     }
+
+
+def _atlas_row(atlas, est_path: Path) -> dict:
+    """The summary's atlas entry: its envelope, grid, pieces and the share of estimates inside it."""
+    c = getattr(atlas, "config", atlas)  # a built atlas (or its pieces), or the config of one to build
+    return {"force_min_N": c.force_min_N, "force_max_N": c.force_max_N, "p_min_kPa": c.p_min_kPa,
+            "p_max_kPa": c.p_max_kPa, "grid": c.shape, "pieces": len(c.patches()),
+            "in_envelope_fraction": in_envelope_fraction(est_path)}
 
 
 def _solve_truth(sc, model, truth_cfg, truth_mesh):
@@ -218,30 +220,54 @@ def _solve_truth(sc, model, truth_cfg, truth_mesh):
         return solve_truth(sc, model, truth_cfg, truth_mesh=truth_mesh)
 
 
-def _truth_lane(client, order, model, truth_cfg, truth_mesh, ready: queue.Queue, stop: threading.Event) -> None:
-    """Solve the truths one at a time in ``order`` (the other workers build the atlases meanwhile),
-    each put on ``ready`` as (name, Truth | the exception) when done."""
-    for sc in order:
+def _truth_lane(client, order, model, truth_cfg, truth_mesh, ready: queue.Queue, stop: threading.Event,
+                together: bool = False) -> None:
+    """Solve the truths in ``order``, one at a time (the other workers build the demo's atlases
+    meanwhile) or, ``together``, all at once on the cluster's workers; each put on ``ready`` as
+    (name, Truth | the exception) when done, in ``order``."""
+    submit = lambda sc: client.submit(_solve_truth, sc, model, truth_cfg, truth_mesh, pure=False)  # noqa: E731
+    futures = [submit(sc) for sc in order] if together else None
+    for i, sc in enumerate(order):
         if stop.is_set():
             return
         try:
-            ready.put((sc.name, client.submit(_solve_truth, sc, model, truth_cfg, truth_mesh, pure=False).result()))
+            ready.put((sc.name, (futures[i] if together else submit(sc)).result()))
         except Exception as exc:  # noqa: BLE001 - re-raised in the main thread
             ready.put((sc.name, exc))
             return
 
 
+def model_atlases(scs, model, atlas_dir: Path | None, scheduler: str | None = None) -> dict[str, object]:
+    """The model's own atlas (:func:`~softphantom.estimation.atlas.config.default_atlas_config`) at
+    each contact point the scenarios use ({contact: Atlas | AtlasPatches}): the one shipped with the
+    package for the default design, else loaded from ``atlas_dir`` (the model directory) or built
+    there if that takes under ``MAX_BUILD_ON_THE_FLY_S``; else
+    :class:`~softphantom.estimation.atlas.build.AtlasMissing`, one line naming the command."""
+    from softphantom.estimation.atlas.build import MAX_BUILD_ON_THE_FLY_S
+
+    found = {}
+    for c in dict.fromkeys(contact_of(sc) for sc in scs):
+        found[c] = load_or_build(model, EstimatorConfig(contact=c, mode="sync"), None, cache_dir=atlas_dir,
+                                 scheduler=scheduler, max_build_s=MAX_BUILD_ON_THE_FLY_S)
+    return found
+
+
 def run_all(scs, model, out: Path, cfg, truth_mesh, estimator: str = "atlas", grid=None, *,
-            scheduler: str | None = None, n_workers: int | None = None, shown: Path | None = None) -> list[dict]:
+            scheduler: str | None = None, n_workers: int | None = None, shown: Path | None = None,
+            atlas_dir: Path | None = None) -> list[dict]:
     """Every scenario of ``scs`` end to end into ``out`` (:func:`run_scenario`), its progress
-    reported here (the truths' too, from the workers): truths solved on Dask one at a time, the
-    atlases shared by the push scenarios (:func:`shared_atlases`) built on the same cluster
-    meanwhile, each scenario then estimated and evaluated here as soon as its truth is ready. The scenarios whose atlas needs
-    their truth (an inflation: its pressure) are solved first. Rows in the order of ``scs``. ``shown``:
+    reported here (the truths' too, from the workers): truths solved on Dask (together, or one at a
+    time while the demo's own atlases build), each scenario then estimated and evaluated here as
+    soon as its truth is ready. The estimator: the
+    model's own atlas (:func:`model_atlases`, from ``atlas_dir``, default ``out``/model), found
+    before any solve; with ``grid``, the demo's atlases instead (the push scenarios' shared ones,
+    :func:`shared_atlases`, built on the same cluster while the truths are solved; an inflation's
+    from its truth: those scenarios are solved first). Rows in the order of ``scs``. ``shown``:
     where ``out`` ends up (:func:`run_scenario`)."""
     from softphantom.parallel import dask_client
 
-    shared = shared_atlases(scs, grid) if estimator == "atlas" else {}
+    own = grid is None and estimator == "atlas"
+    shared = shared_atlases(scs, grid) if estimator == "atlas" and not own else {}
     order = sorted(scs, key=lambda sc: push_only(sc) in shared)  # stable: the others first
     rows: dict[str, dict] = {}
     truths: dict[str, object] = {}
@@ -249,6 +275,8 @@ def run_all(scs, model, out: Path, cfg, truth_mesh, estimator: str = "atlas", gr
     stop = threading.Event()
     with dask_client(scheduler, n_workers) as client:
         address = client.scheduler.address
+        if own:
+            with_contact = model_atlases(scs, model, atlas_dir or out / "model", address)
         truth_steps = {f"{sc.name}: truth": Step(f"{sc.name}: truth", 0, None, "queued") for sc in order}
 
         def progress(event) -> None:
@@ -260,8 +288,8 @@ def run_all(scs, model, out: Path, cfg, truth_mesh, estimator: str = "atlas", gr
         for step in truth_steps.values():
             report(log, step.task, step.done, step.total, step.what)
         client.subscribe_topic(TRUTH_TOPIC, progress)
-        lane = threading.Thread(target=_truth_lane, args=(client, order, model, cfg.truth, truth_mesh, ready, stop),
-                                daemon=True)
+        lane = threading.Thread(target=_truth_lane, args=(client, order, model, cfg.truth, truth_mesh, ready, stop,
+                                                          not shared), daemon=True)
         lane.start()
         try:
             for contact, acfg in shared.items():
@@ -278,8 +306,9 @@ def run_all(scs, model, out: Path, cfg, truth_mesh, estimator: str = "atlas", gr
                     truths[name] = truth
                     last = truth_steps[f"{name}: truth"]
                     report(log, last.task, last.done, last.total, f"solved in {truth.solve_s:.0f} s")
+                atlas = with_contact[contact_of(sc)] if own else shared.get(push_only(sc))
                 rows[sc.name] = run_scenario(sc, model, out, cfg, truths.pop(sc.name), estimator, grid,
-                                             atlas=shared.get(push_only(sc)), scheduler=address, shown=shown)
+                                             atlas=atlas, scheduler=address, shown=shown)
         finally:
             stop.set()
             client.unsubscribe_topic(TRUTH_TOPIC)

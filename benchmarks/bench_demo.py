@@ -1,0 +1,94 @@
+"""The demo (`make demo`): its wall time and its RMSE against the virtual truth, per scenario.
+
+Runs ``softphantom demo --out DIR --overwrite`` (the default: the shipped quadratic model and its
+shipped atlas, the three on-centre scenarios, a finer P2 truth) and writes the table of
+``DIR/summary.json`` to ``benchmarks/results/demo.md``; ``--summary DIR`` only reads a demo
+already run there. ``--busy`` keeps one core busy with a spinning process while it runs (the
+user's machine is never idle).
+
+    python benchmarks/bench_demo.py [--out out/bench-demo] [--busy] [--summary DIR]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from _results import markdown_table, write_result
+
+LABELS = {"needle-insertion": "needle insertion", "push-on-centre": "on-centre pushes",
+          "push-off-centre": "off-centre pushes", "urethra-inflation": "urethra inflation"}
+
+
+def _spin() -> None:
+    while True:
+        pass
+
+
+def _label(r: dict) -> str:
+    name = LABELS.get(r["scenario"], r["scenario"])
+    for e in r["truth"]["events"]:
+        if e["kind"] == "inflate":
+            name += (f" (to {e['p_urethra_kPa']:.1f} kPa: `near_urethra` {e['near_urethra_shift_mm']:.2f} mm, "
+                     f"bulb +{e['bulb_growth_percent']:.1f} %)")
+    return name
+
+
+def table(summary: dict) -> str:
+    rows = []
+    for r in summary["scenarios"]:
+        dof = [f"{r['rmse'][k]:.2f} ({r['peak_truth'][k]:.1f})" for k in ("x", "y", "z", "yaw", "pitch", "roll")]
+        t = r["target_rmse_mm"].values()
+        a = r.get("atlas") or {}
+        inside = f"{a['in_envelope_fraction'] * 100:.0f} %" if a else "–"
+        rows.append([_label(r), *dof, f"{r['force_rmse_N'].get('|force|', float('nan')):.2f}",
+                     f"{min(t):.2f}–{max(t):.2f}", f"{r['lag_ms']:.0f}", inside,
+                     f"{r['estimate']['rate_Hz']:.0f}", f"{r['seconds']['truth_solve']:.0f}"])
+    head = ["scenario", "x mm", "y mm", "z mm", "yaw °", "pitch °", "roll °", "\\|F\\| N", "targets RMSE mm",
+            "lag ms", "inside atlas", "estimator Hz", "truth solve s"]
+    return markdown_table(head, rows)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", type=Path, default=Path("out/bench-demo"))
+    ap.add_argument("--summary", type=Path, help="a demo's output directory: read its summary.json, run nothing")
+    ap.add_argument("--busy", action="store_true", help="one core kept busy by another process meanwhile")
+    a = ap.parse_args(argv)
+    wall = None
+    if a.summary is None:
+        spin = multiprocessing.Process(target=_spin, daemon=True) if a.busy else None
+        if spin:
+            spin.start()
+        t0 = time.perf_counter()
+        exe = Path(sys.executable).with_name("softphantom")
+        rc = subprocess.run([str(exe), "demo", "--out", str(a.out), "--overwrite"]).returncode
+        wall = time.perf_counter() - t0
+        if spin:
+            spin.terminate()
+        if rc != 0:
+            print(f"demo failed: exit {rc}", file=sys.stderr)
+            return 1
+        ru = resource.getrusage(resource.RUSAGE_CHILDREN)
+        print(f"demo: {wall:.0f} s wall, {ru.ru_utime:.0f} s user + {ru.ru_stime:.0f} s system"
+              + (" (one core busy)" if a.busy else ""))
+    d = a.summary or a.out
+    s = json.loads((d / "summary.json").read_text())
+    md = table(s)
+    print(md)
+    if a.busy:  # the docs' table is the idle run's
+        return 0
+    caption = (f"The demo's `wall_s` {s['wall_s']:.0f} s" + (f", the command {wall:.0f} s" if wall else "")
+               + "; RMSE (peak \\|truth\\|) against the virtual truth, from `summary.json`.")
+    write_result("demo", md, caption=caption)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
