@@ -179,7 +179,7 @@ def test_quiet_and_verbose_set_the_level_and_a_bad_level_is_one_line(capsys, mon
 def test_design_on_a_pipe_says_what_it_is_doing(tmp_path, capsys):
     from softphantom.cli import main
 
-    assert main(["design", "--out", str(tmp_path / "m"), "--mesh-size-mm", "12", "--no-png"]) == 0
+    assert main(["design", "--out", str(tmp_path / "m"), "--mesh-size-mm", "12", "--element-order", "1", "--no-png"]) == 0
     printed = capsys.readouterr().out.splitlines()
     start = next(i for i, ln in enumerate(printed) if re.fullmatch(r"meshing design '\w+' …", ln))
     beats = sum(bool(re.fullmatch(r"meshing design '\w+' … [\d:]+", ln)) for ln in printed[start + 1:])
