@@ -45,9 +45,32 @@ GMSH_TET10 = np.array([0, 1, 2, 3, 4, 5, 6, 7, 9, 8])
 ARM_SPLIT_MARGIN_MM = 1.0  # a rounded arm's region starts this far above its fillet (and below its cavity)
 _GMSH_LOCK = threading.Lock()  # gmsh holds process-global state; one mesh at a time
 
-REGION_IDS: dict[str, int] = {"bulb": 1, **{f"arm_{n}": i + 2 for i, n in enumerate(ARM_NAMES)}}
-CAVITY_GROUP_IDS: dict[str, int] = {n: 11 + i for i, n in enumerate((*ARM_NAMES, "urethra"))}
 SHELL_REGION_ID = 6
+URETHRA_GROUP_ID = 15
+
+
+def region_ids(arm_names=ARM_NAMES) -> dict[str, int]:
+    """The physical ids of the bulb and the arms' regions: the bulb 1, the first four arms 2–5
+    (the BIP's ids), further arms 100 + their index (clear of the shell's 6 and the lesions' 31…).
+
+    >>> region_ids()
+    {'bulb': 1, 'arm_front_zpos': 2, 'arm_front_zneg': 3, 'arm_back_xpos': 4, 'arm_back_xneg': 5}
+    """
+    return {"bulb": 1, **{f"arm_{n}": (i + 2 if i < 4 else 100 + i) for i, n in enumerate(arm_names)}}
+
+
+def cavity_group_ids(arm_names=ARM_NAMES) -> dict[str, int]:
+    """The physical ids of the cavities' walls: the first four arms' 11–14 and the urethra's 15
+    (the BIP's ids), further arms' 200 + their index.
+
+    >>> cavity_group_ids(("a", "b", "c"))
+    {'a': 11, 'b': 12, 'c': 13, 'urethra': 15}
+    """
+    return {**{n: (11 + i if i < 4 else 200 + i) for i, n in enumerate(arm_names)}, "urethra": URETHRA_GROUP_ID}
+
+
+REGION_IDS: dict[str, int] = region_ids()  # the BIP's
+CAVITY_GROUP_IDS: dict[str, int] = cavity_group_ids()
 LESION_REGION_ID0 = 31  # lesion k (in the design's order) is 31 + k
 FIXED_GROUP_ID = 21
 OUTER_GROUP_ID = 22
@@ -303,8 +326,9 @@ def _build(design: BIPDesign, mp: MeshParams) -> dict:
     _, out_map = occ.fragment([(3, bulb)], tools)
     occ.synchronize()
     pieces = [set(t for d, t in m if d == 3) for m in out_map]
-    bulb_p, arm_p, cav_p = pieces[0], pieces[1:5], pieces[5:10]
-    layer_p = {k: p for (k, _), p in zip(layer_tools, pieces[10:])}
+    n_arms = len(design.arms)
+    bulb_p, arm_p, cav_p = pieces[0], pieces[1:1 + n_arms], pieces[1 + n_arms:2 + 2 * n_arms]
+    layer_p = {k: p for (k, _), p in zip(layer_tools, pieces[2 + 2 * n_arms:])}
     if rounded:
         # the arm tubes' pieces outside the solid go; inside it they are the arms (not the bulb)
         drop = set().union(*arm_p) - bulb_p
@@ -312,7 +336,7 @@ def _build(design: BIPDesign, mp: MeshParams) -> dict:
         bulb_p = bulb_p - set().union(*arm_p)
     all_cav = set().union(*cav_p)
     cav_surfaces: dict[str, list[int]] = {}
-    for name, p in zip((*ARM_NAMES, "urethra"), cav_p):
+    for name, p in zip(design.cavity_names, cav_p):
         if len(p) != 1:
             raise MeshError(f"cavity {name}: fragment gave {len(p)} pieces, expected 1")
         bnd = gmsh.model.getBoundary([(3, t) for t in sorted(p)], combined=True, oriented=False)
@@ -320,17 +344,17 @@ def _build(design: BIPDesign, mp: MeshParams) -> dict:
     lesion_p = set().union(*(layer_p[x.region] for x in lay.lesions)) if lay.lesions else set()
     infill_p = layer_p.get("infill", bulb_p)
     region_vols = {"bulb": sorted((bulb_p & infill_p) - all_cav - lesion_p)}
-    region_ids = dict(REGION_IDS)
+    ids = region_ids(design.arm_names)
     if lay.shell_mm > 0.0:
         region_vols["shell"] = sorted(bulb_p - infill_p - all_cav)
-        region_ids["shell"] = SHELL_REGION_ID
+        ids["shell"] = SHELL_REGION_ID
     for k, les in enumerate(lay.lesions):
         region_vols[les.region] = sorted(layer_p[les.region] - all_cav)
-        region_ids[les.region] = LESION_REGION_ID0 + k
-    for rname in region_ids:
+        ids[les.region] = LESION_REGION_ID0 + k
+    for rname in ids:
         if rname in region_vols and not region_vols[rname]:
             raise MeshError(f"region {rname}: no volume left after the fragment")
-    for name, p in zip(ARM_NAMES, arm_p):
+    for name, p in zip(design.arm_names, arm_p):
         region_vols[f"arm_{name}"] = sorted(p - all_cav - bulb_p)
         if not region_vols[f"arm_{name}"]:
             raise MeshError(f"arm {name}: no volume outside the bulb after the fragment")
@@ -339,7 +363,7 @@ def _build(design: BIPDesign, mp: MeshParams) -> dict:
 
     # fixed faces: the arm surfaces whose centre of mass is the end-face centre
     fixed: list[int] = []
-    for g, name in zip(geoms, ARM_NAMES):
+    for g, name in zip(geoms, design.arm_names):
         bnd = gmsh.model.getBoundary([(3, t) for t in region_vols[f"arm_{name}"]], combined=True, oriented=False)
         hits = [abs(t) for _, t in bnd if gmsh.model.getType(2, abs(t)) == "Plane"
                 and np.linalg.norm(np.array(occ.getCenterOfMass(2, abs(t))) - g.end_mm) < 1e-3]
@@ -353,9 +377,9 @@ def _build(design: BIPDesign, mp: MeshParams) -> dict:
         if len(up) == 1 and s not in cav_all and s not in fixed:
             outer.append(s)
 
-    for rname, rid in region_ids.items():
+    for rname, rid in ids.items():
         gmsh.model.addPhysicalGroup(3, region_vols[rname], rid, name=rname)
-    for cname, gid in CAVITY_GROUP_IDS.items():
+    for cname, gid in cavity_group_ids(design.arm_names).items():
         gmsh.model.addPhysicalGroup(2, cav_surfaces[cname], gid, name=f"cavity_{cname}")
     gmsh.model.addPhysicalGroup(2, fixed, FIXED_GROUP_ID, name="fixed")
     gmsh.model.addPhysicalGroup(2, sorted(outer), OUTER_GROUP_ID, name="outer")
@@ -364,7 +388,7 @@ def _build(design: BIPDesign, mp: MeshParams) -> dict:
     fields = []
     radii = {g.name: g.cavity_radius_mm for g in geoms}
     radii["urethra"] = design.urethra.radius_mm
-    for h, names in _walls_by_size({c: mp.cavity_size_mm(radii[c]) for c in (*ARM_NAMES, "urethra")}):
+    for h, names in _walls_by_size({c: mp.cavity_size_mm(radii[c]) for c in design.cavity_names}):
         dist = fld.add("Distance")
         fld.setNumbers(dist, "SurfacesList", [t for n in names for t in cav_surfaces[n]])
         fld.setNumber(dist, "Sampling", 40)
@@ -400,10 +424,11 @@ def _build(design: BIPDesign, mp: MeshParams) -> dict:
     arm_f = fld.add("Constant")
     fld.setNumber(arm_f, "VIn", mp.arm_size_mm)
     fld.setNumber(arm_f, "VOut", mp.size_mm)
-    fld.setNumbers(arm_f, "VolumesList", [t for n in ARM_NAMES for t in region_vols[f"arm_{n}"]])
+    arm_vols = [t for n in design.arm_names for t in region_vols[f"arm_{n}"]]
+    fld.setNumbers(arm_f, "VolumesList", arm_vols)
     fld.setNumber(arm_f, "IncludeBoundary", 1)
     fillet_faces = _fillet_faces(design, bulb_surfs) if rounded else []
-    fields += _local_refinements(design, mp, bulb_surfs, [t for n in ARM_NAMES for t in region_vols[f"arm_{n}"]],
+    fields += _local_refinements(design, mp, bulb_surfs, arm_vols,
                                  fillet_faces)
     fmin = fld.add("Min")
     fld.setNumbers(fmin, "FieldsList", [*fields, thr_b, arm_f])
@@ -427,7 +452,7 @@ def _build(design: BIPDesign, mp: MeshParams) -> dict:
     node_tags, coords, _ = gmsh.model.mesh.getNodes()
     coords = np.asarray(coords, dtype=float).reshape(-1, 3)
     tets, regs = [], []
-    for rname, rid in region_ids.items():
+    for rname, rid in ids.items():
         for v in region_vols[rname]:
             t = _elements(3, v, ttype, tn)
             tets.append(t)
@@ -458,11 +483,11 @@ def _build(design: BIPDesign, mp: MeshParams) -> dict:
     tt = lookup[tet_tags]
     if order == 1:
         return dict(nodes_mm=nodes, tets=tt, tet_region=np.concatenate(regs), cavities=cav,
-                    fixed_faces=fix, outer_faces=out, regions=region_ids)
+                    fixed_faces=fix, outer_faces=out, regions=ids)
     return dict(
         nodes_mm=nodes, tets=tt[:, :4], tet_region=np.concatenate(regs),
         cavities={k: v[:, :3] for k, v in cav.items()}, fixed_faces=fix[:, :3], outer_faces=out[:, :3],
-        tets10=tt, cavities6=cav, fixed_faces6=fix, outer_faces6=out, n_corner=len(corner), regions=region_ids,
+        tets10=tt, cavities6=cav, fixed_faces6=fix, outer_faces6=out, n_corner=len(corner), regions=ids,
     )
 
 

@@ -21,15 +21,15 @@ import numpy as np
 
 from softphantom.design import geometry as geo
 from softphantom.design.mesh import (
-    CAVITY_GROUP_IDS,
     CAVITY_VOLUME_TOLERANCE,
     FIXED_GROUP_ID,
     OUTER_GROUP_ID,
     RawMesh,
+    cavity_group_ids,
     check_mesh_budget,
     mesh_design,
 )
-from softphantom.design.params import ARM_NAMES, BIPDesign, design_from_dict, design_to_dict, load_design, save_design
+from softphantom.design.params import BIPDesign, design_from_dict, design_to_dict, load_design, save_design
 from softphantom.errors import FileFormatError, MeshError
 
 MM = 1e-3
@@ -249,7 +249,7 @@ def model_from_raw(design: BIPDesign, raw: RawMesh) -> PhantomModel:
         cav6 = {k: _orient(tets, nodes, v, into_solid=True) for k, v in raw.cavities6.items()}
         fixed6 = _orient(tets, nodes, raw.fixed_faces6, into_solid=False)
         quad = dict(
-            tets10=tets10, cavities6={k: cav6[k] for k in (*ARM_NAMES, "urethra")}, fixed_faces6=fixed6,
+            tets10=tets10, cavities6={k: cav6[k] for k in design.cavity_names}, fixed_faces6=fixed6,
             outer_faces6=_orient(tets, nodes, raw.outer_faces6, into_solid=False), n_corner_nodes=raw.n_corner,
         )
         fixed_nodes = np.unique(fixed6)
@@ -261,7 +261,7 @@ def model_from_raw(design: BIPDesign, raw: RawMesh) -> PhantomModel:
         tets=tets,
         tet_region=raw.tet_region,
         regions=dict(raw.regions),
-        cavities={k: cavities[k] for k in (*ARM_NAMES, "urethra")},
+        cavities={k: cavities[k] for k in design.cavity_names},
         fixed_faces=fixed,
         fixed_nodes=fixed_nodes,
         outer_faces=outer,
@@ -353,7 +353,8 @@ def _to_meshio(model: PhantomModel):
         sel = tets[model.tet_region == rid]
         cells.append((tet_t, sel))
         phys.append(np.full(len(sel), rid, dtype=np.int64))
-    for cname, gid in CAVITY_GROUP_IDS.items():
+    cavity_ids = cavity_group_ids(model.design.arm_names)
+    for cname, gid in cavity_ids.items():
         cells.append((tri_t, cavs[cname]))
         phys.append(np.full(len(cavs[cname]), gid, dtype=np.int64))
     faces = ((model.fixed_faces6, FIXED_GROUP_ID), (model.outer_faces6, OUTER_GROUP_ID)) if q else (
@@ -363,7 +364,7 @@ def _to_meshio(model: PhantomModel):
         phys.append(np.full(len(tris), gid, dtype=np.int64))
     geom = [p.copy() for p in phys]
     field_data = {name: np.array([rid, 3]) for name, rid in model.regions.items()}
-    field_data.update({f"cavity_{n}": np.array([g, 2]) for n, g in CAVITY_GROUP_IDS.items()})
+    field_data.update({f"cavity_{n}": np.array([g, 2]) for n, g in cavity_ids.items()})
     field_data["fixed"] = np.array([FIXED_GROUP_ID, 2])
     field_data["outer"] = np.array([OUTER_GROUP_ID, 2])
     return meshio.Mesh(

@@ -13,8 +13,10 @@ needle coming from −y, z up/anterior):
   cylinder length is derived from ``volume_mm3`` (2078 mm³), centred at ``center_mm`` (default
   4 mm anterior) along ``axis``; ``inlet_mm`` is where its tube leaves the bulb (a point on the
   surface; the channel itself is not meshed).
-- **arms**: four cylinders ``front_zpos``, ``front_zneg`` (needle side, above/below, cavities of
-  514 mm³) and ``back_xpos``, ``back_xneg`` (+y, left/right, 486 mm³). An arm's axis is the
+- **arms**: by default the BIP's four cylinders ``front_zpos``, ``front_zneg`` (needle side,
+  above/below, cavities of 514 mm³) and ``back_xpos``, ``back_xneg`` (+y, left/right, 486 mm³);
+  any :data:`MIN_ARMS` or more, each named, in the sensor order (a design file lists them in
+  ``arm_names`` when they are not the BIP's four). An arm's axis is the
   line through ``axis_point_mm`` along ``direction``; its *root* is where that line leaves the
   bulb. The arm cylinder starts ``embed_mm`` inside the bulb (so that it fuses with it without
   a gap) and ends ``length_mm`` beyond the root: that end disk is the fixed face clamped to the
@@ -80,10 +82,10 @@ def _bare_name(name: str) -> str:
 
 _Name = Annotated[str, Strict(), AfterValidator(_bare_name)]
 
+MIN_ARMS = 3  # four arm volumes see three force components; fewer cannot (docs/estimation.md, observability)
+RESERVED_NAMES = ("urethra", "bulb", "shell")  # cavity and region names an arm may not take
 CAVITY_NAMES: tuple[str, ...] = ARM_NAMES + ("urethra",)
 REGION_NAMES: tuple[str, ...] = ("bulb", *(f"arm_{n}" for n in ARM_NAMES))
-#: region groups usable as keys of ``[region_materials]``
-REGION_GROUPS: dict[str, tuple[str, ...]] = {"arms": tuple(f"arm_{n}" for n in ARM_NAMES)}
 DEFAULT_MATERIAL = "ecoflex_00_50"
 MIN_WALL_MM = 1.0
 SURFACE_TOL_MM = 0.1
@@ -433,7 +435,7 @@ class SensorParams:
     real tube volume over the one its length and bore give. Defaults: the datasheet, no correction."""
 
     gains: Annotated[tuple[Annotated[Number, between(0.5, 2.0, "(a transducer's sensitivity / datasheet)")], ...],
-                     Field(min_length=4, max_length=4)] = (1.0, 1.0, 1.0, 1.0)  # front_zpos, front_zneg, back_xpos, back_xneg
+                     Field(min_length=MIN_ARMS)] = (1.0, 1.0, 1.0, 1.0)  # one per arm, in the sensor order
     tube_volume_factor: Annotated[Number, between(0.2, 5.0)] = 1.0
 
 
@@ -552,23 +554,42 @@ class BIPDesign:
     def __post_init__(self) -> None:
         _set(self, "markers", _named_points("markers", self.markers))
         _set(self, "targets", _named_points("targets", self.targets))
-        names = tuple(a.name for a in self.arms)
-        if names != ARM_NAMES:
-            raise DesignError(f"arms: expected exactly {list(ARM_NAMES)} in this order, got {list(names)}")
+        _validate_arm_names(tuple(a.name for a in self.arms))
+        g = self.sensors.gains
+        if len(g) != len(self.arms):
+            if any(v != 1.0 for v in g):
+                raise DesignError(f"sensors.gains: {len(g)} given for {len(self.arms)} arms (one per arm, in the "
+                                  f"sensor order: {', '.join(self.arm_names)})")
+            _set(self, "sensors", dataclasses.replace(self.sensors, gains=(1.0,) * len(self.arms)))  # the datasheet's
         _validate_geometry(self)
         _validate_layers(self)
         _validate_materials(self)
+
+    @property
+    def arm_names(self) -> tuple[str, ...]:
+        """The arms' names in the sensor order.
+
+        >>> BIPDesign().arm_names == ARM_NAMES
+        True
+        """
+        return tuple(a.name for a in self.arms)
+
+    @property
+    def cavity_names(self) -> tuple[str, ...]:
+        """The cavities: the arms' in the sensor order, then ``urethra``."""
+        return (*self.arm_names, "urethra")
 
     @property
     def region_names(self) -> tuple[str, ...]:
         """The mesh's volume regions: ``bulb`` (the infill when there is a shell), the arms, then
         ``shell`` and ``lesion_<name>`` when ``[layers]`` declares them."""
         extra = (("shell",) if self.layers.shell_mm > 0.0 else ()) + tuple(x.region for x in self.layers.lesions)
-        return (*REGION_NAMES, *extra)
+        return ("bulb", *(f"arm_{n}" for n in self.arm_names), *extra)
 
     def region_groups(self) -> dict[str, tuple[str, ...]]:
         """Groups usable in ``[region_materials]``: ``arms``, and ``lesions`` (every lesion)."""
-        return {**REGION_GROUPS, "lesions": tuple(x.region for x in self.layers.lesions)}
+        return {"arms": tuple(f"arm_{n}" for n in self.arm_names),
+                "lesions": tuple(x.region for x in self.layers.lesions)}
 
     def material_of_regions(self, regions=None) -> dict[str, str]:
         """Region name -> material name, from ``region_materials`` (a region's own key wins over its
@@ -590,7 +611,7 @@ class BIPDesign:
 
     # --- derived geometry (mm) -------------------------------------------------------------
     def arm_geometry(self) -> tuple[ArmGeometry, ...]:
-        """Placement of the four arms, in the sensor order."""
+        """Placement of the arms, in the sensor order."""
         return tuple(_arm_geometry(a, self.bulb) for a in self.arms)
 
     def p_ext_mm(self) -> dict[str, np.ndarray]:
@@ -610,6 +631,18 @@ class BIPDesign:
         out = {a.name: a.cavity_volume_mm3 for a in self.arms}
         out["urethra"] = self.urethra.volume_mm3
         return out
+
+
+def _validate_arm_names(names: tuple[str, ...]) -> None:
+    if len(names) < MIN_ARMS:
+        raise DesignError(f"arms: {len(names)} given ({', '.join(names) or 'none'}); a phantom needs at least "
+                          f"{MIN_ARMS} sensing arms to see the three force components")
+    for n in names:
+        if not re.fullmatch(r"[A-Za-z][A-Za-z0-9_]*", n) or n in RESERVED_NAMES:
+            raise DesignError(f"arms.{n}: an arm's name must start with a letter and hold letters, digits or _ "
+                              f"(not {', '.join(RESERVED_NAMES)})")
+        if names.count(n) > 1:
+            raise DesignError(f"arms.{n}: two arms have this name")
 
 
 def _arm_geometry(arm: ArmParams, bulb: BulbParams) -> ArmGeometry:
@@ -936,6 +969,8 @@ def design_to_dict(design: BIPDesign) -> dict[str, Any]:
     if not design.bulb.is_surface:  # an ellipsoid's file stays as it was
         for k in ("surface_vertices_mm", "surface_faces"):
             del out["bulb"][k]
+    if design.arm_names != ARM_NAMES:  # the BIP's file stays as it was
+        out["arm_names"] = list(design.arm_names)
     out["arms"] = {
         a.name: {k: (list(getattr(a, k)) if isinstance(getattr(a, k), tuple) else getattr(a, k)) for k in _ARM_KEYS}
         for a in design.arms
@@ -965,10 +1000,42 @@ def _default_design() -> BIPDesign:
     return BIPDesign()  # frozen: one validated instance serves every design_from_dict
 
 
+def _arms_from_dict(data: dict[str, Any], default_arms: tuple[ArmParams, ...], surface: bool) -> tuple[ArmParams, ...]:
+    """The arms of a design file: ``arm_names`` (default: the BIP's four) in the sensor order, each
+    from its ``[arms.NAME]`` table; a BIP arm's missing keys keep its defaults, another arm gives at
+    least ``direction`` and ``cavity_volume_mm3``."""
+    given = data.get("arms", {})
+    _check_keys("arms", given, None)
+    names = data.get("arm_names", [a.name for a in default_arms])
+    if not (isinstance(names, list) and all(isinstance(n, str) for n in names)):
+        raise DesignError(f"arm_names: expected a list of names, got {names!r}")
+    _validate_arm_names(tuple(names))
+    extra = [n for n in given if n not in names]
+    if extra:
+        raise DesignError(f"arms.{extra[0]}: not one of the design's arms ({', '.join(names)}); list every arm, in "
+                          "the sensor order, in arm_names = [...]")
+    by_name = {a.name: a for a in default_arms}
+    arms = []
+    for n in names:
+        over = given.get(n, {})
+        _check_keys(f"arms.{n}", over, _ARM_KEYS)
+        if n in by_name:
+            a = by_name[n]
+        else:
+            missing = [k for k in ("direction", "cavity_volume_mm3") if k not in over]
+            if missing:
+                raise DesignError(f"arms.{n}.{missing[0]}: missing (a new arm needs direction and cavity_volume_mm3)")
+            a = ArmParams(n, over["direction"], over["cavity_volume_mm3"])
+        if surface and "junction_fillet_mm" not in over:
+            a = dataclasses.replace(a, junction_fillet_mm=0.0)  # OCC fillets smooth surfaces only
+        arms.append(dataclasses.replace(a, **over))
+    return tuple(arms)
+
+
 def design_from_dict(data: dict[str, Any]) -> BIPDesign:
     """A design from a nested dict; missing keys keep their defaults, ``markers``/``targets`` replace them."""
-    _check_keys("design", data, ["name", "arms", "markers", "targets", "materials", "region_materials", "layers",
-                                 *_SUBS])
+    _check_keys("design", data, ["name", "arm_names", "arms", "markers", "targets", "materials", "region_materials",
+                                 "layers", *_SUBS])
     default = _default_design()
     defaults = {f.name: getattr(default, f.name) for f in dataclasses.fields(BIPDesign)}
     kwargs: dict[str, Any] = dict(defaults)
@@ -989,16 +1056,7 @@ def design_from_dict(data: dict[str, Any]) -> BIPDesign:
             _check_keys(f"layers.lesions.{name}", spec, ["center_mm", "semi_axes_mm"])  # the name is the table's
             les.append(LesionParams(name=str(name), **spec))
         kwargs["layers"] = LayersParams(shell_mm=lay.get("shell_mm", 0.0), lesions=tuple(les))
-    given_arms = data.get("arms", {})
-    _check_keys("arms", given_arms, ARM_NAMES)
-    arms = []
-    for a in defaults["arms"]:
-        over = given_arms.get(a.name, {})
-        _check_keys(f"arms.{a.name}", over, _ARM_KEYS)
-        if kwargs["bulb"].is_surface and "junction_fillet_mm" not in over:
-            a = dataclasses.replace(a, junction_fillet_mm=0.0)  # OCC fillets smooth surfaces only
-        arms.append(dataclasses.replace(a, **over))
-    kwargs["arms"] = tuple(arms)
+    kwargs["arms"] = _arms_from_dict(data, defaults["arms"], kwargs["bulb"].is_surface)
     for key in ("markers", "targets"):
         if key in data:
             if not isinstance(data[key], dict):

@@ -101,15 +101,15 @@ def pose_and_shifts(rest_markers: np.ndarray, rest_targets: np.ndarray, target_n
 
 def noise_bound(lin: Linearization, rest_markers: np.ndarray, target_names, sigma_dV_m3,
                 sigma_p_Pa: float = 0.0, lam=None) -> NoiseBound:
-    """1-σ errors from independent volume noise ``sigma_dV_m3`` (scalar or (4,), m³) and urethra
+    """1-σ errors from independent volume noise ``sigma_dV_m3`` (scalar or (n_arms,), m³) and urethra
     pressure noise, propagated through the least-squares inverse ``W_f⁺`` of ``lin`` (bounds
     inactive), then through ``U_sub`` to the pose (rigid fit of the first ``len(rest_markers)``
     tracked points, Jacobian by central differences about ``lam``, default ``lin.lam``) and to the
     targets (the tracked points after the markers, named ``target_names``)."""
     nm = len(rest_markers)
     Wf, wp = lin.W[:, :3], lin.W[:, 3]
-    Wp = np.linalg.pinv(Wf)  # (3,4)
-    s = np.broadcast_to(np.asarray(sigma_dV_m3, float), (4,))
+    Wp = np.linalg.pinv(Wf)  # (3, n_arms)
+    s = np.broadcast_to(np.asarray(sigma_dV_m3, float), (len(Wf),))
     # δf = W_f⁺ (δV − w_p δp)
     cov = Wp @ np.diag(s**2) @ Wp.T + np.outer(Wp @ wp, Wp @ wp) * sigma_p_Pa**2
     # pose and targets: linear in δλ = (δf, δp); Jacobian of the pose by central differences
@@ -133,15 +133,15 @@ def noise_bound(lin: Linearization, rest_markers: np.ndarray, target_names, sigm
     return NoiseBound(np.sqrt(np.diag(cov)), pose, targets, cov)
 
 
-def check_sample(m) -> str:
-    """'' for a usable sample, else the rejection reason."""
+def check_sample(m, arm_names: tuple[str, ...] = ARM_NAMES) -> str:
+    """'' for a usable sample (one volume per arm of ``arm_names``), else the rejection reason."""
     if getattr(m, "status", "ok") != "ok":
         return str(m.status)
     dV = np.asarray(m.dV, dtype=float)
-    if dV.shape != (4,):
+    if dV.shape != (len(arm_names),):
         return f"dV shape {dV.shape}"
     if not np.all(np.isfinite(dV)):
-        bad = [ARM_NAMES[i] for i in np.flatnonzero(~np.isfinite(dV))]
+        bad = [arm_names[i] for i in np.flatnonzero(~np.isfinite(dV))]
         return "nan:" + ",".join(bad)
     if not np.isfinite(float(m.p_urethra)):
         return "nan:urethra"
@@ -154,7 +154,8 @@ def repeat_last(last: Estimate, m, status: str, t0: float, skipped: int) -> Esti
     """An estimate for a sample that gave none (rejected, solver failure): the last state again,
     with the sample's time and volumes and ``status``."""
     t = float(m.t) if np.isfinite(float(m.t)) else last.t
-    dV = np.asarray(m.dV, float).copy() if np.shape(m.dV) == (4,) else np.full(4, np.nan)
+    n = len(last.volume_meas)
+    dV = np.asarray(m.dV, float).copy() if np.shape(m.dV) == (n,) else np.full(n, np.nan)
     return Estimate(
         t=t, force=last.force.copy(), p_urethra=last.p_urethra, pose=last.pose,
         target_shift=dict(last.target_shift), volume_pred=last.volume_pred.copy(), volume_meas=dV,
@@ -164,7 +165,7 @@ def repeat_last(last: Estimate, m, status: str, t0: float, skipped: int) -> Esti
 
 
 def sensitivity_cond(W: np.ndarray) -> float:
-    """Condition number of the force columns of a (4,4) sensitivity (inf if rank-deficient)."""
+    """Condition number of the force columns of an (n_arms, 4) sensitivity (inf if rank-deficient)."""
     s = np.linalg.svd(np.asarray(W)[:, :3], compute_uv=False)
     return float(s[0] / s[-1]) if s[-1] > 0 else float("inf")
 
@@ -174,8 +175,8 @@ def rest_estimate(target_names, W: np.ndarray) -> Estimate:
     z = np.zeros(3)
     return Estimate(
         t=0.0, force=z.copy(), p_urethra=0.0, pose=Pose6(z.copy(), z.copy()),
-        target_shift={k: z.copy() for k in target_names}, volume_pred=np.zeros(4),
-        volume_meas=np.zeros(4), cond_W=sensitivity_cond(W), qp_status="rest", step_time=0.0,
+        target_shift={k: z.copy() for k in target_names}, volume_pred=np.zeros(len(W)),
+        volume_meas=np.zeros(len(W)), cond_W=sensitivity_cond(W), qp_status="rest", step_time=0.0,
     )
 
 
@@ -263,7 +264,7 @@ class _Worker(threading.Thread):
 
 
 class Estimator(EstimatorState):
-    """Force, urethra pressure, pose, deformation and target shifts from the 4 arm-cavity volumes.
+    """Force, urethra pressure, pose, deformation and target shifts from the arm-cavity volumes.
 
     ``Estimator(model, config)``: ``model`` a :class:`~softphantom.design.PhantomModel`. Building
     it factors the tangent once (rest linearization, :attr:`rest`). :meth:`step` turns a
@@ -280,6 +281,7 @@ class Estimator(EstimatorState):
         self.model = model
         self.forward = fwd = ForwardModel(model, cfg)
         self.fem = fwd.fem
+        self.arm_names = fwd.eq.arm_names
         self.contact_point = fwd.contact_point
         self.marker_names, self.target_names = fwd.marker_names, fwd.target_names
         self._eq = fwd.eq
@@ -302,7 +304,7 @@ class Estimator(EstimatorState):
         self._since_refresh = 0
         self.refreshes = 0
         # per-refresh history, the latest HISTORY entries only: a soak must not grow the process
-        self.lin_errors = History(width=4)
+        self.lin_errors = History(width=len(self.arm_names))
         self.refresh_times = History()  # s per equilibrium refresh (both modes)
         self._last = rest_estimate(self.target_names, self.rest.W)
         if self.config.mode == "async" and self._worker is None:
@@ -411,7 +413,7 @@ class Estimator(EstimatorState):
     def step(self, m, skipped: int = 0) -> Estimate:
         """Estimate the state for one measurement (see the class docstring)."""
         t0 = time.perf_counter()
-        why = check_sample(m)
+        why = check_sample(m, self.arm_names)
         if why:
             return repeat_last(self._last, m, f"rejected:{why}", t0, skipped)
         with self._lock:
@@ -463,7 +465,7 @@ class Estimator(EstimatorState):
 
     # -- noise ------------------------------------------------------------------------------------
     def noise_bound(self, sigma_dV_m3, sigma_p_Pa: float = 0.0) -> NoiseBound:
-        """1-σ errors from independent volume noise ``sigma_dV_m3`` (scalar or (4,)) and urethra
+        """1-σ errors from independent volume noise ``sigma_dV_m3`` (scalar or (n_arms,)) and urethra
         pressure noise at the current linearization and estimate (:func:`noise_bound`)."""
         return noise_bound(self._lin, self.rest_markers, self.target_names, sigma_dV_m3, sigma_p_Pa, self._lam)
 

@@ -6,7 +6,7 @@ load ``p_u ∂Φ_u/∂x``). Equilibrium: ``f_int(x) = H_f λ_f + p_u ∂Φ_u/∂
 
 A :class:`Linearization` holds, at a converged equilibrium ``x_eq(λ_eq)``, what the per-sample
 estimator needs: the arm-cavity volume changes ``V_eq`` (m³, relative to rest), the sensitivity
-``W = ∂Φ/∂x · K⁻¹ · B`` (4 × 4: m³/N for the three force columns, m³/Pa for the pressure
+``W = ∂Φ/∂x · K⁻¹ · B`` (n_arms × 4: m³/N for the three force columns, m³/Pa for the pressure
 column; ``B = ∂f_ext/∂λ``), the tracked points (markers then targets) and their sensitivity
 ``U_sub``, and the full ``U = K⁻¹ B`` for node positions on demand.
 
@@ -36,7 +36,6 @@ from softphantom.fem import (
     solve_static,
 )
 from softphantom.fem.model import FemModel
-from softphantom.estimation.types import ARM_NAMES
 
 URETHRA = "urethra"
 ANDERSON = 5  # depth of the Anderson mixing of the chord iterations
@@ -54,15 +53,21 @@ BORDERED_FACTORS = 6  # factorizations a mixed-control solve may make before it 
 NEWTON_FIRST_ITERS = 8  # Newton iterations of the fallback's first attempt, from the chord's last state
 
 
+def arm_names_of(fem) -> tuple[str, ...]:
+    """The sensing arms of a FEM model: its cavities but the urethra, in the design's sensor order."""
+    return tuple(k for k in fem.cavities if k != URETHRA)
+
+
 @dataclass(frozen=True, eq=False)
 class Linearization:
     """A converged equilibrium and its first-order sensitivities (SI; arrays read-only).
 
-    ``lam`` (4,) N,N,N,Pa; ``x`` (3N,) m; ``V`` (4,) m³ arm-cavity volume changes from rest;
-    ``W`` (4,4); ``sub_x`` (k,3) m tracked points; ``sub_U`` (k,3,4); ``U`` (3N,4) (zero rows on
-    fixed DOFs); ``residual`` relative force residual of ``x``; ``iterations`` chord/Newton
-    iterations spent; ``refactored`` whether a new factorization was made; ``lin_error``
-    (4,) m³ the previous linearization's predicted minus these converged volumes (NaN at start).
+    ``lam`` (4,) N,N,N,Pa; ``x`` (3N,) m; ``V`` (n_arms,) m³ arm-cavity volume changes from rest
+    (the BIP: 4 arms); ``W`` (n_arms,4); ``sub_x`` (k,3) m tracked points; ``sub_U`` (k,3,4);
+    ``U`` (3N,4) (zero rows on fixed DOFs); ``residual`` relative force residual of ``x``;
+    ``iterations`` chord/Newton iterations spent; ``refactored`` whether a new factorization was
+    made; ``lin_error`` (n_arms,) m³ the previous linearization's predicted minus these converged
+    volumes (NaN at start).
     """
 
     lam: np.ndarray
@@ -84,7 +89,7 @@ class Linearization:
             object.__setattr__(self, k, a)
 
     def predict_volumes(self, lam: np.ndarray) -> np.ndarray:
-        """(4,) m³ first-order arm volume changes at actuations ``lam``."""
+        """(n_arms,) m³ first-order arm volume changes at actuations ``lam``."""
         return self.V + self.W @ (np.asarray(lam, float) - self.lam)
 
     def predict_points(self, lam: np.ndarray) -> np.ndarray:
@@ -113,8 +118,10 @@ class EquilibriumSolver:
     def __init__(self, fem: FemModel, H_f, probe, *, solver: str = "auto", tol: float = 1e-8,
                  refactor_rate: float = 0.3, max_iter: int = 12, exact_sensitivities: bool = True,
                  fallback_min_load_step: float = 1.0 / 1024) -> None:
-        if URETHRA not in fem.cavities or any(a not in fem.cavities for a in ARM_NAMES):
-            raise UserError(f"model lacks cavities {[a for a in (*ARM_NAMES, URETHRA) if a not in fem.cavities]}")
+        arms = arm_names_of(fem)
+        if URETHRA not in fem.cavities or len(arms) < 3:
+            raise UserError(f"model has cavities {list(fem.cavities)}: it needs {URETHRA!r} and at least 3 arms'")
+        self.arm_names = arms  # the sensor order: the rows of V and W
         self.fem = fem
         self.H_f = H_f.tocsr()
         self.probe = probe.tocsr()
@@ -133,7 +140,7 @@ class EquilibriumSolver:
         self._factor_at: tuple[np.ndarray, float] | None = None  # where the kept factor was made
         self.last_rate = 0.0  # mean chord contraction of the last solve
         self.krylov_iterations = 0  # GMRES iterations of the last linearization (0: direct)
-        self._arm_tris = [np.asarray(fem.cavities[a]) for a in ARM_NAMES]
+        self._arm_tris = [np.asarray(fem.cavities[a]) for a in arms]
         self._ur_tris = np.asarray(fem.cavities[URETHRA])
         self._V0 = np.array([cavity_volume(fem.x_rest, t) for t in self._arm_tris])
         # Smallest meaningful force residual: round-off of the internal force (as solve_static).
@@ -194,7 +201,7 @@ class EquilibriumSolver:
         self._factor_at = kept.at
 
     def arm_volumes(self, x: np.ndarray) -> np.ndarray:
-        """(4,) m³ arm-cavity volume changes from rest at ``x``."""
+        """(n_arms,) m³ arm-cavity volume changes from rest at ``x``."""
         return np.array([cavity_volume(x, t) for t in self._arm_tris]) - self._V0
 
     # -- linearization ----------------------------------------------------------------------------
@@ -221,7 +228,7 @@ class EquilibriumSolver:
         return Linearization(
             lam=lam, x=x, V=self.arm_volumes(x), W=W, sub_x=sub_x, sub_U=sub_U, U=U,
             residual=residual, iterations=iterations, refactored=refactored,
-            lin_error=np.full(4, np.nan) if lin_error is None else lin_error,
+            lin_error=np.full(len(self._arm_tris), np.nan) if lin_error is None else lin_error,
         )
 
     def _factor_current(self, x: np.ndarray, p_u: float) -> bool:

@@ -39,7 +39,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from softphantom.errors import DesignError, SolverError
-from softphantom.estimation.types import ARM_NAMES
 
 REFUSE_RATIO = 0.1
 WARN_COUNTS = 10.0
@@ -84,8 +83,8 @@ def _scaled_svd(J: np.ndarray, ranges: np.ndarray) -> tuple[np.ndarray, np.ndarr
 class ObservedState:
     """The sensitivity at one load state.
 
-    ``lam`` (4,) the loads (N, N, N, kPa); ``J`` (4, 4) mm³/N (force columns) and mm³/kPa (urethra
-    pressure), rows in :data:`~softphantom.estimation.types.ARM_NAMES` order; ``sv_mm3`` (4,) the
+    ``lam`` (4,) the loads (N, N, N, kPa); ``J`` (n_arms, 4) mm³/N (force columns) and mm³/kPa
+    (urethra pressure), rows in the design's arm (sensor) order; ``sv_mm3`` (4,) the
     singular values over the envelope (see the module docstring), ``weakest`` (4,) the load step
     (N, N, N, kPa) of the smallest, ``cond`` their ratio; ``sv_force_mm3`` (3,), ``weakest_force``
     (3,) N and ``cond_force`` the same for the force columns alone."""
@@ -186,7 +185,7 @@ def observability(model, forward=None, acfg=None, loaded: bool = True) -> Observ
             states.append(observed_state(fm.solve(lam), ranges))
         except SolverError as exc:
             failed.append((lam / _PER_REPORTED, str(exc).splitlines()[0]))
-    count = count_volume_mm3([model.design.cavity_volumes_mm3()[a] for a in ARM_NAMES])
+    count = count_volume_mm3([model.design.cavity_volumes_mm3()[a] for a in model.design.arm_names])
     return Observability(ranges, observed_state(fm.rest, ranges), tuple(states), tuple(failed), count)
 
 

@@ -35,7 +35,7 @@ from softphantom.estimation.atlas.tasks import (GraphRun, Task, TaskStore, check
                                                 partial_dir, run_graph)
 from softphantom.estimation.config import EstimatorConfig
 from softphantom.estimation.forward import ForwardModel
-from softphantom.estimation.linearization import PatchControl
+from softphantom.estimation.linearization import PatchControl, arm_names_of
 
 FIELD_MAX_MODES = 64
 # a displacement-controlled point is kept where it lands within this fraction of the distance to the
@@ -208,7 +208,7 @@ def _bordered(fwd: ForwardModel, h: np.ndarray, lam: np.ndarray, target: float, 
 
 def _axis_derivative(fwd: ForwardModel, lin, a: int, h: np.ndarray | None, du_q: float | None = None, col0=None):
     """The exact derivatives of a grid point's outputs along the Hermite axis ``a``
-    (:meth:`~softphantom.estimation.linearization.EquilibriumSolver.exact_column`): (dV (4,), dP
+    (:meth:`~softphantom.estimation.linearization.EquilibriumSolver.exact_column`): (dV (n_arms,), dP
     (k, 3), dX (3N,), df_x) per unit load, at fixed f_x (``h`` None: a force axis, or a displacement
     axis's faces). On a displacement axis (``h`` the patch's x load vector, u_a = K⁻¹b_a):
     along ū = hᵀ(x − x_rest) itself (``a`` 0) per metre at fixed (f_y, f_z, p_u): u_0 / hᵀu_0 and
@@ -265,7 +265,7 @@ def _sweep(model, config: EstimatorConfig, acfg: AtlasConfig, i: int, l: int):
     (slow) failing solves of everything beyond it. Expected solver failures are recorded, not
     raised (a displacement axis's planes at its f_x faces are solved here; the points between by
     :func:`_lines`). Returns (i, l,
-    V (ny,nz,4), P (ny,nz,k,3), X (ny,nz,3N) displacements, solved (ny,nz), first failure message
+    V (ny,nz,n_arms), P (ny,nz,k,3), X (ny,nz,3N) displacements, solved (ny,nz), first failure message
     or '', CPU seconds of this process, the derivatives (dV, dP, dX) of the same shapes per Pa along
     the pressure (``linear_pressure``) or per unit load along ``acfg.hermite_axis``
     (:func:`_axis_derivative`, with dFX (ny,nz)), or None, FX (ny,nz) the points' f_x N, Q (ny,nz)
@@ -282,7 +282,7 @@ def _sweep(model, config: EstimatorConfig, acfg: AtlasConfig, i: int, l: int):
     linear = acfg.linear_pressure
     hermite = acfg.hermite_axis
     p_u = 0.5 * (ax[3][0] + ax[3][-1]) if linear else ax[3][l]
-    V = np.full((ny, nz, 4), np.nan)
+    V = np.full((ny, nz, len(arm_names_of(fwd.fem))), np.nan)
     P = np.full((ny, nz, fwd.probe.shape[0], 3), np.nan)
     X = np.full((ny, nz, fwd.fem.n_dof), np.nan)
     deriv = linear or hermite is not None
@@ -350,7 +350,7 @@ def _lines(model, config: EstimatorConfig, acfg: AtlasConfig, k: int, l: int, en
     its predictor the cubic Hermite through the last two along the line, :class:`LinePredictor`,
     from their exact derivatives along ū) — one small step of the state each, where a plane at
     fixed q (:func:`_sweep`) crosses the arm pair's step in f_x from a neighbour in f_y. Returns
-    (k, l, V (n1−2, ny, 4), P (n1−2, ny, k, 3), X
+    (k, l, V (n1−2, ny, n_arms), P (n1−2, ny, k, 3), X
     (n1−2, ny, 3N), solved (n1−2, ny), first failure or '', CPU seconds, FX (n1−2, ny), Q (n1−2, ny),
     converged forward solves, the derivatives along the Hermite axis (dV, dP, dX, dFX) of the same
     shapes or None: along ū (``acfg.hermite_axis`` 0), or along another load at fixed q, for which
@@ -364,7 +364,7 @@ def _lines(model, config: EstimatorConfig, acfg: AtlasConfig, k: int, l: int, en
     span = hi - lo
     fz, p_u = ax[2][k], ax[3][l]
     m = n1 - 2
-    V = np.full((m, ny, 4), np.nan)
+    V = np.full((m, ny, len(arm_names_of(fwd.fem))), np.nan)
     P = np.full((m, ny, fwd.probe.shape[0], 3), np.nan)
     X = np.full((m, ny, fwd.fem.n_dof), np.nan)
     FX = np.full((m, ny), np.nan)
@@ -539,7 +539,8 @@ def _assemble(model, fwd: ForwardModel, acfg: AtlasConfig, key: str, tag: str, r
     n1, n2, n3, n4 = acfg.shape
     ndof = fwd.fem.n_dof
     k = fwd.probe.shape[0]
-    V = np.empty((n1, n2, n3, n4, 4))
+    n_arms = len(arm_names_of(fwd.fem))
+    V = np.empty((n1, n2, n3, n4, n_arms))
     P = np.empty((n1, n2, n3, n4, k, 3))
     X = np.empty((n1, n2, n3, n4, ndof), dtype=np.float64)
     solved = np.zeros((n1, n2, n3, n4), bool)
@@ -623,7 +624,7 @@ def _fit(model, fwd, acfg, key, V, P, X, solved, FX, QN, derivs, cpu_s, t0, offl
     def fit(values, d):
         return to_chebyshev(values, shape, tq, None if d is None else (hermite, d))
 
-    cV = fit(V.reshape(*shape, 4), None if dV is None else dV.reshape(*shape, 4))
+    cV = fit(V.reshape(*shape, V.shape[-1]), None if dV is None else dV.reshape(*shape, V.shape[-1]))
     cP = fit(P.reshape(*shape, k * 3), None if dP is None else dP.reshape(*shape, k * 3))
     cP = cP.reshape(*acfg.coef_shape, k, 3)
     cF = fit(coef.reshape(*shape, r), None if dcoef is None else dcoef.reshape(*shape, r))

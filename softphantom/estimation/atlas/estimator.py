@@ -55,6 +55,7 @@ class AtlasEstimator(EstimatorState):
         self.model = model
         fwd = ForwardModel(model, cfg)
         self.forward = fwd
+        self.arm_names = fwd.eq.arm_names
         if not isinstance(atlas, (Atlas, AtlasPatches)):
             atlas = load_or_build(model, cfg, atlas, cache_dir=cache_dir, scheduler=scheduler,
                                   n_workers=n_workers, fwd=fwd, max_build_s=max_build_s)
@@ -134,8 +135,8 @@ class AtlasEstimator(EstimatorState):
         return inside
 
     def invert(self, dV, p_Pa: float, start=None) -> tuple[np.ndarray, str, bool, np.ndarray, np.ndarray, int]:
-        """Loads that best explain the volumes ``dV`` (4,) m³ at urethra pressure ``p_Pa``:
-        (λ (4,), QP status, in_envelope, V (4,), J (4,4) ∂V/∂λ, Gauss–Newton iterations), λ and
+        """Loads that best explain the volumes ``dV`` (n_arms,) m³ at urethra pressure ``p_Pa``:
+        (λ (4,), QP status, in_envelope, V (n_arms,), J (n_arms,4) ∂V/∂λ, Gauss–Newton iterations), λ and
         ``start`` in the atlas's coordinates (:meth:`Atlas.coords`; the force is
         :meth:`Atlas.forces` of λ).
 
@@ -173,10 +174,11 @@ class AtlasEstimator(EstimatorState):
         at = self._pieces[k]
         lo, hi = self._piece_bounds[k]
         lam[1] = min(max(lam[1], lo[1]), hi[1])
-        V, J = np.empty(4), np.empty((4, 4))
         kv = at.kernel
+        m = kv.V.shape[1]  # the arms
+        V, J = np.empty(m), np.empty((m, 4))
         n3 = kv.n_force_terms
-        poly = (np.empty((n3, 4)), np.empty((n3, 4)), *kv.box, lam, V, J)
+        poly = (np.empty((n3, m)), np.empty((n3, m)), *kv.box, lam, V, J)
         code, it, cost = ak.gn_run(kv.V, *poly, 0.0, dV, lo, hi, GN_TOL_N, 0, GN_MAX_ITER)
         while code == ak.NEED_QP:  # a force bound is in the way of this iteration's step: the QP's
             qp = solve_volume_qp(J, V - dV, 0.0, lo - lam[:3], hi - lam[:3], self.config.qp_solver)
@@ -244,7 +246,7 @@ class AtlasEstimator(EstimatorState):
 
     def _step(self, m, skipped: int, reference: bool) -> Estimate:
         t0 = time.perf_counter()
-        why = check_sample(m)
+        why = check_sample(m, self.arm_names)
         if why:
             return repeat_last(self._last, m, f"rejected:{why}", t0, skipped)
         try:

@@ -186,8 +186,9 @@ def _ls_step(J, r0, x):
     """The minimizer x (3,) N of the volume QP (``solve_volume_qp``: W = J, r0 = V − V_meas, no
     pressure change) without bounds: its scaled, Tikhonov-regularised normal equations by a
     Cholesky solve. False if they are not positive definite (the QP solver then decides)."""
-    Ws = np.empty((4, 4))
-    for i in range(4):
+    m = J.shape[0]  # the arms
+    Ws = np.empty((m, 4))
+    for i in range(m):
         for a in range(3):
             Ws[i, a] = J[i, a] * _SF
         Ws[i, 3] = J[i, 3] * _SP
@@ -196,18 +197,18 @@ def _ls_step(J, r0, x):
     dmax = 0.0
     for a in range(4):
         s = 0.0
-        for i in range(4):
+        for i in range(m):
             s += Ws[i, a] * Ws[i, a]
         dmax = max(dmax, s)
     dmax = max(dmax, 1e-300)
     for a in range(3):
         for b in range(3):
             s = 0.0
-            for i in range(4):
+            for i in range(m):
                 s += Ws[i, a] * Ws[i, b]
             H[a, b] = s
         s = 0.0
-        for i in range(4):
+        for i in range(m):
             s += Ws[i, a] * (r0[i] / _SV)
         f[a] = s
     for a in range(3):
@@ -239,7 +240,7 @@ def _ls_step(J, r0, x):
 @njit(cache=True, nogil=True)
 def _misfit(V, dV):
     s = 0.0
-    for i in range(4):
+    for i in range(V.shape[0]):
         s += (V[i] - dV[i]) ** 2
     return s
 
@@ -252,9 +253,10 @@ def gn_update(Cv, Cd, shape, lo, hi, wd, lam, V, J, cost, dV, step, blo, bhi, to
     :func:`gn_run`). Returns (code, cost): ``NO_DESCENT`` (no
     halving lowered the misfit: λ unchanged, a bounded minimum at round-off), ``CONVERGED`` (the
     accepted step is ≤ ``tol`` N in every component) or ``CONTINUE``."""
+    m = V.shape[0]  # the arms
     trial = np.empty(4)
-    Vt = np.empty(4)
-    Jt = np.empty((4, 4))
+    Vt = np.empty(m)
+    Jt = np.empty((m, 4))
     trial[3] = lam[3]
     for _ in range(BACKTRACK_HALVINGS):
         for a in range(3):
@@ -262,8 +264,9 @@ def gn_update(Cv, Cd, shape, lo, hi, wd, lam, V, J, cost, dV, step, blo, bhi, to
         eval_vj3(Cv, Cd, shape, lo, hi, wd, trial, Vt, Jt)
         ct = _misfit(Vt, dV)
         if ct <= cost * (1 + 1e-12):
-            for i in range(4):  # loops, not slice assignments: those cost seconds of compilation
-                lam[i] = trial[i]
+            for a in range(4):  # loops, not slice assignments: those cost seconds of compilation
+                lam[a] = trial[a]
+            for i in range(m):
                 V[i] = Vt[i]
                 for a in range(4):
                     J[i, a] = Jt[i, a]
@@ -281,7 +284,7 @@ def gn_run(C, Cv, Cd, shape, lo, hi, wd, lam, V, J, cost, dV, blo, bhi, tol, it0
     """Gauss–Newton iterations ``it0 + 1 … max_iter`` from ``lam`` on the polynomial with
     coefficients ``C``, each step the unbounded minimizer of the volume QP; ``lam``, ``V``, ``J``
     updated in place. ``it0 = 0`` starts a sample: the polynomial is contracted at the pressure
-    ``lam[3]`` into ``Cv``, ``Cd`` ((n1·n2·n3, 4) scratch) and evaluated at ``lam`` (``cost`` is
+    ``lam[3]`` into ``Cv``, ``Cd`` ((n1·n2·n3, n_arms) scratch) and evaluated at ``lam`` (``cost`` is
     then ignored); later calls continue from the state they are given. Returns (code, iterations,
     cost): ``CONVERGED`` / ``NO_DESCENT`` / ``MAX_ITER``, or ``NEED_QP`` with the state at the start
     of iteration ``iterations`` when its step leaves the force bounds or the solve breaks down —
@@ -291,9 +294,9 @@ def gn_run(C, Cv, Cd, shape, lo, hi, wd, lam, V, J, cost, dV, blo, bhi, tol, it0
         eval_vj3(Cv, Cd, shape, lo, hi, wd, lam, V, J)
         cost = _misfit(V, dV)
     x = np.empty(3)
-    r0 = np.empty(4)
+    r0 = np.empty(V.shape[0])
     for it in range(it0 + 1, max_iter + 1):
-        for i in range(4):
+        for i in range(V.shape[0]):
             r0[i] = V[i] - dV[i]
         ok = _ls_step(J, r0, x)
         if ok:

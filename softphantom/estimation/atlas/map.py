@@ -51,7 +51,7 @@ class KernelView:
 class Atlas:
     """Tensor Chebyshev polynomials of the forward map over the envelope (:mod:`softphantom.estimation.atlas`).
 
-    ``key`` the cache key; ``config`` the :class:`AtlasConfig`; ``cV`` (n1,n2,n3,n4,4) volume
+    ``key`` the cache key; ``config`` the :class:`AtlasConfig`; ``cV`` (n1,n2,n3,n4,n_arms) volume
     coefficients (m³; the n are ``config.coef_shape``: twice the points on a Hermite axis); ``cP``
     (n1,n2,n3,n4,k,3) tracked-point coefficients (m); ``cF``
     (n1,n2,n3,n4,r) field-mode coefficients; ``modes`` (3N,r) the POD basis (m); ``x_rest`` (3N,);
@@ -139,9 +139,10 @@ class Atlas:
 
     # -- evaluation -------------------------------------------------------------------------------
     def volumes(self, lam) -> tuple[np.ndarray, np.ndarray]:
-        """(V (4,) m³, J (4,4) ∂V/∂λ in m³/N, m³/Pa) at ``lam`` inside the envelope (one compiled
-        pass over the coefficients; :meth:`volumes_reference` is the reference it is tested against)."""
-        V, J = np.empty(4), np.empty((4, 4))
+        """(V (n_arms,) m³, J (n_arms,4) ∂V/∂λ in m³/N, m³/Pa) at ``lam`` inside the envelope (one
+        compiled pass over the coefficients; :meth:`volumes_reference` is the reference it is tested against)."""
+        m = self.kernel.V.shape[1]
+        V, J = np.empty(m), np.empty((m, 4))
         ak.eval_vj(self.kernel.V, *self.kernel.box, np.asarray(lam, float), V, J)
         return V, J
 
