@@ -88,3 +88,20 @@ def test_n_arms_mesh_solve_and_the_estimators_recover_the_load(spec):
         assert at.atlas.cV.shape[-1] == n
         e = at.step(sample)
         assert e.status == "ok" and np.allclose(e.force, lam[:3], atol=0.05), e.force
+
+
+@pytest.mark.slow
+def test_the_sensing_chain_refuses_a_design_of_other_arms_in_one_line_before_any_solve(tmp_path, capsys):
+    # the board, its protocol and the records carry the BIP's four channels: a five-arm design is
+    # refused by name (not read on four of its arms), before the virtual phantom solves anything
+    from softphantom.cli import main
+    from softphantom.design import save_model
+
+    m = build_model(design_from_dict(FIVE), 12.0, isolate=False)
+    save_model(m, tmp_path / "five")
+    assert main(["virtual", "run", "--scenario", "needle-insertion", "--model", str(tmp_path / "five"),
+                 "--out", str(tmp_path / "run")]) == 2
+    cap = capsys.readouterr()
+    err = cap.err.strip()
+    assert err.count("\n") == 0 and "top" in err and "four arms" in err and "truth" not in cap.out, err
+    assert not (tmp_path / "run").exists()

@@ -88,7 +88,7 @@ def demo_cmd(
     from softphantom.design import build_model, default_design, load_model, save_model
     from softphantom.estimation.select import atlas_config_from_options, check_estimator_kind
     from softphantom.virtual import load_scenario, truth_model
-    from softphantom.virtual.demo import DEMO_SCENARIOS, run_all, write_summary
+    from softphantom.virtual.demo import DEMO_SCENARIOS, model_atlases, run_all, write_summary
 
     check_estimator_kind(estimator)
     if workers is not None and workers < 1:
@@ -111,12 +111,15 @@ def demo_cmd(
             save_model(model, work / "model")
         console.print(f"model: {len(model.nodes)} nodes, {len(model.tets)} tets, P{model.element_order} (mesh "
                       f"{model.design.mesh.size_mm:g} mm) → {out / 'model'}", highlight=False, soft_wrap=True)
+        atlases = None
+        if estimator == "atlas" and grid is None:  # the model's own, found (or refused) before the long work
+            atlases = model_atlases([load_scenario(n) for n in names], model, model_dir or work / "model", scheduler)
         with status("mesh (truth model, finer)", console):
             tm = truth_model(model, cfg.truth)
         console.print(f"truth model: {len(tm.nodes)} nodes, {len(tm.tets)} tets, P{tm.element_order} (mesh "
                       f"{tm.design.mesh.size_mm:g} mm)", highlight=False)
         rows = run_all([load_scenario(n) for n in names], model, work, cfg, tm, estimator, grid,
-                       scheduler=scheduler, n_workers=workers, shown=out, atlas_dir=model_dir)
+                       scheduler=scheduler, n_workers=workers, shown=out, atlas_dir=model_dir, atlases=atlases)
         for r in rows:  # the paths the user will see, once the directory is in place
             r["report"] = str(out / Path(r["report"]).relative_to(work))
         wall = time.perf_counter() - t0

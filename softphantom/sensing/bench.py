@@ -89,11 +89,12 @@ class BenchConfig:
     def from_model(cls, model, **kw) -> "BenchConfig":
         """The bench of a :class:`~softphantom.design.PhantomModel`: its design's nominal arm
         cavities; ``kw`` (``tube_length_m``, ``tube_id_m``, ``p0_Pa``; None = default) the rest."""
-        by_name = {a.name: a.cavity_volume_mm3 for a in model.design.arms}
-        try:
-            vc = tuple(by_name[a] * 1e-9 for a in ARM_NAMES)
-        except KeyError as exc:
-            raise UserError(f"design has no arm {exc.args[0]!r} (need {', '.join(ARM_NAMES)})") from None
+        names = tuple(a.name for a in model.design.arms)
+        if names != ARM_NAMES:  # the board, its protocol and the records carry these four channels
+            raise UserError(f"arms {', '.join(names)}: the board and the sensing chain carry the BIP's four arms "
+                            f"({', '.join(ARM_NAMES)}) only; this design runs through design, simulate and the "
+                            "Python estimators (docs/architecture.md)")
+        vc = tuple(a.cavity_volume_mm3 * 1e-9 for a in model.design.arms)
         sensors = getattr(model.design, "sensors", None)
         cal = {} if sensors is None else {"gains": sensors.gains, "tube_volume_factor": sensors.tube_volume_factor}
         return cls(cavity_volumes_m3=vc, **cal, **{k: v for k, v in kw.items() if v is not None})

@@ -254,13 +254,13 @@ def model_atlases(scs, model, atlas_dir: Path | None, scheduler: str | None = No
 
 def run_all(scs, model, out: Path, cfg, truth_mesh, estimator: str = "atlas", grid=None, *,
             scheduler: str | None = None, n_workers: int | None = None, shown: Path | None = None,
-            atlas_dir: Path | None = None) -> list[dict]:
+            atlas_dir: Path | None = None, atlases: dict | None = None) -> list[dict]:
     """Every scenario of ``scs`` end to end into ``out`` (:func:`run_scenario`), its progress
     reported here (the truths' too, from the workers): truths solved on Dask (together, or one at a
     time while the demo's own atlases build), each scenario then estimated and evaluated here as
     soon as its truth is ready. The estimator: the
-    model's own atlas (:func:`model_atlases`, from ``atlas_dir``, default ``out``/model), found
-    before any solve; with ``grid``, the demo's atlases instead (the push scenarios' shared ones,
+    model's own atlas (``atlases`` as :func:`model_atlases` gives them, else found here from
+    ``atlas_dir``, default ``out``/model, before any solve); with ``grid``, the demo's atlases instead (the push scenarios' shared ones,
     :func:`shared_atlases`, built on the same cluster while the truths are solved; an inflation's
     from its truth: those scenarios are solved first). Rows in the order of ``scs``. ``shown``:
     where ``out`` ends up (:func:`run_scenario`)."""
@@ -276,7 +276,7 @@ def run_all(scs, model, out: Path, cfg, truth_mesh, estimator: str = "atlas", gr
     with dask_client(scheduler, n_workers) as client:
         address = client.scheduler.address
         if own:
-            with_contact = model_atlases(scs, model, atlas_dir or out / "model", address)
+            with_contact = atlases or model_atlases(scs, model, atlas_dir or out / "model", address)
         truth_steps = {f"{sc.name}: truth": Step(f"{sc.name}: truth", 0, None, "queued") for sc in order}
 
         def progress(event) -> None:

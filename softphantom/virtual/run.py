@@ -149,10 +149,11 @@ def simulate(scenario: Scenario | str | Path, model: PhantomModel, config: Virtu
              truth: Truth | None = None, truth_mesh: PhantomModel | None = None) -> VirtualRun:
     """Solve the truth of ``scenario`` (unless ``truth`` is given) and prepare board and tracker."""
     sc = scenario if isinstance(scenario, Scenario) else load_scenario(scenario)
+    chain = host_chain(model, config.board)  # before the solve: a design the board cannot read is refused now
     tr = truth or solve_truth(sc, model, config.truth, truth_mesh=truth_mesh)
     sig = board_signals(tr, arm_volumes(tr.model), config.board)
     trk = simulate_tracker(tr, config.tracker)
-    return VirtualRun(sc, model, tr, sig, trk, host_chain(model, config.board), config)
+    return VirtualRun(sc, model, tr, sig, trk, chain, config)
 
 
 def sensor_source(scenario: Scenario | str | Path, model: PhantomModel, config: VirtualConfig = VirtualConfig(),

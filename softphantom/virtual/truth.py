@@ -48,10 +48,8 @@ from softphantom.fem import (
 from softphantom.fem.model import laws_of_design
 from softphantom.pose import Pose6, pose_of_markers
 from softphantom.progress import report
-from softphantom.sensing import ARM_NAMES
 from softphantom.virtual.scenario import Event, Scenario
 
-CAVITIES = ARM_NAMES + ("urethra",)
 TRUTH_LAWS = ("neo-hookean", "model")
 
 log = logging.getLogger(__name__)
@@ -188,7 +186,8 @@ class Truth:
                      force_N=[round(float(f), 4) for f in et.force],
                      p_urethra_kPa=round(et.p_urethra / 1e3, 3),
                      peak_marker_shift_mm=round(float(np.linalg.norm(et.markers[-1] - self.rest_markers, axis=1).max()) * 1e3, 3),
-                     peak_dV_mm3={c: round(float(v) * 1e9, 3) for c, v in zip(CAVITIES, et.dV[-1])},
+                     peak_dV_mm3={c: round(float(v) * 1e9, 3) for c, v in zip(self.model.design.cavity_names,
+                                                                                et.dV[-1])},
                      bulb_growth_percent=round(float(et.bulb_dV[-1] / self.model.bulb_volume()) * 100, 3),
                      keyframes=len(et.s) - 1, newton_iterations=et.iterations)
             for name, dsp in zip(self.target_names, et.targets[-1]):
@@ -258,7 +257,8 @@ def solve_truth(scenario: Scenario, model: PhantomModel, config: TruthConfig = T
     rest_markers, rest_targets = carried[: len(marker_names)], carried[len(marker_names):]
     # the surfaces of the element order (6-node triangles on a quadratic mesh: curved walls)
     closed = np.vstack([tm.outer_faces6, tm.fixed_faces6] if tm.element_order == 2 else [tm.outer_faces, tm.fixed_faces])
-    V0 = np.array([cavity_volume(x_rest, fem.cavities[c]) for c in CAVITIES])
+    cavities = tm.design.cavity_names  # the arms in the sensor order, then the urethra
+    V0 = np.array([cavity_volume(x_rest, fem.cavities[c]) for c in cavities])
     bulb0 = cavity_volume(x_rest, closed)
     k = len(marker_names)
     total = sum(config.levels if e.kind == "push" or e.p_urethra_kPa is not None else config.inflate_steps
@@ -268,7 +268,7 @@ def solve_truth(scenario: Scenario, model: PhantomModel, config: TruthConfig = T
     def readout(x):
         x = np.asarray(x).reshape(-1, 3)
         pts = P @ x
-        dv = np.array([cavity_volume(x, fem.cavities[c]) for c in CAVITIES]) - V0
+        dv = np.array([cavity_volume(x, fem.cavities[c]) for c in cavities]) - V0
         return dv, pts[:k], pts[k:] - rest_targets, cavity_volume(x, closed) - bulb0
 
     def solve(f_ext, p, x0, what, x_prev=None, ratio=1.0, min_step=1.0 / 64, max_iter=25, single=False):
