@@ -19,10 +19,17 @@
 #define SP_CMD_SET_OSR 0x10u
 #define SP_CMD_GET_INFO 0x11u
 
+/* The channel count, fixed at build time (make N_CHANNELS=n): the arms, then the urethra. The
+ * BIP's board reads 5; an Arduino UNO has 6 analog inputs (A0-A5), a Mega 2560 16. */
+#ifndef SP_N_CHANNELS
 #define SP_N_CHANNELS 5u
-#define SP_DATA_PAYLOAD 30u   /* ver, type, seq u16, t_us u32, osr u16, 5 x u32 */
+#endif
+#if SP_N_CHANNELS < 2 || SP_N_CHANNELS > 16
+#error "SP_N_CHANNELS: a board reads 2..16 channels"
+#endif
+#define SP_DATA_PAYLOAD (10u + 4u * SP_N_CHANNELS) /* ver, type, seq u16, t_us u32, osr u16, n x u32 */
 #define SP_INFO_PAYLOAD 14u   /* ver, type, seq u16, t_us u32, fw x3, n_ch, osr u16 */
-#define SP_MAX_PAYLOAD 32u
+#define SP_MAX_PAYLOAD (SP_DATA_PAYLOAD + 2u)
 /* COBS adds 1 byte per started 254-byte block; + CRC 2 + two delimiters */
 #define SP_MAX_FRAME (SP_MAX_PAYLOAD + 2u + 1u + 2u)
 

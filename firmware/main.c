@@ -1,13 +1,15 @@
 /* softphantom sensing board: Arduino UNO (ATmega328P, 16 MHz), plain C with avr-libc.
  *
- * Reads ADC0..ADC3 (the four arm transducers, MPXV7002: front_zpos, front_zneg, back_xpos,
- * back_xneg) and ADC4 (urethra, MPX4250D) against AVcc (= the transducers' supply VS, so the
- * reading is ratiometric), sums N readings per channel round-robin (N = OSR, default 100,
- * 1..500), and sends one DATA frame per window (docs/protocol.md) at 115200 baud.
+ * Reads ADC0..ADC(n-2) (the arm transducers, MPXV7002; the BIP's four: front_zpos, front_zneg,
+ * back_xpos, back_xneg) and ADC(n-1) (urethra, MPX4250D) against AVcc (= the transducers' supply
+ * VS, so the reading is ratiometric), sums N readings per channel round-robin (N = OSR, default
+ * 100, 1..500), and sends one DATA frame per window (docs/protocol.md) at 115200 baud. The
+ * channel count n = SP_N_CHANNELS is fixed at build time (make N_CHANNELS=n; 5 for the BIP); the
+ * UNO has 6 analog inputs, so n <= 6 here.
  * The ADC runs free (auto-trigger): one conversion every 13 ADC clocks = 104 us exactly, back to
- * back, summed by its interrupt; so the frame time is exactly 5 * N * 104 us (N = 100: 19.2 Hz,
- * N = 25: 76.9 Hz) and nothing the main loop does (packing, CRC, commands, a full TX buffer)
- * delays or drops a sample.
+ * back, summed by its interrupt; so the frame time is exactly n * N * 104 us (n = 5, N = 100:
+ * 19.2 Hz, N = 25: 76.9 Hz) and nothing the main loop does (packing, CRC, commands, a full TX
+ * buffer) delays or drops a sample.
  * Timestamp: Timer1 at clk/8 (0.5 us ticks) extended by its overflow interrupt, in us (u32,
  * wraps after 71.6 min); a frame carries the centre of its sampling window.
  * Commands (host -> board): SET_OSR, GET_INFO, of protocol version 1 or 2; the board answers both
@@ -21,12 +23,16 @@
 
 #include "frame.h"
 
+#if defined(__AVR_ATmega328P__) && SP_N_CHANNELS > 6
+#error "the Arduino UNO has 6 analog inputs (A0-A5): build with N_CHANNELS <= 6"
+#endif
+
 #define FW_MAJOR 2 /* 2.x speaks protocol version 2 (a 0x00 before each frame) */
 #define FW_MINOR 0
 #define FW_PATCH 0
 #define BAUD_UBRR 16 /* 16 MHz / (8 * (16 + 1)) = 117647 baud with U2X (+2.1 %), the Arduino setting */
 #define OSR_DEFAULT 100u
-#define OSR_MAX 500u /* 5 * 500 * 104 us = 0.26 s per frame, inside the host's 0.5 s silence limit */
+#define OSR_MAX 500u /* 6 * 500 * 104 us = 0.31 s per frame at most, inside the host's 0.5 s silence limit */
 
 /* ---- time ---- */
 static volatile uint32_t t1_overflows;
@@ -47,7 +53,7 @@ static uint32_t micros32(void)
 }
 
 /* ---- UART: TX ring buffer (interrupt-driven), RX ring buffer ---- */
-#define TXBUF 128u /* power of two; holds three DATA frames (35 bytes each) */
+#define TXBUF 128u /* power of two; holds three DATA frames (35 bytes each; 39 with 6 channels) */
 #define RXBUF 64u
 static volatile uint8_t tx_buf[TXBUF];
 static volatile uint8_t tx_head, tx_tail;
@@ -125,7 +131,7 @@ static void adc_init(void)
 {
     ADMUX = _BV(REFS0); /* AVcc reference: ratiometric with VS; channel 0 first */
     ADCSRB = 0;         /* auto-trigger source: free running */
-    DIDR0 = 0x1F;       /* digital input buffers off on ADC0..4 */
+    DIDR0 = (uint8_t)((1u << SP_N_CHANNELS) - 1u); /* digital input buffers off on the channels read */
     /* prescaler 128 (125 kHz), interrupt on, auto-trigger, start */
     ADCSRA = _BV(ADEN) | _BV(ADSC) | _BV(ADATE) | _BV(ADIE) | _BV(ADPS2) | _BV(ADPS1) | _BV(ADPS0);
 }
@@ -140,7 +146,7 @@ ISR(ADC_vect)
     ch_mux = (uint8_t)(ch_mux + 1u == SP_N_CHANNELS ? 0u : ch_mux + 1u);
     ADMUX = (uint8_t)(_BV(REFS0) | ch_mux);
     if (discard) {
-        discard = 0; /* results follow as 0, 1, 2, 3, 4, 0, ... from here on */
+        discard = 0; /* results follow as 0, 1, ..., n - 1, 0, ... from here on */
         t_window_start = micros32();
         acc_n = osr;
         return;

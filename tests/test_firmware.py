@@ -12,6 +12,7 @@ import pytest
 
 from softphantom.sensing.protocol import (
     DataFrame,
+    FrameError,
     StreamDecoder,
     crc16,
     decode_body,
@@ -105,3 +106,52 @@ def test_firmware_fits_the_atmega328p(tmp_path, record_property):
     print(f"\nATmega328P: flash {flash} B of 32768 ({flash / 32768:.1%}), static RAM {ram} B of 2048")
     assert flash <= 32 * 1024 - 512, f"flash {flash} B exceeds 32 KiB minus the 512 B bootloader"
     assert ram <= 2048 - 512, f"static RAM {ram} B leaves under 512 B of the 2 KiB for the stack"
+
+
+@pytest.fixture(scope="module")
+def tool6(tmp_path_factory):
+    """frame.c built for a board of 6 channels (5 arms and the urethra)."""
+    if shutil.which("gcc") is None:
+        pytest.skip("gcc not installed (scripts/install-system-deps.sh)")
+    exe = tmp_path_factory.mktemp("fw6") / "frame_tool"
+    subprocess.run(["gcc", "-std=c99", "-O2", "-Wall", "-Wextra", "-Werror", "-DSP_N_CHANNELS=6u", str(FW / "frame.c"),
+                    str(FW / "host" / "frame_tool.c"), "-o", str(exe)], check=True)
+    return lambda *args: subprocess.run([str(exe), *map(str, args)], check=True, capture_output=True,
+                                        text=True).stdout.strip()
+
+
+def test_a_board_of_six_channels_speaks_the_same_frames_on_both_sides(tool6):
+    # the channel count is the firmware's, fixed at build time: C and Python agree byte for byte,
+    # a decoder made for 5 channels rejects a 6-channel frame by its length and the other way round
+    raw = [0, 1023 * 500, 0xFF00, 7, 0x010001, 51150]
+    c_frame = bytes.fromhex(tool6("data", 65535, 2**32 - 1, 500, *raw))
+    assert c_frame == encode_data(65535, 2**32 - 1, 500, raw) and len(c_frame) == 39
+    assert decode_body(c_frame[1:-1], n_channels=6) == DataFrame(65535, 2**32 - 1, 500, tuple(raw))
+    assert tool6("decode", c_frame[1:-1].hex()) == ("version 2 type 1 len 34 seq 65535 t_us 4294967295 osr 500 raw "
+                                                    + " ".join(map(str, raw)))
+    info = bytes.fromhex(tool6("info", 0, 42, 2, 0, 0, 100))
+    assert info == encode_info(0, 42, (2, 0, 0), 6, 100)
+    dec6, dec5 = StreamDecoder(6), StreamDecoder()
+    stream = info + c_frame + encode_data(0, 5200, 100, [1, 2, 3, 4, 5])
+    assert [type(f).__name__ for f in dec6.feed(stream)] == ["InfoFrame", "DataFrame"]
+    assert dec6.stats.malformed == 1                      # the 5-channel frame: another length
+    first = encode_data(0, 0, 100, [5, 4, 3, 2, 1])  # in sync first: what follows counts as errors
+    assert [f.raw for f in dec5.feed(first + stream[:-35] + encode_data(1, 52_000, 100, [1, 2, 3, 4, 5]))] == [
+        (5, 4, 3, 2, 1), (1, 2, 3, 4, 5)]
+    assert dec5.stats.content_errors == 1 and dec5.stats.malformed == 1  # INFO of 6 channels; the 6-channel frame
+    with pytest.raises(FrameError, match="INFO n_channels 6, expected 5"):
+        decode_body(info[1:-1])
+
+
+def test_the_uno_builds_for_up_to_six_channels_and_refuses_seven_in_one_line(tmp_path):
+    if shutil.which("avr-gcc") is None:
+        pytest.skip("avr-gcc not installed: run scripts/install-system-deps.sh (gcc-avr, avr-libc, binutils-avr)")
+
+    def build(n):
+        return subprocess.run(["avr-gcc", "-mmcu=atmega328p", "-DF_CPU=16000000UL", f"-DSP_N_CHANNELS={n}u", "-Os",
+                               "-std=c99", "-Wall", "-Wextra", "-Werror", str(FW / "main.c"), str(FW / "frame.c"),
+                               "-o", str(tmp_path / f"fw{n}.elf")], capture_output=True, text=True)
+
+    assert build(6).returncode == 0
+    r = build(7)
+    assert r.returncode != 0 and "the Arduino UNO has 6 analog inputs (A0-A5)" in r.stderr

@@ -394,7 +394,7 @@ def test_virtual_run_with_the_firmware_board(tools, coarse_model, coarse_truth_p
     from softphantom.virtual import VirtualConfig, scenario_from_dict, simulate, write_run
     from softphantom.virtual import firmware_sim
 
-    monkeypatch.setattr(firmware_sim, "build", lambda build_dir=None: (tools.harness, tools.elf))
+    monkeypatch.setattr(firmware_sim, "build", lambda build_dir=None, n_channels=5: (tools.harness, tools.elf))
     sc = scenario_from_dict({"name": "tiny-push", "duration_s": 2.0, "rest_s": 0.6,
                              "push": [{"point": "on-centre", "start_s": 0.7, "rise_s": 0.5, "hold_s": 0.2,
                                        "fall_s": 0.5, "force_N": [0.0, 2.0, 0.0]}]}, "tiny")
@@ -437,3 +437,27 @@ def test_unknown_board_is_one_line(tmp_path, capsys):
                  str(tmp_path / "o"), "--board", "arduino"])
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and "--board" in err[0] and "python, firmware" in err[0], err
+
+
+def test_the_firmware_built_for_six_channels_reads_six(tmp_path):
+    # make N_CHANNELS=6: the same firmware reads A0..A5 round-robin and sends 6 sums a frame, its
+    # INFO says 6, and a decoder made for 6 channels takes them (the frame period is 6·N·104 µs)
+    why = simavr_missing()
+    if why:
+        pytest.skip(why)
+    harness, elf = build(tmp_path, n_channels=6)
+    codes = np.array([100, 300, 500, 700, 900, 1000])
+    t, v = const_volts(codes)
+    dec = StreamDecoder(6)
+    frames = []
+    with FirmwareSim(elf, harness=harness, n_channels=6) as sim:
+        sim.set_voltages(t, v)
+        frames += dec.feed(sim.run_until(0.001).data)  # its UART on (the chip drops what comes before)
+        sim.send(encode_set_osr(10))
+        frames += dec.feed(sim.run_until(0.2).data)  # the first window (N = 100) ends at 62 ms
+    info = [f for f in frames if isinstance(f, InfoFrame)]
+    data = [f for f in frames if isinstance(f, DataFrame) and f.osr == 10]
+    assert info and all(f.n_channels == 6 for f in info)
+    assert len(data) >= 3 and all(f.raw == tuple(int(c) * 10 for c in codes) for f in data[1:])
+    dt = np.diff([f.t_us for f in data])
+    assert np.allclose(dt, 6 * 10 * 104.0, rtol=CLOCK_TOLERANCE)

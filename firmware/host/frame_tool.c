@@ -1,5 +1,5 @@
 /* Host-side driver of frame.c for the golden-frame tests (tests/test_firmware.py).
- *   frame_tool data SEQ T_US OSR R0 R1 R2 R3 R4   -> hex of the DATA frame (with 0x00)
+ *   frame_tool data SEQ T_US OSR R0 .. R(n-1)     -> hex of the DATA frame (with 0x00; n = SP_N_CHANNELS)
  *   frame_tool info SEQ T_US MAJ MIN PATCH OSR     -> hex of the INFO frame
  *   frame_tool decode HEX                          -> fields of one frame body (without 0x00)
  *   frame_tool crc STRING                          -> CRC-16 of the ASCII string
@@ -20,9 +20,9 @@ static void print_hex(const uint8_t *b, size_t n)
 int main(int argc, char **argv)
 {
     uint8_t payload[SP_MAX_PAYLOAD], out[SP_MAX_FRAME];
-    if (argc >= 10 && strcmp(argv[1], "data") == 0) {
+    if (argc >= 5 + (int)SP_N_CHANNELS && strcmp(argv[1], "data") == 0) {
         uint32_t raw[SP_N_CHANNELS];
-        for (int i = 0; i < 5; ++i)
+        for (int i = 0; i < (int)SP_N_CHANNELS; ++i)
             raw[i] = (uint32_t)strtoul(argv[5 + i], NULL, 0);
         size_t n = sp_pack_data(payload, (uint16_t)strtoul(argv[2], NULL, 0),
                                 (uint32_t)strtoul(argv[3], NULL, 0), (uint16_t)strtoul(argv[4], NULL, 0), raw);
@@ -59,7 +59,7 @@ int main(int argc, char **argv)
         if (len == SP_DATA_PAYLOAD && payload[1] == SP_MSG_DATA) {
             printf(" seq %u t_us %lu osr %u raw", sp_get_u16(payload + 2), (unsigned long)sp_get_u32(payload + 4),
                    sp_get_u16(payload + 8));
-            for (int i = 0; i < 5; ++i)
+            for (int i = 0; i < (int)SP_N_CHANNELS; ++i)
                 printf(" %lu", (unsigned long)sp_get_u32(payload + 10 + 4 * i));
         } else if (len == 4 && payload[1] == SP_CMD_SET_OSR) {
             printf(" osr %u", sp_get_u16(payload + 2));

@@ -4,7 +4,7 @@
  *
  * The host drives it in lock-step over stdin/stdout (binary, little-endian; one request, then
  * its reply, so neither side can block the other):
- *   'V' u32 n, n x (u64 cycle, 5 x f64 volts)  voltages at the five ADC inputs from that cycle
+ *   'V' u32 n, n x (u64 cycle, N_CH x f64 volts)  voltages at the ADC inputs from that cycle
  *                                               on (linear between points, held after the last)
  *   'U' u32 n, n bytes                          bytes host -> board, sent at the wire's rate
  *   'R' u64 cycle                               run the CPU until that cycle; reply:
@@ -28,7 +28,9 @@
 #include "sim_elf.h"
 
 #define F_CPU 16000000u
-#define N_CH 5
+#ifndef N_CH
+#define N_CH 5 /* the firmware's channel count (make N_CHANNELS=n sim builds both for n) */
+#endif
 /* one byte on the wire: 10 bits at the firmware's 117647 baud (UBRR 16, U2X) */
 #define RX_BYTE_CYCLES 1360u
 #define AVCC_MV 5000u

@@ -8,12 +8,19 @@ noise), so a damaged frame never takes the next one with it. The decoder reads b
 for version 1 streams it recovers a whole frame from the head or tail of a damaged body (a DATA
 body is always 33 bytes, an INFO body 17), which gives the same guarantee.
 
+The channel count n is the board's, fixed when its firmware is built (``make N_CHANNELS=n``):
+the BIP's board reads 5 (four arms and the urethra, on the UNO's A0–A4); a phantom of other arms
+n = arms + 1, up to 6 on the Arduino UNO (A0–A5) and 16 on the Mega 2560. The host's decoder is
+made for the n of the model it reads (:class:`StreamDecoder`); a frame of another count is
+rejected with its length, an INFO frame naming another count with that count. Version 1
+(firmware 1.x) has 5 channels only.
+
 Payloads (little-endian): byte 0 protocol version (1 or 2), byte 1 message type.
 
 ====  ============  ===================================================================
 type  name          rest of payload
 ====  ============  ===================================================================
-0x01  DATA          seq u16, t_us u32 (board µs, centre of the window), osr u16, 5 × u32 sums
+0x01  DATA          seq u16, t_us u32 (board µs, centre of the window), osr u16, n × u32 sums
 0x02  INFO          seq u16 (of the next DATA frame), t_us u32, fw major, minor, patch u8,
                     n_channels u8, osr u16
 0x10  SET_OSR       osr u16 (host → board; the board answers with INFO)
@@ -21,7 +28,7 @@ type  name          rest of payload
 ====  ============  ===================================================================
 
 After the CRC every field is checked against what the firmware can send (osr 1..500, each sum
-≤ 1023·osr, 5 channels): a CRC-valid frame with impossible content is rejected, not passed on.
+≤ 1023·osr, n channels): a CRC-valid frame with impossible content is rejected, not passed on.
 
 COBS from the ``cobs`` package, the CRC from ``crcmod`` (predefined ``crc-ccitt-false``: poly
 0x1021, init 0xFFFF, no reflection, no final xor; check value 0x29B1). The C side
@@ -31,6 +38,7 @@ COBS from the ``cobs`` package, the CRC from ``crcmod`` (predefined ``crc-ccitt-
 from __future__ import annotations
 
 import collections
+import functools
 import struct
 from dataclasses import dataclass
 
@@ -50,16 +58,47 @@ CMD_GET_INFO = 0x11
 OSR_MIN, OSR_MAX = 1, 500
 """OSR range the firmware accepts (and so the only one a frame may carry)."""
 N_CHANNELS = 5
+"""The BIP board's channel count: four arms, then the urethra."""
+MAX_CHANNELS = 16
+"""The most a board reads: the Arduino Mega 2560's analog inputs (the UNO has 6)."""
 ADC_MAX_CODE = 1023
 
-_DATA = struct.Struct("<BBHIH5I")    # 30 bytes
 _INFO = struct.Struct("<BBHIBBBBH")  # 14 bytes
 _SET_OSR = struct.Struct("<BBH")
 _GET_INFO = struct.Struct("<BB")
 _CRC = struct.Struct("<H")
-DATA_BODY_BYTES = 1 + _DATA.size + _CRC.size        # COBS overhead 1: 33 bytes between delimiters
+
+
+def check_channels(n: int) -> int:
+    """``n`` if a board can read that many channels (2 .. :data:`MAX_CHANNELS`), else UserError."""
+    if not (isinstance(n, int) and 2 <= n <= MAX_CHANNELS):
+        raise UserError(f"channel count: a board reads 2..{MAX_CHANNELS} (the UNO 6, the Mega 16), got {n!r}")
+    return n
+
+
+@functools.cache
+def _data(n: int = N_CHANNELS) -> struct.Struct:
+    """The DATA payload of ``n`` channels: 10 + 4n bytes (30 for the BIP's 5)."""
+    return struct.Struct(f"<BBHIH{check_channels(n)}I")
+
+
+def data_body_bytes(n: int = N_CHANNELS) -> int:
+    """A DATA body between its delimiters: COBS overhead 1, payload, CRC 2 (33 bytes for 5 channels).
+
+    >>> data_body_bytes(5), data_body_bytes(6), data_body_bytes(16)
+    (33, 37, 77)
+    """
+    return 1 + _data(n).size + _CRC.size
+
+
+def data_frame_bytes(n: int = N_CHANNELS) -> int:
+    """A version 2 DATA frame with its two delimiters (35 bytes for 5 channels)."""
+    return 1 + data_body_bytes(n) + 1
+
+
+DATA_BODY_BYTES = data_body_bytes()                 # COBS overhead 1: 33 bytes between delimiters
 INFO_BODY_BYTES = 1 + _INFO.size + _CRC.size        # 17 bytes
-DATA_FRAME_BYTES = 1 + DATA_BODY_BYTES + 1          # version 2: two delimiters, 35 bytes
+DATA_FRAME_BYTES = data_frame_bytes()               # version 2: two delimiters, 35 bytes
 DATA_FRAME_BYTES_V1 = DATA_BODY_BYTES + 1           # version 1: 34 bytes
 MAX_ENCODED = 2 * DATA_BODY_BYTES                   # a run this long without 0x00 is an overflow
 
@@ -69,12 +108,13 @@ crc16 = crcmod.predefined.mkPredefinedCrcFun("crc-ccitt-false")
 
 @dataclass(frozen=True)
 class DataFrame:
-    """One DATA message: ``raw`` 5 oversampled sums (4 arms, urethra)."""
+    """One DATA message: ``raw`` the oversampled sums of the board's channels (the arms, then the
+    urethra: 5 on the BIP's board)."""
 
     seq: int
     t_us: int
     osr: int
-    raw: tuple[int, int, int, int, int]
+    raw: tuple[int, ...]
 
 
 @dataclass(frozen=True)
@@ -125,9 +165,14 @@ def encode_data(seq: int, t_us: int, osr: int, raw, version: int = PROTOCOL_VERS
 
     >>> len(encode_data(1, 1000, 100, [51150] * 5)), len(encode_data(1, 1000, 100, [51150] * 5, version=1))
     (35, 34)
+    >>> len(encode_data(1, 1000, 100, [51150] * 6))  # a board of 6 channels (5 arms): 4 bytes more
+    39
     """
+    raw = [int(r) for r in raw]
+    if _check_version(version) == 1 and len(raw) != N_CHANNELS:
+        raise UserError(f"DATA frame: protocol version 1 carries {N_CHANNELS} channels, got {len(raw)}")
     try:
-        return frame(_DATA.pack(_check_version(version), MSG_DATA, seq, t_us, osr, *[int(r) for r in raw]))
+        return frame(_data(len(raw)).pack(version, MSG_DATA, seq, t_us, osr, *raw))
     except struct.error as exc:
         raise UserError(f"DATA frame: field out of range ({exc})") from None
 
@@ -163,32 +208,33 @@ class FrameError(Exception):
         self.kind = kind
 
 
-def _check_content(kind: int, f: tuple) -> None:
+def _check_content(kind: int, f: tuple, n: int = N_CHANNELS) -> None:
     """Field checks after the CRC: what the firmware can never send. Byte offsets in the payload."""
     if kind == MSG_DATA:
         osr = f[4]
         if not OSR_MIN <= osr <= OSR_MAX:
             raise FrameError("field", f"DATA osr {osr} outside {OSR_MIN}..{OSR_MAX} (byte offset 8)")
-        if max(f[5:10]) <= ADC_MAX_CODE * osr:
+        if max(f[5:5 + n]) <= ADC_MAX_CODE * osr:
             return
-        for i, r in enumerate(f[5:10]):
+        for i, r in enumerate(f[5:5 + n]):
             if r > ADC_MAX_CODE * osr:
                 raise FrameError("field", f"DATA sum {r} of channel {i} above {ADC_MAX_CODE}·osr = "
                                           f"{ADC_MAX_CODE * osr} (byte offset {10 + 4 * i})")
     elif kind == MSG_INFO:
-        if f[7] != N_CHANNELS:
-            raise FrameError("field", f"INFO n_channels {f[7]}, expected {N_CHANNELS} (byte offset 11)")
+        if f[7] != n:
+            raise FrameError("field", f"INFO n_channels {f[7]}, expected {n} (byte offset 11)")
         if not OSR_MIN <= f[8] <= OSR_MAX:
             raise FrameError("field", f"INFO osr {f[8]} outside {OSR_MIN}..{OSR_MAX} (byte offset 12)")
     elif kind == CMD_SET_OSR and not OSR_MIN <= f[2] <= OSR_MAX:
         raise FrameError("field", f"SET_OSR osr {f[2]} outside {OSR_MIN}..{OSR_MAX} (byte offset 2)")
 
 
-_SIZES = {MSG_DATA: _DATA, MSG_INFO: _INFO, CMD_SET_OSR: _SET_OSR, CMD_GET_INFO: _GET_INFO}
+_SIZES = {MSG_INFO: _INFO, CMD_SET_OSR: _SET_OSR, CMD_GET_INFO: _GET_INFO}
 
 
-def decode_body(body: bytes) -> DataFrame | InfoFrame | Command:
-    """Decode one frame body (the bytes between delimiters, without the 0x00) of either version.
+def decode_body(body: bytes, n_channels: int = N_CHANNELS) -> DataFrame | InfoFrame | Command:
+    """Decode one frame body (the bytes between delimiters, without the 0x00) of either version,
+    from a board of ``n_channels``.
 
     Raises :class:`FrameError` with the reason; never anything else.
 
@@ -198,11 +244,17 @@ def decode_body(body: bytes) -> DataFrame | InfoFrame | Command:
     Traceback (most recent call last):
     ...
     softphantom.sensing.protocol.FrameError: DATA sum 60000 of channel 0 above 1023·osr = 51150 (byte offset 10)
+    >>> decode_body(encode_data(7, 5, 100, [1, 2, 3, 4, 5, 6])[1:-1], n_channels=6).raw
+    (1, 2, 3, 4, 5, 6)
+    >>> decode_body(encode_data(7, 5, 100, [1, 2, 3, 4, 5, 6])[1:-1])
+    Traceback (most recent call last):
+    ...
+    softphantom.sensing.protocol.FrameError: type 0x01: 34 bytes, expected 30
     """
-    return _decode(body)[0]
+    return _decode(body, n_channels)[0]
 
 
-def _decode(body: bytes) -> tuple[DataFrame | InfoFrame | Command, int]:
+def _decode(body: bytes, n: int = N_CHANNELS) -> tuple[DataFrame | InfoFrame | Command, int]:
     """(message, protocol version) of one body; see :func:`decode_body`."""
     try:
         data = cobs.decode(body)
@@ -218,14 +270,15 @@ def _decode(body: bytes) -> tuple[DataFrame | InfoFrame | Command, int]:
         raise FrameError("version", f"protocol version {version} (byte offset 0), expected one of "
                                     f"{SUPPORTED_VERSIONS}")
     kind = payload[1]
-    if kind not in _SIZES:
+    st = _data(n) if kind == MSG_DATA else _SIZES.get(kind)
+    if st is None:
         raise FrameError("type", f"unknown message type {kind:#04x} (byte offset 1)")
-    if len(payload) != _SIZES[kind].size:
-        raise FrameError("length", f"type {kind:#04x}: {len(payload)} bytes, expected {_SIZES[kind].size}")
-    f = _SIZES[kind].unpack(payload)
-    _check_content(kind, f)
+    if len(payload) != st.size:
+        raise FrameError("length", f"type {kind:#04x}: {len(payload)} bytes, expected {st.size}")
+    f = st.unpack(payload)
+    _check_content(kind, f, n)
     if kind == MSG_DATA:
-        return DataFrame(f[2], f[3], f[4], tuple(f[5:10])), version
+        return DataFrame(f[2], f[3], f[4], tuple(f[5:5 + n])), version
     if kind == MSG_INFO:
         return InfoFrame(f[2], f[3], (f[4], f[5], f[6]), f[7], f[8]), version
     if kind == CMD_SET_OSR:
@@ -233,9 +286,9 @@ def _decode(body: bytes) -> tuple[DataFrame | InfoFrame | Command, int]:
     return Command(CMD_GET_INFO), version
 
 
-def _period_us(osr: int) -> float:
-    """The board's frame period for ``osr`` (5 channels × osr conversions of 104 µs)."""
-    return N_CHANNELS * osr * 104.0
+def _period_us(osr: int, n: int = N_CHANNELS) -> float:
+    """The board's frame period for ``osr`` (n channels × osr conversions of 104 µs)."""
+    return n * osr * 104.0
 
 
 DUPLICATE_WINDOW = 256
@@ -250,8 +303,8 @@ class DecoderStats:
     ``frames_ok`` DATA frames accepted, ``info_frames`` INFO accepted, ``crc_errors`` bodies whose
     CRC failed, ``malformed`` bodies rejected for COBS/length/version/type, ``content_errors``
     bodies with a valid CRC but an impossible field (osr, a sum, the channel count),
-    ``overflows`` runs of more than 66 bytes without a delimiter (their last 66 bytes are kept, so
-    a frame at the end of the run survives), ``sync_discards`` an invalid partial first body
+    ``overflows`` runs of more than two DATA bodies without a delimiter (66 bytes for 5 channels;
+    their last two bodies' worth is kept, so a frame at the end of the run survives), ``sync_discards`` an invalid partial first body
     (joining mid-frame; not an error), ``recovered`` whole frames taken from the head or tail of
     a damaged body (version 1 streams: a lost delimiter or a truncated frame before them),
     ``duplicates`` copies of one of the last :data:`DUPLICATE_WINDOW` DATA frames (a retransmit,
@@ -305,7 +358,10 @@ class StreamDecoder:
     ([1, 3], 2, 1, 1)
     """
 
-    def __init__(self) -> None:
+    def __init__(self, n_channels: int = N_CHANNELS) -> None:
+        self.n_channels = check_channels(n_channels)  # the board's (the model's arms + the urethra)
+        self._data_body = data_body_bytes(n_channels)
+        self._max_encoded = 2 * max(self._data_body, INFO_BODY_BYTES)
         self._buf = bytearray()
         self._synced = False
         self._after_overflow = False   # the next body is the kept tail of an overlong run
@@ -334,28 +390,28 @@ class StreamDecoder:
             body = bytes(buf[start:end])
             start = end + 1
             if body:
-                if len(body) > MAX_ENCODED:      # an overlong run ended here: keep its tail
+                if len(body) > self._max_encoded:  # an overlong run ended here: keep its tail
                     self._overflow(len(body))
-                    body = body[-MAX_ENCODED:]
+                    body = body[-self._max_encoded:]
                 self._body(body, out)
                 self._synced = True
             self._after_overflow = False
         del buf[:start]
-        if len(buf) > MAX_ENCODED:         # no delimiter for too long: keep only the tail
+        if len(buf) > self._max_encoded:   # no delimiter for too long: keep only the tail
             self._overflow(len(buf))
-            del buf[:-MAX_ENCODED]
+            del buf[:-self._max_encoded]
         return out
 
     def _overflow(self, n: int) -> None:
         if not self._after_overflow:
             self._c["overflows"] += 1
-        self._c["bytes_discarded"] += n - MAX_ENCODED
+        self._c["bytes_discarded"] += n - self._max_encoded
         self._after_overflow = True
 
     def _body(self, body: bytes, out: list) -> None:
         c = self._c
         try:
-            f, version = _decode(body)
+            f, version = _decode(body, self.n_channels)
         except FrameError as exc:
             if self._recover(body, out):
                 return
@@ -373,11 +429,11 @@ class StreamDecoder:
         """Whole frames at the head and the tail of a damaged body (a version 1 stream merges a
         truncated frame with the next one, a lost delimiter two frames). True if any was found."""
         found = []
-        for n in (DATA_BODY_BYTES, INFO_BODY_BYTES):
+        for n in (self._data_body, INFO_BODY_BYTES):
             if len(body) > n:
                 for part, at in ((body[:n], 0), (body[-n:], len(body) - n)):
                     try:
-                        found.append((at, _decode(part), part))
+                        found.append((at, _decode(part, self.n_channels), part))
                     except FrameError:
                         pass
         if not found:
@@ -389,7 +445,7 @@ class StreamDecoder:
             self._c["recovered"] += 1
             self._accept(f, version, out, part)
         self._c["bytes_discarded"] += max(0, len(body) + 1 - sum(
-            DATA_BODY_BYTES if isinstance(f, DataFrame) else INFO_BODY_BYTES for _, (f, _), _ in found))
+            self._data_body if isinstance(f, DataFrame) else INFO_BODY_BYTES for _, (f, _), _ in found))
         return True
 
     def _accept(self, f, version: int, out: list, body: bytes) -> None:
@@ -416,7 +472,7 @@ class StreamDecoder:
                 if dt_us is not None and self._last_t_us is not None:
                     # the board clock says how many frames passed: resolves seq's wrap (and a
                     # repeated or older seq on a running clock)
-                    expected = dt_us / _period_us(f.osr)
+                    expected = dt_us / _period_us(f.osr, self.n_channels)
                     step += 65536 * round((expected - step) / 65536)
                 if step <= 0:
                     c["duplicates" if step == 0 else "stale"] += 1

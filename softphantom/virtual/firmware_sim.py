@@ -25,7 +25,8 @@ import numpy as np
 
 from softphantom.errors import UserError
 from softphantom.sensing.board import F_CPU_HZ, frame_rate_Hz
-from softphantom.sensing.protocol import DataFrame, StreamDecoder, encode_get_info, encode_set_osr
+from softphantom.sensing.protocol import (N_CHANNELS, DataFrame, StreamDecoder, check_channels, encode_get_info,
+                                         encode_set_osr)
 
 FIRMWARE_DIR = Path(__file__).resolve().parents[2] / "firmware"
 SIMAVR_HEADER = Path("/usr/include/simavr/sim_avr.h")
@@ -51,15 +52,17 @@ def simavr_missing() -> str | None:
     return None
 
 
-def build(build_dir: Path | None = None) -> tuple[Path, Path]:
-    """(harness, firmware .elf), built by ``make -C firmware sim`` if out of date."""
+def build(build_dir: Path | None = None, n_channels: int = N_CHANNELS) -> tuple[Path, Path]:
+    """(harness, firmware .elf) for a board of ``n_channels``, built by ``make -C firmware
+    N_CHANNELS=n sim`` if out of date (in firmware/build, or build_<n> for another count)."""
     why = simavr_missing()
     if why:
         raise SimavrMissing(why)
     if not (FIRMWARE_DIR / "Makefile").exists():
         raise UserError(f"--board firmware: the firmware sources are not at {FIRMWARE_DIR} (a source checkout is needed)")
-    build_dir = Path(build_dir) if build_dir else FIRMWARE_DIR / "build"
-    r = subprocess.run(["make", "-s", "-C", str(FIRMWARE_DIR), f"BUILD={build_dir.resolve()}", "sim"],
+    n = check_channels(n_channels)
+    build_dir = Path(build_dir) if build_dir else FIRMWARE_DIR / ("build" if n == N_CHANNELS else f"build_{n}")
+    r = subprocess.run(["make", "-s", "-C", str(FIRMWARE_DIR), f"BUILD={build_dir.resolve()}", f"N_CHANNELS={n}", "sim"],
                        capture_output=True, text=True)
     if r.returncode:
         last = (r.stderr.strip() or r.stdout.strip()).splitlines()[-1:] or ["?"]
@@ -86,9 +89,10 @@ class FirmwareSim:
     noise (σ, codes; seeded by ``seed``), ``log_adc`` return every conversion."""
 
     def __init__(self, elf: Path | None = None, *, harness: Path | None = None, vs_V: float = VS_V,
-                 noise_codes: float = 0.0, seed: int = 0, log_adc: bool = False):
+                 noise_codes: float = 0.0, seed: int = 0, log_adc: bool = False, n_channels: int = N_CHANNELS):
+        self.n_channels = check_channels(n_channels)
         if elf is None or harness is None:
-            h, e = build()
+            h, e = build(n_channels=self.n_channels)
             harness, elf = harness or h, elf or e
         args = [str(harness), str(elf), "--vs", repr(float(vs_V)), "--noise", repr(float(noise_codes)),
                 "--seed", str(int(seed))]
@@ -102,10 +106,11 @@ class FirmwareSim:
         return np.round(np.asarray(t_s, float) * F_CPU_HZ).astype(np.uint64)
 
     def set_voltages(self, t_s, volts) -> None:
-        """Voltages (n, 5) V at the ADC inputs from times ``t_s`` (n,) on (increasing, after any
-        earlier point); linear between points, the last one held."""
-        v = np.asarray(volts, float).reshape(-1, 5)
-        rec = np.zeros(len(v), dtype=[("cycle", "<u8"), ("v", "<f8", (5,))])
+        """Voltages (n, channels) V at the ADC inputs from times ``t_s`` (n,) on (increasing, after
+        any earlier point); linear between points, the last one held."""
+        c = self.n_channels
+        v = np.asarray(volts, float).reshape(-1, c)
+        rec = np.zeros(len(v), dtype=[("cycle", "<u8"), ("v", "<f8", (c,))])
         rec["cycle"], rec["v"] = self.cycles(t_s), v
         self._write(b"V" + struct.pack("<I", len(rec)) + rec.tobytes())
 
@@ -180,10 +185,11 @@ class FirmwareBoard:
         self.duration_s = float(signals.t[-1]) - 0.5
         tr = signals.chain.transducers
         p = signals.p_transducer
-        self._volts = VS_V * np.column_stack([tr[i].ratio(p[:, i]) for i in range(5)])
+        n = len(tr)  # the board's channels: the arms, then the urethra
+        self._volts = VS_V * np.column_stack([tr[i].ratio(p[:, i]) for i in range(n)])
         self._sent_to = 0  # grid points already given to the emulator
-        self._sim = FirmwareSim(elf, harness=harness, noise_codes=config.noise_codes, seed=config.seed)
-        self._dec = StreamDecoder()
+        self._sim = FirmwareSim(elf, harness=harness, noise_codes=config.noise_codes, seed=config.seed, n_channels=n)
+        self._dec = StreamDecoder(n)
         self._feed(self.LEAD_S)
         self._pending = b""
         if self.osr != 100:  # once its UART is on (it drops what arrives before, as the chip does)
