@@ -67,6 +67,14 @@ def main() -> None:
                      "met" if k not in GOALS or w[k] <= GOALS[k] else "MISSED"])
     for r in rows:
         print("  ", " | ".join(r))
+    # where the worst ones are: the loads of the five largest angle errors
+    for i in np.argsort(res.errors[:, COLUMNS.index("ang_deg")])[::-1][:5]:
+        lam = res.loads[i]
+        print(f"   worst angle: load ({lam[0]:+.2f}, {lam[1]:+.2f}, {lam[2]:+.2f}) N, {lam[3] * 1e-3:.1f} kPa: "
+              + ", ".join(f"{c} {v:.4f}" for c, v in zip(COLUMNS, res.errors[i])))
+    in_goal = np.all(res.errors[:, [COLUMNS.index(c) for c in ("force_N", "pos_mm", "ang_deg")]]
+                     <= [GOALS["force_N"], GOALS["pos_mm"], GOALS["ang_deg"]], axis=1)
+    print(f"   {in_goal.sum()} of {len(in_goal)} loads within the force, position and angle goals")
     build = []
     for piece in pieces:
         prov = piece.provenance or {}
