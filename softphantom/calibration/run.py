@@ -208,6 +208,9 @@ def calibrate(model_dir, specs: list[SessionSpec], holdout: list[SessionSpec] = 
 
     model_dir = Path(model_dir)
     model = load_model(model_dir)
+    from softphantom.sensing.bench import require_bip_arms
+
+    require_bip_arms(model, "calibrate")  # its parameters are the BIP's four gains and offsets
     if not specs:
         raise UserError("calibrate: give at least one --recording/--truth pair")
     design_laws = sorted({m.law for m in model.design.materials})

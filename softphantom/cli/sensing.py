@@ -168,7 +168,7 @@ def acquire_cmd(
                     "started_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
                     "tare": tare.to_dict(), "chain": chain.summary(), "bench": bench.to_meta(), "contact": at,
                     "on_new_board": on_new_board, "model": str(model_dir) if model_dir else None}
-            rec = Recorder(out, meta)
+            rec = Recorder(out, meta, arm_names=chain.arm_names)
             for m in window:        # the tare window is part of the recording, re-converted
                 rec.write(to_measurement(m.t, m.seq, m.t_board, m.raw, m.osr, chain, tare))
             # 2. record

@@ -160,7 +160,7 @@ def repeat_last(last: Estimate, m, status: str, t0: float, skipped: int) -> Esti
         t=t, force=last.force.copy(), p_urethra=last.p_urethra, pose=last.pose,
         target_shift=dict(last.target_shift), volume_pred=last.volume_pred.copy(), volume_meas=dV,
         cond_W=last.cond_W, qp_status=status, step_time=time.perf_counter() - t0, skipped=int(skipped),
-        status=status, in_envelope=last.in_envelope,
+        status=status, in_envelope=last.in_envelope, arm_names=last.arm_names,
     )
 
 
@@ -170,13 +170,14 @@ def sensitivity_cond(W: np.ndarray) -> float:
     return float(s[0] / s[-1]) if s[-1] > 0 else float("inf")
 
 
-def rest_estimate(target_names, W: np.ndarray) -> Estimate:
+def rest_estimate(target_names, W: np.ndarray, arm_names: tuple[str, ...] = ARM_NAMES) -> Estimate:
     """The estimate before the first sample: no load, no motion, ``cond_W`` of the sensitivity ``W``."""
     z = np.zeros(3)
     return Estimate(
         t=0.0, force=z.copy(), p_urethra=0.0, pose=Pose6(z.copy(), z.copy()),
         target_shift={k: z.copy() for k in target_names}, volume_pred=np.zeros(len(W)),
         volume_meas=np.zeros(len(W)), cond_W=sensitivity_cond(W), qp_status="rest", step_time=0.0,
+        arm_names=tuple(arm_names),
     )
 
 
@@ -306,7 +307,7 @@ class Estimator(EstimatorState):
         # per-refresh history, the latest HISTORY entries only: a soak must not grow the process
         self.lin_errors = History(width=len(self.arm_names))
         self.refresh_times = History()  # s per equilibrium refresh (both modes)
-        self._last = rest_estimate(self.target_names, self.rest.W)
+        self._last = rest_estimate(self.target_names, self.rest.W, self.arm_names)
         if self.config.mode == "async" and self._worker is None:
             self._worker = _Worker(self)
             self._worker.start()
@@ -406,7 +407,7 @@ class Estimator(EstimatorState):
             t=float(m.t), force=lam[:3].copy(), p_urethra=float(lam[3]), pose=pose, target_shift=shifts,
             volume_pred=vpred, volume_meas=dV.copy(), cond_W=sensitivity_cond(lin.W),
             qp_status=qp.status, step_time=time.perf_counter() - t0, skipped=int(skipped),
-            extra={"qp_residual_m3": qp.residual, "active": qp.active, "lin_lam": lin.lam},
+            extra={"qp_residual_m3": qp.residual, "active": qp.active, "lin_lam": lin.lam}, arm_names=self.arm_names,
         )
         return est, lam
 

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from softphantom.records.estimate import Estimate, estimate_row, is_marker, marker_estimate
-from softphantom.records.names import EVENT_PREFIX, estimate_columns
+from softphantom.records.names import ARM_NAMES, EVENT_PREFIX, estimate_columns
 from softphantom.records.session import SessionWriter
 
 __all__ = ["EVENT_PREFIX", "EstimateWriter", "EventMarkers", "StepStats", "estimate_columns", "estimate_row",
@@ -75,9 +75,11 @@ class EstimateWriter:
     """Write estimates to the estimate file (a session file, :mod:`softphantom.records.session`):
     the metadata line, the header, one row per estimate, each handed to the OS as it is written."""
 
-    def __init__(self, path, target_names: Iterable[str], metadata: dict | None = None) -> None:
+    def __init__(self, path, target_names: Iterable[str], metadata: dict | None = None,
+                 arm_names: Iterable[str] = ARM_NAMES) -> None:
         self.target_names = list(target_names)
-        self._w = SessionWriter(path, estimate_columns(self.target_names), metadata or {})
+        self.arm_names = tuple(arm_names)  # the model's arms: its volume columns
+        self._w = SessionWriter(path, estimate_columns(self.target_names, self.arm_names), metadata or {})
         self.path = self._w.path
 
     @property
@@ -85,6 +87,8 @@ class EstimateWriter:
         return self._w.rows
 
     def write(self, e: Estimate) -> None:
+        if tuple(e.arm_names) != self.arm_names:
+            raise ValueError(f"an estimate of arms {list(e.arm_names)} in a file of arms {list(self.arm_names)}")
         self._w.write_row(estimate_row(e, self.target_names))
 
     def close(self) -> None:
@@ -98,9 +102,9 @@ class EstimateWriter:
 
 
 def write_estimates(path, estimates: Iterable[Estimate], target_names: Iterable[str],
-                    metadata: dict | None = None) -> Path:
+                    metadata: dict | None = None, arm_names: Iterable[str] = ARM_NAMES) -> Path:
     """Write a sequence of estimates to ``path`` (see :class:`EstimateWriter`)."""
-    with EstimateWriter(path, target_names, metadata) as w:
+    with EstimateWriter(path, target_names, metadata, arm_names) as w:
         for e in estimates:
             w.write(e)
     return w.path
@@ -197,9 +201,10 @@ class EventMarkers:
     """Turns a source's link events into marker estimates in time order: ``due(t)`` gives the
     markers of the events at or before ``t`` (all of them for ``t`` None)."""
 
-    def __init__(self, source, target_names: Iterable[str]) -> None:
+    def __init__(self, source, target_names: Iterable[str], arm_names: Iterable[str] = ARM_NAMES) -> None:
         self._src = source
         self._targets = list(target_names)
+        self._arms = tuple(arm_names)
         self._pending: list = []
         self.counts: dict[str, int] = {}
 
@@ -209,7 +214,7 @@ class EventMarkers:
         self._pending = [e for e in self._pending if not (t is None or e.t <= t)]
         for e in now:
             self.counts[e.kind] = self.counts.get(e.kind, 0) + 1
-        return [marker_estimate(e, self._targets) for e in now]
+        return [marker_estimate(e, self._targets, self._arms) for e in now]
 
 
 def _is_live(source) -> bool:
@@ -233,10 +238,11 @@ def estimate_stream(source, estimator, out_path, on_estimate: Callable[[Estimate
     source (e.g. a new board under the ``stop`` policy) is raised after its marker is written."""
     live = _is_live(source) if live is None else live
     targets = list(getattr(estimator, "target_names", ()))
+    arms = tuple(getattr(estimator, "arm_names", ARM_NAMES))
     meta = {"softphantom": _version(), "kind": "softphantom-estimate", "live": live, **(metadata or {})}
     steps = StepStats()
     n = rejected = skipped_total = outside = 0
-    markers = EventMarkers(source, targets)
+    markers = EventMarkers(source, targets, arms)
     t0 = time.perf_counter()
 
     def mark(t: float | None) -> None:
@@ -245,7 +251,7 @@ def estimate_stream(source, estimator, out_path, on_estimate: Callable[[Estimate
             if on_event is not None:
                 on_event(e)
 
-    with EstimateWriter(out_path, targets, meta) as writer:
+    with EstimateWriter(out_path, targets, meta, arms) as writer:
         try:
             for m, skipped in iter_samples(source, live, stop, idle=True):
                 if m is None:

@@ -19,7 +19,9 @@ from softphantom.records.names import (
     FORCE_COLUMNS,
     MEASUREMENT_COLUMNS,
     POSE_COLUMNS,
+    arm_names_of,
     estimate_columns,
+    measurement_columns,
 )
 from softphantom.records.session import (
     FILE_VERSION,
@@ -34,6 +36,6 @@ from softphantom.records.track import PoseTrack, make_track
 __all__ = [
     "ARM_NAMES", "CHANNEL_NAMES", "FILE_VERSION", "FORCE_COLUMNS", "MEASUREMENT_COLUMNS", "POSE_COLUMNS",
     "Estimate", "Measurement", "PoseTrack", "SessionFile", "SessionWriter", "SourceEvent",
-    "TruncatedRecordingWarning", "estimate_columns", "estimate_row", "estimate_to_message", "make_track",
-    "measurement_to_message", "message_to_estimate", "read_session_file", "write_session_file",
+    "TruncatedRecordingWarning", "arm_names_of", "estimate_columns", "estimate_row", "estimate_to_message", "make_track",
+    "measurement_columns", "measurement_to_message", "message_to_estimate", "read_session_file", "write_session_file",
 ]

@@ -36,6 +36,7 @@ from softphantom.records.names import (
     EVENT_PREFIX,
     FORCE_COLUMNS,
     POSE_COLUMNS,
+    arm_names_of,
     estimate_columns,
     target_columns,
     target_names,
@@ -48,7 +49,8 @@ class Estimate:
 
     ``force`` N (3,), ``p_urethra`` Pa, ``pose`` of the marker rigid body relative to rest,
     ``target_shift`` m per named target, ``volume_pred``/``volume_meas`` cavity volume changes
-    m³ (4,), ``cond_W`` the condition number of the sensitivity matrix, ``qp_status`` the QP
+    m³ (one per arm of ``arm_names``, the sensor order; the BIP's four by default), ``cond_W``
+    the condition number of the sensitivity matrix, ``qp_status`` the QP
     solver's status, ``step_time`` s spent on this step, ``skipped`` samples dropped since the
     previous estimate (estimation fell behind and took the newest one), ``in_envelope`` False
     when the loads lie outside the range the estimator's model covers (the atlas's envelope; the
@@ -69,6 +71,7 @@ class Estimate:
     status: str = "ok"
     in_envelope: bool = True
     extra: dict = field(default_factory=dict)
+    arm_names: tuple[str, ...] = ARM_NAMES
 
 
 def _num(x: Any) -> float | None:
@@ -95,8 +98,8 @@ def estimate_to_message(est: Estimate, seq: int | None = None, t_pub_unix_s: flo
     m.update(zip(POSE_COLUMNS, _nums(est.pose.xyz, 1e3) + _nums(np.degrees(np.asarray(est.pose.ypr, float)))))
     for name, d in est.target_shift.items():
         m.update(zip(target_columns(name), _nums(d, 1e3)))
-    m.update(zip([f"dVpred_{a}_mm3" for a in ARM_NAMES], _nums(est.volume_pred, 1e9)))
-    m.update(zip([f"dVmeas_{a}_mm3" for a in ARM_NAMES], _nums(est.volume_meas, 1e9)))
+    m.update(zip([f"dVpred_{a}_mm3" for a in est.arm_names], _nums(est.volume_pred, 1e9)))
+    m.update(zip([f"dVmeas_{a}_mm3" for a in est.arm_names], _nums(est.volume_meas, 1e9)))
     m["cond_W"] = _num(est.cond_W)
     m["qp_status"] = str(est.qp_status)
     m["step_ms"] = _num(est.step_time * 1e3)
@@ -109,7 +112,7 @@ def estimate_to_message(est: Estimate, seq: int | None = None, t_pub_unix_s: flo
 def estimate_row(est: Estimate, targets: Iterable[str]) -> list[Any]:
     """The estimate-file row of an estimate: its message's values in column order."""
     m = estimate_to_message(est)
-    return [m.get(c) for c in estimate_columns(targets)]
+    return [m.get(c) for c in estimate_columns(targets, est.arm_names)]
 
 
 def _f(m: Mapping[str, Any], key: str) -> float:
@@ -128,24 +131,26 @@ def message_to_estimate(m: Mapping[str, Any]) -> Estimate:
     v = np.array([_f(m, k) for k in POSE_COLUMNS])
     shifts = {n: np.array([_f(m, k) for k in target_columns(n)]) * 1e-3 for n in target_names(m)}
     env = m.get("in_envelope")
+    arms = arm_names_of(m, "dVmeas_") or ARM_NAMES
     return Estimate(
         t=_f(m, "t_s"),
         force=np.array([_f(m, c) for c in FORCE_COLUMNS]),
         p_urethra=_f(m, "p_urethra_kPa") * 1e3,
         pose=Pose6.from_mm_deg(v),
         target_shift=shifts,
-        volume_pred=np.array([_f(m, f"dVpred_{a}_mm3") for a in ARM_NAMES]) * 1e-9,
-        volume_meas=np.array([_f(m, f"dVmeas_{a}_mm3") for a in ARM_NAMES]) * 1e-9,
+        volume_pred=np.array([_f(m, f"dVpred_{a}_mm3") for a in arms]) * 1e-9,
+        volume_meas=np.array([_f(m, f"dVmeas_{a}_mm3") for a in arms]) * 1e-9,
         cond_W=_f(m, "cond_W"),
         qp_status=str(m.get("qp_status", "")),
         step_time=_f(m, "step_ms") * 1e-3,
         skipped=int(float(m.get("skipped") or 0)),
         status=str(m.get("status", "ok") or "ok"),
         in_envelope=bool(int(float(env))) if env not in (None, "") else True,
+        arm_names=arms,
     )
 
 
-def marker_estimate(event, target_names: Iterable[str]) -> Estimate:
+def marker_estimate(event, target_names: Iterable[str], arm_names: tuple[str, ...] = ARM_NAMES) -> Estimate:
     """The marker of a link event: an Estimate at the event's time with every number NaN and
     ``status`` ``event:<kind>: <detail>`` (``qp_status`` ``none``, nothing skipped).
 
@@ -155,9 +160,10 @@ def marker_estimate(event, target_names: Iterable[str]) -> Estimate:
     (12.5, 'event:disconnected: port failed', True)
     """
     nan3 = np.full(3, math.nan)
-    return Estimate(float(event.t), nan3, math.nan, Pose6(nan3, nan3), {n: nan3 for n in target_names},
-                    np.full(4, math.nan), np.full(4, math.nan), math.nan, "none", 0.0, 0,
-                    f"{EVENT_PREFIX}{event.kind}: {event.detail}")
+    na = len(arm_names)
+    return Estimate(float(event.t), nan3, math.nan, Pose6(nan3, nan3), {k: nan3 for k in target_names},
+                    np.full(na, math.nan), np.full(na, math.nan), math.nan, "none", 0.0, 0,
+                    f"{EVENT_PREFIX}{event.kind}: {event.detail}", arm_names=tuple(arm_names))
 
 
 def is_marker(e: Estimate) -> bool:

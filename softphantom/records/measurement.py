@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from softphantom.records.names import ARM_NAMES, CHANNEL_NAMES, EVENT_PREFIX, MEASUREMENT_COLUMNS
+from softphantom.records.names import ARM_NAMES, EVENT_PREFIX, MEASUREMENT_COLUMNS
 
 
 @dataclass(frozen=True, eq=False)
@@ -17,9 +17,10 @@ class Measurement:
     """One sample of the sensing chain (SI units).
 
     ``t`` s host clock, ``seq`` frame sequence number, ``t_board`` s board clock (centre of the
-    sampling window), ``raw`` ``(5,)`` oversampled ADC sums (4 arms then urethra, each in
-    ``0 .. 1023·osr``), ``osr`` readings summed per channel, ``dp`` ``(4,)`` Pa gauge pressure
-    change since tare, ``dV`` ``(4,)`` m³ cavity volume change (Boyle over cavity + tube),
+    sampling window), ``raw`` ``(n_arms + 1,)`` oversampled ADC sums (the arms then the urethra,
+    each in ``0 .. 1023·osr``; the BIP's board: 5), ``osr`` readings summed per channel, ``dp``
+    ``(n_arms,)`` Pa gauge pressure change since tare, ``dV`` ``(n_arms,)`` m³ cavity volume
+    change (Boyle over cavity + tube),
     ``p_urethra`` Pa gauge, ``status`` ``"ok"`` or a reason (e.g. ``"rail:back_xneg"``).
 
     >>> m = Measurement(0.0, 1, 0.0, np.array([51200] * 5), 100, np.zeros(4), np.zeros(4), 0.0)
@@ -72,35 +73,45 @@ class SourceEvent:
         return cls(float(t), kind, detail)
 
 
-def measurement_to_message(m: Measurement) -> dict[str, Any]:
-    """The flat, unit-named form of a measurement (keys :data:`MEASUREMENT_COLUMNS`): the
-    ``/sensors`` message of a recording (read by attribute, so any object with those fields).
+def _arm_names(m, arm_names) -> tuple[str, ...]:
+    if arm_names is not None:
+        return tuple(arm_names)
+    if len(np.asarray(m.dV).ravel()) != len(ARM_NAMES):
+        raise ValueError(f"a measurement of {len(np.asarray(m.dV).ravel())} arms needs their names")
+    return ARM_NAMES
+
+
+def measurement_to_message(m: Measurement, arm_names=None) -> dict[str, Any]:
+    """The flat, unit-named form of a measurement (keys :func:`~softphantom.records.names.measurement_columns`
+    of ``arm_names``, default the BIP's four): the ``/sensors`` message of a recording (read by
+    attribute, so any object with those fields).
 
     >>> msg = measurement_to_message(Measurement(0.5, 3, 0.49, np.arange(5), 100, np.full(4, 1e3),
     ...                                          np.full(4, 1e-9), 2e3))
     >>> tuple(msg) == MEASUREMENT_COLUMNS, msg["dp_front_zpos_kPa"], msg["dV_back_xneg_mm3"], msg["raw_urethra"]
     (True, 1.0, 1.0, 4)
     """
+    arms = _arm_names(m, arm_names)
     msg: dict[str, Any] = {"t_s": float(m.t), "seq": int(m.seq), "t_board_s": float(m.t_board), "osr": int(m.osr)}
-    for name, v in zip(CHANNEL_NAMES, np.asarray(m.raw).ravel()):
+    for name, v in zip((*arms, "urethra"), np.asarray(m.raw).ravel()):
         msg[f"raw_{name}"] = int(v)
-    for a, v in zip(ARM_NAMES, np.asarray(m.dp, float) * 1e-3):
+    for a, v in zip(arms, np.asarray(m.dp, float) * 1e-3):
         msg[f"dp_{a}_kPa"] = float(v)
-    for a, v in zip(ARM_NAMES, np.asarray(m.dV, float) * 1e9):
+    for a, v in zip(arms, np.asarray(m.dV, float) * 1e9):
         msg[f"dV_{a}_mm3"] = float(v)
     msg["p_urethra_kPa"] = float(m.p_urethra) * 1e-3
     msg["status"] = str(m.status)
     return msg
 
 
-def measurement_row(m: Measurement) -> list[str]:
+def measurement_row(m: Measurement, arm_names=None) -> list[str]:
     """The sensing recording's row of a measurement: its message, times and pressures to 1e-6 of
     their unit (µs, mPa, 1e-6 mm³), raw sums exact."""
     f = lambda x: "nan" if not math.isfinite(x) else f"{x:.6f}"  # noqa: E731
-    msg = measurement_to_message(m)
+    msg = measurement_to_message(m, arm_names)
     return [f(v) if isinstance(v, float) else str(v) for v in msg.values()]
 
 
-def event_row(ev: SourceEvent) -> list[str]:
+def event_row(ev: SourceEvent, n_arms: int = len(ARM_NAMES)) -> list[str]:
     """The marker row of a link event: its time, ``seq`` −1, ``osr`` 0, empty numbers, its status."""
-    return [f"{ev.t:.6f}", "-1", "nan", "0"] + ["0"] * len(CHANNEL_NAMES) + ["nan"] * 9 + [ev.status]
+    return [f"{ev.t:.6f}", "-1", "nan", "0"] + ["0"] * (n_arms + 1) + ["nan"] * (2 * n_arms + 1) + [ev.status]

@@ -50,20 +50,41 @@ def target_names(columns: Iterable[str]) -> list[str]:
     return [k[: -len(TARGET_SUFFIXES[0])] for k in columns if k.endswith(TARGET_SUFFIXES[0])]
 
 
-def estimate_columns(target_names: Iterable[str]) -> list[str]:
-    """The estimate file's header, in order (docs/architecture.md)."""
+def estimate_columns(target_names: Iterable[str], arm_names: Iterable[str] = ARM_NAMES) -> list[str]:
+    """The estimate file's header, in order (docs/architecture.md); ``arm_names`` the model's arms
+    in the sensor order (default: the BIP's four)."""
     cols = ["t_s", *FORCE_COLUMNS, "p_urethra_kPa", *POSE_COLUMNS]
     for n in target_names:
         cols += target_columns(n)
-    cols += [f"dVpred_{a}_mm3" for a in ARM_NAMES] + [f"dVmeas_{a}_mm3" for a in ARM_NAMES]
+    arms = tuple(arm_names)
+    cols += [f"dVpred_{a}_mm3" for a in arms] + [f"dVmeas_{a}_mm3" for a in arms]
     return cols + ["cond_W", "qp_status", "step_ms", "skipped", "status", "in_envelope"]
 
 
-MEASUREMENT_COLUMNS: tuple[str, ...] = (
-    ("t_s", "seq", "t_board_s", "osr")
-    + tuple(f"raw_{c}" for c in CHANNEL_NAMES)
-    + tuple(f"dp_{a}_kPa" for a in ARM_NAMES)
-    + tuple(f"dV_{a}_mm3" for a in ARM_NAMES)
-    + ("p_urethra_kPa", "status")
-)
-"""A sensor sample's columns (sensing recording) and ``/sensors`` message keys."""
+def measurement_columns(arm_names: Iterable[str] = ARM_NAMES) -> tuple[str, ...]:
+    """A sensor sample's columns (sensing recording) and ``/sensors`` message keys for a board of
+    ``arm_names`` and the urethra.
+
+    >>> measurement_columns(("a", "b", "c"))[4:8]
+    ('raw_a', 'raw_b', 'raw_c', 'raw_urethra')
+    """
+    arms = tuple(arm_names)
+    return (("t_s", "seq", "t_board_s", "osr")
+            + tuple(f"raw_{c}" for c in (*arms, "urethra"))
+            + tuple(f"dp_{a}_kPa" for a in arms)
+            + tuple(f"dV_{a}_mm3" for a in arms)
+            + ("p_urethra_kPa", "status"))
+
+
+MEASUREMENT_COLUMNS: tuple[str, ...] = measurement_columns()
+"""The BIP's sensor sample columns (:func:`measurement_columns` of its four arms)."""
+
+
+def arm_names_of(columns: Iterable[str], prefix: str = "dV_") -> tuple[str, ...]:
+    """The arms named by a file's columns or a message's keys (``<prefix><arm>_mm3``: ``dV_`` in a
+    recording, ``dVmeas_`` in an estimate), in their order.
+
+    >>> arm_names_of(measurement_columns(("a", "b", "c"))), arm_names_of(estimate_columns([]), "dVmeas_")[:2]
+    (('a', 'b', 'c'), ('front_zpos', 'front_zneg'))
+    """
+    return tuple(k[len(prefix):-len("_mm3")] for k in columns if k.startswith(prefix) and k.endswith("_mm3"))

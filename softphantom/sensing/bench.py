@@ -56,32 +56,36 @@ def _positive(name: str, v: float) -> float:
 @dataclass(frozen=True)
 class BenchConfig:
     """The pneumatic bench (SI): per-arm tube ``tube_length_m`` × ``tube_id_m`` (inner diameter),
-    the arm cavities ``cavity_volumes_m3`` (4, sensor order), the transducers' extra dead volume
-    ``v_dead_m3`` and the absolute ambient pressure ``p0_Pa`` at tare; as calibrated
-    (``softphantom calibrate``, the design's ``[sensors]``): the arm transducers' ``gains``
-    (sensitivity / datasheet) and the ``tube_volume_factor`` (real / nominal tube volume)."""
+    the arm cavities ``cavity_volumes_m3`` (one per arm of ``arm_names``, the sensor order; the
+    BIP's four by default), the transducers' extra dead volume ``v_dead_m3`` and the absolute
+    ambient pressure ``p0_Pa`` at tare; as calibrated (``softphantom calibrate``, the design's
+    ``[sensors]``): the arm transducers' ``gains`` (sensitivity / datasheet) and the
+    ``tube_volume_factor`` (real / nominal tube volume)."""
 
     tube_length_m: float = TUBE_LENGTH_M
     tube_id_m: float = TUBE_ID_M
-    cavity_volumes_m3: tuple[float, float, float, float] = ARM_CAVITY_VOLUMES_M3
+    cavity_volumes_m3: tuple[float, ...] = ARM_CAVITY_VOLUMES_M3
     p0_Pa: float = P0_STANDARD_PA
     v_dead_m3: float = 0.0
-    gains: tuple[float, float, float, float] = (1.0, 1.0, 1.0, 1.0)
+    gains: tuple[float, ...] = (1.0, 1.0, 1.0, 1.0)
     tube_volume_factor: float = 1.0
+    arm_names: tuple[str, ...] = ARM_NAMES
 
     def __post_init__(self) -> None:
         _positive("--tube-length-m", self.tube_length_m)
         _positive("--tube-id-mm", self.tube_id_m * 1e3)
         _positive("--p0-kPa", self.p0_Pa / 1e3)
+        n = len(self.arm_names)
+        object.__setattr__(self, "arm_names", tuple(self.arm_names))
         vc = tuple(float(v) for v in self.cavity_volumes_m3)
-        if len(vc) != 4 or not all(math.isfinite(v) and v > 0 for v in vc):
-            raise UserError(f"cavity volumes (mm³): expected 4 positive values, got {self.cavity_volumes_m3!r}")
+        if len(vc) != n or not all(math.isfinite(v) and v > 0 for v in vc):
+            raise UserError(f"cavity volumes (mm³): expected {n} positive values, got {self.cavity_volumes_m3!r}")
         if not (math.isfinite(self.v_dead_m3) and self.v_dead_m3 >= 0):
             raise UserError(f"dead volume (mm³): must be ≥ 0, got {self.v_dead_m3 * 1e9!r}")
         object.__setattr__(self, "cavity_volumes_m3", vc)
         g = tuple(float(v) for v in self.gains)
-        if len(g) != 4 or not all(math.isfinite(v) and v > 0 for v in g):
-            raise UserError(f"transducer gains: expected 4 positive values, got {self.gains!r}")
+        if len(g) != n or not all(math.isfinite(v) and v > 0 for v in g):
+            raise UserError(f"transducer gains: expected {n} positive values, got {self.gains!r}")
         object.__setattr__(self, "gains", g)
         _positive("tube volume factor", self.tube_volume_factor)
 
@@ -90,14 +94,10 @@ class BenchConfig:
         """The bench of a :class:`~softphantom.design.PhantomModel`: its design's nominal arm
         cavities; ``kw`` (``tube_length_m``, ``tube_id_m``, ``p0_Pa``; None = default) the rest."""
         names = tuple(a.name for a in model.design.arms)
-        if names != ARM_NAMES:  # the board, its protocol and the records carry these four channels
-            raise UserError(f"arms {', '.join(names)}: the board and the sensing chain carry the BIP's four arms "
-                            f"({', '.join(ARM_NAMES)}) only; this design runs through design, simulate and the "
-                            "Python estimators (docs/architecture.md)")
         vc = tuple(a.cavity_volume_mm3 * 1e-9 for a in model.design.arms)
         sensors = getattr(model.design, "sensors", None)
         cal = {} if sensors is None else {"gains": sensors.gains, "tube_volume_factor": sensors.tube_volume_factor}
-        return cls(cavity_volumes_m3=vc, **cal, **{k: v for k, v in kw.items() if v is not None})
+        return cls(cavity_volumes_m3=vc, **cal, arm_names=names, **{k: v for k, v in kw.items() if v is not None})
 
     @classmethod
     def from_options(cls, tube_length_m: float | None = None, tube_id_mm: float | None = None,
@@ -127,13 +127,15 @@ class BenchConfig:
     def chain(self) -> SensorChain:
         """The sensor chain: V_total = cavity + factor × tube + dead volume per arm; each arm
         transducer's sensitivity × its gain."""
-        base = default_chain(self.cavity_volumes_m3, self.tube_length_m, self.tube_id_m, self.v_dead_m3)
-        if self.gains == (1.0, 1.0, 1.0, 1.0) and self.tube_volume_factor == 1.0:
+        base = default_chain(self.cavity_volumes_m3, self.tube_length_m, self.tube_id_m, self.v_dead_m3,
+                             arm_names=self.arm_names)
+        n = len(self.arm_names)
+        if self.gains == (1.0,) * n and self.tube_volume_factor == 1.0:
             return base
         tube = tube_volume_m3(self.tube_length_m, self.tube_id_m)
         v = np.asarray(self.cavity_volumes_m3) + self.tube_volume_factor * tube + self.v_dead_m3
-        tr = tuple(replace(t, k1_per_kPa=t.k1_per_kPa * g) for t, g in zip(base.transducers[:4], self.gains))
-        return SensorChain(v, tr + base.transducers[4:], base.bits)
+        tr = tuple(replace(t, k1_per_kPa=t.k1_per_kPa * g) for t, g in zip(base.transducers[:n], self.gains))
+        return SensorChain(v, tr + base.transducers[n:], base.bits, base.names)
 
     def describe(self) -> str:
         """One line for messages.
@@ -146,10 +148,13 @@ class BenchConfig:
 
     def to_meta(self) -> dict:
         """The recording metadata ``bench`` entry (user units)."""
-        return {"tube_length_m": self.tube_length_m, "tube_id_mm": round(self.tube_id_m * 1e3, 9),
-                "arm_cavity_mm3": [round(v * 1e9, 6) for v in self.cavity_volumes_m3],
-                "p0_Pa": self.p0_Pa, "dead_volume_mm3": round(self.v_dead_m3 * 1e9, 6),
-                "transducer_gains": list(self.gains), "tube_volume_factor": self.tube_volume_factor}
+        out = {"tube_length_m": self.tube_length_m, "tube_id_mm": round(self.tube_id_m * 1e3, 9),
+               "arm_cavity_mm3": [round(v * 1e9, 6) for v in self.cavity_volumes_m3],
+               "p0_Pa": self.p0_Pa, "dead_volume_mm3": round(self.v_dead_m3 * 1e9, 6),
+               "transducer_gains": list(self.gains), "tube_volume_factor": self.tube_volume_factor}
+        if self.arm_names != ARM_NAMES:  # the BIP's metadata stays as it was
+            out["arm_names"] = list(self.arm_names)
+        return out
 
     @classmethod
     def from_meta(cls, meta: dict) -> "BenchConfig":
@@ -158,17 +163,27 @@ class BenchConfig:
 
         b = meta.get("bench") or meta.get("design")
         try:
+            names = tuple(b.get("arm_names") or ARM_NAMES)
             return cls(float(b["tube_length_m"]), float(b["tube_id_mm"]) * 1e-3,
                        tuple(float(v) * 1e-9 for v in b["arm_cavity_mm3"]),
                        float(b.get("p0_Pa", meta.get("p0_Pa", P0_STANDARD_PA))),
                        float(b.get("dead_volume_mm3", 0.0)) * 1e-9,
-                       tuple(float(v) for v in b.get("transducer_gains", (1.0,) * 4)),
-                       float(b.get("tube_volume_factor", 1.0)))
+                       tuple(float(v) for v in b.get("transducer_gains", (1.0,) * len(names))),
+                       float(b.get("tube_volume_factor", 1.0)), names)
         except KeyError as exc:
             has = ", ".join(map(str, b)) or "nothing"
             raise FileFormatError(f"metadata: no usable bench: no {exc} (it has {has})") from None
         except (TypeError, ValueError) as exc:
             raise FileFormatError(f"metadata: no usable bench (tube, cavities): {exc}") from None
+
+
+def require_bip_arms(model, what: str) -> None:
+    """One line refusing ``what`` (a command not yet generic in the arms) for a design whose arms
+    are not the BIP's four."""
+    names = tuple(a.name for a in model.design.arms)
+    if names != ARM_NAMES:
+        raise UserError(f"{what}: takes the BIP's four arms ({', '.join(ARM_NAMES)}) for now; this model has "
+                        f"{', '.join(names)} (design, simulate, virtual run, estimate and evaluate take any arms)")
 
 
 def check_link_options(tare_s: float, connect_timeout_s: float, on_new_board: str) -> None:

@@ -22,6 +22,7 @@ import numpy as np
 from softphantom.errors import UserError
 from softphantom.sensing.measurement import (
     ARM_CAVITY_VOLUMES_M3,
+    ARM_NAMES,
     CHANNEL_NAMES,
     P0_STANDARD_PA,
     TUBE_ID_M,
@@ -101,7 +102,8 @@ def counts_to_pa(raw, osr, transducer: Transducer = MPXV7002, bits: int = ADC_BI
 def simulate_raw(p_Pa, osr: int, rng: np.random.Generator,
                  transducers: tuple[Transducer, ...] | None = None,
                  noise_codes: float = 0.5, bits: int = ADC_BITS) -> np.ndarray:
-    """Raw sums a board would send for gauge pressures ``p_Pa`` (..., 5) at the transducers.
+    """Raw sums a board would send for gauge pressures ``p_Pa`` (..., channels) at the transducers
+    (default: the BIP's five, four arms and the urethra).
 
     Each of the ``osr`` readings per channel is floor(1024·r + noise) clipped to the ADC range,
     with Gaussian input noise of ``noise_codes`` (σ, in codes); pass a seeded ``rng``.
@@ -123,10 +125,11 @@ def simulate_raw(p_Pa, osr: int, rng: np.random.Generator,
 
 
 def channel_status(raw, osr: int, transducers: tuple[Transducer, ...] | None = None,
-                   bits: int = ADC_BITS, margin: float = 0.1) -> str:
+                   bits: int = ADC_BITS, margin: float = 0.1, names: tuple[str, ...] = CHANNEL_NAMES) -> str:
     """``"ok"`` or the first problem: ``invalid:<ch>`` (sum outside 0..1023·osr), ``rail:<ch>``
     (mean code within one code of 0 or 1023: channel disconnected, shorted or saturated), or
-    ``range:<ch>`` (beyond the transducer's rated range by more than ``margin`` of its span).
+    ``range:<ch>`` (beyond the transducer's rated range by more than ``margin`` of its span);
+    ``<ch>`` from ``names``, the channels' (default: the BIP's).
 
     >>> channel_status([51150, 51150, 51150, 51150, 0], 100)
     'rail:urethra'
@@ -134,7 +137,7 @@ def channel_status(raw, osr: int, transducers: tuple[Transducer, ...] | None = N
     tr = transducers or (MPXV7002,) * 4 + (MPX4250D,)
     full = (1 << bits) - 1
     raw = np.asarray(raw)
-    for i, name in enumerate(CHANNEL_NAMES[: len(tr)]):
+    for i, name in enumerate(names[: len(tr)]):
         r = int(raw[i])
         if r < 0 or r > full * osr:
             return f"invalid:{name}"
@@ -152,37 +155,64 @@ def channel_status(raw, osr: int, transducers: tuple[Transducer, ...] | None = N
 class SensorChain:
     """Everything needed to turn raw sums into a :class:`Measurement` (except the tare).
 
-    ``v_total_m3`` (4,) gas volume per arm (cavity + tube + dead volume), ``transducers``
-    (5,) per channel, ``bits`` ADC resolution.
+    ``v_total_m3`` (n_arms,) gas volume per arm (cavity + tube + dead volume), ``transducers``
+    per channel (the arms', then the urethra's; default: the BIP's four arms), ``bits`` ADC
+    resolution, ``names`` the channels (the arms in the sensor order, then ``urethra``).
     """
 
     v_total_m3: np.ndarray
     transducers: tuple[Transducer, ...] = (MPXV7002,) * 4 + (MPX4250D,)
     bits: int = ADC_BITS
+    names: tuple[str, ...] = CHANNEL_NAMES
+
+    def __post_init__(self) -> None:
+        n = len(np.atleast_1d(self.v_total_m3))
+        if len(self.transducers) != n + 1 or len(self.names) != n + 1:
+            raise UserError(f"sensor chain: {n} arm volumes need {n + 1} transducers and channel names (the arms, "
+                            f"then the urethra), got {len(self.transducers)} and {list(self.names)}")
+
+    @property
+    def arm_names(self) -> tuple[str, ...]:
+        """The arms' channels, in the sensor order."""
+        return tuple(self.names[:-1])
+
+    @property
+    def n_channels(self) -> int:
+        """The board's channels: the arms, then the urethra."""
+        return len(self.names)
 
     def summary(self) -> dict:
-        return {"v_total_mm3": [round(float(v) * 1e9, 3) for v in self.v_total_m3],
-                "transducers": [t.name for t in self.transducers], "adc_bits": self.bits}
+        out = {"v_total_mm3": [round(float(v) * 1e9, 3) for v in self.v_total_m3],
+               "transducers": [t.name for t in self.transducers], "adc_bits": self.bits}
+        if self.names != CHANNEL_NAMES:  # the BIP's metadata stays as it was
+            out["names"] = list(self.names)
+        return out
 
 
 def default_chain(cavity_volumes_m3=ARM_CAVITY_VOLUMES_M3, tube_length_m: float = TUBE_LENGTH_M,
-                  tube_id_m: float = TUBE_ID_M, v_dead_m3: float = 0.0) -> SensorChain:
-    """The paper's chain: 4 arm cavities (514, 514, 486, 486 mm³) each behind 12 m × 1.2 mm tube.
+                  tube_id_m: float = TUBE_ID_M, v_dead_m3: float = 0.0,
+                  arm_names: tuple[str, ...] = ARM_NAMES) -> SensorChain:
+    """The paper's chain: 4 arm cavities (514, 514, 486, 486 mm³) each behind 12 m × 1.2 mm tube;
+    for other arms, one cavity volume per name of ``arm_names`` (an MPXV7002 each).
 
     >>> [round(v * 1e9) for v in default_chain().v_total_m3]
     [14086, 14086, 14058, 14058]
+    >>> default_chain([500e-9] * 3, arm_names=("a", "b", "c")).names
+    ('a', 'b', 'c', 'urethra')
     """
     vc = np.asarray(cavity_volumes_m3, float)
-    if vc.shape != (4,) or not np.all(np.isfinite(vc)) or np.any(vc <= 0):
-        raise UserError(f"cavity volumes (m³): expected 4 positive values, got {cavity_volumes_m3!r}")
-    return SensorChain(vc + tube_volume_m3(tube_length_m, tube_id_m) + float(v_dead_m3))
+    n = len(arm_names)
+    if vc.shape != (n,) or not np.all(np.isfinite(vc)) or np.any(vc <= 0):
+        raise UserError(f"cavity volumes (m³): expected {n} positive values, got {cavity_volumes_m3!r}")
+    return SensorChain(vc + tube_volume_m3(tube_length_m, tube_id_m) + float(v_dead_m3),
+                       (MPXV7002,) * n + (MPX4250D,), names=(*arm_names, "urethra"))
 
 
 @dataclass(frozen=True, eq=False)
 class Tare:
-    """Zero of each channel: ``offset_codes`` (5,) mean ADC code per reading at rest, ``p0_Pa``
-    absolute ambient pressure at tare, ``n_samples`` frames used (0 = datasheet nominal),
-    ``t_s`` host time of the window's end, ``noise_Pa`` (5,) std over the window."""
+    """Zero of each channel: ``offset_codes`` (channels,) mean ADC code per reading at rest,
+    ``p0_Pa`` absolute ambient pressure at tare, ``n_samples`` frames used (0 = datasheet
+    nominal), ``t_s`` host time of the window's end, ``noise_Pa`` (channels,) std over the window."""
 
     offset_codes: np.ndarray
     p0_Pa: float
@@ -200,9 +230,9 @@ class Tare:
     def from_dict(d: dict) -> "Tare":
         try:
             off = np.asarray(d["offset_codes"], float)
-            if off.shape != (5,):
-                raise ValueError("offset_codes needs 5 values")
-            noise = np.asarray([math.nan if x is None else x for x in d.get("noise_Pa", [None] * 5)], float)
+            if off.ndim != 1 or not 2 <= len(off) <= 16:
+                raise ValueError("offset_codes needs one value per channel")
+            noise = np.asarray([math.nan if x is None else x for x in d.get("noise_Pa", [None] * len(off))], float)
             return Tare(off, float(d["p0_Pa"]), int(d.get("n_samples", 0)),
                         math.nan if d.get("t_s") is None else float(d["t_s"]), noise)
         except (KeyError, TypeError, ValueError) as exc:
@@ -212,7 +242,7 @@ class Tare:
 def nominal_tare(chain: SensorChain, p0_Pa: float = P0_STANDARD_PA) -> Tare:
     """A tare from the datasheets' zero outputs (untared; offsets up to the error band)."""
     off = np.array([(1 << chain.bits) * t.k2 - 0.5 for t in chain.transducers])
-    return Tare(off, float(p0_Pa))
+    return Tare(off, float(p0_Pa), noise_Pa=np.full(len(off), math.nan))
 
 
 class NotAtRestError(UserError):
@@ -220,13 +250,13 @@ class NotAtRestError(UserError):
 
 
 def tare_from_window(raw, osr, t_s, chain: SensorChain, p0_Pa: float = P0_STANDARD_PA,
-                     max_std_Pa=(25.0,) * 4 + (500.0,), max_slope_Pa_per_s=(20.0,) * 4 + (2000.0,),
-                     min_samples: int = 5) -> Tare:
+                     max_std_Pa=None, max_slope_Pa_per_s=None, min_samples: int = 5) -> Tare:
     """Zero offsets from a window of frames recorded at rest; refuses a window that is not.
 
-    ``raw`` (n, 5) sums, ``osr`` scalar or (n,), ``t_s`` (n,) host times. At rest means: every frame
-    in range, and per channel the pressure's standard deviation ≤ ``max_std_Pa`` and its
-    least-squares slope ≤ ``max_slope_Pa_per_s`` (a push or a leak moves it; ≈ 5.8 Pa/s is
+    ``raw`` (n, channels) sums, ``osr`` scalar or (n,), ``t_s`` (n,) host times. At rest means:
+    every frame in range, and per channel the pressure's standard deviation ≤ ``max_std_Pa``
+    (default 25 Pa an arm, 500 Pa the urethra) and its least-squares slope ≤
+    ``max_slope_Pa_per_s`` (default 20 and 2000 Pa/s; a push or a leak moves it; ≈ 5.8 Pa/s is
     1 K/min of temperature drift). Raises :class:`NotAtRestError` naming the channel.
 
     >>> rng = np.random.default_rng(1)
@@ -238,20 +268,23 @@ def tare_from_window(raw, osr, t_s, chain: SensorChain, p0_Pa: float = P0_STANDA
     raw = np.asarray(raw)
     t = np.asarray(t_s, float)
     n = raw.shape[0] if raw.ndim == 2 else 0
-    if raw.ndim != 2 or raw.shape[1] != 5 or t.shape != (n,):
-        raise UserError(f"tare window: expected raw (n, 5) and t (n,), got {raw.shape} and {t.shape}")
+    c = chain.n_channels
+    max_std_Pa = (25.0,) * (c - 1) + (500.0,) if max_std_Pa is None else max_std_Pa
+    max_slope_Pa_per_s = (20.0,) * (c - 1) + (2000.0,) if max_slope_Pa_per_s is None else max_slope_Pa_per_s
+    if raw.ndim != 2 or raw.shape[1] != c or t.shape != (n,):
+        raise UserError(f"tare window: expected raw (n, {c}) and t (n,), got {raw.shape} and {t.shape}")
     if n < min_samples:
         raise NotAtRestError(f"tare window: {n} frames, need at least {min_samples}")
     if not np.all(np.isfinite(t)):
         raise UserError("tare window: t (s) not finite")
     osr_a = np.broadcast_to(np.asarray(osr, float), (n,))
     for k in range(n):
-        st = channel_status(raw[k], int(osr_a[k]), chain.transducers, chain.bits)
+        st = channel_status(raw[k], int(osr_a[k]), chain.transducers, chain.bits, names=chain.names)
         if st != "ok":
             raise NotAtRestError(f"tare window: frame {k} is {st}")
     codes = raw / osr_a[:, None]
-    noise = np.empty(5)
-    for i, name in enumerate(CHANNEL_NAMES):
+    noise = np.empty(c)
+    for i, name in enumerate(chain.names):
         p = chain.transducers[i].pressure(codes[:, i] / (1 << chain.bits))
         noise[i] = float(np.std(p))
         if noise[i] > max_std_Pa[i]:
@@ -276,18 +309,19 @@ def to_measurement(t: float, seq: int, t_board: float, raw, osr: int,
     (1000, -137.7, 'ok')
     """
     raw = np.asarray(raw, dtype=np.int64)
-    if raw.shape != (5,):
-        raise UserError(f"raw: expected 5 channel sums, got shape {raw.shape}")
+    c = chain.n_channels
+    if raw.shape != (c,):
+        raise UserError(f"raw: expected {c} channel sums, got shape {raw.shape}")
     if int(osr) < 1:
         raise UserError(f"osr: must be ≥ 1, got {osr}")
-    status = channel_status(raw, int(osr), chain.transducers, chain.bits)
+    status = channel_status(raw, int(osr), chain.transducers, chain.bits, names=chain.names)
     codes = raw / float(osr)
     full = float(1 << chain.bits)
     p = np.array([(codes[i] - tare.offset_codes[i]) / (full * tr.k1_per_kPa) * 1000.0
                   for i, tr in enumerate(chain.transducers)])
-    dp = p[:4]
+    dp = p[:-1]
     if status.startswith("invalid"):
-        dV = np.full(4, math.nan)
+        dV = np.full(c - 1, math.nan)
     else:
         dV = boyle_dV(dp, chain.v_total_m3, tare.p0_Pa)
-    return Measurement(float(t), int(seq), float(t_board), raw, int(osr), dp, dV, float(p[4]), status)
+    return Measurement(float(t), int(seq), float(t_board), raw, int(osr), dp, dV, float(p[-1]), status)

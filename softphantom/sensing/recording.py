@@ -36,9 +36,9 @@ import numpy as np
 
 from softphantom.errors import FileFormatError
 from softphantom.records.measurement import Measurement, SourceEvent, event_row, measurement_row
-from softphantom.records.names import EVENT_PREFIX, MEASUREMENT_COLUMNS
+from softphantom.records.names import ARM_NAMES, EVENT_PREFIX, MEASUREMENT_COLUMNS, arm_names_of, measurement_columns
 from softphantom.records.session import SessionWriter, TruncatedRecordingWarning, read_session_file
-from softphantom.sensing.chain import SensorChain, Tare, to_measurement
+from softphantom.sensing.chain import MPX4250D, MPXV7002, SensorChain, Tare, to_measurement
 
 __all__ = ["COLUMNS", "EVENT_PREFIX", "KIND", "Recorder", "Recording", "TruncatedRecordingWarning",
            "chain_from_meta", "read_recording", "retare"]
@@ -49,15 +49,17 @@ FSYNC_EVERY_S = 0.1
 
 
 class Recorder:
-    """Append Measurements to a new file; ``metadata`` (JSON-able dict) goes on the first line.
+    """Append Measurements to a new file; ``metadata`` (JSON-able dict) goes on the first line;
+    ``arm_names`` the board's arms (its columns; default the BIP's four).
 
     Refuses to overwrite an existing file. Call :meth:`tick` when idle so a quiet period still
     gets its fsync; :meth:`close` (or the context manager) ends the file.
     """
 
     def __init__(self, path, metadata: dict, fsync_every_s: float = FSYNC_EVERY_S,
-                 clock: Callable[[], float] = time.monotonic):
-        self._w = SessionWriter(path, COLUMNS, {"kind": KIND, **metadata}, exclusive=True,
+                 clock: Callable[[], float] = time.monotonic, arm_names: tuple[str, ...] = ARM_NAMES):
+        self.arm_names = tuple(arm_names)
+        self._w = SessionWriter(path, measurement_columns(self.arm_names), {"kind": KIND, **metadata}, exclusive=True,
                                 fsync_every_s=fsync_every_s, clock=clock)
         self.path = self._w.path
         self.rows = 0
@@ -65,7 +67,7 @@ class Recorder:
         self._last_t: float | None = None    # t_s of the last row written
 
     def write(self, m: Measurement) -> None:
-        self._w.write_row(measurement_row(m))
+        self._w.write_row(measurement_row(m, self.arm_names))
         self.rows += 1
         self._last_t = float(m.t)
 
@@ -78,7 +80,7 @@ class Recorder:
             t = max(self._last_t, min(t, self._last_t if next_t is None else float(next_t)))
         elif next_t is not None:
             t = min(t, float(next_t))
-        self._w.write_row(event_row(replace(ev, t=t)), sync=True)
+        self._w.write_row(event_row(replace(ev, t=t), len(self.arm_names)), sync=True)
         self.events += 1
         self._last_t = t
 
@@ -98,9 +100,10 @@ class Recorder:
 
 @dataclass(frozen=True, eq=False)
 class Recording:
-    """A recording read back (SI units): ``raw`` (n, 5), ``dp`` (n, 4) Pa, ``dV`` (n, 4) m³, ...;
-    ``truncated`` when the last row was incomplete and dropped, ``events`` the link events
-    (:class:`~softphantom.records.SourceEvent`) of the marker rows."""
+    """A recording read back (SI units): ``raw`` (n, arms + 1), ``dp`` (n, arms) Pa, ``dV``
+    (n, arms) m³, ...; ``truncated`` when the last row was incomplete and dropped, ``events`` the
+    link events (:class:`~softphantom.records.SourceEvent`) of the marker rows, ``arm_names``
+    the arms its columns name (the BIP's four unless the board had others)."""
 
     meta: dict
     t: np.ndarray
@@ -114,6 +117,7 @@ class Recording:
     status: tuple[str, ...]
     truncated: bool = False
     events: tuple = ()
+    arm_names: tuple[str, ...] = ARM_NAMES
 
     def __len__(self) -> int:
         return len(self.t)
@@ -128,7 +132,9 @@ class Recording:
 def chain_from_meta(meta: dict) -> SensorChain:
     """The SensorChain a recording was made with (from its ``chain`` metadata)."""
     try:
-        return SensorChain(np.asarray(meta["chain"]["v_total_mm3"], float) * 1e-9)
+        v = np.asarray(meta["chain"]["v_total_mm3"], float) * 1e-9
+        names = tuple(meta["chain"].get("names") or (*ARM_NAMES, "urethra"))
+        return SensorChain(v, (MPXV7002,) * len(v) + (MPX4250D,), names=names)
     except (KeyError, TypeError, ValueError) as exc:
         raise FileFormatError(f"metadata: no usable chain.v_total_mm3 ({exc})") from None
 
@@ -153,10 +159,14 @@ def read_recording(path) -> Recording:
     f = read_session_file(path, require_meta=True)
     if f.meta.get("kind") != KIND:
         raise FileFormatError(f"{path}: line 1: not a sensing recording (kind {f.meta.get('kind')!r})")
-    missing = [c for c in COLUMNS if c not in f.header]
+    arms = arm_names_of(f.header) or ARM_NAMES
+    columns = measurement_columns(arms)
+    missing = [c for c in columns if c not in f.header]
     if missing:
         raise FileFormatError(f"{path}: line {f.header_line}: missing columns {', '.join(missing)}")
-    idx = [f.header.index(c) for c in COLUMNS]
+    idx = [f.header.index(c) for c in columns]
+    a = len(arms)
+    i_p, i_st = 4 + 3 * a + 1, 4 + 3 * a + 2  # p_urethra_kPa, status
     num = lambda x: float(x) if x else math.nan  # noqa: E731
     rows = []
     events = []
@@ -167,23 +177,24 @@ def read_recording(path) -> Recording:
             t = float(c[0])
             if not math.isfinite(t):
                 raise ValueError(f"t_s is {c[0]}")
-            ev = SourceEvent.from_status(t, c[18])
+            ev = SourceEvent.from_status(t, c[i_st])
             if ev is not None:          # a marker's time says when it was noticed: not checked
                 events.append(ev)
                 continue
             if t < t_prev:
                 raise ValueError(f"t_s runs backwards ({t:.6f} after {t_prev:.6f})")
             t_prev = t
-            rows.append((t, int(c[1]), num(c[2]), int(c[3]), [int(x) for x in c[4:9]],
-                         [num(x) for x in c[9:13]], [num(x) for x in c[13:17]], num(c[17]), c[18]))
+            rows.append((t, int(c[1]), num(c[2]), int(c[3]), [int(x) for x in c[4:5 + a]],
+                         [num(x) for x in c[5 + a:5 + 2 * a]], [num(x) for x in c[5 + 2 * a:5 + 3 * a]],
+                         num(c[i_p]), c[i_st]))
         except ValueError as exc:
             raise FileFormatError(f"{path}: line {ln}: {exc}") from None
     n = len(rows)
     col = lambda k, dt=float: np.array([r[k] for r in rows], dtype=dt)  # noqa: E731
     return Recording(
         meta=f.meta, t=col(0), seq=col(1, np.int64), t_board=col(2), osr=col(3, np.int64),
-        raw=np.array([r[4] for r in rows], dtype=np.int64).reshape(n, 5),
-        dp=np.array([r[5] for r in rows], float).reshape(n, 4) * 1e3,
-        dV=np.array([r[6] for r in rows], float).reshape(n, 4) * 1e-9,
+        raw=np.array([r[4] for r in rows], dtype=np.int64).reshape(n, a + 1),
+        dp=np.array([r[5] for r in rows], float).reshape(n, a) * 1e3,
+        dV=np.array([r[6] for r in rows], float).reshape(n, a) * 1e-9,
         p_urethra=col(7) * 1e3, status=tuple(r[8] for r in rows), truncated=f.truncated,
-        events=tuple(events))
+        events=tuple(events), arm_names=tuple(arms))

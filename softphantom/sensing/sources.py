@@ -110,7 +110,7 @@ class FrameSource(SensorSource):
         self.tare = tare or nominal_tare(chain)
         self._clock = clock
         self._silence_s = silence_s
-        self._dec = StreamDecoder()
+        self._dec = StreamDecoder(chain.n_channels)  # the board's channels: the chain's arms, then the urethra
         self._state = "connecting"
         self._silent_events = 0
         self._reconnects = 0

@@ -50,25 +50,36 @@ class BoardConfig:
     offset_band_fraction: float = 1.0
     drift_K_per_min: float = 0.05
     tube_lag: bool = True
-    #: per-channel sensitivity of the transducers relative to their datasheet (4 arms, urethra):
-    #: a gain of 1.05 reads 5 % high (for calibration studies)
-    gains: tuple[float, float, float, float, float] = (1.0, 1.0, 1.0, 1.0, 1.0)
+    #: per-channel sensitivity of the transducers relative to their datasheet (the arms, then the
+    #: urethra; all 1: the datasheet's for any count): a gain of 1.05 reads 5 % high (for
+    #: calibration studies)
+    gains: tuple[float, ...] = (1.0, 1.0, 1.0, 1.0, 1.0)
 
     def __post_init__(self) -> None:
         if not 1 <= int(self.osr) <= 500:
             raise UserError(f"osr: must be 1..500 (the firmware's range), got {self.osr}")
         if not self.noise_codes >= 0:
             raise UserError(f"noise_codes: must be >= 0, got {self.noise_codes}")
-        if len(self.gains) != 5 or not all(math.isfinite(g) and g > 0 for g in self.gains):
-            raise UserError(f"gains: need 5 positive values (4 arms, urethra), got {self.gains}")
+        if not all(math.isfinite(g) and g > 0 for g in self.gains):
+            raise UserError(f"gains: need positive values (the arms, then the urethra), got {self.gains}")
+
+    def gains_for(self, n_channels: int) -> np.ndarray:
+        """The gains of a board of ``n_channels`` (the datasheet's when all are 1)."""
+        g = np.asarray(self.gains, float)
+        if len(g) == n_channels:
+            return g
+        if np.all(g == 1.0):
+            return np.ones(n_channels)
+        raise UserError(f"gains: {len(g)} given for a board of {n_channels} channels (the arms, then the urethra)")
 
 
 @dataclass(frozen=True, eq=False)
 class BoardSignals:
-    """What the transducers see on the 1 kHz grid ``t`` (s): ``p_cavity`` (n, 4) Pa the Boyle
-    pressure at the cavity, ``p_transducer`` (n, 5) Pa gauge at each transducer (lagged, with
-    offset and drift; column 4 the urethra), ``offsets_Pa`` (5,), ``drift_Pa_per_s``,
-    ``tau_s`` (4,) tube time constants, ``chain`` the chain the physics used."""
+    """What the transducers see on the 1 kHz grid ``t`` (s): ``p_cavity`` (n, arms) Pa the Boyle
+    pressure at the cavity, ``p_transducer`` (n, arms + 1) Pa gauge at each transducer (lagged,
+    with offset and drift; the last column the urethra), ``offsets_Pa`` (arms + 1,),
+    ``drift_Pa_per_s``, ``tau_s`` (arms,) tube time constants, ``chain`` the chain the physics
+    used (its ``names``: the channels)."""
 
     t: np.ndarray
     p_cavity: np.ndarray
@@ -79,27 +90,29 @@ class BoardSignals:
     chain: SensorChain
 
 
-def board_signals(truth, cavity_volumes_m3, config: BoardConfig = BoardConfig()) -> BoardSignals:
+def board_signals(truth, cavity_volumes_m3, config: BoardConfig = BoardConfig(),
+                  arm_names: tuple[str, ...] = ARM_NAMES) -> BoardSignals:
     """Pressures at the transducers over the scenario on a 1 kHz grid (see the module docstring).
-    ``truth`` is a :class:`~softphantom.virtual.truth.Truth`; ``cavity_volumes_m3`` (4,) the arm
-    cavities the physics uses (the truth mesh's)."""
+    ``truth`` is a :class:`~softphantom.virtual.truth.Truth`; ``cavity_volumes_m3`` (arms,) the
+    arm cavities the physics uses (the truth mesh's), named ``arm_names`` in the sensor order."""
     rng = np.random.default_rng([config.seed, 1])
-    chain = default_chain(cavity_volumes_m3, config.tube_length_m, config.tube_id_m)
+    na = len(arm_names)
+    chain = default_chain(cavity_volumes_m3, config.tube_length_m, config.tube_id_m, arm_names=tuple(arm_names))
     dur = truth.scenario.duration_s
     t = np.arange(0.0, dur + 0.5 + LAG_GRID_S / 2, LAG_GRID_S)
     ts = truth.sample(t)
-    p_cav = boyle_dp(ts.dV[:, :4], chain.v_total_m3, config.p0_Pa)
+    p_cav = boyle_dp(ts.dV[:, :na], chain.v_total_m3, config.p0_Pa)
     tau = np.array([tube_time_constant_s(config.tube_length_m, config.tube_id_m, v, config.p0_Pa)
                     for v in cavity_volumes_m3])
     if config.tube_lag:
-        p_arm = np.column_stack([first_order_lag(p_cav[:, i], LAG_GRID_S, tau[i], y0=0.0) for i in range(4)])
+        p_arm = np.column_stack([first_order_lag(p_cav[:, i], LAG_GRID_S, tau[i], y0=0.0) for i in range(na)])
     else:
         p_arm = p_cav
-    bands = np.array([MPXV7002.error_band_Pa] * 4 + [MPX4250D.error_band_Pa]) * config.offset_band_fraction
-    offsets = rng.uniform(-1.0, 1.0, 5) * bands
+    bands = np.array([MPXV7002.error_band_Pa] * na + [MPX4250D.error_band_Pa]) * config.offset_band_fraction
+    offsets = rng.uniform(-1.0, 1.0, na + 1) * bands
     drift = rng.uniform(-1.0, 1.0) * config.drift_K_per_min / 60.0 * thermal_dp_per_K(config.p0_Pa)
-    p = np.column_stack([p_arm, ts.p_urethra]) * np.asarray(config.gains, float) + offsets
-    p[:, :4] += drift * t[:, None]
+    p = np.column_stack([p_arm, ts.p_urethra]) * config.gains_for(na + 1) + offsets
+    p[:, :na] += drift * t[:, None]
     return BoardSignals(t, p_cav, p, offsets, float(drift), tau, chain)
 
 
@@ -114,16 +127,22 @@ class VirtualBoard:
         self.osr = int(config.osr)
         self._rng = np.random.default_rng([config.seed, 2])
         self.seq = 0
-        self._next_t = 0.5 / frame_rate_Hz(self.osr)  # centre of the first window
+        self._next_t = 0.5 / self.rate_Hz  # centre of the first window
         self.duration_s = float(signals.t[-1]) - 0.5
 
     @property
+    def n_channels(self) -> int:
+        """The board's channels: the arms, then the urethra."""
+        return self.signals.chain.n_channels
+
+    @property
     def rate_Hz(self) -> float:
-        return frame_rate_Hz(self.osr)
+        return frame_rate_Hz(self.osr, n_channels=self.n_channels)
 
     def info(self) -> bytes:
-        """An INFO frame (firmware version, 5 channels, current OSR)."""
-        return encode_info(self.seq & 0xFFFF, int(round(self._next_t * 1e6)) & 0xFFFFFFFF, FIRMWARE, 5, self.osr)
+        """An INFO frame (firmware version, channel count, current OSR)."""
+        return encode_info(self.seq & 0xFFFF, int(round(self._next_t * 1e6)) & 0xFFFFFFFF, FIRMWARE,
+                           self.n_channels, self.osr)
 
     def set_osr(self, osr: int) -> None:
         if not 1 <= int(osr) <= 500:
@@ -131,10 +150,10 @@ class VirtualBoard:
         self.osr = int(osr)
 
     def raw_at(self, t: np.ndarray) -> np.ndarray:
-        """(n, 5) oversampled sums for window centres ``t`` (advances the noise generator)."""
+        """(n, channels) oversampled sums for window centres ``t`` (advances the noise generator)."""
         s = self.signals
         tt = np.clip(t, s.t[0], s.t[-1])
-        p = np.column_stack([np.interp(tt, s.t, s.p_transducer[:, i]) for i in range(5)])
+        p = np.column_stack([np.interp(tt, s.t, s.p_transducer[:, i]) for i in range(self.n_channels)])
         return simulate_raw(p, self.osr, self._rng, s.chain.transducers, self.config.noise_codes)
 
     def frames(self, t_to: float) -> tuple[bytes, np.ndarray]:
@@ -154,5 +173,5 @@ class VirtualBoard:
 
 
 def arm_volumes(model) -> np.ndarray:
-    """(4,) m³, the arm cavity volumes of a PhantomModel in the sensor order."""
-    return np.array([model.cavity_volume(a) for a in ARM_NAMES])
+    """(arms,) m³, the arm cavity volumes of a PhantomModel in the sensor order."""
+    return np.array([model.cavity_volume(a) for a in model.design.arm_names])

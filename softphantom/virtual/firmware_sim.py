@@ -198,7 +198,7 @@ class FirmwareBoard:
 
     @property
     def rate_Hz(self) -> float:
-        return frame_rate_Hz(self.osr)
+        return frame_rate_Hz(self.osr, n_channels=self._sim.n_channels)
 
     def _feed(self, t_to: float) -> None:
         t = self.signals.t

@@ -18,7 +18,6 @@ import numpy as np
 
 from softphantom.design import PhantomModel
 from softphantom.errors import UserError
-from softphantom.sensing import ARM_NAMES
 from softphantom.sensing.bench import BenchConfig, tare_from_measurements
 from softphantom.sensing.board import frame_rate_Hz
 from softphantom.sensing.chain import SensorChain, Tare, nominal_tare
@@ -81,7 +80,7 @@ class VirtualRun:
     @property
     def rate_Hz(self) -> float:
         """The board's nominal frame rate at the configured OSR."""
-        return frame_rate_Hz(self.config.board.osr)
+        return frame_rate_Hz(self.config.board.osr, n_channels=self.chain.n_channels)
 
     @cached_property
     def _frame_bytes(self) -> bytes:
@@ -107,9 +106,9 @@ class VirtualRun:
         board time = scenario time), tared on the rest window (or the datasheet zero)."""
         data = self.frame_bytes()
         rate = self.rate_Hz
-        from softphantom.sensing.protocol import DATA_FRAME_BYTES
+        from softphantom.sensing.protocol import data_frame_bytes
 
-        step = max(1, int(round(CHUNK_S * rate))) * DATA_FRAME_BYTES
+        step = max(1, int(round(CHUNK_S * rate))) * data_frame_bytes(self.chain.n_channels)
         chunks = [data[i:i + step] for i in range(0, len(data), step)]
         t = self.tare() if tare else nominal_tare(self.chain, self.config.board.p0_Pa)
         return FrameSource(chunks, self.chain, t)
@@ -128,9 +127,8 @@ class VirtualRun:
         for j, name in enumerate(self.truth.target_names):
             for k, a in enumerate("xyz"):
                 cols[f"{name}_d{a}_mm"] = s.targets[:, j, k] * 1e3
-        for i, c in enumerate(ARM_NAMES):
+        for i, c in enumerate(self.truth.model.design.cavity_names):  # the arms, then the urethra
             cols[f"dV_{c}_mm3"] = s.dV[:, i] * 1e9
-        cols["dV_urethra_mm3"] = s.dV[:, 4] * 1e9
         return cols
 
 
@@ -151,7 +149,7 @@ def simulate(scenario: Scenario | str | Path, model: PhantomModel, config: Virtu
     sc = scenario if isinstance(scenario, Scenario) else load_scenario(scenario)
     chain = host_chain(model, config.board)  # before the solve: a design the board cannot read is refused now
     tr = truth or solve_truth(sc, model, config.truth, truth_mesh=truth_mesh)
-    sig = board_signals(tr, arm_volumes(tr.model), config.board)
+    sig = board_signals(tr, arm_volumes(tr.model), config.board, tr.model.design.arm_names)
     trk = simulate_tracker(tr, config.tracker)
     return VirtualRun(sc, model, tr, sig, trk, chain, config)
 
@@ -198,7 +196,7 @@ def write_run(run: VirtualRun, out: Path) -> dict[str, Path]:
             "osr": b.osr, "p0_Pa": b.p0_Pa, "port": f"virtual:{run.scenario.name}",
             "tare": src.tare.to_dict(), "chain": run.chain.summary(), "virtual": True,
             "bench": host_bench(run.model, b).to_meta()}
-    with Recorder(paths["recording"], meta) as rec:
+    with Recorder(paths["recording"], meta, arm_names=run.chain.arm_names) as rec:
         for m in src:
             rec.write(m)
     write_motive_csv(run.tracker, paths["tracker"], run.truth.marker_names, take_name=run.scenario.name)

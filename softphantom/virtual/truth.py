@@ -97,7 +97,7 @@ class TruthConfig:
 
 @dataclass(frozen=True, eq=False)
 class EventTruth:
-    """Keyframes of one event: ``s`` (K,) levels from 0 to 1; ``dV`` (K, 5) m³ cavity volume
+    """Keyframes of one event: ``s`` (K,) levels from 0 to 1; ``dV`` (K, cavities) m³ cavity volume
     changes (4 arms, urethra); ``markers`` (K, k, 3) m positions; ``targets`` (K, t, 3) m
     displacements; ``bulb_dV`` (K,) m³ change of the volume the outer surface encloses; peak load
     ``force`` (3,) N and ``p_urethra`` Pa; ``x_peak`` (N, 3) truth-mesh nodes at s = 1;
@@ -123,7 +123,7 @@ class EventTruth:
 @dataclass(frozen=True, eq=False)
 class TruthSamples:
     """The truth at times ``t`` (n,) s (scenario clock): ``force`` (n, 3) N, ``p_urethra`` (n,)
-    Pa, ``dV`` (n, 5) m³, ``markers`` (n, k, 3) m, ``targets`` (n, t, 3) m displacement,
+    Pa, ``dV`` (n, cavities) m³ (the arms, then the urethra), ``markers`` (n, k, 3) m, ``targets`` (n, t, 3) m displacement,
     ``pose`` of the marker rigid body relative to rest."""
 
     t: np.ndarray
@@ -138,7 +138,7 @@ class TruthSamples:
 @dataclass(frozen=True, eq=False)
 class Truth:
     """The solved truth of a scenario on ``model`` (the truth mesh): ``rest_markers`` (k, 3) m,
-    ``marker_names``, ``target_names``, ``rest_volumes`` (5,) m³, ``events`` keyframes,
+    ``marker_names``, ``target_names``, ``rest_volumes`` (cavities,) m³, ``events`` keyframes,
     ``solve_s`` wall time, ``config``."""
 
     scenario: Scenario
@@ -157,7 +157,7 @@ class Truth:
         n, k, nt = len(t), len(self.marker_names), len(self.target_names)
         force = np.zeros((n, 3))
         p_u = np.zeros(n)
-        dV = np.zeros((n, 5))
+        dV = np.zeros((n, len(self.model.design.cavity_names)))  # the arms, then the urethra
         markers = np.broadcast_to(self.rest_markers, (n, k, 3)).copy()
         targets = np.zeros((n, nt, 3))
         for et in self.events:

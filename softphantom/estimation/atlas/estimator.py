@@ -109,7 +109,7 @@ class AtlasEstimator(EstimatorState):
     def reset(self) -> None:
         """Back to rest."""
         self._lam = np.zeros(4)
-        self._last = rest_estimate(self.target_names, self.atlas.volumes(self._lam)[1])
+        self._last = rest_estimate(self.target_names, self.atlas.volumes(self._lam)[1], self.arm_names)
 
     def node_positions(self) -> np.ndarray:
         """(N,3) m node positions of the last estimate (the atlas's field; evaluated when asked,
@@ -272,7 +272,7 @@ class AtlasEstimator(EstimatorState):
             t=float(m.t), force=force, p_urethra=float(m.p_urethra), pose=pose, target_shift=shifts,
             volume_pred=V, volume_meas=dV, cond_W=cond, qp_status=status,
             step_time=time.perf_counter() - t0, skipped=int(skipped), in_envelope=inside,
-            extra={"qp_residual_m3": math.dist(V, dV), "gn_iterations": it},
+            extra={"qp_residual_m3": math.dist(V, dV), "gn_iterations": it}, arm_names=self.arm_names,
         )
         self._lam = lam
         self._last = est

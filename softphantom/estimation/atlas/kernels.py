@@ -385,7 +385,7 @@ def force_chain(CFx, shape, lo, hi, wd, lam, J, f):
 
 @njit(cache=True, nogil=True)
 def cond_force(J):
-    """Condition number of the force columns of a (4, 4) sensitivity (inf if rank-deficient), as
+    """Condition number of the force columns of an (n_arms, 4) sensitivity (inf if rank-deficient), as
     ``sensitivity_cond``."""
     s = np.linalg.svd(np.ascontiguousarray(J[:, :3]))[1]
     return s[0] / s[2] if s[2] > 0 else np.inf
