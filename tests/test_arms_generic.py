@@ -53,16 +53,23 @@ def test_a_bad_arm_layout_is_one_line_naming_the_field(spec, field):
     assert str(e.value).startswith(field) and "\n" not in str(e.value), str(e.value)
 
 
+@pytest.fixture(scope="module")
+def models():
+    """The three- and five-arm designs meshed at 12 mm (linear), once for the module."""
+    return {len(s["arm_names"]): build_model(design_from_dict(s), 12.0, isolate=False) for s in (THREE, FIVE)}
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("spec", [THREE, FIVE], ids=["3 arms", "5 arms"])
-def test_n_arms_mesh_solve_and_the_estimators_recover_the_load(spec):
+def test_n_arms_mesh_solve_and_the_estimators_recover_the_load(spec, models):
     from softphantom.estimation import AtlasConfig, Estimator, EstimatorConfig
     from softphantom.estimation.atlas.build import build_atlas
     from softphantom.estimation.atlas.estimator import AtlasEstimator
     from softphantom.estimation.observability import observability
 
     d = design_from_dict(spec)
-    m = build_model(d, 12.0, isolate=False)
+    m = models[len(d.arms)]
+    assert m.design.arm_names == d.arm_names
     n = len(d.arms)
     assert list(m.cavities) == [*d.arm_names, "urethra"] and len(m.regions) == n + 1
     assert all(m.cavity_volume(a) > 0 for a in d.arm_names)
@@ -105,7 +112,7 @@ force_N = [0.3, 2.0, -0.2]
 
 
 @pytest.mark.slow
-def test_a_five_arm_phantom_runs_through_board_recording_estimate_and_evaluation(tmp_path, capsys):
+def test_a_five_arm_phantom_runs_through_board_recording_estimate_and_evaluation(tmp_path, capsys, models):
     # the virtual phantom's board reads 6 channels, the recording, the estimate file and the
     # evaluation carry the design's arm names, and the estimate follows the truth
     import json
@@ -114,8 +121,7 @@ def test_a_five_arm_phantom_runs_through_board_recording_estimate_and_evaluation
     from softphantom.design import save_model
     from softphantom.evaluation.files import read_table
 
-    m = build_model(design_from_dict(FIVE), 12.0, isolate=False)
-    save_model(m, tmp_path / "five")
+    save_model(models[5], tmp_path / "five")
     sc = tmp_path / "short.toml"
     sc.write_text(SHORT)
     run = tmp_path / "run"
