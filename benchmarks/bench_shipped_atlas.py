@@ -1,6 +1,6 @@
 """The shipped atlas of the default (quadratic) model against converged full solves.
 
-    .venv/bin/python benchmarks/bench_shipped_atlas.py --loads 300        # the goal's count: ~1.5 h on 2 cores
+    .venv/bin/python benchmarks/bench_shipped_atlas.py --loads 300        # the goal's count: ~2 h on 2 cores (100: 41 min)
     .venv/bin/python benchmarks/bench_shipped_atlas.py --loads 20         # a quick look
 
 ``--loads`` seeded held-out loads over the atlas's whole envelope, a quarter of them within 5 % of a
