@@ -104,11 +104,12 @@ def fitted_ratios(values: dict[str, float]) -> dict[str, tuple[type, tuple[float
 
 
 def parameter_set(groups=GROUPS, measured: tuple[tuple[str, float, float | None], ...] = (),
-                  shapes: dict | None = None) -> tuple[Parameter, ...]:
+                  shapes: dict | None = None, arm_names: tuple[str, ...] = ARM_NAMES) -> tuple[Parameter, ...]:
     """Every global parameter the calibration knows, in order; those named in ``measured``
     ((name, value, sd) in displayed units, see :class:`FitOptions`) centred on their measurement;
     ``shapes`` (group -> its law, :func:`~softphantom.calibration.forward.group_shapes`) adds those
-    groups' ratios (:func:`ratio_name`) at the design's values with the law's prior spreads.
+    groups' ratios (:func:`ratio_name`) at the design's values with the law's prior spreads; a
+    gain and an offset per arm of ``arm_names`` (the model's, in the sensor order).
 
     >>> p = {q.name: q for q in parameter_set(measured=(("gain_back_xpos", 1.05, 0.01),
     ...                                                  ("stiffness_bulb_factor", 1.3, 0.13)))}
@@ -117,7 +118,7 @@ def parameter_set(groups=GROUPS, measured: tuple[tuple[str, float, float | None]
     >>> round(p["stiffness_bulb_factor"].show(p["stiffness_bulb_factor"].nominal), 12), p["stiffness_bulb_factor"].prior_sd
     (1.3, 0.1)
     """
-    ps = _parameters(groups)
+    ps = _parameters(groups, arm_names)
     ps[len(groups):len(groups)] = [
         Parameter(ratio_name(law.name, r.name, g), float(v), r.prior_sd, ratio=(g, law.name, k))
         for g, law in (shapes or {}).items() for k, (r, v) in enumerate(zip(law.ratios, law.ratio_values()))]
@@ -134,11 +135,11 @@ def parameter_set(groups=GROUPS, measured: tuple[tuple[str, float, float | None]
     return tuple(ps)
 
 
-def _parameters(groups) -> list[Parameter]:
+def _parameters(groups, arm_names: tuple[str, ...] = ARM_NAMES) -> list[Parameter]:
     ps = [Parameter(f"stiffness_{g}_factor", 0.0, math.log(2.0), log=True) for g in groups]
     # MPXV7002 full-scale span 3.5–4.5 V around 4.0 V (±12.5 %): taken as ±2σ
-    ps += [Parameter(f"gain_{a}", 1.0, 0.0625) for a in ARM_NAMES]
-    ps += [Parameter(f"offset_{a}_Pa", 0.0, 300.0) for a in ARM_NAMES]
+    ps += [Parameter(f"gain_{a}", 1.0, 0.0625) for a in arm_names]
+    ps += [Parameter(f"offset_{a}_Pa", 0.0, 300.0) for a in arm_names]
     ps += [Parameter("tube_volume_factor", 1.0, 0.3)]
     ps += [Parameter(f"registration_rot_{a}_deg", 0.0, math.radians(5.0), scale=180 / math.pi) for a in "xyz"]
     ps += [Parameter(f"pivot_{a}_mm", 0.0, 0.02, scale=1e3) for a in "xyz"]
@@ -184,9 +185,9 @@ class FitOptions:
 
 @dataclass(frozen=True, eq=False)
 class Keyframes:
-    """All keyframes: ``session`` index, ``t`` s (recording clock), ``dp`` (K, 4) Pa,
+    """All keyframes: ``session`` index, ``t`` s (recording clock), ``dp`` (K, arms) Pa,
     ``p_urethra`` (K,) Pa, ``contact`` (K, 3) m, ``known`` (K, 3) N (NaN where unknown),
-    ``dp_rate`` (K, 4) Pa/s the readings' rate (None: 0), what a tube time constant other than the
+    ``dp_rate`` (K, arms) Pa/s the readings' rate (None: 0), what a tube time constant other than the
     recording's changes ``dp`` by (:meth:`Problem.measured_dp`)."""
 
     session: np.ndarray
@@ -204,9 +205,10 @@ class Keyframes:
             tt = np.asarray(tt, float)
             s.append(np.full(tt.size, i))
             t.append(tt)
-            dp.append(np.stack([np.interp(tt, se.t, se.dp[:, k]) for k in range(4)], axis=1))
-            rate.append(np.zeros((tt.size, 4)) if se.dp_rate is None else
-                        np.stack([np.interp(tt, se.t, se.dp_rate[:, k]) for k in range(4)], axis=1))
+            na = se.dp.shape[1]  # the arms
+            dp.append(np.stack([np.interp(tt, se.t, se.dp[:, k]) for k in range(na)], axis=1))
+            rate.append(np.zeros((tt.size, na)) if se.dp_rate is None else
+                        np.stack([np.interp(tt, se.t, se.dp_rate[:, k]) for k in range(na)], axis=1))
             pu.append(np.interp(tt, se.t, se.p_urethra))
             c.append(np.broadcast_to(se.contact, (tt.size, 3)))
             k = se.known_at(tt)
@@ -255,9 +257,11 @@ class Problem:
     pose_rows: np.ndarray | None = None  # keyframes whose take sample exists (fixed at the start)
     use_pose: bool = True  # False: forces from the pressures alone (held-out prediction)
     use_known: bool = True
+    arm_names: tuple[str, ...] = ARM_NAMES  # the model's, in the sensor order (set from the params' gains)
 
     def __post_init__(self) -> None:
         names = [p.name for p in self.params]
+        self.arm_names = tuple(n[len("gain_"):] for n in names if n.startswith("gain_"))  # as the parameters name them
         bad = [f for f in self.options.fix if f not in names and not f.startswith(("lag", "drift"))]
         if bad:
             raise UserError(f"--fix: unknown parameter(s) {', '.join(bad)}; have {', '.join(names)}")
@@ -305,8 +309,8 @@ class Problem:
         return dict(
             scales={gr: math.exp(P[f"stiffness_{gr}_factor"]) for gr in GROUPS},
             shape=self.shape(g),
-            gain=np.array([P[f"gain_{a}"] for a in ARM_NAMES]),
-            offset=np.array([P[f"offset_{a}_Pa"] for a in ARM_NAMES]),
+            gain=np.array([P[f"gain_{a}"] for a in self.arm_names]),
+            offset=np.array([P[f"offset_{a}_Pa"] for a in self.arm_names]),
             tube=P["tube_volume_factor"],
             rho=np.array([P[f"registration_rot_{a}_deg"] for a in "xyz"]),
             pivot=np.array([P[f"pivot_{a}_mm"] for a in "xyz"]),
@@ -357,7 +361,7 @@ class Problem:
         return float(self.frames.t[k] - self.sessions[int(self.frames.session[k])].t[0])
 
     def measured_dp(self, tube: float) -> tuple[np.ndarray, np.ndarray]:
-        """The keyframes' cavity pressures (K, 4) Pa as the recordings give them once the tube lag
+        """The keyframes' cavity pressures (K, arms) Pa as the recordings give them once the tube lag
         is undone with the time constant of a tube whose volume is ``tube`` × the recording's
         (:meth:`Session.tau_s`: the factor taken as the length), and their derivative wrt ``tube``.
         The sessions were de-lagged with the recording's tube: ``dp + (τ(tube) − τ(1))·rate``.
@@ -377,7 +381,7 @@ class Problem:
         return fr.dp + d_tau * fr.dp_rate, dd_tau * fr.dp_rate
 
     def pressures(self, u: dict, dV: np.ndarray, session: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Predicted dp (K, 4) Pa and its derivatives wrt ΔV (K, 4) and the tube factor (K, 4)."""
+        """Predicted dp (K, arms) Pa and its derivatives wrt ΔV (K, arms) and the tube factor (K, arms)."""
         out, d_dV, d_tube = [], [], []
         for k in range(dV.shape[0]):
             se = self.sessions[int(session[k])]
@@ -409,9 +413,10 @@ class Problem:
         ratio_col = {gr: idx for gr, (_, idx) in self._ratio_index().items()}
         # pressures
         for k in range(K):
-            sdp = self.sessions[int(fr.session[k])].dp_noise_Pa if o.sigma_dp_Pa is None else np.full(4, o.sigma_dp_Pa)
+            na = len(self.arm_names)
+            sdp = self.sessions[int(fr.session[k])].dp_noise_Pa if o.sigma_dp_Pa is None else np.full(na, o.sigma_dp_Pa)
             r = (dp[k] - meas_dp[k]) / sdp
-            J = np.zeros((4, nz))
+            J = np.zeros((na, nz))
             s = sols[k]
             J[:, ng + 3 * k: ng + 3 * k + 3] = dp_dV[k][:, None] * s.dV_df / sdp[:, None]
             for j, gr in enumerate(s.groups):
@@ -419,7 +424,7 @@ class Problem:
             for j, (gr, i) in enumerate(s.shape_cols):
                 J[:, ratio_col[gr][i]] = dp_dV[k] * s.dV_dshape[:, j] / sdp
             p_lin = (dp[k] - u["offset"] - u["drift"][int(fr.session[k])] * self.since_start(k)) / u["gain"]
-            for i, a in enumerate(ARM_NAMES):
+            for i, a in enumerate(self.arm_names):
                 J[i, iG[f"gain_{a}"]] = p_lin[i] / sdp[i]
                 J[i, iG[f"offset_{a}_Pa"]] = 1.0 / sdp[i]
             J[:, iG["tube_volume_factor"]] = (dp_dtube[k] - dmeas_dtube[k]) / sdp

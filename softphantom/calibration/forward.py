@@ -13,7 +13,7 @@ theorem gives, with the tangent ``K = ∂r/∂x`` (one factorization):
   the group's elements with every parameter zero but the ratio's column, ``c`` times the column it
   is a ratio of (the energy is linear in each column).
 
-Readouts: arm-cavity volume changes (4) and marker positions (k, 3). One task is a plain function
+Readouts: arm-cavity volume changes (one per arm) and marker positions (k, 3). One task is a plain function
 of picklable arguments (:func:`solve_keyframe`), so Dask ships it to any worker; each worker builds
 the model from its directory once (:func:`_base`, a per-process cache keyed by path and contact).
 """
@@ -123,7 +123,7 @@ def _base(model_dir: str, contact: tuple[float, float, float], radius_m: float, 
     names = list(model.markers)
     P = probe_matrix(fem, np.array([model.markers[k] for k in names]))
     x0 = fem.nodes
-    V0 = np.array([cavity_volume(x0, fem.cavities[a]) for a in ARM_NAMES])
+    V0 = np.array([cavity_volume(x0, fem.cavities[a]) for a in model.design.arm_names])
     id_to_group = {rid: region_group(name) for name, rid in model.regions.items()}
     reg = np.asarray(model.tet_region)
     groups: dict[str, np.ndarray] = {}
@@ -202,11 +202,11 @@ def _tet_scale(base: Base, scales: dict[str, float]) -> np.ndarray:
 
 @dataclass(frozen=True, eq=False)
 class KeyframeSolution:
-    """A keyframe's equilibrium: ``x`` (3N,) m, ``dV`` (4,) m³ arm-cavity volume changes,
-    ``markers`` (k, 3) m; sensitivities ``dV_df`` (4, 3) m³/N, ``dV_dlnc`` (4, G) m³,
+    """A keyframe's equilibrium: ``x`` (3N,) m, ``dV`` (arms,) m³ arm-cavity volume changes,
+    ``markers`` (k, 3) m; sensitivities ``dV_df`` (arms, 3) m³/N, ``dV_dlnc`` (arms, G) m³,
     ``dM_df`` (k, 3, 3) m/N, ``dM_dlnc`` (k, 3, G) m (G = ``groups``); ``iterations`` Newton
     iterations; ``converged``; ``status``; ``shape_cols`` ((group, k), …) the ratios solved for
-    (``k`` indexes the group's law's :attr:`~softphantom.fem.Law.ratios`), ``dV_dshape`` (4, S) m³
+    (``k`` indexes the group's law's :attr:`~softphantom.fem.Law.ratios`), ``dV_dshape`` (arms, S) m³
     and ``dM_dshape`` (k, 3, S) m per unit ratio."""
 
     x: np.ndarray
@@ -271,9 +271,10 @@ def solve_keyframe(model_dir: str, contact: tuple[float, float, float], radius_m
         B[:, 3 + G + j] = -internal_force(dataclasses.replace(fem0, params=_frozen(prm)), x)[free]
     U = np.zeros((n, B.shape[1]))
     U[free] = solver.solve(B)
-    dV = np.empty(4)
-    dV_d = np.empty((4, B.shape[1]))
-    for i, a in enumerate(ARM_NAMES):
+    arms = base.model.design.arm_names
+    dV = np.empty(len(arms))
+    dV_d = np.empty((len(arms), B.shape[1]))
+    for i, a in enumerate(arms):
         tri = fem.cavities[a]
         dV[i] = cavity_volume(x, tri) - base.V0[i]
         dV_d[i] = cavity_volume_gradient(x, tri, fem.n_nodes) @ U

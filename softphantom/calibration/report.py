@@ -173,17 +173,16 @@ def shape_dict(cal: Calibration) -> dict:
 def calibration_dict(cal: Calibration) -> dict:
     """The calibrated sensor and registration parameters (``calibration.json``)."""
     from softphantom import __version__
-    from softphantom.calibration.forward import ARM_NAMES
-
     p = cal.parameters()
+    arms = [n[len("gain_"):] for n in p if n.startswith("gain_")]  # the model's arms, in the sensor order
     out = {
         "softphantom": __version__,
         "kind": "softphantom-calibration",
         "law": cal.meta.get("law", {}),
         "stiffness_factor": {g: p[f"stiffness_{g}_factor"] for g in ("bulb", "arms")},
         **shape_dict(cal),
-        "sensor": {"gain": [p[f"gain_{a}"] for a in ARM_NAMES],
-                   "offset_Pa": [p[f"offset_{a}_Pa"] for a in ARM_NAMES],
+        "sensor": {"arms": arms, "gain": [p[f"gain_{a}"] for a in arms],
+                   "offset_Pa": [p[f"offset_{a}_Pa"] for a in arms],
                    "tube_volume_factor": p["tube_volume_factor"]},
         "registration": {"rotation_deg": [p[f"registration_rot_{a}_deg"] for a in "xyz"],
                          "pivot_mm": [p[f"pivot_{a}_mm"] for a in "xyz"]},

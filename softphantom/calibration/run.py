@@ -148,7 +148,7 @@ def _initial(problem: Problem, sessions: list[Session]) -> tuple[np.ndarray, np.
         forces[sel] = force_of(fr.dp[sel])
         # linear pose prediction on the recording's clock
         grid, search = _lag_grid(se)
-        dp = np.stack([np.interp(grid, se.t, se.dp[:, k]) for k in range(4)], axis=1)
+        dp = np.stack([np.interp(grid, se.t, se.dp[:, k]) for k in range(se.dp.shape[1])], axis=1)
         f = force_of(dp)
         M = rm[None] + np.einsum("kij,nj->nki", s0.dM_df, f)
         pred = np.array([body_pose(rm, m, np.zeros(3), np.zeros(3)) for m in M])
@@ -208,9 +208,6 @@ def calibrate(model_dir, specs: list[SessionSpec], holdout: list[SessionSpec] = 
 
     model_dir = Path(model_dir)
     model = load_model(model_dir)
-    from softphantom.sensing.bench import require_bip_arms
-
-    require_bip_arms(model, "calibrate")  # its parameters are the BIP's four gains and offsets
     if not specs:
         raise UserError("calibrate: give at least one --recording/--truth pair")
     design_laws = sorted({m.law for m in model.design.materials})
@@ -232,7 +229,8 @@ def calibrate(model_dir, specs: list[SessionSpec], holdout: list[SessionSpec] = 
     with ctx as client:
         solve_many = _solver(client)
         rm = rest_markers(str(model_dir), tuple(frames.contact[0]), options.radius_m)
-        params = parameter_set(measured=options.measured, shapes=group_shapes(fitted))
+        params = parameter_set(measured=options.measured, shapes=group_shapes(fitted),
+                               arm_names=fitted.design.arm_names)
         problem = Problem(str(model_dir), sessions, frames, rm, solve_many, options, params)
         forces0, lags0 = _initial(problem, sessions)
         problem = dataclasses.replace(problem, lag0_s=lags0, pose_rows=None)
@@ -303,7 +301,8 @@ def check_held_out(model_dir, holdout: list[SessionSpec], values: dict[str, floa
     model = load_model(Path(model_dir))
     fitted = dataclasses.replace(model, design=design_with_law(model.design, options.law))
     held = _load_sessions(model, holdout, "h")
-    params = parameter_set(measured=options.measured, shapes=group_shapes(fitted))
+    params = parameter_set(measured=options.measured, shapes=group_shapes(fitted),
+                               arm_names=fitted.design.arm_names)
     values = {n: v for n, v in values.items() if not n.startswith(("lag_", "drift_"))}
     unknown = sorted(set(values) - {p.name for p in params})
     if unknown:

@@ -36,7 +36,7 @@ class CalibrationInputError(UserError):
 
 @dataclass(frozen=True, eq=False)
 class Session:
-    """One trial: ``t`` (n,) s host clock, ``dp`` (n, 4) Pa tared arm pressures with the tube lag
+    """One trial: ``t`` (n,) s host clock, ``dp`` (n, arms) Pa tared arm pressures with the tube lag
     undone, ``p_urethra`` (n,) Pa, ``truth_t`` (m,) s tracker clock, ``truth_pose`` (m, 6) m and rad
     (x, y, z, yaw, pitch, roll relative to rest, rest-window registration), ``contact`` (3,) m the
     contact point, ``known_t``/``known_force`` (k,), (k, 3) N or None, ``name``, ``chain_meta``
@@ -53,15 +53,15 @@ class Session:
     tube_length_m: float
     tube_id_m: float
     cavity_m3: np.ndarray
-    dp_noise_Pa: np.ndarray = None  # (4,) std of the de-lagged pressures in the rest window
+    dp_noise_Pa: np.ndarray = None  # (arms,) std of the de-lagged pressures in the rest window
     known_t: np.ndarray | None = None
     known_force: np.ndarray | None = None
     recorded_gains: np.ndarray = field(default_factory=lambda: np.ones(4))  # the chain the recording used
     recorded_tube_factor: float = 1.0
-    dp_rate: np.ndarray | None = None  # (n, 4) Pa/s the readings' rate, what the de-lag multiplied by τ
+    dp_rate: np.ndarray | None = None  # (n, arms) Pa/s the readings' rate, what the de-lag multiplied by τ
 
     def tau_s(self, tube_factor: float = 1.0) -> np.ndarray:
-        """(4,) each arm's tube time constant (s) with the tube's volume × ``tube_factor`` taken as
+        """(arms,) each arm's tube time constant (s) with the tube's volume × ``tube_factor`` taken as
         its length (the bore is the supplier's; a tube of unknown length is the usual error):
         τ ∝ length², so a tube 10 % longer lags 21 % more. ``dp`` was de-lagged with ``tau_s(1)``."""
         return np.array([tube_time_constant_s(self.tube_length_m * tube_factor, self.tube_id_m, v, self.p0_Pa)
@@ -141,7 +141,7 @@ def load_session(recording, truth, contact_m, known_loads=None, name: str | None
     if np.any(np.abs(slope) > REST_MAX_SLOPE_PA_S) or np.any(std > REST_MAX_PA):
         k = int(np.argmax(np.abs(slope) / REST_MAX_SLOPE_PA_S + std / REST_MAX_PA))
         raise CalibrationInputError(
-            f"{rec_path}: no rest window at the start ({ARM_NAMES[k]} moves {slope[k]:+.0f} Pa/s, std {std[k]:.0f} Pa in "
+            f"{rec_path}: no rest window at the start ({rec.arm_names[k]} moves {slope[k]:+.0f} Pa/s, std {std[k]:.0f} Pa in "
             f"the first {REST_S} s; limits {REST_MAX_SLOPE_PA_S:.0f} Pa/s, {REST_MAX_PA:.0f} Pa): "
             "record the phantom untouched first")
     bench, p0 = _bench(rec.meta, rec_path)
@@ -186,7 +186,7 @@ def select_keyframes(session: Session, max_keyframes: int = 16, rest_keyframes: 
     counted twice), plus ``rest_keyframes`` at rest. Raises when fewer than 3 distinct loads."""
     t, dp = session.t, session.dp
     grid = np.arange(t[0] + REST_S, t[-1], CANDIDATE_DT_S)
-    P = np.stack([np.interp(grid, t, dp[:, k]) for k in range(4)], axis=1)
+    P = np.stack([np.interp(grid, t, dp[:, k]) for k in range(dp.shape[1])], axis=1)
     moving = np.linalg.norm(P, axis=1) > MOVING_PA
     cand, Pc = grid[moving], P[moving]
     if len(cand) < 3:

@@ -183,7 +183,8 @@ def require_bip_arms(model, what: str) -> None:
     names = tuple(a.name for a in model.design.arms)
     if names != ARM_NAMES:
         raise UserError(f"{what}: takes the BIP's four arms ({', '.join(ARM_NAMES)}) for now; this model has "
-                        f"{', '.join(names)} (design, simulate, virtual run, estimate and evaluate take any arms)")
+                        f"{', '.join(names)} (design, simulate, virtual run, acquire, estimate, evaluate and "
+                        "calibrate take any arms)")
 
 
 def check_link_options(tare_s: float, connect_timeout_s: float, on_new_board: str) -> None:
