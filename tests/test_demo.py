@@ -92,18 +92,6 @@ def test_demo_end_to_end_coarse(tmp_path, capsys, coarse_model_dir):
         assert f"<td>{d / f}</td>" in report, f
 
 
-def test_the_demo_estimates_with_the_models_own_atlas_the_shipped_one_by_default(tmp_path):
-    # the default design's quadratic model: its atlas ships (both pieces, found by key, nothing built)
-    from softphantom.design import default_design, shipped_model
-    from softphantom.virtual import load_scenario
-    from softphantom.virtual.demo import DEMO_SCENARIOS, model_atlases
-
-    scs = [load_scenario(n) for n in DEMO_SCENARIOS]
-    found = model_atlases(scs, shipped_model(default_design()), tmp_path / "model")
-    assert list(found) == ["on-centre"] and len(found["on-centre"].patches) == 2
-    assert not (tmp_path / "model").exists()  # loaded from the package, nothing written
-
-
 def test_a_demo_on_a_model_without_its_atlas_is_refused_before_any_solve(tmp_path, capsys, coarse_model_dir,
                                                                          monkeypatch):
     # no atlas in the model directory and (here) none that builds within the on-the-fly limit: one

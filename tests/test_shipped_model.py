@@ -32,10 +32,10 @@ def test_the_shipped_models_atlas_keys_are_current():
                                  f"gives {key}): rebuild it with `{manifest['build']}` and update atlas.json")
 
 
-def test_the_shipped_atlas_verifies_and_holds_at_held_out_full_solves(capsys):
+def test_the_shipped_atlas_verifies_and_holds_at_held_out_full_solves(capsys, tmp_path):
     """The default model's atlas ships in the package (one file per piece, by key): intact, of this
     model (``atlas verify`` recomputes the keys), found by a model directory that ``design`` writes
-    by default (no build), and at one seeded held-out full solve in each piece within the worst
+    by default and the demo's scenarios (no build), and at one seeded held-out full solve in each piece within the worst
     errors measured over 9 held-out loads at its release (0.073 N, 0.16 mm, 0.33°, near_urethra
     0.18 mm), rounded up: what an atlas of another model or a damaged one would exceed many times.
     The loads are drawn from everyday use (|f_x|, |f_z| ≤ 1 N, the urethra at ≤ 10 kPa; the upper
@@ -68,6 +68,13 @@ def test_the_shipped_atlas_verifies_and_holds_at_held_out_full_solves(capsys):
     cfg = EstimatorConfig(contact=manifest["contact"])
     found = load_or_build(model, cfg, None, max_build_s=0.0)
     assert [a.key[:32] for a in found.patches] == [p["key"] for p in manifest["pieces"]]
+    # the demo's scenarios find it too (by key, from the package; nothing built or written)
+    from softphantom.virtual import load_scenario
+    from softphantom.virtual.demo import DEMO_SCENARIOS, model_atlases
+
+    demo = model_atlases([load_scenario(n) for n in DEMO_SCENARIOS], model, tmp_path / "model")
+    assert list(demo) == ["on-centre"] and [a.key for a in demo["on-centre"].patches] == [a.key for a in found.patches]
+    assert not (tmp_path / "model").exists()
     (lo_y, split), (_, hi_y) = (p["f_y_N"] for p in manifest["pieces"])
     loads = np.vstack([held_out_loads([-1, max(lo_y, 0.0), -1, 0], [1, split, 1, 10e3], 1, seed=3),
                        held_out_loads([-1, split, -1, 0], [1, min(hi_y, 4.0), 1, 10e3], 1, seed=3)])
