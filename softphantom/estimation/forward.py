@@ -11,6 +11,8 @@ them.
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 from softphantom.errors import UserError
@@ -61,7 +63,12 @@ class ForwardModel:
             fallback_min_load_step=fallback_min_load_step,
         )
         self.n_markers = len(self.marker_names)
-        self.rest: Linearization = self.eq.rest()
+
+    @functools.cached_property
+    def rest(self) -> Linearization:
+        """The rest linearization, made when first asked for (a factorization of the tangent: a
+        caller that only needs the atlas key, ``atlas verify`` or a lookup, never pays for it)."""
+        return self.eq.rest()
 
     def solve(self, lam, start: Linearization | None = None, *, factor_at_solution: bool = False,
               via_tol: float | None = None) -> Linearization:

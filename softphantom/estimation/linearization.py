@@ -448,6 +448,9 @@ class EquilibriumSolver:
         else:
             x = start.x + start.U @ (lam - start.lam)
         refactored = False
+        if not self._factored:  # no factor kept yet (nothing solved, no rest linearization): the start's
+            self.factorize(start.x, start.lam[3])
+            refactored = True
         try:
             r, ref = self.residual(x, lam)
         except ElementInversionError:

@@ -83,8 +83,8 @@ def _chains(loads: np.ndarray, scale: np.ndarray, n: int) -> list[np.ndarray]:
 
 def _start(fwd: ForwardModel, x: np.ndarray, lam: np.ndarray) -> Linearization:
     """A start for the full solver at a given state (no sensitivities: its predictor is the state)."""
-    k = fwd.probe.shape[0]
-    return Linearization(lam=lam, x=x, V=np.zeros(4), W=np.zeros((4, 4)), sub_x=np.zeros((k, 3)),
+    k, m = fwd.probe.shape[0], len(fwd.eq.arm_names)
+    return Linearization(lam=lam, x=x, V=np.zeros(m), W=np.zeros((m, 4)), sub_x=np.zeros((k, 3)),
                          sub_U=np.zeros((k, 3, 4)), U=np.zeros((fwd.fem.n_dof, 4)), residual=np.nan)
 
 
