@@ -135,6 +135,15 @@ def parameter_set(groups=GROUPS, measured: tuple[tuple[str, float, float | None]
     return tuple(ps)
 
 
+def gain_arms(names) -> tuple[str, ...]:
+    """The arms of a parameter set, from the names of its per-arm gains (``gain_<arm>``), in order.
+
+    >>> gain_arms(["stiffness_bulb_factor", "gain_a", "gain_b", "offset_a_Pa"])
+    ('a', 'b')
+    """
+    return tuple(n[len("gain_"):] for n in names if n.startswith("gain_"))
+
+
 def _parameters(groups, arm_names: tuple[str, ...] = ARM_NAMES) -> list[Parameter]:
     ps = [Parameter(f"stiffness_{g}_factor", 0.0, math.log(2.0), log=True) for g in groups]
     # MPXV7002 full-scale span 3.5–4.5 V around 4.0 V (±12.5 %): taken as ±2σ
@@ -257,11 +266,9 @@ class Problem:
     pose_rows: np.ndarray | None = None  # keyframes whose take sample exists (fixed at the start)
     use_pose: bool = True  # False: forces from the pressures alone (held-out prediction)
     use_known: bool = True
-    arm_names: tuple[str, ...] = ARM_NAMES  # the model's, in the sensor order (set from the params' gains)
 
     def __post_init__(self) -> None:
         names = [p.name for p in self.params]
-        self.arm_names = tuple(n[len("gain_"):] for n in names if n.startswith("gain_"))  # as the parameters name them
         bad = [f for f in self.options.fix if f not in names and not f.startswith(("lag", "drift"))]
         if bad:
             raise UserError(f"--fix: unknown parameter(s) {', '.join(bad)}; have {', '.join(names)}")
@@ -276,6 +283,11 @@ class Problem:
             self.pose_rows = np.array([
                 bool(np.all(np.isfinite(self.sessions[int(fr.session[k])].pose_at(fr.t[k] + self.lag0_s[int(fr.session[k])]))))
                 for k in range(len(fr))])
+
+    @property
+    def arm_names(self) -> tuple[str, ...]:
+        """The model's arms in the sensor order, as the parameters name them (the pressures' rows)."""
+        return gain_arms(p.name for p in self.params)
 
     # --- layout of z ---------------------------------------------------------------------------
     @property
@@ -412,8 +424,9 @@ class Problem:
         scale_cols = [iG[f"stiffness_{gr}_factor"] for gr in GROUPS]
         ratio_col = {gr: idx for gr, (_, idx) in self._ratio_index().items()}
         # pressures
+        arms = self.arm_names
+        na = len(arms)
         for k in range(K):
-            na = len(self.arm_names)
             sdp = self.sessions[int(fr.session[k])].dp_noise_Pa if o.sigma_dp_Pa is None else np.full(na, o.sigma_dp_Pa)
             r = (dp[k] - meas_dp[k]) / sdp
             J = np.zeros((na, nz))
@@ -424,7 +437,7 @@ class Problem:
             for j, (gr, i) in enumerate(s.shape_cols):
                 J[:, ratio_col[gr][i]] = dp_dV[k] * s.dV_dshape[:, j] / sdp
             p_lin = (dp[k] - u["offset"] - u["drift"][int(fr.session[k])] * self.since_start(k)) / u["gain"]
-            for i, a in enumerate(self.arm_names):
+            for i, a in enumerate(arms):
                 J[i, iG[f"gain_{a}"]] = p_lin[i] / sdp[i]
                 J[i, iG[f"offset_{a}_Pa"]] = 1.0 / sdp[i]
             J[:, iG["tube_volume_factor"]] = (dp_dtube[k] - dmeas_dtube[k]) / sdp

@@ -173,8 +173,10 @@ def shape_dict(cal: Calibration) -> dict:
 def calibration_dict(cal: Calibration) -> dict:
     """The calibrated sensor and registration parameters (``calibration.json``)."""
     from softphantom import __version__
+    from softphantom.calibration.fit import gain_arms
+
     p = cal.parameters()
-    arms = [n[len("gain_"):] for n in p if n.startswith("gain_")]  # the model's arms, in the sensor order
+    arms = list(gain_arms(p))  # the model's arms, in the sensor order
     out = {
         "softphantom": __version__,
         "kind": "softphantom-calibration",

@@ -96,9 +96,7 @@ def demo_cmd(
     grid = atlas_config_from_options(atlas_grid).shape if atlas_grid is not None else None
     t0 = time.perf_counter()
     check_output(out, overwrite=overwrite, directory=True)
-    names = list(scenarios or DEMO_SCENARIOS)
-    for n in names:
-        load_scenario(n)  # validate all before the long work
+    scs = [load_scenario(n) for n in scenarios or DEMO_SCENARIOS]  # all validated before the long work
     cfg = _config(seed, osr, truth_mesh_scale, order=truth_order)
     if mesh_size_mm is not None and not mesh_size_mm > 0:
         raise UserError(f"--mesh-size-mm: must be > 0, got {mesh_size_mm:g}")
@@ -113,12 +111,12 @@ def demo_cmd(
                       f"{model.design.mesh.size_mm:g} mm) → {out / 'model'}", highlight=False, soft_wrap=True)
         atlases = None
         if estimator == "atlas" and grid is None:  # the model's own, found (or refused) before the long work
-            atlases = model_atlases([load_scenario(n) for n in names], model, model_dir or work / "model", scheduler)
+            atlases = model_atlases(scs, model, model_dir or work / "model", scheduler)
         with status("mesh (truth model, finer)", console):
             tm = truth_model(model, cfg.truth)
         console.print(f"truth model: {len(tm.nodes)} nodes, {len(tm.tets)} tets, P{tm.element_order} (mesh "
                       f"{tm.design.mesh.size_mm:g} mm)", highlight=False)
-        rows = run_all([load_scenario(n) for n in names], model, work, cfg, tm, estimator, grid,
+        rows = run_all(scs, model, work, cfg, tm, estimator, grid,
                        scheduler=scheduler, n_workers=workers, shown=out, atlas_dir=model_dir, atlases=atlases)
         for r in rows:  # the paths the user will see, once the directory is in place
             r["report"] = str(out / Path(r["report"]).relative_to(work))

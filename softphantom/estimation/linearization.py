@@ -120,7 +120,7 @@ class EquilibriumSolver:
                  fallback_min_load_step: float = 1.0 / 1024) -> None:
         arms = arm_names_of(fem)
         if URETHRA not in fem.cavities or len(arms) < 3:
-            raise UserError(f"model has cavities {list(fem.cavities)}: it needs {URETHRA!r} and at least 3 arms'")
+            raise UserError(f"model has cavities {list(fem.cavities)}: it needs {URETHRA!r} and at least 3 arms")
         self.arm_names = arms  # the sensor order: the rows of V and W
         self.fem = fem
         self.H_f = H_f.tocsr()

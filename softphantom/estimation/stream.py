@@ -87,7 +87,7 @@ class EstimateWriter:
         return self._w.rows
 
     def write(self, e: Estimate) -> None:
-        if tuple(e.arm_names) != self.arm_names:
+        if e.arm_names != self.arm_names:
             raise ValueError(f"an estimate of arms {list(e.arm_names)} in a file of arms {list(self.arm_names)}")
         self._w.write_row(estimate_row(e, self.target_names))
 

@@ -93,11 +93,11 @@ class BenchConfig:
     def from_model(cls, model, **kw) -> "BenchConfig":
         """The bench of a :class:`~softphantom.design.PhantomModel`: its design's nominal arm
         cavities; ``kw`` (``tube_length_m``, ``tube_id_m``, ``p0_Pa``; None = default) the rest."""
-        names = tuple(a.name for a in model.design.arms)
         vc = tuple(a.cavity_volume_mm3 * 1e-9 for a in model.design.arms)
         sensors = getattr(model.design, "sensors", None)
         cal = {} if sensors is None else {"gains": sensors.gains, "tube_volume_factor": sensors.tube_volume_factor}
-        return cls(cavity_volumes_m3=vc, **cal, arm_names=names, **{k: v for k, v in kw.items() if v is not None})
+        return cls(cavity_volumes_m3=vc, **cal, arm_names=model.design.arm_names,
+                   **{k: v for k, v in kw.items() if v is not None})
 
     @classmethod
     def from_options(cls, tube_length_m: float | None = None, tube_id_mm: float | None = None,
@@ -180,7 +180,7 @@ class BenchConfig:
 def require_bip_arms(model, what: str) -> None:
     """One line refusing ``what`` (a command not yet generic in the arms) for a design whose arms
     are not the BIP's four."""
-    names = tuple(a.name for a in model.design.arms)
+    names = model.design.arm_names
     if names != ARM_NAMES:
         raise UserError(f"{what}: takes the BIP's four arms ({', '.join(ARM_NAMES)}) for now; this model has "
                         f"{', '.join(names)} (design, simulate, virtual run, acquire, estimate, evaluate and "

@@ -78,6 +78,11 @@ MPX4250D = Transducer(
 )
 
 
+def board_transducers(n_arms: int = len(ARM_NAMES)) -> tuple[Transducer, ...]:
+    """The transducers of a board of ``n_arms`` arms: an MPXV7002 each, then the urethra's MPX4250D."""
+    return (MPXV7002,) * n_arms + (MPX4250D,)
+
+
 def pa_to_counts(p_Pa, transducer: Transducer = MPXV7002, osr: int = 1, bits: int = ADC_BITS):
     """Expected oversampled raw sum for a gauge pressure (continuous; inverse of :func:`counts_to_pa`).
 
@@ -114,7 +119,7 @@ def simulate_raw(p_Pa, osr: int, rng: np.random.Generator,
     """
     if not isinstance(osr, (int, np.integer)) or osr < 1:
         raise UserError(f"osr must be a positive integer, got {osr!r}")
-    tr = transducers or (MPXV7002,) * 4 + (MPX4250D,)
+    tr = transducers or board_transducers()
     p = np.asarray(p_Pa, float)
     if p.shape[-1] != len(tr):
         raise UserError(f"p (Pa): last axis must have {len(tr)} channels, got {p.shape}")
@@ -134,7 +139,7 @@ def channel_status(raw, osr: int, transducers: tuple[Transducer, ...] | None = N
     >>> channel_status([51150, 51150, 51150, 51150, 0], 100)
     'rail:urethra'
     """
-    tr = transducers or (MPXV7002,) * 4 + (MPX4250D,)
+    tr = transducers or board_transducers()
     full = (1 << bits) - 1
     raw = np.asarray(raw)
     for i, name in enumerate(names[: len(tr)]):
@@ -161,7 +166,7 @@ class SensorChain:
     """
 
     v_total_m3: np.ndarray
-    transducers: tuple[Transducer, ...] = (MPXV7002,) * 4 + (MPX4250D,)
+    transducers: tuple[Transducer, ...] = board_transducers()
     bits: int = ADC_BITS
     names: tuple[str, ...] = CHANNEL_NAMES
 
@@ -205,7 +210,7 @@ def default_chain(cavity_volumes_m3=ARM_CAVITY_VOLUMES_M3, tube_length_m: float 
     if vc.shape != (n,) or not np.all(np.isfinite(vc)) or np.any(vc <= 0):
         raise UserError(f"cavity volumes (m³): expected {n} positive values, got {cavity_volumes_m3!r}")
     return SensorChain(vc + tube_volume_m3(tube_length_m, tube_id_m) + float(v_dead_m3),
-                       (MPXV7002,) * n + (MPX4250D,), names=(*arm_names, "urethra"))
+                       board_transducers(n), names=(*arm_names, "urethra"))
 
 
 @dataclass(frozen=True, eq=False)

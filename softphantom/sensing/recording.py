@@ -38,7 +38,7 @@ from softphantom.errors import FileFormatError
 from softphantom.records.measurement import Measurement, SourceEvent, event_row, measurement_row
 from softphantom.records.names import ARM_NAMES, EVENT_PREFIX, MEASUREMENT_COLUMNS, arm_names_of, measurement_columns
 from softphantom.records.session import SessionWriter, TruncatedRecordingWarning, read_session_file
-from softphantom.sensing.chain import MPX4250D, MPXV7002, SensorChain, Tare, to_measurement
+from softphantom.sensing.chain import SensorChain, Tare, board_transducers, to_measurement
 
 __all__ = ["COLUMNS", "EVENT_PREFIX", "KIND", "Recorder", "Recording", "TruncatedRecordingWarning",
            "chain_from_meta", "read_recording", "retare"]
@@ -134,7 +134,7 @@ def chain_from_meta(meta: dict) -> SensorChain:
     try:
         v = np.asarray(meta["chain"]["v_total_mm3"], float) * 1e-9
         names = tuple(meta["chain"].get("names") or (*ARM_NAMES, "urethra"))
-        return SensorChain(v, (MPXV7002,) * len(v) + (MPX4250D,), names=names)
+        return SensorChain(v, board_transducers(len(v)), names=names)
     except (KeyError, TypeError, ValueError) as exc:
         raise FileFormatError(f"metadata: no usable chain.v_total_mm3 ({exc})") from None
 

@@ -98,7 +98,7 @@ class TruthConfig:
 @dataclass(frozen=True, eq=False)
 class EventTruth:
     """Keyframes of one event: ``s`` (K,) levels from 0 to 1; ``dV`` (K, cavities) m³ cavity volume
-    changes (4 arms, urethra); ``markers`` (K, k, 3) m positions; ``targets`` (K, t, 3) m
+    changes (the arms, then the urethra); ``markers`` (K, k, 3) m positions; ``targets`` (K, t, 3) m
     displacements; ``bulb_dV`` (K,) m³ change of the volume the outer surface encloses; peak load
     ``force`` (3,) N and ``p_urethra`` Pa; ``x_peak`` (N, 3) truth-mesh nodes at s = 1;
     ``iterations`` Newton iterations; ``note`` what happened (e.g. a limit reached)."""
