@@ -126,6 +126,13 @@ def test_demo_and_virtual_bad_options_are_one_line(tmp_path, capsys):
         assert main(["demo", "--out", str(tmp_path / "o"), *args]) == 2
         err = capsys.readouterr().err.strip()
         assert "--mesh-size-mm" in err and err.count("\n") == 0
+    bad = tmp_path / "bad.toml"
+    bad.write_text('arm_names = ["front_zpos", "front_zneg"]\n')
+    for args, word in ((["--design", str(bad)], "arms: 2 given"), (["--design", str(bad), "--model", str(tmp_path)],
+                       "--design"), (["--design", str(bad), "--push-N", "0"], "--push-N")):
+        assert main(["demo", "--out", str(tmp_path / "o"), *args]) == 2
+        err = capsys.readouterr().err.strip()
+        assert word in err and err.count("\n") == 0, err
     assert not (tmp_path / "o").exists()
     assert main(["virtual", "serve", "--scenario", "needle-insertion", "--model", str(tmp_path), "--speed", "0"]) == 2
     assert "--speed" in capsys.readouterr().err

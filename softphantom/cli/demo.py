@@ -72,6 +72,12 @@ def demo_cmd(
     truth_order: int = typer.Option(2, "--truth-order", help="Truth element order: 2 (10-node tets, the default) or 1."),
     force: bool = typer.Option(False, "--force", help="Mesh above the element-count limit (docs/robustness.md)."),
     model_dir: Path = typer.Option(None, "--model", help="Estimator model directory (e.g. from softphantom calibrate) instead of the default design; the truth is meshed from its design."),
+    design_file: Path = typer.Option(None, "--design", help="A design file (TOML/JSON) instead of the default "
+                                     "design, e.g. examples/kidney.toml: meshed as its [mesh] says (or at "
+                                     "--mesh-size-mm); unless --scenarios, three pushes of --push-N at each of its "
+                                     "contact points and an inflation of each of its cavities; the demo's own atlas "
+                                     "(--atlas-grid, default 5,5,5,2)."),
+    push_n: float = typer.Option(2.5, "--push-N", help="With --design: the generated pushes' force (N)."),
     overwrite: bool = overwrite_option(),
     estimator: str = typer.Option("atlas", "--estimator", help="atlas (precomputed, real time) | refresh (sync: "
                                   "re-linearized inside each step)."),
@@ -85,10 +91,11 @@ def demo_cmd(
 ) -> None:
     """The paper's experiments end to end without hardware: reports and a summary."""
     from softphantom.cli.virtual import _config
-    from softphantom.design import build_model, default_design, load_model, save_model
+    from softphantom.design import build_model, default_design, load_design, load_model, save_model
     from softphantom.estimation.select import atlas_config_from_options, check_estimator_kind
     from softphantom.virtual import load_scenario, truth_model
-    from softphantom.virtual.demo import DEMO_SCENARIOS, model_atlases, run_all, write_summary
+    from softphantom.virtual.demo import (DEMO_SCENARIOS, PUSH_GRID, design_scenarios, model_atlases, run_all,
+                                          write_summary)
 
     check_estimator_kind(estimator)
     if workers is not None and workers < 1:
@@ -96,16 +103,25 @@ def demo_cmd(
     grid = atlas_config_from_options(atlas_grid).shape if atlas_grid is not None else None
     t0 = time.perf_counter()
     check_output(out, overwrite=overwrite, directory=True)
-    scs = [load_scenario(n) for n in scenarios or DEMO_SCENARIOS]  # all validated before the long work
+    scs = [load_scenario(n) for n in scenarios] if scenarios else None  # all validated before the long work
     cfg = _config(seed, osr, truth_mesh_scale, order=truth_order)
     if mesh_size_mm is not None and not mesh_size_mm > 0:
         raise UserError(f"--mesh-size-mm: must be > 0, got {mesh_size_mm:g}")
     if model_dir is not None and mesh_size_mm is not None:
         raise UserError("--model and --mesh-size-mm: give one (a model directory has its mesh)")
+    if model_dir is not None and design_file is not None:
+        raise UserError("--model and --design: give one (a model directory has its design)")
+    if not 0.0 < push_n <= 20.0:
+        raise UserError(f"--push-N: must be in (0, 20] N, got {push_n:g}")
     given = load_model(model_dir) if model_dir is not None else None
+    design = load_design(design_file) if design_file is not None else default_design()
+    if scs is None:
+        scs = design_scenarios(design, push_n) if design_file is not None else [load_scenario(n) for n in DEMO_SCENARIOS]
+    if design_file is not None and grid is None and estimator == "atlas":  # no atlas ships for it: the demo's own
+        grid = PUSH_GRID
     with staged_output(out, overwrite=overwrite, directory=True) as work:
         with status("design → mesh (estimator model)", console):
-            model = given if given is not None else build_model(default_design(), mesh_size_mm, force=force)
+            model = given if given is not None else build_model(design, mesh_size_mm, force=force)
             save_model(model, work / "model")
         console.print(f"model: {len(model.nodes)} nodes, {len(model.tets)} tets, P{model.element_order} (mesh "
                       f"{model.design.mesh.size_mm:g} mm) → {out / 'model'}", highlight=False, soft_wrap=True)

@@ -47,6 +47,9 @@ PUSH_GRID = (5, 5, 5, 2)
 INFLATE_GRID = (3, 3, 3, 5)
 # the demo's default scenarios: the bundled ones at the contact whose atlas ships (on-centre)
 DEMO_SCENARIOS = ("needle-insertion", "push-on-centre", "urethra-inflation")
+# a design's generated pushes (design_scenarios): their force (N) and tilt off the surface normal (deg)
+PUSH_N = 2.5
+PUSH_TILT_DEG = 15.0
 TRUTH_TOPIC = "softphantom-demo-truth"  # the Dask event topic of the truth solves' progress
 
 log = logging.getLogger(__name__)
@@ -56,6 +59,48 @@ def contact_of(scenario) -> str:
     """The contact point the estimator assumes for a scenario: its pushes' one point, else on-centre."""
     points = {e.point for e in scenario.events if e.kind == "push"}
     return points.pop() if len(points) == 1 else "on-centre"
+
+
+def demo_contacts(design) -> tuple[str, ...]:
+    """The contact points a design's demo pushes at: its named ones, else ``on-centre``
+    (``off-centre`` is the BIP paper's second point, pushed only when asked for)."""
+    named = tuple(n for n in design.p_ext_mm() if n not in ("on-centre", "off-centre"))
+    return named or ("on-centre",)
+
+
+def design_scenarios(design, push_N: float = PUSH_N) -> list:
+    """The demo of a design without scenario files: at each of :func:`demo_contacts`, three pushes
+    of ``push_N`` (N) into the body, along the inward surface normal and tilted ``PUSH_TILT_DEG``
+    either way (as the paper's manual pushes, Fig. 9).
+
+    >>> from softphantom.design import default_design
+    >>> [sc.name for sc in design_scenarios(default_design())]
+    ['push-on-centre']
+    >>> [round(float(np.linalg.norm(e.force_N)), 3) for e in design_scenarios(default_design())[0].events]
+    [2.5, 2.5, 2.5]
+    >>> design_scenarios(default_design())[0].events[0].force_N  # the front (-y) surface's inward normal
+    (0.0, 2.5, 0.0)
+    """
+    from softphantom.virtual.scenario import scenario_from_dict
+
+    if not 0.0 < push_N <= 20.0:
+        raise ValueError(f"push_N must be in (0, 20] N, got {push_N:g}")
+    out = []
+    for c in demo_contacts(design):
+        p = design.p_ext_mm()[c]
+        n = -np.asarray(design.bulb.normal(p), float)
+        a = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
+        a /= np.linalg.norm(a)
+        b = np.cross(n, a)
+        t = np.radians(PUSH_TILT_DEG)
+        dirs = (n, np.cos(t) * n + np.sin(t) * (a + b) / np.sqrt(2), np.cos(t) * n - np.sin(t) * (a - b) / np.sqrt(2))
+        pushes = [{"point": c, "start_s": 2.0 + 3.5 * i, "rise_s": 1.1, "hold_s": 0.7, "fall_s": 1.1,
+                   "force_N": [round(float(v), 6) + 0.0 for v in push_N * d]} for i, d in enumerate(dirs)]
+        out.append(scenario_from_dict({
+            "name": f"push-{c}", "duration_s": 13.0, "rest_s": 1.5, "push": pushes,
+            "description": f"{design.name}: three pushes of {push_N:g} N at {c}, along the inward normal and "
+                           f"tilted {PUSH_TILT_DEG:g}° either way"}, source=f"{design.name} (generated)"))
+    return out
 
 
 def push_only(sc) -> str | None:
