@@ -165,8 +165,8 @@ static void on_adc_start(struct avr_irq_t *irq, uint32_t value, void *param)
 
 /* simavr 1.6 holds 8 ADC input values (adc_values[8]): it ignores ADC_IRQ_ADC8..15 and, for
  * MUX5:0 = 100xxx, reads past that array. ADC8..15 (the Mega's A8-A15) are folded onto slots 0..7
- * here, which is exact because each value is given at its conversion's start and read by the ISR of
- * that conversion (on_adc_start) before the next one starts; the channel comes from MUX5. */
+ * here, which is exact because each value is given when a conversion starts (on_adc_start) and read
+ * by the ADC interrupt that comes with it, long before the next start; the channel comes from MUX5. */
 static void fold_upper_bank(void)
 {
     for (avr_io_t *io = avr->io_port; io; io = io->next) {
