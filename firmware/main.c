@@ -1,11 +1,12 @@
-/* softphantom sensing board: Arduino UNO (ATmega328P, 16 MHz), plain C with avr-libc.
+/* softphantom sensing board: Arduino UNO (ATmega328P) or Mega 2560 (ATmega2560), both 16 MHz; plain
+ * C with avr-libc (make BOARD=uno|mega, docs/protocol.md).
  *
  * Reads ADC0..ADC(n-2) (the arm transducers, MPXV7002; the BIP's four: front_zpos, front_zneg,
  * back_xpos, back_xneg) and ADC(n-1) (urethra, MPX4250D) against AVcc (= the transducers' supply
  * VS, so the reading is ratiometric), sums N readings per channel round-robin (N = OSR, default
  * 100, 1..500), and sends one DATA frame per window (docs/protocol.md) at 115200 baud. The
  * channel count n = SP_N_CHANNELS is fixed at build time (make N_CHANNELS=n; 5 for the BIP); the
- * UNO has 6 analog inputs, so n <= 6 here.
+ * UNO has 6 analog inputs (A0-A5), the Mega 16 (A0-A15 = ADC0..ADC15), so n <= 6 or n <= 16.
  * The ADC runs free (auto-trigger): one conversion every 13 ADC clocks = 104 us exactly, back to
  * back, summed by its interrupt; so the frame time is exactly n * N * 104 us (n = 5, N = 100:
  * 19.2 Hz, N = 25: 76.9 Hz) and nothing the main loop does (packing, CRC, commands, a full TX
@@ -23,8 +24,21 @@
 
 #include "frame.h"
 
-#if defined(__AVR_ATmega328P__) && SP_N_CHANNELS > 6
-#error "the Arduino UNO has 6 analog inputs (A0-A5): build with N_CHANNELS <= 6"
+#if defined(__AVR_ATmega328P__)
+#if SP_N_CHANNELS > 6
+#error "the Arduino UNO has 6 analog inputs (A0-A5): build with N_CHANNELS <= 6 (or BOARD=mega, 16)"
+#endif
+#define UART_RX_vect USART_RX_vect
+#define UART_UDRE_vect USART_UDRE_vect
+#elif defined(__AVR_ATmega2560__)
+#if SP_N_CHANNELS > 16
+#error "the Arduino Mega 2560 has 16 analog inputs (A0-A15): build with N_CHANNELS <= 16"
+#endif
+/* the Mega's USB serial is USART0: the UNO's registers (UDR0, UCSR0B, ...), other vector names */
+#define UART_RX_vect USART0_RX_vect
+#define UART_UDRE_vect USART0_UDRE_vect
+#else
+#error "a board is the Arduino UNO (-mmcu=atmega328p) or Mega 2560 (-mmcu=atmega2560)"
 #endif
 
 #define FW_MAJOR 2 /* 2.x speaks protocol version 2 (a 0x00 before each frame) */
@@ -32,7 +46,9 @@
 #define FW_PATCH 0
 #define BAUD_UBRR 16 /* 16 MHz / (8 * (16 + 1)) = 117647 baud with U2X (+2.1 %), the Arduino setting */
 #define OSR_DEFAULT 100u
-#define OSR_MAX 500u /* 6 * 500 * 104 us = 0.31 s per frame at most, inside the host's 0.5 s silence limit */
+/* 6 * 500 * 104 us = 0.31 s per frame at most, inside the host's 0.5 s silence limit; above 9 channels
+ * (the Mega) it needs N < 4800 / n (docs/protocol.md) */
+#define OSR_MAX 500u
 
 /* ---- time ---- */
 static volatile uint32_t t1_overflows;
@@ -53,14 +69,14 @@ static uint32_t micros32(void)
 }
 
 /* ---- UART: TX ring buffer (interrupt-driven), RX ring buffer ---- */
-#define TXBUF 128u /* power of two; holds three DATA frames (35 bytes each; 39 with 6 channels) */
+#define TXBUF 128u /* power of two; holds three DATA frames of 5 channels (35 bytes each), 1.6 of 16 (79) */
 #define RXBUF 64u
 static volatile uint8_t tx_buf[TXBUF];
 static volatile uint8_t tx_head, tx_tail;
 static volatile uint8_t rx_buf[RXBUF];
 static volatile uint8_t rx_head, rx_tail;
 
-ISR(USART_UDRE_vect)
+ISR(UART_UDRE_vect)
 {
     if (tx_head == tx_tail) {
         UCSR0B &= (uint8_t)~_BV(UDRIE0);
@@ -70,7 +86,7 @@ ISR(USART_UDRE_vect)
     tx_tail = (uint8_t)((tx_tail + 1u) & (TXBUF - 1u));
 }
 
-ISR(USART_RX_vect)
+ISR(UART_RX_vect)
 {
     uint8_t c = UDR0;
     uint8_t next = (uint8_t)((rx_head + 1u) & (RXBUF - 1u));
@@ -131,7 +147,12 @@ static void adc_init(void)
 {
     ADMUX = _BV(REFS0); /* AVcc reference: ratiometric with VS; channel 0 first */
     ADCSRB = 0;         /* auto-trigger source: free running */
+#if SP_N_CHANNELS > 8
+    DIDR0 = 0xFFu; /* digital input buffers off on the channels read: ADC0..7 here, ADC8.. in DIDR2 */
+    DIDR2 = (uint8_t)((1u << (SP_N_CHANNELS - 8u)) - 1u);
+#else
     DIDR0 = (uint8_t)((1u << SP_N_CHANNELS) - 1u); /* digital input buffers off on the channels read */
+#endif
     /* prescaler 128 (125 kHz), interrupt on, auto-trigger, start */
     ADCSRA = _BV(ADEN) | _BV(ADSC) | _BV(ADATE) | _BV(ADIE) | _BV(ADPS2) | _BV(ADPS1) | _BV(ADPS0);
 }
@@ -144,7 +165,14 @@ ISR(ADC_vect)
      * channel written now is taken by the one after it */
     ch_conv = ch_mux;
     ch_mux = (uint8_t)(ch_mux + 1u == SP_N_CHANNELS ? 0u : ch_mux + 1u);
+#if SP_N_CHANNELS > 8
+    /* ADC8..15 are MUX5:0 = 100xxx: MUX5 is bit 3 of ADCSRB (its ADTS stay 0, free running);
+     * like MUX4:0 it is taken when the next conversion starts, so the pair changes together */
+    ADCSRB = (uint8_t)(ch_mux >= 8u ? _BV(MUX5) : 0u);
+    ADMUX = (uint8_t)(_BV(REFS0) | (ch_mux & 7u));
+#else
     ADMUX = (uint8_t)(_BV(REFS0) | ch_mux);
+#endif
     if (discard) {
         discard = 0; /* results follow as 0, 1, ..., n - 1, 0, ... from here on */
         t_window_start = micros32();

@@ -1,5 +1,6 @@
 """Firmware: the C frame encoder (firmware/frame.c) against the Python protocol, byte for byte,
-and the AVR build's flash/RAM use on the ATmega328P."""
+the AVR builds' flash/RAM use on the ATmega328P (UNO) and ATmega2560 (Mega), and the channel
+counts each board's build accepts."""
 
 from __future__ import annotations
 
@@ -143,7 +144,7 @@ def test_a_board_of_six_channels_speaks_the_same_frames_on_both_sides(tool6):
         decode_body(info[1:-1])
 
 
-def test_the_uno_builds_for_up_to_six_channels_and_refuses_seven_in_one_line(tmp_path):
+def test_the_uno_builds_for_up_to_six_channels_and_the_mega_refuses_seventeen(tmp_path):
     if shutil.which("avr-gcc") is None:
         pytest.skip("avr-gcc not installed: run scripts/install-system-deps.sh (gcc-avr, avr-libc, binutils-avr)")
 
@@ -155,3 +156,62 @@ def test_the_uno_builds_for_up_to_six_channels_and_refuses_seven_in_one_line(tmp
     assert build(6).returncode == 0
     r = build(7)
     assert r.returncode != 0 and "the Arduino UNO has 6 analog inputs (A0-A5)" in r.stderr
+    r = subprocess.run(["avr-gcc", "-mmcu=atmega2560", "-DF_CPU=16000000UL", "-DSP_N_CHANNELS=17u", "-Os", "-std=c99",
+                        str(FW / "main.c"), str(FW / "frame.c"), "-o", str(tmp_path / "fw17.elf")],
+                       capture_output=True, text=True)
+    assert r.returncode != 0 and "the Arduino Mega 2560 has 16 analog inputs (A0-A15)" in r.stderr
+
+
+def _make(tmp_path, *args):
+    if shutil.which("make") is None:
+        pytest.skip("make not installed")
+    return subprocess.run(["make", "-s", "-C", str(FW), f"BUILD={tmp_path / 'b'}", *args], capture_output=True,
+                          text=True)
+
+
+@pytest.mark.parametrize("n", [9, 16])
+def test_the_mega_builds_for_nine_and_sixteen_channels_and_fits(tmp_path, n, record_property):
+    if shutil.which("avr-gcc") is None or shutil.which("avr-size") is None:
+        pytest.skip("avr-gcc/avr-size not installed: run scripts/install-system-deps.sh (gcc-avr, avr-libc, binutils-avr)")
+    r = _make(tmp_path, "BOARD=mega", f"N_CHANNELS={n}")
+    assert r.returncode == 0, r.stderr
+    elf = (tmp_path / "b" / "bip_sensing.elf").read_bytes()
+    e_machine, e_flags = int.from_bytes(elf[18:20], "little"), int.from_bytes(elf[36:40], "little")
+    assert e_machine == 83 and e_flags & 0x7F == 6          # EM_AVR, avr6: the ATmega2560's architecture
+    assert (tmp_path / "b" / "bip_sensing.hex").stat().st_size > 0
+    text, data, bss = (int(v) for v in r.stdout.splitlines()[1].split()[:3])    # make prints avr-size
+    record_property("flash_bytes", text + data)
+    record_property("ram_bytes", data + bss)
+    assert text + data <= 256 * 1024 - 8 * 1024           # the Mega's stk500v2 bootloader takes 8 KiB
+    assert data + bss <= 8192 - 1024
+
+
+@pytest.mark.parametrize("board, n, message", [
+    ("uno", 7, "N_CHANNELS=7: the Arduino UNO has 6 analog inputs (A0-A5), so BOARD=uno reads 2..6 channels; "
+               "BOARD=mega reads up to 16"),
+    ("mega", 17, "N_CHANNELS=17: the Arduino Mega 2560 has 16 analog inputs (A0-A15), so BOARD=mega reads 2..16 "
+                 "channels"),
+    ("mega", 1, "N_CHANNELS=1: the Arduino Mega 2560 has 16 analog inputs"),
+    ("due", 5, "BOARD=due: a board is uno (ATmega328P, 6 analog inputs) or mega (ATmega2560, 16)"),
+])
+def test_make_refuses_a_channel_count_the_board_cannot_read_in_one_line(tmp_path, board, n, message):
+    r = _make(tmp_path, f"BOARD={board}", f"N_CHANNELS={n}")
+    lines = r.stderr.strip().splitlines()
+    assert r.returncode != 0 and len(lines) == 1 and message in lines[0], r.stderr
+    assert not (tmp_path / "b").exists()                  # refused before anything is built
+
+
+def test_a_build_directory_follows_its_board_and_channel_count(tmp_path):
+    # the same BUILD for another board or n is rebuilt (BUILD/config), never a stale .elf of the other
+    if shutil.which("avr-gcc") is None:
+        pytest.skip("avr-gcc not installed: run scripts/install-system-deps.sh (gcc-avr, avr-libc, binutils-avr)")
+    elf = tmp_path / "b" / "bip_sensing.elf"
+    config = None
+    for board, mcu, n, arch in (("uno", "atmega328p", 5, 5), ("mega", "atmega2560", 9, 6),
+                                ("mega", "atmega2560", 9, 6), ("uno", "atmega328p", 6, 5)):
+        before = elf.stat().st_mtime_ns if elf.exists() else None
+        assert _make(tmp_path, f"BOARD={board}", f"N_CHANNELS={n}").returncode == 0
+        assert int.from_bytes(elf.read_bytes()[36:40], "little") & 0x7F == arch
+        assert (elf.stat().st_mtime_ns == before) == (config == (board, n))  # rebuilt only when it changed
+        config = (board, n)
+        assert (tmp_path / "b" / "config").read_text().split()[:3] == [f"BOARD={board}", f"MCU={mcu}", f"N_CHANNELS={n}"]

@@ -394,7 +394,7 @@ def test_virtual_run_with_the_firmware_board(tools, coarse_model, coarse_truth_p
     from softphantom.virtual import VirtualConfig, scenario_from_dict, simulate, write_run
     from softphantom.virtual import firmware_sim
 
-    monkeypatch.setattr(firmware_sim, "build", lambda build_dir=None, n_channels=5: (tools.harness, tools.elf))
+    monkeypatch.setattr(firmware_sim, "build", lambda build_dir=None, n_channels=5, board="uno": (tools.harness, tools.elf))
     sc = scenario_from_dict({"name": "tiny-push", "duration_s": 2.0, "rest_s": 0.6,
                              "push": [{"point": "on-centre", "start_s": 0.7, "rise_s": 0.5, "hold_s": 0.2,
                                        "fall_s": 0.5, "force_N": [0.0, 2.0, 0.0]}]}, "tiny")
@@ -461,3 +461,146 @@ def test_the_firmware_built_for_six_channels_reads_six(tmp_path):
     assert len(data) >= 3 and all(f.raw == tuple(int(c) * 10 for c in codes) for f in data[1:])
     dt = np.diff([f.t_us for f in data])
     assert np.allclose(dt, 6 * 10 * 104.0, rtol=CLOCK_TOLERANCE)
+
+
+# --- the Arduino Mega 2560 (ATmega2560): up to 16 channels, ADC8..15 through MUX5 ----------------
+
+def _distinct_codes(n: int) -> np.ndarray:
+    """A code per channel, all different and none a multiple of another's bank twin (ch, ch ± 8)."""
+    return np.array([37 + 61 * k for k in range(n)])
+
+
+def check_mega_channels(harness: Path, elf: Path, n: int):
+    """Each of the n inputs gets its own voltage; every DATA frame at N = 10 carries 10 × each
+    channel's code on that channel (ADC8.. read through MUX5), its INFO says n, the conversions
+    go round-robin 0..n-1, and a frame takes n·N·104 µs."""
+    codes = _distinct_codes(n)
+    t, v = const_volts(codes)
+    dec = StreamDecoder(n)
+    frames = []
+    with FirmwareSim(elf, harness=harness, n_channels=n, board="mega", log_adc=True) as sim:
+        sim.set_voltages(t, v)
+        frames += dec.feed(sim.run_until(0.001).data)  # its UART on (the chip drops what comes before)
+        sim.send(encode_set_osr(10))
+        out = sim.run_until(n * 104e-6 * (100 + 5 * 10) + 0.005)  # the first window (N = 100), then 5 at N = 10
+        frames += dec.feed(out.data)
+    info = [f for f in frames if isinstance(f, InfoFrame)]
+    data = [f for f in frames if isinstance(f, DataFrame) and f.osr == 10]
+    assert info and all(f.n_channels == n for f in info)
+    assert dec.stats.frames_lost == 0 and dec.stats.rejected == 0, dec.stats
+    assert len(data) >= 3
+    for f in data[1:]:  # the first at N = 10 may hold a conversion latched before the switch
+        assert list(f.raw) == [int(c) * 10 for c in codes], (f.seq, np.array(f.raw) // 10 - codes)
+    ch = out.adc["ch"].astype(int)
+    assert np.array_equal(ch, (ch[0] + np.arange(len(ch))) % n)
+    assert np.allclose(np.diff([f.t_us for f in data]), n * 10 * 104.0, rtol=CLOCK_TOLERANCE)
+
+
+@pytest.fixture(scope="module")
+def mega9(tmp_path_factory) -> Tools:
+    why = simavr_missing()
+    if why:
+        pytest.skip(why)
+    h, e = build(tmp_path_factory.mktemp("mega9"), n_channels=9, board="mega")
+    return Tools(h, e)
+
+
+def test_the_mega_firmware_reads_nine_channels_each_on_its_input(mega9):
+    check_mega_channels(mega9.harness, mega9.elf, 9)
+
+
+def test_the_mega_firmware_reads_sixteen_channels_each_on_its_input(tmp_path):
+    why = simavr_missing()
+    if why:
+        pytest.skip(why)
+    check_mega_channels(*build(tmp_path, n_channels=16, board="mega"), 16)
+
+
+@pytest.mark.parametrize("good, bad", [
+    # MUX5 never set: ADC8 is read as ADC0
+    ("ADCSRB = (uint8_t)(ch_mux >= 8u ? _BV(MUX5) : 0u);", "ADCSRB = 0u;"),
+    # MUX5 set for the channel converting now instead of the one latched next: ADC8 read as ADC0, ADC0 as ADC8
+    ("ADCSRB = (uint8_t)(ch_mux >= 8u ? _BV(MUX5) : 0u);", "ADCSRB = (uint8_t)(ch_conv >= 8u ? _BV(MUX5) : 0u);"),
+    # the UNO's mux code on the Mega: channel 8 is MUX3 (a differential input), not ADC8
+    ("ADMUX = (uint8_t)(_BV(REFS0) | (ch_mux & 7u));", "ADMUX = (uint8_t)(_BV(REFS0) | ch_mux);"),
+])
+def test_a_mega_firmware_with_a_broken_channel_select_fails(mega9, tmp_path, good, bad):
+    src = (FIRMWARE_DIR / "main.c").read_text()
+    assert src.count(good) == 1, f"main.c no longer has {good!r}: update the mutant"
+    (tmp_path / "main.c").write_text(src.replace(good, bad))
+    elf = tmp_path / "broken.elf"
+    subprocess.run(["avr-gcc", "-mmcu=atmega2560", "-DF_CPU=16000000UL", "-DSP_N_CHANNELS=9u", "-Os", "-std=c99",
+                    f"-I{FIRMWARE_DIR}", str(tmp_path / "main.c"), str(FIRMWARE_DIR / "frame.c"), "-o", str(elf)],
+                   check=True)
+    with pytest.raises(AssertionError):
+        check_mega_channels(mega9.harness, elf, 9)
+
+
+def test_the_harness_refuses_a_firmware_built_for_the_other_mcu(mega9, tools):
+    r = subprocess.run([str(mega9.harness), str(tools.elf)], input=b"Q", capture_output=True)
+    err = r.stderr.decode().strip().splitlines()
+    assert r.returncode == 2 and err == [
+        "fw_sim: the firmware is built for avr5, this harness runs atmega2560 (avr6): build both with the same make BOARD="]
+
+
+def _arm_signals(n_arms: int, duration_s=1.0):
+    """Constant, distinct transducer pressures for a board of n_arms + 1 channels (MPXV7002 arms
+    from -1.5 kPa up, an MPX4250D urethra at 30 kPa)."""
+    from softphantom.sensing.chain import default_chain
+    from softphantom.virtual.board import BoardSignals
+
+    t = np.arange(0.0, duration_s + 0.5 + 5e-4, 1e-3)
+    p_arms = -1500.0 + 250.0 * np.arange(n_arms)
+    p = np.tile(np.r_[p_arms, 30e3], (len(t), 1))
+    chain = default_chain([500e-9] * n_arms, arm_names=tuple(f"arm{k}" for k in range(n_arms)))
+    return BoardSignals(t, p[:, :n_arms], p, np.zeros(n_arms + 1), 0.0, np.full(n_arms, 0.1), chain)
+
+
+def test_the_virtual_board_on_the_mega_reads_eight_arms(mega9):
+    """`virtual run --board firmware --mcu mega` for a design of 8 arms: the emulated Mega's frames
+    carry N × each transducer's code, floor(1024 · ratio(p)), on its channel (the datasheet
+    transfer functions as the independent truth)."""
+    from softphantom.virtual.board import BoardConfig
+    from softphantom.virtual.firmware_sim import FirmwareBoard
+
+    sig = _arm_signals(8)
+    tr = sig.chain.transducers
+    codes = np.floor([1024 * tr[i].ratio(sig.p_transducer[0, i]) for i in range(9)]).astype(int)
+    assert len(set(codes)) == 9
+    fb = FirmwareBoard(sig, BoardConfig(osr=25, noise_codes=0.0, mcu="mega"), elf=mega9.elf, harness=mega9.harness)
+    data, t_fw = fb.frames(0.3)
+    fb.close()
+    frames = [f for f in StreamDecoder(9).feed(data) if isinstance(f, DataFrame)]
+    assert len(frames) == len(t_fw) and frames[-1].osr == 25
+    at25 = [f for f in frames if f.osr == 25][1:]
+    assert len(at25) >= 5 and all(list(f.raw) == list(25 * codes) for f in at25)
+    assert fb.rate_Hz == pytest.approx(1 / (9 * 25 * 104e-6))
+
+
+def test_a_board_with_too_few_inputs_is_refused_in_one_line(monkeypatch, tmp_path, capsys):
+    from types import SimpleNamespace
+
+    from softphantom import design
+    from softphantom.cli import main
+    from softphantom.errors import UserError
+    from softphantom.virtual import firmware_sim
+    from softphantom.virtual.board import BoardConfig
+    from softphantom.virtual.firmware_sim import FirmwareBoard
+
+    with pytest.raises(UserError, match=r"^--mcu uno: the Arduino UNO has 6 analog inputs \(A0-A5\), the design "
+                                        r"needs 9 channels \(8 arms and the urethra\); --mcu mega has 16$"):
+        FirmwareBoard(_arm_signals(8), BoardConfig(mcu="uno"))
+    with pytest.raises(UserError, match=r"^--mcu mega: the Arduino Mega 2560 has 16 analog inputs \(A0-A15\), the "
+                                        r"design needs 17 channels \(16 arms and the urethra\)$"):
+        firmware_sim.check_board("mega", 17)
+    # the CLI: a design of 6 arms on the UNO, refused before the truth's solve
+    monkeypatch.setattr(firmware_sim, "simavr_missing", lambda: None)
+    monkeypatch.setattr(design, "load_model",
+                        lambda d: SimpleNamespace(design=SimpleNamespace(arm_names=tuple("abcdef"))))
+    args = ["virtual", "run", "--scenario", "push-on-centre", "--model", str(tmp_path), "--out", str(tmp_path / "o"),
+            "--board", "firmware"]
+    for extra, words in (([], ["--mcu uno", "the Arduino UNO has 6 analog inputs", "7 channels", "--mcu mega"]),
+                         (["--mcu", "due"], ["--mcu", "uno, mega", "'due'"])):
+        code = main(args + extra)
+        err = capsys.readouterr().err.strip().splitlines()
+        assert code == 2 and len(err) == 1 and all(w in err[0] for w in words), err

@@ -1,4 +1,5 @@
-/* Firmware in the loop: runs the sensing board's own .elf (ATmega328P @ 16 MHz) in simavr.
+/* Firmware in the loop: runs the sensing board's own .elf in simavr, on the MCU it is built for
+ * (SIM_MCU: atmega328p, the UNO, or atmega2560, the Mega; both 16 MHz; make BOARD=uno|mega sim).
  *
  *   fw_sim FIRMWARE.elf [--vs VOLTS] [--noise CODES] [--seed N] [--log-adc]
  *
@@ -15,6 +16,7 @@
  * channel at its start and quantizes it as the datasheet does, code = floor(1024 V / VS + noise)
  * clipped to 0..1023 (Gaussian noise of --noise codes sigma, seeded), ratiometric with VS.
  */
+#include <elf.h>
 #include <math.h>
 #include <stdint.h>
 #include <stdio.h>
@@ -31,10 +33,15 @@
 #ifndef N_CH
 #define N_CH 5 /* the firmware's channel count (make N_CHANNELS=n sim builds both for n) */
 #endif
+#ifndef SIM_MCU
+#define SIM_MCU "atmega328p" /* the simavr core (make BOARD=mega sim: "atmega2560") */
+#endif
 /* one byte on the wire: 10 bits at the firmware's 117647 baud (UBRR 16, U2X) */
 #define RX_BYTE_CYCLES 1360u
 #define AVCC_MV 5000u
-#define ADCSRA_ADDR 0x7A /* ATmega328P data address */
+#define ADCSRA_ADDR 0x7A /* data address, the same on the ATmega328P and ATmega2560 */
+#define ADCSRB_ADDR 0x7B
+#define MUX5_BIT 0x08 /* ADCSRB bit 3 on the ATmega2560: MUX5:0 = 100xxx selects ADC8..ADC15 */
 #define ADATE_BIT 0x20
 
 typedef struct {
@@ -58,6 +65,7 @@ static buf_t tx, adc_log, rx_q;
 static size_t rx_pos;
 static avr_irq_t *adc_irq, *uart_irq;
 static uint16_t prev_code;
+static int upper_bank_folded;
 static int have_prev;
 
 static void die(const char *msg)
@@ -127,7 +135,11 @@ static void on_adc_start(struct avr_irq_t *irq, uint32_t value, void *param)
         uint32_t v;
     } e = {.v = value};
     unsigned ch = e.mux.src;
-    if (e.mux.kind != ADC_MUX_SINGLE || ch >= N_CH)
+    if (e.mux.kind != ADC_MUX_SINGLE)
+        return;
+    if (upper_bank_folded && (avr->data[ADCSRB_ADDR] & MUX5_BIT))
+        ch += 8u; /* ADC8..15, reported as slots 0..7 (fold_upper_bank) */
+    if (ch >= N_CH)
         return;
     double x = 1024.0 * volts_at(avr->cycle, ch) / vs;
     if (noise > 0)
@@ -140,7 +152,7 @@ static void on_adc_start(struct avr_irq_t *irq, uint32_t value, void *param)
     prev_code = code;
     have_prev = 1;
     uint32_t mv = ((uint32_t)shown * AVCC_MV + 1022u) / 1023u;
-    avr_raise_irq(adc_irq + ADC_IRQ_ADC0 + ch, mv);
+    avr_raise_irq(adc_irq + ADC_IRQ_ADC0 + (ch & 7u), mv);
     if (log_adc) {
         uint8_t rec[11];
         uint64_t c = avr->cycle;
@@ -148,6 +160,26 @@ static void on_adc_start(struct avr_irq_t *irq, uint32_t value, void *param)
         rec[8] = (uint8_t)ch;
         memcpy(rec + 9, &code, 2);
         put(&adc_log, rec, sizeof rec);
+    }
+}
+
+/* simavr 1.6 holds 8 ADC input values (adc_values[8]): it ignores ADC_IRQ_ADC8..15 and, for
+ * MUX5:0 = 100xxx, reads past that array. ADC8..15 (the Mega's A8-A15) are folded onto slots 0..7
+ * here, which is exact because each value is given when a conversion starts (on_adc_start) and read
+ * by the ADC interrupt that comes with it, long before the next start; the channel comes from MUX5. */
+static void fold_upper_bank(void)
+{
+    for (avr_io_t *io = avr->io_port; io; io = io->next) {
+        if (strcmp(io->kind, "adc"))
+            continue;
+        avr_adc_t *a = (avr_adc_t *)io;
+        for (unsigned k = 0; k < 8; ++k) {
+            avr_adc_mux_t *m = &a->muxmode[32u + k];
+            if (m->kind == ADC_MUX_SINGLE && m->src == 8u + k) {
+                m->src = k;
+                upper_bank_folded = 1;
+            }
+        }
     }
 }
 
@@ -207,10 +239,10 @@ static void add_points(uint32_t n)
 static void uart_fix_timing(void)
 {
     for (avr_io_t *io = avr->io_port; io; io = io->next) {
-        if (strcmp(io->kind, "uart"))
-            continue;
+        if (strcmp(io->kind, "uart") || ((avr_uart_t *)io)->name != '0')
+            continue; /* the firmware's UART0 (the 2560 has three more) */
         avr_uart_t *u = (avr_uart_t *)io;
-        uint8_t *d = avr->data;
+        uint8_t *d = avr->data; /* USART0's registers: the same addresses on both MCUs */
         uint32_t ubrr = d[0xC4] | ((uint32_t)(d[0xC5] & 0x0F) << 8); /* UBRR0L/H */
         uint32_t bits = 1u + 8u + ((d[0xC2] & 0x30) ? 1u : 0u) + ((d[0xC2] & 0x08) ? 2u : 1u);
         uint32_t per_bit = (ubrr + 1u) * ((d[0xC0] & 0x02) ? 8u : 16u); /* UCSR0A U2X0 */
@@ -225,6 +257,23 @@ static avr_cycle_count_t uart_fix_tick(struct avr_t *a, avr_cycle_count_t when, 
     (void)param;
     uart_fix_timing();
     return 0;
+}
+
+/* A firmware built for another MCU would run with the wrong vector table and registers: refuse it
+ * by the AVR architecture avr-gcc writes in the ELF header (avr5: ATmega328P, avr6: ATmega2560). */
+static void check_arch(const char *path)
+{
+    Elf32_Ehdr h;
+    FILE *f = fopen(path, "rb");
+    if (!f || fread(&h, sizeof h, 1, f) != 1 || h.e_machine != EM_AVR)
+        die("cannot read the firmware .elf");
+    fclose(f);
+    unsigned want = strcmp(SIM_MCU, "atmega2560") ? 5u : 6u, got = h.e_flags & 0x7Fu;
+    if (got != want) {
+        fprintf(stderr, "fw_sim: the firmware is built for avr%u, this harness runs " SIM_MCU " (avr%u): "
+                        "build both with the same make BOARD=\n", got, want);
+        exit(2);
+    }
 }
 
 static void run_until(uint64_t until)
@@ -273,13 +322,14 @@ int main(int argc, char **argv)
     out = fdopen(dup(1), "wb");
     dup2(2, 1);
 
+    check_arch(elf);
     elf_firmware_t fw;
     memset(&fw, 0, sizeof fw);
     if (elf_read_firmware(elf, &fw))
         die("cannot read the firmware .elf");
-    avr = avr_make_mcu_by_name("atmega328p");
+    avr = avr_make_mcu_by_name(SIM_MCU);
     if (!avr)
-        die("simavr has no atmega328p core");
+        die("simavr has no " SIM_MCU " core");
     avr_init(avr);
     avr->log = LOG_ERROR;
     avr_load_firmware(avr, &fw);
@@ -291,6 +341,7 @@ int main(int argc, char **argv)
     adc_irq = avr_io_getirq(avr, AVR_IOCTL_ADC_GETIRQ, 0);
     uart_irq = avr_io_getirq(avr, AVR_IOCTL_UART_GETIRQ('0'), 0);
     avr_irq_register_notify(adc_irq + ADC_IRQ_OUT_TRIGGER, on_adc_start, NULL);
+    fold_upper_bank();
     avr_irq_register_notify(uart_irq + UART_IRQ_OUTPUT, on_uart_out, NULL);
 
     avr_cycle_timer_register(avr, F_CPU / 1000u, uart_fix_tick, NULL); /* once the UART is set up */

@@ -17,13 +17,14 @@ app.add_typer(virtual_app, name="virtual")
 
 SCENARIO_HELP = "Scenario TOML file, or a bundled one: needle-insertion, push-on-centre, push-off-centre, urethra-inflation."
 BOARD_OPTION = typer.Option("python", "--board", help="The virtual board: python (a model of the firmware) or firmware (firmware/main.c run in simavr; needs the Debian packages simavr, libsimavr-dev).")
+MCU_OPTION = typer.Option("uno", "--mcu", help="With --board firmware, the Arduino the firmware is built for and emulated on: uno (ATmega328P, 6 analog inputs: up to 5 arms and the urethra) or mega (ATmega2560, 16 analog inputs: up to 15 arms).")
 
 
 def _config(seed: int, osr: int, mesh_scale: float, bench_options: dict | None = None, order: int | None = None,
-            board: str = "python"):
+            board: str = "python", mcu: str = "uno"):
     """The run's settings; ``bench_options`` (``tube_length_m``, ``tube_id_mm``; None = the
     paper's) set the tubes of both the virtual board's physics and the host's chain; ``order`` the
-    truth's element order (None: TruthConfig's, 2)."""
+    truth's element order (None: TruthConfig's, 2); ``mcu`` the Arduino of ``board`` "firmware"."""
     from dataclasses import replace
 
     from softphantom.sensing.bench import BenchConfig
@@ -38,22 +39,28 @@ def _config(seed: int, osr: int, mesh_scale: float, bench_options: dict | None =
     cfg = VirtualConfig.seeded(seed=seed, osr=osr, mesh_scale=mesh_scale, board_kind=board,
                                **({} if order is None else {"order": order}))
     b = BenchConfig.from_options(**(bench_options or {}))
-    return replace(cfg, board=replace(cfg.board, tube_length_m=b.tube_length_m, tube_id_m=b.tube_id_m))
+    return replace(cfg, board=replace(cfg.board, tube_length_m=b.tube_length_m, tube_id_m=b.tube_id_m, mcu=mcu))
 
 
 def _simulate(scenario: str, model_dir: Path, seed: int, osr: int, mesh_scale: float,
-              bench_options: dict | None = None, order: int | None = None, board: str = "python"):
+              bench_options: dict | None = None, order: int | None = None, board: str = "python",
+              mcu: str = "uno"):
     """Load the scenario and the model, solve the truth (its progress logged): the VirtualRun."""
     from softphantom.design import load_model
     from softphantom.virtual import load_scenario, simulate
 
     sc = load_scenario(scenario)
-    cfg = _config(seed, osr, mesh_scale, bench_options, order, board)
-    if board == "firmware":  # before the truth's solve: the emulator is built here or its absence named
+    cfg = _config(seed, osr, mesh_scale, bench_options, order, board, mcu)
+    if board == "firmware":  # the emulator's absence named first
+        from softphantom.virtual.firmware_sim import SimavrMissing, simavr_missing
+
+        if why := simavr_missing():
+            raise SimavrMissing(why)
+    model = load_model(model_dir)
+    if board == "firmware":  # before the truth's solve: the board's inputs checked, the emulator built
         from softphantom.virtual.firmware_sim import build
 
-        build()
-    model = load_model(model_dir)
+        build(n_channels=len(model.design.arm_names) + 1, board=mcu)
     return simulate(sc, model, cfg)
 
 
@@ -89,13 +96,14 @@ def run_cmd(
     tube_id_mm: float = TUBE_ID_OPTION,
     overwrite: bool = overwrite_option(),
     board: str = BOARD_OPTION,
+    mcu: str = MCU_OPTION,
 ) -> None:
     """Simulate a scenario: write the board's frames, a recording, the tracker's Motive CSV, the truth."""
     from softphantom.virtual import run_summary, write_run
 
     check_output(out, overwrite=overwrite, directory=True)
     run = _simulate(scenario, model_dir, seed, osr, truth_mesh_scale,
-                    dict(tube_length_m=tube_length_m, tube_id_mm=tube_id_mm), truth_order, board)
+                    dict(tube_length_m=tube_length_m, tube_id_mm=tube_id_mm), truth_order, board, mcu)
     with staged_output(out, overwrite=overwrite, directory=True) as work:
         paths = write_run(run, work)
     _print_summary(run_summary(run))
@@ -122,6 +130,7 @@ def serve_cmd(
     allow_remote: bool = typer.Option(False, "--allow-remote", help="Let --natnet-host be beyond loopback (every "
                                       "interface: 0.0.0.0); the NatNet stream has no authentication."),
     board: str = BOARD_OPTION,
+    mcu: str = MCU_OPTION,
 ) -> None:
     """Serve the scenario's frames on a pty as the board would: prints the port path to use."""
     import sys
@@ -135,7 +144,7 @@ def serve_cmd(
     if natnet:
         _check_natnet(natnet_host, natnet_version, allow_remote)
     run = _simulate(scenario, model_dir, seed, osr, truth_mesh_scale,
-                    dict(tube_length_m=tube_length_m, tube_id_mm=tube_id_mm), truth_order, board)
+                    dict(tube_length_m=tube_length_m, tube_id_mm=tube_id_mm), truth_order, board, mcu)
     stop_natnet = _start_natnet(run, natnet_host, natnet_port, natnet_version, speed) if natnet else None
     sc = run.scenario
     master, slave, path = open_pty()

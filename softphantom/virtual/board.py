@@ -54,8 +54,15 @@ class BoardConfig:
     #: urethra; all 1: the datasheet's for any count): a gain of 1.05 reads 5 % high (for
     #: calibration studies)
     gains: tuple[float, ...] = (1.0, 1.0, 1.0, 1.0, 1.0)
+    #: the Arduino the firmware is built for when the emulated firmware is the board (``virtual
+    #: --board firmware --mcu``): "uno" (6 analog inputs) or "mega" (16)
+    mcu: str = "uno"
 
     def __post_init__(self) -> None:
+        from softphantom.virtual.firmware_sim import BOARDS
+
+        if self.mcu not in BOARDS:
+            raise UserError(f"--mcu: must be one of {', '.join(BOARDS)}, got {self.mcu!r}")
         if not 1 <= int(self.osr) <= 500:
             raise UserError(f"osr: must be 1..500 (the firmware's range), got {self.osr}")
         if not self.noise_codes >= 0:

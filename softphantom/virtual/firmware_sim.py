@@ -1,10 +1,11 @@
 """The board's own firmware in an AVR emulator: ``firmware/build/bip_sensing.elf`` run by simavr.
 
 :class:`FirmwareSim` drives the harness ``firmware/sim/fw_sim.c`` (built on demand by
-``make -C firmware sim``; it needs the Debian packages ``simavr`` and ``libsimavr-dev``): the host
-gives the voltages at the five ADC inputs on a time grid and the bytes it sends, the emulated
-ATmega328P runs until a given time, and the bytes the firmware sent come back with the emulator
-cycle at which each was written. Time is the emulator's cycle count (16 MHz, so the board clock
+``make -C firmware BOARD=uno|mega N_CHANNELS=n sim``; it needs the Debian packages ``simavr`` and
+``libsimavr-dev``): the host gives the voltages at the n ADC inputs on a time grid and the bytes it
+sends, the emulated MCU (the UNO's ATmega328P or the Mega's ATmega2560, :data:`BOARDS`) runs until a
+given time, and the bytes the firmware sent come back with the emulator cycle at which each was
+written. Time is the emulator's cycle count (16 MHz, so the board clock
 ``t_us`` is cycles / 16 from reset). Each ADC conversion takes its channel's voltage at its start
 (linear between grid points) and quantizes it as the datasheet does, floor(1024·V/VS + noise).
 
@@ -33,6 +34,49 @@ SIMAVR_HEADER = Path("/usr/include/simavr/sim_avr.h")
 VS_V = 5.0
 """The transducers' supply, which is also the ADC's reference (AVcc): readings are ratiometric."""
 
+
+
+@dataclass(frozen=True)
+class Arduino:
+    """A board the firmware is built for (``make BOARD=name``): its MCU and analog inputs."""
+
+    name: str
+    label: str
+    mcu: str
+    analog_inputs: int
+    pins: str
+
+
+BOARDS = {"uno": Arduino("uno", "Arduino UNO", "atmega328p", 6, "A0-A5"),
+          "mega": Arduino("mega", "Arduino Mega 2560", "atmega2560", 16, "A0-A15")}
+"""The boards the firmware builds for; both run at 16 MHz, their USB serial on USART0."""
+DEFAULT_BOARD = "uno"
+
+
+def check_board(board: str, n_channels: int) -> Arduino:
+    """The board named ``board`` if it has an analog input for each of ``n_channels``, else a
+    one-line UserError naming both.
+
+    >>> check_board("mega", 9).mcu
+    'atmega2560'
+    >>> check_board("uno", 7)
+    Traceback (most recent call last):
+    ...
+    softphantom.errors.UserError: --mcu uno: the Arduino UNO has 6 analog inputs (A0-A5), the design needs 7 channels (6 arms and the urethra); --mcu mega has 16
+    """
+    b = BOARDS.get(board)
+    if b is None:
+        raise UserError(f"--mcu: must be one of {', '.join(BOARDS)}, got {board!r}")
+    n = n_channels
+    if isinstance(n, int) and n > b.analog_inputs:  # before the protocol's limit, which is the Mega's
+        more = [o for o in BOARDS.values() if o.analog_inputs >= n]
+        hint = f"; --mcu {more[0].name} has {more[0].analog_inputs}" if more else ""
+        raise UserError(f"--mcu {b.name}: the {b.label} has {b.analog_inputs} analog inputs ({b.pins}), the design "
+                        f"needs {n} channels ({n - 1} arms and the urethra){hint}")
+    check_channels(n)
+    return b
+
+
 _TX = np.dtype([("cycle", "<u8"), ("byte", "u1")])
 _ADC = np.dtype([("cycle", "<u8"), ("ch", "u1"), ("code", "<u2")])
 
@@ -52,22 +96,27 @@ def simavr_missing() -> str | None:
     return None
 
 
-def build(build_dir: Path | None = None, n_channels: int = N_CHANNELS) -> tuple[Path, Path]:
-    """(harness, firmware .elf) for a board of ``n_channels``, built by ``make -C firmware
-    N_CHANNELS=n sim`` if out of date (in firmware/build, or build_<n> for another count)."""
+def build(build_dir: Path | None = None, n_channels: int = N_CHANNELS,
+          board: str = DEFAULT_BOARD) -> tuple[Path, Path]:
+    """(harness, firmware .elf) for a ``board`` (:data:`BOARDS`) of ``n_channels``, built by ``make
+    -C firmware BOARD=board N_CHANNELS=n sim`` if out of date (in firmware/build for the BIP's UNO
+    of 5, else build_<n> on the UNO, build_mega_<n> on the Mega)."""
+    b = check_board(board, n_channels)
     why = simavr_missing()
     if why:
         raise SimavrMissing(why)
     if not (FIRMWARE_DIR / "Makefile").exists():
         raise UserError(f"--board firmware: the firmware sources are not at {FIRMWARE_DIR} (a source checkout is needed)")
-    n = check_channels(n_channels)
-    build_dir = Path(build_dir) if build_dir else FIRMWARE_DIR / ("build" if n == N_CHANNELS else f"build_{n}")
-    r = subprocess.run(["make", "-s", "-C", str(FIRMWARE_DIR), f"BUILD={build_dir.resolve()}", f"N_CHANNELS={n}", "sim"],
-                       capture_output=True, text=True)
+    n = n_channels
+    if not build_dir:
+        sub = "build" if n == N_CHANNELS else f"build_{n}"
+        build_dir = FIRMWARE_DIR / (sub if b.name == DEFAULT_BOARD else f"build_{b.name}_{n}")
+    r = subprocess.run(["make", "-s", "-C", str(FIRMWARE_DIR), f"BUILD={Path(build_dir).resolve()}", f"BOARD={b.name}",
+                        f"N_CHANNELS={n}", "sim"], capture_output=True, text=True)
     if r.returncode:
         last = (r.stderr.strip() or r.stdout.strip()).splitlines()[-1:] or ["?"]
         raise UserError(f"--board firmware: building the emulator harness failed: {last[0]}")
-    return build_dir / "fw_sim", build_dir / "bip_sensing.elf"
+    return Path(build_dir) / "fw_sim", Path(build_dir) / "bip_sensing.elf"
 
 
 @dataclass(frozen=True, eq=False)
@@ -85,14 +134,17 @@ class SimOutput:
 class FirmwareSim:
     """A running emulated board (a subprocess; use as a context manager or call :meth:`close`).
 
-    ``elf`` the firmware (default: built from ``firmware/``), ``noise_codes`` Gaussian ADC input
-    noise (σ, codes; seeded by ``seed``), ``log_adc`` return every conversion."""
+    ``elf`` the firmware (default: built from ``firmware/`` for ``board`` and ``n_channels``; a
+    given ``elf`` and ``harness`` must be built for both), ``noise_codes`` Gaussian ADC input noise
+    (σ, codes; seeded by ``seed``), ``log_adc`` return every conversion."""
 
     def __init__(self, elf: Path | None = None, *, harness: Path | None = None, vs_V: float = VS_V,
-                 noise_codes: float = 0.0, seed: int = 0, log_adc: bool = False, n_channels: int = N_CHANNELS):
+                 noise_codes: float = 0.0, seed: int = 0, log_adc: bool = False, n_channels: int = N_CHANNELS,
+                 board: str = DEFAULT_BOARD):
         self.n_channels = check_channels(n_channels)
+        self.board = check_board(board, self.n_channels)
         if elf is None or harness is None:
-            h, e = build(n_channels=self.n_channels)
+            h, e = build(n_channels=self.n_channels, board=board)
             harness, elf = harness or h, elf or e
         args = [str(harness), str(elf), "--vs", repr(float(vs_V)), "--noise", repr(float(noise_codes)),
                 "--seed", str(int(seed))]
@@ -169,7 +221,8 @@ class FirmwareBoard:
     ``rate_Hz``, ``seq``, ``duration_s``) plus :meth:`receive` for the host's raw bytes.
 
     The transducers' output voltages come from ``signals`` (the 1 kHz grid of
-    :func:`~softphantom.virtual.board.board_signals`); noise and seed from ``config``. The firmware
+    :func:`~softphantom.virtual.board.board_signals`); noise, seed and the board the firmware is
+    built for (``config.mcu``, :data:`BOARDS`) from ``config``. The firmware
     starts at its default OSR (100) and announces itself with an INFO frame; a ``config.osr``
     other than that is set with SET_OSR before the first window, as the host's ``acquire`` does.
     Frames come out when the firmware sends them (after their window), stamped by its own clock."""
@@ -188,7 +241,8 @@ class FirmwareBoard:
         n = len(tr)  # the board's channels: the arms, then the urethra
         self._volts = VS_V * np.column_stack([tr[i].ratio(p[:, i]) for i in range(n)])
         self._sent_to = 0  # grid points already given to the emulator
-        self._sim = FirmwareSim(elf, harness=harness, noise_codes=config.noise_codes, seed=config.seed, n_channels=n)
+        self._sim = FirmwareSim(elf, harness=harness, noise_codes=config.noise_codes, seed=config.seed, n_channels=n,
+                                board=config.mcu)
         self._dec = StreamDecoder(n)
         self._feed(self.LEAD_S)
         self._pending = b""
