@@ -70,6 +70,34 @@ def test_serial_source_reports_silence_unplug_replug_and_restart_with_times():
     assert len(got) == 8
 
 
+def test_a_slow_board_of_many_channels_is_not_taken_for_silent():
+    """A Mega's 16 channels at OSR 500 take 0.83 s a frame (16 × 500 × 104 µs): the host waits two
+    frame periods, not its 0.5 s, before it calls the link silent."""
+    clock = Clock()
+    arms = tuple(f"a{i}" for i in range(15))
+    chain = default_chain([500e-9] * 15, arm_names=arms)
+    port = []
+
+    def opener(url, **kw):
+        port.append(serial.serial_for_url("loop://", **kw))
+        return port[-1]
+
+    src = SerialSource("fake", chain, opener=opener, clock=clock)
+    src.read(0.001)
+    frame_s = 16 * 500 * 13 * 128 / 16e6
+    for k in range(3):
+        port[0].write(encode_data(k, int(k * frame_s * 1e6), 500, [51150 // 4 * 500 // 25] * 15 + [4046 * 20]))
+        got = src.read(0.001) + src.read(0.001)
+        assert len(got) == 1, k
+        clock.t += frame_s
+        src.read(0.001)
+    assert src.events() == [] and src.silence_limit_s() == pytest.approx(2 * frame_s)
+    clock.t += 2 * frame_s
+    src.read(0.001)
+    assert [e.kind for e in src.events()] == ["silent"]
+    src.close()
+
+
 def test_recording_marker_rows_round_trip_and_replay(tmp_path):
     chain = default_chain()
     ms = list(FrameSource([_frames(range(10))], chain, nominal_tare(chain)))

@@ -12,7 +12,8 @@ F_CPU_HZ = 16_000_000
 ADC_CYCLES_PER_CONVERSION = 13
 N_CHANNELS = 5
 OSR_MIN, OSR_MAX = 1, 500
-"""OSR range the firmware accepts: at 500 a frame takes 0.26 s, inside the 0.5 s silence limit."""
+"""OSR range the firmware accepts: at 500 a frame of the BIP's 5 channels takes 0.26 s, inside the
+host's 0.5 s silence limit; of a Mega's 16, 0.83 s (the host then waits two frame periods)."""
 
 
 def conversion_time_s(prescaler: int = 128, f_cpu_Hz: float = F_CPU_HZ) -> float:

@@ -20,6 +20,7 @@ from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 
 from softphantom.records.measurement import EVENT_KINDS, Measurement, SourceEvent  # noqa: F401  (EVENT_KINDS, SourceEvent: re-exported)
+from softphantom.sensing.board import frame_rate_Hz
 from softphantom.sensing.chain import SensorChain, Tare, nominal_tare, to_measurement
 from softphantom.sensing.protocol import (
     DataFrame,
@@ -195,8 +196,15 @@ class FrameSource(SensorSource):
             self._state = "ok"
         return out
 
+    def silence_limit_s(self) -> float:
+        """How long without a valid frame counts as silent: ``silence_s``, or two frame periods of
+        the board's channels at its OSR when that is longer (16 channels at OSR 500: 0.83 s a frame)."""
+        if self._osr is None:
+            return self._silence_s
+        return max(self._silence_s, 2.0 / frame_rate_Hz(self._osr, n_channels=self.chain.n_channels))
+
     def _check_silence(self, now: float) -> None:
-        if self._state == "ok" and self._last_rx is not None and now - self._last_rx > self._silence_s:
+        if self._state == "ok" and self._last_rx is not None and now - self._last_rx > self.silence_limit_s():
             self._state = "silent"
             self._silent_events += 1
             self._event(now, "silent", f"no valid frame for {now - self._last_rx:.2f} s")
