@@ -408,7 +408,8 @@ def test_virtual_run_with_the_firmware_board(tools, coarse_model, coarse_truth_p
     assert [f.osr for f in fr[2:4]] == [100, 25]   # the first window had started at N = 100
     assert dec.stats.frames_lost == 0 and dec.stats.rejected == 0
     rec = read_recording(paths["recording"])
-    assert json.loads(paths["meta"].read_text())["board"]["kind"] == "firmware"
+    board = json.loads(paths["meta"].read_text())["board"]
+    assert board["kind"] == "firmware" and board["mcu"] == "uno"
     assert np.all(rec.osr[1:] == 25) and np.all(np.diff(rec.seq) == 1)
     from dataclasses import replace
 

@@ -220,6 +220,7 @@ def run_summary(run: VirtualRun) -> dict:
         "scenario": run.scenario.name, "source": run.scenario.source, "duration_s": run.scenario.duration_s,
         "truth": run.truth.summary(),
         "board": {"osr": run.config.board.osr, "rate_Hz": round(run.rate_Hz, 3), "kind": run.config.board_kind,
+                  **({"mcu": run.config.board.mcu} if run.config.board_kind == "firmware" else {}),
                   "seed": run.config.board.seed,
                   "offsets_Pa": [round(float(x), 2) for x in s.offsets_Pa],
                   "drift_Pa_per_s": round(s.drift_Pa_per_s, 4),
