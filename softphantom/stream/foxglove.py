@@ -96,8 +96,9 @@ def nice_colour_max_mm(x_mm: float) -> float:
 def arm_colour(name: str, arm_names: Sequence[str]) -> str:
     """The colour of cavity ``name`` among the arms ``arm_names`` (a cavity not an arm: grey).
 
-    >>> [arm_colour(n, ("front_zpos", "front_zneg", "back_xpos", "back_xneg")) for n in ("back_xneg", "urethra")]
-    ['#9467bd', '#8c8c8c']
+    >>> arms = ("front_zpos", "front_zneg", "back_xpos", "back_xneg", "top")
+    >>> [arm_colour(n, arms) for n in ("back_xneg", "top", "urethra")]
+    ['#9467bd', '#8c564b', '#8c8c8c']
     """
     arms = list(arm_names)
     return ARM_PALETTE[arms.index(name) % len(ARM_PALETTE)] if name in arms else OTHER_CAVITY
