@@ -327,7 +327,7 @@ def test_a_recording_of_five_arms_names_them_and_reads_back(tmp_path):
     assert _schemas(bip)["/estimate"] == ESTIMATE_JSON_SCHEMA == json_schemas()["/estimate"]
     rb = read_recording(bip)
     assert "arm_names" not in rb.metadata and rb.arm_names == ARM_NAMES
-    # a file without the key (as the BIP's, and as files written before it) takes its arms from its messages
+    # a file without the key takes its arms from its messages
     legacy = tmp_path / "legacy.mcap"
     with SessionRecorder(legacy) as rec:
         rec.write_estimate(estimate_to_message(ests[1], 0, time.time()))

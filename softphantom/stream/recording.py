@@ -14,7 +14,7 @@ Channels (JSON-schema'd, ``json`` message encoding; keys carry their units):
 The arms are the phantom's (``arm_names``, in the sensor order): the ``/estimate`` and ``/sensors``
 schemas list each arm's keys, and a recording of arms other than the BIP's four also names them in
 its metadata (``arm_names``, a JSON list); :attr:`Recording.arm_names` reads them back (from the
-metadata, else from the messages' keys: a BIP file written before this key existed reads as ever).
+metadata, else from the messages' keys, so a file without the key reads with its arms).
 
 Crash safety: the writer closes its chunk and flushes it to the operating system every
 ``flush_interval_s`` (default 1 s) and at every chunk-size limit. A session killed at any moment
