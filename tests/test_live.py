@@ -535,3 +535,112 @@ def test_live_from_the_virtual_phantom(coarse_model, virtual_run, tmp_path):
     assert main(["recording-csv", str(rec), "--out", str(tmp_path / "e.csv")]) == 0
     assert read_estimate_csv(tmp_path / "e.csv")[0]["contact_radius_mm"] == pytest.approx(4.0)
     assert est.node_positions().shape == (n_nodes, 3)
+
+
+# --- a phantom of five arms (names from its design) ---------------------------------------------
+
+FIVE = {"arm_names": ["front_zpos", "front_zneg", "back_xpos", "back_xneg", "top"],
+        "arms": {"top": {"direction": [0.0, 0.6, 1.0], "cavity_volume_mm3": 486.0}}}
+
+
+@pytest.fixture(scope="module")
+def five_model_dir(tmp_path_factory):
+    """The five-arm design of tests/test_arms_generic.py, meshed at 12 mm (linear) and saved."""
+    from softphantom.design import build_model, save_model
+    from softphantom.design.params import design_from_dict
+
+    d = tmp_path_factory.mktemp("five") / "model"
+    save_model(build_model(design_from_dict(FIVE), 12.0, isolate=False), d)
+    return d
+
+
+def _five_arm_estimate_file(path, targets) -> None:
+    """51 estimates at 100 Hz; at estimate i arm k (0-based, sensor order) measured (k + 1) · i mm³
+    and predicted half that, so each value names its arm and its estimate."""
+    from dataclasses import replace
+
+    from softphantom.estimation.stream import write_estimates
+
+    k = np.arange(1, 6)
+    ests = [replace(e, t=i / 100, arm_names=tuple(FIVE["arm_names"]), volume_meas=k * i * 1e-9,
+                    volume_pred=k * i * 0.5e-9, target_shift={n: np.zeros(3) for n in targets})
+            for i, e in enumerate(SyntheticSource(rate_Hz=100, duration_s=0.51, realtime=False, subdivisions=1))]
+    write_estimates(path, ests, targets, {"contact": "on-centre"}, arm_names=FIVE["arm_names"])
+
+
+def test_five_arms_replayed_to_the_page_the_stream_and_the_recording(five_model_dir, coarse_model_dir, tmp_path, capsys):
+    """An estimate file of five arms replayed with its model: the page is told the five arms (state
+    and geometry, the top arm's cavity drawn), its frames, the stream and the recording carry five
+    named volume series with their values, and the recording replays with its arms."""
+    arms = FIVE["arm_names"]
+    csv = tmp_path / "five.csv"
+    _five_arm_estimate_file(csv, ["apex"])
+    rp = open_source(f"replay:{csv}", model=five_model_dir, speed=1.0).source
+    assert rp.arm_names == tuple(arms) and rp.geometry.arm_names == tuple(arms) and "top" in rp.geometry.cavities
+    rec = tmp_path / "five.mcap"
+    with LiveSession(rp, LiveConfig(http_port=0, stream_port=0, record=rec, view_rate_Hz=20)) as s:
+        sub = EstimateSubscriber(s.stream_endpoint)
+        try:
+            st = json.loads(_get(s.url + "api/state"))
+            geo = json.loads(_get(s.url + "api/geometry"))
+            assert st["arms"] == arms and geo["arms"] == arms and "top" in geo["cavities"]
+            frames = _sse_frames(s.url, 3)
+            got = []
+            while not s.wait(timeout_s=0.05):
+                while (m := sub.recv(timeout_s=0)) is not None:
+                    got.append(m)
+            while (m := sub.recv(timeout_s=0.5)) is not None:
+                got.append(m)
+        finally:
+            sub.close()
+    samples = [m for f in frames for m in f["samples"]]
+    assert samples and got
+    for m in samples + got:  # five named series, each with its arm's values
+        assert [k for k in m if k.startswith("dVmeas_")] == [f"dVmeas_{a}_mm3" for a in arms]
+        for k, a in enumerate(arms):
+            assert m[f"dVmeas_{a}_mm3"] == pytest.approx((k + 1) * m["seq"])
+            assert m[f"dVpred_{a}_mm3"] == pytest.approx(0.5 * (k + 1) * m["seq"])
+    r = read_recording(rec)
+    assert r.arm_names == tuple(arms) and r.geometry["arms"] == arms and len(r.estimates) == 51
+    assert r.estimates[-1]["dVmeas_top_mm3"] == pytest.approx(250.0)
+    again = open_source(f"replay:{rec}", speed=0).source
+    assert again.arm_names == tuple(arms) and again.geometry.arm_names == tuple(arms)
+    # with a model of other arms: one line naming both lists
+    assert main(["live", "--source", f"replay:{csv}", "--model", str(coarse_model_dir), "--http-port", "0"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "(front_zpos, front_zneg, back_xpos, back_xneg, top)" in err, err
+    assert "are not the model's (front_zpos, front_zneg, back_xpos, back_xneg)" in err, err
+
+
+def test_live_estimates_a_five_arm_board_recording(five_model_dir, tmp_path):
+    """``live`` over a sensing recording of a five-arm board (six channels) with its model: every
+    sample estimated through all five arms, the sensor samples recorded with the board's names."""
+    from softphantom.design import load_model
+    from softphantom.sensing.bench import BenchConfig
+    from softphantom.sensing.chain import nominal_tare, simulate_raw, to_measurement
+    from softphantom.sensing.pneumatics import boyle_dp
+    from softphantom.sensing.recording import Recorder
+
+    arms = tuple(FIVE["arm_names"])
+    bench = BenchConfig.from_model(load_model(five_model_dir))
+    chain, rng = bench.chain(), np.random.default_rng(3)
+    tare = nominal_tare(chain, bench.p0_Pa)
+    # volumes of a push of about (0.2, 1, -0.1) N on this model, reached at sample 10 and held
+    dV = np.array([2.54, 1.25, -2.23, -1.19, -0.94]) * 1e-9
+    path = tmp_path / "board.csv"
+    with Recorder(path, {"bench": bench.to_meta(), "tare": tare.to_dict(), "chain": chain.summary()},
+                  arm_names=arms) as r:
+        for k in range(20):
+            p = np.r_[boyle_dp(dV * min(1.0, k / 10), chain.v_total_m3, tare.p0_Pa), 0.0]
+            r.write(to_measurement(k / 77, k, k / 77, simulate_raw(p, 100, rng, chain.transducers), 100, chain, tare))
+    rec = tmp_path / "board.mcap"
+    assert main(["live", "--source", f"replay:{path}", "--model", str(five_model_dir), "--estimator", "refresh",
+                 "--speed", "0", "--no-stream", "--http-port", "0", "--record", str(rec)]) == 0
+    r = read_recording(rec)
+    assert r.arm_names == arms and len(r.estimates) == len(r.sensors) == 20
+    assert [k for k in r.sensors[0] if k.startswith("raw_")] == [f"raw_{a}" for a in (*arms, "urethra")]
+    for e, m in zip(r.estimates, r.sensors):  # the estimator took each sample's five volumes
+        for a in arms:
+            assert e[f"dVmeas_{a}_mm3"] == pytest.approx(m[f"dV_{a}_mm3"], abs=1e-9)
+    assert r.sensors[-1]["dV_top_mm3"] == pytest.approx(-0.94, abs=0.1)  # through the chain and its noise
+    assert 0.6 < r.estimates[-1]["force_y_N"] < 1.4, r.estimates[-1]["force_y_N"]

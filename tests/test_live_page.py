@@ -356,3 +356,40 @@ def test_the_end_of_a_replay_shows_ended_not_reconnecting(browser):
     assert badge.inner_text() == "server: ended" and badge.get_attribute("data-level") == "wait"
     assert page.page.locator("#badge-link").inner_text() == "link: ended"
     page.close()  # no console error: nothing tried to reconnect
+
+
+def test_a_five_arm_phantom_gets_a_cavity_and_a_plot_line_per_arm(browser):
+    """A source of five named arms (here told by its geometry): the cavity plot has a measured and a
+    predicted line per arm, labelled with its name and showing its value; the legend of the 3-D
+    view lists each arm's cavity in its line's colour (the fifth arm's is the palette's fifth)."""
+    from dataclasses import replace
+
+    arms = ("front_zpos", "front_zneg", "back_xpos", "back_xneg", "top")
+    g = ellipsoid_geometry(subdivisions=1)
+    used, inv = np.unique(g.cavities["front_zpos"], return_inverse=True)  # a stand-in top cavity, 8 mm higher
+    nodes = np.vstack([g.nodes, g.nodes[used] + [0.0, 0.0, 0.008]])
+    cavities = {**g.cavities, "top": inv.reshape(-1, 3) + len(g.nodes)}
+    geo = replace(g, nodes=nodes, node_index=np.arange(len(nodes)), cavities=cavities, arm_names=arms)
+    src = ScriptedSource(geo)
+    with LiveSession(src, LiveConfig(http_port=0, stream_port=None)) as s:
+        page = Watched(browser, s.url + PAGE)
+        try:
+            est = replace(src.estimate(force=(0.0, 1.0, 0.0)), arm_names=arms,
+                          volume_meas=np.array([1.0, 2.0, 3.0, 4.0, 5.0]) * 1e-9, volume_pred=np.full(5, 2.5e-9))
+            _show(src, page, est)
+            assert page.state("S.arms") == list(arms)
+            want = [n for a in arms for n in (a, f"{a} pred")]
+            assert page.state('S.series["plot-cavities"]') == want
+            legend = "#plot-cavities .u-legend .u-series"
+            labels = page.page.eval_on_selector_all(f"{legend} .u-label", "els => els.map(e => e.textContent)")
+            assert labels == ["t s", *want]
+            page.page.wait_for_function(f"""() => [...document.querySelectorAll('{legend} .u-value')]
+                .map(e => e.textContent).slice(1).join(' ') === '{" ".join(f"{v:.2f} 2.50" for v in range(1, 6))}'""",
+                                        timeout=20e3)
+            rows = page.page.eval_on_selector_all("#legend > div", "els => els.map(e => [e.textContent, "
+                                                  "getComputedStyle(e.querySelector('i')).backgroundColor])")
+            assert dict(rows)["top"] == "rgb(140, 86, 75)" and dict(rows)["back_xneg"] == "rgb(148, 103, 189)"
+            assert dict(rows)["urethra"] == "rgb(140, 140, 140)" and len(rows) == 6
+            page.close()
+        finally:
+            src.end()

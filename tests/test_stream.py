@@ -266,3 +266,74 @@ def test_example_client_reads_the_stream():
     assert proc.returncode == 0
     assert out.strip().splitlines()[-1] == "received 100, lost 0"
     assert "#     0 t=" in out and "F=(" in out and "mm" in out
+
+
+FIVE_ARMS = (*ARM_NAMES, "top")
+
+
+def _five_arm_estimates(n: int):
+    """Estimates of a five-arm phantom: arm k's volume changes are (k + 1) · i mm³ measured and half
+    that predicted at estimate i, so each named value says which arm and which estimate it is."""
+    from dataclasses import replace
+
+    k = np.arange(1, 6)
+    return [replace(e, arm_names=FIVE_ARMS, volume_meas=k * i * 1e-9, volume_pred=k * i * 0.5e-9)
+            for i, e in enumerate(_estimates(n))]
+
+
+def _schemas(path) -> dict:
+    """Topic → the JSON schema an MCAP file stores for it (read with the mcap library, not ours)."""
+    from mcap.reader import make_reader
+
+    with open(path, "rb") as fh:
+        summary = make_reader(fh).get_summary()
+    return {ch.topic: json.loads(summary.schemas[ch.schema_id].data) for ch in summary.channels.values()
+            if ch.message_encoding == "json"}
+
+
+def test_a_recording_of_five_arms_names_them_and_reads_back(tmp_path):
+    from softphantom.records.names import estimate_columns
+    from softphantom.sensing import Measurement
+    from softphantom.stream import json_schemas, measurement_to_message
+
+    ests = _five_arm_estimates(40)
+    path = tmp_path / "five.mcap"
+    with SessionRecorder(path, arm_names=FIVE_ARMS) as rec:
+        for i, e in enumerate(ests):
+            rec.write_estimate(estimate_to_message(e, i, time.time()))
+            m = Measurement(e.t, i, e.t, np.arange(6) + 100 * i, 100, np.arange(1, 6) * 1e3, e.volume_meas, 0.0)
+            rec.write_sensors(measurement_to_message(m, FIVE_ARMS))
+    r = read_recording(path)
+    assert r.arm_names == FIVE_ARMS and json.loads(r.metadata["arm_names"]) == list(FIVE_ARMS)
+    assert r.estimates[7]["dVmeas_top_mm3"] == pytest.approx(5 * 7) and r.estimates[7]["dVpred_back_xneg_mm3"] == pytest.approx(14.0)
+    assert r.sensors[3]["raw_top"] == 304 and r.sensors[3]["raw_urethra"] == 305 and r.sensors[3]["dp_top_kPa"] == pytest.approx(5.0)
+    assert message_to_estimate(r.estimates[9]).arm_names == FIVE_ARMS
+    # the stored schemas list each arm's keys in the sensor order
+    sch = _schemas(path)
+    vols = [k for k in sch["/estimate"]["properties"] if k.startswith("dVmeas_")]
+    assert vols == [f"dVmeas_{a}_mm3" for a in FIVE_ARMS]
+    assert "5×4" in sch["/estimate"]["properties"]["cond_W"]["description"]
+    assert [k for k in sch["/sensors"]["properties"] if k.startswith("raw_")] == [f"raw_{a}" for a in (*FIVE_ARMS, "urethra")]
+    # the exported estimate file keeps all five arms' columns and values
+    out = export_estimate_csv(path, tmp_path / "five.csv")
+    head = out.read_text().splitlines()[1].split(",")
+    assert head == estimate_columns(list(ests[0].target_shift), FIVE_ARMS)
+    assert read_estimate_csv(out)[1][7]["dVmeas_top_mm3"] == pytest.approx(35.0)
+
+    # the BIP's recording is as it was: its schemas are the module's constants, no arm_names in its metadata
+    bip = tmp_path / "bip.mcap"
+    with SessionRecorder(bip) as rec:
+        rec.write_estimate(estimate_to_message(_estimates(1)[0], 0, time.time()))
+    assert _schemas(bip)["/estimate"] == ESTIMATE_JSON_SCHEMA == json_schemas()["/estimate"]
+    rb = read_recording(bip)
+    assert "arm_names" not in rb.metadata and rb.arm_names == ARM_NAMES
+    # a file without the key takes its arms from its messages
+    legacy = tmp_path / "legacy.mcap"
+    with SessionRecorder(legacy) as rec:
+        rec.write_estimate(estimate_to_message(ests[1], 0, time.time()))
+    assert read_recording(legacy).arm_names == FIVE_ARMS
+    bad = tmp_path / "bad.mcap"
+    with SessionRecorder(bad, metadata={"arm_names": "top"}) as rec:
+        pass
+    with pytest.raises(FileFormatError, match="metadata arm_names is not a JSON list of names: 'top'"):
+        read_recording(bad)

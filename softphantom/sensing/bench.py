@@ -177,16 +177,6 @@ class BenchConfig:
             raise FileFormatError(f"metadata: no usable bench (tube, cavities): {exc}") from None
 
 
-def require_bip_arms(model, what: str) -> None:
-    """One line refusing ``what`` (a command not yet generic in the arms) for a design whose arms
-    are not the BIP's four."""
-    names = model.design.arm_names
-    if names != ARM_NAMES:
-        raise UserError(f"{what}: takes the BIP's four arms ({', '.join(ARM_NAMES)}) for now; this model has "
-                        f"{', '.join(names)} (design, simulate, virtual run, acquire, estimate, evaluate and "
-                        "calibrate take any arms)")
-
-
 def check_link_options(tare_s: float, connect_timeout_s: float, on_new_board: str) -> None:
     """The board options' values, checked before anything is opened (one-line errors naming the option).
 

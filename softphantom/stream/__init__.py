@@ -14,18 +14,25 @@ from softphantom.stream.recording import (
     Recording,
     SessionRecorder,
     export_estimate_csv,
+    json_schemas,
     measurement_to_message,
     read_estimate_csv,
     read_recording,
     tracker_message,
     write_estimate_csv,
 )
-from softphantom.stream.schema import ESTIMATE_JSON_SCHEMA, csv_columns, estimate_to_message, message_to_estimate
+from softphantom.stream.schema import (
+    ESTIMATE_JSON_SCHEMA,
+    csv_columns,
+    estimate_json_schema,
+    estimate_to_message,
+    message_to_estimate,
+)
 
 __all__ = [
     "DEFAULT_STREAM_PORT", "ESTIMATE_JSON_SCHEMA", "EstimatePublisher", "EstimateSubscriber", "FoxgloveBridge",
     "FoxgloveScene", "FoxgloveServer", "PublisherStats",
-    "Recording", "SessionRecorder", "csv_columns", "estimate_to_message", "export_estimate_csv",
-    "measurement_to_message", "message_to_estimate", "read_estimate_csv", "read_recording", "tracker_message",
+    "Recording", "SessionRecorder", "csv_columns", "estimate_json_schema", "estimate_to_message",
+    "export_estimate_csv", "json_schemas", "measurement_to_message", "message_to_estimate", "read_estimate_csv", "read_recording", "tracker_message",
     "write_estimate_csv",
 ]

@@ -8,7 +8,8 @@ ships), metres and seconds:
 - ``/foxglove/surface`` (``foxglove.SceneUpdate``, 10 Hz): entity ``surface``, the deformed outer
   surface as one triangle list coloured per vertex by |u| (viridis, 0 … a round top ≥ 0.4 mm,
   written in a label and in the entity's metadata ``colour_max_mm``; 55 % opaque, as the page);
-  entity ``cavities``, one triangle list per cavity wall in its arm's colour; entity
+  entity ``cavities``, one triangle list per cavity wall in its arm's colour (:func:`arm_colour`,
+  the arms in the geometry's ``arms`` order); entity
   ``tracker_body``, the rest surface in the frame ``phantom_tracker`` (once a tracker pose came).
 - ``/foxglove/overlay`` (``foxglove.SceneUpdate``, every estimate): entity ``force``, the force as
   an arrow ending on the contact point (the deformed ``p_ext`` node), :data:`ARROW_MM_PER_N` mm per
@@ -35,7 +36,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from softphantom.errors import UserError
-from softphantom.records.names import POSE_COLUMNS
+from softphantom.records.names import ARM_NAMES, POSE_COLUMNS
 
 TOPIC_FG_SURFACE = "/foxglove/surface"
 TOPIC_FG_OVERLAY = "/foxglove/overlay"
@@ -53,7 +54,8 @@ MIN_COLOUR_MAX_MM = 0.4
 SURFACE_HZ = 10.0
 VIRIDIS = ["#440154", "#482878", "#3e4989", "#31688e", "#26828e", "#1f9e89", "#35b779", "#6ece58", "#b5de2b",
            "#fde725"]
-ARM_COLOURS = {"front_zpos": "#1f77b4", "front_zneg": "#ff7f0e", "back_xpos": "#2ca02c", "back_xneg": "#9467bd"}
+ARM_PALETTE = ("#1f77b4", "#ff7f0e", "#2ca02c", "#9467bd", "#8c564b", "#e377c2", "#17becf", "#bcbd22")
+"""The arms' colours in the sensor order (the page's too), repeating beyond eight arms."""
 OTHER_CAVITY = "#8c8c8c"
 TRACKER_COLOUR = "#ff6a00"
 FORCE_COLOUR = "#e0201b"
@@ -89,6 +91,17 @@ def nice_colour_max_mm(x_mm: float) -> float:
         if m <= s * (1 + 1e-12):
             return max(round(s * p, 12), MIN_COLOUR_MAX_MM)
     return 10 * p
+
+
+def arm_colour(name: str, arm_names: Sequence[str]) -> str:
+    """The colour of cavity ``name`` among the arms ``arm_names`` (a cavity not an arm: grey).
+
+    >>> arms = ("front_zpos", "front_zneg", "back_xpos", "back_xneg", "top")
+    >>> [arm_colour(n, arms) for n in ("back_xneg", "top", "urethra")]
+    ['#9467bd', '#8c564b', '#8c8c8c']
+    """
+    arms = list(arm_names)
+    return ARM_PALETTE[arms.index(name) % len(ARM_PALETTE)] if name in arms else OTHER_CAVITY
 
 
 def _rgb(hex_colour: str) -> tuple[float, float, float]:
@@ -153,6 +166,7 @@ class FoxgloveScene:
             used, inv = np.unique(f, return_inverse=True)
             self.cavities[name] = (used, inv.reshape(-1, 3))
         self.targets_m = {k: np.asarray(v, float) * 1e-3 for k, v in (g.get("targets_mm") or {}).items()}
+        self.arm_names = tuple(g.get("arms") or ARM_NAMES)
         self.p_ext_node = g.get("p_ext_node")
         self.p_ext_m = np.asarray(g.get("p_ext_mm", [0.0, 0.0, 0.0]), float) * 1e-3
         self.positions_m = self.nodes_m.copy()  # the drawn nodes' latest deformed positions
@@ -219,7 +233,7 @@ class FoxgloveScene:
                                          fm.KeyValuePair(key="u_max_mm", value=f"{u_mm.max(initial=0.0):.4f}")],
                                triangles=[self._triangles(outer, self.outer_faces, colours=rgba)], texts=[label])]
         if self.cavities:
-            tris = [self._triangles(pos[used], f, colour=(*_rgb(ARM_COLOURS.get(name, OTHER_CAVITY)), 1.0))
+            tris = [self._triangles(pos[used], f, colour=(*_rgb(arm_colour(name, self.arm_names)), 1.0))
                     for name, (used, f) in self.cavities.items()]
             ents.append(fm.SceneEntity(timestamp=ts, frame_id=FRAME_PHANTOM, id="cavities", frame_locked=True,
                                        triangles=tris))

@@ -11,6 +11,11 @@ Channels (JSON-schema'd, ``json`` message encoding; keys carry their units):
 - ``/foxglove/surface``, ``/foxglove/overlay``, ``/foxglove/tf``: the same scene as Foxglove's
   well-known messages (protobuf), which its 3D panel draws (:mod:`softphantom.stream.foxglove`).
 
+The arms are the phantom's (``arm_names``, in the sensor order): the ``/estimate`` and ``/sensors``
+schemas list each arm's keys, and a recording of arms other than the BIP's four also names them in
+its metadata (``arm_names``, a JSON list); :attr:`Recording.arm_names` reads them back (from the
+metadata, else from the messages' keys, so a file without the key reads with its arms).
+
 Crash safety: the writer closes its chunk and flushes it to the operating system every
 ``flush_interval_s`` (default 1 s) and at every chunk-size limit. A session killed at any moment
 (``SIGKILL``, a crash) leaves a file whose complete chunks :func:`read_recording` reads: at most the
@@ -35,7 +40,7 @@ import struct
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterator, Mapping
+from typing import Any, Iterator, Mapping, Sequence
 
 import numpy as np
 import zstandard
@@ -46,10 +51,10 @@ from mcap.writer import CompressionType, Writer
 
 from softphantom.errors import FileFormatError, UserError
 from softphantom.records.measurement import measurement_to_message  # noqa: F401  (re-exported)
-from softphantom.records.names import ARM_NAMES, CHANNEL_NAMES, POSE_COLUMNS, estimate_columns, target_names
+from softphantom.records.names import ARM_NAMES, POSE_COLUMNS, arm_names_of, estimate_columns, target_names
 from softphantom.records.session import SessionWriter, read_session_file
 from softphantom.stream.foxglove import foxglove_schemas
-from softphantom.stream.schema import ESTIMATE_JSON_SCHEMA, TRACKER_JSON_SCHEMA, encode
+from softphantom.stream.schema import TRACKER_JSON_SCHEMA, encode, estimate_json_schema
 
 TOPIC_ESTIMATE = "/estimate"
 TOPIC_SENSORS = "/sensors"
@@ -63,12 +68,25 @@ def _obj_schema(title: str, desc: str, props: dict[str, Any]) -> dict[str, Any]:
 
 
 _NUM = {"type": ["number", "null"]}
-SENSORS_JSON_SCHEMA = _obj_schema(
-    "softphantom.Measurement", "one sensor sample (sensing stage), gauge pressures tared",
-    {"t_s": _NUM, "seq": {"type": "integer"}, "t_board_s": _NUM, "osr": {"type": "integer"},
-     **{f"raw_{n}": {"type": "integer"} for n in CHANNEL_NAMES},
-     **{f"dp_{a}_kPa": _NUM for a in ARM_NAMES}, **{f"dV_{a}_mm3": _NUM for a in ARM_NAMES},
-     "p_urethra_kPa": _NUM, "status": {"type": "string"}})
+
+
+def sensors_json_schema(arm_names: Sequence[str] = ARM_NAMES) -> dict[str, Any]:
+    """The JSON schema of the ``/sensors`` message of a board of ``arm_names`` and the urethra.
+
+    >>> [k for k in sensors_json_schema(("a", "b", "c"))["properties"] if k.startswith("raw_")]
+    ['raw_a', 'raw_b', 'raw_c', 'raw_urethra']
+    """
+    arms = tuple(arm_names)
+    return _obj_schema(
+        "softphantom.Measurement", "one sensor sample (sensing stage), gauge pressures tared",
+        {"t_s": _NUM, "seq": {"type": "integer"}, "t_board_s": _NUM, "osr": {"type": "integer"},
+         **{f"raw_{n}": {"type": "integer"} for n in (*arms, "urethra")},
+         **{f"dp_{a}_kPa": _NUM for a in arms}, **{f"dV_{a}_mm3": _NUM for a in arms},
+         "p_urethra_kPa": _NUM, "status": {"type": "string"}})
+
+
+SENSORS_JSON_SCHEMA = sensors_json_schema()
+"""The BIP's ``/sensors`` schema (:func:`sensors_json_schema` of its four arms)."""
 GEOMETRY_JSON_SCHEMA = _obj_schema(
     "softphantom.LiveGeometry", "phantom outer surface at rest (see softphantom.viz.live)",
     {"nodes_mm": {"type": "array"}, "faces": {"type": "array"}, "targets_mm": {"type": "object"},
@@ -77,11 +95,17 @@ SURFACE_JSON_SCHEMA = _obj_schema(
     "softphantom.LiveSurface", "deformed surface node positions, float32 little-endian base64, mm",
     {"t_s": _NUM, "seq": {"type": "integer"}, "positions_mm_f32_b64": {"type": "string"}})
 
-_SCHEMAS = {
-    TOPIC_ESTIMATE: ESTIMATE_JSON_SCHEMA, TOPIC_SENSORS: SENSORS_JSON_SCHEMA,
-    TOPIC_TRACKER: TRACKER_JSON_SCHEMA, TOPIC_GEOMETRY: GEOMETRY_JSON_SCHEMA,
-    TOPIC_SURFACE: SURFACE_JSON_SCHEMA,
-}
+ARM_NAMES_KEY = "arm_names"
+"""The metadata key naming a recording's arms (a JSON list), written when they are not the BIP's."""
+
+
+def json_schemas(arm_names: Sequence[str] = ARM_NAMES) -> dict[str, dict[str, Any]]:
+    """Topic → JSON schema of each JSON channel, for a phantom of ``arm_names``."""
+    return {
+        TOPIC_ESTIMATE: estimate_json_schema(arm_names), TOPIC_SENSORS: sensors_json_schema(arm_names),
+        TOPIC_TRACKER: TRACKER_JSON_SCHEMA, TOPIC_GEOMETRY: GEOMETRY_JSON_SCHEMA,
+        TOPIC_SURFACE: SURFACE_JSON_SCHEMA,
+    }
 
 
 def tracker_message(t: float, pose: Any, valid: bool = True, name: str = "") -> dict[str, Any]:
@@ -94,12 +118,16 @@ class SessionRecorder:
     """Write a session to an MCAP file (see the module docstring for channels and guarantees).
 
     Not thread-safe: write from one thread. ``metadata`` (strings) goes in an MCAP metadata record
-    named ``softphantom``.
+    named ``softphantom``. ``arm_names``: the phantom's arms in the sensor order (default the BIP's
+    four), for the schemas and, when not the BIP's, the metadata (the module docstring).
     """
 
     def __init__(self, path: str | os.PathLike, *, flush_interval_s: float = 1.0, fsync: bool = False,
-                 metadata: Mapping[str, str] | None = None, chunk_size_bytes: int = 256 * 1024):
+                 metadata: Mapping[str, str] | None = None, chunk_size_bytes: int = 256 * 1024,
+                 arm_names: Sequence[str] = ARM_NAMES):
         from softphantom import __version__
+
+        self.arm_names = tuple(arm_names)
 
         self.path = Path(path)
         try:
@@ -110,10 +138,12 @@ class SessionRecorder:
         self._w.start(profile="", library=f"softphantom {__version__}")
         meta = {"softphantom": __version__, "created_unix_s": f"{time.time():.3f}"}
         meta.update({str(k): str(v) for k, v in (metadata or {}).items()})
+        if self.arm_names != ARM_NAMES:  # the BIP's metadata stays as it was
+            meta[ARM_NAMES_KEY] = json.dumps(list(self.arm_names))
         self._w.add_metadata("softphantom", meta)
         self._meta = meta
         self._channels: dict[str, int] = {}
-        for topic, schema in _SCHEMAS.items():
+        for topic, schema in json_schemas(self.arm_names).items():
             sid = self._w.register_schema(schema["title"], "jsonschema", json.dumps(schema).encode())
             self._channels[topic] = self._w.register_channel(topic, "json", sid)
         sids: dict[str, int] = {}  # Foxglove's well-known messages (softphantom.stream.foxglove)
@@ -194,8 +224,9 @@ class SessionRecorder:
 @dataclass(frozen=True)
 class Recording:
     """What :func:`read_recording` found: messages per channel (decoded JSON dicts, in file order),
-    the ``metadata`` record, ``complete`` (the file was closed cleanly) and ``bytes_read`` (where a
-    truncated file's last complete record ended)."""
+    the ``metadata`` record, ``complete`` (the file was closed cleanly), ``bytes_read`` (where a
+    truncated file's last complete record ended) and ``arm_names``, the phantom's arms (the
+    module docstring)."""
 
     estimates: list[dict[str, Any]]
     sensors: list[dict[str, Any]]
@@ -206,6 +237,7 @@ class Recording:
     complete: bool
     bytes_read: int = 0
     other: dict[str, list[dict[str, Any]]] = field(default_factory=dict)
+    arm_names: tuple[str, ...] = ARM_NAMES
 
 
 def iter_records(path: str | os.PathLike) -> Iterator[tuple[str, Any]]:
@@ -276,20 +308,43 @@ def read_recording(path: str | os.PathLike) -> Recording:
             per.setdefault(topic, []).append(msg)
     known = {TOPIC_ESTIMATE, TOPIC_SENSORS, TOPIC_TRACKER, TOPIC_GEOMETRY, TOPIC_SURFACE}
     geo = per.get(TOPIC_GEOMETRY, [])
+    arms = _recorded_arms(path, meta, per.get(TOPIC_ESTIMATE, []), per.get(TOPIC_SENSORS, []))
     return Recording(
         estimates=per.get(TOPIC_ESTIMATE, []), sensors=per.get(TOPIC_SENSORS, []),
         tracker=per.get(TOPIC_TRACKER, []), geometry=geo[0] if geo else None,
         surface=per.get(TOPIC_SURFACE, []), metadata=meta, complete=bool(end["complete"]),
         bytes_read=int(end["bytes_read"]), other={k: v for k, v in per.items() if k not in known},
+        arm_names=arms,
     )
 
 
+def _recorded_arms(path, meta: Mapping[str, str], estimates: list, sensors: list) -> tuple[str, ...]:
+    """A recording's arms: its metadata's ``arm_names``, else the keys of its first estimate or
+    sensor message, else the BIP's four."""
+    if ARM_NAMES_KEY in meta:
+        try:
+            names = json.loads(meta[ARM_NAMES_KEY])
+        except ValueError:
+            names = None
+        if not (isinstance(names, list) and names and all(isinstance(n, str) and n for n in names)):
+            raise FileFormatError(f"{path}: metadata {ARM_NAMES_KEY} is not a JSON list of names: "
+                                  f"{meta[ARM_NAMES_KEY]!r}")
+        return tuple(names)
+    for msgs, prefix in ((estimates, "dVmeas_"), (sensors, "dV_")):
+        if msgs and (names := arm_names_of(msgs[0], prefix)):
+            return names
+    return ARM_NAMES
+
+
 def write_estimate_csv(messages: list[Mapping[str, Any]], out: str | os.PathLike,
-                       metadata: Mapping[str, Any] | None = None) -> Path:
-    """Write estimate messages as the estimate file of docs/architecture.md (empty for missing)."""
+                       metadata: Mapping[str, Any] | None = None, arm_names: Sequence[str] | None = None) -> Path:
+    """Write estimate messages as the estimate file of docs/architecture.md (empty for missing);
+    ``arm_names`` its volume columns' arms (default: those the first message names, else the BIP's)."""
     from softphantom import __version__
 
-    cols = estimate_columns(target_names(messages[0]) if messages else [])
+    first = messages[0] if messages else {}
+    arms = tuple(arm_names) if arm_names is not None else (arm_names_of(first, "dVmeas_") or ARM_NAMES)
+    cols = estimate_columns(target_names(first), arms)
     with SessionWriter(out, cols, {"softphantom": __version__, **(metadata or {})}, label=str(out)) as w:
         w.write_rows([m.get(c) for c in cols] for m in messages)
     return w.path
@@ -308,7 +363,7 @@ def export_estimate_csv(recording: str | os.PathLike, out: str | os.PathLike) ->
         meta["model"] = rec.metadata["model"]
     if rec.geometry and "contact_radius_mm" in rec.geometry:  # the estimator's contact patch
         meta["contact_radius_mm"] = rec.geometry["contact_radius_mm"]
-    return write_estimate_csv(rec.estimates, out, meta)
+    return write_estimate_csv(rec.estimates, out, meta, rec.arm_names)
 
 
 def read_estimate_csv(path: str | os.PathLike) -> tuple[dict[str, Any], list[dict[str, Any]]]:

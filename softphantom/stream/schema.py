@@ -12,14 +12,14 @@ from __future__ import annotations
 
 import json
 import math
-from typing import Any, Mapping
+from typing import Any, Mapping, Sequence
 
 from softphantom.records.estimate import estimate_to_message, message_to_estimate
 from softphantom.records.names import ARM_NAMES, FORCE_COLUMNS, POSE_COLUMNS, target_names
 from softphantom.records.names import estimate_columns as csv_columns
 
 __all__ = ["ESTIMATE_JSON_SCHEMA", "SCHEMA_NAME", "SCHEMA_VERSION", "TOPIC_ESTIMATE", "csv_columns", "encode",
-           "estimate_to_message", "message_to_estimate", "target_names"]
+           "estimate_json_schema", "estimate_to_message", "message_to_estimate", "target_names"]
 
 SCHEMA_NAME = "softphantom.Estimate"
 SCHEMA_VERSION = 1
@@ -49,34 +49,49 @@ def _num_schema(desc: str) -> dict:
     return {"type": ["number", "null"], "description": desc}
 
 
-ESTIMATE_JSON_SCHEMA: dict[str, Any] = {
-    "title": SCHEMA_NAME,
-    "description": f"softphantom estimate message v{SCHEMA_VERSION}; keys = estimate CSV columns "
-    "(docs/architecture.md) + seq, t_pub_unix_s, status. Frame: origin at the bulb centre at rest, "
-    "y = needle insertion, z = up; R = Rz(yaw)·Rx(pitch)·Ry(roll).",
-    "type": "object",
-    "properties": {
-        "seq": {"type": "integer", "description": "publisher sequence number, +1 per estimate; a gap = lost messages"},
-        "t_s": _num_schema("estimate time, s (host clock of the sensor sample)"),
-        "t_pub_unix_s": {"type": "number", "description": "wall clock at publication, s since the UNIX epoch"},
-        **{c: _num_schema(f"external force at p_ext, {c[-1]}") for c in FORCE_COLUMNS},
-        "p_urethra_kPa": _num_schema("urethra cavity gauge pressure, kPa"),
-        **{c: _num_schema("pose of the marker rigid body relative to rest") for c in POSE_COLUMNS},
-        **{f"dVpred_{a}_mm3": _num_schema("predicted cavity volume change, mm³") for a in ARM_NAMES},
-        **{f"dVmeas_{a}_mm3": _num_schema("measured cavity volume change, mm³") for a in ARM_NAMES},
-        "cond_W": _num_schema("condition number of the 4×4 sensitivity matrix W"),
-        "qp_status": {"type": "string"},
-        "step_ms": _num_schema("time spent on this estimation step, ms"),
-        "skipped": {"type": "integer", "description": "sensor samples skipped since the previous estimate"},
-        "status": {"type": "string", "description": "sensor health: 'ok' or a reason; a link event's marker "
-                   "(numbers null) is 'event:<kind>: <detail>' (silent, disconnected, reconnected, restart, "
-                   "resumed, retared)"},
-        "in_envelope": {"type": "integer", "description": "1 inside the load envelope the estimator's model covers, "
-                        "0 outside (the estimate is clamped to it)"},
-    },
-    "patternProperties": {"^.+_d[xyz]_mm$": _num_schema("target shift from rest, mm")},
-    "required": ["seq", "t_s", "t_pub_unix_s", *FORCE_COLUMNS, *POSE_COLUMNS],
-}
+def estimate_json_schema(arm_names: Sequence[str] = ARM_NAMES) -> dict[str, Any]:
+    """The JSON schema of the estimate message of a phantom of ``arm_names`` (the sensor order; the
+    BIP's four by default): the volume keys ``dVpred_<arm>_mm3`` and ``dVmeas_<arm>_mm3`` of each
+    arm are listed, in that order, so a recording's schema names its arms.
+
+    >>> s = estimate_json_schema(("a", "b", "c"))
+    >>> [k for k in s["properties"] if k.startswith("dVmeas_")], s["properties"]["cond_W"]["description"]
+    (['dVmeas_a_mm3', 'dVmeas_b_mm3', 'dVmeas_c_mm3'], 'condition number of the 3×4 sensitivity matrix W')
+    """
+    arms = tuple(arm_names)
+    return {
+        "title": SCHEMA_NAME,
+        "description": f"softphantom estimate message v{SCHEMA_VERSION}; keys = estimate CSV columns "
+        "(docs/architecture.md) + seq, t_pub_unix_s, status. Frame: origin at the bulb centre at rest, "
+        "y = needle insertion, z = up; R = Rz(yaw)·Rx(pitch)·Ry(roll).",
+        "type": "object",
+        "properties": {
+            "seq": {"type": "integer", "description": "publisher sequence number, +1 per estimate; a gap = lost "
+                    "messages"},
+            "t_s": _num_schema("estimate time, s (host clock of the sensor sample)"),
+            "t_pub_unix_s": {"type": "number", "description": "wall clock at publication, s since the UNIX epoch"},
+            **{c: _num_schema(f"external force at p_ext, {c[-1]}") for c in FORCE_COLUMNS},
+            "p_urethra_kPa": _num_schema("urethra cavity gauge pressure, kPa"),
+            **{c: _num_schema("pose of the marker rigid body relative to rest") for c in POSE_COLUMNS},
+            **{f"dVpred_{a}_mm3": _num_schema("predicted cavity volume change, mm³") for a in arms},
+            **{f"dVmeas_{a}_mm3": _num_schema("measured cavity volume change, mm³") for a in arms},
+            "cond_W": _num_schema(f"condition number of the {len(arms)}×4 sensitivity matrix W"),
+            "qp_status": {"type": "string"},
+            "step_ms": _num_schema("time spent on this estimation step, ms"),
+            "skipped": {"type": "integer", "description": "sensor samples skipped since the previous estimate"},
+            "status": {"type": "string", "description": "sensor health: 'ok' or a reason; a link event's marker "
+                       "(numbers null) is 'event:<kind>: <detail>' (silent, disconnected, reconnected, restart, "
+                       "resumed, retared)"},
+            "in_envelope": {"type": "integer", "description": "1 inside the load envelope the estimator's model "
+                            "covers, 0 outside (the estimate is clamped to it)"},
+        },
+        "patternProperties": {"^.+_d[xyz]_mm$": _num_schema("target shift from rest, mm")},
+        "required": ["seq", "t_s", "t_pub_unix_s", *FORCE_COLUMNS, *POSE_COLUMNS],
+    }
+
+
+ESTIMATE_JSON_SCHEMA: dict[str, Any] = estimate_json_schema()
+"""The BIP's estimate schema (:func:`estimate_json_schema` of its four arms)."""
 
 
 TRACKER_JSON_SCHEMA = {

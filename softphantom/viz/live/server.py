@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 
 from softphantom.errors import SoftphantomError
+from softphantom.records.names import ARM_NAMES
 from softphantom.records.names import POSE_COLUMNS as _TRACKER_KEYS
 from softphantom.stream.schema import encode, estimate_to_message
 from softphantom.viz.live.state import OUTAGE_EVENTS, LiveConfig, LiveState
@@ -52,7 +53,10 @@ class LiveSession:
         self.foxglove = None  # Foxglove's messages, to the recording and/or its live server
         self.error: BaseException | None = None
         geo = getattr(source, "geometry", None)
-        self.geometry_json = None if geo is None else geo.to_json()
+        # the phantom's arms: the page's cavity plot, the recording's schemas, the sensor messages' keys
+        self.arm_names: tuple[str, ...] = tuple(getattr(source, "arm_names", None)
+                                                or (ARM_NAMES if geo is None else geo.arm_names))
+        self.geometry_json = None if geo is None else {**geo.to_json(), "arms": list(self.arm_names)}
         shows = getattr(source, "surface_shows", None)  # what the surface is, when not the estimator's field
         if self.geometry_json is not None and shows:
             self.geometry_json["surface_shows"] = str(shows)
@@ -81,7 +85,8 @@ class LiveSession:
         if cfg.record is not None:
             from softphantom.stream.recording import TOPIC_GEOMETRY, SessionRecorder
 
-            self.recorder = SessionRecorder(cfg.record, metadata={"source": type(self.source).__name__})
+            self.recorder = SessionRecorder(cfg.record, metadata={"source": type(self.source).__name__},
+                                            arm_names=self.arm_names)
             if self.geometry_json is not None:
                 self.recorder.write(TOPIC_GEOMETRY, self.geometry_json)
             self.state.recording = {"enabled": True, "path": str(cfg.record), "messages": 0}
@@ -176,7 +181,7 @@ class LiveSession:
                 if self.recorder is not None:
                     self.recorder.write_estimate(data)
                     if callable(last_meas) and (m := last_meas()) is not None:
-                        self.recorder.write_sensors(measurement_to_message(m))
+                        self.recorder.write_sensors(measurement_to_message(m, self.arm_names))
                 if self.foxglove is not None:
                     self.foxglove.estimate(msg, data)
                 for tm in (poll_tracker() or ()) if callable(poll_tracker) else ():
@@ -230,7 +235,7 @@ class LiveSession:
     # -- for the web server ----------------------------------------------------------------
     def state_json(self) -> dict[str, Any]:
         return {"status": self.state.status(), "latest": self.state.latest,
-                "has_geometry": self.geometry_json is not None,
+                "has_geometry": self.geometry_json is not None, "arms": list(self.arm_names),
                 "view_rate_Hz": self.config.view_rate_Hz,
                 "surface_mm_f32_b64": self.state.surface_b64}
 

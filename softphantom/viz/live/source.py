@@ -3,7 +3,9 @@
 
 The interface (:class:`EstimateSource`) is what the estimator must offer to be shown live:
 
-- ``geometry`` — a :class:`LiveGeometry` (the PhantomModel's outer surface, targets, p_ext);
+- ``geometry`` — a :class:`LiveGeometry` (the PhantomModel's outer surface, targets, p_ext, arms);
+- ``arm_names`` — the phantom's arms in the sensor order (the estimates' volume keys, the page's
+  cavity plot, the recording's schemas); a source without it is taken to have its geometry's arms;
 - iterating it yields :class:`~softphantom.estimation.Estimate` objects, in time order, as they are
   computed (a real-time source paces itself; the live view never sleeps between them);
 - ``node_positions()`` — on demand, the deformed positions ``(N, 3)`` m of the model's nodes for the
@@ -30,7 +32,7 @@ import numpy as np
 
 from softphantom.errors import FileFormatError, UserError
 from softphantom.records.estimate import Estimate, message_to_estimate
-from softphantom.records.names import ARM_NAMES
+from softphantom.records.names import ARM_NAMES, arm_names_of
 
 
 TRI6_SPLIT = np.array([[0, 3, 5], [3, 1, 4], [5, 4, 2], [3, 4, 5]])
@@ -56,7 +58,8 @@ class LiveGeometry:
     cavity's wall; ``node_index`` (n,) the model node id of each drawn node, to pick them out of
     ``node_positions()``; ``targets`` name → (3,) m at rest; ``p_ext`` (3,) m where the force
     acts; ``contact_radius_m`` the estimator's contact patch radius (None: not an estimator's
-    view), recorded with the geometry so a recording says which contact model it used.
+    view), recorded with the geometry so a recording says which contact model it used;
+    ``arm_names`` the phantom's arms in the sensor order (its design's; the JSON's ``arms``).
 
     >>> g = ellipsoid_geometry(subdivisions=1)
     >>> g.nodes.shape, g.faces.shape, sorted(g.targets), sorted(g.cavities)
@@ -70,11 +73,13 @@ class LiveGeometry:
     p_ext: np.ndarray = field(default_factory=lambda: np.zeros(3))
     contact_radius_m: float | None = None
     cavities: dict[str, np.ndarray] = field(default_factory=dict)
+    arm_names: tuple[str, ...] = ARM_NAMES
 
     @classmethod
     def from_model(cls, model: Any, p_ext: str = "on-centre", contact_radius_m: float | None = None) -> "LiveGeometry":
         """The outer surface and the cavities of a ``PhantomModel`` (docs/architecture.md), reindexed
-        to the nodes they use, its ``targets`` and the ``p_ext`` point named ``p_ext``. A quadratic
+        to the nodes they use, its ``targets``, the ``p_ext`` point named ``p_ext`` and its design's
+        arms (the BIP's four for a model-like object without a design). A quadratic
         model's 6-node triangles (``outer_faces6``, ``cavities6``) are drawn as 4 flat ones each
         (:func:`split_tri6`), through their mid-edge nodes."""
         faces6 = np.asarray(getattr(model, "outer_faces6", np.zeros((0, 6))), dtype=np.int64).reshape(-1, 6)
@@ -92,6 +97,7 @@ class LiveGeometry:
         points = dict(getattr(model, "p_ext", {}) or {})
         if p_ext not in points:
             raise UserError(f"the model has no interaction point {p_ext!r}; it has: {', '.join(points) or 'none'}")
+        design = getattr(model, "design", None)
         return cls(
             nodes=np.asarray(model.nodes, float)[used],
             faces=parts[0],
@@ -100,6 +106,7 @@ class LiveGeometry:
             p_ext=np.asarray(points[p_ext], float),
             contact_radius_m=None if contact_radius_m is None else float(contact_radius_m),
             cavities=dict(zip(cavities, parts[1:])),
+            arm_names=ARM_NAMES if design is None else tuple(design.arm_names),
         )
 
     def to_json(self) -> dict[str, Any]:
@@ -113,7 +120,7 @@ class LiveGeometry:
             "targets_mm": {k: np.round(v * 1e3, 4).tolist() for k, v in self.targets.items()},
             "p_ext_mm": np.round(self.p_ext * 1e3, 4).tolist(),
             "p_ext_node": pe,
-            "arms": list(ARM_NAMES),
+            "arms": list(self.arm_names),
         }
         if self.contact_radius_m is not None:
             out["contact_radius_mm"] = round(self.contact_radius_m * 1e3, 6)
@@ -130,9 +137,10 @@ class LiveGeometry:
             radius = d.get("contact_radius_mm")
             radius = None if radius is None else float(radius) * 1e-3
             cavities = {k: np.asarray(v, np.int64).reshape(-1, 3) for k, v in d.get("cavities", {}).items()}
+            arms = tuple(str(a) for a in d.get("arms") or ARM_NAMES)
         except (KeyError, ValueError, TypeError) as exc:
             raise FileFormatError(f"geometry message is malformed: {exc}") from None
-        return cls(nodes, faces, np.arange(len(nodes), dtype=np.int64), targets, p_ext, radius, cavities)
+        return cls(nodes, faces, np.arange(len(nodes), dtype=np.int64), targets, p_ext, radius, cavities, arms)
 
 
 def encode_positions_mm(positions_m: np.ndarray) -> str:
@@ -242,6 +250,7 @@ class SyntheticSource:
 
     _W = np.array([[1.8, 0.6, -2.2, 0.9], [1.7, 0.6, 2.4, 0.9], [2.1, -2.0, 0.3, 0.8], [2.0, 2.1, 0.2, 0.8]])
     """mm³ per N (x, y, z) and per kPa of urethra pressure, one row per arm."""
+    arm_names = ARM_NAMES
 
     def __init__(self, rate_Hz: float = 77.0, duration_s: float | None = None, *, realtime: bool = True,
                  peak_force_N: float = 3.0, period_s: float = 4.0, subdivisions: int = 3, seed: int = 0):
@@ -373,6 +382,8 @@ class EstimateReplay:
     ``surface_shows`` says which, for the page. ``model`` (a ``PhantomModel``), when ``geometry`` is
     not given: its surface, with the force at the file's contact point (its metadata's ``contact``),
     and the atlas from ``model_dir``/atlas for that contact (:meth:`AtlasField.from_model_dir`).
+    ``arm_names``: the file's arms (a recording's :attr:`~softphantom.stream.recording.Recording.arm_names`,
+    an estimate file's volume columns); a model of other arms is refused in one line naming both.
     """
 
     def __init__(self, path: str | Path, *, speed: float = 1.0, geometry: LiveGeometry | None = None,
@@ -393,10 +404,16 @@ class EstimateReplay:
                 recorded_note = rec.geometry.get("surface_shows")
             self._surface = [(float(m.get("t_s") or 0.0), m["positions_mm_f32_b64"]) for m in rec.surface
                              if "positions_mm_f32_b64" in m]
+            self.arm_names = rec.arm_names
         else:
             self.meta, self.messages = read_estimate_csv(path)
+            self.arm_names = arm_names_of(self.messages[0] if self.messages else {}, "dVmeas_") or ARM_NAMES
         if not self.messages:
             raise FileFormatError(f"{path}: no estimates to replay")
+        model_arms = getattr(getattr(model, "design", None), "arm_names", None)
+        if geometry is None and model_arms is not None and tuple(model_arms) != self.arm_names:
+            raise UserError(f"replay {path}: its arms ({', '.join(self.arm_names)}) are not the model's "
+                            f"({', '.join(model_arms)})")
         if geometry is None and model is not None:
             contact = self.meta.get("contact")
             radius_mm = self.meta.get("contact_radius_mm")
@@ -469,6 +486,7 @@ class EstimatorSource:
                  p_ext: str = "on-centre") -> None:
         radius = getattr(getattr(estimator, "config", None), "contact_radius_m", None)
         self.geometry = LiveGeometry.from_model(model, p_ext, radius)
+        self.arm_names = tuple(getattr(estimator, "arm_names", None) or self.geometry.arm_names)
         self._sensor, self._est = sensor, estimator
         self.live, self.speed = bool(live), float(speed)
         self._last_m = None

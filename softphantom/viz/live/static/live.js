@@ -11,14 +11,16 @@ const KEEP_S = 12;              // samples kept for the plots
 const ARROW_MM_PER_N = 10;      // force arrow scale
 const MIN_COLOR_MAX_MM = 0.4;   // the colour scale never spans less
 const VIRIDIS = ["#440154", "#482878", "#3e4989", "#31688e", "#26828e", "#1f9e89", "#35b779", "#6ece58", "#b5de2b", "#fde725"];
-const ARM_COLORS = { front_zpos: "#1f77b4", front_zneg: "#ff7f0e", back_xpos: "#2ca02c", back_xneg: "#9467bd" };
+// the arms' colours in the sensor order, repeating beyond eight (softphantom.stream.foxglove.ARM_PALETTE)
+const ARM_PALETTE = ["#1f77b4", "#ff7f0e", "#2ca02c", "#9467bd", "#8c564b", "#e377c2", "#17becf", "#bcbd22"];
+const BIP_ARMS = ["front_zpos", "front_zneg", "back_xpos", "back_xneg"];  // a server that does not name them
 const OTHER_CAVITY = "#8c8c8c";
 const TRACKER_COLOR = "#ff6a00";
 const XYZ_COLORS = ["#d62728", "#2ca02c", "#1f77b4", "#111111"];
 const params = new URLSearchParams(location.search);
 
 const S = {  // the page's state; window.__softphantomLive for tests and the curious
-  geo: null, latest: null, status: null, connected: false, ended: false, tracker: null, hasTracker: false,
+  geo: null, arms: BIP_ARMS, latest: null, status: null, connected: false, ended: false, tracker: null, hasTracker: false,
   frames: 0, renders: 0, fps: 0, colorMax: MIN_COLOR_MAX_MM, surfaceMax: 0, lastSeq: -1,
   dirty: true, plotsDirty: false,
   cost: { parse: 0, frame: 0, surface: 0, render: 0, labels: 0, plots: 0 },  // ms spent so far, per part
@@ -101,6 +103,11 @@ function poseMatrix(p) {        // R = Rz(yaw)·Rx(pitch)·Ry(roll) (three's int
 }
 S.poseMatrix = (p) => poseMatrix(p).elements;  // for the test of the convention
 
+function armColor(name) {        // an arm's colour (its cavity, its plot lines); another cavity grey
+  const i = S.arms.indexOf(name);
+  return i < 0 ? OTHER_CAVITY : ARM_PALETTE[i % ARM_PALETTE.length];
+}
+
 function setText(el, text) {     // a DOM write only when the text changes (each costs a layout)
   if (el.textContent !== text) el.textContent = text;
 }
@@ -134,7 +141,7 @@ function buildScene(geo) {
   const legend = document.getElementById("legend");
   const cavIndex = [], cavities = [];
   for (const [name, faces] of Object.entries(geo.cavities || {})) {
-    const col = ARM_COLORS[name] || OTHER_CAVITY, lin = new THREE.Color(col);
+    const col = armColor(name), lin = new THREE.Color(col);
     for (const i of faces.flat()) { cavIndex.push(i); color.setXYZ(i, lin.r, lin.g, lin.b); }
     const row = document.createElement("div"), sw = document.createElement("i");
     sw.style.background = col;
@@ -338,21 +345,23 @@ function loop(now) {
 
 // ---------- plots ----------
 function trackerOf(k) { return (m) => (m.tracker ? m.tracker[k] : null); }
-const PLOTS = [
+const plotsOf = (arms) => [  // the cavity plot: one measured (solid) and one predicted (dashed) line per arm
   ["plot-force", [["Fx", "force_x_N"], ["Fy", "force_y_N"], ["Fz", "force_z_N"],
     ["|F|", (m) => (m.force_x_N == null ? null : Math.hypot(m.force_x_N, m.force_y_N, m.force_z_N))]]],
   ["plot-position", [["x", "x_mm"], ["y", "y_mm"], ["z", "z_mm"],
     ...["x_mm", "y_mm", "z_mm"].map((k, i) => [`${k[0]} trk`, trackerOf(k), XYZ_COLORS[i], true])]],
   ["plot-rotation", [["yaw", "yaw_deg"], ["pitch", "pitch_deg"], ["roll", "roll_deg"],
     ...["yaw_deg", "pitch_deg", "roll_deg"].map((k, i) => [`${k.split("_")[0]} trk`, trackerOf(k), XYZ_COLORS[i], true])]],
-  ["plot-cavities", Object.keys(ARM_COLORS).flatMap((a) => [[a, `dVmeas_${a}_mm3`, ARM_COLORS[a]],
-    [`${a} pred`, `dVpred_${a}_mm3`, ARM_COLORS[a], true]])],
+  ["plot-cavities", arms.flatMap((a) => [[a, `dVmeas_${a}_mm3`, armColor(a)],
+    [`${a} pred`, `dVpred_${a}_mm3`, armColor(a), true]])],
 ];
 const T = [];                   // sample times, s
 const plots = [];
 function plotSize(el) { return { width: el.clientWidth, height: Math.max(el.clientHeight - 44, 60) }; }
 function buildPlots() {
-  for (const [id, series] of PLOTS) {
+  S.series = {};  // plot id → its series' labels (for tests and the curious)
+  for (const [id, series] of plotsOf(S.arms)) {
+    S.series[id] = series.map(([name]) => name);
     const el = document.getElementById(id);
     const get = series.map(([, k]) => (typeof k === "function" ? k : (m) => m[k]));
     const cols = series.map(() => []);
@@ -495,9 +504,6 @@ async function init() {
     params.delete("token");
     history.replaceState(null, "", location.pathname + (params.toString() ? `?${params}` : ""));
   }
-  buildPlots();
-  const sizes = new ResizeObserver(resize);
-  for (const el of [host, ...document.querySelectorAll(".plot")]) sizes.observe(el);
   document.getElementById("xray").addEventListener("change", (e) => {
     if (!view.front) return;
     const m = view.front.material;
@@ -509,29 +515,36 @@ async function init() {
   });
   renderer.domElement.addEventListener("dblclick", () => { controls.reset(); S.dirty = S.gizmoDirty = true; });
   gizmoRenderer.domElement.addEventListener("pointerup", (e) => { if (gizmo.handleClick(e)) S.dirty = true; });
+  let st = null;
   try {
     const g = await fetch("/api/geometry");
-    if (g.ok) {
-      S.geo = await g.json();
-      buildScene(S.geo);
-      if (S.geo.surface_shows) {  // a replay without the estimator's field: what the surface is instead
-        const el = document.getElementById("surface-shows");
-        el.textContent = `surface: ${S.geo.surface_shows}`;
-        el.hidden = false;
-      }
-      if (params.get("xray") === "0") {
-        const box = document.getElementById("xray");
-        box.checked = false;
-        box.dispatchEvent(new Event("change"));
-      }
-    } else {
-      document.getElementById("surface-max").textContent = "no geometry from this source: plots only";
-    }
-    const st = await (await fetch("/api/state")).json();  // the history comes with the first event
-    applyFrame({ status: st.status, surface_mm_f32_b64: st.surface_mm_f32_b64 });
+    if (g.ok) S.geo = await g.json();
+    st = await (await fetch("/api/state")).json();  // the history comes with the first event
   } catch (err) {
     document.getElementById("status").textContent = `cannot reach the live server: ${err}`;
   }
+  // the phantom's arms (the server names them; the geometry too): the cavities' colours, the plot's lines
+  const arms = (st && st.arms) || (S.geo && S.geo.arms);
+  if (Array.isArray(arms) && arms.length) S.arms = arms.map(String);
+  buildPlots();
+  const sizes = new ResizeObserver(resize);
+  for (const el of [host, ...document.querySelectorAll(".plot")]) sizes.observe(el);
+  if (S.geo) {
+    buildScene(S.geo);
+    if (S.geo.surface_shows) {  // a replay without the estimator's field: what the surface is instead
+      const el = document.getElementById("surface-shows");
+      el.textContent = `surface: ${S.geo.surface_shows}`;
+      el.hidden = false;
+    }
+    if (params.get("xray") === "0") {
+      const box = document.getElementById("xray");
+      box.checked = false;
+      box.dispatchEvent(new Event("change"));
+    }
+  } else if (st) {
+    document.getElementById("surface-max").textContent = "no geometry from this source: plots only";
+  }
+  if (st) applyFrame({ status: st.status, surface_mm_f32_b64: st.surface_mm_f32_b64 });
   resize();
   requestAnimationFrame(loop);
   const es = new EventSource("/api/events");
