@@ -28,6 +28,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from softphantom.errors import UserError
 from softphantom.progress import report
 
@@ -40,6 +42,9 @@ MAGIC = b"softphantom-atlas-task-1\n"
 # point (one mixed-control solve from its neighbour on the line) took 3.6 CPU-s where a face plane's
 # point took 7.1-9.4
 PRIOR_COST = {"plane": 1.0, "lines": 0.5}
+
+
+_PLAIN = (int, float, complex, str, bytes, bool, type(None), tuple, list, dict, set, frozenset)
 
 
 @dataclass(frozen=True)
@@ -297,13 +302,22 @@ def run_graph(client, tasks: list[Task], store_of: Callable[[str], TaskStore | N
     report(log, label, len(values), total)
     pending: dict[Any, str] = {}
     ac = as_completed()
+    shipped: dict[int, tuple[Any, Any]] = {}
+
+    def ship(a: Any) -> Any:
+        # the model every task shares (tens of MB pickled) goes to the workers once, not in each task
+        if isinstance(a, (*_PLAIN, np.ndarray, np.generic)):
+            return a
+        if id(a) not in shipped:
+            shipped[id(a)] = (a, client.scatter(a, hash=False))
+        return shipped[id(a)][1]
 
     def submit_ready() -> None:
         waiting = {n for n in pending.values()}
         for t in sorted(tasks, key=lambda t: -t.priority):
             if t.name in values or t.name in waiting or not all(d in values for d in t.deps):
                 continue
-            fut = client.submit(_timed, t.fn, *t.args(values), pure=False, priority=t.priority)
+            fut = client.submit(_timed, t.fn, *map(ship, t.args(values)), pure=False, priority=t.priority)
             pending[fut] = t.name
             ac.add(fut)
 
