@@ -101,7 +101,8 @@ def test_the_model_carries_the_contact_and_refines_the_mesh_there(model, model_d
     e = np.vstack([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
     length = np.linalg.norm(X[e[:, 0]] - X[e[:, 1]], axis=1)
     mid = 0.5 * (X[e[:, 0]] + X[e[:, 1]])
-    near = {k: length[np.linalg.norm(mid - np.asarray(q), axis=1) < 5.0] for k, q in (("lobe", LOBE), ("mirror", MIRROR))}
+    near = {k: length[np.linalg.norm(mid - np.asarray(q), axis=1) < 5.0]
+            for k, q in (("lobe", LOBE), ("mirror", MIRROR))}
     assert near["lobe"].size > 2 * near["mirror"].size > 0
     assert near["lobe"].mean() < 0.6 * near["mirror"].mean(), {k: v.mean() for k, v in near.items()}
 
@@ -190,3 +191,20 @@ def test_check_contact_names_the_option_and_lists_the_names():
     with pytest.raises(UserError, match=r"^--contact x: not a contact point of this model \(on-centre, "
                                         r"off-centre, front-lobe\); or X,Y,Z_mm$"):
         check_contact("x", NAMES, "--contact", hint="or X,Y,Z_mm")
+
+
+def test_a_replay_made_at_a_contact_the_model_lacks_is_refused(model_dir, tmp_path, capsys):
+    from softphantom.sensing.chain import default_chain, nominal_tare, simulate_raw, to_measurement
+    from softphantom.sensing.recording import Recorder
+
+    chain = default_chain()
+    tare = nominal_tare(chain)
+    rec = tmp_path / "r.csv"
+    with Recorder(rec, {"tare": tare.to_dict(), "chain": chain.summary(), "contact": UNKNOWN}) as r:
+        for k in range(3):
+            r.write(to_measurement(k / 77.0, k, k / 77.0, simulate_raw(np.zeros(5), 100, np.random.default_rng(k)),
+                                   100, chain, tare))
+    out = tmp_path / "e.csv"
+    assert main(["estimate", "--model", str(model_dir), "--source", f"replay:{rec}", "--out", str(out)]) == 2
+    assert _one_line(capsys) == (f"error: replay:{rec}: recording_contact {REFUSAL}; --at gives another")
+    assert not out.exists()
