@@ -22,6 +22,7 @@ SERVE = ["virtual", "serve", "--scenario", "push-on-centre", "--model", "m"]
 
 # (arguments, what the one line must name); "m", "e.csv", ... do not exist: a command that reads
 # them before checking the option names them instead (or runs, exit 0), and the case fails
+# (a contact point's name is checked against the model's own: tests/test_contacts.py)
 BAD_INPUTS = [
     (["design", "--out", "o", "--lesion-labels", "a,b"], "--lesion-labels"),
     (["design", "--out", "o", "--lesion-labels", "3"], "--anatomy"),            # used only with an anatomy
@@ -55,15 +56,12 @@ BAD_INPUTS = [
     ([*LIVE, "--tube-length-m", "-1"], "--tube-length-m"),
     ([*LIVE, "--tracker-body", "bip"], "--tracker-body"),                      # used only with --tracker
     ([*LIVE, "--tracker", "natnet:host:99999"], "--tracker"),
-    (["atlas", "build", "--model", "m", "--at", "on-top"], "--at"),
     (["virtual", "run", "--scenario", "push-on-centre", "--model", "m", "--out", "o", "--seed", "-1"], "--seed"),
     ([*SERVE, "--natnet", "--natnet-version", "9"], "--natnet-version"),
     ([*SERVE, "--natnet", "--natnet-host", "0.0.0.0"], "--allow-remote"),
     ([*SERVE, "--natnet", "--natnet-host", "::1", "--allow-remote"], "--natnet-host"),
     (["calibrate", "--model", "m", "--recording", "r.csv", "--truth", "t.csv", "--out", "o", "--fix", "colour"],
      "--fix"),
-    (["calibrate", "--model", "m", "--recording", "r.csv", "--truth", "t.csv", "--out", "o",
-      "--holdout-recording", "h.csv", "--holdout-truth", "ht.csv", "--holdout-contact", "on-top"], "--holdout-contact"),
     (["simulate", "--model", "m", "--out", "o", "--force-N", "1e308,0,0"], "--force-N"),
     (["simulate", "--model", "m", "--out", "o", "--urethra-kPa", "1e9"], "--urethra-kPa"),
 ]

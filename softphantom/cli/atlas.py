@@ -15,7 +15,8 @@ atlas_app = typer.Typer(help="The atlas estimator's offline stage: build, descri
 app.add_typer(atlas_app, name="atlas")
 
 MODEL_OPTION = typer.Option(..., "--model", help="Model directory (softphantom design --out).")
-AT_OPTION = typer.Option("on-centre", "--at", help="Contact point: on-centre | off-centre (the model's p_ext).")
+AT_OPTION = typer.Option("on-centre", "--at", help="Contact point: on-centre, off-centre or one of the design's "
+                         "[contacts] (the model's p_ext).")
 
 
 def _model(model_dir: Path):
@@ -26,10 +27,10 @@ def _model(model_dir: Path):
     return load_model(model_dir)
 
 
-def _contact(at: str) -> str:
-    if at not in ("on-centre", "off-centre"):
-        raise UserError(f"--at must be on-centre or off-centre, got {at!r}")
-    return at
+def _contact(at: str, model) -> str:
+    from softphantom.design.params import check_contact
+
+    return check_contact(at, list(model.p_ext), "--at")
 
 
 def _pieces(at) -> tuple:
@@ -88,12 +89,12 @@ def build_cmd(
         raise UserError(f"--offline: full or rom, got {offline!r}")
     if workers is not None and workers < 1:
         raise UserError(f"--workers must be >= 1, got {workers}")
-    _contact(at)
     model = _model(model_dir)
+    _contact(at, model)
     acfg = atlas_config_from_options(atlas_grid, envelope, atlas_x_axis, atlas_f_y_split,
                                      base=model_atlas_config(model.element_order, model_dir))
     acfg = replace(acfg, offline=offline)
-    built = load_or_build(model, EstimatorConfig(contact=_contact(at)), acfg, cache_dir=model_dir,
+    built = load_or_build(model, EstimatorConfig(contact=_contact(at, model)), acfg, cache_dir=model_dir,
                           scheduler=scheduler, n_workers=workers, rebuild=rebuild,
                           discard_partial=discard_partial)
     for piece in _pieces(built):
@@ -205,7 +206,7 @@ def check_cmd(
         if not v > 0:
             raise UserError(f"{name} must be > 0, got {v:g}")
     model = _model(model_dir)
-    cfg = EstimatorConfig(contact=_contact(at))
+    cfg = EstimatorConfig(contact=_contact(at, model))
     atlas = load_or_build(model, cfg, None, cache_dir=model_dir, max_build_s=0.0)
     c = atlas.config
     L = held_out_loads(c.lower, c.upper, loads, seed)

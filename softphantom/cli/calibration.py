@@ -13,14 +13,20 @@ from softphantom.cli.options import check_output, finite_number, overwrite_optio
 from softphantom.errors import UserError
 
 
-CONTACTS = ("on-centre", "off-centre")  # every design's named contact points (its p_ext)
+def _contact_names(model_dir: Path) -> tuple[str, ...] | None:
+    """The model's contact points (its p_ext) from its design file, before the model is read; None
+    when it has none (calibrate then refuses the directory)."""
+    from softphantom.design import load_design
+
+    toml = model_dir / "design.toml"
+    return load_design(toml).contact_names if toml.is_file() else None
 
 
-def _contact(text: str, option: str = "--contact"):
+def _contact(text: str, option: str = "--contact", names: tuple[str, ...] | None = None):
     if "," not in text:
-        if text not in CONTACTS:
-            raise UserError(f"{option} {text!r}: expected {' or '.join(CONTACTS)}, or X,Y,Z_mm")
-        return text
+        from softphantom.design.params import check_contact
+
+        return text if names is None else check_contact(text, names, option, hint="or X,Y,Z_mm")
     try:
         v = [finite_number(x, option) * 1e-3 for x in text.split(",")]
     except UserError:
@@ -44,7 +50,7 @@ def _measured(texts: list[str]) -> tuple[tuple[str, float, float | None], ...]:
 
 
 def _pairs(recordings: list[Path], truths: list[Path], contacts: list[str], known: list[Path], what: str,
-           option: str = "--contact"):
+           option: str = "--contact", names: tuple[str, ...] | None = None):
     from softphantom.calibration import SessionSpec
 
     if len(recordings) != len(truths):
@@ -53,7 +59,7 @@ def _pairs(recordings: list[Path], truths: list[Path], contacts: list[str], know
         raise UserError(f"{what}: give one --contact for all sessions or one per session, got {len(contacts)}")
     if known and len(known) != len(recordings):
         raise UserError(f"--known-loads: one file per --recording (in order), got {len(known)} for {len(recordings)}")
-    cs = [_contact(c, option) for c in contacts] if contacts else ["on-centre"]
+    cs = [_contact(c, option, names) for c in contacts] if contacts else ["on-centre"]
     cs = cs * len(recordings) if len(cs) == 1 else cs
     return [SessionSpec(r, t, c, known[i] if known else None) for i, (r, t, c) in enumerate(zip(recordings, truths, cs))]
 
@@ -64,7 +70,7 @@ def calibrate_cmd(
     recording: list[Path] = typer.Option(..., "--recording", help="Bench recording (acquire / virtual run); repeat for several sessions."),
     truth: list[Path] = typer.Option(..., "--truth", help="Tracker take of the same session (Motive CSV, bag, mcap, truth CSV); one per --recording."),
     out: Path = typer.Option(..., "--out", help="New directory for the calibrated model, report.html and parameters.csv."),
-    contact: list[str] = typer.Option(None, "--contact", help="Contact point per session: on-centre, off-centre or X,Y,Z_mm (default on-centre)."),
+    contact: list[str] = typer.Option(None, "--contact", help="Contact point per session: on-centre, off-centre, one of the design's [contacts] or X,Y,Z_mm (default on-centre)."),
     known_loads: list[Path] = typer.Option(None, "--known-loads", help="CSV t_s, force_x_N, force_y_N, force_z_N per session (a force sensor or hung weights)."),
     holdout_recording: list[Path] = typer.Option(None, "--holdout-recording", help="Recording kept out of the fit, to check the calibration on."),
     holdout_truth: list[Path] = typer.Option(None, "--holdout-truth", help="Take of each --holdout-recording."),
@@ -91,9 +97,10 @@ def calibrate_cmd(
     if not 3 <= max_keyframes <= 200:
         raise UserError(f"--max-keyframes must be in 3..200, got {max_keyframes}")
     check_output(out, overwrite=overwrite, directory=True)
-    specs = _pairs(recording, truth, contact or [], known_loads or [], "--recording/--truth")
+    names = _contact_names(model)
+    specs = _pairs(recording, truth, contact or [], known_loads or [], "--recording/--truth", names=names)
     hold = _pairs(holdout_recording or [], holdout_truth or [], holdout_contact or [], [],
-                  "--holdout-recording/--holdout-truth", "--holdout-contact")
+                  "--holdout-recording/--holdout-truth", "--holdout-contact", names)
     opts = FitOptions(fix=tuple(fix or ()), measured=_measured(measured or []), radius_m=contact_radius_mm * 1e-3, law=law)
     # refuse a bad name or value before any work (a law's ratio, e.g. yeoh_C20_C10_bulb, is
     # checked against the model's laws once the model is read)

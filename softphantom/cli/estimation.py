@@ -81,8 +81,8 @@ def estimate_cmd(
     model_dir: Path = typer.Option(..., "--model", help="Model directory (softphantom design --out)."),
     source: str = typer.Option(..., "--source", help="serial:PORT | replay:FILE (sensing recording) | virtual:SCENARIO"),
     out: Path = typer.Option(..., "--out", help="Estimate CSV to write (metadata line, then one row per sample)."),
-    at: str = typer.Option(None, "--at", help="Contact point: on-centre | off-centre (the model's p_ext); "
-                           "default: the recording's (replay) or on-centre."),
+    at: str = typer.Option(None, "--at", help="Contact point: on-centre, off-centre or one of the design's "
+                           "[contacts] (the model's p_ext); default: the recording's (replay) or on-centre."),
     max_force_N: float = typer.Option(10.0, "--max-force-N", help="Bound on each force component (N)."),
     qp_solver: str = typer.Option("daqp", "--qp-solver", help="QP solver: daqp | quadprog."),
     estimator: str = typer.Option("atlas", "--estimator", help="atlas (precomputed equilibria, built once per model "
@@ -119,6 +119,7 @@ def estimate_cmd(
     import threading
 
     from softphantom.design import load_model
+    from softphantom.design.params import check_contact
     from softphantom.estimation import EstimatorConfig, estimate_stream, open_estimator
     from softphantom.estimation.atlas.build import MAX_BUILD_ON_THE_FLY_S
     from softphantom.estimation.atlas.config import model_atlas_config
@@ -128,8 +129,6 @@ def estimate_cmd(
     atlas_config_from_options(atlas_grid, envelope, atlas_x_axis, atlas_f_y_split)  # bad options fail first
     if mode not in ("auto", "sync", "async"):
         raise UserError(f"--mode must be auto, sync or async, got {mode!r}")
-    if at is not None and at not in ("on-centre", "off-centre"):
-        raise UserError(f"--at must be on-centre or off-centre, got {at!r}")
     if duration_s is not None and not duration_s > 0:
         raise UserError(f"--duration-s must be > 0, got {duration_s}")
     if p0_kPa is not None and not p0_kPa > 0:
@@ -140,12 +139,21 @@ def estimate_cmd(
     if not (model_dir / "model.npz").is_file():
         raise UserError(f"--model {model_dir}: not a model directory (no model.npz; run softphantom design)")
     model = load_model(model_dir)
+    if at is not None:
+        check_contact(at, list(model.p_ext), "--at")
     acfg = atlas_config_from_options(atlas_grid, envelope, atlas_x_axis, atlas_f_y_split,
                                      base=model_atlas_config(model.element_order, model_dir))
     opened = open_sensor_source(source, model, tare_s=tare_s, on_new_board=on_new_board,
                                 tube_length_m=tube_length_m, tube_id_mm=tube_id_mm, p0_kPa=p0_kPa)
     src, live = opened.source, opened.live
-    at = at or opened.meta.get("recording_contact") or "on-centre"
+    if at is None and opened.meta.get("recording_contact"):
+        at = opened.meta["recording_contact"]
+        try:  # a recording made at a point this model does not have
+            check_contact(at, list(model.p_ext), f"{source}: recording_contact", hint="--at gives another")
+        except UserError:
+            src.close()
+            raise
+    at = at or "on-centre"
     cfg = EstimatorConfig.box(max_force_N, contact=at, qp_solver=qp_solver,
                               mode=("async" if live else "sync") if mode == "auto" else mode)
     t0 = time.monotonic()

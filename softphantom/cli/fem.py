@@ -37,7 +37,8 @@ def _vec3(text: str, what: str) -> np.ndarray:
 def simulate_command(
     model_dir: Path = typer.Option(..., "--model", help="Model directory written by `softphantom design`."),
     force_N: str = typer.Option("0,0,0", "--force-N", help="Force FX,FY,FZ in N (model frame)."),
-    at: str = typer.Option("on-centre", "--at", help="Where: on-centre, off-centre, or X,Y,Z in mm."),
+    at: str = typer.Option("on-centre", "--at", help="Where: on-centre, off-centre, one of the design's [contacts], or "
+                          "X,Y,Z in mm."),
     patch_radius_mm: float = typer.Option(
         DEFAULT_CONTACT_RADIUS_M * 1e3, "--patch-radius-mm",
         help="Contact patch radius in mm: a uniform traction on the outer surface within it (0: point force)."
@@ -68,13 +69,12 @@ def simulate_command(
     if patch_radius_mm < 0:
         raise UserError(f"--patch-radius-mm must be >= 0, got {patch_radius_mm}")
     model = load_model(model_dir)
-    if at in model.p_ext:
-        point = np.asarray(model.p_ext[at])
+    if "," in at:
+        point = _vec3(at, "--at") * 1e-3
     else:
-        try:
-            point = _vec3(at, "--at") * 1e-3
-        except UserError:
-            raise UserError(f"--at: expected one of {sorted(model.p_ext)} or X,Y,Z in mm, got {at!r}") from None
+        from softphantom.design.params import check_contact
+
+        point = np.asarray(model.p_ext[check_contact(at, list(model.p_ext), "--at", hint="or X,Y,Z in mm")])
     t0 = time.perf_counter()
     fem = fem_from_phantom(model)
     f_ext = force_actuator(fem, point, radius=patch_radius_mm * 1e-3) @ force

@@ -9,7 +9,7 @@ import typer
 
 from softphantom.cli.app import app, console
 from softphantom.cli.estimation import NEW_BOARD_OPTION, TUBE_ID_OPTION, TUBE_LENGTH_OPTION, check_source_options
-from softphantom.cli.options import check_choice, check_output, check_positive, overwrite_option, staged_output, stopped
+from softphantom.cli.options import check_output, check_positive, overwrite_option, staged_output, stopped
 from softphantom.errors import UserError
 
 
@@ -37,7 +37,8 @@ def live(
     rate_Hz: float = typer.Option(77.0, "--rate-Hz", help="estimate rate of the synthetic source, Hz"),
     view_rate_Hz: float = typer.Option(30.0, "--view-rate-Hz", help="page update rate, Hz"),
     speed: float = typer.Option(1.0, "--speed", help="replay/virtual speed factor (0: as fast as possible)"),
-    at: str = typer.Option("on-centre", "--at", help="virtual/serial: contact point, on-centre | off-centre"),
+    at: str = typer.Option("on-centre", "--at", help="virtual/serial: contact point, on-centre, off-centre "
+                      "or one of the design's [contacts]"),
     max_force_N: float = typer.Option(10.0, "--max-force-N", help="virtual/serial: bound on each force component (N)"),
     tube_length_m: Optional[float] = TUBE_LENGTH_OPTION,
     tube_id_mm: Optional[float] = TUBE_ID_OPTION,
@@ -58,7 +59,10 @@ def live(
     check_estimator_kind(estimator)
     check_source_options(source, max_force_N=max_force_N, on_new_board=on_new_board, tube_length_m=tube_length_m,
                          tube_id_mm=tube_id_mm)
-    check_choice(at, ("on-centre", "off-centre"), "--at")
+    if model is None:  # with --model, checked against its contact points once it is read
+        from softphantom.design.params import DERIVED_CONTACTS, check_contact
+
+        check_contact(at, DERIVED_CONTACTS, "--at", "the default design", "--model for a design's [contacts]")
     check_positive(speed, "--speed", zero=True)
     if tracker is not None:
         _tracker_address(tracker)
@@ -173,15 +177,15 @@ def _estimator_source(spec: str, model_dir: Optional[Path], at: str, max_force_N
     """The estimator over a board or the virtual phantom, opened as ``softphantom estimate`` does."""
     from softphantom.cli.estimation import open_sensor_source
     from softphantom.design import load_model
+    from softphantom.design.params import check_contact
     from softphantom.estimation import EstimatorConfig, open_estimator
     from softphantom.estimation.atlas.build import MAX_BUILD_ON_THE_FLY_S
     from softphantom.viz.live import EstimatorSource
 
     if model_dir is None or not (model_dir / "model.npz").is_file():
         raise UserError(f"--source {spec} needs --model DIR (a model directory from softphantom design)")
-    if at not in ("on-centre", "off-centre"):
-        raise UserError(f"--at must be on-centre or off-centre, got {at!r}")
     model = load_model(model_dir)
+    check_contact(at, list(model.p_ext), "--at")
     opened = open_sensor_source(spec, model, on_new_board=on_new_board, **(bench_options or {}))
     sensor, is_live = opened.source, opened.live
     # refresh estimator on a paced source: the background equilibrium keeps each step short

@@ -113,8 +113,8 @@ def acquire_cmd(
     tube_id_mm: float = typer.Option(None, "--tube-id-mm", help="Tube inner diameter (mm; default 1.2)."),
     model_dir: Path = typer.Option(None, "--model", help="Model directory: arm cavity volumes from its design "
                                    "(default: the paper's 514/486 mm³)."),
-    at: str = typer.Option("on-centre", "--at", help="Contact point of the trial: on-centre | off-centre "
-                           "(stored, so estimate on the replay needs no option)."),
+    at: str = typer.Option("on-centre", "--at", help="Contact point of the trial: on-centre, off-centre or "
+                           "one of the --model's [contacts] (stored, so estimate on the replay needs no option)."),
     on_new_board: str = typer.Option("stop", "--on-new-board", help="When the board restarts or is replaced: "
                                      "stop (the file so far is kept) | retare (re-tare at rest and go on)."),
     connect_timeout_s: float = typer.Option(5.0, "--connect-timeout-s", help="Give up if no frame arrives (s)."),
@@ -127,6 +127,7 @@ def acquire_cmd(
     from rich.live import Live
 
     from softphantom import __version__
+    from softphantom.design.params import DERIVED_CONTACTS, check_contact
     from softphantom.sensing.bench import BenchConfig, RetareSource, check_link_options, tare_at_rest
     from softphantom.sensing.chain import to_measurement
     from softphantom.sensing.recording import Recorder
@@ -135,8 +136,8 @@ def acquire_cmd(
     # every option's value before the port or the model is opened
     if duration_s is not None and not duration_s > 0:
         raise UserError(f"--duration-s: must be > 0, got {duration_s}")
-    if at not in ("on-centre", "off-centre"):
-        raise UserError(f"--at must be on-centre or off-centre, got {at!r}")
+    if model_dir is None:
+        check_contact(at, DERIVED_CONTACTS, "--at", "the default design", "--model for a design's [contacts]")
     check_link_options(tare_s, connect_timeout_s, on_new_board)
     if out.exists():
         raise UserError(f"--out {out}: exists; recordings are never overwritten")
@@ -147,6 +148,7 @@ def acquire_cmd(
         if not (model_dir / "model.npz").is_file():
             raise UserError(f"--model {model_dir}: not a model directory (no model.npz; run softphantom design)")
         model = load_model(model_dir)
+        check_contact(at, list(model.p_ext), "--at")
     bench = BenchConfig.from_options(tube_length_m, tube_id_mm, p0_kPa, model=model)
     chain = bench.chain()
     serial_src = SerialSource(port, chain, baud=baud, osr=osr)

@@ -74,7 +74,7 @@ class PhantomModel:
     outer_faces: np.ndarray
     markers: dict[str, np.ndarray]
     targets: dict[str, np.ndarray]
-    p_ext: dict[str, np.ndarray]
+    p_ext: dict[str, np.ndarray]  # the contact points: on-centre, off-centre, then the design's [contacts]
     mesh_seconds: float = field(default=0.0)
     tets10: np.ndarray = field(default_factory=lambda: np.zeros((0, 10), dtype=np.int64))
     cavities6: dict[str, np.ndarray] = field(default_factory=dict)

@@ -26,7 +26,8 @@ needle coming from −y, z up/anterior):
 - **interaction** (p_ext): ``on-centre`` is where the −y axis leaves the bulb, (0, −b, 0);
   ``off-centre`` is the point of the front surface at straight-line distance ``offcentre_mm``
   (10 mm) from it, in the direction ``offcentre_angle_deg`` measured in the x–z plane from +x
-  towards +z (45°: diagonal, +x and +z).
+  towards +z (45°: diagonal, +x and +z). Further named **contacts** (``[contacts]``,
+  ``NAME = [x, y, z]`` mm, on the surface, not under an arm) follow them.
 - **markers**: tracker points on the bulb surface (≥ 4, non-coplanar, not under an arm);
   **targets**: named points inside the bulb, outside the urethra (``near_urethra`` is 3 mm
   from its wall).
@@ -63,7 +64,7 @@ from pydantic import AfterValidator, SkipValidation, Strict
 
 from softphantom.design import geometry as geo
 from softphantom.design.fabrication import MoldParams
-from softphantom.errors import DesignError
+from softphantom.errors import DesignError, UserError
 from softphantom.records.names import ARM_NAMES
 from softphantom.schema import Field, Number, between, checked, refuse
 from softphantom.schema import Vec3 as _Vec3  # params.Vec3 is the plain type of a point
@@ -91,6 +92,7 @@ MIN_WALL_MM = 1.0
 SURFACE_TOL_MM = 0.1
 MIN_MARKERS = 4
 MIN_MARKER_SPREAD_MM = 1.0
+DERIVED_CONTACTS = ("on-centre", "off-centre")  # every design's first contact points, from [interaction]
 MAX_CAVITY_SEGMENTS = 256.0  # volume error (2π/n)²/6 = 0.01 %: more buys nothing but elements
 
 BULB_VOLUME_MM3 = 100_410.0
@@ -481,6 +483,40 @@ def _named_points(path: str, value: Any) -> tuple[tuple[str, Vec3], ...]:
     return tuple(out)
 
 
+def _contact_points(value: Any) -> tuple[tuple[str, Vec3], ...]:
+    """``[contacts]`` as (name, point) pairs; a name is refused here, its point in _validate_geometry."""
+    items = value.items() if isinstance(value, dict) else value
+    seen: list[str] = []
+    for item in items:
+        name = item[0] if isinstance(item, (tuple, list)) and len(item) == 2 else None
+        if not isinstance(name, str):
+            raise DesignError(f"contacts: expected name = [x, y, z] pairs, got {item!r}")
+        if not re.fullmatch(r"[A-Za-z][A-Za-z0-9_-]*", name):
+            raise DesignError(f"contacts.{name}: a contact's name must start with a letter and hold letters, "
+                              "digits, _ or -")
+        if name in DERIVED_CONTACTS:
+            raise DesignError(f"contacts.{name}: reserved (on-centre and off-centre come from [interaction])")
+        if name in seen:
+            raise DesignError(f"contacts.{name}: two contact points have this name")
+        seen.append(name)
+    return _named_points("contacts", items)
+
+
+def check_contact(name: str, names, option: str = "--at", whose: str = "this model", hint: str = "") -> str:
+    """``name`` if it is one of ``names`` (a model's contact points), else a one-line UserError
+    naming ``option`` and listing them (then ``hint``, e.g. the other forms the option takes).
+
+    >>> check_contact("front-lobe", ("on-centre", "off-centre"))
+    Traceback (most recent call last):
+    ...
+    softphantom.errors.UserError: --at front-lobe: not a contact point of this model (on-centre, off-centre)
+    """
+    if name not in names:
+        raise UserError(f"{option} {name}: not a contact point of {whose} ({', '.join(names)})"
+                        + (f"; {hint}" if hint else ""))
+    return name
+
+
 @checked("materials.{name}", DesignError)
 class MaterialSpec:
     """A named material of the design file: ``law`` (``corotational``, ``neo-hookean``, ``yeoh``)
@@ -544,6 +580,8 @@ class BIPDesign:
     # (name, point) pairs or a dict; checked below, naming the point
     markers: SkipValidation[tuple[tuple[str, Vec3], ...]] = field(default_factory=_default_markers)
     targets: SkipValidation[tuple[tuple[str, Vec3], ...]] = field(default_factory=_default_targets)
+    # further contact points (name, point) after on-centre and off-centre; checked below
+    contacts: SkipValidation[tuple[tuple[str, Vec3], ...]] = ()
     mesh: MeshParams = field(default_factory=MeshParams)
     materials: tuple[MaterialSpec, ...] = field(default_factory=_default_materials)
     region_materials: SkipValidation[tuple[tuple[str, str], ...]] = field(default_factory=_default_region_materials)
@@ -554,6 +592,7 @@ class BIPDesign:
     def __post_init__(self) -> None:
         _set(self, "markers", _named_points("markers", self.markers))
         _set(self, "targets", _named_points("targets", self.targets))
+        _set(self, "contacts", _contact_points(self.contacts))
         _validate_arm_names(tuple(a.name for a in self.arms))
         g = self.sensors.gains
         if len(g) != len(self.arms):
@@ -615,8 +654,18 @@ class BIPDesign:
         return tuple(_arm_geometry(a, self.bulb) for a in self.arms)
 
     def p_ext_mm(self) -> dict[str, np.ndarray]:
-        """The interaction points ``on-centre`` and ``off-centre``, mm."""
-        return _p_ext(self.bulb, self.interaction)
+        """The contact points, mm: ``on-centre`` and ``off-centre`` (from ``[interaction]``), then
+        the ``[contacts]`` in the file's order."""
+        return {**_p_ext(self.bulb, self.interaction), **{k: np.asarray(v) for k, v in self.contacts}}
+
+    @property
+    def contact_names(self) -> tuple[str, ...]:
+        """The names of :meth:`p_ext_mm`'s points, without computing them.
+
+        >>> BIPDesign().contact_names
+        ('on-centre', 'off-centre')
+        """
+        return (*DERIVED_CONTACTS, *(k for k, _ in self.contacts))
 
     @property
     def marker_dict(self) -> dict[str, np.ndarray]:
@@ -944,6 +993,14 @@ def _validate_geometry(d: BIPDesign) -> None:
         if inside >= 0.0:
             raise DesignError(f"targets.{name} is inside the urethra cavity ({_fmt(inside)} mm from its wall)")
     _p_ext(d.bulb, d.interaction)
+    for name, xyz in d.contacts:
+        off = abs(float(sdist([xyz])[0]))
+        if off > SURFACE_TOL_MM:
+            raise DesignError(f"contacts.{name} = {list(xyz)} is {_fmt(off)} mm off the bulb surface "
+                              f"(tolerance {SURFACE_TOL_MM:g} mm)")
+        for g in geoms:
+            if geo.segment_distance([xyz], g.start_mm, g.end_mm)[0] < g.radius_mm + g.fillet_mm + MIN_WALL_MM:
+                raise DesignError(f"contacts.{name} lies under arms.{g.name} (min {MIN_WALL_MM:g} mm from its side)")
 
 
 # --- files ---------------------------------------------------------------------------------
@@ -977,6 +1034,8 @@ def design_to_dict(design: BIPDesign) -> dict[str, Any]:
     }
     out["markers"] = {k: list(v) for k, v in design.markers}
     out["targets"] = {k: list(v) for k, v in design.targets}
+    if design.contacts:  # a file without them stays as it was
+        out["contacts"] = {k: list(v) for k, v in design.contacts}
     out["materials"] = {m.name: {"law": m.law, **dict(m.values)} for m in design.materials}
     out["region_materials"] = dict(design.region_materials)
     if not design.layers.is_default:  # a one-material design's file stays as it was
@@ -1033,8 +1092,10 @@ def _arms_from_dict(data: dict[str, Any], default_arms: tuple[ArmParams, ...], s
 
 
 def design_from_dict(data: dict[str, Any]) -> BIPDesign:
-    """A design from a nested dict; missing keys keep their defaults, ``markers``/``targets`` replace them."""
-    _check_keys("design", data, ["name", "arm_names", "arms", "markers", "targets", "materials", "region_materials",
+    """A design from a nested dict; missing keys keep their defaults, ``markers``/``targets``/``contacts``
+    replace them."""
+    _check_keys("design", data, ["name", "arm_names", "arms", "markers", "targets", "contacts", "materials",
+                                 "region_materials",
                                  "layers", *_SUBS])
     default = _default_design()
     defaults = {f.name: getattr(default, f.name) for f in dataclasses.fields(BIPDesign)}
@@ -1057,7 +1118,7 @@ def design_from_dict(data: dict[str, Any]) -> BIPDesign:
             les.append(LesionParams(name=str(name), **spec))
         kwargs["layers"] = LayersParams(shell_mm=lay.get("shell_mm", 0.0), lesions=tuple(les))
     kwargs["arms"] = _arms_from_dict(data, defaults["arms"], kwargs["bulb"].is_surface)
-    for key in ("markers", "targets"):
+    for key in ("markers", "targets", "contacts"):
         if key in data:
             if not isinstance(data[key], dict):
                 raise DesignError(f"{key}: expected a table of name = [x, y, z]")

@@ -28,9 +28,9 @@ def _vec3(name: str, v) -> tuple[float, float, float]:
 class EstimatorConfig:
     """How the estimator runs.
 
-    ``contact``: name of a ``PhantomModel.p_ext`` point (``"on-centre"``, ``"off-centre"``) or an
-    (x, y, z) point in m; ``contact_radius_m`` spreads the force as a uniform traction over the outer
-    surface within that radius (:class:`~softphantom.fem.ContactPatch`, default
+    ``contact``: name of a ``PhantomModel.p_ext`` point (``"on-centre"``, ``"off-centre"``, or one
+    of the design's ``[contacts]``) or an (x, y, z) point in m; ``contact_radius_m`` spreads the
+    force as a uniform traction over the outer surface within that radius (:class:`~softphantom.fem.ContactPatch`, default
     :data:`~softphantom.fem.DEFAULT_CONTACT_RADIUS_M` = 4 mm, the same patch as ``simulate`` and the
     virtual truth; 0: a point load on the element containing the point, as the paper). ``force_min_N``/``force_max_N``:
     bounds on each force component (box; sign constraints are a zero bound), default ±10 N.

@@ -4,8 +4,9 @@ A scenario is a rest window (the tare) followed by *events*, each a smooth load 
 a peak, a hold at the peak and a ramp back to rest (quasi-static, so a ramp's shape in time does
 not change the equilibria it passes through):
 
-* ``[[push]]`` a force (N, model frame) at an interaction point (``on-centre`` / ``off-centre``),
-  spread over a small surface patch (a point force is singular in 3-D; DESIGN.md §5);
+* ``[[push]]`` a force (N, model frame) at a contact point of the model (``on-centre``,
+  ``off-centre`` or one of its design's ``[contacts]``: :meth:`Scenario.check_points`), spread over
+  a small surface patch (a point force is singular in 3-D; DESIGN.md §5);
 * ``[[inflate]]`` a urethra gauge pressure: either ``p_urethra_kPa`` given, or inflated *until* a
   named target moves ``target_shift_mm`` (DESIGN.md §5: the paper's marker next to the urethra
   moved ≈ 2 mm), capped at ``max_p_urethra_kPa`` (the transducer's or the silicone's limit).
@@ -28,10 +29,11 @@ s ∈ [0, 1] times its peak). Example (``scenarios/needle-insertion.toml``)::
 from __future__ import annotations
 
 import math
+import re
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated
 
 import numpy as np
 from pydantic import field_validator, model_validator
@@ -40,7 +42,7 @@ from softphantom.errors import UserError
 from softphantom.fem.contact import DEFAULT_CONTACT_RADIUS_M
 from softphantom.schema import Field, FileModel, Vec3, between, parse, refuse
 
-POINTS = ("on-centre", "off-centre")
+POINTS = ("on-centre", "off-centre")  # every model's; a design's [contacts] add to them
 MAX_DURATION_S = 600.0
 """Longest scenario: the board is modelled on a 1 kHz grid (about 20 float columns, ~0.16 MB per
 second), so 10 min is ~100 MB; 1e9 s asked for terabytes."""
@@ -95,6 +97,24 @@ class Scenario:
     patch_radius_mm: float = DEFAULT_CONTACT_RADIUS_M * 1e3
     source: str = ""
 
+    def check_points(self, names) -> "Scenario":
+        """The scenario if every push is at one of ``names`` (a model's contact points, its
+        ``p_ext``), else a one-line :class:`ScenarioError` naming the file and listing them.
+
+        >>> sc = scenario_from_dict({"name": "n", "duration_s": 3, "push": [
+        ...     {"point": "front-lobe", "start_s": 1, "rise_s": 1, "force_N": [0, 1, 0]}]}, "n.toml")
+        >>> sc.check_points(POINTS)
+        Traceback (most recent call last):
+        ...
+        softphantom.virtual.scenario.ScenarioError: n.toml: push.point front-lobe: not a contact point of this model (on-centre, off-centre)
+        """
+        names = list(names)
+        for e in self.events:
+            if e.kind == "push" and e.point not in names:
+                raise ScenarioError(f"{self.source}: push.point {e.point}: not a contact point of this model "
+                                    f"({', '.join(names)})")
+        return self
+
     def active(self, t: float) -> int | None:
         """Index of the event acting at ``t`` (None at rest)."""
         for i, e in enumerate(self.events):
@@ -119,8 +139,15 @@ class _Times(FileModel):
 
 
 class _Push(_Times):
-    point: Literal[POINTS] = "on-centre"
+    point: str = "on-centre"  # a contact point's name, checked against a model's (Scenario.check_points)
     force_N: Vec3
+
+    @field_validator("point")
+    @classmethod
+    def _name(cls, p: str) -> str:
+        if not re.fullmatch(r"[A-Za-z][A-Za-z0-9_-]*", p):
+            raise refuse("must be a contact point's name (a letter, then letters, digits, _ or -)")
+        return p
 
     @field_validator("force_N")
     @classmethod

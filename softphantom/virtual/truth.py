@@ -240,6 +240,7 @@ def solve_truth(scenario: Scenario, model: PhantomModel, config: TruthConfig = T
     model (its design and mesh size set the truth mesh), or pass ``truth_mesh`` directly.
     Its progress is reported after each keyframe (task ``<scenario>: truth``, done/total keyframes,
     :func:`softphantom.progress.report`); a given ``truth_mesh`` sets the element order (its own)."""
+    scenario.check_points((model if truth_mesh is None else truth_mesh).p_ext)  # before the truth is meshed
     t0 = time.perf_counter()
     task = f"{scenario.name}: truth"
     if truth_mesh is None:
