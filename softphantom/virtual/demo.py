@@ -229,6 +229,7 @@ def run_scenario(sc, model, out: Path, cfg, truth, estimator: str = "atlas", gri
         "rmse": {s.name: s.rmse for s in ev.dof}, "units": {s.name: s.unit for s in ev.dof},
         "peak_truth": {s.name: s.peak_truth for s in ev.dof},
         "force_rmse_N": {s.name: s.rmse for s in ev.force},
+        "force_peak_N": {s.name: s.peak_truth for s in ev.force},
         "target_rmse_mm": {s.name: s.rmse for s in ev.targets},
         "lag_ms": ev.lag_ms, "lag_source": ev.lag_source,
         "table_i": [{"dof": r.ref.dof, "observed": r.observed, "unit": r.ref.unit, "flag": r.flag,
