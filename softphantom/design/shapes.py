@@ -34,7 +34,7 @@ EXPONENT_RANGE = (0.3, 1.5)
 """Castable and meshable exponents: below 0.3 the edges round with radii under a millimetre on a
 gland-sized body (needle-thin triangles, a mold that traps air); above 1.5 it grows ridges (2: edges)
 that the smooth CAD body the mesher uses rounds off by a millimetre or more."""
-TOL_MM = 0.03  # chord tolerance of the rings; the surface then lies within about 0.05 mm of the analytic one
+TOL_MM = 0.02  # chord tolerance of the rings: a triangle's inside then lies within 0.05 mm of the shape
 MAX_EDGE_MM = 4.0  # longest ring step on flat parts (the default mesh's surface size)
 _DENSE = 4001  # samples of each quadrant curve for its density
 
@@ -168,7 +168,7 @@ def superellipsoid_surface(semi_axes, exponents, tol_mm: float = TOL_MM,
     add(np.array([[0.0, 0.0, -c]]), np.zeros(1))  # the south pole
     for k in range(-(n_lat - 1), n_lat):
         rho, zeta = lat[abs(k)]
-        xy, s = _ring(_quadrant(t, cum_s, max(2, math.ceil(m_eq * rho)), float(exponents[1])))
+        xy, s = _ring(_quadrant(t, cum_s, max(2, math.ceil(m_eq * math.sqrt(rho))), float(exponents[1])))
         add(np.column_stack([a * rho * xy[:, 0], b * rho * xy[:, 1], np.full(len(xy), math.copysign(c * zeta, k))]), s)
     add(np.array([[0.0, 0.0, c]]), np.zeros(1))  # the north pole
     faces = [f for (ia, sa), (ib, sb) in zip(rings[:-1], rings[1:]) for f in _zip(ia, sa, ib, sb)]
