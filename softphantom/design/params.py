@@ -148,7 +148,8 @@ class BulbParams:
       its half extents, for information).
 
     A triangulated body answers the geometry queries (:meth:`signed_distance`, :meth:`ray_exit`,
-    :meth:`normal`) through design/surface.py and is meshed as a polyhedron.
+    :meth:`normal`) through design/surface.py; the mesher meshes an imported surface as a
+    polyhedron and a superellipsoid as a smooth loft (design/occ_shapes.py).
 
     >>> b = BulbParams(semi_axes_mm=(30.0, 25.0, 20.0), shape="superellipsoid", exponents=(1.0, 1.0))
     >>> b.is_surface, round(b.volume_mm3 / (4 / 3 * math.pi * 30 * 25 * 20), 12)
@@ -156,7 +157,7 @@ class BulbParams:
     >>> BulbParams(shape="superellipsoid", exponents=(0.2, 1.0))
     Traceback (most recent call last):
     ...
-    softphantom.errors.DesignError: bulb.exponents[0] = 0.2 must be in [0.3, 2] (1: round, lower: boxier, higher: pinched)
+    softphantom.errors.DesignError: bulb.exponents[0] = 0.2 must be in [0.3, 1.5] (1: round, lower: boxier, higher: pinched)
     """
 
     semi_axes_mm: _Sizes3 = (_A_MM, _B_MM, _C_MM)

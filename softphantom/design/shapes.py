@@ -236,11 +236,3 @@ def body_surface(semi_axes: tuple, exponents: tuple, bend_mm: float = 0.0) -> tu
     v.flags.writeable = False
     f.flags.writeable = False
     return v, f
-
-
-def radial_gap_mm(points, semi_axes, exponents, bend_mm: float = 0.0) -> np.ndarray:
-    """How far ``points`` lie off the analytic surface along the ray from the centre (after
-    undoing the bend): > 0 outside. An upper bound of the distance on an unbent body."""
-    p = bend_points(points, semi_axes, -bend_mm) if bend_mm else np.atleast_2d(np.asarray(points, float))
-    f = superellipsoid_level(p, semi_axes, exponents)
-    return np.linalg.norm(p, axis=1) * (1.0 - f ** (-0.5 * exponents[0]))
