@@ -1,4 +1,4 @@
-"""Closed-form geometry of the BIP primitives (ellipsoid, capsule, cylinder), in millimetres.
+"""Closed-form geometry of the BIP primitives (ellipsoid, superellipsoid, capsule, cylinder), in millimetres.
 
 Used to validate a design before meshing (clearances, points on the surface) and to state the
 design volumes the mesh is checked against. Pure numpy, no state.
@@ -21,6 +21,37 @@ def ellipsoid_volume(semi_axes: tuple[float, float, float]) -> float:
     """
     a, b, c = semi_axes
     return 4.0 / 3.0 * math.pi * a * b * c
+
+
+def superellipsoid_volume(semi_axes: tuple[float, float, float], exponents: tuple[float, float]) -> float:
+    """Volume of Barr's superellipsoid ((|x/a|^(2/e2) + |y/b|^(2/e2))^(e2/e1) + |z/c|^(2/e1) = 1):
+    V = 2·a·b·c·e1·e2·B(e1/2 + 1, e1)·B(e2/2, e2/2), B the beta function.
+
+    >>> round(superellipsoid_volume((1.0, 1.0, 1.0), (1.0, 1.0)) / (4 / 3 * math.pi), 12)
+    1.0
+    >>> round(superellipsoid_volume((1.0, 1.0, 1.0), (1e-9, 1e-9)), 6)  # the box [-1, 1]³
+    8.0
+    """
+    a, b, c = semi_axes
+    e1, e2 = exponents
+    return 2.0 * a * b * c * e1 * e2 * _beta(0.5 * e1 + 1.0, e1) * _beta(0.5 * e2, 0.5 * e2)
+
+
+def _beta(x: float, y: float) -> float:
+    return math.exp(math.lgamma(x) + math.lgamma(y) - math.lgamma(x + y))
+
+
+def superellipsoid_level(points, semi_axes, exponents) -> FloatArray:
+    """Barr's inside-outside function F: < 1 inside, 1 on the surface, > 1 outside; F(s·p) = s^(2/e1)·F(p),
+    so ``p · F(p)^(-e1/2)`` is the surface point on the ray from the centre through p.
+
+    >>> [round(float(f), 12) for f in superellipsoid_level([[2, 0, 0], [0, 0, 0.5]], (2.0, 1.0, 1.0), (0.5, 1.5))]
+    [1.0, 0.0625]
+    """
+    p = np.abs(np.atleast_2d(np.asarray(points, dtype=float))) / np.asarray(semi_axes, dtype=float)
+    e1, e2 = exponents
+    xy = p[:, 0] ** (2.0 / e2) + p[:, 1] ** (2.0 / e2)
+    return xy ** (e2 / e1) + p[:, 2] ** (2.0 / e1)
 
 
 def capsule_volume(radius: float, cyl_length: float) -> float:

@@ -1,6 +1,7 @@
 """The bulb as an OpenCASCADE solid (gmsh ``occ`` API), for the mesher and the molds, in mm.
 
-An ellipsoid is a unit sphere dilated to its semi-axes; a surface bulb (anatomy import) is a
+An ellipsoid is a unit sphere dilated to its semi-axes; a superellipsoid a loft through splines
+(design/shapes.py); a surface bulb (anatomy import) is a
 polyhedral solid: one point per vertex, one line per edge shared by its two faces, one plane
 surface per triangle, sewn into a volume, so booleans with the arms and cavities work as on the
 ellipsoid. ``transform`` (12 numbers, row-major 3×4) maps it afterwards, e.g. into an arm's frame.
@@ -30,7 +31,11 @@ SNAP_DEG = 10.0  # a capsule axis this close to a coordinate axis (but not on it
 
 def bulb_solid(occ, bulb, transform: list[float] | None = None) -> int:
     """Add the bulb of a :class:`~softphantom.design.params.BulbParams`; returns its volume tag."""
-    if not bulb.is_surface:
+    if bulb.is_parametric:  # smooth, not its triangles (design/shapes.py)
+        from softphantom.design.shapes import occ_body
+
+        tag = occ_body(occ, bulb.semi_axes_mm, bulb.exponents, bulb.bend_mm)
+    elif not bulb.is_surface:
         tag = occ.addSphere(0.0, 0.0, 0.0, 1.0)
         occ.dilate([(3, tag)], 0.0, 0.0, 0.0, *bulb.semi_axes_mm)
     else:

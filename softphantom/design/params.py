@@ -64,6 +64,7 @@ from pydantic import AfterValidator, SkipValidation, Strict
 
 from softphantom.design import geometry as geo
 from softphantom.design.fabrication import MoldParams
+from softphantom.design.shapes import EXPONENT_RANGE, bend_axes, body_surface
 from softphantom.errors import DesignError, UserError
 from softphantom.records.names import ARM_NAMES
 from softphantom.schema import Field, Number, between, checked, refuse
@@ -127,21 +128,67 @@ def _set(obj: Any, name: str, value: Any) -> None:
     object.__setattr__(obj, name, value)
 
 
+@functools.lru_cache(maxsize=16)
+def _shape_triangles(semi_axes: Vec3, exponents: tuple[float, float], bend_mm: float) -> tuple[tuple, tuple]:
+    """A parametric body's triangles as the bulb's nested tuples (cached: a design is made often)."""
+    v, f = body_surface(semi_axes, exponents, bend_mm)
+    return tuple(map(tuple, v.tolist())), tuple(map(tuple, f.tolist()))
+
+
 @checked("bulb", DesignError)
 class BulbParams:
-    """The gland: an ellipsoid centred at the origin, semi-axes (x, y, z) in mm — or, from an
-    anatomy import (design/anatomy.py), a closed triangle surface ``surface_vertices_mm`` /
-    ``surface_faces`` in the model frame (then ``semi_axes_mm`` are its half extents, for
-    information). Geometry queries go through :meth:`signed_distance`, :meth:`ray_exit`,
-    :meth:`normal`, which are closed forms for the ellipsoid.
+    """The body (the gland), centred at the origin, semi-axes (x, y, z) in mm, one of:
+
+    - ``shape = "ellipsoid"`` (the default): closed forms for every query;
+    - ``shape = "superellipsoid"``: Barr's superquadric with ``exponents`` (e1 north–south along
+      z, e2 east–west in x–y; [1, 1] is the ellipsoid), bent into a bean by ``bend_mm`` (the
+      longest axis curved towards the next longest, its ends ``bend_mm`` off its middle:
+      design/shapes.py). The file keeps these parameters; the triangles are derived from them
+      into ``surface_vertices_mm`` / ``surface_faces`` (within about 0.05 mm of the shape);
+    - from an anatomy import (design/anatomy.py), a closed triangle surface
+      ``surface_vertices_mm`` / ``surface_faces`` in the model frame (then ``semi_axes_mm`` are
+      its half extents, for information).
+
+    A triangulated body answers the geometry queries (:meth:`signed_distance`, :meth:`ray_exit`,
+    :meth:`normal`) through design/surface.py; the mesher meshes an imported surface as a
+    polyhedron and a superellipsoid as a smooth loft (design/occ_shapes.py).
+
+    >>> b = BulbParams(semi_axes_mm=(30.0, 25.0, 20.0), shape="superellipsoid", exponents=(1.0, 1.0))
+    >>> b.is_surface, round(b.volume_mm3 / (4 / 3 * math.pi * 30 * 25 * 20), 12)
+    (True, 1.0)
+    >>> BulbParams(shape="superellipsoid", exponents=(0.2, 1.0))
+    Traceback (most recent call last):
+    ...
+    softphantom.errors.DesignError: bulb.exponents[0] = 0.2 must be in [0.3, 1.5] (1: round, lower: boxier, higher: pinched)
     """
 
     semi_axes_mm: _Sizes3 = (_A_MM, _B_MM, _C_MM)
     surface_vertices_mm: tuple[_Vec3, ...] = ()
     surface_faces: tuple[Annotated[tuple[Annotated[int, Strict(), Field(ge=0)], ...],
                                    Field(min_length=3, max_length=3)], ...] = ()
+    shape: Literal["ellipsoid", "superellipsoid"] = "ellipsoid"
+    exponents: Annotated[tuple[Annotated[Number, between(*EXPONENT_RANGE, "(1: round, lower: boxier, higher: pinched)")],
+                               ...], Field(min_length=2, max_length=2)] = (1.0, 1.0)
+    bend_mm: Number = 0.0
 
     def __post_init__(self) -> None:
+        if self.shape == "ellipsoid":
+            if tuple(self.exponents) != (1.0, 1.0):
+                raise DesignError(f"bulb.exponents = {list(self.exponents)}: only with shape = \"superellipsoid\"")
+            if self.bend_mm != 0.0:
+                raise DesignError(f"bulb.bend_mm = {_fmt(self.bend_mm)}: only with shape = \"superellipsoid\" "
+                                  "(exponents = [1, 1] for a bent ellipsoid)")
+        else:
+            lo, w = bend_axes(self.semi_axes_mm)
+            half = self.semi_axes_mm[w]
+            if abs(self.bend_mm) > half:
+                raise DesignError(f"bulb.bend_mm = {_fmt(self.bend_mm)} bends the body by more than its half-width "
+                                  f"along {'xyz'[w]} (max {_fmt(half)} mm: semi_axes_mm[{w}])")
+            # derived: replace() with other semi-axes or exponents derives them again
+            verts, faces = _shape_triangles(tuple(self.semi_axes_mm), tuple(self.exponents), float(self.bend_mm))
+            _set(self, "surface_vertices_mm", verts)
+            _set(self, "surface_faces", faces)
+            return
         verts, faces = self.surface_vertices_mm, self.surface_faces
         for i, f in enumerate(faces):
             if max(f) >= len(verts):
@@ -150,6 +197,11 @@ class BulbParams:
             raise DesignError("bulb: surface_vertices_mm and surface_faces come together (a closed surface, >= 4 faces)")
         if faces and not self.volume_mm3 > 0.0:
             raise DesignError(f"bulb.surface_faces: the surface encloses {_fmt(self.volume_mm3)} mm³ (inside out or open)")
+
+    @property
+    def is_parametric(self) -> bool:
+        """A shape whose triangles are derived from its parameters (not stored in the file)."""
+        return self.shape != "ellipsoid"
 
     @property
     def is_surface(self) -> bool:
@@ -162,6 +214,8 @@ class BulbParams:
 
     @property
     def volume_mm3(self) -> float:
+        if self.is_parametric:  # Barr's closed form; the bend is a shear, which keeps it
+            return geo.superellipsoid_volume(self.semi_axes_mm, self.exponents)
         if self.is_surface:
             return geo.surface_enclosed_volume(np.asarray(self.surface_vertices_mm), np.asarray(self.surface_faces))
         return geo.ellipsoid_volume(self.semi_axes_mm)
@@ -1023,9 +1077,7 @@ def design_to_dict(design: BIPDesign) -> dict[str, Any]:
     out: dict[str, Any] = {"name": design.name}
     for sub in _SUBS:
         out[sub] = {k: _plain(v) for k, v in dataclasses.asdict(getattr(design, sub)).items()}
-    if not design.bulb.is_surface:  # an ellipsoid's file stays as it was
-        for k in ("surface_vertices_mm", "surface_faces"):
-            del out["bulb"][k]
+    out["bulb"] = _bulb_to_dict(design.bulb)
     if design.arm_names != ARM_NAMES:  # the BIP's file stays as it was
         out["arm_names"] = list(design.arm_names)
     out["arms"] = {
@@ -1043,6 +1095,16 @@ def design_to_dict(design: BIPDesign) -> dict[str, Any]:
                          "lesions": {x.name: {"center_mm": list(x.center_mm), "semi_axes_mm": list(x.semi_axes_mm)}
                                      for x in design.layers.lesions}}
     return out
+
+
+def _bulb_to_dict(bulb: BulbParams) -> dict[str, Any]:
+    """The ``[bulb]`` table: an ellipsoid's semi-axes alone (its file stays as it was), a parametric
+    shape's parameters (its triangles are derived on loading), an imported surface's triangles."""
+    if bulb.is_parametric:
+        return {"shape": bulb.shape, "semi_axes_mm": list(bulb.semi_axes_mm), "exponents": list(bulb.exponents),
+                "bend_mm": bulb.bend_mm}
+    keys = ("semi_axes_mm", "surface_vertices_mm", "surface_faces") if bulb.is_surface else ("semi_axes_mm",)
+    return {k: _plain(getattr(bulb, k)) for k in keys}
 
 
 def _check_keys(path: str, given: dict, allowed) -> None:
@@ -1105,6 +1167,11 @@ def design_from_dict(data: dict[str, Any]) -> BIPDesign:
     for sub in _SUBS:
         if sub in data:
             _check_keys(sub, data[sub], None)
+            if sub == "bulb" and data[sub].get("shape", "ellipsoid") != "ellipsoid":
+                given = next((k for k in ("surface_vertices_mm", "surface_faces") if k in data[sub]), None)
+                if given:
+                    raise DesignError(f"bulb.{given}: not with shape = {data[sub]['shape']!r} (its triangles are "
+                                      "derived from semi_axes_mm, exponents and bend_mm)")
             kwargs[sub] = dataclasses.replace(defaults[sub], **data[sub])
     if "layers" in data:
         lay = data["layers"]
