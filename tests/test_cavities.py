@@ -193,3 +193,74 @@ def test_pressurised_sphere_matches_the_thick_sphere():
     want = 3 * V0 * B * (1 / a**3 - 1 / b**3)
     assert dV == pytest.approx(want, rel=0.03)
     assert not dV == pytest.approx(3 * V0 * p / (4 * G), rel=0.03)  # the finite body is measurably stiffer
+
+
+# --- estimation ---------------------------------------------------------------------------------
+
+def test_refresh_estimate_with_two_known_pressures():
+    """The truth: the equilibrium at a force and both pressures; the estimator, given the arm
+    volumes and the two pressures, recovers the force (a Gauss–Newton fixed point on the volumes)."""
+    from types import SimpleNamespace
+
+    from softphantom.estimation import Estimator
+
+    model = _model("two")
+    est = Estimator(model)
+    assert est.pressure_names == ("urethra", "tumour") and est.arm_names == model.design.arm_names
+    assert est.rest.W.shape == (4, 5)
+    truth = np.array([0.2, 0.8, -0.3, 3000.0, 2000.0])
+    lin = est.forward.solve(truth)
+    m = SimpleNamespace(t=1.0, dV=lin.V.copy(), p_urethra=float("nan"), status="ok",
+                        pressures_Pa={"urethra": 3000.0, "tumour": 2000.0})
+    e = est.settle(m)
+    assert e.status == "ok"
+    assert np.allclose(e.force, truth[:3], atol=1e-4)
+    assert e.p_urethra == 3000.0 and e.extra["pressures_Pa"] == {"urethra": 3000.0, "tumour": 2000.0}
+    missing = SimpleNamespace(**{**vars(m), "pressures_Pa": {"urethra": 3000.0}})
+    assert est.step(missing).status.startswith("failed:the sample has no pressure of cavity tumour")
+    # the tumour's pressure is a load the arms feel: taken as 0 it biases the force
+    est.reset()
+    wrong = est.settle(SimpleNamespace(**{**vars(m), "pressures_Pa": {"urethra": 3000.0, "tumour": 0.0}}))
+    assert np.linalg.norm(wrong.force - truth[:3]) > 100 * np.linalg.norm(e.force - truth[:3])
+
+
+def test_atlas_refuses_other_cavities():
+    from softphantom.errors import UserError
+    from softphantom.estimation.select import open_estimator
+
+    with pytest.raises(UserError, match=r"^cavities: the atlas tabulates one internal pressure, the urethra's; this "
+                                        r"design has urethra, tumour: use --estimator refresh$"):
+        open_estimator("atlas", _model("two"))
+
+
+# --- the stages that read the urethra alone so far: one line each -------------------------------
+
+def test_later_stages_refuse_other_cavities():
+    from softphantom.errors import UserError
+    from softphantom.molds.parts import build_parts
+    from softphantom.sensing.bench import BenchConfig
+    from softphantom.virtual.scenario import load_scenario
+    from softphantom.virtual.truth import solve_truth
+
+    two, none = _model("two"), _model("none")
+    with pytest.raises(UserError, match=r"^cavities: the board: reads the BIP's one internal cavity, the urethra, "
+                                        r"for now; this design has urethra, tumour \("):
+        BenchConfig.from_model(two)
+    with pytest.raises(UserError, match=r"this design has none \("):
+        BenchConfig.from_model(none)
+    with pytest.raises(DesignError, match=r"^cavities: the molds hold .* this design has urethra, tumour$"):
+        build_parts(two.design)
+    with pytest.raises(UserError, match=r"^urethra-inflation: \[\[inflate\]\] inflates the urethra; this design has "
+                                        r"none \(its internal cavities: none\)$"):
+        solve_truth(load_scenario("urethra-inflation"), none)
+
+
+def test_observability_of_two_pressures():
+    from softphantom.estimation.observability import observability, observability_md
+
+    obs = observability(_model("two"), loaded=False)
+    assert obs.ranges.shape == (5,) and obs.ranges[3] == obs.ranges[4]
+    assert obs.rest.J.shape == (4, 5) and len(obs.rest.sv_mm3) == 4
+    md = observability_md(obs)
+    assert "`sv1..4`: force and the internal cavities' pressures" in md and "| sv4_mm3 | cond |" in md
+    assert "each p" in md

@@ -182,9 +182,10 @@ def _estimator_source(spec: str, model_dir: Optional[Path], at: str, max_force_N
     if at not in ("on-centre", "off-centre"):
         raise UserError(f"--at must be on-centre or off-centre, got {at!r}")
     model = load_model(model_dir)
-    from softphantom.sensing.bench import require_bip_arms
+    from softphantom.sensing.bench import require_bip_arms, require_bip_cavities
 
     require_bip_arms(model, "live")  # its page and stream schema draw the BIP's four arms
+    require_bip_cavities(model, "live")  # and the urethra's pressure
     opened = open_sensor_source(spec, model, on_new_board=on_new_board, **(bench_options or {}))
     sensor, is_live = opened.source, opened.live
     # refresh estimator on a paced source: the background equilibrium keeps each step short
