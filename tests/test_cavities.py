@@ -264,3 +264,14 @@ def test_observability_of_two_pressures():
     md = observability_md(obs)
     assert "`sv1..4`: force and the internal cavities' pressures" in md and "| sv4_mm3 | cond |" in md
     assert "each p" in md
+
+
+def test_the_documented_example_is_valid():
+    import re
+    import tomllib
+    from pathlib import Path
+
+    text = (Path(__file__).parents[1] / "docs" / "architecture.md").read_text(encoding="utf-8")
+    block = re.search(r"```toml\n(\[urethra\].*?)```", text, re.S).group(1)
+    d = design_from_dict(tomllib.loads(block))
+    assert d.internal_cavity_names == ("urethra", "tumour", "channel")

@@ -12,7 +12,9 @@ needle coming from −y, z up/anterior):
 - **urethra**: a closed capsule (cylinder with hemispherical ends) of ``radius_mm`` whose
   cylinder length is derived from ``volume_mm3`` (2078 mm³), centred at ``center_mm`` (default
   4 mm anterior) along ``axis``; ``inlet_mm`` is where its tube leaves the bulb (a point on the
-  surface; the channel itself is not meshed).
+  surface; the channel itself is not meshed). Other internal cavities (``[cavities.NAME]``: a
+  capsule like the urethra, or an ellipsoid balloon, each actuated) join or replace it: M ≥ 0 of
+  them, :attr:`BIPDesign.cavities` (docs/architecture.md, "Internal cavities").
 - **arms**: by default the BIP's four cylinders ``front_zpos``, ``front_zneg`` (needle side,
   above/below, cavities of 514 mm³) and ``back_xpos``, ``back_xneg`` (+y, left/right, 486 mm³);
   any :data:`MIN_ARMS` or more, each named, in the sensor order (a design file lists them in
