@@ -119,11 +119,11 @@ INVALID = {
     "zero cavity volume": (lambda: _arm(D, "front_zpos", cavity_volume_mm3=0.0), "arms.front_zpos.cavity_volume_mm3"),
     "thin arm wall": (lambda: _arm(D, "front_zpos", wall_mm=0.6), "minimum wall of 1 mm"),
     "urethra cuts the surface": (
-        lambda: dataclasses.replace(D, urethra=dataclasses.replace(D.urethra, center_mm=(0.0, 0.0, 24.0))),
+        lambda: D.with_urethra(dataclasses.replace(D.urethra, center_mm=(0.0, 0.0, 24.0))),
         "urethra: wall to the bulb surface",
     ),
     "urethra too long": (
-        lambda: dataclasses.replace(D, urethra=dataclasses.replace(D.urethra, volume_mm3=4000.0)),
+        lambda: D.with_urethra(dataclasses.replace(D.urethra, volume_mm3=4000.0)),
         "urethra: wall to the bulb surface",
     ),
     "arm cavity cuts the bulb": (lambda: _arm(D, "back_xpos", cavity_offset_mm=4.0), r"the cavity cuts 3\.\d+ mm into the bulb \(min wall 1 mm\)"),

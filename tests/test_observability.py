@@ -45,8 +45,8 @@ def _coplanar() -> BIPDesign:
     d = BIPDesign()
     dirs = {"front_zpos": (1.0, -0.6, 0.0), "front_zneg": (-1.0, -0.6, 0.0)}
     arms = tuple(dataclasses.replace(a, direction=dirs.get(a.name, a.direction)) for a in d.arms)
-    return dataclasses.replace(d, arms=arms, urethra=dataclasses.replace(
-        d.urethra, center_mm=(0.0, 0.0, 0.0), inlet_mm=(0.0, 25.0, 0.0)))
+    return dataclasses.replace(d, arms=arms, cavities=(dataclasses.replace(
+        d.urethra, center_mm=(0.0, 0.0, 0.0), inlet_mm=(0.0, 25.0, 0.0)),))
 
 
 @pytest.fixture(scope="module")

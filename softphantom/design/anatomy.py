@@ -557,7 +557,8 @@ def _design_from_anatomy(anatomy: Anatomy, base: BIPDesign, name: str, s: float)
             q = foot + (urethra.radius_mm + 3.0) * radial / np.linalg.norm(radial)
         targets.append((k, tuple(float(x) for x in q)))
     arms = tuple(_arm_clear_of_urethra(_scaled_arm(a, s), bulb, urethra) for a in base.arms)
-    out = dataclasses.replace(base, name=name, bulb=bulb, urethra=urethra, arms=arms, markers=markers,
+    out = dataclasses.replace(base, name=name, bulb=bulb, arms=arms, markers=markers,
+                              cavities=(urethra, *(c for c in base.cavities if c.name != "urethra")),
                               targets=tuple(targets))
     if anatomy.lesions:  # each lesion label becomes a lesion region, in the bulb's material unless set
         from softphantom.design.params import LayersParams, LesionParams

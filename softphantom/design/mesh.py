@@ -59,14 +59,17 @@ def region_ids(arm_names=ARM_NAMES) -> dict[str, int]:
     return {"bulb": 1, **{f"arm_{n}": (i + 2 if i < 4 else 100 + i) for i, n in enumerate(arm_names)}}
 
 
-def cavity_group_ids(arm_names=ARM_NAMES) -> dict[str, int]:
+def cavity_group_ids(arm_names=ARM_NAMES, internal=("urethra",)) -> dict[str, int]:
     """The physical ids of the cavities' walls: the first four arms' 11–14 and the urethra's 15
-    (the BIP's ids), further arms' 200 + their index.
+    (the BIP's ids), further arms' 200 + their index, the other internal cavities 300 + theirs.
 
     >>> cavity_group_ids(("a", "b", "c"))
     {'a': 11, 'b': 12, 'c': 13, 'urethra': 15}
+    >>> cavity_group_ids(("a", "b", "c"), ("tumour", "urethra"))
+    {'a': 11, 'b': 12, 'c': 13, 'tumour': 300, 'urethra': 15}
     """
-    return {**{n: (11 + i if i < 4 else 200 + i) for i, n in enumerate(arm_names)}, "urethra": URETHRA_GROUP_ID}
+    return {**{n: (11 + i if i < 4 else 200 + i) for i, n in enumerate(arm_names)},
+            **{n: (URETHRA_GROUP_ID if n == "urethra" else 300 + i) for i, n in enumerate(internal)}}
 
 
 REGION_IDS: dict[str, int] = region_ids()  # the BIP's
@@ -263,6 +266,19 @@ def _mesh_here(design: BIPDesign, mp: MeshParams) -> RawMesh:
             gmsh.logger.stop()
 
 
+def _internal_cavity(occ, cavity) -> int:
+    """An internal cavity's solid: a capsule, or a balloon (a unit sphere dilated to its semi-axes)."""
+    if cavity.shape == "capsule":
+        return capsule(occ, *cavity.segment_mm, cavity.radius_mm)
+    a = cavity.semi_axes_mm
+    if a[0] == a[1] == a[2]:  # a sphere stays analytic (a dilated one is a B-spline: slower to mesh)
+        return occ.addSphere(*cavity.center_mm, a[0])
+    tag = occ.addSphere(0.0, 0.0, 0.0, 1.0)
+    occ.dilate([(3, tag)], 0.0, 0.0, 0.0, *a)
+    occ.translate([(3, tag)], *cavity.center_mm)
+    return tag
+
+
 def _build(design: BIPDesign, mp: MeshParams) -> dict:
     import gmsh
 
@@ -289,8 +305,7 @@ def _build(design: BIPDesign, mp: MeshParams) -> dict:
     arms = [arm_cylinder(occ, g.start_mm, g.end_mm, g.radius_mm, seam_side(design.bulb, g.start_mm, g.end_mm, g.radius_mm))
             for g in geoms]
     cavities = [capsule(occ, *g.cavity_segment_mm, g.cavity_radius_mm) for g in geoms]
-    ua, ub = design.urethra.segment_mm
-    cavities.append(capsule(occ, ua, ub, design.urethra.radius_mm))
+    cavities += [_internal_cavity(occ, c) for c in design.cavities]
 
     # multi-material: the infill (ellipsoid less the shell) and the lesions join the fragment, so
     # every region shares its faces with its neighbours (one conforming mesh)
@@ -327,14 +342,15 @@ def _build(design: BIPDesign, mp: MeshParams) -> dict:
     occ.synchronize()
     pieces = [set(t for d, t in m if d == 3) for m in out_map]
     n_arms = len(design.arms)
-    bulb_p, arm_p, cav_p = pieces[0], pieces[1:1 + n_arms], pieces[1 + n_arms:2 + 2 * n_arms]
-    layer_p = {k: p for (k, _), p in zip(layer_tools, pieces[2 + 2 * n_arms:])}
+    n_cav = n_arms + len(design.cavities)
+    bulb_p, arm_p, cav_p = pieces[0], pieces[1:1 + n_arms], pieces[1 + n_arms:1 + n_arms + n_cav]
+    layer_p = {k: p for (k, _), p in zip(layer_tools, pieces[1 + n_arms + n_cav:])}
     if rounded:
         # the arm tubes' pieces outside the solid go; inside it they are the arms (not the bulb)
         drop = set().union(*arm_p) - bulb_p
         arm_p = [p & bulb_p for p in arm_p]
         bulb_p = bulb_p - set().union(*arm_p)
-    all_cav = set().union(*cav_p)
+    all_cav = set().union(*cav_p) if cav_p else set()
     cav_surfaces: dict[str, list[int]] = {}
     for name, p in zip(design.cavity_names, cav_p):
         if len(p) != 1:
@@ -379,7 +395,7 @@ def _build(design: BIPDesign, mp: MeshParams) -> dict:
 
     for rname, rid in ids.items():
         gmsh.model.addPhysicalGroup(3, region_vols[rname], rid, name=rname)
-    for cname, gid in cavity_group_ids(design.arm_names).items():
+    for cname, gid in cavity_group_ids(design.arm_names, design.internal_cavity_names).items():
         gmsh.model.addPhysicalGroup(2, cav_surfaces[cname], gid, name=f"cavity_{cname}")
     gmsh.model.addPhysicalGroup(2, fixed, FIXED_GROUP_ID, name="fixed")
     gmsh.model.addPhysicalGroup(2, sorted(outer), OUTER_GROUP_ID, name="outer")
@@ -387,7 +403,7 @@ def _build(design: BIPDesign, mp: MeshParams) -> dict:
     fld = gmsh.model.mesh.field
     fields = []
     radii = {g.name: g.cavity_radius_mm for g in geoms}
-    radii["urethra"] = design.urethra.radius_mm
+    radii.update((c.name, c.wall_radius_mm) for c in design.cavities)
     for h, names in _walls_by_size({c: mp.cavity_size_mm(radii[c]) for c in design.cavity_names}):
         dist = fld.add("Distance")
         fld.setNumbers(dist, "SurfacesList", [t for n in names for t in cav_surfaces[n]])
@@ -622,12 +638,12 @@ def estimate_tets(design: BIPDesign, mesh: MeshParams | None = None) -> int:
     mp = mesh or design.mesh
     h, hs, ha = mp.size_mm, mp.surface_size_mm, mp.arm_size_mm
     cav = [(g.cavity_radius_mm, g.cavity_volume_mm3, ha) for g in design.arm_geometry()]
-    cav.append((design.urethra.radius_mm, design.urethra.volume_mm3, h))
-    bulb = design.bulb.volume_mm3 - design.urethra.volume_mm3
+    cav += [(c.wall_radius_mm, c.volume_mm3, h) for c in design.cavities]
+    bulb = design.bulb.volume_mm3 - sum(c.volume_mm3 for c in design.cavities)
     arms = sum(np.pi * a.radius_mm**2 * a.length_mm - a.cavity_volume_mm3 for a in design.arms)
     total = bulb / h**3 + arms / ha**3 + _shell(design.bulb.area_mm2, hs, h)
     for r, v, far in cav:
-        length = max(0.0, v - capsule_volume(r, 0.0)) / (np.pi * r * r)
+        length = max(0.0, v - capsule_volume(r, 0.0)) / (np.pi * r * r)  # a balloon: its volume's capsule
         area = 2 * np.pi * r * length + 4 * np.pi * r * r
         total += _shell(area, mp.cavity_size_mm(r), far)
     h_j = _junction_size_mm(design, mp)
@@ -640,7 +656,7 @@ def estimate_tets(design: BIPDesign, mesh: MeshParams | None = None) -> int:
 def mesh_size_floor_mm(design: BIPDesign) -> float:
     """The smallest element size worth asking for: the wall size of the design's smallest cavity
     at the most segments allowed (:data:`~softphantom.design.params.MAX_CAVITY_SEGMENTS`)."""
-    radii = [a.cavity_radius_mm for a in design.arms] + [design.urethra.radius_mm]
+    radii = [a.cavity_radius_mm for a in design.arms] + [c.wall_radius_mm for c in design.cavities]
     return 2 * np.pi * min(radii) / MAX_CAVITY_SEGMENTS
 
 

@@ -153,15 +153,15 @@ class PhantomModel:
         return geo.surface_enclosed_volume(self.nodes, self.cavities[name])
 
     def bulb_volume(self) -> float:
-        """Volume enclosed by the bulb's outer surface, m³ (the bulb region plus the urethra cavity).
+        """Volume enclosed by the bulb's outer surface, m³ (the bulb region plus the internal cavities).
 
         The bulb region's tets (with the shell and lesion regions of a multi-material design) fill
-        the ellipsoid minus the urethra (less :meth:`junction_volume`, the rounded junctions
-        outside it), so adding the urethra's Φ gives the meshed counterpart of the design's
+        the ellipsoid minus the internal cavities (less :meth:`junction_volume`, the rounded
+        junctions outside it), so adding their Φ gives the meshed counterpart of the design's
         100.41 mL.
         """
-        return sum(self.region_volume(r) for r in self._body_regions()) + self.cavity_volume("urethra") \
-            - self.junction_volume()
+        return sum(self.region_volume(r) for r in self._body_regions()) \
+            + sum(self.cavity_volume(n) for n in self.design.internal_cavity_names) - self.junction_volume()
 
     def _body_regions(self) -> list[str]:
         """The regions that make up the bulb's body: bulb (or infill), shell, lesions."""
@@ -184,9 +184,9 @@ class PhantomModel:
         return float(geo.min_dihedral_angles_deg(self.nodes, self.tets).min())
 
     def tube_inlets(self) -> dict[str, np.ndarray]:
-        """Where each cavity's tube enters, m: the arm end-face centres and the urethra inlet."""
+        """Where each cavity's tube enters, m: the arm end-face centres and the internal cavities' inlets."""
         out = {g.name: g.tube_inlet_mm * MM for g in self.design.arm_geometry()}
-        out["urethra"] = np.asarray(self.design.urethra.inlet_mm) * MM
+        out.update((c.name, np.asarray(c.inlet_mm) * MM) for c in self.design.cavities)
         return out
 
 
@@ -353,7 +353,7 @@ def _to_meshio(model: PhantomModel):
         sel = tets[model.tet_region == rid]
         cells.append((tet_t, sel))
         phys.append(np.full(len(sel), rid, dtype=np.int64))
-    cavity_ids = cavity_group_ids(model.design.arm_names)
+    cavity_ids = cavity_group_ids(model.design.arm_names, model.design.internal_cavity_names)
     for cname, gid in cavity_ids.items():
         cells.append((tri_t, cavs[cname]))
         phys.append(np.full(len(cavs[cname]), gid, dtype=np.int64))

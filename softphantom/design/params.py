@@ -12,7 +12,9 @@ needle coming from −y, z up/anterior):
 - **urethra**: a closed capsule (cylinder with hemispherical ends) of ``radius_mm`` whose
   cylinder length is derived from ``volume_mm3`` (2078 mm³), centred at ``center_mm`` (default
   4 mm anterior) along ``axis``; ``inlet_mm`` is where its tube leaves the bulb (a point on the
-  surface; the channel itself is not meshed).
+  surface; the channel itself is not meshed). Other internal cavities (``[cavities.NAME]``: a
+  capsule like the urethra, or an ellipsoid balloon, each actuated) join or replace it: M ≥ 0 of
+  them, :attr:`BIPDesign.cavities` (docs/architecture.md, "Internal cavities").
 - **arms**: by default the BIP's four cylinders ``front_zpos``, ``front_zneg`` (needle side,
   above/below, cavities of 514 mm³) and ``back_xpos``, ``back_xneg`` (+y, left/right, 486 mm³);
   any :data:`MIN_ARMS` or more, each named, in the sensor order (a design file lists them in
@@ -310,25 +312,43 @@ def _default_inlet() -> Vec3:
     return (0.0, _B_MM * math.sqrt(1.0 - (4.0 / _C_MM) ** 2), 4.0)
 
 
-@checked("urethra", DesignError)
-class UrethraParams:
-    """The inflatable urethra cavity: a closed capsule along ``axis`` through ``center_mm``."""
+class _Cavity:
+    """What every internal cavity answers (the urethra's table and ``[cavities.NAME]`` alike)."""
 
-    radius_mm: _Size = 4.5
-    volume_mm3: _Size = URETHRA_VOLUME_MM3
-    center_mm: _Vec3 = (0.0, 0.0, 4.0)
-    axis: _Vec3 = (0.0, 1.0, 0.0)
-    inlet_mm: _Vec3 = field(default_factory=_default_inlet)
+    @property
+    def path(self) -> str:
+        """Its table in a design file, for messages."""
+        return f"cavities.{self.name}"
 
-    def __post_init__(self) -> None:
+    @property
+    def wall_radius_mm(self) -> float:
+        """The radius its wall is meshed for (a capsule's, an ellipsoid's smallest semi-axis)."""
+        return self.radius_mm
+
+    def signed_distance(self, points) -> np.ndarray:
+        """Signed distance of ``points`` (mm) to its wall, negative inside."""
+        a, b = self.segment_mm
+        return geo.segment_distance(points, a, b) - self.radius_mm
+
+    def surface_points(self, spacing: float = 0.4) -> np.ndarray:
+        a, b = self.segment_mm
+        return geo.capsule_surface_points(a, b, self.radius_mm, spacing=spacing)
+
+    def _check_capsule(self) -> None:
         if not np.linalg.norm(self.axis) > 0.0:
-            raise DesignError("urethra.axis must be a non-zero vector")
+            raise DesignError(f"{self.path}.axis must be a non-zero vector")
         sphere = 4.0 / 3.0 * math.pi * self.radius_mm**3
         if self.cyl_length_mm < 0.0:
             raise DesignError(
-                f"urethra.volume_mm3 = {_fmt(self.volume_mm3)} is below the sphere of "
+                f"{self.path}.volume_mm3 = {_fmt(self.volume_mm3)} is below the sphere of "
                 f"radius_mm {_fmt(self.radius_mm)} (min {_fmt(sphere)} mm³)"
             )
+        self._check_role()
+
+    def _check_role(self) -> None:
+        if self.role != "actuated":
+            raise DesignError(f"{self.path}.role = {self.role!r}: not supported yet (a closed cavity read as a "
+                              "volume channel); use \"actuated\" (its pressure set by the bench and measured)")
 
     @property
     def cyl_length_mm(self) -> float:
@@ -341,6 +361,97 @@ class UrethraParams:
         c = np.asarray(self.center_mm)
         h = 0.5 * self.cyl_length_mm
         return c - h * w, c + h * w
+
+
+@checked("urethra", DesignError)
+class UrethraParams(_Cavity):
+    """The inflatable urethra cavity (the ``[urethra]`` table, the BIP's one internal cavity): a
+    closed capsule along ``axis`` through ``center_mm``, actuated."""
+
+    radius_mm: _Size = 4.5
+    volume_mm3: _Size = URETHRA_VOLUME_MM3
+    center_mm: _Vec3 = (0.0, 0.0, 4.0)
+    axis: _Vec3 = (0.0, 1.0, 0.0)
+    inlet_mm: _Vec3 = field(default_factory=_default_inlet)
+
+    name = "urethra"
+    shape = "capsule"
+    role = "actuated"
+
+    def __post_init__(self) -> None:
+        self._check_capsule()
+
+    @property
+    def path(self) -> str:
+        return "urethra"
+
+
+_Role = Literal["actuated", "measured"]
+
+
+@checked("cavities.{name}", DesignError)
+class CapsuleCavity(_Cavity):
+    """An internal cavity ``[cavities.NAME]`` with ``shape = "capsule"``: an inflatable channel
+    like the urethra (the fields of :class:`UrethraParams`), its tube leaving the body at ``inlet_mm``."""
+
+    name: _Name
+    radius_mm: _Size
+    volume_mm3: _Size
+    center_mm: _Vec3
+    inlet_mm: _Vec3
+    axis: _Vec3 = (0.0, 1.0, 0.0)
+    role: _Role = "actuated"
+    shape: Literal["capsule"] = "capsule"
+
+    def __post_init__(self) -> None:
+        self._check_capsule()
+
+
+@checked("cavities.{name}", DesignError)
+class EllipsoidCavity(_Cavity):
+    """An internal cavity ``[cavities.NAME]`` with ``shape = "ellipsoid"``: a balloon (a lesion or
+    tumour to inflate), an axis-aligned ellipsoid of ``semi_axes_mm`` at ``center_mm``.
+
+    >>> b = EllipsoidCavity("tumour", center_mm=(0, 0, 0), semi_axes_mm=(3, 3, 3), inlet_mm=(0, 0, 30))
+    >>> round(b.volume_mm3, 3), float(b.signed_distance([[0, 0, 5.0]])[0])
+    (113.097, 2.0)
+    """
+
+    name: _Name
+    center_mm: _Vec3
+    semi_axes_mm: _Sizes3
+    inlet_mm: _Vec3
+    role: _Role = "actuated"
+    shape: Literal["ellipsoid"] = "ellipsoid"
+
+    def __post_init__(self) -> None:
+        self._check_role()
+
+    @property
+    def volume_mm3(self) -> float:
+        return geo.ellipsoid_volume(self.semi_axes_mm)
+
+    @property
+    def wall_radius_mm(self) -> float:
+        return min(self.semi_axes_mm)
+
+    def signed_distance(self, points) -> np.ndarray:
+        return geo.ellipsoid_signed_distance(np.atleast_2d(np.asarray(points, float)) - np.asarray(self.center_mm),
+                                             self.semi_axes_mm)
+
+    def surface_points(self, spacing: float = 0.4) -> np.ndarray:
+        a, b, c = self.semi_axes_mm
+        area = 4 * math.pi * max(a * b, b * c, a * c)
+        return geo.ellipsoid_surface_points(self.center_mm, self.semi_axes_mm,
+                                            n=int(min(20000, max(1200, area / spacing**2))))
+
+
+#: what a design's ``cavities`` hold
+CAVITY_TYPES = (UrethraParams, CapsuleCavity, EllipsoidCavity)
+_CAVITY_KEYS = {"capsule": [f.name for f in dataclasses.fields(CapsuleCavity) if f.name != "name"],
+                "ellipsoid": [f.name for f in dataclasses.fields(EllipsoidCavity) if f.name != "name"]}
+_CAVITY_NEEDS = {"capsule": ("radius_mm", "volume_mm3", "center_mm", "inlet_mm"),
+                 "ellipsoid": ("center_mm", "semi_axes_mm", "inlet_mm")}
 
 
 @checked("arms.{name}", DesignError)
@@ -628,7 +739,8 @@ class BIPDesign:
 
     name: Annotated[str, Strict(), Field(min_length=1)] = "bip"
     bulb: BulbParams = field(default_factory=BulbParams)
-    urethra: UrethraParams = field(default_factory=UrethraParams)
+    # the internal cavities (urethra, channels, balloons), in the load order; (name, ...) objects of CAVITY_TYPES
+    cavities: SkipValidation[tuple[Any, ...]] = field(default_factory=lambda: (UrethraParams(),))
     arms: tuple[ArmParams, ...] = field(default_factory=_default_arms)
     interaction: InteractionParams = field(default_factory=InteractionParams)
     # (name, point) pairs or a dict; checked below, naming the point
@@ -648,6 +760,8 @@ class BIPDesign:
         _set(self, "targets", _named_points("targets", self.targets))
         _set(self, "contacts", _contact_points(self.contacts))
         _validate_arm_names(tuple(a.name for a in self.arms))
+        _set(self, "cavities", tuple(self.cavities))
+        _validate_cavity_names(self)
         g = self.sensors.gains
         if len(g) != len(self.arms):
             if any(v != 1.0 for v in g):
@@ -669,8 +783,38 @@ class BIPDesign:
 
     @property
     def cavity_names(self) -> tuple[str, ...]:
-        """The cavities: the arms' in the sensor order, then ``urethra``."""
-        return (*self.arm_names, "urethra")
+        """The cavities: the arms' in the sensor order, then the internal ones (the BIP: ``urethra``)."""
+        return (*self.arm_names, *self.internal_cavity_names)
+
+    @property
+    def internal_cavity_names(self) -> tuple[str, ...]:
+        """The internal cavities, in the load order (each actuated: a known pressure load).
+
+        >>> BIPDesign().internal_cavity_names
+        ('urethra',)
+        """
+        return tuple(c.name for c in self.cavities)
+
+    @property
+    def urethra(self):
+        """The cavity named ``urethra`` (None without one)."""
+        return next((c for c in self.cavities if c.name == "urethra"), None)
+
+    def cavity(self, name: str):
+        """The internal cavity ``name``."""
+        for c in self.cavities:
+            if c.name == name:
+                return c
+        raise DesignError(f"cavities.{name}: no such cavity (the design's: {', '.join(self.internal_cavity_names) or 'none'})")
+
+    def with_urethra(self, urethra) -> "BIPDesign":
+        """This design with ``urethra`` in place of its urethra (first when it had none; None drops it)."""
+        rest = [c for c in self.cavities if c.name != "urethra"]
+        if urethra is None:
+            return dataclasses.replace(self, cavities=tuple(rest))
+        names = self.internal_cavity_names
+        i = names.index("urethra") if "urethra" in names else 0
+        return dataclasses.replace(self, cavities=(*rest[:i], urethra, *rest[i:]))
 
     @property
     def region_names(self) -> tuple[str, ...]:
@@ -730,9 +874,9 @@ class BIPDesign:
         return {k: np.asarray(v) for k, v in self.targets}
 
     def cavity_volumes_mm3(self) -> dict[str, float]:
-        """Design volume of each cavity (arms in the sensor order, then ``urethra``)."""
+        """Design volume of each cavity (arms in the sensor order, then the internal ones)."""
         out = {a.name: a.cavity_volume_mm3 for a in self.arms}
-        out["urethra"] = self.urethra.volume_mm3
+        out.update((c.name, c.volume_mm3) for c in self.cavities)
         return out
 
 
@@ -746,6 +890,22 @@ def _validate_arm_names(names: tuple[str, ...]) -> None:
                               f"(not {', '.join(RESERVED_NAMES)})")
         if names.count(n) > 1:
             raise DesignError(f"arms.{n}: two arms have this name")
+
+
+def _validate_cavity_names(d: "BIPDesign") -> None:
+    seen: set[str] = set()
+    for c in d.cavities:
+        if not isinstance(c, CAVITY_TYPES):
+            raise DesignError(f"cavities: expected UrethraParams, CapsuleCavity or EllipsoidCavity, got {c!r}")
+        n = c.name
+        if not re.fullmatch(r"[A-Za-z][A-Za-z0-9_]*", n) or n in ("bulb", "shell"):
+            raise DesignError(f"cavities.{n}: a cavity's name must start with a letter and hold letters, digits or _ "
+                              "(not bulb, shell)")
+        if n in seen:
+            raise DesignError(f"cavities.{n}: two cavities have this name")
+        if n in d.arm_names:
+            raise DesignError(f"cavities.{n}: an arm has this name (arms.{n})")
+        seen.add(n)
 
 
 def _arm_geometry(arm: ArmParams, bulb: BulbParams) -> ArmGeometry:
@@ -870,15 +1030,13 @@ def _check_arm_ends_clear_of_infill(d: BIPDesign, inner, t: float) -> None:
 
 
 def _validate_layers(d: BIPDesign) -> None:
-    """Shell and lesions: each lesion inside the infill and clear of the urethra, the arms and the
-    other lesions by the minimum wall; the urethra inside the infill."""
+    """Shell and lesions: each lesion inside the infill and clear of the internal cavities, the arms
+    and the other lesions by the minimum wall; the internal cavities inside the infill."""
     lay = d.layers
     if lay.is_default:
         return
     t = lay.shell_mm
     axes = d.bulb.semi_axes_mm
-    u = d.urethra
-    ua, ub = u.segment_mm
     if t > 0.0:
         if d.bulb.is_surface:
             raise DesignError(f"layers.shell_mm = {_fmt(t)}: a shell needs an ellipsoid bulb (an imported surface "
@@ -887,10 +1045,11 @@ def _validate_layers(d: BIPDesign) -> None:
             raise DesignError(f"layers.shell_mm = {_fmt(t)} is more than half the bulb's smallest semi-axis "
                               f"({_fmt(min(axes))} mm)")
         inner = lay.infill_semi_axes_mm(axes)
-        wall = -float(geo.ellipsoid_signed_distance(geo.capsule_surface_points(ua, ub, u.radius_mm), inner).max())
-        if wall < 0.0:
-            raise DesignError(f"layers.shell_mm = {_fmt(t)}: the urethra cavity cuts {_fmt(-wall)} mm into the shell "
-                              "(the infill must hold it; a thinner shell or a smaller urethra)")
+        for u in d.cavities:
+            wall = -float(geo.ellipsoid_signed_distance(u.surface_points(), inner).max())
+            if wall < 0.0:
+                raise DesignError(f"layers.shell_mm = {_fmt(t)}: the {u.name} cavity cuts {_fmt(-wall)} mm into the "
+                                  f"shell (the infill must hold it; a thinner shell or a smaller {u.name})")
         _check_arm_ends_clear_of_infill(d, inner, t)
 
         def host(pts):
@@ -899,7 +1058,7 @@ def _validate_layers(d: BIPDesign) -> None:
     else:
         host = d.bulb.signed_distance
         where = "bulb"
-    urethra_pts = geo.capsule_surface_points(ua, ub, u.radius_mm, spacing=0.8)
+    cav_pts = [(u, u.surface_points(spacing=0.8)) for u in d.cavities]
     arm_pts = {g.name: (geo.capsule_surface_points(g.start_mm, g.root_mm, g.radius_mm, spacing=0.8), g)
                for g in d.arm_geometry()}
     for k, les in enumerate(lay.lesions):
@@ -918,11 +1077,12 @@ def _validate_layers(d: BIPDesign) -> None:
             return min(float(geo.ellipsoid_signed_distance(q - c, s).min()),
                        float((geo.segment_distance(pts, a, b) - r).min()))
 
-        g_u = gap(urethra_pts, ua, ub, u.radius_mm)
-        if g_u < MIN_WALL_MM:
-            raise DesignError(f"{p}.center_mm = {list(les.center_mm)}: the lesion "
-                              f"{'cuts the urethra cavity' if g_u < 0 else f'comes {_fmt(g_u)} mm from the urethra cavity'}"
-                              f" (min wall {MIN_WALL_MM:g} mm)")
+        for u, q in cav_pts:
+            g_u = min(float(geo.ellipsoid_signed_distance(q - c, s).min()), float(u.signed_distance(pts).min()))
+            if g_u < MIN_WALL_MM:
+                raise DesignError(f"{p}.center_mm = {list(les.center_mm)}: the lesion "
+                                  f"{f'cuts the {u.name} cavity' if g_u < 0 else f'comes {_fmt(g_u)} mm from the {u.name} cavity'}"
+                                  f" (min wall {MIN_WALL_MM:g} mm)")
         for name, (q, g) in arm_pts.items():
             g_a = gap(q, g.start_mm, g.root_mm, g.radius_mm)
             if g_a < MIN_WALL_MM:
@@ -940,16 +1100,21 @@ def _validate_layers(d: BIPDesign) -> None:
 def _check_sizes(d: BIPDesign) -> None:
     """Closed-form bounds checked before any sampled geometry (whose cost grows with the sizes)."""
     axes = d.bulb.semi_axes_mm
-    u = d.urethra
     room = 4 * max(axes)  # twice the bulb's length: far out (the wall check below is the exact one)
-    if u.radius_mm > min(axes) - MIN_WALL_MM:
-        raise DesignError(f"urethra.radius_mm = {_fmt(u.radius_mm)} does not fit in the bulb (max "
-                          f"{_fmt(min(axes) - MIN_WALL_MM)} mm: smallest semi-axis less a wall)")
-    if u.cyl_length_mm + 2 * u.radius_mm > room:
-        vmax = geo.capsule_volume(u.radius_mm, max(0.0, room - 2 * u.radius_mm))
-        raise DesignError(f"urethra.volume_mm3 = {_fmt(u.volume_mm3)} does not fit in the bulb: the capsule would be "
-                          f"{_fmt(u.cyl_length_mm + 2 * u.radius_mm)} mm long, the bulb is {_fmt(2 * max(axes))} mm "
-                          f"(at most {_fmt(vmax)} mm³)")
+    for u in d.cavities:
+        if u.shape == "ellipsoid":
+            if max(u.semi_axes_mm) > max(axes):
+                raise DesignError(f"{u.path}.semi_axes_mm = {list(u.semi_axes_mm)} does not fit in the bulb (max "
+                                  f"{_fmt(max(axes))} mm, its largest semi-axis)")
+            continue
+        if u.radius_mm > min(axes) - MIN_WALL_MM:
+            raise DesignError(f"{u.path}.radius_mm = {_fmt(u.radius_mm)} does not fit in the bulb (max "
+                              f"{_fmt(min(axes) - MIN_WALL_MM)} mm: smallest semi-axis less a wall)")
+        if u.cyl_length_mm + 2 * u.radius_mm > room:
+            vmax = geo.capsule_volume(u.radius_mm, max(0.0, room - 2 * u.radius_mm))
+            raise DesignError(f"{u.path}.volume_mm3 = {_fmt(u.volume_mm3)} does not fit in the bulb: the capsule would "
+                              f"be {_fmt(u.cyl_length_mm + 2 * u.radius_mm)} mm long, the bulb is "
+                              f"{_fmt(2 * max(axes))} mm (at most {_fmt(vmax)} mm³)")
     for a in d.arms:
         if a.radius_mm > max(axes):
             raise DesignError(f"arms.{a.name}.radius_mm = {_fmt(a.radius_mm)} is wider than the bulb (max "
@@ -963,20 +1128,26 @@ def _validate_geometry(d: BIPDesign) -> None:
                               "(triangulated) bulb cannot be filleted (OCC rounds smooth surfaces only); 0 there")
     _check_sizes(d)
     sdist = d.bulb.signed_distance
-    u = d.urethra
-    ua, ub = u.segment_mm
 
-    # urethra: wholly inside with a wall, inlet on the surface
-    pts = geo.capsule_surface_points(ua, ub, u.radius_mm)
-    wall = -float(sdist(pts).max())
-    if wall < MIN_WALL_MM:
-        raise DesignError(
-            f"urethra: wall to the bulb surface is {_fmt(wall)} mm (min {MIN_WALL_MM:g} mm; "
-            "check radius_mm, volume_mm3, center_mm)"
-        )
-    off = abs(float(sdist([u.inlet_mm])[0]))
-    if off > SURFACE_TOL_MM:
-        raise DesignError(f"urethra.inlet_mm is {_fmt(off)} mm off the bulb surface (tolerance {SURFACE_TOL_MM:g} mm)")
+    # internal cavities: each wholly inside with a wall, its inlet on the surface, a wall from the others
+    cav_pts = [c.surface_points() for c in d.cavities]
+    for u, pts in zip(d.cavities, cav_pts):
+        wall = -float(sdist(pts).max())
+        if wall < MIN_WALL_MM:
+            what = "radius_mm, volume_mm3, center_mm" if u.shape == "capsule" else "semi_axes_mm, center_mm"
+            raise DesignError(
+                f"{u.path}: wall to the bulb surface is {_fmt(wall)} mm (min {MIN_WALL_MM:g} mm; check {what})"
+            )
+        off = abs(float(sdist([u.inlet_mm])[0]))
+        if off > SURFACE_TOL_MM:
+            raise DesignError(f"{u.path}.inlet_mm is {_fmt(off)} mm off the bulb surface (tolerance "
+                              f"{SURFACE_TOL_MM:g} mm)")
+    for i, (ci, pi) in enumerate(zip(d.cavities, cav_pts)):
+        for cj, pj in zip(d.cavities[i + 1:], cav_pts[i + 1:]):
+            gap = min(float(ci.signed_distance(pj).min()), float(cj.signed_distance(pi).min()))
+            if gap < MIN_WALL_MM:
+                raise DesignError(f"{ci.path} and {cj.path}: "
+                                  f"{'they overlap' if gap < 0 else f'{_fmt(gap)} mm apart'} (min wall {MIN_WALL_MM:g} mm)")
 
     geoms = d.arm_geometry()
     for arm, g in zip(d.arms, geoms):
@@ -1008,12 +1179,19 @@ def _validate_geometry(d: BIPDesign) -> None:
                 f"{p}.cavity_offset_mm = {_fmt(arm.cavity_offset_mm)}: the cavity is {_fmt(to_end)} mm from "
                 f"the fixed end face (min wall {MIN_WALL_MM:g} mm)"
             )
-        gap = geo.segment_segment_distance(g.start_mm, g.end_mm, ua, ub) - g.radius_mm - u.radius_mm
-        if gap < MIN_WALL_MM:
-            raise DesignError(
-                f"{p}.embed_mm = {_fmt(arm.embed_mm)}: the arm comes {_fmt(gap)} mm from the urethra cavity "
-                f"(min wall {MIN_WALL_MM:g} mm)"
-            )
+        for u, pts in zip(d.cavities, cav_pts):
+            if u.shape == "capsule":
+                ua, ub = u.segment_mm
+                gap = geo.segment_segment_distance(g.start_mm, g.end_mm, ua, ub) - g.radius_mm - u.radius_mm
+            else:  # sampled both ways: one solid inside the other shows in either
+                arm_pts = geo.capsule_surface_points(g.start_mm, g.end_mm, g.radius_mm, spacing=0.8)
+                gap = min(float(u.signed_distance(arm_pts).min()),
+                          float((geo.segment_distance(pts, g.start_mm, g.end_mm) - g.radius_mm).min()))
+            if gap < MIN_WALL_MM:
+                raise DesignError(
+                    f"{p}.embed_mm = {_fmt(arm.embed_mm)}: the arm comes {_fmt(gap)} mm from the {u.name} cavity "
+                    f"(min wall {MIN_WALL_MM:g} mm)"
+                )
     for i in range(len(geoms)):
         for j in range(i + 1, len(geoms)):
             gi, gj = geoms[i], geoms[j]
@@ -1043,9 +1221,10 @@ def _validate_geometry(d: BIPDesign) -> None:
         sd = float(sdist([xyz])[0])
         if sd >= 0.0:
             raise DesignError(f"targets.{name} is outside the bulb ({_fmt(sd)} mm beyond its surface)")
-        inside = u.radius_mm - float(geo.segment_distance([xyz], ua, ub)[0])
-        if inside >= 0.0:
-            raise DesignError(f"targets.{name} is inside the urethra cavity ({_fmt(inside)} mm from its wall)")
+        for u in d.cavities:
+            inside = -float(u.signed_distance([xyz])[0])
+            if inside >= 0.0:
+                raise DesignError(f"targets.{name} is inside the {u.name} cavity ({_fmt(inside)} mm from its wall)")
     _p_ext(d.bulb, d.interaction)
     for name, xyz in d.contacts:
         off = abs(float(sdist([xyz])[0]))
@@ -1075,7 +1254,12 @@ def design_to_dict(design: BIPDesign) -> dict[str, Any]:
     True
     """
     out: dict[str, Any] = {"name": design.name}
+    cavs = design.cavities
     for sub in _SUBS:
+        if sub == "urethra":  # the BIP's [urethra] table; other cavities under [cavities]
+            if isinstance(design.urethra, UrethraParams):
+                out[sub] = {k: _plain(v) for k, v in dataclasses.asdict(design.urethra).items()}
+            continue
         out[sub] = {k: _plain(v) for k, v in dataclasses.asdict(getattr(design, sub)).items()}
     out["bulb"] = _bulb_to_dict(design.bulb)
     if design.arm_names != ARM_NAMES:  # the BIP's file stays as it was
@@ -1084,6 +1268,11 @@ def design_to_dict(design: BIPDesign) -> dict[str, Any]:
         a.name: {k: (list(getattr(a, k)) if isinstance(getattr(a, k), tuple) else getattr(a, k)) for k in _ARM_KEYS}
         for a in design.arms
     }
+    if not (len(cavs) == 1 and isinstance(cavs[0], UrethraParams)):  # the BIP's file stays as it was
+        out["cavities"] = {c.name: {k: _plain(v) for k, v in dataclasses.asdict(c).items() if k != "name"}
+                           for c in cavs if not isinstance(c, UrethraParams)}
+        if cavs and isinstance(design.urethra, UrethraParams) and cavs[0] is not design.urethra:
+            out["cavity_names"] = list(design.internal_cavity_names)
     out["markers"] = {k: list(v) for k, v in design.markers}
     out["targets"] = {k: list(v) for k, v in design.targets}
     if design.contacts:  # a file without them stays as it was
@@ -1153,19 +1342,61 @@ def _arms_from_dict(data: dict[str, Any], default_arms: tuple[ArmParams, ...], s
     return tuple(arms)
 
 
+def _cavities_from_dict(data: dict[str, Any], default: tuple) -> tuple:
+    """The internal cavities of a design file: ``[urethra]`` (the BIP's; kept by default) and the
+    ``[cavities.NAME]`` tables, in ``cavity_names`` order (default: the urethra, then the tables').
+    Giving ``[cavities]`` without ``[urethra]`` leaves the urethra out (``cavities = {}``: none)."""
+    given_u, given_c = data.get("urethra"), data.get("cavities")
+    if given_u is not None:
+        _check_keys("urethra", given_u, None)
+    base_u = next((c for c in default if isinstance(c, UrethraParams)), None) or UrethraParams()
+    if given_c is None:
+        if given_u is None:
+            return default
+        return (dataclasses.replace(base_u, **given_u),)
+    if not isinstance(given_c, dict):
+        raise DesignError(f"cavities: expected tables [cavities.NAME] (shape = capsule or ellipsoid), got {given_c!r}")
+    cavs = []
+    if given_u is not None:
+        if "urethra" in given_c:
+            raise DesignError("cavities.urethra: the urethra is also given as [urethra] (keep one)")
+        cavs.append(dataclasses.replace(base_u, **given_u))
+    for name, spec in given_c.items():
+        where = f"cavities.{name}"
+        _check_keys(where, spec, None)
+        shape = spec.get("shape", "capsule")
+        if shape not in _CAVITY_KEYS:
+            raise DesignError(f"{where}.shape = {shape!r}: expected capsule or ellipsoid")
+        _check_keys(where, spec, _CAVITY_KEYS[shape])
+        missing = [k for k in _CAVITY_NEEDS[shape] if k not in spec]
+        if missing:
+            raise DesignError(f"{where}.{missing[0]}: missing (a {shape} cavity needs {', '.join(_CAVITY_NEEDS[shape])})")
+        cls = CapsuleCavity if shape == "capsule" else EllipsoidCavity
+        cavs.append(cls(name=str(name), **spec))
+    order = data.get("cavity_names")
+    if order is not None:
+        have = [c.name for c in cavs]
+        if not (isinstance(order, list) and all(isinstance(n, str) for n in order)):
+            raise DesignError(f"cavity_names: expected a list of names, got {order!r}")
+        if sorted(order) != sorted(have):
+            raise DesignError(f"cavity_names: {order} must list each internal cavity once ({', '.join(have) or 'none'})")
+        cavs = [cavs[have.index(n)] for n in order]
+    return tuple(cavs)
+
+
 def design_from_dict(data: dict[str, Any]) -> BIPDesign:
     """A design from a nested dict; missing keys keep their defaults, ``markers``/``targets``/``contacts``
     replace them."""
-    _check_keys("design", data, ["name", "arm_names", "arms", "markers", "targets", "contacts", "materials",
-                                 "region_materials",
-                                 "layers", *_SUBS])
+    _check_keys("design", data, ["name", "arm_names", "arms", "cavities", "cavity_names", "markers", "targets",
+                                 "contacts", "materials", "region_materials", "layers", *_SUBS])
     default = _default_design()
     defaults = {f.name: getattr(default, f.name) for f in dataclasses.fields(BIPDesign)}
     kwargs: dict[str, Any] = dict(defaults)
     if "name" in data:
         kwargs["name"] = data["name"]
+    kwargs["cavities"] = _cavities_from_dict(data, defaults["cavities"])
     for sub in _SUBS:
-        if sub in data:
+        if sub in data and sub != "urethra":
             _check_keys(sub, data[sub], None)
             if sub == "bulb" and data[sub].get("shape", "ellipsoid") != "ellipsoid":
                 given = next((k for k in ("surface_vertices_mm", "surface_faces") if k in data[sub]), None)

@@ -2,7 +2,7 @@
 
 Per sample (the foreground, a fraction of a millisecond): with the latest :class:`Linearization`
 ``(x_eq, λ_eq, W, U_sub)``, solve the QP ``min ‖V_eq + W·Δλ − ΔV_meas‖²`` with the force bounds
-and ``Δλ_p`` fixed by the measured urethra pressure; ``λ = λ_eq + Δλ``; the tracked points
+and ``Δλ_p`` fixed by the measured pressures of the internal cavities (the BIP: the urethra's); ``λ = λ_eq + Δλ``; the tracked points
 (markers, targets) move to ``x_sub = x_eq,sub + U_sub·Δλ``; the pose is the rigid fit of the
 markers. The equilibrium at the new ``λ`` (converged, warm-started, refactoring only when needed:
 :class:`EquilibriumSolver`) refreshes the linearization — inside :meth:`Estimator.step` in
@@ -107,20 +107,23 @@ def noise_bound(lin: Linearization, rest_markers: np.ndarray, target_names, sigm
     tracked points, Jacobian by central differences about ``lam``, default ``lin.lam``) and to the
     targets (the tracked points after the markers, named ``target_names``)."""
     nm = len(rest_markers)
-    Wf, wp = lin.W[:, :3], lin.W[:, 3]
+    n = lin.W.shape[1]  # 3 + M loads
+    Wf, wp = lin.W[:, :3], lin.W[:, 3:]
     Wp = np.linalg.pinv(Wf)  # (3, n_arms)
     s = np.broadcast_to(np.asarray(sigma_dV_m3, float), (len(Wf),))
-    # δf = W_f⁺ (δV − w_p δp)
-    cov = Wp @ np.diag(s**2) @ Wp.T + np.outer(Wp @ wp, Wp @ wp) * sigma_p_Pa**2
+    # δf = W_f⁺ (δV − W_p δp), each pressure's noise sigma_p_Pa
+    g = Wp @ wp  # (3, M)
+    cov = Wp @ np.diag(s**2) @ Wp.T + g @ g.T * sigma_p_Pa**2
     # pose and targets: linear in δλ = (δf, δp); Jacobian of the pose by central differences
-    cov_l = np.zeros((4, 4))
+    cov_l = np.zeros((n, n))
     cov_l[:3, :3] = cov
-    cov_l[3, 3] = sigma_p_Pa**2
-    cov_l[:3, 3] = cov_l[3, :3] = -(Wp @ wp) * sigma_p_Pa**2
+    cov_l[3:, 3:] = np.eye(n - 3) * sigma_p_Pa**2
+    cov_l[:3, 3:] = -g * sigma_p_Pa**2
+    cov_l[3:, :3] = cov_l[:3, 3:].T
     lam0 = lin.lam if lam is None else np.asarray(lam, float)
-    Jp = np.zeros((6, 4))
-    for j in range(4):
-        h = np.zeros(4)
+    Jp = np.zeros((6, n))
+    for j in range(n):
+        h = np.zeros(n)
         h[j] = 1e-3 if j < 3 else 1.0
         a = Pose6.from_transform(rigid_fit(rest_markers, lin.predict_points(lam0 + h)[:nm]))
         b = Pose6.from_transform(rigid_fit(rest_markers, lin.predict_points(lam0 - h)[:nm]))
@@ -128,7 +131,7 @@ def noise_bound(lin: Linearization, rest_markers: np.ndarray, target_names, sigm
     pose = np.sqrt(np.diag(Jp @ cov_l @ Jp.T))
     targets = {}
     for i, k in enumerate(target_names):
-        Ut = lin.sub_U[nm + i]  # (3,4)
+        Ut = lin.sub_U[nm + i]  # (3,3+M)
         targets[k] = np.sqrt(np.diag(Ut @ cov_l @ Ut.T))
     return NoiseBound(np.sqrt(np.diag(cov)), pose, targets, cov)
 
@@ -143,11 +146,32 @@ def check_sample(m, arm_names: tuple[str, ...] = ARM_NAMES) -> str:
     if not np.all(np.isfinite(dV)):
         bad = [arm_names[i] for i in np.flatnonzero(~np.isfinite(dV))]
         return "nan:" + ",".join(bad)
-    if not np.isfinite(float(m.p_urethra)):
+    pressures = getattr(m, "pressures_Pa", None)
+    if pressures:
+        bad = [k for k, v in pressures.items() if not np.isfinite(float(v))]
+        if bad:
+            return "nan:" + ",".join(bad)
+    elif not np.isfinite(float(m.p_urethra)):
         return "nan:urethra"
     if not np.isfinite(float(m.t)):
         return "nan:t"
     return ""
+
+
+def measured_pressures(m, names: tuple[str, ...]) -> np.ndarray:
+    """(M,) Pa: the measured gauge pressures of the internal cavities ``names`` in a sample —
+    its ``pressures_Pa`` (name -> Pa) where it has them, else the BIP's ``p_urethra``."""
+    given = getattr(m, "pressures_Pa", None)
+    if given:
+        missing = [n for n in names if n not in given]
+        if missing:
+            raise SolverError(f"the sample has no pressure of cavity {missing[0]} (has {', '.join(given)})")
+        return np.array([float(given[n]) for n in names])
+    if names == ("urethra",):
+        return np.array([float(m.p_urethra)])
+    if not names:
+        return np.zeros(0)
+    raise SolverError(f"the sample has only p_urethra; the model's internal cavities are {', '.join(names)}")
 
 
 def repeat_last(last: Estimate, m, status: str, t0: float, skipped: int) -> Estimate:
@@ -165,7 +189,7 @@ def repeat_last(last: Estimate, m, status: str, t0: float, skipped: int) -> Esti
 
 
 def sensitivity_cond(W: np.ndarray) -> float:
-    """Condition number of the force columns of an (n_arms, 4) sensitivity (inf if rank-deficient)."""
+    """Condition number of the force columns of an (n_arms, 3 + M) sensitivity (inf if rank-deficient)."""
     s = np.linalg.svd(np.asarray(W)[:, :3], compute_uv=False)
     return float(s[0] / s[-1]) if s[-1] > 0 else float("inf")
 
@@ -199,7 +223,7 @@ class EstimatorState:
 
     @property
     def lam(self) -> np.ndarray:
-        """(4,) the current actuation estimate: force N (3), urethra pressure Pa."""
+        """(3 + M,) the current actuation estimate: force N (3), the internal cavities' pressures Pa."""
         return self._lam.copy()
 
     @property
@@ -283,6 +307,7 @@ class Estimator(EstimatorState):
         self.forward = fwd = ForwardModel(model, cfg)
         self.fem = fwd.fem
         self.arm_names = fwd.eq.arm_names
+        self.pressure_names = fwd.eq.pressure_names  # the internal cavities: λ[3:]
         self.contact_point = fwd.contact_point
         self.marker_names, self.target_names = fwd.marker_names, fwd.target_names
         self._eq = fwd.eq
@@ -301,7 +326,7 @@ class Estimator(EstimatorState):
         self._lin = self.rest
         self._path = None  # PathCorrection from the previous linearization to the current one
         self._trust_scale = self.config.trust_start_scale
-        self._lam = np.zeros(4)
+        self._lam = np.zeros(self._eq.n_loads)
         self._since_refresh = 0
         self.refreshes = 0
         # per-refresh history, the latest HISTORY entries only: a soak must not grow the process
@@ -357,7 +382,8 @@ class Estimator(EstimatorState):
 
     def _moved(self, lam: np.ndarray, lin: Linearization) -> bool:
         c = self.config
-        return bool(np.max(np.abs(lam[:3] - lin.lam[:3])) > c.deadband_N or abs(lam[3] - lin.lam[3]) > c.deadband_Pa)
+        return bool(np.max(np.abs(lam[:3] - lin.lam[:3])) > c.deadband_N
+                    or np.max(np.abs(lam[3:] - lin.lam[3:]), initial=0.0) > c.deadband_Pa)
 
     def _target(self, lam: np.ndarray, lin: Linearization) -> np.ndarray:
         """Where the next equilibrium is solved: the estimate, at most ``trust_N`` / ``trust_Pa``
@@ -367,7 +393,7 @@ class Estimator(EstimatorState):
         k = self._trust_scale
         d = lam - lin.lam
         d[:3] = np.clip(d[:3], -k * c.trust_N, k * c.trust_N)
-        d[3] = np.clip(d[3], -k * c.trust_Pa, k * c.trust_Pa)
+        d[3:] = np.clip(d[3:], -k * c.trust_Pa, k * c.trust_Pa)
         return lin.lam + d
 
     def node_positions(self) -> np.ndarray:
@@ -379,7 +405,8 @@ class Estimator(EstimatorState):
     def _estimate(self, m, lin: Linearization, skipped: int, t0: float,
                   path: "PathCorrection | None" = None) -> tuple[Estimate, np.ndarray]:
         dV = np.asarray(m.dV, float)
-        dp = float(m.p_urethra) - lin.lam[3]
+        p = measured_pressures(m, self.pressure_names)
+        dp = p - lin.lam[3:]
         if path is not None and path.lin is not lin:
             path = None
         W, s = lin.W, 0.0
@@ -397,19 +424,27 @@ class Estimator(EstimatorState):
             W = path.W(s)
         lam = lin.lam + qp.dlam
         lam[:3] = np.clip(lam[:3], self._lo, self._hi)  # round-off of the active set
-        lam[3] = float(m.p_urethra)
+        lam[3:] = p
         if path is None:
             pts, vpred = lin.predict_points(lam), lin.predict_volumes(lam)
         else:
             pts, vpred = path.predict_points(lam), path.predict_volumes(lam)
         pose, shifts = pose_and_shifts(self.rest_markers, self.rest_targets, self.target_names, pts)
         est = Estimate(
-            t=float(m.t), force=lam[:3].copy(), p_urethra=float(lam[3]), pose=pose, target_shift=shifts,
+            t=float(m.t), force=lam[:3].copy(), p_urethra=self._p_urethra(lam), pose=pose, target_shift=shifts,
             volume_pred=vpred, volume_meas=dV.copy(), cond_W=sensitivity_cond(lin.W),
             qp_status=qp.status, step_time=time.perf_counter() - t0, skipped=int(skipped),
-            extra={"qp_residual_m3": qp.residual, "active": qp.active, "lin_lam": lin.lam}, arm_names=self.arm_names,
+            extra={"qp_residual_m3": qp.residual, "active": qp.active, "lin_lam": lin.lam,
+                   **({} if self.pressure_names == ("urethra",) else
+                      {"pressures_Pa": dict(zip(self.pressure_names, lam[3:].tolist()))})},
+            arm_names=self.arm_names,
         )
         return est, lam
+
+    def _p_urethra(self, lam: np.ndarray) -> float:
+        """The estimate's ``p_urethra``: the urethra's pressure (NaN for a model without one)."""
+        names = self.pressure_names
+        return float(lam[3 + names.index("urethra")]) if "urethra" in names else float("nan")
 
     def step(self, m, skipped: int = 0) -> Estimate:
         """Estimate the state for one measurement (see the class docstring)."""
@@ -425,7 +460,7 @@ class Estimator(EstimatorState):
                 self._since_refresh += 1
                 moved = lam - lin.lam
                 due = (np.max(np.abs(moved[:3])) > self.config.relinearize_N
-                       or abs(moved[3]) > self.config.relinearize_Pa
+                       or np.max(np.abs(moved[3:]), initial=0.0) > self.config.relinearize_Pa
                        or self._since_refresh >= self.config.refresh_every)
                 if due and self._moved(lam, lin):
                     self._refresh(lin, self._target(lam, lin), self._path)
@@ -454,7 +489,7 @@ class Estimator(EstimatorState):
                 return est
             lam = self._lam
             if (np.max(np.abs(lam[:3] - lin.lam[:3])) <= max(tol_N, self.config.deadband_N)
-                    and abs(lam[3] - lin.lam[3]) <= max(tol_Pa, self.config.deadband_Pa)):
+                    and np.max(np.abs(lam[3:] - lin.lam[3:]), initial=0.0) <= max(tol_Pa, self.config.deadband_Pa)):
                 return est
             if self._worker is not None:
                 self._worker.idle(timeout_s)

@@ -3,7 +3,8 @@
 :class:`ForwardModel` resolves the contact point and patch of an :class:`EstimatorConfig`, builds the
 force actuator and the probe of the tracked points (markers, then targets) and keeps one
 :class:`~softphantom.estimation.linearization.EquilibriumSolver`. :meth:`ForwardModel.solve` is the
-converged equilibrium at actuations ``λ = (f_x, f_y, f_z, p_u)`` (N, N, N, Pa) reached by
+converged equilibrium at actuations ``λ = (f_x, f_y, f_z, p_1 … p_M)`` (N, N, N, Pa: the force and
+the design's internal cavities' pressures; the BIP: ``p_u``, the urethra's) reached by
 continuation from rest (or a given start), so far-off loads converge as well as near ones. The
 law and element are properties of the :class:`~softphantom.fem.FemModel`; nothing here depends on
 them.
@@ -24,6 +25,13 @@ from softphantom.fem import fem_from_phantom, force_actuator, probe_matrix
 # neighbour this close lands inside the chord iterations' basin on the default mesh
 STEP_N = 1.0
 STEP_PA = 10_000.0
+
+
+def internal_cavities_of(model) -> tuple[str, ...]:
+    """The internal (pressure-loaded) cavities of a phantom model, in the load order (the BIP's:
+    the urethra)."""
+    design = getattr(model, "design", None)
+    return tuple(design.internal_cavity_names) if design is not None else ("urethra",)
 
 
 def contact_point(model, contact) -> np.ndarray:
@@ -60,8 +68,9 @@ class ForwardModel:
         self.eq = EquilibriumSolver(
             self.fem, self.H_f, self.probe, solver=cfg.sparse_solver, tol=cfg.tol,
             refactor_rate=cfg.refactor_rate, max_iter=cfg.max_iter, exact_sensitivities=exact_sensitivities,
-            fallback_min_load_step=fallback_min_load_step,
+            fallback_min_load_step=fallback_min_load_step, pressures=internal_cavities_of(model),
         )
+        self.pressure_names = self.eq.pressure_names
         self.n_markers = len(self.marker_names)
 
     @functools.cached_property
@@ -72,17 +81,18 @@ class ForwardModel:
 
     def solve(self, lam, start: Linearization | None = None, *, factor_at_solution: bool = False,
               via_tol: float | None = None) -> Linearization:
-        """Converged equilibrium (and its linearization) at ``lam`` (4,) N, N, N, Pa, reached from
+        """Converged equilibrium (and its linearization) at ``lam`` (3 + M,) N, N, N, Pa…, reached from
         ``start`` (default: rest) in steps of at most :data:`STEP_N` / :data:`STEP_PA`.
         ``factor_at_solution``: each step ends with the tangent at its equilibrium factored (see
         :meth:`~softphantom.estimation.linearization.EquilibriumSolver.solve`). ``via_tol``: the
         relative residual of the intermediate steps (default: the configured ``tol``); the last
         step always converges to ``tol``. Raises :class:`~softphantom.errors.SolverError` naming
         the load where it fails."""
-        lam = np.asarray(lam, float).reshape(4)
+        lam = np.asarray(lam, float).reshape(self.eq.n_loads)
         lin = self.rest if start is None else start
         d = lam - lin.lam
-        n = int(max(1, np.ceil(max(np.max(np.abs(d[:3])) / STEP_N, abs(d[3]) / STEP_PA) - 1e-9)))
+        n = int(max(1, np.ceil(max(np.max(np.abs(d[:3])) / STEP_N, np.max(np.abs(d[3:]), initial=0.0) / STEP_PA)
+                               - 1e-9)))
         for k in range(1, n + 1):
             lin = self.eq.solve(lin, lin.lam + d / (n - k + 1), factor_at_solution=factor_at_solution,
                                 tol=via_tol if k < n else None)

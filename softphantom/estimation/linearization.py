@@ -1,13 +1,14 @@
 """Equilibrium of the phantom at given actuations and its linearization (DESIGN.md §6).
 
-Actuations ``λ = (f_x, f_y, f_z, p_u)``: a force (N, world axes) at the contact point, spread by
-:func:`~softphantom.fem.force_actuator` (``H_f``), and the urethra gauge pressure (Pa, a follower
-load ``p_u ∂Φ_u/∂x``). Equilibrium: ``f_int(x) = H_f λ_f + p_u ∂Φ_u/∂x`` on the free DOFs.
+Actuations ``λ = (f_x, f_y, f_z, p_1 … p_M)``: a force (N, world axes) at the contact point, spread
+by :func:`~softphantom.fem.force_actuator` (``H_f``), and the gauge pressures of the M internal
+cavities (Pa, follower loads ``p_i ∂Φ_i/∂x``; the BIP: M = 1, the urethra's ``p_u``). Equilibrium:
+``f_int(x) = H_f λ_f + Σ p_i ∂Φ_i/∂x`` on the free DOFs.
 
 A :class:`Linearization` holds, at a converged equilibrium ``x_eq(λ_eq)``, what the per-sample
 estimator needs: the arm-cavity volume changes ``V_eq`` (m³, relative to rest), the sensitivity
-``W = ∂Φ/∂x · K⁻¹ · B`` (n_arms × 4: m³/N for the three force columns, m³/Pa for the pressure
-column; ``B = ∂f_ext/∂λ``), the tracked points (markers then targets) and their sensitivity
+``W = ∂Φ/∂x · K⁻¹ · B`` (n_arms × (3 + M): m³/N for the three force columns, m³/Pa for the
+pressure columns; ``B = ∂f_ext/∂λ``), the tracked points (markers then targets) and their sensitivity
 ``U_sub``, and the full ``U = K⁻¹ B`` for node positions on demand.
 
 :class:`EquilibriumSolver` moves a linearization to new actuations: first-order predictor, then
@@ -53,18 +54,23 @@ BORDERED_FACTORS = 6  # factorizations a mixed-control solve may make before it 
 NEWTON_FIRST_ITERS = 8  # Newton iterations of the fallback's first attempt, from the chord's last state
 
 
-def arm_names_of(fem) -> tuple[str, ...]:
-    """The sensing arms of a FEM model: its cavities but the urethra, in the design's sensor order."""
-    return tuple(k for k in fem.cavities if k != URETHRA)
+def arm_names_of(fem, internal=(URETHRA,)) -> tuple[str, ...]:
+    """The sensing arms of a FEM model: its cavities but the ``internal`` ones (the BIP's urethra),
+    in the design's sensor order."""
+    return tuple(k for k in fem.cavities if k not in internal)
+
+
+def _pressure_text(names, p) -> str:
+    return ", ".join(f"{n} {v:.0f} Pa" for n, v in zip(names, p)) or "no pressure"
 
 
 @dataclass(frozen=True, eq=False)
 class Linearization:
     """A converged equilibrium and its first-order sensitivities (SI; arrays read-only).
 
-    ``lam`` (4,) N,N,N,Pa; ``x`` (3N,) m; ``V`` (n_arms,) m³ arm-cavity volume changes from rest
-    (the BIP: 4 arms); ``W`` (n_arms,4); ``sub_x`` (k,3) m tracked points; ``sub_U`` (k,3,4);
-    ``U`` (3N,4) (zero rows on fixed DOFs); ``residual`` relative force residual of ``x``;
+    ``lam`` (3 + M,) N,N,N,Pa…; ``x`` (3N,) m; ``V`` (n_arms,) m³ arm-cavity volume changes from rest
+    (the BIP: 4 arms, M = 1); ``W`` (n_arms,3+M); ``sub_x`` (k,3) m tracked points; ``sub_U``
+    (k,3,3+M); ``U`` (3N,3+M) (zero rows on fixed DOFs); ``residual`` relative force residual of ``x``;
     ``iterations`` chord/Newton iterations spent; ``refactored`` whether a new factorization was
     made; ``lin_error`` (n_arms,) m³ the previous linearization's predicted minus these converged
     volumes (NaN at start).
@@ -111,17 +117,23 @@ class EquilibriumSolver:
     was made at another state (no GMRES): the equilibria are as exact, the sensitivities only good
     enough for the next solve's predictor (the atlas build, which keeps only the equilibria).
     ``fallback_min_load_step``: the smallest load step of the Newton fallback before it gives up
-    (a caller that expects failures, the atlas build, gives up sooner). Not thread-safe: one
+    (a caller that expects failures, the atlas build, gives up sooner). ``pressures``: the internal
+    cavities whose pressures are loads, in the order of ``λ[3:]`` (default: the urethra; the
+    design's ``internal_cavity_names``); the other cavities are the arms. Not thread-safe: one
     solver per thread.
     """
 
     def __init__(self, fem: FemModel, H_f, probe, *, solver: str = "auto", tol: float = 1e-8,
                  refactor_rate: float = 0.3, max_iter: int = 12, exact_sensitivities: bool = True,
-                 fallback_min_load_step: float = 1.0 / 1024) -> None:
-        arms = arm_names_of(fem)
-        if URETHRA not in fem.cavities or len(arms) < 3:
-            raise UserError(f"model has cavities {list(fem.cavities)}: it needs {URETHRA!r} and at least 3 arms")
+                 fallback_min_load_step: float = 1.0 / 1024, pressures=(URETHRA,)) -> None:
+        pressures = tuple(pressures)
+        arms = arm_names_of(fem, pressures)
+        if not set(pressures) <= set(fem.cavities) or len(arms) < 3:
+            raise UserError(f"model has cavities {list(fem.cavities)}: it needs {', '.join(map(repr, pressures))} "
+                            "and at least 3 arms")
         self.arm_names = arms  # the sensor order: the rows of V and W
+        self.pressure_names = pressures  # the loads λ[3:]
+        self.n_loads = 3 + len(pressures)
         self.fem = fem
         self.H_f = H_f.tocsr()
         self.probe = probe.tocsr()
@@ -141,7 +153,8 @@ class EquilibriumSolver:
         self.last_rate = 0.0  # mean chord contraction of the last solve
         self.krylov_iterations = 0  # GMRES iterations of the last linearization (0: direct)
         self._arm_tris = [np.asarray(fem.cavities[a]) for a in arms]
-        self._ur_tris = np.asarray(fem.cavities[URETHRA])
+        self._p_tris = [np.asarray(fem.cavities[c]) for c in pressures]
+        self._ur_tris = self._p_tris[0] if pressures == (URETHRA,) else None  # the BIP's (the reduced model)
         self._V0 = np.array([cavity_volume(fem.x_rest, t) for t in self._arm_tris])
         # Smallest meaningful force residual: round-off of the internal force (as solve_static).
         self._floor = fem.residual_floor()
@@ -150,8 +163,9 @@ class EquilibriumSolver:
     def applied(self, x: np.ndarray, lam: np.ndarray) -> np.ndarray:
         """(3N,) external nodal forces at ``x`` for actuations ``lam``."""
         f = self.H_f @ lam[:3]
-        if lam[3] != 0.0:
-            f = f + lam[3] * pressure_load(x, self._ur_tris, self.fem.n_nodes)
+        for t, p in zip(self._p_tris, lam[3:]):
+            if p != 0.0:
+                f = f + p * pressure_load(x, t, self.fem.n_nodes)
         return f
 
     def residual(self, x: np.ndarray, lam: np.ndarray) -> tuple[np.ndarray, float]:
@@ -164,9 +178,20 @@ class EquilibriumSolver:
     def _converged(self, rn: float, ref: float) -> bool:
         return rn <= max(self._tol * ref, self._floor)
 
-    def factorize(self, x: np.ndarray, p_u: float) -> None:
-        """Factor the free tangent (with the urethra pressure's follower term) at ``x``."""
-        K = free_tangent(self.fem, x, [(self._ur_tris, float(p_u))] if p_u else None)
+    def _follower(self, p) -> list | None:
+        """The pressure loads (triangles, Pa) that are on, for the tangent's follower terms."""
+        out = [(t, float(v)) for t, v in zip(self._p_tris, p) if v]
+        return out or None
+
+    def _p(self, p) -> tuple[float, ...]:
+        """The pressures as a tuple (a scalar: the one cavity's)."""
+        return tuple(float(v) for v in np.atleast_1d(np.asarray(p, float)))
+
+    def factorize(self, x: np.ndarray, p) -> None:
+        """Factor the free tangent (with the pressures' follower terms) at ``x``; ``p`` the
+        pressures (Pa, M; a scalar for one cavity)."""
+        p = self._p(p)
+        K = free_tangent(self.fem, x, self._follower(p))
         lin = None
         if not self._indefinite_next:
             try:
@@ -182,7 +207,7 @@ class EquilibriumSolver:
         self.lin = lin
         self.factorizations += 1
         self._factored = True
-        self._factor_at = (x.copy(), float(p_u))
+        self._factor_at = (x.copy(), p)
 
     def keep(self) -> "KeptFactor":
         """A copy of the kept factor and where it was made, for :meth:`restore` (a walk over a grid
@@ -212,30 +237,31 @@ class EquilibriumSolver:
         n = fem.n_nodes
         free = fem.free_dofs
         if not self._factored:
-            self.factorize(x, lam[3])
+            self.factorize(x, lam[3:])
             refactored = True
-        B = np.empty((fem.n_dof, 4))
+        B = np.empty((fem.n_dof, self.n_loads))
         B[:, :3] = self.H_f.toarray()
-        B[:, 3] = pressure_load(x, self._ur_tris, n)
-        Uf = self._sensitivities(x, lam[3], B[free])
-        U = np.zeros((fem.n_dof, 4))
+        for i, t in enumerate(self._p_tris):
+            B[:, 3 + i] = pressure_load(x, t, n)
+        Uf = self._sensitivities(x, lam[3:], B[free])
+        U = np.zeros((fem.n_dof, self.n_loads))
         U[free] = Uf
         J = np.stack([cavity_volume_gradient(x, t, n) for t in self._arm_tris])
         W = J @ U
         X = x.reshape(-1, 3)
         sub_x = self.probe @ X
-        sub_U = np.stack([self.probe @ U[k::3] for k in range(3)], axis=1)  # (k,3,4)
+        sub_U = np.stack([self.probe @ U[k::3] for k in range(3)], axis=1)  # (k,3,3+M)
         return Linearization(
             lam=lam, x=x, V=self.arm_volumes(x), W=W, sub_x=sub_x, sub_U=sub_U, U=U,
             residual=residual, iterations=iterations, refactored=refactored,
             lin_error=np.full(len(self._arm_tris), np.nan) if lin_error is None else lin_error,
         )
 
-    def _factor_current(self, x: np.ndarray, p_u: float) -> bool:
+    def _factor_current(self, x: np.ndarray, p) -> bool:
         at = self._factor_at
-        return at is not None and at[1] == float(p_u) and np.array_equal(at[0], x)
+        return at is not None and at[1] == self._p(p) and np.array_equal(at[0], x)
 
-    def _sensitivities(self, x: np.ndarray, p_u: float, Bf: np.ndarray, exact: bool | None = None) -> np.ndarray:
+    def _sensitivities(self, x: np.ndarray, p_u, Bf: np.ndarray, exact: bool | None = None) -> np.ndarray:
         """K(x)⁻¹ B on the free DOFs: the kept factor when it was made at ``x``, else GMRES on the
         assembled tangent at ``x`` preconditioned by the kept factor (to ``KRYLOV_RTOL``); a
         refactorization where GMRES does not get there in ``KRYLOV_MAXITER``. ``exact`` None: the
@@ -247,7 +273,7 @@ class EquilibriumSolver:
             return self.lin.solve(Bf)
         import scipy.sparse.linalg as spla
 
-        K = free_tangent(self.fem, x, [(self._ur_tris, float(p_u))] if p_u else None)
+        K = free_tangent(self.fem, x, self._follower(self._p(p_u)))
         n = K.shape[0]
         M = spla.LinearOperator((n, n), matvec=lambda v: self.lin.solve(v), dtype=np.float64)
         X0 = self.lin.solve(Bf)  # the chord's sensitivities: the start
@@ -271,21 +297,21 @@ class EquilibriumSolver:
     def exact_column(self, lin: Linearization, a: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The exact derivatives along load ``a`` at ``lin``'s equilibrium, whatever
         ``exact_sensitivities`` (the kept factor if made there, else GMRES preconditioned by it,
-        :meth:`_sensitivities`): (∂V/∂λ_a (4,), ∂sub_x/∂λ_a (k, 3), ∂x/∂λ_a (3N,)) — the column ``a``
+        :meth:`_sensitivities`): (∂V/∂λ_a (n_arms,), ∂sub_x/∂λ_a (k, 3), ∂x/∂λ_a (3N,)) — the column ``a``
         of ``W``, ``sub_U``, ``U``, for one load only (a Hermite atlas axis)."""
         fem = self.fem
         x, free = lin.x, fem.free_dofs
-        b = self.H_f[:, a].toarray().ravel() if a < 3 else pressure_load(x, self._ur_tris, fem.n_nodes)
+        b = self.H_f[:, a].toarray().ravel() if a < 3 else pressure_load(x, self._p_tris[a - 3], fem.n_nodes)
         u = np.zeros(fem.n_dof)
-        u[free] = self._sensitivities(x, float(lin.lam[3]), b[free][:, None], exact=True)[:, 0]
+        u[free] = self._sensitivities(x, lin.lam[3:], b[free][:, None], exact=True)[:, 0]
         dV = np.array([cavity_volume_gradient(x, t, fem.n_nodes) @ u for t in self._arm_tris])
         return dV, self.probe @ u.reshape(-1, 3), u
 
     def rest(self) -> Linearization:
         """The linearization at rest (λ = 0), factoring there."""
         x = self.fem.x_rest.copy()
-        self.factorize(x, 0.0)
-        return self.linearize(x, np.zeros(4), 0.0, 0, True)
+        self.factorize(x, np.zeros(len(self._p_tris)))
+        return self.linearize(x, np.zeros(self.n_loads), 0.0, 0, True)
 
     def _chord(self, x: np.ndarray, lam: np.ndarray, r: np.ndarray, rn: float, ref: float,
                its: int, limit: int, control: "PatchControl | None" = None):
@@ -394,24 +420,25 @@ class EquilibriumSolver:
                     (start.x, {"min_load_step": self.fallback_min_load_step}))
         for x0, opts in attempts:
             try:
-                sol = solve_static(self.fem, self.H_f @ lam[:3], [(self._ur_tris, lam[3])], x0=x0, tol=self._tol,
-                                   solver=self._chol, **opts)
+                sol = solve_static(self.fem, self.H_f @ lam[:3], list(zip(self._p_tris, lam[3:])), x0=x0,
+                                   tol=self._tol, solver=self._chol, **opts)
             except ElementInversionError:
                 continue
             its += sol.iterations
             if sol.converged:
                 break
         if sol is None or not sol.converged:
-            raise SolverError(f"equilibrium at force {lam[:3].round(3).tolist()} N, urethra "
-                              f"{lam[3]:.0f} Pa: {sol.status if sol is not None else 'elements inverted'}")
+            raise SolverError(f"equilibrium at force {lam[:3].round(3).tolist()} N, "
+                              f"{_pressure_text(self.pressure_names, lam[3:])}: "
+                              f"{sol.status if sol is not None else 'elements inverted'}")
         x = sol.x.reshape(-1)
         r, ref = self.residual(x, lam)
         if self.exact_sensitivities or not self._chol.factored:
-            self.factorize(x, lam[3])
+            self.factorize(x, lam[3:])
         else:  # Newton's last (maybe shifted) tangent, one step before x: the sensitivities need not be exact
             self.lin = self._chol
             self._factored = True
-            self._factor_at = (np.empty(0), float("nan"))  # made at no state we keep
+            self._factor_at = (np.empty(0), (float("nan"),))  # made at no state we keep
         return x, its, float(np.linalg.norm(r)), ref, True
 
     def solve(self, start: Linearization, lam, path: "PathCorrection | None" = None, *,
@@ -436,7 +463,7 @@ class EquilibriumSolver:
         even the load-stepping fallback fails (with a ``control``: if the chord iterations do).
         """
         self._tol = self.tol if tol is None else float(tol)
-        lam = np.array(lam, dtype=np.float64).reshape(4)
+        lam = np.array(lam, dtype=np.float64).reshape(self.n_loads)
         along = control.predict(start, lam) if control is not None else None  # the line's own predictor
         if control is not None:
             lam[0] = control.predict_fx(start, lam) if along is None else along[0]
@@ -449,7 +476,7 @@ class EquilibriumSolver:
             x = start.x + start.U @ (lam - start.lam)
         refactored = False
         if not self._factored:  # no factor kept yet (nothing solved, no rest linearization): the start's
-            self.factorize(start.x, start.lam[3])
+            self.factorize(start.x, start.lam[3:])
             refactored = True
         try:
             r, ref = self.residual(x, lam)
@@ -466,7 +493,7 @@ class EquilibriumSolver:
             if ok:
                 break
             x_was = x
-            self.factorize(x, lam[3])
+            self.factorize(x, lam[3:])
             refactored = True
             x, lam, r, rn, ref, its, rate, ok = self._chord(x, lam, r, rn, ref, its, its + self.max_iter, control)
             if x is x_was:  # not one step accepted with the tangent at x: no use refactoring there again
@@ -474,12 +501,12 @@ class EquilibriumSolver:
         self.last_rate = rate
         if not ok and control is not None:
             raise SolverError(f"equilibrium at patch displacement {control.target_m * 1e3:+.4f} mm, force "
-                              f"{lam[1:3].round(3).tolist()} N (y, z), urethra {lam[3]:.0f} Pa: the bordered "
+                              f"{lam[1:3].round(3).tolist()} N (y, z), {_pressure_text(self.pressure_names, lam[3:])}: the bordered "
                               f"chord iterations did not converge")
         if not ok:
             x, its, rn, ref, refactored = self._newton_fallback(start, x, lam, its)
-        if factor_at_solution and not self._factor_current(x, lam[3]):
-            self.factorize(x, lam[3])
+        if factor_at_solution and not self._factor_current(x, lam[3:]):
+            self.factorize(x, lam[3:])
             refactored = True
         return self.linearize(x, lam, rn / max(ref, 1e-300), its, refactored,
                               lin_error=predicted_V - self.arm_volumes(x))
@@ -540,13 +567,15 @@ class PatchControl:
 @dataclass(frozen=True, eq=False)
 class KeptFactor:
     """A copy of an :class:`EquilibriumSolver`'s factor (``lin``) and the state it was made at
-    (``at``: positions (3N,) m, urethra pressure Pa)."""
+    (``at``: positions (3N,) m, the pressures Pa)."""
 
     lin: SparseSolver
-    at: tuple[np.ndarray, float]
+    at: tuple[np.ndarray, tuple[float, ...]]
 
 
-_PATH_SCALE = np.array([1.0, 1.0, 1.0, 1e-3])  # N, N, N, kPa: a common metric for λ
+def _path_scale(n: int) -> np.ndarray:
+    """N, N, N, kPa…: a common metric for λ of ``n`` loads."""
+    return np.array([1.0, 1.0, 1.0] + [1e-3] * (n - 3))
 PATH_S_MIN, PATH_S_MAX = -1.0, 2.0  # extrapolation range of the path correction (in units of the last step)
 
 
@@ -567,13 +596,13 @@ class PathCorrection:
 
     @classmethod
     def between(cls, prev: Linearization, lin: Linearization) -> "PathCorrection | None":
-        d = (lin.lam - prev.lam) * _PATH_SCALE
+        d = (lin.lam - prev.lam) * _path_scale(len(lin.lam))
         if float(d @ d) < 1e-8:  # (1e-4 N)²: no usable step
             return None
         return cls(lin, d / float(d @ d), lin.W - prev.W, lin.sub_U - prev.sub_U, lin.U - prev.U)
 
     def position(self, dlam: np.ndarray) -> float:
-        return float(np.clip(self.d @ (np.asarray(dlam, float) * _PATH_SCALE), PATH_S_MIN, PATH_S_MAX))
+        return float(np.clip(self.d @ (np.asarray(dlam, float) * _path_scale(len(self.d))), PATH_S_MIN, PATH_S_MAX))
 
     def W(self, s: float) -> np.ndarray:
         return self.lin.W + 0.5 * s * self.dW

@@ -47,6 +47,17 @@ LOAD_UNITS = ("N", "N", "N", "kPa")
 _PER_REPORTED = np.array([1.0, 1.0, 1.0, 1e3])  # λ's SI units (N, N, N, Pa) per reported unit (N, N, N, kPa)
 
 
+def _per_reported(n: int) -> np.ndarray:
+    """:data:`_PER_REPORTED` for ``n`` loads (the force, then n − 3 pressures in kPa)."""
+    return np.array([1.0, 1.0, 1.0] + [1e3] * (n - 3))
+
+
+def _for_pressures(v4: np.ndarray, m: int) -> np.ndarray:
+    """A 4-load vector of the BIP (force, urethra) widened to M pressures, each as the urethra's."""
+    v4 = np.asarray(v4, float)
+    return v4 if m == 1 else np.concatenate([v4[:3], np.full(m, v4[3])])
+
+
 def count_volume_mm3(cavity_volumes_mm3: Sequence[float]) -> float:
     """mm³: the largest over the arms of the cavity volume change one count of the sensing chain
     reads (the budget's worst-case resolution, cavity-equivalent, times ``V_cavity / P0``).
@@ -67,7 +78,10 @@ def load_text(step: np.ndarray) -> str:
     >>> load_text(np.array([0.0, -1.25, 4.0, 0.5]))
     'f_x +0.00 N, f_y -1.25 N, f_z +4.00 N, p_u +0.50 kPa'
     """
-    return ", ".join(f"{n} {v:+.2f} {u}" for n, u, v in zip(LOAD_NAMES, LOAD_UNITS, np.asarray(step, float)))
+    step = np.asarray(step, float)
+    names, units = (LOAD_NAMES, LOAD_UNITS) if len(step) in (3, 4) else \
+        ((*LOAD_NAMES[:3], *(f"p_{i + 1}" for i in range(len(step) - 3))), (*LOAD_UNITS[:3], *["kPa"] * (len(step) - 3)))
+    return ", ".join(f"{n} {v:+.2f} {u}" for n, u, v in zip(names, units, step))
 
 
 def _scaled_svd(J: np.ndarray, ranges: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
@@ -103,10 +117,11 @@ def observed_state(lin, ranges: np.ndarray) -> ObservedState:
     """The :class:`ObservedState` of a :class:`~softphantom.estimation.linearization.Linearization`
     (its ``W``, m³/N and m³/Pa) with the inputs' ``ranges`` (4,) N, N, N, kPa."""
     ranges = np.asarray(ranges, float)
-    J = np.asarray(lin.W, float) * 1e9 * _PER_REPORTED
+    per = _per_reported(len(lin.lam))
+    J = np.asarray(lin.W, float) * 1e9 * per
     s, v, c = _scaled_svd(J, ranges)
     sf, vf, cf = _scaled_svd(J[:, :3], ranges[:3])
-    return ObservedState(np.asarray(lin.lam, float) / _PER_REPORTED, J, s, v, c, sf, vf, cf)
+    return ObservedState(np.asarray(lin.lam, float) / per, J, s, v, c, sf, vf, cf)
 
 
 @dataclass(frozen=True, eq=False)
@@ -134,9 +149,10 @@ class Observability:
         return min(self.states, key=lambda s: s.sv_force_mm3[-1])
 
 
-def envelope_ranges(acfg=None) -> np.ndarray:
-    """(4,) N, N, N, kPa: the ranges of the loads over the envelope ``acfg`` (an
-    :class:`~softphantom.estimation.atlas.config.AtlasConfig`, default the default envelope).
+def envelope_ranges(acfg=None, m: int = 1) -> np.ndarray:
+    """(3 + m,) N, N, N, kPa: the ranges of the loads over the envelope ``acfg`` (an
+    :class:`~softphantom.estimation.atlas.config.AtlasConfig`, default the default envelope; each of
+    ``m`` internal cavities over the urethra's range).
 
     >>> envelope_ranges().round(3).tolist()
     [4.0, 6.2, 4.0, 42.0]
@@ -144,10 +160,10 @@ def envelope_ranges(acfg=None) -> np.ndarray:
     from softphantom.estimation.atlas.config import AtlasConfig
 
     acfg = acfg or AtlasConfig()
-    return (acfg.upper - acfg.lower) / _PER_REPORTED
+    return _for_pressures((acfg.upper - acfg.lower) / _PER_REPORTED, m)
 
 
-def envelope_loads(acfg=None) -> list[np.ndarray]:
+def envelope_loads(acfg=None, m: int = 1) -> list[np.ndarray]:
     """The loaded states (N, N, N, Pa): each load at either end of the envelope's range, the
     others zero (the centres of the envelope's faces seen from rest); ``acfg`` an
     :class:`~softphantom.estimation.atlas.config.AtlasConfig` (default: the default envelope).
@@ -158,10 +174,11 @@ def envelope_loads(acfg=None) -> list[np.ndarray]:
     from softphantom.estimation.atlas.config import AtlasConfig
 
     acfg = acfg or AtlasConfig()
+    lower, upper = _for_pressures(acfg.lower, m), _for_pressures(acfg.upper, m)
     out = []
-    for i in range(4):
-        for v in (acfg.lower[i], acfg.upper[i]):
-            lam = np.zeros(4)
+    for i in range(3 + m):
+        for v in (lower[i], upper[i]):
+            lam = np.zeros(3 + m)
             lam[i] = v
             out.append(lam)
     return out
@@ -178,13 +195,14 @@ def observability(model, forward=None, acfg=None, loaded: bool = True) -> Observ
 
     fm = forward if forward is not None else ForwardModel(model)
     acfg = acfg or default_atlas_config(fm.fem.order)
-    ranges = envelope_ranges(acfg)
+    m = len(fm.eq.pressure_names)
+    ranges = envelope_ranges(acfg, m)
     states, failed = [], []
-    for lam in envelope_loads(acfg) if loaded else ():
+    for lam in envelope_loads(acfg, m) if loaded else ():
         try:
             states.append(observed_state(fm.solve(lam), ranges))
         except SolverError as exc:
-            failed.append((lam / _PER_REPORTED, str(exc).splitlines()[0]))
+            failed.append((lam / _per_reported(3 + m), str(exc).splitlines()[0]))
     count = count_volume_mm3([model.design.cavity_volumes_mm3()[a] for a in model.design.arm_names])
     return Observability(ranges, observed_state(fm.rest, ranges), tuple(states), tuple(failed), count)
 
@@ -241,15 +259,22 @@ def observability_md(obs: Observability) -> str:
     r = obs.rest
     w = obs.weakest_state
     env = ", ".join(f"{n} {x:g} {u}" for n, x, u in zip(LOAD_NAMES, obs.ranges, LOAD_UNITS))
+    k = len(r.sv_mm3)  # min(arms, loads)
+    bip = len(obs.ranges) == 4  # the force and one pressure
+    if not bip:  # M internal cavities other than the BIP's one
+        env = ", ".join(f"{n} {x:g} {u}" for n, x, u in zip((*LOAD_NAMES[:3], "each p"), obs.ranges, LOAD_UNITS))
     lines = [
         "## Observability",
         "",
         "Singular values of the arm volumes' sensitivity to the loads, each input scaled by its range over "
         f"the load envelope ({env}): the volume change (mm³) of a load step one envelope long. "
-        "`sv1..4`: force and urethra pressure; `force_sv1..3`: the force alone (the urethra pressure is measured).",
+        + (f"`sv1..{k}`: force and the internal cavities' pressures; `force_sv1..3`: the force alone (the pressures "
+         "are measured)." if not bip else
+         "`sv1..4`: force and urethra pressure; `force_sv1..3`: the force alone (the urethra pressure is measured)."),
         "",
-        "| state | sv1_mm3 | sv2_mm3 | sv3_mm3 | sv4_mm3 | cond | force_sv1_mm3 | force_sv2_mm3 | force_sv3_mm3 | force_cond |",
-        "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
+        "| state | " + " | ".join(f"sv{i + 1}_mm3" for i in range(k))
+        + " | cond | force_sv1_mm3 | force_sv2_mm3 | force_sv3_mm3 | force_cond |",
+        "| --- | " + " | ".join(["---:"] * (k + 5)) + " |",
         row("rest", r.sv_mm3, r.sv_force_mm3, r.cond, r.cond_force),
     ]
     if obs.loaded:

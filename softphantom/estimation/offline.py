@@ -143,6 +143,9 @@ def train(fwd: ForwardModel, snaps, lower: np.ndarray, upper: np.ndarray, *, pod
     V = np.zeros((fem.n_dof, Vf.shape[1]))
     V[fem.free_dofs] = Vf
     idx, w, err = ecsw_weights(fem, V, [x for _, x, _ in snaps], tol=ecsw_tol)
+    if fwd.eq.pressure_names != ("urethra",):
+        raise UserError(f"cavities: the reduced model takes one internal pressure, the urethra's; this design has "
+                        f"{', '.join(fwd.eq.pressure_names) or 'none'}: use --estimator refresh")
     rom = ReducedModel(fem, V, fwd.H_f, fwd.eq._ur_tris, idx, w)
     return rom, {"basis": int(V.shape[1]), "elements": int(len(idx)), "ecsw_error": float(err)}
 

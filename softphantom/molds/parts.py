@@ -523,6 +523,10 @@ class _Builder:
 def build_parts(design: BIPDesign, bulb_only: bool = False) -> tuple[Part, ...]:
     """Every part of ``design`` (molds, cores, inserts, frame, and the cast pieces), in a fixed
     order; ``bulb_only``: the bulb mold's group alone (halves, urethra core, marker sockets)."""
+    names = design.internal_cavity_names
+    if names != ("urethra",):  # the bulb mold holds one core, the urethra's
+        raise DesignError(f"cavities: the molds hold the BIP's one internal cavity core, the urethra's, for now; this "
+                          f"design has {', '.join(names) or 'none'}")
     b = _Builder(design)
     parts = [b.bulb_half(upper=False), b.bulb_half(upper=True), b.urethra_core()]
     parts += [b.marker_socket(name) for name, _ in design.markers]

@@ -93,6 +93,7 @@ class BenchConfig:
     def from_model(cls, model, **kw) -> "BenchConfig":
         """The bench of a :class:`~softphantom.design.PhantomModel`: its design's nominal arm
         cavities; ``kw`` (``tube_length_m``, ``tube_id_m``, ``p0_Pa``; None = default) the rest."""
+        require_bip_cavities(model, "cavities: the board")  # its last channel is the urethra's transducer
         vc = tuple(a.cavity_volume_mm3 * 1e-9 for a in model.design.arms)
         sensors = getattr(model.design, "sensors", None)
         cal = {} if sensors is None else {"gains": sensors.gains, "tube_volume_factor": sensors.tube_volume_factor}
@@ -175,6 +176,16 @@ class BenchConfig:
             raise FileFormatError(f"metadata: no usable bench: no {exc} (it has {has})") from None
         except (TypeError, ValueError) as exc:
             raise FileFormatError(f"metadata: no usable bench (tube, cavities): {exc}") from None
+
+
+def require_bip_cavities(model, what: str) -> None:
+    """One line refusing ``what`` (a stage not yet generic in the internal cavities: the board, its
+    records, the virtual phantom, the live view, the molds) for a design whose internal cavities are
+    not the BIP's one, the urethra."""
+    names = tuple(model.design.internal_cavity_names)
+    if names != ("urethra",):
+        raise UserError(f"{what}: reads the BIP's one internal cavity, the urethra, for now; this design has "
+                        f"{', '.join(names) or 'none'} (design, fem and the refresh estimator's Python API take any)")
 
 
 def check_link_options(tare_s: float, connect_timeout_s: float, on_new_board: str) -> None:

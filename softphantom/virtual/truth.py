@@ -243,6 +243,9 @@ def solve_truth(scenario: Scenario, model: PhantomModel, config: TruthConfig = T
     scenario.check_points((model if truth_mesh is None else truth_mesh).p_ext)  # before the truth is meshed
     t0 = time.perf_counter()
     task = f"{scenario.name}: truth"
+    if any(e.kind == "inflate" for e in scenario.events) and (truth_mesh or model).design.urethra is None:
+        raise UserError(f"{scenario.name}: [[inflate]] inflates the urethra; this design has none (its internal "
+                        f"cavities: {', '.join((truth_mesh or model).design.internal_cavity_names) or 'none'})")
     if truth_mesh is None:
         report(log, task, 0, None, "meshing the truth model")
     tm = truth_mesh if truth_mesh is not None else truth_model(model, config)
@@ -258,7 +261,7 @@ def solve_truth(scenario: Scenario, model: PhantomModel, config: TruthConfig = T
     rest_markers, rest_targets = carried[: len(marker_names)], carried[len(marker_names):]
     # the surfaces of the element order (6-node triangles on a quadratic mesh: curved walls)
     closed = np.vstack([tm.outer_faces6, tm.fixed_faces6] if tm.element_order == 2 else [tm.outer_faces, tm.fixed_faces])
-    cavities = tm.design.cavity_names  # the arms in the sensor order, then the urethra
+    cavities = tm.design.cavity_names  # the arms in the sensor order, then the internal cavities
     V0 = np.array([cavity_volume(x_rest, fem.cavities[c]) for c in cavities])
     bulb0 = cavity_volume(x_rest, closed)
     k = len(marker_names)

@@ -694,6 +694,16 @@ def build_settings(fwd: ForwardModel, acfg: AtlasConfig) -> dict:
             "nodes": int(fwd.fem.n_dof // 3)}
 
 
+def check_atlas_cavities(model) -> None:
+    """The atlas tabulates λ = (f, p_urethra): a model whose internal cavities are not exactly the
+    urethra is refused in one line (the refresh estimator takes any)."""
+    design = getattr(model, "design", None)
+    names = tuple(design.internal_cavity_names) if design is not None else ("urethra",)
+    if names != ("urethra",):
+        raise UserError(f"cavities: the atlas tabulates one internal pressure, the urethra's; this design has "
+                        f"{', '.join(names) or 'none'}: use --estimator refresh")
+
+
 def build_atlas(model, config: EstimatorConfig | None = None, atlas: AtlasConfig | None = None, *,
                 scheduler: str | None = None, n_workers: int | None = None,
                 fwd: ForwardModel | None = None, processes: bool = True, cache_dir=None,
@@ -718,6 +728,7 @@ def build_atlas(model, config: EstimatorConfig | None = None, atlas: AtlasConfig
     summary, and the tasks' progress as done/total records with the time left
     (:func:`softphantom.progress.report`). Raises :class:`~softphantom.errors.SolverError` only if
     no point converged."""
+    check_atlas_cavities(model)
     from softphantom.parallel import dask_client
 
     cfg = config or EstimatorConfig()
@@ -833,6 +844,7 @@ def load_or_build(model, config: EstimatorConfig | None = None, atlas: AtlasConf
     ``discard_partial`` (``--discard-partial``) drops the interrupted one. With ``max_build_s``, a
     build estimated to take longer (:func:`estimated_build`) is not started: :class:`AtlasMissing`
     says how long it takes, the command that builds it and ``--estimator refresh`` meanwhile."""
+    check_atlas_cavities(model)
     cfg = config or EstimatorConfig()
     fwd = fwd or ForwardModel(model, cfg)
     acfg = atlas or model_atlas_config(fwd.fem.order, cache_dir)

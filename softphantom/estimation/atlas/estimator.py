@@ -17,7 +17,7 @@ import numpy as np
 
 from softphantom.errors import SolverError, UserError
 from softphantom.estimation.atlas import kernels as ak
-from softphantom.estimation.atlas.build import load_or_build
+from softphantom.estimation.atlas.build import check_atlas_cavities, load_or_build
 from softphantom.estimation.atlas.config import AtlasConfig
 from softphantom.estimation.atlas.map import Atlas, AtlasPatches
 from softphantom.estimation.atlas.store import atlas_key
@@ -53,6 +53,7 @@ class AtlasEstimator(EstimatorState):
                  max_build_s: float | None = None) -> None:
         self.config = cfg = config or EstimatorConfig()
         self.model = model
+        check_atlas_cavities(model)
         fwd = ForwardModel(model, cfg)
         self.forward = fwd
         self.arm_names = fwd.eq.arm_names
