@@ -275,3 +275,30 @@ def test_the_documented_example_is_valid():
     block = re.search(r"```toml\n(\[urethra\].*?)```", text, re.S).group(1)
     d = design_from_dict(tomllib.loads(block))
     assert d.internal_cavity_names == ("urethra", "tumour", "channel")
+
+
+def test_simulate_takes_each_cavitys_pressure(tmp_path, capsys):
+    """``simulate --pressure-kPa tumour=0.2`` is the FEM's solve at 200 Pa in the tumour alone; a
+    cavity the model lacks, a malformed value, or the urethra given twice is one line, exit 2."""
+    import json
+
+    from softphantom.cli import main
+    from softphantom.design import save_model
+    from softphantom.fem import cavity_volume, fem_from_phantom, solve_static
+
+    model = _model("two")
+    save_model(model, tmp_path / "m")
+    assert main(["simulate", "--model", str(tmp_path / "m"), "--pressure-kPa", "tumour=0.2", "--out",
+                 str(tmp_path / "s")]) == 0
+    res = json.loads((tmp_path / "s" / "result.json").read_text())
+    fem = fem_from_phantom(model)
+    x = solve_static(fem, pressures={"tumour": 200.0}).x
+    want = (cavity_volume(x, fem.cavities["tumour"]) - cavity_volume(fem.x_rest, fem.cavities["tumour"])) * 1e9
+    assert res["pressures_kPa"] == {"tumour": 0.2} and res["dV_mm3"]["tumour"] == pytest.approx(want, rel=1e-6)
+    capsys.readouterr()
+    for args, word in ((["--pressure-kPa", "tumor=1"], "not an internal cavity of this model (urethra, tumour)"),
+                       (["--pressure-kPa", "tumour"], "expected CAVITY=KPA"),
+                       (["--urethra-kPa", "1", "--pressure-kPa", "urethra=1"], "given twice")):
+        assert main(["simulate", "--model", str(tmp_path / "m"), *args, "--out", str(tmp_path / "t")]) == 2
+        err = capsys.readouterr().err.strip()
+        assert word in err and err.count("\n") == 0, err

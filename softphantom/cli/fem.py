@@ -33,6 +33,28 @@ def _vec3(text: str, what: str) -> np.ndarray:
     return v
 
 
+def _pressures(items: list[str], cavities, urethra_given: bool) -> dict[str, float]:
+    """``CAVITY=KPA`` options → {cavity: Pa}, each cavity one of the design's, once."""
+    out: dict[str, float] = {}
+    for item in items:
+        name, sep, value = item.partition("=")
+        try:
+            p = float(value) if sep else float("nan")
+        except ValueError:
+            p = float("nan")
+        if not np.isfinite(p):
+            raise UserError(f"--pressure-kPa: expected CAVITY=KPA (e.g. tumour=20), got {item!r}")
+        if name not in cavities:
+            raise UserError(f"--pressure-kPa {name}: not an internal cavity of this model "
+                            f"({', '.join(cavities) or 'it has none'})")
+        if name in out or (name == "urethra" and urethra_given):
+            raise UserError(f"--pressure-kPa {name}: given twice")
+        if abs(p) > MAX_PRESSURE_KPA:
+            raise UserError(f"--pressure-kPa {name}: must be within ±{MAX_PRESSURE_KPA:g} kPa, got {p:g}")
+        out[name] = p * 1e3
+    return out
+
+
 @app.command("simulate")
 def simulate_command(
     model_dir: Path = typer.Option(..., "--model", help="Model directory written by `softphantom design`."),
@@ -44,6 +66,8 @@ def simulate_command(
         help="Contact patch radius in mm: a uniform traction on the outer surface within it (0: point force)."
     ),
     urethra_kPa: float = typer.Option(0.0, "--urethra-kPa", help="Urethra cavity gauge pressure in kPa."),
+    pressure_kPa: list[str] = typer.Option(None, "--pressure-kPa", help="An internal cavity's gauge pressure, "
+                                           "CAVITY=KPA (repeat; e.g. tumour=20; the urethra's is --urethra-kPa)."),
     gravity: bool = typer.Option(False, "--gravity/--no-gravity", help="Include gravity (−z)."),
     out: Path = typer.Option(..., "--out", help="Output directory (created)."),
     overwrite: bool = overwrite_option(),
@@ -78,9 +102,10 @@ def simulate_command(
     t0 = time.perf_counter()
     fem = fem_from_phantom(model)
     f_ext = force_actuator(fem, point, radius=patch_radius_mm * 1e-3) @ force
-    pressures = {"urethra": urethra_kPa * 1e3} if urethra_kPa else None
+    pressures = {"urethra": urethra_kPa * 1e3} if urethra_kPa else {}
+    pressures.update(_pressures(pressure_kPa or [], model.design.internal_cavity_names, "urethra" in pressures))
     with console.status(f"solving ({fem.n_free} DOF) …"):
-        sol = solve_static(fem, f_ext, pressures=pressures, gravity=gravity)
+        sol = solve_static(fem, f_ext, pressures=pressures or None, gravity=gravity)
     if not sol.converged:
         raise SolverError(f"static solve did not converge: {sol.status}")
 
@@ -100,6 +125,7 @@ def simulate_command(
         "at_mm": (point * 1e3).tolist(),
         "patch_radius_mm": patch_radius_mm,
         "urethra_kPa": urethra_kPa,
+        **({"pressures_kPa": {k: v * 1e-3 for k, v in pressures.items()}} if pressure_kPa else {}),
         "gravity": gravity,
         "newton_iterations": sol.iterations,
         "load_steps": sol.load_steps,
