@@ -231,3 +231,31 @@ def test_a_recording_of_other_cavities_is_refused_in_one_line(tmp_path, models):
                                         r"back_xneg, urethra, tumour\) are not the model's \(front_zpos, front_zneg, "
                                         r"back_xpos, back_xneg\)$"):
         open_replay(str(path), models["none"])
+
+
+def test_the_firmware_reads_the_arms_and_each_cavity(tmp_path, models, monkeypatch):
+    """The firmware built for N + M = 6 channels (``make N_CHANNELS=6``) and run in simavr as the
+    virtual board of the two-cavity phantom: its frames carry six sums and the tumour's pressure
+    comes through its own channel; a board without the inputs is refused naming both counts."""
+    from softphantom.sensing.chain import MPX4250D
+    from softphantom.virtual import VirtualConfig, scenario_from_dict, simulate
+    from softphantom.virtual import firmware_sim
+
+    with pytest.raises(UserError, match=r"^--mcu uno: the Arduino UNO has 6 analog inputs \(A0-A5\), the design needs "
+                                        r"7 channels \(5 arms and 2 internal cavities: urethra, tumour\); --mcu mega "
+                                        r"has 16$"):
+        firmware_sim.check_board("uno", 7, ("urethra", "tumour"))
+    if why := firmware_sim.simavr_missing():
+        pytest.skip(why)
+    harness, elf = firmware_sim.build(tmp_path / "fw", n_channels=6, cavity_names=("urethra", "tumour"))
+    assert (tmp_path / "fw" / "config").read_text().split()[2] == "N_CHANNELS=6"
+    sc = scenario_from_dict({"name": "tumour", "duration_s": 2.0, "rest_s": 0.6, "inflate": [
+        {"cavity": "tumour", "p_kPa": P_TUMOUR_KPA, "start_s": 0.7, "rise_s": 0.4, "hold_s": 0.4, "fall_s": 0.4}]})
+    cfg = VirtualConfig.seeded(seed=1, osr=25, order=1, board_kind="firmware")
+    monkeypatch.setattr(firmware_sim, "build", lambda *a, **k: (harness, elf))  # the one built above
+    run = simulate(sc, models["two"], cfg, truth_mesh=models["two"])
+    ms = [m for m in run.source() if m.osr == 25]
+    assert run.chain.n_channels == 6 and all(m.raw.shape == (6,) for m in ms)
+    held = [m.pressures_Pa["tumour"] for m in ms if 1.2 < m.t < 1.4]
+    # tared at rest; one code of the MPX4250D at N = 25 plus the noise of a window
+    assert held and np.abs(np.array(held) / 1e3 - P_TUMOUR_KPA).max() < 2 / (1024 * MPX4250D.k1_per_kPa)
