@@ -235,24 +235,13 @@ def test_atlas_refuses_other_cavities():
 
 # --- the stages that read the urethra alone so far: one line each -------------------------------
 
-def test_later_stages_refuse_other_cavities():
-    from softphantom.errors import UserError
+def test_the_molds_refuse_other_cavities():
+    # the board, the records, the virtual phantom and live take any internal cavities:
+    # tests/test_cavities_records.py
     from softphantom.molds.parts import build_parts
-    from softphantom.sensing.bench import BenchConfig
-    from softphantom.virtual.scenario import load_scenario
-    from softphantom.virtual.truth import solve_truth
 
-    two, none = _model("two"), _model("none")
-    with pytest.raises(UserError, match=r"^cavities: the board: reads the BIP's one internal cavity, the urethra, "
-                                        r"for now; this design has urethra, tumour \("):
-        BenchConfig.from_model(two)
-    with pytest.raises(UserError, match=r"this design has none \("):
-        BenchConfig.from_model(none)
     with pytest.raises(DesignError, match=r"^cavities: the molds hold .* this design has urethra, tumour$"):
-        build_parts(two.design)
-    with pytest.raises(UserError, match=r"^urethra-inflation: \[\[inflate\]\] inflates the urethra; this design has "
-                                        r"none \(its internal cavities: none\)$"):
-        solve_truth(load_scenario("urethra-inflation"), none)
+        build_parts(_model("two").design)
 
 
 def test_observability_of_two_pressures():

@@ -186,9 +186,6 @@ def _estimator_source(spec: str, model_dir: Optional[Path], at: str, max_force_N
         raise UserError(f"--source {spec} needs --model DIR (a model directory from softphantom design)")
     model = load_model(model_dir)
     check_contact(at, list(model.p_ext), "--at")
-    from softphantom.sensing.bench import require_bip_cavities
-
-    require_bip_cavities(model, "live")  # the urethra's pressure: the records are not yet per cavity
     opened = open_sensor_source(spec, model, on_new_board=on_new_board, **(bench_options or {}))
     sensor, is_live = opened.source, opened.live
     # refresh estimator on a paced source: the background equilibrium keeps each step short

@@ -76,9 +76,10 @@ def budget_cmd(
         console.print(f"wrote {out / 'budget.csv'} and {out / 'budget.png'}")
 
 
-def _status_table(stats, elapsed_s: float, rows: int, out: Path):
+def _status_table(stats, elapsed_s: float, rows: int, out: Path, arm_names: tuple[str, ...] | None = None):
     from softphantom.sensing.measurement import ARM_NAMES
 
+    arm_names = arm_names or ARM_NAMES
     d = stats.decoder
     t = Table(title=f"acquire → {out}  ({elapsed_s:.1f} s, {rows} rows)", show_header=False)
     t.add_column("what")
@@ -91,9 +92,10 @@ def _status_table(stats, elapsed_s: float, rows: int, out: Path):
     t.add_row("silent events / reconnects", f"{stats.silent_events} / {stats.reconnects}")
     m = stats.last
     if m is not None:
-        for i, a in enumerate(ARM_NAMES):
+        for i, a in enumerate(arm_names):
             t.add_row(f"dp_{a}_kPa", f"{m.dp[i] / 1e3:+.4f}")
-        t.add_row("p_urethra_kPa", f"{m.p_urethra / 1e3:+.2f}")
+        for c, p in m.cavity_pressures.items():
+            t.add_row(f"p_{c}_kPa", f"{p / 1e3:+.2f}")
         # the values above are the last sample's: while no sample comes, say so beside its status
         t.add_row("status", m.status if stats.state == "ok" else f"{stats.state}: no sample (the last: {m.status})")
     return t
@@ -161,7 +163,8 @@ def acquire_cmd(
             # 1. tare window (or just wait for the first frame)
             tare, window = tare_at_rest(
                 serial_src, bench, need, label=f"--port {port}", connect_timeout_s=connect_timeout_s,
-                on_read=lambda _: live.update(_status_table(serial_src.stats(), time.monotonic() - t_start, 0, out)))
+                on_read=lambda _: live.update(_status_table(serial_src.stats(), time.monotonic() - t_start, 0, out,
+                                                            chain.arm_names)))
             serial_src.set_tare(tare)
             serial_src.events()             # connecting is not an outage
             st = serial_src.stats()
@@ -170,7 +173,7 @@ def acquire_cmd(
                     "started_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
                     "tare": tare.to_dict(), "chain": chain.summary(), "bench": bench.to_meta(), "contact": at,
                     "on_new_board": on_new_board, "model": str(model_dir) if model_dir else None}
-            rec = Recorder(out, meta, arm_names=chain.arm_names)
+            rec = Recorder(out, meta, arm_names=chain.arm_names, cavity_names=chain.cavity_names)
             for m in window:        # the tare window is part of the recording, re-converted
                 rec.write(to_measurement(m.t, m.seq, m.t_board, m.raw, m.osr, chain, tare))
             # 2. record
@@ -188,7 +191,7 @@ def acquire_cmd(
                 rec.tick()
                 now = time.monotonic()
                 if now - last_ui > 0.25:
-                    live.update(_status_table(src.stats(), now - t_start, rec.rows, out))
+                    live.update(_status_table(src.stats(), now - t_start, rec.rows, out, chain.arm_names))
                     last_ui = now
     except KeyboardInterrupt:
         interrupted = True

@@ -17,7 +17,7 @@ app.add_typer(virtual_app, name="virtual")
 
 SCENARIO_HELP = "Scenario TOML file, or a bundled one: needle-insertion, push-on-centre, push-off-centre, urethra-inflation."
 BOARD_OPTION = typer.Option("python", "--board", help="The virtual board: python (a model of the firmware) or firmware (firmware/main.c run in simavr; needs the Debian packages simavr, libsimavr-dev).")
-MCU_OPTION = typer.Option("uno", "--mcu", help="With --board firmware, the Arduino the firmware is built for and emulated on: uno (ATmega328P, 6 analog inputs: up to 5 arms and the urethra) or mega (ATmega2560, 16 analog inputs: up to 15 arms).")
+MCU_OPTION = typer.Option("uno", "--mcu", help="With --board firmware, the Arduino the firmware is built for and emulated on: uno (ATmega328P, 6 analog inputs: the arms and the internal cavities, e.g. 5 arms and the urethra) or mega (ATmega2560, 16 analog inputs).")
 
 
 def _config(seed: int, osr: int, mesh_scale: float, bench_options: dict | None = None, order: int | None = None,
@@ -60,7 +60,8 @@ def _simulate(scenario: str, model_dir: Path, seed: int, osr: int, mesh_scale: f
     if board == "firmware":  # before the truth's solve: the board's inputs checked, the emulator built
         from softphantom.virtual.firmware_sim import build
 
-        build(n_channels=len(model.design.arm_names) + 1, board=mcu)
+        cav = tuple(getattr(model.design, "internal_cavity_names", ("urethra",)))
+        build(n_channels=len(model.design.arm_names) + len(cav), board=mcu, cavity_names=cav)
     return simulate(sc, model, cfg)
 
 
@@ -73,7 +74,8 @@ def _print_summary(summary: dict) -> None:
         if e["kind"] == "push":
             what = f"push {e['force_N']} N"
         else:
-            what = f"urethra {e['p_urethra_kPa']:.1f} kPa, bulb growth {e['bulb_growth_percent']:.2f} %"
+            p = (f"urethra {e['p_urethra_kPa']:.1f}" if "p_urethra_kPa" in e else f"{e['cavity']} {e['p_kPa']:.1f}")
+            what = f"{p} kPa, bulb growth {e['bulb_growth_percent']:.2f} %"
         shifts = ", ".join(f"{k[:-9]} {v:.2f}" for k, v in e.items() if k.endswith("_shift_mm") and k != "peak_marker_shift_mm")
         console.print(f"  t={e['start_s']:g} s {what}: markers up to {e['peak_marker_shift_mm']:.2f} mm; "
                       f"targets (mm) {shifts}" + (f"; {e['note']}" if e.get("note") else ""), highlight=False)

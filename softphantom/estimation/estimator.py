@@ -147,7 +147,7 @@ def check_sample(m, arm_names: tuple[str, ...] = ARM_NAMES) -> str:
         bad = [arm_names[i] for i in np.flatnonzero(~np.isfinite(dV))]
         return "nan:" + ",".join(bad)
     pressures = getattr(m, "pressures_Pa", None)
-    if pressures:
+    if pressures is not None:
         bad = [k for k, v in pressures.items() if not np.isfinite(float(v))]
         if bad:
             return "nan:" + ",".join(bad)
@@ -184,7 +184,7 @@ def repeat_last(last: Estimate, m, status: str, t0: float, skipped: int) -> Esti
         t=t, force=last.force.copy(), p_urethra=last.p_urethra, pose=last.pose,
         target_shift=dict(last.target_shift), volume_pred=last.volume_pred.copy(), volume_meas=dV,
         cond_W=last.cond_W, qp_status=status, step_time=time.perf_counter() - t0, skipped=int(skipped),
-        status=status, in_envelope=last.in_envelope, arm_names=last.arm_names,
+        status=status, in_envelope=last.in_envelope, arm_names=last.arm_names, pressures_Pa=last.pressures_Pa,
     )
 
 
@@ -194,14 +194,16 @@ def sensitivity_cond(W: np.ndarray) -> float:
     return float(s[0] / s[-1]) if s[-1] > 0 else float("inf")
 
 
-def rest_estimate(target_names, W: np.ndarray, arm_names: tuple[str, ...] = ARM_NAMES) -> Estimate:
+def rest_estimate(target_names, W: np.ndarray, arm_names: tuple[str, ...] = ARM_NAMES,
+                  pressure_names: tuple[str, ...] = ("urethra",)) -> Estimate:
     """The estimate before the first sample: no load, no motion, ``cond_W`` of the sensitivity ``W``."""
     z = np.zeros(3)
+    pressures = None if tuple(pressure_names) == ("urethra",) else dict.fromkeys(pressure_names, 0.0)
     return Estimate(
         t=0.0, force=z.copy(), p_urethra=0.0, pose=Pose6(z.copy(), z.copy()),
         target_shift={k: z.copy() for k in target_names}, volume_pred=np.zeros(len(W)),
         volume_meas=np.zeros(len(W)), cond_W=sensitivity_cond(W), qp_status="rest", step_time=0.0,
-        arm_names=tuple(arm_names),
+        arm_names=tuple(arm_names), pressures_Pa=pressures,
     )
 
 
@@ -332,7 +334,7 @@ class Estimator(EstimatorState):
         # per-refresh history, the latest HISTORY entries only: a soak must not grow the process
         self.lin_errors = History(width=len(self.arm_names))
         self.refresh_times = History()  # s per equilibrium refresh (both modes)
-        self._last = rest_estimate(self.target_names, self.rest.W, self.arm_names)
+        self._last = rest_estimate(self.target_names, self.rest.W, self.arm_names, self.pressure_names)
         if self.config.mode == "async" and self._worker is None:
             self._worker = _Worker(self)
             self._worker.start()

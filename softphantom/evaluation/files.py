@@ -13,7 +13,7 @@ import numpy as np
 
 from softphantom.errors import FileFormatError
 from softphantom.pose import Pose6
-from softphantom.records.names import FORCE_COLUMNS, POSE_COLUMNS, target_columns, target_names
+from softphantom.records.names import FORCE_COLUMNS, POSE_COLUMNS, pressure_names_of, target_columns, target_names
 from softphantom.records.session import TruncatedRecordingWarning, read_session_file, write_session_file
 
 
@@ -33,7 +33,9 @@ class Series6:
     ``t`` (n,) s; ``pose`` a stack of :class:`Pose6` (m, rad); ``force`` (n, 3) N or None;
     ``p_urethra`` (n,) Pa or None; ``targets`` name → (n, 3) m displacement; ``meta`` the file's
     metadata plus how it was read (registration, clock); ``in_envelope`` (n,) bool, an estimate
-    file's flag (False: clamped at the estimator's load envelope), or None."""
+    file's flag (False: clamped at the estimator's load envelope), or None; ``pressures``
+    internal cavity name → (n,) Pa gauge (its ``p_<cavity>_kPa`` column; the urethra's is also
+    ``p_urethra``)."""
 
     t: np.ndarray
     pose: Pose6
@@ -43,6 +45,7 @@ class Series6:
     meta: dict = field(default_factory=dict)
     source: str = ""
     in_envelope: np.ndarray | None = None
+    pressures: dict[str, np.ndarray] = field(default_factory=dict)
 
     def mm_deg(self) -> np.ndarray:
         """(n, 6): x, y, z mm; yaw, pitch, roll deg."""
@@ -129,7 +132,7 @@ def series_from_table(tab: Table, what: str) -> Series6:
     force = None
     if all(k in c for k in FORCE_COLUMNS):
         force = np.column_stack([c[k] for k in FORCE_COLUMNS])[ok]
-    p_u = c["p_urethra_kPa"][ok] * 1e3 if "p_urethra_kPa" in c else None
+    pressures = {n: c[f"p_{n}_kPa"][ok] * 1e3 for n in pressure_names_of(c)}
     targets = {}
     for name in target_names(c):
         keys = target_columns(name)
@@ -138,11 +141,12 @@ def series_from_table(tab: Table, what: str) -> Series6:
     order = np.argsort(t[ok], kind="stable")
     meta = dict(tab.meta)
     meta.setdefault("clock", "file t_s")
+    pressures = {k: x[order] for k, x in pressures.items()}
     return Series6(
         t[ok][order], Pose6.from_mm_deg(v[ok][order]),
-        None if force is None else force[order], None if p_u is None else p_u[order],
+        None if force is None else force[order], pressures.get("urethra"),
         {k: x[order] for k, x in targets.items()}, meta, tab.path,
-        c["in_envelope"][ok][order] > 0.5 if "in_envelope" in c else None,
+        c["in_envelope"][ok][order] > 0.5 if "in_envelope" in c else None, pressures,
     )
 
 
@@ -254,7 +258,7 @@ def _recording_warnings(path, meta: dict, frames: int) -> list[str]:
 
 
 def write_truth(path: str | Path, series: Series6, meta: dict | None = None) -> Path:
-    """Write a :class:`Series6` as a truth file (pose, and force/p_urethra/targets where known)."""
+    """Write a :class:`Series6` as a truth file (pose, and force/cavity pressures/targets where known)."""
     cols: dict[str, np.ndarray] = {"t_s": series.t}
     v = series.mm_deg()
     for k, name in enumerate(POSE_COLUMNS):
@@ -262,8 +266,11 @@ def write_truth(path: str | Path, series: Series6, meta: dict | None = None) -> 
     if series.force is not None:
         for k, name in enumerate(FORCE_COLUMNS):
             cols[name] = series.force[:, k]
+    pressures = dict(series.pressures)
     if series.p_urethra is not None:
-        cols["p_urethra_kPa"] = series.p_urethra * 1e-3
+        pressures.setdefault("urethra", series.p_urethra)
+    for name, p in pressures.items():
+        cols[f"p_{name}_kPa"] = np.asarray(p) * 1e-3
     for name, d in series.targets.items():
         for k, col in enumerate(target_columns(name)):
             cols[col] = d[:, k] * 1e3

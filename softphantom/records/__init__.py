@@ -15,6 +15,7 @@ from softphantom.records.estimate import Estimate, estimate_row, estimate_to_mes
 from softphantom.records.measurement import Measurement, SourceEvent, measurement_to_message
 from softphantom.records.names import (
     ARM_NAMES,
+    BIP_CAVITIES,
     CHANNEL_NAMES,
     FORCE_COLUMNS,
     MEASUREMENT_COLUMNS,
@@ -22,6 +23,7 @@ from softphantom.records.names import (
     arm_names_of,
     estimate_columns,
     measurement_columns,
+    pressure_names_of,
 )
 from softphantom.records.session import (
     FILE_VERSION,
@@ -34,8 +36,9 @@ from softphantom.records.session import (
 from softphantom.records.track import PoseTrack, make_track
 
 __all__ = [
-    "ARM_NAMES", "CHANNEL_NAMES", "FILE_VERSION", "FORCE_COLUMNS", "MEASUREMENT_COLUMNS", "POSE_COLUMNS",
+    "ARM_NAMES", "BIP_CAVITIES", "CHANNEL_NAMES", "FILE_VERSION", "FORCE_COLUMNS", "MEASUREMENT_COLUMNS", "POSE_COLUMNS",
     "Estimate", "Measurement", "PoseTrack", "SessionFile", "SessionWriter", "SourceEvent",
     "TruncatedRecordingWarning", "arm_names_of", "estimate_columns", "estimate_row", "estimate_to_message", "make_track",
-    "measurement_columns", "measurement_to_message", "message_to_estimate", "read_session_file", "write_session_file",
+    "measurement_columns", "measurement_to_message", "message_to_estimate", "pressure_names_of", "read_session_file",
+    "write_session_file",
 ]

@@ -33,11 +33,13 @@ from softphantom.errors import FileFormatError
 from softphantom.pose import Pose6
 from softphantom.records.names import (
     ARM_NAMES,
+    BIP_CAVITIES,
     EVENT_PREFIX,
     FORCE_COLUMNS,
     POSE_COLUMNS,
     arm_names_of,
     estimate_columns,
+    pressure_names_of,
     target_columns,
     target_names,
 )
@@ -47,14 +49,17 @@ from softphantom.records.names import (
 class Estimate:
     """One estimate of the phantom's state at time ``t`` (SI units).
 
-    ``force`` N (3,), ``p_urethra`` Pa, ``pose`` of the marker rigid body relative to rest,
+    ``force`` N (3,), ``p_urethra`` Pa (NaN without a urethra), ``pose`` of the marker rigid
+    body relative to rest,
     ``target_shift`` m per named target, ``volume_pred``/``volume_meas`` cavity volume changes
     m³ (one per arm of ``arm_names``, the sensor order; the BIP's four by default), ``cond_W``
     the condition number of the sensitivity matrix, ``qp_status`` the QP
     solver's status, ``step_time`` s spent on this step, ``skipped`` samples dropped since the
     previous estimate (estimation fell behind and took the newest one), ``in_envelope`` False
     when the loads lie outside the range the estimator's model covers (the atlas's envelope; the
-    estimate is then clamped to it).
+    estimate is then clamped to it), ``pressures_Pa`` the internal cavities' gauge pressures by
+    name (None: the BIP's, the urethra's ``p_urethra``; taken from ``extra["pressures_Pa"]``
+    when that is where the estimator put them).
     """
 
     t: float
@@ -72,6 +77,23 @@ class Estimate:
     in_envelope: bool = True
     extra: dict = field(default_factory=dict)
     arm_names: tuple[str, ...] = ARM_NAMES
+    pressures_Pa: Mapping[str, float] | None = None
+
+    def __post_init__(self) -> None:
+        if self.pressures_Pa is None and self.extra.get("pressures_Pa") is not None:
+            object.__setattr__(self, "pressures_Pa", dict(self.extra["pressures_Pa"]))
+
+    @property
+    def cavity_pressures(self) -> dict[str, float]:
+        """The internal cavities' gauge pressures (Pa) by name, in the model's order."""
+        if self.pressures_Pa is None:
+            return {BIP_CAVITIES[0]: float(self.p_urethra)}
+        return {k: float(v) for k, v in self.pressures_Pa.items()}
+
+    @property
+    def cavity_names(self) -> tuple[str, ...]:
+        """The internal cavities (the estimate file's ``p_<cavity>_kPa`` columns)."""
+        return BIP_CAVITIES if self.pressures_Pa is None else tuple(self.pressures_Pa)
 
 
 def _num(x: Any) -> float | None:
@@ -94,7 +116,8 @@ def estimate_to_message(est: Estimate, seq: int | None = None, t_pub_unix_s: flo
     if t_pub_unix_s is not None:
         m["t_pub_unix_s"] = float(t_pub_unix_s)
     m.update(zip(FORCE_COLUMNS, _nums(est.force)))
-    m["p_urethra_kPa"] = _num(est.p_urethra * 1e-3)
+    for c, p in est.cavity_pressures.items():
+        m[f"p_{c}_kPa"] = _num(p * 1e-3)
     m.update(zip(POSE_COLUMNS, _nums(est.pose.xyz, 1e3) + _nums(np.degrees(np.asarray(est.pose.ypr, float)))))
     for name, d in est.target_shift.items():
         m.update(zip(target_columns(name), _nums(d, 1e3)))
@@ -109,10 +132,12 @@ def estimate_to_message(est: Estimate, seq: int | None = None, t_pub_unix_s: flo
     return m
 
 
-def estimate_row(est: Estimate, targets: Iterable[str]) -> list[Any]:
-    """The estimate-file row of an estimate: its message's values in column order."""
+def estimate_row(est: Estimate, targets: Iterable[str], cavity_names: Iterable[str] | None = None) -> list[Any]:
+    """The estimate-file row of an estimate: its message's values in column order (the pressure
+    columns of ``cavity_names``, default the estimate's own)."""
     m = estimate_to_message(est)
-    return [m.get(c) for c in estimate_columns(targets, est.arm_names)]
+    cav = est.cavity_names if cavity_names is None else cavity_names
+    return [m.get(c) for c in estimate_columns(targets, est.arm_names, cav)]
 
 
 def _f(m: Mapping[str, Any], key: str) -> float:
@@ -132,10 +157,12 @@ def message_to_estimate(m: Mapping[str, Any]) -> Estimate:
     shifts = {n: np.array([_f(m, k) for k in target_columns(n)]) * 1e-3 for n in target_names(m)}
     env = m.get("in_envelope")
     arms = arm_names_of(m, "dVmeas_") or ARM_NAMES
+    cav = pressure_names_of(m)
+    pressures = {c: _f(m, f"p_{c}_kPa") * 1e3 for c in cav}
     return Estimate(
         t=_f(m, "t_s"),
         force=np.array([_f(m, c) for c in FORCE_COLUMNS]),
-        p_urethra=_f(m, "p_urethra_kPa") * 1e3,
+        p_urethra=pressures.get(BIP_CAVITIES[0], math.nan),
         pose=Pose6.from_mm_deg(v),
         target_shift=shifts,
         volume_pred=np.array([_f(m, f"dVpred_{a}_mm3") for a in arms]) * 1e-9,
@@ -147,12 +174,15 @@ def message_to_estimate(m: Mapping[str, Any]) -> Estimate:
         status=str(m.get("status", "ok") or "ok"),
         in_envelope=bool(int(float(env))) if env not in (None, "") else True,
         arm_names=arms,
+        pressures_Pa=None if cav == BIP_CAVITIES else pressures,
     )
 
 
-def marker_estimate(event, target_names: Iterable[str], arm_names: tuple[str, ...] = ARM_NAMES) -> Estimate:
+def marker_estimate(event, target_names: Iterable[str], arm_names: tuple[str, ...] = ARM_NAMES,
+                    cavity_names: tuple[str, ...] = BIP_CAVITIES) -> Estimate:
     """The marker of a link event: an Estimate at the event's time with every number NaN and
-    ``status`` ``event:<kind>: <detail>`` (``qp_status`` ``none``, nothing skipped).
+    ``status`` ``event:<kind>: <detail>`` (``qp_status`` ``none``, nothing skipped), of the
+    model's arms and internal cavities.
 
     >>> from softphantom.records.measurement import SourceEvent
     >>> e = marker_estimate(SourceEvent(12.5, "disconnected", "port failed"), ["apex"])
@@ -160,10 +190,11 @@ def marker_estimate(event, target_names: Iterable[str], arm_names: tuple[str, ..
     (12.5, 'event:disconnected: port failed', True)
     """
     nan3 = np.full(3, math.nan)
-    na = len(arm_names)
+    na, cav = len(arm_names), tuple(cavity_names)
     return Estimate(float(event.t), nan3, math.nan, Pose6(nan3, nan3), {k: nan3 for k in target_names},
                     np.full(na, math.nan), np.full(na, math.nan), math.nan, "none", 0.0, 0,
-                    f"{EVENT_PREFIX}{event.kind}: {event.detail}", arm_names=tuple(arm_names))
+                    f"{EVENT_PREFIX}{event.kind}: {event.detail}", arm_names=tuple(arm_names),
+                    pressures_Pa=None if cav == BIP_CAVITIES else dict.fromkeys(cav, math.nan))
 
 
 def is_marker(e: Estimate) -> bool:

@@ -4,12 +4,13 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from softphantom.records.names import ARM_NAMES, EVENT_PREFIX, MEASUREMENT_COLUMNS
+from softphantom.records.names import ARM_NAMES, BIP_CAVITIES, EVENT_PREFIX, MEASUREMENT_COLUMNS
 
 
 @dataclass(frozen=True, eq=False)
@@ -17,15 +18,16 @@ class Measurement:
     """One sample of the sensing chain (SI units).
 
     ``t`` s host clock, ``seq`` frame sequence number, ``t_board`` s board clock (centre of the
-    sampling window), ``raw`` ``(n_arms + 1,)`` oversampled ADC sums (the arms then the urethra,
-    each in ``0 .. 1023·osr``; the BIP's board: 5), ``osr`` readings summed per channel, ``dp``
-    ``(n_arms,)`` Pa gauge pressure change since tare, ``dV`` ``(n_arms,)`` m³ cavity volume
-    change (Boyle over cavity + tube),
-    ``p_urethra`` Pa gauge, ``status`` ``"ok"`` or a reason (e.g. ``"rail:back_xneg"``).
+    sampling window), ``raw`` ``(n_arms + M,)`` oversampled ADC sums (the arms, then one per
+    internal cavity, each in ``0 .. 1023·osr``; the BIP's board: 5), ``osr`` readings summed per
+    channel, ``dp`` ``(n_arms,)`` Pa gauge pressure change since tare, ``dV`` ``(n_arms,)`` m³
+    cavity volume change (Boyle over cavity + tube), ``p_urethra`` Pa gauge (NaN without a
+    urethra), ``status`` ``"ok"`` or a reason (e.g. ``"rail:back_xneg"``), ``pressures_Pa`` the
+    internal cavities' gauge pressures by name (None: the BIP's, the urethra's ``p_urethra``).
 
     >>> m = Measurement(0.0, 1, 0.0, np.array([51200] * 5), 100, np.zeros(4), np.zeros(4), 0.0)
-    >>> m.status, m.raw.shape
-    ('ok', (5,))
+    >>> m.status, m.raw.shape, m.cavity_pressures
+    ('ok', (5,), {'urethra': 0.0})
     """
 
     t: float
@@ -37,11 +39,17 @@ class Measurement:
     dV: np.ndarray
     p_urethra: float
     status: str = "ok"
+    pressures_Pa: Mapping[str, float] | None = None
 
     @property
     def ok(self) -> bool:
         """True when ``status == "ok"``."""
         return self.status == "ok"
+
+    @property
+    def cavity_pressures(self) -> dict[str, float]:
+        """The internal cavities' gauge pressures (Pa) by name, in the board's order."""
+        return _cavity_pressures(self)
 
 
 EVENT_KINDS = ("silent", "disconnected", "reconnected", "restart", "resumed", "retared")
@@ -81,10 +89,16 @@ def _arm_names(m, arm_names) -> tuple[str, ...]:
     return ARM_NAMES
 
 
+def _cavity_pressures(m) -> dict[str, float]:
+    given = getattr(m, "pressures_Pa", None)
+    return {BIP_CAVITIES[0]: float(m.p_urethra)} if given is None else {k: float(v) for k, v in given.items()}
+
+
 def measurement_to_message(m: Measurement, arm_names=None) -> dict[str, Any]:
     """The flat, unit-named form of a measurement (keys :func:`~softphantom.records.names.measurement_columns`
-    of ``arm_names``, default the BIP's four): the ``/sensors`` message of a recording (read by
-    attribute, so any object with those fields).
+    of ``arm_names``, default the BIP's four, and of its internal cavities, the urethra unless its
+    ``pressures_Pa`` names others): the ``/sensors`` message of a recording (read by attribute, so
+    any object with those fields).
 
     >>> msg = measurement_to_message(Measurement(0.5, 3, 0.49, np.arange(5), 100, np.full(4, 1e3),
     ...                                          np.full(4, 1e-9), 2e3))
@@ -92,14 +106,16 @@ def measurement_to_message(m: Measurement, arm_names=None) -> dict[str, Any]:
     (True, 1.0, 1.0, 4)
     """
     arms = _arm_names(m, arm_names)
+    pressures = _cavity_pressures(m)
     msg: dict[str, Any] = {"t_s": float(m.t), "seq": int(m.seq), "t_board_s": float(m.t_board), "osr": int(m.osr)}
-    for name, v in zip((*arms, "urethra"), np.asarray(m.raw).ravel()):
+    for name, v in zip((*arms, *pressures), np.asarray(m.raw).ravel()):
         msg[f"raw_{name}"] = int(v)
     for a, v in zip(arms, np.asarray(m.dp, float) * 1e-3):
         msg[f"dp_{a}_kPa"] = float(v)
     for a, v in zip(arms, np.asarray(m.dV, float) * 1e9):
         msg[f"dV_{a}_mm3"] = float(v)
-    msg["p_urethra_kPa"] = float(m.p_urethra) * 1e-3
+    for c, v in pressures.items():
+        msg[f"p_{c}_kPa"] = v * 1e-3
     msg["status"] = str(m.status)
     return msg
 
@@ -112,6 +128,7 @@ def measurement_row(m: Measurement, arm_names=None) -> list[str]:
     return [f(v) if isinstance(v, float) else str(v) for v in msg.values()]
 
 
-def event_row(ev: SourceEvent, n_arms: int = len(ARM_NAMES)) -> list[str]:
+def event_row(ev: SourceEvent, n_arms: int = len(ARM_NAMES), n_cavities: int = len(BIP_CAVITIES)) -> list[str]:
     """The marker row of a link event: its time, ``seq`` −1, ``osr`` 0, empty numbers, its status."""
-    return [f"{ev.t:.6f}", "-1", "nan", "0"] + ["0"] * (n_arms + 1) + ["nan"] * (2 * n_arms + 1) + [ev.status]
+    return ([f"{ev.t:.6f}", "-1", "nan", "0"] + ["0"] * (n_arms + n_cavities)
+            + ["nan"] * (2 * n_arms + n_cavities) + [ev.status])

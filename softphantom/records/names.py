@@ -17,8 +17,12 @@ from softphantom.pose import Pose6
 ARM_NAMES: tuple[str, ...] = ("front_zpos", "front_zneg", "back_xpos", "back_xneg")
 """Arm cavity order used in every length-4 array."""
 
-CHANNEL_NAMES: tuple[str, ...] = ARM_NAMES + ("urethra",)
-"""ADC channel order on the board (ADC0..ADC4): the four arms, then the urethra."""
+BIP_CAVITIES: tuple[str, ...] = ("urethra",)
+"""The BIP's internal cavities: the urethra alone (its pressure is ``p_urethra`` in the records)."""
+
+CHANNEL_NAMES: tuple[str, ...] = ARM_NAMES + BIP_CAVITIES
+"""ADC channel order on the BIP's board (ADC0..ADC4): the four arms, then the urethra; any board:
+the arms in the sensor order, then one pressure transducer per internal cavity."""
 
 POSE_COLUMNS: tuple[str, ...] = Pose6.COLUMNS
 """The 6-DoF pose relative to rest: ``x_mm, y_mm, z_mm, yaw_deg, pitch_deg, roll_deg``."""
@@ -50,10 +54,33 @@ def target_names(columns: Iterable[str]) -> list[str]:
     return [k[: -len(TARGET_SUFFIXES[0])] for k in columns if k.endswith(TARGET_SUFFIXES[0])]
 
 
-def estimate_columns(target_names: Iterable[str], arm_names: Iterable[str] = ARM_NAMES) -> list[str]:
+def pressure_columns(cavity_names: Iterable[str] = BIP_CAVITIES) -> list[str]:
+    """The gauge pressure columns ``p_<cavity>_kPa`` of internal cavities, in order.
+
+    >>> pressure_columns(), pressure_columns(("urethra", "tumour"))
+    (['p_urethra_kPa'], ['p_urethra_kPa', 'p_tumour_kPa'])
+    """
+    return [f"p_{c}_kPa" for c in cavity_names]
+
+
+def pressure_names_of(columns: Iterable[str]) -> tuple[str, ...]:
+    """The internal cavities named by a file's columns or a message's keys (``p_<cavity>_kPa``),
+    in their order (the arms' ``dp_<arm>_kPa`` are not among them).
+
+    >>> pressure_names_of(measurement_columns(("a", "b", "c"), ("urethra", "tumour")))
+    ('urethra', 'tumour')
+    >>> pressure_names_of(estimate_columns([], cavity_names=()))
+    ()
+    """
+    return tuple(k[2:-4] for k in columns if k.startswith("p_") and k.endswith("_kPa") and len(k) > 6)
+
+
+def estimate_columns(target_names: Iterable[str], arm_names: Iterable[str] = ARM_NAMES,
+                     cavity_names: Iterable[str] = BIP_CAVITIES) -> list[str]:
     """The estimate file's header, in order (docs/architecture.md); ``arm_names`` the model's arms
-    in the sensor order (default: the BIP's four)."""
-    cols = ["t_s", *FORCE_COLUMNS, "p_urethra_kPa", *POSE_COLUMNS]
+    in the sensor order (default: the BIP's four), ``cavity_names`` its internal cavities (a
+    pressure column each after the force; default: the urethra)."""
+    cols = ["t_s", *FORCE_COLUMNS, *pressure_columns(cavity_names), *POSE_COLUMNS]
     for n in target_names:
         cols += target_columns(n)
     arms = tuple(arm_names)
@@ -61,19 +88,23 @@ def estimate_columns(target_names: Iterable[str], arm_names: Iterable[str] = ARM
     return cols + ["cond_W", "qp_status", "step_ms", "skipped", "status", "in_envelope"]
 
 
-def measurement_columns(arm_names: Iterable[str] = ARM_NAMES) -> tuple[str, ...]:
+def measurement_columns(arm_names: Iterable[str] = ARM_NAMES,
+                        cavity_names: Iterable[str] = BIP_CAVITIES) -> tuple[str, ...]:
     """A sensor sample's columns (sensing recording) and ``/sensors`` message keys for a board of
-    ``arm_names`` and the urethra.
+    ``arm_names`` and a pressure transducer per internal cavity of ``cavity_names`` (default: the
+    urethra).
 
     >>> measurement_columns(("a", "b", "c"))[4:8]
     ('raw_a', 'raw_b', 'raw_c', 'raw_urethra')
+    >>> measurement_columns(("a", "b", "c"), ("urethra", "tumour"))[-3:]
+    ('p_urethra_kPa', 'p_tumour_kPa', 'status')
     """
-    arms = tuple(arm_names)
+    arms, cav = tuple(arm_names), tuple(cavity_names)
     return (("t_s", "seq", "t_board_s", "osr")
-            + tuple(f"raw_{c}" for c in (*arms, "urethra"))
+            + tuple(f"raw_{c}" for c in (*arms, *cav))
             + tuple(f"dp_{a}_kPa" for a in arms)
             + tuple(f"dV_{a}_mm3" for a in arms)
-            + ("p_urethra_kPa", "status"))
+            + tuple(pressure_columns(cav)) + ("status",))
 
 
 MEASUREMENT_COLUMNS: tuple[str, ...] = measurement_columns()

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from softphantom.errors import UserError
-from softphantom.records.names import SCENARIO_CLOCK
+from softphantom.records.names import BIP_CAVITIES, SCENARIO_CLOCK
 from softphantom.sensing.chain import SensorChain, Tare, default_chain, nominal_tare, tare_from_window
 from softphantom.sensing.pneumatics import tube_volume_m3
 from softphantom.sensing.measurement import (
@@ -60,7 +60,9 @@ class BenchConfig:
     BIP's four by default), the transducers' extra dead volume ``v_dead_m3`` and the absolute
     ambient pressure ``p0_Pa`` at tare; as calibrated (``softphantom calibrate``, the design's
     ``[sensors]``): the arm transducers' ``gains`` (sensitivity / datasheet) and the
-    ``tube_volume_factor`` (real / nominal tube volume)."""
+    ``tube_volume_factor`` (real / nominal tube volume); ``cavity_names`` the internal cavities,
+    one pressure transducer (MPX4250D) each on the channels after the arms' (the BIP's: the
+    urethra; none: the arms alone)."""
 
     tube_length_m: float = TUBE_LENGTH_M
     tube_id_m: float = TUBE_ID_M
@@ -70,6 +72,7 @@ class BenchConfig:
     gains: tuple[float, ...] = (1.0, 1.0, 1.0, 1.0)
     tube_volume_factor: float = 1.0
     arm_names: tuple[str, ...] = ARM_NAMES
+    cavity_names: tuple[str, ...] = BIP_CAVITIES
 
     def __post_init__(self) -> None:
         _positive("--tube-length-m", self.tube_length_m)
@@ -77,6 +80,10 @@ class BenchConfig:
         _positive("--p0-kPa", self.p0_Pa / 1e3)
         n = len(self.arm_names)
         object.__setattr__(self, "arm_names", tuple(self.arm_names))
+        object.__setattr__(self, "cavity_names", tuple(self.cavity_names))
+        if len(set(self.arm_names + self.cavity_names)) != n + len(self.cavity_names):
+            raise UserError(f"bench channels: each name once, got arms {list(self.arm_names)} and internal cavities "
+                            f"{list(self.cavity_names)}")
         vc = tuple(float(v) for v in self.cavity_volumes_m3)
         if len(vc) != n or not all(math.isfinite(v) and v > 0 for v in vc):
             raise UserError(f"cavity volumes (mm³): expected {n} positive values, got {self.cavity_volumes_m3!r}")
@@ -92,12 +99,13 @@ class BenchConfig:
     @classmethod
     def from_model(cls, model, **kw) -> "BenchConfig":
         """The bench of a :class:`~softphantom.design.PhantomModel`: its design's nominal arm
-        cavities; ``kw`` (``tube_length_m``, ``tube_id_m``, ``p0_Pa``; None = default) the rest."""
-        require_bip_cavities(model, "cavities: the board")  # its last channel is the urethra's transducer
+        cavities and its internal cavities; ``kw`` (``tube_length_m``, ``tube_id_m``, ``p0_Pa``;
+        None = default) the rest."""
         vc = tuple(a.cavity_volume_mm3 * 1e-9 for a in model.design.arms)
         sensors = getattr(model.design, "sensors", None)
         cal = {} if sensors is None else {"gains": sensors.gains, "tube_volume_factor": sensors.tube_volume_factor}
         return cls(cavity_volumes_m3=vc, **cal, arm_names=model.design.arm_names,
+                   cavity_names=tuple(model.design.internal_cavity_names),
                    **{k: v for k, v in kw.items() if v is not None})
 
     @classmethod
@@ -129,7 +137,7 @@ class BenchConfig:
         """The sensor chain: V_total = cavity + factor × tube + dead volume per arm; each arm
         transducer's sensitivity × its gain."""
         base = default_chain(self.cavity_volumes_m3, self.tube_length_m, self.tube_id_m, self.v_dead_m3,
-                             arm_names=self.arm_names)
+                             arm_names=self.arm_names, cavity_names=self.cavity_names)
         n = len(self.arm_names)
         if self.gains == (1.0,) * n and self.tube_volume_factor == 1.0:
             return base
@@ -155,6 +163,8 @@ class BenchConfig:
                "transducer_gains": list(self.gains), "tube_volume_factor": self.tube_volume_factor}
         if self.arm_names != ARM_NAMES:  # the BIP's metadata stays as it was
             out["arm_names"] = list(self.arm_names)
+        if self.cavity_names != BIP_CAVITIES:
+            out["cavity_names"] = list(self.cavity_names)
         return out
 
     @classmethod
@@ -165,27 +175,18 @@ class BenchConfig:
         b = meta.get("bench") or meta.get("design")
         try:
             names = tuple(b.get("arm_names") or ARM_NAMES)
+            cavities = tuple(b["cavity_names"]) if "cavity_names" in b else BIP_CAVITIES
             return cls(float(b["tube_length_m"]), float(b["tube_id_mm"]) * 1e-3,
                        tuple(float(v) * 1e-9 for v in b["arm_cavity_mm3"]),
                        float(b.get("p0_Pa", meta.get("p0_Pa", P0_STANDARD_PA))),
                        float(b.get("dead_volume_mm3", 0.0)) * 1e-9,
                        tuple(float(v) for v in b.get("transducer_gains", (1.0,) * len(names))),
-                       float(b.get("tube_volume_factor", 1.0)), names)
+                       float(b.get("tube_volume_factor", 1.0)), names, cavities)
         except KeyError as exc:
             has = ", ".join(map(str, b)) or "nothing"
             raise FileFormatError(f"metadata: no usable bench: no {exc} (it has {has})") from None
         except (TypeError, ValueError) as exc:
             raise FileFormatError(f"metadata: no usable bench (tube, cavities): {exc}") from None
-
-
-def require_bip_cavities(model, what: str) -> None:
-    """One line refusing ``what`` (a stage not yet generic in the internal cavities: the board, its
-    records, the virtual phantom, the live view, the molds) for a design whose internal cavities are
-    not the BIP's one, the urethra."""
-    names = tuple(model.design.internal_cavity_names)
-    if names != ("urethra",):
-        raise UserError(f"{what}: reads the BIP's one internal cavity, the urethra, for now; this design has "
-                        f"{', '.join(names) or 'none'} (design, fem and the refresh estimator's Python API take any)")
 
 
 def check_link_options(tare_s: float, connect_timeout_s: float, on_new_board: str) -> None:
@@ -349,7 +350,14 @@ def open_replay(path: str, model=None, bench: BenchConfig | None = None, *, opti
     arg = path
     if not Path(arg).is_file():
         raise UserError(f"--source replay:{arg}: no such file")
-    meta = read_recording(arg).meta
+    rec = read_recording(arg)
+    meta = rec.meta
+    if model is not None:
+        mine = (*rec.arm_names, *rec.cavity_names)
+        theirs = (*model.design.arm_names, *model.design.internal_cavity_names)
+        if mine != theirs:
+            raise UserError(f"--source replay:{arg}: its channels ({', '.join(mine)}) are not the model's "
+                            f"({', '.join(theirs)})")
     recorded = base = None
     notes: tuple[str, ...] = ()
     if "bench" in meta or "design" in meta:

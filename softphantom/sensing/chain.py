@@ -5,7 +5,7 @@ VS, so VS cancels: a code depends on the pressure only. Datasheet figures used (
 
 * MPXV7002 (arms): Vout = VS·(0.2·P[kPa] + 0.5), rated −2 … +2 kPa, error band ±6.25 % of
   VFSS (= ±0.25 kPa; VFSS = 0.8·VS = 4 V at 5 V), mostly offset, which the tare removes.
-* MPX4250D (urethra): Vout = VS·(0.00369·P[kPa] + 0.04), rated 0 … 250 kPa, error
+* MPX4250D (the urethra, and any internal cavity): Vout = VS·(0.00369·P[kPa] + 0.04), rated 0 … 250 kPa, error
   ±(pressure error 3.45 kPa × temperature factor 1 over 0–85 °C), i.e. ±1.5 % VFSS.
 
 An ideal 10-bit ADC returns code = floor(1024·Vin/VS) clipped to 0..1023; the board sums ``osr``
@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from softphantom.errors import UserError
+from softphantom.records.names import BIP_CAVITIES
 from softphantom.sensing.measurement import (
     ARM_CAVITY_VOLUMES_M3,
     ARM_NAMES,
@@ -78,9 +79,10 @@ MPX4250D = Transducer(
 )
 
 
-def board_transducers(n_arms: int = len(ARM_NAMES)) -> tuple[Transducer, ...]:
-    """The transducers of a board of ``n_arms`` arms: an MPXV7002 each, then the urethra's MPX4250D."""
-    return (MPXV7002,) * n_arms + (MPX4250D,)
+def board_transducers(n_arms: int = len(ARM_NAMES), n_cavities: int = len(BIP_CAVITIES)) -> tuple[Transducer, ...]:
+    """The transducers of a board of ``n_arms`` arms and ``n_cavities`` internal cavities: an
+    MPXV7002 per arm, then an MPX4250D per cavity (the BIP's: the urethra's)."""
+    return (MPXV7002,) * n_arms + (MPX4250D,) * n_cavities
 
 
 def pa_to_counts(p_Pa, transducer: Transducer = MPXV7002, osr: int = 1, bits: int = ADC_BITS):
@@ -161,8 +163,9 @@ class SensorChain:
     """Everything needed to turn raw sums into a :class:`Measurement` (except the tare).
 
     ``v_total_m3`` (n_arms,) gas volume per arm (cavity + tube + dead volume), ``transducers``
-    per channel (the arms', then the urethra's; default: the BIP's four arms), ``bits`` ADC
-    resolution, ``names`` the channels (the arms in the sensor order, then ``urethra``).
+    per channel (the arms', then one per internal cavity; default: the BIP's four arms and the
+    urethra), ``bits`` ADC resolution, ``names`` the channels (the arms in the sensor order, then
+    the internal cavities, e.g. ``urethra``; M = 0: the arms alone).
     """
 
     v_total_m3: np.ndarray
@@ -172,18 +175,27 @@ class SensorChain:
 
     def __post_init__(self) -> None:
         n = len(np.atleast_1d(self.v_total_m3))
-        if len(self.transducers) != n + 1 or len(self.names) != n + 1:
-            raise UserError(f"sensor chain: {n} arm volumes need {n + 1} transducers and channel names (the arms, "
-                            f"then the urethra), got {len(self.transducers)} and {list(self.names)}")
+        if len(self.transducers) != len(self.names) or len(self.names) < n:
+            raise UserError(f"sensor chain: {n} arm volumes need a transducer and a name per channel (the arms, "
+                            f"then the internal cavities), got {len(self.transducers)} and {list(self.names)}")
+
+    @property
+    def n_arms(self) -> int:
+        return len(np.atleast_1d(self.v_total_m3))
 
     @property
     def arm_names(self) -> tuple[str, ...]:
         """The arms' channels, in the sensor order."""
-        return tuple(self.names[:-1])
+        return tuple(self.names[: self.n_arms])
+
+    @property
+    def cavity_names(self) -> tuple[str, ...]:
+        """The internal cavities' pressure channels, after the arms'."""
+        return tuple(self.names[self.n_arms:])
 
     @property
     def n_channels(self) -> int:
-        """The board's channels: the arms, then the urethra."""
+        """The board's channels: the arms, then the internal cavities."""
         return len(self.names)
 
     def summary(self) -> dict:
@@ -196,21 +208,25 @@ class SensorChain:
 
 def default_chain(cavity_volumes_m3=ARM_CAVITY_VOLUMES_M3, tube_length_m: float = TUBE_LENGTH_M,
                   tube_id_m: float = TUBE_ID_M, v_dead_m3: float = 0.0,
-                  arm_names: tuple[str, ...] = ARM_NAMES) -> SensorChain:
+                  arm_names: tuple[str, ...] = ARM_NAMES,
+                  cavity_names: tuple[str, ...] = BIP_CAVITIES) -> SensorChain:
     """The paper's chain: 4 arm cavities (514, 514, 486, 486 mm³) each behind 12 m × 1.2 mm tube;
-    for other arms, one cavity volume per name of ``arm_names`` (an MPXV7002 each).
+    for other arms, one cavity volume per name of ``arm_names`` (an MPXV7002 each); an MPX4250D
+    per internal cavity of ``cavity_names`` (default: the urethra).
 
     >>> [round(v * 1e9) for v in default_chain().v_total_m3]
     [14086, 14086, 14058, 14058]
     >>> default_chain([500e-9] * 3, arm_names=("a", "b", "c")).names
     ('a', 'b', 'c', 'urethra')
+    >>> default_chain([500e-9] * 3, arm_names=("a", "b", "c"), cavity_names=()).n_channels
+    3
     """
     vc = np.asarray(cavity_volumes_m3, float)
     n = len(arm_names)
     if vc.shape != (n,) or not np.all(np.isfinite(vc)) or np.any(vc <= 0):
         raise UserError(f"cavity volumes (m³): expected {n} positive values, got {cavity_volumes_m3!r}")
     return SensorChain(vc + tube_volume_m3(tube_length_m, tube_id_m) + float(v_dead_m3),
-                       board_transducers(n), names=(*arm_names, "urethra"))
+                       board_transducers(n, len(cavity_names)), names=(*arm_names, *cavity_names))
 
 
 @dataclass(frozen=True, eq=False)
@@ -260,7 +276,7 @@ def tare_from_window(raw, osr, t_s, chain: SensorChain, p0_Pa: float = P0_STANDA
 
     ``raw`` (n, channels) sums, ``osr`` scalar or (n,), ``t_s`` (n,) host times. At rest means:
     every frame in range, and per channel the pressure's standard deviation ≤ ``max_std_Pa``
-    (default 25 Pa an arm, 500 Pa the urethra) and its least-squares slope ≤
+    (default 25 Pa an arm, 500 Pa an internal cavity's) and its least-squares slope ≤
     ``max_slope_Pa_per_s`` (default 20 and 2000 Pa/s; a push or a leak moves it; ≈ 5.8 Pa/s is
     1 K/min of temperature drift). Raises :class:`NotAtRestError` naming the channel.
 
@@ -274,8 +290,9 @@ def tare_from_window(raw, osr, t_s, chain: SensorChain, p0_Pa: float = P0_STANDA
     t = np.asarray(t_s, float)
     n = raw.shape[0] if raw.ndim == 2 else 0
     c = chain.n_channels
-    max_std_Pa = (25.0,) * (c - 1) + (500.0,) if max_std_Pa is None else max_std_Pa
-    max_slope_Pa_per_s = (20.0,) * (c - 1) + (2000.0,) if max_slope_Pa_per_s is None else max_slope_Pa_per_s
+    na = chain.n_arms
+    max_std_Pa = (25.0,) * na + (500.0,) * (c - na) if max_std_Pa is None else max_std_Pa
+    max_slope_Pa_per_s = (20.0,) * na + (2000.0,) * (c - na) if max_slope_Pa_per_s is None else max_slope_Pa_per_s
     if raw.ndim != 2 or raw.shape[1] != c or t.shape != (n,):
         raise UserError(f"tare window: expected raw (n, {c}) and t (n,), got {raw.shape} and {t.shape}")
     if n < min_samples:
@@ -324,9 +341,13 @@ def to_measurement(t: float, seq: int, t_board: float, raw, osr: int,
     full = float(1 << chain.bits)
     p = np.array([(codes[i] - tare.offset_codes[i]) / (full * tr.k1_per_kPa) * 1000.0
                   for i, tr in enumerate(chain.transducers)])
-    dp = p[:-1]
+    na = chain.n_arms
+    dp = p[:na]
     if status.startswith("invalid"):
-        dV = np.full(c - 1, math.nan)
+        dV = np.full(na, math.nan)
     else:
         dV = boyle_dV(dp, chain.v_total_m3, tare.p0_Pa)
-    return Measurement(float(t), int(seq), float(t_board), raw, int(osr), dp, dV, float(p[-1]), status)
+    pressures = {c: float(v) for c, v in zip(chain.cavity_names, p[na:])}
+    return Measurement(float(t), int(seq), float(t_board), raw, int(osr), dp, dV,
+                       pressures.get(BIP_CAVITIES[0], math.nan), status,
+                       None if chain.cavity_names == BIP_CAVITIES else pressures)

@@ -1,7 +1,8 @@
 """Crash-safe recording of Measurements: a CSV whose first line is ``# `` + JSON metadata.
 
-Columns (units in the names): ``t_s, seq, t_board_s, osr, raw_<ch> (5), dp_<arm>_kPa (4),
-dV_<arm>_mm3 (4), p_urethra_kPa, status``. Raw sums are stored so a file can be re-tared.
+Columns (units in the names): ``t_s, seq, t_board_s, osr, raw_<ch>`` (the arms, then the internal
+cavities; the BIP: 5), ``dp_<arm>_kPa, dV_<arm>_mm3`` (per arm), ``p_<cavity>_kPa`` (per internal
+cavity; the BIP: ``p_urethra_kPa``), ``status``. Raw sums are stored so a file can be re-tared.
 
 A session file (:mod:`softphantom.records.session`: its one writer and reader) of
 :class:`~softphantom.records.Measurement` rows (:func:`~softphantom.records.measurement.measurement_row`).
@@ -36,7 +37,15 @@ import numpy as np
 
 from softphantom.errors import FileFormatError
 from softphantom.records.measurement import Measurement, SourceEvent, event_row, measurement_row
-from softphantom.records.names import ARM_NAMES, EVENT_PREFIX, MEASUREMENT_COLUMNS, arm_names_of, measurement_columns
+from softphantom.records.names import (
+    ARM_NAMES,
+    BIP_CAVITIES,
+    EVENT_PREFIX,
+    MEASUREMENT_COLUMNS,
+    arm_names_of,
+    measurement_columns,
+    pressure_names_of,
+)
 from softphantom.records.session import SessionWriter, TruncatedRecordingWarning, read_session_file
 from softphantom.sensing.chain import SensorChain, Tare, board_transducers, to_measurement
 
@@ -50,23 +59,29 @@ FSYNC_EVERY_S = 0.1
 
 class Recorder:
     """Append Measurements to a new file; ``metadata`` (JSON-able dict) goes on the first line;
-    ``arm_names`` the board's arms (its columns; default the BIP's four).
+    ``arm_names`` the board's arms and ``cavity_names`` its internal cavities (its columns;
+    default the BIP's four and the urethra).
 
     Refuses to overwrite an existing file. Call :meth:`tick` when idle so a quiet period still
     gets its fsync; :meth:`close` (or the context manager) ends the file.
     """
 
     def __init__(self, path, metadata: dict, fsync_every_s: float = FSYNC_EVERY_S,
-                 clock: Callable[[], float] = time.monotonic, arm_names: tuple[str, ...] = ARM_NAMES):
+                 clock: Callable[[], float] = time.monotonic, arm_names: tuple[str, ...] = ARM_NAMES,
+                 cavity_names: tuple[str, ...] = BIP_CAVITIES):
         self.arm_names = tuple(arm_names)
-        self._w = SessionWriter(path, measurement_columns(self.arm_names), {"kind": KIND, **metadata}, exclusive=True,
-                                fsync_every_s=fsync_every_s, clock=clock)
+        self.cavity_names = tuple(cavity_names)
+        self._w = SessionWriter(path, measurement_columns(self.arm_names, self.cavity_names),
+                                {"kind": KIND, **metadata}, exclusive=True, fsync_every_s=fsync_every_s, clock=clock)
         self.path = self._w.path
         self.rows = 0
         self.events = 0
         self._last_t: float | None = None    # t_s of the last row written
 
     def write(self, m: Measurement) -> None:
+        if tuple(m.cavity_pressures) != self.cavity_names:
+            raise ValueError(f"a measurement of internal cavities {list(m.cavity_pressures)} in a file of "
+                             f"{list(self.cavity_names)}")
         self._w.write_row(measurement_row(m, self.arm_names))
         self.rows += 1
         self._last_t = float(m.t)
@@ -80,7 +95,7 @@ class Recorder:
             t = max(self._last_t, min(t, self._last_t if next_t is None else float(next_t)))
         elif next_t is not None:
             t = min(t, float(next_t))
-        self._w.write_row(event_row(replace(ev, t=t), len(self.arm_names)), sync=True)
+        self._w.write_row(event_row(replace(ev, t=t), len(self.arm_names), len(self.cavity_names)), sync=True)
         self.events += 1
         self._last_t = t
 
@@ -100,10 +115,12 @@ class Recorder:
 
 @dataclass(frozen=True, eq=False)
 class Recording:
-    """A recording read back (SI units): ``raw`` (n, arms + 1), ``dp`` (n, arms) Pa, ``dV``
-    (n, arms) m³, ...; ``truncated`` when the last row was incomplete and dropped, ``events`` the
-    link events (:class:`~softphantom.records.SourceEvent`) of the marker rows, ``arm_names``
-    the arms its columns name (the BIP's four unless the board had others)."""
+    """A recording read back (SI units): ``raw`` (n, arms + M), ``dp`` (n, arms) Pa, ``dV``
+    (n, arms) m³, ``p_urethra`` (n,) Pa (NaN without a urethra), ...; ``truncated`` when the last
+    row was incomplete and dropped, ``events`` the link events
+    (:class:`~softphantom.records.SourceEvent`) of the marker rows, ``arm_names`` the arms its
+    columns name (the BIP's four unless the board had others), ``cavity_names`` its internal
+    cavities (the BIP's urethra unless others) and ``pressures`` (n, M) Pa their gauge pressures."""
 
     meta: dict
     t: np.ndarray
@@ -118,29 +135,37 @@ class Recording:
     truncated: bool = False
     events: tuple = ()
     arm_names: tuple[str, ...] = ARM_NAMES
+    cavity_names: tuple[str, ...] = BIP_CAVITIES
+    pressures: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.pressures is None:  # the BIP's: the urethra's column
+            object.__setattr__(self, "pressures", np.asarray(self.p_urethra, float).reshape(-1, 1))
 
     def __len__(self) -> int:
         return len(self.t)
 
     def measurements(self) -> Iterator[Measurement]:
+        bip = self.cavity_names == BIP_CAVITIES
         for i in range(len(self.t)):
             yield Measurement(float(self.t[i]), int(self.seq[i]), float(self.t_board[i]), self.raw[i].copy(),
                               int(self.osr[i]), self.dp[i].copy(), self.dV[i].copy(),
-                              float(self.p_urethra[i]), self.status[i])
+                              float(self.p_urethra[i]), self.status[i],
+                              None if bip else dict(zip(self.cavity_names, self.pressures[i].tolist())))
 
 
 def chain_from_meta(meta: dict) -> SensorChain:
     """The SensorChain a recording was made with (from its ``chain`` metadata)."""
     try:
         v = np.asarray(meta["chain"]["v_total_mm3"], float) * 1e-9
-        names = tuple(meta["chain"].get("names") or (*ARM_NAMES, "urethra"))
-        return SensorChain(v, board_transducers(len(v)), names=names)
+        names = tuple(meta["chain"].get("names") or (*ARM_NAMES, *BIP_CAVITIES))
+        return SensorChain(v, board_transducers(len(v), len(names) - len(v)), names=names)
     except (KeyError, TypeError, ValueError) as exc:
         raise FileFormatError(f"metadata: no usable chain.v_total_mm3 ({exc})") from None
 
 
 def retare(rec: Recording, tare: Tare, chain: SensorChain | None = None) -> Recording:
-    """A new Recording with dp, dV, p_urethra recomputed from the raw sums with ``tare``."""
+    """A new Recording with dp, dV and the cavities' pressures recomputed from the raw sums with ``tare``."""
     chain = chain or chain_from_meta(rec.meta)
     ms = [to_measurement(rec.t[i], rec.seq[i], rec.t_board[i], rec.raw[i], int(rec.osr[i]), chain, tare)
           for i in range(len(rec))]
@@ -148,7 +173,8 @@ def retare(rec: Recording, tare: Tare, chain: SensorChain | None = None) -> Reco
         return replace(rec, meta={**rec.meta, "tare": tare.to_dict()})
     return replace(rec, meta={**rec.meta, "tare": tare.to_dict()},
                    dp=np.array([m.dp for m in ms]), dV=np.array([m.dV for m in ms]),
-                   p_urethra=np.array([m.p_urethra for m in ms]), status=tuple(m.status for m in ms))
+                   p_urethra=np.array([m.p_urethra for m in ms]), status=tuple(m.status for m in ms),
+                   pressures=np.array([list(m.cavity_pressures.values()) for m in ms], float).reshape(len(ms), -1))
 
 
 def read_recording(path) -> Recording:
@@ -160,13 +186,14 @@ def read_recording(path) -> Recording:
     if f.meta.get("kind") != KIND:
         raise FileFormatError(f"{path}: line 1: not a sensing recording (kind {f.meta.get('kind')!r})")
     arms = arm_names_of(f.header) or ARM_NAMES
-    columns = measurement_columns(arms)
+    cav = pressure_names_of(f.header)
+    columns = measurement_columns(arms, cav)
     missing = [c for c in columns if c not in f.header]
     if missing:
         raise FileFormatError(f"{path}: line {f.header_line}: missing columns {', '.join(missing)}")
     idx = [f.header.index(c) for c in columns]
-    a = len(arms)
-    i_p, i_st = 4 + 3 * a + 1, 4 + 3 * a + 2  # p_urethra_kPa, status
+    a, mc = len(arms), len(cav)
+    i_p, i_st = 4 + 3 * a + mc, 4 + 3 * a + 2 * mc  # the first p_<cavity>_kPa, status
     num = lambda x: float(x) if x else math.nan  # noqa: E731
     rows = []
     events = []
@@ -184,17 +211,20 @@ def read_recording(path) -> Recording:
             if t < t_prev:
                 raise ValueError(f"t_s runs backwards ({t:.6f} after {t_prev:.6f})")
             t_prev = t
-            rows.append((t, int(c[1]), num(c[2]), int(c[3]), [int(x) for x in c[4:5 + a]],
-                         [num(x) for x in c[5 + a:5 + 2 * a]], [num(x) for x in c[5 + 2 * a:5 + 3 * a]],
-                         num(c[i_p]), c[i_st]))
+            rows.append((t, int(c[1]), num(c[2]), int(c[3]), [int(x) for x in c[4:4 + a + mc]],
+                         [num(x) for x in c[4 + a + mc:4 + 2 * a + mc]],
+                         [num(x) for x in c[4 + 2 * a + mc:4 + 3 * a + mc]],
+                         [num(x) for x in c[i_p:i_st]], c[i_st]))
         except ValueError as exc:
             raise FileFormatError(f"{path}: line {ln}: {exc}") from None
     n = len(rows)
     col = lambda k, dt=float: np.array([r[k] for r in rows], dtype=dt)  # noqa: E731
+    pressures = np.array([r[7] for r in rows], float).reshape(n, mc) * 1e3
+    p_urethra = pressures[:, cav.index(BIP_CAVITIES[0])] if BIP_CAVITIES[0] in cav else np.full(n, math.nan)
     return Recording(
         meta=f.meta, t=col(0), seq=col(1, np.int64), t_board=col(2), osr=col(3, np.int64),
-        raw=np.array([r[4] for r in rows], dtype=np.int64).reshape(n, a + 1),
+        raw=np.array([r[4] for r in rows], dtype=np.int64).reshape(n, a + mc),
         dp=np.array([r[5] for r in rows], float).reshape(n, a) * 1e3,
         dV=np.array([r[6] for r in rows], float).reshape(n, a) * 1e-9,
-        p_urethra=col(7) * 1e3, status=tuple(r[8] for r in rows), truncated=f.truncated,
-        events=tuple(events), arm_names=tuple(arms))
+        p_urethra=p_urethra.copy(), status=tuple(r[8] for r in rows), truncated=f.truncated,
+        events=tuple(events), arm_names=tuple(arms), cavity_names=cav, pressures=pressures)

@@ -4,17 +4,19 @@ Channels (JSON-schema'd, ``json`` message encoding; keys carry their units):
 
 - ``/estimate``: every estimate message (:mod:`softphantom.stream.schema`),
 - ``/sensors``: every sensor sample (``Measurement``: ``t_s, seq, t_board_s, raw_*, osr,
-  dp_<arm>_kPa, dV_<arm>_mm3, p_urethra_kPa, status``),
+  dp_<arm>_kPa, dV_<arm>_mm3, p_<cavity>_kPa, status``),
 - ``/tracker``: tracker poses when a tracker is present (``t_s, x_mm … roll_deg, valid``),
 - ``/live/geometry`` (once) and ``/live/surface`` (10 Hz): the phantom's surface at rest
   and deformed, so a replay shows the deformation without re-running the estimator;
 - ``/foxglove/surface``, ``/foxglove/overlay``, ``/foxglove/tf``: the same scene as Foxglove's
   well-known messages (protobuf), which its 3D panel draws (:mod:`softphantom.stream.foxglove`).
 
-The arms are the phantom's (``arm_names``, in the sensor order): the ``/estimate`` and ``/sensors``
-schemas list each arm's keys, and a recording of arms other than the BIP's four also names them in
-its metadata (``arm_names``, a JSON list); :attr:`Recording.arm_names` reads them back (from the
-metadata, else from the messages' keys, so a file without the key reads with its arms).
+The arms are the phantom's (``arm_names``, in the sensor order) and so are its internal cavities
+(``cavity_names``): the ``/estimate`` and ``/sensors`` schemas list each arm's and each cavity's
+keys, and a recording of arms other than the BIP's four (of cavities other than its urethra) also
+names them in its metadata (``arm_names``, ``cavity_names``: JSON lists). :attr:`Recording.arm_names`
+and :attr:`Recording.cavity_names` read them back from the metadata; without the key, the arms
+come from the messages' keys and the cavities are the BIP's urethra.
 
 Crash safety: the writer closes its chunk and flushes it to the operating system every
 ``flush_interval_s`` (default 1 s) and at every chunk-size limit. A session killed at any moment
@@ -51,7 +53,15 @@ from mcap.writer import CompressionType, Writer
 
 from softphantom.errors import FileFormatError, UserError
 from softphantom.records.measurement import measurement_to_message  # noqa: F401  (re-exported)
-from softphantom.records.names import ARM_NAMES, POSE_COLUMNS, arm_names_of, estimate_columns, target_names
+from softphantom.records.names import (
+    ARM_NAMES,
+    BIP_CAVITIES,
+    POSE_COLUMNS,
+    arm_names_of,
+    estimate_columns,
+    pressure_names_of,
+    target_names,
+)
 from softphantom.records.session import SessionWriter, read_session_file
 from softphantom.stream.foxglove import foxglove_schemas
 from softphantom.stream.schema import TRACKER_JSON_SCHEMA, encode, estimate_json_schema
@@ -70,19 +80,23 @@ def _obj_schema(title: str, desc: str, props: dict[str, Any]) -> dict[str, Any]:
 _NUM = {"type": ["number", "null"]}
 
 
-def sensors_json_schema(arm_names: Sequence[str] = ARM_NAMES) -> dict[str, Any]:
-    """The JSON schema of the ``/sensors`` message of a board of ``arm_names`` and the urethra.
+def sensors_json_schema(arm_names: Sequence[str] = ARM_NAMES,
+                        cavity_names: Sequence[str] = BIP_CAVITIES) -> dict[str, Any]:
+    """The JSON schema of the ``/sensors`` message of a board of ``arm_names`` and a pressure
+    channel per internal cavity of ``cavity_names`` (the BIP's: the urethra).
 
     >>> [k for k in sensors_json_schema(("a", "b", "c"))["properties"] if k.startswith("raw_")]
     ['raw_a', 'raw_b', 'raw_c', 'raw_urethra']
+    >>> [k for k in sensors_json_schema(("a", "b", "c"), ())["properties"] if k.startswith(("raw_", "p_"))]
+    ['raw_a', 'raw_b', 'raw_c']
     """
-    arms = tuple(arm_names)
+    arms, cav = tuple(arm_names), tuple(cavity_names)
     return _obj_schema(
         "softphantom.Measurement", "one sensor sample (sensing stage), gauge pressures tared",
         {"t_s": _NUM, "seq": {"type": "integer"}, "t_board_s": _NUM, "osr": {"type": "integer"},
-         **{f"raw_{n}": {"type": "integer"} for n in (*arms, "urethra")},
+         **{f"raw_{n}": {"type": "integer"} for n in (*arms, *cav)},
          **{f"dp_{a}_kPa": _NUM for a in arms}, **{f"dV_{a}_mm3": _NUM for a in arms},
-         "p_urethra_kPa": _NUM, "status": {"type": "string"}})
+         **{f"p_{c}_kPa": _NUM for c in cav}, "status": {"type": "string"}})
 
 
 SENSORS_JSON_SCHEMA = sensors_json_schema()
@@ -97,12 +111,17 @@ SURFACE_JSON_SCHEMA = _obj_schema(
 
 ARM_NAMES_KEY = "arm_names"
 """The metadata key naming a recording's arms (a JSON list), written when they are not the BIP's."""
+CAVITY_NAMES_KEY = "cavity_names"
+"""The metadata key naming a recording's internal cavities (a JSON list), written when they are not
+the BIP's urethra."""
 
 
-def json_schemas(arm_names: Sequence[str] = ARM_NAMES) -> dict[str, dict[str, Any]]:
-    """Topic → JSON schema of each JSON channel, for a phantom of ``arm_names``."""
+def json_schemas(arm_names: Sequence[str] = ARM_NAMES,
+                 cavity_names: Sequence[str] = BIP_CAVITIES) -> dict[str, dict[str, Any]]:
+    """Topic → JSON schema of each JSON channel, for a phantom of ``arm_names`` and ``cavity_names``."""
     return {
-        TOPIC_ESTIMATE: estimate_json_schema(arm_names), TOPIC_SENSORS: sensors_json_schema(arm_names),
+        TOPIC_ESTIMATE: estimate_json_schema(arm_names, cavity_names),
+        TOPIC_SENSORS: sensors_json_schema(arm_names, cavity_names),
         TOPIC_TRACKER: TRACKER_JSON_SCHEMA, TOPIC_GEOMETRY: GEOMETRY_JSON_SCHEMA,
         TOPIC_SURFACE: SURFACE_JSON_SCHEMA,
     }
@@ -119,15 +138,17 @@ class SessionRecorder:
 
     Not thread-safe: write from one thread. ``metadata`` (strings) goes in an MCAP metadata record
     named ``softphantom``. ``arm_names``: the phantom's arms in the sensor order (default the BIP's
-    four), for the schemas and, when not the BIP's, the metadata (the module docstring).
+    four), ``cavity_names`` its internal cavities (default the urethra), for the schemas and, when
+    not the BIP's, the metadata (the module docstring).
     """
 
     def __init__(self, path: str | os.PathLike, *, flush_interval_s: float = 1.0, fsync: bool = False,
                  metadata: Mapping[str, str] | None = None, chunk_size_bytes: int = 256 * 1024,
-                 arm_names: Sequence[str] = ARM_NAMES):
+                 arm_names: Sequence[str] = ARM_NAMES, cavity_names: Sequence[str] = BIP_CAVITIES):
         from softphantom import __version__
 
         self.arm_names = tuple(arm_names)
+        self.cavity_names = tuple(cavity_names)
 
         self.path = Path(path)
         try:
@@ -140,10 +161,12 @@ class SessionRecorder:
         meta.update({str(k): str(v) for k, v in (metadata or {}).items()})
         if self.arm_names != ARM_NAMES:  # the BIP's metadata stays as it was
             meta[ARM_NAMES_KEY] = json.dumps(list(self.arm_names))
+        if self.cavity_names != BIP_CAVITIES:
+            meta[CAVITY_NAMES_KEY] = json.dumps(list(self.cavity_names))
         self._w.add_metadata("softphantom", meta)
         self._meta = meta
         self._channels: dict[str, int] = {}
-        for topic, schema in json_schemas(self.arm_names).items():
+        for topic, schema in json_schemas(self.arm_names, self.cavity_names).items():
             sid = self._w.register_schema(schema["title"], "jsonschema", json.dumps(schema).encode())
             self._channels[topic] = self._w.register_channel(topic, "json", sid)
         sids: dict[str, int] = {}  # Foxglove's well-known messages (softphantom.stream.foxglove)
@@ -225,8 +248,8 @@ class SessionRecorder:
 class Recording:
     """What :func:`read_recording` found: messages per channel (decoded JSON dicts, in file order),
     the ``metadata`` record, ``complete`` (the file was closed cleanly), ``bytes_read`` (where a
-    truncated file's last complete record ended) and ``arm_names``, the phantom's arms (the
-    module docstring)."""
+    truncated file's last complete record ended), ``arm_names`` and ``cavity_names``, the
+    phantom's arms and internal cavities (the module docstring)."""
 
     estimates: list[dict[str, Any]]
     sensors: list[dict[str, Any]]
@@ -238,6 +261,7 @@ class Recording:
     bytes_read: int = 0
     other: dict[str, list[dict[str, Any]]] = field(default_factory=dict)
     arm_names: tuple[str, ...] = ARM_NAMES
+    cavity_names: tuple[str, ...] = BIP_CAVITIES
 
 
 def iter_records(path: str | os.PathLike) -> Iterator[tuple[str, Any]]:
@@ -309,27 +333,41 @@ def read_recording(path: str | os.PathLike) -> Recording:
     known = {TOPIC_ESTIMATE, TOPIC_SENSORS, TOPIC_TRACKER, TOPIC_GEOMETRY, TOPIC_SURFACE}
     geo = per.get(TOPIC_GEOMETRY, [])
     arms = _recorded_arms(path, meta, per.get(TOPIC_ESTIMATE, []), per.get(TOPIC_SENSORS, []))
+    cavities = _recorded_cavities(path, meta)
     return Recording(
         estimates=per.get(TOPIC_ESTIMATE, []), sensors=per.get(TOPIC_SENSORS, []),
         tracker=per.get(TOPIC_TRACKER, []), geometry=geo[0] if geo else None,
         surface=per.get(TOPIC_SURFACE, []), metadata=meta, complete=bool(end["complete"]),
         bytes_read=int(end["bytes_read"]), other={k: v for k, v in per.items() if k not in known},
-        arm_names=arms,
+        arm_names=arms, cavity_names=cavities,
     )
+
+
+def _names_in_meta(path, meta: Mapping[str, str], key: str, empty: bool) -> tuple[str, ...] | None:
+    if key not in meta:
+        return None
+    try:
+        names = json.loads(meta[key])
+    except ValueError:
+        names = None
+    if not (isinstance(names, list) and (names or empty) and all(isinstance(n, str) and n for n in names)):
+        raise FileFormatError(f"{path}: metadata {key} is not a JSON list of names: {meta[key]!r}")
+    return tuple(names)
+
+
+def _recorded_cavities(path, meta: Mapping[str, str]) -> tuple[str, ...]:
+    """A recording's internal cavities: its metadata's ``cavity_names`` (written unless they are
+    the BIP's), else the BIP's urethra."""
+    names = _names_in_meta(path, meta, CAVITY_NAMES_KEY, empty=True)
+    return BIP_CAVITIES if names is None else names
 
 
 def _recorded_arms(path, meta: Mapping[str, str], estimates: list, sensors: list) -> tuple[str, ...]:
     """A recording's arms: its metadata's ``arm_names``, else the keys of its first estimate or
     sensor message, else the BIP's four."""
-    if ARM_NAMES_KEY in meta:
-        try:
-            names = json.loads(meta[ARM_NAMES_KEY])
-        except ValueError:
-            names = None
-        if not (isinstance(names, list) and names and all(isinstance(n, str) and n for n in names)):
-            raise FileFormatError(f"{path}: metadata {ARM_NAMES_KEY} is not a JSON list of names: "
-                                  f"{meta[ARM_NAMES_KEY]!r}")
-        return tuple(names)
+    names = _names_in_meta(path, meta, ARM_NAMES_KEY, empty=False)
+    if names is not None:
+        return names
     for msgs, prefix in ((estimates, "dVmeas_"), (sensors, "dV_")):
         if msgs and (names := arm_names_of(msgs[0], prefix)):
             return names
@@ -337,14 +375,17 @@ def _recorded_arms(path, meta: Mapping[str, str], estimates: list, sensors: list
 
 
 def write_estimate_csv(messages: list[Mapping[str, Any]], out: str | os.PathLike,
-                       metadata: Mapping[str, Any] | None = None, arm_names: Sequence[str] | None = None) -> Path:
+                       metadata: Mapping[str, Any] | None = None, arm_names: Sequence[str] | None = None,
+                       cavity_names: Sequence[str] | None = None) -> Path:
     """Write estimate messages as the estimate file of docs/architecture.md (empty for missing);
-    ``arm_names`` its volume columns' arms (default: those the first message names, else the BIP's)."""
+    ``arm_names`` its volume columns' arms (default: those the first message names, else the
+    BIP's), ``cavity_names`` its pressure columns' cavities (default: those the first message names)."""
     from softphantom import __version__
 
     first = messages[0] if messages else {}
     arms = tuple(arm_names) if arm_names is not None else (arm_names_of(first, "dVmeas_") or ARM_NAMES)
-    cols = estimate_columns(target_names(first), arms)
+    cav = tuple(cavity_names) if cavity_names is not None else (pressure_names_of(first) or BIP_CAVITIES)
+    cols = estimate_columns(target_names(first), arms, cav)
     with SessionWriter(out, cols, {"softphantom": __version__, **(metadata or {})}, label=str(out)) as w:
         w.write_rows([m.get(c) for c in cols] for m in messages)
     return w.path
@@ -363,7 +404,7 @@ def export_estimate_csv(recording: str | os.PathLike, out: str | os.PathLike) ->
         meta["model"] = rec.metadata["model"]
     if rec.geometry and "contact_radius_mm" in rec.geometry:  # the estimator's contact patch
         meta["contact_radius_mm"] = rec.geometry["contact_radius_mm"]
-    return write_estimate_csv(rec.estimates, out, meta, rec.arm_names)
+    return write_estimate_csv(rec.estimates, out, meta, rec.arm_names, rec.cavity_names)
 
 
 def read_estimate_csv(path: str | os.PathLike) -> tuple[dict[str, Any], list[dict[str, Any]]]:

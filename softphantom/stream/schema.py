@@ -15,7 +15,7 @@ import math
 from typing import Any, Mapping, Sequence
 
 from softphantom.records.estimate import estimate_to_message, message_to_estimate
-from softphantom.records.names import ARM_NAMES, FORCE_COLUMNS, POSE_COLUMNS, target_names
+from softphantom.records.names import ARM_NAMES, BIP_CAVITIES, FORCE_COLUMNS, POSE_COLUMNS, target_names
 from softphantom.records.names import estimate_columns as csv_columns
 
 __all__ = ["ESTIMATE_JSON_SCHEMA", "SCHEMA_NAME", "SCHEMA_VERSION", "TOPIC_ESTIMATE", "csv_columns", "encode",
@@ -49,16 +49,20 @@ def _num_schema(desc: str) -> dict:
     return {"type": ["number", "null"], "description": desc}
 
 
-def estimate_json_schema(arm_names: Sequence[str] = ARM_NAMES) -> dict[str, Any]:
+def estimate_json_schema(arm_names: Sequence[str] = ARM_NAMES,
+                         cavity_names: Sequence[str] = BIP_CAVITIES) -> dict[str, Any]:
     """The JSON schema of the estimate message of a phantom of ``arm_names`` (the sensor order; the
-    BIP's four by default): the volume keys ``dVpred_<arm>_mm3`` and ``dVmeas_<arm>_mm3`` of each
-    arm are listed, in that order, so a recording's schema names its arms.
+    BIP's four by default) and internal cavities ``cavity_names`` (the BIP's urethra by default):
+    the pressure keys ``p_<cavity>_kPa`` and the volume keys ``dVpred_<arm>_mm3`` and
+    ``dVmeas_<arm>_mm3`` are listed, in that order, so a recording's schema names its cavities.
 
-    >>> s = estimate_json_schema(("a", "b", "c"))
+    >>> s = estimate_json_schema(("a", "b", "c"), ("urethra", "tumour"))
     >>> [k for k in s["properties"] if k.startswith("dVmeas_")], s["properties"]["cond_W"]["description"]
-    (['dVmeas_a_mm3', 'dVmeas_b_mm3', 'dVmeas_c_mm3'], 'condition number of the 3×4 sensitivity matrix W')
+    (['dVmeas_a_mm3', 'dVmeas_b_mm3', 'dVmeas_c_mm3'], 'condition number of the 3×5 sensitivity matrix W')
+    >>> [k for k in s["properties"] if k.startswith("p_")]
+    ['p_urethra_kPa', 'p_tumour_kPa']
     """
-    arms = tuple(arm_names)
+    arms, cav = tuple(arm_names), tuple(cavity_names)
     return {
         "title": SCHEMA_NAME,
         "description": f"softphantom estimate message v{SCHEMA_VERSION}; keys = estimate CSV columns "
@@ -71,11 +75,11 @@ def estimate_json_schema(arm_names: Sequence[str] = ARM_NAMES) -> dict[str, Any]
             "t_s": _num_schema("estimate time, s (host clock of the sensor sample)"),
             "t_pub_unix_s": {"type": "number", "description": "wall clock at publication, s since the UNIX epoch"},
             **{c: _num_schema(f"external force at p_ext, {c[-1]}") for c in FORCE_COLUMNS},
-            "p_urethra_kPa": _num_schema("urethra cavity gauge pressure, kPa"),
+            **{f"p_{c}_kPa": _num_schema(f"{c} cavity gauge pressure, kPa") for c in cav},
             **{c: _num_schema("pose of the marker rigid body relative to rest") for c in POSE_COLUMNS},
             **{f"dVpred_{a}_mm3": _num_schema("predicted cavity volume change, mm³") for a in arms},
             **{f"dVmeas_{a}_mm3": _num_schema("measured cavity volume change, mm³") for a in arms},
-            "cond_W": _num_schema(f"condition number of the {len(arms)}×4 sensitivity matrix W"),
+            "cond_W": _num_schema(f"condition number of the {len(arms)}×{3 + len(cav)} sensitivity matrix W"),
             "qp_status": {"type": "string"},
             "step_ms": _num_schema("time spent on this estimation step, ms"),
             "skipped": {"type": "integer", "description": "sensor samples skipped since the previous estimate"},

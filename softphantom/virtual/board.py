@@ -6,7 +6,8 @@ and tube, V_T = V_cavity + V_tube, isothermally: ΔP = P0·(V_T/(V_T + ΔV) − 
 (τ from ``tube_time_constant_s``, ≈ 0.1 s; filtered on a 1 kHz grid, exact for a signal held over
 each step); it adds its own zero offset (seeded, uniform within the datasheet's error band:
 ±250 Pa for the MPXV7002, ±3.45 kPa for the MPX4250D) and a slow common thermal drift (seeded,
-``drift_K_per_min`` × P0/T per kelvin). The urethra's pump pressure reaches its MPX4250D directly.
+``drift_K_per_min`` × P0/T per kelvin). An internal cavity's pump pressure (the BIP's urethra's)
+reaches its MPX4250D directly, on the channels after the arms'.
 The ADC takes ``osr`` readings per channel per frame, each ``floor(1024·Vout/VS + noise)`` with
 Gaussian input noise (``noise_codes`` σ), and sums them (``simulate_raw``); the frame goes out as
 the firmware sends it (``protocol.encode_data``: COBS + CRC-16), stamped with the board clock at
@@ -51,7 +52,7 @@ class BoardConfig:
     drift_K_per_min: float = 0.05
     tube_lag: bool = True
     #: per-channel sensitivity of the transducers relative to their datasheet (the arms, then the
-    #: urethra; all 1: the datasheet's for any count): a gain of 1.05 reads 5 % high (for
+    #: internal cavities; all 1: the datasheet's for any count): a gain of 1.05 reads 5 % high (for
     #: calibration studies)
     gains: tuple[float, ...] = (1.0, 1.0, 1.0, 1.0, 1.0)
     #: the Arduino the firmware is built for when the emulated firmware is the board (``virtual
@@ -68,7 +69,7 @@ class BoardConfig:
         if not self.noise_codes >= 0:
             raise UserError(f"noise_codes: must be >= 0, got {self.noise_codes}")
         if not all(math.isfinite(g) and g > 0 for g in self.gains):
-            raise UserError(f"gains: need positive values (the arms, then the urethra), got {self.gains}")
+            raise UserError(f"gains: need positive values (the arms, then the internal cavities), got {self.gains}")
 
     def gains_for(self, n_channels: int) -> np.ndarray:
         """The gains of a board of ``n_channels`` (the datasheet's when all are 1)."""
@@ -77,14 +78,15 @@ class BoardConfig:
             return g
         if np.all(g == 1.0):
             return np.ones(n_channels)
-        raise UserError(f"gains: {len(g)} given for a board of {n_channels} channels (the arms, then the urethra)")
+        raise UserError(f"gains: {len(g)} given for a board of {n_channels} channels (the arms, then the internal "
+                        "cavities)")
 
 
 @dataclass(frozen=True, eq=False)
 class BoardSignals:
     """What the transducers see on the 1 kHz grid ``t`` (s): ``p_cavity`` (n, arms) Pa the Boyle
-    pressure at the cavity, ``p_transducer`` (n, arms + 1) Pa gauge at each transducer (lagged,
-    with offset and drift; the last column the urethra), ``offsets_Pa`` (arms + 1,),
+    pressure at the cavity, ``p_transducer`` (n, arms + M) Pa gauge at each transducer (lagged,
+    with offset and drift; the last M columns the internal cavities), ``offsets_Pa`` (arms + M,),
     ``drift_Pa_per_s``, ``tau_s`` (arms,) tube time constants, ``chain`` the chain the physics
     used (its ``names``: the channels)."""
 
@@ -101,10 +103,13 @@ def board_signals(truth, cavity_volumes_m3, config: BoardConfig = BoardConfig(),
                   arm_names: tuple[str, ...] = ARM_NAMES) -> BoardSignals:
     """Pressures at the transducers over the scenario on a 1 kHz grid (see the module docstring).
     ``truth`` is a :class:`~softphantom.virtual.truth.Truth`; ``cavity_volumes_m3`` (arms,) the
-    arm cavities the physics uses (the truth mesh's), named ``arm_names`` in the sensor order."""
+    arm cavities the physics uses (the truth mesh's), named ``arm_names`` in the sensor order; a
+    pressure channel per internal cavity of the truth's design follows them."""
     rng = np.random.default_rng([config.seed, 1])
     na = len(arm_names)
-    chain = default_chain(cavity_volumes_m3, config.tube_length_m, config.tube_id_m, arm_names=tuple(arm_names))
+    cav = tuple(truth.model.design.internal_cavity_names)
+    chain = default_chain(cavity_volumes_m3, config.tube_length_m, config.tube_id_m, arm_names=tuple(arm_names),
+                          cavity_names=cav)
     dur = truth.scenario.duration_s
     t = np.arange(0.0, dur + 0.5 + LAG_GRID_S / 2, LAG_GRID_S)
     ts = truth.sample(t)
@@ -115,10 +120,11 @@ def board_signals(truth, cavity_volumes_m3, config: BoardConfig = BoardConfig(),
         p_arm = np.column_stack([first_order_lag(p_cav[:, i], LAG_GRID_S, tau[i], y0=0.0) for i in range(na)])
     else:
         p_arm = p_cav
-    bands = np.array([MPXV7002.error_band_Pa] * na + [MPX4250D.error_band_Pa]) * config.offset_band_fraction
-    offsets = rng.uniform(-1.0, 1.0, na + 1) * bands
+    nc = na + len(cav)
+    bands = np.array([MPXV7002.error_band_Pa] * na + [MPX4250D.error_band_Pa] * len(cav)) * config.offset_band_fraction
+    offsets = rng.uniform(-1.0, 1.0, nc) * bands
     drift = rng.uniform(-1.0, 1.0) * config.drift_K_per_min / 60.0 * thermal_dp_per_K(config.p0_Pa)
-    p = np.column_stack([p_arm, ts.p_urethra]) * config.gains_for(na + 1) + offsets
+    p = np.column_stack([p_arm, ts.pressures]) * config.gains_for(nc) + offsets
     p[:, :na] += drift * t[:, None]
     return BoardSignals(t, p_cav, p, offsets, float(drift), tau, chain)
 
@@ -139,7 +145,7 @@ class VirtualBoard:
 
     @property
     def n_channels(self) -> int:
-        """The board's channels: the arms, then the urethra."""
+        """The board's channels: the arms, then the internal cavities."""
         return self.signals.chain.n_channels
 
     @property

@@ -53,9 +53,10 @@ BOARDS = {"uno": Arduino("uno", "Arduino UNO", "atmega328p", 6, "A0-A5"),
 DEFAULT_BOARD = "uno"
 
 
-def check_board(board: str, n_channels: int) -> Arduino:
-    """The board named ``board`` if it has an analog input for each of ``n_channels``, else a
-    one-line UserError naming both.
+def check_board(board: str, n_channels: int, cavity_names: tuple[str, ...] = ("urethra",)) -> Arduino:
+    """The board named ``board`` if it has an analog input for each of ``n_channels`` (the arms,
+    then a pressure channel per internal cavity of ``cavity_names``), else a one-line UserError
+    naming both counts.
 
     >>> check_board("mega", 9).mcu
     'atmega2560'
@@ -63,6 +64,10 @@ def check_board(board: str, n_channels: int) -> Arduino:
     Traceback (most recent call last):
     ...
     softphantom.errors.UserError: --mcu uno: the Arduino UNO has 6 analog inputs (A0-A5), the design needs 7 channels (6 arms and the urethra); --mcu mega has 16
+    >>> check_board("uno", 7, ("urethra", "tumour"))
+    Traceback (most recent call last):
+    ...
+    softphantom.errors.UserError: --mcu uno: the Arduino UNO has 6 analog inputs (A0-A5), the design needs 7 channels (5 arms and 2 internal cavities: urethra, tumour); --mcu mega has 16
     """
     b = BOARDS.get(board)
     if b is None:
@@ -71,8 +76,11 @@ def check_board(board: str, n_channels: int) -> Arduino:
     if isinstance(n, int) and n > b.analog_inputs:  # before the protocol's limit, which is the Mega's
         more = [o for o in BOARDS.values() if o.analog_inputs >= n]
         hint = f"; --mcu {more[0].name} has {more[0].analog_inputs}" if more else ""
+        cav = tuple(cavity_names)
+        what = (f"{n - len(cav)} arms" + (f" and the {cav[0]}" if len(cav) == 1 else
+                                          f" and {len(cav)} internal cavities: {', '.join(cav)}" if cav else ""))
         raise UserError(f"--mcu {b.name}: the {b.label} has {b.analog_inputs} analog inputs ({b.pins}), the design "
-                        f"needs {n} channels ({n - 1} arms and the urethra){hint}")
+                        f"needs {n} channels ({what}){hint}")
     check_channels(n)
     return b
 
@@ -97,11 +105,11 @@ def simavr_missing() -> str | None:
 
 
 def build(build_dir: Path | None = None, n_channels: int = N_CHANNELS,
-          board: str = DEFAULT_BOARD) -> tuple[Path, Path]:
+          board: str = DEFAULT_BOARD, cavity_names: tuple[str, ...] = ("urethra",)) -> tuple[Path, Path]:
     """(harness, firmware .elf) for a ``board`` (:data:`BOARDS`) of ``n_channels``, built by ``make
     -C firmware BOARD=board N_CHANNELS=n sim`` if out of date (in firmware/build for the BIP's UNO
     of 5, else build_<n> on the UNO, build_mega_<n> on the Mega)."""
-    b = check_board(board, n_channels)
+    b = check_board(board, n_channels, cavity_names)
     why = simavr_missing()
     if why:
         raise SimavrMissing(why)
@@ -238,9 +246,10 @@ class FirmwareBoard:
         self.duration_s = float(signals.t[-1]) - 0.5
         tr = signals.chain.transducers
         p = signals.p_transducer
-        n = len(tr)  # the board's channels: the arms, then the urethra
+        n = len(tr)  # the board's channels: the arms, then the internal cavities
         self._volts = VS_V * np.column_stack([tr[i].ratio(p[:, i]) for i in range(n)])
         self._sent_to = 0  # grid points already given to the emulator
+        check_board(config.mcu, n, signals.chain.cavity_names)  # the message names the design's cavities
         self._sim = FirmwareSim(elf, harness=harness, noise_codes=config.noise_codes, seed=config.seed, n_channels=n,
                                 board=config.mcu)
         self._dec = StreamDecoder(n)

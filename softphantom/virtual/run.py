@@ -123,11 +123,12 @@ class VirtualRun:
             cols[name] = v[:, k]
         for k, a in enumerate("xyz"):
             cols[f"force_{a}_N"] = s.force[:, k]
-        cols["p_urethra_kPa"] = s.p_urethra / 1e3
+        for j, c in enumerate(s.cavity_names):  # the internal cavities (the BIP: p_urethra_kPa)
+            cols[f"p_{c}_kPa"] = s.pressures[:, j] / 1e3
         for j, name in enumerate(self.truth.target_names):
             for k, a in enumerate("xyz"):
                 cols[f"{name}_d{a}_mm"] = s.targets[:, j, k] * 1e3
-        for i, c in enumerate(self.truth.model.design.cavity_names):  # the arms, then the urethra
+        for i, c in enumerate(self.truth.model.design.cavity_names):  # the arms, then the internal cavities
             cols[f"dV_{c}_mm3"] = s.dV[:, i] * 1e9
         return cols
 
@@ -196,7 +197,7 @@ def write_run(run: VirtualRun, out: Path) -> dict[str, Path]:
             "osr": b.osr, "p0_Pa": b.p0_Pa, "port": f"virtual:{run.scenario.name}",
             "tare": src.tare.to_dict(), "chain": run.chain.summary(), "virtual": True,
             "bench": host_bench(run.model, b).to_meta()}
-    with Recorder(paths["recording"], meta, arm_names=run.chain.arm_names) as rec:
+    with Recorder(paths["recording"], meta, arm_names=run.chain.arm_names, cavity_names=run.chain.cavity_names) as rec:
         for m in src:
             rec.write(m)
     write_motive_csv(run.tracker, paths["tracker"], run.truth.marker_names, take_name=run.scenario.name)

@@ -7,9 +7,11 @@ not change the equilibria it passes through):
 * ``[[push]]`` a force (N, model frame) at a contact point of the model (``on-centre``,
   ``off-centre`` or one of its design's ``[contacts]``: :meth:`Scenario.check_points`), spread over
   a small surface patch (a point force is singular in 3-D; DESIGN.md §5);
-* ``[[inflate]]`` a urethra gauge pressure: either ``p_urethra_kPa`` given, or inflated *until* a
-  named target moves ``target_shift_mm`` (DESIGN.md §5: the paper's marker next to the urethra
-  moved ≈ 2 mm), capped at ``max_p_urethra_kPa`` (the transducer's or the silicone's limit).
+* ``[[inflate]]`` the gauge pressure of an internal cavity (``cavity = "NAME"``; default the
+  design's only one, the BIP's urethra: :meth:`Scenario.check_cavities`): either ``p_kPa``
+  given, or inflated *until* a named target moves ``target_shift_mm`` (DESIGN.md §5: the paper's
+  marker next to the urethra moved ≈ 2 mm), capped at ``max_p_kPa`` (the transducer's or the
+  silicone's limit); ``p_urethra_kPa`` and ``max_p_urethra_kPa`` are read as their synonyms.
 
 Events do not overlap in time, so each one is a one-parameter load path from rest (its *level*
 s ∈ [0, 1] times its peak). Example (``scenarios/needle-insertion.toml``)::
@@ -31,7 +33,7 @@ from __future__ import annotations
 import math
 import re
 import tomllib
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Annotated
 
@@ -57,8 +59,8 @@ class ScenarioError(UserError):
 @dataclass(frozen=True)
 class Event:
     """One load ramp: ``kind`` "push" or "inflate"; times in s; ``force_N`` (3,) peak for a push;
-    for an inflation ``p_urethra_kPa`` (peak, or None to inflate until ``target`` moved
-    ``target_shift_mm``, at most ``max_p_urethra_kPa``)."""
+    for an inflation of internal cavity ``cavity`` (None: the design's only one) ``p_kPa`` (peak,
+    or None to inflate until ``target`` moved ``target_shift_mm``, at most ``max_p_kPa``)."""
 
     kind: str
     start_s: float
@@ -67,10 +69,11 @@ class Event:
     fall_s: float
     point: str = "on-centre"
     force_N: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    p_urethra_kPa: float | None = None
+    p_kPa: float | None = None
     target: str | None = None
     target_shift_mm: float | None = None
-    max_p_urethra_kPa: float = 150.0
+    max_p_kPa: float = 150.0
+    cavity: str | None = None
 
     @property
     def end_s(self) -> float:
@@ -115,6 +118,36 @@ class Scenario:
                                     f"({', '.join(names)})")
         return self
 
+    def check_cavities(self, names) -> "Scenario":
+        """The scenario with each inflation's cavity named, checked against ``names`` (a model's
+        internal cavities): an inflation without ``cavity`` inflates the only one; otherwise a
+        one-line :class:`ScenarioError` naming the file and the choices.
+
+        >>> sc = scenario_from_dict({"name": "n", "duration_s": 3, "inflate": [
+        ...     {"p_kPa": 20, "start_s": 1, "rise_s": 1}]}, "n.toml")
+        >>> sc.check_cavities(["urethra"]).events[0].cavity
+        'urethra'
+        >>> sc.check_cavities(["urethra", "tumour"])
+        Traceback (most recent call last):
+        ...
+        softphantom.virtual.scenario.ScenarioError: n.toml: inflate.cavity: missing; this model has several internal cavities (urethra, tumour): name one
+        """
+        names = list(names)
+        have = ", ".join(names) or "none"
+        events = []
+        for e in self.events:
+            if e.kind == "inflate":
+                if e.cavity is None and len(names) != 1:
+                    raise ScenarioError(f"{self.source}: inflate.cavity: missing; this model has "
+                                        + (f"several internal cavities ({have}): name one" if names
+                                           else "no internal cavity to inflate"))
+                if e.cavity is not None and e.cavity not in names:
+                    raise ScenarioError(f"{self.source}: inflate.cavity {e.cavity}: not an internal cavity of this "
+                                        f"model ({have})")
+                e = replace(e, cavity=e.cavity or names[0])
+            events.append(e)
+        return replace(self, events=tuple(events))
+
     def active(self, t: float) -> int | None:
         """Index of the event acting at ``t`` (None at rest)."""
         for i, e in enumerate(self.events):
@@ -157,20 +190,40 @@ class _Push(_Times):
         return f
 
 
+MaxPressure = Annotated[float, between(0, 250, "kPa (the MPX4250D's range)", above=True)]
+
+
 class _Inflate(_Times):
-    p_urethra_kPa: Positive | None = None
+    cavity: str | None = Field(None, min_length=1)
+    p_kPa: Positive | None = None
+    p_urethra_kPa: Positive | None = None  # the BIP's files: p_kPa's synonym
     target: str | None = Field(None, min_length=1)
     target_shift_mm: Positive = 2.0
-    max_p_urethra_kPa: Annotated[float, between(0, 250, "kPa (the MPX4250D's range)", above=True)] = 150.0
+    max_p_kPa: MaxPressure | None = None
+    max_p_urethra_kPa: MaxPressure | None = None  # max_p_kPa's synonym
 
     @model_validator(mode="after")
     def _one_of(self):
-        if (self.p_urethra_kPa is None) == (self.target is None):
-            raise refuse("give either p_urethra_kPa or target (+ target_shift_mm)")
-        if self.p_urethra_kPa is not None and self.p_urethra_kPa > self.max_p_urethra_kPa:
-            raise refuse(f"p_urethra_kPa = {self.p_urethra_kPa:g} kPa is above max_p_urethra_kPa "
-                         f"{self.max_p_urethra_kPa:g}")
+        for a, b in (("p_kPa", "p_urethra_kPa"), ("max_p_kPa", "max_p_urethra_kPa")):
+            if getattr(self, a) is not None and getattr(self, b) is not None:
+                raise refuse(f"give {a} or its synonym {b}, not both")
+        p, p_key = (self.p_kPa, "p_kPa") if self.p_urethra_kPa is None else (self.p_urethra_kPa, "p_urethra_kPa")
+        if (p is None) == (self.target is None):
+            raise refuse("give either p_kPa / p_urethra_kPa or target (+ target_shift_mm)")
+        mx = self.max_pressure_kPa
+        if p is not None and p > mx:
+            bip = self.max_p_urethra_kPa is not None or p_key == "p_urethra_kPa"
+            mx_key = "max_p_urethra_kPa" if bip else "max_p_kPa"
+            raise refuse(f"{p_key} = {p:g} kPa is above {mx_key} {mx:g}")
         return self
+
+    @property
+    def pressure_kPa(self) -> float | None:
+        return self.p_kPa if self.p_urethra_kPa is None else self.p_urethra_kPa
+
+    @property
+    def max_pressure_kPa(self) -> float:
+        return next((v for v in (self.max_p_kPa, self.max_p_urethra_kPa) if v is not None), 150.0)
 
 
 class _ScenarioFile(FileModel):
@@ -187,9 +240,9 @@ def scenario_from_dict(d: dict, source: str = "<dict>") -> Scenario:
     """Validate a parsed scenario; raises :class:`ScenarioError` (one line, names file and key)."""
     f = parse(_ScenarioFile, d, ScenarioError, source=source)
     events = [Event("push", point=e.point, force_N=tuple(e.force_N), **e.times()) for e in f.push]
-    events += [Event("inflate", p_urethra_kPa=e.p_urethra_kPa, target=e.target,
+    events += [Event("inflate", p_kPa=e.pressure_kPa, target=e.target,
                      target_shift_mm=None if e.target is None else e.target_shift_mm,
-                     max_p_urethra_kPa=e.max_p_urethra_kPa, **e.times()) for e in f.inflate]
+                     max_p_kPa=e.max_pressure_kPa, cavity=e.cavity, **e.times()) for e in f.inflate]
     if not events:
         raise ScenarioError(f"{source}: no [[push]] or [[inflate]] event")
     events.sort(key=lambda e: e.start_s)

@@ -19,7 +19,8 @@ previous level's state), and every output is interpolated in s by a monotone cub
 the keyframes), then mapped to time through the event's level s(t). A hold or a release revisits
 states already solved, so they cost nothing. An inflation "until the target moves N mm" marches
 the pressure up in steps of ``max_p/10`` and finds the pressure by a secant step between the last
-two keyframes (one more solve), or stops at ``max_p_urethra_kPa``.
+two keyframes (one more solve), or stops at ``max_p_kPa``. An inflation loads one internal cavity
+(its event's ``cavity``); the truth records every cavity's pressure and volume change.
 """
 
 from __future__ import annotations
@@ -98,10 +99,11 @@ class TruthConfig:
 @dataclass(frozen=True, eq=False)
 class EventTruth:
     """Keyframes of one event: ``s`` (K,) levels from 0 to 1; ``dV`` (K, cavities) m³ cavity volume
-    changes (the arms, then the urethra); ``markers`` (K, k, 3) m positions; ``targets`` (K, t, 3) m
-    displacements; ``bulb_dV`` (K,) m³ change of the volume the outer surface encloses; peak load
-    ``force`` (3,) N and ``p_urethra`` Pa; ``x_peak`` (N, 3) truth-mesh nodes at s = 1;
-    ``iterations`` Newton iterations; ``note`` what happened (e.g. a limit reached)."""
+    changes (the arms, then the internal cavities); ``markers`` (K, k, 3) m positions; ``targets``
+    (K, t, 3) m displacements; ``bulb_dV`` (K,) m³ change of the volume the outer surface encloses;
+    peak load ``force`` (3,) N and ``p_Pa``, the gauge pressure of the inflated cavity
+    (``cavity``; 0 for a push); ``x_peak`` (N, 3) truth-mesh nodes at s = 1; ``iterations``
+    Newton iterations; ``note`` what happened (e.g. a limit reached)."""
 
     event: Event
     s: np.ndarray
@@ -110,10 +112,20 @@ class EventTruth:
     targets: np.ndarray
     bulb_dV: np.ndarray
     force: np.ndarray
-    p_urethra: float
+    p_Pa: float
     x_peak: np.ndarray
     iterations: int
     note: str = ""
+
+    @property
+    def cavity(self) -> str | None:
+        """The internal cavity the event inflates (None for a push)."""
+        return self.event.cavity if self.event.kind == "inflate" else None
+
+    @property
+    def p_urethra(self) -> float:
+        """The urethra's peak gauge pressure (Pa) in this event."""
+        return self.p_Pa if self.cavity == "urethra" else 0.0
 
     def _interp(self, arr: np.ndarray, s: np.ndarray) -> np.ndarray:
         f = PchipInterpolator(self.s, arr.reshape(len(self.s), -1), axis=0)
@@ -122,17 +134,26 @@ class EventTruth:
 
 @dataclass(frozen=True, eq=False)
 class TruthSamples:
-    """The truth at times ``t`` (n,) s (scenario clock): ``force`` (n, 3) N, ``p_urethra`` (n,)
-    Pa, ``dV`` (n, cavities) m³ (the arms, then the urethra), ``markers`` (n, k, 3) m, ``targets`` (n, t, 3) m displacement,
+    """The truth at times ``t`` (n,) s (scenario clock): ``force`` (n, 3) N, ``pressures`` (n, M)
+    Pa gauge of the internal cavities ``cavity_names``, ``dV`` (n, cavities) m³ (the arms, then
+    the internal cavities), ``markers`` (n, k, 3) m, ``targets`` (n, t, 3) m displacement,
     ``pose`` of the marker rigid body relative to rest."""
 
     t: np.ndarray
     force: np.ndarray
-    p_urethra: np.ndarray
+    pressures: np.ndarray
     dV: np.ndarray
     markers: np.ndarray
     targets: np.ndarray
     pose: Pose6
+    cavity_names: tuple[str, ...] = ("urethra",)
+
+    @property
+    def p_urethra(self) -> np.ndarray:
+        """(n,) Pa, the urethra's gauge pressure (NaN without a urethra)."""
+        if "urethra" not in self.cavity_names:
+            return np.full(len(self.t), np.nan)
+        return self.pressures[:, self.cavity_names.index("urethra")]
 
 
 @dataclass(frozen=True, eq=False)
@@ -155,9 +176,10 @@ class Truth:
         """The truth at times ``t`` (s), interpolated in load level (see the module docstring)."""
         t = np.atleast_1d(np.asarray(t, float))
         n, k, nt = len(t), len(self.marker_names), len(self.target_names)
+        cav = tuple(self.model.design.internal_cavity_names)
         force = np.zeros((n, 3))
-        p_u = np.zeros(n)
-        dV = np.zeros((n, len(self.model.design.cavity_names)))  # the arms, then the urethra
+        p = np.zeros((n, len(cav)))
+        dV = np.zeros((n, len(self.model.design.cavity_names)))  # the arms, then the internal cavities
         markers = np.broadcast_to(self.rest_markers, (n, k, 3)).copy()
         targets = np.zeros((n, nt, 3))
         for et in self.events:
@@ -167,12 +189,13 @@ class Truth:
                 continue
             s = e.level(t[sel])
             force[sel] = s[:, None] * et.force
-            p_u[sel] = s * et.p_urethra
+            if et.cavity is not None:
+                p[sel, cav.index(et.cavity)] = s * et.p_Pa
             dV[sel] = et._interp(et.dV, s)
             markers[sel] = et._interp(et.markers, s)
             targets[sel] = et._interp(et.targets, s)
         pose = pose_of_markers(self.rest_markers, markers)
-        return TruthSamples(t, force, p_u, dV, markers, targets, pose)
+        return TruthSamples(t, force, p, dV, markers, targets, pose, cav)
 
     def peak_event(self) -> EventTruth:
         """The event whose peak moves the markers most (for the snapshot at peak load)."""
@@ -181,10 +204,13 @@ class Truth:
     def summary(self) -> dict:
         """Peak figures per event (mm, N, kPa, % bulb growth), JSON-able."""
         out = []
+        cav = tuple(self.model.design.internal_cavity_names)
         for et in self.events:
+            # the BIP's figures as they were; another design's name the inflated cavity and its pressure
+            p = (dict(p_urethra_kPa=round(et.p_urethra / 1e3, 3)) if cav == ("urethra",) else
+                 dict(cavity=et.cavity, p_kPa=round(et.p_Pa / 1e3, 3)) if et.cavity else {})
             d = dict(kind=et.event.kind, start_s=et.event.start_s,
-                     force_N=[round(float(f), 4) for f in et.force],
-                     p_urethra_kPa=round(et.p_urethra / 1e3, 3),
+                     force_N=[round(float(f), 4) for f in et.force], **p,
                      peak_marker_shift_mm=round(float(np.linalg.norm(et.markers[-1] - self.rest_markers, axis=1).max()) * 1e3, 3),
                      peak_dV_mm3={c: round(float(v) * 1e9, 3) for c, v in zip(self.model.design.cavity_names,
                                                                                 et.dV[-1])},
@@ -240,12 +266,11 @@ def solve_truth(scenario: Scenario, model: PhantomModel, config: TruthConfig = T
     model (its design and mesh size set the truth mesh), or pass ``truth_mesh`` directly.
     Its progress is reported after each keyframe (task ``<scenario>: truth``, done/total keyframes,
     :func:`softphantom.progress.report`); a given ``truth_mesh`` sets the element order (its own)."""
-    scenario.check_points((model if truth_mesh is None else truth_mesh).p_ext)  # before the truth is meshed
+    given = model if truth_mesh is None else truth_mesh
+    scenario.check_points(given.p_ext)  # before the truth is meshed
+    scenario = scenario.check_cavities(given.design.internal_cavity_names)
     t0 = time.perf_counter()
     task = f"{scenario.name}: truth"
-    if any(e.kind == "inflate" for e in scenario.events) and (truth_mesh or model).design.urethra is None:
-        raise UserError(f"{scenario.name}: [[inflate]] inflates the urethra; this design has none (its internal "
-                        f"cavities: {', '.join((truth_mesh or model).design.internal_cavity_names) or 'none'})")
     if truth_mesh is None:
         report(log, task, 0, None, "meshing the truth model")
     tm = truth_mesh if truth_mesh is not None else truth_model(model, config)
@@ -265,7 +290,7 @@ def solve_truth(scenario: Scenario, model: PhantomModel, config: TruthConfig = T
     V0 = np.array([cavity_volume(x_rest, fem.cavities[c]) for c in cavities])
     bulb0 = cavity_volume(x_rest, closed)
     k = len(marker_names)
-    total = sum(config.levels if e.kind == "push" or e.p_urethra_kPa is not None else config.inflate_steps
+    total = sum(config.levels if e.kind == "push" or e.p_kPa is not None else config.inflate_steps
                 for e in scenario.events)
     done = 0
 
@@ -288,7 +313,7 @@ def solve_truth(scenario: Scenario, model: PhantomModel, config: TruthConfig = T
         sol = None
         if x_prev is not None:
             try:
-                sol = solve_static(fem, f_ext, pressures={"urethra": p} if p else None,
+                sol = solve_static(fem, f_ext, pressures={cavity: p} if p else None,
                                    x0=x0 + ratio * (x0 - x_prev), tol=config.tol, min_load_step=1.0,
                                    max_iter=max_iter, on_indefinite="shift")
             except ElementInversionError:
@@ -298,7 +323,7 @@ def solve_truth(scenario: Scenario, model: PhantomModel, config: TruthConfig = T
                 if single:
                     raise SolverError(f"truth of {scenario.name}: {what}: no convergence from the predictor")
         if sol is None:
-            sol = solve_static(fem, f_ext, pressures={"urethra": p} if p else None, x0=x0, tol=config.tol,
+            sol = solve_static(fem, f_ext, pressures={cavity: p} if p else None, x0=x0, tol=config.tol,
                                min_load_step=min_step, max_iter=max_iter)
         if not sol.converged:
             raise SolverError(f"truth of {scenario.name}: {what}: {sol.status}")
@@ -313,6 +338,7 @@ def solve_truth(scenario: Scenario, model: PhantomModel, config: TruthConfig = T
         x = x_rest.reshape(-1)
         its = 0
         note = ""
+        cavity = e.cavity  # the inflated one (read by solve)
         if e.kind == "push":
             pt = tm.p_ext[e.point]
             H = force_actuator(fem, pt, radius=_patch_radius(fem, pt, scenario.patch_radius_mm * 1e-3))
@@ -325,8 +351,8 @@ def solve_truth(scenario: Scenario, model: PhantomModel, config: TruthConfig = T
                 rows.append(readout(x))
                 s_list.append(s)
             force, p_peak = f, 0.0
-        elif e.p_urethra_kPa is not None:
-            p_peak = e.p_urethra_kPa * 1e3
+        elif e.p_kPa is not None:
+            p_peak = e.p_kPa * 1e3
             x_prev = None
             for lv in range(1, config.levels + 1):
                 s = lv / config.levels
@@ -343,7 +369,7 @@ def solve_truth(scenario: Scenario, model: PhantomModel, config: TruthConfig = T
                 raise ScenarioError(f"{scenario.source}: inflate.target {e.target!r} is not a target of the "
                                     f"design ({', '.join(target_names)})")
             goal = e.target_shift_mm * 1e-3
-            pmax = e.max_p_urethra_kPa * 1e3
+            pmax = e.max_p_kPa * 1e3
             step = pmax / config.inflate_steps
             min_step = step / 2
             ps, shifts, xs = [0.0], [0.0], [x_rest.reshape(-1)]
@@ -403,8 +429,8 @@ def solve_truth(scenario: Scenario, model: PhantomModel, config: TruthConfig = T
                 rows.append(r)
                 note = note or f"{e.target} moved {sh * 1e3:.2f} mm at {ps[-1] / 1e3:.1f} kPa"
             elif not note:
-                note = (f"limit: {e.target} moved only {shifts[-1] * 1e3:.2f} mm at max_p_urethra_kPa "
-                        f"{pmax / 1e3:g}")
+                key = "max_p_urethra_kPa" if cavity == "urethra" else "max_p_kPa"
+                note = f"limit: {e.target} moved only {shifts[-1] * 1e3:.2f} mm at {key} {pmax / 1e3:g}"
             if len(ps) < 2:
                 raise SolverError(f"truth of {scenario.name}: inflation failed at the first step ({note})")
             p_peak = ps[-1]

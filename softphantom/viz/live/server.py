@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from softphantom.errors import SoftphantomError
-from softphantom.records.names import ARM_NAMES
+from softphantom.records.names import ARM_NAMES, BIP_CAVITIES
 from softphantom.records.names import POSE_COLUMNS as _TRACKER_KEYS
 from softphantom.stream.schema import encode, estimate_to_message
 from softphantom.viz.live.state import OUTAGE_EVENTS, LiveConfig, LiveState
@@ -56,6 +56,8 @@ class LiveSession:
         # the phantom's arms: the page's cavity plot, the recording's schemas, the sensor messages' keys
         self.arm_names: tuple[str, ...] = tuple(getattr(source, "arm_names", None)
                                                 or (ARM_NAMES if geo is None else geo.arm_names))
+        # its internal cavities: their pressure keys (the page plots them unless they are the BIP's urethra)
+        self.cavity_names: tuple[str, ...] = tuple(getattr(source, "cavity_names", BIP_CAVITIES))
         self.geometry_json = None if geo is None else {**geo.to_json(), "arms": list(self.arm_names)}
         shows = getattr(source, "surface_shows", None)  # what the surface is, when not the estimator's field
         if self.geometry_json is not None and shows:
@@ -86,7 +88,7 @@ class LiveSession:
             from softphantom.stream.recording import TOPIC_GEOMETRY, SessionRecorder
 
             self.recorder = SessionRecorder(cfg.record, metadata={"source": type(self.source).__name__},
-                                            arm_names=self.arm_names)
+                                            arm_names=self.arm_names, cavity_names=self.cavity_names)
             if self.geometry_json is not None:
                 self.recorder.write(TOPIC_GEOMETRY, self.geometry_json)
             self.state.recording = {"enabled": True, "path": str(cfg.record), "messages": 0}
@@ -236,6 +238,7 @@ class LiveSession:
     def state_json(self) -> dict[str, Any]:
         return {"status": self.state.status(), "latest": self.state.latest,
                 "has_geometry": self.geometry_json is not None, "arms": list(self.arm_names),
+                **({} if self.cavity_names == BIP_CAVITIES else {"cavities": list(self.cavity_names)}),
                 "view_rate_Hz": self.config.view_rate_Hz,
                 "surface_mm_f32_b64": self.state.surface_b64}
 

@@ -32,7 +32,7 @@ import numpy as np
 
 from softphantom.errors import FileFormatError, UserError
 from softphantom.records.estimate import Estimate, message_to_estimate
-from softphantom.records.names import ARM_NAMES, arm_names_of
+from softphantom.records.names import ARM_NAMES, BIP_CAVITIES, arm_names_of, pressure_names_of
 
 
 TRI6_SPLIT = np.array([[0, 3, 5], [3, 1, 4], [5, 4, 2], [3, 4, 5]])
@@ -383,7 +383,8 @@ class EstimateReplay:
     not given: its surface, with the force at the file's contact point (its metadata's ``contact``),
     and the atlas from ``model_dir``/atlas for that contact (:meth:`AtlasField.from_model_dir`).
     ``arm_names``: the file's arms (a recording's :attr:`~softphantom.stream.recording.Recording.arm_names`,
-    an estimate file's volume columns); a model of other arms is refused in one line naming both.
+    an estimate file's volume columns) and ``cavity_names`` its internal cavities (its pressure
+    keys); a model of other arms or cavities is refused in one line naming both.
     """
 
     def __init__(self, path: str | Path, *, speed: float = 1.0, geometry: LiveGeometry | None = None,
@@ -405,15 +406,22 @@ class EstimateReplay:
             self._surface = [(float(m.get("t_s") or 0.0), m["positions_mm_f32_b64"]) for m in rec.surface
                              if "positions_mm_f32_b64" in m]
             self.arm_names = rec.arm_names
+            self.cavity_names = rec.cavity_names
         else:
             self.meta, self.messages = read_estimate_csv(path)
             self.arm_names = arm_names_of(self.messages[0] if self.messages else {}, "dVmeas_") or ARM_NAMES
+            self.cavity_names = pressure_names_of(self.messages[0]) if self.messages else BIP_CAVITIES
         if not self.messages:
             raise FileFormatError(f"{path}: no estimates to replay")
-        model_arms = getattr(getattr(model, "design", None), "arm_names", None)
+        design = getattr(model, "design", None)
+        model_arms = getattr(design, "arm_names", None)
         if geometry is None and model_arms is not None and tuple(model_arms) != self.arm_names:
             raise UserError(f"replay {path}: its arms ({', '.join(self.arm_names)}) are not the model's "
                             f"({', '.join(model_arms)})")
+        model_cav = getattr(design, "internal_cavity_names", None)
+        if geometry is None and model_cav is not None and tuple(model_cav) != self.cavity_names:
+            raise UserError(f"replay {path}: its internal cavities ({', '.join(self.cavity_names) or 'none'}) are "
+                            f"not the model's ({', '.join(model_cav) or 'none'})")
         if geometry is None and model is not None:
             contact = self.meta.get("contact")
             radius_mm = self.meta.get("contact_radius_mm")
@@ -424,7 +432,8 @@ class EstimateReplay:
             if atlas is None and model_dir is not None and not self._surface:
                 atlas = AtlasField.from_model_dir(model_dir, len(model.nodes), contact, radius)
         self.geometry = geometry  # type: ignore[assignment]
-        self.atlas = atlas if geometry is not None and not self._surface else None
+        # the atlas tabulates the urethra's pressure alone
+        self.atlas = atlas if geometry is not None and not self._surface and self.cavity_names == BIP_CAVITIES else None
         if geometry is None:
             self.surface_shows = None
         elif self._surface:
@@ -487,6 +496,7 @@ class EstimatorSource:
         radius = getattr(getattr(estimator, "config", None), "contact_radius_m", None)
         self.geometry = LiveGeometry.from_model(model, p_ext, radius)
         self.arm_names = tuple(getattr(estimator, "arm_names", None) or self.geometry.arm_names)
+        self.cavity_names = tuple(getattr(estimator, "pressure_names", BIP_CAVITIES))
         self._sensor, self._est = sensor, estimator
         self.live, self.speed = bool(live), float(speed)
         self._last_m = None
@@ -512,7 +522,7 @@ class EstimatorSource:
 
         # link events (unplugged, silent, resumed, ...) reach the page, the stream and the
         # recording as marker estimates (status "event:<kind>: ...", numbers null)
-        markers = EventMarkers(self._sensor, getattr(self._est, "target_names", ()))
+        markers = EventMarkers(self._sensor, getattr(self._est, "target_names", ()), self.arm_names, self.cavity_names)
         for m, skipped in self._samples():
             if m is None:               # a live source gave nothing for a while
                 yield from markers.due(None)

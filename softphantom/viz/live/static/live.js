@@ -14,13 +14,14 @@ const VIRIDIS = ["#440154", "#482878", "#3e4989", "#31688e", "#26828e", "#1f9e89
 // the arms' colours in the sensor order, repeating beyond eight (softphantom.stream.foxglove.ARM_PALETTE)
 const ARM_PALETTE = ["#1f77b4", "#ff7f0e", "#2ca02c", "#9467bd", "#8c564b", "#e377c2", "#17becf", "#bcbd22"];
 const BIP_ARMS = ["front_zpos", "front_zneg", "back_xpos", "back_xneg"];  // a server that does not name them
+const BIP_CAVITIES = ["urethra"];  // the internal cavities of a server that does not name them (not plotted)
 const OTHER_CAVITY = "#8c8c8c";
 const TRACKER_COLOR = "#ff6a00";
 const XYZ_COLORS = ["#d62728", "#2ca02c", "#1f77b4", "#111111"];
 const params = new URLSearchParams(location.search);
 
 const S = {  // the page's state; window.__softphantomLive for tests and the curious
-  geo: null, arms: BIP_ARMS, latest: null, status: null, connected: false, ended: false, tracker: null, hasTracker: false,
+  geo: null, arms: BIP_ARMS, cavities: BIP_CAVITIES, latest: null, status: null, connected: false, ended: false, tracker: null, hasTracker: false,
   frames: 0, renders: 0, fps: 0, colorMax: MIN_COLOR_MAX_MM, surfaceMax: 0, lastSeq: -1,
   dirty: true, plotsDirty: false,
   cost: { parse: 0, frame: 0, surface: 0, render: 0, labels: 0, plots: 0 },  // ms spent so far, per part
@@ -345,7 +346,8 @@ function loop(now) {
 
 // ---------- plots ----------
 function trackerOf(k) { return (m) => (m.tracker ? m.tracker[k] : null); }
-const plotsOf = (arms) => [  // the cavity plot: one measured (solid) and one predicted (dashed) line per arm
+const isBip = (cavities) => cavities.length === 1 && cavities[0] === BIP_CAVITIES[0];
+const plotsOf = (arms, cavities) => [  // the cavity plot: one measured (solid) and one predicted (dashed) line per arm
   ["plot-force", [["Fx", "force_x_N"], ["Fy", "force_y_N"], ["Fz", "force_z_N"],
     ["|F|", (m) => (m.force_x_N == null ? null : Math.hypot(m.force_x_N, m.force_y_N, m.force_z_N))]]],
   ["plot-position", [["x", "x_mm"], ["y", "y_mm"], ["z", "z_mm"],
@@ -354,13 +356,25 @@ const plotsOf = (arms) => [  // the cavity plot: one measured (solid) and one pr
     ...["yaw_deg", "pitch_deg", "roll_deg"].map((k, i) => [`${k.split("_")[0]} trk`, trackerOf(k), XYZ_COLORS[i], true])]],
   ["plot-cavities", arms.flatMap((a) => [[a, `dVmeas_${a}_mm3`, armColor(a)],
     [`${a} pred`, `dVpred_${a}_mm3`, armColor(a), true]])],
+  // the internal cavities' measured pressures, one line each (the BIP's urethra alone: no plot)
+  ...(cavities.length && !isBip(cavities) ? [["plot-pressures", cavities.map((c) => [c, `p_${c}_kPa`])]] : []),
 ];
 const T = [];                   // sample times, s
 const plots = [];
 function plotSize(el) { return { width: el.clientWidth, height: Math.max(el.clientHeight - 44, 60) }; }
 function buildPlots() {
   S.series = {};  // plot id → its series' labels (for tests and the curious)
-  for (const [id, series] of plotsOf(S.arms)) {
+  const all = plotsOf(S.arms, S.cavities);
+  if (all.length > 4 && !document.getElementById("plot-pressures")) {
+    const box = document.getElementById("plots");
+    const el = document.createElement("div");
+    el.id = "plot-pressures";
+    el.className = "plot";
+    el.dataset.title = "Internal cavities' pressure (kPa)";
+    box.appendChild(el);
+    box.style.gridTemplateRows = `repeat(${all.length}, 1fr)`;
+  }
+  for (const [id, series] of all) {
     S.series[id] = series.map(([name]) => name);
     const el = document.getElementById(id);
     const get = series.map(([, k]) => (typeof k === "function" ? k : (m) => m[k]));
@@ -526,6 +540,7 @@ async function init() {
   // the phantom's arms (the server names them; the geometry too): the cavities' colours, the plot's lines
   const arms = (st && st.arms) || (S.geo && S.geo.arms);
   if (Array.isArray(arms) && arms.length) S.arms = arms.map(String);
+  if (st && Array.isArray(st.cavities)) S.cavities = st.cavities.map(String);
   buildPlots();
   const sizes = new ResizeObserver(resize);
   for (const el of [host, ...document.querySelectorAll(".plot")]) sizes.observe(el);
