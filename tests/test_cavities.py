@@ -228,9 +228,39 @@ def test_atlas_refuses_other_cavities():
     from softphantom.errors import UserError
     from softphantom.estimation.select import open_estimator
 
-    with pytest.raises(UserError, match=r"^cavities: the atlas tabulates one internal pressure, the urethra's; this "
-                                        r"design has urethra, tumour: use --estimator refresh$"):
+    with pytest.raises(UserError, match=r"^cavities: the atlas tabulates one internal pressure; this design has 2 "
+                                        r"\(urethra, tumour\): use --estimator refresh$"):
         open_estimator("atlas", _model("two"))
+    with pytest.raises(UserError, match=r"this design has 0: use --estimator refresh$"):
+        open_estimator("atlas", _model("none"))
+
+
+@pytest.mark.slow
+def test_the_atlas_tabulates_the_one_cavity_whatever_its_name():
+    """A design whose one internal cavity is a balloon named ``pelvis`` (no urethra): the atlas's
+    pressure axis is that cavity's, read from each sample's ``pressures_Pa``; its inverse of a full
+    solve at a known load is the load, within the small atlas's interpolation error."""
+    from types import SimpleNamespace
+
+    from softphantom.estimation import AtlasConfig, Estimator, EstimatorConfig
+    from softphantom.estimation.atlas.build import build_atlas
+    from softphantom.estimation.atlas.estimator import AtlasEstimator
+
+    m = build_model(design_from_dict({"cavities": {"pelvis": TUMOUR}, "mesh": COARSE}), isolate=False)
+    assert m.design.internal_cavity_names == ("pelvis",)
+    cfg = EstimatorConfig(mode="sync")
+    lam = np.array([0.3, 1.5, -0.2, 3e3])
+    lin = Estimator(m, cfg).forward.solve(lam)
+    acfg = AtlasConfig(force_min_N=(-0.5, 0.5, -0.5), force_max_N=(0.5, 2.0, 0.5), p_min_kPa=-2, p_max_kPa=8,
+                       n_force=(3, 3, 3), n_pressure=2)
+    at = AtlasEstimator(m, cfg, build_atlas(m, cfg, acfg, n_workers=1, processes=False))
+    assert at.cavity == "pelvis"
+    e = at.step(SimpleNamespace(t=0.0, dV=lin.V, p_urethra=float("nan"), pressures_Pa={"pelvis": 3e3}, status="ok"))
+    assert e.status == "ok" and np.allclose(e.force, lam[:3], atol=0.05), e.force
+    assert e.pressures_Pa == {"pelvis": 3e3}
+    # the pressure is the sample's, not a default: 20 kPa is beyond the atlas's 8 kPa face
+    off = at.step(SimpleNamespace(t=0.1, dV=lin.V, p_urethra=float("nan"), pressures_Pa={"pelvis": 20e3}, status="ok"))
+    assert e.in_envelope and not off.in_envelope and off.pressures_Pa == {"pelvis": 20e3}
 
 
 # --- the stages that read the urethra alone so far: one line each -------------------------------

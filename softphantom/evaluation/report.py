@@ -256,8 +256,10 @@ def write_report(
     ev: Evaluation,
     snapshot: Path | None = None,
     title: str = "softphantom evaluation",
+    clinical: bool = True,
 ) -> tuple[Path, tuple[ClinicalRow, ...]]:
-    """Write ``out/report.html`` and its PNGs; returns the report's path and the Table I rows."""
+    """Write ``out/report.html`` and its PNGs; returns the report's path and the Table I rows
+    (``clinical``: compare with the paper's Table I, the prostate-motion studies; none for another organ)."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     plot_6dof(truth, estimate, ev, out / "pose_6dof.png", title)
@@ -295,10 +297,10 @@ def write_report(
         hdr = ["target", "unit", "RMS |error|", "mean |error|", "max |error|", "", "", "max |truth shift|", "samples"]
         parts.append("<h3>Target-shift error (3-D distance)</h3>" + _table(hdr, _stats_rows(ev.targets), "target-errors"))
     parts.append("</section>")
-    rows = compare_table_i(truth.mm_deg(), estimate.mm_deg())
+    rows = compare_table_i(truth.mm_deg(), estimate.mm_deg()) if clinical else ()
     trows = [[r.ref.dof, r.ref.unit, html.escape(r.ref.study), html.escape(r.ref.text), f"{r.ref.lo:g}–{r.ref.hi:g}",
               _fmt(r.observed), _fmt(r.estimated), f'<span class="{r.flag}">{r.flag}</span>'] for r in rows]
-    parts.append(
+    parts.append("" if not clinical else
         '<section id="table-i"><h2>Clinical comparison (paper Table I)</h2><p>Statistic: peak excursion from rest,'
         " max |Δ| over the run, of the truth (observed) and of the estimate; flagged against the range each"
         " published figure stands for (±a → [0, a]; m (lo–hi) → [lo, hi]; m ± sd → [m − sd, m + sd]).</p>"

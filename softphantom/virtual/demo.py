@@ -174,7 +174,7 @@ def in_envelope_fraction(path: Path) -> float:
 
 
 def run_scenario(sc, model, out: Path, cfg, truth, estimator: str = "atlas", grid=None, atlas=None,
-                 scheduler: str | None = None, shown: Path | None = None) -> dict:
+                 scheduler: str | None = None, shown: Path | None = None, clinical: bool = True) -> dict:
     """One scenario end to end from its solved ``truth``, into ``out``/<name>; returns its summary
     row (JSON-able). ``shown``: where ``out`` ends up (the demo writes into a staging directory and
     renames it), for the paths the report names (default ``out``). ``estimator``: atlas (``atlas``, an AtlasConfig, default the scenario's envelope
@@ -217,7 +217,7 @@ def run_scenario(sc, model, out: Path, cfg, truth, estimator: str = "atlas", gri
         tru, estimate = (replace(x, source=str(shown / Path(x.source).relative_to(out))) for x in (tru, estimate))
     ev = evaluate(tru, estimate)
     page, rows = write_report(d / "report", tru, estimate, ev, snapshot=paths["snapshot"],
-                                title=f"{sc.name} — {sc.description}")
+                              title=f"{sc.name} — {sc.description}", clinical=clinical)
     # the tracker path: Motive CSV → reader → rest-window registration → lag against the exact truth
     trk = read_truth(paths["tracker"])
     lag = estimate_lag(tru.t, tru.mm_deg(), trk.t, trk.mm_deg(), max_lag_s=1.0)

@@ -35,7 +35,7 @@ from softphantom.estimation.atlas.tasks import (GraphRun, Task, TaskStore, check
                                                 partial_dir, run_graph)
 from softphantom.estimation.config import EstimatorConfig
 from softphantom.estimation.forward import ForwardModel
-from softphantom.estimation.linearization import PatchControl, arm_names_of
+from softphantom.estimation.linearization import PatchControl
 
 FIELD_MAX_MODES = 64
 # a displacement-controlled point is kept where it lands within this fraction of the distance to the
@@ -282,7 +282,7 @@ def _sweep(model, config: EstimatorConfig, acfg: AtlasConfig, i: int, l: int):
     linear = acfg.linear_pressure
     hermite = acfg.hermite_axis
     p_u = 0.5 * (ax[3][0] + ax[3][-1]) if linear else ax[3][l]
-    V = np.full((ny, nz, len(arm_names_of(fwd.fem))), np.nan)
+    V = np.full((ny, nz, len(fwd.eq.arm_names)), np.nan)
     P = np.full((ny, nz, fwd.probe.shape[0], 3), np.nan)
     X = np.full((ny, nz, fwd.fem.n_dof), np.nan)
     deriv = linear or hermite is not None
@@ -364,7 +364,7 @@ def _lines(model, config: EstimatorConfig, acfg: AtlasConfig, k: int, l: int, en
     span = hi - lo
     fz, p_u = ax[2][k], ax[3][l]
     m = n1 - 2
-    V = np.full((m, ny, len(arm_names_of(fwd.fem))), np.nan)
+    V = np.full((m, ny, len(fwd.eq.arm_names)), np.nan)
     P = np.full((m, ny, fwd.probe.shape[0], 3), np.nan)
     X = np.full((m, ny, fwd.fem.n_dof), np.nan)
     FX = np.full((m, ny), np.nan)
@@ -539,7 +539,7 @@ def _assemble(model, fwd: ForwardModel, acfg: AtlasConfig, key: str, tag: str, r
     n1, n2, n3, n4 = acfg.shape
     ndof = fwd.fem.n_dof
     k = fwd.probe.shape[0]
-    n_arms = len(arm_names_of(fwd.fem))
+    n_arms = len(fwd.eq.arm_names)
     V = np.empty((n1, n2, n3, n4, n_arms))
     P = np.empty((n1, n2, n3, n4, k, 3))
     X = np.empty((n1, n2, n3, n4, ndof), dtype=np.float64)
@@ -694,14 +694,16 @@ def build_settings(fwd: ForwardModel, acfg: AtlasConfig) -> dict:
             "nodes": int(fwd.fem.n_dof // 3)}
 
 
-def check_atlas_cavities(model) -> None:
-    """The atlas tabulates λ = (f, p_urethra): a model whose internal cavities are not exactly the
-    urethra is refused in one line (the refresh estimator takes any)."""
+def check_atlas_cavities(model) -> str:
+    """The atlas tabulates λ = (f, p) with p the gauge pressure of the model's one internal cavity
+    (the BIP's urethra, a kidney's collecting system): returns that cavity's name; a model of
+    another number of internal cavities is refused in one line (the refresh estimator takes any)."""
     design = getattr(model, "design", None)
     names = tuple(design.internal_cavity_names) if design is not None else ("urethra",)
-    if names != ("urethra",):
-        raise UserError(f"cavities: the atlas tabulates one internal pressure, the urethra's; this design has "
-                        f"{', '.join(names) or 'none'}: use --estimator refresh")
+    if len(names) != 1:
+        raise UserError(f"cavities: the atlas tabulates one internal pressure; this design has {len(names)}"
+                        f"{' (' + ', '.join(names) + ')' if names else ''}: use --estimator refresh")
+    return names[0]
 
 
 def build_atlas(model, config: EstimatorConfig | None = None, atlas: AtlasConfig | None = None, *,

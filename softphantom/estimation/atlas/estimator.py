@@ -53,7 +53,7 @@ class AtlasEstimator(EstimatorState):
                  max_build_s: float | None = None) -> None:
         self.config = cfg = config or EstimatorConfig()
         self.model = model
-        check_atlas_cavities(model)
+        self.cavity = check_atlas_cavities(model)
         fwd = ForwardModel(model, cfg)
         self.forward = fwd
         self.arm_names = fwd.eq.arm_names
@@ -252,7 +252,8 @@ class AtlasEstimator(EstimatorState):
             return repeat_last(self._last, m, f"rejected:{why}", t0, skipped)
         try:
             inv = self.invert_reference if reference else self.invert
-            lam, status, inside, V, J, it = inv(m.dV, float(m.p_urethra))
+            p_Pa = float(m.p_urethra) if getattr(m, "pressures_Pa", None) is None else float(m.pressures_Pa[self.cavity])
+            lam, status, inside, V, J, it = inv(m.dV, p_Pa)
         except SolverError as exc:
             return repeat_last(self._last, m, f"failed:{exc}", t0, skipped)
         at = self._pieces[self._piece_index(lam[1])]
@@ -273,7 +274,9 @@ class AtlasEstimator(EstimatorState):
             t=float(m.t), force=force, p_urethra=float(m.p_urethra), pose=pose, target_shift=shifts,
             volume_pred=V, volume_meas=dV, cond_W=cond, qp_status=status,
             step_time=time.perf_counter() - t0, skipped=int(skipped), in_envelope=inside,
-            extra={"qp_residual_m3": math.dist(V, dV), "gn_iterations": it}, arm_names=self.arm_names,
+            extra={"qp_residual_m3": math.dist(V, dV), "gn_iterations": it,
+                   **({"pressures_Pa": {self.cavity: p_Pa}} if self.cavity != "urethra" else {})},
+            arm_names=self.arm_names,
         )
         self._lam = lam
         self._last = est
