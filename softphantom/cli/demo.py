@@ -38,11 +38,19 @@ def print_summary(rows: list[dict], con=console) -> None:
         c = r["tracker_clock_offset_ms"]
         extra = ""
         for e in r["truth"]["events"]:
-            if e["kind"] == "inflate":
+            if e["kind"] == "inflate" and "p_urethra_kPa" in e:
                 extra = (f"; urethra {e['p_urethra_kPa']:.1f} kPa: near_urethra moved "
                          f"{e.get('near_urethra_shift_mm', float('nan')):.2f} mm, bulb growth {e['bulb_growth_percent']:.2f} %")
-        con.print(Text.assemble((r["scenario"], "bold"), f": Table I (truth) {_table_i_line(r['table_i'])}"),
-                  highlight=False)
+            elif e["kind"] == "inflate":
+                moved = max(((k[:-len("_shift_mm")], v) for k, v in e.items() if k.endswith("_shift_mm")),
+                            key=lambda kv: kv[1], default=None)
+                extra = (f"; {e['cavity']} {e['p_kPa']:.1f} kPa" + (f": {moved[0]} moved {moved[1]:.2f} mm" if moved
+                         else "") + f", body growth {e['bulb_growth_percent']:.2f} %")
+        if r["table_i"]:  # the prostate-motion studies: the BIP's demo only
+            con.print(Text.assemble((r["scenario"], "bold"), f": Table I (truth) {_table_i_line(r['table_i'])}"),
+                      highlight=False)
+        else:
+            con.print(Text.assemble((r["scenario"], "bold"), ":"), highlight=False)
         con.print(f"  tracker clock offset injected {c['injected']:.1f} ms, recovered {c['recovered']:.1f} ms; "
                   f"{r['estimator']} estimator {r['estimate']['rate_Hz']:.0f} Hz (step p99 "
                   f"{r['estimate']['step_ms_p99']:.1f} ms){_atlas_note(r)}{extra}", highlight=False)
@@ -78,9 +86,12 @@ def demo_cmd(
                                      "contact points and an inflation of each of its cavities; the demo's own atlas "
                                      "(--atlas-grid, default 5,5,5,2)."),
     push_n: float = typer.Option(2.5, "--push-N", help="With --design: the generated pushes' force (N)."),
+    inflate_kpa: float = typer.Option(20.0, "--inflate-kPa", help="With --design: the generated inflations' gauge "
+                                      "pressure (kPa)."),
     overwrite: bool = overwrite_option(),
-    estimator: str = typer.Option("atlas", "--estimator", help="atlas (precomputed, real time) | refresh (sync: "
-                                  "re-linearized inside each step)."),
+    estimator: str = typer.Option(None, "--estimator", help="atlas (precomputed, real time; the default for a "
+                                  "design of one internal cavity) | refresh (sync: re-linearized inside each step; "
+                                  "the default for a design of none or several: the atlas tabulates one pressure)."),
     atlas_grid: str = typer.Option(None, "--atlas-grid", help="Build a small atlas for the demo instead of using the "
                                    "model's: Chebyshev points per axis NX,NY,NZ,NP over the scenarios' own loads "
                                    "(e.g. 5,5,5,2; for a model without its atlas). Default: the model's atlas (the "
@@ -97,7 +108,8 @@ def demo_cmd(
     from softphantom.virtual.demo import (DEMO_SCENARIOS, PUSH_GRID, design_scenarios, model_atlases, run_all,
                                           write_summary)
 
-    check_estimator_kind(estimator)
+    if estimator is not None:
+        check_estimator_kind(estimator)
     if workers is not None and workers < 1:
         raise UserError(f"--workers must be >= 1, got {workers}")
     grid = atlas_config_from_options(atlas_grid).shape if atlas_grid is not None else None
@@ -113,10 +125,18 @@ def demo_cmd(
         raise UserError("--model and --design: give one (a model directory has its design)")
     if not 0.0 < push_n <= 20.0:
         raise UserError(f"--push-N: must be in (0, 20] N, got {push_n:g}")
+    if not 0.0 < inflate_kpa <= 250.0:
+        raise UserError(f"--inflate-kPa: must be in (0, 250] kPa (the MPX4250D's range), got {inflate_kpa:g}")
     given = load_model(model_dir) if model_dir is not None else None
-    design = load_design(design_file) if design_file is not None else default_design()
+    design = given.design if given is not None else load_design(design_file) if design_file is not None else default_design()
     if scs is None:
-        scs = design_scenarios(design, push_n) if design_file is not None else [load_scenario(n) for n in DEMO_SCENARIOS]
+        scs = (design_scenarios(design, push_n, inflate_kpa) if design_file is not None
+               else [load_scenario(n) for n in DEMO_SCENARIOS])
+    if estimator is None:
+        estimator = "atlas" if len(design.internal_cavity_names) == 1 else "refresh"
+        if estimator == "refresh":
+            console.print(f"estimator: refresh (the atlas tabulates one internal pressure; this design has "
+                          f"{len(design.internal_cavity_names)})", highlight=False)
     if design_file is not None and grid is None and estimator == "atlas":  # no atlas ships for it: the demo's own
         grid = PUSH_GRID
     with staged_output(out, overwrite=overwrite, directory=True) as work:
@@ -132,8 +152,8 @@ def demo_cmd(
             tm = truth_model(model, cfg.truth)
         console.print(f"truth model: {len(tm.nodes)} nodes, {len(tm.tets)} tets, P{tm.element_order} (mesh "
                       f"{tm.design.mesh.size_mm:g} mm)", highlight=False)
-        rows = run_all(scs, model, work, cfg, tm, estimator, grid,
-                       scheduler=scheduler, n_workers=workers, shown=out, atlas_dir=model_dir, atlases=atlases)
+        rows = run_all(scs, model, work, cfg, tm, estimator, grid, scheduler=scheduler, n_workers=workers,
+                       shown=out, atlas_dir=model_dir, atlases=atlases, clinical=design_file is None)
         for r in rows:  # the paths the user will see, once the directory is in place
             r["report"] = str(out / Path(r["report"]).relative_to(work))
         wall = time.perf_counter() - t0

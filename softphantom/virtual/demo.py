@@ -50,6 +50,7 @@ DEMO_SCENARIOS = ("needle-insertion", "push-on-centre", "urethra-inflation")
 # a design's generated pushes (design_scenarios): their force (N) and tilt off the surface normal (deg)
 PUSH_N = 2.5
 PUSH_TILT_DEG = 15.0
+INFLATE_KPA = 20.0  # and their inflations' gauge pressure
 TRUTH_TOPIC = "softphantom-demo-truth"  # the Dask event topic of the truth solves' progress
 
 log = logging.getLogger(__name__)
@@ -68,18 +69,22 @@ def demo_contacts(design) -> tuple[str, ...]:
     return named or ("on-centre",)
 
 
-def design_scenarios(design, push_N: float = PUSH_N) -> list:
+def design_scenarios(design, push_N: float = PUSH_N, inflate_kPa: float = INFLATE_KPA) -> list:
     """The demo of a design without scenario files: at each of :func:`demo_contacts`, three pushes
     of ``push_N`` (N) into the body, along the inward surface normal and tilted ``PUSH_TILT_DEG``
-    either way (as the paper's manual pushes, Fig. 9).
+    either way (as the paper's manual pushes, Fig. 9); then, for each internal cavity, three
+    inflations to ``inflate_kPa`` (a breathing-like cycle for an actuator, a lesion's balloon swelling).
 
     >>> from softphantom.design import default_design
     >>> [sc.name for sc in design_scenarios(default_design())]
-    ['push-on-centre']
+    ['push-on-centre', 'inflate-urethra']
     >>> [round(float(np.linalg.norm(e.force_N)), 3) for e in design_scenarios(default_design())[0].events]
     [2.5, 2.5, 2.5]
     >>> design_scenarios(default_design())[0].events[0].force_N  # the front (-y) surface's inward normal
     (0.0, 2.5, 0.0)
+    >>> sc = design_scenarios(default_design())[1]
+    >>> sc.name, [(e.kind, e.cavity, e.p_kPa) for e in sc.events][0]
+    ('inflate-urethra', ('inflate', 'urethra', 20.0))
     """
     from softphantom.virtual.scenario import scenario_from_dict
 
@@ -100,6 +105,15 @@ def design_scenarios(design, push_N: float = PUSH_N) -> list:
             "name": f"push-{c}", "duration_s": 13.0, "rest_s": 1.5, "push": pushes,
             "description": f"{design.name}: three pushes of {push_N:g} N at {c}, along the inward normal and "
                            f"tilted {PUSH_TILT_DEG:g}° either way"}, source=f"{design.name} (generated)"))
+    if not 0.0 < inflate_kPa <= 250.0:
+        raise ValueError(f"inflate_kPa must be in (0, 250] kPa, got {inflate_kPa:g}")
+    for c in design.internal_cavity_names:
+        cycles = [{"cavity": c, "p_kPa": inflate_kPa, "start_s": 2.0 + 3.5 * i, "rise_s": 1.1, "hold_s": 0.7,
+                   "fall_s": 1.1} for i in range(3)]
+        out.append(scenario_from_dict({
+            "name": f"inflate-{c}", "duration_s": 13.0, "rest_s": 1.5, "inflate": cycles,
+            "description": f"{design.name}: three inflations of {c} to {inflate_kPa:g} kPa"},
+            source=f"{design.name} (generated)"))
     return out
 
 
@@ -130,15 +144,15 @@ def scenario_atlas(truth, grid: tuple[int, int, int, int] | None = None) -> Atla
     scenario from its solved ``truth`` (see ``MARGIN_N`` above); ``grid`` overrides the points per axis.
 
     >>> from types import SimpleNamespace as E
-    >>> push = E(events=[E(force=(0.4, 3.0, 0.3), p_urethra=0.0), E(force=(-0.5, 2.8, -0.4), p_urethra=0.0)])
+    >>> push = E(events=[E(force=(0.4, 3.0, 0.3), p_Pa=0.0), E(force=(-0.5, 2.8, -0.4), p_Pa=0.0)])
     >>> a = scenario_atlas(push)
     >>> [round(v, 2) for v in a.force_min_N], [round(v, 2) for v in a.force_max_N], a.shape
     ([-1.1, -0.5, -0.98], [0.98, 4.1, 0.86], (5, 5, 5, 2))
-    >>> a = scenario_atlas(E(events=[E(force=(0.0, 0.0, 0.0), p_urethra=30e3)]))
+    >>> a = scenario_atlas(E(events=[E(force=(0.0, 0.0, 0.0), p_Pa=30e3)]))
     >>> a.force_max_N, a.p_min_kPa, a.p_max_kPa, a.shape
     ((0.5, 0.5, 0.5), -2.0, 32.0, (3, 3, 3, 5))
     """
-    return atlas_box([e.force for e in truth.events], max([0.0] + [e.p_urethra * 1e-3 for e in truth.events]), grid)
+    return atlas_box([e.force for e in truth.events], max([0.0] + [e.p_Pa * 1e-3 for e in truth.events]), grid)
 
 
 def shared_atlases(scs, grid: tuple[int, int, int, int] | None = None) -> dict[str, AtlasConfig]:
@@ -300,7 +314,7 @@ def model_atlases(scs, model, atlas_dir: Path | None, scheduler: str | None = No
 
 def run_all(scs, model, out: Path, cfg, truth_mesh, estimator: str = "atlas", grid=None, *,
             scheduler: str | None = None, n_workers: int | None = None, shown: Path | None = None,
-            atlas_dir: Path | None = None, atlases: dict | None = None) -> list[dict]:
+            atlas_dir: Path | None = None, atlases: dict | None = None, clinical: bool = True) -> list[dict]:
     """Every scenario of ``scs`` end to end into ``out`` (:func:`run_scenario`), its progress
     reported here (the truths' too, from the workers): truths solved on Dask (together, or one at a
     time while the demo's own atlases build), each scenario then estimated and evaluated here as
@@ -309,7 +323,8 @@ def run_all(scs, model, out: Path, cfg, truth_mesh, estimator: str = "atlas", gr
     ``atlas_dir``, default ``out``/model, before any solve); with ``grid``, the demo's atlases instead (the push scenarios' shared ones,
     :func:`shared_atlases`, built on the same cluster while the truths are solved; an inflation's
     from its truth: those scenarios are solved first). Rows in the order of ``scs``. ``shown``:
-    where ``out`` ends up (:func:`run_scenario`)."""
+    where ``out`` ends up, ``clinical`` whether the reports compare with the paper's Table I
+    (:func:`run_scenario`)."""
     from softphantom.parallel import dask_client
 
     own = grid is None and estimator == "atlas"
@@ -354,7 +369,7 @@ def run_all(scs, model, out: Path, cfg, truth_mesh, estimator: str = "atlas", gr
                     report(log, last.task, last.done, last.total, f"solved in {truth.solve_s:.0f} s")
                 atlas = with_contact[contact_of(sc)] if own else shared.get(push_only(sc))
                 rows[sc.name] = run_scenario(sc, model, out, cfg, truths.pop(sc.name), estimator, grid,
-                                             atlas=atlas, scheduler=address, shown=shown)
+                                             atlas=atlas, scheduler=address, shown=shown, clinical=clinical)
         finally:
             stop.set()
             client.unsubscribe_topic(TRUTH_TOPIC)
