@@ -36,6 +36,9 @@ def _spin() -> None:
 def _label(r: dict) -> str:
     name = LABELS.get(r["scenario"], r["scenario"])
     for e in r["truth"]["events"]:
+        if e["kind"] == "inflate" and "p_kPa" in e:  # another design's cavity
+            name += f" (to {e['p_kPa']:.1f} kPa, body +{e['bulb_growth_percent']:.1f} %)"
+            break
         if e["kind"] == "inflate":
             name += (f" (to {e['p_urethra_kPa']:.1f} kPa: `near_urethra` {e['near_urethra_shift_mm']:.2f} mm, "
                      f"bulb +{e['bulb_growth_percent']:.1f} %)")

@@ -42,8 +42,8 @@ def print_summary(rows: list[dict], con=console) -> None:
                 extra = (f"; urethra {e['p_urethra_kPa']:.1f} kPa: near_urethra moved "
                          f"{e.get('near_urethra_shift_mm', float('nan')):.2f} mm, bulb growth {e['bulb_growth_percent']:.2f} %")
             elif e["kind"] == "inflate":
-                moved = max(((k[:-len("_shift_mm")], v) for k, v in e.items() if k.endswith("_shift_mm")),
-                            key=lambda kv: kv[1], default=None)
+                moved = max(((k[:-len("_shift_mm")], v) for k, v in e.items()
+                             if k.endswith("_shift_mm") and k != "peak_marker_shift_mm"), key=lambda kv: kv[1], default=None)
                 extra = (f"; {e['cavity']} {e['p_kPa']:.1f} kPa" + (f": {moved[0]} moved {moved[1]:.2f} mm" if moved
                          else "") + f", body growth {e['bulb_growth_percent']:.2f} %")
         if r["table_i"]:  # the prostate-motion studies: the BIP's demo only
@@ -83,8 +83,8 @@ def demo_cmd(
     design_file: Path = typer.Option(None, "--design", help="A design file (TOML/JSON) instead of the default "
                                      "design, e.g. examples/kidney.toml: meshed as its [mesh] says (or at "
                                      "--mesh-size-mm); unless --scenarios, three pushes of --push-N at each of its "
-                                     "contact points and an inflation of each of its cavities; the demo's own atlas "
-                                     "(--atlas-grid, default 5,5,5,2)."),
+                                     "contact points and an inflation of each of its cavities; the demo's own atlases "
+                                     "(--atlas-grid; default 5,5,5,2 for pushes, 3,3,3,5 for inflations)."),
     push_n: float = typer.Option(2.5, "--push-N", help="With --design: the generated pushes' force (N)."),
     inflate_kpa: float = typer.Option(20.0, "--inflate-kPa", help="With --design: the generated inflations' gauge "
                                       "pressure (kPa)."),
@@ -105,8 +105,7 @@ def demo_cmd(
     from softphantom.design import build_model, default_design, load_design, load_model, save_model
     from softphantom.estimation.select import atlas_config_from_options, check_estimator_kind
     from softphantom.virtual import load_scenario, truth_model
-    from softphantom.virtual.demo import (DEMO_SCENARIOS, PUSH_GRID, design_scenarios, model_atlases, run_all,
-                                          write_summary)
+    from softphantom.virtual.demo import DEMO_SCENARIOS, design_scenarios, model_atlases, run_all, write_summary
 
     if estimator is not None:
         check_estimator_kind(estimator)
@@ -137,8 +136,8 @@ def demo_cmd(
         if estimator == "refresh":
             console.print(f"estimator: refresh (the atlas tabulates one internal pressure; this design has "
                           f"{len(design.internal_cavity_names)})", highlight=False)
-    if design_file is not None and grid is None and estimator == "atlas":  # no atlas ships for it: the demo's own
-        grid = PUSH_GRID
+    if design_file is not None and grid is None and estimator == "atlas":
+        grid = ()  # no atlas ships for it: the demo's own, each of the grid of its kind (push, inflation)
     with staged_output(out, overwrite=overwrite, directory=True) as work:
         with status("design → mesh (estimator model)", console):
             model = given if given is not None else build_model(design, mesh_size_mm, force=force)

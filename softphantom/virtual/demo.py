@@ -193,7 +193,7 @@ def run_scenario(sc, model, out: Path, cfg, truth, estimator: str = "atlas", gri
     row (JSON-able). ``shown``: where ``out`` ends up (the demo writes into a staging directory and
     renames it), for the paths the report names (default ``out``). ``estimator``: atlas (``atlas``, an AtlasConfig, default the scenario's envelope
     (:func:`scenario_atlas`); loaded from or built into out/model/atlas, on ``scheduler`` if
-    given) or refresh (sync); ``grid`` the atlas's points per axis (default: by kind). Its progress
+    given) or refresh (sync); ``grid`` the atlas's points per axis (None or (): by kind). Its progress
     is reported (tasks ``<scenario>: estimate``, ``<scenario>: evaluate``)."""
     from softphantom.evaluation import evaluate, read_estimate, read_truth, write_report
     from softphantom.tracking import estimate_lag
@@ -320,7 +320,8 @@ def run_all(scs, model, out: Path, cfg, truth_mesh, estimator: str = "atlas", gr
     time while the demo's own atlases build), each scenario then estimated and evaluated here as
     soon as its truth is ready. The estimator: the
     model's own atlas (``atlases`` as :func:`model_atlases` gives them, else found here from
-    ``atlas_dir``, default ``out``/model, before any solve); with ``grid``, the demo's atlases instead (the push scenarios' shared ones,
+    ``atlas_dir``, default ``out``/model, before any solve); with ``grid`` (points per axis, or ``()``:
+    each scenario's kind's, ``PUSH_GRID`` or ``INFLATE_GRID``), the demo's atlases instead (the push scenarios' shared ones,
     :func:`shared_atlases`, built on the same cluster while the truths are solved; an inflation's
     from its truth: those scenarios are solved first). Rows in the order of ``scs``. ``shown``:
     where ``out`` ends up, ``clinical`` whether the reports compare with the paper's Table I
