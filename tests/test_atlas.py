@@ -462,7 +462,8 @@ def test_unreachable_grid_points_are_filled_and_flagged(coarse_model, fwd, monke
     class Linear:  # stands in for the FEM: a map linear in the loads, failing in one corner
         def __init__(self, model, config, **kw):
             self.probe, self.fem = fwd.probe, fwd.fem
-            self.eq = SimpleNamespace(keep=lambda: None, restore=lambda kept: None)  # no factor to keep
+            self.eq = SimpleNamespace(keep=lambda: None, restore=lambda kept: None,  # no factor to keep
+                                      arm_names=fwd.eq.arm_names)
 
         def solve(self, lam, start=None, factor_at_solution=False, via_tol=None):
             lam = np.asarray(lam, float)
@@ -538,7 +539,7 @@ def test_an_atlas_in_pieces_along_f_y_follows_a_kink_one_polynomial_cannot(coars
     class Kinked:  # stands in for the FEM: linear in the loads but for a kink at f_y = split
         def __init__(self, model, config, **kw):
             self.probe, self.fem = fwd.probe, fwd.fem
-            self.eq = SimpleNamespace(keep=lambda: None, restore=lambda kept: None)
+            self.eq = SimpleNamespace(keep=lambda: None, restore=lambda kept: None, arm_names=fwd.eq.arm_names)
 
         def solve(self, lam, start=None, factor_at_solution=False, via_tol=None):
             lam = np.asarray(lam, float)

@@ -177,7 +177,8 @@ def test_the_derivative_along_a_stretched_axis_goes_through_the_stretch(coarse_m
     class Stepped:  # stands in for the FEM
         def __init__(self, model, config, **kw):
             self.probe, self.fem = fwd.probe, fwd.fem
-            self.eq = SimpleNamespace(keep=lambda: None, restore=lambda kept: None, exact_column=exact_column)
+            self.eq = SimpleNamespace(keep=lambda: None, restore=lambda kept: None, exact_column=exact_column,
+                                      arm_names=fwd.eq.arm_names)
 
         def solve(self, lam, start=None, factor_at_solution=False, via_tol=None):
             lam = np.asarray(lam, float)
