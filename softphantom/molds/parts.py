@@ -148,10 +148,11 @@ class _Builder:
                     continue
                 gap = float(o.signed_distance(pts).min()) - r
                 if gap < MIN_WALL_MM:
+                    where = "cuts into" if gap < 0.0 else f"passes {gap:.3g} mm from"
                     raise DesignError(
                         f"{c.path}.inlet_mm: the molds' rod from the {c.name} core to its inlet (radius "
-                        f"molds.core_rod_radius_mm = {r:g}) {'cuts into' if gap < 0 else 'passes'} the {o.name} "
-                        f"cavity{'' if gap < 0 else f' {gap:.3g} mm off'} (min wall {MIN_WALL_MM:g} mm; move the inlet)")
+                        f"molds.core_rod_radius_mm = {r:g}) {where} the {o.name} cavity (min wall "
+                        f"{MIN_WALL_MM:g} mm; move the inlet)")
 
     # --- helpers --------------------------------------------------------------------------
     def _exit_length(self, p, d) -> float:
