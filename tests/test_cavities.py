@@ -265,13 +265,21 @@ def test_the_atlas_tabulates_the_one_cavity_whatever_its_name():
 
 # --- the stages that read the urethra alone so far: one line each -------------------------------
 
-def test_the_molds_refuse_other_cavities():
-    # the board, the records, the virtual phantom and live take any internal cavities:
-    # tests/test_cavities_records.py
+def test_the_molds_core_every_internal_cavity():
+    # a core per cavity, checked against its cavity on the example organs: tests/test_molds_organs.py
     from softphantom.molds.parts import build_parts
 
-    with pytest.raises(DesignError, match=r"^cavities: the molds hold .* this design has urethra, tumour$"):
-        build_parts(_model("two").design)
+    d = design_from_dict({**two_cavities(), "molds": {"segments": 24.0}})
+    cores = [p for p in build_parts(d, bulb_only=True) if p.kind == "core"]
+    assert [p.name for p in cores] == ["urethra_core", "tumour_core"]
+    # the tumour's: its 4 mm ball (just inside its rim across the rod, not just outside it opposite
+    # the rod) and its rod at the inlet, clear of the urethra
+    t = d.cavity("tumour")
+    c, u = np.asarray(t.center_mm), geo.unit(np.subtract(t.inlet_mm, t.center_mm))
+    side = geo.orthonormal_frame(u)[0]
+    assert cores[1].mesh.contains([c, c + 3.8 * side, t.inlet_mm]).all()
+    assert not cores[1].mesh.contains([c - 4.2 * u, c + 4.2 * side]).any()
+    assert float(np.min(d.urethra.signed_distance(cores[1].mesh.vertices))) > 1.0
 
 
 def test_observability_of_two_pressures():

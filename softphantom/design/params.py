@@ -1039,8 +1039,9 @@ def _validate_layers(d: BIPDesign) -> None:
     axes = d.bulb.semi_axes_mm
     if t > 0.0:
         if d.bulb.is_surface:
-            raise DesignError(f"layers.shell_mm = {_fmt(t)}: a shell needs an ellipsoid bulb (an imported surface "
-                              "has no inner offset yet; use 0)")
+            body = f"a {d.bulb.shape}" if d.bulb.is_parametric else "an imported surface"
+            raise DesignError(f"layers.shell_mm = {_fmt(t)}: a shell needs an ellipsoid bulb ({body} has no inner "
+                              "offset yet; use 0)")
         if t > 0.5 * min(axes):
             raise DesignError(f"layers.shell_mm = {_fmt(t)} is more than half the bulb's smallest semi-axis "
                               f"({_fmt(min(axes))} mm)")

@@ -2,7 +2,8 @@
 
 Densities are the manufacturers' specific gravities (Smooth-On technical bulletins: Ecoflex 00-50
 1.07 g/cm³, Dragon Skin 30 1.08 g/cm³). Volumes are those of the cast solids themselves (the bulb
-without its urethra core and marker sockets, each arm without its core), before any pour margin.
+without its internal cavities' cores and marker sockets, each arm without its core), before any
+pour margin.
 
 >>> round(mass_g("Ecoflex 00-50", 100_000.0), 1)
 107.0

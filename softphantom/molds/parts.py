@@ -4,11 +4,14 @@ Every part is one closed solid in the model frame (where it sits when assembled)
 direction that goes down on the build plate (``down``):
 
 - ``bulb_mold_lower`` / ``bulb_mold_upper``: a block around the bulb split at the plane
-  z = urethra centre (the plane of the urethra core's rod), conical registration pins on the
-  lower half and matching sockets (``clearance_mm`` bigger) in the upper one, a conical pour spout
-  at the bulb's top and two vents, a hole for the core rod and one for each marker socket;
-- ``urethra_core``: the urethra cavity (capsule) and its holder rod, which runs out through the
-  inlet and the mold wall (print it soluble, or cast it in wax: it is dissolved out);
+  z = the first internal cavity's centre (the BIP: the plane of the urethra core's rod; 0 without
+  one), conical registration pins on the lower half and matching sockets (``clearance_mm`` bigger)
+  in the upper one, a conical pour spout at the bulb's top and two vents, a hole for each core's
+  rod and one for each marker socket;
+- ``<cavity>_core`` (``urethra_core`` on the BIP), one per internal cavity: its shape (a capsule,
+  or an ellipsoid balloon) and its holder rod, which runs out through the cavity's inlet and the
+  mold wall (print it soluble, or cast it in wax: it is dissolved out). A capsule's rod starts on
+  its axis at the point nearest the inlet, an ellipsoid's at its centre;
 - ``marker_socket_<m>``: a post cast into the bulb at each marker point along the surface
   normal, ``depth`` below and ``height`` above the surface, with a blind hole for the marker pin;
 - ``arm_mold_<arm>_a`` / ``_b``: a block around the part of the arm outside the bulb (its floor is
@@ -35,10 +38,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from softphantom.design import geometry as geo
-from softphantom.design.params import BIPDesign
+from softphantom.design.params import MIN_WALL_MM, BIPDesign, BulbParams
 from softphantom.errors import DesignError
 from softphantom.design.occ_shapes import bulb_solid, capsule, junction_fillets
-from softphantom.molds.occ import affine_12, built_once, cone_along, occ_solid, one_volume
+from softphantom.molds.occ import affine_12, built_once, cone_along, ellipsoid, occ_solid, one_volume
 
 OVERHANG_MM = 8.0  # how far rods and stems stick out of a mold, to hold them
 
@@ -90,6 +93,28 @@ def _frame_of(direction) -> np.ndarray:
     return np.column_stack([u, v, w])
 
 
+def rod_start_mm(cavity) -> np.ndarray:
+    """Where the holder rod of an internal cavity's core starts: on a capsule's axis segment at the
+    point nearest the inlet (an end when the inlet lies beyond it, as the urethra's), at an
+    ellipsoid's centre.
+
+    >>> from softphantom.design.params import CapsuleCavity
+    >>> c = CapsuleCavity("cs", radius_mm=5.0, volume_mm3=2880.0, center_mm=(10, 0, 0), axis=(0, 0, 1),
+    ...                   inlet_mm=(30.0, 0.0, 4.0))
+    >>> rod_start_mm(c).round(6).tolist()
+    [10.0, 0.0, 4.0]
+    """
+    inlet = np.asarray(cavity.inlet_mm, float)
+    if cavity.shape == "ellipsoid":
+        return np.asarray(cavity.center_mm, float)
+    a, b = (np.asarray(p, float) for p in cavity.segment_mm)
+    ab = b - a
+    t = float((inlet - a) @ ab / (ab @ ab)) if ab @ ab > 0.0 else 0.0
+    if t <= 0.0 or t >= 1.0:  # an end itself (its exact coordinates)
+        return a if np.linalg.norm(inlet - a) < np.linalg.norm(inlet - b) else b
+    return a + t * ab
+
+
 class _Builder:
     def __init__(self, design: BIPDesign):
         self.d = design
@@ -97,17 +122,37 @@ class _Builder:
         self.seg = self.m.segments
         self.cl = self.m.clearance_mm
         self.draft = self.m.draft_deg
-        u = design.urethra
-        self.zp = float(u.center_mm[2])
-        ua, ub = (np.asarray(p, float) for p in u.segment_mm)
-        inlet = np.asarray(u.inlet_mm, float)
-        # the rod starts at the capsule end nearest the inlet and leaves through it
-        self.rod_start = ua if np.linalg.norm(inlet - ua) < np.linalg.norm(inlet - ub) else ub
-        self.rod_dir = geo.unit(inlet - self.rod_start)
+        self.cavities = tuple(design.cavities)
+        # the bulb mold parts at the first cavity's centre plane: the BIP's urethra rod lies in it
+        self.zp = float(self.cavities[0].center_mm[2]) if self.cavities else 0.0
         lo, hi = design.bulb.bounds_mm()
         self.box_lo, self.box_hi = lo - self.m.wall_mm, hi + self.m.wall_mm
-        self.rod_len = self._exit_length(self.rod_start, self.rod_dir) + OVERHANG_MM
+        # each core's rod starts inside its cavity and leaves through the inlet and the mold wall
+        self.rods: dict[str, tuple[np.ndarray, np.ndarray, float]] = {}
+        for c in self.cavities:
+            start = rod_start_mm(c)
+            d = geo.unit(np.asarray(c.inlet_mm, float) - start)
+            self.rods[c.name] = (start, d, self._exit_length(start, d) + OVERHANG_MM)
+        self._check_rods()
         self.arms = design.arm_geometry()
+
+    def _check_rods(self) -> None:
+        """Each rod's channel in the cast bulb keeps the minimum wall from every other cavity."""
+        r = self.m.core_rod_radius_mm
+        for c in self.cavities:
+            start, d, _ = self.rods[c.name]
+            reach = float(np.linalg.norm(np.asarray(c.inlet_mm, float) - start))
+            pts = start + np.linspace(0.0, reach, max(2, int(reach / 0.25) + 1))[:, None] * d
+            for o in self.cavities:
+                if o is c:
+                    continue
+                gap = float(o.signed_distance(pts).min()) - r
+                if gap < MIN_WALL_MM:
+                    where = "cuts into" if gap < 0.0 else f"passes {gap:.3g} mm from"
+                    raise DesignError(
+                        f"{c.path}.inlet_mm: the molds' rod from the {c.name} core to its inlet (radius "
+                        f"molds.core_rod_radius_mm = {r:g}) {where} the {o.name} cavity (min wall "
+                        f"{MIN_WALL_MM:g} mm; move the inlet)")
 
     # --- helpers --------------------------------------------------------------------------
     def _exit_length(self, p, d) -> float:
@@ -136,8 +181,40 @@ class _Builder:
 
         return from_manifold(to_manifold(mesh) - to_manifold(self._bulb_mesh(to_local)))
 
-    def _rod(self, occ, extra: float) -> int:
-        return occ.addCylinder(*self.rod_start, *(self.rod_dir * self.rod_len), self.m.core_rod_radius_mm + extra)
+    def _rod(self, occ, name: str, extra: float) -> int:
+        start, d, length = self.rods[name]
+        return occ.addCylinder(*start, *(d * length), self.m.core_rod_radius_mm + extra)
+
+    def _rods(self, occ, extra: float) -> list[tuple[int, int]]:
+        return [(3, self._rod(occ, c.name, extra)) for c in self.cavities]
+
+    def _cavity_shape(self, occ, c) -> int:
+        """An internal cavity's own solid (no rod)."""
+        if c.shape == "ellipsoid":
+            tag = ellipsoid(occ, c.semi_axes_mm)
+            occ.translate([(3, tag)], *c.center_mm)
+            return tag
+        return capsule(occ, *c.segment_mm, c.radius_mm)
+
+    def _core_tools(self, occ) -> list[tuple[int, int]]:
+        """Every core's shape and rod, in the cavities' order (disjoint but for each shape and its rod)."""
+        out = []
+        for c in self.cavities:
+            out += [(3, self._cavity_shape(occ, c)), (3, self._rod(occ, c.name, 0.0))]
+        return out
+
+    def _core(self, occ, c) -> int:
+        return one_volume(occ.fuse([(3, self._cavity_shape(occ, c))], [(3, self._rod(occ, c.name, 0.0))]),
+                          f"{c.name} core")
+
+    def _surface_less(self, name: str, tools) -> object:
+        """The surface bulb's triangles less each tool (disjoint OCC solids) by manifold3d."""
+        from softphantom.design.solid_check import from_manifold, to_manifold
+
+        solid = to_manifold(self._bulb_mesh())
+        for k, build in enumerate(tools):
+            solid = solid - to_manifold(occ_solid(f"{name}_tool_{k}", build, self.seg))
+        return from_manifold(solid)
 
     def _marker_normals(self) -> dict[str, tuple[np.ndarray, np.ndarray]]:
         return {k: (np.asarray(p, float), self.d.bulb.normal(p)) for k, p in self.d.markers}
@@ -187,7 +264,7 @@ class _Builder:
         def build(occ):
             z0, z1 = (zp, hi[2]) if upper else (lo[2], zp)
             block = occ.addBox(lo[0], lo[1], z0, hi[0] - lo[0], hi[1] - lo[1], z1 - z0)
-            tools = [*self._bulb(occ), (3, self._rod(occ, self.cl))]
+            tools = [*self._bulb(occ), *self._rods(occ, self.cl)]
             tools += [(3, self._socket_hole(occ, p, n)) for p, n in markers.values()]
             keys = self._bulb_key_points()
             if upper:
@@ -207,15 +284,12 @@ class _Builder:
         return Part(name, "mold", "bulb", PRINT_MATERIAL, self._less_bulb(occ_solid(name, build, self.seg)),
                     (0.0, 0.0, -1.0))
 
-    def urethra_core(self) -> Part:
-        u = self.d.urethra
-
-        def build(occ):
-            cap = capsule(occ, *u.segment_mm, u.radius_mm)
-            return one_volume(occ.fuse([(3, cap)], [(3, self._rod(occ, 0.0))]), "urethra core")
-
-        return Part("urethra_core", "core", "bulb", SOLUBLE_MATERIAL, occ_solid("urethra_core", build, self.seg),
-                    tuple(-geo.orthonormal_frame(self.rod_dir)[0]))
+    def cavity_core(self, name: str) -> Part:
+        """The core of internal cavity ``name`` on its holder rod (``<name>_core``), in the bulb mold."""
+        c = self.d.cavity(name)
+        return Part(f"{name}_core", "core", "bulb", SOLUBLE_MATERIAL,
+                    occ_solid(f"{name}_core", lambda occ: self._core(occ, c), self.seg),
+                    tuple(-geo.orthonormal_frame(self.rods[name][1])[0]))
 
     def marker_socket(self, name: str) -> Part:
         p, n = self._marker_normals()[name]
@@ -233,7 +307,6 @@ class _Builder:
                     occ_solid(f"marker_socket_{name}", build, self.seg), tuple(-n))
 
     def cast_bulb(self) -> Part:
-        u = self.d.urethra
         markers = self._marker_normals()
         ms = self.m
 
@@ -241,21 +314,13 @@ class _Builder:
             return occ.addCylinder(*(p - ms.marker_socket_depth_mm * n), *(n * (ms.marker_socket_depth_mm + 1.0)),
                                    ms.marker_socket_radius_mm)
 
-        def core(occ) -> list[tuple[int, int]]:
-            return [(3, capsule(occ, *u.segment_mm, u.radius_mm)), (3, self._rod(occ, 0.0))]
-
         if self.d.bulb.is_surface:  # the bulb's triangles less each tool (disjoint solids) by manifold3d
-            from softphantom.design.solid_check import from_manifold, to_manifold
-
-            tools = [lambda occ: one_volume(occ.fuse(*(lambda c: (c[:1], c[1:]))(core(occ))), "urethra core")]
+            tools = [lambda occ, c=c: self._core(occ, c) for c in self.cavities]
             tools += [lambda occ, p=p, n=n: socket(occ, p, n) for p, n in markers.values()]
-            solid = to_manifold(self._bulb_mesh())
-            for k, build in enumerate(tools):
-                solid = solid - to_manifold(occ_solid(f"cast_bulb_tool_{k}", build, self.seg))
-            mesh = from_manifold(solid)
+            mesh = self._surface_less("cast_bulb", tools)
         else:
             def build(occ):
-                tools = core(occ) + [(3, socket(occ, p, n)) for p, n in markers.values()]
+                tools = self._core_tools(occ) + [(3, socket(occ, p, n)) for p, n in markers.values()]
                 return one_volume(occ.cut(self._bulb(occ), tools), "cast bulb")
 
             mesh = occ_solid("cast_bulb", build, self.seg)
@@ -271,28 +336,34 @@ class _Builder:
         return bulb_solid(occ, dataclasses.replace(self.d.bulb, semi_axes_mm=inner))
 
     def _lesion(self, occ, les) -> int:
-        tag = bulb_solid(occ, dataclasses.replace(self.d.bulb, semi_axes_mm=les.semi_axes_mm))
+        # an ellipsoid whatever the body's shape (not the body's exponents, bend or triangles)
+        tag = bulb_solid(occ, BulbParams(semi_axes_mm=les.semi_axes_mm))
         occ.translate([(3, tag)], *les.center_mm)
         return tag
 
     def infill_core(self) -> Part:
-        """The infill's shape on the urethra core's rod: in the bulb mold for the shell pour, then
-        dissolved or melted out (print it soluble, or cast it in wax) before the infill is poured."""
+        """The infill's shape on the cores' rods (each leaves a channel in the shell): in the bulb
+        mold for the shell pour, then dissolved or melted out (print it soluble, or cast it in wax)
+        before the infill is poured."""
+        if not self.cavities:
+            raise DesignError("layers.shell_mm: the molds hold the infill core by an internal cavity's rod; this "
+                              "design has no internal cavity")
+
         def build(occ):
-            return one_volume(occ.fuse([(3, self._infill(occ))], [(3, self._rod(occ, 0.0))]), "infill core")
+            return one_volume(occ.fuse([(3, self._infill(occ))], self._rods(occ, 0.0)), "infill core")
 
         return Part("infill_core", "core", "shell_pour", SOLUBLE_MATERIAL, occ_solid("infill_core", build, self.seg),
-                    tuple(-geo.orthonormal_frame(self.rod_dir)[0]))
+                    tuple(-geo.orthonormal_frame(self.rods[self.cavities[0].name][1])[0]))
 
     def cast_layers(self) -> list[Part]:
         """The silicone pieces of a multi-material bulb: shell (less the infill, its core's rod
-        channel and the marker sockets), infill (less urethra and lesions), each lesion."""
-        u, ms, lay = self.d.urethra, self.m, self.d.layers
+        channels and the marker sockets), infill (less the cores and lesions), each lesion."""
+        ms, lay = self.m, self.d.layers
         markers = self._marker_normals()
         out = []
         if lay.shell_mm > 0.0:
             def shell(occ):
-                tools = [(3, self._infill(occ)), (3, self._rod(occ, 0.0))]
+                tools = [(3, self._infill(occ)), *self._rods(occ, 0.0)]
                 tools += [(3, occ.addCylinder(*(p - ms.marker_socket_depth_mm * n),
                                               *(n * (ms.marker_socket_depth_mm + 1.0)), ms.marker_socket_radius_mm))
                           for p, n in markers.values()]
@@ -303,13 +374,15 @@ class _Builder:
 
         def infill(occ):
             body = [(3, self._infill(occ))] if lay.shell_mm > 0.0 else self._bulb(occ)
-            tools = [(3, capsule(occ, *u.segment_mm, u.radius_mm)), (3, self._rod(occ, 0.0))]
-            return one_volume(occ.cut(body, tools), "cast infill")
+            return one_volume(occ.cut(body, self._core_tools(occ)), "cast infill")
 
         lesions = [Part(f"cast_{les.region}", "cast", "phantom", self._material(les.region),
                         occ_solid(f"cast_{les.region}", lambda occ, les=les: self._lesion(occ, les), self.seg),
                         (0.0, 0.0, -1.0)) for les in lay.lesions]
-        mesh = occ_solid("cast_infill", infill, self.seg)
+        if self.d.bulb.is_surface:  # no shell there (the design refuses one): the body less the cores
+            mesh = self._surface_less("cast_infill", [lambda occ, c=c: self._core(occ, c) for c in self.cavities])
+        else:
+            mesh = occ_solid("cast_infill", infill, self.seg)
         if lesions:  # their voids by manifold3d: it orients inner shells inward (the tessellation does not)
             from softphantom.design.solid_check import from_manifold, to_manifold
 
@@ -522,13 +595,11 @@ class _Builder:
 
 def build_parts(design: BIPDesign, bulb_only: bool = False) -> tuple[Part, ...]:
     """Every part of ``design`` (molds, cores, inserts, frame, and the cast pieces), in a fixed
-    order; ``bulb_only``: the bulb mold's group alone (halves, urethra core, marker sockets)."""
-    names = design.internal_cavity_names
-    if names != ("urethra",):  # the bulb mold holds one core, the urethra's
-        raise DesignError(f"cavities: the molds hold the BIP's one internal cavity core, the urethra's, for now; this "
-                          f"design has {', '.join(names) or 'none'}")
+    order; ``bulb_only``: the bulb mold's group alone (halves, one core per internal cavity,
+    marker sockets)."""
     b = _Builder(design)
-    parts = [b.bulb_half(upper=False), b.bulb_half(upper=True), b.urethra_core()]
+    parts = [b.bulb_half(upper=False), b.bulb_half(upper=True)]
+    parts += [b.cavity_core(name) for name in design.internal_cavity_names]
     parts += [b.marker_socket(name) for name, _ in design.markers]
     if bulb_only:
         return tuple(parts)
