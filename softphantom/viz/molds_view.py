@@ -1,7 +1,7 @@
 """PNG drawing of the molds and the assembled phantom (matplotlib, headless Agg).
 
 Left: the phantom as assembled in the model frame (cast bulb and arms in its frame). Right: an
-exploded view of the bulb mold (halves pulled apart along z, with the urethra core and marker
+exploded view of the bulb mold (halves pulled apart along z, with the cavities' cores and marker
 sockets in place) and of each arm mold. Triangles are decimated to keep the file small.
 """
 
