@@ -20,14 +20,14 @@ from test_cavities import COARSE, two_cavities
 PUSH_N = (0.3, 2.0, -0.2)
 P_TUMOUR_KPA = 20.0
 # a push, then the tumour balloon inflated: the phantom's force is zero while it is
-TWO = {"name": "push-and-tumour", "duration_s": 7.2, "rest_s": 1.0,
-       "push": [{"point": "on-centre", "start_s": 1.1, "rise_s": 1.0, "hold_s": 0.5, "fall_s": 1.0,
+TWO = {"name": "push-and-tumour", "duration_s": 5.0, "rest_s": 1.0,
+       "push": [{"point": "on-centre", "start_s": 1.1, "rise_s": 0.6, "hold_s": 0.5, "fall_s": 0.6,
                  "force_N": list(PUSH_N)}],
-       "inflate": [{"cavity": "tumour", "p_kPa": P_TUMOUR_KPA, "start_s": 3.8, "rise_s": 1.0, "hold_s": 1.0,
-                    "fall_s": 1.0}]}
-PUSH_ONLY = {"name": "push", "duration_s": 4.0, "rest_s": 1.0, "push": TWO["push"]}
-HOLD_S = (5.0, 5.6)  # the tumour at its peak pressure
-PUSH_HOLD_S = (2.2, 2.5)
+       "inflate": [{"cavity": "tumour", "p_kPa": P_TUMOUR_KPA, "start_s": 2.9, "rise_s": 0.6, "hold_s": 0.7,
+                    "fall_s": 0.6}]}
+PUSH_ONLY = {"name": "push", "duration_s": 3.0, "rest_s": 1.0, "push": TWO["push"]}
+HOLD_S = (3.65, 4.15)  # the tumour at its peak pressure
+PUSH_HOLD_S = (1.85, 2.15)
 
 
 @pytest.fixture(scope="module")
@@ -54,7 +54,7 @@ def _run_estimate_evaluate(tmp_path, model, scenario: dict):
     sc = _write_scenario(tmp_path / "sc.toml", scenario)
     run = tmp_path / "run"
     assert main(["virtual", "run", "--scenario", str(sc), "--model", str(tmp_path / "model"), "--out", str(run),
-                 "--truth-order", "1", "--osr", "100"]) == 0
+                 "--truth-order", "1", "--truth-mesh-scale", "1", "--osr", "100"]) == 0
     est = tmp_path / "estimate.csv"
     assert main(["estimate", "--model", str(tmp_path / "model"), "--source", f"replay:{run / 'recording.csv'}",
                  "--out", str(est), "--estimator", "refresh"]) == 0
@@ -172,7 +172,7 @@ def test_scenario_cavity_refusals(models):
         solve_truth(scenario_from_dict(unnamed, "s.toml"), none)
     # the BIP's keys are synonyms; the design's only cavity is the default
     old = scenario_from_dict({**PUSH_ONLY, "push": [], "inflate": [
-        {"p_urethra_kPa": 30.0, "max_p_urethra_kPa": 40.0, "start_s": 2, "rise_s": 1}]}, "o.toml")
+        {"p_urethra_kPa": 30.0, "max_p_urethra_kPa": 40.0, "start_s": 1.2, "rise_s": 0.8}]}, "o.toml")
     assert old.events[0].p_kPa == 30.0 and old.events[0].max_p_kPa == 40.0
     assert old.check_cavities(["channel"]).events[0].cavity == "channel"
     for keys, match in (({"p_kPa": 30.0, "p_urethra_kPa": 30.0}, "give p_kPa or its synonym p_urethra_kPa, not both"),
