@@ -329,3 +329,19 @@ def test_simulate_takes_each_cavitys_pressure(tmp_path, capsys):
         assert main(["simulate", "--model", str(tmp_path / "m"), *args, "--out", str(tmp_path / "t")]) == 2
         err = capsys.readouterr().err.strip()
         assert word in err and err.count("\n") == 0, err
+
+
+@pytest.mark.slow
+def test_a_sweep_variant_of_a_design_with_two_cavities():
+    """``sweep`` evaluates a design of two internal cavities: its equilibrium takes both pressures
+    (0 at the probe loads), its columns follow the design's arms."""
+    from softphantom.design.params import design_to_dict
+    from softphantom.study import evaluate_variant
+    from softphantom.study.config import EvalSettings, SweepConfig
+
+    base = design_to_dict(design_from_dict(two_cavities()))
+    cfg = SweepConfig(name="t", method="grid", samples=1, base=base, settings=EvalSettings(directions=("ypos",)))
+    r = evaluate_variant(cfg.resolve(0, {}))
+    assert r["status"] == "ok", r["error"]
+    assert all(r[f"count_{a}_mm3"] > 0 for a in BIPDesign().arm_names) and r["obs_sv_min_mm3"] > 0
+    assert 0 < r["res_force_worst_N"] < 0.1
