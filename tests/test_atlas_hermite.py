@@ -264,7 +264,7 @@ def test_a_hermite_axis_of_n_points_is_as_good_as_a_lagrange_axis_of_2n_minus_1(
 
 
 @pytest.mark.slow
-def test_a_hermite_displacement_axis_beats_a_lagrange_one_of_2n_minus_1_points(coarse_model, fwd):
+def test_a_hermite_displacement_axis_beats_its_lagrange_twin(coarse_model, fwd):
     # along the patch displacement q over ±1.5 N of f_x (the arm pair's step at f_x = 0 inside),
     # held-out f_x on grid points of the other axes, through the atlas's own coords(force)
     base = dataclasses.replace(BASE, force_min_N=(-1.5, -0.3, -0.3), force_max_N=(1.5, 1.5, 0.3),
@@ -282,8 +282,7 @@ def test_a_hermite_displacement_axis_beats_a_lagrange_one_of_2n_minus_1_points(c
 
     at = _build(coarse_model, dataclasses.replace(base, hermite_axis=0))
     h3, l3 = errors(at), errors(_lagrange_twin(at))
-    l5 = errors(_build(coarse_model, dataclasses.replace(base, n_force=(5, 3, 3))))
-    # measured: volumes 0.011 / 0.018 / 0.20 mm³, points 0.007 / 0.026 / 0.31 mm (H3 / L5 / L3, the
-    # last H3's Lagrange twin: a separate L3 build's to 1e-15)
-    assert np.all(h3 <= l5), (h3, l5)
+    # measured: volumes 0.011 / 0.20 mm³, points 0.007 / 0.31 mm (H3 / L3, H3's Lagrange twin: a
+    # separate L3 build's to 1e-15); a 5-point Lagrange build (90 more solves) gave 0.018 mm³ and
+    # 0.026 mm, also above H3's
     assert np.all(h3 <= 0.1 * l3), (h3, l3)

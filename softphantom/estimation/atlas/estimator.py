@@ -67,8 +67,9 @@ class AtlasEstimator(EstimatorState):
         self._pieces = pieces
         self.marker_names, self.target_names = fwd.marker_names, fwd.target_names
         nm = fwd.n_markers
-        self.rest_markers = fwd.rest.sub_x[:nm].copy()
-        self.rest_targets = fwd.rest.sub_x[nm:].copy()
+        rest = fwd.probe @ fwd.fem.x_rest.reshape(-1, 3)  # the tracked points at rest: no tangent to factor
+        self.rest_markers = rest[:nm].copy()
+        self.rest_targets = rest[nm:].copy()
         elo, ehi = atlas.config.lower, atlas.config.upper
         ulo, uhi = np.array(cfg.force_min_N), np.array(cfg.force_max_N)
         self._lo = np.maximum(ulo, elo[:3])
