@@ -11,11 +11,9 @@ import json
 import numpy as np
 import pytest
 
-from softphantom.design.model import build_model
-from softphantom.design.params import design_from_dict
 from softphantom.errors import UserError
 
-from test_cavities import COARSE, two_cavities
+from test_cavities import _model
 
 PUSH_N = (0.3, 2.0, -0.2)
 P_TUMOUR_KPA = 20.0
@@ -32,8 +30,8 @@ PUSH_HOLD_S = (1.85, 2.15)
 
 @pytest.fixture(scope="module")
 def models():
-    return {"two": build_model(design_from_dict(two_cavities()), isolate=False),
-            "none": build_model(design_from_dict({"cavities": {}, "mesh": COARSE}), isolate=False)}
+    # test_cavities' cache: meshed once when both files run in one process
+    return {"two": _model("two"), "none": _model("none")}
 
 
 def _write_scenario(path, d: dict):

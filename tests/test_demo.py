@@ -44,10 +44,10 @@ def test_demo_end_to_end_coarse(tmp_path, capsys, coarse_model_dir):
     out = tmp_path / "demo"
     # the coarse (12 mm) model given with --model, as a calibrated one would be: not meshed again; one
     # worker process (the truth and the atlas take turns on it: a second costs its start-up, ~5 CPU-s);
-    # a 27-solve atlas (3 points per force axis, the fewest it takes; the estimate stays well inside the
-    # bounds below: y RMSE 0.14 mm of 1.0, |F| 0.09 N of 0.5)
+    # a 27-solve atlas (3 points per force axis, the fewest it takes); the truth on the model's own mesh
+    # (P1, scale 1: the fastest; a finer P2 truth is test_virtual's)
     assert main(["demo", "--out", str(out), "--model", str(coarse_model_dir), "--scenarios", str(sc), "--seed", "2",
-                 "--atlas-grid", "3,3,3,2", "--truth-order", "1", "--workers", "1"]) == 0  # P1 truth: fast (P2: test_virtual)
+                 "--atlas-grid", "3,3,3,2", "--truth-order", "1", "--truth-mesh-scale", "1", "--workers", "1"]) == 0
     text = capsys.readouterr().out
     assert "model: 2170 nodes" in text and "(mesh 12 mm)" in text and "truth model: " in text
     assert sorted(p.name for p in coarse_model_dir.iterdir()) == ["design.toml", "model.msh", "model.npz", "model.vtu"]

@@ -8,7 +8,6 @@ built independently with trimesh primitives, compared by manifold3d booleans (vo
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import tomllib
 from pathlib import Path
@@ -184,23 +183,3 @@ def test_no_internal_cavity_no_core():
                                        *(f"marker_socket_{m}" for m, _ in d.markers)]
     lo, up = parts[0].mesh.bounds, parts[1].mesh.bounds  # parted at z = 0 (the lower half's pins above it)
     assert up[0][2] == pytest.approx(0.0, abs=1e-9) and lo[1][2] == pytest.approx(d.molds.key_height_mm, abs=1e-9)
-
-
-@pytest.mark.slow
-def test_the_liver_parts_all_build_clean_and_do_not_interfere():
-    """Every part of the liver (two balloons' cores, four arms, frame): the checks write_molds makes,
-    and the assembled pairs' overlaps as in tests/test_molds.py. The kidney's whole set differs
-    only in its one capsule core, tested above (its full build: docs/fabrication.md)."""
-    d = organ("liver")
-    parts = {p.name: p for p in build_parts(d)}
-    assert len(parts) == 35  # 2 halves, 2 cores, 5 sockets, cast body, 4 × (2 + core + 2 + cast arm), frame
-    assert {"tumour_core", "breathing_core", "cast_bulb", "frame"} <= set(parts)
-    check_parts(parts.values())
-    pairs = interference(list(parts.values()))
-    assert len(pairs) > 40
-    for a, b, v in pairs:
-        pa, pb = parts[a], parts[b]
-        if "cast" in (pa.kind, pb.kind) or {pa.kind, pb.kind} == {"mold", "core"} and pa.group.startswith("core_"):
-            assert v <= 1.5e-3 * min(pa.volume_mm3, pb.volume_mm3), (a, b, v)
-        else:
-            assert v < 0.05, (a, b, v)
