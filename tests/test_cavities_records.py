@@ -103,7 +103,7 @@ def test_two_cavities_end_to_end(tmp_path, models):
     assert list(tab) == estimate_columns(list(model.targets), arms, ("urethra", "tumour"))
     sel = (tab["t_s"] > HOLD_S[0]) & (tab["t_s"] < HOLD_S[1])
     assert np.abs(tab["p_tumour_kPa"][sel] - P_TUMOUR_KPA).max() < 2 * code_kPa
-    # the force: the coarse P1 estimator against a finer truth through the noisy chain. The
+    # the force, through the noisy chain (the truth on the estimator's own mesh). The
     # tumour's 20 kPa moves the arm cavities as a push would; taken as a known load it leaves
     # the force at zero while it is inflated (the bound: 10 % of the 2 N push, the issue's |F| goal)
     force = {f.name: f for f in ev.force}
