@@ -4,9 +4,9 @@ Runs ``softphantom demo --out DIR --overwrite`` (the default: the shipped quadra
 shipped atlas, the three on-centre scenarios, a finer P2 truth) and writes the table of
 ``DIR/summary.json`` to ``benchmarks/results/demo.md``; ``--summary DIR`` only reads a demo
 already run there. ``--busy`` keeps one core busy with a spinning process while it runs (the
-user's machine is never idle). ``--design FILE`` runs ``softphantom demo --design FILE`` instead
-(another organ's design: its generated scenarios, its own atlas built in the run) and writes
-``benchmarks/results/demo_<file stem>.md``.
+user's machine is never idle). Then the same for each example organ of ``examples/organs/``
+(``softphantom demo --design FILE``: its generated scenarios, its own atlas built in the run) into
+``benchmarks/results/demo_<file stem>.md`` (docs/organs.md); ``--design FILE`` runs that one only.
 
     python benchmarks/bench_demo.py [--out out/bench-demo] [--busy] [--summary DIR] [--design FILE]
 """
@@ -62,22 +62,22 @@ def table(summary: dict) -> str:
     return markdown_table(head, rows)
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--out", type=Path, default=Path("out/bench-demo"))
-    ap.add_argument("--summary", type=Path, help="a demo's output directory: read its summary.json, run nothing")
-    ap.add_argument("--busy", action="store_true", help="one core kept busy by another process meanwhile")
-    ap.add_argument("--design", type=Path, help="a design file: the demo of that design (softphantom demo --design)")
-    a = ap.parse_args(argv)
+ORGANS = sorted((Path(__file__).resolve().parents[1] / "examples" / "organs").glob("*.toml"))
+
+
+def run_one(design: Path | None, out: Path, summary: Path | None, busy: bool) -> int:
+    """One demo (the default one, ``design`` None, or that design's) run into ``out`` or read from
+    ``summary``; its table into ``benchmarks/results`` (not with ``busy``)."""
     wall = None
-    if a.summary is None:
-        spin = multiprocessing.Process(target=_spin, daemon=True) if a.busy else None
+    if summary is None:
+        spin = multiprocessing.Process(target=_spin, daemon=True) if busy else None
         if spin:
             spin.start()
+        before = resource.getrusage(resource.RUSAGE_CHILDREN)
         t0 = time.perf_counter()
         exe = Path(sys.executable).with_name("softphantom")
-        extra = ["--design", str(a.design)] if a.design else []
-        rc = subprocess.run([str(exe), "demo", "--out", str(a.out), "--overwrite", *extra]).returncode
+        extra = ["--design", str(design)] if design else []
+        rc = subprocess.run([str(exe), "demo", "--out", str(out), "--overwrite", *extra]).returncode
         wall = time.perf_counter() - t0
         if spin:
             spin.terminate()
@@ -85,19 +85,36 @@ def main(argv=None) -> int:
             print(f"demo failed: exit {rc}", file=sys.stderr)
             return 1
         ru = resource.getrusage(resource.RUSAGE_CHILDREN)
-        print(f"demo: {wall:.0f} s wall, {ru.ru_utime:.0f} s user + {ru.ru_stime:.0f} s system"
-              + (" (one core busy)" if a.busy else ""))
-    d = a.summary or a.out
+        print(f"demo: {wall:.0f} s wall, {ru.ru_utime - before.ru_utime:.0f} s user + "
+              f"{ru.ru_stime - before.ru_stime:.0f} s system" + (" (one core busy)" if busy else ""))
+    d = summary or out
     s = json.loads((d / "summary.json").read_text())
     md = table(s)
     print(md)
-    if a.busy:  # the docs' table is the idle run's
+    if busy:  # the docs' table is the idle run's
         return 0
-    what = f"`softphantom demo --design {a.design}`" if a.design else "The demo"
+    what = f"`softphantom demo --design {design}`" if design else "The demo"
     caption = (f"{what}: `wall_s` {s['wall_s']:.0f} s" + (f", the command {wall:.0f} s" if wall else "")
                + "; RMSE (peak \\|truth\\|; \\|F\\| also of its peak) against the virtual truth, from "
                "`summary.json`.")
-    write_result(f"demo_{a.design.stem}" if a.design else "demo", md, caption=caption)
+    write_result(f"demo_{design.stem}" if design else "demo", md, caption=caption)
+    return 0
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", type=Path, default=Path("out/bench-demo"))
+    ap.add_argument("--summary", type=Path, help="a demo's output directory: read its summary.json, run nothing")
+    ap.add_argument("--busy", action="store_true", help="one core kept busy by another process meanwhile")
+    ap.add_argument("--design", type=Path, help="a design file: the demo of that design only (softphantom demo "
+                    "--design); default: the default demo, then each of examples/organs/")
+    a = ap.parse_args(argv)
+    if a.design is not None or a.summary is not None:
+        return run_one(a.design, a.out, a.summary, a.busy)
+    for design in (None, *ORGANS):
+        out = a.out if design is None else a.out.with_name(f"{a.out.name}-{design.stem}")
+        if run_one(design, out, None, a.busy):
+            return 1
     return 0
 
 
