@@ -62,10 +62,10 @@ def contact_of(scenario) -> str:
     return points.pop() if len(points) == 1 else "on-centre"
 
 
-def demo_contacts(design) -> tuple[str, ...]:
-    """The contact points a design's demo pushes at: its named ones, else ``on-centre``
-    (``off-centre`` is the BIP paper's second point, pushed only when asked for)."""
-    named = tuple(n for n in design.p_ext_mm() if n not in ("on-centre", "off-centre"))
+def demo_contacts(points) -> tuple[str, ...]:
+    """Of a design's contact ``points`` (its ``p_ext_mm()``), those its demo pushes at: its named
+    ones, else ``on-centre`` (``off-centre`` is the BIP paper's second point, pushed only when asked for)."""
+    named = tuple(n for n in points if n not in ("on-centre", "off-centre"))
     return named or ("on-centre",)
 
 
@@ -91,9 +91,9 @@ def design_scenarios(design, push_N: float = PUSH_N, inflate_kPa: float = INFLAT
     if not 0.0 < push_N <= 20.0:
         raise ValueError(f"push_N must be in (0, 20] N, got {push_N:g}")
     out = []
-    for c in demo_contacts(design):
-        p = design.p_ext_mm()[c]
-        n = -np.asarray(design.bulb.normal(p), float)
+    points = design.p_ext_mm()  # on a surface body, ray casts and a bisection: once
+    for c in demo_contacts(points):
+        n = -np.asarray(design.bulb.normal(points[c]), float)
         a = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
         a /= np.linalg.norm(a)
         b = np.cross(n, a)

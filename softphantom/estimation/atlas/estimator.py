@@ -23,7 +23,7 @@ from softphantom.estimation.atlas.map import Atlas, AtlasPatches
 from softphantom.estimation.atlas.store import atlas_key
 from softphantom.estimation.config import EstimatorConfig
 from softphantom.estimation.estimator import (
-    EstimatorState, check_sample, pose_and_shifts, repeat_last, rest_estimate, sensitivity_cond,
+    EstimatorState, check_sample, measured_pressures, pose_and_shifts, repeat_last, rest_estimate, sensitivity_cond,
 )
 from softphantom.estimation.forward import ForwardModel
 from softphantom.estimation.qp import solve_volume_qp
@@ -253,7 +253,7 @@ class AtlasEstimator(EstimatorState):
             return repeat_last(self._last, m, f"rejected:{why}", t0, skipped)
         try:
             inv = self.invert_reference if reference else self.invert
-            p_Pa = float(m.p_urethra) if getattr(m, "pressures_Pa", None) is None else float(m.pressures_Pa[self.cavity])
+            p_Pa = float(measured_pressures(m, (self.cavity,))[0])
             lam, status, inside, V, J, it = inv(m.dV, p_Pa)
         except SolverError as exc:
             return repeat_last(self._last, m, f"failed:{exc}", t0, skipped)
