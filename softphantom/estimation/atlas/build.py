@@ -34,7 +34,7 @@ from softphantom.estimation.atlas.store import (AtlasCorrupt, AtlasMismatch, atl
 from softphantom.estimation.atlas.tasks import (GraphRun, Task, TaskStore, check_partials, critical_path_s, discard_tasks,
                                                 partial_dir, run_graph)
 from softphantom.estimation.config import EstimatorConfig
-from softphantom.estimation.forward import ForwardModel
+from softphantom.estimation.forward import ForwardModel, internal_cavities_of
 from softphantom.estimation.linearization import PatchControl
 
 FIELD_MAX_MODES = 64
@@ -698,8 +698,7 @@ def check_atlas_cavities(model) -> str:
     """The atlas tabulates λ = (f, p) with p the gauge pressure of the model's one internal cavity
     (the BIP's urethra, a kidney's collecting system): returns that cavity's name; a model of
     another number of internal cavities is refused in one line (the refresh estimator takes any)."""
-    design = getattr(model, "design", None)
-    names = tuple(design.internal_cavity_names) if design is not None else ("urethra",)
+    names = internal_cavities_of(model)
     if len(names) != 1:
         raise UserError(f"cavities: the atlas tabulates one internal pressure; this design has {len(names)}"
                         f"{' (' + ', '.join(names) + ')' if names else ''}: use --estimator refresh")
