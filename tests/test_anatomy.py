@@ -387,8 +387,56 @@ def test_zonal_map_through_the_cli(tmp_path, capsys):
     d = load_design(out / "design.toml")
     assert d.bulb.is_surface and d.urethra.axis == (0.0, 1.0, 0.0)
     assert d.arms[0].radius_mm < BIPDesign().arms[0].radius_mm  # a 47 mL gland (the issue's): smaller arms
-    for args, names in ((["--urethra", "none"], "urethra cavity"),
-                        (["--gland-labels", "1,2", "--urethra-label", "2"], "--urethra-label 2 is one of --gland-labels")):
-        assert main(["design", "--anatomy", str(path), *args, "--out", str(tmp_path / "o")]) == 2
+    for args, names in ((["--urethra", "none"], "--urethra none: only with --anatomy"),
+                        (["--anatomy", str(path), "--gland-labels", "1,2", "--urethra-label", "2"],
+                         "--urethra-label 2 is one of --gland-labels")):
+        assert main(["design", *args, "--out", str(tmp_path / "o")]) == 2
         err = capsys.readouterr().err.strip()
         assert names in err and "\n" not in err and "Traceback" not in err, err
+
+
+def test_a_templates_contacts_and_other_cavities_follow_the_gland(tmp_path):
+    """A template with a named contact and a tumour balloon on a 47 mL zonal map: the contact is
+    projected onto the gland (on its surface, as the markers), the balloon scaled with it (its
+    centre with the gland's extent, its volume by s³), and the design is valid; the template's
+    own points would lie outside the smaller gland."""
+    from test_cavities import AXES, TUMOUR
+
+    from softphantom.design import design_from_dict
+    from softphantom.design import geometry as geo
+    from softphantom.design.anatomy import part_scale
+
+    needle = [float(x) for x in geo.project_to_ellipsoid((0.7, -1.0, 0.3), AXES)]
+    base = design_from_dict({"urethra": {}, "cavities": {"tumour": TUMOUR}, "contacts": {"needle": needle}})
+    *_, a = _zonal_anatomy(tmp_path, 47.0)
+    d = design_from_anatomy(a, base)
+    s = part_scale(a, base)
+    assert d.internal_cavity_names == ("urethra", "tumour") and d.contact_names[-1] == "needle"
+    t = d.cavity("tumour")
+    assert t.volume_mm3 == pytest.approx(base.cavity("tumour").volume_mm3 * s**3)
+    needle = np.asarray(d.contacts[0][1])
+    dist = np.abs(d.bulb.signed_distance(np.stack([needle, np.asarray(t.inlet_mm)])))
+    assert dist.max() < 0.05 * d.bulb.semi_axes_mm[0], dist  # both on the gland's surface
+    assert float(d.bulb.signed_distance(np.asarray(base.contacts[0][1])[None])[0]) > 1.0  # the template's: outside
+
+
+def test_the_urethra_is_left_out_on_request(tmp_path, gland):
+    """``--urethra none`` (``urethra=False``): the 47 mL zonal gland without any urethra cavity (the
+    template's dropped, its arms kept at their scaled embedding, none shortened for a urethra), which
+    meshes without a urethra wall and solves a 1 N push; a label map with a urethra label is refused
+    in one line naming the option."""
+    from softphantom.design.anatomy import part_scale
+    from softphantom.fem import fem_from_phantom, force_actuator, solve_static
+
+    *_, a = _zonal_anatomy(tmp_path, 47.0)
+    d = design_from_anatomy(a, urethra=False)
+    assert d.urethra is None and d.internal_cavity_names == () and d.cavity_names == d.arm_names
+    s = part_scale(a, BIPDesign())
+    assert [arm.embed_mm for arm in d.arms] == pytest.approx([arm.embed_mm * s for arm in BIPDesign().arms])
+    model = build_model(d, 12.0, isolate=False)
+    assert tuple(model.cavities) == d.arm_names
+    fem = fem_from_phantom(model)
+    sol = solve_static(fem, force_actuator(fem, model.p_ext["on-centre"], radius=5e-3) @ np.array([0.0, 1.0, 0.0]))
+    assert sol.converged and (sol.x - model.nodes)[:, 1].max() > 1e-4
+    with pytest.raises(DesignError, match=r"^urethra: the label map has a urethra label .*--urethra-label 0"):
+        design_from_anatomy(gland[2], urethra=False)  # label 2, the urethra

@@ -22,12 +22,6 @@ def _labels(text: str, option: str) -> tuple[int, ...]:
         raise UserError(f"{option}: expected integers separated by commas, got {text!r}") from None
 
 
-#: why ``--urethra none`` is refused: every stage after the design reads the urethra cavity
-NO_URETHRA = ("--urethra none: not possible yet, the model needs its urethra cavity (the mesh's cavity_urethra, "
-              "the estimator's urethra-pressure load, the board's fifth channel, the molds' urethra core); "
-              "leave --urethra auto to place it on the gland's principal axis")
-
-
 OBSERVE = ("auto", "envelope", "rest", "off")
 
 
@@ -58,8 +52,8 @@ def design_command(
         None, "--urethra-label", help="Label of the urethra in a label map (0: none); default 2, or none when "
         "--gland-labels names 2."),
     urethra: str = typer.Option("auto", "--urethra", help="auto: the urethra label's voxels, or without any a "
-                                "urethra along the gland's principal axis through its centroid; none: refused (the "
-                                "model needs a urethra cavity)."),
+                                "urethra along the gland's principal axis through its centroid; none: no urethra "
+                                "cavity (the template's dropped; its other cavities kept)."),
     surface_size_mm: float = typer.Option(3.0, "--surface-size-mm", help="Triangle size of the imported surface, mm."),
     lesion_labels: str = typer.Option("", "--lesion-labels", help="Labels of lesions in a label map, comma-separated "
                                       "(e.g. 3,4): each becomes [layers.lesions.labelN], the ellipsoid of its voxels."),
@@ -74,14 +68,16 @@ def design_command(
     gland = _labels(gland_labels, "--gland-labels")
     check_choice(observe, OBSERVE, "--observability")
     check_positive(surface_size_mm, "--surface-size-mm", "mm")
-    if check_choice(urethra, ("auto", "none"), "--urethra") == "none":
-        raise UserError(NO_URETHRA)
+    no_urethra = check_choice(urethra, ("auto", "none"), "--urethra") == "none"
+    if no_urethra and anatomy is None:
+        raise UserError("--urethra none: only with --anatomy (a design file without a urethra says so: "
+                        "[cavities] without [urethra])")
     if urethra_label is not None and urethra_label < 0:
         raise UserError(f"--urethra-label: must be >= 0 (0: none), got {urethra_label}")
     if urethra_label is not None and urethra_label > 0 and urethra_label in gland:
         raise UserError(f"--urethra-label {urethra_label} is one of --gland-labels {gland_labels} (0: no urethra label)")
     if urethra_label is None:
-        urethra_label = 0 if 2 in gland else 2
+        urethra_label = 0 if 2 in gland or no_urethra else 2
     for option, given in (("--lesion-labels", lesions), ("--gland-labels", gland)):
         if given and anatomy is None:
             raise UserError(f"{option}: only with --anatomy (labels of a label map)")
@@ -97,7 +93,7 @@ def design_command(
             imported = load_anatomy(anatomy, AnatomyOptions(gland_labels=gland, urethra_label=urethra_label,
                                                             surface_size_mm=surface_size_mm, lesion_labels=lesions))
             template = design
-            design = design_from_anatomy(imported, template, name=f"{design.name}_anatomy")
+            design = design_from_anatomy(imported, template, name=f"{design.name}_anatomy", urethra=not no_urethra)
         vox = "" if imported.voxel_volume_mm3 is None else (
             f" (label voxel count {imported.voxel_volume_mm3:.0f} mm³, "
             f"{100 * (imported.volume_mm3 / imported.voxel_volume_mm3 - 1):+.2f} %)")

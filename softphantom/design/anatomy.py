@@ -310,8 +310,12 @@ def import_report(anatomy: "Anatomy", template: BIPDesign, design: BIPDesign) ->
     u = design.urethra
     where = ("fitted to its label's voxels" if anatomy.urethra is not None else
              "not labelled, placed along the gland's principal axis through its centroid")
-    return [f"parts: the template's arms and urethra radius scaled by {part_scale(anatomy, template):.3f} (the cube "
-            f"root of {anatomy.volume_mm3 / 1e3:.1f} mL over the template's {template.bulb.volume_mm3 / 1e3:.1f} mL)",
+    head = f"parts: the template's arms{' and urethra radius' if u is not None else ''} scaled by " \
+           f"{part_scale(anatomy, template):.3f} (the cube root of {anatomy.volume_mm3 / 1e3:.1f} mL over the " \
+           f"template's {template.bulb.volume_mm3 / 1e3:.1f} mL)"
+    if u is None:
+        return [head, "urethra: none (--urethra none)", *lesion_report(anatomy)]
+    return [head,
             f"urethra: {where}; radius {u.radius_mm:.2f} mm, length {u.cyl_length_mm + 2 * u.radius_mm:.1f} mm, "
             f"{u.volume_mm3:.0f} mm³, inlet ({', '.join(f'{x:.1f}' for x in u.inlet_mm)}) mm",
             *lesion_report(anatomy)]
@@ -432,10 +436,10 @@ def load_anatomy(path: str | Path, opt: AnatomyOptions = AnatomyOptions()) -> An
     raise FileFormatError(f"{path}: unknown anatomy format (expected .nii, .nii.gz, .stl, .obj or .ply)")
 
 
-def _project(bulb: BulbParams, name: str, direction) -> tuple[float, float, float]:
+def _project(bulb: BulbParams, name: str, direction, table: str = "markers") -> tuple[float, float, float]:
     s = bulb.ray_exit((0.0, 0.0, 0.0), direction)
     if s is None:
-        raise DesignError(f"markers.{name}: the direction {tuple(direction)} misses the gland")
+        raise DesignError(f"{table}.{name}: the direction {tuple(direction)} misses the gland")
     p = s * np.asarray(direction, float) / np.linalg.norm(direction)
     return tuple(float(x) for x in p)  # type: ignore[return-value]
 
@@ -444,6 +448,19 @@ def part_scale(anatomy: Anatomy, base: BIPDesign) -> float:
     """The factor on the template's lengths: the cube root of the gland's volume over the
     template bulb's (0.776 for a 47 mL gland against the paper's 100.41 mL)."""
     return float((anatomy.volume_mm3 / base.bulb.volume_mm3) ** (1.0 / 3.0))
+
+
+def _scaled_cavity(cavity, s: float, scale: np.ndarray, bulb: BulbParams):
+    """A template's internal cavity other than the urethra in the gland: its centre scaled with the
+    gland's extent (as the targets), its size by ``s`` (volume by s³), its inlet projected onto the
+    gland along its direction from the centre (as the markers)."""
+    kw = {"center_mm": tuple(float(x) for x in np.asarray(cavity.center_mm) * scale),
+          "inlet_mm": _project(bulb, cavity.name, cavity.inlet_mm, "cavities")}
+    if cavity.shape == "ellipsoid":
+        kw["semi_axes_mm"] = tuple(float(x) * s for x in cavity.semi_axes_mm)
+    else:
+        kw.update(radius_mm=cavity.radius_mm * s, volume_mm3=cavity.volume_mm3 * s**3)
+    return dataclasses.replace(cavity, **kw)
 
 
 def _scaled_arm(arm: ArmParams, s: float) -> ArmParams:
@@ -507,21 +524,29 @@ _FIXES = {
                "or a urethra label (--urethra-label)",
     "arms": "[arms.{name}] radius_mm, embed_mm or direction in --config (before the scaling)",
     "markers": "[markers] in --config (points whose directions from the centre miss the arms)",
+    "contacts": "[contacts] in --config (points whose directions from the centre miss the arms)",
+    "cavities": "[cavities.{name}] center_mm or size in --config (before the scaling)",
     "targets": "[targets] in --config",
     "interaction": "[interaction] offcentre_mm in --config",
     "layers": "--lesion-labels without that label",
 }
 
 
-def design_from_anatomy(anatomy: Anatomy, base: BIPDesign | None = None, name: str = "anatomy") -> BIPDesign:
+def design_from_anatomy(anatomy: Anatomy, base: BIPDesign | None = None, name: str = "anatomy", *,
+                        urethra: bool = True) -> BIPDesign:
     """``base`` (default: the paper's BIP) with the gland's surface and urethra (its label's fit,
-    else :func:`axis_urethra`); the arms and urethra radius scaled by :func:`part_scale`, markers
-    projected along their directions, targets scaled with the gland's extent. A part that still
+    else :func:`axis_urethra`; ``urethra=False``: none, the template's dropped too, and a urethra
+    label is refused); the arms and urethra radius scaled by :func:`part_scale`, markers
+    and named contacts projected along their directions, targets and the other internal cavities'
+    centres scaled with the gland's extent (the cavities' sizes by the part scale). A part that still
     cannot be made valid raises a one-line DesignError naming it and the option that fixes it."""
     base = base or BIPDesign()
+    if not urethra and anatomy.urethra is not None:
+        raise DesignError("urethra: the label map has a urethra label and --urethra none drops it "
+                          "(--urethra-label 0 to import no urethra label)")
     s = part_scale(anatomy, base)
     try:
-        return _design_from_anatomy(anatomy, base, name, s)
+        return _design_from_anatomy(anatomy, base, name, s, urethra)
     except DesignError as exc:
         msg = str(exc)
         path = msg.split(":", 1)[0].split(" ", 1)[0].split(".")
@@ -533,20 +558,24 @@ def design_from_anatomy(anatomy: Anatomy, base: BIPDesign | None = None, name: s
                           f"{s:.3f}; fix: {fix}]") from None
 
 
-def _design_from_anatomy(anatomy: Anatomy, base: BIPDesign, name: str, s: float) -> BIPDesign:
+def _design_from_anatomy(anatomy: Anatomy, base: BIPDesign, name: str, s: float, with_urethra: bool) -> BIPDesign:
     v = anatomy.vertices_mm
     half = 0.5 * (v.max(axis=0) - v.min(axis=0))
     bulb = BulbParams(semi_axes_mm=tuple(float(x) for x in half),
                       surface_vertices_mm=tuple(tuple(float(x) for x in p) for p in v),
                       surface_faces=tuple(tuple(int(k) for k in f) for f in anatomy.faces))
-    urethra = axis_urethra(bulb, base, s) if anatomy.urethra is None else _fitted_urethra(bulb, anatomy.urethra)
+    urethra = (None if not with_urethra else axis_urethra(bulb, base, s) if anatomy.urethra is None
+               else _fitted_urethra(bulb, anatomy.urethra))
     markers = tuple((k, _project(bulb, k, p)) for k, p in base.markers)
     scale = half / np.asarray(base.bulb.semi_axes_mm)
-    ua, ub = urethra.segment_mm
     targets = []
     for k, p in base.targets:
         q = np.asarray(p) * scale
+        if urethra is None:
+            targets.append((k, tuple(float(x) for x in q)))
+            continue
         # a target that the new urethra swallowed moves out radially to 3 mm from its wall
+        ua, ub = urethra.segment_mm
         t = np.clip((q - ua) @ (ub - ua) / max(float((ub - ua) @ (ub - ua)), 1e-12), 0.0, 1.0)
         foot = ua + t * (ub - ua)
         if np.linalg.norm(q - foot) < urethra.radius_mm + 3.0:
@@ -556,10 +585,12 @@ def _design_from_anatomy(anatomy: Anatomy, base: BIPDesign, name: str, s: float)
                     np.array([1.0, 0.0, 0.0])
             q = foot + (urethra.radius_mm + 3.0) * radial / np.linalg.norm(radial)
         targets.append((k, tuple(float(x) for x in q)))
-    arms = tuple(_arm_clear_of_urethra(_scaled_arm(a, s), bulb, urethra) for a in base.arms)
-    out = dataclasses.replace(base, name=name, bulb=bulb, arms=arms, markers=markers,
-                              cavities=(urethra, *(c for c in base.cavities if c.name != "urethra")),
-                              targets=tuple(targets))
+    arms = tuple(_scaled_arm(a, s) if urethra is None else _arm_clear_of_urethra(_scaled_arm(a, s), bulb, urethra)
+                 for a in base.arms)
+    contacts = tuple((k, _project(bulb, k, p, "contacts")) for k, p in base.contacts)
+    others = tuple(_scaled_cavity(c, s, scale, bulb) for c in base.cavities if c.name != "urethra")
+    out = dataclasses.replace(base, name=name, bulb=bulb, arms=arms, markers=markers, contacts=contacts,
+                              cavities=(*(() if urethra is None else (urethra,)), *others), targets=tuple(targets))
     if anatomy.lesions:  # each lesion label becomes a lesion region, in the bulb's material unless set
         from softphantom.design.params import LayersParams, LesionParams
 
