@@ -89,7 +89,7 @@ def test_capsule_cavity_and_no_urethra():
     (two_cavities(inlet_mm=[0.0, 0.0, 0.0]), r"^cavities\.tumour\.inlet_mm is 2\d\.?\d* mm off the bulb surface"),
     (two_cavities(center_mm=[-16.0, 12.0, 0.0]), r"^arms\.back_xneg\.embed_mm = 8: the arm comes .* from the tumour "
                                                   r"cavity"),
-    (two_cavities(role="measured"), r"^cavities\.tumour\.role = 'measured': not supported yet"),
+    (two_cavities(role="sealed"), r"^cavities\.tumour\.role: 'sealed' is not one of actuated, measured$"),
     (two_cavities(shape="torus"), r"^cavities\.tumour\.shape = 'torus': expected capsule or ellipsoid$"),
     (two_cavities(radius_mm=3.0), r"^cavities\.tumour: unknown key 'radius_mm'"),
     ({"cavities": {"tumour": {k: v for k, v in TUMOUR.items() if k != "semi_axes_mm"}}},

@@ -132,10 +132,10 @@ def demo_cmd(
         scs = (design_scenarios(design, push_n, inflate_kpa) if design_file is not None
                else [load_scenario(n) for n in DEMO_SCENARIOS])
     if estimator is None:
-        estimator = "atlas" if len(design.internal_cavity_names) == 1 else "refresh"
+        estimator = "atlas" if len(design.pressure_names) == 1 else "refresh"
         if estimator == "refresh":
             console.print(f"estimator: refresh (the atlas tabulates one internal pressure; this design has "
-                          f"{len(design.internal_cavity_names)})", highlight=False)
+                          f"{len(design.pressure_names)} actuated cavities)", highlight=False)
     if design_file is not None and grid is None and estimator == "atlas":
         grid = ()  # no atlas ships for it: the demo's own, each of the grid of its kind (push, inflation)
     with staged_output(out, overwrite=overwrite, directory=True) as work:

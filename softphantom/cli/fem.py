@@ -33,8 +33,9 @@ def _vec3(text: str, what: str) -> np.ndarray:
     return v
 
 
-def _pressures(items: list[str], cavities, urethra_given: bool) -> dict[str, float]:
-    """``CAVITY=KPA`` options → {cavity: Pa}, each cavity one of the design's, once."""
+def _pressures(items: list[str], cavities, urethra_given: bool, measured=()) -> dict[str, float]:
+    """``CAVITY=KPA`` options → {cavity: Pa}, each cavity one of the design's actuated ``cavities``
+    (not one of its ``measured`` ones: a sealed cavity read as a volume is never loaded), once."""
     out: dict[str, float] = {}
     for item in items:
         name, sep, value = item.partition("=")
@@ -44,6 +45,9 @@ def _pressures(items: list[str], cavities, urethra_given: bool) -> dict[str, flo
             p = float("nan")
         if not np.isfinite(p):
             raise UserError(f"--pressure-kPa: expected CAVITY=KPA (e.g. tumour=20), got {item!r}")
+        if name in measured:
+            raise UserError(f"--pressure-kPa {name}: a measured cavity (role = \"measured\": read as a volume, "
+                            f"never loaded); the actuated ones: {', '.join(cavities) or 'none'}")
         if name not in cavities:
             raise UserError(f"--pressure-kPa {name}: not an internal cavity of this model "
                             f"({', '.join(cavities) or 'it has none'})")
@@ -103,7 +107,8 @@ def simulate_command(
     fem = fem_from_phantom(model)
     f_ext = force_actuator(fem, point, radius=patch_radius_mm * 1e-3) @ force
     pressures = {"urethra": urethra_kPa * 1e3} if urethra_kPa else {}
-    pressures.update(_pressures(pressure_kPa or [], model.design.internal_cavity_names, "urethra" in pressures))
+    pressures.update(_pressures(pressure_kPa or [], model.design.pressure_names, "urethra" in pressures,
+                                model.design.measured_cavity_names))
     with console.status(f"solving ({fem.n_free} DOF) …"):
         sol = solve_static(fem, f_ext, pressures=pressures or None, gravity=gravity)
     if not sol.converged:

@@ -60,8 +60,9 @@ def _simulate(scenario: str, model_dir: Path, seed: int, osr: int, mesh_scale: f
     if board == "firmware":  # before the truth's solve: the board's inputs checked, the emulator built
         from softphantom.virtual.firmware_sim import build
 
-        cav = tuple(getattr(model.design, "internal_cavity_names", ("urethra",)))
-        build(n_channels=len(model.design.arm_names) + len(cav), board=mcu, cavity_names=cav)
+        cav = tuple(getattr(model.design, "pressure_names", ("urethra",)))
+        volume = getattr(model.design, "sensing_names", None) or model.design.arm_names  # arms, measured cavities
+        build(n_channels=len(volume) + len(cav), board=mcu, cavity_names=cav)
     return simulate(sc, model, cfg)
 
 

@@ -13,8 +13,10 @@ needle coming from −y, z up/anterior):
   cylinder length is derived from ``volume_mm3`` (2078 mm³), centred at ``center_mm`` (default
   4 mm anterior) along ``axis``; ``inlet_mm`` is where its tube leaves the bulb (a point on the
   surface; the channel itself is not meshed). Other internal cavities (``[cavities.NAME]``: a
-  capsule like the urethra, or an ellipsoid balloon, each actuated) join or replace it: M ≥ 0 of
-  them, :attr:`BIPDesign.cavities` (docs/architecture.md, "Internal cavities").
+  capsule like the urethra, or an ellipsoid balloon) join or replace it: M ≥ 0 of them,
+  :attr:`BIPDesign.cavities` (docs/architecture.md, "Internal cavities"). Each is ``role =
+  "actuated"`` (a known pressure load; the urethra always) or ``"measured"`` (a sealed cavity read
+  as a volume channel, like an arm's).
 - **arms**: by default the BIP's four cylinders ``front_zpos``, ``front_zneg`` (needle side,
   above/below, cavities of 514 mm³) and ``back_xpos``, ``back_xneg`` (+y, left/right, 486 mm³);
   any :data:`MIN_ARMS` or more, each named, in the sensor order (a design file lists them in
@@ -343,12 +345,6 @@ class _Cavity:
                 f"{self.path}.volume_mm3 = {_fmt(self.volume_mm3)} is below the sphere of "
                 f"radius_mm {_fmt(self.radius_mm)} (min {_fmt(sphere)} mm³)"
             )
-        self._check_role()
-
-    def _check_role(self) -> None:
-        if self.role != "actuated":
-            raise DesignError(f"{self.path}.role = {self.role!r}: not supported yet (a closed cavity read as a "
-                              "volume channel); use \"actuated\" (its pressure set by the bench and measured)")
 
     @property
     def cyl_length_mm(self) -> float:
@@ -392,7 +388,8 @@ _Role = Literal["actuated", "measured"]
 @checked("cavities.{name}", DesignError)
 class CapsuleCavity(_Cavity):
     """An internal cavity ``[cavities.NAME]`` with ``shape = "capsule"``: an inflatable channel
-    like the urethra (the fields of :class:`UrethraParams`), its tube leaving the body at ``inlet_mm``."""
+    like the urethra (the fields of :class:`UrethraParams`), its tube leaving the body at ``inlet_mm``;
+    ``role`` ``"actuated"`` (a known pressure load) or ``"measured"`` (read as a volume channel)."""
 
     name: _Name
     radius_mm: _Size
@@ -410,7 +407,8 @@ class CapsuleCavity(_Cavity):
 @checked("cavities.{name}", DesignError)
 class EllipsoidCavity(_Cavity):
     """An internal cavity ``[cavities.NAME]`` with ``shape = "ellipsoid"``: a balloon (a lesion or
-    tumour to inflate), an axis-aligned ellipsoid of ``semi_axes_mm`` at ``center_mm``.
+    tumour to inflate, or to read), an axis-aligned ellipsoid of ``semi_axes_mm`` at ``center_mm``;
+    ``role`` as a :class:`CapsuleCavity`'s.
 
     >>> b = EllipsoidCavity("tumour", center_mm=(0, 0, 0), semi_axes_mm=(3, 3, 3), inlet_mm=(0, 0, 30))
     >>> round(b.volume_mm3, 3), float(b.signed_distance([[0, 0, 5.0]])[0])
@@ -423,9 +421,6 @@ class EllipsoidCavity(_Cavity):
     inlet_mm: _Vec3
     role: _Role = "actuated"
     shape: Literal["ellipsoid"] = "ellipsoid"
-
-    def __post_init__(self) -> None:
-        self._check_role()
 
     @property
     def volume_mm3(self) -> float:
@@ -597,12 +592,13 @@ class MeshParams:
 
 @checked("sensors", DesignError)
 class SensorParams:
-    """The bench's sensors as calibrated (``softphantom calibrate``): ``gains`` of the four arm
-    transducers relative to their datasheet sensitivity (sensor order), ``tube_volume_factor`` the
+    """The bench's sensors as calibrated (``softphantom calibrate``): ``gains`` of the volume
+    channels' transducers (the arms', then the measured cavities': ``BIPDesign.sensing_names``)
+    relative to their datasheet sensitivity, ``tube_volume_factor`` the
     real tube volume over the one its length and bore give. Defaults: the datasheet, no correction."""
 
     gains: Annotated[tuple[Annotated[Number, between(0.5, 2.0, "(a transducer's sensitivity / datasheet)")], ...],
-                     Field(min_length=MIN_ARMS)] = (1.0, 1.0, 1.0, 1.0)  # one per arm, in the sensor order
+                     Field(min_length=MIN_ARMS)] = (1.0, 1.0, 1.0, 1.0)  # one per volume channel, in the sensor order
     tube_volume_factor: Annotated[Number, between(0.2, 5.0)] = 1.0
 
 
@@ -762,12 +758,13 @@ class BIPDesign:
         _validate_arm_names(tuple(a.name for a in self.arms))
         _set(self, "cavities", tuple(self.cavities))
         _validate_cavity_names(self)
-        g = self.sensors.gains
-        if len(g) != len(self.arms):
+        g, n = self.sensors.gains, len(self.sensing_names)
+        if len(g) != n:
             if any(v != 1.0 for v in g):
-                raise DesignError(f"sensors.gains: {len(g)} given for {len(self.arms)} arms (one per arm, in the "
-                                  f"sensor order: {', '.join(self.arm_names)})")
-            _set(self, "sensors", dataclasses.replace(self.sensors, gains=(1.0,) * len(self.arms)))  # the datasheet's
+                what = f"{n} volume channels" if self.measured_cavity_names else f"{n} arms"
+                raise DesignError(f"sensors.gains: {len(g)} given for {what} (one per volume channel, in the "
+                                  f"sensor order: {', '.join(self.sensing_names)})")
+            _set(self, "sensors", dataclasses.replace(self.sensors, gains=(1.0,) * n))  # the datasheet's
         _validate_geometry(self)
         _validate_layers(self)
         _validate_materials(self)
@@ -788,12 +785,42 @@ class BIPDesign:
 
     @property
     def internal_cavity_names(self) -> tuple[str, ...]:
-        """The internal cavities, in the load order (each actuated: a known pressure load).
+        """The internal cavities, actuated and measured, in the file's order (the geometry: mesh,
+        molds).
 
         >>> BIPDesign().internal_cavity_names
         ('urethra',)
         """
         return tuple(c.name for c in self.cavities)
+
+    @property
+    def measured_cavity_names(self) -> tuple[str, ...]:
+        """The internal cavities of ``role = "measured"``, in the file's order (none on the BIP)."""
+        return tuple(c.name for c in self.cavities if c.role == "measured")
+
+    @property
+    def sensing_names(self) -> tuple[str, ...]:
+        """The volume channels in the sensor order: the arms, then the measured internal cavities
+        (each a differential transducer, its volume change by Boyle's law; the rows of ``V`` and ``W``).
+
+        >>> BIPDesign().sensing_names == ARM_NAMES
+        True
+        >>> ball = EllipsoidCavity("ball", center_mm=(-12, -4, -10), semi_axes_mm=(4, 4, 4),
+        ...                        inlet_mm=(-23.355, -7.006, -18.684), role="measured")
+        >>> BIPDesign(cavities=(UrethraParams(), ball)).sensing_names[-2:]
+        ('back_xneg', 'ball')
+        """
+        return (*self.arm_names, *self.measured_cavity_names)
+
+    @property
+    def pressure_names(self) -> tuple[str, ...]:
+        """The actuated internal cavities in the file's order: the pressure loads ``λ[3:]``, each
+        read by a pressure transducer (MPX4250D) on the channels after the volume channels.
+
+        >>> BIPDesign().pressure_names
+        ('urethra',)
+        """
+        return tuple(c.name for c in self.cavities if c.role == "actuated")
 
     @property
     def urethra(self):
@@ -878,6 +905,15 @@ class BIPDesign:
         out = {a.name: a.cavity_volume_mm3 for a in self.arms}
         out.update((c.name, c.volume_mm3) for c in self.cavities)
         return out
+
+    def sensing_volumes_mm3(self) -> tuple[float, ...]:
+        """Design volume of each volume channel's cavity, in :attr:`sensing_names` order.
+
+        >>> BIPDesign().sensing_volumes_mm3()
+        (514.0, 514.0, 486.0, 486.0)
+        """
+        v = self.cavity_volumes_mm3()
+        return tuple(float(v[n]) for n in self.sensing_names)
 
 
 def _validate_arm_names(names: tuple[str, ...]) -> None:
@@ -1350,6 +1386,9 @@ def _cavities_from_dict(data: dict[str, Any], default: tuple) -> tuple:
     given_u, given_c = data.get("urethra"), data.get("cavities")
     if given_u is not None:
         _check_keys("urethra", given_u, None)
+        if "role" in given_u:
+            raise DesignError(f"urethra.role = {given_u['role']!r}: the [urethra] is actuated (its pressure a known "
+                              "load); a measured capsule is a [cavities.NAME] table with role = \"measured\"")
     base_u = next((c for c in default if isinstance(c, UrethraParams)), None) or UrethraParams()
     if given_c is None:
         if given_u is None:

@@ -28,10 +28,11 @@ STEP_PA = 10_000.0
 
 
 def internal_cavities_of(model) -> tuple[str, ...]:
-    """The internal (pressure-loaded) cavities of a phantom model, in the load order (the BIP's:
-    the urethra)."""
+    """The pressure-loaded internal cavities of a phantom model, in the load order: its design's
+    actuated ones (``pressure_names``; the BIP's: the urethra). A measured internal cavity is no
+    load: the equilibrium solver makes it a sensing row after the arms."""
     design = getattr(model, "design", None)
-    return tuple(design.internal_cavity_names) if design is not None else ("urethra",)
+    return tuple(design.pressure_names) if design is not None else ("urethra",)
 
 
 def contact_point(model, contact) -> np.ndarray:
@@ -71,6 +72,10 @@ class ForwardModel:
             fallback_min_load_step=fallback_min_load_step, pressures=internal_cavities_of(model),
         )
         self.pressure_names = self.eq.pressure_names
+        sensing = getattr(getattr(model, "design", None), "sensing_names", None)
+        if sensing is not None and self.eq.arm_names != tuple(sensing):  # fem.cavities in the design's order
+            raise UserError(f"model: its sensing rows ({', '.join(self.eq.arm_names)}) are not its design's volume "
+                            f"channels ({', '.join(sensing)})")
         self.n_markers = len(self.marker_names)
 
     @functools.cached_property

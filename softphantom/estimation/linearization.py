@@ -55,8 +55,8 @@ NEWTON_FIRST_ITERS = 8  # Newton iterations of the fallback's first attempt, fro
 
 
 def arm_names_of(fem, internal=(URETHRA,)) -> tuple[str, ...]:
-    """The sensing arms of a FEM model: its cavities but the ``internal`` ones (the BIP's urethra),
-    in the design's sensor order."""
+    """The sensing rows of a FEM model: its cavities but the pressure-loaded ``internal`` ones (the
+    BIP's urethra), in the design's sensor order: the arms, then any measured internal cavity."""
     return tuple(k for k in fem.cavities if k not in internal)
 
 
@@ -119,7 +119,8 @@ class EquilibriumSolver:
     ``fallback_min_load_step``: the smallest load step of the Newton fallback before it gives up
     (a caller that expects failures, the atlas build, gives up sooner). ``pressures``: the internal
     cavities whose pressures are loads, in the order of ``λ[3:]`` (default: the urethra; the
-    design's ``internal_cavity_names``); the other cavities are the arms. Not thread-safe: one
+    design's ``pressure_names``); the other cavities are the sensing rows (the arms, then the
+    measured internal cavities: the design's ``sensing_names``). Not thread-safe: one
     solver per thread.
     """
 

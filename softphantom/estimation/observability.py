@@ -203,7 +203,7 @@ def observability(model, forward=None, acfg=None, loaded: bool = True) -> Observ
             states.append(observed_state(fm.solve(lam), ranges))
         except SolverError as exc:
             failed.append((lam / _per_reported(3 + m), str(exc).splitlines()[0]))
-    count = count_volume_mm3([model.design.cavity_volumes_mm3()[a] for a in model.design.arm_names])
+    count = count_volume_mm3(list(model.design.sensing_volumes_mm3()))  # the volume channels (W's rows)
     return Observability(ranges, observed_state(fm.rest, ranges), tuple(states), tuple(failed), count)
 
 

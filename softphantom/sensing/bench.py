@@ -55,14 +55,16 @@ def _positive(name: str, v: float) -> float:
 
 @dataclass(frozen=True)
 class BenchConfig:
-    """The pneumatic bench (SI): per-arm tube ``tube_length_m`` × ``tube_id_m`` (inner diameter),
-    the arm cavities ``cavity_volumes_m3`` (one per arm of ``arm_names``, the sensor order; the
-    BIP's four by default), the transducers' extra dead volume ``v_dead_m3`` and the absolute
+    """The pneumatic bench (SI): per-channel tube ``tube_length_m`` × ``tube_id_m`` (inner diameter),
+    the volume channels' cavities ``cavity_volumes_m3`` (one per name of ``arm_names``, the sensor
+    order: the arms, then a design's measured internal cavities, each read as an arm is; the BIP's
+    four arms by default), the transducers' extra dead volume ``v_dead_m3`` and the absolute
     ambient pressure ``p0_Pa`` at tare; as calibrated (``softphantom calibrate``, the design's
-    ``[sensors]``): the arm transducers' ``gains`` (sensitivity / datasheet) and the
-    ``tube_volume_factor`` (real / nominal tube volume); ``cavity_names`` the internal cavities,
-    one pressure transducer (MPX4250D) each on the channels after the arms' (the BIP's: the
-    urethra; none: the arms alone)."""
+    ``[sensors]``): the volume transducers' ``gains`` (sensitivity / datasheet) and the
+    ``tube_volume_factor`` (real / nominal tube volume); ``cavity_names`` the actuated internal
+    cavities, one pressure transducer (MPX4250D) each on the channels after the volume channels
+    (the BIP's: the urethra; none: the volume channels alone). The metadata keeps the names
+    ``arm_names`` and ``arm_cavity_mm3`` for the volume channels, measured cavities included."""
 
     tube_length_m: float = TUBE_LENGTH_M
     tube_id_m: float = TUBE_ID_M
@@ -98,14 +100,16 @@ class BenchConfig:
 
     @classmethod
     def from_model(cls, model, **kw) -> "BenchConfig":
-        """The bench of a :class:`~softphantom.design.PhantomModel`: its design's nominal arm
-        cavities and its internal cavities; ``kw`` (``tube_length_m``, ``tube_id_m``, ``p0_Pa``;
-        None = default) the rest."""
-        vc = tuple(a.cavity_volume_mm3 * 1e-9 for a in model.design.arms)
-        sensors = getattr(model.design, "sensors", None)
+        """The bench of a :class:`~softphantom.design.PhantomModel`: its design's volume channels
+        (``sensing_names``: the arms, then the measured internal cavities) at their nominal
+        volumes, and its actuated internal cavities' pressure channels (``pressure_names``);
+        ``kw`` (``tube_length_m``, ``tube_id_m``, ``p0_Pa``; None = default) the rest."""
+        d = model.design
+        vc = tuple(v * 1e-9 for v in d.sensing_volumes_mm3())
+        sensors = getattr(d, "sensors", None)
         cal = {} if sensors is None else {"gains": sensors.gains, "tube_volume_factor": sensors.tube_volume_factor}
-        return cls(cavity_volumes_m3=vc, **cal, arm_names=model.design.arm_names,
-                   cavity_names=tuple(model.design.internal_cavity_names),
+        return cls(cavity_volumes_m3=vc, **cal, arm_names=d.sensing_names,
+                   cavity_names=tuple(d.pressure_names),
                    **{k: v for k, v in kw.items() if v is not None})
 
     @classmethod
@@ -354,7 +358,7 @@ def open_replay(path: str, model=None, bench: BenchConfig | None = None, *, opti
     meta = rec.meta
     if model is not None:
         mine = (*rec.arm_names, *rec.cavity_names)
-        theirs = (*model.design.arm_names, *model.design.internal_cavity_names)
+        theirs = (*model.design.sensing_names, *model.design.pressure_names)
         if mine != theirs:
             raise UserError(f"--source replay:{arg}: its channels ({', '.join(mine)}) are not the model's "
                             f"({', '.join(theirs)})")

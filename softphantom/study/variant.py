@@ -210,7 +210,7 @@ def _mechanics(design_json: str, mesh_size_mm: float | None, contact: str, conta
         raise UserError(f"evaluate.contact {contact!r}: the model has {', '.join(sorted(model.p_ext))}")
     H_f = force_actuator(fem, model.p_ext[contact], contact_radius_mm * MM)
     pts = [*model.markers.values(), *model.targets.values()]
-    cavities = tuple(design.internal_cavity_names)  # each a known pressure, 0 at the probe load
+    cavities = tuple(design.pressure_names)  # each a known pressure, 0 at the probe load (measured: W's rows)
     eq = EquilibriumSolver(fem, H_f, probe_matrix(fem, pts), pressures=cavities)
     rest = eq.rest()
     lins = {d: eq.solve(rest, np.r_[probe_force_N * np.array(DIRECTIONS[d], float), np.zeros(len(cavities))])
@@ -244,17 +244,17 @@ def _evaluate(variant: Variant) -> dict[str, Any]:
     rest = mech["rest"]
 
     # the pneumatics see the cast cavity (design volume), not the mesh's inscribed polyhedron
-    v_cav = np.array([design.cavity_volumes_mm3()[a] for a in design.arm_names]) * MM**3
+    v_cav = np.array(design.sensing_volumes_mm3()) * MM**3  # the volume channels: W's rows
     v_tube = tube_volume_m3(float(ex["sensing.tube_length_m"]), float(ex["sensing.tube_id_mm"]) * MM)
     q = count_volumes_m3(v_cav, float(ex["sensing.tube_length_m"]), float(ex["sensing.tube_id_mm"]) * MM,
                          int(ex["sensing.osr"]))
-    for a, qa in zip(design.arm_names, q):
+    for a, qa in zip(design.sensing_names, q):
         out[f"count_{a}_mm3"] = qa * 1e9
     sv = np.linalg.svd(rest.W[:, :3], compute_uv=False)
     for i, v in enumerate(sv):
         out[f"W_sv{i + 1}_mm3_per_N"] = v * 1e9
     out["cond_W"] = float(sv[0] / sv[-1]) if sv[-1] > 0 else math.inf
-    env_ranges = envelope_ranges(m=len(design.internal_cavity_names))
+    env_ranges = envelope_ranges(m=len(design.pressure_names))
     out["obs_sv_min_mm3"] = float(observed_state(rest, env_ranges).sv_force_mm3[-1])
 
     nb = noise_bound(rest, rest.sub_x[: mech["n_markers"]], mech["targets"], q)  # as the Estimator

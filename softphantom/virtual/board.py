@@ -102,18 +102,20 @@ class BoardSignals:
 def board_signals(truth, cavity_volumes_m3, config: BoardConfig = BoardConfig(),
                   arm_names: tuple[str, ...] = ARM_NAMES) -> BoardSignals:
     """Pressures at the transducers over the scenario on a 1 kHz grid (see the module docstring).
-    ``truth`` is a :class:`~softphantom.virtual.truth.Truth`; ``cavity_volumes_m3`` (arms,) the
-    arm cavities the physics uses (the truth mesh's), named ``arm_names`` in the sensor order; a
-    pressure channel per internal cavity of the truth's design follows them."""
+    ``truth`` is a :class:`~softphantom.virtual.truth.Truth`; ``cavity_volumes_m3`` (channels,) the
+    volume channels' cavities the physics uses (the truth mesh's), named ``arm_names`` in the
+    sensor order (the arms, then any measured internal cavity: the design's ``sensing_names``); a
+    pressure channel per actuated internal cavity of the truth's design follows them."""
     rng = np.random.default_rng([config.seed, 1])
     na = len(arm_names)
-    cav = tuple(truth.model.design.internal_cavity_names)
+    cav = tuple(truth.model.design.pressure_names)
+    cols = [truth.model.design.cavity_names.index(a) for a in arm_names]  # truth dV: arms, then every internal
     chain = default_chain(cavity_volumes_m3, config.tube_length_m, config.tube_id_m, arm_names=tuple(arm_names),
                           cavity_names=cav)
     dur = truth.scenario.duration_s
     t = np.arange(0.0, dur + 0.5 + LAG_GRID_S / 2, LAG_GRID_S)
     ts = truth.sample(t)
-    p_cav = boyle_dp(ts.dV[:, :na], chain.v_total_m3, config.p0_Pa)
+    p_cav = boyle_dp(ts.dV[:, cols], chain.v_total_m3, config.p0_Pa)
     tau = np.array([tube_time_constant_s(config.tube_length_m, config.tube_id_m, v, config.p0_Pa)
                     for v in cavity_volumes_m3])
     if config.tube_lag:
@@ -186,5 +188,6 @@ class VirtualBoard:
 
 
 def arm_volumes(model) -> np.ndarray:
-    """(arms,) m³, the arm cavity volumes of a PhantomModel in the sensor order."""
-    return np.array([model.cavity_volume(a) for a in model.design.arm_names])
+    """(channels,) m³, the volume channels' cavity volumes of a PhantomModel in the sensor order
+    (the arms, then any measured internal cavity)."""
+    return np.array([model.cavity_volume(a) for a in model.design.sensing_names])

@@ -72,8 +72,9 @@ def demo_contacts(points) -> tuple[str, ...]:
 def design_scenarios(design, push_N: float = PUSH_N, inflate_kPa: float = INFLATE_KPA) -> list:
     """The demo of a design without scenario files: at each of :func:`demo_contacts`, three pushes
     of ``push_N`` (N) into the body, along the inward surface normal and tilted ``PUSH_TILT_DEG``
-    either way (as the paper's manual pushes, Fig. 9); then, for each internal cavity, three
-    inflations to ``inflate_kPa`` (a breathing-like cycle for an actuator, a lesion's balloon swelling).
+    either way (as the paper's manual pushes, Fig. 9); then, for each actuated internal cavity, three
+    inflations to ``inflate_kPa`` (a breathing-like cycle for an actuator, a lesion's balloon swelling;
+    a measured cavity is read during the pushes, never inflated).
 
     >>> from softphantom.design import default_design
     >>> [sc.name for sc in design_scenarios(default_design())]
@@ -107,7 +108,7 @@ def design_scenarios(design, push_N: float = PUSH_N, inflate_kPa: float = INFLAT
                            f"tilted {PUSH_TILT_DEG:g}° either way"}, source=f"{design.name} (generated)"))
     if not 0.0 < inflate_kPa <= 250.0:
         raise ValueError(f"inflate_kPa must be in (0, 250] kPa, got {inflate_kPa:g}")
-    for c in design.internal_cavity_names:
+    for c in design.pressure_names:  # a measured cavity is read, never inflated
         cycles = [{"cavity": c, "p_kPa": inflate_kPa, "start_s": 2.0 + 3.5 * i, "rise_s": 1.1, "hold_s": 0.7,
                    "fall_s": 1.1} for i in range(3)]
         out.append(scenario_from_dict({

@@ -123,18 +123,18 @@ class VirtualRun:
             cols[name] = v[:, k]
         for k, a in enumerate("xyz"):
             cols[f"force_{a}_N"] = s.force[:, k]
-        for j, c in enumerate(s.cavity_names):  # the internal cavities (the BIP: p_urethra_kPa)
+        for j, c in enumerate(s.cavity_names):  # the actuated internal cavities (the BIP: p_urethra_kPa)
             cols[f"p_{c}_kPa"] = s.pressures[:, j] / 1e3
         for j, name in enumerate(self.truth.target_names):
             for k, a in enumerate("xyz"):
                 cols[f"{name}_d{a}_mm"] = s.targets[:, j, k] * 1e3
-        for i, c in enumerate(self.truth.model.design.cavity_names):  # the arms, then the internal cavities
+        for i, c in enumerate(self.truth.model.design.cavity_names):  # the arms, then every internal cavity
             cols[f"dV_{c}_mm3"] = s.dV[:, i] * 1e9
         return cols
 
 
 def host_bench(model: PhantomModel, board: BoardConfig = BoardConfig()) -> BenchConfig:
-    """The bench the host assumes: the design's nominal arm cavities behind the board's tubes."""
+    """The bench the host assumes: the design's nominal volume-channel cavities behind the board's tubes."""
     return BenchConfig.from_model(model, tube_length_m=board.tube_length_m, tube_id_m=board.tube_id_m,
                                   p0_Pa=board.p0_Pa)
 
@@ -150,7 +150,7 @@ def simulate(scenario: Scenario | str | Path, model: PhantomModel, config: Virtu
     sc = scenario if isinstance(scenario, Scenario) else load_scenario(scenario)
     chain = host_chain(model, config.board)  # before the solve: a design the board cannot read is refused now
     tr = truth or solve_truth(sc, model, config.truth, truth_mesh=truth_mesh)
-    sig = board_signals(tr, arm_volumes(tr.model), config.board, tr.model.design.arm_names)
+    sig = board_signals(tr, arm_volumes(tr.model), config.board, tr.model.design.sensing_names)
     trk = simulate_tracker(tr, config.tracker)
     return VirtualRun(sc, model, tr, sig, trk, chain, config)
 

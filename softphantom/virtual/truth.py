@@ -135,8 +135,8 @@ class EventTruth:
 @dataclass(frozen=True, eq=False)
 class TruthSamples:
     """The truth at times ``t`` (n,) s (scenario clock): ``force`` (n, 3) N, ``pressures`` (n, M)
-    Pa gauge of the internal cavities ``cavity_names``, ``dV`` (n, cavities) m³ (the arms, then
-    the internal cavities), ``markers`` (n, k, 3) m, ``targets`` (n, t, 3) m displacement,
+    Pa gauge of the actuated internal cavities ``cavity_names``, ``dV`` (n, cavities) m³ (the arms,
+    then every internal cavity, actuated or measured), ``markers`` (n, k, 3) m, ``targets`` (n, t, 3) m displacement,
     ``pose`` of the marker rigid body relative to rest."""
 
     t: np.ndarray
@@ -176,7 +176,7 @@ class Truth:
         """The truth at times ``t`` (s), interpolated in load level (see the module docstring)."""
         t = np.atleast_1d(np.asarray(t, float))
         n, k, nt = len(t), len(self.marker_names), len(self.target_names)
-        cav = tuple(self.model.design.internal_cavity_names)
+        cav = tuple(self.model.design.pressure_names)  # the loads; a measured cavity is read, in dV
         force = np.zeros((n, 3))
         p = np.zeros((n, len(cav)))
         dV = np.zeros((n, len(self.model.design.cavity_names)))  # the arms, then the internal cavities
@@ -204,7 +204,7 @@ class Truth:
     def summary(self) -> dict:
         """Peak figures per event (mm, N, kPa, % bulb growth), JSON-able."""
         out = []
-        cav = tuple(self.model.design.internal_cavity_names)
+        cav = tuple(self.model.design.pressure_names)
         for et in self.events:
             # the BIP's figures as they were; another design's name the inflated cavity and its pressure
             p = (dict(p_urethra_kPa=round(et.p_urethra / 1e3, 3)) if cav == ("urethra",) else
@@ -268,7 +268,14 @@ def solve_truth(scenario: Scenario, model: PhantomModel, config: TruthConfig = T
     :func:`softphantom.progress.report`); a given ``truth_mesh`` sets the element order (its own)."""
     given = model if truth_mesh is None else truth_mesh
     scenario.check_points(given.p_ext)  # before the truth is meshed
-    scenario = scenario.check_cavities(given.design.internal_cavity_names)
+    measured = given.design.measured_cavity_names
+    for e in scenario.events:
+        if e.kind == "inflate" and e.cavity in measured:
+            from softphantom.virtual.scenario import ScenarioError
+
+            raise ScenarioError(f"{scenario.source}: inflate.cavity {e.cavity}: a measured cavity (read as a volume, "
+                                f"never loaded); the actuated ones: {', '.join(given.design.pressure_names) or 'none'}")
+    scenario = scenario.check_cavities(given.design.pressure_names)
     t0 = time.perf_counter()
     task = f"{scenario.name}: truth"
     if truth_mesh is None:

@@ -695,9 +695,10 @@ def build_settings(fwd: ForwardModel, acfg: AtlasConfig) -> dict:
 
 
 def check_atlas_cavities(model) -> str:
-    """The atlas tabulates λ = (f, p) with p the gauge pressure of the model's one internal cavity
-    (the BIP's urethra, a kidney's collecting system): returns that cavity's name; a model of
-    another number of internal cavities is refused in one line (the refresh estimator takes any)."""
+    """The atlas tabulates λ = (f, p) with p the gauge pressure of the model's one actuated internal
+    cavity (the BIP's urethra, a kidney's collecting system; a measured cavity is a volume row, not a
+    load): returns that cavity's name; a model of another number of actuated internal cavities is
+    refused in one line (the refresh estimator takes any)."""
     names = internal_cavities_of(model)
     if len(names) != 1:
         raise UserError(f"cavities: the atlas tabulates one internal pressure; this design has {len(names)}"

@@ -106,7 +106,7 @@ class LiveGeometry:
             p_ext=np.asarray(points[p_ext], float),
             contact_radius_m=None if contact_radius_m is None else float(contact_radius_m),
             cavities=dict(zip(cavities, parts[1:])),
-            arm_names=ARM_NAMES if design is None else tuple(design.arm_names),
+            arm_names=ARM_NAMES if design is None else tuple(getattr(design, "sensing_names", design.arm_names)),
         )
 
     def to_json(self) -> dict[str, Any]:
@@ -414,11 +414,11 @@ class EstimateReplay:
         if not self.messages:
             raise FileFormatError(f"{path}: no estimates to replay")
         design = getattr(model, "design", None)
-        model_arms = getattr(design, "arm_names", None)
+        model_arms = getattr(design, "sensing_names", getattr(design, "arm_names", None))  # arms, measured cavities
         if geometry is None and model_arms is not None and tuple(model_arms) != self.arm_names:
             raise UserError(f"replay {path}: its arms ({', '.join(self.arm_names)}) are not the model's "
                             f"({', '.join(model_arms)})")
-        model_cav = getattr(design, "internal_cavity_names", None)
+        model_cav = getattr(design, "pressure_names", getattr(design, "internal_cavity_names", None))
         if geometry is None and model_cav is not None and tuple(model_cav) != self.cavity_names:
             raise UserError(f"replay {path}: its internal cavities ({', '.join(self.cavity_names) or 'none'}) are "
                             f"not the model's ({', '.join(model_cav) or 'none'})")
