@@ -73,13 +73,37 @@ def _virtual(arg: str, *, model=None, bench=None, options=None, **_) -> OpenedSo
                         {"bench": b.to_meta()})
 
 
-def _synthetic(arg: str, *, rate_Hz=77.0, duration_s=None, **_) -> OpenedSource:
+def _synthetic(arg: str, *, rate_Hz=77.0, duration_s=None, model=None, **_) -> OpenedSource:
     from softphantom.viz.live.source import SyntheticSource
 
     if arg:
         raise UserError(f"--source synthetic:{arg}: synthetic takes no argument")
+    _check_synthetic_model(model)
     return OpenedSource(SyntheticSource(rate_Hz=rate_Hz, duration_s=duration_s), True, None, None, (), {},
                         gives="estimates")
+
+
+def _check_synthetic_model(model) -> None:
+    """The synthetic source makes up the BIP's estimates (its four arms, its urethra, its targets):
+    a model of other names is refused in one line rather than shown under the BIP's."""
+    if model is None:
+        return
+    from softphantom.design import load_design
+    from softphantom.design.params import BIPDesign
+
+    design = getattr(model, "design", None)
+    if design is None:
+        path = Path(model) / "design.toml"
+        if not path.is_file():
+            return  # the model's own reader names what is missing where it is used
+        design = load_design(path)
+    bip = BIPDesign()
+    mine = (design.sensing_names, design.pressure_names, tuple(design.target_dict))
+    if mine != (bip.sensing_names, bip.pressure_names, tuple(bip.target_dict)):
+        raise UserError(f"--source synthetic: made-up estimates of the BIP (arms {', '.join(bip.sensing_names)}; "
+                        f"the urethra); this model has {', '.join(design.sensing_names)}"
+                        f"{'; ' + ', '.join(design.pressure_names) if design.pressure_names else ''}: "
+                        "use --source virtual:SCENARIO to see it")
 
 
 def replay_holds(path: str | Path) -> str | None:

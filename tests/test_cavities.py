@@ -289,8 +289,8 @@ def test_observability_of_two_pressures():
     assert obs.ranges.shape == (5,) and obs.ranges[3] == obs.ranges[4]
     assert obs.rest.J.shape == (4, 5) and len(obs.rest.sv_mm3) == 4
     md = observability_md(obs)
-    assert "`sv1..4`: force and the internal cavities' pressures" in md and "| sv4_mm3 | cond |" in md
-    assert "each p" in md
+    assert "`sv1..4`: force and the pressures of urethra, tumour" in md and "| sv4_mm3 | cond |" in md
+    assert "p_urethra 42 kPa, p_tumour 42 kPa" in md and "p_tumour +" in md  # each pressure by its cavity's name
 
 
 def test_the_documented_example_is_valid():

@@ -147,6 +147,12 @@ def test_the_measured_row_obeys_maxwell_betti_reciprocity():
     assert r.W[4, 3] == pytest.approx(W[4, 3], rel=1e-9)
     np.testing.assert_allclose(H.T @ r.U[:, 3], W[4, :3], rtol=1e-9)
     np.testing.assert_allclose(r.W[:4, :3], W[:4, :3], rtol=1e-9)  # the arms' rows: the force alone
+    # the design report's observability: five rows, the ball named among them, one pressure load
+    from softphantom.estimation.observability import observability, observability_md
+
+    obs = observability(_model(), forward=fwd, loaded=False)
+    assert obs.rest.J.shape == (5, 4) and obs.measured_names == ("ball",) and obs.pressure_names == ("urethra",)
+    assert "sensitivity of the volume channels (the arms and the measured ball) to the loads" in observability_md(obs)
 
 
 # --- end to end ---------------------------------------------------------------------------------

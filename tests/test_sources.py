@@ -62,3 +62,20 @@ def test_a_source_of_estimates_is_refused_where_samples_are_needed(files, capsys
     # live estimates a sensing recording again, which needs the model
     assert main(["live", "--source", f"replay:{files['sensing']}", "--http-port", "0"]) == 2
     assert "needs --model" in capsys.readouterr().err
+
+
+def test_the_synthetic_source_refuses_a_model_of_other_names(tmp_path):
+    """``synthetic`` makes up the BIP's estimates: a model directory of the BIP's names is taken
+    (and not used), one of other arms or cavities is refused in one line naming both."""
+    from softphantom.design.params import BIPDesign, design_from_dict, design_to_toml
+
+    bip, other = tmp_path / "bip", tmp_path / "three"
+    for d, design in ((bip, BIPDesign()), (other, design_from_dict({"arm_names": ["front_zpos", "front_zneg",
+                                                                                  "back_xpos"]}))):
+        d.mkdir()
+        (d / "design.toml").write_text(design_to_toml(design))
+    assert open_source("synthetic", bip, duration_s=0.1).gives == "estimates"
+    with pytest.raises(UserError, match=r"^--source synthetic: made-up estimates of the BIP \(arms front_zpos, "
+                                        r".*this model has front_zpos, front_zneg, back_xpos; urethra: use "
+                                        r"--source virtual:SCENARIO to see it$"):
+        open_source("synthetic", other, duration_s=0.1)

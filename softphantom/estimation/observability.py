@@ -72,15 +72,34 @@ def count_volume_mm3(cavity_volumes_mm3: Sequence[float]) -> float:
     return max(r.v_cavity_mm3 * r.resolution_Pa_paper / p.p0_Pa for r in budget(p))
 
 
-def load_text(step: np.ndarray) -> str:
-    """A load step (N, N, N, kPa; or the three forces) as text.
+def load_names(pressure_names=("urethra",)) -> tuple[str, ...]:
+    """The loads' names in the report: the force's three, then ``p_<cavity>`` per internal
+    cavity (the BIP's urethra: ``p_u``).
+
+    >>> load_names(), load_names(("collecting_system",))[3]
+    (('f_x', 'f_y', 'f_z', 'p_u'), 'p_collecting_system')
+    """
+    pressure_names = tuple(pressure_names)
+    if pressure_names == ("urethra",):
+        return LOAD_NAMES
+    return (*LOAD_NAMES[:3], *(f"p_{c}" for c in pressure_names))
+
+
+def load_text(step: np.ndarray, pressure_names=None) -> str:
+    """A load step (N, N, N, kPa; or the three forces) as text, the pressures named by
+    ``pressure_names`` (default: the urethra for one, ``p_1…p_M`` for several).
 
     >>> load_text(np.array([0.0, -1.25, 4.0, 0.5]))
     'f_x +0.00 N, f_y -1.25 N, f_z +4.00 N, p_u +0.50 kPa'
+    >>> load_text(np.array([0.0, 0.0, 1.0, 2.0, 3.0]), ("tumour", "breathing"))
+    'f_x +0.00 N, f_y +0.00 N, f_z +1.00 N, p_tumour +2.00 kPa, p_breathing +3.00 kPa'
     """
     step = np.asarray(step, float)
-    names, units = (LOAD_NAMES, LOAD_UNITS) if len(step) in (3, 4) else \
-        ((*LOAD_NAMES[:3], *(f"p_{i + 1}" for i in range(len(step) - 3))), (*LOAD_UNITS[:3], *["kPa"] * (len(step) - 3)))
+    m = len(step) - 3
+    if pressure_names is None:
+        pressure_names = ("urethra",) if m <= 1 else tuple(str(i + 1) for i in range(m))
+    names = load_names(pressure_names)
+    units = (*LOAD_UNITS[:3], *["kPa"] * max(m, 0))
     return ", ".join(f"{n} {v:+.2f} {u}" for n, u, v in zip(names, units, step))
 
 
@@ -131,13 +150,26 @@ class Observability:
     ``ranges`` (4,) N, N, N, kPa: the envelope's ranges that scale the columns; ``rest`` and
     ``loaded`` :class:`ObservedState`; ``failed``: the loads (N, N, N, kPa) whose equilibrium did
     not converge, each with the solver's reason; ``count_mm3``: one count of the sensors
-    (:func:`count_volume_mm3`)."""
+    (:func:`count_volume_mm3`); ``pressure_names`` the internal cavities whose pressures are the
+    loads after the force; ``measured_names`` the measured cavities among the rows (after the arms)."""
 
     ranges: np.ndarray
     rest: ObservedState
     loaded: tuple[ObservedState, ...]
     failed: tuple[tuple[np.ndarray, str], ...]
     count_mm3: float
+    pressure_names: tuple[str, ...] = ("urethra",)
+    measured_names: tuple[str, ...] = ()
+
+    def text(self, step) -> str:
+        """:func:`load_text` with this design's pressure names."""
+        return load_text(step, self.pressure_names)
+
+    @property
+    def rows(self) -> str:
+        """What the rows are, for the report's sentences."""
+        return "arm volumes" if not self.measured_names else \
+            f"volume channels (the arms and the measured {', '.join(self.measured_names)})"
 
     @property
     def states(self) -> tuple[ObservedState, ...]:
@@ -204,7 +236,9 @@ def observability(model, forward=None, acfg=None, loaded: bool = True) -> Observ
         except SolverError as exc:
             failed.append((lam / _per_reported(3 + m), str(exc).splitlines()[0]))
     count = count_volume_mm3(list(model.design.sensing_volumes_mm3()))  # the volume channels (W's rows)
-    return Observability(ranges, observed_state(fm.rest, ranges), tuple(states), tuple(failed), count)
+    measured = tuple(n for n in fm.eq.arm_names if n in getattr(model.design, "measured_cavity_names", ()))
+    return Observability(ranges, observed_state(fm.rest, ranges), tuple(states), tuple(failed), count,
+                         tuple(fm.eq.pressure_names), measured)
 
 
 def layout_problem(obs: Observability) -> str:
@@ -214,8 +248,8 @@ def layout_problem(obs: Observability) -> str:
     ratio = r.sv_force_mm3[-1] / r.sv_force_mm3[0]
     if ratio >= REFUSE_RATIO:
         return ""
-    return (f"arms: the layout cannot see a force step ({load_text(r.weakest_force)}) at rest: it changes the arm "
-            f"volumes by {r.sv_force_mm3[-1]:.3g} mm³, {ratio:.3f} of the best-seen direction (refused below "
+    return (f"arms: the layout cannot see a force step ({obs.text(r.weakest_force)}) at rest: it changes the "
+            f"{obs.rows} by {r.sv_force_mm3[-1]:.3g} mm³, {ratio:.3f} of the best-seen direction (refused below "
             f"{REFUSE_RATIO:g}); e.g. move an arm out of the plane of the others")
 
 
@@ -226,12 +260,12 @@ def layout_warnings(obs: Observability) -> list[str]:
     w = obs.weakest_state
     counts = w.sv_force_mm3[-1] / obs.count_mm3
     if counts < WARN_COUNTS:
-        at = "at rest" if w is obs.rest else f"at {load_text(w.lam)}"
-        lines.append(f"arms: the force step {load_text(w.weakest_force)} {at} changes the arm volumes by "
+        at = "at rest" if w is obs.rest else f"at {obs.text(w.lam)}"
+        lines.append(f"arms: the force step {obs.text(w.weakest_force)} {at} changes the {obs.rows} by "
                      f"{w.sv_force_mm3[-1]:.3g} mm³, {counts:.1f} counts of {obs.count_mm3:.3g} mm³ (warned below "
                      f"{WARN_COUNTS:g}): that direction is poorly observable")
     for lam, why in obs.failed:
-        lines.append(f"observability: no equilibrium at {load_text(lam)} ({why})")
+        lines.append(f"observability: no equilibrium at {obs.text(lam)} ({why})")
     return lines
 
 
@@ -258,19 +292,22 @@ def observability_md(obs: Observability) -> str:
     condf = np.array([s.cond_force for s in states])
     r = obs.rest
     w = obs.weakest_state
-    env = ", ".join(f"{n} {x:g} {u}" for n, x, u in zip(LOAD_NAMES, obs.ranges, LOAD_UNITS))
-    k = len(r.sv_mm3)  # min(arms, loads)
-    bip = len(obs.ranges) == 4  # the force and one pressure
-    if not bip:  # M internal cavities other than the BIP's one
-        env = ", ".join(f"{n} {x:g} {u}" for n, x, u in zip((*LOAD_NAMES[:3], "each p"), obs.ranges, LOAD_UNITS))
+    names = load_names(obs.pressure_names)
+    units = (*LOAD_UNITS[:3], *["kPa"] * len(obs.pressure_names))
+    env = ", ".join(f"{n} {x:g} {u}" for n, x, u in zip(names, obs.ranges, units))
+    k = len(r.sv_mm3)  # min(rows, loads)
+    bip = obs.pressure_names == ("urethra",)
+    m = len(obs.pressure_names)
+    pressures = ("urethra pressure" if bip else f"the pressure of {obs.pressure_names[0]}" if m == 1 else
+                 f"the pressures of {', '.join(obs.pressure_names)}" if m else "no pressure")
     lines = [
         "## Observability",
         "",
-        "Singular values of the arm volumes' sensitivity to the loads, each input scaled by its range over "
+        f"Singular values of the sensitivity of the {obs.rows} to the loads, each input scaled by its range over "
         f"the load envelope ({env}): the volume change (mm³) of a load step one envelope long. "
-        + (f"`sv1..{k}`: force and the internal cavities' pressures; `force_sv1..3`: the force alone (the pressures "
-         "are measured)." if not bip else
-         "`sv1..4`: force and urethra pressure; `force_sv1..3`: the force alone (the urethra pressure is measured)."),
+        f"`sv1..{k}`: force and {pressures}; `force_sv1..3`: the force alone"
+        + (f" (the {'urethra pressure is' if bip else 'pressure is' if m == 1 else 'pressures are'} measured)."
+           if m else "."),
         "",
         "| state | " + " | ".join(f"sv{i + 1}_mm3" for i in range(k))
         + " | cond | force_sv1_mm3 | force_sv2_mm3 | force_sv3_mm3 | force_cond |",
@@ -282,11 +319,11 @@ def observability_md(obs: Observability) -> str:
                   row("envelope max", sv.max(0), svf.max(0), cond.max(), condf.max())]
     lines += [
         "",
-        f"- weakest direction at rest (all inputs): {load_text(r.weakest)}",
-        f"- weakest force direction at rest: {load_text(r.weakest_force)} "
+        f"- weakest direction at rest (all inputs): {obs.text(r.weakest)}",
+        f"- weakest force direction at rest: {obs.text(r.weakest_force)} "
         f"({r.sv_force_mm3[-1] / r.sv_force_mm3[0]:.3f} of the best-seen; refused below {REFUSE_RATIO:g})",
-        f"- weakest force direction over the envelope: {load_text(w.weakest_force)} at "
-        f"{'rest' if w is r else load_text(w.lam)}: {w.sv_force_mm3[-1]:.3g} mm³ = "
+        f"- weakest force direction over the envelope: {obs.text(w.weakest_force)} at "
+        f"{'rest' if w is r else obs.text(w.lam)}: {w.sv_force_mm3[-1]:.3g} mm³ = "
         f"{w.sv_force_mm3[-1] / obs.count_mm3:.0f} counts of {obs.count_mm3:.3g} mm³ (warned below {WARN_COUNTS:g})",
     ]
     if obs.loaded:
