@@ -41,7 +41,7 @@ SCENARIO = {"name": "pushes-and-balloon", "duration_s": 9.6, "rest_s": 1.0,
                          "fall_s": 0.6}]}
 
 
-def _edited(src: Path, dst: Path, rename: dict[str, str] = {}, zero: str | None = None) -> Path:  # noqa: B006
+def _edited(src: Path, dst: Path, rename: dict[str, str] | None = None, zero: str | None = None) -> Path:
     """A copy of recording ``src`` with header columns renamed (old -> new) and column ``zero``'s
     values set to 0."""
     lines = src.read_text().splitlines()
@@ -51,7 +51,7 @@ def _edited(src: Path, dst: Path, rename: dict[str, str] = {}, zero: str | None 
         j = header.index(zero)
         for r in rows:
             r[j] = "0"
-    header = [rename.get(c, c) for c in header]
+    header = [(rename or {}).get(c, c) for c in header]
     dst.write_text("\n".join([lines[0], ",".join(header)] + [",".join(r) for r in rows]) + "\n")
     return dst
 
