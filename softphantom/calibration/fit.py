@@ -4,8 +4,9 @@ jointly with the (unknown or measured) load at every keyframe.
 Unknowns ``z``: the global parameters (:data:`PARAMETERS`; stiffness scales as logarithms) and a
 force (3,) N per keyframe. Residuals, each divided by its standard deviation:
 
-* per keyframe, the four arm pressures: ``g_i · boyle_dp(ΔV_i, V_cav,i + τ·V_tube,i) + o_i + d_s·t``
-  against the recording (tube lag undone), ΔV from the FEM at the keyframe's load, ``d_s`` the
+* per keyframe, the arm pressures: ``g_i · boyle_dp(ΔV_i, V_cav,i + τ·V_tube,i) + o_i + d_s·t``
+  against the recording (tube lag undone), ΔV from the FEM at the keyframe's load (the force on
+  the contact and the recorded pressure of every internal cavity), ``d_s`` the
   session's common pressure drift (the trapped air's temperature: P0/T ≈ 350 Pa per kelvin, so
   0.05 K/min is 0.3 Pa/s, 9 Pa over 30 s — several times the rest noise), ``t`` from the
   recording's start;
@@ -35,10 +36,11 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from softphantom.calibration.forward import ARM_NAMES, GROUPS, KeyframeSolution
-from softphantom.calibration.session import Session
+from softphantom.calibration.session import Session, cavity_pressures
 from softphantom.errors import SolverError, UserError
 from softphantom.fem import LAWS
 from softphantom.pose import rigid_fit, ypr_from_matrix
+from softphantom.records.names import BIP_CAVITIES
 from softphantom.sensing.pneumatics import boyle_dp
 
 logger = logging.getLogger(__name__)
@@ -197,7 +199,9 @@ class Keyframes:
     """All keyframes: ``session`` index, ``t`` s (recording clock), ``dp`` (K, arms) Pa,
     ``p_urethra`` (K,) Pa, ``contact`` (K, 3) m, ``known`` (K, 3) N (NaN where unknown),
     ``dp_rate`` (K, arms) Pa/s the readings' rate (None: 0), what a tube time constant other than the
-    recording's changes ``dp`` by (:meth:`Problem.measured_dp`)."""
+    recording's changes ``dp`` by (:meth:`Problem.measured_dp`); ``cavity_names`` the internal
+    cavities in the model's load order and ``pressures`` (K, M) Pa their gauge pressures (None:
+    ``p_urethra`` as the urethra's; :attr:`cavity_pressures_Pa` either way)."""
 
     session: np.ndarray
     t: np.ndarray
@@ -206,10 +210,26 @@ class Keyframes:
     contact: np.ndarray
     known: np.ndarray
     dp_rate: np.ndarray | None = None
+    cavity_names: tuple[str, ...] = BIP_CAVITIES
+    pressures: np.ndarray | None = None
+
+    @property
+    def cavity_pressures_Pa(self) -> np.ndarray:
+        """(K, M) Pa the internal cavities' gauge pressures, in :attr:`cavity_names` order."""
+        return cavity_pressures(self.p_urethra, self.pressures, self.cavity_names)
+
+    def loads_Pa(self, k: int) -> dict[str, float]:
+        """Keyframe ``k``'s internal pressures by cavity name (Pa), the solve's ``pressures_Pa``."""
+        return dict(zip(self.cavity_names, (float(p) for p in self.cavity_pressures_Pa[k])))
 
     @staticmethod
     def of(sessions: list[Session], times: list[np.ndarray]) -> "Keyframes":
-        s, t, dp, pu, c, kn, rate = [], [], [], [], [], [], []
+        names = sessions[0].cavity_names if sessions else BIP_CAVITIES
+        for se in sessions:
+            if tuple(se.cavity_names) != tuple(names):
+                raise UserError(f"session {se.name}: internal cavities {', '.join(se.cavity_names) or 'none'}, "
+                                f"session {sessions[0].name}: {', '.join(names) or 'none'}")
+        s, t, dp, pu, c, kn, rate, pc = [], [], [], [], [], [], [], []
         for i, (se, tt) in enumerate(zip(sessions, times)):
             tt = np.asarray(tt, float)
             s.append(np.full(tt.size, i))
@@ -219,11 +239,14 @@ class Keyframes:
             rate.append(np.zeros((tt.size, na)) if se.dp_rate is None else
                         np.stack([np.interp(tt, se.t, se.dp_rate[:, k]) for k in range(na)], axis=1))
             pu.append(np.interp(tt, se.t, se.p_urethra))
+            sp = se.cavity_pressures_Pa
+            pc.append(np.stack([np.interp(tt, se.t, sp[:, j]) for j in range(sp.shape[1])], axis=1).reshape(tt.size, -1))
             c.append(np.broadcast_to(se.contact, (tt.size, 3)))
             k = se.known_at(tt)
             kn.append(np.full((tt.size, 3), np.nan) if k is None else k)
         return Keyframes(np.concatenate(s), np.concatenate(t), np.concatenate(dp), np.concatenate(pu),
-                         np.concatenate(c), np.concatenate(kn), np.concatenate(rate))
+                         np.concatenate(c), np.concatenate(kn), np.concatenate(rate), tuple(names),
+                         np.concatenate(pc))
 
     def __len__(self) -> int:
         return len(self.t)
@@ -362,7 +385,7 @@ class Problem:
         fr = self.frames
         mls = TRIAL_MIN_LOAD_STEP if trial else 1.0 / 1024
         tasks = [(self.model_dir, tuple(fr.contact[k]), self.options.radius_m, u["scales"], forces[k],
-                  float(fr.p_urethra[k]), self.x_warm[k], mls, u["shape"], 1e-9, self.options.law)
+                  fr.loads_Pa(k), self.x_warm[k], mls, u["shape"], 1e-9, self.options.law)
                  for k in range(len(fr))]
         sols = self.solve_many(tasks)
         self.solves += len(tasks)

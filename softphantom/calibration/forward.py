@@ -43,7 +43,6 @@ from softphantom.fem import (
 )
 from softphantom.records.names import ARM_NAMES
 
-URETHRA = "urethra"
 #: Region groups whose stiffness the calibration can scale: the bulb, and the four arms together.
 GROUPS = ("bulb", "arms")
 
@@ -225,13 +224,49 @@ class KeyframeSolution:
     dM_dshape: np.ndarray | None = None
 
 
+def keyframe_pressures(model, pressures_Pa) -> dict[str, float] | None:
+    """The internal-cavity loads of a keyframe for :func:`~softphantom.fem.solve_static`: the
+    nonzero ones of ``pressures_Pa`` (Pa; a mapping cavity name -> p naming every internal cavity
+    of ``model`` (:func:`~softphantom.estimation.forward.internal_cavities_of`), or one number for
+    a model with one, the BIP's urethra; 0 for none) in the model's load order; None if all are 0.
+
+    >>> from softphantom.design import BIPDesign
+    >>> from types import SimpleNamespace
+    >>> bip = SimpleNamespace(design=BIPDesign())
+    >>> keyframe_pressures(bip, 5e3), keyframe_pressures(bip, {"urethra": 0.0}), keyframe_pressures(bip, 0.0)
+    ({'urethra': 5000.0}, None, None)
+    >>> keyframe_pressures(bip, {"tumour": 1e3})
+    Traceback (most recent call last):
+    ...
+    softphantom.errors.UserError: keyframe pressures of tumour: the model's internal cavities are urethra
+    """
+    from softphantom.estimation.forward import internal_cavities_of
+
+    names = internal_cavities_of(model)
+    if isinstance(pressures_Pa, dict):
+        if set(pressures_Pa) != set(names):
+            raise UserError(f"keyframe pressures of {', '.join(pressures_Pa) or 'no cavity'}: the model's internal "
+                            f"cavities are {', '.join(names) or 'none'}")
+        given = {n: float(pressures_Pa[n]) for n in names}
+    elif not pressures_Pa:
+        given = {}
+    elif len(names) == 1:
+        given = {names[0]: float(pressures_Pa)}
+    else:
+        raise UserError(f"keyframe pressure {pressures_Pa} Pa: the model has internal cavities "
+                        f"{', '.join(names) or 'none'}: name each")
+    loads = {n: p for n, p in given.items() if p}
+    return loads or None
+
+
 def solve_keyframe(model_dir: str, contact: tuple[float, float, float], radius_m: float,
-                   scales: dict[str, float], force_N, p_urethra_Pa: float,
+                   scales: dict[str, float], force_N, pressures_Pa: dict[str, float] | float,
                    x0: np.ndarray | None = None, min_load_step: float = 1.0 / 1024,
                    shape: dict[str, tuple[float, float]] | None = None, tol: float = 1e-9,
                    law: str | None = None) -> KeyframeSolution:
-    """Equilibrium and sensitivities at force ``force_N`` (3,) on the contact patch and urethra
-    pressure ``p_urethra_Pa``, with the moduli of each group in ``scales`` multiplied by its value
+    """Equilibrium and sensitivities at force ``force_N`` (3,) on the contact patch and the
+    internal cavities' pressures ``pressures_Pa`` (:func:`keyframe_pressures`: name -> Pa, or one
+    number for a model of one internal cavity), with the moduli of each group in ``scales`` multiplied by its value
     (groups not named keep their nominal moduli), and the groups in ``shape`` given their law's
     ratios (:func:`shaped_fem`). ``x0`` warm start (3N,); ``min_load_step`` the
     smallest load increment the solve may cut to (:func:`~softphantom.fem.solve_static`) before it
@@ -245,13 +280,13 @@ def solve_keyframe(model_dir: str, contact: tuple[float, float, float], radius_m
     ts = _tet_scale(base, scales)
     fem = scaled_fem(fem0, ts)
     f = np.asarray(force_N, float)
-    pressures = {URETHRA: float(p_urethra_Pa)} if p_urethra_Pa else None
+    pressures = keyframe_pressures(base.model, pressures_Pa)
     solver = base.solver
     sol = solve_static(fem, base.H @ f, pressures=pressures, x0=x0, tol=tol, solver=solver,
                        min_load_step=min_load_step)
     if not sol.converged:
-        raise SolverError(f"keyframe at force {np.round(f, 3).tolist()} N, urethra "
-                          f"{p_urethra_Pa / 1e3:.3g} kPa: {sol.status}")
+        shown = ", ".join(f"{n} {p / 1e3:.3g} kPa" for n, p in (pressures or {}).items()) or "no internal pressure"
+        raise SolverError(f"keyframe at force {np.round(f, 3).tolist()} N, {shown}: {sol.status}")
     x = sol.x.reshape(-1)
     n = fem.n_dof
     free = fem.free_dofs

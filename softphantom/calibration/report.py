@@ -122,6 +122,16 @@ def _law_line(cal: Calibration) -> str:
                        f"{', '.join(law['design'])}. ")
 
 
+def _cavities_line(cal: Calibration) -> str:
+    """The internal cavities whose recorded pressures loaded the keyframe solves, with the largest."""
+    fr = cal.frames
+    if not fr.cavity_names:
+        return "No internal cavity. "
+    peak = np.max(np.abs(fr.cavity_pressures_Pa), axis=0) / 1e3 if len(fr) else np.zeros(len(fr.cavity_names))
+    return html.escape("Internal cavity pressures in the keyframe solves (largest): "
+                       + ", ".join(f"{n} {p:.3g} kPa" for n, p in zip(fr.cavity_names, peak)) + ". ")
+
+
 def write_report(cal: Calibration, out: Path) -> Path:
     """``report.html`` and its figures in ``out``."""
     fig = out / "figures"
@@ -146,7 +156,7 @@ def write_report(cal: Calibration, out: Path) -> Path:
 <style>body{{font-family:sans-serif;max-width:1100px;margin:2em auto}}table{{border-collapse:collapse}}
 td,th{{border:1px solid #bbb;padding:3px 8px;text-align:right}}th{{background:#eee}}</style></head><body>
 <h1>Calibration of {html.escape(str(cal.model_dir))}</h1>
-<p>{_law_line(cal)}{len(cal.sessions)} session(s), {len(cal.frames)} keyframes; {cal.fit.solves} forward solves in
+<p>{_law_line(cal)}{len(cal.sessions)} session(s), {len(cal.frames)} keyframes; {_cavities_line(cal)}{cal.fit.solves} forward solves in
 {cal.fit.seconds:.0f} s; objective {cal.fit.history[0]:.4g} → {cal.fit.history[-1]:.4g}.</p>
 <h2>Parameters</h2>{_table(["parameter", "nominal", "calibrated", "95 % interval", "identifiable", "spread / prior"], prow)}
 <h2>Warnings</h2><ul>{warn}</ul>
@@ -182,6 +192,7 @@ def calibration_dict(cal: Calibration) -> dict:
         "kind": "softphantom-calibration",
         "law": cal.meta.get("law", {}),
         "stiffness_factor": {g: p[f"stiffness_{g}_factor"] for g in ("bulb", "arms")},
+        "internal_cavities": list(cal.frames.cavity_names),  # their recorded pressures loaded the solves
         **shape_dict(cal),
         "sensor": {"arms": arms, "gain": [p[f"gain_{a}"] for a in arms],
                    "offset_Pa": [p[f"offset_{a}_Pa"] for a in arms],

@@ -1,9 +1,11 @@
-"""A calibration session: one bench recording (four arm pressures + urethra), the tracker's take of
-the same trial, optionally known loads, and the keyframes chosen from them.
+"""A calibration session: one bench recording (the arm pressures and the pressure of every internal
+cavity), the tracker's take of the same trial, optionally known loads, and the keyframes chosen
+from them.
 
-Checks (each a one-line :class:`~softphantom.errors.UserError`): a recording with no rest window at
-its start, a take whose valid samples cover less than half of it, a take that does not overlap the
-recording in time, too few distinct loads.
+Checks (each a one-line :class:`~softphantom.errors.UserError`): a recording whose arm or pressure
+channels are not the model's, a recording with no rest window at its start, a take whose valid
+samples cover less than half of it, a take that does not overlap the recording in time, too few
+distinct loads.
 """
 
 from __future__ import annotations
@@ -15,7 +17,7 @@ import numpy as np
 from scipy.signal import savgol_filter
 
 from softphantom.errors import UserError
-from softphantom.sensing.measurement import ARM_NAMES
+from softphantom.records.names import BIP_CAVITIES, pressure_columns
 from softphantom.sensing.pneumatics import tube_time_constant_s
 
 #: Rest window at the start of a recording: in its first REST_S seconds every arm's pressure has a
@@ -26,6 +28,13 @@ REST_MAX_SLOPE_PA_S = 20.0
 #: Keyframe candidates every CANDIDATE_DT_S; a pressure "moves" above MOVING_PA.
 CANDIDATE_DT_S = 0.1
 MOVING_PA = 15.0
+#: An internal cavity's pressure is a load axis of the keyframe choice beside the arm pressures:
+#: above CAVITY_QUIET_PA (its transducer's noise, the BIP's urethra ±0.1 kPa, is far below) each
+#: CAVITY_STEP_PA counts as MOVING_PA of arm pressure. Without it an inflation moves the arm
+#: pressures by a few Pa only (an internal load is in equilibrium with itself) and no keyframe
+#: would see it.
+CAVITY_QUIET_PA = 2e3
+CAVITY_STEP_PA = 5e3
 #: Smallest pressure noise assumed (Pa): the model is never better than this.
 NOISE_FLOOR_PA = 1.0
 
@@ -37,10 +46,12 @@ class CalibrationInputError(UserError):
 @dataclass(frozen=True, eq=False)
 class Session:
     """One trial: ``t`` (n,) s host clock, ``dp`` (n, arms) Pa tared arm pressures with the tube lag
-    undone, ``p_urethra`` (n,) Pa, ``truth_t`` (m,) s tracker clock, ``truth_pose`` (m, 6) m and rad
-    (x, y, z, yaw, pitch, roll relative to rest, rest-window registration), ``contact`` (3,) m the
-    contact point, ``known_t``/``known_force`` (k,), (k, 3) N or None, ``name``, ``chain_meta``
-    the recording's sensor metadata (tube, cavities, P0)."""
+    undone, ``p_urethra`` (n,) Pa the urethra's pressure (NaN without one), ``truth_t`` (m,) s
+    tracker clock, ``truth_pose`` (m, 6) m and rad (x, y, z, yaw, pitch, roll relative to rest,
+    rest-window registration), ``contact`` (3,) m the contact point, ``known_t``/``known_force``
+    (k,), (k, 3) N or None, ``name``; the bench's tube, arm cavities and P0; ``cavity_names`` the
+    internal cavities and ``pressures`` (n, M) Pa their gauge pressures, in the model's load order
+    (None: ``p_urethra`` as the one column of the urethra; :attr:`cavity_pressures_Pa` either way)."""
 
     name: str
     t: np.ndarray
@@ -59,6 +70,13 @@ class Session:
     recorded_gains: np.ndarray = field(default_factory=lambda: np.ones(4))  # the chain the recording used
     recorded_tube_factor: float = 1.0
     dp_rate: np.ndarray | None = None  # (n, arms) Pa/s the readings' rate, what the de-lag multiplied by τ
+    cavity_names: tuple[str, ...] = BIP_CAVITIES
+    pressures: np.ndarray | None = None
+
+    @property
+    def cavity_pressures_Pa(self) -> np.ndarray:
+        """(n, M) Pa the internal cavities' gauge pressures, in :attr:`cavity_names` order."""
+        return cavity_pressures(self.p_urethra, self.pressures, self.cavity_names)
 
     def tau_s(self, tube_factor: float = 1.0) -> np.ndarray:
         """(arms,) each arm's tube time constant (s) with the tube's volume × ``tube_factor`` taken as
@@ -90,6 +108,43 @@ class Session:
         return np.stack([np.interp(t, self.known_t, self.known_force[:, k]) for k in range(3)], axis=1)
 
 
+def cavity_pressures(p_urethra, pressures, names) -> np.ndarray:
+    """(n, M) Pa: ``pressures`` where given, else the BIP's ``p_urethra`` (n,) as the urethra's
+    column (the only cavity ``names`` may then hold).
+
+    >>> cavity_pressures(np.array([1.0, 2.0]), None, ("urethra",)).tolist()
+    [[1.0], [2.0]]
+    >>> cavity_pressures(np.array([1.0, 2.0]), None, ("tumour",))
+    Traceback (most recent call last):
+    ...
+    softphantom.errors.UserError: pressures of tumour: not given (a urethra pressure alone is)
+    """
+    if pressures is not None:
+        p = np.asarray(pressures, float)
+        if p.ndim != 2 or p.shape[1] != len(names):
+            raise UserError(f"pressures of {', '.join(names) or 'no cavity'}: shape {p.shape}, one column each expected")
+        return p
+    if tuple(names) != BIP_CAVITIES:
+        raise UserError(f"pressures of {', '.join(names) or 'no cavity'}: not given (a urethra pressure alone is)")
+    return np.asarray(p_urethra, float).reshape(-1, 1)
+
+
+def check_channels(path, rec, arm_names, cavity_names) -> np.ndarray:
+    """The recording's internal-cavity pressures (n, M) Pa in the order ``cavity_names`` (the
+    model's load order), after checking that its arm and pressure channels are the model's
+    (``arm_names`` in order; the same cavities in any order): else a one-line
+    :class:`CalibrationInputError` naming both lists."""
+    if arm_names is not None and tuple(rec.arm_names) != tuple(arm_names):
+        raise CalibrationInputError(f"{path}: arm channels {', '.join(rec.arm_names)} are not the model's "
+                                    f"({', '.join(arm_names)})")
+    have = tuple(rec.cavity_names)
+    want = have if cavity_names is None else tuple(cavity_names)
+    if sorted(have) != sorted(want):
+        raise CalibrationInputError(f"{path}: pressure channels {', '.join(pressure_columns(have)) or 'none'} are not "
+                                    f"the model's internal cavities' ({', '.join(pressure_columns(want)) or 'none'})")
+    return np.asarray(rec.pressures, float)[:, [have.index(c) for c in want]].reshape(len(rec), len(want))
+
+
 def undo_tube_lag(t: np.ndarray, dp: np.ndarray, tau_s: np.ndarray, window_s: float = 0.15,
                   with_rate: bool = False):
     """The cavity pressure from the transducer's lagged reading: ``p + τ·dp/dt`` (the inverse of the
@@ -118,10 +173,13 @@ def _bench(meta: dict, path: Path):
 
 def load_session(recording, truth, contact_m, known_loads=None, name: str | None = None,
                  tube_length_m: float | None = None, tube_id_mm: float | None = None,
-                 body: str | None = None) -> Session:
+                 body: str | None = None, arm_names: tuple[str, ...] | None = None,
+                 cavity_names: tuple[str, ...] | None = None) -> Session:
     """Read a recording (``softphantom acquire`` / ``virtual run``), a take (any truth
     ``evaluate`` reads: truth CSV, Motive CSV, ROS bag, mcap), optional known loads (a CSV with
-    ``t_s, force_x_N, force_y_N, force_z_N`` on the recording's clock) and check them."""
+    ``t_s, force_x_N, force_y_N, force_z_N`` on the recording's clock) and check them.
+    ``arm_names``, ``cavity_names``: the model's arms and internal cavities (its load order), which
+    the recording's channels must be (None: the recording's own)."""
     from softphantom.evaluation import read_truth
     from softphantom.evaluation.files import read_table
     from softphantom.sensing.recording import read_recording
@@ -130,8 +188,11 @@ def load_session(recording, truth, contact_m, known_loads=None, name: str | None
     rec = read_recording(rec_path)
     if len(rec) < 20:
         raise CalibrationInputError(f"{rec_path}: {len(rec)} samples, too short to calibrate")
-    ok = np.array([s == "ok" for s in rec.status]) & np.all(np.isfinite(rec.dp), axis=1)
-    t, dp, pu = rec.t[ok], rec.dp[ok], rec.p_urethra[ok]
+    cav_names = tuple(cavity_names) if cavity_names is not None else tuple(rec.cavity_names)
+    p_all = check_channels(rec_path, rec, arm_names, cav_names)
+    ok = (np.array([s == "ok" for s in rec.status]) & np.all(np.isfinite(rec.dp), axis=1)
+          & np.all(np.isfinite(p_all), axis=1))
+    t, dp, pu, pc = rec.t[ok], rec.dp[ok], rec.p_urethra[ok], p_all[ok]
     rest = t <= t[0] + REST_S
     if rest.sum() < 5:
         raise CalibrationInputError(f"{rec_path}: no rest window at the start ({int(rest.sum())} samples in the "
@@ -177,16 +238,30 @@ def load_session(recording, truth, contact_m, known_loads=None, name: str | None
             raise CalibrationInputError(f"{kp}: known loads do not overlap the recording "
                                         f"({t[0]:.2f}–{t[-1]:.2f} s)")
     return Session(name or rec_path.stem, t, dp, pu, series.t.copy(), pose, np.asarray(contact_m, float),
-                   p0, length, bore, cav, noise, kt, kf, np.asarray(bench.gains), bench.tube_volume_factor, rate)
+                   p0, length, bore, cav, noise, kt, kf, np.asarray(bench.gains), bench.tube_volume_factor, rate,
+                   cav_names, pc)
+
+
+def cavity_load_axes(p_Pa: np.ndarray) -> np.ndarray:
+    """Internal-cavity pressures (n, M) Pa as keyframe-choice coordinates in arm-pressure Pa:
+    0 within ±``CAVITY_QUIET_PA``, then ``MOVING_PA`` per ``CAVITY_STEP_PA``.
+
+    >>> cavity_load_axes(np.array([[1.5e3, -12e3]])).tolist()
+    [[0.0, -30.0]]
+    """
+    p = np.asarray(p_Pa, float)
+    return np.sign(p) * np.maximum(np.abs(p) - CAVITY_QUIET_PA, 0.0) * (MOVING_PA / CAVITY_STEP_PA)
 
 
 def select_keyframes(session: Session, max_keyframes: int = 16, rest_keyframes: int = 1) -> np.ndarray:
-    """Times (s) of distinct loads: candidates every ``CANDIDATE_DT_S`` where the pressures move,
-    chosen by farthest-point sampling in the space of the four arm pressures (so a hold is not
-    counted twice), plus ``rest_keyframes`` at rest. Raises when fewer than 3 distinct loads."""
-    t, dp = session.t, session.dp
+    """Times (s) of distinct loads: candidates every ``CANDIDATE_DT_S`` where the loads move,
+    chosen by farthest-point sampling in the space of the arm pressures and the internal cavities'
+    (:func:`cavity_load_axes`; so a hold is not counted twice), plus ``rest_keyframes`` at rest.
+    Raises when fewer than 3 distinct loads."""
+    t, dp, pc = session.t, session.dp, session.cavity_pressures_Pa
     grid = np.arange(t[0] + REST_S, t[-1], CANDIDATE_DT_S)
-    P = np.stack([np.interp(grid, t, dp[:, k]) for k in range(dp.shape[1])], axis=1)
+    P = np.stack([np.interp(grid, t, dp[:, k]) for k in range(dp.shape[1])]
+                 + [cavity_load_axes(np.interp(grid, t, pc[:, j])) for j in range(pc.shape[1])], axis=1)
     moving = np.linalg.norm(P, axis=1) > MOVING_PA
     cand, Pc = grid[moving], P[moving]
     if len(cand) < 3:
