@@ -31,7 +31,7 @@ BAD_INPUTS = [
     (["design", "--out", "o", "--gland-labels", "1,2"], "--anatomy"),             # used only with an anatomy
     (["design", "--out", "o", "--anatomy", "z.nii.gz", "--gland-labels", "1,2", "--urethra-label", "2"],
      "--urethra-label 2 is one of --gland-labels"),
-    (["design", "--out", "o", "--anatomy", "z.nii.gz", "--urethra", "none"], "--urethra none"),
+    (["design", "--out", "o", "--urethra", "none"], "--urethra none: only with --anatomy"),
     (["design", "--out", "o", "--urethra", "label"], "--urethra"),
     (["design", "--out", "o", "--surface-size-mm", "0"], "--surface-size-mm"),
     (["design", "--out", "o", "--element-order", "3"], "--element-order"),

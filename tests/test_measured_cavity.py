@@ -163,7 +163,8 @@ def test_a_push_is_read_through_the_measured_cavity(tmp_path):
     (its ``dVmeas_ball_mm3``/``dVpred_ball_mm3``): the force comes back within 5 % of the push
     (0.047 N RMSE measured; the truth on the estimator's own mesh), the ball's recorded volume is
     the truth's within 2 counts; with the ball's reading lost the estimate moves; a recording of
-    the measured design is refused for the design with the ball actuated."""
+    the measured design is refused for the design with the ball actuated; ``calibrate`` fits the
+    ball's transducer with the arms'."""
     from softphantom.cli import main
     from softphantom.design import save_model
     from softphantom.estimation import Estimator
@@ -221,6 +222,21 @@ def test_a_push_is_read_through_the_measured_cavity(tmp_path):
                                         r"back_xpos, back_xneg, urethra, ball\)$"):
         open_replay(str(paths["recording"]), _actuated(model))
 
+    # calibrate fits a gain and an offset per volume channel, the ball's too (here from the truth's
+    # own loads), and writes a model whose [sensors] has one gain each (one push does not identify
+    # five gains well: their values are the calibration tests' business)
+    cal = tmp_path / "cal"
+    assert main(["calibrate", "--model", str(tmp_path / "model"), "--recording", str(paths["recording"]),
+                 "--truth", str(paths["truth"]), "--known-loads", str(paths["truth"]), "--out", str(cal),
+                 "--max-keyframes", "3", "--workers", "1", "--fix", "stiffness_bulb_factor",
+                 "--fix", "tube_volume_factor", "--fix", "lag"]) == 0
+    sensor = json.loads((cal / "calibration.json").read_text())["sensor"]
+    assert sensor["arms"] == list(SENSING) and len(sensor["gain"]) == 5
+    assert all(0.5 < g < 2.0 for g in sensor["gain"]), sensor["gain"]
+    from softphantom.design import load_model
+
+    assert len(load_model(cal).design.sensors.gains) == 5
+
 
 # --- refusals -----------------------------------------------------------------------------------
 
@@ -261,8 +277,3 @@ def test_refusals(tmp_path, capsys):
                  "--out", str(tmp_path / "v"), "--truth-order", "1"]) == 2
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "inflate.cavity ball: a measured cavity" in err, err
-    # calibrate fits the arms' transducers alone: refused before any work
-    assert main(["calibrate", "--model", str(tmp_path / "m"), "--recording", str(tmp_path / "r.csv"),
-                 "--truth", str(tmp_path / "t.csv"), "--out", str(tmp_path / "c")]) == 2
-    err = capsys.readouterr().err.strip()
-    assert err.count("\n") == 0 and "measured cavities ball" in err, err

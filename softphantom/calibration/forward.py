@@ -122,7 +122,7 @@ def _base(model_dir: str, contact: tuple[float, float, float], radius_m: float, 
     names = list(model.markers)
     P = probe_matrix(fem, np.array([model.markers[k] for k in names]))
     x0 = fem.nodes
-    V0 = np.array([cavity_volume(x0, fem.cavities[a]) for a in model.design.arm_names])
+    V0 = np.array([cavity_volume(x0, fem.cavities[a]) for a in model.design.sensing_names])
     id_to_group = {rid: region_group(name) for name, rid in model.regions.items()}
     reg = np.asarray(model.tet_region)
     groups: dict[str, np.ndarray] = {}
@@ -306,7 +306,7 @@ def solve_keyframe(model_dir: str, contact: tuple[float, float, float], radius_m
         B[:, 3 + G + j] = -internal_force(dataclasses.replace(fem0, params=_frozen(prm)), x)[free]
     U = np.zeros((n, B.shape[1]))
     U[free] = solver.solve(B)
-    arms = base.model.design.arm_names
+    arms = base.model.design.sensing_names  # the volume channels: the arms, then the measured cavities
     dV = np.empty(len(arms))
     dV_d = np.empty((len(arms), B.shape[1]))
     for i, a in enumerate(arms):

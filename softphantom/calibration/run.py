@@ -90,7 +90,7 @@ def _load_sessions(model, specs: list[SessionSpec], prefix: str) -> list[Session
     from softphantom.estimation.forward import internal_cavities_of
 
     out = [load_session(sp.recording, sp.truth, _contact(model, sp.contact), sp.known_loads, name=f"{prefix}{i + 1}",
-                        arm_names=model.design.arm_names, cavity_names=internal_cavities_of(model))
+                        arm_names=model.design.sensing_names, cavity_names=internal_cavities_of(model))
            for i, sp in enumerate(specs)]
     for se in out:
         _lag_grid(se)
@@ -234,7 +234,7 @@ def calibrate(model_dir, specs: list[SessionSpec], holdout: list[SessionSpec] = 
         solve_many = _solver(client)
         rm = rest_markers(str(model_dir), tuple(frames.contact[0]), options.radius_m)
         params = parameter_set(measured=options.measured, shapes=group_shapes(fitted),
-                               arm_names=fitted.design.arm_names)
+                               arm_names=fitted.design.sensing_names)
         problem = Problem(str(model_dir), sessions, frames, rm, solve_many, options, params)
         forces0, lags0 = _initial(problem, sessions)
         problem = dataclasses.replace(problem, lag0_s=lags0, pose_rows=None)
@@ -306,7 +306,7 @@ def check_held_out(model_dir, holdout: list[SessionSpec], values: dict[str, floa
     fitted = dataclasses.replace(model, design=design_with_law(model.design, options.law))
     held = _load_sessions(model, holdout, "h")
     params = parameter_set(measured=options.measured, shapes=group_shapes(fitted),
-                               arm_names=fitted.design.arm_names)
+                               arm_names=fitted.design.sensing_names)
     values = {n: v for n, v in values.items() if not n.startswith(("lag_", "drift_"))}
     unknown = sorted(set(values) - {p.name for p in params})
     if unknown:

@@ -15,17 +15,13 @@ from softphantom.errors import UserError
 
 def _contact_names(model_dir: Path) -> tuple[str, ...] | None:
     """The model's contact points (its p_ext) from its design file, before the model is read; None
-    when it has none (calibrate then refuses the directory). A design with a measured internal
-    cavity is refused in one line."""
+    when it has none (calibrate then refuses the directory)."""
     from softphantom.design import load_design
 
     toml = model_dir / "design.toml"
     if not toml.is_file():
         return None
     design = load_design(toml)
-    if design.measured_cavity_names:  # the fit's sensors are the arms' (a gain and an offset each)
-        raise UserError(f"--model {model_dir}: calibrate fits the arms' transducers only; this design also reads "
-                        f"the measured cavities {', '.join(design.measured_cavity_names)} (role = \"measured\")")
     return design.contact_names
 
 
