@@ -82,7 +82,8 @@ def test_bundled_scenarios_load_and_follow_the_paper():
      ["push[0]", "unknown key", "speed"]),
     ('name = "x"\nduration_s = 5\n[[push]]\nstart_s = 2\nrise_s = 1\n', ["push[0].force_N"]),
     ('name = "x"\nduration_s = 9\n[[push]]\nstart_s = 2\nrise_s = 1\nforce_N = [0, 1, 0]\n'
-     '[[push]]\nstart_s = 3\nrise_s = 1\nforce_N = [0, 1, 0]\n', ["overlap"]),
+     '[[push]]\nstart_s = 3\nrise_s = 1\nforce_N = [0, 1, 0]\n'
+     '[[push]]\nstart_s = 3.5\nrise_s = 1\nforce_N = [0, 1, 0]\n', ["three events act at once", "overlap"]),
     ('name = "x"\nduration_s = 5\nrest_s = 2\n[[push]]\nstart_s = 1\nrise_s = 1\nforce_N = [0, 1, 0]\n',
      ["rest", "tare"]),
     ('name = "x"\nduration_s = 5\n[[push]]\npoint = "on top"\nstart_s = 2\nrise_s = 1\nforce_N = [0, 1, 0]\n',

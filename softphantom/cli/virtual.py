@@ -78,8 +78,14 @@ def _print_summary(summary: dict) -> None:
             p = (f"urethra {e['p_urethra_kPa']:.1f}" if "p_urethra_kPa" in e else f"{e['cavity']} {e['p_kPa']:.1f}")
             what = f"{p} kPa, bulb growth {e['bulb_growth_percent']:.2f} %"
         shifts = ", ".join(f"{k[:-9]} {v:.2f}" for k, v in e.items() if k.endswith("_shift_mm") and k != "peak_marker_shift_mm")
+        if e.get("repeat"):
+            what += f", {e['repeat']} times every {e['period_s']:g} s"
         console.print(f"  t={e['start_s']:g} s {what}: markers up to {e['peak_marker_shift_mm']:.2f} mm; "
                       f"targets (mm) {shifts}" + (f"; {e['note']}" if e.get("note") else ""), highlight=False)
+    for g in tr.get("groups", ()):
+        shifts = ", ".join(f"{k[:-9]} {v:.2f}" for k, v in g.items() if k.endswith("_shift_mm") and k != "peak_marker_shift_mm")
+        console.print(f"  {' + '.join(g['events'])} at once ({g['keyframes']} keyframes): both peaks move the markers "
+                      f"up to {g['peak_marker_shift_mm']:.2f} mm; targets (mm) {shifts}", highlight=False)
     b, t = summary["board"], summary["tracker"]
     console.print(f"board: OSR {b['osr']}, {b['rate_Hz']:.1f} Hz, offsets {b['offsets_Pa']} Pa, drift "
                   f"{b['drift_Pa_per_s']:+.3f} Pa/s; tracker: {t['rate_Hz']:g} Hz, clock offset "

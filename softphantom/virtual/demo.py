@@ -153,7 +153,10 @@ def scenario_atlas(truth, grid: tuple[int, int, int, int] | None = None) -> Atla
     >>> a.force_max_N, a.p_min_kPa, a.p_max_kPa, a.shape
     ((0.5, 0.5, 0.5), -2.0, 32.0, (3, 3, 3, 5))
     """
-    return atlas_box([e.force for e in truth.events], max([0.0] + [e.p_Pa * 1e-3 for e in truth.events]), grid)
+    groups = getattr(truth, "groups", ())  # two events at once: their loads add
+    return atlas_box([e.force for e in (*truth.events, *groups)],
+                     max([0.0] + [e.p_Pa * 1e-3 for e in truth.events]
+                         + [max(g.pressures_Pa.values(), default=0.0) * 1e-3 for g in groups]), grid)
 
 
 def shared_atlases(scs, grid: tuple[int, int, int, int] | None = None) -> dict[str, AtlasConfig]:
@@ -177,6 +180,8 @@ def shared_atlases(scs, grid: tuple[int, int, int, int] | None = None) -> dict[s
     for sc in scs:
         if (c := push_only(sc)) is not None:
             by.setdefault(c, []).extend(e.force_N for e in sc.events)
+            # two pushes at once: their sum
+            by[c].extend(np.add(sc.events[i].force_N, sc.events[j].force_N) for i, j in getattr(sc, "groups", ()))
     return {c: atlas_box(f, 0.0, grid) for c, f in by.items()}
 
 

@@ -13,8 +13,12 @@ not change the equilibria it passes through):
   marker next to the urethra moved ≈ 2 mm), capped at ``max_p_kPa`` (the transducer's or the
   silicone's limit); ``p_urethra_kPa`` and ``max_p_urethra_kPa`` are read as their synonyms.
 
-Events do not overlap in time, so each one is a one-parameter load path from rest (its *level*
-s ∈ [0, 1] times its peak). Example (``scenarios/needle-insertion.toml``)::
+An event may happen ``repeat`` times, each ``period_s`` after the previous start (breathing: an
+inflation every 4 s); each occurrence is the same load path. Two events may act at once (a
+*group*: a push during an inflation, :attr:`Scenario.groups`): their loads add. Three at once, or
+an inflation until a target moves inside a group (its peak is found by a march from rest alone),
+are refused. Each event alone is a one-parameter load path from rest (its *level* s ∈ [0, 1] times
+its peak); a group, a two-parameter one. Example (``scenarios/needle-insertion.toml``)::
 
     name = "needle-insertion"
     duration_s = 12.0
@@ -74,14 +78,46 @@ class Event:
     target_shift_mm: float | None = None
     max_p_kPa: float = 150.0
     cavity: str | None = None
+    repeat: int = 1
+    period_s: float | None = None
 
     @property
     def end_s(self) -> float:
-        return self.start_s + self.rise_s + self.hold_s + self.fall_s
+        """The end of its last occurrence."""
+        return self.starts_s[-1] + self.rise_s + self.hold_s + self.fall_s
+
+    @property
+    def starts_s(self) -> tuple[float, ...]:
+        """The start of each occurrence.
+
+        >>> Event("inflate", 2.0, 1.0, 0.5, 1.0, repeat=3, period_s=4.0).starts_s
+        (2.0, 6.0, 10.0)
+        """
+        if self.repeat == 1:
+            return (self.start_s,)
+        return tuple(self.start_s + k * self.period_s for k in range(self.repeat))
+
+    def _local(self, t: np.ndarray) -> np.ndarray:
+        """``t`` moved into the occurrence it falls in (the first before it, the last after it)."""
+        if self.repeat == 1:
+            return t
+        k = np.clip(np.floor((t - self.start_s) / self.period_s), 0, self.repeat - 1)
+        return t - k * self.period_s
+
+    def acting(self, t) -> np.ndarray:
+        """Whether one of its occurrences acts at ``t`` (its ends included)."""
+        t = self._local(np.asarray(t, float))
+        return (t >= self.start_s) & (t <= self.start_s + self.rise_s + self.hold_s + self.fall_s)
 
     def level(self, t) -> np.ndarray:
-        """Load level s(t) ∈ [0, 1]: cosine ramps (zero rate at both ends), hold at 1."""
-        t = np.asarray(t, float)
+        """Load level s(t) ∈ [0, 1]: cosine ramps (zero rate at both ends), hold at 1; the same in
+        every occurrence.
+
+        >>> e = Event("inflate", 2.0, 1.0, 0.0, 1.0, repeat=2, period_s=4.0)
+        >>> e.level([3.0, 5.0, 7.0, 9.0]).tolist()
+        [1.0, 0.0, 1.0, 0.0]
+        """
+        t = self._local(np.asarray(t, float))
         up = np.clip((t - self.start_s) / self.rise_s, 0.0, 1.0)
         down = np.clip((t - self.start_s - self.rise_s - self.hold_s) / self.fall_s, 0.0, 1.0)
         return 0.5 * (1.0 - np.cos(np.pi * up)) - 0.5 * (1.0 - np.cos(np.pi * down))
@@ -149,11 +185,24 @@ class Scenario:
         return replace(self, events=tuple(events))
 
     def active(self, t: float) -> int | None:
-        """Index of the event acting at ``t`` (None at rest)."""
+        """Index of the first event acting at ``t`` (None at rest)."""
         for i, e in enumerate(self.events):
-            if e.start_s <= t <= e.end_s:
+            if e.acting(t):
                 return i
         return None
+
+    @property
+    def groups(self) -> tuple[tuple[int, int], ...]:
+        """The pairs (i, j), i < j, of events (indices into ``events``) that act at once at some
+        time: each is one two-parameter load path of the truth.
+
+        >>> sc = scenario_from_dict({"name": "n", "duration_s": 20, "inflate": [{"p_kPa": 20,
+        ...     "start_s": 2, "rise_s": 1.5, "fall_s": 1.5, "repeat": 4, "period_s": 4}], "push": [
+        ...     {"start_s": 3, "rise_s": 4, "hold_s": 8, "force_N": [0, 2, 0]}]}, "n.toml")
+        >>> [e.kind for e in sc.events], sc.groups
+        (['inflate', 'push'], ((0, 1),))
+        """
+        return _overlapping_pairs(_occurrences(self.events))
 
 
 _PATCH_MM = DEFAULT_CONTACT_RADIUS_M * 1e3
@@ -166,9 +215,23 @@ class _Times(FileModel):
     rise_s: Positive
     hold_s: Seconds = 0.0
     fall_s: Positive | None = None  # default: rise_s
+    repeat: Annotated[int, Field(ge=1)] = 1
+    period_s: Positive | None = None  # required when repeat > 1
+
+    @model_validator(mode="after")
+    def _period(self):
+        if self.repeat > 1 and self.period_s is None:
+            raise refuse(f"repeat = {self.repeat} needs period_s (s from one start to the next)")
+        one = self.rise_s + self.hold_s + (self.fall_s or self.rise_s)
+        if self.period_s is not None and self.period_s < one:
+            raise refuse(f"period_s = {self.period_s:g} s is shorter than the event (rise_s + hold_s + fall_s "
+                         f"= {one:g} s)")
+        return self
 
     def times(self) -> dict:
-        return dict(start_s=self.start_s, rise_s=self.rise_s, hold_s=self.hold_s, fall_s=self.fall_s or self.rise_s)
+        rep = dict(repeat=self.repeat, period_s=self.period_s) if self.repeat > 1 else {}
+        return dict(start_s=self.start_s, rise_s=self.rise_s, hold_s=self.hold_s, fall_s=self.fall_s or self.rise_s,
+                    **rep)
 
 
 class _Push(_Times):
@@ -249,13 +312,57 @@ def scenario_from_dict(d: dict, source: str = "<dict>") -> Scenario:
     if events[0].start_s < f.rest_s:
         raise ScenarioError(f"{source}: the first event starts at {events[0].start_s:g} s, inside the "
                             f"rest (tare) window of {f.rest_s:g} s")
-    for a, b in zip(events, events[1:]):
-        if b.start_s < a.end_s:
-            raise ScenarioError(f"{source}: events overlap ({a.kind} ends at {a.end_s:g} s, the next "
-                                f"{b.kind} starts at {b.start_s:g} s)")
+    for e in events:
+        if e.repeat > 1 and e.end_s > f.duration_s:  # before its occurrences are listed
+            raise ScenarioError(f"{source}: {e.kind}.repeat: the {e.kind} at {e.start_s:g} s repeated {e.repeat} "
+                                f"times ends at {e.end_s:g} s, after duration_s {f.duration_s:g}")
+    occ = _occurrences(events)
+    for a, b, c in _triples(occ):
+        raise ScenarioError(f"{source}: three events act at once ({_name(events, a)}, {_name(events, b)}, "
+                            f"{_name(events, c)}): at most two may overlap")
+    for i, j in _overlapping_pairs(occ):
+        for k, o in ((i, j), (j, i)):
+            if events[k].kind == "inflate" and events[k].p_kPa is None:
+                raise ScenarioError(f"{source}: inflate.target_shift_mm: an inflation until {events[k].target} "
+                                    f"moves cannot overlap another event (the inflate at "
+                                    f"{events[k].start_s:g} s, the {events[o].kind} at {events[o].start_s:g} s); "
+                                    f"give p_kPa")
     if events[-1].end_s > f.duration_s:
         raise ScenarioError(f"{source}: the last event ends at {events[-1].end_s:g} s, after duration_s {f.duration_s:g}")
     return Scenario(f.name, f.description, f.duration_s, f.rest_s, tuple(events), f.patch_radius_mm, source)
+
+
+def _occurrences(events) -> list[tuple[float, float, int]]:
+    """(start, end, event index) of every occurrence, by start."""
+    d = [e.rise_s + e.hold_s + e.fall_s for e in events]
+    return sorted((s, s + d[i], i) for i, e in enumerate(events) for s in e.starts_s)
+
+
+def _overlapping_pairs(occ) -> tuple[tuple[int, int], ...]:
+    """The pairs of events two of whose occurrences overlap (touching ends do not)."""
+    pairs = set()
+    for n, (s, end, i) in enumerate(occ):
+        for s2, _, j in occ[n + 1:]:
+            if s2 >= end:
+                break
+            if i != j:
+                pairs.add((min(i, j), max(i, j)))
+    return tuple(sorted(pairs))
+
+
+def _triples(occ):
+    """Three occurrences acting at once (the latest-starting one starts inside both others)."""
+    live: list = []  # the occurrences still acting (at most two, or this yields)
+    for o in occ:
+        live = [x for x in live if x[1] > o[0]]
+        if len(live) >= 2:
+            yield live[0], live[1], o
+        live.append(o)
+
+
+def _name(events, occ) -> str:
+    e = events[occ[2]]
+    return f"{e.kind}" + (f" {e.cavity}" if e.kind == "inflate" and e.cavity else "") + f" at {occ[0]:g} s"
 
 
 def scenarios_dir() -> Path:

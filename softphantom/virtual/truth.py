@@ -21,6 +21,16 @@ states already solved, so they cost nothing. An inflation "until the target move
 the pressure up in steps of ``max_p/10`` and finds the pressure by a secant step between the last
 two keyframes (one more solve), or stops at ``max_p_kPa``. An inflation loads one internal cavity
 (its event's ``cavity``); the truth records every cavity's pressure and volume change.
+
+A repeated event (``repeat``, ``period_s``) revisits the same path: no more solves. Two events
+acting at once (a *group*, :attr:`~softphantom.virtual.scenario.Scenario.groups`: a push during an
+inflation, two pushes, two inflations) load the phantom together, their loads added (forces at
+their points, pressures in their cavities): a two-parameter load path. Its keyframes are the tensor
+grid of the two levels (s1_i, s2_j), i, j = 0 … L; the edges s2 = 0 and s1 = 0 are the two events'
+own keyframes, so a group costs L² more solves, row by row, each from the bilinear predictor of its
+three solved neighbours x(i−1, j) + x(i, j−1) − x(i−1, j−1). Every output is interpolated by
+tensor-product PCHIP (along s1, then along s2) and sampled at (s1(t), s2(t)); where one of the two
+rests, that is its partner's own truth exactly.
 """
 
 from __future__ import annotations
@@ -132,6 +142,79 @@ class EventTruth:
         return f(np.clip(s, 0.0, 1.0)).reshape((len(s),) + arr.shape[1:])
 
 
+def pchip_rows(x: np.ndarray, Y: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Row n of ``Y`` (n, K, D) interpolated at ``q[n]`` by the monotone cubic through (``x``,
+    Y[n]) (scipy's :class:`~scipy.interpolate.PchipInterpolator`, one per row, vectorized; linear
+    for K = 2); ``q`` clipped to [x0, x_K-1]. (n, D).
+
+    >>> x = np.array([0.0, 0.5, 1.0]); Y = np.array([[[0.0], [1.0], [4.0]], [[2.0], [2.0], [0.0]]])
+    >>> pchip_rows(x, Y, np.array([0.25, 1.0])).ravel().tolist() == [
+    ...     float(PchipInterpolator(x, Y[0, :, 0])(0.25)), 0.0]
+    True
+    """
+    x = np.asarray(x, float)
+    Y = np.asarray(Y, float)
+    q = np.clip(np.asarray(q, float), x[0], x[-1])
+    h = np.diff(x)
+    m = np.diff(Y, axis=1) / h[None, :, None]  # (n, K-1, D) secant slopes
+    d = np.empty_like(Y)
+    if len(x) == 2:
+        d[:] = m
+    else:
+        # interior: weighted harmonic mean of equal-signed neighbouring slopes, else 0 (Fritsch–Butland)
+        w1 = (2 * h[1:] + h[:-1])[None, :, None]
+        w2 = (h[1:] + 2 * h[:-1])[None, :, None]
+        same = (np.sign(m[:, :-1]) == np.sign(m[:, 1:])) & (m[:, :-1] != 0) & (m[:, 1:] != 0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            whm = (w1 / m[:, :-1] + w2 / m[:, 1:]) / (w1 + w2)
+            d[:, 1:-1] = np.where(same, 1.0 / whm, 0.0)
+
+        def edge(h0, h1, m0, m1):
+            e = ((2 * h0 + h1) * m0 - h0 * m1) / (h0 + h1)
+            e = np.where(np.sign(e) != np.sign(m0), 0.0, e)
+            return np.where((np.sign(m0) != np.sign(m1)) & (np.abs(e) > 3 * np.abs(m0)), 3 * m0, e)
+
+        d[:, 0] = edge(h[0], h[1], m[:, 0], m[:, 1])
+        d[:, -1] = edge(h[-1], h[-2], m[:, -1], m[:, -2])
+    k = np.clip(np.searchsorted(x, q, side="right") - 1, 0, len(x) - 2)
+    r = np.arange(len(q))
+    hk = h[k][:, None]
+    t = ((q - x[k]) / h[k])[:, None]
+    return ((2 * t**3 - 3 * t**2 + 1) * Y[r, k] + (t**3 - 2 * t**2 + t) * hk * d[r, k]
+            + (-2 * t**3 + 3 * t**2) * Y[r, k + 1] + (t**3 - t**2) * hk * d[r, k + 1])
+
+
+@dataclass(frozen=True, eq=False)
+class GroupTruth:
+    """Keyframes of two events acting at once (``pair``: their indices in the scenario's events):
+    on the tensor grid of their levels ``s1`` × ``s2`` ((L+1,) each, from 0 to 1), ``dV`` (L+1,
+    L+1, cavities) m³, ``markers`` (L+1, L+1, k, 3) m, ``targets`` (L+1, L+1, t, 3) m, ``bulb_dV``
+    (L+1, L+1) m³; row 0 and column 0 are the other event alone. At (1, 1): ``force`` (3,) N the
+    sum of the peak forces, ``pressures_Pa`` {cavity: Pa}, ``x_peak`` (N, 3) truth-mesh nodes;
+    ``solves``, ``iterations`` Newton's for the L² inner keyframes."""
+
+    pair: tuple[int, int]
+    events: tuple[Event, Event]
+    s1: np.ndarray
+    s2: np.ndarray
+    dV: np.ndarray
+    markers: np.ndarray
+    targets: np.ndarray
+    bulb_dV: np.ndarray
+    force: np.ndarray
+    pressures_Pa: dict
+    x_peak: np.ndarray
+    solves: int
+    iterations: int
+
+    def interp(self, arr: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """``arr`` (a grid of this group) at levels (a, b) (n,): PCHIP along s1, then along s2."""
+        n1, n2 = len(self.s1), len(self.s2)
+        rows = PchipInterpolator(self.s1, arr.reshape(n1, -1), axis=0)(np.clip(a, 0.0, 1.0))
+        out = pchip_rows(self.s2, rows.reshape(len(a), n2, -1), b)
+        return out.reshape((len(a),) + arr.shape[2:])
+
+
 @dataclass(frozen=True, eq=False)
 class TruthSamples:
     """The truth at times ``t`` (n,) s (scenario clock): ``force`` (n, 3) N, ``pressures`` (n, M)
@@ -171,6 +254,7 @@ class Truth:
     events: tuple[EventTruth, ...]
     solve_s: float
     config: TruthConfig = field(default_factory=TruthConfig)
+    groups: tuple[GroupTruth, ...] = ()
 
     def sample(self, t) -> TruthSamples:
         """The truth at times ``t`` (s), interpolated in load level (see the module docstring)."""
@@ -184,7 +268,7 @@ class Truth:
         targets = np.zeros((n, nt, 3))
         for et in self.events:
             e = et.event
-            sel = (t >= e.start_s) & (t <= e.end_s)
+            sel = e.acting(t)
             if not sel.any():
                 continue
             s = e.level(t[sel])
@@ -194,12 +278,33 @@ class Truth:
             dV[sel] = et._interp(et.dV, s)
             markers[sel] = et._interp(et.markers, s)
             targets[sel] = et._interp(et.targets, s)
+        for g in self.groups:  # both events acting: the group's two-parameter path
+            e1, e2 = g.events
+            sel = e1.acting(t) & e2.acting(t)
+            if not sel.any():
+                continue
+            a, b = e1.level(t[sel]), e2.level(t[sel])
+            force[sel] = 0.0
+            p[sel] = 0.0
+            for e, lv in ((e1, a), (e2, b)):
+                if e.kind == "push":
+                    force[sel] += lv[:, None] * np.asarray(e.force_N, float)
+                else:
+                    p[sel, cav.index(e.cavity)] += lv * e.p_kPa * 1e3
+            dV[sel] = g.interp(g.dV, a, b)
+            markers[sel] = g.interp(g.markers, a, b)
+            targets[sel] = g.interp(g.targets, a, b)
         pose = pose_of_markers(self.rest_markers, markers)
         return TruthSamples(t, force, p, dV, markers, targets, pose, cav)
 
-    def peak_event(self) -> EventTruth:
-        """The event whose peak moves the markers most (for the snapshot at peak load)."""
-        return max(self.events, key=lambda et: float(np.abs(et.markers[-1] - self.rest_markers).max()))
+    def peak_event(self) -> EventTruth | GroupTruth:
+        """The event (or group, at both peaks) whose peak moves the markers most (for the snapshot
+        at peak load)."""
+        def shift(x):
+            peak = x.markers[-1, -1] if isinstance(x, GroupTruth) else x.markers[-1]
+            return float(np.abs(peak - self.rest_markers).max())
+
+        return max((*self.events, *self.groups), key=shift)
 
     def summary(self) -> dict:
         """Peak figures per event (mm, N, kPa, % bulb growth), JSON-able."""
@@ -220,13 +325,32 @@ class Truth:
                 d[f"{name}_shift_mm"] = round(float(np.linalg.norm(dsp)) * 1e3, 3)
             if et.note:
                 d["note"] = et.note
+            if et.event.repeat > 1:
+                d.update(repeat=et.event.repeat, period_s=et.event.period_s)
             out.append(d)
         laws = sorted({law.name for law in truth_laws(self.model, self.config.law).values()})
+        extra = {"groups": [self._group_summary(g) for g in self.groups]} if self.groups else {}
         return {"truth_mesh": {"nodes": len(self.model.nodes), "tets": len(self.model.tets),
                                "mesh_size_mm": self.model.design.mesh.size_mm,
                                "element_order": self.model.element_order},
                 "law": "+".join(laws), "patch_radius_mm": self.scenario.patch_radius_mm,
-                "solve_s": round(self.solve_s, 2), "events": out}
+                "solve_s": round(self.solve_s, 2), "events": out, **extra}
+
+    def _group_summary(self, g: GroupTruth) -> dict:
+        """A group's figures at both peaks (levels (1, 1)), JSON-able."""
+        d = dict(events=[f"{e.kind}" + (f" {e.cavity}" if e.kind == "inflate" else "") + f" at {e.start_s:g} s"
+                         for e in g.events],
+                 force_N=[round(float(f), 4) for f in g.force],
+                 p_kPa={c: round(v / 1e3, 3) for c, v in g.pressures_Pa.items()},
+                 peak_marker_shift_mm=round(float(np.linalg.norm(g.markers[-1, -1] - self.rest_markers,
+                                                                 axis=1).max()) * 1e3, 3),
+                 peak_dV_mm3={c: round(float(v) * 1e9, 3) for c, v in zip(self.model.design.cavity_names,
+                                                                            g.dV[-1, -1])},
+                 bulb_growth_percent=round(float(g.bulb_dV[-1, -1] / self.model.bulb_volume()) * 100, 3),
+                 keyframes=g.solves, newton_iterations=g.iterations)
+        for name, dsp in zip(self.target_names, g.targets[-1, -1]):
+            d[f"{name}_shift_mm"] = round(float(np.linalg.norm(dsp)) * 1e3, 3)
+        return d
 
 
 def truth_model(model: PhantomModel, config: TruthConfig = TruthConfig()) -> PhantomModel:
@@ -299,6 +423,17 @@ def solve_truth(scenario: Scenario, model: PhantomModel, config: TruthConfig = T
     k = len(marker_names)
     total = sum(config.levels if e.kind == "push" or e.p_kPa is not None else config.inflate_steps
                 for e in scenario.events)
+    groups = scenario.groups
+    total += config.levels**2 * len(groups)  # a group's inner keyframes
+    for pair in groups:
+        for i in pair:
+            if scenario.events[i].kind == "inflate" and scenario.events[i].p_kPa is None:
+                from softphantom.virtual.scenario import ScenarioError
+
+                raise ScenarioError(f"{scenario.source}: inflate.target_shift_mm: an inflation until a target "
+                                    f"moves cannot overlap another event; give p_kPa")
+    grouped = {i for pair in groups for i in pair}
+    paths = {}  # event index in a group -> its states at the keyframes (the group's edges)
     done = 0
 
     def readout(x):
@@ -357,6 +492,8 @@ def solve_truth(scenario: Scenario, model: PhantomModel, config: TruthConfig = T
                 x_prev, x, its = x, sol.x.reshape(-1), its + sol.iterations
                 rows.append(readout(x))
                 s_list.append(s)
+                if i in grouped:
+                    paths.setdefault(i, [x_rest.reshape(-1)]).append(x)
             force, p_peak = f, 0.0
         elif e.p_kPa is not None:
             p_peak = e.p_kPa * 1e3
@@ -367,6 +504,8 @@ def solve_truth(scenario: Scenario, model: PhantomModel, config: TruthConfig = T
                 x_prev, x, its = x, sol.x.reshape(-1), its + sol.iterations
                 rows.append(readout(x))
                 s_list.append(s)
+                if i in grouped:
+                    paths.setdefault(i, [x_rest.reshape(-1)]).append(x)
             force = np.zeros(3)
         else:
             j = target_names.index(e.target) if e.target in target_names else None
@@ -447,8 +586,66 @@ def solve_truth(scenario: Scenario, model: PhantomModel, config: TruthConfig = T
         dv, mk, tg, bulb = (np.array(v) for v in zip(*rows))
         events.append(EventTruth(e, np.asarray(s_list), dv, mk, tg, bulb, force, float(p_peak),
                                  np.asarray(x).reshape(-1, 3).copy(), its, note))
+
+    def loads(e: Event, s: float):
+        """The nodal forces (or None) and cavity pressures of event ``e`` at level ``s``."""
+        if e.kind == "push":
+            pt = tm.p_ext[e.point]
+            H = force_actuator(fem, pt, radius=_patch_radius(fem, pt, scenario.patch_radius_mm * 1e-3))
+            return H @ (s * np.asarray(e.force_N, float)), {}
+        return None, {e.cavity: s * e.p_kPa * 1e3}
+
+    def solve_group(n: int, pair: tuple[int, int]) -> GroupTruth:
+        nonlocal done
+        e1, e2 = (scenario.events[i] for i in pair)
+        L = config.levels
+        lv = np.arange(L + 1) / L
+        X = [[None] * (L + 1) for _ in range(L + 1)]
+        grid = [[None] * (L + 1) for _ in range(L + 1)]
+        for k in range(L + 1):  # the edges: each event alone
+            X[k][0], X[0][k] = paths[pair[0]][k], paths[pair[1]][k]
+            et1, et2 = events[pair[0]], events[pair[1]]
+            grid[k][0] = (et1.dV[k], et1.markers[k], et1.targets[k], et1.bulb_dV[k])
+            grid[0][k] = (et2.dV[k], et2.markers[k], et2.targets[k], et2.bulb_dV[k])
+        its = 0
+        for i in range(1, L + 1):
+            for j in range(1, L + 1):
+                (f1, p1), (f2, p2) = loads(e1, lv[i]), loads(e2, lv[j])
+                f_ext = f1 if f2 is None else f2 if f1 is None else f1 + f2
+                pres = dict(p1)
+                for c, v in p2.items():
+                    pres[c] = pres.get(c, 0.0) + v
+                pres = pres or None
+                what = (f"group {n + 1} ({e1.kind} + {e2.kind}) keyframe {(i - 1) * L + j}/{L * L} at levels "
+                        f"({lv[i]:.2f}, {lv[j]:.2f})")
+                pred = X[i - 1][j] + X[i][j - 1] - X[i - 1][j - 1]
+                try:
+                    sol = solve_static(fem, f_ext, pressures=pres, x0=pred, tol=config.tol, min_load_step=1.0,
+                                       max_iter=25, on_indefinite="shift")
+                except ElementInversionError:
+                    sol = None
+                if sol is None or not sol.converged:
+                    sol = solve_static(fem, f_ext, pressures=pres, x0=X[i][j - 1], tol=config.tol,
+                                       min_load_step=1.0 / 64, max_iter=25)
+                if not sol.converged:
+                    raise SolverError(f"truth of {scenario.name}: {what}: {sol.status}")
+                its += sol.iterations
+                X[i][j] = sol.x.reshape(-1)
+                grid[i][j] = readout(X[i][j])
+                done += 1
+                report(log, task, done, total, what)
+        dv, mk, tg, bulb = (np.array([[np.asarray(c[q]) for c in row] for row in grid]) for q in range(4))
+        force = sum((np.asarray(e.force_N, float) for e in (e1, e2) if e.kind == "push"), np.zeros(3))
+        peak = {}
+        for e in (e1, e2):
+            if e.kind == "inflate":
+                peak[e.cavity] = peak.get(e.cavity, 0.0) + e.p_kPa * 1e3
+        return GroupTruth(pair, (e1, e2), lv, lv.copy(), dv, mk, tg, bulb, force, peak,
+                          X[L][L].reshape(-1, 3).copy(), L * L, its)
+
+    group_truths = tuple(solve_group(n, pair) for n, pair in enumerate(groups))
     return Truth(scenario, tm, marker_names, target_names, rest_markers, V0, tuple(events),
-                 time.perf_counter() - t0, config)
+                 time.perf_counter() - t0, config, group_truths)
 
 
 def write_snapshot(truth: Truth, path) -> str:
