@@ -239,9 +239,12 @@ def test_a_displacement_atlas_derivative_along_another_load_is_at_fixed_q(coarse
 
 
 @pytest.mark.slow
-def test_a_hermite_axis_of_n_points_is_as_good_as_a_lagrange_axis_of_2n_minus_1(coarse_model, fwd, h3):
+def test_a_hermite_axis_beats_its_lagrange_twin_at_held_out_solves(coarse_model, fwd, h3):
     # held-out loads off the grid along f_y, on grid points of the other axes (where every fit is
-    # exact): the error is the f_y interpolation's, against converged solves
+    # exact): the error is the f_y interpolation's, against converged solves. That n Hermite points
+    # match 2n − 1 Lagrange ones is exact on polynomials (the first test) and measured on the
+    # default model's envelope by bench_estimate.py (docs/atlas.md: 6 Hermite points along f_x
+    # as good as the default's 11)
     rng = np.random.default_rng(11)
     ax = BASE.axes()
     held = [fwd.solve(np.array([ax[0][rng.integers(3)], f_y, ax[2][rng.integers(3)], ax[3][rng.integers(2)]]))
@@ -253,12 +256,10 @@ def test_a_hermite_axis_of_n_points_is_as_good_as_a_lagrange_axis_of_2n_minus_1(
                          max(np.abs(at.nodes(h.lam) - h.x.reshape(-1, 3)).max() for h in held)])
 
     h3, l3 = errors(h3), errors(_lagrange_twin(h3))
-    l5 = errors(_build(coarse_model, dataclasses.replace(BASE, n_force=(3, 5, 3))))
-    # measured (H3 / L5 / L3): volumes 0.0009 / 0.0007 / 0.067 mm³, points 0.0007 / 0.0005 / 0.054 mm;
-    # the field 0.025 / 0.023 / 0.058 mm, where the POD truncation (FIELD_RTOL) bounds all three (L3
-    # is H3's Lagrange twin: its volumes and points are a separate L3 build's to 1e-15, its field to
-    # 0.0001 mm)
-    assert np.all(h3 <= 1.5 * l5), (h3, l5)
+    # measured (H3 / L3; a 5-point Lagrange build, 90 solves, gave L5): volumes 0.0009 / 0.067 mm³
+    # (L5 0.0007), points 0.0007 / 0.054 mm (0.0005); the field 0.025 / 0.058 mm (0.023), where the
+    # POD truncation (FIELD_RTOL) bounds all three (L3 is H3's Lagrange twin: its volumes and points
+    # are a separate L3 build's to 1e-15, its field to 0.0001 mm)
     assert np.all(h3[:2] <= 0.05 * l3[:2]), (h3, l3)
     assert h3[2] <= 0.5 * l3[2], (h3, l3)
 
