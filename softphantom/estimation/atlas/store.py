@@ -86,6 +86,9 @@ def atlas_key(fwd: ForwardModel, acfg: AtlasConfig) -> str:
         del atlas["linear_pressure"]
     meta = {"format": KEY_FORMAT, "atlas": atlas, "tol": fwd.config.tol,
             "markers": fwd.marker_names, "targets": fwd.target_names}
+    names = tuple(getattr(fwd, "pressure_names", ()))
+    if len(names) > 1:  # which cavities are loads, in λ's order: a stack's levels hold p_2 … p_M
+        meta["pressures"] = names
     h.update(json.dumps(meta, sort_keys=True).encode())
     return h.hexdigest()
 
