@@ -203,3 +203,17 @@ def test_one_level_holds_a_pressure_that_stays_near_it(built):
                                           status="ok")))
     assert np.array_equal(e[0].force, e[1].force) and e[0].in_envelope and e[1].in_envelope
     assert not e[2].in_envelope
+
+
+@pytest.mark.slow
+def test_the_held_out_check_takes_a_stack(built):
+    # `softphantom atlas check`'s rows at (3 + M)-loads: the map and its inverse against full solves
+    from softphantom.estimation.atlas.check import check_held_out, held_out_loads
+
+    c = ACFG
+    L = held_out_loads(np.r_[c.lower, 0.0], np.r_[c.upper, 40e3], 2, seed=3)
+    assert L.shape == (2, 5)
+    res = check_held_out(built.model, CFG, built.stack, L)
+    w = res.worst()
+    assert len(res.loads) + res.skipped == 2 and not res.failed
+    assert w["dV_mm3"] < VOL_TOL_MM3 and w["points_mm"] < PTS_TOL_MM and w["force_N"] < 3 * F_TOL_N, w

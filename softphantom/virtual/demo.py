@@ -179,7 +179,8 @@ def scenario_atlas(truth, grid: tuple[int, int, int, int] | None = None, cavitie
     return atlas_box(forces, peaks[0], grid, peaks[1:])
 
 
-def shared_atlases(scs, grid: tuple[int, int, int, int] | None = None, n_cavities: int = 1) -> dict[str, AtlasConfig]:
+def shared_atlases(scs, grid: tuple[int, int, int, int] | None = None,
+                   n_cavities: int = 1) -> dict[str, AtlasConfig]:
     """One atlas per contact point for the scenarios that only push there (their peak forces are
     the scenario's own, known before any solve): the box of all of them, so the needle insertion
     and the on-centre pushes share one build; ``grid`` the points per axis (default ``PUSH_GRID``);

@@ -808,7 +808,7 @@ def build_atlas(model, config: EstimatorConfig | None = None, atlas: AtlasConfig
 
     cfg = config or EstimatorConfig()
     fwd = fwd or ForwardModel(model, cfg)
-    acfg = (atlas or default_atlas_config(fwd.fem.order)).for_cavities(len(fwd.pressure_names))
+    acfg = (atlas or default_atlas_config(fwd.fem.order)).for_cavities(len(internal_cavities_of(model)))
     subs = acfg.pieces()
     which = tuple(range(len(subs))) if pieces is None else tuple(pieces)
     t0 = time.perf_counter()
@@ -922,7 +922,7 @@ def load_or_build(model, config: EstimatorConfig | None = None, atlas: AtlasConf
     check_atlas_cavities(model)
     cfg = config or EstimatorConfig()
     fwd = fwd or ForwardModel(model, cfg)
-    acfg = (atlas or model_atlas_config(fwd.fem.order, cache_dir)).for_cavities(len(fwd.pressure_names))
+    acfg = (atlas or model_atlas_config(fwd.fem.order, cache_dir)).for_cavities(len(internal_cavities_of(model)))
     subs = acfg.pieces()
     found: dict[int, Atlas] = {}
     paths = {}

@@ -182,7 +182,8 @@ class AtlasConfig:
         object.__setattr__(self, "further_max_kPa", fhi)
         n = self.n_further
         nt = tuple(n) if np.ndim(n) else (n,) * max(len(flo), 1)
-        if any(isinstance(v, bool) or int(v) != v or not 1 <= v <= 9 for v in nt) or (np.ndim(n) and len(nt) != len(flo)):
+        bad = any(isinstance(v, bool) or int(v) != v or not 1 <= v <= 9 for v in nt)
+        if bad or (np.ndim(n) and len(nt) != len(flo)):
             raise UserError(f"atlas n_further: an integer in 1..9 (or one per further cavity), got {n!r}")
         object.__setattr__(self, "n_further", tuple(int(v) for v in nt) if flo else int(nt[0]))
         held = tuple(float(v) for v in np.atleast_1d(self.held_kPa))
@@ -195,7 +196,7 @@ class AtlasConfig:
         if flo and self.x_control != "force":
             # each level's q is its own patch displacement's map: mixing them is untested
             raise UserError(f"atlas x_control {self.x_control!r} with further pressures (a stack): not supported, "
-                            f"use 'force'")
+                            f"use 'force' (--atlas-x-axis force)")
         if flo and self.offline != "full":
             raise UserError("atlas further_min_kPa (a stack) needs offline 'full' (the reduced model has one pressure)")
 
@@ -217,7 +218,8 @@ class AtlasConfig:
         if len(self.further_min_kPa if self.stacked else self.held_kPa) == m - 1:
             return self  # a stack, a level of one (built alone) or an atlas of one cavity
         if not self.stacked and not self.held_kPa and m > 1:
-            return replace(self, further_min_kPa=(self.p_min_kPa,) * (m - 1), further_max_kPa=(self.p_max_kPa,) * (m - 1))
+            return replace(self, further_min_kPa=(self.p_min_kPa,) * (m - 1),
+                           further_max_kPa=(self.p_max_kPa,) * (m - 1))
         what = "further_min_kPa" if self.stacked or not self.held_kPa else "held_kPa"
         raise UserError(f"atlas {what}: one per actuated cavity after the first ({m - 1}), got "
                         f"{len(getattr(self, what))}")

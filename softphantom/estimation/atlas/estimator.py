@@ -39,7 +39,11 @@ class AtlasEstimator(EstimatorState):
     """The real-time estimator on an :class:`~softphantom.estimation.atlas.map.Atlas` (see the module docstring): ``step(measurement)
     → Estimate`` with no background work; ``node_positions()`` the full field of the last estimate.
 
-    ``Estimate.in_envelope`` is False when the measured pressure lies outside the atlas's range,
+    On an :class:`~softphantom.estimation.atlas.map.AtlasStack` (several actuated cavities) each
+    sample's Gauss–Newton runs on the stack's piece mixed at the measured further pressures; the
+    state λ is (3 + M,).
+
+    ``Estimate.in_envelope`` is False when a measured pressure lies outside the atlas's range,
     when the best fit wants a force beyond an envelope face that is tighter than the configured
     force bounds (the estimate is then the best one clamped to the envelope), or when it lies in a
     grid cell the build could not solve (the estimate then comes from the extrapolated fill).
