@@ -34,7 +34,7 @@ def _contact(at: str, model) -> str:
 
 
 def _pieces(at) -> tuple:
-    return getattr(at, "patches", (at,))
+    return getattr(at, "all_pieces", None) or getattr(at, "patches", (at,))
 
 
 def _print_rows(rows) -> None:
@@ -191,6 +191,8 @@ def check_cmd(
     missed, 2 when the model has no atlas."""
     from contextlib import nullcontext
 
+    import numpy as np
+
     from softphantom.estimation import EstimatorConfig
     from softphantom.estimation.atlas.build import load_or_build
     from softphantom.estimation.atlas.check import check_held_out, held_out_loads
@@ -209,7 +211,8 @@ def check_cmd(
     cfg = EstimatorConfig(contact=_contact(at, model))
     atlas = load_or_build(model, cfg, None, cache_dir=model_dir, max_build_s=0.0)
     c = atlas.config
-    L = held_out_loads(c.lower, c.upper, loads, seed)
+    further = (np.array(c.further_min_kPa) * 1e3, np.array(c.further_max_kPa) * 1e3)  # a stack's pressures
+    L = held_out_loads(np.r_[c.lower, further[0]], np.r_[c.upper, further[1]], loads, seed)
     local = workers == 0 and scheduler is None
     with (nullcontext() if local else dask_client(scheduler, workers)) as client:
         with status(f"{loads} held-out full solves", console) if local else nullcontext():

@@ -90,8 +90,9 @@ def demo_cmd(
                                       "pressure (kPa)."),
     overwrite: bool = overwrite_option(),
     estimator: str = typer.Option(None, "--estimator", help="atlas (precomputed, real time; the default for a "
-                                  "design of one internal cavity) | refresh (sync: re-linearized inside each step; "
-                                  "the default for a design of none or several: the atlas tabulates one pressure)."),
+                                  "design with an actuated internal cavity, a stack of atlases over the further ones' "
+                                  "pressures for several) | refresh (sync: re-linearized inside each step; the default "
+                                  "for a design of none: the atlas tabulates an internal pressure)."),
     atlas_grid: str = typer.Option(None, "--atlas-grid", help="Build a small atlas for the demo instead of using the "
                                    "model's: Chebyshev points per axis NX,NY,NZ,NP over the scenarios' own loads "
                                    "(e.g. 5,5,5,2; for a model without its atlas). Default: the model's atlas (the "
@@ -132,10 +133,10 @@ def demo_cmd(
         scs = (design_scenarios(design, push_n, inflate_kpa) if design_file is not None
                else [load_scenario(n) for n in DEMO_SCENARIOS])
     if estimator is None:
-        estimator = "atlas" if len(design.pressure_names) == 1 else "refresh"
+        estimator = "atlas" if design.pressure_names else "refresh"
         if estimator == "refresh":
-            console.print(f"estimator: refresh (the atlas tabulates one internal pressure; this design has "
-                          f"{len(design.pressure_names)} actuated cavities)", highlight=False)
+            console.print("estimator: refresh (the atlas tabulates an internal pressure; this design has no "
+                          "actuated cavity)", highlight=False)
     if design_file is not None and grid is None and estimator == "atlas":
         grid = ()  # no atlas ships for it: the demo's own, each of the grid of its kind (push, inflation)
     with staged_output(out, overwrite=overwrite, directory=True) as work:

@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from softphantom.estimation import AtlasConfig, EstimatorConfig, estimate_stream, load_or_build, open_estimator
+from softphantom.estimation.forward import internal_cavities_of
 from softphantom.progress import Step, forward_progress, report
 
 # The demo's own atlas per scenario (with --atlas-grid): the box of the scenario's peak loads (its
@@ -124,25 +125,43 @@ def push_only(sc) -> str | None:
     return points.pop() if len(points) == 1 and all(e.kind == "push" for e in sc.events) else None
 
 
-def atlas_box(forces, p_kPa: float, grid=None) -> AtlasConfig:
+def atlas_box(forces, p_kPa: float, grid=None, further_kPa=()) -> AtlasConfig:
     """The atlas over the box of ``forces`` (N, each (3,)) and zero, widened by the margins above;
     the pressure from −MARGIN_KPA to ``p_kPa`` + MARGIN_KPA; ``grid`` the points per axis (default:
-    ``PUSH_GRID`` for a push, ``p_kPa`` 0, else ``INFLATE_GRID``)."""
+    ``PUSH_GRID`` for a push, every pressure 0, else ``INFLATE_GRID``). ``further_kPa``: the peaks
+    of the further actuated cavities (a design of M ≥ 2): a stack whose levels span each the same
+    way, ``grid``'s pressure points for a cavity that inflates; one that stays at rest (its measured
+    pressure is noise about 0) gets one level at 0, and p_1 at rest its tangent line: so each
+    scenario's atlas costs what it would for one cavity.
+
+    >>> c = atlas_box([(0.0, 0.0, 0.0)], 0.0, further_kPa=(20.0,))
+    >>> c.shape, c.linear_pressure, c.further_max_kPa, c.n_further, c.n_solves
+    ((3, 3, 3, 2), True, (22.0,), (5,), 135)
+    >>> c = atlas_box([(0.0, 0.0, 0.0)], 20.0, further_kPa=(0.0,))
+    >>> c.shape, c.further_min_kPa, c.further_max_kPa, c.n_further, c.n_solves
+    ((3, 3, 3, 5), (-2.0,), (2.0,), (1,), 135)
+    """
     F = np.array([np.zeros(3)] + [np.asarray(f, float) for f in forces])
     lo, hi = F.min(0), F.max(0)
-    n = grid or (PUSH_GRID if p_kPa == 0.0 else INFLATE_GRID)
+    further = tuple(float(v) for v in further_kPa)
+    inflating = p_kPa != 0.0 or any(further)
+    n = grid or (INFLATE_GRID if inflating else PUSH_GRID)
+    n_p = 2 if further and p_kPa == 0.0 else n[3]
+    stack = dict(further_min_kPa=(-MARGIN_KPA,) * len(further), further_max_kPa=tuple(v + MARGIN_KPA for v in further),
+                 n_further=tuple(n[3] if v else 1 for v in further)) if further else {}
     # a push's pressure stays near 0 (the middle of its range): the pressure axis is the tangent
     # line there, one plane of solves instead of two (AtlasConfig.linear_pressure)
     return AtlasConfig(force_min_N=tuple(lo - MARGIN_N + MARGIN_REL * lo),
                        force_max_N=tuple(hi + MARGIN_N + MARGIN_REL * hi), p_min_kPa=-MARGIN_KPA,
-                       p_max_kPa=p_kPa + MARGIN_KPA, n_force=n[:3], n_pressure=n[3],
-                       linear_pressure=p_kPa == 0.0 and n[3] == 2,
-                       x_control="force")
+                       p_max_kPa=p_kPa + MARGIN_KPA, n_force=n[:3], n_pressure=n_p,
+                       linear_pressure=p_kPa == 0.0 and n_p == 2,
+                       x_control="force", **stack)
 
 
-def scenario_atlas(truth, grid: tuple[int, int, int, int] | None = None) -> AtlasConfig:
+def scenario_atlas(truth, grid: tuple[int, int, int, int] | None = None, cavities=()) -> AtlasConfig:
     """The :class:`~softphantom.estimation.atlas.config.AtlasConfig` the demo builds for one
-    scenario from its solved ``truth`` (see ``MARGIN_N`` above); ``grid`` overrides the points per axis.
+    scenario from its solved ``truth`` (see ``MARGIN_N`` above); ``grid`` overrides the points per
+    axis; ``cavities``: the model's actuated ones, whose peaks set a stack's levels (M ≥ 2).
 
     >>> from types import SimpleNamespace as E
     >>> push = E(events=[E(force=(0.4, 3.0, 0.3), p_Pa=0.0), E(force=(-0.5, 2.8, -0.4), p_Pa=0.0)])
@@ -154,15 +173,24 @@ def scenario_atlas(truth, grid: tuple[int, int, int, int] | None = None) -> Atla
     ((0.5, 0.5, 0.5), -2.0, 32.0, (3, 3, 3, 5))
     """
     groups = getattr(truth, "groups", ())  # two events at once: their loads add
-    return atlas_box([e.force for e in (*truth.events, *groups)],
-                     max([0.0] + [e.p_Pa * 1e-3 for e in truth.events]
-                         + [max(g.pressures_Pa.values(), default=0.0) * 1e-3 for g in groups]), grid)
+    forces = [e.force for e in (*truth.events, *groups)]
+
+    def peak_kPa(c):  # the largest pressure of cavity c (None: of any) over the events and groups
+        ev = [e.p_Pa for e in truth.events if c is None or getattr(e, "cavity", None) == c]
+        gr = [max(g.pressures_Pa.values(), default=0.0) if c is None else g.pressures_Pa.get(c, 0.0) for g in groups]
+        return max([0.0] + ev + gr) * 1e-3
+
+    if len(cavities) < 2:
+        return atlas_box(forces, peak_kPa(None), grid)
+    return atlas_box(forces, peak_kPa(cavities[0]), grid, tuple(peak_kPa(c) for c in cavities[1:]))
 
 
-def shared_atlases(scs, grid: tuple[int, int, int, int] | None = None) -> dict[str, AtlasConfig]:
+def shared_atlases(scs, grid: tuple[int, int, int, int] | None = None,
+                   n_cavities: int = 1) -> dict[str, AtlasConfig]:
     """One atlas per contact point for the scenarios that only push there (their peak forces are
     the scenario's own, known before any solve): the box of all of them, so the needle insertion
-    and the on-centre pushes share one build; ``grid`` the points per axis (default ``PUSH_GRID``).
+    and the on-centre pushes share one build; ``grid`` the points per axis (default ``PUSH_GRID``);
+    for ``n_cavities`` ≥ 2 actuated cavities a stack of one level of each further one, at 0.
     {contact: AtlasConfig}.
 
     >>> from types import SimpleNamespace as E
@@ -182,7 +210,7 @@ def shared_atlases(scs, grid: tuple[int, int, int, int] | None = None) -> dict[s
             by.setdefault(c, []).extend(e.force_N for e in sc.events)
             # two pushes at once: their sum
             by[c].extend(np.add(sc.events[i].force_N, sc.events[j].force_N) for i, j in getattr(sc, "groups", ()))
-    return {c: atlas_box(f, 0.0, grid) for c, f in by.items()}
+    return {c: atlas_box(f, 0.0, grid, (0.0,) * (n_cavities - 1)) for c, f in by.items()}
 
 
 def in_envelope_fraction(path: Path) -> float:
@@ -220,7 +248,7 @@ def run_scenario(sc, model, out: Path, cfg, truth, estimator: str = "atlas", gri
     if estimator != "atlas":
         atlas = None
     elif atlas is None:
-        atlas = scenario_atlas(truth, grid)
+        atlas = scenario_atlas(truth, grid, internal_cavities_of(model))
     with open_estimator(estimator, model, ecfg, cache_dir=out / "model", atlas=atlas, scheduler=scheduler) as est:
         stats = estimate_stream(src, est, est_path, lambda e, n: report(log, task, n, n_frames),
                                 live=False, metadata={"model": "../model", "scenario": sc.name, "contact": ecfg.contact,
@@ -265,8 +293,10 @@ def run_scenario(sc, model, out: Path, cfg, truth, estimator: str = "atlas", gri
 def _atlas_row(atlas, est_path: Path) -> dict:
     """The summary's atlas entry: its envelope, grid, pieces and the share of estimates inside it."""
     c = getattr(atlas, "config", atlas)  # a built atlas (or its pieces), or the config of one to build
+    stack = {"further_min_kPa": c.further_min_kPa, "further_max_kPa": c.further_max_kPa,
+             "levels": len(c.levels())} if c.stacked else {}
     return {"force_min_N": c.force_min_N, "force_max_N": c.force_max_N, "p_min_kPa": c.p_min_kPa,
-            "p_max_kPa": c.p_max_kPa, "grid": c.shape, "pieces": len(c.patches()),
+            "p_max_kPa": c.p_max_kPa, "grid": c.shape, "pieces": len(c.patches()), **stack,
             "in_envelope_fraction": in_envelope_fraction(est_path)}
 
 
@@ -335,7 +365,8 @@ def run_all(scs, model, out: Path, cfg, truth_mesh, estimator: str = "atlas", gr
     from softphantom.parallel import dask_client
 
     own = grid is None and estimator == "atlas"
-    shared = shared_atlases(scs, grid) if estimator == "atlas" and not own else {}
+    n_cavities = len(internal_cavities_of(model))
+    shared = shared_atlases(scs, grid, n_cavities) if estimator == "atlas" and not own else {}
     order = sorted(scs, key=lambda sc: push_only(sc) in shared)  # stable: the others first
     rows: dict[str, dict] = {}
     truths: dict[str, object] = {}

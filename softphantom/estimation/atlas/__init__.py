@@ -32,7 +32,7 @@ Where each job lives (this module re-exports their public names):
 
 - :mod:`~softphantom.estimation.atlas.config`: the settings, :class:`AtlasConfig`, :func:`default_atlas_config`;
 - :mod:`~softphantom.estimation.atlas.basis`: the Chebyshev maths (grids, interpolation, evaluation);
-- :mod:`~softphantom.estimation.atlas.map`: :class:`Atlas`, :class:`AtlasPatches` (the polynomials);
+- :mod:`~softphantom.estimation.atlas.map`: :class:`Atlas`, :class:`AtlasPatches`, :class:`AtlasStack` (the polynomials);
 - :mod:`~softphantom.estimation.atlas.build`: the grid sweeps on Dask, :func:`build_atlas`, :func:`load_or_build`;
 - :mod:`~softphantom.estimation.atlas.store`: the key, the file format, verify / describe / install;
 - :mod:`~softphantom.estimation.atlas.estimator`: :class:`AtlasEstimator`;
@@ -43,12 +43,12 @@ from softphantom.estimation.atlas.basis import cheb_basis, cheb_points, to_cheby
 from softphantom.estimation.atlas.build import NODE_TOL, build_atlas, fill_weights, load_or_build, provenance, x_patch
 from softphantom.estimation.atlas.config import P2_F_Y_SPLITS_N, X_CONTROLS, AtlasConfig, default_atlas_config
 from softphantom.estimation.atlas.estimator import AtlasEstimator
-from softphantom.estimation.atlas.map import Atlas, AtlasPatches, KernelView
+from softphantom.estimation.atlas.map import Atlas, AtlasPatches, AtlasStack, KernelView
 from softphantom.estimation.atlas.store import (
     FORMAT, AtlasCorrupt, AtlasMismatch, atlas_key, atlas_path, load_atlas, save_atlas,
 )
 
 __all__ = ["FORMAT", "NODE_TOL", "P2_F_Y_SPLITS_N", "X_CONTROLS", "Atlas", "AtlasConfig", "AtlasCorrupt",
-           "AtlasEstimator", "AtlasMismatch", "AtlasPatches", "KernelView", "atlas_key", "atlas_path", "build_atlas",
+           "AtlasEstimator", "AtlasMismatch", "AtlasPatches", "AtlasStack", "KernelView", "atlas_key", "atlas_path", "build_atlas",
            "cheb_basis", "cheb_points", "default_atlas_config", "fill_weights", "load_atlas", "load_or_build",
            "provenance", "save_atlas", "to_chebyshev", "x_patch"]

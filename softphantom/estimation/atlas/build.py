@@ -28,7 +28,7 @@ from softphantom.estimation.atlas.basis import axis_t, to_chebyshev
 from softphantom.estimation.atlas.config import (FALLBACK_MIN_LOAD_STEP, VIA_TOL, AtlasConfig, default_atlas_config,
                                                 model_atlas_config,
                                                 x_patch)
-from softphantom.estimation.atlas.map import Atlas, AtlasPatches
+from softphantom.estimation.atlas.map import Atlas, AtlasPatches, AtlasStack
 from softphantom.estimation.atlas.store import (AtlasCorrupt, AtlasMismatch, atlas_key, atlas_path, load_atlas, save_atlas,
                                                 shipped_atlas)
 from softphantom.estimation.atlas.tasks import (GraphRun, Task, TaskStore, check_partials, critical_path_s, discard_tasks,
@@ -48,6 +48,64 @@ BORDERED_TOL = 1e-3  # a mixed-control solve hits the patch displacement this cl
 FIELD_RTOL = 1e-5  # POD truncation: dropped displacement energy below this fraction (≈ 3e-3 relative RMS)
 
 log = logging.getLogger(__name__)
+
+
+class _HeldSolver:
+    """An :class:`~softphantom.estimation.linearization.EquilibriumSolver` whose callers pass the
+    first four loads (f, p_1): the further pressures are appended (``held`` (M − 1,) Pa)."""
+
+    def __init__(self, eq, held: np.ndarray) -> None:
+        self._eq = eq
+        self._held = held
+
+    def __getattr__(self, name):
+        return getattr(self._eq, name)
+
+    def _full(self, lam) -> np.ndarray:
+        lam = np.asarray(lam, float)
+        return lam if len(lam) == self._eq.n_loads else np.concatenate([lam[:4], self._held])
+
+    def factorize(self, x, p) -> None:
+        p = np.atleast_1d(np.asarray(p, float))
+        self._eq.factorize(x, p if len(p) == self._eq.n_loads - 3 else np.concatenate([p[:1], self._held]))
+
+    def residual(self, x, lam):
+        return self._eq.residual(x, self._full(lam))
+
+    def linearize(self, x, lam, *args, **kw):
+        return self._eq.linearize(x, self._full(lam), *args, **kw)
+
+    def solve(self, start, lam, *args, **kw):
+        return self._eq.solve(start, self._full(lam), *args, **kw)
+
+
+class HeldLoads:
+    """A :class:`ForwardModel` with the pressures of the further cavities p_2 … p_M held at a
+    stack level's (``held_Pa``): its :meth:`solve` and ``eq`` take λ = (f, p_1) as a one-pressure
+    model's do and solve the full λ; the linearizations it returns are the full model's (λ (3 + M,),
+    ``W`` (rows, 3 + M)), whose first four load columns the build reads. So a level is built by the
+    same code as any atlas."""
+
+    def __init__(self, fwd: ForwardModel, held_Pa) -> None:
+        held = np.asarray(held_Pa, float)
+        if len(held) != fwd.eq.n_loads - 4:
+            raise UserError(f"atlas held_kPa: {len(held)} pressures held, the model has "
+                            f"{fwd.eq.n_loads - 4} actuated cavities after the first")
+        self._fwd = fwd
+        self.held_Pa = held
+        self.eq = _HeldSolver(fwd.eq, held)
+
+    def __getattr__(self, name):
+        return getattr(self._fwd, name)
+
+    def solve(self, lam, start=None, **kw):
+        return self._fwd.solve(self.eq._full(lam), start, **kw)
+
+
+def held_loads(fwd: ForwardModel, acfg: AtlasConfig):
+    """``fwd`` as the build of the atlas ``acfg`` solves it: itself, or for a stack's level
+    (``acfg.held_kPa``) the :class:`HeldLoads` view holding the further pressures."""
+    return HeldLoads(fwd, np.asarray(acfg.held_kPa, float) * 1e3) if acfg.held_kPa else fwd
 
 
 def _inner(p: tuple[int, int], centre: tuple[int, int]) -> list[tuple[int, int]]:
@@ -276,7 +334,8 @@ def _sweep(model, config: EstimatorConfig, acfg: AtlasConfig, i: int, l: int):
     # is the tangent at the start point's equilibrium; failures are expected at the envelope's
     # corners: the Newton fallback gives up at 1/32 of the load (not 1/1024: a failing solve cost
     # ~10 converging ones)
-    fwd = ForwardModel(model, config, exact_sensitivities=False, fallback_min_load_step=FALLBACK_MIN_LOAD_STEP)
+    fwd = held_loads(ForwardModel(model, config, exact_sensitivities=False,
+                                  fallback_min_load_step=FALLBACK_MIN_LOAD_STEP), acfg)
     ax = acfg.axes()
     ny, nz = len(ax[1]), len(ax[2])
     linear = acfg.linear_pressure
@@ -356,7 +415,8 @@ def _lines(model, config: EstimatorConfig, acfg: AtlasConfig, k: int, l: int, en
     shapes or None: along ū (``acfg.hermite_axis`` 0), or along another load at fixed q, for which
     ``dends`` (ny,) × 2 are the faces' dū/dλ_a (:func:`_axis_derivative`))."""
     t0 = time.process_time()
-    fwd = ForwardModel(model, config, exact_sensitivities=False, fallback_min_load_step=FALLBACK_MIN_LOAD_STEP)
+    fwd = held_loads(ForwardModel(model, config, exact_sensitivities=False,
+                                  fallback_min_load_step=FALLBACK_MIN_LOAD_STEP), acfg)
     ax = acfg.axes()
     n1, ny = len(ax[0]), len(ax[1])
     h = x_patch(fwd)
@@ -695,15 +755,28 @@ def build_settings(fwd: ForwardModel, acfg: AtlasConfig) -> dict:
 
 
 def check_atlas_cavities(model) -> str:
-    """The atlas tabulates λ = (f, p) with p the gauge pressure of the model's one actuated internal
-    cavity (the BIP's urethra, a kidney's collecting system; a measured cavity is a volume row, not a
-    load): returns that cavity's name; a model of another number of actuated internal cavities is
-    refused in one line (the refresh estimator takes any)."""
+    """The atlas tabulates λ = (f, p_1) with p_1 the gauge pressure of the model's first actuated
+    internal cavity (the BIP's urethra, a kidney's collecting system; a measured cavity is a volume
+    row, not a load), and a stack of such atlases over the further ones' pressures
+    (``AtlasConfig.further_min_kPa``): returns the first cavity's name; a model without an actuated
+    internal cavity is refused in one line (the refresh estimator takes it)."""
     names = internal_cavities_of(model)
-    if len(names) != 1:
-        raise UserError(f"cavities: the atlas tabulates one internal pressure; this design has {len(names)}"
-                        f"{' (' + ', '.join(names) + ')' if names else ''}: use --estimator refresh")
+    if not names:
+        raise UserError("cavities: the atlas tabulates at least one internal pressure; this design has 0: "
+                        "use --estimator refresh")
     return names[0]
+
+
+def _regroup(acfg: AtlasConfig, found: dict):
+    """The atlas of ``acfg`` from its built pieces (``found``: index in ``acfg.pieces()`` → Atlas):
+    an Atlas, an AtlasPatches, or a stack of either (:class:`AtlasStack`)."""
+    levels, j = [], 0
+    for lv in acfg.levels():
+        n = len(lv.patches())
+        got = [found[j + p] for p in range(n)]
+        j += n
+        levels.append(got[0] if n == 1 else AtlasPatches(lv, tuple(got)))
+    return AtlasStack(acfg, tuple(levels)) if acfg.stacked else levels[0]
 
 
 def build_atlas(model, config: EstimatorConfig | None = None, atlas: AtlasConfig | None = None, *,
@@ -735,8 +808,8 @@ def build_atlas(model, config: EstimatorConfig | None = None, atlas: AtlasConfig
 
     cfg = config or EstimatorConfig()
     fwd = fwd or ForwardModel(model, cfg)
-    acfg = atlas or default_atlas_config(fwd.fem.order)
-    subs = acfg.patches()
+    acfg = (atlas or default_atlas_config(fwd.fem.order)).for_cavities(len(internal_cavities_of(model)))
+    subs = acfg.pieces()
     which = tuple(range(len(subs))) if pieces is None else tuple(pieces)
     t0 = time.perf_counter()
     keys = {p: atlas_key(fwd, subs[p]) for p in which}
@@ -780,10 +853,10 @@ def build_atlas(model, config: EstimatorConfig | None = None, atlas: AtlasConfig
             a.provenance["build"] = {"workers": n_cores, "wall_s": round(wall, 1), "cpu_s": round(cpu, 1),
                                      "critical_path_s": round(crit, 1), "tasks": len(tasks),
                                      "kept_tasks": len(run.kept)}
-    if not acfg.f_y_splits_N:
+    if len(subs) == 1:
         return built[0]
     if pieces is None:
-        return AtlasPatches(acfg, tuple(built))
+        return _regroup(acfg, dict(enumerate(built)))
     return built  # type: ignore[return-value] - the pieces asked for, for load_or_build
 
 
@@ -849,8 +922,8 @@ def load_or_build(model, config: EstimatorConfig | None = None, atlas: AtlasConf
     check_atlas_cavities(model)
     cfg = config or EstimatorConfig()
     fwd = fwd or ForwardModel(model, cfg)
-    acfg = atlas or model_atlas_config(fwd.fem.order, cache_dir)
-    subs = acfg.patches()
+    acfg = (atlas or model_atlas_config(fwd.fem.order, cache_dir)).for_cavities(len(internal_cavities_of(model)))
+    subs = acfg.pieces()
     found: dict[int, Atlas] = {}
     paths = {}
     for p, sub in enumerate(subs):
@@ -907,6 +980,4 @@ def load_or_build(model, config: EstimatorConfig | None = None, atlas: AtlasConf
                 msg += f" → {paths[p]} ({paths[p].stat().st_size / 1e6:.1f} MB on disk)"
             log.info(msg)
             found[p] = at
-    if not acfg.f_y_splits_N:
-        return found[0]
-    return AtlasPatches(acfg, tuple(found[p] for p in range(len(subs))))
+    return _regroup(acfg, found)

@@ -60,7 +60,7 @@ class HeldOut:
 
 
 def held_out_loads(lower, upper, n: int, seed: int = 0, corner_share: float = 0.25) -> np.ndarray:
-    """(n, 4) seeded loads over the box ``lower``…``upper`` (N, N, N, Pa), uniform, except a share
+    """(n, 3 + M) seeded loads over the box ``lower``…``upper`` (N, N, N, Pa…), uniform, except a share
     ``corner_share`` drawn within 5 % of a random corner on every axis (where a polynomial's error
     is largest).
 
@@ -72,9 +72,9 @@ def held_out_loads(lower, upper, n: int, seed: int = 0, corner_share: float = 0.
     """
     lo, hi = np.asarray(lower, float), np.asarray(upper, float)
     rng = np.random.default_rng(seed)
-    u = rng.uniform(0.0, 1.0, (n, 4))
+    u = rng.uniform(0.0, 1.0, (n, len(lo)))
     corner = rng.uniform(size=n) < corner_share
-    ends = rng.integers(0, 2, (n, 4))
+    ends = rng.integers(0, 2, (n, len(lo)))
     near = np.where(ends == 1, 1.0 - 0.05 * u, 0.05 * u)
     u = np.where(corner[:, None], near, u)
     return lo + (hi - lo) * u
@@ -92,7 +92,8 @@ def _rows(model, config: EstimatorConfig, atlas, loads: np.ndarray, seed: int):
     rng = np.random.default_rng(seed)
     rows, targets, used, skipped, failed = [], [], [], 0, []
     for lam in np.asarray(loads, float):
-        c = at.coords(lam[:3], lam[3])
+        p = lam[3] if len(lam) == 4 else lam[3:]  # a stack's: every pressure
+        c = at.coords(lam[:3], p)
         if not at.solved_at(c):
             skipped += 1
             continue
@@ -102,8 +103,8 @@ def _rows(model, config: EstimatorConfig, atlas, loads: np.ndarray, seed: int):
             failed.append(f"load {np.round(lam[:3], 3).tolist()} N, {lam[3] * 1e-3:.2f} kPa: {exc}")
             continue
         V, _ = at.volumes(c)
-        start = at.coords(lam[:3] + rng.normal(0.0, START_N / np.sqrt(3.0), 3), lam[3])
-        lam_e = est.invert(lin.V, lam[3], start=start)[0]
+        start = at.coords(lam[:3] + rng.normal(0.0, START_N / np.sqrt(3.0), 3), p)
+        lam_e = est.invert(lin.V, p, start=start)[0]
         truth = pose_of_markers(est.rest_markers, lin.sub_x[:nm]).to_mm_deg()
         d = pose_of_markers(est.rest_markers, at.points(lam_e)[:nm]).to_mm_deg() - truth
         rows.append([np.abs(V - lin.V).max() * 1e9, np.abs(at.points(c) - lin.sub_x).max() * 1e3,
@@ -111,16 +112,17 @@ def _rows(model, config: EstimatorConfig, atlas, loads: np.ndarray, seed: int):
         targets.append(np.linalg.norm(at.points(lam_e)[nm:] - lin.sub_x[nm:], axis=1) * 1e3)
         used.append(lam)
     t = len(fwd.target_names)
-    return (np.reshape(used, (-1, 4)), np.reshape(rows, (-1, len(COLUMNS))), np.reshape(targets, (-1, t)),
+    return (np.reshape(used, (-1, loads.shape[1])), np.reshape(rows, (-1, len(COLUMNS))), np.reshape(targets, (-1, t)),
             skipped, failed, tuple(fwd.target_names))
 
 
 def check_held_out(model, config: EstimatorConfig, atlas, loads, *, seed: int = 0, client=None,
                    chunks: int | None = None) -> HeldOut:
     """:class:`HeldOut` errors of ``atlas`` (an :class:`~softphantom.estimation.atlas.map.Atlas` or
-    its pieces) for ``model`` at ``loads`` (n, 4) N, N, N, Pa. On ``client`` (Dask) the loads are
-    split into ``chunks`` tasks (default: 2 per worker), each building its own estimator; else here."""
-    loads = np.asarray(loads, float).reshape(-1, 4)
+    its pieces, or an :class:`~softphantom.estimation.atlas.map.AtlasStack`) for ``model`` at ``loads``
+    (n, 3 + M) N, N, N, Pa…. On ``client`` (Dask) the loads are split into ``chunks`` tasks
+    (default: 2 per worker), each building its own estimator; else here."""
+    loads = np.atleast_2d(np.asarray(loads, float))
     if client is None:
         parts = [_rows(model, config, atlas, loads, seed)]
     else:

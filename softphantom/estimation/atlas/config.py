@@ -73,6 +73,15 @@ class AtlasConfig:
     coefficient arrays are 2n long along it (:attr:`coef_shape`); the default stretch counts the
     polynomial's 2n terms (docs/atlas.md).
 
+    A design of M ≥ 2 actuated internal cavities gets a *stack*: the atlas stays 4-D in (f, p_1)
+    (p_1 the first actuated cavity's pressure) and ``further_min_kPa`` / ``further_max_kPa`` (M − 1,)
+    give the ranges of p_2 … p_M, each sampled at ``n_further`` (1..9, or one per cavity)
+    Chebyshev–Lobatto levels (one: the range's middle, the atlas constant in that pressure); one ordinary atlas is built per level with those pressures held
+    (:meth:`levels`, each with its ``held_kPa``, which its cache key includes), and the estimator
+    interpolates the levels' coefficients in the measured p_2 … p_M
+    (:class:`~softphantom.estimation.atlas.map.AtlasStack`). Without ranges a model of M ≥ 2
+    cavities takes p_1's range for each (:meth:`for_cavities`).
+
     The default is resolved in :attr:`cluster_N`, not stored, so ``dataclasses.replace`` with
     another first axis or grid takes that one's default:
 
@@ -103,6 +112,10 @@ class AtlasConfig:
     f_y_splits_N: tuple[float, ...] = ()
     offline: str = "full"
     hermite_axis: int | None = None
+    further_min_kPa: tuple[float, ...] = ()
+    further_max_kPa: tuple[float, ...] = ()
+    n_further: int | tuple[int, ...] = 3
+    held_kPa: tuple[float, ...] = ()
 
     def __post_init__(self) -> None:
         lo = tuple(float(v) for v in self.force_min_N)
@@ -156,6 +169,90 @@ class AtlasConfig:
             raise UserError(f"atlas f_y_splits_N: increasing values strictly inside the f_y range {lo[1]}..{hi[1]} N, "
                             f"got {self.f_y_splits_N}")
         object.__setattr__(self, "f_y_splits_N", splits)
+        self._check_stack()
+
+    def _check_stack(self) -> None:
+        """The further pressures' ranges and levels (a stack), or the pressures a level holds."""
+        flo = tuple(float(v) for v in np.atleast_1d(self.further_min_kPa))
+        fhi = tuple(float(v) for v in np.atleast_1d(self.further_max_kPa))
+        if len(flo) != len(fhi) or not all(math.isfinite(a) and math.isfinite(b) and a < b for a, b in zip(flo, fhi)):
+            raise UserError(f"atlas further_min_kPa / further_max_kPa: one range min < max per further cavity, "
+                            f"got {self.further_min_kPa}..{self.further_max_kPa}")
+        object.__setattr__(self, "further_min_kPa", flo)
+        object.__setattr__(self, "further_max_kPa", fhi)
+        n = self.n_further
+        nt = tuple(n) if np.ndim(n) else (n,) * max(len(flo), 1)
+        bad = any(isinstance(v, bool) or int(v) != v or not 1 <= v <= 9 for v in nt)
+        if bad or (np.ndim(n) and len(nt) != len(flo)):
+            raise UserError(f"atlas n_further: an integer in 1..9 (or one per further cavity), got {n!r}")
+        object.__setattr__(self, "n_further", tuple(int(v) for v in nt) if flo else int(nt[0]))
+        held = tuple(float(v) for v in np.atleast_1d(self.held_kPa))
+        if not all(math.isfinite(v) for v in held):
+            raise UserError(f"atlas held_kPa: finite pressures, got {self.held_kPa}")
+        object.__setattr__(self, "held_kPa", held)
+        if flo and held:
+            raise UserError("atlas: a stack (further_min_kPa) is of levels, each holding its pressures (held_kPa): "
+                            "not both")
+        if flo and self.x_control != "force":
+            # each level's q is its own patch displacement's map: mixing them is untested
+            raise UserError(f"atlas x_control {self.x_control!r} with further pressures (a stack): not supported, "
+                            f"use 'force' (--atlas-x-axis force)")
+        if flo and self.offline != "full":
+            raise UserError("atlas further_min_kPa (a stack) needs offline 'full' (the reduced model has one pressure)")
+
+    @property
+    def stacked(self) -> bool:
+        """Whether this is a stack over further pressures (``further_min_kPa``): one atlas per level."""
+        return bool(self.further_min_kPa)
+
+    def for_cavities(self, m: int) -> "AtlasConfig":
+        """This config for a model of ``m`` ≥ 1 actuated internal cavities: itself where it has
+        one further range per cavity after the first (none for one cavity); a config with none
+        gets the first pressure's range for each further one. Else one line naming the field.
+
+        >>> c = AtlasConfig(p_min_kPa=-2, p_max_kPa=25).for_cavities(2)
+        >>> c.further_min_kPa, c.further_max_kPa, c.n_further
+        ((-2.0,), (25.0,), (3,))
+        """
+        m = int(m)
+        if len(self.further_min_kPa if self.stacked else self.held_kPa) == m - 1:
+            return self  # a stack, a level of one (built alone) or an atlas of one cavity
+        if not self.stacked and not self.held_kPa and m > 1:
+            return replace(self, further_min_kPa=(self.p_min_kPa,) * (m - 1),
+                           further_max_kPa=(self.p_max_kPa,) * (m - 1))
+        what = "further_min_kPa" if self.stacked or not self.held_kPa else "held_kPa"
+        raise UserError(f"atlas {what}: one per actuated cavity after the first ({m - 1}), got "
+                        f"{len(getattr(self, what))}")
+
+    def _further_kPa(self) -> list[np.ndarray]:
+        return [cheb_points(n, lo, hi, 0.0) if n > 1 else np.array([0.5 * (lo + hi)])
+                for n, lo, hi in zip(self.n_further, self.further_min_kPa, self.further_max_kPa)]
+
+    def further_axes(self) -> list[np.ndarray]:
+        """The levels of each further pressure (Pa, the held pressures of :meth:`levels`):
+        Chebyshev–Lobatto over its range; one level: its middle (the atlas then constant in that
+        pressure over the range, for a cavity that stays near it)."""
+        return [x * 1e3 for x in self._further_kPa()]
+
+    def levels(self) -> tuple["AtlasConfig", ...]:
+        """A stack's levels in C order over the further pressures' grid: each an ordinary atlas of
+        this envelope and grid with the further pressures held at its node (``held_kPa``);
+        ``(self,)`` for an atlas that is no stack.
+
+        >>> [c.held_kPa for c in AtlasConfig(further_min_kPa=(0,), further_max_kPa=(20,)).levels()]
+        [(0.0,), (10.0,), (20.0,)]
+        """
+        if not self.stacked:
+            return (self,)
+        nodes = self._further_kPa()
+        base = replace(self, further_min_kPa=(), further_max_kPa=(), n_further=3)
+        return tuple(replace(base, held_kPa=tuple(float(nodes[a][i]) for a, i in enumerate(idx)))
+                     for idx in np.ndindex(*(len(x) for x in nodes)))
+
+    def pieces(self) -> tuple["AtlasConfig", ...]:
+        """Every ordinary atlas a build makes: each level's pieces along f_y, level by level
+        (:meth:`levels`, :meth:`patches`); the pieces alone for an atlas that is no stack."""
+        return tuple(p for lv in self.levels() for p in lv.patches())
 
     @property
     def cluster_N(self) -> tuple[float, float, float]:
@@ -177,6 +274,10 @@ class AtlasConfig:
             del d["offline"]  # likewise an atlas of full solves
         if self.hermite_axis is None:
             del d["hermite_axis"]  # and an atlas of Lagrange axes
+        if not self.stacked:  # and an atlas of one internal pressure
+            del d["further_min_kPa"], d["further_max_kPa"], d["n_further"]
+        if not self.held_kPa:
+            del d["held_kPa"]
         return d
 
     def patches(self) -> tuple["AtlasConfig", ...]:
@@ -211,7 +312,10 @@ class AtlasConfig:
         return replace(self, force_min_N=tuple(s * v for v in self.force_min_N),
                        force_max_N=tuple(s * v for v in self.force_max_N), p_min_kPa=s * self.p_min_kPa,
                        p_max_kPa=s * self.p_max_kPa, force_cluster_N=tuple(s * w for w in self.cluster_N),
-                       f_y_splits_N=tuple(s * v for v in self.f_y_splits_N))
+                       f_y_splits_N=tuple(s * v for v in self.f_y_splits_N),
+                       further_min_kPa=tuple(s * v for v in self.further_min_kPa),
+                       further_max_kPa=tuple(s * v for v in self.further_max_kPa),
+                       held_kPa=tuple(s * v for v in self.held_kPa))
 
     @property
     def lower(self) -> np.ndarray:
@@ -237,8 +341,9 @@ class AtlasConfig:
 
     @property
     def n_solves(self) -> int:
-        """Forward solves of the build (one pressure plane with ``linear_pressure``)."""
-        return math.prod(self.n_force) * (1 if self.linear_pressure else int(self.n_pressure)) * (len(self.f_y_splits_N) + 1)
+        """Forward solves of the build (one pressure plane with ``linear_pressure``; every level of a stack)."""
+        return (math.prod(self.n_force) * (1 if self.linear_pressure else int(self.n_pressure))
+                * (len(self.f_y_splits_N) + 1) * len(self.levels()))
 
     def axes(self) -> list[np.ndarray]:
         """The grid's load values per axis (N, N, N, Pa), from the lower bound up."""

@@ -19,7 +19,7 @@ from softphantom.errors import SolverError, UserError
 from softphantom.estimation.atlas import kernels as ak
 from softphantom.estimation.atlas.build import check_atlas_cavities, load_or_build
 from softphantom.estimation.atlas.config import AtlasConfig
-from softphantom.estimation.atlas.map import Atlas, AtlasPatches
+from softphantom.estimation.atlas.map import Atlas, AtlasPatches, AtlasStack
 from softphantom.estimation.atlas.store import atlas_key
 from softphantom.estimation.config import EstimatorConfig
 from softphantom.estimation.estimator import (
@@ -39,7 +39,11 @@ class AtlasEstimator(EstimatorState):
     """The real-time estimator on an :class:`~softphantom.estimation.atlas.map.Atlas` (see the module docstring): ``step(measurement)
     → Estimate`` with no background work; ``node_positions()`` the full field of the last estimate.
 
-    ``Estimate.in_envelope`` is False when the measured pressure lies outside the atlas's range,
+    On an :class:`~softphantom.estimation.atlas.map.AtlasStack` (several actuated cavities) each
+    sample's Gauss–Newton runs on the stack's piece mixed at the measured further pressures; the
+    state λ is (3 + M,).
+
+    ``Estimate.in_envelope`` is False when a measured pressure lies outside the atlas's range,
     when the best fit wants a force beyond an envelope face that is tighter than the configured
     force bounds (the estimate is then the best one clamped to the envelope), or when it lies in a
     grid cell the build could not solve (the estimate then comes from the extrapolated fill).
@@ -48,7 +52,7 @@ class AtlasEstimator(EstimatorState):
     kind = "atlas"
 
     def __init__(self, model, config: EstimatorConfig | None = None,
-                 atlas: Atlas | AtlasPatches | AtlasConfig | None = None,
+                 atlas: Atlas | AtlasPatches | AtlasStack | AtlasConfig | None = None,
                  *, cache_dir=None, scheduler: str | None = None, n_workers: int | None = None,
                  max_build_s: float | None = None) -> None:
         self.config = cfg = config or EstimatorConfig()
@@ -57,13 +61,23 @@ class AtlasEstimator(EstimatorState):
         fwd = ForwardModel(model, cfg)
         self.forward = fwd
         self.arm_names = fwd.eq.arm_names
-        if not isinstance(atlas, (Atlas, AtlasPatches)):
+        self.cavities = fwd.pressure_names  # p_1 (the atlas's pressure axis), then a stack's further ones
+        if not isinstance(atlas, (Atlas, AtlasPatches, AtlasStack)):
             atlas = load_or_build(model, cfg, atlas, cache_dir=cache_dir, scheduler=scheduler,
                                   n_workers=n_workers, fwd=fwd, max_build_s=max_build_s)
-        pieces = atlas.patches if isinstance(atlas, AtlasPatches) else (atlas,)
-        if any(a.key != atlas_key(fwd, a.config) for a in pieces):
+        stack = atlas if isinstance(atlas, AtlasStack) else None
+        n_p = 1 + (len(stack.config.further_min_kPa) if stack is not None else 0)
+        if n_p != len(self.cavities):
+            raise UserError(f"atlas of {n_p} internal pressure{'s' * (n_p > 1)}, the model has "
+                            f"{len(self.cavities)} actuated cavities ({', '.join(self.cavities)}); rebuild it")
+        every = stack.all_pieces if stack is not None else (
+            atlas.patches if isinstance(atlas, AtlasPatches) else (atlas,))
+        if any(a.key != atlas_key(fwd, a.config) for a in every):
             raise UserError("atlas built for another model, law, contact or envelope; rebuild it")
         self.atlas = atlas
+        self._stack = stack
+        # the pieces along f_y (a stack's: its first level's, whose f_y ranges every level shares)
+        pieces = every[:stack.n_pieces] if stack is not None else every
         self._pieces = pieces
         self.marker_names, self.target_names = fwd.marker_names, fwd.target_names
         nm = fwd.n_markers
@@ -81,7 +95,8 @@ class AtlasEstimator(EstimatorState):
         self._env_lo = np.where(elo[:3] > ulo, self._lo, -np.inf)  # envelope faces inside the bounds
         self._env_hi = np.where(ehi[:3] < uhi, self._hi, np.inf)
         self._faces = list(zip(self._env_lo.tolist(), self._env_hi.tolist()))
-        self._p_range = (float(elo[3]), float(ehi[3]))
+        self._p_ranges = [(float(elo[3]), float(ehi[3]))] + [
+            (lo * 1e3, hi * 1e3) for lo, hi in zip(atlas.config.further_min_kPa, atlas.config.further_max_kPa)]
         # each piece's force bounds: the estimator's, f_y cut to the piece's range
         self._piece_bounds = []
         for a in pieces:
@@ -99,33 +114,36 @@ class AtlasEstimator(EstimatorState):
 
     @property
     def lam(self) -> np.ndarray:
-        """(4,) the current actuation estimate: force N (3), urethra pressure Pa (the atlas's
-        coordinates of it are ``coords``)."""
-        return np.r_[self.atlas.forces(self._lam), self._lam[3]]
+        """(3 + M,) the current actuation estimate: force N (3), the internal pressures Pa (the
+        atlas's coordinates of it are ``coords``)."""
+        return np.r_[self.atlas.forces(self._lam), self._lam[3:]]
 
     @property
     def coords(self) -> np.ndarray:
-        """(4,) the last estimate in the atlas's coordinates (``Atlas.coords``)."""
+        """(3 + M,) the last estimate in the atlas's coordinates (``Atlas.coords``)."""
         return self._lam.copy()
 
     def reset(self) -> None:
         """Back to rest."""
-        self._lam = np.zeros(4)
-        self._last = rest_estimate(self.target_names, self.atlas.volumes(self._lam)[1], self.arm_names)
+        self._lam = np.zeros(3 + len(self.cavities))
+        names = {} if self._stack is None else {"pressure_names": self.cavities}
+        self._last = rest_estimate(self.target_names, self.atlas.volumes(self._lam)[1], self.arm_names, **names)
 
     def node_positions(self) -> np.ndarray:
         """(N,3) m node positions of the last estimate (the atlas's field; evaluated when asked,
         not per sample)."""
         return self.atlas.nodes(self._lam)
 
-    def _start(self, p_Pa: float, start) -> tuple[np.ndarray, bool]:
+    def _start(self, p_Pa, start) -> tuple[np.ndarray, bool]:
         """The first iterate: the start's forces (default: the last estimate's) clipped to the
-        bounds, the measured pressure clipped to the envelope; and whether the pressure was inside."""
-        p_lo, p_hi = self._p_range
-        p = min(max(float(p_Pa), p_lo), p_hi)
+        bounds, the measured pressures (M,) clipped to the envelope; and whether they were inside."""
+        given = np.atleast_1d(np.asarray(p_Pa, float)).tolist()
+        if len(given) != len(self._p_ranges):
+            raise SolverError(f"{len(given)} pressures for the atlas's {len(self._p_ranges)}")
+        p = [min(max(v, lo), hi) for v, (lo, hi) in zip(given, self._p_ranges)]
         f = (self._lam if start is None else np.asarray(start, float))[:3].tolist()
-        lam = np.array([min(max(v, lo), hi) for v, lo, hi in zip(f, self._bounds[0], self._bounds[1])] + [p])
-        return lam, p == float(p_Pa)
+        lam = np.array([min(max(v, lo), hi) for v, lo, hi in zip(f, self._bounds[0], self._bounds[1])] + p)
+        return lam, p == given
 
     def _inside(self, lam: np.ndarray, inside: bool) -> bool:
         tol = 1e-6
@@ -136,9 +154,11 @@ class AtlasEstimator(EstimatorState):
             return self.atlas.solved_at(lam)  # where the atlas was filled, not solved
         return inside
 
-    def invert(self, dV, p_Pa: float, start=None) -> tuple[np.ndarray, str, bool, np.ndarray, np.ndarray, int]:
-        """Loads that best explain the volumes ``dV`` (n_arms,) m³ at urethra pressure ``p_Pa``:
-        (λ (4,), QP status, in_envelope, V (n_arms,), J (n_arms,4) ∂V/∂λ, Gauss–Newton iterations), λ and
+    def invert(self, dV, p_Pa, start=None) -> tuple[np.ndarray, str, bool, np.ndarray, np.ndarray, int]:
+        """Loads that best explain the volumes ``dV`` (n_arms,) m³ at the internal pressures ``p_Pa``
+        (Pa: a number for one cavity, (M,) for a stack):
+        (λ (3 + M,), QP status, in_envelope, V (n_arms,), J (n_arms,4) ∂V/∂(q, f_y, f_z, p_1), Gauss–Newton
+        iterations), λ and
         ``start`` in the atlas's coordinates (:meth:`Atlas.coords`; the force is
         :meth:`Atlas.forces` of λ).
 
@@ -171,16 +191,21 @@ class AtlasEstimator(EstimatorState):
     def _piece_index(self, f_y: float) -> int:
         return self.atlas.index(f_y) if len(self._pieces) > 1 else 0
 
+    def _piece(self, k: int, lam: np.ndarray):
+        """Piece ``k`` at λ: the atlas's own, or a stack's mixed at the further pressures λ[4:]."""
+        return self._pieces[k] if self._stack is None else self._stack.piece_at(k, lam[4:])
+
     def _invert_piece(self, k: int, lam: np.ndarray, dV: np.ndarray):
         """Gauss–Newton on piece ``k`` from ``lam`` (f_y clamped into it): (λ, code, misfit m⁶, V, J, iterations)."""
-        at = self._pieces[k]
+        at = self._piece(k, lam)
         lo, hi = self._piece_bounds[k]
         lam[1] = min(max(lam[1], lo[1]), hi[1])
         kv = at.kernel
         m = kv.V.shape[1]  # the arms
         V, J = np.empty(m), np.empty((m, 4))
         n3 = kv.n_force_terms
-        poly = (np.empty((n3, m)), np.empty((n3, m)), *kv.box, lam, V, J)
+        lam4 = lam if len(lam) == 4 else lam[:4]  # a view: the kernels update the force in place
+        poly = (np.empty((n3, m)), np.empty((n3, m)), *kv.box, lam4, V, J)
         code, it, cost = ak.gn_run(kv.V, *poly, 0.0, dV, lo, hi, GN_TOL_N, 0, GN_MAX_ITER)
         while code == ak.NEED_QP:  # a force bound is in the way of this iteration's step: the QP's
             qp = solve_volume_qp(J, V - dV, 0.0, lo - lam[:3], hi - lam[:3], self.config.qp_solver)
@@ -227,12 +252,13 @@ class AtlasEstimator(EstimatorState):
     def _pose(self, lam: np.ndarray):
         """(Pose6, target shifts) at ``lam``: the tracked points by the kernel, the markers' rigid
         fit by :func:`~softphantom.estimation.atlas.kernels.rigid_fit_pose`."""
-        at = self._pieces[self._piece_index(lam[1])]
+        at = self._piece(self._piece_index(lam[1]), lam)
+        lam4 = lam if len(lam) == 4 else np.ascontiguousarray(lam[:4])
         if self._P0 is None:  # rest markers that rigid_fit refuses: let it raise its error, as before
-            return pose_and_shifts(self.rest_markers, self.rest_targets, self.target_names, at.points(lam))
+            return pose_and_shifts(self.rest_markers, self.rest_targets, self.target_names, at.points(lam4))
         kv = at.kernel
         pts, t, ypr = np.empty(kv.P.shape[1]), np.empty(3), np.empty(3)
-        ak.points_pose(kv.P, *kv.box, lam, self._P0, self._cp, pts, t, ypr)
+        ak.points_pose(kv.P, *kv.box, lam4, self._P0, self._cp, pts, t, ypr)
         shifts = pts.reshape(-1, 3)[len(self._P0):] - self.rest_targets
         return Pose6(t, ypr), dict(zip(self.target_names, shifts))
 
@@ -253,21 +279,27 @@ class AtlasEstimator(EstimatorState):
             return repeat_last(self._last, m, f"rejected:{why}", t0, skipped)
         try:
             inv = self.invert_reference if reference else self.invert
-            p_Pa = float(measured_pressures(m, (self.cavity,))[0])
+            if self._stack is None:
+                p_Pa = float(measured_pressures(m, (self.cavity,))[0])
+                given = {self.cavity: p_Pa}
+            else:
+                p_Pa = measured_pressures(m, self.cavities)
+                given = dict(zip(self.cavities, p_Pa.tolist()))
             lam, status, inside, V, J, it = inv(m.dV, p_Pa)
         except SolverError as exc:
             return repeat_last(self._last, m, f"failed:{exc}", t0, skipped)
-        at = self._pieces[self._piece_index(lam[1])]
+        at = self._piece(self._piece_index(lam[1]), lam)
+        lam4 = lam if len(lam) == 4 else np.ascontiguousarray(lam[:4])
         # the force and the sensitivity to the loads, whatever the atlas's first axis
         if reference:
-            force, J = at.forces(lam), at.by_force(lam, J)
+            force, J = at.forces(lam4), at.by_force(lam4, J)
             pose, shifts = pose_and_shifts(self.rest_markers, self.rest_targets, self.target_names,
-                                           at.value_reference(at.cP, lam))
+                                           at.value_reference(at.cP, lam4))
             cond = sensitivity_cond(J)
         else:
             force = lam[:3].copy()
             if at.displacement_x:
-                ak.force_chain(at.kernel.Fx, *at.kernel.box, lam, J, force)
+                ak.force_chain(at.kernel.Fx, *at.kernel.box, lam4, J, force)
             pose, shifts = self._pose(lam)
             cond = float(ak.cond_force(J))
         dV = np.array(m.dV, float)
@@ -276,7 +308,7 @@ class AtlasEstimator(EstimatorState):
             volume_pred=V, volume_meas=dV, cond_W=cond, qp_status=status,
             step_time=time.perf_counter() - t0, skipped=int(skipped), in_envelope=inside,
             extra={"qp_residual_m3": math.dist(V, dV), "gn_iterations": it,
-                   **({"pressures_Pa": {self.cavity: p_Pa}} if self.cavity != "urethra" else {})},
+                   **({"pressures_Pa": given} if self.cavities != ("urethra",) else {})},
             arm_names=self.arm_names,
         )
         self._lam = lam

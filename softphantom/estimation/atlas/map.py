@@ -348,3 +348,208 @@ class AtlasPatches:
     def coords(self, force, p_Pa: float, tol_N: float = 1e-10) -> np.ndarray:
         return self.patches[self.index(np.asarray(force, float)[1])].coords(force, p_Pa, tol_N)
 
+
+
+def lagrange_weights(x: float, nodes) -> np.ndarray:
+    """(n,) the Lagrange basis of ``nodes`` at ``x``: the weights of the polynomial through the
+    nodes' values; exactly one 1 and zeros at a node.
+
+    >>> lagrange_weights(5.0, [0.0, 10.0, 20.0]).tolist()
+    [0.375, 0.75, -0.125]
+    >>> lagrange_weights(10.0, [0.0, 10.0, 20.0]).tolist() == [0.0, 1.0, 0.0]
+    True
+    """
+    xs = [float(v) for v in nodes]
+    x = float(x)
+    out = np.empty(len(xs))
+    for j, xj in enumerate(xs):
+        w = 1.0
+        for k, xk in enumerate(xs):
+            if k != j:
+                w *= (x - xk) / (xj - xk)
+        out[j] = w
+    return out
+
+
+class MixedPiece:
+    """One piece of an :class:`AtlasStack` at given further pressures: its levels' coefficients
+    mixed by the further pressures' Lagrange weights, evaluated with λ (4,) = (q, f_y, f_z, p_1) as
+    an :class:`Atlas` piece (its methods are Atlas's, on the mixed :class:`KernelView`). The
+    displacement field is the weighted sum of the levels' fields (each has its own POD basis), made
+    when asked for."""
+
+    def __init__(self, parts: list[tuple[float, Atlas]]) -> None:
+        a0 = parts[0][1]
+        self.config = a0.config
+        self._parts = parts
+        k0 = a0.kernel
+
+        def mix(name: str) -> np.ndarray:
+            out = parts[0][0] * getattr(k0, name)
+            for w, a in parts[1:]:
+                out += w * getattr(a.kernel, name)
+            return out
+
+        V, P, Fx = mix("V"), mix("P"), mix("Fx")
+        self.kernel = KernelView(k0.shape, k0.lo, k0.hi, k0.wd, V, P, np.zeros((V.shape[0], 0)), Fx)
+        cs = self.config.coef_shape
+        self.cV = V.reshape(*cs, V.shape[1])
+        self.cP = P.reshape(*cs, -1, 3)
+
+    displacement_x = Atlas.displacement_x
+    volumes = Atlas.volumes
+    points = Atlas.points
+    forces = Atlas.forces
+    force_jacobian = Atlas.force_jacobian
+    by_force = Atlas.by_force
+    coords = Atlas.coords
+    volumes_reference = Atlas.volumes_reference
+    value_reference = Atlas.value_reference
+
+    def nodes(self, lam) -> np.ndarray:
+        """(N,3) m node positions at ``lam``: the levels' fields, weighted."""
+        out = self._parts[0][0] * self._parts[0][1].nodes(lam)
+        for w, a in self._parts[1:]:
+            out += w * a.nodes(lam)
+        return out
+
+    def solved_at(self, lam) -> bool:
+        """Whether every level that counts solved the cell of ``lam``."""
+        return all(a.solved_at(lam) for _, a in self._parts)
+
+
+@dataclass(frozen=True, eq=False)
+class AtlasStack:
+    """The atlas of a design with M ≥ 2 actuated internal cavities: one 4-D atlas (an
+    :class:`Atlas` or :class:`AtlasPatches`) per level of the further pressures p_2 … p_M
+    (``AtlasConfig.levels``: a Chebyshev–Lobatto grid over each one's range, C order), each built
+    with those pressures held. Evaluated at λ (3 + M,) = (q, f_y, f_z, p_1, p_2 … p_M): the levels'
+    coefficients mixed by the Lagrange weights of λ[4:] (:meth:`piece_at`), which is the tensor
+    interpolation of a (3 + M)-D atlas whose further axes have those levels — the polynomials are
+    linear in their coefficients. So the per-sample Gauss–Newton runs on one mixed 4-D piece with
+    the compiled kernels unchanged; at a level's node the stack is that level's atlas exactly."""
+
+    config: AtlasConfig
+    levels: tuple
+
+    def __post_init__(self) -> None:
+        want = self.config.levels()
+        if not self.config.stacked or len(self.levels) != len(want) or any(
+                lv.config.as_dict() != c.as_dict() for lv, c in zip(self.levels, want)):
+            raise ValueError("AtlasStack: one atlas per level of the config, in order")
+        pieces = tuple(lv.patches if isinstance(lv, AtlasPatches) else (lv,) for lv in self.levels)
+        object.__setattr__(self, "_pieces", pieces)  # [level][piece]
+        object.__setattr__(self, "_axes", [a.tolist() for a in self.config.further_axes()])
+        object.__setattr__(self, "_ranges", [(lo * 1e3, hi * 1e3) for lo, hi in
+                                             zip(self.config.further_min_kPa, self.config.further_max_kPa)])
+        object.__setattr__(self, "_splits", list(self.config.f_y_splits_N))
+        object.__setattr__(self, "_mixed", {})
+
+    @property
+    def all_pieces(self) -> tuple[Atlas, ...]:
+        """Every ordinary atlas of the stack, as ``AtlasConfig.pieces`` orders them."""
+        return tuple(a for lv in self._pieces for a in lv)
+
+    @property
+    def n_pieces(self) -> int:
+        """Pieces along f_y of each level."""
+        return len(self._pieces[0])
+
+    def index(self, f_y: float) -> int:
+        """The piece holding ``f_y`` (N), as :meth:`AtlasPatches.index`."""
+        return bisect.bisect_left(self._splits, float(f_y))
+
+    def weights(self, p_further) -> np.ndarray:
+        """(levels,) the Lagrange weights of the further pressures ``p_further`` (M − 1,) Pa."""
+        w = np.ones(1)
+        for p, nodes in zip(np.asarray(p_further, float).tolist(), self._axes):
+            w = np.outer(w, lagrange_weights(p, nodes)).ravel()
+        return w
+
+    def piece_at(self, k: int, p_further):
+        """Piece ``k`` at the further pressures ``p_further`` (Pa): a level's own :class:`Atlas` at
+        its node, else a :class:`MixedPiece` (the last few are kept: a sample's Gauss–Newton and
+        pose evaluate one)."""
+        key = (int(k), *np.asarray(p_further, float).tolist())
+        got = self._mixed.get(key)
+        if got is not None:
+            return got
+        w = self.weights(p_further)
+        parts = [(float(v), lv[k]) for v, lv in zip(w.tolist(), self._pieces) if v != 0.0]
+        got = parts[0][1] if len(parts) == 1 and parts[0][0] == 1.0 else MixedPiece(parts)
+        if len(self._mixed) >= 4:
+            self._mixed.clear()
+        self._mixed[key] = got
+        return got
+
+    def piece(self, lam):
+        """The (mixed) piece at λ (3 + M,)."""
+        return self.piece_at(self.index(lam[1]), lam[4:])
+
+    @property
+    def key(self) -> tuple[str, ...]:
+        return tuple(a.key for a in self.all_pieces)
+
+    @property
+    def displacement_x(self) -> bool:
+        return self.config.x_control == "displacement"
+
+    @property
+    def unsolved(self) -> int:
+        return sum(a.unsolved for a in self.all_pieces)
+
+    @property
+    def solves(self) -> int:
+        return sum(a.solves for a in self.all_pieces)
+
+    @property
+    def build_s(self) -> float:
+        return sum(a.build_s for a in self.all_pieces)
+
+    @property
+    def build_cpu_s(self) -> float:
+        return sum(a.build_cpu_s for a in self.all_pieces)
+
+    @property
+    def nbytes(self) -> int:
+        return sum(a.nbytes for a in self.all_pieces)
+
+    @property
+    def field_rms_m(self) -> float:
+        return max(a.field_rms_m for a in self.all_pieces)
+
+    @property
+    def field_modes(self) -> int:
+        return max(a.field_modes for a in self.all_pieces)
+
+    def solved_at(self, lam) -> bool:
+        """Whether λ (3 + M,) lies inside the further pressures' ranges and in a cell every level
+        that counts there solved."""
+        for p, (lo, hi) in zip(np.asarray(lam, float)[4:].tolist(), self._ranges):
+            if not lo <= p <= hi:
+                return False
+        return self.piece(lam).solved_at(np.asarray(lam, float)[:4])
+
+    def volumes(self, lam):
+        return self.piece(lam).volumes(np.asarray(lam, float)[:4])
+
+    def volumes_reference(self, lam):
+        return self.piece(lam).volumes_reference(np.asarray(lam, float)[:4])
+
+    def points(self, lam) -> np.ndarray:
+        return self.piece(lam).points(np.asarray(lam, float)[:4])
+
+    def nodes(self, lam) -> np.ndarray:
+        return self.piece(lam).nodes(np.asarray(lam, float)[:4])
+
+    def forces(self, lam) -> np.ndarray:
+        return self.piece(lam).forces(np.asarray(lam, float)[:4])
+
+    def by_force(self, lam, J: np.ndarray) -> np.ndarray:
+        return self.piece(lam).by_force(np.asarray(lam, float)[:4], J)
+
+    def coords(self, force, p_Pa, tol_N: float = 1e-10) -> np.ndarray:
+        """(3 + M,) the atlas coordinates of ``force`` (3,) N at the pressures ``p_Pa`` (M,) Pa."""
+        p = np.asarray(p_Pa, float)
+        k = self.index(np.asarray(force, float)[1])
+        return np.r_[self.piece_at(k, p[1:]).coords(force, float(p[0]), tol_N), p[1:]]

@@ -86,6 +86,9 @@ def atlas_key(fwd: ForwardModel, acfg: AtlasConfig) -> str:
         del atlas["linear_pressure"]
     meta = {"format": KEY_FORMAT, "atlas": atlas, "tol": fwd.config.tol,
             "markers": fwd.marker_names, "targets": fwd.target_names}
+    names = tuple(getattr(fwd, "pressure_names", ()))
+    if len(names) > 1:  # which cavities are loads, in λ's order: a stack's levels hold p_2 … p_M
+        meta["pressures"] = names
     h.update(json.dumps(meta, sort_keys=True).encode())
     return h.hexdigest()
 
@@ -241,7 +244,9 @@ def describe(at: Atlas) -> list[tuple[str, str]]:
         ("model", f"{prov.get('model', '?')}: {prov.get('nodes', '?')} nodes, element order {prov.get('element_order', '?')}"),
         ("contact", f"{contact}, patch radius {prov.get('contact_radius_m', float('nan')) * 1e3:.1f} mm"),
         ("envelope", f"f_x {lo[0]:g}…{hi[0]:g} N, f_y {lo[1]:g}…{hi[1]:g} N, f_z {lo[2]:g}…{hi[2]:g} N, "
-                     f"p_u {c.p_min_kPa:g}…{c.p_max_kPa:g} kPa"),
+                     f"p_u {c.p_min_kPa:g}…{c.p_max_kPa:g} kPa"
+                     + (f"; a stack's level: p_2… held at {', '.join(f'{v:g}' for v in c.held_kPa)} kPa"
+                        if c.held_kPa else "")),
         ("grid", f"{' × '.join(map(str, c.shape))} points ({at.solves} solves{unsolved}), first axis {c.x_control}"
                  + ("" if c.hermite_axis is None else f", Hermite along {AXIS_NAMES[c.hermite_axis]} "
                     f"({c.coef_shape[c.hermite_axis]} terms)")),
