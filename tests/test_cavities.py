@@ -250,7 +250,7 @@ def test_the_atlas_tabulates_the_one_cavity_whatever_its_name():
     lam = np.array([0.3, 1.5, -0.2, 3e3])
     lin = Estimator(m, cfg).forward.solve(lam)
     acfg = AtlasConfig(force_min_N=(-0.5, 0.5, -0.5), force_max_N=(0.5, 2.0, 0.5), p_min_kPa=-2, p_max_kPa=8,
-                       n_force=(3, 3, 3), n_pressure=2)
+                       n_force=(3, 3, 3), n_pressure=2, linear_pressure=True)  # one plane: 27 solves
     at = AtlasEstimator(m, cfg, build_atlas(m, cfg, acfg, n_workers=1, processes=False))
     assert at.cavity == "pelvis"
     e = at.step(SimpleNamespace(t=0.0, dV=lin.V, p_urethra=float("nan"), pressures_Pa={"pelvis": 3e3}, status="ok"))
