@@ -52,7 +52,7 @@ def _run_estimate_evaluate(tmp_path, model, scenario: dict):
     sc = _write_scenario(tmp_path / "sc.toml", scenario)
     run = tmp_path / "run"
     assert main(["virtual", "run", "--scenario", str(sc), "--model", str(tmp_path / "model"), "--out", str(run),
-                 "--truth-order", "1", "--truth-mesh-scale", "1", "--osr", "100"]) == 0
+                 "--truth-order", "1", "--truth-mesh-scale", "1", "--osr", "200"]) == 0
     est = tmp_path / "estimate.csv"
     assert main(["estimate", "--model", str(tmp_path / "model"), "--source", f"replay:{run / 'recording.csv'}",
                  "--out", str(est), "--estimator", "refresh"]) == 0
@@ -88,7 +88,7 @@ def test_two_cavities_end_to_end(tmp_path, models):
     summary = json.loads((run / "virtual.json").read_text())["truth"]["events"]
     assert summary[1]["cavity"] == "tumour" and summary[1]["p_kPa"] == P_TUMOUR_KPA
     # the recorded tumour pressure is the scenario's: tared at rest, within 2 codes of the MPX4250D
-    # (0.265 kPa a code; the mean of 100 readings a frame), the urethra's stays at 0
+    # (0.265 kPa a code; the mean of 200 readings a frame), the urethra's stays at 0
     rec = read_recording(run / "recording.csv")
     assert rec.cavity_names == ("urethra", "tumour") and rec.pressures.shape == (len(rec), 2)
     code_kPa = 1.0 / (1024 * MPX4250D.k1_per_kPa)
