@@ -279,13 +279,9 @@ class AtlasEstimator(EstimatorState):
             return repeat_last(self._last, m, f"rejected:{why}", t0, skipped)
         try:
             inv = self.invert_reference if reference else self.invert
-            if self._stack is None:
-                p_Pa = float(measured_pressures(m, (self.cavity,))[0])
-                given = {self.cavity: p_Pa}
-            else:
-                p_Pa = measured_pressures(m, self.cavities)
-                given = dict(zip(self.cavities, p_Pa.tolist()))
-            lam, status, inside, V, J, it = inv(m.dV, p_Pa)
+            p_Pa = measured_pressures(m, self.cavities)  # one cavity's unless a stack's
+            given = dict(zip(self.cavities, p_Pa.tolist()))
+            lam, status, inside, V, J, it = inv(m.dV, float(p_Pa[0]) if self._stack is None else p_Pa)
         except SolverError as exc:
             return repeat_last(self._last, m, f"failed:{exc}", t0, skipped)
         at = self._piece(self._piece_index(lam[1]), lam)
