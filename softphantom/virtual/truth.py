@@ -436,6 +436,16 @@ def solve_truth(scenario: Scenario, model: PhantomModel, config: TruthConfig = T
     paths = {}  # event index in a group -> its states at the keyframes (the group's edges)
     done = 0
 
+    actuators: dict[str, object] = {}
+
+    def actuator(point: str):
+        """The force actuator of the contact patch at ``point``, made once (every keyframe of its
+        events and groups uses it)."""
+        if point not in actuators:
+            pt = tm.p_ext[point]
+            actuators[point] = force_actuator(fem, pt, radius=_patch_radius(fem, pt, scenario.patch_radius_mm * 1e-3))
+        return actuators[point]
+
     def readout(x):
         x = np.asarray(x).reshape(-1, 3)
         pts = P @ x
@@ -482,8 +492,7 @@ def solve_truth(scenario: Scenario, model: PhantomModel, config: TruthConfig = T
         note = ""
         cavity = e.cavity  # the inflated one (read by solve)
         if e.kind == "push":
-            pt = tm.p_ext[e.point]
-            H = force_actuator(fem, pt, radius=_patch_radius(fem, pt, scenario.patch_radius_mm * 1e-3))
+            H = actuator(e.point)
             f = np.asarray(e.force_N, float)
             x_prev = None
             for lv in range(1, config.levels + 1):
@@ -590,9 +599,7 @@ def solve_truth(scenario: Scenario, model: PhantomModel, config: TruthConfig = T
     def loads(e: Event, s: float):
         """The nodal forces (or None) and cavity pressures of event ``e`` at level ``s``."""
         if e.kind == "push":
-            pt = tm.p_ext[e.point]
-            H = force_actuator(fem, pt, radius=_patch_radius(fem, pt, scenario.patch_radius_mm * 1e-3))
-            return H @ (s * np.asarray(e.force_N, float)), {}
+            return actuator(e.point) @ (s * np.asarray(e.force_N, float)), {}
         return None, {e.cavity: s * e.p_kPa * 1e3}
 
     def solve_group(n: int, pair: tuple[int, int]) -> GroupTruth:
