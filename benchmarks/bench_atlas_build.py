@@ -132,7 +132,7 @@ def main() -> None:
         f"{at.nbytes / 1e6:.1f} MB, {at.modes.shape[1]} field modes; peak RSS "
         f"{resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e3:.0f} MB", f"{load0[0]:.0f}–{load1[0]:.0f}")])
     if a.cache:
-        path = save_atlas(at, atlas_path(a.cache, atlas_key(ForwardModel(model, cfg), acfg)))
+        path = save_atlas(at, atlas_path(a.cache, atlas_key(model, cfg, acfg)))
         print(f"atlas written to {path}")
     n_pts = at.build_cpu_s / n
     if a.peer_points:

@@ -99,7 +99,8 @@ def main() -> None:
     a = ap.parse_args()
 
     from softphantom.design import BIPDesign, MeshParams, build_model, load_model, save_model
-    from softphantom.estimation.atlas.store import ARRAYS, load_atlas, model_atlases
+    from softphantom.estimation.atlas.catalogue import atlases_of as model_atlases
+from softphantom.estimation.atlas.store import ARRAYS, load_atlas
 
     work = Path(tempfile.mkdtemp(prefix="bench_atlas_graph-"))
     if a.model:

@@ -26,9 +26,9 @@ from _results import add_results_option, grouped, write_table  # noqa: E402
 
 from softphantom.design.model import DEFAULT_MODEL, SHIPPED_MODELS, load_model  # noqa: E402
 from softphantom.estimation import EstimatorConfig  # noqa: E402
-from softphantom.estimation.atlas.build import load_or_build  # noqa: E402
+from softphantom.estimation.atlas.catalogue import load_or_build  # noqa: E402
 from softphantom.estimation.atlas.check import COLUMNS, GOALS, check_held_out, held_out_loads  # noqa: E402
-from softphantom.estimation.atlas.store import shipped_atlas  # noqa: E402
+from softphantom.estimation.atlas.catalogue import shipped_atlas  # noqa: E402
 from softphantom.parallel import dask_client  # noqa: E402
 
 

@@ -17,7 +17,8 @@ from softphantom.estimation import (
     load_or_build, open_estimator,
 )
 from softphantom.estimation.atlas.basis import cheb_basis, to_chebyshev
-from softphantom.estimation.atlas.store import FORMAT, AtlasCorrupt, atlas_key, atlas_path, load_atlas, save_atlas
+from softphantom.estimation.atlas.catalogue import atlas_key
+from softphantom.estimation.atlas.store import FORMAT, AtlasCorrupt, atlas_path, load_atlas, save_atlas
 from softphantom.pose import Pose6, rigid_fit
 from softphantom.sensing import Measurement
 from shared_models import atlas_config, cached_atlas
@@ -218,13 +219,13 @@ def test_cache_round_trip_mismatch_and_corruption(coarse_model, atlas, fwd, tmp_
     assert back.config.force_cluster_N == ACFG.cluster_N  # the file keeps the stretch it was built with
     # another contact patch, law parameter or envelope → another key; the file is refused in one line
     other = ForwardModel(coarse_model, EstimatorConfig(contact="off-centre"))
-    assert atlas_key(other, ACFG) != atlas.key
-    assert atlas_key(fwd, dataclasses.replace(ACFG, force_max_N=(0.5, 1.3, 0.5))) != atlas.key
-    assert atlas_key(fwd, dataclasses.replace(ACFG, p_min_kPa=-1, p_max_kPa=4)) == atlas.key  # ints: one key
-    assert atlas_key(fwd, dataclasses.replace(ACFG, force_cluster_N=ACFG.cluster_N)) == atlas.key  # the default, given
-    assert atlas_key(fwd, dataclasses.replace(ACFG, force_cluster_N=(0.1, 0.0, 0.0))) != atlas.key
+    assert atlas_key(other.model, other.config, ACFG) != atlas.key
+    assert atlas_key(fwd.model, fwd.config, dataclasses.replace(ACFG, force_max_N=(0.5, 1.3, 0.5))) != atlas.key
+    assert atlas_key(fwd.model, fwd.config, dataclasses.replace(ACFG, p_min_kPa=-1, p_max_kPa=4)) == atlas.key  # ints: one key
+    assert atlas_key(fwd.model, fwd.config, dataclasses.replace(ACFG, force_cluster_N=ACFG.cluster_N)) == atlas.key  # the default, given
+    assert atlas_key(fwd.model, fwd.config, dataclasses.replace(ACFG, force_cluster_N=(0.1, 0.0, 0.0))) != atlas.key
     with pytest.raises(UserError, match="built for another model") as exc:
-        load_atlas(path, atlas_key(other, ACFG))
+        load_atlas(path, atlas_key(other.model, other.config, ACFG))
     assert "\n" not in str(exc.value)
     # the cached file is used as is
     built = []
@@ -329,9 +330,10 @@ def test_atlas_files_are_verified_described_and_installed(coarse_model, atlas, t
              "--envelope", "-0.5:0.5,-0.3:1.2,-0.5:0.5,-1:4", "--atlas-f-y-split-N", ""]
     assert main(build) == 0
     out = capsys.readouterr().out
-    assert f"atlas: {path} (" in out and out.splitlines()[-1] == str(path)  # the build's log line, then the path
+    # the build's log line, then where the atlas came from
+    assert f"atlas: {path} (model directory)" in out and out.splitlines()[-1] == f"{path} (model directory)"
     assert main(["-q", *build]) == 0
-    assert capsys.readouterr().out.splitlines() == [str(path)]  # quiet: no log line
+    assert capsys.readouterr().out.splitlines() == [f"{path} (model directory)"]  # quiet: no log line
     # installed into another copy of the same model: found under its key; again: already there
     twin = save_model(coarse_model, tmp_path / "twin")
     assert main(["atlas", "add", str(path), "--model", str(twin)]) == 0
@@ -558,7 +560,7 @@ def test_an_atlas_in_pieces_along_f_y_follows_a_kink_one_polynomial_cannot(coars
     assert isinstance(at, AtlasPatches) and len(at.patches) == 2 and at.solves == pieces.n_solves
     # each piece is the plain atlas of its range: the cache finds it under that atlas's key
     for piece in at.patches:
-        save_atlas(piece, atlas_path(tmp_path, atlas_key(fwd, piece.config)))
+        save_atlas(piece, atlas_path(tmp_path, atlas_key(fwd.model, fwd.config, piece.config)))
     cached = load_or_build(coarse_model, CFG, pieces, cache_dir=tmp_path, fwd=fwd)
     assert isinstance(cached, AtlasPatches) and cached.key == at.key
     lo, hi = ACFG.lower, ACFG.upper
@@ -588,6 +590,7 @@ def test_the_default_atlas_follows_the_elements_order(order, monkeypatch):
     from types import SimpleNamespace
 
     from softphantom.estimation.atlas import build as atlas_mod
+    from softphantom.estimation.atlas import catalogue
     from softphantom.estimation.atlas import config as atlas_config
 
     class Built(Exception):
@@ -596,11 +599,10 @@ def test_the_default_atlas_follows_the_elements_order(order, monkeypatch):
     def build(model, cfg, acfg, **kw):
         raise Built(acfg, kw.get("pieces"))
 
-    monkeypatch.setattr(atlas_mod, "atlas_key", lambda fwd, acfg: "key")
+    monkeypatch.setattr(catalogue, "piece_keys", lambda model, cfg, acfg: ("key",) * len(acfg.pieces()))
     monkeypatch.setattr(atlas_mod, "build_atlas", build)
-    fwd = SimpleNamespace(fem=SimpleNamespace(order=order))
     with pytest.raises(Built) as got:
-        load_or_build(None, CFG, None, fwd=fwd)
+        load_or_build(SimpleNamespace(element_order=order), CFG, None)
     acfg, pieces = got.value.args
     if order == 1:
         assert acfg == atlas_config.AtlasConfig() and pieces == (0,)
@@ -620,7 +622,7 @@ def test_a_uniform_stiffness_scale_is_the_atlas_with_the_loads_scaled(coarse_mod
     from softphantom.calibration.output import calibrated_design, carry_atlases
     from softphantom.design import save_model
     from softphantom.estimation.atlas.config import model_atlas_config
-    from softphantom.estimation.atlas.store import verify_atlas
+    from softphantom.estimation.atlas.catalogue import verify_atlas
 
     s = 1.3
     model_s = dataclasses.replace(coarse_model, design=calibrated_design(coarse_model.design, {"bulb": s, "arms": s}))
@@ -629,7 +631,7 @@ def test_a_uniform_stiffness_scale_is_the_atlas_with_the_loads_scaled(coarse_mod
     a, b = fwd_s.solve(lam), fwd.solve(lam / s)
     assert np.allclose(a.V, b.V, rtol=1e-6, atol=1e-14) and np.abs(a.x - b.x).max() < 1e-9
     assert abs(a.V - fwd.solve(lam).V).max() > 0.1 * abs(a.V).max()  # not vacuous: the stiffness matters
-    sc = atlas.scaled(s, atlas_key(fwd_s, ACFG.scaled(s)))
+    sc = atlas.scaled(s, atlas_key(fwd_s.model, fwd_s.config, ACFG.scaled(s)))
     assert np.allclose(sc.volumes(lam)[0], atlas.volumes(lam / s)[0], rtol=1e-12, atol=0)
     assert np.allclose(sc.points(lam), atlas.points(lam / s), rtol=0, atol=1e-15)
     assert abs(sc.volumes(lam)[0] - a.V).max() <= 1.01 * abs(atlas.volumes(lam / s)[0] - b.V).max() + 1e-16
@@ -654,14 +656,18 @@ def test_a_uniform_stiffness_scale_is_the_atlas_with_the_loads_scaled(coarse_mod
 
 def test_a_shipped_atlas_is_found_by_its_key_for_any_copy_of_its_model(coarse_model, atlas, fwd, tmp_path,
                                                                         monkeypatch, capsys):
-    """The package's atlases (``data/models/*/atlas/``) are found by content: a model directory that
-    ``design`` wrote with the same mesh loads the shipped file, builds nothing and writes nothing;
-    ``atlas verify --model`` checks it; a damaged shipped file is refused naming it."""
+    """The package's atlases (listed in ``data/models/*/atlas.json``) are found by key: a model
+    directory that ``design`` wrote with the same mesh loads the shipped file, builds nothing and
+    writes nothing; ``atlas verify --model`` checks it; a damaged shipped file is refused naming it."""
+    import json
+
     from softphantom.design import save_model
     from softphantom.estimation.atlas.build import AtlasMissing
 
     shipped = save_model(coarse_model, tmp_path / "pkg" / "coarse")
     path = save_atlas(atlas, atlas_path(shipped, atlas.key))
+    # shipped: listed in the shipped model's manifest
+    (shipped / "atlas.json").write_text(json.dumps({"pieces": [{"contact": "on-centre", "key": atlas.key[:32]}]}))
     monkeypatch.setattr("softphantom.design.model.SHIPPED_MODELS", tmp_path / "pkg")
     user = save_model(coarse_model, tmp_path / "user")
     got = load_or_build(coarse_model, CFG, ACFG, cache_dir=user, fwd=fwd, max_build_s=0.0)  # a build: AtlasMissing
@@ -701,7 +707,7 @@ def test_atlas_check_solves_held_out_loads_and_exits_1_on_a_missed_goal(coarse_m
     assert main(["atlas", "check", "--model", str(model_dir), "--workers", "0"]) == 2  # no atlas yet
     assert "softphantom atlas build --model" in capsys.readouterr().err
     save_atlas(atlas, atlas_path(model_dir, atlas.key))
-    monkeypatch.setattr("softphantom.estimation.atlas.build.model_atlas_config", lambda order, d: ACFG)
+    monkeypatch.setattr("softphantom.estimation.atlas.catalogue.model_atlas_config", lambda order, d: ACFG)
     argv = ["atlas", "check", "--model", str(model_dir), "--workers", "0", "--loads", "3", "--seed", "4"]
     assert main([*argv, "--max-force-N", "10", "--max-pos-mm", "10", "--max-ang-deg", "10",
                  "--max-near-urethra-mm", "10"]) == 0

@@ -16,7 +16,8 @@ import numpy as np
 import pytest
 from shared_models import atlas_config, cached_atlas
 
-from softphantom.estimation.atlas.store import ARRAYS, load_atlas, model_atlases
+from softphantom.estimation.atlas.catalogue import atlases_of as model_atlases
+from softphantom.estimation.atlas.store import ARRAYS, load_atlas
 
 pytestmark = pytest.mark.slow
 
@@ -84,8 +85,8 @@ def test_discard_partial_drops_an_interrupted_build_of_other_settings(coarse_mod
     from softphantom.estimation.forward import ForwardModel
 
     fwd = ForwardModel(coarse_model, EstimatorConfig(contact="on-centre"))
-    mine = build_settings(fwd, atlas_config("displacement"))
-    theirs = build_settings(fwd, atlas_config("force"))
+    mine = build_settings(fwd.config, atlas_config("displacement"), fwd.fem.n_dof // 3)
+    theirs = build_settings(fwd.config, atlas_config("force"), fwd.fem.n_dof // 3)
     store = TaskStore(partial_dir(tmp_path, "ab" * 32), {"build": theirs, "key": "ab" * 32})
     store.save("p0-plane-0-0", {"x": np.arange(3.0)}, 1.0, 2.0)
     check_partials(tmp_path, theirs)  # the same settings: left to be resumed

@@ -23,10 +23,12 @@ from softphantom.design.model import build_model
 from softphantom.design.params import design_from_dict
 from softphantom.errors import UserError
 from softphantom.estimation import AtlasConfig, EstimatorConfig
-from softphantom.estimation.atlas.build import build_atlas, check_atlas_cavities, load_or_build
+from softphantom.estimation.atlas.build import build_atlas, check_atlas_cavities
+from softphantom.estimation.atlas.catalogue import load_or_build
 from softphantom.estimation.atlas.estimator import AtlasEstimator
 from softphantom.estimation.atlas.map import AtlasStack, MixedPiece, lagrange_weights
-from softphantom.estimation.atlas.store import atlas_key, atlas_path
+from softphantom.estimation.atlas.catalogue import atlas_key
+from softphantom.estimation.atlas.store import atlas_path
 from softphantom.estimation.forward import ForwardModel
 
 MESH = {"size_mm": 12.0, "surface_size_mm": 12.0, "arm_size_mm": 9.0, "cavity_segments": 12.0}
@@ -96,7 +98,7 @@ def test_the_levels_interpolate_the_second_pressure():
 def test_the_stack_matches_full_solves_off_its_levels(built):
     st, fwd = built.stack, built.fwd
     assert isinstance(st, AtlasStack) and [lv.config.held_kPa for lv in st.levels] == [(0.0,), (20.0,), (40.0,)]
-    assert all(lv.key == atlas_key(fwd, c) for lv, c in zip(st.levels, ACFG.levels()))
+    assert all(lv.key == atlas_key(fwd.model, fwd.config, c) for lv, c in zip(st.levels, ACFG.levels()))
     assert len(set(st.key)) == 3 and st.unsolved == 0
     for lam, lin in zip(LOADS, built.lins):
         V, J = st.volumes(lam)
@@ -168,7 +170,7 @@ def test_the_stack_is_stored_per_level_and_resumes(built, monkeypatch):
     # saved one file per level, named by the level's key; loaded back without a build
     st = load_or_build(m, CFG, ACFG, cache_dir=d, fwd=fwd, n_workers=1)
     assert sorted(p.name for p in (d / "atlas").glob("*.npz")) == sorted(
-        atlas_path(d, atlas_key(fwd, c)).name for c in ACFG.levels())
+        atlas_path(d, atlas_key(fwd.model, fwd.config, c)).name for c in ACFG.levels())
     monkeypatch.setattr(build_mod, "build_atlas", lambda *a, **k: pytest.fail("built"))
     back = load_or_build(m, CFG, ACFG, cache_dir=d, fwd=fwd)
     assert isinstance(back, AtlasStack) and back.key == st.key

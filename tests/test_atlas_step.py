@@ -14,7 +14,7 @@ from softphantom.estimation import AtlasConfig, AtlasEstimator, EstimatorConfig,
 from softphantom.estimation.atlas import kernels as ak
 from softphantom.estimation.atlas.basis import to_chebyshev
 from softphantom.estimation.atlas.map import Atlas
-from softphantom.estimation.atlas.store import atlas_key
+from softphantom.estimation.atlas.catalogue import atlas_key
 from softphantom.pose import matrix_from_ypr, rigid_fit, ypr_from_matrix
 from softphantom.sensing import Measurement
 
@@ -65,7 +65,7 @@ def make_atlas(fwd, acfg):
     r = 3
     modes = np.linalg.qr(RNG.normal(size=(fwd.fem.n_dof, r)))[0] * 1e-3
     coef = np.stack([g[..., 0] * g[..., 1], g[..., 2], np.cos(g[..., 1])], -1)
-    return Atlas(key=atlas_key(fwd, acfg), config=acfg, cV=to_chebyshev(volumes_map(g), shape),
+    return Atlas(key=atlas_key(fwd.model, fwd.config, acfg), config=acfg, cV=to_chebyshev(volumes_map(g), shape),
                  cP=to_chebyshev(P.reshape(*shape, -1), shape).reshape(*shape, -1, 3),
                  cF=to_chebyshev(coef, shape), modes=modes, x_rest=fwd.fem.x_rest.copy(), build_s=0.0,
                  solves=int(np.prod(shape)), field_rms_m=0.0, solved=np.ones(shape, bool))

@@ -106,25 +106,26 @@ def carry_atlases(base_dir, model, out, factors: dict[str, float], law_changed: 
     from softphantom.design import load_model
     from softphantom.estimation.atlas.build import duration_text, estimated_build
     from softphantom.estimation.atlas.config import LOAD_SCALE_FILE, model_atlas_config
-    from softphantom.estimation.atlas.store import (atlas_key, atlas_path, estimator_config, model_atlases,
-                                                    save_atlas, verify_atlas)
-    from softphantom.estimation.forward import ForwardModel
+    from softphantom.estimation.atlas.catalogue import atlas_key, atlases_of, verify_atlas
+    from softphantom.estimation.atlas.store import atlas_path, estimator_config, save_atlas
 
     out = Path(out)
     vals = list(factors.values())
     s = vals[0]
     uniform = not law_changed and all(abs(v - s) <= rtol * abs(s) for v in vals)
     base = load_model(base_dir) if uniform else None  # only a uniform scale carries atlases over
-    files = model_atlases(base_dir, base) if uniform else []
+    files = atlases_of(base_dir, base) if uniform else []
     carried = 0
     if files:
+        from softphantom.fem.model import fem_from_phantom
+
+        fem = fem_from_phantom(base)
         for f in files:
             try:
-                at = verify_atlas(f, base)
+                at = verify_atlas(f, base, fem).atlas
             except UserError:
                 continue  # a stale or damaged file of the old model: not carried
-            fwd = ForwardModel(model, estimator_config(at, f))
-            scaled = at.scaled(s, atlas_key(fwd, at.config.scaled(s)))
+            scaled = at.scaled(s, atlas_key(model, estimator_config(at, f), at.config.scaled(s)))
             save_atlas(scaled, atlas_path(out, scaled.key))
             carried += 1
     if carried:

@@ -33,10 +33,6 @@ def _contact(at: str, model) -> str:
     return check_contact(at, list(model.p_ext), "--at")
 
 
-def _pieces(at) -> tuple:
-    return getattr(at, "all_pieces", None) or getattr(at, "patches", (at,))
-
-
 def _print_rows(rows) -> None:
     for label, value in rows:
         console.print(f"  {label:9s} {value}", highlight=False, soft_wrap=True)
@@ -70,9 +66,8 @@ def build_cmd(
     from dataclasses import replace
 
     from softphantom.estimation import EstimatorConfig
-    from softphantom.estimation.atlas.build import load_or_build
+    from softphantom.estimation.atlas.catalogue import find_or_build
     from softphantom.estimation.atlas.config import default_atlas_config, model_atlas_config
-    from softphantom.estimation.atlas.store import atlas_path, shipped_atlas
     from softphantom.estimation.select import atlas_config_from_options
 
     # bad options fail before the model is read: valid for a model of either element order (a grid
@@ -94,14 +89,11 @@ def build_cmd(
     acfg = atlas_config_from_options(atlas_grid, envelope, atlas_x_axis, atlas_f_y_split,
                                      base=model_atlas_config(model.element_order, model_dir))
     acfg = replace(acfg, offline=offline)
-    built = load_or_build(model, EstimatorConfig(contact=_contact(at, model)), acfg, cache_dir=model_dir,
+    found = find_or_build(model, EstimatorConfig(contact=_contact(at, model)), acfg, model_dir=model_dir,
                           scheduler=scheduler, n_workers=workers, rebuild=rebuild,
                           discard_partial=discard_partial)
-    for piece in _pieces(built):
-        path = atlas_path(model_dir, piece.key)
-        shipped = None if path.is_file() else shipped_atlas(piece.key)
-        console.print(f"{path}" if shipped is None else f"{shipped} (shipped with softphantom)", highlight=False,
-                      soft_wrap=True)
+    for piece in found.pieces:
+        console.print(piece.describe(), highlight=False, soft_wrap=True)
 
 
 @atlas_app.command("info")
@@ -111,12 +103,13 @@ def info_cmd(
                                    "and those shipped with softphantom for its mesh)."),
 ) -> None:
     """Describe atlas files: model, contact, envelope, grid, build cost, provenance."""
-    from softphantom.estimation.atlas.store import describe, load_atlas, model_atlases
+    from softphantom.estimation.atlas.catalogue import atlases_of
+    from softphantom.estimation.atlas.store import describe, load_atlas
 
     if not files:
         if model_dir is None:
             raise UserError("atlas info: give atlas files or --model DIR")
-        files = model_atlases(model_dir, _model(model_dir))
+        files = atlases_of(model_dir, _model(model_dir))
         if not files:
             console.print(f"{model_dir}: no atlas built yet (softphantom atlas build --model {model_dir})",
                           highlight=False)
@@ -133,24 +126,38 @@ def verify_cmd(
                                        "shipped with softphantom for the model's mesh)."),
     model_dir: Path = MODEL_OPTION,
 ) -> None:
-    """Check atlas files against a model: intact (digest), this softphantom's format, and built for
-    this model (the key recomputed from the model). Exit 2 naming each file that fails."""
-    from softphantom.estimation.atlas.store import model_atlases, verify_atlas
+    """Check atlas files against a model: intact (digest), this softphantom's format, built for this
+    model (the key recomputed from the model's inputs), and not stale: the numbers it recorded of the
+    model at rest (rest nodes, cavity volumes, the contact patch's force sums, its own error at zero
+    load) recomputed from the model within stated tolerances. Exit 2 naming each file that fails and
+    the quantity that differs."""
+    from softphantom.estimation.atlas.catalogue import atlases_of, verify_atlas
+    from softphantom.fem.model import fem_from_phantom
 
     model = _model(model_dir)
-    files = files or model_atlases(model_dir, model)
+    files = files or atlases_of(model_dir, model)
     if not files:
         raise UserError(f"{model_dir}: no atlas files to verify (softphantom atlas build --model {model_dir})")
     failed = 0
+    fem = None
     for f in files:
+        if not Path(f).is_file():
+            failed += 1
+            print_error(f"{f}: no such atlas file")
+            continue
         try:
-            at = verify_atlas(f, model)
+            fem = fem or fem_from_phantom(model)
+            v = verify_atlas(f, model, fem)
         except UserError as exc:
             failed += 1
             print_error(str(exc))
             continue
+        at = v.atlas
         console.print(f"ok  {f}  (key {at.key[:12]}…, {' × '.join(map(str, at.config.shape))} points)",
                       highlight=False, soft_wrap=True)
+        for c in v.checks:
+            console.print(f"      {c.quantity:28s} {c.difference:.3g} {c.unit} (tolerance {c.tolerance:g})",
+                          highlight=False, soft_wrap=True)
     if failed:
         raise typer.Exit(2)
 
@@ -161,7 +168,7 @@ def add_cmd(
     model_dir: Path = MODEL_OPTION,
 ) -> None:
     """Verify an atlas file against a model and install it in MODEL/atlas/ under its key."""
-    from softphantom.estimation.atlas.store import install_atlas
+    from softphantom.estimation.atlas.catalogue import install_atlas
 
     if not file.is_file():
         raise UserError(f"{file}: no such atlas file")
@@ -194,7 +201,7 @@ def check_cmd(
     import numpy as np
 
     from softphantom.estimation import EstimatorConfig
-    from softphantom.estimation.atlas.build import load_or_build
+    from softphantom.estimation.atlas.catalogue import load_or_build
     from softphantom.estimation.atlas.check import check_held_out, held_out_loads
     from softphantom.parallel import dask_client
     from softphantom.progress import status

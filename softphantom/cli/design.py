@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import shutil
 import time
 from pathlib import Path
 from typing import Optional
@@ -23,6 +24,32 @@ def _labels(text: str, option: str) -> tuple[int, ...]:
 
 
 OBSERVE = ("auto", "envelope", "rest", "off")
+
+
+def _observability(model, shipped: Path | None, observe: str, force: bool):
+    """(the model's :class:`~softphantom.estimation.observability.Observability` or None, warnings):
+    at rest (and over the envelope with ``observe == "envelope"``); a shipped model's at rest is
+    read from its directory ``shipped``, not solved. A layout that cannot see a load is refused
+    unless ``force``."""
+    from softphantom.estimation import ForwardModel
+    from softphantom.estimation.observability import (check_layout, observability, observability_at_rest,
+                                                      shipped_rest_W)
+
+    W = shipped_rest_W(shipped) if shipped is not None and observe == "rest" else None
+    if W is not None:
+        obs = observability_at_rest(model, W)
+        check_layout(obs, force=force)
+        return obs, []
+    where = "at rest" + (" and over the load envelope" if observe == "envelope" else "")
+    with status(f"solving the observability {where}", console):
+        try:
+            fm = ForwardModel(model)
+        except UserError as exc:  # e.g. a marker off a mesh kept with --force: not solvable
+            if not force:
+                raise
+            return None, [f"observability not checked: {exc}"]
+        check_layout(observability(model, fm, loaded=False), force=force)  # refused: nothing written
+        return observability(model, fm, loaded=observe == "envelope"), []
 
 
 @app.command("design")
@@ -62,6 +89,7 @@ def design_command(
     """Build the BIP design, mesh it (gmsh), check its observability and write model.msh/.vtu/.npz, design.toml,
     report.md, mesh.png."""
     from softphantom.design import build_model, default_design, load_design, save_model
+    from softphantom.design.model import shipped_model_dir
     from softphantom.design.report import design_report_md
 
     lesions = _labels(lesion_labels, "--lesion-labels")
@@ -111,25 +139,14 @@ def design_command(
         with status(f"meshing design '{design.name}'", console):
             model = build_model(design, mesh_size_mm, force=force)
         report = design_report_md(model)
+        shipped = shipped_model_dir(design)  # the shipped model's mesh: its observability and drawing ship with it
         warnings: list[str] = []
         if observe == "auto":
             observe = "envelope" if model.element_order == 1 else "rest"
         if observe != "off":
-            from softphantom.estimation import ForwardModel
-            from softphantom.estimation.observability import check_layout, observability, observability_md
+            from softphantom.estimation.observability import check_layout, observability_md
 
-            where = "at rest" + (" and over the load envelope" if observe == "envelope" else "")
-            obs = None
-            with status(f"solving the observability {where}", console):
-                try:
-                    fm = ForwardModel(model)
-                except UserError as exc:  # e.g. a marker off a mesh kept with --force: not solvable
-                    if not force:
-                        raise
-                    warnings = [f"observability not checked: {exc}"]
-                else:
-                    check_layout(observability(model, fm, loaded=False), force=force)  # refused: nothing written
-                    obs = observability(model, fm, loaded=observe == "envelope")
+            obs, warnings = _observability(model, shipped, observe, force)
             if obs is not None:
                 warnings = check_layout(obs, force=True)
                 report += "\n" + observability_md(obs)
@@ -139,8 +156,11 @@ def design_command(
         if png:
             from softphantom.viz.mesh_view import render_mesh_png
 
-            with status("drawing mesh.png", console):
-                render_mesh_png(model, work / "mesh.png")
+            if shipped is not None and (shipped / "mesh.png").is_file():  # the shipped mesh's, drawn once
+                shutil.copyfile(shipped / "mesh.png", work / "mesh.png")
+            else:
+                with status("drawing mesh.png", console):
+                    render_mesh_png(model, work / "mesh.png")
     console.print(report, highlight=False, soft_wrap=True)
     for line in warnings:
         console.print(f"warning: {line}", style="yellow", markup=False, highlight=False)

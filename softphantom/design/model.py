@@ -319,10 +319,16 @@ def shipped_model(design: BIPDesign) -> PhantomModel | None:
     >>> shipped_model(BIPDesign()) is None  # the linear 6 mm design is meshed
     True
     """
+    d = shipped_model_dir(design)
+    return load_model(d) if d is not None else None
+
+
+def shipped_model_dir(design: BIPDesign) -> Path | None:
+    """The directory of the model shipped for exactly ``design`` (:func:`shipped_model`), else None."""
     want = design_to_dict(design)
     for d in sorted(SHIPPED_MODELS.iterdir()) if SHIPPED_MODELS.is_dir() else ():
         if (d / "design.toml").is_file() and design_to_dict(load_design(d / "design.toml")) == want:
-            return load_model(d)
+            return d
     return None
 
 

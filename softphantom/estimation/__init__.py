@@ -8,7 +8,8 @@ converged equilibrium at given loads. :func:`estimate_stream` runs one over a se
 writes the estimate CSV (:class:`EstimateWriter`).
 """
 
-from softphantom.estimation.atlas.build import build_atlas, load_or_build
+from softphantom.estimation.atlas.build import build_atlas
+from softphantom.estimation.atlas.catalogue import load_or_build
 from softphantom.estimation.atlas.config import AtlasConfig
 from softphantom.estimation.atlas.estimator import AtlasEstimator
 from softphantom.estimation.atlas.map import Atlas

@@ -49,7 +49,7 @@ class ForwardModel:
 
     ``exact_sensitivities=False``: the solutions' sensitivities only approximate (see
     :class:`~softphantom.estimation.linearization.EquilibriumSolver`), for callers that keep only
-    the equilibria; ``fallback_min_load_step`` for callers that expect failures. Attributes: ``fem``, ``contact_point`` (3,) m, ``marker_names``, ``target_names``, ``eq`` (the
+    the equilibria; ``fallback_min_load_step`` for callers that expect failures. Attributes: ``model``, ``fem``, ``contact_point`` (3,) m, ``marker_names``, ``target_names``, ``eq`` (the
     equilibrium solver, not thread-safe), ``rest`` (the rest :class:`Linearization`), ``n_markers``.
     """
 
@@ -57,6 +57,7 @@ class ForwardModel:
                  exact_sensitivities: bool = True, fallback_min_load_step: float = 1.0 / 1024) -> None:
         cfg = config or EstimatorConfig()
         self.config = cfg
+        self.model = model
         self.fem = fem if fem is not None else fem_from_phantom(model)
         self.contact_point = contact_point(model, cfg.contact)
         self.marker_names = tuple(model.markers)

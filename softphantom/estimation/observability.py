@@ -38,7 +38,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from softphantom.errors import DesignError, SolverError
+from softphantom.errors import DesignError, SolverError, UserError
 
 REFUSE_RATIO = 0.1
 WARN_COUNTS = 10.0
@@ -239,6 +239,42 @@ def observability(model, forward=None, acfg=None, loaded: bool = True) -> Observ
     measured = tuple(n for n in fm.eq.arm_names if n in getattr(model.design, "measured_cavity_names", ()))
     return Observability(ranges, observed_state(fm.rest, ranges), tuple(states), tuple(failed), count,
                          tuple(fm.eq.pressure_names), measured)
+
+
+def observability_at_rest(model, W, acfg=None) -> Observability:
+    """The :class:`Observability` of ``model`` at rest from its rest sensitivity ``W`` (volume
+    channels × loads, m³/N and m³/Pa; what :func:`observability` solves for): for a model whose
+    ``W`` ships with it (:data:`REST_FILE`), no solve."""
+    from types import SimpleNamespace
+
+    from softphantom.estimation.atlas.config import default_atlas_config
+
+    design = model.design
+    acfg = acfg or default_atlas_config(int(getattr(model, "element_order", 1)))
+    names = tuple(design.pressure_names)
+    W = np.asarray(W, float)
+    if W.shape != (len(design.sensing_names), 3 + len(names)):
+        raise UserError(f"rest sensitivity: shape {W.shape}, the model has {len(design.sensing_names)} volume channels "
+                        f"and {3 + len(names)} loads")
+    ranges = envelope_ranges(acfg, len(names))
+    rest = observed_state(SimpleNamespace(W=W, lam=np.zeros(3 + len(names))), ranges)
+    count = count_volume_mm3(list(design.sensing_volumes_mm3()))
+    return Observability(ranges, rest, (), (), count, names, tuple(design.measured_cavity_names))
+
+
+# the rest sensitivity a shipped model carries (its model directory): `design` reads it, no solve
+REST_FILE = "observability.json"
+
+
+def shipped_rest_W(model_dir) -> np.ndarray | None:
+    """The rest sensitivity W (m³/N, m³/Pa) stored in a (shipped) model directory, or None."""
+    import json
+    from pathlib import Path
+
+    f = Path(model_dir) / REST_FILE
+    if not f.is_file():
+        return None
+    return np.array(json.loads(f.read_text())["W_rest_m3_per_N_Pa"], float)
 
 
 def layout_problem(obs: Observability) -> str:

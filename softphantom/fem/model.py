@@ -344,6 +344,14 @@ def fem_from_phantom(model, materials=None, *, order: int | None = None) -> FemM
         by_region.update(materials)
     by_id = {rid: by_region[name] for name, rid in model.regions.items()}
     mats = [by_id[int(r)] for r in np.asarray(model.tet_region)]
+    nodes, tets, fixed, cav = mesh_arrays(model, order)
+    return build_fem(nodes, tets, mats if len(set(mats)) > 1 else mats[0], fixed, cavities=dict(cav))
+
+
+def mesh_arrays(model, order: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
+    """(nodes (N,3) m, elements, fixed nodes, {cavity: wall faces}) of a ``PhantomModel`` for the
+    element ``order`` (default the model's own): the stored arrays the FEM is built from, as stored
+    (views, no arithmetic), so they are the same bits on every machine."""
     model_order = int(getattr(model, "element_order", 1))
     order = model_order if order is None else int(order)
     if order not in (1, 2):
@@ -351,12 +359,25 @@ def fem_from_phantom(model, materials=None, *, order: int | None = None) -> FemM
     if order == 2 and model_order != 2:
         raise UserError("order 2 needs a model meshed with [mesh] element_order = 2")
     if order == 2:
-        tets, cav, fixed, nodes = model.tets10, model.cavities6, model.fixed_nodes, model.nodes
-    else:
-        nc = int(getattr(model, "n_corner_nodes", len(model.nodes)))
-        tets, cav, nodes = model.tets, model.cavities, model.nodes[:nc]
-        fixed = model.fixed_nodes[model.fixed_nodes < nc]
-    return build_fem(nodes, tets, mats if len(set(mats)) > 1 else mats[0], fixed, cavities=dict(cav))
+        return model.nodes, model.tets10, model.fixed_nodes, dict(model.cavities6)
+    nc = int(getattr(model, "n_corner_nodes", len(model.nodes)))
+    return model.nodes[:nc], model.tets, model.fixed_nodes[model.fixed_nodes < nc], dict(model.cavities)
+
+
+def material_specs(design, regions: Mapping[str, int]) -> dict[str, tuple[str, tuple[tuple[str, float], ...]]]:
+    """Region name -> (law name, its parameters by name as the design file gives them): the inputs
+    :func:`laws_of_design` makes the law objects from (a region without a material: the default
+    preset's)."""
+    from softphantom.design.params import DEFAULT_MATERIAL, MATERIAL_PRESETS
+
+    specs = {m.name: m for m in getattr(design, "materials", ())}
+    assign = design.material_of_regions(regions) if hasattr(design, "material_of_regions") else {}
+    out = {}
+    for region in regions:
+        mname = assign.get(region)
+        spec = specs[mname] if mname is not None else MATERIAL_PRESETS[DEFAULT_MATERIAL]
+        out[region] = (spec.law, tuple(sorted((str(k), float(v)) for k, v in dict(spec.values).items())))
+    return out
 
 
 def laws_of_design(design, regions: Mapping[str, int]) -> dict:

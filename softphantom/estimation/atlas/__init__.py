@@ -22,33 +22,39 @@ is compiled (:mod:`~softphantom.estimation.atlas.kernels`), tens of microseconds
 estimate carries ``in_envelope=False`` (the CSV's ``in_envelope`` column); so does an estimate in a
 cell the build could not solve.
 
-Cache: :func:`load_or_build` keeps the atlas next to the model under the SHA-256 of everything it
-depends on (mesh, law and its parameters, element, contact patch, envelope, grid, format version).
-A file whose content hash does not match, of another format or built for another model is refused
-with one line and never overwritten unless asked (``softphantom atlas build --rebuild``);
-:mod:`~softphantom.estimation.atlas.store` verifies, describes and installs atlas files.
+Catalogue (:mod:`~softphantom.estimation.atlas.catalogue`): :func:`find_or_build` looks an atlas
+up in the model directory, then among the package's shipped files, else builds it there, under a
+key made from its inputs only (:func:`atlas_key`: the stored mesh, the law as written, the contact,
+the tracked points, the settings; the same on every CPU). A file whose content hash does not match,
+of another format or built for another model is refused with one line and never overwritten unless
+asked (``softphantom atlas build --rebuild``); :func:`verify_atlas` checks a file's numbers against
+the model.
 
 Where each job lives (this module re-exports their public names):
 
 - :mod:`~softphantom.estimation.atlas.config`: the settings, :class:`AtlasConfig`, :func:`default_atlas_config`;
 - :mod:`~softphantom.estimation.atlas.basis`: the Chebyshev maths (grids, interpolation, evaluation);
 - :mod:`~softphantom.estimation.atlas.map`: :class:`Atlas`, :class:`AtlasPatches`, :class:`AtlasStack` (the polynomials);
-- :mod:`~softphantom.estimation.atlas.build`: the grid sweeps on Dask, :func:`build_atlas`, :func:`load_or_build`;
-- :mod:`~softphantom.estimation.atlas.store`: the key, the file format, verify / describe / install;
+- :mod:`~softphantom.estimation.atlas.build`: the grid sweeps on Dask, :func:`build_atlas`;
+- :mod:`~softphantom.estimation.atlas.store`: the file format, describe;
+- :mod:`~softphantom.estimation.atlas.catalogue`: the key, the lookup (model directory, shipped, built), verify / install;
 - :mod:`~softphantom.estimation.atlas.estimator`: :class:`AtlasEstimator`;
 - :mod:`~softphantom.estimation.atlas.kernels`: the compiled per-sample step.
 """
 
 from softphantom.estimation.atlas.basis import cheb_basis, cheb_points, to_chebyshev
-from softphantom.estimation.atlas.build import NODE_TOL, build_atlas, fill_weights, load_or_build, provenance, x_patch
+from softphantom.estimation.atlas.build import NODE_TOL, build_atlas, fill_weights, provenance, x_patch
+from softphantom.estimation.atlas.catalogue import (Found, atlas_key, find_or_build, install_atlas, load_or_build,
+                                                    verify_atlas)
 from softphantom.estimation.atlas.config import P2_F_Y_SPLITS_N, X_CONTROLS, AtlasConfig, default_atlas_config
 from softphantom.estimation.atlas.estimator import AtlasEstimator
 from softphantom.estimation.atlas.map import Atlas, AtlasPatches, AtlasStack, KernelView
 from softphantom.estimation.atlas.store import (
-    FORMAT, AtlasCorrupt, AtlasMismatch, atlas_key, atlas_path, load_atlas, save_atlas,
+    FORMAT, AtlasCorrupt, AtlasMismatch, atlas_path, load_atlas, save_atlas,
 )
 
 __all__ = ["FORMAT", "NODE_TOL", "P2_F_Y_SPLITS_N", "X_CONTROLS", "Atlas", "AtlasConfig", "AtlasCorrupt",
-           "AtlasEstimator", "AtlasMismatch", "AtlasPatches", "AtlasStack", "KernelView", "atlas_key", "atlas_path", "build_atlas",
-           "cheb_basis", "cheb_points", "default_atlas_config", "fill_weights", "load_atlas", "load_or_build",
+           "AtlasEstimator", "AtlasMismatch", "AtlasPatches", "AtlasStack", "Found", "KernelView", "atlas_key",
+           "atlas_path", "build_atlas", "cheb_basis", "cheb_points", "default_atlas_config", "fill_weights",
+           "find_or_build", "install_atlas", "load_atlas", "load_or_build", "verify_atlas",
            "provenance", "save_atlas", "to_chebyshev", "x_patch"]

@@ -1,7 +1,7 @@
 """The atlas build: converged forward solves on the grid of an :class:`AtlasConfig`, in parallel
 through :mod:`softphantom.parallel` (:func:`build_atlas`), fitted to tensor Chebyshev polynomials
-(:class:`~softphantom.estimation.atlas.map.Atlas`); and the cache in a model directory
-(:func:`load_or_build`).
+(:class:`~softphantom.estimation.atlas.map.Atlas`). Where an atlas is looked up, and when it is
+built and saved: :mod:`~softphantom.estimation.atlas.catalogue`.
 
 Each task solves one (f_y, f_z) plane of the grid (:func:`_sweep`) walking outwards from zero load,
 each point from a converged neighbour; on a displacement-controlled first axis the planes at the
@@ -26,13 +26,9 @@ import numpy as np
 from softphantom.errors import SolverError, UserError
 from softphantom.estimation.atlas.basis import axis_t, to_chebyshev
 from softphantom.estimation.atlas.config import (FALLBACK_MIN_LOAD_STEP, VIA_TOL, AtlasConfig, default_atlas_config,
-                                                model_atlas_config,
                                                 x_patch)
 from softphantom.estimation.atlas.map import Atlas, AtlasPatches, AtlasStack
-from softphantom.estimation.atlas.store import (AtlasCorrupt, AtlasMismatch, atlas_key, atlas_path, load_atlas, save_atlas,
-                                                shipped_atlas)
-from softphantom.estimation.atlas.tasks import (GraphRun, Task, TaskStore, check_partials, critical_path_s, discard_tasks,
-                                                partial_dir, run_graph)
+from softphantom.estimation.atlas.tasks import GraphRun, Task, TaskStore, critical_path_s, partial_dir, run_graph
 from softphantom.estimation.config import EstimatorConfig
 from softphantom.estimation.forward import ForwardModel, internal_cavities_of
 from softphantom.estimation.linearization import PatchControl
@@ -745,13 +741,13 @@ def duration_text(seconds: float) -> str:
     return f"{seconds / 3600:.1f} h" if seconds >= 5400 else f"{max(1, round(seconds / 60))} min"
 
 
-def build_settings(fwd: ForwardModel, acfg: AtlasConfig) -> dict:
+def build_settings(config: EstimatorConfig, acfg: AtlasConfig, n_nodes: int) -> dict:
     """What identifies a build command: the atlas settings (all pieces) and the estimator settings
-    its key depends on; an interrupted build resumes only under the same (:func:`check_partials`)."""
-    c = fwd.config.contact
+    its key depends on; an interrupted build resumes only under the same
+    (:func:`~softphantom.estimation.atlas.tasks.check_partials`)."""
+    c = config.contact
     return {"atlas": acfg.as_dict(), "contact": c if isinstance(c, str) else [float(v) for v in c],
-            "contact_radius_m": float(fwd.config.contact_radius_m), "tol": float(fwd.config.tol),
-            "nodes": int(fwd.fem.n_dof // 3)}
+            "contact_radius_m": float(config.contact_radius_m), "tol": float(config.tol), "nodes": int(n_nodes)}
 
 
 def check_atlas_cavities(model) -> str:
@@ -767,20 +763,8 @@ def check_atlas_cavities(model) -> str:
     return names[0]
 
 
-def _regroup(acfg: AtlasConfig, found: dict):
-    """The atlas of ``acfg`` from its built pieces (``found``: index in ``acfg.pieces()`` → Atlas):
-    an Atlas, an AtlasPatches, or a stack of either (:class:`AtlasStack`)."""
-    levels, j = [], 0
-    for lv in acfg.levels():
-        n = len(lv.patches())
-        got = [found[j + p] for p in range(n)]
-        j += n
-        levels.append(got[0] if n == 1 else AtlasPatches(lv, tuple(got)))
-    return AtlasStack(acfg, tuple(levels)) if acfg.stacked else levels[0]
-
-
 def build_atlas(model, config: EstimatorConfig | None = None, atlas: AtlasConfig | None = None, *,
-                scheduler: str | None = None, n_workers: int | None = None,
+                keys: tuple[str, ...] | None = None, scheduler: str | None = None, n_workers: int | None = None,
                 fwd: ForwardModel | None = None, processes: bool = True, cache_dir=None,
                 pieces: tuple[int, ...] | None = None) -> Atlas | AtlasPatches:
     """Build the atlas of ``model`` (forward solves in parallel, a Dask local cluster by default or
@@ -789,9 +773,11 @@ def build_atlas(model, config: EstimatorConfig | None = None, atlas: AtlasConfig
     the pieces' tasks run as one graph (:mod:`~softphantom.estimation.atlas.tasks`); ``pieces``: the
     indices of the pieces to build (default all; the result then holds only those, in order).
 
-    With ``cache_dir`` (a model directory) each finished task is kept in
+    ``keys``: each piece's key (:func:`~softphantom.estimation.atlas.catalogue.piece_keys`, computed
+    when not given). With ``cache_dir`` (a model directory) each finished task is kept in
     ``MODEL/atlas/partial/<key>/``, so an interrupted build started again goes on where it stopped;
-    the kept tasks are deleted once the atlas is built (:func:`load_or_build` saves it).
+    the kept tasks are deleted once the atlas is saved
+    (:func:`~softphantom.estimation.atlas.catalogue.find_or_build`).
 
     A corner of the envelope box may be physically unreachable for the model (e.g. a large push
     with sideways force inverts an element under a point contact). Such grid points are recorded,
@@ -812,7 +798,11 @@ def build_atlas(model, config: EstimatorConfig | None = None, atlas: AtlasConfig
     subs = acfg.pieces()
     which = tuple(range(len(subs))) if pieces is None else tuple(pieces)
     t0 = time.perf_counter()
-    keys = {p: atlas_key(fwd, subs[p]) for p in which}
+    if keys is None:
+        from softphantom.estimation.atlas.catalogue import piece_keys
+
+        keys = piece_keys(model, cfg, acfg)
+    keys = {p: keys[p] for p in which}
     if acfg.offline == "rom":  # the grid by a reduced model (softphantom.estimation.offline), piece by piece
         from softphantom.estimation.offline import rom_grid
 
@@ -823,7 +813,7 @@ def build_atlas(model, config: EstimatorConfig | None = None, atlas: AtlasConfig
             built.append(_fit(model, fwd, subs[p], keys[p], V, P, X, solved, FX, QN, (None,) * 4, cpu_s, t0, offline))
     else:
         tasks = [t for p in which for t in _piece_tasks(model, cfg, subs[p], fwd, f"p{p}", p)]
-        settings = build_settings(fwd, acfg)
+        settings = build_settings(cfg, acfg, fwd.fem.n_dof // 3)
         stores = {p: TaskStore(partial_dir(cache_dir, keys[p]), {"build": settings, "key": keys[p]})
                   for p in which} if cache_dir is not None else {}
 
@@ -853,11 +843,17 @@ def build_atlas(model, config: EstimatorConfig | None = None, atlas: AtlasConfig
             a.provenance["build"] = {"workers": n_cores, "wall_s": round(wall, 1), "cpu_s": round(cpu, 1),
                                      "critical_path_s": round(crit, 1), "tasks": len(tasks),
                                      "kept_tasks": len(run.kept)}
+    from softphantom.estimation.atlas.catalogue import rest_record
+
+    for a in built:  # what verify_atlas recomputes from the model to catch a stale atlas
+        a.provenance["rest"] = rest_record(a, model, fwd)
     if len(subs) == 1:
         return built[0]
     if pieces is None:
+        from softphantom.estimation.atlas.catalogue import _regroup
+
         return _regroup(acfg, dict(enumerate(built)))
-    return built  # type: ignore[return-value] - the pieces asked for, for load_or_build
+    return built  # type: ignore[return-value] - the pieces asked for, for find_or_build
 
 
 def _pod(D: np.ndarray, dD: np.ndarray | None = None):
@@ -892,92 +888,3 @@ def _pod(D: np.ndarray, dD: np.ndarray | None = None):
     coef = D @ modes
     rest = float(np.einsum("ij,ij->", D, D)) - float(np.einsum("ij,ij->", coef, coef))
     return coef, dD @ modes, modes, float(np.sqrt(max(rest, 0.0) / D.size))
-
-
-def _solves(at: Atlas) -> str:
-    if not at.unsolved:
-        return f"{at.solves} forward solves"
-    return (f"{at.solves} of {at.config.n_solves} forward solves converged ({at.unsolved} grid points unreachable: "
-            f"filled, outside the envelope)")
-
-
-def load_or_build(model, config: EstimatorConfig | None = None, atlas: AtlasConfig | None = None, *,
-                  cache_dir=None, scheduler: str | None = None, n_workers: int | None = None,
-                  fwd: ForwardModel | None = None, rebuild: bool = False,
-                  discard_partial: bool = False, max_build_s: float | None = None) -> Atlas | AtlasPatches:
-    """The atlas of ``model`` from ``cache_dir`` (a model directory) if present and valid, else built
-    and saved there. A cached file that is damaged, tampered with or of another format is an error
-    (:class:`AtlasCorrupt` / :class:`AtlasMismatch`, one line naming the file, nothing overwritten)
-    unless ``rebuild``, which builds and replaces it (``softphantom atlas build --rebuild``). With
-    ``AtlasConfig.f_y_splits_N`` each piece is loaded (and cached) on its own, and the missing
-    ones are built together. ``atlas`` None: :func:`default_atlas_config` of the model's element
-    order.
-
-    A build keeps its finished tasks in the model directory and resumes from them when started
-    again with the same settings (:mod:`~softphantom.estimation.atlas.tasks`); next to an
-    interrupted build of other settings it is refused in one line naming the setting, unless
-    ``discard_partial`` (``--discard-partial``) drops the interrupted one. With ``max_build_s``, a
-    build estimated to take longer (:func:`estimated_build`) is not started: :class:`AtlasMissing`
-    says how long it takes, the command that builds it and ``--estimator refresh`` meanwhile."""
-    check_atlas_cavities(model)
-    cfg = config or EstimatorConfig()
-    fwd = fwd or ForwardModel(model, cfg)
-    acfg = (atlas or model_atlas_config(fwd.fem.order, cache_dir)).for_cavities(len(internal_cavities_of(model)))
-    subs = acfg.pieces()
-    found: dict[int, Atlas] = {}
-    paths = {}
-    for p, sub in enumerate(subs):
-        key = atlas_key(fwd, sub)
-        path = paths[p] = atlas_path(cache_dir, key) if cache_dir is not None else None
-        if path is not None and path.is_file():
-            try:
-                at = load_atlas(path, key)
-                log.info(f"atlas: {path} ({at.nbytes / 1e6:.1f} MB, {_solves(at)}, built in {at.build_s:.0f} s)")
-                found[p] = at
-                continue
-            except (AtlasCorrupt, AtlasMismatch) as exc:
-                if not rebuild:
-                    raise type(exc)(f"{exc}; to build it again: softphantom atlas build --model {cache_dir} "
-                                    f"--rebuild") from None
-                log.warning(f"{exc}: rebuilding")
-        shipped = shipped_atlas(key)
-        if shipped is not None:  # a damaged shipped file is an error naming it (the package's, not the user's)
-            found[p] = at = load_atlas(shipped, key)
-            log.info(f"atlas: {shipped} (shipped with softphantom, {_solves(at)})")
-            continue
-        if path is not None and any(len(q.stem) == 32 and set(q.stem) <= set("0123456789abcdef")
-                                      for q in Path(cache_dir).glob("*.npz")):
-            # the atlas directory given for the model's (it holds atlas files, named by their key;
-            # model.npz is the model's own): its atlases are never found, every run builds
-            log.warning(f"atlas: {cache_dir} holds atlas files itself, but the cache is a model directory "
-                f"(atlases in its atlas/ subdirectory): building into {path.parent}")
-    missing = tuple(p for p in range(len(subs)) if p not in found)
-    if missing:
-        if max_build_s is not None:
-            cpu, wall = estimated_build(fwd.fem.order, fwd.fem.n_dof // 3, acfg, n_workers)
-            cpu *= len(missing) / len(subs)
-            wall *= len(missing) / len(subs)
-            if wall > max_build_s:
-                c = fwd.config.contact
-                at = "" if c == "on-centre" else f" --at {c}" if isinstance(c, str) else " (its contact point)"
-                n = sum(subs[p].n_solves for p in missing)
-                raise AtlasMissing(
-                    f"{cache_dir or 'the model'}: no atlas yet for this model and contact; building it takes about "
-                    f"{duration_text(wall)} on {int(n_workers or os.cpu_count() or 1)} cores ({n} grid points, "
-                    f"≈ {cpu:.0f} CPU-s): build it once with `softphantom atlas build --model {cache_dir}{at}` "
-                    f"(resumable; --scheduler ADDR for a Dask cluster), or estimate meanwhile with --estimator refresh")
-        if cache_dir is not None:
-            check_partials(cache_dir, build_settings(fwd, acfg), discard=discard_partial)
-        built = build_atlas(model, cfg, acfg, scheduler=scheduler, n_workers=n_workers, fwd=fwd,
-                            cache_dir=cache_dir, pieces=missing)
-        for p, at in zip(missing, built if isinstance(built, list) else [built]):
-            msg = (f"atlas: {_solves(at)} in {at.build_s:.0f} s ({at.build_cpu_s / at.config.n_solves:.2f} CPU-s "
-                   f"a solve), {at.nbytes / 1e6:.1f} MB")
-            if paths[p] is not None:
-                save_atlas(at, paths[p])
-                at = load_atlas(paths[p], at.key)  # as stored (the compact field): the same atlas as a later load
-                discard_tasks(cache_dir, at.key)  # built and saved: its kept tasks are not needed any more
-                msg += f" → {paths[p]} ({paths[p].stat().st_size / 1e6:.1f} MB on disk)"
-            log.info(msg)
-            found[p] = at
-    return _regroup(acfg, found)

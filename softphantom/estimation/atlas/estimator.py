@@ -17,10 +17,10 @@ import numpy as np
 
 from softphantom.errors import SolverError, UserError
 from softphantom.estimation.atlas import kernels as ak
-from softphantom.estimation.atlas.build import check_atlas_cavities, load_or_build
+from softphantom.estimation.atlas.build import check_atlas_cavities
+from softphantom.estimation.atlas.catalogue import Found, atlas_key, find_or_build
 from softphantom.estimation.atlas.config import AtlasConfig
 from softphantom.estimation.atlas.map import Atlas, AtlasPatches, AtlasStack
-from softphantom.estimation.atlas.store import atlas_key
 from softphantom.estimation.config import EstimatorConfig
 from softphantom.estimation.estimator import (
     EstimatorState, check_sample, measured_pressures, pose_and_shifts, repeat_last, rest_estimate, sensitivity_cond,
@@ -52,7 +52,7 @@ class AtlasEstimator(EstimatorState):
     kind = "atlas"
 
     def __init__(self, model, config: EstimatorConfig | None = None,
-                 atlas: Atlas | AtlasPatches | AtlasStack | AtlasConfig | None = None,
+                 atlas: Found | Atlas | AtlasPatches | AtlasStack | AtlasConfig | None = None,
                  *, cache_dir=None, scheduler: str | None = None, n_workers: int | None = None,
                  max_build_s: float | None = None) -> None:
         self.config = cfg = config or EstimatorConfig()
@@ -62,9 +62,12 @@ class AtlasEstimator(EstimatorState):
         self.forward = fwd
         self.arm_names = fwd.eq.arm_names
         self.cavities = fwd.pressure_names  # p_1 (the atlas's pressure axis), then a stack's further ones
-        if not isinstance(atlas, (Atlas, AtlasPatches, AtlasStack)):
-            atlas = load_or_build(model, cfg, atlas, cache_dir=cache_dir, scheduler=scheduler,
+        if not isinstance(atlas, (Found, Atlas, AtlasPatches, AtlasStack)):
+            atlas = find_or_build(model, cfg, atlas, model_dir=cache_dir, scheduler=scheduler,
                                   n_workers=n_workers, fwd=fwd, max_build_s=max_build_s)
+        found = atlas if isinstance(atlas, Found) else None
+        self.origin = found.describe() if found is not None else "atlas: given"  # where it came from
+        atlas = found.atlas if found is not None else atlas
         stack = atlas if isinstance(atlas, AtlasStack) else None
         n_p = 1 + (len(stack.config.further_min_kPa) if stack is not None else 0)
         if n_p != len(self.cavities):
@@ -72,7 +75,8 @@ class AtlasEstimator(EstimatorState):
                             f"{len(self.cavities)} actuated cavities ({', '.join(self.cavities)}); rebuild it")
         every = stack.all_pieces if stack is not None else (
             atlas.patches if isinstance(atlas, AtlasPatches) else (atlas,))
-        if any(a.key != atlas_key(fwd, a.config) for a in every):
+        # the catalogue found it by these keys; an atlas given directly is checked here
+        if found is None and any(a.key != atlas_key(model, cfg, a.config) for a in every):
             raise UserError("atlas built for another model, law, contact or envelope; rebuild it")
         self.atlas = atlas
         self._stack = stack

@@ -1,15 +1,12 @@
-"""Atlas files: the cache key, the file format, reading and writing; checking a file against a
-model, describing it, installing it in a model directory.
+"""Atlas files: the file format, reading and writing, describing one.
 
-An atlas file (``MODEL/atlas/<key>.npz``, :func:`save_atlas`) is content-addressed: its name is
-the start of the SHA-256 of everything it was built from (mesh, law, element, contact patch,
-tracked points, envelope, grid, solver tolerance, file format: :func:`atlas_key`), and it carries
-the digest of its own arrays and its provenance
-(:func:`~softphantom.estimation.atlas.build.provenance`). So a file built on one machine of a lab
-can be copied to another: :func:`verify_atlas` recomputes its key from the model there,
-:func:`install_atlas` puts it where :func:`~softphantom.estimation.atlas.build.load_or_build`
-finds it. Every refusal is one line naming the file and what does not match
-(:class:`AtlasCorrupt`, :class:`AtlasMismatch`).
+An atlas file (``MODEL/atlas/<key>.npz``, :func:`save_atlas`) is named by the start of its key
+(:func:`~softphantom.estimation.atlas.catalogue.atlas_key`: the SHA-256 of the inputs it was built
+from), and carries the digest of its own arrays and its provenance
+(:func:`~softphantom.estimation.atlas.build.provenance`). Where a model's atlas is looked up,
+checked against a model and installed: :mod:`~softphantom.estimation.atlas.catalogue`. Every
+refusal is one line naming the file and what does not match (:class:`AtlasCorrupt`,
+:class:`AtlasMismatch`).
 """
 
 from __future__ import annotations
@@ -17,7 +14,6 @@ from __future__ import annotations
 import hashlib
 import io
 import json
-import shutil
 from pathlib import Path
 
 import numpy as np
@@ -26,11 +22,7 @@ from softphantom.errors import UserError
 from softphantom.estimation.atlas.config import AtlasConfig
 from softphantom.estimation.atlas.map import Atlas
 from softphantom.estimation.config import EstimatorConfig
-from softphantom.estimation.forward import ForwardModel
 
-# what the key hashes: bump when the build changes the meaning of the numbers (3: stretched axes;
-# 4: x_control, cFx)
-KEY_FORMAT = 4
 # the file layout, apart from the key: 5 stores the field compact (below); format 4 files still read
 FORMAT = 5
 READS = (4, 5)
@@ -52,62 +44,9 @@ class AtlasMismatch(UserError):
     """A readable atlas file that is not for this use (another file format, model or settings)."""
 
 
-def atlas_key(fwd: ForwardModel, acfg: AtlasConfig) -> str:
-    """SHA-256 (hex) of everything the atlas depends on: mesh and fixed DOFs, law and parameters,
-    element, cavities, contact patch (its actuator), tracked points (the probe), envelope, grid,
-    solver tolerance, format."""
-    h = hashlib.sha256()
-    fem = fwd.fem
-
-    def add(a) -> None:
-        a = np.ascontiguousarray(a)
-        h.update(str((a.dtype.str, a.shape)).encode())
-        h.update(a.tobytes())
-
-    add(fem.x_rest)
-    add(fem.tets)
-    add(fem.free_dofs)
-    # the law per element (its id and parameters) and the element (the connectivity's width):
-    # whatever the FemModel carries, so a new law or element order changes the key
-    for name in ("mu", "lam", "law_id", "params"):
-        v = getattr(fem, name, None)
-        if v is not None:
-            add(np.asarray(v))
-    for name in sorted(fem.cavities):
-        h.update(name.encode())
-        add(np.asarray(fem.cavities[name]))
-    for M in (fwd.H_f.tocsr(), fwd.probe.tocsr()):
-        M.sort_indices()
-        add(M.indptr)
-        add(M.indices)
-        add(M.data)
-    atlas = acfg.as_dict()
-    if not acfg.linear_pressure:  # the keys of atlases built before the option stay valid
-        del atlas["linear_pressure"]
-    meta = {"format": KEY_FORMAT, "atlas": atlas, "tol": fwd.config.tol,
-            "markers": fwd.marker_names, "targets": fwd.target_names}
-    names = tuple(getattr(fwd, "pressure_names", ()))
-    if len(names) > 1:  # which cavities are loads, in λ's order: a stack's levels hold p_2 … p_M
-        meta["pressures"] = names
-    h.update(json.dumps(meta, sort_keys=True).encode())
-    return h.hexdigest()
-
-
 def atlas_path(model_dir, key: str) -> Path:
     """Where the atlas of key ``key`` lives next to a model directory."""
     return Path(model_dir) / "atlas" / f"{key[:32]}.npz"
-
-
-def shipped_atlas(key: str) -> Path | None:
-    """The atlas of key ``key`` if the package ships it (``softphantom/data/models/*/atlas/``), else
-    None. Found by content: any model directory whose mesh, law and settings give this key uses it.
-
-    >>> shipped_atlas("0" * 64) is None
-    True
-    """
-    from softphantom.design.model import SHIPPED_MODELS
-
-    return next(iter(sorted(SHIPPED_MODELS.glob(f"*/atlas/{key[:32]}.npz"))), None)
 
 
 def _digest(arrays: dict[str, np.ndarray], keys=None) -> str:
@@ -192,33 +131,30 @@ def load_atlas(path, key: str | None = None) -> Atlas:
     return at
 
 
-def estimator_config(at: Atlas, path) -> EstimatorConfig:
+def read_meta(path) -> dict:
+    """The metadata of an atlas file (key, settings, provenance) without reading its arrays; a
+    one-line :class:`AtlasCorrupt` if the file is unreadable."""
+    path = Path(path)
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            return json.loads(str(z["meta"]))
+    except Exception as exc:  # noqa: BLE001 - any unreadable file is corrupt
+        raise AtlasCorrupt(f"{path}: not a readable atlas file, truncated or not an atlas "
+                           f"({type(exc).__name__})") from None
+
+
+def estimator_config(meta, path) -> EstimatorConfig:
     """The estimator settings an atlas was built with (those its key depends on: contact point,
-    patch radius, solver tolerance), from its provenance; :class:`AtlasMismatch` if it has none."""
-    prov = at.provenance or {}
+    patch radius, solver tolerance), from its provenance (an Atlas, a file's metadata or its
+    provenance dict); :class:`AtlasMismatch` if it has none."""
+    prov = meta.provenance if isinstance(meta, Atlas) else meta.get("provenance", meta)
+    prov = prov or {}
     if "contact" not in prov:
         raise AtlasMismatch(f"{path}: the atlas records no provenance (written by an older softphantom), so "
                             f"it cannot be checked against a model: rebuild it (softphantom atlas build)")
     c = prov["contact"]
     return EstimatorConfig(contact=c if isinstance(c, str) else tuple(c),
                            contact_radius_m=float(prov["contact_radius_m"]), tol=float(prov["tol"]))
-
-
-def verify_atlas(path, model, fwd: ForwardModel | None = None) -> Atlas:
-    """The atlas in ``path`` if it is intact and was built for ``model`` (its key recomputed from
-    the model and the file's own settings); else a one-line :class:`AtlasCorrupt` or
-    :class:`AtlasMismatch`. ``fwd``: a forward model of ``model`` to reuse (its contact must be the
-    file's)."""
-    at = load_atlas(path)
-    cfg = estimator_config(at, path)
-    if fwd is None or fwd.config.contact != cfg.contact or fwd.config.contact_radius_m != cfg.contact_radius_m \
-            or fwd.config.tol != cfg.tol:
-        fwd = ForwardModel(model, cfg)
-    key = atlas_key(fwd, at.config)
-    if key != at.key:
-        raise AtlasMismatch(f"{path}: atlas built for another model, law, element or mesh than this one "
-                            f"(its key {at.key[:12]}…, this model with its settings gives {key[:12]}…)")
-    return at
 
 
 def describe(at: Atlas) -> list[tuple[str, str]]:
@@ -261,43 +197,3 @@ def describe(at: Atlas) -> list[tuple[str, str]]:
                                    f"{off['check_max_dV_mm3']:.3f} mm³, points {off['check_max_points_mm']:.4f} mm, "
                                    f"f_x {off['check_max_fx_N']:.4f} N"))
     return rows
-
-
-def install_atlas(path, model, model_dir) -> tuple[Path, str]:
-    """Verify the atlas file ``path`` against ``model`` and copy it to where the model directory's
-    estimators find it (``MODEL/atlas/<key>.npz``). Returns (destination, what happened: ``"added"``,
-    ``"present"`` when an intact copy is already there, ``"replaced"`` when the one there was damaged).
-    A file that does not verify is refused (nothing is written)."""
-    at = verify_atlas(path, model)
-    dest = atlas_path(model_dir, at.key)
-    what = "added"
-    if dest.is_file():
-        try:
-            load_atlas(dest, at.key)
-            return dest, "present"
-        except (AtlasCorrupt, AtlasMismatch):
-            what = "replaced"
-    dest.parent.mkdir(parents=True, exist_ok=True)
-    tmp = dest.with_name(dest.name + ".tmp")
-    shutil.copyfile(path, tmp)
-    tmp.replace(dest)
-    return dest, what
-
-
-def model_atlases(model_dir, model=None) -> list[Path]:
-    """The atlas files cached in a model directory, by name; with ``model``, then those the package
-    ships for a model of the same mesh (:func:`shipped_atlas`)."""
-    d = Path(model_dir) / "atlas"
-    own = sorted(p for p in d.glob("*.npz") if p.is_file()) if d.is_dir() else []
-    return own + ([p for p in _shipped_for(model) if p.name not in {q.name for q in own}] if model is not None else [])
-
-
-def _shipped_for(model) -> list[Path]:
-    from softphantom.design.model import SHIPPED_MODELS, load_model
-
-    for d in sorted(SHIPPED_MODELS.glob("*/atlas")):
-        m = load_model(d.parent)
-        if m.nodes.shape == model.nodes.shape and np.array_equal(m.nodes, model.nodes) \
-                and np.array_equal(m.tets, model.tets):
-            return sorted(d.glob("*.npz"))
-    return []

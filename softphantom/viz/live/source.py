@@ -339,10 +339,11 @@ class AtlasField:
         contact point and patch radius the estimates were made with; None if there is none (or
         they are for several contact points and ``contact`` does not say which)."""
         from softphantom.errors import SoftphantomError
-        from softphantom.estimation.atlas.store import load_atlas, model_atlases
+        from softphantom.estimation.atlas.catalogue import atlases_of
+        from softphantom.estimation.atlas.store import load_atlas
 
         pieces = []
-        for path in model_atlases(model_dir):
+        for path in atlases_of(model_dir):
             try:
                 a = load_atlas(path)
             except SoftphantomError:  # a damaged or foreign file: the other atlases still serve

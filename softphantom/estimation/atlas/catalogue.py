@@ -1,0 +1,505 @@
+"""The atlas catalogue: which atlas a model uses at a contact point, where it comes from, and the
+key that names it.
+
+One lookup order, per piece of the atlas (:meth:`AtlasConfig.pieces`):
+
+1. the model directory's own file, ``MODEL/atlas/<key>.npz`` (built there, or installed by
+   ``softphantom atlas add``);
+2. the package's shipped file: one listed in a shipped model's manifest
+   (``softphantom/data/models/<name>/atlas.json``), at ``<name>/atlas/<key>.npz``: the one rule
+   for what counts as shipped;
+3. built (:func:`~softphantom.estimation.atlas.build.build_atlas`) and saved in the model
+   directory.
+
+The key (:func:`atlas_key`) is made from inputs only: the model's arrays as stored (the shipped
+mesh is the same bits everywhere), each region's law and parameters as the design file writes
+them, the contact point and patch radius, the tracked points, the loads and sensing rows, the
+atlas settings, the solver tolerance, the key format and the build's constants that change the
+numbers. No float computed at run time goes into it, so it is the same on every CPU, BLAS and
+SIMD level. It is computed once per lookup and carried with what is found (:class:`Found`).
+
+Staleness is caught by numbers, not bits (:func:`verify_atlas`): the rest state the atlas was
+built on, the model's rest cavity volumes, the contact patch's force sums and the atlas at zero
+load are recomputed from the model and compared within stated tolerances (:data:`REST_TOL`).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from softphantom.errors import UserError
+from softphantom.estimation.atlas.config import AtlasConfig, model_atlas_config
+from softphantom.estimation.atlas.map import Atlas, AtlasPatches, AtlasStack
+from softphantom.estimation.atlas.store import (AtlasCorrupt, AtlasMismatch, atlas_path, estimator_config,
+                                                load_atlas, read_meta, save_atlas)
+from softphantom.estimation.config import EstimatorConfig
+
+log = logging.getLogger(__name__)
+
+# what the key hashes: bump when the build changes the meaning of the numbers (3: stretched axes;
+# 4: x_control, cFx; 5: inputs only, as stored or as written)
+KEY_FORMAT = 5
+MANIFEST = "atlas.json"  # a shipped model directory's list of its atlas files
+ORIGINS = {"model": "model directory", "shipped": "shipped with softphantom", "built": "built now"}
+
+# Staleness checks (verify_atlas): the stated tolerances. The rest state and volumes are the
+# model's own arrays and sums (same inputs, last bits of a sum may differ by CPU); the zero-load
+# error is the atlas's own interpolation error at zero load, recorded when it was built, and must
+# come out the same from this model.
+REST_TOL = {
+    "rest nodes": (1e-12, "m"),               # |x_rest - model nodes|, the atlas's rest state
+    "rest cavity volumes": (1e-9, "rel"),     # each cavity's volume at rest, relative
+    "contact patch force sums": (1e-9, "N/N"),  # each column of the contact's actuator sums to 1 N
+    "zero load: tracked points": (1e-6, "mm"),  # |atlas points(0) - rest points| as recorded
+    "zero load: cavity volumes": (1e-6, "mm³"),  # |atlas volumes(0)| as recorded
+}
+
+
+class ShippedMissing(UserError):
+    """A file the package's manifest lists is not there (a damaged install)."""
+
+
+# -- the key ---------------------------------------------------------------------------------------
+
+def _code_constants() -> dict:
+    """The build's constants that change an atlas's numbers (a change gives new keys)."""
+    from softphantom.estimation.atlas import build
+
+    return {"FIELD_RTOL": build.FIELD_RTOL, "FIELD_MAX_MODES": build.FIELD_MAX_MODES, "NODE_TOL": build.NODE_TOL}
+
+
+def _contact_m(model, contact) -> list[float]:
+    from softphantom.estimation.forward import contact_point
+
+    return [float(v) for v in contact_point(model, contact)]
+
+
+def key_inputs(model, config: EstimatorConfig, acfg: AtlasConfig) -> tuple[dict, dict[str, np.ndarray]]:
+    """What :func:`atlas_key` hashes: (the settings as JSON-able values, the model's arrays as
+    stored). Every float here is an input (read from a file or given), never computed here."""
+    from softphantom.fem.model import material_specs, mesh_arrays
+
+    nodes, elements, fixed, cavities = mesh_arrays(model)
+    arrays = {"nodes": np.asarray(nodes, "<f8"), "elements": np.asarray(elements, "<i8"),
+              "fixed_nodes": np.asarray(fixed, "<i8"), "element_region": np.asarray(model.tet_region, "<i8")}
+    for name, faces in cavities.items():
+        arrays[f"cavity:{name}"] = np.asarray(faces, "<i8")
+    design = getattr(model, "design", None)
+    atlas = acfg.as_dict()
+    if not acfg.linear_pressure:
+        del atlas["linear_pressure"]
+    meta = {
+        "format": KEY_FORMAT,
+        "element_order": int(getattr(model, "element_order", 1)),
+        "regions": {k: int(v) for k, v in model.regions.items()},
+        "materials": {r: [law, [list(kv) for kv in values]]
+                      for r, (law, values) in material_specs(design, model.regions).items()},
+        "cavities": list(cavities),
+        "loads": list(getattr(design, "pressure_names", ("urethra",)) if design is not None else ("urethra",)),
+        "contact_m": _contact_m(model, config.contact),
+        "contact_radius_m": float(config.contact_radius_m),
+        "markers": [[k, [float(v) for v in model.markers[k]]] for k in model.markers],
+        "targets": [[k, [float(v) for v in model.targets[k]]] for k in model.targets],
+        "atlas": atlas,
+        "tol": float(config.tol),
+        "constants": _code_constants(),
+    }
+    if design is not None:
+        meta["sensing"] = list(design.sensing_names)
+    return meta, arrays
+
+
+def atlas_key(model, config: EstimatorConfig, acfg: AtlasConfig) -> str:
+    """SHA-256 (hex) of :func:`key_inputs`: the key of ``model``'s atlas ``acfg`` at the contact
+    and tolerance of ``config``. The same on every machine for the same files and settings.
+
+    >>> from softphantom.design import load_model
+    >>> from softphantom.design.model import SHIPPED_MODELS
+    >>> m = load_model(SHIPPED_MODELS / "bip_p2")
+    >>> a = atlas_key(m, EstimatorConfig(), AtlasConfig())
+    >>> a == atlas_key(m, EstimatorConfig(), AtlasConfig()), a == atlas_key(m, EstimatorConfig(contact="off-centre"), AtlasConfig())
+    (True, False)
+    """
+    meta, arrays = key_inputs(model, config, acfg)
+    h = hashlib.sha256()
+    for name, a in arrays.items():
+        a = np.ascontiguousarray(a)
+        h.update(json.dumps([name, a.dtype.str, list(a.shape)]).encode())
+        h.update(a.tobytes())
+    h.update(json.dumps(meta, sort_keys=True).encode())
+    return h.hexdigest()
+
+
+def piece_keys(model, config: EstimatorConfig, acfg: AtlasConfig) -> tuple[str, ...]:
+    """The key of each piece of ``acfg`` (:meth:`AtlasConfig.pieces`), in order."""
+    return tuple(atlas_key(model, config, sub) for sub in acfg.pieces())
+
+
+# -- shipped atlases ------------------------------------------------------------------------------
+
+def shipped_manifests() -> list[tuple[Path, dict]]:
+    """(shipped model directory, its manifest) for each shipped model that lists atlases."""
+    from softphantom.design.model import SHIPPED_MODELS
+
+    out = []
+    for f in sorted(SHIPPED_MODELS.glob(f"*/{MANIFEST}")):
+        try:
+            out.append((f.parent, json.loads(f.read_text())))
+        except (OSError, ValueError):
+            raise ShippedMissing(f"{f}: the package's atlas manifest is unreadable (reinstall softphantom)") from None
+    return out
+
+
+def shipped_entries() -> list[tuple[Path, dict]]:
+    """(path, manifest entry) of every atlas file the package ships: the one rule for "shipped"."""
+    return [(d / "atlas" / f"{e['key'][:32]}.npz", e) for d, m in shipped_manifests() for e in m.get("pieces", ())]
+
+
+def shipped_atlas(key: str) -> Path | None:
+    """The shipped file of atlas ``key`` (listed in a shipped model's manifest), else None; a listed
+    file that is missing is a one-line :class:`ShippedMissing` naming it.
+
+    >>> shipped_atlas("0" * 64) is None
+    True
+    """
+    for path, _ in shipped_entries():
+        if path.stem == key[:32]:
+            if not path.is_file():
+                raise ShippedMissing(f"{path}: listed in {path.parent.parent / MANIFEST} but missing: the package "
+                                     f"is damaged (reinstall softphantom)")
+            return path
+    return None
+
+
+# -- lookup ----------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class Piece:
+    """Where one piece of an atlas came from: its ``key``, its file ``path`` and ``origin`` (a key of
+    :data:`ORIGINS`: ``model``, ``shipped`` or ``built``)."""
+
+    key: str
+    path: Path | None
+    origin: str
+
+    def describe(self) -> str:
+        return f"{self.path or '(in memory)'} ({ORIGINS[self.origin]})"
+
+
+@dataclass(frozen=True)
+class Found:
+    """An atlas found (or built) for a model and contact: ``atlas`` (an Atlas, AtlasPatches or
+    AtlasStack), and each piece's :class:`Piece` in ``pieces`` (the keys, computed once)."""
+
+    atlas: Atlas | AtlasPatches | AtlasStack
+    pieces: tuple[Piece, ...]
+
+    @property
+    def keys(self) -> tuple[str, ...]:
+        return tuple(p.key for p in self.pieces)
+
+    def describe(self) -> str:
+        """One line for the user: where the atlas came from."""
+        by = {}
+        for p in self.pieces:
+            by.setdefault(p.origin, []).append(p)
+        parts = []
+        for origin, ps in by.items():
+            where = {str(p.path.parent) for p in ps if p.path is not None}
+            parts.append(f"{len(ps)} piece{'s' * (len(ps) > 1)} {ORIGINS[origin]}"
+                         + (f" ({', '.join(sorted(where))})" if where else ""))
+        return "atlas: " + "; ".join(parts)
+
+
+def _regroup(acfg: AtlasConfig, found: dict):
+    """The atlas of ``acfg`` from its pieces (``found``: index in ``acfg.pieces()`` → Atlas): an
+    Atlas, an AtlasPatches, or a stack of either (:class:`AtlasStack`)."""
+    levels, j = [], 0
+    for lv in acfg.levels():
+        n = len(lv.patches())
+        got = [found[j + p] for p in range(n)]
+        j += n
+        levels.append(got[0] if n == 1 else AtlasPatches(lv, tuple(got)))
+    return AtlasStack(acfg, tuple(levels)) if acfg.stacked else levels[0]
+
+
+def _n_solves(at: Atlas) -> str:
+    if not at.unsolved:
+        return f"{at.solves} forward solves"
+    return (f"{at.solves} of {at.config.n_solves} forward solves converged ({at.unsolved} grid points unreachable: "
+            f"filled, outside the envelope)")
+
+
+def _looks_like_atlas_dir(model_dir) -> bool:
+    return any(len(q.stem) == 32 and set(q.stem) <= set("0123456789abcdef") for q in Path(model_dir).glob("*.npz"))
+
+
+def resolve_config(model, acfg: AtlasConfig | None, model_dir=None) -> AtlasConfig:
+    """The atlas settings a lookup uses: ``acfg``, or the model's default
+    (:func:`~softphantom.estimation.atlas.config.model_atlas_config`), for its internal cavities."""
+    from softphantom.estimation.forward import internal_cavities_of
+
+    order = int(getattr(model, "element_order", 1))
+    return (acfg or model_atlas_config(order, model_dir)).for_cavities(len(internal_cavities_of(model)))
+
+
+def find_or_build(model, config: EstimatorConfig | None = None, acfg: AtlasConfig | None = None, *,
+                  model_dir=None, scheduler: str | None = None, n_workers: int | None = None, fwd=None,
+                  rebuild: bool = False, discard_partial: bool = False,
+                  max_build_s: float | None = None) -> Found:
+    """The atlas ``acfg`` of ``model`` at ``config``'s contact, piece by piece in the catalogue's
+    order: ``model_dir``'s own file, the shipped one, else built and saved in ``model_dir``
+    (:func:`~softphantom.estimation.atlas.build.build_atlas`; resumable, its finished tasks kept in
+    ``MODEL/atlas/partial/``).
+
+    A file of the model directory that is damaged, tampered with or of another format is an error
+    (:class:`AtlasCorrupt` / :class:`AtlasMismatch`, one line naming the file, nothing overwritten)
+    unless ``rebuild``. With ``max_build_s``, a build estimated to take longer is not started:
+    :class:`~softphantom.estimation.atlas.build.AtlasMissing` says how long it takes and how to
+    build it. Next to an interrupted build of other settings a build is refused in one line, unless
+    ``discard_partial``."""
+    from softphantom.estimation.atlas import build as B
+    from softphantom.estimation.atlas.tasks import check_partials, discard_tasks
+
+    B.check_atlas_cavities(model)
+    cfg = config or EstimatorConfig()
+    acfg = resolve_config(model, acfg, model_dir)
+    subs = acfg.pieces()
+    keys = piece_keys(model, cfg, acfg)
+    found: dict[int, Atlas] = {}
+    pieces: dict[int, Piece] = {}
+    for p, key in enumerate(keys):
+        path = atlas_path(model_dir, key) if model_dir is not None else None
+        if path is not None and path.is_file():
+            try:
+                found[p] = load_atlas(path, key)
+                pieces[p] = Piece(key, path, "model")
+                continue
+            except (AtlasCorrupt, AtlasMismatch) as exc:
+                if not rebuild:
+                    raise type(exc)(f"{exc}; to build it again: softphantom atlas build --model {model_dir} "
+                                    f"--rebuild") from None
+                log.warning(f"{exc}: rebuilding")
+        shipped = shipped_atlas(key)
+        if shipped is not None:  # a damaged shipped file is an error naming it (the package's, not the user's)
+            found[p] = load_atlas(shipped, key)
+            pieces[p] = Piece(key, shipped, "shipped")
+            continue
+        if path is not None and _looks_like_atlas_dir(model_dir):
+            # the atlas directory given for the model's: its atlases are never found, every run builds
+            log.warning(f"atlas: {model_dir} holds atlas files itself, but the cache is a model directory "
+                        f"(atlases in its atlas/ subdirectory): building into {path.parent}")
+    for p in sorted(found):
+        log.info(f"atlas: {pieces[p].describe()}: {_n_solves(found[p])}")
+    missing = tuple(p for p in range(len(subs)) if p not in found)
+    if missing:
+        order = int(getattr(model, "element_order", 1))
+        if max_build_s is not None:
+            cpu, wall = B.estimated_build(order, len(_mesh_nodes(model)), acfg, n_workers)
+            cpu *= len(missing) / len(subs)
+            wall *= len(missing) / len(subs)
+            if wall > max_build_s:
+                c = cfg.contact
+                at = "" if c == "on-centre" else f" --at {c}" if isinstance(c, str) else " (its contact point)"
+                n = sum(subs[p].n_solves for p in missing)
+                raise B.AtlasMissing(
+                    f"{model_dir or 'the model'}: no atlas yet for this model and contact; building it takes about "
+                    f"{B.duration_text(wall)} on {int(n_workers or os.cpu_count() or 1)} cores ({n} grid points, "
+                    f"≈ {cpu:.0f} CPU-s): build it once with `softphantom atlas build --model {model_dir}{at}` "
+                    f"(resumable; --scheduler ADDR for a Dask cluster; --atlas-grid / --envelope for a smaller "
+                    f"one), or estimate meanwhile with --estimator refresh")
+        if model_dir is not None:
+            check_partials(model_dir, B.build_settings(cfg, acfg, len(_mesh_nodes(model))), discard=discard_partial)
+        built = B.build_atlas(model, cfg, acfg, keys=keys, scheduler=scheduler, n_workers=n_workers, fwd=fwd,
+                              cache_dir=model_dir, pieces=missing)
+        for p, at in zip(missing, built if isinstance(built, list) else [built]):
+            msg = (f"atlas: {_n_solves(at)} in {at.build_s:.0f} s ({at.build_cpu_s / at.config.n_solves:.2f} CPU-s "
+                   f"a solve), {at.nbytes / 1e6:.1f} MB")
+            path = None
+            if model_dir is not None:
+                path = save_atlas(at, atlas_path(model_dir, at.key))
+                at = load_atlas(path, at.key)  # as stored (the compact field): the same atlas as a later load
+                discard_tasks(model_dir, at.key)  # built and saved: its kept tasks are not needed any more
+                msg += f" → {path} ({path.stat().st_size / 1e6:.1f} MB on disk)"
+            log.info(msg)
+            found[p] = at
+            pieces[p] = Piece(at.key, path, "built")
+    return Found(_regroup(acfg, found), tuple(pieces[p] for p in range(len(subs))))
+
+
+def load_or_build(model, config: EstimatorConfig | None = None, atlas: AtlasConfig | None = None, *,
+                  cache_dir=None, **kw):
+    """The atlas itself of :func:`find_or_build` (``cache_dir``: the model directory)."""
+    return find_or_build(model, config, atlas, model_dir=cache_dir, **kw).atlas
+
+
+def _mesh_nodes(model) -> np.ndarray:
+    from softphantom.fem.model import mesh_arrays
+
+    return mesh_arrays(model)[0]
+
+
+# -- what a model directory has, checking and installing files --------------------------------------
+
+def atlases_of(model_dir, model=None) -> list[Path]:
+    """The atlas files of a model directory (``MODEL/atlas/*.npz``, by name); with ``model``, then the
+    shipped files that are this model's (their key is the one this model gives for their own
+    settings)."""
+    d = Path(model_dir) / "atlas"
+    own = sorted(p for p in d.glob("*.npz") if p.is_file()) if d.is_dir() else []
+    if model is None:
+        return own
+    names = {q.name for q in own}
+    shipped = []
+    for path, _ in shipped_entries():
+        if path.name in names or not path.is_file():
+            continue
+        meta = read_meta(path)
+        try:
+            cfg = estimator_config(meta, path)
+            key = atlas_key(model, cfg, AtlasConfig(**meta["config"]))
+        except UserError:
+            continue  # a contact this model does not have: not its atlas
+        if key == meta.get("key"):
+            shipped.append(path)
+    return own + shipped
+
+
+@dataclass(frozen=True)
+class Check:
+    """One quantity of :func:`verify_atlas`: ``quantity`` (a key of :data:`REST_TOL`), the largest
+    ``difference`` found, the ``tolerance`` and its ``unit``."""
+
+    quantity: str
+    difference: float
+    tolerance: float
+    unit: str
+
+    @property
+    def ok(self) -> bool:
+        return bool(self.difference <= self.tolerance)
+
+
+def _rest_quantities(at: Atlas, model, fem=None) -> dict:
+    """The quantities an atlas records of its model at rest (see :data:`REST_TOL`): cavity volumes
+    (mm³), the contact patch (nodes, force sums per axis) and the atlas's error at zero load."""
+    from softphantom.estimation.forward import contact_point
+    from softphantom.fem import probe_matrix
+    from softphantom.fem.actuators import cavity_volume, force_actuator
+    from softphantom.fem.model import fem_from_phantom, mesh_arrays
+
+    nodes, _, _, cavities = mesh_arrays(model)
+    out = {"cavity_volumes_mm3": {k: cavity_volume(np.asarray(nodes, float).reshape(-1), f) * 1e9
+                                  for k, f in cavities.items()}}
+    prov = at.provenance or {}
+    fem = fem if fem is not None else fem_from_phantom(model)
+    H = force_actuator(fem, contact_point(model, _contact_of(prov)), float(prov["contact_radius_m"]))
+    out["contact_patch"] = {"nodes": int(len(np.unique(H.nonzero()[0] // 3))),
+                            "force_sums": [float(v) for v in np.asarray(H.sum(axis=0)).ravel()]}
+    lam = np.zeros(4)
+    held = tuple(at.config.held_kPa)
+    if all(lo <= 0.0 <= hi for lo, hi in zip(at.config.lower, at.config.upper)) and not any(held):
+        pts = [model.markers[k] for k in model.markers] + [model.targets[k] for k in model.targets]
+        rest = probe_matrix(fem, pts) @ fem.x_rest.reshape(-1, 3)
+        out["zero_load"] = {"points_mm": float(np.abs(at.points(lam) - rest).max() * 1e3),
+                            "volumes_mm3": float(np.abs(at.volumes(lam)[0]).max() * 1e9)}
+    return out
+
+
+def _contact_of(prov: dict):
+    c = prov["contact"]
+    return c if isinstance(c, str) else tuple(c)
+
+
+def rest_record(at: Atlas, model, fwd=None) -> dict:
+    """What a new atlas records of its model at rest, for :func:`verify_atlas` (provenance
+    ``rest``)."""
+    return _rest_quantities(at, model, fwd.fem if fwd is not None else None)
+
+
+def rest_checks(at: Atlas, model, fem=None) -> list[Check]:
+    """The staleness checks of atlas ``at`` against ``model``: what it recorded at rest, recomputed
+    from the model (:data:`REST_TOL`). An atlas recording nothing is checked on its rest nodes only."""
+    from softphantom.fem.model import mesh_arrays
+
+    nodes = np.asarray(mesh_arrays(model)[0], float).reshape(-1)
+    checks = [Check("rest nodes", float(np.abs(at.x_rest - nodes).max()) if at.x_rest.shape == nodes.shape
+                    else float("inf"), *REST_TOL["rest nodes"])]
+    rec = (at.provenance or {}).get("rest")
+    if not rec:
+        return checks
+    now = _rest_quantities(at, model, fem)
+    v0, v1 = rec["cavity_volumes_mm3"], now["cavity_volumes_mm3"]
+    rel = max((abs(v1[k] - v0[k]) / abs(v0[k]) if k in v1 else float("inf")) for k in v0) if v0 else 0.0
+    checks.append(Check("rest cavity volumes", rel if set(v0) == set(v1) else float("inf"),
+                        *REST_TOL["rest cavity volumes"]))
+    p0, p1 = rec["contact_patch"], now["contact_patch"]
+    d = max(abs(a - b) for a, b in zip(p0["force_sums"], p1["force_sums"]))
+    checks.append(Check("contact patch force sums", d if p0["nodes"] == p1["nodes"] else float("inf"),
+                        *REST_TOL["contact patch force sums"]))
+    if "zero_load" in rec and "zero_load" in now:
+        for name, k in (("zero load: tracked points", "points_mm"), ("zero load: cavity volumes", "volumes_mm3")):
+            checks.append(Check(name, abs(now["zero_load"][k] - rec["zero_load"][k]), *REST_TOL[name]))
+    return checks
+
+
+@dataclass(frozen=True)
+class Verified:
+    """An atlas file that passed :func:`verify_atlas`: the ``atlas``, its ``key`` and the ``checks``."""
+
+    atlas: Atlas
+    key: str
+    checks: tuple[Check, ...]
+
+
+def verify_atlas(path, model, fem=None) -> Verified:
+    """Check the atlas file ``path`` against ``model``: intact (its digest), of this softphantom's
+    format, its key the one this model gives for the file's own settings, and the numbers it
+    recorded at rest the model's (:func:`rest_checks`). Else one line naming the file and what
+    differs (:class:`AtlasCorrupt`, :class:`AtlasMismatch`). ``fem``: the model's FemModel, to
+    reuse."""
+    at = load_atlas(path)
+    cfg = estimator_config(at.provenance or {}, path)
+    try:
+        key = atlas_key(model, cfg, at.config)
+    except UserError as exc:
+        raise AtlasMismatch(f"{path}: not for this model ({exc})") from None
+    if key != at.key:
+        raise AtlasMismatch(f"{path}: atlas built for another model, law, element, mesh or settings than this one "
+                            f"(its key {at.key[:12]}…, this model with its settings gives {key[:12]}…)")
+    checks = tuple(rest_checks(at, model, fem))
+    bad = [c for c in checks if not c.ok]
+    if bad:
+        c = bad[0]
+        raise AtlasMismatch(f"{path}: {c.quantity} differ from this model's by {c.difference:.3g} {c.unit} (tolerance "
+                            f"{c.tolerance:g}): the atlas is stale or not this model's; rebuild it")
+    return Verified(at, key, checks)
+
+
+def install_atlas(path, model, model_dir) -> tuple[Path, str]:
+    """Verify the atlas file ``path`` against ``model`` and copy it to where the model directory's
+    lookups find it (``MODEL/atlas/<key>.npz``). Returns (destination, what happened: ``"added"``,
+    ``"present"`` when an intact copy is already there, ``"replaced"`` when the one there was damaged).
+    A file that does not verify is refused (nothing is written)."""
+    at = verify_atlas(path, model).atlas
+    dest = atlas_path(model_dir, at.key)
+    what = "added"
+    if dest.is_file():
+        try:
+            load_atlas(dest, at.key)
+            return dest, "present"
+        except (AtlasCorrupt, AtlasMismatch):
+            what = "replaced"
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    tmp = dest.with_name(dest.name + ".tmp")
+    shutil.copyfile(path, tmp)
+    tmp.replace(dest)
+    return dest, what
