@@ -1,6 +1,6 @@
 """The tubes' pneumatic lag and its compensation (docs/estimation.md, "The tubes' lag").
 
-    .venv/bin/python benchmarks/bench_lag.py --mesh-size-mm 12 --estimator refresh    # coarse, minutes
+    .venv/bin/python benchmarks/bench_lag.py --mesh-size-mm 12 --truth-order 1 --estimator refresh   # coarse
     .venv/bin/python benchmarks/bench_lag.py                                          # default model, atlas
 
 On the virtual phantom (its tube the distributed line: a ladder of RC segments), the paper's 12 m ×
@@ -105,6 +105,8 @@ def main() -> None:
     ap.add_argument("--mesh-size-mm", type=float, default=None, help="the model's mesh (default: the default model)")
     ap.add_argument("--element-order", type=int, default=None, help="1 or 2 (default: the design's)")
     ap.add_argument("--estimator", default="atlas", help="atlas | refresh")
+    ap.add_argument("--truth-order", type=int, default=None, help="the truth's elements (default TruthConfig's; "
+                    "1 on a coarse model, whose quadratic truth mesh would be too coarse)")
     ap.add_argument("--model-dir", type=Path, default=None, help="a saved model to use (and cache its atlas in)")
     ap.add_argument("--scenarios", nargs="*", default=["needle-insertion", "push-on-centre", "load-step"])
     ap.add_argument("--tube-length-m", type=float, default=12.0)
@@ -112,7 +114,7 @@ def main() -> None:
     a = ap.parse_args()
 
     from softphantom.design import BIPDesign, MeshParams, build_model, load_model, save_model
-    from softphantom.virtual import BoardConfig, TruthConfig, load_scenario, scenario_from_dict, solve_truth
+    from softphantom.virtual import BoardConfig, TruthConfig, load_scenario, scenario_from_dict, solve_truth, truth_model
     from softphantom.virtual.run import write_run
 
     t_start = time.perf_counter()
@@ -133,13 +135,15 @@ def main() -> None:
         from softphantom.estimation.atlas.config import model_atlas_config
 
         atlas = model_atlas_config(model.element_order, model_dir)
+    tcfg = TruthConfig() if a.truth_order is None else TruthConfig(order=a.truth_order)
+    tm = truth_model(model, tcfg)
     chain_cfg = BoardConfig(osr=100, seed=0, tube_length_m=a.tube_length_m)
     exact_cfg = dataclasses.replace(chain_cfg, tube_lag=False)
     rows, goals, costs = [], [], []
     for name in a.scenarios:
         sc = scenario_from_dict(STEP, "load-step") if name == "load-step" else load_scenario(name)
         t0 = time.perf_counter()
-        truth = solve_truth(sc, model, TruthConfig())
+        truth = solve_truth(sc, model, tcfg, truth_mesh=tm)
         print(f"{name}: truth {time.perf_counter() - t0:.0f} s", flush=True)
         step_at = STEP["push"][0]["start_s"] if name == "load-step" else None
         res = {}

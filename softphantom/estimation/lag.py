@@ -37,7 +37,7 @@ with the tube model of the bench."""
 DEFAULT_NOISE_GAIN = 1.3
 """White pressure noise is multiplied by this (RMS) through the compensation at rest."""
 
-FAST_NOISE_GAIN = 8.0
+FAST_NOISE_GAIN = 4.0
 """The motion filter's noise gain: blended in while the signal moves."""
 
 BLEND_SIGMAS = (3.0, 6.0)
@@ -61,7 +61,12 @@ N_STAGES = 2
 """The line's slowest stages modelled one by one; one more stage carries the rest of the delay."""
 
 
-def _cascade(taus: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+INPUT_MODEL = {"rest": 2, "motion": 2}
+"""The cavity pressure's model in each filter: 1 a random walk (at rest: no velocity to overshoot
+with), 2 a constant velocity (in motion: a ramp followed without lag)."""
+
+
+def _cascade(taus: np.ndarray, order: int = 2) -> tuple[np.ndarray, np.ndarray]:
     """(F, G) of the continuous model: state [u, u̇, s_1 … s_m], u̇ = v, v̇ = w, s_1' = (u − s_1)/τ_1,
     s_j' = (s_{j−1} − s_j)/τ_j; ``G`` the noise input (on v̇)."""
     m = len(taus)
@@ -75,15 +80,20 @@ def _cascade(taus: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         F[i, i] = -1.0 / tau
         prev = i
     G = np.zeros(n)
-    G[1] = 1.0
+    if order == 1:  # random walk: u' = w (the second state unused, held at 0)
+        F[0, 1] = 0.0
+        F[1, 1] = -1.0
+        G[0] = 1.0
+    else:
+        G[1] = 1.0
     return F, G
 
 
-def _discrete(taus: np.ndarray, dt: float, q: float) -> tuple[np.ndarray, np.ndarray]:
+def _discrete(taus: np.ndarray, dt: float, q: float, order: int = 2) -> tuple[np.ndarray, np.ndarray]:
     """(A, Q_d) of the model over ``dt`` with process-noise intensity ``q`` (Van Loan)."""
     from scipy.linalg import expm
 
-    F, G = _cascade(taus)
+    F, G = _cascade(taus, order)
     n = F.shape[0]
     M = np.zeros((2 * n, 2 * n))
     M[:n, :n] = -F
@@ -119,14 +129,14 @@ def filter_noise_gain(A: np.ndarray, K: np.ndarray) -> float:
     return math.sqrt(max(float(X[0, 0]), 0.0))
 
 
-def tune(taus: np.ndarray, dt: float, noise_gain: float = DEFAULT_NOISE_GAIN) -> float:
+def tune(taus: np.ndarray, dt: float, noise_gain: float = DEFAULT_NOISE_GAIN, order: int = 2) -> float:
     """The process-noise intensity q (per unit measurement variance) whose steady filter has
     the noise gain ``noise_gain`` at ``dt`` (bisection in log q; the gain grows with q)."""
     if not noise_gain > 1.0:
         raise UserError(f"lag compensation noise gain: must be > 1, got {noise_gain!r}")
 
     def gain(lq: float) -> float:
-        A, Qd = _discrete(taus, dt, 10.0**lq)
+        A, Qd = _discrete(taus, dt, 10.0**lq, order)
         return filter_noise_gain(A, _steady_gain(A, Qd))
 
     lo, hi = -6.0, 14.0
@@ -197,6 +207,7 @@ class LagCompensator:
         self._n = 2 + len(self._stages[0])
         self._q: list[tuple[float, float]] | None = None
         self._cache: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+        self._flat_cache: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
         self._x: np.ndarray | None = None  # (arms, 2·states): the rest filter's, then the motion filter's
         self._t: float | None = None
         self._var: np.ndarray | None = None  # (arms,) running variance of the two filters' difference at rest
@@ -204,7 +215,8 @@ class LagCompensator:
         self.dt_s: float | None = None
         self.gains: tuple[float, float] | None = None
         self.restarts = 0
-        self.cost_s = 0.0
+        self.cost_s = 0.0  # time spent in apply(), the filters' set-up (setup_s) excluded
+        self.setup_s = 0.0
         self.samples = 0
         self.blended = 0
 
@@ -216,15 +228,28 @@ class LagCompensator:
     def _matrices(self, dt: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(Φ (arms, 2n, 2n), K (arms, 2n), σ_d (arms,)) at ``dt`` (cached in 50 µs bins): the two
         filters' update x ← Φ·x + K·y, and the difference's noise gain."""
-        from scipy.linalg import block_diag, solve_discrete_lyapunov
-
         key = int(round(dt * 2e4))  # a board's frames are regular to a few µs
         got = self._cache.get(key)
         if got is not None:
             return got
+        t0 = time.perf_counter()
+        got = self._solve(key)
+        self._cache[key] = got
+        self.setup_s += time.perf_counter() - t0
+        return got
+
+    def _solve(self, key: int):
+        from scipy.linalg import block_diag, solve_discrete_lyapunov
+
         dtk = max(key, 1) / 2e4
         if self._q is None:
-            self._q = [(tune(s, dtk, self.target_gain), tune(s, dtk, self.fast_gain)) for s in self._stages]
+            tuned: dict[tuple, tuple[float, float]] = {}  # arms with the same tube share it
+            for s in self._stages:
+                k = tuple(np.round(s, 9))
+                if k not in tuned:
+                    tuned[k] = (tune(s, dtk, self.target_gain, INPUT_MODEL["rest"]),
+                                tune(s, dtk, self.fast_gain, INPUT_MODEL["motion"]))
+            self._q = [tuned[tuple(np.round(s, 9))] for s in self._stages]
             self.dt_s = dtk
         n = self._n
         C = np.zeros(n)
@@ -232,8 +257,8 @@ class LagCompensator:
         Phis, Ks, sds, gs = [], [], [], []
         for s, qs in zip(self._stages, self._q):
             ph, kk = [], []
-            for q in qs:
-                A, Qd = _discrete(s, dtk, q)
+            for q, order in zip(qs, (INPUT_MODEL["rest"], INPUT_MODEL["motion"])):
+                A, Qd = _discrete(s, dtk, q, order)
                 K = _steady_gain(A, Qd)
                 ph.append((np.eye(n) - np.outer(K, C)) @ A)
                 kk.append(K)
@@ -247,9 +272,11 @@ class LagCompensator:
             gs.append((math.sqrt(max(X[0, 0], 0.0)), math.sqrt(max(X[n, n], 0.0))))
         if self.gains is None:
             self.gains = (max(g[0] for g in gs), max(g[1] for g in gs))
-        got = (np.stack(Phis), np.stack(Ks), np.array(sds))
-        self._cache[key] = got
-        return got
+        return np.stack(Phis), np.stack(Ks), np.array(sds)
+
+    def prepare(self, dt_s: float) -> None:
+        """Set the filters up for sample interval ``dt_s`` now (else on the first samples: ≈ 0.1 s)."""
+        self._flat(float(dt_s))
 
     def noise_gain(self, dt_s: float) -> tuple[float, float]:
         """(rest, motion): the largest noise gain over the arms of the two filters at ``dt_s``."""
@@ -276,44 +303,62 @@ class LagCompensator:
         if self._x is None or dt is None or not (0.0 < dt <= MAX_GAP_S):
             if self._x is not None:
                 self.restarts += 1
-            self._x = np.repeat(y[:, None], 2 * n, axis=1)
-            self._x[:, 1] = self._x[:, n + 1] = 0.0
+            x = np.repeat(y[:, None], 2 * n, axis=1)
+            x[:, 1] = x[:, n + 1] = 0.0
+            self._x = x.ravel()
             self._t = t_s
             self._var, self._n_rest = np.zeros(len(y)), 0
             return y.copy()
-        Phi, K, sd = self._matrices(dt)
-        x = np.einsum("aij,aj->ai", Phi, self._x) + K * y[:, None]
+        big, K, _ = self._flat(dt)
+        x = big @ self._x + K @ y  # every arm's two filters in one product
         self._x = x
         self._t = t_s
-        slow, d = x[:, 0], x[:, n] - x[:, 0]
+        slow = x[self._i_slow]
+        d = x[self._i_fast] - slow
         if self._n_rest < LEARN_SAMPLES:  # the first samples (at rest): learn the difference's noise
             self._n_rest += 1
             self._var += (d * d - self._var) / self._n_rest
-            return slow.copy()
-        sigma = np.sqrt(self._var) + 1e-9
-        z = np.abs(d) / sigma
-        w = np.clip((z - BLEND_SIGMAS[0]) / (BLEND_SIGMAS[1] - BLEND_SIGMAS[0]), 0.0, 1.0)
+            return slow
+        z = np.abs(d) / (np.sqrt(self._var) + 1e-9)
+        lo, hi = BLEND_SIGMAS
+        if z.max() <= lo:  # at rest: follow the noise level
+            self._var += (np.minimum(d * d, 9.0 * self._var) - self._var) * (1.0 / RATE_SAMPLES)
+            return slow
+        self.blended += 1
+        w = np.clip((z - lo) * (1.0 / (hi - lo)), 0.0, 1.0)
         rest = w == 0.0
-        if rest.any():  # at rest: follow the noise level (a step clipped at 3 σ)
-            dd = np.minimum(d * d, 9.0 * self._var)
-            self._var = np.where(rest, self._var + (dd - self._var) / RATE_SAMPLES, self._var)
-        if not rest.all():
-            self.blended += 1
+        self._var[rest] += (np.minimum(d * d, 9.0 * self._var)[rest] - self._var[rest]) * (1.0 / RATE_SAMPLES)
         return slow + w * d
+
+    def _flat(self, dt: float):
+        """The update of all arms as one block-diagonal product: (Φ (arms·2n)², K (arms·2n, arms))."""
+        key = int(round(dt * 2e4))
+        got = self._flat_cache.get(key)
+        if got is None:
+            Phi, K, sd = self._matrices(dt)
+            a, m = Phi.shape[0], Phi.shape[1]
+            big = np.zeros((a * m, a * m))
+            kk = np.zeros((a * m, a))
+            for i in range(a):
+                big[i * m:(i + 1) * m, i * m:(i + 1) * m] = Phi[i]
+                kk[i * m:(i + 1) * m, i] = K[i]
+            got = (big, kk, sd)
+            self._flat_cache[key] = got
+            self._i_slow = np.arange(a) * m
+            self._i_fast = self._i_slow + self._n
+        return got
 
     def apply(self, m):
         """The measurement ``m`` with its arms' pressures and volumes compensated."""
-        from softphantom.sensing.pneumatics import boyle_dV
-
-        t0 = time.perf_counter()
-        if not m.ok or not np.all(np.isfinite(m.dp)):
+        t0, s0 = time.perf_counter(), self.setup_s
+        dp0 = m.dp
+        if m.status != "ok" or not math.isfinite(float(dp0.sum())):
             self.reset()
             return m
-        dp = self.filter(float(m.t_board), m.dp)
-        floor = -0.9 * self.p0
-        dp = np.maximum(dp, floor)
-        out = dataclasses.replace(m, dp=dp, dV=boyle_dV(dp, self.v_total, self.p0))
-        self.cost_s += time.perf_counter() - t0
+        dp = np.maximum(self.filter(float(m.t_board), dp0), -0.9 * self.p0)
+        dV = self.v_total * (self.p0 / (self.p0 + dp) - 1.0)  # Boyle over cavity + tube
+        out = type(m)(m.t, m.seq, m.t_board, m.raw, m.osr, dp, dV, m.p_urethra, m.status, m.pressures_Pa)
+        self.cost_s += time.perf_counter() - t0 - (self.setup_s - s0)
         self.samples += 1
         return out
 
