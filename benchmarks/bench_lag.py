@@ -184,8 +184,8 @@ def main() -> None:
     cost_us = 1e6 * float(np.median(costs)) if costs else float("nan")
     print(f"compensation: {cost_us:.1f} µs per sample (all arms, median over runs); total "
           f"{time.perf_counter() - t_start:.0f} s")
-    write_table(a.results_name, ["scenario", "run", "y RMSE mm", "yaw RMSE °", "|F| RMSE %", "lag ms",
-                                 "rest noise y µm / yaw m° / |F| mN", "50 % point y / |F| ms"], rows,
+    write_table(a.results_name, ["scenario", "run", "y RMSE mm", "yaw RMSE °", "‖F‖ RMSE %", "lag ms",
+                                 "rest noise y µm / yaw m° / ‖F‖ mN", "50 % point y / ‖F‖ ms"], rows,
                 caption=f"{len(model.nodes)} nodes ({model.design.mesh.size_mm:g} mm, P{model.element_order}), "
                         f"estimator {a.estimator}, tube {a.tube_length_m:g} m × 1.2 mm, OSR 100 (19.2 Hz); "
                         f"compensation {cost_us:.1f} µs per sample. Goals: "

@@ -215,3 +215,13 @@ def test_calibrate_fits_each_tubes_tau_from_a_known_load_step():
     assert np.all(fit.sd_s < 0.05 * fit.tau_s)
     assert fit_tube_tau(Session("s2", t, dp, np.zeros(len(t)), t, np.zeros((len(t), 6)), np.zeros(3), P0, 12.0,
                                 1.2e-3, vc)) is None  # without known loads: nothing to fit
+
+
+def test_estimate_refuses_an_unknown_lag_compensation_in_one_line(tmp_path, capsys):
+    from softphantom.cli import main
+
+    rc = main(["estimate", "--model", str(tmp_path), "--source", "virtual:needle-insertion", "--out",
+               str(tmp_path / "e.csv"), "--lag-compensation", "kalman"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "--lag-compensation: expected off or model, got 'kalman'" in err
+    assert not (tmp_path / "e.csv").exists()

@@ -46,7 +46,7 @@ class TubeLine:
     ``c_dead`` m³/Pa isothermal capacitances (V/P0).
 
     >>> line = TubeLine.of(12.0, 1.2e-3, 486e-9)
-    >>> round(line.elmore_s, 3), [round(t * 1e3, 1) for t in line.stages(3)]
+    >>> round(line.elmore_s, 3), [round(float(t) * 1e3, 1) for t in line.stages(3)]
     (0.102, [62.1, 15.5, 6.9])
     """
 
