@@ -283,7 +283,7 @@ def test_chain_lag_offsets_drift_are_seeded_and_physical(short_run):
     p_t = sig.p_transducer[:, k] - sig.offsets_Pa[k] - sig.drift_Pa_per_s * sig.t
     c_cav = np.sum(sig.t * np.abs(np.gradient(sig.p_cavity[:, k]))) / np.sum(np.abs(np.gradient(sig.p_cavity[:, k])))
     c_tr = np.sum(sig.t * np.abs(np.gradient(p_t))) / np.sum(np.abs(np.gradient(p_t)))
-    assert c_tr - c_cav == pytest.approx(sig.tau_s[k], abs=0.01)  # a first-order lag delays every change by τ
+    assert c_tr - c_cav == pytest.approx(sig.tau_s[k], abs=0.01)  # the line delays every change by τ on average
     i = np.argmin(np.abs(sig.t - (tr.scenario.events[0].start_s + 0.6)))  # mid-rise
     assert abs(p_t[i]) < abs(sig.p_cavity[i, k])  # lagging behind a rising signal
     assert p_t[i] == pytest.approx(np.interp(sig.t[i] - 0.102, sig.t, sig.p_cavity[:, k]), rel=0.1)

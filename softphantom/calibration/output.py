@@ -62,7 +62,8 @@ def calibrated_model(cal: Calibration):
     # the fitted gains and tube factor are relative to the chain the (first) recording used
     s0 = cal.sessions[0]
     sensors = SensorParams(tuple(float(g0 * p[f"gain_{a}"]) for g0, a in zip(s0.recorded_gains, model.design.sensing_names)),
-                           float(s0.recorded_tube_factor * p["tube_volume_factor"]))
+                           float(s0.recorded_tube_factor * p["tube_volume_factor"]),
+                           tuple(cal.meta.get("tube_tau", {}).get("tau_ms", ())))
     return dataclasses.replace(model, design=dataclasses.replace(design, sensors=sensors))
 
 

@@ -196,7 +196,9 @@ def calibration_dict(cal: Calibration) -> dict:
         **shape_dict(cal),
         "sensor": {"arms": arms, "gain": [p[f"gain_{a}"] for a in arms],
                    "offset_Pa": [p[f"offset_{a}_Pa"] for a in arms],
-                   "tube_volume_factor": p["tube_volume_factor"]},
+                   "tube_volume_factor": p["tube_volume_factor"],
+                   **({"tube_tau_ms": cal.meta["tube_tau"]["tau_ms"], "tube_tau_sd_ms": cal.meta["tube_tau"]["sd_ms"]}
+                      if "tube_tau" in cal.meta else {})},
         "registration": {"rotation_deg": [p[f"registration_rot_{a}_deg"] for a in "xyz"],
                          "pivot_mm": [p[f"pivot_{a}_mm"] for a in "xyz"]},
         "lag_ms": {n[4:-3]: v for n, v in p.items() if n.startswith("lag_")},

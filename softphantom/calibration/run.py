@@ -15,6 +15,7 @@ import numpy as np
 
 from softphantom.calibration.fit import FitOptions, FitResult, Keyframes, Problem, body_pose, fit, parameter_set
 from softphantom.calibration.forward import GROUPS, design_with_law, rest_markers, solve_keyframe, group_shapes
+from softphantom.calibration.tube import combine, fit_tube_tau
 from softphantom.calibration.session import CalibrationInputError, Session, load_session, select_keyframes
 from softphantom.errors import SolverError, UserError
 from softphantom.sensing.pneumatics import boyle_dV
@@ -228,6 +229,13 @@ def calibrate(model_dir, specs: list[SessionSpec], holdout: list[SessionSpec] = 
         + (f", {int(np.all(np.isfinite(frames.known), axis=1).sum())} with known loads" if np.isfinite(frames.known).any() else ""))
     if not np.isfinite(frames.known).any() and "stiffness_bulb_factor" not in options.fix:
         log.info("no known loads: the stiffness and the force scale are confounded; the fit reports it")
+    tube = combine([fit_tube_tau(se) for se in sessions])
+    tube_meta = {} if tube is None else {"tube_tau": {
+        "tau_ms": [round(float(v) * 1e3, 3) for v in tube.tau_s], "sd_ms": [round(float(v) * 1e3, 3) for v in tube.sd_s],
+        "nominal_ms": [round(float(v) * 1e3, 3) for v in tube.nominal_s], "sessions": tube.session}}
+    log.info("tube τ: " + ("held at the tube's (no session with known loads)" if tube is None else
+                           ", ".join(f"{a} {v * 1e3:.1f} ± {s * 1e3:.1f} ms (tube {n * 1e3:.1f})" for a, v, s, n in
+                                     zip(fitted.design.sensing_names, tube.tau_s, tube.sd_s, tube.nominal_s))))
 
     ctx = nullcontext(None) if in_process else dask_client(scheduler, n_workers)
     with ctx as client:
@@ -249,7 +257,7 @@ def calibrate(model_dir, specs: list[SessionSpec], holdout: list[SessionSpec] = 
         held_out = _held_out(str(model_dir), held, rm, solve_many, options, params, g_cal[:len(params)],
                              max_keyframes) if held else None
     return Calibration(model_dir, result, frames, sessions, fitting, held_out, options,
-                       meta={"law": {"design": design_laws, "fitted": sorted({m.law for m in fitted.design.materials})},
+                       meta={**tube_meta, "law": {"design": design_laws, "fitted": sorted({m.law for m in fitted.design.materials})},
                              "sessions": [f"s{i + 1}: {s.recording}" for i, s in enumerate(specs)],
                              "held_out": [f"h{i + 1}: {s.recording}" for i, s in enumerate(holdout)]})
 

@@ -19,6 +19,9 @@ TUBE_ID_OPTION = typer.Option(None, "--tube-id-mm", help="Tube inner diameter (m
                               "(a replay: the recording's).")
 P0_OPTION = typer.Option(None, "--p0-kPa", help="Absolute ambient pressure at tare (kPa); default: the "
                          "recording's (replay) or 101.325.")
+LAG_OPTION = typer.Option(None, "--lag-compensation", help="The tubes' pneumatic lag: model (estimate the cavity "
+                          "pressures of now from a model of each tube, docs/estimation.md) | off. Default: model where "
+                          "the tubes' time constant exceeds 10 ms (the paper's 12 m tubes: 0.1 s).")
 NEW_BOARD_OPTION = typer.Option("stop", "--on-new-board", help="Serial: when the board restarts or is "
                                 "replaced mid-run: stop (one-line error, the run so far is kept) | retare "
                                 "(re-tare on the next --tare-s at rest and go on).")
@@ -44,6 +47,14 @@ def check_source_options(source: str, *, max_force_N: float, on_new_board: str, 
         check_choice(qp_solver, QP_SOLVERS, "--qp-solver")
 
 
+def check_lag_option(mode: str | None) -> None:
+    """Refuse a bad ``--lag-compensation`` before anything is opened."""
+    from softphantom.estimation.lag import MODES
+
+    if mode is not None:
+        check_choice(mode, MODES, "--lag-compensation")
+
+
 def open_sensor_source(spec: str, model, *, tare_s: float = 1.0, on_new_board: str = "stop", **options):
     """The opened ``--source`` (:class:`softphantom.sensing.bench.OpenedSource`, sensor samples) for
     ``estimate`` and ``live`` (its notes printed); ``options``: ``tube_length_m``, ``tube_id_mm``,
@@ -61,6 +72,18 @@ def open_sensor_source(spec: str, model, *, tare_s: float = 1.0, on_new_board: s
     for note in opened.notes:
         console.print(f"note: {note}", highlight=False, soft_wrap=True)
     return opened
+
+
+def lag_for(mode: str | None, opened, source: str):
+    """The lag compensator of an opened source (None: off) and the estimate file's metadata about
+    it; a warning line printed when a recording lacks the tube settings."""
+    from softphantom.estimation.lag import lag_compensation
+
+    comp, meta, warning = lag_compensation(mode, opened.bench, tube_missing=opened.meta.get("tube_missing"),
+                                           source=source)
+    if warning:
+        console.print(warning, style="yellow", highlight=False, soft_wrap=True)
+    return comp, meta
 
 
 def warn_outside(summary: dict, envelope: str | None) -> None:
@@ -111,6 +134,7 @@ def estimate_cmd(
     tube_length_m: float = TUBE_LENGTH_OPTION,
     tube_id_mm: float = TUBE_ID_OPTION,
     on_new_board: str = NEW_BOARD_OPTION,
+    lag_compensation: str = LAG_OPTION,
     duration_s: float = typer.Option(None, "--duration-s", help="Stop after this many seconds (serial)."),
     overwrite: bool = overwrite_option(),
 ) -> None:
@@ -123,6 +147,7 @@ def estimate_cmd(
     from softphantom.estimation import EstimatorConfig, estimate_stream, open_estimator
     from softphantom.estimation.atlas.build import MAX_BUILD_ON_THE_FLY_S
     from softphantom.estimation.atlas.config import model_atlas_config
+    from softphantom.estimation.lag import compensated
     from softphantom.estimation.select import atlas_config_from_options, check_estimator_kind
 
     check_estimator_kind(estimator)
@@ -135,6 +160,7 @@ def estimate_cmd(
         raise UserError(f"--p0-kPa must be > 0, got {p0_kPa}")
     check_source_options(source, max_force_N=max_force_N, qp_solver=qp_solver, tare_s=tare_s,
                          tube_length_m=tube_length_m, tube_id_mm=tube_id_mm, on_new_board=on_new_board)
+    check_lag_option(lag_compensation)
     check_output(out, overwrite=overwrite, directory=False)
     if not (model_dir / "model.npz").is_file():
         raise UserError(f"--model {model_dir}: not a model directory (no model.npz; run softphantom design)")
@@ -154,6 +180,11 @@ def estimate_cmd(
             src.close()
             raise
     at = at or "on-centre"
+    try:
+        lag, lag_meta = lag_for(lag_compensation, opened, source)
+    except BaseException:
+        src.close()
+        raise
     cfg = EstimatorConfig.box(max_force_N, contact=at, qp_solver=qp_solver,
                               mode=("async" if live else "sync") if mode == "auto" else mode)
     t0 = time.monotonic()
@@ -163,6 +194,7 @@ def estimate_cmd(
     except BaseException:
         src.close()
         raise
+    est = compensated(est, lag)
     stop = threading.Event()
     if duration_s is not None:
         timer = threading.Timer(duration_s, stop.set)
@@ -189,7 +221,7 @@ def estimate_cmd(
                       f"{how}, contact {at}, |F_i| <= {max_force_N:g} N, QP {qp_solver})", highlight=False)
         meta = {"model": str(model_dir), "source": source, "contact": at, "max_force_N": max_force_N,
                 "qp_solver": qp_solver, "estimator": estimator, "mode": cfg.mode, "nodes": int(len(model.nodes)),
-                "contact_radius_mm": cfg.contact_radius_m * 1e3, **opened.meta}
+                "contact_radius_mm": cfg.contact_radius_m * 1e3, **opened.meta, **lag_meta}
         try:
             s = estimate_stream(src, est, path, show, live=live, metadata=meta, stop=stop,
                                 on_event=print_event)

@@ -8,7 +8,9 @@ from typing import Optional
 import typer
 
 from softphantom.cli.app import app, console
-from softphantom.cli.estimation import NEW_BOARD_OPTION, TUBE_ID_OPTION, TUBE_LENGTH_OPTION, check_source_options
+from softphantom.cli.estimation import (
+    LAG_OPTION, NEW_BOARD_OPTION, TUBE_ID_OPTION, TUBE_LENGTH_OPTION, check_lag_option, check_source_options,
+)
 from softphantom.cli.options import check_output, check_positive, overwrite_option, staged_output, stopped
 from softphantom.errors import UserError
 
@@ -43,6 +45,7 @@ def live(
     tube_length_m: Optional[float] = TUBE_LENGTH_OPTION,
     tube_id_mm: Optional[float] = TUBE_ID_OPTION,
     on_new_board: str = NEW_BOARD_OPTION,
+    lag_compensation: Optional[str] = LAG_OPTION,
     overwrite: bool = overwrite_option(),
     tracker: Optional[str] = typer.Option(None, "--tracker", help="natnet:HOST[:PORT]: show the tracker beside the "
                                           "estimate and record it on /tracker (Motive, or virtual serve --natnet)"),
@@ -59,6 +62,7 @@ def live(
     check_estimator_kind(estimator)
     check_source_options(source, max_force_N=max_force_N, on_new_board=on_new_board, tube_length_m=tube_length_m,
                          tube_id_mm=tube_id_mm)
+    check_lag_option(lag_compensation)
     if model is None:  # with --model, checked against its contact points once it is read
         from softphantom.design.params import DERIVED_CONTACTS, check_contact
 
@@ -88,7 +92,8 @@ def live(
     kind, _, arg = source.partition(":")
     if kind in ("virtual", "serial") or (kind == "replay" and replay_holds(arg) == "measurements"):
         src = _estimator_source(source, model, at, max_force_N, speed,
-                                dict(tube_length_m=tube_length_m, tube_id_mm=tube_id_mm), on_new_board, estimator)
+                                dict(tube_length_m=tube_length_m, tube_id_mm=tube_id_mm), on_new_board, estimator,
+                                lag_compensation)
     else:
         src = open_source(source, model, rate_Hz=rate_Hz, duration_s=None, speed=speed).source
     if tracker is not None:
@@ -173,13 +178,15 @@ def _remote_token(listen_host: str, allow_remote: bool) -> str | None:
 
 
 def _estimator_source(spec: str, model_dir: Optional[Path], at: str, max_force_N: float, speed: float,
-                      bench_options: Optional[dict] = None, on_new_board: str = "stop", estimator: str = "atlas"):
+                      bench_options: Optional[dict] = None, on_new_board: str = "stop", estimator: str = "atlas",
+                      lag_compensation: Optional[str] = None):
     """The estimator over a board or the virtual phantom, opened as ``softphantom estimate`` does."""
-    from softphantom.cli.estimation import open_sensor_source
+    from softphantom.cli.estimation import lag_for, open_sensor_source
     from softphantom.design import load_model
     from softphantom.design.params import check_contact
     from softphantom.estimation import EstimatorConfig, open_estimator
     from softphantom.estimation.atlas.build import MAX_BUILD_ON_THE_FLY_S
+    from softphantom.estimation.lag import compensated
     from softphantom.viz.live import EstimatorSource
 
     if model_dir is None or not (model_dir / "model.npz").is_file():
@@ -191,7 +198,9 @@ def _estimator_source(spec: str, model_dir: Optional[Path], at: str, max_force_N
     # refresh estimator on a paced source: the background equilibrium keeps each step short
     cfg = EstimatorConfig.box(max_force_N, contact=at, mode="async" if is_live or speed > 0 else "sync")
     try:
-        est = open_estimator(estimator, model, cfg, cache_dir=model_dir, max_build_s=MAX_BUILD_ON_THE_FLY_S)
+        lag, _ = lag_for(lag_compensation, opened, spec)
+        est = compensated(open_estimator(estimator, model, cfg, cache_dir=model_dir,
+                                         max_build_s=MAX_BUILD_ON_THE_FLY_S), lag)
     except BaseException:
         sensor.close()
         raise

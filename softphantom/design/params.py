@@ -595,11 +595,13 @@ class SensorParams:
     """The bench's sensors as calibrated (``softphantom calibrate``): ``gains`` of the volume
     channels' transducers (the arms', then the measured cavities': ``BIPDesign.sensing_names``)
     relative to their datasheet sensitivity, ``tube_volume_factor`` the
-    real tube volume over the one its length and bore give. Defaults: the datasheet, no correction."""
+    real tube volume over the one its length and bore give, ``tube_tau_ms`` each volume channel's
+    fitted tube time constant (empty: from the tube). Defaults: the datasheet, no correction."""
 
     gains: Annotated[tuple[Annotated[Number, between(0.5, 2.0, "(a transducer's sensitivity / datasheet)")], ...],
                      Field(min_length=MIN_ARMS)] = (1.0, 1.0, 1.0, 1.0)  # one per volume channel, in the sensor order
     tube_volume_factor: Annotated[Number, between(0.2, 5.0)] = 1.0
+    tube_tau_ms: tuple[Annotated[Number, between(0.01, 5000.0, "(a tube's time constant, ms)")], ...] = ()
 
 
 def _on_surface(direction: Vec3) -> Vec3:

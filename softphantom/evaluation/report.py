@@ -65,6 +65,22 @@ def shade_outside(ax, t: np.ndarray, inside: np.ndarray | None, label: bool = Fa
                    label="clamped at the envelope" if label and j == 0 else None)
 
 
+def tube_lag_line(meta: dict, lag_ms: float) -> str:
+    """The report's line about the tubes' lag, from the estimate file's metadata: the tubes' mean
+    delay (before compensation) and the lag measured by cross-correlation (after).
+
+    >>> tube_lag_line({"lag_compensation": "model", "tube_tau_ms": [102.2, 101.9], "lag_noise_gain_rest": 1.3}, 4.0)
+    'compensated (model): the tubes delay the pressures by τ 101.9 … 102.2 ms; +4.0 ms remain (measured); noise gain at rest 1.3'
+    """
+    tau = meta.get("tube_tau_ms") or []
+    span = (f"{min(tau):.1f} … {max(tau):.1f} ms" if len(set(tau)) > 1 else f"{tau[0]:.1f} ms") if tau else "unknown"
+    if meta.get("lag_compensation") == "model":
+        return (f"compensated (model): the tubes delay the pressures by τ {span}; {signed(lag_ms)} ms remain "
+                f"(measured); noise gain at rest {meta.get('lag_noise_gain_rest', float('nan')):g}")
+    note = f" ({meta['lag_compensation_note']})" if meta.get("lag_compensation_note") else ""
+    return f"not compensated{note}: the tubes' delay τ {span} is part of the lag above"
+
+
 def lag_caption(ev: Evaluation) -> str:
     """The 6-DoF figure's line about the lag (signed once, with a true minus).
 
@@ -272,6 +288,8 @@ def write_report(
         ["truth registration", html.escape(str(truth.meta.get("registration", "as in the truth file (model frame)")))],
         ["lag of the estimate behind the truth", lag_txt],
         *([["what the lag consists of", html.escape(ev.lag_parts.explain())]] if ev.lag_parts is not None else []),
+        *([["the tubes' pneumatic lag", html.escape(tube_lag_line(estimate.meta, ev.lag_ms))]]
+          if "lag_compensation" in estimate.meta else []),
         ["samples compared", f"{int(ev.mask.sum())} of {len(ev.mask)} estimates"],
     ]
     if estimate.in_envelope is not None:

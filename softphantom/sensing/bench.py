@@ -75,6 +75,9 @@ class BenchConfig:
     tube_volume_factor: float = 1.0
     arm_names: tuple[str, ...] = ARM_NAMES
     cavity_names: tuple[str, ...] = BIP_CAVITIES
+    #: calibrated tube time constants (s), one per volume channel (empty: from the tube's length, bore
+    #: and cavities; the lag compensation, :mod:`softphantom.estimation.lag`)
+    tube_tau_s: tuple[float, ...] = ()
 
     def __post_init__(self) -> None:
         _positive("--tube-length-m", self.tube_length_m)
@@ -97,6 +100,11 @@ class BenchConfig:
             raise UserError(f"transducer gains: expected {n} positive values, got {self.gains!r}")
         object.__setattr__(self, "gains", g)
         _positive("tube volume factor", self.tube_volume_factor)
+        tt = tuple(float(v) for v in self.tube_tau_s)
+        if tt and (len(tt) != n or not all(math.isfinite(v) and v > 0 for v in tt)):
+            raise UserError(f"tube time constants (ms): expected {n} positive values, got "
+                            f"{[v * 1e3 for v in tt]!r}")
+        object.__setattr__(self, "tube_tau_s", tt)
 
     @classmethod
     def from_model(cls, model, **kw) -> "BenchConfig":
@@ -107,7 +115,8 @@ class BenchConfig:
         d = model.design
         vc = tuple(v * 1e-9 for v in d.sensing_volumes_mm3())
         sensors = getattr(d, "sensors", None)
-        cal = {} if sensors is None else {"gains": sensors.gains, "tube_volume_factor": sensors.tube_volume_factor}
+        cal = {} if sensors is None else {"gains": sensors.gains, "tube_volume_factor": sensors.tube_volume_factor,
+                                          "tube_tau_s": tuple(v * 1e-3 for v in getattr(sensors, "tube_tau_ms", ()))}
         return cls(cavity_volumes_m3=vc, **cal, arm_names=d.sensing_names,
                    cavity_names=tuple(d.pressure_names),
                    **{k: v for k, v in kw.items() if v is not None})
@@ -169,6 +178,8 @@ class BenchConfig:
             out["arm_names"] = list(self.arm_names)
         if self.cavity_names != BIP_CAVITIES:
             out["cavity_names"] = list(self.cavity_names)
+        if self.tube_tau_s:
+            out["tube_tau_ms"] = [round(v * 1e3, 6) for v in self.tube_tau_s]
         return out
 
     @classmethod
@@ -185,7 +196,8 @@ class BenchConfig:
                        float(b.get("p0_Pa", meta.get("p0_Pa", P0_STANDARD_PA))),
                        float(b.get("dead_volume_mm3", 0.0)) * 1e-9,
                        tuple(float(v) for v in b.get("transducer_gains", (1.0,) * len(names))),
-                       float(b.get("tube_volume_factor", 1.0)), names, cavities)
+                       float(b.get("tube_volume_factor", 1.0)), names, cavities,
+                       tuple(float(v) * 1e-3 for v in b.get("tube_tau_ms", ())))
         except KeyError as exc:
             has = ", ".join(map(str, b)) or "nothing"
             raise FileFormatError(f"metadata: no usable bench: no {exc} (it has {has})") from None
@@ -377,11 +389,16 @@ def open_replay(path: str, model=None, bench: BenchConfig | None = None, *, opti
         notes = (f"replay:{arg}: {why}; using the {whose} bench ({use.describe()}), the volumes re-converted "
                  "from the raw sums",)
     reconvert = use is not None and not use.same_as(recorded)
+    given = {"tube_length_m": options.get("tube_length_m"), "tube_id_mm": options.get("tube_id_mm")}
+    stored = meta.get("bench") or meta.get("design") or {}
+    stored = stored if isinstance(stored, dict) else {}
+    tube_missing = next((k for k, v in given.items() if v is None and k not in stored), None) if bench is None else None
     src = ReplaySource(arg, chain=use.chain() if reconvert else None,
                        tare=_retared_p0(meta, use) if reconvert else None)
     return OpenedSource(src, False, use or BenchConfig(), None, (),
                         {"bench": (use or BenchConfig()).to_meta(), "reconverted": reconvert,
                          "recording_contact": meta.get("contact"), **({"bench_note": notes[0]} if notes else {}),
+                         **({"tube_missing": tube_missing} if tube_missing else {}),
                          **({"clock": SCENARIO_CLOCK} if meta.get("virtual") else {})},
                         notes)
 

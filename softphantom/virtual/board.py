@@ -2,9 +2,10 @@
 
 Per arm (docs/sensing.md, DESIGN.md §4): the cavity's volume change ΔV compresses the gas of cavity
 and tube, V_T = V_cavity + V_tube, isothermally: ΔP = P0·(V_T/(V_T + ΔV) − 1) (Boyle,
-``boyle_dp``); the transducer at the far end of the 12 m tube sees it through a first-order lag
-(τ from ``tube_time_constant_s``, ≈ 0.1 s; filtered on a 1 kHz grid, exact for a signal held over
-each step); it adds its own zero offset (seeded, uniform within the datasheet's error band:
+``boyle_dp``); the transducer at the far end of the 12 m tube sees it through the tube, a
+distributed RC line simulated as a ladder of ``LADDER_SEGMENTS`` RC segments
+(:meth:`~softphantom.sensing.tube.TubeLine.ladder_response` on a 1 kHz grid; mean delay τ from
+``tube_time_constant_s``, ≈ 0.1 s); it adds its own zero offset (seeded, uniform within the datasheet's error band:
 ±250 Pa for the MPXV7002, ±3.45 kPa for the MPX4250D) and a slow common thermal drift (seeded,
 ``drift_K_per_min`` × P0/T per kelvin). An internal cavity's pump pressure (the BIP's urethra's)
 reaches its MPX4250D directly, on the channels after the arms'.
@@ -28,7 +29,8 @@ from softphantom.sensing import ARM_NAMES, P0_STANDARD_PA
 from softphantom.sensing.measurement import TUBE_ID_M, TUBE_LENGTH_M
 from softphantom.sensing.board import frame_rate_Hz
 from softphantom.sensing.chain import MPX4250D, MPXV7002, SensorChain, default_chain, simulate_raw
-from softphantom.sensing.pneumatics import boyle_dp, first_order_lag, thermal_dp_per_K, tube_time_constant_s
+from softphantom.sensing.pneumatics import boyle_dp, thermal_dp_per_K
+from softphantom.sensing.tube import TubeLine
 from softphantom.sensing.protocol import encode_data, encode_info
 
 FIRMWARE = (2, 0, 0)
@@ -116,10 +118,11 @@ def board_signals(truth, cavity_volumes_m3, config: BoardConfig = BoardConfig(),
     t = np.arange(0.0, dur + 0.5 + LAG_GRID_S / 2, LAG_GRID_S)
     ts = truth.sample(t)
     p_cav = boyle_dp(ts.dV[:, cols], chain.v_total_m3, config.p0_Pa)
-    tau = np.array([tube_time_constant_s(config.tube_length_m, config.tube_id_m, v, config.p0_Pa)
-                    for v in cavity_volumes_m3])
+    lines = [TubeLine.of(config.tube_length_m, config.tube_id_m, v, config.p0_Pa) for v in cavity_volumes_m3]
+    tau = np.array([line.elmore_s for line in lines])
     if config.tube_lag:
-        p_arm = np.column_stack([first_order_lag(p_cav[:, i], LAG_GRID_S, tau[i], y0=0.0) for i in range(na)])
+        p_arm = np.column_stack([lines[i].ladder_response(p_cav[:, i], LAG_GRID_S)
+                                 for i in range(na)])
     else:
         p_arm = p_cav
     nc = na + len(cav)

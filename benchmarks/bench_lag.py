@@ -1,0 +1,196 @@
+"""The tubes' pneumatic lag and its compensation (docs/estimation.md, "The tubes' lag").
+
+    .venv/bin/python benchmarks/bench_lag.py --mesh-size-mm 12 --truth-order 1 --estimator refresh   # coarse
+    .venv/bin/python benchmarks/bench_lag.py                                          # default model, atlas
+
+On the virtual phantom (its tube the distributed line: a ladder of RC segments), the paper's 12 m ×
+1.2 mm tubes, OSR 100 (19.2 Hz frames), three runs of each scenario from the same truth and seed:
+
+* **exact**: the board reads the cavities' pressures without the tube (``tube_lag`` off);
+* **chain**: through the tube, ``--lag-compensation off``;
+* **compensated**: through the tube, ``--lag-compensation model``.
+
+Scenarios: the needle insertion (on-centre push of 2.5 N: rise 4 s, hold 2 s, fall 3 s), the pushes
+on-centre, and a load step (2.5 N in 10 ms after 6 s at rest). Printed per run: y, yaw and |F| RMSE
+(the estimate at its own time, the lag not removed; |F| in % of the peak), the lag measured by
+cross-correlation (as ``softphantom evaluate``), and for the step: the noise at rest (std over the
+rest before the step, y µm, yaw m°, |F| mN), the 50 % point of the step (y and |F|) after the
+true one. Then the goals' ratios (compensated / exact RMSE ≤ 1.5; noise compensated / chain ≤ 1.5;
+50 % point ≤ 30 ms) and the compensation's cost per sample.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
+
+from _results import add_results_option, write_table  # noqa: E402
+
+STEP = {"name": "load-step", "description": "2.5 N on-centre in 10 ms after 6 s at rest", "duration_s": 10.0,
+        "rest_s": 1.5, "patch_radius_mm": 4.0,
+        "push": [{"point": "on-centre", "start_s": 6.0, "rise_s": 0.01, "hold_s": 2.5, "fall_s": 0.01,
+                  "force_N": [0.15, 2.5, -0.2]}]}
+
+
+def crossing(t: np.ndarray, v: np.ndarray, level: float, after: float) -> float:
+    """First time after ``after`` that ``v`` reaches ``level`` (linear between samples)."""
+    i0 = int(np.searchsorted(t, after))
+    up = v[i0:] >= level if level >= v[i0] else v[i0:] <= level
+    if not up.any():
+        return float("nan")
+    i = i0 + int(np.argmax(up))
+    if i == 0:
+        return float(t[0])
+    return float(t[i - 1] + (level - v[i - 1]) / (v[i] - v[i - 1]) * (t[i] - t[i - 1]))
+
+
+def run_one(sc, model, truth, board_cfg, estimator_kind, model_dir, mode, out: Path, atlas):
+    """Estimate one scenario; returns (estimate path, summary, compensator or None)."""
+    from softphantom.estimation import EstimatorConfig, estimate_stream, open_estimator
+    from softphantom.estimation.lag import compensated, lag_compensation
+    from softphantom.sensing.bench import BenchConfig
+    from softphantom.virtual import VirtualConfig, simulate
+
+    cfg = dataclasses.replace(VirtualConfig.seeded(seed=0, osr=100), board=board_cfg)
+    run = simulate(sc, model, cfg, truth=truth)
+    bench = BenchConfig.from_model(model, tube_length_m=board_cfg.tube_length_m, tube_id_m=board_cfg.tube_id_m)
+    comp, meta, _ = lag_compensation(mode, bench)
+    ecfg = EstimatorConfig(contact="on-centre", mode="sync")
+    path = out / f"{sc.name}-{'exact' if not board_cfg.tube_lag else mode}.csv"
+    with open_estimator(estimator_kind, model, ecfg, cache_dir=model_dir, atlas=atlas) as est:
+        s = estimate_stream(run.source(), compensated(est, comp), path, live=False, metadata=meta)
+    return path, s, comp, run
+
+
+def figures(truth_path: Path, est_path: Path, step_at: float | None):
+    from softphantom.evaluation import evaluate, read_estimate, read_truth
+
+    tru, est = read_truth(truth_path), read_estimate(est_path)
+    at0 = evaluate(tru, est, lag_ms=0.0)
+    lagged = evaluate(tru, est)
+    dof = {s.name: s for s in at0.dof}
+    fmag = next(s for s in at0.force if s.name == "|force|")
+    out = {"y_mm": dof["y"].rmse, "yaw_deg": dof["yaw"].rmse, "F_pct": 100 * fmag.rmse / fmag.peak_truth,
+           "lag_ms": lagged.lag_ms}
+    if step_at is not None:
+        t = est.t
+        v = est.mm_deg()
+        f = np.linalg.norm(est.force, axis=1)
+        rest = (t > 2.0) & (t < step_at - 0.3)
+        out["noise_y_um"] = float(np.std(v[rest, 1]) * 1e3)
+        out["noise_yaw_mdeg"] = float(np.std(v[rest, 3]) * 1e3)
+        out["noise_F_mN"] = float(np.std(f[rest]) * 1e3)
+        tt, vt = tru.t, tru.mm_deg()
+        ft = np.linalg.norm(tru.force, axis=1)
+        hold = (tt > step_at + 1.0) & (tt < step_at + 2.0)
+        for key, tv, ev in (("y", vt[:, 1], v[:, 1]), ("F", ft, f)):
+            lo, hi = float(np.median(tv[(tt > 2.0) & (tt < step_at - 0.3)])), float(np.median(tv[hold]))
+            half = 0.5 * (lo + hi)
+            t_true = crossing(tt, tv, half, step_at - 0.5)
+            out[f"step50_{key}_ms"] = (crossing(t, ev, half, step_at - 0.5) - t_true) * 1e3
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--mesh-size-mm", type=float, default=None, help="the model's mesh (default: the default model)")
+    ap.add_argument("--element-order", type=int, default=None, help="1 or 2 (default: the design's)")
+    ap.add_argument("--estimator", default="atlas", help="atlas | refresh")
+    ap.add_argument("--truth-order", type=int, default=None, help="the truth's elements (default TruthConfig's; "
+                    "1 on a coarse model, whose quadratic truth mesh would be too coarse)")
+    ap.add_argument("--model-dir", type=Path, default=None, help="a saved model to use (and cache its atlas in)")
+    ap.add_argument("--scenarios", nargs="*", default=["needle-insertion", "push-on-centre", "load-step"])
+    ap.add_argument("--tube-length-m", type=float, default=12.0)
+    add_results_option(ap, "lag")
+    a = ap.parse_args()
+
+    from softphantom.design import BIPDesign, MeshParams, build_model, load_model, save_model
+    from softphantom.virtual import BoardConfig, TruthConfig, load_scenario, scenario_from_dict, solve_truth, truth_model
+    from softphantom.virtual.run import write_run
+
+    t_start = time.perf_counter()
+    work = Path(tempfile.mkdtemp(prefix="bench_lag_"))
+    if a.model_dir is not None and (a.model_dir / "model.npz").is_file():
+        model, model_dir = load_model(a.model_dir), a.model_dir
+    else:
+        d = BIPDesign()
+        if a.element_order is not None:
+            d = dataclasses.replace(d, mesh=dataclasses.replace(MeshParams(), element_order=a.element_order))
+        model = build_model(d, a.mesh_size_mm)
+        model_dir = a.model_dir or work / "model"
+        save_model(model, model_dir)
+    print(f"model {len(model.nodes)} nodes ({model.design.mesh.size_mm:g} mm, P{model.element_order}), estimator "
+          f"{a.estimator}, tube {a.tube_length_m:g} m × 1.2 mm, OSR 100", flush=True)
+    atlas = None
+    if a.estimator == "atlas":
+        from softphantom.estimation.atlas.config import model_atlas_config
+
+        atlas = model_atlas_config(model.element_order, model_dir)
+    tcfg = TruthConfig() if a.truth_order is None else TruthConfig(order=a.truth_order)
+    tm = truth_model(model, tcfg)
+    chain_cfg = BoardConfig(osr=100, seed=0, tube_length_m=a.tube_length_m)
+    exact_cfg = dataclasses.replace(chain_cfg, tube_lag=False)
+    rows, goals, costs = [], [], []
+    for name in a.scenarios:
+        sc = scenario_from_dict(STEP, "load-step") if name == "load-step" else load_scenario(name)
+        t0 = time.perf_counter()
+        truth = solve_truth(sc, model, tcfg, truth_mesh=tm)
+        print(f"{name}: truth {time.perf_counter() - t0:.0f} s", flush=True)
+        step_at = STEP["push"][0]["start_s"] if name == "load-step" else None
+        res = {}
+        for label, bcfg, mode in (("exact", exact_cfg, "off"), ("chain", chain_cfg, "off"),
+                                  ("compensated", chain_cfg, "model")):
+            t1 = time.perf_counter()
+            path, s, comp, run = run_one(sc, model, truth, bcfg, a.estimator, model_dir, mode, work, atlas)
+            files = write_run(run, work / f"{name}-{label}")
+            res[label] = f = figures(files["truth"], path, step_at)
+            if comp is not None:
+                costs.append(comp.cost_s / max(comp.samples, 1))
+            print(f"  {label:12s} y {f['y_mm']:.3f} mm  yaw {f['yaw_deg']:.3f}°  |F| {f['F_pct']:.2f} %  lag "
+                  f"{f['lag_ms']:+.0f} ms" + ("" if step_at is None else
+                  f"  rest noise y {f['noise_y_um']:.2f} µm yaw {f['noise_yaw_mdeg']:.2f} m° |F| {f['noise_F_mN']:.2f} mN"
+                  f"  50 % point y {f['step50_y_ms']:+.0f} ms |F| {f['step50_F_ms']:+.0f} ms")
+                  + f"  ({s['estimates']} estimates, {time.perf_counter() - t1:.0f} s)", flush=True)
+            rows.append([name, label, f"{f['y_mm']:.3f}", f"{f['yaw_deg']:.3f}", f"{f['F_pct']:.2f}",
+                         f"{f['lag_ms']:+.0f}",
+                         "" if step_at is None else f"{f['noise_y_um']:.2f} / {f['noise_yaw_mdeg']:.2f} / "
+                                                    f"{f['noise_F_mN']:.2f}",
+                         "" if step_at is None else f"{f['step50_y_ms']:+.0f} / {f['step50_F_ms']:+.0f}"])
+        ex, ch, co = res["exact"], res["chain"], res["compensated"]
+        ratio = {k: co[k] / ex[k] for k in ("y_mm", "yaw_deg", "F_pct")}
+        line = (f"  goal: compensated / exact RMSE y {ratio['y_mm']:.2f}, yaw {ratio['yaw_deg']:.2f}, "
+                f"|F| {ratio['F_pct']:.2f} (≤ 1.5)")
+        goals.append([name, "RMSE compensated / exact (y, yaw, |F|; ≤ 1.5)",
+                      f"{ratio['y_mm']:.2f}, {ratio['yaw_deg']:.2f}, {ratio['F_pct']:.2f}"])
+        if step_at is not None:
+            nr = {k: co[k] / ch[k] for k in ("noise_y_um", "noise_yaw_mdeg", "noise_F_mN")}
+            line += (f"; noise at rest compensated / chain y {nr['noise_y_um']:.2f}, yaw {nr['noise_yaw_mdeg']:.2f}, "
+                     f"|F| {nr['noise_F_mN']:.2f} (≤ 1.5); 50 % point y {co['step50_y_ms']:+.0f} ms, "
+                     f"|F| {co['step50_F_ms']:+.0f} ms (≤ 30)")
+            goals.append([name, "noise at rest compensated / chain (y, yaw, |F|; ≤ 1.5)",
+                          f"{nr['noise_y_um']:.2f}, {nr['noise_yaw_mdeg']:.2f}, {nr['noise_F_mN']:.2f}"])
+            goals.append([name, "50 % point of the step after the true one (y, |F|; ≤ 30 ms)",
+                          f"{co['step50_y_ms']:+.0f} ms, {co['step50_F_ms']:+.0f} ms"])
+        print(line, flush=True)
+    cost_us = 1e6 * float(np.median(costs)) if costs else float("nan")
+    print(f"compensation: {cost_us:.1f} µs per sample (all arms, median over runs); total "
+          f"{time.perf_counter() - t_start:.0f} s")
+    write_table(a.results_name, ["scenario", "run", "y RMSE mm", "yaw RMSE °", "‖F‖ RMSE %", "lag ms",
+                                 "rest noise y µm / yaw m° / ‖F‖ mN", "50 % point y / ‖F‖ ms"], rows,
+                caption=f"{len(model.nodes)} nodes ({model.design.mesh.size_mm:g} mm, P{model.element_order}), "
+                        f"estimator {a.estimator}, tube {a.tube_length_m:g} m × 1.2 mm, OSR 100 (19.2 Hz); "
+                        f"compensation {cost_us:.1f} µs per sample. Goals: "
+                        + "; ".join(f"{g[0]} {g[1]}: {g[2]}" for g in goals))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,447 @@
+"""Compensation of the tubes' pneumatic lag: the cavity pressures of now from the transducers'.
+
+Each arm's transducer sees the cavity's equilibrium pressure through its tube, a distributed RC
+line (:mod:`softphantom.sensing.tube`): ≈ 0.1 s of delay for the paper's 12 m × 1.2 mm tubes. The
+compensator is a Kalman filter per arm on a few-state model of that line: the line's two slowest
+first-order stages and one stage carrying the rest of its Elmore delay, driven by the cavity
+pressure, which is modelled as a constant-velocity signal (white noise on its second derivative;
+a steady ramp is followed without lag). The filter's gain is the steady-state one for the sample
+interval (solved once per interval and cached), so a step is a few small matrix products: a few
+µs per sample for all arms.
+
+**Noise gain.** The filter is linear in the measured pressures: white noise on a transducer comes
+out of it multiplied by the noise gain g = ‖h‖₂ (the RMS of its impulse response). The process noise
+is chosen so that g equals :data:`DEFAULT_NOISE_GAIN` at the sample interval the compensator is set
+up for (:meth:`LagCompensator.noise_gain` reports it): a bounded price for removing the delay.
+
+The compensated pressure replaces ``dp`` of the arms, and ``dV`` follows by Boyle over the arm's
+V_T; the internal cavities' pressures (no tube lag) pass through. After a gap in the board clock of
+more than :data:`MAX_GAP_S`, a clock that runs backwards, or a sample that is not ``ok``, the filter
+restarts at rest on the next good sample.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+
+import numpy as np
+
+from softphantom.errors import UserError
+
+MODES = ("off", "model")
+"""``--lag-compensation``: ``off`` the transducers' pressures as they are; ``model`` compensated
+with the tube model of the bench."""
+
+DEFAULT_NOISE_GAIN = 1.3
+"""White pressure noise is multiplied by this (RMS) through the compensation at rest."""
+
+FAST_NOISE_GAIN = 4.0
+"""The motion filter's noise gain: blended in while the signal moves."""
+
+BLEND_SIGMAS = (3.0, 6.0)
+"""The motion filter is blended in from 0 to 1 as the two filters' difference grows from 3 to 6 times
+its standard deviation at rest."""
+
+LEARN_SAMPLES = 16
+"""Samples after a (re)start (at rest) from which that standard deviation is first taken."""
+
+RATE_SAMPLES = 200
+"""Then it follows the noise at rest with this memory (samples)."""
+
+MIN_TAU_S = 0.010
+"""Compensation is on by default where the tubes' time constant exceeds this (10 ms: 3 m of the
+paper's tube is 7 ms, a sixth of a 77 Hz frame's interval)."""
+
+MAX_GAP_S = 0.5
+"""A longer hole in the board clock restarts the filter at rest (the line has settled by then)."""
+
+N_STAGES = 2
+"""The line's slowest stages modelled one by one; one more stage carries the rest of the delay."""
+
+
+INPUT_MODEL = {"rest": 2, "motion": 2}
+"""The cavity pressure's model in each filter: 1 a random walk (at rest: no velocity to overshoot
+with), 2 a constant velocity (in motion: a ramp followed without lag)."""
+
+
+def _cascade(taus: np.ndarray, order: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    """(F, G) of the continuous model: state [u, u̇, s_1 … s_m], u̇ = v, v̇ = w, s_1' = (u − s_1)/τ_1,
+    s_j' = (s_{j−1} − s_j)/τ_j; ``G`` the noise input (on v̇)."""
+    m = len(taus)
+    n = 2 + m
+    F = np.zeros((n, n))
+    F[0, 1] = 1.0
+    prev = 0
+    for j, tau in enumerate(taus):
+        i = 2 + j
+        F[i, prev] = 1.0 / tau
+        F[i, i] = -1.0 / tau
+        prev = i
+    G = np.zeros(n)
+    if order == 1:  # random walk: u' = w (the second state unused, held at 0)
+        F[0, 1] = 0.0
+        F[1, 1] = -1.0
+        G[0] = 1.0
+    else:
+        G[1] = 1.0
+    return F, G
+
+
+def _discrete(taus: np.ndarray, dt: float, q: float, order: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    """(A, Q_d) of the model over ``dt`` with process-noise intensity ``q`` (Van Loan)."""
+    from scipy.linalg import expm
+
+    F, G = _cascade(taus, order)
+    n = F.shape[0]
+    M = np.zeros((2 * n, 2 * n))
+    M[:n, :n] = -F
+    M[:n, n:] = q * np.outer(G, G)
+    M[n:, n:] = F.T
+    E = expm(M * dt)
+    A = E[n:, n:].T
+    Qd = A @ E[:n, n:]
+    return A, 0.5 * (Qd + Qd.T)
+
+
+def _steady_gain(A: np.ndarray, Qd: np.ndarray) -> np.ndarray:
+    """Steady-state Kalman gain for a measurement of the last state with unit noise variance."""
+    from scipy.linalg import solve_discrete_are
+
+    n = A.shape[0]
+    C = np.zeros((1, n))
+    C[0, -1] = 1.0
+    P = solve_discrete_are(A.T, C.T, Qd + 1e-15 * np.eye(n), np.eye(1))
+    S = float((C @ P @ C.T)[0, 0]) + 1.0
+    return (P @ C.T).ravel() / S
+
+
+def filter_noise_gain(A: np.ndarray, K: np.ndarray) -> float:
+    """‖h‖₂ of the filter y → û (the first state after the update): √Σ h_k²."""
+    from scipy.linalg import solve_discrete_lyapunov
+
+    n = A.shape[0]
+    C = np.zeros((1, n))
+    C[0, -1] = 1.0
+    phi = (np.eye(n) - np.outer(K, C)) @ A
+    X = solve_discrete_lyapunov(phi, np.outer(K, K))
+    return math.sqrt(max(float(X[0, 0]), 0.0))
+
+
+def tune(taus: np.ndarray, dt: float, noise_gain: float = DEFAULT_NOISE_GAIN, order: int = 2) -> float:
+    """The process-noise intensity q (per unit measurement variance) whose steady filter has
+    the noise gain ``noise_gain`` at ``dt`` (bisection in log q; the gain grows with q)."""
+    if not noise_gain > 1.0:
+        raise UserError(f"lag compensation noise gain: must be > 1, got {noise_gain!r}")
+
+    def gain(lq: float) -> float:
+        A, Qd = _discrete(taus, dt, 10.0**lq, order)
+        return filter_noise_gain(A, _steady_gain(A, Qd))
+
+    lo, hi = -6.0, 14.0
+    if gain(hi) < noise_gain:
+        return 10.0**hi
+    for _ in range(50):
+        mid = 0.5 * (lo + hi)
+        if gain(mid) < noise_gain:
+            lo = mid
+        else:
+            hi = mid
+        if hi - lo < 1e-3:
+            break
+    return 10.0**lo
+
+
+@dataclasses.dataclass(frozen=True)
+class TubeModel:
+    """The per-arm tube time constants the compensation uses: ``tau_s`` (arms,) the Elmore delay
+    of each arm's line; ``stages_s`` (arms, N_STAGES + 1) its reduced cascade; ``source`` where
+    the τ come from (``"tube"``: the bench's length, bore, cavities and dead volume;
+    ``"calibrated"``: a calibration's fit)."""
+
+    tau_s: tuple[float, ...]
+    stages_s: tuple[tuple[float, ...], ...]
+    source: str = "tube"
+
+    @classmethod
+    def of_bench(cls, bench) -> "TubeModel":
+        """The tubes of a :class:`~softphantom.sensing.bench.BenchConfig`: each arm's line from the
+        tube's length × bore (its length scaled by the calibrated tube volume factor), the arm's
+        cavity and the dead volume; a calibrated τ per arm (``bench.tube_tau_s``) rescales its line."""
+        from softphantom.sensing.tube import TubeLine
+
+        f = float(getattr(bench, "tube_volume_factor", 1.0))
+        cal = tuple(getattr(bench, "tube_tau_s", ()) or ())
+        taus, stages = [], []
+        for i, vc in enumerate(bench.cavity_volumes_m3):
+            line = TubeLine.of(bench.tube_length_m * f, bench.tube_id_m, vc, bench.p0_Pa, bench.v_dead_m3)
+            red = line.reduced(N_STAGES)
+            if cal:
+                red = red * (cal[i] / line.elmore_s)  # same shape of line, the fitted delay
+            taus.append(float(red.sum()))
+            stages.append(tuple(float(t) for t in red))
+        return cls(tuple(taus), tuple(stages), "calibrated" if cal else "tube")
+
+    def to_meta(self) -> dict:
+        return {"tube_tau_ms": [round(t * 1e3, 3) for t in self.tau_s], "tube_tau_source": self.source}
+
+
+class LagCompensator:
+    """The compensation of every arm of a bench (see the module docstring): ``apply(m)`` gives
+    the measurement with the arms' ``dp`` and ``dV`` of now. ``v_total_m3`` (arms,) V_T for Boyle,
+    ``p0_Pa`` the ambient pressure; ``noise_gain`` the rest filter's, ``fast_noise_gain`` the
+    motion filter's (both at the first sample interval)."""
+
+    def __init__(self, tubes: TubeModel, v_total_m3, p0_Pa: float, noise_gain: float = DEFAULT_NOISE_GAIN,
+                 fast_noise_gain: float = FAST_NOISE_GAIN):
+        self.tubes = tubes
+        self.v_total = np.asarray(v_total_m3, float)
+        self.p0 = float(p0_Pa)
+        self.target_gain = float(noise_gain)
+        self.fast_gain = float(fast_noise_gain)
+        if not self.fast_gain >= self.target_gain:
+            raise UserError(f"lag compensation: the motion filter's noise gain ({self.fast_gain:g}) must be ≥ the "
+                            f"rest filter's ({self.target_gain:g})")
+        self._stages = [np.asarray(s, float) for s in tubes.stages_s]
+        self._n = 2 + len(self._stages[0])
+        self._q: list[tuple[float, float]] | None = None
+        self._cache: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+        self._flat_cache: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+        self._x: np.ndarray | None = None  # (arms, 2·states): the rest filter's, then the motion filter's
+        self._t: float | None = None
+        self._var: np.ndarray | None = None  # (arms,) running variance of the two filters' difference at rest
+        self._n_rest = 0
+        self.dt_s: float | None = None
+        self.gains: tuple[float, float] | None = None
+        self.restarts = 0
+        self.cost_s = 0.0  # time spent in apply(), the filters' set-up (setup_s) excluded
+        self.setup_s = 0.0
+        self.samples = 0
+        self.blended = 0
+
+    @classmethod
+    def for_bench(cls, bench, noise_gain: float = DEFAULT_NOISE_GAIN) -> "LagCompensator":
+        n = len(bench.cavity_volumes_m3)
+        return cls(TubeModel.of_bench(bench), bench.chain().v_total_m3[:n], bench.p0_Pa, noise_gain)
+
+    def _matrices(self, dt: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(Φ (arms, 2n, 2n), K (arms, 2n), σ_d (arms,)) at ``dt`` (cached in 50 µs bins): the two
+        filters' update x ← Φ·x + K·y, and the difference's noise gain."""
+        key = int(round(dt * 2e4))  # a board's frames are regular to a few µs
+        got = self._cache.get(key)
+        if got is not None:
+            return got
+        t0 = time.perf_counter()
+        got = self._solve(key)
+        self._cache[key] = got
+        self.setup_s += time.perf_counter() - t0
+        return got
+
+    def _solve(self, key: int):
+        from scipy.linalg import block_diag, solve_discrete_lyapunov
+
+        dtk = max(key, 1) / 2e4
+        if self._q is None:
+            tuned: dict[tuple, tuple[float, float]] = {}  # arms with the same tube share it
+            for s in self._stages:
+                k = tuple(np.round(s, 9))
+                if k not in tuned:
+                    tuned[k] = (tune(s, dtk, self.target_gain, INPUT_MODEL["rest"]),
+                                tune(s, dtk, self.fast_gain, INPUT_MODEL["motion"]))
+            self._q = [tuned[tuple(np.round(s, 9))] for s in self._stages]
+            self.dt_s = dtk
+        n = self._n
+        C = np.zeros(n)
+        C[-1] = 1.0
+        Phis, Ks, sds, gs = [], [], [], []
+        for s, qs in zip(self._stages, self._q):
+            ph, kk = [], []
+            for q, order in zip(qs, (INPUT_MODEL["rest"], INPUT_MODEL["motion"])):
+                A, Qd = _discrete(s, dtk, q, order)
+                K = _steady_gain(A, Qd)
+                ph.append((np.eye(n) - np.outer(K, C)) @ A)
+                kk.append(K)
+            Phi, K = block_diag(*ph), np.concatenate(kk)
+            X = solve_discrete_lyapunov(Phi, np.outer(K, K))
+            d = np.zeros(2 * n)
+            d[0], d[n] = -1.0, 1.0
+            Phis.append(Phi)
+            Ks.append(K)
+            sds.append(math.sqrt(max(float(d @ X @ d), 1e-30)))
+            gs.append((math.sqrt(max(X[0, 0], 0.0)), math.sqrt(max(X[n, n], 0.0))))
+        if self.gains is None:
+            self.gains = (max(g[0] for g in gs), max(g[1] for g in gs))
+        return np.stack(Phis), np.stack(Ks), np.array(sds)
+
+    def prepare(self, dt_s: float) -> None:
+        """Set the filters up for sample interval ``dt_s`` now (else on the first samples: ≈ 0.1 s)."""
+        self._flat(float(dt_s))
+
+    def noise_gain(self, dt_s: float) -> tuple[float, float]:
+        """(rest, motion): the largest noise gain over the arms of the two filters at ``dt_s``."""
+        from scipy.linalg import solve_discrete_lyapunov
+
+        Phi, K, _ = self._matrices(dt_s)
+        n = self._n
+        out = [0.0, 0.0]
+        for ph, k in zip(Phi, K):
+            X = solve_discrete_lyapunov(ph, np.outer(k, k))
+            out = [max(out[0], math.sqrt(max(X[0, 0], 0.0))), max(out[1], math.sqrt(max(X[n, n], 0.0)))]
+        return out[0], out[1]
+
+    def reset(self) -> None:
+        """Forget the state: the next sample restarts the filter at rest."""
+        self._x = None
+        self._t = None
+
+    def filter(self, t_s: float, dp_Pa: np.ndarray) -> np.ndarray:
+        """The compensated arm pressures (Pa) for the transducers' ``dp_Pa`` at board time ``t_s``."""
+        y = np.asarray(dp_Pa, float)
+        dt = None if self._t is None else t_s - self._t
+        n = self._n
+        if self._x is None or dt is None or not (0.0 < dt <= MAX_GAP_S):
+            if self._x is not None:
+                self.restarts += 1
+            x = np.repeat(y[:, None], 2 * n, axis=1)
+            x[:, 1] = x[:, n + 1] = 0.0
+            self._x = x.ravel()
+            self._t = t_s
+            self._var, self._n_rest = np.zeros(len(y)), 0
+            return y.copy()
+        big, K, _ = self._flat(dt)
+        x = big @ self._x + K @ y  # every arm's two filters in one product
+        self._x = x
+        self._t = t_s
+        slow = x[self._i_slow]
+        d = x[self._i_fast] - slow
+        if self._n_rest < LEARN_SAMPLES:  # the first samples (at rest): learn the difference's noise
+            self._n_rest += 1
+            self._var += (d * d - self._var) / self._n_rest
+            return slow
+        z = np.abs(d) / (np.sqrt(self._var) + 1e-9)
+        lo, hi = BLEND_SIGMAS
+        if z.max() <= lo:  # at rest: follow the noise level
+            self._var += (np.minimum(d * d, 9.0 * self._var) - self._var) * (1.0 / RATE_SAMPLES)
+            return slow
+        self.blended += 1
+        w = np.clip((z - lo) * (1.0 / (hi - lo)), 0.0, 1.0)
+        rest = w == 0.0
+        self._var[rest] += (np.minimum(d * d, 9.0 * self._var)[rest] - self._var[rest]) * (1.0 / RATE_SAMPLES)
+        return slow + w * d
+
+    def _flat(self, dt: float):
+        """The update of all arms as one block-diagonal product: (Φ (arms·2n)², K (arms·2n, arms))."""
+        key = int(round(dt * 2e4))
+        got = self._flat_cache.get(key)
+        if got is None:
+            Phi, K, sd = self._matrices(dt)
+            a, m = Phi.shape[0], Phi.shape[1]
+            big = np.zeros((a * m, a * m))
+            kk = np.zeros((a * m, a))
+            for i in range(a):
+                big[i * m:(i + 1) * m, i * m:(i + 1) * m] = Phi[i]
+                kk[i * m:(i + 1) * m, i] = K[i]
+            got = (big, kk, sd)
+            self._flat_cache[key] = got
+            self._i_slow = np.arange(a) * m
+            self._i_fast = self._i_slow + self._n
+        return got
+
+    def apply(self, m):
+        """The measurement ``m`` with its arms' pressures and volumes compensated."""
+        t0, s0 = time.perf_counter(), self.setup_s
+        dp0 = m.dp
+        if m.status != "ok" or not math.isfinite(float(dp0.sum())):
+            self.reset()
+            return m
+        dp = np.maximum(self.filter(float(m.t_board), dp0), -0.9 * self.p0)
+        dV = self.v_total * (self.p0 / (self.p0 + dp) - 1.0)  # Boyle over cavity + tube
+        out = type(m)(m.t, m.seq, m.t_board, m.raw, m.osr, dp, dV, m.p_urethra, m.status, m.pressures_Pa)
+        self.cost_s += time.perf_counter() - t0 - (self.setup_s - s0)
+        self.samples += 1
+        return out
+
+    def meta(self) -> dict:
+        """What the estimate file records: the mode, the τ in use, the two filters' noise gains (set
+        at the first sample interval)."""
+        return {"lag_compensation": "model", **self.tubes.to_meta(), "lag_noise_gain_rest": self.target_gain,
+                "lag_noise_gain_motion": self.fast_gain}
+
+
+MAX_TAU_S = 2.0
+"""A tube whose time constant exceeds this is no bench's (a 12 m tube: 0.1 s; 2 s is ≈ 53 m of it)."""
+
+
+def check_tubes(bench) -> TubeModel:
+    """The bench's tube model, or a one-line :class:`UserError` (exit 2) when a τ is not physical
+    for the stated tube: a calibrated τ outside the range its length, bore and cavity allow
+    (:attr:`~softphantom.sensing.tube.TubeLine.tau_range_s`), or any τ above :data:`MAX_TAU_S`."""
+    from softphantom.sensing.tube import TubeLine
+
+    tubes = TubeModel.of_bench(bench)
+    f = float(getattr(bench, "tube_volume_factor", 1.0))
+    stated = f"tube {bench.tube_length_m:g} m × {bench.tube_id_m * 1e3:g} mm"
+    for name, vc, tau in zip(bench.arm_names, bench.cavity_volumes_m3, tubes.tau_s):
+        line = TubeLine.of(bench.tube_length_m * f, bench.tube_id_m, vc, bench.p0_Pa, bench.v_dead_m3)
+        lo, hi = line.tau_range_s
+        if tubes.source == "calibrated" and not lo <= tau <= hi:
+            raise UserError(f"tube τ of {name}: {tau * 1e3:.4g} ms (calibrated) is outside {lo * 1e3:.3g} … "
+                            f"{hi * 1e3:.4g} ms, the range of the stated {stated}: check the tube length and bore")
+        if tau > MAX_TAU_S:
+            raise UserError(f"tube τ of {name}: {tau:.3g} s for the stated {stated} is beyond any bench's "
+                            f"({MAX_TAU_S:g} s): check the tube length and bore")
+    return tubes
+
+
+def lag_compensation(mode: str | None, bench, *, tube_missing: str | None = None, source: str = "the source",
+                     noise_gain: float = DEFAULT_NOISE_GAIN) -> tuple[LagCompensator | None, dict, str | None]:
+    """The compensator a run uses: (compensator or None, metadata for the estimate file, a warning
+    line or None). ``mode`` ``"model"``, ``"off"``, or None (default: on where the tubes' τ exceeds
+    :data:`MIN_TAU_S`); ``tube_missing`` the tube setting a recording lacks (compensation off, with
+    the warning naming it). A τ that is not physical for the stated tube raises (one line)."""
+    if mode is not None and mode not in MODES:
+        raise UserError(f"--lag-compensation: expected {' or '.join(MODES)}, got {mode!r}")
+    if mode == "off" or bench is None:
+        return None, {"lag_compensation": "off"}, None
+    if tube_missing:
+        return None, {"lag_compensation": "off", "lag_compensation_note": f"no {tube_missing}"}, (
+            f"warning: lag compensation off: {source} has no {tube_missing} (its tube's lag cannot be modelled)")
+    tubes = check_tubes(bench)
+    if mode is None and max(tubes.tau_s) < MIN_TAU_S:
+        return None, {"lag_compensation": "off", **tubes.to_meta()}, None
+    n = len(bench.cavity_volumes_m3)
+    comp = LagCompensator(tubes, bench.chain().v_total_m3[:n], bench.p0_Pa, noise_gain)
+    return comp, comp.meta(), None
+
+
+class LagCompensated:
+    """An estimator whose measurements are compensated first (:class:`LagCompensator`); the
+    compensation's time is part of each estimate's ``step_time``. Everything else is the inner
+    estimator's."""
+
+    def __init__(self, estimator, compensator: LagCompensator):
+        self._inner = estimator
+        self.compensator = compensator
+
+    def __getattr__(self, name):
+        return getattr(self._inner, name)
+
+    def step(self, m, *args, **kw):
+        t0 = time.perf_counter()
+        mc = self.compensator.apply(m)
+        spent = time.perf_counter() - t0
+        e = self._inner.step(mc, *args, **kw)
+        return dataclasses.replace(e, step_time=e.step_time + spent)
+
+    def __enter__(self):
+        self._inner.__enter__()
+        return self
+
+    def __exit__(self, *exc):
+        return self._inner.__exit__(*exc)
+
+
+def compensated(estimator, compensator: LagCompensator | None):
+    """``estimator`` with the lag compensation in front (itself when ``compensator`` is None)."""
+    return estimator if compensator is None else LagCompensated(estimator, compensator)
