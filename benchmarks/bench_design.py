@@ -11,6 +11,10 @@ faces): a change meant to speed meshing up must leave it as it is.
 distance fields sample the surfaces before the 1-D pass), the 1-D, 2-D and 3-D passes and the
 optimization, in CPU seconds.
 
+``--command`` times ``softphantom design --out DIR`` of the default design as a user runs it (a
+new process: imports, the shipped mesh, the report, its observability at rest and drawing), idle
+and with two busy processes, median of ``--repeat`` runs: ``design_command``.
+
 ``--compliance`` adds a sanity figure for the arm stiffness: a *linear* (small-strain) elastic
 solve of a 5 N push along +y at p_ext on-centre (spread over the surface within 4 mm), Ecoflex
 00-50 E = 140 kPa, ν = 0.45, arm ends clamped; it prints the mean marker displacement. Linear
@@ -134,13 +138,51 @@ def stages(design) -> dict:
     return got
 
 
+BUSY = "while True:\n    pass\n"
+
+
+def command_times(repeat: int) -> list[tuple[str, float]]:
+    """Median wall (s) of ``softphantom design --out TMP`` of the default design, idle and with two
+    busy processes (one per core)."""
+    import subprocess
+    import sys
+    import tempfile
+
+    def once() -> float:
+        with tempfile.TemporaryDirectory() as d:
+            t0 = time.perf_counter()
+            subprocess.run([sys.executable, "-m", "softphantom", "-q", "design", "--out", f"{d}/model"], check=True,
+                           stdout=subprocess.DEVNULL)
+            return time.perf_counter() - t0
+
+    rows = []
+    for label, n_busy in (("idle", 0), ("2 busy processes", 2)):
+        busy = [subprocess.Popen([sys.executable, "-c", BUSY]) for _ in range(n_busy)]
+        try:
+            rows.append((label, statistics.median(once() for _ in range(repeat))))
+        finally:
+            for b in busy:
+                b.kill()
+                b.wait()
+    return rows
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--command", action="store_true", help="only time `softphantom design` of the default design")
     ap.add_argument("--repeat", type=int, default=3, help="timed runs per case (median reported)")
     ap.add_argument("--compliance", action="store_true", help="also run the linear 5 N push sanity check")
     ap.add_argument("--stages", action="store_true", help="also split the default mesh's CPU time by gmsh's passes")
     ap.add_argument("--only", choices=[c for c, _ in CASES], action="append", help="only these cases (repeat)")
     args = ap.parse_args()
+    if args.command:
+        rows = command_times(args.repeat)
+        for label, t in rows:
+            print(f"softphantom design (default), {label}: {t:.1f} s")
+        write_table("design_command", ("softphantom design --out DIR (default design)", "wall s"),
+                    [(label, f"{t:.1f}") for label, t in rows], right=(1,),
+                    caption=f"Median of {args.repeat} runs, each a new process (goal: ≤ 10 s):")
+        return
     print(f"# bench_design  python {platform.python_version()}  cpus {os.cpu_count()}  {platform.machine()}  "
           f"load {os.getloadavg()[0]:.1f}")
     print("| mesh | size_mm | nodes | tets | mesh_s (median) | build_s | cpu_s | bulb_err_% | cavity_err_% (worst) "

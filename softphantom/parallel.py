@@ -45,12 +45,15 @@ def dask_client(
     scheduler: str | None = None,
     n_workers: int | None = None,
     processes: bool = True,
+    background: bool = False,
 ) -> Iterator[Any]:
     """A ``distributed.Client``: on ``scheduler`` (an address) if given, else on a new local cluster.
 
     The local cluster has ``n_workers`` (default: the machine's cores) single-threaded worker
     processes, so numba/BLAS in each worker do not fight for the same cores; it is closed on exit.
-    An unreachable scheduler raises :class:`UserError` naming the address.
+    ``background``: its worker processes run at a lower priority (:data:`BACKGROUND_NICE`), for a
+    command that runs something in real time beside them (the demo's estimator beside its truth
+    solves). An unreachable scheduler raises :class:`UserError` naming the address.
     """
     try:
         from distributed import Client, LocalCluster
@@ -91,10 +94,17 @@ def dask_client(
         )
     client = Client(cluster)
     try:
+        if background and processes:
+            client.run(os.nice, BACKGROUND_NICE)
         yield client
     finally:
         client.close()
         cluster.close()
+
+
+BACKGROUND_NICE = 10
+"""How much lower a background cluster's workers run (``os.nice``): the kernel then gives a
+real-time loop in the main process the core whenever it is ready."""
 
 
 def _describe(exc: BaseException) -> str:

@@ -123,3 +123,21 @@ def test_example_variants_are_valid_designs():
     problems = {f"{v.index} {v.params}": design_problem(v) for v in (*cfg.variants(), *corners.variants())}
     assert len(problems) == cfg.samples + 16
     assert {k: w for k, w in problems.items() if w} == {}
+
+
+def test_the_element_order_is_a_setting_of_the_study():
+    """``[fixed] element_order`` sets every variant's elements (and its cache key); left out, the
+    base design's; anything but 1 or 2 is refused naming the field."""
+    params = {"arms.*.radius_mm": {"values": [6.0]}}
+    base = sweep_config_from_dict({"sweep": {"method": "grid"}, "parameters": params})
+    (v1,) = base.variants()
+    assert design_from_dict(v1.design).mesh.element_order == 1  # the built-in base design's
+    quad = sweep_config_from_dict({"sweep": {"method": "grid"}, "fixed": {"element_order": 2}, "parameters": params})
+    (v2,) = quad.variants()
+    assert design_from_dict(v2.design).mesh.element_order == 2 and v2.key != v1.key
+    with pytest.raises(UserError, match="element_order"):
+        sweep_config_from_dict({"fixed": {"element_order": 3}, "parameters": params})
+    from pathlib import Path
+
+    example = load_sweep_config(Path(__file__).parents[1] / "examples" / "sweep_arms.toml")
+    assert design_from_dict(example.variants()[0].design).mesh.element_order == 1

@@ -8,6 +8,8 @@ A parameter is a dotted path:
   ``materials.ecoflex_00_50.law``, ``region_materials.bulb``; ``arms.<arm>.cavity_length_mm`` sets
   the cavity's cylinder length (its volume follows from the capsule, radius ``radius_mm − wall_mm``);
 * ``mesh_size_mm``: the bulb element size, arm and cavity sizes scaled with it (as ``--mesh-size-mm``);
+* ``element_order``: 1 (4-node tets) or 2 (10-node tets; about ten times the cost of a variant);
+  default the base design's;
 * ``sensing.tube_length_m``, ``sensing.tube_id_mm``, ``sensing.osr``: the pneumatic line of every arm.
 
 Each parameter is a table: ``{min, max}`` (continuous; ``log = true`` samples it log-uniformly,
@@ -62,6 +64,7 @@ class _Fixed(FileModel):
     """The settings beside the design (``[fixed]``, or swept by these names) and their defaults."""
 
     mesh_size_mm: Positive = 12.0
+    element_order: Literal[1, 2] | None = None  # 1: 4-node tets, 2: 10-node; None: the base design's
     tube_length_m: Positive = Field(12.0, alias="sensing.tube_length_m")
     tube_id_mm: Positive = Field(1.2, alias="sensing.tube_id_mm")
     osr: Count = Field(100, alias="sensing.osr")
@@ -177,6 +180,8 @@ class SweepConfig:
                 extra[path] = v
             else:
                 apply_path(design, path, v)
+        if extra.get("element_order") is not None:  # a design setting given beside the others
+            apply_path(design, "mesh.element_order", int(extra["element_order"]))
         return Variant(index, {k: (v.item() if isinstance(v, np.generic) else v) for k, v in values.items()},
                        design, extra, self.settings)
 

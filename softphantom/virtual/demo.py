@@ -379,7 +379,8 @@ def run_all(scs, model, out: Path, cfg, truth_mesh, estimator: str = "atlas", gr
     truths: dict[str, object] = {}
     ready: queue.Queue = queue.Queue()
     stop = threading.Event()
-    with dask_client(scheduler, n_workers) as client:
+    # the truth solves and builds are background work beside the estimator's real-time loop here
+    with dask_client(scheduler, n_workers, background=True) as client:
         address = client.scheduler.address
         if own:
             with_contact = atlases or model_atlases(scs, model, atlas_dir or out / "model", address)
