@@ -62,6 +62,13 @@ def _pairs(recordings: list[Path], truths: list[Path], contacts: list[str], know
         raise UserError(f"{what}: give one --contact for all sessions or one per session, got {len(contacts)}")
     if known and len(known) != len(recordings):
         raise UserError(f"--known-loads: one file per --recording (in order), got {len(known)} for {len(recordings)}")
+    prefix = "--holdout-" if option.startswith("--holdout") else "--"
+    for opt, paths in ((f"{prefix}recording", recordings), (f"{prefix}truth", truths), ("--known-loads", known)):
+        for p in paths:  # every file before any is read (a session is read recording first); a take may
+            if not Path(p).exists():  # be a ROS 2 bag's directory
+                raise UserError(f"{opt} {p}: no such file")
+            if Path(p).is_dir() and opt != f"{prefix}truth":
+                raise UserError(f"{opt} {p}: is a directory (expected a file)")
     cs = [_contact(c, option, names) for c in contacts] if contacts else ["on-centre"]
     cs = cs * len(recordings) if len(cs) == 1 else cs
     return [SessionSpec(r, t, c, known[i] if known else None) for i, (r, t, c) in enumerate(zip(recordings, truths, cs))]

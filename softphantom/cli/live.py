@@ -37,8 +37,9 @@ def live(
     rate_Hz: float = typer.Option(77.0, "--rate-Hz", help="estimate rate of the synthetic source, Hz"),
     view_rate_Hz: float = typer.Option(30.0, "--view-rate-Hz", help="page update rate, Hz"),
     speed: float = typer.Option(1.0, "--speed", help="replay/virtual speed factor (0: as fast as possible)"),
-    at: str = typer.Option("on-centre", "--at", help="virtual/serial: contact point, on-centre, off-centre "
-                      "or one of the design's [contacts]"),
+    at: Optional[str] = typer.Option(None, "--at", help="estimated sources: contact point, on-centre, off-centre "
+                                     "or one of the design's [contacts]; default: the recording's (replay), the "
+                                     "scenario's (virtual), on-centre (serial)"),
     max_force_N: float = typer.Option(10.0, "--max-force-N", help="virtual/serial: bound on each force component (N)"),
     tube_length_m: Optional[float] = TUBE_LENGTH_OPTION,
     tube_id_mm: Optional[float] = TUBE_ID_OPTION,
@@ -59,7 +60,7 @@ def live(
     check_estimator_kind(estimator)
     check_source_options(source, max_force_N=max_force_N, on_new_board=on_new_board, tube_length_m=tube_length_m,
                          tube_id_mm=tube_id_mm)
-    if model is None:  # with --model, checked against its contact points once it is read
+    if model is None and at is not None:  # with --model, checked against its contact points once it is read
         from softphantom.design.params import DERIVED_CONTACTS, check_contact
 
         check_contact(at, DERIVED_CONTACTS, "--at", "the default design", "--model for a design's [contacts]")
@@ -172,10 +173,10 @@ def _remote_token(listen_host: str, allow_remote: bool) -> str | None:
     return secrets.token_urlsafe(18)
 
 
-def _estimator_source(spec: str, model_dir: Optional[Path], at: str, max_force_N: float, speed: float,
+def _estimator_source(spec: str, model_dir: Optional[Path], at: Optional[str], max_force_N: float, speed: float,
                       bench_options: Optional[dict] = None, on_new_board: str = "stop", estimator: str = "atlas"):
     """The estimator over a board or the virtual phantom, opened as ``softphantom estimate`` does."""
-    from softphantom.cli.estimation import open_sensor_source
+    from softphantom.cli.estimation import open_sensor_source, source_contact
     from softphantom.design import load_model
     from softphantom.design.params import check_contact
     from softphantom.estimation import EstimatorConfig, open_estimator
@@ -185,9 +186,15 @@ def _estimator_source(spec: str, model_dir: Optional[Path], at: str, max_force_N
     if model_dir is None or not (model_dir / "model.npz").is_file():
         raise UserError(f"--source {spec} needs --model DIR (a model directory from softphantom design)")
     model = load_model(model_dir)
-    check_contact(at, list(model.p_ext), "--at")
+    if at is not None:
+        check_contact(at, list(model.p_ext), "--at")
     opened = open_sensor_source(spec, model, on_new_board=on_new_board, **(bench_options or {}))
     sensor, is_live = opened.source, opened.live
+    try:
+        at, _ = source_contact(at, opened.meta, list(model.p_ext), spec)
+    except UserError:
+        sensor.close()
+        raise
     # refresh estimator on a paced source: the background equilibrium keeps each step short
     cfg = EstimatorConfig.box(max_force_N, contact=at, mode="async" if is_live or speed > 0 else "sync")
     try:

@@ -381,7 +381,8 @@ def open_replay(path: str, model=None, bench: BenchConfig | None = None, *, opti
                        tare=_retared_p0(meta, use) if reconvert else None)
     return OpenedSource(src, False, use or BenchConfig(), None, (),
                         {"bench": (use or BenchConfig()).to_meta(), "reconverted": reconvert,
-                         "recording_contact": meta.get("contact"), **({"bench_note": notes[0]} if notes else {}),
+                         "recording_contact": meta.get("contact"),
+                         **({"recording_contacts": meta["contacts"]} if meta.get("contacts") else {}), **({"bench_note": notes[0]} if notes else {}),
                          **({"clock": SCENARIO_CLOCK} if meta.get("virtual") else {})},
                         notes)
 

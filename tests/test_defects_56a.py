@@ -1,0 +1,113 @@
+"""Issue #56 (defects found as a lab would use the tools): a replay at its recording's contact, a
+tare under load, an estimator at rest, a urethra label too large, the Foxglove socket's rules,
+acquire's event times, a replay cut mid-row, ``estimate --out`` and ``calibrate``'s files checked
+first."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from softphantom.cli import main
+
+
+def _one_line(capsys) -> str:
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "Traceback" not in err and err.startswith("error: "), err
+    return err
+
+
+def _meta(path) -> dict:
+    return json.loads(open(path).readline()[1:])
+
+
+def _recording(path, n=40, meta=None, load=None):
+    """A sensing recording of ``n`` samples at 77 Hz of the BIP's chain (``load(k)``: the five
+    channels' pressures in Pa at sample k, default at rest)."""
+    from softphantom.sensing.chain import default_chain, nominal_tare, simulate_raw, to_measurement
+    from softphantom.sensing.recording import Recorder
+
+    chain = default_chain()
+    tare = nominal_tare(chain)
+    rng = np.random.default_rng(0)
+    with Recorder(path, {"tare": tare.to_dict(), "chain": chain.summary(), **(meta or {})}) as r:
+        for k in range(n):
+            p = np.zeros(5) if load is None else np.asarray(load(k), float)
+            r.write(to_measurement(k / 77.0, k, k / 77.0, simulate_raw(p, 100, rng), 100, chain, tare))
+    return path
+
+
+# --- 1. a replay is estimated at its recording's contact ------------------------------------------
+
+def test_a_virtual_run_records_its_scenarios_contact_and_the_replay_uses_it(coarse_model, coarse_model_dir,
+                                                                            coarse_truth_p1, tmp_path):
+    from softphantom.virtual import VirtualConfig, scenario_from_dict, simulate, write_run
+
+    sc = scenario_from_dict({"name": "off", "duration_s": 1.6, "rest_s": 1.0, "push": [
+        {"point": "off-centre", "start_s": 1.1, "rise_s": 0.2, "hold_s": 0.0, "fall_s": 0.2,
+         "force_N": [0.0, 0.5, 0.0]}]}, "off.toml")
+    run = simulate(sc, coarse_model, VirtualConfig.seeded(seed=1, osr=100, order=1), truth_mesh=coarse_truth_p1)
+    paths = write_run(run, tmp_path / "run")
+    assert _meta(paths["recording"])["contact"] == "off-centre"
+    out = tmp_path / "e.csv"
+    assert main(["estimate", "--model", str(coarse_model_dir), "--source", f"replay:{paths['recording']}",
+                 "--estimator", "refresh", "--out", str(out)]) == 0
+    meta = _meta(out)
+    assert (meta["contact"], meta["contact_from"], meta["recording_contact"]) == ("off-centre", "recording",
+                                                                                   "off-centre")
+
+
+def test_a_replay_without_a_contact_on_a_model_of_several_asks_for_at(coarse_model_dir, tmp_path, capsys):
+    rec = _recording(tmp_path / "r.csv")
+    out = tmp_path / "e.csv"
+    assert main(["estimate", "--model", str(coarse_model_dir), "--source", f"replay:{rec}", "--out", str(out)]) == 2
+    assert _one_line(capsys) == (f"error: --source replay:{rec}: the recording names no contact point and this "
+                                 "model has several (on-centre, off-centre); give --at")
+    assert not out.exists()
+
+
+# --- 17. estimate's --out is checked before any work --------------------------------------------
+
+def test_estimate_refuses_an_out_it_cannot_create_before_reading_the_model(coarse_model_dir, tmp_path, capsys,
+                                                                           monkeypatch):
+    import softphantom.design
+
+    def no(*a, **k):
+        raise AssertionError("the model was read before --out was checked")
+
+    monkeypatch.setattr(softphantom.design, "load_model", no)
+    rec = _recording(tmp_path / "r.csv", meta={"contact": "on-centre"})
+    (tmp_path / "file").write_text("x")
+    out = tmp_path / "file" / "sub" / "e.csv"
+    assert main(["estimate", "--model", str(coarse_model_dir), "--source", f"replay:{rec}", "--out", str(out)]) == 2
+    assert _one_line(capsys) == (f"error: --out {out}: cannot be created ({tmp_path / 'file'} is a file, "
+                                 "not a directory)")
+
+
+def test_estimate_makes_the_folders_of_out(coarse_model_dir, tmp_path):
+    rec = _recording(tmp_path / "r.csv", n=5, meta={"contact": "on-centre"})
+    out = tmp_path / "missing_dir" / "x.csv"
+    assert main(["estimate", "--model", str(coarse_model_dir), "--source", f"replay:{rec}", "--estimator",
+                 "refresh", "--out", str(out)]) == 0
+    assert out.is_file()
+
+
+# --- 18. calibrate names a missing --truth or --known-loads file before reading the recording -----
+
+@pytest.mark.parametrize("missing", ["--truth", "--known-loads"])
+def test_calibrate_names_a_missing_file_first(coarse_model_dir, tmp_path, capsys, monkeypatch, missing):
+    import softphantom.calibration.run as run
+
+    monkeypatch.setattr(run, "load_session", lambda *a, **k: pytest.fail("the recording was read"))
+    rec = _recording(tmp_path / "r.csv", n=5)
+    truth = tmp_path / "take.csv"
+    truth.write_text("t_s,x_mm\n")
+    args = ["calibrate", "--model", str(coarse_model_dir), "--recording", str(rec), "--out", str(tmp_path / "cal"),
+            "--truth", str(tmp_path / "missing.csv" if missing == "--truth" else truth)]
+    if missing == "--known-loads":
+        args += ["--known-loads", str(tmp_path / "missing.csv")]
+    assert main(args) == 2
+    assert _one_line(capsys) == f"error: {missing} {tmp_path / 'missing.csv'}: no such file"
+    assert not (tmp_path / "cal").exists()
