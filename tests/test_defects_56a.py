@@ -111,3 +111,32 @@ def test_calibrate_names_a_missing_file_first(coarse_model_dir, tmp_path, capsys
     assert main(args) == 2
     assert _one_line(capsys) == f"error: {missing} {tmp_path / 'missing.csv'}: no such file"
     assert not (tmp_path / "cal").exists()
+
+
+# --- 3. a label too large to be a urethra -------------------------------------------------------
+
+def test_a_zone_is_not_taken_for_the_urethra(tmp_path, capsys, monkeypatch):
+    nib = pytest.importorskip("nibabel")
+    pytest.importorskip("skimage")
+    import softphantom.design.anatomy as anatomy
+    from softphantom.design.anatomy import MAX_URETHRA_SHARE, AnatomyOptions, anatomy_from_labels, zonal_label_map
+    from softphantom.errors import DesignError
+
+    data, affine, _, _ = zonal_label_map(45.0)
+    share = np.count_nonzero(data == 2) / np.count_nonzero(data)
+    assert share > 2 * MAX_URETHRA_SHARE  # the transition zone: about a fifth of the gland
+    monkeypatch.setattr(anatomy, "_marching_cubes", lambda *a: pytest.fail("refused after the surface was made"))
+    with pytest.raises(DesignError, match=rf"urethra label 2 holds {share:.0%} of the gland, too much for a urethra"):
+        anatomy_from_labels(data, affine, AnatomyOptions())
+    path = tmp_path / "zones.nii.gz"
+    nib.save(nib.Nifti1Image(data, affine), str(path))
+    assert main(["design", "--anatomy", str(path), "--out", str(tmp_path / "o")]) == 2
+    err = _one_line(capsys)
+    assert "if the labels are zones, give --gland-labels 1,2 " in err and "radius" not in err, err
+    assert not (tmp_path / "o").exists()
+    # a urethra as thin as a urethra passes the check (the BIP's: 2 % of its bulb)
+    thin = np.where(data > 0, 1, 0).astype(np.int16)
+    centre = np.argwhere(thin > 0).mean(axis=0).round().astype(int)
+    thin[centre[0] - 2:centre[0] + 3, centre[1] - 2:centre[1] + 3, :] *= 2
+    assert 0 < np.count_nonzero(thin == 2) / np.count_nonzero(thin) < MAX_URETHRA_SHARE
+    anatomy._check_urethra_share(thin, thin > 0, AnatomyOptions(), "map")
