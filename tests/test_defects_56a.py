@@ -140,3 +140,128 @@ def test_a_zone_is_not_taken_for_the_urethra(tmp_path, capsys, monkeypatch):
     thin[centre[0] - 2:centre[0] + 3, centre[1] - 2:centre[1] + 3, :] *= 2
     assert 0 < np.count_nonzero(thin == 2) / np.count_nonzero(thin) < MAX_URETHRA_SHARE
     anatomy._check_urethra_share(thin, thin > 0, AnatomyOptions(), "map")
+
+
+# --- 5. acquire's event rows at their own times -------------------------------------------------
+
+class _Bench:
+    """A scripted board behind a fake serial port, on a fake host clock: each port read takes the
+    next item of ``script`` (bytes arrive; ``"unplug"`` fails the port, which then refuses to open
+    for ``out_s``) and moves the clock 20 ms; the opener moves it 1 s per refused attempt."""
+
+    REST = [51150 // 4, 51150 // 4, 51150 // 4, 51150 // 4, 4046 // 4]
+
+    def __init__(self, script, out_s=22.5):
+        import collections
+
+        self.t = 1000.0
+        self.script = collections.deque(script)
+        self.out_s = out_s
+        self.back_at = self.unplugged_at = None
+        self.opened_at = []
+
+    def clock(self):
+        return self.t
+
+    def opener(self, url, **kw):
+        import serial
+
+        if self.back_at is not None and self.t < self.back_at:
+            self.t += 1.0
+            raise serial.SerialException("no such device")
+        self.opened_at.append(self.t)
+        return _Port(self)
+
+    @classmethod
+    def frames(cls, seqs, t0_us=0, dt_us=20_000, info=False):
+        from softphantom.sensing.protocol import encode_data, encode_info
+
+        head = encode_info(0, t0_us, (1, 0, 0), 5, 25) if info else b""
+        return head + b"".join(encode_data(k, t0_us + dt_us * i, 25, cls.REST) for i, k in enumerate(seqs))
+
+
+class _Port:
+    def __init__(self, bench):
+        self.bench, self.timeout, self.in_waiting = bench, 0.05, 1
+
+    def read(self, n=1):
+        import time
+
+        import serial
+
+        b = self.bench
+        b.t += 0.02
+        item = b.script.popleft() if b.script else b""
+        if item == "unplug":
+            b.back_at, b.unplugged_at = b.t + b.out_s, b.t
+            raise serial.SerialException("device reports readiness to read but returned no data")
+        if not item:
+            time.sleep(0.002)
+        return item
+
+    def write(self, data):
+        return len(data)
+
+    def close(self):
+        pass
+
+
+def _acquire_with(bench, monkeypatch, tmp_path, *args):
+    import softphantom.sensing.sources as sources
+
+    class Scripted(sources.SerialSource):
+        def __init__(self, url, chain, **kw):
+            super().__init__(url, chain, opener=bench.opener, clock=bench.clock, reconnect_every_s=0.25, **kw)
+
+    monkeypatch.setattr(sources, "SerialSource", Scripted)
+    out = tmp_path / "a.csv"
+    rc = main(["acquire", "--port", "fake", "--out", str(out), "--tare-s", "0.2", *args])
+    return rc, out
+
+
+def _rows(path):
+    """(t_s, status) of every row, markers included."""
+    lines = open(path).read().splitlines()[2:]
+    return [(float(line.split(",")[0]), line.rsplit(",", 1)[1]) for line in lines]
+
+
+def _unplug_script(n_before=30):
+    board1 = [_Bench.frames([], info=True)] + [_Bench.frames([k], t0_us=20_000 * (k + 1)) for k in range(n_before)]
+    # the board is back 22.5 s later, restarted: its clock begins again; its first frames come at once
+    return board1 + ["unplug"] + [b""] * 3 + [_Bench.frames(range(4), t0_us=5_000, info=True)] + \
+        [_Bench.frames([k], t0_us=5_000 + 20_000 * k) for k in range(4, 40)]
+
+
+def test_acquire_marks_an_unplug_and_a_new_board_at_their_own_times(tmp_path, monkeypatch, capsys):
+    bench = _Bench(_unplug_script())
+    rc, out = _acquire_with(bench, monkeypatch, tmp_path, "--on-new-board", "retare", "--duration-s", "1.5")
+    text = capsys.readouterr().out
+    assert rc == 0 and f"to {out}" in " ".join(text.split()), text
+    rows = _rows(out)
+    t = np.array([r[0] for r in rows])
+    assert np.all(np.diff(t) >= 0)                                            # marker rows included
+    ev = {s.split(":")[1]: tt for tt, s in rows if s.startswith("event:")}
+    assert list(ev)[:5] == ["disconnected", "reconnected", "restart", "resumed", "retared"], ev
+    assert ev["disconnected"] == pytest.approx(bench.unplugged_at, abs=1e-9)     # when the port failed
+    assert ev["reconnected"] == pytest.approx(bench.opened_at[1], abs=1e-9)      # when it opened again
+    assert ev["reconnected"] - ev["disconnected"] > 22.5
+    assert ev["reconnected"] < ev["restart"] <= ev["resumed"] <= ev["retared"]
+    # the new board's first burst of 4 frames keeps its board-clock spacing: no two samples share a time
+    samples = np.array([tt for tt, s in rows if not s.startswith("event:")])
+    after = samples[samples >= ev["restart"] - 0.1]
+    assert len(after) >= 30 and np.all(np.diff(after) > 0.019), np.diff(after)[:6]
+
+
+def test_acquire_stopped_by_a_new_board_says_what_it_kept(tmp_path, monkeypatch, capsys):
+    bench = _Bench(_unplug_script())
+    rc, out = _acquire_with(bench, monkeypatch, tmp_path, "--duration-s", "5")
+    cap = capsys.readouterr()
+    assert rc == 2 and "the board restarted or was replaced at t = " in cap.err
+    t_err = float(cap.err.split("at t = ")[1].split(" s")[0])
+    assert f"link events to {out}" in " ".join(cap.out.split()), cap.out
+    rows = _rows(out)
+    restart = [tt for tt, s in rows if s.startswith("event:restart")]
+    assert restart == [pytest.approx(t_err, abs=1e-3)]
+    after = rows[[s for _, s in rows].index(next(s for _, s in rows if s.startswith("event:restart"))):]
+    assert all(s.startswith("event:") for _, s in after)                       # the new board's frames: not kept
+    assert np.all(np.diff([r[0] for r in rows]) >= 0)
