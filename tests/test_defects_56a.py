@@ -265,3 +265,84 @@ def test_acquire_stopped_by_a_new_board_says_what_it_kept(tmp_path, monkeypatch,
     after = rows[[s for _, s in rows].index(next(s for _, s in rows if s.startswith("event:restart"))):]
     assert all(s.startswith("event:") for _, s in after)                       # the new board's frames: not kept
     assert np.all(np.diff([r[0] for r in rows]) >= 0)
+
+
+# --- 4. the Foxglove socket under the page's rules ----------------------------------------------
+
+def _ws_open(port, host, origin=None, target="/"):
+    """The HTTP status a WebSocket opening request gets from 127.0.0.1:``port``, and the socket."""
+    import base64
+    import os
+    import socket
+
+    s = socket.create_connection(("127.0.0.1", port), timeout=10)
+    req = (f"GET {target} HTTP/1.1\r\nHost: {host}\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
+           f"Sec-WebSocket-Key: {base64.b64encode(os.urandom(16)).decode()}\r\nSec-WebSocket-Version: 13\r\n"
+           "Sec-WebSocket-Protocol: foxglove.sdk.v1\r\n" + (f"Origin: {origin}\r\n" if origin else "") + "\r\n")
+    s.sendall(req.encode())
+    head = b""
+    while b"\r\n\r\n" not in head:
+        chunk = s.recv(4096)
+        if not chunk:
+            break
+        head += chunk
+    return int(head.split(b" ", 2)[1]), s
+
+
+def test_the_foxglove_socket_keeps_the_pages_host_and_origin_rules(caplog):
+    import logging
+    import socket
+    import struct
+    import time
+
+    from softphantom.stream.foxglove import FoxgloveServer
+    from softphantom.viz.live.security import websocket_check
+
+    srv = FoxgloveServer("127.0.0.1", 0, check=websocket_check("127.0.0.1"))
+    try:
+        p = srv.port
+        for host, origin, status in ((f"evil.example:{p}", "http://evil.example", 403),   # DNS rebinding
+                                     (f"127.0.0.1:{p}", "http://evil.example", 403),      # another site's page
+                                     (f"127.0.0.1:{p}", "null", 403),                     # a sandboxed frame
+                                     (f"127.0.0.1:{p}", None, 101),                       # a program, the desktop app
+                                     (f"localhost:{p}", "https://app.foxglove.dev", 101),  # Foxglove's web app
+                                     (f"localhost:{p}", "http://localhost:8765", 101)):   # a page of this machine
+            got, s = _ws_open(p, host, origin)
+            assert got == status, (host, origin, got)
+            if got == 101:  # a client that drops without closing: not an error line
+                caplog.clear()
+                with caplog.at_level(logging.DEBUG):
+                    s.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
+                    s.close()
+                    time.sleep(0.3)
+                assert not [r for r in caplog.records if r.levelno >= logging.WARNING], caplog.records
+            s.close()
+    finally:
+        srv.close()
+
+
+def test_the_foxglove_socket_beyond_loopback_needs_the_token():
+    from softphantom.stream.foxglove import FoxgloveServer
+    from softphantom.viz.live.security import websocket_check
+
+    # the rules of a session on every interface, with its token (the gate itself bound to loopback here)
+    check = websocket_check("0.0.0.0", token="s3cret")
+    srv = FoxgloveServer("127.0.0.1", 0, check=check, token="s3cret")
+    try:
+        p = srv.port
+        assert srv.url == f"ws://127.0.0.1:{p}/?token=s3cret"
+        for target, status in (("/", 401), ("/?token=wrong", 401), ("/?token=s3cret", 101)):
+            got, s = _ws_open(p, f"127.0.0.1:{p}", target=target)
+            s.close()
+            assert got == status, (target, got)
+    finally:
+        srv.close()
+
+
+def test_live_beyond_loopback_prints_the_foxglove_address_with_its_token(capsys):
+    assert main(["live", "--listen-host", "0.0.0.0", "--allow-remote", "--foxglove", "--foxglove-port", "0",
+                 "--duration-s", "0.5", "--http-port", "0", "--no-stream"]) == 0
+    cap = capsys.readouterr()
+    token = cap.out.split("?token=")[1].split()[0]
+    assert f"/?token={token}" in cap.out.split("Foxglove: ")[1].split()[0]
+    assert "Foxglove server has no authentication" not in cap.err

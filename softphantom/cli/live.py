@@ -21,8 +21,8 @@ def live(
     listen_host: str = typer.Option("127.0.0.1", "--listen-host",
                                     help="interface for the page and the stream; beyond loopback needs --allow-remote"),
     allow_remote: bool = typer.Option(False, "--allow-remote",
-                                      help="serve beyond loopback: the page then requires a token (printed in its "
-                                      "address); the stream has no authentication"),
+                                      help="serve beyond loopback: the page and --foxglove then require a token "
+                                      "(printed in their addresses); the stream has no authentication"),
     allowed_host: list[str] = typer.Option([], "--allowed-host",
                                            help="a name clients use for this machine (Host header; repeat)"),
     max_clients: int = typer.Option(16, "--max-clients", min=1, help="page connections served at once"),
@@ -81,11 +81,6 @@ def live(
     if record is not None:
         check_output(record, overwrite=overwrite, directory=False, option="--record")
     token = _remote_token(listen_host, allow_remote)
-    if token is not None and foxglove:
-        from softphantom.cli.app import print_error
-
-        print_error("the Foxglove server has no authentication either: anyone who can reach its port sees the "
-                    "session", prefix="warning: ")
     kind, _, arg = source.partition(":")
     if kind in ("virtual", "serial") or (kind == "replay" and replay_holds(arg) == "measurements"):
         src = _estimator_source(source, model, at, max_force_N, speed,
@@ -100,6 +95,7 @@ def live(
                      foxglove_port=foxglove_port if foxglove else None)
     with LiveSession(src, cfg) as session:
         console.print(f"live page: {session.url}", highlight=False, soft_wrap=True)
+        name = None
         if token is not None:
             import socket
 
@@ -112,7 +108,11 @@ def live(
                           "see docs/stream.md)", highlight=False)
         if session.foxglove_url:
             console.print(f"Foxglove: {session.foxglove_url} (Open connection → Foxglove WebSocket; "
-                          "3D panel, display frame 'phantom'; docs/stream.md)", highlight=False)
+                          "3D panel, display frame 'phantom'; docs/stream.md)", highlight=False, soft_wrap=True)
+            if name is not None:
+                fport = session.foxglove_url.split("://", 1)[1].split("/", 1)[0].rsplit(":", 1)[1]
+                console.print(f"  from another machine: ws://{name}:{fport}/?token={token}",
+                              highlight=False, soft_wrap=True)
         if record is not None:
             console.print(f"recording: {record}", highlight=False)
         try:
@@ -168,7 +168,7 @@ def _remote_token(listen_host: str, allow_remote: bool) -> str | None:
                              "the page then requires a token; the estimate stream"):
         return None
     what = "every interface" if every_interface(listen_host) else listen_host
-    print_error(f"serving on {what}: anyone who can reach this machine and has the token in the printed address "
+    print_error(f"serving on {what}: anyone who can reach this machine and has the token in the printed addresses "
                 "sees the session; the estimate stream has no authentication", prefix="warning: ")
     return secrets.token_urlsafe(18)
 
