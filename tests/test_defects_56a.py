@@ -346,3 +346,33 @@ def test_live_beyond_loopback_prints_the_foxglove_address_with_its_token(capsys)
     token = cap.out.split("?token=")[1].split()[0]
     assert f"/?token={token}" in cap.out.split("Foxglove: ")[1].split()[0]
     assert "Foxglove server has no authentication" not in cap.err
+
+
+# --- 16. a replay cut short says so --------------------------------------------------------------
+
+def test_a_session_recording_cut_short_is_replayed_with_one_warning(tmp_path, capsys):
+    rec = tmp_path / "s.mcap"
+    assert main(["live", "--source", "synthetic", "--duration-s", "1", "--http-port", "0", "--no-stream",
+                 "--record", str(rec)]) == 0
+    data = rec.read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[:len(data) * 2 // 3])  # its writer killed: no footer, a chunk cut
+    capsys.readouterr()
+    assert main(["live", "--source", f"replay:{cut}", "--speed", "0", "--http-port", "0", "--no-stream"]) == 0
+    cap = capsys.readouterr()
+    said = [ln for ln in (cap.out + cap.err).splitlines() if "truncated file" in ln]
+    assert len(said) == 1 and said[0].startswith(f"warning: {cut}: not closed cleanly"), cap
+    shown = int(cap.out.split("done: ")[1].split()[0])
+    assert f", {shown} estimates), the rest dropped" in said[0]
+
+
+def test_a_sensing_recording_cut_mid_row_is_estimated_with_one_warning(coarse_model_dir, tmp_path, capsys):
+    rec = _recording(tmp_path / "r.csv", n=12, meta={"contact": "on-centre"})
+    rec.write_bytes(rec.read_bytes()[:-25])                                 # killed mid-row
+    out = tmp_path / "e.csv"
+    assert main(["estimate", "--model", str(coarse_model_dir), "--source", f"replay:{rec}", "--estimator",
+                 "refresh", "--out", str(out)]) == 0
+    cap = capsys.readouterr()
+    said = [ln for ln in (cap.out + cap.err).splitlines() if "truncated file" in ln]
+    assert len(said) == 1 and "line 14" in said[0] and "a row cut short, dropped" in said[0], said
+    assert len(open(out).read().splitlines()) == 2 + 11
