@@ -376,3 +376,85 @@ def test_a_sensing_recording_cut_mid_row_is_estimated_with_one_warning(coarse_mo
     said = [ln for ln in (cap.out + cap.err).splitlines() if "truncated file" in ln]
     assert len(said) == 1 and "line 14" in said[0] and "a row cut short, dropped" in said[0], said
     assert len(open(out).read().splitlines()) == 2 + 11
+
+
+# --- 2. a tare under load is refused; an estimator at rest says zero, or says it is off ----------
+
+def test_a_tare_window_on_a_push_is_refused_and_rest_is_not():
+    """A push as the scenarios make it (cosine ramps, a 0.8 s hold shorter than the window: the
+    first push of push-on-centre, 60 Pa at the transducers as on the linear 12 mm model, through the
+    12 m tube's lag and the board's noise): every 1 s window it moves is refused, every window at
+    rest is tared."""
+    from softphantom.sensing.chain import NotAtRestError, default_chain, simulate_raw, tare_from_window
+    from softphantom.virtual.scenario import Event
+
+    from softphantom.sensing.pneumatics import first_order_lag, tube_time_constant_s
+
+    chain = default_chain()
+    push = Event("push", 2.0, 1.2, 0.8, 1.0)
+    t = np.arange(0.0, 7.0, 1 / 77.0)
+    tau = tube_time_constant_s(12.0, 1.2e-3, 514e-9, 101_325.0)     # through the 12 m tube, as the board
+    load = first_order_lag(60.0 * push.level(t), 1 / 77.0, tau, y0=0.0)
+    p = np.zeros((len(t), 5))
+    p[:, :4] = load[:, None] * np.array([1.0, 1.1, -1.2, -1.05])
+    raw = simulate_raw(p, 25, np.random.default_rng(3), chain.transducers, 0.5)
+    seen = []  # (the window's largest load Pa, its mean load Pa, the refusal or None)
+    for i in range(0, len(t) - 77, 4):
+        w = slice(i, i + 78)
+        try:
+            tare_from_window(raw[w], 25, t[w], chain)
+            seen.append((load[w].max(), load[w].mean(), None))
+        except NotAtRestError as exc:
+            seen.append((load[w].max(), load[w].mean(), str(exc)))
+    rest = [why for top, _, why in seen if top < 0.05]
+    assert len(rest) >= 30 and rest == [None] * len(rest)                   # every window at rest is tared
+    tared = [mean for top, mean, why in seen if why is None]
+    assert max(tared) < 0.5, max(tared)                                     # none under load got through
+    assert any("bends by" in why for _, _, why in seen if why)
+
+
+def test_the_atlas_at_rest_is_checked_and_an_off_one_is_flagged(coarse_model, shared_dir, tmp_path, capsys):
+    """The coarse model's small atlas (3 × 4 × 3 × 2 points) returns the rest state at rest; the
+    same atlas with its volumes off by a constant 0.3 mm³ at zero load (as a grid too coarse near
+    zero is) does not: estimate says so in one warning line, in the estimate file (``rest_check``,
+    ``warnings``), and evaluate's notes read it."""
+    import dataclasses
+
+    from shared_models import atlas_config, cached_atlas
+
+    from softphantom.design import save_model
+    from softphantom.estimation import EstimatorConfig
+    from softphantom.estimation.atlas.check import GOALS
+    from softphantom.estimation.atlas.estimator import AtlasEstimator
+    from softphantom.estimation.atlas.store import atlas_path, save_atlas
+    from softphantom.evaluation.files import read_estimate
+
+    cfg = EstimatorConfig.box(10.0, contact="on-centre")
+    good = AtlasEstimator(coarse_model, cfg, cached_atlas(shared_dir)).rest_check()
+    assert good["ok"] and good["in_envelope"] and good["force_N"] < GOALS["force_N"], good
+    base = cached_atlas(shared_dir)
+    cV = base.cV.copy()
+    cV[(0,) * (cV.ndim - 1)] += np.array([0.3, 0.3, -0.3, 0.0]) * 1e-9   # the constant term: V off by it everywhere
+    atlas = dataclasses.replace(base, cV=cV)
+    est = AtlasEstimator(coarse_model, cfg, atlas)
+    rc = est.rest_check()
+    # the closed form at rest: the atlas's own volumes and points at zero load, and the estimate there
+    zero = atlas.coords(np.zeros(3), 0.0)
+    assert rc["dV_at_zero_mm3"] == pytest.approx(float(np.abs(atlas.volumes(zero)[0]).max() * 1e9), rel=1e-9)
+    lam = est.invert(np.zeros(4), 0.0, start=zero)[0]
+    assert rc["force_N"] == pytest.approx(float(np.linalg.norm(atlas.forces(lam))), rel=1e-9)
+    assert rc["pos_mm"] > GOALS["pos_mm"] and not rc["ok"]
+    d = tmp_path / "model"
+    save_model(coarse_model, d)
+    save_atlas(atlas, atlas_path(d, atlas.key))
+    rec = _recording(tmp_path / "r.csv", n=10, meta={"contact": "on-centre"})
+    out = tmp_path / "e.csv"
+    c = atlas_config()
+    env = ",".join(f"{lo:g}:{hi:g}" for lo, hi in zip((*c.force_min_N, c.p_min_kPa), (*c.force_max_N, c.p_max_kPa)))
+    assert main(["estimate", "--model", str(d), "--source", f"replay:{rec}", "--out", str(out),
+                 "--atlas-grid", "3,4,3,2", "--envelope", env]) == 0
+    said = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("warning: the atlas at rest")]
+    assert len(said) == 1, said
+    meta = _meta(out)
+    assert meta["rest_check"]["ok"] is False and meta["rest_check"]["pos_mm"] == pytest.approx(rc["pos_mm"])
+    assert any(w.startswith("the atlas at rest") for w in read_estimate(out).meta["warnings"])

@@ -97,11 +97,32 @@ def source_contact(at: str | None, meta: dict, names: list[str], source: str) ->
     return "on-centre", "default"
 
 
+def rest_check(est) -> dict:
+    """The estimator's answer at rest checked (an atlas's: :meth:`AtlasEstimator.rest_check`), for the
+    estimate file's metadata: ``rest_check``, and ``warnings`` (read by ``evaluate``, shown in its
+    report) with the one line printed when it is off the rest state. Empty for an estimator that
+    has no check (the refresh estimator is linearized at rest: exact there)."""
+    check = getattr(est, "rest_check", None)
+    if not callable(check):
+        return {}
+    rc = check()
+    if rc["ok"]:
+        return {"rest_check": rc}
+    lim = rc["limits"]
+    msg = (f"the atlas at rest is off the rest state: at zero volumes it estimates |F| {rc['force_N']:.3f} N, "
+           f"{rc['pos_mm']:.3f} mm, {rc['ang_deg']:.3f}°{'' if rc['in_envelope'] else ', outside its envelope'} "
+           f"(its goals: {lim['force_N']:g} N, {lim['pos_mm']:g} mm, {lim['ang_deg']:g}°): every estimate of the "
+           "phantom at rest carries it; a finer --atlas-grid (or the default) brings it down")
+    console.print(f"warning: {msg}", style="yellow", highlight=False, soft_wrap=True)
+    return {"rest_check": rc, "warnings": [msg]}
+
+
 def warn_outside(summary: dict, envelope: str | None) -> None:
     """One warning line when estimates were clamped at the atlas envelope's faces (in_envelope 0)."""
     n, k = summary["estimates"], summary["outside"]
     console.print(f"warning: {k} of {n} estimates ({k / max(n, 1):.0%}) at or beyond the atlas envelope's faces, "
-                  f"clamped (in_envelope 0): widen --envelope (now {envelope or 'the default'})",
+                  f"clamped (in_envelope 0): widen --envelope (now {envelope or 'the default'}); most of a run "
+                  "clamped at rest: was the tare (serial) taken under load?",
                   style="yellow", highlight=False, soft_wrap=True)
 
 
@@ -226,8 +247,9 @@ def estimate_cmd(
         how = f"mode {cfg.mode}" if estimator == "refresh" else "no background work"
         console.print(f"estimator {estimator} ready in {time.monotonic() - t0:.1f} s ({len(model.nodes)} nodes, "
                       f"{how}, contact {at}, |F_i| <= {max_force_N:g} N, QP {qp_solver})", highlight=False)
+        rest = rest_check(est)
         meta = {"model": str(model_dir), "source": source, "contact": at, "contact_from": contact_from,
-                "max_force_N": max_force_N,
+                **rest, "max_force_N": max_force_N,
                 "qp_solver": qp_solver, "estimator": estimator, "mode": cfg.mode, "nodes": int(len(model.nodes)),
                 "contact_radius_mm": cfg.contact_radius_m * 1e3, **opened.meta}
         try:
