@@ -314,9 +314,16 @@ def test_the_foxglove_socket_keeps_the_pages_host_and_origin_rules(caplog):
                 with caplog.at_level(logging.DEBUG):
                     s.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
                     s.close()
-                    time.sleep(0.3)
+                    time.sleep(0.5)
                 assert not [r for r in caplog.records if r.levelno >= logging.WARNING], caplog.records
             s.close()
+        caplog.clear()
+        with caplog.at_level(logging.DEBUG):  # a client still connected when the session ends
+            got, s = _ws_open(p, f"127.0.0.1:{p}")
+            srv.close()
+            s.close()
+            time.sleep(0.5)
+        assert got == 101 and not [r for r in caplog.records if r.levelno >= logging.WARNING], caplog.records
     finally:
         srv.close()
 

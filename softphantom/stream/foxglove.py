@@ -390,7 +390,11 @@ class HandshakeGate:
         self._ready.set()
         try:
             self._loop.run_forever()
-        finally:
+        finally:  # the connections still open end here, each closing its sockets
+            tasks = asyncio.all_tasks(self._loop)
+            for task in tasks:
+                task.cancel()
+            self._loop.run_until_complete(asyncio.gather(*tasks, return_exceptions=True))
             self._loop.run_until_complete(self._loop.shutdown_asyncgens())
             self._loop.close()
 
@@ -426,6 +430,8 @@ class HandshakeGate:
             await asyncio.gather(_pipe(reader, back[1]), _pipe(back[0], writer))
         except (ConnectionError, OSError) as exc:
             log.debug("Foxglove: client %s: %s", peer[0], exc)
+        except asyncio.CancelledError:  # the gate closing: the connection ends here (asyncio's stream
+            pass                        # callback would log a cancelled task as an error)
         finally:
             for w in (writer, None if back is None else back[1]):
                 if w is not None:
@@ -438,9 +444,7 @@ class HandshakeGate:
         def stop() -> None:
             if self._server is not None:
                 self._server.close()
-            for task in __import__("asyncio").all_tasks(self._loop):
-                task.cancel()
-            self._loop.call_soon(self._loop.stop)
+            self._loop.stop()
 
         self._loop.call_soon_threadsafe(stop)
         self._thread.join(5.0)
@@ -482,6 +486,7 @@ class FoxgloveServer:
         _quiet_disconnects()
         self._ctx = foxglove.Context()
         self._gate = None
+        self._closed = False
         self.token = token
         try:
             self._server = foxglove.start_server(name="softphantom", host="127.0.0.1" if check else host,
@@ -522,6 +527,10 @@ class FoxgloveServer:
         self.sent += 1
 
     def close(self) -> None:
+        """Stop serving (idempotent)."""
+        if self._closed:
+            return
+        self._closed = True
         if self._gate is not None:
             self._gate.close()
         self._server.stop()
