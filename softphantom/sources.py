@@ -67,10 +67,16 @@ def _virtual(arg: str, *, model=None, bench=None, options=None, **_) -> OpenedSo
     model = _model(model)
     if model is None:
         raise UserError(f"--source virtual:{arg} needs --model DIR (a model directory from softphantom design)")
+    from softphantom.virtual.run import scenario_contact
+    from softphantom.virtual.scenario import load_scenario
+
     b = bench or BenchConfig.from_options(**(options or {}), model=model)
-    src = sensor_source(arg, model, bench=b)
+    scenario = load_scenario(arg)
+    src = sensor_source(scenario, model, bench=b)
+    contact = scenario_contact(scenario)
     return OpenedSource(src, bool(getattr(src, "live", False)), b, getattr(src, "tare", None), (),
-                        {"bench": b.to_meta()})
+                        {"bench": b.to_meta(), "scenario_contact": contact["contact"],
+                         **({"scenario_contacts": contact["contacts"]} if "contacts" in contact else {})})
 
 
 def _synthetic(arg: str, *, rate_Hz=77.0, duration_s=None, model=None, **_) -> OpenedSource:

@@ -49,13 +49,16 @@ def test_the_shipped_models_estimates_of_the_demo_recordings_are_unchanged(tmp_p
         ref = tmp_path / f"{name}.ref.csv"
         ref.write_bytes(gzip.decompress((DATA / f"{name}.estimate.csv.gz").read_bytes()))
         out = tmp_path / f"{name}.estimate.csv"
-        # the inversion is pinned: the tubes' lag compensation (made after the references) off
+        # the inversion is pinned: the reference recordings name no contact (made before recordings
+        # carried it: all on-centre), and the tubes' lag compensation (made after them) is off
         assert main(["estimate", "--model", str(model), "--source", f"replay:{rec}", "--out", str(out),
-                     "--lag-compensation", "off"]) == 0
+                     "--at", "on-centre", "--lag-compensation", "off"]) == 0
         got, want = read_table(out), read_table(ref)
         assert list(got.columns) == list(want.columns), name
-        assert got.meta["lag_compensation"] == "off", got.meta
-        skip = ("model", "source", "softphantom", "lag_compensation")
+        assert got.meta.pop("contact_from") == "--at"
+        assert got.meta.pop("rest_check")["ok"]  # the shipped atlas returns the rest state at rest
+        assert got.meta.pop("lag_compensation") == "off"
+        skip = ("model", "source", "softphantom")
         assert {k: v for k, v in got.meta.items() if k not in skip} == \
             {k: v for k, v in want.meta.items() if k not in skip}, name
         for col, w in want.columns.items():

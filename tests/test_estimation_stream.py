@@ -37,7 +37,7 @@ def _recording(path, n=30, bad=(7,)):
     tare = nominal_tare(chain)
     rng = np.random.default_rng(1)
     target = np.array([0.6, 0.5, -2.7, -2.6]) * 1e-9
-    with Recorder(path, {"tare": tare.to_dict(), "chain": chain.summary()}) as rec:
+    with Recorder(path, {"tare": tare.to_dict(), "chain": chain.summary(), "contact": "on-centre"}) as rec:
         for k in range(n):
             dV = target * k / (n - 1)
             p = np.r_[boyle_dp(dV, chain.v_total_m3, tare.p0_Pa), 0.0]

@@ -628,8 +628,8 @@ def test_live_estimates_a_five_arm_board_recording(five_model_dir, tmp_path):
     # volumes of a push of about (0.2, 1, -0.1) N on this model, reached at sample 10 and held
     dV = np.array([2.54, 1.25, -2.23, -1.19, -0.94]) * 1e-9
     path = tmp_path / "board.csv"
-    with Recorder(path, {"bench": bench.to_meta(), "tare": tare.to_dict(), "chain": chain.summary()},
-                  arm_names=arms) as r:
+    with Recorder(path, {"bench": bench.to_meta(), "tare": tare.to_dict(), "chain": chain.summary(),
+                         "contact": "on-centre"}, arm_names=arms) as r:
         for k in range(20):
             p = np.r_[boyle_dp(dV * min(1.0, k / 10), chain.v_total_m3, tare.p0_Pa), 0.0]
             r.write(to_measurement(k / 77, k, k / 77, simulate_raw(p, 100, rng, chain.transducers), 100, chain, tare))

@@ -67,6 +67,20 @@ def _pairs(recordings: list[Path], truths: list[Path], contacts: list[str], know
     return [SessionSpec(r, t, c, known[i] if known else None) for i, (r, t, c) in enumerate(zip(recordings, truths, cs))]
 
 
+def _check_files(specs, prefix: str = "--") -> None:
+    """Every session's files exist, before any is read (a session is read recording first): one
+    line naming the option and the file. A take may be a ROS 2 bag's directory."""
+    for sp in specs:
+        for opt, p in ((f"{prefix}recording", sp.recording), (f"{prefix}truth", sp.truth),
+                       ("--known-loads", sp.known_loads)):
+            if p is None:
+                continue
+            if not Path(p).exists():
+                raise UserError(f"{opt} {p}: no such file")
+            if Path(p).is_dir() and opt != f"{prefix}truth":
+                raise UserError(f"{opt} {p}: is a directory (expected a file)")
+
+
 @app.command("calibrate")
 def calibrate_cmd(
     model: Path = typer.Option(..., "--model", help="Model directory (softphantom design)."),
@@ -116,6 +130,8 @@ def calibrate_cmd(
     parameter_set(measured=tuple(m for m in opts.measured if m[0] not in ratios))
     for name, value, sd in (m for m in opts.measured if m[0] in ratios):
         Parameter(name, 0.0, 1.0).measured(value, sd)
+    _check_files(specs)
+    _check_files(hold, "--holdout-")
     cal = calibrate(model, specs, hold, options=opts, scheduler=scheduler, n_workers=workers,
                     max_keyframes=max_keyframes)
     with staged_output(out, overwrite=overwrite, directory=True) as work:

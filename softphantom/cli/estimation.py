@@ -86,11 +86,66 @@ def lag_for(mode: str | None, opened, source: str):
     return comp, meta
 
 
+def source_contact(at: str | None, meta: dict, names: list[str], source: str) -> tuple[str, str]:
+    """The contact point to estimate at and where it comes from: ``--at``; else a replay's
+    recording (``recording_contact``) or a virtual scenario's (``scenario_contact``); else, for a
+    serial board, on-centre. A recording or scenario that names none (or several) on a model of
+    several contact points is refused in one line asking for ``--at``: estimating at the wrong
+    point mirrors the pose.
+
+    >>> source_contact(None, {"recording_contact": "port"}, ["on-centre", "port"], "replay:r.csv")
+    ('port', 'recording')
+    >>> source_contact(None, {"recording_contact": None}, ["on-centre", "off-centre"], "replay:r.csv")
+    Traceback (most recent call last):
+    ...
+    softphantom.errors.UserError: --source replay:r.csv: the recording names no contact point and this model has several (on-centre, off-centre); give --at
+    """
+    from softphantom.design.params import check_contact
+
+    if at is not None:
+        return check_contact(at, names, "--at"), "--at"
+    for key, what in (("recording_contact", "recording"), ("scenario_contact", "scenario")):
+        if key not in meta:
+            continue
+        if meta[key]:  # made at a point this model may not have
+            return check_contact(meta[key], names, f"{source}: {key}", hint="--at gives another"), what
+        several = meta.get(key + "s")
+        if several:
+            raise UserError(f"--source {source}: the {what} pushes at several contact points "
+                            f"({', '.join(several)}); give --at (one of them)")
+        if len(names) > 1:
+            raise UserError(f"--source {source}: the {what} names no contact point and this model has several "
+                            f"({', '.join(names)}); give --at")
+        return names[0], what
+    return "on-centre", "default"
+
+
+def rest_check(est) -> dict:
+    """The estimator's answer at rest checked (an atlas's: :meth:`AtlasEstimator.rest_check`), for the
+    estimate file's metadata: ``rest_check``, and ``warnings`` (read by ``evaluate``, shown in its
+    report) with the one line printed when it is off the rest state. Empty for an estimator that
+    has no check (the refresh estimator is linearized at rest: exact there)."""
+    check = getattr(est, "rest_check", None)
+    if not callable(check):
+        return {}
+    rc = check()
+    if rc["ok"]:
+        return {"rest_check": rc}
+    lim = rc["limits"]
+    msg = (f"the atlas at rest is off the rest state: at zero volumes it estimates |F| {rc['force_N']:.3f} N, "
+           f"{rc['pos_mm']:.3f} mm, {rc['ang_deg']:.3f}°{'' if rc['in_envelope'] else ', outside its envelope'} "
+           f"(its goals: {lim['force_N']:g} N, {lim['pos_mm']:g} mm, {lim['ang_deg']:g}°): every estimate of the "
+           "phantom at rest carries it; a finer --atlas-grid (or the default) brings it down")
+    console.print(f"warning: {msg}", style="yellow", highlight=False, soft_wrap=True)
+    return {"rest_check": rc, "warnings": [msg]}
+
+
 def warn_outside(summary: dict, envelope: str | None) -> None:
     """One warning line when estimates were clamped at the atlas envelope's faces (in_envelope 0)."""
     n, k = summary["estimates"], summary["outside"]
     console.print(f"warning: {k} of {n} estimates ({k / max(n, 1):.0%}) at or beyond the atlas envelope's faces, "
-                  f"clamped (in_envelope 0): widen --envelope (now {envelope or 'the default'})",
+                  f"clamped (in_envelope 0): widen --envelope (now {envelope or 'the default'}); most of a run "
+                  "clamped at rest: was the tare (serial) taken under load?",
                   style="yellow", highlight=False, soft_wrap=True)
 
 
@@ -105,7 +160,8 @@ def estimate_cmd(
     source: str = typer.Option(..., "--source", help="serial:PORT | replay:FILE (sensing recording) | virtual:SCENARIO"),
     out: Path = typer.Option(..., "--out", help="Estimate CSV to write (metadata line, then one row per sample)."),
     at: str = typer.Option(None, "--at", help="Contact point: on-centre, off-centre or one of the design's "
-                           "[contacts] (the model's p_ext); default: the recording's (replay) or on-centre."),
+                           "[contacts] (the model's p_ext); default: the recording's (replay), the scenario's (virtual), "
+                           "on-centre (serial)."),
     max_force_N: float = typer.Option(10.0, "--max-force-N", help="Bound on each force component (N)."),
     qp_solver: str = typer.Option("daqp", "--qp-solver", help="QP solver: daqp | quadprog."),
     estimator: str = typer.Option("atlas", "--estimator", help="atlas (precomputed equilibria, built once per model "
@@ -172,15 +228,8 @@ def estimate_cmd(
     opened = open_sensor_source(source, model, tare_s=tare_s, on_new_board=on_new_board,
                                 tube_length_m=tube_length_m, tube_id_mm=tube_id_mm, p0_kPa=p0_kPa)
     src, live = opened.source, opened.live
-    if at is None and opened.meta.get("recording_contact"):
-        at = opened.meta["recording_contact"]
-        try:  # a recording made at a point this model does not have
-            check_contact(at, list(model.p_ext), f"{source}: recording_contact", hint="--at gives another")
-        except UserError:
-            src.close()
-            raise
-    at = at or "on-centre"
     try:
+        at, contact_from = source_contact(at, opened.meta, list(model.p_ext), source)
         lag, lag_meta = lag_for(lag_compensation, opened, source)
     except BaseException:
         src.close()
@@ -214,12 +263,21 @@ def estimate_cmd(
 
     # a live source's estimates cannot be made again: written in place and kept on Ctrl-C (closed
     # cleanly); from a file, the CSV appears only when complete
+    if live:
+        try:
+            out.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            est.close()
+            src.close()
+            raise UserError(f"--out {out}: cannot create {out.parent} ({exc.strerror})") from None
     target = contextlib.nullcontext(out) if live else staged_output(out, overwrite=overwrite, directory=False)
     with target as path, est:
         how = f"mode {cfg.mode}" if estimator == "refresh" else "no background work"
         console.print(f"estimator {estimator} ready in {time.monotonic() - t0:.1f} s ({len(model.nodes)} nodes, "
                       f"{how}, contact {at}, |F_i| <= {max_force_N:g} N, QP {qp_solver})", highlight=False)
-        meta = {"model": str(model_dir), "source": source, "contact": at, "max_force_N": max_force_N,
+        rest = rest_check(est)
+        meta = {"model": str(model_dir), "source": source, "contact": at, "contact_from": contact_from,
+                **rest, "max_force_N": max_force_N,
                 "qp_solver": qp_solver, "estimator": estimator, "mode": cfg.mode, "nodes": int(len(model.nodes)),
                 "contact_radius_mm": cfg.contact_radius_m * 1e3, **opened.meta, **lag_meta}
         try:

@@ -23,8 +23,8 @@ def live(
     listen_host: str = typer.Option("127.0.0.1", "--listen-host",
                                     help="interface for the page and the stream; beyond loopback needs --allow-remote"),
     allow_remote: bool = typer.Option(False, "--allow-remote",
-                                      help="serve beyond loopback: the page then requires a token (printed in its "
-                                      "address); the stream has no authentication"),
+                                      help="serve beyond loopback: the page and --foxglove then require a token "
+                                      "(printed in their addresses); the stream has no authentication"),
     allowed_host: list[str] = typer.Option([], "--allowed-host",
                                            help="a name clients use for this machine (Host header; repeat)"),
     max_clients: int = typer.Option(16, "--max-clients", min=1, help="page connections served at once"),
@@ -39,8 +39,9 @@ def live(
     rate_Hz: float = typer.Option(77.0, "--rate-Hz", help="estimate rate of the synthetic source, Hz"),
     view_rate_Hz: float = typer.Option(30.0, "--view-rate-Hz", help="page update rate, Hz"),
     speed: float = typer.Option(1.0, "--speed", help="replay/virtual speed factor (0: as fast as possible)"),
-    at: str = typer.Option("on-centre", "--at", help="virtual/serial: contact point, on-centre, off-centre "
-                      "or one of the design's [contacts]"),
+    at: Optional[str] = typer.Option(None, "--at", help="estimated sources: contact point, on-centre, off-centre "
+                                     "or one of the design's [contacts]; default: the recording's (replay), the "
+                                     "scenario's (virtual), on-centre (serial)"),
     max_force_N: float = typer.Option(10.0, "--max-force-N", help="virtual/serial: bound on each force component (N)"),
     tube_length_m: Optional[float] = TUBE_LENGTH_OPTION,
     tube_id_mm: Optional[float] = TUBE_ID_OPTION,
@@ -63,7 +64,7 @@ def live(
     check_source_options(source, max_force_N=max_force_N, on_new_board=on_new_board, tube_length_m=tube_length_m,
                          tube_id_mm=tube_id_mm)
     check_lag_option(lag_compensation)
-    if model is None:  # with --model, checked against its contact points once it is read
+    if model is None and at is not None:  # with --model, checked against its contact points once it is read
         from softphantom.design.params import DERIVED_CONTACTS, check_contact
 
         check_contact(at, DERIVED_CONTACTS, "--at", "the default design", "--model for a design's [contacts]")
@@ -84,11 +85,6 @@ def live(
     if record is not None:
         check_output(record, overwrite=overwrite, directory=False, option="--record")
     token = _remote_token(listen_host, allow_remote)
-    if token is not None and foxglove:
-        from softphantom.cli.app import print_error
-
-        print_error("the Foxglove server has no authentication either: anyone who can reach its port sees the "
-                    "session", prefix="warning: ")
     kind, _, arg = source.partition(":")
     if kind in ("virtual", "serial") or (kind == "replay" and replay_holds(arg) == "measurements"):
         src = _estimator_source(source, model, at, max_force_N, speed,
@@ -104,6 +100,7 @@ def live(
                      foxglove_port=foxglove_port if foxglove else None)
     with LiveSession(src, cfg) as session:
         console.print(f"live page: {session.url}", highlight=False, soft_wrap=True)
+        name = None
         if token is not None:
             import socket
 
@@ -116,7 +113,11 @@ def live(
                           "see docs/stream.md)", highlight=False)
         if session.foxglove_url:
             console.print(f"Foxglove: {session.foxglove_url} (Open connection → Foxglove WebSocket; "
-                          "3D panel, display frame 'phantom'; docs/stream.md)", highlight=False)
+                          "3D panel, display frame 'phantom'; docs/stream.md)", highlight=False, soft_wrap=True)
+            if name is not None:
+                fport = session.foxglove_url.split("://", 1)[1].split("/", 1)[0].rsplit(":", 1)[1]
+                console.print(f"  from another machine: ws://{name}:{fport}/?token={token}",
+                              highlight=False, soft_wrap=True)
         if record is not None:
             console.print(f"recording: {record}", highlight=False)
         try:
@@ -172,16 +173,16 @@ def _remote_token(listen_host: str, allow_remote: bool) -> str | None:
                              "the page then requires a token; the estimate stream"):
         return None
     what = "every interface" if every_interface(listen_host) else listen_host
-    print_error(f"serving on {what}: anyone who can reach this machine and has the token in the printed address "
+    print_error(f"serving on {what}: anyone who can reach this machine and has the token in the printed addresses "
                 "sees the session; the estimate stream has no authentication", prefix="warning: ")
     return secrets.token_urlsafe(18)
 
 
-def _estimator_source(spec: str, model_dir: Optional[Path], at: str, max_force_N: float, speed: float,
+def _estimator_source(spec: str, model_dir: Optional[Path], at: Optional[str], max_force_N: float, speed: float,
                       bench_options: Optional[dict] = None, on_new_board: str = "stop", estimator: str = "atlas",
                       lag_compensation: Optional[str] = None):
     """The estimator over a board or the virtual phantom, opened as ``softphantom estimate`` does."""
-    from softphantom.cli.estimation import lag_for, open_sensor_source
+    from softphantom.cli.estimation import lag_for, open_sensor_source, source_contact
     from softphantom.design import load_model
     from softphantom.design.params import check_contact
     from softphantom.estimation import EstimatorConfig, open_estimator
@@ -192,9 +193,15 @@ def _estimator_source(spec: str, model_dir: Optional[Path], at: str, max_force_N
     if model_dir is None or not (model_dir / "model.npz").is_file():
         raise UserError(f"--source {spec} needs --model DIR (a model directory from softphantom design)")
     model = load_model(model_dir)
-    check_contact(at, list(model.p_ext), "--at")
+    if at is not None:
+        check_contact(at, list(model.p_ext), "--at")
     opened = open_sensor_source(spec, model, on_new_board=on_new_board, **(bench_options or {}))
     sensor, is_live = opened.source, opened.live
+    try:
+        at, _ = source_contact(at, opened.meta, list(model.p_ext), spec)
+    except UserError:
+        sensor.close()
+        raise
     # refresh estimator on a paced source: the background equilibrium keeps each step short
     cfg = EstimatorConfig.box(max_force_N, contact=at, mode="async" if is_live or speed > 0 else "sync")
     try:

@@ -173,6 +173,19 @@ def check_output(path: Path, *, overwrite: bool, directory: bool, option: str = 
             raise UserError(f"{option} {path}: exists and is not a directory")
         if not overwrite:
             raise UserError(f"{option} {path}: exists; use --overwrite to replace it")
+    _check_parent(path, option)
+
+
+def _check_parent(path: Path, option: str) -> None:
+    """Refuse an output whose folder cannot be made (an existing file on its way) or written, before
+    the command's work rather than at its end; missing folders are made when it is written."""
+    parent = path.absolute().parent
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir():
+        raise UserError(f"{option} {path}: cannot be created ({parent} is a file, not a directory)")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise UserError(f"{option} {path}: cannot be created ({parent}: permission denied)")
 
 
 @contextlib.contextmanager

@@ -197,13 +197,14 @@ def acquire_cmd(
         interrupted = True
     else:
         interrupted = False
-    finally:
+    finally:  # every way out (Ctrl-C, a new board under --on-new-board stop, an error) says what was kept
         if rec is not None:
             rec.close()
         src.close()
-    d = src.stats().decoder
-    if rec is not None:
-        console.print(f"wrote {rec.rows} rows and {rec.events} link events to {out} (CRC errors {d.crc_errors}, "
-                      f"frames lost {d.frames_lost}, duplicates {d.duplicates}, reconnects {src.stats().reconnects})")
+        if rec is not None:
+            d = src.stats().decoder
+            console.print(f"wrote {rec.rows} rows and {rec.events} link events to {out} (CRC errors "
+                          f"{d.crc_errors}, frames lost {d.frames_lost}, duplicates {d.duplicates}, reconnects "
+                          f"{src.stats().reconnects})", highlight=False, soft_wrap=True)
     if interrupted:
         stopped()  # the recording is closed and complete; exit 130

@@ -44,6 +44,9 @@ from softphantom.design import geometry as geo
 from softphantom.design.params import MIN_WALL_MM, ArmParams, BIPDesign, BulbParams, UrethraParams
 from softphantom.errors import DesignError, FileFormatError
 
+MAX_URETHRA_SHARE = 0.10
+"""The most of the gland's voxels a urethra label may hold (a prostate's urethra: 1–3 %; the BIP's 2 %)."""
+
 # RAS+ (NIfTI world) → model frame: x = left (−R), y = superior, z = anterior (a proper rotation)
 RAS_TO_MODEL = np.array([[-1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, 1.0, 0.0]])
 
@@ -343,6 +346,22 @@ def _gland_mask(data: np.ndarray, opt: AnatomyOptions, source: str) -> np.ndarra
     return np.isin(data, (*opt.gland_labels, *extra, *opt.lesion_labels))
 
 
+def _check_urethra_share(data: np.ndarray, mask: np.ndarray, opt: AnatomyOptions, source: str) -> None:
+    """Refuse a urethra label that holds more of the gland than a urethra can (a zone of a zonal
+    map taken for the urethra: label 2 is a transition zone in several public data sets)."""
+    if not opt.urethra_label:
+        return
+    share = float(np.count_nonzero(data == opt.urethra_label)) / max(int(np.count_nonzero(mask)), 1)
+    if share <= MAX_URETHRA_SHARE:
+        return
+    zones = sorted(int(x) for x in np.unique(data[mask]) if x > 0 and x not in opt.lesion_labels)
+    fix = (f"if the labels are zones, give --gland-labels {','.join(map(str, zones))} (the urethra is then placed "
+           "on the gland's axis), or --urethra-label for the urethra's own label" if not opt.gland_labels else
+           "give --urethra-label for the urethra's own label (0: none)")
+    raise DesignError(f"{source}: urethra label {opt.urethra_label} holds {share:.0%} of the gland, too much for a "
+                      f"urethra (at most {MAX_URETHRA_SHARE:.0%}); {fix}")
+
+
 def anatomy_from_labels(data: np.ndarray, affine: np.ndarray, opt: AnatomyOptions = AnatomyOptions(),
                         source: str = "label map") -> Anatomy:
     """A gland from an integer label map and its voxel → world (mm) affine."""
@@ -362,6 +381,7 @@ def anatomy_from_labels(data: np.ndarray, affine: np.ndarray, opt: AnatomyOption
     if n > 1:
         raise DesignError(f"{source}: the gland has {n} disconnected components (voxel counts {sizes[:5]}); "
                           "expected one")
+    _check_urethra_share(data, mask, opt, source)
     for lab in opt.lesion_labels:  # before the surface, the slow part
         if lab == opt.urethra_label or lab <= 0:
             raise DesignError(f"{source}: lesion label {lab} must be > 0 and not the urethra's ({opt.urethra_label})")

@@ -155,7 +155,7 @@ def read_estimate(path: str | Path) -> Series6:
     truncated last row."""
     with collect_truncation_warnings([]) as warned:
         est = series_from_table(read_table(path), "estimate")
-    est.meta["warnings"] = warned
+    est.meta["warnings"] = [*est.meta.get("warnings", ()), *warned]  # the estimator's own (an atlas off at rest)
     return est
 
 

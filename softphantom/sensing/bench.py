@@ -273,6 +273,7 @@ class RetareSource(SensorSource):
         self.inner, self.bench, self.policy, self.tare_s, self.label = source, bench, policy, tare_s, label
         self.chain = source.chain
         self._held: list[Measurement] | None = None
+        self._held_events: list[SourceEvent] = []
         self._error: NewBoardError | None = None
         self._events: collections.deque[SourceEvent] = collections.deque()
 
@@ -288,9 +289,12 @@ class RetareSource(SensorSource):
         batch = self.inner.read(timeout_s)
         restart = None
         for ev in self.inner.events():
-            self._events.append(ev)
             if ev.kind == "restart":
                 restart = ev
+            # while the frames are held back for the tare, so are the events from the restart on: they
+            # come out with the frames, so that a recorder places each before the frame that follows it
+            hold = self._held is not None or (restart is not None and self.policy == "retare")
+            (self._held_events if hold else self._events).append(ev)
         before: list[Measurement] = []
         if restart is not None:
             # the policy applies whatever came with the event: a new board may announce itself by
@@ -307,16 +311,23 @@ class RetareSource(SensorSource):
                 return before
             self._held = []
             batch = frames if batch is not None else None
+        if batch is None and self._held_events:  # the source ended during the tare window
+            self._events.extend(self._held_events)
+            self._held_events = []
         if batch is None or self._held is None:
             return batch if not before else before + (batch or [])
         self._held += batch
-        # the window's length by the board clock: a burst of frames read at once shares one host time
+        # the window's length by the board clock (the host clock of a burst read at once is estimated)
         if not self._held or self._held[-1].t_board - self._held[0].t_board < self.tare_s or len(self._held) < 5:
             return before
         tare = tare_from_measurements(self._held, self.bench, self.chain)
         self.inner.set_tare(tare)
+        # the new board began at its first frame at the latest (a burst read at once may be dated earlier
+        # than the read that noticed the restart)
+        self._events.extend(replace(e, t=min(e.t, self._held[0].t)) for e in self._held_events)
         self._events.append(SourceEvent(self._held[0].t, "retared",
                                         f"{tare.n_samples} frames at rest, {self.tare_s:g} s"))
+        self._held_events = []
         out = [to_measurement(m.t, m.seq, m.t_board, m.raw, m.osr, self.chain, tare) for m in self._held]
         self._held = None
         return before + out
@@ -397,7 +408,8 @@ def open_replay(path: str, model=None, bench: BenchConfig | None = None, *, opti
                        tare=_retared_p0(meta, use) if reconvert else None)
     return OpenedSource(src, False, use or BenchConfig(), None, (),
                         {"bench": (use or BenchConfig()).to_meta(), "reconverted": reconvert,
-                         "recording_contact": meta.get("contact"), **({"bench_note": notes[0]} if notes else {}),
+                         "recording_contact": meta.get("contact"),
+                         **({"recording_contacts": meta["contacts"]} if meta.get("contacts") else {}), **({"bench_note": notes[0]} if notes else {}),
                          **({"tube_missing": tube_missing} if tube_missing else {}),
                          **({"clock": SCENARIO_CLOCK} if meta.get("virtual") else {})},
                         notes)

@@ -270,15 +270,43 @@ class NotAtRestError(UserError):
     """The tare window is not at rest (the message says which channel and why)."""
 
 
+MAX_BEND_PA = 0.5
+"""An arm's pressure may bend (the RMS of its cubic trend off its straight line) by this much in a
+tare window; a push held a little shorter than the window bends it by more (tests/test_defects_56a.py)."""
+
+
+def window_bend_Pa(t_s, p) -> tuple[float, float]:
+    """How far a window's cubic trend strays from its straight line (RMS, Pa: a push starting,
+    ending or turning over bends it, a temperature drift does not), and what white noise alone
+    reaches once in about 10⁹ windows (the two extra terms of the fit: σ² χ²₂ / n, χ²₂ ≤ 40; σ from
+    the frame-to-frame differences).
+
+    >>> t = np.arange(77) / 77.0
+    >>> [round(b, 2) for b in window_bend_Pa(t, 3.0 * t)]   # a straight drift does not bend
+    [0.0, 0.0]
+    """
+    t, p = np.asarray(t_s, float), np.asarray(p, float)
+    if len(p) < 6 or not t[-1] > t[0]:
+        return 0.0, math.inf
+    x = (t - t.mean()) / (t[-1] - t[0])
+    d = np.polyval(np.polyfit(x, p, 3), x) - np.polyval(np.polyfit(x, p, 1), x)
+    sigma = float(np.std(np.diff(p))) / math.sqrt(2.0)
+    return float(np.sqrt(np.mean(d * d))), sigma * math.sqrt(40.0 / len(p))
+
+
 def tare_from_window(raw, osr, t_s, chain: SensorChain, p0_Pa: float = P0_STANDARD_PA,
-                     max_std_Pa=None, max_slope_Pa_per_s=None, min_samples: int = 5) -> Tare:
+                     max_std_Pa=None, max_slope_Pa_per_s=None, min_samples: int = 5, max_bend_Pa=None) -> Tare:
     """Zero offsets from a window of frames recorded at rest; refuses a window that is not.
 
     ``raw`` (n, channels) sums, ``osr`` scalar or (n,), ``t_s`` (n,) host times. At rest means:
     every frame in range, and per channel the pressure's standard deviation ≤ ``max_std_Pa``
-    (default 25 Pa an arm, 500 Pa an internal cavity's) and its least-squares slope ≤
+    (default 25 Pa an arm, 500 Pa an internal cavity's), its least-squares slope ≤
     ``max_slope_Pa_per_s`` (default 20 and 2000 Pa/s; a push or a leak moves it; ≈ 5.8 Pa/s is
-    1 K/min of temperature drift). Raises :class:`NotAtRestError` naming the channel.
+    1 K/min of temperature drift) and its bend (:func:`window_bend_Pa`) ≤ ``max_bend_Pa`` or
+    what the noise explains (default :data:`MAX_BEND_PA` an arm, 20 Pa an internal cavity's): a
+    window on the top of a push is steady on the whole, but bends where the push rises or falls.
+    A load held steady through the whole window cannot be told from rest. Raises
+    :class:`NotAtRestError` naming the channel.
 
     >>> rng = np.random.default_rng(1)
     >>> raw = simulate_raw(np.zeros((20, 5)), 100, rng)
@@ -293,6 +321,7 @@ def tare_from_window(raw, osr, t_s, chain: SensorChain, p0_Pa: float = P0_STANDA
     na = chain.n_arms
     max_std_Pa = (25.0,) * na + (500.0,) * (c - na) if max_std_Pa is None else max_std_Pa
     max_slope_Pa_per_s = (20.0,) * na + (2000.0,) * (c - na) if max_slope_Pa_per_s is None else max_slope_Pa_per_s
+    max_bend_Pa = (MAX_BEND_PA,) * na + (20 * MAX_BEND_PA,) * (c - na) if max_bend_Pa is None else max_bend_Pa
     if raw.ndim != 2 or raw.shape[1] != c or t.shape != (n,):
         raise UserError(f"tare window: expected raw (n, {c}) and t (n,), got {raw.shape} and {t.shape}")
     if n < min_samples:
@@ -317,6 +346,11 @@ def tare_from_window(raw, osr, t_s, chain: SensorChain, p0_Pa: float = P0_STANDA
             if abs(slope) > max_slope_Pa_per_s[i]:
                 raise NotAtRestError(f"tare window: {name} drifting ({slope:+.1f} Pa/s, limit "
                                      f"{max_slope_Pa_per_s[i]:g} Pa/s): a push, a leak or temperature")
+        bend, noise_bend = window_bend_Pa(t, p)
+        if bend > max(max_bend_Pa[i], noise_bend):
+            raise NotAtRestError(f"tare window: {name} not at rest (its pressure bends by {bend:.1f} Pa, limit "
+                                 f"{max(max_bend_Pa[i], noise_bend):.1f} Pa): a push rising, falling or held; tare "
+                                 "with the phantom at rest")
     return Tare(codes.mean(axis=0), float(p0_Pa), n, float(t[-1]), noise)
 
 

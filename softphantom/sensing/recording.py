@@ -12,13 +12,14 @@ silent, disconnected, reconnected, restart, resumed, retared) is a marker row wi
 ``osr`` 0, empty numbers and ``status`` = ``event:<kind>: <detail>``. Readers get the samples and
 the events apart (:attr:`Recording.events`).
 
-``t_s`` never runs backwards, marker rows included. A marker row's ``t_s`` is its event's time
-held between the samples around it: a silence or an unplug is noticed on the host clock after the
-fact, while frames that arrive late keep the time they were sampled, which may be earlier. So a
-marker takes the time of the sample before it, or of the first sample after it when that one
-is known as it is written (``resumed``: the frame that ended the hole); the ``detail`` says how
-long the outage lasted. The reader also reads a file whose marker row is later than the sample
-after it: only the samples must be in time order.
+``t_s`` never runs backwards, marker rows included. A marker row's ``t_s`` is its event's own
+host time (an unplug, a reconnection, a restart each when it happened: the serial source stamps
+no frame after them earlier), never before the row above it and never after the first sample
+after it when that one is known as it is written (``resumed``: the frame that ended the hole). A
+silence is marked where it began, at the last frame before it: it is noticed on the host clock
+after the fact, and frames sampled during it may still come, late, with the times they were
+sampled (a frozen link); its ``detail`` says how long it had lasted. The reader also reads a file
+whose marker row is later than the sample after it: only the samples must be in time order.
 
 Append-only: every row goes to the OS as soon as it is written (a killed process loses nothing
 already written) and the file is fsync'ed at least every 100 ms while rows arrive (a power cut
@@ -88,13 +89,15 @@ class Recorder:
 
     def write_event(self, ev: SourceEvent, next_t: float | None = None) -> None:
         """A marker row for a link event (synced at once: an outage is exactly when the process may
-        die). Its ``t_s`` is ``ev.t`` held between the last row written and ``next_t`` (the sample
-        to be written next, when known; else the last row's time), so the file stays in time order."""
+        die). Its ``t_s`` is ``ev.t`` (a silence: the last row's, where it began), not before the
+        last row written nor after ``next_t`` (the sample to be written next, when known)."""
         t = float(ev.t)
-        if self._last_t is not None:
-            t = max(self._last_t, min(t, self._last_t if next_t is None else float(next_t)))
-        elif next_t is not None:
+        if ev.kind == "silent" and self._last_t is not None:
+            t = self._last_t
+        if next_t is not None:
             t = min(t, float(next_t))
+        if self._last_t is not None:
+            t = max(self._last_t, t)
         self._w.write_row(event_row(replace(ev, t=t), len(self.arm_names), len(self.cavity_names)), sync=True)
         self.events += 1
         self._last_t = t

@@ -126,6 +126,7 @@ class FrameSource(SensorSource):
         self._tb_prev = 0.0
         self._events: collections.deque[SourceEvent] = collections.deque(maxlen=10_000)
         self._hole_since: float | None = None   # start of the outage being reported
+        self._floor = -float("inf")             # the latest unplug or reconnection (host time)
         self._board_starts = 0
         self.new_board_at: int | None = None
         """Where the last read's measurements switch to a restarted or new board (its clock began
@@ -139,21 +140,25 @@ class FrameSource(SensorSource):
     def _event(self, t: float, kind: str, detail: str = "") -> None:
         if kind in ("silent", "disconnected") and self._hole_since is None:
             self._hole_since = t
+        if kind in ("disconnected", "reconnected"):  # no frame after them is stamped earlier
+            self._floor = max(self._floor, float(t))
         self._events.append(SourceEvent(float(t), kind, detail))
 
-    def _board_time(self, t_us: int) -> float:
-        if self._tb_last_us is None:
+    def _board_time(self, t_us: int) -> tuple[float, bool]:
+        """The board time (s) of a frame's ``t_us`` and whether its clock began again there (the
+        first frame, or a board restarted)."""
+        restarted = self._tb_last_us is None
+        if restarted:
             self._tb_s = t_us * 1e-6
-            self._offset = None
         else:
             d = (t_us - self._tb_last_us) & 0xFFFFFFFF        # u32 µs wraps after 71.6 min
             if d >= 0x80000000:                               # backwards: the board restarted
-                self._tb_s, self._offset = t_us * 1e-6, None
+                self._tb_s, restarted = t_us * 1e-6, True
                 self._board_starts += 1
             else:
                 self._tb_s += d * 1e-6
         self._tb_last_us = t_us
-        return self._tb_s
+        return self._tb_s, restarted
 
     def _ingest(self, data: bytes, now: float | None) -> list[Measurement]:
         out = []
@@ -163,11 +168,32 @@ class FrameSource(SensorSource):
             self._event(now if now is not None else (self._last.t if self._last else 0.0), "restart",
                         "the board clock ran backwards: the board was reset or replaced")
         self.new_board_at = None
+        timed = []
         for f in frames:
             starts = self._board_starts
-            tb = self._board_time(f.t_us)
+            tb, restarted = self._board_time(f.t_us)
             if self._board_starts != starts and self.new_board_at is None:
-                self.new_board_at = len(out)
+                self.new_board_at = sum(isinstance(g, DataFrame) for g, _, _ in timed)
+            timed.append((f, tb, restarted))
+        # Frames read at once arrived together: the newest of a board's frames in the burst bounds the
+        # host−board offset of all of them (an offset is at most every frame's arrival − its board time),
+        # so a burst keeps its board-clock spacing instead of sharing the arrival time.
+        newest: list[float] = [0.0] * len(timed)
+        top = None
+        for i in range(len(timed) - 1, -1, -1):
+            f, tb, restarted = timed[i]
+            top = tb if top is None else top
+            newest[i] = top
+            if restarted:
+                top = None
+        for (f, tb, restarted), tb_newest in zip(timed, newest):
+            if restarted:
+                self._offset = None
+            if now is not None:  # every frame's arrival bounds the offset, an INFO frame's too
+                obs = now - tb_newest
+                prev = self._tb_prev if self._offset is not None else tb
+                self._offset = obs if self._offset is None else min(obs, self._offset + CLOCK_DRIFT * (tb - prev))
+            self._tb_prev = tb
             if isinstance(f, InfoFrame):
                 self._firmware, self._osr = f.firmware_str, f.osr
                 continue
@@ -175,12 +201,9 @@ class FrameSource(SensorSource):
             if now is None:
                 t = tb
             else:
-                obs = now - tb
-                prev = self._tb_prev if self._offset is not None else tb
-                self._offset = obs if self._offset is None else min(obs, self._offset + CLOCK_DRIFT * (tb - prev))
                 # never backwards: an early frame that arrived late is corrected by a later one
-                t = tb + self._offset if self._last is None else max(tb + self._offset, self._last.t)
-            self._tb_prev = tb
+                t = max(tb + self._offset, self._floor) if self._last is None else \
+                    max(tb + self._offset, self._last.t, self._floor)
             m = to_measurement(t, f.seq, tb, f.raw, f.osr, self.chain, self.tare)
             self._osr = f.osr
             self._last = m

@@ -28,10 +28,12 @@ frames as they were.
 
 from __future__ import annotations
 
+import errno
+import logging
 import math
 import time
 from dataclasses import dataclass
-from typing import Any, Mapping, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -44,6 +46,8 @@ TOPIC_FG_TF = "/foxglove/tf"
 FRAME_PHANTOM = "phantom"
 FRAME_ESTIMATE = "phantom_estimate"
 FRAME_TRACKER = "phantom_tracker"
+log = logging.getLogger(__name__)
+
 DEFAULT_FOXGLOVE_PORT = 8766
 """Not Foxglove's usual 8765: that is the live page's default port."""
 
@@ -313,27 +317,192 @@ class FoxgloveScene:
         return FoxgloveMessage(TOPIC_FG_TF, fm.FrameTransforms(transforms=[tf]).encode(), t_ns)
 
 
+@dataclass(frozen=True)
+class Handshake:
+    """A client's WebSocket opening request, as :class:`HandshakeGate` hands it to its check:
+    ``peer`` its address, ``target`` the request target (path and query), ``headers`` by lower-case name."""
+
+    peer: str
+    target: str
+    headers: Mapping[str, str]
+
+
+Check = Callable[[Handshake], "tuple[int, str] | None"]
+"""A handshake's refusal (HTTP status, one line of text), or None to let it through."""
+
+MAX_HANDSHAKE_BYTES = 16384
+HANDSHAKE_TIMEOUT_S = 10.0
+
+
+class _QuietDisconnects(logging.Filter):
+    """The SDK logs a client that drops without the closing handshake (a closed tab, a reset
+    connection) as an error: it is routine, so it goes to the debug level."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if record.levelno > logging.DEBUG and str(record.msg).startswith("Error receiving from client"):
+            record.levelno, record.levelname = logging.DEBUG, "DEBUG"
+            return logging.getLogger(record.name).isEnabledFor(logging.DEBUG)
+        return True
+
+
+def _quiet_disconnects() -> None:
+    lg = logging.getLogger("foxglove.websocket.connected_client.poller")
+    if not any(isinstance(f, _QuietDisconnects) for f in lg.filters):
+        lg.addFilter(_QuietDisconnects())
+
+
+class HandshakeGate:
+    """A TCP front for a WebSocket server that cannot vet its clients (the SDK's accepts every
+    opening request): listens on ``host:port``, reads each client's opening request, asks
+    ``check`` (:data:`Check`) and answers its refusal itself (``HTTP status``, then closes), or
+    hands the request and the rest of the connection on to ``backend`` (a loopback port), both
+    ways, byte for byte. Runs its own event loop in a thread; :meth:`close` stops it."""
+
+    def __init__(self, host: str, port: int, backend: tuple[str, int], check: Check):
+        import asyncio
+        import threading
+
+        self._check, self._backend = check, backend
+        self._loop = asyncio.new_event_loop()
+        self._ready = threading.Event()
+        self._error: BaseException | None = None
+        self._server = None
+        self._thread = threading.Thread(target=self._run, args=(host, int(port)), name="foxglove-gate", daemon=True)
+        self._thread.start()
+        self._ready.wait()
+        if self._error is not None:
+            self._thread.join()
+            raise self._error
+        self.port = int(self._server.sockets[0].getsockname()[1])
+
+    def _run(self, host: str, port: int) -> None:
+        import asyncio
+
+        asyncio.set_event_loop(self._loop)
+        try:
+            self._server = self._loop.run_until_complete(
+                asyncio.start_server(self._serve, host or None, port, limit=MAX_HANDSHAKE_BYTES))
+        except BaseException as exc:  # a port in use: raised in the caller
+            self._error = exc
+            self._ready.set()
+            self._loop.close()
+            return
+        self._ready.set()
+        try:
+            self._loop.run_forever()
+        finally:  # the connections still open end here, each closing its sockets
+            tasks = asyncio.all_tasks(self._loop)
+            for task in tasks:
+                task.cancel()
+            self._loop.run_until_complete(asyncio.gather(*tasks, return_exceptions=True))
+            self._loop.run_until_complete(self._loop.shutdown_asyncgens())
+            self._loop.close()
+
+    async def _serve(self, reader, writer) -> None:
+        import asyncio
+
+        peer = writer.get_extra_info("peername") or ("?", 0)
+        back = None
+        try:
+            try:
+                head = await asyncio.wait_for(reader.readuntil(b"\r\n\r\n"), HANDSHAKE_TIMEOUT_S)
+            except (asyncio.IncompleteReadError, asyncio.LimitOverrunError, asyncio.TimeoutError, ValueError):
+                return  # not a complete request within the limits: dropped
+            lines = head.decode("latin-1").split("\r\n")
+            parts = lines[0].split(" ")
+            headers: dict[str, str] = {}
+            for line in lines[1:]:
+                name, colon, value = line.partition(":")
+                if colon:
+                    headers.setdefault(name.strip().lower(), value.strip())
+            refusal = self._check(Handshake(str(peer[0]), parts[1] if len(parts) > 1 else "", headers))
+            if refusal is not None:
+                status, text = refusal
+                body = (text + "\n").encode()
+                writer.write(f"HTTP/1.1 {status} {_REASONS.get(status, 'Refused')}\r\n"
+                             f"Content-Type: text/plain; charset=utf-8\r\nContent-Length: {len(body)}\r\n"
+                             "Connection: close\r\n\r\n".encode() + body)
+                await writer.drain()
+                log.debug("Foxglove: refused %s (%s %s)", peer[0], status, text)
+                return
+            back = await asyncio.open_connection(*self._backend)
+            back[1].write(head)
+            await asyncio.gather(_pipe(reader, back[1]), _pipe(back[0], writer))
+        except (ConnectionError, OSError) as exc:
+            log.debug("Foxglove: client %s: %s", peer[0], exc)
+        except asyncio.CancelledError:  # the gate closing: the connection ends here (asyncio's stream
+            pass                        # callback would log a cancelled task as an error)
+        finally:
+            for w in (writer, None if back is None else back[1]):
+                if w is not None:
+                    w.close()
+
+    def close(self) -> None:
+        if self._loop.is_closed():
+            return
+
+        def stop() -> None:
+            if self._server is not None:
+                self._server.close()
+            self._loop.stop()
+
+        self._loop.call_soon_threadsafe(stop)
+        self._thread.join(5.0)
+
+
+_REASONS = {400: "Bad Request", 401: "Unauthorized", 403: "Forbidden"}
+
+
+async def _pipe(reader, writer) -> None:
+    """Copy ``reader`` into ``writer`` until either ends (then both are closed)."""
+    try:
+        while data := await reader.read(65536):
+            writer.write(data)
+            await writer.drain()
+    except (ConnectionError, OSError):
+        pass
+    finally:
+        writer.close()
+
+
 class FoxgloveServer:
     """Foxglove's WebSocket server (``foxglove-sdk``) on ``host:port`` (``port=0``: any free one),
     advertising the Foxglove channels and the JSON ``/estimate`` and ``/tracker`` channels.
+    ``check`` (:data:`Check`) vets each client's opening request first: the SDK then serves on a
+    private loopback port behind a :class:`HandshakeGate` (the live session's rules:
+    :func:`softphantom.viz.live.security.websocket_check`). ``token``: shown in :attr:`url`.
 
     A port in use is a :class:`~softphantom.errors.UserError`. Never blocks the caller: the SDK
-    queues each client's messages (``backlog`` at most; a slow client loses its oldest)."""
+    queues each client's messages (``backlog`` at most; a slow client loses its oldest). A client
+    that drops is logged at the debug level."""
 
-    def __init__(self, host: str = "127.0.0.1", port: int = DEFAULT_FOXGLOVE_PORT, backlog: int = 1024):
+    def __init__(self, host: str = "127.0.0.1", port: int = DEFAULT_FOXGLOVE_PORT, backlog: int = 1024,
+                 check: Check | None = None, token: str | None = None):
         import foxglove
 
         from softphantom.stream.schema import TRACKER_JSON_SCHEMA
         from softphantom.stream.schema import ESTIMATE_JSON_SCHEMA
 
+        _quiet_disconnects()
         self._ctx = foxglove.Context()
+        self._gate = None
+        self._closed = False
+        self.token = token
         try:
-            self._server = foxglove.start_server(name="softphantom", host=host, port=int(port), context=self._ctx,
+            self._server = foxglove.start_server(name="softphantom", host="127.0.0.1" if check else host,
+                                                 port=0 if check else int(port), context=self._ctx,
                                                  message_backlog_size=int(backlog))
         except RuntimeError as exc:
             why = "the port is in use" if "in use" in str(exc) else str(exc)
             raise UserError(f"cannot serve Foxglove on {host}:{port}: {why} (--foxglove-port)") from None
-        self.host, self.port = host, int(self._server.port)
+        if check is not None:
+            try:
+                self._gate = HandshakeGate(host, int(port), ("127.0.0.1", int(self._server.port)), check)
+            except OSError as exc:
+                self._server.stop()
+                why = "the port is in use" if exc.errno == errno.EADDRINUSE else (exc.strerror or str(exc))
+                raise UserError(f"cannot serve Foxglove on {host}:{port}: {why} (--foxglove-port)") from None
+        self.host, self.port = host, int(self._gate.port if self._gate else self._server.port)
         self._channels = {t: foxglove.Channel(t, schema=s, message_encoding="protobuf", context=self._ctx)
                           for t, s in foxglove_schemas().items()}
         self._channels["/estimate"] = foxglove.Channel("/estimate", schema=ESTIMATE_JSON_SCHEMA, context=self._ctx)
@@ -343,7 +512,7 @@ class FoxgloveServer:
     @property
     def url(self) -> str:
         host = f"[{self.host}]" if ":" in self.host else self.host
-        return f"ws://{host}:{self.port}"
+        return f"ws://{host}:{self.port}" + (f"/?token={self.token}" if self.token else "")
 
     def watched(self, topic: str) -> bool:
         """True if a client subscribes to ``topic`` (skip building what nobody watches)."""
@@ -358,6 +527,12 @@ class FoxgloveServer:
         self.sent += 1
 
     def close(self) -> None:
+        """Stop serving (idempotent)."""
+        if self._closed:
+            return
+        self._closed = True
+        if self._gate is not None:
+            self._gate.close()
         self._server.stop()
         for ch in self._channels.values():
             ch.close()

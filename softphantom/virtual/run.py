@@ -23,7 +23,7 @@ from softphantom.sensing.board import frame_rate_Hz
 from softphantom.sensing.chain import SensorChain, Tare, nominal_tare
 from softphantom.sensing.sources import FrameSource
 from softphantom.virtual.board import FIRMWARE, BoardConfig, BoardSignals, VirtualBoard, arm_volumes, board_signals
-from softphantom.virtual.scenario import Scenario, load_scenario
+from softphantom.virtual.scenario import Event, Scenario, load_scenario
 from softphantom.virtual.tracker import TrackerConfig, TrackerStream, simulate_tracker, write_motive_csv
 from softphantom.virtual.truth import Truth, TruthConfig, solve_truth, write_snapshot
 from softphantom.records.names import POSE_COLUMNS
@@ -196,7 +196,7 @@ def write_run(run: VirtualRun, out: Path) -> dict[str, Path]:
             "firmware": ".".join(map(str, FIRMWARE)),
             "osr": b.osr, "p0_Pa": b.p0_Pa, "port": f"virtual:{run.scenario.name}",
             "tare": src.tare.to_dict(), "chain": run.chain.summary(), "virtual": True,
-            "bench": host_bench(run.model, b).to_meta()}
+            "bench": host_bench(run.model, b).to_meta(), **scenario_contact(run.scenario)}
     with Recorder(paths["recording"], meta, arm_names=run.chain.arm_names, cavity_names=run.chain.cavity_names) as rec:
         for m in src:
             rec.write(m)
@@ -212,6 +212,25 @@ def write_run(run: VirtualRun, out: Path) -> dict[str, Path]:
     write_snapshot(run.truth, paths["snapshot"])
     paths["meta"].write_text(json.dumps(run_summary(run), indent=2) + "\n")
     return paths
+
+
+def scenario_contact(sc: Scenario) -> dict:
+    """The recording's ``contact``: the one point the scenario pushes at (a scenario without a push:
+    the format's default, on-centre), or None with ``contacts`` listing them when it pushes at
+    several (``estimate`` then asks for ``--at``).
+
+    >>> from softphantom.virtual.scenario import scenario_from_dict
+    >>> push = lambda p: {"point": p, "start_s": 1, "rise_s": 1, "force_N": [0, 1, 0]}
+    >>> scenario_contact(scenario_from_dict({"name": "n", "duration_s": 3, "push": [push("port")]}, "n.toml"))
+    {'contact': 'port'}
+    >>> scenario_contact(scenario_from_dict({"name": "n", "duration_s": 3,
+    ...                                      "push": [push("port"), push("on-centre")]}, "n.toml"))
+    {'contact': None, 'contacts': ['on-centre', 'port']}
+    """
+    points = sorted({e.point for e in sc.events if e.kind == "push"})
+    if len(points) > 1:
+        return {"contact": None, "contacts": points}
+    return {"contact": points[0] if points else Event.point}
 
 
 def run_summary(run: VirtualRun) -> dict:

@@ -101,6 +101,64 @@ def host_allowed(header: str | None, names: set[str], loopback_only: bool) -> bo
     return ip.is_loopback or not loopback_only
 
 
+FOXGLOVE_ORIGINS = ("https://app.foxglove.dev",)
+"""Web origins of Foxglove's own viewer: a page of one of them may open the session's WebSocket."""
+
+
+def origin_allowed(origin: str | None, names: set[str], extra: tuple[str, ...] = FOXGLOVE_ORIGINS) -> bool:
+    """Whether a WebSocket's ``Origin`` may see the session. Browsers send the page's origin and
+    do not apply the same-origin rule to WebSockets, so a page of another site could open it:
+    refused. No ``Origin`` (not a browser page: a program, a desktop viewer's own process) and a
+    non-web origin (``file://``, ``app://``: a desktop app; no web page can send one) pass; an
+    http(s) origin passes when it is ``extra`` (Foxglove's web app) or its host is one of ``names``
+    (this server's, ``--allowed-host``) or loopback. ``null`` (a sandboxed frame, a data: page) is
+    refused.
+
+    >>> names = {"localhost"}
+    >>> [origin_allowed(o, names) for o in (None, "http://localhost:8765", "https://app.foxglove.dev",
+    ...                                      "http://evil.example", "null", "file://")]
+    [True, True, True, False, False, True]
+    """
+    if origin is None:
+        return True
+    o = origin.strip().lower()
+    if o in extra:
+        return True
+    scheme, sep, rest = o.partition("://")
+    if not sep:
+        return False  # "null" and anything unparsable
+    if scheme not in ("http", "https"):
+        return True
+    return host_allowed(rest.split("/", 1)[0], names, loopback_only=True)
+
+
+def websocket_check(listen_host: str, allowed_hosts: tuple[str, ...] = (), token: str | None = None,
+                    origins: tuple[str, ...] = FOXGLOVE_ORIGINS):
+    """The live page's rules for a WebSocket's opening request (``live --foxglove``): the
+    :data:`~softphantom.stream.foxglove.Check` of a
+    :class:`~softphantom.stream.foxglove.HandshakeGate`. While serving on loopback, a peer from
+    elsewhere: 403; a ``Host`` that does not name this server (DNS rebinding): 403; an ``Origin``
+    of another site (:func:`origin_allowed`): 403; beyond loopback, a request without the
+    session's ``?token=``: 401."""
+    loopback_only = is_loopback(listen_host)
+    names = host_names(listen_host, allowed_hosts)
+
+    def check(h) -> tuple[int, str] | None:
+        if loopback_only and not is_loopback(h.peer):
+            return 403, "served to this machine only (softphantom live --allow-remote)"
+        if not host_allowed(h.headers.get("host"), names, loopback_only):
+            return 403, "Host not served here (use the printed address)"
+        if not origin_allowed(h.headers.get("origin"), names, origins):
+            return 403, "Origin not allowed: a page of another site may not open this session"
+        if token is not None:
+            given = parse_qs(h.target.partition("?")[2]).get("token", [""])[0]
+            if not (given and hmac.compare_digest(given.encode(), token.encode())):
+                return 401, "token required (use the printed address)"
+        return None
+
+    return check
+
+
 async def refuse(send, status: int, text: str, headers: tuple[tuple[bytes, bytes], ...] = ()) -> None:
     """A one-line plain-text answer (the refusals, 404)."""
     await send({"type": "http.response.start", "status": status,

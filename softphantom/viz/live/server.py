@@ -71,8 +71,11 @@ class LiveSession:
         fox_server = None
         if cfg.foxglove_port is not None:  # first: a port in use stops the session before anything started
             from softphantom.stream.foxglove import FoxgloveServer
+            from softphantom.viz.live.security import websocket_check
 
-            fox_server = FoxgloveServer(cfg.listen_host, cfg.foxglove_port)
+            # the page's rules (Host, Origin; the token beyond loopback) vet each client first
+            fox_server = FoxgloveServer(cfg.listen_host, cfg.foxglove_port, token=cfg.token,
+                                        check=websocket_check(cfg.listen_host, cfg.allowed_hosts, cfg.token))
         try:
             self._web = WebServer(self)
         except BaseException:
@@ -113,7 +116,7 @@ class LiveSession:
 
     @property
     def foxglove_url(self) -> str | None:
-        """``ws://host:port`` of the Foxglove server, if one runs."""
+        """``ws://host:port`` of the Foxglove server (``/?token=`` when one is required), if one runs."""
         fg = self.foxglove
         return None if fg is None or fg.server is None else fg.server.url
 

@@ -400,6 +400,14 @@ class EstimateReplay:
         if path.suffix.lower() == ".mcap":
             rec = read_recording(path)
             self.messages = rec.estimates
+            if not rec.complete:  # a killed writer: its complete chunks are read, the rest is gone
+                import warnings
+
+                from softphantom.records.session import TruncatedRecordingWarning
+
+                warnings.warn(f"{path}: not closed cleanly: read up to its last complete chunk (byte {rec.bytes_read} "
+                              f"of {path.stat().st_size}, {len(rec.estimates)} estimates), the rest dropped "
+                              "(truncated file)", TruncatedRecordingWarning, stacklevel=2)
             self.meta: dict[str, Any] = {}
             if rec.geometry is not None and geometry is None:
                 geometry = LiveGeometry.from_json(rec.geometry)
