@@ -1496,6 +1496,8 @@ def load_design(path: str | Path) -> BIPDesign:
             data = tomllib.loads(text)
     except (json.JSONDecodeError, tomllib.TOMLDecodeError) as exc:
         raise DesignError(f"{path}: not valid {'JSON' if path.suffix.lower() == '.json' else 'TOML'} ({exc})") from None
+    if not data:  # a blank file would silently be the default design
+        raise DesignError(f"{path}: empty design file (no key and no table); leave the file out for the default design")
     return design_from_dict(data)
 
 
