@@ -113,3 +113,116 @@ def test_sweep_stops_at_once_on_ctrl_c_and_leaves_no_empty_folder(tmp_path):
     # the nanny's graceful close waited 4 s for the busy worker and then killed it, saying so
     assert "still alive" not in err and "Traceback" not in err, err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["s.toml"]
+
+
+# --- new organs: markers, surface points, arms, balloons ----------------------------------------
+
+KIDNEY = Path(__file__).resolve().parents[1] / "examples" / "organs" / "kidney.toml"
+
+
+def _kidney() -> dict:
+    import tomllib
+
+    return tomllib.loads(KIDNEY.read_text())
+
+
+def _refused(data: dict) -> str:
+    from softphantom.design import design_from_dict
+    from softphantom.errors import DesignError
+
+    with pytest.raises(DesignError) as err:
+        design_from_dict(data)
+    msg = str(err.value)
+    assert "\n" not in msg
+    return msg
+
+
+def test_a_body_without_markers_is_asked_for_its_own_not_blamed_for_the_prostates():
+    data = _kidney()
+    del data["markers"]
+    msg = _refused(data)
+    assert msg.startswith("markers: none given") and "give [markers]: at least 4 points on your body" in msg, msg
+    assert "markers.m1" not in msg
+    data = _kidney()
+    del data["targets"]
+    assert "give [targets]" in _refused(data)
+
+
+def test_snap_to_surface_puts_markers_contacts_and_inlets_on_the_body(caplog):
+    import logging
+
+    import numpy as np
+
+    from softphantom.design import design_from_dict, design_to_dict
+    from softphantom.design.params import SURFACE_TOL_MM
+
+    data = _kidney()
+    off = {k: [1.05 * x for x in v] for k, v in data["markers"].items()}  # 1–1.5 mm outside the body
+    data["markers"] = off
+    data["contacts"]["access"] = [-12.0, -19.0, 10.0]
+    data["cavities"]["collecting_system"]["inlet_mm"] = [28.0, 0.0, 0.0]  # 2 mm inside
+    msg = _refused(data)  # without the option
+    assert "mm off the bulb surface" in msg and "snap_to_surface = true moves it onto the surface" in msg, msg
+    data["snap_to_surface"] = True
+    with caplog.at_level(logging.INFO, logger="softphantom"):
+        d = design_from_dict(data)
+    pts = np.array([p for _, p in d.markers] + [p for _, p in d.contacts] + [d.cavities[0].inlet_mm])
+    assert np.abs(d.bulb.signed_distance(pts)).max() < 1e-3 * SURFACE_TOL_MM
+    # the closest surface point: the move is along the surface normal there (for the 2 mm inlet too)
+    for (name, p), q in zip(d.markers, off.values()):
+        move = np.asarray(q) - np.asarray(p)
+        assert abs(np.dot(move / np.linalg.norm(move), d.bulb.normal(p))) > 0.99, name
+    assert "snap_to_surface: cavities.collecting_system.inlet_mm moved 2 mm" in caplog.text
+    # the saved design holds the moved points (and no option): it loads as it is
+    saved = design_to_dict(d)
+    assert "snap_to_surface" not in saved and design_from_dict(saved) == d
+    data["snap_to_surface"] = "yes"
+    assert _refused(data) == "snap_to_surface: expected true or false, got 'yes'"
+
+
+def test_closest_point_on_an_ellipsoid_closed_forms():
+    import numpy as np
+
+    from softphantom.design import BulbParams
+
+    b = BulbParams(semi_axes_mm=(30.0, 20.0, 25.0))
+    q = b.closest_surface_point([[0.0, -21.5, 0.0], [40.0, 0.0, 0.0], [0.0, 0.0, -23.0], [3.0, -4.0, 5.0]])
+    assert q[:3].round(9).tolist() == [[0.0, -20.0, 0.0], [30.0, 0.0, 0.0], [0.0, 0.0, -25.0]]
+    assert np.all(np.sign(q[3]) == [1, -1, 1]) and abs(b.signed_distance([q[3]])[0]) < 1e-9
+
+
+@pytest.mark.parametrize("point, direction, expect", [
+    ([0, 0, 60], [0, -0.3, -1], r"arms.upper_pole.axis_point_mm = \[0, 0, 60\] is outside the body"),
+    ([0, 0, 40], [0, 0, -1], r"arms.upper_pole.axis_point_mm = \[0, 0, 40\] is 8.\d+ mm under the surface behind "
+                             r"it, and direction = \[0, 0, -1\] takes the arm 88.\d+ mm across the body"),
+])
+def test_an_arm_pointing_into_the_body_is_refused_naming_its_axis(point, direction, expect):
+    import re
+
+    data = _kidney()
+    data["arms"]["upper_pole"].update(axis_point_mm=point, direction=direction)
+    msg = _refused(data)
+    assert re.search(expect, msg), msg
+    assert "embed_mm" not in msg
+
+
+def test_a_cavity_volume_off_names_cavity_segments(monkeypatch):
+    import types
+
+    import softphantom.design.model as m
+    from softphantom.design import design_from_dict
+    from softphantom.errors import MeshError
+
+    design = design_from_dict(_kidney())
+    summary = {"upper_pole_design_mm3": 500.0, "upper_pole_mesh_mm3": 490.0, "bulb_design_mm3": 1.0,
+               "bulb_mesh_mm3": 1.0, "lower_pole_design_mm3": 500.0, "lower_pole_mesh_mm3": 500.0,
+               "lateral_design_mm3": 500.0, "lateral_mesh_mm3": 500.0, "medial_design_mm3": 500.0,
+               "medial_mesh_mm3": 500.0, "collecting_system_design_mm3": 2880.0,
+               "collecting_system_mesh_mm3": 2880.0 * (1 - 0.104)}
+    monkeypatch.setattr(m, "model_summary", lambda model, quality=False: summary)
+    with pytest.raises(MeshError) as err:
+        m.check_meshed_volumes(types.SimpleNamespace(design=design))
+    msg = str(err.value)
+    # 12 segments, −10.4 %: (2π/n)² scaling to a quarter of the 10 % tolerance asks for 25
+    assert "collecting_system volume" in msg and "-10.4 % off" in msg, msg
+    assert "mesh.cavity_segments = 12 elements around each cavity wall: raise it (e.g. 25)" in msg, msg
