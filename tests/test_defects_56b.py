@@ -226,3 +226,38 @@ def test_a_cavity_volume_off_names_cavity_segments(monkeypatch):
     # 12 segments, −10.4 %: (2π/n)² scaling to a quarter of the 10 % tolerance asks for 25
     assert "collecting_system volume" in msg and "-10.4 % off" in msg, msg
     assert "mesh.cavity_segments = 12 elements around each cavity wall: raise it (e.g. 25)" in msg, msg
+
+
+# --- cosmetic -------------------------------------------------------------------------------------
+
+def test_demo_help_cites_the_kidney_where_it_is(capsys):
+    assert main(["demo", "--help"]) == 0
+    text = " ".join(capsys.readouterr().out.split())
+    assert "examples/organs/kidney.toml" in text and "examples/kidney.toml" not in text
+    assert (Path(__file__).resolve().parents[1] / "examples" / "organs" / "kidney.toml").is_file()
+
+
+def _summary_row(name: str) -> dict:
+    axes = ("x", "y", "z", "yaw", "pitch", "roll")
+    return {"scenario": name, "rmse": dict.fromkeys(axes, 0.02), "peak_truth": dict.fromkeys(axes, 12.4),
+            "force_rmse_N": {"|force|": 0.03}, "lag_ms": 99.0, "tracker_clock_offset_ms": {"injected": 1.0, "recovered": 1.0},
+            "truth": {"events": []}, "table_i": [], "estimator": "atlas",
+            "estimate": {"rate_Hz": 4000.0, "step_ms_p99": 0.3}}
+
+
+@pytest.mark.parametrize("width", [80, 200])
+def test_demo_summary_keeps_scenario_names_and_figures_whole_at_any_width(width):
+    import io
+
+    from rich.console import Console
+
+    from softphantom.cli.demo import print_summary
+
+    names = ["push-on-centre", "inflate-collecting_system", "push-access"]
+    buf = io.StringIO()
+    print_summary([_summary_row(n) for n in names], Console(file=buf, width=width, markup=False))
+    text = buf.getvalue()
+    assert "…" not in text, text
+    for n in names:
+        assert n in text
+    assert text.count("0.02 (12.4)") == 6 * len(names)
