@@ -261,3 +261,96 @@ def test_demo_summary_keeps_scenario_names_and_figures_whole_at_any_width(width)
     for n in names:
         assert n in text
     assert text.count("0.02 (12.4)") == 6 * len(names)
+
+
+# --- the virtual truth: progress with the time left, and a cache -----------------------------------
+
+TWO_PUSHES = {"name": "two", "duration_s": 8.0, "push": [
+    {"start_s": 1.0, "rise_s": 1.0, "hold_s": 0.5, "force_N": [0.3, 2.0, -0.2]},
+    {"start_s": 4.0, "rise_s": 1.0, "hold_s": 0.5, "force_N": [-0.4, 1.5, 0.3]}]}
+
+
+def _scenario(**over):
+    import copy
+
+    from softphantom.virtual import scenario_from_dict
+
+    d = copy.deepcopy(TWO_PUSHES)
+    for k, v in over.items():
+        if k == "force":
+            d["push"][0]["force_N"] = v
+        elif k == "start":
+            d["push"][1]["start_s"] = v
+        else:
+            d[k] = v
+    return scenario_from_dict(d, "two.toml")
+
+
+def test_truth_progress_says_the_total_at_once_and_the_time_left(coarse_model, coarse_truth_p1, caplog):
+    import logging
+
+    from softphantom.progress import is_progress
+    from softphantom.virtual import TruthConfig, solve_truth
+
+    with caplog.at_level(logging.INFO, logger="softphantom"):
+        solve_truth(_scenario(), coarse_model, TruthConfig(order=1, levels=2), truth_mesh=coarse_truth_p1)
+    steps = [r.progress for r in caplog.records if is_progress(r)]
+    assert (steps[0].done, steps[0].total) == (0, 4) and "solving keyframe 1" in steps[0].what  # before any solve
+    assert [s.done for s in steps] == [0, 1, 2, 3, 4]
+    assert all("; ETA 0:" in s.what for s in steps[1:-1]) and "ETA" not in steps[-1].what
+
+
+def test_a_solved_truth_is_kept_by_key_and_read_back_at_once(coarse_model, coarse_truth_p1, tmp_path,
+                                                             monkeypatch):
+    import numpy as np
+
+    import softphantom.virtual.truth as vt
+    from softphantom.virtual import TruthConfig, solve_truth
+
+    monkeypatch.setenv("SOFTPHANTOM_CACHE_DIR", str(tmp_path))
+    cfg = TruthConfig(order=1, levels=2)
+    sc = _scenario()
+    first = solve_truth(sc, coarse_model, cfg, truth_mesh=coarse_truth_p1, cache=True)
+    assert not first.cached and len(list((tmp_path / "truth").iterdir())) == 1
+
+    def no_solve(*a, **k):
+        raise AssertionError("solved again")
+
+    monkeypatch.setattr(vt, "_solve_truth", no_solve)
+    # another name and other times, the same loads and overlaps: the same keyframes
+    again = solve_truth(_scenario(name="renamed", duration_s=9.0, start=4.5), coarse_model, cfg,
+                        truth_mesh=coarse_truth_p1, cache=True)
+    assert again.cached and again.solve_s == first.solve_s and again.scenario.name == "renamed"
+    t = np.linspace(0.0, 8.0, 97)
+    a, b = first.sample(t), again.sample(t + 0.5 * (t > 3.75))  # the second push starts 0.5 s later
+    for k in ("force", "dV", "markers", "targets"):
+        assert np.allclose(getattr(a, k), getattr(b, k), rtol=1e-9, atol=1e-15), k
+    assert np.array_equal(first.events[1].x_peak, again.events[1].x_peak)
+    assert again.summary()["cached"] is True and "cached" not in first.summary()
+    assert [{**e, "start_s": 0} for e in again.summary()["events"]] == [{**e, "start_s": 0} for e in first.summary()["events"]]
+    vt.write_snapshot(again, tmp_path / "snap.vtu")
+    # what changes the truth changes the key: a load, a setting, the model
+    key = vt.truth_key(vt._checked(sc, coarse_model), coarse_model, cfg, coarse_truth_p1)
+    for other in (vt.truth_key(vt._checked(_scenario(force=[0.3, 2.1, -0.2]), coarse_model), coarse_model, cfg,
+                               coarse_truth_p1),
+                  vt.truth_key(vt._checked(sc, coarse_model), coarse_model, TruthConfig(order=1, levels=3),
+                               coarse_truth_p1),
+                  vt.truth_key(vt._checked(sc, coarse_model), coarse_model, cfg, None)):
+        assert other != key
+    with pytest.raises(AssertionError, match="solved again"):
+        solve_truth(_scenario(force=[0.3, 2.1, -0.2]), coarse_model, cfg, truth_mesh=coarse_truth_p1, cache=True)
+    # an entry that cannot be read is solved again (here: refused by the stub), not trusted
+    entry = next((tmp_path / "truth").iterdir())
+    (entry / "truth.npz").write_bytes(b"cut")
+    with pytest.raises(AssertionError, match="solved again"):
+        solve_truth(sc, coarse_model, cfg, truth_mesh=coarse_truth_p1, cache=True)
+
+
+def test_no_truth_cache_when_the_variable_is_empty(coarse_model, coarse_truth_p1, tmp_path, monkeypatch):
+    from softphantom.virtual.truth import truth_cache_dir
+
+    monkeypatch.setenv("SOFTPHANTOM_CACHE_DIR", "")
+    assert truth_cache_dir() is None
+    monkeypatch.delenv("SOFTPHANTOM_CACHE_DIR")
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    assert truth_cache_dir() == tmp_path / "softphantom"

@@ -390,20 +390,22 @@ def _to_meshio(model: PhantomModel):
     )
 
 
-def save_model(model: PhantomModel, directory: str | Path) -> Path:
-    """Write ``model.msh``, ``model.vtu``, ``design.toml`` and ``model.npz`` into ``directory``."""
-    import meshio
-
+def save_model(model: PhantomModel, directory: str | Path, *, mesh_files: bool = True) -> Path:
+    """Write ``model.msh``, ``model.vtu`` (unless not ``mesh_files``: what :func:`load_model`
+    reads is the rest), ``design.toml`` and ``model.npz`` into ``directory``."""
     out = Path(directory)
     out.mkdir(parents=True, exist_ok=True)
-    m = _to_meshio(model)
-    meshio.write(out / "model.msh", m, file_format="gmsh22", binary=False)
-    vtu = meshio.Mesh(
-        m.points,
-        m.cells,
-        cell_data={"region": [np.asarray(p, dtype=np.int32) for p in m.cell_data["gmsh:physical"]]},
-    )
-    meshio.write(out / "model.vtu", vtu, binary=True, compression=None)
+    if mesh_files:
+        import meshio
+
+        m = _to_meshio(model)
+        meshio.write(out / "model.msh", m, file_format="gmsh22", binary=False)
+        vtu = meshio.Mesh(
+            m.points,
+            m.cells,
+            cell_data={"region": [np.asarray(p, dtype=np.int32) for p in m.cell_data["gmsh:physical"]]},
+        )
+        meshio.write(out / "model.vtu", vtu, binary=True, compression=None)
     save_design(model.design, out / "design.toml")
     arrays = {
         "nodes": model.nodes,
