@@ -12,6 +12,7 @@ f_x faces first, then the lines between them (:func:`_lines`, one mixed-control 
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import os
@@ -961,11 +962,16 @@ def load_or_build(model, config: EstimatorConfig | None = None, atlas: AtlasConf
                 c = fwd.config.contact
                 at = "" if c == "on-centre" else f" --at {c}" if isinstance(c, str) else " (its contact point)"
                 n = sum(subs[p].n_solves for p in missing)
+                small = dataclasses.replace(acfg, n_force=(3, 3, 3), n_pressure=2, f_y_splits_N=())
+                small_wall = estimated_build(fwd.fem.order, fwd.fem.n_dof // 3, small, n_workers)[1]
                 raise AtlasMissing(
                     f"{cache_dir or 'the model'}: no atlas yet for this model and contact; building it takes about "
                     f"{duration_text(wall)} on {int(n_workers or os.cpu_count() or 1)} cores ({n} grid points, "
                     f"≈ {cpu:.0f} CPU-s): build it once with `softphantom atlas build --model {cache_dir}{at}` "
-                    f"(resumable; --scheduler ADDR for a Dask cluster), or estimate meanwhile with --estimator refresh")
+                    f"(resumable; --scheduler ADDR for a Dask cluster); or a small atlas over your own loads, "
+                    f"--atlas-grid 3,3,3,2 --envelope FXMIN:FXMAX,FYMIN:FYMAX,FZMIN:FZMAX,PMIN:PMAX (N, kPa; about "
+                    f"{duration_text(small_wall)}; "
+                    f"docs/organs.md); or estimate meanwhile with --estimator refresh")
         if cache_dir is not None:
             check_partials(cache_dir, build_settings(fwd, acfg), discard=discard_partial)
         built = build_atlas(model, cfg, acfg, scheduler=scheduler, n_workers=n_workers, fwd=fwd,
