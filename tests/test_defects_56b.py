@@ -225,7 +225,7 @@ def test_a_cavity_volume_off_names_cavity_segments(monkeypatch):
     msg = str(err.value)
     # 12 segments, −10.4 %: (2π/n)² scaling to a quarter of the 10 % tolerance asks for 25
     assert "collecting_system volume" in msg and "-10.4 % off" in msg, msg
-    assert "mesh.cavity_segments = 12 elements around each cavity wall: raise it (e.g. 25)" in msg, msg
+    assert "mesh.cavity_segments = 12 elements around each cavity wall: raise it, e.g. to 25, or --force" in msg, msg
 
 
 # --- cosmetic -------------------------------------------------------------------------------------

@@ -346,8 +346,8 @@ def check_meshed_volumes(model: PhantomModel, tolerance: float = CAVITY_VOLUME_T
                 fix = f"mesh.size_mm = {mp.size_mm:.4g} mm: a finer --mesh-size-mm or mesh.surface_size_mm, or --force"
             else:  # a cavity wall has 2πr / cavity_segments elements around: its volume error goes as 1/segments²
                 more = min(MAX_CAVITY_SEGMENTS, math.ceil(mp.cavity_segments * math.sqrt(abs(err) / (0.25 * tolerance))))
-                fix = (f"mesh.cavity_segments = {mp.cavity_segments:.4g} elements around each cavity wall: raise it "
-                       f"(e.g. {more:g}), or --force")
+                fix = (f"mesh.cavity_segments = {mp.cavity_segments:.4g} elements around each cavity wall: raise it, "
+                       f"e.g. to {more:g}, or --force")
             raise MeshError(f"meshed {name} volume {got:.4g} mm³ is {100 * err:+.1f} % off the design's "
                             f"{want:.4g} mm³ (tolerance {100 * tolerance:.0f} %; {fix})")
 

@@ -39,6 +39,7 @@ import hashlib
 import json
 import logging
 import os
+import re
 import shutil
 import time
 from dataclasses import dataclass, field
@@ -375,9 +376,8 @@ def truth_model(model: PhantomModel, config: TruthConfig = TruthConfig()) -> Pha
     except (DesignError, MeshError) as exc:
         # the mesher's hint names `design`'s options; say what the virtual commands can change
         msg, coarser = str(exc), "a coarser --mesh-size-mm" in str(exc)
-        for hint in (" (a coarser --mesh-size-mm, or --force)", " (a finer --mesh-size-mm, or --force)",
-                     ": a finer --mesh-size-mm, or --force"):
-            msg = msg.replace(hint, "")
+        # design's own hint, the last parenthesis (or its last clause) ending in "--force"
+        msg = re.sub(r"; [^;()]*--force\)$", ")", re.sub(r" \([^()]*--force\)$", "", msg))
         what = ("a larger --truth-mesh-scale (up to 1), or a model designed with a coarser --mesh-size-mm" if coarser
                 else "a smaller --truth-mesh-scale or --truth-order 1 (or a model designed with a finer --mesh-size-mm)")
         raise type(exc)(f"truth mesh (P{config.order}, {size_mm:.3g} mm elements for node spacing "
