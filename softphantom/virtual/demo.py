@@ -252,12 +252,12 @@ def run_scenario(sc, model, out: Path, cfg, truth, estimator: str = "atlas", gri
     # a progress record at each tenth and at most every 0.2 s between: one a sample cost 25-30 µs and
     # handed the GIL to the progress bar's refresh thread (the kidney's stream: 1.3 kHz against
     # 5.4 kHz on free cores, 560-700 Hz against 720-800 Hz beside two busy workers)
-    shown = [0.0, 0]  # when, which tenth
+    last = [0.0, 0]  # when, which tenth
 
     def progress(e, n: int) -> None:
         now, tenth = time.perf_counter(), 10 * n // max(n_frames, 1)
-        if tenth > shown[1] or now - shown[0] >= 0.2:
-            shown[:] = [now, tenth]
+        if tenth > last[1] or now - last[0] >= 0.2:
+            last[:] = [now, tenth]
             report(log, task, n, n_frames)
 
     with open_estimator(estimator, model, ecfg, cache_dir=out / "model", atlas=atlas, scheduler=scheduler) as est:
