@@ -23,6 +23,7 @@ than ~5 CPU-s (``pytest -m "not slow"`` leaves them out).
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 import time
@@ -32,6 +33,10 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from shared_models import cached_model, model_dir  # noqa: E402
+
+# No truth cache (softphantom.virtual.truth) unless a test sets one: nothing written to the user's
+# cache directory, and no test reads a truth another one solved (the processes a test starts too).
+os.environ["SOFTPHANTOM_CACHE_DIR"] = ""
 
 # jobs of the preparation processes (shared_models.main), about equal on a fresh clone
 _PREPARE = (["fem"], ["atlas", "default"], ["coarse", "coarse_truth_p1"])

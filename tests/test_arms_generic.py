@@ -95,3 +95,24 @@ def test_n_arms_mesh_solve_and_the_estimators_recover_the_load(spec, models):
         assert at.atlas.cV.shape[-1] == n
         e = at.step(sample)
         assert e.status == "ok" and np.allclose(e.force, lam[:3], atol=0.05), e.force
+
+
+def test_mesh_png_colours_and_lists_the_designs_own_arms_and_cavities(models, tmp_path, monkeypatch):
+    import matplotlib.pyplot as plt
+    from matplotlib.colors import to_hex
+
+    from softphantom.viz.mesh_view import model_colours, render_mesh_png
+
+    model = models[5]
+    figs = []
+    monkeypatch.setattr(plt, "close", lambda fig=None: figs.append(fig))
+    render_mesh_png(model, tmp_path / "mesh.png")
+    labels = [t.get_text() for t in figs[0].legends[0].get_texts()]
+    assert labels[:len(model.regions)] == list(model.regions) and "arm_top" in labels
+    assert [f"cavity {c}" for c in model.cavities] == labels[len(model.regions):len(model.regions) + len(model.cavities)]
+    regions, cavities = model_colours(model)
+    assert len(set(regions.values())) == len(regions) and "#bbbbbb" not in regions.values()  # grey: no colour
+    assert len(set(cavities.values())) == len(cavities)
+    # the whole view draws each cavity in its legend colour
+    drawn = {to_hex(c.get_facecolor()[0]) for c in figs[0].axes[0].collections if len(c.get_facecolor())}
+    assert set(cavities.values()) <= drawn

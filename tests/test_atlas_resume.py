@@ -4,6 +4,7 @@ build gives (the same coefficients, bit for bit)."""
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import shutil
 import signal
@@ -117,4 +118,11 @@ def test_a_model_without_its_atlas_says_how_long_it_takes_and_what_to_do(coarse_
     msg = str(exc.value)
     assert "\n" not in msg and f"softphantom atlas build --model {tmp_path} --at off-centre" in msg
     assert "--estimator refresh" in msg and "on 2 cores" in msg and f"{cpu:.0f} CPU-s" in msg
+    # the smaller atlas a new organ's first hour wants: its options and its time, and where it is shown
+    small = dataclasses.replace(default_atlas_config(2), n_force=(3, 3, 3), n_pressure=2, f_y_splits_N=())
+    from softphantom.estimation.atlas.build import duration_text
+
+    t_small = duration_text(estimated_build(fwd.fem.order, fwd.fem.n_dof // 3, small, workers=2)[1])
+    assert f"--atlas-grid 3,3,3,2 --envelope FXMIN:FXMAX,FYMIN:FYMAX,FZMIN:FZMAX,PMIN:PMAX (N, kPa; about {t_small}" in msg
+    assert "docs/organs.md" in msg
     assert not (tmp_path / "atlas").exists()  # nothing started

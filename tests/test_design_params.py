@@ -129,9 +129,9 @@ INVALID = {
     "arm cavity cuts the bulb": (lambda: _arm(D, "back_xpos", cavity_offset_mm=4.0), r"the cavity cuts 3\.\d+ mm into the bulb \(min wall 1 mm\)"),
     "arm cavity near the bulb": (lambda: _arm(D, "back_xpos", cavity_offset_mm=8.0), r"the cavity comes 0\.\d+ mm from the bulb \(min wall 1 mm\)"),
     "arm cavity cuts the end face": (lambda: _arm(D, "back_xpos", cavity_offset_mm=26.0), "from the fixed end face"),
-    "arm misses the bulb": (
+    "arm's axis point outside the bulb": (
         lambda: _arm(D, "front_zpos", axis_point_mm=(0.0, 0.0, 60.0), direction=(1.0, 0.0, 0.0)),
-        "arms.front_zpos: the arm misses the bulb",
+        r"arms.front_zpos.axis_point_mm = \[0, 0, 60\] is outside the body \(30.04 mm from it\)",
     ),
     "arm grazes the bulb": (
         lambda: _arm(D, "front_zpos", axis_point_mm=(0.0, 0.0, 29.0), direction=(1.0, 0.0, 0.0)),
@@ -141,7 +141,7 @@ INVALID = {
     "arms overlap": (lambda: _arm(D, "front_zneg", direction=(0.0, -0.6, 0.9)), "overlap"),
     "marker off the surface": (
         lambda: dataclasses.replace(D, markers=(*D.markers[:-1], ("m5", (0.0, 30.0, 0.0)))),
-        "markers.m5 is 5 mm off the bulb surface (tolerance 0.1 mm)",
+        "markers.m5 is 5 mm off the bulb surface (tolerance 0.1 mm; snap_to_surface = true moves it onto the surface)",
     ),
     "too few markers": (lambda: dataclasses.replace(D, markers=D.markers[:3]), "markers: 3 given (min 4"),
     "coplanar markers": (

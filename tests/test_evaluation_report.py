@@ -335,3 +335,17 @@ def test_snapshot_of_10_node_tets_draws_the_curved_outer_surface(run, tmp_path, 
     assert surface_triangles(m) is None and surface_triangles(meshio.Mesh(np.zeros((2, 3)), [("line", [[0, 1]])])) is None
     lin, _, _ = _hollow_tet10(tmp_path / "p1.vtu", quadratic=False)
     assert surface_triangles(lin).shape == (len(outer), 3)
+
+
+def test_target_table_has_a_header_for_each_column_and_no_blank_one(run):
+    import re
+
+    d, pe, pt = run
+    out = d / "targets"
+    assert main(["evaluate", "--estimate", str(pe), "--truth", str(pt), "--out", str(out), "--lag-ms", "100"]) == 0
+    html = (out / "report.html").read_text(encoding="utf-8")
+    table = re.search(r'<table class="target-errors">(.*?)</table>', html).group(1)
+    heads = re.findall(r"<th>(.*?)</th>", table)
+    assert heads[0] == "target" and all(h.strip() for h in heads), heads
+    for row in re.findall(r"<tr>(.*?)</tr>", table.split("<tbody>")[1]):
+        assert len(re.findall(r"<td>", row)) == len(heads)

@@ -116,3 +116,21 @@ def test_cholmod_starts_no_openmp_team_unless_the_user_says_otherwise():
     assert run() == 1
     env["OMP_THREAD_LIMIT"] = "4"
     assert run() > 1
+
+
+def test_a_local_cluster_closes_at_once_with_a_worker_still_busy(caplog):
+    """Its worker processes are ended, not asked to finish their task: the nanny's own close waited
+    4 s and then warned "Worker process still alive after 4.0 seconds, killing" (a Ctrl-C during a
+    sweep, the end of the demo)."""
+    import logging
+    import time
+
+    with caplog.at_level(logging.WARNING):
+        with dask_client(n_workers=1) as client:
+            pids = list(client.run(os.getpid).values())
+            client.submit(time.sleep, 60, pure=False)
+            time.sleep(0.5)  # the worker is in its task
+    assert "still alive" not in caplog.text
+    time.sleep(0.2)
+    for pid in pids:
+        assert not os.path.exists(f"/proc/{pid}") or open(f"/proc/{pid}/stat").read().split()[2] == "Z"

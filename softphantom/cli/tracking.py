@@ -33,6 +33,8 @@ def track_cmd(
     from softphantom.tracking.client import NatNetClient, NatNetConfig
     from softphantom.tracking.record import TrackerSink
 
+    if not natnet.strip():
+        raise UserError("--natnet: empty address (give the NatNet server's host, e.g. 127.0.0.1 for virtual serve --natnet)")
     for name, port in (("--command-port", command_port), ("--data-port", data_port)):
         if not 0 <= port <= 65535:
             raise UserError(f"{name} must be in 0..65535, got {port}")

@@ -68,9 +68,9 @@ def _simulate(scenario: str, model_dir: Path, seed: int, osr: int, mesh_scale: f
 
 def _print_summary(summary: dict) -> None:
     tr = summary["truth"]
+    how = f"from the cache (solved in {tr['solve_s']:.1f} s)" if tr.get("cached") else f"solved in {tr['solve_s']:.1f} s"
     console.print(f"truth: {tr['law']}, P{tr['truth_mesh']['element_order']}, {tr['truth_mesh']['nodes']} nodes "
-                  f"(mesh {tr['truth_mesh']['mesh_size_mm']:.2f} mm), "
-                  f"solved in {tr['solve_s']:.1f} s", highlight=False)
+                  f"(mesh {tr['truth_mesh']['mesh_size_mm']:.2f} mm), {how}", highlight=False)
     for e in tr["events"]:
         if e["kind"] == "push":
             what = f"push {e['force_N']} N"

@@ -100,8 +100,23 @@ def ellipsoid_signed_distance(points, semi_axes) -> FloatArray:
     >>> [round(float(x), 4) for x in d]
     [-4.0, 1.0, 2.0]
     """
+    p = np.atleast_2d(np.asarray(points, dtype=float))
+    x = ellipsoid_closest_point(p, semi_axes)
+    d = np.linalg.norm(p - x, axis=1)
+    return np.where(ellipsoid_level(p, semi_axes) < 1.0, -d, d)
+
+
+def ellipsoid_closest_point(points, semi_axes) -> FloatArray:
+    """(n, 3) the point of the ellipsoid surface closest to each of ``points`` (Eberly, as in
+    :func:`ellipsoid_signed_distance`).
+
+    >>> ellipsoid_closest_point([[0, 0, 5.0], [-12.0, 0, 0]], (10.0, 8.0, 4.0)).round(6).tolist()
+    [[0.0, 0.0, 4.0], [-10.0, 0.0, 0.0]]
+    """
     e = np.asarray(semi_axes, dtype=float)
-    p = np.abs(np.atleast_2d(np.asarray(points, dtype=float)))
+    q = np.atleast_2d(np.asarray(points, dtype=float))
+    sign = np.where(q < 0.0, -1.0, 1.0)
+    p = np.abs(q)
     p = np.where(p < 1e-9, 1e-9, p)
     e2 = e**2
     shift = e2 - e2.min()
@@ -115,8 +130,8 @@ def ellipsoid_signed_distance(points, semi_axes) -> FloatArray:
         if not (step > 1e-15 * s).any():
             break
     x = e2 * p / (s[:, None] + shift)
-    d = np.linalg.norm(p - x, axis=1)
-    return np.where(ellipsoid_level(p, e) < 1.0, -d, d)
+    x = np.where((np.abs(q) < 1e-9) & (x < 1e-6), 0.0, x)  # a zero coordinate stays zero (not the nudge)
+    return sign * x
 
 
 def ray_exit(origin, direction, semi_axes) -> float | None:

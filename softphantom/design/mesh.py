@@ -689,5 +689,6 @@ def check_mesh_budget(design: BIPDesign, mesh: MeshParams | None = None, *, forc
     if err > CAVITY_VOLUME_TOLERANCE and not force:
         raise DesignError(f"mesh.cavity_segments = {mp.cavity_segments:.4g} (mesh.size_mm = {mp.size_mm:.4g} mm): "
                           f"cavity volumes would be about {100 * err:.0f} % low, beyond the "
-                          f"{100 * CAVITY_VOLUME_TOLERANCE:.0f} % tolerance (a finer --mesh-size-mm, or --force)")
+                          f"{100 * CAVITY_VOLUME_TOLERANCE:.0f} % tolerance (raise mesh.cavity_segments, the elements "
+                          "around each cavity wall; a finer --mesh-size-mm raises it too; or --force)")
     return n

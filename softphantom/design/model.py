@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -29,7 +30,14 @@ from softphantom.design.mesh import (
     check_mesh_budget,
     mesh_design,
 )
-from softphantom.design.params import BIPDesign, design_from_dict, design_to_dict, load_design, save_design
+from softphantom.design.params import (
+    MAX_CAVITY_SEGMENTS,
+    BIPDesign,
+    design_from_dict,
+    design_to_dict,
+    load_design,
+    save_design,
+)
 from softphantom.errors import FileFormatError, MeshError
 
 MM = 1e-3
@@ -337,10 +345,17 @@ def check_meshed_volumes(model: PhantomModel, tolerance: float = CAVITY_VOLUME_T
     s = model_summary(model, quality=False)
     for name in (*model.design.cavity_volumes_mm3(), "bulb"):
         want, got = s[f"{name}_design_mm3"], s[f"{name}_mesh_mm3"]
-        if abs(got / want - 1) > tolerance:
-            raise MeshError(f"meshed {name} volume {got:.4g} mm³ is {100 * (got / want - 1):+.1f} % off the design's "
-                            f"{want:.4g} mm³ (tolerance {100 * tolerance:.0f} %; mesh.size_mm = "
-                            f"{model.design.mesh.size_mm:.4g} mm: a finer --mesh-size-mm, or --force)")
+        err = got / want - 1
+        if abs(err) > tolerance:
+            mp = model.design.mesh
+            if name == "bulb":
+                fix = f"mesh.size_mm = {mp.size_mm:.4g} mm: a finer --mesh-size-mm or mesh.surface_size_mm, or --force"
+            else:  # a cavity wall has 2πr / cavity_segments elements around: its volume error goes as 1/segments²
+                more = min(MAX_CAVITY_SEGMENTS, math.ceil(mp.cavity_segments * math.sqrt(abs(err) / (0.25 * tolerance))))
+                fix = (f"mesh.cavity_segments = {mp.cavity_segments:.4g} elements around each cavity wall: raise it, "
+                       f"e.g. to {more:g}, or --force")
+            raise MeshError(f"meshed {name} volume {got:.4g} mm³ is {100 * err:+.1f} % off the design's "
+                            f"{want:.4g} mm³ (tolerance {100 * tolerance:.0f} %; {fix})")
 
 
 # --- files -------------------------------------------------------------------------------------
@@ -381,20 +396,22 @@ def _to_meshio(model: PhantomModel):
     )
 
 
-def save_model(model: PhantomModel, directory: str | Path) -> Path:
-    """Write ``model.msh``, ``model.vtu``, ``design.toml`` and ``model.npz`` into ``directory``."""
-    import meshio
-
+def save_model(model: PhantomModel, directory: str | Path, *, mesh_files: bool = True) -> Path:
+    """Write ``model.msh``, ``model.vtu`` (unless not ``mesh_files``: what :func:`load_model`
+    reads is the rest), ``design.toml`` and ``model.npz`` into ``directory``."""
     out = Path(directory)
     out.mkdir(parents=True, exist_ok=True)
-    m = _to_meshio(model)
-    meshio.write(out / "model.msh", m, file_format="gmsh22", binary=False)
-    vtu = meshio.Mesh(
-        m.points,
-        m.cells,
-        cell_data={"region": [np.asarray(p, dtype=np.int32) for p in m.cell_data["gmsh:physical"]]},
-    )
-    meshio.write(out / "model.vtu", vtu, binary=True, compression=None)
+    if mesh_files:
+        import meshio
+
+        m = _to_meshio(model)
+        meshio.write(out / "model.msh", m, file_format="gmsh22", binary=False)
+        vtu = meshio.Mesh(
+            m.points,
+            m.cells,
+            cell_data={"region": [np.asarray(p, dtype=np.int32) for p in m.cell_data["gmsh:physical"]]},
+        )
+        meshio.write(out / "model.vtu", vtu, binary=True, compression=None)
     save_design(model.design, out / "design.toml")
     arrays = {
         "nodes": model.nodes,

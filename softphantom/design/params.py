@@ -242,6 +242,19 @@ class BulbParams:
             return signed_distance(self._mesh(), points)
         return geo.ellipsoid_signed_distance(points, self.semi_axes_mm)
 
+    def closest_surface_point(self, points) -> np.ndarray:
+        """(n, 3) mm: the point of the body's surface closest to each of ``points`` (its triangles
+        for a triangulated body: the surface every on-the-surface check measures against).
+
+        >>> BulbParams(semi_axes_mm=(30.0, 20.0, 25.0)).closest_surface_point([[0, -21.5, 0]]).round(9).tolist()
+        [[0.0, -20.0, 0.0]]
+        """
+        if self.is_surface:
+            from softphantom.design.surface import closest_point
+
+            return closest_point(self._mesh(), points)
+        return geo.ellipsoid_closest_point(points, self.semi_axes_mm)
+
     def ray_exit(self, origin, direction) -> float | None:
         """Largest s with origin + s·direction on the surface (None: the line misses the bulb)."""
         if self.is_surface:
@@ -951,7 +964,7 @@ def _arm_geometry(arm: ArmParams, bulb: BulbParams) -> ArmGeometry:
     o = np.asarray(arm.axis_point_mm)
     s = bulb.ray_exit(o, d)
     if s is None:
-        raise DesignError(f"arms.{arm.name}: the arm misses the bulb (its axis does not meet the ellipsoid)")
+        raise DesignError(f"arms.{arm.name}: the arm misses the body (its axis, from axis_point_mm along direction, does not meet it)")
     root = o + s * d
     c = root + arm.cavity_offset_mm * d
     h = 0.5 * arm.cavity_cyl_length_mm
@@ -1160,6 +1173,35 @@ def _check_sizes(d: BIPDesign) -> None:
                               f"{_fmt(max(axes))} mm, its largest semi-axis)")
 
 
+_GIVE_MARKERS = (f"markers: none given, and {{why}}: give [markers]: at least {MIN_MARKERS} points on your body's "
+                 "surface, not coplanar, not under an arm (NAME = [x, y, z] mm; snap_to_surface = true moves "
+                 "them onto the surface)")
+
+
+def _check_arm_axis(arm: ArmParams, bulb: BulbParams) -> None:
+    """An arm stands where its axis, from ``axis_point_mm`` (inside the body) along ``direction``,
+    leaves the body. Refused before any other arm check: an axis point outside the body, or one
+    just under the surface with ``direction`` pointing into the body (the arm would stand on the
+    far side: the usual slip is a direction given from the arm towards the body)."""
+    p = f"arms.{arm.name}"
+    o = np.asarray(arm.axis_point_mm, float)
+    where, dirn = (f"{key} = [{', '.join(_fmt(x) for x in v)}]"
+                   for key, v in (("axis_point_mm", arm.axis_point_mm), ("direction", arm.direction)))
+    sd = float(bulb.signed_distance([o])[0])
+    if sd > -0.5:
+        raise DesignError(
+            f"{p}.{where} is {'outside the body' if sd > 0 else 'at the body surface'} ({_fmt(sd)} mm from it): an "
+            f"arm's axis runs from axis_point_mm inside the body along direction, out through the surface where the "
+            f"arm stands; give a point inside (default [0, 0, 0]) and a direction out of the body")
+    d = geo.unit(arm.direction)
+    ahead, behind = bulb.ray_exit(o, d), bulb.ray_exit(o, -d)
+    if ahead is not None and behind is not None and behind < arm.embed_mm + arm.radius_mm and behind < ahead / 3:
+        raise DesignError(
+            f"{p}.{where} is {_fmt(behind)} mm under the surface behind it, and {dirn} takes the arm "
+            f"{_fmt(ahead)} mm across the body to its far side: direction points from axis_point_mm out of the "
+            "body, where the arm stands (reverse it to put the arm near axis_point_mm)")
+
+
 def _validate_geometry(d: BIPDesign) -> None:
     for arm in d.arms:
         if arm.junction_fillet_mm > 0.0 and d.bulb.is_surface:
@@ -1180,7 +1222,7 @@ def _validate_geometry(d: BIPDesign) -> None:
         off = abs(float(sdist([u.inlet_mm])[0]))
         if off > SURFACE_TOL_MM:
             raise DesignError(f"{u.path}.inlet_mm is {_fmt(off)} mm off the bulb surface (tolerance "
-                              f"{SURFACE_TOL_MM:g} mm)")
+                              f"{SURFACE_TOL_MM:g} mm; snap_to_surface = true moves it onto the surface)")
     for i, (ci, pi) in enumerate(zip(d.cavities, cav_pts)):
         for cj, pj in zip(d.cavities[i + 1:], cav_pts[i + 1:]):
             gap = min(float(ci.signed_distance(pj).min()), float(cj.signed_distance(pi).min()))
@@ -1188,6 +1230,8 @@ def _validate_geometry(d: BIPDesign) -> None:
                 raise DesignError(f"{ci.path} and {cj.path}: "
                                   f"{'they overlap' if gap < 0 else f'{_fmt(gap)} mm apart'} (min wall {MIN_WALL_MM:g} mm)")
 
+    for arm in d.arms:
+        _check_arm_axis(arm, d.bulb)
     geoms = d.arm_geometry()
     for arm, g in zip(d.arms, geoms):
         p = f"arms.{arm.name}"
@@ -1241,14 +1285,24 @@ def _validate_geometry(d: BIPDesign) -> None:
                     f"arms.{gi.name} and arms.{gj.name} overlap (axes {_fmt(dist)} mm apart, min {_fmt(need)} mm)"
                 )
 
+    # the BIP's own markers and targets on another body: ask for the design's, not about the prostate's m1
+    own_markers = d.markers != _default_markers()
+    own_targets = d.targets != _default_targets()
     if len(d.markers) < MIN_MARKERS:
         raise DesignError(f"markers: {len(d.markers)} given (min {MIN_MARKERS}, non-coplanar)")
     for name, xyz in d.markers:
         off = abs(float(sdist([xyz])[0]))
         if off > SURFACE_TOL_MM:
-            raise DesignError(f"markers.{name} is {_fmt(off)} mm off the bulb surface (tolerance {SURFACE_TOL_MM:g} mm)")
+            if not own_markers:
+                raise DesignError(_GIVE_MARKERS.format(why=f"the default ones (the prostate's) are not on this body "
+                                                           f"({name} is {_fmt(off)} mm off it)"))
+            raise DesignError(f"markers.{name} is {_fmt(off)} mm off the bulb surface (tolerance {SURFACE_TOL_MM:g} mm; "
+                              "snap_to_surface = true moves it onto the surface)")
         for g in geoms:
             if geo.segment_distance([xyz], g.start_mm, g.end_mm)[0] < g.radius_mm + g.fillet_mm + MIN_WALL_MM:
+                if not own_markers:
+                    raise DesignError(_GIVE_MARKERS.format(why=f"the default ones (the prostate's) do not fit this "
+                                                               f"design ({name} lies under arms.{g.name})"))
                 raise DesignError(f"markers.{name} lies under arms.{g.name} (min {MIN_WALL_MM:g} mm from its side)")
     m = np.array([xyz for _, xyz in d.markers])
     spread = float(np.linalg.svd(m - m.mean(axis=0), compute_uv=False)[-1] / math.sqrt(len(m)))
@@ -1259,17 +1313,25 @@ def _validate_geometry(d: BIPDesign) -> None:
     for name, xyz in d.targets:
         sd = float(sdist([xyz])[0])
         if sd >= 0.0:
+            if not own_targets:
+                raise DesignError(f"targets: none given, and the default (the prostate's) {name} is outside this "
+                                  f"body ({_fmt(sd)} mm beyond its surface): give [targets], named points inside "
+                                  "your body (NAME = [x, y, z] mm)")
             raise DesignError(f"targets.{name} is outside the bulb ({_fmt(sd)} mm beyond its surface)")
         for u in d.cavities:
             inside = -float(u.signed_distance([xyz])[0])
             if inside >= 0.0:
+                if not own_targets:
+                    raise DesignError(f"targets: none given, and the default (the prostate's) {name} is inside the "
+                                      f"{u.name} cavity: give [targets], named points inside your body, outside its "
+                                      "cavities (NAME = [x, y, z] mm)")
                 raise DesignError(f"targets.{name} is inside the {u.name} cavity ({_fmt(inside)} mm from its wall)")
     _p_ext(d.bulb, d.interaction)
     for name, xyz in d.contacts:
         off = abs(float(sdist([xyz])[0]))
         if off > SURFACE_TOL_MM:
             raise DesignError(f"contacts.{name} = {list(xyz)} is {_fmt(off)} mm off the bulb surface "
-                              f"(tolerance {SURFACE_TOL_MM:g} mm)")
+                              f"(tolerance {SURFACE_TOL_MM:g} mm; snap_to_surface = true moves it onto the surface)")
         for g in geoms:
             if geo.segment_distance([xyz], g.start_mm, g.end_mm)[0] < g.radius_mm + g.fillet_mm + MIN_WALL_MM:
                 raise DesignError(f"contacts.{name} lies under arms.{g.name} (min {MIN_WALL_MM:g} mm from its side)")
@@ -1430,7 +1492,10 @@ def design_from_dict(data: dict[str, Any]) -> BIPDesign:
     """A design from a nested dict; missing keys keep their defaults, ``markers``/``targets``/``contacts``
     replace them."""
     _check_keys("design", data, ["name", "arm_names", "arms", "cavities", "cavity_names", "markers", "targets",
-                                 "contacts", "materials", "region_materials", "layers", *_SUBS])
+                                 "contacts", "materials", "region_materials", "layers", "snap_to_surface", *_SUBS])
+    snap = data.get("snap_to_surface", False)
+    if not isinstance(snap, bool):
+        raise DesignError(f"snap_to_surface: expected true or false, got {snap!r}")
     default = _default_design()
     defaults = {f.name: getattr(default, f.name) for f in dataclasses.fields(BIPDesign)}
     kwargs: dict[str, Any] = dict(defaults)
@@ -1479,7 +1544,34 @@ def design_from_dict(data: dict[str, Any]) -> BIPDesign:
         if not isinstance(data["region_materials"], dict):
             raise DesignError("region_materials: expected a table region = material name")
         kwargs["region_materials"] = tuple(data["region_materials"].items())
+    if snap:
+        _snap_to_surface(kwargs, data)
     return BIPDesign(**kwargs)
+
+
+def _snap_to_surface(kwargs: dict[str, Any], data: dict[str, Any]) -> None:
+    """``snap_to_surface = true``: the file's markers, contact points and internal cavities' inlets
+    moved to the closest point of the body's surface (each move logged); the saved design holds
+    the moved points."""
+    import logging
+
+    bulb: BulbParams = kwargs["bulb"]
+    log = logging.getLogger(__name__)
+
+    def onto(path: str, xyz) -> Vec3:
+        q = bulb.closest_surface_point([xyz])[0]
+        moved = float(np.linalg.norm(q - np.asarray(xyz, float)))
+        if moved > 1e-9:
+            log.info("snap_to_surface: %s moved %.3g mm onto the surface, to [%s]", path, moved,
+                     ", ".join(f"{x:.4f}" for x in q))
+        return tuple(float(x) for x in q)  # type: ignore[return-value]
+
+    for key, check in (("markers", lambda v: _named_points("markers", v)), ("contacts", _contact_points)):
+        if key in data:
+            kwargs[key] = tuple((n, onto(f"{key}.{n}", xyz)) for n, xyz in check(kwargs[key]))
+    if "urethra" in data or "cavities" in data:
+        kwargs["cavities"] = tuple(dataclasses.replace(c, inlet_mm=onto(f"{c.path}.inlet_mm", c.inlet_mm))
+                                   for c in kwargs["cavities"])
 
 
 def load_design(path: str | Path) -> BIPDesign:
@@ -1498,6 +1590,8 @@ def load_design(path: str | Path) -> BIPDesign:
             data = tomllib.loads(text)
     except (json.JSONDecodeError, tomllib.TOMLDecodeError) as exc:
         raise DesignError(f"{path}: not valid {'JSON' if path.suffix.lower() == '.json' else 'TOML'} ({exc})") from None
+    if not data:  # a blank file would silently be the default design
+        raise DesignError(f"{path}: empty design file (no key and no table); leave the file out for the default design")
     return design_from_dict(data)
 
 

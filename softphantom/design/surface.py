@@ -77,3 +77,11 @@ def normal_at(mesh, point) -> np.ndarray:
 
     _, _, tri = trimesh.proximity.closest_point(mesh, np.atleast_2d(np.asarray(point, float)))
     return np.asarray(mesh.face_normals[int(tri[0])], float)
+
+
+def closest_point(mesh, points) -> np.ndarray:
+    """(n, 3) the point of the surface closest to each of ``points``."""
+    import trimesh
+
+    q, _, _ = trimesh.proximity.closest_point(mesh, np.atleast_2d(np.asarray(points, float)))
+    return np.asarray(q, float)

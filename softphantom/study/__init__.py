@@ -25,10 +25,13 @@ def _meta(cfg: SweepConfig, kind: str) -> dict:
 
 
 def run_sweep(cfg: SweepConfig, client: Any, out: Path, report: bool = True) -> SweepRun:
-    """Evaluate every variant of ``cfg`` on ``client``; write ``out/results.parquet`` (and ``report.html``)."""
+    """Evaluate every variant of ``cfg`` on ``client``; write ``out/results.parquet`` (and ``report.html``).
+    When no variant is ok nothing is written (the run's ``path`` is None; its rows say why)."""
     require_pyarrow()
     out = Path(out)
     run = evaluate_variants(client, cfg.variants(), out)
+    if not any(r.get("status") == "ok" for r in run.rows):
+        return run
     path = write_parquet(run.rows, out / RESULTS, _meta(cfg, "sweep"))
     if report:
         from softphantom.study.report import write_report

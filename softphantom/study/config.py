@@ -387,4 +387,6 @@ def load_sweep_config(path: str | Path) -> SweepConfig:
         raise UserError(f"{path}: not a text file (byte {exc.start} is not UTF-8)") from None
     except tomllib.TOMLDecodeError as exc:
         raise UserError(f"{path}: not valid TOML ({exc})") from None
+    if not data:  # a blank file would run one variant of the default design
+        raise UserError(f"{path}: empty sweep file (no [sweep], no [parameters]; docs/sweep.md)")
     return sweep_config_from_dict(data, path.parent)

@@ -145,11 +145,12 @@ def host_chain(model: PhantomModel, board: BoardConfig = BoardConfig()) -> Senso
 
 
 def simulate(scenario: Scenario | str | Path, model: PhantomModel, config: VirtualConfig = VirtualConfig(),
-             truth: Truth | None = None, truth_mesh: PhantomModel | None = None) -> VirtualRun:
-    """Solve the truth of ``scenario`` (unless ``truth`` is given) and prepare board and tracker."""
+             truth: Truth | None = None, truth_mesh: PhantomModel | None = None, *, cache: bool = True) -> VirtualRun:
+    """Solve the truth of ``scenario`` (unless ``truth`` is given; ``cache``: through the truth
+    cache, :func:`~softphantom.virtual.truth.solve_truth`) and prepare board and tracker."""
     sc = scenario if isinstance(scenario, Scenario) else load_scenario(scenario)
     chain = host_chain(model, config.board)  # before the solve: a design the board cannot read is refused now
-    tr = truth or solve_truth(sc, model, config.truth, truth_mesh=truth_mesh)
+    tr = truth or solve_truth(sc, model, config.truth, truth_mesh=truth_mesh, cache=cache)
     sig = board_signals(tr, arm_volumes(tr.model), config.board, tr.model.design.sensing_names)
     trk = simulate_tracker(tr, config.tracker)
     return VirtualRun(sc, model, tr, sig, trk, chain, config)

@@ -35,16 +35,22 @@ rests, that is its partner's own truth exactly.
 
 from __future__ import annotations
 
+import hashlib
+import json
 import logging
+import os
+import re
+import shutil
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 from scipy.interpolate import PchipInterpolator
 
 import dataclasses
 
-from softphantom.design import PhantomModel, build_model
+from softphantom.design import PhantomModel, build_model, design_to_dict
 from softphantom.errors import DesignError, MeshError, SolverError, UserError
 from softphantom.fem import (
     Corotational,
@@ -255,6 +261,7 @@ class Truth:
     solve_s: float
     config: TruthConfig = field(default_factory=TruthConfig)
     groups: tuple[GroupTruth, ...] = ()
+    cached: bool = False  # read from the truth cache (solve_s: the solve that wrote it)
 
     def sample(self, t) -> TruthSamples:
         """The truth at times ``t`` (s), interpolated in load level (see the module docstring)."""
@@ -334,7 +341,8 @@ class Truth:
                                "mesh_size_mm": self.model.design.mesh.size_mm,
                                "element_order": self.model.element_order},
                 "law": "+".join(laws), "patch_radius_mm": self.scenario.patch_radius_mm,
-                "solve_s": round(self.solve_s, 2), "events": out, **extra}
+                "solve_s": round(self.solve_s, 2), **({"cached": True} if self.cached else {}), "events": out,
+                **extra}
 
     def _group_summary(self, g: GroupTruth) -> dict:
         """A group's figures at both peaks (levels (1, 1)), JSON-able."""
@@ -368,9 +376,8 @@ def truth_model(model: PhantomModel, config: TruthConfig = TruthConfig()) -> Pha
     except (DesignError, MeshError) as exc:
         # the mesher's hint names `design`'s options; say what the virtual commands can change
         msg, coarser = str(exc), "a coarser --mesh-size-mm" in str(exc)
-        for hint in (" (a coarser --mesh-size-mm, or --force)", " (a finer --mesh-size-mm, or --force)",
-                     ": a finer --mesh-size-mm, or --force"):
-            msg = msg.replace(hint, "")
+        # design's own hint, the last parenthesis (or its last clause) ending in "--force"
+        msg = re.sub(r"; [^;()]*--force\)$", ")", re.sub(r" \([^()]*--force\)$", "", msg))
         what = ("a larger --truth-mesh-scale (up to 1), or a model designed with a coarser --mesh-size-mm" if coarser
                 else "a smaller --truth-mesh-scale or --truth-order 1 (or a model designed with a finer --mesh-size-mm)")
         raise type(exc)(f"truth mesh (P{config.order}, {size_mm:.3g} mm elements for node spacing "
@@ -385,13 +392,32 @@ def _patch_radius(fem, point: np.ndarray, radius_m: float) -> float:
 
 
 def solve_truth(scenario: Scenario, model: PhantomModel, config: TruthConfig = TruthConfig(),
-                truth_mesh: PhantomModel | None = None) -> Truth:
+                truth_mesh: PhantomModel | None = None, *, cache: bool = False) -> Truth:
     """Solve the truth of ``scenario`` (see the module docstring). ``model`` is the estimator's
     model (its design and mesh size set the truth mesh), or pass ``truth_mesh`` directly.
-    Its progress is reported after each keyframe (task ``<scenario>: truth``, done/total keyframes,
-    :func:`softphantom.progress.report`); a given ``truth_mesh`` sets the element order (its own)."""
-    given = model if truth_mesh is None else truth_mesh
-    scenario.check_points(given.p_ext)  # before the truth is meshed
+    Its progress is reported as it starts and after each keyframe, with the time left (task
+    ``<scenario>: truth``, done/total keyframes, :func:`softphantom.progress.report`); a given
+    ``truth_mesh`` sets the element order (its own). ``cache``: read the truth from the truth
+    cache (:func:`truth_cache_dir`) when it holds this one, and keep it there once solved."""
+    scenario = _checked(scenario, model if truth_mesh is None else truth_mesh)
+    where = truth_cache_dir() if cache else None
+    if where is None:
+        return _solve_truth(scenario, model, config, truth_mesh)
+    key = truth_key(scenario, model, config, truth_mesh)
+    entry = where / "truth" / key[:32]
+    found = load_truth(entry, scenario, config)
+    if found is not None:
+        log.info("%s: truth from the cache (%s; solved in %.1f s)", scenario.name, entry, found.solve_s)
+        return found
+    truth = _solve_truth(scenario, model, config, truth_mesh)
+    save_truth(truth, entry, key)
+    return truth
+
+
+def _checked(scenario: Scenario, given: PhantomModel) -> Scenario:
+    """The scenario checked against the model (its contact points and cavities), each inflation's
+    cavity named: before the truth is meshed."""
+    scenario.check_points(given.p_ext)
     measured = given.design.measured_cavity_names
     for e in scenario.events:
         if e.kind == "inflate" and e.cavity in measured:
@@ -399,12 +425,17 @@ def solve_truth(scenario: Scenario, model: PhantomModel, config: TruthConfig = T
 
             raise ScenarioError(f"{scenario.source}: inflate.cavity {e.cavity}: a measured cavity (read as a volume, "
                                 f"never loaded); the actuated ones: {', '.join(given.design.pressure_names) or 'none'}")
-    scenario = scenario.check_cavities(given.design.pressure_names)
+    return scenario.check_cavities(given.design.pressure_names)
+
+
+def _solve_truth(scenario: Scenario, model: PhantomModel, config: TruthConfig,
+                 truth_mesh: PhantomModel | None) -> Truth:
     t0 = time.perf_counter()
     task = f"{scenario.name}: truth"
     if truth_mesh is None:
         report(log, task, 0, None, "meshing the truth model")
     tm = truth_mesh if truth_mesh is not None else truth_model(model, config)
+    t_mesh = time.perf_counter()
     laws = truth_laws(tm, config.law)
     fem = fem_from_phantom(tm, laws)  # the truth mesh's element order
     marker_names = tuple(tm.markers)
@@ -435,6 +466,14 @@ def solve_truth(scenario: Scenario, model: PhantomModel, config: TruthConfig = T
     grouped = {i for pair in groups for i in pair}
     paths = {}  # event index in a group -> its states at the keyframes (the group's edges)
     done = 0
+    report(log, task, 0, total, f"P{tm.element_order} truth mesh of {len(tm.nodes)} nodes: solving keyframe 1")
+
+    def progress(what: str) -> None:
+        """One keyframe more, with the time left at the mean time a keyframe has taken so far."""
+        spent = time.perf_counter() - t_mesh
+        left = spent / done * (total - done) if done else 0.0
+        eta = f"; ETA {_clock(left)}" if done < total else ""
+        report(log, task, done, total, f"{what}{eta}")
 
     actuators: dict[str, object] = {}
 
@@ -480,7 +519,7 @@ def solve_truth(scenario: Scenario, model: PhantomModel, config: TruthConfig = T
         if not sol.converged:
             raise SolverError(f"truth of {scenario.name}: {what}: {sol.status}")
         done += 1
-        report(log, task, done, total, what)
+        progress(what)
         return sol
 
     events = []
@@ -640,7 +679,7 @@ def solve_truth(scenario: Scenario, model: PhantomModel, config: TruthConfig = T
                 X[i][j] = sol.x.reshape(-1)
                 grid[i][j] = readout(X[i][j])
                 done += 1
-                report(log, task, done, total, what)
+                progress(what)
         dv, mk, tg, bulb = (np.array([[np.asarray(c[q]) for c in row] for row in grid]) for q in range(4))
         force = sum((np.asarray(e.force_N, float) for e in (e1, e2) if e.kind == "push"), np.zeros(3))
         peak = {}
@@ -653,6 +692,132 @@ def solve_truth(scenario: Scenario, model: PhantomModel, config: TruthConfig = T
     group_truths = tuple(solve_group(n, pair) for n, pair in enumerate(groups))
     return Truth(scenario, tm, marker_names, target_names, rest_markers, V0, tuple(events),
                  time.perf_counter() - t0, config, group_truths)
+
+
+# --- the truth cache ----------------------------------------------------------------------------
+
+#: Bumped when what a solve produces for the same inputs changes, so older entries are not read.
+TRUTH_CACHE_FORMAT = 1
+#: The environment variable naming the cache directory ("": no cache).
+CACHE_ENV = "SOFTPHANTOM_CACHE_DIR"
+_EVENT_ARRAYS = ("s", "dV", "markers", "targets", "bulb_dV", "force", "x_peak")
+_GROUP_ARRAYS = ("s1", "s2", "dV", "markers", "targets", "bulb_dV", "force", "x_peak")
+
+
+def _clock(seconds: float) -> str:
+    s = int(round(seconds))
+    return f"{s // 3600}:{s // 60 % 60:02d}:{s % 60:02d}"
+
+
+def truth_cache_dir() -> Path | None:
+    """Where solved truths are kept: ``$SOFTPHANTOM_CACHE_DIR`` (empty: nowhere), else
+    ``$XDG_CACHE_HOME/softphantom``, else ``~/.cache/softphantom``; each truth under
+    ``truth/<key>/`` (:func:`truth_key`)."""
+    given = os.environ.get(CACHE_ENV)
+    if given is not None:
+        return Path(given).expanduser() if given.strip() else None
+    base = os.environ.get("XDG_CACHE_HOME", "").strip()
+    return (Path(base) if base else Path.home() / ".cache") / "softphantom"
+
+
+def _scenario_dict(sc: Scenario) -> dict:
+    """What a truth depends on in a scenario: its loads and their timing shape (not its name,
+    description or file)."""
+    d = dataclasses.asdict(sc)
+    for k in ("name", "description", "source", "duration_s", "rest_s"):
+        d.pop(k)
+    for e in d["events"]:  # when an event starts and ends changes no keyframe: only its load path
+        for k in ("start_s", "rise_s", "hold_s", "fall_s", "repeat", "period_s"):
+            e.pop(k)
+    d["groups"] = [list(g) for g in sc.groups]  # which events act at once: the two-parameter paths
+    return d
+
+
+def _model_digest(h, model: PhantomModel) -> None:
+    h.update(json.dumps(design_to_dict(model.design), sort_keys=True).encode())
+    for a in (model.nodes, model.tets, getattr(model, "tets10", None)):
+        if a is not None:
+            a = np.ascontiguousarray(a)
+            h.update(str((a.dtype.str, a.shape)).encode())
+            h.update(a.tobytes())
+
+
+def truth_key(scenario: Scenario, model: PhantomModel, config: TruthConfig,
+              truth_mesh: PhantomModel | None = None) -> str:
+    """SHA-256 (hex) of what a solved truth depends on: the model (its design and mesh; or the
+    given truth mesh), the scenario's load paths (:func:`_scenario_dict`, its cavities named:
+    ``scenario`` as :func:`solve_truth` checked it), the truth settings and
+    :data:`TRUTH_CACHE_FORMAT`. Only the inputs as given: no number computed while solving."""
+    h = hashlib.sha256()
+    _model_digest(h, model)
+    if truth_mesh is not None:
+        h.update(b"truth mesh")
+        _model_digest(h, truth_mesh)
+    h.update(json.dumps({"format": TRUTH_CACHE_FORMAT, "config": dataclasses.asdict(config),
+                         "scenario": _scenario_dict(scenario)}, sort_keys=True).encode())
+    return h.hexdigest()
+
+
+def save_truth(truth: Truth, entry: Path, key: str) -> None:
+    """Keep ``truth`` in the cache directory ``entry`` (its truth mesh, keyframes and peak states):
+    written beside it and moved into place, so a reader never sees half an entry. A cache that
+    cannot be written is logged and left out (the run goes on)."""
+    from softphantom.design import save_model
+
+    entry = Path(entry)
+    tmp = entry.with_name(f".{entry.name}.{os.getpid()}.tmp")
+    try:
+        shutil.rmtree(tmp, ignore_errors=True)
+        save_model(truth.model, tmp / "truth_model", mesh_files=False)
+        arrays = {"rest_markers": truth.rest_markers, "rest_volumes": truth.rest_volumes}
+        for i, et in enumerate(truth.events):
+            arrays.update({f"e{i}_{k}": np.asarray(getattr(et, k)) for k in _EVENT_ARRAYS})
+        for i, g in enumerate(truth.groups):
+            arrays.update({f"g{i}_{k}": np.asarray(getattr(g, k)) for k in _GROUP_ARRAYS})
+        np.savez(tmp / "truth.npz", **arrays)
+        meta = {"key": key, "format": TRUTH_CACHE_FORMAT, "solve_s": truth.solve_s,
+                "marker_names": list(truth.marker_names), "target_names": list(truth.target_names),
+                "events": [{"p_Pa": et.p_Pa, "iterations": et.iterations, "note": et.note} for et in truth.events],
+                "groups": [{"pair": list(g.pair), "pressures_Pa": g.pressures_Pa, "solves": g.solves,
+                            "iterations": g.iterations} for g in truth.groups]}
+        (tmp / "truth.json").write_text(json.dumps(meta, sort_keys=True), encoding="utf-8")
+        entry.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            os.replace(tmp, entry)
+        except OSError:  # another run kept the same truth first
+            shutil.rmtree(tmp, ignore_errors=True)
+    except OSError as exc:
+        shutil.rmtree(tmp, ignore_errors=True)
+        log.warning("truth cache: cannot write %s (%s); the truth is not kept", entry, exc.strerror or exc)
+
+
+def load_truth(entry: Path, scenario: Scenario, config: TruthConfig) -> Truth | None:
+    """The truth kept in ``entry`` for ``scenario`` (as :func:`solve_truth` checked it), or None when
+    there is none or it cannot be read (it is then solved again)."""
+    from softphantom.design import load_model
+
+    entry = Path(entry)
+    if not (entry / "truth.json").is_file():
+        return None
+    try:
+        meta = json.loads((entry / "truth.json").read_text(encoding="utf-8"))
+        if meta.get("format") != TRUTH_CACHE_FORMAT or len(meta["events"]) != len(scenario.events):
+            return None
+        tm = load_model(entry / "truth_model")
+        with np.load(entry / "truth.npz", allow_pickle=False) as z:
+            a = {k: z[k] for k in z.files}
+        events = tuple(EventTruth(e, *(a[f"e{i}_{k}"] for k in _EVENT_ARRAYS[:6]), float(m["p_Pa"]),
+                                  a[f"e{i}_x_peak"], int(m["iterations"]), m["note"])
+                       for i, (e, m) in enumerate(zip(scenario.events, meta["events"])))
+        groups = tuple(GroupTruth(tuple(m["pair"]), tuple(scenario.events[j] for j in m["pair"]),
+                                  *(a[f"g{i}_{k}"] for k in _GROUP_ARRAYS[:7]), dict(m["pressures_Pa"]),
+                                  a[f"g{i}_x_peak"], int(m["solves"]), int(m["iterations"]))
+                       for i, m in enumerate(meta["groups"]))
+    except (OSError, ValueError, KeyError, TypeError, UserError) as exc:
+        log.warning("truth cache: %s cannot be read (%s); solving the truth again", entry, exc)
+        return None
+    return Truth(scenario, tm, tuple(meta["marker_names"]), tuple(meta["target_names"]), a["rest_markers"],
+                 a["rest_volumes"], events, float(meta["solve_s"]), config, groups, cached=True)
 
 
 def write_snapshot(truth: Truth, path) -> str:

@@ -2,7 +2,8 @@
 
 Left: the whole phantom, outer surface translucent and coloured by region, the cavities solid,
 with markers, targets and p_ext. Right: a crinkle cut (the tets with centroid at x ≤ 0, seen from
-+x), which shows the mesh inside, the urethra along y and the front arms' cavities in section.
++x), which shows the mesh inside and the cavities in section. Colours and legend are the model's
+own regions and cavities (:func:`model_colours`).
 """
 
 from __future__ import annotations
@@ -27,6 +28,52 @@ CAVITY_COLOURS = {
 }
 
 
+#: colours of the other regions and cavities, in the model's order (matplotlib's tab10 and its darker tab20 pair)
+_ARM_PALETTE = ("#4c78a8", "#f58518", "#54a24b", "#e45756", "#72b7b2", "#eeca3b", "#b279a2", "#9d755d", "#bab0ac")
+_CAVITY_PALETTE = ("#7b3fa0", "#17becf", "#8c564b", "#bcbd22", "#e377c2", "#393b79")
+_LAYER_COLOURS = {"shell": "#d9a08b"}
+
+
+def _darker(colour: str, f: float = 0.6) -> str:
+    from matplotlib.colors import to_hex, to_rgb
+
+    return to_hex(tuple(f * c for c in to_rgb(colour)))
+
+
+def model_colours(model) -> tuple[dict[str, str], dict[str, str]]:
+    """(region → colour, cavity → colour) for ``model``'s own regions and cavities: the BIP's
+    colours for the BIP's names; another design's arms in palette order, each arm's cavity a darker
+    shade of its arm, its internal cavities from a second palette.
+
+    >>> import types
+    >>> m = types.SimpleNamespace(regions={"bulb": 1, "arm_upper_pole": 2}, cavities={"upper_pole": 0, "balloon": 0})
+    >>> model_colours(m)
+    ({'bulb': '#f2b8a2', 'arm_upper_pole': '#4c78a8'}, {'upper_pole': '#2e4865', 'balloon': '#7b3fa0'})
+    """
+    regions: dict[str, str] = {}
+    arms = [r for r in model.regions if r.startswith("arm_")]
+    spare = [c for c in _ARM_PALETTE if c not in {REGION_COLOURS.get(a) for a in arms}]
+    for r in model.regions:
+        if r in REGION_COLOURS:
+            regions[r] = REGION_COLOURS[r]
+        elif r in _LAYER_COLOURS:
+            regions[r] = _LAYER_COLOURS[r]
+        elif r.startswith("lesion_"):
+            regions[r] = "#c44e52"
+        else:
+            regions[r] = spare.pop(0) if spare else "#bbbbbb"
+    cavities: dict[str, str] = {}
+    internal = iter(_CAVITY_PALETTE)
+    for c in model.cavities:
+        if c in CAVITY_COLOURS:
+            cavities[c] = CAVITY_COLOURS[c]
+        elif f"arm_{c}" in regions:
+            cavities[c] = _darker(regions[f"arm_{c}"])
+        else:
+            cavities[c] = next(internal, "#555555")
+    return regions, cavities
+
+
 def _boundary_faces(tets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Faces of ``tets`` that belong to one tet only, oriented outward, and that tet's index."""
     faces = np.vstack([tets[:, [1, 2, 3]], tets[:, [0, 3, 2]], tets[:, [0, 1, 3]], tets[:, [0, 2, 1]]])
@@ -37,7 +84,8 @@ def _boundary_faces(tets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _face_colours(model, owner: np.ndarray) -> list[str]:
-    by_id = {v: REGION_COLOURS.get(k, "#bbbbbb") for k, v in model.regions.items()}
+    colours = model_colours(model)[0]
+    by_id = {v: colours[k] for k, v in model.regions.items()}
     return [by_id[int(r)] for r in model.tet_region[owner]]
 
 
@@ -83,8 +131,9 @@ def render_mesh_png(model, path: str | Path, *, title: str | None = None, dpi: i
     ax.add_collection3d(
         Poly3DCollection(x[outer], facecolors=_face_colours(model, owner), edgecolors="none", alpha=0.18)
     )
+    region_colours, cavity_colours = model_colours(model)
     for name, tris in model.cavities.items():
-        ax.add_collection3d(Poly3DCollection(x[tris], facecolors=CAVITY_COLOURS.get(name, "grey"), edgecolors="none", alpha=0.9))
+        ax.add_collection3d(Poly3DCollection(x[tris], facecolors=cavity_colours[name], edgecolors="none", alpha=0.9))
     _points(ax, model, scale)
     _square(ax, x)
     ax.view_init(elev=22, azim=-60)
@@ -103,8 +152,8 @@ def render_mesh_png(model, path: str | Path, *, title: str | None = None, dpi: i
     ax2.view_init(elev=10, azim=0)
     ax2.set_title("cut at x = 0 (tets with x ≤ 0, seen from +x): mesh and cavities", fontsize=10)
 
-    handles = [Line2D([], [], color=c, lw=6, label=k) for k, c in REGION_COLOURS.items()]
-    handles += [Line2D([], [], color=c, lw=6, label=f"cavity {k}") for k, c in CAVITY_COLOURS.items()]
+    handles = [Line2D([], [], color=c, lw=6, label=k) for k, c in region_colours.items()]
+    handles += [Line2D([], [], color=c, lw=6, label=f"cavity {k}") for k, c in cavity_colours.items()]
     handles += [
         Line2D([], [], color="black", marker="o", lw=0, label="markers"),
         Line2D([], [], color="#d62728", marker="x", lw=0, label="targets"),

@@ -12,6 +12,7 @@ f_x faces first, then the lines between them (:func:`_lines`, one mixed-control 
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import os

@@ -30,7 +30,7 @@ import json
 import logging
 import os
 import shutil
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -310,12 +310,15 @@ def find_or_build(model, config: EstimatorConfig | None = None, acfg: AtlasConfi
                 c = cfg.contact
                 at = "" if c == "on-centre" else f" --at {c}" if isinstance(c, str) else " (its contact point)"
                 n = sum(subs[p].n_solves for p in missing)
+                small = replace(acfg, n_force=(3, 3, 3), n_pressure=2, f_y_splits_N=())
+                small_wall = B.estimated_build(order, len(_mesh_nodes(model)), small, n_workers)[1]
                 raise B.AtlasMissing(
                     f"{model_dir or 'the model'}: no atlas yet for this model and contact; building it takes about "
                     f"{B.duration_text(wall)} on {int(n_workers or os.cpu_count() or 1)} cores ({n} grid points, "
                     f"≈ {cpu:.0f} CPU-s): build it once with `softphantom atlas build --model {model_dir}{at}` "
-                    f"(resumable; --scheduler ADDR for a Dask cluster; --atlas-grid / --envelope for a smaller "
-                    f"one), or estimate meanwhile with --estimator refresh")
+                    f"(resumable; --scheduler ADDR for a Dask cluster); or a small atlas over your own loads, "
+                    f"--atlas-grid 3,3,3,2 --envelope FXMIN:FXMAX,FYMIN:FYMAX,FZMIN:FZMAX,PMIN:PMAX (N, kPa; about "
+                    f"{B.duration_text(small_wall)}; docs/organs.md); or estimate meanwhile with --estimator refresh")
         if model_dir is not None:
             check_partials(model_dir, B.build_settings(cfg, acfg, len(_mesh_nodes(model))), discard=discard_partial)
         built = B.build_atlas(model, cfg, acfg, keys=keys, scheduler=scheduler, n_workers=n_workers, fwd=fwd,
