@@ -35,7 +35,8 @@ def _build(model_dir: Path, *extra: str) -> subprocess.Popen:
 @pytest.mark.parametrize("seed", [3])
 def test_a_build_killed_at_a_random_point_resumes_to_the_same_atlas(shared_dir, coarse_model_dir, tmp_path, seed):
     reference = cached_atlas(shared_dir, "displacement")  # built in one go, in-process
-    n_tasks = 2 * 2 + 3 * 2  # the faces (2 per pressure), the lines (one per f_z and pressure)
+    # each face (2 per pressure) a spine and a branch per f_z point; a line per f_y, f_z and pressure
+    n_tasks = 2 * 2 * (1 + 3) + 4 * 3 * 2
     model_dir = tmp_path / "model"
     model_dir.mkdir()
     shutil.copy(coarse_model_dir / "model.npz", model_dir)

@@ -19,6 +19,7 @@ import platform
 import shlex
 import sys
 import time
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -102,6 +103,28 @@ class HeldLoads:
         return self._fwd.solve(self.eq._full(lam), start, **kw)
 
 
+_FEM: dict[int, tuple] = {}  # a worker's FEM model of the phantom its tasks share (id(model) -> (model, fem))
+
+
+def _task_forward(model, config: EstimatorConfig, acfg: AtlasConfig):
+    """The forward model a build task solves with: a new solver (no factor, no state from another
+    task, so a task's result does not depend on which ran before it on the worker) on the worker's
+    FEM model of ``model``, assembled once per worker (1.4 CPU-s on the quadratic default model,
+    as much as a grid point; a build has hundreds of tasks)."""
+    from softphantom.fem import fem_from_phantom
+
+    got = _FEM.get(id(model))
+    if got is None or got[0] is not model:
+        _FEM.clear()
+        got = _FEM[id(model)] = (model, fem_from_phantom(model))
+    # only the equilibria are kept: the sensitivities come from the kept factor (no GMRES), which
+    # is the tangent at the start point's equilibrium; failures are expected at the envelope's
+    # corners: the Newton fallback gives up at 1/32 of the load (not 1/1024: a failing solve cost
+    # ~10 converging ones)
+    return held_loads(ForwardModel(model, config, got[1], exact_sensitivities=False,
+                                   fallback_min_load_step=FALLBACK_MIN_LOAD_STEP), acfg)
+
+
 def held_loads(fwd: ForwardModel, acfg: AtlasConfig):
     """``fwd`` as the build of the atlas ``acfg`` solves it: itself, or for a stack's level
     (``acfg.held_kPa``) the :class:`HeldLoads` view holding the further pressures."""
@@ -153,6 +176,20 @@ def _plane_walk(ny: int, nz: int, j0: int, k0: int) -> list[tuple[tuple[int, int
         out.append((p, parent, len(kids)))
         stack.extend((c, p) for c in reversed(kids))
     return out
+
+
+def _sub_walk(walk, keep: set) -> list:
+    """The entries of a plane walk (:func:`_plane_walk`) at the points in ``keep``, in its order,
+    each point's parent outside ``keep`` replaced by None and its children counted within ``keep``.
+
+    >>> [(p, q, n) for p, q, n in _sub_walk(_plane_walk(3, 3, 1, 1), {(1, 2), (2, 2), (0, 2)})]
+    [((1, 2), None, 2), ((2, 2), (1, 2), 0), ((0, 2), (1, 2), 0)]
+    """
+    out = [(p, q if q in keep else None) for p, q, _ in walk if p in keep]
+    kids: dict = {}
+    for _, q in out:
+        kids[q] = kids.get(q, 0) + 1
+    return [(p, q, kids.get(p, 0)) for p, q in out]
 
 
 class LinePredictor:
@@ -310,7 +347,7 @@ def _line_knot(fwd: ForwardModel, h: np.ndarray, lin, path: LinePredictor):
     return col
 
 
-def _sweep(model, config: EstimatorConfig, acfg: AtlasConfig, i: int, l: int):
+def _sweep(model, config: EstimatorConfig, acfg: AtlasConfig, i: int, l: int, only=None, seed=None):
     """One task: the (f_y, f_z) plane at grid f_x index ``i`` and pressure index ``l`` (with
     ``acfg.linear_pressure``: at the pressure range's middle, ``l`` ignored). The point
     nearest zero load is reached from rest by continuation, every other one from a converged inner
@@ -328,14 +365,14 @@ def _sweep(model, config: EstimatorConfig, acfg: AtlasConfig, i: int, l: int):
     the pressure (``linear_pressure``) or per unit load along ``acfg.hermite_axis``
     (:func:`_axis_derivative`, with dFX (ny,nz)), or None, FX (ny,nz) the points' f_x N, Q (ny,nz)
     their first coordinate (the node), the number
-    of converged forward solves); unsolved entries are NaN."""
+    of converged forward solves); unsolved entries are NaN.
+
+    A segment of the plane (a task of a finer graph, :func:`_face_part`): ``only`` the (j, k)
+    points to solve, walked in the plane's order; ``seed`` ((j, k), displacements (3N,) m) a point
+    another task solved, linearized where it is (one factorization) and the start of the points
+    walked from it. A point is tried when its inner neighbours within the segment converged."""
     t0 = time.process_time()
-    # only the equilibria are kept: the sensitivities come from the kept factor (no GMRES), which
-    # is the tangent at the start point's equilibrium; failures are expected at the envelope's
-    # corners: the Newton fallback gives up at 1/32 of the load (not 1/1024: a failing solve cost
-    # ~10 converging ones)
-    fwd = held_loads(ForwardModel(model, config, exact_sensitivities=False,
-                                  fallback_min_load_step=FALLBACK_MIN_LOAD_STEP), acfg)
+    fwd = _task_forward(model, config, acfg)
     ax = acfg.axes()
     ny, nz = len(ax[1]), len(ax[2])
     linear = acfg.linear_pressure
@@ -358,10 +395,15 @@ def _sweep(model, config: EstimatorConfig, acfg: AtlasConfig, i: int, l: int):
     left: dict[tuple[int, int], int] = {}
     last = None  # the point whose factor the solver holds
     first_error = ""
-    for p, parent, n_kids in _plane_walk(ny, nz, *centre):
+    walk = _plane_walk(ny, nz, *centre)
+    mine = None
+    if only is not None:
+        mine = {tuple(q) for q in only} | ({tuple(seed[0])} if seed is not None else set())
+        walk = _sub_walk(walk, mine)
+    for p, parent, n_kids in walk:
         if parent in left:
             left[parent] -= 1
-        reachable = all(q in lins for q in _inner(p, centre))
+        reachable = all(q in lins for q in _inner(p, centre) if mine is None or q in mine)
         if reachable and parent is not None and last != parent:
             fwd.eq.restore(kept[parent])
         if parent in left and left[parent] == 0:
@@ -371,6 +413,15 @@ def _sweep(model, config: EstimatorConfig, acfg: AtlasConfig, i: int, l: int):
         j, k = p
         lam = np.array([ax[0][i], ax[1][j], ax[2][k], p_u])
         last = None
+        if seed is not None and p == tuple(seed[0]):  # solved by another task: the start of this segment
+            if seed[1] is None:
+                continue
+            lins[p] = _linearized_at(fwd, fwd.fem.x_rest + seed[1], lam)
+            last = p
+            if n_kids > 1:
+                kept[p] = fwd.eq.keep()
+            left[p] = n_kids
+            continue
         try:
             # a linear pressure axis needs the exact pressure derivative: the tangent at the solution
             # (elsewhere a new factor there costs more than the chord iterations it saves)
@@ -415,8 +466,7 @@ def _lines(model, config: EstimatorConfig, acfg: AtlasConfig, k: int, l: int, en
     shapes or None: along ū (``acfg.hermite_axis`` 0), or along another load at fixed q, for which
     ``dends`` (ny,) × 2 are the faces' dū/dλ_a (:func:`_axis_derivative`))."""
     t0 = time.process_time()
-    fwd = held_loads(ForwardModel(model, config, exact_sensitivities=False,
-                                  fallback_min_load_step=FALLBACK_MIN_LOAD_STEP), acfg)
+    fwd = _task_forward(model, config, acfg)
     ax = acfg.axes()
     n1, ny = len(ax[0]), len(ax[1])
     h = x_patch(fwd)
@@ -475,6 +525,82 @@ def _lines(model, config: EstimatorConfig, acfg: AtlasConfig, k: int, l: int, en
             first_error = first_error or str(exc).splitlines()[0]
     return (k, l, V, P, X, solved, first_error, time.process_time() - t0, FX, Q, n_solves,
             (dV, dP, dX, dFX) if hermite else None)
+
+
+@dataclass
+class GridPart:
+    """What one task of a build's fine graph solved (:func:`_face_part`, :func:`_line_task`): at the
+    grid points ``idx`` (n, 4) (i, j, k, l) the volumes ``V`` (n, n_arms), tracked points ``P``
+    (n, k, 3), displacements ``X`` (n, 3N), f_x ``FX`` (n,), first coordinate ``Q`` (n,),
+    ``solved`` (n,) (unsolved rows NaN) and ``derivs`` (dV, dP, dX, dFX) along the Hermite axis or
+    None; the first failure (``error``), the CPU seconds and the converged forward solves."""
+
+    idx: np.ndarray
+    V: np.ndarray
+    P: np.ndarray
+    X: np.ndarray
+    FX: np.ndarray
+    Q: np.ndarray
+    solved: np.ndarray
+    derivs: tuple | None
+    error: str
+    cpu_s: float
+    n_solves: int
+
+    def row(self, j: int, k: int) -> int:
+        """The row of grid point (·, j, k, ·)."""
+        return int(np.flatnonzero((self.idx[:, 1] == j) & (self.idx[:, 2] == k))[0])
+
+
+def face_segments(acfg: AtlasConfig) -> list[tuple[str, list[tuple[int, int]]]]:
+    """A face plane's walk (:func:`_plane_walk`) as segments, each a task: ``("spine", points)``,
+    the spine along f_z through the point nearest zero load (solved from rest), then
+    ``("branch-k", points)`` for each f_z index k, the points along f_y from spine point (j0, k),
+    which seeds it.
+
+    >>> [(n, len(p)) for n, p in face_segments(AtlasConfig(n_force=(3, 4, 3)))]
+    [('spine', 3), ('branch-0', 3), ('branch-1', 3), ('branch-2', 3)]
+    """
+    ax = acfg.axes()
+    ny, nz = len(ax[1]), len(ax[2])
+    j0 = int(np.argmin(np.abs(ax[1])))
+    out = [("spine", [(j0, k) for k in range(nz)])]
+    out += [(f"branch-{k}", [(j, k) for j in range(ny) if j != j0]) for k in range(nz)]
+    return out
+
+
+def _face_part(model, config: EstimatorConfig, acfg: AtlasConfig, i: int, l: int, points, seed=None) -> GridPart:
+    """One segment of a face plane (:func:`face_segments`) by :func:`_sweep`: the ``points`` (j, k),
+    from rest or from ``seed`` ((j0, k), its displacements or None: unsolved, and so are these)."""
+    got = _sweep(model, config, acfg, i, l, only=points, seed=seed)
+    _, _, V, P, X, solved, err, cpu, deriv, FX, Q, n = got
+    js, ks = (np.array(v, dtype=np.int64) for v in zip(*points))
+    idx = np.stack([np.full_like(js, i), js, ks, np.full_like(js, l)], axis=1)
+    return GridPart(idx, V[js, ks], P[js, ks], X[js, ks], FX[js, ks], Q[js, ks], solved[js, ks],
+                    None if deriv is None else tuple(d[js, ks] for d in deriv), err, cpu, n)
+
+
+def _line_task(model, config: EstimatorConfig, acfg: AtlasConfig, k: int, l: int, j: int, ends, start,
+               dends=None) -> GridPart:
+    """One line along q (f_y index ``j``, f_z ``k``, pressure ``l``) between its two face points by
+    :func:`_lines`: ``ends`` (2,) their patch displacements (m, NaN: unsolved), ``start`` (3N,) the
+    lower face point's displacements, ``dends`` (2,) their dū/dλ_a on a Hermite axis a ≠ 0."""
+    ny = acfg.shape[1]
+
+    def one(v):
+        a = np.full(ny, np.nan)
+        a[j] = v
+        return a
+
+    starts = np.zeros((ny, len(start)))
+    starts[j] = start
+    got = _lines(model, config, acfg, k, l, tuple(one(e) for e in ends), starts,
+                 None if dends is None else tuple(one(d) for d in dends))
+    _, _, V, P, X, solved, err, cpu, FX, Q, n, deriv = got
+    m = V.shape[0]
+    idx = np.stack([np.arange(1, m + 1), np.full(m, j), np.full(m, k), np.full(m, l)], axis=1)
+    return GridPart(idx, V[:, j], P[:, j], X[:, j], FX[:, j], Q[:, j], solved[:, j],
+                    None if deriv is None else tuple(d[:, j] for d in deriv), err, cpu, n)
 
 
 def fill_weights(solved: np.ndarray, axes: list[np.ndarray]) -> list[tuple[int, np.ndarray, np.ndarray]]:
@@ -568,29 +694,70 @@ def _piece_tasks(model, cfg: EstimatorConfig, acfg: AtlasConfig, fwd: ForwardMod
     if acfg.x_control == "force":
         return [Task(f"{tag}-plane-{i}-{l}", _sweep, lambda _r, i=i, l=l: (model, cfg, acfg, i, l),
                      points=n2 * n3, kind=f"{kind} plane", priority=1) for i, l in planes]
-    # the faces at the first pressure first, then each line task as soon as its faces are done: every
-    # kind of task (and piece) has ended early, for the ETA, and the lines do not wait for all faces
-    faces = [Task(f"{tag}-plane-{i}-{l}", _sweep, lambda _r, i=i, l=l: (model, cfg, acfg, i, l),
-                  points=n2 * n3, kind=f"{kind} plane", priority=3 if l == 0 else 1)
-             for i, l in planes if i in (0, n1 - 1)]
+    # the fine graph (the critical path a few points long): each face plane's spine from rest, its
+    # branches along f_y each seeded by a spine point, each line along q as soon as its two face
+    # points are solved
     h = x_patch(fwd)
-
-    def line_args(r, k, l):
-        ends, starts, dends = [], None, []
+    segs = face_segments(acfg)
+    j0 = segs[0][1][0][0]
+    faces = []
+    for l in range(n4):
         for i in (0, n1 - 1):
-            face = r[f"{tag}-plane-{i}-{l}"]
-            ok, X, deriv = face[5], face[4], face[8]
-            ends.append(np.where(ok[:, k], X[:, k] @ h, np.nan))
-            if i == 0:
-                starts = X[:, k]
-            if hermite not in (None, 0):
-                dends.append(deriv[2][:, k] @ h)
-        return model, cfg, acfg, k, l, tuple(ends), starts, tuple(dends) if dends else None
+            spine = f"{tag}-spine-{i}-{l}"
+            faces.append(Task(spine, _face_part, lambda _r, i=i, l=l, pts=segs[0][1]: (model, cfg, acfg, i, l, pts),
+                              points=len(segs[0][1]), kind=f"{kind} spine"))
 
-    lines = [Task(f"{tag}-lines-{k}-{l}", _lines, lambda r, k=k, l=l: line_args(r, k, l),
-                  deps=(f"{tag}-plane-0-{l}", f"{tag}-plane-{n1 - 1}-{l}"), points=(n1 - 2) * n2,
-                  kind=f"{kind} lines", priority=2) for l in range(n4) for k in range(n3)]
+            def branch_args(r, i=i, l=l, spine=spine, seg=None):
+                name, pts = seg
+                k = int(name.split("-")[1])
+                sp = r[spine]
+                row = sp.row(j0, k)
+                return model, cfg, acfg, i, l, pts, ((j0, k), sp.X[row] if sp.solved[row] else None)
+
+            for seg in segs[1:]:
+                faces.append(Task(f"{tag}-{seg[0]}-{i}-{l}", _face_part,
+                                  lambda r, f=branch_args, seg=seg: f(r, seg=seg), deps=(spine,),
+                                  points=len(seg[1]), kind=f"{kind} branch"))
+
+    def holder(i: int, l: int, j: int, k: int) -> str:
+        return f"{tag}-spine-{i}-{l}" if j == j0 else f"{tag}-branch-{k}-{i}-{l}"
+
+    def line_args(r, k, l, j):
+        ends, dends, start = [], [], None
+        for i in (0, n1 - 1):
+            part = r[holder(i, l, j, k)]
+            row = part.row(j, k)
+            ok = bool(part.solved[row])
+            ends.append(float(part.X[row] @ h) if ok else math.nan)
+            if i == 0:
+                start = part.X[row]
+            if hermite not in (None, 0):
+                dends.append(float(part.derivs[2][row] @ h) if ok else math.nan)
+        return model, cfg, acfg, k, l, j, tuple(ends), start, tuple(dends) if dends else None
+
+    lines = [Task(f"{tag}-line-{k}-{l}-{j}", _line_task, lambda r, k=k, l=l, j=j: line_args(r, k, l, j),
+                  deps=(holder(0, l, j, k), holder(n1 - 1, l, j, k)), points=n1 - 2, kind=f"{kind} line")
+             for l in range(n4) for k in range(n3) for j in range(n2)]
     return faces + lines
+
+
+def task_place(name: str, acfg: AtlasConfig) -> str:
+    """Where on the grid a task of :func:`_piece_tasks` works, as a user reads it.
+
+    >>> task_place("p0-plane-3-1", AtlasConfig()), task_place("p1-branch-2-0-1", AtlasConfig())
+    ('piece 0, plane f_x index 3, pressure index 1', 'piece 1, face f_x index 0, f_z index 2, pressure index 1')
+    >>> task_place("p0-line-2-1-4", AtlasConfig())
+    'piece 0, line along q at f_y index 4, f_z index 2, pressure index 1'
+    """
+    tag, what, *n = name.split("-")
+    piece = f"piece {tag[1:]}"
+    if what == "plane":
+        return f"{piece}, plane {'f_x' if acfg.x_control == 'force' else 'q'} index {n[0]}, pressure index {n[1]}"
+    if what == "spine":
+        return f"{piece}, face f_x index {n[0]} (its spine), pressure index {n[1]}"
+    if what == "branch":
+        return f"{piece}, face f_x index {n[1]}, f_z index {n[0]}, pressure index {n[2]}"
+    return f"{piece}, line along q at f_y index {n[2]}, f_z index {n[0]}, pressure index {n[1]}"
 
 
 def _assemble(model, fwd: ForwardModel, acfg: AtlasConfig, key: str, tag: str, run: GraphRun, t0: float) -> Atlas:
@@ -615,6 +782,17 @@ def _assemble(model, fwd: ForwardModel, acfg: AtlasConfig, key: str, tag: str, r
         if not name.startswith(f"{tag}-"):
             continue
         cpu_s += run.cpu_s[name]
+        if isinstance(value, GridPart):
+            sel = tuple(value.idx.T)
+            n_fwd += value.n_solves
+            V[sel], P[sel], X[sel], FX[sel], QN[sel], solved[sel] = (value.V, value.P, value.X, value.FX, value.Q,
+                                                                   value.solved)
+            if value.derivs is not None:
+                dV[sel], dP[sel], dX[sel], dFX[sel] = value.derivs
+            if not value.solved.all():
+                log.info(f"atlas: {name.split('-', 1)[1]}: {int((~value.solved).sum())} of {len(value.solved)} points "
+                         f"unreachable ({value.error or 'beyond a failed point'})")
+            continue
         if "-lines-" in name:
             kz, lp, v, p, x, ok, err, _cpu, fx, q, n_tried, deriv = value
             n_fwd += n_tried
@@ -831,10 +1009,7 @@ def build_atlas(model, config: EstimatorConfig | None = None, atlas: AtlasConfig
             return stores.get(int(name.split("-")[0][1:]))
 
         def failed(task: Task, msg: str) -> Exception:  # not a solver failure (those are recorded): a bug, a lost worker
-            _, what, a, b = task.name.split("-")
-            where = (f"plane {'f_x' if acfg.x_control == 'force' else 'q'} index {a}" if what == "plane"
-                     else f"lines at f_z index {a}")
-            return SolverError(f"atlas: {where}, pressure index {b} failed: {msg}")
+            return SolverError(f"atlas: {task_place(task.name, acfg)} failed: {msg}")
 
         n_points = sum(t.points for t in tasks)
         label = f"atlas: {len(tasks)} tasks, {n_points} grid points"
