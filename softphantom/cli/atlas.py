@@ -63,6 +63,9 @@ def build_cmd(
     discard_partial: bool = typer.Option(False, "--discard-partial", help="Drop the finished tasks of an "
                                          "interrupted build with other settings (by default such a build is "
                                          "refused; one with the same settings resumes)."),
+    draft: bool = typer.Option(False, "--draft", help="A quick atlas on a coarse grid (minutes): its held-out "
+                               "error is measured, printed and kept in the file; estimate uses it (saying "
+                               "'draft atlas') until the full one is built, and --require-full refuses it."),
 ) -> None:
     """Build the atlas of a model (or find it built) in MODEL/atlas/, on Dask. Every finished task is
     kept in MODEL/atlas/partial/: after Ctrl-C, kill or a reboot the same command goes on where it
@@ -92,16 +95,38 @@ def build_cmd(
     model = _model(model_dir)
     _contact(at, model)
     acfg = atlas_config_from_options(atlas_grid, envelope, atlas_x_axis, atlas_f_y_split,
-                                     base=model_atlas_config(model.element_order, model_dir))
+                                     base=model_atlas_config(model.element_order, model_dir, draft=draft))
     acfg = replace(acfg, offline=offline)
-    built = load_or_build(model, EstimatorConfig(contact=_contact(at, model)), acfg, cache_dir=model_dir,
-                          scheduler=scheduler, n_workers=workers, rebuild=rebuild,
-                          discard_partial=discard_partial)
+    cfg = EstimatorConfig(contact=_contact(at, model))
+    built = load_or_build(model, cfg, acfg, cache_dir=model_dir, scheduler=scheduler, n_workers=workers,
+                          rebuild=rebuild, discard_partial=discard_partial)
+    if draft:
+        _measure_draft(model, cfg, built, model_dir, scheduler, workers)
     for piece in _pieces(built):
         path = atlas_path(model_dir, piece.key)
         shipped = None if path.is_file() else shipped_atlas(piece.key)
         console.print(f"{path}" if shipped is None else f"{shipped} (shipped with softphantom)", highlight=False,
                       soft_wrap=True)
+
+
+def _measure_draft(model, cfg, built, model_dir: Path, scheduler, workers) -> None:
+    """A draft's held-out error: measured once (kept in each piece's file), printed every time."""
+    from dataclasses import replace
+
+    from softphantom.estimation.atlas.check import check_draft, draft_error_text
+    from softphantom.estimation.atlas.store import atlas_path, save_atlas
+    from softphantom.parallel import dask_client
+    from softphantom.progress import status
+
+    pieces = _pieces(built)
+    held = (pieces[0].provenance or {}).get("held_out")
+    if held is None:
+        with dask_client(scheduler, workers) as client, status("draft atlas: held-out full solves", console):
+            held = check_draft(model, cfg, built, client=client)
+        for piece in pieces:
+            save_atlas(replace(piece, provenance={**(piece.provenance or {}), "held_out": held}),
+                       atlas_path(model_dir, piece.key))
+    console.print(f"draft atlas: {draft_error_text(held)}", highlight=False, soft_wrap=True)
 
 
 @atlas_app.command("info")

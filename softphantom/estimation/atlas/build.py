@@ -32,7 +32,8 @@ from softphantom.estimation.atlas.config import (FALLBACK_MIN_LOAD_STEP, VIA_TOL
 from softphantom.estimation.atlas.map import Atlas, AtlasPatches, AtlasStack
 from softphantom.estimation.atlas.store import (AtlasCorrupt, AtlasMismatch, atlas_key, atlas_path, load_atlas, save_atlas,
                                                 shipped_atlas)
-from softphantom.estimation.atlas.tasks import (GraphRun, Task, TaskStore, check_partials, critical_path_s, discard_tasks,
+from softphantom.estimation.atlas.tasks import (GraphRun, Task, TaskStore, bottom_levels, check_partials, critical_path_s,
+                                                discard_tasks, schedule_s,
                                                 partial_dir, run_graph)
 from softphantom.estimation.config import EstimatorConfig
 from softphantom.estimation.forward import ForwardModel, internal_cavities_of
@@ -697,7 +698,6 @@ def _piece_tasks(model, cfg: EstimatorConfig, acfg: AtlasConfig, fwd: ForwardMod
     # the fine graph (the critical path a few points long): each face plane's spine from rest, its
     # branches along f_y each seeded by a spine point, each line along q as soon as its two face
     # points are solved
-    h = x_patch(fwd)
     segs = face_segments(acfg)
     j0 = segs[0][1][0][0]
     faces = []
@@ -723,6 +723,7 @@ def _piece_tasks(model, cfg: EstimatorConfig, acfg: AtlasConfig, fwd: ForwardMod
         return f"{tag}-spine-{i}-{l}" if j == j0 else f"{tag}-branch-{k}-{i}-{l}"
 
     def line_args(r, k, l, j):
+        h = x_patch(fwd)
         ends, dends, start = [], [], None
         for i in (0, n1 - 1):
             part = r[holder(i, l, j, k)]
@@ -876,12 +877,19 @@ def _fit(model, fwd, acfg, key, V, P, X, solved, FX, QN, derivs, cpu_s, t0, offl
                  provenance={**provenance(model, fwd), **({"offline": offline} if offline else {})})
 
 
-# CPU-s per grid point of a whole build, measured on the BIP at the model size given, per element
-# order: linear 6 mm (6 352 nodes); quadratic 9 mm with 2 mm arms (28 329 nodes, Hermite f_z), with
-# the pardiso extra: face planes 7.2 (lower piece) and 9.9 (the fold's), lines 3.65 and 18 a
-# point, 10.0 over the default grid; the fold's lines cost 1.5x that with SuperLU for their
-# indefinite tangents (NO_PARDISO_FACTOR). Another model scales with its nodes.
-COST_PER_POINT = {1: (0.45, 6352), 2: (10.0, 28329)}
+# The cost model: CPU-s a grid point of each kind, per element order at the model size given (the
+# BIP: linear 6 mm, 6 352 nodes; quadratic 9 mm with 2 mm arms, 28 329 nodes, Hermite f_z), with
+# the pardiso extra. Quadratic: a face plane's first point from rest 27
+# (benchmarks/bench_atlas_point_cost.py); a face point 7.2 CPU-s and a line point 3.65 below the
+# fold, 12.6 and 32 above it (f_y above FOLD_F_Y_N: the arm pair snaps through) — the shipped
+# build's provenance averaged 9.9 and 18 over the upper piece, half of whose f_y points are above.
+# The fold's points cost 1.5x with SuperLU for their indefinite tangents (NO_PARDISO_FACTOR).
+# Another model scales with its nodes squared (a 3-D sparse factorization's work): the 12 mm
+# quadratic model's default atlas took 4 933 CPU-s at 13 699 nodes, the 9 mm one's 23 435 at 28 329.
+POINT_COST_S = {1: ({"rest": 2.7, "face": 0.45, "line": 0.45}, {"face": 0.45, "line": 0.45}, 6352),
+                2: ({"rest": 27.0, "face": 7.2, "line": 3.65}, {"face": 12.6, "line": 32.0}, 28329)}
+NODES_EXPONENT = 2.0
+FOLD_F_Y_N = 4.29  # the quadratic default's snap-through starts here along f_y: the fold's rates above it
 NO_PARDISO_FACTOR = {1: 1.0, 2: 1.5}
 # an estimator (estimate, live) builds a missing atlas itself only below this wall time; above it
 # says how to build it (``softphantom atlas build``, resumable) and how to go on meanwhile
@@ -892,26 +900,102 @@ class AtlasMissing(UserError):
     """A model without its atlas, whose build takes longer than a command should wait for."""
 
 
-def estimated_build(order: int, nodes: int, acfg: AtlasConfig, workers: int | None = None,
-                    pardiso: bool | None = None) -> tuple[float, float]:
-    """(CPU-s, wall-s on ``workers`` idle cores) of building ``acfg`` for a model of element
-    ``order`` with ``nodes`` nodes, before any task ran: :data:`COST_PER_POINT` scaled by the nodes,
-    and by :data:`NO_PARDISO_FACTOR` without the ``pardiso`` extra (``pardiso`` None: whether it is
-    installed); the build's own ETA takes over once tasks end (:class:`~softphantom.estimation.atlas.tasks.Eta`).
+class DraftRefused(UserError):
+    """A draft atlas where the full one is required (``--require-full``)."""
 
-    >>> from softphantom.estimation.atlas.config import default_atlas_config
-    >>> cpu, wall = estimated_build(2, 28329, default_atlas_config(2), workers=2, pardiso=True)
-    >>> round(cpu), round(wall / 3600, 1)
-    (19800, 2.8)
+
+def draft_points(order: int) -> int:
+    """Grid points of the draft atlas of a model of element ``order``."""
+    from softphantom.estimation.atlas.config import draft_atlas_config
+
+    return draft_atlas_config(order).n_solves
+
+
+def point_costs(order: int, nodes: int, pardiso: bool | None = None) -> tuple[dict[str, float], dict[str, float]]:
+    """CPU-s a grid point of each kind (``rest``: a face plane's first, from rest; ``face``; ``line``)
+    for a model of element ``order`` with ``nodes`` nodes, below and above the fold
+    (:data:`FOLD_F_Y_N`): :data:`POINT_COST_S` scaled by the nodes (:data:`NODES_EXPONENT`), the
+    fold's times :data:`NO_PARDISO_FACTOR` without the ``pardiso`` extra (None: whether it is installed).
+
+    >>> point_costs(2, 28329, pardiso=True)[0], point_costs(2, 28329, pardiso=False)[1]["line"]
+    ({'rest': 27.0, 'face': 7.2, 'line': 3.65}, 48.0)
     """
     from softphantom.fem import have_pardiso
 
     o = 2 if int(order) == 2 else 1
-    per, ref_nodes = COST_PER_POINT[o]
-    if not (have_pardiso() if pardiso is None else pardiso):
-        per *= NO_PARDISO_FACTOR[o]
-    cpu = acfg.n_solves * per * nodes / ref_nodes
-    return cpu, cpu / max(1, int(workers or os.cpu_count() or 1))
+    base, fold, ref_nodes = POINT_COST_S[o]
+    f = 1.0 if (have_pardiso() if pardiso is None else pardiso) else NO_PARDISO_FACTOR[o]
+    s = (nodes / ref_nodes) ** NODES_EXPONENT
+    return {k: v * s for k, v in base.items()}, {**{k: v * s for k, v in base.items()},
+                                                   **{k: v * f * s for k, v in fold.items()}}
+
+
+def _task_cost(task: Task, acfg: AtlasConfig, costs) -> float:
+    """Predicted CPU-s of a task of :func:`_piece_tasks` for the piece ``acfg``: its points' costs
+    (:func:`point_costs`, the fold's above :data:`FOLD_F_Y_N` on the quadratic model)."""
+    _, what, *n = task.name.split("-")
+    f_y = acfg.axes()[1]
+    if what in ("line", "lines"):
+        ys = [f_y[int(n[2])]] if what == "line" else list(f_y)
+        return task.points / len(ys) * sum(costs[y > FOLD_F_Y_N]["line"] for y in ys)
+    j0 = face_segments(acfg)[0][1][0][0]
+    ys = {"spine": [f_y[j0]], "branch": [y for j, y in enumerate(f_y) if j != j0]}.get(what, list(f_y))
+    per = sum(costs[y > FOLD_F_Y_N]["face"] for y in ys) / len(ys)
+    rest = costs[False]["rest"] if what in ("plane", "spine") else 0.0
+    return rest + (task.points - (1 if rest else 0)) * per
+
+
+def plan_tasks(order: int, nodes: int, acfg: AtlasConfig, pardiso: bool | None = None, tasks=None) -> list[Task]:
+    """The build's tasks (``tasks``, or the structure of :func:`_piece_tasks` for every piece of
+    ``acfg`` without their functions) with their predicted CPU-s (``Task.cost``) and, as their Dask
+    priorities, their bottom levels (:func:`~softphantom.estimation.atlas.tasks.bottom_levels`):
+    the long chains first."""
+    subs = acfg.pieces()
+    if tasks is None:
+        tasks = [t for p, sub in enumerate(subs) for t in _piece_tasks(None, None, sub, None, f"p{p}", p)]
+    lo, fold = point_costs(order, nodes, pardiso)
+    costs = {False: lo, True: fold}
+    tasks = [replace(t, cost=_task_cost(t, subs[int(t.name.split("-")[0][1:])], costs)) for t in tasks]
+    level = bottom_levels(tasks, {t.name: t.cost for t in tasks})
+    return [replace(t, priority=int(round(level[t.name] * 10))) for t in tasks]
+
+
+@dataclass(frozen=True)
+class BuildEstimate:
+    """A build's predicted cost (:func:`estimate_build`): ``cpu_s``, ``wall_s`` on ``workers`` idle
+    cores, ``critical_path_s`` (its wall time on a cluster of a worker per task), ``tasks``."""
+
+    cpu_s: float
+    wall_s: float
+    critical_path_s: float
+    workers: int
+    tasks: int
+
+
+def estimate_build(order: int, nodes: int, acfg: AtlasConfig, workers: int | None = None,
+                   pardiso: bool | None = None) -> BuildEstimate:
+    """The cost model of building ``acfg`` for a model of element ``order`` with ``nodes`` nodes,
+    before any task ran: each task's predicted CPU-s (:func:`plan_tasks`), scheduled on ``workers``
+    idle cores as the build schedules them (:func:`~softphantom.estimation.atlas.tasks.schedule_s`);
+    the build's own ETA takes over once tasks end (:class:`~softphantom.estimation.atlas.tasks.Eta`).
+
+    >>> from softphantom.estimation.atlas.config import default_atlas_config
+    >>> e = estimate_build(2, 28329, default_atlas_config(2), workers=2, pardiso=True)
+    >>> round(e.cpu_s), round(e.wall_s), round(e.critical_path_s), e.tasks
+    (20064, 10032, 282, 252)
+    """
+    w = max(1, int(workers or os.cpu_count() or 1))
+    tasks = plan_tasks(order, nodes, acfg, pardiso)
+    cost = {t.name: t.cost for t in tasks}
+    return BuildEstimate(sum(cost.values()), schedule_s(tasks, cost, w),
+                         max(bottom_levels(tasks, cost).values(), default=0.0), w, len(tasks))
+
+
+def estimated_build(order: int, nodes: int, acfg: AtlasConfig, workers: int | None = None,
+                    pardiso: bool | None = None) -> tuple[float, float]:
+    """(CPU-s, wall-s on ``workers`` idle cores) of :func:`estimate_build`."""
+    e = estimate_build(order, nodes, acfg, workers, pardiso)
+    return e.cpu_s, e.wall_s
 
 
 def duration_text(seconds: float) -> str:
@@ -1000,7 +1084,8 @@ def build_atlas(model, config: EstimatorConfig | None = None, atlas: AtlasConfig
                 V, P, X, solved, FX, QN, cpu_s, _n, offline = rom_grid(model, cfg, subs[p], fwd, client)
             built.append(_fit(model, fwd, subs[p], keys[p], V, P, X, solved, FX, QN, (None,) * 4, cpu_s, t0, offline))
     else:
-        tasks = [t for p in which for t in _piece_tasks(model, cfg, subs[p], fwd, f"p{p}", p)]
+        tasks = plan_tasks(fwd.fem.order, fwd.fem.n_dof // 3, acfg,
+                           tasks=[t for p in which for t in _piece_tasks(model, cfg, subs[p], fwd, f"p{p}", p)])
         settings = build_settings(fwd, acfg)
         stores = {p: TaskStore(partial_dir(cache_dir, keys[p]), {"build": settings, "key": keys[p]})
                   for p in which} if cache_dir is not None else {}
@@ -1027,7 +1112,10 @@ def build_atlas(model, config: EstimatorConfig | None = None, atlas: AtlasConfig
         for a in built:
             a.provenance["build"] = {"workers": n_cores, "wall_s": round(wall, 1), "cpu_s": round(cpu, 1),
                                      "critical_path_s": round(crit, 1), "tasks": len(tasks),
-                                     "kept_tasks": len(run.kept)}
+                                     "kept_tasks": len(run.kept),
+                                     # each task's CPU-s and wall-s: the graph's behaviour on other clusters
+                                     "task_s": {n: [round(run.cpu_s[n], 2), round(run.wall_s[n], 2)]
+                                                for n in sorted(run.wall_s)}}
     if len(subs) == 1:
         return built[0]
     if pieces is None:
@@ -1079,7 +1167,8 @@ def _solves(at: Atlas) -> str:
 def load_or_build(model, config: EstimatorConfig | None = None, atlas: AtlasConfig | None = None, *,
                   cache_dir=None, scheduler: str | None = None, n_workers: int | None = None,
                   fwd: ForwardModel | None = None, rebuild: bool = False,
-                  discard_partial: bool = False, max_build_s: float | None = None) -> Atlas | AtlasPatches:
+                  discard_partial: bool = False, max_build_s: float | None = None,
+                  require_full: bool = False) -> Atlas | AtlasPatches:
     """The atlas of ``model`` from ``cache_dir`` (a model directory) if present and valid, else built
     and saved there. A cached file that is damaged, tampered with or of another format is an error
     (:class:`AtlasCorrupt` / :class:`AtlasMismatch`, one line naming the file, nothing overwritten)
@@ -1093,7 +1182,13 @@ def load_or_build(model, config: EstimatorConfig | None = None, atlas: AtlasConf
     interrupted build of other settings it is refused in one line naming the setting, unless
     ``discard_partial`` (``--discard-partial``) drops the interrupted one. With ``max_build_s``, a
     build estimated to take longer (:func:`estimated_build`) is not started: :class:`AtlasMissing`
-    says how long it takes, the command that builds it and ``--estimator refresh`` meanwhile."""
+    says how long it takes (and a draft, ``--draft``), the command that builds it and ``--estimator
+    refresh`` meanwhile.
+
+    Where the model's default atlas is missing but its draft (``atlas build --draft``,
+    :func:`~softphantom.estimation.atlas.config.draft_atlas_config`) is in ``cache_dir``, the draft
+    is used (a warning says so) unless ``require_full``; with ``require_full`` a draft is refused
+    in one line (:class:`DraftRefused`)."""
     check_atlas_cavities(model)
     cfg = config or EstimatorConfig()
     fwd = fwd or ForwardModel(model, cfg)
@@ -1126,21 +1221,40 @@ def load_or_build(model, config: EstimatorConfig | None = None, atlas: AtlasConf
             # model.npz is the model's own): its atlases are never found, every run builds
             log.warning(f"atlas: {cache_dir} holds atlas files itself, but the cache is a model directory "
                 f"(atlases in its atlas/ subdirectory): building into {path.parent}")
+    c = fwd.config.contact
+    at = "" if c == "on-centre" else f" --at {c}" if isinstance(c, str) else " (its contact point)"
+    if require_full and acfg.draft:
+        raise DraftRefused(f"{cache_dir or 'the model'}: --require-full, but the atlas asked for is a draft; build "
+                           f"the full one with `softphantom atlas build --model {cache_dir}{at}`")
     missing = tuple(p for p in range(len(subs)) if p not in found)
+    if missing and cache_dir is not None and not acfg.draft and not rebuild and \
+            acfg == model_atlas_config(fwd.fem.order, cache_dir).for_cavities(len(internal_cavities_of(model))):
+        draft = model_atlas_config(fwd.fem.order, cache_dir, draft=True).for_cavities(len(internal_cavities_of(model)))
+        if all(atlas_path(cache_dir, atlas_key(fwd, sub)).is_file() for sub in draft.pieces()):
+            if require_full:
+                raise DraftRefused(f"{cache_dir}: --require-full, but this model and contact have only a draft atlas "
+                                   f"(atlas build --draft); build the full one with `softphantom atlas build "
+                                   f"--model {cache_dir}{at}`")
+            log.warning(f"atlas: using the draft atlas of {cache_dir} (no full atlas for this model and contact yet: "
+                        f"`softphantom atlas build --model {cache_dir}{at}` builds it)")
+            return load_or_build(model, cfg, draft, cache_dir=cache_dir, fwd=fwd)
     if missing:
         if max_build_s is not None:
-            cpu, wall = estimated_build(fwd.fem.order, fwd.fem.n_dof // 3, acfg, n_workers)
-            cpu *= len(missing) / len(subs)
-            wall *= len(missing) / len(subs)
+            nodes = fwd.fem.n_dof // 3
+            w = int(n_workers or os.cpu_count() or 1)
+            e = estimate_build(fwd.fem.order, nodes, acfg, w)
+            cpu = e.cpu_s * len(missing) / len(subs)
+            wall = max(e.wall_s * len(missing) / len(subs), e.critical_path_s)
             if wall > max_build_s:
-                c = fwd.config.contact
-                at = "" if c == "on-centre" else f" --at {c}" if isinstance(c, str) else " (its contact point)"
                 n = sum(subs[p].n_solves for p in missing)
+                d = estimate_build(fwd.fem.order, nodes, model_atlas_config(fwd.fem.order, cache_dir, draft=True), w)
                 raise AtlasMissing(
                     f"{cache_dir or 'the model'}: no atlas yet for this model and contact; building it takes about "
-                    f"{duration_text(wall)} on {int(n_workers or os.cpu_count() or 1)} cores ({n} grid points, "
-                    f"≈ {cpu:.0f} CPU-s): build it once with `softphantom atlas build --model {cache_dir}{at}` "
-                    f"(resumable; --scheduler ADDR for a Dask cluster), or estimate meanwhile with --estimator refresh")
+                    f"{duration_text(wall)} on {w} cores ({n} grid points, ≈ {cpu:.0f} CPU-s), a draft "
+                    f"(--draft: {draft_points(fwd.fem.order)} points, its error measured) about "
+                    f"{duration_text(d.wall_s)}: build it once with `softphantom atlas build --model {cache_dir}{at}` "
+                    f"[--draft] (resumable; --scheduler ADDR for a Dask cluster), or estimate meanwhile with "
+                    f"--estimator refresh")
         if cache_dir is not None:
             check_partials(cache_dir, build_settings(fwd, acfg), discard=discard_partial)
         built = build_atlas(model, cfg, acfg, scheduler=scheduler, n_workers=n_workers, fwd=fwd,

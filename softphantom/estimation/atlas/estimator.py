@@ -54,7 +54,7 @@ class AtlasEstimator(EstimatorState):
     def __init__(self, model, config: EstimatorConfig | None = None,
                  atlas: Atlas | AtlasPatches | AtlasStack | AtlasConfig | None = None,
                  *, cache_dir=None, scheduler: str | None = None, n_workers: int | None = None,
-                 max_build_s: float | None = None) -> None:
+                 max_build_s: float | None = None, require_full: bool = False) -> None:
         self.config = cfg = config or EstimatorConfig()
         self.model = model
         self.cavity = check_atlas_cavities(model)
@@ -64,7 +64,11 @@ class AtlasEstimator(EstimatorState):
         self.cavities = fwd.pressure_names  # p_1 (the atlas's pressure axis), then a stack's further ones
         if not isinstance(atlas, (Atlas, AtlasPatches, AtlasStack)):
             atlas = load_or_build(model, cfg, atlas, cache_dir=cache_dir, scheduler=scheduler,
-                                  n_workers=n_workers, fwd=fwd, max_build_s=max_build_s)
+                                  n_workers=n_workers, fwd=fwd, max_build_s=max_build_s, require_full=require_full)
+        elif require_full and atlas.draft:
+            from softphantom.estimation.atlas.build import DraftRefused
+
+            raise DraftRefused("--require-full, but the atlas given is a draft (atlas build --draft)")
         stack = atlas if isinstance(atlas, AtlasStack) else None
         n_p = 1 + (len(stack.config.further_min_kPa) if stack is not None else 0)
         if n_p != len(self.cavities):
