@@ -149,7 +149,13 @@ def info_cmd(
     for f in files:
         at = load_atlas(f)
         console.print(f"{f}", highlight=False, soft_wrap=True)
-        _print_rows(describe(at))
+        rows = describe(at)
+        if at.draft:
+            from softphantom.estimation.atlas.check import draft_error_text
+
+            held = (at.provenance or {}).get("held_out")
+            rows = [*rows, ("draft", draft_error_text(held) if held else "its error not measured yet")]
+        _print_rows(rows)
 
 
 @atlas_app.command("verify")

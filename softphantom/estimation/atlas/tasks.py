@@ -260,7 +260,8 @@ class Eta:
     task_list: list[Task]
     workers: int = 1
     done: dict[str, float] = field(default_factory=dict)  # name -> wall-s
-    begun: dict[str, float] = field(default_factory=dict)  # name -> when it was submitted
+    begun: dict[str, float] = field(default_factory=dict)  # name -> when it started running (a worker's)
+    queued: dict[str, float] = field(default_factory=dict)  # name -> when it was submitted (waiting for a worker)
     run_cpu_s: float = 0.0
     t0: float | None = None
 
@@ -275,12 +276,24 @@ class Eta:
         self.done[name] = wall_s
 
     def started(self, name: str, now: float) -> None:
-        self.begun[name] = now
+        """Task ``name`` submitted at ``now``: it runs from then if a worker is free, else from when
+        one frees (the queued task of highest priority first, as Dask runs them)."""
+        self.queued[name] = now
+        self._fill(now)
 
     def finished(self, name: str, cpu_s: float, wall_s: float, now: float) -> None:
         self.done[name] = wall_s
         self.begun.pop(name, None)
+        self.queued.pop(name, None)
         self.run_cpu_s += cpu_s
+        self._fill(now)
+
+    def _fill(self, now: float) -> None:
+        for n in sorted(self.queued, key=lambda n: (-self.by[n].priority, self.queued[n])):
+            if len(self.begun) >= max(1, self.workers):
+                break
+            self.begun[n] = now
+            del self.queued[n]
 
     def _rate(self, kind: str) -> float | None:
         """Wall seconds per unit of predicted cost of the tasks of ``kind`` (of all, before one ended)."""
@@ -301,9 +314,7 @@ class Eta:
                 if r is None:
                     return None
                 seconds[n] = t.weight * r
-        # the first submitted tasks of highest priority are the ones running (Dask's order)
-        pend = sorted(self.begun, key=lambda n: (-self.by[n].priority, self.begun[n]))[:max(1, self.workers)]
-        running = {n: max(seconds[n] - (now - self.begun[n]), 0.05 * seconds[n]) for n in pend}
+        running = {n: max(seconds[n] - (now - t), 0.05 * seconds[n]) for n, t in self.begun.items()}
         return schedule_s(self.task_list, seconds, self.workers, set(self.done), running)
 
     def text(self, now: float) -> str:
