@@ -3,11 +3,14 @@ through :mod:`softphantom.parallel` (:func:`build_atlas`), fitted to tensor Cheb
 (:class:`~softphantom.estimation.atlas.map.Atlas`); and the cache in a model directory
 (:func:`load_or_build`).
 
-Each task solves one (f_y, f_z) plane of the grid (:func:`_sweep`) walking outwards from zero load,
-each point from a converged neighbour; on a displacement-controlled first axis the planes at the
-f_x faces first, then the lines between them (:func:`_lines`, one mixed-control solve a point,
-:func:`_solve_ux`). Points the model cannot reach are recorded, filled by extrapolation
-(:func:`fill_weights`) and flagged outside the envelope.
+On a force axis each task solves one (f_y, f_z) plane of the grid (:func:`_sweep`) walking
+outwards from zero load, each point from a converged neighbour. On a displacement-controlled first
+axis the graph is fine (:func:`_piece_tasks`): each face plane a spine along f_z from rest and a
+branch along f_y from each spine point (:func:`_face_part`), then each line along q between its two
+face points (:func:`_line_task`, one mixed-control solve a point, :func:`_solve_ux`). Points the
+model cannot reach are recorded, filled by extrapolation (:func:`fill_weights`) and flagged outside
+the envelope. The cost model (:func:`estimate_build`) predicts each task's CPU seconds, the build's
+wall time on N workers and its critical path.
 """
 
 from __future__ import annotations
@@ -684,10 +687,12 @@ def provenance(model, fwd: ForwardModel) -> dict:
 
 
 def _piece_tasks(model, cfg: EstimatorConfig, acfg: AtlasConfig, fwd: ForwardModel, tag: str, piece: int) -> list[Task]:
-    """The tasks of one atlas (one piece along f_y), named ``{tag}-plane-i-l`` / ``{tag}-lines-k-l``:
-    the (f_y, f_z) planes of a force axis (:func:`_sweep`); on a displacement axis the planes at the
-    two f_x faces, then the lines between them (:func:`_lines`), each (k, l) depending on the two
-    faces at pressure index l."""
+    """The tasks of one atlas (one piece along f_y): the (f_y, f_z) planes of a force axis
+    (:func:`_sweep`, ``{tag}-plane-i-l``); on a displacement axis each face plane's segments
+    (:func:`face_segments`: ``{tag}-spine-i-l``, then ``{tag}-branch-k-i-l`` from it), then each line
+    along q (``{tag}-line-k-l-j``, :func:`_line_task`) depending on the two face segments that hold
+    its end points. ``model``, ``cfg`` and ``fwd`` may be None for the graph's structure alone (the
+    cost model, :func:`plan_tasks`)."""
     n1, n2, n3, n4 = acfg.shape
     hermite = acfg.hermite_axis
     kind = f"piece {piece}"
@@ -982,7 +987,7 @@ def estimate_build(order: int, nodes: int, acfg: AtlasConfig, workers: int | Non
     >>> from softphantom.estimation.atlas.config import default_atlas_config
     >>> e = estimate_build(2, 28329, default_atlas_config(2), workers=2, pardiso=True)
     >>> round(e.cpu_s), round(e.wall_s), round(e.critical_path_s), e.tasks
-    (20064, 10032, 282, 252)
+    (20710, 10359, 396, 252)
     """
     w = max(1, int(workers or os.cpu_count() or 1))
     tasks = plan_tasks(order, nodes, acfg, pardiso)
