@@ -125,7 +125,7 @@ def _task_forward(model, config: EstimatorConfig, acfg: AtlasConfig):
     # is the tangent at the start point's equilibrium; failures are expected at the envelope's
     # corners: the Newton fallback gives up at 1/32 of the load (not 1/1024: a failing solve cost
     # ~10 converging ones)
-    return held_loads(ForwardModel(model, config, got[1], exact_sensitivities=False,
+    return held_loads(ForwardModel(model, config, fem=got[1], exact_sensitivities=False,
                                    fallback_min_load_step=FALLBACK_MIN_LOAD_STEP), acfg)
 
 
