@@ -102,3 +102,53 @@ def coarse_model_x_rest(model) -> np.ndarray:
     from softphantom.fem import fem_from_phantom
 
     return fem_from_phantom(model).x_rest
+
+
+def test_the_eta_is_exact_once_every_kind_has_a_finished_task_when_tasks_take_their_predicted_cost():
+    """A run whose tasks take their predicted cost times an unknown rate per kind (a loaded machine,
+    another model): once a task of each kind has finished, the printed time left is the time the
+    run still takes, tail of the graph included."""
+    import heapq
+
+    from softphantom.estimation.atlas.tasks import Eta
+
+    tasks = plan_tasks(2, 28329, default_atlas_config(2), pardiso=True)
+    rate = {"spine": 0.7, "branch": 1.3, "line": 2.1}  # wall-s per predicted CPU-s, unknown to the ETA
+    true = {t.name: t.cost * rate[t.kind.split()[-1]] * (1.3 if t.kind.startswith("piece 1") else 1.0) for t in tasks}
+    workers = 4
+    eta = Eta(tasks, workers=workers)
+    eta.start(0.0)
+    done: set[str] = set()
+    queued: list[tuple[int, int, str]] = []  # (-priority, submission order, name): Dask's order
+    running: list[tuple[float, str]] = []
+    submitted, now, checks = set(), 0.0, []
+    order = 0
+
+    def submit_ready(now):
+        nonlocal order
+        for t in tasks:
+            if t.name not in submitted and all(d in done for d in t.deps):
+                submitted.add(t.name)
+                eta.started(t.name, now)
+                heapq.heappush(queued, (-t.priority, order, t.name))
+                order += 1
+        while queued and len(running) < workers:
+            _, _, n = heapq.heappop(queued)
+            heapq.heappush(running, (now + true[n], n))
+
+    submit_ready(0.0)
+    end = None
+    log = []
+    while running:
+        now, n = heapq.heappop(running)
+        done.add(n)
+        eta.finished(n, cpu_s=true[n], wall_s=true[n], now=now)
+        submit_ready(now)
+        kinds = {eta.by[m].kind for m in done}
+        if len(kinds) == len({t.kind for t in tasks}) and running:
+            log.append((now, eta.seconds_left(now)))
+        end = now
+    assert log
+    for t, left in log:
+        checks.append(abs(left - (end - t)) / (end - t))
+    assert max(checks) < 1e-6, max(checks)
