@@ -204,11 +204,12 @@ def bottom_levels(tasks: list[Task], seconds: dict[str, float]) -> dict[str, flo
 
 
 def schedule_s(tasks: list[Task], seconds: dict[str, float], workers: int, done=(),
-               running: dict[str, float] | None = None) -> float:
+               running: dict[str, float] | None = None, queued: dict[str, float] | None = None) -> float:
     """The wall time to run the tasks not in ``done`` on ``workers`` workers, task n taking
     ``seconds[n]``: whenever a worker is free it takes the ready task of highest priority (as
     :func:`run_graph` submits them and Dask runs them); ``running`` (name → seconds still to go)
-    occupy a worker each from the start.
+    occupy a worker each from the start; among tasks of equal priority the one ready first goes
+    first (``queued``: name → when it was submitted, ≤ 0, for those already waiting).
 
     >>> t = [Task("a", None, None, priority=2), Task("b", None, None, priority=1),
     ...      Task("c", None, None, deps=("a",))]
@@ -219,14 +220,18 @@ def schedule_s(tasks: list[Task], seconds: dict[str, float], workers: int, done=
     """
     running = dict(running or {})
     finished = set(done)
-    order = {t.name: i for i, t in enumerate(sorted(tasks, key=lambda t: -t.priority))}
+    index = {t.name: i for i, t in enumerate(tasks)}
+    since = dict(queued or {})  # when each ready task became ready
     left = {t.name: t for t in tasks if t.name not in finished and t.name not in running}
     events = [(float(s), n) for n, s in running.items()]
     heapq.heapify(events)
     free = max(1, int(workers)) - len(events)
     now = 0.0
     while True:
-        ready = sorted((n for n, t in left.items() if all(d in finished for d in t.deps)), key=order.__getitem__)
+        ready = [n for n, t in left.items() if all(d in finished for d in t.deps)]
+        for n in ready:
+            since.setdefault(n, now)
+        ready.sort(key=lambda n: (-left[n].priority, since[n], index[n]))
         for n in ready[:max(free, 0)]:
             heapq.heappush(events, (now + float(seconds.get(n, 0.0)), n))
             del left[n]
@@ -242,7 +247,8 @@ def schedule_s(tasks: list[Task], seconds: dict[str, float], workers: int, done=
 class Eta:
     """The time left of a build: the tasks left scheduled on ``workers`` (:func:`schedule_s`), each
     task's wall time its predicted cost times the wall seconds per unit of cost measured on the
-    finished tasks of its kind (or of all kinds, before one of its kind finished).
+    finished tasks of its kind (before one of its kind finished: of its kind of point in another
+    piece, then of all kinds).
 
     >>> t = [Task("a", None, None, points=10, kind="plane"), Task("b", None, None, points=10, kind="plane"),
     ...      Task("c", None, None, points=20, kind="lines", deps=("a", "b"))]
@@ -296,9 +302,11 @@ class Eta:
             del self.queued[n]
 
     def _rate(self, kind: str) -> float | None:
-        """Wall seconds per unit of predicted cost of the tasks of ``kind`` (of all, before one ended)."""
+        """Wall seconds per unit of predicted cost of the tasks of ``kind``; before one ended, of the
+        tasks of its last word (the same kind of point in another piece), then of all."""
         mine = [n for n in self.done if self.by[n].kind == kind]
-        for names in (mine, list(self.done)):
+        word = [n for n in self.done if self.by[n].kind.split()[-1:] == kind.split()[-1:]]
+        for names in (mine, word, list(self.done)):
             w = sum(self.by[n].weight for n in names)
             if w > 0:
                 return sum(self.done[n] for n in names) / w
@@ -314,8 +322,11 @@ class Eta:
                 if r is None:
                     return None
                 seconds[n] = t.weight * r
-        running = {n: max(seconds[n] - (now - t), 0.05 * seconds[n]) for n, t in self.begun.items()}
-        return schedule_s(self.task_list, seconds, self.workers, set(self.done), running)
+        # a running task's time still to go; one past its prediction: a twentieth of it more
+        running = {n: seconds[n] - (now - t) if seconds[n] > now - t else 0.05 * seconds[n]
+                   for n, t in self.begun.items()}
+        return schedule_s(self.task_list, seconds, self.workers, set(self.done), running,
+                          {n: t - now for n, t in self.queued.items()})
 
     def text(self, now: float) -> str:
         s = self.seconds_left(now)
