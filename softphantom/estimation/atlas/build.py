@@ -894,6 +894,11 @@ def _fit(model, fwd, acfg, key, V, P, X, solved, FX, QN, derivs, cpu_s, t0, offl
 POINT_COST_S = {1: ({"rest": 2.7, "face": 0.45, "line": 0.45}, {"face": 0.45, "line": 0.45}, 6352),
                 2: ({"rest": 27.0, "face": 7.2, "line": 3.65}, {"face": 12.6, "line": 32.0}, 28329)}
 NODES_EXPONENT = 2.0
+# the line points' costs are for the default's 9 inner q points a line; with fewer each step is
+# longer and costs more: the 12 mm quadratic model's draft (3 inner points) cost 6x the model's
+# prediction by points alone in its lines, (9 / 3) ** 1.5 = 5.2
+LINE_REF_POINTS = 9
+LINE_STEP_EXPONENT = 1.5
 FOLD_F_Y_N = 4.29  # the quadratic default's snap-through starts here along f_y: the fold's rates above it
 NO_PARDISO_FACTOR = {1: 1.0, 2: 1.5}
 # an estimator (estimate, live) builds a missing atlas itself only below this wall time; above it
@@ -942,7 +947,9 @@ def _task_cost(task: Task, acfg: AtlasConfig, costs) -> float:
     f_y = acfg.axes()[1]
     if what in ("line", "lines"):
         ys = [f_y[int(n[2])]] if what == "line" else list(f_y)
-        return task.points / len(ys) * sum(costs[y > FOLD_F_Y_N]["line"] for y in ys)
+        # a longer step along q costs more a point: LINE_STEP_EXPONENT, fitted on the draft grid's lines
+        step = (LINE_REF_POINTS / max(acfg.shape[0] - 2, 1)) ** LINE_STEP_EXPONENT
+        return task.points / len(ys) * step * sum(costs[y > FOLD_F_Y_N]["line"] for y in ys)
     j0 = face_segments(acfg)[0][1][0][0]
     ys = {"spine": [f_y[j0]], "branch": [y for j, y in enumerate(f_y) if j != j0]}.get(what, list(f_y))
     per = sum(costs[y > FOLD_F_Y_N]["face"] for y in ys) / len(ys)
@@ -995,7 +1002,7 @@ def estimate_build(order: int, nodes: int, acfg: AtlasConfig, workers: int | Non
     >>> from softphantom.estimation.atlas.config import default_atlas_config
     >>> e = estimate_build(2, 28329, default_atlas_config(2), workers=2, pardiso=True)
     >>> round(e.cpu_s), round(e.wall_s), round(e.critical_path_s), e.tasks
-    (20710, 10359, 396, 252)
+    (20710, 10371, 396, 252)
     """
     w = max(1, int(workers or os.cpu_count() or 1))
     tasks = plan_tasks(order, nodes, acfg, pardiso)
