@@ -1,5 +1,5 @@
-"""The atlas build's task graph: parallel efficiency on 1 and 2 workers, critical path, the ETA's
-error, and a build killed at a random point and resumed.
+"""The atlas build's task graph: parallel efficiency on 1, 2 and 4 workers, critical path, the ETA's
+error, the cost model's prediction, and a build killed at a random point and resumed.
 
 On the default design (``--mesh-size-mm 6``, ``--order 1``: the linear default model, so the runs
 take minutes; ``--order 2`` for the quadratic one, whose default atlas adds Hermite f_z) with the
@@ -7,9 +7,13 @@ quadratic default atlas's graph (displacement axis, two pieces along f_y split a
 ``--atlas-grid`` per piece, each run in a fresh model directory through ``atlas build`` (the CLI,
 as a user runs it):
 
-- **1 and 2 workers**: wall seconds, CPU seconds of the tasks, parallel efficiency (CPU over wall
-  times workers) and the critical path (the longest chain of task wall times: the build's wall
-  time on a cluster with a worker per task), from the atlas's provenance;
+- **1, 2 and 4 workers** (``--workers``, a LocalCluster each): wall seconds, CPU seconds of the
+  tasks, parallel efficiency (CPU over wall times workers) and the critical path (the longest chain
+  of task wall times: the build's wall time on a cluster with a worker per task), from the atlas's
+  provenance, and the wall time the cost model predicted before the build (``estimate_build``);
+- **the graph on larger clusters**: the 1-worker run's task times scheduled on 2, 4, 16 and 64
+  workers as the build schedules them (``tasks.schedule_s``): the wall time a cluster of idle
+  workers would take, and its efficiency;
 - **ETA**: at every progress line after 10 % of the tasks, the time left it printed against the
   time the build then still took; the largest relative error;
 - **kill and resume** (2 workers): ``kill -9`` of the whole process group at a seeded random
@@ -20,6 +24,7 @@ as a user runs it):
 Also with both cores busy (``--busy``: two spinning processes beside the 2-worker build).
 
     .venv/bin/python benchmarks/bench_atlas_graph.py [--mesh-size-mm 12] [--atlas-grid 5,3,2,2] [--busy]
+    nice -n 10 .venv/bin/python benchmarks/bench_atlas_graph.py --model P2_12MM_DIR --atlas-grid 5,4,3,2 --workers 1 2 4
 """
 
 from __future__ import annotations
@@ -95,6 +100,9 @@ def main() -> None:
     ap.add_argument("--atlas-grid", default="7,5,4,3", help="points per axis NX,NY,NZ,NP (per piece)")
     ap.add_argument("--seed", type=int, default=7)
     ap.add_argument("--busy", action="store_true", help="also the 2-worker build with both cores busy")
+    ap.add_argument("--workers", type=int, nargs="+", default=[1, 2], help="LocalCluster sizes to run (the first: "
+                    "the task times the larger clusters are scheduled with)")
+    ap.add_argument("--no-kill", action="store_true", help="skip the killed-and-resumed build")
     add_results_option(ap, "atlas_graph")
     a = ap.parse_args()
 
@@ -118,8 +126,17 @@ from softphantom.estimation.atlas.store import ARRAYS, load_atlas
         save_model(model, d)
         return d
 
+    from dataclasses import replace
+
+    from softphantom.estimation.atlas.build import estimate_build, plan_tasks
+    from softphantom.estimation.atlas.config import default_atlas_config
+    from softphantom.estimation.atlas.tasks import critical_path_s, schedule_s
+
+    g = [int(v) for v in a.atlas_grid.split(",")]
+    acfg = replace(default_atlas_config(2), n_force=tuple(g[:3]), n_pressure=g[3], x_control="displacement",
+                   f_y_splits_N=(3.3,), hermite_axis=2 if model.element_order == 2 else None)
     rows, figures = [], {}
-    for workers in (1, 2):
+    for workers in a.workers:
         d = fresh(f"w{workers}")
         load0 = os.getloadavg()[0]
         wall, lines, rc, out = run_build(d, a.atlas_grid, workers)
@@ -130,11 +147,25 @@ from softphantom.estimation.atlas.store import ARRAYS, load_atlas
         eff = b["cpu_s"] / (b["wall_s"] * workers)
         err = eta_error(lines, wall)
         figures[workers] = (d, b)
+        pred = estimate_build(model.element_order, nodes, acfg, workers)
         rows.append([f"{workers} worker{'s' if workers > 1 else ''}", load, b["tasks"], f"{b['cpu_s']:.0f}",
-                     f"{wall:.0f}", f"{eff:.0%}", f"{b['critical_path_s']:.0f}", f"{err:.0%}"])
+                     f"{wall:.0f}", f"{pred.wall_s:.0f}", f"{eff:.0%}", f"{b['critical_path_s']:.0f}", f"{err:.0%}"])
         print(f"{workers} workers: {b['tasks']} tasks, {b['cpu_s']:.0f} CPU-s, wall {wall:.0f} s "
-              f"(build {b['wall_s']:.0f} s), efficiency {eff:.0%}, critical path {b['critical_path_s']:.0f} s, "
-              f"ETA max error after 10 %: {err:.0%}")
+              f"(build {b['wall_s']:.0f} s; cost model {pred.wall_s:.0f} s), efficiency {eff:.0%}, critical path "
+              f"{b['critical_path_s']:.0f} s, ETA max error after 10 %: {err:.0%}", flush=True)
+    # the first run's task times on idle clusters of more workers, scheduled as the build does
+    first = figures[a.workers[0]][1]
+    times = {n: float(v[1]) for n, v in first["task_s"].items()}
+    tasks = plan_tasks(model.element_order, nodes, acfg)
+    total = sum(times.values())
+    crit = critical_path_s(tasks, times)
+    for w in (2, 4, 16, 64):
+        sim = schedule_s(tasks, times, w)
+        rows.append([f"{w} idle workers, scheduled from the {a.workers[0]}-worker run's task times", "", len(tasks),
+                     f"{total:.0f} (wall-s of the tasks)", f"{sim:.0f}", "", f"{total / (sim * w):.0%}", f"{crit:.0f}",
+                     ""])
+        print(f"{w} idle workers (scheduled): wall {sim:.0f} s, efficiency {total / (sim * w):.0%}, critical path "
+              f"{crit:.0f} s", flush=True)
     if a.busy:
         stop = mp.Event()
         spinners = [mp.Process(target=_spin, args=(stop,), daemon=True) for _ in range(2)]
@@ -149,11 +180,15 @@ from softphantom.estimation.atlas.store import ARRAYS, load_atlas
                 p.join()
         b = load_atlas(model_atlases(d)[0]).provenance["build"]
         rows.append(["2 workers, two spinning processes beside", f"{os.getloadavg()[0]:.1f}", b["tasks"],
-                     f"{b['cpu_s']:.0f}", f"{wall:.0f}",
+                     f"{b['cpu_s']:.0f}", f"{wall:.0f}", "",
                      f"{b['cpu_s'] / (b['wall_s'] * 2):.0%}", f"{b['critical_path_s']:.0f}",
                      f"{eta_error(lines, wall):.0%}"])
         print(f"busy: wall {wall:.0f} s, {b['cpu_s']:.0f} CPU-s")
 
+    if a.no_kill or 2 not in figures:
+        _write(a, rows, model, nodes)
+        shutil.rmtree(work, ignore_errors=True)
+        return
     # killed at a random moment and resumed
     ref_dir, ref = figures[2]
     rng = np.random.default_rng(a.seed)
@@ -171,13 +206,18 @@ from softphantom.estimation.atlas.store import ARRAYS, load_atlas
     print(f"killed at {kill_at:.0f} s: {kept} tasks kept, {reported} reported done before the kill; "
           f"resumed in {wall2:.0f} s; the same atlas as uninterrupted: {same}")
     rows.append([f"2 workers, killed at {kill_at:.0f} s and resumed", f"{os.getloadavg()[0]:.1f}", total,
-                 f"kept {kept} of {total} ({reported} reported done)", f"{wall2:.0f} (resumed)", "", "",
+                 f"kept {kept} of {total} ({reported} reported done)", f"{wall2:.0f} (resumed)", "", "", "",
                  "identical" if same else "DIFFERENT"])
-    write_table(a.results_name, ["run", "load average", "tasks", "CPU-s", "wall s", "parallel efficiency",
-                                 "critical path s", "ETA max error after 10 %"], rows, right=(2, 3, 4, 5, 6),
+    _write(a, rows, model, nodes)
+    shutil.rmtree(work, ignore_errors=True)
+
+
+def _write(a, rows, model, nodes) -> None:
+    write_table(a.results_name, ["run", "load average", "tasks", "CPU-s", "wall s", "cost model's wall s",
+                                 "parallel efficiency", "critical path s", "ETA max error after 10 %"], rows,
+                right=(2, 3, 4, 5, 6, 7),
                 caption=f"Default design, element order {model.element_order}, {nodes} nodes; grid {a.atlas_grid} per "
                         f"piece, 2 pieces along f_y (split at 3.3 N), displacement axis (`bench_atlas_graph.py`).")
-    shutil.rmtree(work, ignore_errors=True)
 
 
 if __name__ == "__main__":

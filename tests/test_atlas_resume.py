@@ -37,7 +37,8 @@ def _build(model_dir: Path, *extra: str) -> subprocess.Popen:
 @pytest.mark.parametrize("seed", [3])
 def test_a_build_killed_at_a_random_point_resumes_to_the_same_atlas(shared_dir, coarse_model_dir, tmp_path, seed):
     reference = cached_atlas(shared_dir, "displacement")  # built in one go, in-process
-    n_tasks = 2 * 2 + 3 * 2  # the faces (2 per pressure), the lines (one per f_z and pressure)
+    # each face (2 per pressure) a spine and a branch per f_z point; a line per f_y, f_z and pressure
+    n_tasks = 2 * 2 * (1 + 3) + 4 * 3 * 2
     model_dir = tmp_path / "model"
     model_dir.mkdir()
     shutil.copy(coarse_model_dir / "model.npz", model_dir)
@@ -112,7 +113,7 @@ def test_a_model_without_its_atlas_says_how_long_it_takes_and_what_to_do(coarse_
     cfg = EstimatorConfig(contact="off-centre")
     fwd = ForwardModel(coarse_p2_model, cfg)
     cpu, wall = estimated_build(fwd.fem.order, fwd.fem.n_dof // 3, default_atlas_config(2), workers=2)
-    assert wall == cpu / 2 > 600  # the quadratic model's default atlas: longer than a command waits
+    assert wall >= cpu / 2 and wall > 600  # the quadratic model's default atlas: longer than a command waits
     with pytest.raises(AtlasMissing) as exc:
         load_or_build(coarse_p2_model, cfg, cache_dir=tmp_path, fwd=fwd, n_workers=2, max_build_s=600)
     msg = str(exc.value)

@@ -33,6 +33,10 @@ def _contact(at: str, model) -> str:
     return check_contact(at, list(model.p_ext), "--at")
 
 
+def _pieces(at) -> tuple:
+    return getattr(at, "all_pieces", None) or getattr(at, "patches", (at,))
+
+
 def _print_rows(rows) -> None:
     for label, value in rows:
         console.print(f"  {label:9s} {value}", highlight=False, soft_wrap=True)
@@ -59,6 +63,9 @@ def build_cmd(
     discard_partial: bool = typer.Option(False, "--discard-partial", help="Drop the finished tasks of an "
                                          "interrupted build with other settings (by default such a build is "
                                          "refused; one with the same settings resumes)."),
+    draft: bool = typer.Option(False, "--draft", help="A quick atlas on a coarse grid (minutes): its held-out "
+                               "error is measured, printed and kept in the file; estimate uses it (saying "
+                               "'draft atlas') until the full one is built, and --require-full refuses it."),
 ) -> None:
     """Build the atlas of a model (or find it built) in MODEL/atlas/, on Dask. Every finished task is
     kept in MODEL/atlas/partial/: after Ctrl-C, kill or a reboot the same command goes on where it
@@ -87,13 +94,35 @@ def build_cmd(
     model = _model(model_dir)
     _contact(at, model)
     acfg = atlas_config_from_options(atlas_grid, envelope, atlas_x_axis, atlas_f_y_split,
-                                     base=model_atlas_config(model.element_order, model_dir))
+                                     base=model_atlas_config(model.element_order, model_dir, draft=draft))
     acfg = replace(acfg, offline=offline)
-    found = find_or_build(model, EstimatorConfig(contact=_contact(at, model)), acfg, model_dir=model_dir,
-                          scheduler=scheduler, n_workers=workers, rebuild=rebuild,
-                          discard_partial=discard_partial)
+    cfg = EstimatorConfig(contact=_contact(at, model))
+    found = find_or_build(model, cfg, acfg, model_dir=model_dir, scheduler=scheduler, n_workers=workers,
+                          rebuild=rebuild, discard_partial=discard_partial)
+    if draft:
+        _measure_draft(model, cfg, found.atlas, model_dir, scheduler, workers)
     for piece in found.pieces:
         console.print(piece.describe(), highlight=False, soft_wrap=True)
+
+
+def _measure_draft(model, cfg, built, model_dir: Path, scheduler, workers) -> None:
+    """A draft's held-out error: measured once (kept in each piece's file), printed every time."""
+    from dataclasses import replace
+
+    from softphantom.estimation.atlas.check import check_draft, draft_error_text
+    from softphantom.estimation.atlas.store import atlas_path, save_atlas
+    from softphantom.parallel import dask_client
+    from softphantom.progress import status
+
+    pieces = _pieces(built)
+    held = (pieces[0].provenance or {}).get("held_out")
+    if held is None:
+        with dask_client(scheduler, workers) as client, status("draft atlas: held-out full solves", console):
+            held = check_draft(model, cfg, built, client=client)
+        for piece in pieces:
+            save_atlas(replace(piece, provenance={**(piece.provenance or {}), "held_out": held}),
+                       atlas_path(model_dir, piece.key))
+    console.print(f"draft atlas: {draft_error_text(held)}", highlight=False, soft_wrap=True)
 
 
 @atlas_app.command("info")
@@ -117,7 +146,13 @@ def info_cmd(
     for f in files:
         at = load_atlas(f)
         console.print(f"{f}", highlight=False, soft_wrap=True)
-        _print_rows(describe(at))
+        rows = describe(at)
+        if at.draft:
+            from softphantom.estimation.atlas.check import draft_error_text
+
+            held = (at.provenance or {}).get("held_out")
+            rows = [*rows, ("draft", draft_error_text(held) if held else "its error not measured yet")]
+        _print_rows(rows)
 
 
 @atlas_app.command("verify")

@@ -192,6 +192,8 @@ def estimate_cmd(
     on_new_board: str = NEW_BOARD_OPTION,
     lag_compensation: str = LAG_OPTION,
     duration_s: float = typer.Option(None, "--duration-s", help="Stop after this many seconds (serial)."),
+    require_full: bool = typer.Option(False, "--require-full", help="Atlas: refuse a draft atlas (atlas build "
+                                      "--draft), which is used where the model has no full one."),
     overwrite: bool = overwrite_option(),
 ) -> None:
     """Estimate force, urethra pressure, 6-DoF pose and target shifts from the cavity volumes."""
@@ -239,7 +241,7 @@ def estimate_cmd(
     t0 = time.monotonic()
     try:  # the contact point may come from the recording: the source is open first
         est = open_estimator(estimator, model, cfg, cache_dir=model_dir, scheduler=scheduler, atlas=acfg,
-                             max_build_s=MAX_BUILD_ON_THE_FLY_S)
+                             max_build_s=MAX_BUILD_ON_THE_FLY_S, require_full=require_full)
     except BaseException:
         src.close()
         raise
@@ -275,11 +277,20 @@ def estimate_cmd(
         how = f"mode {cfg.mode}" if estimator == "refresh" else "no background work"
         console.print(f"estimator {estimator} ready in {time.monotonic() - t0:.1f} s ({len(model.nodes)} nodes, "
                       f"{how}, contact {at}, |F_i| <= {max_force_N:g} N, QP {qp_solver})", highlight=False)
+        draft = getattr(getattr(est, "atlas", None), "draft", False)
+        if draft:
+            from softphantom.estimation.atlas.check import draft_error_text
+
+            first = getattr(est.atlas, "all_pieces", None) or getattr(est.atlas, "patches", None) or (est.atlas,)
+            held = (first[0].provenance or {}).get("held_out")
+            console.print(f"draft atlas: {draft_error_text(held) if held else 'its error not measured'}; the full one: "
+                          f"softphantom atlas build --model {model_dir}", highlight=False, soft_wrap=True)
         rest = rest_check(est)
         meta = {"model": str(model_dir), "source": source, "contact": at, "contact_from": contact_from,
                 **rest, "max_force_N": max_force_N,
                 "qp_solver": qp_solver, "estimator": estimator, "mode": cfg.mode, "nodes": int(len(model.nodes)),
-                "contact_radius_mm": cfg.contact_radius_m * 1e3, **opened.meta, **lag_meta}
+                "contact_radius_mm": cfg.contact_radius_m * 1e3, **({"atlas": "draft"} if draft else {}),
+                **opened.meta, **lag_meta}
         try:
             s = estimate_stream(src, est, path, show, live=live, metadata=meta, stop=stop,
                                 on_event=print_event)

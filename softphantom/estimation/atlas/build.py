@@ -3,16 +3,18 @@ through :mod:`softphantom.parallel` (:func:`build_atlas`), fitted to tensor Cheb
 (:class:`~softphantom.estimation.atlas.map.Atlas`). Where an atlas is looked up, and when it is
 built and saved: :mod:`~softphantom.estimation.atlas.catalogue`.
 
-Each task solves one (f_y, f_z) plane of the grid (:func:`_sweep`) walking outwards from zero load,
-each point from a converged neighbour; on a displacement-controlled first axis the planes at the
-f_x faces first, then the lines between them (:func:`_lines`, one mixed-control solve a point,
-:func:`_solve_ux`). Points the model cannot reach are recorded, filled by extrapolation
-(:func:`fill_weights`) and flagged outside the envelope.
+On a force axis each task solves one (f_y, f_z) plane of the grid (:func:`_sweep`) walking
+outwards from zero load, each point from a converged neighbour. On a displacement-controlled first
+axis the graph is fine (:func:`_piece_tasks`): each face plane a spine along f_z from rest and a
+branch along f_y from each spine point (:func:`_face_part`), then each line along q between its two
+face points (:func:`_line_task`, one mixed-control solve a point, :func:`_solve_ux`). Points the
+model cannot reach are recorded, filled by extrapolation (:func:`fill_weights`) and flagged outside
+the envelope. The cost model (:func:`estimate_build`) predicts each task's CPU seconds, the build's
+wall time on N workers and its critical path.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import math
 import os
@@ -20,6 +22,7 @@ import platform
 import shlex
 import sys
 import time
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -29,7 +32,8 @@ from softphantom.estimation.atlas.basis import axis_t, to_chebyshev
 from softphantom.estimation.atlas.config import (FALLBACK_MIN_LOAD_STEP, VIA_TOL, AtlasConfig, default_atlas_config,
                                                 x_patch)
 from softphantom.estimation.atlas.map import Atlas, AtlasPatches, AtlasStack
-from softphantom.estimation.atlas.tasks import GraphRun, Task, TaskStore, critical_path_s, partial_dir, run_graph
+from softphantom.estimation.atlas.tasks import (GraphRun, Task, TaskStore, bottom_levels, critical_path_s, partial_dir,
+                                                run_graph, schedule_s)
 from softphantom.estimation.config import EstimatorConfig
 from softphantom.estimation.forward import ForwardModel, internal_cavities_of
 from softphantom.estimation.linearization import PatchControl
@@ -99,6 +103,28 @@ class HeldLoads:
         return self._fwd.solve(self.eq._full(lam), start, **kw)
 
 
+_FEM: dict[int, tuple] = {}  # a worker's FEM model of the phantom its tasks share (id(model) -> (model, fem))
+
+
+def _task_forward(model, config: EstimatorConfig, acfg: AtlasConfig):
+    """The forward model a build task solves with: a new solver (no factor, no state from another
+    task, so a task's result does not depend on which ran before it on the worker) on the worker's
+    FEM model of ``model``, assembled once per worker (1.4 CPU-s on the quadratic default model,
+    as much as a grid point; a build has hundreds of tasks)."""
+    from softphantom.fem import fem_from_phantom
+
+    got = _FEM.get(id(model))
+    if got is None or got[0] is not model:
+        _FEM.clear()
+        got = _FEM[id(model)] = (model, fem_from_phantom(model))
+    # only the equilibria are kept: the sensitivities come from the kept factor (no GMRES), which
+    # is the tangent at the start point's equilibrium; failures are expected at the envelope's
+    # corners: the Newton fallback gives up at 1/32 of the load (not 1/1024: a failing solve cost
+    # ~10 converging ones)
+    return held_loads(ForwardModel(model, config, fem=got[1], exact_sensitivities=False,
+                                   fallback_min_load_step=FALLBACK_MIN_LOAD_STEP), acfg)
+
+
 def held_loads(fwd: ForwardModel, acfg: AtlasConfig):
     """``fwd`` as the build of the atlas ``acfg`` solves it: itself, or for a stack's level
     (``acfg.held_kPa``) the :class:`HeldLoads` view holding the further pressures."""
@@ -150,6 +176,20 @@ def _plane_walk(ny: int, nz: int, j0: int, k0: int) -> list[tuple[tuple[int, int
         out.append((p, parent, len(kids)))
         stack.extend((c, p) for c in reversed(kids))
     return out
+
+
+def _sub_walk(walk, keep: set) -> list:
+    """The entries of a plane walk (:func:`_plane_walk`) at the points in ``keep``, in its order,
+    each point's parent outside ``keep`` replaced by None and its children counted within ``keep``.
+
+    >>> [(p, q, n) for p, q, n in _sub_walk(_plane_walk(3, 3, 1, 1), {(1, 2), (2, 2), (0, 2)})]
+    [((1, 2), None, 2), ((2, 2), (1, 2), 0), ((0, 2), (1, 2), 0)]
+    """
+    out = [(p, q if q in keep else None) for p, q, _ in walk if p in keep]
+    kids: dict = {}
+    for _, q in out:
+        kids[q] = kids.get(q, 0) + 1
+    return [(p, q, kids.get(p, 0)) for p, q in out]
 
 
 class LinePredictor:
@@ -307,7 +347,7 @@ def _line_knot(fwd: ForwardModel, h: np.ndarray, lin, path: LinePredictor):
     return col
 
 
-def _sweep(model, config: EstimatorConfig, acfg: AtlasConfig, i: int, l: int):
+def _sweep(model, config: EstimatorConfig, acfg: AtlasConfig, i: int, l: int, only=None, seed=None):
     """One task: the (f_y, f_z) plane at grid f_x index ``i`` and pressure index ``l`` (with
     ``acfg.linear_pressure``: at the pressure range's middle, ``l`` ignored). The point
     nearest zero load is reached from rest by continuation, every other one from a converged inner
@@ -325,14 +365,14 @@ def _sweep(model, config: EstimatorConfig, acfg: AtlasConfig, i: int, l: int):
     the pressure (``linear_pressure``) or per unit load along ``acfg.hermite_axis``
     (:func:`_axis_derivative`, with dFX (ny,nz)), or None, FX (ny,nz) the points' f_x N, Q (ny,nz)
     their first coordinate (the node), the number
-    of converged forward solves); unsolved entries are NaN."""
+    of converged forward solves); unsolved entries are NaN.
+
+    A segment of the plane (a task of a finer graph, :func:`_face_part`): ``only`` the (j, k)
+    points to solve, walked in the plane's order; ``seed`` ((j, k), displacements (3N,) m) a point
+    another task solved, linearized where it is (one factorization) and the start of the points
+    walked from it. A point is tried when its inner neighbours within the segment converged."""
     t0 = time.process_time()
-    # only the equilibria are kept: the sensitivities come from the kept factor (no GMRES), which
-    # is the tangent at the start point's equilibrium; failures are expected at the envelope's
-    # corners: the Newton fallback gives up at 1/32 of the load (not 1/1024: a failing solve cost
-    # ~10 converging ones)
-    fwd = held_loads(ForwardModel(model, config, exact_sensitivities=False,
-                                  fallback_min_load_step=FALLBACK_MIN_LOAD_STEP), acfg)
+    fwd = _task_forward(model, config, acfg)
     ax = acfg.axes()
     ny, nz = len(ax[1]), len(ax[2])
     linear = acfg.linear_pressure
@@ -355,10 +395,15 @@ def _sweep(model, config: EstimatorConfig, acfg: AtlasConfig, i: int, l: int):
     left: dict[tuple[int, int], int] = {}
     last = None  # the point whose factor the solver holds
     first_error = ""
-    for p, parent, n_kids in _plane_walk(ny, nz, *centre):
+    walk = _plane_walk(ny, nz, *centre)
+    mine = None
+    if only is not None:
+        mine = {tuple(q) for q in only} | ({tuple(seed[0])} if seed is not None else set())
+        walk = _sub_walk(walk, mine)
+    for p, parent, n_kids in walk:
         if parent in left:
             left[parent] -= 1
-        reachable = all(q in lins for q in _inner(p, centre))
+        reachable = all(q in lins for q in _inner(p, centre) if mine is None or q in mine)
         if reachable and parent is not None and last != parent:
             fwd.eq.restore(kept[parent])
         if parent in left and left[parent] == 0:
@@ -368,6 +413,15 @@ def _sweep(model, config: EstimatorConfig, acfg: AtlasConfig, i: int, l: int):
         j, k = p
         lam = np.array([ax[0][i], ax[1][j], ax[2][k], p_u])
         last = None
+        if seed is not None and p == tuple(seed[0]):  # solved by another task: the start of this segment
+            if seed[1] is None:
+                continue
+            lins[p] = _linearized_at(fwd, fwd.fem.x_rest + seed[1], lam)
+            last = p
+            if n_kids > 1:
+                kept[p] = fwd.eq.keep()
+            left[p] = n_kids
+            continue
         try:
             # a linear pressure axis needs the exact pressure derivative: the tangent at the solution
             # (elsewhere a new factor there costs more than the chord iterations it saves)
@@ -412,8 +466,7 @@ def _lines(model, config: EstimatorConfig, acfg: AtlasConfig, k: int, l: int, en
     shapes or None: along ū (``acfg.hermite_axis`` 0), or along another load at fixed q, for which
     ``dends`` (ny,) × 2 are the faces' dū/dλ_a (:func:`_axis_derivative`))."""
     t0 = time.process_time()
-    fwd = held_loads(ForwardModel(model, config, exact_sensitivities=False,
-                                  fallback_min_load_step=FALLBACK_MIN_LOAD_STEP), acfg)
+    fwd = _task_forward(model, config, acfg)
     ax = acfg.axes()
     n1, ny = len(ax[0]), len(ax[1])
     h = x_patch(fwd)
@@ -472,6 +525,82 @@ def _lines(model, config: EstimatorConfig, acfg: AtlasConfig, k: int, l: int, en
             first_error = first_error or str(exc).splitlines()[0]
     return (k, l, V, P, X, solved, first_error, time.process_time() - t0, FX, Q, n_solves,
             (dV, dP, dX, dFX) if hermite else None)
+
+
+@dataclass
+class GridPart:
+    """What one task of a build's fine graph solved (:func:`_face_part`, :func:`_line_task`): at the
+    grid points ``idx`` (n, 4) (i, j, k, l) the volumes ``V`` (n, n_arms), tracked points ``P``
+    (n, k, 3), displacements ``X`` (n, 3N), f_x ``FX`` (n,), first coordinate ``Q`` (n,),
+    ``solved`` (n,) (unsolved rows NaN) and ``derivs`` (dV, dP, dX, dFX) along the Hermite axis or
+    None; the first failure (``error``), the CPU seconds and the converged forward solves."""
+
+    idx: np.ndarray
+    V: np.ndarray
+    P: np.ndarray
+    X: np.ndarray
+    FX: np.ndarray
+    Q: np.ndarray
+    solved: np.ndarray
+    derivs: tuple | None
+    error: str
+    cpu_s: float
+    n_solves: int
+
+    def row(self, j: int, k: int) -> int:
+        """The row of grid point (·, j, k, ·)."""
+        return int(np.flatnonzero((self.idx[:, 1] == j) & (self.idx[:, 2] == k))[0])
+
+
+def face_segments(acfg: AtlasConfig) -> list[tuple[str, list[tuple[int, int]]]]:
+    """A face plane's walk (:func:`_plane_walk`) as segments, each a task: ``("spine", points)``,
+    the spine along f_z through the point nearest zero load (solved from rest), then
+    ``("branch-k", points)`` for each f_z index k, the points along f_y from spine point (j0, k),
+    which seeds it.
+
+    >>> [(n, len(p)) for n, p in face_segments(AtlasConfig(n_force=(3, 4, 3)))]
+    [('spine', 3), ('branch-0', 3), ('branch-1', 3), ('branch-2', 3)]
+    """
+    ax = acfg.axes()
+    ny, nz = len(ax[1]), len(ax[2])
+    j0 = int(np.argmin(np.abs(ax[1])))
+    out = [("spine", [(j0, k) for k in range(nz)])]
+    out += [(f"branch-{k}", [(j, k) for j in range(ny) if j != j0]) for k in range(nz)]
+    return out
+
+
+def _face_part(model, config: EstimatorConfig, acfg: AtlasConfig, i: int, l: int, points, seed=None) -> GridPart:
+    """One segment of a face plane (:func:`face_segments`) by :func:`_sweep`: the ``points`` (j, k),
+    from rest or from ``seed`` ((j0, k), its displacements or None: unsolved, and so are these)."""
+    got = _sweep(model, config, acfg, i, l, only=points, seed=seed)
+    _, _, V, P, X, solved, err, cpu, deriv, FX, Q, n = got
+    js, ks = (np.array(v, dtype=np.int64) for v in zip(*points))
+    idx = np.stack([np.full_like(js, i), js, ks, np.full_like(js, l)], axis=1)
+    return GridPart(idx, V[js, ks], P[js, ks], X[js, ks], FX[js, ks], Q[js, ks], solved[js, ks],
+                    None if deriv is None else tuple(d[js, ks] for d in deriv), err, cpu, n)
+
+
+def _line_task(model, config: EstimatorConfig, acfg: AtlasConfig, k: int, l: int, j: int, ends, start,
+               dends=None) -> GridPart:
+    """One line along q (f_y index ``j``, f_z ``k``, pressure ``l``) between its two face points by
+    :func:`_lines`: ``ends`` (2,) their patch displacements (m, NaN: unsolved), ``start`` (3N,) the
+    lower face point's displacements, ``dends`` (2,) their dū/dλ_a on a Hermite axis a ≠ 0."""
+    ny = acfg.shape[1]
+
+    def one(v):
+        a = np.full(ny, np.nan)
+        a[j] = v
+        return a
+
+    starts = np.zeros((ny, len(start)))
+    starts[j] = start
+    got = _lines(model, config, acfg, k, l, tuple(one(e) for e in ends), starts,
+                 None if dends is None else tuple(one(d) for d in dends))
+    _, _, V, P, X, solved, err, cpu, FX, Q, n, deriv = got
+    m = V.shape[0]
+    idx = np.stack([np.arange(1, m + 1), np.full(m, j), np.full(m, k), np.full(m, l)], axis=1)
+    return GridPart(idx, V[:, j], P[:, j], X[:, j], FX[:, j], Q[:, j], solved[:, j],
+                    None if deriv is None else tuple(d[:, j] for d in deriv), err, cpu, n)
 
 
 def fill_weights(solved: np.ndarray, axes: list[np.ndarray]) -> list[tuple[int, np.ndarray, np.ndarray]]:
@@ -554,10 +683,12 @@ def provenance(model, fwd: ForwardModel) -> dict:
 
 
 def _piece_tasks(model, cfg: EstimatorConfig, acfg: AtlasConfig, fwd: ForwardModel, tag: str, piece: int) -> list[Task]:
-    """The tasks of one atlas (one piece along f_y), named ``{tag}-plane-i-l`` / ``{tag}-lines-k-l``:
-    the (f_y, f_z) planes of a force axis (:func:`_sweep`); on a displacement axis the planes at the
-    two f_x faces, then the lines between them (:func:`_lines`), each (k, l) depending on the two
-    faces at pressure index l."""
+    """The tasks of one atlas (one piece along f_y): the (f_y, f_z) planes of a force axis
+    (:func:`_sweep`, ``{tag}-plane-i-l``); on a displacement axis each face plane's segments
+    (:func:`face_segments`: ``{tag}-spine-i-l``, then ``{tag}-branch-k-i-l`` from it), then each line
+    along q (``{tag}-line-k-l-j``, :func:`_line_task`) depending on the two face segments that hold
+    its end points. ``model``, ``cfg`` and ``fwd`` may be None for the graph's structure alone (the
+    cost model, :func:`plan_tasks`)."""
     n1, n2, n3, n4 = acfg.shape
     hermite = acfg.hermite_axis
     kind = f"piece {piece}"
@@ -565,29 +696,70 @@ def _piece_tasks(model, cfg: EstimatorConfig, acfg: AtlasConfig, fwd: ForwardMod
     if acfg.x_control == "force":
         return [Task(f"{tag}-plane-{i}-{l}", _sweep, lambda _r, i=i, l=l: (model, cfg, acfg, i, l),
                      points=n2 * n3, kind=f"{kind} plane", priority=1) for i, l in planes]
-    # the faces at the first pressure first, then each line task as soon as its faces are done: every
-    # kind of task (and piece) has ended early, for the ETA, and the lines do not wait for all faces
-    faces = [Task(f"{tag}-plane-{i}-{l}", _sweep, lambda _r, i=i, l=l: (model, cfg, acfg, i, l),
-                  points=n2 * n3, kind=f"{kind} plane", priority=3 if l == 0 else 1)
-             for i, l in planes if i in (0, n1 - 1)]
-    h = x_patch(fwd)
-
-    def line_args(r, k, l):
-        ends, starts, dends = [], None, []
+    # the fine graph (the critical path a few points long): each face plane's spine from rest, its
+    # branches along f_y each seeded by a spine point, each line along q as soon as its two face
+    # points are solved
+    segs = face_segments(acfg)
+    j0 = segs[0][1][0][0]
+    faces = []
+    for l in range(n4):
         for i in (0, n1 - 1):
-            face = r[f"{tag}-plane-{i}-{l}"]
-            ok, X, deriv = face[5], face[4], face[8]
-            ends.append(np.where(ok[:, k], X[:, k] @ h, np.nan))
-            if i == 0:
-                starts = X[:, k]
-            if hermite not in (None, 0):
-                dends.append(deriv[2][:, k] @ h)
-        return model, cfg, acfg, k, l, tuple(ends), starts, tuple(dends) if dends else None
+            spine = f"{tag}-spine-{i}-{l}"
+            faces.append(Task(spine, _face_part, lambda _r, i=i, l=l, pts=segs[0][1]: (model, cfg, acfg, i, l, pts),
+                              points=len(segs[0][1]), kind=f"{kind} spine"))
 
-    lines = [Task(f"{tag}-lines-{k}-{l}", _lines, lambda r, k=k, l=l: line_args(r, k, l),
-                  deps=(f"{tag}-plane-0-{l}", f"{tag}-plane-{n1 - 1}-{l}"), points=(n1 - 2) * n2,
-                  kind=f"{kind} lines", priority=2) for l in range(n4) for k in range(n3)]
+            def branch_args(r, i=i, l=l, spine=spine, seg=None):
+                name, pts = seg
+                k = int(name.split("-")[1])
+                sp = r[spine]
+                row = sp.row(j0, k)
+                return model, cfg, acfg, i, l, pts, ((j0, k), sp.X[row] if sp.solved[row] else None)
+
+            for seg in segs[1:]:
+                faces.append(Task(f"{tag}-{seg[0]}-{i}-{l}", _face_part,
+                                  lambda r, f=branch_args, seg=seg: f(r, seg=seg), deps=(spine,),
+                                  points=len(seg[1]), kind=f"{kind} branch"))
+
+    def holder(i: int, l: int, j: int, k: int) -> str:
+        return f"{tag}-spine-{i}-{l}" if j == j0 else f"{tag}-branch-{k}-{i}-{l}"
+
+    def line_args(r, k, l, j):
+        h = x_patch(fwd)
+        ends, dends, start = [], [], None
+        for i in (0, n1 - 1):
+            part = r[holder(i, l, j, k)]
+            row = part.row(j, k)
+            ok = bool(part.solved[row])
+            ends.append(float(part.X[row] @ h) if ok else math.nan)
+            if i == 0:
+                start = part.X[row]
+            if hermite not in (None, 0):
+                dends.append(float(part.derivs[2][row] @ h) if ok else math.nan)
+        return model, cfg, acfg, k, l, j, tuple(ends), start, tuple(dends) if dends else None
+
+    lines = [Task(f"{tag}-line-{k}-{l}-{j}", _line_task, lambda r, k=k, l=l, j=j: line_args(r, k, l, j),
+                  deps=(holder(0, l, j, k), holder(n1 - 1, l, j, k)), points=n1 - 2, kind=f"{kind} line")
+             for l in range(n4) for k in range(n3) for j in range(n2)]
     return faces + lines
+
+
+def task_place(name: str, acfg: AtlasConfig) -> str:
+    """Where on the grid a task of :func:`_piece_tasks` works, as a user reads it.
+
+    >>> task_place("p0-plane-3-1", AtlasConfig()), task_place("p1-branch-2-0-1", AtlasConfig())
+    ('piece 0, plane f_x index 3, pressure index 1', 'piece 1, face f_x index 0, f_z index 2, pressure index 1')
+    >>> task_place("p0-line-2-1-4", AtlasConfig())
+    'piece 0, line along q at f_y index 4, f_z index 2, pressure index 1'
+    """
+    tag, what, *n = name.split("-")
+    piece = f"piece {tag[1:]}"
+    if what == "plane":
+        return f"{piece}, plane {'f_x' if acfg.x_control == 'force' else 'q'} index {n[0]}, pressure index {n[1]}"
+    if what == "spine":
+        return f"{piece}, face f_x index {n[0]} (its spine), pressure index {n[1]}"
+    if what == "branch":
+        return f"{piece}, face f_x index {n[1]}, f_z index {n[0]}, pressure index {n[2]}"
+    return f"{piece}, line along q at f_y index {n[2]}, f_z index {n[0]}, pressure index {n[1]}"
 
 
 def _assemble(model, fwd: ForwardModel, acfg: AtlasConfig, key: str, tag: str, run: GraphRun, t0: float) -> Atlas:
@@ -612,6 +784,17 @@ def _assemble(model, fwd: ForwardModel, acfg: AtlasConfig, key: str, tag: str, r
         if not name.startswith(f"{tag}-"):
             continue
         cpu_s += run.cpu_s[name]
+        if isinstance(value, GridPart):
+            sel = tuple(value.idx.T)
+            n_fwd += value.n_solves
+            V[sel], P[sel], X[sel], FX[sel], QN[sel], solved[sel] = (value.V, value.P, value.X, value.FX, value.Q,
+                                                                   value.solved)
+            if value.derivs is not None:
+                dV[sel], dP[sel], dX[sel], dFX[sel] = value.derivs
+            if not value.solved.all():
+                log.info(f"atlas: {name.split('-', 1)[1]}: {int((~value.solved).sum())} of {len(value.solved)} points "
+                         f"unreachable ({value.error or 'beyond a failed point'})")
+            continue
         if "-lines-" in name:
             kz, lp, v, p, x, ok, err, _cpu, fx, q, n_tried, deriv = value
             n_fwd += n_tried
@@ -695,12 +878,24 @@ def _fit(model, fwd, acfg, key, V, P, X, solved, FX, QN, derivs, cpu_s, t0, offl
                  provenance={**provenance(model, fwd), **({"offline": offline} if offline else {})})
 
 
-# CPU-s per grid point of a whole build, measured on the BIP at the model size given, per element
-# order: linear 6 mm (6 352 nodes); quadratic 9 mm with 2 mm arms (28 329 nodes, Hermite f_z), with
-# the pardiso extra: face planes 7.2 (lower piece) and 9.9 (the fold's), lines 3.65 and 18 a
-# point, 10.0 over the default grid; the fold's lines cost 1.5x that with SuperLU for their
-# indefinite tangents (NO_PARDISO_FACTOR). Another model scales with its nodes.
-COST_PER_POINT = {1: (0.45, 6352), 2: (10.0, 28329)}
+# The cost model: CPU-s a grid point of each kind, per element order at the model size given (the
+# BIP: linear 6 mm, 6 352 nodes; quadratic 9 mm with 2 mm arms, 28 329 nodes, Hermite f_z), with
+# the pardiso extra. Quadratic: a face plane's first point from rest 27
+# (benchmarks/bench_atlas_point_cost.py); a face point 7.2 CPU-s and a line point 3.65 below the
+# fold, 12.6 and 32 above it (f_y above FOLD_F_Y_N: the arm pair snaps through) — the shipped
+# build's provenance averaged 9.9 and 18 over the upper piece, half of whose f_y points are above.
+# The fold's points cost 1.5x with SuperLU for their indefinite tangents (NO_PARDISO_FACTOR).
+# Another model scales with its nodes squared (a 3-D sparse factorization's work): the 12 mm
+# quadratic model's default atlas took 4 933 CPU-s at 13 699 nodes, the 9 mm one's 23 435 at 28 329.
+POINT_COST_S = {1: ({"rest": 2.7, "face": 0.45, "line": 0.45}, {"face": 0.45, "line": 0.45}, 6352),
+                2: ({"rest": 27.0, "face": 7.2, "line": 3.65}, {"face": 12.6, "line": 32.0}, 28329)}
+NODES_EXPONENT = 2.0
+# the line points' costs are for the default's 9 inner q points a line; with fewer each step is
+# longer and costs more: the 12 mm quadratic model's draft (3 inner points) cost 6x the model's
+# prediction by points alone in its lines, (9 / 3) ** 1.5 = 5.2
+LINE_REF_POINTS = 9
+LINE_STEP_EXPONENT = 1.5
+FOLD_F_Y_N = 4.29  # the quadratic default's snap-through starts here along f_y: the fold's rates above it
 NO_PARDISO_FACTOR = {1: 1.0, 2: 1.5}
 # an estimator (estimate, live) builds a missing atlas itself only below this wall time; above it
 # says how to build it (``softphantom atlas build``, resumable) and how to go on meanwhile
@@ -711,26 +906,112 @@ class AtlasMissing(UserError):
     """A model without its atlas, whose build takes longer than a command should wait for."""
 
 
-def estimated_build(order: int, nodes: int, acfg: AtlasConfig, workers: int | None = None,
-                    pardiso: bool | None = None) -> tuple[float, float]:
-    """(CPU-s, wall-s on ``workers`` idle cores) of building ``acfg`` for a model of element
-    ``order`` with ``nodes`` nodes, before any task ran: :data:`COST_PER_POINT` scaled by the nodes,
-    and by :data:`NO_PARDISO_FACTOR` without the ``pardiso`` extra (``pardiso`` None: whether it is
-    installed); the build's own ETA takes over once tasks end (:class:`~softphantom.estimation.atlas.tasks.Eta`).
+class DraftRefused(UserError):
+    """A draft atlas where the full one is required (``--require-full``)."""
 
-    >>> from softphantom.estimation.atlas.config import default_atlas_config
-    >>> cpu, wall = estimated_build(2, 28329, default_atlas_config(2), workers=2, pardiso=True)
-    >>> round(cpu), round(wall / 3600, 1)
-    (19800, 2.8)
+
+def draft_points(order: int) -> int:
+    """Grid points of the draft atlas of a model of element ``order``."""
+    from softphantom.estimation.atlas.config import draft_atlas_config
+
+    return draft_atlas_config(order).n_solves
+
+
+def point_costs(order: int, nodes: int, pardiso: bool | None = None) -> tuple[dict[str, float], dict[str, float]]:
+    """CPU-s a grid point of each kind (``rest``: a face plane's first, from rest; ``face``; ``line``)
+    for a model of element ``order`` with ``nodes`` nodes, below and above the fold
+    (:data:`FOLD_F_Y_N`): :data:`POINT_COST_S` scaled by the nodes (:data:`NODES_EXPONENT`), the
+    fold's times :data:`NO_PARDISO_FACTOR` without the ``pardiso`` extra (None: whether it is installed).
+
+    >>> point_costs(2, 28329, pardiso=True)[0], point_costs(2, 28329, pardiso=False)[1]["line"]
+    ({'rest': 27.0, 'face': 7.2, 'line': 3.65}, 48.0)
     """
     from softphantom.fem import have_pardiso
 
     o = 2 if int(order) == 2 else 1
-    per, ref_nodes = COST_PER_POINT[o]
-    if not (have_pardiso() if pardiso is None else pardiso):
-        per *= NO_PARDISO_FACTOR[o]
-    cpu = acfg.n_solves * per * nodes / ref_nodes
-    return cpu, cpu / max(1, int(workers or os.cpu_count() or 1))
+    base, fold, ref_nodes = POINT_COST_S[o]
+    f = 1.0 if (have_pardiso() if pardiso is None else pardiso) else NO_PARDISO_FACTOR[o]
+    s = (nodes / ref_nodes) ** NODES_EXPONENT
+    return {k: v * s for k, v in base.items()}, {**{k: v * s for k, v in base.items()},
+                                                   **{k: v * f * s for k, v in fold.items()}}
+
+
+def _task_cost(task: Task, acfg: AtlasConfig, costs) -> float:
+    """Predicted CPU-s of a task of :func:`_piece_tasks` for the piece ``acfg``: its points' costs
+    (:func:`point_costs`, the fold's above :data:`FOLD_F_Y_N` on the quadratic model)."""
+    _, what, *n = task.name.split("-")
+    f_y = acfg.axes()[1]
+    if what in ("line", "lines"):
+        ys = [f_y[int(n[2])]] if what == "line" else list(f_y)
+        # a longer step along q costs more a point: LINE_STEP_EXPONENT, fitted on the draft grid's lines
+        step = (LINE_REF_POINTS / max(acfg.shape[0] - 2, 1)) ** LINE_STEP_EXPONENT
+        return task.points / len(ys) * step * sum(costs[y > FOLD_F_Y_N]["line"] for y in ys)
+    j0 = face_segments(acfg)[0][1][0][0]
+    ys = {"spine": [f_y[j0]], "branch": [y for j, y in enumerate(f_y) if j != j0]}.get(what, list(f_y))
+    per = sum(costs[y > FOLD_F_Y_N]["face"] for y in ys) / len(ys)
+    rest = costs[False]["rest"] if what in ("plane", "spine") else 0.0
+    return rest + (task.points - (1 if rest else 0)) * per
+
+
+def plan_tasks(order: int, nodes: int, acfg: AtlasConfig, pardiso: bool | None = None, tasks=None) -> list[Task]:
+    """The build's tasks (``tasks``, or the structure of :func:`_piece_tasks` for every piece of
+    ``acfg`` without their functions) with their predicted CPU-s (``Task.cost``) and, as their Dask
+    priorities, their bottom levels (:func:`~softphantom.estimation.atlas.tasks.bottom_levels`):
+    the long chains first."""
+    subs = acfg.pieces()
+    if tasks is None:
+        tasks = [t for p, sub in enumerate(subs) for t in _piece_tasks(None, None, sub, None, f"p{p}", p)]
+    lo, fold = point_costs(order, nodes, pardiso)
+    costs = {False: lo, True: fold}
+    tasks = [replace(t, cost=_task_cost(t, subs[int(t.name.split("-")[0][1:])], costs)) for t in tasks]
+    level = bottom_levels(tasks, {t.name: t.cost for t in tasks})
+    top = int(round(max(level.values(), default=0.0) * 10)) + 1
+    # a probe: each kind's first task runs as soon as it can, so the ETA measures every kind early
+    # (the longest chains first would leave the lines, the cheap end of each chain, to the last half)
+    first: dict[str, str] = {}
+    for t in tasks:
+        if t.kind not in first and all(d.split("-")[1] in ("spine",) for d in t.deps):
+            first[t.kind] = t.name
+    probes = set(first.values())
+    return [replace(t, priority=top if t.name in probes else int(round(level[t.name] * 10))) for t in tasks]
+
+
+@dataclass(frozen=True)
+class BuildEstimate:
+    """A build's predicted cost (:func:`estimate_build`): ``cpu_s``, ``wall_s`` on ``workers`` idle
+    cores, ``critical_path_s`` (its wall time on a cluster of a worker per task), ``tasks``."""
+
+    cpu_s: float
+    wall_s: float
+    critical_path_s: float
+    workers: int
+    tasks: int
+
+
+def estimate_build(order: int, nodes: int, acfg: AtlasConfig, workers: int | None = None,
+                   pardiso: bool | None = None) -> BuildEstimate:
+    """The cost model of building ``acfg`` for a model of element ``order`` with ``nodes`` nodes,
+    before any task ran: each task's predicted CPU-s (:func:`plan_tasks`), scheduled on ``workers``
+    idle cores as the build schedules them (:func:`~softphantom.estimation.atlas.tasks.schedule_s`);
+    the build's own ETA takes over once tasks end (:class:`~softphantom.estimation.atlas.tasks.Eta`).
+
+    >>> from softphantom.estimation.atlas.config import default_atlas_config
+    >>> e = estimate_build(2, 28329, default_atlas_config(2), workers=2, pardiso=True)
+    >>> round(e.cpu_s), round(e.wall_s), round(e.critical_path_s), e.tasks
+    (20710, 10371, 396, 252)
+    """
+    w = max(1, int(workers or os.cpu_count() or 1))
+    tasks = plan_tasks(order, nodes, acfg, pardiso)
+    cost = {t.name: t.cost for t in tasks}
+    return BuildEstimate(sum(cost.values()), schedule_s(tasks, cost, w),
+                         max(bottom_levels(tasks, cost).values(), default=0.0), w, len(tasks))
+
+
+def estimated_build(order: int, nodes: int, acfg: AtlasConfig, workers: int | None = None,
+                    pardiso: bool | None = None) -> tuple[float, float]:
+    """(CPU-s, wall-s on ``workers`` idle cores) of :func:`estimate_build`."""
+    e = estimate_build(order, nodes, acfg, workers, pardiso)
+    return e.cpu_s, e.wall_s
 
 
 def duration_text(seconds: float) -> str:
@@ -813,7 +1094,8 @@ def build_atlas(model, config: EstimatorConfig | None = None, atlas: AtlasConfig
                 V, P, X, solved, FX, QN, cpu_s, _n, offline = rom_grid(model, cfg, subs[p], fwd, client)
             built.append(_fit(model, fwd, subs[p], keys[p], V, P, X, solved, FX, QN, (None,) * 4, cpu_s, t0, offline))
     else:
-        tasks = [t for p in which for t in _piece_tasks(model, cfg, subs[p], fwd, f"p{p}", p)]
+        tasks = plan_tasks(fwd.fem.order, fwd.fem.n_dof // 3, acfg,
+                           tasks=[t for p in which for t in _piece_tasks(model, cfg, subs[p], fwd, f"p{p}", p)])
         settings = build_settings(cfg, acfg, fwd.fem.n_dof // 3)
         stores = {p: TaskStore(partial_dir(cache_dir, keys[p]), {"build": settings, "key": keys[p]})
                   for p in which} if cache_dir is not None else {}
@@ -822,10 +1104,7 @@ def build_atlas(model, config: EstimatorConfig | None = None, atlas: AtlasConfig
             return stores.get(int(name.split("-")[0][1:]))
 
         def failed(task: Task, msg: str) -> Exception:  # not a solver failure (those are recorded): a bug, a lost worker
-            _, what, a, b = task.name.split("-")
-            where = (f"plane {'f_x' if acfg.x_control == 'force' else 'q'} index {a}" if what == "plane"
-                     else f"lines at f_z index {a}")
-            return SolverError(f"atlas: {where}, pressure index {b} failed: {msg}")
+            return SolverError(f"atlas: {task_place(task.name, acfg)} failed: {msg}")
 
         n_points = sum(t.points for t in tasks)
         label = f"atlas: {len(tasks)} tasks, {n_points} grid points"
@@ -843,7 +1122,10 @@ def build_atlas(model, config: EstimatorConfig | None = None, atlas: AtlasConfig
         for a in built:
             a.provenance["build"] = {"workers": n_cores, "wall_s": round(wall, 1), "cpu_s": round(cpu, 1),
                                      "critical_path_s": round(crit, 1), "tasks": len(tasks),
-                                     "kept_tasks": len(run.kept)}
+                                     "kept_tasks": len(run.kept),
+                                     # each task's CPU-s and wall-s: the graph's behaviour on other clusters
+                                     "task_s": {n: [round(run.cpu_s[n], 2), round(run.wall_s[n], 2)]
+                                                for n in sorted(run.wall_s)}}
     from softphantom.estimation.atlas.catalogue import rest_record
 
     for a in built:  # what verify_atlas recomputes from the model to catch a stale atlas

@@ -254,7 +254,7 @@ def resolve_config(model, acfg: AtlasConfig | None, model_dir=None) -> AtlasConf
 def find_or_build(model, config: EstimatorConfig | None = None, acfg: AtlasConfig | None = None, *,
                   model_dir=None, scheduler: str | None = None, n_workers: int | None = None, fwd=None,
                   rebuild: bool = False, discard_partial: bool = False,
-                  max_build_s: float | None = None) -> Found:
+                  max_build_s: float | None = None, require_full: bool = False) -> Found:
     """The atlas ``acfg`` of ``model`` at ``config``'s contact, piece by piece in the catalogue's
     order: ``model_dir``'s own file, the shipped one, else built and saved in ``model_dir``
     (:func:`~softphantom.estimation.atlas.build.build_atlas`; resumable, its finished tasks kept in
@@ -265,7 +265,12 @@ def find_or_build(model, config: EstimatorConfig | None = None, acfg: AtlasConfi
     unless ``rebuild``. With ``max_build_s``, a build estimated to take longer is not started:
     :class:`~softphantom.estimation.atlas.build.AtlasMissing` says how long it takes and how to
     build it. Next to an interrupted build of other settings a build is refused in one line, unless
-    ``discard_partial``."""
+    ``discard_partial``.
+
+    Where the model's default atlas is missing but its draft (``atlas build --draft``,
+    :func:`~softphantom.estimation.atlas.config.draft_atlas_config`) is in ``model_dir``, the draft
+    is used (a warning says so) unless ``require_full``, which refuses a draft in one line
+    (:class:`~softphantom.estimation.atlas.build.DraftRefused`)."""
     from softphantom.estimation.atlas import build as B
     from softphantom.estimation.atlas.tasks import check_partials, discard_tasks
 
@@ -299,26 +304,44 @@ def find_or_build(model, config: EstimatorConfig | None = None, acfg: AtlasConfi
                         f"(atlases in its atlas/ subdirectory): building into {path.parent}")
     for p in sorted(found):
         log.info(f"atlas: {pieces[p].describe()}: {_n_solves(found[p])}")
+    c = cfg.contact
+    at = "" if c == "on-centre" else f" --at {c}" if isinstance(c, str) else " (its contact point)"
+    order = int(getattr(model, "element_order", 1))
+    if require_full and acfg.draft:
+        raise B.DraftRefused(f"{model_dir or 'the model'}: --require-full, but the atlas asked for is a draft; build "
+                             f"the full one with `softphantom atlas build --model {model_dir}{at}`")
     missing = tuple(p for p in range(len(subs)) if p not in found)
+    if missing and model_dir is not None and not acfg.draft and not rebuild and acfg == resolve_config(model, None, model_dir):
+        draft = resolve_config(model, model_atlas_config(order, model_dir, draft=True), model_dir)
+        if all(atlas_path(model_dir, k).is_file() for k in piece_keys(model, cfg, draft)):
+            if require_full:
+                raise B.DraftRefused(f"{model_dir}: --require-full, but this model and contact have only a draft atlas "
+                                     f"(atlas build --draft); build the full one with `softphantom atlas build "
+                                     f"--model {model_dir}{at}`")
+            log.warning(f"atlas: using the draft atlas of {model_dir} (no full atlas for this model and contact yet: "
+                        f"`softphantom atlas build --model {model_dir}{at}` builds it)")
+            return find_or_build(model, cfg, draft, model_dir=model_dir, fwd=fwd)
     if missing:
-        order = int(getattr(model, "element_order", 1))
         if max_build_s is not None:
-            cpu, wall = B.estimated_build(order, len(_mesh_nodes(model)), acfg, n_workers)
-            cpu *= len(missing) / len(subs)
-            wall *= len(missing) / len(subs)
+            nodes = len(_mesh_nodes(model))
+            w = int(n_workers or os.cpu_count() or 1)
+            e = B.estimate_build(order, nodes, acfg, w)
+            cpu = e.cpu_s * len(missing) / len(subs)
+            wall = max(e.wall_s * len(missing) / len(subs), e.critical_path_s)
             if wall > max_build_s:
-                c = cfg.contact
-                at = "" if c == "on-centre" else f" --at {c}" if isinstance(c, str) else " (its contact point)"
                 n = sum(subs[p].n_solves for p in missing)
+                d = B.estimate_build(order, nodes, model_atlas_config(order, model_dir, draft=True), w)
                 small = replace(acfg, n_force=(3, 3, 3), n_pressure=2, f_y_splits_N=())
-                small_wall = B.estimated_build(order, len(_mesh_nodes(model)), small, n_workers)[1]
+                small_wall = B.estimate_build(order, nodes, small, w).wall_s
                 raise B.AtlasMissing(
                     f"{model_dir or 'the model'}: no atlas yet for this model and contact; building it takes about "
-                    f"{B.duration_text(wall)} on {int(n_workers or os.cpu_count() or 1)} cores ({n} grid points, "
-                    f"≈ {cpu:.0f} CPU-s): build it once with `softphantom atlas build --model {model_dir}{at}` "
-                    f"(resumable; --scheduler ADDR for a Dask cluster); or a small atlas over your own loads, "
-                    f"--atlas-grid 3,3,3,2 --envelope FXMIN:FXMAX,FYMIN:FYMAX,FZMIN:FZMAX,PMIN:PMAX (N, kPa; about "
-                    f"{B.duration_text(small_wall)}; docs/organs.md); or estimate meanwhile with --estimator refresh")
+                    f"{B.duration_text(wall)} on {w} cores ({n} grid points, ≈ {cpu:.0f} CPU-s), a draft "
+                    f"(--draft: {B.draft_points(order)} points, its error measured) about "
+                    f"{B.duration_text(d.wall_s)}: build it once with `softphantom atlas build --model {model_dir}{at}` "
+                    f"[--draft] (resumable; --scheduler ADDR for a Dask cluster); or a small atlas over your own "
+                    f"loads, --atlas-grid 3,3,3,2 --envelope FXMIN:FXMAX,FYMIN:FYMAX,FZMIN:FZMAX,PMIN:PMAX (N, kPa; "
+                    f"about {B.duration_text(small_wall)}; docs/organs.md); or estimate meanwhile with "
+                    f"--estimator refresh")
         if model_dir is not None:
             check_partials(model_dir, B.build_settings(cfg, acfg, len(_mesh_nodes(model))), discard=discard_partial)
         built = B.build_atlas(model, cfg, acfg, keys=keys, scheduler=scheduler, n_workers=n_workers, fwd=fwd,

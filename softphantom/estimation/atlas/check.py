@@ -78,8 +78,25 @@ def held_out_loads(lower, upper, n: int, seed: int = 0, corner_share: float = 0.
     return lo + (hi - lo) * u
 
 
-def _rows(model, config: EstimatorConfig, atlas, loads: np.ndarray, seed: int):
-    """Errors at ``loads`` (a Dask task: its own forward model and estimator)."""
+def _solve_near(fwd, at, c, lam):
+    """The equilibrium at ``lam`` solved from the atlas's own field there (``at.nodes(c)``): a start
+    within the atlas's error, so a few chord iterations instead of a continuation from rest (a
+    draft's check); from rest where that fails."""
+    from softphantom.errors import SolverError
+    from softphantom.estimation.atlas.build import _linearized_at
+    from softphantom.fem import ElementInversionError
+
+    try:
+        start = _linearized_at(fwd, np.asarray(at.nodes(c), float).ravel(), lam)
+        return fwd.solve(lam, start)
+    except (SolverError, ElementInversionError, np.linalg.LinAlgError):
+        fwd.eq.factorize(fwd.fem.x_rest, np.zeros(len(lam) - 3))
+        return fwd.solve(lam)
+
+
+def _rows(model, config: EstimatorConfig, atlas, loads: np.ndarray, seed: int, from_atlas: bool = False):
+    """Errors at ``loads`` (a Dask task: its own forward model and estimator); ``from_atlas``: each
+    full solve started from the atlas's field (:func:`_solve_near`)."""
     from softphantom.errors import SolverError
     from softphantom.estimation.atlas.estimator import AtlasEstimator
     from softphantom.pose import pose_of_markers
@@ -96,7 +113,7 @@ def _rows(model, config: EstimatorConfig, atlas, loads: np.ndarray, seed: int):
             skipped += 1
             continue
         try:
-            lin = fwd.solve(lam)
+            lin = _solve_near(fwd, at, c, lam) if from_atlas else fwd.solve(lam)
         except SolverError as exc:
             failed.append(f"load {np.round(lam[:3], 3).tolist()} N, {lam[3] * 1e-3:.2f} kPa: {exc}")
             continue
@@ -115,14 +132,16 @@ def _rows(model, config: EstimatorConfig, atlas, loads: np.ndarray, seed: int):
 
 
 def check_held_out(model, config: EstimatorConfig, atlas, loads, *, seed: int = 0, client=None,
-                   chunks: int | None = None) -> HeldOut:
+                   chunks: int | None = None, from_atlas: bool = False) -> HeldOut:
     """:class:`HeldOut` errors of ``atlas`` (an :class:`~softphantom.estimation.atlas.map.Atlas` or
     its pieces, or an :class:`~softphantom.estimation.atlas.map.AtlasStack`) for ``model`` at ``loads``
     (n, 3 + M) N, N, N, Pa…. On ``client`` (Dask) the loads are split into ``chunks`` tasks
-    (default: 2 per worker), each building its own estimator; else here."""
+    (default: 2 per worker), each building its own estimator; else here. ``from_atlas``: each full
+    solve starts from the atlas's own field at the load, not from rest (a draft's quick check: the
+    same equilibrium where it is unique, at the cost of a grid point instead of a continuation)."""
     loads = np.atleast_2d(np.asarray(loads, float))
     if client is None:
-        parts = [_rows(model, config, atlas, loads, seed)]
+        parts = [_rows(model, config, atlas, loads, seed, from_atlas)]
     else:
         from softphantom.errors import UserError
         from softphantom.parallel import map_tasks
@@ -130,7 +149,7 @@ def check_held_out(model, config: EstimatorConfig, atlas, loads, *, seed: int = 
         k = chunks or max(1, 2 * len(client.scheduler_info().get("workers", {})))
         groups = [g for g in np.array_split(loads, min(k, len(loads))) if len(g)]
         m, a = client.scatter([model, atlas], broadcast=True)
-        res = map_tasks(client, _rows, [(m, config, a, g, seed + i) for i, g in enumerate(groups)],
+        res = map_tasks(client, _rows, [(m, config, a, g, seed + i, from_atlas) for i, g in enumerate(groups)],
                         label="held-out loads")
         bad = [r.error for r in res if not r.ok]
         if bad:
@@ -139,3 +158,34 @@ def check_held_out(model, config: EstimatorConfig, atlas, loads, *, seed: int = 
     return HeldOut(loads=np.vstack([p[0] for p in parts]), errors=np.vstack([p[1] for p in parts]),
                    targets_mm=np.vstack([p[2] for p in parts]), target_names=parts[0][5],
                    skipped=sum(p[3] for p in parts), failed=tuple(f for p in parts for f in p[4]))
+
+
+DRAFT_LOADS = 12  # held-out loads a draft atlas is checked at (atlas build --draft)
+
+
+def draft_error_text(held: dict) -> str:
+    """One line of a draft atlas's measured error (``provenance["held_out"]``, :func:`check_draft`).
+
+    >>> draft_error_text({"loads": 12, "worst": {"force_N": 0.031, "pos_mm": 0.042, "ang_deg": 0.21,
+    ...                   "near_urethra_mm": 0.03}})
+    'held-out error at 12 loads: 0.031 N, 0.042 mm, 0.21°, near_urethra 0.03 mm (goals of a full atlas: 0.05 N, 0.05 mm, 0.1°, 0.02 mm)'
+    """
+    w = held.get("worst", {})
+    near = f", near_urethra {w['near_urethra_mm']:.2g} mm" if "near_urethra_mm" in w else ""
+    return (f"held-out error at {held.get('loads', 0)} loads: {w.get('force_N', float('nan')):.2g} N, "
+            f"{w.get('pos_mm', float('nan')):.2g} mm, {w.get('ang_deg', float('nan')):.2g}°{near} (goals of a full "
+            f"atlas: {GOALS['force_N']:g} N, {GOALS['pos_mm']:g} mm, {GOALS['ang_deg']:g}°, "
+            f"{GOALS['near_urethra_mm']:g} mm)")
+
+
+def check_draft(model, config: EstimatorConfig, atlas, *, n: int = DRAFT_LOADS, seed: int = 0, client=None) -> dict:
+    """A draft atlas's held-out error: :func:`check_held_out` at ``n`` seeded loads over its
+    envelope, each full solve started from the atlas's field (``from_atlas``); returns what its
+    file keeps (``provenance["held_out"]``: loads, worst and 90th percentile per column and target)."""
+    c = atlas.config
+    further = (np.array(c.further_min_kPa) * 1e3, np.array(c.further_max_kPa) * 1e3)
+    L = held_out_loads(np.r_[c.lower, further[0]], np.r_[c.upper, further[1]], n, seed)
+    res = check_held_out(model, config, atlas, L, seed=seed, client=client, from_atlas=True)
+    return {"loads": int(len(res.loads)), "skipped": int(res.skipped), "failed": len(res.failed), "seed": int(seed),
+            "worst": {k: round(v, 5) for k, v in res.worst().items()},
+            "p90": {k: round(v, 5) for k, v in res.p90().items()}}

@@ -73,6 +73,11 @@ class AtlasConfig:
     coefficient arrays are 2n long along it (:attr:`coef_shape`); the default stretch counts the
     polynomial's 2n terms (docs/atlas.md).
 
+    ``draft``: a quick atlas (``softphantom atlas build --draft``, :func:`draft_atlas_config`'s
+    coarse grid), its held-out error measured after the build and kept in its file; the estimator
+    says "draft atlas" when it uses one, and ``--require-full`` refuses it. Part of the key, so a
+    draft and a full atlas of the same grid are two files.
+
     A design of M ≥ 2 actuated internal cavities gets a *stack*: the atlas stays 4-D in (f, p_1)
     (p_1 the first actuated cavity's pressure) and ``further_min_kPa`` / ``further_max_kPa`` (M − 1,)
     give the ranges of p_2 … p_M, each sampled at ``n_further`` (1..9, or one per cavity)
@@ -116,6 +121,7 @@ class AtlasConfig:
     further_max_kPa: tuple[float, ...] = ()
     n_further: int | tuple[int, ...] = 3
     held_kPa: tuple[float, ...] = ()
+    draft: bool = False
 
     def __post_init__(self) -> None:
         lo = tuple(float(v) for v in self.force_min_N)
@@ -278,6 +284,8 @@ class AtlasConfig:
             del d["further_min_kPa"], d["further_max_kPa"], d["n_further"]
         if not self.held_kPa:
             del d["held_kPa"]
+        if not self.draft:
+            del d["draft"]  # a full atlas keeps the key it had before the field
         return d
 
     def patches(self) -> tuple["AtlasConfig", ...]:
@@ -377,18 +385,37 @@ def default_atlas_config(order: int = 1) -> AtlasConfig:
     return AtlasConfig()
 
 
+# The draft atlas (``atlas build --draft``): the default envelope on a coarse grid in one piece, the
+# quadratic model's on its displacement axis with Hermite f_z (docs/atlas.md, "A draft atlas").
+DRAFT_N_FORCE = (5, 4, 3)
+DRAFT_N_PRESSURE = 2
+
+
+def draft_atlas_config(order: int = 1) -> AtlasConfig:
+    """The draft atlas of a model of element ``order``: :func:`default_atlas_config`'s envelope and
+    first axis on :data:`DRAFT_N_FORCE` × :data:`DRAFT_N_PRESSURE` points, one piece, ``draft``.
+
+    >>> c = draft_atlas_config(2)
+    >>> c.shape, c.x_control, c.f_y_splits_N, c.hermite_axis, c.draft, c.n_solves
+    ((5, 4, 3, 2), 'displacement', (), 2, True, 120)
+    """
+    return replace(default_atlas_config(order), n_force=DRAFT_N_FORCE, n_pressure=DRAFT_N_PRESSURE,
+                   f_y_splits_N=(), draft=True)
+
+
 LOAD_SCALE_FILE = "load_scale.json"  # MODEL/atlas/: this model is another's with every modulus times a factor
 
 
-def model_atlas_config(order: int, model_dir=None) -> AtlasConfig:
+def model_atlas_config(order: int, model_dir=None, draft: bool = False) -> AtlasConfig:
     """The atlas a model gets when none is asked for: :func:`default_atlas_config` of its element
     order, over loads scaled by the factor its directory records (``MODEL/atlas/load_scale.json``,
     written by ``softphantom calibrate`` for a uniform stiffness scale, whose atlas is the
-    uncalibrated model's with the loads scaled: :meth:`~softphantom.estimation.atlas.map.Atlas.scaled`)."""
+    uncalibrated model's with the loads scaled: :meth:`~softphantom.estimation.atlas.map.Atlas.scaled`).
+    ``draft``: :func:`draft_atlas_config` instead."""
     import json
     from pathlib import Path
 
-    acfg = default_atlas_config(order)
+    acfg = draft_atlas_config(order) if draft else default_atlas_config(order)
     if model_dir is None:
         return acfg
     f = Path(model_dir) / "atlas" / LOAD_SCALE_FILE

@@ -58,7 +58,7 @@ class AtlasEstimator(EstimatorState):
     def __init__(self, model, config: EstimatorConfig | None = None,
                  atlas: Found | Atlas | AtlasPatches | AtlasStack | AtlasConfig | None = None,
                  *, cache_dir=None, scheduler: str | None = None, n_workers: int | None = None,
-                 max_build_s: float | None = None) -> None:
+                 max_build_s: float | None = None, require_full: bool = False) -> None:
         self.config = cfg = config or EstimatorConfig()
         self.model = model
         self.cavity = check_atlas_cavities(model)
@@ -67,11 +67,15 @@ class AtlasEstimator(EstimatorState):
         self.arm_names = fwd.eq.arm_names
         self.cavities = fwd.pressure_names  # p_1 (the atlas's pressure axis), then a stack's further ones
         if not isinstance(atlas, (Found, Atlas, AtlasPatches, AtlasStack)):
-            atlas = find_or_build(model, cfg, atlas, model_dir=cache_dir, scheduler=scheduler,
-                                  n_workers=n_workers, fwd=fwd, max_build_s=max_build_s)
+            atlas = find_or_build(model, cfg, atlas, model_dir=cache_dir, scheduler=scheduler, n_workers=n_workers,
+                                  fwd=fwd, max_build_s=max_build_s, require_full=require_full)
         found = atlas if isinstance(atlas, Found) else None
         self.origin = found.describe() if found is not None else "atlas: given"  # where it came from
         atlas = found.atlas if found is not None else atlas
+        if require_full and atlas.draft:
+            from softphantom.estimation.atlas.build import DraftRefused
+
+            raise DraftRefused("--require-full, but the atlas given is a draft (atlas build --draft)")
         stack = atlas if isinstance(atlas, AtlasStack) else None
         n_p = 1 + (len(stack.config.further_min_kPa) if stack is not None else 0)
         if n_p != len(self.cavities):

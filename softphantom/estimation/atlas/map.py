@@ -124,6 +124,12 @@ class Atlas:
             c["cV"], c["cP"], c["cF"], c["cFx"]))
 
     @property
+    def draft(self) -> bool:
+        """Whether this is a draft atlas (``AtlasConfig.draft``: a coarse grid, its held-out error
+        in ``provenance["held_out"]``)."""
+        return bool(self.config.draft)
+
+    @property
     def unsolved(self) -> int:
         """Grid points whose forward solve did not converge (filled by extrapolation)."""
         return int(self.solved.size - np.count_nonzero(self.solved))
@@ -287,6 +293,11 @@ class AtlasPatches:
 
     def piece(self, lam) -> Atlas:
         return self.patches[self.index(lam[1])]
+
+    @property
+    def draft(self) -> bool:
+        """Whether this is a draft atlas (``AtlasConfig.draft``)."""
+        return bool(self.config.draft)
 
     @property
     def key(self) -> tuple[str, ...]:
@@ -485,6 +496,11 @@ class AtlasStack:
     def piece(self, lam):
         """The (mixed) piece at λ (3 + M,)."""
         return self.piece_at(self.index(lam[1]), lam[4:])
+
+    @property
+    def draft(self) -> bool:
+        """Whether this is a draft atlas (``AtlasConfig.draft``)."""
+        return bool(self.config.draft)
 
     @property
     def key(self) -> tuple[str, ...]:

@@ -8,15 +8,20 @@ settings loads the kept results and runs only the rest: at most the tasks in fli
 build started with other settings while an interrupted one waits is refused, naming the setting
 (:func:`check_partials`), unless the user discards it.
 
-The estimated time left (:class:`Eta`) is the predicted CPU time of the tasks left over the CPU
-this run gets through per second of wall time: each task's cost is its grid points times the CPU
-per point of its kind (measured on the finished tasks of that kind; before the first of a kind
-finishes, the measured rate scaled by :data:`PRIOR_COST`), so a loaded machine or a larger cluster
-shows in the estimate at once.
+The estimated time left (:class:`Eta`) is the wall time of the tasks left scheduled on this run's
+workers (:func:`schedule_s`: each free worker takes the ready task of highest priority, as Dask
+does): each task's time is its predicted cost (``Task.cost``, the cost model of
+:func:`~softphantom.estimation.atlas.build.estimated_build`) times the wall seconds per unit of
+predicted cost measured on the finished tasks of its kind (before the first of a kind finishes,
+on all finished tasks). So a loaded machine or a larger cluster shows in the estimate at once,
+and so does the graph's tail: the last tasks of a fine graph run on fewer workers than there are.
+The priorities are each task's bottom level (:func:`bottom_levels`: the longest chain of
+predicted costs from it to the end), so the long chains start first.
 """
 
 from __future__ import annotations
 
+import heapq
 import json
 import logging
 import os
@@ -37,11 +42,6 @@ log = logging.getLogger(__name__)
 
 PARTIAL = "partial"  # MODEL/atlas/partial/<key>/: an unfinished build's kept tasks
 MAGIC = b"softphantom-atlas-task-1\n"
-# CPU per grid point of each kind of task (its last word) relative to a plane of force-controlled
-# solves, before one of that kind has finished: on the quadratic BIP model (28 329 nodes) a line
-# point (one mixed-control solve from its neighbour on the line) took 3.6 CPU-s where a face plane's
-# point took 7.1-9.4
-PRIOR_COST = {"plane": 1.0, "lines": 0.5}
 
 
 _PLAIN = (int, float, complex, str, bytes, bool, type(None), tuple, list, dict, set, frozenset)
@@ -50,8 +50,8 @@ _PLAIN = (int, float, complex, str, bytes, bool, type(None), tuple, list, dict, 
 @dataclass(frozen=True)
 class Task:
     """One task of a build: ``fn(*args(results))`` on a worker, where ``results`` maps the names in
-    ``deps`` to their values; ``points`` the grid points it solves and ``kind`` its cost class (the
-    ETA), ``priority`` Dask's (higher first)."""
+    ``deps`` to their values; ``points`` the grid points it solves, ``cost`` its predicted CPU-s and
+    ``kind`` its cost class (the ETA), ``priority`` Dask's (higher first)."""
 
     name: str
     fn: Callable[..., Any]
@@ -60,6 +60,12 @@ class Task:
     points: int = 1
     kind: str = "plane"
     priority: int = 0
+    cost: float = 0.0  # predicted CPU-s (0: unknown, ``points`` stands in)
+
+    @property
+    def weight(self) -> float:
+        """The predicted cost, in CPU-s where the cost model gave one (``cost``), else the points."""
+        return float(self.cost) if self.cost > 0 else float(self.points)
 
 
 class TaskStore:
@@ -175,62 +181,152 @@ def _clock(seconds: float) -> str:
     return f"{s // 3600}:{s // 60 % 60:02d}:{s % 60:02d}"
 
 
+def bottom_levels(tasks: list[Task], seconds: dict[str, float]) -> dict[str, float]:
+    """Each task's bottom level: the longest chain of ``seconds`` from it (included) to the end of
+    the graph — the priority that starts the long chains first.
+
+    >>> t = [Task("a", None, None), Task("b", None, None, deps=("a",)), Task("c", None, None)]
+    >>> bottom_levels(t, {"a": 1.0, "b": 5.0, "c": 2.0})
+    {'a': 6.0, 'b': 5.0, 'c': 2.0}
+    """
+    after: dict[str, list[str]] = {t.name: [] for t in tasks}
+    for t in tasks:
+        for d in t.deps:
+            after[d].append(t.name)
+    memo: dict[str, float] = {}
+
+    def level(n: str) -> float:
+        if n not in memo:
+            memo[n] = seconds.get(n, 0.0) + max((level(c) for c in after[n]), default=0.0)
+        return memo[n]
+
+    return {t.name: level(t.name) for t in tasks}
+
+
+def schedule_s(tasks: list[Task], seconds: dict[str, float], workers: int, done=(),
+               running: dict[str, float] | None = None, queued: dict[str, float] | None = None) -> float:
+    """The wall time to run the tasks not in ``done`` on ``workers`` workers, task n taking
+    ``seconds[n]``: whenever a worker is free it takes the ready task of highest priority (as
+    :func:`run_graph` submits them and Dask runs them); ``running`` (name → seconds still to go)
+    occupy a worker each from the start; among tasks of equal priority the one ready first goes
+    first (``queued``: name → when it was submitted, ≤ 0, for those already waiting).
+
+    >>> t = [Task("a", None, None, priority=2), Task("b", None, None, priority=1),
+    ...      Task("c", None, None, deps=("a",))]
+    >>> schedule_s(t, {"a": 2.0, "b": 3.0, "c": 2.0}, 2), schedule_s(t, {"a": 2.0, "b": 3.0, "c": 2.0}, 1)
+    (4.0, 7.0)
+    >>> schedule_s(t, {"a": 2.0, "b": 3.0, "c": 2.0}, 2, done={"a"}, running={"b": 1.0})
+    2.0
+    """
+    running = dict(running or {})
+    finished = set(done)
+    index = {t.name: i for i, t in enumerate(tasks)}
+    since = dict(queued or {})  # when each ready task became ready
+    left = {t.name: t for t in tasks if t.name not in finished and t.name not in running}
+    events = [(float(s), n) for n, s in running.items()]
+    heapq.heapify(events)
+    free = max(1, int(workers)) - len(events)
+    now = 0.0
+    while True:
+        ready = [n for n, t in left.items() if all(d in finished for d in t.deps)]
+        for n in ready:
+            since.setdefault(n, now)
+        ready.sort(key=lambda n: (-left[n].priority, since[n], index[n]))
+        for n in ready[:max(free, 0)]:
+            heapq.heappush(events, (now + float(seconds.get(n, 0.0)), n))
+            del left[n]
+            free -= 1
+        if not events:
+            return now
+        now, n = heapq.heappop(events)
+        finished.add(n)
+        free += 1
+
+
 @dataclass
 class Eta:
-    """The time left of a build: predicted CPU of the tasks left over this run's CPU per wall second.
+    """The time left of a build: the tasks left scheduled on ``workers`` (:func:`schedule_s`), each
+    task's wall time its predicted cost times the wall seconds per unit of cost measured on the
+    finished tasks of its kind (before one of its kind finished: of its kind of point in another
+    piece, then of all kinds).
 
-    >>> e = Eta({"a": (10, "piece 0 plane"), "b": (10, "piece 0 plane"), "c": (20, "piece 0 lines")},
-    ...         prior={"plane": 1.0, "lines": 2.0})
+    >>> t = [Task("a", None, None, points=10, kind="plane"), Task("b", None, None, points=10, kind="plane"),
+    ...      Task("c", None, None, points=20, kind="lines", deps=("a", "b"))]
+    >>> e = Eta(t, workers=1)
     >>> e.start(0.0)
-    >>> e.finished("a", cpu_s=100.0, now=50.0)  # 10 points at 10 CPU-s each, 2 CPU-s per wall second
-    >>> round(e.seconds_left(50.0))  # b: 100 CPU-s, c: 20 points at twice the rate: 400 CPU-s
+    >>> e.started("a", 0.0)
+    >>> e.finished("a", cpu_s=90.0, wall_s=100.0, now=100.0)  # 10 wall-s a point
+    >>> e.started("b", 100.0)
+    >>> round(e.seconds_left(100.0))  # b: 100 s, then c: 20 points at the same rate
+    300
+    >>> round(e.seconds_left(150.0))  # b half done
     250
     """
 
-    tasks: dict[str, tuple[int, str]]  # name -> (points, kind)
-    prior: dict[str, float] = field(default_factory=lambda: dict(PRIOR_COST))
-    done: dict[str, float] = field(default_factory=dict)  # name -> CPU-s
+    task_list: list[Task]
+    workers: int = 1
+    done: dict[str, float] = field(default_factory=dict)  # name -> wall-s
+    begun: dict[str, float] = field(default_factory=dict)  # name -> when it started running (a worker's)
+    queued: dict[str, float] = field(default_factory=dict)  # name -> when it was submitted (waiting for a worker)
     run_cpu_s: float = 0.0
     t0: float | None = None
+
+    def __post_init__(self) -> None:
+        self.by = {t.name: t for t in self.task_list}
 
     def start(self, now: float) -> None:
         self.t0 = now
 
-    def kept(self, name: str, cpu_s: float) -> None:
-        """A task loaded from an interrupted run: its cost counts for the rates, not for this run's speed."""
-        self.done[name] = cpu_s
+    def kept(self, name: str, wall_s: float) -> None:
+        """A task loaded from an interrupted run: its wall time counts for the rates."""
+        self.done[name] = wall_s
 
-    def finished(self, name: str, cpu_s: float, now: float) -> None:
-        self.done[name] = cpu_s
+    def started(self, name: str, now: float) -> None:
+        """Task ``name`` submitted at ``now``: it runs from then if a worker is free, else from when
+        one frees (the queued task of highest priority first, as Dask runs them)."""
+        self.queued[name] = now
+        self._fill(now)
+
+    def finished(self, name: str, cpu_s: float, wall_s: float, now: float) -> None:
+        self.done[name] = wall_s
+        self.begun.pop(name, None)
+        self.queued.pop(name, None)
         self.run_cpu_s += cpu_s
+        self._fill(now)
+
+    def _fill(self, now: float) -> None:
+        for n in sorted(self.queued, key=lambda n: (-self.by[n].priority, self.queued[n])):
+            if len(self.begun) >= max(1, self.workers):
+                break
+            self.begun[n] = now
+            del self.queued[n]
 
     def _rate(self, kind: str) -> float | None:
-        pts = sum(self.tasks[n][0] for n in self.done if self.tasks[n][1] == kind)
-        if pts:
-            return sum(c for n, c in self.done.items() if self.tasks[n][1] == kind) / pts
-        weighted = sum(self.tasks[n][0] * self._prior(self.tasks[n][1]) for n in self.done)
-        if not weighted:
-            return None
-        return sum(self.done.values()) / weighted * self._prior(kind)
-
-    def _prior(self, kind: str) -> float:
-        return self.prior.get(kind, self.prior.get(kind.split()[-1] if kind else kind, 1.0))
-
-    def cpu_left(self) -> float | None:
-        left = 0.0
-        for n, (pts, kind) in self.tasks.items():
-            if n not in self.done:
-                r = self._rate(kind)
-                if r is None:
-                    return None
-                left += pts * r
-        return left
+        """Wall seconds per unit of predicted cost of the tasks of ``kind``; before one ended, of the
+        tasks of its last word (the same kind of point in another piece), then of all."""
+        mine = [n for n in self.done if self.by[n].kind == kind]
+        word = [n for n in self.done if self.by[n].kind.split()[-1:] == kind.split()[-1:]]
+        for names in (mine, word, list(self.done)):
+            w = sum(self.by[n].weight for n in names)
+            if w > 0:
+                return sum(self.done[n] for n in names) / w
+        return None
 
     def seconds_left(self, now: float) -> float | None:
-        cpu = self.cpu_left()
-        if cpu is None or self.t0 is None or self.run_cpu_s <= 0 or now <= self.t0:
+        if self.t0 is None or not self.done:
             return None
-        return cpu / (self.run_cpu_s / (now - self.t0))
+        seconds = {}
+        for n, t in self.by.items():
+            if n not in self.done:
+                r = self._rate(t.kind)
+                if r is None:
+                    return None
+                seconds[n] = t.weight * r
+        # a running task's time still to go; one past its prediction: a twentieth of it more
+        running = {n: seconds[n] - (now - t) if seconds[n] > now - t else 0.05 * seconds[n]
+                   for n, t in self.begun.items()}
+        return schedule_s(self.task_list, seconds, self.workers, set(self.done), running,
+                          {n: t - now for n, t in self.queued.items()})
 
     def text(self, now: float) -> str:
         s = self.seconds_left(now)
@@ -287,13 +383,13 @@ def run_graph(client, tasks: list[Task], store_of: Callable[[str], TaskStore | N
     cpu: dict[str, float] = {}
     wall: dict[str, float] = {}
     kept = []
-    eta = Eta({t.name: (t.points, t.kind) for t in tasks})
+    eta = Eta(tasks, workers=max(1, sum(client.nthreads().values())))
     for t in tasks:
         store = store_of(t.name)
         rec = store.load(t.name) if store is not None else None
         if rec is not None:
             values[t.name], cpu[t.name], wall[t.name] = rec
-            eta.kept(t.name, cpu[t.name])
+            eta.kept(t.name, wall[t.name])
             kept.append(t.name)
     if kept:
         log.info(f"{label}: resuming, {len(kept)} of {len(tasks)} tasks kept from an interrupted build")
@@ -319,6 +415,7 @@ def run_graph(client, tasks: list[Task], store_of: Callable[[str], TaskStore | N
                 continue
             fut = client.submit(_timed, t.fn, *map(ship, t.args(values)), pure=False, priority=t.priority)
             pending[fut] = t.name
+            eta.started(t.name, time.perf_counter())
             ac.add(fut)
 
     submit_ready()
@@ -335,7 +432,7 @@ def run_graph(client, tasks: list[Task], store_of: Callable[[str], TaskStore | N
             store.save(name, value, c, w)
         values[name], cpu[name], wall[name] = value, c, w
         now = time.perf_counter()
-        eta.finished(name, c, now)
+        eta.finished(name, c, w, now)
         report(log, label, len(values), total, eta.text(now))
         submit_ready()
     return GraphRun(values, cpu, wall, tuple(kept))
