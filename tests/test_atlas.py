@@ -436,7 +436,8 @@ def test_cli_estimate_atlas_option(coarse_model, atlas, tmp_path, capsys):
     assert main(["estimate", "--model", str(d), "--source", f"replay:{big}", "--out", str(tmp_path / "big_est.csv"),
                  *args[7:]]) == 0
     flags = read_table(tmp_path / "big_est.csv").columns["in_envelope"]
-    out_lines = [ln for ln in capsys.readouterr().out.splitlines() if "warning" in ln]
+    # (a hand-made recording without its tube: the lag compensation's own warning says it is off)
+    out_lines = [ln for ln in capsys.readouterr().out.splitlines() if "warning" in ln and "lag compensation" not in ln]
     k = int(np.sum(flags == 0))
     assert 0 < k < 12 and len(out_lines) == 1
     assert f"{k} of 12 estimates ({k / 12:.0%})" in out_lines[0] and "--envelope" in out_lines[0]

@@ -69,7 +69,8 @@ def test_demo_end_to_end_coarse(tmp_path, capsys, coarse_model_dir):
     # the tight ones are in test_virtual_e2e.py)
     assert row["peak_truth"]["y"] > 2.0 and row["rmse"]["y"] < 0.2 * row["peak_truth"]["y"]
     assert row["force_rmse_N"]["|force|"] < 0.5
-    assert 30.0 < row["lag_ms"] < 300.0
+    # the 12 m tubes delay the transducers ~100 ms; the estimator compensates it (a lag of a few ms left)
+    assert abs(row["lag_ms"]) < 30.0
     c = row["tracker_clock_offset_ms"]
     assert abs(c["recovered"] - c["injected"]) < 5.0
     assert {r["dof"] for r in row["table_i"]} == {"yaw", "pitch", "x", "y", "z"}

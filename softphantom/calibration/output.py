@@ -63,7 +63,7 @@ def calibrated_model(cal: Calibration):
     s0 = cal.sessions[0]
     sensors = SensorParams(tuple(float(g0 * p[f"gain_{a}"]) for g0, a in zip(s0.recorded_gains, model.design.sensing_names)),
                            float(s0.recorded_tube_factor * p["tube_volume_factor"]),
-                           tuple(cal.meta.get("tube_tau", {}).get("tau_ms", ())))
+                           tuple(getattr(cal, "meta", {}).get("tube_tau", {}).get("tau_ms", ())))
     return dataclasses.replace(model, design=dataclasses.replace(design, sensors=sensors))
 
 

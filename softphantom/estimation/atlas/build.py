@@ -29,24 +29,19 @@ import numpy as np
 
 from softphantom.errors import SolverError, UserError
 from softphantom.estimation.atlas.basis import axis_t, to_chebyshev
-from softphantom.estimation.atlas.config import (FALLBACK_MIN_LOAD_STEP, VIA_TOL, AtlasConfig, default_atlas_config,
-                                                x_patch)
-from softphantom.estimation.atlas.map import Atlas, AtlasPatches, AtlasStack
+from softphantom.estimation.atlas.config import (FALLBACK_MIN_LOAD_STEP, FIELD_MAX_MODES, FIELD_RTOL,  # noqa: F401
+                                                NODE_TOL, VIA_TOL, AtlasConfig, default_atlas_config, x_patch)
+from softphantom.estimation.atlas.identity import piece_keys, rest_record
+from softphantom.estimation.atlas.map import Atlas, AtlasPatches, regroup
 from softphantom.estimation.atlas.tasks import (GraphRun, Task, TaskStore, bottom_levels, critical_path_s, partial_dir,
                                                 run_graph, schedule_s)
 from softphantom.estimation.config import EstimatorConfig
 from softphantom.estimation.forward import ForwardModel, internal_cavities_of
 from softphantom.estimation.linearization import PatchControl
 
-FIELD_MAX_MODES = 64
-# a displacement-controlled point is kept where it lands within this fraction of the distance to the
-# next node along q (the fit takes each line's own nodes, to_chebyshev): a new solve costs more
-# than the slightly moved node
-NODE_TOL = 0.1
 UX_MAX_ITER = 30
 BORDERED_HALVINGS = 2  # a mixed-control step that fails is split in two, and each half again
 BORDERED_TOL = 1e-3  # a mixed-control solve hits the patch displacement this close (of NODE_TOL's): on the node
-FIELD_RTOL = 1e-5  # POD truncation: dropped displacement energy below this fraction (≈ 3e-3 relative RMS)
 
 log = logging.getLogger(__name__)
 
@@ -1081,8 +1076,6 @@ def build_atlas(model, config: EstimatorConfig | None = None, atlas: AtlasConfig
     which = tuple(range(len(subs))) if pieces is None else tuple(pieces)
     t0 = time.perf_counter()
     if keys is None:
-        from softphantom.estimation.atlas.catalogue import piece_keys
-
         keys = piece_keys(model, cfg, acfg)
     keys = {p: keys[p] for p in which}
     if acfg.offline == "rom":  # the grid by a reduced model (softphantom.estimation.offline), piece by piece
@@ -1126,16 +1119,12 @@ def build_atlas(model, config: EstimatorConfig | None = None, atlas: AtlasConfig
                                      # each task's CPU-s and wall-s: the graph's behaviour on other clusters
                                      "task_s": {n: [round(run.cpu_s[n], 2), round(run.wall_s[n], 2)]
                                                 for n in sorted(run.wall_s)}}
-    from softphantom.estimation.atlas.catalogue import rest_record
-
     for a in built:  # what verify_atlas recomputes from the model to catch a stale atlas
         a.provenance["rest"] = rest_record(a, model, fwd)
     if len(subs) == 1:
         return built[0]
     if pieces is None:
-        from softphantom.estimation.atlas.catalogue import _regroup
-
-        return _regroup(acfg, dict(enumerate(built)))
+        return regroup(acfg, dict(enumerate(built)))
     return built  # type: ignore[return-value] - the pieces asked for, for find_or_build
 
 

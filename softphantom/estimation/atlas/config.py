@@ -428,6 +428,13 @@ def model_atlas_config(order: int, model_dir=None, draft: bool = False) -> Atlas
     return acfg.scaled(s)
 
 
+FIELD_MAX_MODES = 64  # the displacement field's POD modes at most
+FIELD_RTOL = 1e-5  # POD truncation: dropped displacement energy below this fraction (≈ 3e-3 relative RMS)
+# a displacement-controlled point is kept where it lands within this fraction of the distance to the
+# next node along q (the fit takes each line's own nodes, to_chebyshev): a new solve costs more
+# than the slightly moved node
+NODE_TOL = 0.1
+
 # how the build's solves are driven (the full build and the reduced model's snapshots and checks)
 FALLBACK_MIN_LOAD_STEP = 1.0 / 32
 VIA_TOL = 1e-3  # relative residual of the continuation steps between grid points (they only start the next)

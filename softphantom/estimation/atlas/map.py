@@ -569,3 +569,15 @@ class AtlasStack:
         p = np.asarray(p_Pa, float)
         k = self.index(np.asarray(force, float)[1])
         return np.r_[self.piece_at(k, p[1:]).coords(force, float(p[0]), tol_N), p[1:]]
+
+
+def regroup(acfg: AtlasConfig, found: dict):
+    """The atlas of ``acfg`` from its pieces (``found``: index in ``acfg.pieces()`` → Atlas): an
+    Atlas, an AtlasPatches, or a stack of either (:class:`AtlasStack`)."""
+    levels, j = [], 0
+    for lv in acfg.levels():
+        n = len(lv.patches())
+        got = [found[j + p] for p in range(n)]
+        j += n
+        levels.append(got[0] if n == 1 else AtlasPatches(lv, tuple(got)))
+    return AtlasStack(acfg, tuple(levels)) if acfg.stacked else levels[0]
