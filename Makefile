@@ -5,7 +5,7 @@ BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 OUT    ?= out
 
-.PHONY: demo test docs setup system bench clean vendor-live
+.PHONY: demo test docs setup system bench bench-quick clean vendor-live
 
 setup: $(STAMP)
 
@@ -29,7 +29,12 @@ test: $(STAMP) docs
 docs: $(STAMP)
 	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict --quiet
 
-bench: $(STAMP)
+# the accuracy studies' bounds at the sizes they were measured at (a few minutes; `make bench` starts with them)
+bench-quick: $(STAMP)
+	for b in benchmarks/bench_interpolants.py benchmarks/bench_shipped_atlas.py; do \
+		echo "== $$b --quick"; $(BIN)/python $$b --quick || exit 1; done
+
+bench: bench-quick
 	$(BIN)/python -m pip install -q --disable-pip-version-check -e '.[pardiso]'
 	for b in benchmarks/bench_*.py; do echo "== $$b"; $(BIN)/python $$b || exit 1; done
 	$(BIN)/python benchmarks/render_docs.py

@@ -1,6 +1,7 @@
-"""The Hermite atlas axis (``AtlasConfig.hermite_axis``): the confluent Chebyshev fit, the exact
-derivative every grid solve gives along that axis, and the atlas it makes against converged forward
-solves at held-out loads, beside Lagrange atlases of as many points and of about twice as many."""
+"""The Hermite atlas axis (``AtlasConfig.hermite_axis``): the confluent Chebyshev fit (exact on
+polynomials of degree 2n − 1) and the exact derivative every grid solve gives along that axis. The
+atlas it makes against converged forward solves at held-out loads, beside its Lagrange twin, is
+``benchmarks/bench_interpolants.py``'s (``make bench`` runs its ``--quick`` checks)."""
 
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ import pytest
 
 from softphantom.errors import UserError
 from softphantom.estimation import AtlasConfig, EstimatorConfig, ForwardModel, build_atlas
-from softphantom.estimation.atlas.basis import axis_t, cheb_basis, lobatto, to_chebyshev
+from softphantom.estimation.atlas.basis import cheb_basis, lobatto, to_chebyshev
 from softphantom.estimation.atlas.map import Atlas
 from softphantom.estimation.atlas.store import describe
 
@@ -96,6 +97,18 @@ def fwd(coarse_model):
     return ForwardModel(coarse_model, CFG)
 
 
+def _bench():
+    """benchmarks/bench_interpolants.py as a module."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).parents[1] / "benchmarks" / "bench_interpolants.py"
+    spec = importlib.util.spec_from_file_location("bench_interpolants", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
 def _build(model, cfg, **kw):
     return build_atlas(model, CFG, cfg, n_workers=1, processes=False, **kw)
 
@@ -107,29 +120,9 @@ def h3(coarse_model):
 
 
 def _lagrange_twin(at):
-    """The Lagrange atlas of the grid solves that made the Hermite atlas ``at``, without solving
-    them again: ``at``'s values at its grid points (where the Hermite fit is exact: its solves'
-    volumes, points, f_x and field coefficients) fitted as build_atlas fits a grid without
-    hermite_axis (on a displacement axis each line through its own points); the POD modes are
-    ``at``'s (a build of its own would take them from the values alone)."""
-    cfg = dataclasses.replace(at.config, hermite_axis=None)
-    assert cfg.cluster_N == at.config.cluster_N  # the grid and its stretch are the Lagrange atlas's
-    ax, shape = cfg.axes(), cfg.shape
-    grid = np.stack(np.meshgrid(*ax, indexing="ij"), axis=-1)
-    grid[..., 0] = at.q_nodes
-    lams = grid.reshape(-1, 4)
-    tq = np.vectorize(axis_t)(at.q_nodes, ax[0][0], ax[0][-1], cfg.stretch[0])[0]
-
-    def fit(rows):
-        return to_chebyshev(np.array(rows).reshape(*shape, -1), shape, tq)
-
-    disp = cfg.x_control == "displacement"
-    return Atlas(key="", config=cfg, cV=fit([at.volumes(lam)[0] for lam in lams]),
-                 cP=fit([at.points(lam).ravel() for lam in lams]).reshape(*shape, -1, 3),
-                 cF=fit([at.modes.T @ (at.nodes(lam).ravel() - at.x_rest) for lam in lams]),
-                 cFx=fit([at.forces(lam)[:1] for lam in lams]) if disp else None, q_nodes=at.q_nodes,
-                 modes=at.modes, x_rest=at.x_rest, build_s=0.0, solves=at.solves, field_rms_m=at.field_rms_m,
-                 solved=at.solved)
+    """The Lagrange atlas of the grid solves that made the Hermite atlas ``at`` (the benchmark's, which
+    compares the two at held-out solves)."""
+    return _bench().lagrange_twin(at)
 
 
 @pytest.mark.slow
@@ -236,54 +229,3 @@ def test_a_displacement_atlas_derivative_along_another_load_is_at_fixed_q(coarse
     step = np.eye(4)[axis] * eps
     dfx_atlas = (at.forces(lam + step)[0] - at.forces(lam - step)[0]) / (2 * eps)
     assert abs(dfx_atlas - dfx) <= 1e-3 * abs(dfx), (dfx_atlas, dfx)
-
-
-@pytest.mark.slow
-def test_a_hermite_axis_beats_its_lagrange_twin_at_held_out_solves(coarse_model, fwd, h3):
-    # held-out loads off the grid along f_y, on grid points of the other axes (where every fit is
-    # exact): the error is the f_y interpolation's, against converged solves. That n Hermite points
-    # match 2n − 1 Lagrange ones is exact on polynomials (the first test) and measured on the
-    # default model's envelope by bench_estimate.py (docs/atlas.md: 6 Hermite points along f_x
-    # as good as the default's 11)
-    rng = np.random.default_rng(11)
-    ax = BASE.axes()
-    held = [fwd.solve(np.array([ax[0][rng.integers(3)], f_y, ax[2][rng.integers(3)], ax[3][rng.integers(2)]]))
-            for f_y in rng.uniform(-0.2, 2.9, 6)]
-
-    def errors(at):
-        return np.array([max(np.abs(at.volumes(h.lam)[0] - h.V).max() for h in held),
-                         max(np.abs(at.points(h.lam) - h.sub_x).max() for h in held),
-                         max(np.abs(at.nodes(h.lam) - h.x.reshape(-1, 3)).max() for h in held)])
-
-    h3, l3 = errors(h3), errors(_lagrange_twin(h3))
-    # measured (H3 / L3; a 5-point Lagrange build, 90 solves, gave L5): volumes 0.0009 / 0.067 mm³
-    # (L5 0.0007), points 0.0007 / 0.054 mm (0.0005); the field 0.025 / 0.058 mm (0.023), where the
-    # POD truncation (FIELD_RTOL) bounds all three (L3 is H3's Lagrange twin: its volumes and points
-    # are a separate L3 build's to 1e-15, its field to 0.0001 mm)
-    assert np.all(h3[:2] <= 0.05 * l3[:2]), (h3, l3)
-    assert h3[2] <= 0.5 * l3[2], (h3, l3)
-
-
-@pytest.mark.slow
-def test_a_hermite_displacement_axis_beats_its_lagrange_twin(coarse_model, fwd):
-    # along the patch displacement q over ±1.5 N of f_x (the arm pair's step at f_x = 0 inside),
-    # held-out f_x on grid points of the other axes, through the atlas's own coords(force)
-    base = dataclasses.replace(BASE, force_min_N=(-1.5, -0.3, -0.3), force_max_N=(1.5, 1.5, 0.3),
-                               x_control="displacement")
-    rng = np.random.default_rng(7)
-    ax = base.axes()
-    held = [fwd.solve(np.array([f_x, ax[1][rng.integers(3)], ax[2][rng.integers(3)], ax[3][rng.integers(2)]]))
-            for f_x in rng.uniform(-1.4, 1.4, 6)]
-
-    def errors(at):
-        lams = [at.coords(h.lam[:3], h.lam[3]) for h in held]
-        assert all(np.allclose(at.forces(lam), h.lam[:3], atol=1e-9) for lam, h in zip(lams, held))
-        return np.array([max(np.abs(at.volumes(lam)[0] - h.V).max() for lam, h in zip(lams, held)),
-                         max(np.abs(at.points(lam) - h.sub_x).max() for lam, h in zip(lams, held))])
-
-    at = _build(coarse_model, dataclasses.replace(base, hermite_axis=0))
-    h3, l3 = errors(at), errors(_lagrange_twin(at))
-    # measured: volumes 0.011 / 0.20 mm³, points 0.007 / 0.31 mm (H3 / L3, H3's Lagrange twin: a
-    # separate L3 build's to 1e-15); a 5-point Lagrange build (90 more solves) gave 0.018 mm³ and
-    # 0.026 mm, also above H3's
-    assert np.all(h3 <= 0.1 * l3), (h3, l3)

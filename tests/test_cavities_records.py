@@ -41,9 +41,10 @@ def _write_scenario(path, d: dict):
     return path
 
 
-def _run_estimate_evaluate(tmp_path, model, scenario: dict):
-    """``virtual run`` → ``estimate --estimator refresh`` from its recording → ``evaluate``: the
-    run directory, the estimate file and the evaluation."""
+def _run_estimate_evaluate(tmp_path, capsys, model, scenario: dict, board: str):
+    """``virtual run`` (its summary on screen and its files checked) → ``estimate --estimator
+    refresh`` from its recording → ``evaluate``: the run directory, the estimate file and the evaluation.
+    ``board``: the board's OSR and frame rate as printed (6 channels a frame at OSR 200: 8.0 Hz, 4: 12.0 Hz)."""
     from softphantom.cli import main
     from softphantom.design import save_model
     from softphantom.evaluation import evaluate, read_estimate, read_truth
@@ -53,6 +54,13 @@ def _run_estimate_evaluate(tmp_path, model, scenario: dict):
     run = tmp_path / "run"
     assert main(["virtual", "run", "--scenario", str(sc), "--model", str(tmp_path / "model"), "--out", str(run),
                  "--truth-order", "1", "--truth-mesh-scale", "1", "--osr", "200"]) == 0
+    # its summary on screen and in virtual.json, and the recording's JSON header line
+    text = capsys.readouterr().out
+    assert "truth:" in text and f"board: {board}," in text and "tracker: 120 Hz" in text
+    meta = json.loads((run / "virtual.json").read_text())
+    assert meta["board"]["osr"] == 200 and meta["truth"]["events"][0]["force_N"] == scenario["push"][0]["force_N"]
+    assert meta["truth"]["truth_mesh"]["element_order"] == 1 and "P1" in text
+    assert (run / "recording.csv").read_text().startswith("# {")
     est = tmp_path / "estimate.csv"
     assert main(["estimate", "--model", str(tmp_path / "model"), "--source", f"replay:{run / 'recording.csv'}",
                  "--out", str(est), "--estimator", "refresh"]) == 0
@@ -68,7 +76,7 @@ def _header(path) -> tuple[dict, list[str]]:
 
 
 @pytest.mark.slow
-def test_two_cavities_end_to_end(tmp_path, models):
+def test_two_cavities_end_to_end(tmp_path, capsys, models):
     from softphantom.evaluation.files import read_table
     from softphantom.records.names import estimate_columns, measurement_columns
     from softphantom.sensing.chain import MPX4250D
@@ -76,7 +84,7 @@ def test_two_cavities_end_to_end(tmp_path, models):
 
     model = models["two"]
     arms = model.design.arm_names
-    run, est, ev = _run_estimate_evaluate(tmp_path, model, TWO)
+    run, est, ev = _run_estimate_evaluate(tmp_path, capsys, model, TWO, "OSR 200, 8.0 Hz")
     # the board: the four arms, then the urethra's and the tumour's transducers
     meta, cols = _header(run / "recording.csv")
     assert tuple(cols) == measurement_columns(arms, ("urethra", "tumour"))
@@ -133,13 +141,13 @@ def test_two_cavities_end_to_end(tmp_path, models):
 
 
 @pytest.mark.slow
-def test_no_internal_cavity_records_arms_only_and_estimates(tmp_path, models):
+def test_no_internal_cavity_records_arms_only_and_estimates(tmp_path, capsys, models):
     from softphantom.evaluation.files import read_table
     from softphantom.records.names import estimate_columns, measurement_columns
 
     model = models["none"]
     arms = model.design.arm_names
-    run, est, ev = _run_estimate_evaluate(tmp_path, model, PUSH_ONLY)
+    run, est, ev = _run_estimate_evaluate(tmp_path, capsys, model, PUSH_ONLY, "OSR 200, 12.0 Hz")
     meta, cols = _header(run / "recording.csv")
     assert tuple(cols) == measurement_columns(arms, ()) and not [c for c in cols if c.startswith("p_")]
     assert meta["bench"]["cavity_names"] == [] and meta["chain"]["transducers"] == ["MPXV7002"] * 4

@@ -1,5 +1,6 @@
 """`softphantom demo` on the coarse mesh with one short scenario: files, report, summary on screen;
-`softphantom virtual run` writes its files; bad options are one-line errors."""
+bad options are one-line errors. `softphantom virtual run`'s files and summary are
+test_cavities_records.py's (its end-to-end run starts with it)."""
 
 from __future__ import annotations
 
@@ -137,22 +138,6 @@ def test_demo_and_virtual_bad_options_are_one_line(tmp_path, capsys):
     assert not (tmp_path / "o").exists()
     assert main(["virtual", "serve", "--scenario", "needle-insertion", "--model", str(tmp_path), "--speed", "0"]) == 2
     assert "--speed" in capsys.readouterr().err
-
-
-@pytest.mark.slow
-def test_virtual_run_command(tmp_path, capsys, coarse_model_dir):
-    mdir = coarse_model_dir
-    sc = tmp_path / "short.toml"
-    sc.write_text(SHORT)
-    out = tmp_path / "run"
-    assert main(["virtual", "run", "--scenario", str(sc), "--model", str(mdir), "--out", str(out), "--osr", "100",
-                 "--truth-order", "1"]) == 0
-    text = capsys.readouterr().out
-    assert "truth:" in text and "board: OSR 100, 19.2 Hz" in text and "tracker: 120 Hz" in text
-    meta = json.loads((out / "virtual.json").read_text())
-    assert meta["board"]["osr"] == 100 and meta["truth"]["events"][0]["force_N"] == [0.3, 2.5, 0.2]
-    assert meta["truth"]["truth_mesh"]["element_order"] == 1 and "P1" in text
-    assert Path(out / "recording.csv").read_text().startswith("# {")
 
 
 def test_a_killed_demo_leaves_no_worker(tmp_path):

@@ -130,15 +130,14 @@ def snapshot_cache(tmp_path_factory) -> str:
     return str(tmp_path_factory.mktemp("rom") / "snapshots")
 
 
-@pytest.mark.parametrize("x_control", ["force", "displacement"])
-def test_atlas_built_by_the_reduced_model_agrees_with_the_full_one(coarse_model, shared_dir, x_control, monkeypatch,
-                                                                   tmp_path, snapshot_cache):
+def test_atlas_built_by_the_reduced_model_agrees_with_the_full_one(coarse_model, shared_dir, monkeypatch,
+                                                                   tmp_path, snapshot_cache, x_control="force"):
     """A small atlas, full and reduced: another key, the reduced one's provenance carries its
     checks, and the two polynomials agree at off-grid loads within twice the error the checks
     measured (so the recorded figure can be trusted) and within 1 % of the volumes' range
     (measured on this model, either axis: 0.0099 mm³ off-grid, checks 0.011 mm³, range 5.8 mm³).
-    The full atlas is test_atlas's (shared_models.cached_atlas); the two axes' reduced builds share
-    their snapshot solves (one envelope: ``offline.SNAPSHOT_CACHE``)."""
+    The full atlas is test_atlas's (shared_models.cached_atlas). The same on a displacement axis is
+    ``benchmarks/bench_interpolants.py``'s (``make bench`` runs its ``--quick`` checks)."""
     from dataclasses import replace
 
     from softphantom.estimation import build_atlas
