@@ -25,7 +25,7 @@ import time
 
 import numpy as np
 
-from softphantom.errors import SolverError
+from softphantom.errors import SolverError, UserError
 from softphantom.estimation.atlas.config import FALLBACK_MIN_LOAD_STEP, VIA_TOL, x_patch
 from softphantom.estimation.config import EstimatorConfig
 from softphantom.estimation.forward import ForwardModel
