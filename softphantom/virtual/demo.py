@@ -314,6 +314,7 @@ def run_scenario(sc, model, out: Path, cfg, truth, estimator: str = "atlas", gri
 
 def _atlas_row(atlas, est_path: Path) -> dict:
     """The summary's atlas entry: its envelope, grid, pieces and the share of estimates inside it."""
+    atlas = getattr(atlas, "atlas", atlas)  # the catalogue's Found: its atlas
     c = getattr(atlas, "config", atlas)  # a built atlas (or its pieces), or the config of one to build
     stack = {"further_min_kPa": c.further_min_kPa, "further_max_kPa": c.further_max_kPa,
              "levels": len(c.levels())} if c.stacked else {}
