@@ -136,6 +136,17 @@ def test_the_shipped_atlas_is_found_whole_and_holds_at_a_held_out_full_solve(tmp
         assert {p.origin for p in f.pieces} == {"shipped"}, (c, f.describe())
     assert [a.key for a in demo["on-centre"].atlas.patches] == [a.key for a in found.patches]
     assert not (tmp_path / "model").exists()
+    # the demo's summary row of what it found (an estimate file of the shipped atlas read back)
+    import gzip
+    from pathlib import Path
+
+    from softphantom.virtual.demo import _atlas_row
+
+    est = tmp_path / "estimate.csv"
+    est.write_bytes(gzip.decompress((Path(__file__).parent / "data" / "bip_outputs" /
+                                     "push-on-centre.estimate.csv.gz").read_bytes()))
+    row = _atlas_row(demo["on-centre"], est)
+    assert row["pieces"] == 2 and 0.9 <= row["in_envelope_fraction"] <= 1.0, row
     lo_y, split = manifest["pieces"][0]["f_y_N"]
     loads = held_out_loads([-1, max(lo_y, 0.0), -1, 0], [1, split, 1, 10e3], 1, seed=3)
     res = check_held_out(model, cfg, found, loads, seed=1)
