@@ -70,7 +70,6 @@ class AtlasEstimator(EstimatorState):
             atlas = find_or_build(model, cfg, atlas, model_dir=cache_dir, scheduler=scheduler, n_workers=n_workers,
                                   fwd=fwd, max_build_s=max_build_s, require_full=require_full)
         found = atlas if isinstance(atlas, Found) else None
-        self.origin = found.describe() if found is not None else "atlas: given"  # where it came from
         atlas = found.atlas if found is not None else atlas
         if require_full and atlas.draft:
             from softphantom.estimation.atlas.build import DraftRefused

@@ -123,9 +123,10 @@ class Check:
         return bool(self.difference <= self.tolerance)
 
 
-def _rest_quantities(at: Atlas, model, fem=None) -> dict:
+def _rest_quantities(at: Atlas, model, fem=None, fwd=None) -> dict:
     """The quantities an atlas records of its model at rest (see :data:`REST_TOL`): cavity volumes
-    (mm³), the contact patch (nodes, force sums per axis) and the atlas's error at zero load."""
+    (mm³), the contact patch (nodes, force sums per axis) and the atlas's error at zero load.
+    ``fwd``: the ForwardModel the atlas was built with (its FEM, actuator and probe reused)."""
     from softphantom.estimation.forward import contact_point
     from softphantom.fem import probe_matrix
     from softphantom.fem.actuators import cavity_volume, force_actuator
@@ -135,15 +136,19 @@ def _rest_quantities(at: Atlas, model, fem=None) -> dict:
     out = {"cavity_volumes_mm3": {k: cavity_volume(np.asarray(nodes, float).reshape(-1), f) * 1e9
                                   for k, f in cavities.items()}}
     prov = at.provenance or {}
+    if fwd is not None:
+        fem = fwd.fem
     fem = fem if fem is not None else fem_from_phantom(model)
-    H = force_actuator(fem, contact_point(model, _contact_of(prov)), float(prov["contact_radius_m"]))
+    H = fwd.H_f if fwd is not None else force_actuator(fem, contact_point(model, _contact_of(prov)),
+                                                       float(prov["contact_radius_m"]))
     out["contact_patch"] = {"nodes": int(len(np.unique(H.nonzero()[0] // 3))),
                             "force_sums": [float(v) for v in np.asarray(H.sum(axis=0)).ravel()]}
     lam = np.zeros(4)
     held = tuple(at.config.held_kPa)
     if all(lo <= 0.0 <= hi for lo, hi in zip(at.config.lower, at.config.upper)) and not any(held):
         pts = [model.markers[k] for k in model.markers] + [model.targets[k] for k in model.targets]
-        rest = probe_matrix(fem, pts) @ fem.x_rest.reshape(-1, 3)
+        probe = fwd.probe if fwd is not None else probe_matrix(fem, pts)
+        rest = probe @ fem.x_rest.reshape(-1, 3)
         out["zero_load"] = {"points_mm": float(np.abs(at.points(lam) - rest).max() * 1e3),
                             "volumes_mm3": float(np.abs(at.volumes(lam)[0]).max() * 1e9)}
     return out
@@ -157,7 +162,7 @@ def _contact_of(prov: dict):
 def rest_record(at: Atlas, model, fwd=None) -> dict:
     """What a new atlas records of its model at rest, for :func:`verify_atlas` (provenance
     ``rest``)."""
-    return _rest_quantities(at, model, fwd.fem if fwd is not None else None)
+    return _rest_quantities(at, model, fwd=fwd)
 
 
 def rest_checks(at: Atlas, model, fem=None) -> list[Check]:
