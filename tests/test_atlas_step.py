@@ -252,3 +252,13 @@ def test_the_estimator_reads_only_the_atlas_public_interface():
                if isinstance(n, ast.Attribute) and n.attr.startswith("_") and not n.attr.startswith("__")
                and not (isinstance(n.value, ast.Name) and n.value.id == "self")]
     assert not private, private
+
+
+@pytest.mark.skipif(not ak.HAVE_NUMBA, reason="numba kernels")
+def test_the_step_kernels_keep_the_gil():
+    """A kernel that released the GIL would hand it, at every call of a step, to any busy Python thread
+    of the process (a Dask client's event loop, a progress display) for up to the 5 ms switch
+    interval: the demo's step p99 of several ms (``bench_estimate.py``'s busy-thread row)."""
+    kernels = [f for f in vars(ak).values() if hasattr(f, "targetoptions")]
+    assert {"gn_run", "gn_update", "points_pose", "force_chain", "cond_force", "eval_vj3"} <= {f.__name__ for f in kernels}
+    assert [f.__name__ for f in kernels if f.targetoptions.get("nogil")] == []

@@ -86,6 +86,7 @@ class AtlasEstimator(EstimatorState):
         if found is None and any(a.key != atlas_key(model, cfg, a.config) for a in every):
             raise UserError("atlas built for another model, law, contact or envelope; rebuild it")
         self.atlas = atlas
+        self._unsolved = bool(atlas.unsolved)  # asked per sample by _inside
         self._stack = stack
         # the pieces along f_y (a stack's: its first level's, whose f_y ranges every level shares)
         pieces = every[:stack.n_pieces] if stack is not None else every
@@ -182,7 +183,7 @@ class AtlasEstimator(EstimatorState):
         for f, (lo, hi) in zip(lam[:3].tolist(), self._faces):
             if f <= lo + tol or f >= hi - tol:  # at an envelope face inside the bounds: clamped
                 return False
-        if inside and self.atlas.unsolved:
+        if inside and self._unsolved:
             return self.atlas.solved_at(lam)  # where the atlas was filled, not solved
         return inside
 

@@ -23,7 +23,11 @@ arithmetic in one compiled call each:
 
 Compiled on first use and cached on disk (``cache=True``: 8.9 CPU-s once per machine, then 0.25 s
 to load); :func:`warm_up` compiles or loads them all when an estimator is made, so the first
-real-time sample does not pay it. Serial and ``nogil``, as the FEM kernels.
+real-time sample does not pay it. Serial, and they keep the GIL: a kernel that released it would
+hand it, at each of a step's five calls, to any busy Python thread of the process (a Dask client's
+event loop, a progress display, a Foxglove server) for up to the interpreter's switch interval
+(5 ms) — measured: with a thread busy 20 % of the time beside it, the step's p99 went from 0.2 to
+2.2 ms with ``nogil`` kernels and stayed at 0.2 ms without.
 """
 
 from __future__ import annotations
@@ -44,7 +48,7 @@ _SP = float(_SCALE_LAM[3] / _SCALE_V)  # pressure column: m³/Pa → mm³/kPa
 _SV = float(_SCALE_V)
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True)
 def _basis(t, n, b, d):
     """T_k(t) and T_k'(t) for k < n into b[:n], d[:n] (the recurrence of ``cheb_basis``)."""
     b[0] = 1.0
@@ -57,7 +61,7 @@ def _basis(t, n, b, d):
         d[k] = 2 * b[k - 1] + 2 * t * d[k - 1] - d[k - 2]
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True)
 def axis_t(x, lo, hi, w):
     """(t, dt/dx): the load ``x`` on [lo, hi] as the Chebyshev variable t ∈ [−1, 1] — affine, or
     with ``w`` > 0 affine in asinh(x / w) (a stretched axis: Chebyshev points clustered about zero
@@ -69,7 +73,7 @@ def axis_t(x, lo, hi, w):
     return (2 * x - (lo + hi)) / (hi - lo), 2.0 / (hi - lo)
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True)
 def _bases(lam, lo, hi, wd, shape, na):
     """The bases (B, D, g) of the first ``na`` axes at ``lam``: row a the values and t-derivatives of
     axis a's Chebyshev polynomials (padded to the longest axis), g[a] = dt/dλ_a (:func:`axis_t`)."""
@@ -86,7 +90,7 @@ def _bases(lam, lo, hi, wd, shape, na):
     return B, D, g
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True)
 def eval_vj(C, shape, lo, hi, wd, lam, V, J):
     """Value V (m,) and Jacobian J (m, 4) per unit λ of the tensor Chebyshev polynomial with
     coefficients ``C`` (n1·n2·n3·n4, m) over the box [lo, hi] at ``lam`` (4,); ``wd`` (4,) the
@@ -106,7 +110,7 @@ def eval_vj(C, shape, lo, hi, wd, lam, V, J):
     eval_vj3(Cv, Cd, shape, lo, hi, wd, lam, V, J)
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True)
 def eval_value(C, shape, lo, hi, wd, lam, out):
     """The value (m,) of the polynomial with coefficients ``C`` (n1·n2·n3·n4, m) at ``lam``."""
     n1, n2, n3, n4 = shape[0], shape[1], shape[2], shape[3]
@@ -127,7 +131,7 @@ def eval_value(C, shape, lo, hi, wd, lam, out):
                     g += 1
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True)
 def contract_pressure(C, shape, lo, hi, p, Cv, Cd):
     """The polynomial at the pressure ``p`` (Pa), fixed during a sample's Gauss–Newton: ``Cv``
     (n1·n2·n3, m) its coefficients in the force axes, ``Cd`` those of its derivative per Pa. The
@@ -150,7 +154,7 @@ def contract_pressure(C, shape, lo, hi, p, Cv, Cd):
             Cd[g, o] = ad * s
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True)
 def eval_vj3(Cv, Cd, shape, lo, hi, wd, lam, V, J):
     """:func:`eval_vj` on the polynomial contracted at ``lam[3]`` by :func:`contract_pressure`."""
     n1, n2, n3 = shape[0], shape[1], shape[2]
@@ -181,7 +185,7 @@ def eval_vj3(Cv, Cd, shape, lo, hi, wd, lam, V, J):
             J[o, a] *= gs[a]
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True)
 def _ls_step(J, r0, x):
     """The minimizer x (3,) N of the volume QP (``solve_volume_qp``: W = J, r0 = V − V_meas, no
     pressure change) without bounds: its scaled, Tikhonov-regularised normal equations by a
@@ -237,7 +241,7 @@ def _ls_step(J, r0, x):
     return math.isfinite(x[0]) and math.isfinite(x[1]) and math.isfinite(x[2])
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True)
 def _misfit(V, dV):
     s = 0.0
     for i in range(V.shape[0]):
@@ -245,7 +249,7 @@ def _misfit(V, dV):
     return s
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True)
 def gn_update(Cv, Cd, shape, lo, hi, wd, lam, V, J, cost, dV, step, blo, bhi, tol):
     """One Gauss–Newton update along ``step`` (3,) N from ``lam``: the step clipped to the force
     bounds [blo, bhi], halved while it raises the misfit (up to ``BACKTRACK_HALVINGS`` times);
@@ -279,7 +283,7 @@ def gn_update(Cv, Cd, shape, lo, hi, wd, lam, V, J, cost, dV, step, blo, bhi, to
     return NO_DESCENT, cost
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True)
 def gn_run(C, Cv, Cd, shape, lo, hi, wd, lam, V, J, cost, dV, blo, bhi, tol, it0, max_iter):
     """Gauss–Newton iterations ``it0 + 1 … max_iter`` from ``lam`` on the polynomial with
     coefficients ``C``, each step the unbounded minimizer of the volume QP; ``lam``, ``V``, ``J``
@@ -311,7 +315,7 @@ def gn_run(C, Cv, Cd, shape, lo, hi, wd, lam, V, J, cost, dV, blo, bhi, tol, it0
     return MAX_ITER, max(max_iter, it0), cost
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True)
 def points_pose(CP, shape, lo, hi, wd, lam, P0, cp, pts, t, ypr):
     """The tracked points ``pts`` (k·3,) at ``lam`` (:func:`eval_value`) and the pose of the first
     ``len(P0)`` (the markers) in one call: the rigid fit (:func:`rigid_fit_pose`), its translation
@@ -331,7 +335,7 @@ def points_pose(CP, shape, lo, hi, wd, lam, P0, cp, pts, t, ypr):
         ypr[2] = math.atan2(-R[2, 0], R[2, 2])
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True)
 def rigid_fit_pose(P0, cp, Q, R, t):
     """Least-squares rigid transform ``Q ≈ R·P + t`` of the markers ``Q`` (k, 3), with the rest
     markers given centred (``P0`` = P − ``cp``): Kabsch by the SVD of Σ p₀ q₀ᵀ with the reflection
@@ -365,7 +369,7 @@ def rigid_fit_pose(P0, cp, Q, R, t):
         t[a] = cq[a] - (R[a, 0] * cp[0] + R[a, 1] * cp[1] + R[a, 2] * cp[2])
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True)
 def force_chain(CFx, shape, lo, hi, wd, lam, J, f):
     """On a displacement-controlled first axis (``AtlasConfig.x_control``): the force ``f`` (3,) N
     at the atlas coordinates ``lam`` — f_x from its polynomial ``CFx`` (n1·n2·n3·n4, 1), f_y, f_z
@@ -383,7 +387,7 @@ def force_chain(CFx, shape, lo, hi, wd, lam, J, f):
             J[i, b] -= J[i, 0] * g[0, b]
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True)
 def cond_force(J):
     """Condition number of the force columns of an (n_arms, 4) sensitivity (inf if rank-deficient), as
     ``sensitivity_cond``."""
