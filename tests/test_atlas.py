@@ -653,6 +653,12 @@ def test_a_uniform_stiffness_scale_is_the_atlas_with_the_loads_scaled(coarse_mod
     save_model(model_s, out2)
     note = carry_atlases(base, model_s, out2, {"bulb": s, "arms": 1.1}, law_changed=False, shown="cal/")
     assert "unevenly" in note and "softphantom atlas build --model cal/" in note and not (out2 / "atlas").exists()
+    # its times from the build's cost model (estimate_build), the full grid's and the draft's
+    from softphantom.estimation.atlas.build import duration_text, estimate_build
+
+    full = estimate_build(1, len(model_s.nodes), model_atlas_config(1, out2))
+    assert f"about {duration_text(full.wall_s)} on this machine's {full.workers} cores" in note
+    assert f"{duration_text(full.critical_path_s)} on a cluster of {full.tasks} workers" in note and "--draft" in note
 
 
 def test_a_shipped_atlas_is_found_by_its_key_for_any_copy_of_its_model(coarse_model, atlas, fwd, tmp_path,

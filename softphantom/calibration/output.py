@@ -105,7 +105,7 @@ def carry_atlases(base_dir, model, out, factors: dict[str, float], law_changed: 
     Returns one line for the user: what was carried over, or the build the model needs and its
     estimated time."""
     from softphantom.design import load_model
-    from softphantom.estimation.atlas.build import duration_text, estimated_build
+    from softphantom.estimation.atlas.build import draft_points, duration_text, estimate_build
     from softphantom.estimation.atlas.config import LOAD_SCALE_FILE, model_atlas_config
     from softphantom.estimation.atlas.catalogue import atlas_key, atlases_of, verify_atlas
     from softphantom.estimation.atlas.store import atlas_path, estimator_config, save_atlas
@@ -136,6 +136,10 @@ def carry_atlases(base_dir, model, out, factors: dict[str, float], law_changed: 
     why = ("the law changed" if law_changed else
            "no atlas of the uncalibrated model to scale" if uniform else
            "the stiffness changed unevenly (" + ", ".join(f"{g} x{v:.4g}" for g, v in factors.items()) + ")")
-    _, wall = estimated_build(model.element_order, len(model.nodes), model_atlas_config(model.element_order, out))
+    order, nodes = model.element_order, len(model.nodes)
+    full = estimate_build(order, nodes, model_atlas_config(order, out))
+    draft = estimate_build(order, nodes, model_atlas_config(order, out, draft=True))
     return (f"the calibrated model needs its own atlas ({why}): softphantom atlas build --model {shown or out} "
-            f"(about {duration_text(wall)} on this machine's cores; resumable)")
+            f"(about {duration_text(full.wall_s)} on this machine's {full.workers} cores, ≈ {full.cpu_s:.0f} CPU-s, "
+            f"{duration_text(full.critical_path_s)} on a cluster of {full.tasks} workers; resumable), or --draft "
+            f"({draft_points(order)} points, its error measured: about {duration_text(draft.wall_s)})")
