@@ -118,8 +118,9 @@ def test_calibrate_names_a_missing_file_first(coarse_model_dir, tmp_path, capsys
 def test_a_zone_is_not_taken_for_the_urethra(tmp_path, capsys, monkeypatch):
     nib = pytest.importorskip("nibabel")
     pytest.importorskip("skimage")
-    import softphantom.design.anatomy as anatomy
-    from softphantom.design.anatomy import MAX_URETHRA_SHARE, AnatomyOptions, anatomy_from_labels, zonal_label_map
+    import softphantom.design.anatomy_import as anatomy
+    from label_maps import zonal_label_map
+    from softphantom.design.anatomy import MAX_URETHRA_SHARE, AnatomyOptions, anatomy_from_labels
     from softphantom.errors import DesignError
 
     data, affine, _, _ = zonal_label_map(45.0)
