@@ -430,77 +430,110 @@ def _checked(scenario: Scenario, given: PhantomModel) -> Scenario:
 
 def _solve_truth(scenario: Scenario, model: PhantomModel, config: TruthConfig,
                  truth_mesh: PhantomModel | None) -> Truth:
-    t0 = time.perf_counter()
-    task = f"{scenario.name}: truth"
-    if truth_mesh is None:
-        report(log, task, 0, None, "meshing the truth model")
-    tm = truth_mesh if truth_mesh is not None else truth_model(model, config)
-    t_mesh = time.perf_counter()
-    laws = truth_laws(tm, config.law)
-    fem = fem_from_phantom(tm, laws)  # the truth mesh's element order
-    marker_names = tuple(tm.markers)
-    target_names = tuple(tm.targets)
-    P = probe_matrix(fem, np.vstack([[tm.markers[k] for k in marker_names], [tm.targets[k] for k in target_names]]))
-    x_rest = fem.nodes.copy()
-    # the points as the mesh carries them at rest (a marker on the curved surface sits up to a
-    # fraction of a mm off the faceted mesh surface): motion relative to rest is then exact
-    carried = P @ x_rest
-    rest_markers, rest_targets = carried[: len(marker_names)], carried[len(marker_names):]
-    # the surfaces of the element order (6-node triangles on a quadratic mesh: curved walls)
-    closed = np.vstack([tm.outer_faces6, tm.fixed_faces6] if tm.element_order == 2 else [tm.outer_faces, tm.fixed_faces])
-    cavities = tm.design.cavity_names  # the arms in the sensor order, then the internal cavities
-    V0 = np.array([cavity_volume(x_rest, fem.cavities[c]) for c in cavities])
-    bulb0 = cavity_volume(x_rest, closed)
-    k = len(marker_names)
-    total = sum(config.levels if e.kind == "push" or e.p_kPa is not None else config.inflate_steps
-                for e in scenario.events)
-    groups = scenario.groups
-    total += config.levels**2 * len(groups)  # a group's inner keyframes
-    for pair in groups:
-        for i in pair:
-            if scenario.events[i].kind == "inflate" and scenario.events[i].p_kPa is None:
-                from softphantom.virtual.scenario import ScenarioError
+    return _TruthSolve(scenario, model, config, truth_mesh).run()
 
-                raise ScenarioError(f"{scenario.source}: inflate.target_shift_mm: an inflation until a target "
-                                    f"moves cannot overlap another event; give p_kPa")
-    grouped = {i for pair in groups for i in pair}
-    paths = {}  # event index in a group -> its states at the keyframes (the group's edges)
-    done = 0
-    report(log, task, 0, total, f"P{tm.element_order} truth mesh of {len(tm.nodes)} nodes: solving keyframe 1")
 
-    def progress(what: str) -> None:
+class _TruthSolve:
+    """One solve of a scenario's truth, in named steps: :meth:`__init__` meshes the truth model and
+    reads its rest state, :meth:`run` solves each event's keyframes (:meth:`level_path` for a push
+    or an inflation to a pressure, :meth:`inflate_to_target` for one until a target moves), then
+    each group's (:meth:`solve_group`), reporting progress after every solve."""
+
+    def __init__(self, scenario: Scenario, model: PhantomModel, config: TruthConfig,
+                 truth_mesh: PhantomModel | None) -> None:
+        self.t0 = time.perf_counter()
+        self.scenario, self.config = scenario, config
+        self.task = f"{scenario.name}: truth"
+        if truth_mesh is None:
+            report(log, self.task, 0, None, "meshing the truth model")
+        tm = self.tm = truth_mesh if truth_mesh is not None else truth_model(model, config)
+        self.t_mesh = time.perf_counter()
+        laws = truth_laws(tm, config.law)
+        fem = self.fem = fem_from_phantom(tm, laws)  # the truth mesh's element order
+        self.marker_names = tuple(tm.markers)
+        self.target_names = tuple(tm.targets)
+        self.P = probe_matrix(fem, np.vstack([[tm.markers[k] for k in self.marker_names],
+                                              [tm.targets[k] for k in self.target_names]]))
+        self.x_rest = x_rest = fem.nodes.copy()
+        # the points as the mesh carries them at rest (a marker on the curved surface sits up to a
+        # fraction of a mm off the faceted mesh surface): motion relative to rest is then exact
+        carried = self.P @ x_rest
+        self.rest_markers, self.rest_targets = carried[: len(self.marker_names)], carried[len(self.marker_names):]
+        # the surfaces of the element order (6-node triangles on a quadratic mesh: curved walls)
+        self.closed = np.vstack([tm.outer_faces6, tm.fixed_faces6] if tm.element_order == 2
+                                else [tm.outer_faces, tm.fixed_faces])
+        self.cavities = tm.design.cavity_names  # the arms in the sensor order, then the internal cavities
+        self.V0 = np.array([cavity_volume(x_rest, fem.cavities[c]) for c in self.cavities])
+        self.bulb0 = cavity_volume(x_rest, self.closed)
+        self.k = len(self.marker_names)
+        self.total = self._count_keyframes()
+        self.grouped = {i for pair in scenario.groups for i in pair}
+        self.paths: dict[int, list] = {}  # event index in a group -> its states at the keyframes (the group's edges)
+        self.done = 0
+        self.actuators: dict[str, object] = {}
+
+    def _count_keyframes(self) -> int:
+        """The solves the scenario takes (an inflation to a target: its steps); refuses such an
+        inflation in a group."""
+        scenario, config = self.scenario, self.config
+        total = sum(config.levels if e.kind == "push" or e.p_kPa is not None else config.inflate_steps
+                    for e in scenario.events)
+        total += config.levels**2 * len(scenario.groups)  # a group's inner keyframes
+        for pair in scenario.groups:
+            for i in pair:
+                if scenario.events[i].kind == "inflate" and scenario.events[i].p_kPa is None:
+                    from softphantom.virtual.scenario import ScenarioError
+
+                    raise ScenarioError(f"{scenario.source}: inflate.target_shift_mm: an inflation until a target "
+                                        f"moves cannot overlap another event; give p_kPa")
+        return total
+
+    def run(self) -> Truth:
+        report(log, self.task, 0, self.total,
+               f"P{self.tm.element_order} truth mesh of {len(self.tm.nodes)} nodes: solving keyframe 1")
+        self.events = []
+        for i, e in enumerate(self.scenario.events):
+            self.events.append(self.solve_event(i, e))
+        group_truths = tuple(self.solve_group(n, pair) for n, pair in enumerate(self.scenario.groups))
+        return Truth(self.scenario, self.tm, self.marker_names, self.target_names, self.rest_markers, self.V0,
+                     tuple(self.events), time.perf_counter() - self.t0, self.config, group_truths)
+
+    def progress(self, what: str) -> None:
         """One keyframe more, with the time left at the mean time a keyframe has taken so far."""
-        spent = time.perf_counter() - t_mesh
+        done, total = self.done, self.total
+        spent = time.perf_counter() - self.t_mesh
         left = spent / done * (total - done) if done else 0.0
         eta = f"; ETA {_clock(left)}" if done < total else ""
-        report(log, task, done, total, f"{what}{eta}")
+        report(log, self.task, done, total, f"{what}{eta}")
 
-    actuators: dict[str, object] = {}
-
-    def actuator(point: str):
+    def actuator(self, point: str):
         """The force actuator of the contact patch at ``point``, made once (every keyframe of its
         events and groups uses it)."""
-        if point not in actuators:
-            pt = tm.p_ext[point]
-            actuators[point] = force_actuator(fem, pt, radius=_patch_radius(fem, pt, scenario.patch_radius_mm * 1e-3))
-        return actuators[point]
+        if point not in self.actuators:
+            pt = self.tm.p_ext[point]
+            self.actuators[point] = force_actuator(
+                self.fem, pt, radius=_patch_radius(self.fem, pt, self.scenario.patch_radius_mm * 1e-3))
+        return self.actuators[point]
 
-    def readout(x):
+    def readout(self, x):
+        """(cavity volume changes, markers, target shifts, bulb volume change) of the state ``x``."""
         x = np.asarray(x).reshape(-1, 3)
-        pts = P @ x
-        dv = np.array([cavity_volume(x, fem.cavities[c]) for c in cavities]) - V0
-        return dv, pts[:k], pts[k:] - rest_targets, cavity_volume(x, closed) - bulb0
+        pts = self.P @ x
+        dv = np.array([cavity_volume(x, self.fem.cavities[c]) for c in self.cavities]) - self.V0
+        return dv, pts[:self.k], pts[self.k:] - self.rest_targets, cavity_volume(x, self.closed) - self.bulb0
 
-    def solve(f_ext, p, x0, what, x_prev=None, ratio=1.0, min_step=1.0 / 64, max_iter=25, single=False):
-        """Converged equilibrium; warm start from ``x0``, or the secant predictor
-        x0 + ratio·(x0 − x_prev) when the previous keyframe is known (falls back to x0).
+    def solve(self, f_ext, p, cavity, x0, what, x_prev=None, ratio=1.0, min_step=1.0 / 64, max_iter=25,
+              single=False):
+        """Converged equilibrium under ``f_ext`` and the pressure ``p`` in ``cavity``; warm start from
+        ``x0``, or the secant predictor x0 + ratio·(x0 − x_prev) when the previous keyframe is known
+        (falls back to x0).
 
         From the predictor, one Newton at the full load, stepping on through a tangent that is not
         positive definite with the shifted Cholesky (``on_indefinite="shift"``): a cut load step
         restarts the load from zero while the state is near the full load's (the urethra's target
         solves then collapsed the cavity and took the exact LDLᵀ step, 16 s a factorization on the
         default P2 truth, 64 s a solve; shifted: 4 iterations, 4 s)."""
-        nonlocal done
+        fem, config = self.fem, self.config
         sol = None
         if x_prev is not None:
             try:
@@ -512,174 +545,183 @@ def _solve_truth(scenario: Scenario, model: PhantomModel, config: TruthConfig,
             if sol is not None and not sol.converged:
                 sol = None
                 if single:
-                    raise SolverError(f"truth of {scenario.name}: {what}: no convergence from the predictor")
+                    raise SolverError(f"truth of {self.scenario.name}: {what}: no convergence from the predictor")
         if sol is None:
             sol = solve_static(fem, f_ext, pressures={cavity: p} if p else None, x0=x0, tol=config.tol,
                                min_load_step=min_step, max_iter=max_iter)
         if not sol.converged:
-            raise SolverError(f"truth of {scenario.name}: {what}: {sol.status}")
-        done += 1
-        progress(what)
+            raise SolverError(f"truth of {self.scenario.name}: {what}: {sol.status}")
+        self.done += 1
+        self.progress(what)
         return sol
 
-    events = []
-    for i, e in enumerate(scenario.events):
-        rows = [readout(x_rest)]
+    def solve_event(self, i: int, e: Event) -> EventTruth:
+        """The truth of event ``i`` alone, at its keyframes from rest."""
+        if e.kind == "push":
+            H = self.actuator(e.point)
+            f = np.asarray(e.force_N, float)
+            s_list, rows, x, its = self.level_path(
+                i, lambda s: (H @ (s * f), 0.0), lambda s: f"event {i + 1} push {s:.2f}·{np.round(f, 2).tolist()} N",
+                e.cavity)
+            force, p_peak, note = f, 0.0, ""
+        elif e.p_kPa is not None:
+            p_peak = e.p_kPa * 1e3
+            s_list, rows, x, its = self.level_path(
+                i, lambda s: (None, s * p_peak), lambda s: f"event {i + 1} inflate {s * p_peak / 1e3:.1f} kPa",
+                e.cavity)
+            force, note = np.zeros(3), ""
+        else:
+            s_list, rows, x, its, p_peak, note = self.inflate_to_target(i, e)
+            force = np.zeros(3)
+        dv, mk, tg, bulb = (np.array(v) for v in zip(*rows))
+        return EventTruth(e, np.asarray(s_list), dv, mk, tg, bulb, force, float(p_peak),
+                          np.asarray(x).reshape(-1, 3).copy(), its, note)
+
+    def level_path(self, i: int, load, label, cavity):
+        """Keyframes at the levels s = 1/L … 1 of event ``i``, whose load at level s is
+        ``load(s)`` = (nodal forces or None, pressure in ``cavity``), each from the secant
+        predictor of the two before: (levels, readouts, last state, Newton iterations). A grouped
+        event's states are kept in :attr:`paths` (its group's edge)."""
+        config, x_rest = self.config, self.x_rest
+        rows = [self.readout(x_rest)]
         s_list = [0.0]
         x = x_rest.reshape(-1)
         its = 0
+        x_prev = None
+        for lv in range(1, config.levels + 1):
+            s = lv / config.levels
+            f_ext, p = load(s)
+            sol = self.solve(f_ext, p, cavity, x, label(s), x_prev)
+            x_prev, x, its = x, sol.x.reshape(-1), its + sol.iterations
+            rows.append(self.readout(x))
+            s_list.append(s)
+            if i in self.grouped:
+                self.paths.setdefault(i, [x_rest.reshape(-1)]).append(x)
+        return s_list, rows, x, its
+
+    def inflate_to_target(self, i: int, e: Event):
+        """An inflation of event ``i`` until its target moves ``target_shift_mm``: the pressure
+        marched up in steps, then the pressure of the goal found between the last two keyframes
+        (:meth:`_pressure_of_goal`), or stopped at ``max_p_kPa``: (levels, readouts, last state,
+        Newton iterations, peak pressure, note)."""
+        scenario, config, target_names = self.scenario, self.config, self.target_names
+        cavity = e.cavity
+        rows = [self.readout(self.x_rest)]
+        its = 0
         note = ""
-        cavity = e.cavity  # the inflated one (read by solve)
-        if e.kind == "push":
-            H = actuator(e.point)
-            f = np.asarray(e.force_N, float)
-            x_prev = None
-            for lv in range(1, config.levels + 1):
-                s = lv / config.levels
-                sol = solve(H @ (s * f), 0.0, x, f"event {i + 1} push {s:.2f}·{np.round(f, 2).tolist()} N", x_prev)
-                x_prev, x, its = x, sol.x.reshape(-1), its + sol.iterations
-                rows.append(readout(x))
-                s_list.append(s)
-                if i in grouped:
-                    paths.setdefault(i, [x_rest.reshape(-1)]).append(x)
-            force, p_peak = f, 0.0
-        elif e.p_kPa is not None:
-            p_peak = e.p_kPa * 1e3
-            x_prev = None
-            for lv in range(1, config.levels + 1):
-                s = lv / config.levels
-                sol = solve(None, s * p_peak, x, f"event {i + 1} inflate {s * p_peak / 1e3:.1f} kPa", x_prev)
-                x_prev, x, its = x, sol.x.reshape(-1), its + sol.iterations
-                rows.append(readout(x))
-                s_list.append(s)
-                if i in grouped:
-                    paths.setdefault(i, [x_rest.reshape(-1)]).append(x)
-            force = np.zeros(3)
-        else:
-            j = target_names.index(e.target) if e.target in target_names else None
-            if j is None:
-                from softphantom.virtual.scenario import ScenarioError
+        j = target_names.index(e.target) if e.target in target_names else None
+        if j is None:
+            from softphantom.virtual.scenario import ScenarioError
 
-                raise ScenarioError(f"{scenario.source}: inflate.target {e.target!r} is not a target of the "
-                                    f"design ({', '.join(target_names)})")
-            goal = e.target_shift_mm * 1e-3
-            pmax = e.max_p_kPa * 1e3
-            step = pmax / config.inflate_steps
-            min_step = step / 2
-            ps, shifts, xs = [0.0], [0.0], [x_rest.reshape(-1)]
-            p_star = None
-            while ps[-1] < pmax - 1e-9:
-                # continuation in pressure: one Newton attempt per increment (secant predictor, then
-                # from the last state; 6 iterations), halving the increment once on failure; a second
-                # failure means a limit point of the model (the cavity runs away)
-                p = min(pmax, ps[-1] + step)
-                try:
-                    prev = xs[-2] if len(xs) > 1 else None
-                    ratio = (p - ps[-1]) / (ps[-1] - ps[-2]) if len(xs) > 1 else 1.0
-                    sol = solve(None, p, xs[-1], f"event {i + 1} inflate {p / 1e3:.1f} kPa", prev, ratio,
-                                min_step=1.0, max_iter=6, single=True)
-                except SolverError as exc:
-                    if step / 2 >= min_step - 1e-9:
-                        step /= 2
-                        continue
-                    note = (f"limit: the model's pressure maximum is near {ps[-1] / 1e3:.1f} kPa (no equilibrium at "
-                            f"{p / 1e3:.1f} kPa: {str(exc).split(': ')[-1]})")
-                    break
-                its += sol.iterations
-                r = readout(sol.x)
-                ps.append(p)
-                shifts.append(float(np.linalg.norm(r[2][j])))
-                xs.append(sol.x.reshape(-1))
-                rows.append(r)
-                if shifts[-1] >= goal:
-                    # secant between the last two keyframes, then one solve there
-                    a, b = shifts[-2], shifts[-1]
-                    p_star = ps[-2] + (goal - a) / (b - a) * (ps[-1] - ps[-2])
-                    break
-            if p_star is not None:
-                # regula falsi on the bracket (last keyframe below the goal, the one above), at most
-                # 4 solves, until the target's shift is within 0.5 % of the goal
-                lo_p, lo_s = ps[-2], shifts[-2]
-                hi_p, hi_s = ps[-1], shifts[-1]
-                for lst in (ps, shifts, xs, rows):
-                    lst.pop()
-                for _ in range(4):
-                    prev = xs[-2] if len(xs) > 1 else None
-                    ratio = (p_star - ps[-1]) / (ps[-1] - ps[-2]) if len(xs) > 1 else 1.0
-                    sol = solve(None, p_star, xs[-1], f"event {i + 1} inflate {p_star / 1e3:.1f} kPa (target)",
-                                prev, ratio)
-                    its += sol.iterations
-                    r = readout(sol.x)
-                    sh, p_solved = float(np.linalg.norm(r[2][j])), p_star
-                    if abs(sh - goal) <= 0.005 * goal:
-                        break
-                    if sh < goal:
-                        lo_p, lo_s = p_star, sh
-                    else:
-                        hi_p, hi_s = p_star, sh
-                    p_star = lo_p + (goal - lo_s) / (hi_s - lo_s) * (hi_p - lo_p)
-                ps.append(float(p_solved))
-                xs.append(sol.x.reshape(-1))
-                rows.append(r)
-                note = note or f"{e.target} moved {sh * 1e3:.2f} mm at {ps[-1] / 1e3:.1f} kPa"
-            elif not note:
-                key = "max_p_urethra_kPa" if cavity == "urethra" else "max_p_kPa"
-                note = f"limit: {e.target} moved only {shifts[-1] * 1e3:.2f} mm at {key} {pmax / 1e3:g}"
-            if len(ps) < 2:
-                raise SolverError(f"truth of {scenario.name}: inflation failed at the first step ({note})")
-            p_peak = ps[-1]
-            s_list = list(np.asarray(ps) / p_peak)
-            x = xs[-1]
-            force = np.zeros(3)
-        dv, mk, tg, bulb = (np.array(v) for v in zip(*rows))
-        events.append(EventTruth(e, np.asarray(s_list), dv, mk, tg, bulb, force, float(p_peak),
-                                 np.asarray(x).reshape(-1, 3).copy(), its, note))
+            raise ScenarioError(f"{scenario.source}: inflate.target {e.target!r} is not a target of the "
+                                f"design ({', '.join(target_names)})")
+        goal = e.target_shift_mm * 1e-3
+        pmax = e.max_p_kPa * 1e3
+        step = pmax / config.inflate_steps
+        min_step = step / 2
+        ps, shifts, xs = [0.0], [0.0], [self.x_rest.reshape(-1)]
+        p_star = None
+        while ps[-1] < pmax - 1e-9:
+            # continuation in pressure: one Newton attempt per increment (secant predictor, then
+            # from the last state; 6 iterations), halving the increment once on failure; a second
+            # failure means a limit point of the model (the cavity runs away)
+            p = min(pmax, ps[-1] + step)
+            try:
+                prev = xs[-2] if len(xs) > 1 else None
+                ratio = (p - ps[-1]) / (ps[-1] - ps[-2]) if len(xs) > 1 else 1.0
+                sol = self.solve(None, p, cavity, xs[-1], f"event {i + 1} inflate {p / 1e3:.1f} kPa", prev, ratio,
+                                 min_step=1.0, max_iter=6, single=True)
+            except SolverError as exc:
+                if step / 2 >= min_step - 1e-9:
+                    step /= 2
+                    continue
+                note = (f"limit: the model's pressure maximum is near {ps[-1] / 1e3:.1f} kPa (no equilibrium at "
+                        f"{p / 1e3:.1f} kPa: {str(exc).split(': ')[-1]})")
+                break
+            its += sol.iterations
+            r = self.readout(sol.x)
+            ps.append(p)
+            shifts.append(float(np.linalg.norm(r[2][j])))
+            xs.append(sol.x.reshape(-1))
+            rows.append(r)
+            if shifts[-1] >= goal:
+                # secant between the last two keyframes, then one solve there
+                a, b = shifts[-2], shifts[-1]
+                p_star = ps[-2] + (goal - a) / (b - a) * (ps[-1] - ps[-2])
+                break
+        if p_star is not None:
+            more, sh = self._pressure_of_goal(i, e, j, goal, p_star, ps, shifts, xs, rows)
+            its += more
+            note = note or f"{e.target} moved {sh * 1e3:.2f} mm at {ps[-1] / 1e3:.1f} kPa"
+        elif not note:
+            key = "max_p_urethra_kPa" if cavity == "urethra" else "max_p_kPa"
+            note = f"limit: {e.target} moved only {shifts[-1] * 1e3:.2f} mm at {key} {pmax / 1e3:g}"
+        if len(ps) < 2:
+            raise SolverError(f"truth of {scenario.name}: inflation failed at the first step ({note})")
+        p_peak = ps[-1]
+        return list(np.asarray(ps) / p_peak), rows, xs[-1], its, p_peak, note
 
-    def loads(e: Event, s: float):
+    def _pressure_of_goal(self, i, e, j, goal, p_star, ps, shifts, xs, rows) -> tuple[int, float]:
+        """Regula falsi on the bracket (last keyframe below the goal, the one above), at most 4
+        solves, until the target's shift is within 0.5 % of the goal; the bracket's top keyframe is
+        replaced by the solve found (in ``ps``, ``xs``, ``rows``). Returns the Newton iterations it
+        took and the target's shift found."""
+        its = 0
+        lo_p, lo_s = ps[-2], shifts[-2]
+        hi_p, hi_s = ps[-1], shifts[-1]
+        for lst in (ps, shifts, xs, rows):
+            lst.pop()
+        for _ in range(4):
+            prev = xs[-2] if len(xs) > 1 else None
+            ratio = (p_star - ps[-1]) / (ps[-1] - ps[-2]) if len(xs) > 1 else 1.0
+            sol = self.solve(None, p_star, e.cavity, xs[-1], f"event {i + 1} inflate {p_star / 1e3:.1f} kPa (target)",
+                             prev, ratio)
+            its += sol.iterations
+            r = self.readout(sol.x)
+            sh, p_solved = float(np.linalg.norm(r[2][j])), p_star
+            if abs(sh - goal) <= 0.005 * goal:
+                break
+            if sh < goal:
+                lo_p, lo_s = p_star, sh
+            else:
+                hi_p, hi_s = p_star, sh
+            p_star = lo_p + (goal - lo_s) / (hi_s - lo_s) * (hi_p - lo_p)
+        ps.append(float(p_solved))
+        xs.append(sol.x.reshape(-1))
+        rows.append(r)
+        return its, sh
+
+    def loads(self, e: Event, s: float):
         """The nodal forces (or None) and cavity pressures of event ``e`` at level ``s``."""
         if e.kind == "push":
-            return actuator(e.point) @ (s * np.asarray(e.force_N, float)), {}
+            return self.actuator(e.point) @ (s * np.asarray(e.force_N, float)), {}
         return None, {e.cavity: s * e.p_kPa * 1e3}
 
-    def solve_group(n: int, pair: tuple[int, int]) -> GroupTruth:
-        nonlocal done
-        e1, e2 = (scenario.events[i] for i in pair)
-        L = config.levels
+    def solve_group(self, n: int, pair: tuple[int, int]) -> GroupTruth:
+        """The truth of group ``n`` (two events at once) on the tensor grid of their levels: its
+        edges the two events' own keyframes, its inside solved row by row (:meth:`_group_keyframe`)."""
+        e1, e2 = (self.scenario.events[i] for i in pair)
+        L = self.config.levels
         lv = np.arange(L + 1) / L
         X = [[None] * (L + 1) for _ in range(L + 1)]
         grid = [[None] * (L + 1) for _ in range(L + 1)]
         for k in range(L + 1):  # the edges: each event alone
-            X[k][0], X[0][k] = paths[pair[0]][k], paths[pair[1]][k]
-            et1, et2 = events[pair[0]], events[pair[1]]
+            X[k][0], X[0][k] = self.paths[pair[0]][k], self.paths[pair[1]][k]
+            et1, et2 = self.events[pair[0]], self.events[pair[1]]
             grid[k][0] = (et1.dV[k], et1.markers[k], et1.targets[k], et1.bulb_dV[k])
             grid[0][k] = (et2.dV[k], et2.markers[k], et2.targets[k], et2.bulb_dV[k])
         its = 0
         for i in range(1, L + 1):
             for j in range(1, L + 1):
-                (f1, p1), (f2, p2) = loads(e1, lv[i]), loads(e2, lv[j])
-                f_ext = f1 if f2 is None else f2 if f1 is None else f1 + f2
-                pres = dict(p1)
-                for c, v in p2.items():
-                    pres[c] = pres.get(c, 0.0) + v
-                pres = pres or None
                 what = (f"group {n + 1} ({e1.kind} + {e2.kind}) keyframe {(i - 1) * L + j}/{L * L} at levels "
                         f"({lv[i]:.2f}, {lv[j]:.2f})")
-                pred = X[i - 1][j] + X[i][j - 1] - X[i - 1][j - 1]
-                try:
-                    sol = solve_static(fem, f_ext, pressures=pres, x0=pred, tol=config.tol, min_load_step=1.0,
-                                       max_iter=25, on_indefinite="shift")
-                except ElementInversionError:
-                    sol = None
-                if sol is None or not sol.converged:
-                    sol = solve_static(fem, f_ext, pressures=pres, x0=X[i][j - 1], tol=config.tol,
-                                       min_load_step=1.0 / 64, max_iter=25)
-                if not sol.converged:
-                    raise SolverError(f"truth of {scenario.name}: {what}: {sol.status}")
+                sol = self._group_keyframe(e1, e2, lv[i], lv[j], X[i - 1][j] + X[i][j - 1] - X[i - 1][j - 1],
+                                           X[i][j - 1], what)
                 its += sol.iterations
                 X[i][j] = sol.x.reshape(-1)
-                grid[i][j] = readout(X[i][j])
-                done += 1
-                progress(what)
+                grid[i][j] = self.readout(X[i][j])
+                self.done += 1
+                self.progress(what)
         dv, mk, tg, bulb = (np.array([[np.asarray(c[q]) for c in row] for row in grid]) for q in range(4))
         force = sum((np.asarray(e.force_N, float) for e in (e1, e2) if e.kind == "push"), np.zeros(3))
         peak = {}
@@ -689,9 +731,28 @@ def _solve_truth(scenario: Scenario, model: PhantomModel, config: TruthConfig,
         return GroupTruth(pair, (e1, e2), lv, lv.copy(), dv, mk, tg, bulb, force, peak,
                           X[L][L].reshape(-1, 3).copy(), L * L, its)
 
-    group_truths = tuple(solve_group(n, pair) for n, pair in enumerate(groups))
-    return Truth(scenario, tm, marker_names, target_names, rest_markers, V0, tuple(events),
-                 time.perf_counter() - t0, config, group_truths)
+    def _group_keyframe(self, e1: Event, e2: Event, s1: float, s2: float, pred, x_left, what: str):
+        """Equilibrium under the two events' loads added, at levels (s1, s2): from the bilinear
+        predictor ``pred`` (one Newton at the full load, shifted Cholesky), else from the
+        neighbour ``x_left`` with load steps."""
+        fem, config = self.fem, self.config
+        (f1, p1), (f2, p2) = self.loads(e1, s1), self.loads(e2, s2)
+        f_ext = f1 if f2 is None else f2 if f1 is None else f1 + f2
+        pres = dict(p1)
+        for c, v in p2.items():
+            pres[c] = pres.get(c, 0.0) + v
+        pres = pres or None
+        try:
+            sol = solve_static(fem, f_ext, pressures=pres, x0=pred, tol=config.tol, min_load_step=1.0,
+                               max_iter=25, on_indefinite="shift")
+        except ElementInversionError:
+            sol = None
+        if sol is None or not sol.converged:
+            sol = solve_static(fem, f_ext, pressures=pres, x0=x_left, tol=config.tol,
+                               min_load_step=1.0 / 64, max_iter=25)
+        if not sol.converged:
+            raise SolverError(f"truth of {self.scenario.name}: {what}: {sol.status}")
+        return sol
 
 
 # --- the truth cache ----------------------------------------------------------------------------
