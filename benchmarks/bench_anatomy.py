@@ -3,7 +3,7 @@ meshed, solvable design.
 
 Run: ``.venv/bin/python benchmarks/bench_anatomy.py [--volumes-mL 30,47,60] [--template both|default|linear]``
 
-Each map is :func:`softphantom.design.anatomy.zonal_label_map`: an ellipsoidal gland tilted 10°,
+Each map is ``zonal_label_map`` of tests/label_maps.py: an ellipsoidal gland tilted 10°,
 a transition zone (label 2) inside a peripheral zone (label 1), no urethra label, 0.625 × 0.625 ×
 3.6 mm voxels over a 200 × 200 × 90 mm field of view (the size of a prostate MRI's label map),
 written as NIfTI. One ``softphantom design --anatomy MAP --gland-labels 1,2`` per map and
@@ -47,7 +47,8 @@ def _run(argv: list[str]) -> tuple[float, float, subprocess.CompletedProcess]:
 def main() -> None:
     import nibabel as nib
 
-    from softphantom.design.anatomy import zonal_label_map
+    sys.path.insert(0, str(ROOT / "tests"))
+    from label_maps import zonal_label_map  # the tests' synthetic zonal map
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--volumes-mL", default="30,47,60")

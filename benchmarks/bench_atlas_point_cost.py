@@ -2,7 +2,7 @@
 
 A whole default build of the 28 329-node quadratic model takes hours; its cost is the points'
 costs summed over the task graph. This measures each kind of point the build solves, with the
-build's own code (``atlas.build._sweep``'s solver settings, ``atlas.build._lines``), at the grid
+build's own code (``atlas.solves._sweep``'s solver settings, ``atlas.solves._lines``), at the grid
 points of the default atlas (``default_atlas_config(2)``), f_z index ``--k`` and pressure index
 ``--l``, for each piece and each line given by ``--lines`` (piece:f_y index):
 

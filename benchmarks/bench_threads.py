@@ -1,7 +1,7 @@
 """BLAS threads per process: one (softphantom's default, ``softphantom/__init__.py``) against the
 library default of one per core, on the work the demo, the atlas build and the truth do.
 
-Work: one atlas plane (:func:`softphantom.estimation.atlas.build._sweep`: 20 converged forward solves of
+Work: one atlas plane (:func:`softphantom.estimation.atlas.solves._sweep`: 20 converged forward solves of
 the default 6 mm model, warm-started from their neighbours, the on-centre contact) in a fresh
 process, once with ``OPENBLAS_NUM_THREADS=1`` and once with it set to the number of cores (the peer:
 what numpy's OpenBLAS does when nothing is set). Wall and CPU seconds of the plane; idle, and again

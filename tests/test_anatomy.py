@@ -21,9 +21,9 @@ from softphantom.design.anatomy import (  # noqa: E402
     anatomy_from_surface,
     design_from_anatomy,
     load_anatomy,
-    zonal_label_map,
 )
 from softphantom.errors import DesignError  # noqa: E402
+from label_maps import zonal_label_map  # noqa: E402
 
 SPACING = (0.5, 0.5, 3.0)
 SEMI_RAS = np.array([32.0, 30.0, 24.0])  # R-L, A-P, S-I half extents before the lobes
@@ -159,7 +159,6 @@ def test_lesion_label_becomes_a_design_lesion_by_moments(lesion_gland, monkeypat
     """Label 3, an ellipsoid of semi-axes (5, 4, 7.5) mm (R-L, A-P, S-I) sampled at 0.5 × 0.5 × 3 mm:
     its moments give back the centre (< 0.3 mm) and the semi-axes (within half a voxel) in the model frame, and
     the design gets it as ``[layers.lesions.label3]`` in the bulb's material."""
-    from softphantom.design import anatomy
     from softphantom.design.anatomy import lesion_report
 
     data, affine, a, d = lesion_gland
@@ -181,7 +180,8 @@ def test_lesion_label_becomes_a_design_lesion_by_moments(lesion_gland, monkeypat
     np.testing.assert_allclose(x.semi_axes_mm, les["semi_axes_mm"])
     assert d.material_of_regions()["lesion_label3"] == d.material_of_regions()["bulb"]
     # refused before the gland's surface is built
-    monkeypatch.setattr(anatomy, "_marching_cubes", lambda *args: pytest.fail("the surface was built"))
+    monkeypatch.setitem(anatomy_from_labels.__globals__, "_marching_cubes",  # the module this function runs in
+                        lambda *args: pytest.fail("the surface was built"))
     with pytest.raises(DesignError, match="lesion label 4 has no voxels"):
         anatomy_from_labels(data, affine, AnatomyOptions(lesion_labels=(4,)))
     with pytest.raises(DesignError, match="lesion label 2 must be > 0 and not the urethra's"):

@@ -118,14 +118,16 @@ def test_calibrate_names_a_missing_file_first(coarse_model_dir, tmp_path, capsys
 def test_a_zone_is_not_taken_for_the_urethra(tmp_path, capsys, monkeypatch):
     nib = pytest.importorskip("nibabel")
     pytest.importorskip("skimage")
-    import softphantom.design.anatomy as anatomy
-    from softphantom.design.anatomy import MAX_URETHRA_SHARE, AnatomyOptions, anatomy_from_labels, zonal_label_map
+    import softphantom.design.anatomy_import as anatomy
+    from label_maps import zonal_label_map
+    from softphantom.design.anatomy import MAX_URETHRA_SHARE, AnatomyOptions, anatomy_from_labels
     from softphantom.errors import DesignError
 
     data, affine, _, _ = zonal_label_map(45.0)
     share = np.count_nonzero(data == 2) / np.count_nonzero(data)
     assert share > 2 * MAX_URETHRA_SHARE  # the transition zone: about a fifth of the gland
-    monkeypatch.setattr(anatomy, "_marching_cubes", lambda *a: pytest.fail("refused after the surface was made"))
+    monkeypatch.setitem(anatomy_from_labels.__globals__, "_marching_cubes",  # the module this function runs in
+                        lambda *a: pytest.fail("refused after the surface was made"))
     with pytest.raises(DesignError, match=rf"urethra label 2 holds {share:.0%} of the gland, too much for a urethra"):
         anatomy_from_labels(data, affine, AnatomyOptions())
     path = tmp_path / "zones.nii.gz"

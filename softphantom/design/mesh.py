@@ -280,7 +280,11 @@ def _internal_cavity(occ, cavity) -> int:
 
 
 def _build(design: BIPDesign, mp: MeshParams) -> dict:
+    """Mesh ``design`` in the current gmsh session, in three steps: the solids fragmented into
+    regions and cavity walls (:func:`_regions`), the physical groups and the element sizes
+    (:func:`_groups_and_sizes`), then the mesh and its arrays (:func:`_mesh_arrays`)."""
     import gmsh
+
 
     for name, value in (
         ("General.NumThreads", 1),
@@ -299,6 +303,25 @@ def _build(design: BIPDesign, mp: MeshParams) -> dict:
         ("Geometry.ToleranceBoolean", 0.0),  # exact booleans (junction_fillets, for the molds, raises it)
     ):
         gmsh.option.setNumber(name, value)
+    parts = _regions(gmsh, design)
+    fixed, outer = _groups_and_sizes(gmsh, design, mp, parts)
+    return _mesh_arrays(gmsh, mp, parts, fixed, outer)
+
+
+@dataclass
+class _Regions:
+    """The fragmented geometry: each region's volumes, its physical id, each cavity's wall surfaces."""
+
+    geoms: tuple  # the arms' placement (BIPDesign.arm_geometry)
+    region_vols: dict[str, list[int]]
+    ids: dict[str, int]
+    cav_surfaces: dict[str, list[int]]
+    rounded: bool  # junction fillets: bulb and arms one solid
+
+
+def _regions(gmsh, design: BIPDesign) -> _Regions:
+    """The OCC solids (bulb, arms, cavities, layers) fragmented into one conforming set of volumes;
+    the cavities removed, their walls kept."""
     occ = gmsh.model.occ
     bulb = bulb_solid(occ, design.bulb)  # an ellipsoid, or an anatomy surface (design/occ_shapes.py)
     geoms = design.arm_geometry()
@@ -376,7 +399,15 @@ def _build(design: BIPDesign, mp: MeshParams) -> dict:
             raise MeshError(f"arm {name}: no volume outside the bulb after the fragment")
     occ.remove([(3, t) for t in sorted(all_cav | drop)], recursive=False)
     occ.synchronize()
+    return _Regions(geoms, region_vols, ids, cav_surfaces, rounded)
 
+
+def _groups_and_sizes(gmsh, design: BIPDesign, mp: MeshParams, parts: _Regions) -> tuple[list[int], list[int]]:
+    """The physical groups (regions, cavity walls, fixed end faces, free outer surface) and the size
+    fields of ``mp``; returns the fixed and the outer surfaces."""
+    geoms, region_vols, ids, cav_surfaces = parts.geoms, parts.region_vols, parts.ids, parts.cav_surfaces
+    occ = gmsh.model.occ
+    lay = design.layers
     # fixed faces: the arm surfaces whose centre of mass is the end-face centre
     fixed: list[int] = []
     for g, name in zip(geoms, design.arm_names):
@@ -443,7 +474,7 @@ def _build(design: BIPDesign, mp: MeshParams) -> dict:
     arm_vols = [t for n in design.arm_names for t in region_vols[f"arm_{n}"]]
     fld.setNumbers(arm_f, "VolumesList", arm_vols)
     fld.setNumber(arm_f, "IncludeBoundary", 1)
-    fillet_faces = _fillet_faces(design, bulb_surfs) if rounded else []
+    fillet_faces = _fillet_faces(design, bulb_surfs) if parts.rounded else []
     fields += _local_refinements(design, mp, bulb_surfs, arm_vols,
                                  fillet_faces)
     fmin = fld.add("Min")
@@ -453,6 +484,13 @@ def _build(design: BIPDesign, mp: MeshParams) -> dict:
     for t in fillet_faces:
         # MeshAdapt on the fillet faces: Frontal-Delaunay left slivers there (min dihedral 5.8° vs 7.3° at 6 mm)
         gmsh.model.mesh.setAlgorithm(2, t, 1)
+    return fixed, outer
+
+
+def _mesh_arrays(gmsh, mp: MeshParams, parts: _Regions, fixed: list[int], outer: list[int]) -> dict:
+    """Generate the mesh (of ``mp.element_order``) and read it back: nodes, tets by region, the
+    cavity walls', fixed and outer triangles, as compact 0-based indices."""
+    region_vols, ids, cav_surfaces = parts.region_vols, parts.ids, parts.cav_surfaces
     gmsh.model.mesh.generate(3)
     order = int(mp.element_order)
     if order == 2:

@@ -8,7 +8,7 @@
 - interference (:func:`softphantom.molds.interference`): the volume of the manifold3d intersection
   of two parts, from :func:`to_manifold`.
 
-Used on every printed part (softphantom.molds) and on an anatomy surface (design/anatomy.py).
+Used on every printed part (softphantom.molds) and on an anatomy surface (design/anatomy_import.py).
 
 >>> import trimesh
 >>> report_mesh(trimesh.creation.box((10, 10, 10))).ok

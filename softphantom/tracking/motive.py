@@ -270,6 +270,52 @@ def _rotation_kind(label, line, stated, option, has_w) -> str:
     )
 
 
+def _body_rows(label: str, rows, lines, data_rows, columns: list[int], width: int, body: str, h: dict):
+    """The data rows' take time, frame number and the body's ``columns`` as numbers (NaN where
+    blank): (t, frame, values, kept), ``kept`` False on blank lines; a short row or a cell that is
+    not a number is refused, naming its line and column."""
+    n = len(data_rows)
+    t = np.full(n, np.nan)
+    frame = np.full(n, np.nan)
+    vals = np.full((n, len(columns)), np.nan)
+    keep = np.zeros(n, bool)
+    for k, i in enumerate(data_rows):
+        r = rows[i]
+        if not any(r):
+            continue  # blank line (e.g. at the end)
+        if len(r) < width:
+            raise FileFormatError(f"{label}: line {lines[i]}: row has {len(r)} cells, rigid body {body!r} needs {width}")
+        try:
+            t[k] = float(r[1])
+        except ValueError:
+            raise FileFormatError(f"{label}: line {lines[i]}: time cell {r[1]!r} is not a number") from None
+        frame[k] = float(r[0]) if _is_int(r[0]) else np.nan
+        for c, j in enumerate(columns):
+            cell = r[j]
+            if cell:
+                try:
+                    vals[k, c] = float(cell)
+                except ValueError:
+                    raise FileFormatError(
+                        f"{label}: line {lines[i]}, column {j + 1} ({body} {h['props'][j]} {h['axes'][j]}):"
+                        f" {cell!r} is not a number"
+                    ) from None
+        keep[k] = True
+    return t, frame, vals, keep
+
+
+def _euler_quaternions(ang: np.ndarray, rot_type: str) -> np.ndarray:
+    """(n, 4) xyzw of Euler angles ``ang`` (n, 3) in degrees, columns X, Y, Z, applied in the order
+    ``rot_type`` (e.g. ``XYZ``); NaN rows where an angle is blank."""
+    ok = np.all(np.isfinite(ang), axis=1)
+    quat = np.full((len(ang), 4), np.nan)
+    if ok.any():
+        by_axis = {"X": ang[ok, 0], "Y": ang[ok, 1], "Z": ang[ok, 2]}
+        seq = np.column_stack([by_axis[a] for a in rot_type])
+        quat[ok] = Rotation.from_euler(rot_type, seq, degrees=True).as_quat()
+    return quat
+
+
 def read_motive_csv(path: str | Path, body: str | None = None, *, length_unit: str | None = None,
                     rotation_order: str | None = None) -> PoseTrack:
     """Read one rigid body of a Motive CSV export into a :class:`PoseTrack` (m, quaternion xyzw).
@@ -322,33 +368,7 @@ def read_motive_csv(path: str | Path, body: str | None = None, *, length_unit: s
     jr = [cols[("Rotation", a)] for a in need]
     width = max(jp + jr) + 1
     data_rows = range(h["axis_i"] + 1, len(rows))
-    n = len(data_rows)
-    t = np.full(n, np.nan)
-    frame = np.full(n, np.nan)
-    vals = np.full((n, 3 + len(jr)), np.nan)
-    keep = np.zeros(n, bool)
-    for k, i in enumerate(data_rows):
-        r = rows[i]
-        if not any(r):
-            continue  # blank line (e.g. at the end)
-        if len(r) < width:
-            raise FileFormatError(f"{label}: line {lines[i]}: row has {len(r)} cells, rigid body {body!r} needs {width}")
-        try:
-            t[k] = float(r[1])
-        except ValueError:
-            raise FileFormatError(f"{label}: line {lines[i]}: time cell {r[1]!r} is not a number") from None
-        frame[k] = float(r[0]) if _is_int(r[0]) else np.nan
-        for c, j in enumerate(jp + jr):
-            cell = r[j]
-            if cell:
-                try:
-                    vals[k, c] = float(cell)
-                except ValueError:
-                    raise FileFormatError(
-                        f"{label}: line {lines[i]}, column {j + 1} ({body} {h['props'][j]} {h['axes'][j]}):"
-                        f" {cell!r} is not a number"
-                    ) from None
-        keep[k] = True
+    t, frame, vals, keep = _body_rows(label, rows, lines, data_rows, jp + jr, width, body, h)
     if not keep.any():
         raise FileFormatError(f"{label}: line {axis_line}: header found but no data rows follow (truncated file?)")
     t, vals, frame = t[keep], vals[keep], frame[keep]
@@ -365,16 +385,7 @@ def read_motive_csv(path: str | Path, body: str | None = None, *, length_unit: s
     scale, units = _length_scale(label, meta_line, meta_row.get("Length Units", ""), length_unit, spacing,
                                  n_pairs, n_frames, body)
     pos = vals[:, :3] * scale
-    if len(jr) == 4:
-        quat = vals[:, 3:7]
-    else:
-        ang = vals[:, 3:6]  # columns X, Y, Z; the order of application is the rotation type's
-        ok = np.all(np.isfinite(ang), axis=1)
-        quat = np.full((len(t), 4), np.nan)
-        if ok.any():
-            by_axis = {"X": ang[ok, 0], "Y": ang[ok, 1], "Z": ang[ok, 2]}
-            seq = np.column_stack([by_axis[a] for a in rot_type])
-            quat[ok] = Rotation.from_euler(rot_type, seq, degrees=True).as_quat()
+    quat = vals[:, 3:7] if len(jr) == 4 else _euler_quaternions(vals[:, 3:6], rot_type)
     fr = frame[np.isfinite(frame)]
     meta = {
         "format": "motive-csv",

@@ -69,7 +69,7 @@ class AtlasConfig:
     (:func:`~softphantom.estimation.atlas.basis.to_chebyshev`): n Hermite points stand in for
     ≈ 2n Lagrange points at the cost of one sensitivity a point (on a displacement axis: along q,
     the patch displacement at fixed (f_y, f_z, p_u), the f_x column over ∂ū/∂f_x = H_xᵀK⁻¹H_x;
-    along another load, at fixed q: two sensitivities, :func:`~softphantom.estimation.atlas.build._axis_derivative`). The
+    along another load, at fixed q: two sensitivities, :func:`~softphantom.estimation.atlas.solves._axis_derivative`). The
     coefficient arrays are 2n long along it (:attr:`coef_shape`); the default stretch counts the
     polynomial's 2n terms (docs/atlas.md).
 
