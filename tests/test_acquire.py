@@ -414,7 +414,7 @@ def test_acquire_status_row_agrees_with_the_state():
 
     def rows(state):
         con = Console(file=io.StringIO(), width=160)
-        con.print(_status_table(SourceStats(state, DecoderStats(), last=m), 3.0, 10, Path("a.csv")))
+        con.print(_status_table(SourceStats(state, DecoderStats(), last=m), 3.0, 10, Path("a.csv"), ARM_NAMES))
         text = con.file.getvalue()
         return {ln.split()[1]: " ".join(ln.split()[2:]) for ln in text.splitlines() if ln.split()[1:2]}
 

@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 
 from softphantom.design import geometry as geo
+from softphantom.records import ChannelLayout
 from softphantom.design.params import ARM_NAMES, BIPDesign, design_from_dict, design_to_toml, load_design
 from softphantom.errors import DesignError, UserError
 
@@ -141,7 +142,7 @@ def test_the_measured_row_obeys_maxwell_betti_reciprocity():
     # the one-sided difference at 100 Pa: the linear regime's reciprocity to a few 1e-3
     assert dvu[0] / p == pytest.approx(W[4, 3], rel=3e-3)
     # the estimator's own solver with the roles swapped: the urethra a row, the ball the load
-    swap = EquilibriumSolver(fem, H, fwd.probe, pressures=("ball",))
+    swap = EquilibriumSolver(fem, H, fwd.probe, layout=ChannelLayout(ARM_NAMES, ("urethra",), ("ball",)))
     assert swap.arm_names == (*ARM_NAMES, "urethra")
     r = swap.rest()
     assert r.W[4, 3] == pytest.approx(W[4, 3], rel=1e-9)

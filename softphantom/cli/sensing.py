@@ -76,10 +76,7 @@ def budget_cmd(
         console.print(f"wrote {out / 'budget.csv'} and {out / 'budget.png'}")
 
 
-def _status_table(stats, elapsed_s: float, rows: int, out: Path, arm_names: tuple[str, ...] | None = None):
-    from softphantom.sensing.measurement import ARM_NAMES
-
-    arm_names = arm_names or ARM_NAMES
+def _status_table(stats, elapsed_s: float, rows: int, out: Path, arm_names: tuple[str, ...]):
     d = stats.decoder
     t = Table(title=f"acquire → {out}  ({elapsed_s:.1f} s, {rows} rows)", show_header=False)
     t.add_column("what")
@@ -173,7 +170,7 @@ def acquire_cmd(
                     "started_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
                     "tare": tare.to_dict(), "chain": chain.summary(), "bench": bench.to_meta(), "contact": at,
                     "on_new_board": on_new_board, "model": str(model_dir) if model_dir else None}
-            rec = Recorder(out, meta, arm_names=chain.arm_names, cavity_names=chain.cavity_names)
+            rec = Recorder(out, meta, layout=chain.layout)
             for m in window:        # the tare window is part of the recording, re-converted
                 rec.write(to_measurement(m.t, m.seq, m.t_board, m.raw, m.osr, chain, tare))
             # 2. record
