@@ -18,6 +18,7 @@ import pytest
 import serial
 
 from softphantom.cli import main
+from softphantom.records import ARM_NAMES
 from softphantom.errors import FileFormatError, UserError
 from softphantom.sensing.chain import default_chain, nominal_tare, pa_to_counts, tare_from_window, MPXV7002
 from softphantom.sensing.protocol import (
@@ -224,7 +225,7 @@ def test_recording_round_trip_truncation_and_errors(tmp_path):
     path = tmp_path / "rec.csv"
     ms = _measurements(30, chain)
     meta = {"chain": chain.summary(), "tare": nominal_tare(chain).to_dict(), "osr": 100}
-    with Recorder(path, meta) as rec:
+    with Recorder(path, meta, layout=chain.layout) as rec:
         for m in ms:
             rec.write(m)
     lines = path.read_text().splitlines()
@@ -252,13 +253,13 @@ def test_recording_round_trip_truncation_and_errors(tmp_path):
     with pytest.raises(FileFormatError, match="line 1"):
         read_recording(tmp_path / "nometa.csv")
     with pytest.raises(UserError, match="never overwritten"):
-        Recorder(path, meta)
+        Recorder(path, meta, layout=chain.layout)
 
 
 def test_retare_from_raw_and_replay(tmp_path):
     chain = default_chain()
     path = tmp_path / "rec.csv"
-    with Recorder(path, {"chain": chain.summary()}) as rec:
+    with Recorder(path, {"chain": chain.summary()}, layout=chain.layout) as rec:
         for m in _measurements(20, chain):
             rec.write(m)
     back = read_recording(path)

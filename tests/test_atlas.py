@@ -412,7 +412,8 @@ def test_cli_estimate_atlas_option(coarse_model, atlas, tmp_path, capsys):
     chain, rng = default_chain(), np.random.default_rng(1)
     tare = nominal_tare(chain)
     def record(path, scale):
-        with Recorder(path, {"tare": tare.to_dict(), "chain": chain.summary(), "contact": "on-centre"}) as r:
+        with Recorder(path, {"tare": tare.to_dict(), "chain": chain.summary(), "contact": "on-centre"},
+                      layout=chain.layout) as r:
             for k in range(12):  # a push along +y: ~0.3 N at scale 1
                 dV = np.array([0.2, 0.15, -0.9, -0.85]) * 1e-9 * scale * k / 11
                 raw = simulate_raw(np.r_[boyle_dp(dV, chain.v_total_m3, tare.p0_Pa), 0.0], 100, rng)

@@ -151,7 +151,7 @@ class EquilibriumSolver:
         self._factor_at: tuple[np.ndarray, float] | None = None  # where the kept factor was made
         self.last_rate = 0.0  # mean chord contraction of the last solve
         self.krylov_iterations = 0  # GMRES iterations of the last linearization (0: direct)
-        self._arm_tris = [np.asarray(fem.cavities[a]) for a in arms]
+        self._arm_tris = [np.asarray(fem.cavities[a]) for a in self.arm_names]
         self._p_tris = [np.asarray(fem.cavities[c]) for c in pressures]
         self._ur_tris = self._p_tris[0] if pressures == (URETHRA,) else None  # the BIP's (the reduced model)
         self._V0 = np.array([cavity_volume(fem.x_rest, t) for t in self._arm_tris])

@@ -120,7 +120,7 @@ def simulate_raw(p_Pa, osr: int, rng: np.random.Generator,
     """
     if not isinstance(osr, (int, np.integer)) or osr < 1:
         raise UserError(f"osr must be a positive integer, got {osr!r}")
-    tr = transducers or board_transducers()
+    tr = transducers or board_transducers(BIP_LAYOUT)
     p = np.asarray(p_Pa, float)
     if p.shape[-1] != len(tr):
         raise UserError(f"p (Pa): last axis must have {len(tr)} channels, got {p.shape}")
