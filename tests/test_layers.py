@@ -157,7 +157,7 @@ READ_FILES = textwrap.dedent("""
 
     d = tempfile.mkdtemp()
     mcap = os.path.join(d, "s.mcap")
-    with SessionRecorder(mcap) as r:
+    with SessionRecorder(mcap, layout=None) as r:
         for i in range(20):
             r.write_tracker({"t_s": i / 100, "valid": True, "name": "bip", "position_m": [0.001 * i, 0, 0],
                              "quat_xyzw": [0, 0, 0, 1]})
