@@ -87,9 +87,9 @@ def test_two_cavities_end_to_end(tmp_path, capsys, models):
     run, est, ev = _run_estimate_evaluate(tmp_path, capsys, model, TWO, "OSR 200, 8.0 Hz")
     # the board: the four arms, then the urethra's and the tumour's transducers
     meta, cols = _header(run / "recording.csv")
-    assert tuple(cols) == measurement_columns(arms, ("urethra", "tumour"))
+    assert tuple(cols) == measurement_columns(model.layout)
     assert cols[4:10] == [*(f"raw_{a}" for a in arms), "raw_urethra", "raw_tumour"]
-    assert meta["bench"]["cavity_names"] == ["urethra", "tumour"]
+    assert meta["channels"]["actuated"] == ["urethra", "tumour"]
     assert meta["chain"]["transducers"] == ["MPXV7002"] * 4 + ["MPX4250D"] * 2
     _, truth_cols = _header(run / "truth.csv")
     assert {"p_urethra_kPa", "p_tumour_kPa", "dV_tumour_mm3"} <= set(truth_cols)
@@ -108,7 +108,7 @@ def test_two_cavities_end_to_end(tmp_path, capsys, models):
     assert np.isnan(rec.p_urethra).sum() == 0 and np.array_equal(rec.p_urethra, rec.pressures[:, 0])
     # the estimate file: a pressure column per cavity after the force, the measured pressures
     tab = read_table(est).columns
-    assert list(tab) == estimate_columns(list(model.targets), arms, ("urethra", "tumour"))
+    assert list(tab) == estimate_columns(list(model.targets), model.layout)
     sel = (tab["t_s"] > HOLD_S[0]) & (tab["t_s"] < HOLD_S[1])
     assert np.abs(tab["p_tumour_kPa"][sel] - P_TUMOUR_KPA).max() < 2 * code_kPa
     # the force, through the noisy chain (the truth on the estimator's own mesh). The
@@ -129,7 +129,7 @@ def test_two_cavities_end_to_end(tmp_path, capsys, models):
     assert main(["live", "--source", f"replay:{est}", "--model", str(tmp_path / "model"), "--speed", "0",
                  "--no-stream", "--http-port", "0", "--record", str(mcap)]) == 0
     r = read_mcap(mcap)
-    assert r.cavity_names == ("urethra", "tumour") and json.loads(r.metadata["cavity_names"]) == ["urethra", "tumour"]
+    assert r.cavity_names == ("urethra", "tumour") and json.loads(r.metadata["channels"])["actuated"] == ["urethra", "tumour"]
     assert len(r.estimates) == len(tab["t_s"])
     assert [k for k in r.estimates[0] if k.startswith("p_")] == ["p_urethra_kPa", "p_tumour_kPa"]
     held = [e for e in r.estimates if HOLD_S[0] < e["t_s"] < HOLD_S[1]]
@@ -149,11 +149,11 @@ def test_no_internal_cavity_records_arms_only_and_estimates(tmp_path, capsys, mo
     arms = model.design.arm_names
     run, est, ev = _run_estimate_evaluate(tmp_path, capsys, model, PUSH_ONLY, "OSR 200, 12.0 Hz")
     meta, cols = _header(run / "recording.csv")
-    assert tuple(cols) == measurement_columns(arms, ()) and not [c for c in cols if c.startswith("p_")]
-    assert meta["bench"]["cavity_names"] == [] and meta["chain"]["transducers"] == ["MPXV7002"] * 4
+    assert tuple(cols) == measurement_columns(model.layout) and not [c for c in cols if c.startswith("p_")]
+    assert meta["channels"]["actuated"] == [] and meta["chain"]["transducers"] == ["MPXV7002"] * 4
     _, truth_cols = _header(run / "truth.csv")
     assert not [c for c in truth_cols if c.startswith("p_") and c.endswith("_kPa")]
-    assert list(read_table(est).columns) == estimate_columns(list(model.targets), arms, ())
+    assert list(read_table(est).columns) == estimate_columns(list(model.targets), model.layout)
     force = {f.name: f for f in ev.force}
     assert force["|force|"].rmse < 0.1 * np.linalg.norm(PUSH_N), force["|force|"].rmse
 

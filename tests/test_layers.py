@@ -152,7 +152,8 @@ def test_the_checks_catch_a_cycle_and_an_upward_import():
 
 READ_FILES = textwrap.dedent("""
     import json, os, sys, tempfile
-    from softphantom.records import SessionWriter
+    from softphantom.records import BIP_LAYOUT
+from softphantom.records import SessionWriter
     from softphantom.stream.recording import SessionRecorder
 
     d = tempfile.mkdtemp()
@@ -166,8 +167,8 @@ READ_FILES = textwrap.dedent("""
         w.write_rows([[0.01 * i, i, 0, 0, 0, 0, 0] for i in range(5)])
     from softphantom.records import Estimate, estimate_columns
     est = os.path.join(d, "est.csv")
-    with SessionWriter(est, estimate_columns([]), {}) as w:
-        w.write_rows([[0.01 * i] + [0.0] * (len(estimate_columns([])) - 1) for i in range(5)])
+    with SessionWriter(est, estimate_columns([], BIP_LAYOUT), {}) as w:
+        w.write_rows([[0.01 * i] + [0.0] * (len(estimate_columns([], BIP_LAYOUT)) - 1) for i in range(5)])
 
     from softphantom.evaluation import read_estimate, read_truth
     from softphantom.stream import read_estimate_csv, read_recording

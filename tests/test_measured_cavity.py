@@ -87,10 +87,10 @@ def test_names_channels_and_columns(tmp_path):
     assert chain.names == (*SENSING, "urethra") and chain.arm_names == SENSING and chain.cavity_names == ("urethra",)
     assert [t.name for t in chain.transducers] == ["MPXV7002"] * 5 + ["MPX4250D"]
     meta = bench.to_meta()
-    assert meta["arm_names"] == list(SENSING) and "cavity_names" not in meta  # the urethra: the BIP's key
+    assert bench.layout == ChannelLayout(ARM_NAMES, ("ball",), ("urethra",)) == d.channel_layout
     assert meta["arm_cavity_mm3"][-1] == pytest.approx(268.082573, abs=1e-6)
-    assert BenchConfig.from_meta({"bench": meta}).arm_names == SENSING
-    cols = measurement_columns(chain.arm_names, chain.cavity_names)
+    assert BenchConfig.from_meta({"bench": meta, **bench.layout.to_meta()}).layout == bench.layout
+    cols = measurement_columns(chain.layout)
     assert {"raw_ball", "dp_ball_kPa", "dV_ball_mm3", "p_urethra_kPa"} <= set(cols) and "p_ball_kPa" not in cols
     # +400 Pa at the ball's transducer: ΔV by Boyle over the ball and its 12 m × 1.2 mm tube
     raw = np.array([pa_to_counts(0.0, t, 100) for t in chain.transducers])
@@ -106,7 +106,7 @@ def test_names_channels_and_columns(tmp_path):
     assert a.sensing_names == ARM_NAMES and a.pressure_names == ("urethra", "ball")
     achain = BenchConfig.from_model(SimpleNamespace(design=a)).chain()
     assert achain.names == (*ARM_NAMES, "urethra", "ball") and achain.transducers[-1].name == "MPX4250D"
-    assert "p_ball_kPa" in measurement_columns(achain.arm_names, achain.cavity_names)
+    assert "p_ball_kPa" in measurement_columns(achain.layout)
     # the demo inflates the actuated cavities only; the atlas's own pressure axis is the first
     # actuated one's (a second one's levels make a stack: tests/test_atlas_stack.py)
     assert [s.name for s in design_scenarios(d) if s.name.startswith("inflate")] == ["inflate-urethra"]

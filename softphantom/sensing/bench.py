@@ -122,7 +122,7 @@ class BenchConfig:
         sensors = getattr(d, "sensors", None)
         cal = {} if sensors is None else {"gains": sensors.gains, "tube_volume_factor": sensors.tube_volume_factor,
                                           "tube_tau_s": tuple(v * 1e-3 for v in getattr(sensors, "tube_tau_ms", ()))}
-        return cls(cavity_volumes_m3=vc, **cal, layout=model.layout,
+        return cls(cavity_volumes_m3=vc, **cal, layout=d.channel_layout,
                    **{k: v for k, v in kw.items() if v is not None})
 
     @classmethod
