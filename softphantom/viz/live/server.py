@@ -54,7 +54,9 @@ class LiveSession:
         geo = getattr(source, "geometry", None)
         # the phantom's channels: the page's cavity plot, the recording's schemas and metadata, the
         # sensor messages' keys (the page plots the pressures unless they are the BIP's urethra)
-        self.layout = source.layout
+        self.layout = getattr(source, "layout", None) or getattr(geo, "layout", None)
+        if self.layout is None:
+            raise TypeError(f"live source {type(source).__name__}: no layout and no geometry to take it from")
         self.arm_names, self.cavity_names = self.layout.sensing, self.layout.actuated
         self.geometry_json = None if geo is None else {**geo.to_json(), "arms": list(self.arm_names),
                                                        **self.layout.to_meta()}
