@@ -152,8 +152,7 @@ def test_the_checks_catch_a_cycle_and_an_upward_import():
 
 READ_FILES = textwrap.dedent("""
     import json, os, sys, tempfile
-    from softphantom.records import BIP_LAYOUT
-from softphantom.records import SessionWriter
+    from softphantom.records import BIP_LAYOUT, SessionWriter
     from softphantom.stream.recording import SessionRecorder
 
     d = tempfile.mkdtemp()

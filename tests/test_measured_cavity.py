@@ -110,8 +110,8 @@ def test_names_channels_and_columns(tmp_path):
     # the demo inflates the actuated cavities only; the atlas's own pressure axis is the first
     # actuated one's (a second one's levels make a stack: tests/test_atlas_stack.py)
     assert [s.name for s in design_scenarios(d) if s.name.startswith("inflate")] == ["inflate-urethra"]
-    assert check_atlas_cavities(SimpleNamespace(design=d)) == "urethra"
-    assert check_atlas_cavities(SimpleNamespace(design=a)) == "urethra"
+    assert check_atlas_cavities(SimpleNamespace(layout=d.channel_layout)) == "urethra"
+    assert check_atlas_cavities(SimpleNamespace(layout=a.channel_layout)) == "urethra"
 
 
 # --- reciprocity --------------------------------------------------------------------------------
