@@ -20,6 +20,7 @@ from softphantom.estimation.atlas.basis import cheb_basis, to_chebyshev
 from softphantom.estimation.atlas.catalogue import atlas_key
 from softphantom.estimation.atlas.store import FORMAT, AtlasCorrupt, atlas_path, load_atlas, save_atlas
 from softphantom.pose import Pose6, rigid_fit
+from softphantom.records import BIP_LAYOUT
 from softphantom.sensing import Measurement
 from shared_models import atlas_config, cached_atlas
 
@@ -604,7 +605,7 @@ def test_the_default_atlas_follows_the_elements_order(order, monkeypatch):
     monkeypatch.setattr(catalogue, "piece_keys", lambda model, cfg, acfg: ("key",) * len(acfg.pieces()))
     monkeypatch.setattr(atlas_mod, "build_atlas", build)
     with pytest.raises(Built) as got:
-        load_or_build(SimpleNamespace(element_order=order), CFG, None)
+        load_or_build(SimpleNamespace(element_order=order, layout=BIP_LAYOUT), CFG, None)
     acfg, pieces = got.value.args
     if order == 1:
         assert acfg == atlas_config.AtlasConfig() and pieces == (0,)
