@@ -116,6 +116,22 @@ class ChannelLayout:
         return {LAYOUT_KEY: json.dumps(self.to_dict())}
 
 
+class ChannelNames:
+    """For a record that carries a ``layout``: its names, read from it (never stored apart)."""
+
+    @property
+    def arm_names(self) -> tuple[str, ...]:
+        """The volume channels in the sensor order (the layout's ``sensing``: the arms, then the
+        measured cavities): the columns of ``dp``/``dV``, the keys of ``volume_pred``/``volume_meas``."""
+        return self.layout.sensing  # type: ignore[attr-defined]
+
+    @property
+    def cavity_names(self) -> tuple[str, ...]:
+        """The actuated cavities (the layout's ``actuated``): the pressure channels, after the volume
+        channels."""
+        return self.layout.actuated  # type: ignore[attr-defined]
+
+
 BIP_LAYOUT = ChannelLayout(ARM_NAMES, (), BIP_CAVITIES)
 """The BIP's: its four arms, no measured cavity, the urethra actuated."""
 

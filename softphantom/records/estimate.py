@@ -32,7 +32,7 @@ import numpy as np
 
 from softphantom.errors import FileFormatError
 from softphantom.pose import Pose6
-from softphantom.records.channels import ChannelLayout
+from softphantom.records.channels import ChannelLayout, ChannelNames
 from softphantom.records.names import (
     BIP_CAVITIES,
     EVENT_PREFIX,
@@ -47,7 +47,7 @@ from softphantom.records.names import (
 
 
 @dataclass(frozen=True)
-class Estimate:
+class Estimate(ChannelNames):
     """One estimate of the phantom's state at time ``t`` (SI units).
 
     ``force`` N (3,), ``p_urethra`` Pa (NaN without a urethra), ``pose`` of the marker rigid
@@ -86,21 +86,11 @@ class Estimate:
             object.__setattr__(self, "pressures_Pa", dict(self.extra["pressures_Pa"]))
 
     @property
-    def arm_names(self) -> tuple[str, ...]:
-        """The volume channels (the layout's ``sensing``): the keys of ``volume_pred``/``volume_meas``."""
-        return self.layout.sensing
-
-    @property
     def cavity_pressures(self) -> dict[str, float]:
         """The actuated cavities' gauge pressures (Pa) by name, in the layout's order."""
         given = {} if self.pressures_Pa is None else self.pressures_Pa
         return {c: float(given[c]) if c in given else float(self.p_urethra) if c == BIP_CAVITIES[0] else math.nan
                 for c in self.layout.actuated}
-
-    @property
-    def cavity_names(self) -> tuple[str, ...]:
-        """The actuated cavities (the estimate file's ``p_<cavity>_kPa`` columns)."""
-        return self.layout.actuated
 
 
 def _num(x: Any) -> float | None:

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from softphantom.errors import UserError
-from softphantom.records.channels import BIP_LAYOUT, ChannelLayout, read_layout
+from softphantom.records.channels import BIP_LAYOUT, ChannelLayout, ChannelNames, read_layout
 from softphantom.records.names import SCENARIO_CLOCK
 from softphantom.sensing.chain import SensorChain, Tare, default_chain, nominal_tare, tare_from_window
 from softphantom.sensing.pneumatics import tube_volume_m3
@@ -54,7 +54,7 @@ def _positive(name: str, v: float) -> float:
 
 
 @dataclass(frozen=True)
-class BenchConfig:
+class BenchConfig(ChannelNames):
     """The pneumatic bench (SI): per-channel tube ``tube_length_m`` × ``tube_id_m`` (inner diameter),
     the volume channels' cavities ``cavity_volumes_m3`` (one per volume channel of ``layout``, its
     ``sensing``: the arms, then a design's measured internal cavities, each read as an arm is; the
@@ -100,16 +100,6 @@ class BenchConfig:
             raise UserError(f"tube time constants (ms): expected {n} positive values, got "
                             f"{[v * 1e3 for v in tt]!r}")
         object.__setattr__(self, "tube_tau_s", tt)
-
-    @property
-    def arm_names(self) -> tuple[str, ...]:
-        """The volume channels (the layout's ``sensing``)."""
-        return self.layout.sensing
-
-    @property
-    def cavity_names(self) -> tuple[str, ...]:
-        """The actuated cavities' pressure channels (the layout's ``actuated``)."""
-        return self.layout.actuated
 
     @classmethod
     def from_model(cls, model, **kw) -> "BenchConfig":

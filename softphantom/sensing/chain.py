@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from softphantom.errors import UserError
-from softphantom.records.channels import BIP_LAYOUT, ChannelLayout
+from softphantom.records.channels import BIP_LAYOUT, ChannelLayout, ChannelNames
 from softphantom.records.names import BIP_CAVITIES
 from softphantom.sensing.measurement import (
     ARM_CAVITY_VOLUMES_M3,
@@ -157,7 +157,7 @@ def channel_status(raw, osr: int, chain: SensorChain, margin: float = 0.1) -> st
 
 
 @dataclass(frozen=True, eq=False)
-class SensorChain:
+class SensorChain(ChannelNames):
     """Everything needed to turn raw sums into a :class:`Measurement` (except the tare).
 
     ``v_total_m3`` (n,) gas volume per volume channel (cavity + tube + dead volume), ``layout``
@@ -187,16 +187,6 @@ class SensorChain:
     @property
     def n_arms(self) -> int:
         return len(np.atleast_1d(self.v_total_m3))
-
-    @property
-    def arm_names(self) -> tuple[str, ...]:
-        """The volume channels, in the sensor order (the layout's ``sensing``)."""
-        return self.layout.sensing
-
-    @property
-    def cavity_names(self) -> tuple[str, ...]:
-        """The actuated cavities' pressure channels, after the volume channels."""
-        return self.layout.actuated
 
     @property
     def n_channels(self) -> int:

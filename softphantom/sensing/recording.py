@@ -40,7 +40,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from softphantom.errors import FileFormatError
-from softphantom.records.channels import LAYOUT_KEY, ChannelLayout, read_layout
+from softphantom.records.channels import LAYOUT_KEY, ChannelLayout, ChannelNames, read_layout
 from softphantom.records.measurement import Measurement, SourceEvent, event_row, measurement_row
 from softphantom.records.names import (
     BIP_CAVITIES,
@@ -118,7 +118,7 @@ class Recorder:
 
 
 @dataclass(frozen=True, eq=False)
-class Recording:
+class Recording(ChannelNames):
     """A recording read back (SI units): ``raw`` (n, channels), ``dp`` (n, volume channels) Pa,
     ``dV`` (n, volume channels) m³, ``pressures`` (n, M) Pa the actuated cavities' gauge pressures,
     ...; ``truncated`` when the last row was incomplete and dropped, ``events`` the link events
@@ -141,16 +141,6 @@ class Recording:
 
     def __len__(self) -> int:
         return len(self.t)
-
-    @property
-    def arm_names(self) -> tuple[str, ...]:
-        """The volume channels (the layout's ``sensing``): the columns of ``dp`` and ``dV``."""
-        return self.layout.sensing
-
-    @property
-    def cavity_names(self) -> tuple[str, ...]:
-        """The actuated cavities (the layout's ``actuated``): the columns of ``pressures``."""
-        return self.layout.actuated
 
     @property
     def p_urethra(self) -> np.ndarray:

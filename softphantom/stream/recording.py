@@ -53,7 +53,7 @@ from mcap.writer import CompressionType, Writer
 
 from softphantom.errors import FileFormatError, UserError
 from softphantom.records.measurement import measurement_to_message  # noqa: F401  (re-exported)
-from softphantom.records.channels import BIP_LAYOUT, LAYOUT_KEY, ChannelLayout, read_layout
+from softphantom.records.channels import BIP_LAYOUT, LAYOUT_KEY, ChannelLayout, ChannelNames, read_layout
 from softphantom.records.names import (
     POSE_COLUMNS,
     arm_names_of,
@@ -237,7 +237,7 @@ class SessionRecorder:
 
 
 @dataclass(frozen=True)
-class Recording:
+class Recording(ChannelNames):
     """What :func:`read_recording` found: messages per channel (decoded JSON dicts, in file order),
     the ``metadata`` record, ``complete`` (the file was closed cleanly), ``bytes_read`` (where a
     truncated file's last complete record ended), ``layout`` the phantom's channels (the module
@@ -253,16 +253,6 @@ class Recording:
     bytes_read: int = 0
     other: dict[str, list[dict[str, Any]]] = field(default_factory=dict)
     layout: ChannelLayout = BIP_LAYOUT
-
-    @property
-    def arm_names(self) -> tuple[str, ...]:
-        """The volume channels (the layout's ``sensing``)."""
-        return self.layout.sensing
-
-    @property
-    def cavity_names(self) -> tuple[str, ...]:
-        """The actuated cavities (the layout's ``actuated``)."""
-        return self.layout.actuated
 
 
 def iter_records(path: str | os.PathLike) -> Iterator[tuple[str, Any]]:

@@ -32,7 +32,7 @@ import numpy as np
 
 from softphantom.errors import FileFormatError, UserError
 from softphantom.records.estimate import Estimate, message_to_estimate
-from softphantom.records.channels import BIP_LAYOUT, ChannelLayout, read_layout
+from softphantom.records.channels import BIP_LAYOUT, ChannelLayout, ChannelNames, read_layout
 
 
 TRI6_SPLIT = np.array([[0, 3, 5], [3, 1, 4], [5, 4, 2], [3, 4, 5]])
@@ -50,7 +50,7 @@ def split_tri6(faces6: np.ndarray) -> np.ndarray:
 
 
 @dataclass(frozen=True)
-class LiveGeometry:
+class LiveGeometry(ChannelNames):
     """The surfaces the live view draws (SI units).
 
     ``nodes`` (n, 3) m rest positions of the drawn nodes; ``faces`` (S, 3) indices into ``nodes``,
@@ -75,11 +75,6 @@ class LiveGeometry:
     contact_radius_m: float | None = None
     cavities: dict[str, np.ndarray] = field(default_factory=dict)
     layout: ChannelLayout = BIP_LAYOUT
-
-    @property
-    def arm_names(self) -> tuple[str, ...]:
-        """The volume channels (the layout's ``sensing``)."""
-        return self.layout.sensing
 
     @classmethod
     def from_model(cls, model: Any, p_ext: str = "on-centre", contact_radius_m: float | None = None) -> "LiveGeometry":
