@@ -26,7 +26,7 @@ import numpy as np
 from softphantom.records.estimate import Estimate, estimate_row, is_marker, marker_estimate
 from softphantom.records.channels import ChannelLayout
 from softphantom.records.names import EVENT_PREFIX, estimate_columns
-from softphantom.records.session import SessionWriter
+from softphantom.records.session import OverSessionWriter, SessionWriter
 
 __all__ = ["EVENT_PREFIX", "EstimateWriter", "EventMarkers", "StepStats", "estimate_columns", "estimate_row",
            "estimate_stream", "is_marker", "iter_samples", "marker_estimate", "write_estimates"]
@@ -72,7 +72,7 @@ class StepStats:
         return min(self.LO * 10 ** (k / self.PER_DECADE), self.max)
 
 
-class EstimateWriter:
+class EstimateWriter(OverSessionWriter):
     """Write estimates to the estimate file (a session file, :mod:`softphantom.records.session`):
     the metadata line (with the phantom's ``layout`` under ``channels``), the header (its volume
     and pressure columns), one row per estimate, each handed to the OS as it is written."""
@@ -93,15 +93,6 @@ class EstimateWriter:
             raise ValueError(f"an estimate of channels {list(e.layout.channels)} in a file of "
                              f"{list(self.layout.channels)}")
         self._w.write_row(estimate_row(e, self.target_names))
-
-    def close(self) -> None:
-        self._w.close()
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
 
 
 def write_estimates(path, estimates: Iterable[Estimate], target_names: Iterable[str],

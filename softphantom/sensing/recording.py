@@ -50,7 +50,7 @@ from softphantom.records.names import (
     measurement_columns,
     pressure_names_of,
 )
-from softphantom.records.session import SessionWriter, TruncatedRecordingWarning, read_session_file
+from softphantom.records.session import OverSessionWriter, SessionWriter, TruncatedRecordingWarning, read_session_file
 from softphantom.sensing.chain import SensorChain, Tare, to_measurement
 
 __all__ = ["COLUMNS", "EVENT_PREFIX", "KIND", "LAYOUT_KEY", "Recorder", "Recording", "TruncatedRecordingWarning",
@@ -61,7 +61,7 @@ COLUMNS: tuple[str, ...] = MEASUREMENT_COLUMNS
 FSYNC_EVERY_S = 0.1
 
 
-class Recorder:
+class Recorder(OverSessionWriter):
     """Append Measurements to a new file; ``metadata`` (JSON-able dict) goes on the first line
     with ``layout``, the board's :class:`~softphantom.records.channels.ChannelLayout` (its columns).
 
@@ -106,15 +106,6 @@ class Recorder:
     def tick(self) -> None:
         """fsync if rows were written and the last fsync is older than ``fsync_every_s``."""
         self._w.tick()
-
-    def close(self) -> None:
-        self._w.close()
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
 
 
 @dataclass(frozen=True, eq=False)
