@@ -311,18 +311,24 @@ def test_cli_acquire_refuses_a_tare_window_not_at_rest(tmp_path, capsys):
     assert "front_zpos" in capsys.readouterr().err and not out.exists()
 
 
+def _acquire_until(board, out, lines: int, **popen) -> subprocess.Popen:
+    """An ``acquire`` process recording ``board`` (streaming) into ``out``, once ``out`` holds ``lines``
+    lines (or 60 s passed)."""
+    _board_forever(board, 5000)
+    proc = subprocess.Popen([sys.executable, "-m", "softphantom", "acquire", "--port", board.path,
+                             "--out", str(out), "--tare-s", "0.2"], **popen)
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and (not out.exists() or out.read_bytes().count(b"\n") < lines):
+        time.sleep(0.05)
+    return proc
+
+
 def test_kill_9_of_a_recording_process_reads_back(tmp_path):
     board = FakeBoard()
     out = tmp_path / "k.csv"
     proc = None
     try:
-        _board_forever(board, 5000)
-        proc = subprocess.Popen([sys.executable, "-m", "softphantom", "acquire", "--port", board.path,
-                                 "--out", str(out), "--tare-s", "0.2"],
-                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        deadline = time.monotonic() + 60
-        while time.monotonic() < deadline and (not out.exists() or out.read_bytes().count(b"\n") < 40):
-            time.sleep(0.05)
+        proc = _acquire_until(board, out, 40, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", TruncatedRecordingWarning)
             seen = read_recording(out)                                   # what a reader saw before the kill
@@ -348,13 +354,8 @@ def test_ctrl_c_stops_acquire_cleanly(tmp_path):
     out = tmp_path / "c.csv"
     proc = None
     try:
-        _board_forever(board, 5000)
-        proc = subprocess.Popen([sys.executable, "-m", "softphantom", "acquire", "--port", board.path,
-                                 "--out", str(out), "--tare-s", "0.2"],
-                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=sigint_default)
-        deadline = time.monotonic() + 60
-        while time.monotonic() < deadline and (not out.exists() or out.read_bytes().count(b"\n") < 20):
-            time.sleep(0.05)
+        proc = _acquire_until(board, out, 20, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                              preexec_fn=sigint_default)
         proc.send_signal(signal.SIGINT)
         stdout, stderr = proc.communicate(timeout=60)
     finally:
