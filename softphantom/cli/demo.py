@@ -9,8 +9,9 @@ from pathlib import Path
 import typer
 
 from softphantom.cli.app import app, console
-from softphantom.cli.options import (AtlasGrid, Estimator, ModelDir, Osr, Out, Overwrite, Scheduler, Seed, TruthMeshScale,
-                                     TruthOrder, Workers, check_output, check_workers, staged_output)
+from softphantom.cli.options import (AtlasGrid, Estimator, Force, MeshSizeMm, ModelDir, Osr, Out, Overwrite, Scheduler,
+                                     Seed, TruthMeshScale, TruthOrder, Workers, check_output, check_workers,
+                                     staged_output)
 from softphantom.errors import UserError
 from softphantom.progress import status
 
@@ -91,9 +92,7 @@ def _atlas_note(r: dict) -> str:
 @app.command("demo")
 def demo_cmd(
     out: Out = Path("out/demo"),
-    mesh_size_mm: float = typer.Option(None, "--mesh-size-mm", help="Mesh the default design at this bulk size (mm) "
-                                       "instead of using its shipped quadratic model (9 mm; that mesh has no atlas yet: "
-                                       "give --atlas-grid or --estimator refresh)."),
+    mesh_size_mm: MeshSizeMm = None,
     scenarios: list[str] = typer.Option(None, "--scenarios", help="Scenario names or TOML files (repeat; default: the "
                                         "three bundled on-centre ones, whose atlas ships; push-off-centre needs the "
                                         "off-centre atlas: `softphantom atlas build --at off-centre`, or --atlas-grid)."),
@@ -101,7 +100,7 @@ def demo_cmd(
     osr: Osr = 100,
     truth_mesh_scale: TruthMeshScale = 0.75,
     truth_order: TruthOrder = 2,
-    force: bool = typer.Option(False, "--force", help="Mesh above the element-count limit (docs/robustness.md)."),
+    force: Force = False,
     model_dir: ModelDir = None,
     design_file: Path = typer.Option(None, "--design", help="A design file (TOML/JSON) instead of the default "
                                      "design, e.g. examples/organs/kidney.toml: meshed as its [mesh] says (or at "
@@ -123,7 +122,9 @@ def demo_cmd(
     actuated internal cavity, refresh (re-linearized inside each step) for one of none. --atlas-grid:
     build a small atlas for the demo over the scenarios' own loads (e.g. 5,5,5,2; for a model
     without its atlas) instead of using the model's (the default design's ships with softphantom).
-    The truth solves and atlas builds run on --scheduler."""
+    The truth solves and atlas builds run on --scheduler. --mesh-size-mm: mesh the default design at
+    it instead of using its shipped quadratic model (9 mm; that mesh has no atlas yet: give
+    --atlas-grid or --estimator refresh)."""
     from softphantom.cli.virtual import _config
     from softphantom.design import build_model, default_design, load_design, load_model, save_model
     from softphantom.estimation.select import atlas_config_from_options, check_estimator_kind

@@ -11,7 +11,8 @@ from typing import Optional
 import typer
 
 from softphantom.cli.app import app, console
-from softphantom.cli.options import Out, Overwrite, Png, check_choice, check_positive, staged_output
+from softphantom.cli.options import (Force, MeshSizeMm, Out, Overwrite, Png, check_choice, check_positive,
+                                     staged_output)
 from softphantom.errors import UserError
 from softphantom.progress import status
 
@@ -57,14 +58,11 @@ def design_command(
     out: Out = ...,
     config: Optional[Path] = typer.Option(None, "--config", help="Design file (.toml or .json); default: the "
                                           "default design, quadratic, shipped meshed (its atlas too)."),
-    mesh_size_mm: Optional[float] = typer.Option(
-        None, "--mesh-size-mm", help="Bulb element size in mm; arm and cavity sizes scale with it."
-    ),
+    mesh_size_mm: MeshSizeMm = None,
     element_order: Optional[int] = typer.Option(None, "--element-order", help="1 (4-node tets: fast, about half "
                                                 "the yaw) or 2 (10-node tets); default: the design's."),
     png: Png = True,
-    force: bool = typer.Option(False, "--force", help="Mesh above the element-count limit, keep cavity volumes "
-                               "beyond the tolerance and an unobservable arm layout (docs/robustness.md)."),
+    force: Force = False,
     observe: str = typer.Option("auto", "--observability",
                                 help="How well the arm volumes see the loads (docs/estimation.md): 'envelope' solves the model "
                                 "at rest and at 8 loads over the load envelope, 'rest' at rest only, 'off' not at all; "

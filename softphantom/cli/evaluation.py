@@ -8,8 +8,8 @@ import typer
 from rich.table import Table
 
 from softphantom.cli.app import app, console
-from softphantom.cli.options import (Body, Out, Overwrite, check_choice, check_output, check_positive, finite_number,
-                                     staged_output)
+from softphantom.cli.options import (Body, NatnetVersion, Out, Overwrite, check_choice, check_output, check_positive,
+                                     finite_number, staged_output)
 from softphantom.errors import UserError
 
 
@@ -87,7 +87,7 @@ def evaluate_cmd(
     length_unit: str = typer.Option(None, "--length-unit", help="Motive CSV without 'Length Units': m, cm or mm."),
     rotation_order: str = typer.Option(None, "--rotation-order", help="Motive CSV Euler angles without 'Rotation Type': e.g. XYZ."),
     overwrite: Overwrite = False,
-    natnet_version: str = typer.Option(None, "--natnet-version", help="NatNet capture without the server-info reply: 3.0 or 4.1."),
+    natnet_version: NatnetVersion = None,
     clock_offset_ms: float = typer.Option(None, "--clock-offset-ms", help="The truth's clock minus the estimate's at "
                                           "the same instant (ms), if known (a virtual run: 1000 × tracker.clock_offset_s "
                                           "of virtual.json): splits the lag into that offset and the estimator's latency."),

@@ -183,14 +183,19 @@ Body = Annotated[Optional[str], typer.Option(
     "--body", help="Rigid body: its Motive name or NatNet id, or body/topic in a bag; may be left out when "
     "there is one.")]
 Png = Annotated[bool, typer.Option("--png/--no-png", help="Draw the result as a PNG (mesh.png, assembly.png).")]
+MeshSizeMm = Annotated[Optional[float], typer.Option(
+    "--mesh-size-mm", help="Bulb element size in mm; arm and cavity sizes scale with it.")]
+Force = Annotated[bool, typer.Option(
+    "--force", help="Go past the mesh guards: mesh above the element-count limit (design also: keep cavity "
+    "volumes beyond the tolerance and an unobservable arm layout; docs/robustness.md).")]
+NatnetVersion = Annotated[Optional[str], typer.Option(
+    "--natnet-version", help="NatNet version, 3.0 or 4.1: the one virtual serve speaks, or the one evaluate "
+    "reads a capture without the server's info reply as.")]
 
 FLAGS_OF_SEVERAL_MEANINGS = {
     "--config": "design: a design file; sweep: a sweep file",
-    "--force": "design and demo: past the guards each has (docs/robustness.md)",
     "--max-force-N": "estimate and live: the estimate's bound; atlas check: a goal on its error",
-    "--mesh-size-mm": "design: the element size; demo: mesh the default design at it instead of the shipped model",
     "--natnet": "track: the server's address; virtual serve: serve one",
-    "--natnet-version": "evaluate: of a capture; virtual serve: the version to speak",
     "--rest-window-s": "evaluate: START,END on the tracker clock; track: a length at the start",
     "--truth": "evaluate: the truth of one estimate file; calibrate: a tracker take per --recording",
 }

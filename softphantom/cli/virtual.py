@@ -7,9 +7,9 @@ from pathlib import Path
 import typer
 
 from softphantom.cli.app import app, console
-from softphantom.cli.options import (AllowRemote, Board, Mcu, ModelDir, Osr, Out, Overwrite, Scenario, Seed, Speed,
-                                     TruthMeshScale, TruthOrder, TubeIdMm, TubeLengthM, check_output, staged_output,
-                                     stopped)
+from softphantom.cli.options import (AllowRemote, Board, Mcu, ModelDir, NatnetVersion, Osr, Out, Overwrite, Scenario,
+                                     Seed, Speed, TruthMeshScale, TruthOrder, TubeIdMm, TubeLengthM, check_output,
+                                     staged_output, stopped)
 from softphantom.errors import UserError
 
 virtual_app = typer.Typer(help="Virtual phantom: scripted scenarios → sensor frames + tracker stream.",
@@ -133,7 +133,7 @@ def serve_cmd(
     natnet: bool = typer.Option(False, "--natnet", help="Also serve the tracker as a NatNet server (softphantom track --natnet HOST)."),
     natnet_host: str = typer.Option("127.0.0.1", "--natnet-host", help="Interface of the NatNet server; loopback unless set explicitly."),
     natnet_port: int = typer.Option(1510, "--natnet-port", help="NatNet command port (data go to each client that connects)."),
-    natnet_version: str = typer.Option("4.1", "--natnet-version", help="NatNet version to speak: 3.0 or 4.1."),
+    natnet_version: NatnetVersion = "4.1",
     allow_remote: AllowRemote = False,
     board: Board = "python",
     mcu: Mcu = "uno",
