@@ -8,6 +8,8 @@ import numpy as np
 
 
 class EchoEstimator:
+    from softphantom.records import BIP_LAYOUT as layout
+
     target_names = ("apex",)
 
     def step(self, m, skipped=0):
@@ -15,4 +17,5 @@ class EchoEstimator:
         from softphantom.pose import Pose6
 
         z = np.zeros(3)
-        return Estimate(m.t, z, 0.0, Pose6(z, z), {"apex": z}, m.dp, m.dV, 1.0, "optimal", 1e-4, skipped, m.status)
+        return Estimate(m.t, z, 0.0, Pose6(z, z), {"apex": z}, m.dp, m.dV, 1.0, "optimal", 1e-4, skipped, m.status,
+                        layout=self.layout)

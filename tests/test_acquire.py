@@ -18,6 +18,7 @@ import pytest
 import serial
 
 from softphantom.cli import main
+from softphantom.records import ARM_NAMES
 from softphantom.errors import FileFormatError, UserError
 from softphantom.sensing.chain import default_chain, nominal_tare, pa_to_counts, tare_from_window, MPXV7002
 from softphantom.sensing.protocol import (
@@ -224,7 +225,7 @@ def test_recording_round_trip_truncation_and_errors(tmp_path):
     path = tmp_path / "rec.csv"
     ms = _measurements(30, chain)
     meta = {"chain": chain.summary(), "tare": nominal_tare(chain).to_dict(), "osr": 100}
-    with Recorder(path, meta) as rec:
+    with Recorder(path, meta, layout=chain.layout) as rec:
         for m in ms:
             rec.write(m)
     lines = path.read_text().splitlines()
@@ -252,13 +253,13 @@ def test_recording_round_trip_truncation_and_errors(tmp_path):
     with pytest.raises(FileFormatError, match="line 1"):
         read_recording(tmp_path / "nometa.csv")
     with pytest.raises(UserError, match="never overwritten"):
-        Recorder(path, meta)
+        Recorder(path, meta, layout=chain.layout)
 
 
 def test_retare_from_raw_and_replay(tmp_path):
     chain = default_chain()
     path = tmp_path / "rec.csv"
-    with Recorder(path, {"chain": chain.summary()}) as rec:
+    with Recorder(path, {"chain": chain.summary()}, layout=chain.layout) as rec:
         for m in _measurements(20, chain):
             rec.write(m)
     back = read_recording(path)
@@ -310,18 +311,24 @@ def test_cli_acquire_refuses_a_tare_window_not_at_rest(tmp_path, capsys):
     assert "front_zpos" in capsys.readouterr().err and not out.exists()
 
 
+def _acquire_until(board, out, lines: int, **popen) -> subprocess.Popen:
+    """An ``acquire`` process recording ``board`` (streaming) into ``out``, once ``out`` holds ``lines``
+    lines (or 60 s passed)."""
+    _board_forever(board, 5000)
+    proc = subprocess.Popen([sys.executable, "-m", "softphantom", "acquire", "--port", board.path,
+                             "--out", str(out), "--tare-s", "0.2"], **popen)
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and (not out.exists() or out.read_bytes().count(b"\n") < lines):
+        time.sleep(0.05)
+    return proc
+
+
 def test_kill_9_of_a_recording_process_reads_back(tmp_path):
     board = FakeBoard()
     out = tmp_path / "k.csv"
     proc = None
     try:
-        _board_forever(board, 5000)
-        proc = subprocess.Popen([sys.executable, "-m", "softphantom", "acquire", "--port", board.path,
-                                 "--out", str(out), "--tare-s", "0.2"],
-                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        deadline = time.monotonic() + 60
-        while time.monotonic() < deadline and (not out.exists() or out.read_bytes().count(b"\n") < 40):
-            time.sleep(0.05)
+        proc = _acquire_until(board, out, 40, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", TruncatedRecordingWarning)
             seen = read_recording(out)                                   # what a reader saw before the kill
@@ -347,13 +354,8 @@ def test_ctrl_c_stops_acquire_cleanly(tmp_path):
     out = tmp_path / "c.csv"
     proc = None
     try:
-        _board_forever(board, 5000)
-        proc = subprocess.Popen([sys.executable, "-m", "softphantom", "acquire", "--port", board.path,
-                                 "--out", str(out), "--tare-s", "0.2"],
-                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=sigint_default)
-        deadline = time.monotonic() + 60
-        while time.monotonic() < deadline and (not out.exists() or out.read_bytes().count(b"\n") < 20):
-            time.sleep(0.05)
+        proc = _acquire_until(board, out, 20, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                              preexec_fn=sigint_default)
         proc.send_signal(signal.SIGINT)
         stdout, stderr = proc.communicate(timeout=60)
     finally:
@@ -414,7 +416,7 @@ def test_acquire_status_row_agrees_with_the_state():
 
     def rows(state):
         con = Console(file=io.StringIO(), width=160)
-        con.print(_status_table(SourceStats(state, DecoderStats(), last=m), 3.0, 10, Path("a.csv")))
+        con.print(_status_table(SourceStats(state, DecoderStats(), last=m), 3.0, 10, Path("a.csv"), ARM_NAMES))
         text = con.file.getvalue()
         return {ln.split()[1]: " ".join(ln.split()[2:]) for ln in text.splitlines() if ln.split()[1:2]}
 

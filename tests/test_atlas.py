@@ -20,6 +20,7 @@ from softphantom.estimation.atlas.basis import cheb_basis, to_chebyshev
 from softphantom.estimation.atlas.catalogue import atlas_key
 from softphantom.estimation.atlas.store import FORMAT, AtlasCorrupt, atlas_path, load_atlas, save_atlas
 from softphantom.pose import Pose6, rigid_fit
+from softphantom.records import BIP_LAYOUT
 from softphantom.sensing import Measurement
 from shared_models import atlas_config, cached_atlas
 
@@ -412,7 +413,8 @@ def test_cli_estimate_atlas_option(coarse_model, atlas, tmp_path, capsys):
     chain, rng = default_chain(), np.random.default_rng(1)
     tare = nominal_tare(chain)
     def record(path, scale):
-        with Recorder(path, {"tare": tare.to_dict(), "chain": chain.summary(), "contact": "on-centre"}) as r:
+        with Recorder(path, {"tare": tare.to_dict(), "chain": chain.summary(), "contact": "on-centre"},
+                      layout=chain.layout) as r:
             for k in range(12):  # a push along +y: ~0.3 N at scale 1
                 dV = np.array([0.2, 0.15, -0.9, -0.85]) * 1e-9 * scale * k / 11
                 raw = simulate_raw(np.r_[boyle_dp(dV, chain.v_total_m3, tare.p0_Pa), 0.0], 100, rng)
@@ -603,7 +605,7 @@ def test_the_default_atlas_follows_the_elements_order(order, monkeypatch):
     monkeypatch.setattr(catalogue, "piece_keys", lambda model, cfg, acfg: ("key",) * len(acfg.pieces()))
     monkeypatch.setattr(atlas_mod, "build_atlas", build)
     with pytest.raises(Built) as got:
-        load_or_build(SimpleNamespace(element_order=order), CFG, None)
+        load_or_build(SimpleNamespace(element_order=order, layout=BIP_LAYOUT), CFG, None)
     acfg, pieces = got.value.args
     if order == 1:
         assert acfg == atlas_config.AtlasConfig() and pieces == (0,)

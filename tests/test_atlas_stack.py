@@ -30,6 +30,7 @@ from softphantom.estimation.atlas.map import AtlasStack, MixedPiece, lagrange_we
 from softphantom.estimation.atlas.catalogue import atlas_key
 from softphantom.estimation.atlas.store import atlas_path
 from softphantom.estimation.forward import ForwardModel
+from softphantom.records import ChannelLayout
 
 MESH = {"size_mm": 12.0, "surface_size_mm": 12.0, "arm_size_mm": 9.0, "cavity_segments": 12.0}
 CFG = EstimatorConfig(mode="sync")
@@ -183,7 +184,7 @@ def test_an_atlas_and_a_model_of_other_pressures_are_refused(built):
     with pytest.raises(UserError, match=r"^atlas of 1 internal pressure, the model has 2 actuated cavities "
                                         r"\(tumour, urethra\); rebuild it$"):
         AtlasEstimator(built.model, CFG, built.stack.levels[0])
-    none = SimpleNamespace(design=SimpleNamespace(pressure_names=()))
+    none = SimpleNamespace(layout=ChannelLayout(("a", "b", "c")))  # no actuated cavity
     with pytest.raises(UserError, match=r"^cavities: the atlas tabulates at least one internal pressure; this design "
                                         r"has 0: use --estimator refresh$"):
         check_atlas_cavities(none)

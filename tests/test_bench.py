@@ -63,7 +63,7 @@ def _record(path, bench, contact="off-centre", n=40, push_codes=0):
         frames.append(encode_data(k, 13_000 * k, 25, r))
     ms = list(FrameSource([b"".join(frames)], chain, tare))
     with Recorder(path, {"bench": bench.to_meta(), "tare": tare.to_dict(), "chain": chain.summary(),
-                         "contact": contact}) as rec:
+                         "contact": contact}, layout=chain.layout) as rec:
         for m in ms:
             rec.write(m)
     return ms

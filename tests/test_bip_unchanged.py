@@ -58,6 +58,8 @@ def test_the_shipped_models_estimates_of_the_demo_recordings_are_unchanged(tmp_p
         assert got.meta.pop("contact_from") == "--at"
         assert got.meta.pop("rest_check")["ok"]  # the shipped atlas returns the rest state at rest
         assert got.meta.pop("lag_compensation") == "off"
+        assert got.meta.pop("channels") == {"arms": ["front_zpos", "front_zneg", "back_xpos", "back_xneg"],
+                                            "measured": [], "actuated": ["urethra"]}  # every file names its layout
         skip = ("model", "source", "softphantom")
         assert {k: v for k, v in got.meta.items() if k not in skip} == \
             {k: v for k, v in want.meta.items() if k not in skip}, name

@@ -8,6 +8,7 @@ whose channels are not the model's is refused in one line naming both lists."""
 from __future__ import annotations
 
 import dataclasses
+import json
 import re
 from pathlib import Path
 
@@ -15,6 +16,7 @@ import numpy as np
 import pytest
 
 from softphantom.calibration import CalibrationInputError, FitOptions, SessionSpec, calibrate, load_session
+from softphantom.records import LAYOUT_KEY, ChannelLayout
 
 from test_calibration import GAIN_TRUE
 
@@ -42,9 +44,13 @@ SCENARIO = {"name": "pushes-and-balloon", "duration_s": 9.6, "rest_s": 1.0,
 
 
 def _edited(src: Path, dst: Path, rename: dict[str, str] | None = None, zero: str | None = None) -> Path:
-    """A copy of recording ``src`` with header columns renamed (old -> new) and column ``zero``'s
-    values set to 0."""
+    """A copy of recording ``src`` with header columns renamed (old -> new; the channels of its
+    metadata's layout with them) and column ``zero``'s values set to 0."""
     lines = src.read_text().splitlines()
+    names = {a[4:]: b[4:] for a, b in (rename or {}).items() if a.startswith("raw_")}
+    meta = json.loads(lines[0][2:])
+    meta[LAYOUT_KEY] = {k: [names.get(n, n) for n in v] for k, v in meta[LAYOUT_KEY].items()}
+    lines[0] = "# " + json.dumps(meta)
     header = lines[1].split(",")
     rows = [ln.split(",") for ln in lines[2:]]
     if zero is not None:
@@ -131,7 +137,7 @@ def test_a_recording_of_other_channels_is_refused_in_one_line(session, tmp_path,
                       {"raw_balloon": "raw_urethra", "p_balloon_kPa": "p_urethra_kPa"})  # a BIP-like board
     with pytest.raises(CalibrationInputError, match=r"pressure channels p_urethra_kPa are not the model's internal "
                                                     r"cavities' \(p_balloon_kPa\)$"):
-        load_session(urethra, run / "truth.csv", (0, 0, 0), cavity_names=("balloon",))
+        load_session(urethra, run / "truth.csv", (0, 0, 0), layout=ChannelLayout(tuple(DESIGN["arm_names"]), (), ("balloon",)))
     out = tmp_path / "out"
     capsys.readouterr()
     assert main(["calibrate", "--model", str(model), "--recording", str(urethra), "--truth", str(run / "truth.csv"),
@@ -143,4 +149,4 @@ def test_a_recording_of_other_channels_is_refused_in_one_line(session, tmp_path,
                     {f"{k}_back_xpos{u}": f"{k}_back_xneg{u}" for k, u in (("raw", ""), ("dp", "_kPa"), ("dV", "_mm3"))})
     with pytest.raises(CalibrationInputError, match=r"arm channels front_zpos, front_zneg, back_xneg are not the "
                                                     r"model's \(front_zpos, front_zneg, back_xpos\)$"):
-        load_session(other, run / "truth.csv", (0, 0, 0), arm_names=("front_zpos", "front_zneg", "back_xpos"))
+        load_session(other, run / "truth.csv", (0, 0, 0), layout=ChannelLayout(("front_zpos", "front_zneg", "back_xpos"), (), ("balloon",)))

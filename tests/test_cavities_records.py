@@ -87,9 +87,9 @@ def test_two_cavities_end_to_end(tmp_path, capsys, models):
     run, est, ev = _run_estimate_evaluate(tmp_path, capsys, model, TWO, "OSR 200, 8.0 Hz")
     # the board: the four arms, then the urethra's and the tumour's transducers
     meta, cols = _header(run / "recording.csv")
-    assert tuple(cols) == measurement_columns(arms, ("urethra", "tumour"))
+    assert tuple(cols) == measurement_columns(model.layout)
     assert cols[4:10] == [*(f"raw_{a}" for a in arms), "raw_urethra", "raw_tumour"]
-    assert meta["bench"]["cavity_names"] == ["urethra", "tumour"]
+    assert meta["channels"]["actuated"] == ["urethra", "tumour"]
     assert meta["chain"]["transducers"] == ["MPXV7002"] * 4 + ["MPX4250D"] * 2
     _, truth_cols = _header(run / "truth.csv")
     assert {"p_urethra_kPa", "p_tumour_kPa", "dV_tumour_mm3"} <= set(truth_cols)
@@ -108,7 +108,7 @@ def test_two_cavities_end_to_end(tmp_path, capsys, models):
     assert np.isnan(rec.p_urethra).sum() == 0 and np.array_equal(rec.p_urethra, rec.pressures[:, 0])
     # the estimate file: a pressure column per cavity after the force, the measured pressures
     tab = read_table(est).columns
-    assert list(tab) == estimate_columns(list(model.targets), arms, ("urethra", "tumour"))
+    assert list(tab) == estimate_columns(list(model.targets), model.layout)
     sel = (tab["t_s"] > HOLD_S[0]) & (tab["t_s"] < HOLD_S[1])
     assert np.abs(tab["p_tumour_kPa"][sel] - P_TUMOUR_KPA).max() < 2 * code_kPa
     # the force, through the noisy chain (the truth on the estimator's own mesh). The
@@ -129,7 +129,7 @@ def test_two_cavities_end_to_end(tmp_path, capsys, models):
     assert main(["live", "--source", f"replay:{est}", "--model", str(tmp_path / "model"), "--speed", "0",
                  "--no-stream", "--http-port", "0", "--record", str(mcap)]) == 0
     r = read_mcap(mcap)
-    assert r.cavity_names == ("urethra", "tumour") and json.loads(r.metadata["cavity_names"]) == ["urethra", "tumour"]
+    assert r.cavity_names == ("urethra", "tumour") and json.loads(r.metadata["channels"])["actuated"] == ["urethra", "tumour"]
     assert len(r.estimates) == len(tab["t_s"])
     assert [k for k in r.estimates[0] if k.startswith("p_")] == ["p_urethra_kPa", "p_tumour_kPa"]
     held = [e for e in r.estimates if HOLD_S[0] < e["t_s"] < HOLD_S[1]]
@@ -149,11 +149,11 @@ def test_no_internal_cavity_records_arms_only_and_estimates(tmp_path, capsys, mo
     arms = model.design.arm_names
     run, est, ev = _run_estimate_evaluate(tmp_path, capsys, model, PUSH_ONLY, "OSR 200, 12.0 Hz")
     meta, cols = _header(run / "recording.csv")
-    assert tuple(cols) == measurement_columns(arms, ()) and not [c for c in cols if c.startswith("p_")]
-    assert meta["bench"]["cavity_names"] == [] and meta["chain"]["transducers"] == ["MPXV7002"] * 4
+    assert tuple(cols) == measurement_columns(model.layout) and not [c for c in cols if c.startswith("p_")]
+    assert meta["channels"]["actuated"] == [] and meta["chain"]["transducers"] == ["MPXV7002"] * 4
     _, truth_cols = _header(run / "truth.csv")
     assert not [c for c in truth_cols if c.startswith("p_") and c.endswith("_kPa")]
-    assert list(read_table(est).columns) == estimate_columns(list(model.targets), arms, ())
+    assert list(read_table(est).columns) == estimate_columns(list(model.targets), model.layout)
     force = {f.name: f for f in ev.force}
     assert force["|force|"].rmse < 0.1 * np.linalg.norm(PUSH_N), force["|force|"].rmse
 
@@ -199,26 +199,26 @@ def test_board_channels_and_records_per_cavity(models):
     chain = two.chain()
     assert chain.names == (*models["two"].design.arm_names, "urethra", "tumour") and chain.n_channels == 6
     assert chain.cavity_names == ("urethra", "tumour") and [t.name for t in chain.transducers[4:]] == ["MPX4250D"] * 2
-    assert BenchConfig.from_meta({"bench": two.to_meta()}).cavity_names == ("urethra", "tumour")
+    assert BenchConfig.from_meta({"bench": two.to_meta(), **two.layout.to_meta()}).cavity_names == ("urethra", "tumour")
     none = BenchConfig.from_model(models["none"])
-    assert none.chain().n_channels == 4 and "cavity_names" in none.to_meta()
-    assert "cavity_names" not in BenchConfig().to_meta()
+    assert none.chain().n_channels == 4 and none.layout.actuated == ()
     # 30 kPa on the tumour's transducer, nothing elsewhere
     raw = np.array([pa_to_counts(0.0, t, 100) for t in chain.transducers])
     raw[5] = pa_to_counts(30e3, chain.transducers[5], 100)
     m = to_measurement(1.0, 1, 1.0, np.round(raw).astype(int), 100, chain, nominal_tare(chain))
     assert m.pressures_Pa["tumour"] == pytest.approx(30e3, abs=150) and abs(m.p_urethra) < 150
-    msg = measurement_to_message(m, chain.arm_names)
+    msg = measurement_to_message(m, chain.layout)
     assert list(msg)[-3:] == ["p_urethra_kPa", "p_tumour_kPa", "status"] and "raw_tumour" in msg
     # an estimate of a two-cavity model: its message and file row name both, and read back
-    e = Estimate(1.0, np.array([0.0, 1.0, 0.0]), 100.0, marker_estimate(SourceEvent(0, "x"), []).pose, {},
-                 np.zeros(4), np.zeros(4), 1.0, "optimal", 0.0, extra={"pressures_Pa": {"urethra": 100.0,
-                                                                                        "tumour": 2e3}})
+    e = Estimate(1.0, np.array([0.0, 1.0, 0.0]), 100.0, marker_estimate(SourceEvent(0, "x"), [], chain.layout).pose,
+                 {}, np.zeros(4), np.zeros(4), 1.0, "optimal", 0.0, extra={"pressures_Pa": {"urethra": 100.0,
+                                                                                         "tumour": 2e3}},
+                 layout=chain.layout)
     em = estimate_to_message(e)
     assert [k for k in em if k.startswith("p_")] == ["p_urethra_kPa", "p_tumour_kPa"] and em["p_tumour_kPa"] == 2.0
     back = message_to_estimate(em)
     assert back.cavity_names == ("urethra", "tumour") and back.pressures_Pa["tumour"] == pytest.approx(2e3)
-    assert message_to_estimate(estimate_to_message(marker_estimate(SourceEvent(0, "x"), [], cavity_names=()))
+    assert message_to_estimate(estimate_to_message(marker_estimate(SourceEvent(0, "x"), [], none.layout))
                                ).cavity_names == ()
 
 
@@ -228,8 +228,7 @@ def test_a_recording_of_other_cavities_is_refused_in_one_line(tmp_path, models):
 
     path = tmp_path / "r.csv"
     bench = BenchConfig.from_model(models["two"])
-    with Recorder(path, {"bench": bench.to_meta(), "chain": bench.chain().summary()},
-                  arm_names=bench.arm_names, cavity_names=bench.cavity_names):
+    with Recorder(path, {"bench": bench.to_meta(), "chain": bench.chain().summary()}, layout=bench.layout):
         pass
     with pytest.raises(UserError, match=r"^--source replay:\S+: its channels \(front_zpos, front_zneg, back_xpos, "
                                         r"back_xneg, urethra, tumour\) are not the model's \(front_zpos, front_zneg, "

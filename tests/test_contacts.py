@@ -200,7 +200,8 @@ def test_a_replay_made_at_a_contact_the_model_lacks_is_refused(model_dir, tmp_pa
     chain = default_chain()
     tare = nominal_tare(chain)
     rec = tmp_path / "r.csv"
-    with Recorder(rec, {"tare": tare.to_dict(), "chain": chain.summary(), "contact": UNKNOWN}) as r:
+    with Recorder(rec, {"tare": tare.to_dict(), "chain": chain.summary(), "contact": UNKNOWN},
+                  layout=chain.layout) as r:
         for k in range(3):
             r.write(to_measurement(k / 77.0, k, k / 77.0, simulate_raw(np.zeros(5), 100, np.random.default_rng(k)),
                                    100, chain, tare))

@@ -32,7 +32,7 @@ def _recording(path, n=40, meta=None, load=None):
     chain = default_chain()
     tare = nominal_tare(chain)
     rng = np.random.default_rng(0)
-    with Recorder(path, {"tare": tare.to_dict(), "chain": chain.summary(), **(meta or {})}) as r:
+    with Recorder(path, {"tare": tare.to_dict(), "chain": chain.summary(), **(meta or {})}, layout=chain.layout) as r:
         for k in range(n):
             p = np.zeros(5) if load is None else np.asarray(load(k), float)
             r.write(to_measurement(k / 77.0, k, k / 77.0, simulate_raw(p, 100, rng), 100, chain, tare))

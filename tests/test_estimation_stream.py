@@ -8,6 +8,7 @@ import time
 import numpy as np
 import pytest
 
+from softphantom.records import BIP_LAYOUT
 from softphantom.cli import main
 from softphantom.design import save_model
 from softphantom.estimation import Estimate, estimate_columns, estimate_stream
@@ -37,7 +38,8 @@ def _recording(path, n=30, bad=(7,)):
     tare = nominal_tare(chain)
     rng = np.random.default_rng(1)
     target = np.array([0.6, 0.5, -2.7, -2.6]) * 1e-9
-    with Recorder(path, {"tare": tare.to_dict(), "chain": chain.summary(), "contact": "on-centre"}) as rec:
+    with Recorder(path, {"tare": tare.to_dict(), "chain": chain.summary(), "contact": "on-centre"},
+                  layout=chain.layout) as rec:
         for k in range(n):
             dV = target * k / (n - 1)
             p = np.r_[boyle_dp(dV, chain.v_total_m3, tare.p0_Pa), 0.0]
@@ -56,7 +58,7 @@ def test_cli_estimate_replay_writes_the_estimate_csv(model_dir, tmp_path, coarse
     assert rc == 0
     tab = read_table(out)
     targets = list(coarse_model.targets)
-    assert list(tab.columns) == estimate_columns(targets) == csv_columns(targets)
+    assert list(tab.columns) == estimate_columns(targets, BIP_LAYOUT) == csv_columns(targets, BIP_LAYOUT)
     assert tab.meta["softphantom"] and tab.meta["qp_solver"] == "quadprog" and tab.meta["mode"] == "sync"
     assert len(tab.columns["t_s"]) == 30
     status = tab.columns["qp_status"]
@@ -101,6 +103,8 @@ class _FastLiveSource(SensorSource):
 
 
 class _SlowEstimator:
+    from softphantom.records import BIP_LAYOUT as layout
+
     target_names = ()
 
     def __init__(self):
@@ -110,7 +114,8 @@ class _SlowEstimator:
         time.sleep(0.01)
         self.seen.append(m.seq)
         z = np.zeros(3)
-        return Estimate(m.t, z, 0.0, Pose6(z, z), {}, np.zeros(4), np.zeros(4), 1.0, "optimal", 0.01, skipped)
+        return Estimate(m.t, z, 0.0, Pose6(z, z), {}, np.zeros(4), np.zeros(4), 1.0, "optimal", 0.01, skipped,
+                        layout=self.layout)
 
 
 def test_live_stream_takes_the_newest_sample_and_counts_skipped(tmp_path):

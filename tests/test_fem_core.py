@@ -3,6 +3,7 @@ volume gradient against finite differences, actuators, inversion."""
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 import scipy.sparse as sp
 
 from softphantom.fem import (
@@ -29,10 +30,8 @@ MAT = Material(E_Pa=1.0e5, nu=0.45, density_kg_m3=1000.0)
 
 
 def rot(axis, deg):
-    a = np.asarray(axis, float) / np.linalg.norm(axis)
-    K = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
-    t = np.radians(deg)
-    return np.eye(3) + np.sin(t) * K + (1 - np.cos(t)) * K @ K
+    """The rotation by ``deg`` about ``axis`` (scipy's, independent of the FEM)."""
+    return Rotation.from_rotvec(np.radians(deg) * np.asarray(axis, float) / np.linalg.norm(axis)).as_matrix()
 
 
 @pytest.fixture(scope="module")

@@ -4,6 +4,7 @@ typed errors; and the numpy fallback used when numba is off."""
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from softphantom.errors import SolverError
 from softphantom.fem import (
@@ -24,10 +25,8 @@ pytestmark = pytest.mark.skipif(not kernels.HAVE_NUMBA, reason="numba not instal
 
 
 def rot(axis, deg):
-    a = np.asarray(axis, float) / np.linalg.norm(axis)
-    K = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
-    t = np.radians(deg)
-    return np.eye(3) + np.sin(t) * K + (1 - np.cos(t)) * K @ K
+    """The rotation by ``deg`` about ``axis`` (scipy's, independent of the FEM)."""
+    return Rotation.from_rotvec(np.radians(deg) * np.asarray(axis, float) / np.linalg.norm(axis)).as_matrix()
 
 
 @pytest.fixture(scope="module")

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from softphantom.records import ChannelLayout
 from softphantom.sensing.board import frame_rate_Hz
 from softphantom.sensing.protocol import (
     DataFrame,
@@ -553,7 +554,7 @@ def _arm_signals(n_arms: int, duration_s=1.0):
     t = np.arange(0.0, duration_s + 0.5 + 5e-4, 1e-3)
     p_arms = -1500.0 + 250.0 * np.arange(n_arms)
     p = np.tile(np.r_[p_arms, 30e3], (len(t), 1))
-    chain = default_chain([500e-9] * n_arms, arm_names=tuple(f"arm{k}" for k in range(n_arms)))
+    chain = default_chain([500e-9] * n_arms, layout=ChannelLayout(tuple(f"arm{k}" for k in range(n_arms)), (), ("urethra",)))
     return BoardSignals(t, p[:, :n_arms], p, np.zeros(n_arms + 1), 0.0, np.full(n_arms, 0.1), chain)
 
 

@@ -152,12 +152,12 @@ def test_the_checks_catch_a_cycle_and_an_upward_import():
 
 READ_FILES = textwrap.dedent("""
     import json, os, sys, tempfile
-    from softphantom.records import SessionWriter
+    from softphantom.records import BIP_LAYOUT, SessionWriter
     from softphantom.stream.recording import SessionRecorder
 
     d = tempfile.mkdtemp()
     mcap = os.path.join(d, "s.mcap")
-    with SessionRecorder(mcap) as r:
+    with SessionRecorder(mcap, layout=None) as r:
         for i in range(20):
             r.write_tracker({"t_s": i / 100, "valid": True, "name": "bip", "position_m": [0.001 * i, 0, 0],
                              "quat_xyzw": [0, 0, 0, 1]})
@@ -166,8 +166,8 @@ READ_FILES = textwrap.dedent("""
         w.write_rows([[0.01 * i, i, 0, 0, 0, 0, 0] for i in range(5)])
     from softphantom.records import Estimate, estimate_columns
     est = os.path.join(d, "est.csv")
-    with SessionWriter(est, estimate_columns([]), {}) as w:
-        w.write_rows([[0.01 * i] + [0.0] * (len(estimate_columns([])) - 1) for i in range(5)])
+    with SessionWriter(est, estimate_columns([], BIP_LAYOUT), {}) as w:
+        w.write_rows([[0.01 * i] + [0.0] * (len(estimate_columns([], BIP_LAYOUT)) - 1) for i in range(5)])
 
     from softphantom.evaluation import read_estimate, read_truth
     from softphantom.stream import read_estimate_csv, read_recording

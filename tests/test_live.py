@@ -15,6 +15,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from softphantom.records import BIP_LAYOUT, ChannelLayout
 from softphantom.cli import main
 from softphantom.errors import UserError
 from softphantom.fem import DEFAULT_CONTACT_RADIUS_M
@@ -384,9 +385,10 @@ def _estimate_file(path, targets, peak, xyz_mm, ypr_deg, meta) -> None:
         ests.append(Estimate(t=k / 100, force=a * np.asarray(peak, float), p_urethra=500.0 * a,
                              pose=Pose6(a * np.asarray(xyz_mm) * 1e-3, a * np.radians(ypr_deg)),
                              target_shift={n: np.zeros(3) for n in targets}, volume_pred=np.zeros(4),
-                             volume_meas=np.zeros(4), cond_W=20.0, qp_status="optimal", step_time=1e-4))
-    ests.append(marker_estimate(SourceEvent(0.51, "silent", "no valid frame for 0.5 s"), targets))
-    write_estimates(path, ests, targets, meta)
+                             volume_meas=np.zeros(4), cond_W=20.0, qp_status="optimal", step_time=1e-4,
+                             layout=BIP_LAYOUT))
+    ests.append(marker_estimate(SourceEvent(0.51, "silent", "no valid frame for 0.5 s"), targets, BIP_LAYOUT))
+    write_estimates(path, ests, targets, meta, BIP_LAYOUT)
 
 
 @pytest.fixture(scope="module")
@@ -562,10 +564,11 @@ def _five_arm_estimate_file(path, targets) -> None:
     from softphantom.estimation.stream import write_estimates
 
     k = np.arange(1, 6)
-    ests = [replace(e, t=i / 100, arm_names=tuple(FIVE["arm_names"]), volume_meas=k * i * 1e-9,
+    five = ChannelLayout(tuple(FIVE["arm_names"]), (), ("urethra",))
+    ests = [replace(e, t=i / 100, layout=five, volume_meas=k * i * 1e-9,
                     volume_pred=k * i * 0.5e-9, target_shift={n: np.zeros(3) for n in targets})
             for i, e in enumerate(SyntheticSource(rate_Hz=100, duration_s=0.51, realtime=False, subdivisions=1))]
-    write_estimates(path, ests, targets, {"contact": "on-centre"}, arm_names=FIVE["arm_names"])
+    write_estimates(path, ests, targets, {"contact": "on-centre"}, five)
 
 
 def test_five_arms_replayed_to_the_page_the_stream_and_the_recording(five_model_dir, coarse_model_dir, tmp_path, capsys):
@@ -629,7 +632,7 @@ def test_live_estimates_a_five_arm_board_recording(five_model_dir, tmp_path):
     dV = np.array([2.54, 1.25, -2.23, -1.19, -0.94]) * 1e-9
     path = tmp_path / "board.csv"
     with Recorder(path, {"bench": bench.to_meta(), "tare": tare.to_dict(), "chain": chain.summary(),
-                         "contact": "on-centre"}, arm_names=arms) as r:
+                         "contact": "on-centre"}, layout=bench.layout) as r:
         for k in range(20):
             p = np.r_[boyle_dp(dV * min(1.0, k / 10), chain.v_total_m3, tare.p0_Pa), 0.0]
             r.write(to_measurement(k / 77, k, k / 77, simulate_raw(p, 100, rng, chain.transducers), 100, chain, tare))

@@ -17,6 +17,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from softphantom.records import ChannelLayout
 from softphantom.estimation import Estimate
 from softphantom.estimation.stream import marker_estimate
 from softphantom.pose import Pose6, matrix_from_ypr
@@ -95,6 +96,7 @@ class ScriptedSource:
 
     def __init__(self, geometry: LiveGeometry):
         self.geometry = geometry
+        self.layout = geometry.layout
         self._q: queue.Queue = queue.Queue()
         self._pos = geometry.nodes.copy()
         self._tracker: list[dict] = []
@@ -110,7 +112,7 @@ class ScriptedSource:
                         target_shift={k: np.array([0.0, 1e-3 * float(np.linalg.norm(force)), 0.0])
                                       for k in self.geometry.targets},
                         volume_pred=np.zeros(4), volume_meas=np.zeros(4), cond_W=20.0, qp_status="optimal",
-                        step_time=2e-4, **kw)
+                        step_time=2e-4, **{"layout": self.layout, **kw})
 
     def end(self) -> None:
         self._q.put(None)
@@ -200,7 +202,8 @@ def test_page_states_by_pixels(browser, coarse_model, tmp_path):
             banner = page.shot("#banner")
             amber = (banner[..., 0] > 180) & (banner[..., 1] > 100) & (banner[..., 1] < 170) & (banner[..., 2] < 60)
             assert amber.mean() > 0.5 and page.page.locator("#badge-envelope").inner_text() == "OUT OF ENVELOPE"
-            _show(src, page, marker_estimate(SourceEvent(src.t, "silent", "no valid frame for 0.5 s"), list(geo.targets)))
+            _show(src, page, marker_estimate(SourceEvent(src.t, "silent", "no valid frame for 0.5 s"), list(geo.targets),
+                                                   src.layout))
             page.wait("S.status.link === 'outage'")
             banner = page.shot("#banner")
             red = (banner[..., 0] > 180) & (banner[..., 1] < 90) & (banner[..., 2] < 90)
@@ -369,12 +372,13 @@ def test_a_five_arm_phantom_gets_a_cavity_and_a_plot_line_per_arm(browser):
     used, inv = np.unique(g.cavities["front_zpos"], return_inverse=True)  # a stand-in top cavity, 8 mm higher
     nodes = np.vstack([g.nodes, g.nodes[used] + [0.0, 0.0, 0.008]])
     cavities = {**g.cavities, "top": inv.reshape(-1, 3) + len(g.nodes)}
-    geo = replace(g, nodes=nodes, node_index=np.arange(len(nodes)), cavities=cavities, arm_names=arms)
+    geo = replace(g, nodes=nodes, node_index=np.arange(len(nodes)), cavities=cavities,
+                  layout=ChannelLayout(arms, (), ("urethra",)))
     src = ScriptedSource(geo)
     with LiveSession(src, LiveConfig(http_port=0, stream_port=None)) as s:
         page = Watched(browser, s.url + PAGE)
         try:
-            est = replace(src.estimate(force=(0.0, 1.0, 0.0)), arm_names=arms,
+            est = replace(src.estimate(force=(0.0, 1.0, 0.0)),
                           volume_meas=np.array([1.0, 2.0, 3.0, 4.0, 5.0]) * 1e-9, volume_pred=np.full(5, 2.5e-9))
             _show(src, page, est)
             assert page.state("S.arms") == list(arms)

@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 
 from softphantom.design import geometry as geo
+from softphantom.records import ChannelLayout
 from softphantom.design.params import ARM_NAMES, BIPDesign, design_from_dict, design_to_toml, load_design
 from softphantom.errors import DesignError, UserError
 
@@ -86,10 +87,10 @@ def test_names_channels_and_columns(tmp_path):
     assert chain.names == (*SENSING, "urethra") and chain.arm_names == SENSING and chain.cavity_names == ("urethra",)
     assert [t.name for t in chain.transducers] == ["MPXV7002"] * 5 + ["MPX4250D"]
     meta = bench.to_meta()
-    assert meta["arm_names"] == list(SENSING) and "cavity_names" not in meta  # the urethra: the BIP's key
+    assert bench.layout == ChannelLayout(ARM_NAMES, ("ball",), ("urethra",)) == d.channel_layout
     assert meta["arm_cavity_mm3"][-1] == pytest.approx(268.082573, abs=1e-6)
-    assert BenchConfig.from_meta({"bench": meta}).arm_names == SENSING
-    cols = measurement_columns(chain.arm_names, chain.cavity_names)
+    assert BenchConfig.from_meta({"bench": meta, **bench.layout.to_meta()}).layout == bench.layout
+    cols = measurement_columns(chain.layout)
     assert {"raw_ball", "dp_ball_kPa", "dV_ball_mm3", "p_urethra_kPa"} <= set(cols) and "p_ball_kPa" not in cols
     # +400 Pa at the ball's transducer: ΔV by Boyle over the ball and its 12 m × 1.2 mm tube
     raw = np.array([pa_to_counts(0.0, t, 100) for t in chain.transducers])
@@ -105,12 +106,12 @@ def test_names_channels_and_columns(tmp_path):
     assert a.sensing_names == ARM_NAMES and a.pressure_names == ("urethra", "ball")
     achain = BenchConfig.from_model(SimpleNamespace(design=a)).chain()
     assert achain.names == (*ARM_NAMES, "urethra", "ball") and achain.transducers[-1].name == "MPX4250D"
-    assert "p_ball_kPa" in measurement_columns(achain.arm_names, achain.cavity_names)
+    assert "p_ball_kPa" in measurement_columns(achain.layout)
     # the demo inflates the actuated cavities only; the atlas's own pressure axis is the first
     # actuated one's (a second one's levels make a stack: tests/test_atlas_stack.py)
     assert [s.name for s in design_scenarios(d) if s.name.startswith("inflate")] == ["inflate-urethra"]
-    assert check_atlas_cavities(SimpleNamespace(design=d)) == "urethra"
-    assert check_atlas_cavities(SimpleNamespace(design=a)) == "urethra"
+    assert check_atlas_cavities(SimpleNamespace(layout=d.channel_layout)) == "urethra"
+    assert check_atlas_cavities(SimpleNamespace(layout=a.channel_layout)) == "urethra"
 
 
 # --- reciprocity --------------------------------------------------------------------------------
@@ -141,7 +142,7 @@ def test_the_measured_row_obeys_maxwell_betti_reciprocity():
     # the one-sided difference at 100 Pa: the linear regime's reciprocity to a few 1e-3
     assert dvu[0] / p == pytest.approx(W[4, 3], rel=3e-3)
     # the estimator's own solver with the roles swapped: the urethra a row, the ball the load
-    swap = EquilibriumSolver(fem, H, fwd.probe, pressures=("ball",))
+    swap = EquilibriumSolver(fem, H, fwd.probe, layout=ChannelLayout(ARM_NAMES, ("urethra",), ("ball",)))
     assert swap.arm_names == (*ARM_NAMES, "urethra")
     r = swap.rest()
     assert r.W[4, 3] == pytest.approx(W[4, 3], rel=1e-9)

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import serial
 
+from softphantom.records import ChannelLayout
 from softphantom.cli import main
 from softphantom.errors import FileFormatError
 from softphantom.sensing.chain import default_chain, nominal_tare
@@ -75,7 +76,7 @@ def test_a_slow_board_of_many_channels_is_not_taken_for_silent():
     frame periods, not its 0.5 s, before it calls the link silent."""
     clock = Clock()
     arms = tuple(f"a{i}" for i in range(15))
-    chain = default_chain([500e-9] * 15, arm_names=arms)
+    chain = default_chain([500e-9] * 15, layout=ChannelLayout(arms, (), ("urethra",)))
     port = []
 
     def opener(url, **kw):
@@ -102,7 +103,8 @@ def test_recording_marker_rows_round_trip_and_replay(tmp_path):
     chain = default_chain()
     ms = list(FrameSource([_frames(range(10))], chain, nominal_tare(chain)))
     path = tmp_path / "r.csv"
-    with Recorder(path, {"chain": chain.summary(), "tare": nominal_tare(chain).to_dict()}) as rec:
+    with Recorder(path, {"chain": chain.summary(), "tare": nominal_tare(chain).to_dict()},
+                  layout=chain.layout) as rec:
         for m in ms[:5]:
             rec.write(m)
         rec.write_event(SourceEvent(ms[4].t + 0.01, "disconnected", "port /dev/ttyACM0 failed, twice"))
@@ -129,7 +131,8 @@ def test_a_frozen_board_keeps_the_recording_in_time_order(tmp_path):
     src = SerialSource("fake", default_chain(), opener=lambda url, **kw: port, clock=clock)
     chain = default_chain()
     path = tmp_path / "frozen.csv"
-    with Recorder(path, {"chain": chain.summary(), "tare": nominal_tare(chain).to_dict()}) as rec:
+    with Recorder(path, {"chain": chain.summary(), "tare": nominal_tare(chain).to_dict()},
+                  layout=chain.layout) as rec:
         def step(data=b"", dt=0.0):
             port.write(data)
             clock.t += dt
@@ -186,7 +189,8 @@ def _recording(tmp_path, name, ts):
     chain = default_chain()
     ms = list(FrameSource([_frames(range(len(ts)))], chain, nominal_tare(chain)))
     path = tmp_path / name
-    with Recorder(path, {"chain": chain.summary(), "tare": nominal_tare(chain).to_dict()}) as rec:
+    with Recorder(path, {"chain": chain.summary(), "tare": nominal_tare(chain).to_dict()},
+                  layout=chain.layout) as rec:
         for m in ms:
             rec.write(m)
     lines = path.read_text().splitlines()
@@ -276,6 +280,8 @@ class _BurstySource:
 
 
 class _FastEstimator:
+    from softphantom.records import BIP_LAYOUT as layout
+
     target_names = ("apex",)
 
     def __init__(self):
@@ -288,7 +294,7 @@ class _FastEstimator:
         self.seen.append(m.seq)
         z = np.zeros(3)
         return Estimate(m.t, z, 0.0, Pose6(z, z), {"apex": z}, np.zeros(4), np.zeros(4), 1.0, "optimal", 1e-4,
-                        skipped, m.status)
+                        skipped, m.status, layout=self.layout)
 
 
 def test_live_bursts_are_all_estimated_and_events_become_marker_rows(tmp_path, monkeypatch):
@@ -366,7 +372,7 @@ def test_the_board_to_estimate_path_holds_no_memory_per_sample(tmp_path):
         estimate_stream(src, EchoEstimator(), tmp_path / "e.csv", live=False)
         est_growth = heap[2_950] - heap[600]
         heap.clear()
-        with Recorder(tmp_path / "r.csv", {"chain": chain.summary()}) as rec:
+        with Recorder(tmp_path / "r.csv", {"chain": chain.summary()}, layout=chain.layout) as rec:
             for m in FrameSource(chunks(3_000), chain, nominal_tare(chain), clock=clock):
                 rec.write(m)
         rec_growth = heap[2_950] - heap[600]

@@ -27,13 +27,14 @@ from softphantom.records import (
 )
 from softphantom.records.measurement import measurement_to_message
 from softphantom.sensing.recording import COLUMNS, Recorder, read_recording
+from softphantom.records import BIP_LAYOUT
 from softphantom.stream import read_estimate_csv
 
 # Written by the version before the format was versioned (no file_version; `nan` cells, spaces in
 # the metadata line of write_table): they must read as they did.
 OLD_ESTIMATE = (
     '# {"softphantom":"0.1.0","kind":"softphantom-estimate","live":false}\n'
-    + ",".join(estimate_columns(["apex"])) + "\n"
+    + ",".join(estimate_columns(["apex"], BIP_LAYOUT)) + "\n"
     + "0.5,0.1,2.0,-0.1,1.5,0.0,4.0,0.0,0.0,3.0,0.0,0.0,1.0,0.0," + ",".join(["1.0"] * 4 + ["2.0"] * 4)
     + ",12.0,optimal,4.0,0,ok,1\n"
     + "0.6," + ",".join(["nan"] * 13) + "," + ",".join(["nan"] * 8) + ",nan,none,0.0,0,event:silent: no valid frame"
@@ -73,8 +74,8 @@ def test_files_of_the_earlier_unversioned_format_still_read(tmp_path):
 
 def test_the_writer_versions_the_file_and_a_newer_version_is_refused_in_one_line(tmp_path, capsys):
     p = tmp_path / "e.csv"
-    with SessionWriter(p, estimate_columns([]), {"softphantom": "0.1.0"}) as w:
-        w.write_row([0.0] * len(estimate_columns([])))
+    with SessionWriter(p, estimate_columns([], BIP_LAYOUT), {"softphantom": "0.1.0"}) as w:
+        w.write_row([0.0] * len(estimate_columns([], BIP_LAYOUT)))
     f = read_session_file(p)
     assert f.meta["file_version"] == FILE_VERSION == f.version == 1
     newer = tmp_path / "newer.csv"
@@ -126,13 +127,13 @@ def _estimate(t=1.5):
                     pose=Pose6(np.array([1e-4, 4e-3, -2e-4]), np.radians([1.0, 3.0, -0.5])),
                     target_shift={"apex": np.array([0.0, 1e-3, 2e-4])}, volume_pred=np.arange(4) * 1e-9,
                     volume_meas=np.arange(4) * 2e-9, cond_W=12.0, qp_status="optimal", step_time=0.004,
-                    skipped=2, status="ok", in_envelope=False)
+                    skipped=2, status="ok", in_envelope=False, layout=BIP_LAYOUT)
 
 
 def test_an_estimate_has_one_flat_form_a_message_is_a_row(tmp_path):
     e = _estimate()
     m = estimate_to_message(e, seq=3, t_pub_unix_s=10.0)
-    cols = estimate_columns(["apex"])
+    cols = estimate_columns(["apex"], BIP_LAYOUT)
     assert set(m) - {"seq", "t_pub_unix_s"} == set(cols) and (m["seq"], m["t_pub_unix_s"]) == (3, 10.0)
     assert estimate_row(e, ["apex"]) == [m[c] for c in cols]
     p = tmp_path / "e.csv"
@@ -148,9 +149,9 @@ def test_an_estimate_has_one_flat_form_a_message_is_a_row(tmp_path):
 
 def test_a_measurement_row_and_message_have_the_recording_columns(tmp_path):
     m = Measurement(0.5, 3, 0.49, np.arange(5) * 1000, 100, np.full(4, 1e3), np.full(4, 1e-9), 2e3, "rail:a,b")
-    assert tuple(measurement_to_message(m)) == COLUMNS
+    assert tuple(measurement_to_message(m, BIP_LAYOUT)) == COLUMNS
     p = tmp_path / "r.csv"
-    with Recorder(p, {"chain": {"v_total_mm3": [14086] * 4}}) as rec:
+    with Recorder(p, {"chain": {"v_total_mm3": [14086] * 4}}, layout=BIP_LAYOUT) as rec:
         rec.write(m)
         rec.write_event(SourceEvent(0.6, "silent", "no frame, 0.5 s"))
     back = read_recording(p)

@@ -115,16 +115,16 @@ def test_simulated_raw_is_unbiased_and_status_flags_rails():
     raw = simulate_raw(np.broadcast_to(p, (200, 5)), 100, rng)
     est = [counts_to_pa(raw[:, i], 100, tr).mean() for i, tr in enumerate((MPXV7002,) * 4 + (MPX4250D,))]
     assert np.allclose(est[:4], p[:4], atol=2.0) and abs(est[4] - p[4]) < 60
-    assert channel_status(raw[0], 100) == "ok"
+    assert channel_status(raw[0], 100, default_chain()) == "ok"
     ok = raw[0].copy()
     bad = ok.copy(); bad[3] = 0                       # a disconnected channel pulled to ground
-    assert channel_status(bad, 100) == "rail:back_xneg"
+    assert channel_status(bad, 100, default_chain()) == "rail:back_xneg"
     bad = ok.copy(); bad[1] = 1023 * 100
-    assert channel_status(bad, 100) == "rail:front_zneg"
+    assert channel_status(bad, 100, default_chain()) == "rail:front_zneg"
     bad = ok.copy(); bad[2] = int(pa_to_counts(2450.0, MPXV7002, 100))
-    assert channel_status(bad, 100) == "range:back_xpos"
+    assert channel_status(bad, 100, default_chain()) == "range:back_xpos"
     bad = ok.copy(); bad[4] = 1024 * 100
-    assert channel_status(bad, 100) == "invalid:urethra"
+    assert channel_status(bad, 100, default_chain()) == "invalid:urethra"
 
 
 # ---------------------------------------------------------------- Boyle

@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from softphantom.records import BIP_LAYOUT
 from softphantom.cli import main
 from softphantom.errors import UserError
 from softphantom.records import Measurement, SessionWriter, estimate_columns
@@ -21,14 +22,15 @@ from softphantom.viz.live import EstimateReplay, SyntheticSource
 def files(tmp_path):
     chain = default_chain()
     sensing = tmp_path / "r.csv"
-    with Recorder(sensing, {"chain": chain.summary(), "tare": nominal_tare(chain).to_dict(), "osr": 100}) as rec:
+    with Recorder(sensing, {"chain": chain.summary(), "tare": nominal_tare(chain).to_dict(), "osr": 100},
+                  layout=chain.layout) as rec:
         for k in range(5):
             rec.write(Measurement(k / 77, k, k / 77, np.full(5, 51150), 100, np.zeros(4), np.zeros(4), 0.0))
     est = tmp_path / "e.csv"
-    with SessionWriter(est, estimate_columns([]), {"kind": "softphantom-estimate"}) as w:
-        w.write_rows([[k / 77] + [0.0] * (len(estimate_columns([])) - 1) for k in range(5)])
+    with SessionWriter(est, estimate_columns([], BIP_LAYOUT), {"kind": "softphantom-estimate"}) as w:
+        w.write_rows([[k / 77] + [0.0] * (len(estimate_columns([], BIP_LAYOUT)) - 1) for k in range(5)])
     mcap = tmp_path / "s.mcap"
-    with SessionRecorder(mcap) as r:
+    with SessionRecorder(mcap, layout=BIP_LAYOUT) as r:
         r.write_estimate({"seq": 0, "t_s": 0.0, "force_y_N": 1.0})
     other = tmp_path / "o.csv"
     other.write_text("a,b\n1,2\n")

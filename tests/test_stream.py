@@ -17,6 +17,7 @@ import pytest
 from softphantom.cli import main
 from softphantom.errors import FileFormatError, UserError
 from softphantom.estimation import ARM_NAMES
+from softphantom.records import BIP_LAYOUT, ChannelLayout
 from softphantom.stream import (
     ESTIMATE_JSON_SCHEMA,
     EstimatePublisher,
@@ -43,8 +44,8 @@ def test_message_has_units_in_every_name_and_round_trips():
     unitless = [k for k in m if not k.endswith(("_N", "_kPa", "_mm", "_deg", "_mm3", "_ms", "_s"))]
     assert sorted(unitless) == ["cond_W", "in_envelope", "qp_status", "seq", "skipped", "status"]
     # the message is an estimate-CSV row plus seq / t_pub_unix_s (the CSV has status too: link events)
-    assert set(csv_columns(est.target_shift)) <= set(m)
-    assert set(m) - set(csv_columns(est.target_shift)) == {"seq", "t_pub_unix_s"}
+    assert set(csv_columns(est.target_shift, BIP_LAYOUT)) <= set(m)
+    assert set(m) - set(csv_columns(est.target_shift, BIP_LAYOUT)) == {"seq", "t_pub_unix_s"}
     assert set(ESTIMATE_JSON_SCHEMA["required"]) <= set(m)
     back = message_to_estimate(json.loads(json.dumps(m)))
     np.testing.assert_allclose(back.force, est.force, rtol=1e-12)
@@ -158,7 +159,7 @@ def test_recording_round_trip_and_csv_export(tmp_path):
     path = tmp_path / "session.mcap"
     from softphantom.pose import Pose6
 
-    with SessionRecorder(path, metadata={"model": "coarse"}) as rec:
+    with SessionRecorder(path, layout=BIP_LAYOUT, metadata={"model": "coarse"}) as rec:
         for i, e in enumerate(ests):
             rec.write_estimate(estimate_to_message(e, i, time.time()))
             rec.write_tracker(tracker_message(e.t, Pose6(e.pose.xyz + 1e-4, e.pose.ypr), True, "bulb"))
@@ -172,7 +173,7 @@ def test_recording_round_trip_and_csv_export(tmp_path):
     lines = out.read_text().splitlines()
     meta = json.loads(lines[0][1:])
     assert lines[0].startswith("# ") and meta["model"] == "coarse" and meta["softphantom"]
-    assert lines[1].split(",") == csv_columns(ests[0].target_shift)
+    assert lines[1].split(",") == csv_columns(ests[0].target_shift, BIP_LAYOUT)
     meta2, rows = read_estimate_csv(out)
     assert len(rows) == 300
     for e, row in zip(ests[::37], rows[::37]):
@@ -187,7 +188,8 @@ def test_recording_round_trip_and_csv_export(tmp_path):
 _WRITER = r"""
 import sys, time
 from softphantom.stream import SessionRecorder
-rec = SessionRecorder(sys.argv[1], flush_interval_s=0.2)
+from softphantom.records import BIP_LAYOUT
+rec = SessionRecorder(sys.argv[1], layout=BIP_LAYOUT, flush_interval_s=0.2)
 i = 0
 while True:
     rec.write_estimate({"seq": i, "t_s": i / 500.0, "force_y_N": 1.0, "pad": "y" * 200})
@@ -231,7 +233,7 @@ def test_bad_recordings_give_typed_errors(tmp_path, capsys):
     with pytest.raises(FileFormatError, match="not an MCAP file"):
         read_recording(junk)
     empty = tmp_path / "empty.mcap"
-    SessionRecorder(empty).close()
+    SessionRecorder(empty, layout=BIP_LAYOUT).close()
     with pytest.raises(FileFormatError, match="no message on /estimate"):
         export_estimate_csv(empty, tmp_path / "x.csv")
     assert main(["recording-csv", str(tmp_path / "missing.mcap"), "--out", str(tmp_path / "x.csv")]) == 2
@@ -269,6 +271,7 @@ def test_example_client_reads_the_stream():
 
 
 FIVE_ARMS = (*ARM_NAMES, "top")
+FIVE = ChannelLayout(FIVE_ARMS, (), ("urethra",))
 
 
 def _five_arm_estimates(n: int):
@@ -277,7 +280,7 @@ def _five_arm_estimates(n: int):
     from dataclasses import replace
 
     k = np.arange(1, 6)
-    return [replace(e, arm_names=FIVE_ARMS, volume_meas=k * i * 1e-9, volume_pred=k * i * 0.5e-9)
+    return [replace(e, layout=FIVE, volume_meas=k * i * 1e-9, volume_pred=k * i * 0.5e-9)
             for i, e in enumerate(_estimates(n))]
 
 
@@ -298,16 +301,16 @@ def test_a_recording_of_five_arms_names_them_and_reads_back(tmp_path):
 
     ests = _five_arm_estimates(40)
     path = tmp_path / "five.mcap"
-    with SessionRecorder(path, arm_names=FIVE_ARMS) as rec:
+    with SessionRecorder(path, layout=FIVE) as rec:
         for i, e in enumerate(ests):
             rec.write_estimate(estimate_to_message(e, i, time.time()))
             m = Measurement(e.t, i, e.t, np.arange(6) + 100 * i, 100, np.arange(1, 6) * 1e3, e.volume_meas, 0.0)
-            rec.write_sensors(measurement_to_message(m, FIVE_ARMS))
+            rec.write_sensors(measurement_to_message(m, FIVE))
     r = read_recording(path)
-    assert r.arm_names == FIVE_ARMS and json.loads(r.metadata["arm_names"]) == list(FIVE_ARMS)
+    assert r.layout == FIVE and json.loads(r.metadata["channels"])["arms"] == list(FIVE_ARMS)
     assert r.estimates[7]["dVmeas_top_mm3"] == pytest.approx(5 * 7) and r.estimates[7]["dVpred_back_xneg_mm3"] == pytest.approx(14.0)
     assert r.sensors[3]["raw_top"] == 304 and r.sensors[3]["raw_urethra"] == 305 and r.sensors[3]["dp_top_kPa"] == pytest.approx(5.0)
-    assert message_to_estimate(r.estimates[9]).arm_names == FIVE_ARMS
+    assert message_to_estimate(r.estimates[9], r.layout).arm_names == FIVE_ARMS
     # the stored schemas list each arm's keys in the sensor order
     sch = _schemas(path)
     vols = [k for k in sch["/estimate"]["properties"] if k.startswith("dVmeas_")]
@@ -317,23 +320,18 @@ def test_a_recording_of_five_arms_names_them_and_reads_back(tmp_path):
     # the exported estimate file keeps all five arms' columns and values
     out = export_estimate_csv(path, tmp_path / "five.csv")
     head = out.read_text().splitlines()[1].split(",")
-    assert head == estimate_columns(list(ests[0].target_shift), FIVE_ARMS)
+    assert head == estimate_columns(list(ests[0].target_shift), FIVE)
     assert read_estimate_csv(out)[1][7]["dVmeas_top_mm3"] == pytest.approx(35.0)
 
-    # the BIP's recording is as it was: its schemas are the module's constants, no arm_names in its metadata
+    # the BIP's recording: its schemas are the module's constants, its layout in its metadata too
     bip = tmp_path / "bip.mcap"
-    with SessionRecorder(bip) as rec:
+    with SessionRecorder(bip, layout=BIP_LAYOUT) as rec:
         rec.write_estimate(estimate_to_message(_estimates(1)[0], 0, time.time()))
-    assert _schemas(bip)["/estimate"] == ESTIMATE_JSON_SCHEMA == json_schemas()["/estimate"]
+    assert _schemas(bip)["/estimate"] == ESTIMATE_JSON_SCHEMA == json_schemas(BIP_LAYOUT)["/estimate"]
     rb = read_recording(bip)
-    assert "arm_names" not in rb.metadata and rb.arm_names == ARM_NAMES
-    # a file without the key takes its arms from its messages
-    legacy = tmp_path / "legacy.mcap"
-    with SessionRecorder(legacy) as rec:
-        rec.write_estimate(estimate_to_message(ests[1], 0, time.time()))
-    assert read_recording(legacy).arm_names == FIVE_ARMS
+    assert json.loads(rb.metadata["channels"])["arms"] == list(ARM_NAMES) and rb.layout == BIP_LAYOUT
     bad = tmp_path / "bad.mcap"
-    with SessionRecorder(bad, metadata={"arm_names": "top"}) as rec:
-        pass
-    with pytest.raises(FileFormatError, match="metadata arm_names is not a JSON list of names: 'top'"):
+    with SessionRecorder(bad, layout=BIP_LAYOUT) as rec:
+        rec.close(metadata={"channels": "top"})
+    with pytest.raises(FileFormatError, match=r"bad.mcap: metadata channels: not JSON: 'top'$"):
         read_recording(bad)

@@ -13,6 +13,7 @@ from scipy.spatial.transform import Rotation
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from tracker_paths import OWN, shared  # noqa: E402
 
+from softphantom.records import BIP_LAYOUT
 from softphantom.cli import main  # noqa: E402
 from softphantom.errors import FileFormatError  # noqa: E402
 from softphantom.evaluation import read_truth, write_table  # noqa: E402
@@ -246,7 +247,7 @@ def test_session_recording_tracker_channel_both_forms(tmp_path, capsys):
     raw, rel = tmp_path / "raw.mcap", tmp_path / "rel.mcap"
     n = 90
     k = np.maximum(np.arange(n) - 60, 0)  # 0.5 s at rest at 120 Hz, then a push along y
-    with SessionRecorder(raw) as rec:
+    with SessionRecorder(raw, layout=BIP_LAYOUT) as rec:
         rec.write_estimate({"seq": 0, "t_s": 0.0})
         for i in range(n):
             q = Rotation.from_euler("x", 0.1 * k[i], degrees=True).as_quat()
@@ -258,7 +259,7 @@ def test_session_recording_tracker_channel_both_forms(tmp_path, capsys):
     assert tr.meta["frames_missing"] == 1 and tr.meta["latency_ms_median"] == 5.5 and not tr.meta["registered"]
     api = assert_both_read(tmp_path, capsys, raw)
     np.testing.assert_allclose(api.mm_deg()[:, 1], k[np.arange(n) != 70], atol=1e-9)  # y mm from rest
-    with SessionRecorder(rel) as rec:
+    with SessionRecorder(rel, layout=None) as rec:
         for i in range(n):
             rec.write_tracker({"t_s": i / 120, "valid": True, "name": "bip", "x_mm": 0.0, "y_mm": float(k[i]),
                                "z_mm": 0.0, "yaw_deg": 0.5 * k[i], "pitch_deg": 0.0, "roll_deg": 0.0})
@@ -267,6 +268,6 @@ def test_session_recording_tracker_channel_both_forms(tmp_path, capsys):
     np.testing.assert_allclose(api.mm_deg()[:, 1], k, atol=1e-12)
     np.testing.assert_allclose(api.mm_deg()[:, 3], 0.5 * k, atol=1e-9)
     empty = tmp_path / "no_tracker.mcap"
-    with SessionRecorder(empty) as rec:
+    with SessionRecorder(empty, layout=BIP_LAYOUT) as rec:
         rec.write_estimate({"seq": 0, "t_s": 0.0})
     assert_both_refuse(tmp_path, capsys, empty, r"\(softphantom-mcap, session recording\): no /tracker messages \(it has: /estimate\)")

@@ -182,7 +182,8 @@ def _write_min_recording(path, bench):
     chain = b.chain()
     tare = nominal_tare(chain, P0)
     raw = np.round((np.asarray(tare.offset_codes) + 0.5) * 25).astype(int)
-    with Recorder(path, {"bench": b.to_meta(), "tare": tare.to_dict(), "chain": chain.summary()}) as rec:
+    with Recorder(path, {"bench": b.to_meta(), "tare": tare.to_dict(), "chain": chain.summary()},
+                  layout=chain.layout) as rec:
         for k in range(10):
             rec.write(Measurement(k * 0.013, k, k * 0.013, raw, 25, np.zeros(4), np.zeros(4), 0.0))
     lines = path.read_text().splitlines(keepends=True)

@@ -227,12 +227,12 @@ class KeyframeSolution:
 def keyframe_pressures(model, pressures_Pa) -> dict[str, float] | None:
     """The internal-cavity loads of a keyframe for :func:`~softphantom.fem.solve_static`: the
     nonzero ones of ``pressures_Pa`` (Pa; a mapping cavity name -> p naming every internal cavity
-    of ``model`` (:func:`~softphantom.estimation.forward.internal_cavities_of`), or one number for
+    of ``model`` (its layout's ``actuated``), or one number for
     a model with one, the BIP's urethra; 0 for none) in the model's load order; None if all are 0.
 
     >>> from softphantom.design import BIPDesign
     >>> from types import SimpleNamespace
-    >>> bip = SimpleNamespace(design=BIPDesign())
+    >>> bip = SimpleNamespace(layout=BIPDesign().channel_layout)
     >>> keyframe_pressures(bip, 5e3), keyframe_pressures(bip, {"urethra": 0.0}), keyframe_pressures(bip, 0.0)
     ({'urethra': 5000.0}, None, None)
     >>> keyframe_pressures(bip, {"tumour": 1e3})
@@ -240,9 +240,8 @@ def keyframe_pressures(model, pressures_Pa) -> dict[str, float] | None:
     ...
     softphantom.errors.UserError: keyframe pressures of tumour: the model's internal cavities are urethra
     """
-    from softphantom.estimation.forward import internal_cavities_of
 
-    names = internal_cavities_of(model)
+    names = model.layout.actuated
     if isinstance(pressures_Pa, dict):
         if set(pressures_Pa) != set(names):
             raise UserError(f"keyframe pressures of {', '.join(pressures_Pa) or 'no cavity'}: the model's internal "

@@ -88,10 +88,8 @@ def _load_sessions(model, specs: list[SessionSpec], prefix: str) -> list[Session
     """The sessions of ``specs``, each recording's channels the model's (its arms, and the pressure
     of every internal cavity, in the model's load order); a take that does not overlap its
     recording is refused here, before any cluster starts (:func:`_lag_grid`)."""
-    from softphantom.estimation.forward import internal_cavities_of
-
     out = [load_session(sp.recording, sp.truth, _contact(model, sp.contact), sp.known_loads, name=f"{prefix}{i + 1}",
-                        arm_names=model.design.sensing_names, cavity_names=internal_cavities_of(model))
+                        layout=model.layout)
            for i, sp in enumerate(specs)]
     for se in out:
         _lag_grid(se)

@@ -129,16 +129,16 @@ def cavity_pressures(p_urethra, pressures, names) -> np.ndarray:
     return np.asarray(p_urethra, float).reshape(-1, 1)
 
 
-def check_channels(path, rec, arm_names, cavity_names) -> np.ndarray:
-    """The recording's internal-cavity pressures (n, M) Pa in the order ``cavity_names`` (the
-    model's load order), after checking that its arm and pressure channels are the model's
-    (``arm_names`` in order; the same cavities in any order): else a one-line
-    :class:`CalibrationInputError` naming both lists."""
-    if arm_names is not None and tuple(rec.arm_names) != tuple(arm_names):
+def check_channels(path, rec, layout) -> np.ndarray:
+    """The recording's actuated-cavity pressures (n, M) Pa in the order of ``layout`` (the model's
+    :class:`~softphantom.records.channels.ChannelLayout`; None: the recording's own), after checking
+    that its volume and pressure channels are the model's (the volume channels in order; the same
+    cavities in any order): else a one-line :class:`CalibrationInputError` naming both lists."""
+    if layout is not None and tuple(rec.arm_names) != layout.sensing:
         raise CalibrationInputError(f"{path}: arm channels {', '.join(rec.arm_names)} are not the model's "
-                                    f"({', '.join(arm_names)})")
+                                    f"({', '.join(layout.sensing)})")
     have = tuple(rec.cavity_names)
-    want = have if cavity_names is None else tuple(cavity_names)
+    want = have if layout is None else layout.actuated
     if sorted(have) != sorted(want):
         raise CalibrationInputError(f"{path}: pressure channels {', '.join(pressure_columns(have)) or 'none'} are not "
                                     f"the model's internal cavities' ({', '.join(pressure_columns(want)) or 'none'})")
@@ -173,13 +173,12 @@ def _bench(meta: dict, path: Path):
 
 def load_session(recording, truth, contact_m, known_loads=None, name: str | None = None,
                  tube_length_m: float | None = None, tube_id_mm: float | None = None,
-                 body: str | None = None, arm_names: tuple[str, ...] | None = None,
-                 cavity_names: tuple[str, ...] | None = None) -> Session:
+                 body: str | None = None, layout=None) -> Session:
     """Read a recording (``softphantom acquire`` / ``virtual run``), a take (any truth
     ``evaluate`` reads: truth CSV, Motive CSV, ROS bag, mcap), optional known loads (a CSV with
     ``t_s, force_x_N, force_y_N, force_z_N`` on the recording's clock) and check them.
-    ``arm_names``, ``cavity_names``: the model's arms and internal cavities (its load order), which
-    the recording's channels must be (None: the recording's own)."""
+    ``layout``: the model's :class:`~softphantom.records.channels.ChannelLayout`, which the
+    recording's channels must be (None: the recording's own)."""
     from softphantom.evaluation import read_truth
     from softphantom.evaluation.files import read_table
     from softphantom.sensing.recording import read_recording
@@ -188,8 +187,8 @@ def load_session(recording, truth, contact_m, known_loads=None, name: str | None
     rec = read_recording(rec_path)
     if len(rec) < 20:
         raise CalibrationInputError(f"{rec_path}: {len(rec)} samples, too short to calibrate")
-    cav_names = tuple(cavity_names) if cavity_names is not None else tuple(rec.cavity_names)
-    p_all = check_channels(rec_path, rec, arm_names, cav_names)
+    p_all = check_channels(rec_path, rec, layout)
+    cav_names = tuple(rec.cavity_names) if layout is None else layout.actuated
     ok = (np.array([s == "ok" for s in rec.status]) & np.all(np.isfinite(rec.dp), axis=1)
           & np.all(np.isfinite(p_all), axis=1))
     t, dp, pu, pc = rec.t[ok], rec.dp[ok], rec.p_urethra[ok], p_all[ok]

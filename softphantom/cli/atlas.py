@@ -7,6 +7,8 @@ from pathlib import Path
 import typer
 
 from softphantom.cli.app import app, console, print_error
+from softphantom.cli.options import (At, AtlasFYSplitN, AtlasGrid, AtlasXAxis, Envelope, ModelDir, Scheduler, Seed,
+                                     Workers, check_workers)
 from softphantom.errors import UserError
 
 atlas_app = typer.Typer(help="The atlas estimator's offline stage: build, describe, verify and install atlas "
@@ -14,9 +16,6 @@ atlas_app = typer.Typer(help="The atlas estimator's offline stage: build, descri
                         no_args_is_help=True)
 app.add_typer(atlas_app, name="atlas")
 
-MODEL_OPTION = typer.Option(..., "--model", help="Model directory (softphantom design --out).")
-AT_OPTION = typer.Option("on-centre", "--at", help="Contact point: on-centre, off-centre or one of the design's "
-                         "[contacts] (the model's p_ext).")
 
 
 def _model(model_dir: Path):
@@ -44,20 +43,17 @@ def _print_rows(rows) -> None:
 
 @atlas_app.command("build")
 def build_cmd(
-    model_dir: Path = MODEL_OPTION,
-    at: str = AT_OPTION,
-    atlas_grid: str = typer.Option(None, "--atlas-grid", help="Chebyshev points per axis NX,NY,NZ,NP (default: "
-                                   "the model's, default_atlas_config)."),
-    atlas_x_axis: str = typer.Option(None, "--atlas-x-axis", help="First axis: force | displacement."),
-    atlas_f_y_split: str = typer.Option(None, "--atlas-f-y-split-N", help="Pieces along f_y split at these "
-                                        "forces (N, comma-separated; '' for one piece)."),
-    envelope: str = typer.Option(None, "--envelope", help="Load envelope FXMIN:FXMAX,FYMIN:FYMAX,FZMIN:FZMAX,"
-                                 "PMIN:PMAX in N and kPa."),
+    model_dir: ModelDir = ...,
+    at: At = "on-centre",
+    atlas_grid: AtlasGrid = None,
+    atlas_x_axis: AtlasXAxis = None,
+    atlas_f_y_split: AtlasFYSplitN = None,
+    envelope: Envelope = None,
     offline: str = typer.Option("full", "--offline", help="How the grid is solved: full (a converged full solve "
                                 "per point) or rom (a reduced model trained on a few full solves and checked "
                                 "against others; the checks' error is in atlas info). docs/offline.md."),
-    scheduler: str = typer.Option(None, "--scheduler", help="Dask scheduler address (default: a local cluster)."),
-    workers: int = typer.Option(None, "--workers", help="Local cluster: worker processes (default: all cores)."),
+    scheduler: Scheduler = None,
+    workers: Workers = None,
     rebuild: bool = typer.Option(False, "--rebuild", help="Build again even where an atlas file is cached, "
                                  "replacing a damaged or stale one."),
     discard_partial: bool = typer.Option(False, "--discard-partial", help="Drop the finished tasks of an "
@@ -89,8 +85,7 @@ def build_cmd(
                 raise
     if offline not in ("full", "rom"):
         raise UserError(f"--offline: full or rom, got {offline!r}")
-    if workers is not None and workers < 1:
-        raise UserError(f"--workers must be >= 1, got {workers}")
+    check_workers(workers)
     model = _model(model_dir)
     _contact(at, model)
     acfg = atlas_config_from_options(atlas_grid, envelope, atlas_x_axis, atlas_f_y_split,
@@ -128,10 +123,10 @@ def _measure_draft(model, cfg, built, model_dir: Path, scheduler, workers) -> No
 @atlas_app.command("info")
 def info_cmd(
     files: list[Path] = typer.Argument(None, help="Atlas files (default: those of --model)."),
-    model_dir: Path = typer.Option(None, "--model", help="Model directory whose atlases to list (MODEL/atlas/, "
-                                   "and those shipped with softphantom for its mesh)."),
+    model_dir: ModelDir = None,
 ) -> None:
-    """Describe atlas files: model, contact, envelope, grid, build cost, provenance."""
+    """Describe atlas files: model, contact, envelope, grid, build cost, provenance. With --model: its
+    atlases (MODEL/atlas/, and those shipped with softphantom for its mesh)."""
     from softphantom.estimation.atlas.catalogue import atlases_of
     from softphantom.estimation.atlas.store import describe, load_atlas
 
@@ -159,7 +154,7 @@ def info_cmd(
 def verify_cmd(
     files: list[Path] = typer.Argument(None, help="Atlas files (default: every file in MODEL/atlas/, and those "
                                        "shipped with softphantom for the model's mesh)."),
-    model_dir: Path = MODEL_OPTION,
+    model_dir: ModelDir = ...,
 ) -> None:
     """Check atlas files against a model: intact (digest), this softphantom's format, built for this
     model (the key recomputed from the model's inputs), and not stale: the numbers it recorded of the
@@ -200,7 +195,7 @@ def verify_cmd(
 @atlas_app.command("add")
 def add_cmd(
     file: Path = typer.Argument(..., help="An atlas file built elsewhere (e.g. on a lab's cluster)."),
-    model_dir: Path = MODEL_OPTION,
+    model_dir: ModelDir = ...,
 ) -> None:
     """Verify an atlas file against a model and install it in MODEL/atlas/ under its key."""
     from softphantom.estimation.atlas.catalogue import install_atlas
@@ -214,23 +209,22 @@ def add_cmd(
 
 @atlas_app.command("check")
 def check_cmd(
-    model_dir: Path = MODEL_OPTION,
-    at: str = AT_OPTION,
+    model_dir: ModelDir = ...,
+    at: At = "on-centre",
     loads: int = typer.Option(20, "--loads", help="Held-out loads (seeded, over the whole envelope, a quarter "
                               "near its corners): one converged full solve each."),
-    seed: int = typer.Option(0, "--seed", help="Seed of the loads and of the inverse's starts."),
+    seed: Seed = 0,
     max_force_N: float = typer.Option(0.05, "--max-force-N", help="Goal: largest force error of the inverse (N)."),
     max_pos_mm: float = typer.Option(0.05, "--max-pos-mm", help="Goal: largest marker-pose position error (mm)."),
     max_ang_deg: float = typer.Option(0.1, "--max-ang-deg", help="Goal: largest marker-pose angle error (deg)."),
     max_near_urethra_mm: float = typer.Option(0.02, "--max-near-urethra-mm", help="Goal: largest error of the "
                                               "near_urethra target (mm)."),
-    scheduler: str = typer.Option(None, "--scheduler", help="Dask scheduler address (default: a local cluster)."),
-    workers: int = typer.Option(None, "--workers", help="Local cluster: worker processes (default: all cores; 0: "
-                                "solve in this process)."),
+    scheduler: Scheduler = None,
+    workers: Workers = None,
 ) -> None:
     """Check a model's atlas against converged full solves at seeded held-out loads: the map (volumes,
     points) and its inverse (force, pose, targets), worst and 90th percentile. Exit 1 when a goal is
-    missed, 2 when the model has no atlas."""
+    missed, 2 when the model has no atlas. --workers 0: solve in this process."""
     from contextlib import nullcontext
 
     import numpy as np
@@ -243,8 +237,7 @@ def check_cmd(
 
     if loads < 1:
         raise UserError(f"--loads must be >= 1, got {loads}")
-    if workers is not None and workers < 0:
-        raise UserError(f"--workers must be >= 0, got {workers}")
+    check_workers(workers, zero=True)
     for name, v in (("--max-force-N", max_force_N), ("--max-pos-mm", max_pos_mm), ("--max-ang-deg", max_ang_deg),
                     ("--max-near-urethra-mm", max_near_urethra_mm)):
         if not v > 0:

@@ -9,7 +9,8 @@ import typer
 from rich.table import Table
 
 from softphantom.cli.app import app, console
-from softphantom.cli.options import check_output, finite_number, overwrite_option, staged_output
+from softphantom.cli.options import (ModelDir, Out, Overwrite, Scheduler, Workers, check_output, check_workers,
+                                     finite_number, staged_output)
 from softphantom.errors import UserError
 
 
@@ -83,10 +84,10 @@ def _check_files(specs, prefix: str = "--") -> None:
 
 @app.command("calibrate")
 def calibrate_cmd(
-    model: Path = typer.Option(..., "--model", help="Model directory (softphantom design)."),
+    model: ModelDir = ...,
     recording: list[Path] = typer.Option(..., "--recording", help="Bench recording (acquire / virtual run); repeat for several sessions."),
     truth: list[Path] = typer.Option(..., "--truth", help="Tracker take of the same session (Motive CSV, bag, mcap, truth CSV); one per --recording."),
-    out: Path = typer.Option(..., "--out", help="New directory for the calibrated model, report.html and parameters.csv."),
+    out: Out = ...,
     contact: list[str] = typer.Option(None, "--contact", help="Contact point per session: on-centre, off-centre, one of the design's [contacts] or X,Y,Z_mm (default on-centre)."),
     known_loads: list[Path] = typer.Option(None, "--known-loads", help="CSV t_s, force_x_N, force_y_N, force_z_N per session (a force sensor or hung weights)."),
     holdout_recording: list[Path] = typer.Option(None, "--holdout-recording", help="Recording kept out of the fit, to check the calibration on."),
@@ -97,16 +98,18 @@ def calibrate_cmd(
     law: str = typer.Option(None, "--law", help="Fit under this law instead of the design's (neo-hookean, yeoh, corotational): every material at its small-strain E and ν (Yeoh: C10 = μ/2, C20 = C30 = 0, its shape then fitted); the calibrated model is written under it, the nominal checks keep the design's."),
     max_keyframes: int = typer.Option(16, "--max-keyframes", help="Distinct loads used per session."),
     contact_radius_mm: float = typer.Option(4.0, "--contact-radius-mm", help="Radius of the contact patch the force is spread on (mm)."),
-    scheduler: str = typer.Option(None, "--scheduler", help="Address of an existing Dask scheduler (default: a local cluster)."),
-    workers: int = typer.Option(None, "--workers", min=1, help="Workers of the local cluster (default: all cores)."),
-    overwrite: bool = overwrite_option(),
+    scheduler: Scheduler = None,
+    workers: Workers = None,
+    overwrite: Overwrite = False,
 ) -> None:
     """Fit material stiffness, sensor gains/offsets/drift, tube volume, registration and lag to a bench
-    session by least squares over forward FEM solves; print the parameters with 95 % intervals."""
+    session by least squares over forward FEM solves; print the parameters with 95 % intervals and
+    write the calibrated model, report.html and parameters.csv into the new directory --out."""
     from softphantom.calibration import FitOptions, calibrate, parameter_set, write_calibration
     from softphantom.calibration.fit import Parameter, ratio_names
     from softphantom.calibration.forward import FIT_LAWS
 
+    check_workers(workers)
     if not (contact_radius_mm > 0 and contact_radius_mm < 50):
         raise UserError(f"--contact-radius-mm must be in (0, 50), got {contact_radius_mm}")
     if law is not None and law not in FIT_LAWS:

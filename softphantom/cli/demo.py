@@ -9,7 +9,9 @@ from pathlib import Path
 import typer
 
 from softphantom.cli.app import app, console
-from softphantom.cli.options import check_output, overwrite_option, staged_output
+from softphantom.cli.options import (AtlasGrid, Estimator, Force, MeshSizeMm, ModelDir, Osr, Out, Overwrite, Scheduler,
+                                     Seed, TruthMeshScale, TruthOrder, Workers, check_output, check_workers,
+                                     staged_output)
 from softphantom.errors import UserError
 from softphantom.progress import status
 
@@ -89,19 +91,17 @@ def _atlas_note(r: dict) -> str:
 
 @app.command("demo")
 def demo_cmd(
-    out: Path = typer.Option(Path("out/demo"), "--out", help="Output directory."),
-    mesh_size_mm: float = typer.Option(None, "--mesh-size-mm", help="Mesh the default design at this bulk size (mm) "
-                                       "instead of using its shipped quadratic model (9 mm; that mesh has no atlas yet: "
-                                       "give --atlas-grid or --estimator refresh)."),
+    out: Out = Path("out/demo"),
+    mesh_size_mm: MeshSizeMm = None,
     scenarios: list[str] = typer.Option(None, "--scenarios", help="Scenario names or TOML files (repeat; default: the "
                                         "three bundled on-centre ones, whose atlas ships; push-off-centre needs the "
                                         "off-centre atlas: `softphantom atlas build --at off-centre`, or --atlas-grid)."),
-    seed: int = typer.Option(0, "--seed", help="Seed of every random source."),
-    osr: int = typer.Option(100, "--osr", help="Board oversampling (100: 19.2 Hz, the paper's N; 25: 76.9 Hz)."),
-    truth_mesh_scale: float = typer.Option(0.75, "--truth-mesh-scale", help="Truth node spacing relative to the estimator's mesh size (P2 elements are twice that)."),
-    truth_order: int = typer.Option(2, "--truth-order", help="Truth element order: 2 (10-node tets, the default) or 1."),
-    force: bool = typer.Option(False, "--force", help="Mesh above the element-count limit (docs/robustness.md)."),
-    model_dir: Path = typer.Option(None, "--model", help="Estimator model directory (e.g. from softphantom calibrate) instead of the default design; the truth is meshed from its design."),
+    seed: Seed = 0,
+    osr: Osr = 100,
+    truth_mesh_scale: TruthMeshScale = 0.75,
+    truth_order: TruthOrder = 2,
+    force: Force = False,
+    model_dir: ModelDir = None,
     design_file: Path = typer.Option(None, "--design", help="A design file (TOML/JSON) instead of the default "
                                      "design, e.g. examples/organs/kidney.toml: meshed as its [mesh] says (or at "
                                      "--mesh-size-mm); unless --scenarios, three pushes of --push-N at each of its "
@@ -110,20 +110,21 @@ def demo_cmd(
     push_n: float = typer.Option(2.5, "--push-N", help="With --design: the generated pushes' force (N)."),
     inflate_kpa: float = typer.Option(20.0, "--inflate-kPa", help="With --design: the generated inflations' gauge "
                                       "pressure (kPa)."),
-    overwrite: bool = overwrite_option(),
-    estimator: str = typer.Option(None, "--estimator", help="atlas (precomputed, real time; the default for a "
-                                  "design with an actuated internal cavity, a stack of atlases over the further ones' "
-                                  "pressures for several) | refresh (sync: re-linearized inside each step; the default "
-                                  "for a design of none: the atlas tabulates an internal pressure)."),
-    atlas_grid: str = typer.Option(None, "--atlas-grid", help="Build a small atlas for the demo instead of using the "
-                                   "model's: Chebyshev points per axis NX,NY,NZ,NP over the scenarios' own loads "
-                                   "(e.g. 5,5,5,2; for a model without its atlas). Default: the model's atlas (the "
-                                   "default design's ships with softphantom)."),
-    scheduler: str = typer.Option(None, "--scheduler", help="Dask scheduler address for the truth solves and atlas "
-                                  "builds (default: a local cluster)."),
-    workers: int = typer.Option(None, "--workers", help="Local cluster: worker processes (default: all cores)."),
+    overwrite: Overwrite = False,
+    estimator: Estimator = None,
+    atlas_grid: AtlasGrid = None,
+    scheduler: Scheduler = None,
+    workers: Workers = None,
 ) -> None:
-    """The paper's experiments end to end without hardware: reports and a summary."""
+    """The paper's experiments end to end without hardware: reports and a summary in the directory
+    --out. --model: an estimator model (e.g. from softphantom calibrate) instead of the default
+    design; the truth is meshed from its design. --estimator: by default atlas for a design with an
+    actuated internal cavity, refresh (re-linearized inside each step) for one of none. --atlas-grid:
+    build a small atlas for the demo over the scenarios' own loads (e.g. 5,5,5,2; for a model
+    without its atlas) instead of using the model's (the default design's ships with softphantom).
+    The truth solves and atlas builds run on --scheduler. --mesh-size-mm: mesh the default design at
+    it instead of using its shipped quadratic model (9 mm; that mesh has no atlas yet: give
+    --atlas-grid or --estimator refresh)."""
     from softphantom.cli.virtual import _config
     from softphantom.design import build_model, default_design, load_design, load_model, save_model
     from softphantom.estimation.select import atlas_config_from_options, check_estimator_kind
@@ -132,8 +133,7 @@ def demo_cmd(
 
     if estimator is not None:
         check_estimator_kind(estimator)
-    if workers is not None and workers < 1:
-        raise UserError(f"--workers must be >= 1, got {workers}")
+    check_workers(workers)
     grid = atlas_config_from_options(atlas_grid).shape if atlas_grid is not None else None
     t0 = time.perf_counter()
     check_output(out, overwrite=overwrite, directory=True)

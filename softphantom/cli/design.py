@@ -11,7 +11,8 @@ from typing import Optional
 import typer
 
 from softphantom.cli.app import app, console
-from softphantom.cli.options import check_choice, check_positive, overwrite_option, staged_output
+from softphantom.cli.options import (Force, MeshSizeMm, Out, Overwrite, Png, check_choice, check_positive,
+                                     staged_output)
 from softphantom.errors import UserError
 from softphantom.progress import status
 
@@ -54,17 +55,14 @@ def _observability(model, shipped: Path | None, observe: str, force: bool):
 
 @app.command("design")
 def design_command(
-    out: Path = typer.Option(..., "--out", help="Output directory (created)."),
+    out: Out = ...,
     config: Optional[Path] = typer.Option(None, "--config", help="Design file (.toml or .json); default: the "
                                           "default design, quadratic, shipped meshed (its atlas too)."),
-    mesh_size_mm: Optional[float] = typer.Option(
-        None, "--mesh-size-mm", help="Bulb element size in mm; arm and cavity sizes scale with it."
-    ),
+    mesh_size_mm: MeshSizeMm = None,
     element_order: Optional[int] = typer.Option(None, "--element-order", help="1 (4-node tets: fast, about half "
                                                 "the yaw) or 2 (10-node tets); default: the design's."),
-    png: bool = typer.Option(True, "--png/--no-png", help="Write mesh.png."),
-    force: bool = typer.Option(False, "--force", help="Mesh above the element-count limit, keep cavity volumes "
-                               "beyond the tolerance and an unobservable arm layout (docs/robustness.md)."),
+    png: Png = True,
+    force: Force = False,
     observe: str = typer.Option("auto", "--observability",
                                 help="How well the arm volumes see the loads (docs/estimation.md): 'envelope' solves the model "
                                 "at rest and at 8 loads over the load envelope, 'rest' at rest only, 'off' not at all; "
@@ -84,10 +82,10 @@ def design_command(
     surface_size_mm: float = typer.Option(3.0, "--surface-size-mm", help="Triangle size of the imported surface, mm."),
     lesion_labels: str = typer.Option("", "--lesion-labels", help="Labels of lesions in a label map, comma-separated "
                                       "(e.g. 3,4): each becomes [layers.lesions.labelN], the ellipsoid of its voxels."),
-    overwrite: bool = overwrite_option(),
+    overwrite: Overwrite = False,
 ) -> None:
     """Build the BIP design, mesh it (gmsh), check its observability and write model.msh/.vtu/.npz, design.toml,
-    report.md, mesh.png."""
+    report.md, mesh.png into the new directory --out."""
     from softphantom.design import build_model, default_design, load_design, save_model
     from softphantom.design.model import shipped_model_dir
     from softphantom.design.report import design_report_md

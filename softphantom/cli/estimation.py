@@ -3,29 +3,18 @@
 from __future__ import annotations
 
 import time
-from pathlib import Path
 
 import typer
 
 from softphantom.cli.app import app, console
-from softphantom.cli.options import check_choice, check_output, check_positive, overwrite_option, staged_output, stopped
+from softphantom.cli.options import (At, AtlasFYSplitN, AtlasGrid, AtlasXAxis, DurationS, Envelope, Estimator,
+                                     LagCompensation, MaxForceN, ModelDir, OnNewBoard, Out, Overwrite, P0KPa, Scheduler,
+                                     Source, TareS, TubeIdMm, TubeLengthM, check_choice, check_output, check_positive,
+                                     staged_output, stopped)
 from softphantom.errors import UserError
 from softphantom.estimation.session import source_contact  # noqa: F401  (cli/live.py imports it from here)
 
 _SOURCES = "serial:PORT, replay:FILE or virtual:SCENARIO"
-
-TUBE_LENGTH_OPTION = typer.Option(None, "--tube-length-m", help="Tube length per arm (m); default 12 m "
-                                  "(a replay: the recording's).")
-TUBE_ID_OPTION = typer.Option(None, "--tube-id-mm", help="Tube inner diameter (mm); default 1.2 mm "
-                              "(a replay: the recording's).")
-P0_OPTION = typer.Option(None, "--p0-kPa", help="Absolute ambient pressure at tare (kPa); default: the "
-                         "recording's (replay) or 101.325.")
-LAG_OPTION = typer.Option(None, "--lag-compensation", help="The tubes' pneumatic lag: model (estimate the cavity "
-                          "pressures of now from a model of each tube, docs/estimation.md) | off. Default: model where "
-                          "the tubes' time constant exceeds 10 ms (the paper's 12 m tubes: 0.1 s).")
-NEW_BOARD_OPTION = typer.Option("stop", "--on-new-board", help="Serial: when the board restarts or is "
-                                "replaced mid-run: stop (one-line error, the run so far is kept) | retare "
-                                "(re-tare on the next --tare-s at rest and go on).")
 
 
 def check_source_options(source: str, *, max_force_N: float, on_new_board: str, tube_length_m: float | None,
@@ -119,47 +108,34 @@ def print_event(marker) -> None:
 
 @app.command("estimate")
 def estimate_cmd(
-    model_dir: Path = typer.Option(..., "--model", help="Model directory (softphantom design --out)."),
-    source: str = typer.Option(..., "--source", help="serial:PORT | replay:FILE (sensing recording) | virtual:SCENARIO"),
-    out: Path = typer.Option(..., "--out", help="Estimate CSV to write (metadata line, then one row per sample)."),
-    at: str = typer.Option(None, "--at", help="Contact point: on-centre, off-centre or one of the design's "
-                           "[contacts] (the model's p_ext); default: the recording's (replay), the scenario's (virtual), "
-                           "on-centre (serial)."),
-    max_force_N: float = typer.Option(10.0, "--max-force-N", help="Bound on each force component (N)."),
+    model_dir: ModelDir = ...,
+    source: Source = ...,
+    out: Out = ...,
+    at: At = None,
+    max_force_N: MaxForceN = 10.0,
     qp_solver: str = typer.Option("daqp", "--qp-solver", help="QP solver: daqp | quadprog."),
-    estimator: str = typer.Option("atlas", "--estimator", help="atlas (precomputed equilibria, built once per model "
-                                  "and cached in MODEL/atlas/) | refresh (linearization refreshed per sample)."),
-    scheduler: str = typer.Option(None, "--scheduler", help="Atlas build: Dask scheduler address (default: a local "
-                                  "cluster on all cores)."),
-    atlas_grid: str = typer.Option(None, "--atlas-grid", help="Atlas: Chebyshev points per axis NX,NY,NZ,NP "
-                                   "(default 11,9,4,3, f_x stretched about 0 N, AtlasConfig.cluster_N; on a "
-                                   "quadratic model 11,6,5,3 per piece, Hermite along f_z; default_atlas_config)."),
-    atlas_x_axis: str = typer.Option(None, "--atlas-x-axis", help="Atlas: the first axis, force (f_x; the default "
-                                     "on a linear model) | displacement (the contact patch's x-displacement mapped onto "
-                                     "the f_x range, f_x an output: for a model whose state nearly jumps in f_x, "
-                                     "docs/estimation.md; the default on a quadratic model)."),
-    atlas_f_y_split: str = typer.Option(None, "--atlas-f-y-split-N", help="Atlas: build it in pieces along f_y, "
-                                        "split at these forces (N, comma-separated), each piece with the grid of "
-                                        "--atlas-grid: for a model whose map bends sharply at one f_y (the quadratic "
-                                        "model's fold above ≈ 4.3 N, docs/estimation.md; its default 3.3; "
-                                        "'' for one piece)."),
-    envelope: str = typer.Option(None, "--envelope", help="Atlas: load envelope FXMIN:FXMAX,FYMIN:FYMAX,FZMIN:FZMAX,"
-                                 "PMIN:PMAX in N and kPa (default -2:2,-1:5.2,-2:2,-2:40); outside it the estimate "
-                                 "is clamped and flagged (in_envelope 0)."),
+    estimator: Estimator = "atlas",
+    scheduler: Scheduler = None,
+    atlas_grid: AtlasGrid = None,
+    atlas_x_axis: AtlasXAxis = None,
+    atlas_f_y_split: AtlasFYSplitN = None,
+    envelope: Envelope = None,
     mode: str = typer.Option("auto", "--mode", help="refresh estimator: sync (deterministic) | async (background "
                              "equilibrium) | auto (async for serial, sync otherwise)."),
-    tare_s: float = typer.Option(1.0, "--tare-s", help="Serial: rest window for the tare at start (s)."),
-    p0_kPa: float = P0_OPTION,
-    tube_length_m: float = TUBE_LENGTH_OPTION,
-    tube_id_mm: float = TUBE_ID_OPTION,
-    on_new_board: str = NEW_BOARD_OPTION,
-    lag_compensation: str = LAG_OPTION,
-    duration_s: float = typer.Option(None, "--duration-s", help="Stop after this many seconds (serial)."),
+    tare_s: TareS = 1.0,
+    p0_kPa: P0KPa = None,
+    tube_length_m: TubeLengthM = None,
+    tube_id_mm: TubeIdMm = None,
+    on_new_board: OnNewBoard = "stop",
+    lag_compensation: LagCompensation = None,
+    duration_s: DurationS = None,
     require_full: bool = typer.Option(False, "--require-full", help="Atlas: refuse a draft atlas (atlas build "
                                       "--draft), which is used where the model has no full one."),
-    overwrite: bool = overwrite_option(),
+    overwrite: Overwrite = False,
 ) -> None:
-    """Estimate force, urethra pressure, 6-DoF pose and target shifts from the cavity volumes."""
+    """Estimate force, urethra pressure, 6-DoF pose and target shifts from the cavity volumes, into the
+    estimate CSV --out (a metadata line, then one row per sample). A missing atlas is built (on
+    --scheduler, with the --atlas-* options)."""
     import contextlib
 
     from softphantom.design import load_model

@@ -8,7 +8,8 @@ import typer
 from rich.table import Table
 
 from softphantom.cli.app import app, console
-from softphantom.cli.options import check_choice, check_output, check_positive, finite_number, overwrite_option, staged_output
+from softphantom.cli.options import (Body, NatnetVersion, Out, Overwrite, check_choice, check_output, check_positive,
+                                     finite_number, staged_output)
 from softphantom.errors import UserError
 
 
@@ -76,22 +77,23 @@ def evaluate_cmd(
     estimate: Path = typer.Option(..., "--estimate", help="Estimate CSV (softphantom estimate --out)."),
     truth: Path = typer.Option(..., "--truth", help="Truth CSV, or a tracker file: Motive CSV, ROS 1/2 bag, mcap, "
                                "NatNet capture (.pcap/.pcapng), a session recording's /tracker (.mcap)."),
-    out: Path = typer.Option(..., "--out", help="Directory for report.html and its PNGs."),
+    out: Out = ...,
     lag_ms: str = typer.Option("auto", "--lag-ms", help="Lag of the estimate behind the truth (ms), or 'auto' to measure it."),
     snapshot: Path = typer.Option(None, "--snapshot", help="VTU of the deformed phantom at peak load, for the 3-D view."),
-    body: str = typer.Option(None, "--body", help="Rigid body (Motive) or body/topic (bag) of a tracker truth file."),
+    body: Body = None,
     rest_window_s: str = typer.Option(None, "--rest-window-s", help="START,END (s, tracker clock) of the rest pose; default the first 0.5 s."),
     clock: str = typer.Option(None, "--clock", help="Bag clock: header_stamp (default) or receive_time."),
     max_lag_ms: float = typer.Option(1000.0, "--max-lag-ms", help="Largest |lag| searched by 'auto' (ms)."),
     length_unit: str = typer.Option(None, "--length-unit", help="Motive CSV without 'Length Units': m, cm or mm."),
     rotation_order: str = typer.Option(None, "--rotation-order", help="Motive CSV Euler angles without 'Rotation Type': e.g. XYZ."),
-    overwrite: bool = overwrite_option(),
-    natnet_version: str = typer.Option(None, "--natnet-version", help="NatNet capture without the server-info reply: 3.0 or 4.1."),
+    overwrite: Overwrite = False,
+    natnet_version: NatnetVersion = None,
     clock_offset_ms: float = typer.Option(None, "--clock-offset-ms", help="The truth's clock minus the estimate's at "
                                           "the same instant (ms), if known (a virtual run: 1000 × tracker.clock_offset_s "
                                           "of virtual.json): splits the lag into that offset and the estimator's latency."),
 ) -> None:
-    """Compare an estimate with the ground truth: metrics per DoF, Table I, report.html."""
+    """Compare an estimate with the ground truth: metrics per DoF, Table I, report.html and its PNGs in
+    the directory --out. --body: of a tracker truth file."""
     from softphantom.evaluation import evaluate, read_estimate, read_truth, write_report
     from softphantom.evaluation.metrics import signed
 

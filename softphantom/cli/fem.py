@@ -5,14 +5,12 @@ from __future__ import annotations
 
 import json
 import time
-from pathlib import Path
-from typing import Optional
 
 import numpy as np
 import typer
 
 from softphantom.cli.app import app, console
-from softphantom.cli.options import check_output, overwrite_option, staged_output
+from softphantom.cli.options import At, ModelDir, Out, Overwrite, check_output, staged_output
 from softphantom.errors import SolverError, UserError
 from softphantom.fem.contact import DEFAULT_CONTACT_RADIUS_M
 from softphantom.records.names import POSE_COLUMNS
@@ -61,10 +59,9 @@ def _pressures(items: list[str], cavities, urethra_given: bool, measured=()) -> 
 
 @app.command("simulate")
 def simulate_command(
-    model_dir: Path = typer.Option(..., "--model", help="Model directory written by `softphantom design`."),
+    model_dir: ModelDir = ...,
     force_N: str = typer.Option("0,0,0", "--force-N", help="Force FX,FY,FZ in N (model frame)."),
-    at: str = typer.Option("on-centre", "--at", help="Where: on-centre, off-centre, one of the design's [contacts], or "
-                          "X,Y,Z in mm."),
+    at: At = "on-centre",
     patch_radius_mm: float = typer.Option(
         DEFAULT_CONTACT_RADIUS_M * 1e3, "--patch-radius-mm",
         help="Contact patch radius in mm: a uniform traction on the outer surface within it (0: point force)."
@@ -73,10 +70,11 @@ def simulate_command(
     pressure_kPa: list[str] = typer.Option(None, "--pressure-kPa", help="An internal cavity's gauge pressure, "
                                            "CAVITY=KPA (repeat; e.g. tumour=20; the urethra's is --urethra-kPa)."),
     gravity: bool = typer.Option(False, "--gravity/--no-gravity", help="Include gravity (−z)."),
-    out: Path = typer.Option(..., "--out", help="Output directory (created)."),
-    overwrite: bool = overwrite_option(),
+    out: Out = ...,
+    overwrite: Overwrite = False,
 ) -> None:
-    """Solve the FEM statically (the design's laws and element order); write deformed.vtu and result.json, print the results."""
+    """Solve the FEM statically (the design's laws and element order); write deformed.vtu and result.json
+    into the new directory --out, print the results. --at also takes a point X,Y,Z in mm."""
     from softphantom.design import load_model
     from softphantom.fem import (
         cavity_volume,

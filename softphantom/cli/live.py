@@ -8,23 +8,20 @@ from typing import Optional
 import typer
 
 from softphantom.cli.app import app, console
-from softphantom.cli.estimation import (
-    LAG_OPTION, NEW_BOARD_OPTION, TUBE_ID_OPTION, TUBE_LENGTH_OPTION, check_lag_option, check_source_options,
-)
-from softphantom.cli.options import check_output, check_positive, overwrite_option, staged_output, stopped
+from softphantom.cli.estimation import check_lag_option, check_source_options
+from softphantom.cli.options import (AllowRemote, At, DurationS, Estimator, LagCompensation, MaxForceN, ModelDir,
+                                     OnNewBoard, Out, Overwrite, Source, Speed, TubeIdMm, TubeLengthM, check_output,
+                                     check_positive, staged_output, stopped)
 from softphantom.errors import UserError
 
 
 @app.command()
 def live(
-    source: str = typer.Option("synthetic", "--source", help="synthetic | replay:FILE (.mcap, estimate .csv, or a "
-                               "sensing recording: estimated) | virtual:SCENARIO | serial:PORT"),
-    model: Optional[Path] = typer.Option(None, "--model", help="model directory (design output) for the 3-D view"),
+    source: Source = "synthetic",
+    model: ModelDir = None,
     listen_host: str = typer.Option("127.0.0.1", "--listen-host",
                                     help="interface for the page and the stream; beyond loopback needs --allow-remote"),
-    allow_remote: bool = typer.Option(False, "--allow-remote",
-                                      help="serve beyond loopback: the page and --foxglove then require a token "
-                                      "(printed in their addresses); the stream has no authentication"),
+    allow_remote: AllowRemote = False,
     allowed_host: list[str] = typer.Option([], "--allowed-host",
                                            help="a name clients use for this machine (Host header; repeat)"),
     max_clients: int = typer.Option(16, "--max-clients", min=1, help="page connections served at once"),
@@ -35,27 +32,26 @@ def live(
                                   "ws://HOST:PORT; its 3D panel draws the phantom; docs/stream.md)"),
     foxglove_port: int = typer.Option(8766, "--foxglove-port", help="port of the --foxglove server (0: any free port)"),
     record: Optional[Path] = typer.Option(None, "--record", help="record the session to this .mcap file"),
-    duration_s: Optional[float] = typer.Option(None, "--duration-s", help="stop after this many seconds"),
+    duration_s: DurationS = None,
     rate_Hz: float = typer.Option(77.0, "--rate-Hz", help="estimate rate of the synthetic source, Hz"),
     view_rate_Hz: float = typer.Option(30.0, "--view-rate-Hz", help="page update rate, Hz"),
-    speed: float = typer.Option(1.0, "--speed", help="replay/virtual speed factor (0: as fast as possible)"),
-    at: Optional[str] = typer.Option(None, "--at", help="estimated sources: contact point, on-centre, off-centre "
-                                     "or one of the design's [contacts]; default: the recording's (replay), the "
-                                     "scenario's (virtual), on-centre (serial)"),
-    max_force_N: float = typer.Option(10.0, "--max-force-N", help="virtual/serial: bound on each force component (N)"),
-    tube_length_m: Optional[float] = TUBE_LENGTH_OPTION,
-    tube_id_mm: Optional[float] = TUBE_ID_OPTION,
-    on_new_board: str = NEW_BOARD_OPTION,
-    lag_compensation: Optional[str] = LAG_OPTION,
-    overwrite: bool = overwrite_option(),
+    speed: Speed = 1.0,
+    at: At = None,
+    max_force_N: MaxForceN = 10.0,
+    tube_length_m: TubeLengthM = None,
+    tube_id_mm: TubeIdMm = None,
+    on_new_board: OnNewBoard = "stop",
+    lag_compensation: LagCompensation = None,
+    overwrite: Overwrite = False,
     tracker: Optional[str] = typer.Option(None, "--tracker", help="natnet:HOST[:PORT]: show the tracker beside the "
                                           "estimate and record it on /tracker (Motive, or virtual serve --natnet)"),
     tracker_body: Optional[str] = typer.Option(None, "--tracker-body", help="rigid body of the --tracker stream"),
-    estimator: str = typer.Option("atlas", "--estimator", help="virtual/serial: atlas (precomputed, cached in "
-                                  "MODEL/atlas/) | refresh (linearization refreshed in the background)"),
+    estimator: Estimator = "atlas",
 ) -> None:
     """Show the estimate live on a local web page, stream every estimate (ZeroMQ, JSON) and record
-    the session (MCAP). Ctrl-C stops."""
+    the session (MCAP). Ctrl-C stops. --model: the model drawn in the 3-D view and, for the
+    estimated sources (virtual, serial, a sensing recording), estimated on (refresh: re-linearized
+    in the background)."""
     from softphantom.estimation.select import check_estimator_kind
     from softphantom.sources import open_source, replay_holds
     from softphantom.viz.live import LiveConfig, LiveSession
@@ -217,10 +213,11 @@ def _estimator_source(spec: str, model_dir: Optional[Path], at: Optional[str], m
 @app.command("recording-csv")
 def recording_csv(
     recording: Path = typer.Argument(..., help="session recording (.mcap)"),
-    out: Path = typer.Option(..., "--out", help="estimate CSV to write (read by softphantom evaluate)"),
-    overwrite: bool = overwrite_option(),
+    out: Out = ...,
+    overwrite: Overwrite = False,
 ) -> None:
-    """Export the /estimate channel of a session recording to the estimate CSV."""
+    """Export the /estimate channel of a session recording to the estimate CSV --out (read by
+    softphantom evaluate)."""
     from softphantom.stream import export_estimate_csv, read_recording
 
     with staged_output(out, overwrite=overwrite, directory=False) as work:

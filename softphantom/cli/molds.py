@@ -3,22 +3,20 @@
 from __future__ import annotations
 
 import time
-from pathlib import Path
-
-import typer
 
 from softphantom.cli.app import app, console
-from softphantom.cli.options import overwrite_option, staged_output
+from softphantom.cli.options import ModelDir, Out, Overwrite, Png, staged_output
 
 
 @app.command("molds")
 def molds_command(
-    model: Path = typer.Option(..., "--model", help="Model directory written by `softphantom design` (its design.toml)."),
-    out: Path = typer.Option(..., "--out", help="Output directory (created)."),
-    png: bool = typer.Option(True, "--png/--no-png", help="Write assembly.png."),
-    overwrite: bool = overwrite_option(),
+    model: ModelDir = ...,
+    out: Out = ...,
+    png: Png = True,
+    overwrite: Overwrite = False,
 ) -> None:
-    """Build the molds ([molds] table of the design), check each part and write STL/3MF, bom.csv/.md, parts.csv."""
+    """Build the molds ([molds] table of the --model's design.toml), check each part and write STL/3MF,
+    bom.csv/.md, parts.csv and assembly.png into the new directory --out."""
     from softphantom.design.params import load_design
     from softphantom.errors import FileFormatError
     from softphantom.molds import build_parts, write_molds

@@ -11,9 +11,14 @@ command added by any module gets it:
   recording first and end with :func:`stopped`, which also exits 130.
 
 Outputs (``--out``): :func:`staged_output` refuses an existing file or non-empty directory unless
-``--overwrite`` (:func:`overwrite_option`), writes into a hidden sibling and moves the result into
+``--overwrite`` (:data:`Overwrite`), writes into a hidden sibling and moves the result into
 place only when the command succeeds, so an error or Ctrl-C leaves no partial output and loses
 nothing that was there before.
+
+Options that several commands take are declared once, here, as ``Annotated`` aliases (flag and help
+text); a command gives only the type's default, e.g. ``model_dir: ModelDir = ...`` (required) or
+``seed: Seed = 0``. What one command does more with an option is said in its own description. A flag
+that means different things in different commands is listed in :data:`FLAGS_OF_SEVERAL_MEANINGS`.
 """
 
 from __future__ import annotations
@@ -27,7 +32,7 @@ import signal
 import threading
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any, NoReturn
+from typing import Annotated, Any, NoReturn, Optional
 
 import typer
 
@@ -80,6 +85,128 @@ def check_positive(value: float | None, option: str, unit: str = "", *, zero: bo
     if value is not None and not (value >= 0 if zero else value > 0):
         raise UserError(f"{option}: must be {'>=' if zero else '>'} 0{' ' + unit if unit else ''}, got {value:g}")
     return value
+
+
+# --- options shared by several commands -----------------------------------------------------------
+
+ModelDir = Annotated[Optional[Path], typer.Option(
+    "--model", help="Model directory (written by softphantom design, or calibrate).")]
+Out = Annotated[Optional[Path], typer.Option(
+    "--out", help="Where to write: the file or directory the command's description names (an existing one is "
+    "refused, or replaced with --overwrite where the command has it).")]
+Overwrite = Annotated[bool, typer.Option(
+    "--overwrite", help="Replace an existing --out (a directory keeps the entries this command does not write).")]
+At = Annotated[Optional[str], typer.Option(
+    "--at", help="Contact point (the model's p_ext): on-centre, off-centre or one of the design's [contacts]. "
+    "Where no default is shown: the recording's (replay), the scenario's (virtual), else on-centre.")]
+Seed = Annotated[int, typer.Option(
+    "--seed", help="Seed of every random draw (a virtual board's noise, offsets, drift, lost frames and clocks; "
+    "atlas check's held-out loads and starts).")]
+Osr = Annotated[Optional[int], typer.Option(
+    "--osr", help="Oversampling: readings summed per channel per frame, 1..500 (on the BIP's 5-channel board "
+    "100: 19.2 Hz, the paper's; 25: 76.9 Hz).")]
+Scheduler = Annotated[Optional[str], typer.Option(
+    "--scheduler", help="Address of a running Dask scheduler (tcp://HOST:PORT) for the solves; default: a "
+    "local cluster.")]
+Workers = Annotated[Optional[int], typer.Option(
+    "--workers", help="Worker processes of the local cluster (default: all cores).")]
+DurationS = Annotated[Optional[float], typer.Option(
+    "--duration-s", help="Stop after this many seconds (default: at the end of a replay or scenario, else "
+    "Ctrl-C).")]
+TubeLengthM = Annotated[Optional[float], typer.Option(
+    "--tube-length-m", help="Tube length per channel (m). Where no default is shown: a replay's recorded one, "
+    "else 12 m.")]
+TubeIdMm = Annotated[Optional[float], typer.Option(
+    "--tube-id-mm", help="Tube inner diameter (mm). Where no default is shown: a replay's recorded one, else "
+    "1.2 mm.")]
+P0KPa = Annotated[Optional[float], typer.Option(
+    "--p0-kPa", help="Absolute ambient pressure at tare (kPa). Where no default is shown: a replay's recorded "
+    "one, else 101.325.")]
+TareS = Annotated[float, typer.Option(
+    "--tare-s", help="Serial: the rest window at the start the sensors are tared on (s).")]
+OnNewBoard = Annotated[str, typer.Option(
+    "--on-new-board", help="Serial: when the board restarts or is replaced mid-run: stop (one-line error, the "
+    "run so far is kept) | retare (re-tare on the next rest window and go on).")]
+LagCompensation = Annotated[Optional[str], typer.Option(
+    "--lag-compensation", help="The tubes' pneumatic lag: model (estimate the cavity pressures of now from a "
+    "model of each tube, docs/estimation.md) | off. Default: model where the tubes' time constant exceeds 10 ms "
+    "(the paper's 12 m tubes: 0.1 s).")]
+MaxForceN = Annotated[float, typer.Option(
+    "--max-force-N", help="Estimated sources: bound on each force component (N).")]
+Estimator = Annotated[Optional[str], typer.Option(
+    "--estimator", help="Estimated sources: atlas (precomputed equilibria, real time; built once per model and "
+    "cached in MODEL/atlas/; a stack of atlases over further cavities' pressures) | refresh (the linearization "
+    "refreshed per sample; needs no atlas, takes a design without an actuated internal cavity).")]
+AtlasGrid = Annotated[Optional[str], typer.Option(
+    "--atlas-grid", help="Atlas to build: Chebyshev points per axis NX,NY,NZ,NP (default: the model's, "
+    "default_atlas_config: 11,9,4,3 with f_x stretched about 0 N on a linear model; 11,6,5,3 per piece, "
+    "Hermite along f_z, on a quadratic one).")]
+AtlasXAxis = Annotated[Optional[str], typer.Option(
+    "--atlas-x-axis", help="Atlas: the first axis, force (f_x; the default on a linear model) | displacement "
+    "(the contact patch's x-displacement mapped onto the f_x range, f_x an output: for a model whose state "
+    "nearly jumps in f_x, docs/estimation.md; the default on a quadratic model).")]
+AtlasFYSplitN = Annotated[Optional[str], typer.Option(
+    "--atlas-f-y-split-N", help="Atlas: build it in pieces along f_y, split at these forces (N, comma-separated), "
+    "each piece with the grid of --atlas-grid: for a model whose map bends sharply at one f_y (the quadratic "
+    "model's fold above ≈ 4.3 N, docs/estimation.md; its default 3.3; '' for one piece).")]
+Envelope = Annotated[Optional[str], typer.Option(
+    "--envelope", help="Atlas: load envelope FXMIN:FXMAX,FYMIN:FYMAX,FZMIN:FZMAX,PMIN:PMAX in N and kPa "
+    "(default -2:2,-1:5.2,-2:2,-2:40); outside it an estimate is clamped and flagged (in_envelope 0).")]
+Scenario = Annotated[str, typer.Option(
+    "--scenario", help="Scenario TOML file, or a bundled one: needle-insertion, push-on-centre, "
+    "push-off-centre, urethra-inflation.")]
+TruthMeshScale = Annotated[float, typer.Option(
+    "--truth-mesh-scale", help="The virtual truth's node spacing relative to the estimator model's mesh size "
+    "(< 1: finer; P2 elements are twice that).")]
+TruthOrder = Annotated[int, typer.Option(
+    "--truth-order", help="The virtual truth's element order: 2 (10-node tets) or 1.")]
+Board = Annotated[str, typer.Option(
+    "--board", help="The virtual board: python (a model of the firmware) or firmware (firmware/main.c run in "
+    "simavr; needs the Debian packages simavr, libsimavr-dev).")]
+Mcu = Annotated[str, typer.Option(
+    "--mcu", help="With --board firmware, the Arduino the firmware is built for and emulated on: uno "
+    "(ATmega328P, 6 analog inputs: the arms and the internal cavities, e.g. 5 arms and the urethra) or mega "
+    "(ATmega2560, 16 analog inputs).")]
+Source = Annotated[Optional[str], typer.Option(
+    "--source", help="Where the samples come from: serial:PORT | replay:FILE (a sensing recording, estimated; "
+    "live also replays a session .mcap or an estimate .csv) | virtual:SCENARIO | synthetic (live).")]
+Speed = Annotated[float, typer.Option(
+    "--speed", help="Playback speed factor (1: real time; live also takes 0: as fast as possible).")]
+AllowRemote = Annotated[bool, typer.Option(
+    "--allow-remote", help="Serve beyond loopback (the command's host option may then name any interface); "
+    "the data streams have no authentication (live's page and --foxglove require a token, printed in their "
+    "addresses).")]
+ConnectTimeoutS = Annotated[float, typer.Option(
+    "--connect-timeout-s", help="Give up when nothing answers within this time (s): no frame from the board "
+    "(acquire), no tracker server (track).")]
+Body = Annotated[Optional[str], typer.Option(
+    "--body", help="Rigid body: its Motive name or NatNet id, or body/topic in a bag; may be left out when "
+    "there is one.")]
+Png = Annotated[bool, typer.Option("--png/--no-png", help="Draw the result as a PNG (mesh.png, assembly.png).")]
+MeshSizeMm = Annotated[Optional[float], typer.Option(
+    "--mesh-size-mm", help="Bulb element size in mm; arm and cavity sizes scale with it.")]
+Force = Annotated[bool, typer.Option(
+    "--force", help="Go past the mesh guards: mesh above the element-count limit (design also: keep cavity "
+    "volumes beyond the tolerance and an unobservable arm layout; docs/robustness.md).")]
+NatnetVersion = Annotated[Optional[str], typer.Option(
+    "--natnet-version", help="NatNet version, 3.0 or 4.1: the one virtual serve speaks, or the one evaluate "
+    "reads a capture without the server's info reply as.")]
+
+FLAGS_OF_SEVERAL_MEANINGS = {
+    "--config": "design: a design file; sweep: a sweep file",
+    "--max-force-N": "estimate and live: the estimate's bound; atlas check: a goal on its error",
+    "--natnet": "track: the server's address; virtual serve: serve one",
+    "--rest-window-s": "evaluate: START,END on the tracker clock; track: a length at the start",
+    "--truth": "evaluate: the truth of one estimate file; calibrate: a tracker take per --recording",
+}
+"""Flags declared by more than one command with a help of each's own, because they are different
+options (flag → what each means); every other flag has one declaration, above."""
+
+
+def check_workers(workers: int | None, *, zero: bool = False) -> None:
+    """Refuse ``--workers`` below 1 (``zero``: below 0, 0 meaning no cluster) before any work."""
+    if workers is not None and workers < (0 if zero else 1):
+        raise UserError(f"--workers must be >= {0 if zero else 1}, got {workers}")
 
 
 # --- applied to the whole command tree ------------------------------------------------------------
@@ -150,12 +277,6 @@ def stopped(message: str = "stopped (Ctrl-C)") -> NoReturn:
 
 
 # --- outputs ------------------------------------------------------------------------------------
-
-def overwrite_option() -> Any:
-    """The ``--overwrite`` flag, the same for every command with ``--out``."""
-    return typer.Option(False, "--overwrite",
-                        help="Replace an existing --out (a directory keeps the entries this command does not write).")
-
 
 def check_output(path: Path, *, overwrite: bool, directory: bool, option: str = "--out") -> None:
     """Refuse an output that exists (a file, a non-empty directory) unless ``overwrite``, one that

@@ -9,7 +9,8 @@ import typer
 from rich.table import Table
 
 from softphantom.cli.app import app, console
-from softphantom.cli.options import check_output, overwrite_option, staged_output, stopped
+from softphantom.cli.options import (At, ConnectTimeoutS, DurationS, ModelDir, OnNewBoard, Osr, Out, Overwrite, P0KPa,
+                                     TareS, TubeIdMm, TubeLengthM, check_output, staged_output, stopped)
 from softphantom.errors import UserError
 from softphantom.sensing.measurement import ARM_CAVITY_VOLUMES_M3, TUBE_ID_M, TUBE_LENGTH_M
 
@@ -19,21 +20,22 @@ app.add_typer(sensing_app, name="sensing")
 
 @sensing_app.command("budget")
 def budget_cmd(
-    tube_length_m: float = typer.Option(TUBE_LENGTH_M, "--tube-length-m", help="Tube length per arm (m)."),
-    tube_id_mm: float = typer.Option(TUBE_ID_M * 1e3, "--tube-id-mm", help="Tube inner diameter (mm)."),
-    osr: int = typer.Option(100, "--osr", help="Readings summed per channel per frame (N)."),
+    tube_length_m: TubeLengthM = TUBE_LENGTH_M,
+    tube_id_mm: TubeIdMm = TUBE_ID_M * 1e3,
+    osr: Osr = 100,
     front_cavity_mm3: float = typer.Option(ARM_CAVITY_VOLUMES_M3[0] * 1e9, "--front-cavity-mm3",
                                            help="Front (vertical) arm cavity (mm³)."),
     back_cavity_mm3: float = typer.Option(ARM_CAVITY_VOLUMES_M3[2] * 1e9, "--back-cavity-mm3",
                                           help="Back (horizontal) arm cavity (mm³)."),
     active_min_kPa: float = typer.Option(-7.0, "--active-min-kPa", help="Cavity-equivalent active span, low end (kPa)."),
     active_max_kPa: float = typer.Option(10.0, "--active-max-kPa", help="Cavity-equivalent active span, high end (kPa)."),
-    p0_kPa: float = typer.Option(101.325, "--p0-kPa", help="Absolute ambient pressure (kPa)."),
+    p0_kPa: P0KPa = 101.325,
     paper_rounding: bool = typer.Option(False, "--paper-rounding", help="Round loss factors to 0.1 as the paper does."),
-    out: Path = typer.Option(None, "--out", help="Directory for budget.csv and budget.png."),
-    overwrite: bool = overwrite_option(),
+    out: Out = None,
+    overwrite: Overwrite = False,
 ) -> None:
-    """Resolution budget of the arm sensing chain (paper eq. 1–2) and how it moves."""
+    """Resolution budget of the arm sensing chain (paper eq. 1–2) and how it moves; with --out, a
+    directory for budget.csv and budget.png."""
     from softphantom.sensing.budget import BudgetParams, budget, plot_budget
 
     if out is not None:
@@ -76,10 +78,7 @@ def budget_cmd(
         console.print(f"wrote {out / 'budget.csv'} and {out / 'budget.png'}")
 
 
-def _status_table(stats, elapsed_s: float, rows: int, out: Path, arm_names: tuple[str, ...] | None = None):
-    from softphantom.sensing.measurement import ARM_NAMES
-
-    arm_names = arm_names or ARM_NAMES
+def _status_table(stats, elapsed_s: float, rows: int, out: Path, arm_names: tuple[str, ...]):
     d = stats.decoder
     t = Table(title=f"acquire → {out}  ({elapsed_s:.1f} s, {rows} rows)", show_header=False)
     t.add_column("what")
@@ -104,25 +103,25 @@ def _status_table(stats, elapsed_s: float, rows: int, out: Path, arm_names: tupl
 @app.command("acquire")
 def acquire_cmd(
     port: str = typer.Option(..., "--port", help="Serial port or pyserial URL (/dev/ttyACM0, loop://, socket://)."),
-    out: Path = typer.Option(..., "--out", help="Recording to create (CSV with a JSON metadata line)."),
-    duration_s: float = typer.Option(None, "--duration-s", help="Stop after this many seconds (default: Ctrl-C)."),
-    osr: int = typer.Option(None, "--osr", help="Ask the board to sum N readings per channel (1..500)."),
+    out: Out = ...,
+    duration_s: DurationS = None,
+    osr: Osr = None,
     baud: int = typer.Option(115_200, "--baud", min=1, help="Serial baud rate."),
-    tare_s: float = typer.Option(1.0, "--tare-s", help="Rest window for the tare at start (s)."),
+    tare_s: TareS = 1.0,
     no_tare: bool = typer.Option(False, "--no-tare", help="Skip the tare; use the datasheet zero offsets."),
-    p0_kPa: float = typer.Option(None, "--p0-kPa", help="Absolute ambient pressure at tare (kPa; default 101.325)."),
-    tube_length_m: float = typer.Option(None, "--tube-length-m", help="Tube length per arm (m; default 12)."),
-    tube_id_mm: float = typer.Option(None, "--tube-id-mm", help="Tube inner diameter (mm; default 1.2)."),
-    model_dir: Path = typer.Option(None, "--model", help="Model directory: arm cavity volumes from its design "
-                                   "(default: the paper's 514/486 mm³)."),
-    at: str = typer.Option("on-centre", "--at", help="Contact point of the trial: on-centre, off-centre or "
-                           "one of the --model's [contacts] (stored, so estimate on the replay needs no option)."),
-    on_new_board: str = typer.Option("stop", "--on-new-board", help="When the board restarts or is replaced: "
-                                     "stop (the file so far is kept) | retare (re-tare at rest and go on)."),
-    connect_timeout_s: float = typer.Option(5.0, "--connect-timeout-s", help="Give up if no frame arrives (s)."),
+    p0_kPa: P0KPa = None,
+    tube_length_m: TubeLengthM = None,
+    tube_id_mm: TubeIdMm = None,
+    model_dir: ModelDir = None,
+    at: At = "on-centre",
+    on_new_board: OnNewBoard = "stop",
+    connect_timeout_s: ConnectTimeoutS = 5.0,
 ) -> None:
-    """Record the sensing board: tare at rest, then append every frame to --out with live status;
-    link events (silent, unplugged, replugged, a new board) become marker rows."""
+    """Record the sensing board: tare at rest, then append every frame to the recording --out (a CSV
+    with a JSON metadata line; never overwritten) with live status; link events (silent, unplugged,
+    replugged, a new board) become marker rows. --model: the volume channels' cavities from its
+    design (default: the paper's 514/486 mm³); --at: the trial's contact point, stored, so estimate
+    on the replay needs no option; --osr: asked of the board (default: the board's own)."""
     import time
     from datetime import datetime, timezone
 
@@ -173,7 +172,7 @@ def acquire_cmd(
                     "started_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
                     "tare": tare.to_dict(), "chain": chain.summary(), "bench": bench.to_meta(), "contact": at,
                     "on_new_board": on_new_board, "model": str(model_dir) if model_dir else None}
-            rec = Recorder(out, meta, arm_names=chain.arm_names, cavity_names=chain.cavity_names)
+            rec = Recorder(out, meta, layout=chain.layout)
             for m in window:        # the tare window is part of the recording, re-converted
                 rec.write(to_measurement(m.t, m.seq, m.t_board, m.raw, m.osr, chain, tare))
             # 2. record

@@ -8,23 +8,26 @@ from typing import Optional
 import typer
 
 from softphantom.cli.app import app, console
+from softphantom.cli.options import Out, Scheduler, Workers, check_workers
 
 
 @app.command("sweep")
 def sweep_command(
     config: Path = typer.Option(..., "--config", help="Sweep file (TOML; docs/sweep.md)."),
-    out: Path = typer.Option(..., "--out", help="Output directory: results.parquet, report.html, variants/ cache."),
-    scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Address of a running Dask scheduler (tcp://HOST:PORT); default: a local cluster."),
-    workers: Optional[int] = typer.Option(None, "--workers", min=1, help="Local cluster: worker processes (default: all cores)."),
+    out: Out = ...,
+    scheduler: Scheduler = None,
+    workers: Workers = None,
     optimize: bool = typer.Option(False, "--optimize", help="Differential evolution over the continuous parameters instead of the sample."),
     objective: Optional[str] = typer.Option(None, "--objective", help="With --optimize: the column to optimize, instead of "
                                             "the file's optimize.objective (e.g. obs_sv_min_mm3, maximized; docs/sweep.md)."),
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Show the variants' progress."),
 ) -> None:
-    """Mesh and linearize every variant of a design study; write results.parquet and report.html (resumes from OUT/variants/)."""
+    """Mesh and linearize every variant of a design study; write results.parquet, report.html and the
+    variants/ cache into the directory --out (resumes from OUT/variants/)."""
     from softphantom.cli.logs import hide_progress
     from softphantom.study import load_sweep_config, require_pyarrow
 
+    check_workers(workers)
     if not progress:
         hide_progress()
     cfg = load_sweep_config(config)

@@ -3,32 +3,33 @@
 from __future__ import annotations
 
 import time
-from pathlib import Path
 from typing import Optional
 
 import typer
 
 from softphantom.cli.app import app, console
-from softphantom.cli.options import check_output, overwrite_option, stopped
+from softphantom.cli.options import Body, ConnectTimeoutS, DurationS, Out, Overwrite, check_output, stopped
 from softphantom.errors import UserError
 
 
 @app.command("track")
 def track_cmd(
     natnet: str = typer.Option(..., "--natnet", help="NatNet server address (Motive's PC, or 127.0.0.1 for virtual serve --natnet)."),
-    out: Path = typer.Option(..., "--out", help=".mcap: raw poses on /tracker (a session recording); .csv: the truth CSV, registered by its rest window."),
-    body: Optional[str] = typer.Option(None, "--body", help="Rigid body name (or NatNet id); may be left out when the server streams one."),
+    out: Out = ...,
+    body: Body = None,
     command_port: int = typer.Option(1510, "--command-port", help="Server's command port."),
     data_port: int = typer.Option(1511, "--data-port", help="Data port to listen on."),
     local_ip: str = typer.Option("0.0.0.0", "--local-ip", help="This machine's interface for multicast (and the command socket)."),
     multicast: Optional[bool] = typer.Option(None, "--multicast/--unicast", help="Data by multicast or unicast (default: as the server says)."),
-    duration_s: Optional[float] = typer.Option(None, "--duration-s", help="Stop after this many seconds (default: Ctrl-C)."),
+    duration_s: DurationS = None,
     frames: Optional[int] = typer.Option(None, "--frames", help="Stop after this many frames (default: Ctrl-C)."),
     rest_window_s: float = typer.Option(0.5, "--rest-window-s", help="Length of the rest window at the start (s), for the truth CSV."),
-    connect_timeout_s: float = typer.Option(3.0, "--connect-timeout-s", help="Give up when no server answers within this time (s)."),
-    overwrite: bool = overwrite_option(),
+    connect_timeout_s: ConnectTimeoutS = 3.0,
+    overwrite: Overwrite = False,
 ) -> None:
-    """Record a rigid body from a NatNet stream: progress, lost frames, reconnects; Ctrl-C stops."""
+    """Record a rigid body from a NatNet stream: progress, lost frames, reconnects; Ctrl-C stops. --out:
+    a .mcap holds the raw poses on /tracker (a session recording), a .csv the truth CSV, registered
+    by its rest window."""
     from softphantom.progress import live_line
     from softphantom.tracking.client import NatNetClient, NatNetConfig
     from softphantom.tracking.record import TrackerSink

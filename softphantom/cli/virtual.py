@@ -7,18 +7,14 @@ from pathlib import Path
 import typer
 
 from softphantom.cli.app import app, console
-from softphantom.cli.estimation import TUBE_ID_OPTION, TUBE_LENGTH_OPTION
-from softphantom.cli.options import check_output, overwrite_option, staged_output, stopped
+from softphantom.cli.options import (AllowRemote, Board, Mcu, ModelDir, NatnetVersion, Osr, Out, Overwrite, Scenario,
+                                     Seed, Speed, TruthMeshScale, TruthOrder, TubeIdMm, TubeLengthM, check_output,
+                                     staged_output, stopped)
 from softphantom.errors import UserError
 
 virtual_app = typer.Typer(help="Virtual phantom: scripted scenarios → sensor frames + tracker stream.",
                           no_args_is_help=True)
 app.add_typer(virtual_app, name="virtual")
-
-SCENARIO_HELP = "Scenario TOML file, or a bundled one: needle-insertion, push-on-centre, push-off-centre, urethra-inflation."
-BOARD_OPTION = typer.Option("python", "--board", help="The virtual board: python (a model of the firmware) or firmware (firmware/main.c run in simavr; needs the Debian packages simavr, libsimavr-dev).")
-MCU_OPTION = typer.Option("uno", "--mcu", help="With --board firmware, the Arduino the firmware is built for and emulated on: uno (ATmega328P, 6 analog inputs: the arms and the internal cavities, e.g. 5 arms and the urethra) or mega (ATmega2560, 16 analog inputs).")
-
 
 def _config(seed: int, osr: int, mesh_scale: float, bench_options: dict | None = None, order: int | None = None,
             board: str = "python", mcu: str = "uno"):
@@ -94,20 +90,22 @@ def _print_summary(summary: dict) -> None:
 
 @virtual_app.command("run")
 def run_cmd(
-    scenario: str = typer.Option(..., "--scenario", help=SCENARIO_HELP),
-    model_dir: Path = typer.Option(..., "--model", help="Model directory (softphantom design); the truth uses its design, meshed finer."),
-    out: Path = typer.Option(..., "--out", help="Output directory: frames.bin, recording.csv, tracker_motive.csv, truth.csv, snapshot.vtu, virtual.json."),
-    seed: int = typer.Option(0, "--seed", help="Seed of every random source (noise, offsets, drift, lost frames, clocks)."),
-    osr: int = typer.Option(25, "--osr", help="Readings summed per channel per frame (25: 76.9 Hz, 100: 19.2 Hz)."),
-    truth_mesh_scale: float = typer.Option(0.75, "--truth-mesh-scale", help="Truth node spacing relative to the model's mesh size (< 1: finer; P2 elements are twice that)."),
-    truth_order: int = typer.Option(2, "--truth-order", help="Truth element order: 2 (10-node tets, the default) or 1."),
-    tube_length_m: float = TUBE_LENGTH_OPTION,
-    tube_id_mm: float = TUBE_ID_OPTION,
-    overwrite: bool = overwrite_option(),
-    board: str = BOARD_OPTION,
-    mcu: str = MCU_OPTION,
+    scenario: Scenario = ...,
+    model_dir: ModelDir = ...,
+    out: Out = ...,
+    seed: Seed = 0,
+    osr: Osr = 25,
+    truth_mesh_scale: TruthMeshScale = 0.75,
+    truth_order: TruthOrder = 2,
+    tube_length_m: TubeLengthM = None,
+    tube_id_mm: TubeIdMm = None,
+    overwrite: Overwrite = False,
+    board: Board = "python",
+    mcu: Mcu = "uno",
 ) -> None:
-    """Simulate a scenario: write the board's frames, a recording, the tracker's Motive CSV, the truth."""
+    """Simulate a scenario on --model (the truth: its design, meshed finer) and write into the directory
+    --out the board's frames (frames.bin), a recording (recording.csv), the tracker's Motive CSV
+    (tracker_motive.csv), the truth (truth.csv, snapshot.vtu) and the run's settings (virtual.json)."""
     from softphantom.virtual import run_summary, write_run
 
     check_output(out, overwrite=overwrite, directory=True)
@@ -122,26 +120,27 @@ def run_cmd(
 
 @virtual_app.command("serve")
 def serve_cmd(
-    scenario: str = typer.Option(..., "--scenario", help=SCENARIO_HELP),
-    model_dir: Path = typer.Option(..., "--model", help="Model directory (softphantom design)."),
-    seed: int = typer.Option(0, "--seed", help="Seed of every random source."),
-    osr: int = typer.Option(25, "--osr", help="Initial OSR (the host may change it with SET_OSR)."),
-    truth_mesh_scale: float = typer.Option(0.75, "--truth-mesh-scale", help="Truth node spacing relative to the model's mesh size (P2 elements are twice that)."),
-    truth_order: int = typer.Option(2, "--truth-order", help="Truth element order: 2 (10-node tets, the default) or 1."),
-    tube_length_m: float = TUBE_LENGTH_OPTION,
-    tube_id_mm: float = TUBE_ID_OPTION,
-    speed: float = typer.Option(1.0, "--speed", help="Playback speed (1 = real time)."),
+    scenario: Scenario = ...,
+    model_dir: ModelDir = ...,
+    seed: Seed = 0,
+    osr: Osr = 25,
+    truth_mesh_scale: TruthMeshScale = 0.75,
+    truth_order: TruthOrder = 2,
+    tube_length_m: TubeLengthM = None,
+    tube_id_mm: TubeIdMm = None,
+    speed: Speed = 1.0,
     once: bool = typer.Option(False, "--once", help="Stop at the end of the scenario (default: keep streaming the rest state)."),
     natnet: bool = typer.Option(False, "--natnet", help="Also serve the tracker as a NatNet server (softphantom track --natnet HOST)."),
     natnet_host: str = typer.Option("127.0.0.1", "--natnet-host", help="Interface of the NatNet server; loopback unless set explicitly."),
     natnet_port: int = typer.Option(1510, "--natnet-port", help="NatNet command port (data go to each client that connects)."),
-    natnet_version: str = typer.Option("4.1", "--natnet-version", help="NatNet version to speak: 3.0 or 4.1."),
-    allow_remote: bool = typer.Option(False, "--allow-remote", help="Let --natnet-host be beyond loopback (every "
-                                      "interface: 0.0.0.0); the NatNet stream has no authentication."),
-    board: str = BOARD_OPTION,
-    mcu: str = MCU_OPTION,
+    natnet_version: NatnetVersion = "4.1",
+    allow_remote: AllowRemote = False,
+    board: Board = "python",
+    mcu: Mcu = "uno",
 ) -> None:
-    """Serve the scenario's frames on a pty as the board would: prints the port path to use."""
+    """Serve the scenario's frames on a pty as the board would: prints the port path to use. --osr is
+    the board's initial one (the host may change it with SET_OSR); --allow-remote lets --natnet-host
+    be beyond loopback (every interface: 0.0.0.0)."""
     import sys
 
     from softphantom.virtual.serve import open_pty, serve_board

@@ -125,6 +125,12 @@ class PhantomModel:
         if self.element_order == 2 and (len(self.tets10) != len(self.tets) or set(self.cavities6) != set(self.cavities)):
             raise MeshError("element_order 2: tets10 and cavities6 must match tets and cavities")
 
+    @property
+    def layout(self):
+        """Its design's :class:`~softphantom.records.channels.ChannelLayout` (arms, measured and
+        actuated cavities, in order): the names of its ``cavities`` the sensors read and load."""
+        return self.design.channel_layout
+
     def __eq__(self, other: object) -> bool:
         if not isinstance(other, PhantomModel):
             return NotImplemented

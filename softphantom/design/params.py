@@ -193,6 +193,18 @@ class BIPDesign:
         return tuple(c.name for c in self.cavities if c.role == "actuated")
 
     @property
+    def channel_layout(self):
+        """The phantom's :class:`~softphantom.records.channels.ChannelLayout`: its arms, measured and
+        actuated cavities, in order; passed to the model, the sensor chain, the estimator and every file.
+
+        >>> BIPDesign().channel_layout.to_dict()
+        {'arms': ['front_zpos', 'front_zneg', 'back_xpos', 'back_xneg'], 'measured': [], 'actuated': ['urethra']}
+        """
+        from softphantom.records.channels import ChannelLayout
+
+        return ChannelLayout(self.arm_names, self.measured_cavity_names, self.pressure_names)
+
+    @property
     def urethra(self):
         """The cavity named ``urethra`` (None without one)."""
         return next((c for c in self.cavities if c.name == "urethra"), None)

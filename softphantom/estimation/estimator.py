@@ -24,7 +24,8 @@ from softphantom.estimation.config import EstimatorConfig
 from softphantom.estimation.forward import ForwardModel
 from softphantom.estimation.linearization import Linearization, PathCorrection
 from softphantom.estimation.qp import solve_volume_qp
-from softphantom.estimation.types import ARM_NAMES, Estimate
+from softphantom.estimation.types import Estimate
+from softphantom.records.channels import ChannelLayout
 from softphantom.pose import Pose6, rigid_fit
 
 PATH_ITERATIONS = 4  # fixed-point passes of the QP on the path-corrected W (see PathCorrection)
@@ -136,8 +137,9 @@ def noise_bound(lin: Linearization, rest_markers: np.ndarray, target_names, sigm
     return NoiseBound(np.sqrt(np.diag(cov)), pose, targets, cov)
 
 
-def check_sample(m, arm_names: tuple[str, ...] = ARM_NAMES) -> str:
-    """'' for a usable sample (one volume per arm of ``arm_names``), else the rejection reason."""
+def check_sample(m, arm_names: tuple[str, ...]) -> str:
+    """'' for a usable sample (one volume per volume channel of ``arm_names``, a layout's
+    ``sensing``), else the rejection reason."""
     if getattr(m, "status", "ok") != "ok":
         return str(m.status)
     dV = np.asarray(m.dV, dtype=float)
@@ -184,7 +186,7 @@ def repeat_last(last: Estimate, m, status: str, t0: float, skipped: int) -> Esti
         t=t, force=last.force.copy(), p_urethra=last.p_urethra, pose=last.pose,
         target_shift=dict(last.target_shift), volume_pred=last.volume_pred.copy(), volume_meas=dV,
         cond_W=last.cond_W, qp_status=status, step_time=time.perf_counter() - t0, skipped=int(skipped),
-        status=status, in_envelope=last.in_envelope, arm_names=last.arm_names, pressures_Pa=last.pressures_Pa,
+        status=status, in_envelope=last.in_envelope, pressures_Pa=last.pressures_Pa, layout=last.layout,
     )
 
 
@@ -194,16 +196,19 @@ def sensitivity_cond(W: np.ndarray) -> float:
     return float(s[0] / s[-1]) if s[-1] > 0 else float("inf")
 
 
-def rest_estimate(target_names, W: np.ndarray, arm_names: tuple[str, ...] = ARM_NAMES,
-                  pressure_names: tuple[str, ...] = ("urethra",)) -> Estimate:
-    """The estimate before the first sample: no load, no motion, ``cond_W`` of the sensitivity ``W``."""
+def rest_estimate(target_names, W: np.ndarray, layout: ChannelLayout,
+                  pressure_names: tuple[str, ...] | None = None) -> Estimate:
+    """The estimate before the first sample of a phantom of ``layout``: no load, no motion,
+    ``cond_W`` of the sensitivity ``W``; ``pressure_names`` the pressures it reports (default:
+    the layout's actuated cavities)."""
     z = np.zeros(3)
-    pressures = None if tuple(pressure_names) == ("urethra",) else dict.fromkeys(pressure_names, 0.0)
+    names = layout.actuated if pressure_names is None else tuple(pressure_names)
+    pressures = None if names == ("urethra",) else dict.fromkeys(names, 0.0)
     return Estimate(
         t=0.0, force=z.copy(), p_urethra=0.0, pose=Pose6(z.copy(), z.copy()),
         target_shift={k: z.copy() for k in target_names}, volume_pred=np.zeros(len(W)),
         volume_meas=np.zeros(len(W)), cond_W=sensitivity_cond(W), qp_status="rest", step_time=0.0,
-        arm_names=tuple(arm_names), pressures_Pa=pressures,
+        pressures_Pa=pressures, layout=layout,
     )
 
 
@@ -308,8 +313,9 @@ class Estimator(EstimatorState):
         self.model = model
         self.forward = fwd = ForwardModel(model, cfg)
         self.fem = fwd.fem
-        self.arm_names = fwd.eq.arm_names
-        self.pressure_names = fwd.eq.pressure_names  # the internal cavities: λ[3:]
+        self.layout = fwd.layout  # the rows of V and W (sensing), the loads λ[3:] (actuated)
+        self.arm_names = self.layout.sensing
+        self.pressure_names = self.layout.actuated
         self.contact_point = fwd.contact_point
         self.marker_names, self.target_names = fwd.marker_names, fwd.target_names
         self._eq = fwd.eq
@@ -334,7 +340,7 @@ class Estimator(EstimatorState):
         # per-refresh history, the latest HISTORY entries only: a soak must not grow the process
         self.lin_errors = History(width=len(self.arm_names))
         self.refresh_times = History()  # s per equilibrium refresh (both modes)
-        self._last = rest_estimate(self.target_names, self.rest.W, self.arm_names, self.pressure_names)
+        self._last = rest_estimate(self.target_names, self.rest.W, self.layout)
         if self.config.mode == "async" and self._worker is None:
             self._worker = _Worker(self)
             self._worker.start()
@@ -439,7 +445,7 @@ class Estimator(EstimatorState):
             extra={"qp_residual_m3": qp.residual, "active": qp.active, "lin_lam": lin.lam,
                    **({} if self.pressure_names == ("urethra",) else
                       {"pressures_Pa": dict(zip(self.pressure_names, lam[3:].tolist()))})},
-            arm_names=self.arm_names,
+            layout=self.layout,
         )
         return est, lam
 

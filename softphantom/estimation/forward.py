@@ -27,14 +27,6 @@ STEP_N = 1.0
 STEP_PA = 10_000.0
 
 
-def internal_cavities_of(model) -> tuple[str, ...]:
-    """The pressure-loaded internal cavities of a phantom model, in the load order: its design's
-    actuated ones (``pressure_names``; the BIP's: the urethra). A measured internal cavity is no
-    load: the equilibrium solver makes it a sensing row after the arms."""
-    design = getattr(model, "design", None)
-    return tuple(design.pressure_names) if design is not None else ("urethra",)
-
-
 def contact_point(model, contact) -> np.ndarray:
     """(3,) m: a named ``model.p_ext`` point or an (x, y, z) point in m."""
     if isinstance(contact, str):
@@ -70,13 +62,10 @@ class ForwardModel:
         self.eq = EquilibriumSolver(
             self.fem, self.H_f, self.probe, solver=cfg.sparse_solver, tol=cfg.tol,
             refactor_rate=cfg.refactor_rate, max_iter=cfg.max_iter, exact_sensitivities=exact_sensitivities,
-            fallback_min_load_step=fallback_min_load_step, pressures=internal_cavities_of(model),
+            fallback_min_load_step=fallback_min_load_step, layout=model.layout,
         )
-        self.pressure_names = self.eq.pressure_names
-        sensing = getattr(getattr(model, "design", None), "sensing_names", None)
-        if sensing is not None and self.eq.arm_names != tuple(sensing):  # fem.cavities in the design's order
-            raise UserError(f"model: its sensing rows ({', '.join(self.eq.arm_names)}) are not its design's volume "
-                            f"channels ({', '.join(sensing)})")
+        self.layout = model.layout  # the rows of V and W (sensing), the loads λ[3:] (actuated)
+        self.pressure_names = self.layout.actuated
         self.n_markers = len(self.marker_names)
 
     @functools.cached_property

@@ -37,6 +37,7 @@ from softphantom.fem import (
     solve_static,
 )
 from softphantom.fem.model import FemModel
+from softphantom.records.channels import ChannelLayout
 
 URETHRA = "urethra"
 ANDERSON = 5  # depth of the Anderson mixing of the chord iterations
@@ -52,12 +53,6 @@ STALL_WINDOW = 3
 FACTOR_COST_ITERS = 15
 BORDERED_FACTORS = 6  # factorizations a mixed-control solve may make before it gives up
 NEWTON_FIRST_ITERS = 8  # Newton iterations of the fallback's first attempt, from the chord's last state
-
-
-def arm_names_of(fem, internal=(URETHRA,)) -> tuple[str, ...]:
-    """The sensing rows of a FEM model: its cavities but the pressure-loaded ``internal`` ones (the
-    BIP's urethra), in the design's sensor order: the arms, then any measured internal cavity."""
-    return tuple(k for k in fem.cavities if k not in internal)
 
 
 def _pressure_text(names, p) -> str:
@@ -117,23 +112,26 @@ class EquilibriumSolver:
     was made at another state (no GMRES): the equilibria are as exact, the sensitivities only good
     enough for the next solve's predictor (the atlas build, which keeps only the equilibria).
     ``fallback_min_load_step``: the smallest load step of the Newton fallback before it gives up
-    (a caller that expects failures, the atlas build, gives up sooner). ``pressures``: the internal
-    cavities whose pressures are loads, in the order of ``λ[3:]`` (default: the urethra; the
-    design's ``pressure_names``); the other cavities are the sensing rows (the arms, then the
-    measured internal cavities: the design's ``sensing_names``). Not thread-safe: one
-    solver per thread.
+    (a caller that expects failures, the atlas build, gives up sooner). ``layout``: the model's
+    :class:`~softphantom.records.channels.ChannelLayout` (default: the FEM model's): its
+    ``sensing`` cavities are the rows of ``V`` and ``W`` (the arms, then the measured cavities), its
+    ``actuated`` ones the pressure loads ``λ[3:]``. Not thread-safe: one solver per thread.
     """
 
     def __init__(self, fem: FemModel, H_f, probe, *, solver: str = "auto", tol: float = 1e-8,
                  refactor_rate: float = 0.3, max_iter: int = 12, exact_sensitivities: bool = True,
-                 fallback_min_load_step: float = 1.0 / 1024, pressures=(URETHRA,)) -> None:
-        pressures = tuple(pressures)
-        arms = arm_names_of(fem, pressures)
-        if not set(pressures) <= set(fem.cavities) or len(arms) < 3:
-            raise UserError(f"model has cavities {list(fem.cavities)}: it needs {', '.join(map(repr, pressures))} "
-                            "and at least 3 arms")
-        self.arm_names = arms  # the sensor order: the rows of V and W
-        self.pressure_names = pressures  # the loads λ[3:]
+                 fallback_min_load_step: float = 1.0 / 1024, layout: ChannelLayout | None = None) -> None:
+        layout = fem.layout if layout is None else layout
+        if layout is None:
+            raise UserError("the FEM model has no channel layout: pass the one of its design")
+        missing = [c for c in layout.channels if c not in fem.cavities]
+        if missing or len(layout.sensing) < 3:
+            raise UserError(f"model has cavities {list(fem.cavities)}: its channels ({', '.join(layout.channels)}) "
+                            f"need {'a wall for ' + repr(missing[0]) if missing else 'at least 3 volume channels'}")
+        self.layout = layout
+        self.arm_names = layout.sensing  # the sensor order: the rows of V and W
+        self.pressure_names = layout.actuated  # the loads λ[3:]
+        pressures = self.pressure_names
         self.n_loads = 3 + len(pressures)
         self.fem = fem
         self.H_f = H_f.tocsr()
@@ -153,7 +151,7 @@ class EquilibriumSolver:
         self._factor_at: tuple[np.ndarray, float] | None = None  # where the kept factor was made
         self.last_rate = 0.0  # mean chord contraction of the last solve
         self.krylov_iterations = 0  # GMRES iterations of the last linearization (0: direct)
-        self._arm_tris = [np.asarray(fem.cavities[a]) for a in arms]
+        self._arm_tris = [np.asarray(fem.cavities[a]) for a in self.arm_names]
         self._p_tris = [np.asarray(fem.cavities[c]) for c in pressures]
         self._ur_tris = self._p_tris[0] if pressures == (URETHRA,) else None  # the BIP's (the reduced model)
         self._V0 = np.array([cavity_volume(fem.x_rest, t) for t in self._arm_tris])

@@ -24,8 +24,9 @@ from pathlib import Path
 import numpy as np
 
 from softphantom.records.estimate import Estimate, estimate_row, is_marker, marker_estimate
-from softphantom.records.names import ARM_NAMES, BIP_CAVITIES, EVENT_PREFIX, estimate_columns
-from softphantom.records.session import SessionWriter
+from softphantom.records.channels import ChannelLayout
+from softphantom.records.names import EVENT_PREFIX, estimate_columns
+from softphantom.records.session import OverSessionWriter, SessionWriter
 
 __all__ = ["EVENT_PREFIX", "EstimateWriter", "EventMarkers", "StepStats", "estimate_columns", "estimate_row",
            "estimate_stream", "is_marker", "iter_samples", "marker_estimate", "write_estimates"]
@@ -71,17 +72,16 @@ class StepStats:
         return min(self.LO * 10 ** (k / self.PER_DECADE), self.max)
 
 
-class EstimateWriter:
+class EstimateWriter(OverSessionWriter):
     """Write estimates to the estimate file (a session file, :mod:`softphantom.records.session`):
-    the metadata line, the header, one row per estimate, each handed to the OS as it is written."""
+    the metadata line (with the phantom's ``layout`` under ``channels``), the header (its volume
+    and pressure columns), one row per estimate, each handed to the OS as it is written."""
 
-    def __init__(self, path, target_names: Iterable[str], metadata: dict | None = None,
-                 arm_names: Iterable[str] = ARM_NAMES, cavity_names: Iterable[str] = BIP_CAVITIES) -> None:
+    def __init__(self, path, target_names: Iterable[str], metadata: dict | None, layout: ChannelLayout) -> None:
         self.target_names = list(target_names)
-        self.arm_names = tuple(arm_names)  # the model's arms: its volume columns
-        self.cavity_names = tuple(cavity_names)  # its internal cavities: its pressure columns
-        self._w = SessionWriter(path, estimate_columns(self.target_names, self.arm_names, self.cavity_names),
-                                metadata or {})
+        self.layout = layout
+        self._w = SessionWriter(path, estimate_columns(self.target_names, layout),
+                                {**(metadata or {}), **layout.to_meta()})
         self.path = self._w.path
 
     @property
@@ -89,25 +89,16 @@ class EstimateWriter:
         return self._w.rows
 
     def write(self, e: Estimate) -> None:
-        if e.arm_names != self.arm_names:
-            raise ValueError(f"an estimate of arms {list(e.arm_names)} in a file of arms {list(self.arm_names)}")
-        self._w.write_row(estimate_row(e, self.target_names, self.cavity_names))
-
-    def close(self) -> None:
-        self._w.close()
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
+        if (e.layout.sensing, e.layout.actuated) != (self.layout.sensing, self.layout.actuated):
+            raise ValueError(f"an estimate of channels {list(e.layout.channels)} in a file of "
+                             f"{list(self.layout.channels)}")
+        self._w.write_row(estimate_row(e, self.target_names))
 
 
 def write_estimates(path, estimates: Iterable[Estimate], target_names: Iterable[str],
-                    metadata: dict | None = None, arm_names: Iterable[str] = ARM_NAMES,
-                    cavity_names: Iterable[str] = BIP_CAVITIES) -> Path:
-    """Write a sequence of estimates to ``path`` (see :class:`EstimateWriter`)."""
-    with EstimateWriter(path, target_names, metadata, arm_names, cavity_names) as w:
+                    metadata: dict | None, layout: ChannelLayout) -> Path:
+    """Write a sequence of estimates of a phantom of ``layout`` to ``path`` (see :class:`EstimateWriter`)."""
+    with EstimateWriter(path, target_names, metadata, layout) as w:
         for e in estimates:
             w.write(e)
     return w.path
@@ -204,12 +195,10 @@ class EventMarkers:
     """Turns a source's link events into marker estimates in time order: ``due(t)`` gives the
     markers of the events at or before ``t`` (all of them for ``t`` None)."""
 
-    def __init__(self, source, target_names: Iterable[str], arm_names: Iterable[str] = ARM_NAMES,
-                 cavity_names: Iterable[str] = BIP_CAVITIES) -> None:
+    def __init__(self, source, target_names: Iterable[str], layout: ChannelLayout) -> None:
         self._src = source
         self._targets = list(target_names)
-        self._arms = tuple(arm_names)
-        self._cavities = tuple(cavity_names)
+        self._layout = layout
         self._pending: list = []
         self.counts: dict[str, int] = {}
 
@@ -219,7 +208,7 @@ class EventMarkers:
         self._pending = [e for e in self._pending if not (t is None or e.t <= t)]
         for e in now:
             self.counts[e.kind] = self.counts.get(e.kind, 0) + 1
-        return [marker_estimate(e, self._targets, self._arms, self._cavities) for e in now]
+        return [marker_estimate(e, self._targets, self._layout) for e in now]
 
 
 def _is_live(source) -> bool:
@@ -243,12 +232,11 @@ def estimate_stream(source, estimator, out_path, on_estimate: Callable[[Estimate
     source (e.g. a new board under the ``stop`` policy) is raised after its marker is written."""
     live = _is_live(source) if live is None else live
     targets = list(getattr(estimator, "target_names", ()))
-    arms = tuple(getattr(estimator, "arm_names", ARM_NAMES))
-    cavities = tuple(getattr(estimator, "pressure_names", BIP_CAVITIES))
+    layout = estimator.layout
     meta = {"softphantom": _version(), "kind": "softphantom-estimate", "live": live, **(metadata or {})}
     steps = StepStats()
     n = rejected = skipped_total = outside = 0
-    markers = EventMarkers(source, targets, arms, cavities)
+    markers = EventMarkers(source, targets, layout)
     t0 = time.perf_counter()
 
     def mark(t: float | None) -> None:
@@ -257,7 +245,7 @@ def estimate_stream(source, estimator, out_path, on_estimate: Callable[[Estimate
             if on_event is not None:
                 on_event(e)
 
-    with EstimateWriter(out_path, targets, meta, arms, cavities) as writer:
+    with EstimateWriter(out_path, targets, meta, layout) as writer:
         try:
             for m, skipped in iter_samples(source, live, stop, idle=True):
                 if m is None:

@@ -6,6 +6,7 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
+from softphantom.records.channels import ChannelLayout
 from softphantom.records.estimate import Estimate
 from softphantom.records.names import ARM_NAMES
 
@@ -23,6 +24,7 @@ class StateEstimator(Protocol):
     """
 
     kind: str
+    layout: ChannelLayout  # the phantom's channels: its estimates' volumes and pressures
     marker_names: tuple[str, ...]
     target_names: tuple[str, ...]
 

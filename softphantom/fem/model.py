@@ -12,6 +12,7 @@ import numpy as np
 from softphantom.errors import MeshError, UserError
 from softphantom.fem import elements, kernels
 from softphantom.fem.material import DEFAULT_LAW, LAWS, Corotational, Law
+from softphantom.records.channels import ChannelLayout
 
 
 def _ro(a: np.ndarray) -> np.ndarray:
@@ -38,7 +39,9 @@ class FemModel:
     Newton matrix is assembled in place; ``ff_pos`` maps a position of the full pattern to the
     free–free one (−1: fixed). Index arrays are int32 where they fit (scipy and CHOLMOD take them
     without a copy). ``boundary_faces`` (B,3|6) and the
-    ``cavities`` (K,3|6) are triangles of the element's order.
+    ``cavities`` (K,3|6) are triangles of the element's order; ``layout`` (a phantom's
+    :class:`~softphantom.records.channels.ChannelLayout`, None for a bare mesh) names those the
+    sensors read and the loads inflate, in order.
     """
 
     nodes: np.ndarray  # (N,3) m, rest positions
@@ -68,6 +71,7 @@ class FemModel:
     params: np.ndarray = None  # (M,4)
     laws: tuple = ()  # the distinct law objects, for the record
     N_q: np.ndarray = None  # (Q,n) shape functions at the quadrature points
+    layout: ChannelLayout | None = None  # which cavities are read and loaded (None: a bare mesh)
 
     @property
     def order(self) -> int:
@@ -215,6 +219,7 @@ def build_fem(
     fixed_dofs: np.ndarray | Sequence[int] = (),
     cavities: Mapping[str, np.ndarray] | None = None,
     quad_degree: int | None = None,
+    layout: ChannelLayout | None = None,
 ) -> FemModel:
     """Precompute a :class:`FemModel` for linear (M,4) or quadratic (M,10) tetrahedra.
 
@@ -224,7 +229,7 @@ def build_fem(
     components of those nodes; ``fixed_dofs`` clamps single DOFs (``3*node + component``), e.g. for
     symmetry planes. Tets must be positively oriented (det J > 0 at every quadrature point).
     Quadrature: 1 point for linear tets, 4 points (degree 2) for quadratic ones; ``quad_degree``
-    overrides it (1 or 2).
+    overrides it (1 or 2). ``layout``: the channels among ``cavities`` (each must be one).
 
     >>> import numpy as np
     >>> X = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], float)
@@ -240,6 +245,8 @@ def build_fem(
     if m == 0 or tets.min() < 0 or tets.max() >= n:
         raise MeshError("tets must be non-empty and index existing nodes")
     k = tets.shape[1]
+    if layout is not None and (missing := [c for c in layout.channels if c not in (cavities or {})]):
+        raise MeshError(f"channel {missing[0]!r} has no cavity wall (cavities: {', '.join(cavities or {}) or 'none'})")
 
     corner = tets[:, :4]
     Dm = np.swapaxes(nodes[corner[:, 1:]] - nodes[corner[:, [0]]], 1, 2)  # columns X_a - X_0
@@ -321,6 +328,7 @@ def build_fem(
         params=_ro(table["prm"][idx]),
         laws=tuple(distinct),
         N_q=_ro(Nq),
+        layout=layout,
     )
 
 
@@ -332,7 +340,7 @@ def fem_from_phantom(model, materials=None, *, order: int | None = None) -> FemM
     region; or a dict region name -> law (regions not named keep the design's). ``order``: element
     order, 1 (linear tets) or 2 (10-node, needs a model meshed with ``element_order = 2``); default
     the model's own. Arm ends (``model.fixed_nodes``) are clamped; the cavities are carried over so
-    :func:`solve_static` accepts pressures by cavity name.
+    :func:`solve_static` accepts pressures by cavity name, with the model's channel layout.
     """
     by_region = laws_of_design(model.design, model.regions)
     if materials is not None and isinstance(materials, Law):
@@ -345,7 +353,8 @@ def fem_from_phantom(model, materials=None, *, order: int | None = None) -> FemM
     by_id = {rid: by_region[name] for name, rid in model.regions.items()}
     mats = [by_id[int(r)] for r in np.asarray(model.tet_region)]
     nodes, tets, fixed, cav = mesh_arrays(model, order)
-    return build_fem(nodes, tets, mats if len(set(mats)) > 1 else mats[0], fixed, cavities=dict(cav))
+    return build_fem(nodes, tets, mats if len(set(mats)) > 1 else mats[0], fixed, cavities=dict(cav),
+                     layout=model.layout)
 
 
 def mesh_arrays(model, order: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:

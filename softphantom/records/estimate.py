@@ -6,19 +6,20 @@ network stream and of a recording's ``/estimate`` channel, and — its values in
 :func:`message_to_estimate` reads either back.
 
 >>> from softphantom.pose import Pose6
+>>> from softphantom.records.channels import BIP_LAYOUT
 >>> e = Estimate(t=1.5, force=np.array([0.0, 2.0, 0.0]), p_urethra=1000.0,
 ...              pose=Pose6(np.array([0.0, 0.004, 0.0]), np.radians([0.0, 3.0, 0.0])),
 ...              target_shift={"apex": np.array([0.0, 0.001, 0.0])},
 ...              volume_pred=np.full(4, 1e-9), volume_meas=np.full(4, 2e-9),
-...              cond_W=12.0, qp_status="optimal", step_time=0.004)
+...              cond_W=12.0, qp_status="optimal", step_time=0.004, layout=BIP_LAYOUT)
 >>> m = estimate_to_message(e, seq=7, t_pub_unix_s=0.0)
 >>> m["seq"], m["force_y_N"], m["y_mm"], round(m["pitch_deg"], 6), m["apex_dy_mm"], m["p_urethra_kPa"]
 (7, 2.0, 4.0, 3.0, 1.0, 1.0)
 >>> m["dVmeas_front_zpos_mm3"], m["step_ms"]
 (2.0, 4.0)
->>> e2 = message_to_estimate(m)
->>> bool(np.allclose(e2.pose.xyz, e.pose.xyz)), float(e2.target_shift["apex"][1])
-(True, 0.001)
+>>> e2 = message_to_estimate(m, BIP_LAYOUT)
+>>> bool(np.allclose(e2.pose.xyz, e.pose.xyz)), float(e2.target_shift["apex"][1]), e2.layout == BIP_LAYOUT
+(True, 0.001, True)
 """
 
 from __future__ import annotations
@@ -31,8 +32,8 @@ import numpy as np
 
 from softphantom.errors import FileFormatError
 from softphantom.pose import Pose6
+from softphantom.records.channels import ChannelLayout, ChannelNames
 from softphantom.records.names import (
-    ARM_NAMES,
     BIP_CAVITIES,
     EVENT_PREFIX,
     FORCE_COLUMNS,
@@ -46,20 +47,21 @@ from softphantom.records.names import (
 
 
 @dataclass(frozen=True)
-class Estimate:
+class Estimate(ChannelNames):
     """One estimate of the phantom's state at time ``t`` (SI units).
 
     ``force`` N (3,), ``p_urethra`` Pa (NaN without a urethra), ``pose`` of the marker rigid
     body relative to rest,
     ``target_shift`` m per named target, ``volume_pred``/``volume_meas`` cavity volume changes
-    m³ (one per arm of ``arm_names``, the sensor order; the BIP's four by default), ``cond_W``
+    m³ (one per volume channel of ``layout``, the phantom's :class:`~softphantom.records.channels.ChannelLayout`:
+    its ``sensing``, in the sensor order), ``cond_W``
     the condition number of the sensitivity matrix, ``qp_status`` the QP
     solver's status, ``step_time`` s spent on this step, ``skipped`` samples dropped since the
     previous estimate (estimation fell behind and took the newest one), ``in_envelope`` False
     when the loads lie outside the range the estimator's model covers (the atlas's envelope; the
     estimate is then clamped to it), ``pressures_Pa`` the internal cavities' gauge pressures by
-    name (None: the BIP's, the urethra's ``p_urethra``; taken from ``extra["pressures_Pa"]``
-    when that is where the estimator put them).
+    name (None: the urethra's ``p_urethra`` for a layout that actuates it; taken from
+    ``extra["pressures_Pa"]`` when that is where the estimator put them).
     """
 
     t: float
@@ -76,8 +78,8 @@ class Estimate:
     status: str = "ok"
     in_envelope: bool = True
     extra: dict = field(default_factory=dict)
-    arm_names: tuple[str, ...] = ARM_NAMES
     pressures_Pa: Mapping[str, float] | None = None
+    layout: ChannelLayout = field(kw_only=True)
 
     def __post_init__(self) -> None:
         if self.pressures_Pa is None and self.extra.get("pressures_Pa") is not None:
@@ -85,15 +87,10 @@ class Estimate:
 
     @property
     def cavity_pressures(self) -> dict[str, float]:
-        """The internal cavities' gauge pressures (Pa) by name, in the model's order."""
-        if self.pressures_Pa is None:
-            return {BIP_CAVITIES[0]: float(self.p_urethra)}
-        return {k: float(v) for k, v in self.pressures_Pa.items()}
-
-    @property
-    def cavity_names(self) -> tuple[str, ...]:
-        """The internal cavities (the estimate file's ``p_<cavity>_kPa`` columns)."""
-        return BIP_CAVITIES if self.pressures_Pa is None else tuple(self.pressures_Pa)
+        """The actuated cavities' gauge pressures (Pa) by name, in the layout's order."""
+        given = {} if self.pressures_Pa is None else self.pressures_Pa
+        return {c: float(given[c]) if c in given else float(self.p_urethra) if c == BIP_CAVITIES[0] else math.nan
+                for c in self.layout.actuated}
 
 
 def _num(x: Any) -> float | None:
@@ -132,12 +129,10 @@ def estimate_to_message(est: Estimate, seq: int | None = None, t_pub_unix_s: flo
     return m
 
 
-def estimate_row(est: Estimate, targets: Iterable[str], cavity_names: Iterable[str] | None = None) -> list[Any]:
-    """The estimate-file row of an estimate: its message's values in column order (the pressure
-    columns of ``cavity_names``, default the estimate's own)."""
+def estimate_row(est: Estimate, targets: Iterable[str]) -> list[Any]:
+    """The estimate-file row of an estimate: its message's values in column order (its layout's)."""
     m = estimate_to_message(est)
-    cav = est.cavity_names if cavity_names is None else cavity_names
-    return [m.get(c) for c in estimate_columns(targets, est.arm_names, cav)]
+    return [m.get(c) for c in estimate_columns(targets, est.layout)]
 
 
 def _f(m: Mapping[str, Any], key: str) -> float:
@@ -148,16 +143,28 @@ def _f(m: Mapping[str, Any], key: str) -> float:
     return math.nan if v is None or v == "" else float(v)
 
 
-def message_to_estimate(m: Mapping[str, Any]) -> Estimate:
-    """Rebuild an :class:`Estimate` (SI units) from a message or an estimate-file row (a dict).
+def message_layout(m: Mapping[str, Any]) -> ChannelLayout:
+    """The layout a bare estimate message names by its keys (``dVmeas_<channel>_mm3``,
+    ``p_<cavity>_kPa``; its volume channels all as arms: the keys do not tell a measured cavity
+    from an arm), for a message received without the stream's metadata. A message without volume
+    keys is refused (:class:`~softphantom.errors.FileFormatError`)."""
+    arms = arm_names_of(m, "dVmeas_")
+    if not arms:
+        raise FileFormatError("estimate message has no dVmeas_<channel>_mm3 field: its channels are unknown")
+    return ChannelLayout(arms, (), pressure_names_of(m))
+
+
+def message_to_estimate(m: Mapping[str, Any], layout: ChannelLayout | None = None) -> Estimate:
+    """Rebuild an :class:`Estimate` (SI units) from a message or an estimate-file row (a dict), of
+    ``layout`` (its file's or stream's; None: the one its keys name, :func:`message_layout`).
 
     Raises :class:`~softphantom.errors.FileFormatError` naming the missing field.
     """
     v = np.array([_f(m, k) for k in POSE_COLUMNS])
     shifts = {n: np.array([_f(m, k) for k in target_columns(n)]) * 1e-3 for n in target_names(m)}
     env = m.get("in_envelope")
-    arms = arm_names_of(m, "dVmeas_") or ARM_NAMES
-    cav = pressure_names_of(m)
+    layout = message_layout(m) if layout is None else layout
+    arms, cav = layout.sensing, layout.actuated
     pressures = {c: _f(m, f"p_{c}_kPa") * 1e3 for c in cav}
     return Estimate(
         t=_f(m, "t_s"),
@@ -173,28 +180,27 @@ def message_to_estimate(m: Mapping[str, Any]) -> Estimate:
         skipped=int(float(m.get("skipped") or 0)),
         status=str(m.get("status", "ok") or "ok"),
         in_envelope=bool(int(float(env))) if env not in (None, "") else True,
-        arm_names=arms,
         pressures_Pa=None if cav == BIP_CAVITIES else pressures,
+        layout=layout,
     )
 
 
-def marker_estimate(event, target_names: Iterable[str], arm_names: tuple[str, ...] = ARM_NAMES,
-                    cavity_names: tuple[str, ...] = BIP_CAVITIES) -> Estimate:
+def marker_estimate(event, target_names: Iterable[str], layout: ChannelLayout) -> Estimate:
     """The marker of a link event: an Estimate at the event's time with every number NaN and
     ``status`` ``event:<kind>: <detail>`` (``qp_status`` ``none``, nothing skipped), of the
-    model's arms and internal cavities.
+    model's ``layout``.
 
+    >>> from softphantom.records.channels import BIP_LAYOUT
     >>> from softphantom.records.measurement import SourceEvent
-    >>> e = marker_estimate(SourceEvent(12.5, "disconnected", "port failed"), ["apex"])
+    >>> e = marker_estimate(SourceEvent(12.5, "disconnected", "port failed"), ["apex"], BIP_LAYOUT)
     >>> e.t, e.status, bool(np.isnan(e.force).all())
     (12.5, 'event:disconnected: port failed', True)
     """
     nan3 = np.full(3, math.nan)
-    na, cav = len(arm_names), tuple(cavity_names)
+    na = len(layout.sensing)
     return Estimate(float(event.t), nan3, math.nan, Pose6(nan3, nan3), {k: nan3 for k in target_names},
                     np.full(na, math.nan), np.full(na, math.nan), math.nan, "none", 0.0, 0,
-                    f"{EVENT_PREFIX}{event.kind}: {event.detail}", arm_names=tuple(arm_names),
-                    pressures_Pa=None if cav == BIP_CAVITIES else dict.fromkeys(cav, math.nan))
+                    f"{EVENT_PREFIX}{event.kind}: {event.detail}", layout=layout)
 
 
 def is_marker(e: Estimate) -> bool:

@@ -10,7 +10,8 @@ from typing import Any
 
 import numpy as np
 
-from softphantom.records.names import ARM_NAMES, BIP_CAVITIES, EVENT_PREFIX, MEASUREMENT_COLUMNS
+from softphantom.records.channels import ChannelLayout
+from softphantom.records.names import BIP_CAVITIES, EVENT_PREFIX, MEASUREMENT_COLUMNS
 
 
 @dataclass(frozen=True, eq=False)
@@ -81,32 +82,29 @@ class SourceEvent:
         return cls(float(t), kind, detail)
 
 
-def _arm_names(m, arm_names) -> tuple[str, ...]:
-    if arm_names is not None:
-        return tuple(arm_names)
-    if len(np.asarray(m.dV).ravel()) != len(ARM_NAMES):
-        raise ValueError(f"a measurement of {len(np.asarray(m.dV).ravel())} arms needs their names")
-    return ARM_NAMES
-
-
 def _cavity_pressures(m) -> dict[str, float]:
     given = getattr(m, "pressures_Pa", None)
     return {BIP_CAVITIES[0]: float(m.p_urethra)} if given is None else {k: float(v) for k, v in given.items()}
 
 
-def measurement_to_message(m: Measurement, arm_names=None) -> dict[str, Any]:
-    """The flat, unit-named form of a measurement (keys :func:`~softphantom.records.names.measurement_columns`
-    of ``arm_names``, default the BIP's four, and of its internal cavities, the urethra unless its
-    ``pressures_Pa`` names others): the ``/sensors`` message of a recording (read by attribute, so
-    any object with those fields).
+def measurement_to_message(m: Measurement, layout: ChannelLayout) -> dict[str, Any]:
+    """The flat, unit-named form of a measurement of a board of ``layout`` (keys
+    :func:`~softphantom.records.names.measurement_columns`): the ``/sensors`` message of a
+    recording (read by attribute, so any object with those fields).
 
+    >>> from softphantom.records.channels import BIP_LAYOUT
     >>> msg = measurement_to_message(Measurement(0.5, 3, 0.49, np.arange(5), 100, np.full(4, 1e3),
-    ...                                          np.full(4, 1e-9), 2e3))
+    ...                                          np.full(4, 1e-9), 2e3), BIP_LAYOUT)
     >>> tuple(msg) == MEASUREMENT_COLUMNS, msg["dp_front_zpos_kPa"], msg["dV_back_xneg_mm3"], msg["raw_urethra"]
     (True, 1.0, 1.0, 4)
     """
-    arms = _arm_names(m, arm_names)
+    arms = layout.sensing
+    if len(np.asarray(m.dV).ravel()) != len(arms):
+        raise ValueError(f"a measurement of {len(np.asarray(m.dV).ravel())} volume channels on a board of "
+                         f"{len(arms)} ({', '.join(arms)})")
     pressures = _cavity_pressures(m)
+    if tuple(pressures) != layout.actuated:
+        raise ValueError(f"a measurement of cavities {list(pressures)} on a board of {list(layout.actuated)}")
     msg: dict[str, Any] = {"t_s": float(m.t), "seq": int(m.seq), "t_board_s": float(m.t_board), "osr": int(m.osr)}
     for name, v in zip((*arms, *pressures), np.asarray(m.raw).ravel()):
         msg[f"raw_{name}"] = int(v)
@@ -120,15 +118,16 @@ def measurement_to_message(m: Measurement, arm_names=None) -> dict[str, Any]:
     return msg
 
 
-def measurement_row(m: Measurement, arm_names=None) -> list[str]:
+def measurement_row(m: Measurement, layout: ChannelLayout) -> list[str]:
     """The sensing recording's row of a measurement: its message, times and pressures to 1e-6 of
     their unit (µs, mPa, 1e-6 mm³), raw sums exact."""
     f = lambda x: "nan" if not math.isfinite(x) else f"{x:.6f}"  # noqa: E731
-    msg = measurement_to_message(m, arm_names)
+    msg = measurement_to_message(m, layout)
     return [f(v) if isinstance(v, float) else str(v) for v in msg.values()]
 
 
-def event_row(ev: SourceEvent, n_arms: int = len(ARM_NAMES), n_cavities: int = len(BIP_CAVITIES)) -> list[str]:
+def event_row(ev: SourceEvent, layout: ChannelLayout) -> list[str]:
     """The marker row of a link event: its time, ``seq`` −1, ``osr`` 0, empty numbers, its status."""
+    n_arms, n_cavities = len(layout.sensing), len(layout.actuated)
     return ([f"{ev.t:.6f}", "-1", "nan", "0"] + ["0"] * (n_arms + n_cavities)
             + ["nan"] * (2 * n_arms + n_cavities) + [ev.status])

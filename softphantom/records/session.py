@@ -105,6 +105,22 @@ def meta_line(meta: dict) -> str:
     return "# " + json.dumps({**meta, VERSION_KEY: FILE_VERSION}, default=str) + "\n"
 
 
+class OverSessionWriter:
+    """Base of a writer of one kind of row over a :class:`SessionWriter` ``_w``: closed with it, and
+    a context manager that closes it."""
+
+    _w: "SessionWriter"
+
+    def close(self) -> None:
+        self._w.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
 class SessionWriter:
     """Write a session file row by row; every row goes straight to the OS (``os.write``: a killed
     process loses nothing written), fsync'ed at most every ``fsync_every_s`` while rows arrive

@@ -26,12 +26,12 @@ from pathlib import Path
 import numpy as np
 
 from softphantom.errors import UserError
-from softphantom.records.names import BIP_CAVITIES, SCENARIO_CLOCK
+from softphantom.records.channels import BIP_LAYOUT, ChannelLayout, ChannelNames, read_layout
+from softphantom.records.names import SCENARIO_CLOCK
 from softphantom.sensing.chain import SensorChain, Tare, default_chain, nominal_tare, tare_from_window
 from softphantom.sensing.pneumatics import tube_volume_m3
 from softphantom.sensing.measurement import (
     ARM_CAVITY_VOLUMES_M3,
-    ARM_NAMES,
     P0_STANDARD_PA,
     TUBE_ID_M,
     TUBE_LENGTH_M,
@@ -54,17 +54,18 @@ def _positive(name: str, v: float) -> float:
 
 
 @dataclass(frozen=True)
-class BenchConfig:
+class BenchConfig(ChannelNames):
     """The pneumatic bench (SI): per-channel tube ``tube_length_m`` × ``tube_id_m`` (inner diameter),
-    the volume channels' cavities ``cavity_volumes_m3`` (one per name of ``arm_names``, the sensor
-    order: the arms, then a design's measured internal cavities, each read as an arm is; the BIP's
-    four arms by default), the transducers' extra dead volume ``v_dead_m3`` and the absolute
+    the volume channels' cavities ``cavity_volumes_m3`` (one per volume channel of ``layout``, its
+    ``sensing``: the arms, then a design's measured internal cavities, each read as an arm is; the
+    BIP's four arms by default), the transducers' extra dead volume ``v_dead_m3`` and the absolute
     ambient pressure ``p0_Pa`` at tare; as calibrated (``softphantom calibrate``, the design's
     ``[sensors]``): the volume transducers' ``gains`` (sensitivity / datasheet) and the
-    ``tube_volume_factor`` (real / nominal tube volume); ``cavity_names`` the actuated internal
-    cavities, one pressure transducer (MPX4250D) each on the channels after the volume channels
-    (the BIP's: the urethra; none: the volume channels alone). The metadata keeps the names
-    ``arm_names`` and ``arm_cavity_mm3`` for the volume channels, measured cavities included."""
+    ``tube_volume_factor`` (real / nominal tube volume); ``layout`` the board's
+    :class:`~softphantom.records.channels.ChannelLayout` (default: the BIP's), its actuated cavities
+    one pressure transducer (MPX4250D) each on the channels after the volume channels. The metadata
+    (:meth:`to_meta`) keeps the name ``arm_cavity_mm3`` for the volume channels, measured cavities
+    included; the layout is the recording's own (its ``channels``)."""
 
     tube_length_m: float = TUBE_LENGTH_M
     tube_id_m: float = TUBE_ID_M
@@ -73,8 +74,7 @@ class BenchConfig:
     v_dead_m3: float = 0.0
     gains: tuple[float, ...] = (1.0, 1.0, 1.0, 1.0)
     tube_volume_factor: float = 1.0
-    arm_names: tuple[str, ...] = ARM_NAMES
-    cavity_names: tuple[str, ...] = BIP_CAVITIES
+    layout: ChannelLayout = BIP_LAYOUT
     #: calibrated tube time constants (s), one per volume channel (empty: from the tube's length, bore
     #: and cavities; the lag compensation, :mod:`softphantom.estimation.lag`)
     tube_tau_s: tuple[float, ...] = ()
@@ -83,12 +83,7 @@ class BenchConfig:
         _positive("--tube-length-m", self.tube_length_m)
         _positive("--tube-id-mm", self.tube_id_m * 1e3)
         _positive("--p0-kPa", self.p0_Pa / 1e3)
-        n = len(self.arm_names)
-        object.__setattr__(self, "arm_names", tuple(self.arm_names))
-        object.__setattr__(self, "cavity_names", tuple(self.cavity_names))
-        if len(set(self.arm_names + self.cavity_names)) != n + len(self.cavity_names):
-            raise UserError(f"bench channels: each name once, got arms {list(self.arm_names)} and internal cavities "
-                            f"{list(self.cavity_names)}")
+        n = len(self.layout.sensing)
         vc = tuple(float(v) for v in self.cavity_volumes_m3)
         if len(vc) != n or not all(math.isfinite(v) and v > 0 for v in vc):
             raise UserError(f"cavity volumes (mm³): expected {n} positive values, got {self.cavity_volumes_m3!r}")
@@ -109,16 +104,15 @@ class BenchConfig:
     @classmethod
     def from_model(cls, model, **kw) -> "BenchConfig":
         """The bench of a :class:`~softphantom.design.PhantomModel`: its design's volume channels
-        (``sensing_names``: the arms, then the measured internal cavities) at their nominal
-        volumes, and its actuated internal cavities' pressure channels (``pressure_names``);
-        ``kw`` (``tube_length_m``, ``tube_id_m``, ``p0_Pa``; None = default) the rest."""
+        (its layout's ``sensing``: the arms, then the measured internal cavities) at their nominal
+        volumes, and its actuated cavities' pressure channels; ``kw`` (``tube_length_m``,
+        ``tube_id_m``, ``p0_Pa``; None = default) the rest."""
         d = model.design
         vc = tuple(v * 1e-9 for v in d.sensing_volumes_mm3())
         sensors = getattr(d, "sensors", None)
         cal = {} if sensors is None else {"gains": sensors.gains, "tube_volume_factor": sensors.tube_volume_factor,
                                           "tube_tau_s": tuple(v * 1e-3 for v in getattr(sensors, "tube_tau_ms", ()))}
-        return cls(cavity_volumes_m3=vc, **cal, arm_names=d.sensing_names,
-                   cavity_names=tuple(d.pressure_names),
+        return cls(cavity_volumes_m3=vc, **cal, layout=d.channel_layout,
                    **{k: v for k, v in kw.items() if v is not None})
 
     @classmethod
@@ -150,14 +144,14 @@ class BenchConfig:
         """The sensor chain: V_total = cavity + factor × tube + dead volume per arm; each arm
         transducer's sensitivity × its gain."""
         base = default_chain(self.cavity_volumes_m3, self.tube_length_m, self.tube_id_m, self.v_dead_m3,
-                             arm_names=self.arm_names, cavity_names=self.cavity_names)
+                             layout=self.layout)
         n = len(self.arm_names)
         if self.gains == (1.0,) * n and self.tube_volume_factor == 1.0:
             return base
         tube = tube_volume_m3(self.tube_length_m, self.tube_id_m)
         v = np.asarray(self.cavity_volumes_m3) + self.tube_volume_factor * tube + self.v_dead_m3
         tr = tuple(replace(t, k1_per_kPa=t.k1_per_kPa * g) for t, g in zip(base.transducers[:n], self.gains))
-        return SensorChain(v, tr + base.transducers[n:], base.bits, base.names)
+        return SensorChain(v, self.layout, tr + base.transducers[n:], base.bits)
 
     def describe(self) -> str:
         """One line for messages.
@@ -169,34 +163,32 @@ class BenchConfig:
         return f"tube {self.tube_length_m:g} m × {self.tube_id_m * 1e3:g} mm, arm cavities {cav} mm³"
 
     def to_meta(self) -> dict:
-        """The recording metadata ``bench`` entry (user units)."""
+        """The recording metadata ``bench`` entry (user units; the channels' names are the file's
+        layout, :data:`~softphantom.records.channels.LAYOUT_KEY`)."""
         out = {"tube_length_m": self.tube_length_m, "tube_id_mm": round(self.tube_id_m * 1e3, 9),
                "arm_cavity_mm3": [round(v * 1e9, 6) for v in self.cavity_volumes_m3],
                "p0_Pa": self.p0_Pa, "dead_volume_mm3": round(self.v_dead_m3 * 1e9, 6),
                "transducer_gains": list(self.gains), "tube_volume_factor": self.tube_volume_factor}
-        if self.arm_names != ARM_NAMES:  # the BIP's metadata stays as it was
-            out["arm_names"] = list(self.arm_names)
-        if self.cavity_names != BIP_CAVITIES:
-            out["cavity_names"] = list(self.cavity_names)
         if self.tube_tau_s:
             out["tube_tau_ms"] = [round(v * 1e3, 6) for v in self.tube_tau_s]
         return out
 
     @classmethod
     def from_meta(cls, meta: dict) -> "BenchConfig":
-        """The bench of a recording: ``meta["bench"]``, or the older ``design`` + ``p0_Pa`` keys."""
+        """The bench of a recording: ``meta["bench"]`` (or the older ``design`` + ``p0_Pa`` keys)
+        with the recording's layout (``meta["channels"]``; an older file's: the names its bench
+        gave, :func:`~softphantom.records.channels.read_layout`)."""
         from softphantom.errors import FileFormatError
 
         b = meta.get("bench") or meta.get("design")
         try:
-            names = tuple(b.get("arm_names") or ARM_NAMES)
-            cavities = tuple(b["cavity_names"]) if "cavity_names" in b else BIP_CAVITIES
+            layout = read_layout(meta, sensing=b.get("arm_names"), actuated=b.get("cavity_names"))
             return cls(float(b["tube_length_m"]), float(b["tube_id_mm"]) * 1e-3,
                        tuple(float(v) * 1e-9 for v in b["arm_cavity_mm3"]),
                        float(b.get("p0_Pa", meta.get("p0_Pa", P0_STANDARD_PA))),
                        float(b.get("dead_volume_mm3", 0.0)) * 1e-9,
-                       tuple(float(v) for v in b.get("transducer_gains", (1.0,) * len(names))),
-                       float(b.get("tube_volume_factor", 1.0)), names, cavities,
+                       tuple(float(v) for v in b.get("transducer_gains", (1.0,) * len(layout.sensing))),
+                       float(b.get("tube_volume_factor", 1.0)), layout,
                        tuple(float(v) * 1e-3 for v in b.get("tube_tau_ms", ())))
         except KeyError as exc:
             has = ", ".join(map(str, b)) or "nothing"
@@ -380,9 +372,8 @@ def open_replay(path: str, model=None, bench: BenchConfig | None = None, *, opti
     rec = read_recording(arg)
     meta = rec.meta
     if model is not None:
-        mine = (*rec.arm_names, *rec.cavity_names)
-        theirs = (*model.design.sensing_names, *model.design.pressure_names)
-        if mine != theirs:
+        mine, theirs = rec.layout.channels, model.layout.channels
+        if (rec.layout.sensing, rec.layout.actuated) != (model.layout.sensing, model.layout.actuated):
             raise UserError(f"--source replay:{arg}: its channels ({', '.join(mine)}) are not the model's "
                             f"({', '.join(theirs)})")
     recorded = base = None

@@ -20,11 +20,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from softphantom.errors import UserError
+from softphantom.records.channels import BIP_LAYOUT, ChannelLayout, ChannelNames
 from softphantom.records.names import BIP_CAVITIES
 from softphantom.sensing.measurement import (
     ARM_CAVITY_VOLUMES_M3,
-    ARM_NAMES,
-    CHANNEL_NAMES,
     P0_STANDARD_PA,
     TUBE_ID_M,
     TUBE_LENGTH_M,
@@ -79,10 +78,10 @@ MPX4250D = Transducer(
 )
 
 
-def board_transducers(n_arms: int = len(ARM_NAMES), n_cavities: int = len(BIP_CAVITIES)) -> tuple[Transducer, ...]:
-    """The transducers of a board of ``n_arms`` arms and ``n_cavities`` internal cavities: an
-    MPXV7002 per arm, then an MPX4250D per cavity (the BIP's: the urethra's)."""
-    return (MPXV7002,) * n_arms + (MPX4250D,) * n_cavities
+def board_transducers(layout: ChannelLayout) -> tuple[Transducer, ...]:
+    """The transducers of a board of ``layout``: an MPXV7002 per volume channel, then an
+    MPX4250D per actuated cavity (the BIP's: the urethra's)."""
+    return (MPXV7002,) * len(layout.sensing) + (MPX4250D,) * len(layout.actuated)
 
 
 def pa_to_counts(p_Pa, transducer: Transducer = MPXV7002, osr: int = 1, bits: int = ADC_BITS):
@@ -121,7 +120,7 @@ def simulate_raw(p_Pa, osr: int, rng: np.random.Generator,
     """
     if not isinstance(osr, (int, np.integer)) or osr < 1:
         raise UserError(f"osr must be a positive integer, got {osr!r}")
-    tr = transducers or board_transducers()
+    tr = transducers or board_transducers(BIP_LAYOUT)
     p = np.asarray(p_Pa, float)
     if p.shape[-1] != len(tr):
         raise UserError(f"p (Pa): last axis must have {len(tr)} channels, got {p.shape}")
@@ -131,17 +130,16 @@ def simulate_raw(p_Pa, osr: int, rng: np.random.Generator,
     return codes.sum(axis=-1)
 
 
-def channel_status(raw, osr: int, transducers: tuple[Transducer, ...] | None = None,
-                   bits: int = ADC_BITS, margin: float = 0.1, names: tuple[str, ...] = CHANNEL_NAMES) -> str:
+def channel_status(raw, osr: int, chain: SensorChain, margin: float = 0.1) -> str:
     """``"ok"`` or the first problem: ``invalid:<ch>`` (sum outside 0..1023·osr), ``rail:<ch>``
     (mean code within one code of 0 or 1023: channel disconnected, shorted or saturated), or
     ``range:<ch>`` (beyond the transducer's rated range by more than ``margin`` of its span);
-    ``<ch>`` from ``names``, the channels' (default: the BIP's).
+    ``<ch>`` the ``chain``'s channel.
 
-    >>> channel_status([51150, 51150, 51150, 51150, 0], 100)
+    >>> channel_status([51150, 51150, 51150, 51150, 0], 100, default_chain())
     'rail:urethra'
     """
-    tr = transducers or board_transducers()
+    tr, bits, names = chain.transducers, chain.bits, chain.names
     full = (1 << bits) - 1
     raw = np.asarray(raw)
     for i, name in enumerate(names[: len(tr)]):
@@ -159,74 +157,67 @@ def channel_status(raw, osr: int, transducers: tuple[Transducer, ...] | None = N
 
 
 @dataclass(frozen=True, eq=False)
-class SensorChain:
+class SensorChain(ChannelNames):
     """Everything needed to turn raw sums into a :class:`Measurement` (except the tare).
 
-    ``v_total_m3`` (n_arms,) gas volume per arm (cavity + tube + dead volume), ``transducers``
-    per channel (the arms', then one per internal cavity; default: the BIP's four arms and the
-    urethra), ``bits`` ADC resolution, ``names`` the channels (the arms in the sensor order, then
-    the internal cavities, e.g. ``urethra``; M = 0: the arms alone).
+    ``v_total_m3`` (n,) gas volume per volume channel (cavity + tube + dead volume), ``layout``
+    the board's :class:`~softphantom.records.channels.ChannelLayout` (its volume channels, then
+    its actuated cavities' pressures), ``transducers`` per channel (default: :func:`board_transducers`),
+    ``bits`` ADC resolution.
     """
 
     v_total_m3: np.ndarray
-    transducers: tuple[Transducer, ...] = board_transducers()
+    layout: ChannelLayout
+    transducers: tuple[Transducer, ...] = ()
     bits: int = ADC_BITS
-    names: tuple[str, ...] = CHANNEL_NAMES
 
     def __post_init__(self) -> None:
+        if not self.transducers:
+            object.__setattr__(self, "transducers", board_transducers(self.layout))
         n = len(np.atleast_1d(self.v_total_m3))
-        if len(self.transducers) != len(self.names) or len(self.names) < n:
-            raise UserError(f"sensor chain: {n} arm volumes need a transducer and a name per channel (the arms, "
-                            f"then the internal cavities), got {len(self.transducers)} and {list(self.names)}")
+        if len(self.transducers) != len(self.names) or n != len(self.layout.sensing):
+            raise UserError(f"sensor chain: {n} volumes need one per volume channel and a transducer per channel "
+                            f"({', '.join(self.names)}), got {len(self.transducers)} transducers")
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        """The board's channels in ADC order: the volume channels, then the actuated cavities."""
+        return self.layout.channels
 
     @property
     def n_arms(self) -> int:
         return len(np.atleast_1d(self.v_total_m3))
 
     @property
-    def arm_names(self) -> tuple[str, ...]:
-        """The arms' channels, in the sensor order."""
-        return tuple(self.names[: self.n_arms])
-
-    @property
-    def cavity_names(self) -> tuple[str, ...]:
-        """The internal cavities' pressure channels, after the arms'."""
-        return tuple(self.names[self.n_arms:])
-
-    @property
     def n_channels(self) -> int:
-        """The board's channels: the arms, then the internal cavities."""
+        """The board's channels: the volume channels, then the actuated cavities."""
         return len(self.names)
 
     def summary(self) -> dict:
-        out = {"v_total_mm3": [round(float(v) * 1e9, 3) for v in self.v_total_m3],
-               "transducers": [t.name for t in self.transducers], "adc_bits": self.bits}
-        if self.names != CHANNEL_NAMES:  # the BIP's metadata stays as it was
-            out["names"] = list(self.names)
-        return out
+        return {"v_total_mm3": [round(float(v) * 1e9, 3) for v in self.v_total_m3],
+                "transducers": [t.name for t in self.transducers], "adc_bits": self.bits, "names": list(self.names)}
 
 
 def default_chain(cavity_volumes_m3=ARM_CAVITY_VOLUMES_M3, tube_length_m: float = TUBE_LENGTH_M,
                   tube_id_m: float = TUBE_ID_M, v_dead_m3: float = 0.0,
-                  arm_names: tuple[str, ...] = ARM_NAMES,
-                  cavity_names: tuple[str, ...] = BIP_CAVITIES) -> SensorChain:
-    """The paper's chain: 4 arm cavities (514, 514, 486, 486 mm³) each behind 12 m × 1.2 mm tube;
-    for other arms, one cavity volume per name of ``arm_names`` (an MPXV7002 each); an MPX4250D
-    per internal cavity of ``cavity_names`` (default: the urethra).
+                  layout: ChannelLayout = BIP_LAYOUT) -> SensorChain:
+    """The paper's chain (the BIP's layout: 4 arm cavities of 514, 514, 486, 486 mm³ each behind
+    12 m × 1.2 mm tube, the urethra's pressure); for another ``layout``, one cavity volume per
+    volume channel (an MPXV7002 each) and an MPX4250D per actuated cavity.
 
+    >>> from softphantom.records.channels import ChannelLayout
     >>> [round(v * 1e9) for v in default_chain().v_total_m3]
     [14086, 14086, 14058, 14058]
-    >>> default_chain([500e-9] * 3, arm_names=("a", "b", "c")).names
+    >>> default_chain([500e-9] * 3, layout=ChannelLayout(("a", "b", "c"), actuated=("urethra",))).names
     ('a', 'b', 'c', 'urethra')
-    >>> default_chain([500e-9] * 3, arm_names=("a", "b", "c"), cavity_names=()).n_channels
+    >>> default_chain([500e-9] * 3, layout=ChannelLayout(("a", "b", "c"))).n_channels
     3
     """
     vc = np.asarray(cavity_volumes_m3, float)
-    n = len(arm_names)
+    n = len(layout.sensing)
     if vc.shape != (n,) or not np.all(np.isfinite(vc)) or np.any(vc <= 0):
         raise UserError(f"cavity volumes (m³): expected {n} positive values, got {cavity_volumes_m3!r}")
-    return SensorChain(vc + tube_volume_m3(tube_length_m, tube_id_m) + float(v_dead_m3),
-                       board_transducers(n, len(cavity_names)), names=(*arm_names, *cavity_names))
+    return SensorChain(vc + tube_volume_m3(tube_length_m, tube_id_m) + float(v_dead_m3), layout)
 
 
 @dataclass(frozen=True, eq=False)
@@ -330,7 +321,7 @@ def tare_from_window(raw, osr, t_s, chain: SensorChain, p0_Pa: float = P0_STANDA
         raise UserError("tare window: t (s) not finite")
     osr_a = np.broadcast_to(np.asarray(osr, float), (n,))
     for k in range(n):
-        st = channel_status(raw[k], int(osr_a[k]), chain.transducers, chain.bits, names=chain.names)
+        st = channel_status(raw[k], int(osr_a[k]), chain)
         if st != "ok":
             raise NotAtRestError(f"tare window: frame {k} is {st}")
     codes = raw / osr_a[:, None]
@@ -370,7 +361,7 @@ def to_measurement(t: float, seq: int, t_board: float, raw, osr: int,
         raise UserError(f"raw: expected {c} channel sums, got shape {raw.shape}")
     if int(osr) < 1:
         raise UserError(f"osr: must be ≥ 1, got {osr}")
-    status = channel_status(raw, int(osr), chain.transducers, chain.bits, names=chain.names)
+    status = channel_status(raw, int(osr), chain)
     codes = raw / float(osr)
     full = float(1 << chain.bits)
     p = np.array([(codes[i] - tare.offset_codes[i]) / (full * tr.k1_per_kPa) * 1000.0

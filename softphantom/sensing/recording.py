@@ -1,8 +1,11 @@
 """Crash-safe recording of Measurements: a CSV whose first line is ``# `` + JSON metadata.
 
-Columns (units in the names): ``t_s, seq, t_board_s, osr, raw_<ch>`` (the arms, then the internal
-cavities; the BIP: 5), ``dp_<arm>_kPa, dV_<arm>_mm3`` (per arm), ``p_<cavity>_kPa`` (per internal
-cavity; the BIP: ``p_urethra_kPa``), ``status``. Raw sums are stored so a file can be re-tared.
+Columns (units in the names): ``t_s, seq, t_board_s, osr, raw_<ch>`` (the volume channels, then
+the actuated cavities; the BIP: 5), ``dp_<arm>_kPa, dV_<arm>_mm3`` (per volume channel),
+``p_<cavity>_kPa`` (per actuated cavity; the BIP: ``p_urethra_kPa``), ``status``. Raw sums are
+stored so a file can be re-tared. The metadata names the board's channels (``channels``: its
+:class:`~softphantom.records.channels.ChannelLayout`); a file of an older release without them
+reads with the names its columns give.
 
 A session file (:mod:`softphantom.records.session`: its one writer and reader) of
 :class:`~softphantom.records.Measurement` rows (:func:`~softphantom.records.measurement.measurement_row`).
@@ -37,9 +40,9 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from softphantom.errors import FileFormatError
+from softphantom.records.channels import LAYOUT_KEY, ChannelLayout, ChannelNames, read_layout
 from softphantom.records.measurement import Measurement, SourceEvent, event_row, measurement_row
 from softphantom.records.names import (
-    ARM_NAMES,
     BIP_CAVITIES,
     EVENT_PREFIX,
     MEASUREMENT_COLUMNS,
@@ -47,33 +50,31 @@ from softphantom.records.names import (
     measurement_columns,
     pressure_names_of,
 )
-from softphantom.records.session import SessionWriter, TruncatedRecordingWarning, read_session_file
-from softphantom.sensing.chain import SensorChain, Tare, board_transducers, to_measurement
+from softphantom.records.session import OverSessionWriter, SessionWriter, TruncatedRecordingWarning, read_session_file
+from softphantom.sensing.chain import SensorChain, Tare, to_measurement
 
-__all__ = ["COLUMNS", "EVENT_PREFIX", "KIND", "Recorder", "Recording", "TruncatedRecordingWarning",
-           "chain_from_meta", "read_recording", "retare"]
+__all__ = ["COLUMNS", "EVENT_PREFIX", "KIND", "LAYOUT_KEY", "Recorder", "Recording", "TruncatedRecordingWarning",
+           "chain_from_meta", "read_recording", "recorded_layout", "retare"]
 
 KIND = "softphantom-sensing-recording"
 COLUMNS: tuple[str, ...] = MEASUREMENT_COLUMNS
 FSYNC_EVERY_S = 0.1
 
 
-class Recorder:
-    """Append Measurements to a new file; ``metadata`` (JSON-able dict) goes on the first line;
-    ``arm_names`` the board's arms and ``cavity_names`` its internal cavities (its columns;
-    default the BIP's four and the urethra).
+class Recorder(OverSessionWriter):
+    """Append Measurements to a new file; ``metadata`` (JSON-able dict) goes on the first line
+    with ``layout``, the board's :class:`~softphantom.records.channels.ChannelLayout` (its columns).
 
     Refuses to overwrite an existing file. Call :meth:`tick` when idle so a quiet period still
     gets its fsync; :meth:`close` (or the context manager) ends the file.
     """
 
     def __init__(self, path, metadata: dict, fsync_every_s: float = FSYNC_EVERY_S,
-                 clock: Callable[[], float] = time.monotonic, arm_names: tuple[str, ...] = ARM_NAMES,
-                 cavity_names: tuple[str, ...] = BIP_CAVITIES):
-        self.arm_names = tuple(arm_names)
-        self.cavity_names = tuple(cavity_names)
-        self._w = SessionWriter(path, measurement_columns(self.arm_names, self.cavity_names),
-                                {"kind": KIND, **metadata}, exclusive=True, fsync_every_s=fsync_every_s, clock=clock)
+                 clock: Callable[[], float] = time.monotonic, *, layout: ChannelLayout):
+        self.layout = layout
+        self.cavity_names = layout.actuated
+        self._w = SessionWriter(path, measurement_columns(layout), {"kind": KIND, **metadata, **layout.to_meta()},
+                                exclusive=True, fsync_every_s=fsync_every_s, clock=clock)
         self.path = self._w.path
         self.rows = 0
         self.events = 0
@@ -83,7 +84,7 @@ class Recorder:
         if tuple(m.cavity_pressures) != self.cavity_names:
             raise ValueError(f"a measurement of internal cavities {list(m.cavity_pressures)} in a file of "
                              f"{list(self.cavity_names)}")
-        self._w.write_row(measurement_row(m, self.arm_names))
+        self._w.write_row(measurement_row(m, self.layout))
         self.rows += 1
         self._last_t = float(m.t)
 
@@ -98,7 +99,7 @@ class Recorder:
             t = min(t, float(next_t))
         if self._last_t is not None:
             t = max(self._last_t, t)
-        self._w.write_row(event_row(replace(ev, t=t), len(self.arm_names), len(self.cavity_names)), sync=True)
+        self._w.write_row(event_row(replace(ev, t=t), self.layout), sync=True)
         self.events += 1
         self._last_t = t
 
@@ -106,24 +107,14 @@ class Recorder:
         """fsync if rows were written and the last fsync is older than ``fsync_every_s``."""
         self._w.tick()
 
-    def close(self) -> None:
-        self._w.close()
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
 
 @dataclass(frozen=True, eq=False)
-class Recording:
-    """A recording read back (SI units): ``raw`` (n, arms + M), ``dp`` (n, arms) Pa, ``dV``
-    (n, arms) m³, ``p_urethra`` (n,) Pa (NaN without a urethra), ...; ``truncated`` when the last
-    row was incomplete and dropped, ``events`` the link events
-    (:class:`~softphantom.records.SourceEvent`) of the marker rows, ``arm_names`` the arms its
-    columns name (the BIP's four unless the board had others), ``cavity_names`` its internal
-    cavities (the BIP's urethra unless others) and ``pressures`` (n, M) Pa their gauge pressures."""
+class Recording(ChannelNames):
+    """A recording read back (SI units): ``raw`` (n, channels), ``dp`` (n, volume channels) Pa,
+    ``dV`` (n, volume channels) m³, ``pressures`` (n, M) Pa the actuated cavities' gauge pressures,
+    ...; ``truncated`` when the last row was incomplete and dropped, ``events`` the link events
+    (:class:`~softphantom.records.SourceEvent`) of the marker rows, ``layout`` the board's
+    :class:`~softphantom.records.channels.ChannelLayout` (its metadata's)."""
 
     meta: dict
     t: np.ndarray
@@ -133,50 +124,64 @@ class Recording:
     raw: np.ndarray
     dp: np.ndarray
     dV: np.ndarray
-    p_urethra: np.ndarray
+    pressures: np.ndarray
     status: tuple[str, ...]
+    layout: ChannelLayout
     truncated: bool = False
     events: tuple = ()
-    arm_names: tuple[str, ...] = ARM_NAMES
-    cavity_names: tuple[str, ...] = BIP_CAVITIES
-    pressures: np.ndarray | None = None
-
-    def __post_init__(self) -> None:
-        if self.pressures is None:  # the BIP's: the urethra's column
-            object.__setattr__(self, "pressures", np.asarray(self.p_urethra, float).reshape(-1, 1))
 
     def __len__(self) -> int:
         return len(self.t)
 
+    @property
+    def p_urethra(self) -> np.ndarray:
+        """(n,) Pa: the urethra's column of ``pressures`` (NaN without a urethra)."""
+        names = self.layout.actuated
+        if BIP_CAVITIES[0] in names:
+            return self.pressures[:, names.index(BIP_CAVITIES[0])]
+        return np.full(len(self.t), math.nan)
+
     def measurements(self) -> Iterator[Measurement]:
         bip = self.cavity_names == BIP_CAVITIES
+        p_urethra = self.p_urethra
         for i in range(len(self.t)):
             yield Measurement(float(self.t[i]), int(self.seq[i]), float(self.t_board[i]), self.raw[i].copy(),
                               int(self.osr[i]), self.dp[i].copy(), self.dV[i].copy(),
-                              float(self.p_urethra[i]), self.status[i],
+                              float(p_urethra[i]), self.status[i],
                               None if bip else dict(zip(self.cavity_names, self.pressures[i].tolist())))
 
 
-def chain_from_meta(meta: dict) -> SensorChain:
-    """The SensorChain a recording was made with (from its ``chain`` metadata)."""
+def chain_from_meta(meta: dict, layout: ChannelLayout | None = None) -> SensorChain:
+    """The SensorChain a recording was made with (from its ``chain`` metadata), on the board of
+    ``layout`` (default: the one its metadata names, :func:`recorded_layout`)."""
     try:
         v = np.asarray(meta["chain"]["v_total_mm3"], float) * 1e-9
-        names = tuple(meta["chain"].get("names") or (*ARM_NAMES, *BIP_CAVITIES))
-        return SensorChain(v, board_transducers(len(v), len(names) - len(v)), names=names)
+        return SensorChain(v, recorded_layout(meta) if layout is None else layout)
     except (KeyError, TypeError, ValueError) as exc:
         raise FileFormatError(f"metadata: no usable chain.v_total_mm3 ({exc})") from None
 
 
+def recorded_layout(meta: dict, columns=(), where: str = "metadata") -> ChannelLayout:
+    """A recording's channel layout: its metadata's ``channels``; a file of an older release
+    without them: the channels its columns name (``columns``), else its chain's names (with its
+    volumes' count), else the BIP's (:func:`~softphantom.records.channels.read_layout`)."""
+    sensing, actuated = arm_names_of(columns), pressure_names_of(columns) if columns else None
+    chain = meta.get("chain") if isinstance(meta.get("chain"), dict) else {}
+    if not sensing and chain.get("names") and chain.get("v_total_mm3"):
+        n = len(chain["v_total_mm3"])
+        sensing, actuated = tuple(chain["names"][:n]), tuple(chain["names"][n:])
+    return read_layout(meta, where, sensing=sensing, actuated=actuated)
+
+
 def retare(rec: Recording, tare: Tare, chain: SensorChain | None = None) -> Recording:
     """A new Recording with dp, dV and the cavities' pressures recomputed from the raw sums with ``tare``."""
-    chain = chain or chain_from_meta(rec.meta)
+    chain = chain or chain_from_meta(rec.meta, rec.layout)
     ms = [to_measurement(rec.t[i], rec.seq[i], rec.t_board[i], rec.raw[i], int(rec.osr[i]), chain, tare)
           for i in range(len(rec))]
     if not ms:
         return replace(rec, meta={**rec.meta, "tare": tare.to_dict()})
     return replace(rec, meta={**rec.meta, "tare": tare.to_dict()},
-                   dp=np.array([m.dp for m in ms]), dV=np.array([m.dV for m in ms]),
-                   p_urethra=np.array([m.p_urethra for m in ms]), status=tuple(m.status for m in ms),
+                   dp=np.array([m.dp for m in ms]), dV=np.array([m.dV for m in ms]), status=tuple(m.status for m in ms),
                    pressures=np.array([list(m.cavity_pressures.values()) for m in ms], float).reshape(len(ms), -1))
 
 
@@ -188,9 +193,9 @@ def read_recording(path) -> Recording:
     f = read_session_file(path, require_meta=True)
     if f.meta.get("kind") != KIND:
         raise FileFormatError(f"{path}: line 1: not a sensing recording (kind {f.meta.get('kind')!r})")
-    arms = arm_names_of(f.header) or ARM_NAMES
-    cav = pressure_names_of(f.header)
-    columns = measurement_columns(arms, cav)
+    layout = recorded_layout(f.meta, f.header, f"{path}: line 1: metadata")
+    arms, cav = layout.sensing, layout.actuated
+    columns = measurement_columns(layout)
     missing = [c for c in columns if c not in f.header]
     if missing:
         raise FileFormatError(f"{path}: line {f.header_line}: missing columns {', '.join(missing)}")
@@ -222,12 +227,10 @@ def read_recording(path) -> Recording:
             raise FileFormatError(f"{path}: line {ln}: {exc}") from None
     n = len(rows)
     col = lambda k, dt=float: np.array([r[k] for r in rows], dtype=dt)  # noqa: E731
-    pressures = np.array([r[7] for r in rows], float).reshape(n, mc) * 1e3
-    p_urethra = pressures[:, cav.index(BIP_CAVITIES[0])] if BIP_CAVITIES[0] in cav else np.full(n, math.nan)
     return Recording(
         meta=f.meta, t=col(0), seq=col(1, np.int64), t_board=col(2), osr=col(3, np.int64),
         raw=np.array([r[4] for r in rows], dtype=np.int64).reshape(n, a + mc),
         dp=np.array([r[5] for r in rows], float).reshape(n, a) * 1e3,
         dV=np.array([r[6] for r in rows], float).reshape(n, a) * 1e-9,
-        p_urethra=p_urethra.copy(), status=tuple(r[8] for r in rows), truncated=f.truncated,
-        events=tuple(events), arm_names=tuple(arms), cavity_names=cav, pressures=pressures)
+        pressures=np.array([r[7] for r in rows], float).reshape(n, mc) * 1e3,
+        status=tuple(r[8] for r in rows), layout=layout, truncated=f.truncated, events=tuple(events))

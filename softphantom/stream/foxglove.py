@@ -38,7 +38,8 @@ from typing import Any, Callable, Mapping, Sequence
 import numpy as np
 
 from softphantom.errors import UserError
-from softphantom.records.names import ARM_NAMES, POSE_COLUMNS
+from softphantom.records.channels import read_layout
+from softphantom.records.names import POSE_COLUMNS
 
 TOPIC_FG_SURFACE = "/foxglove/surface"
 TOPIC_FG_OVERLAY = "/foxglove/overlay"
@@ -170,7 +171,7 @@ class FoxgloveScene:
             used, inv = np.unique(f, return_inverse=True)
             self.cavities[name] = (used, inv.reshape(-1, 3))
         self.targets_m = {k: np.asarray(v, float) * 1e-3 for k, v in (g.get("targets_mm") or {}).items()}
-        self.arm_names = tuple(g.get("arms") or ARM_NAMES)
+        self.arm_names = read_layout(g, "geometry message", sensing=g.get("arms")).sensing if g else ()
         self.p_ext_node = g.get("p_ext_node")
         self.p_ext_m = np.asarray(g.get("p_ext_mm", [0.0, 0.0, 0.0]), float) * 1e-3
         self.positions_m = self.nodes_m.copy()  # the drawn nodes' latest deformed positions

@@ -11,12 +11,11 @@ Channels (JSON-schema'd, ``json`` message encoding; keys carry their units):
 - ``/foxglove/surface``, ``/foxglove/overlay``, ``/foxglove/tf``: the same scene as Foxglove's
   well-known messages (protobuf), which its 3D panel draws (:mod:`softphantom.stream.foxglove`).
 
-The arms are the phantom's (``arm_names``, in the sensor order) and so are its internal cavities
-(``cavity_names``): the ``/estimate`` and ``/sensors`` schemas list each arm's and each cavity's
-keys, and a recording of arms other than the BIP's four (of cavities other than its urethra) also
-names them in its metadata (``arm_names``, ``cavity_names``: JSON lists). :attr:`Recording.arm_names`
-and :attr:`Recording.cavity_names` read them back from the metadata; without the key, the arms
-come from the messages' keys and the cavities are the BIP's urethra.
+The channels are the phantom's (its :class:`~softphantom.records.channels.ChannelLayout`): the
+``/estimate`` and ``/sensors`` schemas list each volume channel's and each actuated cavity's keys,
+and the metadata names them (``channels``: the layout as JSON). :attr:`Recording.layout` reads
+them back; a recording of an older release without the key has its metadata's ``arm_names`` and
+``cavity_names`` (JSON lists, written when not the BIP's), else the arms its messages' keys name.
 
 Crash safety: the writer closes its chunk and flushes it to the operating system every
 ``flush_interval_s`` (default 1 s) and at every chunk-size limit. A session killed at any moment
@@ -27,11 +26,12 @@ neither and is read sequentially (``mcap recover`` rebuilds the index).
 
 >>> import tempfile, os
 >>> path = os.path.join(tempfile.mkdtemp(), "s.mcap")
->>> with SessionRecorder(path) as rec:
+>>> from softphantom.records.channels import BIP_LAYOUT
+>>> with SessionRecorder(path, layout=BIP_LAYOUT) as rec:
 ...     rec.write_estimate({"seq": 0, "t_s": 0.0, "force_y_N": 1.0})
 >>> r = read_recording(path)
->>> r.complete, len(r.estimates), r.estimates[0]["force_y_N"]
-(True, 1, 1.0)
+>>> r.complete, len(r.estimates), r.estimates[0]["force_y_N"], r.layout == BIP_LAYOUT
+(True, 1, 1.0, True)
 """
 
 from __future__ import annotations
@@ -53,9 +53,8 @@ from mcap.writer import CompressionType, Writer
 
 from softphantom.errors import FileFormatError, UserError
 from softphantom.records.measurement import measurement_to_message  # noqa: F401  (re-exported)
+from softphantom.records.channels import BIP_LAYOUT, LAYOUT_KEY, ChannelLayout, ChannelNames, read_layout
 from softphantom.records.names import (
-    ARM_NAMES,
-    BIP_CAVITIES,
     POSE_COLUMNS,
     arm_names_of,
     estimate_columns,
@@ -80,17 +79,17 @@ def _obj_schema(title: str, desc: str, props: dict[str, Any]) -> dict[str, Any]:
 _NUM = {"type": ["number", "null"]}
 
 
-def sensors_json_schema(arm_names: Sequence[str] = ARM_NAMES,
-                        cavity_names: Sequence[str] = BIP_CAVITIES) -> dict[str, Any]:
-    """The JSON schema of the ``/sensors`` message of a board of ``arm_names`` and a pressure
-    channel per internal cavity of ``cavity_names`` (the BIP's: the urethra).
+def sensors_json_schema(layout: ChannelLayout) -> dict[str, Any]:
+    """The JSON schema of the ``/sensors`` message of a board of ``layout``: its volume channels,
+    then a pressure channel per actuated cavity (the BIP's: the urethra).
 
-    >>> [k for k in sensors_json_schema(("a", "b", "c"))["properties"] if k.startswith("raw_")]
+    >>> abc = ChannelLayout(("a", "b", "c"), actuated=("urethra",))
+    >>> [k for k in sensors_json_schema(abc)["properties"] if k.startswith("raw_")]
     ['raw_a', 'raw_b', 'raw_c', 'raw_urethra']
-    >>> [k for k in sensors_json_schema(("a", "b", "c"), ())["properties"] if k.startswith(("raw_", "p_"))]
+    >>> [k for k in sensors_json_schema(ChannelLayout(("a", "b", "c")))["properties"] if k.startswith(("raw_", "p_"))]
     ['raw_a', 'raw_b', 'raw_c']
     """
-    arms, cav = tuple(arm_names), tuple(cavity_names)
+    arms, cav = layout.sensing, layout.actuated
     return _obj_schema(
         "softphantom.Measurement", "one sensor sample (sensing stage), gauge pressures tared",
         {"t_s": _NUM, "seq": {"type": "integer"}, "t_board_s": _NUM, "osr": {"type": "integer"},
@@ -99,7 +98,7 @@ def sensors_json_schema(arm_names: Sequence[str] = ARM_NAMES,
          **{f"p_{c}_kPa": _NUM for c in cav}, "status": {"type": "string"}})
 
 
-SENSORS_JSON_SCHEMA = sensors_json_schema()
+SENSORS_JSON_SCHEMA = sensors_json_schema(BIP_LAYOUT)
 """The BIP's ``/sensors`` schema (:func:`sensors_json_schema` of its four arms)."""
 GEOMETRY_JSON_SCHEMA = _obj_schema(
     "softphantom.LiveGeometry", "phantom outer surface at rest (see softphantom.viz.live)",
@@ -109,22 +108,19 @@ SURFACE_JSON_SCHEMA = _obj_schema(
     "softphantom.LiveSurface", "deformed surface node positions, float32 little-endian base64, mm",
     {"t_s": _NUM, "seq": {"type": "integer"}, "positions_mm_f32_b64": {"type": "string"}})
 
-ARM_NAMES_KEY = "arm_names"
-"""The metadata key naming a recording's arms (a JSON list), written when they are not the BIP's."""
-CAVITY_NAMES_KEY = "cavity_names"
-"""The metadata key naming a recording's internal cavities (a JSON list), written when they are not
-the BIP's urethra."""
+LEGACY_ARM_NAMES_KEY = "arm_names"
+"""The metadata key of an older release's recording naming its arms (a JSON list; written when not the BIP's)."""
+LEGACY_CAVITY_NAMES_KEY = "cavity_names"
+"""The metadata key of an older release's recording naming its internal cavities (when not the BIP's urethra)."""
 
 
-def json_schemas(arm_names: Sequence[str] = ARM_NAMES,
-                 cavity_names: Sequence[str] = BIP_CAVITIES) -> dict[str, dict[str, Any]]:
-    """Topic → JSON schema of each JSON channel, for a phantom of ``arm_names`` and ``cavity_names``."""
-    return {
-        TOPIC_ESTIMATE: estimate_json_schema(arm_names, cavity_names),
-        TOPIC_SENSORS: sensors_json_schema(arm_names, cavity_names),
-        TOPIC_TRACKER: TRACKER_JSON_SCHEMA, TOPIC_GEOMETRY: GEOMETRY_JSON_SCHEMA,
-        TOPIC_SURFACE: SURFACE_JSON_SCHEMA,
-    }
+def json_schemas(layout: ChannelLayout | None) -> dict[str, dict[str, Any]]:
+    """Topic → JSON schema of each JSON channel, for a phantom of ``layout`` (None: a recording
+    of no phantom, a tracker's: no ``/estimate`` and ``/sensors``)."""
+    phantom = {} if layout is None else {TOPIC_ESTIMATE: estimate_json_schema(layout),
+                                         TOPIC_SENSORS: sensors_json_schema(layout)}
+    return {**phantom, TOPIC_TRACKER: TRACKER_JSON_SCHEMA, TOPIC_GEOMETRY: GEOMETRY_JSON_SCHEMA,
+            TOPIC_SURFACE: SURFACE_JSON_SCHEMA}
 
 
 def tracker_message(t: float, pose: Any, valid: bool = True, name: str = "") -> dict[str, Any]:
@@ -137,18 +133,16 @@ class SessionRecorder:
     """Write a session to an MCAP file (see the module docstring for channels and guarantees).
 
     Not thread-safe: write from one thread. ``metadata`` (strings) goes in an MCAP metadata record
-    named ``softphantom``. ``arm_names``: the phantom's arms in the sensor order (default the BIP's
-    four), ``cavity_names`` its internal cavities (default the urethra), for the schemas and, when
-    not the BIP's, the metadata (the module docstring).
+    named ``softphantom``, with ``layout`` (the phantom's
+    :class:`~softphantom.records.channels.ChannelLayout`, for the schemas and the metadata; None:
+    a recording of no phantom, a tracker's alone).
     """
 
-    def __init__(self, path: str | os.PathLike, *, flush_interval_s: float = 1.0, fsync: bool = False,
-                 metadata: Mapping[str, str] | None = None, chunk_size_bytes: int = 256 * 1024,
-                 arm_names: Sequence[str] = ARM_NAMES, cavity_names: Sequence[str] = BIP_CAVITIES):
+    def __init__(self, path: str | os.PathLike, *, layout: ChannelLayout | None, flush_interval_s: float = 1.0,
+                 fsync: bool = False, metadata: Mapping[str, str] | None = None, chunk_size_bytes: int = 256 * 1024):
         from softphantom import __version__
 
-        self.arm_names = tuple(arm_names)
-        self.cavity_names = tuple(cavity_names)
+        self.layout = layout
 
         self.path = Path(path)
         try:
@@ -159,14 +153,12 @@ class SessionRecorder:
         self._w.start(profile="", library=f"softphantom {__version__}")
         meta = {"softphantom": __version__, "created_unix_s": f"{time.time():.3f}"}
         meta.update({str(k): str(v) for k, v in (metadata or {}).items()})
-        if self.arm_names != ARM_NAMES:  # the BIP's metadata stays as it was
-            meta[ARM_NAMES_KEY] = json.dumps(list(self.arm_names))
-        if self.cavity_names != BIP_CAVITIES:
-            meta[CAVITY_NAMES_KEY] = json.dumps(list(self.cavity_names))
+        if layout is not None:
+            meta.update(layout.to_meta_str())
         self._w.add_metadata("softphantom", meta)
         self._meta = meta
         self._channels: dict[str, int] = {}
-        for topic, schema in json_schemas(self.arm_names, self.cavity_names).items():
+        for topic, schema in json_schemas(layout).items():
             sid = self._w.register_schema(schema["title"], "jsonschema", json.dumps(schema).encode())
             self._channels[topic] = self._w.register_channel(topic, "json", sid)
         sids: dict[str, int] = {}  # Foxglove's well-known messages (softphantom.stream.foxglove)
@@ -245,11 +237,11 @@ class SessionRecorder:
 
 
 @dataclass(frozen=True)
-class Recording:
+class Recording(ChannelNames):
     """What :func:`read_recording` found: messages per channel (decoded JSON dicts, in file order),
     the ``metadata`` record, ``complete`` (the file was closed cleanly), ``bytes_read`` (where a
-    truncated file's last complete record ended), ``arm_names`` and ``cavity_names``, the
-    phantom's arms and internal cavities (the module docstring)."""
+    truncated file's last complete record ended), ``layout`` the phantom's channels (the module
+    docstring)."""
 
     estimates: list[dict[str, Any]]
     sensors: list[dict[str, Any]]
@@ -260,8 +252,7 @@ class Recording:
     complete: bool
     bytes_read: int = 0
     other: dict[str, list[dict[str, Any]]] = field(default_factory=dict)
-    arm_names: tuple[str, ...] = ARM_NAMES
-    cavity_names: tuple[str, ...] = BIP_CAVITIES
+    layout: ChannelLayout = BIP_LAYOUT
 
 
 def iter_records(path: str | os.PathLike) -> Iterator[tuple[str, Any]]:
@@ -332,14 +323,13 @@ def read_recording(path: str | os.PathLike) -> Recording:
             per.setdefault(topic, []).append(msg)
     known = {TOPIC_ESTIMATE, TOPIC_SENSORS, TOPIC_TRACKER, TOPIC_GEOMETRY, TOPIC_SURFACE}
     geo = per.get(TOPIC_GEOMETRY, [])
-    arms = _recorded_arms(path, meta, per.get(TOPIC_ESTIMATE, []), per.get(TOPIC_SENSORS, []))
-    cavities = _recorded_cavities(path, meta)
+    layout = _recorded_layout(path, meta, per.get(TOPIC_ESTIMATE, []), per.get(TOPIC_SENSORS, []))
     return Recording(
         estimates=per.get(TOPIC_ESTIMATE, []), sensors=per.get(TOPIC_SENSORS, []),
         tracker=per.get(TOPIC_TRACKER, []), geometry=geo[0] if geo else None,
         surface=per.get(TOPIC_SURFACE, []), metadata=meta, complete=bool(end["complete"]),
         bytes_read=int(end["bytes_read"]), other={k: v for k, v in per.items() if k not in known},
-        arm_names=arms, cavity_names=cavities,
+        layout=layout,
     )
 
 
@@ -355,38 +345,28 @@ def _names_in_meta(path, meta: Mapping[str, str], key: str, empty: bool) -> tupl
     return tuple(names)
 
 
-def _recorded_cavities(path, meta: Mapping[str, str]) -> tuple[str, ...]:
-    """A recording's internal cavities: its metadata's ``cavity_names`` (written unless they are
-    the BIP's), else the BIP's urethra."""
-    names = _names_in_meta(path, meta, CAVITY_NAMES_KEY, empty=True)
-    return BIP_CAVITIES if names is None else names
-
-
-def _recorded_arms(path, meta: Mapping[str, str], estimates: list, sensors: list) -> tuple[str, ...]:
-    """A recording's arms: its metadata's ``arm_names``, else the keys of its first estimate or
-    sensor message, else the BIP's four."""
-    names = _names_in_meta(path, meta, ARM_NAMES_KEY, empty=False)
-    if names is not None:
-        return names
+def _recorded_layout(path, meta: Mapping[str, str], estimates: list, sensors: list) -> ChannelLayout:
+    """A recording's layout: its metadata's ``channels``; an older release's recording: its
+    metadata's ``arm_names`` (else the arms its first estimate or sensor message names) and
+    ``cavity_names`` (:func:`~softphantom.records.channels.read_layout`)."""
+    arms = _names_in_meta(path, meta, LEGACY_ARM_NAMES_KEY, empty=False)
     for msgs, prefix in ((estimates, "dVmeas_"), (sensors, "dV_")):
-        if msgs and (names := arm_names_of(msgs[0], prefix)):
-            return names
-    return ARM_NAMES
+        if arms is None and msgs and (names := arm_names_of(msgs[0], prefix)):
+            arms = names
+    cavities = _names_in_meta(path, meta, LEGACY_CAVITY_NAMES_KEY, empty=True)
+    return read_layout(meta, f"{path}: metadata", sensing=arms, actuated=cavities)
 
 
 def write_estimate_csv(messages: list[Mapping[str, Any]], out: str | os.PathLike,
-                       metadata: Mapping[str, Any] | None = None, arm_names: Sequence[str] | None = None,
-                       cavity_names: Sequence[str] | None = None) -> Path:
-    """Write estimate messages as the estimate file of docs/architecture.md (empty for missing);
-    ``arm_names`` its volume columns' arms (default: those the first message names, else the
-    BIP's), ``cavity_names`` its pressure columns' cavities (default: those the first message names)."""
+                       metadata: Mapping[str, Any] | None, layout: ChannelLayout) -> Path:
+    """Write estimate messages of a phantom of ``layout`` as the estimate file of
+    docs/architecture.md (empty for missing; the layout in its metadata)."""
     from softphantom import __version__
 
     first = messages[0] if messages else {}
-    arms = tuple(arm_names) if arm_names is not None else (arm_names_of(first, "dVmeas_") or ARM_NAMES)
-    cav = tuple(cavity_names) if cavity_names is not None else (pressure_names_of(first) or BIP_CAVITIES)
-    cols = estimate_columns(target_names(first), arms, cav)
-    with SessionWriter(out, cols, {"softphantom": __version__, **(metadata or {})}, label=str(out)) as w:
+    cols = estimate_columns(target_names(first), layout)
+    with SessionWriter(out, cols, {"softphantom": __version__, **(metadata or {}), **layout.to_meta()},
+                       label=str(out)) as w:
         w.write_rows([m.get(c) for c in cols] for m in messages)
     return w.path
 
@@ -404,13 +384,21 @@ def export_estimate_csv(recording: str | os.PathLike, out: str | os.PathLike) ->
         meta["model"] = rec.metadata["model"]
     if rec.geometry and "contact_radius_mm" in rec.geometry:  # the estimator's contact patch
         meta["contact_radius_mm"] = rec.geometry["contact_radius_mm"]
-    return write_estimate_csv(rec.estimates, out, meta, rec.arm_names, rec.cavity_names)
+    return write_estimate_csv(rec.estimates, out, meta, rec.layout)
+
+
+def estimate_file_layout(path, meta: Mapping[str, Any], columns) -> ChannelLayout:
+    """An estimate file's layout: its metadata's ``channels``; an older release's file: the
+    channels its columns name (:func:`~softphantom.records.channels.read_layout`)."""
+    return read_layout(meta, f"{path}: line 1: metadata", sensing=arm_names_of(columns, "dVmeas_"),
+                       actuated=pressure_names_of(columns))
 
 
 def read_estimate_csv(path: str | os.PathLike) -> tuple[dict[str, Any], list[dict[str, Any]]]:
     """Read an estimate file as messages: its metadata and one dict per row (numbers as float,
-    missing ones None; ``qp_status`` and ``status`` text). Raises
-    :class:`~softphantom.errors.FileFormatError` naming the line."""
+    missing ones None; ``qp_status`` and ``status`` text); the file's layout is
+    :func:`estimate_file_layout` of them. Raises :class:`~softphantom.errors.FileFormatError`
+    naming the line."""
     f = read_session_file(path)
     if "t_s" not in f.header or "force_y_N" not in f.header:
         raise FileFormatError(f"{path}: line {f.header_line}: not an estimate CSV header (needs t_s, force_*_N)")

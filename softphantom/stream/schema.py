@@ -15,7 +15,8 @@ import math
 from typing import Any, Mapping, Sequence
 
 from softphantom.records.estimate import estimate_to_message, message_to_estimate
-from softphantom.records.names import ARM_NAMES, BIP_CAVITIES, FORCE_COLUMNS, POSE_COLUMNS, target_names
+from softphantom.records.channels import BIP_LAYOUT, ChannelLayout
+from softphantom.records.names import FORCE_COLUMNS, POSE_COLUMNS, target_names
 from softphantom.records.names import estimate_columns as csv_columns
 
 __all__ = ["ESTIMATE_JSON_SCHEMA", "SCHEMA_NAME", "SCHEMA_VERSION", "TOPIC_ESTIMATE", "csv_columns", "encode",
@@ -49,20 +50,19 @@ def _num_schema(desc: str) -> dict:
     return {"type": ["number", "null"], "description": desc}
 
 
-def estimate_json_schema(arm_names: Sequence[str] = ARM_NAMES,
-                         cavity_names: Sequence[str] = BIP_CAVITIES) -> dict[str, Any]:
-    """The JSON schema of the estimate message of a phantom of ``arm_names`` (the sensor order; the
-    BIP's four by default) and internal cavities ``cavity_names`` (the BIP's urethra by default):
-    the pressure keys ``p_<cavity>_kPa`` and the volume keys ``dVpred_<arm>_mm3`` and
-    ``dVmeas_<arm>_mm3`` are listed, in that order, so a recording's schema names its cavities.
+def estimate_json_schema(layout: ChannelLayout) -> dict[str, Any]:
+    """The JSON schema of the estimate message of a phantom of ``layout``: the pressure keys
+    ``p_<cavity>_kPa`` of its actuated cavities and the volume keys ``dVpred_<ch>_mm3`` and
+    ``dVmeas_<ch>_mm3`` of its volume channels are listed, in that order, so a recording's schema
+    names its cavities.
 
-    >>> s = estimate_json_schema(("a", "b", "c"), ("urethra", "tumour"))
+    >>> s = estimate_json_schema(ChannelLayout(("a", "b", "c"), actuated=("urethra", "tumour")))
     >>> [k for k in s["properties"] if k.startswith("dVmeas_")], s["properties"]["cond_W"]["description"]
     (['dVmeas_a_mm3', 'dVmeas_b_mm3', 'dVmeas_c_mm3'], 'condition number of the 3×5 sensitivity matrix W')
     >>> [k for k in s["properties"] if k.startswith("p_")]
     ['p_urethra_kPa', 'p_tumour_kPa']
     """
-    arms, cav = tuple(arm_names), tuple(cavity_names)
+    arms, cav = layout.sensing, layout.actuated
     return {
         "title": SCHEMA_NAME,
         "description": f"softphantom estimate message v{SCHEMA_VERSION}; keys = estimate CSV columns "
@@ -94,7 +94,7 @@ def estimate_json_schema(arm_names: Sequence[str] = ARM_NAMES,
     }
 
 
-ESTIMATE_JSON_SCHEMA: dict[str, Any] = estimate_json_schema()
+ESTIMATE_JSON_SCHEMA: dict[str, Any] = estimate_json_schema(BIP_LAYOUT)
 """The BIP's estimate schema (:func:`estimate_json_schema` of its four arms)."""
 
 

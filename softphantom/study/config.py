@@ -43,7 +43,7 @@ from typing import Annotated, Any, Literal
 import numpy as np
 from pydantic import model_validator
 
-from softphantom.design import ARM_NAMES, BIPDesign, design_to_dict, load_design
+from softphantom.design import BIPDesign, design_to_dict, load_design
 from softphantom.errors import UserError
 from softphantom.fem.contact import DEFAULT_CONTACT_RADIUS_M
 from softphantom.schema import Field, FileModel, parse, refuse
@@ -237,7 +237,7 @@ def apply_path(design: dict, path: str, value: Any, _name: str | None = None) ->
     if parts[0] == "arms" and len(parts) == 3 and parts[2] == "cavity_length_mm":
         arm = design.get("arms", {}).get(parts[1])
         if arm is None:
-            raise UserError(f"parameters.{name}: unknown arm {parts[1]!r} (one of {', '.join(ARM_NAMES)}, *)")
+            raise UserError(f"parameters.{name}: unknown arm {parts[1]!r} (one of {', '.join(design.get('arms', {}))}, *)")
         r = float(arm["radius_mm"]) - float(arm["wall_mm"])
         arm["cavity_volume_mm3"] = math.pi * r * r * float(value) + 4.0 / 3.0 * math.pi * r**3
         return

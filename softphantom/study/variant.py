@@ -210,8 +210,8 @@ def _mechanics(design_json: str, mesh_size_mm: float | None, contact: str, conta
         raise UserError(f"evaluate.contact {contact!r}: the model has {', '.join(sorted(model.p_ext))}")
     H_f = force_actuator(fem, model.p_ext[contact], contact_radius_mm * MM)
     pts = [*model.markers.values(), *model.targets.values()]
-    cavities = tuple(design.pressure_names)  # each a known pressure, 0 at the probe load (measured: W's rows)
-    eq = EquilibriumSolver(fem, H_f, probe_matrix(fem, pts), pressures=cavities)
+    cavities = model.layout.actuated  # each a known pressure, 0 at the probe load (measured: W's rows)
+    eq = EquilibriumSolver(fem, H_f, probe_matrix(fem, pts), layout=model.layout)
     rest = eq.rest()
     lins = {d: eq.solve(rest, np.r_[probe_force_N * np.array(DIRECTIONS[d], float), np.zeros(len(cavities))])
             for d in directions}

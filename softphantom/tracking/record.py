@@ -113,7 +113,7 @@ class TrackerSink:
         if self.kind == ".mcap":
             from softphantom.stream.recording import SessionRecorder
 
-            self._rec = SessionRecorder(self.path, metadata=_strings(self._start_meta()))
+            self._rec = SessionRecorder(self.path, layout=None, metadata=_strings(self._start_meta()))
         else:  # the metadata line waits for the rest window
             self._fh = SessionWriter(self.path, ("t_s",) + POSE_COLUMNS)
 

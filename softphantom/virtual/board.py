@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from softphantom.errors import UserError
-from softphantom.sensing import ARM_NAMES, P0_STANDARD_PA
+from softphantom.sensing import P0_STANDARD_PA
 from softphantom.sensing.measurement import TUBE_ID_M, TUBE_LENGTH_M
 from softphantom.sensing.board import frame_rate_Hz
 from softphantom.sensing.chain import MPX4250D, MPXV7002, SensorChain, default_chain, simulate_raw
@@ -101,19 +101,17 @@ class BoardSignals:
     chain: SensorChain
 
 
-def board_signals(truth, cavity_volumes_m3, config: BoardConfig = BoardConfig(),
-                  arm_names: tuple[str, ...] = ARM_NAMES) -> BoardSignals:
+def board_signals(truth, cavity_volumes_m3, config: BoardConfig = BoardConfig()) -> BoardSignals:
     """Pressures at the transducers over the scenario on a 1 kHz grid (see the module docstring).
-    ``truth`` is a :class:`~softphantom.virtual.truth.Truth`; ``cavity_volumes_m3`` (channels,) the
-    volume channels' cavities the physics uses (the truth mesh's), named ``arm_names`` in the
-    sensor order (the arms, then any measured internal cavity: the design's ``sensing_names``); a
-    pressure channel per actuated internal cavity of the truth's design follows them."""
+    ``truth`` is a :class:`~softphantom.virtual.truth.Truth`; the board's channels are its model's
+    layout (:class:`~softphantom.records.channels.ChannelLayout`): ``cavity_volumes_m3`` (n,) the
+    volume channels' cavities the physics uses (the truth mesh's), in the sensor order (the arms,
+    then any measured internal cavity); a pressure channel per actuated cavity follows them."""
     rng = np.random.default_rng([config.seed, 1])
-    na = len(arm_names)
-    cav = tuple(truth.model.design.pressure_names)
-    cols = [truth.model.design.cavity_names.index(a) for a in arm_names]  # truth dV: arms, then every internal
-    chain = default_chain(cavity_volumes_m3, config.tube_length_m, config.tube_id_m, arm_names=tuple(arm_names),
-                          cavity_names=cav)
+    layout = truth.model.layout
+    na = len(layout.sensing)
+    cols = [truth.model.design.cavity_names.index(a) for a in layout.sensing]  # truth dV: arms, then every internal
+    chain = default_chain(cavity_volumes_m3, config.tube_length_m, config.tube_id_m, layout=layout)
     dur = truth.scenario.duration_s
     t = np.arange(0.0, dur + 0.5 + LAG_GRID_S / 2, LAG_GRID_S)
     ts = truth.sample(t)
@@ -125,6 +123,7 @@ def board_signals(truth, cavity_volumes_m3, config: BoardConfig = BoardConfig(),
                                  for i in range(na)])
     else:
         p_arm = p_cav
+    cav = layout.actuated
     nc = na + len(cav)
     bands = np.array([MPXV7002.error_band_Pa] * na + [MPX4250D.error_band_Pa] * len(cav)) * config.offset_band_fraction
     offsets = rng.uniform(-1.0, 1.0, nc) * bands
@@ -193,4 +192,4 @@ class VirtualBoard:
 def arm_volumes(model) -> np.ndarray:
     """(channels,) m³, the volume channels' cavity volumes of a PhantomModel in the sensor order
     (the arms, then any measured internal cavity)."""
-    return np.array([model.cavity_volume(a) for a in model.design.sensing_names])
+    return np.array([model.cavity_volume(a) for a in model.layout.sensing])

@@ -29,7 +29,6 @@ from pathlib import Path
 import numpy as np
 
 from softphantom.estimation import AtlasConfig, EstimatorConfig, estimate_stream, load_or_build, open_estimator
-from softphantom.estimation.forward import internal_cavities_of
 from softphantom.progress import Step, forward_progress, report
 
 # The demo's own atlas per scenario (with --atlas-grid): the box of the scenario's peak loads (its
@@ -248,7 +247,7 @@ def run_scenario(sc, model, out: Path, cfg, truth, estimator: str = "atlas", gri
     if estimator != "atlas":
         atlas = None
     elif atlas is None:
-        atlas = scenario_atlas(truth, grid, internal_cavities_of(model))
+        atlas = scenario_atlas(truth, grid, model.layout.actuated)
     from softphantom.estimation.lag import compensated, lag_compensation
     from softphantom.virtual.run import host_bench
 
@@ -390,7 +389,7 @@ def run_all(scs, model, out: Path, cfg, truth_mesh, estimator: str = "atlas", gr
     from softphantom.parallel import dask_client
 
     own = grid is None and estimator == "atlas"
-    n_cavities = len(internal_cavities_of(model))
+    n_cavities = len(model.layout.actuated)
     shared = shared_atlases(scs, grid, n_cavities) if estimator == "atlas" and not own else {}
     order = sorted(scs, key=lambda sc: push_only(sc) in shared)  # stable: the others first
     rows: dict[str, dict] = {}

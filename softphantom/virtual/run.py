@@ -151,7 +151,7 @@ def simulate(scenario: Scenario | str | Path, model: PhantomModel, config: Virtu
     sc = scenario if isinstance(scenario, Scenario) else load_scenario(scenario)
     chain = host_chain(model, config.board)  # before the solve: a design the board cannot read is refused now
     tr = truth or solve_truth(sc, model, config.truth, truth_mesh=truth_mesh, cache=cache)
-    sig = board_signals(tr, arm_volumes(tr.model), config.board, tr.model.design.sensing_names)
+    sig = board_signals(tr, arm_volumes(tr.model), config.board)
     trk = simulate_tracker(tr, config.tracker)
     return VirtualRun(sc, model, tr, sig, trk, chain, config)
 
@@ -198,7 +198,7 @@ def write_run(run: VirtualRun, out: Path) -> dict[str, Path]:
             "osr": b.osr, "p0_Pa": b.p0_Pa, "port": f"virtual:{run.scenario.name}",
             "tare": src.tare.to_dict(), "chain": run.chain.summary(), "virtual": True,
             "bench": host_bench(run.model, b).to_meta(), **scenario_contact(run.scenario)}
-    with Recorder(paths["recording"], meta, arm_names=run.chain.arm_names, cavity_names=run.chain.cavity_names) as rec:
+    with Recorder(paths["recording"], meta, layout=run.chain.layout) as rec:
         for m in src:
             rec.write(m)
     write_motive_csv(run.tracker, paths["tracker"], run.truth.marker_names, take_name=run.scenario.name)

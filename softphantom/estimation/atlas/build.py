@@ -40,7 +40,7 @@ from softphantom.estimation.atlas.solves import (  # noqa: F401  (what one task 
 from softphantom.estimation.atlas.tasks import (GraphRun, Task, TaskStore, bottom_levels, critical_path_s, partial_dir,
                                                 run_graph, schedule_s)
 from softphantom.estimation.config import EstimatorConfig
-from softphantom.estimation.forward import ForwardModel, internal_cavities_of
+from softphantom.estimation.forward import ForwardModel
 
 log = logging.getLogger(__name__)
 
@@ -480,7 +480,7 @@ def check_atlas_cavities(model) -> str:
     row, not a load), and a stack of such atlases over the further ones' pressures
     (``AtlasConfig.further_min_kPa``): returns the first cavity's name; a model without an actuated
     internal cavity is refused in one line (the refresh estimator takes it)."""
-    names = internal_cavities_of(model)
+    names = model.layout.actuated
     if not names:
         raise UserError("cavities: the atlas tabulates at least one internal pressure; this design has 0: "
                         "use --estimator refresh")
@@ -518,7 +518,7 @@ def build_atlas(model, config: EstimatorConfig | None = None, atlas: AtlasConfig
 
     cfg = config or EstimatorConfig()
     fwd = fwd or ForwardModel(model, cfg)
-    acfg = (atlas or default_atlas_config(fwd.fem.order)).for_cavities(len(internal_cavities_of(model)))
+    acfg = (atlas or default_atlas_config(fwd.fem.order)).for_cavities(len(model.layout.actuated))
     subs = acfg.pieces()
     which = tuple(range(len(subs))) if pieces is None else tuple(pieces)
     t0 = time.perf_counter()

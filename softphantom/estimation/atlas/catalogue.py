@@ -142,10 +142,9 @@ def _looks_like_atlas_dir(model_dir) -> bool:
 def resolve_config(model, acfg: AtlasConfig | None, model_dir=None) -> AtlasConfig:
     """The atlas settings a lookup uses: ``acfg``, or the model's default
     (:func:`~softphantom.estimation.atlas.config.model_atlas_config`), for its internal cavities."""
-    from softphantom.estimation.forward import internal_cavities_of
 
     order = int(getattr(model, "element_order", 1))
-    return (acfg or model_atlas_config(order, model_dir)).for_cavities(len(internal_cavities_of(model)))
+    return (acfg or model_atlas_config(order, model_dir)).for_cavities(len(model.layout.actuated))
 
 
 def find_or_build(model, config: EstimatorConfig | None = None, acfg: AtlasConfig | None = None, *,

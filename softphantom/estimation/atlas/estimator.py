@@ -64,8 +64,9 @@ class AtlasEstimator(EstimatorState):
         self.cavity = check_atlas_cavities(model)
         fwd = ForwardModel(model, cfg)
         self.forward = fwd
-        self.arm_names = fwd.eq.arm_names
-        self.cavities = fwd.pressure_names  # p_1 (the atlas's pressure axis), then a stack's further ones
+        self.layout = fwd.layout  # the phantom's channels: the estimates' volumes (sensing) and pressures
+        self.arm_names = self.layout.sensing
+        self.cavities = self.layout.actuated  # p_1 (the atlas's pressure axis), then a stack's further ones
         if not isinstance(atlas, (Found, Atlas, AtlasPatches, AtlasStack)):
             atlas = find_or_build(model, cfg, atlas, model_dir=cache_dir, scheduler=scheduler, n_workers=n_workers,
                                   fwd=fwd, max_build_s=max_build_s, require_full=require_full)
@@ -138,8 +139,7 @@ class AtlasEstimator(EstimatorState):
     def reset(self) -> None:
         """Back to rest."""
         self._lam = np.zeros(3 + len(self.cavities))
-        names = {} if self._stack is None else {"pressure_names": self.cavities}
-        self._last = rest_estimate(self.target_names, self.atlas.volumes(self._lam)[1], self.arm_names, **names)
+        self._last = rest_estimate(self.target_names, self.atlas.volumes(self._lam)[1], self.layout)
 
     def rest_check(self) -> dict:
         """The estimate at rest (zero volumes, zero internal pressures) against the rest state, which
@@ -338,7 +338,7 @@ class AtlasEstimator(EstimatorState):
             step_time=time.perf_counter() - t0, skipped=int(skipped), in_envelope=inside,
             extra={"qp_residual_m3": math.dist(V, dV), "gn_iterations": it,
                    **({"pressures_Pa": given} if self.cavities != ("urethra",) else {})},
-            arm_names=self.arm_names,
+            layout=self.layout,
         )
         self._lam = lam
         self._last = est

@@ -22,7 +22,6 @@ from typing import Any
 import numpy as np
 
 from softphantom.errors import SoftphantomError
-from softphantom.records.names import ARM_NAMES, BIP_CAVITIES
 from softphantom.records.names import POSE_COLUMNS as _TRACKER_KEYS
 from softphantom.stream.schema import encode, estimate_to_message
 from softphantom.viz.live.state import OUTAGE_EVENTS, LiveConfig, LiveState
@@ -53,12 +52,14 @@ class LiveSession:
         self.foxglove = None  # Foxglove's messages, to the recording and/or its live server
         self.error: BaseException | None = None
         geo = getattr(source, "geometry", None)
-        # the phantom's arms: the page's cavity plot, the recording's schemas, the sensor messages' keys
-        self.arm_names: tuple[str, ...] = tuple(getattr(source, "arm_names", None)
-                                                or (ARM_NAMES if geo is None else geo.arm_names))
-        # its internal cavities: their pressure keys (the page plots them unless they are the BIP's urethra)
-        self.cavity_names: tuple[str, ...] = tuple(getattr(source, "cavity_names", BIP_CAVITIES))
-        self.geometry_json = None if geo is None else {**geo.to_json(), "arms": list(self.arm_names)}
+        # the phantom's channels: the page's cavity plot, the recording's schemas and metadata, the
+        # sensor messages' keys (the page plots the pressures unless they are the BIP's urethra)
+        self.layout = getattr(source, "layout", None) or getattr(geo, "layout", None)
+        if self.layout is None:
+            raise TypeError(f"live source {type(source).__name__}: no layout and no geometry to take it from")
+        self.arm_names, self.cavity_names = self.layout.sensing, self.layout.actuated
+        self.geometry_json = None if geo is None else {**geo.to_json(), "arms": list(self.arm_names),
+                                                       **self.layout.to_meta()}
         shows = getattr(source, "surface_shows", None)  # what the surface is, when not the estimator's field
         if self.geometry_json is not None and shows:
             self.geometry_json["surface_shows"] = str(shows)
@@ -91,7 +92,7 @@ class LiveSession:
             from softphantom.stream.recording import TOPIC_GEOMETRY, SessionRecorder
 
             self.recorder = SessionRecorder(cfg.record, metadata={"source": type(self.source).__name__},
-                                            arm_names=self.arm_names, cavity_names=self.cavity_names)
+                                            layout=self.layout)
             if self.geometry_json is not None:
                 self.recorder.write(TOPIC_GEOMETRY, self.geometry_json)
             self.state.recording = {"enabled": True, "path": str(cfg.record), "messages": 0}
@@ -186,7 +187,7 @@ class LiveSession:
                 if self.recorder is not None:
                     self.recorder.write_estimate(data)
                     if callable(last_meas) and (m := last_meas()) is not None:
-                        self.recorder.write_sensors(measurement_to_message(m, self.arm_names))
+                        self.recorder.write_sensors(measurement_to_message(m, self.layout))
                 if self.foxglove is not None:
                     self.foxglove.estimate(msg, data)
                 for tm in (poll_tracker() or ()) if callable(poll_tracker) else ():
@@ -241,7 +242,7 @@ class LiveSession:
     def state_json(self) -> dict[str, Any]:
         return {"status": self.state.status(), "latest": self.state.latest,
                 "has_geometry": self.geometry_json is not None, "arms": list(self.arm_names),
-                **({} if self.cavity_names == BIP_CAVITIES else {"cavities": list(self.cavity_names)}),
+                **({} if self.cavity_names == ("urethra",) else {"cavities": list(self.cavity_names)}),
                 "view_rate_Hz": self.config.view_rate_Hz,
                 "surface_mm_f32_b64": self.state.surface_b64}
 

@@ -4,8 +4,8 @@
 The interface (:class:`EstimateSource`) is what the estimator must offer to be shown live:
 
 - ``geometry`` — a :class:`LiveGeometry` (the PhantomModel's outer surface, targets, p_ext, arms);
-- ``arm_names`` — the phantom's arms in the sensor order (the estimates' volume keys, the page's
-  cavity plot, the recording's schemas); a source without it is taken to have its geometry's arms;
+- ``layout`` — the phantom's :class:`~softphantom.records.channels.ChannelLayout` (the estimates'
+  volume and pressure keys, the page's cavity plot, the recording's schemas and metadata);
 - iterating it yields :class:`~softphantom.estimation.Estimate` objects, in time order, as they are
   computed (a real-time source paces itself; the live view never sleeps between them);
 - ``node_positions()`` — on demand, the deformed positions ``(N, 3)`` m of the model's nodes for the
@@ -32,7 +32,7 @@ import numpy as np
 
 from softphantom.errors import FileFormatError, UserError
 from softphantom.records.estimate import Estimate, message_to_estimate
-from softphantom.records.names import ARM_NAMES, BIP_CAVITIES, arm_names_of, pressure_names_of
+from softphantom.records.channels import BIP_LAYOUT, ChannelLayout, ChannelNames, read_layout
 
 
 TRI6_SPLIT = np.array([[0, 3, 5], [3, 1, 4], [5, 4, 2], [3, 4, 5]])
@@ -50,7 +50,7 @@ def split_tri6(faces6: np.ndarray) -> np.ndarray:
 
 
 @dataclass(frozen=True)
-class LiveGeometry:
+class LiveGeometry(ChannelNames):
     """The surfaces the live view draws (SI units).
 
     ``nodes`` (n, 3) m rest positions of the drawn nodes; ``faces`` (S, 3) indices into ``nodes``,
@@ -59,7 +59,8 @@ class LiveGeometry:
     ``node_positions()``; ``targets`` name → (3,) m at rest; ``p_ext`` (3,) m where the force
     acts; ``contact_radius_m`` the estimator's contact patch radius (None: not an estimator's
     view), recorded with the geometry so a recording says which contact model it used;
-    ``arm_names`` the phantom's arms in the sensor order (its design's; the JSON's ``arms``).
+    ``layout`` the phantom's :class:`~softphantom.records.channels.ChannelLayout` (its design's; the
+    JSON's ``channels``, and its volume channels as ``arms`` for the page).
 
     >>> g = ellipsoid_geometry(subdivisions=1)
     >>> g.nodes.shape, g.faces.shape, sorted(g.targets), sorted(g.cavities)
@@ -73,13 +74,13 @@ class LiveGeometry:
     p_ext: np.ndarray = field(default_factory=lambda: np.zeros(3))
     contact_radius_m: float | None = None
     cavities: dict[str, np.ndarray] = field(default_factory=dict)
-    arm_names: tuple[str, ...] = ARM_NAMES
+    layout: ChannelLayout = BIP_LAYOUT
 
     @classmethod
     def from_model(cls, model: Any, p_ext: str = "on-centre", contact_radius_m: float | None = None) -> "LiveGeometry":
         """The outer surface and the cavities of a ``PhantomModel`` (docs/architecture.md), reindexed
-        to the nodes they use, its ``targets``, the ``p_ext`` point named ``p_ext`` and its design's
-        arms (the BIP's four for a model-like object without a design). A quadratic
+        to the nodes they use, its ``targets``, the ``p_ext`` point named ``p_ext`` and its
+        ``layout`` (the BIP's for a model-like object without one). A quadratic
         model's 6-node triangles (``outer_faces6``, ``cavities6``) are drawn as 4 flat ones each
         (:func:`split_tri6`), through their mid-edge nodes."""
         faces6 = np.asarray(getattr(model, "outer_faces6", np.zeros((0, 6))), dtype=np.int64).reshape(-1, 6)
@@ -97,7 +98,6 @@ class LiveGeometry:
         points = dict(getattr(model, "p_ext", {}) or {})
         if p_ext not in points:
             raise UserError(f"the model has no interaction point {p_ext!r}; it has: {', '.join(points) or 'none'}")
-        design = getattr(model, "design", None)
         return cls(
             nodes=np.asarray(model.nodes, float)[used],
             faces=parts[0],
@@ -106,7 +106,7 @@ class LiveGeometry:
             p_ext=np.asarray(points[p_ext], float),
             contact_radius_m=None if contact_radius_m is None else float(contact_radius_m),
             cavities=dict(zip(cavities, parts[1:])),
-            arm_names=ARM_NAMES if design is None else tuple(getattr(design, "sensing_names", design.arm_names)),
+            layout=getattr(model, "layout", BIP_LAYOUT),
         )
 
     def to_json(self) -> dict[str, Any]:
@@ -121,6 +121,7 @@ class LiveGeometry:
             "p_ext_mm": np.round(self.p_ext * 1e3, 4).tolist(),
             "p_ext_node": pe,
             "arms": list(self.arm_names),
+            **self.layout.to_meta(),
         }
         if self.contact_radius_m is not None:
             out["contact_radius_mm"] = round(self.contact_radius_m * 1e3, 6)
@@ -137,10 +138,10 @@ class LiveGeometry:
             radius = d.get("contact_radius_mm")
             radius = None if radius is None else float(radius) * 1e-3
             cavities = {k: np.asarray(v, np.int64).reshape(-1, 3) for k, v in d.get("cavities", {}).items()}
-            arms = tuple(str(a) for a in d.get("arms") or ARM_NAMES)
+            layout = read_layout(d, "geometry message", sensing=d.get("arms"))
         except (KeyError, ValueError, TypeError) as exc:
             raise FileFormatError(f"geometry message is malformed: {exc}") from None
-        return cls(nodes, faces, np.arange(len(nodes), dtype=np.int64), targets, p_ext, radius, cavities, arms)
+        return cls(nodes, faces, np.arange(len(nodes), dtype=np.int64), targets, p_ext, radius, cavities, layout)
 
 
 def encode_positions_mm(positions_m: np.ndarray) -> str:
@@ -250,7 +251,7 @@ class SyntheticSource:
 
     _W = np.array([[1.8, 0.6, -2.2, 0.9], [1.7, 0.6, 2.4, 0.9], [2.1, -2.0, 0.3, 0.8], [2.0, 2.1, 0.2, 0.8]])
     """mm³ per N (x, y, z) and per kPa of urethra pressure, one row per arm."""
-    arm_names = ARM_NAMES
+    layout = BIP_LAYOUT  # a made-up BIP
 
     def __init__(self, rate_Hz: float = 77.0, duration_s: float | None = None, *, realtime: bool = True,
                  peak_force_N: float = 3.0, period_s: float = 4.0, subdivisions: int = 3, seed: int = 0):
@@ -305,7 +306,7 @@ class SyntheticSource:
             est = Estimate(t=t, force=f, p_urethra=p_ur, pose=Pose6(xyz, ypr), target_shift=shifts,
                            volume_pred=pred, volume_meas=meas, cond_W=float(np.linalg.cond(self._W)),
                            qp_status="optimal", step_time=time.perf_counter() - c0, skipped=skipped,
-                           status="ok")
+                           status="ok", layout=self.layout)
             yield est
             k += 1
 
@@ -383,9 +384,8 @@ class EstimateReplay:
     ``surface_shows`` says which, for the page. ``model`` (a ``PhantomModel``), when ``geometry`` is
     not given: its surface, with the force at the file's contact point (its metadata's ``contact``),
     and the atlas from ``model_dir``/atlas for that contact (:meth:`AtlasField.from_model_dir`).
-    ``arm_names``: the file's arms (a recording's :attr:`~softphantom.stream.recording.Recording.arm_names`,
-    an estimate file's volume columns) and ``cavity_names`` its internal cavities (its pressure
-    keys); a model of other arms or cavities is refused in one line naming both.
+    ``layout``: the file's channels (its metadata's, :class:`~softphantom.records.channels.ChannelLayout`);
+    a model of other channels is refused in one line naming both.
     """
 
     def __init__(self, path: str | Path, *, speed: float = 1.0, geometry: LiveGeometry | None = None,
@@ -414,23 +414,22 @@ class EstimateReplay:
                 recorded_note = rec.geometry.get("surface_shows")
             self._surface = [(float(m.get("t_s") or 0.0), m["positions_mm_f32_b64"]) for m in rec.surface
                              if "positions_mm_f32_b64" in m]
-            self.arm_names = rec.arm_names
-            self.cavity_names = rec.cavity_names
+            self.layout = rec.layout
         else:
+            from softphantom.stream.recording import estimate_file_layout
+
             self.meta, self.messages = read_estimate_csv(path)
-            self.arm_names = arm_names_of(self.messages[0] if self.messages else {}, "dVmeas_") or ARM_NAMES
-            self.cavity_names = pressure_names_of(self.messages[0]) if self.messages else BIP_CAVITIES
+            self.layout = estimate_file_layout(path, self.meta, self.messages[0] if self.messages else ())
+        self.arm_names, self.cavity_names = self.layout.sensing, self.layout.actuated
         if not self.messages:
             raise FileFormatError(f"{path}: no estimates to replay")
-        design = getattr(model, "design", None)
-        model_arms = getattr(design, "sensing_names", getattr(design, "arm_names", None))  # arms, measured cavities
-        if geometry is None and model_arms is not None and tuple(model_arms) != self.arm_names:
+        theirs = getattr(model, "layout", None)
+        if geometry is None and theirs is not None and theirs.sensing != self.arm_names:
             raise UserError(f"replay {path}: its arms ({', '.join(self.arm_names)}) are not the model's "
-                            f"({', '.join(model_arms)})")
-        model_cav = getattr(design, "pressure_names", getattr(design, "internal_cavity_names", None))
-        if geometry is None and model_cav is not None and tuple(model_cav) != self.cavity_names:
+                            f"({', '.join(theirs.sensing)})")
+        if geometry is None and theirs is not None and theirs.actuated != self.cavity_names:
             raise UserError(f"replay {path}: its internal cavities ({', '.join(self.cavity_names) or 'none'}) are "
-                            f"not the model's ({', '.join(model_cav) or 'none'})")
+                            f"not the model's ({', '.join(theirs.actuated) or 'none'})")
         if geometry is None and model is not None:
             contact = self.meta.get("contact")
             radius_mm = self.meta.get("contact_radius_mm")
@@ -442,7 +441,7 @@ class EstimateReplay:
                 atlas = AtlasField.from_model_dir(model_dir, len(model.nodes), contact, radius)
         self.geometry = geometry  # type: ignore[assignment]
         # the atlas tabulates the urethra's pressure alone
-        self.atlas = atlas if geometry is not None and not self._surface and self.cavity_names == BIP_CAVITIES else None
+        self.atlas = atlas if geometry is not None and not self._surface and self.cavity_names == ("urethra",) else None
         if geometry is None:
             self.surface_shows = None
         elif self._surface:
@@ -461,7 +460,7 @@ class EstimateReplay:
         t_first = float(self.messages[0].get("t_s") or 0.0)
         w0 = time.perf_counter()
         for m in self.messages:
-            est = message_to_estimate(m)
+            est = message_to_estimate(m, self.layout)
             if self.speed > 0:
                 wait = (est.t - t_first) / self.speed - (time.perf_counter() - w0)
                 if wait > 0:
@@ -504,8 +503,8 @@ class EstimatorSource:
                  p_ext: str = "on-centre") -> None:
         radius = getattr(getattr(estimator, "config", None), "contact_radius_m", None)
         self.geometry = LiveGeometry.from_model(model, p_ext, radius)
-        self.arm_names = tuple(getattr(estimator, "arm_names", None) or self.geometry.arm_names)
-        self.cavity_names = tuple(getattr(estimator, "pressure_names", BIP_CAVITIES))
+        self.layout = estimator.layout
+        self.arm_names, self.cavity_names = self.layout.sensing, self.layout.actuated
         self._sensor, self._est = sensor, estimator
         self.live, self.speed = bool(live), float(speed)
         self._last_m = None
@@ -531,7 +530,7 @@ class EstimatorSource:
 
         # link events (unplugged, silent, resumed, ...) reach the page, the stream and the
         # recording as marker estimates (status "event:<kind>: ...", numbers null)
-        markers = EventMarkers(self._sensor, getattr(self._est, "target_names", ()), self.arm_names, self.cavity_names)
+        markers = EventMarkers(self._sensor, getattr(self._est, "target_names", ()), self.layout)
         for m, skipped in self._samples():
             if m is None:               # a live source gave nothing for a while
                 yield from markers.due(None)
