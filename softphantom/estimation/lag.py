@@ -11,11 +11,12 @@ a steady ramp is followed without lag).
 quiet filter (small process noise) is late when a push starts, a fast one is noisy at rest. The
 filter keeps one state per arm and switches its steady-state gain between :data:`NOISE_GAIN_LEVELS`
 (the process noise of each level tuned so that its noise gain is the stated one) on the evidence of
-the innovations: their running mean (:data:`INNOVATION_MEMORY`), in units of its own standard
-deviation at rest, above each of :data:`Z_LEVELS` raises the level by one, for all arms at once (a load moves every arm); the level falls back by one per sample. Since the state is
-shared, no filter is left behind to catch up when the level falls (two filters blended on their
-difference left the quiet one's transient in the estimate for up to a second after each ramp).
-The gains are solved once per sample interval and cached, so a step is one small matrix product.
+the innovations: their running means (:data:`INNOVATION_MEMORY`), in units of their standard
+deviations at rest and RMS over the arms, above each of the thresholds (:data:`FALSE_RISE`, :data:`Z_LEVELS`) raise the level by one,
+for all arms at once (a load moves every arm); the level falls back by one per sample. The state
+is shared, so no quieter filter is left behind during a push to catch up (and overshoot) when the
+level falls. The gains are solved once per sample interval and cached, so a step is one small
+matrix product.
 
 **Noise gain.** At each level the filter is linear in the measured pressures: white noise on a
 transducer comes out multiplied by the level's noise gain g = ‖h‖₂ (the RMS of its impulse
@@ -43,16 +44,19 @@ MODES = ("off", "model")
 """``--lag-compensation``: ``off`` the transducers' pressures as they are; ``model`` compensated
 with the tube model of the bench."""
 
-DEFAULT_NOISE_GAIN = 1.3
+DEFAULT_NOISE_GAIN = 1.2
 """White pressure noise is multiplied by this (RMS) through the compensation at rest."""
 
-NOISE_GAIN_LEVELS = (1.3, 2.0, 3.0, 4.5, 7.0)
+NOISE_GAIN_LEVELS = (1.2, 2.0, 3.0, 4.5, 7.0)
 """The noise gains of the filter's levels, the quietest (at rest) first; the highest follows a load
 step (its 50 % point within 30 ms at 19.2 Hz frames)."""
 
-Z_LEVELS = (3.0, 4.0, 6.0, 10.0)
-"""The innovations' running mean, in its standard deviations at rest, above which each level above
-the quietest is taken."""
+FALSE_RISE = 0.01
+"""The share of samples at rest whose innovations' running means rise above the quietest level by
+chance (their RMS over the arms in standard deviations at rest: 1.82 with four arms, 2.58 with one)."""
+
+Z_LEVELS = (1.0, 4 / 3, 2.0, 10 / 3)
+"""The thresholds of the levels above the quietest, in multiples of the first (:data:`FALSE_RISE`)."""
 
 INNOVATION_MEMORY = 0.5
 """The weight of the newest innovation in their running mean (exponential)."""
@@ -215,6 +219,10 @@ class LagCompensator:
         self.levels = (self.target_gain, *sorted(float(g) for g in levels if g > self.target_gain * 1.05))
         self._stages = [np.asarray(s, float) for s in tubes.stages_s]
         self._n = 2 + len(self._stages[0])
+        from scipy.stats import chi2
+
+        na = len(self._stages)
+        self._z = np.sqrt(chi2.isf(FALSE_RISE, na) / na) * np.asarray(Z_LEVELS)
         self._flat_cache: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
         self._x: np.ndarray | None = None  # (arms·n,): every arm's state
         self._t: float | None = None
@@ -307,8 +315,9 @@ class LagCompensator:
             want = 0
         else:
             sd = np.sqrt(self._var * (INNOVATION_MEMORY / (2.0 - INNOVATION_MEMORY))) + 1e-12
-            z = float(np.max(np.abs(self._mean) / sd))
-            want = min(int(np.searchsorted(Z_LEVELS, z)), len(self.levels) - 1)
+            zz = self._mean / sd
+            z = math.sqrt(float(zz @ zz) / len(zz))  # a load moves every arm: their evidence adds
+            want = min(int(np.searchsorted(self._z, z)), len(self.levels) - 1)
             if want == 0 and self.level == 0:  # at rest: follow the noise level
                 self._var += (np.minimum(e * e, 9.0 * self._var) - self._var) * (1.0 / RATE_SAMPLES)
         self.level = max(want, self.level - 1)

@@ -65,18 +65,61 @@ def shade_outside(ax, t: np.ndarray, inside: np.ndarray | None, label: bool = Fa
                    label="clamped at the envelope" if label and j == 0 else None)
 
 
-def tube_lag_line(meta: dict, lag_ms: float) -> str:
-    """The report's line about the tubes' lag, from the estimate file's metadata: the tubes' mean
-    delay (before compensation) and the lag measured by cross-correlation (after).
+def tube_advance_ms(estimate: Series6) -> tuple[float, str] | None:
+    """How far the lag compensation moved the arm volumes ahead, measured: the cross-correlation lag
+    of the volumes the estimator was given (the estimate file's ``dVmeas_*``) behind the
+    transducers' own (the recording's ``dV_*``), negated; with the recording's name. The recording
+    is the replayed one (``source`` ``replay:FILE``) or a ``recording.csv`` beside the estimate (a
+    virtual run's, the demo's); None without one, or when the estimate is not compensated."""
+    from softphantom.evaluation.files import read_table
+    from softphantom.tracking import estimate_lag
 
-    >>> tube_lag_line({"lag_compensation": "model", "tube_tau_ms": [102.2, 101.9], "lag_noise_gain_rest": 1.3}, 4.0)
-    'compensated (model): the tubes delay the pressures by τ 101.9 … 102.2 ms; +4.0 ms remain (measured); noise gain at rest 1.3'
+    if estimate.meta.get("lag_compensation") != "model" or not estimate.source:
+        return None
+    here = Path(estimate.source).parent
+    src = str(estimate.meta.get("source", ""))
+    found = [p for p in ([Path(src[7:]), here / src[7:]] if src.startswith("replay:") else []) + [here / "recording.csv"]
+             if p.is_file()]
+    if not found:
+        return None
+    try:
+        rec, est = read_table(found[0]).columns, read_table(estimate.source).columns
+        arms = [k[len("dVmeas_"):] for k in est if k.startswith("dVmeas_") and f"dV_{k[len('dVmeas_'):]}" in rec]
+        if not arms:
+            return None
+        # the samples the estimator saw; marker rows (empty numbers) dropped
+        ok_r = np.isfinite(rec["t_s"]) & np.all([np.isfinite(rec[f"dV_{a}"]) for a in arms], axis=0)
+        ok_e = np.isfinite(est["t_s"]) & np.all([np.isfinite(est[f"dVmeas_{a}"]) for a in arms], axis=0)
+        r = estimate_lag(rec["t_s"][ok_r], np.column_stack([rec[f"dV_{a}"][ok_r] for a in arms]),
+                         est["t_s"][ok_e], np.column_stack([est[f"dVmeas_{a}"][ok_e] for a in arms]), max_lag_s=1.0)
+    except (ValueError, OSError, KeyError):  # too short, unreadable: the report says what the model says
+        return None
+    return -r.lag_ms, found[0].name
+
+
+def tube_lag_line(meta: dict, lag_ms: float, advance: tuple[float, str] | None = None) -> str:
+    """The report's line about the tubes' lag, from the estimate file's metadata: the tubes' mean
+    delay (the model's), the lag before compensation (measured: the lag after plus the advance the
+    compensation made, ``advance`` from :func:`tube_advance_ms`, when a recording was found) and after
+    (measured by cross-correlation).
+
+    >>> meta = {"lag_compensation": "model", "tube_tau_ms": [102.2, 101.9], "lag_noise_gain_rest": 1.3}
+    >>> tube_lag_line(meta, 4.0)
+    'compensated (model): the tubes delay the pressures by τ 101.9 … 102.2 ms (model); +4.0 ms remain (measured); noise gain at rest 1.3'
+    >>> print(tube_lag_line(meta, 4.0, (98.0, "recording.csv")))  # doctest: +NORMALIZE_WHITESPACE
+    compensated (model): the tubes delay the pressures by τ 101.9 … 102.2 ms (model); lag before compensation
+    +102.0 ms, after +4.0 ms (measured; the compensation moved the arm volumes 98.0 ms ahead of those in
+    recording.csv); noise gain at rest 1.3
     """
     tau = meta.get("tube_tau_ms") or []
     span = (f"{min(tau):.1f} … {max(tau):.1f} ms" if len(set(tau)) > 1 else f"{tau[0]:.1f} ms") if tau else "unknown"
     if meta.get("lag_compensation") == "model":
-        return (f"compensated (model): the tubes delay the pressures by τ {span}; {signed(lag_ms)} ms remain "
-                f"(measured); noise gain at rest {meta.get('lag_noise_gain_rest', float('nan')):g}")
+        gain = f"noise gain at rest {meta.get('lag_noise_gain_rest', float('nan')):g}"
+        if advance is not None:
+            return (f"compensated (model): the tubes delay the pressures by τ {span} (model); lag before compensation "
+                    f"{signed(lag_ms + advance[0])} ms, after {signed(lag_ms)} ms (measured; the compensation moved "
+                    f"the arm volumes {advance[0]:.1f} ms ahead of those in {advance[1]}); {gain}")
+        return f"compensated (model): the tubes delay the pressures by τ {span} (model); {signed(lag_ms)} ms remain (measured); {gain}"
     note = f" ({meta['lag_compensation_note']})" if meta.get("lag_compensation_note") else ""
     return f"not compensated{note}: the tubes' delay τ {span} is part of the lag above"
 
@@ -288,7 +331,7 @@ def write_report(
         ["truth registration", html.escape(str(truth.meta.get("registration", "as in the truth file (model frame)")))],
         ["lag of the estimate behind the truth", lag_txt],
         *([["what the lag consists of", html.escape(ev.lag_parts.explain())]] if ev.lag_parts is not None else []),
-        *([["the tubes' pneumatic lag", html.escape(tube_lag_line(estimate.meta, ev.lag_ms))]]
+        *([["the tubes' pneumatic lag", html.escape(tube_lag_line(estimate.meta, ev.lag_ms, tube_advance_ms(estimate)))]]
           if "lag_compensation" in estimate.meta else []),
         ["samples compared", f"{int(ev.mask.sum())} of {len(ev.mask)} estimates"],
     ]
