@@ -162,7 +162,7 @@ def main() -> None:
     import softphantom.estimation.lag  # noqa: F401  (the code measured is the code at the start)
     from softphantom.design import BIPDesign, MeshParams, build_model, load_model, save_model
     from softphantom.design.model import default_design
-    from softphantom.virtual import BoardConfig, TruthConfig, load_scenario, scenario_from_dict, solve_truth, truth_model
+    from softphantom.virtual import BoardConfig, TruthConfig, load_scenario, scenario_from_dict, solve_truth
     from softphantom.virtual.run import write_run
 
     t_start = time.perf_counter()
@@ -184,7 +184,6 @@ def main() -> None:
 
         atlas = model_atlas_config(model.element_order, model_dir)
     tcfg = TruthConfig() if a.truth_order is None else TruthConfig(order=a.truth_order)
-    tm = truth_model(model, tcfg)
     chain_cfg = BoardConfig(osr=100, seed=0, tube_length_m=a.tube_length_m)
     exact_cfg = dataclasses.replace(chain_cfg, tube_lag=False)
     rows, goals, costs, steps = [], [], [], {}
@@ -193,7 +192,7 @@ def main() -> None:
     for name in a.scenarios:
         sc = scenario_from_dict(STEP, "load-step") if name == "load-step" else load_scenario(name)
         t0 = time.perf_counter()
-        truth = solve_truth(sc, model, tcfg, truth_mesh=tm, cache=True)
+        truth = solve_truth(sc, model, tcfg, cache=True)  # keyed by the model: kept across runs
         print(f"{name}: truth {time.perf_counter() - t0:.0f} s", flush=True)
         t_step = STEP["push"][0]["start_s"] if name == "load-step" else None
         res = {}
@@ -227,7 +226,7 @@ def main() -> None:
             t50 = [(co["step50_y_ms"], co["step50_F_ms"])]
             for dt_phase in PHASES_S:  # the same step later within a frame: compensated only
                 sp = scenario_from_dict(step_at(t_step + dt_phase), "load-step")
-                truth_p = solve_truth(sp, model, tcfg, truth_mesh=tm, cache=True)
+                truth_p = solve_truth(sp, model, tcfg, cache=True)
                 path, s, comp, run = run_one(sp, model, truth_p, chain_cfg, a.estimator, model_dir, "model", work, atlas)
                 files = write_run(run, work / f"{name}-phase")
                 fp = figures(files["truth"], path, t_step + dt_phase)

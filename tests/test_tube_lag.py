@@ -126,12 +126,17 @@ def _pushes(t):
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_compensated_pushes_follow_the_cavity_without_overshoot(seed):
-    # the cavity pressure of now, from readings through the distributed line: within 1.5 % RMS of
-    # the peak over the pushes, and no more than 4.5 % off on the holds and after each push (a
-    # quiet filter left behind by the ramps and switched back in overshoots there by 4-7 %)
-    comp, _ = _one_arm()
-    tf, y, truth = _through_the_400_segment_ladder(_pushes, 13.0, seed=seed)
-    err = _compensate(comp, tf, y) - truth
+    # the cavity pressure of now, from four arms' readings through the distributed line: within
+    # 1.5 % RMS of the peak over the pushes, and no more than 4.5 % off on the holds and after each
+    # push (a quiet filter left behind by the ramps and switched back in overshoots there by 6-7 %)
+    from softphantom.estimation.lag import LagCompensator, TubeModel
+
+    red = TubeLine.of(*PAPER).reduced(2)
+    comp = LagCompensator(TubeModel((float(red.sum()),) * 4, (tuple(red),) * 4), [1.0] * 4, P0)
+    runs = [_through_the_400_segment_ladder(_pushes, 13.0, seed=10 * seed + a) for a in range(4)]
+    tf, truth = runs[0][0], runs[0][2]
+    y = np.column_stack([r[1] for r in runs])
+    err = np.array([comp.filter(tk, yk) for tk, yk in zip(tf, y)]) - truth[:, None]
     assert np.sqrt(np.mean(err[tf > 1.5] ** 2)) < 1.5
     settled = ((tf > 3.2) & (tf < 4.0)) | ((tf > 4.2) & (tf < 5.4)) | ((tf > 7.1) & (tf < 7.8)) | \
         ((tf > 8.3) & (tf < 8.9)) | ((tf > 10.2) & (tf < 11.0)) | (tf > 12.2)
@@ -139,8 +144,9 @@ def test_compensated_pushes_follow_the_cavity_without_overshoot(seed):
 
 
 def test_the_half_point_of_a_step_comes_within_30_ms():
-    # a 100 Pa step of the cavity pressure at 6.0 s (10 ms rise): the compensated reading passes
-    # 50 Pa within 30 ms of the cavity, the transducer's own reading 70-80 ms after
+    # a 100 Pa step of the cavity pressure at 6.0 s (10 ms rise; the first frame after it 37 ms
+    # after its middle): the compensated reading passes 50 Pa within 30 ms of the cavity, the
+    # transducer's own reading 70-80 ms after
     comp, _ = _one_arm()
     tf, y, truth = _through_the_400_segment_ladder(lambda t: 100.0 * _push(t, 6.0, 0.01, 2.5, 0.01), 9.0)
     out = _compensate(comp, tf, y)
@@ -151,22 +157,28 @@ def test_the_half_point_of_a_step_comes_within_30_ms():
 
     assert half(y) - 6.005 > 0.06
     assert half(out) - 6.005 < 0.030
-    rest = (tf > 2.0) & (tf < 5.7)
-    assert np.std(out[rest]) < 1.5 * np.std(y[rest])
 
 
-def test_noise_gain_at_rest_is_the_stated_one_and_a_constant_stays_constant():
-    from softphantom.estimation.lag import DEFAULT_NOISE_GAIN
+@pytest.mark.parametrize("arms", [4, 1])
+def test_noise_at_rest_is_the_quiet_levels_and_a_constant_stays_constant(arms):
+    # white noise at rest comes out × the quiet level's noise gain, plus what the chance rises of
+    # the level add: within 10 % of it with the BIP's four arms, under 1.5 × with a single arm
+    from softphantom.estimation.lag import DEFAULT_NOISE_GAIN, LagCompensator, TubeModel
 
-    comp, _ = _one_arm()
+    red = TubeLine.of(*PAPER).reduced(2)
+    comp = LagCompensator(TubeModel((float(red.sum()),) * arms, (tuple(red),) * arms), [1.0] * arms, P0)
     fr = 1 / 19.2
-    t = np.arange(0, 400.0, fr)
-    y = np.random.default_rng(1).normal(0, 1.0, len(t))
-    out = _compensate(comp, t, y)
+    t = np.arange(0, 200.0, fr)
+    y = np.random.default_rng(1).normal(0, 1.0, (len(t), arms))
+    out = np.array([comp.filter(tk, yk) for tk, yk in zip(t, y)])
     assert comp.noise_gain(fr)[0] == pytest.approx(DEFAULT_NOISE_GAIN, rel=0.01)
-    assert np.std(out[100:]) == pytest.approx(DEFAULT_NOISE_GAIN, rel=0.1)
+    ratio = np.std(out[100:]) / np.std(y[100:])
+    if arms == 4:
+        assert ratio == pytest.approx(DEFAULT_NOISE_GAIN, rel=0.1)
+    else:
+        assert DEFAULT_NOISE_GAIN * 0.9 < ratio < 1.5
     comp.reset()
-    assert np.allclose(_compensate(comp, t[:200], np.full(200, 42.0)), 42.0)
+    assert np.allclose([comp.filter(tk, np.full(arms, 42.0)) for tk in t[:200]], 42.0)
 
 
 def test_gap_in_the_board_clock_restarts_the_filter():

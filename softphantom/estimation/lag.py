@@ -51,9 +51,9 @@ NOISE_GAIN_LEVELS = (1.2, 2.0, 3.0, 4.5, 7.0)
 """The noise gains of the filter's levels, the quietest (at rest) first; the highest follows a load
 step (its 50 % point within 30 ms at 19.2 Hz frames)."""
 
-FALSE_RISE = 0.01
+FALSE_RISE = 0.02
 """The share of samples at rest whose innovations' running means rise above the quietest level by
-chance (their RMS over the arms in standard deviations at rest: 1.82 with four arms, 2.58 with one)."""
+chance (their RMS over the arms in standard deviations at rest: 1.71 with four arms, 2.33 with one)."""
 
 Z_LEVELS = (1.0, 4 / 3, 2.0, 10 / 3)
 """The thresholds of the levels above the quietest, in multiples of the first (:data:`FALSE_RISE`)."""
