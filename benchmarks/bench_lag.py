@@ -12,12 +12,14 @@ On the virtual phantom (its tube the distributed line: a ladder of RC segments),
 * **compensated**: through the tube, ``--lag-compensation model``.
 
 Scenarios: the needle insertion (on-centre push of 2.5 N: rise 4 s, hold 2 s, fall 3 s), the pushes
-on-centre, and a load step (2.5 N in 10 ms after 6 s at rest). Printed per run: y, yaw and |F| RMSE
-(the estimate at its own time, the lag not removed; |F| in % of the peak), the lag measured by
+on-centre, and a load step (2.5 N in 10 ms after 16 s at rest; compensated again with the step a
+quarter, half and three quarters of a frame later). Printed per run: y, yaw and |F| RMSE (the
+estimate at its own time, the lag not removed; |F| in % of the peak), the lag measured by
 cross-correlation (as ``softphantom evaluate``), and for the step: the noise at rest (std over the
-rest before the step, y µm, yaw m°, |F| mN), the 50 % point of the step (y and |F|) after the
-true one. Then the goals' ratios (compensated / exact RMSE ≤ 1.5; noise compensated / chain ≤ 1.5;
-50 % point ≤ 30 ms) and the compensation's cost per sample.
+rest before the step, y µm, yaw m°, |F| mN), the 50 % point of the step (y and |F|) after the true
+one, the overshoot of y. Then the goals' ratios (compensated / exact RMSE ≤ 1.5; noise compensated /
+chain ≤ 1.5; 50 % point ≤ 30 ms), the compensation's cost per sample (alone, and in the runs) and
+the estimator's step time with and without it.
 """
 
 from __future__ import annotations
