@@ -12,8 +12,9 @@ quiet filter (small process noise) is late when a push starts, a fast one is noi
 filter keeps one state per arm and switches its steady-state gain between :data:`NOISE_GAIN_LEVELS`
 (the process noise of each level tuned so that its noise gain is the stated one) on the evidence of
 the innovations: their running means (:data:`INNOVATION_MEMORY`), in units of their standard
-deviations at rest and RMS over the arms, above each of the thresholds (:data:`FALSE_RISE`, :data:`Z_LEVELS`) raise the level by one,
-for all arms at once (a load moves every arm); the level falls back by one per sample. The state
+deviations at rest and RMS over the arms, above each of the thresholds (:data:`FALSE_RISE`,
+:data:`Z_LEVELS`) raise the level by one, for all arms at once (a load moves every arm); the level
+falls back by one per sample. The state
 is shared, so no quieter filter is left behind during a push to catch up (and overshoot) when the
 level falls. The gains are solved once per sample interval and cached, so a step is one small
 matrix product.
