@@ -378,4 +378,14 @@ def test_report_measures_the_lag_before_and_after_the_tube_compensation(tmp_path
     assert name == "recording.csv" and adv == pytest.approx(95.0, abs=3.0)
     line = tube_lag_line(est_series.meta, 5.0, (adv, name))
     assert f"lag before compensation +{5.0 + adv:.1f} ms, after +5.0 ms (measured" in line
+    # against a truth that holds the cavities' volumes: each lag measured from it, the same advance
+    from softphantom.evaluation import read_truth
+
+    v_true, _ = motion(t)
+    tru = {"t_s": t, **{n: v_true[:, k] for k, n in enumerate(("x_mm", "y_mm", "z_mm", "yaw_deg", "pitch_deg",
+                                                                "roll_deg"))},
+           **{f"dV_{a}_mm3": 4.0 * v_true[:, 1 + 2 * k] for k, a in enumerate(arms)}}
+    truth = read_truth(write_table(tmp_path / "truth_dv.csv", {"kind": "virtual-truth"}, tru))
+    adv_t, _ = tube_advance_ms(est_series, truth)
+    assert adv_t == pytest.approx(95.0, abs=3.0)
     assert tube_advance_ms(read_estimate(write_table(tmp_path / "off.csv", {"lag_compensation": "off"}, est))) is None
