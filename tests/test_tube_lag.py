@@ -128,7 +128,7 @@ def _pushes(t):
 def test_compensated_pushes_follow_the_cavity_without_overshoot(seed):
     # the cavity pressure of now, from four arms' readings through the distributed line: within
     # 1.5 % RMS of the peak over the pushes, and no more than 4.5 % off on the holds and after each
-    # push (a quiet filter left behind by the ramps and switched back in overshoots there by 6-7 %)
+    # push (a quiet filter left behind by the ramps and switched back in would overshoot there by 6-7 %)
     from softphantom.estimation.lag import LagCompensator, TubeModel
 
     red = TubeLine.of(*PAPER).reduced(2)
