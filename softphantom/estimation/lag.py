@@ -5,14 +5,24 @@ line (:mod:`softphantom.sensing.tube`): ≈ 0.1 s of delay for the paper's 12 m 
 compensator is a Kalman filter per arm on a few-state model of that line: the line's two slowest
 first-order stages and one stage carrying the rest of its Elmore delay, driven by the cavity
 pressure, which is modelled as a constant-velocity signal (white noise on its second derivative;
-a steady ramp is followed without lag). The filter's gain is the steady-state one for the sample
-interval (solved once per interval and cached), so a step is a few small matrix products: a few
-µs per sample for all arms.
+a steady ramp is followed without lag).
 
-**Noise gain.** The filter is linear in the measured pressures: white noise on a transducer comes
-out of it multiplied by the noise gain g = ‖h‖₂ (the RMS of its impulse response). The process noise
-is chosen so that g equals :data:`DEFAULT_NOISE_GAIN` at the sample interval the compensator is set
-up for (:meth:`LagCompensator.noise_gain` reports it): a bounded price for removing the delay.
+**One state, a few gains.** How fast the cavity pressure may change is not known in advance: a
+quiet filter (small process noise) is late when a push starts, a fast one is noisy at rest. The
+filter keeps one state per arm and switches its steady-state gain between :data:`NOISE_GAIN_LEVELS`
+(the process noise of each level tuned so that its noise gain is the stated one) on the evidence of
+the innovations: their running means (:data:`INNOVATION_MEMORY`), in units of their standard
+deviations at rest and RMS over the arms, above each of the thresholds (:data:`FALSE_RISE`,
+:data:`Z_LEVELS`) raise the level by one, for all arms at once (a load moves every arm); the level
+falls back by one per sample. The state
+is shared, so no quieter filter is left behind during a push to catch up (and overshoot) when the
+level falls. The gains are solved once per sample interval and cached, so a step is one small
+matrix product.
+
+**Noise gain.** At each level the filter is linear in the measured pressures: white noise on a
+transducer comes out multiplied by the level's noise gain g = ‖h‖₂ (the RMS of its impulse
+response). At rest the lowest level holds (:data:`DEFAULT_NOISE_GAIN`); the highest is reached only
+while the innovations are many standard deviations off (a step).
 
 The compensated pressure replaces ``dp`` of the arms, and ``dV`` follows by Boyle over the arm's
 V_T; the internal cavities' pressures (no tube lag) pass through. After a gap in the board clock of
@@ -23,6 +33,7 @@ restarts at rest on the next good sample.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import time
 
@@ -34,18 +45,25 @@ MODES = ("off", "model")
 """``--lag-compensation``: ``off`` the transducers' pressures as they are; ``model`` compensated
 with the tube model of the bench."""
 
-DEFAULT_NOISE_GAIN = 1.3
+DEFAULT_NOISE_GAIN = 1.2
 """White pressure noise is multiplied by this (RMS) through the compensation at rest."""
 
-FAST_NOISE_GAIN = 4.0
-"""The motion filter's noise gain: blended in while the signal moves."""
+NOISE_GAIN_LEVELS = (1.2, 2.0, 3.0, 4.5, 7.0)
+"""The noise gains of the filter's levels, the quietest (at rest) first; the highest follows a load
+step (its 50 % point within 30 ms at 19.2 Hz frames)."""
 
-BLEND_SIGMAS = (3.0, 6.0)
-"""The motion filter is blended in from 0 to 1 as the two filters' difference grows from 3 to 6 times
-its standard deviation at rest."""
+FALSE_RISE = 0.02
+"""The share of samples at rest whose innovations' running means rise above the quietest level by
+chance (their RMS over the arms in standard deviations at rest: 1.71 with four arms, 2.33 with one)."""
+
+Z_LEVELS = (1.0, 4 / 3, 2.0, 10 / 3)
+"""The thresholds of the levels above the quietest, in multiples of the first (:data:`FALSE_RISE`)."""
+
+INNOVATION_MEMORY = 0.5
+"""The weight of the newest innovation in their running mean (exponential)."""
 
 LEARN_SAMPLES = 16
-"""Samples after a (re)start (at rest) from which that standard deviation is first taken."""
+"""Samples after a (re)start (at rest) from which the innovations' standard deviation is first taken."""
 
 RATE_SAMPLES = 200
 """Then it follows the noise at rest with this memory (samples)."""
@@ -61,12 +79,7 @@ N_STAGES = 2
 """The line's slowest stages modelled one by one; one more stage carries the rest of the delay."""
 
 
-INPUT_MODEL = {"rest": 2, "motion": 2}
-"""The cavity pressure's model in each filter: 1 a random walk (at rest: no velocity to overshoot
-with), 2 a constant velocity (in motion: a ramp followed without lag)."""
-
-
-def _cascade(taus: np.ndarray, order: int = 2) -> tuple[np.ndarray, np.ndarray]:
+def _cascade(taus: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(F, G) of the continuous model: state [u, u̇, s_1 … s_m], u̇ = v, v̇ = w, s_1' = (u − s_1)/τ_1,
     s_j' = (s_{j−1} − s_j)/τ_j; ``G`` the noise input (on v̇)."""
     m = len(taus)
@@ -80,20 +93,15 @@ def _cascade(taus: np.ndarray, order: int = 2) -> tuple[np.ndarray, np.ndarray]:
         F[i, i] = -1.0 / tau
         prev = i
     G = np.zeros(n)
-    if order == 1:  # random walk: u' = w (the second state unused, held at 0)
-        F[0, 1] = 0.0
-        F[1, 1] = -1.0
-        G[0] = 1.0
-    else:
-        G[1] = 1.0
+    G[1] = 1.0
     return F, G
 
 
-def _discrete(taus: np.ndarray, dt: float, q: float, order: int = 2) -> tuple[np.ndarray, np.ndarray]:
+def _discrete(taus: np.ndarray, dt: float, q: float) -> tuple[np.ndarray, np.ndarray]:
     """(A, Q_d) of the model over ``dt`` with process-noise intensity ``q`` (Van Loan)."""
     from scipy.linalg import expm
 
-    F, G = _cascade(taus, order)
+    F, G = _cascade(taus)
     n = F.shape[0]
     M = np.zeros((2 * n, 2 * n))
     M[:n, :n] = -F
@@ -105,8 +113,9 @@ def _discrete(taus: np.ndarray, dt: float, q: float, order: int = 2) -> tuple[np
     return A, 0.5 * (Qd + Qd.T)
 
 
-def _steady_gain(A: np.ndarray, Qd: np.ndarray) -> np.ndarray:
-    """Steady-state Kalman gain for a measurement of the last state with unit noise variance."""
+def _steady(A: np.ndarray, Qd: np.ndarray) -> tuple[np.ndarray, float]:
+    """Steady-state Kalman gain for a measurement of the last state with unit noise variance, and
+    the innovation's variance (in units of the measurement noise's)."""
     from scipy.linalg import solve_discrete_are
 
     n = A.shape[0]
@@ -114,7 +123,11 @@ def _steady_gain(A: np.ndarray, Qd: np.ndarray) -> np.ndarray:
     C[0, -1] = 1.0
     P = solve_discrete_are(A.T, C.T, Qd + 1e-15 * np.eye(n), np.eye(1))
     S = float((C @ P @ C.T)[0, 0]) + 1.0
-    return (P @ C.T).ravel() / S
+    return (P @ C.T).ravel() / S, S
+
+
+def _steady_gain(A: np.ndarray, Qd: np.ndarray) -> np.ndarray:
+    return _steady(A, Qd)[0]
 
 
 def filter_noise_gain(A: np.ndarray, K: np.ndarray) -> float:
@@ -129,14 +142,19 @@ def filter_noise_gain(A: np.ndarray, K: np.ndarray) -> float:
     return math.sqrt(max(float(X[0, 0]), 0.0))
 
 
-def tune(taus: np.ndarray, dt: float, noise_gain: float = DEFAULT_NOISE_GAIN, order: int = 2) -> float:
+def tune(taus: np.ndarray, dt: float, noise_gain: float = DEFAULT_NOISE_GAIN) -> float:
     """The process-noise intensity q (per unit measurement variance) whose steady filter has
     the noise gain ``noise_gain`` at ``dt`` (bisection in log q; the gain grows with q)."""
     if not noise_gain > 1.0:
         raise UserError(f"lag compensation noise gain: must be > 1, got {noise_gain!r}")
+    return _tune(tuple(float(t) for t in np.round(np.asarray(taus, float), 12)), round(float(dt), 9),
+                 float(noise_gain))
 
+
+@functools.lru_cache(maxsize=256)
+def _tune(taus: tuple, dt: float, noise_gain: float) -> float:
     def gain(lq: float) -> float:
-        A, Qd = _discrete(taus, dt, 10.0**lq, order)
+        A, Qd = _discrete(np.array(taus), dt, 10.0**lq)
         return filter_noise_gain(A, _steady_gain(A, Qd))
 
     lo, hi = -6.0, 14.0
@@ -190,104 +208,83 @@ class TubeModel:
 class LagCompensator:
     """The compensation of every arm of a bench (see the module docstring): ``apply(m)`` gives
     the measurement with the arms' ``dp`` and ``dV`` of now. ``v_total_m3`` (arms,) V_T for Boyle,
-    ``p0_Pa`` the ambient pressure; ``noise_gain`` the rest filter's, ``fast_noise_gain`` the
-    motion filter's (both at the first sample interval)."""
+    ``p0_Pa`` the ambient pressure; ``noise_gain`` the quietest level's noise gain (at rest),
+    ``levels`` the faster levels' (those above ``noise_gain``; default :data:`NOISE_GAIN_LEVELS`)."""
 
     def __init__(self, tubes: TubeModel, v_total_m3, p0_Pa: float, noise_gain: float = DEFAULT_NOISE_GAIN,
-                 fast_noise_gain: float = FAST_NOISE_GAIN):
+                 levels: tuple[float, ...] = NOISE_GAIN_LEVELS):
         self.tubes = tubes
         self.v_total = np.asarray(v_total_m3, float)
         self.p0 = float(p0_Pa)
         self.target_gain = float(noise_gain)
-        self.fast_gain = float(fast_noise_gain)
-        if not self.fast_gain >= self.target_gain:
-            raise UserError(f"lag compensation: the motion filter's noise gain ({self.fast_gain:g}) must be ≥ the "
-                            f"rest filter's ({self.target_gain:g})")
+        self.levels = (self.target_gain, *sorted(float(g) for g in levels if g > self.target_gain * 1.05))
         self._stages = [np.asarray(s, float) for s in tubes.stages_s]
         self._n = 2 + len(self._stages[0])
-        self._q: list[tuple[float, float]] | None = None
-        self._cache: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+        from scipy.special import chdtri  # the χ² quantile (scipy.stats takes a second to import)
+
+        na = len(self._stages)
+        self._z = np.sqrt(chdtri(na, FALSE_RISE) / na) * np.asarray(Z_LEVELS)
         self._flat_cache: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
-        self._x: np.ndarray | None = None  # (arms, 2·states): the rest filter's, then the motion filter's
+        self._x: np.ndarray | None = None  # (arms·n,): every arm's state
         self._t: float | None = None
-        self._var: np.ndarray | None = None  # (arms,) running variance of the two filters' difference at rest
+        self._var: np.ndarray | None = None  # (arms,) the innovations' variance at rest
+        self._mean: np.ndarray | None = None  # (arms,) their running mean
         self._n_rest = 0
+        self.level = 0
         self.dt_s: float | None = None
-        self.gains: tuple[float, float] | None = None
         self.restarts = 0
         self.cost_s = 0.0  # time spent in apply(), the filters' set-up (setup_s) excluded
         self.setup_s = 0.0
         self.samples = 0
-        self.blended = 0
+        self.raised = 0  # samples above the quietest level
 
     @classmethod
     def for_bench(cls, bench, noise_gain: float = DEFAULT_NOISE_GAIN) -> "LagCompensator":
         n = len(bench.cavity_volumes_m3)
         return cls(TubeModel.of_bench(bench), bench.chain().v_total_m3[:n], bench.p0_Pa, noise_gain)
 
-    def _matrices(self, dt: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(Φ (arms, 2n, 2n), K (arms, 2n), σ_d (arms,)) at ``dt`` (cached in 50 µs bins): the two
-        filters' update x ← Φ·x + K·y, and the difference's noise gain."""
-        key = int(round(dt * 2e4))  # a board's frames are regular to a few µs
-        got = self._cache.get(key)
-        if got is not None:
-            return got
-        t0 = time.perf_counter()
-        got = self._solve(key)
-        self._cache[key] = got
-        self.setup_s += time.perf_counter() - t0
+    def _solve(self, dtk: float):
+        """(A (arms·n)² block-diagonal, K (levels, arms·n), √S (levels, arms)) at ``dtk``: the
+        prediction, each level's gain and its innovation's standard deviation per unit noise."""
+        a, n = len(self._stages), self._n
+        A = np.zeros((a * n, a * n))
+        K = np.zeros((len(self.levels), a * n))
+        sd = np.zeros((len(self.levels), a))
+        for i, st in enumerate(self._stages):
+            for j, g in enumerate(self.levels):
+                Ai, Qd = _discrete(st, dtk, tune(st, dtk, g))
+                k, S = _steady(Ai, Qd)
+                A[i * n:(i + 1) * n, i * n:(i + 1) * n] = Ai  # the same at every level (q enters Q only)
+                K[j, i * n:(i + 1) * n] = k
+                sd[j, i] = math.sqrt(S)
+        return A, K, sd
+
+    def _flat(self, dt: float):
+        key = int(round(dt * 2e4))  # a board's frames are regular to a few µs: 50 µs bins
+        got = self._flat_cache.get(key)
+        if got is None:
+            t0 = time.perf_counter()
+            dtk = max(key, 1) / 2e4
+            got = self._solve(dtk)
+            self._flat_cache[key] = got
+            if self.dt_s is None:
+                self.dt_s = dtk
+            self.setup_s += time.perf_counter() - t0
         return got
 
-    def _solve(self, key: int):
-        from scipy.linalg import block_diag, solve_discrete_lyapunov
-
-        dtk = max(key, 1) / 2e4
-        if self._q is None:
-            tuned: dict[tuple, tuple[float, float]] = {}  # arms with the same tube share it
-            for s in self._stages:
-                k = tuple(np.round(s, 9))
-                if k not in tuned:
-                    tuned[k] = (tune(s, dtk, self.target_gain, INPUT_MODEL["rest"]),
-                                tune(s, dtk, self.fast_gain, INPUT_MODEL["motion"]))
-            self._q = [tuned[tuple(np.round(s, 9))] for s in self._stages]
-            self.dt_s = dtk
-        n = self._n
-        C = np.zeros(n)
-        C[-1] = 1.0
-        Phis, Ks, sds, gs = [], [], [], []
-        for s, qs in zip(self._stages, self._q):
-            ph, kk = [], []
-            for q, order in zip(qs, (INPUT_MODEL["rest"], INPUT_MODEL["motion"])):
-                A, Qd = _discrete(s, dtk, q, order)
-                K = _steady_gain(A, Qd)
-                ph.append((np.eye(n) - np.outer(K, C)) @ A)
-                kk.append(K)
-            Phi, K = block_diag(*ph), np.concatenate(kk)
-            X = solve_discrete_lyapunov(Phi, np.outer(K, K))
-            d = np.zeros(2 * n)
-            d[0], d[n] = -1.0, 1.0
-            Phis.append(Phi)
-            Ks.append(K)
-            sds.append(math.sqrt(max(float(d @ X @ d), 1e-30)))
-            gs.append((math.sqrt(max(X[0, 0], 0.0)), math.sqrt(max(X[n, n], 0.0))))
-        if self.gains is None:
-            self.gains = (max(g[0] for g in gs), max(g[1] for g in gs))
-        return np.stack(Phis), np.stack(Ks), np.array(sds)
-
     def prepare(self, dt_s: float) -> None:
-        """Set the filters up for sample interval ``dt_s`` now (else on the first samples: ≈ 0.1 s)."""
+        """Set the filters up for sample interval ``dt_s`` now (else on the first samples: ≈ 0.5 s)."""
         self._flat(float(dt_s))
 
     def noise_gain(self, dt_s: float) -> tuple[float, float]:
-        """(rest, motion): the largest noise gain over the arms of the two filters at ``dt_s``."""
-        from scipy.linalg import solve_discrete_lyapunov
-
-        Phi, K, _ = self._matrices(dt_s)
+        """(rest, fastest): the largest noise gain over the arms of the quietest and the fastest level
+        at ``dt_s``."""
+        A, K, _ = self._flat(float(dt_s))
         n = self._n
-        out = [0.0, 0.0]
-        for ph, k in zip(Phi, K):
-            X = solve_discrete_lyapunov(ph, np.outer(k, k))
-            out = [max(out[0], math.sqrt(max(X[0, 0], 0.0))), max(out[1], math.sqrt(max(X[n, n], 0.0)))]
+        out = []
+        for j in (0, len(self.levels) - 1):
+            out.append(max(filter_noise_gain(A[i * n:(i + 1) * n, i * n:(i + 1) * n], K[j, i * n:(i + 1) * n])
+                           for i in range(len(self._stages))))
         return out[0], out[1]
 
     def reset(self) -> None:
@@ -303,50 +300,34 @@ class LagCompensator:
         if self._x is None or dt is None or not (0.0 < dt <= MAX_GAP_S):
             if self._x is not None:
                 self.restarts += 1
-            x = np.repeat(y[:, None], 2 * n, axis=1)
-            x[:, 1] = x[:, n + 1] = 0.0
+            x = np.repeat(y[:, None], n, axis=1)
+            x[:, 1] = 0.0
             self._x = x.ravel()
             self._t = t_s
-            self._var, self._n_rest = np.zeros(len(y)), 0
+            self._var, self._mean, self._n_rest, self.level = np.zeros(len(y)), np.zeros(len(y)), 0, 0
             return y.copy()
-        big, K, _ = self._flat(dt)
-        x = big @ self._x + K @ y  # every arm's two filters in one product
+        A, K, _ = self._flat(dt)
+        xp = A @ self._x
+        e = y - xp[n - 1::n]  # the innovations: each arm's reading against its prediction
+        self._mean += INNOVATION_MEMORY * (e - self._mean)
+        if self._n_rest < LEARN_SAMPLES:  # the first samples (at rest): learn the innovations' noise
+            self._n_rest += 1
+            self._var += (e * e - self._var) / self._n_rest
+            want = 0
+        else:
+            sd = np.sqrt(self._var * (INNOVATION_MEMORY / (2.0 - INNOVATION_MEMORY))) + 1e-12
+            zz = self._mean / sd
+            z = math.sqrt(float(zz @ zz) / len(zz))  # a load moves every arm: their evidence adds
+            want = min(int(np.searchsorted(self._z, z)), len(self.levels) - 1)
+            if want == 0 and self.level == 0:  # at rest: follow the noise level
+                self._var += (np.minimum(e * e, 9.0 * self._var) - self._var) * (1.0 / RATE_SAMPLES)
+        self.level = max(want, self.level - 1)
+        if self.level:
+            self.raised += 1
+        x = xp + K[self.level] * np.repeat(e, n)
         self._x = x
         self._t = t_s
-        slow = x[self._i_slow]
-        d = x[self._i_fast] - slow
-        if self._n_rest < LEARN_SAMPLES:  # the first samples (at rest): learn the difference's noise
-            self._n_rest += 1
-            self._var += (d * d - self._var) / self._n_rest
-            return slow
-        z = np.abs(d) / (np.sqrt(self._var) + 1e-9)
-        lo, hi = BLEND_SIGMAS
-        if z.max() <= lo:  # at rest: follow the noise level
-            self._var += (np.minimum(d * d, 9.0 * self._var) - self._var) * (1.0 / RATE_SAMPLES)
-            return slow
-        self.blended += 1
-        w = np.clip((z - lo) * (1.0 / (hi - lo)), 0.0, 1.0)
-        rest = w == 0.0
-        self._var[rest] += (np.minimum(d * d, 9.0 * self._var)[rest] - self._var[rest]) * (1.0 / RATE_SAMPLES)
-        return slow + w * d
-
-    def _flat(self, dt: float):
-        """The update of all arms as one block-diagonal product: (Φ (arms·2n)², K (arms·2n, arms))."""
-        key = int(round(dt * 2e4))
-        got = self._flat_cache.get(key)
-        if got is None:
-            Phi, K, sd = self._matrices(dt)
-            a, m = Phi.shape[0], Phi.shape[1]
-            big = np.zeros((a * m, a * m))
-            kk = np.zeros((a * m, a))
-            for i in range(a):
-                big[i * m:(i + 1) * m, i * m:(i + 1) * m] = Phi[i]
-                kk[i * m:(i + 1) * m, i] = K[i]
-            got = (big, kk, sd)
-            self._flat_cache[key] = got
-            self._i_slow = np.arange(a) * m
-            self._i_fast = self._i_slow + self._n
-        return got
+        return x[::n].copy()
 
     def apply(self, m):
         """The measurement ``m`` with its arms' pressures and volumes compensated."""
@@ -363,10 +344,10 @@ class LagCompensator:
         return out
 
     def meta(self) -> dict:
-        """What the estimate file records: the mode, the τ in use, the two filters' noise gains (set
-        at the first sample interval)."""
+        """What the estimate file records: the mode, the τ in use, the noise gains at rest and at the
+        fastest level."""
         return {"lag_compensation": "model", **self.tubes.to_meta(), "lag_noise_gain_rest": self.target_gain,
-                "lag_noise_gain_motion": self.fast_gain}
+                "lag_noise_gain_max": self.levels[-1]}
 
 
 MAX_TAU_S = 2.0

@@ -65,18 +65,78 @@ def shade_outside(ax, t: np.ndarray, inside: np.ndarray | None, label: bool = Fa
                    label="clamped at the envelope" if label and j == 0 else None)
 
 
-def tube_lag_line(meta: dict, lag_ms: float) -> str:
-    """The report's line about the tubes' lag, from the estimate file's metadata: the tubes' mean
-    delay (before compensation) and the lag measured by cross-correlation (after).
+def tube_advance_ms(estimate: Series6, truth: Series6 | None = None) -> tuple[float, str] | None:
+    """How far the lag compensation moved the arm volumes ahead, measured by cross-correlation, with
+    the name of the recording it was measured against: the transducers' own volumes (the
+    recording's ``dV_*``) against those the estimator was given (the estimate file's ``dVmeas_*``).
+    With a truth file that holds the cavities' volumes (a virtual run's ``truth.csv``), each is
+    measured against those and the advance is the difference (a slow load, e.g. an inflation, would
+    otherwise show the noise both share, at no lag); without one, a measured advance outside half to
+    one and a half times the tubes' τ is not reported. The recording is the replayed one (``source``
+    ``replay:FILE``) or a ``recording.csv`` beside the estimate (a virtual run's, the demo's); None
+    without one, when the arms hardly move, or when the estimate is not compensated."""
+    from softphantom.evaluation.files import read_table
+    from softphantom.tracking import estimate_lag
 
-    >>> tube_lag_line({"lag_compensation": "model", "tube_tau_ms": [102.2, 101.9], "lag_noise_gain_rest": 1.3}, 4.0)
-    'compensated (model): the tubes delay the pressures by τ 101.9 … 102.2 ms; +4.0 ms remain (measured); noise gain at rest 1.3'
+    if estimate.meta.get("lag_compensation") != "model" or not estimate.source:
+        return None
+    here = Path(estimate.source).parent
+    src = str(estimate.meta.get("source", ""))
+    found = [p for p in ([Path(src[7:]), here / src[7:]] if src.startswith("replay:") else []) + [here / "recording.csv"]
+             if p.is_file()]
+    if not found:
+        return None
+
+    def series(cols, fmt, arms):  # the rows with numbers (marker rows dropped)
+        ok = np.isfinite(cols["t_s"]) & np.all([np.isfinite(cols[fmt.format(a)]) for a in arms], axis=0)
+        return cols["t_s"][ok], np.column_stack([cols[fmt.format(a)][ok] for a in arms])
+
+    try:
+        rec, est = read_table(found[0]).columns, read_table(estimate.source).columns
+        arms = [k[len("dVmeas_"):-len("_mm3")] for k in est if k.startswith("dVmeas_") and k.endswith("_mm3")
+                and f"dV_{k[len('dVmeas_'):]}" in rec]
+        if not arms:
+            return None
+        r_rec, r_est = series(rec, "dV_{}_mm3", arms), series(est, "dVmeas_{}_mm3", arms)
+        tru = read_table(truth.source).columns if truth is not None and truth.source else {}
+        if "t_s" in tru and all(f"dV_{a}_mm3" in tru for a in arms):
+            ref = series(tru, "dV_{}_mm3", arms)
+            before, after = estimate_lag(*ref, *r_rec, max_lag_s=1.0), estimate_lag(*ref, *r_est, max_lag_s=1.0)
+            if min(before.peak_corr, after.peak_corr) < 0.8 or before.at_edge or after.at_edge:
+                return None
+            return before.lag_ms - after.lag_ms, found[0].name
+        r = estimate_lag(*r_rec, *r_est, max_lag_s=1.0)
+    except (ValueError, OSError, KeyError):  # too short, unreadable: the report says what the model says
+        return None
+    tau = estimate.meta.get("tube_tau_ms") or [float("nan")]
+    if r.peak_corr < 0.8 or r.at_edge or not 0.5 * np.mean(tau) <= -r.lag_ms <= 1.5 * np.mean(tau):
+        return None
+    return -r.lag_ms, found[0].name
+
+
+def tube_lag_line(meta: dict, lag_ms: float, advance: tuple[float, str] | None = None) -> str:
+    """The report's line about the tubes' lag, from the estimate file's metadata: the tubes' mean
+    delay (the model's), the lag before compensation (measured: the lag after plus the advance the
+    compensation made, ``advance`` from :func:`tube_advance_ms`, when a recording was found) and after
+    (measured by cross-correlation).
+
+    >>> meta = {"lag_compensation": "model", "tube_tau_ms": [102.2, 101.9], "lag_noise_gain_rest": 1.3}
+    >>> tube_lag_line(meta, 4.0)
+    'compensated (model): the tubes delay the pressures by τ 101.9 … 102.2 ms (model); +4.0 ms remain (measured); noise gain at rest 1.3'
+    >>> print(tube_lag_line(meta, 4.0, (98.0, "recording.csv")))  # doctest: +NORMALIZE_WHITESPACE
+    compensated (model): the tubes delay the pressures by τ 101.9 … 102.2 ms (model); lag before compensation
+    +102.0 ms, after +4.0 ms (measured; the compensation moved the arm volumes 98.0 ms ahead of those in
+    recording.csv); noise gain at rest 1.3
     """
     tau = meta.get("tube_tau_ms") or []
     span = (f"{min(tau):.1f} … {max(tau):.1f} ms" if len(set(tau)) > 1 else f"{tau[0]:.1f} ms") if tau else "unknown"
     if meta.get("lag_compensation") == "model":
-        return (f"compensated (model): the tubes delay the pressures by τ {span}; {signed(lag_ms)} ms remain "
-                f"(measured); noise gain at rest {meta.get('lag_noise_gain_rest', float('nan')):g}")
+        gain = f"noise gain at rest {meta.get('lag_noise_gain_rest', float('nan')):g}"
+        if advance is not None:
+            return (f"compensated (model): the tubes delay the pressures by τ {span} (model); lag before compensation "
+                    f"{signed(lag_ms + advance[0])} ms, after {signed(lag_ms)} ms (measured; the compensation moved "
+                    f"the arm volumes {advance[0]:.1f} ms ahead of those in {advance[1]}); {gain}")
+        return f"compensated (model): the tubes delay the pressures by τ {span} (model); {signed(lag_ms)} ms remain (measured); {gain}"
     note = f" ({meta['lag_compensation_note']})" if meta.get("lag_compensation_note") else ""
     return f"not compensated{note}: the tubes' delay τ {span} is part of the lag above"
 
@@ -273,13 +333,17 @@ def write_report(
     snapshot: Path | None = None,
     title: str = "softphantom evaluation",
     clinical: bool = True,
+    tube_advance: tuple[float, str] | None | str = "find",
 ) -> tuple[Path, tuple[ClinicalRow, ...]]:
     """Write ``out/report.html`` and its PNGs; returns the report's path and the Table I rows
-    (``clinical``: compare with the paper's Table I, the prostate-motion studies; none for another organ)."""
+    (``clinical``: compare with the paper's Table I, the prostate-motion studies; none for another organ).
+    ``tube_advance``: the lag compensation's measured advance (:func:`tube_advance_ms`; ``"find"``:
+    measured here from the files next to ``estimate.source``)."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     plot_6dof(truth, estimate, ev, out / "pose_6dof.png", title)
     parts = [f"<h1>{html.escape(title)}</h1>"]
+    advance = tube_advance_ms(estimate, truth) if tube_advance == "find" else tube_advance
     lag_txt = (f"{signed(ev.lag_ms)} ms, {html.escape(ev.lag_source)}"
                + (f" (peak correlation {ev.lag.peak_corr:.3f})" if ev.lag is not None else ""))
     info = [
@@ -288,7 +352,7 @@ def write_report(
         ["truth registration", html.escape(str(truth.meta.get("registration", "as in the truth file (model frame)")))],
         ["lag of the estimate behind the truth", lag_txt],
         *([["what the lag consists of", html.escape(ev.lag_parts.explain())]] if ev.lag_parts is not None else []),
-        *([["the tubes' pneumatic lag", html.escape(tube_lag_line(estimate.meta, ev.lag_ms))]]
+        *([["the tubes' pneumatic lag", html.escape(tube_lag_line(estimate.meta, ev.lag_ms, advance))]]
           if "lag_compensation" in estimate.meta else []),
         ["samples compared", f"{int(ev.mask.sum())} of {len(ev.mask)} estimates"],
     ]

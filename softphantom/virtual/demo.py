@@ -229,6 +229,7 @@ def run_scenario(sc, model, out: Path, cfg, truth, estimator: str = "atlas", gri
     given) or refresh (sync); ``grid`` the atlas's points per axis (None or (): by kind). Its progress
     is reported (tasks ``<scenario>: estimate``, ``<scenario>: evaluate``)."""
     from softphantom.evaluation import evaluate, read_estimate, read_truth, write_report
+    from softphantom.evaluation.report import tube_advance_ms
     from softphantom.tracking import estimate_lag
     from softphantom.virtual import run_summary, simulate, write_run
 
@@ -281,10 +282,11 @@ def run_scenario(sc, model, out: Path, cfg, truth, estimator: str = "atlas", gri
     report(log, task, 0, None, "report")
     tru = read_truth(paths["truth"])
     estimate = read_estimate(est_path)
+    advance = tube_advance_ms(estimate, tru)  # from the files where they are now (recording.csv beside it)
     if shown is not None:  # the report names the files where the user will find them
         tru, estimate = (replace(x, source=str(shown / Path(x.source).relative_to(out))) for x in (tru, estimate))
     ev = evaluate(tru, estimate)
-    page, rows = write_report(d / "report", tru, estimate, ev, snapshot=paths["snapshot"],
+    page, rows = write_report(d / "report", tru, estimate, ev, snapshot=paths["snapshot"], tube_advance=advance,
                               title=f"{sc.name} — {sc.description}", clinical=clinical)
     # the tracker path: Motive CSV → reader → rest-window registration → lag against the exact truth
     trk = read_truth(paths["tracker"])
