@@ -3,8 +3,8 @@
 ``cached_model(shared, key)`` returns the model ``key`` of :data:`MODELS`: the first process to
 need it meshes it and saves it under ``shared`` (the run's temp directory, the same for every
 pytest-xdist worker); a file lock makes the others wait and load it. ``cached_atlas(shared,
-x_control)`` does the same for the small atlas of the coarse model that test_atlas and test_rom
-both use (:func:`atlas_config`). Run as a script
+x_control)`` does the same for the small atlas of the coarse model that test_atlas uses
+(:func:`atlas_config`). Run as a script
 (``python shared_models.py SHARED JOB...``) it does the jobs in order: ``fem`` and ``atlas``
 compile the numba kernels into numba's on-disk cache (``warm_up``), a model key builds that model.
 """

@@ -25,7 +25,7 @@ from softphantom.sensing import Measurement
 from shared_models import atlas_config, cached_atlas
 
 CFG = EstimatorConfig(contact="on-centre")
-ACFG = atlas_config()  # 3 × 4 × 3 × 2 points, ±0.5 N of f_x: the atlases test_rom compares too (shared)
+ACFG = atlas_config()  # 3 × 4 × 3 × 2 points, ±0.5 N of f_x (shared: shared_models.cached_atlas)
 ACFG_DISP = atlas_config("displacement")
 
 

@@ -54,11 +54,20 @@ def test_the_cost_model_predicts_a_critical_path_far_below_the_wall_time_and_sch
     assert all(t.priority == round(level[t.name] * 10) for t in tasks if t not in probes)
 
 
+@pytest.fixture(scope="module")
+def draft(coarse_model):
+    """A draft atlas of the coarse model over a small envelope, 3 × 3 × 3 × 2 points (the real
+    draft's build takes minutes), and its config: built once for the two tests below."""
+    acfg = AtlasConfig(force_min_N=(-0.5, -0.3, -0.5), force_max_N=(0.5, 1.2, 0.5), p_min_kPa=-1.0, p_max_kPa=4.0,
+                       n_force=(3, 3, 3), n_pressure=2, draft=True)
+    return acfg, build_atlas(coarse_model, CFG, acfg, n_workers=1, processes=False)
+
+
 @pytest.mark.slow
-def test_a_draft_is_its_own_key_and_is_used_where_the_full_atlas_is_missing(coarse_model, tmp_path):
+def test_a_draft_is_its_own_key_and_is_used_where_the_full_atlas_is_missing(coarse_model, draft, tmp_path):
     fwd = ForwardModel(coarse_model, CFG)
     full = model_atlas_config(1, tmp_path)
-    draft = replace(full, n_force=(3, 3, 3), n_pressure=2, draft=True)
+    draft, at = draft
     assert atlas_key(fwd.model, fwd.config, draft) != atlas_key(fwd.model, fwd.config, replace(draft, draft=False))
     assert "draft" not in full.as_dict()  # a full atlas's key is the one it had before the flag
 
@@ -66,7 +75,6 @@ def test_a_draft_is_its_own_key_and_is_used_where_the_full_atlas_is_missing(coar
         load_or_build(coarse_model, CFG, cache_dir=tmp_path, fwd=fwd, max_build_s=0.0)
     assert "--draft" in str(exc.value) and "\n" not in str(exc.value)
 
-    at = build_atlas(coarse_model, CFG, draft, n_workers=1, processes=False, fwd=fwd)
     assert at.draft and at.config.draft
     save_atlas(at, atlas_path(tmp_path, at.key))
     import softphantom.estimation.atlas.build as build_mod
@@ -88,12 +96,10 @@ def test_a_draft_is_its_own_key_and_is_used_where_the_full_atlas_is_missing(coar
 
 
 @pytest.mark.slow
-def test_a_draft_checks_against_the_same_equilibria_as_solves_from_rest(coarse_model):
+def test_a_draft_checks_against_the_same_equilibria_as_solves_from_rest(coarse_model, draft):
     from softphantom.estimation.atlas.check import _solve_near
 
-    acfg = AtlasConfig(force_min_N=(-0.5, -0.3, -0.5), force_max_N=(0.5, 1.2, 0.5), p_min_kPa=-1.0, p_max_kPa=4.0,
-                       n_force=(3, 3, 3), n_pressure=2, draft=True)
-    at = build_atlas(coarse_model, CFG, acfg, n_workers=1, processes=False)
+    _, at = draft
     for lam in (np.array([0.31, 0.77, -0.22, 2.1e3]), np.array([-0.4, 1.1, 0.4, -0.5e3])):
         near = _solve_near(ForwardModel(coarse_model, CFG), at, lam, lam)
         rest = ForwardModel(coarse_model, CFG).solve(lam)

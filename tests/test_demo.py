@@ -1,6 +1,6 @@
 """`softphantom demo` on the coarse mesh with one short scenario: files, report, summary on screen;
 bad options are one-line errors. `softphantom virtual run`'s files and summary are
-test_cavities_records.py's (its end-to-end run starts with it)."""
+test_cavities_e2e.py's (its end-to-end run starts with it)."""
 
 from __future__ import annotations
 

@@ -1,5 +1,8 @@
 """The reduced-order forward model (softphantom.fem.rom) and the atlas built with it
-(``AtlasConfig.offline = "rom"``, softphantom.estimation.offline), on the coarse models."""
+(``AtlasConfig.offline = "rom"``, softphantom.estimation.offline), on the coarse models. The
+reduced atlas against the full one at off-grid loads, on the force and the displacement axis (its
+key, provenance, checks and bounds), is ``benchmarks/bench_interpolants.py``'s (``make bench-quick``
+runs its ``--quick`` checks)."""
 
 from __future__ import annotations
 
@@ -8,7 +11,6 @@ import pytest
 
 from softphantom.estimation import AtlasConfig, EstimatorConfig, ForwardModel
 from softphantom.fem.rom import ElementSet, ReducedModel, ecsw_weights, pod_basis
-from shared_models import atlas_config, cached_atlas
 
 CFG = EstimatorConfig(contact="on-centre")
 
@@ -123,58 +125,6 @@ def test_nnls_stopped_at_its_tolerance_agrees_with_scipy_and_stops_early():
     per_group = [np.linalg.norm((A @ x - b)[groups == g]) / np.linalg.norm(b[groups == g]) for g in range(3)]
     assert err <= 1e-3 and max(per_group) == pytest.approx(err) and (x >= 0).all()
     assert (x > 0).sum() < (nnls(A, b, maxiter=4000)[0] > 0).sum()
-
-
-@pytest.fixture(scope="module")
-def snapshot_cache(tmp_path_factory) -> str:
-    return str(tmp_path_factory.mktemp("rom") / "snapshots")
-
-
-def test_atlas_built_by_the_reduced_model_agrees_with_the_full_one(coarse_model, shared_dir, monkeypatch,
-                                                                   tmp_path, snapshot_cache, x_control="force"):
-    """A small atlas, full and reduced: another key, the reduced one's provenance carries its
-    checks, and the two polynomials agree at off-grid loads within twice the error the checks
-    measured (so the recorded figure can be trusted) and within 1 % of the volumes' range
-    (measured on this model, either axis: 0.0099 mm³ off-grid, checks 0.011 mm³, range 5.8 mm³).
-    The full atlas is test_atlas's (shared_models.cached_atlas). The same on a displacement axis is
-    ``benchmarks/bench_interpolants.py``'s (``make bench`` runs its ``--quick`` checks)."""
-    from dataclasses import replace
-
-    from softphantom.estimation import build_atlas
-    from softphantom.estimation import offline
-
-    monkeypatch.setattr(offline, "N_LHS", 4)
-    monkeypatch.setattr(offline, "STEP_FX_N", ())
-    monkeypatch.setattr(offline, "N_CHAINS", 2)
-    monkeypatch.setattr(offline, "N_CHECK", 4)
-    monkeypatch.setattr(offline, "SNAPSHOT_CACHE", snapshot_cache)
-    base = atlas_config(x_control)
-    full = cached_atlas(shared_dir, x_control)
-    assert full.config.as_dict() == base.as_dict()
-    kw = dict(n_workers=1, processes=False)
-    red = build_atlas(coarse_model, CFG, replace(base, offline="rom"), **kw)
-    assert red.key != full.key
-    assert red.solved.all()
-    off = red.provenance["offline"]
-    assert off["checks"] == 4 and off["snapshots"] == 20 and off["check_max_dV_mm3"] >= 0
-    # the checks' error survives the file and is what `atlas info` says
-    from softphantom.estimation.atlas.store import describe, load_atlas, save_atlas
-
-    back = load_atlas(save_atlas(red, tmp_path / "rom.npz"), red.key)
-    assert f"volumes within {off['check_max_dV_mm3']:.3f} mm³" in dict(describe(back))["offline"]
-    rng = np.random.default_rng(5)
-    lo, hi = base.lower, base.upper
-    worst = 0.0
-    for _ in range(20):
-        lam = lo + (hi - lo) * rng.uniform(0.05, 0.95, 4)
-        if not red.solved_at(red.coords(lam[:3], lam[3])):
-            continue
-        worst = max(worst, float(np.max(np.abs(red.volumes(red.coords(lam[:3], lam[3]))[0]
-                                                - full.volumes(full.coords(lam[:3], lam[3]))[0]))))
-    vol_range = float(np.ptp([full.volumes(lo + (hi - lo) * u)[0] for u in rng.uniform(size=(10, 4))]))
-    print(f"offline rom, {x_control} axis: checks {off['check_max_dV_mm3']:.4f} mm3, off-grid {worst * 1e9:.4f} mm3 "
-          f"of a {vol_range * 1e9:.2f} mm3 range, {red.solved.mean():.0%} of the grid solved")
-    assert worst <= 2 * off["check_max_dV_mm3"] * 1e-9 and worst <= 0.01 * vol_range, (worst, vol_range)
 
 
 def test_atlas_build_refuses_an_unknown_offline_stage_in_one_line(coarse_model_dir, capsys):
