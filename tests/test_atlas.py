@@ -478,7 +478,7 @@ def test_unreachable_grid_points_are_filled_and_flagged(coarse_model, fwd, monke
             x = fwd.fem.x_rest + B @ lam
             return SimpleNamespace(V=A @ lam, x=x, sub_x=(fwd.probe @ x.reshape(-1, 3)), lam=lam)
 
-    monkeypatch.setattr("softphantom.estimation.atlas.build.ForwardModel", Linear)
+    monkeypatch.setattr("softphantom.estimation.atlas.solves.ForwardModel", Linear)  # where a build task makes its forward model
     caplog.set_level(logging.INFO, logger="softphantom")
     at = build_atlas(coarse_model, CFG, ACFG, n_workers=1, processes=False, fwd=fwd)
     lines = [s for s in messages(caplog) if "parallel efficiency" not in s]  # the build's summary aside
@@ -555,7 +555,7 @@ def test_an_atlas_in_pieces_along_f_y_follows_a_kink_one_polynomial_cannot(coars
     pieces = dataclasses.replace(cfg4, f_y_splits_N=(split,))
     assert [c.force_max_N[1] for c in pieces.patches()] == [split, ACFG.force_max_N[1]]
     assert pieces.n_solves == 2 * cfg4.n_solves and "f_y_splits_N" not in cfg4.as_dict()  # old keys kept
-    monkeypatch.setattr("softphantom.estimation.atlas.build.ForwardModel", Kinked)
+    monkeypatch.setattr("softphantom.estimation.atlas.solves.ForwardModel", Kinked)  # where a build task makes its forward model
     kw = dict(n_workers=1, processes=False, fwd=fwd)
     one = build_atlas(coarse_model, CFG, cfg4, **kw)
     at = build_atlas(coarse_model, CFG, pieces, **kw)
