@@ -467,3 +467,22 @@ def test_the_atlas_at_rest_is_checked_and_an_off_one_is_flagged(coarse_model, sh
     meta = _meta(out)
     assert meta["rest_check"]["ok"] is False and meta["rest_check"]["pos_mm"] == pytest.approx(rc["pos_mm"])
     assert any(w.startswith("the atlas at rest") for w in read_estimate(out).meta["warnings"])
+
+
+def test_a_dropped_client_is_a_debug_line_on_the_receiving_and_the_sending_side():
+    """The SDK logs a client that drops as an error on whichever side noticed it: a reset seen while
+    sending (a message was on its way) is as routine as one seen while receiving; another send
+    error stays an error."""
+    import logging
+
+    from softphantom.stream.foxglove import _QuietDisconnects
+
+    def level(msg):
+        r = logging.LogRecord("foxglove.websocket.connected_client.poller", logging.ERROR, "x.rs", 1, msg, None, None)
+        _QuietDisconnects().filter(r)
+        return r.levelno
+
+    assert level("Error receiving from client 127.0.0.1:1: Connection reset") == logging.DEBUG
+    assert level("Error sending message to client 127.0.0.1:1: IO error: Connection reset by peer (os error 104)") == logging.DEBUG
+    assert level("Error sending message to client 127.0.0.1:1: IO error: Broken pipe (os error 32)") == logging.DEBUG
+    assert level("Error sending message to client 127.0.0.1:1: message too large") == logging.ERROR

@@ -337,10 +337,15 @@ HANDSHAKE_TIMEOUT_S = 10.0
 
 class _QuietDisconnects(logging.Filter):
     """The SDK logs a client that drops without the closing handshake (a closed tab, a reset
-    connection) as an error: it is routine, so it goes to the debug level."""
+    connection) as an error, on its receiving side or, when a message was on its way, its sending
+    side: it is routine, so it goes to the debug level."""
+
+    DROPPED = ("Connection reset by peer", "Broken pipe")
 
     def filter(self, record: logging.LogRecord) -> bool:
-        if record.levelno > logging.DEBUG and str(record.msg).startswith("Error receiving from client"):
+        msg = str(record.msg)
+        if record.levelno > logging.DEBUG and (msg.startswith("Error receiving from client") or (
+                msg.startswith("Error sending message to client") and any(d in msg for d in self.DROPPED))):
             record.levelno, record.levelname = logging.DEBUG, "DEBUG"
             return logging.getLogger(record.name).isEnabledFor(logging.DEBUG)
         return True
