@@ -168,28 +168,37 @@ def start_load(n: int = 2):
 
 def stop_load(procs) -> None:
     for p in procs:
-        if isinstance(p, threading.Thread):
-            p.stop.set()
-            p.join()
-            continue
         p.kill()
         p.wait()
 
 
-def start_thread_load(busy_ms: float = 2.0, period_ms: float = 10.0):
-    """A Python thread in this process busy ``busy_ms`` of every ``period_ms`` (as a Dask client's event
-    loop, a progress display or a Foxglove server beside the stream): it contends for the GIL."""
-    stop = threading.Event()
+class _BusyThread(threading.Thread):
+    """A Python thread in this process busy ``busy_ms`` of every ``period_ms`` (as a Dask client's
+    event loop, a progress display or a Foxglove server beside the stream): it contends for the GIL.
+    Stopped as a load process is (``kill``, ``wait``)."""
 
-    def run():
-        while not stop.is_set():
+    def __init__(self, busy_ms: float, period_ms: float) -> None:
+        super().__init__(daemon=True)
+        self.busy_s, self.period_s = busy_ms * 1e-3, period_ms * 1e-3
+        self._stop_event = threading.Event()
+
+    def run(self) -> None:
+        while not self._stop_event.is_set():
             t = time.perf_counter()
-            while time.perf_counter() - t < busy_ms * 1e-3:
+            while time.perf_counter() - t < self.busy_s:
                 sum(range(100))
-            time.sleep(period_ms * 1e-3)
+            time.sleep(self.period_s)
 
-    th = threading.Thread(target=run, daemon=True)
-    th.stop = stop
+    def kill(self) -> None:
+        self._stop_event.set()
+
+    def wait(self) -> None:
+        self.join()
+
+
+def start_thread_load(busy_ms: float = 2.0, period_ms: float = 10.0):
+    """One :class:`_BusyThread`, started."""
+    th = _BusyThread(busy_ms, period_ms)
     th.start()
     return [th]
 
