@@ -162,3 +162,47 @@ def test_the_eta_is_exact_once_every_kind_has_a_finished_task_when_tasks_take_th
     for t, left in log:
         checks.append(abs(left - (end - t)) / (end - t))
     assert max(checks) < 1e-6, max(checks)
+
+
+@pytest.mark.slow
+def test_with_draft_a_missing_atlas_is_built_as_the_draft_and_a_shipped_draft_is_found(coarse_model, draft, tmp_path,
+                                                                                        monkeypatch):
+    """``--draft`` (demo, estimate): no full atlas anywhere → the draft is built, its error measured
+    once and kept in its file; a draft the package ships stands in for a missing full atlas too."""
+    import contextlib
+
+    import softphantom.estimation.atlas.build as build_mod
+    import softphantom.estimation.atlas.catalogue as cat
+    import softphantom.estimation.atlas.check as check_mod
+    import softphantom.estimation.atlas.config as config_mod
+    import softphantom.parallel as parallel_mod
+    from softphantom.estimation.atlas.catalogue import find_or_build
+
+    acfg, at = draft
+    fwd = ForwardModel(coarse_model, CFG)
+    monkeypatch.setattr(config_mod, "draft_atlas_config", lambda order=1: acfg)
+    built, measured = [], []
+    monkeypatch.setattr(build_mod, "build_atlas", lambda *a, **k: built.append(k["keys"]) or [at])
+    monkeypatch.setattr(parallel_mod, "dask_client", lambda *a, **k: contextlib.nullcontext(None))
+    held = {"loads": 12, "worst": {"force_N": 0.01, "pos_mm": 0.02, "ang_deg": 0.05}}
+    monkeypatch.setattr(check_mod, "check_draft", lambda *a, **k: measured.append(1) or held)
+
+    with pytest.raises(AtlasMissing) as exc:  # without --draft: refused, naming --draft here
+        find_or_build(coarse_model, CFG, model_dir=tmp_path, fwd=fwd, max_build_s=0.0)
+    assert "give --draft here" in str(exc.value) and not built
+    with pytest.raises(DraftRefused):
+        find_or_build(coarse_model, CFG, model_dir=tmp_path, fwd=fwd, max_build_s=0.0, draft=True, require_full=True)
+
+    got = find_or_build(coarse_model, CFG, model_dir=tmp_path, fwd=fwd, max_build_s=0.0, draft=True)
+    assert built == [(at.key,)] and measured == [1]
+    assert got.atlas.draft and got.keys == (at.key,) and got.atlas.provenance["held_out"] == held
+    again = find_or_build(coarse_model, CFG, model_dir=tmp_path, fwd=fwd, max_build_s=0.0, draft=True)
+    assert [p.origin for p in again.pieces] == ["model"] and measured == [1]  # its error kept, not measured again
+
+    shipped = atlas_path(tmp_path, at.key)
+    monkeypatch.setattr(cat, "shipped_atlas", lambda key: shipped if key == at.key else None)
+    other = tmp_path / "other"
+    got = find_or_build(coarse_model, CFG, model_dir=other, fwd=fwd, max_build_s=0.0)
+    assert [p.origin for p in got.pieces] == ["shipped"] and got.atlas.draft and len(built) == 1
+    with pytest.raises(DraftRefused):
+        find_or_build(coarse_model, CFG, model_dir=other, fwd=fwd, max_build_s=0.0, require_full=True)

@@ -24,11 +24,13 @@ from softphantom.cli import main
 from softphantom.design import load_model
 from softphantom.estimation import EstimatorConfig
 from softphantom.estimation.atlas import atlas_key
-from softphantom.estimation.atlas.config import default_atlas_config
+from softphantom.estimation.atlas.config import default_atlas_config, draft_atlas_config
 d = resources.files("softphantom") / "data" / "models" / "bip_p2"
 model = load_model(d)
-keys = {c: [atlas_key(model, EstimatorConfig(contact=c), p)[:32] for p in default_atlas_config(2).patches()]
-        for c in ("on-centre", "off-centre")}
+keys = {(c, draft): [atlas_key(model, EstimatorConfig(contact=c), p)[:32]
+                     for p in (draft_atlas_config(2) if draft else default_atlas_config(2)).patches()]
+        for c in ("on-centre", "off-centre") for draft in (False, True)}
+keys = {f"{c} draft" if draft else c: v for (c, draft), v in keys.items()}
 print(json.dumps(keys))
 sys.exit(main(["atlas", "verify", "--model", str(d)]))
 """
@@ -47,19 +49,20 @@ def test_the_shipped_atlas_keys_and_checks_hold_on_every_cpu_variant(env):
     import subprocess
     import sys
 
-    from softphantom.estimation.atlas.config import default_atlas_config
+    from softphantom.estimation.atlas.config import default_atlas_config, draft_atlas_config
 
     d, manifest = _manifest()
     r = subprocess.run([sys.executable, "-c", _KEYS_AND_VERIFY], capture_output=True, text=True, timeout=300,
                        env={**os.environ, **env})
     assert r.returncode == 0, r.stdout + r.stderr
     keys = json.loads(r.stdout.splitlines()[0])
-    pieces = default_atlas_config(2).patches()
     for p in manifest["pieces"]:
+        which = p["contact"] + " draft" * p.get("draft", False)  # a draft (atlas build --draft): one piece
+        pieces = (draft_atlas_config(2) if p.get("draft") else default_atlas_config(2)).patches()
         i = [[c.force_min_N[1], c.force_max_N[1]] for c in pieces].index(p["f_y_N"])
-        key = keys[p["contact"]][i]
-        assert key == p["key"], (f"the shipped atlas piece {p['contact']} f_y {p['f_y_N']} N is stale (key {p['key']}, "
-                                 f"this code gives {key}): rebuild it with `{manifest['builds'][p['contact']]}` and "
+        key = keys[which][i]
+        assert key == p["key"], (f"the shipped atlas piece {which} f_y {p['f_y_N']} N is stale (key {p['key']}, "
+                                 f"this code gives {key}): rebuild it with `{manifest['builds'][which]}` and "
                                  f"update atlas.json")
         assert f"ok  {d / 'atlas' / (p['key'] + '.npz')}" in r.stdout, r.stdout
 

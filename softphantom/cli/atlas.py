@@ -32,10 +32,6 @@ def _contact(at: str, model) -> str:
     return check_contact(at, list(model.p_ext), "--at")
 
 
-def _pieces(at) -> tuple:
-    return getattr(at, "all_pieces", None) or getattr(at, "patches", (at,))
-
-
 def _print_rows(rows) -> None:
     for label, value in rows:
         console.print(f"  {label:9s} {value}", highlight=False, soft_wrap=True)
@@ -95,28 +91,19 @@ def build_cmd(
     found = find_or_build(model, cfg, acfg, model_dir=model_dir, scheduler=scheduler, n_workers=workers,
                           rebuild=rebuild, discard_partial=discard_partial)
     if draft:
-        _measure_draft(model, cfg, found.atlas, model_dir, scheduler, workers)
+        _measure_draft(model, cfg, found, model_dir, scheduler, workers)
     for piece in found.pieces:
         console.print(piece.describe(), highlight=False, soft_wrap=True)
 
 
-def _measure_draft(model, cfg, built, model_dir: Path, scheduler, workers) -> None:
+def _measure_draft(model, cfg, found, model_dir: Path, scheduler, workers) -> None:
     """A draft's held-out error: measured once (kept in each piece's file), printed every time."""
-    from dataclasses import replace
-
-    from softphantom.estimation.atlas.check import check_draft, draft_error_text
-    from softphantom.estimation.atlas.store import atlas_path, save_atlas
-    from softphantom.parallel import dask_client
+    from softphantom.estimation.atlas.catalogue import measure_draft
+    from softphantom.estimation.atlas.check import draft_error_text
     from softphantom.progress import status
 
-    pieces = _pieces(built)
-    held = (pieces[0].provenance or {}).get("held_out")
-    if held is None:
-        with dask_client(scheduler, workers) as client, status("draft atlas: held-out full solves", console):
-            held = check_draft(model, cfg, built, client=client)
-        for piece in pieces:
-            save_atlas(replace(piece, provenance={**(piece.provenance or {}), "held_out": held}),
-                       atlas_path(model_dir, piece.key))
+    with status("draft atlas: held-out full solves", console):
+        held = measure_draft(model, cfg, found, model_dir, scheduler, workers)
     console.print(f"draft atlas: {draft_error_text(held)}", highlight=False, soft_wrap=True)
 
 

@@ -9,7 +9,7 @@ from pathlib import Path
 import typer
 
 from softphantom.cli.app import app, console
-from softphantom.cli.options import (AtlasGrid, Estimator, Force, MeshSizeMm, ModelDir, Osr, Out, Overwrite, Scheduler,
+from softphantom.cli.options import (AtlasGrid, DraftAtlas, Estimator, Force, MeshSizeMm, ModelDir, Osr, Out, Overwrite, Scheduler,
                                      Seed, TruthMeshScale, TruthOrder, Workers, check_output, check_workers,
                                      staged_output)
 from softphantom.errors import UserError
@@ -115,6 +115,7 @@ def demo_cmd(
     atlas_grid: AtlasGrid = None,
     scheduler: Scheduler = None,
     workers: Workers = None,
+    draft: DraftAtlas = False,
 ) -> None:
     """The paper's experiments end to end without hardware: reports and a summary in the directory
     --out. --model: an estimator model (e.g. from softphantom calibrate) instead of the default
@@ -169,7 +170,7 @@ def demo_cmd(
                       f"{model.design.mesh.size_mm:g} mm) → {out / 'model'}", highlight=False, soft_wrap=True)
         atlases = None
         if estimator == "atlas" and grid is None:  # the model's own, found (or refused) before the long work
-            atlases = model_atlases(scs, model, model_dir or work / "model", scheduler)
+            atlases = model_atlases(scs, model, model_dir or work / "model", scheduler, draft=draft)
         with status("mesh (truth model, finer)", console):
             tm = truth_model(model, cfg.truth)
         console.print(f"truth model: {len(tm.nodes)} nodes, {len(tm.tets)} tets, P{tm.element_order} (mesh "

@@ -7,10 +7,10 @@ import time
 import typer
 
 from softphantom.cli.app import app, console
-from softphantom.cli.options import (At, AtlasFYSplitN, AtlasGrid, AtlasXAxis, DurationS, Envelope, Estimator,
-                                     LagCompensation, MaxForceN, ModelDir, OnNewBoard, Out, Overwrite, P0KPa, Scheduler,
-                                     Source, TareS, TubeIdMm, TubeLengthM, check_choice, check_output, check_positive,
-                                     staged_output, stopped)
+from softphantom.cli.options import (At, AtlasFYSplitN, AtlasGrid, AtlasXAxis, DraftAtlas, DurationS, Envelope,
+                                     Estimator, LagCompensation, MaxForceN, ModelDir, OnNewBoard, Out, Overwrite,
+                                     P0KPa, Scheduler, Source, TareS, TubeIdMm, TubeLengthM, check_choice,
+                                     check_output, check_positive, staged_output, stopped)
 from softphantom.errors import UserError
 from softphantom.estimation.session import source_contact  # noqa: F401  (cli/live.py imports it from here)
 
@@ -129,6 +129,7 @@ def estimate_cmd(
     on_new_board: OnNewBoard = "stop",
     lag_compensation: LagCompensation = None,
     duration_s: DurationS = None,
+    draft: DraftAtlas = False,
     require_full: bool = typer.Option(False, "--require-full", help="Atlas: refuse a draft atlas (atlas build "
                                       "--draft), which is used where the model has no full one."),
     overwrite: Overwrite = False,
@@ -169,7 +170,7 @@ def estimate_cmd(
     if session.lag_warning:
         console.print(session.lag_warning, style="yellow", highlight=False, soft_wrap=True)
     session.open_estimator(estimator, max_force_N=max_force_N, qp_solver=qp_solver, mode=mode, scheduler=scheduler,
-                           atlas=acfg, require_full=require_full)
+                           atlas=acfg, require_full=require_full, draft=draft)
     # a live source's estimates cannot be made again: written in place and kept on Ctrl-C (closed
     # cleanly); from a file, the CSV appears only when complete
     if session.live:

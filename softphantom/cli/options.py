@@ -152,6 +152,10 @@ AtlasFYSplitN = Annotated[Optional[str], typer.Option(
 Envelope = Annotated[Optional[str], typer.Option(
     "--envelope", help="Atlas: load envelope FXMIN:FXMAX,FYMIN:FYMAX,FZMIN:FZMAX,PMIN:PMAX in N and kPa "
     "(default -2:2,-1:5.2,-2:2,-2:40); outside it an estimate is clamped and flagged (in_envelope 0).")]
+DraftAtlas = Annotated[bool, typer.Option(
+    "--draft", help="Where the model has no full atlas for a contact and none is shipped: build its draft atlas "
+    "(atlas build --draft: a coarse grid, its held-out error measured and printed) and use it, instead of "
+    "refusing a build that takes hours.")]
 Scenario = Annotated[str, typer.Option(
     "--scenario", help="Scenario TOML file, or a bundled one: needle-insertion, push-on-centre, "
     "push-off-centre, urethra-inflation.")]
@@ -194,6 +198,7 @@ NatnetVersion = Annotated[Optional[str], typer.Option(
 
 FLAGS_OF_SEVERAL_MEANINGS = {
     "--config": "design: a design file; sweep: a sweep file",
+    "--draft": "atlas build: build the draft atlas; demo and estimate: build and use it where no full atlas exists",
     "--max-force-N": "estimate and live: the estimate's bound; atlas check: a goal on its error",
     "--natnet": "track: the server's address; virtual serve: serve one",
     "--rest-window-s": "evaluate: START,END on the tracker clock; track: a length at the start",

@@ -25,12 +25,14 @@ def check_estimator_kind(kind: str) -> str:
 
 def open_estimator(kind: str, model, config: EstimatorConfig | None = None, *, cache_dir=None, atlas=None,
                    scheduler: str | None = None, n_workers: int | None = None,
-                   max_build_s: float | None = None, require_full: bool = False) -> StateEstimator:
+                   max_build_s: float | None = None, require_full: bool = False,
+                   draft: bool = False) -> StateEstimator:
     """The estimator ``kind`` for ``model``: ``"atlas"`` (precomputed, loaded from or built into
     ``cache_dir``, the model directory; ``atlas`` an :class:`~softphantom.estimation.atlas.config.AtlasConfig`
     or a built atlas; a missing atlas whose build would take longer than ``max_build_s`` is refused,
     :class:`~softphantom.estimation.atlas.build.AtlasMissing`; a draft atlas is used where there is no
-    full one, unless ``require_full``) or ``"refresh"``
+    full one, unless ``require_full``; ``draft``: where there is neither, the draft is built, its
+    error measured) or ``"refresh"``
     (:class:`~softphantom.estimation.Estimator`, its mode from ``config``)."""
     check_estimator_kind(kind)
     if kind == "refresh":
@@ -40,7 +42,7 @@ def open_estimator(kind: str, model, config: EstimatorConfig | None = None, *, c
     from softphantom.estimation.atlas.estimator import AtlasEstimator
 
     return AtlasEstimator(model, config, atlas, cache_dir=cache_dir, scheduler=scheduler, n_workers=n_workers,
-                          max_build_s=max_build_s, require_full=require_full)
+                          max_build_s=max_build_s, require_full=require_full, draft=draft)
 
 
 def atlas_config_from_options(grid: str | None = None, envelope: str | None = None, x_axis: str | None = None,

@@ -113,11 +113,13 @@ class EstimateSession:
         return cls(model_dir, model, opened, source, contact, contact_from, lag, lag_meta, warning)
 
     def open_estimator(self, kind: str, *, max_force_N: float, qp_solver: str, mode: str = "auto",
-                       scheduler: str | None = None, atlas=None, require_full: bool = False) -> None:
+                       scheduler: str | None = None, atlas=None, require_full: bool = False,
+                       draft: bool = False) -> None:
         """Open the estimator ``kind`` at the session's contact point, its forces bounded by
         ``max_force_N``, ``mode`` ``auto`` (async on a board, sync otherwise), ``sync`` or ``async``
         (the refresh estimator); an atlas missing from the model directory is built here unless it
-        would take longer than :data:`~softphantom.estimation.atlas.build.MAX_BUILD_ON_THE_FLY_S`.
+        would take longer than :data:`~softphantom.estimation.atlas.build.MAX_BUILD_ON_THE_FLY_S`
+        (with ``draft``, the model's draft atlas is built instead, whatever it takes).
         The source is closed when it cannot be opened."""
         from softphantom.estimation.atlas.build import MAX_BUILD_ON_THE_FLY_S
         from softphantom.estimation.config import EstimatorConfig
@@ -130,7 +132,8 @@ class EstimateSession:
         t0 = time.monotonic()
         try:  # the contact point may come from the recording: the source is open first
             est = open_estimator(kind, self.model, self.config, cache_dir=self.model_dir, scheduler=scheduler,
-                                 atlas=atlas, max_build_s=MAX_BUILD_ON_THE_FLY_S, require_full=require_full)
+                                 atlas=atlas, max_build_s=MAX_BUILD_ON_THE_FLY_S, require_full=require_full,
+                                 draft=draft)
         except BaseException:
             self.opened.source.close()
             raise

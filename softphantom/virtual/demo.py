@@ -357,19 +357,21 @@ def _truth_lane(client, order, model, truth_cfg, truth_mesh, ready: queue.Queue,
             return
 
 
-def model_atlases(scs, model, atlas_dir: Path | None, scheduler: str | None = None) -> dict[str, object]:
+def model_atlases(scs, model, atlas_dir: Path | None, scheduler: str | None = None,
+                  draft: bool = False) -> dict[str, object]:
     """The model's own atlas (:func:`~softphantom.estimation.atlas.config.default_atlas_config`) at
     each contact point the scenarios use ({contact: :class:`~softphantom.estimation.atlas.catalogue.Found`}),
     by the catalogue's order: ``atlas_dir`` (the model directory), the package's shipped files, else
     built there if that takes under ``MAX_BUILD_ON_THE_FLY_S``; else
-    :class:`~softphantom.estimation.atlas.build.AtlasMissing`, one line naming the command."""
+    :class:`~softphantom.estimation.atlas.build.AtlasMissing`, one line naming the command (with
+    ``draft``, the model's draft atlas is built there instead)."""
     from softphantom.estimation.atlas.build import MAX_BUILD_ON_THE_FLY_S
     from softphantom.estimation.atlas.catalogue import find_or_build
 
     found = {}
     for c in dict.fromkeys(contact_of(sc) for sc in scs):
         found[c] = f = find_or_build(model, EstimatorConfig(contact=c, mode="sync"), None, model_dir=atlas_dir,
-                                     scheduler=scheduler, max_build_s=MAX_BUILD_ON_THE_FLY_S)
+                                     scheduler=scheduler, max_build_s=MAX_BUILD_ON_THE_FLY_S, draft=draft)
         log.info(f"{c}: {f.describe()}")
     return found
 

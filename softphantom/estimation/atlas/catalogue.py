@@ -150,7 +150,7 @@ def resolve_config(model, acfg: AtlasConfig | None, model_dir=None) -> AtlasConf
 def find_or_build(model, config: EstimatorConfig | None = None, acfg: AtlasConfig | None = None, *,
                   model_dir=None, scheduler: str | None = None, n_workers: int | None = None, fwd=None,
                   rebuild: bool = False, discard_partial: bool = False,
-                  max_build_s: float | None = None, require_full: bool = False) -> Found:
+                  max_build_s: float | None = None, require_full: bool = False, draft: bool = False) -> Found:
     """The atlas ``acfg`` of ``model`` at ``config``'s contact, piece by piece in the catalogue's
     order: ``model_dir``'s own file, the shipped one, else built and saved in ``model_dir``
     (:func:`~softphantom.estimation.atlas.build.build_atlas`; resumable, its finished tasks kept in
@@ -164,9 +164,11 @@ def find_or_build(model, config: EstimatorConfig | None = None, acfg: AtlasConfi
     ``discard_partial``.
 
     Where the model's default atlas is missing but its draft (``atlas build --draft``,
-    :func:`~softphantom.estimation.atlas.config.draft_atlas_config`) is in ``model_dir``, the draft
-    is used (a warning says so) unless ``require_full``, which refuses a draft in one line
-    (:class:`~softphantom.estimation.atlas.build.DraftRefused`)."""
+    :func:`~softphantom.estimation.atlas.config.draft_atlas_config`) is in ``model_dir`` or ships
+    with the package, the draft is used (a warning says so) unless ``require_full``, which refuses a
+    draft in one line (:class:`~softphantom.estimation.atlas.build.DraftRefused`). With ``draft``,
+    a missing draft is built then (whatever it costs: the user asked for it) and its held-out
+    error measured (:func:`measure_draft`)."""
     from softphantom.estimation.atlas import build as B
     from softphantom.estimation.atlas.tasks import check_partials, discard_tasks
 
@@ -207,16 +209,23 @@ def find_or_build(model, config: EstimatorConfig | None = None, acfg: AtlasConfi
         raise B.DraftRefused(f"{model_dir or 'the model'}: --require-full, but the atlas asked for is a draft; build "
                              f"the full one with `softphantom atlas build --model {model_dir}{at}`")
     missing = tuple(p for p in range(len(subs)) if p not in found)
-    if missing and model_dir is not None and not acfg.draft and not rebuild and acfg == resolve_config(model, None, model_dir):
-        draft = resolve_config(model, model_atlas_config(order, model_dir, draft=True), model_dir)
-        if all(atlas_path(model_dir, k).is_file() for k in piece_keys(model, cfg, draft)):
-            if require_full:
-                raise B.DraftRefused(f"{model_dir}: --require-full, but this model and contact have only a draft atlas "
-                                     f"(atlas build --draft); build the full one with `softphantom atlas build "
-                                     f"--model {model_dir}{at}`")
-            log.warning(f"atlas: using the draft atlas of {model_dir} (no full atlas for this model and contact yet: "
+    if missing and not acfg.draft and not rebuild and acfg == resolve_config(model, None, model_dir):
+        dcfg = resolve_config(model, model_atlas_config(order, model_dir, draft=True), model_dir)
+        have = all((model_dir is not None and atlas_path(model_dir, k).is_file()) or shipped_atlas(k) is not None
+                   for k in piece_keys(model, cfg, dcfg))
+        if (have or draft) and require_full:
+            raise B.DraftRefused(f"{model_dir or 'the model'}: --require-full, but this model and contact have only a "
+                                 f"draft atlas (atlas build --draft); build the full one with `softphantom atlas "
+                                 f"build --model {model_dir}{at}`")
+        if have or (draft and model_dir is not None):
+            log.warning(f"atlas: using a draft atlas at {c} (no full atlas for this model and contact yet: "
                         f"`softphantom atlas build --model {model_dir}{at}` builds it)")
-            return find_or_build(model, cfg, draft, model_dir=model_dir, fwd=fwd)
+            got = find_or_build(model, cfg, dcfg, model_dir=model_dir, fwd=fwd, scheduler=scheduler,
+                                n_workers=n_workers)
+            if draft and (_pieces(got.atlas)[0].provenance or {}).get("held_out") is None:
+                measure_draft(model, cfg, got, model_dir, scheduler, n_workers)
+                got = find_or_build(model, cfg, dcfg, model_dir=model_dir, fwd=fwd)  # as saved, its error with it
+            return got
     if missing:
         if max_build_s is not None:
             nodes = len(_mesh_nodes(model))
@@ -234,7 +243,8 @@ def find_or_build(model, config: EstimatorConfig | None = None, acfg: AtlasConfi
                     f"{B.duration_text(wall)} on {w} cores ({n} grid points, ≈ {cpu:.0f} CPU-s), a draft "
                     f"(--draft: {B.draft_points(order)} points, its error measured) about "
                     f"{B.duration_text(d.wall_s)}: build it once with `softphantom atlas build --model {model_dir}{at}` "
-                    f"[--draft] (resumable; --scheduler ADDR for a Dask cluster); or a small atlas over your own "
+                    f"[--draft] (resumable; --scheduler ADDR for a Dask cluster), or give --draft here (demo, "
+                    f"estimate); or a small atlas over your own "
                     f"loads, --atlas-grid 3,3,3,2 --envelope FXMIN:FXMAX,FYMIN:FYMAX,FZMIN:FZMAX,PMIN:PMAX (N, kPa; "
                     f"about {B.duration_text(small_wall)}; docs/organs.md); or estimate meanwhile with "
                     f"--estimator refresh")
@@ -255,6 +265,30 @@ def find_or_build(model, config: EstimatorConfig | None = None, acfg: AtlasConfi
             found[p] = at
             pieces[p] = Piece(at.key, path, "built")
     return Found(regroup(acfg, found), tuple(pieces[p] for p in range(len(subs))))
+
+
+def measure_draft(model, config: EstimatorConfig, found: Found, model_dir, scheduler: str | None = None,
+                  n_workers: int | None = None) -> dict:
+    """A draft atlas's held-out error (:func:`~softphantom.estimation.atlas.check.check_draft`):
+    measured once on Dask and kept in each of its files in ``model_dir`` (``provenance["held_out"]``),
+    read from there after; returned."""
+    from softphantom.estimation.atlas.check import check_draft
+    from softphantom.parallel import dask_client
+
+    pieces = _pieces(found.atlas)
+    held = (pieces[0].provenance or {}).get("held_out")
+    if held is None:
+        log.info("draft atlas: its held-out error (full solves)")
+        with dask_client(scheduler, n_workers) as client:
+            held = check_draft(model, config, found.atlas, client=client)
+        for piece in pieces:
+            save_atlas(replace(piece, provenance={**(piece.provenance or {}), "held_out": held}),
+                       atlas_path(model_dir, piece.key))
+    return held
+
+
+def _pieces(atlas) -> tuple[Atlas, ...]:
+    return tuple(getattr(atlas, "all_pieces", None) or getattr(atlas, "patches", None) or (atlas,))
 
 
 def load_or_build(model, config: EstimatorConfig | None = None, atlas: AtlasConfig | None = None, *,

@@ -58,7 +58,7 @@ class AtlasEstimator(EstimatorState):
     def __init__(self, model, config: EstimatorConfig | None = None,
                  atlas: Found | Atlas | AtlasPatches | AtlasStack | AtlasConfig | None = None,
                  *, cache_dir=None, scheduler: str | None = None, n_workers: int | None = None,
-                 max_build_s: float | None = None, require_full: bool = False) -> None:
+                 max_build_s: float | None = None, require_full: bool = False, draft: bool = False) -> None:
         self.config = cfg = config or EstimatorConfig()
         self.model = model
         self.cavity = check_atlas_cavities(model)
@@ -69,7 +69,7 @@ class AtlasEstimator(EstimatorState):
         self.cavities = self.layout.actuated  # p_1 (the atlas's pressure axis), then a stack's further ones
         if not isinstance(atlas, (Found, Atlas, AtlasPatches, AtlasStack)):
             atlas = find_or_build(model, cfg, atlas, model_dir=cache_dir, scheduler=scheduler, n_workers=n_workers,
-                                  fwd=fwd, max_build_s=max_build_s, require_full=require_full)
+                                  fwd=fwd, max_build_s=max_build_s, require_full=require_full, draft=draft)
         found = atlas if isinstance(atlas, Found) else None
         atlas = found.atlas if found is not None else atlas
         if require_full and atlas.draft:
