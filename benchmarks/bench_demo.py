@@ -1,7 +1,7 @@
 """The demo (`make demo`): its wall time and its RMSE against the virtual truth, per scenario.
 
 Runs ``softphantom demo --out DIR --overwrite`` (the default: the shipped quadratic model and its
-shipped atlas, the three on-centre scenarios, a finer P2 truth) and writes the table of
+shipped atlases, the paper's four scenarios, a finer P2 truth) and writes the table of
 ``DIR/summary.json`` to ``benchmarks/results/demo.md``; ``--summary DIR`` only reads a demo
 already run there. ``--busy`` keeps one core busy with a spinning process while it runs (the
 user's machine is never idle). Then the same for each example organ of ``examples/organs/``
@@ -51,7 +51,7 @@ def table(summary: dict) -> str:
         dof = [f"{r['rmse'][k]:.2f} ({r['peak_truth'][k]:.1f})" for k in ("x", "y", "z", "yaw", "pitch", "roll")]
         t = r["target_rmse_mm"].values()
         a = r.get("atlas") or {}
-        inside = f"{a['in_envelope_fraction'] * 100:.0f} %" if a else "–"
+        inside = (f"{a['in_envelope_fraction'] * 100:.0f} %" + (" (draft atlas)" if a.get("draft") else "")) if a else "–"
         f_rmse, f_peak = r["force_rmse_N"].get("|force|", float("nan")), r.get("force_peak_N", {}).get("|force|")
         rel = f" ({f_rmse / f_peak * 100:.1f} %)" if f_peak else ""
         rows.append([_label(r), *dof, f"{f_rmse:.2f}{rel}",

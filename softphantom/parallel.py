@@ -103,11 +103,9 @@ def dask_client(
         cluster.close()
 
 
-BACKGROUND_NICE = 3
-"""How much lower a background cluster's workers run (``os.nice``): the main process's estimator
-wins a core when it is ready (CFS weight 1024 against 526), while beside other busy processes the
-workers still get about half a core each (at nice 10 they got a tenth, and a loaded demo took 4×
-its idle time)."""
+BACKGROUND_NICE = 10
+"""How much lower a background cluster's workers run (``os.nice``): the kernel then gives a
+real-time loop in the main process the core whenever it is ready."""
 
 
 def _stop_workers(cluster: Any) -> None:

@@ -85,8 +85,9 @@ def _atlas_note(r: dict) -> str:
     if not a:
         return ""
     pieces = f", {a['pieces']} pieces" if a.get("pieces", 1) > 1 else ""
+    draft = ", a draft atlas" if a.get("draft") else ""
     return (f", {a['in_envelope_fraction'] * 100:.0f} % of estimates inside its atlas "
-            f"({'×'.join(map(str, a['grid']))}{pieces})")
+            f"({'×'.join(map(str, a['grid']))}{pieces}{draft})")
 
 
 @app.command("demo")
@@ -94,8 +95,8 @@ def demo_cmd(
     out: Out = Path("out/demo"),
     mesh_size_mm: MeshSizeMm = None,
     scenarios: list[str] = typer.Option(None, "--scenarios", help="Scenario names or TOML files (repeat; default: the "
-                                        "three bundled on-centre ones, whose atlas ships; push-off-centre needs the "
-                                        "off-centre atlas: `softphantom atlas build --at off-centre`, or --atlas-grid)."),
+                                        "paper's four bundled ones, whose atlases ship: on-centre full, off-centre a "
+                                        "draft until `softphantom atlas build --at off-centre` builds the full one)."),
     seed: Seed = 0,
     osr: Osr = 100,
     truth_mesh_scale: TruthMeshScale = 0.75,

@@ -46,7 +46,7 @@ MARGIN_KPA = 2.0
 PUSH_GRID = (5, 5, 5, 2)
 INFLATE_GRID = (3, 3, 3, 5)
 # the demo's default scenarios: the bundled ones at the contact whose atlas ships (on-centre)
-DEMO_SCENARIOS = ("needle-insertion", "push-on-centre", "urethra-inflation")
+DEMO_SCENARIOS = ("needle-insertion", "push-on-centre", "push-off-centre", "urethra-inflation")
 # a design's generated pushes (design_scenarios): their force (N) and tilt off the surface normal (deg)
 PUSH_N = 2.5
 PUSH_TILT_DEG = 15.0
@@ -314,13 +314,18 @@ def run_scenario(sc, model, out: Path, cfg, truth, estimator: str = "atlas", gri
 
 
 def _atlas_row(atlas, est_path: Path) -> dict:
-    """The summary's atlas entry: its envelope, grid, pieces and the share of estimates inside it."""
+    """The summary's atlas entry: its envelope, grid, pieces and the share of estimates inside it;
+    for a draft atlas, ``draft`` and its held-out error (``held_out``) as its file keeps it."""
     atlas = getattr(atlas, "atlas", atlas)  # the catalogue's Found: its atlas
     c = getattr(atlas, "config", atlas)  # a built atlas (or its pieces), or the config of one to build
     stack = {"further_min_kPa": c.further_min_kPa, "further_max_kPa": c.further_max_kPa,
              "levels": len(c.levels())} if c.stacked else {}
+    draft = {}
+    if getattr(c, "draft", False):
+        first = getattr(atlas, "all_pieces", None) or getattr(atlas, "patches", None) or (atlas,)
+        draft = {"draft": True, "held_out": (getattr(first[0], "provenance", None) or {}).get("held_out")}
     return {"force_min_N": c.force_min_N, "force_max_N": c.force_max_N, "p_min_kPa": c.p_min_kPa,
-            "p_max_kPa": c.p_max_kPa, "grid": c.shape, "pieces": len(c.patches()), **stack,
+            "p_max_kPa": c.p_max_kPa, "grid": c.shape, "pieces": len(c.patches()), **stack, **draft,
             "in_envelope_fraction": in_envelope_fraction(est_path)}
 
 
