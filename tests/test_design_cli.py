@@ -11,6 +11,7 @@ from softphantom.cli import main
 from softphantom.design import load_model
 
 
+@pytest.mark.slow
 def test_design_command_writes_model_report_and_png(tmp_path, capsys):
     out = tmp_path / "d"
     assert main(["design", "--out", str(out), "--mesh-size-mm", "12", "--element-order", "1"]) == 0  # the envelope table
@@ -36,6 +37,7 @@ def test_design_command_writes_model_report_and_png(tmp_path, capsys):
     assert "weakest force direction over the envelope" in capsys.readouterr().out
 
 
+@pytest.mark.slow
 def test_a_quadratic_design_checks_observability_at_rest_by_default(tmp_path):
     """``--observability auto``: the loaded states only for linear tets (a loaded solve of the
     quadratic default costs about 25 CPU-s); ``envelope`` asks for them on any model."""

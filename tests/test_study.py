@@ -60,6 +60,7 @@ def inproc(sweep_file, client, tmp_path_factory):
     return cfg, run.rows
 
 
+@pytest.mark.slow
 def test_invalid_variant_recorded_and_others_go_on(inproc):
     _, rows = inproc
     assert [r["status"] for r in rows] == ["ok", "invalid", "ok", "invalid"]
@@ -135,6 +136,7 @@ def test_range_is_where_a_transducer_reaches_its_rated_pressure(inproc, coarse_m
     assert rows[0]["range_min_N"] > 5 * r["range_min_N"]
 
 
+@pytest.mark.slow
 def test_cli_local_cluster_resumes_from_the_cache(sweep_file, inproc, client, tmp_path, capsys):
     out = tmp_path / "out"
     address = client.scheduler.address
@@ -168,6 +170,7 @@ def test_cli_local_cluster_resumes_from_the_cache(sweep_file, inproc, client, tm
     assert rows_equal(rows, read_parquet(out / "results.parquet"), TIMING_COLUMNS) == []
 
 
+@pytest.mark.slow
 def test_cli_on_a_separately_started_scheduler_and_worker(sweep_file, inproc, tmp_path):
     dask = Path(sys.executable).with_name("dask")
     sched_file = tmp_path / "scheduler.json"
@@ -221,6 +224,7 @@ def test_cli_bad_input_is_one_line_exit_2(tmp_path, capsys, monkeypatch):
     assert f"tcp://127.0.0.1:{port}: unreachable" in err
 
 
+@pytest.mark.slow
 def test_optimize_finds_the_shortest_tube_that_keeps_the_range(client, tmp_path):
     """Only the tube length varies: resolution improves and range shrinks as it shortens, so the
     best feasible candidate is the shortest feasible one evaluated."""
