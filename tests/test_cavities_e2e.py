@@ -77,8 +77,9 @@ def e2e(tmp_path_factory):
     # the truth on the model's own mesh (scale 1, P1) is the model ``virtual run`` loaded: not meshed again
     from softphantom.virtual import truth as truth_module
 
-    def own_mesh(m, config):
-        assert (config.mesh_scale, config.order) == (1.0, 1) and m.design == model.design
+    def own_mesh(m, config):  # what truth_model would mesh is this very design
+        assert (config.mesh_scale, config.order) == (1.0, m.element_order) and m.design == model.design
+        assert m.design.mesh.scaled_to(m.design.mesh.size_mm) == m.design.mesh
         return m
 
     with contextlib.redirect_stdout(out), pytest.MonkeyPatch.context() as mp:
