@@ -7,7 +7,9 @@ values, SI units), each meshed once per test run by the first worker to need it 
 - ``coarse_p2_model``: ``coarse_model``'s mesh with 10-node tets (the same corner nodes and tets);
 - ``sharp_coarse_model``: the default design without the junction fillets, at 12 mm;
 - ``coarse_truth_p1``: the virtual phantom's truth mesh for ``coarse_model`` with linear tets
-  (``truth_model(coarse_model, TruthConfig(order=1))``, 9 mm).
+  (``truth_model(coarse_model, TruthConfig(order=1))``, 9 mm);
+- ``two_cavities_model`` and ``no_cavities_model``: tests/test_cavities.py's coarse designs with a
+  tumour balloon beside the urethra, and without any internal cavity (three test files read them).
 
 Under pytest-xdist (``make test``) the controller first compiles the numba kernels and meshes the
 models most tests use, in parallel processes, before the workers start: a fresh clone has no
@@ -100,7 +102,8 @@ def _model_fixture(key: str):
 
 # fixture name -> shared_models.MODELS key (the list in the docstring above)
 for _name, _key in {"default_model": "default", "coarse_model": "coarse", "coarse_p2_model": "coarse_p2",
-                    "sharp_coarse_model": "sharp_coarse", "coarse_truth_p1": "coarse_truth_p1"}.items():
+                    "sharp_coarse_model": "sharp_coarse", "coarse_truth_p1": "coarse_truth_p1",
+                    "two_cavities_model": "two_cavities", "no_cavities_model": "no_cavities"}.items():
     globals()[_name] = pytest.fixture(scope="session", name=_name)(_model_fixture(_key))
 
 
