@@ -65,6 +65,13 @@ def _cavities(which: str):
     return build
 
 
+def _five_arms(shared: Path):
+    from softphantom.design import build_model, design_from_dict
+    from test_arms_generic import FIVE
+
+    return build_model(design_from_dict(FIVE), COARSE_MESH_SIZE_MM, isolate=False)
+
+
 MODELS = {
     "default": _default,  # the default design at its default size (6 mm)
     "coarse": _coarse,  # the default design at 12 mm
@@ -73,6 +80,7 @@ MODELS = {
     "coarse_truth_p1": _coarse_truth_p1,  # the virtual phantom's linear truth mesh for coarse (9 mm)
     "two_cavities": _cavities("two"),  # test_cavities' design with a tumour balloon beside the urethra, 12 mm
     "no_cavities": _cavities("none"),  # the same without any internal cavity
+    "five_arms": _five_arms,  # tests/test_arms_generic.py's five-arm design, 12 mm
 }
 
 def model_dir(shared: Path, key: str) -> Path:
