@@ -34,7 +34,13 @@ def test_design_command_writes_model_report_and_png(tmp_path, capsys):
     obs = observability(model, loaded=False)
     assert [float(v) for v in rest[:4]] == pytest.approx(obs.rest.sv_mm3.tolist(), rel=5e-3)
     assert [float(v) for v in rest[5:8]] == pytest.approx(obs.rest.sv_force_mm3.tolist(), rel=5e-3)
-    assert "weakest force direction over the envelope" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "weakest force direction over the envelope" in printed
+    # on a pipe (this capture) it says what it is doing: the meshing's start, heartbeats, its end
+    printed = printed.splitlines()
+    start = next(i for i, ln in enumerate(printed) if re.fullmatch(r"meshing design '\w+' …", ln))
+    beats = sum(bool(re.fullmatch(r"meshing design '\w+' … [\d:]+", ln)) for ln in printed[start + 1:])
+    assert re.fullmatch(r"meshing design '\w+': done in [\d.]+ s", printed[start + 1 + beats]), printed[:5]
 
 
 @pytest.mark.slow
