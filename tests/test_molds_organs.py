@@ -76,7 +76,6 @@ def _rod_in_body_mm3(d, c) -> float:
     return math.pi * d.molds.core_rod_radius_mm**2 * (float(np.linalg.norm(inlet - start)) - lo)
 
 
-@pytest.mark.slow
 def test_each_internal_cavity_has_its_core_and_the_bulb_group_is_clean(bulb_group):
     name, d, parts = bulb_group
     assert d.internal_cavity_names == CORES[name]

@@ -25,7 +25,6 @@ def local_cluster():
         yield client
 
 
-@pytest.mark.slow
 def test_local_processes_keep_order_and_record_errors(local_cluster):
     seen = []
     out = map_tasks(local_cluster, _square, [(i,) for i in range(6)], on_result=seen.append)

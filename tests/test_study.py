@@ -60,7 +60,6 @@ def inproc(sweep_file, client, tmp_path_factory):
     return cfg, run.rows
 
 
-@pytest.mark.slow
 def test_invalid_variant_recorded_and_others_go_on(inproc):
     _, rows = inproc
     assert [r["status"] for r in rows] == ["ok", "invalid", "ok", "invalid"]
@@ -136,7 +135,6 @@ def test_range_is_where_a_transducer_reaches_its_rated_pressure(inproc, coarse_m
     assert rows[0]["range_min_N"] > 5 * r["range_min_N"]
 
 
-@pytest.mark.slow
 def test_cli_local_cluster_resumes_from_the_cache(sweep_file, inproc, client, tmp_path, capsys):
     out = tmp_path / "out"
     address = client.scheduler.address
@@ -224,7 +222,6 @@ def test_cli_bad_input_is_one_line_exit_2(tmp_path, capsys, monkeypatch):
     assert f"tcp://127.0.0.1:{port}: unreachable" in err
 
 
-@pytest.mark.slow
 def test_optimize_finds_the_shortest_tube_that_keeps_the_range(client, tmp_path):
     """Only the tube length varies: resolution improves and range shrinks as it shortens, so the
     best feasible candidate is the shortest feasible one evaluated."""
