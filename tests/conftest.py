@@ -7,7 +7,10 @@ values, SI units), each meshed once per test run by the first worker to need it 
 - ``coarse_p2_model``: ``coarse_model``'s mesh with 10-node tets (the same corner nodes and tets);
 - ``sharp_coarse_model``: the default design without the junction fillets, at 12 mm;
 - ``coarse_truth_p1``: the virtual phantom's truth mesh for ``coarse_model`` with linear tets
-  (``truth_model(coarse_model, TruthConfig(order=1))``, 9 mm).
+  (``truth_model(coarse_model, TruthConfig(order=1))``, 9 mm);
+- ``two_cavities_model`` and ``no_cavities_model``: tests/test_cavities.py's coarse designs with a
+  tumour balloon beside the urethra, and without any internal cavity (three test files read them);
+- ``five_arms_model``: tests/test_arms_generic.py's five-arm design at 12 mm, and ``five_arms_model_dir``.
 
 Under pytest-xdist (``make test``) the controller first compiles the numba kernels and meshes the
 models most tests use, in parallel processes, before the workers start: a fresh clone has no
@@ -100,7 +103,9 @@ def _model_fixture(key: str):
 
 # fixture name -> shared_models.MODELS key (the list in the docstring above)
 for _name, _key in {"default_model": "default", "coarse_model": "coarse", "coarse_p2_model": "coarse_p2",
-                    "sharp_coarse_model": "sharp_coarse", "coarse_truth_p1": "coarse_truth_p1"}.items():
+                    "sharp_coarse_model": "sharp_coarse", "coarse_truth_p1": "coarse_truth_p1",
+                    "two_cavities_model": "two_cavities", "no_cavities_model": "no_cavities",
+                    "five_arms_model": "five_arms"}.items():
     globals()[_name] = pytest.fixture(scope="session", name=_name)(_model_fixture(_key))
 
 
@@ -108,3 +113,9 @@ for _name, _key in {"default_model": "default", "coarse_model": "coarse", "coars
 def coarse_model_dir(shared_dir) -> Path:
     """The model directory of ``coarse_model`` (read only: other tests read it too)."""
     return model_dir(shared_dir, "coarse")
+
+
+@pytest.fixture(scope="session")
+def five_arms_model_dir(shared_dir) -> Path:
+    """The model directory of ``five_arms_model`` (read only)."""
+    return model_dir(shared_dir, "five_arms")

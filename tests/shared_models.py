@@ -52,12 +52,35 @@ def _coarse_truth_p1(shared: Path):
     return truth_model(cached_model(shared, "coarse"), TruthConfig(order=1))
 
 
+def _cavities(which: str):
+    """The coarse designs of tests/test_cavities.py: ``two`` internal cavities (the urethra and a
+    tumour balloon), or ``none``."""
+    def build(shared: Path):
+        from softphantom.design import build_model, design_from_dict
+        from test_cavities import COARSE, two_cavities
+
+        return build_model(design_from_dict(two_cavities() if which == "two" else {"cavities": {}, "mesh": COARSE}),
+                           isolate=False)
+
+    return build
+
+
+def _five_arms(shared: Path):
+    from softphantom.design import build_model, design_from_dict
+    from test_arms_generic import FIVE
+
+    return build_model(design_from_dict(FIVE), COARSE_MESH_SIZE_MM, isolate=False)
+
+
 MODELS = {
     "default": _default,  # the default design at its default size (6 mm)
     "coarse": _coarse,  # the default design at 12 mm
     "coarse_p2": _coarse_p2,  # the same with 10-node tets: its corner mesh is coarse's
     "sharp_coarse": _sharp_coarse,  # the default design without junction fillets, 12 mm
     "coarse_truth_p1": _coarse_truth_p1,  # the virtual phantom's linear truth mesh for coarse (9 mm)
+    "two_cavities": _cavities("two"),  # test_cavities' design with a tumour balloon beside the urethra, 12 mm
+    "no_cavities": _cavities("none"),  # the same without any internal cavity
+    "five_arms": _five_arms,  # tests/test_arms_generic.py's five-arm design, 12 mm
 }
 
 def model_dir(shared: Path, key: str) -> Path:

@@ -227,7 +227,6 @@ def test_stl_anatomy_end_to_end_through_the_cli(tmp_path, capsys):
 
 
 def test_bad_anatomy_is_one_line_exit_2(tmp_path, capsys):
-    data, affine = synthetic_labels()
     empty = np.zeros((20, 20, 8), np.int16)
     two = np.zeros((40, 20, 8), np.int16)
     two[2:10, 5:15, 2:6] = 1
@@ -267,6 +266,20 @@ def _zonal_anatomy(tmp_path, volume_mL, tilt_deg=0.0, surface_size_mm=6.0):
     return data, affine, semi, axes, a
 
 
+@pytest.fixture(scope="module")
+def zonal(tmp_path_factory):
+    """:func:`_zonal_anatomy` of a (volume, tilt), imported once per module (several tests read the
+    30 and 47 mL glands; the import is deterministic and its result frozen)."""
+    made: dict = {}
+
+    def get(volume_mL: float, tilt_deg: float = 0.0):
+        if (volume_mL, tilt_deg) not in made:
+            made[volume_mL, tilt_deg] = _zonal_anatomy(tmp_path_factory.mktemp("zonal"), volume_mL, tilt_deg)
+        return made[volume_mL, tilt_deg]
+
+    return get
+
+
 def test_zonal_gland_is_the_union_of_its_labels(tmp_path):
     """Labels 1 and 2 together are the gland: the voxel volume is theirs, and a label outside the
     gland (5, a detached blob) is left out, where without --gland-labels it is a second component."""
@@ -286,7 +299,7 @@ def test_zonal_gland_is_the_union_of_its_labels(tmp_path):
         anatomy_from_labels(data, affine, AnatomyOptions(gland_labels=(1, 2), urethra_label=2))
 
 
-def test_urethra_on_the_principal_axis_of_a_tilted_ellipsoid(tmp_path):
+def test_urethra_on_the_principal_axis_of_a_tilted_ellipsoid(zonal):
     """No urethra label: the urethra runs along the gland's S-I axis (tilted 15° towards anterior,
     the principal axis nearest the template's urethra axis) through its centre, inside it by more
     than the minimum wall, its inlet on the surface at the superior end; radius 4.5 mm × the cube
@@ -295,7 +308,7 @@ def test_urethra_on_the_principal_axis_of_a_tilted_ellipsoid(tmp_path):
     from softphantom.design.anatomy import part_scale
     from softphantom.design.params import MIN_WALL_MM
 
-    _, _, semi, axes, a = _zonal_anatomy(tmp_path, 45.0, tilt_deg=15.0)
+    _, _, semi, axes, a = zonal(45.0, tilt_deg=15.0)
     template = BIPDesign()
     d = design_from_anatomy(a, template)
     u = d.urethra
@@ -321,7 +334,7 @@ def test_urethra_on_the_principal_axis_of_a_tilted_ellipsoid(tmp_path):
 
 
 @pytest.mark.parametrize("volume_mL, mesh", [(30.0, True), (47.0, False), (60.0, False), (120.0, True)])
-def test_zonal_map_design_validates_meshes_and_solves(tmp_path, volume_mL, mesh):
+def test_zonal_map_design_validates_meshes_and_solves(zonal, volume_mL, mesh):
     """30-120 mL zonal maps at 0.6 × 0.6 × 4 mm, no urethra label: the template's parts scaled by
     the cube root of the volume ratio make a valid design (47 mL: the issue's gland, refused before
     with the template's parts). The smallest and the largest mesh (12 mm, P1) with every cavity and
@@ -330,7 +343,7 @@ def test_zonal_map_design_validates_meshes_and_solves(tmp_path, volume_mL, mesh)
     from softphantom.design.anatomy import part_scale
     from softphantom.fem import fem_from_phantom, force_actuator, solve_static
 
-    *_, a = _zonal_anatomy(tmp_path, volume_mL)
+    *_, a = zonal(volume_mL)
     template = BIPDesign()
     d = design_from_anatomy(a, template)
     s = part_scale(a, template)
@@ -354,13 +367,13 @@ def test_zonal_map_design_validates_meshes_and_solves(tmp_path, volume_mL, mesh)
     assert (sol.x - model.nodes)[:, 1].max() > 1e-4
 
 
-def test_part_that_cannot_be_made_valid_is_one_line_naming_the_fix(tmp_path):
+def test_part_that_cannot_be_made_valid_is_one_line_naming_the_fix(zonal):
     """A template whose off-centre point lies 32 mm from the on-centre one (the paper's bulb has
     room up to 39.8 mm at 45°, a 30 mL gland 27.6 mm): one line naming the field, the gland, the
     scale and the option that fixes it."""
     from softphantom.design.params import InteractionParams
 
-    *_, a = _zonal_anatomy(tmp_path, 30.0)
+    *_, a = zonal(30.0)
     far = BIPDesign(interaction=InteractionParams(offcentre_mm=32.0))
     with pytest.raises(DesignError) as exc:
         design_from_anatomy(a, far)
@@ -395,7 +408,7 @@ def test_zonal_map_through_the_cli(tmp_path, capsys):
         assert names in err and "\n" not in err and "Traceback" not in err, err
 
 
-def test_a_templates_contacts_and_other_cavities_follow_the_gland(tmp_path):
+def test_a_templates_contacts_and_other_cavities_follow_the_gland(zonal):
     """A template with a named contact and a tumour balloon on a 47 mL zonal map: the contact is
     projected onto the gland (on its surface, as the markers), the balloon scaled with it (its
     centre with the gland's extent, its volume by s³), and the design is valid; the template's
@@ -408,7 +421,7 @@ def test_a_templates_contacts_and_other_cavities_follow_the_gland(tmp_path):
 
     needle = [float(x) for x in geo.project_to_ellipsoid((0.7, -1.0, 0.3), AXES)]
     base = design_from_dict({"urethra": {}, "cavities": {"tumour": TUMOUR}, "contacts": {"needle": needle}})
-    *_, a = _zonal_anatomy(tmp_path, 47.0)
+    *_, a = zonal(47.0)
     d = design_from_anatomy(a, base)
     s = part_scale(a, base)
     assert d.internal_cavity_names == ("urethra", "tumour") and d.contact_names[-1] == "needle"
@@ -420,7 +433,7 @@ def test_a_templates_contacts_and_other_cavities_follow_the_gland(tmp_path):
     assert float(d.bulb.signed_distance(np.asarray(base.contacts[0][1])[None])[0]) > 1.0  # the template's: outside
 
 
-def test_the_urethra_is_left_out_on_request(tmp_path, gland):
+def test_the_urethra_is_left_out_on_request(zonal, gland):
     """``--urethra none`` (``urethra=False``): the 47 mL zonal gland without any urethra cavity (the
     template's dropped, its arms kept at their scaled embedding, none shortened for a urethra), which
     meshes without a urethra wall and solves a 1 N push; a label map with a urethra label is refused
@@ -428,7 +441,7 @@ def test_the_urethra_is_left_out_on_request(tmp_path, gland):
     from softphantom.design.anatomy import part_scale
     from softphantom.fem import fem_from_phantom, force_actuator, solve_static
 
-    *_, a = _zonal_anatomy(tmp_path, 47.0)
+    *_, a = zonal(47.0)
     d = design_from_anatomy(a, urethra=False)
     assert d.urethra is None and d.internal_cavity_names == () and d.cavity_names == d.arm_names
     s = part_scale(a, BIPDesign())

@@ -5,7 +5,6 @@ two cavities' pressures, and the refresh estimator with two known pressures."""
 from __future__ import annotations
 
 import dataclasses
-import functools
 
 import numpy as np
 import pytest
@@ -108,14 +107,9 @@ def test_refusals(data, match):
 
 # --- mesh and FEM -------------------------------------------------------------------------------
 
-@functools.cache
-def _model(which: str):
-    data = two_cavities() if which == "two" else {"cavities": {}, "mesh": COARSE}
-    return build_model(design_from_dict(data), isolate=False)
-
-
-def test_meshes_with_two_and_no_internal_cavities():
-    two, none = _model("two"), _model("none")
+def test_meshes_with_two_and_no_internal_cavities(two_cavities_model, no_cavities_model):
+    """(The two designs are meshed once per run: conftest's ``two_cavities_model`` and ``no_cavities_model``.)"""
+    two, none = two_cavities_model, no_cavities_model
     assert tuple(two.cavities) == two.design.cavity_names and tuple(none.cavities) == none.design.arm_names
     v = {k: two.cavity_volume(k) * 1e9 for k in two.cavities}
     # a sphere meshed with 18 segments around: an inscribed polyhedron, a few % low
@@ -126,10 +120,10 @@ def test_meshes_with_two_and_no_internal_cavities():
     assert two.bulb_volume() == pytest.approx(none.bulb_volume(), rel=0.02)
 
 
-def test_two_pressures_superpose():
+def test_two_pressures_superpose(two_cavities_model):
     from softphantom.fem import cavity_volume, fem_from_phantom, solve_static
 
-    fem = fem_from_phantom(_model("two"))
+    fem = fem_from_phantom(two_cavities_model)
     x0 = fem.x_rest
 
     def dv(p):
@@ -197,14 +191,14 @@ def test_pressurised_sphere_matches_the_thick_sphere():
 
 # --- estimation ---------------------------------------------------------------------------------
 
-def test_refresh_estimate_with_two_known_pressures():
+def test_refresh_estimate_with_two_known_pressures(two_cavities_model):
     """The truth: the equilibrium at a force and both pressures; the estimator, given the arm
     volumes and the two pressures, recovers the force (a Gauss–Newton fixed point on the volumes)."""
     from types import SimpleNamespace
 
     from softphantom.estimation import Estimator
 
-    model = _model("two")
+    model = two_cavities_model
     est = Estimator(model)
     assert est.pressure_names == ("urethra", "tumour") and est.arm_names == model.design.arm_names
     assert est.rest.W.shape == (4, 5)
@@ -224,13 +218,13 @@ def test_refresh_estimate_with_two_known_pressures():
     assert np.linalg.norm(wrong.force - truth[:3]) > 100 * np.linalg.norm(e.force - truth[:3])
 
 
-def test_atlas_refuses_other_cavities():
+def test_atlas_refuses_other_cavities(no_cavities_model):
     # two actuated cavities: a stack of atlases (tests/test_atlas_stack.py)
     from softphantom.errors import UserError
     from softphantom.estimation.select import open_estimator
 
     with pytest.raises(UserError, match=r"this design has 0: use --estimator refresh$"):
-        open_estimator("atlas", _model("none"))
+        open_estimator("atlas", no_cavities_model)
 
 
 @pytest.mark.slow
@@ -280,10 +274,10 @@ def test_the_molds_core_every_internal_cavity():
     assert float(np.min(d.urethra.signed_distance(cores[1].mesh.vertices))) > 1.0
 
 
-def test_observability_of_two_pressures():
+def test_observability_of_two_pressures(two_cavities_model):
     from softphantom.estimation.observability import observability, observability_md
 
-    obs = observability(_model("two"), loaded=False)
+    obs = observability(two_cavities_model, loaded=False)
     assert obs.ranges.shape == (5,) and obs.ranges[3] == obs.ranges[4]
     assert obs.rest.J.shape == (4, 5) and len(obs.rest.sv_mm3) == 4
     md = observability_md(obs)
@@ -302,7 +296,7 @@ def test_the_documented_example_is_valid():
     assert d.internal_cavity_names == ("urethra", "tumour", "channel")
 
 
-def test_simulate_takes_each_cavitys_pressure(tmp_path, capsys):
+def test_simulate_takes_each_cavitys_pressure(tmp_path, capsys, two_cavities_model):
     """``simulate --pressure-kPa tumour=0.2`` is the FEM's solve at 200 Pa in the tumour alone; a
     cavity the model lacks, a malformed value, or the urethra given twice is one line, exit 2."""
     import json
@@ -311,7 +305,7 @@ def test_simulate_takes_each_cavitys_pressure(tmp_path, capsys):
     from softphantom.design import save_model
     from softphantom.fem import cavity_volume, fem_from_phantom, solve_static
 
-    model = _model("two")
+    model = two_cavities_model
     save_model(model, tmp_path / "m")
     assert main(["simulate", "--model", str(tmp_path / "m"), "--pressure-kPa", "tumour=0.2", "--out",
                  str(tmp_path / "s")]) == 0

@@ -74,7 +74,16 @@ def e2e(tmp_path_factory):
     (base / "sc.toml").write_text(tomli_w.dumps(SCENARIO))
     run = base / "run"
     out = io.StringIO()
-    with contextlib.redirect_stdout(out):
+    # the truth on the model's own mesh (scale 1, P1) is the model ``virtual run`` loaded: not meshed again
+    from softphantom.virtual import truth as truth_module
+
+    def own_mesh(m, config):  # what truth_model would mesh is this very design
+        assert (config.mesh_scale, config.order) == (1.0, m.element_order) and m.design == model.design
+        assert m.design.mesh.scaled_to(m.design.mesh.size_mm) == m.design.mesh
+        return m
+
+    with contextlib.redirect_stdout(out), pytest.MonkeyPatch.context() as mp:
+        mp.setattr(truth_module, "truth_model", own_mesh)
         assert main(["virtual", "run", "--scenario", str(base / "sc.toml"), "--model", str(base / "model"),
                      "--out", str(run), "--truth-order", "1", "--truth-mesh-scale", "1", "--osr", "100"]) == 0
     est = base / "estimate.csv"

@@ -14,8 +14,6 @@ import pytest
 
 from softphantom.errors import UserError
 
-from test_cavities import _model
-
 PUSH_N = (0.3, 2.0, -0.2)
 P_TUMOUR_KPA = 20.0
 # a push, then the tumour balloon inflated (the refusals below take it apart)
@@ -28,9 +26,9 @@ PUSH_ONLY = {"name": "push", "duration_s": 3.0, "rest_s": 1.0, "push": TWO["push
 
 
 @pytest.fixture(scope="module")
-def models():
-    # test_cavities' cache: meshed once when both files run in one process
-    return {"two": _model("two"), "none": _model("none")}
+def models(two_cavities_model, no_cavities_model):
+    # test_cavities' designs, meshed once per run (conftest)
+    return {"two": two_cavities_model, "none": no_cavities_model}
 
 
 def _header(path) -> tuple[dict, list[str]]:

@@ -11,6 +11,7 @@ from softphantom.cli import main
 from softphantom.design import load_model
 
 
+@pytest.mark.slow
 def test_design_command_writes_model_report_and_png(tmp_path, capsys):
     out = tmp_path / "d"
     assert main(["design", "--out", str(out), "--mesh-size-mm", "12", "--element-order", "1"]) == 0  # the envelope table
@@ -33,9 +34,16 @@ def test_design_command_writes_model_report_and_png(tmp_path, capsys):
     obs = observability(model, loaded=False)
     assert [float(v) for v in rest[:4]] == pytest.approx(obs.rest.sv_mm3.tolist(), rel=5e-3)
     assert [float(v) for v in rest[5:8]] == pytest.approx(obs.rest.sv_force_mm3.tolist(), rel=5e-3)
-    assert "weakest force direction over the envelope" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "weakest force direction over the envelope" in printed
+    # on a pipe (this capture) it says what it is doing: the meshing's start, heartbeats, its end
+    printed = printed.splitlines()
+    start = next(i for i, ln in enumerate(printed) if re.fullmatch(r"meshing design '\w+' …", ln))
+    beats = sum(bool(re.fullmatch(r"meshing design '\w+' … [\d:]+", ln)) for ln in printed[start + 1:])
+    assert re.fullmatch(r"meshing design '\w+': done in [\d.]+ s", printed[start + 1 + beats]), printed[:5]
 
 
+@pytest.mark.slow
 def test_a_quadratic_design_checks_observability_at_rest_by_default(tmp_path):
     """``--observability auto``: the loaded states only for linear tets (a loaded solve of the
     quadratic default costs about 25 CPU-s); ``envelope`` asks for them on any model."""

@@ -546,14 +546,16 @@ FIVE = {"arm_names": ["front_zpos", "front_zneg", "back_xpos", "back_xneg", "top
 
 
 @pytest.fixture(scope="module")
-def five_model_dir(tmp_path_factory):
-    """The five-arm design of tests/test_arms_generic.py, meshed at 12 mm (linear) and saved."""
-    from softphantom.design import build_model, save_model
+def five_model_dir(five_arms_model_dir, five_arms_model):
+    """The five-arm design of tests/test_arms_generic.py, meshed at 12 mm (linear) once per run and
+    saved (conftest; read only)."""
+    import dataclasses
+
     from softphantom.design.params import design_from_dict
 
-    d = tmp_path_factory.mktemp("five") / "model"
-    save_model(build_model(design_from_dict(FIVE), 12.0, isolate=False), d)
-    return d
+    want = design_from_dict(FIVE)
+    assert five_arms_model.design == dataclasses.replace(want, mesh=want.mesh.scaled_to(12.0))
+    return five_arms_model_dir
 
 
 def _five_arm_estimate_file(path, targets) -> None:

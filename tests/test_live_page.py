@@ -163,6 +163,7 @@ def _show(src: ScriptedSource, page: Watched, est: Estimate, **kw) -> None:
     page.wait(f"S.lastSeq > {seq} && !S.dirty && !S.textDirty")
 
 
+@pytest.mark.slow
 def test_page_states_by_pixels(browser, coarse_model, tmp_path):
     geo = LiveGeometry.from_model(coarse_model)
     src = ScriptedSource(geo)

@@ -109,6 +109,7 @@ def test_default_design_is_observable(coarse_model, forward):
     assert layout_problem(obs) == "" and layout_warnings(obs) == []
 
 
+@pytest.mark.slow
 def test_coplanar_arms_are_refused_unless_forced(tmp_path, capsys):
     """All arms and the contact point in z = 0: f_z is seen only through the mesh's asymmetry;
     `design` refuses it in one line naming the arms, exit 2, nothing written; --force keeps it

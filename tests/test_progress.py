@@ -176,14 +176,7 @@ def test_quiet_and_verbose_set_the_level_and_a_bad_level_is_one_line(capsys, mon
     assert main(["-q", "version"]) == 0 and "softphantom" in capsys.readouterr().out
 
 
-def test_design_on_a_pipe_says_what_it_is_doing(tmp_path, capsys):
-    from softphantom.cli import main
-
-    assert main(["design", "--out", str(tmp_path / "m"), "--mesh-size-mm", "12", "--element-order", "1", "--no-png"]) == 0
-    printed = capsys.readouterr().out.splitlines()
-    start = next(i for i, ln in enumerate(printed) if re.fullmatch(r"meshing design '\w+' …", ln))
-    beats = sum(bool(re.fullmatch(r"meshing design '\w+' … [\d:]+", ln)) for ln in printed[start + 1:])
-    assert re.fullmatch(r"meshing design '\w+': done in [\d.]+ s", printed[start + 1 + beats]), printed[:5]
+# `design` on a pipe says what it is doing (its meshing's lines): tests/test_design_cli.py, on its run
 
 
 def test_forward_progress_hands_this_threads_steps_to_the_sink_whatever_the_level():

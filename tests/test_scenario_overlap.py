@@ -19,7 +19,6 @@ from softphantom.fem import cavity_volume, fem_from_phantom, force_actuator, pro
 from softphantom.virtual import ScenarioError, TruthConfig, load_scenario, scenario_from_dict
 from softphantom.virtual import truth as truth_mod
 from softphantom.virtual.truth import _patch_radius, pchip_rows, solve_truth, truth_laws
-from test_cavities import _model
 
 P_KPA = 40.0
 FORCE_N = [0.3, 3.0, -0.3]
@@ -37,9 +36,9 @@ LEVELS = 3
 
 
 @pytest.fixture(scope="module")
-def solved():
+def solved(two_cavities_model):
     """(scenario, model, truth, Newton solves the truth took)."""
-    model = _model("two")
+    model = two_cavities_model
     sc = scenario_from_dict(SCENARIO, "overlap.toml")
     calls = []
 

@@ -168,6 +168,7 @@ def test_cli_local_cluster_resumes_from_the_cache(sweep_file, inproc, client, tm
     assert rows_equal(rows, read_parquet(out / "results.parquet"), TIMING_COLUMNS) == []
 
 
+@pytest.mark.slow
 def test_cli_on_a_separately_started_scheduler_and_worker(sweep_file, inproc, tmp_path):
     dask = Path(sys.executable).with_name("dask")
     sched_file = tmp_path / "scheduler.json"
