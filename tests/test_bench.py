@@ -226,10 +226,11 @@ def test_new_board_announced_by_an_info_frame_alone_is_retared():
 
 
 def test_virtual_phantom_uses_the_same_bench(coarse_model):
+    from softphantom.cli.options import VirtualOptions
     from softphantom.cli.virtual import _config
     from softphantom.virtual.run import host_bench, host_chain
 
-    cfg = _config(0, 25, 0.75, {"tube_length_m": 3.0, "tube_id_mm": 1.0})
+    cfg = _config(VirtualOptions(tube_length_m=3.0, tube_id_mm=1.0))
     assert (cfg.board.tube_length_m, cfg.board.tube_id_m) == (3.0, pytest.approx(1.0e-3))
     hb = host_bench(coarse_model, cfg.board)
     assert hb.same_as(BenchConfig.from_model(coarse_model, tube_length_m=3.0, tube_id_m=1.0e-3))

@@ -78,3 +78,35 @@ def test_workers_below_one_is_one_line_wherever_it_is_taken(tmp_path, capsys):
         assert main(argv) == 2, argv
         err = capsys.readouterr().err.strip()
         assert err.count("\n") == 0 and "--workers must be >= " in err, err
+
+
+def test_an_option_group_is_one_declaration_with_each_commands_defaults(monkeypatch):
+    """virtual run, virtual serve and demo take the truth's options from one group (demo: OSR 100),
+    and the command is called with the group's instance made of the parsed options."""
+    import softphantom.cli.virtual as cv
+    from softphantom.cli.options import TruthOptions, VirtualOptions
+
+    _register()
+    root = typer.main.get_command(app)
+    defaults = {name: {p.name: p.default for p in cmd.params}
+                for name, cmd in (("run", root.commands["virtual"].commands["run"]),
+                                  ("serve", root.commands["virtual"].commands["serve"]),
+                                  ("demo", root.commands["demo"]))}
+    for name in ("run", "serve"):
+        assert {f: defaults[name][f] for f in VirtualOptions.__dataclass_fields__} == {
+            "seed": 0, "osr": 25, "truth_mesh_scale": 0.75, "truth_order": 2, "tube_length_m": None,
+            "tube_id_mm": None, "board": "python", "mcu": "uno"}
+    assert {f: defaults["demo"][f] for f in TruthOptions.__dataclass_fields__} == {
+        "seed": 0, "osr": 100, "truth_mesh_scale": 0.75, "truth_order": 2}
+    assert "board" not in defaults["demo"]
+
+    got = []
+
+    def fake_simulate(scenario, model_dir, opts):
+        got.append(opts)
+        raise SystemExit(3)
+
+    monkeypatch.setattr(cv, "_simulate", fake_simulate)
+    main(["virtual", "run", "--scenario", "push-on-centre", "--model", "m", "--out", "o-never", "--osr", "7",
+          "--tube-id-mm", "1.5", "--mcu", "mega"])
+    assert got == [VirtualOptions(osr=7, tube_id_mm=1.5, mcu="mega")]

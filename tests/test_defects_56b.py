@@ -60,13 +60,19 @@ def client():
         yield c
 
 
-def test_sweep_where_every_variant_is_invalid_exits_2_and_writes_nothing(client, tmp_path, capsys):
-    cfg = tmp_path / "bad.toml"
-    cfg.write_text('[sweep]\nmethod = "grid"\n[fixed]\nmesh_size_mm = 12.0\n'
-                   '[parameters]\n"arms.*.wall_mm" = { values = [7.0, 8.0] }\n')
+def _sweep(client, tmp_path, extra: str, walls_mm: tuple[float, float]) -> tuple[int, Path]:
+    """Run a grid sweep over both walls of every arm on ``client``: its exit code and --out."""
+    cfg = tmp_path / "s.toml"
+    cfg.write_text(f'[sweep]\nmethod = "grid"\n[fixed]\nmesh_size_mm = 12.0\n{extra}'
+                   f'[parameters]\n"arms.*.wall_mm" = {{ values = {list(walls_mm)} }}\n')
     out = tmp_path / "o"
-    assert main(["sweep", "--config", str(cfg), "--out", str(out), "--scheduler", client.scheduler.address,
-                 "--no-progress"]) == 2
+    return main(["sweep", "--config", str(cfg), "--out", str(out), "--scheduler", client.scheduler.address,
+                 "--no-progress"]), out
+
+
+def test_sweep_where_every_variant_is_invalid_exits_2_and_writes_nothing(client, tmp_path, capsys):
+    code, out = _sweep(client, tmp_path, "", (7.0, 8.0))
+    assert code == 2
     cap = capsys.readouterr()
     err = cap.err.strip()
     assert err.count("\n") == 0 and "all 2 variants are invalid" in err, err
@@ -75,12 +81,8 @@ def test_sweep_where_every_variant_is_invalid_exits_2_and_writes_nothing(client,
 
 
 def test_sweep_with_one_valid_variant_still_exits_0(client, tmp_path, capsys):
-    cfg = tmp_path / "mixed.toml"
-    cfg.write_text('[sweep]\nmethod = "grid"\n[fixed]\nmesh_size_mm = 12.0\n[evaluate]\ndirections = ["zneg"]\n'
-                   '[parameters]\n"arms.*.wall_mm" = { values = [2.5, 7.0] }\n')
-    out = tmp_path / "o"
-    assert main(["sweep", "--config", str(cfg), "--out", str(out), "--scheduler", client.scheduler.address,
-                 "--no-progress"]) == 0
+    code, out = _sweep(client, tmp_path, '[evaluate]\ndirections = ["zneg"]\n', (2.5, 7.0))
+    assert code == 0
     assert "1 ok, 1 invalid or failed" in capsys.readouterr().out.replace("\n", " ")
     assert (out / "results.parquet").is_file()
 
@@ -145,7 +147,11 @@ def test_a_body_without_markers_is_asked_for_its_own_not_blamed_for_the_prostate
     assert "markers.m1" not in msg
     data = _kidney()
     del data["targets"]
-    assert "give [targets]" in _refused(data)
+    assert _refused(data) == ("targets: none given, and the default (the prostate's) seed_mid is inside the "
+                              "collecting_system cavity: give [targets], named points inside your body, outside its "
+                              "cavities (NAME = [x, y, z] mm)")
+    data["targets"] = {"t": [10.0, 0.0, 0.0]}  # the collecting system's centre
+    assert _refused(data).startswith("targets.t is inside the collecting_system cavity (")
 
 
 def test_snap_to_surface_puts_markers_contacts_and_inlets_on_the_body(caplog):

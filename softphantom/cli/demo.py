@@ -4,14 +4,15 @@ the pipeline itself is :mod:`softphantom.virtual.demo`."""
 from __future__ import annotations
 
 import time
+from dataclasses import asdict
 from pathlib import Path
 
 import typer
 
 from softphantom.cli.app import app, console
-from softphantom.cli.options import (AtlasGrid, DraftAtlas, Estimator, Force, MeshSizeMm, ModelDir, Osr, Out, Overwrite, Scheduler,
-                                     Seed, TruthMeshScale, TruthOrder, Workers, check_output, check_workers,
-                                     staged_output)
+from softphantom.cli.options import (AtlasGrid, DraftAtlas, Estimator, Force, MeshSizeMm, ModelDir, Out, Overwrite,
+                                     Scheduler, TruthOptions, VirtualOptions, Workers, check_output, check_workers,
+                                     staged_output, with_option_groups)
 from softphantom.errors import UserError
 from softphantom.progress import status
 
@@ -91,16 +92,14 @@ def _atlas_note(r: dict) -> str:
 
 
 @app.command("demo")
+@with_option_groups
 def demo_cmd(
     out: Out = Path("out/demo"),
     mesh_size_mm: MeshSizeMm = None,
     scenarios: list[str] = typer.Option(None, "--scenarios", help="Scenario names or TOML files (repeat; default: the "
                                         "paper's four bundled ones, whose atlases ship: on-centre full, off-centre a "
                                         "draft until `softphantom atlas build --at off-centre` builds the full one)."),
-    seed: Seed = 0,
-    osr: Osr = 100,
-    truth_mesh_scale: TruthMeshScale = 0.75,
-    truth_order: TruthOrder = 2,
+    truth: TruthOptions = TruthOptions(osr=100),
     force: Force = False,
     model_dir: ModelDir = None,
     design_file: Path = typer.Option(None, "--design", help="A design file (TOML/JSON) instead of the default "
@@ -140,7 +139,7 @@ def demo_cmd(
     t0 = time.perf_counter()
     check_output(out, overwrite=overwrite, directory=True)
     scs = [load_scenario(n) for n in scenarios] if scenarios else None  # all validated before the long work
-    cfg = _config(seed, osr, truth_mesh_scale, order=truth_order)
+    cfg = _config(VirtualOptions(**asdict(truth)))
     if mesh_size_mm is not None and not mesh_size_mm > 0:
         raise UserError(f"--mesh-size-mm: must be > 0, got {mesh_size_mm:g}")
     if model_dir is not None and mesh_size_mm is not None:

@@ -24,7 +24,9 @@ that means different things in different commands is listed in :data:`FLAGS_OF_S
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import functools
+import inspect
 import math
 import os
 import shutil
@@ -32,7 +34,7 @@ import signal
 import threading
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Annotated, Any, NoReturn, Optional
+from typing import Annotated, Any, NoReturn, Optional, get_type_hints
 
 import typer
 
@@ -195,6 +197,62 @@ Force = Annotated[bool, typer.Option(
 NatnetVersion = Annotated[Optional[str], typer.Option(
     "--natnet-version", help="NatNet version, 3.0 or 4.1: the one virtual serve speaks, or the one evaluate "
     "reads a capture without the server's info reply as.")]
+
+
+@dataclasses.dataclass(frozen=True)
+class TruthOptions:
+    """The virtual truth's options (demo, virtual run, virtual serve): the draws' seed, the board's
+    oversampling, the truth's mesh and element order."""
+
+    seed: Seed = 0
+    osr: Osr = 25
+    truth_mesh_scale: TruthMeshScale = 0.75
+    truth_order: TruthOrder = 2
+
+
+@dataclasses.dataclass(frozen=True)
+class VirtualOptions(TruthOptions):
+    """:class:`TruthOptions` and the virtual board's (virtual run, virtual serve): its tubes (None:
+    the paper's), its kind and the Arduino it emulates."""
+
+    tube_length_m: TubeLengthM = None
+    tube_id_mm: TubeIdMm = None
+    board: Board = "python"
+    mcu: Mcu = "uno"
+
+
+def with_option_groups(command: Any) -> Any:
+    """Let ``command`` take option groups: a parameter annotated with a dataclass of option aliases
+    (``virtual: VirtualOptions = VirtualOptions(osr=100)``) stands, in the command line, for the
+    group's fields in their order, each with the given instance's value as its default; the command
+    is called with the instance they make. Apply below ``@app.command``."""
+    hints = get_type_hints(command, include_extras=True)
+    params: list[inspect.Parameter] = []
+    groups: dict[str, tuple[type, tuple[str, ...]]] = {}
+    for p in inspect.signature(command).parameters.values():
+        cls = hints.get(p.name)
+        if not (isinstance(cls, type) and dataclasses.is_dataclass(cls)):
+            params.append(p.replace(annotation=hints.get(p.name, p.annotation)))
+            continue
+        given = cls() if p.default is p.empty else p.default
+        fields = get_type_hints(cls, include_extras=True)
+        names = tuple(f.name for f in dataclasses.fields(cls))
+        groups[p.name] = (cls, names)
+        params += [inspect.Parameter(n, p.kind, annotation=fields[n], default=getattr(given, n)) for n in names]
+    flat = [p.name for p in params]
+    if len(set(flat)) != len(flat):
+        raise TypeError(f"{command.__name__}: an option group's field has the name of another parameter")
+
+    @functools.wraps(command)
+    def run(**kwargs: Any) -> Any:
+        for name, (cls, names) in groups.items():
+            kwargs[name] = cls(**{n: kwargs.pop(n) for n in names})
+        return command(**kwargs)
+
+    run.__signature__ = inspect.Signature(params)  # type: ignore[attr-defined]
+    run.__annotations__ = {p.name: p.annotation for p in params}
+    return run
+
 
 FLAGS_OF_SEVERAL_MEANINGS = {
     "--config": "design: a design file; sweep: a sweep file",

@@ -7,58 +7,53 @@ from pathlib import Path
 import typer
 
 from softphantom.cli.app import app, console
-from softphantom.cli.options import (AllowRemote, Board, Mcu, ModelDir, NatnetVersion, Osr, Out, Overwrite, Scenario,
-                                     Seed, Speed, TruthMeshScale, TruthOrder, TubeIdMm, TubeLengthM, check_output,
-                                     staged_output, stopped)
+from softphantom.cli.options import (AllowRemote, ModelDir, NatnetVersion, Out, Overwrite, Scenario, Speed,
+                                     VirtualOptions, check_output, staged_output, stopped, with_option_groups)
 from softphantom.errors import UserError
 
 virtual_app = typer.Typer(help="Virtual phantom: scripted scenarios → sensor frames + tracker stream.",
                           no_args_is_help=True)
 app.add_typer(virtual_app, name="virtual")
 
-def _config(seed: int, osr: int, mesh_scale: float, bench_options: dict | None = None, order: int | None = None,
-            board: str = "python", mcu: str = "uno"):
-    """The run's settings; ``bench_options`` (``tube_length_m``, ``tube_id_mm``; None = the
-    paper's) set the tubes of both the virtual board's physics and the host's chain; ``order`` the
-    truth's element order (None: TruthConfig's, 2); ``mcu`` the Arduino of ``board`` "firmware"."""
+def _config(opts: VirtualOptions):
+    """The run's settings; ``opts``' tubes (None: the paper's) set both the virtual board's physics
+    and the host's chain; its ``mcu`` is the Arduino of board "firmware"."""
     from dataclasses import replace
 
     from softphantom.sensing.bench import BenchConfig
     from softphantom.virtual import VirtualConfig
 
-    if seed < 0:
-        raise UserError(f"--seed: must be >= 0, got {seed}")
-    if not 0.2 <= mesh_scale <= 1.0:
-        raise UserError(f"--truth-mesh-scale: must be in [0.2, 1] (finer than the model), got {mesh_scale:g}")
-    if order is not None and order not in (1, 2):
-        raise UserError(f"--truth-order: must be 1 or 2, got {order}")
-    cfg = VirtualConfig.seeded(seed=seed, osr=osr, mesh_scale=mesh_scale, board_kind=board,
-                               **({} if order is None else {"order": order}))
-    b = BenchConfig.from_options(**(bench_options or {}))
-    return replace(cfg, board=replace(cfg.board, tube_length_m=b.tube_length_m, tube_id_m=b.tube_id_m, mcu=mcu))
+    if opts.seed < 0:
+        raise UserError(f"--seed: must be >= 0, got {opts.seed}")
+    if not 0.2 <= opts.truth_mesh_scale <= 1.0:
+        raise UserError(f"--truth-mesh-scale: must be in [0.2, 1] (finer than the model), got {opts.truth_mesh_scale:g}")
+    if opts.truth_order not in (1, 2):
+        raise UserError(f"--truth-order: must be 1 or 2, got {opts.truth_order}")
+    cfg = VirtualConfig.seeded(seed=opts.seed, osr=opts.osr, mesh_scale=opts.truth_mesh_scale, board_kind=opts.board,
+                               order=opts.truth_order)
+    b = BenchConfig.from_options(tube_length_m=opts.tube_length_m, tube_id_mm=opts.tube_id_mm)
+    return replace(cfg, board=replace(cfg.board, tube_length_m=b.tube_length_m, tube_id_m=b.tube_id_m, mcu=opts.mcu))
 
 
-def _simulate(scenario: str, model_dir: Path, seed: int, osr: int, mesh_scale: float,
-              bench_options: dict | None = None, order: int | None = None, board: str = "python",
-              mcu: str = "uno"):
+def _simulate(scenario: str, model_dir: Path, opts: VirtualOptions):
     """Load the scenario and the model, solve the truth (its progress logged): the VirtualRun."""
     from softphantom.design import load_model
     from softphantom.virtual import load_scenario, simulate
 
     sc = load_scenario(scenario)
-    cfg = _config(seed, osr, mesh_scale, bench_options, order, board, mcu)
-    if board == "firmware":  # the emulator's absence named first
+    cfg = _config(opts)
+    if opts.board == "firmware":  # the emulator's absence named first
         from softphantom.virtual.firmware_sim import SimavrMissing, simavr_missing
 
         if why := simavr_missing():
             raise SimavrMissing(why)
     model = load_model(model_dir)
-    if board == "firmware":  # before the truth's solve: the board's inputs checked, the emulator built
+    if opts.board == "firmware":  # before the truth's solve: the board's inputs checked, the emulator built
         from softphantom.virtual.firmware_sim import build
 
         cav = tuple(getattr(model.design, "pressure_names", ("urethra",)))
         volume = getattr(model.design, "sensing_names", None) or model.design.arm_names  # arms, measured cavities
-        build(n_channels=len(volume) + len(cav), board=mcu, cavity_names=cav)
+        build(n_channels=len(volume) + len(cav), board=opts.mcu, cavity_names=cav)
     return simulate(sc, model, cfg)
 
 
@@ -89,19 +84,13 @@ def _print_summary(summary: dict) -> None:
 
 
 @virtual_app.command("run")
+@with_option_groups
 def run_cmd(
     scenario: Scenario = ...,
     model_dir: ModelDir = ...,
     out: Out = ...,
-    seed: Seed = 0,
-    osr: Osr = 25,
-    truth_mesh_scale: TruthMeshScale = 0.75,
-    truth_order: TruthOrder = 2,
-    tube_length_m: TubeLengthM = None,
-    tube_id_mm: TubeIdMm = None,
+    virtual: VirtualOptions = VirtualOptions(),
     overwrite: Overwrite = False,
-    board: Board = "python",
-    mcu: Mcu = "uno",
 ) -> None:
     """Simulate a scenario on --model (the truth: its design, meshed finer) and write into the directory
     --out the board's frames (frames.bin), a recording (recording.csv), the tracker's Motive CSV
@@ -109,8 +98,7 @@ def run_cmd(
     from softphantom.virtual import run_summary, write_run
 
     check_output(out, overwrite=overwrite, directory=True)
-    run = _simulate(scenario, model_dir, seed, osr, truth_mesh_scale,
-                    dict(tube_length_m=tube_length_m, tube_id_mm=tube_id_mm), truth_order, board, mcu)
+    run = _simulate(scenario, model_dir, virtual)
     with staged_output(out, overwrite=overwrite, directory=True) as work:
         paths = write_run(run, work)
     _print_summary(run_summary(run))
@@ -119,15 +107,11 @@ def run_cmd(
 
 
 @virtual_app.command("serve")
+@with_option_groups
 def serve_cmd(
     scenario: Scenario = ...,
     model_dir: ModelDir = ...,
-    seed: Seed = 0,
-    osr: Osr = 25,
-    truth_mesh_scale: TruthMeshScale = 0.75,
-    truth_order: TruthOrder = 2,
-    tube_length_m: TubeLengthM = None,
-    tube_id_mm: TubeIdMm = None,
+    virtual: VirtualOptions = VirtualOptions(),
     speed: Speed = 1.0,
     once: bool = typer.Option(False, "--once", help="Stop at the end of the scenario (default: keep streaming the rest state)."),
     natnet: bool = typer.Option(False, "--natnet", help="Also serve the tracker as a NatNet server (softphantom track --natnet HOST)."),
@@ -135,8 +119,6 @@ def serve_cmd(
     natnet_port: int = typer.Option(1510, "--natnet-port", help="NatNet command port (data go to each client that connects)."),
     natnet_version: NatnetVersion = "4.1",
     allow_remote: AllowRemote = False,
-    board: Board = "python",
-    mcu: Mcu = "uno",
 ) -> None:
     """Serve the scenario's frames on a pty as the board would: prints the port path to use. --osr is
     the board's initial one (the host may change it with SET_OSR); --allow-remote lets --natnet-host
@@ -151,8 +133,7 @@ def serve_cmd(
         raise UserError(f"--natnet-port must be in 0..65535, got {natnet_port}")
     if natnet:
         _check_natnet(natnet_host, natnet_version, allow_remote)
-    run = _simulate(scenario, model_dir, seed, osr, truth_mesh_scale,
-                    dict(tube_length_m=tube_length_m, tube_id_mm=tube_id_mm), truth_order, board, mcu)
+    run = _simulate(scenario, model_dir, virtual)
     stop_natnet = _start_natnet(run, natnet_host, natnet_port, natnet_version, speed) if natnet else None
     sc = run.scenario
     master, slave, path = open_pty()

@@ -358,20 +358,19 @@ def _check_targets(d: BIPDesign, sdist) -> None:
     own_targets = d.targets != _default_targets()
     for name, xyz in d.targets:
         sd = float(sdist([xyz])[0])
-        if sd >= 0.0:
-            if not own_targets:
-                raise DesignError(f"targets: none given, and the default (the prostate's) {name} is outside this "
-                                  f"body ({_fmt(sd)} mm beyond its surface): give [targets], named points inside "
-                                  "your body (NAME = [x, y, z] mm)")
-            raise DesignError(f"targets.{name} is outside the bulb ({_fmt(sd)} mm beyond its surface)")
+        # (where it is, what the user gives instead): the first place a target may not be
+        wrong = [] if sd < 0.0 else [(f"is outside the bulb ({_fmt(sd)} mm beyond its surface)",
+                                      f"is outside this body ({_fmt(sd)} mm beyond its surface)", "")]
         for u in d.cavities:
             inside = -float(u.signed_distance([xyz])[0])
             if inside >= 0.0:
-                if not own_targets:
-                    raise DesignError(f"targets: none given, and the default (the prostate's) {name} is inside the "
-                                      f"{u.name} cavity: give [targets], named points inside your body, outside its "
-                                      "cavities (NAME = [x, y, z] mm)")
-                raise DesignError(f"targets.{name} is inside the {u.name} cavity ({_fmt(inside)} mm from its wall)")
+                wrong.append((f"is inside the {u.name} cavity ({_fmt(inside)} mm from its wall)",
+                              f"is inside the {u.name} cavity", ", outside its cavities"))
+        if wrong and own_targets:
+            raise DesignError(f"targets.{name} {wrong[0][0]}")
+        if wrong:
+            raise DesignError(f"targets: none given, and the default (the prostate's) {name} {wrong[0][1]}: give "
+                              f"[targets], named points inside your body{wrong[0][2]} (NAME = [x, y, z] mm)")
 
 
 def _check_contacts(d: BIPDesign, sdist, geoms) -> None:
