@@ -177,6 +177,7 @@ def test_with_draft_a_missing_atlas_is_built_as_the_draft_and_a_shipped_draft_is
     import softphantom.estimation.atlas.config as config_mod
     import softphantom.parallel as parallel_mod
     from softphantom.estimation.atlas.catalogue import find_or_build
+    from softphantom.estimation.atlas.check import find_or_build_measured
 
     acfg, at = draft
     fwd = ForwardModel(coarse_model, CFG)
@@ -191,12 +192,12 @@ def test_with_draft_a_missing_atlas_is_built_as_the_draft_and_a_shipped_draft_is
         find_or_build(coarse_model, CFG, model_dir=tmp_path, fwd=fwd, max_build_s=0.0)
     assert "give --draft here" in str(exc.value) and not built
     with pytest.raises(DraftRefused):
-        find_or_build(coarse_model, CFG, model_dir=tmp_path, fwd=fwd, max_build_s=0.0, draft=True, require_full=True)
+        find_or_build_measured(coarse_model, CFG, model_dir=tmp_path, fwd=fwd, max_build_s=0.0, require_full=True)
 
-    got = find_or_build(coarse_model, CFG, model_dir=tmp_path, fwd=fwd, max_build_s=0.0, draft=True)
+    got = find_or_build_measured(coarse_model, CFG, model_dir=tmp_path, fwd=fwd, max_build_s=0.0)
     assert built == [(at.key,)] and measured == [1]
     assert got.atlas.draft and got.keys == (at.key,) and got.atlas.provenance["held_out"] == held
-    again = find_or_build(coarse_model, CFG, model_dir=tmp_path, fwd=fwd, max_build_s=0.0, draft=True)
+    again = find_or_build_measured(coarse_model, CFG, model_dir=tmp_path, fwd=fwd, max_build_s=0.0)
     assert [p.origin for p in again.pieces] == ["model"] and measured == [1]  # its error kept, not measured again
 
     shipped = atlas_path(tmp_path, at.key)

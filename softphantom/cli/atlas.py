@@ -98,8 +98,7 @@ def build_cmd(
 
 def _measure_draft(model, cfg, found, model_dir: Path, scheduler, workers) -> None:
     """A draft's held-out error: measured once (kept in each piece's file), printed every time."""
-    from softphantom.estimation.atlas.catalogue import measure_draft
-    from softphantom.estimation.atlas.check import draft_error_text
+    from softphantom.estimation.atlas.check import draft_error_text, measure_draft
     from softphantom.progress import status
 
     with status("draft atlas: held-out full solves", console):

@@ -39,8 +39,15 @@ def open_estimator(kind: str, model, config: EstimatorConfig | None = None, *, c
         from softphantom.estimation.estimator import Estimator
 
         return Estimator(model, config)
+    from softphantom.estimation.atlas.config import AtlasConfig
     from softphantom.estimation.atlas.estimator import AtlasEstimator
 
+    if draft and (atlas is None or isinstance(atlas, AtlasConfig)):  # a draft built here is measured first
+        from softphantom.estimation.atlas.check import find_or_build_measured
+
+        atlas = find_or_build_measured(model, config or EstimatorConfig(), atlas, model_dir=cache_dir,
+                                       scheduler=scheduler, n_workers=n_workers, max_build_s=max_build_s,
+                                       require_full=require_full)
     return AtlasEstimator(model, config, atlas, cache_dir=cache_dir, scheduler=scheduler, n_workers=n_workers,
                           max_build_s=max_build_s, require_full=require_full, draft=draft)
 

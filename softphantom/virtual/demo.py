@@ -372,11 +372,13 @@ def model_atlases(scs, model, atlas_dir: Path | None, scheduler: str | None = No
     ``draft``, the model's draft atlas is built there instead)."""
     from softphantom.estimation.atlas.build import MAX_BUILD_ON_THE_FLY_S
     from softphantom.estimation.atlas.catalogue import find_or_build
+    from softphantom.estimation.atlas.check import find_or_build_measured
 
+    find = find_or_build_measured if draft else find_or_build
     found = {}
     for c in dict.fromkeys(contact_of(sc) for sc in scs):
-        found[c] = f = find_or_build(model, EstimatorConfig(contact=c, mode="sync"), None, model_dir=atlas_dir,
-                                     scheduler=scheduler, max_build_s=MAX_BUILD_ON_THE_FLY_S, draft=draft)
+        found[c] = f = find(model, EstimatorConfig(contact=c, mode="sync"), None, model_dir=atlas_dir,
+                            scheduler=scheduler, max_build_s=MAX_BUILD_ON_THE_FLY_S)
         log.info(f"{c}: {f.describe()}")
     return found
 

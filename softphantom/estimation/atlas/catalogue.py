@@ -167,8 +167,8 @@ def find_or_build(model, config: EstimatorConfig | None = None, acfg: AtlasConfi
     :func:`~softphantom.estimation.atlas.config.draft_atlas_config`) is in ``model_dir`` or ships
     with the package, the draft is used (a warning says so) unless ``require_full``, which refuses a
     draft in one line (:class:`~softphantom.estimation.atlas.build.DraftRefused`). With ``draft``,
-    a missing draft is built then (whatever it costs: the user asked for it) and its held-out
-    error measured (:func:`measure_draft`)."""
+    a missing draft is built then (whatever it costs: the user asked for it); its held-out error
+    is :func:`~softphantom.estimation.atlas.check.find_or_build_measured`'s."""
     from softphantom.estimation.atlas import build as B
     from softphantom.estimation.atlas.tasks import check_partials, discard_tasks
 
@@ -220,12 +220,8 @@ def find_or_build(model, config: EstimatorConfig | None = None, acfg: AtlasConfi
         if have or (draft and model_dir is not None):
             log.warning(f"atlas: using a draft atlas at {c} (no full atlas for this model and contact yet: "
                         f"`softphantom atlas build --model {model_dir}{at}` builds it)")
-            got = find_or_build(model, cfg, dcfg, model_dir=model_dir, fwd=fwd, scheduler=scheduler,
-                                n_workers=n_workers)
-            if draft and (_pieces(got.atlas)[0].provenance or {}).get("held_out") is None:
-                measure_draft(model, cfg, got, model_dir, scheduler, n_workers)
-                got = find_or_build(model, cfg, dcfg, model_dir=model_dir, fwd=fwd)  # as saved, its error with it
-            return got
+            return find_or_build(model, cfg, dcfg, model_dir=model_dir, fwd=fwd, scheduler=scheduler,
+                                 n_workers=n_workers)
     if missing:
         if max_build_s is not None:
             nodes = len(_mesh_nodes(model))
@@ -265,30 +261,6 @@ def find_or_build(model, config: EstimatorConfig | None = None, acfg: AtlasConfi
             found[p] = at
             pieces[p] = Piece(at.key, path, "built")
     return Found(regroup(acfg, found), tuple(pieces[p] for p in range(len(subs))))
-
-
-def measure_draft(model, config: EstimatorConfig, found: Found, model_dir, scheduler: str | None = None,
-                  n_workers: int | None = None) -> dict:
-    """A draft atlas's held-out error (:func:`~softphantom.estimation.atlas.check.check_draft`):
-    measured once on Dask and kept in each of its files in ``model_dir`` (``provenance["held_out"]``),
-    read from there after; returned."""
-    from softphantom.estimation.atlas.check import check_draft
-    from softphantom.parallel import dask_client
-
-    pieces = _pieces(found.atlas)
-    held = (pieces[0].provenance or {}).get("held_out")
-    if held is None:
-        log.info("draft atlas: its held-out error (full solves)")
-        with dask_client(scheduler, n_workers) as client:
-            held = check_draft(model, config, found.atlas, client=client)
-        for piece in pieces:
-            save_atlas(replace(piece, provenance={**(piece.provenance or {}), "held_out": held}),
-                       atlas_path(model_dir, piece.key))
-    return held
-
-
-def _pieces(atlas) -> tuple[Atlas, ...]:
-    return tuple(getattr(atlas, "all_pieces", None) or getattr(atlas, "patches", None) or (atlas,))
 
 
 def load_or_build(model, config: EstimatorConfig | None = None, atlas: AtlasConfig | None = None, *,

@@ -189,3 +189,40 @@ def check_draft(model, config: EstimatorConfig, atlas, *, n: int = DRAFT_LOADS, 
     return {"loads": int(len(res.loads)), "skipped": int(res.skipped), "failed": len(res.failed), "seed": int(seed),
             "worst": {k: round(v, 5) for k, v in res.worst().items()},
             "p90": {k: round(v, 5) for k, v in res.p90().items()}}
+
+
+def measure_draft(model, config: EstimatorConfig, found, model_dir, scheduler: str | None = None,
+                  n_workers: int | None = None) -> dict:
+    """A draft atlas's held-out error (:func:`check_draft`) of ``found`` (a catalogue
+    :class:`~softphantom.estimation.atlas.catalogue.Found`): measured once on Dask and kept in each
+    of its files in ``model_dir`` (``provenance["held_out"]``), read from there after; returned."""
+    from dataclasses import replace
+
+    from softphantom.estimation.atlas.store import atlas_path, save_atlas
+    from softphantom.parallel import dask_client
+
+    at = found.atlas
+    pieces = tuple(getattr(at, "all_pieces", None) or getattr(at, "patches", None) or (at,))
+    held = (pieces[0].provenance or {}).get("held_out")
+    if held is None:
+        with dask_client(scheduler, n_workers) as client:
+            held = check_draft(model, config, at, client=client)
+        for piece in pieces:
+            save_atlas(replace(piece, provenance={**(piece.provenance or {}), "held_out": held}),
+                       atlas_path(model_dir, piece.key))
+    return held
+
+
+def find_or_build_measured(model, config: EstimatorConfig, acfg=None, **kw):
+    """:func:`~softphantom.estimation.atlas.catalogue.find_or_build` with ``draft``: a draft it
+    builds (no full atlas anywhere) gets its held-out error measured (:func:`measure_draft`) before
+    it is returned, as ``estimate --draft`` and ``demo --draft`` promise."""
+    from softphantom.estimation.atlas.catalogue import find_or_build
+
+    found = find_or_build(model, config, acfg, draft=True, **kw)
+    at, model_dir = found.atlas, kw.get("model_dir")
+    first = (getattr(at, "all_pieces", None) or getattr(at, "patches", None) or (at,))[0]
+    if at.draft and model_dir is not None and (first.provenance or {}).get("held_out") is None:
+        measure_draft(model, config, found, model_dir, kw.get("scheduler"), kw.get("n_workers"))
+        found = find_or_build(model, config, acfg, draft=True, **kw)  # as saved, its error with it
+    return found
