@@ -149,11 +149,9 @@ class EstimateSession:
         """The line that says a draft atlas is in use, its measured error and how to build the full one."""
         if not self.draft:
             return None
-        from softphantom.estimation.atlas.check import draft_error_text
+        from softphantom.estimation.atlas.check import draft_error_text, draft_held_out
 
-        atlas = self.est.atlas
-        first = getattr(atlas, "all_pieces", None) or getattr(atlas, "patches", None) or (atlas,)
-        held = (first[0].provenance or {}).get("held_out")
+        held = draft_held_out(self.est.atlas)
         return (f"draft atlas: {draft_error_text(held) if held else 'its error not measured'}; the full one: "
                 f"softphantom atlas build --model {self.model_dir}")
 

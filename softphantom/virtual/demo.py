@@ -322,8 +322,9 @@ def _atlas_row(atlas, est_path: Path) -> dict:
              "levels": len(c.levels())} if c.stacked else {}
     draft = {}
     if getattr(c, "draft", False):
-        first = getattr(atlas, "all_pieces", None) or getattr(atlas, "patches", None) or (atlas,)
-        draft = {"draft": True, "held_out": (getattr(first[0], "provenance", None) or {}).get("held_out")}
+        from softphantom.estimation.atlas.check import draft_held_out
+
+        draft = {"draft": True, "held_out": draft_held_out(atlas)}
     return {"force_min_N": c.force_min_N, "force_max_N": c.force_max_N, "p_min_kPa": c.p_min_kPa,
             "p_max_kPa": c.p_max_kPa, "grid": c.shape, "pieces": len(c.patches()), **stack, **draft,
             "in_envelope_fraction": in_envelope_fraction(est_path)}

@@ -191,6 +191,14 @@ def check_draft(model, config: EstimatorConfig, atlas, *, n: int = DRAFT_LOADS, 
             "p90": {k: round(v, 5) for k, v in res.p90().items()}}
 
 
+def draft_held_out(atlas) -> dict | None:
+    """A draft atlas's held-out error as its files keep it (:func:`measure_draft`), else None (also
+    for an atlas's config, not built yet)."""
+    from softphantom.estimation.atlas.map import pieces_of
+
+    return (getattr(pieces_of(atlas)[0], "provenance", None) or {}).get("held_out")
+
+
 def measure_draft(model, config: EstimatorConfig, found, model_dir, scheduler: str | None = None,
                   n_workers: int | None = None) -> dict:
     """A draft atlas's held-out error (:func:`check_draft`) of ``found`` (a catalogue
@@ -201,9 +209,11 @@ def measure_draft(model, config: EstimatorConfig, found, model_dir, scheduler: s
     from softphantom.estimation.atlas.store import atlas_path, save_atlas
     from softphantom.parallel import dask_client
 
+    from softphantom.estimation.atlas.map import pieces_of
+
     at = found.atlas
-    pieces = tuple(getattr(at, "all_pieces", None) or getattr(at, "patches", None) or (at,))
-    held = (pieces[0].provenance or {}).get("held_out")
+    pieces = pieces_of(at)
+    held = draft_held_out(at)
     if held is None:
         with dask_client(scheduler, n_workers) as client:
             held = check_draft(model, config, at, client=client)
@@ -221,8 +231,7 @@ def find_or_build_measured(model, config: EstimatorConfig, acfg=None, **kw):
 
     found = find_or_build(model, config, acfg, draft=True, **kw)
     at, model_dir = found.atlas, kw.get("model_dir")
-    first = (getattr(at, "all_pieces", None) or getattr(at, "patches", None) or (at,))[0]
-    if at.draft and model_dir is not None and (first.provenance or {}).get("held_out") is None:
+    if at.draft and model_dir is not None and draft_held_out(at) is None:
         measure_draft(model, config, found, model_dir, kw.get("scheduler"), kw.get("n_workers"))
         found = find_or_build(model, config, acfg, draft=True, **kw)  # as saved, its error with it
     return found

@@ -571,6 +571,11 @@ class AtlasStack:
         return np.r_[self.piece_at(k, p[1:]).coords(force, float(p[0]), tol_N), p[1:]]
 
 
+def pieces_of(atlas) -> tuple[Atlas, ...]:
+    """The ordinary atlases an Atlas, AtlasPatches or AtlasStack is made of (its files, one each)."""
+    return tuple(getattr(atlas, "all_pieces", None) or getattr(atlas, "patches", None) or (atlas,))
+
+
 def regroup(acfg: AtlasConfig, found: dict):
     """The atlas of ``acfg`` from its pieces (``found``: index in ``acfg.pieces()`` → Atlas): an
     Atlas, an AtlasPatches, or a stack of either (:class:`AtlasStack`)."""
